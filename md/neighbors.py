@@ -1,0 +1,212 @@
+"""Verlet neighbour lists built from cell lists."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+
+from md._cell_kernels import _bin_atoms, _brute_force_pairs, _cell_pairs, _max_displacement2
+from md.box import periodic_lengths
+from md.state import State
+
+logger = logging.getLogger(__name__)
+
+#: Most cells per atom the grid may have (sparse or open systems get wider cells).
+_MAX_CELLS_PER_ATOM = 4
+
+
+class NonFiniteError(FloatingPointError):
+    """A coordinate or energy became NaN or infinite."""
+
+
+class NeighborList:
+    """Half Verlet list with a skin, built by cell search and rebuilt on displacement.
+
+    The list holds every pair closer than ``cutoff + skin`` at the last build.
+    :meth:`update` rebuilds it when any particle has moved more than
+    ``skin / 2`` since then, or when the box, periodicity or particle count
+    changed; until then no pair can have come within ``cutoff`` unseen.
+
+    Cells are at least ``cutoff + skin`` wide and atoms are grouped by a
+    counting sort (no per-cell capacity). When a periodic axis has room for
+    fewer than three cells, the O(N^2) search is used instead.
+
+    Parameters
+    ----------
+    cutoff : float
+        Interaction cutoff [length]; twice it must be shorter than every
+        periodic box edge (the minimum-image convention).
+    skin : float
+        Extra list radius [length], >= 0.
+
+    Attributes
+    ----------
+    starts : ndarray of int64, shape (N + 1,)
+        CSR row offsets into ``neighbors``.
+    neighbors : ndarray of int32, shape (P,)
+        ``neighbors[starts[i]:starts[i + 1]]`` are the partners of atom i;
+        every pair within ``cutoff + skin`` appears exactly once, under
+        either of its atoms (the O(N^2) search puts it under the lower index).
+    n_builds : int
+        Number of builds so far.
+
+    Examples
+    --------
+    >>> from md.build import lattice
+    >>> s = lattice("fcc", 4, density=0.8442)
+    >>> nl = NeighborList(cutoff=2.5, skin=0.3)
+    >>> nl.update(s)
+    True
+    >>> nl.update(s)
+    False
+    """
+
+    def __init__(self, cutoff: float, skin: float = 0.3) -> None:
+        if not (np.isfinite(cutoff) and cutoff > 0):
+            raise ValueError(f"neighbour list cutoff must be positive and finite, got {cutoff}")
+        if not (np.isfinite(skin) and skin >= 0):
+            raise ValueError(f"skin must be >= 0 and finite, got {skin}")
+        self.cutoff = float(cutoff)
+        self.skin = float(skin)
+        self.starts = np.zeros(1, dtype=np.int64)
+        self.neighbors = np.zeros(0, dtype=np.int32)
+        self.n_builds = 0
+        self.used_cells = False
+        self._buffer = np.zeros(1024, dtype=np.int32)
+        self._reference: NDArray[np.float64] | None = None
+        self._box: NDArray[np.float64] | None = None
+        self._pbc: NDArray[np.bool_] | None = None
+
+    @property
+    def list_radius(self) -> float:
+        return self.cutoff + self.skin
+
+    @property
+    def n_pairs(self) -> int:
+        return int(self.starts[-1])
+
+    def check_box(self, box: NDArray[np.float64], pbc: NDArray[np.bool_]) -> None:
+        """Raise ValueError if the cutoff breaks the minimum-image convention."""
+        too_short = pbc & (box <= 2.0 * self.cutoff)
+        if np.any(too_short):
+            axis = "xyz"[int(np.argmax(too_short))]
+            raise ValueError(
+                f"cutoff {self.cutoff:g} is too long for the box: the periodic edge "
+                f"along {axis} is {box[np.argmax(too_short)]:g}, and the minimum-image "
+                f"convention needs every periodic edge longer than 2 * cutoff = "
+                f"{2 * self.cutoff:g}"
+            )
+
+    def needs_rebuild(self, state: State) -> bool:
+        """Return True if the list no longer covers every pair within the cutoff."""
+        if (
+            self._reference is None
+            or self._reference.shape != state.positions.shape
+            or not np.array_equal(self._box, state.box)
+            or not np.array_equal(self._pbc, state.pbc)
+        ):
+            return True
+        moved2 = _max_displacement2(state.positions, self._reference)
+        if not np.isfinite(moved2):
+            raise NonFiniteError("particle positions are not finite")
+        return moved2 > (0.5 * self.skin) ** 2
+
+    def update(self, state: State) -> bool:
+        """Rebuild the list if needed; return True if it was rebuilt."""
+        if not self.needs_rebuild(state):
+            return False
+        self.build(state)
+        return True
+
+    def build(self, state: State) -> None:
+        """Build the list from scratch for ``state``."""
+        if not np.all(np.isfinite(state.positions)):
+            raise NonFiniteError("particle positions are not finite")
+        self.check_box(state.box, state.pbc)
+        positions = state.positions
+        n = positions.shape[0]
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        r2_max = self.list_radius**2
+        starts = np.zeros(n + 1, dtype=np.int64)
+        grid = self._grid(state)
+        self.used_cells = grid is not None
+        while True:
+            if grid is None:
+                count = _brute_force_pairs(
+                    positions, lengths, inverse, r2_max, starts, self._buffer
+                )
+            else:
+                origin, width, n_cells = grid
+                cell_of = np.empty(n, dtype=np.int64)
+                cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
+                order = np.empty(n, dtype=np.int64)
+                sorted_wrapped = np.empty((n, 3))
+                _bin_atoms(
+                    positions,
+                    origin,
+                    width,
+                    n_cells,
+                    state.pbc,
+                    state.box,
+                    cell_of,
+                    cell_starts,
+                    order,
+                    sorted_wrapped,
+                )
+                count = _cell_pairs(
+                    sorted_wrapped,
+                    r2_max,
+                    n_cells,
+                    state.pbc,
+                    state.box,
+                    cell_of,
+                    cell_starts,
+                    order,
+                    starts,
+                    self._buffer,
+                )
+            if count <= self._buffer.shape[0]:
+                break
+            self._buffer = np.empty(int(count * 1.25) + 1024, dtype=np.int32)
+        self.starts = starts
+        self.neighbors = self._buffer[:count]
+        self._reference = positions.copy()
+        self._box = state.box.copy()
+        self._pbc = state.pbc.copy()
+        self.n_builds += 1
+
+    def pairs(self) -> NDArray[np.int64]:
+        """Return the listed pairs as a sorted (P, 2) array of (i, j) with i < j."""
+        rows = np.repeat(np.arange(len(self.starts) - 1), np.diff(self.starts))
+        cols = self.neighbors.astype(np.int64)
+        pairs = np.stack([np.minimum(rows, cols), np.maximum(rows, cols)], axis=1)
+        return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+    def _grid(self, state: State):
+        """Return (origin, width, n_cells) of the cell grid, or None for O(N^2) search."""
+        n = state.n_atoms
+        if n < 2:
+            return None
+        radius = self.list_radius
+        origin = np.zeros(3)
+        extent = state.box.astype(float).copy()
+        open_axes = ~state.pbc
+        if np.any(open_axes):
+            low = state.positions[:, open_axes].min(axis=0)
+            high = state.positions[:, open_axes].max(axis=0)
+            origin[open_axes] = low
+            extent[open_axes] = np.maximum(high - low, radius)
+        n_cells = np.maximum(np.floor(extent / radius).astype(np.int64), 1)
+        if np.any(state.pbc & (n_cells < 3)):
+            return None
+        max_cells = _MAX_CELLS_PER_ATOM * n + 27
+        while np.prod(n_cells) > max_cells:
+            # Wider cells are still correct; shrink the busiest axis.
+            axis = int(np.argmax(n_cells))
+            n_cells[axis] = max(n_cells[axis] // 2, 3 if state.pbc[axis] else 1)
+            if np.prod(n_cells) > max_cells and np.all(n_cells <= np.where(state.pbc, 3, 1)):
+                break
+        width = extent / n_cells
+        return origin, width, n_cells
