@@ -97,6 +97,52 @@ class LennardJones:
             [self.default_cutoff] + [p["cutoff"] for p in self.pairs.values() if "cutoff" in p]
         )
 
+    @classmethod
+    def from_config(cls, params: Mapping, type_names: Sequence[str]) -> LennardJones:
+        """Build from a config table; per-type values are keyed by type name.
+
+        Keys: ``epsilon``, ``sigma`` (a number, or a table ``{name = value}``
+        covering every type), ``cutoff``, ``cutoff_mode``, ``r_on``,
+        ``mixing``, and ``pairs``, a list of tables
+        ``{types = [name, name], epsilon, sigma, cutoff, r_on}``.
+        """
+        params = dict(params)
+        allowed = {"epsilon", "sigma", "cutoff", "cutoff_mode", "r_on", "mixing", "pairs"}
+        unknown = set(params) - allowed
+        if unknown:
+            raise ValueError(f"unknown key(s): {', '.join(sorted(unknown))}")
+        index = {name: i for i, name in enumerate(type_names)}
+        for key in ("epsilon", "sigma"):
+            value = params.get(key)
+            if isinstance(value, Mapping):
+                missing = [name for name in type_names if name not in value]
+                extra = [name for name in value if name not in index]
+                if missing or extra:
+                    raise ValueError(
+                        f"{key}: give one value per type {list(type_names)}"
+                        + (f"; missing {missing}" if missing else "")
+                        + (f"; unknown types {extra}" if extra else "")
+                    )
+                params[key] = [value[name] for name in type_names]
+        pairs = {}
+        for number, entry in enumerate(params.pop("pairs", None) or []):
+            if not isinstance(entry, Mapping) or "types" not in entry:
+                raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
+            entry = dict(entry)
+            names = entry.pop("types")
+            if not isinstance(names, list) or len(names) != 2 or any(n not in index for n in names):
+                raise ValueError(
+                    f"pairs[{number}].types must name two of the types {list(type_names)}, "
+                    f"got {names!r}"
+                )
+            pairs[(index[names[0]], index[names[1]])] = entry
+        for key in ("epsilon", "sigma", "cutoff", "r_on"):
+            value = params.get(key)
+            values = value if isinstance(value, list) else [value]
+            if any(isinstance(v, bool) or not isinstance(v, int | float | None) for v in values):
+                raise ValueError(f"{key}: expected a number, got {value!r}")
+        return cls(**params, pairs=pairs)
+
     # ------------------------------------------------------------------ tables
     def pair_parameters(self, ti: int, tj: int) -> dict[str, float]:
         """Return epsilon, sigma, cutoff and r_on for the type pair (ti, tj)."""

@@ -1,0 +1,367 @@
+"""Run configuration: TOML read into small dataclasses, validated before anything runs.
+
+Every problem is reported as a :class:`ConfigError` naming the file, the key
+and the offending value. Names resolve through ``POTENTIALS`` and
+``INTEGRATORS``; physical quantities are converted from the config's unit
+system (``lj`` or ``metal``, where times are in fs) into engine units here.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+from md.units import UNIT_SYSTEMS, UnitSystem
+
+
+class ConfigError(ValueError):
+    """An invalid configuration: the message names the file, key and value."""
+
+
+_MISSING = object()
+
+
+class _Table:
+    """A TOML table being consumed key by key; leftovers are unknown keys."""
+
+    def __init__(self, data: Any, where: str, source: str) -> None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: [{where}] must be a table, got {type(data).__name__}")
+        self.data = dict(data)
+        self.where = where
+        self.source = source
+
+    def error(self, key: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {self._name(key)}: {message}")
+
+    def _name(self, key: str) -> str:
+        return f"[{self.where}] {key}" if self.where else key
+
+    def take(self, key: str, default: Any = _MISSING) -> Any:
+        if key not in self.data:
+            if default is _MISSING:
+                raise ConfigError(f"{self.source}: missing required key {self._name(key)}")
+            return default
+        return self.data.pop(key)
+
+    def number(self, key, default=_MISSING, positive=False, minimum=None) -> float:
+        value = self.take(key, default)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise self.error(key, f"must be finite, got {value!r}")
+        if positive and not value > 0:
+            raise self.error(key, f"must be positive, got {value!r}")
+        if minimum is not None and value < minimum:
+            raise self.error(key, f"must be >= {minimum}, got {value!r}")
+        return float(value)
+
+    def integer(self, key, default=_MISSING, minimum=None) -> int:
+        value = self.take(key, default)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(key, f"expected an integer, got {value!r}")
+        if minimum is not None and value < minimum:
+            raise self.error(key, f"must be >= {minimum}, got {value!r}")
+        return int(value)
+
+    def string(self, key, default=_MISSING, choices=None) -> str:
+        value = self.take(key, default)
+        if value is None:
+            return None
+        if not isinstance(value, str):
+            raise self.error(key, f"expected a string, got {value!r}")
+        if choices is not None and value not in choices:
+            raise self.error(key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
+        return value
+
+    def boolean(self, key, default=_MISSING) -> bool:
+        value = self.take(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f"expected true or false, got {value!r}")
+        return value
+
+    def triple(self, key, default, kind) -> tuple:
+        """A value given once for all axes or as a list of three."""
+        value = self.take(key, default)
+        values = value if isinstance(value, list) else [value] * 3
+        if len(values) != 3 or not all(_is_kind(v, kind) for v in values):
+            raise self.error(key, f"expected {kind.__name__} or a list of three, got {value!r}")
+        return tuple(values)
+
+    def finish(self) -> None:
+        if self.data:
+            unknown = ", ".join(sorted(self.data))
+            raise ConfigError(f"{self.source}: unknown key(s) in {self._where()}: {unknown}")
+
+    def _where(self) -> str:
+        return f"[{self.where}]" if self.where else "the top level"
+
+
+def _is_kind(value, kind) -> bool:
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+@dataclass
+class SystemConfig:
+    """What to simulate: a lattice or a structure file, and initial velocities."""
+
+    lattice: str | None = None
+    cells: tuple[int, int, int] = (1, 1, 1)
+    density: float | None = None
+    lattice_constant: float | None = None
+    structure: Path | None = None
+    mass: float | None = None
+    type_name: str = "A"
+    pbc: tuple[bool, bool, bool] | None = None
+    temperature: float | None = None
+
+
+@dataclass
+class RunConfig:
+    steps: int = 1000
+    skin: float = 0.3
+    thermo_every: int = 100
+
+
+@dataclass
+class OutputConfig:
+    path: Path = Path("trajectory.h5")
+    every: int = 100
+    velocities: bool = False
+    forces: bool = False
+
+
+@dataclass
+class Config:
+    """A validated run configuration (engine units, objects not yet built)."""
+
+    source: str
+    text: str
+    units: UnitSystem
+    seed: int | None
+    system: SystemConfig
+    potentials: list[dict]
+    integrator: dict
+    run: RunConfig
+    output: OutputConfig
+    raw: dict = field(default_factory=dict)
+
+
+def load_config(path) -> Config:
+    """Read and validate a TOML config file.
+
+    Raises
+    ------
+    ConfigError
+        For a missing or unreadable file, invalid TOML, unknown keys, missing
+        or wrongly typed values; the message names the file and key.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read config file ({error})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: invalid TOML ({error})") from None
+    return parse_config(data, source=str(path), text=text, base=path.parent)
+
+
+def parse_config(data: dict, source: str = "<config>", text: str = "", base=".") -> Config:
+    """Validate a config already parsed into a dict (see :func:`load_config`)."""
+    from integrators import INTEGRATORS
+    from potentials import POTENTIALS
+
+    top = _Table(data, "", source)
+    units = UNIT_SYSTEMS[top.string("units", "lj", choices=tuple(UNIT_SYSTEMS))]
+    seed = top.integer("seed", None, minimum=0)
+    system = _parse_system(_Table(top.take("system"), "system", source), Path(base))
+
+    raw_potentials = top.take("potentials")
+    if not isinstance(raw_potentials, list) or not raw_potentials:
+        raise ConfigError(
+            f"{source}: potentials must be a non-empty array of tables ([[potentials]])"
+        )
+    potentials = []
+    for index, entry in enumerate(raw_potentials):
+        table = _Table(entry, f"potentials.{index}", source)
+        kind = table.string("type", choices=tuple(POTENTIALS))
+        potentials.append({"type": kind, **table.data})
+
+    table = _Table(top.take("integrator"), "integrator", source)
+    kind = table.string("type", choices=tuple(INTEGRATORS))
+    dt = table.number("dt", positive=True) * units.config_time
+    integrator = {"type": kind, "dt": dt, **table.data}
+
+    table = _Table(top.take("run", {}), "run", source)
+    run = RunConfig(
+        steps=table.integer("steps", RunConfig.steps, minimum=0),
+        skin=table.number("skin", RunConfig.skin, minimum=0.0),
+        thermo_every=table.integer("thermo_every", RunConfig.thermo_every, minimum=1),
+    )
+    table.finish()
+
+    table = _Table(top.take("output", {}), "output", source)
+    output = OutputConfig(
+        path=Path(table.string("path", str(OutputConfig.path))),
+        every=table.integer("every", OutputConfig.every, minimum=1),
+        velocities=table.boolean("velocities", False),
+        forces=table.boolean("forces", False),
+    )
+    table.finish()
+    top.finish()
+    return Config(
+        source=source, text=text, units=units, seed=seed, system=system,
+        potentials=potentials, integrator=integrator, run=run, output=output, raw=data,
+    )
+
+
+def _parse_system(table: _Table, base: Path) -> SystemConfig:
+    lattice = table.string("lattice", None, choices=("sc", "bcc", "fcc"))
+    structure = table.string("structure", None)
+    if (lattice is None) == (structure is None):
+        raise ConfigError(
+            f"{table.source}: [system] needs exactly one of 'lattice' and 'structure'"
+        )
+    system = SystemConfig(lattice=lattice)
+    if lattice is not None:
+        cells = table.triple("cells", _MISSING, int)
+        if any(c < 1 for c in cells):
+            raise table.error("cells", f"must be positive integers, got {list(cells)}")
+        system.cells = cells
+        system.density = table.number("density", None, positive=True)
+        system.lattice_constant = table.number("lattice_constant", None, positive=True)
+        if (system.density is None) == (system.lattice_constant is None):
+            raise ConfigError(
+                f"{table.source}: [system] a lattice needs exactly one of 'density' and "
+                "'lattice_constant'"
+            )
+        system.type_name = table.string("type_name", "A")
+    else:
+        system.structure = (base / structure) if not Path(structure).is_absolute() else Path(
+            structure
+        )
+        if not system.structure.is_file():
+            raise table.error("structure", f"file not found: {system.structure}")
+    system.mass = table.number("mass", None, positive=True)
+    pbc = table.take("pbc", None)
+    if pbc is not None:
+        table.data["pbc"] = pbc
+        system.pbc = table.triple("pbc", _MISSING, bool)
+    system.temperature = table.number("temperature", None, minimum=0.0)
+    table.finish()
+    return system
+
+
+def potential_from_config(entry: dict, type_names, source: str, index: int):
+    """Build a potential from its config table (type names resolved to indices)."""
+    from potentials import POTENTIALS
+
+    params = dict(entry)
+    kind = params.pop("type")
+    where = f"{source}: [potentials.{index}] ({kind})"
+    try:
+        return POTENTIALS[kind].from_config(params, tuple(type_names))
+    except (ValueError, TypeError) as error:
+        raise ConfigError(f"{where}: {error}") from None
+
+
+def integrator_from_config(entry: dict, source: str):
+    """Build the integrator from its config table (dt already in engine units)."""
+    from integrators import INTEGRATORS
+
+    params = dict(entry)
+    kind = params.pop("type")
+    try:
+        return INTEGRATORS[kind](**params)
+    except TypeError as error:
+        raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
+    except ValueError as error:
+        raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
+
+
+def build_state(config: Config):
+    """Build the initial State described by ``config.system`` (engine units)."""
+    from md.build import lattice, maxwell_boltzmann
+    from md.state import State
+
+    system = config.system
+    where = f"{config.source}: [system]"
+    try:
+        if system.lattice is not None:
+            state = lattice(
+                system.lattice,
+                system.cells,
+                density=system.density,
+                lattice_constant=system.lattice_constant,
+                mass=system.mass if system.mass is not None else 1.0,
+                pbc=system.pbc if system.pbc is not None else True,
+                type_name=system.type_name,
+            )
+        else:
+            state = _read_structure(system.structure, where)
+            if system.mass is not None:
+                state.masses[:] = system.mass
+            if system.pbc is not None:
+                state.pbc[:] = system.pbc
+            state.validate()
+        if system.temperature is not None:
+            maxwell_boltzmann(state, system.temperature, seed=config.seed, kB=config.units.kB)
+    except ValueError as error:
+        raise ConfigError(f"{where}: {error}") from None
+    if state.n_atoms == 0:
+        raise ConfigError(f"{where}: the system has no atoms")
+    return state
+
+
+def _read_structure(path: Path, where: str):
+    import ase.io
+
+    from md.state import State
+
+    try:
+        atoms = ase.io.read(path)
+    except Exception as error:  # ase.io raises many types for unreadable files
+        raise ConfigError(f"{where} structure: cannot read {path} ({error})") from None
+    if isinstance(atoms, list):
+        atoms = atoms[-1]
+    try:
+        return State.from_ase(atoms)
+    except ValueError as error:
+        raise ConfigError(f"{where} structure {path}: {error}") from None
+
+
+def describe(config: Config) -> dict:
+    """Plain-data summary of the config for trajectory metadata."""
+    return {
+        "units": config.units.name,
+        "seed": config.seed,
+        "run": {"steps": config.run.steps, "skin": config.run.skin},
+        "integrator": {k: v for k, v in config.integrator.items()},
+    }
+
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "build_state",
+    "integrator_from_config",
+    "load_config",
+    "parse_config",
+    "potential_from_config",
+]

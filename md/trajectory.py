@@ -1,0 +1,421 @@
+"""Trajectories in HDF5 following the H5MD 1.1 layout (h5py), readable by MDAnalysis.
+
+Layout written (the intersection of the H5MD specification and what
+MDAnalysis's H5MD reader needs)::
+
+    h5md/                      version [1, 1]; author/ and creator/ groups
+    particles/trajectory/
+        box/                   dimension = 3, boundary = periodic|none per axis
+            edges/{step,time,value (F, 3)}
+        position/{step,time,value (F, N, 3)}   wrapped into the box
+        image/{step,time,value (F, N, 3)}      int32 periodic images
+        velocity/{step,time,value}             optional
+        force/{step,time,value}                optional
+        species (N,) int32, mass (N,) float64  time-independent
+    observables/
+        potential_energy, kinetic_energy, total_energy, temperature,
+        pressure: {step,time,value (F,)}
+    parameters/                attributes describing the run (units, config,
+                               potentials, integrator, seed, version, ...)
+
+``step`` and ``time`` are stored once, under ``position``, and hard-linked
+into every other time-dependent element, so all elements share one frame
+axis. Datasets are resizable and chunked one frame at a time, and the file is
+flushed after every frame, so a killed run leaves a readable file.
+Positions are continuous inside the engine; the file holds them wrapped into
+the box together with their images, so ``position + image * edges`` unwraps
+exactly (to round-off).
+
+Units: metal runs carry H5MD unit strings MDAnalysis understands
+(``Angstrom``, ``ps``, ``Angstrom ps-1``, ``kJ mol-1 Angstrom-1``); forces
+and times are converted at this edge. Reduced LJ runs carry no unit
+attributes, so MDAnalysis must open them with ``convert_units=False``, which
+:func:`open_trajectory` does.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+from numpy.typing import NDArray
+
+from md.box import wrap
+from md.state import State
+from md.units import UnitSystem, get_units
+
+H5MD_VERSION = (1, 1)
+OBSERVABLES = ("potential_energy", "kinetic_energy", "total_energy", "temperature", "pressure")
+_OBSERVABLE_UNITS = {
+    "potential_energy": "energy",
+    "kinetic_energy": "energy",
+    "total_energy": "energy",
+    "temperature": "temperature",
+    "pressure": "pressure",
+}
+
+
+class TrajectoryError(ValueError):
+    """A file is not a trajectory this package can read (names the file and what is wrong)."""
+
+
+class H5MDWriter:
+    """Write frames of a simulation to an H5MD file; an observer and a context manager.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file. An existing file is only replaced with ``overwrite=True``.
+    state : State
+        The system, for the atom count, masses, types and periodicity.
+    units : {"lj", "metal"} or UnitSystem
+        Unit system of the run; decides the unit attributes and conversions.
+    velocities, forces : bool
+        Also store velocities and forces on every frame.
+    parameters : dict, optional
+        Run description stored as attributes of ``/parameters`` (strings,
+        numbers; dicts and lists are stored as JSON strings).
+    overwrite : bool
+        Replace an existing file.
+
+    Examples
+    --------
+    >>> # with H5MDWriter("run.h5", sim.state, units="lj") as writer:
+    >>> #     sim.attach(writer, interval=100)
+    >>> #     sim.run(10_000)
+    """
+
+    def __init__(
+        self,
+        path,
+        state: State,
+        units: str | UnitSystem = "lj",
+        velocities: bool = False,
+        forces: bool = False,
+        parameters: dict | None = None,
+        overwrite: bool = False,
+        author: str | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.units = get_units(units)
+        self.n_atoms = state.n_atoms
+        self.store_velocities = bool(velocities)
+        self.store_forces = bool(forces)
+        self.n_frames = 0
+        self._last_step: int | None = None
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(
+                f"{self.path} already exists; choose another output path or pass --overwrite"
+            )
+        self._file = h5py.File(self.path, "w" if overwrite else "x")
+        try:
+            self._create_layout(state, parameters or {}, author)
+        except BaseException:
+            self._file.close()
+            raise
+
+    # ------------------------------------------------------------------ layout
+    def _create_layout(self, state: State, parameters: dict, author: str | None) -> None:
+        from md import __version__
+
+        f = self._file
+        h5md = f.create_group("h5md")
+        h5md.attrs["version"] = np.array(H5MD_VERSION, dtype=np.int32)
+        h5md.create_group("author").attrs["name"] = author or os.environ.get("USER", "unknown")
+        creator = h5md.create_group("creator")
+        creator.attrs["name"] = "leapmd"
+        creator.attrs["version"] = __version__
+
+        group = f.create_group("particles/trajectory")
+        n = self.n_atoms
+        position = self._element(group, "position", (n, 3), np.float64, "length")
+        self._step = position.create_dataset(
+            "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,)
+        )
+        self._time = position.create_dataset(
+            "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,)
+        )
+        self._set_unit(self._time, "time")
+        self._values = {"position": position["value"]}
+        self._values["image"] = self._element(group, "image", (n, 3), np.int32, None)["value"]
+        if self.store_velocities:
+            self._values["velocity"] = self._element(
+                group, "velocity", (n, 3), np.float64, "velocity"
+            )["value"]
+        if self.store_forces:
+            self._values["force"] = self._element(group, "force", (n, 3), np.float64, "force")[
+                "value"
+            ]
+        box = group.create_group("box")
+        box.attrs["dimension"] = 3
+        box.attrs["boundary"] = np.array(
+            ["periodic" if p else "none" for p in state.pbc], dtype=h5py.string_dtype()
+        )
+        self._values["edges"] = self._element(box, "edges", (3,), np.float64, "length")["value"]
+        group.create_dataset("species", data=state.types.astype(np.int32))
+        mass = group.create_dataset("mass", data=state.masses)
+        self._set_unit(mass, "mass")
+
+        observables = f.create_group("observables")
+        for name in OBSERVABLES:
+            element = self._element(observables, name, (), np.float64, _OBSERVABLE_UNITS[name])
+            self._values[name] = element["value"]
+
+        params = f.create_group("parameters")
+        params.attrs["units"] = self.units.name
+        params.attrs["type_names"] = json.dumps(list(state.type_names))
+        params.attrs["leapmd_version"] = __version__
+        for key, value in parameters.items():
+            params.attrs[key] = value if isinstance(value, str | int | float) else json.dumps(value)
+        f.flush()
+
+    def _element(self, parent, name, frame_shape, dtype, quantity):
+        element = parent.create_group(name)
+        if name != "position":
+            element["step"] = self._step
+            element["time"] = self._time
+        value = element.create_dataset(
+            "value",
+            shape=(0, *frame_shape),
+            maxshape=(None, *frame_shape),
+            dtype=dtype,
+            chunks=(1, *frame_shape) if frame_shape else (1024,),
+        )
+        if quantity is not None:
+            self._set_unit(value, quantity)
+        return element
+
+    def _set_unit(self, dataset, quantity: str) -> None:
+        if quantity in self.units.h5md:
+            dataset.attrs["unit"] = self.units.h5md[quantity][0]
+
+    def _factor(self, quantity: str) -> float:
+        return self.units.h5md[quantity][1] if quantity in self.units.h5md else 1.0
+
+    # ------------------------------------------------------------------ writing
+    def __call__(self, sim) -> None:
+        """Observer entry point: write the simulation's current frame."""
+        forces = sim.forcefield.compute(sim.state).forces if self.store_forces else None
+        self.write(sim.state, thermo=sim.thermo(), forces=forces)
+
+    def write(self, state: State, thermo: dict | None = None, forces: NDArray | None = None) -> None:
+        """Append one frame (positions, images, box, optional velocities/forces, observables)."""
+        if self._file is None or not self._file.id.valid:
+            raise ValueError(f"{self.path} is closed")
+        if state.n_atoms != self.n_atoms:
+            raise ValueError(
+                f"cannot write {state.n_atoms} atoms to {self.path}, which holds {self.n_atoms}"
+            )
+        if self._last_step is not None and state.step <= self._last_step:
+            raise ValueError(
+                f"frame at step {state.step} would not follow the last frame (step "
+                f"{self._last_step}) in {self.path}"
+            )
+        if self.store_forces and forces is None:
+            raise ValueError("this writer stores forces: pass forces=")
+        frame = self.n_frames
+        size = frame + 1
+        self._step.resize((size,))
+        self._time.resize((size,))
+        for dataset in self._values.values():
+            dataset.resize(size, axis=0)
+        self._step[frame] = state.step
+        self._time[frame] = state.time * self._factor("time")
+        wrapped, images = wrap(state.positions, state.box, state.pbc)
+        self._values["position"][frame] = wrapped * self._factor("length")
+        self._values["image"][frame] = images
+        self._values["edges"][frame] = state.box * self._factor("length")
+        if self.store_velocities:
+            self._values["velocity"][frame] = state.velocities * self._factor("velocity")
+        if self.store_forces:
+            self._values["force"][frame] = np.asarray(forces) * self._factor("force")
+        for name in OBSERVABLES:
+            value = np.nan if thermo is None else thermo[name]
+            self._values[name][frame] = value * self._factor(_OBSERVABLE_UNITS[name])
+        self.n_frames = size
+        self._last_step = state.step
+        self._file.flush()
+
+    def close(self) -> None:
+        if self._file is not None and self._file.id.valid:
+            self._file.close()
+
+    def __enter__(self) -> H5MDWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------- reading
+@dataclass
+class Trajectory:
+    """A trajectory read back into engine units (see :func:`read_trajectory`).
+
+    Positions are unwrapped (``position + image * edges``).
+    """
+
+    path: Path
+    units: UnitSystem
+    steps: NDArray[np.int64]
+    times: NDArray[np.float64]
+    positions: NDArray[np.float64]
+    boxes: NDArray[np.float64]
+    pbc: NDArray[np.bool_]
+    masses: NDArray[np.float64]
+    types: NDArray[np.int32]
+    type_names: tuple[str, ...]
+    velocities: NDArray[np.float64] | None = None
+    forces: NDArray[np.float64] | None = None
+    observables: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    parameters: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.steps)
+
+    @property
+    def n_atoms(self) -> int:
+        return len(self.masses)
+
+    def state(self, frame: int = -1) -> State:
+        """Return frame ``frame`` as a State (zero velocities if none were stored)."""
+        if not -self.n_frames <= frame < self.n_frames:
+            raise IndexError(f"{self.path} has {self.n_frames} frames; frame {frame} is out of range")
+        return State(
+            positions=self.positions[frame],
+            velocities=None if self.velocities is None else self.velocities[frame],
+            masses=self.masses,
+            box=self.boxes[frame],
+            pbc=self.pbc,
+            types=self.types,
+            type_names=self.type_names,
+            step=int(self.steps[frame]),
+            time=float(self.times[frame]),
+        )
+
+
+def read_trajectory(path) -> Trajectory:
+    """Read an H5MD file written by :class:`H5MDWriter` into engine units.
+
+    Raises
+    ------
+    TrajectoryError
+        If the file is missing, not HDF5, or lacks what the layout requires.
+    """
+    path = Path(path)
+    with _open_h5md(path) as f:
+        try:
+            group = f["particles/trajectory"]
+            units = get_units(str(f["parameters"].attrs.get("units", "lj")))
+            factors = {q: units.h5md[q][1] for q in units.h5md}
+
+            def scale(quantity: str) -> float:
+                return 1.0 / factors.get(quantity, 1.0)
+
+            steps = group["position/step"][()]
+            n_frames = len(steps)
+            raw = group["position/value"][:n_frames] * scale("length")
+            boxes = group["box/edges/value"][:n_frames] * scale("length")
+            images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
+            positions = raw + images * boxes[:, None, :]
+            boundary = [_text(b) for b in group["box"].attrs["boundary"]]
+            velocities = forces = None
+            if "velocity" in group:
+                velocities = group["velocity/value"][:n_frames] * scale("velocity")
+            if "force" in group:
+                forces = group["force/value"][:n_frames] * scale("force")
+            observables = {}
+            if "observables" in f:
+                for name, element in f["observables"].items():
+                    quantity = _OBSERVABLE_UNITS.get(name, "")
+                    observables[name] = element["value"][:n_frames] * scale(quantity)
+            parameters = {}
+            for key, value in f["parameters"].attrs.items():
+                parameters[key] = _maybe_json(value)
+            type_names = tuple(parameters.get("type_names") or ())
+            types = group["species"][()].astype(np.int32)
+            if not type_names:
+                type_names = tuple(f"T{t}" for t in range(int(types.max()) + 1))
+            return Trajectory(
+                path=path,
+                units=units,
+                steps=steps,
+                times=group["position/time"][:n_frames] * scale("time"),
+                positions=positions,
+                boxes=boxes,
+                pbc=np.array([b == "periodic" for b in boundary]),
+                masses=group["mass"][()] * scale("mass"),
+                types=types,
+                type_names=type_names,
+                velocities=velocities,
+                forces=forces,
+                observables=observables,
+                parameters=parameters,
+            )
+        except (KeyError, ValueError, TypeError, OSError) as error:
+            if isinstance(error, TrajectoryError):
+                raise
+            raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+
+
+def open_trajectory(path, **kwargs):
+    """Open a trajectory we wrote as an MDAnalysis ``Universe``.
+
+    Masses and types (the type names) come from the file. Reduced-unit
+    files carry no unit attributes, so they are opened with
+    ``convert_units=False``; metal files are converted to MDAnalysis's units
+    (Angstrom, ps, kJ/(mol Angstrom)) as usual. Extra keyword arguments go to
+    MDAnalysis's H5MD reader.
+    """
+    import MDAnalysis as mda
+
+    path = Path(path)
+    with _open_h5md(path) as f:
+        try:
+            units = str(f["parameters"].attrs.get("units", "lj"))
+            masses = f["particles/trajectory/mass"][()]
+            types = f["particles/trajectory/species"][()]
+            names = _maybe_json(f["parameters"].attrs.get("type_names", "[]"))
+        except KeyError as error:
+            raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+    kwargs.setdefault("convert_units", units != "lj")
+    universe = mda.Universe.empty(len(masses), trajectory=False)
+    universe.load_new(str(path), format="H5MD", **kwargs)
+    names = list(names) or [f"T{t}" for t in range(int(types.max()) + 1)]
+    universe.add_TopologyAttr("types", [names[t] for t in types])
+    universe.add_TopologyAttr("masses", masses)
+    return universe
+
+
+def _open_h5md(path: Path) -> h5py.File:
+    if not path.exists():
+        raise TrajectoryError(f"{path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as error:
+        raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
+    if "h5md" not in f or "particles" not in f:
+        f.close()
+        raise TrajectoryError(f"{path}: an HDF5 file, but not in the H5MD layout (no h5md/particles)")
+    return f
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _maybe_json(value):
+    value = _text(value) if isinstance(value, bytes | str) else value
+    if isinstance(value, str) and value[:1] in "[{":
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
