@@ -239,6 +239,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{typical['n_builds']} builds in {args.steps} steps, setup build excluded "
         f"({typical['n_pairs']} listed pairs, {typical['n_pairs'] / n_atoms:.1f} per atom)"
     )
+    if peers:
+        print(
+            "note: LAMMPS's 'velocity create' draws uniform velocities, ours are Gaussian "
+            "(Maxwell-Boltzmann); the Gaussian tails cost a build or two more per 100 steps."
+        )
     columns = {"leapmd": typical}
     for neigh, results in peers.items():
         if not results:

@@ -48,7 +48,7 @@ class VelocityVerlet:
         return {"type": "verlet", "dt": self.dt}
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _kick_drift(positions, velocities, forces, inverse_masses, dt):
     """v += dt/2 f/m, then x += dt v, in one pass (arrays written in place)."""
     half = 0.5 * dt
@@ -60,7 +60,7 @@ def _kick_drift(positions, velocities, forces, inverse_masses, dt):
             positions[i, a] += dt * v
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _kick(velocities, forces, inverse_masses, half_dt):
     """v += half_dt f/m in place."""
     for i in range(velocities.shape[0]):

@@ -16,7 +16,7 @@ from numba import njit
 from md.box import _min_image
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _brute_force_pairs(positions, lengths, inverse, r2_max, starts, neighbors):
     """O(N^2) half list; the reference the cell search is tested against."""
     n = positions.shape[0]
@@ -39,7 +39,7 @@ def _brute_force_pairs(positions, lengths, inverse, r2_max, starts, neighbors):
     return count
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _grid_index(x, origin, width, n, periodic, length):
     """Cell index of coordinate x along one axis, wrapped (periodic) or clamped."""
     if periodic:
@@ -52,7 +52,7 @@ def _grid_index(x, origin, width, n, periodic, length):
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _bin_atoms(
     positions,
     origin,
@@ -101,7 +101,7 @@ def _bin_atoms(
             sorted_wrapped[p, a] = x
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _neighbor_cell(c, offset, n, periodic, length):
     """Index of the adjacent cell c + offset along one axis and the image shift.
 
@@ -119,7 +119,7 @@ def _neighbor_cell(c, offset, n, periodic, length):
     return k, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cell_pairs(
     sorted_wrapped, r2_max, n_cells, periodic, box, cell_of, cell_starts, order, starts, neighbors
 ):
@@ -189,7 +189,7 @@ def _cell_pairs(
     return count
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _max_displacement2(positions, reference):
     """Largest squared displacement since ``reference``; inf if any coordinate is not finite."""
     n = positions.shape[0]

@@ -52,7 +52,7 @@ def wrap(positions: NDArray[np.float64], box, pbc):
     return wrapped, images
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _min_image(d, length, inverse):
     """Minimum image of one displacement component (length 0: open axis)."""
     return d - length * np.rint(d * inverse)

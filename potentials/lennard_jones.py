@@ -311,7 +311,7 @@ def _all_pairs(n: int):
     return starts, neighbors.astype(np.int32)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _lj_energy_forces(
     positions,
     types,
