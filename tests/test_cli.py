@@ -137,11 +137,15 @@ BAD_CONFIGS = {
     "unknown integrator": (('type = "verlet"', 'type = "magic"'), "magic"),
     "bad cutoff mode": (("cutoff = 2.5", 'cutoff = 2.5\ncutoff_mode = "soft"'), "soft"),
     "r_on beyond cutoff": (
-        ("cutoff = 2.5", 'cutoff = 2.5\ncutoff_mode = "smooth"\nr_on = 3.0'), "r_on"),
+        ("cutoff = 2.5", 'cutoff = 2.5\ncutoff_mode = "smooth"\nr_on = 3.0'),
+        "r_on",
+    ),
     "wrong type steps": (("steps = 40", "steps = 4.5"), "steps"),
     "negative temperature": (("temperature = 1.2", "temperature = -1.0"), "temperature"),
-    "structure file missing": (('lattice = "fcc"\ncells = 4\ndensity = 0.8442',
-                                'structure = "nowhere.xyz"'), "nowhere.xyz"),
+    "structure file missing": (
+        ('lattice = "fcc"\ncells = 4\ndensity = 0.8442', 'structure = "nowhere.xyz"'),
+        "nowhere.xyz",
+    ),
     "invalid toml": (("[run]", "[run"), "TOML"),
     "bad cells": (("cells = 4", "cells = [4, 4]"), "cells"),
 }
@@ -268,3 +272,15 @@ def test_output_is_hashed_unchanged_by_a_refused_run(tmp_path):
     assert main(["run", str(bad), "--no-progress"]) == 2
     assert main(["run", str(config), "--no-progress"]) == 2
     assert hashlib.sha256((tmp_path / "out.h5").read_bytes()).hexdigest() == digest
+
+
+EXAMPLES = sorted((__import__("pathlib").Path(__file__).parents[1] / "examples").glob("*.toml"))
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+def test_examples_run(tmp_path, example):
+    """Every shipped example config is valid and runs (a few steps here)."""
+    out = tmp_path / f"{example.stem}.h5"
+    assert main(["run", str(example), "--steps", "3", "-o", str(out), "--no-progress", "-q"]) == 0
+    traj = read_trajectory(out)
+    assert traj.steps[0] == 0 and np.all(np.isfinite(traj.observables["total_energy"]))
