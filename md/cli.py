@@ -95,15 +95,16 @@ def _run(args) -> int:
         ]
         integrator = integrator_from_config(config.integrator, config.source)
         try:
-            sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units)
+            sim = Simulation(
+                state, potentials, integrator, skin=config.run.skin, units=config.units
+            )
         except ValueError as error:
             raise ConfigError(f"{config.source}: {error}") from None
         try:
             sim.forcefield.compute(state)
         except NonFiniteError as error:
             raise ConfigError(
-                f"{config.source}: the initial configuration has {error} "
-                "(overlapping atoms?)"
+                f"{config.source}: the initial configuration has {error} (overlapping atoms?)"
             ) from None
     except ConfigError as error:
         _fail(str(error))
@@ -129,8 +130,13 @@ def _run(args) -> int:
     )
     try:
         writer = H5MDWriter(
-            output, state, units=units, velocities=config.output.velocities,
-            forces=config.output.forces, parameters=parameters, overwrite=args.overwrite,
+            output,
+            state,
+            units=units,
+            velocities=config.output.velocities,
+            forces=config.output.forces,
+            parameters=parameters,
+            overwrite=args.overwrite,
         )
     except (OSError, ValueError) as error:
         _fail(f"cannot create {output}: {error}")
@@ -167,8 +173,15 @@ def _run(args) -> int:
 class _ThermoTable:
     """Observer printing one thermo row every interval (above the progress bar)."""
 
-    columns = ("step", "time", "temperature", "potential_energy", "kinetic_energy",
-               "total_energy", "pressure")
+    columns = (
+        "step",
+        "time",
+        "temperature",
+        "potential_energy",
+        "kinetic_energy",
+        "total_energy",
+        "pressure",
+    )
     headers = ("Step", "Time", "Temp", "PotEng", "KinEng", "TotEng", "Press")
 
     def __init__(self, units, bar, quiet: bool) -> None:
@@ -200,8 +213,14 @@ class _ThermoTable:
 def _progress_bar(total: int, disable: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="step", disable=disable or total == 0, dynamic_ncols=True,
-                desc="md run", leave=False)
+    return tqdm(
+        total=total,
+        unit="step",
+        disable=disable or total == 0,
+        dynamic_ncols=True,
+        desc="md run",
+        leave=False,
+    )
 
 
 def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) -> None:
@@ -212,8 +231,10 @@ def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) 
     atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
     energy_scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
     drift = (last["total_energy"] - first["total_energy"]) / energy_scale
-    print(f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
-          f"{atom_steps:,.0f} atom-steps/s")
+    print(
+        f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
+        f"{atom_steps:,.0f} atom-steps/s"
+    )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
     for name, seconds in [*timings.items(), ("other", other)]:
         share = 100 * seconds / wall if wall > 0 else 0.0
@@ -241,8 +262,10 @@ def _info(args) -> int:
     units = traj.units
     print(f"{traj.path}: H5MD trajectory written by leapmd {summary['version']}")
     print(f"  atoms        {summary['n_atoms']} ({', '.join(summary['types'])})")
-    print(f"  frames       {summary['n_frames']} (steps {summary['first_step']} to "
-          f"{summary['last_step']})")
+    print(
+        f"  frames       {summary['n_frames']} (steps {summary['first_step']} to "
+        f"{summary['last_step']})"
+    )
     label = units.labels["time"]
     print(f"  time         {summary['first_time']:g} to {summary['last_time']:g} {label}")
     print(f"  units        {units.name}")
@@ -254,11 +277,15 @@ def _info(args) -> int:
     energy = summary.get("energy")
     if energy:
         e_label = units.labels["energy"]
-        print(f"  total energy {energy['first']:.8g} -> {energy['last']:.8g} {e_label} "
-              f"(mean {energy['mean']:.8g}, std {energy['std']:.3g}, "
-              f"relative drift {energy['relative_drift']:.3e})")
-        print(f"  temperature  mean {summary['temperature_mean']:.6g} {units.labels['temperature']}"
-              f", pressure mean {summary['pressure_mean']:.6g} {units.labels['pressure']}")
+        print(
+            f"  total energy {energy['first']:.8g} -> {energy['last']:.8g} {e_label} "
+            f"(mean {energy['mean']:.8g}, std {energy['std']:.3g}, "
+            f"relative drift {energy['relative_drift']:.3e})"
+        )
+        print(
+            f"  temperature  mean {summary['temperature_mean']:.6g} {units.labels['temperature']}"
+            f", pressure mean {summary['pressure_mean']:.6g} {units.labels['pressure']}"
+        )
     return EXIT_OK
 
 

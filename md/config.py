@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-
 from md.units import UNIT_SYSTEMS, UnitSystem
 
 
@@ -226,8 +225,16 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     table.finish()
     top.finish()
     return Config(
-        source=source, text=text, units=units, seed=seed, system=system,
-        potentials=potentials, integrator=integrator, run=run, output=output, raw=data,
+        source=source,
+        text=text,
+        units=units,
+        seed=seed,
+        system=system,
+        potentials=potentials,
+        integrator=integrator,
+        run=run,
+        output=output,
+        raw=data,
     )
 
 
@@ -253,8 +260,8 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
             )
         system.type_name = table.string("type_name", "A")
     else:
-        system.structure = (base / structure) if not Path(structure).is_absolute() else Path(
-            structure
+        system.structure = (
+            (base / structure) if not Path(structure).is_absolute() else Path(structure)
         )
         if not system.structure.is_file():
             raise table.error("structure", f"file not found: {system.structure}")
@@ -298,7 +305,6 @@ def integrator_from_config(entry: dict, source: str):
 def build_state(config: Config):
     """Build the initial State described by ``config.system`` (engine units)."""
     from md.build import lattice, maxwell_boltzmann
-    from md.state import State
 
     system = config.system
     where = f"{config.source}: [system]"

@@ -202,7 +202,9 @@ class H5MDWriter:
         forces = sim.forcefield.compute(sim.state).forces if self.store_forces else None
         self.write(sim.state, thermo=sim.thermo(), forces=forces)
 
-    def write(self, state: State, thermo: dict | None = None, forces: NDArray | None = None) -> None:
+    def write(
+        self, state: State, thermo: dict | None = None, forces: NDArray | None = None
+    ) -> None:
         """Append one frame (positions, images, box, optional velocities/forces, observables)."""
         if self._file is None or not self._file.id.valid:
             raise ValueError(f"{self.path} is closed")
@@ -285,7 +287,9 @@ class Trajectory:
     def state(self, frame: int = -1) -> State:
         """Return frame ``frame`` as a State (zero velocities if none were stored)."""
         if not -self.n_frames <= frame < self.n_frames:
-            raise IndexError(f"{self.path} has {self.n_frames} frames; frame {frame} is out of range")
+            raise IndexError(
+                f"{self.path} has {self.n_frames} frames; frame {frame} is out of range"
+            )
         return State(
             positions=self.positions[frame],
             velocities=None if self.velocities is None else self.velocities[frame],
@@ -401,7 +405,9 @@ def _open_h5md(path: Path) -> h5py.File:
         raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
     if "h5md" not in f or "particles" not in f:
         f.close()
-        raise TrajectoryError(f"{path}: an HDF5 file, but not in the H5MD layout (no h5md/particles)")
+        raise TrajectoryError(
+            f"{path}: an HDF5 file, but not in the H5MD layout (no h5md/particles)"
+        )
     return f
 
 

@@ -42,8 +42,14 @@ def _run_with_writer(path, state, n_steps=60, every=10, units_name="lj", dt=0.00
         units=units_name,
     )
     recorder = Recorder()
-    with H5MDWriter(path, state, units=units_name, velocities=True, forces=True,
-                    parameters={"seed": 7, "integrator": {"type": "verlet"}}) as writer:
+    with H5MDWriter(
+        path,
+        state,
+        units=units_name,
+        velocities=True,
+        forces=True,
+        parameters={"seed": 7, "integrator": {"type": "verlet"}},
+    ) as writer:
         sim.attach(writer, every)
         sim.attach(recorder, every)
         sim.run(n_steps)
@@ -63,9 +69,10 @@ def test_layout_follows_h5md(tmp_path, hot_liquid):
         assert list(f["h5md"].attrs["version"]) == [1, 1]
         assert f["h5md/creator"].attrs["name"] == "leapmd"
         group = f["particles/trajectory"]
-        assert list(group["box"].attrs["boundary"]) == [b"periodic"] * 3 or list(
-            group["box"].attrs["boundary"]
-        ) == ["periodic"] * 3
+        assert (
+            list(group["box"].attrs["boundary"]) == [b"periodic"] * 3
+            or list(group["box"].attrs["boundary"]) == ["periodic"] * 3
+        )
         assert group["box"].attrs["dimension"] == 3
         n = hot_liquid.n_atoms
         for name in ("position", "velocity", "force", "image"):
@@ -77,8 +84,13 @@ def test_layout_follows_h5md(tmp_path, hot_liquid):
             assert group[name]["step"].id == group["position/step"].id
             assert group[name]["time"].id == group["position/time"].id
         assert list(group["position/step"][()]) == [0, 10, 20, 30, 40, 50, 60]
-        for name in ("potential_energy", "kinetic_energy", "total_energy", "temperature",
-                     "pressure"):
+        for name in (
+            "potential_energy",
+            "kinetic_energy",
+            "total_energy",
+            "temperature",
+            "pressure",
+        ):
             assert f["observables"][name]["value"].shape == (7,)
             assert f["observables"][name]["step"].id == group["position/step"].id
         # reduced units carry no unit attributes
@@ -125,8 +137,13 @@ def test_mdanalysis_reads_reduced_units(tmp_path, hot_liquid):
         np.testing.assert_allclose(ts.dimensions[3:], 90.0)
         assert ts.time == pytest.approx(frame["time"])
         assert ts.data["step"] == frame["step"]
-        for name in ("potential_energy", "kinetic_energy", "total_energy", "temperature",
-                     "pressure"):
+        for name in (
+            "potential_energy",
+            "kinetic_energy",
+            "total_energy",
+            "temperature",
+            "pressure",
+        ):
             assert ts.data[name] == pytest.approx(frame["thermo"][name], rel=1e-12)
         np.testing.assert_allclose(ts.velocities, frame["velocities"], rtol=1e-5, atol=1e-5)
 
@@ -137,8 +154,9 @@ def test_metal_units_are_converted_at_the_edge(tmp_path):
     md.maxwell_boltzmann(state, 60.0, seed=3, kB=units.kB)
     path = tmp_path / "ar.h5"
     lj = {"epsilon": 0.0104, "sigma": 3.40, "cutoff": 7.5}
-    _, recorder = _run_with_writer(path, state, n_steps=20, every=10, units_name="metal",
-                                   dt=5 * units.fs, lj=lj)
+    _, recorder = _run_with_writer(
+        path, state, n_steps=20, every=10, units_name="metal", dt=5 * units.fs, lj=lj
+    )
     with h5py.File(path, "r") as f:
         group = f["particles/trajectory"]
         assert group["position/value"].attrs["unit"] == "Angstrom"
@@ -153,8 +171,7 @@ def test_metal_units_are_converted_at_the_edge(tmp_path):
     assert ts.time == pytest.approx(20 * 5e-3)  # 20 steps of 5 fs
     # ASE: 1 eV/A = 96.485 kJ/(mol A); velocities A/ps
     np.testing.assert_allclose(ts.forces, frame["forces"] * 96.485332, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(ts.velocities, frame["velocities"] * units.ps, rtol=1e-5,
-                               atol=1e-4)
+    np.testing.assert_allclose(ts.velocities, frame["velocities"] * units.ps, rtol=1e-5, atol=1e-4)
     # our reader returns engine units again
     traj = read_trajectory(path)
     np.testing.assert_allclose(traj.times[-1], frame["time"], rtol=1e-14)
@@ -168,8 +185,10 @@ def test_open_axes_are_marked_none(tmp_path, random_gas):
     with H5MDWriter(path, state) as writer:
         writer.write(state)
     with h5py.File(path, "r") as f:
-        boundary = [b.decode() if isinstance(b, bytes) else b
-                    for b in f["particles/trajectory/box"].attrs["boundary"]]
+        boundary = [
+            b.decode() if isinstance(b, bytes) else b
+            for b in f["particles/trajectory/box"].attrs["boundary"]
+        ]
     assert boundary == ["periodic", "periodic", "none"]
     traj = read_trajectory(path)
     assert traj.pbc.tolist() == [True, True, False]
