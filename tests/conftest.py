@@ -77,9 +77,7 @@ def random_gas(rng):
     each periodic axis, since the engine keeps positions unwrapped.
     """
 
-    def make(
-        n_atoms, box, pbc=True, min_distance=0.8, n_types=1, images=0, masses=1.0
-    ) -> md.State:
+    def make(n_atoms, box, pbc=True, min_distance=0.8, n_types=1, images=0, masses=1.0) -> md.State:
         box = np.broadcast_to(np.asarray(box, dtype=float), (3,)).copy()
         periodic = np.broadcast_to(np.asarray(pbc, dtype=bool), (3,)).copy()
         lengths = np.where(periodic, box, np.inf)
