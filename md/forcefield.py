@@ -17,7 +17,7 @@ class ForceField:
 
     The list is built at the largest potential cutoff plus ``skin``; each
     pair kernel still tests its own cutoff. :meth:`compute` returns the
-    cached result while positions, box and types equal those of the last
+    cached result while positions, box, periodicity and types equal those of the last
     call, so velocity Verlet costs one evaluation per step without managing
     a cache itself.
 
@@ -46,7 +46,7 @@ class ForceField:
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
         self._cached: ForceResult | None = None
-        self._key: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._key: tuple[np.ndarray, ...] | None = None
 
     @property
     def cutoff(self) -> float | None:
@@ -92,14 +92,20 @@ class ForceField:
         if not np.isfinite(total.energy):
             raise NonFiniteError(f"potential energy is {total.energy}")
         self._cached = total
-        self._key = (state.positions.copy(), state.box.copy(), state.types.copy())
+        self._key = (
+            state.positions.copy(),
+            state.box.copy(),
+            state.pbc.copy(),
+            state.types.copy(),
+        )
         return total
 
     def _matches(self, state: State) -> bool:
-        positions, box, types = self._key
+        positions, box, pbc, types = self._key
         return (
             positions.shape == state.positions.shape
             and np.array_equal(box, state.box)
+            and np.array_equal(pbc, state.pbc)
             and np.array_equal(positions, state.positions)
             and np.array_equal(types, state.types)
         )

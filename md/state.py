@@ -12,9 +12,19 @@ if TYPE_CHECKING:  # ASE is only touched at the edges, see from_ase/to_ase.
     import ase
 
 
-def _as_vector3(value, name: str, dtype) -> NDArray:
-    array = np.array(np.broadcast_to(np.asarray(value, dtype=dtype), (3,)), dtype=dtype)
-    return array
+def _owned(value, name: str, shape: tuple[int, ...], dtype) -> NDArray:
+    """Return a C-contiguous copy of ``value`` broadcast to ``shape`` (the State owns it)."""
+    try:
+        array = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+    if array.shape != shape:
+        try:
+            array = np.broadcast_to(array, shape)
+        except ValueError:
+            expected = "a scalar or shape " + str(shape)
+            raise ValueError(f"{name} must be {expected}, got shape {array.shape}") from None
+    return np.array(array, dtype=dtype, order="C", copy=True)
 
 
 @dataclass(eq=False)
@@ -64,24 +74,30 @@ class State:
     time: float = 0.0
 
     def __post_init__(self) -> None:
-        self.positions = np.ascontiguousarray(self.positions, dtype=np.float64)
-        if self.positions.ndim != 2 or self.positions.shape[1] != 3:
-            raise ValueError(f"positions must have shape (N, 3), got {self.positions.shape}")
-        n = self.positions.shape[0]
+        # The State owns copies of its arrays: integrators update them in place,
+        # which must never reach back into arrays the caller still holds.
+        positions = np.asarray(self.positions, dtype=np.float64)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"positions must have shape (N, 3), got {positions.shape}")
+        n = positions.shape[0]
+        self.positions = np.array(positions, order="C", copy=True)
         if self.velocities is None:
             self.velocities = np.zeros((n, 3))
-        self.velocities = np.ascontiguousarray(self.velocities, dtype=np.float64)
-        if self.velocities.shape != (n, 3):
-            raise ValueError(f"velocities must have shape ({n}, 3), got {self.velocities.shape}")
-        masses = np.asarray(self.masses, dtype=np.float64)
-        self.masses = np.ascontiguousarray(np.broadcast_to(masses, (n,)), dtype=np.float64)
-        self.box = _as_vector3(self.box, "box", np.float64)
-        self.pbc = _as_vector3(self.pbc, "pbc", bool)
+        velocities = np.asarray(self.velocities, dtype=np.float64)
+        if velocities.shape != (n, 3):
+            raise ValueError(f"velocities must have shape ({n}, 3), got {velocities.shape}")
+        self.velocities = np.array(velocities, order="C", copy=True)
+        self.masses = _owned(self.masses, "masses", (n,), np.float64)
+        self.box = _owned(self.box, "box", (3,), np.float64)
+        self.pbc = _owned(self.pbc, "pbc", (3,), bool)
         if self.types is None:
             self.types = np.zeros(n, dtype=np.int32)
-        self.types = np.ascontiguousarray(self.types, dtype=np.int32)
-        if self.types.shape != (n,):
-            raise ValueError(f"types must have shape ({n},), got {self.types.shape}")
+        types = np.asarray(self.types)
+        if types.shape != (n,):
+            raise ValueError(f"types must have shape ({n},), got {types.shape}")
+        if types.size and not np.all(types == np.round(types)):
+            raise ValueError(f"types must be integers, got {self.types!r}")
+        self.types = np.array(types, dtype=np.int32, order="C", copy=True)
         n_types = int(self.types.max()) + 1 if n else 1
         if self.type_names is None:
             self.type_names = tuple(_default_type_name(t) for t in range(n_types))

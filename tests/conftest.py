@@ -71,10 +71,11 @@ def random_gas(rng):
     """Factory: ``n_atoms`` random atoms with no pair closer than ``min_distance``.
 
     ``random_gas(n_atoms, box, pbc=True, min_distance=0.8, n_types=1,
-    images=0)``: atoms are placed uniformly in the box by random sequential
-    insertion (minimum image along periodic axes). ``images`` > 0 then moves
-    every atom by a random number of box lengths in [-images, images] along
-    each periodic axis, since the engine keeps positions unwrapped.
+    images=0, masses=1.0)``: atoms are placed uniformly in the box by random
+    sequential insertion (minimum image along periodic axes). ``images`` > 0
+    then moves every atom by a random number of box lengths in
+    [-images, images] along each periodic axis, since the engine keeps
+    positions unwrapped. ``n_types`` > 1 assigns random types (each occurs).
     """
 
     def make(n_atoms, box, pbc=True, min_distance=0.8, n_types=1, images=0, masses=1.0) -> md.State:

@@ -1,0 +1,245 @@
+"""The Verlet/cell neighbour list against an independent O(N^2) minimum-image search."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import md
+from md.neighbors import NeighborList
+
+
+def reference_pairs(positions, box, pbc, radius):
+    """Sorted (P, 2) array of every pair i < j closer than ``radius`` by minimum image."""
+    d = positions[:, None, :] - positions[None, :, :]
+    for axis in range(3):
+        if pbc[axis]:
+            d[..., axis] -= box[axis] * np.round(d[..., axis] / box[axis])
+    r2 = np.einsum("ijk,ijk->ij", d, d)
+    i, j = np.nonzero(np.triu(r2 < radius * radius, k=1))
+    return np.stack([i, j], axis=1).astype(np.int64)
+
+
+def assert_list_is_exact(nl, state):
+    """The list holds exactly the pairs within cutoff + skin, each once, in valid CSR form."""
+    n = state.n_atoms
+    assert nl.starts.shape == (n + 1,) and nl.starts[0] == 0
+    assert np.all(np.diff(nl.starts) >= 0) and nl.starts[-1] == len(nl.neighbors)
+    assert nl.neighbors.dtype == np.int32
+    rows = np.repeat(np.arange(n), np.diff(nl.starts))
+    assert not np.any(rows == nl.neighbors), "an atom is listed as its own neighbour"
+    expected = reference_pairs(state.positions, state.box, state.pbc, nl.list_radius)
+    got = nl.pairs()
+    assert len(np.unique(got, axis=0)) == len(got), "a pair is listed twice"
+    missing = set(map(tuple, expected)) - set(map(tuple, got))
+    extra = set(map(tuple, got)) - set(map(tuple, expected))
+    assert not missing and not extra, f"missing {sorted(missing)[:5]}, extra {sorted(extra)[:5]}"
+    np.testing.assert_array_equal(got, expected)
+
+
+# Random gases: (n_atoms, box, pbc, cutoff, skin, uses cells)
+GASES = {
+    "periodic-just-over-2rc": (50, 5.05, True, 2.5, 0.3, False),
+    "periodic-2-cells": (40, 3.0 * 1.2 - 0.01, True, 1.0, 0.2, False),
+    "periodic-3-cells": (25, 3.0 * 1.2 + 0.01, True, 1.0, 0.2, True),
+    "periodic-many-cells": (400, (10.0, 8.5, 12.0), True, 1.0, 0.2, True),
+    "periodic-one-thin-axis": (150, (10.0, 10.0, 2.3), True, 1.0, 0.1, False),
+    "periodic-no-skin": (300, 9.0, True, 1.5, 0.0, True),
+    "open": (200, 9.0, False, 1.3, 0.3, True),
+    "open-thin-slab": (100, (12.0, 12.0, 0.5), False, 1.3, 0.3, True),
+    "mixed-xz-periodic": (250, (9.0, 8.0, 7.0), (True, False, True), 1.2, 0.3, True),
+    "mixed-y-periodic": (150, (7.0, 5.2, 6.0), (False, True, False), 1.2, 0.3, True),
+    "mixed-short-periodic-axis": (60, (8.0, 3.0, 8.0), (False, True, False), 1.2, 0.3, False),
+}
+
+
+@pytest.mark.parametrize("case", GASES.values(), ids=GASES.keys())
+def test_random_gas_matches_brute_force(case, random_gas):
+    n_atoms, box, pbc, cutoff, skin, uses_cells = case
+    state = random_gas(n_atoms, box, pbc=pbc, min_distance=0.5, images=3)
+    nl = NeighborList(cutoff, skin)
+    assert nl.update(state)
+    assert nl.used_cells == uses_cells
+    assert nl.n_pairs > 0
+    assert_list_is_exact(nl, state)
+
+
+@pytest.mark.parametrize(
+    ("kind", "cells", "cutoff", "pbc"),
+    [
+        ("fcc", 4, 2.5, True),  # 6.7 box: two cells, O(N^2)
+        ("fcc", 5, 2.5, True),  # 8.4 box: three cells
+        ("fcc", 6, 1.4, True),
+        ("bcc", 5, 1.9, (True, True, False)),
+        ("sc", 6, 1.3, False),
+    ],
+)
+def test_perturbed_lattice_matches_brute_force(kind, cells, cutoff, pbc, rng):
+    state = md.lattice(kind, cells, density=0.8442, pbc=pbc)
+    state.positions += rng.normal(scale=0.04, size=state.positions.shape)
+    # Whole-box jumps along periodic axes: the engine keeps positions unwrapped.
+    state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box * state.pbc
+    nl = NeighborList(cutoff, skin=0.25)
+    nl.update(state)
+    assert_list_is_exact(nl, state)
+
+
+def test_sparse_cluster_across_the_boundary_of_a_huge_box(rng):
+    """A few atoms in a box of ~10^5 cells: the grid is coarsened, pairs across the edge kept."""
+    positions = rng.uniform(-2.0, 2.0, size=(30, 3))  # straddles the periodic faces at 0
+    state = md.State(positions=positions, box=50.0)
+    nl = NeighborList(1.0, 0.2)
+    nl.update(state)
+    assert nl.used_cells
+    assert_list_is_exact(nl, state)
+
+
+@pytest.mark.parametrize("n_atoms", [0, 1, 2])
+def test_tiny_systems(n_atoms):
+    state = md.State(positions=[[0.1, 0.2, 0.3], [0.9, 0.2, 0.3]][:n_atoms] or np.zeros((0, 3)))
+    state.box[:] = 10.0
+    nl = NeighborList(1.0, 0.1)
+    nl.update(state)
+    assert_list_is_exact(nl, state)
+    assert nl.n_pairs == (1 if n_atoms == 2 else 0)
+
+
+@settings(max_examples=60, deadline=None, database=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_atoms=st.integers(2, 120),
+    edges_over_radius=st.tuples(*[st.floats(2.05, 7.0)] * 3),
+    pbc=st.tuples(*[st.booleans()] * 3),
+    skin=st.sampled_from([0.0, 0.1, 0.4]),
+)
+def test_any_box_and_periodicity_matches_brute_force(seed, n_atoms, edges_over_radius, pbc, skin):
+    generator = np.random.default_rng(seed)
+    cutoff = 1.0
+    box = np.array(edges_over_radius) * (cutoff + skin)
+    box = np.maximum(box, 2.0 * cutoff * 1.001)
+    positions = generator.uniform(-2.0, 3.0, size=(n_atoms, 3)) * box
+    state = md.State(positions=positions, box=box, pbc=list(pbc))
+    nl = NeighborList(cutoff, skin)
+    nl.update(state)
+    assert_list_is_exact(nl, state)
+
+
+# --------------------------------------------------------------------- rebuild
+
+
+def test_rebuild_exactly_when_an_atom_moves_more_than_half_the_skin(random_gas):
+    state = random_gas(100, 6.0, min_distance=0.7)
+    nl = NeighborList(cutoff=1.5, skin=0.4)
+    assert nl.update(state) and nl.n_builds == 1
+    assert not nl.update(state)
+
+    # Every atom moves just under skin / 2 (in a random direction): no rebuild.
+    reference = state.positions.copy()
+    directions = np.random.default_rng(1).normal(size=reference.shape)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    state.positions[:] = reference + 0.199 * directions
+    assert not nl.update(state) and nl.n_builds == 1
+
+    # Displacements count from the last build, not from the last update.
+    state.positions[:] = reference + 0.1 * directions
+    assert not nl.update(state)
+    state.positions[7] = reference[7] + 0.201 * directions[7]
+    assert nl.update(state) and nl.n_builds == 2
+    assert_list_is_exact(nl, state)
+
+    # The new reference is the rebuilt configuration.
+    state.positions[7] += 0.19 * directions[7]
+    assert not nl.update(state)
+    state.positions[7] += 0.02 * directions[7]
+    assert nl.update(state) and nl.n_builds == 3
+
+
+def test_rebuild_when_box_periodicity_or_atom_count_changes(random_gas):
+    state = random_gas(50, 7.0)
+    nl = NeighborList(cutoff=1.5, skin=0.4)
+    nl.update(state)
+    state.box[0] = 7.1
+    assert nl.update(state)
+    assert_list_is_exact(nl, state)
+    state.pbc[1] = False
+    assert nl.update(state)
+    assert_list_is_exact(nl, state)
+    smaller = md.State(positions=state.positions[:-1], box=state.box, pbc=state.pbc)
+    assert nl.update(smaller)
+    assert_list_is_exact(nl, smaller)
+    assert nl.n_builds == 4
+
+
+@pytest.mark.parametrize("pbc", [True, False, (True, False, True)], ids=["pbc", "open", "mixed"])
+def test_every_pair_within_cutoff_is_listed_until_the_rebuild(pbc, random_gas, rng):
+    cutoff, skin = 1.6, 0.5
+    state = random_gas(300, 7.0, pbc=pbc, min_distance=0.6, images=2)
+    nl = NeighborList(cutoff, skin)
+    nl.update(state)
+    reference = state.positions.copy()
+    for _ in range(20):
+        directions = rng.normal(size=reference.shape)
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        lengths = rng.uniform(0.0, 0.4999 * skin, size=(len(directions), 1))
+        state.positions[:] = reference + lengths * directions
+        assert not nl.update(state)
+        within = set(map(tuple, reference_pairs(state.positions, state.box, state.pbc, cutoff)))
+        assert within <= set(map(tuple, nl.pairs()))
+    assert nl.n_builds == 1
+
+
+def test_worst_case_approach_stays_outside_the_cutoff():
+    """Two atoms just beyond cutoff + skin approach head-on by just under skin / 2 each."""
+    cutoff, skin = 2.0, 0.4
+    gap = cutoff + skin + 1e-6
+    state = md.State(positions=[[0.0, 0, 0], [gap, 0, 0]], box=10.0, pbc=False)
+    nl = NeighborList(cutoff, skin)
+    nl.update(state)
+    assert nl.n_pairs == 0
+    state.positions[0, 0] += 0.5 * skin - 1e-7
+    state.positions[1, 0] -= 0.5 * skin - 1e-7
+    assert not nl.update(state)
+    assert state.positions[1, 0] - state.positions[0, 0] > cutoff
+    state.positions[1, 0] -= 2e-7
+    assert nl.update(state) and nl.n_pairs == 1
+
+
+# ---------------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize("edge", [5.0, 4.9, 1.0])
+def test_cutoff_too_long_for_a_periodic_edge_raises(edge):
+    state = md.State(positions=np.zeros((2, 3)) + [[0, 0, 0], [0.5, 0.5, 0.5]], box=[9, edge, 9])
+    nl = NeighborList(cutoff=2.5, skin=0.3)
+    with pytest.raises(ValueError, match="cutoff"):
+        nl.update(state)
+    with pytest.raises(ValueError, match="cutoff"):
+        nl.check_box(state.box, state.pbc)
+
+
+def test_short_open_edge_is_fine():
+    state = md.State(positions=[[0, 0, 0], [0.5, 0.5, 0.5]], box=[9, 1.0, 9], pbc=[1, 0, 1])
+    nl = NeighborList(cutoff=2.5, skin=0.3)
+    nl.update(state)
+    assert nl.n_pairs == 1
+
+
+@pytest.mark.parametrize(("cutoff", "skin"), [(0.0, 0.3), (-1.0, 0.3), (np.nan, 0.3), (1, -0.1)])
+def test_invalid_cutoff_or_skin_raises(cutoff, skin):
+    with pytest.raises(ValueError):
+        NeighborList(cutoff, skin)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("after_build", [False, True])
+@pytest.mark.parametrize("box", [5.0, 12.0], ids=["brute-force", "cells"])
+def test_non_finite_positions_raise(bad, after_build, box, random_gas):
+    state = random_gas(40, box)
+    nl = NeighborList(cutoff=1.2, skin=0.3)
+    if after_build:
+        nl.update(state)
+    state.positions[13, 1] = bad
+    with pytest.raises(md.NonFiniteError):
+        nl.update(state)
+    with pytest.raises(md.NonFiniteError):
+        nl.build(state)

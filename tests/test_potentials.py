@@ -1,0 +1,594 @@
+"""Potentials: a contract every registered potential must meet, then Lennard-Jones physics.
+
+The contract suite runs over ``potentials.POTENTIALS``: a new registry entry
+needs a factory in ``FACTORIES`` below, or its contract tests fail.
+"""
+
+from __future__ import annotations
+
+import ase.calculators.lj
+import numpy as np
+import pytest
+
+import md
+from md.analysis import pressure
+from md.neighbors import NeighborList
+from potentials import POTENTIALS, LennardJones
+
+R_MIN = 2.0 ** (1.0 / 6.0)
+FD_STEP = 1e-6  # central-difference step [length]
+KINK_MARGIN = 1e-3  # no pair this close to a cutoff or switching onset in FD checks
+
+
+# ------------------------------------------------------------------ factories
+
+
+def _lj(cutoff_mode):
+    """Two types, mixed and overridden pairs, three different pair cutoffs."""
+    return LennardJones(
+        epsilon=[1.0, 0.6],
+        sigma=[1.0, 1.15],
+        cutoff=2.4,
+        cutoff_mode=cutoff_mode,
+        pairs={(0, 1): {"epsilon": 0.8, "cutoff": 2.1}, (1, 1): {"cutoff": 2.45, "r_on": 1.9}},
+    )
+
+
+def _lj_kinks(potential, ti, tj):
+    """Distances where the LJ pair energy or its derivatives are not smooth."""
+    p = potential.pair_parameters(ti, tj)
+    return [p["cutoff"], p["r_on"]]
+
+
+#: registry name -> {"variants": {id: zero-argument builder}, "kinks": f(potential, ti, tj)}
+FACTORIES = {
+    "lj": {
+        "variants": {mode: (lambda mode=mode: _lj(mode)) for mode in ("none", "shift", "smooth")},
+        "kinks": _lj_kinks,
+    },
+}
+
+
+def _contract_cases():
+    for name in POTENTIALS:
+        spec = FACTORIES.get(name)
+        if spec is None:
+            yield pytest.param((name, None), id=f"{name}-NO-FACTORY")
+            continue
+        for variant in spec["variants"]:
+            yield pytest.param((name, variant), id=f"{name}-{variant}")
+
+
+CONTRACT_CASES = list(_contract_cases())
+
+
+def test_every_registered_potential_has_a_factory():
+    missing = sorted(set(POTENTIALS) - set(FACTORIES))
+    assert not missing, f"add test factories for POTENTIALS entries {missing} in {__file__}"
+
+
+@pytest.fixture(params=CONTRACT_CASES)
+def case(request):
+    name, variant = request.param
+    if variant is None:
+        pytest.fail(f"POTENTIALS[{name!r}] has no factory in tests/test_potentials.py FACTORIES")
+    spec = FACTORIES[name]
+    potential = spec["variants"][variant]()
+    assert isinstance(potential, POTENTIALS[name])
+    return potential, spec["kinks"]
+
+
+PERIODIC_SYSTEMS = ["gas-periodic", "fcc-periodic"]
+OPEN_SYSTEMS = ["cluster-open"]
+
+
+def _build_system(name, random_gas, fcc_lattice):
+    """Two-type test systems; every periodic edge exceeds twice the longest LJ cutoff."""
+    if name == "gas-periodic":
+        return random_gas(90, 6.5, n_types=2, min_distance=0.85, images=2)
+    if name == "fcc-periodic":
+        return fcc_lattice(cells=3, perturbation=0.06, n_types=2)
+    return random_gas(60, 5.0, pbc=False, n_types=2, min_distance=0.85)
+
+
+@pytest.fixture(params=PERIODIC_SYSTEMS + OPEN_SYSTEMS)
+def system(request, random_gas, fcc_lattice):
+    return _build_system(request.param, random_gas, fcc_lattice)
+
+
+@pytest.fixture(params=PERIODIC_SYSTEMS)
+def periodic_system(request, random_gas, fcc_lattice):
+    return _build_system(request.param, random_gas, fcc_lattice)
+
+
+@pytest.fixture(params=OPEN_SYSTEMS)
+def open_system(request, random_gas, fcc_lattice):
+    return _build_system(request.param, random_gas, fcc_lattice)
+
+
+def _distances(state):
+    d = state.positions[:, None, :] - state.positions[None, :, :]
+    for axis in range(3):
+        if state.pbc[axis]:
+            d[..., axis] -= state.box[axis] * np.round(d[..., axis] / state.box[axis])
+    r = np.sqrt(np.einsum("ijk,ijk->ij", d, d))
+    np.fill_diagonal(r, np.inf)
+    return r
+
+
+def _near_kink(potential, kinks, state, margin):
+    """(N, N) bool: pair (i, j) lies within ``margin`` of one of its kinks."""
+    r = _distances(state)
+    near = np.zeros(r.shape, dtype=bool)
+    for ti in range(state.n_types):
+        for tj in range(state.n_types):
+            mask = (state.types[:, None] == ti) & (state.types[None, :] == tj)
+            for kink in kinks(potential, ti, tj):
+                near |= mask & (np.abs(r - kink) < margin)
+    return near
+
+
+def _scale(result):
+    return max(1.0, float(np.abs(result.forces).max()))
+
+
+def _energy(potential, state):
+    return potential.energy_forces(state, None).energy
+
+
+def _strained(state, factors):
+    """Copy of ``state`` with positions and box scaled per axis by ``factors``."""
+    out = state.copy()
+    out.positions *= factors
+    out.box *= factors
+    return out
+
+
+# ------------------------------------------------------------------- contract
+
+
+def test_forces_match_central_differences(case, system):
+    potential, kinks = case
+    result = potential.energy_forces(system, None)
+    clean = np.flatnonzero(~_near_kink(potential, kinks, system, KINK_MARGIN).any(axis=1))
+    assert len(clean) >= 10, "too few atoms away from the kinks; change the system"
+    checked = clean[:: max(1, len(clean) // 12)]
+    numeric = np.zeros((len(checked), 3))
+    for row, i in enumerate(checked):
+        for axis in range(3):
+            state = system.copy()
+            state.positions[i, axis] += FD_STEP
+            up = _energy(potential, state)
+            state.positions[i, axis] -= 2 * FD_STEP
+            down = _energy(potential, state)
+            numeric[row, axis] = -(up - down) / (2 * FD_STEP)
+    np.testing.assert_allclose(
+        result.forces[checked], numeric, rtol=1e-6, atol=1e-6 * _scale(result)
+    )
+
+
+def test_forces_sum_to_zero(case, system):
+    potential, _ = case
+    result = potential.energy_forces(system, None)
+    assert np.any(result.forces != 0.0)
+    np.testing.assert_allclose(
+        result.forces.sum(axis=0), 0.0, atol=1e-12 * system.n_atoms * _scale(result)
+    )
+
+
+def test_energy_is_translation_invariant(case, system, rng):
+    potential, _ = case
+    before = potential.energy_forces(system, None, per_atom=True)
+    scale = max(1.0, float(np.abs(before.energies).sum()))
+    moved = system.copy()
+    moved.positions += [0.37, -1.3, 2.9]
+    after = potential.energy_forces(moved, None)
+    assert after.energy == pytest.approx(before.energy, rel=1e-12, abs=1e-12 * scale)
+    np.testing.assert_allclose(after.forces, before.forces, rtol=1e-9, atol=1e-10 * _scale(before))
+    if system.pbc.all():  # any atom may sit in any image of the box
+        imaged = system.copy()
+        imaged.positions += rng.integers(-3, 4, size=imaged.positions.shape) * imaged.box
+        again = potential.energy_forces(imaged, None)
+        assert again.energy == pytest.approx(before.energy, rel=1e-12, abs=1e-12 * scale)
+
+
+def test_neighbor_list_result_equals_all_pairs(case, system, rng):
+    potential, _ = case
+    if potential.cutoff is None:
+        pytest.skip("potential needs no neighbour list")
+    skin = 0.3
+    nl = NeighborList(potential.cutoff, skin)
+    state = system.copy()
+    for _ in range(3):  # the fresh list, then stale lists still within skin / 2
+        nl.update(state)
+        listed = potential.energy_forces(state, nl, per_atom=True)
+        full = potential.energy_forces(state, None, per_atom=True)
+        scale = max(1.0, float(np.abs(full.energies).sum()))
+        assert listed.energy == pytest.approx(full.energy, rel=1e-12, abs=1e-12 * scale)
+        np.testing.assert_allclose(
+            listed.forces, full.forces, rtol=1e-12, atol=1e-12 * _scale(full)
+        )
+        np.testing.assert_allclose(
+            listed.virial, full.virial, rtol=1e-12, atol=1e-12 * np.abs(full.virial).max()
+        )
+        np.testing.assert_allclose(listed.energies, full.energies, rtol=1e-12, atol=1e-12 * scale)
+        directions = rng.normal(size=state.positions.shape)
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        state.positions += rng.uniform(0, 0.24 * skin, size=(state.n_atoms, 1)) * directions
+    assert nl.n_builds <= 3
+
+
+def test_per_atom_energies_sum_to_the_energy(case, system):
+    potential, _ = case
+    result = potential.energy_forces(system, None, per_atom=True)
+    scale = max(1.0, float(np.abs(result.energies).sum()))
+    assert result.energies.sum() == pytest.approx(result.energy, rel=1e-12, abs=1e-12 * scale)
+    plain = potential.energy_forces(system, None)
+    assert plain.energies is None
+    assert plain.energy == result.energy
+
+
+def test_input_state_is_unchanged(case, system):
+    potential, _ = case
+    before = system.copy()
+    potential.energy_forces(system, None, per_atom=True)
+    if potential.cutoff is not None:
+        nl = NeighborList(potential.cutoff, 0.3)
+        nl.update(system)
+        potential.energy_forces(system, nl, per_atom=True)
+    for name in ("positions", "velocities", "masses", "box", "pbc", "types"):
+        np.testing.assert_array_equal(getattr(system, name), getattr(before, name), err_msg=name)
+    assert (system.step, system.time, system.type_names) == (0, 0.0, before.type_names)
+
+
+def test_result_dtypes_and_shapes(case, system):
+    potential, _ = case
+    result = potential.energy_forces(system, None, per_atom=True)
+    n = system.n_atoms
+    assert np.isfinite(result.energy) and np.ndim(result.energy) == 0
+    assert result.forces.shape == (n, 3) and result.forces.dtype == np.float64
+    assert result.virial.shape == (3, 3) and result.virial.dtype == np.float64
+    np.testing.assert_array_equal(result.virial, result.virial.T)  # pair virials are symmetric
+    assert result.energies.shape == (n,) and result.energies.dtype == np.float64
+    assert result.forces is not system.positions
+
+
+def test_open_system_virial_is_sum_of_r_outer_f(case, open_system):
+    """Without periodic images W = sum_i r_i (x) F_i, for any translation-invariant potential."""
+    potential, _ = case
+    result = potential.energy_forces(open_system, None)
+    expected = np.einsum("ia,ib->ab", open_system.positions, result.forces)
+    np.testing.assert_allclose(
+        result.virial, expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max()
+    )
+
+
+def test_diagonal_virial_is_minus_the_strain_derivative(case, system):
+    """W_aa = -dE/d(eps_aa) under a uniaxial strain of positions and box."""
+    potential, kinks = case
+    h = 1e-6
+    assert not _near_kink(potential, kinks, system, 10 * h * 3).any()
+    virial = potential.energy_forces(system, None).virial
+    for axis in range(3):
+        up = np.ones(3)
+        down = np.ones(3)
+        up[axis] += h
+        down[axis] -= h
+        derivative = (
+            _energy(potential, _strained(system, up)) - _energy(potential, _strained(system, down))
+        ) / (2 * h)
+        assert -derivative == pytest.approx(
+            virial[axis, axis], rel=1e-6, abs=1e-6 * np.abs(virial).max()
+        )
+
+
+def test_virial_pressure_is_minus_dE_dV(case, periodic_system):
+    """P = (2K + tr W) / (3V) with K = 0 equals -dE/dV under uniform scaling."""
+    potential, kinks = case
+    system = periodic_system
+    relative = 1e-6  # dV / V
+    assert not _near_kink(potential, kinks, system, 10 * relative).any()
+    volume = system.volume
+    result = potential.energy_forces(system, None)
+    virial_pressure = pressure(0.0, result.virial, volume)
+    bigger = _strained(system, (1 + relative) ** (1 / 3))
+    smaller = _strained(system, (1 - relative) ** (1 / 3))
+    assert bigger.volume == pytest.approx(volume * (1 + relative), rel=1e-14)
+    numeric = -(_energy(potential, bigger) - _energy(potential, smaller)) / (2 * relative * volume)
+    scale = np.abs(result.virial).max() / volume
+    assert virial_pressure == pytest.approx(numeric, rel=1e-6, abs=1e-6 * scale)
+
+
+# -------------------------------------------------------- Lennard-Jones values
+
+
+def _lj_formula(r, epsilon, sigma):
+    x6 = (sigma / r) ** 6
+    return 4.0 * epsilon * (x6 * x6 - x6)
+
+
+def _lj_force_formula(r, epsilon, sigma):
+    """-du/dr."""
+    x6 = (sigma / r) ** 6
+    return 24.0 * epsilon * (2.0 * x6 * x6 - x6) / r
+
+
+def _pair(potential, r, ti=0, tj=0):
+    """(energy, force on the second atom along +x) of a dimer at distance r."""
+    state = md.State(
+        positions=[[0.0, 0.0, 0.0], [r, 0.0, 0.0]], box=50.0, pbc=False, types=[ti, tj]
+    )
+    result = potential.energy_forces(state, None)
+    assert result.forces[0, 0] == -result.forces[1, 0]
+    return result.energy, result.forces[1, 0]
+
+
+def test_lj_minimum_is_minus_epsilon_at_two_to_the_sixth_sigma(dimer):
+    epsilon, sigma = 0.7, 1.3
+    lj = LennardJones(epsilon=epsilon, sigma=sigma, cutoff=10.0, cutoff_mode="none")
+    result = lj.energy_forces(dimer(r=R_MIN * sigma, box=30.0), None, per_atom=True)
+    assert result.energy == pytest.approx(-epsilon, rel=1e-14)
+    np.testing.assert_allclose(result.forces, 0.0, atol=1e-13)
+    np.testing.assert_allclose(result.energies, -0.5 * epsilon, rtol=1e-14)
+    assert lj.pair_energy(R_MIN * sigma) == pytest.approx(-epsilon, rel=1e-14)
+    # Repulsive inside the minimum, attractive outside, zero at r = sigma.
+    assert _pair(lj, 0.99 * R_MIN * sigma)[1] > 0 > _pair(lj, 1.01 * R_MIN * sigma)[1]
+    assert lj.pair_energy(sigma) == pytest.approx(0.0, abs=1e-14)
+
+
+@pytest.mark.parametrize("r", [0.9, 1.0, 1.5, 2.2, 2.999])
+def test_lj_values_and_forces_follow_the_formula(r):
+    lj = LennardJones(epsilon=1.7, sigma=1.1, cutoff=3.0, cutoff_mode="none")
+    energy, force = _pair(lj, r)
+    assert energy == pytest.approx(_lj_formula(r, 1.7, 1.1), rel=1e-13)
+    assert force == pytest.approx(_lj_force_formula(r, 1.7, 1.1), rel=1e-13)
+
+
+def test_truncated_lj_is_zero_beyond_the_cutoff():
+    lj = LennardJones(cutoff=2.5, cutoff_mode="none")
+    assert _pair(lj, 2.5 - 1e-9)[0] == pytest.approx(_lj_formula(2.5, 1.0, 1.0), rel=1e-6)
+    assert _pair(lj, 2.5 + 1e-9) == (0.0, 0.0)
+
+
+def test_shifted_lj_energy_is_continuous_at_the_cutoff():
+    rc = 2.5
+    lj = LennardJones(epsilon=1.3, sigma=1.0, cutoff=rc, cutoff_mode="shift")
+    below, force_below = _pair(lj, rc - 1e-9)
+    assert abs(below) < 1e-8
+    assert _pair(lj, rc + 1e-9) == (0.0, 0.0)
+    # Below the cutoff: plain LJ minus u(rc), the force untouched (so it jumps at rc).
+    for r in (1.0, 1.7, 2.4):
+        energy, force = _pair(lj, r)
+        shifted = _lj_formula(r, 1.3, 1.0) - _lj_formula(rc, 1.3, 1.0)
+        assert energy == pytest.approx(shifted, rel=1e-13)
+        assert force == pytest.approx(_lj_force_formula(r, 1.3, 1.0), rel=1e-13)
+    assert force_below == pytest.approx(_lj_force_formula(rc, 1.3, 1.0), rel=1e-6)
+
+
+@pytest.mark.parametrize("r_on", [None, 2.0])
+def test_smooth_lj_energy_and_force_vanish_continuously_at_the_cutoff(r_on):
+    rc = 2.5
+    lj = LennardJones(epsilon=1.0, sigma=1.0, cutoff=rc, cutoff_mode="smooth", r_on=r_on)
+    plain = LennardJones(epsilon=1.0, sigma=1.0, cutoff=rc, cutoff_mode="none")
+    onset = lj.pair_parameters(0, 0)["r_on"]
+    assert onset == (0.66 * rc if r_on is None else r_on)
+    # Plain LJ below r_on.
+    for r in np.linspace(0.9, onset - 1e-9, 7):
+        assert _pair(lj, r) == pytest.approx(_pair(plain, r), rel=1e-14)
+    # Continuous at r_on (energy and force).
+    np.testing.assert_allclose(_pair(lj, onset + 1e-9), _pair(lj, onset - 1e-9), rtol=1e-7)
+    # Switched tail: smaller in magnitude than plain LJ, same sign.
+    for r in np.linspace(onset + 0.01, rc - 0.01, 5):
+        energy, _ = _pair(lj, r)
+        assert 0 < energy / _lj_formula(r, 1.0, 1.0) < 1
+    # Near rc the switch goes as (rc - r)^2, so u ~ (rc - r)^2 and F ~ (rc - r).
+    e1, f1 = _pair(lj, rc - 1e-4)
+    e2, f2 = _pair(lj, rc - 2e-4)
+    assert abs(e1) < 1e-7 and abs(f1) < 1e-3
+    assert e2 / e1 == pytest.approx(4.0, rel=1e-3)
+    assert f2 / f1 == pytest.approx(2.0, rel=1e-3)
+    assert _pair(lj, rc + 1e-12) == (0.0, 0.0)
+
+
+# ------------------------------------------------------------------ multi-type
+
+
+@pytest.mark.parametrize(
+    ("mixing", "sigma_01"),
+    [("lorentz-berthelot", 1.5), ("geometric", np.sqrt(2.0))],
+)
+def test_mixing_rules(mixing, sigma_01):
+    lj = LennardJones(
+        epsilon=[1.0, 0.5], sigma=[1.0, 2.0], cutoff=6.0, cutoff_mode="none", mixing=mixing
+    )
+    epsilon_01 = np.sqrt(0.5)
+    params = lj.pair_parameters(0, 1)
+    assert params["epsilon"] == pytest.approx(epsilon_01, rel=1e-15)
+    assert params["sigma"] == pytest.approx(sigma_01, rel=1e-15)
+    for ti, tj, eps, sig in [(0, 0, 1.0, 1.0), (1, 1, 0.5, 2.0), (0, 1, epsilon_01, sigma_01)]:
+        for r in (0.95 * sig, R_MIN * sig, 1.8 * sig):
+            expected = _lj_formula(r, eps, sig)
+            assert lj.pair_energy(r, ti, tj) == pytest.approx(expected, rel=1e-13)
+            assert lj.pair_energy(r, tj, ti) == pytest.approx(expected, rel=1e-13)
+        assert lj.pair_energy(R_MIN * sig, ti, tj) == pytest.approx(-eps, rel=1e-14)
+
+
+def test_explicit_pair_parameters_override_mixing():
+    base = {"epsilon": [1.0, 0.5], "sigma": [1.0, 2.0], "cutoff": 6.0, "cutoff_mode": "none"}
+    lj = LennardJones(**base, pairs={(1, 0): {"epsilon": 0.3, "sigma": 1.1}})
+    mixed = LennardJones(**base)
+    for ti, tj in [(0, 1), (1, 0)]:
+        assert lj.pair_energy(R_MIN * 1.1, ti, tj) == pytest.approx(-0.3, rel=1e-14)
+    for t in (0, 1):
+        for r in (1.0, 2.0, 3.0):
+            assert lj.pair_energy(r, t, t) == mixed.pair_energy(r, t, t)
+
+
+def test_pair_cutoffs():
+    lj = LennardJones(
+        epsilon=[1.0, 1.0],
+        sigma=[1.0, 1.0],
+        cutoff=2.5,
+        cutoff_mode="shift",
+        pairs={(0, 1): {"cutoff": 1.8}, (1, 1): {"cutoff": 3.0}},
+    )
+    assert lj.cutoff == 3.0  # the neighbour list must reach the longest pair cutoff
+    assert lj.pair_energy(2.0, 0, 1) == 0.0
+    assert lj.pair_energy(2.0, 0, 0) == pytest.approx(
+        _lj_formula(2.0, 1, 1) - _lj_formula(2.5, 1, 1), rel=1e-13
+    )
+    assert lj.pair_energy(2.8, 0, 0) == 0.0
+    assert lj.pair_energy(2.8, 1, 1) == pytest.approx(
+        _lj_formula(2.8, 1, 1) - _lj_formula(3.0, 1, 1), rel=1e-13
+    )
+    # Each pair is shifted at its own cutoff.
+    assert abs(lj.pair_energy(1.8 - 1e-9, 0, 1)) < 1e-7
+    assert abs(lj.pair_energy(1.8 - 1e-9, 1, 0)) < 1e-7
+
+
+def _reference_lj(state, params, shift):
+    """Independent numpy all-pairs LJ; params[(ti, tj)] = (epsilon, sigma, cutoff)."""
+    d = state.positions[:, None, :] - state.positions[None, :, :]
+    for axis in range(3):
+        if state.pbc[axis]:
+            d[..., axis] -= state.box[axis] * np.round(d[..., axis] / state.box[axis])
+    r = np.sqrt(np.einsum("ijk,ijk->ij", d, d))
+    np.fill_diagonal(r, np.inf)
+    n = state.n_atoms
+    epsilon, sigma, cutoff = np.zeros((3, n, n))
+    for (ti, tj), (eps, sig, rc) in params.items():
+        for a, b in [(ti, tj), (tj, ti)]:
+            mask = (state.types[:, None] == a) & (state.types[None, :] == b)
+            epsilon[mask], sigma[mask], cutoff[mask] = eps, sig, rc
+    inside = r < cutoff
+    u = np.where(inside, _lj_formula(r, epsilon, sigma), 0.0)
+    if shift:
+        u -= np.where(inside, _lj_formula(cutoff, epsilon, sigma), 0.0)
+    f_over_r = np.where(inside, _lj_force_formula(r, epsilon, sigma) / r, 0.0)
+    forces = np.einsum("ij,ijk->ik", f_over_r, d)
+    return 0.5 * u.sum(), forces
+
+
+@pytest.mark.parametrize("mode", ["none", "shift"])
+def test_multi_type_system_matches_an_independent_reference(mode, random_gas):
+    state = random_gas(120, 7.0, n_types=3, min_distance=0.8, images=1)
+    lj = LennardJones(
+        epsilon=[1.0, 0.4, 2.0],
+        sigma=[1.0, 1.3, 0.9],
+        cutoff=2.6,
+        cutoff_mode=mode,
+        pairs={
+            (0, 2): {"epsilon": 0.1, "cutoff": 2.0},
+            (1, 2): {"sigma": 1.0},
+            (2, 2): {"cutoff": 3.1},
+        },
+    )
+    params = {
+        (0, 0): (1.0, 1.0, 2.6),
+        (1, 1): (0.4, 1.3, 2.6),
+        (2, 2): (2.0, 0.9, 3.1),
+        (0, 1): (np.sqrt(0.4), 1.15, 2.6),
+        (0, 2): (0.1, 0.95, 2.0),
+        (1, 2): (np.sqrt(0.8), 1.0, 2.6),
+    }
+    energy, forces = _reference_lj(state, params, shift=mode == "shift")
+    nl = NeighborList(lj.cutoff, 0.3)
+    nl.update(state)
+    result = lj.energy_forces(state, nl)
+    assert result.energy == pytest.approx(energy, rel=1e-12)
+    np.testing.assert_allclose(result.forces, forces, rtol=1e-10, atol=1e-10 * np.abs(forces).max())
+
+
+def test_lj_rejects_more_types_than_it_has_parameters(random_gas):
+    lj = LennardJones(epsilon=[1.0, 1.0], sigma=[1.0, 1.0])
+    with pytest.raises(ValueError, match="types"):
+        lj.check(random_gas(10, 6.0, n_types=3))
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"cutoff_mode": "cubic"},
+        {"mixing": "arithmetic"},
+        {"sigma": 0.0},
+        {"epsilon": -1.0},
+        {"cutoff": 0.0},
+        {"epsilon": [1.0, 1.0], "sigma": [1.0]},
+        {"cutoff_mode": "smooth", "r_on": 3.0, "cutoff": 2.5},
+        {"pairs": {(0, 1): {"radius": 1.0}}},
+    ],
+)
+def test_lj_rejects_invalid_parameters(kwargs):
+    with pytest.raises(ValueError):
+        LennardJones(**kwargs)
+
+
+def test_neighbor_list_shorter_than_the_cutoff_is_rejected(random_gas):
+    state = random_gas(20, 7.0)
+    lj = LennardJones(cutoff=2.5)
+    nl = NeighborList(2.0, skin=0.3)
+    nl.update(state)
+    with pytest.raises(ValueError, match="cutoff"):
+        lj.energy_forces(state, nl)
+
+
+# ------------------------------------------------------------------------ ASE
+
+
+def _ase_systems(fcc_lattice, sigma):
+    density = 0.8442 / sigma**3
+    crystal = fcc_lattice(cells=3, density=density, perturbation=0.05 * sigma)
+    cluster = fcc_lattice(cells=3, density=density, perturbation=0.05 * sigma, pbc=False)
+    return {"crystal": crystal, "cluster": cluster}
+
+
+def _voigt(matrix):
+    return np.array(
+        [matrix[0, 0], matrix[1, 1], matrix[2, 2], matrix[1, 2], matrix[0, 2], matrix[0, 1]]
+    )
+
+
+@pytest.mark.parametrize("geometry", ["crystal", "cluster"])
+@pytest.mark.parametrize(("mode", "r_on"), [("shift", None), ("smooth", None), ("smooth", 2.2)])
+def test_lj_matches_ase(mode, r_on, geometry, fcc_lattice):
+    sigma, epsilon = 1.1, 0.8
+    rc = 2.5 * sigma
+    state = _ase_systems(fcc_lattice, sigma)[geometry]
+    lj = LennardJones(epsilon=epsilon, sigma=sigma, cutoff=rc, cutoff_mode=mode, r_on=r_on)
+    atoms = state.to_ase()
+    atoms.calc = ase.calculators.lj.LennardJones(
+        sigma=sigma, epsilon=epsilon, rc=rc, ro=r_on, smooth=mode == "smooth"
+    )
+    nl = NeighborList(rc, 0.3)
+    nl.update(state)
+    ours = lj.energy_forces(state, nl, per_atom=True)
+    assert ours.energy == pytest.approx(atoms.get_potential_energy(), rel=1e-11)
+    forces = atoms.get_forces()
+    np.testing.assert_allclose(ours.forces, forces, rtol=1e-9, atol=1e-10 * np.abs(forces).max())
+    np.testing.assert_allclose(ours.energies, atoms.get_potential_energies(), rtol=1e-9, atol=1e-11)
+    stress = atoms.get_stress()  # Voigt xx, yy, zz, yz, xz, xy
+    np.testing.assert_allclose(
+        _voigt(-ours.virial / state.volume), stress, rtol=1e-9, atol=1e-11 * np.abs(stress).max()
+    )
+
+
+def test_ase_stress_convention_is_the_strain_derivative(fcc_lattice):
+    """ASE's stress is (1/V) dE/d(strain), so -W/V is its sign-correct counterpart."""
+    state = fcc_lattice(cells=3, perturbation=0.05)
+    atoms = state.to_ase()
+    atoms.calc = ase.calculators.lj.LennardJones(sigma=1.0, epsilon=1.0, rc=2.5)
+    stress = atoms.get_stress(voigt=False)
+    volume = atoms.get_volume()
+    h = 1e-6
+    for a, b in [(0, 0), (2, 2), (0, 1), (1, 2)]:
+        energies = []
+        for sign in (1, -1):
+            strain = np.zeros((3, 3))
+            strain[a, b] += 0.5 * sign * h
+            strain[b, a] += 0.5 * sign * h
+            strained = atoms.copy()
+            strained.calc = atoms.calc
+            strained.set_cell(atoms.cell[:] @ (np.eye(3) + strain), scale_atoms=True)
+            energies.append(strained.get_potential_energy())
+        derivative = (energies[0] - energies[1]) / (2 * h)
+        assert stress[a, b] == pytest.approx(derivative / volume, rel=1e-5, abs=1e-8)
