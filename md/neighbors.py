@@ -132,41 +132,27 @@ class NeighborList:
         starts = np.zeros(n + 1, dtype=np.int64)
         grid = self._grid(state)
         self.used_cells = grid is not None
+        if grid is not None:
+            # Bin once; only the pair search repeats if the buffer must grow.
+            origin, width, n_cells = grid
+            cell_of = np.empty(n, dtype=np.int64)
+            cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
+            order = np.empty(n, dtype=np.int64)
+            sorted_wrapped = np.empty((n, 3))
+            _bin_atoms(
+                positions, origin, width, n_cells, state.pbc, state.box,
+                cell_of, cell_starts, order, sorted_wrapped,
+            )  # fmt: skip
         while True:
             if grid is None:
                 count = _brute_force_pairs(
                     positions, lengths, inverse, r2_max, starts, self._buffer
                 )
             else:
-                origin, width, n_cells = grid
-                cell_of = np.empty(n, dtype=np.int64)
-                cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
-                order = np.empty(n, dtype=np.int64)
-                sorted_wrapped = np.empty((n, 3))
-                _bin_atoms(
-                    positions,
-                    origin,
-                    width,
-                    n_cells,
-                    state.pbc,
-                    state.box,
-                    cell_of,
-                    cell_starts,
-                    order,
-                    sorted_wrapped,
-                )
                 count = _cell_pairs(
-                    sorted_wrapped,
-                    r2_max,
-                    n_cells,
-                    state.pbc,
-                    state.box,
-                    cell_of,
-                    cell_starts,
-                    order,
-                    starts,
-                    self._buffer,
-                )
+                    sorted_wrapped, r2_max, n_cells, state.pbc, state.box,
+                    cell_of, cell_starts, order, starts, self._buffer,
+                )  # fmt: skip
             if count <= self._buffer.shape[0]:
                 break
             self._buffer = np.empty(int(count * 1.25) + 1024, dtype=np.int32)
