@@ -39,6 +39,25 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--quiet", "-q", action="store_true", help="no thermo table")
 
+    study = sub.add_parser(
+        "integrators",
+        help="measure integrators on a system: order, stability, energy drift, cost",
+    )
+    study.add_argument("config", type=Path, help="TOML config describing the system")
+    study.add_argument(
+        "--integrators", help="comma-separated names (default: every registered integrator)"
+    )
+    study.add_argument(
+        "--dt-range",
+        help="time steps in config time units: MIN:MAX:N (log-spaced) or a comma list "
+        "(default: the config dt times 1/8, 1/4, 1/2, 1)",
+    )
+    study.add_argument(
+        "--time", type=float, help="simulated span of every run, config time units (default 100 dt)"
+    )
+    study.add_argument("--out", type=Path, help="output folder (default integrators-<config>)")
+    study.add_argument("--overwrite", action="store_true", help="replace existing output files")
+
     info = sub.add_parser("info", help="describe an H5MD trajectory")
     info.add_argument("trajectory", type=Path, help="H5MD file written by md run")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -51,6 +70,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "run":
             return _run(args)
+        if args.command == "integrators":
+            return _integrators(args)
         return _info(args)
     except KeyboardInterrupt:
         print("md: interrupted", file=sys.stderr)
@@ -244,6 +265,146 @@ def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) 
         print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
     print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
     print(f"Wrote {n_frames} frames to {output}")
+
+
+# -------------------------------------------------------------- md integrators
+def _parse_dts(text: str | None, dt: float) -> list[float]:
+    from md.config import ConfigError
+
+    if text is None:
+        return [dt / 8, dt / 4, dt / 2, dt]
+    try:
+        if ":" in text:
+            low, high, count = text.split(":")
+            values = np.geomspace(float(low), float(high), int(count)).tolist()
+        else:
+            values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ConfigError(
+            f"--dt-range must be MIN:MAX:N or a comma list of numbers, got {text!r}"
+        ) from None
+    if len(values) < 2 or not all(np.isfinite(v) and v > 0 for v in values):
+        raise ConfigError(f"--dt-range needs at least two positive time steps, got {text!r}")
+    return values
+
+
+def _integrators(args) -> int:
+    from integrators import INTEGRATORS
+    from md.config import (
+        ConfigError,
+        build_state,
+        load_config,
+        potential_from_config,
+    )
+    from md.integrator_study import (
+        compare_integrators,
+        plot_energy_vs_time,
+        plot_error_vs_dt,
+        write_csv,
+    )
+
+    try:
+        config = load_config(args.config)
+        units = config.units
+        config_dt = config.integrator["dt"] / units.config_time
+        dts = [dt * units.config_time for dt in _parse_dts(args.dt_range, config_dt)]
+        span = (args.time if args.time is not None else 100 * config_dt) * units.config_time
+        if not span > 0:
+            raise ConfigError(f"--time must be positive, got {args.time}")
+        names = _integrator_names(args.integrators, INTEGRATORS)
+        state = build_state(config)
+
+        def make_potentials():
+            return [
+                potential_from_config(entry, state.type_names, config.source, index)
+                for index, entry in enumerate(config.potentials)
+            ]
+
+        make_potentials()
+        out = args.out or Path(f"integrators-{args.config.stem}")
+        files = {
+            "csv": out / "integrators.csv",
+            "error": out / "error_vs_dt.png",
+            "energy": out / "energy_vs_time.png",
+        }
+        existing = [str(p) for p in files.values() if p.exists()]
+        if existing and not args.overwrite:
+            raise ConfigError(
+                f"output file(s) exist: {', '.join(existing)}; pass --overwrite or --out"
+            )
+    except ConfigError as error:
+        _fail(str(error))
+        return EXIT_BAD_INPUT
+
+    def factory(name):
+        cls = INTEGRATORS[name]
+        return lambda dt: cls(dt=dt)
+
+    label = units.config_time_label
+    print(
+        f"md integrators: {state.n_atoms} atoms, span {span / units.config_time:g} {label}, "
+        f"dt {', '.join(f'{dt / units.config_time:g}' for dt in dts)} {label}"
+    )
+    reports = compare_integrators(
+        make_state=state.copy,
+        potentials_factory=make_potentials,
+        integrators={name: factory(name) for name in names},
+        dts=dts,
+        span=span,
+        skin=config.run.skin,
+        units=units,
+        reference=factory("rk4") if "rk4" in INTEGRATORS else None,
+        measure_dt=dts[-1] if args.dt_range is None else None,
+        progress=lambda message: print(f"  {message}", flush=True),
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    for path in files.values():
+        if path.exists():
+            path.unlink()
+    write_csv(reports, files["csv"])
+    plot_error_vs_dt(reports, files["error"], f"[{label}]")
+    plot_energy_vs_time(reports, files["energy"], {"time": f"[{units.labels['time']}]"})
+    _print_study_table(reports, units)
+    print(f"Wrote {files['csv']}, {files['error']}, {files['energy']}")
+    return EXIT_OK
+
+
+def _integrator_names(text, registry) -> list[str]:
+    from md.config import ConfigError
+
+    if text is None:
+        names, seen = [], set()
+        for name, cls in registry.items():
+            if cls not in seen:
+                names.append(name)
+                seen.add(cls)
+        return names
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in registry]
+    if unknown or not names:
+        raise ConfigError(
+            f"--integrators: unknown {', '.join(unknown) or '(none given)'}; "
+            f"known: {', '.join(registry)}"
+        )
+    return names
+
+
+def _print_study_table(reports, units) -> None:
+    t = units.config_time
+    header = (
+        f"{'integrator':<18}{'order':>7}{'dt_max_stable':>15}{'drift/atom/t':>14}"
+        f"{'fluct/atom':>12}{'evals/t':>10}{'wall s/t':>10}{'at dt':>9}"
+    )
+    print(header)
+    for r in reports:
+        print(
+            f"{r.name:<18}{r.order:>7.2f}{r.dt_max_stable / t:>15.4g}{r.energy_drift * t:>14.3e}"
+            f"{r.energy_fluctuation:>12.3e}{r.evals_per_time * t:>10.4g}"
+            f"{r.wall_per_time * t:>10.4g}{r.reference_dt / t:>9.4g}"
+        )
+    print(
+        f"(times in config units, {units.config_time_label}; energies in {units.labels['energy']})"
+    )
 
 
 # ---------------------------------------------------------------------- md info
