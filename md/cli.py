@@ -263,6 +263,15 @@ def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) 
     nl = sim.forcefield.neighbor_list
     if nl is not None:
         print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
+    statistics = getattr(sim.integrator, "statistics", None)
+    if statistics and statistics.get("steps"):
+        per_step = ", ".join(
+            f"{name.replace('_', ' ')} {value / statistics['steps']:.3g}"
+            for name, value in statistics.items()
+            if name != "steps"
+        )
+        if per_step:
+            print(f"Integrator, per step: {per_step}")
     print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
     print(f"Wrote {n_frames} frames to {output}")
 
