@@ -55,6 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     study.add_argument(
         "--time", type=float, help="simulated span of every run, config time units (default 100 dt)"
     )
+    study.add_argument(
+        "--equilibrate",
+        type=int,
+        default=200,
+        help="velocity Verlet steps at the config dt before the study, so it starts from a "
+        "generic state rather than a force-free lattice (default 200)",
+    )
     study.add_argument("--out", type=Path, help="output folder (default integrators-<config>)")
     study.add_argument("--overwrite", action="store_true", help="replace existing output files")
 
@@ -321,6 +328,8 @@ def _integrators(args) -> int:
         if not span > 0:
             raise ConfigError(f"--time must be positive, got {args.time}")
         names = _integrator_names(args.integrators, INTEGRATORS)
+        if args.equilibrate < 0:
+            raise ConfigError(f"--equilibrate must be >= 0, got {args.equilibrate}")
         state = build_state(config)
 
         def make_potentials():
@@ -329,7 +338,18 @@ def _integrators(args) -> int:
                 for index, entry in enumerate(config.potentials)
             ]
 
-        make_potentials()
+        if args.equilibrate:
+            from integrators import VelocityVerlet
+            from md.simulation import Simulation, SimulationError
+
+            try:
+                Simulation(
+                    state, make_potentials(), VelocityVerlet(config.integrator["dt"]),
+                    skin=config.run.skin, units=units,
+                ).run(args.equilibrate)  # fmt: skip
+            except (SimulationError, ValueError) as error:
+                raise ConfigError(f"{config.source}: equilibration failed: {error}") from None
+            state.step, state.time = 0, 0.0
         out = args.out or Path(f"integrators-{args.config.stem}")
         files = {
             "csv": out / "integrators.csv",
@@ -347,7 +367,12 @@ def _integrators(args) -> int:
 
     def factory(name):
         cls = INTEGRATORS[name]
-        return lambda dt: cls(dt=dt)
+
+        def build(dt):
+            return cls(dt=dt)
+
+        build.adaptive = getattr(cls, "adaptive", False)
+        return build
 
     label = units.config_time_label
     print(

@@ -205,7 +205,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     table = _Table(top.take("integrator"), "integrator", source)
     kind = table.string("type", choices=tuple(INTEGRATORS))
     dt = table.number("dt", positive=True) * units.config_time
+    # Other times an integrator takes (RKF45's smallest substep) are converted too.
+    dt_min = table.number("dt_min", None, positive=True)
     integrator = {"type": kind, "dt": dt, **table.data}
+    if dt_min is not None:
+        integrator["dt_min"] = dt_min * units.config_time
 
     table = _Table(top.take("run", {}), "run", source)
     run = RunConfig(
