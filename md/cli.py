@@ -89,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args) -> int:
     from md.config import (
         ConfigError,
-        build_state,
+        build_system,
         integrator_from_config,
         load_config,
         potential_from_config,
@@ -116,9 +116,9 @@ def _run(args) -> int:
             raise ConfigError(f"output path {output} is a directory")
         if not output.parent.exists():
             raise ConfigError(f"output directory {output.parent} does not exist")
-        state = build_state(config)
+        state, bonds = build_system(config)
         potentials = [
-            potential_from_config(entry, state.type_names, config.source, index)
+            potential_from_config(entry, state.type_names, config.source, index, bonds)
             for index, entry in enumerate(config.potentials)
         ]
         integrator = integrator_from_config(config.integrator, config.source)
@@ -132,7 +132,8 @@ def _run(args) -> int:
             sim.forcefield.compute(state)
         except NonFiniteError as error:
             raise ConfigError(
-                f"{config.source}: the initial configuration has {error} (overlapping atoms?)"
+                f"{config.source}: the initial configuration cannot be evaluated: {error} "
+                "(overlapping atoms, or a stretched bond?)"
             ) from None
     except ConfigError as error:
         _fail(str(error))
@@ -308,7 +309,7 @@ def _integrators(args) -> int:
     from integrators import INTEGRATORS
     from md.config import (
         ConfigError,
-        build_state,
+        build_system,
         load_config,
         potential_from_config,
     )
@@ -330,11 +331,11 @@ def _integrators(args) -> int:
         names = _integrator_names(args.integrators, INTEGRATORS)
         if args.equilibrate < 0:
             raise ConfigError(f"--equilibrate must be >= 0, got {args.equilibrate}")
-        state = build_state(config)
+        state, bonds = build_system(config)
 
         def make_potentials():
             return [
-                potential_from_config(entry, state.type_names, config.source, index)
+                potential_from_config(entry, state.type_names, config.source, index, bonds)
                 for index, entry in enumerate(config.potentials)
             ]
 

@@ -117,6 +117,11 @@ class SystemConfig:
     """What to simulate: a lattice or a structure file, and initial velocities."""
 
     lattice: str | None = None
+    polymer: str | None = None
+    chains: int = 1
+    chain_length: int = 2
+    bond_length: float = 0.97
+    straight: bool = False
     cells: tuple[int, int, int] = (1, 1, 1)
     density: float | None = None
     lattice_constant: float | None = None
@@ -192,6 +197,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     system = _parse_system(_Table(top.take("system"), "system", source), Path(base))
 
     raw_potentials = top.take("potentials")
+    base = Path(base)
     if not isinstance(raw_potentials, list) or not raw_potentials:
         raise ConfigError(
             f"{source}: potentials must be a non-empty array of tables ([[potentials]])"
@@ -200,6 +206,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     for index, entry in enumerate(raw_potentials):
         table = _Table(entry, f"potentials.{index}", source)
         kind = table.string("type", choices=tuple(POTENTIALS))
+        bonds_file = table.data.get("bonds_file")
+        if isinstance(bonds_file, str) and not Path(bonds_file).is_absolute():
+            table.data["bonds_file"] = str(base / bonds_file)  # relative to the config
         potentials.append({"type": kind, **table.data})
 
     table = _Table(top.take("integrator"), "integrator", source)
@@ -245,12 +254,22 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
 def _parse_system(table: _Table, base: Path) -> SystemConfig:
     lattice = table.string("lattice", None, choices=("sc", "bcc", "fcc"))
     structure = table.string("structure", None)
-    if (lattice is None) == (structure is None):
+    polymer = table.string("polymer", None, choices=("melt", "chain"))
+    if sum(x is not None for x in (lattice, structure, polymer)) != 1:
         raise ConfigError(
-            f"{table.source}: [system] needs exactly one of 'lattice' and 'structure'"
+            f"{table.source}: [system] needs exactly one of 'lattice', 'structure' and 'polymer'"
         )
-    system = SystemConfig(lattice=lattice)
-    if lattice is not None:
+    system = SystemConfig(lattice=lattice, polymer=polymer)
+    if polymer is not None:
+        system.chain_length = table.integer("chain_length", minimum=2)
+        system.bond_length = table.number("bond_length", 0.97, positive=True)
+        if polymer == "melt":
+            system.chains = table.integer("chains", minimum=1)
+            system.density = table.number("density", positive=True)
+        else:
+            system.straight = table.boolean("straight", False)
+        system.type_name = table.string("type_name", "M")
+    elif lattice is not None:
         cells = table.triple("cells", _MISSING, int)
         if any(c < 1 for c in cells):
             raise table.error("cells", f"must be positive integers, got {list(cells)}")
@@ -279,13 +298,20 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
     return system
 
 
-def potential_from_config(entry: dict, type_names, source: str, index: int):
-    """Build a potential from its config table (type names resolved to indices)."""
+def potential_from_config(entry: dict, type_names, source: str, index: int, system_bonds=None):
+    """Build a potential from its config table (type names resolved to indices).
+
+    ``bonds = "system"`` takes the bonds of a polymer built by ``[system]``.
+    """
     from potentials import POTENTIALS
 
     params = dict(entry)
     kind = params.pop("type")
     where = f"{source}: [potentials.{index}] ({kind})"
+    if params.get("bonds") == "system":
+        if system_bonds is None:
+            raise ConfigError(f'{where}: bonds = "system" needs a polymer built by [system]')
+        params["bonds"] = system_bonds
     try:
         return POTENTIALS[kind].from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
@@ -308,12 +334,37 @@ def integrator_from_config(entry: dict, source: str):
 
 def build_state(config: Config):
     """Build the initial State described by ``config.system`` (engine units)."""
+    return build_system(config)[0]
+
+
+def build_system(config: Config):
+    """Return ``(state, bonds)``: the initial State and a builder's bonds (or None)."""
     from md.build import lattice, maxwell_boltzmann
+    from md.polymers import polymer_melt, single_chain
 
     system = config.system
     where = f"{config.source}: [system]"
+    bonds = None
     try:
-        if system.lattice is not None:
+        if system.polymer == "melt":
+            state, bonds = polymer_melt(
+                system.chains, system.chain_length, density=system.density,
+                bond_length=system.bond_length, seed=config.seed,
+            )  # fmt: skip
+        elif system.polymer == "chain":
+            state, bonds = single_chain(
+                system.chain_length, bond_length=system.bond_length,
+                straight=system.straight, seed=config.seed,
+                pbc=system.pbc if system.pbc is not None else False,
+            )  # fmt: skip
+        if system.polymer is not None:
+            state.type_names = (system.type_name,)
+            if system.mass is not None:
+                state.masses[:] = system.mass
+            if system.pbc is not None:
+                state.pbc[:] = system.pbc
+            state.validate()
+        elif system.lattice is not None:
             state = lattice(
                 system.lattice,
                 system.cells,
@@ -336,7 +387,7 @@ def build_state(config: Config):
         raise ConfigError(f"{where}: {error}") from None
     if state.n_atoms == 0:
         raise ConfigError(f"{where}: the system has no atoms")
-    return state
+    return state, bonds
 
 
 def _read_structure(path: Path, where: str):
@@ -370,6 +421,7 @@ __all__ = [
     "Config",
     "ConfigError",
     "build_state",
+    "build_system",
     "integrator_from_config",
     "load_config",
     "parse_config",

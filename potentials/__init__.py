@@ -5,7 +5,17 @@
 
 from potentials.base import ForceResult, Potential, SupportsHessian
 from potentials.lennard_jones import LennardJones
+from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
 
-POTENTIALS = {"lj": LennardJones}
+POTENTIALS = {"lj": LennardJones, "spring": HarmonicBonds, "fene": FENEBonds}
 
-__all__ = ["POTENTIALS", "ForceResult", "LennardJones", "Potential", "SupportsHessian"]
+__all__ = [
+    "POTENTIALS",
+    "BondStretchError",
+    "FENEBonds",
+    "ForceResult",
+    "HarmonicBonds",
+    "LennardJones",
+    "Potential",
+    "SupportsHessian",
+]

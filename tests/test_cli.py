@@ -284,3 +284,64 @@ def test_examples_run(tmp_path, example):
     assert main(["run", str(example), "--steps", "3", "-o", str(out), "--no-progress", "-q"]) == 0
     traj = read_trajectory(out)
     assert traj.steps[0] == 0 and np.all(np.isfinite(traj.observables["total_energy"]))
+
+
+POLYMER = """\
+units = "lj"
+seed = 3
+
+[system]
+polymer = "melt"
+chains = 4
+chain_length = 10
+density = 0.5
+temperature = 1.0
+
+[[potentials]]
+type = "lj"
+cutoff = 1.122462048309373
+
+[[potentials]]
+type = "fene"
+bonds = "system"
+
+[integrator]
+type = "verlet"
+dt = 0.002
+
+[run]
+steps = 20
+
+[output]
+path = "out.h5"
+every = 10
+"""
+
+
+def test_polymer_melt_from_config(tmp_path):
+    config = write_config(tmp_path, POLYMER)
+    assert main(["run", str(config), "--no-progress", "-q"]) == 0
+    traj = read_trajectory(tmp_path / "out.h5")
+    assert traj.n_atoms == 40 and traj.type_names == ("M",)
+    bonded = traj.positions[0][1:10] - traj.positions[0][:9]  # chain 0 is beads 0..9
+    np.testing.assert_allclose(np.linalg.norm(bonded, axis=1), 0.97, rtol=1e-9)
+    assert traj.parameters["potentials"][1]["type"] == "fene"
+
+
+def test_bonds_file_is_relative_to_the_config(tmp_path, monkeypatch):
+    sub = tmp_path / "inputs"
+    sub.mkdir()
+    chains = [[10 * c + i, 10 * c + i + 1] for c in range(4) for i in range(9)]
+    np.savetxt(sub / "bonds.txt", chains, fmt="%d")
+    text = replace(POLYMER, 'bonds = "system"', 'bonds_file = "bonds.txt"')
+    config = write_config(sub, text)
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(config), "--no-progress", "-q", "-o", "b.h5"]) == 0
+
+
+def test_system_bonds_need_a_polymer(tmp_path, capsys):
+    text = SMALL + '\n[[potentials]]\ntype = "spring"\nbonds = "system"\nk = 1.0\nr0 = 1.0\n'
+    config = write_config(tmp_path, text)
+    assert main(["run", str(config), "--no-progress"]) == 2
+    assert "polymer" in capsys.readouterr().err
+    assert not (tmp_path / "out.h5").exists()

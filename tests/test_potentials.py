@@ -13,7 +13,7 @@ import pytest
 import md
 from md.analysis import pressure
 from md.neighbors import NeighborList
-from potentials import POTENTIALS, LennardJones
+from potentials import POTENTIALS, FENEBonds, HarmonicBonds, LennardJones
 
 R_MIN = 2.0 ** (1.0 / 6.0)
 FD_STEP = 1e-6  # central-difference step [length]
@@ -40,11 +40,47 @@ def _lj_kinks(potential, ti, tj):
     return [p["cutoff"], p["r_on"]]
 
 
+def _contract_bonds():
+    """Bonds among atoms 0..59 (every contract system has at least 60): a chain,
+    cross-links, one bond listed twice. Random atoms are far apart, so the
+    FENE factories use an r_max beyond every minimum-image distance (< 9)."""
+    chain = [(i, i + 1) for i in range(59)]
+    cross = [(0, 30), (7, 52), (44, 13), (21, 3), (59, 0), (25, 26)]
+    return np.array(chain + cross)
+
+
+def _bond_types(n_types):
+    return np.arange(len(_contract_bonds())) % n_types
+
+
+def _no_kinks(potential, ti, tj):
+    """Bond energies are smooth in the positions (within their range)."""
+    return []
+
+
 #: registry name -> {"variants": {id: zero-argument builder}, "kinks": f(potential, ti, tj)}
 FACTORIES = {
     "lj": {
         "variants": {mode: (lambda mode=mode: _lj(mode)) for mode in ("none", "shift", "smooth")},
         "kinks": _lj_kinks,
+    },
+    "spring": {
+        "variants": {
+            "uniform": lambda: HarmonicBonds(_contract_bonds(), k=2.5, r0=1.1),
+            "typed": lambda: HarmonicBonds(
+                _contract_bonds(), k=[1.0, 3.0, 0.5], r0=[0.0, 1.2, 2.0], bond_types=_bond_types(3)
+            ),
+        },
+        "kinks": _no_kinks,
+    },
+    "fene": {
+        "variants": {
+            "uniform": lambda: FENEBonds(_contract_bonds(), k=7.0, r_max=10.0),
+            "typed": lambda: FENEBonds(
+                _contract_bonds(), k=[30.0, 5.0], r_max=[10.0, 14.0], bond_types=_bond_types(2)
+            ),
+        },
+        "kinks": _no_kinks,
     },
 }
 

@@ -1,0 +1,584 @@
+"""Bonded pair potentials over a fixed bond list: harmonic springs and FENE bonds.
+
+Bonds are pairs of atom indices ``(i, j)`` that interact whatever their
+distance, so these potentials need no neighbour list (``cutoff = None``).
+Bond vectors use the minimum image along periodic axes (:mod:`md.box`), so a
+bond may cross the box boundary; it must stay shorter than half the box edge.
+
+Both potentials offer the optional Hessian capability
+(:class:`potentials.base.SupportsHessian`) as a sparse (3N, 3N) matrix.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+
+from md.box import _min_image, minimum_image, periodic_lengths
+from md.neighbors import NonFiniteError
+from potentials.base import ForceResult
+
+#: Kernel codes for the bond forms.
+_HARMONIC = 0
+_FENE = 1
+
+
+class BondStretchError(NonFiniteError):
+    """A FENE bond reached its maximum extension ``r_max`` (infinite energy).
+
+    A subclass of :class:`md.neighbors.NonFiniteError`, so the simulation loop
+    reports it as a :class:`md.simulation.SimulationError` at the failing step.
+
+    Attributes
+    ----------
+    bond : int
+        Index of the first overstretched bond in the bond list.
+    i, j : int
+        Its atoms.
+    length : float
+        Its length [length].
+    r_max : float
+        Its maximum extension [length].
+    """
+
+    def __init__(self, bond: int, i: int, j: int, length: float, r_max: float) -> None:
+        self.bond = bond
+        self.i = i
+        self.j = j
+        self.length = length
+        self.r_max = r_max
+        super().__init__(
+            f"FENE bond {bond} between atoms {i} and {j} is stretched to length "
+            f"{length:.6g} >= r_max = {r_max:g}"
+        )
+
+
+class _BondedPotential:
+    """Shared orchestration of the bond potentials: validation, buffers, kernels.
+
+    Subclasses set ``_form`` (a kernel code) and ``_name`` and call
+    :meth:`_setup` with the per-bond-type parameter arrays.
+    """
+
+    cutoff = None  # bonded: no neighbour list needed
+    _form: int
+    _name: str
+
+    def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
+        self.bonds = _bond_array(bonds)
+        n_bonds = len(self.bonds)
+        given = {name: _finite_array(value, name) for name, value in params.items()}
+        per_type = [name for name, value in given.items() if value.ndim == 1]
+        if bond_types is None:
+            if per_type:
+                raise ValueError(
+                    f"{', '.join(per_type)} given per bond type, so bond_types "
+                    "(one type index per bond) is needed"
+                )
+            self.bond_types = np.zeros(n_bonds, dtype=np.int64)
+            self.per_type = False
+            n_types = 1
+        else:
+            self.bond_types = _bond_type_array(bond_types, n_bonds)
+            self.per_type = True
+            lengths = {len(given[name]) for name in per_type}
+            if len(lengths) > 1:
+                raise ValueError(
+                    "per-type parameters must have one value per bond type, got lengths "
+                    + ", ".join(f"{name}: {len(given[name])}" for name in per_type)
+                )
+            used = int(self.bond_types.max()) + 1 if n_bonds else 1
+            n_types = lengths.pop() if lengths else used
+            if used > n_types:
+                raise ValueError(
+                    f"bond_types go up to {used - 1} but {', '.join(per_type)} "
+                    f"{'has' if len(per_type) == 1 else 'have'} values for {n_types} bond types"
+                )
+        # Read-only: the checks made here must stay true.
+        self.bonds.flags.writeable = False
+        self.bond_types.flags.writeable = False
+        self._tables = [np.broadcast_to(value, (n_types,)).copy() for value in given.values()]
+        self._max_index = int(self.bonds.max()) if n_bonds else -1
+
+    @property
+    def n_bonds(self) -> int:
+        return len(self.bonds)
+
+    # ----------------------------------------------------------------- compute
+    def check(self, state) -> None:
+        """Raise ValueError if a bond names an atom the state does not have."""
+        if self.n_bonds and np.any(self.bonds[:, 0] == self.bonds[:, 1]):
+            bad = int(np.flatnonzero(self.bonds[:, 0] == self.bonds[:, 1])[0])
+            raise ValueError(f"bond {bad} joins atom {self.bonds[bad, 0]} to itself")
+        self._check_indices(state.n_atoms)
+
+    def energy_forces(self, state, neighbors=None, per_atom: bool = False) -> ForceResult:
+        """Return energy, forces, virial (and per-atom energies) for ``state``.
+
+        ``neighbors`` is ignored (bonds are listed explicitly).
+        """
+        self._check_indices(state.n_atoms)
+        n = state.n_atoms
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        forces = np.zeros((n, 3))
+        virial = np.zeros(6)
+        energies = np.zeros(n if per_atom else 0)
+        energy, bad = _bond_energy_forces(
+            state.positions,
+            lengths,
+            inverse,
+            self.bonds,
+            self.bond_types,
+            self._form,
+            *self._tables,
+            forces,
+            virial,
+            energies,
+        )
+        if bad >= 0:
+            self._raise_stretched(state, bad)
+        return ForceResult(
+            energy=energy,
+            forces=forces,
+            virial=_symmetric(virial),
+            energies=energies if per_atom else None,
+        )
+
+    def hessian(self, state, neighbors=None) -> scipy.sparse.csr_matrix:
+        """Return the (3N, 3N) Hessian d^2 U / dx_ia dx_jb as a sparse CSR matrix.
+
+        Row and column ``3 * i + a`` belong to atom ``i``, axis ``a``
+        [energy/length^2].
+        """
+        self._check_indices(state.n_atoms)
+        n = state.n_atoms
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        size = 36 * self.n_bonds
+        rows = np.empty(size, dtype=np.int64)
+        cols = np.empty(size, dtype=np.int64)
+        values = np.empty(size)
+        bad = _bond_hessian_triplets(
+            state.positions,
+            lengths,
+            inverse,
+            self.bonds,
+            self.bond_types,
+            self._form,
+            *self._tables,
+            rows,
+            cols,
+            values,
+        )
+        if bad >= 0:
+            self._raise_stretched(state, bad)
+        return scipy.sparse.coo_matrix((values, (rows, cols)), shape=(3 * n, 3 * n)).tocsr()
+
+    def bond_lengths(self, state) -> NDArray[np.float64]:
+        """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
+        self._check_indices(state.n_atoms)
+        d = state.positions[self.bonds[:, 0]] - state.positions[self.bonds[:, 1]]
+        return np.linalg.norm(minimum_image(d, state.box, state.pbc), axis=1)
+
+    def _describe(self, **params) -> dict:
+        digest = hashlib.sha256(np.ascontiguousarray(self.bonds, dtype="<i8").tobytes())
+        out = {"type": self._name, **params, "n_bonds": self.n_bonds}
+        out["bonds_sha256"] = digest.hexdigest()
+        if self.per_type:
+            out["n_bond_types"] = len(self._tables[0])
+        return out
+
+    def _check_indices(self, n_atoms: int) -> None:
+        if self._max_index >= n_atoms:
+            bad = int(np.flatnonzero((self.bonds >= n_atoms).any(axis=1))[0])
+            i, j = (int(a) for a in self.bonds[bad])
+            raise ValueError(
+                f"bond {bad} ({i}, {j}) refers to atom {max(i, j)}, but the system has "
+                f"{n_atoms} atoms (indices 0..{n_atoms - 1})"
+            )
+
+    def _raise_stretched(self, state, bad: int):
+        i, j = (int(a) for a in self.bonds[bad])
+        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc)
+        r_max = float(self._tables[1][self.bond_types[bad]])
+        raise BondStretchError(bad, i, j, float(np.linalg.norm(d)), r_max)
+
+
+class HarmonicBonds(_BondedPotential):
+    r"""Harmonic springs :math:`U = \sum_b \tfrac{k_b}{2} (r_b - r_{0,b})^2` over listed bonds.
+
+    Parameters
+    ----------
+    bonds : array_like of int, shape (B, 2)
+        Atom index pairs ``(i, j)``, ``i != j``; a pair listed twice counts twice.
+    k : float or sequence of float
+        Spring constant(s) [energy/length^2], >= 0: one for every bond, or one
+        per bond type (then ``bond_types`` is required).
+    r0 : float or sequence of float
+        Rest length(s) [length], >= 0; a scalar or one per bond type.
+    bond_types : array_like of int, shape (B,), optional
+        Type index of each bond into per-type ``k`` and ``r0``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from md.state import State
+    >>> springs = HarmonicBonds([[0, 1]], k=2.0, r0=1.0)
+    >>> state = State(positions=[[0, 0, 0], [1.5, 0, 0]], box=10.0, pbc=False)
+    >>> float(springs.energy_forces(state, None).energy)  # 2 / 2 * 0.5**2
+    0.25
+    """
+
+    _form = _HARMONIC
+    _name = "spring"
+
+    def __init__(
+        self,
+        bonds: ArrayLike,
+        k: float | Sequence[float],
+        r0: float | Sequence[float],
+        bond_types: ArrayLike | None = None,
+    ) -> None:
+        self._setup(bonds, bond_types, {"k": k, "r0": r0})
+        self.k, self.r0 = self._tables
+
+    @classmethod
+    def from_config(cls, params: Mapping, type_names: Sequence[str] = ()) -> HarmonicBonds:
+        """Build from a config table.
+
+        Keys: ``bonds`` (a list of ``[i, j]`` atom index pairs) or
+        ``bonds_file`` (a text file of two integer columns, ``#`` comments;
+        the path is used as given), ``k``, ``r0`` (numbers, or lists indexed
+        by bond type) and optional ``bond_types`` (one integer per bond).
+        ``type_names`` is unused: bonds name atoms, not types.
+        """
+        values = _config_values(params, ("k", "r0"))
+        missing = [name for name in ("k", "r0") if name not in values]
+        if missing:
+            raise ValueError(f"missing key(s): {', '.join(missing)}")
+        return cls(**values)
+
+    def describe(self) -> dict:
+        return self._describe(k=_plain(self.k, self.per_type), r0=_plain(self.r0, self.per_type))
+
+
+class FENEBonds(_BondedPotential):
+    r"""FENE bonds :math:`U = -\tfrac{k}{2} r_{max}^2 \ln(1 - (r / r_{max})^2)` (Kremer-Grest).
+
+    The bonds of the Kremer-Grest bead-spring polymer model pair this with
+    the purely repulsive WCA potential between all beads, which is
+    ``LennardJones(epsilon=1, sigma=1, cutoff=2**(1/6), cutoff_mode="shift")``;
+    with the defaults k = 30 and r_max = 1.5 the bond energy (FENE + WCA) is
+    lowest at r = 0.961, and bonds in a melt at T = 1 average about 0.97.
+
+    A bond reaching ``r_max`` has infinite energy: :meth:`energy_forces`
+    and :meth:`hessian` then raise :class:`BondStretchError`.
+
+    Parameters
+    ----------
+    bonds : array_like of int, shape (B, 2)
+        Atom index pairs ``(i, j)``, ``i != j``.
+    k : float or sequence of float
+        Spring constant(s) [energy/length^2], >= 0; one per bond type if a sequence.
+    r_max : float or sequence of float
+        Maximum bond extension(s) [length], > 0; one per bond type if a sequence.
+    bond_types : array_like of int, shape (B,), optional
+        Type index of each bond into per-type ``k`` and ``r_max``.
+
+    Examples
+    --------
+    >>> from md.state import State
+    >>> fene = FENEBonds([[0, 1]])
+    >>> state = State(positions=[[0, 0, 0], [1.6, 0, 0]], box=10.0, pbc=False)
+    >>> try:
+    ...     fene.energy_forces(state, None)
+    ... except BondStretchError as error:
+    ...     print(error.bond, error.i, error.j, error.length)
+    0 0 1 1.6
+
+    References
+    ----------
+    K. Kremer and G. S. Grest, J. Chem. Phys. 92, 5057 (1990).
+    """
+
+    _form = _FENE
+    _name = "fene"
+
+    def __init__(
+        self,
+        bonds: ArrayLike,
+        k: float | Sequence[float] = 30.0,
+        r_max: float | Sequence[float] = 1.5,
+        bond_types: ArrayLike | None = None,
+    ) -> None:
+        self._setup(bonds, bond_types, {"k": k, "r_max": r_max})
+        if not np.all(self._tables[1] > 0):
+            raise ValueError(f"r_max must be > 0, got {r_max!r}")
+        self.k, self.r_max = self._tables
+
+    @classmethod
+    def from_config(cls, params: Mapping, type_names: Sequence[str] = ()) -> FENEBonds:
+        """Build from a config table.
+
+        Keys: ``bonds`` or ``bonds_file`` (as for
+        :meth:`HarmonicBonds.from_config`), ``k`` (default 30), ``r_max``
+        (default 1.5), optional ``bond_types``.
+        """
+        values = _config_values(params, ("k", "r_max"))
+        return cls(**values)
+
+    def describe(self) -> dict:
+        return self._describe(
+            k=_plain(self.k, self.per_type), r_max=_plain(self.r_max, self.per_type)
+        )
+
+
+# ------------------------------------------------------------------- helpers
+
+
+def _bond_array(bonds) -> NDArray[np.int64]:
+    array = np.asarray(bonds)
+    if array.size == 0:
+        array = array.reshape(0, 2)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise ValueError(f"bonds must have shape (B, 2), got {array.shape}")
+    if array.size and not (
+        np.issubdtype(array.dtype, np.integer)
+        or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))
+    ):
+        raise ValueError("bonds must be integer atom indices")
+    array = np.array(array, dtype=np.int64, order="C", copy=True)
+    if array.size and array.min() < 0:
+        bad = int(np.flatnonzero((array < 0).any(axis=1))[0])
+        raise ValueError(f"bond {bad} {tuple(array[bad].tolist())} has a negative atom index")
+    same = np.flatnonzero(array[:, 0] == array[:, 1])
+    if same.size:
+        raise ValueError(f"bond {int(same[0])} joins atom {array[same[0], 0]} to itself")
+    return array
+
+
+def _bond_type_array(bond_types, n_bonds: int) -> NDArray[np.int64]:
+    array = np.asarray(bond_types)
+    if array.shape != (n_bonds,):
+        raise ValueError(
+            f"bond_types must have shape ({n_bonds},) (one per bond), got {array.shape}"
+        )
+    if array.size and not (
+        np.issubdtype(array.dtype, np.integer)
+        or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))
+    ):
+        raise ValueError("bond_types must be integers")
+    array = np.array(array, dtype=np.int64, order="C", copy=True)
+    if array.size and array.min() < 0:
+        raise ValueError("bond_types must be non-negative")
+    return array
+
+
+def _finite_array(value, name: str) -> NDArray[np.float64]:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or a list of numbers, got {value!r}") from None
+    if array.ndim > 1 or array.size == 0:
+        raise ValueError(f"{name} must be a number or a list with one number per bond type")
+    if not np.all(np.isfinite(array) & (array >= 0)):
+        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+    return array
+
+
+def _plain(values: np.ndarray, per_type: bool):
+    return values.tolist() if per_type else float(values[0])
+
+
+def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
+    """Check a bond potential's config table; return constructor arguments."""
+    params = dict(params)
+    allowed = {"bonds", "bonds_file", "bond_types", *names}
+    unknown = set(params) - allowed
+    if unknown:
+        raise ValueError(
+            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
+        )
+    if ("bonds" in params) == ("bonds_file" in params):
+        raise ValueError("give exactly one of 'bonds' (a list of [i, j]) and 'bonds_file'")
+    if "bonds_file" in params:
+        params["bonds"] = _read_bonds_file(params.pop("bonds_file"))
+    for name in names:
+        value = params.get(name)
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(v, bool) or not isinstance(v, int | float | None) for v in values):
+            raise ValueError(f"{name}: expected a number or a list of numbers, got {value!r}")
+    for name in ("bonds", "bond_types"):
+        value = params.get(name)
+        if value is None or isinstance(value, np.ndarray):
+            continue
+        flat = [v for row in value for v in (row if isinstance(row, list) else [row])]
+        if any(isinstance(v, bool) or not isinstance(v, int) for v in flat):
+            raise ValueError(f"{name}: expected integers, got {value!r}")
+    return params
+
+
+def _read_bonds_file(path) -> NDArray[np.int64]:
+    if not isinstance(path, str | Path):
+        raise ValueError(f"bonds_file must be a path, got {path!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"bonds_file not found: {path}")
+    try:
+        table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+    except ValueError as error:
+        raise ValueError(f"bonds_file {path}: not a table of integers ({error})") from None
+    if table.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    if table.shape[1] != 2:
+        raise ValueError(f"bonds_file {path}: expected two columns (i j), got {table.shape[1]}")
+    if not np.all(table == np.round(table)):
+        raise ValueError(f"bonds_file {path}: atom indices must be integers")
+    return table.astype(np.int64)
+
+
+def _symmetric(v: np.ndarray) -> np.ndarray:
+    xx, yy, zz, yz, xz, xy = v
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+# ------------------------------------------------------------------- kernels
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _bond_terms(form, r2, k, p):
+    """Return ``(u, u'(r) / r, u''(r), ok)`` of one bond of squared length r2.
+
+    form 0 (harmonic, p = r0): u = k/2 (r - r0)^2.
+    form 1 (FENE, p = r_max): u = -k/2 r_max^2 ln(1 - r^2 / r_max^2); ok is
+    False (and the terms zero) once r >= r_max.
+    """
+    if form == 0:
+        r = np.sqrt(r2)
+        stretch = r - p
+        u = 0.5 * k * stretch * stretch
+        g = k * (1.0 - p / r) if p > 0.0 else k
+        return u, g, k, True
+    p2 = p * p
+    x = r2 / p2
+    if not x < 1.0:
+        return 0.0, 0.0, 0.0, False
+    s = 1.0 - x
+    u = -0.5 * k * p2 * np.log1p(-x)
+    g = k / s
+    return u, g, g + 2.0 * k * x / (s * s), True
+
+
+@njit(cache=True, error_model="numpy")
+def _bond_energy_forces(
+    positions, lengths, inverse, bonds, bond_types, form, k, p, forces, virial, energies
+):
+    """Add bond forces to ``forces`` (zeroed by caller); return (energy, bad).
+
+    bonds: (B, 2) atom indices, bond_types: (B,) indices into the per-type
+    tables k and p (the second parameter: r0 or r_max). Writes ``virial`` as
+    (xx, yy, zz, yz, xz, xy) of sum r_ij (x) F_ij, and, when ``energies`` has
+    length N, half of each bond energy to each of its atoms. ``bad`` is the
+    first bond beyond its range (FENE), whose terms are left out, or -1.
+    """
+    n = positions.shape[0]
+    per_atom = energies.shape[0] == n
+    energy = 0.0
+    bad = -1
+    wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+    lx, ly, lz = lengths[0], lengths[1], lengths[2]
+    ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    for b in range(bonds.shape[0]):
+        i = bonds[b, 0]
+        j = bonds[b, 1]
+        t = bond_types[b]
+        dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+        dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+        dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+        u, g, _, ok = _bond_terms(form, dx * dx + dy * dy + dz * dz, k[t], p[t])
+        if not ok and bad < 0:
+            bad = b
+        energy += u
+        # Force on i is -u'(r) r_ij / r.
+        fx = -g * dx
+        fy = -g * dy
+        fz = -g * dz
+        forces[i, 0] += fx
+        forces[i, 1] += fy
+        forces[i, 2] += fz
+        forces[j, 0] -= fx
+        forces[j, 1] -= fy
+        forces[j, 2] -= fz
+        wxx += fx * dx
+        wyy += fy * dy
+        wzz += fz * dz
+        wyz += fz * dy
+        wxz += fz * dx
+        wxy += fy * dx
+        if per_atom:
+            energies[i] += 0.5 * u
+            energies[j] += 0.5 * u
+    virial[0] = wxx
+    virial[1] = wyy
+    virial[2] = wzz
+    virial[3] = wyz
+    virial[4] = wxz
+    virial[5] = wxy
+    return energy, bad
+
+
+@njit(cache=True, error_model="numpy")
+def _bond_hessian_triplets(
+    positions, lengths, inverse, bonds, bond_types, form, k, p, rows, cols, values
+):
+    """Write the COO triplets of the bond Hessian; return the first bad bond or -1.
+
+    rows, cols, values: (36 B,). Bond b fills entries 36 b .. 36 b + 35 with
+    the 3x3 blocks (i, i) and (j, j) = +K, (i, j) and (j, i) = -K, where
+    K = u'' rhat rhat^T + (u'/r) (I - rhat rhat^T); duplicates are summed by
+    the caller's COO -> CSR conversion. A zero-length bond gets K = (u'/r) I.
+    """
+    bad = -1
+    lx, ly, lz = lengths[0], lengths[1], lengths[2]
+    ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    d = np.empty(3)
+    block = np.empty((3, 3))
+    for b in range(bonds.shape[0]):
+        i = bonds[b, 0]
+        j = bonds[b, 1]
+        t = bond_types[b]
+        d[0] = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+        d[1] = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+        d[2] = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        _, g, h, ok = _bond_terms(form, r2, k[t], p[t])
+        if not ok and bad < 0:
+            bad = b
+        along = (h - g) / r2 if r2 > 0.0 else 0.0
+        for a in range(3):
+            for c in range(3):
+                block[a, c] = along * d[a] * d[c]
+            block[a, a] += g
+        base = 36 * b
+        for a in range(3):
+            for c in range(3):
+                m = 3 * a + c
+                value = block[a, c]
+                rows[base + m] = 3 * i + a
+                cols[base + m] = 3 * i + c
+                values[base + m] = value
+                rows[base + 9 + m] = 3 * j + a
+                cols[base + 9 + m] = 3 * j + c
+                values[base + 9 + m] = value
+                rows[base + 18 + m] = 3 * i + a
+                cols[base + 18 + m] = 3 * j + c
+                values[base + 18 + m] = -value
+                rows[base + 27 + m] = 3 * j + a
+                cols[base + 27 + m] = 3 * i + c
+                values[base + 27 + m] = -value
+    return bad
