@@ -7,6 +7,7 @@ serves comparison and teaching (``md integrators`` measures them all).
 
 from integrators.base import ConvergenceError, Integrator
 from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
+from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
 from integrators.leapfrog import Leapfrog
 from integrators.runge_kutta import RK4, RKF45
 from integrators.stormer_verlet import StormerVerlet
@@ -21,6 +22,8 @@ INTEGRATORS = {
     "stormer_verlet": StormerVerlet,
     "rk4": RK4,
     "rkf45": RKF45,
+    "implicit_euler": ImplicitEuler,
+    "implicit_midpoint": ImplicitMidpoint,
 }
 
 __all__ = [
@@ -29,6 +32,8 @@ __all__ = [
     "RKF45",
     "ConvergenceError",
     "ExplicitEuler",
+    "ImplicitEuler",
+    "ImplicitMidpoint",
     "Integrator",
     "Leapfrog",
     "StormerVerlet",

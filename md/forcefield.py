@@ -6,10 +6,11 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import scipy.sparse as sp
 
 from md.neighbors import NeighborList, NonFiniteError
 from md.state import State
-from potentials.base import ForceResult, Potential
+from potentials.base import ForceResult, Potential, SupportsHessian
 
 
 class ForceField:
@@ -98,6 +99,41 @@ class ForceField:
             state.pbc.copy(),
             state.types.copy(),
         )
+        return total
+
+    def hessian(self, state: State) -> sp.csr_matrix:
+        """Return the (3N, 3N) Hessian of the total energy, the sum of the potentials'.
+
+        Refreshes the neighbour list as :meth:`compute` does; not cached. The
+        time is counted in ``timings["neighbor"]`` and ``timings["force"]``.
+        Row and column 3 i + a is coordinate a of atom i [energy/length^2].
+
+        Raises
+        ------
+        TypeError
+            If a potential has no ``hessian`` method.
+        NonFiniteError
+            If a position is NaN or infinite.
+        """
+        for potential in self.potentials:
+            if not isinstance(potential, SupportsHessian):
+                raise TypeError(
+                    f"potential {type(potential).__name__} has no hessian() method, "
+                    "so the force field cannot provide second derivatives"
+                )
+        start = time.perf_counter()
+        if self.neighbor_list is not None:
+            self.neighbor_list.update(state)
+        elif not np.all(np.isfinite(state.positions)):
+            raise NonFiniteError("particle positions are not finite")
+        middle = time.perf_counter()
+        total = None
+        for potential in self.potentials:
+            neighbors = self.neighbor_list if potential.cutoff is not None else None
+            term = sp.csr_matrix(potential.hessian(state, neighbors))
+            total = term if total is None else total + term
+        self.timings["neighbor"] += middle - start
+        self.timings["force"] += time.perf_counter() - middle
         return total
 
     def _matches(self, state: State) -> bool:

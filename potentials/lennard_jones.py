@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 
 from md.box import _min_image, periodic_lengths
@@ -224,15 +225,7 @@ class LennardJones:
         n_types = max(state.n_types, self.n_types_fixed or 1)
         tables = self._cached_tables(n_types)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
-        if neighbors is None:
-            starts, neighbor_array = _all_pairs(n)
-        else:
-            if neighbors.list_radius < self.cutoff:
-                raise ValueError(
-                    f"neighbour list radius {neighbors.list_radius:g} is below the LJ cutoff "
-                    f"{self.cutoff:g}"
-                )
-            starts, neighbor_array = neighbors.starts, neighbors.neighbors
+        starts, neighbor_array = self._pair_list(n, neighbors)
         forces = np.zeros((n, 3))
         virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
@@ -257,6 +250,56 @@ class LennardJones:
             energies=energies if per_atom else None,
         )
 
+    def hessian(self, state, neighbors) -> sp.csr_matrix:
+        r"""Return the (3N, 3N) Hessian of the energy, :math:`\partial^2 U / \partial x \partial x`.
+
+        Exact for every cutoff mode: inside the cutoff the second derivative
+        of u(r) (``"none"``, ``"shift"``: the shift is a constant) or of
+        S(s) u(s) (``"smooth"``); pairs beyond the cutoff contribute nothing
+        (the jump of the truncated modes at the cutoff is not a derivative).
+        Each pair adds a 3x3 block K to the (i, i) and (j, j) blocks and -K
+        to (i, j) and (j, i), so every block row sums to zero (translation
+        invariance) and the matrix is symmetric.
+
+        Parameters
+        ----------
+        state : State
+            The configuration; left untouched.
+        neighbors : NeighborList or None
+            A list with a radius >= ``cutoff``, or None for all pairs.
+
+        Returns
+        -------
+        scipy.sparse.csr_matrix, shape (3N, 3N)
+            Row and column 3 i + a is coordinate a of atom i [energy/length^2];
+            canonical (sorted column indices, no duplicates), with every
+            diagonal block stored.
+        """
+        n = state.n_atoms
+        n_types = max(state.n_types, self.n_types_fixed or 1)
+        c6, c12, rc2, ro2, _, inv_den = self._cached_tables(n_types)
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        starts, neighbor_array = self._pair_list(n, neighbors)
+        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array, n_types)
+        # Pass 1: partners inside the cutoff per atom, hence the (block) row offsets.
+        partners = np.zeros(n, dtype=np.int64)
+        _lj_count_partners(*geometry, rc2, partners)
+        block_starts = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(partners + 1, out=block_starts[1:])
+        nnz = 9 * int(block_starts[-1])
+        index_type = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
+        indptr = np.empty(3 * n + 1, dtype=index_type)
+        indices = np.empty(nnz, dtype=index_type)
+        data = np.empty(nnz)
+        # Pass 2: the blocks, written straight into CSR arrays.
+        _lj_hessian_csr(
+            *geometry, c6, c12, rc2, ro2, inv_den, CUTOFF_MODES[self.cutoff_mode],
+            block_starts, indptr, indices, data,
+        )  # fmt: skip
+        hessian = sp.csr_matrix((data, indices, indptr), shape=(3 * n, 3 * n))
+        hessian.has_sorted_indices = True
+        return hessian
+
     def describe(self) -> dict:
         out = {
             "type": "lj",
@@ -271,6 +314,17 @@ class LennardJones:
         if self.pairs:
             out["pairs"] = {f"{i}-{j}": v for (i, j), v in self.pairs.items()}
         return out
+
+    def _pair_list(self, n: int, neighbors):
+        """Return (starts, neighbors) of the half list to loop over (all pairs for None)."""
+        if neighbors is None:
+            return _all_pairs(n)
+        if neighbors.list_radius < self.cutoff:
+            raise ValueError(
+                f"neighbour list radius {neighbors.list_radius:g} is below the LJ cutoff "
+                f"{self.cutoff:g}"
+            )
+        return neighbors.starts, neighbors.neighbors
 
     def _cached_tables(self, n_types: int):
         cache = getattr(self, "_table_cache", None)
@@ -410,3 +464,136 @@ def _lj_energy_forces(
     virial[4] = wxz
     virial[5] = wxy
     return energy
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_count_partners(positions, types, lengths, inverse, starts, neighbors, n_types, rc2, counts):
+    """Add to ``counts`` (N,) the number of listed partners of each atom inside the cutoff."""
+    lx, ly, lz = lengths[0], lengths[1], lengths[2]
+    ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    for i in range(positions.shape[0]):
+        row = types[i] * n_types
+        for p in range(starts[i], starts[i + 1]):
+            j = neighbors[p]
+            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+            if dx * dx + dy * dy + dz * dz < rc2[row + types[j]]:
+                counts[i] += 1
+                counts[j] += 1
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_hessian_csr(
+    positions,
+    types,
+    lengths,
+    inverse,
+    starts,
+    neighbors,
+    n_types,
+    c6,
+    c12,
+    rc2,
+    ro2,
+    inv_den,
+    mode,
+    block_starts,
+    indptr,
+    indices,
+    data,
+):
+    """Write the LJ Hessian into CSR arrays (indptr, indices, data).
+
+    With g(s) the pair energy as a function of s = r^2 and d = x_i - x_j
+    (minimum image), the pair block is K = 2 g'(s) I + 4 g''(s) d d^T; each
+    pair inside its cutoff adds K to blocks (i, i) and (j, j) and -K to
+    (i, j) and (j, i). ``block_starts`` (N + 1,) are the offsets of each
+    atom's blocks: one diagonal block plus one per partner inside the cutoff
+    (``_lj_count_partners``). Written: ``indptr`` (3N + 1,), ``indices`` and
+    ``data`` (9 * block_starts[N],), rows with sorted column indices. Tables
+    and ``mode`` as in ``_lj_energy_forces``; u is unshifted (a constant
+    shift has no second derivative).
+    """
+    n = positions.shape[0]
+    n_blocks = block_starts[n]
+    # Each symmetric K is stored once, as (xx, yy, zz, yz, xz, xy); a block
+    # slot refers to its pair (-K) or, for source -1, to the atom's diagonal.
+    pair_blocks = np.empty(((n_blocks - n) // 2, 6))
+    diagonal = np.zeros((n, 6))
+    block_columns = np.empty(n_blocks, dtype=np.int64)
+    block_sources = np.empty(n_blocks, dtype=np.int64)
+    cursor = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        block_columns[block_starts[i]] = i  # the diagonal block comes first
+        block_sources[block_starts[i]] = -1
+        cursor[i] = block_starts[i] + 1
+    lx, ly, lz = lengths[0], lengths[1], lengths[2]
+    ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    n_pairs = 0
+    for i in range(n):
+        row = types[i] * n_types
+        for p in range(starts[i], starts[i + 1]):
+            j = neighbors[p]
+            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+            r2 = dx * dx + dy * dy + dz * dz
+            k = row + types[j]
+            if not r2 < rc2[k]:
+                continue
+            inv_r2 = 1.0 / r2
+            inv_r6 = inv_r2 * inv_r2 * inv_r2
+            a = c12[k] * inv_r6 * inv_r6
+            b = c6[k] * inv_r6
+            # u = a - b as a function of s = r^2, and its first two derivatives.
+            g = a - b
+            g1 = (3.0 * b - 6.0 * a) * inv_r2
+            g2 = (42.0 * a - 12.0 * b) * inv_r2 * inv_r2
+            if mode == 2 and r2 > ro2[k]:
+                gap = rc2[k] - r2
+                switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
+                dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
+                d2switch = 6.0 * (2.0 * r2 - ro2[k] - rc2[k]) * inv_den[k]
+                g2 = d2switch * g + 2.0 * dswitch * g1 + switch * g2
+                g1 = dswitch * g + switch * g1
+            c = 4.0 * g2
+            block = pair_blocks[n_pairs]
+            block[0] = c * dx * dx + 2.0 * g1
+            block[1] = c * dy * dy + 2.0 * g1
+            block[2] = c * dz * dz + 2.0 * g1
+            block[3] = c * dy * dz
+            block[4] = c * dx * dz
+            block[5] = c * dx * dy
+            for e in range(6):
+                diagonal[i, e] += block[e]
+                diagonal[j, e] += block[e]
+            block_columns[cursor[i]] = j
+            block_sources[cursor[i]] = n_pairs
+            block_columns[cursor[j]] = i
+            block_sources[cursor[j]] = n_pairs
+            cursor[i] += 1
+            cursor[j] += 1
+            n_pairs += 1
+    # Expand block rows into scalar rows, blocks in increasing column order.
+    # Element (ca, cb) of a block is entry symmetric[ca, cb] of its 6 values.
+    symmetric = np.array([[0, 5, 4], [5, 1, 3], [4, 3, 2]])
+    indptr[0] = 0
+    for i in range(n):
+        first = block_starts[i]
+        count = block_starts[i + 1] - first
+        order = np.argsort(block_columns[first : first + count])
+        for ca in range(3):
+            out = 9 * first + 3 * count * ca
+            indptr[3 * i + ca + 1] = out + 3 * count
+            for q in range(count):
+                slot = first + order[q]
+                column = 3 * block_columns[slot]
+                source = block_sources[slot]
+                for cb in range(3):
+                    indices[out] = column + cb
+                    if source < 0:
+                        data[out] = diagonal[i, symmetric[ca, cb]]
+                    else:
+                        data[out] = -pair_blocks[source, symmetric[ca, cb]]
+                    out += 1
