@@ -184,10 +184,12 @@ class NeighborList:
             high = state.positions[:, open_axes].max(axis=0)
             origin[open_axes] = low
             extent[open_axes] = np.maximum(high - low, radius)
-        n_cells = np.maximum(np.floor(extent / radius).astype(np.int64), 1)
+        max_cells = _MAX_CELLS_PER_ATOM * n + 27
+        # Clip in floating point first: a cluster that flew apart can span more
+        # cells than an int64 holds.
+        n_cells = np.clip(np.floor(extent / radius), 1, max_cells).astype(np.int64)
         if np.any(state.pbc & (n_cells < 3)):
             return None
-        max_cells = _MAX_CELLS_PER_ATOM * n + 27
         while np.prod(n_cells) > max_cells:
             # Wider cells are still correct; shrink the busiest axis.
             axis = int(np.argmax(n_cells))

@@ -243,3 +243,12 @@ def test_non_finite_positions_raise(bad, after_build, box, random_gas):
         nl.update(state)
     with pytest.raises(md.NonFiniteError):
         nl.build(state)
+
+
+def test_open_cluster_spread_over_a_huge_extent():
+    # Atoms that flew apart (a blown-up open system) must not overflow the cell grid.
+    positions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1e250, -1e250, 3e249]])
+    state = md.State(positions=positions, box=10.0, pbc=False)
+    nl = md.NeighborList(cutoff=2.5, skin=0.3)
+    nl.build(state)
+    assert nl.pairs().tolist() == [[0, 1]]
