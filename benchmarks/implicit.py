@@ -24,6 +24,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import time
 
@@ -32,7 +33,7 @@ import scipy.sparse as sp
 from scipy.integrate import solve_ivp
 
 import md
-from integrators import VelocityVerlet
+from integrators import ConvergenceError, VelocityVerlet
 from integrators.implicit_euler import ImplicitEuler
 from md.polymers import polymer_melt, single_chain
 from potentials import HarmonicBonds, LennardJones
@@ -152,7 +153,11 @@ def time_to_solution(make, span: float) -> list[tuple[str, float, float, str]]:
         sim = md.Simulation(state, potentials, integrator)
         start = time.perf_counter()
         n_steps = max(1, round(span / dt_ie))
-        sim.run(n_steps)
+        try:
+            sim.run(n_steps)
+        except (ConvergenceError, md.SimulationError) as error:
+            rows.append((f"implicit Euler x{factor}", dt_ie, math.nan, f"failed: {error}"))
+            continue
         stats = integrator.statistics
         rows.append((f"implicit Euler x{factor}", dt_ie, time.perf_counter() - start,
                      f"Newton/step {stats['newton_iterations'] / stats['steps']:.2f}"))  # fmt: skip
