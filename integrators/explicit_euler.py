@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from numba import njit
 
+from integrators._kernels import _kick_drift
 from integrators.base import check_dt
 
 
@@ -78,7 +79,7 @@ class SymplecticEuler:
 
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state).forces
-        _symplectic_euler(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt)
+        _kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt, self.dt)
         state.step += 1
         state.time += self.dt
         self.statistics["steps"] += 1
@@ -99,17 +100,6 @@ def _explicit_euler(positions, velocities, forces, inverse_masses, dt):
             v = velocities[i, a]
             positions[i, a] += dt * v
             velocities[i, a] = v + scale * forces[i, a]
-
-
-@njit(cache=True, error_model="numpy")
-def _symplectic_euler(positions, velocities, forces, inverse_masses, dt):
-    """v += dt f/m, then x += dt v (new v), in place."""
-    for i in range(positions.shape[0]):
-        scale = dt * inverse_masses[i]
-        for a in range(3):
-            v = velocities[i, a] + scale * forces[i, a]
-            velocities[i, a] = v
-            positions[i, a] += dt * v
 
 
 __all__ = ["ExplicitEuler", "SymplecticEuler"]

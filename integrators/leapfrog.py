@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from integrators._kernels import _kick_drift
 from integrators.base import check_dt
 
 
@@ -119,17 +120,6 @@ class Leapfrog:
             and np.array_equal(state.positions, self._positions)
             and np.array_equal(state.velocities, self._velocities)
         )
-
-
-@njit(cache=True, error_model="numpy")
-def _kick_drift(positions, half_velocities, forces, inverse_masses, kick_dt, dt):
-    """v_half += kick_dt f/m, then x += dt v_half, in one pass (arrays written in place)."""
-    for i in range(positions.shape[0]):
-        scale = kick_dt * inverse_masses[i]
-        for a in range(3):
-            v = half_velocities[i, a] + scale * forces[i, a]
-            half_velocities[i, a] = v
-            positions[i, a] += dt * v
 
 
 @njit(cache=True, error_model="numpy")

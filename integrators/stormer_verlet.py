@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from numba import njit
-
+from integrators._kernels import _drift, _kick_drift
 from integrators.base import check_dt
 
 
@@ -61,25 +60,6 @@ class StormerVerlet:
 
     def describe(self) -> dict:
         return {"type": "stormer_verlet", "dt": self.dt}
-
-
-@njit(cache=True, error_model="numpy")
-def _drift(positions, velocities, dt):
-    """x += dt v in place."""
-    for i in range(positions.shape[0]):
-        for a in range(3):
-            positions[i, a] += dt * velocities[i, a]
-
-
-@njit(cache=True, error_model="numpy")
-def _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt):
-    """v += kick_dt f/m, then x += drift_dt v, in one pass (arrays written in place)."""
-    for i in range(positions.shape[0]):
-        scale = kick_dt * inverse_masses[i]
-        for a in range(3):
-            v = velocities[i, a] + scale * forces[i, a]
-            velocities[i, a] = v
-            positions[i, a] += drift_dt * v
 
 
 __all__ = ["StormerVerlet"]

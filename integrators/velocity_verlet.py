@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from numba import njit
-
+from integrators._kernels import _kick, _kick_drift
 from integrators.base import check_dt
 
 
@@ -35,9 +34,10 @@ class VelocityVerlet:
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state).forces
         inverse_masses = 1.0 / state.masses
-        _kick_drift(state.positions, state.velocities, forces, inverse_masses, self.dt)
+        half = 0.5 * self.dt
+        _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
         forces = forcefield.compute(state).forces
-        _kick(state.velocities, forces, inverse_masses, 0.5 * self.dt)
+        _kick(state.velocities, forces, inverse_masses, half)
         state.step += 1
         state.time += self.dt
 
@@ -46,27 +46,6 @@ class VelocityVerlet:
 
     def describe(self) -> dict:
         return {"type": "verlet", "dt": self.dt}
-
-
-@njit(cache=True, error_model="numpy")
-def _kick_drift(positions, velocities, forces, inverse_masses, dt):
-    """v += dt/2 f/m, then x += dt v, in one pass (arrays written in place)."""
-    half = 0.5 * dt
-    for i in range(positions.shape[0]):
-        scale = half * inverse_masses[i]
-        for a in range(3):
-            v = velocities[i, a] + scale * forces[i, a]
-            velocities[i, a] = v
-            positions[i, a] += dt * v
-
-
-@njit(cache=True, error_model="numpy")
-def _kick(velocities, forces, inverse_masses, half_dt):
-    """v += half_dt f/m in place."""
-    for i in range(velocities.shape[0]):
-        scale = half_dt * inverse_masses[i]
-        for a in range(3):
-            velocities[i, a] += scale * forces[i, a]
 
 
 __all__ = ["VelocityVerlet"]
