@@ -72,6 +72,7 @@ def new_statistics() -> dict[str, int]:
         "linear_iterations": 0,
         "line_search_backtracks": 0,
         "fallbacks": 0,
+        "projections": 0,
     }
 
 
@@ -90,10 +91,14 @@ class IncrementalSolver:
     units; a_scale = 1 if both terms vanish.
 
     Each iteration solves ``(M + h^2 H) p = -grad`` (sparse LU, or Jacobi
-    preconditioned CG truncated at negative curvature), requires ``p`` to be a
-    descent direction of Phi (else retries with ``M + h^2 H + mu M``,
-    ``mu`` = 1, 10, 100, then takes ``-M^-1 grad``), and backtracks on Phi
-    (Armijo). Near convergence, where Phi's decrease drowns in round-off, a
+    preconditioned CG truncated at negative curvature, applying H matrix-free
+    from its pair blocks), requires ``p`` to be a descent direction of Phi,
+    and backtracks on Phi (Armijo). After an iteration whose step had to be
+    shortened, the next one uses H with the negative pair curvatures that
+    could outweigh the masses clamped (``HessianSum.definite``: M + h^2 H is
+    then positive definite); where no descent direction comes out, it is
+    retried with that clamped H, then with ``+ mu M`` (``mu`` = 1, 10, 100),
+    then ``-M^-1 grad`` is taken. Near convergence, where Phi's decrease drowns in round-off, a
     step that does not raise Phi beyond round-off and lowers the residual is
     accepted too. Force fields without a Hessian get ``M`` in its place,
     which makes the iteration a damped fixed-point iteration.
@@ -171,11 +176,17 @@ class IncrementalSolver:
             dx = target.copy()
             phi, grad, residual, noise = evaluate(dx)
         iterations = 0
+        globalise = False
         while residual > self.tol and iterations < self.max_iter:
             iterations += 1
             stats["newton_iterations"] += 1
-            direction = self._direction(state, forcefield, h2, masses, grad, residual, use_newton)
+            direction = self._direction(
+                state, forcefield, h2, masses, grad, residual, use_newton, globalise
+            )
             accepted = self._line_search(evaluate, dx, direction, phi, grad, noise)
+            # A shortened step means the local model is poor: the next direction
+            # comes from the definite Hessian if the exact one may be indefinite.
+            globalise = accepted is None or accepted[-1] < 1.0
             if accepted is None and use_newton:
                 # The Newton direction led nowhere: one M^-1 gradient step instead.
                 stats["fallbacks"] += 1
@@ -189,7 +200,7 @@ class IncrementalSolver:
                     f"iteration(s): no step along the search direction lowers the incremental "
                     f"potential (residual {residual:.3g}, tol {self.tol:g}); try a smaller dt",
                 )
-            dx, phi, grad, residual, noise = accepted
+            dx, phi, grad, residual, noise, _ = accepted
         if not residual <= self.tol:
             raise ConvergenceError(
                 step,
@@ -201,24 +212,47 @@ class IncrementalSolver:
         stats["steps"] += 1
         return dx.reshape(x0.shape)
 
-    def _direction(self, state, forcefield, h2, masses, grad, residual, use_newton):
-        """Return a descent direction of Phi: Newton's, shifted Newton's, or -M^-1 grad."""
+    def _direction(self, state, forcefield, h2, masses, grad, residual, use_newton, globalise):
+        """Return a descent direction of Phi.
+
+        Newton's direction (exact, clamped or shifted Hessian) or -M^-1 grad.
+        With ``globalise`` (the last step was shortened) and some pair's negative
+        curvature able to outweigh the masses (2 h^2 lambda_min < -m_min: a
+        compressed stiff bond or a large step), where the Newton direction
+        heads for a saddle, those curvatures are clamped first
+        (``HessianSum.definite``), which keeps M + h^2 H positive definite.
+        """
         stats = self.statistics
         if not use_newton:
             return -grad / masses
-        hessian = forcefield.hessian(state)
+        # CG only applies the Hessian (pair blocks, never assembled); LU needs the matrix.
+        operator = forcefield.hessian_operator(state)
         size = len(masses)
         solver = self.linear_solver
         if solver == "auto":
-            sparse = hessian.nnz <= DIRECT_SOLVER_ROW_NNZ * size
+            sparse = operator.nnz <= DIRECT_SOLVER_ROW_NNZ * size
             solver = "direct" if size < DIRECT_SOLVER_LIMIT and sparse else "cg"
         # Forcing term of the inexact (CG) solve: tighter as Newton converges,
         # but no tighter than the remaining factor to reach tol needs.
         eta = min(0.1, max(residual, 0.01 * self.tol / max(residual, 1e-300)))
-        hessian_diagonal = hessian.diagonal()
-        for attempt, shift in enumerate((0.0, *_SHIFTS)):
+        atom_masses = masses[::3]
+        projected = globalise and 2.0 * h2 * operator.min_eigenvalue() < -np.min(atom_masses)
+        if projected:
+            operator = operator.definite(h2, atom_masses)
+            stats["projections"] += 1
+        assembled = None
+        for attempt in range(len(_SHIFTS) + 2):
             if attempt:
                 stats["fallbacks"] += 1
+            if attempt == 1 and not projected:
+                # The exact Hessian gave no descent direction: project it.
+                operator, projected = operator.definite(h2, atom_masses), True
+                stats["projections"] += 1
+            shift = 0.0 if attempt < 2 else _SHIFTS[attempt - 2]
+            if assembled is not operator:
+                assembled = operator
+                hessian = operator.tocsr() if solver == "direct" else None
+                hessian_diagonal = operator.diagonal()
             # The system (1 + shift) M + h^2 H; CG only needs its products.
             diagonal = (1.0 + shift) * masses
             if solver == "direct":
@@ -226,7 +260,7 @@ class IncrementalSolver:
                 direction, n_linear, positive = _direct_solve(matrix, -grad)
             else:
                 direction, n_linear, positive = _truncated_cg(
-                    lambda x, diagonal=diagonal: diagonal * x + h2 * (hessian @ x),
+                    lambda x, diagonal=diagonal, op=operator: diagonal * x + h2 * op.matvec(x),
                     diagonal + h2 * hessian_diagonal,
                     -grad,
                     eta,
@@ -241,7 +275,7 @@ class IncrementalSolver:
         return -grad / masses
 
     def _line_search(self, evaluate, dx, direction, phi, grad, noise):
-        """Backtrack along ``direction``; return (dx, Phi, grad, residual, noise) or None."""
+        """Backtrack along ``direction``; return (dx, Phi, grad, residual, noise, alpha) or None."""
         slope = float(np.dot(grad, direction))
         if not slope < 0.0:
             return None
@@ -258,7 +292,7 @@ class IncrementalSolver:
                 if phi_t <= phi + _ARMIJO * alpha * slope or (
                     phi_t <= phi + noise and np.linalg.norm(grad_t) < grad_norm
                 ):
-                    return (trial, *values)
+                    return (trial, *values, alpha)
             alpha *= 0.5
             self.statistics["line_search_backtracks"] += 1
         return None

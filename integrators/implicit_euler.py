@@ -85,8 +85,9 @@ class ImplicitEuler(_ImplicitBase):
     ----------
     statistics : dict of int
         Cumulative ``steps``, ``newton_iterations``, ``linear_iterations``
-        (one per factorisation, or CG iterations), ``line_search_backtracks``
-        and ``fallbacks`` (shifted or gradient directions, negative curvature).
+        (one per factorisation, or CG iterations), ``line_search_backtracks``,
+        ``fallbacks`` (shifted or gradient directions, negative curvature) and
+        ``projections`` (iterations that clamped negative pair curvatures).
 
     Raises
     ------

@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from md.neighbors import NeighborList, NonFiniteError
 from md.state import State
 from potentials.base import ForceResult, Potential, SupportsHessian
+from potentials.pair_hessian import HessianSum
 
 
 class ForceField:
@@ -115,6 +116,17 @@ class ForceField:
         NonFiniteError
             If a position is NaN or infinite.
         """
+        return self.hessian_operator(state).tocsr()
+
+    def hessian_operator(self, state: State) -> HessianSum:
+        """Return the Hessian of the total energy as an operator, unassembled.
+
+        A :class:`potentials.pair_hessian.HessianSum` with ``matvec``,
+        ``diagonal``, ``nnz`` and ``tocsr``: potentials with a
+        ``hessian_operator`` method (pair blocks, applied at about the cost of
+        a force evaluation) contribute that, the others their sparse matrix.
+        Errors and timings as for :meth:`hessian`.
+        """
         for potential in self.potentials:
             if not isinstance(potential, SupportsHessian):
                 raise TypeError(
@@ -127,14 +139,16 @@ class ForceField:
         elif not np.all(np.isfinite(state.positions)):
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
-        total = None
+        terms = []
         for potential in self.potentials:
             neighbors = self.neighbor_list if potential.cutoff is not None else None
-            term = sp.csr_matrix(potential.hessian(state, neighbors))
-            total = term if total is None else total + term
+            if hasattr(potential, "hessian_operator"):
+                terms.append(potential.hessian_operator(state, neighbors))
+            else:
+                terms.append(sp.csr_matrix(potential.hessian(state, neighbors)))
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
-        return total
+        return HessianSum(terms)
 
     def _matches(self, state: State) -> bool:
         positions, box, pbc, types = self._key

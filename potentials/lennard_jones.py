@@ -10,6 +10,7 @@ from numba import njit
 
 from md.box import _min_image, periodic_lengths
 from potentials.base import ForceResult
+from potentials.pair_hessian import PairHessian
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
 MIXING_RULES = ("lorentz-berthelot", "geometric")
@@ -275,30 +276,33 @@ class LennardJones:
             canonical (sorted column indices, no duplicates), with every
             diagonal block stored.
         """
+        return self.hessian_operator(state, neighbors).tocsr()
+
+    def hessian_operator(self, state, neighbors) -> PairHessian:
+        """Return the Hessian as pair blocks, to apply without assembling it.
+
+        The same matrix as :meth:`hessian` (arguments alike), as a
+        :class:`potentials.pair_hessian.PairHessian`: one 3x3 block per pair
+        inside the cutoff. Its ``matvec`` costs about a force evaluation,
+        which is what a Newton-Krylov solver needs.
+        """
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
         c6, c12, rc2, ro2, _, inv_den = self._cached_tables(n_types)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array, n_types)
-        # Pass 1: partners inside the cutoff per atom, hence the (block) row offsets.
-        partners = np.zeros(n, dtype=np.int64)
-        _lj_count_partners(*geometry, rc2, partners)
-        block_starts = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(partners + 1, out=block_starts[1:])
-        nnz = 9 * int(block_starts[-1])
-        index_type = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
-        indptr = np.empty(3 * n + 1, dtype=index_type)
-        indices = np.empty(nnz, dtype=index_type)
-        data = np.empty(nnz)
-        # Pass 2: the blocks, written straight into CSR arrays.
-        _lj_hessian_csr(
+        n_pairs = _lj_count_pairs(*geometry, rc2)
+        pair_i = np.empty(n_pairs, dtype=np.int64)
+        pair_j = np.empty(n_pairs, dtype=np.int64)
+        transverse = np.empty(n_pairs)
+        radial = np.empty(n_pairs)
+        unit = np.empty((n_pairs, 3))
+        _lj_pair_curvatures(
             *geometry, c6, c12, rc2, ro2, inv_den, CUTOFF_MODES[self.cutoff_mode],
-            block_starts, indptr, indices, data,
+            pair_i, pair_j, transverse, radial, unit,
         )  # fmt: skip
-        hessian = sp.csr_matrix((data, indices, indptr), shape=(3 * n, 3 * n))
-        hessian.has_sorted_indices = True
-        return hessian
+        return PairHessian(n, pair_i, pair_j, transverse, radial, unit)
 
     def describe(self) -> dict:
         out = {
@@ -467,10 +471,11 @@ def _lj_energy_forces(
 
 
 @njit(cache=True, error_model="numpy")
-def _lj_count_partners(positions, types, lengths, inverse, starts, neighbors, n_types, rc2, counts):
-    """Add to ``counts`` (N,) the number of listed partners of each atom inside the cutoff."""
+def _lj_count_pairs(positions, types, lengths, inverse, starts, neighbors, n_types, rc2):
+    """Return the number of listed pairs inside their cutoff."""
     lx, ly, lz = lengths[0], lengths[1], lengths[2]
     ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    count = 0
     for i in range(positions.shape[0]):
         row = types[i] * n_types
         for p in range(starts[i], starts[i + 1]):
@@ -479,12 +484,12 @@ def _lj_count_partners(positions, types, lengths, inverse, starts, neighbors, n_
             dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
             dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
             if dx * dx + dy * dy + dz * dz < rc2[row + types[j]]:
-                counts[i] += 1
-                counts[j] += 1
+                count += 1
+    return count
 
 
 @njit(cache=True, error_model="numpy")
-def _lj_hessian_csr(
+def _lj_pair_curvatures(
     positions,
     types,
     lengths,
@@ -498,40 +503,27 @@ def _lj_hessian_csr(
     ro2,
     inv_den,
     mode,
-    block_starts,
-    indptr,
-    indices,
-    data,
+    pair_i,
+    pair_j,
+    transverse,
+    radial,
+    unit,
 ):
-    """Write the LJ Hessian into CSR arrays (indptr, indices, data).
+    """Write the Hessian block of every pair inside its cutoff, as its eigenvalues and axis.
 
     With g(s) the pair energy as a function of s = r^2 and d = x_i - x_j
-    (minimum image), the pair block is K = 2 g'(s) I + 4 g''(s) d d^T; each
-    pair inside its cutoff adds K to blocks (i, i) and (j, j) and -K to
-    (i, j) and (j, i). ``block_starts`` (N + 1,) are the offsets of each
-    atom's blocks: one diagonal block plus one per partner inside the cutoff
-    (``_lj_count_partners``). Written: ``indptr`` (3N + 1,), ``indices`` and
-    ``data`` (9 * block_starts[N],), rows with sorted column indices. Tables
-    and ``mode`` as in ``_lj_energy_forces``; u is unshifted (a constant
-    shift has no second derivative).
+    (minimum image), the pair block is K = 2 g'(s) I + 4 g''(s) d d^T: the
+    transverse eigenvalue is 2 g'(s) = u'(r)/r, the radial one
+    2 g'(s) + 4 g''(s) s = u''(r), along d/r. Written per pair, in list
+    order, into ``pair_i``, ``pair_j``, ``transverse``, ``radial`` (P,) and
+    ``unit`` (P, 3), P from ``_lj_count_pairs``. Tables and ``mode`` as in
+    ``_lj_energy_forces``; u is unshifted (a constant shift has no second
+    derivative).
     """
-    n = positions.shape[0]
-    n_blocks = block_starts[n]
-    # Each symmetric K is stored once, as (xx, yy, zz, yz, xz, xy); a block
-    # slot refers to its pair (-K) or, for source -1, to the atom's diagonal.
-    pair_blocks = np.empty(((n_blocks - n) // 2, 6))
-    diagonal = np.zeros((n, 6))
-    block_columns = np.empty(n_blocks, dtype=np.int64)
-    block_sources = np.empty(n_blocks, dtype=np.int64)
-    cursor = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        block_columns[block_starts[i]] = i  # the diagonal block comes first
-        block_sources[block_starts[i]] = -1
-        cursor[i] = block_starts[i] + 1
     lx, ly, lz = lengths[0], lengths[1], lengths[2]
     ix, iy, iz = inverse[0], inverse[1], inverse[2]
     n_pairs = 0
-    for i in range(n):
+    for i in range(positions.shape[0]):
         row = types[i] * n_types
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
@@ -557,43 +549,12 @@ def _lj_hessian_csr(
                 d2switch = 6.0 * (2.0 * r2 - ro2[k] - rc2[k]) * inv_den[k]
                 g2 = d2switch * g + 2.0 * dswitch * g1 + switch * g2
                 g1 = dswitch * g + switch * g1
-            c = 4.0 * g2
-            block = pair_blocks[n_pairs]
-            block[0] = c * dx * dx + 2.0 * g1
-            block[1] = c * dy * dy + 2.0 * g1
-            block[2] = c * dz * dz + 2.0 * g1
-            block[3] = c * dy * dz
-            block[4] = c * dx * dz
-            block[5] = c * dx * dy
-            for e in range(6):
-                diagonal[i, e] += block[e]
-                diagonal[j, e] += block[e]
-            block_columns[cursor[i]] = j
-            block_sources[cursor[i]] = n_pairs
-            block_columns[cursor[j]] = i
-            block_sources[cursor[j]] = n_pairs
-            cursor[i] += 1
-            cursor[j] += 1
+            inv_r = np.sqrt(inv_r2)
+            pair_i[n_pairs] = i
+            pair_j[n_pairs] = j
+            transverse[n_pairs] = 2.0 * g1
+            radial[n_pairs] = 2.0 * g1 + 4.0 * g2 * r2
+            unit[n_pairs, 0] = dx * inv_r
+            unit[n_pairs, 1] = dy * inv_r
+            unit[n_pairs, 2] = dz * inv_r
             n_pairs += 1
-    # Expand block rows into scalar rows, blocks in increasing column order.
-    # Element (ca, cb) of a block is entry symmetric[ca, cb] of its 6 values.
-    symmetric = np.array([[0, 5, 4], [5, 1, 3], [4, 3, 2]])
-    indptr[0] = 0
-    for i in range(n):
-        first = block_starts[i]
-        count = block_starts[i + 1] - first
-        order = np.argsort(block_columns[first : first + count])
-        for ca in range(3):
-            out = 9 * first + 3 * count * ca
-            indptr[3 * i + ca + 1] = out + 3 * count
-            for q in range(count):
-                slot = first + order[q]
-                column = 3 * block_columns[slot]
-                source = block_sources[slot]
-                for cb in range(3):
-                    indices[out] = column + cb
-                    if source < 0:
-                        data[out] = diagonal[i, symmetric[ca, cb]]
-                    else:
-                        data[out] = -pair_blocks[source, symmetric[ca, cb]]
-                    out += 1

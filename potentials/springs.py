@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from md.box import _min_image, minimum_image, periodic_lengths
 from md.neighbors import NonFiniteError
 from potentials.base import ForceResult
+from potentials.pair_hessian import PairHessian
 
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
@@ -156,28 +157,30 @@ class _BondedPotential:
         Row and column ``3 * i + a`` belong to atom ``i``, axis ``a``
         [energy/length^2].
         """
+        return self.hessian_operator(state, neighbors).tocsr()
+
+    def hessian_operator(self, state, neighbors=None) -> PairHessian:
+        """Return the Hessian as one pair block per bond (:class:`PairHessian`).
+
+        Bond b's block is K = u'' e e^T + (u'/r) (I - e e^T) along its unit
+        vector e; a zero-length bond gets K = (u'/r) I.
+        """
         self._check_indices(state.n_atoms)
-        n = state.n_atoms
         lengths, inverse = periodic_lengths(state.box, state.pbc)
-        size = 36 * self.n_bonds
-        rows = np.empty(size, dtype=np.int64)
-        cols = np.empty(size, dtype=np.int64)
-        values = np.empty(size)
-        bad = _bond_hessian_triplets(
-            state.positions,
-            lengths,
-            inverse,
-            self.bonds,
-            self.bond_types,
-            self._form,
-            *self._tables,
-            rows,
-            cols,
-            values,
-        )
+        transverse = np.empty(self.n_bonds)
+        radial = np.empty(self.n_bonds)
+        unit = np.empty((self.n_bonds, 3))
+        bad = _bond_curvatures(
+            state.positions, lengths, inverse, self.bonds, self.bond_types, self._form,
+            *self._tables, transverse, radial, unit,
+        )  # fmt: skip
         if bad >= 0:
             self._raise_stretched(state, bad)
-        return scipy.sparse.coo_matrix((values, (rows, cols)), shape=(3 * n, 3 * n)).tocsr()
+        bonds = self.bonds.astype(np.int64)
+        return PairHessian(
+            state.n_atoms, bonds[:, 0].copy(), bonds[:, 1].copy(), transverse, radial, unit,
+            unique=False,
+        )  # fmt: skip
 
     def bond_lengths(self, state) -> NDArray[np.float64]:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
@@ -533,52 +536,39 @@ def _bond_energy_forces(
 
 
 @njit(cache=True, error_model="numpy")
-def _bond_hessian_triplets(
-    positions, lengths, inverse, bonds, bond_types, form, k, p, rows, cols, values
+def _bond_curvatures(
+    positions, lengths, inverse, bonds, bond_types, form, k, p, transverse, radial, unit
 ):
-    """Write the COO triplets of the bond Hessian; return the first bad bond or -1.
+    """Write each bond's Hessian eigenvalues u'/r, u'' and unit vector; return the first bad bond.
 
-    rows, cols, values: (36 B,). Bond b fills entries 36 b .. 36 b + 35 with
-    the 3x3 blocks (i, i) and (j, j) = +K, (i, j) and (j, i) = -K, where
-    K = u'' rhat rhat^T + (u'/r) (I - rhat rhat^T); duplicates are summed by
-    the caller's COO -> CSR conversion. A zero-length bond gets K = (u'/r) I.
+    transverse, radial: (B,); unit: (B, 3), along x_i - x_j (minimum image),
+    (1, 0, 0) for a zero-length bond, whose radial value is set to u'/r so
+    that K = (u'/r) I. Returns -1 when every bond is within its range.
     """
     bad = -1
     lx, ly, lz = lengths[0], lengths[1], lengths[2]
     ix, iy, iz = inverse[0], inverse[1], inverse[2]
-    d = np.empty(3)
-    block = np.empty((3, 3))
     for b in range(bonds.shape[0]):
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        d[0] = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-        d[1] = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-        d[2] = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
-        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+        dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+        dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+        r2 = dx * dx + dy * dy + dz * dz
         _, g, h, ok = _bond_terms(form, r2, k[t], p[t])
         if not ok and bad < 0:
             bad = b
-        along = (h - g) / r2 if r2 > 0.0 else 0.0
-        for a in range(3):
-            for c in range(3):
-                block[a, c] = along * d[a] * d[c]
-            block[a, a] += g
-        base = 36 * b
-        for a in range(3):
-            for c in range(3):
-                m = 3 * a + c
-                value = block[a, c]
-                rows[base + m] = 3 * i + a
-                cols[base + m] = 3 * i + c
-                values[base + m] = value
-                rows[base + 9 + m] = 3 * j + a
-                cols[base + 9 + m] = 3 * j + c
-                values[base + 9 + m] = value
-                rows[base + 18 + m] = 3 * i + a
-                cols[base + 18 + m] = 3 * j + c
-                values[base + 18 + m] = -value
-                rows[base + 27 + m] = 3 * j + a
-                cols[base + 27 + m] = 3 * i + c
-                values[base + 27 + m] = -value
+        transverse[b] = g
+        if r2 > 0.0:
+            inv_r = 1.0 / np.sqrt(r2)
+            radial[b] = h
+            unit[b, 0] = dx * inv_r
+            unit[b, 1] = dy * inv_r
+            unit[b, 2] = dz * inv_r
+        else:
+            radial[b] = g
+            unit[b, 0] = 1.0
+            unit[b, 1] = 0.0
+            unit[b, 2] = 0.0
     return bad

@@ -151,6 +151,7 @@ def test_options_are_validated_and_described():
     assert ImplicitMidpoint(dt=0.02).describe()["type"] == "implicit_midpoint"
     assert set(integrator.statistics) == {
         "steps", "newton_iterations", "linear_iterations", "line_search_backtracks", "fallbacks",
+        "projections",
     }  # fmt: skip
     for bad in (
         {"dt": 0.0},

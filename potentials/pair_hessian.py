@@ -1,0 +1,310 @@
+"""The Hessian of a pair potential, kept as one 3x3 block per interacting pair.
+
+A pair energy u(|x_i - x_j|) contributes a symmetric 3x3 block K to the
+Hessian blocks (i, i) and (j, j) and -K to (i, j) and (j, i). A
+:class:`PairHessian` stores just K's two eigenvalues and its axis for each
+pair (plus the summed diagonal blocks), which is all that Newton-Krylov
+solvers need:
+:meth:`PairHessian.matvec` applies the Hessian without assembling it, at
+about the cost of one force evaluation, and :meth:`PairHessian.tocsr`
+assembles the sparse matrix for direct solvers and tests.
+:class:`HessianSum` adds several such operators (and plain sparse
+matrices), as a force field with several potentials needs. Because the
+eigenvalues are at hand, :meth:`PairHessian.projected` gives the positive
+semidefinite version that keeps Newton's method well posed on compressed,
+stiff pairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from numpy.typing import NDArray
+
+#: Element (a, b) of a 3x3 block is entry _SYMMETRIC[a, b] of its stored
+#: (xx, yy, zz, yz, xz, xy).
+_SYMMETRIC = np.array([[0, 5, 4], [5, 1, 3], [4, 3, 2]], dtype=np.int64)
+
+
+class PairHessian:
+    """A (3N, 3N) Hessian given by pair blocks.
+
+    Every pair block of a central pair potential has the form
+    K = t I + (r - t) e e^T, with e the unit vector along the pair, t the
+    transverse curvature u'(r)/r (twice degenerate) and r the radial one
+    u''(r); these three are all that is stored.
+
+    Parameters
+    ----------
+    n_atoms : int
+        N.
+    pair_i, pair_j : ndarray of int64, shape (P,)
+        The interacting pairs, i != j.
+    transverse, radial : ndarray of float64, shape (P,)
+        The eigenvalues of K [energy/length^2].
+    unit : ndarray of float64, shape (P, 3)
+        e, the unit vector from j to i (either sign will do).
+    unique : bool
+        Whether each pair is listed at most once (then :meth:`tocsr` need not
+        sum duplicates).
+    """
+
+    def __init__(
+        self, n_atoms: int, pair_i, pair_j, transverse, radial, unit, unique: bool = True
+    ) -> None:
+        self.n_atoms = int(n_atoms)
+        self.pair_i = pair_i
+        self.pair_j = pair_j
+        self.transverse = transverse
+        self.radial = radial
+        self.unit = unit
+        self.unique = unique
+        self.shape = (3 * self.n_atoms, 3 * self.n_atoms)
+        self.diagonal_blocks = np.zeros((self.n_atoms, 6))
+        _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)
+
+    @property
+    def nnz(self) -> int:
+        """Stored entries of the assembled matrix: 9 per diagonal and off-diagonal block."""
+        return 9 * (self.n_atoms + 2 * len(self.pair_i))
+
+    def min_eigenvalue(self) -> float:
+        """Return the smallest eigenvalue of any pair block (0 without pairs) [energy/length^2]."""
+        if len(self.pair_i) == 0:
+            return 0.0
+        return float(min(self.transverse.min(), self.radial.min()))
+
+    def clamped(self, floor) -> PairHessian:
+        """Return the Hessian with every pair block's eigenvalues raised to at least ``floor``.
+
+        ``floor`` is a number or a (P,) array [energy/length^2]. With 0 this is
+        the projection of projected Newton methods: a sum of positive
+        semidefinite blocks.
+        """
+        return PairHessian(
+            self.n_atoms, self.pair_i, self.pair_j,
+            np.maximum(self.transverse, floor), np.maximum(self.radial, floor), self.unit,
+            self.unique,
+        )  # fmt: skip
+
+    def negative_pairs(self) -> NDArray[np.bool_]:
+        """Return the (P,) mask of pairs with a negative eigenvalue."""
+        return np.minimum(self.transverse, self.radial) < 0.0
+
+    def matvec(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Return H x for a (3N,) vector ``x``."""
+        out = np.zeros(3 * self.n_atoms)
+        _pair_matvec(
+            self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
+            self.diagonal_blocks, np.ascontiguousarray(x, dtype=np.float64), out,
+        )  # fmt: skip
+        return out
+
+    def diagonal(self) -> NDArray[np.float64]:
+        """Return the (3N,) diagonal of H."""
+        return np.ascontiguousarray(self.diagonal_blocks[:, :3]).ravel()
+
+    def tocsr(self) -> sp.csr_matrix:
+        """Return the assembled matrix: CSR with sorted indices, every diagonal block stored."""
+        n = self.n_atoms
+        counts = np.ones(n, dtype=np.int64)  # the diagonal block
+        counts += np.bincount(self.pair_i, minlength=n)
+        counts += np.bincount(self.pair_j, minlength=n)
+        block_starts = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(counts, out=block_starts[1:])
+        nnz = 9 * int(block_starts[-1])
+        index_type = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
+        indptr = np.empty(3 * n + 1, dtype=index_type)
+        indices = np.empty(nnz, dtype=index_type)
+        data = np.empty(nnz)
+        _pair_blocks_to_csr(
+            self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
+            self.diagonal_blocks, block_starts, _SYMMETRIC, indptr, indices, data,
+        )  # fmt: skip
+        matrix = sp.csr_matrix((data, indices, indptr), shape=self.shape)
+        matrix.has_sorted_indices = True
+        if not self.unique:
+            matrix.sum_duplicates()
+        return matrix
+
+
+class HessianSum:
+    """The sum of Hessian operators (:class:`PairHessian` or sparse matrices) of one system."""
+
+    def __init__(self, terms) -> None:
+        self.terms = list(terms)
+        self.shape = self.terms[0].shape
+
+    @property
+    def nnz(self) -> int:
+        """An upper bound on the stored entries of the assembled sum."""
+        return sum(term.nnz for term in self.terms)
+
+    def matvec(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Return H x for a (3N,) vector ``x``."""
+        out = self.terms[0] @ x if sp.issparse(self.terms[0]) else self.terms[0].matvec(x)
+        for term in self.terms[1:]:
+            out += term @ x if sp.issparse(term) else term.matvec(x)
+        return out
+
+    def diagonal(self) -> NDArray[np.float64]:
+        """Return the (3N,) diagonal of H."""
+        return np.sum([term.diagonal() for term in self.terms], axis=0)
+
+    def min_eigenvalue(self) -> float:
+        """Return the smallest pair-block eigenvalue of the pair terms (0 without any)."""
+        return min(
+            (term.min_eigenvalue() for term in self.terms if isinstance(term, PairHessian)),
+            default=0.0,
+        )
+
+    def definite(self, h2: float, masses: NDArray[np.float64]) -> HessianSum:
+        """Return the sum with pair curvatures clamped so that M + h2 H is positive definite.
+
+        Only pairs with a negative eigenvalue change. The mass m_i of atom i
+        is shared among its c_i such pairs, a_i = m_i / c_i, and a pair's
+        eigenvalues are raised to -(1 - 1e-6) a_i a_j / (h2 (a_i + a_j)), the
+        lowest at which the pair with its mass shares stays positive
+        semidefinite; the sum is then positive definite. Pairs whose
+        curvature is above that bound keep their exact blocks, so where the
+        masses dominate this is the exact Hessian. Sparse-matrix terms are
+        kept as they are (they may still be indefinite).
+
+        Parameters
+        ----------
+        h2 : float
+            The squared step h^2 of the incremental potential [time^2].
+        masses : ndarray, shape (N,)
+            Particle masses [mass].
+        """
+        pairs = [term for term in self.terms if isinstance(term, PairHessian)]
+        n = len(masses)
+        counts = np.zeros(n)
+        for term in pairs:
+            negative = term.negative_pairs()
+            counts += np.bincount(term.pair_i[negative], minlength=n)
+            counts += np.bincount(term.pair_j[negative], minlength=n)
+        shares = masses / np.maximum(counts, 1.0)
+        out = []
+        for term in self.terms:
+            if isinstance(term, PairHessian):
+                a_i, a_j = shares[term.pair_i], shares[term.pair_j]
+                term = term.clamped(-(1.0 - 1e-6) * a_i * a_j / (h2 * (a_i + a_j)))
+            out.append(term)
+        return HessianSum(out)
+
+    def tocsr(self) -> sp.csr_matrix:
+        """Return the assembled sum as a CSR matrix."""
+        total = None
+        for term in self.terms:
+            matrix = sp.csr_matrix(term) if sp.issparse(term) else term.tocsr()
+            total = matrix if total is None else total + matrix
+        return total
+
+
+# ------------------------------------------------------------------ kernels
+@njit(cache=True)
+def _block(t, r, e, out):
+    """Write K = t I + (r - t) e e^T as (xx, yy, zz, yz, xz, xy) into ``out`` (6,)."""
+    c = r - t
+    out[0] = t + c * e[0] * e[0]
+    out[1] = t + c * e[1] * e[1]
+    out[2] = t + c * e[2] * e[2]
+    out[3] = c * e[1] * e[2]
+    out[4] = c * e[0] * e[2]
+    out[5] = c * e[0] * e[1]
+
+
+@njit(cache=True)
+def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
+    """Add each pair's K to the diagonal blocks (N, 6) of both its atoms."""
+    block = np.empty(6)
+    for p in range(pair_i.shape[0]):
+        _block(transverse[p], radial[p], unit[p], block)
+        for c in range(6):
+            diagonal[pair_i[p], c] += block[c]
+            diagonal[pair_j[p], c] += block[c]
+
+
+@njit(cache=True)
+def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
+    """Add H x to ``out`` (3N,): the diagonal blocks, then -K x_j to row i and -K x_i to row j.
+
+    K y = t y + (r - t) (e . y) e, so no block is formed.
+    """
+    for i in range(diagonal.shape[0]):
+        d = diagonal[i]
+        x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+        out[3 * i] += d[0] * x0 + d[5] * x1 + d[4] * x2
+        out[3 * i + 1] += d[5] * x0 + d[1] * x1 + d[3] * x2
+        out[3 * i + 2] += d[4] * x0 + d[3] * x1 + d[2] * x2
+    for p in range(pair_i.shape[0]):
+        i = pair_i[p]
+        j = pair_j[p]
+        t = transverse[p]
+        c = radial[p] - t
+        e0, e1, e2 = unit[p, 0], unit[p, 1], unit[p, 2]
+        xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+        xj0, xj1, xj2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
+        along_j = c * (e0 * xj0 + e1 * xj1 + e2 * xj2)
+        along_i = c * (e0 * xi0 + e1 * xi1 + e2 * xi2)
+        out[3 * i] -= t * xj0 + along_j * e0
+        out[3 * i + 1] -= t * xj1 + along_j * e1
+        out[3 * i + 2] -= t * xj2 + along_j * e2
+        out[3 * j] -= t * xi0 + along_i * e0
+        out[3 * j + 1] -= t * xi1 + along_i * e1
+        out[3 * j + 2] -= t * xi2 + along_i * e2
+
+
+@njit(cache=True)
+def _pair_blocks_to_csr(
+    pair_i, pair_j, transverse, radial, unit, diagonal, block_starts, symmetric,
+    indptr, indices, data,
+):  # fmt: skip
+    """Expand pair blocks into CSR arrays, block columns sorted within each row.
+
+    ``block_starts`` (N + 1,) offsets each atom's blocks: its diagonal block
+    plus one per pair it belongs to.
+    """
+    n = diagonal.shape[0]
+    n_pairs = pair_i.shape[0]
+    blocks = np.empty((n_pairs, 6))
+    for p in range(n_pairs):
+        _block(transverse[p], radial[p], unit[p], blocks[p])
+    n_blocks = block_starts[n]
+    block_columns = np.empty(n_blocks, dtype=np.int64)
+    block_sources = np.empty(n_blocks, dtype=np.int64)  # pair index, or -1: diagonal
+    cursor = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        block_columns[block_starts[i]] = i
+        block_sources[block_starts[i]] = -1
+        cursor[i] = block_starts[i] + 1
+    for p in range(n_pairs):
+        i = pair_i[p]
+        j = pair_j[p]
+        block_columns[cursor[i]] = j
+        block_sources[cursor[i]] = p
+        cursor[i] += 1
+        block_columns[cursor[j]] = i
+        block_sources[cursor[j]] = p
+        cursor[j] += 1
+    indptr[0] = 0
+    for i in range(n):
+        first = block_starts[i]
+        count = block_starts[i + 1] - first
+        order = np.argsort(block_columns[first : first + count])
+        for ca in range(3):
+            out = 9 * first + 3 * count * ca
+            indptr[3 * i + ca + 1] = out + 3 * count
+            for q in range(count):
+                slot = first + order[q]
+                column = 3 * block_columns[slot]
+                source = block_sources[slot]
+                for cb in range(3):
+                    indices[out] = column + cb
+                    if source < 0:
+                        data[out] = diagonal[i, symmetric[ca, cb]]
+                    else:
+                        data[out] = -blocks[source, symmetric[ca, cb]]
+                    out += 1

@@ -1,0 +1,110 @@
+"""Matrix-free pair Hessians: products, diagonal, assembly, and the definite modification."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import md
+from potentials import FENEBonds, HarmonicBonds, LennardJones
+from potentials.pair_hessian import HessianSum, PairHessian
+
+
+def _bonded_gas(random_gas, rng, n_atoms=16):
+    """A random periodic gas (min distance 0.8) with a chain of bonds through it."""
+    state = random_gas(n_atoms, box=4.2, pbc=True, min_distance=0.8, images=1)
+    state = md.State(
+        positions=state.positions,
+        masses=rng.uniform(0.5, 2.0, n_atoms),
+        box=state.box,
+        pbc=state.pbc,
+    )
+    bonds = [(i, i + 1) for i in range(n_atoms - 1)] + [(0, 5), (0, 5)]  # one bond listed twice
+    return state, bonds
+
+
+@pytest.mark.parametrize("mode", ["none", "shift", "smooth"])
+def test_operator_equals_the_assembled_matrix(random_gas, rng, mode):
+    state, bonds = _bonded_gas(random_gas, rng)
+    forcefield = md.ForceField(
+        [LennardJones(cutoff=1.8, cutoff_mode=mode), HarmonicBonds(bonds, k=50.0, r0=1.0)]
+    )
+    operator = forcefield.hessian_operator(state)
+    dense = forcefield.hessian(state).toarray()
+    np.testing.assert_allclose(dense, dense.T, atol=1e-12)
+    for _ in range(3):
+        x = rng.normal(size=3 * state.n_atoms)
+        np.testing.assert_allclose(operator.matvec(x), dense @ x, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(operator.diagonal(), np.diag(dense), rtol=1e-12, atol=1e-12)
+    assert operator.nnz >= np.count_nonzero(dense)
+
+
+def test_fene_operator_equals_its_matrix(random_gas, rng):
+    state, bonds = _bonded_gas(random_gas, rng)
+    potential = FENEBonds(bonds, k=30.0, r_max=5.0)
+    operator = potential.hessian_operator(state)
+    dense = potential.hessian(state).toarray()
+    x = rng.normal(size=3 * state.n_atoms)
+    np.testing.assert_allclose(operator.matvec(x), dense @ x, rtol=1e-12, atol=1e-9)
+
+
+def test_blocks_have_the_stored_eigenvalues(random_gas, rng):
+    state, _ = _bonded_gas(random_gas, rng)
+    hessian = LennardJones(cutoff=1.8).hessian_operator(state, None)
+    for p in range(min(10, len(hessian.pair_i))):
+        i, j = hessian.pair_i[p], hessian.pair_j[p]
+        block = -hessian.tocsr()[3 * i : 3 * i + 3, 3 * j : 3 * j + 3].toarray()
+        expected = sorted([hessian.transverse[p]] * 2 + [hessian.radial[p]])
+        np.testing.assert_allclose(np.linalg.eigvalsh(block), expected, rtol=1e-10, atol=1e-10)
+
+
+def test_clamped_to_zero_is_positive_semidefinite(random_gas, rng):
+    state, _ = _bonded_gas(random_gas, rng)
+    hessian = LennardJones(cutoff=1.8).hessian_operator(state, None)
+    assert hessian.min_eigenvalue() < 0.0  # compressed pairs below 2^(1/6)
+    projected = hessian.clamped(0.0).tocsr().toarray()
+    assert np.linalg.eigvalsh(projected).min() > -1e-10
+    assert np.linalg.eigvalsh(hessian.tocsr().toarray()).min() < -1e-3
+
+
+def test_definite_makes_the_newton_matrix_positive_and_keeps_safe_pairs(random_gas, rng):
+    state, bonds = _bonded_gas(random_gas, rng)
+    bonded = HarmonicBonds(bonds, k=1e3, r0=1.2)  # every bond compressed: negative transverse
+    operator = HessianSum(
+        [LennardJones(cutoff=1.8).hessian_operator(state, None), bonded.hessian_operator(state)]
+    )
+    mass_diagonal = np.diag(np.repeat(state.masses, 3))
+    for h2 in (1e-4, 1e-2, 1.0):
+        exact = mass_diagonal + h2 * operator.tocsr().toarray()
+        fixed = operator.definite(h2, state.masses)
+        matrix = mass_diagonal + h2 * fixed.tocsr().toarray()
+        assert np.linalg.eigvalsh(matrix).min() > 0.0
+        if h2 >= 1e-2:
+            assert np.linalg.eigvalsh(exact).min() < 0.0  # the exact one is indefinite
+        # Only negative curvatures change, and only below the mass-share bound
+        # a_i a_j / (h2 (a_i + a_j)) >= min(a) / (2 h2), a = m / (negative pairs of the atom).
+        counts = np.zeros(state.n_atoms)
+        for term in operator.terms:
+            np.add.at(counts, term.pair_i[term.negative_pairs()], 1)
+            np.add.at(counts, term.pair_j[term.negative_pairs()], 1)
+        bound = np.min(state.masses / np.maximum(counts, 1)) / (2.0 * h2)
+        for before, after in zip(operator.terms, fixed.terms, strict=True):
+            changed = (before.transverse != after.transverse) | (before.radial != after.radial)
+            assert np.all(before.negative_pairs()[changed])
+            assert np.all(after.transverse >= before.transverse)
+            assert np.all(after.radial >= before.radial)
+            safe = np.minimum(before.transverse, before.radial) > -bound
+            assert not np.any(changed & safe)
+        if h2 == 1e-4:
+            assert not any(np.any(b.transverse != a.transverse) for b, a in
+                           zip(operator.terms, fixed.terms, strict=True))  # fmt: skip
+
+
+def test_duplicate_pairs_are_summed_in_the_matrix():
+    hessian = PairHessian(
+        2, np.array([0, 0]), np.array([1, 1]), np.array([1.0, 2.0]), np.array([3.0, 4.0]),
+        np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), unique=False,
+    )  # fmt: skip
+    dense = hessian.tocsr().toarray()
+    np.testing.assert_allclose(np.diag(dense), [7.0, 3.0, 3.0, 7.0, 3.0, 3.0])
+    np.testing.assert_allclose(dense[0, 3], -7.0)
