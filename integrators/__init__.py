@@ -2,13 +2,21 @@
 
 ``INTEGRATORS`` maps the names used in configs to the classes. The core are
 velocity Verlet, leapfrog and implicit Euler; the rest of the classical family
-serves comparison and teaching (``md integrators`` measures them all).
+serves comparison and teaching (``md integrators`` measures them all). The
+thermostats (Langevin, Bussi, Nose-Hoover chains, Berendsen) sample at a
+temperature; they and :class:`Rattle` (velocity Verlet with SHAKE/RATTLE)
+take rigid-bond ``constraints``.
 """
 
 from integrators.base import ConvergenceError, Integrator
+from integrators.berendsen import Berendsen
+from integrators.bussi import Bussi
 from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
 from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
+from integrators.langevin import Langevin
 from integrators.leapfrog import Leapfrog
+from integrators.nose_hoover import NoseHooverChain
+from integrators.rattle import BondConstraints, ConstraintError, Rattle
 from integrators.runge_kutta import RK4, RKF45
 from integrators.stormer_verlet import StormerVerlet
 from integrators.velocity_verlet import VelocityVerlet
@@ -24,18 +32,31 @@ INTEGRATORS = {
     "rkf45": RKF45,
     "implicit_euler": ImplicitEuler,
     "implicit_midpoint": ImplicitMidpoint,
+    "rattle": Rattle,
+    "langevin": Langevin,
+    "bussi": Bussi,
+    "nose_hoover_chain": NoseHooverChain,
+    "nhc": NoseHooverChain,
+    "berendsen": Berendsen,
 }
 
 __all__ = [
     "INTEGRATORS",
     "RK4",
     "RKF45",
+    "Berendsen",
+    "BondConstraints",
+    "Bussi",
+    "ConstraintError",
     "ConvergenceError",
     "ExplicitEuler",
     "ImplicitEuler",
     "ImplicitMidpoint",
     "Integrator",
+    "Langevin",
     "Leapfrog",
+    "NoseHooverChain",
+    "Rattle",
     "StormerVerlet",
     "SymplecticEuler",
     "VelocityVerlet",

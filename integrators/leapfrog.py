@@ -70,12 +70,13 @@ class Leapfrog:
         self._mark: tuple | None = None  # (positions, velocities, step, time, dt) after the step
         self._positions: np.ndarray | None = None  # copies of what the last step left
         self._velocities: np.ndarray | None = None
+        self._adopt = False  # set_state: the next step continues whatever state it is given
 
     def step(self, state, forcefield) -> None:
         dt = self.dt
         forces = forcefield.compute(state).forces
         inverse_masses = 1.0 / state.masses
-        if self._half is not None and self._continues(state):
+        if self._half is not None and (self._adopted(state) or self._continues(state)):
             _kick_drift(state.positions, self._half, forces, inverse_masses, dt, dt)
         else:
             self.statistics["restarts"] += 1
@@ -93,6 +94,34 @@ class Leapfrog:
         self._half = None
         self._state = None
         self._mark = None
+        self._adopt = False
+
+    def get_state(self) -> dict:
+        """Return the private state for a checkpoint: the half-step velocities v(t + dt/2).
+
+        ``{"half_velocities": None}`` before the first step or after :meth:`reset`.
+        """
+        half = None if self._half is None else self._half.copy()
+        return {"half_velocities": half, "statistics": dict(self.statistics)}
+
+    def set_state(self, saved: dict) -> None:
+        """Restore :meth:`get_state`'s result; the next step continues from it exactly.
+
+        The next step then trusts that it is given the State saved with these
+        half-step velocities (a checkpoint restores both together).
+        """
+        half = saved["half_velocities"]
+        if half is None:
+            self.reset()
+        else:
+            half = np.array(half, dtype=np.float64)
+            if half.ndim != 2 or half.shape[1] != 3:
+                raise ValueError(f"half_velocities must have shape (N, 3), got {half.shape}")
+            self._half = np.ascontiguousarray(half)
+            self._state = None
+            self._mark = None
+            self._adopt = True
+        self.statistics.update({k: int(v) for k, v in saved.get("statistics", {}).items()})
 
     def describe(self) -> dict:
         return {"type": "leapfrog", "dt": self.dt}
@@ -105,6 +134,11 @@ class Leapfrog:
         np.copyto(self._velocities, state.velocities)
         self._state = state
         self._mark = (state.positions, state.velocities, state.step, state.time, self.dt)
+
+    def _adopted(self, state) -> bool:
+        """Whether set_state asked to continue, for a state of the saved size (used once)."""
+        adopt, self._adopt = self._adopt, False
+        return adopt and self._half.shape == state.velocities.shape
 
     def _continues(self, state) -> bool:
         """Whether ``state`` is exactly what the last step left (nothing changed it since)."""

@@ -304,6 +304,20 @@ class RKF45:
         """Forget the adapted substep size; the next step starts by trying ``dt``."""
         self._h = None
 
+    def get_state(self) -> dict:
+        """Return the private state for a checkpoint: the proposed next substep size [time]."""
+        return {"h": self._h, "statistics": dict(self.statistics)}
+
+    def set_state(self, saved: dict) -> None:
+        """Restore :meth:`get_state`'s result, so the run continues with the same substeps."""
+        h = saved["h"]
+        if h is not None:
+            h = float(h)
+            if not (math.isfinite(h) and h > 0):
+                raise ValueError(f"saved substep size must be positive and finite, got {h!r}")
+        self._h = h
+        self.statistics.update({k: int(v) for k, v in saved.get("statistics", {}).items()})
+
     def describe(self) -> dict:
         return {
             "type": "rkf45",
