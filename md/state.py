@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -146,7 +147,7 @@ class State:
 
     def copy(self) -> State:
         """Return a deep copy."""
-        return State(
+        copied = State(
             positions=self.positions.copy(),
             velocities=self.velocities.copy(),
             masses=self.masses.copy(),
@@ -157,42 +158,77 @@ class State:
             step=self.step,
             time=self.time,
         )
+        momenta = getattr(self, "_ase_momenta", None)
+        if momenta is not None:
+            copied._ase_momenta = momenta.copy()
+        return copied
 
     @classmethod
-    def from_ase(cls, atoms: ase.Atoms) -> State:
+    def from_ase(
+        cls,
+        atoms: ase.Atoms,
+        types_from: str = "numbers",
+        type_names: Sequence[str] | None = None,
+    ) -> State:
         """Build a State from ASE Atoms (ASE's units are the engine's metal units).
 
-        Types are numbered by increasing atomic number and named by chemical
-        symbol. The cell must be orthorhombic (a diagonal matrix).
-        """
-        cell = np.asarray(atoms.cell[:], dtype=float)
-        off_diagonal = cell - np.diag(np.diag(cell))
-        if np.any(np.abs(off_diagonal) > 1e-12 * max(1.0, np.abs(cell).max())):
-            raise ValueError(
-                "only orthorhombic cells are supported: atoms.cell has off-diagonal "
-                f"entries {cell.tolist()}"
-            )
-        numbers = atoms.get_atomic_numbers()
-        unique = np.unique(numbers)
-        types = np.searchsorted(unique, numbers).astype(np.int32)
-        from ase.data import chemical_symbols
+        Positions, masses, cell and pbc are copied as they are; velocities are
+        ``atoms.get_velocities()`` (momenta / masses). The cell must be
+        orthorhombic (a diagonal matrix); an open axis may have zero length.
+        :meth:`to_ase` of the returned State gives back ASE's momenta bit for
+        bit as long as velocities and masses are unchanged, and ``from_ase``
+        of :meth:`to_ase` gives back the velocities bit for bit (a product
+        m v followed by a division by m does not always round back to v, so
+        each side remembers the other's exact values and uses them only while
+        they still match).
 
-        names = tuple(chemical_symbols[z] for z in unique) if len(unique) else ("X",)
-        return cls(
+        Parameters
+        ----------
+        atoms : ase.Atoms
+            The structure.
+        types_from : {"numbers", "tags"}
+            Type of each atom from its atomic number or from its tag; see
+            :func:`types_from_ase`.
+        type_names : sequence of str, optional
+            Name of each type index (chemical symbols for ``"numbers"``).
+        """
+        box = orthorhombic_box(atoms.cell[:], "atoms.cell")
+        types, names = types_from_ase(
+            atoms.get_atomic_numbers(), atoms.get_tags(), types_from, type_names,
+            atoms.info.get("type_names"),
+        )  # fmt: skip
+        masses = atoms.get_masses()
+        momenta = atoms.get_momenta()
+        velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
+        remembered = getattr(atoms, "_leapmd_velocities", None)
+        if (
+            remembered is not None
+            and remembered.shape == momenta.shape
+            and np.array_equal(remembered * masses[:, None], momenta)
+        ):
+            velocities = remembered  # written by to_ase and not changed since
+        state = cls(
             positions=atoms.get_positions(),
-            velocities=atoms.get_velocities(),
-            masses=atoms.get_masses(),
-            box=np.diag(cell).copy(),
+            velocities=velocities,
+            masses=masses,
+            box=box,
             pbc=np.asarray(atoms.pbc, dtype=bool),
             types=types,
             type_names=names,
         )
+        state._ase_momenta = momenta
+        return state
 
     def to_ase(self) -> ase.Atoms:
         """Return ASE Atoms with the same positions, velocities, masses and cell.
 
         Type names that are chemical symbols become the atoms' symbols; other
-        names map to dummy atoms ('X') and the type index goes into ``tags``.
+        names map to dummy atoms ('X'). The type index always goes into
+        ``tags``, and non-chemical names into ``atoms.info["type_names"]``,
+        so ``State.from_ase(atoms, types_from="tags")`` recovers the types.
+        Momenta are masses times velocities (ASE stores momenta), except that
+        momenta this State was built from by :meth:`from_ase` are returned
+        unchanged while they still divide back to the current velocities.
         """
         import ase
         from ase.data import chemical_symbols
@@ -206,8 +242,129 @@ class State:
             masses=self.masses,
             tags=self.types,
         )
-        atoms.set_velocities(self.velocities)
+        if any(name not in chemical_symbols for name in self.type_names):
+            atoms.info["type_names"] = list(self.type_names)
+        masses = self.masses[:, None]
+        momenta = self.velocities * masses  # as ase.Atoms.set_velocities
+        remembered = getattr(self, "_ase_momenta", None)
+        if (
+            remembered is not None
+            and remembered.shape == momenta.shape
+            and np.array_equal(remembered / masses, self.velocities)
+        ):
+            momenta = remembered
+        atoms.set_momenta(momenta, apply_constraint=False)
+        atoms._leapmd_velocities = self.velocities.copy()
         return atoms
+
+
+def orthorhombic_box(cell, what: str = "cell") -> NDArray[np.float64]:
+    """Return the edge lengths of an orthorhombic (3, 3) cell matrix [length].
+
+    Off-diagonal entries up to 1e-12 times the largest entry (or 1e-12, for
+    small cells) count as zero; a negative diagonal entry spans the same
+    periodic lattice as its absolute value, which is returned.
+
+    Raises
+    ------
+    ValueError
+        If the cell is not orthorhombic (triclinic boxes are not supported).
+    """
+    cell = np.asarray(cell, dtype=np.float64)
+    if cell.shape != (3, 3):
+        raise ValueError(f"{what} must be a (3, 3) matrix, got shape {cell.shape}")
+    off_diagonal = cell - np.diag(np.diag(cell))
+    if np.any(np.abs(off_diagonal) > 1e-12 * max(1.0, np.abs(cell).max())):
+        raise ValueError(
+            f"only orthorhombic cells are supported (triclinic boxes are not, yet): "
+            f"{what} has off-diagonal entries {cell.tolist()}"
+        )
+    return np.abs(np.diag(cell)).copy()
+
+
+def types_from_ase(
+    numbers: NDArray,
+    tags: NDArray,
+    types_from: str = "numbers",
+    type_names: Sequence[str] | None = None,
+    stored_names: Sequence[str] | None = None,
+) -> tuple[NDArray[np.int32], tuple[str, ...]]:
+    """Return ``(types, type_names)`` of atoms from their atomic numbers or tags.
+
+    Parameters
+    ----------
+    numbers, tags : ndarray of int, shape (N,)
+        Atomic numbers and tags (``atoms.numbers``, ``atoms.get_tags()``).
+    types_from : {"numbers", "tags"}
+        ``"numbers"``: one type per chemical element; with ``type_names``
+        (chemical symbols) the type of an atom is the index of its symbol
+        there, otherwise types are numbered by increasing atomic number.
+        ``"tags"``: the type of an atom is its tag (>= 0).
+    type_names : sequence of str, optional
+        Name of each type index.
+    stored_names : sequence of str, optional
+        Names for ``"tags"`` when ``type_names`` is not given (what
+        :meth:`State.to_ase` writes to ``atoms.info["type_names"]``); used
+        when there is one per tag. Otherwise a tag shared by atoms of a single
+        element is named by its symbol, and any other by a letter.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``types_from``, a symbol missing from ``type_names``, or
+        a negative tag or one without a name.
+    """
+    from ase.data import atomic_numbers, chemical_symbols
+
+    numbers = np.asarray(numbers)
+    if types_from == "numbers":
+        if type_names is None:
+            unique = np.unique(numbers)
+            types = np.searchsorted(unique, numbers).astype(np.int32)
+            names = tuple(chemical_symbols[z] for z in unique) if len(unique) else ("X",)
+            return types, names
+        names = tuple(str(name) for name in type_names)
+        index = np.full(len(chemical_symbols), -1, dtype=np.int32)
+        for position, name in enumerate(names):
+            if name not in atomic_numbers:
+                raise ValueError(
+                    f"type name {name!r} is not a chemical symbol, so atoms cannot be typed "
+                    "by atomic number (use types_from='tags')"
+                )
+            index[atomic_numbers[name]] = position
+        types = index[numbers] if len(numbers) else np.zeros(0, dtype=np.int32)
+        if np.any(types < 0):
+            bad = int(np.argmax(types < 0))
+            raise ValueError(
+                f"atom {bad} is {chemical_symbols[numbers[bad]]}, which is not one of the "
+                f"types {', '.join(names)}"
+            )
+        return types.astype(np.int32), names
+    if types_from != "tags":
+        raise ValueError(f"types_from must be 'numbers' or 'tags', got {types_from!r}")
+    tags = np.asarray(tags)
+    if tags.size and tags.min() < 0:
+        bad = int(tags.argmin())
+        raise ValueError(f"tags must be >= 0 to serve as types; atom {bad} has tag {tags[bad]}")
+    n_types = int(tags.max()) + 1 if tags.size else 1
+    if type_names is not None:
+        names = tuple(str(name) for name in type_names)
+        if len(names) < n_types:
+            raise ValueError(
+                f"tags go up to {n_types - 1} but only {len(names)} type_names were given"
+            )
+    elif stored_names is not None and len(stored_names) >= n_types:
+        names = tuple(str(name) for name in stored_names)
+    else:
+        names = []
+        for tag in range(n_types):
+            elements = np.unique(numbers[tags == tag])
+            if len(elements) == 1 and elements[0] > 0:
+                names.append(chemical_symbols[elements[0]])
+            else:
+                names.append(_default_type_name(tag))
+        names = tuple(names)
+    return tags.astype(np.int32), names
 
 
 def _default_type_name(index: int) -> str:

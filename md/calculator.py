@@ -1,0 +1,511 @@
+"""An ASE calculator backed by the engine: :class:`MDCalculator`.
+
+ASE drives (optimisers, its integrators, cell filters); the engine evaluates
+energy, forces and stress through a :class:`~md.forcefield.ForceField` that
+lives as long as the calculator, so its neighbour list and result cache carry
+over from one call to the next. ASE's units (eV, Angstrom, amu) are the
+engine's metal units: nothing is converted.
+
+Conventions, as in ASE (``ase.calculators.lj.LennardJones`` in particular):
+
+- ``stress`` is the Voigt 6-vector (xx, yy, zz, yz, xz, xy) of
+  ``-W / V`` [eV/Angstrom^3], where ``W`` is the engine's pair virial
+  (sum over pairs of r_ij F_ij, positive for repulsion) and ``V`` the cell
+  volume: positive when the system pulls inwards (tensile), negative under
+  compression, and equal to ``(1/V) dE/d(strain)``.
+- ``stresses`` are per-atom Voigt 6-vectors (N, 6), each pair's term split
+  half and half between its atoms and divided by the whole cell's volume, so
+  they sum to ``stress``.
+- ``energies`` split each pair's energy half and half; they sum to ``energy``.
+- Stress and per-atom stresses exist only when the cell has three non-zero
+  edges (a volume), whatever the ``pbc`` flags; otherwise asking for them
+  raises ``PropertyNotImplementedError``, as for ASE's own LennardJones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from ase.calculators.calculator import (
+    Calculator,
+    PropertyNotImplementedError,
+    all_changes,
+)
+from ase.stress import full_3x3_to_voigt_6_stress
+from numba import njit
+from numpy.typing import NDArray
+
+from md.box import _min_image, periodic_lengths
+from md.forcefield import ForceField
+from md.state import State, orthorhombic_box, types_from_ase
+from potentials.lennard_jones import CUTOFF_MODES, LennardJones
+
+#: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
+_SORT_FROM = 8192
+
+
+class MDCalculator(Calculator):
+    """ASE calculator evaluating the engine's potentials.
+
+    Parameters
+    ----------
+    potentials : sequence of Potential or mapping
+        Engine potentials, e.g. ``[LennardJones(epsilon=0.0104, sigma=3.40,
+        cutoff=8.5)]``, or config-style tables whose per-type values are
+        keyed by chemical symbol, e.g. ``{"type": "lj", "epsilon": {"Ar":
+        0.0104, "Kr": 0.0140}, "sigma": {"Ar": 3.40, "Kr": 3.65}, "cutoff":
+        9.0}`` (built through ``potentials.POTENTIALS[type].from_config``;
+        the keys also give ``type_names`` when it is not passed).
+    type_names : sequence of str, optional
+        Name of each type index, in the order of per-type parameters. With
+        ``types_from="numbers"`` these are chemical symbols and an atom's
+        type is the index of its symbol; without them types are numbered by
+        increasing atomic number among the atoms present, which is only
+        allowed when no potential has per-type parameters.
+    types_from : {"numbers", "tags"}
+        Take each atom's type from its atomic number or from its tag
+        (``atoms.set_tags``), for example to give one element two types.
+    skin : float
+        Neighbour-list skin [Angstrom]: the list is rebuilt when an atom has
+        moved more than ``skin / 2`` since the last build, or when the
+        number of atoms, their types, the cell or ``pbc`` changed. The
+        default 0.5 suits argon-like liquids and solids under ASE's
+        integrators (benchmarks/ase_calculator.py).
+    sort_atoms : bool or "auto"
+        Hold the atoms internally in spatial order (re-sorted whenever the
+        neighbour list is rebuilt), which keeps each atom's neighbours close
+        in memory: about a third faster at 32000 atoms, no gain when the
+        system fits in cache. ``"auto"``: from 8192 (internal) atoms on.
+        Results differ only by summation order (round-off). Never done with
+        bonded potentials (no cutoff), whose terms name atoms by index.
+    **kwargs
+        Passed on to :class:`ase.calculators.calculator.Calculator`.
+
+    Attributes
+    ----------
+    forcefield : ForceField
+        The engine's force field; ``forcefield.n_evaluations`` counts the
+        evaluations, ``forcefield.neighbor_list.n_builds`` the list builds.
+
+    Notes
+    -----
+    One evaluation fills energy, free energy, forces and stress, so asking
+    for all of them at the same positions costs one engine call. Per-atom
+    energies and stresses cost extra work and are computed when asked for.
+
+    The cell must be orthorhombic (a diagonal ``atoms.cell``): a triclinic
+    cell raises ``ValueError`` saying so. To relax the cell keep it
+    orthorhombic, e.g. ``FrechetCellFilter(atoms, mask=[1, 1, 1, 0, 0, 0])``.
+    Along open axes the cell may have zero length. A periodic edge shorter
+    than twice the cutoff (a small unit cell) is handled by evaluating an
+    internal supercell, replicated along the short axes until every edge
+    exceeds twice the cutoff; energy and stress are then per original cell,
+    forces and per-atom values those of the first copy (not with bonded
+    potentials, whose terms name atoms by index: those need a large cell).
+
+    .. note::
+       Hand-written where a library (or the engine) could do it: the
+       internal supercell of small cells is tiled with numpy into a reused
+       array rather than with ``ase.Atoms.repeat`` (which builds a new Atoms
+       object on every call); the positions-only test in :meth:`check_state`
+       repeats, cheaper, what ASE's ``compare_atoms`` does; the spatial
+       order is a numpy ``lexsort`` of cell indices, although the engine's
+       neighbour list bins atoms by cell itself and could hand that order
+       out; and the per-atom virial of Lennard-Jones terms is a kernel here
+       that repeats the pair expression of ``potentials/lennard_jones.py``
+       (``ForceResult`` carries no per-atom virial yet).
+
+    Examples
+    --------
+    >>> from ase.build import bulk
+    >>> from potentials import LennardJones
+    >>> atoms = bulk("Ar", "fcc", a=5.26, cubic=True).repeat(4)
+    >>> atoms.calc = MDCalculator([LennardJones(epsilon=0.0104, sigma=3.40, cutoff=8.5)])
+    >>> round(atoms.get_potential_energy() / len(atoms), 4)
+    -0.0776
+    """
+
+    implemented_properties = ["energy", "free_energy", "energies", "forces", "stress", "stresses"]
+    nolabel = True
+
+    def __init__(
+        self,
+        potentials: Sequence,
+        type_names: Sequence[str] | None = None,
+        types_from: str = "numbers",
+        skin: float = 0.5,
+        sort_atoms: bool | str = "auto",
+        **kwargs,
+    ) -> None:
+        super().__init__(**kwargs)
+        if types_from not in ("numbers", "tags"):
+            raise ValueError(f"types_from must be 'numbers' or 'tags', got {types_from!r}")
+        if sort_atoms not in (True, False, "auto"):
+            raise ValueError(f"sort_atoms must be True, False or 'auto', got {sort_atoms!r}")
+        self.types_from = types_from
+        self.sort_atoms = sort_atoms
+        self.potentials, self.type_names = _build_potentials(potentials, type_names)
+        if self.type_names is None and types_from == "numbers":
+            per_type = [type(p).__name__ for p in self.potentials if _has_per_type_parameters(p)]
+            if per_type:
+                raise ValueError(
+                    f"{', '.join(per_type)} has per-type parameters, so MDCalculator needs "
+                    "type_names (the chemical symbol of each type, in parameter order), "
+                    "or types_from='tags'"
+                )
+        self.forcefield = ForceField(self.potentials, skin=skin)
+        # Bonded terms name atoms by index: no reordering, no internal supercell.
+        self._indexed = [type(p).__name__ for p in self.potentials if p.cutoff is None]
+        self._state: State | None = None
+        self._n_atoms = -1
+        self._types: NDArray[np.int32] | None = None
+        self._names: tuple[str, ...] = ()
+        self._replicas = np.ones(3, dtype=np.int64)
+        self._shifts = np.zeros((1, 3))
+        self._edges = np.zeros(3)
+        self._cell = np.zeros((3, 3))
+        self._order: NDArray[np.int64] | None = None
+        self._sorting = False
+        self._tables: dict[tuple[int, int], tuple] = {}
+
+    # ----------------------------------------------------------------- ASE API
+    def check_state(self, atoms, tol: float = 1e-15) -> list[str]:
+        """ASE's comparison, plus ``"tags"`` when types come from tags and they changed.
+
+        When nothing but positions can have changed (the case in MD and
+        relaxations), only positions are compared, with ASE's tolerance but
+        without the cost of ASE's general comparison, which is a sizeable
+        part of a small system's evaluation.
+        """
+        old = self.atoms
+        if old is not None and _identical(old, atoms, but="positions"):
+            # ASE's test for positions (allclose with atol=tol, rtol=0), done cheaper.
+            moved = np.abs(old.arrays["positions"] - atoms.arrays["positions"]) <= tol
+            changes = [] if moved.all() else ["positions"]
+        else:
+            changes = super().check_state(atoms, tol)
+        if self.types_from == "tags" and self.atoms is not None and "tags" not in changes:
+            if len(atoms) != len(self.atoms) or not np.array_equal(
+                atoms.get_tags(), self.atoms.get_tags()
+            ):
+                changes.append("tags")
+        return changes
+
+    def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes) -> None:
+        """Evaluate the potentials for ``atoms`` and fill ``self.results``."""
+        super().calculate(atoms, properties, system_changes)
+        atoms = self.atoms
+        state = self._sync(atoms, system_changes)
+        per_atom = "energies" in properties or "stresses" in properties
+        result = self.forcefield.compute(state, per_atom=per_atom)
+        copies = len(self._shifts)
+        energy = result.energy / copies if copies > 1 else result.energy
+        self.results["energy"] = energy
+        self.results["free_energy"] = energy
+        self.results["forces"] = self._originals(result.forces)
+        volume = float(np.prod(self._edges))
+        if volume > 0:
+            stress = -result.virial / (volume * copies)
+            self.results["stress"] = full_3x3_to_voigt_6_stress(stress)
+        if result.energies is not None:
+            self.results["energies"] = self._originals(result.energies)
+        if "stresses" in properties and volume > 0:
+            self.results["stresses"] = -self._originals(self._atom_virials(state)) / volume
+
+    def todict(self) -> dict:
+        """Plain-data description (ASE writes it into trajectories)."""
+        return {
+            "potentials": [p.describe() for p in self.potentials],
+            "type_names": None if self.type_names is None else list(self.type_names),
+            "types_from": self.types_from,
+            "skin": self.forcefield.neighbor_list.skin if self.forcefield.neighbor_list else None,
+        }
+
+    # --------------------------------------------------------------- internals
+    def _sync(self, atoms, system_changes) -> State:
+        """Bring the internal State (a supercell for small cells) up to ``atoms``."""
+        state = self._state
+        n = len(atoms)
+        if (
+            state is not None
+            and n == self._n_atoms
+            and not {"numbers", "tags"} & set(system_changes)
+            and np.array_equal(atoms.cell.array, self._cell)
+            and np.array_equal(atoms.pbc, state.pbc)
+        ):  # only positions may have changed
+            positions = self._supercell_positions(atoms)
+            if self._order is None:
+                state.positions[:] = positions
+            else:
+                np.take(positions, self._order, axis=0, out=state.positions)
+            if self._sorting and self.forcefield.neighbor_list.needs_rebuild(state):
+                self._sort(positions)  # the list is rebuilt now anyway
+            return state
+        self._cell = atoms.cell.array.copy()
+        edges = orthorhombic_box(self._cell, "atoms.cell (MDCalculator)")
+        pbc = np.array(atoms.pbc, dtype=bool)
+        if np.any(pbc & (edges == 0)):
+            axis = "xyz"[int(np.argmax(pbc & (edges == 0)))]
+            raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
+        rebuild = state is None or n != self._n_atoms
+        if rebuild or {"numbers", "tags"} & set(system_changes):
+            types, names = types_from_ase(
+                atoms.numbers, atoms.get_tags(), self.types_from, self.type_names
+            )
+            if not rebuild and (
+                names != self._state.type_names or not np.array_equal(types, self._types)
+            ):
+                rebuild = True
+            self._types, self._names = types, names
+        replicas = _replicas(edges, pbc, self.forcefield.cutoff)
+        if self._indexed and np.any(replicas > 1):
+            axis = "xyz"[int(np.argmax(replicas > 1))]
+            raise ValueError(
+                f"the cell edge along {axis} ({edges[np.argmax(replicas > 1)]:g}) is not longer "
+                f"than twice the cutoff ({2 * self.forcefield.cutoff:g}), and with "
+                f"{', '.join(self._indexed)} (terms between atom indices) MDCalculator cannot "
+                "replicate the cell: give it a larger cell (atoms.repeat)"
+            )
+        if not np.array_equal(replicas, self._replicas):
+            rebuild = True
+        if not (np.array_equal(edges, self._edges) and np.array_equal(replicas, self._replicas)):
+            self._shifts = _image_shifts(replicas, edges)
+        self._replicas, self._edges = replicas, edges
+        positions = self._supercell_positions(atoms)
+        if rebuild:
+            self._n_atoms = n
+            self._order = None
+            self._state = state = State(
+                positions=positions,
+                box=edges * replicas,
+                pbc=pbc,
+                types=np.tile(self._types, len(self._shifts)),
+                type_names=self._names,
+            )
+            self.forcefield.check(state)
+            neighbor_list = self.forcefield.neighbor_list
+            self._sorting = (
+                neighbor_list is not None
+                and not self._indexed
+                and (
+                    self.sort_atoms is True
+                    or (self.sort_atoms == "auto" and state.n_atoms >= _SORT_FROM)
+                )
+            )
+            if self._sorting:
+                self._sort(positions)
+            if neighbor_list is not None:
+                neighbor_list.build(state)
+            return state
+        state.box[:] = edges * replicas
+        state.pbc[:] = pbc
+        if self._sorting:
+            self._sort(positions)  # the box changed: the list is rebuilt now anyway
+        else:
+            state.positions[:] = positions
+        return state
+
+    def _supercell_positions(self, atoms) -> NDArray[np.float64]:
+        """Positions of the atoms and their copies (copies, n) in original order."""
+        if len(self._shifts) == 1:
+            return atoms.positions
+        shifted = atoms.positions[None, :, :] + self._shifts[:, None, :]
+        return shifted.reshape(-1, 3)
+
+    def _sort(self, positions: NDArray[np.float64]) -> None:
+        """Order the internal atoms by spatial cell, for memory locality in the kernels.
+
+        Cells are half a neighbour-list radius wide, in x-major order; the
+        internal State holds ``positions[order]`` and results map back
+        through :meth:`_originals`. Only the summation order changes.
+        """
+        state = self._state
+        width = 0.5 * self.forcefield.neighbor_list.list_radius
+        folded = positions - positions.min(axis=0)
+        periodic = state.pbc
+        folded[:, periodic] = np.mod(positions[:, periodic], state.box[periodic])
+        cells = np.floor(folded / width).astype(np.int64)
+        self._order = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0]))
+        np.take(positions, self._order, axis=0, out=state.positions)
+        state.types[:] = np.tile(self._types, len(self._shifts))[self._order]
+
+    def _originals(self, values: NDArray) -> NDArray:
+        """Per-atom values of the internal State for the original atoms, in their order."""
+        n = self._n_atoms
+        if self._order is None:
+            return values[:n] if len(values) > n else values
+        unsorted = np.empty_like(values)
+        unsorted[self._order] = values
+        return unsorted[:n]
+
+    def _atom_virials(self, state: State) -> NDArray[np.float64]:
+        """Per-atom pair virials (N, 6) in Voigt order (xx, yy, zz, yz, xz, xy) [eV]."""
+        virials = np.zeros((state.n_atoms, 6))
+        others = [type(p).__name__ for p in self.potentials if not isinstance(p, LennardJones)]
+        if others:
+            raise PropertyNotImplementedError(
+                f"per-atom stresses are implemented for LennardJones terms only, not "
+                f"{', '.join(others)}"
+            )
+        neighbor_list = self.forcefield.neighbor_list
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        for potential in self.potentials:
+            n_types = max(state.n_types, potential.n_types_fixed or 1)
+            key = (id(potential), n_types)
+            if key not in self._tables:
+                self._tables[key] = potential.tables(n_types)
+            _lj_atom_virials(
+                state.positions, state.types, lengths, inverse,
+                neighbor_list.starts, neighbor_list.neighbors, n_types,
+                *self._tables[key], CUTOFF_MODES[potential.cutoff_mode], virials,
+            )  # fmt: skip
+        return virials
+
+
+def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):
+    """Return (potentials, type_names): tables built into potentials, names resolved."""
+    from potentials import POTENTIALS
+
+    if isinstance(entries, Mapping) or not isinstance(entries, Sequence) or not entries:
+        raise ValueError("potentials must be a non-empty list of potentials or tables")
+    names = None if type_names is None else tuple(str(name) for name in type_names)
+    tables = [entry for entry in entries if isinstance(entry, Mapping)]
+    if tables and names is None:
+        found: list[str] = []
+        for table in tables:
+            for value in table.values():
+                if isinstance(value, Mapping):
+                    found += [str(key) for key in value if str(key) not in found]
+            for pair in table.get("pairs", None) or []:
+                found += [str(t) for t in pair.get("types", ()) if str(t) not in found]
+        names = tuple(found) or None
+    built = []
+    for index, entry in enumerate(entries):
+        if not isinstance(entry, Mapping):
+            built.append(entry)
+            continue
+        params = dict(entry)
+        kind = params.pop("type", None)
+        if kind not in POTENTIALS:
+            raise ValueError(
+                f"potentials[{index}]: type must be one of {', '.join(POTENTIALS)}, got {kind!r}"
+            )
+        try:
+            built.append(POTENTIALS[kind].from_config(params, names or ()))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"potentials[{index}] ({kind}): {error}") from None
+    return built, names
+
+
+def _identical(old, new, but: str = "") -> bool:
+    """True if every property ASE's ``check_state`` compares, except ``but``, is exactly equal."""
+    if len(old) != len(new) or old.arrays.keys() != new.arrays.keys():
+        return False
+    if not (np.array_equal(old.cell.array, new.cell.array) and np.array_equal(old.pbc, new.pbc)):
+        return False
+    return all(
+        np.array_equal(old.arrays[name], new.arrays[name])
+        for name in all_changes
+        if name in old.arrays and name != but
+    )
+
+
+def _has_per_type_parameters(potential) -> bool:
+    """True if the potential's parameters depend on the particle type index."""
+    return getattr(potential, "n_types_fixed", None) is not None or bool(
+        getattr(potential, "pairs", None)
+    )
+
+
+def _replicas(edges, pbc, cutoff) -> NDArray[np.int64]:
+    """Copies of the cell along each axis so every periodic edge exceeds 2 * cutoff."""
+    replicas = np.ones(3, dtype=np.int64)
+    if cutoff is None:
+        return replicas
+    for axis in range(3):
+        if pbc[axis]:
+            count = int(2.0 * cutoff // edges[axis]) + 1
+            while count * edges[axis] <= 2.0 * cutoff:
+                count += 1
+            replicas[axis] = count
+    return replicas
+
+
+def _image_shifts(replicas, edges) -> NDArray[np.float64]:
+    """Translation of each copy (copies, 3) [length], the original (zero shift) first."""
+    grid = np.stack(np.meshgrid(*(np.arange(r) for r in replicas), indexing="ij"), axis=-1)
+    return grid.reshape(-1, 3) * edges
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_atom_virials(
+    positions,
+    types,
+    lengths,
+    inverse,
+    starts,
+    neighbors,
+    n_types,
+    c6,
+    c12,
+    rc2,
+    ro2,
+    shift,
+    inv_den,
+    mode,
+    virials,
+):
+    """Add each atom's half of its LJ pair virials to ``virials`` (N, 6).
+
+    Arguments as ``potentials.lennard_jones._lj_energy_forces`` (half list
+    in CSR form, flat (n_types^2,) tables, mode 0/1/2 for none/shift/smooth).
+    Each pair inside its cutoff adds half of f_r d d^T, with d = x_i - x_j
+    (minimum image) and f_r d the force on i, to both atoms, in Voigt order
+    (xx, yy, zz, yz, xz, xy).
+    """
+    lx, ly, lz = lengths[0], lengths[1], lengths[2]
+    ix, iy, iz = inverse[0], inverse[1], inverse[2]
+    for i in range(positions.shape[0]):
+        row = types[i] * n_types
+        for p in range(starts[i], starts[i + 1]):
+            j = neighbors[p]
+            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
+            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
+            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+            r2 = dx * dx + dy * dy + dz * dz
+            k = row + types[j]
+            if not r2 < rc2[k]:
+                continue
+            inv_r2 = 1.0 / r2
+            inv_r6 = inv_r2 * inv_r2 * inv_r2
+            a = c12[k] * inv_r6 * inv_r6
+            b = c6[k] * inv_r6
+            fr = (12.0 * a - 6.0 * b) * inv_r2
+            if mode == 2 and r2 > ro2[k]:
+                gap = rc2[k] - r2
+                switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
+                dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
+                fr = switch * fr - 2.0 * dswitch * (a - b)
+            half = 0.5 * fr
+            w0 = half * dx * dx
+            w1 = half * dy * dy
+            w2 = half * dz * dz
+            w3 = half * dy * dz
+            w4 = half * dx * dz
+            w5 = half * dx * dy
+            virials[i, 0] += w0
+            virials[i, 1] += w1
+            virials[i, 2] += w2
+            virials[i, 3] += w3
+            virials[i, 4] += w4
+            virials[i, 5] += w5
+            virials[j, 0] += w0
+            virials[j, 1] += w1
+            virials[j, 2] += w2
+            virials[j, 3] += w3
+            virials[j, 4] += w4
+            virials[j, 5] += w5
+
+
+__all__ = ["MDCalculator"]

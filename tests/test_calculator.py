@@ -1,0 +1,424 @@
+"""MDCalculator: ASE's LennardJones reproduced, derivatives, caching, and ASE's own drivers."""
+
+from __future__ import annotations
+
+import contextlib
+
+import ase
+import ase.units
+import numpy as np
+import pytest
+from ase.build import bulk
+from ase.calculators.calculator import PropertyNotImplementedError
+from ase.calculators.fd import calculate_numerical_forces, calculate_numerical_stress
+from ase.calculators.lj import LennardJones as AseLennardJones
+from scipy.optimize import minimize_scalar
+
+from md.analysis import temperature
+from md.calculator import MDCalculator
+from md.validate import argon_liquid
+from potentials import LennardJones
+
+EPSILON, SIGMA, CUTOFF = 0.0104, 3.40, 8.5  # argon, eV and Angstrom
+
+
+def argon(cells=4, a=5.26, rattle=0.05, seed=1) -> ase.Atoms:
+    atoms = bulk("Ar", "fcc", a=a, cubic=True).repeat(cells)
+    if rattle:
+        atoms.rattle(rattle, seed=seed)
+    return atoms
+
+
+def ours(mode="shift", r_on=None, cutoff=CUTOFF, **kwargs) -> MDCalculator:
+    lj = LennardJones(epsilon=EPSILON, sigma=SIGMA, cutoff=cutoff, cutoff_mode=mode, r_on=r_on)
+    return MDCalculator([lj], **kwargs)
+
+
+def theirs(mode="shift", r_on=None, cutoff=CUTOFF) -> AseLennardJones:
+    return AseLennardJones(
+        epsilon=EPSILON, sigma=SIGMA, rc=cutoff, ro=r_on, smooth=mode == "smooth"
+    )
+
+
+def liquid() -> ase.Atoms:
+    state, _ = argon_liquid(n_atoms=200, temperature=100.0, seed=3, n_equilibrate=100)
+    return state.to_ase()
+
+
+def geometries() -> dict:
+    crystal = argon()
+    cluster = argon(cells=3, rattle=0.1)
+    cluster.pbc = False
+    cluster.cell = np.zeros((3, 3))  # no cell at all: an isolated cluster
+    slab = argon(rattle=0.08)
+    slab.pbc = [True, True, False]  # open along z, the cell still has a volume
+    slab.positions[:, 2] *= 1.2
+    wire = argon(rattle=0.08)
+    wire.pbc = [False, True, False]
+    wire.cell = np.diag([0.0, wire.cell[1, 1], 0.0])  # open axes of zero length
+    small = argon(cells=1, rattle=0.1)  # 5.26 A < 2 * cutoff: replicated internally
+    mixed_small = argon(cells=(1, 2, 4), rattle=0.1)
+    mixed_small.pbc = [True, False, True]
+    return {
+        "crystal": crystal,
+        "liquid": liquid(),
+        "cluster": cluster,
+        "slab": slab,
+        "wire": wire,
+        "small cell": small,
+        "small mixed": mixed_small,
+    }
+
+
+GEOMETRIES = geometries()
+
+
+def _close(actual, expected, rtol=1e-10):
+    """Agreement to ``rtol`` relative to the largest entry of ``expected``."""
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(actual, expected, rtol=0, atol=rtol * scale)
+
+
+@pytest.mark.parametrize("name", GEOMETRIES)
+@pytest.mark.parametrize(("mode", "r_on"), [("shift", None), ("smooth", None), ("smooth", 7.0)])
+def test_matches_ase_lennard_jones(name, mode, r_on):
+    reference = GEOMETRIES[name].copy()
+    reference.calc = theirs(mode, r_on)
+    for sort_atoms in (False, True):  # internal spatial order: the same results
+        atoms = GEOMETRIES[name].copy()
+        atoms.calc = ours(mode, r_on, sort_atoms=sort_atoms)
+        assert atoms.get_potential_energy() == pytest.approx(
+            reference.get_potential_energy(), rel=1e-10, abs=0
+        )
+        assert atoms.get_potential_energy(force_consistent=True) == atoms.get_potential_energy()
+        _close(atoms.get_forces(), reference.get_forces())
+        _close(atoms.get_potential_energies(), reference.get_potential_energies())
+        if atoms.cell.rank == 3:
+            _close(atoms.get_stress(), reference.get_stress())
+            _close(atoms.get_stresses(), reference.get_stresses())
+            assert atoms.get_stresses().shape == (len(atoms), 6)
+            np.testing.assert_allclose(
+                atoms.get_stresses().sum(axis=0), atoms.get_stress(), rtol=0, atol=1e-14
+            )
+        else:  # no volume, no stress: as ASE's own calculator
+            for getter in (atoms.get_stress, atoms.get_stresses):
+                with pytest.raises(PropertyNotImplementedError):
+                    getter()
+
+
+def test_stress_sign_is_ase_convention():
+    """Compressed argon pushes outwards: negative stress (positive pressure), and vice versa."""
+    compressed, stretched = argon(a=4.9, rattle=0), argon(a=5.6, rattle=0)
+    for atoms in (compressed, stretched):
+        atoms.calc = ours()
+    assert np.all(compressed.get_stress()[:3] < 0)
+    assert np.all(stretched.get_stress()[:3] > 0)
+
+
+@pytest.mark.parametrize("mode", ["shift", "smooth"])
+def test_forces_match_ase_numerical_forces(mode):
+    atoms = argon(cells=2, rattle=0.15, seed=4)  # 32 atoms, replicated internally
+    atoms.calc = ours(mode)
+    analytic = atoms.get_forces()
+    numerical = calculate_numerical_forces(atoms, eps=1e-5)
+    np.testing.assert_allclose(analytic, numerical, rtol=0, atol=1e-6 * np.abs(analytic).max())
+
+
+@pytest.mark.parametrize("mode", ["shift", "smooth"])
+def test_stress_matches_numerical_strain_derivative(mode):
+    """Diagonal stress against ASE's finite differences on our calculator; shear against
+    ASE's finite differences on ASE's LennardJones (a sheared cell is triclinic, which our
+    calculator refuses, as it says)."""
+    atoms = argon(cells=2, rattle=0.15, seed=5)
+    atoms.calc = ours(mode)
+    analytic = atoms.get_stress()
+    probe = atoms.copy()
+    probe.calc = ours(mode)
+    with pytest.raises(ValueError, match="orthorhombic"):
+        calculate_numerical_stress(probe, eps=1e-6)
+    # ASE's routine, diagonal part (strain along one axis keeps the cell orthorhombic).
+    volume = atoms.get_volume()
+    cell = atoms.cell.copy()
+    for i in range(3):
+        energies = []
+        for sign in (1, -1):
+            strain = np.eye(3)
+            strain[i, i] += sign * 1e-6
+            atoms.set_cell(cell @ strain, scale_atoms=True)
+            energies.append(atoms.get_potential_energy())
+        atoms.set_cell(cell, scale_atoms=True)
+        numerical = (energies[0] - energies[1]) / (2e-6 * volume)
+        assert analytic[i] == pytest.approx(numerical, rel=1e-6)
+    reference = atoms.copy()
+    reference.calc = theirs(mode)
+    shear = calculate_numerical_stress(reference, eps=1e-6)[3:]
+    np.testing.assert_allclose(analytic[3:], shear, rtol=0, atol=1e-6 * np.abs(analytic).max())
+
+
+def test_one_evaluation_serves_energy_forces_and_stress():
+    atoms = argon()
+    calc = ours()
+    atoms.calc = calc
+    atoms.get_potential_energy()
+    atoms.get_forces()
+    atoms.get_stress()
+    atoms.get_potential_energy()
+    assert calc.forcefield.n_evaluations == 1
+    atoms.positions[0, 0] += 0.01
+    atoms.get_forces()
+    atoms.get_stress()
+    assert calc.forcefield.n_evaluations == 2
+    atoms.get_potential_energies()  # per-atom energies need one more pass ...
+    atoms.get_stresses()  # ... which per-atom stresses share
+    atoms.get_forces()
+    assert calc.forcefield.n_evaluations == 3
+
+
+def test_neighbour_list_is_kept_and_rebuilt_only_when_needed():
+    atoms = argon()
+    calc = ours(skin=1.0)
+    atoms.calc = calc
+    atoms.get_forces()
+    builds = calc.forcefield.neighbor_list.n_builds
+    for _ in range(5):  # small moves stay within the skin
+        atoms.positions += 0.05
+        atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds
+    atoms.positions[3] += 0.6  # beyond skin / 2
+    atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds + 1
+    atoms.set_cell(atoms.cell[:] * 1.001, scale_atoms=True)
+    atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds + 2
+    atoms.numbers[0] = 36  # a Kr among the Ar (type-blind parameters: allowed)
+    atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds + 3
+    atoms += ase.Atoms("Ar", positions=[[1.3, 1.3, 1.3]])
+    atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds + 4
+
+
+def test_per_type_parameters_keyed_by_chemical_symbol():
+    """An Ar/Kr mixture from symbol-keyed tables, from numbers or tags, against a numpy
+    all-pairs sum with Lorentz-Berthelot mixing (open cluster, no cutoff effects)."""
+    rng = np.random.default_rng(7)
+    atoms = argon(cells=2, rattle=0.1)
+    atoms.pbc = False
+    atoms.cell = np.zeros((3, 3))
+    kr = rng.choice(len(atoms), size=12, replace=False)
+    atoms.numbers[kr] = 36
+    epsilon, sigma = {"Ar": 0.0104, "Kr": 0.0140}, {"Ar": 3.40, "Kr": 3.65}
+    table = {"type": "lj", "epsilon": epsilon, "sigma": sigma, "cutoff": 40.0}
+    table["cutoff_mode"] = "none"
+    atoms.calc = MDCalculator([table])
+    assert atoms.calc.type_names == ("Ar", "Kr")
+    symbols = atoms.get_chemical_symbols()
+    eps = np.array([epsilon[s] for s in symbols])
+    sig = np.array([sigma[s] for s in symbols])
+    i, j = np.triu_indices(len(atoms), 1)
+    r = np.linalg.norm(atoms.positions[i] - atoms.positions[j], axis=1)
+    s6 = (0.5 * (sig[i] + sig[j]) / r) ** 6
+    expected = np.sum(4 * np.sqrt(eps[i] * eps[j]) * (s6 * s6 - s6))
+    assert atoms.get_potential_energy() == pytest.approx(expected, rel=1e-12)
+    # the same through tags, with parameters in the opposite order
+    tagged = atoms.copy()
+    tagged.set_tags(np.where(atoms.numbers == 36, 0, 1))
+    lj = LennardJones(epsilon=[0.0140, 0.0104], sigma=[3.65, 3.40], cutoff=40.0, cutoff_mode="none")
+    tagged.calc = MDCalculator([lj], types_from="tags", type_names=["Kr", "Ar"])
+    assert tagged.get_potential_energy() == pytest.approx(expected, rel=1e-12)
+    np.testing.assert_allclose(tagged.get_forces(), atoms.get_forces(), rtol=0, atol=1e-14)
+    tags = tagged.get_tags()  # a changed tag is a changed type, although ASE does not track tags
+    tags[kr[0]] = 1
+    tagged.set_tags(tags)
+    assert tagged.get_potential_energy() != pytest.approx(expected, rel=1e-12)
+
+
+def test_bad_input_is_named():
+    lj2 = LennardJones(epsilon=[0.0104, 0.014], sigma=[3.40, 3.65], cutoff=CUTOFF)
+    with pytest.raises(ValueError, match="type_names"):
+        MDCalculator([lj2])
+    atoms = argon(cells=1)
+    atoms.numbers[0] = 54
+    atoms.calc = MDCalculator([lj2], type_names=["Ar", "Kr"])
+    with pytest.raises(ValueError, match="atom 0 is Xe"):
+        atoms.get_potential_energy()
+    sheared = ase.Atoms("Ar2", positions=[[0, 0, 0], [3.7, 0, 0]], pbc=True)
+    sheared.cell = [[20, 0, 0], [2, 20, 0], [0, 0, 20]]
+    sheared.calc = ours()
+    with pytest.raises(ValueError, match="orthorhombic"):
+        sheared.get_forces()
+    flat = ase.Atoms("Ar2", positions=[[0, 0, 0], [3.7, 0, 0]], pbc=True, cell=[20, 20, 0])
+    flat.calc = ours()
+    with pytest.raises(ValueError, match="periodic along z"):
+        flat.get_forces()
+    with pytest.raises(ValueError, match="types_from"):
+        ours(types_from="charges")
+
+
+# ----------------------------------------------------------- ASE's own drivers
+def _fcc_lattice_energy(a: float, mode: str) -> float:
+    """Energy per atom of a perfect fcc crystal, by direct lattice sum (numpy)."""
+    n = int(np.ceil(CUTOFF / a)) + 1
+    steps = np.arange(-n, n + 1)
+    cells = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 1, 3)
+    basis = np.array([[0, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0.5], [0, 0.5, 0.5]])
+    r = np.linalg.norm((cells + basis).reshape(-1, 3) * a, axis=1)
+    r = r[(r > 0) & (r < CUTOFF)]
+    u = 4 * EPSILON * ((SIGMA / r) ** 12 - (SIGMA / r) ** 6)
+    if mode == "shift":
+        u -= 4 * EPSILON * ((SIGMA / CUTOFF) ** 12 - (SIGMA / CUTOFF) ** 6)
+    else:  # smooth: (rc^2 - r^2)^2 (rc^2 + 2 r^2 - 3 ro^2) / (rc^2 - ro^2)^3 beyond ro
+        rc2, ro2, s = CUTOFF**2, (0.66 * CUTOFF) ** 2, r * r
+        u *= np.where(s < ro2, 1.0, (rc2 - s) ** 2 * (rc2 + 2 * s - 3 * ro2) / (rc2 - ro2) ** 3)
+    return 0.5 * float(u.sum())
+
+
+def _one_blas_thread():
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+@pytest.mark.parametrize("mode", ["shift", "smooth"])
+@pytest.mark.parametrize("driver", ["FrechetCellFilter+BFGS", "UnitCellFilter+FIRE"])
+def test_cell_relaxation_reaches_the_lattice_constant(mode, driver):
+    """A perturbed, strained fcc cell relaxes to the lattice constant that minimises the
+    lattice sum for this cutoff (with no cutoff it would be 2^(1/6) sigma sqrt(2) times
+    0.9712; the truncation moves it)."""
+    from ase.filters import FrechetCellFilter, UnitCellFilter
+    from ase.optimize import BFGS, FIRE
+
+    best = minimize_scalar(
+        _fcc_lattice_energy, args=(mode,), bounds=(5.0, 5.6), method="bounded",
+        options={"xatol": 1e-12},
+    )  # fmt: skip
+    atoms = argon(cells=1, a=5.35, rattle=0.05, seed=9)
+    atoms.calc = ours(mode)
+    cell_filter, optimizer = driver.split("+")
+    kind = {"FrechetCellFilter": FrechetCellFilter, "UnitCellFilter": UnitCellFilter}
+    optimizer = {"BFGS": BFGS, "FIRE": FIRE}[optimizer]
+    # A mask without shear keeps the cell orthorhombic.
+    relax = optimizer(kind[cell_filter](atoms, mask=[1, 1, 1, 0, 0, 0]), logfile=None)
+    with _one_blas_thread():  # FrechetCellFilter's 3x3 LAPACK calls crawl on a busy machine
+        assert relax.run(fmax=1e-7, steps=3000)
+    np.testing.assert_allclose(np.diag(atoms.cell[:]), best.x, rtol=1e-6)
+    assert atoms.get_potential_energy() / len(atoms) == pytest.approx(best.fun, rel=1e-9)
+    np.testing.assert_allclose(atoms.get_stress(), 0.0, atol=1e-8)
+
+
+def test_fire_finds_the_lj13_icosahedron():
+    """The 13-atom LJ cluster minimum is -44.326801 epsilon (Wales & Doye, 1997)."""
+    from ase.cluster import Icosahedron
+    from ase.optimize import FIRE
+
+    cluster = Icosahedron("Ar", noshells=2, latticeconstant=5.26)
+    cluster.rattle(0.1, seed=2)
+    lj = LennardJones(epsilon=1.0, sigma=SIGMA, cutoff=30.0, cutoff_mode="none")
+    cluster.calc = MDCalculator([lj])
+    assert FIRE(cluster, logfile=None).run(fmax=1e-8, steps=5000)
+    assert cluster.get_potential_energy() == pytest.approx(-44.326801, abs=2e-6)
+
+
+def test_bfgs_relaxes_positions_back_to_the_lattice():
+    from ase.optimize import BFGS
+
+    atoms = argon(cells=2, rattle=0.1, seed=6)
+    perfect = argon(cells=2, rattle=0)
+    perfect.calc = ours()
+    atoms.calc = ours()
+    with _one_blas_thread():
+        assert BFGS(atoms, logfile=None).run(fmax=1e-6, steps=500)
+    assert atoms.get_potential_energy() == pytest.approx(perfect.get_potential_energy(), rel=1e-9)
+
+
+def test_ase_velocity_verlet_conserves_energy():
+    from ase.md.verlet import VelocityVerlet
+
+    atoms = liquid()
+    atoms.calc = ours()
+    dyn = VelocityVerlet(atoms, timestep=5 * ase.units.fs)
+    energies = []
+    dyn.attach(lambda: energies.append(atoms.get_total_energy()), interval=1)
+    dyn.run(200)
+    kinetic = atoms.get_kinetic_energy()
+    assert np.ptp(energies) < 2e-3 * kinetic
+    assert atoms.calc.forcefield.n_evaluations == 201  # one per step, plus the start
+    assert atoms.calc.forcefield.neighbor_list.n_builds < 40
+
+
+def test_ase_langevin_reaches_the_target_temperature():
+    """With ASE's FixCom constraint both ASE's get_temperature and ours count 3N - 3."""
+    from ase.constraints import FixCom
+    from ase.md.langevin import Langevin
+
+    target = 40.0
+    atoms = argon(cells=4, rattle=0.02)
+    atoms.calc = ours()
+    atoms.set_constraint(FixCom())
+    rng = np.random.default_rng(11)
+    friction = 0.05 / ase.units.fs
+    dyn = Langevin(
+        atoms, 5 * ase.units.fs, temperature_K=target, friction=friction, fixcm=False, rng=rng
+    )
+    dyn.run(200)
+    samples = []
+    dyn.attach(lambda: samples.append(atoms.get_temperature()), interval=1)
+    dyn.run(800)
+    ours_now = temperature(atoms.get_velocities(), atoms.get_masses(), ase.units.kB)
+    assert atoms.get_temperature() == pytest.approx(ours_now, rel=1e-12)
+    assert np.mean(samples) == pytest.approx(target, rel=0.03)
+
+
+@pytest.mark.parametrize("cells", [4, (1, 2, 3)])
+def test_spatial_sorting_changes_only_the_summation_order(cells):
+    """Atoms held in cell order internally (re-sorted at every list rebuild) give the same
+    trajectory as unsorted ones, to round-off; small cells are replicated and sorted too."""
+    from ase.md.verlet import VelocityVerlet
+
+    start = liquid() if cells == 4 else argon(cells=cells, rattle=0.1)
+    runs = {}
+    for sort in (False, True):
+        atoms = start.copy()
+        atoms.set_momenta(start.get_momenta())
+        atoms.calc = ours(skin=0.3, sort_atoms=sort)
+        dyn = VelocityVerlet(atoms, timestep=5 * ase.units.fs)
+        dyn.run(100)
+        runs[sort] = atoms
+        assert atoms.calc.forcefield.neighbor_list.n_builds > 2  # re-sorted along the way
+        _close(atoms.get_stresses(), runs[False].get_stresses(), rtol=1e-9)
+        _close(atoms.get_potential_energies(), runs[False].get_potential_energies(), rtol=1e-9)
+    assert runs[True].calc._order is not None and runs[False].calc._order is None
+    np.testing.assert_allclose(runs[True].positions, runs[False].positions, atol=1e-9)
+    _close(runs[True].get_forces(), runs[False].get_forces(), rtol=1e-8)
+    assert runs[True].get_potential_energy() == pytest.approx(
+        runs[False].get_potential_energy(), rel=1e-11
+    )
+
+
+def test_bonded_terms_keep_atom_indices():
+    """Springs name atoms by index: the calculator neither sorts nor replicates them, and
+    spring forces are the analytic -k (r - r0) along each bond."""
+    from potentials import HarmonicBonds
+
+    atoms = argon(cells=4, rattle=0.1)
+    bonds = np.array([[0, 5], [7, 200], [100, 101]])
+    springs = HarmonicBonds(bonds, k=0.5, r0=3.0)
+    lj = LennardJones(epsilon=EPSILON, sigma=SIGMA, cutoff=CUTOFF)
+    atoms.calc = MDCalculator([lj, springs], sort_atoms=True)
+    alone = atoms.copy()
+    alone.calc = MDCalculator([lj])
+    spring_forces = atoms.get_forces() - alone.get_forces()
+    expected = np.zeros_like(spring_forces)
+    for i, j in bonds:
+        d = atoms.get_distance(i, j, mic=True, vector=True)  # from i to j
+        r = np.linalg.norm(d)
+        expected[i] += 0.5 * (r - 3.0) * d / r
+        expected[j] -= 0.5 * (r - 3.0) * d / r
+    np.testing.assert_allclose(spring_forces, expected, rtol=0, atol=1e-12)
+    assert atoms.calc._order is None
+    small = argon(cells=1)
+    small.calc = MDCalculator([lj, HarmonicBonds([[0, 1]], k=0.5, r0=3.0)])
+    with pytest.raises(ValueError, match="cannot replicate"):
+        small.get_forces()
