@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from md._cell_kernels import _max_displacement2
 from md.analysis import kinetic_energy, pressure, temperature
 from md.forcefield import ForceField
 from md.neighbors import NonFiniteError
@@ -43,6 +44,16 @@ class Simulation:
         Neighbour-list skin [length].
     units : {"lj", "metal"} or UnitSystem
         Only used for kB in the temperature; the dynamics is unit-agnostic.
+    max_displacement : float, optional
+        Blow-up guard [length]: a particle moving farther than this in one
+        step stops the run with a :class:`SimulationError` (``md run`` uses
+        the skin). None: no check. Kept as an attribute of that name.
+
+    Attributes
+    ----------
+    stop_requested : str or None
+        Set by :meth:`request_stop` (e.g. from a signal handler); :meth:`run`
+        then returns after the step in progress.
 
     Examples
     --------
@@ -63,6 +74,7 @@ class Simulation:
         integrator,
         skin: float = 0.3,
         units: str | UnitSystem = "lj",
+        max_displacement: float | None = None,
     ) -> None:
         self.state = state
         self.forcefield = ForceField(potentials, skin=skin)
@@ -72,6 +84,11 @@ class Simulation:
         self.timings = {"integrate": 0.0, "output": 0.0}
         self._observers: list[tuple[Observer, int]] = []
         self._observed_start = False
+        if max_displacement is not None and not max_displacement > 0:
+            raise ValueError(f"max_displacement must be positive, got {max_displacement!r}")
+        self.max_displacement = max_displacement
+        self.stop_requested: str | None = None
+        self._previous = np.empty((0, 3))
 
     @property
     def potentials(self) -> list[Potential]:
@@ -88,13 +105,25 @@ class Simulation:
             raise ValueError(f"observer interval must be a positive integer, got {interval!r}")
         self._observers.append((observer, int(interval)))
 
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask :meth:`run` to return once the step in progress is complete.
+
+        Safe to call from a signal handler: it only sets ``stop_requested``.
+        """
+        self.stop_requested = reason
+
+    def skip_initial_observation(self) -> None:
+        """Do not call observers before the first step (a run resumed from step 0)."""
+        self._observed_start = True
+
     def run(self, n_steps: int) -> None:
-        """Advance ``n_steps`` steps.
+        """Advance ``n_steps`` steps, or fewer if :meth:`request_stop` is called.
 
         Raises
         ------
         SimulationError
-            If the energy or positions become NaN or infinite; the state is
+            If the energy or positions become NaN or infinite, or a particle
+            moves farther than ``max_displacement`` in one step; the state is
             left at the failing step and observers have seen every step
             before it.
         """
@@ -107,33 +136,76 @@ class Simulation:
             self._observed_start = True
         forcefield_timings = self.forcefield.timings
         for _ in range(int(n_steps)):
+            if self.stop_requested is not None:
+                break
             before = forcefield_timings["neighbor"] + forcefield_timings["force"]
             start = time.perf_counter()
+            limit = self.max_displacement
+            if limit is not None:
+                if self._previous.shape != state.positions.shape:
+                    self._previous = np.empty_like(state.positions)
+                np.copyto(self._previous, state.positions)
             self._guarded(lambda: self.integrator.step(state, self.forcefield), state.step + 1)
+            if limit is not None:
+                self._check_displacement(limit)
             elapsed = time.perf_counter() - start
             spent_in_forces = forcefield_timings["neighbor"] + forcefield_timings["force"] - before
             self.timings["integrate"] += elapsed - spent_in_forces
             if self._observers:
                 self._notify(all_observers=False)
 
+    def _check_displacement(self, limit: float) -> None:
+        """Raise SimulationError if a particle moved farther than ``limit`` this step."""
+        moved2 = _max_displacement2(self.state.positions, self._previous)
+        if moved2 <= limit * limit:
+            return
+        step = self.state.step
+        if not np.isfinite(moved2):
+            raise SimulationError(
+                step, "positions became NaN or infinite; the dynamics blew up (is dt too large?)"
+            )
+        distances = np.linalg.norm(self.state.positions - self._previous, axis=1)
+        atom = int(np.argmax(distances))
+        raise SimulationError(
+            step,
+            f"atom {atom} moved {distances[atom]:.4g} in one step, more than the "
+            f"neighbour-list skin {limit:g}; the dynamics is blowing up "
+            "(time step too large, or overlapping atoms?)",
+        )
+
     def thermo(self) -> dict[str, float]:
         """Return potential, kinetic and total energy, temperature and pressure now.
 
         Energies in [energy], temperature in [temperature] (kB of ``units``),
-        pressure in [energy/length^3]; also ``step`` and ``time``.
+        pressure in [energy/length^3]; also ``step`` and ``time``. With a
+        thermostat, also ``conserved_energy`` (total plus the heat bath's
+        energy); with rigid bonds, the temperature counts one degree of
+        freedom fewer per bond and the pressure includes the constraint virial.
         """
         state = self.state
         result = self.forcefield.compute(state)
         kinetic = kinetic_energy(state.velocities, state.masses)
-        return {
+        # Thermostats and constrained integrators (integrators/_thermostat.py) give their
+        # degrees of freedom, the constraint virial and the heat bath's energy.
+        terms = getattr(self.integrator, "thermo_terms", None)
+        terms = terms(state, result) if terms is not None else {}
+        kinetic_temperature = temperature(state.velocities, state.masses, self.units.kB)
+        if "n_dof" in terms:
+            n_dof = terms["n_dof"]
+            kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
+        virial = result.virial + terms["virial"] if "virial" in terms else result.virial
+        row = {
             "step": state.step,
             "time": state.time,
             "potential_energy": result.energy,
             "kinetic_energy": kinetic,
             "total_energy": result.energy + kinetic,
-            "temperature": temperature(state.velocities, state.masses, self.units.kB),
-            "pressure": pressure(kinetic, result.virial, state.volume),
+            "temperature": kinetic_temperature,
+            "pressure": pressure(kinetic, virial, state.volume),
         }
+        if "reservoir_energy" in terms:
+            row["conserved_energy"] = row["total_energy"] + terms["reservoir_energy"]
+        return row
 
     def timing_summary(self) -> dict[str, float]:
         """Wall time [s] spent in force kernels, neighbour lists, integration and output."""

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,6 +82,21 @@ class H5MDWriter:
         numbers; dicts and lists are stored as JSON strings).
     overwrite : bool
         Replace an existing file.
+    append : bool
+        Continue an existing file written by this class (a resumed run): its
+        layout decides what is stored, and ``velocities``, ``forces`` and
+        ``parameters`` are ignored.
+    keep_frames : int, optional
+        With ``append``, keep only the first ``keep_frames`` frames and
+        discard the rest (frames written after the checkpoint being resumed).
+
+    Raises
+    ------
+    FileExistsError
+        If ``path`` exists and neither ``overwrite`` nor ``append`` is given.
+    TrajectoryError
+        With ``append``, if the file is not one of ours, holds another atom
+        count, or fewer than ``keep_frames`` frames.
 
     Examples
     --------
@@ -99,6 +115,8 @@ class H5MDWriter:
         parameters: dict | None = None,
         overwrite: bool = False,
         author: str | None = None,
+        append: bool = False,
+        keep_frames: int | None = None,
     ) -> None:
         self.path = Path(path)
         self.units = get_units(units)
@@ -107,16 +125,88 @@ class H5MDWriter:
         self.store_forces = bool(forces)
         self.n_frames = 0
         self._last_step: int | None = None
+        self._file = None
+        if append:
+            self._open_existing(state, keep_frames)
+            return
         if self.path.exists() and not overwrite:
             raise FileExistsError(
                 f"{self.path} already exists; choose another output path or pass --overwrite"
             )
-        self._file = h5py.File(self.path, "w" if overwrite else "x")
+        # The layout is written to a temporary file and renamed into place, so the path
+        # never holds a half-made file (a run killed while starting leaves nothing).
+        descriptor, temporary = tempfile.mkstemp(
+            prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent
+        )
+        os.close(descriptor)
         try:
-            self._create_layout(state, parameters or {}, author)
+            with h5py.File(temporary, "w") as f:
+                self._file = f
+                self._create_layout(state, parameters or {}, author)
+            self._file = None
+            if self.path.exists() and not overwrite:
+                raise FileExistsError(f"{self.path} appeared while the run was starting")
+            os.replace(temporary, self.path)
         except BaseException:
-            self._file.close()
+            self._file = None
+            if os.path.exists(temporary):
+                os.unlink(temporary)
             raise
+        self._file = h5py.File(self.path, "r+")
+        self._bind()
+
+    def _bind(self) -> None:
+        """Find the datasets written to in the open file."""
+        f = self._file
+        group = f["particles/trajectory"]
+        self._step = group["position/step"]
+        self._time = group["position/time"]
+        self._values = {"position": group["position/value"], "image": group["image/value"]}
+        self.store_velocities = "velocity" in group
+        self.store_forces = "force" in group
+        if self.store_velocities:
+            self._values["velocity"] = group["velocity/value"]
+        if self.store_forces:
+            self._values["force"] = group["force/value"]
+        self._values["edges"] = group["box/edges/value"]
+        for name in OBSERVABLES:
+            self._values[name] = f["observables"][name]["value"]
+        self.units = get_units(_text(f["parameters"].attrs["units"]))
+
+    def _open_existing(self, state: State, keep_frames: int | None) -> None:
+        """Open a file of ours for appending, dropping frames beyond ``keep_frames``."""
+        path = self.path
+        _open_h5md(path).close()  # TrajectoryError for missing, non-HDF5 or foreign files
+        try:
+            self._file = h5py.File(path, "r+")
+        except OSError as error:
+            raise TrajectoryError(f"{path}: cannot open for appending ({error})") from None
+        try:
+            self._bind()
+            n_atoms = self._values["position"].shape[1]
+            if n_atoms != state.n_atoms:
+                raise TrajectoryError(f"{path}: holds {n_atoms} atoms, the run has {state.n_atoms}")
+            n_frames = len(self._step)
+            if any(len(v) < n_frames for v in self._values.values()):
+                n_frames = min(len(v) for v in self._values.values())  # an interrupted write
+            keep = n_frames if keep_frames is None else int(keep_frames)
+            if not 0 <= keep <= n_frames:
+                raise TrajectoryError(
+                    f"{path}: holds {n_frames} complete frames, fewer than the {keep} the "
+                    "checkpoint expects"
+                )
+            self._step.resize((keep,))
+            self._time.resize((keep,))
+            for dataset in self._values.values():
+                dataset.resize(keep, axis=0)
+            self.n_frames = keep
+            self._last_step = int(self._step[keep - 1]) if keep else None
+            self._file.flush()
+        except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
+            self._file.close()
+            if isinstance(error, TrajectoryError):
+                raise
+            raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
 
     # ------------------------------------------------------------------ layout
     def _create_layout(self, state: State, parameters: dict, author: str | None) -> None:
@@ -243,8 +333,13 @@ class H5MDWriter:
         self._file.flush()
 
     def close(self) -> None:
+        """Close the file; after a failed write (disk full) the last flushed frames remain."""
         if self._file is not None and self._file.id.valid:
-            self._file.close()
+            try:
+                self._file.close()
+            except (RuntimeError, OSError):
+                # HDF5 could not write its metadata back: what the last flush wrote stays.
+                self._file = None
 
     def __enter__(self) -> H5MDWriter:
         return self
@@ -361,10 +456,42 @@ def read_trajectory(path) -> Trajectory:
                 observables=observables,
                 parameters=parameters,
             )
-        except (KeyError, ValueError, TypeError, OSError) as error:
+        except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             if isinstance(error, TrajectoryError):
                 raise
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+
+
+def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
+    """Return the steps of the complete frames of a trajectory and its parameters.
+
+    Reads only the step array and ``/parameters`` (cheap on long files), so a
+    resumed run can check that a file belongs to its checkpoint before
+    changing anything. A frame counts as complete when every per-frame
+    dataset holds it (a run killed in the middle of a write may leave one
+    partial frame).
+
+    Raises
+    ------
+    TrajectoryError
+        If the file is missing, not HDF5, or not in our layout.
+    """
+    path = Path(path)
+    with _open_h5md(path) as f:
+        try:
+            group = f["particles/trajectory"]
+            steps = group["position/step"][()]
+            lengths = [len(steps), len(group["position/value"]), len(group["box/edges/value"])]
+            for name in ("image", "velocity", "force"):
+                if name in group:
+                    lengths.append(len(group[f"{name}/value"]))
+            for element in f["observables"].values():
+                lengths.append(len(element["value"]))
+            parameters = {key: _maybe_json(value) for key, value in f["parameters"].attrs.items()}
+            parameters["n_atoms"] = int(group["position/value"].shape[1])
+        except (KeyError, ValueError, TypeError, OSError, IndexError, RuntimeError) as error:
+            raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+    return steps[: min(lengths)], parameters
 
 
 def open_trajectory(path, **kwargs):
@@ -403,7 +530,12 @@ def _open_h5md(path: Path) -> h5py.File:
         f = h5py.File(path, "r")
     except OSError as error:
         raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
-    if "h5md" not in f or "particles" not in f:
+    try:
+        ours = "h5md" in f and "particles" in f
+    except (RuntimeError, OSError, KeyError) as error:  # damaged metadata
+        f.close()
+        raise TrajectoryError(f"{path}: a damaged HDF5 file ({error})") from None
+    if not ours:
         f.close()
         raise TrajectoryError(
             f"{path}: an HDF5 file, but not in the H5MD layout (no h5md/particles)"

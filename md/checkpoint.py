@@ -1,0 +1,419 @@
+"""Checkpoints: the full dynamical state of a run, written atomically, read back exactly.
+
+A checkpoint is one ``.npz`` file (numpy's zip of arrays, read without
+pickle) holding
+
+- the State: positions, velocities, masses, box, pbc, types, type names,
+  step and time;
+- the integrator's private state, from its ``get_state()`` (half-step
+  velocities, adaptive substep size, thermostat variables, the random
+  generator's state); integrators without ``get_state`` have none;
+- the positions at which the neighbour list was last built, so that a
+  resumed run rebuilds the very same list and sums forces in the same order
+  (the continuation is then bit-for-bit identical to an uninterrupted run);
+- a fingerprint of the physics configuration (everything except the run
+  length, the output cadence and the thermo table), compared on resume;
+- the number of trajectory frames written up to the checkpoint, the step of
+  the last one, and the run id stored in the trajectory, so that a resume
+  discards frames written after the checkpoint and refuses a foreign file.
+
+Writing goes to a temporary file in the same directory, which is flushed,
+synced and renamed over the previous checkpoint (``os.replace``), so a crash
+during a write leaves the previous checkpoint intact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from md.state import State
+
+FORMAT = "leapmd-checkpoint"
+VERSION = 1
+#: Suffix appended to the trajectory path to name its checkpoint.
+SUFFIX = ".ckpt"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, unreadable, not ours, or does not fit the run."""
+
+
+def checkpoint_path(trajectory) -> Path:
+    """Return the checkpoint path belonging to trajectory path ``trajectory``."""
+    trajectory = Path(trajectory)
+    return trajectory.with_name(trajectory.name + SUFFIX)
+
+
+@dataclass
+class Checkpoint:
+    """A checkpoint read back (see :func:`read_checkpoint`).
+
+    Attributes
+    ----------
+    state : State
+        The system at the checkpoint, in engine units.
+    integrator : dict
+        ``describe()`` of the integrator that wrote it.
+    integrator_state : dict or None
+        What its ``get_state()`` returned (None if it has no private state).
+    neighbor_reference : ndarray of float64, shape (N, 3), or None
+        Positions of the last neighbour-list build [length].
+    fingerprint : dict
+        The physics configuration (see :func:`physics_fingerprint`).
+    n_frames, last_frame_step : int
+        Trajectory frames written up to the checkpoint, and the step of the
+        last (-1 if none).
+    run_id : str
+        Identifier shared with the trajectory file.
+    """
+
+    path: Path
+    state: State
+    integrator: dict
+    integrator_state: dict | None
+    neighbor_reference: np.ndarray | None
+    fingerprint: dict
+    n_frames: int
+    last_frame_step: int
+    run_id: str
+    extra: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------- writing
+def write_checkpoint(
+    path,
+    state: State,
+    integrator,
+    forcefield=None,
+    fingerprint: dict | None = None,
+    n_frames: int = 0,
+    last_frame_step: int = -1,
+    run_id: str = "",
+    extra: dict | None = None,
+) -> Path:
+    """Write a checkpoint atomically (temporary file, fsync, rename).
+
+    Parameters
+    ----------
+    path : str or Path
+        Checkpoint file; replaced only once the new one is complete.
+    state : State
+        The system (copied into the file as is).
+    integrator : Integrator
+        Its ``describe()`` and, if it has one, ``get_state()`` are stored.
+    forcefield : ForceField, optional
+        Its neighbour list's build positions are stored, so the resumed run
+        rebuilds the same list.
+    fingerprint : dict, optional
+        Physics configuration to compare on resume (plain data).
+    n_frames, last_frame_step : int
+        Trajectory frames written so far, and the step of the last one.
+    run_id : str
+        Identifier shared with the trajectory.
+    extra : dict, optional
+        More plain data to keep (e.g. the config file name).
+
+    Raises
+    ------
+    OSError
+        If the file cannot be written (missing directory, no permission,
+        disk full); a previous checkpoint is then left as it was.
+    """
+    path = Path(path)
+    arrays: dict[str, np.ndarray] = {
+        "positions": state.positions,
+        "velocities": state.velocities,
+        "masses": state.masses,
+        "box": state.box,
+        "pbc": state.pbc,
+        "types": state.types,
+    }
+    nl = getattr(forcefield, "neighbor_list", None)
+    reference = getattr(nl, "_reference", None)
+    if reference is not None and reference.shape == state.positions.shape:
+        arrays["neighbor_reference"] = reference
+    get_state = getattr(integrator, "get_state", None)
+    saved = get_state() if get_state is not None else None
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "step": int(state.step),
+        "time": float(state.time),
+        "type_names": list(state.type_names),
+        "integrator": _plain(integrator.describe()),
+        "integrator_state": None if saved is None else _encode(saved, arrays, "integrator"),
+        "fingerprint": _plain(fingerprint or {}),
+        "n_frames": int(n_frames),
+        "last_frame_step": int(last_frame_step),
+        "run_id": str(run_id),
+        "extra": _plain(extra or {}),
+    }
+    arrays["meta"] = np.array(json.dumps(meta))
+    descriptor, temporary = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
+    )
+    try:
+        with os.fdopen(descriptor, "wb") as handle:
+            np.savez(handle, **arrays)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        try:
+            os.unlink(temporary)
+        except OSError:
+            pass
+        raise
+    _sync_directory(path.parent)
+    return path
+
+
+def _sync_directory(directory: Path) -> None:
+    """Make the rename durable (POSIX); harmless where directories cannot be opened."""
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+# ---------------------------------------------------------------------- reading
+def read_checkpoint(path) -> Checkpoint:
+    """Read a checkpoint written by :func:`write_checkpoint`.
+
+    Raises
+    ------
+    CheckpointError
+        If the file is missing, truncated, corrupted, not a checkpoint, or
+        holds an invalid state; the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint found")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in npz.files}
+    except Exception as error:  # zipfile, zlib, numpy header and OS errors alike
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint ({type(error).__name__}: {error})"
+        ) from None
+    try:
+        meta = json.loads(str(arrays.pop("meta")[()]))
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise ValueError("not a leapmd checkpoint")
+        if meta.get("version") != VERSION:
+            raise ValueError(f"checkpoint version {meta.get('version')}, expected {VERSION}")
+        state = State(
+            positions=arrays["positions"],
+            velocities=arrays["velocities"],
+            masses=arrays["masses"],
+            box=arrays["box"],
+            pbc=arrays["pbc"],
+            types=arrays["types"],
+            type_names=tuple(meta["type_names"]),
+            step=int(meta["step"]),
+            time=float(meta["time"]),
+        )
+        state.validate()
+        reference = arrays.get("neighbor_reference")
+        if reference is not None and reference.shape != state.positions.shape:
+            raise ValueError("neighbour-list positions do not match the atom count")
+        saved = meta["integrator_state"]
+        return Checkpoint(
+            path=path,
+            state=state,
+            integrator=meta["integrator"],
+            integrator_state=None if saved is None else _decode(saved, arrays),
+            neighbor_reference=reference,
+            fingerprint=meta["fingerprint"],
+            n_frames=int(meta["n_frames"]),
+            last_frame_step=int(meta["last_frame_step"]),
+            run_id=str(meta["run_id"]),
+            extra=meta.get("extra", {}),
+        )
+    except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
+        raise CheckpointError(f"{path}: invalid checkpoint ({error})") from None
+
+
+def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
+    """Give ``integrator`` its saved private state and rebuild the neighbour list.
+
+    The neighbour list is built at the positions of its last build before the
+    checkpoint, so it lists the same pairs in the same order as in the run
+    that wrote the checkpoint.
+
+    Raises
+    ------
+    CheckpointError
+        If the integrator differs from the one saved, or rejects the state.
+    """
+    if _plain(integrator.describe()) != checkpoint.integrator:
+        raise CheckpointError(
+            f"{checkpoint.path}: written by integrator {checkpoint.integrator}, "
+            f"not {integrator.describe()}"
+        )
+    saved = checkpoint.integrator_state
+    set_state = getattr(integrator, "set_state", None)
+    if saved is not None:
+        if set_state is None:
+            raise CheckpointError(
+                f"{checkpoint.path}: holds private state for {type(integrator).__name__}, "
+                "which cannot take it"
+            )
+        try:
+            set_state(saved)
+        except (KeyError, ValueError, TypeError) as error:
+            raise CheckpointError(
+                f"{checkpoint.path}: the integrator's saved state does not fit ({error})"
+            ) from None
+    nl = getattr(forcefield, "neighbor_list", None)
+    if nl is not None and checkpoint.neighbor_reference is not None:
+        at_build = checkpoint.state.copy()
+        at_build.positions[:] = checkpoint.neighbor_reference
+        nl.build(at_build)
+        # The result cache may hold forces from the built configuration; drop it.
+        forcefield.invalidate()
+
+
+# ------------------------------------------------------------------ fingerprint
+def physics_fingerprint(config) -> dict:
+    """Plain-data description of everything in ``config`` that shapes the dynamics.
+
+    Includes the units, seed, system (with a SHA-256 of a structure file),
+    potentials, integrator, neighbour-list skin (it decides the summation
+    order, hence round-off) and which per-atom data the trajectory stores.
+    Excluded, so they may change on resume: ``[run] steps`` and
+    ``thermo_every``, ``[output] path``, ``every`` and ``checkpoint_every``.
+    """
+    system = {
+        key: (str(value) if isinstance(value, Path) else value)
+        for key, value in dataclasses.asdict(config.system).items()
+    }
+    structure = getattr(config.system, "structure", None)
+    if structure is not None:
+        try:
+            system["structure_sha256"] = hashlib.sha256(Path(structure).read_bytes()).hexdigest()
+        except OSError:
+            system["structure_sha256"] = None
+    return _plain(
+        {
+            "units": config.units.name,
+            "seed": config.seed,
+            "system": system,
+            "potentials": config.potentials,
+            "integrator": config.integrator,
+            "run": {"skin": config.run.skin},
+            "output": {
+                "velocities": config.output.velocities,
+                "forces": config.output.forces,
+            },
+        }
+    )
+
+
+def fingerprint_changes(saved: dict, current: dict) -> list[str]:
+    """Return one line per difference, e.g. ``"integrator.dt: 0.005 -> 0.004"``."""
+    old, new = _flatten(saved), _flatten(current)
+    changes = []
+    for key in sorted(set(old) | set(new)):
+        if key not in new:
+            changes.append(f"{key}: {_short(old[key])} -> (removed)")
+        elif key not in old:
+            changes.append(f"{key}: (not set) -> {_short(new[key])}")
+        elif not _same(old[key], new[key]):
+            changes.append(f"{key}: {_short(old[key])} -> {_short(new[key])}")
+    return changes
+
+
+def _flatten(value, prefix: str = "") -> dict:
+    if isinstance(value, dict):
+        flat = {}
+        for key, item in value.items():
+            flat.update(_flatten(item, f"{prefix}.{key}" if prefix else str(key)))
+        return flat
+    if isinstance(value, list) and value and any(isinstance(v, dict) for v in value):
+        flat = {}
+        for index, item in enumerate(value):
+            flat.update(_flatten(item, f"{prefix}[{index}]"))
+        return flat
+    return {prefix: value}
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return a == b
+
+
+def _short(value) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+# ---------------------------------------------------------------- plain data
+def _plain(value):
+    """JSON round trip: tuples become lists, paths strings, numpy scalars numbers."""
+    return json.loads(json.dumps(value, default=_default))
+
+
+def _default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, set | frozenset):
+        return sorted(value)
+    raise TypeError(f"cannot store {type(value).__name__} in a checkpoint")
+
+
+def _encode(value, arrays: dict, prefix: str):
+    """Replace arrays by references into ``arrays``; the rest stays JSON (exact floats)."""
+    if isinstance(value, np.ndarray):
+        key = f"{prefix}:{len(arrays)}"
+        arrays[key] = value
+        return {"__array__": key}
+    if isinstance(value, dict):
+        return {str(k): _encode(v, arrays, prefix) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_encode(v, arrays, prefix) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _decode(value, arrays: dict):
+    if isinstance(value, dict):
+        if set(value) == {"__array__"}:
+            return np.array(arrays[value["__array__"]])
+        return {k: _decode(v, arrays) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_decode(v, arrays) for v in value]
+    return value
+
+
+__all__ = [
+    "Checkpoint",
+    "CheckpointError",
+    "checkpoint_path",
+    "fingerprint_changes",
+    "physics_fingerprint",
+    "read_checkpoint",
+    "restore",
+    "write_checkpoint",
+]
