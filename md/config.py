@@ -22,6 +22,8 @@ class ConfigError(ValueError):
 
 
 _MISSING = object()
+#: Largest lattice accepted (4 x 10^7 fcc atoms), so a typo cannot exhaust memory.
+_MAX_CELLS = 10_000_000
 
 
 class _Table:
@@ -126,7 +128,8 @@ class SystemConfig:
     density: float | None = None
     lattice_constant: float | None = None
     structure: Path | None = None
-    mass: float | None = None
+    format: str | None = None  # ase.io format of a structure file (None: guessed from the name)
+    mass: float | dict[str, float] | None = None  # a number, or per type name for structures
     type_name: str = "A"
     pbc: tuple[bool, bool, bool] | None = None
     temperature: float | None = None
@@ -145,6 +148,7 @@ class OutputConfig:
     every: int = 100
     velocities: bool = False
     forces: bool = False
+    checkpoint_every: int = 1000  # steps between checkpoints (0: only at the end and on signals)
 
 
 @dataclass
@@ -192,9 +196,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     from potentials import POTENTIALS
 
     top = _Table(data, "", source)
-    units = UNIT_SYSTEMS[top.string("units", "lj", choices=tuple(UNIT_SYSTEMS))]
+    units_name = top.string("units", None, choices=tuple(UNIT_SYSTEMS))
     seed = top.integer("seed", None, minimum=0)
     system = _parse_system(_Table(top.take("system"), "system", source), Path(base))
+    # Structure files come from ASE's world (eV, Angstrom, amu): metal units unless told.
+    units = UNIT_SYSTEMS[units_name or ("metal" if system.structure is not None else "lj")]
 
     raw_potentials = top.take("potentials")
     base = Path(base)
@@ -216,7 +222,8 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     dt = table.number("dt", positive=True) * units.config_time
     # Other times an integrator takes (RKF45's smallest substep) are converted too.
     dt_min = table.number("dt_min", None, positive=True)
-    integrator = {"type": kind, "dt": dt, **table.data}
+    extra = _thermostat_params(table, INTEGRATORS[kind], units, seed, base)
+    integrator = {"type": kind, "dt": dt, **table.data, **extra}
     if dt_min is not None:
         integrator["dt_min"] = dt_min * units.config_time
 
@@ -234,6 +241,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         every=table.integer("every", OutputConfig.every, minimum=1),
         velocities=table.boolean("velocities", False),
         forces=table.boolean("forces", False),
+        checkpoint_every=table.integer(
+            "checkpoint_every", OutputConfig.checkpoint_every, minimum=0
+        ),
     )
     table.finish()
     top.finish()
@@ -273,6 +283,8 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
         cells = table.triple("cells", _MISSING, int)
         if any(c < 1 for c in cells):
             raise table.error("cells", f"must be positive integers, got {list(cells)}")
+        if math.prod(cells) > _MAX_CELLS:
+            raise table.error("cells", f"{list(cells)} is more than {_MAX_CELLS:,} unit cells")
         system.cells = cells
         system.density = table.number("density", None, positive=True)
         system.lattice_constant = table.number("lattice_constant", None, positive=True)
@@ -288,7 +300,15 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
         )
         if not system.structure.is_file():
             raise table.error("structure", f"file not found: {system.structure}")
-    system.mass = table.number("mass", None, positive=True)
+        system.format = table.string("format", None)
+    if structure is not None and isinstance(table.data.get("mass"), dict):
+        system.mass = {}  # per type name (chemical symbol); the rest from ASE's table
+        for name, value in table.take("mass").items():
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise table.error("mass", f"{name}: expected a positive number, got {value!r}")
+            system.mass[name] = float(value)
+    else:
+        system.mass = table.number("mass", None, positive=True)
     pbc = table.take("pbc", None)
     if pbc is not None:
         table.data["pbc"] = pbc
@@ -318,12 +338,63 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
         raise ConfigError(f"{where}: {error}") from None
 
 
-def integrator_from_config(entry: dict, source: str):
-    """Build the integrator from its config table (dt already in engine units)."""
+def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) -> dict:
+    """Take a thermostat's keys from [integrator], converted to engine units.
+
+    ``temperature`` stays in config units and ``kB`` of the unit system goes
+    with it; ``tau`` [config time] and ``friction`` [1/config time] are
+    converted; a stochastic thermostat without its own ``seed`` gets a random
+    stream derived from the top-level seed (independent of the velocity draw).
+    ``[integrator.constraints]`` is checked to be a table (built later).
+    """
+    extra = {}
+    if getattr(cls, "thermostat", False):
+        extra["temperature"] = table.number("temperature", minimum=0.0)
+        extra["kB"] = units.kB
+        tau = table.number("tau", None, positive=True)
+        if tau is not None:
+            extra["tau"] = tau * units.config_time
+        friction = table.number("friction", None, minimum=0.0)
+        if friction is not None:
+            extra["friction"] = friction / units.config_time
+        if getattr(cls, "stochastic", False) and "seed" not in table.data and seed is not None:
+            extra["seed"] = [seed, 1]
+    constraints = table.take("constraints", None)
+    if constraints is not None:
+        if not isinstance(constraints, dict):
+            raise table.error("constraints", "expected a table [integrator.constraints]")
+        constraints = dict(constraints)
+        bonds_file = constraints.get("bonds_file")
+        if isinstance(bonds_file, str) and not Path(bonds_file).is_absolute():
+            constraints["bonds_file"] = str(Path(base) / bonds_file)  # relative to the config
+        extra["constraints"] = constraints
+    return extra
+
+
+def integrator_from_config(entry: dict, source: str, system_bonds=None):
+    """Build the integrator from its config table (dt already in engine units).
+
+    ``[integrator.constraints]`` becomes :class:`integrators.rattle.BondConstraints`;
+    its ``bonds = "system"`` takes ``system_bonds`` (a polymer builder's bonds).
+    """
     from integrators import INTEGRATORS
 
     params = dict(entry)
     kind = params.pop("type")
+    if "constraints" in params:
+        from integrators.rattle import BondConstraints
+
+        if not getattr(INTEGRATORS[kind], "supports_constraints", False):
+            takers = [n for n, c in INTEGRATORS.items() if getattr(c, "supports_constraints", 0)]
+            raise ConfigError(
+                f"{source}: [integrator] ({kind}) does not apply constraints; use one of "
+                f"{', '.join(takers)}"
+            )
+        try:
+            constraints = BondConstraints.from_config(params["constraints"], system_bonds)
+            params["constraints"] = constraints
+        except (ValueError, TypeError) as error:
+            raise ConfigError(f"{source}: [integrator.constraints]: {error}") from None
     try:
         return INTEGRATORS[kind](**params)
     except TypeError as error:
@@ -375,8 +446,18 @@ def build_system(config: Config):
                 type_name=system.type_name,
             )
         else:
-            state = _read_structure(system.structure, where)
-            if system.mass is not None:
+            state = _read_structure(system.structure, where, system.format)
+            if isinstance(system.mass, dict):
+                unknown = sorted(set(system.mass) - set(state.type_names))
+                if unknown:
+                    raise ValueError(
+                        f"mass given for {', '.join(unknown)}, but the structure's types are "
+                        f"{', '.join(state.type_names)}"
+                    )
+                for index, name in enumerate(state.type_names):
+                    if name in system.mass:
+                        state.masses[state.types == index] = system.mass[name]
+            elif system.mass is not None:
                 state.masses[:] = system.mass
             if system.pbc is not None:
                 state.pbc[:] = system.pbc
@@ -390,15 +471,17 @@ def build_system(config: Config):
     return state, bonds
 
 
-def _read_structure(path: Path, where: str):
+def _read_structure(path: Path, where: str, format: str | None = None):
+    """Read the last frame of any file ase.io reads; masses from the file or ASE's table."""
     import ase.io
 
     from md.state import State
 
     try:
-        atoms = ase.io.read(path)
+        atoms = ase.io.read(path, format=format)
     except Exception as error:  # ase.io raises many types for unreadable files
-        raise ConfigError(f"{where} structure: cannot read {path} ({error})") from None
+        how = f" as format {format!r}" if format else ""
+        raise ConfigError(f"{where} structure: cannot read {path}{how} ({error})") from None
     if isinstance(atoms, list):
         atoms = atoms[-1]
     try:
