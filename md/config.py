@@ -464,6 +464,8 @@ def build_system(config: Config):
             state.validate()
         if system.temperature is not None:
             maxwell_boltzmann(state, system.temperature, seed=config.seed, kB=config.units.kB)
+    except ConfigError:
+        raise  # already names the file and key
     except ValueError as error:
         raise ConfigError(f"{where}: {error}") from None
     if state.n_atoms == 0:
@@ -477,6 +479,7 @@ def _read_structure(path: Path, where: str, format: str | None = None):
 
     from md.state import State
 
+    _check_xyz_count(path, where, format)
     try:
         atoms = ase.io.read(path, format=format)
     except Exception as error:  # ase.io raises many types for unreadable files
@@ -488,6 +491,28 @@ def _read_structure(path: Path, where: str, format: str | None = None):
         return State.from_ase(atoms)
     except ValueError as error:
         raise ConfigError(f"{where} structure {path}: {error}") from None
+
+
+def _check_xyz_count(path: Path, where: str, format: str | None) -> None:
+    """Refuse an (ext)xyz file whose atom-count line exceeds what the file can hold.
+
+    ASE's extxyz reader trusts that line and, given an absurd count, loops for
+    a very long time; every atom needs a line of at least 8 bytes.
+    """
+    kind = (format or Path(path).suffix.lstrip(".")).lower()
+    if kind not in ("xyz", "extxyz"):
+        return
+    try:
+        with open(path, "rb") as handle:
+            first = handle.readline(64).strip()
+        size = Path(path).stat().st_size
+    except OSError as error:
+        raise ConfigError(f"{where} structure: cannot read {path} ({error})") from None
+    if first.isdigit() and int(first) * 8 > size:
+        raise ConfigError(
+            f"{where} structure {path}: the first line declares {int(first)} atoms, more than "
+            f"a file of {size} bytes can hold"
+        )
 
 
 def describe(config: Config) -> dict:

@@ -35,8 +35,10 @@ attributes, so MDAnalysis must open them with ``convert_units=False``, which
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import resource
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +60,15 @@ _OBSERVABLE_UNITS = {
     "temperature": "temperature",
     "pressure": "pressure",
 }
+
+
+#: HDF5 raw-chunk cache per dataset while writing [bytes]. A frame chunk is
+#: written whole and flushed at once, so it needs no cache; 64 KiB holds the
+#: open chunk of each per-frame scalar series. (h5py's default, 1 MiB per
+#: dataset, kept ~30 MiB of already-written chunks resident on long runs.)
+_CHUNK_CACHE = 1 << 16
+#: Room kept free beyond a frame's own bytes for HDF5's growing chunk index [bytes].
+_METADATA_MARGIN = 16 << 10
 
 
 class TrajectoryError(ValueError):
@@ -152,7 +163,7 @@ class H5MDWriter:
             if os.path.exists(temporary):
                 os.unlink(temporary)
             raise
-        self._file = h5py.File(self.path, "r+")
+        self._file = h5py.File(self.path, "r+", rdcc_nbytes=_CHUNK_CACHE)
         self._bind()
 
     def _bind(self) -> None:
@@ -178,7 +189,7 @@ class H5MDWriter:
         path = self.path
         _open_h5md(path).close()  # TrajectoryError for missing, non-HDF5 or foreign files
         try:
-            self._file = h5py.File(path, "r+")
+            self._file = h5py.File(path, "r+", rdcc_nbytes=_CHUNK_CACHE)
         except OSError as error:
             raise TrajectoryError(f"{path}: cannot open for appending ({error})") from None
         try:
@@ -311,6 +322,7 @@ class H5MDWriter:
             raise ValueError("this writer stores forces: pass forces=")
         frame = self.n_frames
         size = frame + 1
+        self._check_space(frame)
         self._step.resize((size,))
         self._time.resize((size,))
         for dataset in self._values.values():
@@ -331,6 +343,39 @@ class H5MDWriter:
         self.n_frames = size
         self._last_step = state.step
         self._file.flush()
+
+    def _check_space(self, frame: int) -> None:
+        """Raise OSError(ENOSPC) if the disk or the file-size limit may not hold one more frame.
+
+        A write that HDF5 starts and the disk cannot take leaves a file whose
+        recorded end lies past its real end, which HDF5 then refuses to open:
+        so the room is checked first, and the run stops with every frame
+        written so far readable. (Space taken by another process between this
+        check and the write is not covered.)
+        """
+        datasets = [self._step, self._time, *self._values.values()]
+        need = _METADATA_MARGIN
+        for dataset in datasets:
+            per_frame = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
+            chunk = dataset.chunks[0] if dataset.chunks else 1
+            # A frame that opens a new chunk allocates all of it.
+            need += per_frame * chunk if frame % chunk == 0 else per_frame
+        size = os.fstat(self._file.id.get_vfd_handle()).st_size
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if limit != resource.RLIM_INFINITY and size + need > limit:
+            raise OSError(
+                errno.EFBIG,
+                f"{self.path} would exceed the file-size limit ({limit} bytes) with frame "
+                f"{frame + 1}; the {frame} frames written are intact",
+            )
+        stats = os.statvfs(os.path.dirname(os.path.abspath(self.path)))
+        free = stats.f_bavail * stats.f_frsize
+        if free < need:
+            raise OSError(
+                errno.ENOSPC,
+                f"disk full: {free} bytes free for {self.path}, frame {frame + 1} needs about "
+                f"{need}; the {frame} frames written are intact",
+            )
 
     def close(self) -> None:
         """Close the file; after a failed write (disk full) the last flushed frames remain."""

@@ -232,7 +232,7 @@ def _structures():
         "nan_coordinate": (_xyz(nan, box), 2),
         "zero_box_length": (_xyz(gas, np.array([20.0, 0.0, 20.0])), 2),
         "count_line_too_large": (_xyz(gas, box, count=40), 2),
-        # A count of 10**12 makes ase.io's extxyz reader spin for ever (reported, not tested).
+        "count_line_huge": (_xyz(gas, box, count=10**12), 2),  # ase.io alone would spin
         "unknown_element": (_xyz(gas, box, symbols=["Xx"] * 12), 2),
         "not_a_structure": ("\x00\x01 binary junk \xff", 2),
     }
@@ -308,6 +308,13 @@ def test_broken_trajectories_to_info_and_resume(good_run, tmp_path, case):
         if code != 0:  # flipped bytes may miss everything that matters
             check_outcome(code, err)
             assert code == 2 and "out.h5" in err
+        code, err = run_cli(["analyze", "out.h5", "--thermo", "--out", "analysis", "--no-progress"])
+        if code != 0:
+            check_outcome(code, err)
+            assert code == 2 and "out.h5" in err
+            assert not (tmp_path / "analysis").exists()
+        else:
+            shutil.rmtree(tmp_path / "analysis")
         code, err = run_cli(["run", "run.toml", "--no-progress", "-q", "--steps", "40", "--resume"])
     if code != 0:
         check_outcome(code, err)
@@ -332,13 +339,10 @@ def test_broken_checkpoint_to_resume(good_run, tmp_path, content):
     assert _snapshot(tmp_path) == before
 
 
-@pytest.mark.xfail(
-    reason="HDF5 records the new end of file before the failed write, so a full disk leaves "
-    "a file h5py refuses as truncated (stored EOF > size); the run itself stops cleanly",
-    strict=False,
-)
 def test_disk_full_keeps_the_frames_written(tmp_path):
-    """A file-size limit (RLIMIT_FSIZE) makes writes fail like a full disk."""
+    """A file-size limit (RLIMIT_FSIZE) stands in for a full disk: the writer checks the
+    room before each frame (free space and this limit), so the run stops cleanly and
+    every frame written stays readable."""
     import resource
     import signal
     import subprocess
@@ -350,7 +354,7 @@ def test_disk_full_keeps_the_frames_written(tmp_path):
 
     def limit():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, 60_000))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
 
     command = [sys.executable, "-m", "md.cli", "run", str(config), "--no-progress", "-q",
                "--steps", "100000"]  # fmt: skip
@@ -367,3 +371,35 @@ def test_disk_full_keeps_the_frames_written(tmp_path):
     universe = open_trajectory(tmp_path / "out.h5")
     assert universe.trajectory.n_frames == traj.n_frames
     universe.trajectory.close()
+
+
+def test_writer_refuses_a_frame_the_disk_cannot_hold(tmp_path, monkeypatch):
+    """With (simulated) no free space the writer raises ENOSPC before touching the file,
+    and the frames already written read back intact."""
+    import errno
+    import os
+    from types import SimpleNamespace
+
+    import md
+    from md.trajectory import H5MDWriter, read_trajectory
+
+    state = md.lattice("fcc", 2, density=0.8)
+    path = tmp_path / "full.h5"
+    with H5MDWriter(path, state, units="lj") as writer:
+        for _ in range(3):
+            state.step += 1
+            writer.write(state)
+        real = os.statvfs(tmp_path)
+        monkeypatch.setattr(
+            "md.trajectory.os.statvfs",
+            lambda _path: SimpleNamespace(f_bavail=1, f_frsize=real.f_frsize),
+        )
+        state.step += 1
+        with pytest.raises(OSError) as caught:
+            writer.write(state)
+        assert caught.value.errno == errno.ENOSPC and "3 frames written are intact" in str(
+            caught.value
+        )
+    monkeypatch.undo()
+    traj = read_trajectory(path)
+    np.testing.assert_array_equal(traj.steps, [1, 2, 3])
