@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from md.state import State
+from md.trajectory import usual_permissions
 
 FORMAT = "leapmd-checkpoint"
 VERSION = 1
@@ -161,6 +162,7 @@ def write_checkpoint(
     descriptor, temporary = tempfile.mkstemp(
         prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
     )
+    usual_permissions(descriptor)
     try:
         with os.fdopen(descriptor, "wb") as handle:
             np.savez(handle, **arrays)

@@ -162,6 +162,8 @@ def _run(args) -> int:
                 raise ConfigError(f"--steps must be >= 0, got {args.steps}")
             config.run.steps = args.steps
         output = args.output if args.output is not None else config.output.path
+        if output.name in ("", ".", ".."):
+            raise ConfigError(f"output path {str(output)!r} names no file")
         saved_path = checkpoint_path(output)
         if output.exists() and output.is_dir():
             raise ConfigError(f"output path {output} is a directory")

@@ -71,6 +71,17 @@ _CHUNK_CACHE = 1 << 16
 _METADATA_MARGIN = 16 << 10
 
 
+def usual_permissions(descriptor: int) -> None:
+    """Give a file from ``tempfile.mkstemp`` (mode 0600) the mode a plain open() would.
+
+    That is 0666 less the process umask, so outputs renamed into place are as
+    readable as any other file the user writes.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    os.fchmod(descriptor, 0o666 & ~umask)
+
+
 class TrajectoryError(ValueError):
     """A file is not a trajectory this package can read (names the file and what is wrong)."""
 
@@ -149,6 +160,7 @@ class H5MDWriter:
         descriptor, temporary = tempfile.mkstemp(
             prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent
         )
+        usual_permissions(descriptor)
         os.close(descriptor)
         try:
             with h5py.File(temporary, "w") as f:

@@ -261,3 +261,26 @@ def test_foreign_hdf5_file_is_refused(tmp_path):
         read_trajectory(path)
     with pytest.raises(TrajectoryError):
         open_trajectory(path)
+
+
+def test_outputs_get_the_usual_permissions(tmp_path):
+    """Files renamed into place from a private temporary get 0666 less the umask, not 0600."""
+    import os
+    import stat
+
+    from md.checkpoint import write_checkpoint
+    from md.forcefield import ForceField
+
+    umask = os.umask(0o022)
+    try:
+        state = md.lattice("fcc", 2, density=0.8)
+        with H5MDWriter(tmp_path / "t.h5", state, units="lj") as writer:
+            writer.write(state)
+        forcefield = ForceField([LennardJones(cutoff=1.5)])
+        forcefield.compute(state)
+        write_checkpoint(tmp_path / "t.ckpt", state, VelocityVerlet(0.005), forcefield,
+                         n_frames=1, last_frame_step=0)  # fmt: skip
+    finally:
+        os.umask(umask)
+    for name in ("t.h5", "t.ckpt"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644
