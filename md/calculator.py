@@ -33,13 +33,10 @@ from ase.calculators.calculator import (
     all_changes,
 )
 from ase.stress import full_3x3_to_voigt_6_stress
-from numba import njit
 from numpy.typing import NDArray
 
-from md.box import _min_image, periodic_lengths
 from md.forcefield import ForceField
 from md.state import State, orthorhombic_box, types_from_ase
-from potentials.lennard_jones import CUTOFF_MODES, LennardJones
 
 #: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
 _SORT_FROM = 8192
@@ -167,7 +164,6 @@ class MDCalculator(Calculator):
         self._cell = np.zeros((3, 3))
         self._order: NDArray[np.int64] | None = None
         self._sorting = False
-        self._tables: dict[tuple[int, int], tuple] = {}
 
     # ----------------------------------------------------------------- ASE API
     def check_state(self, atoms, tol: float = 1e-15) -> list[str]:
@@ -211,7 +207,13 @@ class MDCalculator(Calculator):
         if result.energies is not None:
             self.results["energies"] = self._originals(result.energies)
         if "stresses" in properties and volume > 0:
-            self.results["stresses"] = -self._originals(self._atom_virials(state)) / volume
+            if result.virials is None:
+                names = ", ".join(type(p).__name__ for p in self.potentials)
+                raise PropertyNotImplementedError(
+                    f"per-atom stresses need per-atom virials, which not every potential of "
+                    f"{names} provides"
+                )
+            self.results["stresses"] = -self._originals(result.virials) / volume
 
     def todict(self) -> dict:
         """Plain-data description (ASE writes it into trajectories)."""
@@ -339,29 +341,6 @@ class MDCalculator(Calculator):
         unsorted[self._order] = values
         return unsorted[:n]
 
-    def _atom_virials(self, state: State) -> NDArray[np.float64]:
-        """Per-atom pair virials (N, 6) in Voigt order (xx, yy, zz, yz, xz, xy) [eV]."""
-        virials = np.zeros((state.n_atoms, 6))
-        others = [type(p).__name__ for p in self.potentials if not isinstance(p, LennardJones)]
-        if others:
-            raise PropertyNotImplementedError(
-                f"per-atom stresses are implemented for LennardJones terms only, not "
-                f"{', '.join(others)}"
-            )
-        neighbor_list = self.forcefield.neighbor_list
-        lengths, inverse = periodic_lengths(state.box, state.pbc)
-        for potential in self.potentials:
-            n_types = max(state.n_types, potential.n_types_fixed or 1)
-            key = (id(potential), n_types)
-            if key not in self._tables:
-                self._tables[key] = potential.tables(n_types)
-            _lj_atom_virials(
-                state.positions, state.types, lengths, inverse,
-                neighbor_list.starts, neighbor_list.neighbors, n_types,
-                *self._tables[key], CUTOFF_MODES[potential.cutoff_mode], virials,
-            )  # fmt: skip
-        return virials
-
 
 def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):
     """Return (potentials, type_names): tables built into potentials, names resolved."""
@@ -436,76 +415,6 @@ def _image_shifts(replicas, edges) -> NDArray[np.float64]:
     """Translation of each copy (copies, 3) [length], the original (zero shift) first."""
     grid = np.stack(np.meshgrid(*(np.arange(r) for r in replicas), indexing="ij"), axis=-1)
     return grid.reshape(-1, 3) * edges
-
-
-@njit(cache=True, error_model="numpy")
-def _lj_atom_virials(
-    positions,
-    types,
-    lengths,
-    inverse,
-    starts,
-    neighbors,
-    n_types,
-    c6,
-    c12,
-    rc2,
-    ro2,
-    shift,
-    inv_den,
-    mode,
-    virials,
-):
-    """Add each atom's half of its LJ pair virials to ``virials`` (N, 6).
-
-    Arguments as ``potentials.lennard_jones._lj_energy_forces`` (half list
-    in CSR form, flat (n_types^2,) tables, mode 0/1/2 for none/shift/smooth).
-    Each pair inside its cutoff adds half of f_r d d^T, with d = x_i - x_j
-    (minimum image) and f_r d the force on i, to both atoms, in Voigt order
-    (xx, yy, zz, yz, xz, xy).
-    """
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
-    for i in range(positions.shape[0]):
-        row = types[i] * n_types
-        for p in range(starts[i], starts[i + 1]):
-            j = neighbors[p]
-            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
-            r2 = dx * dx + dy * dy + dz * dz
-            k = row + types[j]
-            if not r2 < rc2[k]:
-                continue
-            inv_r2 = 1.0 / r2
-            inv_r6 = inv_r2 * inv_r2 * inv_r2
-            a = c12[k] * inv_r6 * inv_r6
-            b = c6[k] * inv_r6
-            fr = (12.0 * a - 6.0 * b) * inv_r2
-            if mode == 2 and r2 > ro2[k]:
-                gap = rc2[k] - r2
-                switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
-                dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
-                fr = switch * fr - 2.0 * dswitch * (a - b)
-            half = 0.5 * fr
-            w0 = half * dx * dx
-            w1 = half * dy * dy
-            w2 = half * dz * dz
-            w3 = half * dy * dz
-            w4 = half * dx * dz
-            w5 = half * dx * dy
-            virials[i, 0] += w0
-            virials[i, 1] += w1
-            virials[i, 2] += w2
-            virials[i, 3] += w3
-            virials[i, 4] += w4
-            virials[i, 5] += w5
-            virials[j, 0] += w0
-            virials[j, 1] += w1
-            virials[j, 2] += w2
-            virials[j, 3] += w3
-            virials[j, 4] += w4
-            virials[j, 5] += w5
 
 
 __all__ = ["MDCalculator"]

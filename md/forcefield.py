@@ -167,4 +167,9 @@ def _sum_results(results: list[ForceResult], per_atom: bool) -> ForceResult:
         forces=np.sum([r.forces for r in results], axis=0),
         virial=np.sum([r.virial for r in results], axis=0),
         energies=np.sum([r.energies for r in results], axis=0) if per_atom else None,
+        virials=(
+            np.sum([r.virials for r in results], axis=0)
+            if per_atom and all(r.virials is not None for r in results)
+            else None
+        ),
     )

@@ -28,12 +28,16 @@ class ForceResult:
         its trace over 3 V is the configurational pressure.
     energies : ndarray of float64, shape (N,), optional
         Per-atom energies (each pair split half and half), when asked for.
+    virials : ndarray of float64, shape (N, 6), optional
+        Per-atom virials (each pair's r_ij (x) F_ij split half and half) as
+        (xx, yy, zz, yz, xz, xy) [energy], when asked for and provided.
     """
 
     energy: float
     forces: NDArray[np.float64]
     virial: NDArray[np.float64]
     energies: NDArray[np.float64] | None = None
+    virials: NDArray[np.float64] | None = None
 
 
 class Potential(Protocol):

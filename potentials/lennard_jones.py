@@ -9,6 +9,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from md.box import _min_image, periodic_lengths
+from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
 
@@ -230,6 +231,7 @@ class LennardJones:
         forces = np.zeros((n, 3))
         virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
+        virials = np.zeros((n if per_atom else 0, 6))
         energy = _lj_energy_forces(
             state.positions,
             state.types,
@@ -243,12 +245,14 @@ class LennardJones:
             forces,
             virial,
             energies,
+            virials,
         )
         return ForceResult(
             energy=energy,
             forces=forces,
             virial=_symmetric(virial),
             energies=energies if per_atom else None,
+            virials=virials if per_atom else None,
         )
 
     def hessian(self, state, neighbors) -> sp.csr_matrix:
@@ -388,13 +392,15 @@ def _lj_energy_forces(
     forces,
     virial,
     energies,
+    virials,
 ):
     """Add LJ forces to ``forces`` (zeroed by caller) and return the energy.
 
     starts/neighbors: half list in CSR form. Tables are flat (n_types^2,),
     indexed ti * n_types + tj. mode: 0 truncated, 1 shifted, 2 smooth.
     Writes ``virial`` as (xx, yy, zz, yz, xz, xy) and, when ``energies`` has
-    length N, the per-atom energies (half of each pair to each atom).
+    length N, the per-atom energies and, into ``virials`` (N, 6, zeroed),
+    the per-atom virials (half of each pair to each atom).
     """
     n = positions.shape[0]
     per_atom = energies.shape[0] == n
@@ -458,6 +464,7 @@ def _lj_energy_forces(
             if per_atom:
                 energies[i] += 0.5 * u
                 energies[j] += 0.5 * u
+                _add_half_pair_virial(virials, i, j, fx, fy, fz, dx, dy, dz)
         forces[i, 0] += fxi
         forces[i, 1] += fyi
         forces[i, 2] += fzi

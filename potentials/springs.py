@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from md.box import _min_image, minimum_image, periodic_lengths
 from md.neighbors import NonFiniteError
+from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
 
@@ -130,6 +131,7 @@ class _BondedPotential:
         forces = np.zeros((n, 3))
         virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
+        virials = np.zeros((n if per_atom else 0, 6))
         energy, bad = _bond_energy_forces(
             state.positions,
             lengths,
@@ -141,6 +143,7 @@ class _BondedPotential:
             forces,
             virial,
             energies,
+            virials,
         )
         if bad >= 0:
             self._raise_stretched(state, bad)
@@ -149,6 +152,7 @@ class _BondedPotential:
             forces=forces,
             virial=_symmetric(virial),
             energies=energies if per_atom else None,
+            virials=virials if per_atom else None,
         )
 
     def hessian(self, state, neighbors=None) -> scipy.sparse.csr_matrix:
@@ -479,14 +483,15 @@ def _bond_terms(form, r2, k, p):
 
 @njit(cache=True, error_model="numpy")
 def _bond_energy_forces(
-    positions, lengths, inverse, bonds, bond_types, form, k, p, forces, virial, energies
+    positions, lengths, inverse, bonds, bond_types, form, k, p, forces, virial, energies, virials
 ):
     """Add bond forces to ``forces`` (zeroed by caller); return (energy, bad).
 
     bonds: (B, 2) atom indices, bond_types: (B,) indices into the per-type
     tables k and p (the second parameter: r0 or r_max). Writes ``virial`` as
     (xx, yy, zz, yz, xz, xy) of sum r_ij (x) F_ij, and, when ``energies`` has
-    length N, half of each bond energy to each of its atoms. ``bad`` is the
+    length N, half of each bond energy and, into ``virials`` (N, 6, zeroed),
+    half of its virial to each of its atoms. ``bad`` is the
     first bond beyond its range (FENE), whose terms are left out, or -1.
     """
     n = positions.shape[0]
@@ -526,6 +531,7 @@ def _bond_energy_forces(
         if per_atom:
             energies[i] += 0.5 * u
             energies[j] += 0.5 * u
+            _add_half_pair_virial(virials, i, j, fx, fy, fz, dx, dy, dz)
     virial[0] = wxx
     virial[1] = wyy
     virial[2] = wzz

@@ -264,6 +264,17 @@ def test_per_atom_energies_sum_to_the_energy(case, system):
     assert plain.energy == result.energy
 
 
+def test_per_atom_virials_sum_to_the_virial(case, system):
+    potential, _ = case
+    result = potential.energy_forces(system, None, per_atom=True)
+    assert result.virials.shape == (system.n_atoms, 6)
+    total = result.virials.sum(axis=0)
+    voigt = result.virial[[0, 1, 2, 1, 0, 0], [0, 1, 2, 2, 2, 1]]  # xx yy zz yz xz xy
+    scale = max(1.0, float(np.abs(result.virials).sum()))
+    np.testing.assert_allclose(total, voigt, rtol=1e-12, atol=1e-12 * scale)
+    assert potential.energy_forces(system, None).virials is None
+
+
 def test_input_state_is_unchanged(case, system):
     potential, _ = case
     before = system.copy()
