@@ -145,7 +145,7 @@ class IncrementalSolver:
         inverse_masses = 1.0 / masses
         target = h * state.velocities.ravel()
         h2 = h * h
-        forces0 = forcefield.compute(state).forces.ravel()
+        forces0 = forcefield.compute(state, virial=False).forces.ravel()
         largest_acceleration = np.max(np.abs(forces0 * inverse_masses), initial=0.0)
         scale = max(largest_acceleration, np.max(np.abs(target), initial=0.0) / h2)
         if not (np.isfinite(scale) and scale > 0.0):
@@ -155,7 +155,7 @@ class IncrementalSolver:
         def evaluate(dx):
             """Return (Phi, grad, residual, noise) at x0 + dx, leaving the positions there."""
             state.positions[:] = x0 + dx.reshape(x0.shape)
-            result = forcefield.compute(state)
+            result = forcefield.compute(state, virial=False)
             offset = dx - target
             grad = masses * offset - h2 * result.forces.ravel()
             phi = 0.5 * np.dot(masses * offset, offset) + h2 * result.energy

@@ -36,7 +36,7 @@ class ExplicitEuler:
         self.statistics = {"steps": 0}
 
     def step(self, state, forcefield) -> None:
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _explicit_euler(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt)
         state.step += 1
         state.time += self.dt
@@ -78,7 +78,7 @@ class SymplecticEuler:
         self.statistics = {"steps": 0}
 
     def step(self, state, forcefield) -> None:
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt, self.dt)
         state.step += 1
         state.time += self.dt

@@ -110,7 +110,7 @@ class Langevin(Thermostat):
         # With constraints, a velocity component off the constraint surface before a drift
         # is exactly what SHAKE's correction removes, so projections (RATTLE) are needed
         # only where the velocities are used otherwise: around O, for its heat, and at the end.
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick(state.velocities, forces, inverse_masses, half)  # B
         self._drift(state, half, inverse_masses, step, project=True)  # A
         self.rng.standard_normal(out=self._noise)  # O
@@ -120,7 +120,7 @@ class Langevin(Thermostat):
             constraints.rattle(state, dt, inverse_masses, step)
         self.reservoir -= _kinetic(state.velocities, masses) - before
         self._drift(state, half, inverse_masses, step, project=False)  # A
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick(state.velocities, forces, inverse_masses, half)  # B
         if constraints is not None:
             constraints.rattle(state, dt, inverse_masses, step)

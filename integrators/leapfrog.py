@@ -74,7 +74,7 @@ class Leapfrog:
 
     def step(self, state, forcefield) -> None:
         dt = self.dt
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         inverse_masses = 1.0 / state.masses
         if self._half is not None and (self._adopted(state) or self._continues(state)):
             _kick_drift(state.positions, self._half, forces, inverse_masses, dt, dt)
@@ -82,7 +82,7 @@ class Leapfrog:
             self.statistics["restarts"] += 1
             self._half = state.velocities.copy()
             _kick_drift(state.positions, self._half, forces, inverse_masses, 0.5 * dt, dt)
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _synchronise(state.velocities, self._half, forces, inverse_masses, 0.5 * dt)
         state.step += 1
         state.time += dt

@@ -373,12 +373,12 @@ def constrained_verlet_step(state, forcefield, dt: float, constraints) -> None:
     Leaves ``state.step`` and ``state.time`` to the caller. ``constraints``
     may be None (plain velocity Verlet).
     """
-    forces = forcefield.compute(state).forces
+    forces = forcefield.compute(state, virial=False).forces
     inverse_masses = 1.0 / state.masses
     half = 0.5 * dt
     if constraints is None:
         _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick(state.velocities, forces, inverse_masses, half)
         return
     step = state.step + 1
@@ -386,7 +386,7 @@ def constrained_verlet_step(state, forcefield, dt: float, constraints) -> None:
     reference[:] = state.positions
     _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
     constraints.shake(state, reference, dt, inverse_masses, step)
-    forces = forcefield.compute(state).forces
+    forces = forcefield.compute(state, virial=False).forces
     _kick(state.velocities, forces, inverse_masses, half)
     constraints.rattle(state, dt, inverse_masses, step)
 

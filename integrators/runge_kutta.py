@@ -74,7 +74,7 @@ class _Workspace:
         np.copyto(self.x0, state.positions)
         np.copyto(self.v0, state.velocities)
         np.copyto(self.kx[0], self.v0)
-        _accelerations(self.kv[0], forcefield.compute(state).forces, inverse_masses)
+        _accelerations(self.kv[0], forcefield.compute(state, virial=False).forces, inverse_masses)
 
     def advance(self, state, forcefield, tableau: _Tableau, h: float, inverse_masses) -> None:
         """Evaluate stages 2..s from the start and write the solution into the state."""
@@ -83,7 +83,7 @@ class _Workspace:
             row = tableau.rows[i]
             _combine(state.positions, x0, kx[:i], row, h)
             _combine(kx[i], v0, kv[:i], row, h)
-            _accelerations(kv[i], forcefield.compute(state).forces, inverse_masses)
+            _accelerations(kv[i], forcefield.compute(state, virial=False).forces, inverse_masses)
         _combine(state.positions, x0, kx, tableau.b, h)
         _combine(state.velocities, v0, kv, tableau.b, h)
 

@@ -49,7 +49,7 @@ class StormerVerlet:
     def step(self, state, forcefield) -> None:
         dt = self.dt
         _drift(state.positions, state.velocities, 0.5 * dt)
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, dt, 0.5 * dt)
         state.step += 1
         state.time += dt

@@ -32,11 +32,11 @@ class VelocityVerlet:
         self.dt = check_dt(dt)
 
     def step(self, state, forcefield) -> None:
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         inverse_masses = 1.0 / state.masses
         half = 0.5 * self.dt
         _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
-        forces = forcefield.compute(state).forces
+        forces = forcefield.compute(state, virial=False).forces
         _kick(state.velocities, forces, inverse_masses, half)
         state.step += 1
         state.time += self.dt

@@ -11,7 +11,7 @@ writing, so the caller can grow the buffer and call again.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from md.box import _min_image
 
@@ -119,74 +119,136 @@ def _neighbor_cell(c, offset, n, periodic, length):
     return k, 0.0
 
 
-@njit(cache=True, error_model="numpy")
-def _cell_pairs(
-    sorted_wrapped, r2_max, n_cells, periodic, box, cell_of, cell_starts, order, starts, neighbors
-):
-    """Half list from a cell grid, scanning the own cell and 13 forward neighbours.
+@njit(cache=True, inline="always", error_model="numpy")
+def _shift_code(shift):
+    """Digit 0, 1 or 2 of a cell image shift of -length, 0 or +length along one axis."""
+    if shift < 0.0:
+        return 0
+    if shift > 0.0:
+        return 2
+    return 1
 
-    Each unordered pair is listed once: within a cell, under the atom that
-    comes first in the sorted order; across cells, under the atom whose cell
-    sees the other through one of the 13 lexicographically positive offsets.
-    Rows are in atom order, but a row may hold j < i. The image shift of a
-    neighbour cell is fixed per cell, so no per-candidate minimum image is
-    needed. Requires at least three cells along every periodic axis, so the
-    27 cells around any cell are distinct.
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _frame_pairs(
+    wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
+    starts, neighbors, codes, counts,
+):  # fmt: skip
+    """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
+
+    Slot p holds the atom whose wrapped position is ``wrapped[p]``, in cell
+    ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
+    slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
+    region ``neighbors[c * capacity:(c + 1) * capacity]`` (and ``codes``), so
+    no two threads write the same memory; ``starts[p + 1]`` is the end of row
+    p counted from the start of its region, ``counts[c]`` the chunk's pair
+    count (it keeps counting past ``capacity`` without writing).
+    ``_compact_chunks`` then joins the regions into one CSR list.
+
+    Each unordered pair is listed once, under the slot whose cell sees the
+    other through the own cell (then under the lower slot) or one of the 13
+    lexicographically positive offsets. ``codes[k]`` names the image shift s
+    of that neighbour cell, so the pair displacement is
+    ``wrapped[p] - wrapped[q] - s`` with no minimum image (see
+    ``_shift_table``). Requires at least three cells along every periodic
+    axis, so the 27 cells around any cell are distinct.
     """
-    n = sorted_wrapped.shape[0]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    capacity = neighbors.shape[0]
-    rank = np.empty(n, dtype=np.int64)
-    for p in range(n):
-        rank[order[p]] = p
     most = 0
     for c in range(nx * ny * nz):
         most = max(most, cell_starts[c + 1] - cell_starts[c])
-    row = np.empty(14 * most, dtype=np.int32)  # candidates of one atom, written branch-free
-    count = 0
+    n_chunks = bounds.shape[0] - 1
+    for chunk in prange(n_chunks):
+        base = chunk * capacity
+        row = np.empty(14 * most, dtype=np.int32)  # one slot's candidates, written branch-free
+        row_codes = np.empty(14 * most, dtype=np.uint8)
+        count = 0
+        for p in range(bounds[chunk], bounds[chunk + 1]):
+            c = slot_cell[p]
+            cx = c // (ny * nz)
+            cy = (c // nz) % ny
+            cz = c % nz
+            xi = wrapped[p, 0]
+            yi = wrapped[p, 1]
+            zi = wrapped[p, 2]
+            found = 0
+            for ox in range(0, 2):
+                kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
+                if kx < 0:
+                    continue
+                for oy in range(-1, 2):
+                    if ox == 0 and oy < 0:
+                        continue
+                    ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
+                    if ky < 0:
+                        continue
+                    for oz in range(-1, 2):
+                        if ox == 0 and oy == 0 and oz < 0:
+                            continue
+                        kz, sz = _neighbor_cell(cz, oz, nz, periodic[2], box[2])
+                        if kz < 0:
+                            continue
+                        other = (kx * ny + ky) * nz + kz
+                        code = _shift_code(sx) * 9 + _shift_code(sy) * 3 + _shift_code(sz)
+                        first = cell_starts[other]
+                        if other == c:
+                            first = p + 1
+                        for q in range(first, cell_starts[other + 1]):
+                            dx = xi - (wrapped[q, 0] + sx)
+                            dy = yi - (wrapped[q, 1] + sy)
+                            dz = zi - (wrapped[q, 2] + sz)
+                            row[found] = q
+                            row_codes[found] = code
+                            found += dx * dx + dy * dy + dz * dz < r2_max
+            for k in range(found):
+                if count + k < capacity:
+                    neighbors[base + count + k] = row[k]
+                    codes[base + count + k] = row_codes[k]
+            count += found
+            starts[p + 1] = count
+        counts[chunk] = count
+
+
+@njit(cache=True, error_model="numpy")
+def _compact_chunks(bounds, capacity, counts, starts, neighbors, codes):
+    """Join the chunk regions written by ``_frame_pairs`` into one CSR list; return its length.
+
+    Regions move towards the front (never onto data not yet moved), and row
+    ends become absolute.
+    """
+    offset = 0
     starts[0] = 0
-    for i in range(n):
-        c = cell_of[i]
-        cx = c // (ny * nz)
-        cy = (c // nz) % ny
-        cz = c % nz
-        ri = rank[i]
-        xi = sorted_wrapped[ri, 0]
-        yi = sorted_wrapped[ri, 1]
-        zi = sorted_wrapped[ri, 2]
-        found = 0
-        for ox in range(0, 2):
-            kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
-            if kx < 0:
-                continue
-            for oy in range(-1, 2):
-                if ox == 0 and oy < 0:
-                    continue
-                ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
-                if ky < 0:
-                    continue
-                for oz in range(-1, 2):
-                    if ox == 0 and oy == 0 and oz < 0:
-                        continue
-                    kz, sz = _neighbor_cell(cz, oz, nz, periodic[2], box[2])
-                    if kz < 0:
-                        continue
-                    other = (kx * ny + ky) * nz + kz
-                    first = cell_starts[other]
-                    if other == c:
-                        first = ri + 1
-                    for p in range(first, cell_starts[other + 1]):
-                        dx = xi - (sorted_wrapped[p, 0] + sx)
-                        dy = yi - (sorted_wrapped[p, 1] + sy)
-                        dz = zi - (sorted_wrapped[p, 2] + sz)
-                        row[found] = order[p]
-                        found += dx * dx + dy * dy + dz * dz < r2_max
-        for k in range(found):
-            if count + k < capacity:
-                neighbors[count + k] = row[k]
-        count += found
-        starts[i + 1] = count
-    return count
+    for chunk in range(bounds.shape[0] - 1):
+        base = chunk * capacity
+        if offset != base:
+            for k in range(counts[chunk]):
+                neighbors[offset + k] = neighbors[base + k]
+                codes[offset + k] = codes[base + k]
+        for p in range(bounds[chunk], bounds[chunk + 1]):
+            starts[p + 1] += offset
+        offset += counts[chunk]
+    return offset
+
+
+def _shift_table(box, pbc):
+    """(27, 3) image shifts named by the codes of ``_frame_pairs``: digit d means (d - 1) L."""
+    digits = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)])
+    return (digits - 1) * np.where(pbc, box, 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _atom_space_list(order, starts, neighbors, atom_starts, atom_neighbors):
+    """Rewrite a slot-space half list as a list over atom indices, rows in atom order."""
+    n = order.shape[0]
+    atom_starts[0] = 0
+    for p in range(n):
+        atom_starts[order[p] + 1] = starts[p + 1] - starts[p]
+    for a in range(n):
+        atom_starts[a + 1] += atom_starts[a]
+    for p in range(n):
+        destination = atom_starts[order[p]]
+        for k in range(starts[p], starts[p + 1]):
+            atom_neighbors[destination + k - starts[p]] = order[neighbors[k]]
 
 
 @njit(cache=True, error_model="numpy")

@@ -46,6 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue from the output's checkpoint (OUTPUT.ckpt): same physics, steps may grow",
     )
+    run.add_argument(
+        "--threads",
+        type=int,
+        help="threads for the force and neighbour kernels (overrides [run] threads; "
+        "default: every core)",
+    )
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--quiet", "-q", action="store_true", help="no thermo table")
 
@@ -150,6 +156,7 @@ def _run(args) -> int:
     )
     from md.neighbors import NonFiniteError
     from md.observers import Progress
+    from md.parallel import set_threads
     from md.simulation import Simulation, SimulationError
     from md.trajectory import H5MDWriter, TrajectoryError, read_frame_steps
 
@@ -223,6 +230,12 @@ def _run(args) -> int:
         guard = config.run.skin if config.run.skin > 0 else None
         if getattr(integrator, "adaptive", False):
             guard = None
+        threads = args.threads if args.threads is not None else config.run.threads
+        try:
+            set_threads(threads)
+        except ValueError as error:
+            where = "--threads" if args.threads is not None else f"{config.source}: [run] threads"
+            raise ConfigError(f"{where}: {error}") from None
         try:
             sim = Simulation(
                 state,
@@ -497,6 +510,8 @@ def _progress_bar(total: int, disable: bool):
 
 
 def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) -> None:
+    from md.parallel import get_threads
+
     last = sim.thermo()
     state = sim.state
     timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
@@ -506,7 +521,7 @@ def _print_summary(sim, first, timings_before, n_steps, wall, output, n_frames) 
     drift = (last["total_energy"] - first["total_energy"]) / energy_scale
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
-        f"{atom_steps:,.0f} atom-steps/s"
+        f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
     )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
     for name, seconds in [*timings.items(), ("other", other)]:

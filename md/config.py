@@ -140,6 +140,7 @@ class RunConfig:
     steps: int = 1000
     skin: float = 0.3
     thermo_every: int = 100
+    threads: int | None = None  # kernel threads (None: every core); not physics
 
 
 @dataclass
@@ -232,6 +233,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         steps=table.integer("steps", RunConfig.steps, minimum=0),
         skin=table.number("skin", RunConfig.skin, minimum=0.0),
         thermo_every=table.integer("thermo_every", RunConfig.thermo_every, minimum=1),
+        threads=table.integer("threads", None, minimum=1),
     )
     table.finish()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections.abc import Sequence
 
@@ -47,6 +48,10 @@ class ForceField:
         self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
+        # Potentials that can skip the virial when nobody needs it.
+        self._lazy_virial = [
+            "virial" in inspect.signature(p.energy_forces).parameters for p in self.potentials
+        ]
         self._cached: ForceResult | None = None
         self._key: tuple[np.ndarray, ...] | None = None
 
@@ -66,27 +71,38 @@ class ForceField:
         self._cached = None
         self._key = None
 
-    def compute(self, state: State, per_atom: bool = False) -> ForceResult:
+    def compute(self, state: State, per_atom: bool = False, virial: bool = True) -> ForceResult:
         """Return the total energy, forces and virial of ``state``.
+
+        ``virial=False`` (integrators) lets potentials skip the virial, which
+        costs about a quarter of the LJ pair time; the result's ``virial`` is
+        then None, and a later call at the same positions that needs it
+        evaluates again.
 
         Raises
         ------
         NonFiniteError
             If a position or the energy is NaN or infinite.
         """
-        if self._cached is not None and self._matches(state):
-            if not per_atom or self._cached.energies is not None:
-                return self._cached
+        cached = self._cached
+        if cached is not None and self._matches(state):
+            if (not per_atom or cached.energies is not None) and (
+                not virial or cached.virial is not None
+            ):
+                return cached
         start = time.perf_counter()
         if self.neighbor_list is not None:
             self.neighbor_list.update(state)
         elif not np.all(np.isfinite(state.positions)):
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
-        results = [
-            p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None, per_atom)
-            for p in self.potentials
-        ]
+        results = []
+        for potential, lazy in zip(self.potentials, self._lazy_virial, strict=True):
+            neighbors = self.neighbor_list if potential.cutoff is not None else None
+            if lazy:
+                results.append(potential.energy_forces(state, neighbors, per_atom, virial=virial))
+            else:
+                results.append(potential.energy_forces(state, neighbors, per_atom))
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
@@ -165,7 +181,11 @@ def _sum_results(results: list[ForceResult], per_atom: bool) -> ForceResult:
     return ForceResult(
         energy=sum(r.energy for r in results),
         forces=np.sum([r.forces for r in results], axis=0),
-        virial=np.sum([r.virial for r in results], axis=0),
+        virial=(
+            np.sum([r.virial for r in results], axis=0)
+            if all(r.virial is not None for r in results)
+            else None
+        ),
         energies=np.sum([r.energies for r in results], axis=0) if per_atom else None,
         virials=(
             np.sum([r.virials for r in results], axis=0)

@@ -7,14 +7,27 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
-from md._cell_kernels import _bin_atoms, _brute_force_pairs, _cell_pairs, _max_displacement2
+from md._cell_kernels import (
+    _atom_space_list,
+    _bin_atoms,
+    _brute_force_pairs,
+    _compact_chunks,
+    _frame_pairs,
+    _max_displacement2,
+    _shift_table,
+)
 from md.box import periodic_lengths
+from md.parallel import get_threads
 from md.state import State
 
 logger = logging.getLogger(__name__)
 
 #: Most cells per atom the grid may have (sparse or open systems get wider cells).
 _MAX_CELLS_PER_ATOM = 4
+#: Fewest atoms per thread worth a chunk of their own.
+_MIN_CHUNK_ATOMS = 2048
+#: Head room of the pair buffer over the count that did not fit.
+_GROWTH = 1.15
 
 
 class NonFiniteError(FloatingPointError):
@@ -30,8 +43,19 @@ class NeighborList:
     changed; until then no pair can have come within ``cutoff`` unseen.
 
     Cells are at least ``cutoff + skin`` wide and atoms are grouped by a
-    counting sort (no per-cell capacity). When a periodic axis has room for
-    fewer than three cells, the O(N^2) search is used instead.
+    counting sort (no per-cell capacity). The cell search works in the
+    *slot* frame: slot p holds atom ``order[p]``, atoms sorted by cell so
+    that neighbours sit close together in memory, each wrapped into the box
+    at the build. A pair's periodic image is then fixed until the next build
+    and is stored as a code per pair, so the force kernels need no minimum
+    image: the position of slot p is ``positions[order[p]] + offsets[p]`` and
+    a pair (p, q) is separated by ``frame(p) - frame(q) - shifts[code]``.
+    The search runs on :func:`md.parallel.get_threads` threads (one chunk of
+    slots each) and gives the same list on any number of threads.
+
+    When a periodic axis has room for fewer than three cells, the O(N^2)
+    search is used instead; its list is over atom indices (``order`` is
+    None) and kernels apply the minimum image per pair.
 
     Parameters
     ----------
@@ -44,11 +68,24 @@ class NeighborList:
     Attributes
     ----------
     starts : ndarray of int64, shape (N + 1,)
-        CSR row offsets into ``neighbors``.
+        CSR row offsets into ``neighbors``, over atom indices.
     neighbors : ndarray of int32, shape (P,)
         ``neighbors[starts[i]:starts[i + 1]]`` are the partners of atom i;
         every pair within ``cutoff + skin`` appears exactly once, under
-        either of its atoms (the O(N^2) search puts it under the lower index).
+        either of its atoms (the O(N^2) search puts it under the lower
+        index). Derived from the slot list on first use after a build.
+    order : ndarray of int64, shape (N,), or None
+        Atom in each slot (None after an O(N^2) build).
+    offsets : ndarray of float64, shape (N, 3)
+        Per slot, what the build added to the atom's position to wrap it.
+    slot_starts, slot_neighbors, codes : ndarray
+        The list over slots: CSR offsets (N + 1,), partner slots (P,) int32
+        and image codes (P,) uint8 naming rows of ``shifts``.
+    shifts : ndarray of float64, shape (27, 3)
+        Image shift of each code [length].
+    bounds : ndarray of int64
+        Slot ranges of the chunks the force kernels split the work into,
+        balanced by pair count, one per thread.
     n_builds : int
         Number of builds so far.
 
@@ -70,11 +107,18 @@ class NeighborList:
             raise ValueError(f"skin must be >= 0 and finite, got {skin}")
         self.cutoff = float(cutoff)
         self.skin = float(skin)
-        self.starts = np.zeros(1, dtype=np.int64)
-        self.neighbors = np.zeros(0, dtype=np.int32)
         self.n_builds = 0
         self.used_cells = False
-        self._buffer = np.zeros(1024, dtype=np.int32)
+        self.order: NDArray[np.int64] | None = None
+        self.offsets = np.zeros((0, 3))
+        self.slot_starts = np.zeros(1, dtype=np.int64)
+        self.slot_neighbors = np.zeros(0, dtype=np.int32)
+        self.codes = np.zeros(0, dtype=np.uint8)
+        self.shifts = np.zeros((27, 3))
+        self.bounds = np.zeros(2, dtype=np.int64)
+        self._neighbor_buffer = np.zeros(1024, dtype=np.int32)
+        self._code_buffer = np.zeros(1024, dtype=np.uint8)
+        self._atom_list: tuple[NDArray[np.int64], NDArray[np.int32]] | None = None
         self._reference: NDArray[np.float64] | None = None
         self._box: NDArray[np.float64] | None = None
         self._pbc: NDArray[np.bool_] | None = None
@@ -85,7 +129,15 @@ class NeighborList:
 
     @property
     def n_pairs(self) -> int:
-        return int(self.starts[-1])
+        return int(self.slot_starts[-1])
+
+    @property
+    def starts(self) -> NDArray[np.int64]:
+        return self._atom_space()[0]
+
+    @property
+    def neighbors(self) -> NDArray[np.int32]:
+        return self._atom_space()[1]
 
     def check_box(self, box: NDArray[np.float64], pbc: NDArray[np.bool_]) -> None:
         """Raise ValueError if the cutoff breaks the minimum-image convention."""
@@ -127,41 +179,91 @@ class NeighborList:
         self.check_box(state.box, state.pbc)
         positions = state.positions
         n = positions.shape[0]
-        lengths, inverse = periodic_lengths(state.box, state.pbc)
-        r2_max = self.list_radius**2
-        starts = np.zeros(n + 1, dtype=np.int64)
         grid = self._grid(state)
         self.used_cells = grid is not None
-        if grid is not None:
-            # Bin once; only the pair search repeats if the buffer must grow.
-            origin, width, n_cells = grid
-            cell_of = np.empty(n, dtype=np.int64)
-            cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
-            order = np.empty(n, dtype=np.int64)
-            sorted_wrapped = np.empty((n, 3))
-            _bin_atoms(
-                positions, origin, width, n_cells, state.pbc, state.box,
-                cell_of, cell_starts, order, sorted_wrapped,
-            )  # fmt: skip
-        while True:
-            if grid is None:
-                count = _brute_force_pairs(
-                    positions, lengths, inverse, r2_max, starts, self._buffer
-                )
-            else:
-                count = _cell_pairs(
-                    sorted_wrapped, r2_max, n_cells, state.pbc, state.box,
-                    cell_of, cell_starts, order, starts, self._buffer,
-                )  # fmt: skip
-            if count <= self._buffer.shape[0]:
-                break
-            self._buffer = np.empty(int(count * 1.25) + 1024, dtype=np.int32)
-        self.starts = starts
-        self.neighbors = self._buffer[:count]
+        chunks = max(1, min(get_threads(), n // _MIN_CHUNK_ATOMS))
+        if grid is None:
+            self._build_brute_force(state)
+        else:
+            self._build_cells(state, grid, chunks)
+        self.bounds = _balanced_bounds(self.slot_starts, chunks)
+        self._atom_list = None
         self._reference = positions.copy()
         self._box = state.box.copy()
         self._pbc = state.pbc.copy()
         self.n_builds += 1
+
+    def _build_brute_force(self, state: State) -> None:
+        positions = state.positions
+        n = positions.shape[0]
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        starts = np.zeros(n + 1, dtype=np.int64)
+        r2_max = self.list_radius**2
+        while True:
+            count = _brute_force_pairs(
+                positions, lengths, inverse, r2_max, starts, self._neighbor_buffer
+            )
+            if count <= self._neighbor_buffer.shape[0]:
+                break
+            self._neighbor_buffer = np.empty(_grown(count), dtype=np.int32)
+        self.order = None
+        self.offsets = np.zeros((n, 3))
+        self.slot_starts = starts
+        self.slot_neighbors = self._neighbor_buffer[:count]
+        self.codes = np.zeros(0, dtype=np.uint8)
+        self.shifts = np.zeros((27, 3))
+
+    def _build_cells(self, state: State, grid, chunks: int) -> None:
+        positions = state.positions
+        n = positions.shape[0]
+        origin, width, n_cells = grid
+        cell_of = np.empty(n, dtype=np.int64)
+        cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
+        order = np.empty(n, dtype=np.int64)
+        wrapped = np.empty((n, 3))
+        _bin_atoms(
+            positions, origin, width, n_cells, state.pbc, state.box,
+            cell_of, cell_starts, order, wrapped,
+        )  # fmt: skip
+        slot_cell = cell_of[order]
+        del cell_of
+        bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
+        starts = np.zeros(n + 1, dtype=np.int64)
+        counts = np.zeros(chunks, dtype=np.int64)
+        r2_max = self.list_radius**2
+        while True:
+            capacity = self._neighbor_buffer.shape[0] // chunks
+            _frame_pairs(
+                wrapped, slot_cell, r2_max, n_cells, state.pbc, state.box, cell_starts,
+                bounds, capacity, starts, self._neighbor_buffer, self._code_buffer, counts,
+            )  # fmt: skip
+            if counts.max() <= capacity:
+                break
+            size = _grown(int(counts.max()) * chunks)
+            self._neighbor_buffer = np.empty(size, dtype=np.int32)
+            self._code_buffer = np.empty(size, dtype=np.uint8)
+        count = _compact_chunks(
+            bounds, capacity, counts, starts, self._neighbor_buffer, self._code_buffer
+        )
+        self.order = order
+        self.offsets = wrapped
+        self.offsets -= positions[order]
+        self.slot_starts = starts
+        self.slot_neighbors = self._neighbor_buffer[:count]
+        self.codes = self._code_buffer[:count]
+        self.shifts = _shift_table(state.box, state.pbc)
+
+    def _atom_space(self) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
+        """The list over atom indices (cached until the next build)."""
+        if self.order is None:
+            return self.slot_starts, self.slot_neighbors
+        if self._atom_list is None:
+            n = len(self.order)
+            starts = np.empty(n + 1, dtype=np.int64)
+            neighbors = np.empty(self.n_pairs, dtype=np.int32)
+            _atom_space_list(self.order, self.slot_starts, self.slot_neighbors, starts, neighbors)
+            self._atom_list = (starts, neighbors)
+        return self._atom_list
 
     def pairs(self) -> NDArray[np.int64]:
         """Return the listed pairs as a sorted (P, 2) array of (i, j) with i < j."""
@@ -198,3 +300,18 @@ class NeighborList:
                 break
         width = extent / n_cells
         return origin, width, n_cells
+
+
+def _grown(count: int) -> int:
+    """Buffer size for ``count`` pairs with head room for the next builds."""
+    return int(count * _GROWTH) + 1024
+
+
+def _balanced_bounds(starts: NDArray[np.int64], chunks: int) -> NDArray[np.int64]:
+    """Row ranges of ``chunks`` chunks holding about equal numbers of pairs."""
+    if chunks == 1:
+        return np.array([0, len(starts) - 1], dtype=np.int64)
+    targets = np.linspace(0, starts[-1], chunks + 1)
+    bounds = np.searchsorted(starts, targets, side="left").astype(np.int64)
+    bounds[0], bounds[-1] = 0, len(starts) - 1
+    return np.maximum.accumulate(bounds)

@@ -12,6 +12,7 @@ from md._cell_kernels import _max_displacement2
 from md.analysis import kinetic_energy, pressure, temperature
 from md.forcefield import ForceField
 from md.neighbors import NonFiniteError
+from md.parallel import set_threads
 from md.state import State
 from md.units import UnitSystem, get_units
 from potentials.base import Potential
@@ -48,6 +49,10 @@ class Simulation:
         Blow-up guard [length]: a particle moving farther than this in one
         step stops the run with a :class:`SimulationError` (``md run`` uses
         the skin). None: no check. Kept as an attribute of that name.
+    threads : int, optional
+        Threads for the force and neighbour kernels, set process-wide through
+        :func:`md.parallel.set_threads`; None leaves the setting as it is
+        (every core unless set).
 
     Attributes
     ----------
@@ -75,7 +80,10 @@ class Simulation:
         skin: float = 0.3,
         units: str | UnitSystem = "lj",
         max_displacement: float | None = None,
+        threads: int | None = None,
     ) -> None:
+        if threads is not None:
+            set_threads(threads)
         self.state = state
         self.forcefield = ForceField(potentials, skin=skin)
         self.forcefield.check(state)

@@ -259,7 +259,7 @@ def compare_trajectories(
     def record(k):
         nonlocal max_dp, identical
         energies_ase[k] = atoms.get_potential_energy() + atoms.get_kinetic_energy()
-        energies_ours[k] = sim.forcefield.compute(ours_state).energy + kinetic_energy(
+        energies_ours[k] = sim.forcefield.compute(ours_state, virial=False).energy + kinetic_energy(
             ours_state.velocities, ours_state.masses
         )
         position_differences[k] = np.abs(atoms.positions - ours_state.positions).max()
@@ -310,7 +310,7 @@ class _AseOrderReplay:
 
     def _forces(self, positions):
         self.state.positions[:] = positions
-        return self.forcefield.compute(self.state).forces
+        return self.forcefield.compute(self.state, virial=False).forces
 
     def step(self) -> None:
         p = self.momenta.copy()

@@ -23,9 +23,11 @@ class ForceResult:
         Potential energy [energy].
     forces : ndarray of float64, shape (N, 3)
         Forces [energy/length].
-    virial : ndarray of float64, shape (3, 3)
+    virial : ndarray of float64, shape (3, 3), or None
         Pair virial W_ab = sum over interactions of r_ij,a F_ij,b [energy];
-        its trace over 3 V is the configurational pressure.
+        its trace over 3 V is the configurational pressure. None when the
+        caller said it needs no virial (``virial=False``), as integrators do
+        between thermo outputs (LAMMPS's vflag).
     energies : ndarray of float64, shape (N,), optional
         Per-atom energies (each pair split half and half), when asked for.
     virials : ndarray of float64, shape (N, 6), optional
@@ -35,7 +37,7 @@ class ForceResult:
 
     energy: float
     forces: NDArray[np.float64]
-    virial: NDArray[np.float64]
+    virial: NDArray[np.float64] | None
     energies: NDArray[np.float64] | None = None
     virials: NDArray[np.float64] | None = None
 
@@ -46,7 +48,9 @@ class Potential(Protocol):
     ``cutoff`` is the interaction range, or None for potentials that need no
     neighbour list (bonded terms). ``energy_forces`` returns a new
     ForceResult and leaves the state untouched; ``neighbors`` is a list built
-    with a radius of at least ``cutoff``.
+    with a radius of at least ``cutoff``. A potential whose ``energy_forces``
+    also takes ``virial`` (bool, default True) may skip the virial when it
+    is False; the ForceField passes it only to those that do.
     """
 
     cutoff: float | None

@@ -6,7 +6,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, prange
 
 from md.box import _min_image, periodic_lengths
 from potentials._kernels import _add_half_pair_virial
@@ -217,19 +217,29 @@ class LennardJones:
                 f"has {state.n_types} ({', '.join(state.type_names)})"
             )
 
-    def energy_forces(self, state, neighbors, per_atom: bool = False) -> ForceResult:
+    def energy_forces(
+        self, state, neighbors, per_atom: bool = False, virial: bool = True
+    ) -> ForceResult:
         """Return energy, forces, virial (and per-atom energies) for ``state``.
 
         ``neighbors`` is a NeighborList with a radius >= ``cutoff``, or None
-        for the O(N^2) all-pairs loop (small systems, tests).
+        for the O(N^2) all-pairs loop (small systems, tests). Over a list
+        built by cells, the threaded slot-frame kernel runs (no minimum
+        image, one chunk per thread); per-atom results and O(N^2) lists use
+        the serial kernel over atom indices. ``virial=False`` skips the
+        virial (a quarter of the pair time), leaving ``result.virial`` None.
         """
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
         tables = self._cached_tables(n_types)
+        mode = CUTOFF_MODES[self.cutoff_mode]
+        if neighbors is not None and neighbors.order is not None and not per_atom:
+            self._check_radius(neighbors)
+            return self._frame_energy_forces(state, neighbors, n_types, tables, mode, virial)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         forces = np.zeros((n, 3))
-        virial = np.zeros(6)
+        total_virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
         virials = np.zeros((n if per_atom else 0, 6))
         energy = _lj_energy_forces(
@@ -241,18 +251,45 @@ class LennardJones:
             neighbor_array,
             n_types,
             *tables,
-            CUTOFF_MODES[self.cutoff_mode],
+            mode,
             forces,
-            virial,
+            total_virial,
             energies,
             virials,
         )
         return ForceResult(
             energy=energy,
             forces=forces,
-            virial=_symmetric(virial),
+            virial=_symmetric(total_virial),
             energies=energies if per_atom else None,
             virials=virials if per_atom else None,
+        )
+
+    def _frame_energy_forces(self, state, neighbors, n_types, tables, mode, virial: bool):
+        n = state.n_atoms
+        chunks = len(neighbors.bounds) - 1
+        scratch = getattr(self, "_scratch", None)
+        if scratch is None or scratch[0].shape[0] != n or scratch[2].shape[0] != chunks:
+            scratch = (
+                np.empty((n, 3)),
+                np.empty(n, dtype=np.int64),
+                np.empty((chunks, n, 3)),
+                np.empty(chunks),
+                np.empty((chunks, 6)),
+            )
+            self._scratch = scratch
+        frame, frame_types, buffers, energies, virials = scratch
+        forces = np.empty((n, 3))
+        _lj_frame_forces(
+            state.positions, state.types, neighbors.order, neighbors.offsets, neighbors.shifts,
+            neighbors.slot_starts, neighbors.slot_neighbors, neighbors.codes, neighbors.bounds,
+            n_types, *tables, mode, virial,
+            frame, frame_types, buffers, energies, virials, forces,
+        )  # fmt: skip
+        return ForceResult(
+            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+            forces=forces,
+            virial=_symmetric(virials.sum(axis=0)) if virial else None,
         )
 
     def hessian(self, state, neighbors) -> sp.csr_matrix:
@@ -327,12 +364,15 @@ class LennardJones:
         """Return (starts, neighbors) of the half list to loop over (all pairs for None)."""
         if neighbors is None:
             return _all_pairs(n)
+        self._check_radius(neighbors)
+        return neighbors.starts, neighbors.neighbors
+
+    def _check_radius(self, neighbors) -> None:
         if neighbors.list_radius < self.cutoff:
             raise ValueError(
                 f"neighbour list radius {neighbors.list_radius:g} is below the LJ cutoff "
                 f"{self.cutoff:g}"
             )
-        return neighbors.starts, neighbors.neighbors
 
     def _cached_tables(self, n_types: int):
         cache = getattr(self, "_table_cache", None)
@@ -371,6 +411,124 @@ def _all_pairs(n: int):
     np.cumsum(counts, out=starts[1:])
     neighbors = np.concatenate([np.arange(i + 1, n) for i in range(n)] or [np.zeros(0)])
     return starts, neighbors.astype(np.int32)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _lj_pair(r2, k, c12, c6, rc2, ro2, shift, inv_den, mode):
+    """Return (u, f/r) of one pair at squared distance r2, type-pair row k of the tables.
+
+    f/r is -du/dr / r, so the force on the first atom is (f/r) d. Both are 0
+    at or beyond the cutoff. Tables and mode as in ``_lj_energy_forces``.
+    Branch-free past the cutoff: a third of the listed pairs lie in the
+    skin, and a mispredicted branch costs more than the arithmetic.
+    """
+    inside = 1.0 if r2 < rc2[k] else 0.0
+    inv_r2 = 1.0 / r2
+    inv_r6 = inv_r2 * inv_r2 * inv_r2
+    a = c12[k] * inv_r6 * inv_r6
+    b = c6[k] * inv_r6
+    u = a - b
+    fr = (12.0 * a - 6.0 * b) * inv_r2
+    if mode == 1:
+        u -= shift[k]
+    elif mode == 2:
+        gap = rc2[k] - r2
+        switching = r2 > ro2[k]
+        switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
+        dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
+        switch = switch if switching else 1.0
+        dswitch = dswitch if switching else 0.0
+        fr = switch * fr - 2.0 * dswitch * u
+        u = switch * u
+    return u * inside, fr * inside
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _lj_frame_forces(
+    positions, types, order, offsets, shifts, starts, neighbors, codes, bounds,
+    n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
+    frame, frame_types, buffers, energies, virials, forces,
+):  # fmt: skip
+    """LJ forces over a slot-frame list (``md.neighbors.NeighborList``), one chunk per thread.
+
+    Gathers ``frame[p] = positions[order[p]] + offsets[p]`` and the slot
+    types, then chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its
+    pairs' forces into its own ``buffers[c]`` (C, N, 3), its energy into
+    ``energies[c]`` and, if ``with_virial``, its virial (xx, yy, zz, yz, xz,
+    xy) into ``virials[c]``; no two threads write the same memory. The
+    chunk buffers are summed in chunk order into ``forces`` (N, 3, by atom),
+    so the result is the same on every run for a given chunk count. A pair
+    (p, q) is separated by frame[p] - frame[q] - shifts[codes[k]]: no
+    minimum image. Tables and mode as in ``_lj_energy_forces``.
+    """
+    n = positions.shape[0]
+    n_chunks = bounds.shape[0] - 1
+    for chunk in prange(n_chunks):
+        for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+            atom = order[p]
+            frame[p, 0] = positions[atom, 0] + offsets[p, 0]
+            frame[p, 1] = positions[atom, 1] + offsets[p, 1]
+            frame[p, 2] = positions[atom, 2] + offsets[p, 2]
+            frame_types[p] = types[atom]
+    for chunk in prange(n_chunks):
+        buffer = buffers[chunk]
+        for p in range(n):
+            buffer[p, 0] = 0.0
+            buffer[p, 1] = 0.0
+            buffer[p, 2] = 0.0
+        energy = 0.0
+        wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for p in range(bounds[chunk], bounds[chunk + 1]):
+            xi = frame[p, 0]
+            yi = frame[p, 1]
+            zi = frame[p, 2]
+            row = frame_types[p] * n_types
+            fxi = 0.0
+            fyi = 0.0
+            fzi = 0.0
+            for k in range(starts[p], starts[p + 1]):
+                q = neighbors[k]
+                code = codes[k]
+                dx = xi - frame[q, 0] - shifts[code, 0]
+                dy = yi - frame[q, 1] - shifts[code, 1]
+                dz = zi - frame[q, 2] - shifts[code, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                u, fr = _lj_pair(r2, row + frame_types[q], c12, c6, rc2, ro2, shift, inv_den, mode)
+                energy += u
+                fx = fr * dx
+                fy = fr * dy
+                fz = fr * dz
+                fxi += fx
+                fyi += fy
+                fzi += fz
+                buffer[q, 0] -= fx
+                buffer[q, 1] -= fy
+                buffer[q, 2] -= fz
+                if with_virial:
+                    wxx += fx * dx
+                    wyy += fy * dy
+                    wzz += fz * dz
+                    wyz += fz * dy
+                    wxz += fz * dx
+                    wxy += fy * dx
+            buffer[p, 0] += fxi
+            buffer[p, 1] += fyi
+            buffer[p, 2] += fzi
+        energies[chunk] = energy
+        virials[chunk, 0] = wxx
+        virials[chunk, 1] = wyy
+        virials[chunk, 2] = wzz
+        virials[chunk, 3] = wyz
+        virials[chunk, 4] = wxz
+        virials[chunk, 5] = wxy
+    for chunk in prange(n_chunks):
+        for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+            atom = order[p]
+            for a in range(3):
+                total = buffers[0, p, a]
+                for other in range(1, n_chunks):
+                    total += buffers[other, p, a]
+                forces[atom, a] = total
 
 
 @njit(cache=True, error_model="numpy")
@@ -422,29 +580,7 @@ def _lj_energy_forces(
             dy = _min_image(yi - positions[j, 1], ly, iy)
             dz = _min_image(zi - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
-            k = row + types[j]
-            # Branch-free past the cutoff: a third of the listed pairs lie in
-            # the skin, and a mispredicted branch costs more than the arithmetic.
-            inside = 1.0 if r2 < rc2[k] else 0.0
-            inv_r2 = 1.0 / r2
-            inv_r6 = inv_r2 * inv_r2 * inv_r2
-            a = c12[k] * inv_r6 * inv_r6
-            b = c6[k] * inv_r6
-            u = a - b
-            fr = (12.0 * a - 6.0 * b) * inv_r2
-            if mode == 1:
-                u -= shift[k]
-            elif mode == 2:
-                gap = rc2[k] - r2
-                switching = r2 > ro2[k]
-                switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
-                dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
-                switch = switch if switching else 1.0
-                dswitch = dswitch if switching else 0.0
-                fr = switch * fr - 2.0 * dswitch * u
-                u = switch * u
-            u *= inside
-            fr *= inside
+            u, fr = _lj_pair(r2, row + types[j], c12, c6, rc2, ro2, shift, inv_den, mode)
             energy += u
             fx = fr * dx
             fy = fr * dy
