@@ -1,11 +1,15 @@
 """Numba kernels for neighbour search (arrays and scalars only).
 
 Lists are half lists in CSR form: ``neighbors[starts[i]:starts[i + 1]]`` are
-the partners j of atom i, each unordered pair within the list radius (by
-minimum image) listed exactly once.
-Kernels write into caller-owned arrays and return the number of pairs found;
-when that exceeds the capacity of ``neighbors`` they keep counting without
-writing, so the caller can grow the buffer and call again.
+the partners of row i, each unordered pair within the list radius listed
+exactly once. The O(N^2) search lists atom indices (minimum image); the cell
+search lists *slots*, atoms sorted by cell and wrapped into the box, with a
+one-byte code per pair naming its periodic image (see ``md.neighbors``).
+Kernels write into caller-owned arrays and return (or store) the number of
+pairs found; when that exceeds the capacity of the buffer they keep counting
+without writing, so the caller can grow the buffer and call again. Kernels
+with a ``_threaded`` twin run their chunks on numba's threads; the plain one
+runs them in turn, off the thread pool.
 """
 
 from __future__ import annotations
@@ -129,14 +133,15 @@ def _shift_code(shift):
     return 1
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _frame_pairs(
     wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
     starts, neighbors, codes, counts,
 ):  # fmt: skip
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
-    Slot p holds the atom whose wrapped position is ``wrapped[p]``, in cell
+    The serial driver; ``_frame_pairs_threaded`` runs the chunks on
+    numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[p]``, in cell
     ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
     slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
     region ``neighbors[c * capacity:(c + 1) * capacity]`` (and ``codes``), so
@@ -153,60 +158,91 @@ def _frame_pairs(
     ``_shift_table``). Requires at least three cells along every periodic
     axis, so the 27 cells around any cell are distinct.
     """
-    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    most = _most_per_cell(cell_starts)
+    for chunk in range(bounds.shape[0] - 1):
+        _frame_pairs_chunk(
+            chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds,
+            capacity, most, starts, neighbors, codes, counts,
+        )  # fmt: skip
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _frame_pairs_threaded(
+    wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
+    starts, neighbors, codes, counts,
+):  # fmt: skip
+    """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
+    most = _most_per_cell(cell_starts)
+    for chunk in prange(bounds.shape[0] - 1):
+        _frame_pairs_chunk(
+            chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds,
+            capacity, most, starts, neighbors, codes, counts,
+        )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _most_per_cell(cell_starts):
     most = 0
-    for c in range(nx * ny * nz):
+    for c in range(cell_starts.shape[0] - 1):
         most = max(most, cell_starts[c + 1] - cell_starts[c])
-    n_chunks = bounds.shape[0] - 1
-    for chunk in prange(n_chunks):
-        base = chunk * capacity
-        row = np.empty(14 * most, dtype=np.int32)  # one slot's candidates, written branch-free
-        row_codes = np.empty(14 * most, dtype=np.uint8)
-        count = 0
-        for p in range(bounds[chunk], bounds[chunk + 1]):
-            c = slot_cell[p]
-            cx = c // (ny * nz)
-            cy = (c // nz) % ny
-            cz = c % nz
-            xi = wrapped[p, 0]
-            yi = wrapped[p, 1]
-            zi = wrapped[p, 2]
-            found = 0
-            for ox in range(0, 2):
-                kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
-                if kx < 0:
+    return most
+
+
+@njit(cache=True, error_model="numpy")
+def _frame_pairs_chunk(
+    chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
+    most, starts, neighbors, codes, counts,
+):  # fmt: skip
+    """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1]."""
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    base = chunk * capacity
+    row = np.empty(14 * most, dtype=np.int32)  # one slot's candidates, written branch-free
+    row_codes = np.empty(14 * most, dtype=np.uint8)
+    count = 0
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        c = slot_cell[p]
+        cx = c // (ny * nz)
+        cy = (c // nz) % ny
+        cz = c % nz
+        xi = wrapped[p, 0]
+        yi = wrapped[p, 1]
+        zi = wrapped[p, 2]
+        found = 0
+        for ox in range(0, 2):
+            kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
+            if kx < 0:
+                continue
+            for oy in range(-1, 2):
+                if ox == 0 and oy < 0:
                     continue
-                for oy in range(-1, 2):
-                    if ox == 0 and oy < 0:
+                ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
+                if ky < 0:
+                    continue
+                for oz in range(-1, 2):
+                    if ox == 0 and oy == 0 and oz < 0:
                         continue
-                    ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
-                    if ky < 0:
+                    kz, sz = _neighbor_cell(cz, oz, nz, periodic[2], box[2])
+                    if kz < 0:
                         continue
-                    for oz in range(-1, 2):
-                        if ox == 0 and oy == 0 and oz < 0:
-                            continue
-                        kz, sz = _neighbor_cell(cz, oz, nz, periodic[2], box[2])
-                        if kz < 0:
-                            continue
-                        other = (kx * ny + ky) * nz + kz
-                        code = _shift_code(sx) * 9 + _shift_code(sy) * 3 + _shift_code(sz)
-                        first = cell_starts[other]
-                        if other == c:
-                            first = p + 1
-                        for q in range(first, cell_starts[other + 1]):
-                            dx = xi - (wrapped[q, 0] + sx)
-                            dy = yi - (wrapped[q, 1] + sy)
-                            dz = zi - (wrapped[q, 2] + sz)
-                            row[found] = q
-                            row_codes[found] = code
-                            found += dx * dx + dy * dy + dz * dz < r2_max
-            for k in range(found):
-                if count + k < capacity:
-                    neighbors[base + count + k] = row[k]
-                    codes[base + count + k] = row_codes[k]
-            count += found
-            starts[p + 1] = count
-        counts[chunk] = count
+                    other = (kx * ny + ky) * nz + kz
+                    code = _shift_code(sx) * 9 + _shift_code(sy) * 3 + _shift_code(sz)
+                    first = cell_starts[other]
+                    if other == c:
+                        first = p + 1
+                    for q in range(first, cell_starts[other + 1]):
+                        dx = xi - (wrapped[q, 0] + sx)
+                        dy = yi - (wrapped[q, 1] + sy)
+                        dz = zi - (wrapped[q, 2] + sz)
+                        row[found] = q
+                        row_codes[found] = code
+                        found += dx * dx + dy * dy + dz * dz < r2_max
+        for k in range(found):
+            if count + k < capacity:
+                neighbors[base + count + k] = row[k]
+                codes[base + count + k] = row_codes[k]
+        count += found
+        starts[p + 1] = count
+    counts[chunk] = count
 
 
 @njit(cache=True, error_model="numpy")

@@ -402,6 +402,8 @@ def _check_resumable(output: Path, checkpoint, read_frame_steps) -> None:
 class _Checkpointer:
     """Observer writing a checkpoint (atomically) with the trajectory's frame count."""
 
+    uses_virial = False  # saves the state; its steps need no virial
+
     def __init__(self, path: Path, sim, writer, fingerprint, run_id: str, config: str) -> None:
         self.path = path
         self.sim = sim

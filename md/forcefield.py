@@ -38,6 +38,9 @@ class ForceField:
         ``"force"`` (potential kernels).
     n_evaluations : int
         Number of evaluations that were not served from the cache.
+    virial_wanted : bool
+        Compute the virial even when a caller says it needs none; the
+        Simulation sets it for steps whose end an observer will see.
     """
 
     def __init__(self, potentials: Sequence[Potential], skin: float = 0.3) -> None:
@@ -48,6 +51,7 @@ class ForceField:
         self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
+        self.virial_wanted = False
         # Potentials that can skip the virial when nobody needs it.
         self._lazy_virial = [
             "virial" in inspect.signature(p.energy_forces).parameters for p in self.potentials
@@ -90,6 +94,7 @@ class ForceField:
                 not virial or cached.virial is not None
             ):
                 return cached
+        virial = virial or self.virial_wanted  # a fresh evaluation includes it if wanted
         start = time.perf_counter()
         if self.neighbor_list is not None:
             self.neighbor_list.update(state)

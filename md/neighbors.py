@@ -13,6 +13,7 @@ from md._cell_kernels import (
     _brute_force_pairs,
     _compact_chunks,
     _frame_pairs,
+    _frame_pairs_threaded,
     _max_displacement2,
     _shift_table,
 )
@@ -25,7 +26,7 @@ logger = logging.getLogger(__name__)
 #: Most cells per atom the grid may have (sparse or open systems get wider cells).
 _MAX_CELLS_PER_ATOM = 4
 #: Fewest atoms per thread worth a chunk of their own.
-_MIN_CHUNK_ATOMS = 2048
+_MIN_CHUNK_ATOMS = 1000
 #: Head room of the pair buffer over the count that did not fit.
 _GROWTH = 1.15
 
@@ -233,7 +234,9 @@ class NeighborList:
         r2_max = self.list_radius**2
         while True:
             capacity = self._neighbor_buffer.shape[0] // chunks
-            _frame_pairs(
+            # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+            search = _frame_pairs_threaded if chunks > 1 else _frame_pairs
+            search(
                 wrapped, slot_cell, r2_max, n_cells, state.pbc, state.box, cell_starts,
                 bounds, capacity, starts, self._neighbor_buffer, self._code_buffer, counts,
             )  # fmt: skip

@@ -28,6 +28,9 @@ class ThermoLog:
 class Progress:
     """Advance a progress bar (anything with ``update(n)``) as steps complete."""
 
+    #: Reads no pressure, so its steps need no virial (see ``Simulation.attach``).
+    uses_virial = False
+
     def __init__(self, bar) -> None:
         self.bar = bar
         self._last: int | None = None

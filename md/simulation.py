@@ -91,6 +91,7 @@ class Simulation:
         self.units = get_units(units)
         self.timings = {"integrate": 0.0, "output": 0.0}
         self._observers: list[tuple[Observer, int]] = []
+        self._virial_intervals: list[int] = []
         self._observed_start = False
         if max_displacement is not None and not max_displacement > 0:
             raise ValueError(f"max_displacement must be positive, got {max_displacement!r}")
@@ -108,10 +109,18 @@ class Simulation:
         Observers read ``sim.state`` and never write it; those that keep data
         copy it. A fresh run (step 0) also calls them once before the first
         step; a continued run does not, so no frame is written twice.
+
+        Integrators ask for forces without the virial (it costs a quarter of
+        the pair time); on steps where an observer will be called the force
+        field computes it anyway, so ``sim.thermo()`` there costs no second
+        evaluation. An observer with ``uses_virial = False`` (a progress bar,
+        a checkpoint) does not ask for this.
         """
         if isinstance(interval, bool) or not isinstance(interval, int | np.integer) or interval < 1:
             raise ValueError(f"observer interval must be a positive integer, got {interval!r}")
         self._observers.append((observer, int(interval)))
+        if getattr(observer, "uses_virial", True):
+            self._virial_intervals.append(int(interval))
 
     def request_stop(self, reason: str = "stop requested") -> None:
         """Ask :meth:`run` to return once the step in progress is complete.
@@ -153,7 +162,9 @@ class Simulation:
                 if self._previous.shape != state.positions.shape:
                     self._previous = np.empty_like(state.positions)
                 np.copyto(self._previous, state.positions)
-            self._guarded(lambda: self.integrator.step(state, self.forcefield), state.step + 1)
+            upcoming = state.step + 1
+            self.forcefield.virial_wanted = any(upcoming % k == 0 for k in self._virial_intervals)
+            self._guarded(lambda: self.integrator.step(state, self.forcefield), upcoming)
             if limit is not None:
                 self._check_displacement(limit)
             elapsed = time.perf_counter() - start
@@ -161,6 +172,7 @@ class Simulation:
             self.timings["integrate"] += elapsed - spent_in_forces
             if self._observers:
                 self._notify(all_observers=False)
+        self.forcefield.virial_wanted = False
 
     def _check_displacement(self, limit: float) -> None:
         """Raise SimulationError if a particle moved farther than ``limit`` this step."""

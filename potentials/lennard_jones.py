@@ -260,7 +260,7 @@ class LennardJones:
         return ForceResult(
             energy=energy,
             forces=forces,
-            virial=_symmetric(total_virial),
+            virial=_symmetric(total_virial) if virial or per_atom else None,
             energies=energies if per_atom else None,
             virials=virials if per_atom else None,
         )
@@ -280,7 +280,9 @@ class LennardJones:
             self._scratch = scratch
         frame, frame_types, buffers, energies, virials = scratch
         forces = np.empty((n, 3))
-        _lj_frame_forces(
+        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+        kernel = _lj_frame_forces_threaded if chunks > 1 else _lj_frame_forces
+        kernel(
             state.positions, state.types, neighbors.order, neighbors.offsets, neighbors.shifts,
             neighbors.slot_starts, neighbors.slot_neighbors, neighbors.codes, neighbors.bounds,
             n_types, *tables, mode, virial,
@@ -443,92 +445,137 @@ def _lj_pair(r2, k, c12, c6, rc2, ro2, shift, inv_den, mode):
     return u * inside, fr * inside
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _lj_frame_forces(
     positions, types, order, offsets, shifts, starts, neighbors, codes, bounds,
     n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
-    """LJ forces over a slot-frame list (``md.neighbors.NeighborList``), one chunk per thread.
+    """LJ forces over a slot-frame list (``md.neighbors.NeighborList``), chunk by chunk.
 
     Gathers ``frame[p] = positions[order[p]] + offsets[p]`` and the slot
     types, then chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its
     pairs' forces into its own ``buffers[c]`` (C, N, 3), its energy into
     ``energies[c]`` and, if ``with_virial``, its virial (xx, yy, zz, yz, xz,
-    xy) into ``virials[c]``; no two threads write the same memory. The
-    chunk buffers are summed in chunk order into ``forces`` (N, 3, by atom),
-    so the result is the same on every run for a given chunk count. A pair
-    (p, q) is separated by frame[p] - frame[q] - shifts[codes[k]]: no
-    minimum image. Tables and mode as in ``_lj_energy_forces``.
+    xy) into ``virials[c]``. The chunk buffers are summed in chunk order
+    into ``forces`` (N, 3, by atom), so the result is the same on every run
+    for a given chunk count. A pair (p, q) is separated by frame[p] -
+    frame[q] - shifts[codes[k]]: no minimum image. Tables and mode as in
+    ``_lj_energy_forces``. ``_lj_frame_forces_threaded`` runs the chunks on
+    numba's threads; no two chunks write the same memory.
     """
-    n = positions.shape[0]
+    n_chunks = bounds.shape[0] - 1
+    for chunk in range(n_chunks):
+        _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types)
+    for chunk in range(n_chunks):
+        _lj_frame_chunk(
+            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
+            c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+        )  # fmt: skip
+    for chunk in range(n_chunks):
+        _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _lj_frame_forces_threaded(
+    positions, types, order, offsets, shifts, starts, neighbors, codes, bounds,
+    n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
+    frame, frame_types, buffers, energies, virials, forces,
+):  # fmt: skip
+    """``_lj_frame_forces`` with one chunk per thread (same arguments, same result)."""
     n_chunks = bounds.shape[0] - 1
     for chunk in prange(n_chunks):
-        for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
-            atom = order[p]
-            frame[p, 0] = positions[atom, 0] + offsets[p, 0]
-            frame[p, 1] = positions[atom, 1] + offsets[p, 1]
-            frame[p, 2] = positions[atom, 2] + offsets[p, 2]
-            frame_types[p] = types[atom]
+        _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types)
     for chunk in prange(n_chunks):
-        buffer = buffers[chunk]
-        for p in range(n):
-            buffer[p, 0] = 0.0
-            buffer[p, 1] = 0.0
-            buffer[p, 2] = 0.0
-        energy = 0.0
-        wxx = wyy = wzz = wyz = wxz = wxy = 0.0
-        for p in range(bounds[chunk], bounds[chunk + 1]):
-            xi = frame[p, 0]
-            yi = frame[p, 1]
-            zi = frame[p, 2]
-            row = frame_types[p] * n_types
-            fxi = 0.0
-            fyi = 0.0
-            fzi = 0.0
-            for k in range(starts[p], starts[p + 1]):
-                q = neighbors[k]
-                code = codes[k]
-                dx = xi - frame[q, 0] - shifts[code, 0]
-                dy = yi - frame[q, 1] - shifts[code, 1]
-                dz = zi - frame[q, 2] - shifts[code, 2]
-                r2 = dx * dx + dy * dy + dz * dz
-                u, fr = _lj_pair(r2, row + frame_types[q], c12, c6, rc2, ro2, shift, inv_den, mode)
-                energy += u
-                fx = fr * dx
-                fy = fr * dy
-                fz = fr * dz
-                fxi += fx
-                fyi += fy
-                fzi += fz
-                buffer[q, 0] -= fx
-                buffer[q, 1] -= fy
-                buffer[q, 2] -= fz
-                if with_virial:
-                    wxx += fx * dx
-                    wyy += fy * dy
-                    wzz += fz * dz
-                    wyz += fz * dy
-                    wxz += fz * dx
-                    wxy += fy * dx
-            buffer[p, 0] += fxi
-            buffer[p, 1] += fyi
-            buffer[p, 2] += fzi
-        energies[chunk] = energy
-        virials[chunk, 0] = wxx
-        virials[chunk, 1] = wyy
-        virials[chunk, 2] = wzz
-        virials[chunk, 3] = wyz
-        virials[chunk, 4] = wxz
-        virials[chunk, 5] = wxy
+        _lj_frame_chunk(
+            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
+            c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+        )  # fmt: skip
     for chunk in prange(n_chunks):
-        for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
-            atom = order[p]
-            for a in range(3):
-                total = buffers[0, p, a]
-                for other in range(1, n_chunks):
-                    total += buffers[other, p, a]
-                forces[atom, a] = total
+        _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types):
+    """Slot positions and types of one chunk's share of the slots."""
+    n = positions.shape[0]
+    for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+        atom = order[p]
+        frame[p, 0] = positions[atom, 0] + offsets[p, 0]
+        frame[p, 1] = positions[atom, 1] + offsets[p, 1]
+        frame[p, 2] = positions[atom, 2] + offsets[p, 2]
+        frame_types[p] = types[atom]
+
+
+@njit(cache=True, error_model="numpy")
+def _sum_chunk_forces(chunk, n_chunks, order, buffers, forces):
+    """Sum the chunk buffers, in chunk order, into the atoms' forces (one share of the slots)."""
+    n = order.shape[0]
+    for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+        atom = order[p]
+        for a in range(3):
+            total = buffers[0, p, a]
+            for other in range(1, n_chunks):
+                total += buffers[other, p, a]
+            forces[atom, a] = total
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_frame_chunk(
+    chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
+    c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+):  # fmt: skip
+    """The pairs of one chunk of ``_lj_frame_forces``, into ``buffers[chunk]``."""
+    buffer = buffers[chunk]
+    for p in range(frame.shape[0]):
+        buffer[p, 0] = 0.0
+        buffer[p, 1] = 0.0
+        buffer[p, 2] = 0.0
+    energy = 0.0
+    wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        xi = frame[p, 0]
+        yi = frame[p, 1]
+        zi = frame[p, 2]
+        row = frame_types[p] * n_types
+        fxi = 0.0
+        fyi = 0.0
+        fzi = 0.0
+        for k in range(starts[p], starts[p + 1]):
+            q = neighbors[k]
+            code = codes[k]
+            dx = xi - frame[q, 0] - shifts[code, 0]
+            dy = yi - frame[q, 1] - shifts[code, 1]
+            dz = zi - frame[q, 2] - shifts[code, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            u, fr = _lj_pair(r2, row + frame_types[q], c12, c6, rc2, ro2, shift, inv_den, mode)
+            energy += u
+            fx = fr * dx
+            fy = fr * dy
+            fz = fr * dz
+            fxi += fx
+            fyi += fy
+            fzi += fz
+            buffer[q, 0] -= fx
+            buffer[q, 1] -= fy
+            buffer[q, 2] -= fz
+            if with_virial:
+                wxx += fx * dx
+                wyy += fy * dy
+                wzz += fz * dz
+                wyz += fz * dy
+                wxz += fz * dx
+                wxy += fy * dx
+        buffer[p, 0] += fxi
+        buffer[p, 1] += fyi
+        buffer[p, 2] += fzi
+    energies[chunk] = energy
+    virials[chunk, 0] = wxx
+    virials[chunk, 1] = wyy
+    virials[chunk, 2] = wzz
+    virials[chunk, 3] = wyz
+    virials[chunk, 4] = wxz
+    virials[chunk, 5] = wxy
 
 
 @njit(cache=True, error_model="numpy")

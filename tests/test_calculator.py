@@ -156,22 +156,29 @@ def test_stress_matches_numerical_strain_derivative(mode):
 
 
 def test_one_evaluation_serves_energy_forces_and_stress():
+    """Energy and forces share an evaluation without the virial (what MD asks for);
+    a stress asked for first serves all three, a stress asked for later costs one
+    more evaluation, with the virial."""
     atoms = argon()
     calc = ours()
     atoms.calc = calc
-    atoms.get_potential_energy()
-    atoms.get_forces()
     atoms.get_stress()
     atoms.get_potential_energy()
+    atoms.get_forces()
     assert calc.forcefield.n_evaluations == 1
     atoms.positions[0, 0] += 0.01
-    atoms.get_forces()
-    atoms.get_stress()
+    forces = atoms.get_forces()
+    atoms.get_potential_energy()
     assert calc.forcefield.n_evaluations == 2
+    stress = atoms.get_stress()
+    assert calc.forcefield.n_evaluations == 3
+    np.testing.assert_array_equal(atoms.get_forces(), forces)
+    np.testing.assert_array_equal(atoms.get_stress(), stress)
+    assert calc.forcefield.n_evaluations == 3
     atoms.get_potential_energies()  # per-atom energies need one more pass ...
     atoms.get_stresses()  # ... which per-atom stresses share
     atoms.get_forces()
-    assert calc.forcefield.n_evaluations == 3
+    assert calc.forcefield.n_evaluations == 4
 
 
 def test_neighbour_list_is_kept_and_rebuilt_only_when_needed():

@@ -209,13 +209,19 @@ def test_total_momentum_is_conserved(fcc_lattice):
 
 def test_one_force_evaluation_per_step(fcc_lattice):
     sim = _simulation(fcc_lattice(cells=3, temperature=1.0), 0.005)
+    pressures = []
+    sim.attach(lambda s: pressures.append(s.thermo()["pressure"]), interval=7)
     sim.run(50)
-    # The fresh run evaluates step 0 once, then each step reuses the last forces.
+    # The fresh run evaluates step 0 once, then each step reuses the last forces;
+    # observed steps compute the virial with their forces, so thermo() costs nothing.
     assert sim.forcefield.n_evaluations == 51
+    assert len(pressures) == 1 + 50 // 7
     sim.run(30)
     assert sim.forcefield.n_evaluations == 81
-    sim.thermo()  # served from the cache
-    assert sim.forcefield.n_evaluations == 81
+    sim.thermo()  # step 80 was not observed: its evaluation skipped the virial
+    assert sim.forcefield.n_evaluations == 82
+    sim.thermo()  # now served from the cache
+    assert sim.forcefield.n_evaluations == 82
 
 
 def test_integrator_alone_uses_the_cache(fcc_lattice):
