@@ -68,13 +68,16 @@ def _bin_atoms(
     cell_starts,
     order,
     sorted_wrapped,
+    images,
 ):
     """Counting sort of atoms by cell.
 
     Writes ``cell_of[i]`` (flat cell index of atom i), ``cell_starts``
-    (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell) and
+    (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell),
     ``sorted_wrapped[p]``, the position of atom ``order[p]`` wrapped into
-    [0, L) along periodic axes, so a cell's atoms are contiguous in memory.
+    [0, L) along periodic axes, so a cell's atoms are contiguous in memory,
+    and ``images[p]`` (int32), the box lengths added to wrap it:
+    ``sorted_wrapped[p] == positions[order[p]] + images[p] * L`` exactly.
     Open axes are clamped to the grid, whose origin and width the caller
     chose to span the atoms.
     """
@@ -100,9 +103,12 @@ def _bin_atoms(
         fill[c] += 1
         for a in range(3):
             x = positions[i, a]
+            image = 0.0
             if periodic[a]:
-                x = x - box[a] * np.floor(x / box[a])
+                image = -np.floor(x / box[a])
+                x = x + box[a] * image
             sorted_wrapped[p, a] = x
+            images[p, a] = np.int32(image)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

@@ -272,7 +272,7 @@ class LennardJones:
         if scratch is None or scratch[0].shape[0] != n or scratch[2].shape[0] != chunks:
             scratch = (
                 np.empty((n, 3)),
-                np.empty(n, dtype=np.int64),
+                np.empty(n, dtype=state.types.dtype),
                 np.empty((chunks, n, 3)),
                 np.empty(chunks),
                 np.empty((chunks, 6)),
@@ -283,7 +283,8 @@ class LennardJones:
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         kernel = _lj_frame_forces_threaded if chunks > 1 else _lj_frame_forces
         kernel(
-            state.positions, state.types, neighbors.order, neighbors.offsets, neighbors.shifts,
+            state.positions, state.types, neighbors.order, neighbors.images, neighbors.lengths,
+            neighbors.shifts,
             neighbors.slot_starts, neighbors.slot_neighbors, neighbors.codes, neighbors.bounds,
             n_types, *tables, mode, virial,
             frame, frame_types, buffers, energies, virials, forces,
@@ -447,13 +448,13 @@ def _lj_pair(r2, k, c12, c6, rc2, ro2, shift, inv_den, mode):
 
 @njit(cache=True, error_model="numpy")
 def _lj_frame_forces(
-    positions, types, order, offsets, shifts, starts, neighbors, codes, bounds,
+    positions, types, order, images, lengths, shifts, starts, neighbors, codes, bounds,
     n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """LJ forces over a slot-frame list (``md.neighbors.NeighborList``), chunk by chunk.
 
-    Gathers ``frame[p] = positions[order[p]] + offsets[p]`` and the slot
+    Gathers ``frame[p] = positions[order[p]] + images[p] * lengths`` and the slot
     types, then chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its
     pairs' forces into its own ``buffers[c]`` (C, N, 3), its energy into
     ``energies[c]`` and, if ``with_virial``, its virial (xx, yy, zz, yz, xz,
@@ -466,7 +467,7 @@ def _lj_frame_forces(
     """
     n_chunks = bounds.shape[0] - 1
     for chunk in range(n_chunks):
-        _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types)
+        _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
     for chunk in range(n_chunks):
         _lj_frame_chunk(
             chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
@@ -478,14 +479,14 @@ def _lj_frame_forces(
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _lj_frame_forces_threaded(
-    positions, types, order, offsets, shifts, starts, neighbors, codes, bounds,
+    positions, types, order, images, lengths, shifts, starts, neighbors, codes, bounds,
     n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """``_lj_frame_forces`` with one chunk per thread (same arguments, same result)."""
     n_chunks = bounds.shape[0] - 1
     for chunk in prange(n_chunks):
-        _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types)
+        _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
     for chunk in prange(n_chunks):
         _lj_frame_chunk(
             chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
@@ -496,14 +497,14 @@ def _lj_frame_forces_threaded(
 
 
 @njit(cache=True, error_model="numpy")
-def _gather_frame(chunk, n_chunks, positions, types, order, offsets, frame, frame_types):
+def _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types):
     """Slot positions and types of one chunk's share of the slots."""
     n = positions.shape[0]
     for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
         atom = order[p]
-        frame[p, 0] = positions[atom, 0] + offsets[p, 0]
-        frame[p, 1] = positions[atom, 1] + offsets[p, 1]
-        frame[p, 2] = positions[atom, 2] + offsets[p, 2]
+        frame[p, 0] = positions[atom, 0] + lengths[0] * images[p, 0]
+        frame[p, 1] = positions[atom, 1] + lengths[1] * images[p, 1]
+        frame[p, 2] = positions[atom, 2] + lengths[2] * images[p, 2]
         frame_types[p] = types[atom]
 
 

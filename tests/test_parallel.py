@@ -165,7 +165,7 @@ def _check_moves(seed, n_atoms, edges_over_radius, pbc, skin):
         within = set(map(tuple, reference_pairs(state.positions, box, state.pbc, cutoff)))
         assert within <= set(map(tuple, nl.pairs()))
         # Frame displacements equal minimum-image displacements for every listed pair.
-        frame = state.positions[nl.order] + nl.offsets
+        frame = nl.frame_positions(state.positions)
         rows = np.repeat(np.arange(n_atoms), np.diff(nl.slot_starts))
         d_frame = frame[rows] - frame[nl.slot_neighbors] - nl.shifts[nl.codes]
         d = state.positions[nl.order[rows]] - state.positions[nl.order[nl.slot_neighbors]]
