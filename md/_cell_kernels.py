@@ -141,7 +141,7 @@ def _shift_code(shift):
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs(
-    wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds, capacity,
     starts, neighbors, codes, counts,
 ):  # fmt: skip
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
@@ -156,33 +156,36 @@ def _frame_pairs(
     count (it keeps counting past ``capacity`` without writing).
     ``_compact_chunks`` then joins the regions into one CSR list.
 
-    Each unordered pair is listed once, under the slot whose cell sees the
-    other through the own cell (then under the lower slot) or one of the 13
-    lexicographically positive offsets. ``codes[k]`` names the image shift s
+    Cells are at least list radius / ``reach`` wide (reach 1 or 2), so
+    every partner lies within ``reach`` cells along each axis. Each
+    unordered pair is listed once, under the slot whose cell sees the other
+    through the own cell (then under the lower slot) or one of the
+    lexicographically positive offsets (13 for reach 1, 62 for reach 2).
+    ``codes[k]`` names the image shift s
     of that neighbour cell, so the pair displacement is
     ``wrapped[p] - wrapped[q] - s`` with no minimum image (see
-    ``_shift_table``). Requires at least three cells along every periodic
-    axis, so the 27 cells around any cell are distinct.
+    ``_shift_table``). Requires at least 2 reach + 1 cells along every
+    periodic axis, so the cells around any cell are distinct.
     """
     most = _most_per_cell(cell_starts)
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds,
-            capacity, most, starts, neighbors, codes, counts,
+            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts,
+            bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _frame_pairs_threaded(
-    wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds, capacity,
     starts, neighbors, codes, counts,
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     most = _most_per_cell(cell_starts)
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds,
-            capacity, most, starts, neighbors, codes, counts,
+            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts,
+            bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
@@ -196,14 +199,21 @@ def _most_per_cell(cell_starts):
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
-    chunk, wrapped, slot_cell, r2_max, n_cells, periodic, box, cell_starts, bounds, capacity,
-    most, starts, neighbors, codes, counts,
+    chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds,
+    capacity, most, starts, neighbors, codes, counts,
 ):  # fmt: skip
-    """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1]."""
+    """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
+
+    For each (x, y) neighbour column the cells along z lie next to each other
+    in slot order, so they are scanned as one run of slots (two or three
+    where the column wraps around the z edge), not cell by cell.
+    """
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     base = chunk * capacity
-    row = np.empty(14 * most, dtype=np.int32)  # one slot's candidates, written branch-free
-    row_codes = np.empty(14 * most, dtype=np.uint8)
+    side = 2 * reach + 1
+    stencil = reach * side * side + reach * side + reach + 1  # forward cells and own cell
+    row = np.empty(stencil * most, dtype=np.int32)  # one slot's candidates, branch-free
+    row_codes = np.empty(stencil * most, dtype=np.uint8)
     count = 0
     for p in range(bounds[chunk], bounds[chunk + 1]):
         c = slot_cell[p]
@@ -214,34 +224,39 @@ def _frame_pairs_chunk(
         yi = wrapped[p, 1]
         zi = wrapped[p, 2]
         found = 0
-        for ox in range(0, 2):
+        for ox in range(0, reach + 1):
             kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
             if kx < 0:
                 continue
-            for oy in range(-1, 2):
+            for oy in range(-reach, reach + 1):
                 if ox == 0 and oy < 0:
                     continue
                 ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
                 if ky < 0:
                     continue
-                for oz in range(-1, 2):
-                    if ox == 0 and oy == 0 and oz < 0:
-                        continue
-                    kz, sz = _neighbor_cell(cz, oz, nz, periodic[2], box[2])
-                    if kz < 0:
-                        continue
-                    other = (kx * ny + ky) * nz + kz
-                    code = _shift_code(sx) * 9 + _shift_code(sy) * 3 + _shift_code(sz)
-                    first = cell_starts[other]
-                    if other == c:
-                        first = p + 1
-                    for q in range(first, cell_starts[other + 1]):
-                        dx = xi - (wrapped[q, 0] + sx)
-                        dy = yi - (wrapped[q, 1] + sy)
-                        dz = zi - (wrapped[q, 2] + sz)
-                        row[found] = q
-                        row_codes[found] = code
-                        found += dx * dx + dy * dy + dz * dz < r2_max
+                column = (kx * ny + ky) * nz
+                code = _shift_code(sx) * 9 + _shift_code(sy) * 3
+                own = ox == 0 and oy == 0
+                low = cz if own else cz - reach
+                high = cz + reach
+                first = p + 1 if own else cell_starts[column + max(low, 0)]
+                last = cell_starts[column + min(high, nz - 1) + 1]
+                found = _scan(
+                    first, last, xi, yi, zi, sx, sy, 0.0, code + 1, wrapped, r2_max,
+                    row, row_codes, found,
+                )  # fmt: skip
+                if periodic[2] and low < 0:  # the cells below z = 0, seen from the top
+                    found = _scan(
+                        cell_starts[column + low + nz], cell_starts[column + nz],
+                        xi, yi, zi, sx, sy, -box[2], code, wrapped, r2_max,
+                        row, row_codes, found,
+                    )  # fmt: skip
+                if periodic[2] and high >= nz:  # the cells above the top, seen from z = 0
+                    found = _scan(
+                        cell_starts[column], cell_starts[column + high - nz + 1],
+                        xi, yi, zi, sx, sy, box[2], code + 2, wrapped, r2_max,
+                        row, row_codes, found,
+                    )  # fmt: skip
         for k in range(found):
             if count + k < capacity:
                 neighbors[base + count + k] = row[k]
@@ -249,6 +264,19 @@ def _frame_pairs_chunk(
         count += found
         starts[p + 1] = count
     counts[chunk] = count
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _scan(first, last, xi, yi, zi, sx, sy, sz, code, wrapped, r2_max, row, row_codes, found):
+    """Append slots first..last-1 (shifted by s) to the candidates; keep those within range."""
+    for q in range(first, last):
+        dx = xi - (wrapped[q, 0] + sx)
+        dy = yi - (wrapped[q, 1] + sy)
+        dz = zi - (wrapped[q, 2] + sz)
+        row[found] = q
+        row_codes[found] = code
+        found += dx * dx + dy * dy + dz * dz < r2_max
+    return found
 
 
 @njit(cache=True, error_model="numpy")

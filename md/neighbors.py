@@ -25,6 +25,8 @@ logger = logging.getLogger(__name__)
 
 #: Most cells per atom the grid may have (sparse or open systems get wider cells).
 _MAX_CELLS_PER_ATOM = 4
+#: Cells per list radius: partners lie within this many cells along each axis.
+_REACH = 2
 #: Farthest a position may lie from the box, in box lengths (slot images are int32).
 _MAX_IMAGES = 2.0e9
 #: Fewest atoms per thread worth a chunk of their own.
@@ -45,7 +47,7 @@ class NeighborList:
     ``skin / 2`` since then, or when the box, periodicity or particle count
     changed; until then no pair can have come within ``cutoff`` unseen.
 
-    Cells are at least ``cutoff + skin`` wide and atoms are grouped by a
+    Cells are half of ``cutoff + skin`` wide and atoms are grouped by a
     counting sort (no per-cell capacity). The cell search works in the
     *slot* frame: slot p holds atom ``order[p]``, atoms sorted by cell so
     that neighbours sit close together in memory, each wrapped into the box
@@ -57,7 +59,7 @@ class NeighborList:
     The search runs on :func:`md.parallel.get_threads` threads (one chunk of
     slots each) and gives the same list on any number of threads.
 
-    When a periodic axis has room for fewer than three cells, the O(N^2)
+    When a periodic axis has room for fewer than five cells, the O(N^2)
     search is used instead; its list is over atom indices (``order`` is
     None) and kernels apply the minimum image per pair.
 
@@ -235,7 +237,7 @@ class NeighborList:
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         positions = state.positions
         n = positions.shape[0]
-        origin, width, n_cells = grid
+        origin, width, n_cells, reach = grid
         cell_of = np.empty(n, dtype=np.int64)
         cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
         order = np.empty(n, dtype=np.int64)
@@ -256,7 +258,7 @@ class NeighborList:
             # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
             search = _frame_pairs_threaded if chunks > 1 else _frame_pairs
             search(
-                wrapped, slot_cell, r2_max, n_cells, state.pbc, state.box, cell_starts,
+                wrapped, slot_cell, r2_max, n_cells, reach, state.pbc, state.box, cell_starts,
                 bounds, capacity, starts, self._neighbor_buffer, self._code_buffer, counts,
             )  # fmt: skip
             if counts.max() <= capacity:
@@ -300,11 +302,11 @@ class NeighborList:
         return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
     def _grid(self, state: State):
-        """Return (origin, width, n_cells) of the cell grid, or None for O(N^2) search.
+        """Return (origin, width, n_cells, reach) of the cell grid, or None for O(N^2) search.
 
-        Cells are at least the list radius wide, and every periodic axis
-        needs three. (Cells half as wide, with 62 neighbour cells, halve the
-        distance checks but measured no faster on the LJ melt.)
+        Cells are the list radius / ``_REACH`` wide and every periodic axis
+        needs 2 ``_REACH`` + 1 of them. Half-radius cells (reach 2), scanned
+        in z columns, hold about 40% fewer candidates than radius-wide ones.
         """
         n = state.n_atoms
         if n < 2:
@@ -319,18 +321,18 @@ class NeighborList:
             origin[open_axes] = low
             extent[open_axes] = np.maximum(high - low, radius)
         max_cells = _MAX_CELLS_PER_ATOM * n + 27
-        fewest = np.where(state.pbc, 3, 1)
+        reach = _REACH
+        fewest = np.where(state.pbc, 2 * reach + 1, 1)
         # Clip in floating point first: a cluster that flew apart can span more
         # cells than an int64 holds.
-        n_cells = np.clip(np.floor(extent / radius), 1, max_cells).astype(np.int64)
+        n_cells = np.clip(np.floor(extent * reach / radius), 1, max_cells).astype(np.int64)
         if np.any(n_cells < fewest):
             return None
         while np.prod(n_cells) > max_cells and np.any(n_cells > fewest):
             # Wider cells are still correct; shrink the busiest axis that can shrink.
             axis = int(np.argmax(np.where(n_cells > fewest, n_cells, 0)))
             n_cells[axis] = max(n_cells[axis] // 2, fewest[axis])
-        width = extent / n_cells
-        return origin, width, n_cells
+        return origin, extent / n_cells, n_cells, reach
 
 
 def _grown(count: int) -> int:

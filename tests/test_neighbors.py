@@ -40,7 +40,8 @@ def assert_list_is_exact(nl, state):
 # Random gases: (n_atoms, box, pbc, cutoff, skin, uses cells)
 GASES = {
     "periodic-just-over-2rc": (50, 5.05, True, 2.5, 0.3, False),
-    "periodic-2-cells": (40, 3.0 * 1.2 - 0.01, True, 1.0, 0.2, False),
+    "periodic-2-cells-5-half-cells": (40, 3.0 * 1.2 - 0.01, True, 1.0, 0.2, True),
+    "periodic-4-half-cells": (40, 2.5 * 1.2 - 0.01, True, 1.0, 0.2, False),
     "periodic-3-cells": (25, 3.0 * 1.2 + 0.01, True, 1.0, 0.2, True),
     "periodic-many-cells": (400, (10.0, 8.5, 12.0), True, 1.0, 0.2, True),
     "periodic-one-thin-axis": (150, (10.0, 10.0, 2.3), True, 1.0, 0.1, False),

@@ -102,6 +102,18 @@ def test_virial_can_be_skipped_and_is_then_computed_on_demand():
     assert forcefield.compute(state, virial=False) is full  # a virial does no harm
 
 
+@pytest.mark.parametrize("reach", [1, 2])
+def test_cells_one_or_half_a_radius_wide_give_the_exact_list(reach, monkeypatch):
+    monkeypatch.setattr(md.neighbors, "_REACH", reach)
+    for pbc in (True, False, (True, False, True)):
+        state = _liquid(cells=6)
+        state.pbc[:] = pbc
+        nl = NeighborList(2.5, skin=0.3)
+        nl.build(state)
+        assert nl.used_cells
+        assert_list_is_exact(nl, state)
+
+
 @pytest.mark.parametrize("n_chunks", [2, 3, 5])
 def test_chunked_build_gives_the_same_list_as_one_chunk(n_chunks, chunks):
     state = _liquid(cells=5)
