@@ -336,17 +336,20 @@ class LennardJones:
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array, n_types)
-        n_pairs = _lj_count_pairs(*geometry, rc2)
-        pair_i = np.empty(n_pairs, dtype=np.int64)
-        pair_j = np.empty(n_pairs, dtype=np.int64)
-        transverse = np.empty(n_pairs)
-        radial = np.empty(n_pairs)
-        unit = np.empty((n_pairs, 3))
-        _lj_pair_curvatures(
+        listed = len(neighbor_array)  # room for every listed pair; those inside are kept
+        pair_i = np.empty(listed, dtype=np.int64)
+        pair_j = np.empty(listed, dtype=np.int64)
+        transverse = np.empty(listed)
+        radial = np.empty(listed)
+        unit = np.empty((listed, 3))
+        n_pairs = _lj_pair_curvatures(
             *geometry, c6, c12, rc2, ro2, inv_den, CUTOFF_MODES[self.cutoff_mode],
             pair_i, pair_j, transverse, radial, unit,
         )  # fmt: skip
-        return PairHessian(n, pair_i, pair_j, transverse, radial, unit)
+        return PairHessian(
+            n, pair_i[:n_pairs], pair_j[:n_pairs], transverse[:n_pairs], radial[:n_pairs],
+            unit[:n_pairs],
+        )  # fmt: skip
 
     def describe(self) -> dict:
         out = {
@@ -728,25 +731,32 @@ def _lj_energy_forces_loop(
 
 
 @njit(cache=True, error_model="numpy")
-def _lj_count_pairs(positions, types, lengths, inverse, starts, neighbors, n_types, rc2):
-    """Return the number of listed pairs inside their cutoff."""
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
-    count = 0
-    for i in range(positions.shape[0]):
-        row = types[i] * n_types
-        for p in range(starts[i], starts[i + 1]):
-            j = neighbors[p]
-            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
-            if dx * dx + dy * dy + dz * dz < rc2[row + types[j]]:
-                count += 1
-    return count
-
-
-@njit(cache=True, error_model="numpy")
 def _lj_pair_curvatures(
+    positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
+    inv_den, mode, pair_i, pair_j, transverse, radial, unit,
+):  # fmt: skip
+    """Write the Hessian block of every pair inside its cutoff; return how many.
+
+    Each branch inlines ``_lj_pair_curvatures_loop`` with the mode a constant.
+    """
+    if mode == 0:
+        return _lj_pair_curvatures_loop(
+            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
+            inv_den, 0, pair_i, pair_j, transverse, radial, unit,
+        )  # fmt: skip
+    if mode == 1:
+        return _lj_pair_curvatures_loop(
+            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
+            inv_den, 1, pair_i, pair_j, transverse, radial, unit,
+        )  # fmt: skip
+    return _lj_pair_curvatures_loop(
+        positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
+        inv_den, 2, pair_i, pair_j, transverse, radial, unit,
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _lj_pair_curvatures_loop(
     positions,
     types,
     lengths,
@@ -773,7 +783,8 @@ def _lj_pair_curvatures(
     transverse eigenvalue is 2 g'(s) = u'(r)/r, the radial one
     2 g'(s) + 4 g''(s) s = u''(r), along d/r. Written per pair, in list
     order, into ``pair_i``, ``pair_j``, ``transverse``, ``radial`` (P,) and
-    ``unit`` (P, 3), P from ``_lj_count_pairs``. Tables and ``mode`` as in
+    ``unit`` (room for every listed pair); returns P, the number inside.
+    Tables and ``mode`` as in
     ``_lj_energy_forces``; u is unshifted (a constant shift has no second
     derivative).
     """
@@ -815,3 +826,4 @@ def _lj_pair_curvatures(
             unit[n_pairs, 1] = dy * inv_r
             unit[n_pairs, 2] = dz * inv_r
             n_pairs += 1
+    return n_pairs
