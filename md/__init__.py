@@ -30,6 +30,17 @@ def open_trajectory(path, **kwargs):
     return _open(path, **kwargs)
 
 
+def __getattr__(name):
+    # md.sweep (parameter sweeps on Dask) is imported on first use, so that
+    # ``import md`` stays light and never imports Dask. The module is callable:
+    # md.sweep(config, vary=..., ...) calls md.sweep.sweep.
+    if name == "sweep":
+        import importlib
+
+        return importlib.import_module("md.sweep")
+    raise AttributeError(f"module 'md' has no attribute {name!r}")
+
+
 __all__ = [
     "UNIT_SYSTEMS",
     "ForceField",
@@ -43,4 +54,5 @@ __all__ = [
     "lattice",
     "maxwell_boltzmann",
     "open_trajectory",
+    "sweep",
 ]

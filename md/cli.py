@@ -103,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     _analyze_arguments(sub.add_parser("analyze", help="thermo, g(r), MSD, VACF of a trajectory"))
 
+    from md.sweep_cli import add_arguments as _sweep_arguments
+
+    _sweep_arguments(sub.add_parser("sweep", help="runs over varied keys and replicas, on Dask"))
+
     info = sub.add_parser("info", help="describe an H5MD trajectory")
     info.add_argument("trajectory", type=Path, help="H5MD file written by md run")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -129,6 +133,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from md.analyze_cli import run_analyze
 
             return run_analyze(args)
+        if args.command == "sweep":
+            from md.sweep_cli import run_sweep_command
+
+            return run_sweep_command(args)
         return _info(args)
     except KeyboardInterrupt:
         print("md: interrupted", file=sys.stderr)
