@@ -800,8 +800,9 @@ def _lj_pair_curvatures_loop(
             dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
-            if not r2 < rc2[k]:
-                continue
+            # Written branch-free: every listed pair goes to slot n_pairs, which
+            # only advances for pairs inside the cutoff (a third lie in the skin).
+            inside = r2 < rc2[k]
             inv_r2 = 1.0 / r2
             inv_r6 = inv_r2 * inv_r2 * inv_r2
             a = c12[k] * inv_r6 * inv_r6
@@ -810,7 +811,7 @@ def _lj_pair_curvatures_loop(
             g = a - b
             g1 = (3.0 * b - 6.0 * a) * inv_r2
             g2 = (42.0 * a - 12.0 * b) * inv_r2 * inv_r2
-            if mode == 2 and r2 > ro2[k]:
+            if mode == 2 and r2 > ro2[k] and inside:
                 gap = rc2[k] - r2
                 switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
                 dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
@@ -825,5 +826,5 @@ def _lj_pair_curvatures_loop(
             unit[n_pairs, 0] = dx * inv_r
             unit[n_pairs, 1] = dy * inv_r
             unit[n_pairs, 2] = dz * inv_r
-            n_pairs += 1
+            n_pairs += inside
     return n_pairs
