@@ -218,13 +218,30 @@ def _block(t, r, e, out):
 
 @njit(cache=True)
 def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
-    """Add each pair's K to the diagonal blocks (N, 6) of both its atoms."""
-    block = np.empty(6)
+    """Add each pair's K to the diagonal blocks (N, 6) of both its atoms.
+
+    K = t I + (r - t) e e^T written out in scalars (as ``_block`` does): a
+    call and a row view per pair cost as much as the arithmetic.
+    """
     for p in range(pair_i.shape[0]):
-        _block(transverse[p], radial[p], unit[p], block)
-        for c in range(6):
-            diagonal[pair_i[p], c] += block[c]
-            diagonal[pair_j[p], c] += block[c]
+        t = transverse[p]
+        c = radial[p] - t
+        ex = unit[p, 0]
+        ey = unit[p, 1]
+        ez = unit[p, 2]
+        b0 = t + c * ex * ex
+        b1 = t + c * ey * ey
+        b2 = t + c * ez * ez
+        b3 = c * ey * ez
+        b4 = c * ex * ez
+        b5 = c * ex * ey
+        for atom in (pair_i[p], pair_j[p]):
+            diagonal[atom, 0] += b0
+            diagonal[atom, 1] += b1
+            diagonal[atom, 2] += b2
+            diagonal[atom, 3] += b3
+            diagonal[atom, 4] += b4
+            diagonal[atom, 5] += b5
 
 
 @njit(cache=True)
