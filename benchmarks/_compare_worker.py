@@ -106,32 +106,6 @@ def _our_simulation(cells: int):
     return md.Simulation(state, [potential], VelocityVerlet(dt=DT), skin=SKIN)
 
 
-def _run_our_loop(sim, steps: int) -> dict:
-    """Time ``sim.run(steps)`` after the setup force call; split as lj_melt.py does."""
-    sim.forcefield.compute(sim.state)  # setup: first list build and forces
-    neighbor_list = sim.forcefield.neighbor_list
-    before = sim.timing_summary()
-    builds_before = neighbor_list.n_builds
-    start = time.perf_counter()
-    sim.run(steps)
-    loop_time = time.perf_counter() - start
-    after = sim.timing_summary()
-    spent = {key: after[key] - before[key] for key in after}
-    sections = {
-        "Pair": spent["force"],
-        "Neigh": spent["neighbor"],
-        "Modify": spent["integrate"],
-        "Output": spent["output"],
-    }
-    sections["Other"] = loop_time - sum(sections.values())
-    return {
-        "loop_time": loop_time,
-        "sections": sections,
-        "n_builds": neighbor_list.n_builds - builds_before,
-        "n_pairs": int(neighbor_list.n_pairs),
-    }
-
-
 def run_ours(job: dict) -> dict:
     """Our engine: warm-up on a small system (numba), baseline, then the timed run."""
     import integrators  # noqa: F401
@@ -157,7 +131,9 @@ def run_ours(job: dict) -> dict:
         # One frame per h5md_every steps, as in a long run; the CLI also writes step 0.
         sim.skip_initial_observation()
     try:
-        result = _run_our_loop(sim, job["steps"])
+        from lj_melt import time_loop  # imports md: only once the baseline is taken
+
+        result = time_loop(sim, job["steps"])
         if writer is not None:
             result["n_frames"] = writer.n_frames
     finally:

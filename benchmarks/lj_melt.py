@@ -59,17 +59,22 @@ SECTIONS = ("Pair", "Neigh", "Comm", "Output", "Modify", "Other")
 
 
 def run_ours(cells: int, steps: int, seed: int = SEED) -> dict:
-    """Time ``steps`` steps of the LJ melt in our engine, setup excluded.
-
-    Returns the loop time, the section times [s] in LAMMPS's names (Pair:
-    force kernels; Neigh: list checks and builds; Modify: the integrator and
-    the loop around it; Output: observers; Other: the rest) and the number
-    of neighbour-list builds during the loop.
-    """
+    """Time ``steps`` steps of the LJ melt in our engine, setup excluded (see ``time_loop``)."""
     state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=DENSITY), TEMPERATURE, seed=seed)
     potential = LennardJones(epsilon=1.0, sigma=1.0, cutoff=CUTOFF, cutoff_mode="none")
     sim = md.Simulation(state, [potential], VelocityVerlet(dt=DT), skin=SKIN)
-    sim.forcefield.compute(state)  # setup: first list build and forces
+    return {"n_atoms": state.n_atoms, **time_loop(sim, steps)}
+
+
+def time_loop(sim, steps: int) -> dict:
+    """Time ``sim.run(steps)`` after an untimed setup force call (first list and forces).
+
+    Returns the loop time, the section times [s] in LAMMPS's names (Pair:
+    force kernels; Neigh: list checks and builds; Modify: the integrator and
+    the loop around it; Output: observers; Other: the rest), the number of
+    neighbour-list builds during the loop and the listed pairs.
+    """
+    sim.forcefield.compute(sim.state)  # setup: first list build and forces
     neighbor_list = sim.forcefield.neighbor_list
     before = sim.timing_summary()
     builds_before = neighbor_list.n_builds
@@ -87,10 +92,9 @@ def run_ours(cells: int, steps: int, seed: int = SEED) -> dict:
     sections["Other"] = loop_time - sum(sections.values())
     return {
         "loop_time": loop_time,
-        "n_atoms": state.n_atoms,
         "sections": sections,
         "n_builds": neighbor_list.n_builds - builds_before,
-        "n_pairs": neighbor_list.n_pairs,
+        "n_pairs": int(neighbor_list.n_pairs),
     }
 
 

@@ -182,6 +182,31 @@ def test_random_configs_run_or_exit_2_without_touching_files(workspace, data, re
         path.unlink()
 
 
+@pytest.mark.parametrize(
+    ("run_table", "flags", "expected"),
+    [
+        ({}, ["--threads", "0"], "--threads: threads must be a positive integer, got 0"),
+        ({}, ["--threads", "100000"], "--threads: threads = 100000 is more than the"),
+        ({"threads": "two"}, [], "[run] threads: expected an integer, got 'two'"),
+        ({"threads": 0}, [], "[run] threads"),
+    ],
+)
+def test_bad_thread_counts_exit_2_before_any_output(workspace, run_table, flags, expected):
+    from md.parallel import get_threads
+
+    before_threads = get_threads()
+    data = {**BASE, "run": {**BASE["run"], **run_table}}
+    config = workspace / "run.toml"
+    config.write_text(to_toml(data))
+    before = _snapshot(workspace)
+    with _in(workspace):
+        code, err = run_cli(["run", str(config), "--no-progress", "-q", *flags])
+    check_outcome(code, err)
+    assert code == 2 and expected in err, err
+    assert _snapshot(workspace) == before
+    assert get_threads() == before_threads  # a refused setting changes nothing
+
+
 def _xyz(positions, box, symbols=None, pbc="T T T", count=None) -> str:
     n = len(positions) if count is None else count
     lattice = " ".join(str(x) for x in np.diag(box).ravel())
