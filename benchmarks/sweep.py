@@ -12,7 +12,7 @@ Each repeat times, in the same order, three ways of doing the same 16 runs:
 
 * ``serial``: ``md run --threads 1`` of each run's config one after another
   in child processes, with no Dask at all (the baseline a shell loop gives);
-* ``dask, 1 worker`` and ``dask, 2 workers``: ``md.sweep.run_sweep`` on a
+* ``dask, 1 worker`` and ``dask, 2 workers``: ``md.sweeps.run_sweep`` on a
   ``LocalCluster`` of that many single-threaded worker processes (the
   cluster is started before the clock starts and closed after it stops).
 
@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from md import sweep as sw
+from md import sweeps as sw
 
 CONFIG = """\
 units = "lj"

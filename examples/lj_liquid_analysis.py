@@ -21,8 +21,8 @@ import numpy as np
 
 import md
 from integrators import VelocityVerlet
-from md.analysis import temperature
 from md.cli import main as md_main
+from md.thermo import temperature
 from md.trajectory import H5MDWriter
 from potentials import LennardJones
 

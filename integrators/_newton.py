@@ -25,7 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from integrators.base import ConvergenceError
-from md.neighbors import NonFiniteError
+from md.errors import NonFiniteError
 from potentials.base import SupportsHessian
 
 logger = logging.getLogger(__name__)

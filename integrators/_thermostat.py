@@ -28,8 +28,9 @@ import math
 
 import numpy as np
 
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 from integrators.rattle import as_constraints, constrained_thermo_terms
+from md._checks import positive
 
 
 def check_temperature(temperature: float, positive: bool = False) -> float:
@@ -46,20 +47,6 @@ def check_temperature(temperature: float, positive: bool = False) -> float:
     return value
 
 
-def check_positive(value: float, name: str, allow_zero: bool = False) -> float:
-    """Return ``value`` as a float, or raise ValueError if not positive (or >= 0) and finite."""
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
-        raise ValueError(f"{name} must be finite and {'>= 0' if allow_zero else '> 0'}, "
-                         f"got {value!r}")  # fmt: skip
-    return number
-
-
 def make_rng(seed) -> np.random.Generator:
     """A numpy Generator from a seed (int, list of ints, None) or a Generator itself."""
     if isinstance(seed, np.random.Generator):
@@ -70,7 +57,7 @@ def make_rng(seed) -> np.random.Generator:
         raise ValueError(f"seed must be an integer, a list of integers or None ({error})") from None
 
 
-class Thermostat:
+class Thermostat(IntegratorBase):
     """Base of the thermostats: parameters, degrees of freedom, bath energy, saved state.
 
     Subclasses implement ``step`` and ``describe`` and list their private
@@ -90,7 +77,7 @@ class Thermostat:
     def __init__(self, dt, temperature, kB=1.0, constraints=None, fix_com=True) -> None:
         self.dt = check_dt(dt)
         self.temperature = check_temperature(temperature)
-        self.kB = check_positive(kB, "kB")
+        self.kB = positive(kB, "kB")
         self.constraints = as_constraints(constraints)
         self.fix_com = bool(fix_com)
         self.reservoir = 0.0

@@ -1,24 +1,53 @@
-"""The Integrator protocol and the errors integrators raise."""
+"""The Integrator protocol, its capability flags, and the checks integrators share."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
 
-if TYPE_CHECKING:
+from md._checks import positive
+from md.errors import ConvergenceError
+
+if TYPE_CHECKING:  # annotations only: integrators import nothing above layer 0 of md
     from md.forcefield import ForceField
     from md.state import State
 
 
+@runtime_checkable
 class Integrator(Protocol):
     """Advance a State by one time step.
 
     ``step`` updates ``state.positions`` and ``state.velocities`` in place and
-    advances ``state.step`` by one and ``state.time`` by ``dt``. Anything
-    staggered (half-step velocities, solver history) stays private to the
-    integrator; ``reset`` drops it.
+    advances ``state.step`` by one and ``state.time`` by ``dt``; it asks the
+    force field for forces with ``forcefield.compute(state, virial=False)``.
+    Anything staggered (half-step velocities, solver history, a random
+    generator) stays private to the integrator; ``reset`` drops it, and
+    ``get_state()``/``set_state(saved)`` (optional) expose it as plain data so
+    that checkpoints restart it exactly.
+
+    Capability flags are class attributes, read by the config, the CLI and
+    the integrator study; :class:`IntegratorBase` gives their defaults:
+
+    ``thermostat``
+        It controls the temperature (takes ``temperature`` and ``seed``) and
+        reports a conserved quantity through ``thermo_terms``.
+    ``stochastic``
+        It draws random numbers (a ``seed`` makes runs repeatable).
+    ``canonical``
+        It samples the canonical ensemble (False: Berendsen).
+    ``supports_constraints`` / ``requires_constraints``
+        It takes ``constraints=`` (bond constraints); it cannot run without them.
+    ``adaptive``
+        It chooses its own substeps inside one output step, so it has no fixed
+        order in ``dt`` and no per-step displacement bound.
     """
 
     dt: float
+    thermostat: ClassVar[bool]
+    stochastic: ClassVar[bool]
+    canonical: ClassVar[bool]
+    supports_constraints: ClassVar[bool]
+    requires_constraints: ClassVar[bool]
+    adaptive: ClassVar[bool]
 
     def step(self, state: State, forcefield: ForceField) -> None: ...
 
@@ -27,23 +56,23 @@ class Integrator(Protocol):
     def describe(self) -> dict: ...
 
 
-class ConvergenceError(RuntimeError):
-    """An implicit step failed to converge."""
+class IntegratorBase:
+    """Defaults of the capability flags; every integrator in the registry derives from it."""
 
-    def __init__(self, step: int, residual: float, message: str = "") -> None:
-        self.step = step
-        self.residual = residual
-        super().__init__(
-            message or f"step {step}: implicit solve did not converge (residual {residual:.3g})"
-        )
+    thermostat: ClassVar[bool] = False
+    stochastic: ClassVar[bool] = False
+    canonical: ClassVar[bool] = True
+    supports_constraints: ClassVar[bool] = False
+    requires_constraints: ClassVar[bool] = False
+    adaptive: ClassVar[bool] = False
+
+    def reset(self) -> None:
+        """Drop private history (nothing, for a one-step method)."""
 
 
 def check_dt(dt: float) -> float:
-    """Return ``dt`` as a float, or raise ValueError if it is not positive and finite."""
-    try:
-        value = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a number, got {dt!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise ValueError(f"dt must be positive and finite, got {dt!r}")
-    return value
+    """Return ``dt`` as a float, or raise ValueError if it is not finite and > 0."""
+    return positive(dt, "dt")
+
+
+__all__ = ["ConvergenceError", "Integrator", "IntegratorBase", "check_dt"]

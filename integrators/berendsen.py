@@ -5,9 +5,10 @@ from __future__ import annotations
 import logging
 import math
 
-from integrators._thermostat import Thermostat, check_positive
+from integrators._thermostat import Thermostat
 from integrators.rattle import constrained_verlet_step
-from md.analysis import kinetic_energy
+from md._checks import positive
+from md.thermo import kinetic_energy
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ class Berendsen(Thermostat):
         fix_com: bool = True,
     ) -> None:
         super().__init__(dt, temperature, kB, constraints, fix_com)
-        self.tau = check_positive(tau, "tau")
+        self.tau = positive(tau, "tau")
         logger.warning(
             "Berendsen thermostat: it does not sample the canonical ensemble (kinetic-energy "
             "fluctuations are suppressed); use it for equilibration and switch to langevin, "

@@ -6,9 +6,10 @@ import math
 
 import numpy as np
 
-from integrators._thermostat import Thermostat, check_positive, make_rng
+from integrators._thermostat import Thermostat, make_rng
 from integrators.rattle import constrained_verlet_step
-from md.analysis import kinetic_energy
+from md._checks import positive
+from md.thermo import kinetic_energy
 
 
 class Bussi(Thermostat):
@@ -70,7 +71,7 @@ class Bussi(Thermostat):
         fix_com: bool = True,
     ) -> None:
         super().__init__(dt, temperature, kB, constraints, fix_com)
-        self.tau = check_positive(tau, "tau")
+        self.tau = positive(tau, "tau")
         self.seed = seed if not isinstance(seed, np.random.Generator) else None
         self.rng = make_rng(seed)
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 from numba import njit
 
 from integrators._kernels import _kick_drift
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 
 
-class ExplicitEuler:
+class ExplicitEuler(IntegratorBase):
     """Explicit (forward) Euler: x1 = x0 + dt v0, v1 = v0 + dt a(x0).
 
     First order and not symplectic: on a harmonic oscillator the energy grows
@@ -49,7 +49,7 @@ class ExplicitEuler:
         return {"type": "explicit_euler", "dt": self.dt}
 
 
-class SymplecticEuler:
+class SymplecticEuler(IntegratorBase):
     """Symplectic (semi-implicit) Euler: v1 = v0 + dt a(x0), x1 = x0 + dt v1.
 
     First order but symplectic: on an oscillator the energy oscillates within

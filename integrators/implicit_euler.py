@@ -14,10 +14,10 @@ step to the midpoint followed by a forward Euler half step, so it takes
 from __future__ import annotations
 
 from integrators._newton import IncrementalSolver, check_solver_options, new_statistics
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 
 
-class _ImplicitBase:
+class _ImplicitBase(IntegratorBase):
     """Options, statistics and the solver shared by the two implicit methods."""
 
     _type = ""

@@ -8,7 +8,8 @@ import numpy as np
 from numba import njit
 
 from integrators._kernels import _drift, _kick
-from integrators._thermostat import Thermostat, check_positive, make_rng
+from integrators._thermostat import Thermostat, make_rng
+from md._checks import positive
 
 
 class Langevin(Thermostat):
@@ -89,7 +90,7 @@ class Langevin(Thermostat):
         fix_com: bool = True,
     ) -> None:
         super().__init__(dt, temperature, kB, constraints, fix_com)
-        self.friction = check_positive(friction, "friction", allow_zero=True)
+        self.friction = positive(friction, "friction", allow_zero=True)
         self.seed = seed if not isinstance(seed, np.random.Generator) else None
         self.rng = make_rng(seed)
         self._noise: np.ndarray | None = None
@@ -131,7 +132,7 @@ class Langevin(Thermostat):
         if constraints is None:
             _drift(state.positions, state.velocities, duration)
             return
-        reference = constraints._reference
+        reference = constraints.reference_buffer
         reference[:] = state.positions
         _drift(state.positions, state.velocities, duration)
         constraints.shake(state, reference, duration, inverse_masses, step)

@@ -6,10 +6,10 @@ import numpy as np
 from numba import njit
 
 from integrators._kernels import _kick_drift
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 
 
-class Leapfrog:
+class Leapfrog(IntegratorBase):
     """Leapfrog (kick-drift) integrator with half-step velocities kept privately.
 
     Each step, with a(t) = f(x(t)) / m::

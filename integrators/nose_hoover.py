@@ -7,9 +7,10 @@ import math
 import numpy as np
 from numba import njit
 
-from integrators._thermostat import Thermostat, check_positive, check_temperature
+from integrators._thermostat import Thermostat, check_temperature
 from integrators.rattle import constrained_verlet_step
-from md.analysis import kinetic_energy
+from md._checks import positive
+from md.thermo import kinetic_energy
 
 #: Suzuki-Yoshida weights of the fourth-order composition (three stages).
 _W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
@@ -83,7 +84,7 @@ class NoseHooverChain(Thermostat):
     ) -> None:
         super().__init__(dt, check_temperature(temperature, positive=True), kB, constraints,
                          fix_com)  # fmt: skip
-        self.tau = check_positive(tau, "tau")
+        self.tau = positive(tau, "tau")
         for name, value in (("chain_length", chain_length), ("n_substeps", n_substeps)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")

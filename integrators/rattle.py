@@ -29,9 +29,10 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from integrators._kernels import _kick, _kick_drift
-from integrators.base import ConvergenceError, check_dt
-from md.analysis import degrees_of_freedom as _unconstrained_dof
-from md.box import _min_image, minimum_image, periodic_lengths
+from integrators.base import ConvergenceError, IntegratorBase, check_dt
+from md._checks import bond_array, read_bonds_file
+from md.box import min_image_component, minimum_image, periodic_lengths
+from md.thermo import degrees_of_freedom as unconstrained_dof
 
 #: Stage names used in error messages.
 _STAGES = {"positions": "SHAKE (bond lengths)", "velocities": "RATTLE (bond velocities)"}
@@ -105,9 +106,7 @@ class BondConstraints:
         tol: float = 1e-8,
         max_iter: int = 1000,
     ) -> None:
-        from potentials.springs import _bond_array
-
-        self.bonds = _bond_array(bonds)
+        self.bonds = bond_array(bonds)
         self.bonds.flags.writeable = False
         keys = np.sort(self.bonds, axis=1)
         unique, counts = np.unique(keys, axis=0, return_counts=True)
@@ -147,8 +146,6 @@ class BondConstraints:
         columns, the path used as given), optional ``lengths`` (a number or
         one per bond; default: the starting lengths), ``tol``, ``max_iter``.
         """
-        from potentials.springs import _read_bonds_file
-
         params = dict(params)
         allowed = {"bonds", "bonds_file", "lengths", "tol", "max_iter"}
         unknown = set(params) - allowed
@@ -161,7 +158,7 @@ class BondConstraints:
             raise ValueError("give exactly one of 'bonds' (a list of [i, j], or \"system\") "
                              "and 'bonds_file'")  # fmt: skip
         if "bonds_file" in params:
-            bonds = _read_bonds_file(params.pop("bonds_file"))
+            bonds = read_bonds_file(params.pop("bonds_file"))
         else:
             bonds = params.pop("bonds")
             if bonds == "system":
@@ -218,7 +215,8 @@ class BondConstraints:
                 self.lengths = current
         self._d2 = self.lengths**2 if self.n_constraints else np.zeros(0)
         self._n_atoms = state.n_atoms
-        self._reference = np.empty_like(state.positions)
+        # Positions before a drift, SHAKE's reference; a buffer integrators fill and pass in.
+        self.reference_buffer = np.empty_like(state.positions)
         inverse_masses = 1.0 / state.masses
         self.shake(state, state.positions.copy(), 1.0, inverse_masses, step, move_velocities=False)
         self.rattle(state, dt, inverse_masses, step)
@@ -382,7 +380,7 @@ def constrained_verlet_step(state, forcefield, dt: float, constraints) -> None:
         _kick(state.velocities, forces, inverse_masses, half)
         return
     step = state.step + 1
-    reference = constraints._reference
+    reference = constraints.reference_buffer
     reference[:] = state.positions
     _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
     constraints.shake(state, reference, dt, inverse_masses, step)
@@ -399,7 +397,7 @@ def constrained_thermo_terms(constraints, n_dof: int, state, result) -> dict:
     return terms
 
 
-class Rattle:
+class Rattle(IntegratorBase):
     """Velocity Verlet with rigid bonds: SHAKE after the drift, RATTLE after the last kick.
 
     Symplectic and time reversible on the constraint surface, second order
@@ -465,7 +463,7 @@ class Rattle:
 
     def degrees_of_freedom(self, n_atoms: int) -> int:
         """3N - 3 - (number of constraints): momentum is conserved and not counted."""
-        return _unconstrained_dof(n_atoms) - self.constraints.n_constraints
+        return unconstrained_dof(n_atoms) - self.constraints.n_constraints
 
     def thermo_terms(self, state, result) -> dict:
         """Degrees of freedom and constraint virial for :meth:`md.Simulation.thermo`."""
@@ -498,9 +496,9 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
         for k in range(n_bonds):
             i = bonds[k, 0]
             j = bonds[k, 1]
-            sx = _min_image(positions[i, 0] - positions[j, 0], lengths[0], inverse[0])
-            sy = _min_image(positions[i, 1] - positions[j, 1], lengths[1], inverse[1])
-            sz = _min_image(positions[i, 2] - positions[j, 2], lengths[2], inverse[2])
+            sx = min_image_component(positions[i, 0] - positions[j, 0], lengths[0], inverse[0])
+            sy = min_image_component(positions[i, 1] - positions[j, 1], lengths[1], inverse[1])
+            sz = min_image_component(positions[i, 2] - positions[j, 2], lengths[2], inverse[2])
             diff = d2[k] - (sx * sx + sy * sy + sz * sz)
             error = abs(diff) / (2.0 * d2[k])
             if error > worst:
@@ -508,9 +506,9 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
                 worst_bond = k
             if error <= tol or sweep == max_iter:
                 continue
-            rx = _min_image(reference[i, 0] - reference[j, 0], lengths[0], inverse[0])
-            ry = _min_image(reference[i, 1] - reference[j, 1], lengths[1], inverse[1])
-            rz = _min_image(reference[i, 2] - reference[j, 2], lengths[2], inverse[2])
+            rx = min_image_component(reference[i, 0] - reference[j, 0], lengths[0], inverse[0])
+            ry = min_image_component(reference[i, 1] - reference[j, 1], lengths[1], inverse[1])
+            rz = min_image_component(reference[i, 2] - reference[j, 2], lengths[2], inverse[2])
             rs = rx * sx + ry * sy + rz * sz
             if not rs > 1e-6 * d2[k]:
                 return max_iter + 1, np.inf, k
@@ -550,7 +548,9 @@ def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, 
         i = bonds[k, 0]
         j = bonds[k, 1]
         for a in range(3):
-            vectors[k, a] = _min_image(positions[i, a] - positions[j, a], lengths[a], inverse[a])
+            vectors[k, a] = min_image_component(
+                positions[i, a] - positions[j, a], lengths[a], inverse[a]
+            )
         r2 = vectors[k, 0] ** 2 + vectors[k, 1] ** 2 + vectors[k, 2] ** 2
         weights[k] = 1.0 / (r2 * (inverse_masses[i] + inverse_masses[j]))
     worst = 0.0

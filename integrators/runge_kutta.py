@@ -19,8 +19,9 @@ import math
 import numpy as np
 from numba import njit
 
-from integrators.base import ConvergenceError, check_dt
-from md.neighbors import NonFiniteError
+from integrators.base import ConvergenceError, IntegratorBase, check_dt
+from md._checks import positive
+from md.errors import NonFiniteError
 
 
 class _Tableau:
@@ -92,7 +93,7 @@ class _Workspace:
         np.copyto(state.velocities, self.v0)
 
 
-class RK4:
+class RK4(IntegratorBase):
     """Classical fourth-order Runge-Kutta on (x, v).
 
     Four force evaluations per step, none served from the cache (the last
@@ -141,7 +142,7 @@ class RK4:
         return {"type": "rk4", "dt": self.dt}
 
 
-class RKF45:
+class RKF45(IntegratorBase):
     """Runge-Kutta-Fehlberg 4(5) with adaptive internal substeps.
 
     :meth:`step` advances the state by exactly ``dt`` (so frames and
@@ -215,8 +216,8 @@ class RKF45:
         max_substeps: int = 100000,
     ) -> None:
         self.dt = check_dt(dt)
-        self.tol = _positive(tol, "tol")
-        self.dt_min = None if dt_min is None else _positive(dt_min, "dt_min")
+        self.tol = positive(tol, "tol")
+        self.dt_min = None if dt_min is None else positive(dt_min, "dt_min")
         if (
             isinstance(max_substeps, bool)
             or not isinstance(max_substeps, int | np.integer)
@@ -335,16 +336,6 @@ class RKF45:
             return self.SHRINK_MIN
         factor = self.SAFETY * (self.tol / error) ** 0.2
         return min(self.GROWTH_MAX, max(self.SHRINK_MIN, factor))
-
-
-def _positive(value, name: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (number > 0 and number < float("inf")):
-        raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    return number
 
 
 @njit(cache=True, error_model="numpy")

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from integrators._kernels import _drift, _kick_drift
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 
 
-class StormerVerlet:
+class StormerVerlet(IntegratorBase):
     """Position Verlet: half drift, full kick, half drift.
 
     ::

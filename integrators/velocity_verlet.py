@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from integrators._kernels import _kick, _kick_drift
-from integrators.base import check_dt
+from integrators.base import IntegratorBase, check_dt
 
 
-class VelocityVerlet:
+class VelocityVerlet(IntegratorBase):
     """Velocity Verlet integrator (kick, drift, force, kick).
 
     One force evaluation per step: the forces at the end of a step are the

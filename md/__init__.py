@@ -11,48 +11,71 @@ The Python API::
     sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005))
     sim.run(1000)
     sim.thermo()
+
+    sim, summary = md.run_config("examples/lj_small.toml", steps=100)   # what `md run` does
+
+The package is layered; each module imports only from layers below it (see
+ARCHITECTURE.md). This facade re-exports the public names; it is the only
+module allowed to reach every layer.
 """
 
+from md._version import __version__
 from md.build import lattice, maxwell_boltzmann
+from md.errors import (
+    CheckpointError,
+    ConfigError,
+    ConvergenceError,
+    NonFiniteError,
+    SimulationError,
+    TrajectoryError,
+)
 from md.forcefield import ForceField
-from md.neighbors import NeighborList, NonFiniteError
-from md.simulation import Simulation, SimulationError
+from md.neighbors import NeighborList
+from md.simulation import Simulation
 from md.state import State
 from md.units import UNIT_SYSTEMS, UnitSystem, get_units
 
-__version__ = "0.1.0"
+#: Names from the upper layers, resolved on first access: ``md.config`` and ``md.run``
+#: import the integrator registry, so loading them here would make ``import
+#: integrators`` (which imports layer 0 of md, hence this file) circular.
+_LAZY = {"run_config": "md.run", "open_trajectory": "md.trajectory"}
 
 
-def open_trajectory(path, **kwargs):
-    """Open an H5MD trajectory we wrote as an MDAnalysis Universe (see md.trajectory)."""
-    from md.trajectory import open_trajectory as _open
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib  # resolves the upper-layer names listed in _LAZY
 
-    return _open(path, **kwargs)
-
-
-def __getattr__(name):
-    # md.sweep (parameter sweeps on Dask) is imported on first use, so that
-    # ``import md`` stays light and never imports Dask. The module is callable:
-    # md.sweep(config, vary=..., ...) calls md.sweep.sweep.
-    if name == "sweep":
-        import importlib
-
-        return importlib.import_module("md.sweep")
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'md' has no attribute {name!r}")
+
+
+def sweep(config, vary=None, replicas: int = 1, out=None, **options):
+    """Run a parameter sweep on Dask; see :func:`md.sweeps.sweep` for the arguments."""
+    from md.sweeps import sweep as run_sweep  # Dask machinery: loaded on first use
+
+    return run_sweep(config, vary=vary, replicas=replicas, out=out, **options)
 
 
 __all__ = [
     "UNIT_SYSTEMS",
+    "CheckpointError",
+    "ConfigError",
+    "ConvergenceError",
     "ForceField",
     "NeighborList",
     "NonFiniteError",
     "Simulation",
     "SimulationError",
     "State",
+    "TrajectoryError",
     "UnitSystem",
+    "__version__",
     "get_units",
     "lattice",
     "maxwell_boltzmann",
     "open_trajectory",
+    "run_config",
     "sweep",
 ]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from md.box import _min_image
+from md.box import min_image_component
 
 
 @njit(cache=True, error_model="numpy")
@@ -32,9 +32,9 @@ def _brute_force_pairs(positions, lengths, inverse, r2_max, starts, neighbors):
         yi = positions[i, 1]
         zi = positions[i, 2]
         for j in range(i + 1, n):
-            dx = _min_image(xi - positions[j, 0], lengths[0], inverse[0])
-            dy = _min_image(yi - positions[j, 1], lengths[1], inverse[1])
-            dz = _min_image(zi - positions[j, 2], lengths[2], inverse[2])
+            dx = min_image_component(xi - positions[j, 0], lengths[0], inverse[0])
+            dy = min_image_component(yi - positions[j, 1], lengths[1], inverse[1])
+            dz = min_image_component(zi - positions[j, 2], lengths[2], inverse[2])
             if dx * dx + dy * dy + dz * dz < r2_max:
                 if count < capacity:
                     neighbors[count] = j

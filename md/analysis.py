@@ -1,11 +1,9 @@
 """Thermodynamic quantities from arrays, and analysis of the trajectories we write.
 
-Two layers live here:
+The pure numpy helpers the engine calls every step (:func:`kinetic_energy`,
+:func:`degrees_of_freedom`, :func:`temperature`, :func:`pressure`) live in
+:mod:`md.thermo` and are re-exported here. What this module adds:
 
-* Pure numpy helpers the engine calls every step: :func:`kinetic_energy`,
-  :func:`degrees_of_freedom`, :func:`temperature`, :func:`pressure`. Importing
-  this module imports only numpy; h5py, scipy and MDAnalysis are imported
-  inside the functions that need them.
 * Analyses of an H5MD file written by :class:`md.trajectory.H5MDWriter`:
   :func:`thermo` (time series, block-averaged means, energy drift),
   :func:`rdf` (g(r) per type pair through ``MDAnalysis.analysis.rdf.InterRDF``,
@@ -54,8 +52,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import h5py
 import numpy as np
 from numpy.typing import NDArray
+
+from md.errors import AnalysisError, TrajectoryError
+from md.trajectory import attr_text, maybe_json, open_h5md, open_trajectory
+from md.units import get_units
 
 logger = logging.getLogger(__name__)
 
@@ -71,53 +74,7 @@ MIN_DIFFUSION_FRAMES = 5
 SAMPLING_TOLERANCE = 0.05
 
 
-# ------------------------------------------------------------- engine helpers
-def kinetic_energy(velocities: NDArray[np.float64], masses: NDArray[np.float64]) -> float:
-    """Return the total kinetic energy [energy].
-
-    Parameters
-    ----------
-    velocities : ndarray of float64, shape (N, 3)
-        Particle velocities [length/time].
-    masses : ndarray of float64, shape (N,)
-        Particle masses [mass].
-    """
-    return 0.5 * float(np.einsum("i,ij,ij->", masses, velocities, velocities))
-
-
-def degrees_of_freedom(n_atoms: int) -> int:
-    """Return the kinetic degrees of freedom, 3N - 3.
-
-    The three removed are the centre-of-mass momentum, which the velocity
-    builders set to zero and the integrators conserve (the convention of
-    LAMMPS's ``compute temp``). A single atom keeps its 3.
-    """
-    return 3 * n_atoms - 3 if n_atoms > 1 else 3 * n_atoms
-
-
-def temperature(velocities, masses, kB: float = 1.0) -> float:
-    """Return the kinetic temperature 2 K / (n_dof kB) [temperature]."""
-    n_dof = degrees_of_freedom(len(masses))
-    if n_dof == 0:
-        return 0.0
-    return 2.0 * kinetic_energy(velocities, masses) / (n_dof * kB)
-
-
-def pressure(kinetic: float, virial: NDArray[np.float64], volume: float) -> float:
-    """Return the pressure (2 K + tr W) / (3 V) [energy/length^3].
-
-    ``virial`` is the (3, 3) pair virial W_ab = sum over pairs of r_ij,a F_ij,b
-    (positive for repulsion). The kinetic term uses all 3N velocity
-    components, as the virial theorem does. NaN for a zero volume (open box).
-    """
-    if volume <= 0:
-        return float("nan")
-    return (2.0 * kinetic + float(np.trace(virial))) / (3.0 * volume)
-
-
 # ------------------------------------------------------------ array analyses
-class AnalysisError(ValueError):
-    """A trajectory lacks what an analysis needs, or its parameters do not fit the data."""
 
 
 @dataclass(frozen=True)
@@ -193,7 +150,7 @@ def velocity_autocorrelation(velocities: NDArray[np.float64], chunk: int | None 
     ndarray of float64, shape (F, N)
         ``C_i(k)`` [length^2/time^2]; average over axis 1 for the VACF.
     """
-    import scipy.fft
+    import scipy.fft  # scipy submodule: loaded only by this analysis
 
     velocities = np.asarray(velocities, dtype=np.float64)
     n_frames, n_atoms = velocities.shape[:2]
@@ -295,18 +252,17 @@ def trajectory_info(path, start=None, stop=None, step=None) -> TrajectoryInfo:
     AnalysisError
         If ``step`` is not a positive integer.
     """
-    from md.trajectory import TrajectoryError, _maybe_json, _open_h5md, _text
 
     path = Path(path)
-    with _open_h5md(path) as f:
+    with open_h5md(path) as f:
         try:
             group = f["particles/trajectory"]
             parameters = f["parameters"].attrs if "parameters" in f else {}
-            units = _text(parameters.get("units", "lj"))
+            units = attr_text(parameters.get("units", "lj"))
             n_total = len(group["position/step"])
             frames = _select(n_total, start, stop, step)
             sel = _as_slice(frames)
-            names = _maybe_json(parameters.get("type_names", "[]"))
+            names = maybe_json(parameters.get("type_names", "[]"))
             types = group["species"][()].astype(np.int32)
             if not names:
                 names = [f"T{t}" for t in range(int(types.max()) + 1)] if len(types) else []
@@ -326,7 +282,7 @@ def trajectory_info(path, start=None, stop=None, step=None) -> TrajectoryInfo:
                 frames=frames,
                 steps=group["position/step"][sel] if len(frames) else np.zeros(0, np.int64),
                 times=group["position/time"][sel] if len(frames) else np.zeros(0),
-                pbc=np.array([_text(b) == "periodic" for b in group["box"].attrs["boundary"]]),
+                pbc=np.array([attr_text(b) == "periodic" for b in group["box"].attrs["boundary"]]),
                 types=types,
                 type_names=tuple(str(n) for n in names),
                 has_velocities="velocity" in group,
@@ -339,8 +295,6 @@ def trajectory_info(path, start=None, stop=None, step=None) -> TrajectoryInfo:
 
 def unit_labels(units: str) -> dict[str, str]:
     """Labels of the quantities in a file of unit system ``units`` (for axes and tables)."""
-    from md.units import get_units
-
     labels = dict(get_units(units).labels)
     length, time = labels["length"], labels["time"]
     labels["diffusion"] = f"{length}^2/{time}"
@@ -376,8 +330,6 @@ def _require(info: TrajectoryInfo, analysis: str) -> None:
 
 def _read(info: TrajectoryInfo, name: str) -> NDArray:
     """Read ``particles/trajectory/<name>/value`` on the selected frames (file units)."""
-    import h5py
-
     with h5py.File(info.path, "r") as f:
         return f[f"particles/trajectory/{name}/value"][_as_slice(info.frames)]
 
@@ -440,7 +392,7 @@ def _selected_atoms(info: TrajectoryInfo, select: str) -> NDArray[np.int64]:
     """Atom indices an MDAnalysis selection string picks (on a topology-only Universe)."""
     if select in (None, "all"):
         return np.arange(info.n_atoms)
-    import MDAnalysis as mda
+    import MDAnalysis as mda  # heavy: MDAnalysis on first use
 
     universe = mda.Universe.empty(info.n_atoms, trajectory=False)
     universe.add_TopologyAttr("types", [info.type_names[t] for t in info.types])
@@ -519,8 +471,7 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
     >>> # result = thermo("run.h5", start=10)
     >>> # result.averages["temperature"].mean, result.energy_drift
     """
-    import h5py
-    from scipy import stats
+    from scipy import stats  # scipy submodule: loaded only by this analysis
 
     info = trajectory_info(path, start, stop, step)
     _require(info, "thermo")
@@ -651,10 +602,8 @@ def rdf(
     verbose : bool
         Show MDAnalysis's progress bar.
     """
-    from MDAnalysis.analysis.rdf import InterRDF
-    from scipy.signal import find_peaks
-
-    from md.trajectory import open_trajectory
+    from MDAnalysis.analysis.rdf import InterRDF  # heavy: MDAnalysis on first use
+    from scipy.signal import find_peaks  # scipy submodule: loaded only by this analysis
 
     info = trajectory_info(path, start, stop, step)
     _require(info, "rdf")
@@ -833,9 +782,9 @@ def msd(
     verbose : bool
         Show MDAnalysis's progress bars.
     """
-    import MDAnalysis as mda
-    from MDAnalysis.analysis.msd import EinsteinMSD
-    from MDAnalysis.coordinates.memory import MemoryReader
+    import MDAnalysis as mda  # heavy: MDAnalysis on first use
+    from MDAnalysis.analysis.msd import EinsteinMSD  # heavy: MDAnalysis on first use
+    from MDAnalysis.coordinates.memory import MemoryReader  # heavy: MDAnalysis on first use
 
     info = trajectory_info(path, start, stop, step)
     _require(info, "msd")
@@ -964,6 +913,7 @@ def vacf(
     select, n_blocks, start, stop, step
         As for :func:`msd`.
     """
+    # scipy submodule: loaded only by this analysis
     from scipy.integrate import cumulative_trapezoid
 
     try:

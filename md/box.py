@@ -53,6 +53,6 @@ def wrap(positions: NDArray[np.float64], box, pbc):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _min_image(d, length, inverse):
+def min_image_component(d, length, inverse):
     """Minimum image of one displacement component (length 0: open axis)."""
     return d - length * np.rint(d * inverse)

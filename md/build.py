@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from md.analysis import degrees_of_freedom, kinetic_energy
 from md.state import State
+from md.thermo import degrees_of_freedom, kinetic_energy
 
 #: Fractional coordinates of the conventional cubic cell's basis.
 LATTICE_BASES: dict[str, np.ndarray] = {

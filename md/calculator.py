@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from md.forcefield import ForceField
 from md.state import State, orthorhombic_box, types_from_ase
+from potentials import POTENTIALS
 
 #: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
 _SORT_FROM = 8192
@@ -346,8 +347,6 @@ class MDCalculator(Calculator):
 
 def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):
     """Return (potentials, type_names): tables built into potentials, names resolved."""
-    from potentials import POTENTIALS
-
     if isinstance(entries, Mapping) or not isinstance(entries, Sequence) or not entries:
         raise ValueError("potentials must be a non-empty list of potentials or tables")
     names = None if type_names is None else tuple(str(name) for name in type_names)

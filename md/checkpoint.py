@@ -28,24 +28,19 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from md._files import atomic_path
+from md.errors import CheckpointError
 from md.state import State
-from md.trajectory import usual_permissions
 
 FORMAT = "leapmd-checkpoint"
 VERSION = 1
 #: Suffix appended to the trajectory path to name its checkpoint.
 SUFFIX = ".ckpt"
-
-
-class CheckpointError(ValueError):
-    """A checkpoint is missing, unreadable, not ours, or does not fit the run."""
 
 
 def checkpoint_path(trajectory) -> Path:
@@ -139,7 +134,7 @@ def write_checkpoint(
         "types": state.types,
     }
     nl = getattr(forcefield, "neighbor_list", None)
-    reference = getattr(nl, "_reference", None)
+    reference = None if nl is None else nl.reference_positions
     if reference is not None and reference.shape == state.positions.shape:
         arrays["neighbor_reference"] = reference
     get_state = getattr(integrator, "get_state", None)
@@ -159,38 +154,9 @@ def write_checkpoint(
         "extra": _plain(extra or {}),
     }
     arrays["meta"] = np.array(json.dumps(meta))
-    descriptor, temporary = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
-    )
-    usual_permissions(descriptor)
-    try:
-        with os.fdopen(descriptor, "wb") as handle:
-            np.savez(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
-        raise
-    _sync_directory(path.parent)
+    with atomic_path(path) as temporary, open(temporary, "wb") as handle:
+        np.savez(handle, **arrays)
     return path
-
-
-def _sync_directory(directory: Path) -> None:
-    """Make the rename durable (POSIX); harmless where directories cannot be opened."""
-    try:
-        descriptor = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
 
 
 # ---------------------------------------------------------------------- reading
@@ -284,9 +250,7 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
             ) from None
     nl = getattr(forcefield, "neighbor_list", None)
     if nl is not None and checkpoint.neighbor_reference is not None:
-        at_build = checkpoint.state.copy()
-        at_build.positions[:] = checkpoint.neighbor_reference
-        nl.build(at_build)
+        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference)
         # The result cache may hold forces from the built configuration; drop it.
         forcefield.invalidate()
 
@@ -419,3 +383,50 @@ __all__ = [
     "restore",
     "write_checkpoint",
 ]
+
+
+# ------------------------------------------------------------------ observer
+class Checkpointer:
+    """Observer writing a checkpoint (atomically) with the trajectory's frame count.
+
+    Attach it after the trajectory writer, so that a checkpoint counts the
+    frame of its own step.
+
+    Parameters
+    ----------
+    path : Path
+        Checkpoint file (``checkpoint_path(trajectory)``).
+    writer : H5MDWriter
+        The run's trajectory writer (its ``n_frames`` and ``last_step`` are saved).
+    fingerprint : dict
+        Physics configuration compared on resume.
+    run_id : str
+        Identifier shared with the trajectory.
+    config : str
+        The config file name, kept for messages.
+    """
+
+    uses_virial = False  # saves the state; its steps need no virial
+
+    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str) -> None:
+        self.path = Path(path)
+        self.writer = writer
+        self.fingerprint = fingerprint
+        self.run_id = run_id
+        self.config = config
+        self.last_step: int | None = None
+
+    def __call__(self, sim) -> None:
+        last = self.writer.last_step
+        write_checkpoint(
+            self.path,
+            sim.state,
+            sim.integrator,
+            sim.forcefield,
+            fingerprint=self.fingerprint,
+            n_frames=self.writer.n_frames,
+            last_frame_step=-1 if last is None else last,
+            run_id=self.run_id,
+            extra={"config_file": self.config},
+        )
+        self.last_step = sim.state.step

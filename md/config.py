@@ -10,16 +10,18 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from integrators import INTEGRATORS
+from integrators.rattle import BondConstraints
+from md.build import lattice, maxwell_boltzmann
+from md.errors import ConfigError
+from md.polymers import polymer_melt, single_chain
+from md.state import State
 from md.units import UNIT_SYSTEMS, UnitSystem
-
-
-class ConfigError(ValueError):
-    """An invalid configuration: the message names the file, key and value."""
-
+from potentials import POTENTIALS
 
 _MISSING = object()
 #: Largest lattice accepted (4 x 10^7 fcc atoms), so a typo cannot exhaust memory.
@@ -165,7 +167,6 @@ class Config:
     integrator: dict
     run: RunConfig
     output: OutputConfig
-    raw: dict = field(default_factory=dict)
 
 
 def load_config(path) -> Config:
@@ -193,9 +194,6 @@ def load_config(path) -> Config:
 
 def parse_config(data: dict, source: str = "<config>", text: str = "", base=".") -> Config:
     """Validate a config already parsed into a dict (see :func:`load_config`)."""
-    from integrators import INTEGRATORS
-    from potentials import POTENTIALS
-
     top = _Table(data, "", source)
     units_name = top.string("units", None, choices=tuple(UNIT_SYSTEMS))
     seed = top.integer("seed", None, minimum=0)
@@ -259,7 +257,6 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         integrator=integrator,
         run=run,
         output=output,
-        raw=data,
     )
 
 
@@ -325,8 +322,6 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
 
     ``bonds = "system"`` takes the bonds of a polymer built by ``[system]``.
     """
-    from potentials import POTENTIALS
-
     params = dict(entry)
     kind = params.pop("type")
     where = f"{source}: [potentials.{index}] ({kind})"
@@ -350,7 +345,7 @@ def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) 
     ``[integrator.constraints]`` is checked to be a table (built later).
     """
     extra = {}
-    if getattr(cls, "thermostat", False):
+    if cls.thermostat:
         extra["temperature"] = table.number("temperature", minimum=0.0)
         extra["kB"] = units.kB
         tau = table.number("tau", None, positive=True)
@@ -379,15 +374,11 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
     ``[integrator.constraints]`` becomes :class:`integrators.rattle.BondConstraints`;
     its ``bonds = "system"`` takes ``system_bonds`` (a polymer builder's bonds).
     """
-    from integrators import INTEGRATORS
-
     params = dict(entry)
     kind = params.pop("type")
     if "constraints" in params:
-        from integrators.rattle import BondConstraints
-
-        if not getattr(INTEGRATORS[kind], "supports_constraints", False):
-            takers = [n for n, c in INTEGRATORS.items() if getattr(c, "supports_constraints", 0)]
+        if not INTEGRATORS[kind].supports_constraints:
+            takers = [n for n, c in INTEGRATORS.items() if c.supports_constraints]
             raise ConfigError(
                 f"{source}: [integrator] ({kind}) does not apply constraints; use one of "
                 f"{', '.join(takers)}"
@@ -405,16 +396,10 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
 
 
-def build_state(config: Config):
-    """Build the initial State described by ``config.system`` (engine units)."""
-    return build_system(config)[0]
 
 
 def build_system(config: Config):
     """Return ``(state, bonds)``: the initial State and a builder's bonds (or None)."""
-    from md.build import lattice, maxwell_boltzmann
-    from md.polymers import polymer_melt, single_chain
-
     system = config.system
     where = f"{config.source}: [system]"
     bonds = None
@@ -477,9 +462,7 @@ def build_system(config: Config):
 
 def _read_structure(path: Path, where: str, format: str | None = None):
     """Read the last frame of any file ase.io reads; masses from the file or ASE's table."""
-    import ase.io
-
-    from md.state import State
+    import ase.io  # ASE's file readers: loaded only for structure files
 
     _check_xyz_count(path, where, format)
     try:
@@ -517,20 +500,11 @@ def _check_xyz_count(path: Path, where: str, format: str | None) -> None:
         )
 
 
-def describe(config: Config) -> dict:
-    """Plain-data summary of the config for trajectory metadata."""
-    return {
-        "units": config.units.name,
-        "seed": config.seed,
-        "run": {"steps": config.run.steps, "skin": config.run.skin},
-        "integrator": {k: v for k, v in config.integrator.items()},
-    }
 
 
 __all__ = [
     "Config",
     "ConfigError",
-    "build_state",
     "build_system",
     "integrator_from_config",
     "load_config",

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
-from md.neighbors import NeighborList, NonFiniteError
+from md.errors import NonFiniteError
+from md.neighbors import NeighborList
 from md.state import State
-from potentials.base import ForceResult, Potential, SupportsHessian
+from potentials.base import ForceResult, Potential, SupportsHessian, SupportsHessianOperator
 from potentials.pair_hessian import HessianSum
 
 
@@ -52,10 +52,6 @@ class ForceField:
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
         self.virial_wanted = False
-        # Potentials that can skip the virial when nobody needs it.
-        self._lazy_virial = [
-            "virial" in inspect.signature(p.energy_forces).parameters for p in self.potentials
-        ]
         self._cached: ForceResult | None = None
         self._key: tuple[np.ndarray, ...] | None = None
 
@@ -102,12 +98,9 @@ class ForceField:
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
         results = []
-        for potential, lazy in zip(self.potentials, self._lazy_virial, strict=True):
+        for potential in self.potentials:
             neighbors = self.neighbor_list if potential.cutoff is not None else None
-            if lazy:
-                results.append(potential.energy_forces(state, neighbors, per_atom, virial=virial))
-            else:
-                results.append(potential.energy_forces(state, neighbors, per_atom))
+            results.append(potential.energy_forces(state, neighbors, per_atom, virial=virial))
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
@@ -163,7 +156,7 @@ class ForceField:
         terms = []
         for potential in self.potentials:
             neighbors = self.neighbor_list if potential.cutoff is not None else None
-            if hasattr(potential, "hessian_operator"):
+            if isinstance(potential, SupportsHessianOperator):
                 terms.append(potential.hessian_operator(state, neighbors))
             else:
                 terms.append(sp.csr_matrix(potential.hessian(state, neighbors)))

@@ -49,6 +49,7 @@ tables and writes the CSVs and plots.
 
 from __future__ import annotations
 
+import csv
 import logging
 import math
 import time
@@ -57,11 +58,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from md.analysis import kinetic_energy
+from md.errors import ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
-from md.neighbors import NonFiniteError
-from md.simulation import Simulation, SimulationError
+from md.simulation import Simulation
 from md.state import State
+from md.thermo import kinetic_energy
 
 logger = logging.getLogger(__name__)
 
@@ -207,8 +208,6 @@ def compare_integrators(
 
 def _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
          reference_positions=None, stability_tolerance=0.5) -> RunRecord:  # fmt: skip
-    from integrators.base import ConvergenceError
-
     n_steps = max(1, round(span / dt))
     dt = span / n_steps
     state = make_state()
@@ -297,8 +296,6 @@ def _report(name, runs, dts, span, measure_dt) -> IntegratorReport:
 
 def write_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per integrator with :data:`CSV_COLUMNS` (and the measuring dt)."""
-    import csv
-
     with open(path, "x", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=[*CSV_COLUMNS, "measured_at_dt"])
         writer.writeheader()
@@ -308,10 +305,10 @@ def write_csv(reports: Sequence[IntegratorReport], path) -> None:
 
 def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str = "") -> None:
     """Log-log plot of the global position error against dt, with fitted slopes."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib only when plotting
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
 
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
     for report in reports:
@@ -333,10 +330,10 @@ def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str 
 
 def plot_energy_vs_time(reports: Sequence[IntegratorReport], path, labels=None) -> None:
     """Total energy per atom against time for each integrator at its measuring dt."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib only when plotting
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
 
     labels = labels or {}
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
@@ -471,8 +468,6 @@ def compare_thermostats(
     sample_every : int
         Steps between samples of temperature, potential and conserved energy.
     """
-    from integrators.base import ConvergenceError
-
     say = progress or (lambda message: None)
     reports = []
     for name, factory in thermostats.items():
@@ -533,8 +528,6 @@ def _measure(report, rows, sim, wall, evaluations, span) -> None:
 
 def write_thermostat_csv(reports: Sequence[ThermostatReport], path) -> None:
     """Write one row per thermostat with :data:`THERMOSTAT_CSV_COLUMNS`."""
-    import csv
-
     with open(path, "x", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(THERMOSTAT_CSV_COLUMNS))
         writer.writeheader()
@@ -544,10 +537,10 @@ def write_thermostat_csv(reports: Sequence[ThermostatReport], path) -> None:
 
 def plot_thermostats(reports: Sequence[ThermostatReport], path, labels=None) -> None:
     """Kinetic temperature against time, and the potential energy's autocorrelation."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib only when plotting
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
 
     labels = labels or {}
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.2))

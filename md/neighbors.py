@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,6 +19,7 @@ from md._cell_kernels import (
     _shift_table,
 )
 from md.box import periodic_lengths
+from md.errors import NonFiniteError
 from md.parallel import get_threads
 from md.state import State
 
@@ -35,8 +37,42 @@ _MIN_CHUNK_ATOMS = 1000
 _GROWTH = 1.05
 
 
-class NonFiniteError(FloatingPointError):
-    """A coordinate or energy became NaN or infinite."""
+@dataclass(frozen=True)
+class SlotFrame:
+    """The neighbour list as a pair kernel reads it: the slot frame of one build.
+
+    Slot p holds atom ``order[p]``, at ``positions[order[p]] + images[p] * lengths``
+    (wrapped into the box at the build); the partners of slot p are
+    ``neighbors[starts[p]:starts[p + 1]]``, and pair k is separated by
+    ``frame[p] - frame[q] - shifts[codes[k]]``, with no minimum image. Chunk c
+    (one per thread) covers slots ``bounds[c]`` to ``bounds[c + 1]``.
+
+    Attributes
+    ----------
+    order : ndarray of int64, shape (N,)
+    images : ndarray of int32, shape (N, 3)
+    lengths : ndarray of float64, shape (3,)
+        Periodic box lengths at the build (zero along open axes) [length].
+    shifts : ndarray of float64, shape (27, 3)
+        Image shift of each code [length].
+    starts : ndarray of int64, shape (N + 1,)
+    neighbors : ndarray of int32, shape (P,)
+    codes : ndarray of uint8, shape (P,)
+    bounds : ndarray of int64, shape (C + 1,)
+    """
+
+    order: NDArray[np.int64]
+    images: NDArray[np.int32]
+    lengths: NDArray[np.float64]
+    shifts: NDArray[np.float64]
+    starts: NDArray[np.int64]
+    neighbors: NDArray[np.int32]
+    codes: NDArray[np.uint8]
+    bounds: NDArray[np.int64]
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self.bounds) - 1
 
 
 class NeighborList:
@@ -140,6 +176,31 @@ class NeighborList:
     @property
     def n_pairs(self) -> int:
         return int(self.slot_starts[-1])
+
+    @property
+    def frame(self) -> SlotFrame | None:
+        """The slot frame of the last build (None after an O(N^2) build: use ``starts``)."""
+        if self.order is None:
+            return None
+        return SlotFrame(
+            self.order, self.images, self.lengths, self.shifts, self.slot_starts,
+            self.slot_neighbors, self.codes, self.bounds,
+        )  # fmt: skip
+
+    @property
+    def reference_positions(self) -> NDArray[np.float64] | None:
+        """Positions at the last build (a copy), or None before the first."""
+        return None if self._reference is None else self._reference.copy()
+
+    def rebuild_at(self, state: State, positions: NDArray[np.float64]) -> None:
+        """Build the list as it was built at ``positions`` (a checkpoint's), for ``state``.
+
+        A resumed run then has the same list, hence the same force summation
+        order, as the run that was never interrupted.
+        """
+        at_build = state.copy()
+        at_build.positions[:] = positions
+        self.build(at_build)
 
     @property
     def starts(self) -> NDArray[np.int64]:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from md._checks import count, positive
 from md.state import State
 
 #: Random directions tried at once for each new bead.
@@ -84,11 +85,11 @@ def polymer_melt(
     >>> state.n_atoms, bonds.shape
     (40, (36, 2))
     """
-    n_chains = _count(n_chains, "n_chains", 1)
-    chain_length = _count(chain_length, "chain_length", 2)
-    density = _positive(density, "density")
-    bond_length = _positive(bond_length, "bond_length")
-    min_distance = _positive(min_distance, "min_distance", allow_zero=True)
+    n_chains = count(n_chains, "n_chains", 1)
+    chain_length = count(chain_length, "chain_length", 2)
+    density = positive(density, "density")
+    bond_length = positive(bond_length, "bond_length")
+    min_distance = positive(min_distance, "min_distance", allow_zero=True)
     if box_shape != "cubic":
         raise ValueError(f"box_shape must be 'cubic', got {box_shape!r}")
     fraction = density * np.pi / 6.0 * min_distance**3
@@ -158,9 +159,9 @@ def single_chain(
     >>> state.positions[:, 0] - state.positions[0, 0]
     array([0., 1., 2., 3., 4.])
     """
-    n_beads = _count(n_beads, "n_beads", 2)
-    bond_length = _positive(bond_length, "bond_length")
-    min_distance = _positive(min_distance, "min_distance", allow_zero=True)
+    n_beads = count(n_beads, "n_beads", 2)
+    bond_length = positive(bond_length, "bond_length")
+    min_distance = positive(min_distance, "min_distance", allow_zero=True)
     pbc = np.broadcast_to(np.asarray(pbc, dtype=bool), (3,)).copy()
     rng = np.random.default_rng(seed)
     margin = 5.0
@@ -205,23 +206,6 @@ def single_chain(
 
 
 # ------------------------------------------------------------------- helpers
-
-
-def _count(value, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
-def _positive(value, name: str, allow_zero: bool = False) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
-        rule = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"{name} must be finite and {rule}, got {value!r}")
-    return number
 
 
 def _result(positions, box, pbc, n_chains: int, chain_length: int):

@@ -9,25 +9,17 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from md._cell_kernels import _max_displacement2
-from md.analysis import kinetic_energy, pressure, temperature
+from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
-from md.neighbors import NonFiniteError
 from md.parallel import set_threads
 from md.state import State
+from md.thermo import kinetic_energy, pressure, temperature
 from md.units import UnitSystem, get_units
 from potentials.base import Potential
 
 logger = logging.getLogger(__name__)
 
 Observer = Callable[["Simulation"], None]
-
-
-class SimulationError(RuntimeError):
-    """The dynamics broke down (NaN or infinite energy or positions) at ``step``."""
-
-    def __init__(self, step: int, message: str) -> None:
-        self.step = step
-        super().__init__(f"step {step}: {message}")
 
 
 class Simulation:

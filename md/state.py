@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # ASE is only touched at the edges, see from_ase/to_ase.
-    import ase
+    import ase  # ASE: only for conversions to and from Atoms
 
 
 def _owned(value, name: str, shape: tuple[int, ...], dtype) -> NDArray:
@@ -230,8 +230,8 @@ class State:
         momenta this State was built from by :meth:`from_ase` are returned
         unchanged while they still divide back to the current velocities.
         """
-        import ase
-        from ase.data import chemical_symbols
+        import ase  # ASE: only for conversions to and from Atoms
+        from ase.data import chemical_symbols  # ASE: only for conversions to and from Atoms
 
         symbols = [name if name in chemical_symbols else "X" for name in self.type_names]
         atoms = ase.Atoms(
@@ -314,6 +314,7 @@ def types_from_ase(
         For an unknown ``types_from``, a symbol missing from ``type_names``, or
         a negative tag or one without a name.
     """
+    # ASE: only for conversions to and from Atoms
     from ase.data import atomic_numbers, chemical_symbols
 
     numbers = np.asarray(numbers)

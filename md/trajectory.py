@@ -39,7 +39,6 @@ import errno
 import json
 import os
 import resource
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +46,10 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from md._files import atomic_path
+from md._version import __version__
 from md.box import wrap
+from md.errors import TrajectoryError
 from md.state import State
 from md.units import UnitSystem, get_units
 
@@ -69,21 +71,6 @@ _OBSERVABLE_UNITS = {
 _CHUNK_CACHE = 1 << 16
 #: Room kept free beyond a frame's own bytes for HDF5's growing chunk index [bytes].
 _METADATA_MARGIN = 16 << 10
-
-
-def usual_permissions(descriptor: int) -> None:
-    """Give a file from ``tempfile.mkstemp`` (mode 0600) the mode a plain open() would.
-
-    That is 0666 less the process umask, so outputs renamed into place are as
-    readable as any other file the user writes.
-    """
-    umask = os.umask(0)
-    os.umask(umask)
-    os.fchmod(descriptor, 0o666 & ~umask)
-
-
-class TrajectoryError(ValueError):
-    """A file is not a trajectory this package can read (names the file and what is wrong)."""
 
 
 class H5MDWriter:
@@ -157,26 +144,24 @@ class H5MDWriter:
             )
         # The layout is written to a temporary file and renamed into place, so the path
         # never holds a half-made file (a run killed while starting leaves nothing).
-        descriptor, temporary = tempfile.mkstemp(
-            prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent
-        )
-        usual_permissions(descriptor)
-        os.close(descriptor)
         try:
-            with h5py.File(temporary, "w") as f:
-                self._file = f
-                self._create_layout(state, parameters or {}, author)
+            # Without overwrite the rename is exclusive: a file that appeared meanwhile wins.
+            with atomic_path(self.path, exclusive=not overwrite) as temporary:
+                with h5py.File(temporary, "w") as f:
+                    self._file = f
+                    self._create_layout(state, parameters or {}, author)
+                self._file = None
+        except FileExistsError:
+            raise FileExistsError(f"{self.path} appeared while the run was starting") from None
+        finally:
             self._file = None
-            if self.path.exists() and not overwrite:
-                raise FileExistsError(f"{self.path} appeared while the run was starting")
-            os.replace(temporary, self.path)
-        except BaseException:
-            self._file = None
-            if os.path.exists(temporary):
-                os.unlink(temporary)
-            raise
         self._file = h5py.File(self.path, "r+", rdcc_nbytes=_CHUNK_CACHE)
         self._bind()
+
+    @property
+    def last_step(self) -> int | None:
+        """Step of the last frame written (or kept on append), None before the first."""
+        return self._last_step
 
     def _bind(self) -> None:
         """Find the datasets written to in the open file."""
@@ -194,12 +179,12 @@ class H5MDWriter:
         self._values["edges"] = group["box/edges/value"]
         for name in OBSERVABLES:
             self._values[name] = f["observables"][name]["value"]
-        self.units = get_units(_text(f["parameters"].attrs["units"]))
+        self.units = get_units(attr_text(f["parameters"].attrs["units"]))
 
     def _open_existing(self, state: State, keep_frames: int | None) -> None:
         """Open a file of ours for appending, dropping frames beyond ``keep_frames``."""
         path = self.path
-        _open_h5md(path).close()  # TrajectoryError for missing, non-HDF5 or foreign files
+        open_h5md(path).close()  # TrajectoryError for missing, non-HDF5 or foreign files
         try:
             self._file = h5py.File(path, "r+", rdcc_nbytes=_CHUNK_CACHE)
         except OSError as error:
@@ -233,7 +218,6 @@ class H5MDWriter:
 
     # ------------------------------------------------------------------ layout
     def _create_layout(self, state: State, parameters: dict, author: str | None) -> None:
-        from md import __version__
 
         f = self._file
         h5md = f.create_group("h5md")
@@ -464,7 +448,7 @@ def read_trajectory(path) -> Trajectory:
         If the file is missing, not HDF5, or lacks what the layout requires.
     """
     path = Path(path)
-    with _open_h5md(path) as f:
+    with open_h5md(path) as f:
         try:
             group = f["particles/trajectory"]
             units = get_units(str(f["parameters"].attrs.get("units", "lj")))
@@ -479,7 +463,7 @@ def read_trajectory(path) -> Trajectory:
             boxes = group["box/edges/value"][:n_frames] * scale("length")
             images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
             positions = raw + images * boxes[:, None, :]
-            boundary = [_text(b) for b in group["box"].attrs["boundary"]]
+            boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
             velocities = forces = None
             if "velocity" in group:
                 velocities = group["velocity/value"][:n_frames] * scale("velocity")
@@ -492,7 +476,7 @@ def read_trajectory(path) -> Trajectory:
                     observables[name] = element["value"][:n_frames] * scale(quantity)
             parameters = {}
             for key, value in f["parameters"].attrs.items():
-                parameters[key] = _maybe_json(value)
+                parameters[key] = maybe_json(value)
             type_names = tuple(parameters.get("type_names") or ())
             types = group["species"][()].astype(np.int32)
             if not type_names:
@@ -534,7 +518,7 @@ def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
         If the file is missing, not HDF5, or not in our layout.
     """
     path = Path(path)
-    with _open_h5md(path) as f:
+    with open_h5md(path) as f:
         try:
             group = f["particles/trajectory"]
             steps = group["position/step"][()]
@@ -544,7 +528,7 @@ def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
                     lengths.append(len(group[f"{name}/value"]))
             for element in f["observables"].values():
                 lengths.append(len(element["value"]))
-            parameters = {key: _maybe_json(value) for key, value in f["parameters"].attrs.items()}
+            parameters = {key: maybe_json(value) for key, value in f["parameters"].attrs.items()}
             parameters["n_atoms"] = int(group["position/value"].shape[1])
         except (KeyError, ValueError, TypeError, OSError, IndexError, RuntimeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
@@ -560,15 +544,15 @@ def open_trajectory(path, **kwargs):
     (Angstrom, ps, kJ/(mol Angstrom)) as usual. Extra keyword arguments go to
     MDAnalysis's H5MD reader.
     """
-    import MDAnalysis as mda
+    import MDAnalysis as mda  # heavy: MDAnalysis is imported on first use
 
     path = Path(path)
-    with _open_h5md(path) as f:
+    with open_h5md(path) as f:
         try:
             units = str(f["parameters"].attrs.get("units", "lj"))
             masses = f["particles/trajectory/mass"][()]
             types = f["particles/trajectory/species"][()]
-            names = _maybe_json(f["parameters"].attrs.get("type_names", "[]"))
+            names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
         except KeyError as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
     kwargs.setdefault("convert_units", units != "lj")
@@ -580,7 +564,7 @@ def open_trajectory(path, **kwargs):
     return universe
 
 
-def _open_h5md(path: Path) -> h5py.File:
+def open_h5md(path: Path) -> h5py.File:
     if not path.exists():
         raise TrajectoryError(f"{path}: no such file")
     try:
@@ -600,12 +584,12 @@ def _open_h5md(path: Path) -> h5py.File:
     return f
 
 
-def _text(value) -> str:
+def attr_text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
-def _maybe_json(value):
-    value = _text(value) if isinstance(value, bytes | str) else value
+def maybe_json(value):
+    value = attr_text(value) if isinstance(value, bytes | str) else value
     if isinstance(value, str) and value[:1] in "[{":
         try:
             return json.loads(value)
@@ -614,3 +598,42 @@ def _maybe_json(value):
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+def trajectory_summary(traj) -> dict:
+    """Plain-data summary of a trajectory (what ``md info`` prints)."""
+    to_file_time = traj.units.h5md["time"][1] if "time" in traj.units.h5md else 1.0
+    stored = ["position", "image", "box"]
+    if traj.velocities is not None:
+        stored.append("velocity")
+    if traj.forces is not None:
+        stored.append("force")
+    stored += sorted(traj.observables)
+    summary = {
+        "path": str(traj.path),
+        "version": traj.parameters.get("leapmd_version", "?"),
+        "n_atoms": traj.n_atoms,
+        "n_frames": traj.n_frames,
+        "types": list(traj.type_names),
+        "units": traj.units.name,
+        "first_step": int(traj.steps[0]) if traj.n_frames else None,
+        "last_step": int(traj.steps[-1]) if traj.n_frames else None,
+        "first_time": float(traj.times[0] * to_file_time) if traj.n_frames else 0.0,
+        "last_time": float(traj.times[-1] * to_file_time) if traj.n_frames else 0.0,
+        "box": traj.boxes[-1].tolist() if traj.n_frames else None,
+        "pbc": traj.pbc.tolist(),
+        "stored": stored,
+    }
+    total = traj.observables.get("total_energy")
+    if total is not None and len(total) and np.all(np.isfinite(total)):
+        scale = max(abs(total[0]), 1e-300)
+        summary["energy"] = {
+            "first": float(total[0]),
+            "last": float(total[-1]),
+            "mean": float(total.mean()),
+            "std": float(total.std()),
+            "relative_drift": float((total[-1] - total[0]) / scale),
+        }
+        summary["temperature_mean"] = float(traj.observables["temperature"].mean())
+        summary["pressure_mean"] = float(traj.observables["pressure"].mean())
+    return summary

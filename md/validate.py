@@ -46,14 +46,23 @@ This module is library code: :func:`validate_ase` returns an
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from ase.md.verlet import VelocityVerlet as AseVelocityVerlet
 
+from integrators import VelocityVerlet
 from md import units
+from md.build import lattice, maxwell_boltzmann
+from md.calculator import MDCalculator
+from md.forcefield import ForceField
+from md.simulation import Simulation
+from md.state import State
+from md.thermo import kinetic_energy
+from md.thermo import temperature as kinetic_temperature
+from potentials import LennardJones
 
 #: Argon-like Lennard-Jones parameters in metal units.
 ARGON = {"epsilon": 0.0104, "sigma": 3.40, "cutoff": 8.5, "mass": 39.948}
@@ -172,12 +181,6 @@ def argon_liquid(
     lattice, and finally scaled to ``temperature`` exactly (3N - 3 degrees
     of freedom). Every random choice comes from ``seed``.
     """
-    from integrators import VelocityVerlet
-    from md.build import lattice, maxwell_boltzmann
-    from md.simulation import Simulation
-    from md.state import State
-    from potentials import LennardJones
-
     if n_atoms < 2:
         raise ValueError(f"the argon system needs at least 2 atoms, got {n_atoms}")
     a = (4.0 / LIQUID_ARGON_DENSITY) ** (1.0 / 3.0)
@@ -209,8 +212,6 @@ def argon_liquid(
 
 def maxwell_boltzmann_scale(state, temperature: float) -> None:
     """Remove the centre-of-mass momentum and scale velocities to ``temperature`` [K] (3N - 3)."""
-    from md.analysis import temperature as kinetic_temperature
-
     masses = state.masses[:, None]
     state.velocities -= (masses * state.velocities).sum(axis=0) / state.masses.sum()
     current = kinetic_temperature(state.velocities, state.masses, units.kB)
@@ -228,13 +229,6 @@ def compare_trajectories(
     ``get_velocities()``, so both start from the same positions and momenta.
     Each run has its own MDCalculator / ForceField (same potential, same skin).
     """
-    from ase.md.verlet import VelocityVerlet as AseVelocityVerlet
-
-    from integrators import VelocityVerlet
-    from md.analysis import kinetic_energy
-    from md.calculator import MDCalculator
-    from md.simulation import Simulation
-
     dt = dt_fs * units.fs  # engine (= ASE) time units; md.units.fs == ase.units.fs
     atoms = state.to_ase()
     # Unsorted, so that the ASE side and the replay sum forces in the same order.
@@ -297,9 +291,6 @@ class _AseOrderReplay:
     """ASE's velocity Verlet written out with numpy on our ForceField, same operation order."""
 
     def __init__(self, atoms, potential, dt: float, skin: float) -> None:
-        from md.forcefield import ForceField
-        from md.state import State
-
         self.dt = dt
         self.masses = atoms.get_masses()[:, None]
         self.positions = atoms.get_positions()
@@ -386,8 +377,6 @@ def validate_ase(
     skin : float
         Neighbour-list skin of both runs [Angstrom].
     """
-    from md.analysis import temperature as kinetic_temperature
-
     for name, value in (("n_atoms", n_atoms), ("n_steps", n_steps)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
@@ -492,78 +481,6 @@ def _rate(rate: float) -> str:
     if not math.isfinite(rate):
         return "n/a (difference stayed at round-off)"
     return f"exp({rate:.2f} t/ps) (an estimate of the largest Lyapunov exponent)"
-
-
-# ------------------------------------------------------------------------ CLI
-def add_parser(subparsers) -> None:
-    """Register ``md validate ase`` on the ``md`` command's subparsers."""
-    validate = subparsers.add_parser(
-        "validate", help="check the engine against an independent reference"
-    )
-    references = validate.add_subparsers(
-        dest="reference", required=True, parser_class=type(validate)
-    )
-    ase = references.add_parser(
-        "ase",
-        help="our velocity Verlet against ASE's VelocityVerlet driven by MDCalculator",
-        description=(
-            "Build an argon-like LJ liquid in metal units (epsilon 0.0104 eV, sigma 3.40 A, "
-            "cutoff 8.5 A), thermalise it with a fixed seed, and run ASE's VelocityVerlet with "
-            "MDCalculator and our VelocityVerlet from identical positions and momenta. Prints "
-            "the largest position and momentum difference, each run's energy drift and "
-            "fluctuation per atom and wall time, and the energy behaviour at a ladder of time "
-            "steps. Exit code 0 when the runs agree (ASE's operation order replayed bit for "
-            "bit, equal energy behaviour), 1 otherwise."
-        ),
-    )
-    ase.add_argument("--atoms", type=int, default=500, help="number of atoms (default 500)")
-    ase.add_argument("--steps", type=int, default=1000, help="steps compared (default 1000)")
-    ase.add_argument("--dt", type=float, default=5.0, help="time step in fs (default 5)")
-    ase.add_argument(
-        "--temperature", type=float, default=100.0, help="start temperature in K (default 100)"
-    )
-    ase.add_argument("--seed", type=int, default=2024, help="random seed (default 2024)")
-    ase.add_argument(
-        "--cutoff-mode", choices=("shift", "smooth"), default="shift", help="LJ cutoff treatment"
-    )
-    ase.add_argument(
-        "--ladder", default="1,2,5,10", help="time steps of the drift table in fs ('' for none)"
-    )
-    ase.add_argument(
-        "--ladder-time", type=float, default=2000.0, help="fs simulated per ladder run"
-    )
-
-
-def command(args) -> int:
-    """Body of ``md validate ase``: run, print the report, return the exit code."""
-    from md.cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, _fail
-    from md.simulation import SimulationError
-
-    try:
-        ladder = [float(v) for v in args.ladder.split(",") if v.strip()]
-    except ValueError:
-        _fail(f"--ladder must be a comma-separated list of time steps in fs, got {args.ladder!r}")
-        return EXIT_BAD_INPUT
-    try:
-        report = validate_ase(
-            n_atoms=args.atoms,
-            n_steps=args.steps,
-            dt_fs=args.dt,
-            temperature=args.temperature,
-            seed=args.seed,
-            cutoff_mode=args.cutoff_mode,
-            ladder_dts=ladder,
-            ladder_span_fs=args.ladder_time,
-        )
-    except ValueError as error:
-        _fail(f"validate ase: {error}")
-        return EXIT_BAD_INPUT
-    except (SimulationError, FloatingPointError) as error:
-        _fail(f"validate ase: the dynamics blew up ({error}); is --dt too large?")
-        return EXIT_FAILED
-    print(format_report(report))
-    sys.stdout.flush()
-    return EXIT_OK if report.passed else EXIT_FAILED
 
 
 __all__ = [

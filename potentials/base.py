@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 if TYPE_CHECKING:
     from md.neighbors import NeighborList
     from md.state import State
+    from potentials.pair_hessian import PairHessian
 
 
 @dataclass
@@ -42,21 +43,43 @@ class ForceResult:
     virials: NDArray[np.float64] | None = None
 
 
+@runtime_checkable
 class Potential(Protocol):
     """What the ForceField needs of a potential.
 
     ``cutoff`` is the interaction range, or None for potentials that need no
     neighbour list (bonded terms). ``energy_forces`` returns a new
     ForceResult and leaves the state untouched; ``neighbors`` is a list built
-    with a radius of at least ``cutoff``. A potential whose ``energy_forces``
-    also takes ``virial`` (bool, default True) may skip the virial when it
-    is False; the ForceField passes it only to those that do.
+    with a radius of at least ``cutoff`` (None: loop over all pairs).
+    ``per_atom`` asks for per-atom energies (and, where provided, per-atom
+    virials); ``virial=False`` lets the potential skip the virial (the
+    result's ``virial`` is then None), which integrators ask for between
+    thermo outputs. The ForceField always passes both keywords.
+
+    A pair potential reads the list through ``neighbors.frame`` (a
+    :class:`md.neighbors.SlotFrame`: slot order, images, per-chunk bounds; no
+    minimum image needed) or, when that is None or per-atom results are
+    wanted, ``neighbors.starts``/``neighbors.neighbors`` over atom indices
+    (minimum image per pair).
+
+    Optional hooks, found by the ForceField and the implicit integrators:
+    ``hessian(state, neighbors)`` (:class:`SupportsHessian`: a sparse
+    (3N, 3N) matrix, for Newton's method) and ``hessian_operator(state,
+    neighbors)`` (:class:`SupportsHessianOperator`: pair blocks applied
+    without assembly, and clamped where a pair's curvature is negative).
+    ``from_config(params, type_names)`` (a classmethod) builds the potential
+    from a config table; the registry ``potentials.POTENTIALS`` maps config
+    names to classes.
     """
 
     cutoff: float | None
 
     def energy_forces(
-        self, state: State, neighbors: NeighborList | None, per_atom: bool = False
+        self,
+        state: State,
+        neighbors: NeighborList | None,
+        per_atom: bool = False,
+        virial: bool = True,
     ) -> ForceResult: ...
 
     def check(self, state: State) -> None:
@@ -73,3 +96,10 @@ class SupportsHessian(Protocol):
     """Optional capability: the (3N, 3N) second derivative of the energy."""
 
     def hessian(self, state: State, neighbors: NeighborList | None) -> NDArray[np.float64]: ...
+
+
+@runtime_checkable
+class SupportsHessianOperator(Protocol):
+    """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
+
+    def hessian_operator(self, state: State, neighbors: NeighborList | None) -> PairHessian: ...

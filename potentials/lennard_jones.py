@@ -8,7 +8,9 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, prange
 
-from md.box import _min_image, periodic_lengths
+from md._checks import positive_array, positive_scalar
+from md.box import min_image_component, periodic_lengths
+from md.state import State
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
@@ -71,8 +73,8 @@ class LennardJones:
             )
         if mixing not in MIXING_RULES:
             raise ValueError(f"mixing must be one of {', '.join(MIXING_RULES)}, got {mixing!r}")
-        self.epsilon = _positive_array(epsilon, "epsilon", allow_zero=True)
-        self.sigma = _positive_array(sigma, "sigma")
+        self.epsilon = positive_array(epsilon, "epsilon", allow_zero=True)
+        self.sigma = positive_array(sigma, "sigma")
         if self.epsilon.ndim != self.sigma.ndim or (
             self.epsilon.ndim == 1 and len(self.epsilon) != len(self.sigma)
         ):
@@ -80,9 +82,9 @@ class LennardJones:
                 "epsilon and sigma must both be scalars or both have one value per type "
                 f"(got {self.epsilon.size} and {self.sigma.size})"
             )
-        self.default_cutoff = _positive_scalar(cutoff, "cutoff")
+        self.default_cutoff = positive_scalar(cutoff, "cutoff")
         self.cutoff_mode = cutoff_mode
-        self.r_on = None if r_on is None else _positive_scalar(r_on, "r_on")
+        self.r_on = None if r_on is None else positive_scalar(r_on, "r_on")
         self.mixing = mixing
         self.pairs = {}
         for key, values in (pairs or {}).items():
@@ -164,9 +166,9 @@ class LennardJones:
                 sig = float(np.sqrt(self.sigma[ti] * self.sigma[tj]))
         params = {"epsilon": eps, "sigma": sig, "cutoff": self.default_cutoff, "r_on": self.r_on}
         params.update(self.pairs.get((min(ti, tj), max(ti, tj)), {}))
-        params["epsilon"] = float(_positive_scalar(params["epsilon"], "epsilon", allow_zero=True))
-        params["sigma"] = float(_positive_scalar(params["sigma"], "sigma"))
-        params["cutoff"] = float(_positive_scalar(params["cutoff"], "cutoff"))
+        params["epsilon"] = float(positive_scalar(params["epsilon"], "epsilon", allow_zero=True))
+        params["sigma"] = float(positive_scalar(params["sigma"], "sigma"))
+        params["cutoff"] = float(positive_scalar(params["cutoff"], "cutoff"))
         if params["r_on"] is None:
             params["r_on"] = 0.66 * params["cutoff"]
         if self.cutoff_mode == "smooth" and not params["r_on"] < params["cutoff"]:
@@ -198,8 +200,6 @@ class LennardJones:
     def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:
         """Return the pair energy u(r) with the cutoff treatment applied [energy]."""
         positions = np.array([[0.0, 0.0, 0.0], [float(r), 0.0, 0.0]])
-        from md.state import State  # local: keeps the potential importable on its own
-
         state = State(
             positions=positions,
             box=[1.0, 1.0, 1.0],
@@ -233,9 +233,10 @@ class LennardJones:
         n_types = max(state.n_types, self.n_types_fixed or 1)
         tables = self._cached_tables(n_types)
         mode = CUTOFF_MODES[self.cutoff_mode]
-        if neighbors is not None and neighbors.order is not None and not per_atom:
+        frame = None if neighbors is None or per_atom else neighbors.frame
+        if frame is not None:
             self._check_radius(neighbors)
-            return self._frame_energy_forces(state, neighbors, n_types, tables, mode, virial)
+            return self._frame_energy_forces(state, frame, n_types, tables, mode, virial)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         forces = np.zeros((n, 3))
@@ -265,9 +266,9 @@ class LennardJones:
             virials=virials if per_atom else None,
         )
 
-    def _frame_energy_forces(self, state, neighbors, n_types, tables, mode, virial: bool):
+    def _frame_energy_forces(self, state, frame, n_types, tables, mode, virial: bool):
         n = state.n_atoms
-        chunks = len(neighbors.bounds) - 1
+        chunks = frame.n_chunks
         scratch = getattr(self, "_scratch", None)
         if scratch is None or scratch[0].shape[0] != n or scratch[2].shape[0] != chunks:
             scratch = (
@@ -278,16 +279,15 @@ class LennardJones:
                 np.empty((chunks, 6)),
             )
             self._scratch = scratch
-        frame, frame_types, buffers, energies, virials = scratch
+        slot_positions, slot_types, buffers, energies, virials = scratch
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         kernel = _lj_frame_forces_threaded if chunks > 1 else _lj_frame_forces
         kernel(
-            state.positions, state.types, neighbors.order, neighbors.images, neighbors.lengths,
-            neighbors.shifts,
-            neighbors.slot_starts, neighbors.slot_neighbors, neighbors.codes, neighbors.bounds,
+            state.positions, state.types, frame.order, frame.images, frame.lengths, frame.shifts,
+            frame.starts, frame.neighbors, frame.codes, frame.bounds,
             n_types, *tables, mode, virial,
-            frame, frame_types, buffers, energies, virials, forces,
+            slot_positions, slot_types, buffers, energies, virials, forces,
         )  # fmt: skip
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
@@ -385,24 +385,6 @@ class LennardJones:
         if cache is None or cache[0] != n_types:
             self._table_cache = (n_types, self.tables(n_types))
         return self._table_cache[1]
-
-
-def _positive_array(value, name: str, allow_zero: bool = False) -> np.ndarray:
-    array = np.asarray(value, dtype=np.float64)
-    if array.ndim > 1 or array.size == 0:
-        raise ValueError(f"{name} must be a number or a list with one number per type")
-    ok = np.isfinite(array) & ((array >= 0) if allow_zero else (array > 0))
-    if not np.all(ok):
-        rule = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"{name} must be finite and {rule}, got {value!r}")
-    return array
-
-
-def _positive_scalar(value, name: str, allow_zero: bool = False) -> float:
-    array = _positive_array(value, name, allow_zero)
-    if array.ndim != 0:
-        raise ValueError(f"{name} must be a single number, got {value!r}")
-    return float(array)
 
 
 def _symmetric(v: np.ndarray) -> np.ndarray:
@@ -693,9 +675,9 @@ def _lj_energy_forces_loop(
         fzi = 0.0
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
-            dx = _min_image(xi - positions[j, 0], lx, ix)
-            dy = _min_image(yi - positions[j, 1], ly, iy)
-            dz = _min_image(zi - positions[j, 2], lz, iz)
+            dx = min_image_component(xi - positions[j, 0], lx, ix)
+            dy = min_image_component(yi - positions[j, 1], ly, iy)
+            dz = min_image_component(zi - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
             u, fr = _lj_pair(r2, row + types[j], c12, c6, rc2, ro2, shift, inv_den, mode)
             energy += u
@@ -795,9 +777,9 @@ def _lj_pair_curvatures_loop(
         row = types[i] * n_types
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
-            dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-            dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-            dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+            dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
+            dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
+            dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
             # Written branch-free: every listed pair goes to slot n_pairs, which

@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from md.box import _min_image, minimum_image, periodic_lengths
-from md.neighbors import NonFiniteError
+from md._checks import bond_array, bond_type_array, positive_array, read_bonds_file
+from md.box import min_image_component, minimum_image, periodic_lengths
+from md.errors import NonFiniteError
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
@@ -34,7 +34,7 @@ _FENE = 1
 class BondStretchError(NonFiniteError):
     """A FENE bond reached its maximum extension ``r_max`` (infinite energy).
 
-    A subclass of :class:`md.neighbors.NonFiniteError`, so the simulation loop
+    A subclass of :class:`md.errors.NonFiniteError`, so the simulation loop
     reports it as a :class:`md.simulation.SimulationError` at the failing step.
 
     Attributes
@@ -73,9 +73,12 @@ class _BondedPotential:
     _name: str
 
     def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
-        self.bonds = _bond_array(bonds)
+        self.bonds = bond_array(bonds)
         n_bonds = len(self.bonds)
-        given = {name: _finite_array(value, name) for name, value in params.items()}
+        given = {
+            name: positive_array(value, name, allow_zero=True, what="bond type")
+            for name, value in params.items()
+        }
         per_type = [name for name, value in given.items() if value.ndim == 1]
         if bond_types is None:
             if per_type:
@@ -87,7 +90,7 @@ class _BondedPotential:
             self.per_type = False
             n_types = 1
         else:
-            self.bond_types = _bond_type_array(bond_types, n_bonds)
+            self.bond_types = bond_type_array(bond_types, n_bonds)
             self.per_type = True
             lengths = {len(given[name]) for name in per_type}
             if len(lengths) > 1:
@@ -120,7 +123,9 @@ class _BondedPotential:
             raise ValueError(f"bond {bad} joins atom {self.bonds[bad, 0]} to itself")
         self._check_indices(state.n_atoms)
 
-    def energy_forces(self, state, neighbors=None, per_atom: bool = False) -> ForceResult:
+    def energy_forces(
+        self, state, neighbors=None, per_atom: bool = False, virial: bool = True
+    ) -> ForceResult:
         """Return energy, forces, virial (and per-atom energies) for ``state``.
 
         ``neighbors`` is ignored (bonds are listed explicitly).
@@ -348,56 +353,6 @@ class FENEBonds(_BondedPotential):
 # ------------------------------------------------------------------- helpers
 
 
-def _bond_array(bonds) -> NDArray[np.int64]:
-    array = np.asarray(bonds)
-    if array.size == 0:
-        array = array.reshape(0, 2)
-    if array.ndim != 2 or array.shape[1] != 2:
-        raise ValueError(f"bonds must have shape (B, 2), got {array.shape}")
-    if array.size and not (
-        np.issubdtype(array.dtype, np.integer)
-        or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))
-    ):
-        raise ValueError("bonds must be integer atom indices")
-    array = np.array(array, dtype=np.int64, order="C", copy=True)
-    if array.size and array.min() < 0:
-        bad = int(np.flatnonzero((array < 0).any(axis=1))[0])
-        raise ValueError(f"bond {bad} {tuple(array[bad].tolist())} has a negative atom index")
-    same = np.flatnonzero(array[:, 0] == array[:, 1])
-    if same.size:
-        raise ValueError(f"bond {int(same[0])} joins atom {array[same[0], 0]} to itself")
-    return array
-
-
-def _bond_type_array(bond_types, n_bonds: int) -> NDArray[np.int64]:
-    array = np.asarray(bond_types)
-    if array.shape != (n_bonds,):
-        raise ValueError(
-            f"bond_types must have shape ({n_bonds},) (one per bond), got {array.shape}"
-        )
-    if array.size and not (
-        np.issubdtype(array.dtype, np.integer)
-        or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))
-    ):
-        raise ValueError("bond_types must be integers")
-    array = np.array(array, dtype=np.int64, order="C", copy=True)
-    if array.size and array.min() < 0:
-        raise ValueError("bond_types must be non-negative")
-    return array
-
-
-def _finite_array(value, name: str) -> NDArray[np.float64]:
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number or a list of numbers, got {value!r}") from None
-    if array.ndim > 1 or array.size == 0:
-        raise ValueError(f"{name} must be a number or a list with one number per bond type")
-    if not np.all(np.isfinite(array) & (array >= 0)):
-        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
-    return array
-
-
 def _plain(values: np.ndarray, per_type: bool):
     return values.tolist() if per_type else float(values[0])
 
@@ -414,7 +369,7 @@ def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
     if ("bonds" in params) == ("bonds_file" in params):
         raise ValueError("give exactly one of 'bonds' (a list of [i, j]) and 'bonds_file'")
     if "bonds_file" in params:
-        params["bonds"] = _read_bonds_file(params.pop("bonds_file"))
+        params["bonds"] = read_bonds_file(params.pop("bonds_file"))
     for name in names:
         value = params.get(name)
         values = value if isinstance(value, list) else [value]
@@ -428,25 +383,6 @@ def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
         if any(isinstance(v, bool) or not isinstance(v, int) for v in flat):
             raise ValueError(f"{name}: expected integers, got {value!r}")
     return params
-
-
-def _read_bonds_file(path) -> NDArray[np.int64]:
-    if not isinstance(path, str | Path):
-        raise ValueError(f"bonds_file must be a path, got {path!r}")
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"bonds_file not found: {path}")
-    try:
-        table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
-    except ValueError as error:
-        raise ValueError(f"bonds_file {path}: not a table of integers ({error})") from None
-    if table.size == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    if table.shape[1] != 2:
-        raise ValueError(f"bonds_file {path}: expected two columns (i j), got {table.shape[1]}")
-    if not np.all(table == np.round(table)):
-        raise ValueError(f"bonds_file {path}: atom indices must be integers")
-    return table.astype(np.int64)
 
 
 def _symmetric(v: np.ndarray) -> np.ndarray:
@@ -505,9 +441,9 @@ def _bond_energy_forces(
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-        dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-        dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+        dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
+        dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
+        dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
         u, g, _, ok = _bond_terms(form, dx * dx + dy * dy + dz * dz, k[t], p[t])
         if not ok and bad < 0:
             bad = b
@@ -558,9 +494,9 @@ def _bond_curvatures(
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx = _min_image(positions[i, 0] - positions[j, 0], lx, ix)
-        dy = _min_image(positions[i, 1] - positions[j, 1], ly, iy)
-        dz = _min_image(positions[i, 2] - positions[j, 2], lz, iz)
+        dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
+        dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
+        dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
         r2 = dx * dx + dy * dy + dz * dz
         _, g, h, ok = _bond_terms(form, r2, k[t], p[t])
         if not ok and bad < 0:

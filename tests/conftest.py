@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import md
+from potentials.base import ForceResult
 
 SEED = 20240607
 R_MIN_LJ = 2.0 ** (1.0 / 6.0)
@@ -117,3 +118,69 @@ def _with_random_types(state: md.State, n_types: int, rng) -> md.State:
         pbc=state.pbc,
         types=types,
     )
+
+
+def lj_config_text(
+    *,
+    seed: int = 5,
+    cells: int = 3,
+    density: float = 0.8442,
+    temperature: float = 1.2,
+    potential: str = "",
+    integrator: str = 'type = "verlet"\ndt = 0.005',
+    run: str | None = "steps = 40\nthermo_every = 10",
+    output: str | None = 'path = "out.h5"\nevery = 10\nvelocities = true',
+) -> str:
+    """The TOML of a small fcc LJ run (lj units), for tests that write configs.
+
+    ``potential`` adds keys to the LJ table (cutoff 2.5); ``integrator``,
+    ``run`` and ``output`` are the bodies of those tables (None leaves the
+    table out).
+    """
+    text = (
+        f'units = "lj"\nseed = {seed}\n\n[system]\nlattice = "fcc"\ncells = {cells}\n'
+        f"density = {density}\ntemperature = {temperature}\n\n"
+        f'[[potentials]]\ntype = "lj"\ncutoff = 2.5\n{potential}\n[integrator]\n{integrator}\n'
+    )
+    if run is not None:
+        text += f"\n[run]\n{run}\n"
+    if output is not None:
+        text += f"\n[output]\n{output}\n"
+    return text
+
+
+@pytest.fixture
+def lj_config():
+    """Factory: ``lj_config(**keys)`` is :func:`lj_config_text` (see there)."""
+    return lj_config_text
+
+
+class Tether:
+    """Test-only external potential u = k/2 |r - anchor|^2 per atom (no cutoff).
+
+    Anchors default to the origin. A harmonic oscillator per coordinate, with
+    angular frequency sqrt(k / m): the integrators' analytic reference.
+    """
+
+    cutoff = None
+
+    def __init__(self, k: float, anchors=0.0) -> None:
+        self.k = k
+        self.anchors = np.asarray(anchors, dtype=float)
+
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True) -> ForceResult:
+        d = state.positions - self.anchors
+        energies = 0.5 * self.k * np.einsum("ij,ij->i", d, d)
+        forces = -self.k * d
+        return ForceResult(
+            energy=float(energies.sum()),
+            forces=forces,
+            virial=np.einsum("ia,ib->ab", d, forces),
+            energies=energies if per_atom else None,
+        )
+
+    def check(self, state) -> None:
+        pass
+
+    def describe(self) -> dict:
+        return {"type": "tether", "k": self.k}

@@ -8,38 +8,19 @@ import json
 import h5py
 import numpy as np
 import pytest
+from conftest import lj_config_text
 
 import md
 from md.cli import main
 from md.trajectory import H5MDWriter
 
-CONFIG = """\
-units = "lj"
-seed = 7
-
-[system]
-lattice = "fcc"
-cells = 4
-density = 0.8
-temperature = 1.2
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-
-[integrator]
-type = "verlet"
-dt = 0.005
-
-[run]
-steps = {steps}
-thermo_every = 1000
-
-[output]
-path = "{name}.h5"
-every = 5
-velocities = {velocities}
-"""
+CONFIG = lj_config_text(
+    seed=7,
+    cells=4,
+    density=0.8,
+    run="steps = {steps}\nthermo_every = 1000",
+    output='path = "{name}.h5"\nevery = 5\nvelocities = {velocities}',
+)
 
 EVERY_FILE = {
     "thermo.csv",

@@ -14,8 +14,8 @@ from ase.calculators.fd import calculate_numerical_forces, calculate_numerical_s
 from ase.calculators.lj import LennardJones as AseLennardJones
 from scipy.optimize import minimize_scalar
 
-from md.analysis import temperature
 from md.calculator import MDCalculator
+from md.thermo import temperature
 from md.validate import argon_liquid
 from potentials import LennardJones
 

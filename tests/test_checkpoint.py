@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import lj_config_text
 
 from md.checkpoint import (
     CheckpointError,
@@ -23,34 +24,6 @@ from md.checkpoint import (
 from md.cli import main
 from md.trajectory import read_trajectory
 
-CONFIG = """\
-units = "lj"
-seed = 5
-
-[system]
-lattice = "fcc"
-cells = 3
-density = 0.8442
-temperature = 1.2
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-
-[integrator]
-{integrator}
-
-[run]
-steps = {steps}
-thermo_every = 10
-
-[output]
-path = "out.h5"
-every = 10
-velocities = true
-checkpoint_every = 20
-"""
-
 INTEGRATORS = {
     "verlet": 'type = "verlet"\ndt = 0.005',
     "leapfrog": 'type = "leapfrog"\ndt = 0.005',
@@ -60,7 +33,11 @@ INTEGRATORS = {
 
 
 def config_text(integrator="verlet", steps=60):
-    return CONFIG.format(integrator=INTEGRATORS[integrator], steps=steps)
+    return lj_config_text(
+        integrator=INTEGRATORS[integrator],
+        run=f"steps = {steps}\nthermo_every = 10",
+        output='path = "out.h5"\nevery = 10\nvelocities = true\ncheckpoint_every = 20',
+    )
 
 
 @pytest.fixture(autouse=True)

@@ -8,37 +8,12 @@ import math
 
 import numpy as np
 import pytest
+from conftest import lj_config_text
 
 from md.cli import main
 from md.trajectory import open_trajectory, read_trajectory
 
-SMALL = """\
-units = "lj"
-seed = 5
-
-[system]
-lattice = "fcc"
-cells = 4
-density = 0.8442
-temperature = 1.2
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-
-[integrator]
-type = "verlet"
-dt = 0.005
-
-[run]
-steps = 40
-thermo_every = 10
-
-[output]
-path = "out.h5"
-every = 10
-velocities = true
-"""
+SMALL = lj_config_text(cells=4)
 
 
 def write_config(tmp_path, text=SMALL, name="run.toml"):

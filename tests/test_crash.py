@@ -15,41 +15,19 @@ import time
 
 import numpy as np
 import pytest
+from conftest import lj_config_text
 
 from md.checkpoint import checkpoint_path, read_checkpoint
 from md.cli import main
 from md.trajectory import open_trajectory, read_trajectory
 
-CONFIG = """\
-units = "lj"
-seed = 11
-
-[system]
-lattice = "fcc"
-cells = 3
-density = 0.8442
-temperature = 1.0
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-
-[integrator]
-type = "langevin"
-dt = 0.005
-temperature = 1.0
-friction = 1.0
-
-[run]
-steps = {steps}
-thermo_every = 1000
-
-[output]
-path = "out.h5"
-every = 10
-velocities = true
-checkpoint_every = 25
-"""
+CONFIG = lj_config_text(
+    seed=11,
+    temperature=1.0,
+    integrator='type = "langevin"\ndt = 0.005\ntemperature = 1.0\nfriction = 1.0',
+    run="steps = {steps}\nthermo_every = 1000",
+    output='path = "out.h5"\nevery = 10\nvelocities = true\ncheckpoint_every = 25',
+)
 
 
 @pytest.fixture(scope="module")

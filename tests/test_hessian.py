@@ -138,7 +138,7 @@ class _NoHessian:
     def __init__(self, k):
         self.k = k
 
-    def energy_forces(self, state, neighbors, per_atom=False):
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True):
         from potentials.base import ForceResult
 
         x = state.positions

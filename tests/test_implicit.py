@@ -9,7 +9,7 @@ import md
 from integrators.base import ConvergenceError
 from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
 from integrators.velocity_verlet import VelocityVerlet
-from md.analysis import kinetic_energy
+from md.thermo import kinetic_energy
 from potentials import LennardJones
 from potentials.base import ForceResult
 
@@ -24,7 +24,7 @@ class TetherWithoutHessian:
     def __init__(self, k: float) -> None:
         self.k = k
 
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True) -> ForceResult:
         x = state.positions
         return ForceResult(0.5 * self.k * float(np.sum(x * x)), -self.k * x, np.zeros((3, 3)))
 
@@ -55,7 +55,7 @@ class ChainBonds:
         r = np.linalg.norm(d, axis=1)
         return d, r
 
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True) -> ForceResult:
         d, r = self._bonds(state)
         energy = 0.5 * self.k * float(np.sum((r - self.r0) ** 2))
         pair = (-self.k * (r - self.r0) / r)[:, None] * d  # force on the first atom of a bond

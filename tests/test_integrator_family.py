@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import Tether
 
 import md
 from integrators.base import ConvergenceError
@@ -29,32 +30,6 @@ FINAL_TIME = 2.0
 
 ALL = [ExplicitEuler, SymplecticEuler, Leapfrog, StormerVerlet, RK4, RKF45]
 IDS = [cls.__name__ for cls in ALL]
-
-
-class Tether:
-    """Test-only external potential u = k/2 |r|^2 (a spring to the origin, no cutoff)."""
-
-    cutoff = None
-
-    def __init__(self, k: float) -> None:
-        self.k = k
-
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
-        d = state.positions
-        energies = 0.5 * self.k * np.einsum("ij,ij->i", d, d)
-        forces = -self.k * d
-        return ForceResult(
-            energy=float(energies.sum()),
-            forces=forces,
-            virial=np.einsum("ia,ib->ab", d, forces),
-            energies=energies if per_atom else None,
-        )
-
-    def check(self, state) -> None:
-        pass
-
-    def describe(self) -> dict:
-        return {"type": "tether", "k": self.k}
 
 
 def _oscillator():
@@ -318,7 +293,7 @@ class FencedTether(Tether):
         super().__init__(k)
         self.outside = 0
 
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True) -> ForceResult:
         result = super().energy_forces(state, neighbors, per_atom)
         if np.linalg.norm(state.positions[0]) > 1.5:
             self.outside += 1

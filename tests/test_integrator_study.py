@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import lj_config_text
 
 import md
 from integrators import VelocityVerlet
@@ -14,26 +15,9 @@ from md.cli import main
 from md.integrator_study import CSV_COLUMNS, compare_integrators
 from potentials import LennardJones
 
-CONFIG = """\
-units = "lj"
-seed = 3
-
-[system]
-lattice = "fcc"
-cells = 3
-density = 0.8442
-temperature = 1.0
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-cutoff_mode = "smooth"
-r_on = 2.0
-
-[integrator]
-type = "verlet"
-dt = 0.005
-"""
+CONFIG = lj_config_text(
+    seed=3, temperature=1.0, potential='cutoff_mode = "smooth"\nr_on = 2.0', run=None, output=None
+)
 
 
 @pytest.fixture

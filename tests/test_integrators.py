@@ -4,39 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import Tether
 
 import md
 from integrators import INTEGRATORS, VelocityVerlet
-from potentials import ForceResult, LennardJones
+from potentials import LennardJones
 
 LJ_DENSITY = 0.8442
-
-
-class Tether:
-    """Test-only external potential u = k/2 |r - anchor|^2 per atom (no cutoff)."""
-
-    cutoff = None
-
-    def __init__(self, k: float, anchors) -> None:
-        self.k = k
-        self.anchors = np.asarray(anchors, dtype=float)
-
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
-        d = state.positions - self.anchors
-        energies = 0.5 * self.k * np.einsum("ij,ij->i", d, d)
-        forces = -self.k * d
-        return ForceResult(
-            energy=float(energies.sum()),
-            forces=forces,
-            virial=np.einsum("ia,ib->ab", d, forces),
-            energies=energies if per_atom else None,
-        )
-
-    def check(self, state) -> None:
-        pass
-
-    def describe(self) -> dict:
-        return {"type": "tether", "k": self.k}
 
 
 def _liquid(cells=5, temperature=1.5, seed=7):

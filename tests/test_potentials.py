@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import md
-from md.analysis import pressure
 from md.neighbors import NeighborList
+from md.thermo import pressure
 from potentials import POTENTIALS, FENEBonds, HarmonicBonds, LennardJones
 
 R_MIN = 2.0 ** (1.0 / 6.0)

@@ -10,9 +10,9 @@ import scipy.sparse
 
 import md
 from integrators import VelocityVerlet
-from md.analysis import pressure
 from md.box import minimum_image
 from md.polymers import polymer_melt, single_chain
+from md.thermo import pressure
 from potentials import POTENTIALS, FENEBonds, HarmonicBonds, LennardJones, SupportsHessian
 from potentials.springs import BondStretchError
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import md
-from md.analysis import temperature
+from md.thermo import temperature
 
 TWO_ATOMS = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
 

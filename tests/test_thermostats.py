@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import lj_config_text
 from scipy import stats
 
 import md
@@ -160,7 +161,7 @@ class Tether:
     def __init__(self, k) -> None:
         self.k = np.asarray(k, dtype=float)
 
-    def energy_forces(self, state, neighbors, per_atom=False) -> ForceResult:
+    def energy_forces(self, state, neighbors, per_atom=False, virial=True) -> ForceResult:
         x = state.positions
         energies = 0.5 * self.k * x * x
         forces = -self.k * x
@@ -521,26 +522,9 @@ def test_study_autocorrelation_time_matches_langevin_oscillator_theory(friction)
     assert report.evals_per_time == pytest.approx(1 / 0.05, rel=0.01)
 
 
-STUDY = """\
-units = "lj"
-seed = 3
-
-[system]
-lattice = "fcc"
-cells = 3
-density = 0.8442
-temperature = 1.2
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-cutoff_mode = "smooth"
-r_on = 2.0
-
-[integrator]
-type = "verlet"
-dt = 0.005
-"""
+STUDY = lj_config_text(
+    seed=3, potential='cutoff_mode = "smooth"\nr_on = 2.0', run=None, output=None
+)
 
 
 def test_cli_study_reports_thermostats(tmp_path, capsys):

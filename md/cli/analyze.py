@@ -24,7 +24,6 @@ with a note. Existing output files are only replaced with ``--overwrite``.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
@@ -32,13 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
+from md import analysis as an
 from md.analysis import ANALYSES
+from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
+from md.errors import AnalysisError, TrajectoryError
 
 PLOT_DPI = 120
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``md analyze`` options to ``parser``."""
+def add_parser(subparsers) -> None:
+    """Add ``md analyze`` and its options."""
+    parser = subparsers.add_parser("analyze", help="thermo, g(r), MSD, VACF of a trajectory")
     parser.add_argument("trajectory", type=Path, help="H5MD file written by md run")
     for name, text in (
         ("thermo", "energies, temperature, pressure: averages, errors, energy drift"),
@@ -86,11 +89,8 @@ def output_files(analysis: str) -> list[str]:
     return [f"{analysis}.csv", f"{analysis}.png"]
 
 
-def run_analyze(args) -> int:
+def main(args) -> int:
     """Body of ``md analyze``; returns the exit code."""
-    from md import analysis as an
-    from md.cli import EXIT_BAD_INPUT, EXIT_OK, _fail
-    from md.trajectory import TrajectoryError
 
     explicit = [name for name in ANALYSES if getattr(args, name)]
     wanted = list(ANALYSES) if args.all or not explicit else explicit
@@ -128,7 +128,7 @@ def run_analyze(args) -> int:
                 f"output file(s) exist: {', '.join(existing)}; pass --overwrite or --out"
             )
     except (TrajectoryError, an.AnalysisError) as error:
-        _fail(str(error))
+        fail(str(error))
         return EXIT_BAD_INPUT
 
     labels = an.unit_labels(info.units)
@@ -173,7 +173,7 @@ def run_analyze(args) -> int:
                     **frames,
                 )
     except (TrajectoryError, an.AnalysisError) as error:
-        _fail(str(error))
+        fail(str(error))
         return EXIT_BAD_INPUT
 
     for result in results.values():
@@ -208,8 +208,6 @@ def run_analyze(args) -> int:
 
 # ----------------------------------------------------------------- helpers
 def _parse_range(text: str | None, option: str, allow_single: bool):
-    from md.analysis import AnalysisError
-
     if text is None:
         return None
     parts = text.split(":")
@@ -251,7 +249,7 @@ def _write_csv(path: Path, columns: dict) -> None:
 
 def _figure(n_rows: int = 1, height: float = 4.2):
     """A matplotlib Figure drawn by the Agg canvas (no pyplot, no global backend)."""
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # heavy: matplotlib only when plotting
 
     fig = Figure(figsize=(6.4, height * n_rows))
     axes = fig.subplots(n_rows, 1, squeeze=False)[:, 0]

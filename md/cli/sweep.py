@@ -1,6 +1,6 @@
 """``md sweep CONFIG.toml --vary KEY=V1,V2 ...``: many ``md run``s on a Dask cluster.
 
-The sweep itself lives in :mod:`md.sweep`; this module parses the options,
+The sweep itself lives in :mod:`md.sweeps`; this module parses the options,
 validates every run before any starts (a bad key or value: exit 2), shows
 the progress of the whole sweep on stderr, prints the collated table and
 writes the figure.
@@ -21,15 +21,21 @@ and are in the table); 2 bad input (nothing was run); 130 interrupted.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
 from pathlib import Path
 
+from tqdm import tqdm
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``md sweep`` options to ``parser``."""
+from md import sweeps as sw
+from md.analysis import unit_labels
+from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, fail
+
+
+def add_parser(subparsers) -> None:
+    """Add ``md sweep`` and its options."""
+    parser = subparsers.add_parser("sweep", help="runs over varied keys and replicas, on Dask")
     parser.add_argument("config", type=Path, help="base TOML config (as for md run)")
     parser.add_argument(
         "--vary",
@@ -77,11 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress line")
 
 
-def run_sweep_command(args) -> int:
+def main(args) -> int:
     """Body of ``md sweep``; returns the exit code."""
-    from md import sweep as sw
-    from md.cli import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, _fail
-
     try:
         vary = [sw.parse_vary(text) for text in args.vary]
         if args.replicas < 1:
@@ -107,12 +110,12 @@ def run_sweep_command(args) -> int:
         plan = sw.plan_sweep(args.config, vary, args.replicas, args.out)
         complete = sw.check_outputs(plan, args.overwrite)
     except sw.SweepError as error:
-        _fail(str(error))
+        fail(str(error))
         return EXIT_BAD_INPUT
 
     points = len(plan.runs) // plan.replicas
     varied = "; ".join(
-        f"{k} = {', '.join(map(sw._format_value, v))}" for k, v in plan.values.items()
+        f"{k} = {', '.join(map(sw.format_value, v))}" for k, v in plan.values.items()
     )
     print(
         f"md sweep: {len(plan.runs)} runs ({points} point(s) x {plan.replicas} replica(s))"
@@ -133,11 +136,11 @@ def run_sweep_command(args) -> int:
             )  # fmt: skip
     except sw.SweepError as error:
         printer.close()
-        _fail(str(error))
+        fail(str(error))
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         printer.close()
-        _fail(
+        fail(
             "interrupted; runs not started were cancelled. Complete outputs are kept; run the "
             "same command again to finish the rest"
         )
@@ -162,11 +165,9 @@ def run_sweep_command(args) -> int:
 
 
 class _ProgressPrinter:
-    """Show a :class:`md.sweep.SweepProgress`: a tqdm line on a terminal, else status lines."""
+    """Show a :class:`md.sweeps.SweepProgress`: a tqdm line on a terminal, else status lines."""
 
     def __init__(self, total: int, disable: bool) -> None:
-        from tqdm import tqdm
-
         self.interactive = sys.stderr.isatty() and not disable
         self.disable = disable
         self.bar = tqdm(
@@ -229,11 +230,8 @@ _WIDTH = 24  # of a result column: "-1.23456e-05 +- 1.2e-06"
 
 def print_table(table) -> None:
     """Print one row per run, and per point (mean and replica error) with replicas."""
-    from md import sweep as sw
-    from md.analysis import unit_labels
-
     labels = unit_labels(table.units or "lj")
-    short = sw._short_names(table.keys)
+    short = sw.short_names(table.keys)
     columns = [
         ("temperature", "T", labels["temperature"]),
         ("pressure", "P", labels["pressure"]),
@@ -249,7 +247,7 @@ def print_table(table) -> None:
     print(header)
     for row in table.rows:
         cells = "".join(
-            f"{sw._format_value(row[k]):>{w}}" for k, w in zip(table.keys, key_widths, strict=True)
+            f"{sw.format_value(row[k]):>{w}}" for k, w in zip(table.keys, key_widths, strict=True)
         )
         cells += f"{row['replica']:>5}{row['status']:>9}"
         if row["status"] == "failed":
@@ -269,7 +267,7 @@ def print_table(table) -> None:
         per_column = [table.points(c) for c, _, _ in columns]
         for index, point in enumerate(per_column[0]):
             cells = "".join(
-                f"{sw._format_value(point[k]):>{w}}"
+                f"{sw.format_value(point[k]):>{w}}"
                 for k, w in zip(table.keys, key_widths, strict=True)
             )
             cells += f"{point['n']:>5}{'':>9}"

@@ -1,0 +1,100 @@
+"""Writing output files so that a crash never leaves half of one (layer 0).
+
+Every file the package writes as a whole (trajectory layouts, checkpoints,
+sweep configs) goes through :func:`atomic_path`: written under a temporary
+name in the target's directory, flushed to disk, then renamed over the
+target, and the directory synced so the rename itself survives a power cut.
+Readers therefore see the old file or the new one, never a mixture.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+def usual_permissions(descriptor: int) -> None:
+    """Give a file from ``tempfile.mkstemp`` (mode 0600) the mode a plain open() would.
+
+    That is 0666 less the process umask, so outputs renamed into place are as
+    readable as any other file the user writes.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    os.fchmod(descriptor, 0o666 & ~umask)
+
+
+def sync_directory(directory) -> None:
+    """Make a rename in ``directory`` durable (POSIX); harmless where it cannot be opened."""
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+def fsync_file(path) -> None:
+    """Flush a closed file's data to disk."""
+    with open(path, "rb+") as handle:
+        os.fsync(handle.fileno())
+
+
+def move_into_place(source, target, exclusive: bool = False) -> None:
+    """Rename a complete file over ``target`` durably (fsync file, rename, fsync directory).
+
+    With ``exclusive``, refuse (``FileExistsError``) if ``target`` exists, atomically:
+    the file is hard-linked to the new name, which fails if the name is taken.
+    """
+    source, target = Path(source), Path(target)
+    fsync_file(source)
+    if exclusive:
+        os.link(source, target)
+        os.unlink(source)
+    else:
+        os.replace(source, target)
+    sync_directory(target.parent)
+
+
+@contextlib.contextmanager
+def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success move it into place durably.
+
+    The temporary file exists (empty, with the usual permissions) when the
+    block starts, so writers may open it by name in any mode. If the block
+    raises, the temporary file is removed and ``path`` is left as it was.
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> target = pathlib.Path(tempfile.mkdtemp()) / "out.txt"
+    >>> with atomic_path(target) as temporary:
+    ...     _ = temporary.write_text("done")
+    >>> target.read_text()
+    'done'
+    """
+    path = Path(path)
+    descriptor, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    temporary = Path(name)
+    try:
+        usual_permissions(descriptor)
+        os.close(descriptor)
+        yield temporary
+        move_into_place(temporary, path, exclusive=exclusive)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        raise
+
+
+def write_text_atomic(path, text: str) -> None:
+    """Replace ``path`` with ``text`` atomically and durably."""
+    with atomic_path(path) as temporary:
+        temporary.write_text(text)

@@ -1,0 +1,51 @@
+"""The ``md`` command: one module per subcommand, each with ``add_parser`` and ``main``.
+
+The CLI builds objects and prints; the physics lives in the library, and a
+run goes through :mod:`md.run` as it would from Python. Exit codes (see
+:mod:`md.cli._common`): 0 success, 1 the dynamics blew up, 2 bad input
+(config, structure file, existing output, unreadable trajectory, unwritable
+output), 130 interrupted by SIGINT, 143 by SIGTERM (both after a checkpoint).
+Nothing in the package imports the CLI.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from md._version import __version__
+from md.cli import analyze, info, integrators, run, sweep, validate
+from md.cli._common import EXIT_INTERRUPTED, ArgumentParser
+
+#: Subcommand modules, in the order ``md --help`` lists them.
+SUBCOMMANDS = {
+    "run": run,
+    "integrators": integrators,
+    "analyze": analyze,
+    "sweep": sweep,
+    "info": info,
+    "validate": validate,
+}
+
+
+def build_parser() -> ArgumentParser:
+    """The ``md`` argument parser with every subcommand."""
+    parser = ArgumentParser(prog="md", description="leapmd molecular dynamics engine")
+    parser.add_argument("--version", action="version", version=f"leapmd {__version__}")
+    subparsers = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    for module in SUBCOMMANDS.values():
+        module.add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``md`` command; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return SUBCOMMANDS[args.command].main(args)
+    except KeyboardInterrupt:
+        print("md: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+__all__ = ["build_parser", "main"]

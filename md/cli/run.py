@@ -1,0 +1,213 @@
+"""``md run CONFIG.toml``: run a simulation described by a TOML config.
+
+The run itself is :func:`md.run.prepare` and :meth:`md.run.PreparedRun.execute`;
+this module adds the terminal: the thermo table, a progress bar, the summary
+and the exit codes (0 done, 1 the dynamics blew up, 2 bad input or an
+unwritable output, 130/143 stopped by SIGINT/SIGTERM after a checkpoint).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from md.cli._common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_TERMINATED,
+    fail,
+)
+from md.errors import CheckpointError, ConfigError, TrajectoryError
+from md.observers import Progress
+from md.parallel import get_threads
+from md.run import ABORTED, FAILED, OUTPUT_ERROR, STOPPED, prepare
+
+
+def add_parser(subparsers) -> None:
+    """Add ``md run`` and its options."""
+    run = subparsers.add_parser("run", help="run a simulation described by a TOML config")
+    run.add_argument("config", type=Path, help="TOML config file")
+    run.add_argument("--steps", type=int, help="number of steps (overrides [run] steps)")
+    run.add_argument("--output", "-o", type=Path, help="trajectory path (overrides [output] path)")
+    run.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    run.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from the output's checkpoint (OUTPUT.ckpt): same physics, steps may grow",
+    )
+    run.add_argument(
+        "--threads",
+        type=int,
+        help="threads for the force and neighbour kernels (overrides [run] threads; "
+        "default: every core)",
+    )
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--quiet", "-q", action="store_true", help="no thermo table")
+
+
+def main(args) -> int:
+    """Body of ``md run``; returns the exit code."""
+    # Everything is validated and built before the output file is touched.
+    try:
+        run = prepare(
+            args.config, steps=args.steps, output=args.output, overwrite=args.overwrite,
+            resume=args.resume, threads=args.threads,
+        )  # fmt: skip
+    except (ConfigError, CheckpointError, TrajectoryError) as error:
+        fail(str(error))
+        return EXIT_BAD_INPUT
+    sim, state, config, units = run.sim, run.sim.state, run.config, run.config.units
+    output, saved_path, n_steps = run.output, run.checkpoint_path, run.n_steps
+    if run.complete:
+        print(f"md run: {output} is already complete at step {state.step}; nothing to do")
+        return EXIT_OK
+    resuming = (
+        f", resuming at step {state.step} of {config.run.steps} from {saved_path}"
+        if run.resuming
+        else ""
+    )
+    print(
+        f"md run: {state.n_atoms} atoms, {n_steps} steps, dt = "
+        f"{sim.integrator.dt / units.config_time:g} {units.config_time_label}, units {units.name}, "
+        f"output {output} every {config.output.every} steps{resuming}"
+    )
+    bar = _progress_bar(n_steps, disable=args.no_progress)
+    table = _ThermoTable(units, quiet=args.quiet)
+    try:
+        summary = run.execute(
+            observers=[
+                (table, config.run.thermo_every),
+                (Progress(bar), max(1, n_steps // 500)),
+            ]
+        )
+    except TrajectoryError as error:
+        fail(str(error))
+        return EXIT_BAD_INPUT
+    except (OSError, ValueError) as error:
+        fail(f"cannot create {output}: {error}")
+        return EXIT_BAD_INPUT
+    finally:
+        bar.close()
+    kept = f"{summary.n_frames} frames kept in {output}"
+    if summary.status == FAILED:
+        last = summary.last_checkpoint_step
+        checkpointed = (
+            f"; the last good state (step {last}) is checkpointed in {saved_path}"
+            if last is not None
+            else ""
+        )
+        fail(
+            f"{summary.message}. Frames written so far are kept in {output} "
+            f"({summary.n_frames} frames){checkpointed}"
+        )
+        return EXIT_FAILED
+    if summary.status == ABORTED:
+        fail(f"interrupted at step {state.step}; {kept}")
+        return EXIT_INTERRUPTED
+    if summary.status == OUTPUT_ERROR:
+        fail(
+            f"cannot write output at step {state.step} ({summary.message}); frames written "
+            f"before are kept in {output}, the last checkpoint (step "
+            f"{summary.last_checkpoint_step}) in {saved_path}"
+        )
+        return EXIT_BAD_INPUT
+    if summary.status == STOPPED:
+        print(
+            f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
+            f"written to {saved_path}, {summary.n_frames} frames in {output}. Continue with: "
+            f"md run {args.config} --resume",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
+    _print_summary(sim, summary)
+    return EXIT_OK
+
+
+class _ThermoTable:
+    """Observer printing one thermo row every interval (above the progress bar)."""
+
+    columns = (
+        "step",
+        "time",
+        "temperature",
+        "potential_energy",
+        "kinetic_energy",
+        "total_energy",
+        "pressure",
+    )
+    headers = ("Step", "Time", "Temp", "PotEng", "KinEng", "TotEng", "Press")
+
+    def __init__(self, units, quiet: bool) -> None:
+        self.units = units
+        self.quiet = quiet
+        self.rows: list[dict] = []
+        self._printed_header = False
+
+    def __call__(self, sim) -> None:
+        row = sim.thermo()
+        self.rows.append(row)
+        if self.quiet:
+            return
+        conserved = ("conserved_energy",) if "conserved_energy" in row else ()  # thermostats
+        if not self._printed_header:
+            headers = self.headers + (("Conserved",) if conserved else ())
+            self._write("".join(f"{h:>14}" for h in headers))
+            self._printed_header = True
+        time_value = row["time"] / self.units.config_time
+        cells = [f"{row['step']:>14d}", f"{time_value:>14.6g}"]
+        cells += [f"{row[c]:>14.6g}" for c in self.columns[2:] + conserved]
+        self._write("".join(cells))
+
+    def _write(self, line: str) -> None:
+        tqdm.write(line)
+
+
+def _progress_bar(total: int, disable: bool):
+    return tqdm(
+        total=total,
+        unit="step",
+        disable=disable or total == 0,
+        dynamic_ncols=True,
+        desc="md run",
+        leave=False,
+    )
+
+
+def _print_summary(sim, summary) -> None:
+    first, last, wall, n_steps = summary.first, summary.last, summary.wall, summary.n_steps
+    output, n_frames = summary.output, summary.n_frames
+    state = sim.state
+    timings = summary.timings
+    other = max(wall - sum(timings.values()), 0.0)
+    atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
+    energy_scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
+    drift = (last["total_energy"] - first["total_energy"]) / energy_scale
+    print(
+        f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
+        f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
+    )
+    print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
+    for name, seconds in [*timings.items(), ("other", other)]:
+        share = 100 * seconds / wall if wall > 0 else 0.0
+        print(f"{name:<10}{seconds:>12.4f}{share:>9.1f}")
+    nl = sim.forcefield.neighbor_list
+    if nl is not None:
+        print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
+    statistics = getattr(sim.integrator, "statistics", None)
+    if statistics and statistics.get("steps"):
+        per_step = ", ".join(
+            f"{name.replace('_', ' ')} {value / statistics['steps']:.3g}"
+            for name, value in statistics.items()
+            if name != "steps"
+        )
+        if per_step:
+            print(f"Integrator, per step: {per_step}")
+    print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
+    if "conserved_energy" in first:  # a thermostat: its conserved quantity should not drift
+        change = (last["conserved_energy"] - first["conserved_energy"]) / energy_scale
+        print(f"Relative conserved-quantity drift (incl. heat bath): {change:.3e}")
+    print(f"Wrote {n_frames} frames to {output}")

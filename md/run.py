@@ -1,0 +1,498 @@
+"""Run a config from Python: what ``md run`` does, without the terminal.
+
+:func:`prepare` validates and builds everything a config describes (system,
+potentials, integrator, threads, a resumed checkpoint) and writes nothing;
+:meth:`PreparedRun.execute` then claims the outputs, writes the trajectory
+and checkpoints, and runs. :func:`run_config` does both. The CLI (``md
+run``) and the sweep workers go through here, so a run started from Python
+is the run the command line would make, file for file.
+
+Examples
+--------
+>>> import md
+>>> sim, summary = md.run_config("examples/lj_small.toml", steps=10,
+...                              output=tmp / "small.h5")  # doctest: +SKIP
+>>> summary.status, summary.n_frames  # doctest: +SKIP
+('completed', 1)
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from md.checkpoint import (
+    Checkpoint,
+    Checkpointer,
+    checkpoint_path,
+    fingerprint_changes,
+    physics_fingerprint,
+    read_checkpoint,
+    restore,
+    write_checkpoint,
+)
+from md.config import (
+    Config,
+    build_system,
+    integrator_from_config,
+    load_config,
+    potential_from_config,
+)
+from md.errors import (
+    CheckpointError,
+    ConfigError,
+    ConvergenceError,
+    NonFiniteError,
+    SimulationError,
+    TrajectoryError,
+)
+from md.parallel import set_threads
+from md.simulation import Simulation
+from md.state import State
+from md.trajectory import H5MDWriter, read_frame_steps
+
+#: Statuses of a finished :meth:`PreparedRun.execute`.
+COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
+    "completed",
+    "failed",
+    "output_error",
+    "stopped",
+    "aborted",
+)
+
+
+@dataclass
+class RunSummary:
+    """What a run did.
+
+    Attributes
+    ----------
+    status : str
+        ``"completed"``; ``"failed"`` (the dynamics blew up or an implicit
+        solve did not converge: ``message`` names the step); ``"output_error"``
+        (the trajectory could not be written, e.g. disk full); ``"stopped"``
+        (a signal asked it to stop: ``signal`` names it; a checkpoint was
+        written); ``"aborted"`` (a second signal while stopping).
+    output, checkpoint : Path
+        The trajectory and its checkpoint.
+    n_steps : int
+        Steps this call was asked to take (the config's total less the
+        checkpoint's step when resuming).
+    n_frames : int
+        Frames in the trajectory at the end.
+    wall : float
+        Seconds spent in the loop.
+    first, last : dict
+        ``sim.thermo()`` before and after the loop.
+    timings : dict
+        Seconds per section (neighbour, force, integrate, observers) in the loop.
+    last_checkpoint_step : int or None
+        Step of the last checkpoint written.
+    message : str
+        The error, for ``failed`` and ``output_error``.
+    signal : str or None
+        ``"SIGINT"`` or ``"SIGTERM"`` for ``stopped``.
+    """
+
+    status: str
+    output: Path
+    checkpoint: Path
+    n_steps: int
+    n_frames: int = 0
+    wall: float = 0.0
+    first: dict = field(default_factory=dict)
+    last: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    last_checkpoint_step: int | None = None
+    message: str = ""
+    signal: str | None = None
+
+
+@dataclass
+class PreparedRun:
+    """A validated, built run that has written nothing yet (see :func:`prepare`).
+
+    Attributes
+    ----------
+    config : Config
+        The parsed config (with ``steps`` overridden if asked).
+    sim : Simulation
+        The simulation, at the checkpoint's state when resuming.
+    output, checkpoint_path : Path
+        Where the trajectory and its checkpoint go.
+    n_steps : int
+        Steps still to take.
+    checkpoint : Checkpoint or None
+        The checkpoint being resumed.
+    parameters : dict
+        What the trajectory's ``/parameters`` group records.
+    """
+
+    config: Config
+    sim: Simulation
+    output: Path
+    checkpoint_path: Path
+    n_steps: int
+    overwrite: bool
+    checkpoint: Checkpoint | None
+    fingerprint: dict
+    run_id: str
+    parameters: dict
+    config_file: str
+
+    @property
+    def resuming(self) -> bool:
+        return self.checkpoint is not None
+
+    @property
+    def complete(self) -> bool:
+        """True when resuming a run that already took all its steps."""
+        return self.checkpoint is not None and self.n_steps == 0
+
+    def execute(
+        self,
+        observers: Sequence[tuple[Callable, int]] = (),
+        handle_signals: bool = True,
+    ) -> RunSummary:
+        """Write the outputs and run; return a :class:`RunSummary`.
+
+        Parameters
+        ----------
+        observers : sequence of (callable, int)
+            More observers and their intervals (a thermo table, a progress
+            bar), attached after the trajectory writer and the checkpointer.
+        handle_signals : bool
+            Catch SIGINT and SIGTERM (main thread only) so that the run stops
+            after the current step with a checkpoint; a second signal stops it
+            at once.
+
+        Raises
+        ------
+        TrajectoryError
+            If the trajectory cannot be created (nothing was run).
+        OSError
+            If the first checkpoint or the trajectory cannot be written.
+        """
+        sim, state, config = self.sim, self.sim.state, self.config
+        summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
+        if self.checkpoint is None:
+            # First a checkpoint of the start, then the trajectory: whenever a run is
+            # killed, --resume finds a checkpoint (the file may not exist yet).
+            write_checkpoint(
+                self.checkpoint_path, state, sim.integrator, sim.forcefield,
+                fingerprint=self.fingerprint, run_id=self.run_id,
+                extra={"config_file": self.config_file},
+            )  # fmt: skip
+        if self.checkpoint is not None and self.output.exists():
+            writer = H5MDWriter(
+                self.output, state, units=config.units, append=True,
+                keep_frames=self.checkpoint.n_frames,
+            )  # fmt: skip
+        else:
+            writer = H5MDWriter(
+                self.output,
+                state,
+                units=config.units,
+                velocities=config.output.velocities,
+                forces=config.output.forces,
+                parameters=self.parameters,
+                overwrite=self.overwrite or self.checkpoint is not None,
+            )
+        saver = Checkpointer(
+            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
+        )
+        sim.attach(writer, interval=config.output.every)
+        # After the writer, so a checkpoint counts the frame of its own step. With
+        # checkpoint_every = 0 it only fires at the start of a fresh run (step 0).
+        sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
+        for observer, interval in observers:
+            sim.attach(observer, interval=interval)
+        summary.first = sim.thermo()
+        timings_before = sim.timing_summary()
+        previous = _catch_stop_signals(sim) if handle_signals else {}
+        start = time.perf_counter()
+        try:
+            with writer:
+                sim.run(self.n_steps)
+                if sim.stop_requested is None or saver.last_step != state.step:
+                    saver(sim)  # at the end, and after a signal
+        except (SimulationError, ConvergenceError) as error:
+            summary.status, summary.message = FAILED, str(error)
+        except KeyboardInterrupt:  # a second signal while stopping: leave at once
+            summary.status = ABORTED
+        except (OSError, RuntimeError) as error:  # disk full (h5py raises either), file removed
+            summary.status, summary.message = OUTPUT_ERROR, str(error)
+        finally:
+            _restore_signals(previous)
+        summary.wall = time.perf_counter() - start
+        summary.n_frames = writer.n_frames
+        summary.last_checkpoint_step = saver.last_step
+        summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
+        if summary.status == COMPLETED and sim.stop_requested is not None:
+            summary.status, summary.signal = STOPPED, sim.stop_requested
+        if summary.status == COMPLETED:
+            summary.last = sim.thermo()
+        return summary
+
+
+def prepare(
+    path_or_config: str | os.PathLike | Config,
+    steps: int | None = None,
+    output: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    resume: bool = False,
+    threads: int | None = None,
+) -> PreparedRun:
+    """Validate and build the run a config describes; write nothing.
+
+    Parameters are those of :func:`run_config`.
+
+    Raises
+    ------
+    ConfigError, CheckpointError, TrajectoryError
+        For anything wrong with the config, its files, the output path or the
+        checkpoint to resume; the message names the file, key or value.
+    """
+    config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
+    config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ConfigError(f"--steps must be an integer >= 0, got {steps!r}")
+        config.run.steps = steps
+    output = Path(output) if output is not None else config.output.path
+    if output.name in ("", ".", ".."):
+        raise ConfigError(f"output path {str(output)!r} names no file")
+    saved_path = checkpoint_path(output)
+    if output.exists() and output.is_dir():
+        raise ConfigError(f"output path {output} is a directory")
+    if not output.parent.is_dir():
+        raise ConfigError(f"output directory {output.parent} does not exist")
+    if not os.access(output.parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"output directory {output.parent} is not writable")
+    fingerprint = physics_fingerprint(config)
+    checkpoint = None
+    if resume:
+        if overwrite:
+            raise ConfigError("--resume continues the existing output; drop --overwrite")
+        checkpoint = read_checkpoint(saved_path)
+        if not output.exists() and checkpoint.n_frames:
+            raise ConfigError(f"--resume: trajectory {output} does not exist")
+        changes = fingerprint_changes(checkpoint.fingerprint, fingerprint)
+        if changes:
+            raise ConfigError(
+                f"--resume: {config_file} changed the physics since checkpoint "
+                f"{saved_path} was written ({'; '.join(changes)}); only [run] steps, "
+                "thermo_every and [output] every/checkpoint_every may change"
+            )
+        if output.exists():
+            _check_resumable(output, checkpoint)
+        if checkpoint.state.step > config.run.steps:
+            raise ConfigError(
+                f"--resume: checkpoint {saved_path} is at step {checkpoint.state.step}, "
+                f"beyond the {config.run.steps} steps asked for"
+            )
+    else:
+        for path in (output, saved_path):
+            if path.exists() and not overwrite:
+                raise ConfigError(
+                    f"output file {path} already exists; pass --overwrite to replace it, "
+                    "--resume to continue it, or --output to choose another path"
+                )
+    try:
+        sim = _build_simulation(config, checkpoint, saved_path, threads)
+    except MemoryError:
+        raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
+    integrator, state, units = sim.integrator, sim.state, config.units
+    run_id = checkpoint.run_id if checkpoint is not None else uuid.uuid4().hex
+    parameters = {
+        "config": config.text,
+        "config_file": config_file,
+        "potentials": [p.describe() for p in sim.potentials],
+        "integrator": integrator.describe(),
+        "dt_config": integrator.dt / units.config_time,
+        "dt_config_unit": units.config_time_label,
+        "skin": config.run.skin,
+        "seed": -1 if config.seed is None else config.seed,
+        "n_steps": config.run.steps,
+        "run_id": run_id,
+    }
+    return PreparedRun(
+        config=config,
+        sim=sim,
+        output=output,
+        checkpoint_path=saved_path,
+        n_steps=config.run.steps - state.step,
+        overwrite=overwrite,
+        checkpoint=checkpoint,
+        fingerprint=fingerprint,
+        run_id=run_id,
+        parameters=parameters,
+        config_file=config_file,
+    )
+
+
+def run_config(
+    path_or_config: str | os.PathLike | Config,
+    steps: int | None = None,
+    output: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    resume: bool = False,
+    threads: int | None = None,
+) -> tuple[Simulation, RunSummary]:
+    """Run a TOML config as ``md run`` does; return the Simulation and a summary.
+
+    Parameters
+    ----------
+    path_or_config : path or Config
+        The config file (or one parsed with :func:`md.config.load_config`).
+    steps : int, optional
+        Total steps, overriding ``[run] steps``.
+    output : path, optional
+        Trajectory path, overriding ``[output] path``; the checkpoint goes
+        next to it (``OUTPUT.ckpt``).
+    overwrite : bool
+        Replace an existing output and checkpoint.
+    resume : bool
+        Continue from the output's checkpoint (bit for bit).
+    threads : int, optional
+        Kernel threads, overriding ``[run] threads`` (default: every core).
+
+    Returns
+    -------
+    sim : Simulation
+    summary : RunSummary
+        ``summary.status`` says whether the run completed; a run that blew
+        up reports ``"failed"`` with the step in ``summary.message`` rather
+        than raising, as its frames and last checkpoint are kept.
+
+    Raises
+    ------
+    ConfigError, CheckpointError, TrajectoryError
+        Before anything is written, for bad input.
+    """
+    prepared = prepare(path_or_config, steps, output, overwrite, resume, threads)
+    if prepared.complete:
+        return prepared.sim, RunSummary(
+            COMPLETED, prepared.output, prepared.checkpoint_path, 0,
+            n_frames=prepared.checkpoint.n_frames,
+        )  # fmt: skip
+    return prepared.sim, prepared.execute()
+
+
+# ------------------------------------------------------------------ helpers
+def build_components(config: Config, state: State | None = None):
+    """Build the system, potentials and integrator; return ``(state, potentials, integrator)``.
+
+    ``state`` replaces the built system (a checkpoint's). Constraints, if
+    any, are bound to it, moving it onto the bond lengths. Raises
+    ConfigError naming the file and section for anything that cannot be built.
+    """
+    built, bonds = build_system(config)
+    if state is not None and state.n_atoms != built.n_atoms:
+        raise ConfigError(
+            f"{config.source}: the state holds {state.n_atoms} atoms, the config builds "
+            f"{built.n_atoms}"
+        )
+    state = built if state is None else state
+    potentials = [
+        potential_from_config(entry, state.type_names, config.source, index, bonds)
+        for index, entry in enumerate(config.potentials)
+    ]
+    integrator = integrator_from_config(config.integrator, config.source, bonds)
+    constraints = getattr(integrator, "constraints", None)
+    if constraints is not None:  # start on the bond lengths, so step 0 is reported there
+        try:
+            constraints.bind(state, integrator.dt)
+        except (ValueError, ConvergenceError) as error:
+            raise ConfigError(f"{config.source}: [integrator.constraints]: {error}") from None
+    return state, potentials, integrator
+
+
+def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> Simulation:
+    if checkpoint is not None:
+        try:
+            state, potentials, integrator = build_components(config, checkpoint.state)
+        except ConfigError as error:
+            raise ConfigError(f"--resume: checkpoint {saved_path}: {error}") from None
+    else:
+        state, potentials, integrator = build_components(config)
+    # Blow-up guard: nobody moves farther than the skin in one step (adaptive
+    # integrators take long output steps on purpose).
+    guard = config.run.skin if config.run.skin > 0 and not integrator.adaptive else None
+    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
+    threads = threads if threads is not None else config.run.threads
+    try:
+        set_threads(threads)
+    except ValueError as error:
+        raise ConfigError(f"{where}: {error}") from None
+    try:
+        sim = Simulation(
+            state,
+            potentials,
+            integrator,
+            skin=config.run.skin,
+            units=config.units,
+            max_displacement=guard,
+        )
+    except ValueError as error:
+        raise ConfigError(f"{config.source}: {error}") from None
+    if checkpoint is not None:
+        restore(checkpoint, integrator, sim.forcefield)
+        if checkpoint.n_frames:  # else frame 0 was never kept: write it again
+            sim.skip_initial_observation()
+    try:
+        sim.forcefield.compute(state)
+    except NonFiniteError as error:
+        raise ConfigError(
+            f"{config.source}: the initial configuration cannot be evaluated: {error} "
+            "(overlapping atoms, or a stretched bond?)"
+        ) from None
+    return sim
+
+
+def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
+    """Raise ConfigError unless ``output`` holds the frames ``checkpoint`` counted."""
+    steps, parameters = read_frame_steps(output)
+    if parameters.get("run_id") != checkpoint.run_id:
+        raise ConfigError(
+            f"--resume: {output} was not written by the run that wrote {checkpoint.path} "
+            "(different run id)"
+        )
+    n = checkpoint.n_frames
+    if len(steps) < n or (n and int(steps[n - 1]) != checkpoint.last_frame_step):
+        raise ConfigError(
+            f"--resume: {output} holds {len(steps)} complete frames, but checkpoint "
+            f"{checkpoint.path} expects at least {n} ending at step {checkpoint.last_frame_step}"
+        )
+
+
+def _catch_stop_signals(sim: Simulation) -> dict:
+    """SIGINT/SIGTERM ask the run to stop after the current step; a second one stops at once."""
+
+    def handler(signum, frame):
+        if sim.stop_requested is not None:
+            raise KeyboardInterrupt
+        sim.request_stop(signal.Signals(signum).name)
+
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[signum] = signal.signal(signum, handler)
+        except ValueError:  # not the main thread: leave signals alone
+            break
+    return previous
+
+
+def _restore_signals(previous: dict) -> None:
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)
+
+
+__all__ = ["PreparedRun", "RunSummary", "build_components", "prepare", "run_config"]
+# Errors a caller of prepare() should expect, for ``except`` clauses.
+INPUT_ERRORS = (ConfigError, CheckpointError, TrajectoryError)
