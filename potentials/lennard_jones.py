@@ -17,6 +17,8 @@ from potentials.pair_hessian import PairHessian
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
 MIXING_RULES = ("lorentz-berthelot", "geometric")
+#: Rows of the kernel's parameter table, one column per type pair.
+C6, C12, RC2, RO2, SHIFT, INV_DEN = range(6)
 
 
 class LennardJones:
@@ -178,10 +180,16 @@ class LennardJones:
             )
         return params
 
-    def tables(self, n_types: int) -> tuple[np.ndarray, ...]:
-        """Flat (n_types * n_types,) tables c6, c12, rc2, ro2, shift, inv_den for the kernel."""
+    def tables(self, n_types: int) -> np.ndarray:
+        """The kernel's parameters: a (6, n_types * n_types) table, column ti * n_types + tj.
+
+        Rows ``C6``, ``C12`` (4 eps sigma^6, 4 eps sigma^12), ``RC2`` and ``RO2``
+        (squared cutoff and switching start), ``SHIFT`` (u at the cutoff) and
+        ``INV_DEN`` (1 / (rc^2 - ro^2)^3, the switching function's scale).
+        """
         size = n_types * n_types
-        c6, c12, rc2, ro2, shift, inv_den = (np.zeros(size) for _ in range(6))
+        table = np.zeros((6, size))
+        c6, c12, rc2, ro2, shift, inv_den = table
         for ti in range(n_types):
             for tj in range(n_types):
                 p = self.pair_parameters(ti, tj)
@@ -195,7 +203,7 @@ class LennardJones:
                 shift[k] = c12[k] * inv_rc6 * inv_rc6 - c6[k] * inv_rc6
                 if rc2[k] > ro2[k]:
                     inv_den[k] = 1.0 / (rc2[k] - ro2[k]) ** 3
-        return c6, c12, rc2, ro2, shift, inv_den
+        return table
 
     def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:
         """Return the pair energy u(r) with the cutoff treatment applied [energy]."""
@@ -231,32 +239,21 @@ class LennardJones:
         """
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
-        tables = self._cached_tables(n_types)
+        table = self._cached_tables(n_types)
         mode = CUTOFF_MODES[self.cutoff_mode]
         frame = None if neighbors is None or per_atom else neighbors.frame
         if frame is not None:
             self._check_radius(neighbors)
-            return self._frame_energy_forces(state, frame, n_types, tables, mode, virial)
+            return self._frame_energy_forces(state, frame, n_types, table, mode, virial)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         forces = np.zeros((n, 3))
         total_virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
         virials = np.zeros((n if per_atom else 0, 6))
+        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array)
         energy = _lj_energy_forces(
-            state.positions,
-            state.types,
-            lengths,
-            inverse,
-            starts,
-            neighbor_array,
-            n_types,
-            *tables,
-            mode,
-            forces,
-            total_virial,
-            energies,
-            virials,
+            geometry, n_types, table, mode, forces, total_virial, energies, virials
         )
         return ForceResult(
             energy=energy,
@@ -266,7 +263,7 @@ class LennardJones:
             virials=virials if per_atom else None,
         )
 
-    def _frame_energy_forces(self, state, frame, n_types, tables, mode, virial: bool):
+    def _frame_energy_forces(self, state, frame, n_types, table, mode, virial: bool):
         n = state.n_atoms
         chunks = frame.n_chunks
         scratch = getattr(self, "_scratch", None)
@@ -283,10 +280,12 @@ class LennardJones:
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         kernel = _lj_frame_forces_threaded if chunks > 1 else _lj_frame_forces
+        slots = (
+            frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
+            frame.codes, frame.bounds,
+        )  # fmt: skip
         kernel(
-            state.positions, state.types, frame.order, frame.images, frame.lengths, frame.shifts,
-            frame.starts, frame.neighbors, frame.codes, frame.bounds,
-            n_types, *tables, mode, virial,
+            state.positions, state.types, slots, n_types, table, mode, virial,
             slot_positions, slot_types, buffers, energies, virials, forces,
         )  # fmt: skip
         return ForceResult(
@@ -332,10 +331,10 @@ class LennardJones:
         """
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
-        c6, c12, rc2, ro2, _, inv_den = self._cached_tables(n_types)
+        table = self._cached_tables(n_types)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
-        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array, n_types)
+        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array)
         listed = len(neighbor_array)  # room for every listed pair; those inside are kept
         pair_i = np.empty(listed, dtype=np.int64)
         pair_j = np.empty(listed, dtype=np.int64)
@@ -343,7 +342,7 @@ class LennardJones:
         radial = np.empty(listed)
         unit = np.empty((listed, 3))
         n_pairs = _lj_pair_curvatures(
-            *geometry, c6, c12, rc2, ro2, inv_den, CUTOFF_MODES[self.cutoff_mode],
+            geometry, n_types, table, CUTOFF_MODES[self.cutoff_mode],
             pair_i, pair_j, transverse, radial, unit,
         )  # fmt: skip
         return PairHessian(
@@ -402,28 +401,32 @@ def _all_pairs(n: int):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _lj_pair(r2, k, c12, c6, rc2, ro2, shift, inv_den, mode):
-    """Return (u, f/r) of one pair at squared distance r2, type-pair row k of the tables.
+def _lj_pair(r2, k, table, mode):
+    """Return (u, f/r) of one pair at squared distance r2, type-pair column k of ``table``.
 
     f/r is -du/dr / r, so the force on the first atom is (f/r) d. Both are 0
-    at or beyond the cutoff. Tables and mode as in ``_lj_energy_forces``.
-    Branch-free past the cutoff: a third of the listed pairs lie in the
-    skin, and a mispredicted branch costs more than the arithmetic.
+    at or beyond the cutoff. ``table`` is :meth:`LennardJones.tables`; mode:
+    0 truncated, 1 shifted, 2 smooth. Branch-free past the cutoff: a third
+    of the listed pairs lie in the skin, and a mispredicted branch costs
+    more than the arithmetic.
     """
-    inside = 1.0 if r2 < rc2[k] else 0.0
+    rc2 = table[RC2, k]
+    inside = 1.0 if r2 < rc2 else 0.0
     inv_r2 = 1.0 / r2
     inv_r6 = inv_r2 * inv_r2 * inv_r2
-    a = c12[k] * inv_r6 * inv_r6
-    b = c6[k] * inv_r6
+    a = table[C12, k] * inv_r6 * inv_r6
+    b = table[C6, k] * inv_r6
     u = a - b
     fr = (12.0 * a - 6.0 * b) * inv_r2
     if mode == 1:
-        u -= shift[k]
+        u -= table[SHIFT, k]
     elif mode == 2:
-        gap = rc2[k] - r2
-        switching = r2 > ro2[k]
-        switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
-        dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
+        ro2 = table[RO2, k]
+        inv_den = table[INV_DEN, k]
+        gap = rc2 - r2
+        switching = r2 > ro2
+        switch = gap * gap * (rc2 + 2.0 * r2 - 3.0 * ro2) * inv_den
+        dswitch = 6.0 * gap * (ro2 - r2) * inv_den
         switch = switch if switching else 1.0
         dswitch = dswitch if switching else 0.0
         fr = switch * fr - 2.0 * dswitch * u
@@ -431,32 +434,38 @@ def _lj_pair(r2, k, c12, c6, rc2, ro2, shift, inv_den, mode):
     return u * inside, fr * inside
 
 
+# The three loops below each run with the cutoff mode a compile-time constant:
+# their dispatchers call the inlined loop once per mode. A mode test inside a
+# pair loop made it 2.4 times slower.
+
+
 @njit(cache=True, error_model="numpy")
 def _lj_frame_forces(
-    positions, types, order, images, lengths, shifts, starts, neighbors, codes, bounds,
-    n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
+    positions, types, slots, n_types, table, mode, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
-    """LJ forces over a slot-frame list (``md.neighbors.NeighborList``), chunk by chunk.
+    """LJ forces over a slot-frame list (``md.neighbors.SlotFrame``), chunk by chunk.
 
-    Gathers ``frame[p] = positions[order[p]] + images[p] * lengths`` and the slot
-    types, then chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its
-    pairs' forces into its own ``buffers[c]`` (C, N, 3), its energy into
-    ``energies[c]`` and, if ``with_virial``, its virial (xx, yy, zz, yz, xz,
-    xy) into ``virials[c]``. The chunk buffers are summed in chunk order
-    into ``forces`` (N, 3, by atom), so the result is the same on every run
-    for a given chunk count. A pair (p, q) is separated by frame[p] -
-    frame[q] - shifts[codes[k]]: no minimum image. Tables and mode as in
-    ``_lj_energy_forces``. ``_lj_frame_forces_threaded`` runs the chunks on
-    numba's threads; no two chunks write the same memory.
+    ``slots`` is (order, images, lengths, shifts, starts, neighbors, codes,
+    bounds), the fields of the SlotFrame. Gathers ``frame[p] =
+    positions[order[p]] + images[p] * lengths`` and the slot types, then
+    chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its pairs' forces
+    into its own ``buffers[c]`` (C, N, 3), its energy into ``energies[c]``
+    and, if ``with_virial``, its virial (xx, yy, zz, yz, xz, xy) into
+    ``virials[c]``. The chunk buffers are summed in chunk order into
+    ``forces`` (N, 3, by atom), so the result is the same on every run for a
+    given chunk count. A pair (p, q) is separated by frame[p] - frame[q] -
+    shifts[codes[k]]: no minimum image. ``_lj_frame_forces_threaded`` runs
+    the chunks on numba's threads; no two chunks write the same memory.
     """
-    n_chunks = bounds.shape[0] - 1
+    order, images, lengths = slots[0], slots[1], slots[2]
+    n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
         _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
     for chunk in range(n_chunks):
         _lj_frame_chunk(
-            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-            c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+            chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers,
+            energies, virials,
         )  # fmt: skip
     for chunk in range(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
@@ -464,18 +473,18 @@ def _lj_frame_forces(
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _lj_frame_forces_threaded(
-    positions, types, order, images, lengths, shifts, starts, neighbors, codes, bounds,
-    n_types, c6, c12, rc2, ro2, shift, inv_den, mode, with_virial,
+    positions, types, slots, n_types, table, mode, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """``_lj_frame_forces`` with one chunk per thread (same arguments, same result)."""
-    n_chunks = bounds.shape[0] - 1
+    order, images, lengths = slots[0], slots[1], slots[2]
+    n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
         _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
     for chunk in prange(n_chunks):
         _lj_frame_chunk(
-            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-            c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+            chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers,
+            energies, virials,
         )  # fmt: skip
     for chunk in prange(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
@@ -508,37 +517,26 @@ def _sum_chunk_forces(chunk, n_chunks, order, buffers, forces):
 
 @njit(cache=True, error_model="numpy")
 def _lj_frame_chunk(
-    chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-    c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
+    chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers, energies,
+    virials,
 ):  # fmt: skip
-    """The pairs of one chunk of ``_lj_frame_forces``, into ``buffers[chunk]``.
-
-    Each branch inlines the loop with the cutoff mode a constant: a mode test
-    inside the pair loop made it 2.4 times slower.
-    """
+    """The pairs of one chunk of ``_lj_frame_forces``, into ``buffers[chunk]``."""
+    args = (chunk, frame, frame_types, slots, n_types, table)
+    out = (with_virial, buffers, energies, virials)
     if mode == 0:
-        _lj_frame_chunk_loop(
-            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-            c6, c12, rc2, ro2, shift, inv_den, 0, with_virial, buffers, energies, virials,
-        )  # fmt: skip
+        _lj_frame_chunk_loop(args, 0, out)
     elif mode == 1:
-        _lj_frame_chunk_loop(
-            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-            c6, c12, rc2, ro2, shift, inv_den, 1, with_virial, buffers, energies, virials,
-        )  # fmt: skip
+        _lj_frame_chunk_loop(args, 1, out)
     else:
-        _lj_frame_chunk_loop(
-            chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-            c6, c12, rc2, ro2, shift, inv_den, 2, with_virial, buffers, energies, virials,
-        )  # fmt: skip
+        _lj_frame_chunk_loop(args, 2, out)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _lj_frame_chunk_loop(
-    chunk, frame, frame_types, shifts, starts, neighbors, codes, bounds, n_types,
-    c6, c12, rc2, ro2, shift, inv_den, mode, with_virial, buffers, energies, virials,
-):  # fmt: skip
+def _lj_frame_chunk_loop(args, mode, out):
     """The loop of ``_lj_frame_chunk`` for one cutoff mode (inlined there with mode fixed)."""
+    chunk, frame, frame_types, slots, n_types, table = args
+    with_virial, buffers, energies, virials = out
+    shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
     buffer = buffers[chunk]
     for p in range(frame.shape[0]):
         buffer[p, 0] = 0.0
@@ -561,7 +559,7 @@ def _lj_frame_chunk_loop(
             dy = yi - frame[q, 1] - shifts[code, 1]
             dz = zi - frame[q, 2] - shifts[code, 2]
             r2 = dx * dx + dy * dy + dz * dz
-            u, fr = _lj_pair(r2, row + frame_types[q], c12, c6, rc2, ro2, shift, inv_den, mode)
+            u, fr = _lj_pair(r2, row + frame_types[q], table, mode)
             energy += u
             fx = fr * dx
             fy = fr * dy
@@ -592,73 +590,29 @@ def _lj_frame_chunk_loop(
 
 
 @njit(cache=True, error_model="numpy")
-def _lj_energy_forces(
-    positions,
-    types,
-    lengths,
-    inverse,
-    starts,
-    neighbors,
-    n_types,
-    c6,
-    c12,
-    rc2,
-    ro2,
-    shift,
-    inv_den,
-    mode,
-    forces,
-    virial,
-    energies,
-    virials,
-):
+def _lj_energy_forces(geometry, n_types, table, mode, forces, virial, energies, virials):
     """Add LJ forces to ``forces`` (zeroed by caller) and return the energy.
 
-    starts/neighbors: half list over atom indices in CSR form, minimum image
-    per pair. Tables are flat (n_types^2,), indexed ti * n_types + tj. mode:
-    0 truncated, 1 shifted, 2 smooth; each branch inlines the loop with the
-    mode a constant. Writes ``virial`` as (xx, yy, zz, yz, xz, xy) and, when
-    ``energies`` has length N, the per-atom energies and, into ``virials``
-    (N, 6, zeroed), the per-atom virials (half of each pair to each atom).
+    ``geometry`` is (positions, types, lengths, inverse, starts, neighbors):
+    a half list over atom indices in CSR form, minimum image per pair.
+    ``table`` as in ``_lj_pair``. Writes ``virial`` as (xx, yy, zz, yz, xz,
+    xy) and, when ``energies`` has length N, the per-atom energies and, into
+    ``virials`` (N, 6, zeroed), the per-atom virials (half of each pair to
+    each atom).
     """
+    out = (forces, virial, energies, virials)
     if mode == 0:
-        return _lj_energy_forces_loop(
-            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-            shift, inv_den, 0, forces, virial, energies, virials,
-        )  # fmt: skip
+        return _lj_energy_forces_loop(geometry, n_types, table, 0, out)
     if mode == 1:
-        return _lj_energy_forces_loop(
-            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-            shift, inv_den, 1, forces, virial, energies, virials,
-        )  # fmt: skip
-    return _lj_energy_forces_loop(
-        positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-        shift, inv_den, 2, forces, virial, energies, virials,
-    )  # fmt: skip
+        return _lj_energy_forces_loop(geometry, n_types, table, 1, out)
+    return _lj_energy_forces_loop(geometry, n_types, table, 2, out)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _lj_energy_forces_loop(
-    positions,
-    types,
-    lengths,
-    inverse,
-    starts,
-    neighbors,
-    n_types,
-    c6,
-    c12,
-    rc2,
-    ro2,
-    shift,
-    inv_den,
-    mode,
-    forces,
-    virial,
-    energies,
-    virials,
-):
+def _lj_energy_forces_loop(geometry, n_types, table, mode, out):
     """The loop of ``_lj_energy_forces`` for one cutoff mode (inlined there with mode fixed)."""
+    positions, types, lengths, inverse, starts, neighbors = geometry
+    forces, virial, energies, virials = out
     n = positions.shape[0]
     per_atom = energies.shape[0] == n
     energy = 0.0
@@ -679,7 +633,7 @@ def _lj_energy_forces_loop(
             dy = min_image_component(yi - positions[j, 1], ly, iy)
             dz = min_image_component(zi - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
-            u, fr = _lj_pair(r2, row + types[j], c12, c6, rc2, ro2, shift, inv_den, mode)
+            u, fr = _lj_pair(r2, row + types[j], table, mode)
             energy += u
             fx = fr * dx
             fy = fr * dy
@@ -714,50 +668,22 @@ def _lj_energy_forces_loop(
 
 @njit(cache=True, error_model="numpy")
 def _lj_pair_curvatures(
-    positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-    inv_den, mode, pair_i, pair_j, transverse, radial, unit,
+    geometry, n_types, table, mode, pair_i, pair_j, transverse, radial, unit
 ):  # fmt: skip
     """Write the Hessian block of every pair inside its cutoff; return how many.
 
-    Each branch inlines ``_lj_pair_curvatures_loop`` with the mode a constant.
+    Arguments as in ``_lj_energy_forces``; outputs as in ``_lj_pair_curvatures_loop``.
     """
+    out = (pair_i, pair_j, transverse, radial, unit)
     if mode == 0:
-        return _lj_pair_curvatures_loop(
-            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-            inv_den, 0, pair_i, pair_j, transverse, radial, unit,
-        )  # fmt: skip
+        return _lj_pair_curvatures_loop(geometry, n_types, table, 0, out)
     if mode == 1:
-        return _lj_pair_curvatures_loop(
-            positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-            inv_den, 1, pair_i, pair_j, transverse, radial, unit,
-        )  # fmt: skip
-    return _lj_pair_curvatures_loop(
-        positions, types, lengths, inverse, starts, neighbors, n_types, c6, c12, rc2, ro2,
-        inv_den, 2, pair_i, pair_j, transverse, radial, unit,
-    )  # fmt: skip
+        return _lj_pair_curvatures_loop(geometry, n_types, table, 1, out)
+    return _lj_pair_curvatures_loop(geometry, n_types, table, 2, out)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _lj_pair_curvatures_loop(
-    positions,
-    types,
-    lengths,
-    inverse,
-    starts,
-    neighbors,
-    n_types,
-    c6,
-    c12,
-    rc2,
-    ro2,
-    inv_den,
-    mode,
-    pair_i,
-    pair_j,
-    transverse,
-    radial,
-    unit,
-):
+def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
     """Write the Hessian block of every pair inside its cutoff, as its eigenvalues and axis.
 
     With g(s) the pair energy as a function of s = r^2 and d = x_i - x_j
@@ -765,11 +691,12 @@ def _lj_pair_curvatures_loop(
     transverse eigenvalue is 2 g'(s) = u'(r)/r, the radial one
     2 g'(s) + 4 g''(s) s = u''(r), along d/r. Written per pair, in list
     order, into ``pair_i``, ``pair_j``, ``transverse``, ``radial`` (P,) and
-    ``unit`` (room for every listed pair); returns P, the number inside.
-    Tables and ``mode`` as in
-    ``_lj_energy_forces``; u is unshifted (a constant shift has no second
+    ``unit`` (room for every listed pair; ``out`` holds the five); returns
+    P, the number inside. u is unshifted (a constant shift has no second
     derivative).
     """
+    positions, types, lengths, inverse, starts, neighbors = geometry
+    pair_i, pair_j, transverse, radial, unit = out
     lx, ly, lz = lengths[0], lengths[1], lengths[2]
     ix, iy, iz = inverse[0], inverse[1], inverse[2]
     n_pairs = 0
@@ -782,22 +709,25 @@ def _lj_pair_curvatures_loop(
             dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
+            rc2 = table[RC2, k]
+            ro2 = table[RO2, k]
+            inv_den = table[INV_DEN, k]
             # Written branch-free: every listed pair goes to slot n_pairs, which
             # only advances for pairs inside the cutoff (a third lie in the skin).
-            inside = r2 < rc2[k]
+            inside = r2 < rc2
             inv_r2 = 1.0 / r2
             inv_r6 = inv_r2 * inv_r2 * inv_r2
-            a = c12[k] * inv_r6 * inv_r6
-            b = c6[k] * inv_r6
+            a = table[C12, k] * inv_r6 * inv_r6
+            b = table[C6, k] * inv_r6
             # u = a - b as a function of s = r^2, and its first two derivatives.
             g = a - b
             g1 = (3.0 * b - 6.0 * a) * inv_r2
             g2 = (42.0 * a - 12.0 * b) * inv_r2 * inv_r2
-            if mode == 2 and r2 > ro2[k] and inside:
-                gap = rc2[k] - r2
-                switch = gap * gap * (rc2[k] + 2.0 * r2 - 3.0 * ro2[k]) * inv_den[k]
-                dswitch = 6.0 * gap * (ro2[k] - r2) * inv_den[k]
-                d2switch = 6.0 * (2.0 * r2 - ro2[k] - rc2[k]) * inv_den[k]
+            if mode == 2 and r2 > ro2 and inside:
+                gap = rc2 - r2
+                switch = gap * gap * (rc2 + 2.0 * r2 - 3.0 * ro2) * inv_den
+                dswitch = 6.0 * gap * (ro2 - r2) * inv_den
+                d2switch = 6.0 * (2.0 * r2 - ro2 - rc2) * inv_den
                 g2 = d2switch * g + 2.0 * dswitch * g1 + switch * g2
                 g1 = dswitch * g + switch * g1
             inv_r = np.sqrt(inv_r2)
