@@ -396,8 +396,6 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
 
 
-
-
 def build_system(config: Config):
     """Return ``(state, bonds)``: the initial State and a builder's bonds (or None)."""
     system = config.system
@@ -498,8 +496,6 @@ def _check_xyz_count(path: Path, where: str, format: str | None) -> None:
             f"{where} structure {path}: the first line declares {int(first)} atoms, more than "
             f"a file of {size} bytes can hold"
         )
-
-
 
 
 __all__ = [
