@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from md._files import move_into_place
 from md.checkpoint import checkpoint_path
 from md.sweeps.plan import CONFIG_DIR, LOG_DIR, PARTIAL_DIR, output_verdict
 from md.sweeps.summary import summarize
@@ -108,9 +109,7 @@ def _run_child(spec: dict, config: Path, partial: Path, lock, options: dict) -> 
             verdict = output_verdict(output, spec["config_text"], spec["n_frames"],
                                      spec["last_step"])  # fmt: skip
             if verdict == "complete":
-                with open(output, "rb+") as handle:
-                    os.fsync(handle.fileno())
-                os.replace(output, out / f"{label}.h5")
+                move_into_place(output, out / f"{label}.h5")
                 return "done", ""
             if mode == "--resume":
                 continue  # a checkpoint of other settings: start afresh
