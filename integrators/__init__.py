@@ -8,18 +8,22 @@ temperature; they and :class:`Rattle` (velocity Verlet with SHAKE/RATTLE)
 take rigid-bond ``constraints``.
 """
 
-from integrators.base import ConvergenceError, Integrator
-from integrators.berendsen import Berendsen
-from integrators.bussi import Bussi
-from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
-from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
-from integrators.langevin import Langevin
-from integrators.leapfrog import Leapfrog
-from integrators.nose_hoover import NoseHooverChain
-from integrators.rattle import BondConstraints, ConstraintError, Rattle
-from integrators.runge_kutta import RK4, RKF45
-from integrators.stormer_verlet import StormerVerlet
-from integrators.velocity_verlet import VelocityVerlet
+from md._kernel_cache import kernel_cache
+
+# Kernel modules are imported here so numba caches them per user (md._kernel_cache).
+with kernel_cache():
+    from integrators.base import ConvergenceError, Integrator
+    from integrators.berendsen import Berendsen
+    from integrators.bussi import Bussi
+    from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
+    from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
+    from integrators.langevin import Langevin
+    from integrators.leapfrog import Leapfrog
+    from integrators.nose_hoover import NoseHooverChain
+    from integrators.rattle import BondConstraints, ConstraintError, Rattle
+    from integrators.runge_kutta import RK4, RKF45
+    from integrators.stormer_verlet import StormerVerlet
+    from integrators.velocity_verlet import VelocityVerlet
 
 INTEGRATORS = {
     "verlet": VelocityVerlet,

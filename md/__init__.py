@@ -19,21 +19,26 @@ ARCHITECTURE.md). This facade re-exports the public names; it is the only
 module allowed to reach every layer.
 """
 
-from md._version import __version__
-from md.build import lattice, maxwell_boltzmann
-from md.errors import (
-    CheckpointError,
-    ConfigError,
-    ConvergenceError,
-    NonFiniteError,
-    SimulationError,
-    TrajectoryError,
-)
-from md.forcefield import ForceField
-from md.neighbors import NeighborList
-from md.simulation import Simulation
-from md.state import State
-from md.units import UNIT_SYSTEMS, UnitSystem, get_units
+from md._kernel_cache import kernel_cache
+
+# Kernel modules are imported here so numba caches them per user (md._kernel_cache).
+with kernel_cache():
+    from md._version import __version__
+    from md.build import lattice, maxwell_boltzmann
+    from md.errors import (
+        CheckpointError,
+        ConfigError,
+        ConvergenceError,
+        NonFiniteError,
+        SimulationError,
+        TrajectoryError,
+    )
+    from md.forcefield import ForceField
+    from md.neighbors import NeighborList
+    from md.simulation import Simulation
+    from md.state import State
+    from md.units import UNIT_SYSTEMS, UnitSystem, get_units
+
 
 #: Names from the upper layers, resolved on first access: ``md.config`` and ``md.run``
 #: import the integrator registry, so loading them here would make ``import

@@ -3,9 +3,13 @@
 ``POTENTIALS`` maps the names used in configs to the classes.
 """
 
-from potentials.base import ForceResult, Potential, SupportsHessian
-from potentials.lennard_jones import LennardJones
-from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
+from md._kernel_cache import kernel_cache
+
+# Kernel modules are imported here so numba caches them per user (md._kernel_cache).
+with kernel_cache():
+    from potentials.base import ForceResult, Potential, SupportsHessian
+    from potentials.lennard_jones import LennardJones
+    from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
 
 POTENTIALS = {"lj": LennardJones, "spring": HarmonicBonds, "fene": FENEBonds}
 

@@ -24,6 +24,7 @@ PACKAGES = ("md", "potentials", "integrators")
 LAYERS = {
     0: [
         "md._version",
+        "md._kernel_cache",
         "md.state",
         "md.box",
         "md.units",
