@@ -94,3 +94,17 @@ def test_ci_runs_the_readme_commands_in_order():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     positions = [ci.index(command) for command in commands]  # verbatim lines
     assert positions == sorted(positions)
+
+
+def test_every_package_is_listed_for_the_wheel():
+    import tomllib
+
+    listed = set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    found = {
+        ".".join(path.parent.relative_to(ROOT).parts)
+        for top in ("md", "potentials", "integrators")
+        for path in (ROOT / top).rglob("__init__.py")
+    }
+    assert found <= listed, f"missing from [tool.setuptools] packages: {sorted(found - listed)}"
