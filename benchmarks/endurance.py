@@ -26,10 +26,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _machine import machine_line
 
 from integrators import VelocityVerlet
 from md.build import lattice, maxwell_boltzmann
 from md.checkpoint import read_checkpoint, write_checkpoint
+from md.parallel import get_threads, set_threads
 from md.simulation import Simulation
 from md.trajectory import H5MDWriter, read_trajectory
 from potentials import LennardJones
@@ -55,7 +57,11 @@ def main() -> None:
     parser.add_argument("--rss-tolerance", type=float, default=5.0)
     parser.add_argument("--drift-factor", type=float, default=2.0)
     parser.add_argument("--out", type=Path, help="folder for the files (default: a temporary one)")
+    parser.add_argument("--threads", type=int, default=1, help="kernel threads (1)")
     args = parser.parse_args()
+    set_threads(args.threads)
+    print(machine_line())
+    print(f"threads: {get_threads()}")
 
     state = maxwell_boltzmann(lattice("fcc", args.cells, density=0.8442), args.temperature, seed=7)
     sim = Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=args.dt), skin=0.3)

@@ -31,11 +31,13 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
+from _machine import machine_line
 from scipy.integrate import solve_ivp
 
 import md
 from integrators import ConvergenceError, VelocityVerlet
 from integrators.implicit_euler import ImplicitEuler
+from md.parallel import get_threads, set_threads
 from md.polymers import polymer_melt, single_chain
 from potentials import HarmonicBonds, LennardJones
 
@@ -204,7 +206,15 @@ def main(argv=None) -> None:
     parser.add_argument("--scaling", action="store_true", help="LJ melt at 10, 15, 20 cells")
     parser.add_argument("--skip-polymer", action="store_true")
     parser.add_argument("--chain-span", type=float, default=2.0, help="stiff chain span [tau]")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="kernel threads for both integrators (1)"
+    )
     args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    set_threads(args.threads)
+    print(machine_line())
+    print(f"threads: {get_threads()} for velocity Verlet and implicit Euler alike")
 
     print("warm-up (numba compilation) ...", flush=True)
     compare_step_cost(lj_melt(3), 0.005, 2, 1)

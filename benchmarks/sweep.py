@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import machine_line
+
 from md import sweeps as sw
 
 CONFIG = """\
@@ -127,9 +129,11 @@ def main(argv=None) -> int:
     n_runs = len(VARY["system.temperature"]) * REPLICAS
     n_atoms = 4 * args.cells**3
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    print(machine_line())
     print(
         f"md sweep throughput: {n_runs} runs of {n_atoms} atoms x {args.steps} steps "
-        f"(LJ, velocity Verlet), {args.repeats} repeat(s), {cores} core(s) available"
+        f"(LJ, velocity Verlet), {args.repeats} repeat(s), {cores} core(s) available; "
+        "every run on 1 thread in every row (serial loop and Dask workers alike)"
     )
     work = Path(tempfile.mkdtemp(prefix="md-sweep-bench-"))
     try:

@@ -68,3 +68,36 @@ def test_existing_json_is_not_overwritten(tmp_path):
     assert done.returncode == 2
     assert "--overwrite" in done.stderr
     assert report.read_text() == "keep"
+
+
+def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
+    bench = SCRIPT.parent
+    runs = {
+        "compare.py": ["--quick", "--peers", "none"],
+        "lj_melt.py": ["--cells", "5", "--steps", "5", "--repeats", "1", "--no-lammps"],
+        "implicit.py": ["--cells", "5", "--steps", "1", "--repeats", "1", "--skip-polymer",
+                        "--chain-span", "0.02"],
+    }  # fmt: skip
+    for script, args in runs.items():
+        done = subprocess.run(
+            [sys.executable, str(bench / script), *args],
+            capture_output=True, text=True, timeout=300, cwd=bench.parent,
+        )  # fmt: skip
+        assert done.returncode == 0, (script, done.stderr)
+        header = done.stdout.splitlines()[:4]
+        machine = [line for line in header if line.startswith("machine: ")]
+        assert machine and any(
+            isa in machine[0] for isa in ("AVX", "SSE", "x86", "arm", "aarch")
+        ), (
+            script,
+            header,
+        )
+        assert "thread" in done.stdout, script
+    # lj_melt.py labels its rows with their thread count, and runs LAMMPS only at 1 thread.
+    done = subprocess.run(
+        [sys.executable, str(bench / "lj_melt.py"), "--cells", "5", "--steps", "5",
+         "--repeats", "1", "--threads", "2"],
+        capture_output=True, text=True, timeout=300, cwd=bench.parent,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "leapmd (2 thread(s))" in done.stdout and "LAMMPS not run" in done.stdout
