@@ -98,3 +98,71 @@ def write_text_atomic(path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically and durably."""
     with atomic_path(path) as temporary:
         temporary.write_text(text)
+
+
+class OutputBusyError(FileExistsError):
+    """Another live process holds the claim on an output (the message names it)."""
+
+
+@contextlib.contextmanager
+def exclusive_claim(path) -> Iterator[Path]:
+    """Hold an exclusive claim on ``path`` (a lock file ``PATH.lock``) for the block.
+
+    The claim is an ``flock`` on ``PATH.lock``, which records the holder's pid
+    and host; the kernel drops it when the holder exits, however it exits, so
+    a killed run never leaves a stale claim. A second claimant fails at once
+    with :class:`OutputBusyError` naming the holder. The lock file is removed
+    when the block ends.
+    """
+    import fcntl  # POSIX only, as flock is
+
+    lock_path = Path(str(path) + ".lock")
+    while True:
+        descriptor = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.read(descriptor, 200).decode(errors="replace").strip()
+            finally:
+                os.close(descriptor)
+            raise OutputBusyError(
+                f"{path} is being written by another run ({holder or 'unknown process'}); "
+                f"wait for it to end, or choose another output"
+            ) from None
+        # A holder that just finished unlinks the file it locked: ours must still be there.
+        try:
+            current = os.path.samestat(os.fstat(descriptor), os.stat(lock_path))
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        os.close(descriptor)
+    try:
+        os.ftruncate(descriptor, 0)
+        host = os.uname().nodename if hasattr(os, "uname") else "this host"
+        os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
+        yield lock_path
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock_path)
+        os.close(descriptor)
+
+
+def claim_holder(path) -> str | None:
+    """Who holds the claim on ``path`` (``"pid N on HOST"``), or None if nobody does."""
+    import fcntl  # POSIX only, as flock is
+
+    lock_path = Path(str(path) + ".lock")
+    try:
+        descriptor = os.open(lock_path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(descriptor, 200).decode(errors="replace").strip()
+        return holder or "another process"
+    finally:
+        os.close(descriptor)
+    return None

@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from md._files import claim_holder, exclusive_claim
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -178,31 +179,13 @@ class PreparedRun:
         OSError
             If the first checkpoint or the trajectory cannot be written.
         """
+        with exclusive_claim(self.output):
+            return self._execute(observers, handle_signals)
+
+    def _execute(self, observers, handle_signals: bool) -> RunSummary:
         sim, state, config = self.sim, self.sim.state, self.config
         summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
-        if self.checkpoint is None:
-            # First a checkpoint of the start, then the trajectory: whenever a run is
-            # killed, --resume finds a checkpoint (the file may not exist yet).
-            write_checkpoint(
-                self.checkpoint_path, state, sim.integrator, sim.forcefield,
-                fingerprint=self.fingerprint, run_id=self.run_id,
-                extra={"config_file": self.config_file},
-            )  # fmt: skip
-        if self.checkpoint is not None and self.output.exists():
-            writer = H5MDWriter(
-                self.output, state, units=config.units, append=True,
-                keep_frames=self.checkpoint.n_frames,
-            )  # fmt: skip
-        else:
-            writer = H5MDWriter(
-                self.output,
-                state,
-                units=config.units,
-                velocities=config.output.velocities,
-                forces=config.output.forces,
-                parameters=self.parameters,
-                overwrite=self.overwrite or self.checkpoint is not None,
-            )
+        writer = self._open_outputs()
         saver = Checkpointer(
             self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
         )
@@ -230,6 +213,11 @@ class PreparedRun:
         finally:
             _restore_signals(previous)
         summary.wall = time.perf_counter() - start
+        if summary.status == OUTPUT_ERROR and self.checkpoint is None and writer.n_frames == 0:
+            # Not even the first frame fitted: keep nothing, so a plain re-run can start.
+            self.output.unlink(missing_ok=True)
+            self.checkpoint_path.unlink(missing_ok=True)
+            saver.last_step = None
         summary.n_frames = writer.n_frames
         summary.last_checkpoint_step = saver.last_step
         summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
@@ -238,6 +226,55 @@ class PreparedRun:
         if summary.status == COMPLETED:
             summary.last = sim.thermo()
         return summary
+
+    def _open_outputs(self) -> H5MDWriter:
+        """Under the claim: the first checkpoint, then the trajectory writer.
+
+        A fresh run checks again that its outputs are still free (another run
+        may have finished meanwhile). If the trajectory cannot be created (disk
+        full), the checkpoint written a moment before is removed again, so a
+        plain re-run is not refused because of it.
+        """
+        state, config = self.sim.state, self.config
+        if self.checkpoint is None:
+            if not self.overwrite:
+                for path in (self.output, self.checkpoint_path):
+                    if path.exists():
+                        raise ConfigError(f"output file {path} appeared while the run started")
+            # First a checkpoint of the start, then the trajectory: whenever a run is
+            # killed, --resume finds a checkpoint (the file may not exist yet).
+            write_checkpoint(
+                self.checkpoint_path, state, self.sim.integrator, self.sim.forcefield,
+                fingerprint=self.fingerprint, run_id=self.run_id,
+                extra={"config_file": self.config_file},
+            )  # fmt: skip
+            try:
+                return H5MDWriter(
+                    self.output,
+                    state,
+                    units=config.units,
+                    velocities=config.output.velocities,
+                    forces=config.output.forces,
+                    parameters=self.parameters,
+                    overwrite=self.overwrite,
+                )
+            except BaseException:
+                self.checkpoint_path.unlink(missing_ok=True)
+                raise
+        if self.output.exists():
+            return H5MDWriter(
+                self.output, state, units=config.units, append=True,
+                keep_frames=self.checkpoint.n_frames,
+            )  # fmt: skip
+        return H5MDWriter(
+            self.output,
+            state,
+            units=config.units,
+            velocities=config.output.velocities,
+            forces=config.output.forces,
+            parameters=self.parameters,
+            overwrite=True,
+        )
 
 
 def prepare(
@@ -274,6 +311,13 @@ def prepare(
         raise ConfigError(f"output directory {output.parent} does not exist")
     if not os.access(output.parent, os.W_OK | os.X_OK):
         raise ConfigError(f"output directory {output.parent} is not writable")
+    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
+    holder = claim_holder(output)
+    if holder is not None:
+        raise ConfigError(
+            f"{output} is being written by another run ({holder}); wait for it to end, "
+            "or choose another --output"
+        )
     fingerprint = physics_fingerprint(config)
     checkpoint = None
     if resume:
@@ -453,6 +497,33 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
             "(overlapping atoms, or a stretched bond?)"
         ) from None
     return sim
+
+
+def _input_files(config: Config, path_or_config) -> list[Path]:
+    """The files a run reads: the config, a structure file, bonds files."""
+    files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
+    if config.system.structure is not None:
+        files.append(Path(config.system.structure))
+    tables = [*config.potentials, config.integrator.get("constraints") or {}]
+    for table in tables:
+        if isinstance(table, dict) and isinstance(table.get("bonds_file"), str):
+            files.append(Path(table["bonds_file"]))
+    return files
+
+
+def _refuse_inputs_as_outputs(config: Config, config_file: str, path_or_config, outputs) -> None:
+    """Raise ConfigError if an output (or its checkpoint) is one of the run's input files."""
+    for source in _input_files(config, path_or_config):
+        for target in outputs:
+            try:
+                same = source.exists() and target.exists() and os.path.samefile(source, target)
+            except OSError:
+                same = False
+            if same or source.resolve() == target.resolve():
+                raise ConfigError(
+                    f"output {target} is an input of this run ({source}); choose another "
+                    "--output (--overwrite never replaces the run's own inputs)"
+                )
 
 
 def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:

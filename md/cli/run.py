@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from md._files import OutputBusyError
 from md.cli._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -84,7 +85,7 @@ def main(args) -> int:
                 (Progress(bar), max(1, n_steps // 500)),
             ]
         )
-    except TrajectoryError as error:
+    except (TrajectoryError, ConfigError, OutputBusyError) as error:
         fail(str(error))
         return EXIT_BAD_INPUT
     except (OSError, ValueError) as error:
@@ -109,10 +110,21 @@ def main(args) -> int:
         fail(f"interrupted at step {state.step}; {kept}")
         return EXIT_INTERRUPTED
     if summary.status == OUTPUT_ERROR:
+        if not output.exists():
+            fail(
+                f"cannot write output at step {state.step} ({summary.message}); nothing was "
+                "kept: make room and run again"
+            )
+            return EXIT_BAD_INPUT
+        checkpointed = (
+            f"the last checkpoint (step {summary.last_checkpoint_step}) in {saved_path}; "
+            f"continue with md run {args.config} --resume"
+            if summary.last_checkpoint_step is not None
+            else "no checkpoint was written"
+        )
         fail(
             f"cannot write output at step {state.step} ({summary.message}); frames written "
-            f"before are kept in {output}, the last checkpoint (step "
-            f"{summary.last_checkpoint_step}) in {saved_path}"
+            f"before are kept in {output}, {checkpointed}"
         )
         return EXIT_BAD_INPUT
     if summary.status == STOPPED:

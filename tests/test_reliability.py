@@ -1,0 +1,143 @@
+"""What a hostile but fair user still broke (issue 16), with real processes and files."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import lj_config_text
+
+from md.cli import main
+
+
+def _md(args, cwd: Path, **kwargs) -> subprocess.Popen:
+    command = [sys.executable, "-m", "md.cli", *args, "--no-progress", "-q"]
+    return subprocess.Popen(
+        command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs
+    )
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _wait_for(condition, timeout=120.0):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out waiting")
+        time.sleep(0.05)
+
+
+@pytest.fixture(autouse=True)
+def in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # configs name their outputs relative to the working folder
+
+
+@pytest.fixture
+def long_config(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text(
+        lj_config_text(
+            run="steps = 10000000\nthermo_every = 1000000",
+            output='path = "out.h5"\nevery = 50\ncheckpoint_every = 1000000',
+        )
+    )
+    return path
+
+
+def test_a_second_run_on_the_same_output_is_refused_and_touches_nothing(long_config, tmp_path):
+    first = _md(["run", str(long_config)], tmp_path)
+    try:
+        lock = tmp_path / "out.h5.lock"
+        _wait_for(lambda: (tmp_path / "out.h5").exists() and lock.exists() or first.poll())
+        assert first.poll() is None, first.communicate()
+        checkpoint = tmp_path / "out.h5.ckpt"
+        before = _digest(checkpoint)
+        for extra in ([], ["--overwrite"]):
+            second = _md(["run", str(long_config), *extra], tmp_path)
+            _, err = second.communicate(timeout=120)
+            assert second.returncode == 2, err
+            assert "being written by another run" in err and f"pid {first.pid}" in err, err
+            assert "Traceback" not in err
+        assert _digest(checkpoint) == before  # the loser wrote nothing
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.communicate()
+    # The winner, killed outright, resumes from its own checkpoint: same run id.
+    assert (tmp_path / "out.h5.lock").exists()  # a killed holder leaves the file, unlocked
+    resumed = subprocess.run(
+        [sys.executable, "-m", "md.cli", "run", str(long_config), "--resume", "--steps", "60",
+         "--no-progress", "-q"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+
+
+def test_a_stale_lock_file_of_a_dead_run_does_not_block(long_config, tmp_path):
+    (tmp_path / "out.h5.lock").write_text("pid 999999 on nowhere")
+    small = tmp_path / "small.toml"
+    small.write_text(lj_config_text(run="steps = 10"))
+    assert main(["run", str(small), "-q", "--no-progress"]) == 0
+    assert not (tmp_path / "out.h5.lock").exists()
+
+
+@pytest.mark.parametrize("which", ["config", "structure", "bonds"])
+def test_an_output_naming_an_input_is_refused(tmp_path, capsys, which):
+    structure = tmp_path / "start.xyz"
+    bonds = tmp_path / "bonds.txt"
+    bonds.write_text("0 1\n")
+    import ase.build
+    import ase.io
+
+    ase.io.write(structure, ase.build.bulk("Ar", "fcc", a=5.26, cubic=True).repeat(4))
+    config = tmp_path / "run.toml"
+    config.write_text(
+        f'units = "metal"\n[system]\nstructure = "{structure.name}"\n'
+        '[[potentials]]\ntype = "lj"\nepsilon = 0.0104\nsigma = 3.4\ncutoff = 8.0\n'
+        f'[[potentials]]\ntype = "spring"\nbonds_file = "{bonds.name}"\nk = 1.0\nr0 = 3.7\n'
+        '[integrator]\ntype = "verlet"\ndt = 1.0\n[run]\nsteps = 5\n'
+    )
+    target = {"config": config, "structure": structure, "bonds": bonds}[which]
+    before = target.read_bytes()
+    code = main(["run", str(config), "-o", str(target), "--overwrite", "-q", "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "is an input of this run" in err, err
+    assert target.read_bytes() == before
+
+
+@pytest.mark.parametrize("limit", [20_000, 40_000])
+def test_disk_full_while_creating_the_outputs_exits_2_and_leaves_a_rerun_possible(tmp_path, limit):
+    """RLIMIT_FSIZE stands in for a tiny disk: at 20 kB the trajectory's layout does not
+    fit, at 40 kB its first frame does not. Either way: exit 2, a message, nothing left
+    that blocks the plain re-run (which then succeeds)."""
+    config = tmp_path / "run.toml"
+    config.write_text(lj_config_text(run="steps = 20"))
+
+    def small_disk():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    full = _md(["run", str(config)], tmp_path, preexec_fn=small_disk)
+    _, err = full.communicate(timeout=300)
+    assert full.returncode == 2, err
+    assert "Traceback" not in err and "md: error:" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+    assert main(["run", str(config), "-q", "--no-progress"]) == 0
+
+
+def test_writer_and_checkpoint_temporaries_do_not_survive_an_error(tmp_path):
+    config = tmp_path / "run.toml"
+    config.write_text(lj_config_text(run="steps = 20"))
+    assert main(["run", str(config), "-q", "--no-progress"]) == 0
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name.endswith((".tmp", ".lock"))]
+    assert not leftovers
+    assert os.listdir(tmp_path)
