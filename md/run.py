@@ -55,7 +55,7 @@ from md.errors import (
 from md.parallel import set_threads
 from md.simulation import Simulation
 from md.state import State
-from md.trajectory import H5MDWriter, read_frame_steps
+from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
 
 #: Statuses of a finished :meth:`PreparedRun.execute`.
 COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
@@ -540,6 +540,7 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
             f"--resume: {output} holds {len(steps)} complete frames, but checkpoint "
             f"{checkpoint.path} expects at least {n} ending at step {checkpoint.last_frame_step}"
         )
+    verify_frames(output, n)  # the frames kept must be intact (checksums)
 
 
 def _catch_stop_signals(sim: Simulation) -> dict:

@@ -155,7 +155,9 @@ class H5MDWriter:
             raise FileExistsError(f"{self.path} appeared while the run was starting") from None
         finally:
             self._file = None
-        self._file = h5py.File(self.path, "r+", rdcc_nbytes=_CHUNK_CACHE)
+        # locking=False: readers (md info, md analyze, MDAnalysis) may open the file
+        # while the run writes it; our own claim (md._files) keeps other writers out.
+        self._file = h5py.File(self.path, "r+", rdcc_nbytes=_CHUNK_CACHE, locking=False)
         self._bind()
 
     @property
@@ -186,7 +188,7 @@ class H5MDWriter:
         path = self.path
         open_h5md(path).close()  # TrajectoryError for missing, non-HDF5 or foreign files
         try:
-            self._file = h5py.File(path, "r+", rdcc_nbytes=_CHUNK_CACHE)
+            self._file = h5py.File(path, "r+", rdcc_nbytes=_CHUNK_CACHE, locking=False)
         except OSError as error:
             raise TrajectoryError(f"{path}: cannot open for appending ({error})") from None
         try:
@@ -231,10 +233,10 @@ class H5MDWriter:
         n = self.n_atoms
         position = self._element(group, "position", (n, 3), np.float64, "length")
         self._step = position.create_dataset(
-            "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,)
+            "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), fletcher32=True
         )
         self._time = position.create_dataset(
-            "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,)
+            "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,), fletcher32=True
         )
         self._set_unit(self._time, "time")
         self._values = {"position": position["value"]}
@@ -281,6 +283,7 @@ class H5MDWriter:
             maxshape=(None, *frame_shape),
             dtype=dtype,
             chunks=(1, *frame_shape) if frame_shape else (1024,),
+            fletcher32=True,  # a checksum per chunk: corrupted frames are detected on reading
         )
         if quantity is not None:
             self._set_unit(value, quantity)
@@ -500,6 +503,8 @@ def read_trajectory(path) -> Trajectory:
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             if isinstance(error, TrajectoryError):
                 raise
+            if _is_checksum_error(error):
+                verify_frames(path)  # raises naming the frame
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
 
 
@@ -535,6 +540,51 @@ def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
     return steps[: min(lengths)], parameters
 
 
+def _is_checksum_error(error: BaseException) -> bool:
+    text = str(error).lower()
+    return any(sign in text for sign in ("checksum", "fletcher", "filter returned failure"))
+
+
+def verify_frames(path, n_frames: int | None = None) -> int:
+    """Read every stored frame (the first ``n_frames``) and check its checksums.
+
+    Frame datasets carry HDF5's Fletcher-32 checksum per chunk (one frame per
+    chunk), so flipped bytes anywhere in a stored frame are found here.
+    Returns the number of frames checked.
+
+    Raises
+    ------
+    TrajectoryError
+        Naming the first damaged frame and dataset.
+    """
+    path = Path(path)
+    with open_h5md(path) as f:
+        group = f["particles/trajectory"]
+        datasets = {
+            name: group[name]["value"]
+            for name in ("position", "image", "velocity", "force", "box/edges")
+            if name in group
+        }
+        datasets["step"] = group["position/step"]
+        datasets["time"] = group["position/time"]
+        for name, element in f.get("observables", {}).items():
+            datasets[f"observables/{name}"] = element["value"]
+        count = min(len(d) for d in datasets.values())
+        count = count if n_frames is None else min(count, n_frames)
+        for name, dataset in datasets.items():
+            chunk = dataset.chunks[0] if dataset.chunks else count
+            for start in range(0, count, max(chunk, 1)):
+                try:
+                    dataset[start : min(start + chunk, count)]
+                except OSError as error:
+                    first = start if chunk == 1 else f"{start} to {min(start + chunk, count) - 1}"
+                    raise TrajectoryError(
+                        f"{path}: frame {first} is damaged ({name}: {error}); the frames before "
+                        "it are intact"
+                    ) from None
+    return count
+
+
 def open_trajectory(path, **kwargs):
     """Open a trajectory we wrote as an MDAnalysis ``Universe``.
 
@@ -568,7 +618,9 @@ def open_h5md(path: Path) -> h5py.File:
     if not path.exists():
         raise TrajectoryError(f"{path}: no such file")
     try:
-        f = h5py.File(path, "r")
+        # Read-only and without HDF5's file lock, so a file a run is writing can be read
+        # (frames are flushed whole; the reader sees those written so far).
+        f = h5py.File(path, "r", locking=False)
     except OSError as error:
         raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
     try:

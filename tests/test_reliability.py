@@ -28,6 +28,17 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _frames(path: Path) -> int:
+    """Complete frames in a trajectory being written (0 while it does not exist yet)."""
+    from md.errors import TrajectoryError
+    from md.trajectory import read_frame_steps
+
+    try:
+        return len(read_frame_steps(path)[0]) if path.exists() else 0
+    except TrajectoryError:
+        return 0
+
+
 def _wait_for(condition, timeout=120.0):
     deadline = time.monotonic() + timeout
     while not condition():
@@ -56,8 +67,7 @@ def long_config(tmp_path):
 def test_a_second_run_on_the_same_output_is_refused_and_touches_nothing(long_config, tmp_path):
     first = _md(["run", str(long_config)], tmp_path)
     try:
-        lock = tmp_path / "out.h5.lock"
-        _wait_for(lambda: (tmp_path / "out.h5").exists() and lock.exists() or first.poll())
+        _wait_for(lambda: _frames(tmp_path / "out.h5") >= 2 or first.poll() is not None)
         assert first.poll() is None, first.communicate()
         checkpoint = tmp_path / "out.h5.ckpt"
         before = _digest(checkpoint)
@@ -141,3 +151,59 @@ def test_writer_and_checkpoint_temporaries_do_not_survive_an_error(tmp_path):
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.endswith((".tmp", ".lock"))]
     assert not leftovers
     assert os.listdir(tmp_path)
+
+
+# ----------------------------------------------------------- reading and integrity
+@pytest.fixture
+def finished(tmp_path):
+    config = tmp_path / "run.toml"
+    config.write_text(
+        lj_config_text(
+            run="steps = 40\nthermo_every = 10",
+            output='path = "out.h5"\nevery = 5\nvelocities = true\ncheckpoint_every = 20',
+        )
+    )
+    assert main(["run", str(config), "-q", "--no-progress"]) == 0
+    return config, tmp_path / "out.h5"
+
+
+def _flip_bytes_in_frame(path: Path, frame: int) -> None:
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        info = f["particles/trajectory/position/value"].id.get_chunk_info_by_coord((frame, 0, 0))
+    with open(path, "r+b") as handle:
+        handle.seek(info.byte_offset + 40)
+        data = bytearray(handle.read(8))
+        handle.seek(info.byte_offset + 40)
+        handle.write(bytes(b ^ 0xFF for b in data))
+
+
+def test_flipped_bytes_in_a_frame_are_reported_with_the_frame(finished, capsys):
+    config, output = finished
+    _flip_bytes_in_frame(output, 3)
+    for command in (["info", str(output)], ["analyze", str(output), "--thermo", "--overwrite"]):
+        assert main(command) == 2, command
+        err = capsys.readouterr().err
+        assert "frame 3 is damaged" in err and "Traceback" not in err, err
+    # --resume checks the frames it keeps (the checkpoint at step 40 keeps all 9).
+    assert main(["run", str(config), "--resume", "--steps", "60", "-q", "--no-progress"]) == 2
+    assert "frame 3 is damaged" in capsys.readouterr().err
+
+
+def test_a_trajectory_being_written_can_be_read(long_config, tmp_path, capsys):
+    import md
+
+    writer = _md(["run", str(long_config)], tmp_path)
+    output = tmp_path / "out.h5"
+    try:
+        _wait_for(lambda: _frames(output) >= 2 or writer.poll() is not None)
+        assert writer.poll() is None, writer.communicate()
+        assert main(["info", str(output)]) == 0
+        assert "frames" in capsys.readouterr().out
+        universe = md.open_trajectory(output)
+        assert universe.trajectory.n_frames >= 2
+        universe.trajectory.close()
+    finally:
+        writer.send_signal(signal.SIGKILL)
+        writer.communicate()

@@ -35,6 +35,7 @@ from md import analysis as an
 from md.analysis import ANALYSES
 from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
 from md.errors import AnalysisError, TrajectoryError
+from md.trajectory import verify_frames
 
 PLOT_DPI = 120
 
@@ -91,11 +92,11 @@ def output_files(analysis: str) -> list[str]:
 
 def main(args) -> int:
     """Body of ``md analyze``; returns the exit code."""
-
     explicit = [name for name in ANALYSES if getattr(args, name)]
     wanted = list(ANALYSES) if args.all or not explicit else explicit
     try:
         info = an.trajectory_info(args.trajectory, args.start, args.stop, args.step)
+        verify_frames(args.trajectory)  # damaged frames: a message naming the frame
         if info.n_frames == 0:
             raise an.AnalysisError(
                 f"{args.trajectory}: the frame selection start={args.start}, stop={args.stop}, "
