@@ -330,7 +330,7 @@ def _require(info: TrajectoryInfo, analysis: str) -> None:
 
 def _read(info: TrajectoryInfo, name: str) -> NDArray:
     """Read ``particles/trajectory/<name>/value`` on the selected frames (file units)."""
-    with h5py.File(info.path, "r", locking=False) as f:  # readable while a run writes it
+    with h5py.File(info.path, "r") as f:
         return f[f"particles/trajectory/{name}/value"][_as_slice(info.frames)]
 
 
@@ -476,7 +476,7 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
     info = trajectory_info(path, start, stop, step)
     _require(info, "thermo")
     series = {}
-    with h5py.File(info.path, "r", locking=False) as f:  # readable while a run writes it
+    with h5py.File(info.path, "r") as f:
         for name in info.observables:
             series[name] = f[f"observables/{name}/value"][_as_slice(info.frames)].astype(float)
     averages = {

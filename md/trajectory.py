@@ -618,9 +618,9 @@ def open_h5md(path: Path) -> h5py.File:
     if not path.exists():
         raise TrajectoryError(f"{path}: no such file")
     try:
-        # Read-only and without HDF5's file lock, so a file a run is writing can be read
-        # (frames are flushed whole; the reader sees those written so far).
-        f = h5py.File(path, "r", locking=False)
+        # Read-only; a file a run is writing can be read, since the writer takes no
+        # HDF5 file lock (frames are flushed whole: the reader sees those written so far).
+        f = h5py.File(path, "r")
     except OSError as error:
         raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
     try:
