@@ -207,3 +207,73 @@ def test_a_trajectory_being_written_can_be_read(long_config, tmp_path, capsys):
     finally:
         writer.send_signal(signal.SIGKILL)
         writer.communicate()
+
+
+# ------------------------------------------------------------------ sweeps
+@pytest.mark.parametrize("answer", [None, b"HTTP/1.1 200 OK\r\n" + b"\xff" * 64])
+def test_sweep_to_something_that_is_not_a_scheduler_exits_2_in_time(tmp_path, answer):
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    port = server.getsockname()[1]
+    held = []
+
+    def serve():
+        while True:
+            try:
+                connection, _ = server.accept()
+            except OSError:
+                return
+            held.append(connection)  # silent: keep it open, say nothing
+            if answer is not None:
+                connection.sendall(answer)
+
+    threading.Thread(target=serve, daemon=True).start()
+    config = tmp_path / "base.toml"
+    config.write_text(lj_config_text(run="steps = 10"))
+    started = time.monotonic()
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "md.cli", "sweep", str(config), "--vary", "seed=1,2",
+             "--scheduler", f"tcp://127.0.0.1:{port}", "--timeout", "3", "--no-progress",
+             "--out", str(tmp_path / "out")],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        server.close()
+        for connection in held:
+            connection.close()
+    assert done.returncode == 2, done.stderr
+    assert "Dask scheduler" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert time.monotonic() - started < 60
+
+
+def test_a_huge_sweep_is_counted_and_refused_at_once(tmp_path, capsys):
+    config = tmp_path / "base.toml"
+    config.write_text(lj_config_text(run="steps = 10"))
+    started = time.monotonic()
+    code = main(
+        ["sweep", str(config), "--vary", "seed=1:2:100000000", "--out", str(tmp_path / "o")]
+    )
+    assert code == 2 and time.monotonic() - started < 10
+    err = capsys.readouterr().err
+    assert "100000000 values" in err and "--max-runs" in err, err
+    code = main(["sweep", str(config), "--vary", "system.temperature=1,2,3", "--replicas", "5",
+                 "--max-runs", "10", "--out", str(tmp_path / "o")])  # fmt: skip
+    assert code == 2 and "15 runs" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_seed_only_variations_are_validated_once(tmp_path, monkeypatch):
+    from md.sweeps import plan as planning
+
+    calls = []
+    real = planning._validate
+    monkeypatch.setattr(planning, "_validate", lambda *a: calls.append(1) or real(*a))
+    config = tmp_path / "base.toml"
+    config.write_text(lj_config_text(run="steps = 10"))
+    plan = planning.plan_sweep(config, {"seed": list(range(1, 201))}, replicas=2, out=tmp_path)
+    assert len(plan.runs) == 400 and len(calls) == 1

@@ -54,6 +54,18 @@ def add_parser(subparsers) -> None:
         help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: a local cluster)",
     )
     parser.add_argument(
+        "--max-runs",
+        type=int,
+        default=sw.MAX_RUNS,
+        help=f"refuse sweeps of more runs than this (default {sw.MAX_RUNS})",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=sw.CONNECT_TIMEOUT,
+        help=f"seconds to wait for the scheduler to answer (default {sw.CONNECT_TIMEOUT:g})",
+    )
+    parser.add_argument(
         "--workers",
         type=int,
         help="worker processes of the local cluster, one thread each (default: one per core)",
@@ -86,7 +98,9 @@ def add_parser(subparsers) -> None:
 def main(args) -> int:
     """Body of ``md sweep``; returns the exit code."""
     try:
-        vary = [sw.parse_vary(text) for text in args.vary]
+        if args.max_runs < 1:
+            raise sw.SweepError(f"--max-runs must be >= 1, got {args.max_runs}")
+        vary = [sw.parse_vary(text, max_values=args.max_runs) for text in args.vary]
         if args.replicas < 1:
             raise sw.SweepError(f"--replicas must be >= 1, got {args.replicas}")
         if not (math.isfinite(args.discard) and 0.0 <= args.discard < 1.0):
@@ -107,7 +121,14 @@ def main(args) -> int:
                 raise sw.SweepError("--plot diffusion needs --diffusion")
             if not vary:
                 raise sw.SweepError("--plot needs a --vary key for its x axis")
-        plan = sw.plan_sweep(args.config, vary, args.replicas, args.out)
+        n_runs = sw.count_runs(vary, args.replicas)
+        if n_runs > args.max_runs:
+            raise sw.SweepError(
+                f"the sweep has {n_runs} runs, more than the cap of {args.max_runs}; pass "
+                f"--max-runs {n_runs} to allow it"
+            )
+        print(f"md sweep: planning and validating {n_runs} run(s) ...", flush=True)
+        plan = sw.plan_sweep(args.config, vary, args.replicas, args.out, max_runs=args.max_runs)
         complete = sw.check_outputs(plan, args.overwrite)
     except sw.SweepError as error:
         fail(str(error))
@@ -124,7 +145,10 @@ def main(args) -> int:
     )
     printer = _ProgressPrinter(len(plan.runs), disable=args.no_progress)
     try:
-        with sw.connect(scheduler=args.scheduler, workers=args.workers) as client:
+        connection = sw.connect(
+            scheduler=args.scheduler, workers=args.workers, timeout=args.timeout
+        )
+        with connection as client:
             if args.scheduler is None:
                 n_workers = len(client.scheduler_info()["workers"])
                 print(f"md sweep: running on a local cluster of {n_workers} worker(s)")

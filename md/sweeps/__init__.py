@@ -77,17 +77,19 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 
-from md.sweeps.client import SweepProgress, connect, run_sweep
+from md.sweeps.client import CONNECT_TIMEOUT, SweepProgress, connect, run_sweep
 from md.sweeps.plan import (
     ALIASES,
     CONFIG_DIR,
     LOG_DIR,
+    MAX_RUNS,
     PARTIAL_DIR,
     RESULTS,
     TABLE_FILE,
     SweepError,
     SweepPlan,
     check_outputs,
+    count_runs,
     format_value,
     output_verdict,
     parse_vary,
@@ -116,6 +118,8 @@ def sweep(
     n_blocks: int = 5,
     overwrite: bool = False,
     progress: Callable[[SweepProgress], None] | None = None,
+    max_runs: int = MAX_RUNS,
+    timeout: float = CONNECT_TIMEOUT,
 ) -> SweepTable:
     """Run a sweep of ``md run`` over varied config keys and replicas on Dask.
 
@@ -146,15 +150,19 @@ def sweep(
         others refused).
     progress : callable, optional
         Called with a :class:`SweepProgress` as the sweep goes.
+    max_runs : int
+        Refuse a sweep of more runs than this (default ``MAX_RUNS``, 10000).
+    timeout : float
+        Seconds to wait for ``scheduler`` to answer (default 30).
 
     Returns
     -------
     SweepTable
         One row per run; also written to ``OUT/sweep.csv``.
     """
-    plan = plan_sweep(config, vary, replicas, out)
+    plan = plan_sweep(config, vary, replicas, out, max_runs=max_runs)
     check_outputs(plan, overwrite)
-    with connect(client, scheduler, workers) as dask_client:
+    with connect(client, scheduler, workers, timeout=timeout) as dask_client:
         return run_sweep(
             plan, dask_client, overwrite=overwrite, diffusion=diffusion, discard=discard,
             n_blocks=n_blocks, progress=progress,
@@ -163,8 +171,10 @@ def sweep(
 
 __all__ = [
     "ALIASES",
+    "CONNECT_TIMEOUT",
     "CONFIG_DIR",
     "LOG_DIR",
+    "MAX_RUNS",
     "PARTIAL_DIR",
     "RESULTS",
     "TABLE_FILE",
@@ -173,6 +183,7 @@ __all__ = [
     "SweepProgress",
     "SweepTable",
     "check_outputs",
+    "count_runs",
     "connect",
     "format_value",
     "output_verdict",

@@ -135,8 +135,17 @@ class _Tracker:
             return snapshot
 
 
+#: Seconds to wait for a Dask scheduler to answer (``md sweep --timeout``).
+CONNECT_TIMEOUT = 30.0
+
+
 @contextlib.contextmanager
-def connect(client=None, scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
+def connect(
+    client=None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    timeout: float = CONNECT_TIMEOUT,
+) -> Iterator[Any]:
     """A Dask ``Client``: ``client`` itself, one for ``scheduler``, or a new ``LocalCluster``.
 
     The local cluster has ``workers`` single-threaded worker processes
@@ -167,12 +176,7 @@ def connect(client=None, scheduler: str | None = None, workers: int | None = Non
                 "--workers sets the size of the local cluster; with --scheduler the "
                 "cluster's own workers run the sweep"
             )
-        try:
-            remote = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError, ValueError) as error:
-            raise SweepError(
-                f"cannot connect to the Dask scheduler at {scheduler}: {error}"
-            ) from None
+        remote = _client_within(Client, scheduler, timeout)
         try:
             yield remote
         finally:
@@ -294,3 +298,38 @@ def _prepare(plan: SweepPlan, overwrite: bool) -> None:
         path = out / CONFIG_DIR / f"{run.label}.toml"
         if not path.exists() or path.read_text() != run.config_text:
             write_text_atomic(path, run.config_text)
+
+
+def _client_within(client_class, scheduler: str, timeout: float):
+    """``Client(scheduler)``, or SweepError if no Dask scheduler answers within ``timeout`` s.
+
+    Dask's own timeout covers the TCP connection, not the handshake after it:
+    a port that accepts and stays silent would hang for ever, and one that
+    answers another protocol can make it try to allocate absurd buffers. So
+    the client is made in a helper thread that is abandoned on timeout.
+    """
+    if not (isinstance(timeout, int | float) and math.isfinite(timeout) and timeout > 0):
+        raise SweepError(f"--timeout must be a positive number of seconds, got {timeout!r}")
+    outcome: dict[str, Any] = {}
+
+    def attempt() -> None:
+        try:
+            outcome["client"] = client_class(scheduler, timeout=f"{timeout}s")
+        except BaseException as error:  # noqa: BLE001 - any failure means "not a scheduler"
+            outcome["error"] = error
+
+    thread = threading.Thread(target=attempt, name="md-sweep-connect", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        raise SweepError(
+            f"no Dask scheduler answered at {scheduler} within {timeout:g} s (--timeout); "
+            "is the address right, and is it a Dask scheduler?"
+        )
+    if "error" in outcome:
+        error = outcome["error"]
+        raise SweepError(
+            f"cannot connect to the Dask scheduler at {scheduler}: {type(error).__name__}: "
+            f"{str(error)[:200]} (is it a Dask scheduler?)"
+        )
+    return outcome["client"]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from md.config import parse_config
+from md.config import Config, parse_config
 from md.errors import ConfigError, TrajectoryError
 from md.forcefield import ForceField
 from md.run import build_components
@@ -118,7 +118,16 @@ class SweepPlan:
         return self.out / f"{run.label}.h5"
 
 
-def parse_vary(text: str) -> tuple[str, list]:
+#: Most runs a sweep plans unless asked for more (``md sweep --max-runs``).
+MAX_RUNS = 10_000
+
+
+def count_runs(vary, replicas: int = 1) -> int:
+    """Runs a sweep over ``vary`` (as for :func:`plan_sweep`) with ``replicas`` has."""
+    return math.prod(len(values) for _, values in _vary_pairs(vary)) * replicas
+
+
+def parse_vary(text: str, max_values: int = MAX_RUNS) -> tuple[str, list]:
     """Parse ``KEY=V1,V2,...`` into the dotted key and its values.
 
     Each value is read as a TOML value (``1.5``, ``2``, ``true``, ``[4, 4, 4]``,
@@ -142,11 +151,16 @@ def parse_vary(text: str) -> tuple[str, list]:
         part = part.strip()
         if not part:
             raise SweepError(f"--vary {text!r}: empty value")
-        spaced = _linspace(part)
+        spaced = _linspace(part, max_values)
         values.extend(spaced if spaced is not None else [_literal(part)])
-    repeated = sorted(
-        {format_value(b) for i, a in enumerate(values) for b in values[i + 1 :] if a == b}
-    )
+    seen: dict = {}  # equal values (1 and 1.0 too) share a key: linear, not quadratic
+    repeated = set()
+    for value in values:
+        comparable = _comparable(value)
+        if comparable in seen:
+            repeated.add(format_value(value))
+        seen[comparable] = value
+    repeated = sorted(repeated)
     if repeated:
         raise SweepError(f"--vary {key}: value(s) given twice: {', '.join(repeated)}")
     return key, values
@@ -169,8 +183,12 @@ def plan_sweep(
     vary: Mapping[str, Sequence] | Sequence[str | tuple[str, Sequence]] = (),
     replicas: int = 1,
     out=None,
+    max_runs: int = MAX_RUNS,
 ) -> SweepPlan:
     """Expand a base config into every run of a sweep and validate each one.
+
+    A sweep of more than ``max_runs`` runs is refused before anything is
+    built. Runs that differ only in seeds are validated once.
 
     Parameters
     ----------
@@ -202,6 +220,12 @@ def plan_sweep(
     if isinstance(replicas, bool) or not isinstance(replicas, int) or replicas < 1:
         raise SweepError(f"replicas must be a positive integer, got {replicas!r}")
     pairs = _vary_pairs(vary)
+    n_runs = math.prod(len(values) for _, values in pairs) * replicas
+    if n_runs > max_runs:
+        raise SweepError(
+            f"the sweep has {n_runs} runs, more than the cap of {max_runs}; pass --max-runs "
+            f"{n_runs} (max_runs=) to allow it"
+        )
     keys = [key for key, _ in pairs]
     if len(set(keys)) != len(keys):
         raise SweepError(f"a key is varied twice: {', '.join(keys)}")
@@ -214,6 +238,7 @@ def plan_sweep(
     _absolute_paths(base, base_dir)
     short = short_names(keys)
     runs, labels = [], {}
+    validated: dict[str, Config] = {}  # by config text without seeds and output path
     for point in itertools.product(*(values for _, values in pairs)):
         point = tuple(zip(keys, point, strict=True))
         data = copy.deepcopy(base)
@@ -251,10 +276,14 @@ def plan_sweep(
             )
             run_text = header + tomli_w.dumps(data)
             if parsed is None:  # replicas differ only in seeds: validate each point once
-                try:
-                    parsed = _validate(run_text, where)
-                except ConfigError as error:
-                    raise SweepError(str(error)) from None
+                shape = _without_seeds(data)
+                parsed = validated.get(shape)
+                if parsed is None:
+                    try:
+                        parsed = _validate(run_text, where)
+                    except ConfigError as error:
+                        raise SweepError(str(error)) from None
+                    validated[shape] = parsed
             steps, every = parsed.run.steps, parsed.output.every
             runs.append(
                 Run(
@@ -329,6 +358,17 @@ def output_verdict(path: Path, config_text: str, n_frames: int, last_step: int) 
         last = int(steps[-1]) if len(steps) else None
         return f"{len(steps)} of {n_frames} frames, last at step {last}, expected {last_step}"
     return "complete"
+
+
+def _without_seeds(data: dict) -> str:
+    """The config as text with its seeds and output path left out (what validity depends on)."""
+    shape = copy.deepcopy(data)
+    shape.pop("seed", None)
+    if isinstance(shape.get("integrator"), dict):
+        shape["integrator"].pop("seed", None)
+    if isinstance(shape.get("output"), dict):
+        shape["output"].pop("path", None)
+    return tomli_w.dumps(shape)
 
 
 def _validate(text: str, where: str):
@@ -452,7 +492,16 @@ def _literal(text: str):
         return text
 
 
-def _linspace(text: str) -> list[float] | None:
+def _comparable(value):
+    """A hashable stand-in for a TOML value, equal where the values are equal."""
+    if isinstance(value, list | tuple):
+        return ("list", tuple(_comparable(v) for v in value))
+    if isinstance(value, dict):
+        return ("table", tuple(sorted((k, _comparable(v)) for k, v in value.items())))
+    return value
+
+
+def _linspace(text: str, max_values: int = MAX_RUNS) -> list[float] | None:
     parts = text.split(":")
     if len(parts) != 3:
         return None
@@ -462,6 +511,11 @@ def _linspace(text: str) -> list[float] | None:
         return None
     if count < 2 or not (math.isfinite(low) and math.isfinite(high)):
         raise SweepError(f"--vary range {text!r}: needs finite ends and at least 2 values")
+    if count > max_values:
+        raise SweepError(
+            f"--vary range {text!r} asks for {count} values, more than the {max_values} runs a "
+            "sweep may have; pass --max-runs to allow more"
+        )
     return [float(f"{v:.12g}") for v in np.linspace(low, high, count)]
 
 
