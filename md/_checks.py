@@ -14,6 +14,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+#: Largest step count, interval or other count the engine takes: exact in float64
+#: (times are step * dt) and far inside int64 (the H5MD step arrays).
+MAX_COUNT = 2**53
+#: Largest seed: stored as a signed 64-bit integer in trajectories and checkpoints.
+MAX_SEED = 2**63 - 1
+
 
 def positive(value, name: str, allow_zero: bool = False) -> float:
     """Return ``value`` as a float if it is finite and > 0 (or >= 0), else raise ValueError.
@@ -67,8 +73,8 @@ def positive_scalar(value, name: str, allow_zero: bool = False) -> float:
     return float(array)
 
 
-def count(value, name: str, minimum: int = 0) -> int:
-    """Return ``value`` as an int if it is an integer >= ``minimum`` (bools refused).
+def count(value, name: str, minimum: int = 0, maximum: int = MAX_COUNT) -> int:
+    """Return ``value`` as an int if it is an integer in [``minimum``, ``maximum``] (no bools).
 
     Examples
     --------
@@ -81,6 +87,8 @@ def count(value, name: str, minimum: int = 0) -> int:
     """
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if value > maximum:
+        raise ValueError(f"{name} must be at most {maximum}, got {value!r}")
     return int(value)
 
 

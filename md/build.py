@@ -57,13 +57,19 @@ def lattice(
     if density is not None:
         if not (np.isfinite(density) and density > 0):
             raise ValueError(f"density must be positive and finite, got {density}")
-        a = (len(basis) / density) ** (1.0 / 3.0)
+        with np.errstate(over="ignore"):
+            a = float((len(basis) / np.float64(density)) ** (1.0 / 3.0))
     else:
         if not (np.isfinite(lattice_constant) and lattice_constant > 0):
             raise ValueError(
                 f"lattice_constant must be positive and finite, got {lattice_constant}"
             )
         a = float(lattice_constant)
+    with np.errstate(over="ignore"):
+        edges = n_cells * np.float64(a)
+    if not (np.isfinite(a) and np.all(np.isfinite(edges)) and a > 0):
+        given = f"density {density!r}" if density is not None else f"lattice_constant {a!r}"
+        raise ValueError(f"{given} makes a box beyond double precision (edges {edges.tolist()})")
     grid = np.stack(np.meshgrid(*(np.arange(n) for n in n_cells), indexing="ij"), axis=-1).reshape(
         -1, 1, 3
     )
@@ -71,7 +77,7 @@ def lattice(
     return State(
         positions=positions,
         masses=mass,
-        box=n_cells * a,
+        box=edges,
         pbc=pbc,
         type_names=(type_name,),
     )

@@ -16,6 +16,7 @@ from typing import Any
 
 from integrators import INTEGRATORS
 from integrators.rattle import BondConstraints
+from md._checks import MAX_COUNT, MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError
 from md.polymers import polymer_melt, single_chain
@@ -65,7 +66,7 @@ class _Table:
             raise self.error(key, f"must be >= {minimum}, got {value!r}")
         return float(value)
 
-    def integer(self, key, default=_MISSING, minimum=None) -> int:
+    def integer(self, key, default=_MISSING, minimum=None, maximum=MAX_COUNT) -> int:
         value = self.take(key, default)
         if value is None:
             return None
@@ -73,6 +74,8 @@ class _Table:
             raise self.error(key, f"expected an integer, got {value!r}")
         if minimum is not None and value < minimum:
             raise self.error(key, f"must be >= {minimum}, got {value!r}")
+        if value > maximum:
+            raise self.error(key, f"must be at most {maximum}, got {value!r}")
         return int(value)
 
     def string(self, key, default=_MISSING, choices=None) -> str:
@@ -196,7 +199,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     """Validate a config already parsed into a dict (see :func:`load_config`)."""
     top = _Table(data, "", source)
     units_name = top.string("units", None, choices=tuple(UNIT_SYSTEMS))
-    seed = top.integer("seed", None, minimum=0)
+    seed = top.integer("seed", None, minimum=0, maximum=MAX_SEED)
     system = _parse_system(_Table(top.take("system"), "system", source), Path(base))
     # Structure files come from ASE's world (eV, Angstrom, amu): metal units unless told.
     units = UNIT_SYSTEMS[units_name or ("metal" if system.structure is not None else "lj")]

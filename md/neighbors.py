@@ -75,6 +75,12 @@ class SlotFrame:
         return len(self.bounds) - 1
 
 
+def _square(length: float) -> float:
+    """length**2, or inf where that overflows (a huge skin: every pair is listed)."""
+    with np.errstate(over="ignore"):
+        return float(np.square(np.float64(length)))
+
+
 class NeighborList:
     """Half Verlet list with a skin, built by cell search and rebuilt on displacement.
 
@@ -152,6 +158,8 @@ class NeighborList:
             raise ValueError(f"skin must be >= 0 and finite, got {skin}")
         self.cutoff = float(cutoff)
         self.skin = float(skin)
+        # Squared half skin; inf (never rebuild for motion) rather than an overflow.
+        self._rebuild_distance2 = _square(0.5 * self.skin)
         self.n_builds = 0
         self.used_cells = False
         self.order: NDArray[np.int64] | None = None
@@ -234,7 +242,7 @@ class NeighborList:
         moved2 = _max_displacement2(state.positions, self._reference)
         if not np.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
-        return moved2 > (0.5 * self.skin) ** 2
+        return moved2 > self._rebuild_distance2
 
     def update(self, state: State) -> bool:
         """Rebuild the list if needed; return True if it was rebuilt."""
@@ -280,7 +288,7 @@ class NeighborList:
         n = positions.shape[0]
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts = np.zeros(n + 1, dtype=np.int64)
-        r2_max = self.list_radius**2
+        r2_max = _square(self.list_radius)
         while True:
             count = _brute_force_pairs(
                 positions, lengths, inverse, r2_max, starts, self._neighbor_buffer
@@ -313,7 +321,7 @@ class NeighborList:
         bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
         starts = np.zeros(n + 1, dtype=np.int64)
         counts = np.zeros(chunks, dtype=np.int64)
-        r2_max = self.list_radius**2
+        r2_max = _square(self.list_radius)
         while True:
             capacity = self._neighbor_buffer.shape[0] // chunks
             # One chunk stays off numba's thread pool: no wake-ups on a busy machine.

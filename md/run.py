@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from md._checks import count
 from md._files import claim_holder, exclusive_claim
 from md.checkpoint import (
     Checkpoint,
@@ -298,9 +299,10 @@ def prepare(
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
     if steps is not None:
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-            raise ConfigError(f"--steps must be an integer >= 0, got {steps!r}")
-        config.run.steps = steps
+        try:
+            config.run.steps = count(steps, "--steps", minimum=0)
+        except ValueError as error:
+            raise ConfigError(str(error)) from None
     output = Path(output) if output is not None else config.output.path
     if output.name in ("", ".", ".."):
         raise ConfigError(f"output path {str(output)!r} names no file")
@@ -465,9 +467,12 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
             raise ConfigError(f"--resume: checkpoint {saved_path}: {error}") from None
     else:
         state, potentials, integrator = build_components(config)
-    # Blow-up guard: nobody moves farther than the skin in one step (adaptive
-    # integrators take long output steps on purpose).
-    guard = config.run.skin if config.run.skin > 0 and not integrator.adaptive else None
+    # Blow-up guard: nobody moves farther than the skin in one step, nor than a tenth
+    # of the longest cutoff (a tiny skin only means frequent rebuilds). Adaptive
+    # integrators take long output steps on purpose.
+    cutoffs = [p.cutoff for p in potentials if p.cutoff is not None]
+    guard = max([config.run.skin, *(0.1 * c for c in cutoffs)])
+    guard = guard if guard > 0 and not integrator.adaptive else None
     where = "--threads" if threads is not None else f"{config.source}: [run] threads"
     threads = threads if threads is not None else config.run.threads
     try:

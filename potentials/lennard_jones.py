@@ -192,17 +192,24 @@ class LennardJones:
         c6, c12, rc2, ro2, shift, inv_den = table
         for ti in range(n_types):
             for tj in range(n_types):
-                p = self.pair_parameters(ti, tj)
+                p = {k: np.float64(v) for k, v in self.pair_parameters(ti, tj).items()}
                 k = ti * n_types + tj
-                s6 = p["sigma"] ** 6
-                c6[k] = 4.0 * p["epsilon"] * s6
-                c12[k] = 4.0 * p["epsilon"] * s6 * s6
-                rc2[k] = p["cutoff"] ** 2
-                ro2[k] = p["r_on"] ** 2
-                inv_rc6 = 1.0 / rc2[k] ** 3
-                shift[k] = c12[k] * inv_rc6 * inv_rc6 - c6[k] * inv_rc6
-                if rc2[k] > ro2[k]:
-                    inv_den[k] = 1.0 / (rc2[k] - ro2[k]) ** 3
+                with np.errstate(over="ignore", under="ignore"):
+                    s6 = p["sigma"] ** 6
+                    c6[k] = 4.0 * p["epsilon"] * s6
+                    c12[k] = 4.0 * p["epsilon"] * s6 * s6
+                    rc2[k] = p["cutoff"] ** 2
+                    ro2[k] = p["r_on"] ** 2
+                    inv_rc6 = 1.0 / rc2[k] ** 3
+                    shift[k] = c12[k] * inv_rc6 * inv_rc6 - c6[k] * inv_rc6
+                    if rc2[k] > ro2[k]:
+                        inv_den[k] = 1.0 / (rc2[k] - ro2[k]) ** 3
+                if not np.all(np.isfinite(table[:, k])):
+                    raise ValueError(
+                        f"epsilon {p['epsilon']:g}, sigma {p['sigma']:g}, cutoff {p['cutoff']:g}"
+                        f" (r_on {p['r_on']:g}) of type pair ({ti}, {tj}) are beyond double "
+                        "precision: 4 epsilon sigma^12 and the cutoff's powers must be finite"
+                    )
         return table
 
     def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:

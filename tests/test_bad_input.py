@@ -8,8 +8,10 @@ leave every file that existed before untouched.
 from __future__ import annotations
 
 import contextlib
+import copy
 import hashlib
 import io
+import itertools
 import math
 import os
 import shutil
@@ -35,9 +37,21 @@ BASE = {
     "output": {"path": "new.h5", "every": 5, "checkpoint_every": 5},
 }
 
+#: Magnitudes past what the engine can use (int64, float64 and 2**53 edges).
+EXTREMES = [2**53 + 1, 2**63, 2**64, 10**23, -(10**23), 1e300, -1e300, 5e-324, 1e-300, 1e308]
+#: Every numeric key of a config (the fuzzing below also reaches the rest).
+NUMERIC_KEYS = [
+    ("", "seed"), ("system", "cells"), ("system", "density"), ("system", "temperature"),
+    ("system", "mass"), ("system", "lattice_constant"), ("potentials.0", "cutoff"),
+    ("potentials.0", "epsilon"), ("potentials.0", "sigma"), ("potentials.0", "r_on"),
+    ("integrator", "dt"), ("run", "steps"), ("run", "skin"), ("run", "thermo_every"),
+    ("run", "threads"), ("output", "every"), ("output", "checkpoint_every"),
+]  # fmt: skip
+
 SCALARS = st.one_of(
     st.integers(-3, 5),
     st.sampled_from([0, -1, 10**6, 2**63 - 1]),
+    st.sampled_from(EXTREMES),
     st.floats(allow_nan=True, allow_infinity=True, width=64),
     st.sampled_from([0.0, -0.0, 1e-300, 1e300, 0.5, 2.5]),
     st.booleans(),
@@ -161,6 +175,46 @@ def _in(folder: Path):
             os.chdir(self.old)
 
     return _Chdir()
+
+
+@pytest.mark.parametrize("where_key", NUMERIC_KEYS, ids=lambda wk: ".".join(filter(None, wk)))
+def test_extreme_magnitudes_of_every_numeric_key(workspace, where_key):
+    """Each numeric key at magnitudes past the int64/float64/2**53 edges: a run (possibly
+    one that reports its own blow-up, exit 1) or exit 2 naming the key, never a
+    traceback, never a touched file; steps come from the config here, not --steps."""
+    where, key = where_key
+    for value, smooth in itertools.product(EXTREMES, (False, True)):
+        data = copy.deepcopy(BASE)
+        table = data if where == "" else data["potentials"][0] if where == "potentials.0" else (
+            data[where])  # fmt: skip
+        table[key] = value
+        if smooth:
+            data["potentials"][0]["cutoff_mode"] = "smooth"
+        config = workspace / "run.toml"
+        config.write_text(to_toml(data))
+        before = _snapshot(workspace)
+        with _in(workspace):
+            code, err = run_cli(["run", str(config), "--no-progress", "-q"])
+        check_outcome(code, err)
+        if code == 2:
+            assert key in err or "cutoff" in err or "box" in err, (value, err)
+        after = _snapshot(workspace)
+        for path, digest in before.items():
+            assert after.get(path) == digest, (path, value, err)
+        for path in set(after) - set(before):
+            path.unlink()
+
+
+@pytest.mark.parametrize("steps", [str(2**53 + 1), str(2**63), str(10**23), "-1"])
+def test_steps_out_of_range_on_the_command_line(workspace, steps):
+    config = workspace / "run.toml"
+    config.write_text(to_toml(BASE))
+    before = _snapshot(workspace)
+    with _in(workspace):
+        code, err = run_cli(["run", str(config), "--no-progress", "-q", "--steps", steps])
+    check_outcome(code, err)
+    assert code == 2 and "--steps" in err
+    assert _snapshot(workspace) == before
 
 
 @settings(
