@@ -19,7 +19,22 @@ ARCHITECTURE.md). This facade re-exports the public names; it is the only
 module allowed to reach every layer.
 """
 
-from md._kernel_cache import kernel_cache
+import os
+import sys
+
+
+def _interrupted_quietly(kind, value, traceback, previous=sys.excepthook) -> None:
+    """Ctrl-C while the ``md`` command is still starting: a line, not a traceback."""
+    if issubclass(kind, KeyboardInterrupt):
+        print("md: interrupted", file=sys.stderr)
+        return
+    previous(kind, value, traceback)
+
+
+if sys.argv and os.path.basename(sys.argv[0]) == "md":  # the `md` command (console script)
+    sys.excepthook = _interrupted_quietly
+
+from md._kernel_cache import kernel_cache  # noqa: E402 - after the start-up hook above
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():

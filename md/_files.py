@@ -166,3 +166,18 @@ def claim_holder(path) -> str | None:
     finally:
         os.close(descriptor)
     return None
+
+
+def remove_stale_temporaries(path) -> list[Path]:
+    """Remove temporaries :func:`atomic_path` left beside ``path`` (a killed writer's).
+
+    Call only while holding :func:`exclusive_claim` on the output, so that no
+    live writer owns them. Returns the removed paths.
+    """
+    path = Path(path)
+    removed = []
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):
+        with contextlib.suppress(OSError):
+            stale.unlink()
+            removed.append(stale)
+    return removed

@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from md.forcefield import ForceField
 from md.state import State, orthorhombic_box, types_from_ase
 from potentials import POTENTIALS
+from potentials.base import Potential
 
 #: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
 _SORT_FROM = 8192
@@ -363,6 +364,12 @@ def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):
     built = []
     for index, entry in enumerate(entries):
         if not isinstance(entry, Mapping):
+            if not isinstance(entry, Potential):
+                raise TypeError(
+                    f"potentials[{index}]: expected a potential object (e.g. "
+                    "LennardJones(epsilon=..., sigma=..., cutoff=...)) or a table such as "
+                    f"{{'type': 'lj', 'epsilon': ..., 'sigma': ..., 'cutoff': ...}}, got {entry!r}"
+                )
             built.append(entry)
             continue
         params = dict(entry)

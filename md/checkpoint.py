@@ -176,8 +176,10 @@ def read_checkpoint(path) -> Checkpoint:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
     except Exception as error:  # zipfile, zlib, numpy header and OS errors alike
+        # numpy's own text may suggest allow_pickle, which must never be followed here.
         raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(error).__name__}: {error})"
+            f"{path}: the checkpoint is damaged ({type(error).__name__}) and cannot be "
+            f"resumed. {_AFTER_DAMAGE}"
         ) from None
     try:
         meta = json.loads(str(arrays.pop("meta")[()]))
@@ -214,7 +216,16 @@ def read_checkpoint(path) -> Checkpoint:
             extra=meta.get("extra", {}),
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
-        raise CheckpointError(f"{path}: invalid checkpoint ({error})") from None
+        raise CheckpointError(
+            f"{path}: the checkpoint is damaged or not ours ({error}) and cannot be resumed. "
+            f"{_AFTER_DAMAGE}"
+        ) from None
+
+
+_AFTER_DAMAGE = (
+    "The trajectory's frames are unaffected (md info and md.open_trajectory read them); "
+    "to run again, start afresh with --overwrite (or --output elsewhere)"
+)
 
 
 def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:

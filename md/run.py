@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from md._checks import count
-from md._files import claim_holder, exclusive_claim
+from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -237,6 +237,8 @@ class PreparedRun:
         plain re-run is not refused because of it.
         """
         state, config = self.sim.state, self.config
+        for path in (self.output, self.checkpoint_path):  # a killed run's half-written files
+            remove_stale_temporaries(path)
         if self.checkpoint is None:
             if not self.overwrite:
                 for path in (self.output, self.checkpoint_path):

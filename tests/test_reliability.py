@@ -277,3 +277,93 @@ def test_seed_only_variations_are_validated_once(tmp_path, monkeypatch):
     config.write_text(lj_config_text(run="steps = 10"))
     plan = planning.plan_sweep(config, {"seed": list(range(1, 201))}, replicas=2, out=tmp_path)
     assert len(plan.runs) == 400 and len(calls) == 1
+
+
+# ------------------------------------------------------------------ small things
+def _md_command() -> str | None:
+    import shutil
+
+    beside = Path(sys.executable).parent / "md"
+    return str(beside) if beside.exists() else shutil.which("md")
+
+
+@pytest.mark.skipif(_md_command() is None, reason="the md console script is not installed")
+@pytest.mark.parametrize("delay", [0.1, 0.3, 0.8])
+def test_ctrl_c_while_md_starts_prints_no_traceback(tmp_path, delay):
+    config = tmp_path / "run.toml"
+    config.write_text(lj_config_text(run="steps = 1000000"))
+    process = subprocess.Popen(
+        [_md_command(), "run", str(config), "-q", "--no-progress"], cwd=tmp_path,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(delay)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    if "init_import_site" in err:
+        pytest.skip("the signal landed in the interpreter's own start-up, before leapmd's code")
+    assert "Traceback" not in err, err
+    assert process.returncode in (130, -signal.SIGINT), (process.returncode, err)
+
+
+def test_md_info_into_a_closed_pipe_ends_quietly(finished):
+    _, output = finished
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader (say, head) is already gone
+    done = subprocess.run(
+        [sys.executable, "-m", "md.cli", "info", str(output)], stdout=write_end,
+        stderr=subprocess.PIPE, text=True, timeout=120,
+    )  # fmt: skip
+    os.close(write_end)
+    assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
+    assert done.returncode == 141
+
+
+def test_temporaries_of_a_killed_writer_are_cleaned_on_the_next_start(finished):
+    config, output = finished
+    stale = [output.parent / ".out.h5.ckpt.abc123.tmp", output.parent / ".out.h5.xyz789.tmp"]
+    for path in stale:
+        path.write_bytes(b"half a checkpoint")
+    assert main(["run", str(config), "--resume", "--steps", "50", "-q", "--no-progress"]) == 0
+    assert not any(path.exists() for path in stale)
+
+
+def test_calculator_given_a_bare_name_says_what_it_expects():
+    from md.calculator import MDCalculator
+
+    with pytest.raises((TypeError, ValueError), match="potential"):
+        MDCalculator(["lj"])
+
+
+def test_a_damaged_checkpoint_header_never_suggests_allow_pickle(finished, capsys):
+    config, output = finished
+    checkpoint = output.with_name("out.h5.ckpt")
+    import numpy as np
+
+    with open(checkpoint, "wb") as handle:  # an npz whose meta is an object array
+        np.savez(handle, meta=np.array([{"format": "x"}], dtype=object))
+    assert main(["run", str(config), "--resume", "--steps", "50", "-q", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "damaged" in err and "allow_pickle" not in err and "--overwrite" in err, err
+
+
+def test_ctrl_c_during_a_sweep_prints_no_traceback(tmp_path):
+    """Ctrl-C in a terminal signals the whole process group: the sweep, its Dask
+    workers and their runs. Only the sweep answers (exit 130, one line)."""
+    config = tmp_path / "base.toml"
+    config.write_text(lj_config_text(run="steps = 1000000", output='path = "x.h5"\nevery = 1000'))
+    process = subprocess.Popen(
+        [sys.executable, "-m", "md.cli", "sweep", str(config), "--vary", "seed=1,2",
+         "--workers", "1", "--no-progress", "--out", str(tmp_path / "out")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        _wait_for(lambda: any((tmp_path / "out" / "logs").glob("*")) or process.poll() is not None)
+        time.sleep(2.0)  # a run under way on the worker
+        os.killpg(process.pid, signal.SIGINT)
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err, err

@@ -10,12 +10,13 @@ Nothing in the package imports the CLI.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Sequence
 
 from md._version import __version__
 from md.cli import analyze, info, integrators, run, sweep, validate
-from md.cli._common import EXIT_INTERRUPTED, ArgumentParser
+from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
 
 #: Subcommand modules, in the order ``md --help`` lists them.
 SUBCOMMANDS = {
@@ -46,6 +47,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("md: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # The reader went away (md info | head): stop quietly, as Unix tools do. Python
+        # would report the failed flush of stdout at exit, so point it at /dev/null.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 __all__ = ["build_parser", "main"]

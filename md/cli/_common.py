@@ -7,6 +7,7 @@ import sys
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 EXIT_TERMINATED = 143  # SIGTERM: 128 + 15
+EXIT_BROKEN_PIPE = 141  # SIGPIPE: 128 + 13, the reader of our output went away
 
 
 class ArgumentParser(argparse.ArgumentParser):

@@ -7,6 +7,7 @@ import logging
 import math
 import os
 import shutil
+import signal
 import threading
 import time
 import uuid
@@ -187,13 +188,17 @@ def connect(
         workers = workers or os.cpu_count() or 1
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise SweepError(f"workers must be a positive integer, got {workers!r}")
-    cluster = LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        silence_logs=logging.ERROR,
-    )
+    # The worker processes inherit an ignored SIGINT: Ctrl-C in the terminal reaches the
+    # whole process group, and only this process should answer it (cancel the sweep);
+    # workers that caught it too would print tracebacks while shutting down.
+    with _sigint_ignored():
+        cluster = LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        )
     try:
         local = Client(cluster)
         try:
@@ -333,3 +338,17 @@ def _client_within(client_class, scheduler: str, timeout: float):
             f"{str(error)[:200]} (is it a Dask scheduler?)"
         )
     return outcome["client"]
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Ignore SIGINT while the block starts child processes (main thread only)."""
+    try:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: signals are not ours to change
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
