@@ -252,15 +252,7 @@ class PreparedRun:
                 extra={"config_file": self.config_file},
             )  # fmt: skip
             try:
-                return H5MDWriter(
-                    self.output,
-                    state,
-                    units=config.units,
-                    velocities=config.output.velocities,
-                    forces=config.output.forces,
-                    parameters=self.parameters,
-                    overwrite=self.overwrite,
-                )
+                return self._new_trajectory(overwrite=self.overwrite)
             except BaseException:
                 self.checkpoint_path.unlink(missing_ok=True)
                 raise
@@ -269,15 +261,14 @@ class PreparedRun:
                 self.output, state, units=config.units, append=True,
                 keep_frames=self.checkpoint.n_frames,
             )  # fmt: skip
+        return self._new_trajectory(overwrite=True)
+
+    def _new_trajectory(self, overwrite: bool) -> H5MDWriter:
+        output = self.config.output
         return H5MDWriter(
-            self.output,
-            state,
-            units=config.units,
-            velocities=config.output.velocities,
-            forces=config.output.forces,
-            parameters=self.parameters,
-            overwrite=True,
-        )
+            self.output, self.sim.state, units=self.config.units, velocities=output.velocities,
+            forces=output.forces, parameters=self.parameters, overwrite=overwrite,
+        )  # fmt: skip
 
 
 def prepare(
