@@ -603,8 +603,13 @@ def open_trajectory(path, **kwargs):
             masses = f["particles/trajectory/mass"][()]
             types = f["particles/trajectory/species"][()]
             names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
+            n_frames = len(f["particles/trajectory/position/step"])
         except KeyError as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+    if n_frames == 0:  # MDAnalysis's reader cannot open a file without frames
+        raise TrajectoryError(
+            f"{path}: holds no frames yet (its run was stopped before writing the first)"
+        )
     kwargs.setdefault("convert_units", units != "lj")
     universe = mda.Universe.empty(len(masses), trajectory=False)
     universe.load_new(str(path), format="H5MD", **kwargs)

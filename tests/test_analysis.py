@@ -15,6 +15,7 @@ import pytest
 import md
 from md import analysis
 from md.analysis import AnalysisError, block_average, velocity_autocorrelation
+from md.thermo import temperature
 from md.trajectory import H5MDWriter
 from md.units import METAL, ps
 
@@ -358,7 +359,7 @@ def test_lj_liquid_diffusion_from_msd_and_vacf_agree(tmp_path):
     sim = md.Simulation(state, [potential], VelocityVerlet(dt=0.005))
     for _ in range(30):
         sim.run(50)
-        state.velocities *= np.sqrt(1.0 / analysis.temperature(state.velocities, state.masses))
+        state.velocities *= np.sqrt(1.0 / temperature(state.velocities, state.masses))
     state.step, state.time = 0, 0.0
     production = md.Simulation(state, [potential], VelocityVerlet(dt=0.005))
     path = tmp_path / "liquid.h5"

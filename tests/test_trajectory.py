@@ -284,3 +284,13 @@ def test_outputs_get_the_usual_permissions(tmp_path):
         os.umask(umask)
     for name in ("t.h5", "t.ckpt"):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644
+
+
+def test_a_file_without_frames_is_reported_not_crashed_on(tmp_path):
+    state = md.lattice("fcc", 2, density=0.8)
+    path = tmp_path / "empty.h5"
+    with H5MDWriter(path, state, units="lj"):
+        pass  # a run killed between creating the file and its first frame
+    assert read_trajectory(path).n_frames == 0
+    with pytest.raises(TrajectoryError, match="no frames yet"):
+        open_trajectory(path)
