@@ -118,6 +118,14 @@ class State:
         if self.masses.size and not np.all(self.masses > 0):  # also catches NaN
             bad = int(np.argwhere(~(self.masses > 0))[0, 0])
             raise ValueError(f"masses must be positive; atom {bad} has mass {self.masses[bad]}")
+        with np.errstate(divide="ignore", over="ignore"):
+            usable = np.isfinite(self.masses) & np.isfinite(1.0 / self.masses)
+        if self.masses.size and not np.all(usable):  # integrators divide by the mass
+            bad = int(np.argwhere(~usable)[0, 0])
+            raise ValueError(
+                f"mass of atom {bad} ({float(self.masses[bad])!r}) is beyond double precision: the "
+                "mass and its inverse must be finite"
+            )
         if not np.all(np.isfinite(self.box)) or np.any(self.box[self.pbc] <= 0):
             raise ValueError(
                 f"box edges must be finite and positive along periodic axes, got {self.box}"

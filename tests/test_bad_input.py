@@ -482,3 +482,18 @@ def test_writer_refuses_a_frame_the_disk_cannot_hold(tmp_path, monkeypatch):
     monkeypatch.undo()
     traj = read_trajectory(path)
     np.testing.assert_array_equal(traj.steps, [1, 2, 3])
+
+
+@pytest.mark.parametrize("mass", [5e-324, 1e308])
+def test_a_mass_whose_inverse_or_kinetic_energy_overflows_is_refused(workspace, mass):
+    data = copy.deepcopy(BASE)
+    data["system"]["mass"] = mass
+    config = workspace / "run.toml"
+    config.write_text(to_toml(data))
+    before = _snapshot(workspace)
+    with _in(workspace):
+        code, err = run_cli(["run", str(config), "--no-progress", "-q"])
+    check_outcome(code, err)
+    if mass < 1:  # 1 / 5e-324 overflows: refused up front, naming the mass
+        assert code == 2 and "mass" in err, err
+        assert _snapshot(workspace) == before
