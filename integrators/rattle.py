@@ -163,7 +163,10 @@ class BondConstraints:
             bonds = params.pop("bonds")
             if bonds == "system":
                 if system_bonds is None:
-                    raise ValueError('bonds = "system" needs a polymer built by [system]')
+                    raise ValueError(
+                        'bonds = "system" needs bonds from [system]: a polymer builder, or a '
+                        "structure file that holds bonds"
+                    )
                 bonds = system_bonds
             elif isinstance(bonds, str) or not isinstance(bonds, list | np.ndarray):
                 raise ValueError(f'bonds: expected a list of [i, j] or "system", got {bonds!r}')

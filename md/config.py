@@ -20,7 +20,8 @@ from md._checks import MAX_COUNT, MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError
 from md.polymers import polymer_melt, single_chain
-from md.state import State
+from md.structure import read_structure
+from md.topology import Topology
 from md.units import UNIT_SYSTEMS, UnitSystem
 from potentials import POTENTIALS
 
@@ -320,17 +321,27 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
     return system
 
 
+#: Where bonds = "system" finds its bonds.
+_SYSTEM_BONDS = "bonds from [system]: a polymer builder, or a structure file that holds bonds"
+
+
 def potential_from_config(entry: dict, type_names, source: str, index: int, system_bonds=None):
     """Build a potential from its config table (type names resolved to indices).
 
-    ``bonds = "system"`` takes the bonds of a polymer built by ``[system]``.
+    ``bonds = "system"`` takes the bonds of ``[system]`` (a polymer builder's
+    or a structure file's; ``system_bonds``, a Topology or an array), and
+    their bond types when the file has several and the table gives none.
     """
     params = dict(entry)
     kind = params.pop("type")
     where = f"{source}: [potentials.{index}] ({kind})"
     if params.get("bonds") == "system":
         if system_bonds is None:
-            raise ConfigError(f'{where}: bonds = "system" needs a polymer built by [system]')
+            raise ConfigError(f'{where}: bonds = "system" needs {_SYSTEM_BONDS}')
+        if isinstance(system_bonds, Topology):
+            if len(system_bonds.bond_type_names) > 1 and "bond_types" not in params:
+                params["bond_types"] = system_bonds.bond_types
+            system_bonds = system_bonds.bonds
         params["bonds"] = system_bonds
     try:
         return POTENTIALS[kind].from_config(params, tuple(type_names))
@@ -375,8 +386,10 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
     """Build the integrator from its config table (dt already in engine units).
 
     ``[integrator.constraints]`` becomes :class:`integrators.rattle.BondConstraints`;
-    its ``bonds = "system"`` takes ``system_bonds`` (a polymer builder's bonds).
+    its ``bonds = "system"`` takes ``system_bonds`` (a Topology or an array).
     """
+    if isinstance(system_bonds, Topology):
+        system_bonds = system_bonds.bonds
     params = dict(entry)
     kind = params.pop("type")
     if "constraints" in params:
@@ -400,10 +413,15 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
 
 
 def build_system(config: Config):
-    """Return ``(state, bonds)``: the initial State and a builder's bonds (or None)."""
+    """Return ``(state, topology)``: the initial State and its bonds (or None).
+
+    The bonds are a polymer builder's, or those a structure file holds (LAMMPS
+    data, GSD, H5MD), as a :class:`md.topology.Topology`; ``bonds = "system"``
+    in a potential or in ``[integrator.constraints]`` takes them.
+    """
     system = config.system
     where = f"{config.source}: [system]"
-    bonds = None
+    topology = None
     try:
         if system.polymer == "melt":
             state, bonds = polymer_melt(
@@ -417,6 +435,7 @@ def build_system(config: Config):
                 pbc=system.pbc if system.pbc is not None else False,
             )  # fmt: skip
         if system.polymer is not None:
+            topology = Topology.from_bonds(bonds)
             state.type_names = (system.type_name,)
             if system.mass is not None:
                 state.masses[:] = system.mass
@@ -434,7 +453,12 @@ def build_system(config: Config):
                 type_name=system.type_name,
             )
         else:
-            state = _read_structure(system.structure, where, system.format)
+            try:
+                state, topology = read_structure(system.structure, system.format, config.units)
+            except ValueError as error:
+                raise ConfigError(f"{where} structure: {error}") from None
+            if not topology.n_bonds:
+                topology = None
             if isinstance(system.mass, dict):
                 unknown = sorted(set(system.mass) - set(state.type_names))
                 if unknown:
@@ -458,47 +482,7 @@ def build_system(config: Config):
         raise ConfigError(f"{where}: {error}") from None
     if state.n_atoms == 0:
         raise ConfigError(f"{where}: the system has no atoms")
-    return state, bonds
-
-
-def _read_structure(path: Path, where: str, format: str | None = None):
-    """Read the last frame of any file ase.io reads; masses from the file or ASE's table."""
-    import ase.io  # ASE's file readers: loaded only for structure files
-
-    _check_xyz_count(path, where, format)
-    try:
-        atoms = ase.io.read(path, format=format)
-    except Exception as error:  # ase.io raises many types for unreadable files
-        how = f" as format {format!r}" if format else ""
-        raise ConfigError(f"{where} structure: cannot read {path}{how} ({error})") from None
-    if isinstance(atoms, list):
-        atoms = atoms[-1]
-    try:
-        return State.from_ase(atoms)
-    except ValueError as error:
-        raise ConfigError(f"{where} structure {path}: {error}") from None
-
-
-def _check_xyz_count(path: Path, where: str, format: str | None) -> None:
-    """Refuse an (ext)xyz file whose atom-count line exceeds what the file can hold.
-
-    ASE's extxyz reader trusts that line and, given an absurd count, loops for
-    a very long time; every atom needs a line of at least 8 bytes.
-    """
-    kind = (format or Path(path).suffix.lstrip(".")).lower()
-    if kind not in ("xyz", "extxyz"):
-        return
-    try:
-        with open(path, "rb") as handle:
-            first = handle.readline(64).strip()
-        size = Path(path).stat().st_size
-    except OSError as error:
-        raise ConfigError(f"{where} structure: cannot read {path} ({error})") from None
-    if first.isdigit() and int(first) * 8 > size:
-        raise ConfigError(
-            f"{where} structure {path}: the first line declares {int(first)} atoms, more than "
-            f"a file of {size} bytes can hold"
-        )
+    return state, topology
 
 
 __all__ = [

@@ -11,7 +11,14 @@ import scipy.sparse as sp
 from md.errors import NonFiniteError
 from md.neighbors import NeighborList
 from md.state import State
-from potentials.base import ForceResult, Potential, SupportsHessian, SupportsHessianOperator
+from md.topology import Topology, combine
+from potentials.base import (
+    Bonded,
+    ForceResult,
+    Potential,
+    SupportsHessian,
+    SupportsHessianOperator,
+)
 from potentials.pair_hessian import HessianSum
 
 
@@ -163,6 +170,20 @@ class ForceField:
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
         return HessianSum(terms)
+
+    def topology(self, extra=()) -> Topology:
+        """Return the bonds of the bonded potentials (and ``extra`` parts) as one Topology.
+
+        ``extra`` holds further ``(style, bonds, bond_types)`` parts, such as
+        an integrator's constraints. Bond type names are the potentials'
+        ``bond_style`` (see :func:`md.topology.combine`).
+        """
+        parts = [
+            (potential.bond_style, potential.bonds, potential.bond_types)
+            for potential in self.potentials
+            if isinstance(potential, Bonded)
+        ]
+        return combine([*parts, *extra])
 
     def _matches(self, state: State) -> bool:
         positions, box, pbc, types = self._key

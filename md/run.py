@@ -56,6 +56,7 @@ from md.errors import (
 from md.parallel import set_threads
 from md.simulation import Simulation
 from md.state import State
+from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
 
 #: Statuses of a finished :meth:`PreparedRun.execute`.
@@ -268,6 +269,7 @@ class PreparedRun:
         return H5MDWriter(
             self.output, self.sim.state, units=self.config.units, velocities=output.velocities,
             forces=output.forces, parameters=self.parameters, overwrite=overwrite,
+            topology=run_topology(self.sim),
         )  # fmt: skip
 
 
@@ -424,6 +426,13 @@ def run_config(
 
 
 # ------------------------------------------------------------------ helpers
+def run_topology(sim: Simulation) -> Topology:
+    """The bonds a run's trajectory stores: its bonded potentials' and its constraints'."""
+    constraints = getattr(sim.integrator, "constraints", None)
+    extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
+    return sim.forcefield.topology(extra=extra)
+
+
 def build_components(config: Config, state: State | None = None):
     """Build the system, potentials and integrator; return ``(state, potentials, integrator)``.
 

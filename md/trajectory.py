@@ -12,6 +12,11 @@ MDAnalysis's H5MD reader needs)::
         velocity/{step,time,value}             optional
         force/{step,time,value}                optional
         species (N,) int32, mass (N,) float64  time-independent
+    connectivity/              bonds, when the run has any (H5MD 1.1's tuple lists):
+        <bond type> (B, 2) int32 atom index pairs, one dataset per bond type
+                               ("spring", "fene", "constraint", ...), each with
+                               attribute particles_group -> /particles/trajectory;
+                               attribute bond_types (JSON) gives the type order
     observables/
         potential_energy, kinetic_energy, total_energy, temperature,
         pressure: {step,time,value (F,)}
@@ -39,6 +44,7 @@ import errno
 import json
 import os
 import resource
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +57,7 @@ from md._version import __version__
 from md.box import wrap
 from md.errors import TrajectoryError
 from md.state import State
+from md.topology import Topology
 from md.units import UnitSystem, get_units
 
 H5MD_VERSION = (1, 1)
@@ -98,6 +105,10 @@ class H5MDWriter:
     keep_frames : int, optional
         With ``append``, keep only the first ``keep_frames`` frames and
         discard the rest (frames written after the checkpoint being resumed).
+    topology : Topology, optional
+        Bonds to store in ``/connectivity`` (see
+        :meth:`md.forcefield.ForceField.topology`), so viewers and
+        :func:`open_trajectory` see them.
 
     Raises
     ------
@@ -126,8 +137,11 @@ class H5MDWriter:
         author: str | None = None,
         append: bool = False,
         keep_frames: int | None = None,
+        topology: Topology | None = None,
     ) -> None:
         self.path = Path(path)
+        if topology is not None:
+            topology.check(state.n_atoms, where="topology")
         self.units = get_units(units)
         self.n_atoms = state.n_atoms
         self.store_velocities = bool(velocities)
@@ -150,6 +164,8 @@ class H5MDWriter:
                 with h5py.File(temporary, "w") as f:
                     self._file = f
                     self._create_layout(state, parameters or {}, author)
+                    if topology is not None and topology.n_bonds:
+                        _write_topology(f, topology)
                 self._file = None
         except FileExistsError:
             raise FileExistsError(f"{self.path} appeared while the run was starting") from None
@@ -392,6 +408,41 @@ class H5MDWriter:
         self.close()
 
 
+def _write_topology(f: h5py.File, topology: Topology) -> None:
+    connectivity = f.create_group("connectivity")
+    connectivity.attrs["bond_types"] = json.dumps(list(topology.bond_type_names))
+    particles = f["particles/trajectory"].ref
+    for name, pairs in topology.by_type().items():
+        dataset = connectivity.create_dataset(name, data=pairs.astype(np.int32).reshape(-1, 2))
+        dataset.attrs["particles_group"] = particles
+
+
+def _read_topology(f: h5py.File) -> Topology:
+    if "connectivity" not in f:
+        return Topology.empty()
+    group = f["connectivity"]
+    order = maybe_json(group.attrs.get("bond_types", "[]"))
+    names = [name for name in order if name in group] if isinstance(order, list) else []
+    names += sorted(name for name in group if name not in names)
+    groups = {}
+    for name in names:
+        pairs = group[name][()]
+        if pairs.ndim != 2 or pairs.shape[1] != 2:  # another kind of tuple list: not bonds
+            continue
+        groups[name] = pairs.astype(np.int64)
+    return Topology.from_groups(groups)
+
+
+def read_topology(path) -> Topology:
+    """Return the bonds stored in a trajectory's ``/connectivity`` (empty if none)."""
+    path = Path(path)
+    with open_h5md(path) as f:
+        try:
+            return _read_topology(f)
+        except (KeyError, ValueError, TypeError, OSError) as error:
+            raise TrajectoryError(f"{path}: unreadable connectivity ({error})") from None
+
+
 # ---------------------------------------------------------------------- reading
 @dataclass
 class Trajectory:
@@ -414,6 +465,7 @@ class Trajectory:
     forces: NDArray[np.float64] | None = None
     observables: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     parameters: dict = field(default_factory=dict)
+    topology: Topology = field(default_factory=Topology.empty)
 
     @property
     def n_frames(self) -> int:
@@ -499,6 +551,7 @@ def read_trajectory(path) -> Trajectory:
                 forces=forces,
                 observables=observables,
                 parameters=parameters,
+                topology=_read_topology(f),
             )
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             if isinstance(error, TrajectoryError):
@@ -506,6 +559,200 @@ def read_trajectory(path) -> Trajectory:
             if _is_checksum_error(error):
                 verify_frames(path)  # raises naming the frame
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+
+
+@dataclass
+class Frame:
+    """One stored frame in engine units (see :class:`TrajectoryReader`).
+
+    ``positions`` are as stored, wrapped into the box; ``images`` count the
+    box lengths to add for the continuous positions (:meth:`unwrapped`).
+    """
+
+    index: int
+    step: int
+    time: float
+    positions: NDArray[np.float64]
+    images: NDArray[np.int32]
+    box: NDArray[np.float64]
+    velocities: NDArray[np.float64] | None = None
+    forces: NDArray[np.float64] | None = None
+    observables: dict[str, float] = field(default_factory=dict)
+
+    def unwrapped(self) -> NDArray[np.float64]:
+        return self.positions + self.images * self.box
+
+
+class TrajectoryReader:
+    """Frames of an H5MD file of ours, read a chunk at a time (memory flat in frames).
+
+    The time-independent parts (masses, types, periodicity, bonds, units,
+    parameters) are read on opening; :meth:`frames` then yields
+    :class:`Frame` objects in engine units for a slice of the frames.
+    Use as a context manager, or call :meth:`close`.
+
+    Raises
+    ------
+    TrajectoryError
+        If the file is missing, not HDF5, not in our layout, or holds no frames.
+    """
+
+    def __init__(self, path) -> None:
+        self.path = Path(path)
+        self._file = open_h5md(self.path)
+        try:
+            f = self._file
+            group = f["particles/trajectory"]
+            self.units = get_units(attr_text(f["parameters"].attrs.get("units", "lj")))
+            self.parameters = {k: maybe_json(v) for k, v in f["parameters"].attrs.items()}
+            self.masses = group["mass"][()] / self._factor("mass")
+            self.types = group["species"][()].astype(np.int32)
+            names = self.parameters.get("type_names") or []
+            n_types = int(self.types.max()) + 1 if len(self.types) else 1
+            self.type_names = tuple(names) or tuple(f"T{t}" for t in range(n_types))
+            boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
+            self.pbc = np.array([b == "periodic" for b in boundary])
+            self.topology = _read_topology(f)
+            self._datasets = {
+                "step": group["position/step"],
+                "time": group["position/time"],
+                "position": group["position/value"],
+                "edges": group["box/edges/value"],
+            }
+            for name in ("image", "velocity", "force"):
+                if name in group:
+                    self._datasets[name] = group[f"{name}/value"]
+            for name, element in f.get("observables", {}).items():
+                self._datasets[f"observables/{name}"] = element["value"]
+            # Complete frames: those every per-frame dataset holds (a killed write may
+            # leave one partial frame).
+            self.n_frames = min(len(d) for d in self._datasets.values())
+        except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
+            self._file.close()
+            raise TrajectoryError(
+                f"{self.path}: not a trajectory written by leapmd ({error})"
+            ) from None
+        if self.n_frames == 0:
+            self._file.close()
+            raise TrajectoryError(f"{self.path}: holds no frames yet")
+
+    @property
+    def n_atoms(self) -> int:
+        return len(self.masses)
+
+    @property
+    def has_velocities(self) -> bool:
+        return "velocity" in self._datasets
+
+    @property
+    def has_forces(self) -> bool:
+        return "force" in self._datasets
+
+    def _factor(self, quantity: str) -> float:
+        return self.units.h5md[quantity][1] if quantity in self.units.h5md else 1.0
+
+    def select(self, start=None, stop=None, step=None) -> range:
+        """Return the frame indices of a slice, as Python slices do (negatives count back).
+
+        Raises
+        ------
+        IndexError
+            If ``start`` or ``stop`` lies outside the file's frames, or the
+            slice selects none; the message gives the number of frames.
+        ValueError
+            If ``step`` is not a positive integer.
+        """
+        n = self.n_frames
+        if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 1):
+            raise ValueError(f"step must be a positive integer, got {step!r}")
+        for name, value, limit in (("start", start, n - 1), ("stop", stop, n)):
+            if value is not None and not -n <= value <= limit:
+                raise IndexError(
+                    f"{self.path} holds {n} frames (0 to {n - 1}); {name} {value} is out of range"
+                )
+        frames = range(n)[slice(start, stop, step)]
+        if len(frames) == 0:
+            raise IndexError(
+                f"{self.path} holds {n} frames; start {start}, stop {stop}, step {step} select none"
+            )
+        return frames
+
+    def times(self, indices: range) -> NDArray[np.float64]:
+        """Return the times of the frames ``indices`` [engine time units]."""
+        return self._datasets["time"][()][list(indices)] / self._factor("time")
+
+    def frame(self, index: int) -> Frame:
+        """Return one frame (negative indices count from the end)."""
+        (frame,) = self.frames(self.select(index, index + 1 if index != -1 else None))
+        return frame
+
+    def frames(self, indices: range | None = None, chunk: int = 64) -> Iterator[Frame]:
+        """Yield the frames ``indices`` (default: all), reading ``chunk`` frames at a time."""
+        indices = range(self.n_frames) if indices is None else indices
+        scale_length = 1.0 / self._factor("length")
+        for first in range(0, len(indices), chunk):
+            part = indices[first : first + chunk]
+            lo, hi, by = part.start, part.stop, part.step
+            if by > 0 and hi > self.n_frames:
+                hi = self.n_frames
+            read = {}
+            try:
+                for name, dataset in self._datasets.items():
+                    read[name] = dataset[lo:hi:by] if by > 0 else dataset[list(part)]
+            except OSError as error:
+                if _is_checksum_error(error):
+                    verify_frames(self.path)  # raises naming the damaged frame
+                raise TrajectoryError(f"{self.path}: cannot read frames ({error})") from None
+            for k, index in enumerate(part):
+                observables = {
+                    name.split("/", 1)[1]: float(values[k])
+                    / self._factor(_OBSERVABLE_UNITS.get(name.split("/", 1)[1], ""))
+                    for name, values in read.items()
+                    if name.startswith("observables/")
+                }
+                positions = read["position"][k] * scale_length
+                yield Frame(
+                    index=index,
+                    step=int(read["step"][k]),
+                    time=float(read["time"][k]) / self._factor("time"),
+                    positions=positions,
+                    images=(
+                        read["image"][k].astype(np.int32)
+                        if "image" in read
+                        else np.zeros(positions.shape, dtype=np.int32)
+                    ),
+                    box=read["edges"][k] * scale_length,
+                    velocities=(
+                        read["velocity"][k] / self._factor("velocity")
+                        if "velocity" in read
+                        else None
+                    ),
+                    forces=read["force"][k] / self._factor("force") if "force" in read else None,
+                    observables=observables,
+                )
+
+    def state(self, frame: Frame, unwrap: bool = True) -> State:
+        """Return a frame as a State (continuous positions unless ``unwrap=False``)."""
+        return State(
+            positions=frame.unwrapped() if unwrap else frame.positions,
+            velocities=frame.velocities,
+            masses=self.masses,
+            box=frame.box,
+            pbc=self.pbc,
+            types=self.types,
+            type_names=self.type_names,
+            step=frame.step,
+            time=frame.time,
+        )
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> TrajectoryReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
@@ -588,13 +835,15 @@ def verify_frames(path, n_frames: int | None = None) -> int:
 def open_trajectory(path, **kwargs):
     """Open a trajectory we wrote as an MDAnalysis ``Universe``.
 
-    Masses and types (the type names) come from the file. Reduced-unit
+    Masses, types (the type names) and bonds (``u.bonds``, typed by bond
+    type name) come from the file. Reduced-unit
     files carry no unit attributes, so they are opened with
     ``convert_units=False``; metal files are converted to MDAnalysis's units
     (Angstrom, ps, kJ/(mol Angstrom)) as usual. Extra keyword arguments go to
     MDAnalysis's H5MD reader.
     """
     import MDAnalysis as mda  # heavy: MDAnalysis is imported on first use
+    from MDAnalysis.core.topologyattrs import Bonds  # with MDAnalysis, on first use
 
     path = Path(path)
     with open_h5md(path) as f:
@@ -604,7 +853,8 @@ def open_trajectory(path, **kwargs):
             types = f["particles/trajectory/species"][()]
             names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
             n_frames = len(f["particles/trajectory/position/step"])
-        except KeyError as error:
+            topology = _read_topology(f)
+        except (KeyError, ValueError, TypeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
     if n_frames == 0:  # MDAnalysis's reader cannot open a file without frames
         raise TrajectoryError(
@@ -616,6 +866,14 @@ def open_trajectory(path, **kwargs):
     names = list(names) or [f"T{t}" for t in range(int(types.max()) + 1)]
     universe.add_TopologyAttr("types", [names[t] for t in types])
     universe.add_TopologyAttr("masses", masses)
+    if topology.n_bonds:
+        names = topology.bond_type_names
+        universe.add_TopologyAttr(
+            Bonds(
+                [tuple(pair) for pair in topology.bonds.tolist()],
+                types=[names[t] for t in topology.bond_types],
+            )
+        )
     return universe
 
 
@@ -666,6 +924,8 @@ def trajectory_summary(traj) -> dict:
     if traj.forces is not None:
         stored.append("force")
     stored += sorted(traj.observables)
+    if traj.topology.n_bonds:
+        stored.append("connectivity")
     summary = {
         "path": str(traj.path),
         "version": traj.parameters.get("leapmd_version", "?"),
@@ -680,6 +940,7 @@ def trajectory_summary(traj) -> dict:
         "box": traj.boxes[-1].tolist() if traj.n_frames else None,
         "pbc": traj.pbc.tolist(),
         "stored": stored,
+        "bonds": {name: len(pairs) for name, pairs in traj.topology.by_type().items()},
     }
     total = traj.observables.get("total_energy")
     if total is not None and len(total) and np.all(np.isfinite(total)):

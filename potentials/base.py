@@ -99,6 +99,19 @@ class SupportsHessian(Protocol):
 
 
 @runtime_checkable
+class Bonded(Protocol):
+    """Optional capability: a fixed bond list, stored in trajectories as topology.
+
+    ``bonds`` is a (B, 2) integer array of atom pairs, ``bond_types`` a (B,)
+    type index per bond, and ``bond_style`` names the form ("spring", "fene").
+    """
+
+    bonds: NDArray[np.int64]
+    bond_types: NDArray[np.int64]
+    bond_style: str
+
+
+@runtime_checkable
 class SupportsHessianOperator(Protocol):
     """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
 

@@ -64,13 +64,14 @@ class BondStretchError(NonFiniteError):
 class _BondedPotential:
     """Shared orchestration of the bond potentials: validation, buffers, kernels.
 
-    Subclasses set ``_form`` (a kernel code) and ``_name`` and call
+    Subclasses set ``_form`` (a kernel code) and ``bond_style`` and call
     :meth:`_setup` with the per-bond-type parameter arrays.
     """
 
     cutoff = None  # bonded: no neighbour list needed
     _form: int
-    _name: str
+    #: Name of the bond form, used in descriptions and as the bond type name in files.
+    bond_style: str
 
     def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
         self.bonds = bond_array(bonds)
@@ -199,7 +200,7 @@ class _BondedPotential:
 
     def _describe(self, **params) -> dict:
         digest = hashlib.sha256(np.ascontiguousarray(self.bonds, dtype="<i8").tobytes())
-        out = {"type": self._name, **params, "n_bonds": self.n_bonds}
+        out = {"type": self.bond_style, **params, "n_bonds": self.n_bonds}
         out["bonds_sha256"] = digest.hexdigest()
         if self.per_type:
             out["n_bond_types"] = len(self._tables[0])
@@ -247,7 +248,7 @@ class HarmonicBonds(_BondedPotential):
     """
 
     _form = _HARMONIC
-    _name = "spring"
+    bond_style = "spring"
 
     def __init__(
         self,
@@ -319,7 +320,7 @@ class FENEBonds(_BondedPotential):
     """
 
     _form = _FENE
-    _name = "fene"
+    bond_style = "fene"
 
     def __init__(
         self,

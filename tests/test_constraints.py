@@ -332,7 +332,7 @@ def test_system_bonds_need_a_polymer():
         'lattice = "fcc"\ncells = 3\ndensity = 0.8',
     )
     config = parse_config(tomllib.loads(text), source="rigid.toml")
-    with pytest.raises(ConfigError, match="needs a polymer"):
+    with pytest.raises(ConfigError, match="needs bonds from \\[system\\]"):
         integrator_from_config(config.integrator, config.source, None)
 
 

@@ -33,6 +33,7 @@ LAYERS = {
         "md.thermo",
         "md._checks",
         "md._files",
+        "md.topology",
     ],
     1: ["potentials.*", "integrators.*"],
     2: [
@@ -44,8 +45,17 @@ LAYERS = {
         "md.build",
         "md.polymers",
     ],
-    3: ["md.trajectory", "md.checkpoint", "md.config", "md.run"],
-    4: ["md.analysis", "md.integrator_study", "md.calculator", "md.validate", "md.sweeps.*"],
+    3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.run"],
+    4: [
+        "md.analysis",
+        "md.integrator_study",
+        "md.calculator",
+        "md.validate",
+        "md.convert",
+        "md.render",
+        "md.notebook",
+        "md.sweeps.*",
+    ],
     5: ["md.cli.*"],
 }
 #: What potentials/ and integrators/ may import besides layer 0 of md.

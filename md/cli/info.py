@@ -40,6 +40,9 @@ def main(args) -> int:
     print(f"  units        {units.name}")
     print(f"  box          {summary['box']}  pbc {summary['pbc']}")
     print(f"  stored       {', '.join(summary['stored'])}")
+    if summary["bonds"]:
+        counts = ", ".join(f"{count} {name}" for name, count in summary["bonds"].items())
+        print(f"  bonds        {counts}")
     for key in ("integrator", "potentials", "seed", "skin"):
         if key in traj.parameters:
             print(f"  {key:<12} {json.dumps(traj.parameters[key])}")

@@ -1,0 +1,297 @@
+"""Starting structures from files: anything ``ase.io`` reads, LAMMPS data, GSD and our H5MD.
+
+:func:`read_structure` returns a :class:`md.state.State` in engine units and
+the file's bonds as a :class:`md.topology.Topology` (empty where the format
+holds none). ``[system] structure`` in configs comes here.
+
+- LAMMPS data files (``.data``, ``.lmp``; ``format = "lammps-data"``) are
+  parsed by MDAnalysis (any ``atom_style`` it recognises): atoms, masses,
+  velocities, bonds and bond types, the box from ``xlo xhi`` ... (positions
+  are shifted so the box starts at the origin). Type names come from the
+  ``Masses`` comments (``1 39.948 # Ar``) when every type has one, else
+  the type numbers; bond type names from a leapmd title line. Units are
+  LAMMPS ``metal`` for metal runs (velocities in Angstrom/ps) and the
+  reduced values for ``lj`` runs. Tilted (triclinic) boxes are refused.
+- GSD files (``.gsd``; ``format = "gsd"``) through the ``gsd`` package:
+  the last frame (or ``frame``), types, masses, velocities, images and
+  bonds; the origin-centred GSD box is shifted to start at the origin.
+- H5MD trajectories of ours (``.h5``, ``.h5md``): the last frame and the
+  stored bonds.
+- Anything else goes to ``ase.io.read`` (the last frame of the file).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from md.errors import TrajectoryError
+from md.state import State
+from md.topology import Topology
+from md.trajectory import TrajectoryReader
+from md.units import UnitSystem, get_units
+
+LAMMPS_DATA = ("lammps-data", "data", "lmp")
+GSD = ("gsd",)
+H5MD = ("h5", "h5md")
+
+
+def structure_kind(path, format: str | None = None) -> str:
+    """Return "lammps-data", "gsd", "h5md" or "ase" for a structure file."""
+    key = (format or Path(path).suffix.lstrip(".")).lower()
+    if key in LAMMPS_DATA:
+        return "lammps-data"
+    if key in GSD:
+        return "gsd"
+    if key in H5MD:
+        return "h5md"
+    return "ase"
+
+
+def read_structure(
+    path, format: str | None = None, units: str | UnitSystem = "metal"
+) -> tuple[State, Topology]:
+    """Read a starting structure; return ``(state, topology)`` in engine units.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and what is wrong with it (unreadable, a tilted box,
+        atoms without masses, bonds to missing atoms, ...).
+    """
+    path = Path(path)
+    units = get_units(units)
+    kind = structure_kind(path, format)
+    reader = {"lammps-data": _read_lammps_data, "gsd": _read_gsd, "h5md": _read_h5md}.get(kind)
+    if reader is not None:
+        state, topology = reader(path, units)
+    else:
+        state, topology = _read_ase(path, format), Topology.empty()
+    topology.check(state.n_atoms, where=f"{path}")
+    return state, topology
+
+
+# ---------------------------------------------------------------------- ase.io
+def _read_ase(path: Path, format: str | None) -> State:
+    import ase.io  # ASE's file readers: loaded only for structure files
+
+    _check_xyz_count(path, format)
+    try:
+        atoms = ase.io.read(path, format=format)
+    except Exception as error:  # ase.io raises many types for unreadable files
+        how = f" as format {format!r}" if format else ""
+        raise ValueError(f"cannot read {path}{how} ({error})") from None
+    if isinstance(atoms, list):
+        atoms = atoms[-1]
+    try:
+        return State.from_ase(atoms)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _check_xyz_count(path: Path, format: str | None) -> None:
+    """Refuse an (ext)xyz file whose atom-count line exceeds what the file can hold.
+
+    ASE's extxyz reader trusts that line and, given an absurd count, loops for
+    a very long time; every atom needs a line of at least 8 bytes.
+    """
+    kind = (format or Path(path).suffix.lstrip(".")).lower()
+    if kind not in ("xyz", "extxyz"):
+        return
+    try:
+        with open(path, "rb") as handle:
+            first = handle.readline(64).strip()
+        size = Path(path).stat().st_size
+    except OSError as error:
+        raise ValueError(f"cannot read {path} ({error})") from None
+    if first.isdigit() and int(first) * 8 > size:
+        raise ValueError(
+            f"{path}: the first line declares {int(first)} atoms, more than a file of "
+            f"{size} bytes can hold"
+        )
+
+
+# ---------------------------------------------------------------------- LAMMPS data
+def _lammps_header(path: Path) -> dict:
+    """Box bounds, tilt, Masses comments and a leapmd title from a data file's text."""
+    header = {
+        "lo": np.zeros(3), "hi": np.zeros(3), "tilt": None, "names": {}, "bond_names": {},
+        "style": None,
+    }  # fmt: skip
+    axis = {"x": 0, "y": 1, "z": 2}
+    with open(path, errors="replace") as handle:
+        title = handle.readline()
+        section = None
+        for line in handle:
+            text = line.split("#", 1)[0].strip()
+            words = text.split()
+            if len(words) >= 4 and words[2].endswith("lo") and words[3].endswith("hi"):
+                k = axis.get(words[2][0])
+                if k is not None:
+                    header["lo"][k], header["hi"][k] = float(words[0]), float(words[1])
+                continue
+            if len(words) >= 6 and words[3:6] == ["xy", "xz", "yz"]:
+                header["tilt"] = [float(w) for w in words[:3]]
+                continue
+            if text and text[0].isalpha():
+                section = text.split()[0]
+                if section == "Atoms":
+                    hint = line.split("#", 1)[1].split() if "#" in line else []
+                    header["style"] = hint[0] if hint else None
+                    break
+                continue
+            if section == "Masses" and "#" in line and words:
+                header["names"][int(words[0])] = line.split("#", 1)[1].strip()
+    match = re.search(r"atom types ([^;)]*)", title)
+    if match and "leapmd" in title:
+        for item in match.group(1).split():
+            number, _, name = item.partition("=")
+            header["names"].setdefault(int(number), name)
+    match = re.search(r"bond types ([^;)]*)", title)
+    if match and "leapmd" in title:
+        for item in match.group(1).split():
+            number, _, name = item.partition("=")
+            header["bond_names"][int(number)] = name
+    return header
+
+
+#: MDAnalysis's column descriptions of the LAMMPS atom styles it can read.
+_ATOM_STYLES = {
+    "atomic": "id type x y z",
+    "charge": "id type q x y z",
+    "bond": "id resid type x y z",
+    "angle": "id resid type x y z",
+    "molecular": "id resid type x y z",
+    "full": "id resid type q x y z",
+}
+
+
+def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
+    import MDAnalysis as mda  # heavy: MDAnalysis parses LAMMPS data files
+
+    try:
+        header = _lammps_header(path)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
+    if header["tilt"] is not None and any(header["tilt"]):
+        raise ValueError(
+            f"{path}: a tilted (triclinic) box, xy xz yz = {header['tilt']}; only "
+            "orthorhombic boxes are supported"
+        )
+    options = {"format": "DATA", "convert_units": False}
+    if header["style"] in _ATOM_STYLES:
+        options["atom_style"] = _ATOM_STYLES[header["style"]]
+    try:
+        universe = mda.Universe(str(path), **options)
+    except Exception as error:  # MDAnalysis raises many types for unreadable files
+        raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
+    atoms = universe.atoms
+    numbers = np.array([int(t) for t in atoms.types])
+    distinct = np.unique(numbers)
+    names = header["names"]
+    if all(int(t) in names for t in distinct) and len({names[int(t)] for t in distinct}) == len(
+        distinct
+    ):
+        type_names = tuple(names[int(t)] for t in distinct)
+    else:
+        type_names = tuple(str(t) for t in distinct)
+    types = np.searchsorted(distinct, numbers)
+    masses = np.asarray(atoms.masses, dtype=np.float64)
+    if not np.all(masses > 0):
+        bad = int(np.flatnonzero(~(masses > 0))[0])
+        raise ValueError(
+            f"{path}: atom {bad} (type {numbers[bad]}) has no mass: add a Masses section or "
+            "give [system] mass"
+        )
+    box = header["hi"] - header["lo"]
+    if not np.all(box > 0):
+        raise ValueError(f"{path}: no box (xlo xhi, ylo yhi, zlo zhi lines) or an empty one")
+    positions = np.asarray(atoms.positions, dtype=np.float64) - header["lo"]
+    velocities = None
+    if universe.trajectory.ts.has_velocities:
+        factor = units.h5md["velocity"][1] if "velocity" in units.h5md else 1.0
+        velocities = np.asarray(atoms.velocities, dtype=np.float64) / factor
+    state = State(
+        positions=positions,
+        velocities=velocities,
+        masses=masses,
+        box=box,
+        pbc=True,
+        types=types,
+        type_names=type_names,
+    )
+    topology = Topology.empty()
+    if hasattr(universe, "bonds") and len(universe.bonds):
+        pairs = universe.bonds.to_indices()
+        bond_numbers = np.array([int(b.type) for b in universe.bonds])
+        kinds = np.unique(bond_numbers)
+        bond_names = [header["bond_names"].get(int(k), f"bond{int(k)}") for k in kinds]
+        topology = Topology.from_bonds(pairs, np.searchsorted(kinds, bond_numbers), bond_names)
+    return state, topology
+
+
+# ---------------------------------------------------------------------- GSD
+def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, Topology]:
+    import gsd.hoomd  # the gsd package: loaded only for GSD files
+
+    try:
+        with gsd.hoomd.open(str(path), mode="r") as trajectory:
+            if len(trajectory) == 0:
+                raise ValueError("it holds no frames")
+            snapshot = trajectory[frame]
+    except Exception as error:  # gsd raises many types for unreadable files
+        raise ValueError(f"cannot read {path} as a GSD file ({error})") from None
+    box = np.asarray(snapshot.configuration.box, dtype=np.float64)
+    if np.any(box[3:] != 0):
+        raise ValueError(
+            f"{path}: a tilted (triclinic) box, xy xz yz = {box[3:].tolist()}; only "
+            "orthorhombic boxes are supported"
+        )
+    lengths = box[:3]
+    particles = snapshot.particles
+    n = int(particles.N)
+    positions = np.asarray(particles.position, dtype=np.float64).reshape(n, 3) + 0.5 * lengths
+    if particles.image is not None:
+        positions = positions + np.asarray(particles.image).reshape(n, 3) * lengths
+    velocities = None
+    if particles.velocity is not None:
+        factor = units.h5md["velocity"][1] if "velocity" in units.h5md else 1.0
+        velocities = np.asarray(particles.velocity, dtype=np.float64).reshape(n, 3) / factor
+    types = np.asarray(particles.typeid, dtype=np.int64) if particles.typeid is not None else None
+    pbc = [True, True, int(snapshot.configuration.dimensions or 3) == 3]
+    state = State(
+        positions=positions,
+        velocities=velocities,
+        masses=np.asarray(particles.mass, dtype=np.float64) if particles.mass is not None else 1,
+        box=np.where(lengths > 0, lengths, 1.0),
+        pbc=pbc,
+        types=types,
+        type_names=tuple(particles.types) if particles.types else None,
+    )
+    topology = Topology.empty()
+    bonds = snapshot.bonds
+    if bonds.N:
+        topology = Topology.from_bonds(
+            np.asarray(bonds.group, dtype=np.int64).reshape(-1, 2),
+            np.asarray(bonds.typeid, dtype=np.int64),
+            list(bonds.types) if bonds.types else None,
+        )
+    return state, topology
+
+
+# ---------------------------------------------------------------------- H5MD
+def _read_h5md(path: Path, units: UnitSystem) -> tuple[State, Topology]:
+    try:
+        with TrajectoryReader(path) as reader:
+            if reader.units.name != units.name:
+                raise ValueError(
+                    f"{path} is in {reader.units.name} units, the config in {units.name}"
+                )
+            return reader.state(reader.frame(-1)), reader.topology
+    except TrajectoryError as error:
+        raise ValueError(str(error)) from None
+
+
+__all__ = ["read_structure", "structure_kind"]
