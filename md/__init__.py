@@ -13,6 +13,7 @@ The Python API::
     sim.thermo()
 
     sim, summary = md.run_config("examples/lj_small.toml", steps=100)   # what `md run` does
+    md.show("lj_small.h5")        # in Jupyter, with nglview installed: a 3-D view
 
 The package is layered; each module imports only from layers below it (see
 ARCHITECTURE.md). This facade re-exports the public names; it is the only
@@ -57,8 +58,9 @@ with kernel_cache():
 
 #: Names from the upper layers, resolved on first access: ``md.config`` and ``md.run``
 #: import the integrator registry, so loading them here would make ``import
-#: integrators`` (which imports layer 0 of md, hence this file) circular.
-_LAZY = {"run_config": "md.run", "open_trajectory": "md.trajectory"}
+#: integrators`` (which imports layer 0 of md, hence this file) circular; ``show``
+#: lives at the edge layer with the notebook tools.
+_LAZY = {"run_config": "md.run", "open_trajectory": "md.trajectory", "show": "md.notebook"}
 
 
 def __getattr__(name: str):
@@ -97,5 +99,6 @@ __all__ = [
     "maxwell_boltzmann",
     "open_trajectory",
     "run_config",
+    "show",
     "sweep",
 ]

@@ -5,9 +5,10 @@ the file's bonds as a :class:`md.topology.Topology` (empty where the format
 holds none). ``[system] structure`` in configs comes here.
 
 - LAMMPS data files (``.data``, ``.lmp``; ``format = "lammps-data"``) are
-  parsed by MDAnalysis (any ``atom_style`` it recognises): atoms, masses,
-  velocities, bonds and bond types, the box from ``xlo xhi`` ... (positions
-  are shifted so the box starts at the origin). Type names come from the
+  parsed by ASE's reader in double precision (the atom style named in the
+  ``Atoms # style`` header, else guessed from the column count): atoms,
+  masses, velocities, bonds and bond types, the box from ``xlo xhi`` ...
+  (positions are shifted so the box starts at the origin). Type names come from the
   ``Masses`` comments (``1 39.948 # Ar``) when every type has one, else
   the type numbers; bond type names from a leapmd title line. Units are
   LAMMPS ``metal`` for metal runs (velocities in Angstrom/ps) and the
@@ -118,7 +119,7 @@ def _lammps_header(path: Path) -> dict:
     """Box bounds, tilt, Masses comments and a leapmd title from a data file's text."""
     header = {
         "lo": np.zeros(3), "hi": np.zeros(3), "tilt": None, "names": {}, "bond_names": {},
-        "style": None,
+        "style": None, "columns": 0, "masses": False,
     }  # fmt: skip
     axis = {"x": 0, "y": 1, "z": 2}
     with open(path, errors="replace") as handle:
@@ -137,11 +138,14 @@ def _lammps_header(path: Path) -> dict:
                 continue
             if text and text[0].isalpha():
                 section = text.split()[0]
+                header["masses"] |= section == "Masses"
                 if section == "Atoms":
                     hint = line.split("#", 1)[1].split() if "#" in line else []
                     header["style"] = hint[0] if hint else None
-                    break
                 continue
+            if section == "Atoms" and words:
+                header["columns"] = len(words)
+                break
             if section == "Masses" and "#" in line and words:
                 header["names"][int(words[0])] = line.split("#", 1)[1].strip()
     match = re.search(r"atom types ([^;)]*)", title)
@@ -157,19 +161,14 @@ def _lammps_header(path: Path) -> dict:
     return header
 
 
-#: MDAnalysis's column descriptions of the LAMMPS atom styles it can read.
-_ATOM_STYLES = {
-    "atomic": "id type x y z",
-    "charge": "id type q x y z",
-    "bond": "id resid type x y z",
-    "angle": "id resid type x y z",
-    "molecular": "id resid type x y z",
-    "full": "id resid type q x y z",
-}
+#: LAMMPS atom styles by the column count of an Atoms line (without image flags),
+#: for files whose Atoms header names none; 6 columns could also be "charge".
+_STYLE_BY_COLUMNS = {5: "atomic", 6: "bond", 7: "full"}
 
 
 def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
-    import MDAnalysis as mda  # heavy: MDAnalysis parses LAMMPS data files
+    import ase.io  # ASE's LAMMPS data reader: loaded only for data files
+    from ase.calculators.lammps import convert as lammps_units  # with ASE's reader
 
     try:
         header = _lammps_header(path)
@@ -180,15 +179,25 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
             f"{path}: a tilted (triclinic) box, xy xz yz = {header['tilt']}; only "
             "orthorhombic boxes are supported"
         )
-    options = {"format": "DATA", "convert_units": False}
-    if header["style"] in _ATOM_STYLES:
-        options["atom_style"] = _ATOM_STYLES[header["style"]]
+    if not header["masses"]:
+        raise ValueError(f"{path}: no Masses section; add one (masses per atom type)")
+    box = header["hi"] - header["lo"]
+    if not np.all(box > 0):
+        raise ValueError(f"{path}: no box (xlo xhi, ylo yhi, zlo zhi lines) or an empty one")
+    columns = header["columns"]
+    style = header["style"] or _STYLE_BY_COLUMNS.get(columns - 3 if columns > 7 else columns)
+    if style is None:
+        raise ValueError(
+            f"{path}: cannot tell the atom style from {columns} columns; name it in the "
+            "Atoms header, e.g. 'Atoms # full'"
+        )
     try:
-        universe = mda.Universe(str(path), **options)
-    except Exception as error:  # MDAnalysis raises many types for unreadable files
-        raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
-    atoms = universe.atoms
-    numbers = np.array([int(t) for t in atoms.types])
+        atoms = ase.io.read(path, format="lammps-data", atom_style=style, units="metal")
+    except Exception as error:  # ASE raises many types for unreadable files
+        raise ValueError(
+            f"cannot read {path} as a LAMMPS data file with atom_style {style} ({error})"
+        ) from None
+    numbers = np.asarray(atoms.arrays["type"], dtype=np.int64)
     distinct = np.unique(numbers)
     names = header["names"]
     if all(int(t) in names for t in distinct) and len({names[int(t)] for t in distinct}) == len(
@@ -197,35 +206,28 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
         type_names = tuple(names[int(t)] for t in distinct)
     else:
         type_names = tuple(str(t) for t in distinct)
-    types = np.searchsorted(distinct, numbers)
-    masses = np.asarray(atoms.masses, dtype=np.float64)
-    if not np.all(masses > 0):
-        bad = int(np.flatnonzero(~(masses > 0))[0])
-        raise ValueError(
-            f"{path}: atom {bad} (type {numbers[bad]}) has no mass: add a Masses section or "
-            "give [system] mass"
-        )
-    box = header["hi"] - header["lo"]
-    if not np.all(box > 0):
-        raise ValueError(f"{path}: no box (xlo xhi, ylo yhi, zlo zhi lines) or an empty one")
-    positions = np.asarray(atoms.positions, dtype=np.float64) - header["lo"]
-    velocities = None
-    if universe.trajectory.ts.has_velocities:
-        factor = units.h5md["velocity"][1] if "velocity" in units.h5md else 1.0
-        velocities = np.asarray(atoms.velocities, dtype=np.float64) / factor
+    velocities = atoms.get_velocities()  # ASE converted metal (A/ps) to its own units
+    if units.name == "lj":  # reduced values are taken as written
+        velocities = velocities * lammps_units(1.0, "velocity", "ASE", "metal")
     state = State(
-        positions=positions,
+        positions=atoms.get_positions() - header["lo"],
         velocities=velocities,
-        masses=masses,
+        masses=atoms.get_masses(),
         box=box,
         pbc=True,
-        types=types,
+        types=np.searchsorted(distinct, numbers),
         type_names=type_names,
     )
+    pairs, bond_numbers = [], []
+    for i, listed in enumerate(atoms.arrays.get("bonds", ())):
+        if listed == "_":
+            continue
+        for entry in listed.split(","):
+            partner, _, kind = entry.partition("(")
+            pairs.append((i, int(partner)))
+            bond_numbers.append(int(kind.rstrip(")")))
     topology = Topology.empty()
-    if hasattr(universe, "bonds") and len(universe.bonds):
-        pairs = universe.bonds.to_indices()
-        bond_numbers = np.array([int(b.type) for b in universe.bonds])
+    if pairs:
         kinds = np.unique(bond_numbers)
         bond_names = [header["bond_names"].get(int(k), f"bond{int(k)}") for k in kinds]
         topology = Topology.from_bonds(pairs, np.searchsorted(kinds, bond_numbers), bond_names)
@@ -289,9 +291,12 @@ def _read_h5md(path: Path, units: UnitSystem) -> tuple[State, Topology]:
                 raise ValueError(
                     f"{path} is in {reader.units.name} units, the config in {units.name}"
                 )
-            return reader.state(reader.frame(-1)), reader.topology
+            state = reader.state(reader.frame(-1))
+            topology = reader.topology
     except TrajectoryError as error:
         raise ValueError(str(error)) from None
+    state.step, state.time = 0, 0.0  # a starting structure: the new run counts from zero
+    return state, topology
 
 
 __all__ = ["read_structure", "structure_kind"]

@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from md._version import __version__
-from md.cli import analyze, info, integrators, run, sweep, validate
+from md.cli import analyze, convert, info, integrators, render, run, sweep, validate
 from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
 
 #: Subcommand modules, in the order ``md --help`` lists them.
@@ -25,6 +25,8 @@ SUBCOMMANDS = {
     "analyze": analyze,
     "sweep": sweep,
     "info": info,
+    "convert": convert,
+    "render": render,
     "validate": validate,
 }
 

@@ -13,6 +13,7 @@ rdf            ``rdf.csv`` (r, g and coordination number per pair), ``rdf.png``
 msd            ``msd.csv`` (lag time, MSD, fitted line), ``msd.png``
 vacf           ``vacf.csv`` (lag time, VACF, normalised VACF, running D), ``vacf.png``
 always         ``summary.json``
+``--all``      ``snapshot.png``: the last selected frame drawn by :mod:`md.render`
 =============  =====================================================================
 
 An analysis named on the command line that the file cannot support (no
@@ -35,6 +36,7 @@ from md import analysis as an
 from md.analysis import ANALYSES
 from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
 from md.errors import AnalysisError, TrajectoryError
+from md.render import render
 from md.trajectory import verify_frames
 
 PLOT_DPI = 120
@@ -54,7 +56,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--all",
         action="store_true",
-        help="every analysis the file supports (the default when none is named)",
+        help="every analysis the file supports (the default when none is named), and "
+        "snapshot.png, a picture of the last selected frame",
     )
     parser.add_argument(
         "--out", type=Path, help="output folder (default analysis-<trajectory stem>)"
@@ -123,6 +126,8 @@ def main(args) -> int:
         if out.exists() and not out.is_dir():
             raise an.AnalysisError(f"output path {out} exists and is not a folder")
         names = [f for name in selected for f in output_files(name)] + ["summary.json"]
+        if args.all:
+            names.append("snapshot.png")
         existing = [str(out / f) for f in names if (out / f).exists()]
         if existing and not args.overwrite:
             raise an.AnalysisError(
@@ -203,6 +208,9 @@ def main(args) -> int:
         json.dump(_finite_or_none(summary), handle, indent=2)
     _print_table(results, labels)
     written = [f for name in results for f in output_files(name)] + ["summary.json"]
+    if args.all:
+        render(args.trajectory, out / "snapshot.png", frame=int(info.frames[-1]), overwrite=True)
+        written.append("snapshot.png")
     print(f"Wrote {', '.join(written)} to {out}/")
     return EXIT_OK
 
