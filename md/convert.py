@@ -303,16 +303,9 @@ class _ASEWriter:
             self.handle.write(atoms)
         elif self.kind == "extxyz":
             write(self.handle, atoms, format="extxyz")
-        else:
-            atoms.info = {}  # plain XYZ: a comment line with step, time and units only
-            self.handle.write(f"{len(atoms)}\n")
-            self.handle.write(
-                f"step={frame.step} time={frame.time:.17g} units={self.reader.units.name}\n"
-            )
-            for symbol, position in zip(atoms.get_chemical_symbols(), atoms.positions, strict=True):
-                self.handle.write(
-                    f"{symbol} {position[0]:.10f} {position[1]:.10f} {position[2]:.10f}\n"
-                )
+        else:  # plain XYZ: symbols and positions; step, time and units on the comment line
+            comment = f"step={frame.step} time={frame.time:.17g} units={self.reader.units.name}"
+            write(self.handle, atoms, format="xyz", comment=comment)
 
     def close(self) -> None:
         self.handle.close()

@@ -160,8 +160,14 @@ def test_two_bond_types_and_constraints_reach_the_file(mixture, tmp_path):
     assert (
         main(["run", "rigid.toml", "-o", "rigid.h5", "--steps", "10", "-q", "--no-progress"]) == 0
     )
-    assert md.open_trajectory("rigid.h5").bonds.types() == ["constraint"]
-    assert len(md.open_trajectory("rigid.h5").bonds) == 28
+    universe = md.open_trajectory("rigid.h5")
+    assert universe.bonds.types() == ["constraint"] and len(universe.bonds) == 28
+    universe.trajectory.close()
+    # a resumed run appends frames and keeps the connectivity
+    assert main(["run", "rigid.toml", "-o", "rigid.h5", "--steps", "20", "--resume", *QUIET]) == 0
+    universe = md.open_trajectory("rigid.h5")
+    assert len(universe.trajectory) == 3 and len(universe.bonds) == 28
+    universe.trajectory.close()
 
 
 def test_md_info_counts_bonds(polymer, capsys):
@@ -542,15 +548,19 @@ def test_show_with_real_nglview(polymer):
 
 # ---------------------------------------------------------------------- OVITO (optional, slow)
 @pytest.mark.slow
-def test_ovito_opens_our_extxyz_data_and_gsd_files(polymer, tmp_path):
+def test_ovito_opens_our_extxyz_dump_data_and_gsd_files(polymer, tmp_path):
     io = pytest.importorskip("ovito.io", reason="pip install ovito (leapmd[viewers])")
     traj = read_trajectory(polymer)
-    for kind in ("extxyz", "data", "gsd"):
+    for kind in ("extxyz", "lammpstrj", "data", "gsd"):
         path = tmp_path / f"o.{kind}"
         convert(polymer, path)
-        options = {"atom_style": "full"} if kind == "data" else {}
-        data = io.import_file(str(path), **options).compute()
+        pipeline = io.import_file(str(path))
+        data = pipeline.compute(pipeline.source.num_frames - 1)
         assert data.particles.count == traj.n_atoms
         assert np.allclose(np.diag(np.asarray(data.cell[:, :3])), traj.boxes[-1], rtol=1e-6)
-        if kind != "extxyz":
+        if kind in ("data", "gsd"):  # the polymer's bonds and the type names survive
             assert data.particles.bonds.count == traj.topology.n_bonds
+            names = [t.name for t in data.particles.particle_types.types]
+            assert names == list(traj.type_names)
+        if kind in ("lammpstrj", "gsd", "extxyz"):
+            assert pipeline.source.num_frames == traj.n_frames
