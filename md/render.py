@@ -173,17 +173,38 @@ def _draw_matplotlib(reader, snapshot, path: Path, size: int, elevation, azimuth
 
 def _draw_povray(reader, snapshot, path: Path, size: int, elevation, azimuth) -> None:
     from ase.io import write  # ASE's POV-Ray writer: loaded on first use
+    from matplotlib.colors import to_rgb  # the type colours of the matplotlib engine
 
     atoms = reader.state(snapshot, unwrap=False).to_ase()
     radius = _atom_radius(reader, snapshot.box)
+    bonds = reader.topology.bonds
+    r = snapshot.positions
+    # Each bond to its partner's nearest image: ASE takes the partner's cell offset.
+    offsets = -np.rint((r[bonds[:, 1]] - r[bonds[:, 0]]) / snapshot.box) * reader.pbc
+    bondatoms = [
+        (int(i), int(j), tuple(int(k) for k in offset))
+        for (i, j), offset in zip(bonds, offsets, strict=True)
+    ]
     with tempfile.TemporaryDirectory() as folder:
         scene = Path(folder) / "scene.pov"
-        bonds = [(int(i), int(j), (0, 0, 0), 1.0) for i, j in reader.topology.bonds]
-        written = write(
-            scene, atoms, format="pov", radii=radius, rotation=f"{-elevation}x,{azimuth}y",
-            canvas_width=size, show_unit_cell=2, povray_settings={"bondatoms": bonds},
+        settings = {
+            "canvas_width": size, "bondatoms": bondatoms, "transparent": False,
+            "bondlinewidth": 0.15 * radius, "celllinewidth": 0.05 * radius,
+        }  # fmt: skip
+        palette = [to_rgb(f"C{t % 10}") for t in range(len(reader.type_names))]
+        write(
+            scene, atoms, format="pov", radii=[0.6 * radius] * len(atoms),
+            rotation=f"{-elevation}x,{azimuth}y",
+            show_unit_cell=2, colors=[palette[t] for t in reader.types],
+            povray_settings=settings,
         )  # fmt: skip
-        written.render(povray_executable="povray", stderr=subprocess.DEVNULL, clean_up=False)
+        # The .ini names the scene relative to its folder: render there.
+        done = subprocess.run(
+            ["povray", scene.with_suffix(".ini").name], cwd=folder, capture_output=True, text=True
+        )
+        if done.returncode != 0:
+            tail = done.stderr.strip().splitlines()[-3:]
+            raise ValueError(f"POV-Ray failed (exit {done.returncode}): {' / '.join(tail)}")
         shutil.copyfile(scene.with_suffix(".png"), path)
 
 

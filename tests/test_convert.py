@@ -7,6 +7,7 @@ format's precision), box, types, and bonds where the format holds them.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import tracemalloc
 import types as pytypes
@@ -492,10 +493,22 @@ def test_render_draws_a_png_of_the_requested_size(polymer, tmp_path, capsys):
     assert "frame 7 is out of range" in capsys.readouterr().err
     assert main(["render", str(polymer), "-o", "shot.jpg"]) == 2
     assert not (tmp_path / "other.png").exists() and not (tmp_path / "shot.jpg").exists()
+
+
+def test_render_with_povray_or_a_message_saying_it_is_missing(polymer, tmp_path, monkeypatch):
+    import matplotlib.image
+
+    if shutil.which("povray") is None:
+        with pytest.raises(ValueError, match="POV-Ray is not installed"):
+            render(polymer, tmp_path / "p.png", engine="povray")
+        return
+    render(polymer, tmp_path / "p.png", engine="povray", size=200)
+    image = matplotlib.image.imread(tmp_path / "p.png")
+    assert image.shape[1] == 200 and image[..., :3].std() > 0.05
+    monkeypatch.setenv("PATH", "")  # as on a machine without it
     with pytest.raises(ValueError, match="POV-Ray is not installed"):
-        if __import__("shutil").which("povray"):
-            raise ValueError("POV-Ray is not installed (skipped: it is)")
-        render(polymer, tmp_path / "p.png", engine="povray")
+        render(polymer, tmp_path / "q.png", engine="povray")
+    assert not (tmp_path / "q.png").exists()
 
 
 def test_half_bonds_start_at_their_atoms_and_meet_at_the_nearest_image(polymer):
