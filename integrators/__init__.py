@@ -2,10 +2,12 @@
 
 ``INTEGRATORS`` maps the names used in configs to the classes. The core are
 velocity Verlet, leapfrog and implicit Euler; the rest of the classical family
-serves comparison and teaching (``md integrators`` measures them all). The
-thermostats (Langevin, Bussi, Nose-Hoover chains, Berendsen) sample at a
-temperature; they and :class:`Rattle` (velocity Verlet with SHAKE/RATTLE)
-take rigid-bond ``constraints``.
+and the higher-order symplectic splittings (Yoshida 4 and 6, PEFRL,
+Blanes-Moan; :mod:`integrators.splitting`) serve accuracy, comparison and
+teaching (``md integrators`` measures them all). The thermostats (Langevin,
+Bussi, Nose-Hoover chains, Berendsen) sample at a temperature; they and
+:class:`Rattle` (velocity Verlet with SHAKE/RATTLE) take rigid-bond
+``constraints``.
 """
 
 from md._kernel_cache import kernel_cache
@@ -22,6 +24,14 @@ with kernel_cache():
     from integrators.nose_hoover import NoseHooverChain
     from integrators.rattle import BondConstraints, ConstraintError, Rattle
     from integrators.runge_kutta import RK4, RKF45
+    from integrators.splitting import (
+        PEFRL,
+        BlanesMoan,
+        BlanesMoanRKN,
+        Splitting,
+        Yoshida4,
+        Yoshida6,
+    )
     from integrators.stormer_verlet import StormerVerlet
     from integrators.velocity_verlet import VelocityVerlet
 
@@ -32,6 +42,12 @@ INTEGRATORS = {
     "explicit_euler": ExplicitEuler,
     "symplectic_euler": SymplecticEuler,
     "stormer_verlet": StormerVerlet,
+    "yoshida4": Yoshida4,
+    "forest_ruth": Yoshida4,
+    "yoshida6": Yoshida6,
+    "pefrl": PEFRL,
+    "blanes_moan": BlanesMoan,
+    "blanes_moan_rkn": BlanesMoanRKN,
     "rk4": RK4,
     "rkf45": RKF45,
     "implicit_euler": ImplicitEuler,
@@ -49,6 +65,8 @@ __all__ = [
     "RK4",
     "RKF45",
     "Berendsen",
+    "BlanesMoan",
+    "BlanesMoanRKN",
     "BondConstraints",
     "Bussi",
     "ConstraintError",
@@ -60,8 +78,12 @@ __all__ = [
     "Langevin",
     "Leapfrog",
     "NoseHooverChain",
+    "PEFRL",
     "Rattle",
+    "Splitting",
     "StormerVerlet",
     "SymplecticEuler",
     "VelocityVerlet",
+    "Yoshida4",
+    "Yoshida6",
 ]
