@@ -39,6 +39,10 @@ class Integrator(Protocol):
     ``adaptive``
         It chooses its own substeps inside one output step, so it has no fixed
         order in ``dt`` and no per-step displacement bound.
+    ``order``
+        The global order of accuracy in ``dt`` the method is built for (None:
+        adaptive, stochastic or thermostatted), which ``md integrators``
+        measures and the tests check.
     """
 
     dt: float
@@ -48,6 +52,7 @@ class Integrator(Protocol):
     supports_constraints: ClassVar[bool]
     requires_constraints: ClassVar[bool]
     adaptive: ClassVar[bool]
+    order: ClassVar[int | None]
 
     def step(self, state: State, forcefield: ForceField) -> None: ...
 
@@ -65,6 +70,7 @@ class IntegratorBase:
     supports_constraints: ClassVar[bool] = False
     requires_constraints: ClassVar[bool] = False
     adaptive: ClassVar[bool] = False
+    order: ClassVar[int | None] = None
 
     def reset(self) -> None:
         """Drop private history (nothing, for a one-step method)."""

@@ -31,6 +31,8 @@ class ExplicitEuler(IntegratorBase):
     {'type': 'explicit_euler', 'dt': 0.001}
     """
 
+    order = 1
+
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
         self.statistics = {"steps": 0}
@@ -72,6 +74,8 @@ class SymplecticEuler(IntegratorBase):
     >>> SymplecticEuler(dt=0.001).describe()
     {'type': 'symplectic_euler', 'dt': 0.001}
     """
+
+    order = 1
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)

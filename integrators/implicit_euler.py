@@ -109,6 +109,8 @@ class ImplicitEuler(_ImplicitBase):
     Meth. Engng 49, 1295 (2000) (the incremental potential).
     """
 
+    order = 1
+
     _type = "implicit_euler"
     _label = "implicit Euler"
 
@@ -160,6 +162,8 @@ class ImplicitMidpoint(_ImplicitBase):
     E. Hairer, C. Lubich, G. Wanner, Geometric Numerical Integration, 2nd ed.
     (Springer, 2006), section VI.3.
     """
+
+    order = 2
 
     _type = "implicit_midpoint"
     _label = "implicit midpoint"

@@ -62,6 +62,8 @@ class Leapfrog(IntegratorBase):
     of Liquids*, 2nd ed. (OUP, 2017), sec. 3.2.
     """
 
+    order = 2
+
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
         self.statistics = {"steps": 0, "restarts": 0}

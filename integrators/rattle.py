@@ -431,6 +431,8 @@ class Rattle(IntegratorBase):
     (1977) (SHAKE); H. C. Andersen, J. Comput. Phys. 52, 24 (1983) (RATTLE).
     """
 
+    order = 2
+
     supports_constraints = True
     #: It cannot run without constraints (``md integrators`` leaves it out).
     requires_constraints = True

@@ -116,6 +116,8 @@ class RK4(IntegratorBase):
     {'type': 'rk4', 'dt': 0.01}
     """
 
+    order = 4
+
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
         self.statistics = {"steps": 0}

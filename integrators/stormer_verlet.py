@@ -42,6 +42,8 @@ class StormerVerlet(IntegratorBase):
     E. Hairer, C. Lubich, G. Wanner, Acta Numerica 12, 399 (2003), eq. (1.17).
     """
 
+    order = 2
+
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
         self.statistics = {"steps": 0}

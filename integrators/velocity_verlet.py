@@ -28,6 +28,8 @@ class VelocityVerlet(IntegratorBase):
     J. Chem. Phys. 76, 637 (1982).
     """
 
+    order = 2
+
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
 

@@ -4,15 +4,30 @@
 ladder of time steps, all to the same final time, and measures:
 
 order
-    Slope of log(global position error at the final time) against log(dt)
-    (not reported for adaptive integrators, whose error follows their tolerance),
-    fitted by least squares over the stable runs whose error is above the
-    round-off floor. The error is the RMS distance (minimum image not needed:
-    positions are continuous) to a reference run with RK4 (or velocity
-    Verlet when RK4 is not registered) at a step eight times finer than the
-    smallest dt studied. Keep the span short on chaotic systems (an LJ
-    liquid decorrelates within a few time units), or the error measures
-    Lyapunov divergence rather than truncation.
+    Slope of log(global position error at the final time) against log(dt),
+    fitted by least squares over the asymptotic range only: stable runs on
+    the dt ladder, above the reference's error floor, from the finest dt
+    upward while each successive slope stays within ``slope_tolerance`` of
+    the finest pair's (past that, the error leaves the asymptotic regime on
+    its way to the stability limit). The error is the RMS distance
+    (positions are continuous) to a reference run with a high-order method
+    (Yoshida 6 by default) at a step eight times finer than the smallest dt
+    studied; the reference is run again at half that step, and Richardson's
+    estimate of its own error, |x(h) - x(h/2)| / (2^p - 1), sets the floor
+    (ten times it): points below the floor measure the reference, not the
+    integrator. Adaptive integrators run with output steps of span / 10 (so
+    their controller picks the substeps) over a tolerance ladder, and the
+    slope is taken against the tolerance instead (``order_vs``: "tol"). An
+    order p needs forces whose p-th time derivative exists along the
+    trajectory: a pair crossing a
+    cutoff where the force (``shift``) or its derivative (``smooth``) jumps
+    adds error terms of order 1 or 2 that hide higher orders. Keep the span
+    short on chaotic systems, or the error measures Lyapunov divergence
+    rather than truncation.
+max_energy_error, position_error (work-precision)
+    Per run: max over the run of |E(t) - E(0)| per atom (sampled at
+    ``samples`` points) and the final position error, against wall time and
+    force evaluations; :func:`plot_work_precision` draws them.
 energy_drift
     Slope of a least-squares line through the total energy against time,
     per atom [energy / (atom time)], at the integrator's reference dt.
@@ -50,6 +65,7 @@ tables and writes the CSVs and plots.
 from __future__ import annotations
 
 import csv
+import functools
 import logging
 import math
 import time
@@ -70,10 +86,29 @@ CSV_COLUMNS = (
     "integrator",
     "dt_max_stable",
     "order",
+    "expected_order",
+    "order_vs",
+    "fit_low",
+    "fit_high",
+    "fit_points",
     "energy_drift",
     "energy_fluctuation",
     "evals_per_time",
     "wall_per_time",
+    "max_energy_error",
+    "position_error",
+)
+#: Columns of ``work_precision.csv``: one row per run (integrator and dt or tolerance).
+WORK_PRECISION_COLUMNS = (
+    "integrator",
+    "dt",
+    "tol",
+    "stable",
+    "position_error",
+    "max_energy_error",
+    "force_evaluations",
+    "wall",
+    "in_order_fit",
 )
 
 
@@ -91,6 +126,15 @@ class RunRecord:
     n_atoms: int = 1
     final_positions: np.ndarray | None = None
     message: str = ""
+    tol: float = math.nan
+    in_fit: bool = False
+
+    @property
+    def max_energy_error(self) -> float:
+        """max |E(t) - E(0)| per atom over the sampled energies (NaN if unstable)."""
+        if not self.stable or not len(self.energies):
+            return math.nan
+        return float(np.max(np.abs(self.energies - self.energies[0]))) / self.n_atoms
 
 
 @dataclass
@@ -107,17 +151,38 @@ class IntegratorReport:
     wall_per_time: float
     reference_dt: float
     statistics: dict = field(default_factory=dict)
+    expected_order: float = math.nan
+    order_vs: str = "dt"
+    fit_range: tuple[float, float] = (math.nan, math.nan)
+    fit_points: int = 0
+    floor: float = math.nan
+
+    def measured_run(self) -> RunRecord | None:
+        """The run at the measuring dt (``reference_dt``), if it was stable."""
+        return next((r for r in self.runs if r.stable and r.dt == self.reference_dt), None)
 
     def row(self) -> dict:
+        run = self.measured_run()
         return {
             "integrator": self.name,
             "dt_max_stable": self.dt_max_stable,
             "order": self.order,
+            "expected_order": self.expected_order,
+            "order_vs": self.order_vs,
+            "fit_low": self.fit_range[0],
+            "fit_high": self.fit_range[1],
+            "fit_points": self.fit_points,
+            "max_energy_error": run.max_energy_error if run else math.nan,
+            "position_error": run.error if run else math.nan,
             "energy_drift": self.energy_drift,
             "energy_fluctuation": self.energy_fluctuation,
             "evals_per_time": self.evals_per_time,
             "wall_per_time": self.wall_per_time,
         }
+
+
+#: Default tolerance ladder of adaptive integrators.
+TOLERANCES = (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10)
 
 
 def compare_integrators(
@@ -130,10 +195,13 @@ def compare_integrators(
     units: str = "lj",
     reference: Callable[[float], object] | None = None,
     reference_dt: float | None = None,
+    reference_order: int | None = None,
     samples: int = 200,
     stability_tolerance: float = 0.5,
     max_doublings: int = 6,
     measure_dt: float | None = None,
+    tolerances: Sequence[float] = TOLERANCES,
+    slope_tolerance: float = 0.15,
     progress: Callable[[str], None] | None = None,
 ) -> list[IntegratorReport]:
     """Run every integrator over the dt ladder and measure it.
@@ -145,23 +213,31 @@ def compare_integrators(
     potentials_factory : callable
         Returns fresh potentials for every run.
     integrators : dict
-        Name -> factory ``f(dt)`` building the integrator.
+        Name -> factory ``f(dt)`` building the integrator; a factory may
+        carry ``order`` (the expected order) and ``adaptive`` (then it is
+        called as ``f(dt, tol=...)`` over ``tolerances``).
     dts : sequence of float
         Time steps to study [time], at least two.
     span : float
         Simulated time of every run [time]; each dt is adjusted down so a
         whole number of steps lands on ``span``.
     reference : callable, optional
-        Factory of the reference integrator (default: the first of
-        ``integrators`` named "rk4", else the first given).
+        Factory of the reference integrator (default: the one named
+        "yoshida6", else "rk4", else the first given).
     reference_dt : float, optional
         Its step (default: min(dts) / 8).
+    reference_order : int, optional
+        Its order, for Richardson's error estimate (default: the factory's
+        ``order``, else 4).
     samples : int
-        Energy samples per run (for drift and fluctuation).
+        Energy samples per run (for drift, fluctuation and the energy error).
     measure_dt : float, optional
         The dt at which drift, fluctuation and cost are compared (default:
         the middle of the ladder); an integrator unstable there is measured
         at its largest stable dt below it.
+    slope_tolerance : float
+        How far a successive slope may stray from the finest pair's and still
+        count as asymptotic.
     """
     dts = sorted(float(dt) for dt in dts)
     if len(dts) < 2 or dts[0] <= 0:
@@ -169,41 +245,106 @@ def compare_integrators(
     if not span > 0:
         raise ValueError(f"span must be positive, got {span}")
     if reference is None:
-        reference = integrators.get("rk4") or next(iter(integrators.values()))
+        named = [integrators.get("yoshida6"), integrators.get("rk4")]
+        reference = next((f for f in named if f is not None), next(iter(integrators.values())))
     reference_dt = reference_dt or dts[0] / 8
+    reference_order = reference_order or getattr(reference, "order", None) or 4
     say = progress or (lambda message: None)
-    say(f"reference run: dt = {reference_dt:g}")
-    ref = _run(make_state, potentials_factory, reference, reference_dt, span, skin, units, samples)
-    if not ref.stable:
-        raise SimulationError(0, f"the reference run failed: {ref.message}")
-    reference_positions = ref.final_positions
+    say(f"reference runs: dt = {reference_dt:g} and {reference_dt / 2:g}")
+    args = (make_state, potentials_factory)
+    coarse = _run(*args, reference, reference_dt, span, skin, units, samples)
+    fine = _run(*args, reference, reference_dt / 2, span, skin, units, samples)
+    for run in (coarse, fine):
+        if not run.stable:
+            raise SimulationError(0, f"the reference run failed: {run.message}")
+    reference_positions = fine.final_positions
+    # Richardson: x(h) - x(h/2) ~ (2^p - 1) C (h/2)^p, the error of the finer run.
+    difference = coarse.final_positions - fine.final_positions
+    reference_error = float(np.sqrt(np.mean(np.sum(difference**2, axis=1))))
+    reference_error /= 2.0**reference_order - 1.0
+    scale = float(np.sqrt(np.mean(np.sum(fine.final_positions**2, axis=1))))
+    floor = max(10.0 * reference_error, 1e-13 * scale)
+    say(f"reference error (Richardson) {reference_error:.2e}; fits use errors above {floor:.2e}")
 
     reports = []
     for name, factory in integrators.items():
+        adaptive = bool(getattr(factory, "adaptive", False))
         runs = []
-        for dt in dts:
-            say(f"{name}: dt = {dt:g}")
-            runs.append(
-                _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
-                     reference_positions, stability_tolerance)
-            )  # fmt: skip
-        dt = dts[-1]
-        doublings = 0
-        while runs[-1].stable and doublings < max_doublings:
-            dt *= 2.0
-            doublings += 1
-            if dt > span:
-                break
-            say(f"{name}: stability scan dt = {dt:g}")
-            runs.append(
-                _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
-                     reference_positions, stability_tolerance)
-            )  # fmt: skip
-        report = _report(name, runs, dts, span, measure_dt or dts[len(dts) // 2])
-        if getattr(factory, "adaptive", False):
-            report.order = math.nan  # the error follows the tolerance, not dt
+        if adaptive:
+            dt = span / 10  # output steps long enough that the controller picks the substeps
+            for tol in tolerances:
+                say(f"{name}: dt = {dt:g}, tol = {tol:g}")
+                at_tol = functools.partial(factory, tol=tol)
+                record = _run(*args, at_tol, dt, span, skin, units, samples, reference_positions,
+                              stability_tolerance)  # fmt: skip
+                record.tol = tol
+                runs.append(record)
+        else:
+            for dt in dts:
+                say(f"{name}: dt = {dt:g}")
+                runs.append(
+                    _run(*args, factory, dt, span, skin, units, samples, reference_positions,
+                         stability_tolerance)
+                )  # fmt: skip
+            dt = dts[-1]
+            doublings = 0
+            while runs[-1].stable and doublings < max_doublings:
+                dt *= 2.0
+                doublings += 1
+                if dt > span:
+                    break
+                say(f"{name}: stability scan dt = {dt:g}")
+                runs.append(
+                    _run(*args, factory, dt, span, skin, units, samples, reference_positions,
+                         stability_tolerance)
+                )  # fmt: skip
+        measured_at = span / 10 if adaptive else (measure_dt or dts[len(dts) // 2])
+        report = _report(name, runs, dts, span, measured_at)
+        report.floor = floor
+        expected = getattr(factory, "order", None)
+        report.expected_order = math.nan if expected is None else float(expected)
+        if adaptive:
+            report.order_vs = "tol"
+            ladder = [r for r in runs if r.stable]
+            report.order, report.fit_range, report.fit_points = _fit_order(
+                [r.tol for r in ladder], ladder, floor, slope_tolerance
+            )
+        else:
+            ladder = [r for r in runs if r.dt <= dts[-1] * 1.0000001 and r.stable]
+            report.order, report.fit_range, report.fit_points = _fit_order(
+                [r.dt for r in ladder], ladder, floor, slope_tolerance
+            )
         reports.append(report)
     return reports
+
+
+def _fit_order(steps, runs, floor, slope_tolerance):
+    """Fit log(error) against log(step) over the asymptotic range; mark the runs used.
+
+    Points at or below ``floor`` are dropped; from the finest step upward the
+    range grows while each successive slope stays within ``slope_tolerance``
+    of the finest pair's. Returns (slope, (low, high), n_points); NaN slope
+    with fewer than two points.
+    """
+    points = sorted(
+        (step, run)
+        for step, run in zip(steps, runs, strict=True)
+        if math.isfinite(run.error) and run.error > floor
+    )
+    for _, run in points:
+        run.in_fit = False
+    if len(points) < 2:
+        return math.nan, (math.nan, math.nan), len(points)
+    logs = np.log([[s, r.error] for s, r in points])
+    slopes = np.diff(logs[:, 1]) / np.diff(logs[:, 0])
+    keep = 2
+    while keep < len(points) and abs(slopes[keep - 1] - slopes[0]) <= slope_tolerance:
+        keep += 1
+    used = points[:keep]
+    for _, run in used:
+        run.in_fit = True
+    slope = float(np.polyfit(logs[:keep, 0], logs[:keep, 1], 1)[0])
+    return slope, (used[0][0], used[-1][0]), keep
 
 
 def _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
@@ -263,10 +404,7 @@ def _run(make_state, potentials_factory, factory, dt, span, skin, units, samples
 def _report(name, runs, dts, span, measure_dt) -> IntegratorReport:
     stable = [r for r in runs if r.stable]
     dt_max_stable = max((r.dt for r in stable), default=math.nan)
-    fit = [r for r in runs if r.stable and r.dt <= dts[-1] * 1.0000001 and r.error > 1e-11]
-    order = math.nan
-    if len(fit) >= 2:
-        order = float(np.polyfit(np.log([r.dt for r in fit]), np.log([r.error for r in fit]), 1)[0])
+    order = math.nan  # fitted by compare_integrators
     # Energy behaviour and cost at measure_dt, or the largest stable dt below it.
     base = max((r for r in stable if r.dt <= measure_dt * 1.0000001), key=lambda r: r.dt,
                default=None)  # fmt: skip
@@ -303,26 +441,96 @@ def write_csv(reports: Sequence[IntegratorReport], path) -> None:
             writer.writerow({**report.row(), "measured_at_dt": report.reference_dt})
 
 
-def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str = "") -> None:
-    """Log-log plot of the global position error against dt, with fitted slopes."""
+def write_work_precision_csv(reports: Sequence[IntegratorReport], path) -> None:
+    """Write one row per run with :data:`WORK_PRECISION_COLUMNS` (the work-precision data)."""
+    with open(path, "x", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(WORK_PRECISION_COLUMNS))
+        writer.writeheader()
+        for report in reports:
+            for run in report.runs:
+                writer.writerow({
+                    "integrator": report.name, "dt": run.dt, "tol": run.tol,
+                    "stable": run.stable, "position_error": run.error,
+                    "max_energy_error": run.max_energy_error,
+                    "force_evaluations": run.evaluations if run.stable else math.nan,
+                    "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
+                })  # fmt: skip
+
+
+def _pyplot():
     import matplotlib  # heavy: matplotlib only when plotting
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
-    for report in reports:
-        points = [(r.dt, r.error) for r in report.runs if r.stable and r.error > 0]
+    return plt
+
+
+def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str = "") -> None:
+    """Log-log global position error against dt: filled points are those the order fit used."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.0, 5.2))
+    for k, report in enumerate(reports):
+        if report.order_vs != "dt":
+            continue
+        points = sorted((r.dt, r.error, r.in_fit) for r in report.runs if r.stable and r.error > 0)
         if not points:
             continue
-        dts, errors = zip(*sorted(points), strict=True)
-        label = f"{report.name} (slope {report.order:.2f})"
-        ax.loglog(dts, errors, "o-", label=label)
+        dts, errors, used = zip(*points, strict=True)
+        colour = f"C{k % 10}"
+        ax.loglog(dts, errors, "-", color=colour, lw=0.8)
+        fit = [(d, e) for d, e, u in points if u]
+        if fit:
+            ax.loglog(*zip(*fit, strict=True), "o", color=colour,
+                      label=f"{report.name} (order {report.order:.2f})")  # fmt: skip
+        rest = [(d, e) for d, e, u in points if not u]
+        if rest:
+            ax.loglog(*zip(*rest, strict=True), "o", mfc="none", color=colour)
+    floors = [r.floor for r in reports if math.isfinite(r.floor)]
+    if floors:
+        ax.axhline(floors[0], color="k", ls=":", lw=0.8, label="reference error floor (x10)")
     ax.set_xlabel(f"time step dt {time_label}".strip())
     ax.set_ylabel("RMS position error at the final time")
-    ax.set_title("Global error against a fine-step reference")
-    ax.legend(fontsize="small")
+    ax.set_title("Global error against a Richardson-checked reference (hollow: not fitted)")
+    ax.legend(fontsize="x-small", ncol=2)
     ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_work_precision(reports: Sequence[IntegratorReport], path, labels=None) -> None:
+    """Work-precision diagrams: energy and position error against wall time and force calls.
+
+    One curve per integrator over its stable runs (its dt ladder up to the
+    stability limit, or its tolerance ladder), as SciMLBenchmarks draws them.
+    """
+    labels = labels or {}
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5))
+    measures = (("max_energy_error", "max |E(t) - E(0)| per atom"),
+                ("error", "RMS position error at the final time"))  # fmt: skip
+    works = (("wall", "wall time [s]"), ("evaluations", "force evaluations"))
+    for k, report in enumerate(reports):
+        runs = sorted((r for r in report.runs if r.stable), key=lambda r: (r.dt, -r.tol))
+        if not runs:
+            continue
+        for row, (measure, _) in enumerate(measures):
+            for column, (work, _) in enumerate(works):
+                x = [getattr(r, work) for r in runs]
+                y = [getattr(r, measure) for r in runs]
+                pairs = [(a, b) for a, b in zip(x, y, strict=True) if a > 0 and b > 0]
+                if pairs:
+                    axes[row, column].loglog(*zip(*pairs, strict=True), "o-", ms=3,
+                                             color=f"C{k % 10}", label=report.name)  # fmt: skip
+    for row, (_, measure_label) in enumerate(measures):
+        for column, (_, work_label) in enumerate(works):
+            ax = axes[row, column]
+            ax.set_xlabel(work_label)
+            ax.set_ylabel(f"{measure_label} {labels.get(('energy', 'length')[row], '')}".strip())
+            ax.grid(True, which="both", alpha=0.3)
+    axes[0, 0].legend(fontsize="x-small", ncol=2)
+    fig.suptitle("Work-precision: error against cost, one curve per integrator over its dt ladder")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -330,10 +538,7 @@ def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str 
 
 def plot_energy_vs_time(reports: Sequence[IntegratorReport], path, labels=None) -> None:
     """Total energy per atom against time for each integrator at its measuring dt."""
-    import matplotlib  # heavy: matplotlib only when plotting
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
+    plt = _pyplot()
 
     labels = labels or {}
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
@@ -537,10 +742,7 @@ def write_thermostat_csv(reports: Sequence[ThermostatReport], path) -> None:
 
 def plot_thermostats(reports: Sequence[ThermostatReport], path, labels=None) -> None:
     """Kinetic temperature against time, and the potential energy's autocorrelation."""
-    import matplotlib  # heavy: matplotlib only when plotting
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
+    plt = _pyplot()
 
     labels = labels or {}
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.2))

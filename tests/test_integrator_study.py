@@ -10,9 +10,9 @@ import pytest
 from conftest import lj_config_text
 
 import md
-from integrators import VelocityVerlet
+from integrators import INTEGRATORS, VelocityVerlet
 from md.cli import main
-from md.integrator_study import CSV_COLUMNS, compare_integrators
+from md.integrator_study import CSV_COLUMNS, WORK_PRECISION_COLUMNS, compare_integrators
 from potentials import LennardJones
 
 CONFIG = lj_config_text(
@@ -77,7 +77,7 @@ def test_cli_writes_table_csv_and_plots(tmp_path, capsys):
     assert set(CSV_COLUMNS) <= set(rows[0])
     assert rows[0]["integrator"] == "verlet"
     assert abs(float(rows[0]["order"]) - 2.0) < 0.2
-    for name in ("error_vs_dt.png", "energy_vs_time.png"):
+    for name in ("error_vs_dt.png", "energy_vs_time.png", "work_precision.png"):
         data = (out / name).read_bytes()
         assert data.startswith(b"\x89PNG") and len(data) > 10_000
     # a second run refuses to replace the files
@@ -116,3 +116,92 @@ def test_energy_plot_values_are_finite(liquid):
     )
     for run in report.runs:
         assert np.all(np.isfinite(run.energies)) and run.times[-1] == pytest.approx(0.1)
+
+
+# ------------------------------------------------------------------ honest orders
+def _cluster():
+    """32 atoms in an open box, every pair inside the cutoff: analytic forces along the path."""
+    state = md.lattice("fcc", 2, density=0.9, pbc=False)
+    return md.maxwell_boltzmann(state, 0.4, seed=5)
+
+
+def _factory(cls):
+    def build(dt, tol=None):
+        return cls(dt=dt) if tol is None else cls(dt=dt, tol=tol)
+
+    build.order, build.adaptive = cls.order, cls.adaptive
+    return build
+
+
+@pytest.fixture(scope="module")
+def every_order():
+    """The study over every registered NVE integrator (each class once) on the cluster."""
+    classes = {}
+    for name, cls in INTEGRATORS.items():
+        if not cls.thermostat and not cls.requires_constraints and cls not in classes.values():
+            classes[name] = cls
+    return compare_integrators(
+        make_state=_cluster,
+        potentials_factory=lambda: [LennardJones(cutoff=8.0)],
+        integrators={name: _factory(cls) for name, cls in classes.items()},
+        dts=[0.005 / 2**k for k in range(5)],
+        span=0.5,
+        reference=_factory(INTEGRATORS["yoshida6"]),
+        tolerances=(1e-6, 1e-7, 1e-8, 1e-9),
+        max_doublings=0,
+    )
+
+
+def test_every_integrator_shows_its_order_within_0_15(every_order):
+    assert len(every_order) >= 13
+    for report in every_order:
+        if report.order_vs == "tol":  # RKF45: the global error follows the tolerance
+            assert report.order == pytest.approx(1.0, abs=0.15), report.name
+            assert report.fit_points >= 3
+            continue
+        assert report.order == pytest.approx(report.expected_order, abs=0.15), (
+            report.name, report.order, [(r.dt, r.error) for r in report.runs],
+        )  # fmt: skip
+        assert report.fit_points >= 3, report.name
+
+
+def test_fits_drop_points_at_the_reference_floor(every_order):
+    yoshida6 = next(r for r in every_order if r.name == "yoshida6")
+    below = [r for r in yoshida6.runs if r.stable and r.error <= yoshida6.floor]
+    assert below, "the finest Yoshida 6 runs reach the reference's floor"
+    assert not any(r.in_fit for r in below)
+    assert 1e-14 < yoshida6.floor < 1e-9
+
+
+def test_the_window_stops_where_the_asymptotic_range_ends():
+    """A synthetic ladder: second order, then saturating towards the stability limit."""
+    from md.integrator_study import RunRecord, _fit_order
+
+    dts = [0.001, 0.002, 0.004, 0.008, 0.016]
+    errors = [1e-6, 4e-6, 1.6e-5, 3e-5, 4e-5]
+    runs = [RunRecord(dt=d, stable=True, error=e) for d, e in zip(dts, errors, strict=True)]
+    slope, (low, high), n = _fit_order(dts, runs, floor=1e-9, slope_tolerance=0.15)
+    assert slope == pytest.approx(2.0, abs=1e-9) and (low, high, n) == (0.001, 0.004, 3)
+    assert [r.in_fit for r in runs] == [True, True, True, False, False]
+
+
+def test_work_precision_rows_for_every_run(every_order, tmp_path):
+    from md.integrator_study import plot_work_precision, write_work_precision_csv
+
+    write_work_precision_csv(every_order, tmp_path / "wp.csv")
+    with open(tmp_path / "wp.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert tuple(rows[0]) == WORK_PRECISION_COLUMNS
+    assert len(rows) == sum(len(r.runs) for r in every_order)
+    verlet = [row for row in rows if row["integrator"] == "verlet"]
+    energy = [float(row["max_energy_error"]) for row in verlet]
+    evals = [int(float(row["force_evaluations"])) for row in verlet]
+    # finer steps: more force evaluations, smaller energy error (second order: ~4x per halving)
+    assert evals == sorted(evals, reverse=True) and energy == sorted(energy)
+    assert energy[-1] / energy[-2] == pytest.approx(4.0, rel=0.3)
+    yoshida6 = next(r for r in every_order if r.name == "yoshida6")
+    per_step = INTEGRATORS["yoshida6"](0.01).force_evaluations
+    run = yoshida6.runs[-1]
+    assert run.evaluations == pytest.approx(per_step * round(0.5 / run.dt), abs=1)
+    plot_work_precision(every_order, tmp_path / "wp.png")
+    assert (tmp_path / "wp.png").read_bytes().startswith(b"\x89PNG")

@@ -25,8 +25,10 @@ from md.integrator_study import (
     plot_energy_vs_time,
     plot_error_vs_dt,
     plot_thermostats,
+    plot_work_precision,
     write_csv,
     write_thermostat_csv,
+    write_work_precision_csv,
 )
 from md.simulation import Simulation, SimulationError
 
@@ -44,7 +46,7 @@ def add_parser(subparsers) -> None:
     study.add_argument(
         "--dt-range",
         help="time steps in config time units: MIN:MAX:N (log-spaced) or a comma list "
-        "(default: the config dt times 1/8, 1/4, 1/2, 1)",
+        "(default: the config dt times 1/32, 1/16, 1/8, 1/4, 1/2, 1)",
     )
     study.add_argument(
         "--time", type=float, help="simulated span of every run, config time units (default 100 dt)"
@@ -81,7 +83,7 @@ def add_parser(subparsers) -> None:
 def _parse_dts(text: str | None, dt: float) -> list[float]:
 
     if text is None:
-        return [dt / 8, dt / 4, dt / 2, dt]
+        return [dt / 32, dt / 16, dt / 8, dt / 4, dt / 2, dt]
     try:
         if ":" in text:
             low, high, count = text.split(":")
@@ -140,6 +142,8 @@ def main(args) -> int:
             files["csv"] = out / "integrators.csv"
             files["error"] = out / "error_vs_dt.png"
             files["energy"] = out / "energy_vs_time.png"
+            files["work_csv"] = out / "work_precision.csv"
+            files["work"] = out / "work_precision.png"
         if thermostat_names:
             files["thermostats"] = out / "thermostats.csv"
             files["thermostats_plot"] = out / "thermostats.png"
@@ -159,10 +163,11 @@ def main(args) -> int:
     def factory(name):
         cls = INTEGRATORS[name]
 
-        def build(dt):
-            return cls(dt=dt)
+        def build(dt, tol=None):
+            return cls(dt=dt) if tol is None else cls(dt=dt, tol=tol)
 
         build.adaptive = cls.adaptive
+        build.order = cls.order
         return build
 
     label = units.config_time_label
@@ -184,15 +189,21 @@ def main(args) -> int:
             span=span,
             skin=config.run.skin,
             units=units,
-            reference=factory("rk4") if "rk4" in INTEGRATORS else None,
+            reference=factory("yoshida6" if "yoshida6" in INTEGRATORS else "rk4"),
             measure_dt=dts[-1] if args.dt_range is None else None,
             progress=progress,
         )
         write_csv(reports, files["csv"])
+        write_work_precision_csv(reports, files["work_csv"])
         plot_error_vs_dt(reports, files["error"], f"[{label}]")
         plot_energy_vs_time(reports, files["energy"], {"time": f"[{units.labels['time']}]"})
+        plot_work_precision(
+            reports, files["work"],
+            {"energy": f"[{units.labels['energy']}]", "length": f"[{units.labels['length']}]"},
+        )  # fmt: skip
         _print_study_table(reports, units)
-        print(f"Wrote {files['csv']}, {files['error']}, {files['energy']}")
+        written = ("csv", "work_csv", "error", "energy", "work")
+        print(f"Wrote {', '.join(str(files[k]) for k in written)}")
     if thermostat_names:
         t = units.config_time
         n_equilibrate, n_sample = thermostats["n_equilibrate"], thermostats["n_sample"]
@@ -353,16 +364,24 @@ def _integrator_names(text, registry) -> list[str]:
 def _print_study_table(reports, units) -> None:
     t = units.config_time
     header = (
-        f"{'integrator':<18}{'order':>7}{'dt_max_stable':>15}{'drift/atom/t':>14}"
-        f"{'fluct/atom':>12}{'evals/t':>10}{'wall s/t':>10}{'at dt':>9}"
+        f"{'integrator':<18}{'order':>7}{'expect':>7}{'fit pts':>8}{'dt_max_stable':>15}"
+        f"{'drift/atom/t':>14}{'fluct/atom':>12}{'max dE/atom':>12}{'evals/t':>10}"
+        f"{'wall s/t':>10}{'at dt':>9}"
     )
     print(header)
     for r in reports:
+        run = r.measured_run()
+        order = f"{r.order:.2f}" + ("/tol" if r.order_vs == "tol" else "")
+        expected = "-" if math.isnan(r.expected_order) else f"{r.expected_order:g}"
         print(
-            f"{r.name:<18}{r.order:>7.2f}{r.dt_max_stable / t:>15.4g}{r.energy_drift * t:>14.3e}"
-            f"{r.energy_fluctuation:>12.3e}{r.evals_per_time * t:>10.4g}"
-            f"{r.wall_per_time * t:>10.4g}{r.reference_dt / t:>9.4g}"
+            f"{r.name:<18}{order:>7}{expected:>7}{r.fit_points:>8}{r.dt_max_stable / t:>15.4g}"
+            f"{r.energy_drift * t:>14.3e}{r.energy_fluctuation:>12.3e}"
+            f"{(run.max_energy_error if run else math.nan):>12.3e}"
+            f"{r.evals_per_time * t:>10.4g}{r.wall_per_time * t:>10.4g}{r.reference_dt / t:>9.4g}"
         )
+    floor = next((r.floor for r in reports), math.nan)
     print(
-        f"(times in config units, {units.config_time_label}; energies in {units.labels['energy']})"
+        f"(times in config units, {units.config_time_label}; energies in {units.labels['energy']}; "
+        f"orders fitted in the asymptotic range above the reference's error floor {floor:.2e}; "
+        "'/tol': the slope against the tolerance)"
     )
