@@ -23,6 +23,7 @@ with kernel_cache():
     from integrators.leapfrog import Leapfrog
     from integrators.nose_hoover import NoseHooverChain
     from integrators.rattle import BondConstraints, ConstraintError, Rattle
+    from integrators.respa import RESPA
     from integrators.runge_kutta import RK4, RKF45
     from integrators.splitting import (
         PEFRL,
@@ -48,6 +49,7 @@ INTEGRATORS = {
     "pefrl": PEFRL,
     "blanes_moan": BlanesMoan,
     "blanes_moan_rkn": BlanesMoanRKN,
+    "respa": RESPA,
     "rk4": RK4,
     "rkf45": RKF45,
     "implicit_euler": ImplicitEuler,
@@ -62,6 +64,7 @@ INTEGRATORS = {
 
 __all__ = [
     "INTEGRATORS",
+    "RESPA",
     "RK4",
     "RKF45",
     "Berendsen",

@@ -39,6 +39,10 @@ class Integrator(Protocol):
     ``adaptive``
         It chooses its own substeps inside one output step, so it has no fixed
         order in ``dt`` and no per-step displacement bound.
+    ``splits_forces``
+        It evaluates groups of potentials apart (multiple time stepping), so
+        it needs a force field with both kinds; ``md integrators`` measures
+        it only when named.
     ``order``
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
@@ -52,6 +56,7 @@ class Integrator(Protocol):
     supports_constraints: ClassVar[bool]
     requires_constraints: ClassVar[bool]
     adaptive: ClassVar[bool]
+    splits_forces: ClassVar[bool]
     order: ClassVar[int | None]
 
     def step(self, state: State, forcefield: ForceField) -> None: ...
@@ -70,6 +75,7 @@ class IntegratorBase:
     supports_constraints: ClassVar[bool] = False
     requires_constraints: ClassVar[bool] = False
     adaptive: ClassVar[bool] = False
+    splits_forces: ClassVar[bool] = False
     order: ClassVar[int | None] = None
 
     def reset(self) -> None:

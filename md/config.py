@@ -159,6 +159,21 @@ class OutputConfig:
 
 
 @dataclass
+class MinimizeConfig:
+    """``[minimize]``: FIRE 2.0 before the dynamics (see :mod:`md.minimize`).
+
+    ``fmax`` [energy/length] and ``max_force`` (the push-off's force cap,
+    None: no cap) in engine units; ``max_step`` [length].
+    """
+
+    fmax: float = 1e-2
+    max_steps: int = 10_000
+    max_force: float | None = None
+    max_step: float = 0.1
+    report_every: int = 100
+
+
+@dataclass
 class Config:
     """A validated run configuration (engine units, objects not yet built)."""
 
@@ -171,6 +186,7 @@ class Config:
     integrator: dict
     run: RunConfig
     output: OutputConfig
+    minimize: MinimizeConfig | None = None
 
 
 def load_config(path) -> Config:
@@ -250,6 +266,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         ),
     )
     table.finish()
+    minimize = None
+    if "minimize" in top.data:
+        minimize = _parse_minimize(_Table(top.take("minimize"), "minimize", source), integrator)
     top.finish()
     return Config(
         source=source,
@@ -261,6 +280,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         integrator=integrator,
         run=run,
         output=output,
+        minimize=minimize,
     )
 
 
@@ -347,6 +367,23 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
         return POTENTIALS[kind].from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
         raise ConfigError(f"{where}: {error}") from None
+
+
+def _parse_minimize(table: _Table, integrator: dict) -> MinimizeConfig:
+    """``[minimize]``: FIRE's targets, in the config's units (force and length units are
+    the engine's in both unit systems: eV/Angstrom, epsilon/sigma)."""
+    if "constraints" in integrator:
+        raise table.error("fmax", "a [minimize] stage cannot keep [integrator.constraints]")
+    defaults = MinimizeConfig()
+    result = MinimizeConfig(
+        fmax=table.number("fmax", defaults.fmax, positive=True),
+        max_steps=table.integer("max_steps", defaults.max_steps, minimum=1),
+        max_force=table.number("max_force", None, positive=True),
+        max_step=table.number("max_step", defaults.max_step, positive=True),
+        report_every=table.integer("report_every", defaults.report_every, minimum=1),
+    )
+    table.finish()
+    return result
 
 
 def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) -> dict:

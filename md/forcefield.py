@@ -61,6 +61,8 @@ class ForceField:
         self.virial_wanted = False
         self._cached: ForceResult | None = None
         self._key: tuple[np.ndarray, ...] | None = None
+        self._subsets: dict[tuple[int, ...], tuple[tuple, ForceResult]] = {}
+        self.n_subset_evaluations = 0
 
     @property
     def cutoff(self) -> float | None:
@@ -74,9 +76,10 @@ class ForceField:
             self.neighbor_list.check_box(state.box, state.pbc)
 
     def invalidate(self) -> None:
-        """Forget the cached result (after changing a potential's parameters)."""
+        """Forget the cached results (after changing a potential's parameters)."""
         self._cached = None
         self._key = None
+        self._subsets.clear()
 
     def compute(self, state: State, per_atom: bool = False, virial: bool = True) -> ForceResult:
         """Return the total energy, forces and virial of ``state``.
@@ -115,12 +118,56 @@ class ForceField:
         if not np.isfinite(total.energy):
             raise NonFiniteError(f"potential energy is {total.energy}")
         self._cached = total
-        self._key = (
-            state.positions.copy(),
-            state.box.copy(),
-            state.pbc.copy(),
-            state.types.copy(),
-        )
+        self._key = self._key_of(state)
+        return total
+
+    def compute_subset(self, state: State, which, virial: bool = False) -> ForceResult:
+        """Return the energy and forces of the potentials ``which`` (indices) alone.
+
+        For multiple time stepping (RESPA): the fast and the slow forces are
+        evaluated apart over the one shared neighbour list, each cached while
+        the positions stay the same. Counted in ``n_subset_evaluations``, not
+        in ``n_evaluations``.
+
+        Raises
+        ------
+        IndexError
+            If an index names no potential.
+        NonFiniteError
+            If a position or the energy is NaN or infinite.
+        """
+        which = tuple(int(i) for i in which)
+        for i in which:
+            if not 0 <= i < len(self.potentials):
+                raise IndexError(
+                    f"potential index {i} out of range (0..{len(self.potentials) - 1})"
+                )
+        held = self._subsets.get(which)
+        if (
+            held is not None
+            and self._same_key(held[0], state)
+            and (not virial or held[1].virial is not None)
+        ):
+            return held[1]
+        start = time.perf_counter()
+        subset = [self.potentials[i] for i in which]
+        if self.neighbor_list is not None and any(p.cutoff is not None for p in subset):
+            self.neighbor_list.update(state)
+        elif not np.all(np.isfinite(state.positions)):
+            raise NonFiniteError("particle positions are not finite")
+        middle = time.perf_counter()
+        results = [
+            p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None, False,
+                            virial=virial)
+            for p in subset
+        ]  # fmt: skip
+        total = results[0] if len(results) == 1 else _sum_results(results, False)
+        self.timings["neighbor"] += middle - start
+        self.timings["force"] += time.perf_counter() - middle
+        self.n_subset_evaluations += 1
+        if not np.isfinite(total.energy):
+            raise NonFiniteError(f"potential energy is {total.energy}")
+        self._subsets[which] = (self._key_of(state), total)
         return total
 
     def hessian(self, state: State) -> sp.csr_matrix:
@@ -185,8 +232,12 @@ class ForceField:
         ]
         return combine([*parts, *extra])
 
-    def _matches(self, state: State) -> bool:
-        positions, box, pbc, types = self._key
+    @staticmethod
+    def _key_of(state: State) -> tuple:
+        return (state.positions.copy(), state.box.copy(), state.pbc.copy(), state.types.copy())
+
+    def _same_key(self, key: tuple, state: State) -> bool:
+        positions, box, pbc, types = key
         return (
             positions.shape == state.positions.shape
             and np.array_equal(box, state.box)
@@ -194,6 +245,9 @@ class ForceField:
             and np.array_equal(positions, state.positions)
             and np.array_equal(types, state.types)
         )
+
+    def _matches(self, state: State) -> bool:
+        return self._same_key(self._key, state)
 
 
 def _sum_results(results: list[ForceResult], per_atom: bool) -> ForceResult:

@@ -53,6 +53,7 @@ from md.errors import (
     SimulationError,
     TrajectoryError,
 )
+from md.minimize import MinimizeResult, minimize
 from md.parallel import set_threads
 from md.simulation import Simulation
 from md.state import State
@@ -147,6 +148,7 @@ class PreparedRun:
     run_id: str
     parameters: dict
     config_file: str
+    minimized: MinimizeResult | None = None
 
     @property
     def resuming(self) -> bool:
@@ -157,12 +159,39 @@ class PreparedRun:
         """True when resuming a run that already took all its steps."""
         return self.checkpoint is not None and self.n_steps == 0
 
+    def minimize(self, callback: Callable[[int, float, float], None] | None = None):
+        """Run the config's ``[minimize]`` stage on the state; return its MinimizeResult.
+
+        Only a fresh run minimises (a resumed one starts from its checkpoint,
+        which holds the minimised state), and only once. FIRE 2.0 moves the
+        positions (velocities stay as drawn); ``callback(step, energy, fmax)``
+        reports progress. Returns None when there is nothing to do.
+        """
+        stage = self.config.minimize
+        if stage is None or self.checkpoint is not None:
+            return None
+        if self.minimized is None:
+            sim = self.sim
+            self.minimized = minimize(
+                sim.state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
+                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
+            )  # fmt: skip
+            sim.integrator.reset()  # history taken at the old positions is stale
+        return self.minimized
+
     def execute(
         self,
         observers: Sequence[tuple[Callable, int]] = (),
         handle_signals: bool = True,
+        minimize_progress: Callable[[int, float, float], None] | None = None,
     ) -> RunSummary:
         """Write the outputs and run; return a :class:`RunSummary`.
+
+        A ``[minimize]`` stage runs first (:meth:`minimize`), under the output's
+        claim and before anything is written: the first checkpoint and frame
+        hold the minimised state, so ``--resume`` never minimises again, and a
+        run killed while minimising has written nothing (a plain re-run
+        repeats the deterministic minimisation).
 
         Parameters
         ----------
@@ -173,6 +202,8 @@ class PreparedRun:
             Catch SIGINT and SIGTERM (main thread only) so that the run stops
             after the current step with a checkpoint; a second signal stops it
             at once.
+        minimize_progress : callable, optional
+            ``callback(step, energy, fmax)`` of the minimisation stage.
 
         Raises
         ------
@@ -182,6 +213,7 @@ class PreparedRun:
             If the first checkpoint or the trajectory cannot be written.
         """
         with exclusive_claim(self.output):
+            self.minimize(minimize_progress)
             return self._execute(observers, handle_signals)
 
     def _execute(self, observers, handle_signals: bool) -> RunSummary:
@@ -492,6 +524,12 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
         )
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
+    if integrator.splits_forces:  # RESPA: both kinds of potential must be there
+        try:
+            integrator.split(sim.forcefield)
+        except ValueError as error:
+            raise ConfigError(f"{config.source}: [integrator] ({integrator.describe()['type']}): "
+                              f"{error}") from None  # fmt: skip
     if checkpoint is not None:
         restore(checkpoint, integrator, sim.forcefield)
         if checkpoint.n_frames:  # else frame 0 was never kept: write it again

@@ -138,7 +138,8 @@ def every_order():
     """The study over every registered NVE integrator (each class once) on the cluster."""
     classes = {}
     for name, cls in INTEGRATORS.items():
-        if not cls.thermostat and not cls.requires_constraints and cls not in classes.values():
+        plain = not (cls.thermostat or cls.requires_constraints or cls.splits_forces)
+        if plain and cls not in classes.values():
             classes[name] = cls
     return compare_integrators(
         make_state=_cluster,

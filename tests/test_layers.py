@@ -44,6 +44,7 @@ LAYERS = {
         "md.observers",
         "md.build",
         "md.polymers",
+        "md.minimize",
     ],
     3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.run"],
     4: [

@@ -15,12 +15,23 @@ import sys
 from collections.abc import Sequence
 
 from md._version import __version__
-from md.cli import analyze, convert, info, integrators, render, run, sweep, validate
+from md.cli import (
+    analyze,
+    convert,
+    info,
+    integrators,
+    minimize,
+    render,
+    run,
+    sweep,
+    validate,
+)
 from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
 
 #: Subcommand modules, in the order ``md --help`` lists them.
 SUBCOMMANDS = {
     "run": run,
+    "minimize": minimize,
     "integrators": integrators,
     "analyze": analyze,
     "sweep": sweep,

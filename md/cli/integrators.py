@@ -341,7 +341,7 @@ def _integrator_names(text, registry) -> list[str]:
     if text is None:
         names, seen = [], set()
         for name, cls in registry.items():
-            if cls not in seen and not cls.requires_constraints:
+            if cls not in seen and not cls.requires_constraints and not cls.splits_forces:
                 names.append(name)
                 seen.add(cls)
         return names

@@ -50,6 +50,10 @@ def add_parser(subparsers) -> None:
     run.add_argument("--quiet", "-q", action="store_true", help="no thermo table")
 
 
+def _print_minimize(step: int, energy: float, fmax: float) -> None:
+    print(f"minimize: step {step:>7}  energy {energy:.10g}  max force {fmax:.4g}", flush=True)
+
+
 def main(args) -> int:
     """Body of ``md run``; returns the exit code."""
     # Everything is validated and built before the output file is touched.
@@ -78,12 +82,21 @@ def main(args) -> int:
     )
     bar = _progress_bar(n_steps, disable=args.no_progress)
     table = _ThermoTable(units, quiet=args.quiet)
+    if config.minimize is not None and not run.resuming:
+        stage = config.minimize
+        cap = f", forces capped at {stage.max_force:g}" if stage.max_force is not None else ""
+        print(
+            f"minimize: FIRE 2.0 to max force <= {stage.fmax:g} "
+            f"{units.labels['energy']}/{units.labels['length']} in at most {stage.max_steps} "
+            f"steps{cap}"
+        )
     try:
         summary = run.execute(
             observers=[
                 (table, config.run.thermo_every),
                 (Progress(bar), max(1, n_steps // 500)),
-            ]
+            ],
+            minimize_progress=None if args.quiet else _print_minimize,
         )
     except (TrajectoryError, ConfigError, OutputBusyError) as error:
         fail(str(error))
@@ -93,6 +106,8 @@ def main(args) -> int:
         return EXIT_BAD_INPUT
     finally:
         bar.close()
+    if run.minimized is not None:
+        print(f"minimize: {run.minimized.describe()}")
     kept = f"{summary.n_frames} frames kept in {output}"
     if summary.status == FAILED:
         last = summary.last_checkpoint_step
