@@ -28,6 +28,7 @@ INTEGRATORS = {
     "verlet": 'type = "verlet"\ndt = 0.005',
     "leapfrog": 'type = "leapfrog"\ndt = 0.005',
     "rkf45": 'type = "rkf45"\ndt = 0.02\ntol = 1e-5',
+    "pefrl": 'type = "pefrl"\ndt = 0.005',
     "langevin": 'type = "langevin"\ndt = 0.005\ntemperature = 1.0\nfriction = 2.0',
 }
 
