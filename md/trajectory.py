@@ -512,8 +512,10 @@ def read_trajectory(path) -> Trajectory:
             def scale(quantity: str) -> float:
                 return 1.0 / factors.get(quantity, 1.0)
 
-            steps = group["position/step"][()]
-            n_frames = len(steps)
+            # Complete frames only: a run killed inside a write may have grown some
+            # per-frame datasets by one frame and not the others.
+            n_frames = _complete_frames(f)
+            steps = group["position/step"][:n_frames]
             raw = group["position/value"][:n_frames] * scale("length")
             boxes = group["box/edges/value"][:n_frames] * scale("length")
             images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
@@ -626,7 +628,7 @@ class TrajectoryReader:
                 self._datasets[f"observables/{name}"] = element["value"]
             # Complete frames: those every per-frame dataset holds (a killed write may
             # leave one partial frame).
-            self.n_frames = min(len(d) for d in self._datasets.values())
+            self.n_frames = _complete_frames(f)
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             self._file.close()
             raise TrajectoryError(
@@ -755,6 +757,19 @@ class TrajectoryReader:
         self.close()
 
 
+def _complete_frames(f: h5py.File) -> int:
+    """Frames that every per-frame dataset of the file holds."""
+    group = f["particles/trajectory"]
+    lengths = [len(group["position/step"]), len(group["position/time"]),
+               len(group["position/value"]), len(group["box/edges/value"])]  # fmt: skip
+    for name in ("image", "velocity", "force"):
+        if name in group:
+            lengths.append(len(group[f"{name}/value"]))
+    for element in f.get("observables", {}).values():
+        lengths.append(len(element["value"]))
+    return min(lengths)
+
+
 def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
     """Return the steps of the complete frames of a trajectory and its parameters.
 
@@ -773,18 +788,12 @@ def read_frame_steps(path) -> tuple[NDArray[np.int64], dict]:
     with open_h5md(path) as f:
         try:
             group = f["particles/trajectory"]
-            steps = group["position/step"][()]
-            lengths = [len(steps), len(group["position/value"]), len(group["box/edges/value"])]
-            for name in ("image", "velocity", "force"):
-                if name in group:
-                    lengths.append(len(group[f"{name}/value"]))
-            for element in f["observables"].values():
-                lengths.append(len(element["value"]))
+            steps = group["position/step"][: _complete_frames(f)]
             parameters = {key: maybe_json(value) for key, value in f["parameters"].attrs.items()}
             parameters["n_atoms"] = int(group["position/value"].shape[1])
         except (KeyError, ValueError, TypeError, OSError, IndexError, RuntimeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
-    return steps[: min(lengths)], parameters
+    return steps, parameters
 
 
 def _is_checksum_error(error: BaseException) -> bool:

@@ -577,3 +577,22 @@ def test_ovito_opens_our_extxyz_dump_data_and_gsd_files(polymer, tmp_path):
             assert names == list(traj.type_names)
         if kind in ("lammpstrj", "gsd", "extxyz"):
             assert pipeline.source.num_frames == traj.n_frames
+
+
+def test_readers_keep_only_frames_every_dataset_holds(polymer, tmp_path):
+    """A run killed inside a write may grow some datasets by a frame and not others."""
+    import shutil as copier
+
+    path = tmp_path / "partial.h5"
+    copier.copy(polymer, path)
+    with h5py.File(path, "r+") as f:
+        for name in ("position/step", "position/time", "position/value"):
+            dataset = f[f"particles/trajectory/{name}"]
+            dataset.resize(len(dataset) + 1, axis=0)
+    whole = read_trajectory(polymer)
+    partial = read_trajectory(path)
+    assert partial.n_frames == whole.n_frames == 7
+    assert np.array_equal(partial.positions, whole.positions)
+    with TrajectoryReader(path) as reader:
+        assert reader.n_frames == 7
+    assert md.trajectory.read_frame_steps(path)[0].tolist() == whole.steps.tolist()
