@@ -440,6 +440,7 @@ class ThermoResult:
     energy_drift: float
     energy_drift_err: float
     energy_fluctuation: float
+    compressibility: float = math.nan
 
     def summary(self) -> dict:
         """Scalar results as plain data (for ``summary.json``)."""
@@ -450,6 +451,7 @@ class ThermoResult:
         out["energy_drift_per_atom"] = self.energy_drift
         out["energy_drift_per_atom_err"] = self.energy_drift_err
         out["energy_fluctuation_per_atom"] = self.energy_fluctuation
+        out["isothermal_compressibility"] = self.compressibility
         out["n_frames"] = len(self.times)
         return out
 
@@ -490,6 +492,11 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
         fit = stats.linregress(info.times, total)
         drift, drift_err = float(fit.slope), float(fit.stderr)
         fluctuation = float(np.std(total - (fit.intercept + fit.slope * info.times)))
+    compressibility = math.nan
+    if "volume" in series and "temperature" in series:
+        compressibility = isothermal_compressibility(
+            series["volume"], float(np.mean(series["temperature"])), get_units(info.units).kB
+        )
     return ThermoResult(
         units=info.units,
         n_atoms=info.n_atoms,
@@ -500,7 +507,28 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
         energy_drift=drift,
         energy_drift_err=drift_err,
         energy_fluctuation=fluctuation,
+        compressibility=compressibility,
     )
+
+
+def isothermal_compressibility(volumes, temperature: float, kB: float = 1.0) -> float:
+    """Return kappa_T = var(V) / (kB T <V>) from volume fluctuations [length^3/energy].
+
+    Valid for volumes sampled in the isothermal-isobaric ensemble; NaN when the
+    volume does not fluctuate (a constant-volume run) or is not finite.
+
+    Examples
+    --------
+    >>> round(isothermal_compressibility([9.0, 11.0, 9.0, 11.0], temperature=2.0), 6)
+    0.05
+    """
+    v = np.asarray(volumes, dtype=np.float64)
+    if len(v) < 2 or not np.all(np.isfinite(v)) or not temperature > 0:
+        return math.nan
+    variance = float(np.var(v))
+    if variance <= 1e-24 * float(np.mean(v)) ** 2:
+        return math.nan
+    return variance / (kB * temperature * float(np.mean(v)))
 
 
 # ----------------------------------------------------------------------- RDF

@@ -13,7 +13,13 @@ from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.parallel import set_threads
 from md.state import State
-from md.thermo import kinetic_energy, pressure, temperature
+from md.thermo import (
+    kinetic_energy,
+    pressure,
+    pressure_tensor,
+    temperature,
+    tensor_components,
+)
 from md.units import UnitSystem, get_units
 from potentials.base import Potential
 
@@ -189,7 +195,9 @@ class Simulation:
         """Return potential, kinetic and total energy, temperature and pressure now.
 
         Energies in [energy], temperature in [temperature] (kB of ``units``),
-        pressure in [energy/length^3]; also ``step`` and ``time``. With a
+        pressure and its tensor's components ``pxx`` ... ``pyz`` in
+        [energy/length^3], ``volume`` [length^3] and the mass ``density``
+        [mass/length^3]; also ``step`` and ``time``. With a
         thermostat, also ``conserved_energy`` (total plus the heat bath's
         energy); with rigid bonds, the temperature counts one degree of
         freedom fewer per bond and the pressure includes the constraint virial.
@@ -206,6 +214,8 @@ class Simulation:
             n_dof = terms["n_dof"]
             kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
+        volume = state.volume
+        tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
         row = {
             "step": state.step,
             "time": state.time,
@@ -213,7 +223,10 @@ class Simulation:
             "kinetic_energy": kinetic,
             "total_energy": result.energy + kinetic,
             "temperature": kinetic_temperature,
-            "pressure": pressure(kinetic, virial, state.volume),
+            "pressure": pressure(kinetic, virial, volume),
+            "volume": volume,
+            "density": float(np.sum(state.masses)) / volume if volume > 0 else float("nan"),
+            **tensor_components(tensor),
         }
         if "reservoir_energy" in terms:
             row["conserved_energy"] = row["total_energy"] + terms["reservoir_energy"]

@@ -68,3 +68,34 @@ def pressure(kinetic: float, virial: NDArray[np.float64], volume: float) -> floa
     if volume <= 0:
         return float("nan")
     return (2.0 * kinetic + float(np.trace(virial))) / (3.0 * volume)
+
+
+#: Names of the pressure tensor's components in thermo rows and files.
+PRESSURE_COMPONENTS = ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")
+_COMPONENT_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def pressure_tensor(velocities, masses, virial, volume: float) -> NDArray[np.float64]:
+    """Return the (3, 3) pressure tensor (sum_i m_i v_i v_i^T + W) / V [energy/length^3].
+
+    Its trace over three is :func:`pressure`. All NaN for a zero volume.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> p = pressure_tensor(np.array([[1.0, 0, 0]]), np.array([2.0]), np.zeros((3, 3)), 1.0)
+    >>> p[0, 0], p[1, 1]
+    (np.float64(2.0), np.float64(0.0))
+    """
+    if volume <= 0:
+        return np.full((3, 3), np.nan)
+    kinetic = np.einsum("i,ia,ib->ab", masses, velocities, velocities)
+    return (kinetic + np.asarray(virial, dtype=np.float64)) / volume
+
+
+def tensor_components(tensor) -> dict[str, float]:
+    """The six independent components of a symmetric (3, 3) tensor, by name."""
+    return {
+        name: float(tensor[a, b])
+        for name, (a, b) in zip(PRESSURE_COMPONENTS, _COMPONENT_INDEX, strict=True)
+    }

@@ -19,7 +19,10 @@ MDAnalysis's H5MD reader needs)::
                                attribute bond_types (JSON) gives the type order
     observables/
         potential_energy, kinetic_energy, total_energy, temperature,
-        pressure: {step,time,value (F,)}
+        pressure, volume, density, pxx pyy pzz pxy pxz pyz (the pressure
+        tensor): {step,time,value (F,)}; files written before volume,
+        density and the tensor were added lack them, and appending to
+        such a file keeps its set
     parameters/                attributes describing the run (units, config,
                                potentials, integrator, seed, version, ...)
 
@@ -61,13 +64,19 @@ from md.topology import Topology
 from md.units import UnitSystem, get_units
 
 H5MD_VERSION = (1, 1)
-OBSERVABLES = ("potential_energy", "kinetic_energy", "total_energy", "temperature", "pressure")
+OBSERVABLES = (
+    "potential_energy", "kinetic_energy", "total_energy", "temperature", "pressure",
+    "volume", "density", "pxx", "pyy", "pzz", "pxy", "pxz", "pyz",
+)  # fmt: skip
 _OBSERVABLE_UNITS = {
     "potential_energy": "energy",
     "kinetic_energy": "energy",
     "total_energy": "energy",
     "temperature": "temperature",
     "pressure": "pressure",
+    "volume": "volume",
+    "density": "density",
+    **{name: "pressure" for name in ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")},
 }
 
 
@@ -196,7 +205,8 @@ class H5MDWriter:
             self._values["force"] = group["force/value"]
         self._values["edges"] = group["box/edges/value"]
         for name in OBSERVABLES:
-            self._values[name] = f["observables"][name]["value"]
+            if name in f["observables"]:  # older files hold fewer observables
+                self._values[name] = f["observables"][name]["value"]
         self.units = get_units(attr_text(f["parameters"].attrs["units"]))
 
     def _open_existing(self, state: State, keep_frames: int | None) -> None:
@@ -353,8 +363,9 @@ class H5MDWriter:
         if self.store_forces:
             self._values["force"][frame] = np.asarray(forces) * self._factor("force")
         for name in OBSERVABLES:
-            value = np.nan if thermo is None else thermo[name]
-            self._values[name][frame] = value * self._factor(_OBSERVABLE_UNITS[name])
+            if name in self._values:
+                value = np.nan if thermo is None else thermo.get(name, np.nan)
+                self._values[name][frame] = value * self._factor(_OBSERVABLE_UNITS[name])
         self.n_frames = size
         self._last_step = state.step
         self._file.flush()

@@ -82,6 +82,8 @@ LJ = UnitSystem(
         "pressure": "eps/sigma^3",
         "time": "tau",
         "length": "sigma",
+        "volume": "sigma^3",
+        "density": "m/sigma^3",
     },
 )
 
@@ -90,7 +92,15 @@ METAL = UnitSystem(
     kB=kB,
     config_time=fs,
     config_time_label="fs",
-    labels={"energy": "eV", "temperature": "K", "pressure": "eV/A^3", "time": "ps", "length": "A"},
+    labels={
+        "energy": "eV",
+        "temperature": "K",
+        "pressure": "eV/A^3",
+        "time": "ps",
+        "length": "A",
+        "volume": "A^3",
+        "density": "amu/A^3",
+    },  # fmt: skip
     h5md={
         "length": ("Angstrom", 1.0),
         "time": ("ps", 1.0 / ps),
@@ -100,6 +110,8 @@ METAL = UnitSystem(
         "energy": ("eV", 1.0),
         "temperature": ("K", 1.0),
         "pressure": ("eV Angstrom-3", 1.0),
+        "volume": ("Angstrom3", 1.0),
+        "density": ("amu Angstrom-3", 1.0),
     },
 )
 

@@ -276,6 +276,9 @@ _THERMO_LABELS = {
     "total_energy": ("total", "energy"),
     "temperature": ("temperature", "temperature"),
     "pressure": ("pressure", "pressure"),
+    "volume": ("volume", "volume"),
+    "density": ("density", "density"),
+    **{name: (name, "pressure") for name in ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")},
 }
 
 
@@ -433,6 +436,9 @@ def _print_table(results: dict, labels: dict) -> None:
             rows.append((f"<{name}>", average.mean, average.sem, labels[quantity]))
         rows.append(("energy drift per atom", t.energy_drift, t.energy_drift_err, labels["drift"]))
         rows.append(("energy fluctuation per atom", t.energy_fluctuation, None, labels["energy"]))
+        if math.isfinite(t.compressibility):  # the volume fluctuated: an NPT run
+            unit = f"{labels['volume']}/{labels['energy']}"
+            rows.append(("isothermal compressibility", t.compressibility, None, unit))
     if "rdf" in results:
         for pair, shell in results["rdf"].shells.items():
             rows.append((f"g(r) {pair} first peak r", shell.r_peak, None, labels["length"]))

@@ -165,8 +165,10 @@ class _ThermoTable:
         "kinetic_energy",
         "total_energy",
         "pressure",
+        "volume",
+        "density",
     )
-    headers = ("Step", "Time", "Temp", "PotEng", "KinEng", "TotEng", "Press")
+    headers = ("Step", "Time", "Temp", "PotEng", "KinEng", "TotEng", "Press", "Volume", "Density")
 
     def __init__(self, units, quiet: bool) -> None:
         self.units = units
