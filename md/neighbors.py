@@ -295,7 +295,11 @@ class NeighborList:
             )
             if count <= self._neighbor_buffer.shape[0]:
                 break
+            # Both buffers grow together: the cell search fills them side by side, and
+            # a code buffer left shorter would be written past its end after a switch
+            # from this search to cells (a box that grew under a barostat).
             self._neighbor_buffer = np.empty(_grown(count), dtype=np.int32)
+            self._code_buffer = np.empty(_grown(count), dtype=np.uint8)
         self.order = None
         self.images = np.zeros((n, 3), dtype=np.int32)
         self.slot_starts = starts
@@ -323,7 +327,7 @@ class NeighborList:
         counts = np.zeros(chunks, dtype=np.int64)
         r2_max = _square(self.list_radius)
         while True:
-            capacity = self._neighbor_buffer.shape[0] // chunks
+            capacity = min(self._neighbor_buffer.shape[0], self._code_buffer.shape[0]) // chunks
             # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
             search = _frame_pairs_threaded if chunks > 1 else _frame_pairs
             search(

@@ -253,3 +253,26 @@ def test_open_cluster_spread_over_a_huge_extent():
     nl = md.NeighborList(cutoff=2.5, skin=0.3)
     nl.build(state)
     assert nl.pairs().tolist() == [[0, 1]]
+
+
+def test_a_list_that_switches_from_pair_search_to_cells_stays_exact():
+    """A box that grows (a barostat, an ASE cell change) moves one list from the O(N^2)
+    search, which had grown its buffers, to the cell search, which fills the pair and the
+    image-code buffers side by side: both must have grown (a shorter code buffer was written
+    past its end, corrupting memory)."""
+    state = md.lattice("fcc", 4, density=0.95)  # 256 atoms; box 6.46 < 5 half-radius cells
+    nl = NeighborList(2.5, skin=0.3)
+    nl.update(state)
+    assert not nl.used_cells
+    assert_list_is_exact(nl, state)
+    scale = (0.95 / 0.7) ** (1 / 3)  # box 7.15: room for the cells
+    state.positions *= scale
+    state.box = state.box * scale
+    nl.update(state)
+    assert nl.used_cells
+    assert_list_is_exact(nl, state)
+    state.positions /= scale  # and back
+    state.box = state.box / scale
+    nl.update(state)
+    assert not nl.used_cells
+    assert_list_is_exact(nl, state)
