@@ -293,6 +293,8 @@ def physics_fingerprint(config) -> dict:
             "system": system,
             "potentials": config.potentials,
             "integrator": config.integrator,
+            # only when set, so checkpoints written before barostats existed still resume
+            **({"barostat": config.barostat} if getattr(config, "barostat", None) else {}),
             "run": {"skin": config.run.skin},
             "output": {
                 "velocities": config.output.velocities,

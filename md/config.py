@@ -8,6 +8,7 @@ system (``lj`` or ``metal``, where times are in fs) into engine units here.
 
 from __future__ import annotations
 
+import logging
 import math
 import tomllib
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from integrators import INTEGRATORS
+from integrators.barostats import BAROSTATS, COUPLINGS
 from integrators.rattle import BondConstraints
 from md._checks import MAX_COUNT, MAX_SEED
 from md.build import lattice, maxwell_boltzmann
@@ -22,12 +24,13 @@ from md.errors import ConfigError
 from md.polymers import polymer_melt, single_chain
 from md.structure import read_structure
 from md.topology import Topology
-from md.units import UNIT_SYSTEMS, UnitSystem
+from md.units import UNIT_SYSTEMS, UnitSystem, eV_per_A3_in_bar
 from potentials import POTENTIALS
 
 _MISSING = object()
 #: Largest lattice accepted (4 x 10^7 fcc atoms), so a typo cannot exhaust memory.
 _MAX_CELLS = 10_000_000
+logger = logging.getLogger(__name__)
 
 
 class _Table:
@@ -187,6 +190,7 @@ class Config:
     run: RunConfig
     output: OutputConfig
     minimize: MinimizeConfig | None = None
+    barostat: dict | None = None  # Barostat keyword arguments in engine units
 
 
 def load_config(path) -> Config:
@@ -266,6 +270,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         ),
     )
     table.finish()
+    barostat = None
+    if "barostat" in top.data:
+        barostat = _parse_barostat(
+            _Table(top.take("barostat"), "barostat", source), units, seed, INTEGRATORS[kind]
+        )
     minimize = None
     if "minimize" in top.data:
         minimize = _parse_minimize(_Table(top.take("minimize"), "minimize", source), integrator)
@@ -281,6 +290,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         run=run,
         output=output,
         minimize=minimize,
+        barostat=barostat,
     )
 
 
@@ -367,6 +377,51 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
         return POTENTIALS[kind].from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
         raise ConfigError(f"{where}: {error}") from None
+
+
+#: Default compressibility of the barostat's coupling, per unit system [config units]:
+#: an LJ liquid's order of magnitude (sigma^3/epsilon), and GROMACS's default (1/bar).
+_COMPRESSIBILITY = {"lj": 0.1, "metal": 4.5e-5}
+
+
+def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls) -> dict:
+    """``[barostat]``: type, pressure, tau, couple, compressibility, every, seed.
+
+    Pressure is in epsilon/sigma^3 (lj) or bar (metal), tau in config time
+    units, compressibility in sigma^3/epsilon or 1/bar; converted to engine units.
+    """
+    kind = table.string("type", choices=tuple(BAROSTATS))
+    if not integrator_cls.thermostat:
+        raise table.error(
+            "type",
+            "a barostat needs a thermostat ([integrator] type langevin, bussi, "
+            "nose_hoover_chain or berendsen); the integrator given runs at constant energy",
+        )
+    to_engine = 1.0 / eV_per_A3_in_bar if units.name == "metal" else 1.0  # bar -> eV/A^3
+    pressure = table.number("pressure") * to_engine
+    tau = table.number("tau", positive=True) * units.config_time
+    couple = table.string("couple", "isotropic", choices=("isotropic", "anisotropic", "triclinic"))
+    if couple not in COUPLINGS:
+        raise table.error(
+            "couple",
+            f"{couple!r} coupling is not supported yet (orthorhombic boxes, isotropic only)",
+        )
+    compressibility = (
+        table.number("compressibility", _COMPRESSIBILITY[units.name], positive=True) / to_engine
+    )
+    every = table.integer("every", 10, minimum=1)
+    own_seed = table.integer("seed", None, minimum=0, maximum=MAX_SEED)
+    table.finish()
+    if kind == "berendsen":
+        logger.warning(
+            "[barostat] type = 'berendsen' relaxes the volume but does not sample the "
+            "isothermal-isobaric ensemble: use it to equilibrate, then c_rescale"
+        )
+    return {
+        "kind": kind, "pressure": pressure, "tau": tau, "compressibility": compressibility,
+        "couple": couple, "every": every,
+        "seed": own_seed if own_seed is not None else (None if seed is None else [seed, 2]),
+    }  # fmt: skip
 
 
 def _parse_minimize(table: _Table, integrator: dict) -> MinimizeConfig:

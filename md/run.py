@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from integrators.barostats import Barostat, PressureCoupled
 from md._checks import count
 from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
 from md.checkpoint import (
@@ -484,6 +485,11 @@ def build_components(config: Config, state: State | None = None):
         for index, entry in enumerate(config.potentials)
     ]
     integrator = integrator_from_config(config.integrator, config.source, bonds)
+    if config.barostat is not None:
+        try:
+            integrator = PressureCoupled(integrator, Barostat(**config.barostat))
+        except ValueError as error:
+            raise ConfigError(f"{config.source}: [barostat]: {error}") from None
     constraints = getattr(integrator, "constraints", None)
     if constraints is not None:  # start on the bond lengths, so step 0 is reported there
         try:

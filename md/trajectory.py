@@ -47,6 +47,7 @@ import errno
 import json
 import os
 import resource
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -516,62 +517,87 @@ def read_trajectory(path) -> Trajectory:
     path = Path(path)
     with open_h5md(path) as f:
         try:
-            group = f["particles/trajectory"]
-            units = get_units(str(f["parameters"].attrs.get("units", "lj")))
-            factors = {q: units.h5md[q][1] for q in units.h5md}
-
-            def scale(quantity: str) -> float:
-                return 1.0 / factors.get(quantity, 1.0)
-
             # Complete frames only: a run killed inside a write may have grown some
             # per-frame datasets by one frame and not the others.
             n_frames = _complete_frames(f)
-            steps = group["position/step"][:n_frames]
-            raw = group["position/value"][:n_frames] * scale("length")
-            boxes = group["box/edges/value"][:n_frames] * scale("length")
-            images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
-            positions = raw + images * boxes[:, None, :]
-            boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
-            velocities = forces = None
-            if "velocity" in group:
-                velocities = group["velocity/value"][:n_frames] * scale("velocity")
-            if "force" in group:
-                forces = group["force/value"][:n_frames] * scale("force")
-            observables = {}
-            if "observables" in f:
-                for name, element in f["observables"].items():
-                    quantity = _OBSERVABLE_UNITS.get(name, "")
-                    observables[name] = element["value"][:n_frames] * scale(quantity)
-            parameters = {}
-            for key, value in f["parameters"].attrs.items():
-                parameters[key] = maybe_json(value)
-            type_names = tuple(parameters.get("type_names") or ())
-            types = group["species"][()].astype(np.int32)
-            if not type_names:
-                type_names = tuple(f"T{t}" for t in range(int(types.max()) + 1))
-            return Trajectory(
-                path=path,
-                units=units,
-                steps=steps,
-                times=group["position/time"][:n_frames] * scale("time"),
-                positions=positions,
-                boxes=boxes,
-                pbc=np.array([b == "periodic" for b in boundary]),
-                masses=group["mass"][()] * scale("mass"),
-                types=types,
-                type_names=type_names,
-                velocities=velocities,
-                forces=forces,
-                observables=observables,
-                parameters=parameters,
-                topology=_read_topology(f),
-            )
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
-            if isinstance(error, TrajectoryError):
-                raise
-            if _is_checksum_error(error):
-                verify_frames(path)  # raises naming the frame
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+        try:
+            return retry_transient(lambda: _read_frames(f, path, n_frames), attempts=5)
+        except OSError as error:
+            # A run writing the file may have grown its datasets for a frame whose data
+            # has not reached the disk yet ("addr overflow"): read the frames before it.
+            if n_frames == 0 or _is_checksum_error(error):
+                raise _as_trajectory_error(path, error) from None
+        try:
+            return _read_frames(f, path, n_frames - 1)
+        except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
+            raise _as_trajectory_error(path, error) from None
+
+
+def _as_trajectory_error(path: Path, error: BaseException) -> TrajectoryError:
+    if isinstance(error, TrajectoryError):
+        return error
+    if _is_checksum_error(error):
+        try:
+            verify_frames(path)  # raises naming the frame
+        except TrajectoryError as named:
+            return named
+    return TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})")
+
+
+def _read_frames(f: h5py.File, path: Path, n_frames: int) -> Trajectory:
+    """The first ``n_frames`` frames of an open file as a Trajectory."""
+    try:
+        group = f["particles/trajectory"]
+        units = get_units(str(f["parameters"].attrs.get("units", "lj")))
+        factors = {q: units.h5md[q][1] for q in units.h5md}
+
+        def scale(quantity: str) -> float:
+            return 1.0 / factors.get(quantity, 1.0)
+
+        steps = group["position/step"][:n_frames]
+        raw = group["position/value"][:n_frames] * scale("length")
+        boxes = group["box/edges/value"][:n_frames] * scale("length")
+        images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
+        positions = raw + images * boxes[:, None, :]
+        boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
+        velocities = forces = None
+        if "velocity" in group:
+            velocities = group["velocity/value"][:n_frames] * scale("velocity")
+        if "force" in group:
+            forces = group["force/value"][:n_frames] * scale("force")
+        observables = {}
+        if "observables" in f:
+            for name, element in f["observables"].items():
+                quantity = _OBSERVABLE_UNITS.get(name, "")
+                observables[name] = element["value"][:n_frames] * scale(quantity)
+        parameters = {}
+        for key, value in f["parameters"].attrs.items():
+            parameters[key] = maybe_json(value)
+        type_names = tuple(parameters.get("type_names") or ())
+        types = group["species"][()].astype(np.int32)
+        if not type_names:
+            type_names = tuple(f"T{t}" for t in range(int(types.max()) + 1))
+        return Trajectory(
+            path=path,
+            units=units,
+            steps=steps,
+            times=group["position/time"][:n_frames] * scale("time"),
+            positions=positions,
+            boxes=boxes,
+            pbc=np.array([b == "periodic" for b in boundary]),
+            masses=group["mass"][()] * scale("mass"),
+            types=types,
+            type_names=type_names,
+            velocities=velocities,
+            forces=forces,
+            observables=observables,
+            parameters=parameters,
+            topology=_read_topology(f),
+        )
+    except (KeyError, ValueError, TypeError, RuntimeError) as error:
+        raise _as_trajectory_error(path, error) from None
 
 
 @dataclass
@@ -882,7 +908,7 @@ def open_trajectory(path, **kwargs):
         )
     kwargs.setdefault("convert_units", units != "lj")
     universe = mda.Universe.empty(len(masses), trajectory=False)
-    universe.load_new(str(path), format="H5MD", **kwargs)
+    retry_transient(lambda: universe.load_new(str(path), format="H5MD", **kwargs))
     names = list(names) or [f"T{t}" for t in range(int(types.max()) + 1)]
     universe.add_TopologyAttr("types", [names[t] for t in types])
     universe.add_TopologyAttr("masses", masses)
@@ -897,13 +923,34 @@ def open_trajectory(path, **kwargs):
     return universe
 
 
+#: Signs of an HDF5 error caused by a concurrent writer's frame in flight, not by damage.
+_TRANSIENT = ("truncated file", "addr overflow", "eoa", "stored_eof")
+
+
+def retry_transient(action, attempts: int = 20, pause: float = 0.05):
+    """Run ``action()``, retrying for up to a second while it fails as a live writer's
+    half-written frame makes reads fail (the run flushes each frame whole)."""
+    for attempt in range(attempts):
+        try:
+            return action()
+        except (OSError, AttributeError) as error:  # MDAnalysis's reader: AttributeError
+            transient = any(sign in str(error).lower() for sign in _TRANSIENT) or (
+                isinstance(error, AttributeError) and "_file" in str(error)
+            )
+            if not transient or attempt == attempts - 1:
+                raise
+            time.sleep(pause)
+    return None
+
+
 def open_h5md(path: Path) -> h5py.File:
     if not path.exists():
         raise TrajectoryError(f"{path}: no such file")
     try:
         # Read-only; a file a run is writing can be read, since the writer takes no
-        # HDF5 file lock (frames are flushed whole: the reader sees those written so far).
-        f = h5py.File(path, "r")
+        # HDF5 file lock. A frame being written can leave the file's recorded end
+        # briefly ahead of its real end: such opens are retried.
+        f = retry_transient(lambda: h5py.File(path, "r"))
     except OSError as error:
         raise TrajectoryError(f"{path}: not a readable HDF5 file ({error})") from None
     try:

@@ -1,0 +1,218 @@
+"""Pressure control: a barostat applied to a thermostatted integrator every few steps.
+
+:class:`PressureCoupled` wraps a thermostat (Langevin, Bussi, Nose-Hoover
+chains, ...) and, every ``every`` steps, lets its barostat rescale the box and
+the positions (and, for stochastic cell rescaling, the velocities) towards
+the target pressure. Boxes are orthorhombic and the coupling isotropic:
+anisotropic and triclinic coupling and the Martyna-Tobias-Klein barostat are
+not here yet.
+
+``c_rescale``
+    Stochastic cell rescaling (Bernetti and Bussi, J. Chem. Phys. 153,
+    114107, 2020). With eps = ln V and the instantaneous pressure P,
+
+        d eps = -(beta / tau) (P0 - P - kT / V) dt + sqrt(2 kT beta dt / (V tau)) xi,
+
+    positions and box are scaled by mu = exp(d eps / 3) and velocities by
+    1 / mu. It samples the isothermal-isobaric ensemble (for an ideal gas
+    <V> = (N + 1) kT / P0) with any canonical thermostat; ``beta`` (the
+    compressibility given) and ``tau`` only set how fast the volume relaxes.
+``berendsen``
+    Berendsen's weak coupling, mu = (1 - beta dt (P0 - P) / tau)^(1/3):
+    for equilibration only; it relaxes the volume but suppresses its
+    fluctuations, so it does not sample the isothermal-isobaric ensemble
+    (the config warns).
+
+Each move's change of kinetic plus potential energy, plus P0 times the
+change of volume, is subtracted into the barostat's reservoir, so
+``conserved_energy`` (total + P0 V + both reservoirs) checks the time step as
+in NVT.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+
+from integrators.base import IntegratorBase
+from md._checks import count, positive
+from md.errors import SimulationError
+from md.thermo import kinetic_energy, pressure
+
+#: Barostat types and whether they sample the isothermal-isobaric ensemble.
+BAROSTATS = {"c_rescale": True, "berendsen": False}
+COUPLINGS = ("isotropic",)
+
+
+class Barostat:
+    """Target pressure, coupling time and compressibility of a barostat.
+
+    Parameters
+    ----------
+    kind : {"c_rescale", "berendsen"}
+    pressure : float
+        Target pressure P0 [energy/length^3] (any finite value).
+    tau : float
+        Coupling time [time], > 0.
+    compressibility : float
+        Isothermal compressibility beta used in the coupling [length^3/energy], > 0.
+    couple : {"isotropic"}
+    every : int
+        Steps between barostat moves (the moves use dt * every).
+    seed : int, list of int or None
+        Random stream of ``c_rescale``.
+    """
+
+    def __init__(self, kind: str, pressure: float, tau: float, compressibility: float,
+                 couple: str = "isotropic", every: int = 10, seed=None) -> None:  # fmt: skip
+        if kind not in BAROSTATS:
+            raise ValueError(f"unknown barostat {kind!r}; known: {', '.join(BAROSTATS)}")
+        if couple not in COUPLINGS:
+            raise ValueError(
+                f"couple = {couple!r} is not supported yet (orthorhombic boxes, isotropic "
+                "coupling only); use 'isotropic'"
+            )
+        self.kind = kind
+        if isinstance(pressure, bool) or not math.isfinite(float(pressure)):
+            raise ValueError(f"pressure must be a finite number, got {pressure!r}")
+        self.pressure = float(pressure)
+        self.tau = positive(tau, "tau")
+        self.compressibility = positive(compressibility, "compressibility")
+        self.couple = couple
+        self.every = count(every, "every", minimum=1)
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.reservoir = 0.0
+        self.moves = 0
+
+    @property
+    def samples_npt(self) -> bool:
+        return BAROSTATS[self.kind]
+
+    def scale_factor(self, p_now: float, volume: float, kT: float, dt: float) -> float:
+        """The isotropic scale factor mu of one move lasting ``dt``."""
+        rate = self.compressibility / self.tau
+        if self.kind == "berendsen":
+            return (1.0 - rate * dt * (self.pressure - p_now)) ** (1.0 / 3.0)
+        drift = -rate * (self.pressure - p_now - kT / volume) * dt
+        noise = math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
+        return math.exp((drift + noise) / 3.0)
+
+    def describe(self) -> dict:
+        return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
+                "compressibility": self.compressibility, "couple": self.couple,
+                "every": self.every, "seed": self.seed}  # fmt: skip
+
+
+class PressureCoupled(IntegratorBase):
+    """A thermostatted integrator with a :class:`Barostat`; see the module docstring.
+
+    Raises
+    ------
+    ValueError
+        If the integrator is not a thermostat (pressure control needs a temperature).
+    """
+
+    stochastic = True
+    splits_forces = False
+
+    def __init__(self, integrator, barostat: Barostat) -> None:
+        if not getattr(integrator, "thermostat", False):
+            raise ValueError(
+                "a barostat needs a thermostat ([integrator] type langevin, bussi, "
+                "nose_hoover_chain or berendsen), not an NVE integrator"
+            )
+        self.inner = integrator
+        self.barostat = barostat
+        self.dt = integrator.dt
+        self.thermostat = True
+        self.canonical = integrator.canonical and barostat.samples_npt
+        self.supports_constraints = integrator.supports_constraints
+        self._steps = 0
+
+    @property
+    def constraints(self):
+        return getattr(self.inner, "constraints", None)
+
+    @property
+    def kT(self) -> float:
+        return self.inner.kT
+
+    def step(self, state, forcefield) -> None:
+        self.inner.step(state, forcefield)
+        self._steps += 1
+        if self._steps % self.barostat.every == 0:
+            self._move(state, forcefield)
+
+    def _move(self, state, forcefield) -> None:
+        barostat = self.barostat
+        result = forcefield.compute(state, virial=True)
+        terms = self.inner.thermo_terms(state, result)
+        virial = result.virial + terms["virial"] if "virial" in terms else result.virial
+        volume = state.volume
+        kinetic = kinetic_energy(state.velocities, state.masses)
+        p_now = pressure(kinetic, virial, volume)
+        mu = barostat.scale_factor(p_now, volume, self.kT, self.dt * barostat.every)
+        if not (math.isfinite(mu) and mu > 0):
+            raise SimulationError(state.step, f"the barostat's scale factor is {mu}")
+        before = kinetic + result.energy
+        state.positions *= mu
+        state.box = state.box * mu
+        if barostat.kind == "c_rescale":
+            state.velocities /= mu
+        try:
+            energy = forcefield.compute(state, virial=False).energy
+        except ValueError as error:  # the box shrank below what the cutoff allows
+            raise SimulationError(state.step, f"after a barostat move: {error}") from None
+        after = kinetic_energy(state.velocities, state.masses) + energy
+        barostat.reservoir -= (after - before) + barostat.pressure * (state.volume - volume)
+        barostat.moves += 1
+
+    def thermo_terms(self, state, result) -> dict:
+        terms = dict(self.inner.thermo_terms(state, result))
+        # conserved = K + U + P0 V + heat bath + barostat reservoir
+        terms["reservoir_energy"] = (
+            terms.get("reservoir_energy", 0.0)
+            + self.barostat.reservoir
+            + self.barostat.pressure * state.volume
+        )
+        return terms
+
+    @property
+    def statistics(self) -> dict:
+        stats = dict(getattr(self.inner, "statistics", {}))
+        stats["barostat_moves"] = self.barostat.moves
+        return stats
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def get_state(self) -> dict:
+        inner = self.inner.get_state() if hasattr(self.inner, "get_state") else None
+        barostat = self.barostat
+        return {
+            "inner": inner,
+            "steps": self._steps,
+            "barostat": {
+                "reservoir": barostat.reservoir,
+                "moves": barostat.moves,
+                "rng": copy.deepcopy(barostat.rng.bit_generator.state),
+            },
+        }
+
+    def set_state(self, saved: dict) -> None:
+        if saved.get("inner") is not None:
+            self.inner.set_state(saved["inner"])
+        self._steps = int(saved["steps"])
+        mine = saved["barostat"]
+        self.barostat.reservoir = float(mine["reservoir"])
+        self.barostat.moves = int(mine["moves"])
+        self.barostat.rng.bit_generator.state = copy.deepcopy(mine["rng"])
+
+    def describe(self) -> dict:
+        return {**self.inner.describe(), "barostat": self.barostat.describe()}
+
+
+__all__ = ["BAROSTATS", "COUPLINGS", "Barostat", "PressureCoupled"]

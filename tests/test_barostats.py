@@ -1,0 +1,213 @@
+"""Barostats (stochastic cell rescaling, Berendsen) on orthorhombic boxes, isotropic coupling.
+
+Exact answers: an ideal gas under isotropic NPT has <V> = (N + 1) kT / P and
+var(V) / (kT <V>) = 1 / P (the compressibility); thermodynamic consistency:
+the compressibility from volume fluctuations equals -(1/V) dV/dP from the mean
+volumes at neighbouring pressures.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+import md
+from integrators import Langevin, VelocityVerlet
+from integrators.barostats import Barostat, PressureCoupled
+from md.cli import main
+from md.trajectory import read_trajectory
+from potentials import HarmonicBonds, LennardJones
+
+N_GAS = 100
+
+
+def _ideal_gas_volumes(pressure, kind="c_rescale", steps=20_000, seed=1):
+    """Volumes sampled every 10 steps after 2000, for N_GAS ideal-gas atoms at kT = 1."""
+    rng = np.random.default_rng(seed)
+    state = md.State(positions=rng.uniform(0, 4.6, size=(N_GAS, 3)), box=4.6)
+    md.maxwell_boltzmann(state, 1.0, seed=seed)
+    no_forces = HarmonicBonds(np.zeros((0, 2), dtype=int), k=1.0, r0=1.0)
+    integrator = PressureCoupled(
+        Langevin(0.01, temperature=1.0, friction=2.0, seed=seed + 1),
+        Barostat(kind, pressure, tau=0.5, compressibility=1.0, every=1, seed=seed + 2),
+    )
+    sim = md.Simulation(state, [no_forces], integrator)
+    volumes = []
+    sim.attach(lambda s: volumes.append(s.state.volume), 10)
+    sim.run(steps)
+    return np.array(volumes[200:])
+
+
+@pytest.fixture(scope="module")
+def gas_at_1():
+    return _ideal_gas_volumes(1.0)
+
+
+def test_ideal_gas_mean_volume_is_n_plus_1_kt_over_p(gas_at_1):
+    assert gas_at_1.mean() == pytest.approx((N_GAS + 1) * 1.0 / 1.0, rel=0.03)
+
+
+def test_compressibility_from_fluctuations_matches_the_equation_of_state(gas_at_1):
+    from md.analysis import isothermal_compressibility
+
+    kappa_fluct = isothermal_compressibility(gas_at_1, temperature=1.0)
+    low, high = _ideal_gas_volumes(0.8, seed=5).mean(), _ideal_gas_volumes(1.25, seed=7).mean()
+    kappa_eos = -(high - low) / (1.25 - 0.8) / gas_at_1.mean()
+    assert kappa_fluct == pytest.approx(1.0, rel=0.15)  # exact: 1/P
+    assert kappa_fluct == pytest.approx(kappa_eos, rel=0.2)
+
+
+def test_berendsen_relaxes_the_volume_but_suppresses_its_fluctuations(gas_at_1):
+    berendsen = _ideal_gas_volumes(1.0, kind="berendsen")
+    assert berendsen.mean() == pytest.approx(gas_at_1.mean(), rel=0.05)
+    assert berendsen.var() < 0.3 * gas_at_1.var()
+
+
+def _liquid_sim(kind="c_rescale", every=10):
+    state = md.maxwell_boltzmann(md.lattice("fcc", 4, density=0.8), 1.0, seed=3)
+    integrator = PressureCoupled(
+        Langevin(0.005, temperature=1.0, friction=1.0, seed=4),
+        Barostat(kind, 1.0, tau=1.0, compressibility=0.1, every=every, seed=5),
+    )
+    return md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
+
+
+def test_conserved_quantity_includes_p0_v_and_the_barostat_work():
+    sim = _liquid_sim()
+    start = sim.thermo()
+    sim.run(1000)
+    end = sim.thermo()
+    assert end["volume"] != start["volume"]
+    # total energy moves by ~hundreds (the box relaxes); the conserved quantity by < 1
+    assert abs(end["total_energy"] - start["total_energy"]) > 50
+    assert abs(end["conserved_energy"] - start["conserved_energy"]) < 1.0
+    assert sim.integrator.statistics["barostat_moves"] == 100
+
+
+def test_get_and_set_state_continue_bit_for_bit():
+    a, b = _liquid_sim(), _liquid_sim()
+    a.run(200)
+    b.run(100)
+    saved, state = b.integrator.get_state(), b.state.copy()
+    c = _liquid_sim()
+    c.state.positions[:], c.state.velocities[:] = state.positions, state.velocities
+    c.state.box, c.state.step, c.state.time = state.box.copy(), state.step, state.time
+    c.integrator.set_state(saved)
+    c.run(100)
+    b.run(100)
+    assert np.array_equal(b.state.positions, a.state.positions)
+    assert np.array_equal(c.state.box, a.state.box)
+    assert np.allclose(c.state.positions, a.state.positions, atol=1e-10)
+
+
+def test_a_barostat_needs_a_thermostat_and_valid_parameters():
+    with pytest.raises(ValueError, match="needs a thermostat"):
+        PressureCoupled(VelocityVerlet(0.005), Barostat("c_rescale", 1.0, 1.0, 0.1))
+    with pytest.raises(ValueError, match="unknown barostat 'mtk'"):
+        Barostat("mtk", 1.0, 1.0, 0.1)
+    with pytest.raises(ValueError, match="tau must be finite and > 0"):
+        Barostat("c_rescale", 1.0, 0.0, 0.1)
+    with pytest.raises(ValueError, match="not supported yet"):
+        Barostat("c_rescale", 1.0, 1.0, 0.1, couple="anisotropic")
+
+
+CONFIG = """
+units = "lj"
+seed = 3
+[system]
+lattice = "fcc"
+cells = 4
+density = 0.8
+temperature = 1.0
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+[integrator]
+{integrator}
+[barostat]
+{barostat}
+[run]
+steps = 60
+thermo_every = 20
+[output]
+path = "npt.h5"
+every = 20
+checkpoint_every = 20
+"""
+LANGEVIN = 'type = "langevin"\ndt = 0.005\ntemperature = 1.0\nfriction = 1.0'
+C_RESCALE = 'type = "c_rescale"\npressure = 1.0\ntau = 1.0'
+
+
+@pytest.fixture(autouse=True)
+def in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+
+
+def test_md_run_with_a_barostat_stores_volume_and_resumes_bit_for_bit(tmp_path):
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=C_RESCALE))
+    quiet = ("--no-progress", "-q")
+    assert main(["run", "npt.toml", "-o", "whole.h5", *quiet]) == 0
+    assert main(["run", "npt.toml", "-o", "part.h5", "--steps", "40", *quiet]) == 0
+    assert main(["run", "npt.toml", "-o", "part.h5", "--resume", *quiet]) == 0
+    whole, part = read_trajectory("whole.h5"), read_trajectory("part.h5")
+    assert np.ptp(whole.observables["volume"]) > 0  # the box moved
+    assert np.array_equal(whole.boxes, part.boxes)
+    assert np.array_equal(whole.positions, part.positions)
+    assert np.array_equal(whole.observables["volume"], part.observables["volume"])
+
+
+@pytest.mark.parametrize(
+    ("integrator", "barostat", "message"),
+    [
+        (LANGEVIN, 'type = "mtk"\npressure = 1.0\ntau = 1.0', "[barostat] type: must be one of"),
+        (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = 0.0', "tau: must be positive"),
+        (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = -1', "tau: must be positive"),
+        (LANGEVIN, C_RESCALE + '\ncouple = "anisotropic"', "not supported yet"),
+        (LANGEVIN, C_RESCALE + '\ncouple = "sideways"', "[barostat] couple: must be one of"),
+        ('type = "verlet"\ndt = 0.005', C_RESCALE, "needs a thermostat"),
+        (LANGEVIN, 'type = "c_rescale"\ntau = 1.0', "missing required key [barostat] pressure"),
+    ],
+)
+def test_bad_barostat_input_exits_2_and_writes_nothing(tmp_path, capsys, integrator, barostat,
+                                                       message):  # fmt: skip
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=integrator, barostat=barostat))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "npt.h5").exists()
+
+
+def test_berendsen_config_warns_that_it_does_not_sample_npt(tmp_path, caplog):
+    from md.config import load_config
+
+    berendsen = C_RESCALE.replace("c_rescale", "berendsen")
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=berendsen))
+    with caplog.at_level(logging.WARNING):
+        config = load_config(tmp_path / "npt.toml")
+    assert config.barostat["kind"] == "berendsen"
+    assert "does not sample the isothermal-isobaric ensemble" in caplog.text
+
+
+def test_metal_pressure_in_bar_and_a_sweep_over_pressure(tmp_path):
+    from md.config import load_config
+    from md.sweeps.plan import plan_sweep
+    from md.units import eV_per_A3_in_bar
+
+    metal = CONFIG.replace('units = "lj"', 'units = "metal"').replace(
+        "density = 0.8", 'lattice_constant = 5.26\nmass = 39.948\ntype_name = "Ar"'
+    ).replace("temperature = 1.0\n[[", "temperature = 100.0\n[[").replace(
+        "cutoff = 2.5", "epsilon = 0.0104\nsigma = 3.4\ncutoff = 8.0"
+    )  # fmt: skip
+    metal = metal.format(
+        integrator=LANGEVIN.replace("temperature = 1.0", "temperature = 100.0").replace(
+            "friction = 1.0", "friction = 0.01"
+        ).replace("dt = 0.005", "dt = 5.0"),
+        barostat='type = "c_rescale"\npressure = 1.0\ntau = 1000.0',
+    )  # fmt: skip
+    (tmp_path / "metal.toml").write_text(metal)
+    config = load_config(tmp_path / "metal.toml")
+    assert config.barostat["pressure"] == pytest.approx(1.0 / eV_per_A3_in_bar)  # 1 bar
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=C_RESCALE))
+    plan = plan_sweep(tmp_path / "npt.toml", vary=["barostat.pressure=0.5,1.0,2.0"])
+    assert len(plan.runs) == 3
