@@ -57,8 +57,6 @@ FORMATS = {
 }
 #: Formats that hold one frame (the last one selected is written).
 SINGLE_FRAME = ("data",)
-#: Formats that store bonds.
-WITH_BONDS = ("data", "gsd")
 
 
 def output_format(path, format: str | None = None) -> str:
@@ -401,7 +399,6 @@ class _LammpsDumpWriter:
         self.molecules = molecules(reader.topology, reader.n_atoms)
         self.ids = np.arange(1, reader.n_atoms + 1)
         metal = reader.units.name != "lj"
-        self.time_factor = reader.units.h5md["time"][1] if metal else 1.0
         self.velocity_factor = reader.units.h5md["velocity"][1] if metal else 1.0
         boundary = ["pp" if p else "ff" for p in reader.pbc]
         self.bounds = " ".join(boundary)
@@ -503,9 +500,4 @@ WRITERS = {
 }
 
 
-def describe_formats() -> str:
-    """One line per suffix, for ``md convert --help``."""
-    return ", ".join(f".{suffix}" for suffix in FORMATS)
-
-
-__all__ = ["FORMATS", "convert", "describe_formats", "molecules", "output_format"]
+__all__ = ["FORMATS", "convert", "molecules", "output_format"]

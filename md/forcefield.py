@@ -101,24 +101,31 @@ class ForceField:
             ):
                 return cached
         virial = virial or self.virial_wanted  # a fresh evaluation includes it if wanted
+        total = self._evaluate(state, self.potentials, per_atom, virial)
+        self.n_evaluations += 1
+        self._cached = total
+        self._key = self._key_of(state)
+        return total
+
+    def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
+        """Sum ``potentials`` over the shared neighbour list (refreshed if one of them needs
+        it), timing the list and the kernels; NonFiniteError for non-finite input or energy."""
         start = time.perf_counter()
-        if self.neighbor_list is not None:
+        if self.neighbor_list is not None and any(p.cutoff is not None for p in potentials):
             self.neighbor_list.update(state)
         elif not np.all(np.isfinite(state.positions)):
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
-        results = []
-        for potential in self.potentials:
-            neighbors = self.neighbor_list if potential.cutoff is not None else None
-            results.append(potential.energy_forces(state, neighbors, per_atom, virial=virial))
+        results = [
+            p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None,
+                            per_atom, virial=virial)
+            for p in potentials
+        ]  # fmt: skip
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
-        self.n_evaluations += 1
         if not np.isfinite(total.energy):
             raise NonFiniteError(f"potential energy is {total.energy}")
-        self._cached = total
-        self._key = self._key_of(state)
         return total
 
     def compute_subset(self, state: State, which, virial: bool = False) -> ForceResult:
@@ -149,24 +156,8 @@ class ForceField:
             and (not virial or held[1].virial is not None)
         ):
             return held[1]
-        start = time.perf_counter()
-        subset = [self.potentials[i] for i in which]
-        if self.neighbor_list is not None and any(p.cutoff is not None for p in subset):
-            self.neighbor_list.update(state)
-        elif not np.all(np.isfinite(state.positions)):
-            raise NonFiniteError("particle positions are not finite")
-        middle = time.perf_counter()
-        results = [
-            p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None, False,
-                            virial=virial)
-            for p in subset
-        ]  # fmt: skip
-        total = results[0] if len(results) == 1 else _sum_results(results, False)
-        self.timings["neighbor"] += middle - start
-        self.timings["force"] += time.perf_counter() - middle
+        total = self._evaluate(state, [self.potentials[i] for i in which], False, virial)
         self.n_subset_evaluations += 1
-        if not np.isfinite(total.energy):
-            raise NonFiniteError(f"potential energy is {total.energy}")
         self._subsets[which] = (self._key_of(state), total)
         return total
 
