@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from integrators._kernels import _kick, _kick_drift
 from integrators.base import ConvergenceError, IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
-from md.box import min_image_component, minimum_image, periodic_lengths
+from md.box import min_image, minimum_image, periodic_lengths, periodic_tilt
 from md.thermo import degrees_of_freedom as unconstrained_dof
 
 #: Stage names used in error messages.
@@ -246,7 +246,9 @@ class BondConstraints:
     def bond_vectors(self, state) -> NDArray[np.float64]:
         """Return r_i - r_j for every constrained pair (minimum image) [length]."""
         i, j = self.bonds[:, 0], self.bonds[:, 1]
-        return minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc)
+        return minimum_image(
+            state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt
+        )
 
     def errors(self, state) -> NDArray[np.float64]:
         """Return |r - d| / d for every constrained pair (dimensionless)."""
@@ -283,9 +285,10 @@ class BondConstraints:
         if not self.n_constraints:
             return
         lengths, inverse = periodic_lengths(state.box, state.pbc)
+        tilt = periodic_tilt(state.tilt, state.pbc)
         iterations, residual, worst = _shake(
             state.positions, state.velocities, reference, self.bonds, self._d2, inverse_masses,
-            lengths, inverse, 1.0 / dt if move_velocities else 0.0, self.tol, self.max_iter,
+            lengths, inverse, tilt, 1.0 / dt if move_velocities else 0.0, self.tol, self.max_iter,
         )  # fmt: skip
         self.statistics["shake_iterations"] += iterations
         if iterations > self.max_iter or not np.isfinite(residual):
@@ -306,9 +309,10 @@ class BondConstraints:
         if not self.n_constraints:
             return
         lengths, inverse = periodic_lengths(state.box, state.pbc)
+        tilt = periodic_tilt(state.tilt, state.pbc)
         iterations, residual, worst = _rattle(
             state.positions, state.velocities, self.bonds, self._d2, inverse_masses,
-            lengths, inverse, dt, self.tol, self.max_iter,
+            lengths, inverse, tilt, dt, self.tol, self.max_iter,
         )  # fmt: skip
         self.statistics["rattle_iterations"] += iterations
         if iterations > self.max_iter or not np.isfinite(residual):
@@ -483,7 +487,7 @@ class Rattle(IntegratorBase):
 
 
 @njit(cache=True, error_model="numpy")
-def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths, inverse,
+def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths, inverse, tilt,
            inverse_dt, tol, max_iter):  # fmt: skip
     """SHAKE sweeps until every |r^2 - d^2| / (2 d^2) <= tol; positions (and
     velocities, scaled by inverse_dt, 0 for none) written in place.
@@ -501,9 +505,14 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
         for k in range(n_bonds):
             i = bonds[k, 0]
             j = bonds[k, 1]
-            sx = min_image_component(positions[i, 0] - positions[j, 0], lengths[0], inverse[0])
-            sy = min_image_component(positions[i, 1] - positions[j, 1], lengths[1], inverse[1])
-            sz = min_image_component(positions[i, 2] - positions[j, 2], lengths[2], inverse[2])
+            sx, sy, sz = min_image(
+                positions[i, 0] - positions[j, 0],
+                positions[i, 1] - positions[j, 1],
+                positions[i, 2] - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
             diff = d2[k] - (sx * sx + sy * sy + sz * sz)
             error = abs(diff) / (2.0 * d2[k])
             if error > worst:
@@ -511,9 +520,14 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
                 worst_bond = k
             if error <= tol or sweep == max_iter:
                 continue
-            rx = min_image_component(reference[i, 0] - reference[j, 0], lengths[0], inverse[0])
-            ry = min_image_component(reference[i, 1] - reference[j, 1], lengths[1], inverse[1])
-            rz = min_image_component(reference[i, 2] - reference[j, 2], lengths[2], inverse[2])
+            rx, ry, rz = min_image(
+                reference[i, 0] - reference[j, 0],
+                reference[i, 1] - reference[j, 1],
+                reference[i, 2] - reference[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
             rs = rx * sx + ry * sy + rz * sz
             if not rs > 1e-6 * d2[k]:
                 return max_iter + 1, np.inf, k
@@ -538,7 +552,7 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
 
 
 @njit(cache=True, error_model="numpy")
-def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, dt, tol,
+def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, tilt, dt, tol,
             max_iter):  # fmt: skip
     """RATTLE sweeps until every |r . v_ij| dt / d^2 <= tol; velocities written in place.
 
@@ -552,10 +566,12 @@ def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, 
     for k in range(n_bonds):
         i = bonds[k, 0]
         j = bonds[k, 1]
-        for a in range(3):
-            vectors[k, a] = min_image_component(
-                positions[i, a] - positions[j, a], lengths[a], inverse[a]
-            )
+        vectors[k, 0], vectors[k, 1], vectors[k, 2] = min_image(
+            positions[i, 0] - positions[j, 0],
+            positions[i, 1] - positions[j, 1],
+            positions[i, 2] - positions[j, 2],
+            lengths, inverse, tilt,
+        )  # fmt: skip
         r2 = vectors[k, 0] ** 2 + vectors[k, 1] ** 2 + vectors[k, 2] ** 2
         weights[k] = 1.0 / (r2 * (inverse_masses[i] + inverse_masses[j]))
     worst = 0.0

@@ -17,12 +17,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from md.box import min_image_component
+from md.box import cell_matrix, min_image, periodic_tilt
 
 
 @njit(cache=True, error_model="numpy")
-def _brute_force_pairs(positions, lengths, inverse, r2_max, starts, neighbors):
-    """O(N^2) half list; the reference the cell search is tested against."""
+def _brute_force_pairs(positions, lengths, inverse, tilt, r2_max, starts, neighbors):
+    """O(N^2) half list (minimum image); the reference the cell search is tested against."""
     n = positions.shape[0]
     capacity = neighbors.shape[0]
     count = 0
@@ -32,9 +32,10 @@ def _brute_force_pairs(positions, lengths, inverse, r2_max, starts, neighbors):
         yi = positions[i, 1]
         zi = positions[i, 2]
         for j in range(i + 1, n):
-            dx = min_image_component(xi - positions[j, 0], lengths[0], inverse[0])
-            dy = min_image_component(yi - positions[j, 1], lengths[1], inverse[1])
-            dz = min_image_component(zi - positions[j, 2], lengths[2], inverse[2])
+            dx, dy, dz = min_image(
+                xi - positions[j, 0], yi - positions[j, 1], zi - positions[j, 2],
+                lengths, inverse, tilt,
+            )  # fmt: skip
             if dx * dx + dy * dy + dz * dz < r2_max:
                 if count < capacity:
                     neighbors[count] = j
@@ -64,20 +65,26 @@ def _bin_atoms(
     n_cells,
     periodic,
     box,
+    tilt,
     cell_of,
     cell_starts,
     order,
     sorted_wrapped,
     images,
 ):
-    """Counting sort of atoms by cell.
+    """Counting sort of atoms by cell (cells of the restricted triclinic cell).
 
-    Writes ``cell_of[i]`` (flat cell index of atom i), ``cell_starts``
+    Atoms are binned by their sheared-back coordinates g (``md.box.fractional``:
+    the fractional coordinate times the edge along periodic axes), in which
+    the cell is a rectangular box of edges ``box``; ``tilt`` (xy, xz, yz) is
+    zero for an orthorhombic box, where g is the position. Writes
+    ``cell_of[i]`` (flat cell index of atom i), ``cell_starts``
     (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell),
     ``sorted_wrapped[p]``, the position of atom ``order[p]`` wrapped into
-    [0, L) along periodic axes, so a cell's atoms are contiguous in memory,
-    and ``images[p]`` (int32), the box lengths added to wrap it:
-    ``sorted_wrapped[p] == positions[order[p]] + images[p] * L`` exactly.
+    the cell (g in [0, L)) along periodic axes, so a cell's atoms are
+    contiguous in memory, and ``images[p]`` (int32), the cell vectors added
+    to wrap it: ``sorted_wrapped[p] == positions[order[p]] + images[p] @ h``
+    (h the cell matrix) up to round-off, exactly for an orthorhombic box.
     Open axes are clamped to the grid, whose origin and width the caller
     chose to span the atoms.
     """
@@ -86,10 +93,24 @@ def _bin_atoms(
     total = nx * ny * nz
     for c in range(total + 1):
         cell_starts[c] = 0
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
+    grid = np.empty((n, 3))
     for i in range(n):
-        kx = _grid_index(positions[i, 0], origin[0], cell_width[0], nx, periodic[0], box[0])
-        ky = _grid_index(positions[i, 1], origin[1], cell_width[1], ny, periodic[1], box[1])
-        kz = _grid_index(positions[i, 2], origin[2], cell_width[2], nz, periodic[2], box[2])
+        gx = positions[i, 0]
+        gy = positions[i, 1]
+        gz = positions[i, 2]
+        if sheared:  # a tilt is non-zero only between periodic axes
+            sz = gz / box[2] if periodic[2] else 0.0
+            gy -= sz * yz
+            sy = gy / box[1] if periodic[1] else 0.0
+            gx -= sy * xy + sz * xz
+        grid[i, 0] = gx
+        grid[i, 1] = gy
+        grid[i, 2] = gz
+        kx = _grid_index(gx, origin[0], cell_width[0], nx, periodic[0], box[0])
+        ky = _grid_index(gy, origin[1], cell_width[1], ny, periodic[1], box[1])
+        kz = _grid_index(gz, origin[2], cell_width[2], nz, periodic[2], box[2])
         c = (kx * ny + ky) * nz + kz
         cell_of[i] = c
         cell_starts[c + 1] += 1
@@ -101,48 +122,45 @@ def _bin_atoms(
         p = fill[c]
         order[p] = i
         fill[c] += 1
-        for a in range(3):
-            x = positions[i, a]
-            image = 0.0
-            if periodic[a]:
-                image = -np.floor(x / box[a])
-                x = x + box[a] * image
-            sorted_wrapped[p, a] = x
-            images[p, a] = np.int32(image)
+        wx = -np.floor(grid[i, 0] / box[0]) if periodic[0] else 0.0
+        wy = -np.floor(grid[i, 1] / box[1]) if periodic[1] else 0.0
+        wz = -np.floor(grid[i, 2] / box[2]) if periodic[2] else 0.0
+        x = positions[i, 0] + box[0] * wx
+        y = positions[i, 1] + box[1] * wy
+        z = positions[i, 2] + box[2] * wz
+        if sheared:
+            x += wy * xy + wz * xz
+            y += wz * yz
+        sorted_wrapped[p, 0] = x
+        sorted_wrapped[p, 1] = y
+        sorted_wrapped[p, 2] = z
+        images[p, 0] = np.int32(wx)
+        images[p, 1] = np.int32(wy)
+        images[p, 2] = np.int32(wz)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _neighbor_cell(c, offset, n, periodic, length):
-    """Index of the adjacent cell c + offset along one axis and the image shift.
+def _neighbor_cell(c, offset, n, periodic):
+    """Index of the adjacent cell c + offset along one axis and its wrap (-1, 0 or 1).
 
-    Returns (-1, 0.0) past the edge of an open axis.
+    Returns (-1, 0) past the edge of an open axis.
     """
     k = c + offset
     if k < 0:
         if not periodic:
-            return -1, 0.0
-        return k + n, -length
+            return -1, 0
+        return k + n, -1
     if k >= n:
         if not periodic:
-            return -1, 0.0
-        return k - n, length
-    return k, 0.0
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _shift_code(shift):
-    """Digit 0, 1 or 2 of a cell image shift of -length, 0 or +length along one axis."""
-    if shift < 0.0:
-        return 0
-    if shift > 0.0:
-        return 2
-    return 1
+            return -1, 0
+        return k - n, 1
+    return k, 0
 
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds, capacity,
-    starts, neighbors, codes, counts,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, bounds,
+    capacity, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
@@ -170,22 +188,22 @@ def _frame_pairs(
     most = _most_per_cell(cell_starts)
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts,
-            bounds, capacity, most, starts, neighbors, codes, counts,
+            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
+            cell_starts, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _frame_pairs_threaded(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds, capacity,
-    starts, neighbors, codes, counts,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, bounds,
+    capacity, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     most = _most_per_cell(cell_starts)
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts,
-            bounds, capacity, most, starts, neighbors, codes, counts,
+            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
+            cell_starts, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
@@ -199,15 +217,18 @@ def _most_per_cell(cell_starts):
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
-    chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, cell_starts, bounds,
-    capacity, most, starts, neighbors, codes, counts,
+    chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts,
+    bounds, capacity, most, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
     For each (x, y) neighbour column the cells along z lie next to each other
     in slot order, so they are scanned as one run of slots (two or three
-    where the column wraps around the z edge), not cell by cell.
+    where the column wraps around the z edge), not cell by cell. A neighbour
+    cell across the edge of the cell along axes with wraps (wx, wy, wz) is
+    seen shifted by wx a + wy b + wz c.
     """
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     base = chunk * capacity
     side = 2 * reach + 1
@@ -225,17 +246,19 @@ def _frame_pairs_chunk(
         zi = wrapped[p, 2]
         found = 0
         for ox in range(0, reach + 1):
-            kx, sx = _neighbor_cell(cx, ox, nx, periodic[0], box[0])
+            kx, wx = _neighbor_cell(cx, ox, nx, periodic[0])
             if kx < 0:
                 continue
             for oy in range(-reach, reach + 1):
                 if ox == 0 and oy < 0:
                     continue
-                ky, sy = _neighbor_cell(cy, oy, ny, periodic[1], box[1])
+                ky, wy = _neighbor_cell(cy, oy, ny, periodic[1])
                 if ky < 0:
                     continue
                 column = (kx * ny + ky) * nz
-                code = _shift_code(sx) * 9 + _shift_code(sy) * 3
+                code = (wx + 1) * 9 + (wy + 1) * 3
+                sx = wx * box[0] + wy * xy
+                sy = wy * box[1]
                 own = ox == 0 and oy == 0
                 low = cz if own else cz - reach
                 high = cz + reach
@@ -248,13 +271,13 @@ def _frame_pairs_chunk(
                 if periodic[2] and low < 0:  # the cells below z = 0, seen from the top
                     found = _scan(
                         cell_starts[column + low + nz], cell_starts[column + nz],
-                        xi, yi, zi, sx, sy, -box[2], code, wrapped, r2_max,
+                        xi, yi, zi, sx - xz, sy - yz, -box[2], code, wrapped, r2_max,
                         row, row_codes, found,
                     )  # fmt: skip
                 if periodic[2] and high >= nz:  # the cells above the top, seen from z = 0
                     found = _scan(
                         cell_starts[column], cell_starts[column + high - nz + 1],
-                        xi, yi, zi, sx, sy, box[2], code + 2, wrapped, r2_max,
+                        xi, yi, zi, sx + xz, sy + yz, box[2], code + 2, wrapped, r2_max,
                         row, row_codes, found,
                     )  # fmt: skip
         for k in range(found):
@@ -300,10 +323,13 @@ def _compact_chunks(bounds, capacity, counts, starts, neighbors, codes):
     return offset
 
 
-def _shift_table(box, pbc):
-    """(27, 3) image shifts named by the codes of ``_frame_pairs``: digit d means (d - 1) L."""
+def _shift_table(box, pbc, tilt):
+    """(27, 3) image shifts named by the codes of ``_frame_pairs``.
+
+    Code 9 dx + 3 dy + dz means the shift (dx - 1) a + (dy - 1) b + (dz - 1) c.
+    """
     digits = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)])
-    return (digits - 1) * np.where(pbc, box, 0.0)
+    return (digits - 1.0) @ cell_matrix(np.where(pbc, box, 0.0), periodic_tilt(tilt, pbc))
 
 
 @njit(cache=True, error_model="numpy")

@@ -6,8 +6,9 @@ The pure numpy helpers the engine calls every step (:func:`kinetic_energy`,
 
 * Analyses of an H5MD file written by :class:`md.trajectory.H5MDWriter`:
   :func:`thermo` (time series, block-averaged means, energy drift),
-  :func:`rdf` (g(r) per type pair through ``MDAnalysis.analysis.rdf.InterRDF``,
-  coordination numbers), :func:`msd` (``MDAnalysis.analysis.msd.EinsteinMSD``
+  :func:`rdf` (g(r) per type pair from MDAnalysis's ``capped_distance``,
+  normalised frame by frame with each frame's volume; coordination numbers),
+  :func:`msd` (``MDAnalysis.analysis.msd.EinsteinMSD``
   with FFT, Einstein diffusion coefficient) and :func:`vacf` (velocity
   autocorrelation by FFT, Green-Kubo diffusion coefficient).
 
@@ -24,8 +25,8 @@ not the engine's internal time unit). :func:`unit_labels` names them.
 Unwrapping
 ----------
 The MSD uses positions unwrapped with the stored periodic images,
-``position + image * edges``, which is exact (velocities are not used to
-unwrap). The VACF uses the stored velocities only.
+``position + image @ cell`` (``image * edges`` for an orthorhombic box),
+which is exact (velocities are not used to unwrap). The VACF uses the stored velocities only.
 
 What is written here rather than taken from a library
 -----------------------------------------------------
@@ -47,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,8 +56,9 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from md.box import perpendicular_widths
 from md.errors import AnalysisError, TrajectoryError
-from md.trajectory import attr_text, maybe_json, open_h5md, open_trajectory
+from md.trajectory import attr_text, maybe_json, open_h5md, open_trajectory, split_edges
 from md.units import get_units
 
 logger = logging.getLogger(__name__)
@@ -188,7 +189,7 @@ class TrajectoryInfo:
     type_names: tuple[str, ...]
     has_velocities: bool
     observables: tuple[str, ...]
-    min_edge: float  # smallest box edge over the selected frames
+    min_edge: float  # smallest box width (edge, or face distance of a tilted cell) over the frames
 
     @property
     def n_frames(self) -> int:
@@ -267,6 +268,9 @@ def trajectory_info(path, start=None, stop=None, step=None) -> TrajectoryInfo:
             if not names:
                 names = [f"T{t}" for t in range(int(types.max()) + 1)] if len(types) else []
             edges = group["box/edges/value"][sel] if len(frames) else np.zeros((0, 3))
+            widths = np.array(
+                [perpendicular_widths(b, t) for b, t in zip(*split_edges(edges), strict=True)]
+            )
             observables = ()
             if "observables" in f:
                 observables = tuple(
@@ -287,7 +291,7 @@ def trajectory_info(path, start=None, stop=None, step=None) -> TrajectoryInfo:
                 type_names=tuple(str(n) for n in names),
                 has_velocities="velocity" in group,
                 observables=observables,
-                min_edge=float(edges.min()) if len(edges) else math.nan,
+                min_edge=float(widths.min()) if len(widths) else math.nan,
             )
         except (KeyError, TypeError, OSError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
@@ -608,29 +612,34 @@ def rdf(
     step=None,
     verbose: bool = False,
 ) -> RDFResult:
-    """Radial distribution functions through ``MDAnalysis.analysis.rdf.InterRDF``.
+    """Radial distribution functions, normalised frame by frame with each frame's volume.
 
-    Same-type pairs exclude each atom's distance to itself
-    (``exclusion_block=(1, 1)``), so an ideal gas gives g = 1 with the
-    N (N - 1) normalisation. The coordination number comes from InterRDF's
-    pair counts: cumulative counts divided by frames and A atoms.
+    Pair distances come from ``MDAnalysis.lib.distances.capped_distance``
+    (minimum image in any cell, triclinic included). Each frame's histogram
+    is normalised with that frame's density N_B / V before frames are
+    averaged, so g(r) stays right when the volume fluctuates (constant
+    pressure); MDAnalysis's ``InterRDF`` divides by the mean volume instead.
+    Same-type pairs exclude each atom's distance to itself, so an ideal gas
+    gives g = 1 with the N (N - 1) normalisation. The coordination number is
+    the cumulative pair count divided by frames and A atoms.
 
     Parameters
     ----------
     bins : int
         Number of bins.
     r_range : (float, float), optional
-        [length]; default 0 to half the smallest box edge of the selected
-        frames, which is also the largest range allowed (minimum image).
+        [length]; default 0 to half the smallest cell width of the selected
+        frames (the edge for orthorhombic boxes), which is also the largest
+        range allowed (minimum image).
     pairs : sequence of (str, str), optional
         Type-name pairs; default every pair of types (and ``"all"`` when there
         are several types).
     start, stop, step : int, optional
         Frame selection.
     verbose : bool
-        Show MDAnalysis's progress bar.
+        Show a progress bar over frames.
     """
-    from MDAnalysis.analysis.rdf import InterRDF  # heavy: MDAnalysis on first use
+    from MDAnalysis.lib.distances import capped_distance  # heavy: MDAnalysis on first use
     from scipy.signal import find_peaks  # scipy submodule: loaded only by this analysis
 
     info = trajectory_info(path, start, stop, step)
@@ -643,7 +652,7 @@ def rdf(
         raise AnalysisError(f"RDF range must satisfy 0 <= r_min < r_max, got {r_min:g}:{r_max:g}")
     if r_max > half * (1 + 1e-9):
         raise AnalysisError(
-            f"RDF range up to {r_max:g} exceeds half the smallest box edge ({half:g}) of the "
+            f"RDF range up to {r_max:g} exceeds half the smallest cell width ({half:g}) of the "
             "selected frames; the minimum image cannot see farther"
         )
     names = list(info.type_names)
@@ -666,25 +675,31 @@ def rdf(
             raise AnalysisError(f"no atoms of type {name!r} (types: {', '.join(present)})")
         return universe.atoms[types == name]
 
+    groups = {(a, b): (group(a), group(b)) for a, b in pairs}
+    edges = np.linspace(r_min, r_max, int(bins) + 1)
+    shell = 4.0 / 3.0 * np.pi * np.diff(edges**3)
+    counts = {key: np.zeros(int(bins)) for key in groups}
+    weighted = {key: np.zeros(int(bins)) for key in groups}  # counts times the frame's volume
     sel = info.frame_range
+    frames = universe.trajectory[sel.start : sel.stop : sel.step]
+    for ts in _progress(frames, verbose, "g(r)"):
+        volume = float(ts.volume)
+        for (a, b), (g1, g2) in groups.items():
+            found, distances = capped_distance(
+                g1.positions, g2.positions, max_cutoff=r_max, min_cutoff=None, box=ts.dimensions
+            )
+            if a == b:  # the same group: drop each atom's distance to itself
+                distances = distances[found[:, 0] != found[:, 1]]
+            histogram = np.histogram(distances, bins=edges)[0].astype(np.float64)
+            counts[(a, b)] += histogram
+            weighted[(a, b)] += histogram * volume
+    n_frames = max(info.n_frames, 1)
     g, coordination, shells = {}, {}, {}
-    for a, b in pairs:
+    for (a, b), (g1, g2) in groups.items():
         key = "all" if (a, b) == ("all", "all") else f"{a}-{b}"
-        g1, g2 = group(a), group(b)
-        analysis = InterRDF(
-            g1,
-            g2,
-            nbins=int(bins),
-            range=(r_min, r_max),
-            exclusion_block=(1, 1) if a == b else None,
-        )
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Reader has no dt")
-            analysis.run(start=sel.start, stop=sel.stop, step=sel.step, verbose=verbose)
-        values = np.asarray(analysis.results.rdf, dtype=np.float64)
-        counts = np.asarray(analysis.results.count, dtype=np.float64)
-        cumulative = np.concatenate([[0.0], np.cumsum(counts)]) / (analysis.n_frames * len(g1))
-        edges = np.asarray(analysis.results.edges, dtype=np.float64)
+        n_pairs = len(g1) * len(g2) - (len(g1) if a == b else 0)
+        values = weighted[(a, b)] / (n_frames * n_pairs * shell)
+        cumulative = np.concatenate([[0.0], np.cumsum(counts[(a, b)])]) / (n_frames * len(g1))
         g[key], coordination[key] = values, cumulative
         shells[key] = _first_shell(edges, values, cumulative, find_peaks)
     return RDFResult(
@@ -695,6 +710,15 @@ def rdf(
         coordination=coordination,
         shells=shells,
     )
+
+
+def _progress(frames, verbose: bool, what: str):
+    """``frames``, with a tqdm bar when ``verbose``."""
+    if not verbose:
+        return frames
+    from tqdm.auto import tqdm  # progress bar: only when asked for
+
+    return tqdm(frames, desc=what)
 
 
 def _first_shell(edges, values, cumulative, find_peaks) -> Shell:
@@ -820,8 +844,11 @@ def msd(
     atoms = _selected_atoms(info, select)
     positions = _read(info, "position")[:, atoms]
     images = _read(info, "image")[:, atoms]
-    edges = _read(info, "box/edges")
-    unwrapped = positions + images * edges[:, None, :]
+    boxes, tilts = split_edges(_read(info, "box/edges"))
+    unwrapped = positions + images * boxes[:, None, :]
+    if np.any(tilts != 0.0):  # a tilted cell: images count cell vectors
+        unwrapped[..., 0] += images[..., 1] * tilts[:, 0, None] + images[..., 2] * tilts[:, 1, None]
+        unwrapped[..., 1] += images[..., 2] * tilts[:, 2, None]
     displacements = unwrapped - unwrapped[:1]
     universe = mda.Universe.empty(len(atoms), trajectory=False)
     universe.load_new(displacements, format=MemoryReader, order="fac", dt=dt)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from md.box import cell_matrix
 from md.state import State
 from md.thermo import degrees_of_freedom, kinetic_energy
 
@@ -23,8 +24,9 @@ def lattice(
     mass: float = 1.0,
     pbc=True,
     type_name: str = "A",
+    shear=None,
 ) -> State:
-    """Return a State of atoms on a cubic lattice, at rest.
+    """Return a State of atoms on a cubic lattice, at rest, in a cubic or sheared cell.
 
     Parameters
     ----------
@@ -39,6 +41,13 @@ def lattice(
         Cubic cell edge [length]; give exactly one of this and ``density``.
     mass : float
         Mass of every atom [mass].
+    shear : sequence of 3 floats, optional
+        Shear the crystal and its cell homogeneously by the dimensionless tilt
+        factors (xy, xz, yz) of HOOMD-blue's box: the cell vectors become
+        (Lx, 0, 0), (xy Ly, Ly, 0) and (xz Lz, yz Lz, Lz), and every site moves
+        with the cell (fractional coordinates are kept). The volume, hence the
+        density, is unchanged; the crystal is strained. Needs periodic axes
+        where it tilts.
 
     Examples
     --------
@@ -74,12 +83,21 @@ def lattice(
         -1, 1, 3
     )
     positions = ((grid + basis[None, :, :]) * a).reshape(-1, 3)
+    tilt = np.zeros(3)
+    if shear is not None:
+        factors = np.asarray(shear, dtype=np.float64)
+        if factors.shape != (3,) or not np.all(np.isfinite(factors)):
+            raise ValueError(f"shear must be three finite numbers (xy, xz, yz), got {shear!r}")
+        tilt = factors * edges[[1, 2, 2]]
+        # Fractional coordinates kept: r -> r diag(L)^-1 H, with H the sheared cell.
+        positions = positions / edges @ cell_matrix(edges, tilt)
     return State(
         positions=positions,
         masses=mass,
         box=edges,
         pbc=pbc,
         type_names=(type_name,),
+        tilt=tilt,
     )
 
 

@@ -20,6 +20,10 @@ Conventions, as in ASE (``ase.calculators.lj.LennardJones`` in particular):
 - Stress and per-atom stresses exist only when the cell has three non-zero
   edges (a volume), whatever the ``pbc`` flags; otherwise asking for them
   raises ``PropertyNotImplementedError``, as for ASE's own LennardJones.
+- Any cell goes in, triclinic and rotated ones included: the engine works in
+  the restricted frame of :func:`md.box.restricted_cell` (a along x, b in
+  the xy plane), and forces, stress and per-atom stresses are rotated back
+  into the frame of ``atoms.cell``.
 """
 
 from __future__ import annotations
@@ -35,8 +39,9 @@ from ase.calculators.calculator import (
 from ase.stress import full_3x3_to_voigt_6_stress
 from numpy.typing import NDArray
 
+from md.box import cell_matrix, perpendicular_widths, reduced_tilt, restricted_cell
 from md.forcefield import ForceField
-from md.state import State, orthorhombic_box, types_from_ase
+from md.state import State, types_from_ase
 from potentials import POTENTIALS
 from potentials.base import Potential
 
@@ -93,15 +98,17 @@ class MDCalculator(Calculator):
     for all of them at the same positions costs one engine call. Per-atom
     energies and stresses cost extra work and are computed when asked for.
 
-    The cell must be orthorhombic (a diagonal ``atoms.cell``): a triclinic
-    cell raises ``ValueError`` saying so. To relax the cell keep it
-    orthorhombic, e.g. ``FrechetCellFilter(atoms, mask=[1, 1, 1, 0, 0, 0])``.
-    Along open axes the cell may have zero length. A periodic edge shorter
-    than twice the cutoff (a small unit cell) is handled by evaluating an
-    internal supercell, replicated along the short axes until every edge
-    exceeds twice the cutoff; energy and stress are then per original cell,
-    forces and per-atom values those of the first copy (not with bonded
-    potentials, whose terms name atoms by index: those need a large cell).
+    Any cell is accepted, so ASE's cell filters (``FrechetCellFilter``,
+    ``UnitCellFilter``) relax all six strain components. A triclinic cell is
+    rotated into the engine's frame (see the module notes) and its tilt
+    factors reduced to the shortest equivalent ones (the same lattice).
+    Along open axes the cell may have zero length. A cell narrower than the
+    minimum image allows (an orthorhombic edge shorter than twice the cutoff,
+    or a tilted cell narrower than twice the cutoff plus skin) is handled by
+    evaluating an internal supercell, replicated along the narrow axes; energy
+    and stress are then per original cell, forces and per-atom values those
+    of the first copy (not with bonded potentials, whose terms name atoms by
+    index: those need a large cell).
 
     .. note::
        Hand-written where a library (or the engine) could do it: the
@@ -163,6 +170,8 @@ class MDCalculator(Calculator):
         self._replicas = np.ones(3, dtype=np.int64)
         self._shifts = np.zeros((1, 3))
         self._edges = np.zeros(3)
+        self._tilt = np.zeros(3)
+        self._rotation: NDArray[np.float64] | None = None  # None: the identity
         self._cell = np.zeros((3, 3))
         self._order: NDArray[np.int64] | None = None
         self._sorting = False
@@ -203,10 +212,14 @@ class MDCalculator(Calculator):
         energy = result.energy / copies if copies > 1 else result.energy
         self.results["energy"] = energy
         self.results["free_energy"] = energy
-        self.results["forces"] = self._originals(result.forces)
+        rotation = self._rotation
+        forces = self._originals(result.forces)
+        self.results["forces"] = forces if rotation is None else forces @ rotation.T
         volume = float(np.prod(self._edges))
         if volume > 0 and result.virial is not None:
             stress = -result.virial / (volume * copies)
+            if rotation is not None:
+                stress = rotation @ stress @ rotation.T
             self.results["stress"] = full_3x3_to_voigt_6_stress(stress)
         if result.energies is not None:
             self.results["energies"] = self._originals(result.energies)
@@ -217,7 +230,10 @@ class MDCalculator(Calculator):
                     f"per-atom stresses need per-atom virials, which not every potential of "
                     f"{names} provides"
                 )
-            self.results["stresses"] = -self._originals(result.virials) / volume
+            stresses = -self._originals(result.virials) / volume
+            if rotation is not None:
+                stresses = _rotate_voigt(stresses, rotation)
+            self.results["stresses"] = stresses
 
     def todict(self) -> dict:
         """Plain-data description (ASE writes it into trajectories)."""
@@ -249,8 +265,16 @@ class MDCalculator(Calculator):
                 self._sort(positions)  # the list is rebuilt now anyway
             return state
         self._cell = atoms.cell.array.copy()
-        edges = orthorhombic_box(self._cell, "atoms.cell (MDCalculator)")
+        edges, tilt, rotation = restricted_cell(self._cell, "atoms.cell (MDCalculator)")
+        self._rotation = None if np.array_equal(rotation, np.eye(3)) else rotation
         pbc = np.array(atoms.pbc, dtype=bool)
+        for k, pair in enumerate(((0, 1), (0, 2), (1, 2))):
+            if tilt[k] != 0.0 and not pbc[list(pair)].all():
+                raise ValueError(
+                    f"atoms.cell is tilted between axes {'xyz'[pair[0]]} and {'xyz'[pair[1]]} "
+                    f"(after rotation), which must then both be periodic; pbc is {pbc.tolist()}"
+                )
+        tilt = reduced_tilt(edges, tilt, pbc)
         if np.any(pbc & (edges == 0)):
             axis = "xyz"[int(np.argmax(pbc & (edges == 0)))]
             raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
@@ -264,20 +288,25 @@ class MDCalculator(Calculator):
             ):
                 rebuild = True
             self._types, self._names = types, names
-        replicas = _replicas(edges, pbc, self.forcefield.cutoff)
+        replicas = _replicas(edges, tilt, pbc, self.forcefield)
         if self._indexed and np.any(replicas > 1):
-            axis = "xyz"[int(np.argmax(replicas > 1))]
+            axis = int(np.argmax(replicas > 1))
+            width = perpendicular_widths(edges, tilt)[axis]
             raise ValueError(
-                f"the cell edge along {axis} ({edges[np.argmax(replicas > 1)]:g}) is not longer "
-                f"than twice the cutoff ({2 * self.forcefield.cutoff:g}), and with "
+                f"the cell width along {'xyz'[axis]} ({width:g}) is "
+                f"too short for the cutoff ({self.forcefield.cutoff:g}), and with "
                 f"{', '.join(self._indexed)} (terms between atom indices) MDCalculator cannot "
                 "replicate the cell: give it a larger cell (atoms.repeat)"
             )
         if not np.array_equal(replicas, self._replicas):
             rebuild = True
-        if not (np.array_equal(edges, self._edges) and np.array_equal(replicas, self._replicas)):
-            self._shifts = _image_shifts(replicas, edges)
-        self._replicas, self._edges = replicas, edges
+        if not (
+            np.array_equal(edges, self._edges)
+            and np.array_equal(tilt, self._tilt)
+            and np.array_equal(replicas, self._replicas)
+        ):
+            self._shifts = _image_shifts(replicas, cell_matrix(edges, tilt))
+        self._replicas, self._edges, self._tilt = replicas, edges, tilt
         positions = self._supercell_positions(atoms)
         if rebuild:
             self._n_atoms = n
@@ -288,6 +317,7 @@ class MDCalculator(Calculator):
                 pbc=pbc,
                 types=np.tile(self._types, len(self._shifts)),
                 type_names=self._names,
+                tilt=tilt * replicas[[1, 2, 2]],
             )
             self.forcefield.check(state)
             neighbor_list = self.forcefield.neighbor_list
@@ -305,6 +335,7 @@ class MDCalculator(Calculator):
                 neighbor_list.build(state)
             return state
         state.box[:] = edges * replicas
+        state.tilt[:] = tilt * replicas[[1, 2, 2]]
         state.pbc[:] = pbc
         if self._sorting:
             self._sort(positions)  # the box changed: the list is rebuilt now anyway
@@ -313,10 +344,13 @@ class MDCalculator(Calculator):
         return state
 
     def _supercell_positions(self, atoms) -> NDArray[np.float64]:
-        """Positions of the atoms and their copies (copies, n) in original order."""
+        """Positions (engine frame) of the atoms and their copies (copies, n) in original order."""
+        positions = atoms.positions
+        if self._rotation is not None:
+            positions = positions @ self._rotation
         if len(self._shifts) == 1:
-            return atoms.positions
-        shifted = atoms.positions[None, :, :] + self._shifts[:, None, :]
+            return positions
+        shifted = positions[None, :, :] + self._shifts[:, None, :]
         return shifted.reshape(-1, 3)
 
     def _sort(self, positions: NDArray[np.float64]) -> None:
@@ -405,24 +439,46 @@ def _has_per_type_parameters(potential) -> bool:
     )
 
 
-def _replicas(edges, pbc, cutoff) -> NDArray[np.int64]:
-    """Copies of the cell along each axis so every periodic edge exceeds 2 * cutoff."""
+def _replicas(edges, tilt, pbc, forcefield) -> NDArray[np.int64]:
+    """Copies of the cell along each axis so that the neighbour list accepts the supercell.
+
+    An orthorhombic supercell needs every periodic edge longer than twice
+    the cutoff, a tilted one every perpendicular width longer than twice the
+    cutoff plus skin (``NeighborList.check_box``). Replicating n times along
+    a cell vector multiplies the width across it by n.
+    """
     replicas = np.ones(3, dtype=np.int64)
+    cutoff = forcefield.cutoff
     if cutoff is None:
         return replicas
+    if np.any(tilt != 0.0) and forcefield.neighbor_list is not None:
+        reach = 2.0 * forcefield.neighbor_list.list_radius
+        widths = perpendicular_widths(edges, tilt)
+    else:
+        reach, widths = 2.0 * cutoff, edges
     for axis in range(3):
         if pbc[axis]:
-            count = int(2.0 * cutoff // edges[axis]) + 1
-            while count * edges[axis] <= 2.0 * cutoff:
+            count = int(reach // widths[axis]) + 1
+            while count * widths[axis] <= reach:
                 count += 1
             replicas[axis] = count
     return replicas
 
 
-def _image_shifts(replicas, edges) -> NDArray[np.float64]:
+def _image_shifts(replicas, cell) -> NDArray[np.float64]:
     """Translation of each copy (copies, 3) [length], the original (zero shift) first."""
     grid = np.stack(np.meshgrid(*(np.arange(r) for r in replicas), indexing="ij"), axis=-1)
-    return grid.reshape(-1, 3) * edges
+    return grid.reshape(-1, 3) @ cell
+
+
+def _rotate_voigt(stresses, rotation) -> NDArray[np.float64]:
+    """Rotate (N, 6) Voigt stresses (xx, yy, zz, yz, xz, xy) by Q: Q s Q^T for each."""
+    xx, yy, zz, yz, xz, xy = stresses.T
+    full = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
+                     np.stack([xz, yz, zz], -1)], axis=-2)  # fmt: skip
+    turned = rotation @ full @ rotation.T
+    return np.stack([turned[:, 0, 0], turned[:, 1, 1], turned[:, 2, 2], turned[:, 1, 2],
+                     turned[:, 0, 2], turned[:, 0, 1]], axis=-1)  # fmt: skip
 
 
 __all__ = ["MDCalculator"]

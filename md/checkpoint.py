@@ -130,6 +130,7 @@ def write_checkpoint(
         "velocities": state.velocities,
         "masses": state.masses,
         "box": state.box,
+        "tilt": state.tilt,
         "pbc": state.pbc,
         "types": state.types,
     }
@@ -192,6 +193,7 @@ def read_checkpoint(path) -> Checkpoint:
             velocities=arrays["velocities"],
             masses=arrays["masses"],
             box=arrays["box"],
+            tilt=arrays["tilt"] if "tilt" in arrays else None,  # older checkpoints: none
             pbc=arrays["pbc"],
             types=arrays["types"],
             type_names=tuple(meta["type_names"]),

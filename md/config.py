@@ -136,6 +136,7 @@ class SystemConfig:
     cells: tuple[int, int, int] = (1, 1, 1)
     density: float | None = None
     lattice_constant: float | None = None
+    shear: tuple[float, float, float] | None = None  # HOOMD-style tilt factors of a lattice
     structure: Path | None = None
     format: str | None = None  # ase.io format of a structure file (None: guessed from the name)
     mass: float | dict[str, float] | None = None  # a number, or per type name for structures
@@ -327,6 +328,8 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
                 "'lattice_constant'"
             )
         system.type_name = table.string("type_name", "A")
+        if "shear" in table.data:
+            system.shear = table.triple("shear", _MISSING, float)
     else:
         system.structure = (
             (base / structure) if not Path(structure).is_absolute() else Path(structure)
@@ -543,6 +546,7 @@ def build_system(config: Config):
                 mass=system.mass if system.mass is not None else 1.0,
                 pbc=system.pbc if system.pbc is not None else True,
                 type_name=system.type_name,
+                shear=system.shear,
             )
         else:
             try:

@@ -33,9 +33,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from md._files import atomic_path
 from md._version import __version__
+from md.box import cell_matrix
 from md.topology import Topology
 from md.trajectory import Frame, TrajectoryReader
 
@@ -159,6 +161,15 @@ def _positions(frame: Frame, unwrap: bool):
     return frame.unwrapped() if unwrap else frame.positions
 
 
+def cell_dimensions(box, tilt) -> NDArray[np.float64]:
+    """MDAnalysis's ``dimensions`` (a, b, c, alpha, beta, gamma) of a cell [length, degrees]."""
+    from MDAnalysis.lib.mdamath import triclinic_box  # MDAnalysis: loaded with the converters
+
+    if not np.any(np.asarray(tilt) != 0.0):
+        return np.array([*box, 90.0, 90.0, 90.0])
+    return np.asarray(triclinic_box(*cell_matrix(box, tilt)), dtype=np.float64)
+
+
 def _images(frame: Frame, unwrap: bool):
     return np.zeros_like(frame.images) if unwrap else frame.images
 
@@ -248,7 +259,9 @@ class _MDAnalysisWriter:
         factor = self.factor
         ts = self.universe.trajectory.ts
         ts.positions = _positions(frame, self.unwrap) * factor["length"]
-        ts.dimensions = [*(frame.box * factor["length"]), 90.0, 90.0, 90.0]
+        dimensions = cell_dimensions(frame.box, frame.tilt)
+        dimensions[:3] *= factor["length"]
+        ts.dimensions = dimensions
         ts.time = frame.time * factor["time"]
         ts.data["step"] = frame.step
         if self.velocities:
@@ -413,9 +426,19 @@ class _LammpsDumpWriter:
         out = self.handle
         out.write(f"ITEM: TIMESTEP\n{frame.step}\n")
         out.write(f"ITEM: NUMBER OF ATOMS\n{self.reader.n_atoms}\n")
-        out.write(f"ITEM: BOX BOUNDS {self.bounds}\n")
-        for length in frame.box:
-            out.write(f"0 {length:.17g}\n")
+        if not np.any(frame.tilt != 0.0):
+            out.write(f"ITEM: BOX BOUNDS {self.bounds}\n")
+            for length in frame.box:
+                out.write(f"0 {length:.17g}\n")
+        else:  # LAMMPS's triclinic dump header: bounds of the tilted box, then each tilt
+            xy, xz, yz = frame.tilt
+            lx, ly, lz = frame.box
+            low = min(0.0, xy, xz, xy + xz)
+            high = max(0.0, xy, xz, xy + xz)
+            out.write(f"ITEM: BOX BOUNDS xy xz yz {self.bounds}\n")
+            out.write(f"{low:.17g} {lx + high:.17g} {xy:.17g}\n")
+            out.write(f"{min(0.0, yz):.17g} {ly + max(0.0, yz):.17g} {xz:.17g}\n")
+            out.write(f"0 {lz:.17g} {yz:.17g}\n")
         out.write(f"ITEM: ATOMS {self.columns}\n")
         parts = [
             self.ids[:, None],
@@ -461,14 +484,17 @@ class _GSDWriter:
         reader = self.reader
         snapshot = self.hoomd.Frame()
         snapshot.configuration.step = frame.step
-        snapshot.configuration.box = [*frame.box, 0.0, 0.0, 0.0]
+        lx, ly, lz = frame.box
+        xy, xz, yz = frame.tilt  # HOOMD's tilt factors are these over Ly, Lz, Lz
+        snapshot.configuration.box = [lx, ly, lz, xy / ly, xz / lz, yz / lz]
         snapshot.configuration.dimensions = 3
         snapshot.particles.N = reader.n_atoms
         snapshot.particles.types = list(reader.type_names)
         snapshot.particles.typeid = reader.types.astype(np.uint32)
         snapshot.particles.mass = reader.masses.astype(np.float32)
         positions = frame.positions if not self.unwrap else frame.unwrapped()
-        snapshot.particles.position = (positions - 0.5 * frame.box).astype(np.float32)
+        centre = 0.5 * frame.cell.sum(axis=0)  # HOOMD boxes are centred on the origin
+        snapshot.particles.position = (positions - centre).astype(np.float32)
         snapshot.particles.image = _images(frame, self.unwrap).astype(np.int32)
         if frame.velocities is not None:
             snapshot.particles.velocity = (frame.velocities * self.velocity_factor).astype(

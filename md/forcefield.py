@@ -73,7 +73,7 @@ class ForceField:
         for potential in self.potentials:
             potential.check(state)
         if self.neighbor_list is not None:
-            self.neighbor_list.check_box(state.box, state.pbc)
+            self.neighbor_list.check_box(state.box, state.pbc, state.tilt)
 
     def invalidate(self) -> None:
         """Forget the cached results (after changing a potential's parameters)."""
@@ -225,13 +225,17 @@ class ForceField:
 
     @staticmethod
     def _key_of(state: State) -> tuple:
-        return (state.positions.copy(), state.box.copy(), state.pbc.copy(), state.types.copy())
+        return (
+            state.positions.copy(), state.box.copy(), state.tilt.copy(), state.pbc.copy(),
+            state.types.copy(),
+        )  # fmt: skip
 
     def _same_key(self, key: tuple, state: State) -> bool:
-        positions, box, pbc, types = key
+        positions, box, tilt, pbc, types = key
         return (
             positions.shape == state.positions.shape
             and np.array_equal(box, state.box)
+            and np.array_equal(tilt, state.tilt)
             and np.array_equal(pbc, state.pbc)
             and np.array_equal(positions, state.positions)
             and np.array_equal(types, state.types)

@@ -18,7 +18,14 @@ from md._cell_kernels import (
     _max_displacement2,
     _shift_table,
 )
-from md.box import periodic_lengths
+from md.box import (
+    TILT_NAMES,
+    cell_matrix,
+    is_orthorhombic,
+    periodic_lengths,
+    periodic_tilt,
+    perpendicular_widths,
+)
 from md.errors import NonFiniteError
 from md.parallel import get_threads
 from md.state import State
@@ -41,8 +48,9 @@ _GROWTH = 1.05
 class SlotFrame:
     """The neighbour list as a pair kernel reads it: the slot frame of one build.
 
-    Slot p holds atom ``order[p]``, at ``positions[order[p]] + images[p] * lengths``
-    (wrapped into the box at the build); the partners of slot p are
+    Slot p holds atom ``order[p]``, at ``positions[order[p]] + images[p] @ h``
+    (wrapped into the box at the build; h is the cell matrix of ``lengths``
+    and ``tilt``, so an orthorhombic box adds ``images[p] * lengths``); the partners of slot p are
     ``neighbors[starts[p]:starts[p + 1]]``, and pair k is separated by
     ``frame[p] - frame[q] - shifts[codes[k]]``, with no minimum image. Chunk c
     (one per thread) covers slots ``bounds[c]`` to ``bounds[c + 1]``.
@@ -59,6 +67,8 @@ class SlotFrame:
     neighbors : ndarray of int32, shape (P,)
     codes : ndarray of uint8, shape (P,)
     bounds : ndarray of int64, shape (C + 1,)
+    tilt : ndarray of float64, shape (3,)
+        Tilt factors (xy, xz, yz) at the build (zeros: orthorhombic) [length].
     """
 
     order: NDArray[np.int64]
@@ -69,6 +79,7 @@ class SlotFrame:
     neighbors: NDArray[np.int32]
     codes: NDArray[np.uint8]
     bounds: NDArray[np.int64]
+    tilt: NDArray[np.float64]
 
     @property
     def n_chunks(self) -> int:
@@ -165,6 +176,7 @@ class NeighborList:
         self.order: NDArray[np.int64] | None = None
         self.images = np.zeros((0, 3), dtype=np.int32)
         self.lengths = np.zeros(3)
+        self.tilt = np.zeros(3)
         self.slot_starts = np.zeros(1, dtype=np.int64)
         self.slot_neighbors = np.zeros(0, dtype=np.int32)
         self.codes = np.zeros(0, dtype=np.uint8)
@@ -175,6 +187,7 @@ class NeighborList:
         self._atom_list: tuple[NDArray[np.int64], NDArray[np.int32]] | None = None
         self._reference: NDArray[np.float64] | None = None
         self._box: NDArray[np.float64] | None = None
+        self._tilt: NDArray[np.float64] | None = None
         self._pbc: NDArray[np.bool_] | None = None
 
     @property
@@ -192,7 +205,7 @@ class NeighborList:
             return None
         return SlotFrame(
             self.order, self.images, self.lengths, self.shifts, self.slot_starts,
-            self.slot_neighbors, self.codes, self.bounds,
+            self.slot_neighbors, self.codes, self.bounds, self.tilt,
         )  # fmt: skip
 
     @property
@@ -218,8 +231,28 @@ class NeighborList:
     def neighbors(self) -> NDArray[np.int32]:
         return self._atom_space()[1]
 
-    def check_box(self, box: NDArray[np.float64], pbc: NDArray[np.bool_]) -> None:
-        """Raise ValueError if the cutoff breaks the minimum-image convention."""
+    def check_box(self, box: NDArray[np.float64], pbc: NDArray[np.bool_], tilt=None) -> None:
+        """Raise ValueError if the cutoff breaks the minimum-image convention.
+
+        An orthorhombic box needs every periodic edge longer than twice the
+        cutoff. A tilted cell needs every perpendicular width (the distance
+        between opposite faces) longer than twice the list radius, cutoff plus
+        skin: only then does the minimum image find every listed pair.
+        """
+        if not is_orthorhombic(periodic_tilt(tilt, pbc)):
+            widths = perpendicular_widths(box, tilt)
+            too_narrow = pbc & (widths <= 2.0 * self.list_radius)
+            if np.any(too_narrow):
+                axis = int(np.argmax(too_narrow))
+                tilts = ", ".join(f"{n} = {t:g}" for n, t in zip(TILT_NAMES, tilt, strict=True))
+                raise ValueError(
+                    f"cutoff + skin = {self.list_radius:g} is too long for the cell: its width "
+                    f"across {'xyz'[axis]} is {widths[axis]:g} (edges {box.tolist()}, tilt "
+                    f"{tilts}), and the minimum-image convention needs every perpendicular "
+                    f"width longer than 2 * (cutoff + skin) = {2 * self.list_radius:g}; "
+                    "use a larger cell or smaller tilt factors"
+                )
+            return
         too_short = pbc & (box <= 2.0 * self.cutoff)
         if np.any(too_short):
             axis = "xyz"[int(np.argmax(too_short))]
@@ -236,6 +269,7 @@ class NeighborList:
             self._reference is None
             or self._reference.shape != state.positions.shape
             or not np.array_equal(self._box, state.box)
+            or not np.array_equal(self._tilt, state.tilt)
             or not np.array_equal(self._pbc, state.pbc)
         ):
             return True
@@ -255,7 +289,7 @@ class NeighborList:
         """Build the list from scratch for ``state``."""
         if not np.all(np.isfinite(state.positions)):
             raise NonFiniteError("particle positions are not finite")
-        self.check_box(state.box, state.pbc)
+        self.check_box(state.box, state.pbc, state.tilt)
         lengths, _ = periodic_lengths(state.box, state.pbc)
         far = np.abs(state.positions).max(axis=0) > _MAX_IMAGES * lengths if state.n_atoms else 0
         if np.any(state.pbc & far):
@@ -267,6 +301,7 @@ class NeighborList:
         self.order, self._atom_list = None, None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.lengths = lengths
+        self.tilt = periodic_tilt(state.tilt, state.pbc)
         positions = state.positions
         n = positions.shape[0]
         grid = self._grid(state)
@@ -280,6 +315,7 @@ class NeighborList:
         self._atom_list = None
         self._reference = positions.copy()
         self._box = state.box.copy()
+        self._tilt = state.tilt.copy()
         self._pbc = state.pbc.copy()
         self.n_builds += 1
 
@@ -291,7 +327,7 @@ class NeighborList:
         r2_max = _square(self.list_radius)
         while True:
             count = _brute_force_pairs(
-                positions, lengths, inverse, r2_max, starts, self._neighbor_buffer
+                positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
             )
             if count <= self._neighbor_buffer.shape[0]:
                 break
@@ -317,7 +353,7 @@ class NeighborList:
         wrapped = np.empty((n, 3))
         images = np.empty((n, 3), dtype=np.int32)
         _bin_atoms(
-            positions, origin, width, n_cells, state.pbc, state.box,
+            positions, origin, width, n_cells, state.pbc, state.box, self.tilt,
             cell_of, cell_starts, order, wrapped, images,
         )  # fmt: skip
         slot_cell = cell_of[order]
@@ -331,8 +367,9 @@ class NeighborList:
             # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
             search = _frame_pairs_threaded if chunks > 1 else _frame_pairs
             search(
-                wrapped, slot_cell, r2_max, n_cells, reach, state.pbc, state.box, cell_starts,
-                bounds, capacity, starts, self._neighbor_buffer, self._code_buffer, counts,
+                wrapped, slot_cell, r2_max, n_cells, reach, state.pbc, state.box, self.tilt,
+                cell_starts, bounds, capacity, starts, self._neighbor_buffer, self._code_buffer,
+                counts,
             )  # fmt: skip
             if counts.max() <= capacity:
                 break
@@ -347,13 +384,13 @@ class NeighborList:
         self.slot_starts = starts
         self.slot_neighbors = self._neighbor_buffer[:count]
         self.codes = self._code_buffer[:count]
-        self.shifts = _shift_table(state.box, state.pbc)
+        self.shifts = _shift_table(state.box, state.pbc, self.tilt)
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Positions of the slots, ``positions[order] + images * lengths`` (numpy; for tests)."""
+        """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""
         if self.order is None:
             return positions.copy()
-        return positions[self.order] + self.images * self.lengths
+        return positions[self.order] + self.images @ cell_matrix(self.lengths, self.tilt)
 
     def _atom_space(self) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
         """The list over atom indices (cached until the next build)."""
@@ -386,7 +423,11 @@ class NeighborList:
             return None
         radius = self.list_radius
         origin = np.zeros(3)
+        # Cells are binned in sheared-back coordinates, where the cell is the
+        # box of edges ``box``; their count along an axis comes from the
+        # perpendicular width, so each slab of cells is radius / reach thick.
         extent = state.box.astype(float).copy()
+        across = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
         open_axes = ~state.pbc
         if np.any(open_axes):
             low = state.positions[:, open_axes].min(axis=0)
@@ -398,7 +439,8 @@ class NeighborList:
         fewest = np.where(state.pbc, 2 * reach + 1, 1)
         # Clip in floating point first: a cluster that flew apart can span more
         # cells than an int64 holds.
-        n_cells = np.clip(np.floor(extent * reach / radius), 1, max_cells).astype(np.int64)
+        across = np.where(state.pbc, across, extent)
+        n_cells = np.clip(np.floor(across * reach / radius), 1, max_cells).astype(np.int64)
         if np.any(n_cells < fewest):
             return None
         while np.prod(n_cells) > max_cells and np.any(n_cells > fewest):

@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from md.box import TILT_AXES, TILT_NAMES, cell_matrix, is_orthorhombic, restricted_cell
+
 if TYPE_CHECKING:  # ASE is only touched at the edges, see from_ase/to_ase.
     import ase  # ASE: only for conversions to and from Atoms
 
@@ -45,8 +47,12 @@ class State:
         Particle velocities [length/time]; zeros if omitted.
     masses : ndarray of float64, shape (N,)
         Particle masses [mass], all positive; a scalar is broadcast.
-    box : ndarray of float64, shape (3,)
-        Orthorhombic box edge lengths [length]; positive on periodic axes.
+    box : ndarray of float64, shape (3,) or (3, 3)
+        Box edge lengths (Lx, Ly, Lz) [length], positive on periodic axes; or
+        a lower-triangular (3, 3) cell matrix (rows a, b, c, as
+        :func:`md.box.cell_matrix` gives), which sets ``box`` and ``tilt``.
+        Any other cell is first rotated with :func:`md.box.restricted_cell`
+        (``State.from_ase`` does that for ASE's cells).
     pbc : ndarray of bool, shape (3,)
         Periodicity per axis.
     types : ndarray of int32, shape (N,)
@@ -55,6 +61,11 @@ class State:
         A name per type (chemical symbols for ASE structures).
     step, time : int, float
         Step counter and simulated time [time].
+    tilt : ndarray of float64, shape (3,)
+        Tilt factors (xy, xz, yz) of a triclinic cell [length], zeros for an
+        orthorhombic box; each may be non-zero only when both axes it
+        couples are periodic. The cell vectors are a = (Lx, 0, 0),
+        b = (xy, Ly, 0) and c = (xz, yz, Lz) (:attr:`cell`).
 
     Examples
     --------
@@ -73,6 +84,7 @@ class State:
     type_names: tuple[str, ...] | None = None
     step: int = 0
     time: float = 0.0
+    tilt: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         # The State owns copies of its arrays: integrators update them in place,
@@ -89,8 +101,20 @@ class State:
             raise ValueError(f"velocities must have shape ({n}, 3), got {velocities.shape}")
         self.velocities = np.array(velocities, order="C", copy=True)
         self.masses = _owned(self.masses, "masses", (n,), np.float64)
+        if np.shape(self.box) == (3, 3):
+            box, tilt, rotation = restricted_cell(self.box, "box")
+            if not np.array_equal(rotation, np.eye(3)):
+                raise ValueError(
+                    "a (3, 3) box must be lower triangular with a positive diagonal (a along x, "
+                    f"b in the xy plane), got {np.asarray(self.box).tolist()}; rotate the "
+                    "system with md.box.restricted_cell (State.from_ase does this for ASE cells)"
+                )
+            if self.tilt is not None and not np.array_equal(self.tilt, tilt):
+                raise ValueError("give the tilt either in a (3, 3) box or as tilt, not both")
+            self.box, self.tilt = box, tilt
         self.box = _owned(self.box, "box", (3,), np.float64)
         self.pbc = _owned(self.pbc, "pbc", (3,), bool)
+        self.tilt = _owned(0.0 if self.tilt is None else self.tilt, "tilt", (3,), np.float64)
         if self.types is None:
             self.types = np.zeros(n, dtype=np.int32)
         types = np.asarray(self.types)
@@ -132,6 +156,14 @@ class State:
             )
         if np.any(self.box < 0):
             raise ValueError(f"box edges must not be negative, got {self.box}")
+        if not np.all(np.isfinite(self.tilt)):
+            raise ValueError(f"tilt factors must be finite, got {self.tilt}")
+        for k, (i, j) in enumerate(TILT_AXES):
+            if self.tilt[k] != 0.0 and not (self.pbc[i] and self.pbc[j]):
+                raise ValueError(
+                    f"tilt factor {TILT_NAMES[k]} = {self.tilt[k]:g} couples axes "
+                    f"{'xyz'[i]} and {'xyz'[j]}, which must both be periodic"
+                )
         if self.types.size and self.types.min() < 0:
             raise ValueError("types must be non-negative integers")
         if self.types.size and int(self.types.max()) >= len(self.type_names):
@@ -150,8 +182,17 @@ class State:
 
     @property
     def volume(self) -> float:
-        """Box volume [length^3] (the product of the edges)."""
+        """Box volume [length^3] (the product of the edges, tilted or not)."""
         return float(np.prod(self.box))
+
+    @property
+    def cell(self) -> NDArray[np.float64]:
+        """The (3, 3) cell matrix, rows a, b, c (a new array; set ``box`` and ``tilt``)."""
+        return cell_matrix(self.box, self.tilt)
+
+    @property
+    def is_orthorhombic(self) -> bool:
+        return is_orthorhombic(self.tilt)
 
     def copy(self) -> State:
         """Return a deep copy."""
@@ -165,6 +206,7 @@ class State:
             type_names=self.type_names,
             step=self.step,
             time=self.time,
+            tilt=self.tilt.copy(),
         )
         momenta = getattr(self, "_ase_momenta", None)
         if momenta is not None:
@@ -180,9 +222,12 @@ class State:
     ) -> State:
         """Build a State from ASE Atoms (ASE's units are the engine's metal units).
 
-        Positions, masses, cell and pbc are copied as they are; velocities are
-        ``atoms.get_velocities()`` (momenta / masses). The cell must be
-        orthorhombic (a diagonal matrix); an open axis may have zero length.
+        Positions, masses, cell and pbc are copied; velocities are
+        ``atoms.get_velocities()`` (momenta / masses). Any cell is accepted: a
+        cell that is not lower triangular (a along x, b in the xy plane) is
+        rotated into that frame with :func:`md.box.restricted_cell`, positions
+        and velocities with it (:func:`ase_rotation` gives the rotation). An
+        open axis may have zero length.
         :meth:`to_ase` of the returned State gives back ASE's momenta bit for
         bit as long as velocities and masses are unchanged, and ``from_ase``
         of :meth:`to_ase` gives back the velocities bit for bit (a product
@@ -200,7 +245,8 @@ class State:
         type_names : sequence of str, optional
             Name of each type index (chemical symbols for ``"numbers"``).
         """
-        box = orthorhombic_box(atoms.cell[:], "atoms.cell")
+        box, tilt, rotation = restricted_cell(atoms.cell[:], "atoms.cell")
+        rotated = not np.array_equal(rotation, np.eye(3))
         types, names = types_from_ase(
             atoms.get_atomic_numbers(), atoms.get_tags(), types_from, type_names,
             atoms.info.get("type_names"),
@@ -215,16 +261,21 @@ class State:
             and np.array_equal(remembered * masses[:, None], momenta)
         ):
             velocities = remembered  # written by to_ase and not changed since
+        positions = atoms.get_positions()
+        if rotated:
+            positions, velocities = positions @ rotation, velocities @ rotation
         state = cls(
-            positions=atoms.get_positions(),
+            positions=positions,
             velocities=velocities,
             masses=masses,
             box=box,
             pbc=np.asarray(atoms.pbc, dtype=bool),
             types=types,
             type_names=names,
+            tilt=tilt,
         )
-        state._ase_momenta = momenta
+        if not rotated:
+            state._ase_momenta = momenta
         return state
 
     def to_ase(self) -> ase.Atoms:
@@ -245,7 +296,7 @@ class State:
         atoms = ase.Atoms(
             symbols=[symbols[t] for t in self.types],
             positions=self.positions,
-            cell=np.diag(self.box),
+            cell=self.cell,
             pbc=self.pbc,
             masses=self.masses,
             tags=self.types,

@@ -12,7 +12,7 @@ holds none). ``[system] structure`` in configs comes here.
   ``Masses`` comments (``1 39.948 # Ar``) when every type has one, else
   the type numbers; bond type names from a leapmd title line. Units are
   LAMMPS ``metal`` for metal runs (velocities in Angstrom/ps) and the
-  reduced values for ``lj`` runs. Tilted (triclinic) boxes are refused.
+  reduced values for ``lj`` runs. Tilted (triclinic) boxes are read as they are.
 - GSD files (``.gsd``; ``format = "gsd"``) through the ``gsd`` package:
   the last frame (or ``frame``), types, masses, velocities, images and
   bonds; the origin-centred GSD box is shifted to start at the origin.
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from md.box import cell_matrix
 from md.errors import TrajectoryError
 from md.state import State
 from md.topology import Topology
@@ -174,11 +175,7 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
         header = _lammps_header(path)
     except (OSError, ValueError) as error:
         raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
-    if header["tilt"] is not None and any(header["tilt"]):
-        raise ValueError(
-            f"{path}: a tilted (triclinic) box, xy xz yz = {header['tilt']}; only "
-            "orthorhombic boxes are supported"
-        )
+    tilt = np.zeros(3) if header["tilt"] is None else np.asarray(header["tilt"], float)
     if not header["masses"]:
         raise ValueError(f"{path}: no Masses section; add one (masses per atom type)")
     box = header["hi"] - header["lo"]
@@ -217,6 +214,7 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
         pbc=True,
         types=np.searchsorted(distinct, numbers),
         type_names=type_names,
+        tilt=tilt,  # LAMMPS's restricted triclinic box is the engine's convention
     )
     pairs, bond_numbers = [], []
     for i, listed in enumerate(atoms.arrays.get("bonds", ())):
@@ -246,17 +244,16 @@ def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, To
     except Exception as error:  # gsd raises many types for unreadable files
         raise ValueError(f"cannot read {path} as a GSD file ({error})") from None
     box = np.asarray(snapshot.configuration.box, dtype=np.float64)
-    if np.any(box[3:] != 0):
-        raise ValueError(
-            f"{path}: a tilted (triclinic) box, xy xz yz = {box[3:].tolist()}; only "
-            "orthorhombic boxes are supported"
-        )
     lengths = box[:3]
+    # HOOMD's tilt factors are dimensionless: xy Ly, xz Lz and yz Lz are the engine's.
+    tilt = box[3:] * lengths[[1, 2, 2]]
+    cell = cell_matrix(np.where(lengths > 0, lengths, 0.0), tilt)
     particles = snapshot.particles
     n = int(particles.N)
-    positions = np.asarray(particles.position, dtype=np.float64).reshape(n, 3) + 0.5 * lengths
+    centre = 0.5 * cell.sum(axis=0)  # HOOMD boxes are centred on the origin
+    positions = np.asarray(particles.position, dtype=np.float64).reshape(n, 3) + centre
     if particles.image is not None:
-        positions = positions + np.asarray(particles.image).reshape(n, 3) * lengths
+        positions = positions + np.asarray(particles.image).reshape(n, 3) @ cell
     velocities = None
     if particles.velocity is not None:
         factor = units.h5md["velocity"][1] if "velocity" in units.h5md else 1.0
@@ -271,6 +268,7 @@ def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, To
         pbc=pbc,
         types=types,
         type_names=tuple(particles.types) if particles.types else None,
+        tilt=tilt,
     )
     topology = Topology.empty()
     bonds = snapshot.bonds

@@ -6,7 +6,9 @@ MDAnalysis's H5MD reader needs)::
     h5md/                      version [1, 1]; author/ and creator/ groups
     particles/trajectory/
         box/                   dimension = 3, boundary = periodic|none per axis
-            edges/{step,time,value (F, 3)}
+            edges/{step,time,value (F, 3)}  edge lengths, or (F, 3, 3) for a
+                               triclinic cell: the cell vectors as rows
+                               (H5MD 1.1; MDAnalysis reads both)
         position/{step,time,value (F, N, 3)}   wrapped into the box
         image/{step,time,value (F, N, 3)}      int32 periodic images
         velocity/{step,time,value}             optional
@@ -32,7 +34,7 @@ axis. Datasets are resizable and chunked one frame at a time, and the file is
 flushed after every frame, so a killed run leaves a readable file.
 Positions are continuous inside the engine; the file holds them wrapped into
 the box together with their images, so ``position + image * edges`` unwraps
-exactly (to round-off).
+exactly (to round-off), or ``position + image @ edges`` for a (3, 3) cell.
 
 Units: metal runs carry H5MD unit strings MDAnalysis understands
 (``Angstrom``, ``ps``, ``Angstrom ps-1``, ``kJ mol-1 Angstrom-1``); forces
@@ -58,7 +60,7 @@ from numpy.typing import NDArray
 
 from md._files import atomic_path
 from md._version import __version__
-from md.box import wrap
+from md.box import cell_matrix, wrap
 from md.errors import TrajectoryError
 from md.state import State
 from md.topology import Topology
@@ -119,6 +121,11 @@ class H5MDWriter:
         Bonds to store in ``/connectivity`` (see
         :meth:`md.forcefield.ForceField.topology`), so viewers and
         :func:`open_trajectory` see them.
+    triclinic : bool, optional
+        Store the box as a (3, 3) cell matrix per frame. Default: when
+        ``state`` is tilted. A run whose cell may start to tilt (a barostat
+        with triclinic coupling) passes True; writing a tilted frame into a
+        file of edge lengths raises ValueError.
 
     Raises
     ------
@@ -148,8 +155,10 @@ class H5MDWriter:
         append: bool = False,
         keep_frames: int | None = None,
         topology: Topology | None = None,
+        triclinic: bool | None = None,
     ) -> None:
         self.path = Path(path)
+        self.triclinic = not state.is_orthorhombic if triclinic is None else bool(triclinic)
         if topology is not None:
             topology.check(state.n_atoms, where="topology")
         self.units = get_units(units)
@@ -205,6 +214,7 @@ class H5MDWriter:
         if self.store_forces:
             self._values["force"] = group["force/value"]
         self._values["edges"] = group["box/edges/value"]
+        self.triclinic = self._values["edges"].ndim == 3
         for name in OBSERVABLES:
             if name in f["observables"]:  # older files hold fewer observables
                 self._values[name] = f["observables"][name]["value"]
@@ -281,7 +291,8 @@ class H5MDWriter:
         box.attrs["boundary"] = np.array(
             ["periodic" if p else "none" for p in state.pbc], dtype=h5py.string_dtype()
         )
-        self._values["edges"] = self._element(box, "edges", (3,), np.float64, "length")["value"]
+        shape = (3, 3) if self.triclinic else (3,)
+        self._values["edges"] = self._element(box, "edges", shape, np.float64, "length")["value"]
         group.create_dataset("species", data=state.types.astype(np.int32))
         mass = group.create_dataset("mass", data=state.masses)
         self._set_unit(mass, "mass")
@@ -346,6 +357,12 @@ class H5MDWriter:
             )
         if self.store_forces and forces is None:
             raise ValueError("this writer stores forces: pass forces=")
+        if not self.triclinic and not state.is_orthorhombic:
+            raise ValueError(
+                f"{self.path} stores orthorhombic boxes, but the cell at step {state.step} is "
+                f"tilted (xy, xz, yz = {state.tilt.tolist()}); create the writer with "
+                "triclinic=True"
+            )
         frame = self.n_frames
         size = frame + 1
         self._check_space(frame)
@@ -355,10 +372,11 @@ class H5MDWriter:
             dataset.resize(size, axis=0)
         self._step[frame] = state.step
         self._time[frame] = state.time * self._factor("time")
-        wrapped, images = wrap(state.positions, state.box, state.pbc)
+        wrapped, images = wrap(state.positions, state.box, state.pbc, state.tilt)
         self._values["position"][frame] = wrapped * self._factor("length")
         self._values["image"][frame] = images
-        self._values["edges"][frame] = state.box * self._factor("length")
+        edges = state.cell if self.triclinic else state.box
+        self._values["edges"][frame] = edges * self._factor("length")
         if self.store_velocities:
             self._values["velocity"][frame] = state.velocities * self._factor("velocity")
         if self.store_forces:
@@ -460,7 +478,9 @@ def read_topology(path) -> Topology:
 class Trajectory:
     """A trajectory read back into engine units (see :func:`read_trajectory`).
 
-    Positions are unwrapped (``position + image * edges``).
+    Positions are unwrapped (``position + image @ cell``). ``boxes`` holds
+    each frame's edge lengths and ``tilts`` its tilt factors (xy, xz, yz),
+    zero for orthorhombic boxes.
     """
 
     path: Path
@@ -478,10 +498,19 @@ class Trajectory:
     observables: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     parameters: dict = field(default_factory=dict)
     topology: Topology = field(default_factory=Topology.empty)
+    tilts: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.tilts is None:
+            self.tilts = np.zeros_like(self.boxes)
 
     @property
     def n_frames(self) -> int:
         return len(self.steps)
+
+    def cells(self) -> NDArray[np.float64]:
+        """(F, 3, 3) cell matrices, rows a, b, c."""
+        return np.array([cell_matrix(b, t) for b, t in zip(self.boxes, self.tilts, strict=True)])
 
     @property
     def n_atoms(self) -> int:
@@ -503,6 +532,7 @@ class Trajectory:
             type_names=self.type_names,
             step=int(self.steps[frame]),
             time=float(self.times[frame]),
+            tilt=self.tilts[frame],
         )
 
 
@@ -558,9 +588,14 @@ def _read_frames(f: h5py.File, path: Path, n_frames: int) -> Trajectory:
 
         steps = group["position/step"][:n_frames]
         raw = group["position/value"][:n_frames] * scale("length")
-        boxes = group["box/edges/value"][:n_frames] * scale("length")
+        boxes, tilts = split_edges(group["box/edges/value"][:n_frames] * scale("length"))
         images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
         positions = raw + images * boxes[:, None, :]
+        if np.any(tilts != 0.0):
+            positions[..., 0] += (
+                images[..., 1] * tilts[:, None, 0] + images[..., 2] * tilts[:, None, 1]
+            )
+            positions[..., 1] += images[..., 2] * tilts[:, None, 2]
         boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
         velocities = forces = None
         if "velocity" in group:
@@ -595,9 +630,30 @@ def _read_frames(f: h5py.File, path: Path, n_frames: int) -> Trajectory:
             observables=observables,
             parameters=parameters,
             topology=_read_topology(f),
+            tilts=tilts,
         )
     except (KeyError, ValueError, TypeError, RuntimeError) as error:
         raise _as_trajectory_error(path, error) from None
+
+
+def split_edges(
+    edges: NDArray[np.float64], frames: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(lengths, tilts)`` of H5MD box edges: lengths (3,) or cell matrices (3, 3).
+
+    ``frames``: ``edges`` holds one entry per frame, (F, 3) or (F, 3, 3);
+    otherwise it is one frame's. A cell matrix must be lower triangular (a
+    along x, b in the xy plane), as this writer stores it.
+    """
+    edges = np.asarray(edges, dtype=np.float64)
+    if edges.ndim != (3 if frames else 2):
+        return edges, np.zeros_like(edges)
+    upper = edges[..., [0, 0, 1], [1, 2, 2]]
+    if np.any(np.abs(upper) > 1e-12 * max(1.0, float(np.abs(edges).max(initial=0.0)))):
+        raise ValueError("box edges are not lower triangular (a along x, b in the xy plane)")
+    lengths = np.abs(np.diagonal(edges, axis1=-2, axis2=-1)).copy()
+    tilts = edges[..., [1, 2, 2], [0, 0, 1]].copy()
+    return lengths, tilts
 
 
 @dataclass
@@ -605,7 +661,8 @@ class Frame:
     """One stored frame in engine units (see :class:`TrajectoryReader`).
 
     ``positions`` are as stored, wrapped into the box; ``images`` count the
-    box lengths to add for the continuous positions (:meth:`unwrapped`).
+    cell vectors to add for the continuous positions (:meth:`unwrapped`);
+    ``tilt`` holds the tilt factors (xy, xz, yz), zero for an orthorhombic box.
     """
 
     index: int
@@ -617,9 +674,20 @@ class Frame:
     velocities: NDArray[np.float64] | None = None
     forces: NDArray[np.float64] | None = None
     observables: dict[str, float] = field(default_factory=dict)
+    tilt: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def cell(self) -> NDArray[np.float64]:
+        return cell_matrix(self.box, self.tilt)
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.box))
 
     def unwrapped(self) -> NDArray[np.float64]:
-        return self.positions + self.images * self.box
+        if not np.any(self.tilt != 0.0):
+            return self.positions + self.images * self.box
+        return self.positions + self.images @ self.cell
 
 
 class TrajectoryReader:
@@ -750,6 +818,7 @@ class TrajectoryReader:
                     if name.startswith("observables/")
                 }
                 positions = read["position"][k] * scale_length
+                box, tilt = split_edges(read["edges"][k] * scale_length, frames=False)
                 yield Frame(
                     index=index,
                     step=int(read["step"][k]),
@@ -760,7 +829,8 @@ class TrajectoryReader:
                         if "image" in read
                         else np.zeros(positions.shape, dtype=np.int32)
                     ),
-                    box=read["edges"][k] * scale_length,
+                    box=box,
+                    tilt=tilt,
                     velocities=(
                         read["velocity"][k] / self._factor("velocity")
                         if "velocity" in read
@@ -782,6 +852,7 @@ class TrajectoryReader:
             type_names=self.type_names,
             step=frame.step,
             time=frame.time,
+            tilt=frame.tilt,
         )
 
     def close(self) -> None:
@@ -1005,6 +1076,7 @@ def trajectory_summary(traj) -> dict:
         "first_time": float(traj.times[0] * to_file_time) if traj.n_frames else 0.0,
         "last_time": float(traj.times[-1] * to_file_time) if traj.n_frames else 0.0,
         "box": traj.boxes[-1].tolist() if traj.n_frames else None,
+        "tilt": traj.tilts[-1].tolist() if traj.n_frames and np.any(traj.tilts[-1]) else None,
         "pbc": traj.pbc.tolist(),
         "stored": stored,
         "bonds": {name: len(pairs) for name, pairs in traj.topology.by_type().items()},

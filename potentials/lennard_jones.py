@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from numba import njit, prange
 
 from md._checks import positive_array, positive_scalar
-from md.box import min_image_component, periodic_lengths
+from md.box import min_image, periodic_lengths, periodic_tilt
 from md.state import State
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -258,7 +258,8 @@ class LennardJones:
         total_virial = np.zeros(6)
         energies = np.zeros(n if per_atom else 0)
         virials = np.zeros((n if per_atom else 0, 6))
-        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        geometry = (state.positions, state.types, lengths, inverse, tilt, starts, neighbor_array)
         energy = _lj_energy_forces(
             geometry, n_types, table, mode, forces, total_virial, energies, virials
         )
@@ -289,7 +290,7 @@ class LennardJones:
         kernel = _lj_frame_forces_threaded if chunks > 1 else _lj_frame_forces
         slots = (
             frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
-            frame.codes, frame.bounds,
+            frame.codes, frame.bounds, frame.tilt,
         )  # fmt: skip
         kernel(
             state.positions, state.types, slots, n_types, table, mode, virial,
@@ -341,7 +342,8 @@ class LennardJones:
         table = self._cached_tables(n_types)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
-        geometry = (state.positions, state.types, lengths, inverse, starts, neighbor_array)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        geometry = (state.positions, state.types, lengths, inverse, tilt, starts, neighbor_array)
         listed = len(neighbor_array)  # room for every listed pair; those inside are kept
         pair_i = np.empty(listed, dtype=np.int64)
         pair_j = np.empty(listed, dtype=np.int64)
@@ -454,8 +456,8 @@ def _lj_frame_forces(
     """LJ forces over a slot-frame list (``md.neighbors.SlotFrame``), chunk by chunk.
 
     ``slots`` is (order, images, lengths, shifts, starts, neighbors, codes,
-    bounds), the fields of the SlotFrame. Gathers ``frame[p] =
-    positions[order[p]] + images[p] * lengths`` and the slot types, then
+    bounds, tilt), the fields of the SlotFrame. Gathers ``frame[p] =
+    positions[order[p]] + images[p] @ h`` (h the cell matrix) and the slot types, then
     chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its pairs' forces
     into its own ``buffers[c]`` (C, N, 3), its energy into ``energies[c]``
     and, if ``with_virial``, its virial (xx, yy, zz, yz, xz, xy) into
@@ -465,10 +467,12 @@ def _lj_frame_forces(
     shifts[codes[k]]: no minimum image. ``_lj_frame_forces_threaded`` runs
     the chunks on numba's threads; no two chunks write the same memory.
     """
-    order, images, lengths = slots[0], slots[1], slots[2]
+    order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
-        _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
+        _gather_frame(
+            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+        )
     for chunk in range(n_chunks):
         _lj_frame_chunk(
             chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers,
@@ -484,10 +488,12 @@ def _lj_frame_forces_threaded(
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """``_lj_frame_forces`` with one chunk per thread (same arguments, same result)."""
-    order, images, lengths = slots[0], slots[1], slots[2]
+    order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
-        _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types)
+        _gather_frame(
+            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+        )
     for chunk in prange(n_chunks):
         _lj_frame_chunk(
             chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers,
@@ -498,14 +504,21 @@ def _lj_frame_forces_threaded(
 
 
 @njit(cache=True, error_model="numpy")
-def _gather_frame(chunk, n_chunks, positions, types, order, images, lengths, frame, frame_types):
-    """Slot positions and types of one chunk's share of the slots."""
+def _gather_frame(
+    chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+):
+    """Slot positions and types of one chunk's share of the slots (images count cell vectors)."""
     n = positions.shape[0]
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
     for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
         atom = order[p]
         frame[p, 0] = positions[atom, 0] + lengths[0] * images[p, 0]
         frame[p, 1] = positions[atom, 1] + lengths[1] * images[p, 1]
         frame[p, 2] = positions[atom, 2] + lengths[2] * images[p, 2]
+        if sheared:
+            frame[p, 0] += xy * images[p, 1] + xz * images[p, 2]
+            frame[p, 1] += yz * images[p, 2]
         frame_types[p] = types[atom]
 
 
@@ -600,7 +613,7 @@ def _lj_frame_chunk_loop(args, mode, out):
 def _lj_energy_forces(geometry, n_types, table, mode, forces, virial, energies, virials):
     """Add LJ forces to ``forces`` (zeroed by caller) and return the energy.
 
-    ``geometry`` is (positions, types, lengths, inverse, starts, neighbors):
+    ``geometry`` is (positions, types, lengths, inverse, tilt, starts, neighbors):
     a half list over atom indices in CSR form, minimum image per pair.
     ``table`` as in ``_lj_pair``. Writes ``virial`` as (xx, yy, zz, yz, xz,
     xy) and, when ``energies`` has length N, the per-atom energies and, into
@@ -618,14 +631,12 @@ def _lj_energy_forces(geometry, n_types, table, mode, forces, virial, energies, 
 @njit(cache=True, inline="always", error_model="numpy")
 def _lj_energy_forces_loop(geometry, n_types, table, mode, out):
     """The loop of ``_lj_energy_forces`` for one cutoff mode (inlined there with mode fixed)."""
-    positions, types, lengths, inverse, starts, neighbors = geometry
+    positions, types, lengths, inverse, tilt, starts, neighbors = geometry
     forces, virial, energies, virials = out
     n = positions.shape[0]
     per_atom = energies.shape[0] == n
     energy = 0.0
     wxx = wyy = wzz = wyz = wxz = wxy = 0.0
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
     for i in range(n):
         xi = positions[i, 0]
         yi = positions[i, 1]
@@ -636,9 +647,14 @@ def _lj_energy_forces_loop(geometry, n_types, table, mode, out):
         fzi = 0.0
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
-            dx = min_image_component(xi - positions[j, 0], lx, ix)
-            dy = min_image_component(yi - positions[j, 1], ly, iy)
-            dz = min_image_component(zi - positions[j, 2], lz, iz)
+            dx, dy, dz = min_image(
+                xi - positions[j, 0],
+                yi - positions[j, 1],
+                zi - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
             r2 = dx * dx + dy * dy + dz * dz
             u, fr = _lj_pair(r2, row + types[j], table, mode)
             energy += u
@@ -702,18 +718,21 @@ def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
     P, the number inside. u is unshifted (a constant shift has no second
     derivative).
     """
-    positions, types, lengths, inverse, starts, neighbors = geometry
+    positions, types, lengths, inverse, tilt, starts, neighbors = geometry
     pair_i, pair_j, transverse, radial, unit = out
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
     n_pairs = 0
     for i in range(positions.shape[0]):
         row = types[i] * n_types
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
-            dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
-            dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
-            dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
+            dx, dy, dz = min_image(
+                positions[i, 0] - positions[j, 0],
+                positions[i, 1] - positions[j, 1],
+                positions[i, 2] - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
             rc2 = table[RC2, k]

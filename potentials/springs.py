@@ -20,7 +20,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from md._checks import bond_array, bond_type_array, positive_array, read_bonds_file
-from md.box import min_image_component, minimum_image, periodic_lengths
+from md.box import min_image, minimum_image, periodic_lengths, periodic_tilt
 from md.errors import NonFiniteError
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -142,6 +142,7 @@ class _BondedPotential:
             state.positions,
             lengths,
             inverse,
+            periodic_tilt(state.tilt, state.pbc),
             self.bonds,
             self.bond_types,
             self._form,
@@ -181,7 +182,8 @@ class _BondedPotential:
         radial = np.empty(self.n_bonds)
         unit = np.empty((self.n_bonds, 3))
         bad = _bond_curvatures(
-            state.positions, lengths, inverse, self.bonds, self.bond_types, self._form,
+            state.positions, lengths, inverse, periodic_tilt(state.tilt, state.pbc), self.bonds,
+            self.bond_types, self._form,
             *self._tables, transverse, radial, unit,
         )  # fmt: skip
         if bad >= 0:
@@ -196,7 +198,7 @@ class _BondedPotential:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
         self._check_indices(state.n_atoms)
         d = state.positions[self.bonds[:, 0]] - state.positions[self.bonds[:, 1]]
-        return np.linalg.norm(minimum_image(d, state.box, state.pbc), axis=1)
+        return np.linalg.norm(minimum_image(d, state.box, state.pbc, state.tilt), axis=1)
 
     def _describe(self, **params) -> dict:
         digest = hashlib.sha256(np.ascontiguousarray(self.bonds, dtype="<i8").tobytes())
@@ -217,7 +219,7 @@ class _BondedPotential:
 
     def _raise_stretched(self, state, bad: int):
         i, j = (int(a) for a in self.bonds[bad])
-        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc)
+        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt)
         r_max = float(self._tables[1][self.bond_types[bad]])
         raise BondStretchError(bad, i, j, float(np.linalg.norm(d)), r_max)
 
@@ -420,7 +422,19 @@ def _bond_terms(form, r2, k, p):
 
 @njit(cache=True, error_model="numpy")
 def _bond_energy_forces(
-    positions, lengths, inverse, bonds, bond_types, form, k, p, forces, virial, energies, virials
+    positions,
+    lengths,
+    inverse,
+    tilt,
+    bonds,
+    bond_types,
+    form,
+    k,
+    p,
+    forces,
+    virial,
+    energies,
+    virials,
 ):
     """Add bond forces to ``forces`` (zeroed by caller); return (energy, bad).
 
@@ -436,15 +450,18 @@ def _bond_energy_forces(
     energy = 0.0
     bad = -1
     wxx = wyy = wzz = wyz = wxz = wxy = 0.0
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
     for b in range(bonds.shape[0]):
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
-        dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
-        dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
+        dx, dy, dz = min_image(
+            positions[i, 0] - positions[j, 0],
+            positions[i, 1] - positions[j, 1],
+            positions[i, 2] - positions[j, 2],
+            lengths,
+            inverse,
+            tilt,
+        )
         u, g, _, ok = _bond_terms(form, dx * dx + dy * dy + dz * dz, k[t], p[t])
         if not ok and bad < 0:
             bad = b
@@ -480,7 +497,7 @@ def _bond_energy_forces(
 
 @njit(cache=True, error_model="numpy")
 def _bond_curvatures(
-    positions, lengths, inverse, bonds, bond_types, form, k, p, transverse, radial, unit
+    positions, lengths, inverse, tilt, bonds, bond_types, form, k, p, transverse, radial, unit
 ):
     """Write each bond's Hessian eigenvalues u'/r, u'' and unit vector; return the first bad bond.
 
@@ -489,15 +506,18 @@ def _bond_curvatures(
     that K = (u'/r) I. Returns -1 when every bond is within its range.
     """
     bad = -1
-    lx, ly, lz = lengths[0], lengths[1], lengths[2]
-    ix, iy, iz = inverse[0], inverse[1], inverse[2]
     for b in range(bonds.shape[0]):
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx = min_image_component(positions[i, 0] - positions[j, 0], lx, ix)
-        dy = min_image_component(positions[i, 1] - positions[j, 1], ly, iy)
-        dz = min_image_component(positions[i, 2] - positions[j, 2], lz, iz)
+        dx, dy, dz = min_image(
+            positions[i, 0] - positions[j, 0],
+            positions[i, 1] - positions[j, 1],
+            positions[i, 2] - positions[j, 2],
+            lengths,
+            inverse,
+            tilt,
+        )
         r2 = dx * dx + dy * dy + dz * dz
         _, g, h, ok = _bond_terms(form, r2, k[t], p[t])
         if not ok and bad < 0:

@@ -225,7 +225,7 @@ def test_rdf_equals_direct_histogram_on_same_frames(tmp_path, rng):
 def test_rdf_rejects_range_beyond_half_box_and_open_boxes(tmp_path, rng):
     positions = rng.uniform(0, 6.0, size=(2, 10, 3))
     path = write_trajectory(tmp_path / "p.h5", positions, 6.0, [0, 1])
-    with pytest.raises(AnalysisError, match="half the smallest box edge"):
+    with pytest.raises(AnalysisError, match="half the smallest cell width"):
         analysis.rdf(path, r_range=(0.0, 3.5))
     open_path = write_trajectory(tmp_path / "o.h5", positions, 6.0, [0, 1], pbc=False)
     with pytest.raises(AnalysisError, match="periodic"):

@@ -182,7 +182,7 @@ def test_missing_velocities_stop_an_explicit_vacf_and_are_skipped_by_all(
     ("options", "message"),
     [
         (["--msd", "--stop", "3"], "needs at least 5 frames"),
-        (["--rdf", "--rdf-range", "100"], "half the smallest box edge"),
+        (["--rdf", "--rdf-range", "100"], "half the smallest cell width"),
         (["--rdf", "--rdf-range", "a:b"], "--rdf-range must be MAX or MIN:MAX"),
         (["--rdf", "--rdf-bins", "0"], "--rdf-bins must be >= 1"),
         (["--msd", "--fit", "0.5:0.1"], "--fit needs 0 <= START < END"),

@@ -399,8 +399,9 @@ Bonds
     assert topology.bonds.tolist() == [[0, 1]]
     tilted = text.replace("0.0 10.0 zlo zhi\n", "0.0 10.0 zlo zhi\n1.0 0.0 0.0 xy xz yz\n")
     (tmp_path / "tilted.data").write_text(tilted)
-    with pytest.raises(ValueError, match="tilted .triclinic. box"):
-        read_structure(tmp_path / "tilted.data")
+    sheared, _ = read_structure(tmp_path / "tilted.data")  # LAMMPS's triclinic box as it is
+    np.testing.assert_array_equal(sheared.tilt, [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(sheared.positions, state.positions)
     (tmp_path / "nomass.data").write_text(text.replace("Masses\n\n1 12.011\n2 15.999\n\n", ""))
     with pytest.raises(ValueError, match="no Masses section"):
         read_structure(tmp_path / "nomass.data")

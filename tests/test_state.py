@@ -200,9 +200,17 @@ def test_non_chemical_type_names_become_dummies_with_tags():
     np.testing.assert_array_equal(atoms.get_tags(), [1, 0])
 
 
-def test_from_ase_rejects_a_non_orthorhombic_cell():
+def test_from_ase_takes_a_lower_triangular_cell_as_it_is():
     atoms = ase.Atoms("Ar2", positions=TWO_ATOMS, cell=[[5, 0, 0], [1, 5, 0], [0, 0, 5]], pbc=True)
-    with pytest.raises(ValueError, match="orthorhombic"):
+    state = md.State.from_ase(atoms)
+    np.testing.assert_array_equal(state.positions, atoms.positions)
+    np.testing.assert_array_equal(state.tilt, [1.0, 0.0, 0.0])
+
+
+def test_from_ase_refuses_a_tilt_along_an_open_axis():
+    cell = [[5, 0, 0], [1, 5, 0], [0, 0, 5]]
+    atoms = ase.Atoms("Ar2", positions=TWO_ATOMS, cell=cell, pbc=[True, False, True])
+    with pytest.raises(ValueError, match="xy"):
         md.State.from_ase(atoms)
 
 

@@ -68,7 +68,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--rdf-bins", type=int, default=200, help="g(r) bins (default 200)")
     parser.add_argument(
         "--rdf-range",
-        help="g(r) range [length]: RMAX or RMIN:RMAX (default 0 to half the smallest box edge)",
+        help="g(r) range [length]: RMAX or RMIN:RMAX (default 0 to half the smallest cell width)",
     )
     parser.add_argument(
         "--fit",

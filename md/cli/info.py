@@ -39,6 +39,9 @@ def main(args) -> int:
     print(f"  time         {summary['first_time']:g} to {summary['last_time']:g} {label}")
     print(f"  units        {units.name}")
     print(f"  box          {summary['box']}  pbc {summary['pbc']}")
+    if summary.get("tilt"):
+        xy, xz, yz = summary["tilt"]
+        print(f"  tilt         xy {xy:.6g}  xz {xz:.6g}  yz {yz:.6g}  (triclinic)")
     print(f"  stored       {', '.join(summary['stored'])}")
     if summary["bonds"]:
         counts = ", ".join(f"{count} {name}" for name, count in summary["bonds"].items())
