@@ -3,9 +3,10 @@
 :class:`PressureCoupled` wraps a thermostat (Langevin, Bussi, Nose-Hoover
 chains, ...) and, every ``every`` steps, lets its barostat rescale the box and
 the positions (and, for stochastic cell rescaling, the velocities) towards
-the target pressure. Boxes are orthorhombic and the coupling isotropic:
-anisotropic and triclinic coupling and the Martyna-Tobias-Klein barostat are
-not here yet.
+the target pressure. Coupling is ``isotropic`` (one scale factor),
+``anisotropic`` (each edge on its own diagonal pressure component) or
+``triclinic`` (also the tilt factors, on the off-diagonal components, towards
+zero shear stress); the Martyna-Tobias-Klein barostat is not here yet.
 
 ``c_rescale``
     Stochastic cell rescaling (Bernetti and Bussi, J. Chem. Phys. 153,
@@ -14,7 +15,16 @@ not here yet.
         d eps = -(beta / tau) (P0 - P - kT / V) dt + sqrt(2 kT beta dt / (V tau)) xi,
 
     positions and box are scaled by mu = exp(d eps / 3) and velocities by
-    1 / mu. It samples the isothermal-isobaric ensemble (for an ideal gas
+    1 / mu. Anisotropic coupling applies the same equation to each edge
+    (eps_a = ln L_a) with P_aa and the compressibility divided by three, so
+    the volume relaxes at the isotropic rate (the diagonal of the anisotropic
+    scheme of Del Tatto, Raiteri, Bernetti and Bussi, Appl. Sci. 12, 1139,
+    2022); triclinic coupling adds, for each tilt, d eps_ab = (beta / 3 tau)
+    P_ab dt plus noise of the same size, and applies the lower-triangular
+    deformation r -> r mu (velocities v -> v mu^-T) that keeps the cell in
+    the engine's frame. A cell that tilts beyond half an edge is flipped to
+    the equivalent shorter tilts (``md.box.reduced_tilt``). Isotropic
+    coupling samples the isothermal-isobaric ensemble (for an ideal gas
     <V> = (N + 1) kT / P0) with any canonical thermostat; ``beta`` (the
     compressibility given) and ``tau`` only set how fast the volume relaxes.
 ``berendsen``
@@ -38,12 +48,15 @@ import numpy as np
 
 from integrators.base import IntegratorBase
 from md._checks import count, positive
+from md.box import reduced_tilt
 from md.errors import SimulationError
-from md.thermo import kinetic_energy, pressure
+from md.thermo import kinetic_energy, pressure, pressure_tensor
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
 BAROSTATS = {"c_rescale": True, "berendsen": False}
-COUPLINGS = ("isotropic",)
+COUPLINGS = ("isotropic", "anisotropic", "triclinic")
+#: Matrix entries (row, column) of the tilt factors xy, xz, yz in a lower-triangular cell.
+_TILT_ENTRIES = ((1, 0), (2, 0), (2, 1))
 
 
 class Barostat:
@@ -58,7 +71,7 @@ class Barostat:
         Coupling time [time], > 0.
     compressibility : float
         Isothermal compressibility beta used in the coupling [length^3/energy], > 0.
-    couple : {"isotropic"}
+    couple : {"isotropic", "anisotropic", "triclinic"}
     every : int
         Steps between barostat moves (the moves use dt * every).
     seed : int, list of int or None
@@ -70,10 +83,7 @@ class Barostat:
         if kind not in BAROSTATS:
             raise ValueError(f"unknown barostat {kind!r}; known: {', '.join(BAROSTATS)}")
         if couple not in COUPLINGS:
-            raise ValueError(
-                f"couple = {couple!r} is not supported yet (orthorhombic boxes, isotropic "
-                "coupling only); use 'isotropic'"
-            )
+            raise ValueError(f"unknown couple = {couple!r}; known: {', '.join(COUPLINGS)}")
         self.kind = kind
         if isinstance(pressure, bool) or not math.isfinite(float(pressure)):
             raise ValueError(f"pressure must be a finite number, got {pressure!r}")
@@ -99,6 +109,33 @@ class Barostat:
         drift = -rate * (self.pressure - p_now - kT / volume) * dt
         noise = math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
         return math.exp((drift + noise) / 3.0)
+
+    def deformation(self, tensor, volume: float, kT: float, dt: float, pbc) -> np.ndarray:
+        """The lower-triangular (3, 3) deformation mu of one anisotropic or triclinic move.
+
+        ``tensor`` is the instantaneous pressure tensor (kinetic + virial) / V;
+        positions move as r -> r mu. Open axes keep their length.
+        """
+        rate = self.compressibility / (3.0 * self.tau)
+        mu = np.eye(3)
+        for a in range(3):
+            if not pbc[a]:
+                continue
+            if self.kind == "berendsen":
+                mu[a, a] = 1.0 - rate * dt * (self.pressure - tensor[a, a])
+                continue
+            drift = -rate * (self.pressure - tensor[a, a] - kT / volume) * dt
+            noise = math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
+            mu[a, a] = math.exp(drift + noise)
+        if self.couple == "triclinic":
+            for a, b in _TILT_ENTRIES:
+                if not (pbc[a] and pbc[b]):
+                    continue
+                shear = rate * dt * tensor[a, b]
+                if self.kind != "berendsen":
+                    shear += math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
+                mu[a, b] = shear
+        return mu
 
     def describe(self) -> dict:
         return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
@@ -153,15 +190,29 @@ class PressureCoupled(IntegratorBase):
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
         volume = state.volume
         kinetic = kinetic_energy(state.velocities, state.masses)
-        p_now = pressure(kinetic, virial, volume)
-        mu = barostat.scale_factor(p_now, volume, self.kT, self.dt * barostat.every)
-        if not (math.isfinite(mu) and mu > 0):
-            raise SimulationError(state.step, f"the barostat's scale factor is {mu}")
         before = kinetic + result.energy
-        state.positions *= mu
-        state.box = state.box * mu
-        if barostat.kind == "c_rescale":
-            state.velocities /= mu
+        interval = self.dt * barostat.every
+        if barostat.couple == "isotropic":
+            p_now = pressure(kinetic, virial, volume)
+            mu = barostat.scale_factor(p_now, volume, self.kT, interval)
+            if not (math.isfinite(mu) and mu > 0):
+                raise SimulationError(state.step, f"the barostat's scale factor is {mu}")
+            state.positions *= mu
+            state.box = state.box * mu
+            state.tilt = state.tilt * mu
+            if barostat.kind == "c_rescale":
+                state.velocities /= mu
+        else:
+            tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
+            mu = barostat.deformation(tensor, volume, self.kT, interval, state.pbc)
+            if not (np.all(np.isfinite(mu)) and np.all(np.diag(mu) > 0)):
+                raise SimulationError(state.step, f"the barostat's deformation is {mu.tolist()}")
+            cell = state.cell @ mu
+            state.positions[:] = state.positions @ mu
+            state.box = np.diag(cell).copy()
+            state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)
+            if barostat.kind == "c_rescale":
+                state.velocities[:] = state.velocities @ np.linalg.inv(mu).T
         try:
             energy = forcefield.compute(state, virial=False).energy
         except ValueError as error:  # the box shrank below what the cutoff allows

@@ -403,12 +403,7 @@ def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls) -> d
     to_engine = 1.0 / eV_per_A3_in_bar if units.name == "metal" else 1.0  # bar -> eV/A^3
     pressure = table.number("pressure") * to_engine
     tau = table.number("tau", positive=True) * units.config_time
-    couple = table.string("couple", "isotropic", choices=("isotropic", "anisotropic", "triclinic"))
-    if couple not in COUPLINGS:
-        raise table.error(
-            "couple",
-            f"{couple!r} coupling is not supported yet (orthorhombic boxes, isotropic only)",
-        )
+    couple = table.string("couple", "isotropic", choices=COUPLINGS)
     compressibility = (
         table.number("compressibility", _COMPRESSIBILITY[units.name], positive=True) / to_engine
     )

@@ -303,6 +303,9 @@ class PreparedRun:
             self.output, self.sim.state, units=self.config.units, velocities=output.velocities,
             forces=output.forces, parameters=self.parameters, overwrite=overwrite,
             topology=run_topology(self.sim),
+            # A cell that may start to tilt needs (3, 3) edges from the first frame.
+            triclinic=not self.sim.state.is_orthorhombic
+            or (self.config.barostat or {}).get("couple") == "triclinic",
         )  # fmt: skip
 
 

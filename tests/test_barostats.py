@@ -1,4 +1,4 @@
-"""Barostats (stochastic cell rescaling, Berendsen) on orthorhombic boxes, isotropic coupling.
+"""Barostats (stochastic cell rescaling, Berendsen): isotropic, anisotropic and triclinic coupling.
 
 Exact answers: an ideal gas under isotropic NPT has <V> = (N + 1) kT / P and
 var(V) / (kT <V>) = 1 / P (the compressibility); thermodynamic consistency:
@@ -109,8 +109,8 @@ def test_a_barostat_needs_a_thermostat_and_valid_parameters():
         Barostat("mtk", 1.0, 1.0, 0.1)
     with pytest.raises(ValueError, match="tau must be finite and > 0"):
         Barostat("c_rescale", 1.0, 0.0, 0.1)
-    with pytest.raises(ValueError, match="not supported yet"):
-        Barostat("c_rescale", 1.0, 1.0, 0.1, couple="anisotropic")
+    with pytest.raises(ValueError, match="unknown couple = 'sideways'"):
+        Barostat("c_rescale", 1.0, 1.0, 0.1, couple="sideways")
 
 
 CONFIG = """
@@ -164,7 +164,6 @@ def test_md_run_with_a_barostat_stores_volume_and_resumes_bit_for_bit(tmp_path):
         (LANGEVIN, 'type = "mtk"\npressure = 1.0\ntau = 1.0', "[barostat] type: must be one of"),
         (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = 0.0', "tau: must be positive"),
         (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = -1', "tau: must be positive"),
-        (LANGEVIN, C_RESCALE + '\ncouple = "anisotropic"', "not supported yet"),
         (LANGEVIN, C_RESCALE + '\ncouple = "sideways"', "[barostat] couple: must be one of"),
         ('type = "verlet"\ndt = 0.005', C_RESCALE, "needs a thermostat"),
         (LANGEVIN, 'type = "c_rescale"\ntau = 1.0', "missing required key [barostat] pressure"),
@@ -211,3 +210,77 @@ def test_metal_pressure_in_bar_and_a_sweep_over_pressure(tmp_path):
     (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=C_RESCALE))
     plan = plan_sweep(tmp_path / "npt.toml", vary=["barostat.pressure=0.5,1.0,2.0"])
     assert len(plan.runs) == 3
+
+
+# ------------------------------------------------------------ anisotropic and triclinic
+def _npt_series(couple, shear=None, temperature=1.5, pressure=2.0, density=0.75, steps=4000):
+    """Density, pressure tensor and tilts every 10 steps (the first quarter dropped)."""
+    state = md.lattice("fcc", 5, density=density, shear=shear)
+    md.maxwell_boltzmann(state, temperature, seed=1)
+    integrator = PressureCoupled(
+        Langevin(0.005, temperature=temperature, friction=1.0, seed=2),
+        Barostat("c_rescale", pressure, tau=0.5, compressibility=0.1, couple=couple, every=10,
+                 seed=3),
+    )  # fmt: skip
+    sim = md.Simulation(state, [LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5)], integrator)
+    rows = []
+
+    def record(s):
+        thermo = s.thermo()
+        rows.append([s.state.n_atoms / s.state.volume]
+                    + [thermo[k] for k in ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")]
+                    + [*s.state.tilt, *s.state.box])  # fmt: skip
+
+    sim.attach(record, 10)
+    sim.run(steps)
+    rows = np.array(rows)
+    return rows[len(rows) // 4 :], sim.state
+
+
+def test_anisotropic_coupling_gives_the_isotropic_density_and_a_hydrostatic_pressure():
+    from md.analysis import block_average
+
+    isotropic, _ = _npt_series("isotropic")
+    anisotropic, state = _npt_series("anisotropic")
+    assert np.ptp(anisotropic[:, 10:13] / anisotropic[:, 10:11], axis=0)[1:].max() > 0.01
+    a, b = block_average(isotropic[:, 0]), block_average(anisotropic[:, 0])
+    assert abs(a.mean - b.mean) < 4 * np.hypot(a.sem, b.sem) + 0.002
+    for column in (1, 2, 3):  # each diagonal component at the target pressure
+        assert block_average(anisotropic[:, column]).mean == pytest.approx(2.0, rel=0.05)
+    assert state.is_orthorhombic
+
+
+def test_triclinic_coupling_relaxes_a_sheared_crystal_to_zero_shear_stress():
+    """An fcc crystal sheared by xy = 0.15 Ly: the cell shears back and P_xy goes to zero."""
+    from md.analysis import block_average
+
+    state = md.lattice("fcc", 5, density=1.0, shear=(0.15, 0.0, 0.0))
+    md.maxwell_boltzmann(state, 0.2, seed=1)
+    forces = md.ForceField([LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5)]).compute(state)
+    start = md.thermo.pressure_tensor(state.velocities, state.masses, forces.virial, state.volume)
+    assert abs(start[0, 1]) > 0.5  # the shear stress the barostat must remove
+    series, final = _npt_series(
+        "triclinic", shear=(0.15, 0.0, 0.0), temperature=0.2, pressure=1.0, density=1.0
+    )
+    assert abs(block_average(series[:, 4]).mean) < 0.15
+    assert np.abs(series[:, 7:10]).max() < 0.1 * series[:, 10:13].min()  # tilts near zero
+    edges = series[:, 10:13].mean(axis=0)
+    np.testing.assert_allclose(edges, edges.mean(), rtol=0.01)  # back to a cube
+    for column in (1, 2, 3):
+        assert block_average(series[:, column]).mean == pytest.approx(1.0, rel=0.05)
+    assert np.all(np.abs(final.tilt) <= 0.5 * final.box[[0, 0, 1]])
+
+
+def test_triclinic_coupling_in_a_config_writes_cell_matrices(tmp_path):
+    barostat = C_RESCALE + '\ncouple = "triclinic"'
+    (tmp_path / "npt.toml").write_text(
+        CONFIG.format(integrator=LANGEVIN, barostat=barostat).replace("cells = 4", "cells = 5")
+    )
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 0
+    traj = read_trajectory("npt.h5")
+    assert traj.cells().shape == (traj.n_frames, 3, 3)
+    assert np.any(traj.tilts[-1] != 0.0)  # the cell sheared
+    import h5py
+
+    with h5py.File("npt.h5") as f:
+        assert f["particles/trajectory/box/edges/value"].ndim == 3
