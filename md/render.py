@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from md._files import atomic_path
-from md.box import minimum_image
+from md.box import cell_matrix, minimum_image
 from md.trajectory import Frame, TrajectoryReader
 
 #: Engines :func:`render` offers.
@@ -113,7 +113,7 @@ def bond_segments(reader: TrajectoryReader, snapshot: Frame) -> np.ndarray:
     if len(bonds) == 0:
         return np.zeros((0, 2, 3))
     r = snapshot.positions
-    d = minimum_image(r[bonds[:, 1]] - r[bonds[:, 0]], snapshot.box, reader.pbc)
+    d = minimum_image(r[bonds[:, 1]] - r[bonds[:, 0]], snapshot.box, reader.pbc, snapshot.tilt)
     first = np.stack([r[bonds[:, 0]], r[bonds[:, 0]] + 0.5 * d], axis=1)
     second = np.stack([r[bonds[:, 1]], r[bonds[:, 1]] - 0.5 * d], axis=1)
     return np.concatenate([first, second])
@@ -179,8 +179,12 @@ def _draw_povray(reader, snapshot, path: Path, size: int, elevation, azimuth) ->
     radius = _atom_radius(reader, snapshot.box)
     bonds = reader.topology.bonds
     r = snapshot.positions
-    # Each bond to its partner's nearest image: ASE takes the partner's cell offset.
-    offsets = -np.rint((r[bonds[:, 1]] - r[bonds[:, 0]]) / snapshot.box) * reader.pbc
+    # Each bond to its partner's nearest image: ASE takes the partner's cell offset,
+    # in cell vectors (the nearest image's shift solved through the cell matrix).
+    d = r[bonds[:, 1]] - r[bonds[:, 0]]
+    nearest = minimum_image(d, snapshot.box, reader.pbc, snapshot.tilt)
+    cell = cell_matrix(np.where(reader.pbc, snapshot.box, 1.0), snapshot.tilt)  # open: any
+    offsets = np.rint(np.linalg.solve(cell.T, (nearest - d).T).T) * reader.pbc
     bondatoms = [
         (int(i), int(j), tuple(int(k) for k in offset))
         for (i, j), offset in zip(bonds, offsets, strict=True)
