@@ -48,15 +48,13 @@ import numpy as np
 
 from integrators.base import IntegratorBase
 from md._checks import count, positive
-from md.box import reduced_tilt
+from md.box import TILT_AXES, reduced_tilt
 from md.errors import SimulationError
 from md.thermo import kinetic_energy, pressure, pressure_tensor
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
 BAROSTATS = {"c_rescale": True, "berendsen": False}
 COUPLINGS = ("isotropic", "anisotropic", "triclinic")
-#: Matrix entries (row, column) of the tilt factors xy, xz, yz in a lower-triangular cell.
-_TILT_ENTRIES = ((1, 0), (2, 0), (2, 1))
 
 
 class Barostat:
@@ -128,7 +126,7 @@ class Barostat:
             noise = math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
             mu[a, a] = math.exp(drift + noise)
         if self.couple == "triclinic":
-            for a, b in _TILT_ENTRIES:
+            for b, a in TILT_AXES:  # tilt xy sits at row y, column x of the cell
                 if not (pbc[a] and pbc[b]):
                     continue
                 shear = rate * dt * tensor[a, b]

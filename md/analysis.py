@@ -58,7 +58,14 @@ from numpy.typing import NDArray
 
 from md.box import perpendicular_widths
 from md.errors import AnalysisError, TrajectoryError
-from md.trajectory import attr_text, maybe_json, open_h5md, open_trajectory, split_edges
+from md.trajectory import (
+    attr_text,
+    maybe_json,
+    open_h5md,
+    open_trajectory,
+    split_edges,
+    unwrap_frames,
+)
 from md.units import get_units
 
 logger = logging.getLogger(__name__)
@@ -845,10 +852,7 @@ def msd(
     positions = _read(info, "position")[:, atoms]
     images = _read(info, "image")[:, atoms]
     boxes, tilts = split_edges(_read(info, "box/edges"))
-    unwrapped = positions + images * boxes[:, None, :]
-    if np.any(tilts != 0.0):  # a tilted cell: images count cell vectors
-        unwrapped[..., 0] += images[..., 1] * tilts[:, 0, None] + images[..., 2] * tilts[:, 1, None]
-        unwrapped[..., 1] += images[..., 2] * tilts[:, 2, None]
+    unwrapped = unwrap_frames(positions, images, boxes, tilts)
     displacements = unwrapped - unwrapped[:1]
     universe = mda.Universe.empty(len(atoms), trajectory=False)
     universe.load_new(displacements, format=MemoryReader, order="fac", dt=dt)

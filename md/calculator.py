@@ -39,7 +39,7 @@ from ase.calculators.calculator import (
 from ase.stress import full_3x3_to_voigt_6_stress
 from numpy.typing import NDArray
 
-from md.box import cell_matrix, perpendicular_widths, reduced_tilt, restricted_cell
+from md.box import TILT_AXES, cell_matrix, perpendicular_widths, reduced_tilt, restricted_cell
 from md.forcefield import ForceField
 from md.state import State, types_from_ase
 from potentials import POTENTIALS
@@ -268,7 +268,7 @@ class MDCalculator(Calculator):
         edges, tilt, rotation = restricted_cell(self._cell, "atoms.cell (MDCalculator)")
         self._rotation = None if np.array_equal(rotation, np.eye(3)) else rotation
         pbc = np.array(atoms.pbc, dtype=bool)
-        for k, pair in enumerate(((0, 1), (0, 2), (1, 2))):
+        for k, pair in enumerate(TILT_AXES):
             if tilt[k] != 0.0 and not pbc[list(pair)].all():
                 raise ValueError(
                     f"atoms.cell is tilted between axes {'xyz'[pair[0]]} and {'xyz'[pair[1]]} "

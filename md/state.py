@@ -317,30 +317,6 @@ class State:
         return atoms
 
 
-def orthorhombic_box(cell, what: str = "cell") -> NDArray[np.float64]:
-    """Return the edge lengths of an orthorhombic (3, 3) cell matrix [length].
-
-    Off-diagonal entries up to 1e-12 times the largest entry (or 1e-12, for
-    small cells) count as zero; a negative diagonal entry spans the same
-    periodic lattice as its absolute value, which is returned.
-
-    Raises
-    ------
-    ValueError
-        If the cell is not orthorhombic (triclinic boxes are not supported).
-    """
-    cell = np.asarray(cell, dtype=np.float64)
-    if cell.shape != (3, 3):
-        raise ValueError(f"{what} must be a (3, 3) matrix, got shape {cell.shape}")
-    off_diagonal = cell - np.diag(np.diag(cell))
-    if np.any(np.abs(off_diagonal) > 1e-12 * max(1.0, np.abs(cell).max())):
-        raise ValueError(
-            f"only orthorhombic cells are supported (triclinic boxes are not, yet): "
-            f"{what} has off-diagonal entries {cell.tolist()}"
-        )
-    return np.abs(np.diag(cell)).copy()
-
-
 def types_from_ase(
     numbers: NDArray,
     tags: NDArray,

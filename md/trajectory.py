@@ -590,12 +590,7 @@ def _read_frames(f: h5py.File, path: Path, n_frames: int) -> Trajectory:
         raw = group["position/value"][:n_frames] * scale("length")
         boxes, tilts = split_edges(group["box/edges/value"][:n_frames] * scale("length"))
         images = group["image/value"][:n_frames] if "image" in group else np.zeros_like(raw)
-        positions = raw + images * boxes[:, None, :]
-        if np.any(tilts != 0.0):
-            positions[..., 0] += (
-                images[..., 1] * tilts[:, None, 0] + images[..., 2] * tilts[:, None, 1]
-            )
-            positions[..., 1] += images[..., 2] * tilts[:, None, 2]
+        positions = unwrap_frames(raw, images, boxes, tilts)
         boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
         velocities = forces = None
         if "velocity" in group:
@@ -634,6 +629,15 @@ def _read_frames(f: h5py.File, path: Path, n_frames: int) -> Trajectory:
         )
     except (KeyError, ValueError, TypeError, RuntimeError) as error:
         raise _as_trajectory_error(path, error) from None
+
+
+def unwrap_frames(positions, images, boxes, tilts) -> NDArray[np.float64]:
+    """Continuous positions (F, N, 3) of stored frames: ``position + image @ cell`` per frame."""
+    unwrapped = positions + images * boxes[:, None, :]
+    if np.any(tilts != 0.0):  # a tilted cell: images count cell vectors
+        unwrapped[..., 0] += images[..., 1] * tilts[:, None, 0] + images[..., 2] * tilts[:, None, 1]
+        unwrapped[..., 1] += images[..., 2] * tilts[:, None, 2]
+    return unwrapped
 
 
 def split_edges(

@@ -2,7 +2,7 @@
 
 The references are independent of the engine's minimum image: an explicit
 search over periodic images, the same periodic system described by an
-orthorhombic box, and ASE's own Lennard-Jones calculator (tests/test_calculator_cell.py).
+orthorhombic box, and ASE's own Lennard-Jones calculator (tests/test_calculator.py).
 """
 
 import itertools
