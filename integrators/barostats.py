@@ -6,7 +6,9 @@ the positions (and, for stochastic cell rescaling, the velocities) towards
 the target pressure. Coupling is ``isotropic`` (one scale factor),
 ``anisotropic`` (each edge on its own diagonal pressure component) or
 ``triclinic`` (also the tilt factors, on the off-diagonal components, towards
-zero shear stress); the Martyna-Tobias-Klein barostat is not here yet.
+zero shear stress). The Martyna-Tobias-Klein barostat (``mtk``) is a
+deterministic integrator of its own, :class:`integrators.mtk.MartynaTobiasKlein`;
+:func:`pressure_control` picks the right one for a :class:`Barostat`.
 
 ``c_rescale``
     Stochastic cell rescaling (Bernetti and Bussi, J. Chem. Phys. 153,
@@ -47,13 +49,14 @@ import math
 import numpy as np
 
 from integrators.base import IntegratorBase
+from integrators.mtk import MartynaTobiasKlein
 from md._checks import count, positive
 from md.box import TILT_AXES, reduced_tilt
 from md.errors import SimulationError
 from md.thermo import kinetic_energy, pressure, pressure_tensor
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
-BAROSTATS = {"c_rescale": True, "berendsen": False}
+BAROSTATS = {"c_rescale": True, "mtk": True, "berendsen": False}
 COUPLINGS = ("isotropic", "anisotropic", "triclinic")
 
 
@@ -62,21 +65,23 @@ class Barostat:
 
     Parameters
     ----------
-    kind : {"c_rescale", "berendsen"}
+    kind : {"c_rescale", "mtk", "berendsen"}
     pressure : float
         Target pressure P0 [energy/length^3] (any finite value).
     tau : float
-        Coupling time [time], > 0.
-    compressibility : float
-        Isothermal compressibility beta used in the coupling [length^3/energy], > 0.
+        Coupling time [time], > 0 (for ``mtk``, the period of the barostat).
+    compressibility : float, optional
+        Isothermal compressibility beta used in the coupling [length^3/energy],
+        > 0; needed by ``c_rescale`` and ``berendsen``, not used by ``mtk``.
     couple : {"isotropic", "anisotropic", "triclinic"}
     every : int
-        Steps between barostat moves (the moves use dt * every).
+        Steps between barostat moves (the moves use dt * every); ``mtk`` moves
+        the cell every step.
     seed : int, list of int or None
         Random stream of ``c_rescale``.
     """
 
-    def __init__(self, kind: str, pressure: float, tau: float, compressibility: float,
+    def __init__(self, kind: str, pressure: float, tau: float, compressibility: float | None = None,
                  couple: str = "isotropic", every: int = 10, seed=None) -> None:  # fmt: skip
         if kind not in BAROSTATS:
             raise ValueError(f"unknown barostat {kind!r}; known: {', '.join(BAROSTATS)}")
@@ -87,7 +92,11 @@ class Barostat:
             raise ValueError(f"pressure must be a finite number, got {pressure!r}")
         self.pressure = float(pressure)
         self.tau = positive(tau, "tau")
-        self.compressibility = positive(compressibility, "compressibility")
+        if compressibility is None and kind != "mtk":
+            raise ValueError(f"the {kind} barostat needs a compressibility (> 0)")
+        self.compressibility = (
+            None if compressibility is None else positive(compressibility, "compressibility")
+        )
         self.couple = couple
         self.every = count(every, "every", minimum=1)
         self.seed = seed
@@ -136,9 +145,31 @@ class Barostat:
         return mu
 
     def describe(self) -> dict:
+        if self.kind == "mtk":
+            return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
+                    "couple": self.couple}  # fmt: skip
         return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
                 "compressibility": self.compressibility, "couple": self.couple,
                 "every": self.every, "seed": self.seed}  # fmt: skip
+
+
+def pressure_control(integrator, barostat: Barostat):
+    """``integrator`` under ``barostat``: MTK's own integrator for ``mtk``, else PressureCoupled.
+
+    Raises
+    ------
+    ValueError
+        If the pair cannot work together (an NVE integrator; ``mtk`` without
+        Nose-Hoover chains), with a message that names what to use instead.
+    """
+    if barostat.kind == "mtk":
+        if not getattr(integrator, "thermostat", False):
+            raise ValueError(
+                "a barostat needs a thermostat: the mtk barostat runs with [integrator] "
+                "type = 'nose_hoover_chain', not an NVE integrator"
+            )
+        return MartynaTobiasKlein(integrator, barostat)
+    return PressureCoupled(integrator, barostat)
 
 
 class PressureCoupled(IntegratorBase):
@@ -154,6 +185,8 @@ class PressureCoupled(IntegratorBase):
     splits_forces = False
 
     def __init__(self, integrator, barostat: Barostat) -> None:
+        if barostat.kind == "mtk":
+            raise ValueError("the mtk barostat is its own integrator: use pressure_control()")
         if not getattr(integrator, "thermostat", False):
             raise ValueError(
                 "a barostat needs a thermostat ([integrator] type langevin, bussi, "
@@ -264,4 +297,4 @@ class PressureCoupled(IntegratorBase):
         return {**self.inner.describe(), "barostat": self.barostat.describe()}
 
 
-__all__ = ["BAROSTATS", "COUPLINGS", "Barostat", "PressureCoupled"]
+__all__ = ["BAROSTATS", "COUPLINGS", "Barostat", "PressureCoupled", "pressure_control"]

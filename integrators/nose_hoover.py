@@ -105,18 +105,22 @@ class NoseHooverChain(Thermostat):
         n_dof = self.degrees_of_freedom(state.n_atoms)
         if n_dof <= 0:
             raise ValueError(f"no degrees of freedom left to thermostat ({state.n_atoms} atoms)")
-        self._n_dof = n_dof
-        q = self.masses(n_dof)
         half = 0.5 * self.dt
-        self._chain(state, q, n_dof, half)
+        self.thermalize(state, n_dof, half)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
-        self._chain(state, q, n_dof, half)
+        self.thermalize(state, n_dof, half)
         self._advance(state)
 
-    def _chain(self, state, q, n_dof, duration) -> None:
+    def thermalize(self, state, n_dof: int, duration: float) -> None:
+        """Advance the chain over ``duration`` [time] and scale the velocities by it.
+
+        The chain acts on ``n_dof`` degrees of freedom (the particles'; the
+        Martyna-Tobias-Klein integrator calls this for its particle chain).
+        """
+        self._n_dof = n_dof
         kinetic = kinetic_energy(state.velocities, state.masses)
-        scale = _chain_half_step(self.xi, self.v_xi, q, kinetic, float(n_dof), self.kT, duration,
-                                 YOSHIDA_WEIGHTS, self.n_substeps)  # fmt: skip
+        scale = chain_half_step(self.xi, self.v_xi, self.masses(n_dof), kinetic, float(n_dof),
+                                self.kT, duration, YOSHIDA_WEIGHTS, self.n_substeps)  # fmt: skip
         state.velocities *= scale
 
     def reservoir_energy(self) -> float:
@@ -161,7 +165,7 @@ def _chain_force(j, xi_velocities, q, kinetic, n_dof, kT):
 
 
 @njit(cache=True, error_model="numpy")
-def _chain_half_step(xi, xi_velocities, q, kinetic, n_dof, kT, duration, weights, n_substeps):
+def chain_half_step(xi, xi_velocities, q, kinetic, n_dof, kT, duration, weights, n_substeps):
     """Advance the chain (xi, xi_velocities written in place) over ``duration`` with the
     particles' kinetic energy; return the factor that scales the particle velocities."""
     m = xi.shape[0]
@@ -194,4 +198,4 @@ def _chain_half_step(xi, xi_velocities, q, kinetic, n_dof, kT, duration, weights
     return scale
 
 
-__all__ = ["NoseHooverChain"]
+__all__ = ["YOSHIDA_WEIGHTS", "NoseHooverChain", "chain_half_step"]

@@ -435,11 +435,15 @@ class ThermoResult:
         Mean, standard deviation and block-averaged standard error of each
         series that is finite on every selected frame.
     energy_drift, energy_drift_err : float
-        Slope of a least-squares line through the total energy per atom
+        Slope of a least-squares line through the conserved quantity per atom
         against time, and its standard error [energy/time]; NaN with fewer
-        than 3 frames.
+        than 3 frames. The conserved quantity is ``conserved_energy`` when the
+        file stores it (a thermostatted or barostatted run: total energy plus
+        the heat bath's and the barostat's), else ``total_energy``.
     energy_fluctuation : float
-        Standard deviation of the total energy per atom about that line [energy].
+        Standard deviation of that quantity per atom about the line [energy].
+    drift_of : str
+        Which series the drift was measured on.
     """
 
     units: str
@@ -452,6 +456,7 @@ class ThermoResult:
     energy_drift_err: float
     energy_fluctuation: float
     compressibility: float = math.nan
+    drift_of: str = "total_energy"
 
     def summary(self) -> dict:
         """Scalar results as plain data (for ``summary.json``)."""
@@ -462,6 +467,7 @@ class ThermoResult:
         out["energy_drift_per_atom"] = self.energy_drift
         out["energy_drift_per_atom_err"] = self.energy_drift_err
         out["energy_fluctuation_per_atom"] = self.energy_fluctuation
+        out["energy_drift_of"] = self.drift_of
         out["isothermal_compressibility"] = self.compressibility
         out["n_frames"] = len(self.times)
         return out
@@ -498,7 +504,10 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
         if np.isfinite(values).all()
     }
     drift = drift_err = fluctuation = math.nan
-    total = series["total_energy"] / info.n_atoms
+    drift_of = "total_energy"
+    if "conserved_energy" in series and np.isfinite(series["conserved_energy"]).all():
+        drift_of = "conserved_energy"
+    total = series[drift_of] / info.n_atoms
     if len(total) >= 3 and np.isfinite(total).all() and np.ptp(info.times) > 0:
         fit = stats.linregress(info.times, total)
         drift, drift_err = float(fit.slope), float(fit.stderr)
@@ -519,6 +528,7 @@ def thermo(path, start=None, stop=None, step=None, n_blocks: int = 5) -> ThermoR
         energy_drift_err=drift_err,
         energy_fluctuation=fluctuation,
         compressibility=compressibility,
+        drift_of=drift_of,
     )
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from integrators import INTEGRATORS
+from integrators import INTEGRATORS, NoseHooverChain
 from integrators.barostats import BAROSTATS, COUPLINGS
 from integrators.rattle import BondConstraints
 from md._checks import MAX_COUNT, MAX_SEED
@@ -274,7 +274,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     barostat = None
     if "barostat" in top.data:
         barostat = _parse_barostat(
-            _Table(top.take("barostat"), "barostat", source), units, seed, INTEGRATORS[kind]
+            _Table(top.take("barostat"), "barostat", source),
+            units,
+            seed,
+            INTEGRATORS[kind],
+            "constraints" in integrator,
         )
     minimize = None
     if "minimize" in top.data:
@@ -387,7 +391,8 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
 _COMPRESSIBILITY = {"lj": 0.1, "metal": 4.5e-5}
 
 
-def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls) -> dict:
+def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls,
+                    constrained: bool) -> dict:  # fmt: skip
     """``[barostat]``: type, pressure, tau, couple, compressibility, every, seed.
 
     Pressure is in epsilon/sigma^3 (lj) or bar (metal), tau in config time
@@ -404,6 +409,22 @@ def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls) -> d
     pressure = table.number("pressure") * to_engine
     tau = table.number("tau", positive=True) * units.config_time
     couple = table.string("couple", "isotropic", choices=COUPLINGS)
+    if kind == "mtk":
+        if integrator_cls is not NoseHooverChain:
+            raise table.error(
+                "type",
+                "the mtk barostat runs with its own Nose-Hoover chains: set [integrator] "
+                "type = 'nose_hoover_chain' (or use type = 'c_rescale' with any thermostat)",
+            )
+        if constrained:
+            raise table.error("type", "the mtk barostat does not keep [integrator.constraints]; "
+                              "use type = 'c_rescale'")  # fmt: skip
+        for key in ("compressibility", "every", "seed"):
+            if key in table.data:
+                raise table.error(key, "does not apply to the mtk barostat (it moves the "
+                                  "cell every step, deterministically)")  # fmt: skip
+        table.finish()
+        return {"kind": kind, "pressure": pressure, "tau": tau, "couple": couple}
     compressibility = (
         table.number("compressibility", _COMPRESSIBILITY[units.name], positive=True) / to_engine
     )

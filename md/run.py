@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from integrators.barostats import Barostat, PressureCoupled
+from integrators.barostats import Barostat, pressure_control
 from md._checks import count
 from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
 from md.checkpoint import (
@@ -306,6 +306,7 @@ class PreparedRun:
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
             triclinic=not self.sim.state.is_orthorhombic
             or (self.config.barostat or {}).get("couple") == "triclinic",
+            conserved=bool(getattr(self.sim.integrator, "thermostat", False)),
         )  # fmt: skip
 
 
@@ -490,7 +491,7 @@ def build_components(config: Config, state: State | None = None):
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:
-            integrator = PressureCoupled(integrator, Barostat(**config.barostat))
+            integrator = pressure_control(integrator, Barostat(**config.barostat))
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None
     constraints = getattr(integrator, "constraints", None)

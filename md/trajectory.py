@@ -69,12 +69,13 @@ from md.units import UnitSystem, get_units
 H5MD_VERSION = (1, 1)
 OBSERVABLES = (
     "potential_energy", "kinetic_energy", "total_energy", "temperature", "pressure",
-    "volume", "density", "pxx", "pyy", "pzz", "pxy", "pxz", "pyz",
+    "volume", "density", "pxx", "pyy", "pzz", "pxy", "pxz", "pyz", "conserved_energy",
 )  # fmt: skip
 _OBSERVABLE_UNITS = {
     "potential_energy": "energy",
     "kinetic_energy": "energy",
     "total_energy": "energy",
+    "conserved_energy": "energy",
     "temperature": "temperature",
     "pressure": "pressure",
     "volume": "volume",
@@ -126,6 +127,10 @@ class H5MDWriter:
         ``state`` is tilted. A run whose cell may start to tilt (a barostat
         with triclinic coupling) passes True; writing a tilted frame into a
         file of edge lengths raises ValueError.
+    conserved : bool
+        Also store ``conserved_energy`` (the thermostat's and barostat's
+        conserved quantity, from ``sim.thermo()``), so that analyses measure
+        the drift of a thermostatted run on it rather than on the total energy.
 
     Raises
     ------
@@ -156,8 +161,10 @@ class H5MDWriter:
         keep_frames: int | None = None,
         topology: Topology | None = None,
         triclinic: bool | None = None,
+        conserved: bool = False,
     ) -> None:
         self.path = Path(path)
+        self.store_conserved = bool(conserved)
         self.triclinic = not state.is_orthorhombic if triclinic is None else bool(triclinic)
         if topology is not None:
             topology.check(state.n_atoms, where="topology")
@@ -299,6 +306,8 @@ class H5MDWriter:
 
         observables = f.create_group("observables")
         for name in OBSERVABLES:
+            if name == "conserved_energy" and not self.store_conserved:
+                continue
             element = self._element(observables, name, (), np.float64, _OBSERVABLE_UNITS[name])
             self._values[name] = element["value"]
 
@@ -1097,4 +1106,14 @@ def trajectory_summary(traj) -> dict:
         }
         summary["temperature_mean"] = float(traj.observables["temperature"].mean())
         summary["pressure_mean"] = float(traj.observables["pressure"].mean())
+    conserved = traj.observables.get("conserved_energy")
+    if conserved is not None and len(conserved) and np.all(np.isfinite(conserved)):
+        # relative to the size of the energies, as the total's (the conserved quantity's
+        # own origin is arbitrary: it holds the heat bath's energy since the start)
+        scale = max(abs(total[0]) if total is not None else 0.0, abs(conserved[0]), 1e-300)
+        summary["conserved_energy"] = {
+            "first": float(conserved[0]),
+            "last": float(conserved[-1]),
+            "relative_drift": float((conserved[-1] - conserved[0]) / scale),
+        }
     return summary

@@ -105,8 +105,10 @@ def test_get_and_set_state_continue_bit_for_bit():
 def test_a_barostat_needs_a_thermostat_and_valid_parameters():
     with pytest.raises(ValueError, match="needs a thermostat"):
         PressureCoupled(VelocityVerlet(0.005), Barostat("c_rescale", 1.0, 1.0, 0.1))
-    with pytest.raises(ValueError, match="unknown barostat 'mtk'"):
-        Barostat("mtk", 1.0, 1.0, 0.1)
+    with pytest.raises(ValueError, match="unknown barostat 'mttk'"):
+        Barostat("mttk", 1.0, 1.0, 0.1)
+    with pytest.raises(ValueError, match="the c_rescale barostat needs a compressibility"):
+        Barostat("c_rescale", 1.0, 1.0)
     with pytest.raises(ValueError, match="tau must be finite and > 0"):
         Barostat("c_rescale", 1.0, 0.0, 0.1)
     with pytest.raises(ValueError, match="unknown couple = 'sideways'"):
@@ -138,6 +140,8 @@ checkpoint_every = 20
 """
 LANGEVIN = 'type = "langevin"\ndt = 0.005\ntemperature = 1.0\nfriction = 1.0'
 C_RESCALE = 'type = "c_rescale"\npressure = 1.0\ntau = 1.0'
+NHC = 'type = "nose_hoover_chain"\ndt = 0.005\ntemperature = 1.0\ntau = 0.5'
+MTK = 'type = "mtk"\npressure = 1.0\ntau = 2.0'
 
 
 @pytest.fixture(autouse=True)
@@ -161,7 +165,15 @@ def test_md_run_with_a_barostat_stores_volume_and_resumes_bit_for_bit(tmp_path):
 @pytest.mark.parametrize(
     ("integrator", "barostat", "message"),
     [
-        (LANGEVIN, 'type = "mtk"\npressure = 1.0\ntau = 1.0', "[barostat] type: must be one of"),
+        (LANGEVIN, 'type = "mttk"\npressure = 1.0\ntau = 1.0', "[barostat] type: must be one of"),
+        (LANGEVIN, MTK, "[barostat] type: the mtk barostat runs with its own Nose-Hoover chains"),
+        (NHC, MTK + "\ncompressibility = 0.1", "[barostat] compressibility: does not apply"),
+        (NHC, MTK + "\nevery = 5", "[barostat] every: does not apply to the mtk barostat"),
+        (
+            NHC + "\n[integrator.constraints]\nbonds = [[0, 1]]",
+            MTK,
+            "the mtk barostat does not keep [integrator.constraints]",
+        ),
         (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = 0.0', "tau: must be positive"),
         (LANGEVIN, 'type = "c_rescale"\npressure = 1.0\ntau = -1', "tau: must be positive"),
         (LANGEVIN, C_RESCALE + '\ncouple = "sideways"', "[barostat] couple: must be one of"),

@@ -274,6 +274,7 @@ _THERMO_LABELS = {
     "potential_energy": ("potential", "energy"),
     "kinetic_energy": ("kinetic", "energy"),
     "total_energy": ("total", "energy"),
+    "conserved_energy": ("conserved", "energy"),
     "temperature": ("temperature", "temperature"),
     "pressure": ("pressure", "pressure"),
     "volume": ("volume", "volume"),
@@ -290,7 +291,7 @@ def _write_thermo(result, out: Path, labels: dict) -> None:
     _write_csv(out / "thermo.csv", columns)
 
     panels = [
-        ("energy", ["potential_energy", "kinetic_energy", "total_energy"]),
+        ("energy", ["potential_energy", "kinetic_energy", "total_energy", "conserved_energy"]),
         ("temperature", ["temperature"]),
         ("pressure", ["pressure"]),
     ]
@@ -312,7 +313,9 @@ def _write_thermo(result, out: Path, labels: dict) -> None:
     axes[-1].set_xlabel(f"time [{labels['time']}]")
     drift = result.energy_drift
     axes[0].set_title(
-        f"{n} atoms; total-energy drift {drift:.3g} {labels['drift']} per atom", fontsize="medium"
+        f"{n} atoms; {_THERMO_LABELS[result.drift_of][0]}-energy drift {drift:.3g} "
+        f"{labels['drift']} per atom",
+        fontsize="medium",
     )
     _save(fig, out / "thermo.png")
 
@@ -434,8 +437,11 @@ def _print_table(results: dict, labels: dict) -> None:
         for name, average in t.averages.items():
             quantity = _THERMO_LABELS.get(name, (name, "energy"))[1]
             rows.append((f"<{name}>", average.mean, average.sem, labels[quantity]))
-        rows.append(("energy drift per atom", t.energy_drift, t.energy_drift_err, labels["drift"]))
-        rows.append(("energy fluctuation per atom", t.energy_fluctuation, None, labels["energy"]))
+        which = "conserved-energy" if t.drift_of == "conserved_energy" else "energy"
+        rows.append((f"{which} drift per atom", t.energy_drift, t.energy_drift_err,
+                     labels["drift"]))  # fmt: skip
+        rows.append((f"{which} fluctuation per atom", t.energy_fluctuation, None,
+                     labels["energy"]))  # fmt: skip
         if math.isfinite(t.compressibility):  # the volume fluctuated: an NPT run
             unit = f"{labels['volume']}/{labels['energy']}"
             rows.append(("isothermal compressibility", t.compressibility, None, unit))

@@ -61,4 +61,11 @@ def main(args) -> int:
             f"  temperature  mean {summary['temperature_mean']:.6g} {units.labels['temperature']}"
             f", pressure mean {summary['pressure_mean']:.6g} {units.labels['pressure']}"
         )
+    conserved = summary.get("conserved_energy")
+    if conserved:
+        print(
+            f"  conserved    {conserved['first']:.8g} -> {conserved['last']:.8g} "
+            f"{units.labels['energy']} (relative drift {conserved['relative_drift']:.3e}; "
+            "total energy plus the thermostat's and barostat's)"
+        )
     return EXIT_OK

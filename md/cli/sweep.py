@@ -87,7 +87,7 @@ def add_parser(subparsers) -> None:
         "--plot",
         metavar="COLUMN",
         help="plot this result against the first varied key, e.g. pressure, temperature, "
-        "total_energy_per_atom, diffusion (or T, P, PE, KE, E, drift, D)",
+        "total_energy_per_atom, diffusion (or T, P, rho, V, PE, KE, E, drift, D)",
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="redo runs whose outputs already exist"
@@ -263,6 +263,8 @@ def print_table(table) -> None:
         ("total_energy_per_atom", "E/atom", labels["energy"]),
         ("energy_drift_per_atom", "drift/atom", labels["drift"]),
     ]
+    if any(row.get("density_err", 0.0) > 0.0 for row in table.rows):  # the volume moved: NPT
+        columns.insert(2, ("density", "rho", labels["density"]))
     if any("diffusion" in row for row in table.rows):
         columns.append(("diffusion", "D", labels["diffusion"]))
     key_widths = [max(len(short[k]), 8) for k in table.keys]

@@ -36,6 +36,8 @@ RESERVED_KEYS = {
 RESULTS = {
     "temperature": "temperature",
     "pressure": "pressure",
+    "density": "density",
+    "volume": "volume",
     "potential_energy_per_atom": "energy",
     "kinetic_energy_per_atom": "energy",
     "total_energy_per_atom": "energy",
@@ -46,6 +48,8 @@ RESULTS = {
 ALIASES = {
     "T": "temperature",
     "P": "pressure",
+    "rho": "density",
+    "V": "volume",
     "PE": "potential_energy_per_atom",
     "KE": "kinetic_energy_per_atom",
     "E": "total_energy_per_atom",

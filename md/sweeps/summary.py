@@ -30,18 +30,23 @@ def summarize(path, discard: float = 0.0, diffusion: bool = False, n_blocks: int
     Returns
     -------
     dict
-        ``temperature``, ``pressure`` and the energies per atom
-        (``potential_energy_per_atom`` etc.), each with ``<name>_err`` (block
-        standard error of the mean), ``energy_drift_per_atom`` [energy/time]
-        with its error, ``diffusion`` [length^2/time] with its error when asked,
-        ``n_atoms``, ``n_frames`` (analysed), ``units``; in the file's units.
+        ``temperature``, ``pressure``, ``density``, ``volume`` and the energies
+        per atom (``potential_energy_per_atom`` etc.), each with ``<name>_err``
+        (block standard error of the mean), ``energy_drift_per_atom``
+        [energy/time] with its error (the drift of the conserved quantity:
+        total energy plus the heat bath's and barostat's for thermostatted
+        runs, see :func:`md.analysis.thermo`), ``diffusion`` [length^2/time]
+        with its error when asked, ``n_atoms``, ``n_frames`` (analysed),
+        ``units``; in the file's units.
     """
     info = analysis.trajectory_info(path)
     start = int(math.floor(discard * info.n_frames_total))
     result = analysis.thermo(path, start=start, n_blocks=n_blocks)
     n = result.n_atoms
     row: dict[str, Any] = {"units": result.units, "n_atoms": n, "n_frames": len(result.times)}
-    for name in ("temperature", "pressure", "potential_energy", "kinetic_energy", "total_energy"):
+    names = ("temperature", "pressure", "density", "volume", "potential_energy", "kinetic_energy",
+             "total_energy")  # fmt: skip
+    for name in names:
         column = name if name in RESULTS else f"{name}_per_atom"
         scale = 1.0 / n if column.endswith("_per_atom") else 1.0
         average = result.averages.get(name)

@@ -175,7 +175,7 @@ class SweepTable:
 
 
 def resolve_column(name: str) -> str:
-    """A result column from its name or short alias (T, P, PE, KE, E, drift, D)."""
+    """A result column from its name or short alias (T, P, rho, V, PE, KE, E, drift, D)."""
     name = ALIASES.get(name, name)
     if name not in RESULTS:
         known = ", ".join(list(RESULTS) + list(ALIASES))
