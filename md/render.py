@@ -119,9 +119,11 @@ def bond_segments(reader: TrajectoryReader, snapshot: Frame) -> np.ndarray:
     return np.concatenate([first, second])
 
 
-def box_edges(box) -> np.ndarray:
-    """Return the 12 edges of the box [0, box) as (12, 2, 3) segments."""
-    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * box
+def box_edges(box, tilt=None) -> np.ndarray:
+    """Return the 12 edges of the cell (edge lengths ``box``, tilt factors ``tilt``) as
+    (12, 2, 3) segments; a tilted cell is drawn as its parallelepiped."""
+    fractional = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+    corners = fractional @ cell_matrix(np.asarray(box, dtype=float), tilt)
     edges = [
         (a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1
     ]  # corners that differ in one coordinate
@@ -155,11 +157,13 @@ def _draw_matplotlib(reader, snapshot, path: Path, size: int, elevation, azimuth
     segments = bond_segments(reader, snapshot)
     if len(segments):
         ax.add_collection3d(Line3DCollection(segments, colors="0.3", linewidths=0.8))
-    ax.add_collection3d(Line3DCollection(box_edges(box), colors="k", linewidths=0.8))
-    ax.set_xlim(0, box[0])
-    ax.set_ylim(0, box[1])
-    ax.set_zlim(0, box[2])
-    ax.set_box_aspect(box)
+    edges = box_edges(box, snapshot.tilt)
+    ax.add_collection3d(Line3DCollection(edges, colors="k", linewidths=0.8))
+    low, high = edges.min(axis=(0, 1)), edges.max(axis=(0, 1))
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.set_zlim(low[2], high[2])
+    ax.set_box_aspect(high - low)
     ax.view_init(elev=elevation, azim=azimuth)
     ax.set_axis_off()
     ax.legend(loc="upper left", fontsize="small", markerscale=float(np.sqrt(40 / max(area, 1e-6))))

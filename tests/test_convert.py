@@ -526,6 +526,12 @@ def test_half_bonds_start_at_their_atoms_and_meet_at_the_nearest_image(polymer):
     edges = box_edges(np.array([1.0, 2.0, 3.0]))
     lengths = sorted(np.round(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1), 12))
     assert lengths == [1.0] * 4 + [2.0] * 4 + [3.0] * 4
+    # a tilted cell: its 12 edges are 4 copies of each cell vector
+    cell = md.box.cell_matrix([1.0, 2.0, 3.0], [0.4, -0.3, 0.5])
+    vectors = box_edges([1.0, 2.0, 3.0], [0.4, -0.3, 0.5])
+    vectors = vectors[:, 1] - vectors[:, 0]
+    for row in cell:
+        assert np.sum(np.all(np.isclose(vectors, row), axis=1)) == 4
 
 
 def test_analyze_all_adds_a_snapshot(polymer, tmp_path):
