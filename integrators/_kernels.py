@@ -31,3 +31,20 @@ def _drift(positions, velocities, dt):
     for i in range(positions.shape[0]):
         for a in range(3):
             positions[i, a] += dt * velocities[i, a]
+
+
+@njit(cache=True, error_model="numpy")
+def _linear_flow(x, y, y_scale, e, p):
+    """x_i <- e x_i + p (y_i y_scale_i) for each row i (column vectors; e, p (3, 3)).
+
+    The exact flow of dx/dt = A x + c over a time t is x <- exp(A t) x +
+    t phi(A t) c; the MTK barostat moves positions (c = v) and velocities
+    (c = F / m) this way.
+    """
+    for i in range(x.shape[0]):
+        s = y_scale[i]
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        y0, y1, y2 = s * y[i, 0], s * y[i, 1], s * y[i, 2]
+        for a in range(3):
+            x[i, a] = (e[a, 0] * x0 + e[a, 1] * x1 + e[a, 2] * x2
+                       + p[a, 0] * y0 + p[a, 1] * y1 + p[a, 2] * y2)  # fmt: skip

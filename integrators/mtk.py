@@ -51,11 +51,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
+from integrators._kernels import _linear_flow
 from integrators.base import IntegratorBase
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, NoseHooverChain, chain_half_step
 from md.box import reduced_tilt
 from md.errors import SimulationError
-from md.thermo import kinetic_energy
 
 #: Upper off-diagonal entries (row, column) of Omega, in column convention, freed by
 #: triclinic coupling: xy, xz, yz (h[0, 1] is the tilt xy, as State.cell[1, 0]).
@@ -74,6 +74,11 @@ def exp_and_phi(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     >>> bool(np.allclose(e, np.eye(3)) and np.allclose(p, np.eye(3)))
     True
     """
+    diagonal = np.diag(x)
+    if not np.any(x - np.diag(diagonal)):  # isotropic and anisotropic coupling: elementwise
+        safe = np.where(diagonal == 0.0, 1.0, diagonal)
+        phi = np.where(diagonal == 0.0, 1.0, np.expm1(diagonal) / safe)
+        return np.diag(np.exp(diagonal)), np.diag(phi)
     block = np.zeros((6, 6))
     block[:3, :3] = x
     block[:3, 3:] = np.eye(3)
@@ -121,6 +126,7 @@ class MartynaTobiasKlein(IntegratorBase):
         self.xi = np.zeros(thermostat.chain_length)  # the barostat's chain
         self.v_xi = np.zeros(thermostat.chain_length)
         self._steps = 0
+        self._unit_scale = np.ones(0)
 
     # -------------------------------------------------------------- parameters
     @property
@@ -189,11 +195,12 @@ class MartynaTobiasKlein(IntegratorBase):
 
     def _kick_cell(self, state, virial, n_dof: int, duration: float) -> None:
         """Omega += duration * (V (P_int - P0) + 2K / N_f) / W on the free components."""
-        volume = state.volume
-        velocities, masses = state.velocities, state.masses
-        force = np.einsum("i,ia,ib->ab", masses, velocities, velocities) + virial
-        force -= self.barostat.pressure * volume * np.eye(3)
-        force += 2.0 * kinetic_energy(velocities, masses) / n_dof * np.eye(3)
+        velocities = state.velocities
+        kinetic = (velocities.T * state.masses) @ velocities  # sum_i m_i v_i v_i^T
+        force = kinetic + virial
+        force[np.diag_indices(3)] += (
+            np.trace(kinetic) / n_dof - self.barostat.pressure * state.volume
+        )
         rate = duration / self.cell_mass(n_dof)
         if self.barostat.couple == "isotropic":
             self.omega += rate * np.trace(force) * np.eye(3)
@@ -207,16 +214,21 @@ class MartynaTobiasKlein(IntegratorBase):
         """v <- exp(-A t) v + t phi(-A t) F / m with A = Omega + tr(Omega) / N_f."""
         a = self.omega + np.trace(self.omega) / n_dof * np.eye(3)
         e, phi = exp_and_phi(-a * duration)
-        accelerations = forces / state.masses[:, None]
-        state.velocities[:] = state.velocities @ e.T + accelerations @ (duration * phi).T
+        _linear_flow(state.velocities, forces, 1.0 / state.masses, e, duration * phi)
 
     def _drift(self, state, duration: float) -> None:
         """r <- exp(Omega t) r + t phi(Omega t) v; the cell h <- exp(Omega t) h."""
         e, phi = exp_and_phi(self.omega * duration)
-        state.positions[:] = state.positions @ e.T + state.velocities @ (duration * phi).T
+        _linear_flow(state.positions, state.velocities, self._ones(state.n_atoms), e,
+                     duration * phi)  # fmt: skip
         cell = state.cell @ e.T  # State.cell holds the cell vectors as rows: h^T
         state.box = np.diag(cell).copy()
         state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)
+
+    def _ones(self, n: int) -> np.ndarray:
+        if self._unit_scale.shape[0] != n:
+            self._unit_scale = np.ones(n)
+        return self._unit_scale
 
     # ----------------------------------------------------------- bookkeeping
     def thermo_terms(self, state, result) -> dict:

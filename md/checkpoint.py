@@ -63,6 +63,9 @@ class Checkpoint:
         What its ``get_state()`` returned (None if it has no private state).
     neighbor_reference : ndarray of float64, shape (N, 3), or None
         Positions of the last neighbour-list build [length].
+    neighbor_cell : tuple of two ndarrays (3,), or None
+        Edge lengths and tilt of the cell at that build [length] (None in
+        checkpoints written before lists were kept through cell changes).
     fingerprint : dict
         The physics configuration (see :func:`physics_fingerprint`).
     n_frames, last_frame_step : int
@@ -82,6 +85,7 @@ class Checkpoint:
     last_frame_step: int
     run_id: str
     extra: dict = field(default_factory=dict)
+    neighbor_cell: tuple | None = None
 
 
 # ---------------------------------------------------------------------- writing
@@ -138,6 +142,8 @@ def write_checkpoint(
     reference = None if nl is None else nl.reference_positions
     if reference is not None and reference.shape == state.positions.shape:
         arrays["neighbor_reference"] = reference
+        # the cell of that build: a list kept through a barostat's moves is rebuilt in it
+        arrays["neighbor_box"], arrays["neighbor_tilt"] = nl.reference_cell
     get_state = getattr(integrator, "get_state", None)
     saved = get_state() if get_state is not None else None
     meta = {
@@ -216,6 +222,11 @@ def read_checkpoint(path) -> Checkpoint:
             last_frame_step=int(meta["last_frame_step"]),
             run_id=str(meta["run_id"]),
             extra=meta.get("extra", {}),
+            neighbor_cell=(
+                (arrays["neighbor_box"], arrays["neighbor_tilt"])
+                if "neighbor_box" in arrays and reference is not None
+                else None
+            ),
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -263,7 +274,8 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
             ) from None
     nl = getattr(forcefield, "neighbor_list", None)
     if nl is not None and checkpoint.neighbor_reference is not None:
-        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference)
+        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference,
+                      *(checkpoint.neighbor_cell or ()))  # fmt: skip
         # The result cache may hold forces from the built configuration; drop it.
         forcefield.invalidate()
 

@@ -150,6 +150,8 @@ class NeighborList:
         balanced by pair count, one per thread.
     n_builds : int
         Number of builds so far.
+    n_followed : int
+        Number of times the list was kept through a change of the cell.
 
     Examples
     --------
@@ -172,6 +174,7 @@ class NeighborList:
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
         self._rebuild_distance2 = _square(0.5 * self.skin)
         self.n_builds = 0
+        self.n_followed = 0
         self.used_cells = False
         self.order: NDArray[np.int64] | None = None
         self.images = np.zeros((0, 3), dtype=np.int32)
@@ -213,15 +216,29 @@ class NeighborList:
         """Positions at the last build (a copy), or None before the first."""
         return None if self._reference is None else self._reference.copy()
 
-    def rebuild_at(self, state: State, positions: NDArray[np.float64]) -> None:
+    @property
+    def reference_cell(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """Edge lengths and tilt of the cell at the last build (copies), or None."""
+        if self._reference is None:
+            return None
+        return self._box.copy(), self._tilt.copy()
+
+    def rebuild_at(self, state: State, positions: NDArray[np.float64], box=None,
+                   tilt=None) -> None:  # fmt: skip
         """Build the list as it was built at ``positions`` (a checkpoint's), for ``state``.
 
-        A resumed run then has the same list, hence the same force summation
+        ``box`` and ``tilt`` are the cell of that build (default: ``state``'s);
+        the list then follows the cell to ``state``'s, as it had in the run. A
+        resumed run so has the same list, hence the same force summation
         order, as the run that was never interrupted.
         """
         at_build = state.copy()
         at_build.positions[:] = positions
+        if box is not None:
+            at_build.box = np.array(box, dtype=np.float64)
+            at_build.tilt = np.zeros(3) if tilt is None else np.array(tilt, dtype=np.float64)
         self.build(at_build)
+        self.update(state)
 
     @property
     def starts(self) -> NDArray[np.int64]:
@@ -264,26 +281,77 @@ class NeighborList:
             )
 
     def needs_rebuild(self, state: State) -> bool:
-        """Return True if the list no longer covers every pair within the cutoff."""
+        """Return True if the list no longer covers every pair within the cutoff.
+
+        A cell that changed since the build (a barostat) is followed, not
+        rebuilt for, while the list still covers it (see :meth:`update`).
+        """
+        return self._verdict(state) is True
+
+    def update(self, state: State) -> bool:
+        """Rebuild the list if needed; return True if it was rebuilt.
+
+        When the cell changed within what the list covers (a barostat's small
+        deformation), the pairs, slots and image codes are kept and the cell
+        is followed: ``lengths``, ``tilt`` and ``shifts`` become the new
+        cell's, so slot positions and image shifts are those of the new cell.
+        """
+        verdict = self._verdict(state)
+        if verdict is True:
+            self.build(state)
+            return True
+        if verdict is not False:
+            lengths, tilt = verdict
+            if not (np.array_equal(lengths, self.lengths) and np.array_equal(tilt, self.tilt)):
+                self.lengths, self.tilt = lengths, tilt
+                if self.order is not None:
+                    self.shifts = _shift_table(state.box, state.pbc, tilt)
+                self.n_followed += 1
+        return False
+
+    def _verdict(self, state: State):
+        """True: rebuild; False: the list holds as built; (lengths, tilt): it holds in the
+        new cell of ``state``, whose periodic lengths and tilt these are.
+
+        With the cells H0 at the build and H now (rows: cell vectors), the
+        build's positions mapped affinely are r0 M, M = H0^-1 H. A pair not
+        listed was farther than rc + skin apart at the build, so at least
+        s (rc + skin) apart after the mapping (s: the smallest singular value
+        of M), and at least s (rc + skin) - 2 d now, where d is the largest
+        distance of an atom from its mapped position. Nothing within the
+        cutoff rc is missed while d <= (s (rc + skin) - rc) / 2; with M = 1
+        this is the usual half-skin rule.
+        """
         if (
             self._reference is None
             or self._reference.shape != state.positions.shape
-            or not np.array_equal(self._box, state.box)
-            or not np.array_equal(self._tilt, state.tilt)
             or not np.array_equal(self._pbc, state.pbc)
         ):
             return True
-        moved2 = _max_displacement2(state.positions, self._reference)
+        pbc = state.pbc
+        same_cell = np.array_equal(self._box, state.box) and np.array_equal(self._tilt, state.tilt)
+        if same_cell:
+            reference, allowed2 = self._reference, self._rebuild_distance2
+        else:
+            try:
+                self.check_box(state.box, pbc, state.tilt)
+            except ValueError:
+                return True  # the build raises it
+            before = cell_matrix(np.where(pbc, self._box, 1.0), periodic_tilt(self._tilt, pbc))
+            after = cell_matrix(np.where(pbc, state.box, 1.0), periodic_tilt(state.tilt, pbc))
+            m = np.linalg.solve(before, after)
+            smallest = float(np.linalg.svd(m, compute_uv=False).min())
+            allowed = 0.5 * (smallest * self.list_radius - self.cutoff)
+            if not allowed > 0:
+                return True
+            reference, allowed2 = self._reference @ m, _square(allowed)
+        moved2 = _max_displacement2(state.positions, reference)
         if not np.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
-        return moved2 > self._rebuild_distance2
-
-    def update(self, state: State) -> bool:
-        """Rebuild the list if needed; return True if it was rebuilt."""
-        if not self.needs_rebuild(state):
-            return False
-        self.build(state)
-        return True
+        if moved2 > allowed2:
+            return True
+        return False if same_cell else (periodic_lengths(state.box, pbc)[0],
+                                        periodic_tilt(state.tilt, pbc))  # fmt: skip
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""

@@ -89,7 +89,7 @@ def pressure_tensor(velocities, masses, virial, volume: float) -> NDArray[np.flo
     """
     if volume <= 0:
         return np.full((3, 3), np.nan)
-    kinetic = np.einsum("i,ia,ib->ab", masses, velocities, velocities)
+    kinetic = (velocities.T * masses) @ velocities  # sum_i m_i v_i v_i^T (einsum: 5x slower)
     return (kinetic + np.asarray(virial, dtype=np.float64)) / volume
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from conftest import lj_config_text
 
+import md
 from md.checkpoint import (
     CheckpointError,
     checkpoint_path,
@@ -264,3 +265,31 @@ def test_signal_checkpoints_and_resume_completes_identically(tmp_path, signum, c
     assert run(config, "--resume", "--steps", stop) == 0
     assert run(config, "-o", "full.h5", "--steps", stop) == 0
     assert_same_trajectory("full.h5", "out.h5")
+
+
+def test_a_list_kept_through_cell_changes_is_restored_as_it_was(tmp_path):
+    """A barostat moved the cell after the last build: the restored list is built in the
+    build's cell and follows to the current one, so its pairs, codes and shifts, hence the
+    force summation order, are the uninterrupted run's."""
+    from integrators import VelocityVerlet
+    from md.forcefield import ForceField
+    from potentials import LennardJones
+
+    state = md.maxwell_boltzmann(md.lattice("fcc", 6, density=0.8), 1.0, seed=2)
+    ff = ForceField([LennardJones(cutoff=2.5)], skin=0.4)
+    ff.compute(state)
+    for scale in (1.004, 1.003, 0.999):
+        state.positions *= scale
+        state.box = state.box * scale
+        ff.compute(state)
+    nl = ff.neighbor_list
+    assert nl.n_builds == 1 and nl.n_followed == 3
+    path = write_checkpoint(tmp_path / "c.npz", state, VelocityVerlet(0.005), ff)
+    checkpoint = read_checkpoint(path)
+    again = ForceField([LennardJones(cutoff=2.5)], skin=0.4)
+    restore(checkpoint, VelocityVerlet(0.005), again)
+    other = again.neighbor_list
+    for name in ("order", "images", "slot_starts", "slot_neighbors", "codes", "shifts",
+                 "lengths"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(other, name), getattr(nl, name))
+    assert again.compute(checkpoint.state).energy == ff.compute(state).energy

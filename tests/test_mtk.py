@@ -36,8 +36,16 @@ def _mtk_sim(couple="isotropic", dt=0.004, cells=4, density=0.7, temperature=1.5
     return md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
 
 
-def test_exp_and_phi_equal_their_series_for_a_triangular_matrix():
-    x = np.array([[0.3, -0.2, 0.1], [0.0, -0.4, 0.25], [0.0, 0.0, 0.3]])  # repeated eigenvalue
+@pytest.mark.parametrize(
+    "x",
+    [
+        [[0.3, -0.2, 0.1], [0.0, -0.4, 0.25], [0.0, 0.0, 0.3]],  # a repeated eigenvalue
+        [[0.3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1e-9]],  # diagonal, one zero
+    ],
+    ids=["triangular", "diagonal"],
+)
+def test_exp_and_phi_equal_their_series(x):
+    x = np.array(x)
     e, phi = exp_and_phi(x)
     term, e_series, phi_series = np.eye(3), np.zeros((3, 3)), np.zeros((3, 3))
     for k in range(30):  # term = x^k / k!

@@ -159,7 +159,11 @@ def test_rebuild_when_box_periodicity_or_atom_count_changes(random_gas):
     state = random_gas(50, 7.0)
     nl = NeighborList(cutoff=1.5, skin=0.4)
     nl.update(state)
-    state.box[0] = 7.1
+    state.box[0] = 7.05  # atoms kept in place: up to 0.05 from their scaled positions
+    assert not nl.update(state) and nl.n_followed == 1  # within what the skin covers
+    within = set(map(tuple, reference_pairs(state.positions, state.box, state.pbc, 1.5)))
+    assert within <= set(map(tuple, nl.pairs()))
+    state.box[0] = 7.6  # up to 0.6 away: beyond the half skin
     assert nl.update(state)
     assert_list_is_exact(nl, state)
     state.pbc[1] = False
@@ -268,11 +272,12 @@ def test_a_list_that_switches_from_pair_search_to_cells_stays_exact():
     scale = (0.95 / 0.7) ** (1 / 3)  # box 7.15: room for the cells
     state.positions *= scale
     state.box = state.box * scale
-    nl.update(state)
+    assert not nl.update(state)  # an affine expansion: the list is kept, in the new box
+    nl.build(state)
     assert nl.used_cells
     assert_list_is_exact(nl, state)
     state.positions /= scale  # and back
     state.box = state.box / scale
-    nl.update(state)
+    nl.build(state)
     assert not nl.used_cells
     assert_list_is_exact(nl, state)

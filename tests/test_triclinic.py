@@ -225,6 +225,69 @@ def test_cell_list_misses_no_pair_in_random_cells(seed, fraction, skin):
     )
 
 
+def _deformed(state, rng, strain, jitter):
+    """``state`` under a random lower-triangular deformation (cell and positions) plus noise."""
+    m = np.eye(3) + strain * np.tril(rng.uniform(-1.0, 1.0, (3, 3)))
+    cell = state.cell @ m
+    positions = state.positions @ m + rng.normal(0.0, jitter, state.positions.shape)
+    return md.State(positions=positions, box=np.diag(cell).copy(),
+                    tilt=cell[[1, 2, 2], [0, 0, 1]], velocities=state.velocities)  # fmt: skip
+
+
+@settings(max_examples=30, deadline=None, database=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    fraction=st.sampled_from([0.0, 0.3]),
+    strain=st.sampled_from([0.002, 0.01, 0.03, 0.08]),
+    edges=st.sampled_from([(12.0, 13.0, 14.0), (7.0, 7.5, 8.0)]),
+)
+def test_a_list_kept_through_a_cell_deformation_misses_no_pair(seed, fraction, strain, edges):
+    """A barostat's deformation: the list is kept only while every pair within the cutoff
+    is listed, and its slot frame then gives each such pair's nearest-image separation."""
+    rng = np.random.default_rng(seed)
+    box, tilt = random_cell(rng, edges=edges, fraction=fraction)
+    n = 250 if edges[0] > 10 else 60
+    positions = rng.random((n, 3)) @ cell_matrix(box, tilt) + rng.normal(0, 10, (n, 3))
+    cutoff = 2.0
+    nl = NeighborList(cutoff, 0.4)
+    nl.build(md.State(positions=positions, box=box, tilt=tilt))
+    try:
+        state = _deformed(md.State(positions=positions, box=box, tilt=tilt), rng, strain, 0.03)
+        rebuilt = nl.update(state)
+    except ValueError:  # the deformed cell is too narrow for the cutoff: refused, as it must
+        return
+    assert rebuilt == (nl.n_builds == 2) and nl.n_followed == (0 if rebuilt else 1)
+    nearest = nearest_image_distances(state.positions, state.cell)
+    i, j = np.nonzero(np.triu(nearest < cutoff, k=1))
+    assert set(zip(i.tolist(), j.tolist(), strict=True)) <= set(map(tuple, nl.pairs().tolist()))
+    if nl.order is not None:
+        frame = nl.frame_positions(state.positions)
+        rows = np.repeat(np.arange(n), np.diff(nl.slot_starts))
+        d = np.linalg.norm(frame[rows] - frame[nl.slot_neighbors] - nl.shifts[nl.codes], axis=1)
+        exact = nearest[nl.order[rows], nl.order[nl.slot_neighbors]]
+        close = exact < cutoff
+        np.testing.assert_allclose(d[close], exact[close], atol=1e-9)
+
+
+def test_forces_through_a_followed_cell_equal_a_fresh_list():
+    """Small deformations are followed (no rebuild) with exactly the forces of a new list;
+    a large one rebuilds."""
+    rng = np.random.default_rng(4)
+    state = lj_liquid_in(np.array([10.0, 11.0, 12.0]), np.array([1.0, -2.0, 1.5]))
+    lj = LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5)
+    kept = ForceField([lj], skin=0.4)
+    kept.compute(state)
+    for strain in (0.003, 0.003, 0.004):
+        state = _deformed(state, rng, strain, 0.01)
+        result, fresh = kept.compute(state), ForceField([lj], skin=0.4).compute(state)
+        assert result.energy == pytest.approx(fresh.energy, rel=1e-12)
+        np.testing.assert_allclose(result.forces, fresh.forces, atol=1e-10)
+        np.testing.assert_allclose(result.virial, fresh.virial, atol=1e-9)
+    assert kept.neighbor_list.n_builds == 1 and kept.neighbor_list.n_followed == 3
+    kept.compute(_deformed(state, rng, 0.01, 0.3))  # atoms moved more than the skin covers
+    assert kept.neighbor_list.n_builds == 2
+
+
 def test_small_triclinic_cell_uses_the_brute_force_search():
     rng = np.random.default_rng(0)
     box, tilt = np.array([7.0, 7.5, 8.0]), np.array([2.0, -1.5, 2.5])
