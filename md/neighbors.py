@@ -300,18 +300,17 @@ class NeighborList:
         if verdict is True:
             self.build(state)
             return True
-        if verdict is not False:
-            lengths, tilt = verdict
-            if not (np.array_equal(lengths, self.lengths) and np.array_equal(tilt, self.tilt)):
-                self.lengths, self.tilt = lengths, tilt
-                if self.order is not None:
-                    self.shifts = _shift_table(state.box, state.pbc, tilt)
-                self.n_followed += 1
+        lengths, tilt = verdict  # also the build's own cell, back from following another
+        if not (np.array_equal(lengths, self.lengths) and np.array_equal(tilt, self.tilt)):
+            self.lengths, self.tilt = lengths, tilt
+            if self.order is not None:
+                self.shifts = _shift_table(state.box, state.pbc, tilt)
+            self.n_followed += 1
         return False
 
     def _verdict(self, state: State):
-        """True: rebuild; False: the list holds as built; (lengths, tilt): it holds in the
-        new cell of ``state``, whose periodic lengths and tilt these are.
+        """True: rebuild; else the list holds in the cell of ``state``, whose periodic
+        lengths and tilt are returned.
 
         With the cells H0 at the build and H now (rows: cell vectors), the
         build's positions mapped affinely are r0 M, M = H0^-1 H. A pair not
@@ -350,8 +349,7 @@ class NeighborList:
             raise NonFiniteError("particle positions are not finite")
         if moved2 > allowed2:
             return True
-        return False if same_cell else (periodic_lengths(state.box, pbc)[0],
-                                        periodic_tilt(state.tilt, pbc))  # fmt: skip
+        return periodic_lengths(state.box, pbc)[0], periodic_tilt(state.tilt, pbc)
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""

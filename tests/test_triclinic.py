@@ -273,17 +273,18 @@ def test_forces_through_a_followed_cell_equal_a_fresh_list():
     """Small deformations are followed (no rebuild) with exactly the forces of a new list;
     a large one rebuilds."""
     rng = np.random.default_rng(4)
-    state = lj_liquid_in(np.array([10.0, 11.0, 12.0]), np.array([1.0, -2.0, 1.5]))
+    start = lj_liquid_in(np.array([10.0, 11.0, 12.0]), np.array([1.0, -2.0, 1.5]))
     lj = LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5)
     kept = ForceField([lj], skin=0.4)
-    kept.compute(state)
-    for strain in (0.003, 0.003, 0.004):
-        state = _deformed(state, rng, strain, 0.01)
+    kept.compute(start)
+    state = start
+    for strain in (0.003, 0.003, 0.004, None):
+        state = _deformed(state, rng, strain, 0.01) if strain else start.copy()  # and back
         result, fresh = kept.compute(state), ForceField([lj], skin=0.4).compute(state)
         assert result.energy == pytest.approx(fresh.energy, rel=1e-12)
         np.testing.assert_allclose(result.forces, fresh.forces, atol=1e-10)
         np.testing.assert_allclose(result.virial, fresh.virial, atol=1e-9)
-    assert kept.neighbor_list.n_builds == 1 and kept.neighbor_list.n_followed == 3
+    assert kept.neighbor_list.n_builds == 1 and kept.neighbor_list.n_followed == 4
     kept.compute(_deformed(state, rng, 0.01, 0.3))  # atoms moved more than the skin covers
     assert kept.neighbor_list.n_builds == 2
 
