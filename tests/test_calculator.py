@@ -218,7 +218,11 @@ def test_neighbour_list_is_kept_and_rebuilt_only_when_needed():
     atoms.positions[3] += 0.6  # beyond skin / 2
     atoms.get_forces()
     assert calc.forcefield.neighbor_list.n_builds == builds + 1
-    atoms.set_cell(atoms.cell[:] * 1.001, scale_atoms=True)
+    atoms.set_cell(atoms.cell[:] * 1.001, scale_atoms=True)  # a small cell step: followed
+    atoms.get_forces()
+    assert calc.forcefield.neighbor_list.n_builds == builds + 1
+    assert calc.forcefield.neighbor_list.n_followed == 1
+    atoms.set_cell(atoms.cell[:] * 1.3, scale_atoms=False)  # atoms far from the scaled cell's
     atoms.get_forces()
     assert calc.forcefield.neighbor_list.n_builds == builds + 2
     atoms.numbers[0] = 36  # a Kr among the Ar (type-blind parameters: allowed)
