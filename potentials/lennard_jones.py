@@ -419,19 +419,23 @@ def _lj_pair(r2, k, table, mode):
     of the listed pairs lie in the skin, and a mispredicted branch costs
     more than the arithmetic.
     """
-    rc2 = table[RC2, k]
+    return _lj_terms(r2, table[RC2, k], table[C6, k], table[C12, k], table[SHIFT, k],
+                     table[RO2, k], table[INV_DEN, k], mode)  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _lj_terms(r2, rc2, c6, c12, shift, ro2, inv_den, mode):
+    """``_lj_pair`` with the type pair's column given as numbers (hoisted out of loops)."""
     inside = 1.0 if r2 < rc2 else 0.0
     inv_r2 = 1.0 / r2
     inv_r6 = inv_r2 * inv_r2 * inv_r2
-    a = table[C12, k] * inv_r6 * inv_r6
-    b = table[C6, k] * inv_r6
+    a = c12 * inv_r6 * inv_r6
+    b = c6 * inv_r6
     u = a - b
     fr = (12.0 * a - 6.0 * b) * inv_r2
     if mode == 1:
-        u -= table[SHIFT, k]
+        u -= shift
     elif mode == 2:
-        ro2 = table[RO2, k]
-        inv_den = table[INV_DEN, k]
         gap = rc2 - r2
         switching = r2 > ro2
         switch = gap * gap * (rc2 + 2.0 * r2 - 3.0 * ro2) * inv_den
@@ -535,33 +539,88 @@ def _sum_chunk_forces(chunk, n_chunks, order, buffers, forces):
             forces[atom, a] = total
 
 
-@njit(cache=True, error_model="numpy")
+#: LLVM may reorder the sums of the pair loop (energy, force on atom i, virial) into
+#: vector lanes and fuse multiply-adds: that is what lets it vectorise the loop. No
+#: "nnan"/"ninf": overlapping atoms must still give an infinite energy.
+_VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
+
+
+@njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _lj_frame_chunk(
     chunk, frame, frame_types, slots, n_types, table, mode, with_virial, buffers, energies,
     virials,
 ):  # fmt: skip
-    """The pairs of one chunk of ``_lj_frame_forces``, into ``buffers[chunk]``."""
+    """The pairs of one chunk of ``_lj_frame_forces``, into ``buffers[chunk]``.
+
+    Dispatches to the loop compiled for this cutoff mode, virial or not,
+    and one atom type or several (constants inside the loop). The loops are
+    inlined here, so this function carries their floating-point flags.
+    """
     args = (chunk, frame, frame_types, slots, n_types, table)
-    out = (with_virial, buffers, energies, virials)
+    out = (buffers, energies, virials)
+    single = n_types == 1
     if mode == 0:
-        _lj_frame_chunk_loop(args, 0, out)
+        if with_virial:
+            if single:
+                _lj_frame_chunk_loop(args, 0, True, True, out)
+            else:
+                _lj_frame_chunk_loop(args, 0, True, False, out)
+        elif single:
+            _lj_frame_chunk_loop(args, 0, False, True, out)
+        else:
+            _lj_frame_chunk_loop(args, 0, False, False, out)
     elif mode == 1:
-        _lj_frame_chunk_loop(args, 1, out)
+        if with_virial:
+            if single:
+                _lj_frame_chunk_loop(args, 1, True, True, out)
+            else:
+                _lj_frame_chunk_loop(args, 1, True, False, out)
+        elif single:
+            _lj_frame_chunk_loop(args, 1, False, True, out)
+        else:
+            _lj_frame_chunk_loop(args, 1, False, False, out)
+    elif with_virial:
+        if single:
+            _lj_frame_chunk_loop(args, 2, True, True, out)
+        else:
+            _lj_frame_chunk_loop(args, 2, True, False, out)
+    elif single:
+        _lj_frame_chunk_loop(args, 2, False, True, out)
     else:
-        _lj_frame_chunk_loop(args, 2, out)
+        _lj_frame_chunk_loop(args, 2, False, False, out)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _lj_frame_chunk_loop(args, mode, out):
-    """The loop of ``_lj_frame_chunk`` for one cutoff mode (inlined there with mode fixed)."""
+@njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
+def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
+    """The loop of ``_lj_frame_chunk`` (inlined there with its flags fixed).
+
+    Per slot, three passes over its partners: gather their positions (with
+    the image shift) and, with several types, their pair parameters into
+    contiguous scratch, compute
+    the pair terms in a branch-free loop the compiler vectorises (masks for
+    the cutoff), and scatter the partners' forces into the chunk's buffer.
+    The scattered writes, which no CPU vectorises, stay out of the pair loop.
+    """
     chunk, frame, frame_types, slots, n_types, table = args
-    with_virial, buffers, energies, virials = out
+    buffers, energies, virials = out
     shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
     buffer = buffers[chunk]
     for p in range(frame.shape[0]):
         buffer[p, 0] = 0.0
         buffer[p, 1] = 0.0
         buffer[p, 2] = 0.0
+    most = 0
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        most = max(most, starts[p + 1] - starts[p])
+    gx = np.empty(most)
+    gy = np.empty(most)
+    gz = np.empty(most)
+    params = np.zeros((6, most if not single else 0))  # each partner's table column
+    sfx = np.empty(most)
+    sfy = np.empty(most)
+    sfz = np.empty(most)
+    rc2, c6, c12 = table[RC2, 0], table[C6, 0], table[C12, 0]  # one atom type: constants
+    shift, ro2, inv_den = table[SHIFT, 0], table[RO2, 0], table[INV_DEN, 0]
     energy = 0.0
     wxx = wyy = wzz = wyz = wxz = wxy = 0.0
     for p in range(bounds[chunk], bounds[chunk + 1]):
@@ -569,17 +628,36 @@ def _lj_frame_chunk_loop(args, mode, out):
         yi = frame[p, 1]
         zi = frame[p, 2]
         row = frame_types[p] * n_types
+        first = starts[p]
+        m = starts[p + 1] - first
+        for k in range(m):
+            q = neighbors[first + k]
+            code = codes[first + k]
+            gx[k] = frame[q, 0] + shifts[code, 0]
+            gy[k] = frame[q, 1] + shifts[code, 1]
+            gz[k] = frame[q, 2] + shifts[code, 2]
+            if not single:  # contiguous per-partner parameters: the pair loop reads no table
+                column = row + frame_types[q]
+                params[RC2, k] = table[RC2, column]
+                params[C6, k] = table[C6, column]
+                params[C12, k] = table[C12, column]
+                if mode == 1:
+                    params[SHIFT, k] = table[SHIFT, column]
+                elif mode == 2:
+                    params[RO2, k] = table[RO2, column]
+                    params[INV_DEN, k] = table[INV_DEN, column]
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
-        for k in range(starts[p], starts[p + 1]):
-            q = neighbors[k]
-            code = codes[k]
-            dx = xi - frame[q, 0] - shifts[code, 0]
-            dy = yi - frame[q, 1] - shifts[code, 1]
-            dz = zi - frame[q, 2] - shifts[code, 2]
+        for k in range(m):
+            dx = xi - gx[k]
+            dy = yi - gy[k]
+            dz = zi - gz[k]
             r2 = dx * dx + dy * dy + dz * dz
-            u, fr = _lj_pair(r2, row + frame_types[q], table, mode)
+            if single:
+                u, fr = _lj_terms(r2, rc2, c6, c12, shift, ro2, inv_den, mode)
+            else:
+                u, fr = _lj_pair(r2, k, params, mode)
             energy += u
             fx = fr * dx
             fy = fr * dy
@@ -587,9 +665,9 @@ def _lj_frame_chunk_loop(args, mode, out):
             fxi += fx
             fyi += fy
             fzi += fz
-            buffer[q, 0] -= fx
-            buffer[q, 1] -= fy
-            buffer[q, 2] -= fz
+            sfx[k] = fx
+            sfy[k] = fy
+            sfz[k] = fz
             if with_virial:
                 wxx += fx * dx
                 wyy += fy * dy
@@ -597,6 +675,11 @@ def _lj_frame_chunk_loop(args, mode, out):
                 wyz += fz * dy
                 wxz += fz * dx
                 wxy += fy * dx
+        for k in range(m):
+            q = neighbors[first + k]
+            buffer[q, 0] -= sfx[k]
+            buffer[q, 1] -= sfy[k]
+            buffer[q, 2] -= sfz[k]
         buffer[p, 0] += fxi
         buffer[p, 1] += fyi
         buffer[p, 2] += fzi

@@ -639,3 +639,57 @@ def test_ase_stress_convention_is_the_strain_derivative(fcc_lattice):
             energies.append(strained.get_potential_energy())
         derivative = (energies[0] - energies[1]) / (2 * h)
         assert stress[a, b] == pytest.approx(derivative / volume, rel=1e-5, abs=1e-8)
+
+
+# ------------------------------------------------------- the vectorised slot-frame kernel
+FRAME_CASES = {
+    "one-type-shift": dict(cutoff=2.5, cutoff_mode="shift"),
+    "one-type-none": dict(cutoff=2.5, cutoff_mode="none"),
+    "one-type-smooth": dict(cutoff=2.5, cutoff_mode="smooth", r_on=2.1),
+    "three-types-shift": dict(
+        epsilon=[1.0, 0.4, 2.0], sigma=[1.0, 1.3, 0.9], cutoff=2.6, cutoff_mode="shift",
+        pairs={(0, 2): {"epsilon": 0.1, "cutoff": 2.0}, (2, 2): {"cutoff": 3.1}},
+    ),
+    "three-types-smooth": dict(
+        epsilon=[1.0, 0.4, 2.0], sigma=[1.0, 1.3, 0.9], cutoff=2.6, cutoff_mode="smooth",
+        r_on=2.0,
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
+@pytest.mark.parametrize("params", FRAME_CASES.values(), ids=FRAME_CASES.keys())
+def test_vectorised_frame_kernel_equals_the_per_atom_kernel(params, cell, threads, fcc_lattice):
+    """The slot-frame kernel (gathered partners, a vectorised pair loop, scattered forces,
+    reordered sums) gives the energy, forces and virial of the per-atom-index kernel to
+    round-off, with one chunk or two, and the same bits on every evaluation."""
+    from md.forcefield import ForceField
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=9, perturbation=0.08, n_types=3 if "epsilon" in params else 1)
+    if cell == "tilted":
+        state.tilt = np.array([0.2, -0.15, 0.1]) * state.box[[0, 0, 1]]
+    elif cell == "slab":
+        state.pbc = np.array([True, True, False])
+    lj = LennardJones(**params)
+    before = get_threads()
+    try:
+        set_threads(threads)
+        ff = ForceField([lj], skin=0.3)
+        fast = ff.compute(state, virial=True)
+        assert ff.neighbor_list.frame is not None and ff.neighbor_list.frame.n_chunks == threads
+        ff.invalidate()
+        again = ff.compute(state, virial=True)
+    finally:
+        set_threads(before)
+    reference = lj.energy_forces(state, ff.neighbor_list, per_atom=True)
+    assert fast.energy == pytest.approx(reference.energy, rel=1e-12)
+    np.testing.assert_allclose(fast.forces, reference.forces, rtol=0,
+                               atol=1e-11 * np.abs(reference.forces).max())  # fmt: skip
+    np.testing.assert_allclose(fast.virial, reference.virial, rtol=0,
+                               atol=1e-11 * np.abs(reference.virial).max())  # fmt: skip
+    assert again.energy == fast.energy
+    assert np.array_equal(again.forces, fast.forces) and np.array_equal(again.virial, fast.virial)
+    ff.invalidate()
+    assert np.array_equal(ff.compute(state, virial=False).forces, fast.forces)
