@@ -226,60 +226,40 @@ def _frame_pairs_chunk(
     in slot order, so they are scanned as one run of slots (two or three
     where the column wraps around the z edge), not cell by cell. A neighbour
     cell across the edge of the cell along axes with wraps (wx, wy, wz) is
-    seen shifted by wx a + wy b + wz c.
+    seen shifted by wx a + wy b + wz c. The runs depend only on the cell:
+    they are worked out once per cell (``_cell_runs``) and scanned for each
+    of its slots.
     """
-    xy, xz, yz = tilt[0], tilt[1], tilt[2]
-    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     base = chunk * capacity
     side = 2 * reach + 1
     stencil = reach * side * side + reach * side + reach + 1  # forward cells and own cell
     row = np.empty(stencil * most, dtype=np.int32)  # one slot's candidates, branch-free
     row_codes = np.empty(stencil * most, dtype=np.uint8)
+    n_columns = reach * side + reach + 1  # forward (x, y) columns and the own one
+    run_ends = np.empty((3 * n_columns, 2), dtype=np.int64)  # first and last slot
+    run_shifts = np.empty((3 * n_columns, 3))
+    run_codes = np.empty(3 * n_columns, dtype=np.int64)
+    n_runs = 0
+    own_end = 0
+    cell = -1
     count = 0
     for p in range(bounds[chunk], bounds[chunk + 1]):
-        c = slot_cell[p]
-        cx = c // (ny * nz)
-        cy = (c // nz) % ny
-        cz = c % nz
+        if slot_cell[p] != cell:
+            cell = slot_cell[p]
+            n_runs, own_end = _cell_runs(cell, n_cells, reach, periodic, box, tilt,
+                                         cell_starts, run_ends, run_shifts, run_codes)  # fmt: skip
         xi = wrapped[p, 0]
         yi = wrapped[p, 1]
         zi = wrapped[p, 2]
-        found = 0
-        for ox in range(0, reach + 1):
-            kx, wx = _neighbor_cell(cx, ox, nx, periodic[0])
-            if kx < 0:
-                continue
-            for oy in range(-reach, reach + 1):
-                if ox == 0 and oy < 0:
-                    continue
-                ky, wy = _neighbor_cell(cy, oy, ny, periodic[1])
-                if ky < 0:
-                    continue
-                column = (kx * ny + ky) * nz
-                code = (wx + 1) * 9 + (wy + 1) * 3
-                sx = wx * box[0] + wy * xy
-                sy = wy * box[1]
-                own = ox == 0 and oy == 0
-                low = cz if own else cz - reach
-                high = cz + reach
-                first = p + 1 if own else cell_starts[column + max(low, 0)]
-                last = cell_starts[column + min(high, nz - 1) + 1]
-                found = _scan(
-                    first, last, xi, yi, zi, sx, sy, 0.0, code + 1, wrapped, r2_max,
-                    row, row_codes, found,
-                )  # fmt: skip
-                if periodic[2] and low < 0:  # the cells below z = 0, seen from the top
-                    found = _scan(
-                        cell_starts[column + low + nz], cell_starts[column + nz],
-                        xi, yi, zi, sx - xz, sy - yz, -box[2], code, wrapped, r2_max,
-                        row, row_codes, found,
-                    )  # fmt: skip
-                if periodic[2] and high >= nz:  # the cells above the top, seen from z = 0
-                    found = _scan(
-                        cell_starts[column], cell_starts[column + high - nz + 1],
-                        xi, yi, zi, sx + xz, sy + yz, box[2], code + 2, wrapped, r2_max,
-                        row, row_codes, found,
-                    )  # fmt: skip
+        # the own column from the next slot on (the own cell's earlier slots list p)
+        found = _scan(p + 1, own_end, xi, yi, zi, 0.0, 0.0, 0.0, 13, wrapped, r2_max, row,
+                      row_codes, 0)  # fmt: skip
+        for r in range(n_runs):
+            found = _scan(
+                run_ends[r, 0], run_ends[r, 1], xi, yi, zi, run_shifts[r, 0],
+                run_shifts[r, 1], run_shifts[r, 2], run_codes[r], wrapped, r2_max, row,
+                row_codes, found,
+            )  # fmt: skip
         for k in range(found):
             if count + k < capacity:
                 neighbors[base + count + k] = row[k]
@@ -287,6 +267,71 @@ def _frame_pairs_chunk(
         count += found
         starts[p + 1] = count
     counts[chunk] = count
+
+
+@njit(cache=True, error_model="numpy")
+def _cell_runs(cell, n_cells, reach, periodic, box, tilt, cell_starts, run_ends, run_shifts,
+               run_codes):  # fmt: skip
+    """The runs of slots a slot of ``cell`` is searched against, and their image shifts.
+
+    Writes the runs into ``run_ends`` (first, last slot), ``run_shifts``
+    and ``run_codes`` and returns their number and the end of the own
+    column's run above the cell (its start depends on the slot: the caller
+    scans it from the next slot). Every other run is one of the forward
+    columns, or the own column wrapped around the z edge.
+    """
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    cx = cell // (ny * nz)
+    cy = (cell // nz) % ny
+    cz = cell % nz
+    n_runs = 0
+    own_end = 0
+    for ox in range(0, reach + 1):
+        kx, wx = _neighbor_cell(cx, ox, nx, periodic[0])
+        if kx < 0:
+            continue
+        for oy in range(-reach, reach + 1):
+            if ox == 0 and oy < 0:
+                continue
+            ky, wy = _neighbor_cell(cy, oy, ny, periodic[1])
+            if ky < 0:
+                continue
+            column = (kx * ny + ky) * nz
+            code = (wx + 1) * 9 + (wy + 1) * 3
+            sx = wx * box[0] + wy * xy
+            sy = wy * box[1]
+            own = ox == 0 and oy == 0
+            low = cz if own else cz - reach
+            high = cz + reach
+            last = cell_starts[column + min(high, nz - 1) + 1]
+            if own:
+                own_end = last
+            else:
+                run_ends[n_runs, 0] = cell_starts[column + max(low, 0)]
+                run_ends[n_runs, 1] = last
+                run_shifts[n_runs, 0] = sx
+                run_shifts[n_runs, 1] = sy
+                run_shifts[n_runs, 2] = 0.0
+                run_codes[n_runs] = code + 1
+                n_runs += 1
+            if periodic[2] and low < 0:  # the cells below z = 0, seen from the top
+                run_ends[n_runs, 0] = cell_starts[column + low + nz]
+                run_ends[n_runs, 1] = cell_starts[column + nz]
+                run_shifts[n_runs, 0] = sx - xz
+                run_shifts[n_runs, 1] = sy - yz
+                run_shifts[n_runs, 2] = -box[2]
+                run_codes[n_runs] = code
+                n_runs += 1
+            if periodic[2] and high >= nz:  # the cells above the top, seen from z = 0
+                run_ends[n_runs, 0] = cell_starts[column]
+                run_ends[n_runs, 1] = cell_starts[column + high - nz + 1]
+                run_shifts[n_runs, 0] = sx + xz
+                run_shifts[n_runs, 1] = sy + yz
+                run_shifts[n_runs, 2] = box[2]
+                run_codes[n_runs] = code + 2
+                n_runs += 1
+    return n_runs, own_end
 
 
 @njit(cache=True, inline="always", error_model="numpy")
