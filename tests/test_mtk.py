@@ -21,6 +21,7 @@ from integrators.barostats import Barostat, PressureCoupled, pressure_control
 from integrators.mtk import MartynaTobiasKlein, exp_and_phi
 from md.analysis import block_average
 from md.cli import main
+from md.sweeps.summary import summarize
 from md.trajectory import read_trajectory
 from potentials import LennardJones
 
@@ -232,6 +233,10 @@ def test_md_run_with_mtk_stores_the_conserved_energy_and_resumes_bit_for_bit(
     conserved = whole.observables["conserved_energy"]
     assert np.ptp(conserved) < 0.02 * np.ptp(total)
     assert abs(result.energy_drift) < 1e-3  # per atom and time unit
+    row = summarize("whole.h5")  # a sweep's row: the same drift, and the density
+    assert row["energy_drift_per_atom"] == result.energy_drift
+    assert row["density"] == pytest.approx(np.mean(whole.observables["density"]))
+    assert row["density_err"] > 0
     capsys.readouterr()
     assert main(["info", "whole.h5"]) == 0
     assert "conserved " in capsys.readouterr().out
