@@ -375,14 +375,17 @@ class H5MDWriter:
         frame = self.n_frames
         size = frame + 1
         self._check_space(frame)
+        # Two commits: every other dataset grows and is flushed first, the positions last,
+        # so a run killed in between leaves a file whose position count (what MDAnalysis
+        # reads) is the count of complete frames (what our readers take).
         self._step.resize((size,))
         self._time.resize((size,))
-        for dataset in self._values.values():
-            dataset.resize(size, axis=0)
+        for name, dataset in self._values.items():
+            if name != "position":
+                dataset.resize(size, axis=0)
         self._step[frame] = state.step
         self._time[frame] = state.time * self._factor("time")
         wrapped, images = wrap(state.positions, state.box, state.pbc, state.tilt)
-        self._values["position"][frame] = wrapped * self._factor("length")
         self._values["image"][frame] = images
         edges = state.cell if self.triclinic else state.box
         self._values["edges"][frame] = edges * self._factor("length")
@@ -394,6 +397,9 @@ class H5MDWriter:
             if name in self._values:
                 value = np.nan if thermo is None else thermo.get(name, np.nan)
                 self._values[name][frame] = value * self._factor(_OBSERVABLE_UNITS[name])
+        self._file.flush()
+        self._values["position"].resize(size, axis=0)
+        self._values["position"][frame] = wrapped * self._factor("length")
         self.n_frames = size
         self._last_step = state.step
         self._file.flush()
