@@ -23,6 +23,7 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from numba import njit
 
 from integrators.base import ConvergenceError
 from md.errors import NonFiniteError
@@ -158,10 +159,10 @@ class IncrementalSolver:
             result = forcefield.compute(state, virial=False)
             offset = dx - target
             grad = masses * offset - h2 * result.forces.ravel()
-            phi = 0.5 * np.dot(masses * offset, offset) + h2 * result.energy
+            phi = 0.5 * _dot(masses * offset, offset) + h2 * result.energy
             residual = np.max(np.abs(grad * inverse_masses), initial=0.0) / (h2 * scale)
             # Round-off level of Phi: below it a change in Phi says nothing.
-            noise = 1e-12 * (0.5 * np.dot(masses * offset, offset) + h2 * abs(result.energy))
+            noise = 1e-12 * (0.5 * _dot(masses * offset, offset) + h2 * abs(result.energy))
             return phi, grad, residual, noise
 
         # Start from the explicit prediction x0 + h v0 + h^2 M^-1 F(x0) when it
@@ -270,16 +271,16 @@ class IncrementalSolver:
                     # descent direction (Newton-CG), but the Hessian is indefinite.
                     stats["fallbacks"] += 1
             stats["linear_iterations"] += n_linear
-            if np.all(np.isfinite(direction)) and np.dot(grad, direction) < 0.0:
+            if np.all(np.isfinite(direction)) and _dot(grad, direction) < 0.0:
                 return direction
         return -grad / masses
 
     def _line_search(self, evaluate, dx, direction, phi, grad, noise):
         """Backtrack along ``direction``; return (dx, Phi, grad, residual, noise, alpha) or None."""
-        slope = float(np.dot(grad, direction))
+        slope = float(_dot(grad, direction))
         if not slope < 0.0:
             return None
-        grad_norm = np.linalg.norm(grad)
+        grad_norm = _norm(grad)
         alpha = 1.0
         for _ in range(_MAX_BACKTRACKS):
             trial = dx + alpha * direction
@@ -290,7 +291,7 @@ class IncrementalSolver:
             if values is not None:
                 phi_t, grad_t, _, _ = values
                 if phi_t <= phi + _ARMIJO * alpha * slope or (
-                    phi_t <= phi + noise and np.linalg.norm(grad_t) < grad_norm
+                    phi_t <= phi + noise and _norm(grad_t) < grad_norm
                 ):
                     return (trial, *values, alpha)
             alpha *= 0.5
@@ -322,22 +323,39 @@ def _truncated_cg(product, diagonal, rhs, eta):
     preconditioner = 1.0 / np.where(diagonal > 0.0, diagonal, largest)
     solution = np.zeros_like(rhs)
     residual = rhs.copy()
-    target = eta * np.linalg.norm(rhs)
+    target = eta * _norm(rhs)
     z = preconditioner * residual
     search = z.copy()
-    rz = np.dot(residual, z)
+    rz = _dot(residual, z)
     for iteration in range(1, min(_MAX_CG_ITERATIONS, len(rhs)) + 1):
         applied = product(search)
-        curvature = np.dot(search, applied)
+        curvature = _dot(search, applied)
         if not curvature > 0.0:
             return (z if iteration == 1 else solution), iteration, False
         step = rz / curvature
         solution += step * search
         residual -= step * applied
-        if np.linalg.norm(residual) <= target:
+        if _norm(residual) <= target:
             return solution, iteration, True
         z = preconditioner * residual
-        rz_new = np.dot(residual, z)
+        rz_new = _dot(residual, z)
         search = z + (rz_new / rz) * search
         rz = rz_new
     return solution, min(_MAX_CG_ITERATIONS, len(rhs)), True
+
+
+# Sums of products in one thread: numpy's dot and norm go to OpenBLAS, whose threads keep
+# spinning after each call and then compete with the threads of the force and Hessian
+# kernels (an implicit Euler step on 2 threads took 2.4 times as long).
+@njit(cache=True, error_model="numpy")
+def _dot(a, b) -> float:
+    """Return sum(a * b) of two 1-D arrays, in one thread."""
+    total = 0.0
+    for k in range(a.shape[0]):
+        total += a[k] * b[k]
+    return total
+
+
+def _norm(a) -> float:
+    """Return the Euclidean norm of a 1-D array (see ``_dot``)."""
+    return float(np.sqrt(_dot(a, a)))

@@ -19,8 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
+
+from md.parallel import get_threads
+
+#: Fewest pairs per thread worth a chunk of their own.
+_MIN_CHUNK_PAIRS = 20000
 
 #: Element (a, b) of a 3x3 block is entry _SYMMETRIC[a, b] of its stored
 #: (xx, yy, zz, yz, xz, xy).
@@ -61,8 +66,16 @@ class PairHessian:
         self.unit = unit
         self.unique = unique
         self.shape = (3 * self.n_atoms, 3 * self.n_atoms)
+        # Pairs are split into one chunk per thread, each adding into its own buffer, the
+        # buffers then summed in chunk order: the same result for a given thread count.
+        self.n_chunks = max(1, min(get_threads(), len(pair_i) // _MIN_CHUNK_PAIRS))
         self.diagonal_blocks = np.zeros((self.n_atoms, 6))
-        _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)
+        if self.n_chunks == 1:
+            _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)
+        else:
+            _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit,
+                                      np.empty((self.n_chunks, self.n_atoms, 6)),
+                                      self.diagonal_blocks)  # fmt: skip
 
     @property
     def nnz(self) -> int:
@@ -95,10 +108,14 @@ class PairHessian:
     def matvec(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Return H x for a (3N,) vector ``x``."""
         out = np.zeros(3 * self.n_atoms)
-        _pair_matvec(
-            self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
-            self.diagonal_blocks, np.ascontiguousarray(x, dtype=np.float64), out,
-        )  # fmt: skip
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if self.n_chunks == 1:
+            _pair_matvec(self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
+                         self.diagonal_blocks, x, out)  # fmt: skip
+        else:
+            _pair_matvec_threaded(self.pair_i, self.pair_j, self.transverse, self.radial,
+                                  self.unit, self.diagonal_blocks, x,
+                                  np.empty((self.n_chunks, 3 * self.n_atoms)), out)  # fmt: skip
         return out
 
     def diagonal(self) -> NDArray[np.float64]:
@@ -272,6 +289,54 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
         out[3 * j] -= t * xi0 + along_i * e0
         out[3 * j + 1] -= t * xi1 + along_i * e1
         out[3 * j + 2] -= t * xi2 + along_i * e2
+
+
+@njit(cache=True, parallel=True)
+def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, buffers, diagonal):
+    """``_diagonal_blocks`` on numba's threads: chunk c of the pairs into ``buffers[c]``
+    (C, N, 6), then the buffers summed in chunk order into ``diagonal`` (zeroed)."""
+    n_chunks = buffers.shape[0]
+    n_pairs = pair_i.shape[0]
+    n = diagonal.shape[0]
+    for c in prange(n_chunks):
+        buffers[c, :, :] = 0.0
+        first, last = c * n_pairs // n_chunks, (c + 1) * n_pairs // n_chunks
+        _diagonal_blocks(pair_i[first:last], pair_j[first:last], transverse[first:last],
+                         radial[first:last], unit[first:last], buffers[c])  # fmt: skip
+    for c in prange(n_chunks):
+        for i in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            for k in range(6):
+                total = buffers[0, i, k]
+                for other in range(1, n_chunks):
+                    total += buffers[other, i, k]
+                diagonal[i, k] = total
+
+
+@njit(cache=True, parallel=True)
+def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, diagonal, x, buffers,
+                          out):  # fmt: skip
+    """``_pair_matvec`` on numba's threads: chunk c of the pairs into ``buffers[c]`` (C, 3N),
+    then per atom the diagonal block's product and the buffers, in chunk order."""
+    n_chunks = buffers.shape[0]
+    n_pairs = pair_i.shape[0]
+    n = diagonal.shape[0]
+    empty = np.zeros((0, 6))
+    for c in prange(n_chunks):
+        buffers[c, :] = 0.0
+        first, last = c * n_pairs // n_chunks, (c + 1) * n_pairs // n_chunks
+        _pair_matvec(pair_i[first:last], pair_j[first:last], transverse[first:last],
+                     radial[first:last], unit[first:last], empty, x, buffers[c])  # fmt: skip
+    for c in prange(n_chunks):
+        for i in range(c * n // n_chunks, (c + 1) * n // n_chunks):
+            d = diagonal[i]
+            x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+            sums = (d[0] * x0 + d[5] * x1 + d[4] * x2, d[5] * x0 + d[1] * x1 + d[3] * x2,
+                    d[4] * x0 + d[3] * x1 + d[2] * x2)  # fmt: skip
+            for a in range(3):
+                total = sums[a]
+                for other in range(n_chunks):
+                    total += buffers[other, 3 * i + a]
+                out[3 * i + a] += total
 
 
 @njit(cache=True)

@@ -108,3 +108,37 @@ def test_duplicate_pairs_are_summed_in_the_matrix():
     dense = hessian.tocsr().toarray()
     np.testing.assert_allclose(np.diag(dense), [7.0, 3.0, 3.0, 7.0, 3.0, 3.0])
     np.testing.assert_allclose(dense[0, 3], -7.0)
+
+
+@pytest.mark.parametrize("mode", ["shift", "smooth"])
+def test_threaded_hessian_equals_the_serial_one(fcc_lattice, rng, mode):
+    """Curvatures, diagonal blocks and products split over two threads (chunks of rows and
+    of pairs, summed in chunk order) equal the one-thread operator to round-off."""
+    from md.neighbors import NeighborList
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=9, perturbation=0.08)  # 2916 atoms, ~10^5 listed pairs
+    lj = LennardJones(cutoff=2.5, cutoff_mode=mode, r_on=2.0 if mode == "smooth" else None)
+    nl = NeighborList(2.5, 0.3)
+    nl.update(state)
+    x = rng.normal(size=3 * state.n_atoms)
+    before = get_threads()
+    operators = {}
+    try:
+        for threads in (1, 2):
+            set_threads(threads)
+            operators[threads] = lj.hessian_operator(state, nl)
+            operators[threads].product = operators[threads].matvec(x)
+    finally:
+        set_threads(before)
+    one, two = operators[1], operators[2]
+    assert one.n_chunks == 1 and two.n_chunks == 2
+    np.testing.assert_array_equal(two.pair_i, one.pair_i)  # same pairs, same order
+    np.testing.assert_array_equal(two.transverse, one.transverse)
+    scale = np.abs(one.diagonal_blocks).max()
+    np.testing.assert_allclose(two.diagonal_blocks, one.diagonal_blocks, rtol=0,
+                               atol=1e-12 * scale)  # fmt: skip
+    np.testing.assert_allclose(two.product, one.product, rtol=0,
+                               atol=1e-12 * np.abs(one.product).max())  # fmt: skip
+    np.testing.assert_allclose(two.product, one.tocsr() @ x, rtol=0,
+                               atol=1e-11 * np.abs(one.product).max())  # fmt: skip
