@@ -56,6 +56,7 @@ from integrators.base import IntegratorBase
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, NoseHooverChain, chain_half_step
 from md.box import reduced_tilt
 from md.errors import SimulationError
+from md.thermo import kinetic_tensor
 
 #: Upper off-diagonal entries (row, column) of Omega, in column convention, freed by
 #: triclinic coupling: xy, xz, yz (h[0, 1] is the tilt xy, as State.cell[1, 0]).
@@ -196,7 +197,7 @@ class MartynaTobiasKlein(IntegratorBase):
     def _kick_cell(self, state, virial, n_dof: int, duration: float) -> None:
         """Omega += duration * (V (P_int - P0) + 2K / N_f) / W on the free components."""
         velocities = state.velocities
-        kinetic = (velocities.T * state.masses) @ velocities  # sum_i m_i v_i v_i^T
+        kinetic = kinetic_tensor(velocities, state.masses)  # sum_i m_i v_i v_i^T
         force = kinetic + virial
         force[np.diag_indices(3)] += (
             np.trace(kinetic) / n_dof - self.barostat.pressure * state.volume

@@ -1,4 +1,4 @@
-"""Kinetic energy, temperature and pressure from arrays (layer 0: numpy only).
+"""Kinetic energy, temperature and pressure from arrays (layer 0: numpy and one numba loop).
 
 The engine calls these every thermo step; the trajectory analyses in
 :mod:`md.analysis` build on them.
@@ -7,6 +7,7 @@ The engine calls these every thermo step; the trajectory analyses in
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 
@@ -89,7 +90,7 @@ def pressure_tensor(velocities, masses, virial, volume: float) -> NDArray[np.flo
     """
     if volume <= 0:
         return np.full((3, 3), np.nan)
-    kinetic = (velocities.T * masses) @ velocities  # sum_i m_i v_i v_i^T (einsum: 5x slower)
+    kinetic = kinetic_tensor(velocities, masses)
     return (kinetic + np.asarray(virial, dtype=np.float64)) / volume
 
 
@@ -99,3 +100,27 @@ def tensor_components(tensor) -> dict[str, float]:
         name: float(tensor[a, b])
         for name, (a, b) in zip(PRESSURE_COMPONENTS, _COMPONENT_INDEX, strict=True)
     }
+
+
+@njit(cache=True, error_model="numpy")
+def kinetic_tensor(velocities, masses) -> NDArray[np.float64]:
+    """Return sum_i m_i v_i v_i^T, (3, 3) [energy], twice the kinetic energy tensor.
+
+    One pass in one thread: numpy's einsum takes 40 times as long, and its
+    matrix product goes to OpenBLAS, whose spinning threads then slow the
+    force kernels' own.
+    """
+    out = np.zeros((3, 3))
+    for i in range(velocities.shape[0]):
+        m = masses[i]
+        vx, vy, vz = velocities[i, 0], velocities[i, 1], velocities[i, 2]
+        out[0, 0] += m * vx * vx
+        out[1, 1] += m * vy * vy
+        out[2, 2] += m * vz * vz
+        out[0, 1] += m * vx * vy
+        out[0, 2] += m * vx * vz
+        out[1, 2] += m * vy * vz
+    out[1, 0] = out[0, 1]
+    out[2, 0] = out[0, 2]
+    out[2, 1] = out[1, 2]
+    return out
