@@ -317,7 +317,9 @@ def _one_blas_thread():
 
 
 @pytest.mark.parametrize("mode", ["shift", "smooth"])
-@pytest.mark.parametrize("driver", ["FrechetCellFilter+BFGS", "UnitCellFilter+FIRE"])
+@pytest.mark.parametrize(
+    "driver", ["FrechetCellFilter+BFGS", "FrechetCellFilter+FIRE", "UnitCellFilter+FIRE"]
+)
 def test_cell_relaxation_reaches_the_lattice_constant(mode, driver):
     """A perturbed, strained fcc cell relaxes to the lattice constant that minimises the
     lattice sum for this cutoff (with no cutoff it would be 2^(1/6) sigma sqrt(2) times
