@@ -77,6 +77,7 @@ def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
         "lj_melt.py": ["--cells", "5", "--steps", "5", "--repeats", "1", "--no-lammps"],
         "implicit.py": ["--cells", "5", "--steps", "1", "--repeats", "1", "--skip-polymer",
                         "--chain-span", "0.02"],
+        "npt.py": ["--cells", "5", "--steps", "5", "--repeats", "1"],
     }  # fmt: skip
     for script, args in runs.items():
         done = subprocess.run(
