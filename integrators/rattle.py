@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from integrators._kernels import _kick, _kick_drift
 from integrators.base import ConvergenceError, IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
-from md.box import min_image, minimum_image, periodic_lengths, periodic_tilt
+from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.thermo import degrees_of_freedom as unconstrained_dof
 
 #: Stage names used in error messages.
@@ -505,14 +505,7 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
         for k in range(n_bonds):
             i = bonds[k, 0]
             j = bonds[k, 1]
-            sx, sy, sz = min_image(
-                positions[i, 0] - positions[j, 0],
-                positions[i, 1] - positions[j, 1],
-                positions[i, 2] - positions[j, 2],
-                lengths,
-                inverse,
-                tilt,
-            )
+            sx, sy, sz = separation(positions, i, j, lengths, inverse, tilt)
             diff = d2[k] - (sx * sx + sy * sy + sz * sz)
             error = abs(diff) / (2.0 * d2[k])
             if error > worst:
@@ -520,14 +513,7 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
                 worst_bond = k
             if error <= tol or sweep == max_iter:
                 continue
-            rx, ry, rz = min_image(
-                reference[i, 0] - reference[j, 0],
-                reference[i, 1] - reference[j, 1],
-                reference[i, 2] - reference[j, 2],
-                lengths,
-                inverse,
-                tilt,
-            )
+            rx, ry, rz = separation(reference, i, j, lengths, inverse, tilt)
             rs = rx * sx + ry * sy + rz * sz
             if not rs > 1e-6 * d2[k]:
                 return max_iter + 1, np.inf, k
@@ -566,12 +552,9 @@ def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, 
     for k in range(n_bonds):
         i = bonds[k, 0]
         j = bonds[k, 1]
-        vectors[k, 0], vectors[k, 1], vectors[k, 2] = min_image(
-            positions[i, 0] - positions[j, 0],
-            positions[i, 1] - positions[j, 1],
-            positions[i, 2] - positions[j, 2],
-            lengths, inverse, tilt,
-        )  # fmt: skip
+        vectors[k, 0], vectors[k, 1], vectors[k, 2] = separation(
+            positions, i, j, lengths, inverse, tilt
+        )
         r2 = vectors[k, 0] ** 2 + vectors[k, 1] ** 2 + vectors[k, 2] ** 2
         weights[k] = 1.0 / (r2 * (inverse_masses[i] + inverse_masses[j]))
     worst = 0.0

@@ -241,3 +241,14 @@ def min_image(dx, dy, dz, lengths, inverse, tilt):
     dx -= n * tilt[0]
     dx -= lengths[0] * np.rint(dx * inverse[0])
     return dx, dy, dz
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def separation(positions, i, j, lengths, inverse, tilt):
+    """Minimum image of ``positions[i] - positions[j]`` (see :func:`min_image`)."""
+    return min_image(
+        positions[i, 0] - positions[j, 0],
+        positions[i, 1] - positions[j, 1],
+        positions[i, 2] - positions[j, 2],
+        lengths, inverse, tilt,
+    )  # fmt: skip

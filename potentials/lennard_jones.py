@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from numba import njit, prange
 
 from md._checks import positive_array, positive_scalar
-from md.box import min_image, periodic_lengths, periodic_tilt
+from md.box import min_image, periodic_lengths, periodic_tilt, separation
 from md.state import State
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -808,14 +808,7 @@ def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
         row = types[i] * n_types
         for p in range(starts[i], starts[i + 1]):
             j = neighbors[p]
-            dx, dy, dz = min_image(
-                positions[i, 0] - positions[j, 0],
-                positions[i, 1] - positions[j, 1],
-                positions[i, 2] - positions[j, 2],
-                lengths,
-                inverse,
-                tilt,
-            )
+            dx, dy, dz = separation(positions, i, j, lengths, inverse, tilt)
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
             rc2 = table[RC2, k]

@@ -20,7 +20,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from md._checks import bond_array, bond_type_array, positive_array, read_bonds_file
-from md.box import min_image, minimum_image, periodic_lengths, periodic_tilt
+from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import NonFiniteError
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -454,14 +454,7 @@ def _bond_energy_forces(
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx, dy, dz = min_image(
-            positions[i, 0] - positions[j, 0],
-            positions[i, 1] - positions[j, 1],
-            positions[i, 2] - positions[j, 2],
-            lengths,
-            inverse,
-            tilt,
-        )
+        dx, dy, dz = separation(positions, i, j, lengths, inverse, tilt)
         u, g, _, ok = _bond_terms(form, dx * dx + dy * dy + dz * dz, k[t], p[t])
         if not ok and bad < 0:
             bad = b
@@ -510,14 +503,7 @@ def _bond_curvatures(
         i = bonds[b, 0]
         j = bonds[b, 1]
         t = bond_types[b]
-        dx, dy, dz = min_image(
-            positions[i, 0] - positions[j, 0],
-            positions[i, 1] - positions[j, 1],
-            positions[i, 2] - positions[j, 2],
-            lengths,
-            inverse,
-            tilt,
-        )
+        dx, dy, dz = separation(positions, i, j, lengths, inverse, tilt)
         r2 = dx * dx + dy * dy + dz * dz
         _, g, h, ok = _bond_terms(form, r2, k[t], p[t])
         if not ok and bad < 0:
