@@ -80,10 +80,11 @@ def _bin_atoms(
     zero for an orthorhombic box, where g is the position. Writes
     ``cell_of[i]`` (flat cell index of atom i), ``cell_starts``
     (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell),
-    ``sorted_wrapped[p]``, the position of atom ``order[p]`` wrapped into
+    ``sorted_wrapped[:, p]`` (shape (3, N): coordinates in rows), the
+    position of atom ``order[p]`` wrapped into
     the cell (g in [0, L)) along periodic axes, so a cell's atoms are
     contiguous in memory, and ``images[p]`` (int32), the cell vectors added
-    to wrap it: ``sorted_wrapped[p] == positions[order[p]] + images[p] @ h``
+    to wrap it: ``sorted_wrapped[:, p] == positions[order[p]] + images[p] @ h``
     (h the cell matrix) up to round-off, exactly for an orthorhombic box.
     Open axes are clamped to the grid, whose origin and width the caller
     chose to span the atoms.
@@ -131,9 +132,9 @@ def _bin_atoms(
         if sheared:
             x += wy * xy + wz * xz
             y += wz * yz
-        sorted_wrapped[p, 0] = x
-        sorted_wrapped[p, 1] = y
-        sorted_wrapped[p, 2] = z
+        sorted_wrapped[0, p] = x
+        sorted_wrapped[1, p] = y
+        sorted_wrapped[2, p] = z
         images[p, 0] = np.int32(wx)
         images[p, 1] = np.int32(wy)
         images[p, 2] = np.int32(wz)
@@ -165,7 +166,8 @@ def _frame_pairs(
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
     The serial driver; ``_frame_pairs_threaded`` runs the chunks on
-    numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[p]``, in cell
+    numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
+    (``wrapped`` is (3, N), as ``_bin_atoms`` writes it), in cell
     ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
     slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
     region ``neighbors[c * capacity:(c + 1) * capacity]`` (and ``codes``), so
@@ -181,7 +183,7 @@ def _frame_pairs(
     lexicographically positive offsets (13 for reach 1, 62 for reach 2).
     ``codes[k]`` names the image shift s
     of that neighbour cell, so the pair displacement is
-    ``wrapped[p] - wrapped[q] - s`` with no minimum image (see
+    ``wrapped[:, p] - wrapped[:, q] - s`` with no minimum image (see
     ``_shift_table``). Requires at least 2 reach + 1 cells along every
     periodic axis, so the cells around any cell are distinct.
     """
@@ -226,47 +228,112 @@ def _frame_pairs_chunk(
     in slot order, so they are scanned as one run of slots (two or three
     where the column wraps around the z edge), not cell by cell. A neighbour
     cell across the edge of the cell along axes with wraps (wx, wy, wz) is
-    seen shifted by wx a + wy b + wz c. The runs depend only on the cell:
-    they are worked out once per cell (``_cell_runs``) and scanned for each
-    of its slots.
+    seen shifted by wx a + wy b + wz c. The runs depend only on the cell
+    (``_cell_runs``): per cell, their shifted positions are copied into one
+    contiguous candidate array, own column first (``_gather_run``), and each
+    of the cell's slots tests them in one loop the compiler vectorises, then
+    keeps those within range with a branch-free compaction (``_keep``).
     """
     base = chunk * capacity
     side = 2 * reach + 1
-    stencil = reach * side * side + reach * side + reach + 1  # forward cells and own cell
-    row = np.empty(stencil * most, dtype=np.int32)  # one slot's candidates, branch-free
-    row_codes = np.empty(stencil * most, dtype=np.uint8)
+    size = side * side * side * most  # bounds the forward stencil's slots
+    cx = np.empty(size)
+    cy = np.empty(size)
+    cz = np.empty(size)
+    c_slot = np.empty(size, dtype=np.int32)
+    c_code = np.empty(size, dtype=np.uint8)
+    inside = np.empty(size, dtype=np.uint8)
     n_columns = reach * side + reach + 1  # forward (x, y) columns and the own one
     run_ends = np.empty((3 * n_columns, 2), dtype=np.int64)  # first and last slot
     run_shifts = np.empty((3 * n_columns, 3))
     run_codes = np.empty(3 * n_columns, dtype=np.int64)
-    n_runs = 0
-    own_end = 0
-    cell = -1
+    xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     count = 0
-    for p in range(bounds[chunk], bounds[chunk + 1]):
-        if slot_cell[p] != cell:
-            cell = slot_cell[p]
-            n_runs, own_end = _cell_runs(cell, n_cells, reach, periodic, box, tilt,
-                                         cell_starts, run_ends, run_shifts, run_codes)  # fmt: skip
-        xi = wrapped[p, 0]
-        yi = wrapped[p, 1]
-        zi = wrapped[p, 2]
-        # the own column from the next slot on (the own cell's earlier slots list p)
-        found = _scan(p + 1, own_end, xi, yi, zi, 0.0, 0.0, 0.0, 13, wrapped, r2_max, row,
-                      row_codes, 0)  # fmt: skip
+    p = bounds[chunk]
+    end = bounds[chunk + 1]
+    while p < end:
+        cell = slot_cell[p]
+        first = cell_starts[cell]
+        last = min(cell_starts[cell + 1], end)
+        n_runs, own_end = _cell_runs(cell, n_cells, reach, periodic, box, tilt,
+                                     cell_starts, run_ends, run_shifts, run_codes)  # fmt: skip
+        # The own column from the cell's first slot: slot i skips up to itself
+        # (the own cell's earlier slots list it).
+        m = _gather_run(first, own_end, 0.0, 0.0, 0.0, 13, xs, ys, zs, cx, cy, cz, c_slot,
+                        c_code, 0)  # fmt: skip
         for r in range(n_runs):
-            found = _scan(
-                run_ends[r, 0], run_ends[r, 1], xi, yi, zi, run_shifts[r, 0],
-                run_shifts[r, 1], run_shifts[r, 2], run_codes[r], wrapped, r2_max, row,
-                row_codes, found,
+            m = _gather_run(
+                run_ends[r, 0], run_ends[r, 1], run_shifts[r, 0], run_shifts[r, 1],
+                run_shifts[r, 2], run_codes[r], xs, ys, zs, cx, cy, cz, c_slot, c_code, m,
             )  # fmt: skip
-        for k in range(found):
-            if count + k < capacity:
-                neighbors[base + count + k] = row[k]
-                codes[base + count + k] = row_codes[k]
-        count += found
-        starts[p + 1] = count
+        for i in range(p, last):
+            skip = i - first + 1
+            # Slices from 0: indices LLVM sees are non-negative, so no wrap-around code.
+            tx = cx[skip:m]
+            ty = cy[skip:m]
+            tz = cz[skip:m]
+            flags = inside[skip:m]
+            xi = xs[i]
+            yi = ys[i]
+            zi = zs[i]
+            for k in range(tx.shape[0]):
+                dx = xi - tx[k]
+                dy = yi - ty[k]
+                dz = zi - tz[k]
+                flags[k] = dx * dx + dy * dy + dz * dz < r2_max
+            count += _keep(flags, c_slot[skip:m], c_code[skip:m], base, count, capacity,
+                           neighbors, codes)  # fmt: skip
+            starts[i + 1] = count
+        p = last
     counts[chunk] = count
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_slot, c_code, m):
+    """Append slots first..last-1, shifted by s, to the candidates at m; return the new end."""
+    n = last - first
+    fx = xs[first:last]
+    fy = ys[first:last]
+    fz = zs[first:last]
+    tx = cx[m : m + n]
+    ty = cy[m : m + n]
+    tz = cz[m : m + n]
+    t_slot = c_slot[m : m + n]
+    t_code = c_code[m : m + n]
+    for k in range(n):
+        tx[k] = fx[k] + sx
+        ty[k] = fy[k] + sy
+        tz[k] = fz[k] + sz
+        t_slot[k] = first + k
+        t_code[k] = code
+    return m + n
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _keep(flags, slots, slot_codes, base, count, capacity, neighbors, codes):
+    """Write the flagged candidates' slots and codes at ``base + count``; return how many.
+
+    Branch-free when the whole candidate row fits in the chunk's capacity
+    (every candidate is written, the next overwrites it unless flagged);
+    past the capacity, only what fits is written and the rest counted.
+    """
+    n = flags.shape[0]
+    found = 0
+    if count + n <= capacity:
+        out = neighbors[base + count : base + count + n]
+        out_codes = codes[base + count : base + count + n]
+        for k in range(n):
+            out[found] = slots[k]
+            out_codes[found] = slot_codes[k]
+            found += flags[k]
+        return found
+    for k in range(n):
+        if flags[k]:
+            if count + found < capacity:
+                neighbors[base + count + found] = slots[k]
+                codes[base + count + found] = slot_codes[k]
+            found += 1
+    return found
 
 
 @njit(cache=True, error_model="numpy")
@@ -332,19 +399,6 @@ def _cell_runs(cell, n_cells, reach, periodic, box, tilt, cell_starts, run_ends,
                 run_codes[n_runs] = code + 2
                 n_runs += 1
     return n_runs, own_end
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _scan(first, last, xi, yi, zi, sx, sy, sz, code, wrapped, r2_max, row, row_codes, found):
-    """Append slots first..last-1 (shifted by s) to the candidates; keep those within range."""
-    for q in range(first, last):
-        dx = xi - (wrapped[q, 0] + sx)
-        dy = yi - (wrapped[q, 1] + sy)
-        dz = zi - (wrapped[q, 2] + sz)
-        row[found] = q
-        row_codes[found] = code
-        found += dx * dx + dy * dy + dz * dz < r2_max
-    return found
 
 
 @njit(cache=True, error_model="numpy")

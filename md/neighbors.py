@@ -416,7 +416,7 @@ class NeighborList:
         cell_of = np.empty(n, dtype=np.int64)
         cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
         order = np.empty(n, dtype=np.int64)
-        wrapped = np.empty((n, 3))
+        wrapped = np.empty((3, n))  # by coordinate: the search reads contiguous runs
         images = np.empty((n, 3), dtype=np.int32)
         _bin_atoms(
             positions, origin, width, n_cells, state.pbc, state.box, self.tilt,
