@@ -628,11 +628,14 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
         yi = frame[p, 1]
         zi = frame[p, 2]
         row = frame_types[p] * n_types
-        first = starts[p]
-        m = starts[p + 1] - first
+        # Slices from 0 and unsigned partner slots: indices LLVM knows are not
+        # negative, so no wrap-around code in the loops.
+        partners = neighbors[starts[p] : starts[p + 1]]
+        partner_codes = codes[starts[p] : starts[p + 1]]
+        m = partners.shape[0]
         for k in range(m):
-            q = neighbors[first + k]
-            code = codes[first + k]
+            q = np.uint32(partners[k])
+            code = partner_codes[k]
             gx[k] = frame[q, 0] + shifts[code, 0]
             gy[k] = frame[q, 1] + shifts[code, 1]
             gz[k] = frame[q, 2] + shifts[code, 2]
@@ -646,9 +649,6 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
                 elif mode == 2:
                     params[RO2, k] = table[RO2, column]
                     params[INV_DEN, k] = table[INV_DEN, column]
-        fxi = 0.0
-        fyi = 0.0
-        fzi = 0.0
         for k in range(m):
             dx = xi - gx[k]
             dy = yi - gy[k]
@@ -662,9 +662,6 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
             fx = fr * dx
             fy = fr * dy
             fz = fr * dz
-            fxi += fx
-            fyi += fy
-            fzi += fz
             sfx[k] = fx
             sfy[k] = fy
             sfz[k] = fz
@@ -675,8 +672,17 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
                 wyz += fz * dy
                 wxz += fz * dx
                 wxy += fy * dx
+        # Atom p's force summed apart from the pair loop, whose sums (energy, virial)
+        # differ with the variant: this loop is the same in all, so are its bits.
+        fxi = 0.0
+        fyi = 0.0
+        fzi = 0.0
         for k in range(m):
-            q = neighbors[first + k]
+            fxi += sfx[k]
+            fyi += sfy[k]
+            fzi += sfz[k]
+        for k in range(m):
+            q = np.uint32(partners[k])
             buffer[q, 0] -= sfx[k]
             buffer[q, 1] -= sfy[k]
             buffer[q, 2] -= sfz[k]
