@@ -187,7 +187,7 @@ def _frame_pairs(
     ``_shift_table``). Requires at least 2 reach + 1 cells along every
     periodic axis, so the cells around any cell are distinct.
     """
-    most = _most_per_cell(cell_starts)
+    most = _most_per_cell(cell_starts, n_cells[2])
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
@@ -201,7 +201,7 @@ def _frame_pairs_threaded(
     capacity, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
-    most = _most_per_cell(cell_starts)
+    most = _most_per_cell(cell_starts, n_cells[2])
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
@@ -210,11 +210,15 @@ def _frame_pairs_threaded(
 
 
 @njit(cache=True, error_model="numpy")
-def _most_per_cell(cell_starts):
+def _most_per_cell(cell_starts, nz):
+    """Most slots in one cell and in one (x, y) column of ``nz`` cells."""
     most = 0
     for c in range(cell_starts.shape[0] - 1):
         most = max(most, cell_starts[c + 1] - cell_starts[c])
-    return most
+    most_column = 0
+    for c in range(0, cell_starts.shape[0] - 1, nz):
+        most_column = max(most_column, cell_starts[c + nz] - cell_starts[c])
+    return most, most_column
 
 
 @njit(cache=True, error_model="numpy")
@@ -224,68 +228,137 @@ def _frame_pairs_chunk(
 ):  # fmt: skip
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
-    For each (x, y) neighbour column the cells along z lie next to each other
-    in slot order, so they are scanned as one run of slots (two or three
-    where the column wraps around the z edge), not cell by cell. A neighbour
-    cell across the edge of the cell along axes with wraps (wx, wy, wz) is
-    seen shifted by wx a + wy b + wz c. The runs depend only on the cell
-    (``_cell_runs``): per cell, their shifted positions are copied into one
-    contiguous candidate array, own column first (``_gather_run``), and each
-    of the cell's slots tests them in one loop the compiler vectorises, then
-    keeps those within range with a branch-free compaction (``_keep``).
+    The slots of one (x, y) column of cells are consecutive and in z order.
+    Per column, the slots of its forward neighbour columns (``reach`` cells
+    around along y, and ahead along x) are copied, shifted by their image,
+    into one contiguous candidate array ordered by z cell and then column,
+    with ``reach`` image cells past each end of a periodic z axis
+    (``_gather_column``); so are the own column's, with the image cells
+    above the top. A slot in z cell cz then tests one contiguous range of
+    candidates, z cells cz - reach to cz + reach of the other columns, and
+    one of its own column, the slots after it up to cz + reach. Each range
+    is tested in a loop the compiler vectorises and its hits kept with a
+    branch-free compaction (``_keep``). A neighbour cell across the edge of
+    the cell along axes with wraps (wx, wy, wz) is seen shifted by
+    wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1.
     """
+    nz = n_cells[2]
+    most_cell, most_column = most
     base = chunk * capacity
-    side = 2 * reach + 1
-    size = side * side * side * most  # bounds the forward stencil's slots
+    ghost = reach if periodic[2] else 0  # image cells past each z end
+    n_z = nz + 2 * ghost
+    n_other = reach * (2 * reach + 1) + reach  # forward columns besides the own one
+    size = n_other * (most_column + 2 * ghost * most_cell)
     cx = np.empty(size)
     cy = np.empty(size)
     cz = np.empty(size)
     c_slot = np.empty(size, dtype=np.int32)
     c_code = np.empty(size, dtype=np.uint8)
-    inside = np.empty(size, dtype=np.uint8)
-    n_columns = reach * side + reach + 1  # forward (x, y) columns and the own one
-    run_ends = np.empty((3 * n_columns, 2), dtype=np.int64)  # first and last slot
-    run_shifts = np.empty((3 * n_columns, 3))
-    run_codes = np.empty(3 * n_columns, dtype=np.int64)
+    z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
+    own_size = most_column + ghost * most_cell
+    own_x = np.empty(own_size)
+    own_y = np.empty(own_size)
+    own_z = np.empty(own_size)
+    own_slot = np.empty(own_size, dtype=np.int32)
+    own_code = np.empty(own_size, dtype=np.uint8)
+    own_start = np.empty(nz + ghost + 1, dtype=np.int64)
+    inside = np.empty(max(size, own_size), dtype=np.uint8)
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     count = 0
     p = bounds[chunk]
     end = bounds[chunk + 1]
     while p < end:
-        cell = slot_cell[p]
-        first = cell_starts[cell]
-        last = min(cell_starts[cell + 1], end)
-        n_runs, own_end = _cell_runs(cell, n_cells, reach, periodic, box, tilt,
-                                     cell_starts, run_ends, run_shifts, run_codes)  # fmt: skip
-        # The own column from the cell's first slot: slot i skips up to itself
-        # (the own cell's earlier slots list it).
-        m = _gather_run(first, own_end, 0.0, 0.0, 0.0, 13, xs, ys, zs, cx, cy, cz, c_slot,
-                        c_code, 0)  # fmt: skip
-        for r in range(n_runs):
-            m = _gather_run(
-                run_ends[r, 0], run_ends[r, 1], run_shifts[r, 0], run_shifts[r, 1],
-                run_shifts[r, 2], run_codes[r], xs, ys, zs, cx, cy, cz, c_slot, c_code, m,
-            )  # fmt: skip
-        for i in range(p, last):
-            skip = i - first + 1
-            # Slices from 0: indices LLVM sees are non-negative, so no wrap-around code.
-            tx = cx[skip:m]
-            ty = cy[skip:m]
-            tz = cz[skip:m]
-            flags = inside[skip:m]
+        column = slot_cell[p] // nz
+        column_first = cell_starts[column * nz]
+        stop = min(cell_starts[column * nz + nz], end)
+        _gather_column(
+            column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs, cx, cy,
+            cz, c_slot, c_code, z_start, own_x, own_y, own_z, own_slot, own_code, own_start,
+        )  # fmt: skip
+        for i in range(p, stop):
+            kz = slot_cell[i] - column * nz
+            low = max(kz - reach + ghost, 0)
+            high = min(kz + reach + ghost, n_z - 1)
+            top = min(kz + reach, nz + ghost - 1)
             xi = xs[i]
             yi = ys[i]
             zi = zs[i]
-            for k in range(tx.shape[0]):
-                dx = xi - tx[k]
-                dy = yi - ty[k]
-                dz = zi - tz[k]
-                flags[k] = dx * dx + dy * dy + dz * dz < r2_max
-            count += _keep(flags, c_slot[skip:m], c_code[skip:m], base, count, capacity,
+            # the own column after slot i (the own cell's earlier slots list it)
+            skip = i - column_first + 1
+            own_end = own_start[top + 1]
+            found = _test(xi, yi, zi, r2_max, own_x[skip:own_end], own_y[skip:own_end],
+                          own_z[skip:own_end], inside)  # fmt: skip
+            count += _keep(inside[:found], own_slot[skip:], own_code[skip:], base, count,
+                           capacity, neighbors, codes)  # fmt: skip
+            first = z_start[low]
+            last = z_start[high + 1]
+            found = _test(xi, yi, zi, r2_max, cx[first:last], cy[first:last], cz[first:last],
+                          inside)  # fmt: skip
+            count += _keep(inside[:found], c_slot[first:], c_code[first:], base, count, capacity,
                            neighbors, codes)  # fmt: skip
             starts[i + 1] = count
-        p = last
+        p = stop
     counts[chunk] = count
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _test(xi, yi, zi, r2_max, tx, ty, tz, inside):
+    """Flag in ``inside`` the candidates closer than sqrt(r2_max); return their count."""
+    n = tx.shape[0]
+    for k in range(n):
+        dx = xi - tx[k]
+        dy = yi - ty[k]
+        dz = zi - tz[k]
+        inside[k] = dx * dx + dy * dy + dz * dz < r2_max
+    return n
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs,
+                   cx, cy, cz, c_slot, c_code, z_start, own_x, own_y, own_z, own_slot, own_code,
+                   own_start):  # fmt: skip
+    """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
+
+    The forward neighbour columns go to ``cx, cy, cz`` (slots ``c_slot``,
+    codes ``c_code``) by z cell, cell zc - ghost from ``z_start[zc]``; the
+    own column with ``ghost`` image cells above its top goes to ``own_x ...``,
+    cell kz from ``own_start[kz]``.
+    """
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    kx0 = column // ny
+    ky0 = column % ny
+    m = 0
+    for zc in range(nz + 2 * ghost):
+        z_start[zc] = m
+        kz, wz = _neighbor_cell(zc - ghost, 0, nz, periodic[2])
+        for ox in range(0, reach + 1):
+            kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
+            if kx < 0:
+                continue
+            for oy in range(-reach, reach + 1):
+                if ox == 0 and oy <= 0:
+                    continue
+                ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
+                if ky < 0:
+                    continue
+                cell = (kx * ny + ky) * nz + kz
+                m = _gather_run(
+                    cell_starts[cell], cell_starts[cell + 1], wx * box[0] + wy * xy + wz * xz,
+                    wy * box[1] + wz * yz, wz * box[2], (wx + 1) * 9 + (wy + 1) * 3 + wz + 1,
+                    xs, ys, zs, cx, cy, cz, c_slot, c_code, m,
+                )  # fmt: skip
+    z_start[nz + 2 * ghost] = m
+    m = 0
+    for zc in range(nz + ghost):
+        own_start[zc] = m
+        kz, wz = _neighbor_cell(zc, 0, nz, periodic[2])
+        cell = column * nz + kz
+        m = _gather_run(
+            cell_starts[cell], cell_starts[cell + 1], wz * xz, wz * yz, wz * box[2],
+            9 + 3 + wz + 1, xs, ys, zs, own_x, own_y, own_z, own_slot, own_code, m,
+        )  # fmt: skip
+    own_start[nz + ghost] = m
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -334,71 +407,6 @@ def _keep(flags, slots, slot_codes, base, count, capacity, neighbors, codes):
                 codes[base + count + found] = slot_codes[k]
             found += 1
     return found
-
-
-@njit(cache=True, error_model="numpy")
-def _cell_runs(cell, n_cells, reach, periodic, box, tilt, cell_starts, run_ends, run_shifts,
-               run_codes):  # fmt: skip
-    """The runs of slots a slot of ``cell`` is searched against, and their image shifts.
-
-    Writes the runs into ``run_ends`` (first, last slot), ``run_shifts``
-    and ``run_codes`` and returns their number and the end of the own
-    column's run above the cell (its start depends on the slot: the caller
-    scans it from the next slot). Every other run is one of the forward
-    columns, or the own column wrapped around the z edge.
-    """
-    xy, xz, yz = tilt[0], tilt[1], tilt[2]
-    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    cx = cell // (ny * nz)
-    cy = (cell // nz) % ny
-    cz = cell % nz
-    n_runs = 0
-    own_end = 0
-    for ox in range(0, reach + 1):
-        kx, wx = _neighbor_cell(cx, ox, nx, periodic[0])
-        if kx < 0:
-            continue
-        for oy in range(-reach, reach + 1):
-            if ox == 0 and oy < 0:
-                continue
-            ky, wy = _neighbor_cell(cy, oy, ny, periodic[1])
-            if ky < 0:
-                continue
-            column = (kx * ny + ky) * nz
-            code = (wx + 1) * 9 + (wy + 1) * 3
-            sx = wx * box[0] + wy * xy
-            sy = wy * box[1]
-            own = ox == 0 and oy == 0
-            low = cz if own else cz - reach
-            high = cz + reach
-            last = cell_starts[column + min(high, nz - 1) + 1]
-            if own:
-                own_end = last
-            else:
-                run_ends[n_runs, 0] = cell_starts[column + max(low, 0)]
-                run_ends[n_runs, 1] = last
-                run_shifts[n_runs, 0] = sx
-                run_shifts[n_runs, 1] = sy
-                run_shifts[n_runs, 2] = 0.0
-                run_codes[n_runs] = code + 1
-                n_runs += 1
-            if periodic[2] and low < 0:  # the cells below z = 0, seen from the top
-                run_ends[n_runs, 0] = cell_starts[column + low + nz]
-                run_ends[n_runs, 1] = cell_starts[column + nz]
-                run_shifts[n_runs, 0] = sx - xz
-                run_shifts[n_runs, 1] = sy - yz
-                run_shifts[n_runs, 2] = -box[2]
-                run_codes[n_runs] = code
-                n_runs += 1
-            if periodic[2] and high >= nz:  # the cells above the top, seen from z = 0
-                run_ends[n_runs, 0] = cell_starts[column]
-                run_ends[n_runs, 1] = cell_starts[column + high - nz + 1]
-                run_shifts[n_runs, 0] = sx + xz
-                run_shifts[n_runs, 1] = sy + yz
-                run_shifts[n_runs, 2] = box[2]
-                run_codes[n_runs] = code + 2
-                n_runs += 1
-    return n_runs, own_end
 
 
 @njit(cache=True, error_model="numpy")
