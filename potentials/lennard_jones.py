@@ -340,6 +340,10 @@ class LennardJones:
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
         table = self._cached_tables(n_types)
+        frame = None if neighbors is None else neighbors.frame
+        if frame is not None:
+            self._check_radius(neighbors)
+            return self._frame_hessian(state, frame, n_types, table)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts, neighbor_array = self._pair_list(n, neighbors)
         tilt = periodic_tilt(state.tilt, state.pbc)
@@ -358,6 +362,34 @@ class LennardJones:
             n, pair_i[:n_pairs], pair_j[:n_pairs], transverse[:n_pairs], radial[:n_pairs],
             unit[:n_pairs],
         )  # fmt: skip
+
+    def _frame_hessian(self, state, frame, n_types, table) -> PairHessian:
+        """``hessian_operator`` over a slot-frame list: two threaded passes, one to count
+        each chunk's pairs inside the cutoff, one to write them where the counts say."""
+        n = state.n_atoms
+        chunks = frame.n_chunks
+        slot_positions = np.empty((n, 3))
+        slot_types = np.empty(n, dtype=state.types.dtype)
+        slots = (
+            frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
+            frame.codes, frame.bounds, frame.tilt,
+        )  # fmt: skip
+        counts = np.zeros(chunks, dtype=np.int64)
+        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+        count = _lj_frame_inside_threaded if chunks > 1 else _lj_frame_inside
+        count(state.positions, state.types, slots, n_types, table, slot_positions, slot_types,
+              counts)  # fmt: skip
+        offsets = np.zeros(chunks + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        n_pairs = int(offsets[-1])
+        out = (
+            np.empty(n_pairs, dtype=np.int64), np.empty(n_pairs, dtype=np.int64),
+            np.empty(n_pairs), np.empty(n_pairs), np.empty((n_pairs, 3)),
+        )  # fmt: skip
+        write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
+        write(slot_positions, slot_types, slots, n_types, table, CUTOFF_MODES[self.cutoff_mode],
+              offsets, out)  # fmt: skip
+        return PairHessian(n, *out)
 
     def describe(self) -> dict:
         out = {
@@ -590,6 +622,33 @@ def _lj_frame_chunk(
         _lj_frame_chunk_loop(args, 2, False, False, out)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _gather_partners(frame, frame_types, shifts, partners, partner_codes, row, table, mode,
+                     single, gx, gy, gz, params):  # fmt: skip
+    """Partner positions (with their image shifts) and, with several types, their
+    table columns, contiguous for a vectorised pair loop.
+
+    Slices from 0 and unsigned partner slots: indices LLVM knows are not
+    negative, so no wrap-around code.
+    """
+    for k in range(partners.shape[0]):
+        q = np.uint32(partners[k])
+        code = partner_codes[k]
+        gx[k] = frame[q, 0] + shifts[code, 0]
+        gy[k] = frame[q, 1] + shifts[code, 1]
+        gz[k] = frame[q, 2] + shifts[code, 2]
+        if not single:  # contiguous per-partner parameters: the pair loop reads no table
+            column = row + frame_types[q]
+            params[RC2, k] = table[RC2, column]
+            params[C6, k] = table[C6, column]
+            params[C12, k] = table[C12, column]
+            if mode == 1:
+                params[SHIFT, k] = table[SHIFT, column]
+            elif mode == 2:
+                params[RO2, k] = table[RO2, column]
+                params[INV_DEN, k] = table[INV_DEN, column]
+
+
 @njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
 def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
     """The loop of ``_lj_frame_chunk`` (inlined there with its flags fixed).
@@ -628,27 +687,10 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
         yi = frame[p, 1]
         zi = frame[p, 2]
         row = frame_types[p] * n_types
-        # Slices from 0 and unsigned partner slots: indices LLVM knows are not
-        # negative, so no wrap-around code in the loops.
         partners = neighbors[starts[p] : starts[p + 1]]
-        partner_codes = codes[starts[p] : starts[p + 1]]
         m = partners.shape[0]
-        for k in range(m):
-            q = np.uint32(partners[k])
-            code = partner_codes[k]
-            gx[k] = frame[q, 0] + shifts[code, 0]
-            gy[k] = frame[q, 1] + shifts[code, 1]
-            gz[k] = frame[q, 2] + shifts[code, 2]
-            if not single:  # contiguous per-partner parameters: the pair loop reads no table
-                column = row + frame_types[q]
-                params[RC2, k] = table[RC2, column]
-                params[C6, k] = table[C6, column]
-                params[C12, k] = table[C12, column]
-                if mode == 1:
-                    params[SHIFT, k] = table[SHIFT, column]
-                elif mode == 2:
-                    params[RO2, k] = table[RO2, column]
-                    params[INV_DEN, k] = table[INV_DEN, column]
+        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
+                         row, table, mode, single, gx, gy, gz, params)  # fmt: skip
         for k in range(m):
             dx = xi - gx[k]
             dy = yi - gy[k]
@@ -778,6 +820,38 @@ def _lj_energy_forces_loop(geometry, n_types, table, mode, out):
     return energy
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _lj_curvature_terms(r2, rc2, c6, c12, ro2, inv_den, mode):
+    """Return (inside, t, r, 1/|d|) of one pair at squared distance r2.
+
+    With g(s) the pair energy as a function of s = r^2, the pair block is
+    K = 2 g'(s) I + 4 g''(s) d d^T: the transverse eigenvalue t = 2 g'(s) =
+    u'(r)/r, the radial one r = 2 g'(s) + 4 g''(s) s = u''(r), along d/|d|.
+    u is unshifted (a constant shift has no second derivative). Branch-free
+    apart from the smooth mode's switch.
+    """
+    inside = r2 < rc2
+    inv_r2 = 1.0 / r2
+    inv_r6 = inv_r2 * inv_r2 * inv_r2
+    a = c12 * inv_r6 * inv_r6
+    b = c6 * inv_r6
+    # u = a - b as a function of s = r^2, and its first two derivatives.
+    g = a - b
+    g1 = (3.0 * b - 6.0 * a) * inv_r2
+    g2 = (42.0 * a - 12.0 * b) * inv_r2 * inv_r2
+    if mode == 2:
+        gap = rc2 - r2
+        switching = r2 > ro2 and inside
+        switch = gap * gap * (rc2 + 2.0 * r2 - 3.0 * ro2) * inv_den
+        dswitch = 6.0 * gap * (ro2 - r2) * inv_den
+        d2switch = 6.0 * (2.0 * r2 - ro2 - rc2) * inv_den
+        g2s = d2switch * g + 2.0 * dswitch * g1 + switch * g2
+        g1s = dswitch * g + switch * g1
+        g2 = g2s if switching else g2
+        g1 = g1s if switching else g1
+    return inside, 2.0 * g1, 2.0 * g1 + 4.0 * g2 * r2, np.sqrt(inv_r2)
+
+
 @njit(cache=True, error_model="numpy")
 def _lj_pair_curvatures(
     geometry, n_types, table, mode, pair_i, pair_j, transverse, radial, unit
@@ -817,34 +891,184 @@ def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
             dx, dy, dz = separation(positions, i, j, lengths, inverse, tilt)
             r2 = dx * dx + dy * dy + dz * dz
             k = row + types[j]
-            rc2 = table[RC2, k]
-            ro2 = table[RO2, k]
-            inv_den = table[INV_DEN, k]
             # Written branch-free: every listed pair goes to slot n_pairs, which
             # only advances for pairs inside the cutoff (a third lie in the skin).
-            inside = r2 < rc2
-            inv_r2 = 1.0 / r2
-            inv_r6 = inv_r2 * inv_r2 * inv_r2
-            a = table[C12, k] * inv_r6 * inv_r6
-            b = table[C6, k] * inv_r6
-            # u = a - b as a function of s = r^2, and its first two derivatives.
-            g = a - b
-            g1 = (3.0 * b - 6.0 * a) * inv_r2
-            g2 = (42.0 * a - 12.0 * b) * inv_r2 * inv_r2
-            if mode == 2 and r2 > ro2 and inside:
-                gap = rc2 - r2
-                switch = gap * gap * (rc2 + 2.0 * r2 - 3.0 * ro2) * inv_den
-                dswitch = 6.0 * gap * (ro2 - r2) * inv_den
-                d2switch = 6.0 * (2.0 * r2 - ro2 - rc2) * inv_den
-                g2 = d2switch * g + 2.0 * dswitch * g1 + switch * g2
-                g1 = dswitch * g + switch * g1
-            inv_r = np.sqrt(inv_r2)
+            inside, t, r, inv_r = _lj_curvature_terms(
+                r2, table[RC2, k], table[C6, k], table[C12, k], table[RO2, k],
+                table[INV_DEN, k], mode,
+            )  # fmt: skip
             pair_i[n_pairs] = i
             pair_j[n_pairs] = j
-            transverse[n_pairs] = 2.0 * g1
-            radial[n_pairs] = 2.0 * g1 + 4.0 * g2 * r2
+            transverse[n_pairs] = t
+            radial[n_pairs] = r
             unit[n_pairs, 0] = dx * inv_r
             unit[n_pairs, 1] = dy * inv_r
             unit[n_pairs, 2] = dz * inv_r
             n_pairs += inside
     return n_pairs
+
+
+# ------------------------------------------------------- curvatures in the slot frame
+@njit(cache=True, error_model="numpy")
+def _lj_frame_inside(positions, types, slots, n_types, table, frame, frame_types, counts):
+    """Gather the slot frame and count each chunk's pairs inside their cutoff into ``counts``.
+
+    The first pass of ``_lj_frame_curvatures``; ``_lj_frame_inside_threaded``
+    runs the chunks on numba's threads.
+    """
+    order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
+    n_chunks = slots[7].shape[0] - 1
+    for chunk in range(n_chunks):
+        _gather_frame(
+            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+        )
+    for chunk in range(n_chunks):
+        counts[chunk] = _lj_inside_count(chunk, frame, frame_types, slots, n_types, table)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _lj_frame_inside_threaded(positions, types, slots, n_types, table, frame, frame_types,
+                              counts):  # fmt: skip
+    """``_lj_frame_inside`` with one chunk per thread (same arguments, same result)."""
+    order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
+    n_chunks = slots[7].shape[0] - 1
+    for chunk in prange(n_chunks):
+        _gather_frame(
+            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+        )
+    for chunk in prange(n_chunks):
+        counts[chunk] = _lj_inside_count(chunk, frame, frame_types, slots, n_types, table)
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_inside_count(chunk, frame, frame_types, slots, n_types, table):
+    """Number of one chunk's listed pairs closer than their cutoff."""
+    shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
+    count = 0
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        row = frame_types[p] * n_types
+        partners = neighbors[starts[p] : starts[p + 1]]
+        partner_codes = codes[starts[p] : starts[p + 1]]
+        for k in range(partners.shape[0]):
+            q = np.uint32(partners[k])
+            code = partner_codes[k]
+            dx = frame[p, 0] - frame[q, 0] - shifts[code, 0]
+            dy = frame[p, 1] - frame[q, 1] - shifts[code, 1]
+            dz = frame[p, 2] - frame[q, 2] - shifts[code, 2]
+            count += dx * dx + dy * dy + dz * dz < table[RC2, row + frame_types[q]]
+    return count
+
+
+@njit(cache=True, error_model="numpy")
+def _lj_frame_curvatures(frame, frame_types, slots, n_types, table, mode, offsets, out):
+    """Write the pair blocks of every pair inside its cutoff, chunk by chunk.
+
+    The second pass, over the frame ``_lj_frame_inside`` gathered: chunk c
+    writes its pairs from ``offsets[c]`` to ``offsets[c + 1]`` of ``out``
+    (``pair_i``, ``pair_j`` as atom indices, ``transverse``, ``radial``,
+    ``unit``; see ``_lj_curvature_terms``), in list order.
+    ``_lj_frame_curvatures_threaded`` runs the chunks on numba's threads;
+    no two chunks write the same memory.
+    """
+    for chunk in range(slots[7].shape[0] - 1):
+        _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode,
+                                  offsets, out)  # fmt: skip
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _lj_frame_curvatures_threaded(frame, frame_types, slots, n_types, table, mode, offsets,
+                                  out):  # fmt: skip
+    """``_lj_frame_curvatures`` with one chunk per thread (same arguments, same result)."""
+    for chunk in prange(slots[7].shape[0] - 1):
+        _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode,
+                                  offsets, out)  # fmt: skip
+
+
+@njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
+def _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, offsets,
+                              out):  # fmt: skip
+    """One chunk of ``_lj_frame_curvatures``, with the loop compiled per mode and type count."""
+    args = (chunk, frame, frame_types, slots, n_types, table, offsets)
+    single = n_types == 1
+    if mode == 0:
+        if single:
+            _lj_frame_curvature_loop(args, 0, True, out)
+        else:
+            _lj_frame_curvature_loop(args, 0, False, out)
+    elif mode == 1:
+        if single:
+            _lj_frame_curvature_loop(args, 1, True, out)
+        else:
+            _lj_frame_curvature_loop(args, 1, False, out)
+    elif single:
+        _lj_frame_curvature_loop(args, 2, True, out)
+    else:
+        _lj_frame_curvature_loop(args, 2, False, out)
+
+
+@njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
+def _lj_frame_curvature_loop(args, mode, single, out):
+    """The loop of ``_lj_frame_curvature_chunk``: per slot, gather the partners, compute
+    every pair's block in a loop the compiler vectorises, then keep those inside."""
+    chunk, frame, frame_types, slots, n_types, table, offsets = args
+    pair_i, pair_j, transverse, radial, unit = out
+    order, shifts, starts, neighbors, codes, bounds = (
+        slots[0], slots[3], slots[4], slots[5], slots[6], slots[7],
+    )  # fmt: skip
+    most = 0
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        most = max(most, starts[p + 1] - starts[p])
+    gx = np.empty(most)
+    gy = np.empty(most)
+    gz = np.empty(most)
+    params = np.zeros((6, most if not single else 0))
+    flags = np.empty(most, dtype=np.uint8)
+    st = np.empty(most)
+    sr = np.empty(most)
+    ux = np.empty(most)
+    uy = np.empty(most)
+    uz = np.empty(most)
+    rc2, c6, c12 = table[RC2, 0], table[C6, 0], table[C12, 0]  # one atom type: constants
+    ro2, inv_den = table[RO2, 0], table[INV_DEN, 0]
+    index = offsets[chunk]
+    limit = offsets[chunk + 1]
+    for p in range(bounds[chunk], bounds[chunk + 1]):
+        xi = frame[p, 0]
+        yi = frame[p, 1]
+        zi = frame[p, 2]
+        row = frame_types[p] * n_types
+        partners = neighbors[starts[p] : starts[p + 1]]
+        m = partners.shape[0]
+        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
+                         row, table, mode, single, gx, gy, gz, params)  # fmt: skip
+        for k in range(m):
+            dx = xi - gx[k]
+            dy = yi - gy[k]
+            dz = zi - gz[k]
+            r2 = dx * dx + dy * dy + dz * dz
+            if single:
+                inside, t, r, inv_r = _lj_curvature_terms(r2, rc2, c6, c12, ro2, inv_den, mode)
+            else:
+                inside, t, r, inv_r = _lj_curvature_terms(
+                    r2, params[RC2, k], params[C6, k], params[C12, k], params[RO2, k],
+                    params[INV_DEN, k], mode,
+                )  # fmt: skip
+            flags[k] = inside
+            st[k] = t
+            sr[k] = r
+            ux[k] = dx * inv_r
+            uy[k] = dy * inv_r
+            uz[k] = dz * inv_r
+        atom = order[p]
+        for k in range(m):
+            # Every pair is written at ``index``, which advances only past those inside;
+            # the test (false once, at the chunk's end) keeps off the next chunk's pairs.
+            if index < limit:
+                pair_i[index] = atom
+                pair_j[index] = order[np.uint32(partners[k])]
+                transverse[index] = st[k]
+                radial[index] = sr[k]
+                unit[index, 0] = ux[k]
+                unit[index, 1] = uy[k]
+                unit[index, 2] = uz[k]
+            index += flags[k]

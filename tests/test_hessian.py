@@ -88,17 +88,31 @@ def test_lj_hessian_matches_force_differences(name, pbc, random_gas, rng):
     np.testing.assert_allclose(row_sums, 0.0, atol=1e-11 * scale)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
+@pytest.mark.parametrize("n_types", [1, 2])
 @pytest.mark.parametrize("mode", ["none", "shift", "smooth"])
-def test_lj_hessian_neighbor_list_equals_all_pairs(mode, fcc_lattice):
-    state = fcc_lattice(cells=6, perturbation=0.05, n_types=2)
-    potential = LennardJones(
-        epsilon=[1.0, 0.8], sigma=[1.0, 0.95], cutoff=2.5, cutoff_mode=mode,
-        pairs={(0, 1): {"cutoff": 2.2}},
-    )  # fmt: skip
-    neighbors = md.NeighborList(potential.cutoff, skin=0.3)
-    neighbors.update(state)
-    assert neighbors.used_cells
-    listed = potential.hessian(state, neighbors)
+def test_lj_hessian_neighbor_list_equals_all_pairs(mode, n_types, cell, threads, fcc_lattice):
+    """The slot-frame curvature kernel (chunks counted, then written, on one thread or two)
+    assembles the all-pairs minimum-image Hessian, in any cell, with one type or two."""
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=8, perturbation=0.05, n_types=n_types)  # 2048 atoms: 2 chunks
+    if cell == "tilted":
+        state.tilt = np.array([0.2, -0.15, 0.1]) * state.box[[0, 0, 1]]
+    elif cell == "slab":
+        state.pbc = np.array([True, True, False])
+    params = dict(epsilon=[1.0, 0.8], sigma=[1.0, 0.95], pairs={(0, 1): {"cutoff": 2.2}})
+    potential = LennardJones(cutoff=2.5, cutoff_mode=mode, **(params if n_types == 2 else {}))
+    before = get_threads()
+    try:
+        set_threads(threads)
+        neighbors = md.NeighborList(potential.cutoff, skin=0.3)
+        neighbors.update(state)
+        assert neighbors.used_cells and neighbors.frame.n_chunks == threads
+        listed = potential.hessian(state, neighbors)
+    finally:
+        set_threads(before)
     reference = potential.hessian(state, None)
     assert abs(listed - reference).max() <= 1e-12 * abs(reference).max()
     assert listed.nnz == reference.nnz
