@@ -19,6 +19,12 @@ from numba import njit, prange
 
 from md.box import cell_matrix, min_image, periodic_tilt
 
+#: The cell search packs a candidate's slot and image code into one uint32: slot in the
+#: low bits, code (< 27) in the top five. So a list holds at most MAX_SLOTS atoms.
+_CODE_SHIFT = np.uint32(27)
+_SLOT_MASK = np.uint32((1 << 27) - 1)
+MAX_SLOTS = 1 << 27
+
 
 @njit(cache=True, error_model="numpy")
 def _brute_force_pairs(positions, lengths, inverse, tilt, r2_max, starts, neighbors):
@@ -240,7 +246,8 @@ def _frame_pairs_chunk(
     is tested in a loop the compiler vectorises and its hits kept with a
     branch-free compaction (``_keep``). A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
-    wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1.
+    wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
+    candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
     """
     nz = n_cells[2]
     most_cell, most_column = most
@@ -252,17 +259,16 @@ def _frame_pairs_chunk(
     cx = np.empty(size)
     cy = np.empty(size)
     cz = np.empty(size)
-    c_slot = np.empty(size, dtype=np.int32)
-    c_code = np.empty(size, dtype=np.uint8)
+    c_packed = np.empty(size, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
     own_size = most_column + ghost * most_cell
     own_x = np.empty(own_size)
     own_y = np.empty(own_size)
     own_z = np.empty(own_size)
-    own_slot = np.empty(own_size, dtype=np.int32)
-    own_code = np.empty(own_size, dtype=np.uint8)
+    own_packed = np.empty(own_size, dtype=np.uint32)
     own_start = np.empty(nz + ghost + 1, dtype=np.int64)
     inside = np.empty(max(size, own_size), dtype=np.uint8)
+    kept = np.empty(max(size, own_size), dtype=np.uint32)
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     count = 0
     p = bounds[chunk]
@@ -273,7 +279,7 @@ def _frame_pairs_chunk(
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
             column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs, cx, cy,
-            cz, c_slot, c_code, z_start, own_x, own_y, own_z, own_slot, own_code, own_start,
+            cz, c_packed, z_start, own_x, own_y, own_z, own_packed, own_start,
         )  # fmt: skip
         for i in range(p, stop):
             kz = slot_cell[i] - column * nz
@@ -288,13 +294,13 @@ def _frame_pairs_chunk(
             own_end = own_start[top + 1]
             found = _test(xi, yi, zi, r2_max, own_x[skip:own_end], own_y[skip:own_end],
                           own_z[skip:own_end], inside)  # fmt: skip
-            count += _keep(inside[:found], own_slot[skip:], own_code[skip:], base, count,
-                           capacity, neighbors, codes)  # fmt: skip
+            count += _keep(inside[:found], own_packed[skip:], kept, base, count, capacity,
+                           neighbors, codes)  # fmt: skip
             first = z_start[low]
             last = z_start[high + 1]
             found = _test(xi, yi, zi, r2_max, cx[first:last], cy[first:last], cz[first:last],
                           inside)  # fmt: skip
-            count += _keep(inside[:found], c_slot[first:], c_code[first:], base, count, capacity,
+            count += _keep(inside[:found], c_packed[first:], kept, base, count, capacity,
                            neighbors, codes)  # fmt: skip
             starts[i + 1] = count
         p = stop
@@ -315,12 +321,12 @@ def _test(xi, yi, zi, r2_max, tx, ty, tz, inside):
 
 @njit(cache=True, error_model="numpy")
 def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs,
-                   cx, cy, cz, c_slot, c_code, z_start, own_x, own_y, own_z, own_slot, own_code,
+                   cx, cy, cz, c_packed, z_start, own_x, own_y, own_z, own_packed,
                    own_start):  # fmt: skip
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
-    The forward neighbour columns go to ``cx, cy, cz`` (slots ``c_slot``,
-    codes ``c_code``) by z cell, cell zc - ghost from ``z_start[zc]``; the
+    The forward neighbour columns go to ``cx, cy, cz`` (slots and codes
+    packed in ``c_packed``) by z cell, cell zc - ghost from ``z_start[zc]``; the
     own column with ``ghost`` image cells above its top goes to ``own_x ...``,
     cell kz from ``own_start[kz]``.
     """
@@ -346,7 +352,7 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_star
                 m = _gather_run(
                     cell_starts[cell], cell_starts[cell + 1], wx * box[0] + wy * xy + wz * xz,
                     wy * box[1] + wz * yz, wz * box[2], (wx + 1) * 9 + (wy + 1) * 3 + wz + 1,
-                    xs, ys, zs, cx, cy, cz, c_slot, c_code, m,
+                    xs, ys, zs, cx, cy, cz, c_packed, m,
                 )  # fmt: skip
     z_start[nz + 2 * ghost] = m
     m = 0
@@ -356,14 +362,17 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_star
         cell = column * nz + kz
         m = _gather_run(
             cell_starts[cell], cell_starts[cell + 1], wz * xz, wz * yz, wz * box[2],
-            9 + 3 + wz + 1, xs, ys, zs, own_x, own_y, own_z, own_slot, own_code, m,
+            9 + 3 + wz + 1, xs, ys, zs, own_x, own_y, own_z, own_packed, m,
         )  # fmt: skip
     own_start[nz + ghost] = m
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_slot, c_code, m):
-    """Append slots first..last-1, shifted by s, to the candidates at m; return the new end."""
+def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_packed, m):
+    """Append slots first..last-1, shifted by s, to the candidates at m; return the new end.
+
+    ``c_packed`` gets each slot with the image code in its top bits (``MAX_SLOTS``).
+    """
     n = last - first
     fx = xs[first:last]
     fy = ys[first:last]
@@ -371,41 +380,35 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_slot, c
     tx = cx[m : m + n]
     ty = cy[m : m + n]
     tz = cz[m : m + n]
-    t_slot = c_slot[m : m + n]
-    t_code = c_code[m : m + n]
+    t_packed = c_packed[m : m + n]
+    tagged = np.uint32(first) | (np.uint32(code) << _CODE_SHIFT)
     for k in range(n):
         tx[k] = fx[k] + sx
         ty[k] = fy[k] + sy
         tz[k] = fz[k] + sz
-        t_slot[k] = first + k
-        t_code[k] = code
+        t_packed[k] = tagged + np.uint32(k)
     return m + n
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _keep(flags, slots, slot_codes, base, count, capacity, neighbors, codes):
+def _keep(flags, packed, kept, base, count, capacity, neighbors, codes):
     """Write the flagged candidates' slots and codes at ``base + count``; return how many.
 
-    Branch-free when the whole candidate row fits in the chunk's capacity
-    (every candidate is written, the next overwrites it unless flagged);
-    past the capacity, only what fits is written and the rest counted.
+    A branch-free compaction of the packed candidates into ``kept`` (every
+    candidate is written, the next overwrites it unless flagged: one store
+    each), then the kept ones unpacked into ``neighbors`` and ``codes``, or,
+    past the chunk's capacity, only counted.
     """
-    n = flags.shape[0]
     found = 0
-    if count + n <= capacity:
-        out = neighbors[base + count : base + count + n]
-        out_codes = codes[base + count : base + count + n]
-        for k in range(n):
-            out[found] = slots[k]
-            out_codes[found] = slot_codes[k]
-            found += flags[k]
-        return found
-    for k in range(n):
-        if flags[k]:
-            if count + found < capacity:
-                neighbors[base + count + found] = slots[k]
-                codes[base + count + found] = slot_codes[k]
-            found += 1
+    for k in range(flags.shape[0]):
+        kept[found] = packed[k]
+        found += flags[k]
+    if count + found <= capacity:
+        out = neighbors[base + count : base + count + found]
+        out_codes = codes[base + count : base + count + found]
+        for k in range(found):
+            out[k] = kept[k] & _SLOT_MASK
+            out_codes[k] = kept[k] >> _CODE_SHIFT
     return found
 
 

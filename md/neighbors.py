@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._cell_kernels import (
+    MAX_SLOTS,
     _atom_space_list,
     _bin_atoms,
     _brute_force_pairs,
@@ -375,6 +376,10 @@ class NeighborList:
         chunks = max(1, min(get_threads(), n // _MIN_CHUNK_ATOMS))
         if grid is None:
             self._build_brute_force(state)
+        elif n > MAX_SLOTS:
+            raise ValueError(
+                f"the cell search lists at most {MAX_SLOTS} atoms per process, got {n}"
+            )
         else:
             self._build_cells(state, grid, chunks)
         self.bounds = _balanced_bounds(self.slot_starts, chunks)

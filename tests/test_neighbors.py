@@ -222,6 +222,17 @@ def test_cutoff_too_long_for_a_periodic_edge_raises(edge):
         nl.check_box(state.box, state.pbc)
 
 
+def test_more_atoms_than_the_packed_slots_hold_raises(monkeypatch, fcc_lattice):
+    """The cell search packs slot and image code in 32 bits: a list of more atoms than that
+    holds is refused with the limit in the message, not silently wrapped."""
+    import md.neighbors
+
+    state = fcc_lattice(cells=5)  # 500 atoms
+    monkeypatch.setattr(md.neighbors, "MAX_SLOTS", 499)
+    with pytest.raises(ValueError, match="at most 499 atoms per process, got 500"):
+        NeighborList(2.5, 0.3).build(state)
+
+
 def test_short_open_edge_is_fine():
     state = md.State(positions=[[0, 0, 0], [0.5, 0.5, 0.5]], box=[9, 1.0, 9], pbc=[1, 0, 1])
     nl = NeighborList(cutoff=2.5, skin=0.3)
