@@ -622,7 +622,7 @@ def _lj_frame_chunk(
         _lj_frame_chunk_loop(args, 2, False, False, out)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _gather_partners(frame, frame_types, shifts, partners, partner_codes, row, table, mode,
                      single, gx, gy, gz, params):  # fmt: skip
     """Partner positions (with their image shifts) and, with several types, their
