@@ -473,3 +473,15 @@ def _max_displacement2(positions, reference):
         if d2 > worst:
             worst = d2
     return worst
+
+
+@njit(cache=True, error_model="numpy")
+def _largest_coordinates(positions):
+    """Largest |coordinate| along each axis (zeros for no atoms); inf if any is not finite."""
+    largest = np.zeros(3)
+    for i in range(positions.shape[0]):
+        for a in range(3):
+            x = abs(positions[i, a])
+            if not x <= largest[a]:  # also NaN
+                largest[a] = x if np.isfinite(x) else np.inf
+    return largest

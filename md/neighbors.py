@@ -16,6 +16,7 @@ from md._cell_kernels import (
     _compact_chunks,
     _frame_pairs,
     _frame_pairs_threaded,
+    _largest_coordinates,
     _max_displacement2,
     _shift_table,
 )
@@ -354,11 +355,12 @@ class NeighborList:
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""
-        if not np.all(np.isfinite(state.positions)):
+        largest = _largest_coordinates(state.positions)  # inf if any is not finite
+        if not np.all(np.isfinite(largest)):
             raise NonFiniteError("particle positions are not finite")
         self.check_box(state.box, state.pbc, state.tilt)
         lengths, _ = periodic_lengths(state.box, state.pbc)
-        far = np.abs(state.positions).max(axis=0) > _MAX_IMAGES * lengths if state.n_atoms else 0
+        far = largest > _MAX_IMAGES * lengths
         if np.any(state.pbc & far):
             raise NonFiniteError(
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
