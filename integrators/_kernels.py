@@ -2,7 +2,37 @@
 
 from __future__ import annotations
 
-from numba import njit
+from numba import njit, prange
+
+from md.parallel import get_threads
+
+#: Fewest atoms per thread worth a chunk of their own in these memory-bound passes
+#: (below, waking a thread costs more than the pass).
+_MIN_CHUNK_ATOMS = 50_000
+
+
+def _chunks(n: int) -> int:
+    return max(1, min(get_threads(), n // _MIN_CHUNK_ATOMS))
+
+
+def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt) -> None:
+    """v += kick_dt f/m, then x += drift_dt v, on one thread per chunk of atoms (same bits
+    on any number: each atom's update is its own)."""
+    chunks = _chunks(positions.shape[0])
+    if chunks == 1:
+        _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
+    else:
+        _kick_drift_threaded(positions, velocities, forces, inverse_masses, kick_dt, drift_dt,
+                             chunks)  # fmt: skip
+
+
+def kick(velocities, forces, inverse_masses, kick_dt) -> None:
+    """v += kick_dt f/m, on one thread per chunk of atoms."""
+    chunks = _chunks(velocities.shape[0])
+    if chunks == 1:
+        _kick(velocities, forces, inverse_masses, kick_dt)
+    else:
+        _kick_threaded(velocities, forces, inverse_masses, kick_dt, chunks)
 
 
 @njit(cache=True, error_model="numpy")
@@ -23,6 +53,24 @@ def _kick(velocities, forces, inverse_masses, kick_dt):
         scale = kick_dt * inverse_masses[i]
         for a in range(3):
             velocities[i, a] += scale * forces[i, a]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _kick_drift_threaded(positions, velocities, forces, inverse_masses, kick_dt, drift_dt,
+                         chunks):  # fmt: skip
+    n = positions.shape[0]
+    for c in prange(chunks):
+        a, b = c * n // chunks, (c + 1) * n // chunks
+        _kick_drift(positions[a:b], velocities[a:b], forces[a:b], inverse_masses[a:b], kick_dt,
+                    drift_dt)  # fmt: skip
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _kick_threaded(velocities, forces, inverse_masses, kick_dt, chunks):
+    n = velocities.shape[0]
+    for c in prange(chunks):
+        a, b = c * n // chunks, (c + 1) * n // chunks
+        _kick(velocities[a:b], forces[a:b], inverse_masses[a:b], kick_dt)
 
 
 @njit(cache=True, error_model="numpy")

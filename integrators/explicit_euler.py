@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from numba import njit
 
-from integrators._kernels import _kick_drift
+from integrators._kernels import kick_drift
 from integrators.base import IntegratorBase, check_dt
 
 
@@ -83,7 +83,7 @@ class SymplecticEuler(IntegratorBase):
 
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state, virial=False).forces
-        _kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt, self.dt)
+        kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt, self.dt)
         state.step += 1
         state.time += self.dt
         self.statistics["steps"] += 1

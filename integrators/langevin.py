@@ -7,7 +7,7 @@ import math
 import numpy as np
 from numba import njit
 
-from integrators._kernels import _drift, _kick
+from integrators._kernels import _drift, kick
 from integrators._thermostat import Thermostat, make_rng
 from md._checks import positive
 
@@ -112,7 +112,7 @@ class Langevin(Thermostat):
         # is exactly what SHAKE's correction removes, so projections (RATTLE) are needed
         # only where the velocities are used otherwise: around O, for its heat, and at the end.
         forces = forcefield.compute(state, virial=False).forces
-        _kick(state.velocities, forces, inverse_masses, half)  # B
+        kick(state.velocities, forces, inverse_masses, half)  # B
         self._drift(state, half, inverse_masses, step, project=True)  # A
         self.rng.standard_normal(out=self._noise)  # O
         before = _kinetic(state.velocities, masses)
@@ -122,7 +122,7 @@ class Langevin(Thermostat):
         self.reservoir -= _kinetic(state.velocities, masses) - before
         self._drift(state, half, inverse_masses, step, project=False)  # A
         forces = forcefield.compute(state, virial=False).forces
-        _kick(state.velocities, forces, inverse_masses, half)  # B
+        kick(state.velocities, forces, inverse_masses, half)  # B
         if constraints is not None:
             constraints.rattle(state, dt, inverse_masses, step)
         self._advance(state)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from integrators._kernels import _kick_drift
+from integrators._kernels import kick_drift
 from integrators.base import IntegratorBase, check_dt
 
 
@@ -79,11 +79,11 @@ class Leapfrog(IntegratorBase):
         forces = forcefield.compute(state, virial=False).forces
         inverse_masses = 1.0 / state.masses
         if self._half is not None and (self._adopted(state) or self._continues(state)):
-            _kick_drift(state.positions, self._half, forces, inverse_masses, dt, dt)
+            kick_drift(state.positions, self._half, forces, inverse_masses, dt, dt)
         else:
             self.statistics["restarts"] += 1
             self._half = state.velocities.copy()
-            _kick_drift(state.positions, self._half, forces, inverse_masses, 0.5 * dt, dt)
+            kick_drift(state.positions, self._half, forces, inverse_masses, 0.5 * dt, dt)
         forces = forcefield.compute(state, virial=False).forces
         _synchronise(state.velocities, self._half, forces, inverse_masses, 0.5 * dt)
         state.step += 1

@@ -28,7 +28,7 @@ import scipy.sparse.linalg
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from integrators._kernels import _kick, _kick_drift
+from integrators._kernels import kick, kick_drift
 from integrators.base import ConvergenceError, IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
@@ -382,17 +382,17 @@ def constrained_verlet_step(state, forcefield, dt: float, constraints) -> None:
     inverse_masses = 1.0 / state.masses
     half = 0.5 * dt
     if constraints is None:
-        _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
+        kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
         forces = forcefield.compute(state, virial=False).forces
-        _kick(state.velocities, forces, inverse_masses, half)
+        kick(state.velocities, forces, inverse_masses, half)
         return
     step = state.step + 1
     reference = constraints.reference_buffer
     reference[:] = state.positions
-    _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
+    kick_drift(state.positions, state.velocities, forces, inverse_masses, half, dt)
     constraints.shake(state, reference, dt, inverse_masses, step)
     forces = forcefield.compute(state, virial=False).forces
-    _kick(state.velocities, forces, inverse_masses, half)
+    kick(state.velocities, forces, inverse_masses, half)
     constraints.rattle(state, dt, inverse_masses, step)
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from integrators._kernels import _kick, _kick_drift
+from integrators._kernels import kick, kick_drift
 from integrators.base import IntegratorBase, check_dt
 from md._checks import count
 
@@ -92,18 +92,18 @@ class RESPA(IntegratorBase):
         inverse_masses = 1.0 / state.masses
         if n == 1:  # merged kicks: velocity Verlet exactly
             forces = forcefield.compute(state, virial=False).forces
-            _kick_drift(state.positions, state.velocities, forces, inverse_masses, 0.5 * dt, dt)
+            kick_drift(state.positions, state.velocities, forces, inverse_masses, 0.5 * dt, dt)
             forces = forcefield.compute(state, virial=False).forces
-            _kick(state.velocities, forces, inverse_masses, 0.5 * dt)
+            kick(state.velocities, forces, inverse_masses, 0.5 * dt)
         else:
             fast, slow = self.split(forcefield)
             combined = self._outer(state, forcefield, fast, slow)
-            _kick_drift(state.positions, state.velocities, combined, inverse_masses, 0.5 * dt, h)
+            kick_drift(state.positions, state.velocities, combined, inverse_masses, 0.5 * dt, h)
             for _ in range(n - 1):
                 forces = forcefield.compute_subset(state, fast).forces
-                _kick_drift(state.positions, state.velocities, forces, inverse_masses, h, h)
+                kick_drift(state.positions, state.velocities, forces, inverse_masses, h, h)
             combined = self._outer(state, forcefield, fast, slow)
-            _kick(state.velocities, combined, inverse_masses, 0.5 * dt)
+            kick(state.velocities, combined, inverse_masses, 0.5 * dt)
         state.step += 1
         state.time += dt
 

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 
-from integrators._kernels import _drift, _kick
+from integrators._kernels import _drift, kick
 from integrators.base import IntegratorBase, check_dt
 
 KICK, DRIFT = 0, 1
@@ -211,7 +211,7 @@ class Splitting(IntegratorBase):
         for kind, c in self.table:
             if kind == KICK:
                 forces = forcefield.compute(state, virial=False).forces
-                _kick(state.velocities, forces, inverse_masses, c * dt)
+                kick(state.velocities, forces, inverse_masses, c * dt)
             else:
                 _drift(state.positions, state.velocities, c * dt)
         state.step += 1

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from integrators._kernels import _drift, _kick_drift
+from integrators._kernels import _drift, kick_drift
 from integrators.base import IntegratorBase, check_dt
 
 
@@ -52,7 +52,7 @@ class StormerVerlet(IntegratorBase):
         dt = self.dt
         _drift(state.positions, state.velocities, 0.5 * dt)
         forces = forcefield.compute(state, virial=False).forces
-        _kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, dt, 0.5 * dt)
+        kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, dt, 0.5 * dt)
         state.step += 1
         state.time += dt
         self.statistics["steps"] += 1

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from integrators._kernels import _kick, _kick_drift
+from integrators._kernels import kick, kick_drift
 from integrators.base import IntegratorBase, check_dt
 
 
@@ -37,9 +37,9 @@ class VelocityVerlet(IntegratorBase):
         forces = forcefield.compute(state, virial=False).forces
         inverse_masses = 1.0 / state.masses
         half = 0.5 * self.dt
-        _kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
+        kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
         forces = forcefield.compute(state, virial=False).forces
-        _kick(state.velocities, forces, inverse_masses, half)
+        kick(state.velocities, forces, inverse_masses, half)
         state.step += 1
         state.time += self.dt
 

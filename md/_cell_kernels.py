@@ -457,6 +457,17 @@ def _atom_space_list(order, starts, neighbors, atom_starts, atom_neighbors):
             atom_neighbors[destination + k - starts[p]] = order[neighbors[k]]
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def _max_displacement2_threaded(positions, reference, chunks):
+    """``_max_displacement2`` over ``chunks`` chunks of atoms on numba's threads."""
+    n = positions.shape[0]
+    worst = np.zeros(chunks)
+    for c in prange(chunks):
+        a, b = c * n // chunks, (c + 1) * n // chunks
+        worst[c] = _max_displacement2(positions[a:b], reference[a:b])
+    return worst.max()
+
+
 @njit(cache=True, error_model="numpy")
 def _max_displacement2(positions, reference):
     """Largest squared displacement since ``reference``; inf if any coordinate is not finite."""

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
 
 from md.errors import NonFiniteError
 from md.neighbors import NeighborList
+from md.parallel import copy_into, same_values
 from md.state import State
 from md.topology import Topology, combine
 from potentials.base import (
@@ -231,7 +231,7 @@ class ForceField:
         than the copy)."""
         positions, types = state.positions, state.types
         if old is not None and old[0].shape == positions.shape and old[4].shape == types.shape:
-            np.copyto(old[0], positions)
+            copy_into(old[0], np.ascontiguousarray(positions, dtype=old[0].dtype))
             np.copyto(old[4], types)
             held_positions, held_types = old[0], old[4]
         else:
@@ -248,22 +248,12 @@ class ForceField:
             and np.array_equal(box, state.box)
             and np.array_equal(tilt, state.tilt)
             and np.array_equal(pbc, state.pbc)
-            and _same_values(positions.ravel(), np.ravel(state.positions))
-            and _same_values(types, state.types)
+            and same_values(positions, state.positions)
+            and same_values(types, state.types)
         )
 
     def _matches(self, state: State) -> bool:
         return self._same_key(self._key, state)
-
-
-@njit(cache=True)
-def _same_values(a, b) -> bool:
-    """Whether two flat arrays of one length are equal, stopping at the first difference
-    (NaN equals nothing); unlike np.array_equal, no temporary array."""
-    for i in range(a.shape[0]):
-        if a[i] != b[i]:
-            return False
-    return True
 
 
 def _sum_results(results: list[ForceResult], per_atom: bool) -> ForceResult:

@@ -18,6 +18,7 @@ from md._cell_kernels import (
     _frame_pairs_threaded,
     _largest_coordinates,
     _max_displacement2,
+    _max_displacement2_threaded,
     _shift_table,
 )
 from md.box import (
@@ -42,6 +43,8 @@ _REACH = 2
 _MAX_IMAGES = 2.0e9
 #: Fewest atoms per thread worth a chunk of their own.
 _MIN_CHUNK_ATOMS = 1000
+#: Fewest atoms per thread worth a chunk of their own in a memory-bound pass over them.
+_MIN_PASS_ATOMS = 50_000
 #: Head room of the pair buffer over the count that did not fit.
 _GROWTH = 1.05
 
@@ -346,7 +349,11 @@ class NeighborList:
             if not allowed > 0:
                 return True
             reference, allowed2 = self._reference @ m, _square(allowed)
-        moved2 = _max_displacement2(state.positions, reference)
+        chunks = max(1, min(get_threads(), len(reference) // _MIN_PASS_ATOMS))
+        if chunks > 1:
+            moved2 = _max_displacement2_threaded(state.positions, reference, chunks)
+        else:
+            moved2 = _max_displacement2(state.positions, reference)
         if not np.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
         if moved2 > allowed2:

@@ -16,8 +16,12 @@ round-off (only the order of the force sums differs).
 from __future__ import annotations
 
 import numba
+import numpy as np
+from numba import njit, prange
 
 _threads: int | None = None
+#: Fewest elements per thread worth a chunk of their own in a memory-bound pass.
+_MIN_CHUNK_VALUES = 150_000
 
 
 def max_threads() -> int:
@@ -53,3 +57,54 @@ def get_threads() -> int:
     if _threads is None:
         return set_threads(None)
     return _threads
+
+
+def _chunks(n: int) -> int:
+    return max(1, min(get_threads(), n // _MIN_CHUNK_VALUES))
+
+
+def same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two arrays of one shape are equal (NaN equals nothing), in chunks on the
+    kernels' threads, each stopping at its first difference; no temporary array."""
+    a, b = np.ravel(a), np.ravel(b)
+    chunks = _chunks(len(a))
+    if chunks == 1:
+        return bool(_same_values(a, b))
+    return bool(_same_values_threaded(a, b, chunks))
+
+
+def copy_into(destination: np.ndarray, source: np.ndarray) -> None:
+    """``destination[...] = source`` for two C-contiguous arrays of one shape and dtype,
+    in chunks on the kernels' threads."""
+    chunks = _chunks(source.size)
+    if chunks == 1:
+        np.copyto(destination, source)
+    else:
+        _copy_threaded(destination.reshape(-1), source.reshape(-1), chunks)
+
+
+@njit(cache=True)
+def _same_values(a, b):
+    for i in range(a.shape[0]):
+        if a[i] != b[i]:
+            return False
+    return True
+
+
+@njit(cache=True, parallel=True)
+def _same_values_threaded(a, b, chunks):
+    n = a.shape[0]
+    same = np.ones(chunks, dtype=np.bool_)
+    for c in prange(chunks):
+        same[c] = _same_values(a[c * n // chunks : (c + 1) * n // chunks],
+                               b[c * n // chunks : (c + 1) * n // chunks])  # fmt: skip
+    return same.all()
+
+
+@njit(cache=True, parallel=True)
+def _copy_threaded(destination, source, chunks):
+    n = source.shape[0]
+    for c in prange(chunks):
+        destination[c * n // chunks : (c + 1) * n // chunks] = source[
+            c * n // chunks : (c + 1) * n // chunks
+        ]

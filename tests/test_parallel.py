@@ -250,3 +250,58 @@ def test_thread_setting_is_checked():
         assert get_threads() == before
     finally:
         set_threads(before)
+
+
+def test_threaded_per_atom_passes_change_no_bits(monkeypatch):
+    """The passes over atoms that run in chunks on large systems (kick, drift, the
+    displacement check, the force cache's copy and comparison) give the same trajectory,
+    bit for bit, as their serial forms: run here on 2000 atoms with the chunk sizes
+    lowered so that two threads take part."""
+    import integrators._kernels
+    import md.parallel
+
+    if max_threads() < 2:
+        pytest.skip("needs two threads")
+    before = get_threads()
+    try:
+        set_threads(2)
+        runs = []
+        for threaded in (False, True):
+            if threaded:
+                monkeypatch.setattr(integrators._kernels, "_MIN_CHUNK_ATOMS", 100)
+                monkeypatch.setattr(md.neighbors, "_MIN_PASS_ATOMS", 100)
+                monkeypatch.setattr(md.parallel, "_MIN_CHUNK_VALUES", 100)
+            assert (integrators._kernels._chunks(2048) == 2) is threaded
+            assert (md.parallel._chunks(3 * 2048) == 2) is threaded
+            state = _liquid(cells=8, seed=5)
+            sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(0.005), skin=0.3)
+            sim.run(40)
+            assert sim.forcefield.neighbor_list.n_builds > 2  # the displacement check acted
+            runs.append((state.positions.copy(), state.velocities.copy()))
+        np.testing.assert_array_equal(runs[1][0], runs[0][0])
+        np.testing.assert_array_equal(runs[1][1], runs[0][1])
+    finally:
+        set_threads(before)
+
+
+@pytest.mark.parametrize("where", [0, 1500, 2999])
+def test_chunked_comparison_and_copy(monkeypatch, where):
+    """same_values finds a difference (or a NaN) in any chunk; copy_into copies every one."""
+    import md.parallel
+
+    monkeypatch.setattr(md.parallel, "_MIN_CHUNK_VALUES", 100)
+    before = get_threads()
+    try:
+        set_threads(min(2, max_threads()))
+        a = np.random.default_rng(where).normal(size=(1000, 3))
+        b = np.empty_like(a)
+        md.parallel.copy_into(b, a)
+        np.testing.assert_array_equal(b, a)
+        assert md.parallel.same_values(a, b)
+        b.reshape(-1)[where] += 1e-15 * max(1.0, abs(a.reshape(-1)[where]))
+        assert not md.parallel.same_values(a, b)
+        b.reshape(-1)[where] = np.nan
+        a.reshape(-1)[where] = np.nan
+        assert not md.parallel.same_values(a, b)  # NaN equals nothing, as in np.array_equal
+    finally:
+        set_threads(before)
