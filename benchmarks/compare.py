@@ -57,6 +57,7 @@ from _machine import machine_line
 from lj_melt import find_libmpi, print_breakdown
 
 WORKER = Path(__file__).with_name("_compare_worker.py")
+VECTOR_CHECK = Path(__file__).with_name("_vector_check.py")
 PEERS = ("lammps", "lammps-opt", "lammps-omp", "openmm", "asap3", "ase")
 #: The modules each peer needs, and how to get them.
 PEER_MODULES = {
@@ -855,6 +856,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--all", action="store_true", help="--memory --startup --h5md")
     parser.add_argument(
+        "--no-vector-check",
+        action="store_true",
+        help="skip compiling the hot loops afresh to report whether they vectorised (~30 s)",
+    )
+    parser.add_argument(
         "--quick",
         action="store_true",
         help="tiny sizes, 1 repeat, few steps (overrides those options): a smoke test",
@@ -894,6 +900,27 @@ def check_args(args, parser) -> None:
         args.memory = args.startup = args.h5md = True
 
 
+def vector_line() -> str:
+    """Whether LLVM vectorised the pair loop and the cell search here (``_vector_check.py``,
+    in a child process with an empty numba cache: cached kernels keep no assembly)."""
+    try:
+        done = subprocess.run(
+            [sys.executable, str(VECTOR_CHECK)], capture_output=True, text=True, timeout=600,
+            check=True,
+        )  # fmt: skip
+        kernels = json.loads(done.stdout.strip().splitlines()[-1])
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError) as error:
+        return f"vectorised: not checked ({type(error).__name__})"
+    parts = []
+    for name, counts in kernels.items():
+        if counts["zmm"] or counts["ymm"]:
+            width = "512-bit zmm" if counts["zmm"] else "256-bit ymm"
+            parts.append(f"{name} yes ({counts['ymm'] + counts['zmm']} packed double ops, {width})")
+        else:
+            parts.append(f"{name} NO (scalar)")
+    return "vectorised: " + "; ".join(parts)
+
+
 def print_header(args, peers: set[str], info: dict) -> None:
     import numba
 
@@ -904,6 +931,8 @@ def print_header(args, peers: set[str], info: dict) -> None:
         f"({cells}^3 cells), {args.steps} steps, {args.repeats} interleaved repeats"
     )
     print(f"{machine_line()}, numba {numba.__version__}")
+    if not (args.quick or args.no_vector_check):
+        print(vector_line())
     versions = []
     for name, module in (("lammps", "lammps"), ("openmm", "openmm"), ("asap3", "asap3")):
         if name in {p.split("-")[0] for p in peers}:

@@ -102,3 +102,26 @@ def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "leapmd (2 thread(s))" in done.stdout and "LAMMPS not run" in done.stdout
+
+
+def test_vector_check_counts_packed_double_arithmetic_only():
+    """The parser behind compare.py's "vectorised:" line: packed double FMAs, products,
+    sums, compares, divisions and roots on ymm/zmm count; scalar (sd) and xmm ones do not."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from _vector_check import packed_counts
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    assembly = """
+        vfmadd231pd	%ymm1, %ymm2, %ymm3
+        vfnmsub213pd	(%rax), %zmm4, %zmm5
+        vmulpd	%zmm1, %zmm2, %zmm3
+        vcmpltpd	%ymm23, %ymm7, %k1
+        vdivpd	%ymm1, %ymm2, %ymm3
+        vsqrtpd	%ymm1, %ymm2
+        vmulsd	%xmm1, %xmm2, %xmm3
+        vaddpd	%xmm1, %xmm2, %xmm3
+        vfmadd231sd	%xmm1, %xmm2, %xmm3
+        vmovupd	%ymm1, (%rax)
+    """
+    assert packed_counts(assembly) == {"ymm": 4, "zmm": 2}

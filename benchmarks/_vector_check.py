@@ -1,0 +1,73 @@
+"""Did LLVM vectorise the hot loops on this machine? Compile them afresh and read the assembly.
+
+Run as a script (``compare.py`` runs it in a child process): it points numba's
+cache at an empty folder, so the kernels are compiled here and their machine
+code can be inspected (numba keeps no assembly for kernels loaded from its
+cache), runs a small LJ system through the slot-frame force kernel and the
+cell search, and prints one JSON object: per kernel, the packed
+double-precision arithmetic instructions (FMA, multiply, add, subtract,
+compare, divide, square root) on 256-bit (ymm) and 512-bit (zmm) registers.
+A kernel with none ran scalar.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import sys
+import tempfile
+
+#: Packed double arithmetic on a ymm or zmm register (the group: y or z).
+PACKED = re.compile(
+    r"^\s*v(?:fn?m(?:add|sub)\d{3}pd|mulpd|addpd|subpd|cmp\w*pd|divpd|sqrtpd)\s.*%([yz])mm"
+)
+
+
+def packed_counts(assembly: str) -> dict[str, int]:
+    counts = {"ymm": 0, "zmm": 0}
+    for line in assembly.splitlines():
+        match = PACKED.match(line)
+        if match:
+            counts[match.group(1) + "mm"] += 1
+    return counts
+
+
+def main() -> None:
+    cache = tempfile.mkdtemp(prefix="leapmd_vector_check_")
+    os.environ["NUMBA_CACHE_DIR"] = cache  # before numba is imported
+    try:
+        report()
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+
+
+def report() -> None:
+    sys.path.insert(0, os.getcwd())
+    import numpy as np
+
+    import md
+    from md import _cell_kernels
+    from potentials import LennardJones, lennard_jones
+
+    state = md.lattice("fcc", 6, density=0.8442)
+    state.positions += np.random.default_rng(0).normal(scale=0.05, size=state.positions.shape)
+    forcefield = md.ForceField([LennardJones(cutoff=2.5)], skin=0.3)
+    forcefield.compute(state, virial=False)
+    kernels = {
+        "LJ pair loop (lennard_jones._lj_frame_chunk)": lennard_jones._lj_frame_chunk,
+        "cell search (_cell_kernels._frame_pairs_chunk)": _cell_kernels._frame_pairs_chunk,
+    }
+    out = {}
+    for name, kernel in kernels.items():
+        counts = {"ymm": 0, "zmm": 0}
+        for signature in kernel.signatures:
+            for width, n in packed_counts(kernel.inspect_asm(signature)).items():
+                counts[width] += n
+        out[name] = counts
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
