@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -382,10 +383,18 @@ class LennardJones:
         offsets = np.zeros(chunks + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
         n_pairs = int(offsets[-1])
-        out = (
-            np.empty(n_pairs, dtype=np.int64), np.empty(n_pairs, dtype=np.int64),
-            np.empty(n_pairs), np.empty(n_pairs), np.empty((n_pairs, 3)),
-        )  # fmt: skip
+        # The blocks go into buffers kept from the last call when nothing uses them any
+        # more (the last operator is gone): fresh arrays of tens of MB cost page faults
+        # that take as long as writing them.
+        held = getattr(self, "_hessian_buffers", None)
+        if held is None or held[0].shape[0] < n_pairs or not _unshared(held):
+            size = int(n_pairs * 1.05) + 1024
+            held = (
+                np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), np.empty(size),
+                np.empty(size), np.empty((size, 3)),
+            )  # fmt: skip
+            self._hessian_buffers = held
+        out = tuple(buffer[:n_pairs] for buffer in held)
         write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
         write(slot_positions, slot_types, slots, n_types, table, CUTOFF_MODES[self.cutoff_mode],
               offsets, out)  # fmt: skip
@@ -425,6 +434,12 @@ class LennardJones:
         if cache is None or cache[0] != n_types:
             self._table_cache = (n_types, self.tables(n_types))
         return self._table_cache[1]
+
+
+def _unshared(buffers) -> bool:
+    """Whether nothing but ``buffers`` refers to its arrays (no view, no operator built
+    on them): CPython's reference counts, three here (the tuple, the loop, the call)."""
+    return all(sys.getrefcount(buffer) <= 3 for buffer in buffers)
 
 
 def _symmetric(v: np.ndarray) -> np.ndarray:

@@ -199,3 +199,33 @@ def test_forcefield_hessian_names_potential_without_one(fcc_lattice):
     forcefield = md.ForceField([LennardJones(cutoff=1.5), _NoHessian(1.0)])
     with pytest.raises(TypeError, match="_NoHessian"):
         forcefield.hessian(state)
+
+
+def test_lj_hessian_operator_survives_the_next_one(fcc_lattice):
+    """The slot-frame Hessian reuses its buffers only once nothing refers to them: an
+    operator (or a view of its arrays) kept by the caller is never overwritten by the
+    next call, and an operator rebuilt at the same positions equals the first."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    potential = LennardJones(cutoff=2.5)
+    neighbors = md.NeighborList(potential.cutoff, skin=0.3)
+    neighbors.update(state)
+    first = potential.hessian_operator(state, neighbors)
+    kept = (first.pair_i.copy(), first.transverse.copy(), first.radial.copy(), first.unit.copy())
+    view = first.radial[:10]
+    original = state.positions.copy()
+    state.positions += 0.01
+    second = potential.hessian_operator(state, neighbors)
+    assert not np.shares_memory(second.radial, first.radial)
+    np.testing.assert_array_equal(first.pair_i, kept[0])
+    np.testing.assert_array_equal(first.transverse, kept[1])
+    np.testing.assert_array_equal(first.unit, kept[3])
+    del first
+    state.positions[:] = original
+    third = potential.hessian_operator(state, neighbors)  # a view of the first's arrays lives
+    assert not np.shares_memory(third.radial, view)
+    np.testing.assert_array_equal(view, kept[2][:10])
+    np.testing.assert_array_equal(third.radial, kept[2])
+    np.testing.assert_array_equal(third.transverse, kept[1])
+    del view
+    fourth = potential.hessian_operator(state, neighbors)  # now the buffers are free again
+    np.testing.assert_array_equal(fourth.radial, kept[2])
