@@ -438,8 +438,11 @@ class LennardJones:
 
 def _unshared(buffers) -> bool:
     """Whether nothing but ``buffers`` refers to its arrays (no view, no operator built
-    on them): CPython's reference counts, three here (the tuple, the loop, the call)."""
-    return all(sys.getrefcount(buffer) <= 3 for buffer in buffers)
+    on them), by CPython's reference counts: each at most that of an array held only by
+    a tuple and counted the same way (interpreters differ in what the count includes)."""
+    probe = (np.empty(0),)
+    baseline = max(sys.getrefcount(array) for array in probe)
+    return all(sys.getrefcount(buffer) <= baseline for buffer in buffers)
 
 
 def _symmetric(v: np.ndarray) -> np.ndarray:
