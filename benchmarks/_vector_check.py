@@ -18,6 +18,7 @@ import re
 import shutil
 import sys
 import tempfile
+from pathlib import Path
 
 #: Packed double arithmetic on a ymm or zmm register (the group: y or z).
 PACKED = re.compile(
@@ -44,7 +45,7 @@ def main() -> None:
 
 
 def report() -> None:
-    sys.path.insert(0, os.getcwd())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
     import numpy as np
 
     import md

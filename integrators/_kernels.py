@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from numba import njit, prange
 
-from md.parallel import get_threads
+from md.parallel import chunk_count
 
 #: Fewest atoms per thread worth a chunk of their own in these memory-bound passes
 #: (below, waking a thread costs more than the pass).
@@ -12,7 +12,7 @@ _MIN_CHUNK_ATOMS = 50_000
 
 
 def _chunks(n: int) -> int:
-    return max(1, min(get_threads(), n // _MIN_CHUNK_ATOMS))
+    return chunk_count(n, _MIN_CHUNK_ATOMS)
 
 
 def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt) -> None:

@@ -30,7 +30,7 @@ from md.box import (
     perpendicular_widths,
 )
 from md.errors import NonFiniteError
-from md.parallel import get_threads
+from md.parallel import chunk_count
 from md.state import State
 
 logger = logging.getLogger(__name__)
@@ -349,7 +349,7 @@ class NeighborList:
             if not allowed > 0:
                 return True
             reference, allowed2 = self._reference @ m, _square(allowed)
-        chunks = max(1, min(get_threads(), len(reference) // _MIN_PASS_ATOMS))
+        chunks = chunk_count(len(reference), _MIN_PASS_ATOMS)
         if chunks > 1:
             moved2 = _max_displacement2_threaded(state.positions, reference, chunks)
         else:
@@ -382,7 +382,7 @@ class NeighborList:
         n = positions.shape[0]
         grid = self._grid(state)
         self.used_cells = grid is not None
-        chunks = max(1, min(get_threads(), n // _MIN_CHUNK_ATOMS))
+        chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
         if grid is None:
             self._build_brute_force(state)
         elif n > MAX_SLOTS:

@@ -59,8 +59,14 @@ def get_threads() -> int:
     return _threads
 
 
+def chunk_count(n: int, fewest: int) -> int:
+    """Chunks to split ``n`` items into: one per thread, each of at least ``fewest`` items
+    (below that, waking a thread costs more than it saves), and at least one."""
+    return max(1, min(get_threads(), n // fewest))
+
+
 def _chunks(n: int) -> int:
-    return max(1, min(get_threads(), n // _MIN_CHUNK_VALUES))
+    return chunk_count(n, _MIN_CHUNK_VALUES)
 
 
 def same_values(a: np.ndarray, b: np.ndarray) -> bool:

@@ -641,6 +641,15 @@ def _lj_frame_chunk(
 
 
 @njit(cache=True, error_model="numpy")
+def _longest_row(starts, first, last):
+    """Most partners of any of the slots first..last-1 (the size of per-row scratch)."""
+    most = 0
+    for p in range(first, last):
+        most = max(most, starts[p + 1] - starts[p])
+    return most
+
+
+@njit(cache=True, error_model="numpy")
 def _gather_partners(frame, frame_types, shifts, partners, partner_codes, row, table, mode,
                      single, gx, gy, gz, params):  # fmt: skip
     """Partner positions (with their image shifts) and, with several types, their
@@ -686,9 +695,7 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
         buffer[p, 0] = 0.0
         buffer[p, 1] = 0.0
         buffer[p, 2] = 0.0
-    most = 0
-    for p in range(bounds[chunk], bounds[chunk + 1]):
-        most = max(most, starts[p + 1] - starts[p])
+    most = _longest_row(starts, bounds[chunk], bounds[chunk + 1])
     gx = np.empty(most)
     gy = np.empty(most)
     gz = np.empty(most)
@@ -1033,9 +1040,7 @@ def _lj_frame_curvature_loop(args, mode, single, out):
     order, shifts, starts, neighbors, codes, bounds = (
         slots[0], slots[3], slots[4], slots[5], slots[6], slots[7],
     )  # fmt: skip
-    most = 0
-    for p in range(bounds[chunk], bounds[chunk + 1]):
-        most = max(most, starts[p + 1] - starts[p])
+    most = _longest_row(starts, bounds[chunk], bounds[chunk + 1])
     gx = np.empty(most)
     gy = np.empty(most)
     gz = np.empty(most)

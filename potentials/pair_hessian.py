@@ -22,7 +22,7 @@ import scipy.sparse as sp
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from md.parallel import get_threads
+from md.parallel import chunk_count
 
 #: Fewest pairs per thread worth a chunk of their own.
 _MIN_CHUNK_PAIRS = 20000
@@ -68,7 +68,7 @@ class PairHessian:
         self.shape = (3 * self.n_atoms, 3 * self.n_atoms)
         # Pairs are split into one chunk per thread, each adding into its own buffer, the
         # buffers then summed in chunk order: the same result for a given thread count.
-        self.n_chunks = max(1, min(get_threads(), len(pair_i) // _MIN_CHUNK_PAIRS))
+        self.n_chunks = chunk_count(len(pair_i), _MIN_CHUNK_PAIRS)
         self.diagonal_blocks = np.zeros((self.n_atoms, 6))
         if self.n_chunks == 1:
             _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)

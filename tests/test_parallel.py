@@ -42,7 +42,7 @@ def chunks(monkeypatch):
 
     def use(n: int) -> None:
         monkeypatch.setattr(md.neighbors, "_MIN_CHUNK_ATOMS", 16)
-        monkeypatch.setattr(md.neighbors, "get_threads", lambda: n)
+        monkeypatch.setattr(md.parallel, "get_threads", lambda: n)
 
     return use
 
@@ -152,7 +152,7 @@ def test_no_pair_is_missed_and_every_image_is_right_after_moves_up_to_half_the_s
     displacement (so no kernel needs a minimum image)."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(md.neighbors, "_MIN_CHUNK_ATOMS", 8)
-        patch.setattr(md.neighbors, "get_threads", lambda: n_chunks)
+        patch.setattr(md.parallel, "get_threads", lambda: n_chunks)
         _check_moves(seed, n_atoms, edges_over_radius, pbc, skin)
 
 
