@@ -732,15 +732,19 @@ def _lj_frame_chunk_loop(args, mode, with_virial, single, out):
             sfx[k] = fx
             sfy[k] = fy
             sfz[k] = fz
-            if with_virial:
-                wxx += fx * dx
-                wyy += fy * dy
-                wzz += fz * dz
-                wyz += fz * dy
-                wxz += fz * dx
-                wxy += fy * dx
-        # Atom p's force summed apart from the pair loop, whose sums (energy, virial)
-        # differ with the variant: this loop is the same in all, so are its bits.
+        if with_virial:  # a loop of its own: the pair loop above is the same in every
+            for k in range(m):  # variant, so are its forces' bits (on any CPU's vector width)
+                dx = xi - gx[k]
+                dy = yi - gy[k]
+                dz = zi - gz[k]
+                wxx += sfx[k] * dx
+                wyy += sfy[k] * dy
+                wzz += sfz[k] * dz
+                wyz += sfz[k] * dy
+                wxz += sfz[k] * dx
+                wxy += sfy[k] * dx
+        # Atom p's force summed apart from the pair loop, as the virial is:
+        # this loop is the same in every variant, so are its bits.
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
