@@ -34,6 +34,9 @@ def _interrupted_quietly(kind, value, traceback, previous=sys.excepthook) -> Non
 
 if sys.argv and os.path.basename(sys.argv[0]) == "md":  # the `md` command (console script)
     sys.excepthook = _interrupted_quietly
+    from md.interrupts import watch
+
+    watch()  # a Ctrl-C that numba's compilation swallows is still seen (md.interrupts)
 
 from md._kernel_cache import kernel_cache  # noqa: E402 - after the start-up hook above
 

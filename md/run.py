@@ -54,6 +54,7 @@ from md.errors import (
     SimulationError,
     TrajectoryError,
 )
+from md.interrupts import take_pending
 from md.minimize import MinimizeResult, minimize
 from md.parallel import set_threads
 from md.simulation import Simulation
@@ -612,6 +613,8 @@ def _catch_stop_signals(sim: Simulation) -> dict:
             previous[signum] = signal.signal(signum, handler)
         except ValueError:  # not the main thread: leave signals alone
             break
+    if previous and take_pending():  # a Ctrl-C during start-up that compilation swallowed
+        sim.request_stop("SIGINT")
     return previous
 
 

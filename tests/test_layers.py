@@ -34,6 +34,7 @@ LAYERS = {
         "md._checks",
         "md._files",
         "md.topology",
+        "md.interrupts",
     ],
     1: ["potentials.*", "integrators.*"],
     2: [

@@ -305,6 +305,52 @@ def test_ctrl_c_while_md_starts_prints_no_traceback(tmp_path, delay):
     assert process.returncode in (130, -signal.SIGINT), (process.returncode, err)
 
 
+@pytest.fixture
+def swallowed_ctrl_c(monkeypatch):
+    """A SIGINT delivered inside a ctypes callback, as when it lands while numba compiles
+    (LLVM's object-cache callback): Python prints and drops the KeyboardInterrupt.
+    Returns what the unraisable hook saw; SIGINT's handler is restored afterwards."""
+    import ctypes
+
+    from md import interrupts
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda report: seen.append(report.exc_type))
+    before = signal.getsignal(signal.SIGINT)
+    interrupts.watch()
+
+    @ctypes.CFUNCTYPE(None)
+    def callback():
+        signal.raise_signal(signal.SIGINT)
+
+    try:
+        callback()  # the KeyboardInterrupt raised in here is dropped by ctypes
+        yield seen
+    finally:
+        signal.signal(signal.SIGINT, before)
+        interrupts.take_pending()
+
+
+def test_a_ctrl_c_swallowed_while_md_starts_still_stops_the_run(tmp_path, swallowed_ctrl_c):
+    """The CI failure of stop 25: Ctrl-C landed in a kernel's compilation, was dropped,
+    and a million-step run went on. Now the run stops before its first step, with a
+    checkpoint, and says it was interrupted."""
+    from md.checkpoint import checkpoint_path, read_checkpoint
+
+    assert swallowed_ctrl_c == [KeyboardInterrupt]  # the interrupt really was dropped
+    config = tmp_path / "run.toml"
+    config.write_text(lj_config_text(run="steps = 50000"))
+    assert main(["run", str(config), "-q", "--no-progress"]) == 130
+    assert read_checkpoint(checkpoint_path(tmp_path / "out.h5")).state.step == 0
+
+
+def test_a_ctrl_c_swallowed_during_another_command_exits_130(finished, swallowed_ctrl_c, capsys):
+    _, output = finished
+    assert swallowed_ctrl_c == [KeyboardInterrupt]
+    assert main(["info", str(output)]) == 130
+    assert "interrupted" in capsys.readouterr().err
+
+
 def test_md_info_into_a_closed_pipe_ends_quietly(finished):
     _, output = finished
     read_end, write_end = os.pipe()

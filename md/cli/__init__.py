@@ -27,6 +27,7 @@ from md.cli import (
     validate,
 )
 from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
+from md.interrupts import take_pending
 
 #: Subcommand modules, in the order ``md --help`` lists them.
 SUBCOMMANDS = {
@@ -56,7 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``md`` command; returns the exit code."""
     args = build_parser().parse_args(argv)
     try:
-        return SUBCOMMANDS[args.command].main(args)
+        code = SUBCOMMANDS[args.command].main(args)
     except KeyboardInterrupt:
         print("md: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -66,6 +67,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
+    if take_pending():  # a Ctrl-C that a compiling kernel swallowed (md.interrupts)
+        print("md: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return code
 
 
 __all__ = ["build_parser", "main"]
