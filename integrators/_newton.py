@@ -46,6 +46,9 @@ _MAX_BACKTRACKS = 30
 #: Diagonal shifts mu (in units of M) tried when the Newton direction is not a descent one.
 _SHIFTS = (1.0, 10.0, 100.0)
 _MAX_CG_ITERATIONS = 1000
+#: The Hessian of the last iteration is used again (a chord step) while Newton's
+#: iterations each cut the residual at least this much with a full step.
+_CHORD_REDUCTION = 0.1
 
 
 def check_solver_options(tol: float, max_iter: int, linear_solver: str) -> tuple[float, int, str]:
@@ -74,6 +77,7 @@ def new_statistics() -> dict[str, int]:
         "line_search_backtracks": 0,
         "fallbacks": 0,
         "projections": 0,
+        "hessian_evaluations": 0,
     }
 
 
@@ -99,10 +103,14 @@ class IncrementalSolver:
     could outweigh the masses clamped (``HessianSum.definite``: M + h^2 H is
     then positive definite); where no descent direction comes out, it is
     retried with that clamped H, then with ``+ mu M`` (``mu`` = 1, 10, 100),
-    then ``-M^-1 grad`` is taken. Near convergence, where Phi's decrease drowns in round-off, a
-    step that does not raise Phi beyond round-off and lowers the residual is
-    accepted too. Force fields without a Hessian get ``M`` in its place,
-    which makes the iteration a damped fixed-point iteration.
+    then ``-M^-1 grad`` is taken. With CG, while each full step cuts the
+    residual at least tenfold, the next iteration applies the same Hessian
+    again (a chord step) instead of evaluating it; never across steps, so a
+    resumed run repeats the same iterations. Near convergence, where Phi's
+    decrease drowns in round-off, a step that does not raise Phi beyond
+    round-off and lowers the residual is accepted too. Force fields without a
+    Hessian get ``M`` in its place, which makes the iteration a damped
+    fixed-point iteration.
 
     Parameters
     ----------
@@ -178,11 +186,20 @@ class IncrementalSolver:
             phi, grad, residual, noise = evaluate(dx)
         iterations = 0
         globalise = False
+        hessian = None
+        previous = np.inf
         while residual > self.tol and iterations < self.max_iter:
             iterations += 1
             stats["newton_iterations"] += 1
-            direction = self._direction(
-                state, forcefield, h2, masses, grad, residual, use_newton, globalise
+            # Chord step: while each full step cut the residual tenfold, the Hessian
+            # of the last iteration still serves (it changes little within a step,
+            # and building it costs about three force evaluations). The residual is
+            # always the exact one, so only the iteration count can change.
+            if globalise or residual > _CHORD_REDUCTION * previous:
+                hessian = None
+            previous = residual
+            direction, hessian = self._direction(
+                state, forcefield, h2, masses, grad, residual, use_newton, globalise, hessian
             )
             accepted = self._line_search(evaluate, dx, direction, phi, grad, noise)
             # A shortened step means the local model is poor: the next direction
@@ -190,6 +207,7 @@ class IncrementalSolver:
             globalise = accepted is None or accepted[-1] < 1.0
             if accepted is None and use_newton:
                 # The Newton direction led nowhere: one M^-1 gradient step instead.
+                hessian = None
                 stats["fallbacks"] += 1
                 direction = -grad * inverse_masses
                 accepted = self._line_search(evaluate, dx, direction, phi, grad, noise)
@@ -213,10 +231,14 @@ class IncrementalSolver:
         stats["steps"] += 1
         return dx.reshape(x0.shape)
 
-    def _direction(self, state, forcefield, h2, masses, grad, residual, use_newton, globalise):
-        """Return a descent direction of Phi.
+    def _direction(
+        self, state, forcefield, h2, masses, grad, residual, use_newton, globalise, exact
+    ):
+        """Return a descent direction of Phi and the Hessian operator to use again (or None).
 
         Newton's direction (exact, clamped or shifted Hessian) or -M^-1 grad.
+        ``exact``: the Hessian operator of an earlier iteration to use again, or None
+        to evaluate it at the current positions.
         With ``globalise`` (the last step was shortened) and some pair's negative
         curvature able to outweigh the masses (2 h^2 lambda_min < -m_min: a
         compressed stiff bond or a large step), where the Newton direction
@@ -225,9 +247,12 @@ class IncrementalSolver:
         """
         stats = self.statistics
         if not use_newton:
-            return -grad / masses
+            return -grad / masses, None
         # CG only applies the Hessian (pair blocks, never assembled); LU needs the matrix.
-        operator = forcefield.hessian_operator(state)
+        if exact is None:
+            exact = forcefield.hessian_operator(state)
+            stats["hessian_evaluations"] += 1
+        operator = exact
         size = len(masses)
         solver = self.linear_solver
         if solver == "auto":
@@ -272,8 +297,9 @@ class IncrementalSolver:
                     stats["fallbacks"] += 1
             stats["linear_iterations"] += n_linear
             if np.all(np.isfinite(direction)) and _dot(grad, direction) < 0.0:
-                return direction
-        return -grad / masses
+                # Only CG uses the operator again: LU would factorise it afresh anyway.
+                return direction, (exact if solver == "cg" else None)
+        return -grad / masses, None
 
     def _line_search(self, evaluate, dx, direction, phi, grad, noise):
         """Backtrack along ``direction``; return (dx, Phi, grad, residual, noise, alpha) or None."""

@@ -86,8 +86,10 @@ class ImplicitEuler(_ImplicitBase):
     statistics : dict of int
         Cumulative ``steps``, ``newton_iterations``, ``linear_iterations``
         (one per factorisation, or CG iterations), ``line_search_backtracks``,
-        ``fallbacks`` (shifted or gradient directions, negative curvature) and
-        ``projections`` (iterations that clamped negative pair curvatures).
+        ``fallbacks`` (shifted or gradient directions, negative curvature),
+        ``projections`` (iterations that clamped negative pair curvatures) and
+        ``hessian_evaluations`` (fewer than the iterations where CG reused the
+        last one: chord steps, see ``integrators._newton.IncrementalSolver``).
 
     Raises
     ------

@@ -151,7 +151,7 @@ def test_options_are_validated_and_described():
     assert ImplicitMidpoint(dt=0.02).describe()["type"] == "implicit_midpoint"
     assert set(integrator.statistics) == {
         "steps", "newton_iterations", "linear_iterations", "line_search_backtracks", "fallbacks",
-        "projections",
+        "projections", "hessian_evaluations",
     }  # fmt: skip
     for bad in (
         {"dt": 0.0},
@@ -269,6 +269,27 @@ def test_convergence_failure_names_step_and_restores_state():
     np.testing.assert_array_equal(state.velocities, before.velocities)
     assert state.step == 3 and state.time == before.time
     assert sim.integrator.statistics["steps"] == 0
+
+
+def test_chord_steps_reuse_the_hessian_and_reach_the_same_solution(monkeypatch):
+    """While each full Newton step cuts the residual tenfold, CG reuses the last
+    iteration's Hessian: fewer evaluations than iterations, and the same trajectory
+    as evaluating it every iteration, to the solver's tolerance."""
+    import integrators._newton as newton
+
+    runs = {}
+    for reduction in (newton._CHORD_REDUCTION, 0.0):  # 0: a fresh Hessian every iteration
+        monkeypatch.setattr(newton, "_CHORD_REDUCTION", reduction)
+        state = lj_liquid(cells=4)
+        integrator = ImplicitEuler(0.005, tol=1e-10, linear_solver="cg")
+        md.Simulation(state, [LennardJones(cutoff=2.5)], integrator).run(10)
+        runs[reduction] = state, integrator.statistics
+    (chord, chord_stats), (fresh, fresh_stats) = runs.values()
+    assert fresh_stats["hessian_evaluations"] == fresh_stats["newton_iterations"]
+    assert chord_stats["hessian_evaluations"] < chord_stats["newton_iterations"]
+    assert chord_stats["hessian_evaluations"] >= chord_stats["steps"]  # never across steps
+    np.testing.assert_allclose(chord.positions, fresh.positions, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(chord.velocities, fresh.velocities, rtol=0, atol=1e-7)
 
 
 def test_cg_and_direct_solvers_agree():
