@@ -52,7 +52,7 @@ def _time_steps(sim, n_steps: int) -> float:
 
 def compare_step_cost(make_system, dt: float, n_steps: int, repeats: int) -> dict:
     """Median wall time per step of VV and implicit Euler on fresh copies of a system."""
-    vv_times, ie_times, newton, linear = [], [], [], []
+    vv_times, ie_times, newton, linear, hessians = [], [], [], [], []
     for _ in range(repeats):
         state, potentials = make_system()
         vv = md.Simulation(state.copy(), potentials, VelocityVerlet(dt))
@@ -68,6 +68,8 @@ def compare_step_cost(make_system, dt: float, n_steps: int, repeats: int) -> dic
                       / n_steps)  # fmt: skip
         linear.append((integrator.statistics["linear_iterations"] - before["linear_iterations"])
                       / n_steps)  # fmt: skip
+        hessians.append((integrator.statistics["hessian_evaluations"]
+                         - before["hessian_evaluations"]) / n_steps)  # fmt: skip
     vv_step, ie_step = statistics.median(vv_times), statistics.median(ie_times)
     return {
         "n_atoms": state.n_atoms,
@@ -76,6 +78,7 @@ def compare_step_cost(make_system, dt: float, n_steps: int, repeats: int) -> dic
         "ratio": ie_step / vv_step,
         "newton_per_step": statistics.median(newton),
         "linear_per_step": statistics.median(linear),
+        "hessians_per_step": statistics.median(hessians),
     }
 
 
@@ -220,7 +223,7 @@ def main(argv=None) -> None:
     compare_step_cost(lj_melt(3), 0.005, 2, 1)
 
     header = f"{'system':<28}{'N':>8}{'VV ms/step':>12}{'IE ms/step':>12}{'IE/VV':>8}"
-    header += f"{'Newton/step':>13}{'linear/step':>13}"
+    header += f"{'Newton/step':>13}{'linear/step':>13}{'Hessians/step':>15}"
     rows = []
     for cells in (10, 15, 20) if args.scaling else (args.cells,):
         rows.append(("LJ melt dt 0.005", compare_step_cost(lj_melt(cells), 0.005, args.steps,
@@ -234,6 +237,7 @@ def main(argv=None) -> None:
     for name, r in rows:
         line = f"{name:<28}{r['n_atoms']:>8}{r['vv_step_ms']:>12.2f}{r['ie_step_ms']:>12.2f}"
         line += f"{r['ratio']:>8.2f}{r['newton_per_step']:>13.2f}{r['linear_per_step']:>13.2f}"
+        line += f"{r['hessians_per_step']:>15.2f}"
         print(line)
 
     print(f"\nStiff chain (50 beads, k = 1e4, WCA), time to simulate {args.chain_span} tau:")
