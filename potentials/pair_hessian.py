@@ -237,10 +237,22 @@ def _block(t, r, e, out):
 def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
     """Add each pair's K to the diagonal blocks (N, 6) of both its atoms.
 
-    K = t I + (r - t) e e^T written out in scalars (as ``_block`` does): a
-    call and a row view per pair cost as much as the arithmetic.
+    K = t I + (r - t) e e^T written out in scalars (as ``_block`` does):
+    ``_block``'s output row per pair cost as much as the arithmetic.
     """
-    for p in range(pair_i.shape[0]):
+    n_pairs = pair_i.shape[0]
+    if n_pairs == 0:
+        return
+    # Atom i's block summed in registers over a run of pairs with the same i (as
+    # in ``_pair_matvec``), atom j's added per pair.
+    current = pair_i[0]
+    s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+    for p in range(n_pairs):
+        i = pair_i[p]
+        if i != current:
+            _add_block(diagonal, current, s0, s1, s2, s3, s4, s5)
+            s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+            current = i
         t = transverse[p]
         c = radial[p] - t
         ex = unit[p, 0]
@@ -252,13 +264,25 @@ def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
         b3 = c * ey * ez
         b4 = c * ex * ez
         b5 = c * ex * ey
-        for atom in (pair_i[p], pair_j[p]):
-            diagonal[atom, 0] += b0
-            diagonal[atom, 1] += b1
-            diagonal[atom, 2] += b2
-            diagonal[atom, 3] += b3
-            diagonal[atom, 4] += b4
-            diagonal[atom, 5] += b5
+        s0 += b0
+        s1 += b1
+        s2 += b2
+        s3 += b3
+        s4 += b4
+        s5 += b5
+        _add_block(diagonal, pair_j[p], b0, b1, b2, b3, b4, b5)
+    _add_block(diagonal, current, s0, s1, s2, s3, s4, s5)
+
+
+@njit(cache=True)
+def _add_block(diagonal, atom, b0, b1, b2, b3, b4, b5):
+    """diagonal[atom] += (b0, ..., b5)."""
+    diagonal[atom, 0] += b0
+    diagonal[atom, 1] += b1
+    diagonal[atom, 2] += b2
+    diagonal[atom, 3] += b3
+    diagonal[atom, 4] += b4
+    diagonal[atom, 5] += b5
 
 
 @njit(cache=True)
@@ -273,8 +297,22 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
         out[3 * i] += d[0] * x0 + d[5] * x1 + d[4] * x2
         out[3 * i + 1] += d[5] * x0 + d[1] * x1 + d[3] * x2
         out[3 * i + 2] += d[4] * x0 + d[3] * x1 + d[2] * x2
-    for p in range(pair_i.shape[0]):
+    n_pairs = pair_i.shape[0]
+    if n_pairs == 0:
+        return
+    # Pairs come in runs with the same i (a slot's partners in a neighbour-list
+    # Hessian): row i's terms are summed in registers over the run and written once,
+    # instead of a read-modify-write of out[i] per pair that the next pair waits for.
+    current = pair_i[0]
+    s0 = s1 = s2 = 0.0
+    for p in range(n_pairs):
         i = pair_i[p]
+        if i != current:
+            out[3 * current] -= s0
+            out[3 * current + 1] -= s1
+            out[3 * current + 2] -= s2
+            s0 = s1 = s2 = 0.0
+            current = i
         j = pair_j[p]
         t = transverse[p]
         c = radial[p] - t
@@ -283,12 +321,15 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
         xj0, xj1, xj2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
         along_j = c * (e0 * xj0 + e1 * xj1 + e2 * xj2)
         along_i = c * (e0 * xi0 + e1 * xi1 + e2 * xi2)
-        out[3 * i] -= t * xj0 + along_j * e0
-        out[3 * i + 1] -= t * xj1 + along_j * e1
-        out[3 * i + 2] -= t * xj2 + along_j * e2
+        s0 += t * xj0 + along_j * e0
+        s1 += t * xj1 + along_j * e1
+        s2 += t * xj2 + along_j * e2
         out[3 * j] -= t * xi0 + along_i * e0
         out[3 * j + 1] -= t * xi1 + along_i * e1
         out[3 * j + 2] -= t * xi2 + along_i * e2
+    out[3 * current] -= s0
+    out[3 * current + 1] -= s1
+    out[3 * current + 2] -= s2
 
 
 @njit(cache=True, parallel=True)
