@@ -396,8 +396,20 @@ class LennardJones:
             self._hessian_buffers = held
         out = tuple(buffer[:n_pairs] for buffer in held)
         write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
+        written = np.zeros(chunks, dtype=np.int64)
         write(slot_positions, slot_types, slots, n_types, table, CUTOFF_MODES[self.cutoff_mode],
-              offsets, out)  # fmt: skip
+              offsets, out, written)  # fmt: skip
+        if not np.array_equal(written, counts):
+            # The two passes disagree on a pair at the cutoff to the last bit (their
+            # loops may round r^2 differently): write again where the second pass says.
+            np.cumsum(written, out=offsets[1:])
+            n_pairs = int(offsets[-1])
+            if held[0].shape[0] < n_pairs:
+                held = tuple(np.empty((n_pairs,) + b.shape[1:], dtype=b.dtype) for b in held)
+                self._hessian_buffers = held
+            out = tuple(buffer[:n_pairs] for buffer in held)
+            write(slot_positions, slot_types, slots, n_types, table,
+                  CUTOFF_MODES[self.cutoff_mode], offsets, out, written)  # fmt: skip
         return PairHessian(n, *out)
 
     def describe(self) -> dict:
@@ -969,76 +981,97 @@ def _lj_frame_inside_threaded(positions, types, slots, n_types, table, frame, fr
         counts[chunk] = _lj_inside_count(chunk, frame, frame_types, slots, n_types, table)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _lj_inside_count(chunk, frame, frame_types, slots, n_types, table):
     """Number of one chunk's listed pairs closer than their cutoff."""
+    if n_types == 1:
+        return _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, True)
+    return _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, False)
+
+
+@njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
+def _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, single):
+    """The loop of ``_lj_inside_count``: per slot, the partners gathered as the force
+    loop does, then counted in a loop the compiler vectorises."""
     shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
+    most = _longest_row(starts, bounds[chunk], bounds[chunk + 1])
+    gx = np.empty(most)
+    gy = np.empty(most)
+    gz = np.empty(most)
+    params = np.zeros((6, most if not single else 0))
+    rc2 = table[RC2, 0]  # one atom type: a constant
     count = 0
     for p in range(bounds[chunk], bounds[chunk + 1]):
+        xi = frame[p, 0]
+        yi = frame[p, 1]
+        zi = frame[p, 2]
         row = frame_types[p] * n_types
         partners = neighbors[starts[p] : starts[p + 1]]
-        partner_codes = codes[starts[p] : starts[p + 1]]
+        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
+                         row, table, 0, single, gx, gy, gz, params)  # fmt: skip
+        inside = 0
         for k in range(partners.shape[0]):
-            q = np.uint32(partners[k])
-            code = partner_codes[k]
-            dx = frame[p, 0] - frame[q, 0] - shifts[code, 0]
-            dy = frame[p, 1] - frame[q, 1] - shifts[code, 1]
-            dz = frame[p, 2] - frame[q, 2] - shifts[code, 2]
-            count += dx * dx + dy * dy + dz * dz < table[RC2, row + frame_types[q]]
+            dx = xi - gx[k]
+            dy = yi - gy[k]
+            dz = zi - gz[k]
+            inside += dx * dx + dy * dy + dz * dz < (rc2 if single else params[RC2, k])
+        count += inside
     return count
 
 
 @njit(cache=True, error_model="numpy")
-def _lj_frame_curvatures(frame, frame_types, slots, n_types, table, mode, offsets, out):
+def _lj_frame_curvatures(frame, frame_types, slots, n_types, table, mode, offsets, out,
+                         written):  # fmt: skip
     """Write the pair blocks of every pair inside its cutoff, chunk by chunk.
 
     The second pass, over the frame ``_lj_frame_inside`` gathered: chunk c
     writes its pairs from ``offsets[c]`` to ``offsets[c + 1]`` of ``out``
     (``pair_i``, ``pair_j`` as atom indices, ``transverse``, ``radial``,
-    ``unit``; see ``_lj_curvature_terms``), in list order.
+    ``unit``; see ``_lj_curvature_terms``), in list order, and sets
+    ``written[c]`` to the number of its pairs it found inside (pairs past
+    ``offsets[c + 1]`` are not written: the caller compares).
     ``_lj_frame_curvatures_threaded`` runs the chunks on numba's threads;
     no two chunks write the same memory.
     """
     for chunk in range(slots[7].shape[0] - 1):
-        _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode,
-                                  offsets, out)  # fmt: skip
+        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
+                                                   table, mode, offsets, out)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _lj_frame_curvatures_threaded(frame, frame_types, slots, n_types, table, mode, offsets,
-                                  out):  # fmt: skip
+                                  out, written):  # fmt: skip
     """``_lj_frame_curvatures`` with one chunk per thread (same arguments, same result)."""
     for chunk in prange(slots[7].shape[0] - 1):
-        _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode,
-                                  offsets, out)  # fmt: skip
+        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
+                                                   table, mode, offsets, out)  # fmt: skip
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, offsets,
                               out):  # fmt: skip
-    """One chunk of ``_lj_frame_curvatures``, with the loop compiled per mode and type count."""
+    """One chunk of ``_lj_frame_curvatures``, with the loop compiled per mode and type count;
+    returns the number of the chunk's pairs inside."""
     args = (chunk, frame, frame_types, slots, n_types, table, offsets)
     single = n_types == 1
     if mode == 0:
         if single:
-            _lj_frame_curvature_loop(args, 0, True, out)
-        else:
-            _lj_frame_curvature_loop(args, 0, False, out)
-    elif mode == 1:
+            return _lj_frame_curvature_loop(args, 0, True, out)
+        return _lj_frame_curvature_loop(args, 0, False, out)
+    if mode == 1:
         if single:
-            _lj_frame_curvature_loop(args, 1, True, out)
-        else:
-            _lj_frame_curvature_loop(args, 1, False, out)
-    elif single:
-        _lj_frame_curvature_loop(args, 2, True, out)
-    else:
-        _lj_frame_curvature_loop(args, 2, False, out)
+            return _lj_frame_curvature_loop(args, 1, True, out)
+        return _lj_frame_curvature_loop(args, 1, False, out)
+    if single:
+        return _lj_frame_curvature_loop(args, 2, True, out)
+    return _lj_frame_curvature_loop(args, 2, False, out)
 
 
 @njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
 def _lj_frame_curvature_loop(args, mode, single, out):
     """The loop of ``_lj_frame_curvature_chunk``: per slot, gather the partners, compute
-    every pair's block in a loop the compiler vectorises, then keep those inside."""
+    every pair's block in a loop the compiler vectorises, then keep those inside; returns
+    how many were inside."""
     chunk, frame, frame_types, slots, n_types, table, offsets = args
     pair_i, pair_j, transverse, radial, unit = out
     order, shifts, starts, neighbors, codes, bounds = (
@@ -1099,3 +1132,4 @@ def _lj_frame_curvature_loop(args, mode, single, out):
                 unit[index, 1] = uy[k]
                 unit[index, 2] = uz[k]
             index += flags[k]
+    return index - offsets[chunk]

@@ -229,3 +229,42 @@ def test_lj_hessian_operator_survives_the_next_one(fcc_lattice):
     del view
     fourth = potential.hessian_operator(state, neighbors)  # now the buffers are free again
     np.testing.assert_array_equal(fourth.radial, kept[2])
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("miscount", [-3, 2])
+def test_lj_hessian_written_again_when_its_two_passes_disagree(miscount, threads, fcc_lattice,
+                                                               monkeypatch):  # fmt: skip
+    """The count pass and the write pass of the slot-frame Hessian are separate loops
+    that could round r^2 of a pair at the cutoff differently. Where the counts they
+    give differ (forced here by miscounting one chunk), the blocks are written again
+    where the write pass says: the same operator, no pair lost, none left unwritten."""
+    import potentials.lennard_jones as lj_module
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=8, perturbation=0.05)  # 2048 atoms: 2 chunks on 2 threads
+    potential = LennardJones(cutoff=2.5)
+    before = get_threads()
+    try:
+        set_threads(threads)
+        neighbors = md.NeighborList(potential.cutoff, skin=0.3)
+        neighbors.update(state)
+        expected = potential.hessian_operator(state, neighbors)
+        kept = [np.array(a) for a in (expected.pair_i, expected.pair_j, expected.radial,
+                                      expected.transverse, expected.unit)]  # fmt: skip
+        del expected
+        name = "_lj_frame_inside_threaded" if threads > 1 else "_lj_frame_inside"
+        honest = getattr(lj_module, name)
+
+        def miscounting(*args):
+            honest(*args)
+            args[-1][-1] += miscount  # the last chunk's count
+
+        monkeypatch.setattr(lj_module, name, miscounting)
+        potential._hessian_buffers = None  # fresh buffers: nothing left from the first call
+        operator = potential.hessian_operator(state, neighbors)
+    finally:
+        set_threads(before)
+    for got, want in zip((operator.pair_i, operator.pair_j, operator.radial,
+                          operator.transverse, operator.unit), kept, strict=True):  # fmt: skip
+        np.testing.assert_array_equal(got, want)
