@@ -381,10 +381,16 @@ def _truncated_cg(product, diagonal, rhs, eta):
     return solution, min(_MAX_CG_ITERATIONS, len(rhs)), True
 
 
+#: The sums below may be split over vector lanes and fused multiply-adds: one running
+#: sum waits for each addition (about 4 cycles per entry); lanes take a fraction of
+#: that. The order is fixed by the compiled code, so runs still repeat bit for bit.
+_SUM_MATH = {"reassoc", "contract", "nsz"}
+
+
 # Sums of products in one thread: numpy's dot and norm go to OpenBLAS, whose threads keep
 # spinning after each call and then compete with the threads of the force and Hessian
 # kernels (an implicit Euler step on 2 threads took 2.4 times as long).
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
 def _dot(a, b) -> float:
     """Return sum(a * b) of two 1-D arrays, in one thread."""
     total = 0.0
@@ -401,7 +407,7 @@ def _norm(a) -> float:
 # The vector work of one Newton or CG iteration in single passes: numpy would make
 # a temporary and a pass over memory per operation (about 1 ms per CG iteration
 # on 32000 atoms).
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
 def _incremental_terms(dx, target, masses, inverse_masses, forces, h2, grad):
     """Write grad = M (dx - target) - h2 F into ``grad``; return (the kinetic term
     1/2 (dx - target)^T M (dx - target), max |M^-1 grad|), the maximum NaN if any
@@ -428,7 +434,7 @@ def _add_scaled(diagonal, x, h2, product):
     return product
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
 def _cg_update(step, search, applied, preconditioner, solution, residual, z):
     """One CG update in place: solution += step search, residual -= step applied,
     z = preconditioner residual; return (|residual|^2, residual . z)."""
