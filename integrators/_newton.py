@@ -359,8 +359,7 @@ def _truncated_cg(product, diagonal, rhs, eta):
     preconditioned right-hand side at the first iteration), still a descent
     direction (Nocedal and Wright, Numerical Optimization, Algorithm 7.1).
     """
-    largest = np.max(np.abs(diagonal), initial=0.0) or 1.0
-    preconditioner = 1.0 / np.where(diagonal > 0.0, diagonal, largest)
+    preconditioner = _jacobi(diagonal)
     solution = np.zeros_like(rhs)
     residual = rhs.copy()
     target = eta * _norm(rhs)
@@ -432,6 +431,25 @@ def _add_scaled(diagonal, x, h2, product):
     for k in range(x.shape[0]):
         product[k] = diagonal[k] * x[k] + h2 * product[k]
     return product
+
+
+@njit(cache=True, error_model="numpy")
+def _jacobi(diagonal):
+    """Return 1 / diagonal, with the largest |entry| (1 if all are 0, NaN if one is NaN)
+    in place of the entries that are not positive."""
+    largest = 0.0
+    finite = True
+    for k in range(diagonal.shape[0]):
+        largest = max(largest, abs(diagonal[k]))
+        finite &= diagonal[k] == diagonal[k]
+    if not finite:
+        largest = np.nan
+    elif largest == 0.0:
+        largest = 1.0
+    out = np.empty_like(diagonal)
+    for k in range(diagonal.shape[0]):
+        out[k] = 1.0 / (diagonal[k] if diagonal[k] > 0.0 else largest)
+    return out
 
 
 @njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")

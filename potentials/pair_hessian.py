@@ -69,6 +69,7 @@ class PairHessian:
         # Pairs are split into one chunk per thread, each adding into its own buffer, the
         # buffers then summed in chunk order: the same result for a given thread count.
         self.n_chunks = chunk_count(len(pair_i), _MIN_CHUNK_PAIRS)
+        self._partial_sums = None  # per-thread sums of matvec, allocated at its first call
         self.diagonal_blocks = np.zeros((self.n_atoms, 6))
         if self.n_chunks == 1:
             _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)
@@ -106,16 +107,23 @@ class PairHessian:
         return np.minimum(self.transverse, self.radial) < 0.0
 
     def matvec(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Return H x for a (3N,) vector ``x``."""
+        """Return H x for a (3N,) vector ``x``.
+
+        The threads' partial sums go into buffers the operator keeps for its
+        next product (a Krylov solver applies it several times), so one
+        operator must not be applied from two threads at once.
+        """
         out = np.zeros(3 * self.n_atoms)
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.n_chunks == 1:
             _pair_matvec(self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
                          self.diagonal_blocks, x, out)  # fmt: skip
         else:
+            if self._partial_sums is None:
+                self._partial_sums = np.empty((self.n_chunks, 3 * self.n_atoms))
             _pair_matvec_threaded(self.pair_i, self.pair_j, self.transverse, self.radial,
-                                  self.unit, self.diagonal_blocks, x,
-                                  np.empty((self.n_chunks, 3 * self.n_atoms)), out)  # fmt: skip
+                                  self.unit, self.diagonal_blocks, x, self._partial_sums,
+                                  out)  # fmt: skip
         return out
 
     def diagonal(self) -> NDArray[np.float64]:
@@ -167,7 +175,10 @@ class HessianSum:
 
     def diagonal(self) -> NDArray[np.float64]:
         """Return the (3N,) diagonal of H."""
-        return np.sum([term.diagonal() for term in self.terms], axis=0)
+        total = self.terms[0].diagonal()
+        for term in self.terms[1:]:
+            total = total + term.diagonal()
+        return total
 
     def min_eigenvalue(self) -> float:
         """Return the smallest pair-block eigenvalue of the pair terms (0 without any)."""
