@@ -261,7 +261,6 @@ def test_lj_hessian_written_again_when_its_two_passes_disagree(miscount, threads
             args[-1][-1] += miscount  # the last chunk's count
 
         monkeypatch.setattr(lj_module, name, miscounting)
-        potential._hessian_buffers = None  # fresh buffers: nothing left from the first call
         operator = potential.hessian_operator(state, neighbors)
     finally:
         set_threads(before)
