@@ -24,6 +24,9 @@ from md.box import cell_matrix, min_image, periodic_tilt
 _CODE_SHIFT = np.uint32(27)
 _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
+#: Slots the cell search copies at once (see ``_gather_run``): the coordinate rows it
+#: reads need this many readable entries past the last slot.
+GATHER_BLOCK = 8
 
 
 @njit(cache=True, error_model="numpy")
@@ -173,7 +176,8 @@ def _frame_pairs(
 
     The serial driver; ``_frame_pairs_threaded`` runs the chunks on
     numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
-    (``wrapped`` is (3, N), as ``_bin_atoms`` writes it), in cell
+    (``wrapped`` is (3, N + ``GATHER_BLOCK``), as ``_bin_atoms`` writes it,
+    with finite padding past the last slot), in cell
     ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
     slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
     region ``neighbors[c * capacity:(c + 1) * capacity]`` (and ``codes``), so
@@ -255,13 +259,13 @@ def _frame_pairs_chunk(
     ghost = reach if periodic[2] else 0  # image cells past each z end
     n_z = nz + 2 * ghost
     n_other = reach * (2 * reach + 1) + reach  # forward columns besides the own one
-    size = n_other * (most_column + 2 * ghost * most_cell)
+    size = n_other * (most_column + 2 * ghost * most_cell) + GATHER_BLOCK
     cx = np.empty(size)
     cy = np.empty(size)
     cz = np.empty(size)
     c_packed = np.empty(size, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
-    own_size = most_column + ghost * most_cell
+    own_size = most_column + ghost * most_cell + GATHER_BLOCK
     own_x = np.empty(own_size)
     own_y = np.empty(own_size)
     own_z = np.empty(own_size)
@@ -334,26 +338,39 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_star
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     kx0 = column // ny
     ky0 = column % ny
+    n_other = reach * (2 * reach + 1) + reach
+    # The forward columns: first cell, shift and code from their wraps along x and y.
+    bases = np.empty(n_other, dtype=np.int64)
+    shift_x = np.empty(n_other)
+    shift_y = np.empty(n_other)
+    code_xy = np.empty(n_other, dtype=np.int64)
+    n_columns = 0
+    for ox in range(0, reach + 1):
+        kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
+        if kx < 0:
+            continue
+        for oy in range(-reach, reach + 1):
+            if ox == 0 and oy <= 0:
+                continue
+            ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
+            if ky < 0:
+                continue
+            bases[n_columns] = (kx * ny + ky) * nz
+            shift_x[n_columns] = wx * box[0] + wy * xy
+            shift_y[n_columns] = wy * box[1]
+            code_xy[n_columns] = (wx + 1) * 9 + (wy + 1) * 3 + 1
+            n_columns += 1
     m = 0
     for zc in range(nz + 2 * ghost):
         z_start[zc] = m
         kz, wz = _neighbor_cell(zc - ghost, 0, nz, periodic[2])
-        for ox in range(0, reach + 1):
-            kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
-            if kx < 0:
-                continue
-            for oy in range(-reach, reach + 1):
-                if ox == 0 and oy <= 0:
-                    continue
-                ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
-                if ky < 0:
-                    continue
-                cell = (kx * ny + ky) * nz + kz
-                m = _gather_run(
-                    cell_starts[cell], cell_starts[cell + 1], wx * box[0] + wy * xy + wz * xz,
-                    wy * box[1] + wz * yz, wz * box[2], (wx + 1) * 9 + (wy + 1) * 3 + wz + 1,
-                    xs, ys, zs, cx, cy, cz, c_packed, m,
-                )  # fmt: skip
+        for c in range(n_columns):
+            cell = bases[c] + kz
+            m = _gather_run(
+                cell_starts[cell], cell_starts[cell + 1], shift_x[c] + wz * xz,
+                shift_y[c] + wz * yz, wz * box[2], code_xy[c] + wz, xs, ys, zs, cx, cy, cz,
+                c_packed, m,
+            )  # fmt: skip
     z_start[nz + 2 * ghost] = m
     m = 0
     for zc in range(nz + ghost):
@@ -372,22 +389,31 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_packed,
     """Append slots first..last-1, shifted by s, to the candidates at m; return the new end.
 
     ``c_packed`` gets each slot with the image code in its top bits (``MAX_SLOTS``).
+    Copies whole blocks of ``GATHER_BLOCK`` slots, so a run (a cell: a few
+    slots) takes one block of fixed length, with no loop exit to mispredict;
+    what lies past ``last`` is copied too and overwritten by the next run or
+    never read. So ``xs, ys, zs`` need ``GATHER_BLOCK`` readable entries past
+    the last slot, and the candidate arrays as many past their last candidate.
     """
     n = last - first
-    fx = xs[first:last]
-    fy = ys[first:last]
-    fz = zs[first:last]
-    tx = cx[m : m + n]
-    ty = cy[m : m + n]
-    tz = cz[m : m + n]
-    t_packed = c_packed[m : m + n]
+    fx = xs[first:]
+    fy = ys[first:]
+    fz = zs[first:]
+    tx = cx[m:]
+    ty = cy[m:]
+    tz = cz[m:]
+    t_packed = c_packed[m:]
     tagged = np.uint32(first) | (np.uint32(code) << _CODE_SHIFT)
-    for k in range(n):
-        tx[k] = fx[k] + sx
-        ty[k] = fy[k] + sy
-        tz[k] = fz[k] + sz
-        t_packed[k] = tagged + np.uint32(k)
-    return m + n
+    done = 0
+    while True:
+        for k in range(GATHER_BLOCK):
+            tx[done + k] = fx[done + k] + sx
+            ty[done + k] = fy[done + k] + sy
+            tz[done + k] = fz[done + k] + sz
+            t_packed[done + k] = tagged + np.uint32(done + k)
+        done += GATHER_BLOCK
+        if done >= n:
+            return m + n
 
 
 @njit(cache=True, inline="always", error_model="numpy")

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._cell_kernels import (
+    GATHER_BLOCK,
     MAX_SLOTS,
     _atom_space_list,
     _bin_atoms,
@@ -430,7 +431,9 @@ class NeighborList:
         cell_of = np.empty(n, dtype=np.int64)
         cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
         order = np.empty(n, dtype=np.int64)
-        wrapped = np.empty((3, n))  # by coordinate: the search reads contiguous runs
+        # By coordinate: the search reads contiguous runs, whole blocks past the last slot.
+        wrapped = np.empty((3, n + GATHER_BLOCK))
+        wrapped[:, n:] = 0.0
         images = np.empty((n, 3), dtype=np.int32)
         _bin_atoms(
             positions, origin, width, n_cells, state.pbc, state.box, self.tilt,
