@@ -159,13 +159,16 @@ class IncrementalSolver:
     def _solve(self, state, forcefield, h, name, x0):
         stats = self.statistics
         step = state.step + 1
-        masses = np.repeat(state.masses, 3)
-        inverse_masses = 1.0 / masses
-        target = h * state.velocities.ravel()
+        masses, inverse_masses = self._mass_vectors(state.masses)
         h2 = h * h
         forces0 = forcefield.compute(state, virial=False).forces.ravel()
-        largest_acceleration = np.max(np.abs(forces0 * inverse_masses), initial=0.0)
-        scale = max(largest_acceleration, np.max(np.abs(target), initial=0.0) / h2)
+        # In one pass: target = h v0, the explicit prediction (below) and the scales.
+        target = np.empty_like(forces0)
+        predicted = np.empty_like(forces0)
+        largest_acceleration, largest_target = _start_terms(
+            state.velocities.ravel(), forces0, inverse_masses, h, h2, target, predicted
+        )
+        scale = max(largest_acceleration, largest_target / h2)
         if not (np.isfinite(scale) and scale > 0.0):
             scale = 1.0
         use_newton = all(isinstance(p, SupportsHessian) for p in forcefield.potentials)
@@ -187,7 +190,7 @@ class IncrementalSolver:
         # Start from the explicit prediction x0 + h v0 + h^2 M^-1 F(x0) when it
         # is good (smooth forces, small h); for stiff systems it overshoots, so
         # fall back to x0 + h v0, from which Phi descends to the solution.
-        dx = target + h2 * inverse_masses * forces0
+        dx = predicted
         try:
             phi, grad, residual, noise = evaluate(dx)
         except NonFiniteError:
@@ -199,6 +202,9 @@ class IncrementalSolver:
         globalise = False
         hessian = None
         previous = np.inf
+        # The preconditioner of the last linear system, for a chord step's (same
+        # matrix); local to this solve, so no operator outlives it here.
+        preconditioners = {}
         while residual > self.tol and iterations < self.max_iter:
             iterations += 1
             stats["newton_iterations"] += 1
@@ -210,7 +216,8 @@ class IncrementalSolver:
                 hessian = None
             previous = residual
             direction, hessian = self._direction(
-                state, forcefield, h2, masses, grad, residual, use_newton, globalise, hessian
+                state, forcefield, h2, masses, grad, residual, use_newton, globalise, hessian,
+                preconditioners,
             )
             accepted = self._line_search(evaluate, dx, direction, phi, grad, noise)
             # A shortened step means the local model is poor: the next direction
@@ -242,14 +249,27 @@ class IncrementalSolver:
         stats["steps"] += 1
         return dx.reshape(x0.shape)
 
+    def _mass_vectors(self, atom_masses):
+        """Return (masses, 1 / masses), each repeated per coordinate (3N,), kept while the
+        atoms' masses stay the same."""
+        held = getattr(self, "_masses", None)
+        if held is None or not np.array_equal(held[0], atom_masses):
+            masses = np.repeat(atom_masses, 3)
+            held = (atom_masses.copy(), masses, 1.0 / masses)
+            self._masses = held
+        return held[1], held[2]
+
     def _direction(
-        self, state, forcefield, h2, masses, grad, residual, use_newton, globalise, exact
-    ):
+        self, state, forcefield, h2, masses, grad, residual, use_newton, globalise, exact,
+        preconditioners,
+    ):  # fmt: skip
         """Return a descent direction of Phi and the Hessian operator to use again (or None).
 
         Newton's direction (exact, clamped or shifted Hessian) or -M^-1 grad.
         ``exact``: the Hessian operator of an earlier iteration to use again, or None
-        to evaluate it at the current positions.
+        to evaluate it at the current positions. ``preconditioners`` maps
+        (operator, shift) to the Jacobi preconditioner of M (1 + shift) + h2 H, which
+        a chord step finds there.
         With ``globalise`` (the last step was shortened) and some pair's negative
         curvature able to outweigh the masses (2 h^2 lambda_min < -m_min: a
         compressed stiff bond or a large step), where the Newton direction
@@ -287,21 +307,26 @@ class IncrementalSolver:
                 operator, projected = operator.definite(h2, atom_masses), True
                 stats["projections"] += 1
             shift = 0.0 if attempt < 2 else _SHIFTS[attempt - 2]
-            if assembled is not operator:
+            if solver == "direct" and assembled is not operator:
                 assembled = operator
-                hessian = operator.tocsr() if solver == "direct" else None
-                hessian_diagonal = operator.diagonal()
+                hessian = operator.tocsr()
             # The system (1 + shift) M + h^2 H; CG only needs its products.
             diagonal = (1.0 + shift) * masses
             if solver == "direct":
                 matrix = sp.diags(diagonal) + h2 * hessian
                 direction, n_linear, positive = _direct_solve(matrix, -grad)
             else:
+                key = (id(operator), shift, h2)
+                if preconditioners.get("key") != key:
+                    preconditioners.clear()
+                    preconditioners["key"] = key
+                    preconditioners["operator"] = operator  # keeps id(operator) unique
+                    preconditioners["jacobi"] = _jacobi(diagonal, h2, operator.diagonal())
                 direction, n_linear, positive = _truncated_cg(
                     lambda x, diagonal=diagonal, op=operator: _add_scaled(
                         diagonal, x, h2, op.matvec(x)
                     ),
-                    diagonal + h2 * hessian_diagonal,
+                    preconditioners["jacobi"],
                     -grad,
                     eta,
                 )
@@ -310,7 +335,7 @@ class IncrementalSolver:
                     # descent direction (Newton-CG), but the Hessian is indefinite.
                     stats["fallbacks"] += 1
             stats["linear_iterations"] += n_linear
-            if np.all(np.isfinite(direction)) and _dot(grad, direction) < 0.0:
+            if _finite_dot(grad, direction) < 0.0:  # NaN if any entry is not finite
                 # Only CG uses the operator again: LU would factorise it afresh anyway.
                 return direction, (exact if solver == "cg" else None)
         return -grad / masses, None
@@ -348,24 +373,23 @@ def _direct_solve(matrix, rhs):
     return solution, 1, True
 
 
-def _truncated_cg(product, diagonal, rhs, eta):
+def _truncated_cg(product, preconditioner, rhs, eta):
     """Jacobi-preconditioned CG for ``A x = rhs``, stopped at negative curvature.
 
-    ``product(x)`` returns ``A x``; ``diagonal`` is A's diagonal (the
-    preconditioner; non-positive entries are replaced by the largest one).
+    ``product(x)`` returns ``A x``; ``preconditioner`` is 1 / A's diagonal
+    (``_jacobi``).
     Returns ``(x, iterations, positive)``: ``x`` solves to a relative residual
     ``eta``; ``positive`` is False when a search direction of non-positive
     curvature was met, in which case ``x`` is the last iterate (or the
     preconditioned right-hand side at the first iteration), still a descent
     direction (Nocedal and Wright, Numerical Optimization, Algorithm 7.1).
     """
-    preconditioner = _jacobi(diagonal)
-    solution = np.zeros_like(rhs)
-    residual = rhs.copy()
-    target = eta * _norm(rhs)
-    z = preconditioner * residual
-    search = z.copy()
-    rz = _dot(residual, z)
+    solution = np.empty_like(rhs)
+    residual = np.empty_like(rhs)
+    z = np.empty_like(rhs)
+    search = np.empty_like(rhs)
+    squared, rz = _cg_start(rhs, preconditioner, solution, residual, z, search)
+    target = eta * np.sqrt(squared)
     for iteration in range(1, min(_MAX_CG_ITERATIONS, len(rhs)) + 1):
         applied = product(search)
         curvature = _dot(search, applied)
@@ -434,22 +458,74 @@ def _add_scaled(diagonal, x, h2, product):
 
 
 @njit(cache=True, error_model="numpy")
-def _jacobi(diagonal):
-    """Return 1 / diagonal, with the largest |entry| (1 if all are 0, NaN if one is NaN)
-    in place of the entries that are not positive."""
+def _jacobi(diagonal, h2, hessian_diagonal):
+    """Return 1 / d for d = diagonal + h2 hessian_diagonal, with the largest |d| (1 if all
+    are 0, NaN if one is NaN) in place of the entries that are not positive."""
+    n = diagonal.shape[0]
+    out = np.empty(n)
     largest = 0.0
     finite = True
-    for k in range(diagonal.shape[0]):
-        largest = max(largest, abs(diagonal[k]))
-        finite &= diagonal[k] == diagonal[k]
+    for k in range(n):
+        d = diagonal[k] + h2 * hessian_diagonal[k]
+        out[k] = d
+        largest = max(largest, abs(d))
+        finite &= d == d
     if not finite:
         largest = np.nan
     elif largest == 0.0:
         largest = 1.0
-    out = np.empty_like(diagonal)
-    for k in range(diagonal.shape[0]):
-        out[k] = 1.0 / (diagonal[k] if diagonal[k] > 0.0 else largest)
+    for k in range(n):
+        out[k] = 1.0 / (out[k] if out[k] > 0.0 else largest)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def _start_terms(velocities, forces, inverse_masses, h, h2, target, predicted):
+    """Write target = h v and the explicit prediction h v + h2 M^-1 F; return
+    (max |M^-1 F|, max |target|), NaN where an entry is NaN."""
+    largest_acceleration = 0.0
+    largest_target = 0.0
+    finite = True
+    for k in range(velocities.shape[0]):
+        t = h * velocities[k]
+        a = inverse_masses[k] * forces[k]
+        target[k] = t
+        predicted[k] = t + h2 * a
+        largest_acceleration = max(abs(a), largest_acceleration)
+        largest_target = max(abs(t), largest_target)
+        finite &= (a == a) & (t == t)
+    if not finite:
+        return np.nan, np.nan
+    return largest_acceleration, largest_target
+
+
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
+def _finite_dot(a, b) -> float:
+    """Return sum(a * b), or NaN if any entry of ``b`` is not finite."""
+    total = 0.0
+    finite = True
+    for k in range(a.shape[0]):
+        total += a[k] * b[k]
+        finite &= abs(b[k]) < np.inf
+    return total if finite else np.nan
+
+
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
+def _cg_start(rhs, preconditioner, solution, residual, z, search):
+    """CG's start from x = 0: solution = 0, residual = rhs, z = search = preconditioner
+    rhs; return (|rhs|^2, rhs . z)."""
+    squared = 0.0
+    rz = 0.0
+    for k in range(rhs.shape[0]):
+        r = rhs[k]
+        zk = preconditioner[k] * r
+        solution[k] = 0.0
+        residual[k] = r
+        z[k] = zk
+        search[k] = zk
+        squared += r * r
+        rz += r * zk
+    return squared, rz
 
 
 @njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
