@@ -95,6 +95,25 @@ def test_sparse_cluster_across_the_boundary_of_a_huge_box(rng):
     assert_list_is_exact(nl, state)
 
 
+@pytest.mark.parametrize("pbc", [True, False])
+def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
+    """The search copies each cell's slots in blocks of GATHER_BLOCK: cells holding
+    several blocks' worth (a dense random gas), partly filled blocks and empty cells all
+    give the exact list, in a periodic and an open box."""
+    from md._cell_kernels import GATHER_BLOCK
+
+    state = md.State(positions=rng.uniform(0.0, 6.0, size=(1500, 3)), box=6.0, pbc=pbc)
+    state.positions[:100] = rng.uniform(0.0, 0.5, size=(100, 3))  # one very full corner
+    nl = NeighborList(1.0, 0.2)
+    nl.update(state)
+    assert nl.used_cells
+    # Cells are at least (cutoff + skin) / 2 = 0.6 wide, so the corner's 0.5-wide cube
+    # meets at most 8 of them: one holds 13 or more atoms, over one block. With 1.4
+    # atoms per cell elsewhere, many cells hold less than a block and some none.
+    assert 100 > 8 * GATHER_BLOCK
+    assert_list_is_exact(nl, state)
+
+
 @pytest.mark.parametrize("n_atoms", [0, 1, 2])
 def test_tiny_systems(n_atoms):
     state = md.State(positions=[[0.1, 0.2, 0.3], [0.9, 0.2, 0.3]][:n_atoms] or np.zeros((0, 3)))
