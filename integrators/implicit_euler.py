@@ -13,7 +13,14 @@ step to the midpoint followed by a forward Euler half step, so it takes
 
 from __future__ import annotations
 
-from integrators._newton import IncrementalSolver, check_solver_options, new_statistics
+import numpy as np
+
+from integrators._newton import (
+    PREDICTOR_HISTORY,
+    IncrementalSolver,
+    check_solver_options,
+    new_statistics,
+)
 from integrators.base import IntegratorBase, check_dt
 
 
@@ -36,10 +43,46 @@ class _ImplicitBase(IntegratorBase):
         )
 
     def reset(self) -> None:
-        """Nothing to forget: each step starts from the explicit prediction.
+        """Forget the accelerations of past steps that the predictor extrapolates.
 
-        The cumulative ``statistics`` are kept.
+        The next step starts from the explicit prediction. The cumulative
+        ``statistics`` are kept.
         """
+        self._solver.history = []
+
+    def get_state(self) -> dict:
+        """Return the private state for a checkpoint.
+
+        The start accelerations M^-1 F of the last steps, which the predictor
+        extrapolates (``(K, 3N)``, oldest first, K <= 2; None before the first
+        step or after :meth:`reset`), and the statistics.
+        """
+        history = self._solver.history
+        return {
+            "start_accelerations": np.array(history) if history else None,
+            "statistics": dict(self.statistics),
+        }
+
+    def set_state(self, saved: dict) -> None:
+        """Restore :meth:`get_state`'s result.
+
+        The next step then predicts as the saved run would have, so a resumed
+        run repeats its iterations exactly.
+        """
+        history = saved.get("start_accelerations")
+        if history is None:
+            self._solver.history = []
+        else:
+            history = np.array(history, dtype=np.float64)
+            if history.ndim != 2 or not 1 <= history.shape[0] <= PREDICTOR_HISTORY:
+                raise ValueError(
+                    f"start_accelerations must have shape (K, 3N) with 1 <= K <= "
+                    f"{PREDICTOR_HISTORY}, got {history.shape}"
+                )
+            if not np.all(np.isfinite(history)):
+                raise ValueError("start_accelerations must be finite")
+            self._solver.history = [np.ascontiguousarray(row) for row in history]
+        self.statistics.update({k: int(v) for k, v in saved.get("statistics", {}).items()})
 
     def describe(self) -> dict:
         return {"type": self._type, "dt": self.dt, "tol": self.tol, "max_iter": self.max_iter}
@@ -174,7 +217,7 @@ class ImplicitMidpoint(_ImplicitBase):
         """Advance ``state`` by ``dt`` in place."""
         half = 0.5 * self.dt
         x0 = state.positions.copy()
-        displacement = self._solver.solve(state, forcefield, half, self._label)
+        displacement = self._solver.solve(state, forcefield, half, self._label, reach=0.5)
         state.positions[:] = x0 + 2.0 * displacement
         state.velocities[:] = 2.0 * displacement / half - state.velocities
         state.step += 1

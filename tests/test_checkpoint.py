@@ -31,6 +31,9 @@ INTEGRATORS = {
     "rkf45": 'type = "rkf45"\ndt = 0.02\ntol = 1e-5',
     "pefrl": 'type = "pefrl"\ndt = 0.005',
     "langevin": 'type = "langevin"\ndt = 0.005\ntemperature = 1.0\nfriction = 2.0',
+    # their predictor extrapolates the accelerations of the last steps (saved with them)
+    "implicit_euler": 'type = "implicit_euler"\ndt = 0.005\ntol = 1e-8',
+    "implicit_midpoint": 'type = "implicit_midpoint"\ndt = 0.005\ntol = 1e-8',
 }
 
 
