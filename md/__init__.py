@@ -39,6 +39,9 @@ if sys.argv and os.path.basename(sys.argv[0]) == "md":  # the `md` command (cons
     watch()  # a Ctrl-C that numba's compilation swallows is still seen (md.interrupts)
 
 from md._kernel_cache import kernel_cache  # noqa: E402 - after the start-up hook above
+from md._memory import keep_freed_memory  # noqa: E402
+
+keep_freed_memory()  # freed temporaries reused, not page-faulted in afresh (md._memory)
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():

@@ -25,6 +25,7 @@ LAYERS = {
     0: [
         "md._version",
         "md._kernel_cache",
+        "md._memory",
         "md.state",
         "md.box",
         "md.units",
