@@ -116,14 +116,13 @@ class PairHessian:
         out = np.zeros(3 * self.n_atoms)
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.n_chunks == 1:
-            _pair_matvec(self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
-                         self.diagonal_blocks, x, out)  # fmt: skip
+            _pair_matvec(self.pair_i, self.pair_j, self.transverse, self.radial, self.unit, x,
+                         out)  # fmt: skip
         else:
             if self._partial_sums is None:
                 self._partial_sums = np.empty((self.n_chunks, 3 * self.n_atoms))
             _pair_matvec_threaded(self.pair_i, self.pair_j, self.transverse, self.radial,
-                                  self.unit, self.diagonal_blocks, x, self._partial_sums,
-                                  out)  # fmt: skip
+                                  self.unit, x, self._partial_sums, out)  # fmt: skip
         return out
 
     def diagonal(self) -> NDArray[np.float64]:
@@ -297,17 +296,14 @@ def _add_block(diagonal, atom, b0, b1, b2, b3, b4, b5):
 
 
 @njit(cache=True)
-def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
-    """Add H x to ``out`` (3N,): the diagonal blocks, then -K x_j to row i and -K x_i to row j.
+def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
+    """Add H x to ``out`` (3N,): K (x_i - x_j) to row i and its negative to row j.
 
-    K y = t y + (r - t) (e . y) e, so no block is formed.
+    K d = t d + (r - t) (e . d) e, so no block is formed, and the diagonal
+    blocks (the sums of K over each atom's pairs) need not be read: the
+    difference form has one product with K per pair where the split form
+    (K x_i and K x_j, plus the diagonal blocks) has two.
     """
-    for i in range(diagonal.shape[0]):
-        d = diagonal[i]
-        x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-        out[3 * i] += d[0] * x0 + d[5] * x1 + d[4] * x2
-        out[3 * i + 1] += d[5] * x0 + d[1] * x1 + d[3] * x2
-        out[3 * i + 2] += d[4] * x0 + d[3] * x1 + d[2] * x2
     n_pairs = pair_i.shape[0]
     if n_pairs == 0:
         return
@@ -315,32 +311,36 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, diagonal, x, out):
     # Hessian): row i's terms are summed in registers over the run and written once,
     # instead of a read-modify-write of out[i] per pair that the next pair waits for.
     current = pair_i[0]
+    xi0, xi1, xi2 = x[3 * current], x[3 * current + 1], x[3 * current + 2]
     s0 = s1 = s2 = 0.0
     for p in range(n_pairs):
         i = pair_i[p]
         if i != current:
-            out[3 * current] -= s0
-            out[3 * current + 1] -= s1
-            out[3 * current + 2] -= s2
+            out[3 * current] += s0
+            out[3 * current + 1] += s1
+            out[3 * current + 2] += s2
             s0 = s1 = s2 = 0.0
             current = i
+            xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
         j = pair_j[p]
+        d0 = xi0 - x[3 * j]
+        d1 = xi1 - x[3 * j + 1]
+        d2 = xi2 - x[3 * j + 2]
         t = transverse[p]
-        c = radial[p] - t
         e0, e1, e2 = unit[p, 0], unit[p, 1], unit[p, 2]
-        xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-        xj0, xj1, xj2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
-        along_j = c * (e0 * xj0 + e1 * xj1 + e2 * xj2)
-        along_i = c * (e0 * xi0 + e1 * xi1 + e2 * xi2)
-        s0 += t * xj0 + along_j * e0
-        s1 += t * xj1 + along_j * e1
-        s2 += t * xj2 + along_j * e2
-        out[3 * j] -= t * xi0 + along_i * e0
-        out[3 * j + 1] -= t * xi1 + along_i * e1
-        out[3 * j + 2] -= t * xi2 + along_i * e2
-    out[3 * current] -= s0
-    out[3 * current + 1] -= s1
-    out[3 * current + 2] -= s2
+        along = (radial[p] - t) * (e0 * d0 + e1 * d1 + e2 * d2)
+        k0 = t * d0 + along * e0
+        k1 = t * d1 + along * e1
+        k2 = t * d2 + along * e2
+        s0 += k0
+        s1 += k1
+        s2 += k2
+        out[3 * j] -= k0
+        out[3 * j + 1] -= k1
+        out[3 * j + 2] -= k2
+    out[3 * current] += s0
+    out[3 * current + 1] += s1
+    out[3 * current + 2] += s2
 
 
 @njit(cache=True, parallel=True)
@@ -365,30 +365,23 @@ def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, buffers,
 
 
 @njit(cache=True, parallel=True)
-def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, diagonal, x, buffers,
-                          out):  # fmt: skip
+def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, x, buffers, out):
     """``_pair_matvec`` on numba's threads: chunk c of the pairs into ``buffers[c]`` (C, 3N),
-    then per atom the diagonal block's product and the buffers, in chunk order."""
+    then the buffers summed per entry, in chunk order."""
     n_chunks = buffers.shape[0]
     n_pairs = pair_i.shape[0]
-    n = diagonal.shape[0]
-    empty = np.zeros((0, 6))
+    size = x.shape[0]
     for c in prange(n_chunks):
         buffers[c, :] = 0.0
         first, last = c * n_pairs // n_chunks, (c + 1) * n_pairs // n_chunks
         _pair_matvec(pair_i[first:last], pair_j[first:last], transverse[first:last],
-                     radial[first:last], unit[first:last], empty, x, buffers[c])  # fmt: skip
+                     radial[first:last], unit[first:last], x, buffers[c])  # fmt: skip
     for c in prange(n_chunks):
-        for i in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            d = diagonal[i]
-            x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-            sums = (d[0] * x0 + d[5] * x1 + d[4] * x2, d[5] * x0 + d[1] * x1 + d[3] * x2,
-                    d[4] * x0 + d[3] * x1 + d[2] * x2)  # fmt: skip
-            for a in range(3):
-                total = sums[a]
-                for other in range(n_chunks):
-                    total += buffers[other, 3 * i + a]
-                out[3 * i + a] += total
+        for k in range(c * size // n_chunks, (c + 1) * size // n_chunks):
+            total = buffers[0, k]
+            for other in range(1, n_chunks):
+                total += buffers[other, k]
+            out[k] += total
 
 
 @njit(cache=True)
