@@ -240,15 +240,15 @@ def _frame_pairs_chunk(
 
     The slots of one (x, y) column of cells are consecutive and in z order.
     Per column, the slots of its forward neighbour columns (``reach`` cells
-    around along y, and ahead along x) are copied, shifted by their image,
-    into one contiguous candidate array ordered by z cell and then column,
-    with ``reach`` image cells past each end of a periodic z axis
-    (``_gather_column``); so are the own column's, with the image cells
-    above the top. A slot in z cell cz then tests one contiguous range of
-    candidates, z cells cz - reach to cz + reach of the other columns, and
-    one of its own column, the slots after it up to cz + reach. Each range
-    is tested in a loop the compiler vectorises and its hits kept with a
-    branch-free compaction (``_keep``). A neighbour cell across the edge of
+    around along y, and ahead along x) and of the column itself are copied,
+    shifted by their image, into one contiguous candidate array ordered by z
+    cell and then column, with ``reach`` image cells past each end of a
+    periodic z axis (the own column's only above the top: ``_gather_column``).
+    A slot in z cell cz then tests one contiguous range of candidates, z
+    cells cz - reach to cz + reach, in a loop the compiler vectorises
+    (``_test``), which also drops the own column's slots up to and including
+    its own (unshifted: the earlier slots list those pairs), and keeps the
+    hits with a branch-free compaction (``_keep``). A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
@@ -258,21 +258,16 @@ def _frame_pairs_chunk(
     base = chunk * capacity
     ghost = reach if periodic[2] else 0  # image cells past each z end
     n_z = nz + 2 * ghost
-    n_other = reach * (2 * reach + 1) + reach  # forward columns besides the own one
-    size = n_other * (most_column + 2 * ghost * most_cell) + GATHER_BLOCK
+    n_columns = reach * (2 * reach + 1) + reach + 1  # forward columns and the own one
+    size = n_columns * (most_column + 2 * ghost * most_cell) + GATHER_BLOCK
     cx = np.empty(size)
     cy = np.empty(size)
     cz = np.empty(size)
     c_packed = np.empty(size, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
-    own_size = most_column + ghost * most_cell + GATHER_BLOCK
-    own_x = np.empty(own_size)
-    own_y = np.empty(own_size)
-    own_z = np.empty(own_size)
-    own_packed = np.empty(own_size, dtype=np.uint32)
-    own_start = np.empty(nz + ghost + 1, dtype=np.int64)
-    inside = np.empty(max(size, own_size), dtype=np.uint8)
-    kept = np.empty(max(size, own_size), dtype=np.uint32)
+    inside = np.empty(size, dtype=np.uint8)
+    kept = np.empty(size, dtype=np.uint32)
+    unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     count = 0
     p = bounds[chunk]
@@ -283,27 +278,20 @@ def _frame_pairs_chunk(
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
             column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs, cx, cy,
-            cz, c_packed, z_start, own_x, own_y, own_z, own_packed, own_start,
+            cz, c_packed, z_start,
         )  # fmt: skip
+        # Packed values of the own column's unshifted slots up to slot i: the own
+        # cell's earlier slots and the cells below list those pairs.
+        earlier = unshifted | np.uint32(column_first)
         for i in range(p, stop):
             kz = slot_cell[i] - column * nz
             low = max(kz - reach + ghost, 0)
             high = min(kz + reach + ghost, n_z - 1)
-            top = min(kz + reach, nz + ghost - 1)
-            xi = xs[i]
-            yi = ys[i]
-            zi = zs[i]
-            # the own column after slot i (the own cell's earlier slots list it)
-            skip = i - column_first + 1
-            own_end = own_start[top + 1]
-            found = _test(xi, yi, zi, r2_max, own_x[skip:own_end], own_y[skip:own_end],
-                          own_z[skip:own_end], inside)  # fmt: skip
-            count += _keep(inside[:found], own_packed[skip:], kept, base, count, capacity,
-                           neighbors, codes)  # fmt: skip
             first = z_start[low]
             last = z_start[high + 1]
-            found = _test(xi, yi, zi, r2_max, cx[first:last], cy[first:last], cz[first:last],
-                          inside)  # fmt: skip
+            found = _test(xs[i], ys[i], zs[i], r2_max, cx[first:last], cy[first:last],
+                          cz[first:last], c_packed[first:last], earlier,
+                          unshifted | np.uint32(i), inside)  # fmt: skip
             count += _keep(inside[:found], c_packed[first:], kept, base, count, capacity,
                            neighbors, codes)  # fmt: skip
             starts[i + 1] = count
@@ -312,39 +300,46 @@ def _frame_pairs_chunk(
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _test(xi, yi, zi, r2_max, tx, ty, tz, inside):
-    """Flag in ``inside`` the candidates closer than sqrt(r2_max); return their count."""
+def _test(xi, yi, zi, r2_max, tx, ty, tz, packed, skip_low, skip_high, inside):
+    """Flag in ``inside`` the candidates closer than sqrt(r2_max) whose packed slot and
+    code is not within [skip_low, skip_high]; return how many candidates there are.
+
+    The range test is one unsigned comparison: value - skip_low wraps around
+    below skip_low.
+    """
     n = tx.shape[0]
+    span = np.uint32(skip_high - skip_low)
     for k in range(n):
         dx = xi - tx[k]
         dy = yi - ty[k]
         dz = zi - tz[k]
-        inside[k] = dx * dx + dy * dy + dz * dz < r2_max
+        outside = np.uint32(packed[k] - skip_low) > span
+        inside[k] = np.uint8(dx * dx + dy * dy + dz * dz < r2_max) & np.uint8(outside)
     return n
 
 
 @njit(cache=True, error_model="numpy")
 def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs,
-                   cx, cy, cz, c_packed, z_start, own_x, own_y, own_z, own_packed,
-                   own_start):  # fmt: skip
+                   cx, cy, cz, c_packed, z_start):  # fmt: skip
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
-    The forward neighbour columns go to ``cx, cy, cz`` (slots and codes
-    packed in ``c_packed``) by z cell, cell zc - ghost from ``z_start[zc]``; the
-    own column with ``ghost`` image cells above its top goes to ``own_x ...``,
-    cell kz from ``own_start[kz]``.
+    The forward neighbour columns and then the column itself go to ``cx, cy,
+    cz`` (slots and codes packed in ``c_packed``) by z cell, cell zc - ghost
+    from ``z_start[zc]``; the column itself has no image cells below its
+    bottom (those pairs are listed from below).
     """
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     kx0 = column // ny
     ky0 = column % ny
-    n_other = reach * (2 * reach + 1) + reach
-    # The forward columns: first cell, shift and code from their wraps along x and y.
-    bases = np.empty(n_other, dtype=np.int64)
-    shift_x = np.empty(n_other)
-    shift_y = np.empty(n_other)
-    code_xy = np.empty(n_other, dtype=np.int64)
-    n_columns = 0
+    n_columns = reach * (2 * reach + 1) + reach + 1
+    # The forward columns, then the own one: first cell, shift and code from their
+    # wraps along x and y.
+    bases = np.empty(n_columns, dtype=np.int64)
+    shift_x = np.empty(n_columns)
+    shift_y = np.empty(n_columns)
+    code_xy = np.empty(n_columns, dtype=np.int64)
+    n_forward = 0
     for ox in range(0, reach + 1):
         kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
         if kx < 0:
@@ -355,16 +350,22 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_star
             ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
             if ky < 0:
                 continue
-            bases[n_columns] = (kx * ny + ky) * nz
-            shift_x[n_columns] = wx * box[0] + wy * xy
-            shift_y[n_columns] = wy * box[1]
-            code_xy[n_columns] = (wx + 1) * 9 + (wy + 1) * 3 + 1
-            n_columns += 1
+            bases[n_forward] = (kx * ny + ky) * nz
+            shift_x[n_forward] = wx * box[0] + wy * xy
+            shift_y[n_forward] = wy * box[1]
+            code_xy[n_forward] = (wx + 1) * 9 + (wy + 1) * 3 + 1
+            n_forward += 1
+    bases[n_forward] = column * nz
+    shift_x[n_forward] = 0.0
+    shift_y[n_forward] = 0.0
+    code_xy[n_forward] = 9 + 3 + 1
     m = 0
     for zc in range(nz + 2 * ghost):
         z_start[zc] = m
         kz, wz = _neighbor_cell(zc - ghost, 0, nz, periodic[2])
-        for c in range(n_columns):
+        # below the bottom only the forward columns; from there on the own one too
+        used = n_forward if zc < ghost else n_forward + 1
+        for c in range(used):
             cell = bases[c] + kz
             m = _gather_run(
                 cell_starts[cell], cell_starts[cell + 1], shift_x[c] + wz * xz,
@@ -372,16 +373,6 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_star
                 c_packed, m,
             )  # fmt: skip
     z_start[nz + 2 * ghost] = m
-    m = 0
-    for zc in range(nz + ghost):
-        own_start[zc] = m
-        kz, wz = _neighbor_cell(zc, 0, nz, periodic[2])
-        cell = column * nz + kz
-        m = _gather_run(
-            cell_starts[cell], cell_starts[cell + 1], wz * xz, wz * yz, wz * box[2],
-            9 + 3 + wz + 1, xs, ys, zs, own_x, own_y, own_z, own_packed, m,
-        )  # fmt: skip
-    own_start[nz + ghost] = m
 
 
 @njit(cache=True, inline="always", error_model="numpy")
