@@ -390,7 +390,7 @@ class LennardJones:
         if held is None or held[0].shape[0] < n_pairs or not _unshared(held):
             size = int(n_pairs * 1.05) + 1024
             held = (
-                np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), np.empty(size),
+                np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int32), np.empty(size),
                 np.empty(size), np.empty((size, 3)),
             )  # fmt: skip
             self._hessian_buffers = held

@@ -44,7 +44,7 @@ class PairHessian:
     ----------
     n_atoms : int
         N.
-    pair_i, pair_j : ndarray of int64, shape (P,)
+    pair_i, pair_j : ndarray of int32 or int64, shape (P,)
         The interacting pairs, i != j.
     transverse, radial : ndarray of float64, shape (P,)
         The eigenvalues of K [energy/length^2].
