@@ -304,6 +304,9 @@ class IncrementalSolver:
             return -grad / masses, None
         # CG only applies the Hessian (pair blocks, never assembled); LU needs the matrix.
         if exact is None:
+            # Let go of the last operator first: a potential may then write the new
+            # blocks into its buffers (LennardJones does) instead of fresh memory.
+            preconditioners.clear()
             exact = forcefield.hessian_operator(state)
             stats["hessian_evaluations"] += 1
         operator = exact

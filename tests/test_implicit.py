@@ -348,6 +348,30 @@ def test_saved_predictor_history_is_checked():
     assert integrator.get_state()["start_accelerations"] is None
 
 
+def test_hessians_evaluated_within_a_step_reuse_the_last_ones_buffers(monkeypatch):
+    """With a fresh Hessian every Newton iteration, each evaluation finds the last
+    operator released by the solver (its preconditioner too), so the LJ blocks are
+    written into the same buffers instead of tens of MB of new memory each time."""
+    import integrators._newton as newton
+    from md.forcefield import ForceField
+
+    monkeypatch.setattr(newton, "_CHORD_REDUCTION", 0.0)  # no chord steps
+    addresses = []
+    evaluate = ForceField.hessian_operator
+
+    def recorded(self, state):
+        operator = evaluate(self, state)
+        addresses.append(operator.terms[0].radial.__array_interface__["data"][0])
+        return operator
+
+    monkeypatch.setattr(ForceField, "hessian_operator", recorded)
+    state = lj_liquid(cells=8)  # 2048 atoms: two chunks on two threads, one on one
+    integrator = ImplicitEuler(0.005, tol=1e-10, linear_solver="cg")
+    md.Simulation(state, [LennardJones(cutoff=2.5)], integrator).run(3)
+    assert integrator.statistics["hessian_evaluations"] > integrator.statistics["steps"]
+    assert len(set(addresses[1:])) == 1, addresses
+
+
 def test_cg_and_direct_solvers_agree():
     results = []
     for solver in ("direct", "cg"):
