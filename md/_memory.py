@@ -29,7 +29,6 @@ written into every module that makes temporaries.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 import os
 
@@ -59,9 +58,8 @@ def keep_freed_memory() -> bool:
     if os.environ.get("LEAPMD_KEEP_FREED_MEMORY", "1") == "0":
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, musl without mallopt)
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
+    except (OSError, AttributeError):  # no mallopt (macOS)
         logger.debug("no mallopt: freed memory is returned as the C library decides")
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
