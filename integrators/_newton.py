@@ -146,6 +146,7 @@ class IncrementalSolver:
         #: M^-1 F at the start of the last solves (oldest first, at most
         #: PREDICTOR_HISTORY, each (3N,)): the predictor extrapolates them.
         self.history: list[np.ndarray] = []
+        self._masses = None  # (atom masses, per-coordinate masses, their inverses)
 
     def solve(self, state, forcefield, h: float, name: str, reach: float = 1.0) -> np.ndarray:
         """Return the displacement ``dx`` (N, 3) that makes Phi stationary.
@@ -275,7 +276,7 @@ class IncrementalSolver:
     def _mass_vectors(self, atom_masses):
         """Return (masses, 1 / masses), each repeated per coordinate (3N,), kept while the
         atoms' masses stay the same."""
-        held = getattr(self, "_masses", None)
+        held = self._masses
         if held is None or not np.array_equal(held[0], atom_masses):
             masses = np.repeat(atom_masses, 3)
             held = (atom_masses.copy(), masses, 1.0 / masses)
@@ -290,9 +291,10 @@ class IncrementalSolver:
 
         Newton's direction (exact, clamped or shifted Hessian) or -M^-1 grad.
         ``exact``: the Hessian operator of an earlier iteration to use again, or None
-        to evaluate it at the current positions. ``preconditioners`` maps
-        (operator, shift) to the Jacobi preconditioner of M (1 + shift) + h2 H, which
-        a chord step finds there.
+        to evaluate it at the current positions. ``preconditioners`` holds the
+        Jacobi preconditioner of the last system M (1 + shift) + h2 H with its key
+        (operator, shift, h2), which a chord step finds there; it is emptied before a
+        new Hessian is evaluated.
         With ``globalise`` (the last step was shortened) and some pair's negative
         curvature able to outweigh the masses (2 h^2 lambda_min < -m_min: a
         compressed stiff bond or a large step), where the Newton direction
