@@ -15,7 +15,9 @@ runs them in turn, off the thread pool.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 from md.box import cell_matrix, min_image, periodic_tilt
 
@@ -26,7 +28,7 @@ _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
 #: Slots the cell search copies at once (see ``_gather_run``): the coordinate rows it
 #: reads need this many readable entries past the last slot.
-GATHER_BLOCK = 8
+GATHER_BLOCK = 4
 
 
 @njit(cache=True, error_model="numpy")
@@ -245,10 +247,11 @@ def _frame_pairs_chunk(
     cell and then column, with ``reach`` image cells past each end of a
     periodic z axis (the own column's only above the top: ``_gather_column``).
     A slot in z cell cz then tests one contiguous range of candidates, z
-    cells cz - reach to cz + reach, in a loop the compiler vectorises
-    (``_test``), which also drops the own column's slots up to and including
-    its own (unshifted: the earlier slots list those pairs), and keeps the
-    hits with a branch-free compaction (``_keep``). A neighbour cell across the edge of
+    cells cz - reach to cz + reach, 64 at a time in vector blocks whose compare
+    masks become one bit mask (``_near_bits``), which also drops the own
+    column's slots up to and including its own (unshifted: the earlier slots
+    list those pairs); ``_keep`` writes the hits by scanning the set bits.
+    A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
@@ -259,14 +262,14 @@ def _frame_pairs_chunk(
     ghost = reach if periodic[2] else 0  # image cells past each z end
     n_z = nz + 2 * ghost
     n_columns = reach * (2 * reach + 1) + reach + 1  # forward columns and the own one
-    size = n_columns * (most_column + 2 * ghost * most_cell) + GATHER_BLOCK
-    cx = np.empty(size)
-    cy = np.empty(size)
-    cz = np.empty(size)
-    c_packed = np.empty(size, dtype=np.uint32)
+    size = n_columns * (most_column + 2 * ghost * most_cell)
+    # readable past the last candidate: a gather block, a test word
+    cx = np.empty(size + 64)
+    cy = np.empty(size + 64)
+    cz = np.empty(size + 64)
+    c_packed = np.empty(size + 64, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
-    inside = np.empty(size, dtype=np.uint8)
-    kept = np.empty(size, dtype=np.uint32)
+    masks = np.empty(size // 64 + 1, dtype=np.uint64)
     unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     count = 0
@@ -289,33 +292,12 @@ def _frame_pairs_chunk(
             high = min(kz + reach + ghost, n_z - 1)
             first = z_start[low]
             last = z_start[high + 1]
-            found = _test(xs[i], ys[i], zs[i], r2_max, cx[first:last], cy[first:last],
-                          cz[first:last], c_packed[first:last], earlier,
-                          unshifted | np.uint32(i), inside)  # fmt: skip
-            count += _keep(inside[:found], c_packed[first:], kept, base, count, capacity,
+            count += _keep(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, first, last,
+                           earlier, unshifted | np.uint32(i), masks, base, count, capacity,
                            neighbors, codes)  # fmt: skip
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _test(xi, yi, zi, r2_max, tx, ty, tz, packed, skip_low, skip_high, inside):
-    """Flag in ``inside`` the candidates closer than sqrt(r2_max) whose packed slot and
-    code is not within [skip_low, skip_high]; return how many candidates there are.
-
-    The range test is one unsigned comparison: value - skip_low wraps around
-    below skip_low.
-    """
-    n = tx.shape[0]
-    span = np.uint32(skip_high - skip_low)
-    for k in range(n):
-        dx = xi - tx[k]
-        dy = yi - ty[k]
-        dz = zi - tz[k]
-        outside = np.uint32(packed[k] - skip_low) > span
-        inside[k] = np.uint8(dx * dx + dy * dy + dz * dz < r2_max) & np.uint8(outside)
-    return n
 
 
 @njit(cache=True, error_model="numpy")
@@ -407,25 +389,127 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_packed,
             return m + n
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _keep(flags, packed, kept, base, count, capacity, neighbors, codes):
-    """Write the flagged candidates' slots and codes at ``base + count``; return how many.
+@intrinsic
+def _trailing_zeros(typingctx, word):
+    """Index of the lowest set bit of a non-zero uint64 (LLVM's cttz), as an int64."""
+    sig = types.int64(types.uint64)
 
-    A branch-free compaction of the packed candidates into ``kept`` (every
-    candidate is written, the next overwrites it unless flagged: one store
-    each), then the kept ones unpacked into ``neighbors`` and ``codes``, or,
-    past the chunk's capacity, only counted.
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+
+    return sig, codegen
+
+
+@intrinsic
+def _bit_count(typingctx, word):
+    """Number of set bits of a uint64 (LLVM's ctpop), as an int64."""
+    sig = types.int64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
+@intrinsic
+def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_low, span):
+    """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max)
+    and its packed slot and code is not within [skip_low, skip_low + span].
+
+    Written in LLVM IR because numba has no way to say "compare masks as an
+    integer" (movemask): eight 8-lane blocks of (dx dx + dy dy + dz dz, left
+    to right, as the brute-force search computes it) < r2_max, each block's
+    <8 x i1> mask packed straight into the word. LLVM lowers it for the CPU
+    at hand (AVX-512 mask registers, AVX2 movemask, or scalar code). Reads
+    64 entries from ``start`` of the C-contiguous float64 ``tx, ty, tz`` and
+    uint32 ``packed``: they need that many readable entries past their last
+    candidate, and the caller masks the bits past it.
     """
+    arrays = (tx, ty, tz, packed)
+    wanted = (types.float64, types.float64, types.float64, types.uint32)
+    if not all(
+        isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" and a.dtype == d
+        for a, d in zip(arrays, wanted, strict=True)
+    ):
+        return None
+    sig = types.uint64(
+        types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
+        types.intp, types.uint32, types.uint32,
+    )  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        i32, i64 = ir.IntType(32), ir.IntType(64)
+        doubles = ir.VectorType(ir.DoubleType(), 8)
+        words = ir.VectorType(i32, 8)
+        zeros = ir.Constant(ir.VectorType(i32, 8), [0] * 8)
+
+        def splat(value, vector):
+            undefined = ir.Constant(vector, ir.Undefined)
+            one = builder.insert_element(undefined, value, ir.Constant(i32, 0))
+            return builder.shuffle_vector(one, undefined, zeros)
+
+        def data(k):
+            return context.make_array(signature.args[k])(context, builder, args[k]).data
+
+        xi, yi, zi, r2 = (splat(args[k], doubles) for k in range(4))
+        low, span = splat(args[9], words), splat(args[10], words)
+        pointers = [data(k) for k in (4, 5, 6, 7)]
+        word = ir.Constant(i64, 0)
+        for block in range(8):
+            index = builder.add(args[8], ir.Constant(i64, 8 * block))
+            x, y, z, values = (
+                builder.load(builder.bitcast(builder.gep(a, [index]), v.as_pointer()), align=4)
+                for a, v in zip(pointers, (doubles, doubles, doubles, words), strict=True)
+            )
+            dx, dy, dz = builder.fsub(xi, x), builder.fsub(yi, y), builder.fsub(zi, z)
+            d2 = builder.fadd(
+                builder.fadd(builder.fmul(dx, dx), builder.fmul(dy, dy)), builder.fmul(dz, dz)
+            )
+            near = builder.fcmp_ordered("<", d2, r2)
+            outside = builder.icmp_unsigned(">", builder.sub(values, low), span)
+            bits = builder.bitcast(builder.and_(near, outside), ir.IntType(8))
+            shifted = builder.shl(builder.zext(bits, i64), ir.Constant(i64, 8 * block))
+            word = builder.or_(word, shifted)
+        return word
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, skip_low, skip_high, masks,
+          base, count, capacity, neighbors, codes):  # fmt: skip
+    """List the candidates first..last-1 near (xi, yi, zi) at ``base + count``; return
+    how many.
+
+    Candidates closer than sqrt(r2_max) whose packed slot and code is not in
+    [skip_low, skip_high] (one unsigned comparison: value - skip_low wraps
+    around below skip_low) are kept: ``_near_bits`` tests them 64 at a time
+    into bit masks, whose set bits are then visited one by one, so the
+    writing follows the hits, not the candidates. Past the chunk's
+    capacity they are only counted.
+    """
+    n = last - first
+    n_words = (n + 63) // 64
+    span = np.uint32(skip_high - skip_low)
     found = 0
-    for k in range(flags.shape[0]):
-        kept[found] = packed[k]
-        found += flags[k]
+    for w in range(n_words):
+        m = _near_bits(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first + 64 * w, skip_low, span)
+        if w == n_words - 1 and n % 64:
+            m &= (np.uint64(1) << np.uint64(n % 64)) - np.uint64(1)
+        masks[w] = m
+        found += _bit_count(m)
     if count + found <= capacity:
-        out = neighbors[base + count : base + count + found]
-        out_codes = codes[base + count : base + count + found]
-        for k in range(found):
-            out[k] = kept[k] & _SLOT_MASK
-            out_codes[k] = kept[k] >> _CODE_SHIFT
+        # unsigned indices: no negative-index wrap code in the loop
+        at = np.uint64(base + count)
+        for w in range(n_words):
+            m = masks[w]
+            row = c_packed[first + 64 * w :]
+            while m:
+                value = row[np.uint64(_trailing_zeros(m))]
+                neighbors[at] = value & _SLOT_MASK
+                codes[at] = value >> _CODE_SHIFT
+                at += np.uint64(1)
+                m &= m - np.uint64(1)
     return found
 
 

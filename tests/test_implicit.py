@@ -321,6 +321,7 @@ def test_extrapolation_weights_are_exact_for_quadratics(reach):
     from integrators._newton import _extrapolation_weights
 
     for n_history, coefficients in ((1, (0.3, -1.7, 0.0)), (2, (0.3, -1.7, 2.9))):
+
         def a(t, c=coefficients):
             return c[0] + c[1] * t + c[2] * t * t
 

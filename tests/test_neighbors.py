@@ -114,6 +114,49 @@ def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
     assert_list_is_exact(nl, state)
 
 
+@pytest.mark.parametrize("n", [0, 1, 37, 63, 64, 65, 127, 128, 129, 200])
+def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
+    """The search tests candidates 64 at a time into bit masks: for counts at and
+    around multiples of 64, the kept candidates (in order, slots and codes unpacked)
+    equal a plain numpy selection, the entries read past the last candidate (set to
+    pass the test) are never kept, the own-column range is dropped, and past the
+    capacity the hits are counted but not written."""
+    from md._cell_kernels import _CODE_SHIFT, _keep
+
+    first, pad = 5, 64
+    size = first + n + pad
+    xyz = rng.uniform(-1.0, 1.0, size=(3, size))
+    slots = rng.permutation(1000)[:size].astype(np.uint32)
+    codes_in = rng.integers(0, 27, size=size).astype(np.uint32)
+    packed = slots | (codes_in << _CODE_SHIFT)
+    xyz[:, first + n :] = 0.0  # past the last candidate: at the centre, would pass
+    skip_low, skip_high = np.uint32(packed[first + n // 3]), np.uint32(packed[first + n // 3])
+    if n:
+        skip_low = min(packed[first : first + n])  # drop a band of packed values
+        skip_high = skip_low + np.uint32(50)
+    r2_max = 0.64
+    d2 = (xyz[:, first : first + n] ** 2).sum(axis=0)
+    value = packed[first : first + n]
+    wanted = (d2 < r2_max) & ~((value >= skip_low) & (value <= skip_high))
+    masks = np.empty(size // 64 + 1, dtype=np.uint64)
+    neighbors = np.full(3 + n, -1, dtype=np.int32)
+    codes = np.full(3 + n, 255, dtype=np.uint8)
+    arrays = (np.ascontiguousarray(xyz[0]), np.ascontiguousarray(xyz[1]),
+              np.ascontiguousarray(xyz[2]), packed)  # fmt: skip
+    found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
+                  1, 2, 3 + n, neighbors, codes)  # fmt: skip
+    assert found == wanted.sum()
+    assert np.array_equal(neighbors[3 : 3 + found], slots[first : first + n][wanted])
+    assert np.array_equal(codes[3 : 3 + found], codes_in[first : first + n][wanted])
+    assert np.all(neighbors[:3] == -1) and np.all(neighbors[3 + found :] == -1)
+    # No room: counted, nothing written.
+    neighbors[:] = -1
+    full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
+                 1, 2, 1 + found, neighbors, codes)  # fmt: skip
+    assert full == found
+    assert np.all(neighbors == -1)
+
+
 @pytest.mark.parametrize("n_atoms", [0, 1, 2])
 def test_tiny_systems(n_atoms):
     state = md.State(positions=[[0.1, 0.2, 0.3], [0.9, 0.2, 0.3]][:n_atoms] or np.zeros((0, 3)))
