@@ -56,11 +56,9 @@ def _brute_force_pairs(positions, lengths, inverse, tilt, r2_max, starts, neighb
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _grid_index(x, origin, width, n, periodic, length):
-    """Cell index of coordinate x along one axis, wrapped (periodic) or clamped."""
-    if periodic:
-        x = x - length * np.floor(x / length)
-    k = int(np.floor((x - origin) / width))
+def _grid_cell(g, origin, inverse_width, n):
+    """Cell index of a (wrapped) coordinate g along one axis, clamped to the grid."""
+    k = int(np.floor((g - origin) * inverse_width))
     if k < 0:
         k = 0
     elif k >= n:
@@ -107,25 +105,44 @@ def _bin_atoms(
         cell_starts[c] = 0
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
-    grid = np.empty((n, 3))
+    # Products with reciprocals, not divisions (the divisions were most of the time).
+    # Cells come from the wrapped coordinates themselves, so an atom's cell and its
+    # wrapped position agree even where a product rounds across an edge.
+    inverse_box = 1.0 / box
+    inverse_width = 1.0 / cell_width
+    moved = np.empty((n, 3))  # wrapped positions, by atom
+    wraps = np.empty((n, 3), dtype=np.int32)
     for i in range(n):
-        gx = positions[i, 0]
-        gy = positions[i, 1]
-        gz = positions[i, 2]
+        x = positions[i, 0]
+        y = positions[i, 1]
+        z = positions[i, 2]
+        gx, gy, gz = x, y, z
         if sheared:  # a tilt is non-zero only between periodic axes
-            sz = gz / box[2] if periodic[2] else 0.0
+            sz = gz * inverse_box[2] if periodic[2] else 0.0
             gy -= sz * yz
-            sy = gy / box[1] if periodic[1] else 0.0
+            sy = gy * inverse_box[1] if periodic[1] else 0.0
             gx -= sy * xy + sz * xz
-        grid[i, 0] = gx
-        grid[i, 1] = gy
-        grid[i, 2] = gz
-        kx = _grid_index(gx, origin[0], cell_width[0], nx, periodic[0], box[0])
-        ky = _grid_index(gy, origin[1], cell_width[1], ny, periodic[1], box[1])
-        kz = _grid_index(gz, origin[2], cell_width[2], nz, periodic[2], box[2])
+        wx = -np.floor(gx * inverse_box[0]) if periodic[0] else 0.0
+        wy = -np.floor(gy * inverse_box[1]) if periodic[1] else 0.0
+        wz = -np.floor(gz * inverse_box[2]) if periodic[2] else 0.0
+        kx = _grid_cell(gx + box[0] * wx, origin[0], inverse_width[0], nx)
+        ky = _grid_cell(gy + box[1] * wy, origin[1], inverse_width[1], ny)
+        kz = _grid_cell(gz + box[2] * wz, origin[2], inverse_width[2], nz)
         c = (kx * ny + ky) * nz + kz
         cell_of[i] = c
         cell_starts[c + 1] += 1
+        x += box[0] * wx
+        y += box[1] * wy
+        z += box[2] * wz
+        if sheared:
+            x += wy * xy + wz * xz
+            y += wz * yz
+        moved[i, 0] = x
+        moved[i, 1] = y
+        moved[i, 2] = z
+        wraps[i, 0] = np.int32(wx)
+        wraps[i, 1] = np.int32(wy)
+        wraps[i, 2] = np.int32(wz)
     for c in range(total):
         cell_starts[c + 1] += cell_starts[c]
     fill = cell_starts[:total].copy()
@@ -134,21 +151,12 @@ def _bin_atoms(
         p = fill[c]
         order[p] = i
         fill[c] += 1
-        wx = -np.floor(grid[i, 0] / box[0]) if periodic[0] else 0.0
-        wy = -np.floor(grid[i, 1] / box[1]) if periodic[1] else 0.0
-        wz = -np.floor(grid[i, 2] / box[2]) if periodic[2] else 0.0
-        x = positions[i, 0] + box[0] * wx
-        y = positions[i, 1] + box[1] * wy
-        z = positions[i, 2] + box[2] * wz
-        if sheared:
-            x += wy * xy + wz * xz
-            y += wz * yz
-        sorted_wrapped[0, p] = x
-        sorted_wrapped[1, p] = y
-        sorted_wrapped[2, p] = z
-        images[p, 0] = np.int32(wx)
-        images[p, 1] = np.int32(wy)
-        images[p, 2] = np.int32(wz)
+        sorted_wrapped[0, p] = moved[i, 0]
+        sorted_wrapped[1, p] = moved[i, 1]
+        sorted_wrapped[2, p] = moved[i, 2]
+        images[p, 0] = wraps[i, 0]
+        images[p, 1] = wraps[i, 1]
+        images[p, 2] = wraps[i, 2]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -569,22 +577,54 @@ def _max_displacement2_threaded(positions, reference, chunks):
     return worst.max()
 
 
+#: Bit patterns: all but the sign bit, and +inf (every NaN's magnitude bits are above it).
+_MAGNITUDE = np.int64(0x7FFFFFFFFFFFFFFF)
+_INF_BITS = np.int64(0x7FF0000000000000)
+
+
+@intrinsic
+def _float_bits(typingctx, x):
+    """The bit pattern of a float64 as an int64."""
+    sig = types.int64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return sig, codegen
+
+
+@intrinsic
+def _bits_float(typingctx, bits):
+    """The float64 of an int64 bit pattern (inverse of ``_float_bits``)."""
+    sig = types.float64(types.int64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return sig, codegen
+
+
 @njit(cache=True, error_model="numpy")
 def _max_displacement2(positions, reference):
-    """Largest squared displacement since ``reference``; inf if any coordinate is not finite."""
+    """Largest squared displacement since ``reference``; inf if any coordinate is not finite
+    (``reference`` is finite).
+
+    The maximum is taken over the bit patterns of the squared displacements
+    with the sign bit cleared: for non-negative floats they order as the
+    numbers do, and inf and every NaN lie above all finite ones. An integer
+    maximum with no early exit is a loop the compiler vectorises (a float
+    maximum that must see NaNs is not).
+    """
     n = positions.shape[0]
-    worst = 0.0
+    worst = np.int64(0)
     for i in range(n):
-        d2 = 0.0
-        for a in range(3):
-            x = positions[i, a]
-            if not np.isfinite(x):
-                return np.inf
-            d = x - reference[i, a]
-            d2 += d * d
-        if d2 > worst:
-            worst = d2
-    return worst
+        dx = positions[i, 0] - reference[i, 0]
+        dy = positions[i, 1] - reference[i, 1]
+        dz = positions[i, 2] - reference[i, 2]
+        worst = max(worst, _float_bits(dx * dx + dy * dy + dz * dz) & _MAGNITUDE)
+    if worst >= _INF_BITS:
+        return np.inf
+    return _bits_float(worst)
 
 
 @njit(cache=True, error_model="numpy")

@@ -354,3 +354,24 @@ def test_a_list_that_switches_from_pair_search_to_cells_stays_exact():
     nl.build(state)
     assert not nl.used_cells
     assert_list_is_exact(nl, state)
+
+
+def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng):
+    """The rebuild check's largest squared displacement (an integer maximum over bit
+    patterns) equals numpy's, and any NaN (either sign) or infinity, in any atom and
+    coordinate, gives inf, serial and threaded."""
+    from md._cell_kernels import _max_displacement2, _max_displacement2_threaded
+
+    reference = rng.uniform(-5.0, 5.0, size=(1001, 3))
+    positions = reference + rng.normal(scale=0.1, size=reference.shape)
+    exact = ((positions - reference) ** 2).sum(axis=1).max()
+    assert _max_displacement2(positions, reference) == exact
+    assert _max_displacement2_threaded(positions, reference, 3) == exact
+    assert _max_displacement2(positions[:0], reference[:0]) == 0.0
+    assert _max_displacement2(reference, reference) == 0.0
+    for atom, axis in ((0, 0), (500, 1), (1000, 2)):
+        for bad in (np.nan, -np.nan, np.inf, -np.inf):
+            broken = positions.copy()
+            broken[atom, axis] = bad
+            assert _max_displacement2(broken, reference) == np.inf
+            assert _max_displacement2_threaded(broken, reference, 3) == np.inf
