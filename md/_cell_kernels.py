@@ -521,24 +521,24 @@ def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, skip_low, skip_
     return found
 
 
-@njit(cache=True, error_model="numpy")
 def _compact_chunks(bounds, capacity, counts, starts, neighbors, codes):
     """Join the chunk regions written by ``_frame_pairs`` into one CSR list; return its length.
 
-    Regions move towards the front (never onto data not yet moved), and row
-    ends become absolute.
+    Regions move towards the front, and row ends become absolute. Plain
+    numpy: its slice assignment copies overlapping regions correctly at
+    memmove speed (a compiled element loop here, which the compiler could not
+    vectorise for the overlap, took ten times as long).
     """
     offset = 0
     starts[0] = 0
-    for chunk in range(bounds.shape[0] - 1):
+    for chunk in range(len(bounds) - 1):
         base = chunk * capacity
+        count = int(counts[chunk])
         if offset != base:
-            for k in range(counts[chunk]):
-                neighbors[offset + k] = neighbors[base + k]
-                codes[offset + k] = codes[base + k]
-        for p in range(bounds[chunk], bounds[chunk + 1]):
-            starts[p + 1] += offset
-        offset += counts[chunk]
+            neighbors[offset : offset + count] = neighbors[base : base + count]
+            codes[offset : offset + count] = codes[base : base + count]
+        starts[bounds[chunk] + 1 : bounds[chunk + 1] + 1] += offset
+        offset += count
     return offset
 
 
