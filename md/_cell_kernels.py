@@ -19,6 +19,21 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
+from md._simd import (
+    PERMUTATIONS,
+    PERMUTE,
+    array_data,
+    bit_count,
+    bits_float,
+    compare_mask,
+    float_bits,
+    is_vector_array,
+    load_vector,
+    permute_lanes,
+    splat,
+    store_vector,
+    trailing_zeros,
+)
 from md.box import cell_matrix, min_image, periodic_tilt
 
 #: The cell search packs a candidate's slot and image code into one uint32: slot in the
@@ -255,11 +270,13 @@ def _frame_pairs_chunk(
     cell and then column, with ``reach`` image cells past each end of a
     periodic z axis (the own column's only above the top: ``_gather_column``).
     A slot in z cell cz then tests one contiguous range of candidates, z
-    cells cz - reach to cz + reach, 64 at a time in vector blocks whose compare
-    masks become one bit mask (``_near_bits``), which also drops the own
+    cells cz - reach to cz + reach, in vector blocks of 8 that also drop the own
     column's slots up to and including its own (unshifted: the earlier slots
-    list those pairs); ``_keep`` writes the hits by scanning the set bits.
-    A neighbour cell across the edge of
+    list those pairs). ``_near_pack`` writes the hits' packed values as it
+    tests, 64 candidates a call (AVX2 permutes, or bit masks scanned
+    bit by bit on other CPUs); near the end of the chunk's region ``_keep``
+    counts before it writes. The chunk's packed values are unpacked into
+    slots and codes at its end. A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
@@ -280,6 +297,7 @@ def _frame_pairs_chunk(
     masks = np.empty(size // 64 + 1, dtype=np.uint64)
     unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
+    packed_list = neighbors.view(np.uint32)  # the search writes packed values, unpacked last
     count = 0
     p = bounds[chunk]
     end = bounds[chunk + 1]
@@ -300,12 +318,30 @@ def _frame_pairs_chunk(
             high = min(kz + reach + ghost, n_z - 1)
             first = z_start[low]
             last = z_start[high + 1]
-            count += _keep(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, first, last,
-                           earlier, unshifted | np.uint32(i), masks, base, count, capacity,
-                           neighbors, codes)  # fmt: skip
+            if count + (last - first) + 8 <= capacity:
+                # room for every candidate and a block's spill: write as they are tested
+                # (here, not in _keep: the inlined branch there slowed the loop by 25%)
+                span = np.uint32((unshifted | np.uint32(i)) - earlier)
+                at = base + count
+                for w in range(first, last, 64):
+                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, w,
+                                    min(64, last - w), earlier, span, PERMUTATIONS,
+                                    packed_list, at)  # fmt: skip
+                count = at - base
+            else:
+                count += _keep(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, first, last,
+                               earlier, unshifted | np.uint32(i), masks, base, count,
+                               capacity, packed_list)  # fmt: skip
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
+    if count <= capacity:  # written packed: codes from the top bits, then the slots alone
+        listed = packed_list[base : base + count]
+        listed_codes = codes[base : base + count]
+        for k in range(count):
+            listed_codes[k] = listed[k] >> _CODE_SHIFT
+        for k in range(count):
+            listed[k] &= _SLOT_MASK
 
 
 @njit(cache=True, error_model="numpy")
@@ -397,26 +433,45 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_packed,
             return m + n
 
 
-@intrinsic
-def _trailing_zeros(typingctx, word):
-    """Index of the lowest set bit of a non-zero uint64 (LLVM's cttz), as an int64."""
-    sig = types.int64(types.uint64)
+class _Candidates:
+    """IR of the search's candidate test (``_near_bits``, ``_near_pack``): the
+    distance and own-column tests of one block of 8 candidates."""
 
-    def codegen(context, builder, signature, args):
-        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+    def __init__(self, context, builder, signature, args):
+        f64, i32 = ir.DoubleType(), ir.IntType(32)
+        self.builder = builder
+        self.doubles = ir.VectorType(f64, 8)
+        self.words = ir.VectorType(i32, 8)
+        self.centre = [splat(builder, args[k], self.doubles) for k in range(3)]
+        self.r2 = splat(builder, args[3], self.doubles)
+        self.arrays = [
+            array_data(context, builder, signature.args[k], args[k]) for k in (4, 5, 6, 7)
+        ]
+        self.start = args[8]
 
-    return sig, codegen
+    def block(self, block, skip_low, span):
+        """(packed values, <8 x i1> kept) of candidates start + 8 block + 0..7: closer than
+        sqrt(r2_max), left to right as dx dx + dy dy + dz dz (the brute-force
+        search's arithmetic: the same candidates pass), and not in the skipped band."""
+        builder = self.builder
+        index = builder.add(self.start, ir.Constant(ir.IntType(64), 8 * block))
+        kinds = (self.doubles, self.doubles, self.doubles, self.words)
+        *coordinates, values = (
+            load_vector(builder, a, index, v) for a, v in zip(self.arrays, kinds, strict=True)
+        )
+        dx, dy, dz = (builder.fsub(c, t) for c, t in zip(self.centre, coordinates, strict=True))
+        d2 = builder.fadd(
+            builder.fadd(builder.fmul(dx, dx), builder.fmul(dy, dy)), builder.fmul(dz, dz)
+        )
+        near = builder.fcmp_ordered("<", d2, self.r2)
+        outside = builder.icmp_unsigned(">", builder.sub(values, skip_low), span)
+        return values, builder.and_(near, outside)
 
 
-@intrinsic
-def _bit_count(typingctx, word):
-    """Number of set bits of a uint64 (LLVM's ctpop), as an int64."""
-    sig = types.int64(types.uint64)
-
-    def codegen(context, builder, signature, args):
-        return builder.ctpop(args[0])
-
-    return sig, codegen
+def _candidate_types(tx, ty, tz, packed):
+    """Whether the candidate arrays are what ``_Candidates`` reads."""
+    wanted = (types.float64, types.float64, types.float64, types.uint32)
+    return all(is_vector_array(a, d) for a, d in zip((tx, ty, tz, packed), wanted, strict=True))
 
 
 @intrinsic
@@ -424,21 +479,13 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_lo
     """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max)
     and its packed slot and code is not within [skip_low, skip_low + span].
 
-    Written in LLVM IR because numba has no way to say "compare masks as an
-    integer" (movemask): eight 8-lane blocks of (dx dx + dy dy + dz dz, left
-    to right, as the brute-force search computes it) < r2_max, each block's
-    <8 x i1> mask packed straight into the word. LLVM lowers it for the CPU
-    at hand (AVX-512 mask registers, AVX2 movemask, or scalar code). Reads
-    64 entries from ``start`` of the C-contiguous float64 ``tx, ty, tz`` and
-    uint32 ``packed``: they need that many readable entries past their last
+    Eight blocks of ``_Candidates``, each block's <8 x i1> mask put straight
+    into the word (a movemask: numba has no way to say it). Reads 64 entries
+    from ``start`` of the C-contiguous float64 ``tx, ty, tz`` and uint32
+    ``packed``: they need that many readable entries past their last
     candidate, and the caller masks the bits past it.
     """
-    arrays = (tx, ty, tz, packed)
-    wanted = (types.float64, types.float64, types.float64, types.uint32)
-    if not all(
-        isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" and a.dtype == d
-        for a, d in zip(arrays, wanted, strict=True)
-    ):
+    if not _candidate_types(tx, ty, tz, packed):
         return None
     sig = types.uint64(
         types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
@@ -446,76 +493,108 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_lo
     )  # fmt: skip
 
     def codegen(context, builder, signature, args):
-        i32, i64 = ir.IntType(32), ir.IntType(64)
-        doubles = ir.VectorType(ir.DoubleType(), 8)
-        words = ir.VectorType(i32, 8)
-        zeros = ir.Constant(ir.VectorType(i32, 8), [0] * 8)
-
-        def splat(value, vector):
-            undefined = ir.Constant(vector, ir.Undefined)
-            one = builder.insert_element(undefined, value, ir.Constant(i32, 0))
-            return builder.shuffle_vector(one, undefined, zeros)
-
-        def data(k):
-            return context.make_array(signature.args[k])(context, builder, args[k]).data
-
-        xi, yi, zi, r2 = (splat(args[k], doubles) for k in range(4))
-        low, span = splat(args[9], words), splat(args[10], words)
-        pointers = [data(k) for k in (4, 5, 6, 7)]
+        i64 = ir.IntType(64)
+        test = _Candidates(context, builder, signature, args)
+        low, span = splat(builder, args[9], test.words), splat(builder, args[10], test.words)
         word = ir.Constant(i64, 0)
         for block in range(8):
-            index = builder.add(args[8], ir.Constant(i64, 8 * block))
-            x, y, z, values = (
-                builder.load(builder.bitcast(builder.gep(a, [index]), v.as_pointer()), align=4)
-                for a, v in zip(pointers, (doubles, doubles, doubles, words), strict=True)
-            )
-            dx, dy, dz = builder.fsub(xi, x), builder.fsub(yi, y), builder.fsub(zi, z)
-            d2 = builder.fadd(
-                builder.fadd(builder.fmul(dx, dx), builder.fmul(dy, dy)), builder.fmul(dz, dz)
-            )
-            near = builder.fcmp_ordered("<", d2, r2)
-            outside = builder.icmp_unsigned(">", builder.sub(values, low), span)
-            bits = builder.bitcast(builder.and_(near, outside), ir.IntType(8))
-            shifted = builder.shl(builder.zext(bits, i64), ir.Constant(i64, 8 * block))
+            _, kept = test.block(block, low, span)
+            shifted = builder.shl(compare_mask(builder, kept), ir.Constant(i64, 8 * block))
             word = builder.or_(word, shifted)
         return word
 
     return sig, codegen
 
 
+@intrinsic
+def _near_pack_permute(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid,
+                       skip_low, span, table, out, at):  # fmt: skip
+    """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``).
+
+    Per block of 8 candidates (``_Candidates``), the kept lanes' packed
+    values move to the front of the vector (``permute_lanes``); all 8 lanes
+    are stored at ``out[at:]`` and ``at`` advances by the kept count, so the
+    next block overwrites the rest: no loop, no branch per candidate or hit.
+    """
+    if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(out, types.uint32)):
+        return None
+    sig = types.int64(
+        types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
+        types.intp, types.intp, types.uint32, types.uint32, table, out, types.intp,
+    )  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        i32 = ir.IntType(32)
+        test = _Candidates(context, builder, signature, args)
+        low, span = splat(builder, args[10], test.words), splat(builder, args[11], test.words)
+        valid = splat(builder, builder.trunc(args[9], i32), test.words)
+        rows = array_data(context, builder, signature.args[12], args[12])
+        target = array_data(context, builder, signature.args[13], args[13])
+        at = args[14]
+        for block in range(8):
+            values, kept = test.block(block, low, span)
+            lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
+            kept = builder.and_(kept, builder.icmp_signed("<", lanes, valid))
+            mask = compare_mask(builder, kept)
+            store_vector(builder, permute_lanes(builder, values, mask, rows), target, at)
+            at = builder.add(at, builder.ctpop(mask))
+        return at
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
+                    table, out, at):  # fmt: skip
+    """``_near_pack`` on any CPU: ``_near_bits``, then the set bits one by one."""
+    m = _near_bits(xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_low, span)
+    if valid < 64:
+        m &= (np.uint64(1) << np.uint64(valid)) - np.uint64(1)
+    end = np.uint64(at)  # unsigned indices: no negative-index wrap code in the loop
+    row = packed[start:]
+    while m:
+        out[end] = row[np.uint64(trailing_zeros(m))]
+        end += np.uint64(1)
+        m &= m - np.uint64(1)
+    return np.int64(end)
+
+
+#: Write the candidates start..start+valid-1 (valid <= 64) that ``_near_bits`` keeps,
+#: their packed values, at ``out[at:]`` in order; return the new end. The 8 entries
+#: from it on may be overwritten (the permute path stores whole blocks).
+_near_pack = _near_pack_permute if PERMUTE else _near_pack_scan
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, skip_low, skip_high, masks,
-          base, count, capacity, neighbors, codes):  # fmt: skip
-    """List the candidates first..last-1 near (xi, yi, zi) at ``base + count``; return
-    how many.
+          base, count, capacity, out):  # fmt: skip
+    """List the candidates first..last-1 near (xi, yi, zi), packed, at ``out[base + count:]``;
+    return how many: the exact path near the end of a chunk's region.
 
     Candidates closer than sqrt(r2_max) whose packed slot and code is not in
     [skip_low, skip_high] (one unsigned comparison: value - skip_low wraps
-    around below skip_low) are kept: ``_near_bits`` tests them 64 at a time
-    into bit masks, whose set bits are then visited one by one, so the
-    writing follows the hits, not the candidates. Past the chunk's
-    capacity they are only counted.
+    around below skip_low) are kept, as in ``_near_pack``, which the search
+    uses while its region has room for every candidate and a block's spill.
+    Here the bit masks are counted first and nothing is written past
+    ``capacity``: past it the hits are only counted.
     """
     n = last - first
-    n_words = (n + 63) // 64
     span = np.uint32(skip_high - skip_low)
+    n_words = (n + 63) // 64
     found = 0
     for w in range(n_words):
         m = _near_bits(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first + 64 * w, skip_low, span)
         if w == n_words - 1 and n % 64:
             m &= (np.uint64(1) << np.uint64(n % 64)) - np.uint64(1)
         masks[w] = m
-        found += _bit_count(m)
+        found += bit_count(m)
     if count + found <= capacity:
-        # unsigned indices: no negative-index wrap code in the loop
         at = np.uint64(base + count)
         for w in range(n_words):
             m = masks[w]
             row = c_packed[first + 64 * w :]
             while m:
-                value = row[np.uint64(_trailing_zeros(m))]
-                neighbors[at] = value & _SLOT_MASK
-                codes[at] = value >> _CODE_SHIFT
+                out[at] = row[np.uint64(trailing_zeros(m))]
                 at += np.uint64(1)
                 m &= m - np.uint64(1)
     return found
@@ -582,28 +661,6 @@ _MAGNITUDE = np.int64(0x7FFFFFFFFFFFFFFF)
 _INF_BITS = np.int64(0x7FF0000000000000)
 
 
-@intrinsic
-def _float_bits(typingctx, x):
-    """The bit pattern of a float64 as an int64."""
-    sig = types.int64(types.float64)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(64))
-
-    return sig, codegen
-
-
-@intrinsic
-def _bits_float(typingctx, bits):
-    """The float64 of an int64 bit pattern (inverse of ``_float_bits``)."""
-    sig = types.float64(types.int64)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.DoubleType())
-
-    return sig, codegen
-
-
 @njit(cache=True, error_model="numpy")
 def _max_displacement2(positions, reference):
     """Largest squared displacement since ``reference``; inf if any coordinate is not finite
@@ -621,10 +678,10 @@ def _max_displacement2(positions, reference):
         dx = positions[i, 0] - reference[i, 0]
         dy = positions[i, 1] - reference[i, 1]
         dz = positions[i, 2] - reference[i, 2]
-        worst = max(worst, _float_bits(dx * dx + dy * dy + dz * dz) & _MAGNITUDE)
+        worst = max(worst, float_bits(dx * dx + dy * dy + dz * dz) & _MAGNITUDE)
     if worst >= _INF_BITS:
         return np.inf
-    return _bits_float(worst)
+    return bits_float(worst)
 
 
 @njit(cache=True, error_model="numpy")

@@ -26,6 +26,7 @@ LAYERS = {
         "md._version",
         "md._kernel_cache",
         "md._memory",
+        "md._simd",
         "md.state",
         "md.box",
         "md.units",

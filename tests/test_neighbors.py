@@ -114,47 +114,82 @@ def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
     assert_list_is_exact(nl, state)
 
 
-@pytest.mark.parametrize("n", [0, 1, 37, 63, 64, 65, 127, 128, 129, 200])
-def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
-    """The search tests candidates 64 at a time into bit masks: for counts at and
-    around multiples of 64, the kept candidates (in order, slots and codes unpacked)
-    equal a plain numpy selection, the entries read past the last candidate (set to
-    pass the test) are never kept, the own-column range is dropped, and past the
-    capacity the hits are counted but not written."""
-    from md._cell_kernels import _CODE_SHIFT, _keep
+def _candidates(n, rng, first=5, pad=64):
+    """Packed candidates at first..first+n-1 around the origin, ``pad`` entries past them
+    set to pass the distance test, a band of packed values to skip, and what to keep."""
+    from md._cell_kernels import _CODE_SHIFT
 
-    first, pad = 5, 64
     size = first + n + pad
     xyz = rng.uniform(-1.0, 1.0, size=(3, size))
-    slots = rng.permutation(1000)[:size].astype(np.uint32)
-    codes_in = rng.integers(0, 27, size=size).astype(np.uint32)
-    packed = slots | (codes_in << _CODE_SHIFT)
     xyz[:, first + n :] = 0.0  # past the last candidate: at the centre, would pass
-    skip_low, skip_high = np.uint32(packed[first + n // 3]), np.uint32(packed[first + n // 3])
-    if n:
-        skip_low = min(packed[first : first + n])  # drop a band of packed values
-        skip_high = skip_low + np.uint32(50)
-    r2_max = 0.64
-    d2 = (xyz[:, first : first + n] ** 2).sum(axis=0)
+    slots = rng.permutation(1000)[:size].astype(np.uint32)
+    packed = slots | (rng.integers(0, 27, size=size).astype(np.uint32) << _CODE_SHIFT)
     value = packed[first : first + n]
-    wanted = (d2 < r2_max) & ~((value >= skip_low) & (value <= skip_high))
-    masks = np.empty(size // 64 + 1, dtype=np.uint64)
-    neighbors = np.full(3 + n, -1, dtype=np.int32)
-    codes = np.full(3 + n, 255, dtype=np.uint8)
-    arrays = (np.ascontiguousarray(xyz[0]), np.ascontiguousarray(xyz[1]),
-              np.ascontiguousarray(xyz[2]), packed)  # fmt: skip
+    skip_low = np.uint32(value.min() if n else 0)  # drop a band of packed values
+    skip_high = np.uint32(skip_low + 50)
+    r2_max = 0.64
+    near = (xyz[:, first : first + n] ** 2).sum(axis=0) < r2_max
+    wanted = value[near & ~((value >= skip_low) & (value <= skip_high))]
+    arrays = tuple(np.ascontiguousarray(row) for row in xyz) + (packed,)
+    return arrays, skip_low, skip_high, r2_max, wanted
+
+
+@pytest.mark.parametrize("n", [0, 1, 37, 63, 64, 65, 127, 128, 129, 200])
+def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
+    """Near the end of a chunk's region the search tests candidates 64 at a time into
+    bit masks (``_keep``): for counts at and around multiples of 64, the kept packed
+    values equal a plain numpy selection, in order; the entries past the last candidate
+    (set to pass the test) are never kept, the own-column band is dropped, and past
+    the capacity the hits are counted but not written."""
+    from md._cell_kernels import _keep
+
+    first = 5
+    arrays, skip_low, skip_high, r2_max, wanted = _candidates(n, rng, first)
+    masks = np.empty(8, dtype=np.uint64)
+    out = np.full(3 + n, 7, dtype=np.uint32)
     found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
-                  1, 2, 3 + n, neighbors, codes)  # fmt: skip
-    assert found == wanted.sum()
-    assert np.array_equal(neighbors[3 : 3 + found], slots[first : first + n][wanted])
-    assert np.array_equal(codes[3 : 3 + found], codes_in[first : first + n][wanted])
-    assert np.all(neighbors[:3] == -1) and np.all(neighbors[3 + found :] == -1)
+                  1, 2, 3 + n, out)  # fmt: skip
+    assert found == len(wanted)
+    assert np.array_equal(out[3 : 3 + found], wanted)
+    assert np.all(out[:3] == 7) and np.all(out[3 + found :] == 7)
     # No room: counted, nothing written.
-    neighbors[:] = -1
+    out[:] = 7
     full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
-                 1, 2, 1 + found, neighbors, codes)  # fmt: skip
+                 1, 2, 1 + found, out)  # fmt: skip
     assert full == found
-    assert np.all(neighbors == -1)
+    assert np.all(out == 7)
+
+
+@pytest.mark.parametrize("path", ["scan", "permute"])
+@pytest.mark.parametrize("valid", [0, 1, 7, 8, 9, 37, 63, 64])
+def test_near_pack_writes_the_kept_candidates_in_order_on_both_paths(path, valid, rng):
+    """The search's main path writes the kept candidates of up to 64 as it tests them:
+    by AVX2 lane permutes (on x86 with AVX2) or by scanning a bit mask (every CPU).
+    Both keep exactly numpy's selection of the first ``valid`` candidates, in order,
+    return the new end, and write nothing before ``at`` or beyond the 8 entries from
+    the end."""
+    from numba import njit
+
+    import md._simd
+    from md._cell_kernels import _near_pack_permute, _near_pack_scan
+    from md._simd import PERMUTATIONS
+
+    if path == "permute" and not md._simd.PERMUTE:
+        pytest.skip("compiled for a CPU without AVX2: the permute path is not used")
+    pack = _near_pack_permute if path == "permute" else _near_pack_scan
+
+    @njit
+    def call(x, y, z, packed, start, valid, skip_low, span, out, at):
+        return pack(0.0, 0.0, 0.0, 0.64, x, y, z, packed, start, valid, skip_low, span,
+                    PERMUTATIONS, out, at)  # fmt: skip
+
+    first = 5
+    arrays, skip_low, skip_high, _, wanted = _candidates(valid, rng, first)
+    out = np.full(3 + 64 + 8, 7, dtype=np.uint32)
+    end = call(*arrays, first, valid, skip_low, np.uint32(skip_high - skip_low), out, 3)
+    assert end == 3 + len(wanted)
+    assert np.array_equal(out[3:end], wanted)
+    assert np.all(out[:3] == 7) and np.all(out[end + 8 :] == 7)
 
 
 @pytest.mark.parametrize("n_atoms", [0, 1, 2])

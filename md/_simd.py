@@ -1,0 +1,161 @@
+"""Small LLVM-IR building blocks for numba kernels, where numba has no way to say it.
+
+numba compiles Python loops to LLVM IR, and LLVM vectorises what it can
+prove safe; but some single machine operations have no Python spelling:
+
+- ``trailing_zeros`` and ``bit_count`` (LLVM's ``cttz`` and ``ctpop``: one
+  instruction each where the CPU has them), to walk the set bits of a mask;
+- ``float_bits`` and ``bits_float``, a float64 read as its int64 bit pattern
+  and back (for a maximum over non-negative floats that must also see NaNs:
+  the integer maximum vectorises, a float maximum that checks for NaN does not);
+- helpers for intrinsics that compute on LLVM vectors (``splat``,
+  ``array_data``, ``load_vector``, ``compare_mask``), and ``PERMUTE``, whether the
+  kernels are compiled for an x86 CPU with AVX2, whose ``vpermd`` moves
+  selected lanes of a vector to its front (``permute_lanes``, with
+  ``PERMUTATIONS``). Kernels that use it keep a portable path for every
+  other CPU.
+
+The CPU is the one numba compiles for: ``NUMBA_CPU_FEATURES`` when set, else
+the host's (numba's own rule; its cache keys compiled code on the same).
+No numba or llvmlite function here is private; none of them has a
+well-kept library equivalent, which is why they are written out here.
+"""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+from llvmlite import binding, ir
+from numba import types
+from numba.core import cgutils, config
+from numba.extending import intrinsic
+
+
+def _compiled_features() -> set[str]:
+    """The CPU features numba compiles for (``+avx2``, ``-avx512f``, ...)."""
+    features = config.CPU_FEATURES
+    if features is None:
+        features = binding.get_host_cpu_features().flatten()
+    return set(features.split(","))
+
+
+#: True when the kernels are compiled for x86-64 with AVX2 (``permute_lanes`` exists).
+PERMUTE = platform.machine().lower() in ("x86_64", "amd64") and "+avx2" in _compiled_features()
+
+
+def _permutation_table() -> np.ndarray:
+    """(256, 8) int32: row m lists the set bits of the 8-bit mask m, then zeros."""
+    table = np.zeros((256, 8), dtype=np.int32)
+    for m in range(256):
+        lanes = [k for k in range(8) if m >> k & 1]
+        table[m, : len(lanes)] = lanes
+    return table
+
+
+#: Lane orders for ``permute_lanes``: row m brings the lanes set in m to the front.
+PERMUTATIONS = _permutation_table()
+
+
+@intrinsic
+def trailing_zeros(typingctx, word):
+    """Index of the lowest set bit of a non-zero uint64 (LLVM's cttz), as an int64."""
+    sig = types.int64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        return builder.cttz(args[0], ir.Constant(ir.IntType(1), 1))
+
+    return sig, codegen
+
+
+@intrinsic
+def bit_count(typingctx, word):
+    """Number of set bits of a uint64 (LLVM's ctpop), as an int64."""
+    sig = types.int64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+
+    return sig, codegen
+
+
+@intrinsic
+def float_bits(typingctx, x):
+    """The bit pattern of a float64 as an int64."""
+    sig = types.int64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return sig, codegen
+
+
+@intrinsic
+def bits_float(typingctx, bits):
+    """The float64 of an int64 bit pattern (inverse of ``float_bits``)."""
+    sig = types.float64(types.int64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return sig, codegen
+
+
+# IR helpers for intrinsics (called inside their codegen).
+
+
+def is_vector_array(array, dtype) -> bool:
+    """Whether a numba type is a C-contiguous 1-D array of ``dtype`` (raw pointer reads)."""
+    return (
+        isinstance(array, types.Array)
+        and array.ndim == 1
+        and array.layout == "C"
+        and array.dtype == dtype
+    )
+
+
+def splat(builder, value, vector: ir.VectorType):
+    """``value`` in every lane of a ``vector``."""
+    undefined = ir.Constant(vector, ir.Undefined)
+    one = builder.insert_element(undefined, value, ir.Constant(ir.IntType(32), 0))
+    lanes = ir.Constant(ir.VectorType(ir.IntType(32), vector.count), [0] * vector.count)
+    return builder.shuffle_vector(one, undefined, lanes)
+
+
+def array_data(context, builder, array_type, array):
+    """Pointer to the first element of a numba array value."""
+    return context.make_array(array_type)(context, builder, array).data
+
+
+def _element_bytes(vector: ir.VectorType) -> int:
+    element = vector.element
+    return 8 if isinstance(element, ir.DoubleType) else element.width // 8
+
+
+def load_vector(builder, pointer, index, vector: ir.VectorType):
+    """The ``vector.count`` elements from ``pointer[index]`` (element alignment only)."""
+    address = builder.bitcast(builder.gep(pointer, [index]), vector.as_pointer())
+    return builder.load(address, align=_element_bytes(vector))
+
+
+def store_vector(builder, value, pointer, index) -> None:
+    """Store a vector at ``pointer[index]`` (element alignment only)."""
+    address = builder.bitcast(builder.gep(pointer, [index]), value.type.as_pointer())
+    builder.store(value, address, align=_element_bytes(value.type))
+
+
+def compare_mask(builder, condition) -> ir.Value:
+    """An <8 x i1> condition as an i64 with bit k = lane k (a movemask)."""
+    return builder.zext(builder.bitcast(condition, ir.IntType(8)), ir.IntType(64))
+
+
+def permute_lanes(builder, values, mask, table):
+    """The lanes of the <8 x i32> ``values`` set in ``mask`` (i64 < 256), moved to the
+    front, in order (the lanes after them undefined); ``table`` points at
+    ``PERMUTATIONS``. AVX2's vpermd: only where ``PERMUTE``."""
+    words = ir.VectorType(ir.IntType(32), 8)
+    permd = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(words, [words, words]), "llvm.x86.avx2.permd"
+    )
+    row = builder.mul(mask, ir.Constant(ir.IntType(64), 8))
+    return builder.call(permd, [values, load_vector(builder, table, row, words)])
