@@ -43,7 +43,7 @@ _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
 #: Slots the cell search copies at once (see ``_gather_run``): the coordinate rows it
 #: reads need this many readable entries past the last slot.
-GATHER_BLOCK = 4
+GATHER_BLOCK = 8
 
 
 @njit(cache=True, error_model="numpy")
@@ -223,10 +223,11 @@ def _frame_pairs(
     periodic axis, so the cells around any cell are distinct.
     """
     most = _most_per_cell(cell_starts, n_cells[2])
+    planes = _plane_order(wrapped, cell_starts, n_cells)
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, bounds, capacity, most, starts, neighbors, codes, counts,
+            cell_starts, planes, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
@@ -237,10 +238,11 @@ def _frame_pairs_threaded(
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     most = _most_per_cell(cell_starts, n_cells[2])
+    planes = _plane_order(wrapped, cell_starts, n_cells)
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, bounds, capacity, most, starts, neighbors, codes, counts,
+            cell_starts, planes, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
@@ -259,7 +261,7 @@ def _most_per_cell(cell_starts, nz):
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
     chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts,
-    bounds, capacity, most, starts, neighbors, codes, counts,
+    planes, bounds, capacity, most, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
@@ -306,8 +308,8 @@ def _frame_pairs_chunk(
         column_first = cell_starts[column * nz]
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
-            column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs, cx, cy,
-            cz, c_packed, z_start,
+            column, n_cells, reach, ghost, periodic, box, tilt, planes, cx, cy, cz, c_packed,
+            z_start,
         )  # fmt: skip
         # Packed values of the own column's unshifted slots up to slot i: the own
         # cell's earlier slots and the cells below list those pairs.
@@ -323,10 +325,16 @@ def _frame_pairs_chunk(
                 # (here, not in _keep: the inlined branch there slowed the loop by 25%)
                 span = np.uint32((unshifted | np.uint32(i)) - earlier)
                 at = base + count
-                for w in range(first, last, 64):
+                w = first
+                while w + 64 <= last:
+                    at = _near_pack_whole(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed,
+                                          w, 64, earlier, span, PERMUTATIONS, packed_list,
+                                          at)  # fmt: skip
+                    w += 64
+                if w < last:
                     at = _near_pack(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, w,
-                                    min(64, last - w), earlier, span, PERMUTATIONS,
-                                    packed_list, at)  # fmt: skip
+                                    last - w, earlier, span, PERMUTATIONS, packed_list,
+                                    at)  # fmt: skip
                 count = at - base
             else:
                 count += _keep(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, first, last,
@@ -345,89 +353,135 @@ def _frame_pairs_chunk(
 
 
 @njit(cache=True, error_model="numpy")
-def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, cell_starts, xs, ys, zs,
-                   cx, cy, cz, c_packed, z_start):  # fmt: skip
+def _plane_order(wrapped, cell_starts, n_cells):
+    """The slots again, ordered by z cell, then x, then y (cell (kz nx + kx) ny + ky).
+
+    Returns (x, y, z, slot, plane_starts): coordinates and slot number in
+    that order, padded with ``GATHER_BLOCK`` finite entries, and each cell's
+    start. Along y, the cells of one z layer and x row are then contiguous,
+    so the search copies its candidates in runs of several cells.
+    """
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    n = cell_starts[nx * ny * nz]
+    plane_starts = np.empty(nx * ny * nz + 1, dtype=np.int64)
+    px = np.zeros(n + GATHER_BLOCK)
+    py = np.zeros(n + GATHER_BLOCK)
+    pz = np.zeros(n + GATHER_BLOCK)
+    slot = np.zeros(n + GATHER_BLOCK, dtype=np.uint32)
+    at = 0
+    k = 0
+    for kz in range(nz):
+        for column in range(nx * ny):
+            cell = column * nz + kz
+            plane_starts[k] = at
+            k += 1
+            for p in range(cell_starts[cell], cell_starts[cell + 1]):
+                px[at] = wrapped[0, p]
+                py[at] = wrapped[1, p]
+                pz[at] = wrapped[2, p]
+                slot[at] = p
+                at += 1
+    plane_starts[k] = at
+    return px, py, pz, slot, plane_starts
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, cx, cy, cz,
+                   c_packed, z_start):  # fmt: skip
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
-    The forward neighbour columns and then the column itself go to ``cx, cy,
-    cz`` (slots and codes packed in ``c_packed``) by z cell, cell zc - ghost
-    from ``z_start[zc]``; the column itself has no image cells below its
-    bottom (those pairs are listed from below).
+    Per z cell (cell zc - ghost from ``z_start[zc]``), the column's own cell and
+    its forward neighbours: for x offset 0 the cells at y offsets 0 to reach,
+    for x offsets 1 to reach those at -reach to reach. In ``planes``
+    (``_plane_order``) each such row of cells is one run of slots, or two
+    where it wraps along y; they go to ``cx, cy, cz`` shifted by their
+    image (slots and codes packed in ``c_packed``). The own cell has no
+    image cells below the bottom (those pairs are listed from below).
     """
+    px, py, pz, p_slot, plane_starts = planes
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     kx0 = column // ny
     ky0 = column % ny
-    n_columns = reach * (2 * reach + 1) + reach + 1
-    # The forward columns, then the own one: first cell, shift and code from their
-    # wraps along x and y.
-    bases = np.empty(n_columns, dtype=np.int64)
-    shift_x = np.empty(n_columns)
-    shift_y = np.empty(n_columns)
-    code_xy = np.empty(n_columns, dtype=np.int64)
-    n_forward = 0
+    # Runs of cells along y in one x row: x cell, first and last y cell, shift and
+    # code from the wraps along x and y; whether the run starts with the own cell.
+    most = 2 * (reach + 1)
+    run_x = np.empty(most, dtype=np.int64)
+    run_first = np.empty(most, dtype=np.int64)
+    run_last = np.empty(most, dtype=np.int64)
+    shift_x = np.empty(most)
+    shift_y = np.empty(most)
+    code_xy = np.empty(most, dtype=np.int64)
+    n_runs = 0
     for ox in range(0, reach + 1):
         kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
         if kx < 0:
             continue
-        for oy in range(-reach, reach + 1):
-            if ox == 0 and oy <= 0:
-                continue
+        last_wy = 2  # no run open
+        for oy in range(0 if ox == 0 else -reach, reach + 1):
             ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
             if ky < 0:
+                last_wy = 2
                 continue
-            bases[n_forward] = (kx * ny + ky) * nz
-            shift_x[n_forward] = wx * box[0] + wy * xy
-            shift_y[n_forward] = wy * box[1]
-            code_xy[n_forward] = (wx + 1) * 9 + (wy + 1) * 3 + 1
-            n_forward += 1
-    bases[n_forward] = column * nz
-    shift_x[n_forward] = 0.0
-    shift_y[n_forward] = 0.0
-    code_xy[n_forward] = 9 + 3 + 1
+            if wy == last_wy:
+                run_last[n_runs - 1] = ky
+                continue
+            run_x[n_runs] = kx
+            run_first[n_runs] = ky
+            run_last[n_runs] = ky
+            shift_x[n_runs] = wx * box[0] + wy * xy
+            shift_y[n_runs] = wy * box[1]
+            code_xy[n_runs] = (wx + 1) * 9 + (wy + 1) * 3 + 1
+            last_wy = wy
+            n_runs += 1
     m = 0
     for zc in range(nz + 2 * ghost):
         z_start[zc] = m
         kz, wz = _neighbor_cell(zc - ghost, 0, nz, periodic[2])
-        # below the bottom only the forward columns; from there on the own one too
-        used = n_forward if zc < ghost else n_forward + 1
-        for c in range(used):
-            cell = bases[c] + kz
+        layer = kz * nx
+        for r in range(n_runs):
+            first_y = run_first[r]
+            if r == 0 and zc < ghost:  # below the bottom: not the own cell
+                if first_y == run_last[r]:
+                    continue
+                first_y += 1
+            row = (layer + run_x[r]) * ny
             m = _gather_run(
-                cell_starts[cell], cell_starts[cell + 1], shift_x[c] + wz * xz,
-                shift_y[c] + wz * yz, wz * box[2], code_xy[c] + wz, xs, ys, zs, cx, cy, cz,
-                c_packed, m,
+                plane_starts[row + first_y], plane_starts[row + run_last[r] + 1],
+                shift_x[r] + wz * xz, shift_y[r] + wz * yz, wz * box[2], code_xy[r] + wz,
+                px, py, pz, p_slot, cx, cy, cz, c_packed, m,
             )  # fmt: skip
     z_start[nz + 2 * ghost] = m
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, cx, cy, cz, c_packed, m):
-    """Append slots first..last-1, shifted by s, to the candidates at m; return the new end.
+def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, slots, cx, cy, cz, c_packed, m):
+    """Append entries first..last-1, shifted by s, to the candidates at m; return the new end.
 
-    ``c_packed`` gets each slot with the image code in its top bits (``MAX_SLOTS``).
-    Copies whole blocks of ``GATHER_BLOCK`` slots, so a run (a cell: a few
-    slots) takes one block of fixed length, with no loop exit to mispredict;
-    what lies past ``last`` is copied too and overwritten by the next run or
-    never read. So ``xs, ys, zs`` need ``GATHER_BLOCK`` readable entries past
-    the last slot, and the candidate arrays as many past their last candidate.
+    ``c_packed`` gets each entry's slot with the image code in its top bits
+    (``MAX_SLOTS``). Copies whole blocks of ``GATHER_BLOCK`` entries, so a
+    short run takes one block of fixed length; what lies past ``last`` is
+    copied too and overwritten by the next run or never read. So the source
+    arrays need ``GATHER_BLOCK`` readable entries past their last one, and the
+    candidate arrays as many past their last candidate.
     """
     n = last - first
     fx = xs[first:]
     fy = ys[first:]
     fz = zs[first:]
+    f_slot = slots[first:]
     tx = cx[m:]
     ty = cy[m:]
     tz = cz[m:]
     t_packed = c_packed[m:]
-    tagged = np.uint32(first) | (np.uint32(code) << _CODE_SHIFT)
+    tag = np.uint32(code) << _CODE_SHIFT
     done = 0
     while True:
         for k in range(GATHER_BLOCK):
             tx[done + k] = fx[done + k] + sx
             ty[done + k] = fy[done + k] + sy
             tz[done + k] = fz[done + k] + sz
-            t_packed[done + k] = tagged + np.uint32(done + k)
+            t_packed[done + k] = f_slot[done + k] | tag
         done += GATHER_BLOCK
         if done >= n:
             return m + n
@@ -506,22 +560,25 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_lo
     return sig, codegen
 
 
-@intrinsic
-def _near_pack_permute(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid,
-                       skip_low, span, table, out, at):  # fmt: skip
-    """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``).
+def _permute_packer(whole: bool):
+    """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``); ``whole``:
+    for 64 valid candidates (no lane count test).
 
     Per block of 8 candidates (``_Candidates``), the kept lanes' packed
     values move to the front of the vector (``permute_lanes``); all 8 lanes
     are stored at ``out[at:]`` and ``at`` advances by the kept count, so the
     next block overwrites the rest: no loop, no branch per candidate or hit.
     """
-    if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(out, types.uint32)):
-        return None
-    sig = types.int64(
-        types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
-        types.intp, types.intp, types.uint32, types.uint32, table, out, types.intp,
-    )  # fmt: skip
+
+    def typer(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
+              table, out, at):  # fmt: skip
+        if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(out, types.uint32)):
+            return None
+        sig = types.int64(
+            types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
+            types.intp, types.intp, types.uint32, types.uint32, table, out, types.intp,
+        )  # fmt: skip
+        return sig, codegen
 
     def codegen(context, builder, signature, args):
         i32 = ir.IntType(32)
@@ -533,14 +590,20 @@ def _near_pack_permute(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start,
         at = args[14]
         for block in range(8):
             values, kept = test.block(block, low, span)
-            lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
-            kept = builder.and_(kept, builder.icmp_signed("<", lanes, valid))
+            if not whole:
+                lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
+                kept = builder.and_(kept, builder.icmp_signed("<", lanes, valid))
             mask = compare_mask(builder, kept)
             store_vector(builder, permute_lanes(builder, values, mask, rows), target, at)
             at = builder.add(at, builder.ctpop(mask))
         return at
 
-    return sig, codegen
+    typer.__name__ = "_near_pack_whole" if whole else "_near_pack_permute"
+    return intrinsic(typer)
+
+
+_near_pack_permute = _permute_packer(whole=False)
+_near_pack_permute_whole = _permute_packer(whole=True)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -563,6 +626,8 @@ def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_l
 #: their packed values, at ``out[at:]`` in order; return the new end. The 8 entries
 #: from it on may be overwritten (the permute path stores whole blocks).
 _near_pack = _near_pack_permute if PERMUTE else _near_pack_scan
+#: ``_near_pack`` for exactly 64 candidates (``valid`` ignored).
+_near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
 
 @njit(cache=True, inline="always", error_model="numpy")

@@ -160,23 +160,29 @@ def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
     assert np.all(out == 7)
 
 
-@pytest.mark.parametrize("path", ["scan", "permute"])
+@pytest.mark.parametrize("path", ["scan", "permute", "permute-whole"])
 @pytest.mark.parametrize("valid", [0, 1, 7, 8, 9, 37, 63, 64])
-def test_near_pack_writes_the_kept_candidates_in_order_on_both_paths(path, valid, rng):
+def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid, rng):
     """The search's main path writes the kept candidates of up to 64 as it tests them:
-    by AVX2 lane permutes (on x86 with AVX2) or by scanning a bit mask (every CPU).
-    Both keep exactly numpy's selection of the first ``valid`` candidates, in order,
-    return the new end, and write nothing before ``at`` or beyond the 8 entries from
-    the end."""
+    by AVX2 lane permutes (on x86 with AVX2; a variant for whole words of 64) or by
+    scanning a bit mask (every CPU). Each keeps exactly numpy's selection of the first
+    ``valid`` candidates, in order, returns the new end, and writes nothing before
+    ``at`` or beyond the 8 entries from the end."""
     from numba import njit
 
     import md._simd
-    from md._cell_kernels import _near_pack_permute, _near_pack_scan
+    from md._cell_kernels import _near_pack_permute, _near_pack_permute_whole, _near_pack_scan
     from md._simd import PERMUTATIONS
 
-    if path == "permute" and not md._simd.PERMUTE:
+    if path != "scan" and not md._simd.PERMUTE:
         pytest.skip("compiled for a CPU without AVX2: the permute path is not used")
-    pack = _near_pack_permute if path == "permute" else _near_pack_scan
+    if path == "permute-whole" and valid != 64:
+        pytest.skip("the whole-word variant takes exactly 64 candidates")
+    pack = {
+        "scan": _near_pack_scan,
+        "permute": _near_pack_permute,
+        "permute-whole": _near_pack_permute_whole,
+    }[path]
 
     @njit
     def call(x, y, z, packed, start, valid, skip_low, span, out, at):
