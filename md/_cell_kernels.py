@@ -297,6 +297,8 @@ def _frame_pairs_chunk(
     c_packed = np.empty(size + 64, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
     masks = np.empty(size // 64 + 1, dtype=np.uint64)
+    runs = np.empty((4, 2 * reach + 2), dtype=np.int64)
+    run_shifts = np.empty((2, 2 * reach + 2))
     unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     packed_list = neighbors.view(np.uint32)  # the search writes packed values, unpacked last
@@ -308,8 +310,8 @@ def _frame_pairs_chunk(
         column_first = cell_starts[column * nz]
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
-            column, n_cells, reach, ghost, periodic, box, tilt, planes, cx, cy, cz, c_packed,
-            z_start,
+            column, n_cells, reach, ghost, periodic, box, tilt, planes, runs, run_shifts, cx,
+            cy, cz, c_packed, z_start,
         )  # fmt: skip
         # Packed values of the own column's unshifted slots up to slot i: the own
         # cell's earlier slots and the cells below list those pairs.
@@ -386,8 +388,8 @@ def _plane_order(wrapped, cell_starts, n_cells):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, cx, cy, cz,
-                   c_packed, z_start):  # fmt: skip
+def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, runs,
+                   run_shifts, cx, cy, cz, c_packed, z_start):  # fmt: skip
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
     Per z cell (cell zc - ghost from ``z_start[zc]``), the column's own cell and
@@ -397,21 +399,18 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, c
     where it wraps along y; they go to ``cx, cy, cz`` shifted by their
     image (slots and codes packed in ``c_packed``). The own cell has no
     image cells below the bottom (those pairs are listed from below).
+    ``runs`` (int64) and ``run_shifts`` (float64), shape (4, 2 reach + 2) and
+    (2, 2 reach + 2), are scratch for the runs.
     """
     px, py, pz, p_slot, plane_starts = planes
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     kx0 = column // ny
     ky0 = column % ny
-    # Runs of cells along y in one x row: x cell, first and last y cell, shift and
-    # code from the wraps along x and y; whether the run starts with the own cell.
-    most = 2 * (reach + 1)
-    run_x = np.empty(most, dtype=np.int64)
-    run_first = np.empty(most, dtype=np.int64)
-    run_last = np.empty(most, dtype=np.int64)
-    shift_x = np.empty(most)
-    shift_y = np.empty(most)
-    code_xy = np.empty(most, dtype=np.int64)
+    # Runs of cells along y in one x row: x cell, first and last y cell, code and
+    # shift from the wraps along x and y (the first run starts with the own cell).
+    run_x, run_first, run_last, code_xy = runs[0], runs[1], runs[2], runs[3]
+    shift_x, shift_y = run_shifts[0], run_shifts[1]
     n_runs = 0
     for ox in range(0, reach + 1):
         kx, wx = _neighbor_cell(kx0, ox, nx, periodic[0])
@@ -459,32 +458,60 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, slots, cx, cy, cz, c_
     """Append entries first..last-1, shifted by s, to the candidates at m; return the new end.
 
     ``c_packed`` gets each entry's slot with the image code in its top bits
-    (``MAX_SLOTS``). Copies whole blocks of ``GATHER_BLOCK`` entries, so a
-    short run takes one block of fixed length; what lies past ``last`` is
-    copied too and overwritten by the next run or never read. So the source
-    arrays need ``GATHER_BLOCK`` readable entries past their last one, and the
-    candidate arrays as many past their last candidate.
+    (``MAX_SLOTS``). Copies whole blocks of ``GATHER_BLOCK`` entries
+    (``_copy_block``), so a short run takes one block; what lies past
+    ``last`` is copied too and overwritten by the next run or never read. So
+    the source arrays need ``GATHER_BLOCK`` readable entries past their last
+    one, and the candidate arrays as many past their last candidate.
     """
-    n = last - first
-    fx = xs[first:]
-    fy = ys[first:]
-    fz = zs[first:]
-    f_slot = slots[first:]
-    tx = cx[m:]
-    ty = cy[m:]
-    tz = cz[m:]
-    t_packed = c_packed[m:]
     tag = np.uint32(code) << _CODE_SHIFT
     done = 0
     while True:
-        for k in range(GATHER_BLOCK):
-            tx[done + k] = fx[done + k] + sx
-            ty[done + k] = fy[done + k] + sy
-            tz[done + k] = fz[done + k] + sz
-            t_packed[done + k] = f_slot[done + k] | tag
+        _copy_block(xs, ys, zs, slots, first + done, sx, sy, sz, tag, cx, cy, cz, c_packed,
+                    m + done)  # fmt: skip
         done += GATHER_BLOCK
-        if done >= n:
-            return m + n
+        if done >= last - first:
+            return m + last - first
+
+
+@intrinsic
+def _copy_block(typingctx, xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
+    """Copy ``GATHER_BLOCK`` entries from ``first`` to the candidates at ``m``: coordinates
+    plus (sx, sy, sz), slots or'ed with ``tag``.
+
+    As vectors (one load, add and store per array): numba's element loop
+    here stayed scalar, the compiler unsure that source and target differ.
+    """
+    doubles = (xs, ys, zs, cx, cy, cz)
+    if not (
+        all(is_vector_array(a, types.float64) for a in doubles)
+        and is_vector_array(slots, types.uint32)
+        and is_vector_array(c_packed, types.uint32)
+    ):
+        return None
+    sig = types.void(
+        xs, ys, zs, slots, types.intp, types.float64, types.float64, types.float64,
+        types.uint32, cx, cy, cz, c_packed, types.intp,
+    )  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        width = GATHER_BLOCK
+        vector = ir.VectorType(ir.DoubleType(), width)
+        words = ir.VectorType(ir.IntType(32), width)
+        data = [array_data(context, builder, signature.args[k], args[k]) for k in range(14)
+                if k not in (4, 5, 6, 7, 8, 13)]  # fmt: skip
+        sources, targets = data[:4], data[4:]
+        first, m = args[4], args[13]
+        for source, target, shift in zip(sources[:3], targets[:3], args[5:8], strict=True):
+            moved = builder.fadd(load_vector(builder, source, first, vector),
+                                 splat(builder, shift, vector))  # fmt: skip
+            store_vector(builder, moved, target, m)
+        tagged = builder.or_(load_vector(builder, sources[3], first, words),
+                             splat(builder, args[8], words))  # fmt: skip
+        store_vector(builder, tagged, targets[3], m)
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 class _Candidates:
