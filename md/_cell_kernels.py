@@ -83,19 +83,9 @@ def _grid_cell(g, origin, inverse_width, n):
 
 @njit(cache=True, error_model="numpy")
 def _bin_atoms(
-    positions,
-    origin,
-    cell_width,
-    n_cells,
-    periodic,
-    box,
-    tilt,
-    cell_of,
-    cell_starts,
-    order,
-    sorted_wrapped,
-    images,
-):
+    positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of, cell_starts, order,
+    sorted_wrapped, images,
+):  # fmt: skip
     """Counting sort of atoms by cell (cells of the restricted triclinic cell).
 
     Atoms are binned by their sheared-back coordinates g (``md.box.fractional``:
@@ -103,7 +93,8 @@ def _bin_atoms(
     the cell is a rectangular box of edges ``box``; ``tilt`` (xy, xz, yz) is
     zero for an orthorhombic box, where g is the position. Writes
     ``cell_of[i]`` (flat cell index of atom i), ``cell_starts``
-    (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell),
+    (n_cells + 1 CSR offsets), ``order`` (atom indices grouped by cell, in
+    index order within a cell),
     ``sorted_wrapped[:, p]`` (shape (3, N): coordinates in rows), the
     position of atom ``order[p]`` wrapped into
     the cell (g in [0, L)) along periodic axes, so a cell's atoms are
@@ -111,13 +102,47 @@ def _bin_atoms(
     to wrap it: ``sorted_wrapped[:, p] == positions[order[p]] + images[p] @ h``
     (h the cell matrix) up to round-off, exactly for an orthorhombic box.
     Open axes are clamped to the grid, whose origin and width the caller
-    chose to span the atoms.
+    chose to span the atoms. ``_bin_atoms_threaded`` (same arguments and
+    ``chunks``) gives the same result on numba's threads.
     """
     n = positions.shape[0]
+    total = n_cells[0] * n_cells[1] * n_cells[2]
+    counts = np.zeros((1, total), dtype=np.int64)
+    moved = np.empty((n, 3))  # wrapped positions, by atom
+    wraps = np.empty((n, 3), dtype=np.int32)
+    _bin_pass(0, n, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
+              moved, wraps, counts[0])  # fmt: skip
+    _cell_offsets(counts, cell_starts)
+    _scatter_pass(0, n, cell_of, moved, wraps, counts[0], order, sorted_wrapped, images)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _bin_atoms_threaded(
+    positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of, cell_starts, order,
+    sorted_wrapped, images, chunks,
+):  # fmt: skip
+    """``_bin_atoms`` with its two passes over atoms in ``chunks`` chunks on numba's
+    threads; each chunk's atoms take their places in a cell after the earlier
+    chunks', so the result is the serial one."""
+    n = positions.shape[0]
+    total = n_cells[0] * n_cells[1] * n_cells[2]
+    counts = np.zeros((chunks, total), dtype=np.int64)
+    moved = np.empty((n, 3))
+    wraps = np.empty((n, 3), dtype=np.int32)
+    for c in prange(chunks):
+        _bin_pass(c * n // chunks, (c + 1) * n // chunks, positions, origin, cell_width,
+                  n_cells, periodic, box, tilt, cell_of, moved, wraps, counts[c])  # fmt: skip
+    _cell_offsets(counts, cell_starts)
+    for c in prange(chunks):
+        _scatter_pass(c * n // chunks, (c + 1) * n // chunks, cell_of, moved, wraps, counts[c],
+                      order, sorted_wrapped, images)  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _bin_pass(first, last, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
+              moved, wraps, counts):  # fmt: skip
+    """Atoms first..last-1: cell, wrapped position and wraps; ``counts`` per cell."""
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    total = nx * ny * nz
-    for c in range(total + 1):
-        cell_starts[c] = 0
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
     # Products with reciprocals, not divisions (the divisions were most of the time).
@@ -125,9 +150,7 @@ def _bin_atoms(
     # wrapped position agree even where a product rounds across an edge.
     inverse_box = 1.0 / box
     inverse_width = 1.0 / cell_width
-    moved = np.empty((n, 3))  # wrapped positions, by atom
-    wraps = np.empty((n, 3), dtype=np.int32)
-    for i in range(n):
+    for i in range(first, last):
         x = positions[i, 0]
         y = positions[i, 1]
         z = positions[i, 2]
@@ -145,7 +168,7 @@ def _bin_atoms(
         kz = _grid_cell(gz + box[2] * wz, origin[2], inverse_width[2], nz)
         c = (kx * ny + ky) * nz + kz
         cell_of[i] = c
-        cell_starts[c + 1] += 1
+        counts[c] += 1
         x += box[0] * wx
         y += box[1] * wy
         z += box[2] * wz
@@ -158,10 +181,26 @@ def _bin_atoms(
         wraps[i, 0] = np.int32(wx)
         wraps[i, 1] = np.int32(wy)
         wraps[i, 2] = np.int32(wz)
-    for c in range(total):
-        cell_starts[c + 1] += cell_starts[c]
-    fill = cell_starts[:total].copy()
-    for i in range(n):
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _cell_offsets(counts, cell_starts):
+    """``cell_starts`` from the chunks' counts (chunks, cells), and each chunk's count
+    replaced by the slot where its first atom of that cell goes."""
+    at = 0
+    for c in range(counts.shape[1]):
+        cell_starts[c] = at
+        for chunk in range(counts.shape[0]):
+            here = counts[chunk, c]
+            counts[chunk, c] = at
+            at += here
+    cell_starts[counts.shape[1]] = at
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _scatter_pass(first, last, cell_of, moved, wraps, fill, order, sorted_wrapped, images):
+    """Atoms first..last-1 to their slots, from the slots ``fill`` (per cell) on."""
+    for i in range(first, last):
         c = cell_of[i]
         p = fill[c]
         order[p] = i
@@ -238,7 +277,7 @@ def _frame_pairs_threaded(
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     most = _most_per_cell(cell_starts, n_cells[2])
-    planes = _plane_order(wrapped, cell_starts, n_cells)
+    planes = _plane_order_threaded(wrapped, cell_starts, n_cells)
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
@@ -362,14 +401,29 @@ def _plane_order(wrapped, cell_starts, n_cells):
     that order, padded with ``GATHER_BLOCK`` finite entries, and each cell's
     start. Along y, the cells of one z layer and x row are then contiguous,
     so the search copies its candidates in runs of several cells.
+    ``_plane_order_threaded`` fills the z layers on numba's threads.
     """
+    planes = _plane_arrays(cell_starts, n_cells)
+    for kz in range(n_cells[2]):
+        _fill_layer(kz, wrapped, cell_starts, n_cells, planes)
+    return planes
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _plane_order_threaded(wrapped, cell_starts, n_cells):
+    """``_plane_order`` with the z layers filled on numba's threads."""
+    planes = _plane_arrays(cell_starts, n_cells)
+    for kz in prange(n_cells[2]):
+        _fill_layer(kz, wrapped, cell_starts, n_cells, planes)
+    return planes
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _plane_arrays(cell_starts, n_cells):
+    """The arrays of ``_plane_order``, with the cell starts filled in."""
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     n = cell_starts[nx * ny * nz]
     plane_starts = np.empty(nx * ny * nz + 1, dtype=np.int64)
-    px = np.zeros(n + GATHER_BLOCK)
-    py = np.zeros(n + GATHER_BLOCK)
-    pz = np.zeros(n + GATHER_BLOCK)
-    slot = np.zeros(n + GATHER_BLOCK, dtype=np.uint32)
     at = 0
     k = 0
     for kz in range(nz):
@@ -377,14 +431,29 @@ def _plane_order(wrapped, cell_starts, n_cells):
             cell = column * nz + kz
             plane_starts[k] = at
             k += 1
-            for p in range(cell_starts[cell], cell_starts[cell + 1]):
-                px[at] = wrapped[0, p]
-                py[at] = wrapped[1, p]
-                pz[at] = wrapped[2, p]
-                slot[at] = p
-                at += 1
+            at += cell_starts[cell + 1] - cell_starts[cell]
     plane_starts[k] = at
+    px = np.zeros(n + GATHER_BLOCK)
+    py = np.zeros(n + GATHER_BLOCK)
+    pz = np.zeros(n + GATHER_BLOCK)
+    slot = np.zeros(n + GATHER_BLOCK, dtype=np.uint32)
     return px, py, pz, slot, plane_starts
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _fill_layer(kz, wrapped, cell_starts, n_cells, planes):
+    """Copy the slots of z layer kz into ``planes`` (``_plane_order``)."""
+    px, py, pz, slot, plane_starts = planes
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    at = plane_starts[kz * nx * ny]
+    for column in range(nx * ny):
+        cell = column * nz + kz
+        for p in range(cell_starts[cell], cell_starts[cell + 1]):
+            px[at] = wrapped[0, p]
+            py[at] = wrapped[1, p]
+            pz[at] = wrapped[2, p]
+            slot[at] = p
+            at += 1
 
 
 @njit(cache=True, error_model="numpy")

@@ -416,3 +416,73 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
             broken[atom, axis] = bad
             assert _max_displacement2(broken, reference) == np.inf
             assert _max_displacement2_threaded(broken, reference, 3) == np.inf
+
+
+def test_list_back_in_its_build_cell_takes_the_build_lengths_again(random_gas):
+    """A list that followed a barostat's small cell change and sees the build's cell
+    again (the fast same-cell test of every step) returns to the build's lengths and
+    shifts, without a rebuild, and its frame positions are the atoms' again."""
+    state = random_gas(200, 7.0)
+    nl = NeighborList(cutoff=1.5, skin=0.4)
+    nl.update(state)
+    lengths, shifts = nl.lengths.copy(), nl.shifts.copy()
+    state.box[0] = 7.02
+    assert not nl.update(state) and nl.n_followed == 1
+    assert nl.lengths[0] == 7.02 and not np.array_equal(nl.shifts, shifts)
+    state.box[0] = 7.0
+    assert not nl.update(state) and nl.n_builds == 1
+    assert np.array_equal(nl.lengths, lengths) and np.array_equal(nl.shifts, shifts)
+    wrapped = md.box.wrap(state.positions[nl.order], state.box, state.pbc)[0]
+    assert np.allclose(nl.frame_positions(state.positions), wrapped, rtol=0.0, atol=1e-12)
+    assert_list_is_exact(nl, state)
+
+
+@pytest.mark.parametrize("chunks", [2, 3, 5])
+@pytest.mark.parametrize("shape", ["periodic", "open", "sheared"])
+def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, rng):
+    """The cell search's counting sort and its second (z, x, y) layout run in chunks on
+    threads; each gives exactly the serial result, atoms in index order within a cell."""
+    from md._cell_kernels import (
+        GATHER_BLOCK,
+        _bin_atoms,
+        _bin_atoms_threaded,
+        _plane_order,
+        _plane_order_threaded,
+    )
+
+    n = 3000
+    positions = rng.uniform(-3.0, 13.0, size=(n, 3))  # some outside the box
+    pbc = np.array([shape != "open", True, True])
+    box = np.array([10.0, 10.0, 10.0])
+    tilt = np.array([1.5, -2.0, 0.5]) if shape == "sheared" else np.zeros(3)
+    origin = np.array([positions[:, 0].min(), 0.0, 0.0]) if shape == "open" else np.zeros(3)
+    n_cells = np.array([6, 7, 8])
+    width = np.array([(positions[:, 0].max() - origin[0]) / 6 if shape == "open" else 10 / 6,
+                      10 / 7, 10 / 8])  # fmt: skip
+
+    def binned(threaded):
+        out = (
+            np.empty(n, dtype=np.int64), np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64),
+            np.empty(n, dtype=np.int64), np.zeros((3, n + GATHER_BLOCK)),
+            np.empty((n, 3), dtype=np.int32),
+        )  # fmt: skip
+        arguments = (positions, origin, width, n_cells, pbc, box, tilt, *out)
+        if threaded:
+            _bin_atoms_threaded(*arguments, chunks)
+        else:
+            _bin_atoms(*arguments)
+        return out
+
+    serial, threaded = binned(False), binned(True)
+    for a, b in zip(serial, threaded, strict=True):
+        assert np.array_equal(a, b)
+    cell_of, cell_starts, order = serial[0], serial[1], serial[2]
+    assert np.all(np.diff(cell_of[order]) >= 0)  # grouped by cell
+    for c in range(len(cell_starts) - 1):  # index order within a cell
+        assert np.all(np.diff(order[cell_starts[c] : cell_starts[c + 1]]) > 0)
+    planes = _plane_order(serial[3], cell_starts, n_cells)
+    for a, b in zip(planes, _plane_order_threaded(serial[3], cell_starts, n_cells), strict=True):
+        assert np.array_equal(a, b)
+    px, _, _, slot, plane_starts = planes
+    assert np.array_equal(np.sort(slot[:n]), np.arange(n))
+    assert np.array_equal(px[:n], serial[3][0, slot[:n]])
