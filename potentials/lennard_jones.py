@@ -366,7 +366,9 @@ class LennardJones:
 
     def _frame_hessian(self, state, frame, n_types, table) -> PairHessian:
         """``hessian_operator`` over a slot-frame list: two threaded passes, one to count
-        each chunk's pairs inside the cutoff, one to write them where the counts say."""
+        the pairs inside the cutoff of every chunk but the last, one to write each
+        chunk's where the counts say (the last one's with room for all its listed
+        pairs). The Jacobi diagonal is summed when the solver asks for it."""
         n = state.n_atoms
         chunks = frame.n_chunks
         slot_positions = np.empty((n, 3))
@@ -380,37 +382,42 @@ class LennardJones:
         count = _lj_frame_inside_threaded if chunks > 1 else _lj_frame_inside
         count(state.positions, state.types, slots, n_types, table, slot_positions, slot_types,
               counts)  # fmt: skip
+        # Every chunk but the last at its counted place; the last with room for all its
+        # listed pairs, so nothing needs counting there.
+        last_rows = frame.bounds[chunks - 1 : chunks + 1]
+        counts[-1] = frame.starts[last_rows[1]] - frame.starts[last_rows[0]]
         offsets = np.zeros(chunks + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
-        n_pairs = int(offsets[-1])
+        room = int(offsets[-1])
         # The blocks go into buffers kept from the last call when nothing uses them any
         # more (the last operator is gone): fresh arrays of tens of MB cost page faults
         # that take as long as writing them.
         held = getattr(self, "_hessian_buffers", None)
-        if held is None or held[0].shape[0] < n_pairs or not _unshared(held):
-            size = int(n_pairs * 1.05) + 1024
+        if held is None or held[0].shape[0] < room or not _unshared(held):
+            size = int(room * 1.05) + 1024
             held = (
                 np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int32), np.empty(size),
                 np.empty(size), np.empty((size, 3)),
             )  # fmt: skip
             self._hessian_buffers = held
-        out = tuple(buffer[:n_pairs] for buffer in held)
+        out = tuple(buffer[:room] for buffer in held)
         write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
         written = np.zeros(chunks, dtype=np.int64)
         write(slot_positions, slot_types, slots, n_types, table, CUTOFF_MODES[self.cutoff_mode],
               offsets, out, written)  # fmt: skip
-        if not np.array_equal(written, counts):
+        if not np.array_equal(written[:-1], counts[:-1]):
             # The two passes disagree on a pair at the cutoff to the last bit (their
             # loops may round r^2 differently): write again where the second pass says.
             np.cumsum(written, out=offsets[1:])
-            n_pairs = int(offsets[-1])
-            if held[0].shape[0] < n_pairs:
-                held = tuple(np.empty((n_pairs,) + b.shape[1:], dtype=b.dtype) for b in held)
+            room = int(offsets[-1])
+            if held[0].shape[0] < room:
+                held = tuple(np.empty((room,) + b.shape[1:], dtype=b.dtype) for b in held)
                 self._hessian_buffers = held
-            out = tuple(buffer[:n_pairs] for buffer in held)
+            out = tuple(buffer[:room] for buffer in held)
             write(slot_positions, slot_types, slots, n_types, table,
                   CUTOFF_MODES[self.cutoff_mode], offsets, out, written)  # fmt: skip
-        return PairHessian(n, *out)
+        n_pairs = int(offsets[chunks - 1] + written[chunks - 1])
+        return PairHessian(n, *(buffer[:n_pairs] for buffer in out))
 
     def describe(self) -> dict:
         out = {
@@ -952,10 +959,14 @@ def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
 # ------------------------------------------------------- curvatures in the slot frame
 @njit(cache=True, error_model="numpy")
 def _lj_frame_inside(positions, types, slots, n_types, table, frame, frame_types, counts):
-    """Gather the slot frame and count each chunk's pairs inside their cutoff into ``counts``.
+    """Gather the slot frame and count the pairs inside their cutoff of every chunk but
+    the last into ``counts`` (the last chunk's entry is left alone).
 
-    The first pass of ``_lj_frame_curvatures``; ``_lj_frame_inside_threaded``
-    runs the chunks on numba's threads.
+    The first pass of ``_lj_frame_curvatures``: the counts place each chunk's
+    pairs, and the last chunk's need no place after them (it gets room for all
+    its listed pairs). So the rows before the last chunk are counted, split
+    into as many pieces as there are chunks, by listed pairs;
+    ``_lj_frame_inside_threaded`` counts the pieces on numba's threads.
     """
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
@@ -963,45 +974,76 @@ def _lj_frame_inside(positions, types, slots, n_types, table, frame, frame_types
         _gather_frame(
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
-    for chunk in range(n_chunks):
-        counts[chunk] = _lj_inside_count(chunk, frame, frame_types, slots, n_types, table)
+    pieces, rows = _count_pieces(slots[4], slots[7], positions.shape[0])
+    for piece in range(n_chunks):
+        _lj_inside_count(pieces[piece], pieces[piece + 1], frame, frame_types, slots, n_types,
+                         table, rows)  # fmt: skip
+    _chunk_counts(slots[7], rows, counts)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _lj_frame_inside_threaded(positions, types, slots, n_types, table, frame, frame_types,
                               counts):  # fmt: skip
-    """``_lj_frame_inside`` with one chunk per thread (same arguments, same result)."""
+    """``_lj_frame_inside`` on numba's threads (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
         _gather_frame(
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
-    for chunk in prange(n_chunks):
-        counts[chunk] = _lj_inside_count(chunk, frame, frame_types, slots, n_types, table)
+    pieces, rows = _count_pieces(slots[4], slots[7], positions.shape[0])
+    for piece in prange(n_chunks):
+        _lj_inside_count(pieces[piece], pieces[piece + 1], frame, frame_types, slots, n_types,
+                         table, rows)  # fmt: skip
+    _chunk_counts(slots[7], rows, counts)
+
+
+@njit(cache=True, error_model="numpy")
+def _count_pieces(starts, bounds, n):
+    """Row bounds of the counting pieces (rows of every chunk but the last, split evenly
+    by listed pairs) and the (N,) per-row counts to fill."""
+    n_chunks = bounds.shape[0] - 1
+    first, last = bounds[0], bounds[n_chunks - 1]
+    pieces = np.empty(n_chunks + 1, dtype=np.int64)
+    low, high = starts[first], starts[last]
+    for k in range(n_chunks + 1):
+        target = low + (high - low) * k // n_chunks
+        pieces[k] = min(max(np.searchsorted(starts, target), first), last)
+    pieces[0], pieces[n_chunks] = first, last
+    return pieces, np.zeros(n, dtype=np.int32)
+
+
+@njit(cache=True, error_model="numpy")
+def _chunk_counts(bounds, rows, counts):
+    """Sum the per-row counts over each chunk but the last."""
+    for chunk in range(bounds.shape[0] - 2):
+        total = 0
+        for p in range(bounds[chunk], bounds[chunk + 1]):
+            total += rows[p]
+        counts[chunk] = total
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
-def _lj_inside_count(chunk, frame, frame_types, slots, n_types, table):
-    """Number of one chunk's listed pairs closer than their cutoff."""
+def _lj_inside_count(first, last, frame, frame_types, slots, n_types, table, rows):
+    """Count the listed pairs closer than their cutoff of rows first..last-1 into ``rows``."""
     if n_types == 1:
-        return _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, True)
-    return _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, False)
+        _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, True)
+    else:
+        _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, False)
 
 
 @njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
-def _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, single):
+def _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, single):
     """The loop of ``_lj_inside_count``: per slot, the partners gathered as the force
     loop does, then counted in a loop the compiler vectorises."""
-    shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
-    most = _longest_row(starts, bounds[chunk], bounds[chunk + 1])
+    shifts, starts, neighbors, codes = slots[3], slots[4], slots[5], slots[6]
+    most = _longest_row(starts, first, last)
     gx = np.empty(most)
     gy = np.empty(most)
     gz = np.empty(most)
     params = np.zeros((6, most if not single else 0))
     rc2 = table[RC2, 0]  # one atom type: a constant
-    count = 0
-    for p in range(bounds[chunk], bounds[chunk + 1]):
+    for p in range(first, last):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
@@ -1015,8 +1057,7 @@ def _lj_inside_count_loop(chunk, frame, frame_types, slots, n_types, table, sing
             dy = yi - gy[k]
             dz = zi - gz[k]
             inside += dx * dx + dy * dy + dz * dz < (rc2 if single else params[RC2, k])
-        count += inside
-    return count
+        rows[p] = inside
 
 
 @njit(cache=True, error_model="numpy")

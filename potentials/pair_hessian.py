@@ -70,13 +70,26 @@ class PairHessian:
         # buffers then summed in chunk order: the same result for a given thread count.
         self.n_chunks = chunk_count(len(pair_i), _MIN_CHUNK_PAIRS)
         self._partial_sums = None  # per-thread sums of matvec, allocated at its first call
-        self.diagonal_blocks = np.zeros((self.n_atoms, 6))
+        self._diagonal_blocks = None  # summed on first use: (N, 6), or (N, 3) for diagonal()
+        self._diagonal = None
+
+    @property
+    def diagonal_blocks(self) -> NDArray[np.float64]:
+        """The (N, 6) diagonal blocks (xx, yy, zz, yz, xz, xy): each atom's sum of K."""
+        if self._diagonal_blocks is None:
+            self._diagonal_blocks = self._summed_blocks(6)
+        return self._diagonal_blocks
+
+    def _summed_blocks(self, width: int) -> NDArray[np.float64]:
+        """Each atom's sum of its pairs' K: the first ``width`` (3 or 6) entries."""
+        out = np.zeros((self.n_atoms, width))
+        arrays = (self.pair_i, self.pair_j, self.transverse, self.radial, self.unit)
         if self.n_chunks == 1:
-            _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, self.diagonal_blocks)
+            _diagonal_blocks(*arrays, out)
         else:
-            _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit,
-                                      np.empty((self.n_chunks, self.n_atoms, 6)),
-                                      self.diagonal_blocks)  # fmt: skip
+            _diagonal_blocks_threaded(*arrays, np.empty((self.n_chunks, self.n_atoms, width)),
+                                      out)  # fmt: skip
+        return out
 
     @property
     def nnz(self) -> int:
@@ -126,8 +139,13 @@ class PairHessian:
         return out
 
     def diagonal(self) -> NDArray[np.float64]:
-        """Return the (3N,) diagonal of H."""
-        return np.ascontiguousarray(self.diagonal_blocks[:, :3]).ravel()
+        """Return the (3N,) diagonal of H (a Jacobi preconditioner's: only the blocks'
+        diagonal entries are summed, unless the blocks are already at hand)."""
+        if self._diagonal_blocks is not None:
+            return np.ascontiguousarray(self._diagonal_blocks[:, :3]).ravel()
+        if self._diagonal is None:
+            self._diagonal = self._summed_blocks(3).ravel()
+        return self._diagonal.copy()
 
     def tocsr(self) -> sp.csr_matrix:
         """Return the assembled matrix: CSR with sorted indices, every diagonal block stored."""
@@ -245,11 +263,21 @@ def _block(t, r, e, out):
 
 @njit(cache=True)
 def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
-    """Add each pair's K to the diagonal blocks (N, 6) of both its atoms.
+    """Add each pair's K to the diagonal blocks (N, 6) of both its atoms, or, for an
+    (N, 3) ``diagonal``, just their diagonal entries (xx, yy, zz).
 
     K = t I + (r - t) e e^T written out in scalars (as ``_block`` does):
     ``_block``'s output row per pair cost as much as the arithmetic.
     """
+    if diagonal.shape[1] == 3:
+        _diagonal_blocks_loop(pair_i, pair_j, transverse, radial, unit, diagonal, False)
+    else:
+        _diagonal_blocks_loop(pair_i, pair_j, transverse, radial, unit, diagonal, True)
+
+
+@njit(cache=True, inline="always")
+def _diagonal_blocks_loop(pair_i, pair_j, transverse, radial, unit, diagonal, full):
+    """The loop of ``_diagonal_blocks``; ``full``: all six entries (a constant here)."""
     n_pairs = pair_i.shape[0]
     if n_pairs == 0:
         return
@@ -260,7 +288,7 @@ def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
     for p in range(n_pairs):
         i = pair_i[p]
         if i != current:
-            _add_block(diagonal, current, s0, s1, s2, s3, s4, s5)
+            _add_block(diagonal, current, s0, s1, s2, s3, s4, s5, full)
             s0 = s1 = s2 = s3 = s4 = s5 = 0.0
             current = i
         t = transverse[p]
@@ -271,28 +299,32 @@ def _diagonal_blocks(pair_i, pair_j, transverse, radial, unit, diagonal):
         b0 = t + c * ex * ex
         b1 = t + c * ey * ey
         b2 = t + c * ez * ez
-        b3 = c * ey * ez
-        b4 = c * ex * ez
-        b5 = c * ex * ey
         s0 += b0
         s1 += b1
         s2 += b2
-        s3 += b3
-        s4 += b4
-        s5 += b5
-        _add_block(diagonal, pair_j[p], b0, b1, b2, b3, b4, b5)
-    _add_block(diagonal, current, s0, s1, s2, s3, s4, s5)
+        if full:
+            b3 = c * ey * ez
+            b4 = c * ex * ez
+            b5 = c * ex * ey
+            s3 += b3
+            s4 += b4
+            s5 += b5
+        else:
+            b3 = b4 = b5 = 0.0
+        _add_block(diagonal, pair_j[p], b0, b1, b2, b3, b4, b5, full)
+    _add_block(diagonal, current, s0, s1, s2, s3, s4, s5, full)
 
 
-@njit(cache=True)
-def _add_block(diagonal, atom, b0, b1, b2, b3, b4, b5):
-    """diagonal[atom] += (b0, ..., b5)."""
+@njit(cache=True, inline="always")
+def _add_block(diagonal, atom, b0, b1, b2, b3, b4, b5, full):
+    """diagonal[atom] += (b0, ..., b5), or (b0, b1, b2) unless ``full``."""
     diagonal[atom, 0] += b0
     diagonal[atom, 1] += b1
     diagonal[atom, 2] += b2
-    diagonal[atom, 3] += b3
-    diagonal[atom, 4] += b4
-    diagonal[atom, 5] += b5
+    if full:
+        diagonal[atom, 3] += b3
+        diagonal[atom, 4] += b4
+        diagonal[atom, 5] += b5
 
 
 @njit(cache=True)
@@ -357,7 +389,7 @@ def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, buffers,
                          radial[first:last], unit[first:last], buffers[c])  # fmt: skip
     for c in prange(n_chunks):
         for i in range(c * n // n_chunks, (c + 1) * n // n_chunks):
-            for k in range(6):
+            for k in range(diagonal.shape[1]):
                 total = buffers[0, i, k]
                 for other in range(1, n_chunks):
                     total += buffers[other, i, k]

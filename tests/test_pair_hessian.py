@@ -142,3 +142,36 @@ def test_threaded_hessian_equals_the_serial_one(fcc_lattice, rng, mode):
                                atol=1e-12 * np.abs(one.product).max())  # fmt: skip
     np.testing.assert_allclose(two.product, one.tocsr() @ x, rtol=0,
                                atol=1e-11 * np.abs(one.product).max())  # fmt: skip
+
+
+@pytest.mark.parametrize("chunks", [2, 3, 5])
+def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunks):
+    """The curvature pass places each chunk's pairs from counts of every chunk but the
+    last (counted in as many pieces as there are chunks) and gives the last chunk room
+    for all its listed pairs: over a list split into 2, 3 or 5 chunks, the operator holds
+    the same pairs, in the same order, as over a one-chunk list; its Jacobi diagonal
+    (summed on its own, three entries per atom) equals the diagonal blocks' and the
+    matrix's."""
+    from md.neighbors import NeighborList, _balanced_bounds
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=9, perturbation=0.08)
+    lj = LennardJones(cutoff=2.5, cutoff_mode="shift")
+    before = get_threads()
+    operators = []
+    try:
+        set_threads(1)
+        nl = NeighborList(2.5, 0.3)
+        nl.update(state)
+        for count in (1, chunks):
+            nl.bounds = _balanced_bounds(nl.slot_starts, count)  # the list's chunks
+            assert nl.frame.n_chunks == count
+            operators.append(lj.hessian_operator(state, nl))
+    finally:
+        set_threads(before)
+    one, many = operators
+    for name in ("pair_i", "pair_j", "transverse", "radial", "unit"):
+        np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
+    diagonal = many.diagonal()
+    np.testing.assert_allclose(diagonal, many.diagonal_blocks[:, :3].ravel(), rtol=1e-13)
+    np.testing.assert_allclose(diagonal, one.tocsr().diagonal(), rtol=1e-12, atol=1e-12)
