@@ -656,9 +656,9 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_lo
     return sig, codegen
 
 
-def _permute_packer(whole: bool):
-    """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``); ``whole``:
-    for 64 valid candidates (no lane count test).
+def _permute_packer(blocks: int, whole: bool):
+    """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``) for ``blocks``
+    blocks of 8 candidates; ``whole``: all of them valid (no lane count test).
 
     Per block of 8 candidates (``_Candidates``), the kept lanes' packed
     values move to the front of the vector (``permute_lanes``); all 8 lanes
@@ -684,7 +684,7 @@ def _permute_packer(whole: bool):
         rows = array_data(context, builder, signature.args[12], args[12])
         target = array_data(context, builder, signature.args[13], args[13])
         at = args[14]
-        for block in range(8):
+        for block in range(blocks):
             values, kept = test.block(block, low, span)
             if not whole:
                 lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
@@ -694,12 +694,26 @@ def _permute_packer(whole: bool):
             at = builder.add(at, builder.ctpop(mask))
         return at
 
-    typer.__name__ = "_near_pack_whole" if whole else "_near_pack_permute"
+    typer.__name__ = f"_near_pack_{blocks}_{'whole' if whole else 'partial'}"
     return intrinsic(typer)
 
 
-_near_pack_permute = _permute_packer(whole=False)
-_near_pack_permute_whole = _permute_packer(whole=True)
+_near_pack_permute = _permute_packer(8, whole=False)
+_near_pack_permute_whole = _permute_packer(8, whole=True)
+_near_pack_permute_block = _permute_packer(1, whole=False)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _near_pack_blocks(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
+                      table, out, at):  # fmt: skip
+    """``_near_pack`` of fewer than 64 candidates by AVX2 permutes, block by block: a
+    range's last, partial word tests only the blocks it has."""
+    done = 0
+    while done < valid:
+        at = _near_pack_permute_block(xi, yi, zi, r2_max, tx, ty, tz, packed, start + done,
+                                      valid - done, skip_low, span, table, out, at)  # fmt: skip
+        done += 8
+    return at
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -721,7 +735,7 @@ def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_l
 #: Write the candidates start..start+valid-1 (valid <= 64) that ``_near_bits`` keeps,
 #: their packed values, at ``out[at:]`` in order; return the new end. The 8 entries
 #: from it on may be overwritten (the permute path stores whole blocks).
-_near_pack = _near_pack_permute if PERMUTE else _near_pack_scan
+_near_pack = _near_pack_blocks if PERMUTE else _near_pack_scan
 #: ``_near_pack`` for exactly 64 candidates (``valid`` ignored).
 _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
