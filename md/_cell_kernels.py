@@ -44,6 +44,9 @@ MAX_SLOTS = 1 << 27
 #: Slots the cell search copies at once (see ``_gather_run``): the coordinate rows it
 #: reads need this many readable entries past the last slot.
 GATHER_BLOCK = 8
+#: Entries past the last slot that the coordinate rows must have, finite: the search
+#: reads each slot's own column straight from them, up to a test word (64) at a time.
+ROW_PADDING = 64
 
 
 @njit(cache=True, error_model="numpy")
@@ -240,7 +243,7 @@ def _frame_pairs(
 
     The serial driver; ``_frame_pairs_threaded`` runs the chunks on
     numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
-    (``wrapped`` is (3, N + ``GATHER_BLOCK``), as ``_bin_atoms`` writes it,
+    (``wrapped`` is (3, N + ``ROW_PADDING``), as ``_bin_atoms`` writes it,
     with finite padding past the last slot), in cell
     ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
     slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
@@ -263,10 +266,11 @@ def _frame_pairs(
     """
     most = _most_per_cell(cell_starts, n_cells[2])
     planes = _plane_order(wrapped, cell_starts, n_cells)
+    tags = _unshifted_tags(wrapped.shape[1])
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, planes, bounds, capacity, most, starts, neighbors, codes, counts,
+            cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
 
 
@@ -278,11 +282,22 @@ def _frame_pairs_threaded(
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     most = _most_per_cell(cell_starts, n_cells[2])
     planes = _plane_order_threaded(wrapped, cell_starts, n_cells)
+    tags = _unshifted_tags(wrapped.shape[1])
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, planes, bounds, capacity, most, starts, neighbors, codes, counts,
+            cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _unshifted_tags(size):
+    """Packed values of slots 0..size-1 seen with no image shift (code 13)."""
+    tags = np.empty(size, dtype=np.uint32)
+    unshifted = np.uint32(13) << _CODE_SHIFT
+    for p in range(size):
+        tags[p] = unshifted | np.uint32(p)
+    return tags
 
 
 @njit(cache=True, error_model="numpy")
@@ -300,23 +315,25 @@ def _most_per_cell(cell_starts, nz):
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
     chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts,
-    planes, bounds, capacity, most, starts, neighbors, codes, counts,
+    planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
     The slots of one (x, y) column of cells are consecutive and in z order.
     Per column, the slots of its forward neighbour columns (``reach`` cells
-    around along y, and ahead along x) and of the column itself are copied,
-    shifted by their image, into one contiguous candidate array ordered by z
-    cell and then column, with ``reach`` image cells past each end of a
-    periodic z axis (the own column's only above the top: ``_gather_column``).
-    A slot in z cell cz then tests one contiguous range of candidates, z
-    cells cz - reach to cz + reach, in vector blocks of 8 that also drop the own
-    column's slots up to and including its own (unshifted: the earlier slots
-    list those pairs). ``_near_pack`` writes the hits' packed values as it
-    tests, 64 candidates a call (AVX2 permutes, or bit masks scanned
-    bit by bit on other CPUs); near the end of the chunk's region ``_keep``
-    counts before it writes. The chunk's packed values are unpacked into
+    around along y, and ahead along x) are copied, shifted by their image,
+    into one contiguous candidate array ordered by z cell, with ``reach``
+    image cells past each end of a periodic z axis (``_gather_column``). A
+    slot i in z cell cz then tests three ranges: the candidates of z cells
+    cz - reach to cz + reach, its own column's later slots up to z cell
+    cz + reach (read in place, packed values from ``tags``; the earlier
+    slots list their pairs with i), and, near the top of a periodic z axis,
+    the images of the column's bottom cells. The tests run in vector blocks
+    of 8 (which also drop the own column's slots up to i, a guard that the
+    ranges already respect). ``_near_pack`` writes the hits' packed values
+    as it tests (AVX2 permutes, or bit masks scanned bit by bit on other
+    CPUs); near the end of the chunk's region ``_keep`` counts before it
+    writes. The chunk's packed values are unpacked into
     slots and codes at its end. A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
@@ -336,6 +353,9 @@ def _frame_pairs_chunk(
     c_packed = np.empty(size + 64, dtype=np.uint32)
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
     masks = np.empty(size // 64 + 1, dtype=np.uint64)
+    own_size = reach * most_cell + 64
+    own = (np.empty(own_size), np.empty(own_size), np.empty(own_size),
+           np.empty(own_size, dtype=np.uint32), np.empty(reach + 1, dtype=np.int64))  # fmt: skip
     runs = np.empty((4, 2 * reach + 2), dtype=np.int64)
     run_shifts = np.empty((2, 2 * reach + 2))
     unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
@@ -350,7 +370,7 @@ def _frame_pairs_chunk(
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
             column, n_cells, reach, ghost, periodic, box, tilt, planes, runs, run_shifts, cx,
-            cy, cz, c_packed, z_start,
+            cy, cz, c_packed, z_start, own,
         )  # fmt: skip
         # Packed values of the own column's unshifted slots up to slot i: the own
         # cell's earlier slots and the cells below list those pairs.
@@ -361,7 +381,10 @@ def _frame_pairs_chunk(
             high = min(kz + reach + ghost, n_z - 1)
             first = z_start[low]
             last = z_start[high + 1]
-            if count + (last - first) + 8 <= capacity:
+            own_last = cell_starts[column * nz + min(kz + reach, nz - 1) + 1]
+            above = kz + reach - nz + 1 if ghost else 0
+            ghost_last = own[4][above] if above > 0 else 0
+            if count + (last - first) + (own_last - i - 1) + ghost_last + 8 <= capacity:
                 # room for every candidate and a block's spill: write as they are tested
                 # (here, not in _keep: the inlined branch there slowed the loop by 25%)
                 span = np.uint32((unshifted | np.uint32(i)) - earlier)
@@ -376,11 +399,30 @@ def _frame_pairs_chunk(
                     at = _near_pack(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, w,
                                     last - w, earlier, span, PERMUTATIONS, packed_list,
                                     at)  # fmt: skip
+                w = i + 1
+                while w < own_last:  # a crowded column may hold more than a word
+                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, xs, ys, zs, tags, w,
+                                    min(64, own_last - w), earlier, span, PERMUTATIONS,
+                                    packed_list, at)  # fmt: skip
+                    w += 64
+                w = 0
+                while w < ghost_last:
+                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, own[0], own[1], own[2],
+                                    own[3], w, min(64, ghost_last - w), earlier, span,
+                                    PERMUTATIONS, packed_list, at)  # fmt: skip
+                    w += 64
                 count = at - base
             else:
-                count += _keep(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, first, last,
-                               earlier, unshifted | np.uint32(i), masks, base, count,
-                               capacity, packed_list)  # fmt: skip
+                for r in range(3):  # forward cells, own column, its images above the top
+                    if r == 0:
+                        tx, ty, tz, tp, a, b = cx, cy, cz, c_packed, first, last
+                    elif r == 1:
+                        tx, ty, tz, tp, a, b = xs, ys, zs, tags, i + 1, own_last
+                    else:
+                        tx, ty, tz, tp, a, b = own[0], own[1], own[2], own[3], 0, ghost_last
+                    count += _keep(xs[i], ys[i], zs[i], r2_max, tx, ty, tz, tp, a, b, earlier,
+                                   unshifted | np.uint32(i), masks, base, count, capacity,
+                                   packed_list)  # fmt: skip
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
@@ -458,16 +500,18 @@ def _fill_layer(kz, wrapped, cell_starts, n_cells, planes):
 
 @njit(cache=True, error_model="numpy")
 def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, runs,
-                   run_shifts, cx, cy, cz, c_packed, z_start):  # fmt: skip
+                   run_shifts, cx, cy, cz, c_packed, z_start, own):  # fmt: skip
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
-    Per z cell (cell zc - ghost from ``z_start[zc]``), the column's own cell and
-    its forward neighbours: for x offset 0 the cells at y offsets 0 to reach,
-    for x offsets 1 to reach those at -reach to reach. In ``planes``
+    Per z cell (cell zc - ghost from ``z_start[zc]``), the column's forward
+    neighbour cells: for x offset 0 the cells at y offsets 1 to reach, for x
+    offsets 1 to reach those at -reach to reach. In ``planes``
     (``_plane_order``) each such row of cells is one run of slots, or two
     where it wraps along y; they go to ``cx, cy, cz`` shifted by their
-    image (slots and codes packed in ``c_packed``). The own cell has no
-    image cells below the bottom (those pairs are listed from below).
+    image (slots and codes packed in ``c_packed``). The column's own slots
+    need no copy (the search reads them where they are), except its
+    ``ghost`` bottom cells seen above the top of a periodic z axis: those go
+    to ``own`` = (x, y, z, packed, starts), cell k from ``starts[k]``.
     ``runs`` (int64) and ``run_shifts`` (float64), shape (4, 2 reach + 2) and
     (2, 2 reach + 2), are scratch for the runs.
     """
@@ -477,7 +521,7 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
     kx0 = column // ny
     ky0 = column % ny
     # Runs of cells along y in one x row: x cell, first and last y cell, code and
-    # shift from the wraps along x and y (the first run starts with the own cell).
+    # shift from the wraps along x and y.
     run_x, run_first, run_last, code_xy = runs[0], runs[1], runs[2], runs[3]
     shift_x, shift_y = run_shifts[0], run_shifts[1]
     n_runs = 0
@@ -486,7 +530,7 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
         if kx < 0:
             continue
         last_wy = 2  # no run open
-        for oy in range(0 if ox == 0 else -reach, reach + 1):
+        for oy in range(1 if ox == 0 else -reach, reach + 1):
             ky, wy = _neighbor_cell(ky0, oy, ny, periodic[1])
             if ky < 0:
                 last_wy = 2
@@ -509,10 +553,6 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
         layer = kz * nx
         for r in range(n_runs):
             first_y = run_first[r]
-            if r == 0 and zc < ghost:  # below the bottom: not the own cell
-                if first_y == run_last[r]:
-                    continue
-                first_y += 1
             row = (layer + run_x[r]) * ny
             m = _gather_run(
                 plane_starts[row + first_y], plane_starts[row + run_last[r] + 1],
@@ -520,6 +560,14 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
                 px, py, pz, p_slot, cx, cy, cz, c_packed, m,
             )  # fmt: skip
     z_start[nz + 2 * ghost] = m
+    ox_, oy_, oz_, o_packed, o_start = own
+    m = 0
+    for k in range(ghost):  # the own column's bottom cells, one cell vector c up
+        o_start[k] = m
+        cell = (k * nx + kx0) * ny + ky0
+        m = _gather_run(plane_starts[cell], plane_starts[cell + 1], xz, yz, box[2], 9 + 3 + 2,
+                        px, py, pz, p_slot, ox_, oy_, oz_, o_packed, m)  # fmt: skip
+    o_start[ghost] = m
 
 
 @njit(cache=True, inline="always", error_model="numpy")

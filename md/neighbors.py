@@ -9,8 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._cell_kernels import (
-    GATHER_BLOCK,
     MAX_SLOTS,
+    ROW_PADDING,
     _atom_space_list,
     _bin_atoms,
     _bin_atoms_threaded,
@@ -451,7 +451,7 @@ class NeighborList:
         cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
         order = np.empty(n, dtype=np.int64)
         # By coordinate: the search reads contiguous runs, whole blocks past the last slot.
-        wrapped = np.empty((3, n + GATHER_BLOCK))
+        wrapped = np.empty((3, n + ROW_PADDING))
         wrapped[:, n:] = 0.0
         images = np.empty((n, 3), dtype=np.int32)
         if chunks > 1:
