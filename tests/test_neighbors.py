@@ -486,3 +486,56 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     px, _, _, slot, plane_starts = planes
     assert np.array_equal(np.sort(slot[:n]), np.arange(n))
     assert np.array_equal(px[:n], serial[3][0, slot[:n]])
+
+
+#: A CPU without AVX2 (numba's target): the cell search's portable bit-scan path.
+_NO_AVX2 = (
+    "+64bit,+avx,+cmov,+cx16,+mmx,+pclmul,+popcnt,+sahf,+sse,+sse2,+sse3,+sse4.1,+sse4.2,"
+    "+ssse3,+xsave,-avx2,-avx512f,-bmi,-bmi2,-fma"
+)
+
+
+@pytest.mark.slow
+def test_cell_search_compiled_without_avx2_matches_brute_force(tmp_path):
+    """On a CPU without AVX2 the search packs its hits by scanning bit masks instead of
+    lane permutes: compiled for such a CPU (in a child process, kernels compiled afresh),
+    crowded, sparse, periodic, open and sheared boxes still give the exact list."""
+    import os
+    import subprocess
+    import sys
+
+    script = """
+import numpy as np
+import md._simd
+from md.neighbors import NeighborList
+import md
+assert not md._simd.PERMUTE
+rng = np.random.default_rng(3)
+for pbc, tilt in ((True, None), (False, None), (True, [0.4, -0.3, 0.2])):
+    state = md.State(positions=rng.uniform(0.0, 6.0, size=(1500, 3)), box=6.0, pbc=pbc)
+    state.positions[:100] = rng.uniform(0.0, 0.5, size=(100, 3))  # over a word in a cell
+    if tilt is not None:
+        state.tilt = np.array(tilt)
+    nl = NeighborList(1.0, 0.2)
+    nl.update(state)
+    assert nl.used_cells
+    lengths = np.where(state.pbc, state.box, 0.0)
+    got = set(map(tuple, nl.pairs()))
+    h = md.box.cell_matrix(lengths, md.box.periodic_tilt(state.tilt, state.pbc))
+    x = state.positions
+    expected = set()
+    for i in range(len(x)):
+        d = x[i] - x[i + 1 :]
+        if pbc:
+            f = np.linalg.solve(h.T, d.T).T
+            d = (f - np.round(f)) @ h
+        near = np.nonzero((d * d).sum(axis=1) < 1.2 ** 2)[0]
+        expected.update((i, i + 1 + j) for j in near)
+    assert got == expected, (len(got), len(expected))
+print("ok")
+"""
+    env = dict(os.environ, NUMBA_CPU_NAME="sandybridge", NUMBA_CPU_FEATURES=_NO_AVX2,
+               NUMBA_CACHE_DIR=str(tmp_path / "numba"))  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
