@@ -329,8 +329,7 @@ def _frame_pairs_chunk(
     cz + reach (read in place, packed values from ``tags``; the earlier
     slots list their pairs with i), and, near the top of a periodic z axis,
     the images of the column's bottom cells. The tests run in vector blocks
-    of 8 (which also drop the own column's slots up to i, a guard that the
-    ranges already respect). ``_near_pack`` writes the hits' packed values
+    of 8. ``_near_pack`` writes the hits' packed values
     as it tests (AVX2 permutes, or bit masks scanned bit by bit on other
     CPUs); near the end of the chunk's region ``_keep`` counts before it
     writes. The chunk's packed values are unpacked into
@@ -358,7 +357,6 @@ def _frame_pairs_chunk(
            np.empty(own_size, dtype=np.uint32), np.empty(reach + 1, dtype=np.int64))  # fmt: skip
     runs = np.empty((4, 2 * reach + 2), dtype=np.int64)
     run_shifts = np.empty((2, 2 * reach + 2))
-    unshifted = np.uint32(13) << _CODE_SHIFT  # code 13: no image shift
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     packed_list = neighbors.view(np.uint32)  # the search writes packed values, unpacked last
     count = 0
@@ -366,50 +364,43 @@ def _frame_pairs_chunk(
     end = bounds[chunk + 1]
     while p < end:
         column = slot_cell[p] // nz
-        column_first = cell_starts[column * nz]
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
             column, n_cells, reach, ghost, periodic, box, tilt, planes, runs, run_shifts, cx,
             cy, cz, c_packed, z_start, own,
         )  # fmt: skip
-        # Packed values of the own column's unshifted slots up to slot i: the own
-        # cell's earlier slots and the cells below list those pairs.
-        earlier = unshifted | np.uint32(column_first)
         for i in range(p, stop):
             kz = slot_cell[i] - column * nz
-            low = max(kz - reach + ghost, 0)
-            high = min(kz + reach + ghost, n_z - 1)
-            first = z_start[low]
-            last = z_start[high + 1]
+            first = z_start[max(kz - reach + ghost, 0)]  # forward cells cz -/+ reach
+            last = z_start[min(kz + reach + ghost, n_z - 1) + 1]
+            # the own column's later slots up to z cell cz + reach (the earlier ones list
+            # their pairs with i), and past a periodic top its bottom cells' images
             own_last = cell_starts[column * nz + min(kz + reach, nz - 1) + 1]
             above = kz + reach - nz + 1 if ghost else 0
             ghost_last = own[4][above] if above > 0 else 0
             if count + (last - first) + (own_last - i - 1) + ghost_last + 8 <= capacity:
                 # room for every candidate and a block's spill: write as they are tested
                 # (here, not in _keep: the inlined branch there slowed the loop by 25%)
-                span = np.uint32((unshifted | np.uint32(i)) - earlier)
                 at = base + count
                 w = first
                 while w + 64 <= last:
                     at = _near_pack_whole(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed,
-                                          w, 64, earlier, span, PERMUTATIONS, packed_list,
-                                          at)  # fmt: skip
+                                          w, 64, PERMUTATIONS, packed_list, at)  # fmt: skip
                     w += 64
                 if w < last:
                     at = _near_pack(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, w,
-                                    last - w, earlier, span, PERMUTATIONS, packed_list,
-                                    at)  # fmt: skip
+                                    last - w, PERMUTATIONS, packed_list, at)  # fmt: skip
                 w = i + 1
                 while w < own_last:  # a crowded column may hold more than a word
                     at = _near_pack(xs[i], ys[i], zs[i], r2_max, xs, ys, zs, tags, w,
-                                    min(64, own_last - w), earlier, span, PERMUTATIONS,
-                                    packed_list, at)  # fmt: skip
+                                    min(64, own_last - w), PERMUTATIONS, packed_list,
+                                    at)  # fmt: skip
                     w += 64
                 w = 0
                 while w < ghost_last:
                     at = _near_pack(xs[i], ys[i], zs[i], r2_max, own[0], own[1], own[2],
-                                    own[3], w, min(64, ghost_last - w), earlier, span,
-                                    PERMUTATIONS, packed_list, at)  # fmt: skip
+                                    own[3], w, min(64, ghost_last - w), PERMUTATIONS,
+                                    packed_list, at)  # fmt: skip
                     w += 64
                 count = at - base
             else:
@@ -420,9 +411,8 @@ def _frame_pairs_chunk(
                         tx, ty, tz, tp, a, b = xs, ys, zs, tags, i + 1, own_last
                     else:
                         tx, ty, tz, tp, a, b = own[0], own[1], own[2], own[3], 0, ghost_last
-                    count += _keep(xs[i], ys[i], zs[i], r2_max, tx, ty, tz, tp, a, b, earlier,
-                                   unshifted | np.uint32(i), masks, base, count, capacity,
-                                   packed_list)  # fmt: skip
+                    count += _keep(xs[i], ys[i], zs[i], r2_max, tx, ty, tz, tp, a, b, masks,
+                                   base, count, capacity, packed_list)  # fmt: skip
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
@@ -632,8 +622,8 @@ def _copy_block(typingctx, xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz
 
 
 class _Candidates:
-    """IR of the search's candidate test (``_near_bits``, ``_near_pack``): the
-    distance and own-column tests of one block of 8 candidates."""
+    """IR of the search's candidate test (``_near_bits``, the ``_near_pack`` family): the
+    distance test of one block of 8 candidates."""
 
     def __init__(self, context, builder, signature, args):
         f64, i32 = ir.DoubleType(), ir.IntType(32)
@@ -647,10 +637,10 @@ class _Candidates:
         ]
         self.start = args[8]
 
-    def block(self, block, skip_low, span):
-        """(packed values, <8 x i1> kept) of candidates start + 8 block + 0..7: closer than
-        sqrt(r2_max), left to right as dx dx + dy dy + dz dz (the brute-force
-        search's arithmetic: the same candidates pass), and not in the skipped band."""
+    def block(self, block):
+        """(packed values, <8 x i1> near) of candidates start + 8 block + 0..7: closer
+        than sqrt(r2_max), left to right as dx dx + dy dy + dz dz (the brute-force
+        search's arithmetic: the same candidates pass)."""
         builder = self.builder
         index = builder.add(self.start, ir.Constant(ir.IntType(64), 8 * block))
         kinds = (self.doubles, self.doubles, self.doubles, self.words)
@@ -661,9 +651,7 @@ class _Candidates:
         d2 = builder.fadd(
             builder.fadd(builder.fmul(dx, dx), builder.fmul(dy, dy)), builder.fmul(dz, dz)
         )
-        near = builder.fcmp_ordered("<", d2, self.r2)
-        outside = builder.icmp_unsigned(">", builder.sub(values, skip_low), span)
-        return values, builder.and_(near, outside)
+        return values, builder.fcmp_ordered("<", d2, self.r2)
 
 
 def _candidate_types(tx, ty, tz, packed):
@@ -673,9 +661,8 @@ def _candidate_types(tx, ty, tz, packed):
 
 
 @intrinsic
-def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_low, span):
-    """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max)
-    and its packed slot and code is not within [skip_low, skip_low + span].
+def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start):
+    """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max).
 
     Eight blocks of ``_Candidates``, each block's <8 x i1> mask put straight
     into the word (a movemask: numba has no way to say it). Reads 64 entries
@@ -687,17 +674,16 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_lo
         return None
     sig = types.uint64(
         types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
-        types.intp, types.uint32, types.uint32,
+        types.intp,
     )  # fmt: skip
 
     def codegen(context, builder, signature, args):
         i64 = ir.IntType(64)
         test = _Candidates(context, builder, signature, args)
-        low, span = splat(builder, args[9], test.words), splat(builder, args[10], test.words)
         word = ir.Constant(i64, 0)
         for block in range(8):
-            _, kept = test.block(block, low, span)
-            shifted = builder.shl(compare_mask(builder, kept), ir.Constant(i64, 8 * block))
+            _, near = test.block(block)
+            shifted = builder.shl(compare_mask(builder, near), ir.Constant(i64, 8 * block))
             word = builder.or_(word, shifted)
         return word
 
@@ -708,32 +694,30 @@ def _permute_packer(blocks: int, whole: bool):
     """``_near_pack`` by AVX2 permutes (only where ``md._simd.PERMUTE``) for ``blocks``
     blocks of 8 candidates; ``whole``: all of them valid (no lane count test).
 
-    Per block of 8 candidates (``_Candidates``), the kept lanes' packed
+    Per block of 8 candidates (``_Candidates``), the near lanes' packed
     values move to the front of the vector (``permute_lanes``); all 8 lanes
     are stored at ``out[at:]`` and ``at`` advances by the kept count, so the
     next block overwrites the rest: no loop, no branch per candidate or hit.
     """
 
-    def typer(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
-              table, out, at):  # fmt: skip
+    def typer(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
         if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(out, types.uint32)):
             return None
         sig = types.int64(
             types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
-            types.intp, types.intp, types.uint32, types.uint32, table, out, types.intp,
+            types.intp, types.intp, table, out, types.intp,
         )  # fmt: skip
         return sig, codegen
 
     def codegen(context, builder, signature, args):
         i32 = ir.IntType(32)
         test = _Candidates(context, builder, signature, args)
-        low, span = splat(builder, args[10], test.words), splat(builder, args[11], test.words)
         valid = splat(builder, builder.trunc(args[9], i32), test.words)
-        rows = array_data(context, builder, signature.args[12], args[12])
-        target = array_data(context, builder, signature.args[13], args[13])
-        at = args[14]
+        rows = array_data(context, builder, signature.args[10], args[10])
+        target = array_data(context, builder, signature.args[11], args[11])
+        at = args[12]
         for block in range(blocks):
-            values, kept = test.block(block, low, span)
+            values, kept = test.block(block)
             if not whole:
                 lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
                 kept = builder.and_(kept, builder.icmp_signed("<", lanes, valid))
@@ -752,23 +736,21 @@ _near_pack_permute_block = _permute_packer(1, whole=False)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _near_pack_blocks(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
-                      table, out, at):  # fmt: skip
-    """``_near_pack`` of fewer than 64 candidates by AVX2 permutes, block by block: a
-    range's last, partial word tests only the blocks it has."""
+def _near_pack_blocks(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
+    """``_near_pack`` by AVX2 permutes, block by block: a range's last, partial word
+    tests only the blocks it has."""
     done = 0
     while done < valid:
         at = _near_pack_permute_block(xi, yi, zi, r2_max, tx, ty, tz, packed, start + done,
-                                      valid - done, skip_low, span, table, out, at)  # fmt: skip
+                                      valid - done, table, out, at)  # fmt: skip
         done += 8
     return at
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_low, span,
-                    table, out, at):  # fmt: skip
+def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
     """``_near_pack`` on any CPU: ``_near_bits``, then the set bits one by one."""
-    m = _near_bits(xi, yi, zi, r2_max, tx, ty, tz, packed, start, skip_low, span)
+    m = _near_bits(xi, yi, zi, r2_max, tx, ty, tz, packed, start)
     if valid < 64:
         m &= (np.uint64(1) << np.uint64(valid)) - np.uint64(1)
     end = np.uint64(at)  # unsigned indices: no negative-index wrap code in the loop
@@ -780,7 +762,7 @@ def _near_pack_scan(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, skip_l
     return np.int64(end)
 
 
-#: Write the candidates start..start+valid-1 (valid <= 64) that ``_near_bits`` keeps,
+#: Write the candidates start..start+valid-1 (valid <= 64) closer than sqrt(r2_max),
 #: their packed values, at ``out[at:]`` in order; return the new end. The 8 entries
 #: from it on may be overwritten (the permute path stores whole blocks).
 _near_pack = _near_pack_blocks if PERMUTE else _near_pack_scan
@@ -789,24 +771,21 @@ _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, skip_low, skip_high, masks,
-          base, count, capacity, out):  # fmt: skip
-    """List the candidates first..last-1 near (xi, yi, zi), packed, at ``out[base + count:]``;
-    return how many: the exact path near the end of a chunk's region.
+def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, count, capacity,
+          out):  # fmt: skip
+    """List the candidates first..last-1 closer than sqrt(r2_max), packed, at
+    ``out[base + count:]``; return how many: the exact path near the end of a
+    chunk's region.
 
-    Candidates closer than sqrt(r2_max) whose packed slot and code is not in
-    [skip_low, skip_high] (one unsigned comparison: value - skip_low wraps
-    around below skip_low) are kept, as in ``_near_pack``, which the search
-    uses while its region has room for every candidate and a block's spill.
-    Here the bit masks are counted first and nothing is written past
-    ``capacity``: past it the hits are only counted.
+    The search uses ``_near_pack`` while its region has room for every
+    candidate and a block's spill; here the bit masks are counted first and
+    nothing is written past ``capacity``: past it the hits are only counted.
     """
     n = last - first
-    span = np.uint32(skip_high - skip_low)
     n_words = (n + 63) // 64
     found = 0
     for w in range(n_words):
-        m = _near_bits(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first + 64 * w, skip_low, span)
+        m = _near_bits(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first + 64 * w)
         if w == n_words - 1 and n % 64:
             m &= (np.uint64(1) << np.uint64(n % 64)) - np.uint64(1)
         masks[w] = m

@@ -116,7 +116,7 @@ def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
 
 def _candidates(n, rng, first=5, pad=64):
     """Packed candidates at first..first+n-1 around the origin, ``pad`` entries past them
-    set to pass the distance test, a band of packed values to skip, and what to keep."""
+    set to pass the distance test, and the packed values of those within 0.8."""
     from md._cell_kernels import _CODE_SHIFT
 
     size = first + n + pad
@@ -124,14 +124,11 @@ def _candidates(n, rng, first=5, pad=64):
     xyz[:, first + n :] = 0.0  # past the last candidate: at the centre, would pass
     slots = rng.permutation(1000)[:size].astype(np.uint32)
     packed = slots | (rng.integers(0, 27, size=size).astype(np.uint32) << _CODE_SHIFT)
-    value = packed[first : first + n]
-    skip_low = np.uint32(value.min() if n else 0)  # drop a band of packed values
-    skip_high = np.uint32(skip_low + 50)
     r2_max = 0.64
     near = (xyz[:, first : first + n] ** 2).sum(axis=0) < r2_max
-    wanted = value[near & ~((value >= skip_low) & (value <= skip_high))]
+    wanted = packed[first : first + n][near]
     arrays = tuple(np.ascontiguousarray(row) for row in xyz) + (packed,)
-    return arrays, skip_low, skip_high, r2_max, wanted
+    return arrays, r2_max, wanted
 
 
 @pytest.mark.parametrize("n", [0, 1, 37, 63, 64, 65, 127, 128, 129, 200])
@@ -139,39 +136,44 @@ def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
     """Near the end of a chunk's region the search tests candidates 64 at a time into
     bit masks (``_keep``): for counts at and around multiples of 64, the kept packed
     values equal a plain numpy selection, in order; the entries past the last candidate
-    (set to pass the test) are never kept, the own-column band is dropped, and past
-    the capacity the hits are counted but not written."""
+    (set to pass the test) are never kept, and past the capacity the hits are counted
+    but not written."""
     from md._cell_kernels import _keep
 
     first = 5
-    arrays, skip_low, skip_high, r2_max, wanted = _candidates(n, rng, first)
+    arrays, r2_max, wanted = _candidates(n, rng, first)
     masks = np.empty(8, dtype=np.uint64)
     out = np.full(3 + n, 7, dtype=np.uint32)
-    found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
+    found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks,
                   1, 2, 3 + n, out)  # fmt: skip
     assert found == len(wanted)
     assert np.array_equal(out[3 : 3 + found], wanted)
     assert np.all(out[:3] == 7) and np.all(out[3 + found :] == 7)
     # No room: counted, nothing written.
     out[:] = 7
-    full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, skip_low, skip_high, masks,
+    full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks,
                  1, 2, 1 + found, out)  # fmt: skip
     assert full == found
     assert np.all(out == 7)
 
 
-@pytest.mark.parametrize("path", ["scan", "permute", "permute-whole"])
+@pytest.mark.parametrize("path", ["scan", "permute", "permute-whole", "permute-blocks"])
 @pytest.mark.parametrize("valid", [0, 1, 7, 8, 9, 37, 63, 64])
 def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid, rng):
     """The search's main path writes the kept candidates of up to 64 as it tests them:
-    by AVX2 lane permutes (on x86 with AVX2; a variant for whole words of 64) or by
-    scanning a bit mask (every CPU). Each keeps exactly numpy's selection of the first
-    ``valid`` candidates, in order, returns the new end, and writes nothing before
-    ``at`` or beyond the 8 entries from the end."""
+    by AVX2 lane permutes (on x86 with AVX2; variants for whole words of 64 and for a
+    word's blocks one by one) or by scanning a bit mask (every CPU). Each keeps exactly
+    numpy's selection of the first ``valid`` candidates, in order, returns the new end,
+    and writes nothing before ``at`` or beyond the 8 entries from the end."""
     from numba import njit
 
     import md._simd
-    from md._cell_kernels import _near_pack_permute, _near_pack_permute_whole, _near_pack_scan
+    from md._cell_kernels import (
+        _near_pack_blocks,
+        _near_pack_permute,
+        _near_pack_permute_whole,
+        _near_pack_scan,
+    )
     from md._simd import PERMUTATIONS
 
     if path != "scan" and not md._simd.PERMUTE:
@@ -182,17 +184,18 @@ def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid
         "scan": _near_pack_scan,
         "permute": _near_pack_permute,
         "permute-whole": _near_pack_permute_whole,
+        "permute-blocks": _near_pack_blocks,
     }[path]
 
     @njit
-    def call(x, y, z, packed, start, valid, skip_low, span, out, at):
-        return pack(0.0, 0.0, 0.0, 0.64, x, y, z, packed, start, valid, skip_low, span,
+    def call(x, y, z, packed, start, valid, out, at):
+        return pack(0.0, 0.0, 0.0, 0.64, x, y, z, packed, start, valid,
                     PERMUTATIONS, out, at)  # fmt: skip
 
     first = 5
-    arrays, skip_low, skip_high, _, wanted = _candidates(valid, rng, first)
+    arrays, _, wanted = _candidates(valid, rng, first)
     out = np.full(3 + 64 + 8, 7, dtype=np.uint32)
-    end = call(*arrays, first, valid, skip_low, np.uint32(skip_high - skip_low), out, 3)
+    end = call(*arrays, first, valid, out, 3)
     assert end == 3 + len(wanted)
     assert np.array_equal(out[3:end], wanted)
     assert np.all(out[:3] == 7) and np.all(out[end + 8 :] == 7)
