@@ -9,7 +9,9 @@ Kernels write into caller-owned arrays and return (or store) the number of
 pairs found; when that exceeds the capacity of the buffer they keep counting
 without writing, so the caller can grow the buffer and call again. Kernels
 with a ``_threaded`` twin run their chunks on numba's threads; the plain one
-runs them in turn, off the thread pool.
+runs them in turn, off the thread pool. The candidate tests are LLVM-IR
+intrinsics built from ``md._simd`` (vector blocks, compare masks, AVX2 lane
+permutes where numba compiles for AVX2, a portable bit-mask scan elsewhere).
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ from md.box import cell_matrix, min_image, periodic_tilt
 _CODE_SHIFT = np.uint32(27)
 _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
-#: Slots the cell search copies at once (see ``_gather_run``): the coordinate rows it
-#: reads need this many readable entries past the last slot.
+#: Entries the cell search's gather copies at once (see ``_gather_run``): the (z, x, y)
+#: layout it copies from (``_plane_order``) has this many readable entries past the end.
 GATHER_BLOCK = 8
 #: Entries past the last slot that the coordinate rows must have, finite: the search
 #: reads each slot's own column straight from them, up to a test word (64) at a time.
