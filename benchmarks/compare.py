@@ -79,6 +79,7 @@ MIN_SCALING_STEPS = 20
 #: Below this many atoms the baseline's jitter swamps the memory per atom.
 MIN_MEMORY_ATOMS = 10_000
 STARTUP_TARGET = 3.0  # [s], warm numba cache
+NEIGHBOR_TARGET = 0.15  # neighbour work (list checks and builds), fraction of the loop
 MEMORY_TARGET = 0.6  # [KB/atom] at about 1M atoms
 SCALING_TOLERANCE = 0.2  # rate within 20 % of the reference size's
 NOISY = 1.3  # max/min of a row's rates above which the row is starred
@@ -448,6 +449,17 @@ def print_split(measured: Sequence[Measured], atoms: int) -> None:
             "Output = observers, Other = the rest):"
         )
         print_breakdown(columns)
+        shares = [
+            (run["sections"]["Neigh"] / run["loop_time"], label.split()[-1])
+            for label, run in columns.items()
+            if label.startswith("leapmd") and run["loop_time"] > 0
+        ]
+        if shares:
+            verdicts = ", ".join(
+                f"{share:.1%} at {threads} ({'met' if share < NEIGHBOR_TARGET else 'not met'})"
+                for share, threads in shares
+            )
+            print(f"target: our neighbour work below {NEIGHBOR_TARGET:.0%} of the loop: {verdicts}")
 
 
 def scaling_jobs(args, peers: set[str]) -> list[Job]:

@@ -33,6 +33,9 @@ def test_quick_run_prints_a_row_for_ours(tmp_path):
     rows = [line.split() for line in done.stdout.splitlines() if line.startswith("leapmd ")]
     # engine, threads, atoms, steps, rate: one row per thread count in each table.
     assert any(row[1] == "1" and row[2] == "864" for row in rows), done.stdout
+    # the issue-20 target on the neighbour share is checked and said, per thread count
+    verdict = [line for line in done.stdout.splitlines() if "neighbour work below 15%" in line]
+    assert len(verdict) == 1 and " at 1t (" in verdict[0], done.stdout
     data = json.loads(report.read_text())
     ours = [m for m in data["comparison"] if m["label"] == "leapmd"]
     assert ours
