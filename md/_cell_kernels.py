@@ -345,7 +345,7 @@ def _frame_pairs_chunk(
     base = chunk * capacity
     ghost = reach if periodic[2] else 0  # image cells past each z end
     n_z = nz + 2 * ghost
-    n_columns = reach * (2 * reach + 1) + reach + 1  # forward columns and the own one
+    n_columns = reach * (2 * reach + 1) + reach  # the forward columns
     size = n_columns * (most_column + 2 * ghost * most_cell)
     # readable past the last candidate: a gather block, a test word
     cx = np.empty(size + 64)
@@ -732,7 +732,6 @@ def _permute_packer(blocks: int, whole: bool):
     return intrinsic(typer)
 
 
-_near_pack_permute = _permute_packer(8, whole=False)
 _near_pack_permute_whole = _permute_packer(8, whole=True)
 _near_pack_permute_block = _permute_packer(1, whole=False)
 

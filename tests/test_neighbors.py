@@ -157,7 +157,7 @@ def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
     assert np.all(out == 7)
 
 
-@pytest.mark.parametrize("path", ["scan", "permute", "permute-whole", "permute-blocks"])
+@pytest.mark.parametrize("path", ["scan", "permute-whole", "permute-blocks"])
 @pytest.mark.parametrize("valid", [0, 1, 7, 8, 9, 37, 63, 64])
 def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid, rng):
     """The search's main path writes the kept candidates of up to 64 as it tests them:
@@ -168,12 +168,7 @@ def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid
     from numba import njit
 
     import md._simd
-    from md._cell_kernels import (
-        _near_pack_blocks,
-        _near_pack_permute,
-        _near_pack_permute_whole,
-        _near_pack_scan,
-    )
+    from md._cell_kernels import _near_pack_blocks, _near_pack_permute_whole, _near_pack_scan
     from md._simd import PERMUTATIONS
 
     if path != "scan" and not md._simd.PERMUTE:
@@ -182,7 +177,6 @@ def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid
         pytest.skip("the whole-word variant takes exactly 64 candidates")
     pack = {
         "scan": _near_pack_scan,
-        "permute": _near_pack_permute,
         "permute-whole": _near_pack_permute_whole,
         "permute-blocks": _near_pack_blocks,
     }[path]
