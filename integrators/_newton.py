@@ -23,10 +23,11 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from numba import njit
+from numba import njit, prange
 
 from integrators.base import ConvergenceError
 from md.errors import NonFiniteError
+from md.parallel import chunk_count
 from potentials.base import SupportsHessian
 
 logger = logging.getLogger(__name__)
@@ -178,9 +179,9 @@ class IncrementalSolver:
         target = np.empty_like(forces0)
         accelerations = np.empty_like(forces0)
         predicted = np.empty_like(forces0)
-        largest_acceleration, largest_target = _start_terms(
-            state.velocities.ravel(), forces0, inverse_masses, h, h2, target, accelerations,
-            predicted,
+        largest_acceleration, largest_target = _in_chunks(
+            _start_terms, _start_terms_threaded, state.velocities.ravel(), forces0,
+            inverse_masses, h, h2, target, accelerations, predicted,
         )  # fmt: skip
         history = [a for a in self.history if a.shape == accelerations.shape]
         if history:
@@ -200,9 +201,10 @@ class IncrementalSolver:
             np.add(x0, dx.reshape(x0.shape), out=state.positions)
             result = forcefield.compute(state, virial=False)
             grad = np.empty_like(dx)
-            kinetic, largest = _incremental_terms(
-                dx, target, masses, inverse_masses, result.forces.ravel(), h2, grad
-            )
+            kinetic, largest = _in_chunks(
+                _incremental_terms, _incremental_terms_threaded, dx, target, masses,
+                inverse_masses, result.forces.ravel(), h2, grad,
+            )  # fmt: skip
             phi = kinetic + h2 * result.energy
             residual = largest / (h2 * scale)
             # Round-off level of Phi: below it a change in Phi says nothing.
@@ -351,8 +353,8 @@ class IncrementalSolver:
                     preconditioners["operator"] = operator  # keeps id(operator) unique
                     preconditioners["jacobi"] = _jacobi(diagonal, h2, operator.diagonal())
                 direction, n_linear, positive = _truncated_cg(
-                    lambda x, diagonal=diagonal, op=operator: _add_scaled(
-                        diagonal, x, h2, op.matvec(x)
+                    lambda x, diagonal=diagonal, op=operator: _in_chunks(
+                        _add_scaled, _add_scaled_threaded, diagonal, x, h2, op.matvec(x)
                     ),
                     preconditioners["jacobi"],
                     -grad,
@@ -404,8 +406,8 @@ def _direct_solve(matrix, rhs):
 def _truncated_cg(product, preconditioner, rhs, eta):
     """Jacobi-preconditioned CG for ``A x = rhs``, stopped at negative curvature.
 
-    ``product(x)`` returns ``A x``; ``preconditioner`` is 1 / A's diagonal
-    (``_jacobi``).
+    ``product(x)`` returns ``(A x, x . A x)``; ``preconditioner`` is 1 / A's
+    diagonal (``_jacobi``).
     Returns ``(x, iterations, positive)``: ``x`` solves to a relative residual
     ``eta``; ``positive`` is False when a search direction of non-positive
     curvature was met, in which case ``x`` is the last iterate (or the
@@ -416,15 +418,15 @@ def _truncated_cg(product, preconditioner, rhs, eta):
     residual = np.empty_like(rhs)
     z = np.empty_like(rhs)
     search = np.empty_like(rhs)
-    squared, rz = _cg_start(rhs, preconditioner, solution, residual, z, search)
+    squared, rz = _in_chunks(_cg_start, _cg_start_threaded, rhs, preconditioner, solution,
+                             residual, z, search)  # fmt: skip
     target = eta * np.sqrt(squared)
     for iteration in range(1, min(_MAX_CG_ITERATIONS, len(rhs)) + 1):
-        applied = product(search)
-        curvature = _dot(search, applied)
+        applied, curvature = product(search)
         if not curvature > 0.0:
             return (z if iteration == 1 else solution), iteration, False
-        squared, rz_new = _cg_update(rz / curvature, search, applied, preconditioner, solution,
-                                     residual, z)  # fmt: skip
+        squared, rz_new = _in_chunks(_cg_update, _cg_update_threaded, rz / curvature, search,
+                                     applied, preconditioner, solution, residual, z)  # fmt: skip
         if np.sqrt(squared) <= target:
             return solution, iteration, True
         _cg_direction(z, rz_new / rz, search)
@@ -477,12 +479,15 @@ def _incremental_terms(dx, target, masses, inverse_masses, forces, h2, grad):
     return 0.5 * kinetic, (largest if finite else np.nan)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, fastmath=_SUM_MATH, error_model="numpy")
 def _add_scaled(diagonal, x, h2, product):
-    """Return ``diagonal * x + h2 * product``, written over ``product``."""
+    """Write ``diagonal * x + h2 * product`` over ``product``; return (it, x . it)."""
+    curvature = 0.0
     for k in range(x.shape[0]):
-        product[k] = diagonal[k] * x[k] + h2 * product[k]
-    return product
+        applied = diagonal[k] * x[k] + h2 * product[k]
+        product[k] = applied
+        curvature += x[k] * applied
+    return product, curvature
 
 
 @njit(cache=True, error_model="numpy")
@@ -597,3 +602,103 @@ def _cg_direction(z, beta, search):
     """search = z + beta search, in place."""
     for k in range(z.shape[0]):
         search[k] = z[k] + beta * search[k]
+
+
+# ------------------------------------------------------------------ the passes on threads
+#: Fewest vector entries per thread worth a chunk of their own (measured below).
+_MIN_CHUNK_ENTRIES = 30_000
+
+
+def _in_chunks(serial, threaded, *args):
+    """Run a vector pass: ``serial(*args)``, or for long vectors ``threaded(*args,
+    chunks)`` with one chunk per thread. The threaded form sums its chunks' partial
+    results in chunk order, so a run repeats bit for bit at a given thread count; with
+    one thread it is the serial pass."""
+    size = next(len(a) for a in args if isinstance(a, np.ndarray))
+    chunks = chunk_count(size, _MIN_CHUNK_ENTRIES)
+    return serial(*args) if chunks == 1 else threaded(*args, chunks)
+
+
+@njit(cache=True, inline="always")
+def _bounds(c, chunks, n):
+    """Entries first..last-1 of chunk ``c``."""
+    return c * n // chunks, (c + 1) * n // chunks
+
+
+@njit(cache=True, error_model="numpy")
+def _largest(values):
+    """The largest of the chunks' maxima, NaN if one is NaN."""
+    out = values[0]
+    for v in values[1:]:
+        out = v if (v != v or v > out) else out
+    return out if out == out else np.nan
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _start_terms_threaded(velocities, forces, inverse_masses, h, h2, target, accelerations,
+                          predicted, chunks):  # fmt: skip
+    """``_start_terms`` in chunks on numba's threads."""
+    n = velocities.shape[0]
+    parts = np.empty((2, chunks))
+    for c in prange(chunks):
+        a, b = _bounds(c, chunks, n)
+        acceleration, step = _start_terms(velocities[a:b], forces[a:b], inverse_masses[a:b],
+                                          h, h2, target[a:b], accelerations[a:b],
+                                          predicted[a:b])  # fmt: skip
+        parts[0, c] = acceleration
+        parts[1, c] = step
+    return _largest(parts[0]), _largest(parts[1])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _incremental_terms_threaded(dx, target, masses, inverse_masses, forces, h2, grad, chunks):
+    """``_incremental_terms`` in chunks on numba's threads."""
+    n = dx.shape[0]
+    parts = np.empty((2, chunks))
+    for c in prange(chunks):
+        a, b = _bounds(c, chunks, n)
+        kinetic, largest = _incremental_terms(dx[a:b], target[a:b], masses[a:b],
+                                              inverse_masses[a:b], forces[a:b], h2,
+                                              grad[a:b])  # fmt: skip
+        parts[0, c] = kinetic
+        parts[1, c] = largest
+    return parts[0].sum(), _largest(parts[1])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _add_scaled_threaded(diagonal, x, h2, product, chunks):
+    """``_add_scaled`` in chunks on numba's threads."""
+    n = x.shape[0]
+    parts = np.empty(chunks)
+    for c in prange(chunks):
+        a, b = _bounds(c, chunks, n)
+        parts[c] = _add_scaled(diagonal[a:b], x[a:b], h2, product[a:b])[1]
+    return product, parts.sum()
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _cg_start_threaded(rhs, preconditioner, solution, residual, z, search, chunks):
+    """``_cg_start`` in chunks on numba's threads."""
+    n = rhs.shape[0]
+    parts = np.empty((2, chunks))
+    for c in prange(chunks):
+        a, b = _bounds(c, chunks, n)
+        squared, rz = _cg_start(rhs[a:b], preconditioner[a:b], solution[a:b], residual[a:b],
+                                z[a:b], search[a:b])  # fmt: skip
+        parts[0, c] = squared
+        parts[1, c] = rz
+    return parts[0].sum(), parts[1].sum()
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _cg_update_threaded(step, search, applied, preconditioner, solution, residual, z, chunks):
+    """``_cg_update`` in chunks on numba's threads."""
+    n = search.shape[0]
+    parts = np.empty((2, chunks))
+    for c in prange(chunks):
+        a, b = _bounds(c, chunks, n)
+        squared, rz = _cg_update(step, search[a:b], applied[a:b], preconditioner[a:b],
+                                 solution[a:b], residual[a:b], z[a:b])  # fmt: skip
+        parts[0, c] = squared
+        parts[1, c] = rz
+    return parts[0].sum(), parts[1].sum()

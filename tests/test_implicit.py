@@ -408,3 +408,81 @@ def test_lj_liquid(integrator_class):
         assert np.all(np.diff(energies) < 0.0)
     else:
         assert np.max(np.abs(energies - energies[0])) < 1e-2 * abs(energies[0])
+
+
+@pytest.mark.parametrize("chunks", [2, 3, 5])
+def test_solver_vector_passes_in_chunks_equal_the_serial_ones(chunks):
+    from integrators import _newton as newton
+
+    rng = np.random.default_rng(7)
+    n = 1001  # not a multiple of any chunk count
+    vectors = [rng.normal(size=n) for _ in range(4)]
+    masses = rng.uniform(0.5, 2.0, n)
+
+    def run(serial, threaded, *args, mutable=()):
+        """Both forms on copies of the arrays that the pass writes; their returns and
+        those arrays."""
+        outs = []
+        for kernel, extra in ((serial, ()), (threaded, (chunks,))):
+            copies = [a.copy() if k in mutable else a for k, a in enumerate(args)]
+            outs.append((kernel(*copies, *extra), [copies[k] for k in mutable]))
+        return outs
+
+    def same(outs):
+        (value_s, arrays_s), (value_t, arrays_t) = outs
+        for a, b in zip(arrays_s, arrays_t, strict=True):
+            np.testing.assert_array_equal(a, b)  # elementwise passes: no sums involved
+        return value_s, value_t
+
+    # incremental terms: kinetic sum to round-off, the largest |M^-1 grad| exactly
+    s, t = same(run(newton._incremental_terms, newton._incremental_terms_threaded,
+                    vectors[0], vectors[1], masses, 1.0 / masses, vectors[2], 0.3,
+                    np.empty(n), mutable=(6,)))  # fmt: skip
+    assert t[0] == pytest.approx(s[0], rel=1e-13) and t[1] == s[1]
+    s, t = same(run(newton._start_terms, newton._start_terms_threaded, vectors[0], vectors[1],
+                    1.0 / masses, 0.1, 0.01, np.empty(n), np.empty(n), np.empty(n),
+                    mutable=(5, 6, 7)))  # fmt: skip
+    assert t == s
+    s, t = same(run(newton._cg_start, newton._cg_start_threaded, vectors[0], masses,
+                    np.empty(n), np.empty(n), np.empty(n), np.empty(n),
+                    mutable=(2, 3, 4, 5)))  # fmt: skip
+    np.testing.assert_allclose(t, s, rtol=1e-13)
+    s, t = same(run(newton._cg_update, newton._cg_update_threaded, 0.7, vectors[0], vectors[1],
+                    masses, vectors[2], vectors[3], np.empty(n), mutable=(4, 5, 6)))  # fmt: skip
+    np.testing.assert_allclose(t, s, rtol=1e-13)
+    s, t = same(run(newton._add_scaled, newton._add_scaled_threaded, masses, vectors[0], 0.2,
+                    vectors[1], mutable=(3,)))  # fmt: skip
+    np.testing.assert_array_equal(t[0], s[0])
+    assert t[1] == pytest.approx(s[1], rel=1e-13)
+    # The serial pass's own sum: the product it returns dotted with x.
+    assert s[1] == pytest.approx(float(np.dot(vectors[0], s[0])), rel=1e-12)
+    # A NaN in any chunk reaches the largest entry, whichever chunk it is in.
+    for where in (0, n // 2, n - 1):
+        forces = vectors[2].copy()
+        forces[where] = np.nan
+        _, largest = newton._incremental_terms_threaded(
+            vectors[0], vectors[1], masses, 1.0 / masses, forces, 0.3, np.empty(n), chunks
+        )
+        assert np.isnan(largest)
+
+
+def test_solves_with_vector_passes_on_threads_match_serial(monkeypatch):
+    from integrators import _newton as newton
+    from md.parallel import get_threads, max_threads, set_threads
+
+    if max_threads() < 2:
+        pytest.skip("needs 2 threads")
+    monkeypatch.setattr(newton, "_MIN_CHUNK_ENTRIES", 64)  # threaded passes on a small system
+    before = get_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            set_threads(threads)
+            state = lj_liquid(cells=3)
+            integrator = ImplicitEuler(0.005, tol=1e-10, linear_solver="cg")
+            md.Simulation(state, [LennardJones(cutoff=2.5)], integrator).run(5)
+            results.append(state)
+    finally:
+        set_threads(before)
+    np.testing.assert_allclose(results[1].positions, results[0].positions, atol=1e-10)
+    np.testing.assert_allclose(results[1].velocities, results[0].velocities, atol=1e-7)
