@@ -605,7 +605,9 @@ def _cg_direction(z, beta, search):
 
 
 # ------------------------------------------------------------------ the passes on threads
-#: Fewest vector entries per thread worth a chunk of their own (measured below).
+#: Fewest vector entries per thread worth a chunk of their own: on the 32000-atom LJ
+#: melt (96000 entries) two chunks take an implicit Euler step's passes from 1.7 to
+#: 1.2 ms at 2 threads.
 _MIN_CHUNK_ENTRIES = 30_000
 
 
