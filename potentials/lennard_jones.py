@@ -365,10 +365,11 @@ class LennardJones:
         )  # fmt: skip
 
     def _frame_hessian(self, state, frame, n_types, table) -> PairHessian:
-        """``hessian_operator`` over a slot-frame list: two threaded passes, one to count
-        the pairs inside the cutoff of every chunk but the last, one to write each
-        chunk's where the counts say (the last one's with room for all its listed
-        pairs). The Jacobi diagonal is summed when the solver asks for it."""
+        """``hessian_operator`` over a slot-frame list, in one threaded pass: each chunk
+        writes the blocks of its pairs inside the cutoff from where its listed pairs
+        start, so no pass counts them first; the operator takes each chunk's run as one
+        of its pieces and skips the gaps the pairs beyond the cutoff leave. The Jacobi
+        diagonal is summed when the solver asks for it."""
         n = state.n_atoms
         chunks = frame.n_chunks
         slot_positions = np.empty((n, 3))
@@ -377,18 +378,7 @@ class LennardJones:
             frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
             frame.codes, frame.bounds, frame.tilt,
         )  # fmt: skip
-        counts = np.zeros(chunks, dtype=np.int64)
-        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-        count = _lj_frame_inside_threaded if chunks > 1 else _lj_frame_inside
-        count(state.positions, state.types, slots, n_types, table, slot_positions, slot_types,
-              counts)  # fmt: skip
-        # Every chunk but the last at its counted place; the last with room for all its
-        # listed pairs, so nothing needs counting there.
-        last_rows = frame.bounds[chunks - 1 : chunks + 1]
-        counts[-1] = frame.starts[last_rows[1]] - frame.starts[last_rows[0]]
-        offsets = np.zeros(chunks + 1, dtype=np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        room = int(offsets[-1])
+        room = int(frame.starts[-1])  # every listed pair
         # The blocks go into buffers kept from the last call when nothing uses them any
         # more (the last operator is gone): fresh arrays of tens of MB cost page faults
         # that take as long as writing them.
@@ -400,24 +390,14 @@ class LennardJones:
                 np.empty(size), np.empty((size, 3)),
             )  # fmt: skip
             self._hessian_buffers = held
-        out = tuple(buffer[:room] for buffer in held)
-        write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
         written = np.zeros(chunks, dtype=np.int64)
-        write(slot_positions, slot_types, slots, n_types, table, CUTOFF_MODES[self.cutoff_mode],
-              offsets, out, written)  # fmt: skip
-        if not np.array_equal(written[:-1], counts[:-1]):
-            # The two passes disagree on a pair at the cutoff to the last bit (their
-            # loops may round r^2 differently): write again where the second pass says.
-            np.cumsum(written, out=offsets[1:])
-            room = int(offsets[-1])
-            if held[0].shape[0] < room:
-                held = tuple(np.empty((room,) + b.shape[1:], dtype=b.dtype) for b in held)
-                self._hessian_buffers = held
-            out = tuple(buffer[:room] for buffer in held)
-            write(slot_positions, slot_types, slots, n_types, table,
-                  CUTOFF_MODES[self.cutoff_mode], offsets, out, written)  # fmt: skip
-        n_pairs = int(offsets[chunks - 1] + written[chunks - 1])
-        return PairHessian(n, *(buffer[:n_pairs] for buffer in out))
+        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+        write = _lj_frame_curvatures_threaded if chunks > 1 else _lj_frame_curvatures
+        write(state.positions, state.types, slots, n_types, table,
+              CUTOFF_MODES[self.cutoff_mode], slot_positions, slot_types, held,
+              written)  # fmt: skip
+        first = frame.starts[frame.bounds[:-1]]
+        return PairHessian(n, *held, pieces=np.column_stack((first, first + written)))
 
     def describe(self) -> dict:
         out = {
@@ -958,15 +938,17 @@ def _lj_pair_curvatures_loop(geometry, n_types, table, mode, out):
 
 # ------------------------------------------------------- curvatures in the slot frame
 @njit(cache=True, error_model="numpy")
-def _lj_frame_inside(positions, types, slots, n_types, table, frame, frame_types, counts):
-    """Gather the slot frame and count the pairs inside their cutoff of every chunk but
-    the last into ``counts`` (the last chunk's entry is left alone).
+def _lj_frame_curvatures(positions, types, slots, n_types, table, mode, frame, frame_types,
+                         out, written):  # fmt: skip
+    """Gather the slot frame, then write the pair blocks of every pair inside its cutoff,
+    chunk by chunk.
 
-    The first pass of ``_lj_frame_curvatures``: the counts place each chunk's
-    pairs, and the last chunk's need no place after them (it gets room for all
-    its listed pairs). So the rows before the last chunk are counted, split
-    into as many pieces as there are chunks, by listed pairs;
-    ``_lj_frame_inside_threaded`` counts the pieces on numba's threads.
+    Chunk c writes its pairs in list order into ``out`` (``pair_i``,
+    ``pair_j`` as atom indices, ``transverse``, ``radial``, ``unit``; see
+    ``_lj_curvature_terms``) from the index where its listed pairs start,
+    ``starts[bounds[c]]``, and sets ``written[c]`` to their number: no two
+    chunks write the same memory. ``_lj_frame_curvatures_threaded`` runs the
+    chunks on numba's threads.
     """
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
@@ -974,126 +956,31 @@ def _lj_frame_inside(positions, types, slots, n_types, table, frame, frame_types
         _gather_frame(
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
-    pieces, rows = _count_pieces(slots[4], slots[7], positions.shape[0])
-    for piece in range(n_chunks):
-        _lj_inside_count(pieces[piece], pieces[piece + 1], frame, frame_types, slots, n_types,
-                         table, rows)  # fmt: skip
-    _chunk_counts(slots[7], rows, counts)
+    for chunk in range(n_chunks):
+        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
+                                                   table, mode, out)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _lj_frame_inside_threaded(positions, types, slots, n_types, table, frame, frame_types,
-                              counts):  # fmt: skip
-    """``_lj_frame_inside`` on numba's threads (same arguments, same result)."""
+def _lj_frame_curvatures_threaded(positions, types, slots, n_types, table, mode, frame,
+                                  frame_types, out, written):  # fmt: skip
+    """``_lj_frame_curvatures`` with one chunk per thread (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
         _gather_frame(
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
-    pieces, rows = _count_pieces(slots[4], slots[7], positions.shape[0])
-    for piece in prange(n_chunks):
-        _lj_inside_count(pieces[piece], pieces[piece + 1], frame, frame_types, slots, n_types,
-                         table, rows)  # fmt: skip
-    _chunk_counts(slots[7], rows, counts)
-
-
-@njit(cache=True, error_model="numpy")
-def _count_pieces(starts, bounds, n):
-    """Row bounds of the counting pieces (rows of every chunk but the last, split evenly
-    by listed pairs) and the (N,) per-row counts to fill."""
-    n_chunks = bounds.shape[0] - 1
-    first, last = bounds[0], bounds[n_chunks - 1]
-    pieces = np.empty(n_chunks + 1, dtype=np.int64)
-    low, high = starts[first], starts[last]
-    for k in range(n_chunks + 1):
-        target = low + (high - low) * k // n_chunks
-        pieces[k] = min(max(np.searchsorted(starts, target), first), last)
-    pieces[0], pieces[n_chunks] = first, last
-    return pieces, np.zeros(n, dtype=np.int32)
-
-
-@njit(cache=True, error_model="numpy")
-def _chunk_counts(bounds, rows, counts):
-    """Sum the per-row counts over each chunk but the last."""
-    for chunk in range(bounds.shape[0] - 2):
-        total = 0
-        for p in range(bounds[chunk], bounds[chunk + 1]):
-            total += rows[p]
-        counts[chunk] = total
+    for chunk in prange(n_chunks):
+        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
+                                                   table, mode, out)  # fmt: skip
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
-def _lj_inside_count(first, last, frame, frame_types, slots, n_types, table, rows):
-    """Count the listed pairs closer than their cutoff of rows first..last-1 into ``rows``."""
-    if n_types == 1:
-        _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, True)
-    else:
-        _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, False)
-
-
-@njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
-def _lj_inside_count_loop(first, last, frame, frame_types, slots, n_types, table, rows, single):
-    """The loop of ``_lj_inside_count``: per slot, the partners gathered as the force
-    loop does, then counted in a loop the compiler vectorises."""
-    shifts, starts, neighbors, codes = slots[3], slots[4], slots[5], slots[6]
-    most = _longest_row(starts, first, last)
-    gx = np.empty(most)
-    gy = np.empty(most)
-    gz = np.empty(most)
-    params = np.zeros((6, most if not single else 0))
-    rc2 = table[RC2, 0]  # one atom type: a constant
-    for p in range(first, last):
-        xi = frame[p, 0]
-        yi = frame[p, 1]
-        zi = frame[p, 2]
-        row = frame_types[p] * n_types
-        partners = neighbors[starts[p] : starts[p + 1]]
-        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
-                         row, table, 0, single, gx, gy, gz, params)  # fmt: skip
-        inside = 0
-        for k in range(partners.shape[0]):
-            dx = xi - gx[k]
-            dy = yi - gy[k]
-            dz = zi - gz[k]
-            inside += dx * dx + dy * dy + dz * dz < (rc2 if single else params[RC2, k])
-        rows[p] = inside
-
-
-@njit(cache=True, error_model="numpy")
-def _lj_frame_curvatures(frame, frame_types, slots, n_types, table, mode, offsets, out,
-                         written):  # fmt: skip
-    """Write the pair blocks of every pair inside its cutoff, chunk by chunk.
-
-    The second pass, over the frame ``_lj_frame_inside`` gathered: chunk c
-    writes its pairs from ``offsets[c]`` to ``offsets[c + 1]`` of ``out``
-    (``pair_i``, ``pair_j`` as atom indices, ``transverse``, ``radial``,
-    ``unit``; see ``_lj_curvature_terms``), in list order, and sets
-    ``written[c]`` to the number of its pairs it found inside (pairs past
-    ``offsets[c + 1]`` are not written: the caller compares).
-    ``_lj_frame_curvatures_threaded`` runs the chunks on numba's threads;
-    no two chunks write the same memory.
-    """
-    for chunk in range(slots[7].shape[0] - 1):
-        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                   table, mode, offsets, out)  # fmt: skip
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _lj_frame_curvatures_threaded(frame, frame_types, slots, n_types, table, mode, offsets,
-                                  out, written):  # fmt: skip
-    """``_lj_frame_curvatures`` with one chunk per thread (same arguments, same result)."""
-    for chunk in prange(slots[7].shape[0] - 1):
-        written[chunk] = _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                   table, mode, offsets, out)  # fmt: skip
-
-
-@njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
-def _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, offsets,
-                              out):  # fmt: skip
+def _lj_frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, out):
     """One chunk of ``_lj_frame_curvatures``, with the loop compiled per mode and type count;
     returns the number of the chunk's pairs inside."""
-    args = (chunk, frame, frame_types, slots, n_types, table, offsets)
+    args = (chunk, frame, frame_types, slots, n_types, table)
     single = n_types == 1
     if mode == 0:
         if single:
@@ -1113,7 +1000,7 @@ def _lj_frame_curvature_loop(args, mode, single, out):
     """The loop of ``_lj_frame_curvature_chunk``: per slot, gather the partners, compute
     every pair's block in a loop the compiler vectorises, then keep those inside; returns
     how many were inside."""
-    chunk, frame, frame_types, slots, n_types, table, offsets = args
+    chunk, frame, frame_types, slots, n_types, table = args
     pair_i, pair_j, transverse, radial, unit = out
     order, shifts, starts, neighbors, codes, bounds = (
         slots[0], slots[3], slots[4], slots[5], slots[6], slots[7],
@@ -1131,8 +1018,8 @@ def _lj_frame_curvature_loop(args, mode, single, out):
     uz = np.empty(most)
     rc2, c6, c12 = table[RC2, 0], table[C6, 0], table[C12, 0]  # one atom type: constants
     ro2, inv_den = table[RO2, 0], table[INV_DEN, 0]
-    index = offsets[chunk]
-    limit = offsets[chunk + 1]
+    start = starts[bounds[chunk]]
+    index = start
     for p in range(bounds[chunk], bounds[chunk + 1]):
         xi = frame[p, 0]
         yi = frame[p, 1]
@@ -1162,15 +1049,14 @@ def _lj_frame_curvature_loop(args, mode, single, out):
             uz[k] = dz * inv_r
         atom = order[p]
         for k in range(m):
-            # Every pair is written at ``index``, which advances only past those inside;
-            # the test (false once, at the chunk's end) keeps off the next chunk's pairs.
-            if index < limit:
-                pair_i[index] = atom
-                pair_j[index] = order[np.uint32(partners[k])]
-                transverse[index] = st[k]
-                radial[index] = sr[k]
-                unit[index, 0] = ux[k]
-                unit[index, 1] = uy[k]
-                unit[index, 2] = uz[k]
+            # Every pair is written at ``index``, which advances only past those inside:
+            # it stays below the listed pairs so far, within the chunk's room.
+            pair_i[index] = atom
+            pair_j[index] = order[np.uint32(partners[k])]
+            transverse[index] = st[k]
+            radial[index] = sr[k]
+            unit[index, 0] = ux[k]
+            unit[index, 1] = uy[k]
+            unit[index, 2] = uz[k]
             index += flags[k]
-    return index - offsets[chunk]
+    return index - start

@@ -53,25 +53,94 @@ class PairHessian:
     unique : bool
         Whether each pair is listed at most once (then :meth:`tocsr` need not
         sum duplicates).
+    pieces : array_like of int, shape (C, 2), optional
+        The [start, stop) runs of the five arrays above that hold the pairs,
+        in order, each a chunk of the threaded products; entries between
+        runs are ignored (a potential writing each thread's pairs where its
+        listed pairs start leaves such gaps). Default: all entries, split
+        into one chunk per thread. The attributes ``pair_i`` ... ``unit``
+        give just the pairs (P = ``n_pairs``), copied into one run on first
+        use if there are gaps.
     """
 
     def __init__(
-        self, n_atoms: int, pair_i, pair_j, transverse, radial, unit, unique: bool = True
-    ) -> None:
+        self, n_atoms: int, pair_i, pair_j, transverse, radial, unit, unique: bool = True,
+        pieces=None,
+    ) -> None:  # fmt: skip
         self.n_atoms = int(n_atoms)
-        self.pair_i = pair_i
-        self.pair_j = pair_j
-        self.transverse = transverse
-        self.radial = radial
-        self.unit = unit
         self.unique = unique
         self.shape = (3 * self.n_atoms, 3 * self.n_atoms)
-        # Pairs are split into one chunk per thread, each adding into its own buffer, the
-        # buffers then summed in chunk order: the same result for a given thread count.
-        self.n_chunks = chunk_count(len(pair_i), _MIN_CHUNK_PAIRS)
+        stored = (pair_i, pair_j, transverse, radial, unit)
+        length = len(pair_i)
+        if any(len(a) != length for a in stored):
+            raise ValueError("pair_i, pair_j, transverse, radial and unit differ in length")
+        if pieces is None:
+            # One chunk per thread, each adding into its own buffer, the buffers then
+            # summed in chunk order: the same result for a given thread count.
+            chunks = chunk_count(length, _MIN_CHUNK_PAIRS)
+            bounds = np.arange(chunks + 1) * length // chunks
+            pieces = np.column_stack((bounds[:-1], bounds[1:]))
+        pieces = np.array(pieces, dtype=np.int64).reshape(-1, 2)
+        starts, stops = pieces[:, 0], pieces[:, 1]
+        if (len(pieces) == 0 or starts[0] < 0 or stops[-1] > length or np.any(stops < starts)
+                or np.any(starts[1:] < stops[:-1])):  # fmt: skip
+            raise ValueError(
+                f"pieces must be ordered, non-overlapping [start, stop) runs within the "
+                f"{length} stored pairs, got {pieces.tolist()}"
+            )
+        #: (C, 2) runs [start, stop) of the stored arrays that hold the pairs: one chunk
+        #: each of the threaded products (a list's Hessian leaves gaps between them).
+        self.pieces = pieces
+        self.n_chunks = len(pieces)
+        self.n_pairs = int(np.sum(stops - starts))
+        self._stored = stored
+        self._pairs = None  # the pairs in one run, made on first use
         self._partial_sums = None  # per-thread sums of matvec, allocated at its first call
         self._diagonal_blocks = None  # summed on first use: (N, 6), or (N, 3) for diagonal()
         self._diagonal = None
+
+    def _compact(self) -> tuple:
+        """The five arrays of just the pairs (views if they are one run, else copies)."""
+        if self._pairs is None:
+            starts, stops = self.pieces[:, 0], self.pieces[:, 1]
+            if np.all(starts[1:] == stops[:-1]):
+                self._pairs = tuple(a[starts[0] : stops[-1]] for a in self._stored)
+            else:
+                self._pairs = tuple(
+                    np.concatenate([a[first:last] for first, last in self.pieces])
+                    for a in self._stored
+                )
+        return self._pairs
+
+    def _piece(self, k: int) -> tuple:
+        """The five arrays of piece ``k``, as views."""
+        first, last = self.pieces[k]
+        return tuple(a[first:last] for a in self._stored)
+
+    @property
+    def pair_i(self) -> NDArray[np.integer]:
+        """(P,) the first atom of each pair."""
+        return self._compact()[0]
+
+    @property
+    def pair_j(self) -> NDArray[np.integer]:
+        """(P,) the second atom of each pair."""
+        return self._compact()[1]
+
+    @property
+    def transverse(self) -> NDArray[np.float64]:
+        """(P,) t = u'(r)/r of each pair [energy/length^2]."""
+        return self._compact()[2]
+
+    @property
+    def radial(self) -> NDArray[np.float64]:
+        """(P,) u''(r) of each pair [energy/length^2]."""
+        return self._compact()[3]
+
+    @property
+    def unit(self) -> NDArray[np.float64]:
+        """(P, 3) the unit vector of each pair."""
+        return self._compact()[4]
 
     @property
     def diagonal_blocks(self) -> NDArray[np.float64]:
@@ -83,24 +152,23 @@ class PairHessian:
     def _summed_blocks(self, width: int) -> NDArray[np.float64]:
         """Each atom's sum of its pairs' K: the first ``width`` (3 or 6) entries."""
         out = np.zeros((self.n_atoms, width))
-        arrays = (self.pair_i, self.pair_j, self.transverse, self.radial, self.unit)
         if self.n_chunks == 1:
-            _diagonal_blocks(*arrays, out)
+            _diagonal_blocks(*self._piece(0), out)
         else:
-            _diagonal_blocks_threaded(*arrays, np.empty((self.n_chunks, self.n_atoms, width)),
-                                      out)  # fmt: skip
+            buffers = np.empty((self.n_chunks, self.n_atoms, width))
+            _diagonal_blocks_threaded(*self._stored, self.pieces, buffers, out)
         return out
 
     @property
     def nnz(self) -> int:
         """Stored entries of the assembled matrix: 9 per diagonal and off-diagonal block."""
-        return 9 * (self.n_atoms + 2 * len(self.pair_i))
+        return 9 * (self.n_atoms + 2 * self.n_pairs)
 
     def min_eigenvalue(self) -> float:
         """Return the smallest eigenvalue of any pair block (0 without pairs) [energy/length^2]."""
-        if len(self.pair_i) == 0:
-            return 0.0
-        return float(min(self.transverse.min(), self.radial.min()))
+        pieces = [self._piece(k) for k in range(self.n_chunks)]
+        return min((float(min(p[2].min(), p[3].min())) for p in pieces if len(p[0])),
+                   default=0.0)  # fmt: skip
 
     def clamped(self, floor) -> PairHessian:
         """Return the Hessian with every pair block's eigenvalues raised to at least ``floor``.
@@ -129,13 +197,11 @@ class PairHessian:
         out = np.zeros(3 * self.n_atoms)
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.n_chunks == 1:
-            _pair_matvec(self.pair_i, self.pair_j, self.transverse, self.radial, self.unit, x,
-                         out)  # fmt: skip
+            _pair_matvec(*self._piece(0), x, out)
         else:
             if self._partial_sums is None:
                 self._partial_sums = np.empty((self.n_chunks, 3 * self.n_atoms))
-            _pair_matvec_threaded(self.pair_i, self.pair_j, self.transverse, self.radial,
-                                  self.unit, x, self._partial_sums, out)  # fmt: skip
+            _pair_matvec_threaded(*self._stored, self.pieces, x, self._partial_sums, out)
         return out
 
     def diagonal(self) -> NDArray[np.float64]:
@@ -376,15 +442,16 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
 
 
 @njit(cache=True, parallel=True)
-def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, buffers, diagonal):
-    """``_diagonal_blocks`` on numba's threads: chunk c of the pairs into ``buffers[c]``
-    (C, N, 6), then the buffers summed in chunk order into ``diagonal`` (zeroed)."""
+def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, pieces, buffers,
+                              diagonal):  # fmt: skip
+    """``_diagonal_blocks`` on numba's threads: the pairs of piece c (``pieces[c]``, a
+    [start, stop) run) into ``buffers[c]`` (C, N, 6), then the buffers summed in chunk
+    order into ``diagonal`` (zeroed)."""
     n_chunks = buffers.shape[0]
-    n_pairs = pair_i.shape[0]
     n = diagonal.shape[0]
     for c in prange(n_chunks):
         buffers[c, :, :] = 0.0
-        first, last = c * n_pairs // n_chunks, (c + 1) * n_pairs // n_chunks
+        first, last = pieces[c, 0], pieces[c, 1]
         _diagonal_blocks(pair_i[first:last], pair_j[first:last], transverse[first:last],
                          radial[first:last], unit[first:last], buffers[c])  # fmt: skip
     for c in prange(n_chunks):
@@ -397,15 +464,14 @@ def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, buffers,
 
 
 @njit(cache=True, parallel=True)
-def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, x, buffers, out):
-    """``_pair_matvec`` on numba's threads: chunk c of the pairs into ``buffers[c]`` (C, 3N),
-    then the buffers summed per entry, in chunk order."""
+def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, pieces, x, buffers, out):
+    """``_pair_matvec`` on numba's threads: the pairs of piece c (``pieces[c]``) into
+    ``buffers[c]`` (C, 3N), then the buffers summed per entry, in chunk order."""
     n_chunks = buffers.shape[0]
-    n_pairs = pair_i.shape[0]
     size = x.shape[0]
     for c in prange(n_chunks):
         buffers[c, :] = 0.0
-        first, last = c * n_pairs // n_chunks, (c + 1) * n_pairs // n_chunks
+        first, last = pieces[c, 0], pieces[c, 1]
         _pair_matvec(pair_i[first:last], pair_j[first:last], transverse[first:last],
                      radial[first:last], unit[first:last], x, buffers[c])  # fmt: skip
     for c in prange(n_chunks):

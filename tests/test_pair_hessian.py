@@ -100,6 +100,51 @@ def test_definite_makes_the_newton_matrix_positive_and_keeps_safe_pairs(random_g
                            zip(operator.terms, fixed.terms, strict=True))  # fmt: skip
 
 
+def test_pieces_skip_the_entries_between_them(rng):
+    """An operator whose pairs lie in runs of longer arrays (the gaps hold NaN here)
+    equals the one built from just those pairs: products, diagonal, blocks, matrix,
+    eigenvalue bounds and the clamped operator; malformed runs are refused."""
+    n_atoms, n_pairs = 30, 200
+    pair_i = rng.integers(0, n_atoms, n_pairs)
+    pair_j = (pair_i + rng.integers(1, n_atoms, n_pairs)) % n_atoms
+    transverse, radial = rng.normal(size=n_pairs), rng.normal(size=n_pairs)
+    unit = rng.normal(size=(n_pairs, 3))
+    unit /= np.linalg.norm(unit, axis=1)[:, None]
+    compact = PairHessian(n_atoms, pair_i, pair_j, transverse, radial, unit, unique=False)
+    runs = [(0, 70), (70, 120), (120, 200)]
+    gaps = [5, 0, 17]  # entries left before each run
+    pieces, stored = [], [[] for _ in range(5)]
+    at = 0
+    for (first, last), gap in zip(runs, gaps, strict=True):
+        for k, array in enumerate((pair_i, pair_j, transverse, radial, unit)):
+            filler = np.full((gap,) + array.shape[1:], -1 if k < 2 else np.nan, array.dtype)
+            stored[k] += [filler, array[first:last]]
+        pieces.append((at + gap, at + gap + last - first))
+        at += gap + last - first
+    stored = [np.concatenate(parts) for parts in stored]
+    gapped = PairHessian(n_atoms, *stored, unique=False, pieces=pieces)
+    assert gapped.n_chunks == 3 and gapped.n_pairs == n_pairs
+    for name in ("pair_i", "pair_j", "transverse", "radial", "unit"):
+        np.testing.assert_array_equal(getattr(gapped, name), getattr(compact, name))
+    x = rng.normal(size=3 * n_atoms)
+    np.testing.assert_allclose(gapped.matvec(x), compact.tocsr() @ x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gapped.diagonal(), compact.tocsr().diagonal(), rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(gapped.diagonal_blocks, compact.diagonal_blocks, rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(gapped.tocsr().toarray(), compact.tocsr().toarray(), rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+    assert gapped.nnz == compact.nnz
+    assert gapped.min_eigenvalue() == compact.min_eigenvalue()
+    np.testing.assert_array_equal(gapped.negative_pairs(), compact.negative_pairs())
+    np.testing.assert_array_equal(gapped.clamped(0.0).radial, compact.clamped(0.0).radial)
+    for bad in ([(0, 70), (60, 120)], [(5, 3)], [(0, len(stored[0]) + 1)], []):
+        with pytest.raises(ValueError, match="pieces"):
+            PairHessian(n_atoms, *stored, pieces=bad)
+    with pytest.raises(ValueError, match="differ in length"):
+        PairHessian(n_atoms, pair_i, pair_j[:-1], transverse, radial, unit)
+
+
 def test_duplicate_pairs_are_summed_in_the_matrix():
     hessian = PairHessian(
         2, np.array([0, 0]), np.array([1, 1]), np.array([1.0, 2.0]), np.array([3.0, 4.0]),
@@ -119,14 +164,14 @@ def test_threaded_hessian_equals_the_serial_one(fcc_lattice, rng, mode):
 
     state = fcc_lattice(cells=9, perturbation=0.08)  # 2916 atoms, ~10^5 listed pairs
     lj = LennardJones(cutoff=2.5, cutoff_mode=mode, r_on=2.0 if mode == "smooth" else None)
-    nl = NeighborList(2.5, 0.3)
-    nl.update(state)
     x = rng.normal(size=3 * state.n_atoms)
     before = get_threads()
     operators = {}
     try:
         for threads in (1, 2):
             set_threads(threads)
+            nl = NeighborList(2.5, 0.3)  # its chunks (one per thread) are the operator's
+            nl.update(state)
             operators[threads] = lj.hessian_operator(state, nl)
             operators[threads].product = operators[threads].matvec(x)
     finally:
@@ -146,12 +191,11 @@ def test_threaded_hessian_equals_the_serial_one(fcc_lattice, rng, mode):
 
 @pytest.mark.parametrize("chunks", [2, 3, 5])
 def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunks):
-    """The curvature pass places each chunk's pairs from counts of every chunk but the
-    last (counted in as many pieces as there are chunks) and gives the last chunk room
-    for all its listed pairs: over a list split into 2, 3 or 5 chunks, the operator holds
-    the same pairs, in the same order, as over a one-chunk list; its Jacobi diagonal
-    (summed on its own, three entries per atom) equals the diagonal blocks' and the
-    matrix's."""
+    """The curvature pass writes each chunk's pairs from where its listed pairs start,
+    leaving gaps where the pairs beyond the cutoff were: over a list split into 2, 3 or 5
+    chunks, the operator holds the same pairs, in the same order, as over a one-chunk
+    list, one piece per chunk; its products and Jacobi diagonal (summed on its own, three
+    entries per atom) equal the diagonal blocks' and the matrix's."""
     from md.neighbors import NeighborList, _balanced_bounds
     from md.parallel import get_threads, set_threads
 
@@ -170,8 +214,14 @@ def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunk
     finally:
         set_threads(before)
     one, many = operators
+    assert many.n_chunks == chunks and many.n_pairs == one.n_pairs
+    assert many.pieces[-1, 1] - many.pieces[0, 0] > many.n_pairs  # gaps between the pieces
     for name in ("pair_i", "pair_j", "transverse", "radial", "unit"):
         np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
+    x = np.random.default_rng(3).normal(size=3 * state.n_atoms)
+    product = one.matvec(x)
+    np.testing.assert_allclose(many.matvec(x), product, rtol=0,
+                               atol=1e-12 * np.abs(product).max())  # fmt: skip
     diagonal = many.diagonal()
     np.testing.assert_allclose(diagonal, many.diagonal_blocks[:, :3].ravel(), rtol=1e-13)
     np.testing.assert_allclose(diagonal, one.tocsr().diagonal(), rtol=1e-12, atol=1e-12)
