@@ -393,14 +393,15 @@ def _add_block(diagonal, atom, b0, b1, b2, b3, b4, b5, full):
         diagonal[atom, 5] += b5
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
     """Add H x to ``out`` (3N,): K (x_i - x_j) to row i and its negative to row j.
 
     K d = t d + (r - t) (e . d) e, so no block is formed, and the diagonal
     blocks (the sums of K over each atom's pairs) need not be read: the
     difference form has one product with K per pair where the split form
-    (K x_i and K x_j, plus the diagonal blocks) has two.
+    (K x_i and K x_j, plus the diagonal blocks) has two. Entries are indexed
+    by unsigned integers: a signed index costs a wrap-around test per access.
     """
     n_pairs = pair_i.shape[0]
     if n_pairs == 0:
@@ -408,22 +409,25 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
     # Pairs come in runs with the same i (a slot's partners in a neighbour-list
     # Hessian): row i's terms are summed in registers over the run and written once,
     # instead of a read-modify-write of out[i] per pair that the next pair waits for.
+    three = np.uint64(3)
     current = pair_i[0]
-    xi0, xi1, xi2 = x[3 * current], x[3 * current + 1], x[3 * current + 2]
+    row = three * np.uint64(current)
+    xi0, xi1, xi2 = x[row], x[row + 1], x[row + 2]
     s0 = s1 = s2 = 0.0
     for p in range(n_pairs):
         i = pair_i[p]
         if i != current:
-            out[3 * current] += s0
-            out[3 * current + 1] += s1
-            out[3 * current + 2] += s2
+            out[row] += s0
+            out[row + 1] += s1
+            out[row + 2] += s2
             s0 = s1 = s2 = 0.0
             current = i
-            xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-        j = pair_j[p]
-        d0 = xi0 - x[3 * j]
-        d1 = xi1 - x[3 * j + 1]
-        d2 = xi2 - x[3 * j + 2]
+            row = three * np.uint64(i)
+            xi0, xi1, xi2 = x[row], x[row + 1], x[row + 2]
+        column = three * np.uint64(pair_j[p])
+        d0 = xi0 - x[column]
+        d1 = xi1 - x[column + 1]
+        d2 = xi2 - x[column + 2]
         t = transverse[p]
         e0, e1, e2 = unit[p, 0], unit[p, 1], unit[p, 2]
         along = (radial[p] - t) * (e0 * d0 + e1 * d1 + e2 * d2)
@@ -433,12 +437,12 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
         s0 += k0
         s1 += k1
         s2 += k2
-        out[3 * j] -= k0
-        out[3 * j + 1] -= k1
-        out[3 * j + 2] -= k2
-    out[3 * current] += s0
-    out[3 * current + 1] += s1
-    out[3 * current + 2] += s2
+        out[column] -= k0
+        out[column + 1] -= k1
+        out[column + 2] -= k2
+    out[row] += s0
+    out[row + 1] += s1
+    out[row + 2] += s2
 
 
 @njit(cache=True, parallel=True)
