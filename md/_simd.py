@@ -13,7 +13,11 @@ prove safe; but some single machine operations have no Python spelling:
   kernels are compiled for an x86 CPU with AVX2, whose ``vpermd`` moves
   selected lanes of a vector to its front (``permute_lanes``, with
   ``PERMUTATIONS``). Kernels that use it keep a portable path for every
-  other CPU.
+  other CPU;
+- ``stream_store`` and ``store_fence``: a non-temporal store (LLVM's
+  ``!nontemporal``; ``movnti``/``movntsd`` on x86, a plain store where the
+  CPU has none) and the fence that orders such stores, for outputs of tens
+  of MB that a plain store would first read into the cache.
 
 The CPU is the one numba compiles for: ``NUMBA_CPU_FEATURES`` when set, else
 the host's (numba's own rule; its cache keys compiled code on the same).
@@ -159,3 +163,35 @@ def permute_lanes(builder, values, mask, table):
     )
     row = builder.mul(mask, ir.Constant(ir.IntType(64), 8))
     return builder.call(permd, [values, load_vector(builder, table, row, words)])
+
+
+@intrinsic
+def stream_store(typingctx, array, index, value):
+    """``array[index] = value`` as a non-temporal store: written to memory through the
+    write-combining buffers, past the caches, with no read of the line first. For large
+    outputs that are not read again soon; a ``store_fence()`` after the last one orders
+    them before what follows."""
+    sig = types.void(array, types.uint64, array.dtype)
+
+    def codegen(context, builder, signature, args):
+        data = array_data(context, builder, signature.args[0], args[0])
+        pointer = builder.gep(data, [args[1]])
+        store = builder.store(args[2], pointer)
+        flag = builder.module.add_metadata([ir.Constant(ir.IntType(32), 1)])
+        store.set_metadata("nontemporal", flag)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def store_fence(typingctx):
+    """A full memory fence (``mfence`` on x86): every earlier store, non-temporal ones
+    included, is visible before any later memory access."""
+    sig = types.void()
+
+    def codegen(context, builder, signature, args):
+        builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return sig, codegen

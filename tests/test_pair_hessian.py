@@ -225,3 +225,28 @@ def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunk
     diagonal = many.diagonal()
     np.testing.assert_allclose(diagonal, many.diagonal_blocks[:, :3].ravel(), rtol=1e-13)
     np.testing.assert_allclose(diagonal, one.tocsr().diagonal(), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64, np.float32, np.float64])
+def test_stream_store_writes_what_a_plain_store_does(dtype):
+    """The non-temporal store the Hessian pass writes its blocks with: the same values
+    at the same places, later stores to one place winning, nothing else touched."""
+    from numba import njit
+
+    from md._simd import store_fence, stream_store
+
+    @njit
+    def write(out, places, values):
+        for k in range(places.shape[0]):
+            stream_store(out, np.uint64(places[k]), values[k])
+        store_fence()
+
+    rng = np.random.default_rng(5)
+    places = rng.integers(0, 500, 2000)
+    values = (rng.normal(size=2000) * 1000).astype(dtype)
+    out = np.full(500, 3, dtype=dtype)
+    expected = out.copy()
+    for place, value in zip(places, values, strict=True):
+        expected[place] = value
+    write(out, places, values)
+    np.testing.assert_array_equal(out, expected)
