@@ -375,10 +375,9 @@ class IncrementalSolver:
         slope = float(_dot(grad, direction))
         if not slope < 0.0:
             return None
-        grad_norm = _norm(grad)
         alpha = 1.0
         for _ in range(_MAX_BACKTRACKS):
-            trial = dx + alpha * direction
+            trial = dx + direction if alpha == 1.0 else dx + alpha * direction
             try:
                 values = evaluate(trial)
             except NonFiniteError:
@@ -386,7 +385,7 @@ class IncrementalSolver:
             if values is not None:
                 phi_t, grad_t, _, _ = values
                 if phi_t <= phi + _ARMIJO * alpha * slope or (
-                    phi_t <= phi + noise and _norm(grad_t) < grad_norm
+                    phi_t <= phi + noise and _norm(grad_t) < _norm(grad)
                 ):
                     return (trial, *values, alpha)
             alpha *= 0.5
