@@ -31,6 +31,7 @@ from md._simd import (
     float_bits,
     is_vector_array,
     load_vector,
+    move_within,
     permute_lanes,
     splat,
     store_vector,
@@ -253,7 +254,7 @@ def _frame_pairs(
     no two threads write the same memory; ``starts[p + 1]`` is the end of row
     p counted from the start of its region, ``counts[c]`` the chunk's pair
     count (it keeps counting past ``capacity`` without writing).
-    ``_compact_chunks`` then joins the regions into one CSR list.
+    ``_join_chunks`` then joins the regions into one CSR list.
 
     Cells are at least list radius / ``reach`` wide (reach 1 or 2), so
     every partner lies within ``reach`` cells along each axis. Each
@@ -803,25 +804,108 @@ def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, co
     return found
 
 
-def _compact_chunks(bounds, capacity, counts, starts, neighbors, codes):
+@njit(cache=True, error_model="numpy")
+def _cell_list(
+    positions, origin, cell_width, n_cells, reach, periodic, box, tilt, r2_max, chunks,
+    neighbors, codes,
+):  # fmt: skip
+    """The cell search's whole build in one compiled call: bin, search, join.
+
+    Returns (order, images, starts, bounds, count): the slots (``_bin_atoms``),
+    the row starts of the joined half list, whose pairs are ``neighbors[:count]``
+    with image codes ``codes[:count]`` (``_frame_pairs``), and the rows of
+    ``chunks`` chunks with about equal numbers of pairs (``_balanced_bounds``).
+    The search runs in ``chunks`` chunks (on numba's threads when more than
+    one), each in its region of ``len(neighbors) // chunks`` entries of both
+    buffers. When a chunk finds more pairs than that, nothing is joined and
+    count is minus the largest chunk's count: grow both buffers to hold that
+    many per chunk and call again.
+
+    One call rather than a dozen small numpy ones between the kernels: in a
+    run, the pair kernels have evicted the interpreter's working set from the
+    caches, and each small call costs ten times what it costs in a loop of
+    its own.
+    """
+    n = positions.shape[0]
+    n_total = n_cells[0] * n_cells[1] * n_cells[2]
+    cell_of = np.empty(n, dtype=np.int64)
+    cell_starts = np.empty(n_total + 1, dtype=np.int64)
+    order = np.empty(n, dtype=np.int64)
+    # By coordinate: the search reads contiguous runs, whole blocks past the last slot.
+    wrapped = np.empty((3, n + ROW_PADDING))
+    wrapped[:, n:] = 0.0
+    images = np.empty((n, 3), dtype=np.int32)
+    if chunks > 1:
+        _bin_atoms_threaded(positions, origin, cell_width, n_cells, periodic, box, tilt,
+                            cell_of, cell_starts, order, wrapped, images, chunks)  # fmt: skip
+    else:
+        _bin_atoms(positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
+                   cell_starts, order, wrapped, images)  # fmt: skip
+    slot_cell = cell_of  # reused: the cell of each slot, in slot order
+    for c in range(n_total):
+        slot_cell[cell_starts[c] : cell_starts[c + 1]] = c
+    bounds = np.empty(chunks + 1, dtype=np.int64)
+    for c in range(chunks + 1):
+        bounds[c] = c * n // chunks
+    starts = np.zeros(n + 1, dtype=np.int64)
+    counts = np.zeros(chunks, dtype=np.int64)
+    capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
+    if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
+        _frame_pairs_threaded(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
+                              cell_starts, bounds, capacity, starts, neighbors, codes,
+                              counts)  # fmt: skip
+    else:
+        _frame_pairs(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
+                     cell_starts, bounds, capacity, starts, neighbors, codes, counts)  # fmt: skip
+    most = counts.max()
+    if most > capacity:
+        return order, images, starts, bounds, -most
+    count = _join_chunks(bounds, capacity, counts, starts, neighbors, codes)
+    return order, images, starts, _balanced_bounds(starts, chunks), count
+
+
+@njit(cache=True, error_model="numpy")
+def _join_chunks(bounds, capacity, counts, starts, neighbors, codes):
     """Join the chunk regions written by ``_frame_pairs`` into one CSR list; return its length.
 
-    Regions move towards the front, and row ends become absolute. Plain
-    numpy: its slice assignment copies overlapping regions correctly at
-    memmove speed (a compiled element loop here, which the compiler could not
-    vectorise for the overlap, took ten times as long).
+    Regions move towards the front (``memmove``: they may overlap), and row
+    ends become absolute.
     """
     offset = 0
     starts[0] = 0
-    for chunk in range(len(bounds) - 1):
+    for chunk in range(bounds.shape[0] - 1):
         base = chunk * capacity
-        count = int(counts[chunk])
+        count = counts[chunk]
         if offset != base:
-            neighbors[offset : offset + count] = neighbors[base : base + count]
-            codes[offset : offset + count] = codes[base : base + count]
-        starts[bounds[chunk] + 1 : bounds[chunk + 1] + 1] += offset
+            move_within(neighbors, offset, base, count)
+            move_within(codes, offset, base, count)
+        for p in range(bounds[chunk] + 1, bounds[chunk + 1] + 1):
+            starts[p] += offset
         offset += count
     return offset
+
+
+@njit(cache=True, error_model="numpy")
+def _balanced_bounds(starts, chunks):
+    """Row ranges of ``chunks`` chunks holding about equal numbers of pairs.
+
+    Chunk c starts at the first row that starts at or after pair c P / chunks
+    (rounded up; P pairs in all), never before the chunk ahead of it.
+    """
+    n = starts.shape[0] - 1
+    bounds = np.empty(chunks + 1, dtype=np.int64)
+    bounds[0] = 0
+    for c in range(1, chunks):
+        target = -(-starts[n] * c // chunks)
+        bounds[c] = max(np.searchsorted(starts, target), bounds[c - 1])
+    bounds[chunks] = n
+    return bounds
+
+
+#: Row k: the cell-vector multiples (dx - 1, dy - 1, dz - 1) of code k = 9 dx + 3 dy + dz.
+_CODE_WRAPS = np.array(
+    [(a - 1.0, b - 1.0, c - 1.0) for a in range(3) for b in range(3) for c in range(3)]
+)
 
 
 def _shift_table(box, pbc, tilt):
@@ -829,8 +913,7 @@ def _shift_table(box, pbc, tilt):
 
     Code 9 dx + 3 dy + dz means the shift (dx - 1) a + (dy - 1) b + (dz - 1) c.
     """
-    digits = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)])
-    return (digits - 1.0) @ cell_matrix(np.where(pbc, box, 0.0), periodic_tilt(tilt, pbc))
+    return _CODE_WRAPS @ cell_matrix(np.where(pbc, box, 0.0), periodic_tilt(tilt, pbc))
 
 
 @njit(cache=True, error_model="numpy")
@@ -857,6 +940,19 @@ def _max_displacement2_threaded(positions, reference, chunks):
         a, b = c * n // chunks, (c + 1) * n // chunks
         worst[c] = _max_displacement2(positions[a:b], reference[a:b])
     return worst.max()
+
+
+@njit(cache=True, error_model="numpy")
+def _largest_displacement2(positions, reference, chunks):
+    """``_max_displacement2``, on numba's threads in ``chunks`` chunks when more than one.
+
+    One compiled entry for both: the threaded kernel is loaded with it, at the
+    first list check of any size, not at the first one of a large system
+    (loading a parallel kernel from numba's cache takes milliseconds).
+    """
+    if chunks > 1:
+        return _max_displacement2_threaded(positions, reference, chunks)
+    return _max_displacement2(positions, reference)
 
 
 #: Bit patterns: all but the sign bit, and +inf (every NaN's magnitude bits are above it).

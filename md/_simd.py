@@ -14,6 +14,8 @@ prove safe; but some single machine operations have no Python spelling:
   selected lanes of a vector to its front (``permute_lanes``, with
   ``PERMUTATIONS``). Kernels that use it keep a portable path for every
   other CPU;
+- ``move_within``: C's ``memmove`` inside one array (numba's slice assignment
+  copies overlapping slices through a temporary, element by element);
 - ``stream_store`` and ``store_fence``: a non-temporal store (LLVM's
   ``!nontemporal``; ``movnti``/``movntsd`` on x86, a plain store where the
   CPU has none) and the fence that orders such stores, for outputs of tens
@@ -192,6 +194,27 @@ def store_fence(typingctx):
 
     def codegen(context, builder, signature, args):
         builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def move_within(typingctx, array, to, start, count):
+    """``array[to:to + count] = array[start:start + count]`` for a contiguous 1-D array,
+    overlap allowed (LLVM's ``memmove``: the C library's, at memory speed). No bounds
+    check: the caller keeps both ranges inside the array."""
+    if not (isinstance(array, types.Array) and array.ndim == 1 and array.layout == "C"):
+        return None
+    sig = types.void(array, types.int64, types.int64, types.int64)
+
+    def codegen(context, builder, signature, args):
+        data = array_data(context, builder, signature.args[0], args[0])
+        itemsize = context.get_abi_sizeof(context.get_data_type(signature.args[0].dtype))
+        cgutils.raw_memmove(
+            builder, builder.gep(data, [args[1]]), builder.gep(data, [args[2]]), args[3],
+            itemsize,
+        )  # fmt: skip
         return context.get_dummy_value()
 
     return sig, codegen

@@ -10,17 +10,12 @@ from numpy.typing import NDArray
 
 from md._cell_kernels import (
     MAX_SLOTS,
-    ROW_PADDING,
     _atom_space_list,
-    _bin_atoms,
-    _bin_atoms_threaded,
+    _balanced_bounds,
     _brute_force_pairs,
-    _compact_chunks,
-    _frame_pairs,
-    _frame_pairs_threaded,
+    _cell_list,
     _largest_coordinates,
-    _max_displacement2,
-    _max_displacement2_threaded,
+    _largest_displacement2,
     _shift_table,
 )
 from md.box import (
@@ -201,7 +196,8 @@ class NeighborList:
         self._box: NDArray[np.float64] | None = None
         self._tilt: NDArray[np.float64] | None = None
         self._pbc: NDArray[np.bool_] | None = None
-        self._cell_bytes: tuple[bytes, bytes] = (b"", b"")  # box and tilt at the build
+        self._cell_bytes: tuple[bytes, ...] = ()  # box, tilt and pbc at the build
+        self._cell_memo = None  # (key, data) of _cell_data
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
 
@@ -338,17 +334,17 @@ class NeighborList:
         cutoff rc is missed while d <= (s (rc + skin) - rc) / 2; with M = 1
         this is the usual half-skin rule.
         """
-        if (
-            self._reference is None
-            or self._reference.shape != state.positions.shape
-            or not np.array_equal(self._pbc, state.pbc)
-        ):
+        if self._reference is None or self._reference.shape != state.positions.shape:
             return True
         pbc = state.pbc
         # Byte equality first (each step: the fast test of an unchanged cell), then values.
-        same_cell = (state.box.tobytes(), state.tilt.tobytes()) == self._cell_bytes or (
-            np.array_equal(self._box, state.box) and np.array_equal(self._tilt, state.tilt)
-        )
+        same_cell = (state.box.tobytes(), state.tilt.tobytes(), pbc.tobytes()) == self._cell_bytes
+        if not same_cell:
+            if not np.array_equal(self._pbc, pbc):
+                return True
+            same_cell = np.array_equal(self._box, state.box) and np.array_equal(
+                self._tilt, state.tilt
+            )
         if same_cell:
             reference, allowed2 = self._reference, self._rebuild_distance2
         else:
@@ -365,10 +361,7 @@ class NeighborList:
                 return True
             reference, allowed2 = self._reference @ m, _square(allowed)
         chunks = chunk_count(len(reference), _MIN_PASS_ATOMS)
-        if chunks > 1:
-            moved2 = _max_displacement2_threaded(state.positions, reference, chunks)
-        else:
-            moved2 = _max_displacement2(state.positions, reference)
+        moved2 = _largest_displacement2(state.positions, reference, chunks)
         if not np.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
         if moved2 > allowed2:
@@ -382,10 +375,10 @@ class NeighborList:
         largest = _largest_coordinates(state.positions)  # inf if any is not finite
         if not np.all(np.isfinite(largest)):
             raise NonFiniteError("particle positions are not finite")
-        self.check_box(state.box, state.pbc, state.tilt)
-        lengths, _ = periodic_lengths(state.box, state.pbc)
-        far = largest > _MAX_IMAGES * lengths
-        if np.any(state.pbc & far):
+        positions = state.positions
+        n = positions.shape[0]
+        lengths, tilt, grid, shifts = self._cell_data(state)
+        if np.any(state.pbc & (largest > _MAX_IMAGES * lengths)):
             raise NonFiniteError(
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
@@ -394,30 +387,46 @@ class NeighborList:
         self.order, self._atom_list = None, None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.lengths = lengths
-        self.tilt = periodic_tilt(state.tilt, state.pbc)
-        positions = state.positions
-        n = positions.shape[0]
-        grid = self._grid(state)
+        self.tilt = tilt
         self.used_cells = grid is not None
         chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
         if grid is None:
             self._build_brute_force(state)
+            self.bounds = _balanced_bounds(self.slot_starts, chunks)
         elif n > MAX_SLOTS:
             raise ValueError(
                 f"the cell search lists at most {MAX_SLOTS} atoms per process, got {n}"
             )
         else:
             self._build_cells(state, grid, chunks)
-        self.bounds = _balanced_bounds(self.slot_starts, chunks)
-        self._atom_list = None
+            self.shifts = shifts
         self._reference = positions.copy()
         self._box = state.box.copy()
         self._tilt = state.tilt.copy()
         self._pbc = state.pbc.copy()
-        self._cell_bytes = (self._box.tobytes(), self._tilt.tobytes())
+        self._cell_bytes = (self._box.tobytes(), self._tilt.tobytes(), self._pbc.tobytes())
         self._build_cell = (self.lengths, self.tilt)
         self._followed_at_build = self.n_followed
         self.n_builds += 1
+
+    def _cell_data(self, state: State):
+        """(lengths, tilt, grid, shifts) of a build in ``state``'s cell, after ``check_box``.
+
+        Kept for the next build while the cell is periodic along every axis
+        and unchanged (the grid then depends on nothing else): a build in a run
+        then skips some thirty small numpy calls, each slow in a run, where the
+        pair kernels have evicted the interpreter's data from the caches.
+        """
+        key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes(), state.n_atoms,
+               self.cutoff, self.skin)  # fmt: skip
+        if self._cell_memo is not None and self._cell_memo[0] == key:
+            return self._cell_memo[1]
+        self.check_box(state.box, state.pbc, state.tilt)
+        lengths, _ = periodic_lengths(state.box, state.pbc)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        data = (lengths, tilt, self._grid(state), _shift_table(state.box, state.pbc, tilt))
+        self._cell_memo = (key, data) if np.all(state.pbc) else None
+        return data
 
     def _build_brute_force(self, state: State) -> None:
         positions = state.positions
@@ -444,55 +453,24 @@ class NeighborList:
         self.shifts = np.zeros((27, 3))
 
     def _build_cells(self, state: State, grid, chunks: int) -> None:
-        positions = state.positions
-        n = positions.shape[0]
         origin, width, n_cells, reach = grid
-        cell_of = np.empty(n, dtype=np.int64)
-        cell_starts = np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64)
-        order = np.empty(n, dtype=np.int64)
-        # By coordinate: the search reads contiguous runs, whole blocks past the last slot.
-        wrapped = np.empty((3, n + ROW_PADDING))
-        wrapped[:, n:] = 0.0
-        images = np.empty((n, 3), dtype=np.int32)
-        if chunks > 1:
-            _bin_atoms_threaded(
-                positions, origin, width, n_cells, state.pbc, state.box, self.tilt,
-                cell_of, cell_starts, order, wrapped, images, chunks,
-            )  # fmt: skip
-        else:
-            _bin_atoms(
-                positions, origin, width, n_cells, state.pbc, state.box, self.tilt,
-                cell_of, cell_starts, order, wrapped, images,
-            )  # fmt: skip
-        slot_cell = cell_of[order]
-        del cell_of
-        bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
-        starts = np.zeros(n + 1, dtype=np.int64)
-        counts = np.zeros(chunks, dtype=np.int64)
         r2_max = _square(self.list_radius)
         while True:
-            capacity = min(self._neighbor_buffer.shape[0], self._code_buffer.shape[0]) // chunks
-            # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-            search = _frame_pairs_threaded if chunks > 1 else _frame_pairs
-            search(
-                wrapped, slot_cell, r2_max, n_cells, reach, state.pbc, state.box, self.tilt,
-                cell_starts, bounds, capacity, starts, self._neighbor_buffer, self._code_buffer,
-                counts,
+            order, images, starts, bounds, count = _cell_list(
+                state.positions, origin, width, n_cells, reach, state.pbc, state.box, self.tilt,
+                r2_max, chunks, self._neighbor_buffer, self._code_buffer,
             )  # fmt: skip
-            if counts.max() <= capacity:
+            if count >= 0:
                 break
-            size = _grown(int(counts.max()) * chunks)
+            size = _grown(-count * chunks)
             self._neighbor_buffer = np.empty(size, dtype=np.int32)
             self._code_buffer = np.empty(size, dtype=np.uint8)
-        count = _compact_chunks(
-            bounds, capacity, counts, starts, self._neighbor_buffer, self._code_buffer
-        )
         self.order = order
         self.images = images
         self.slot_starts = starts
         self.slot_neighbors = self._neighbor_buffer[:count]
         self.codes = self._code_buffer[:count]
-        self.shifts = _shift_table(state.box, state.pbc, self.tilt)
+        self.bounds = bounds
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""
@@ -561,13 +539,3 @@ class NeighborList:
 def _grown(count: int) -> int:
     """Buffer size for ``count`` pairs with head room for the next builds."""
     return int(count * _GROWTH) + 1024
-
-
-def _balanced_bounds(starts: NDArray[np.int64], chunks: int) -> NDArray[np.int64]:
-    """Row ranges of ``chunks`` chunks holding about equal numbers of pairs."""
-    if chunks == 1:
-        return np.array([0, len(starts) - 1], dtype=np.int64)
-    targets = np.linspace(0, starts[-1], chunks + 1)
-    bounds = np.searchsorted(starts, targets, side="left").astype(np.int64)
-    bounds[0], bounds[-1] = 0, len(starts) - 1
-    return np.maximum.accumulate(bounds)

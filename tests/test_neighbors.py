@@ -398,13 +398,19 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
     """The rebuild check's largest squared displacement (an integer maximum over bit
     patterns) equals numpy's, and any NaN (either sign) or infinity, in any atom and
     coordinate, gives inf, serial and threaded."""
-    from md._cell_kernels import _max_displacement2, _max_displacement2_threaded
+    from md._cell_kernels import (
+        _largest_displacement2,
+        _max_displacement2,
+        _max_displacement2_threaded,
+    )
 
     reference = rng.uniform(-5.0, 5.0, size=(1001, 3))
     positions = reference + rng.normal(scale=0.1, size=reference.shape)
     exact = ((positions - reference) ** 2).sum(axis=1).max()
     assert _max_displacement2(positions, reference) == exact
     assert _max_displacement2_threaded(positions, reference, 3) == exact
+    for chunks in (1, 3):
+        assert _largest_displacement2(positions, reference, chunks) == exact
     assert _max_displacement2(positions[:0], reference[:0]) == 0.0
     assert _max_displacement2(reference, reference) == 0.0
     for atom, axis in ((0, 0), (500, 1), (1000, 2)):
@@ -413,6 +419,7 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
             broken[atom, axis] = bad
             assert _max_displacement2(broken, reference) == np.inf
             assert _max_displacement2_threaded(broken, reference, 3) == np.inf
+            assert _largest_displacement2(broken, reference, 3) == np.inf
 
 
 def test_list_back_in_its_build_cell_takes_the_build_lengths_again(random_gas):
@@ -483,6 +490,121 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     px, _, _, slot, plane_starts = planes
     assert np.array_equal(np.sort(slot[:n]), np.arange(n))
     assert np.array_equal(px[:n], serial[3][0, slot[:n]])
+
+
+def _pairs_within(state, radius):
+    """Sorted (P, 2) pairs i < j closer than ``radius`` by the (tilted) minimum image."""
+    d = state.positions[:, None] - state.positions[None]
+    d = md.box.minimum_image(d, state.box, state.pbc, state.tilt)
+    i, j = np.nonzero(np.triu((d**2).sum(axis=-1) < radius**2, k=1))
+    return np.stack([i, j], axis=1).astype(np.int64)
+
+
+@pytest.mark.parametrize("shape", ["periodic", "open", "sheared"])
+def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_lattice):
+    """``_cell_list`` (bin, search, join in one compiled call) gives the same slots and
+    pairs in 1, 2, 3 or 5 search chunks, joined across real gaps between the chunks'
+    regions; a buffer too small is reported as minus the largest chunk's count, and a
+    buffer of that many per chunk then holds the list. The rows of its balanced
+    chunks split the pairs as evenly as rows allow."""
+    from md._cell_kernels import _cell_list
+
+    state = fcc_lattice(cells=6, perturbation=0.1, pbc=shape != "open")
+    if shape == "sheared":
+        state.tilt[:] = (1.1, -0.7, 0.4)
+    nl = NeighborList(cutoff=1.5, skin=0.3)
+    nl.build(state)
+    assert np.array_equal(nl.pairs(), _pairs_within(state, nl.list_radius))
+    origin, width, n_cells, reach = nl._grid(state)
+    r2 = nl.list_radius**2
+
+    def build(chunks, size):
+        neighbors, codes = np.full(size, -1, dtype=np.int32), np.full(size, 255, dtype=np.uint8)
+        out = _cell_list(state.positions, origin, width, n_cells, reach, state.pbc, state.box,
+                         nl.tilt, r2, chunks, neighbors, codes)  # fmt: skip
+        return out, neighbors, codes
+
+    (order, images, starts, bounds, count), neighbors, codes = build(1, 3 * nl.n_pairs)
+    assert count == nl.n_pairs and np.array_equal(starts, nl.slot_starts)
+    assert np.array_equal(neighbors[:count], nl.slot_neighbors)
+    assert np.array_equal(codes[:count], nl.codes) and np.array_equal(order, nl.order)
+    for chunks in (2, 3, 5):
+        small = build(chunks, nl.n_pairs // 2)[0][4]
+        assert small < 0 and -small * chunks > nl.n_pairs // 2
+        (o, i, s, b, c), nb, cd = build(chunks, -small * chunks)
+        assert c == count and np.array_equal(o, order) and np.array_equal(i, images)
+        assert np.array_equal(s, starts) and np.array_equal(nb[:c], neighbors[:count])
+        assert np.array_equal(cd[:c], codes[:count])
+        (o, i, s, b, c), nb, cd = build(chunks, 3 * nl.n_pairs)  # gaps between regions
+        assert np.array_equal(s, starts) and np.array_equal(nb[:c], neighbors[:count])
+        assert np.array_equal(cd[:c], codes[:count])
+        assert b[0] == 0 and b[-1] == state.n_atoms and np.all(np.diff(b) >= 0)
+        per_chunk = np.diff(s[b])
+        assert per_chunk.max() - per_chunk.min() <= 2 * np.diff(s).max()
+
+
+def test_balanced_bounds_start_each_chunk_at_the_first_row_past_its_share():
+    """Chunk c starts at the first row starting at or after ceil(c P / chunks), never
+    before the chunk ahead; empty rows, no pairs and one chunk included."""
+    from md._cell_kernels import _balanced_bounds
+
+    rng = np.random.default_rng(11)
+    for _ in range(500):
+        n = int(rng.integers(0, 40))
+        rows = rng.integers(0, 6, n) * (rng.random(n) < 0.7)  # many empty rows
+        starts = np.concatenate([[0], np.cumsum(rows)]).astype(np.int64)
+        chunks = int(rng.integers(1, 8))
+        targets = [-(-starts[-1] * c // chunks) for c in range(chunks + 1)]
+        expected = [0] + [int(np.searchsorted(starts, t)) for t in targets[1:-1]] + [n]
+        expected = np.maximum.accumulate(expected)
+        assert np.array_equal(_balanced_bounds(starts, chunks), expected)
+
+
+def test_one_list_rebuilt_in_cell_after_cell_stays_exact(random_gas):
+    """A list keeps a build's cell data (grid, lengths, shifts) for the next build in the
+    same periodic cell; rebuilt in other edges, another tilt, another periodicity, with
+    fewer atoms and back in the first cell, it is exact every time."""
+    from md._cell_kernels import _shift_table
+
+    state = random_gas(300, 8.0, min_distance=0.6, images=2)
+    nl = NeighborList(cutoff=1.2, skin=0.3)
+    cells = [
+        (np.array([8.0, 8.0, 8.0]), np.zeros(3), np.array([True, True, True])),
+        (np.array([8.4, 7.6, 8.0]), np.zeros(3), np.array([True, True, True])),
+        (np.array([8.4, 7.6, 8.0]), np.array([0.9, -0.5, 0.3]), np.array([True, True, True])),
+        (np.array([8.4, 7.6, 8.0]), np.zeros(3), np.array([True, False, True])),
+        (np.array([8.0, 8.0, 8.0]), np.zeros(3), np.array([True, True, True])),
+    ]
+    for box, tilt, pbc in cells * 2:
+        trial = md.State(positions=state.positions, box=box, pbc=pbc, tilt=tilt)
+        nl.build(trial)
+        assert np.array_equal(nl.pairs(), _pairs_within(trial, nl.list_radius))
+        assert np.array_equal(nl.lengths, np.where(pbc, box, 0.0))
+        assert np.array_equal(nl.tilt, tilt)
+        assert np.array_equal(nl.shifts, _shift_table(box, pbc, tilt))
+    fewer = md.State(positions=state.positions[:-7], box=cells[0][0], pbc=cells[0][2])
+    nl.build(fewer)
+    assert_list_is_exact(nl, fewer)
+
+
+def test_move_within_equals_a_copy_of_the_slice():
+    """``move_within`` (memmove inside one array), the join of the chunks' regions: forward
+    and backward overlapping moves and an empty one, every element type the list uses."""
+    from numba import njit
+
+    from md._simd import move_within
+
+    @njit
+    def move(array, to, start, count):
+        move_within(array, to, start, count)
+
+    for dtype in (np.int32, np.uint8, np.int64, np.float64):
+        for to, start, count in ((3, 10, 50), (20, 10, 50), (0, 90, 10), (5, 5, 40), (7, 1, 0)):
+            array = np.arange(100).astype(dtype)
+            expected = array.copy()
+            expected[to : to + count] = array[start : start + count].copy()
+            move(array, to, start, count)
+            assert np.array_equal(array, expected), (dtype, to, start, count)
 
 
 #: A CPU without AVX2 (numba's target): the cell search's portable bit-scan path.
