@@ -114,11 +114,12 @@ def _bin_atoms(
     n = positions.shape[0]
     total = n_cells[0] * n_cells[1] * n_cells[2]
     counts = np.zeros((1, total), dtype=np.int64)
+    moved = np.empty((n, 3))  # wrapped positions, by atom
+    wraps = np.empty((n, 3), dtype=np.int32)
     _bin_pass(0, n, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-              counts[0])  # fmt: skip
+              moved, wraps, counts[0])  # fmt: skip
     _cell_offsets(counts, cell_starts)
-    _scatter_pass(0, n, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-                  counts[0], order, sorted_wrapped, images)  # fmt: skip
+    _scatter_pass(0, n, cell_of, moved, wraps, counts[0], order, sorted_wrapped, images)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -132,66 +133,60 @@ def _bin_atoms_threaded(
     n = positions.shape[0]
     total = n_cells[0] * n_cells[1] * n_cells[2]
     counts = np.zeros((chunks, total), dtype=np.int64)
+    moved = np.empty((n, 3))
+    wraps = np.empty((n, 3), dtype=np.int32)
     for c in prange(chunks):
         _bin_pass(c * n // chunks, (c + 1) * n // chunks, positions, origin, cell_width,
-                  n_cells, periodic, box, tilt, cell_of, counts[c])  # fmt: skip
+                  n_cells, periodic, box, tilt, cell_of, moved, wraps, counts[c])  # fmt: skip
     _cell_offsets(counts, cell_starts)
     for c in prange(chunks):
-        _scatter_pass(c * n // chunks, (c + 1) * n // chunks, positions, origin, cell_width,
-                      n_cells, periodic, box, tilt, cell_of, counts[c], order, sorted_wrapped,
-                      images)  # fmt: skip
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _wrap_atom(i, positions, origin, inverse_width, n_cells, periodic, box, inverse_box, tilt,
-               sheared):  # fmt: skip
-    """Atom i's cell, its position wrapped into the cell and the wraps (cell vectors added).
-
-    Both passes of the binning call this, the same arithmetic on the same
-    numbers: the second recomputes what the first found rather than reading
-    it back from memory (36 bytes an atom written and read again cost more).
-    """
-    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    xy, xz, yz = tilt[0], tilt[1], tilt[2]
-    x = positions[i, 0]
-    y = positions[i, 1]
-    z = positions[i, 2]
-    gx, gy, gz = x, y, z
-    if sheared:  # a tilt is non-zero only between periodic axes
-        sz = gz * inverse_box[2] if periodic[2] else 0.0
-        gy -= sz * yz
-        sy = gy * inverse_box[1] if periodic[1] else 0.0
-        gx -= sy * xy + sz * xz
-    wx = -np.floor(gx * inverse_box[0]) if periodic[0] else 0.0
-    wy = -np.floor(gy * inverse_box[1]) if periodic[1] else 0.0
-    wz = -np.floor(gz * inverse_box[2]) if periodic[2] else 0.0
-    # Cells come from the wrapped coordinates themselves, so an atom's cell and its
-    # wrapped position agree even where a product rounds across an edge.
-    kx = _grid_cell(gx + box[0] * wx, origin[0], inverse_width[0], nx)
-    ky = _grid_cell(gy + box[1] * wy, origin[1], inverse_width[1], ny)
-    kz = _grid_cell(gz + box[2] * wz, origin[2], inverse_width[2], nz)
-    x += box[0] * wx
-    y += box[1] * wy
-    z += box[2] * wz
-    if sheared:
-        x += wy * xy + wz * xz
-        y += wz * yz
-    return (kx * ny + ky) * nz + kz, x, y, z, wx, wy, wz
+        _scatter_pass(c * n // chunks, (c + 1) * n // chunks, cell_of, moved, wraps, counts[c],
+                      order, sorted_wrapped, images)  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _bin_pass(first, last, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-              counts):  # fmt: skip
-    """Atoms first..last-1: ``cell_of`` and ``counts`` per cell."""
-    sheared = tilt[0] != 0.0 or tilt[1] != 0.0 or tilt[2] != 0.0
+              moved, wraps, counts):  # fmt: skip
+    """Atoms first..last-1: cell, wrapped position and wraps; ``counts`` per cell."""
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
     # Products with reciprocals, not divisions (the divisions were most of the time).
+    # Cells come from the wrapped coordinates themselves, so an atom's cell and its
+    # wrapped position agree even where a product rounds across an edge.
     inverse_box = 1.0 / box
     inverse_width = 1.0 / cell_width
     for i in range(first, last):
-        c = _wrap_atom(i, positions, origin, inverse_width, n_cells, periodic, box,
-                       inverse_box, tilt, sheared)[0]  # fmt: skip
+        x = positions[i, 0]
+        y = positions[i, 1]
+        z = positions[i, 2]
+        gx, gy, gz = x, y, z
+        if sheared:  # a tilt is non-zero only between periodic axes
+            sz = gz * inverse_box[2] if periodic[2] else 0.0
+            gy -= sz * yz
+            sy = gy * inverse_box[1] if periodic[1] else 0.0
+            gx -= sy * xy + sz * xz
+        wx = -np.floor(gx * inverse_box[0]) if periodic[0] else 0.0
+        wy = -np.floor(gy * inverse_box[1]) if periodic[1] else 0.0
+        wz = -np.floor(gz * inverse_box[2]) if periodic[2] else 0.0
+        kx = _grid_cell(gx + box[0] * wx, origin[0], inverse_width[0], nx)
+        ky = _grid_cell(gy + box[1] * wy, origin[1], inverse_width[1], ny)
+        kz = _grid_cell(gz + box[2] * wz, origin[2], inverse_width[2], nz)
+        c = (kx * ny + ky) * nz + kz
         cell_of[i] = c
         counts[c] += 1
+        x += box[0] * wx
+        y += box[1] * wy
+        z += box[2] * wz
+        if sheared:
+            x += wy * xy + wz * xz
+            y += wz * yz
+        moved[i, 0] = x
+        moved[i, 1] = y
+        moved[i, 2] = z
+        wraps[i, 0] = np.int32(wx)
+        wraps[i, 1] = np.int32(wy)
+        wraps[i, 2] = np.int32(wz)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -209,25 +204,19 @@ def _cell_offsets(counts, cell_starts):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _scatter_pass(first, last, positions, origin, cell_width, n_cells, periodic, box, tilt,
-                  cell_of, fill, order, sorted_wrapped, images):  # fmt: skip
+def _scatter_pass(first, last, cell_of, moved, wraps, fill, order, sorted_wrapped, images):
     """Atoms first..last-1 to their slots, from the slots ``fill`` (per cell) on."""
-    sheared = tilt[0] != 0.0 or tilt[1] != 0.0 or tilt[2] != 0.0
-    inverse_box = 1.0 / box
-    inverse_width = 1.0 / cell_width
     for i in range(first, last):
-        _, x, y, z, wx, wy, wz = _wrap_atom(i, positions, origin, inverse_width, n_cells,
-                                            periodic, box, inverse_box, tilt, sheared)  # fmt: skip
         c = cell_of[i]
         p = fill[c]
         order[p] = i
         fill[c] += 1
-        sorted_wrapped[0, p] = x
-        sorted_wrapped[1, p] = y
-        sorted_wrapped[2, p] = z
-        images[p, 0] = np.int32(wx)
-        images[p, 1] = np.int32(wy)
-        images[p, 2] = np.int32(wz)
+        sorted_wrapped[0, p] = moved[i, 0]
+        sorted_wrapped[1, p] = moved[i, 1]
+        sorted_wrapped[2, p] = moved[i, 2]
+        images[p, 0] = wraps[i, 0]
+        images[p, 1] = wraps[i, 1]
+        images[p, 2] = wraps[i, 2]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -433,10 +422,10 @@ def _frame_pairs_chunk(
     if count <= capacity:  # written packed: codes from the top bits, then the slots alone
         listed = packed_list[base : base + count]
         listed_codes = codes[base : base + count]
-        for k in range(count):  # one pass, each value read once
-            value = listed[k]
-            listed_codes[k] = value >> _CODE_SHIFT
-            listed[k] = value & _SLOT_MASK
+        for k in range(count):
+            listed_codes[k] = listed[k] >> _CODE_SHIFT
+        for k in range(count):
+            listed[k] &= _SLOT_MASK
 
 
 @njit(cache=True, error_model="numpy")
@@ -995,12 +984,20 @@ def _max_displacement2(positions, reference):
 
 
 @njit(cache=True, error_model="numpy")
-def _largest_coordinates(positions):
-    """Largest |coordinate| along each axis (zeros for no atoms); inf if any is not finite."""
+def _largest_coordinates(positions, copy):
+    """Largest |coordinate| along x, y and z (zeros for no atoms; inf where any is not
+    finite), as a tuple of floats; ``positions`` copied into ``copy`` on the way.
+
+    One read of the positions for both (a build's first look at them: the
+    check of where they are, and the reference the rebuild test measures
+    from), and no numpy call on the result.
+    """
     largest = np.zeros(3)
     for i in range(positions.shape[0]):
         for a in range(3):
-            x = abs(positions[i, a])
+            value = positions[i, a]
+            copy[i, a] = value
+            x = abs(value)
             if not x <= largest[a]:  # also NaN
                 largest[a] = x if np.isfinite(x) else np.inf
-    return largest
+    return largest[0], largest[1], largest[2]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -362,7 +363,7 @@ class NeighborList:
             reference, allowed2 = self._reference @ m, _square(allowed)
         chunks = chunk_count(len(reference), _MIN_PASS_ATOMS)
         moved2 = _largest_displacement2(state.positions, reference, chunks)
-        if not np.isfinite(moved2):
+        if not math.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
         if moved2 > allowed2:
             return True
@@ -372,13 +373,14 @@ class NeighborList:
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""
-        largest = _largest_coordinates(state.positions)  # inf if any is not finite
-        if not np.all(np.isfinite(largest)):
-            raise NonFiniteError("particle positions are not finite")
         positions = state.positions
         n = positions.shape[0]
-        lengths, tilt, grid, shifts = self._cell_data(state)
-        if np.any(state.pbc & (largest > _MAX_IMAGES * lengths)):
+        reference = np.empty_like(positions)
+        largest = _largest_coordinates(positions, reference)  # inf if any is not finite
+        if not all(map(math.isfinite, largest)):
+            raise NonFiniteError("particle positions are not finite")
+        lengths, tilt, grid, shifts, limits = self._cell_data(state)
+        if any(x > limit for x, limit in zip(largest, limits, strict=True)):
             raise NonFiniteError(
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
@@ -400,7 +402,7 @@ class NeighborList:
         else:
             self._build_cells(state, grid, chunks)
             self.shifts = shifts
-        self._reference = positions.copy()
+        self._reference = reference
         self._box = state.box.copy()
         self._tilt = state.tilt.copy()
         self._pbc = state.pbc.copy()
@@ -410,7 +412,9 @@ class NeighborList:
         self.n_builds += 1
 
     def _cell_data(self, state: State):
-        """(lengths, tilt, grid, shifts) of a build in ``state``'s cell, after ``check_box``.
+        """(lengths, tilt, grid, shifts, limits) of a build in ``state``'s cell, after
+        ``check_box``; ``limits``: the farthest a coordinate may lie from the origin
+        along each axis (floats; inf along open axes).
 
         Kept for the next build while the cell is periodic along every axis
         and unchanged (the grid then depends on nothing else): a build in a run
@@ -424,7 +428,11 @@ class NeighborList:
         self.check_box(state.box, state.pbc, state.tilt)
         lengths, _ = periodic_lengths(state.box, state.pbc)
         tilt = periodic_tilt(state.tilt, state.pbc)
-        data = (lengths, tilt, self._grid(state), _shift_table(state.box, state.pbc, tilt))
+        limits = tuple(
+            _MAX_IMAGES * x if periodic else math.inf
+            for x, periodic in zip(lengths.tolist(), state.pbc.tolist(), strict=True)
+        )
+        data = (lengths, tilt, self._grid(state), _shift_table(state.box, state.pbc, tilt), limits)
         self._cell_memo = (key, data) if np.all(state.pbc) else None
         return data
 
