@@ -254,7 +254,9 @@ def _frame_pairs(
     no two threads write the same memory; ``starts[p + 1]`` is the end of row
     p counted from the start of its region, ``counts[c]`` the chunk's pair
     count (it keeps counting past ``capacity`` without writing).
-    ``_join_chunks`` then joins the regions into one CSR list.
+    The pairs of several chunks are left packed (slot and code in one
+    uint32, ``MAX_SLOTS``): ``_join_chunks`` unpacks them and joins the
+    regions into one CSR list. A single chunk unpacks its own at its end.
 
     Cells are at least list radius / ``reach`` wide (reach 1 or 2), so
     every partner lies within ``reach`` cells along each axis. Each
@@ -335,8 +337,7 @@ def _frame_pairs_chunk(
     of 8. ``_near_pack`` writes the hits' packed values
     as it tests (AVX2 permutes, or bit masks scanned bit by bit on other
     CPUs); near the end of the chunk's region ``_keep`` counts before it
-    writes. The chunk's packed values are unpacked into
-    slots and codes at its end. A neighbour cell across the edge of
+    writes. A neighbour cell across the edge of
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
@@ -419,9 +420,9 @@ def _frame_pairs_chunk(
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
-    if count <= capacity:  # written packed: codes from the top bits, then the slots alone
-        listed = packed_list[base : base + count]
-        listed_codes = codes[base : base + count]
+    if bounds.shape[0] == 2 and count <= capacity:  # the only chunk: unpack it here, hot
+        listed = packed_list[:count]
+        listed_codes = codes[:count]
         for k in range(count):
             listed_codes[k] = listed[k] >> _CODE_SHIFT
         for k in range(count):
@@ -860,29 +861,96 @@ def _cell_list(
     most = counts.max()
     if most > capacity:
         return order, images, starts, bounds, -most
-    count = _join_chunks(bounds, capacity, counts, starts, neighbors, codes)
+    if chunks > 1:
+        count = _join_chunks(bounds, capacity, counts, starts, neighbors, codes)
+    else:  # unpacked by the search; rows counted from the buffer's start
+        count = counts[0]
     return order, images, starts, _balanced_bounds(starts, chunks), count
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, parallel=True, error_model="numpy")
 def _join_chunks(bounds, capacity, counts, starts, neighbors, codes):
-    """Join the chunk regions written by ``_frame_pairs`` into one CSR list; return its length.
+    """Unpack the chunk regions written by ``_frame_pairs`` (in more than one chunk) on
+    numba's threads and join them into one CSR list; return its length."""
+    offsets, moves = _join_plan(capacity, counts)
+    for chunk in prange(counts.shape[0]):
+        block = np.empty(_UNPACK_BLOCK, dtype=np.uint32)
+        _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes,
+                      block)  # fmt: skip
+    return _join_rest(capacity, counts, offsets, moves, neighbors, codes)
 
-    Regions move towards the front (``memmove``: they may overlap), and row
-    ends become absolute.
+
+#: Entries ``_unpack_chunk`` reads ahead of its writes (4 KB: they stay in L1).
+_UNPACK_BLOCK = 1024
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _join_plan(capacity, counts):
+    """Where each chunk's pairs go in the joined list, and which chunks can be unpacked
+    straight there while the others are read: those whose place overlaps no other
+    chunk's region (with two chunks, both)."""
+    chunks = counts.shape[0]
+    offsets = np.zeros(chunks + 1, dtype=np.int64)
+    for c in range(chunks):
+        offsets[c + 1] = offsets[c] + counts[c]
+    moves = np.ones(chunks, dtype=np.bool_)
+    for c in range(chunks):
+        for d in range(chunks):
+            if d != c and offsets[c] < d * capacity + counts[d] and d * capacity < offsets[c + 1]:
+                moves[c] = False
+    return offsets, moves
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes,
+                  block):  # fmt: skip
+    """Chunk ``chunk``'s packed pairs as slots and codes: at their place in the joined list
+    if ``moves[chunk]``, else where they are; its row ends made absolute.
+
+    The place is never after the region, so copying forward through ``block``
+    (read a block, then write it) never overwrites a value not yet read.
     """
-    offset = 0
-    starts[0] = 0
-    for chunk in range(bounds.shape[0] - 1):
+    base = chunk * capacity
+    target = offsets[chunk] if moves[chunk] else base
+    packed = neighbors.view(np.uint32)
+    count = counts[chunk]
+    if target == base:  # in place: two loops over the region, each one vectorised
+        listed = packed[base : base + count]
+        listed_codes = codes[base : base + count]
+        for k in range(count):
+            listed_codes[k] = listed[k] >> _CODE_SHIFT
+        for k in range(count):
+            listed[k] &= _SLOT_MASK
+        count = 0
+    k = 0
+    while k < count:  # three simple loops over slices: each one vectorised
+        m = min(_UNPACK_BLOCK, count - k)
+        values = block[:m]
+        source = packed[base + k : base + k + m]
+        for j in range(m):
+            values[j] = source[j]
+        to_codes = codes[target + k : target + k + m]
+        for j in range(m):
+            to_codes[j] = values[j] >> _CODE_SHIFT
+        to_slots = neighbors[target + k : target + k + m]
+        for j in range(m):
+            to_slots[j] = values[j] & _SLOT_MASK
+        k += m
+    offset = offsets[chunk]
+    for p in range(bounds[chunk] + 1, bounds[chunk + 1] + 1):
+        starts[p] += offset
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _join_rest(capacity, counts, offsets, moves, neighbors, codes):
+    """Move the chunks unpacked in place to their places, in order (``memmove``: a
+    region and its place may overlap); return the joined list's length."""
+    for chunk in range(counts.shape[0]):
         base = chunk * capacity
-        count = counts[chunk]
-        if offset != base:
-            move_within(neighbors, offset, base, count)
-            move_within(codes, offset, base, count)
-        for p in range(bounds[chunk] + 1, bounds[chunk + 1] + 1):
-            starts[p] += offset
-        offset += count
-    return offset
+        if not moves[chunk] and offsets[chunk] != base:
+            move_within(neighbors, offsets[chunk], base, counts[chunk])
+            move_within(codes, offsets[chunk], base, counts[chunk])
+    return offsets[counts.shape[0]]
 
 
 @njit(cache=True, error_model="numpy")
