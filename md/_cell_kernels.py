@@ -45,7 +45,7 @@ _CODE_SHIFT = np.uint32(27)
 _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
 #: Entries the cell search's gather copies at once (see ``_gather_run``): the (z, x, y)
-#: layout it copies from (``_plane_order``) has this many readable entries past the end.
+#: layout it copies from (``_slot_layout``) has this many readable entries past the end.
 GATHER_BLOCK = 8
 #: Entries past the last slot that the coordinate rows must have, finite: the search
 #: reads each slot's own column straight from them, up to a test word (64) at a time.
@@ -239,8 +239,8 @@ def _neighbor_cell(c, offset, n, periodic):
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, bounds,
-    capacity, starts, neighbors, codes, counts,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
+    bounds, capacity, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
@@ -248,7 +248,8 @@ def _frame_pairs(
     numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
     (``wrapped`` is (3, N + ``ROW_PADDING``), as ``_bin_atoms`` writes it,
     with finite padding past the last slot), in cell
-    ``slot_cell[p]``; ``cell_starts`` gives each cell's slots. Chunk c covers
+    ``slot_cell[p]``; ``cell_starts`` gives each cell's slots, and ``layout``
+    is ``_slot_layout``'s (planes, tags, most) for them. Chunk c covers
     slots ``bounds[c]`` to ``bounds[c + 1]`` and writes its pairs into its own
     region ``neighbors[c * capacity:(c + 1) * capacity]`` (and ``codes``), so
     no two threads write the same memory; ``starts[p + 1]`` is the end of row
@@ -269,9 +270,7 @@ def _frame_pairs(
     ``_shift_table``). Requires at least 2 reach + 1 cells along every
     periodic axis, so the cells around any cell are distinct.
     """
-    most = _most_per_cell(cell_starts, n_cells[2])
-    planes = _plane_order(wrapped, cell_starts, n_cells)
-    tags = _unshifted_tags(wrapped.shape[1])
+    planes, tags, most = layout
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
@@ -281,40 +280,16 @@ def _frame_pairs(
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _frame_pairs_threaded(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, bounds,
-    capacity, starts, neighbors, codes, counts,
+    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
+    bounds, capacity, starts, neighbors, codes, counts,
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
-    most = _most_per_cell(cell_starts, n_cells[2])
-    planes = _plane_order_threaded(wrapped, cell_starts, n_cells)
-    tags = _unshifted_tags(wrapped.shape[1])
+    planes, tags, most = layout
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
             cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
         )  # fmt: skip
-
-
-@njit(cache=True, error_model="numpy")
-def _unshifted_tags(size):
-    """Packed values of slots 0..size-1 seen with no image shift (code 13)."""
-    tags = np.empty(size, dtype=np.uint32)
-    unshifted = np.uint32(13) << _CODE_SHIFT
-    for p in range(size):
-        tags[p] = unshifted | np.uint32(p)
-    return tags
-
-
-@njit(cache=True, error_model="numpy")
-def _most_per_cell(cell_starts, nz):
-    """Most slots in one cell and in one (x, y) column of ``nz`` cells."""
-    most = 0
-    for c in range(cell_starts.shape[0] - 1):
-        most = max(most, cell_starts[c + 1] - cell_starts[c])
-    most_column = 0
-    for c in range(0, cell_starts.shape[0] - 1, nz):
-        most_column = max(most_column, cell_starts[c + nz] - cell_starts[c])
-    return most, most_column
 
 
 @njit(cache=True, error_model="numpy")
@@ -430,55 +405,82 @@ def _frame_pairs_chunk(
 
 
 @njit(cache=True, error_model="numpy")
-def _plane_order(wrapped, cell_starts, n_cells):
-    """The slots again, ordered by z cell, then x, then y (cell (kz nx + kx) ny + ky).
+def _slot_layout(wrapped, cell_starts, n_cells, slot_cell):
+    """What the search reads besides the slots' rows, in one pass over the slots.
 
-    Returns (x, y, z, slot, plane_starts): coordinates and slot number in
-    that order, padded with ``GATHER_BLOCK`` finite entries, and each cell's
-    start. Along y, the cells of one z layer and x row are then contiguous,
-    so the search copies its candidates in runs of several cells.
-    ``_plane_order_threaded`` fills the z layers on numba's threads.
+    Returns (planes, tags, most) and fills ``slot_cell`` (each slot's cell):
+
+    - ``planes`` = (x, y, z, slot, plane_starts): the slots again, ordered by
+      z cell, then x, then y (cell (kz nx + kx) ny + ky), coordinates and slot
+      number in that order, padded with ``GATHER_BLOCK`` finite entries, and
+      each cell's start. Along y, the cells of one z layer and x row are then
+      contiguous, so the search copies its candidates in runs of several
+      cells;
+    - ``tags``: the packed values of slots 0 .. ``wrapped.shape[1]`` - 1 seen
+      with no image shift (code 13);
+    - ``most``: the most slots in one cell and in one (x, y) column.
+
+    ``_slot_layout_threaded`` fills the z layers on numba's threads.
     """
-    planes = _plane_arrays(cell_starts, n_cells)
+    planes, tags, most = _layout_arrays(wrapped.shape[1], cell_starts, n_cells)
     for kz in range(n_cells[2]):
-        _fill_layer(kz, wrapped, cell_starts, n_cells, planes)
-    return planes
+        _fill_layer(kz, wrapped, cell_starts, n_cells, planes, tags, slot_cell)
+    return planes, tags, most
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _plane_order_threaded(wrapped, cell_starts, n_cells):
-    """``_plane_order`` with the z layers filled on numba's threads."""
-    planes = _plane_arrays(cell_starts, n_cells)
+def _slot_layout_threaded(wrapped, cell_starts, n_cells, slot_cell):
+    """``_slot_layout`` with the z layers filled on numba's threads."""
+    planes, tags, most = _layout_arrays(wrapped.shape[1], cell_starts, n_cells)
     for kz in prange(n_cells[2]):
-        _fill_layer(kz, wrapped, cell_starts, n_cells, planes)
-    return planes
+        _fill_layer(kz, wrapped, cell_starts, n_cells, planes, tags, slot_cell)
+    return planes, tags, most
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _plane_arrays(cell_starts, n_cells):
-    """The arrays of ``_plane_order``, with the cell starts filled in."""
+@njit(cache=True, error_model="numpy")
+def _layout_arrays(size, cell_starts, n_cells):
+    """The arrays of ``_slot_layout``, with the cell starts, the padding and ``most``
+    filled in (one pass over the cells)."""
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     n = cell_starts[nx * ny * nz]
     plane_starts = np.empty(nx * ny * nz + 1, dtype=np.int64)
     at = 0
     k = 0
+    most_cell = 0
     for kz in range(nz):
         for column in range(nx * ny):
             cell = column * nz + kz
             plane_starts[k] = at
             k += 1
-            at += cell_starts[cell + 1] - cell_starts[cell]
+            in_cell = cell_starts[cell + 1] - cell_starts[cell]
+            most_cell = max(most_cell, in_cell)
+            at += in_cell
     plane_starts[k] = at
-    px = np.zeros(n + GATHER_BLOCK)
-    py = np.zeros(n + GATHER_BLOCK)
-    pz = np.zeros(n + GATHER_BLOCK)
-    slot = np.zeros(n + GATHER_BLOCK, dtype=np.uint32)
-    return px, py, pz, slot, plane_starts
+    most_column = 0
+    for c in range(0, nx * ny * nz, nz):
+        most_column = max(most_column, cell_starts[c + nz] - cell_starts[c])
+    # Every slot's entry is written by _fill_layer; only the padding needs values.
+    px = np.empty(n + GATHER_BLOCK)
+    py = np.empty(n + GATHER_BLOCK)
+    pz = np.empty(n + GATHER_BLOCK)
+    slot = np.empty(n + GATHER_BLOCK, dtype=np.uint32)
+    px[n:] = 0.0
+    py[n:] = 0.0
+    pz[n:] = 0.0
+    slot[n:] = 0
+    tags = np.empty(size, dtype=np.uint32)
+    for p in range(n, size):
+        tags[p] = _UNSHIFTED | np.uint32(p)
+    return (px, py, pz, slot, plane_starts), tags, (most_cell, most_column)
+
+
+#: The packed code of a candidate seen with no image shift.
+_UNSHIFTED = np.uint32(13) << _CODE_SHIFT
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _fill_layer(kz, wrapped, cell_starts, n_cells, planes):
-    """Copy the slots of z layer kz into ``planes`` (``_plane_order``)."""
+def _fill_layer(kz, wrapped, cell_starts, n_cells, planes, tags, slot_cell):
+    """Slots of z layer kz: into ``planes``, and their tags and cells (``_slot_layout``)."""
     px, py, pz, slot, plane_starts = planes
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     at = plane_starts[kz * nx * ny]
@@ -490,6 +492,8 @@ def _fill_layer(kz, wrapped, cell_starts, n_cells, planes):
             pz[at] = wrapped[2, p]
             slot[at] = p
             at += 1
+            tags[p] = _UNSHIFTED | np.uint32(p)
+            slot_cell[p] = cell
 
 
 @njit(cache=True, error_model="numpy")
@@ -500,7 +504,7 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
     Per z cell (cell zc - ghost from ``z_start[zc]``), the column's forward
     neighbour cells: for x offset 0 the cells at y offsets 1 to reach, for x
     offsets 1 to reach those at -reach to reach. In ``planes``
-    (``_plane_order``) each such row of cells is one run of slots, or two
+    (``_slot_layout``) each such row of cells is one run of slots, or two
     where it wraps along y; they go to ``cx, cy, cz`` shifted by their
     image (slots and codes packed in ``c_packed``). The column's own slots
     need no copy (the search reads them where they are), except its
@@ -843,8 +847,10 @@ def _cell_list(
         _bin_atoms(positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
                    cell_starts, order, wrapped, images)  # fmt: skip
     slot_cell = cell_of  # reused: the cell of each slot, in slot order
-    for c in range(n_total):
-        slot_cell[cell_starts[c] : cell_starts[c + 1]] = c
+    if chunks > 1:
+        layout = _slot_layout_threaded(wrapped, cell_starts, n_cells, slot_cell)
+    else:
+        layout = _slot_layout(wrapped, cell_starts, n_cells, slot_cell)
     bounds = np.empty(chunks + 1, dtype=np.int64)
     for c in range(chunks + 1):
         bounds[c] = c * n // chunks
@@ -853,11 +859,12 @@ def _cell_list(
     capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
     if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
         _frame_pairs_threaded(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-                              cell_starts, bounds, capacity, starts, neighbors, codes,
+                              cell_starts, layout, bounds, capacity, starts, neighbors, codes,
                               counts)  # fmt: skip
     else:
         _frame_pairs(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-                     cell_starts, bounds, capacity, starts, neighbors, codes, counts)  # fmt: skip
+                     cell_starts, layout, bounds, capacity, starts, neighbors, codes,
+                     counts)  # fmt: skip
     most = counts.max()
     if most > capacity:
         return order, images, starts, bounds, -most

@@ -444,14 +444,15 @@ def test_list_back_in_its_build_cell_takes_the_build_lengths_again(random_gas):
 @pytest.mark.parametrize("chunks", [2, 3, 5])
 @pytest.mark.parametrize("shape", ["periodic", "open", "sheared"])
 def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, rng):
-    """The cell search's counting sort and its second (z, x, y) layout run in chunks on
-    threads; each gives exactly the serial result, atoms in index order within a cell."""
+    """The cell search's counting sort and its second (z, x, y) layout (with the slots'
+    cells, tags and largest counts) run in chunks on threads; each gives exactly the
+    serial result, atoms in index order within a cell."""
     from md._cell_kernels import (
         GATHER_BLOCK,
         _bin_atoms,
         _bin_atoms_threaded,
-        _plane_order,
-        _plane_order_threaded,
+        _slot_layout,
+        _slot_layout_threaded,
     )
 
     n = 3000
@@ -484,12 +485,30 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     assert np.all(np.diff(cell_of[order]) >= 0)  # grouped by cell
     for c in range(len(cell_starts) - 1):  # index order within a cell
         assert np.all(np.diff(order[cell_starts[c] : cell_starts[c + 1]]) > 0)
-    planes = _plane_order(serial[3], cell_starts, n_cells)
-    for a, b in zip(planes, _plane_order_threaded(serial[3], cell_starts, n_cells), strict=True):
+    slot_cell = np.full(n, -1, dtype=np.int64)
+    layout = _slot_layout(serial[3], cell_starts, n_cells, slot_cell)
+    threaded_cells = np.full(n, -1, dtype=np.int64)
+    layout_threaded = _slot_layout_threaded(serial[3], cell_starts, n_cells, threaded_cells)
+    assert np.array_equal(slot_cell, cell_of[order]) and np.array_equal(threaded_cells, slot_cell)
+    (px, py, pz, slot, plane_starts), tags, most = layout
+    for a, b in zip(layout[0], layout_threaded[0], strict=True):
         assert np.array_equal(a, b)
-    px, _, _, slot, plane_starts = planes
-    assert np.array_equal(np.sort(slot[:n]), np.arange(n))
+    assert np.array_equal(tags, layout_threaded[1]) and most == layout_threaded[2]
+    # the (z, x, y) order: each cell's slots, in slot order, where that cell's turn comes
+    nx, ny, nz = n_cells
+    expected = [np.arange(cell_starts[(kx * ny + ky) * nz + kz],
+                          cell_starts[(kx * ny + ky) * nz + kz + 1])
+                for kz in range(nz) for kx in range(nx) for ky in range(ny)]  # fmt: skip
+    assert np.array_equal(slot[:n], np.concatenate(expected))
+    assert np.array_equal(np.diff(plane_starts), [len(e) for e in expected])
     assert np.array_equal(px[:n], serial[3][0, slot[:n]])
+    assert np.array_equal(py[:n], serial[3][1, slot[:n]])
+    assert np.array_equal(pz[:n], serial[3][2, slot[:n]])
+    assert np.all(px[n:] == 0.0) and np.all(slot[n:] == 0)  # finite padding
+    assert np.array_equal(tags & ((1 << 27) - 1), np.arange(len(tags)))
+    assert np.all(tags >> 27 == 13)  # no image shift
+    counts = np.diff(cell_starts)
+    assert most == (counts.max(), counts.reshape(-1, nz).sum(axis=1).max())
 
 
 def _pairs_within(state, radius):
