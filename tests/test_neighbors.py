@@ -488,7 +488,8 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     slot_cell = np.full(n, -1, dtype=np.int64)
     layout = _slot_layout(serial[3], cell_starts, n_cells, slot_cell)
     threaded_cells = np.full(n, -1, dtype=np.int64)
-    layout_threaded = _slot_layout_threaded(serial[3], cell_starts, n_cells, threaded_cells)
+    layout_threaded = _slot_layout_threaded(serial[3], cell_starts, n_cells, threaded_cells,
+                                            chunks)  # fmt: skip
     assert np.array_equal(slot_cell, cell_of[order]) and np.array_equal(threaded_cells, slot_cell)
     (px, py, pz, slot, plane_starts), tags, most = layout
     for a, b in zip(layout[0], layout_threaded[0], strict=True):
