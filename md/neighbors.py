@@ -375,7 +375,11 @@ class NeighborList:
         """Build the list from scratch for ``state``."""
         positions = state.positions
         n = positions.shape[0]
-        reference = np.empty_like(positions)
+        # The old reference's memory takes the new one (no list is valid until this
+        # build completes: an error on the way leaves one that asks to be rebuilt).
+        reference, self._reference = self._reference, None
+        if reference is None or reference.shape != positions.shape:
+            reference = np.empty_like(positions)
         largest = _largest_coordinates(positions, reference)  # inf if any is not finite
         if not all(map(math.isfinite, largest)):
             raise NonFiniteError("particle positions are not finite")
@@ -385,7 +389,6 @@ class NeighborList:
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
         # Drop the old list first, so it and the new one are never held together.
-        self._reference = None
         self.order, self._atom_list = None, None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.lengths = lengths

@@ -354,11 +354,17 @@ def test_non_finite_positions_raise(bad, after_build, box, random_gas):
     nl = NeighborList(cutoff=1.2, skin=0.3)
     if after_build:
         nl.update(state)
+    good = state.positions[13, 1]
     state.positions[13, 1] = bad
     with pytest.raises(md.NonFiniteError):
         nl.update(state)
     with pytest.raises(md.NonFiniteError):
         nl.build(state)
+    # a failed build leaves a list that asks to be rebuilt, and the rebuild is exact
+    state.positions[13, 1] = good
+    assert nl.needs_rebuild(state) and nl.update(state)
+    assert_list_is_exact(nl, state)
+    assert not nl.update(state)
 
 
 def test_open_cluster_spread_over_a_huge_extent():
