@@ -462,7 +462,7 @@ def _layout_arrays(size, cell_starts, n_cells):
     most_column = 0
     for c in range(0, nx * ny * nz, nz):
         most_column = max(most_column, cell_starts[c + nz] - cell_starts[c])
-    # Every slot's entry is written by _fill_layer; only the padding needs values.
+    # Every slot's entry is written by _fill_columns; only the padding needs values.
     px = np.empty(n + GATHER_BLOCK)
     py = np.empty(n + GATHER_BLOCK)
     pz = np.empty(n + GATHER_BLOCK)
@@ -938,21 +938,21 @@ def _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neigh
             listed_codes[k] = listed[k] >> _CODE_SHIFT
         for k in range(count):
             listed[k] &= _SLOT_MASK
-        count = 0
-    k = 0
-    while k < count:  # three simple loops over slices: each one vectorised
-        m = min(_UNPACK_BLOCK, count - k)
-        values = block[:m]
-        source = packed[base + k : base + k + m]
-        for j in range(m):
-            values[j] = source[j]
-        to_codes = codes[target + k : target + k + m]
-        for j in range(m):
-            to_codes[j] = values[j] >> _CODE_SHIFT
-        to_slots = neighbors[target + k : target + k + m]
-        for j in range(m):
-            to_slots[j] = values[j] & _SLOT_MASK
-        k += m
+    else:
+        k = 0
+        while k < count:  # three simple loops over slices: each one vectorised
+            m = min(_UNPACK_BLOCK, count - k)
+            values = block[:m]
+            source = packed[base + k : base + k + m]
+            for j in range(m):
+                values[j] = source[j]
+            to_codes = codes[target + k : target + k + m]
+            for j in range(m):
+                to_codes[j] = values[j] >> _CODE_SHIFT
+            to_slots = neighbors[target + k : target + k + m]
+            for j in range(m):
+                to_slots[j] = values[j] & _SLOT_MASK
+            k += m
     offset = offsets[chunk]
     for p in range(bounds[chunk] + 1, bounds[chunk + 1] + 1):
         starts[p] += offset
