@@ -460,6 +460,16 @@ def print_split(measured: Sequence[Measured], atoms: int) -> None:
                 for share, threads in shares
             )
             print(f"target: our neighbour work below {NEIGHBOR_TARGET:.0%} of the loop: {verdicts}")
+        per_build = [
+            f"{label} {1e3 * run['sections']['Neigh'] / run['n_builds']:.2f}"
+            for label, run in columns.items()
+            if run.get("n_builds") and "Neigh" in run["sections"]
+        ]
+        if per_build:
+            print(
+                "neighbour work per list build, ms (Neigh / builds; our per-step checks "
+                "included): " + ", ".join(per_build)
+            )
 
 
 def scaling_jobs(args, peers: set[str]) -> list[Job]:
