@@ -239,6 +239,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         bonds_file = table.data.get("bonds_file")
         if isinstance(bonds_file, str) and not Path(bonds_file).is_absolute():
             table.data["bonds_file"] = str(base / bonds_file)  # relative to the config
+        if kind == "table":  # table files too, the potential's own and its pairs'
+            for holder in [table.data, *(table.data.get("pairs") or [])]:
+                name = holder.get("file") if isinstance(holder, dict) else None
+                if isinstance(name, str) and not Path(name).is_absolute():
+                    holder["file"] = str(base / name)
         potentials.append({"type": kind, **table.data})
 
     table = _Table(top.take("integrator"), "integrator", source)

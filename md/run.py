@@ -564,6 +564,10 @@ def _input_files(config: Config, path_or_config) -> list[Path]:
     for table in tables:
         if isinstance(table, dict) and isinstance(table.get("bonds_file"), str):
             files.append(Path(table["bonds_file"]))
+        if isinstance(table, dict) and table.get("type") == "table":
+            for holder in [table, *(table.get("pairs") or [])]:
+                if isinstance(holder, dict) and isinstance(holder.get("file"), str):
+                    files.append(Path(holder["file"]))
     return files
 
 

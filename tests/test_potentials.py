@@ -6,6 +6,10 @@ needs a factory in ``FACTORIES`` below, or its contract tests fail.
 
 from __future__ import annotations
 
+import functools
+import tempfile
+from pathlib import Path
+
 import ase.calculators.lj
 import numpy as np
 import pytest
@@ -13,7 +17,18 @@ import pytest
 import md
 from md.neighbors import NeighborList
 from md.thermo import pressure
-from potentials import POTENTIALS, FENEBonds, HarmonicBonds, LennardJones
+from potentials import (
+    POTENTIALS,
+    Buckingham,
+    FENEBonds,
+    HarmonicBonds,
+    LennardJones,
+    Mie,
+    Morse,
+    Soft,
+    Table,
+    Yukawa,
+)
 
 R_MIN = 2.0 ** (1.0 / 6.0)
 FD_STEP = 1e-6  # central-difference step [length]
@@ -35,9 +50,40 @@ def _lj(cutoff_mode):
 
 
 def _lj_kinks(potential, ti, tj):
-    """Distances where the LJ pair energy or its derivatives are not smooth."""
+    """Distances where a pair energy or its derivatives are not smooth (cutoff, r_on)."""
     p = potential.pair_parameters(ti, tj)
     return [p["cutoff"], p["r_on"]]
+
+
+def _pair_variants(build):
+    """One variant per cutoff mode of a pair style (``build(mode)``)."""
+    return {mode: (lambda mode=mode: build(mode)) for mode in ("none", "shift", "smooth")}
+
+
+#: Two-type pair styles for the contract: explicit pairs, per-pair cutoffs and r_on.
+PAIRS = {(0, 1): {"cutoff": 2.1}, (1, 1): {"cutoff": 2.45, "r_on": 1.9}}
+
+
+@functools.cache
+def contract_table_file() -> Path:
+    """A LAMMPS table file (Morse-like, two sections: R and RSQ spacing) in a temporary
+    folder, for the table style's contract variants."""
+    folder = Path(tempfile.mkdtemp(prefix="leapmd-table-"))
+    path = folder / "contract.table"
+    lines = ["# contract table", ""]
+    for keyword, spacing in (("DENSE", "R"), ("SQUARED", "RSQ")):
+        n, low, high = 3000, 0.5, 2.6
+        i = np.arange(n)
+        r = low + (high - low) * i / (n - 1)
+        if spacing == "RSQ":
+            r = np.sqrt(low**2 + (high**2 - low**2) * i / (n - 1))
+        e = np.exp(-2.0 * (r - 1.1)) - 2.0 * np.exp(-(r - 1.1))
+        f = 2.0 * (np.exp(-2.0 * (r - 1.1)) - np.exp(-(r - 1.1)))
+        lines += [keyword, f"N {n} {spacing} {low} {high}", ""]
+        lines += [f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}" for k in range(n)]
+        lines.append("")
+    path.write_text("\n".join(lines))
+    return path
 
 
 def _contract_bonds():
@@ -60,6 +106,75 @@ def _no_kinks(potential, ti, tj):
 
 #: registry name -> {"variants": {id: zero-argument builder}, "kinks": f(potential, ti, tj)}
 FACTORIES = {
+    "morse": {
+        "variants": _pair_variants(
+            lambda mode: Morse(
+                d0=0.8,
+                alpha=2.5,
+                r0=1.1,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs={**PAIRS, (0, 1): {"cutoff": 2.1, "d0": 1.3}},
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "mie": {
+        "variants": _pair_variants(
+            lambda mode: Mie(
+                epsilon=[1.0, 0.6],
+                sigma=[1.0, 1.15],
+                n=[14.0, 12.0],
+                m=6.5,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs=PAIRS,
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "buckingham": {
+        "variants": _pair_variants(
+            lambda mode: Buckingham(
+                a=2000.0,
+                rho=0.15,
+                c=1.0,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs={**PAIRS, (1, 1): {"cutoff": 2.45, "c": 1.5}},
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "yukawa": {
+        "variants": _pair_variants(
+            lambda mode: Yukawa(a=[2.0, 1.0], kappa=1.5, cutoff=2.4, cutoff_mode=mode, pairs=PAIRS)
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "soft": {
+        "variants": _pair_variants(
+            lambda mode: Soft(
+                a=[1.0, 3.0], cutoff=1.3, cutoff_mode=mode, pairs={(0, 1): {"cutoff": 1.1}}
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "table": {
+        "variants": {
+            "spline-none": lambda: Table(
+                contract_table_file(),
+                "DENSE",
+                "spline",
+                cutoff=2.4,
+                pairs={(0, 1): {"keyword": "SQUARED", "cutoff": 2.1}},
+            ),
+            "spline-shift": lambda: Table(
+                contract_table_file(), "SQUARED", "spline", cutoff=2.45, cutoff_mode="shift"
+            ),
+        },  # fmt: skip
+        "kinks": _lj_kinks,
+    },
     "lj": {
         "variants": {mode: (lambda mode=mode: _lj(mode)) for mode in ("none", "shift", "smooth")},
         "kinks": _lj_kinks,
