@@ -1,0 +1,123 @@
+"""Pair time per listed pair of every pair style, next to Lennard-Jones's, on one list.
+
+The LJ melt's configuration (fcc at reduced density 0.8442, randomly
+displaced; 20^3 cells = 32000 atoms by default), one neighbour list (cutoff
+2.5, skin 0.3) shared by every style, each style at cutoff 2.5 with
+parameters giving forces of LJ's magnitude, and a user-written pair term
+(a Gaussian core, ``potentials.pair_term``). Each row: the median time of
+``energy_forces(virial=False)`` over the interleaved repeats (the styles take
+turns, so a loaded machine slows them alike), its min-max, nanoseconds per
+listed pair and the ratio to LJ. Compilation is excluded (a warm-up call).
+
+    python benchmarks/pair_styles.py                 # 32000 atoms, 1 thread, 15 repeats
+    python benchmarks/pair_styles.py --cells 12 --repeats 31
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
+
+from _machine import machine_line  # noqa: E402
+
+import md  # noqa: E402
+from md.parallel import set_threads  # noqa: E402
+from potentials import (  # noqa: E402
+    Buckingham,
+    LennardJones,
+    Mie,
+    Morse,
+    PairPotential,
+    Soft,
+    Table,
+    Yukawa,
+    pair_term,
+)
+
+
+@pair_term
+def gaussian_core(r2, epsilon, sigma):
+    """A user's term: u = eps exp(-r^2 / sigma^2)."""
+    u = epsilon * math.exp(-r2 / (sigma * sigma))
+    return u, 2.0 * u / (sigma * sigma)
+
+
+def table_file(folder: Path) -> Path:
+    """LJ tabulated on 2000 points from 0.5 to 2.5 (RSQ spacing)."""
+    n = 2000
+    r = np.sqrt(0.25 + (2.5**2 - 0.25) * np.arange(n) / (n - 1))
+    e = 4.0 * (r**-12 - r**-6)
+    f = 24.0 * (2.0 * r**-13 - r**-7)
+    path = folder / "lj.table"
+    path.write_text(
+        "LJ\nN 2000 RSQ 0.5 2.5\n\n"
+        + "".join(f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}\n" for k in range(n))
+    )
+    return path
+
+
+def styles(folder: Path) -> dict:
+    cutoff = 2.5
+    path = table_file(folder)
+    return {
+        "lj": LennardJones(cutoff=cutoff),
+        "morse": Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=cutoff),
+        "mie": Mie(n=13.0, m=6.5, cutoff=cutoff),
+        "buckingham": Buckingham(a=2000.0, rho=0.15, c=1.0, cutoff=cutoff),
+        "yukawa": Yukawa(a=1.0, kappa=1.5, cutoff=cutoff),
+        "soft": Soft(a=1.0, cutoff=cutoff),
+        "table linear": Table(path, "LJ", "linear"),
+        "table spline": Table(path, "LJ", "spline"),
+        "user (Gaussian core)": PairPotential(gaussian_core, epsilon=1.0, sigma=1.0,
+                                              cutoff=cutoff),  # fmt: skip
+    }
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
+    parser.add_argument("--repeats", type=int, default=15, help="interleaved repeats (15)")
+    parser.add_argument("--threads", type=int, default=1, help="threads (1)")
+    parser.add_argument("--only", default=None, help="comma-separated styles (default all)")
+    args = parser.parse_args(argv)
+    print(machine_line())
+    set_threads(args.threads)
+    state = md.lattice("fcc", args.cells, density=0.8442)
+    state.positions += np.random.default_rng(1).normal(0.0, 0.05, state.positions.shape)
+    with tempfile.TemporaryDirectory() as folder:
+        potentials = styles(Path(folder))
+        if args.only:
+            chosen = args.only.split(",")
+            potentials = {k: v for k, v in potentials.items() if k in chosen or k == "lj"}
+        neighbors = md.NeighborList(2.5, 0.3)
+        neighbors.update(state)
+        pairs = int(neighbors.frame.starts[-1])
+        for potential in potentials.values():
+            potential.energy_forces(state, neighbors, virial=False)  # compile or load
+        times = {name: [] for name in potentials}
+        for _ in range(args.repeats):
+            for name, potential in potentials.items():
+                start = time.perf_counter()
+                potential.energy_forces(state, neighbors, virial=False)
+                times[name].append(time.perf_counter() - start)
+    lj = statistics.median(times["lj"])
+    print(f"{state.n_atoms} atoms, {pairs} listed pairs (cutoff 2.5 + skin 0.3), "
+          f"{args.repeats} interleaved repeats, {args.threads} thread(s)")  # fmt: skip
+    print(f"{'style':<22}{'ms':>9}{'min-max':>18}{'ns/pair':>10}{'/ LJ':>8}")
+    for name, values in times.items():
+        median = statistics.median(values)
+        print(f"{name:<22}{1e3 * median:>9.2f}{1e3 * min(values):>9.2f}-{1e3 * max(values):<8.2f}"
+              f"{1e9 * median / pairs:>10.2f}{median / lj:>8.2f}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
