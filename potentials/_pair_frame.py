@@ -348,11 +348,10 @@ class PairPotential:
                 raise ValueError(f"{name} must be finite, got {values[name]!r}")
             self.values[name] = array
         lengths = {a.size for a in self.values.values() if a.ndim == 1}
-        if len(lengths) > 1 or (lengths and any(a.ndim == 0 for n, a in self.values.items()
-                                                if n in per_type)):  # fmt: skip
+        if len(lengths) > 1:
             raise ValueError(
-                f"{', '.join(sorted(per_type))} must all be single numbers or all have one "
-                "value per type"
+                f"{', '.join(sorted(per_type))}: the values given per type must all have one "
+                f"value per type (got lists of {sorted(lengths)} values)"
             )
         self.n_types_fixed = lengths.pop() if lengths else None
         self.default_cutoff = positive_scalar(cutoff, "cutoff")

@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from numba.extending import register_jitable
 
 from potentials._pair_frame import PairPotential, PairTerm, collapse_error
 from potentials.pair_math import exp
@@ -23,6 +24,7 @@ __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
 Pairs = Mapping[tuple[int, int], Mapping[str, float]] | None
 
 
+@register_jitable
 def _in_s(r, du, d2u):
     """(du/ds, d2u/ds2) from u'(r) and u''(r), s = r^2."""
     return 0.5 * du / r, 0.25 * (d2u - du / r) / (r * r)
