@@ -28,11 +28,8 @@ def wca_curvature(r2, epsilon, sigma):
     """u and its derivatives in s = r^2 (for Hessians: implicit integrators)."""
     x6 = (sigma * sigma / r2) ** 3
     u = 4.0 * epsilon * (x6 * x6 - x6) + epsilon
-    return (
-        u,
-        12.0 * epsilon * (x6 - 2.0 * x6 * x6) / r2,
-        12.0 * epsilon * (7.0 * x6 * x6 - 2.0 * x6) / (r2 * r2),
-    )
+    du_ds = 12.0 * epsilon * (x6 - 2.0 * x6 * x6) / r2
+    return u, du_ds, 24.0 * epsilon * (7.0 * x6 * x6 - 2.0 * x6) / (r2 * r2)
 
 
 def make_potential(epsilon: float = 1.0, sigma: float = 1.0) -> PairPotential:
