@@ -60,7 +60,7 @@ def table_file(folder: Path) -> Path:
     path = folder / "lj.table"
     path.write_text(
         "LJ\nN 2000 RSQ 0.5 2.5\n\n"
-        + "".join(f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}\n" for k in range(n))
+        + "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(n))
     )
     return path
 

@@ -168,7 +168,7 @@ def test_spline_table_hessian_is_the_jacobian_of_its_forces(tmp_path, random_gas
     e = np.exp(-3 * (r - 1.0)) - 2 * np.exp(-1.5 * (r - 1.0))
     f = 3 * (np.exp(-3 * (r - 1.0)) - np.exp(-1.5 * (r - 1.0)))
     path.write_text("T\nN 400 R 0.5 2.2\n\n" + "".join(
-        f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}\n" for k in range(400)))  # fmt: skip
+        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(400)))  # fmt: skip
     potential = Table(path, "T", "spline", cutoff=2.0)
     state = random_gas(12, 3.2, min_distance=0.85)
     exact = potential.hessian(state, None).toarray()
@@ -390,7 +390,7 @@ def test_table_interpolates_a_smooth_function_closely(tmp_path):
     e = _morse(r, 1.0, 2.0, 1.2)
     f = 2 * 2.0 * (np.exp(-4.0 * (r - 1.2)) - np.exp(-2.0 * (r - 1.2)))
     path.write_text("M\nN 2000 R 0.7 2.5\n\n" + "".join(
-        f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}\n" for k in range(n)))  # fmt: skip
+        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(n)))  # fmt: skip
     morse = Morse(d0=1.0, alpha=2.0, r0=1.2, cutoff=2.5, cutoff_mode="none")
     for interpolation, tolerance in (("linear", 1e-4), ("spline", 1e-8)):
         table = Table(path, "M", interpolation)
@@ -489,7 +489,7 @@ def _table_file(folder: Path) -> None:
     e = np.exp(-6.0 * (r - 1.1)) - 2.0 * np.exp(-3.0 * (r - 1.1))
     f = 6.0 * (np.exp(-6.0 * (r - 1.1)) - np.exp(-3.0 * (r - 1.1)))
     (folder / "pair.table").write_text("# a Morse table\n\nT\nN 300 R 0.6 2.3\n\n" + "".join(
-        f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}\n" for k in range(300)))  # fmt: skip
+        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(300)))  # fmt: skip
 
 
 @pytest.mark.parametrize("style", list(GOOD))

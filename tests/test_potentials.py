@@ -80,7 +80,7 @@ def contract_table_file() -> Path:
         e = np.exp(-2.0 * (r - 1.1)) - 2.0 * np.exp(-(r - 1.1))
         f = 2.0 * (np.exp(-2.0 * (r - 1.1)) - np.exp(-(r - 1.1)))
         lines += [keyword, f"N {n} {spacing} {low} {high}", ""]
-        lines += [f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}" for k in range(n)]
+        lines += [f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}" for k in range(n)]
         lines.append("")
     path.write_text("\n".join(lines))
     return path

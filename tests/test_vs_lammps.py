@@ -320,7 +320,7 @@ def _write_table(path: Path) -> None:
         f = depth * 5.0 * (np.exp(-5.0 * (r - 1.1)) - np.exp(-2.5 * (r - 1.1)))
         head = f"N {n} {spacing}" + (" FP -40.0 0.05" if keyword == "CORE" else "")
         rows += [keyword, head.replace("  ", " ").strip(), ""]
-        rows += [f"{k + 1} {r[k]!r} {e[k]!r} {f[k]!r}" for k in range(n)]
+        rows += [f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}" for k in range(n)]
         rows.append("")
     path.write_text("\n".join(rows))
 
