@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numba.extending import register_jitable
 
 from potentials._pair_frame import PairPotential, PairTerm, collapse_error
 
@@ -247,6 +248,9 @@ def build_table(section: TableSection, points: int, cutoff: float, interpolation
 
 
 # ------------------------------------------------------------------ pair terms
+# Functions a term calls must be compiled too: register_jitable makes them callable from
+# numba (and leaves them plain Python functions).
+@register_jitable
 def table_linear_energy(r2, data, offset, n, innersq, invdelta, deltasq6):
     """Linear interpolation in r^2 of the table at ``data[offset:offset + 5 n]``;
     NaN below the first distance (an error the potential then names)."""
@@ -268,6 +272,7 @@ def table_linear_curvature(r2, data, offset, n, innersq, invdelta, deltasq6):
     return e, -0.5 * fr, -0.5 * data[base + 4 * int(n)] * invdelta
 
 
+@register_jitable
 def _cubic(data, base, size, b, deltasq6, row):
     a = 1.0 - b
     lo = data[base + row * size]
@@ -277,6 +282,7 @@ def _cubic(data, base, size, b, deltasq6, row):
     return a * lo + b * hi + ((a * a * a - a) * lo2 + (b * b * b - b) * hi2) * deltasq6
 
 
+@register_jitable
 def table_spline_energy(r2, data, offset, n, innersq, invdelta, deltasq6):
     """Cubic-spline interpolation in r^2 (LAMMPS's ``spline``); NaN below the first distance."""
     x = (r2 - innersq) * invdelta
@@ -405,6 +411,10 @@ class Table(PairPotential):
                                      delta * delta / 6.0)  # fmt: skip
         self._cutoffs[key] = float(cutoff)
         return float(cutoff)
+
+    def parameter_names(self) -> tuple[str, ...]:
+        """None: a pair's table (file, keyword, cutoff) gives the term's parameters."""
+        return ()
 
     def pair_parameters(self, ti: int, tj: int) -> dict:
         key = (min(ti, tj), max(ti, tj))
