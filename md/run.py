@@ -465,7 +465,8 @@ def run_config(
 
 # ------------------------------------------------------------------ helpers
 def run_topology(sim: Simulation) -> Topology:
-    """The bonds a run's trajectory stores: its bonded potentials' and its constraints'."""
+    """The bonds and angles a run's trajectory stores: its bonded potentials' and its
+    constraints'."""
     constraints = getattr(sim.integrator, "constraints", None)
     extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
     return sim.forcefield.topology(extra=extra)
@@ -556,14 +557,15 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
 
 
 def _input_files(config: Config, path_or_config) -> list[Path]:
-    """The files a run reads: the config, a structure file, bonds files."""
+    """The files a run reads: the config, a structure file, bonds and angles files."""
     files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
     if config.system.structure is not None:
         files.append(Path(config.system.structure))
     tables = [*config.potentials, config.integrator.get("constraints") or {}]
     for table in tables:
-        if isinstance(table, dict) and isinstance(table.get("bonds_file"), str):
-            files.append(Path(table["bonds_file"]))
+        for key in ("bonds_file", "angles_file"):
+            if isinstance(table, dict) and isinstance(table.get(key), str):
+                files.append(Path(table[key]))
     return files
 
 
