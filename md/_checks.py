@@ -133,9 +133,7 @@ def bond_type_array(bond_types, n_bonds: int, item: str = "bond") -> NDArray[np.
     name = f"{item}_types"
     array = np.asarray(bond_types)
     if array.shape != (n_bonds,):
-        raise ValueError(
-            f"{name} must have shape ({n_bonds},) (one per {item}), got {array.shape}"
-        )
+        raise ValueError(f"{name} must have shape ({n_bonds},) (one per {item}), got {array.shape}")
     if array.size and not _integral(array):
         raise ValueError(f"{name} must be integers")
     array = np.array(array, dtype=np.int64, order="C", copy=True)
@@ -171,8 +169,8 @@ def angle_array(angles, name: str = "angles") -> NDArray[np.int64]:
     if array.size and array.min() < 0:
         bad = int(np.flatnonzero((array < 0).any(axis=1))[0])
         raise ValueError(f"angle {bad} {tuple(array[bad].tolist())} has a negative atom index")
-    repeated = (array[:, 0] == array[:, 1]) | (array[:, 1] == array[:, 2]) | (
-        array[:, 0] == array[:, 2]
+    repeated = (
+        (array[:, 0] == array[:, 1]) | (array[:, 1] == array[:, 2]) | (array[:, 0] == array[:, 2])
     )
     if repeated.any():
         bad = int(np.flatnonzero(repeated)[0])

@@ -61,6 +61,7 @@ from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
+from potentials.base import BondedAngles
 
 #: Statuses of a finished :meth:`PreparedRun.execute`.
 COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
@@ -490,6 +491,14 @@ def build_components(config: Config, state: State | None = None):
         potential_from_config(entry, state.type_names, config.source, index, bonds)
         for index, entry in enumerate(config.potentials)
     ]
+    for index, potential in enumerate(potentials):
+        if not isinstance(potential, BondedAngles):
+            continue  # the others are checked with the force field (Simulation)
+        try:  # angles name atoms: say which table names one the system lacks
+            potential.check(state)
+        except ValueError as error:
+            kind = config.potentials[index]["type"]
+            raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:

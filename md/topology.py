@@ -176,8 +176,7 @@ def _typed(n_items: int, item_types, type_names, item: str) -> tuple[NDArray, tu
     names = tuple(str(name) for name in type_names)
     if len(names) < n_types:
         raise ValueError(
-            f"{item} types go up to {n_types - 1} but only {len(names)} {item} type names "
-            "are given"
+            f"{item} types go up to {n_types - 1} but only {len(names)} {item} type names are given"
         )
     if len(set(names)) != len(names):
         raise ValueError(f"{item} type names repeat: {list(names)}")
