@@ -372,7 +372,7 @@ class _LammpsDataWriter:
         with open(self.path, "w") as handle:
             write_lammps_data(
                 handle, atoms, specorder=stand_ins, masses=True, velocities=True,
-                atom_style="full", units="metal", bonds=True,
+                atom_style="full", units="metal", bonds=topology.n_bonds > 0,
             )  # fmt: skip
         lines = self.path.read_text().splitlines(keepends=True)
         units = "lj" if reader.units.name == "lj" else "metal"

@@ -60,9 +60,11 @@ import md
 from integrators import Bussi, NoseHooverChain
 from integrators.barostats import Barostat, PressureCoupled, pressure_control
 from md.analysis import block_average
+from md.convert import convert
 from md.forcefield import ForceField
 from md.polymers import chain_angles
 from md.thermo import pressure_tensor
+from md.trajectory import H5MDWriter
 from potentials import CosineAngles, HarmonicAngles, LennardJones
 
 #: Our pressure-tensor indices of LAMMPS's (xx, yy, zz, xy, xz, yz).
@@ -315,6 +317,28 @@ def test_tilted_angles_equal_lammps(style):
     _assert_close(tensor[LAMMPS_TENSOR], theirs["pressure"], 1e-10)
     _assert_close(ours.energies, theirs["energies"], 1e-10)
     _assert_close(ours.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-10)
+
+
+def test_lammps_reads_the_angles_of_our_data_files(tmp_path):
+    """``md convert`` to a LAMMPS data file: read_data takes its Angles section, and
+    LAMMPS's angle energy and forces of it are ours (to the file's 16 digits)."""
+    state, angles, types = _chains_in_tilted_cell()
+    potential = CosineAngles(angles, k=[1.7, 4.0], angle_types=types)
+    out, data = tmp_path / "angles.h5", tmp_path / "angles.data"
+    with H5MDWriter(out, state, topology=ForceField([potential]).topology()) as writer:
+        writer.write(state)
+    convert(out, data)
+    lmp = _start_lammps()  # skips without LAMMPS
+    lmp.commands_list([
+        "units lj", "atom_style full", "atom_modify map array", "angle_style cosine",
+        f"read_data {data}", "angle_coeff 1 1.7", "angle_coeff 2 4.0",
+        "pair_style zero 2.0", "pair_coeff * *",
+    ])  # fmt: skip
+    assert lmp.extract_global("nangles") == len(angles)
+    theirs = _run_zero(lmp, state.n_atoms)
+    ours = potential.energy_forces(state)
+    assert ours.energy == pytest.approx(theirs["energy"], rel=1e-12)
+    _assert_close(ours.forces, theirs["forces"], 1e-10)
 
 
 # ------------------------------------------------------------------ constant pressure
