@@ -329,6 +329,23 @@ def test_from_config_rejects_bad_tables(params, match):
         HarmonicAngles.from_config(params)
 
 
+def test_ase_calculator_takes_angles(rng):
+    """Energy, forces, stress and per-atom energies through MDCalculator equal the engine's."""
+    from md.calculator import MDCalculator  # the ASE adapter: only this test needs it
+
+    state, angles, types = _tilted_chains(rng)
+    potential = HarmonicAngles(angles, k=[2.0, 0.7], theta0=[180.0, 100.0], angle_types=types)
+    ours = md.ForceField([potential]).compute(state, per_atom=True)
+    atoms = state.to_ase()
+    atoms.calc = MDCalculator([potential])
+    assert atoms.get_potential_energy() == pytest.approx(ours.energy, rel=1e-12)
+    np.testing.assert_allclose(atoms.get_potential_energies(), ours.energies, atol=1e-12)
+    # ASE's cell is rotated from ours only if it is not lower triangular: here it is.
+    np.testing.assert_allclose(atoms.get_forces(), ours.forces, atol=1e-12)
+    voigt = (-ours.virial / state.volume)[[0, 1, 2, 1, 0, 0], [0, 1, 2, 2, 2, 1]]
+    np.testing.assert_allclose(atoms.get_stress(), voigt, atol=1e-12)
+
+
 # ------------------------------------------------------------------ implicit Euler
 
 
