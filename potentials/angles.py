@@ -29,7 +29,7 @@ Straight and folded triples
     sin theta > 0.001 (theta more than 0.057 degrees from 0 and 180). The
     cosine form has no 1/sin theta and is exact everywhere. An arm of zero
     length (two atoms of an angle at one place) leaves theta undefined:
-    :class:`AngleCollapseError`.
+    :class:`md.errors.AngleCollapseError`.
 
 Energy, forces and virial are LAMMPS's: each angle's energy and virial go a
 third to each of its atoms in per-atom results, its virial is
@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from md._checks import angle_array, read_index_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
-from md.errors import NonFiniteError
+from md.errors import AngleCollapseError
 from potentials._bonded import config_values, symmetric, type_tables
 from potentials.base import ForceResult
 
@@ -58,29 +58,6 @@ _COSINE = 1
 #: Floor on sin(theta) in the harmonic force's 1/sin(theta) (LAMMPS's SMALL in
 #: angle_harmonic.cpp).
 SMALL = 0.001
-
-
-class AngleCollapseError(NonFiniteError):
-    """An angle has an arm of zero length (two of its atoms at one place): no angle.
-
-    A subclass of :class:`md.errors.NonFiniteError`, so the simulation loop
-    reports it as a :class:`md.simulation.SimulationError` at the failing step.
-
-    Attributes
-    ----------
-    angle : int
-        Index of the first such angle in the angle list.
-    atoms : tuple of int
-        Its atoms ``(i, j, k)``, ``j`` the vertex.
-    """
-
-    def __init__(self, angle: int, atoms: tuple[int, int, int]) -> None:
-        self.angle = angle
-        self.atoms = atoms
-        super().__init__(
-            f"angle {angle} {atoms} has an arm of zero length (atoms at one place), so its "
-            "angle is undefined"
-        )
 
 
 class _AnglePotential:
