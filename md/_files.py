@@ -15,6 +15,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from md.errors import OutputBusyError
+
 
 def usual_permissions(descriptor: int) -> None:
     """Give a file from ``tempfile.mkstemp`` (mode 0600) the mode a plain open() would.
@@ -98,10 +100,6 @@ def write_text_atomic(path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically and durably."""
     with atomic_path(path) as temporary:
         temporary.write_text(text)
-
-
-class OutputBusyError(FileExistsError):
-    """Another live process holds the claim on an output (the message names it)."""
 
 
 @contextlib.contextmanager

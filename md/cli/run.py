@@ -13,7 +13,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from md._files import OutputBusyError
 from md.cli._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -22,7 +21,7 @@ from md.cli._common import (
     EXIT_TERMINATED,
     fail,
 )
-from md.errors import CheckpointError, ConfigError, TrajectoryError
+from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
 from md.observers import Progress
 from md.parallel import get_threads
 from md.run import ABORTED, FAILED, OUTPUT_ERROR, STOPPED, prepare

@@ -77,6 +77,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 
+from md.errors import SweepError
 from md.sweeps.client import CONNECT_TIMEOUT, SweepProgress, connect, run_sweep
 from md.sweeps.plan import (
     ALIASES,
@@ -86,7 +87,6 @@ from md.sweeps.plan import (
     PARTIAL_DIR,
     RESULTS,
     TABLE_FILE,
-    SweepError,
     SweepPlan,
     check_outputs,
     count_runs,
