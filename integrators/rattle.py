@@ -418,8 +418,7 @@ class Rattle(IntegratorBase):
         self.constraints.bind(state, self.dt, state.step + 1)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
         self._steps += 1
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Nothing to forget: RATTLE is a one-step method."""
