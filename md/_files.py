@@ -179,3 +179,29 @@ def remove_stale_temporaries(path) -> list[Path]:
             stale.unlink()
             removed.append(stale)
     return removed
+
+
+def unwritable_folder(folder) -> str | None:
+    """Why files cannot be made in ``folder``, or None if they can (it may not exist yet).
+
+    Looks at the folder, or at its nearest existing parent when it is still to
+    be made: a path that is not a folder, a read-only filesystem, or no write
+    permission. Nothing is created. A later write can still fail (a full
+    disk), so callers handle ``OSError`` as well.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        return f"{folder} exists and is not a folder"
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a folder, so {folder} cannot be made"
+    if os.access(existing, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(existing).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    why = "is on a read-only filesystem" if read_only else "is not writable"
+    return f"{existing} {why}" + ("" if existing == folder else f", so {folder} cannot be made")
