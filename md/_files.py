@@ -205,3 +205,20 @@ def unwritable_folder(folder) -> str | None:
         read_only = False
     why = "is on a read-only filesystem" if read_only else "is not writable"
     return f"{existing} {why}" + ("" if existing == folder else f", so {folder} cannot be made")
+
+
+@contextlib.contextmanager
+def removed_on_error() -> Iterator[list[Path]]:
+    """Yield a list for the paths a block writes; if the block raises OSError, remove them.
+
+    A command that writes several files (CSV files, figures) then leaves none
+    of a set it could not finish (a full disk) rather than some of them.
+    """
+    written: list[Path] = []
+    try:
+        yield written
+    except OSError:
+        for path in written:
+            with contextlib.suppress(OSError):
+                Path(path).unlink()
+        raise

@@ -46,7 +46,6 @@ What is written here rather than taken from a library
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 from collections.abc import Sequence
@@ -57,7 +56,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from md._files import unwritable_folder
+from md._files import removed_on_error, unwritable_folder
 from md.analysis_output import WRITERS, output_files, write_summary
 from md.box import perpendicular_widths
 from md.errors import AnalysisError, TrajectoryError
@@ -1163,8 +1162,8 @@ class PreparedAnalysis:
         )
 
     def _write(self, results: dict, summary: dict, labels: dict) -> None:
-        out, written = self.out, []
-        try:
+        out = self.out
+        with removed_on_error() as written:
             out.mkdir(parents=True, exist_ok=True)
             for name, result in results.items():
                 written += [out / f for f in output_files(name)]
@@ -1173,17 +1172,8 @@ class PreparedAnalysis:
             write_summary(summary, out / "summary.json")
             if self.snapshot:
                 written.append(out / "snapshot.png")
-                render(
-                    self.info.path,
-                    out / "snapshot.png",
-                    frame=int(self.info.frames[-1]),
-                    overwrite=True,
-                )
-        except OSError:
-            for path in written:
-                with contextlib.suppress(OSError):
-                    path.unlink()
-            raise
+                render(self.info.path, out / "snapshot.png", frame=int(self.info.frames[-1]),
+                       overwrite=True)  # fmt: skip
 
 
 def prepare_analysis(

@@ -66,7 +66,6 @@ module is library code (no printing).
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import functools
 import logging
@@ -82,7 +81,7 @@ import numpy as np
 from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import ForceSplit, Integrator
 from md._checks import count, positive
-from md._files import unwritable_folder
+from md._files import removed_on_error, unwritable_folder
 from md.config import Config, build_system, integrator_from_config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
@@ -960,19 +959,13 @@ class Study:
                 (files["thermostats_plot"],
                  lambda path: plot_thermostats(thermostat_reports, path, labels)),
             ]  # fmt: skip
-        written: list[Path] = []
-        try:
+        with removed_on_error() as written:
             self.out.mkdir(parents=True, exist_ok=True)
             for path, write in writers:
                 if self.overwrite:
                     path.unlink(missing_ok=True)
                 written.append(path)
                 write(path)
-        except OSError:
-            for path in written:
-                with contextlib.suppress(OSError):
-                    path.unlink()
-            raise
 
 
 def prepare_study(
@@ -1081,10 +1074,9 @@ def prepare_study(
     potentials = study.potentials()
     forcefield = ForceField(potentials, skin=config.run.skin)
     for name in names:  # RESPA: both kinds of potential must be there
-        integrator = INTEGRATORS[name](ladder[0])
-        if isinstance(integrator, ForceSplit):
+        if issubclass(INTEGRATORS[name], ForceSplit):
             try:
-                integrator.split(forcefield)
+                INTEGRATORS[name](ladder[0]).split(forcefield)
             except ValueError as error:
                 raise ConfigError(
                     f"--integrators {name}: {error}; the study splits bonded (fast) from pair "

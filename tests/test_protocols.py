@@ -11,6 +11,9 @@ that every integrator closes its step through ``IntegratorBase.end_step``.
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -31,7 +34,7 @@ from md.calculator import MDCalculator
 from md.checkpoint import read_checkpoint, restore, write_checkpoint
 from md.errors import CheckpointError
 from md.observers import Progress
-from md.run import run_topology
+from md.run import RunSummary, run_topology
 from md.simulation import VirialUse
 from potentials import HarmonicBonds, LennardJones
 from potentials.base import ForceResult, TypedParameters
@@ -227,3 +230,22 @@ def test_the_calculator_asks_potentials_for_typed_parameters_through_the_protoco
     with pytest.raises(ValueError, match="Typed has per-type parameters"):
         MDCalculator([Typed()])
     assert MDCalculator([Typed()], type_names=["Ar"]).type_names == ("Ar",)
+
+
+def test_run_summary_reports_the_integrators_counters_and_the_drift(tmp_path, lj_config):
+    config = tmp_path / "run.toml"
+    config.write_text(lj_config(integrator='type = "leapfrog"\ndt = 0.005', run="steps = 20"))
+    sim, summary = md.run_config(config, output=tmp_path / "run.h5")
+    assert summary.status == "completed"
+    assert summary.statistics == {"steps": 20, "restarts": 1} == sim.integrator.statistics
+    assert summary.per_step() == {"restarts": 1 / 20}
+    first, last = summary.first, summary.last
+    scale = max(abs(first["total_energy"]), first["kinetic_energy"])
+    assert summary.relative_change() == (last["total_energy"] - first["total_energy"]) / scale
+    assert math.isnan(summary.relative_change("conserved_energy"))  # no thermostat
+
+
+def test_run_summary_without_counters_or_a_last_row():
+    summary = RunSummary("failed", Path("x.h5"), Path("x.h5.ckpt"), 10, first={"total_energy": 1.0})
+    assert summary.statistics == {} and summary.per_step() == {}
+    assert math.isnan(summary.relative_change())

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import lj_config_text
+from test_respa import FENE, RUN
 
 import md.analysis_output
 import md.integrator_study
@@ -38,28 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 STUDY = lj_config_text(
     seed=3, temperature=1.2, potential='cutoff_mode = "smooth"\nr_on = 2.0', run=None, output=None
 )
-BONDED = """
-units = "lj"
-seed = 7
-[system]
-polymer = "melt"
-chains = 4
-chain_length = 10
-density = 0.85
-bond_length = 0.97
-temperature = 1.0
-[[potentials]]
-type = "lj"
-cutoff = 1.122462048309373
-[[potentials]]
-type = "fene"
-bonds = "system"
-k = 30.0
-r_max = 1.5
-[integrator]
-type = "verlet"
-dt = 0.004
-"""
+BONDED = RUN.format(kind="verlet", extra="", fene=FENE)  # a polymer melt with FENE bonds
 
 
 @pytest.fixture
