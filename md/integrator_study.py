@@ -1071,8 +1071,7 @@ def prepare_study(
     state, bonds = build_system(config)
     study = Study(config, state, bonds, names, thermostat_names, ladder, run_span, measure_dt,
                   setup, out, files, overwrite)  # fmt: skip
-    potentials = study.potentials()
-    forcefield = ForceField(potentials, skin=config.run.skin)
+    forcefield = ForceField(study.potentials(), skin=config.run.skin)
     for name in names:  # RESPA: both kinds of potential must be there
         if issubclass(INTEGRATORS[name], ForceSplit):
             try:
@@ -1086,7 +1085,7 @@ def prepare_study(
         study.thermostat(name)
     if equilibrate:
         try:
-            Simulation(state, potentials, VelocityVerlet(config.integrator["dt"]),
+            Simulation(state, study.potentials(), VelocityVerlet(config.integrator["dt"]),
                        skin=config.run.skin, units=units).run(equilibrate)  # fmt: skip
         except (SimulationError, ValueError) as error:
             raise ConfigError(f"{config.source}: equilibration failed: {error}") from None
