@@ -9,6 +9,7 @@ from md._kernel_cache import kernel_cache
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
+    from potentials.angles import AngleCollapseError, CosineAngles, HarmonicAngles
     from potentials._pair_frame import PairPotential, PairTerm, pair_term
     from potentials.base import ForceResult, Potential, SupportsHessian
     from potentials.lennard_jones import LennardJones
@@ -26,14 +27,19 @@ POTENTIALS = {
     "table": Table,
     "spring": HarmonicBonds,
     "fene": FENEBonds,
+    "angle_harmonic": HarmonicAngles,
+    "angle_cosine": CosineAngles,
 }
 
 __all__ = [
     "POTENTIALS",
+    "AngleCollapseError",
     "BondStretchError",
     "Buckingham",
+    "CosineAngles",
     "FENEBonds",
     "ForceResult",
+    "HarmonicAngles",
     "HarmonicBonds",
     "LennardJones",
     "Mie",

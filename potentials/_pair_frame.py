@@ -375,6 +375,11 @@ class PairPotential:
         )
         self._kernels = None
 
+    @property
+    def per_type_parameters(self) -> bool:
+        """True with per-type values or explicit ``pairs`` (``TypedParameters``)."""
+        return self.n_types_fixed is not None or bool(self.pairs)
+
     # ------------------------------------------------------------ per style
     def parameter_names(self) -> tuple[str, ...]:
         """The user-facing parameter names (the term's, unless a style converts them)."""
