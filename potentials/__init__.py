@@ -9,8 +9,8 @@ from md._kernel_cache import kernel_cache
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
-    from potentials.angles import AngleCollapseError, CosineAngles, HarmonicAngles
     from potentials._pair_frame import PairPotential, PairTerm, pair_term
+    from potentials.angles import AngleCollapseError, CosineAngles, HarmonicAngles
     from potentials.base import ForceResult, Potential, SupportsHessian
     from potentials.lennard_jones import LennardJones
     from potentials.pair_styles import Buckingham, Mie, Morse, Soft, Yukawa
