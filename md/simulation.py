@@ -8,9 +8,9 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from md._cell_kernels import _max_displacement2
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
+from md.neighbors import max_displacement2
 from md.parallel import set_threads
 from md.state import State
 from md.thermo import (
@@ -183,7 +183,7 @@ class Simulation:
 
     def _check_displacement(self, limit: float) -> None:
         """Raise SimulationError if a particle moved farther than ``limit`` this step."""
-        moved2 = _max_displacement2(self.state.positions, self._previous)
+        moved2 = max_displacement2(self.state.positions, self._previous)
         if moved2 <= limit * limit:
             return
         step = self.state.step
