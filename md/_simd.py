@@ -23,14 +23,14 @@ prove safe; but some single machine operations have no Python spelling:
 
 The CPU is the one numba compiles for: ``NUMBA_CPU_FEATURES`` when set, else
 the host's (numba's own rule; its cache keys compiled code on the same).
+No numba or llvmlite function here is private; none of them has a
+well-kept library equivalent, which is why they are written out here.
 
 Every intrinsic has a Python twin (:func:`python_twin`) that computes the same
 thing with numpy: under ``NUMBA_DISABLE_JIT=1`` the kernels run as Python (to
 step through one in a debugger, or for coverage and tracebacks), numba cannot
 call an intrinsic from Python, and the twin stands in for it. Each twin is
 tested against its intrinsic (tests/test_disable_jit.py).
-No numba or llvmlite function here is private; none of them has a
-well-kept library equivalent, which is why they are written out here.
 """
 
 from __future__ import annotations
