@@ -363,11 +363,11 @@ def validate_ase(
     seed: int = 2024,
     cutoff_mode: str = "shift",
     ladder_dts: Sequence[float] = (1.0, 2.0, 5.0, 10.0),
-    potential: str = "lj",
     ladder_span_fs: float = 2000.0,
     n_equilibrate: int = 500,
     energy_tolerance: float = 0.01,
     skin: float = 1.0,
+    potential: str = "lj",
 ) -> AseValidation:
     """Compare ASE's velocity Verlet (with MDCalculator) and ours on argon; see the module doc.
 

@@ -18,18 +18,20 @@ kernels apart, keyed by a hash of the term's source.
 
 from __future__ import annotations
 
+import atexit
+import functools
 import hashlib
 import importlib.util
 import inspect
 import logging
 import math
-import os
+import shutil
 import sys
 import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import CodeType, ModuleType
+from types import CodeType, FunctionType, ModuleType
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,10 +39,12 @@ from numba import njit
 from numba.core import config
 
 from md._checks import positive_scalar
+from md._files import atomic_path
 from md._kernel_cache import cache_directory, kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
 from md.state import State
+from potentials._bonded import symmetric
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
 
@@ -54,7 +58,14 @@ MIXING_FUNCTIONS = {
     "arithmetic": lambda a, b: 0.5 * float(a + b),
 }
 _TEMPLATE = Path(__file__).with_name("_pair_kernels.py")
-_MATH = Path(__file__).with_name("pair_math.py")
+#: The files compiled into every term's kernels: the template, the modules whose kernels it
+#: inlines, and pair_math (functions terms call). Part of each term's fingerprint.
+_FRAME_SOURCES = (
+    _TEMPLATE,
+    Path(__file__).with_name("pair_math.py"),
+    *(Path(importlib.util.find_spec(name).origin)
+      for name in ("potentials._kernels", "md.box", "md._simd")),
+)  # fmt: skip
 logger = logging.getLogger(__name__)
 _RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
 
@@ -156,10 +167,10 @@ def kernels_for(term: PairTerm) -> ModuleType:
     Loaded once per process and term. numba names a kernel's cache files after its
     source file and function, and keys them by signature and bytecode, which are the
     same for every term; so each term runs its own copy of the template, a file named
-    after the term and a hash of its source (and the template's) in the per-user
-    kernel cache folder. An unchanged term then loads its compiled kernels from
-    numba's cache in every later process; an edited one gets a new copy and compiles
-    afresh.
+    after the term and a hash of everything its compiled kernels depend on
+    (:func:`_fingerprint`), in ``pair_terms/`` of the per-user kernel cache folder.
+    An unchanged term then loads its compiled kernels from numba's cache in every
+    later process; an edited one gets a new copy and compiles afresh.
     """
     key = _fingerprint(term)
     module = _LOADED.get(key)
@@ -171,29 +182,50 @@ def kernels_for(term: PairTerm) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     module.__dict__.update(_adapters(term))
     sys.modules[name] = module  # numba's parallel lowering looks kernels' modules up by name
-    with kernel_cache():
-        spec.loader.exec_module(module)
+    try:
+        with kernel_cache():
+            spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
     _LOADED[key] = module
     return module
 
 
 def _template_copy(stem: str) -> Path:
-    """The template's copy for one term, written once (into a temporary folder, for this
-    process only, if the kernel cache folder cannot be written)."""
-    for folder in (Path(config.CACHE_DIR or cache_directory()) / "pair_terms", None):
-        folder = folder or Path(tempfile.mkdtemp(prefix="leapmd-pair-terms-"))
+    """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder.
+
+    Written whole under a temporary name and hard-linked into place, so a reader
+    sees the complete file or none, and of two processes writing the same copy at
+    once the second finds the first's and leaves it as it is (its modification
+    time, which numba's cache index records, never changes). If the folder cannot
+    be written, the copy goes to a temporary folder for this process only.
+    """
+    folders = [Path(config.CACHE_DIR or cache_directory()) / "pair_terms", None]
+    for folder in folders:
+        folder = folder or _scratch_folder()
         path = folder / f"{stem}.py"
         if path.exists():
             return path
         try:
             folder.mkdir(parents=True, exist_ok=True)
-            partial = path.with_suffix(f".{os.getpid()}.tmp")
-            partial.write_bytes(_TEMPLATE.read_bytes())
-            os.replace(partial, path)  # whole or absent, also with several processes at once
+            with atomic_path(path, exclusive=True) as partial:
+                partial.write_bytes(_TEMPLATE.read_bytes())
+        except FileExistsError:  # another process wrote it first: the same bytes
             return path
         except OSError as error:
-            logger.warning("cannot write %s (%s); trying a temporary folder", path, error)
-    raise OSError("no folder to write the pair kernels to")
+            logger.warning("cannot write %s (%s); using a temporary folder", path, error)
+            continue
+        return path
+    raise OSError(f"no folder to write the pair kernels to ({folders[0]} is not writable)")
+
+
+@functools.cache
+def _scratch_folder() -> Path:
+    """A temporary folder for this process's template copies, removed when it exits."""
+    folder = tempfile.mkdtemp(prefix="leapmd-pair-terms-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return Path(folder)
 
 
 def _adapters(term: PairTerm) -> dict:
@@ -221,21 +253,48 @@ def _adapters(term: PairTerm) -> dict:
 
 
 def _fingerprint(term: PairTerm) -> str:
-    """A hash of what the term's compiled kernels depend on: its functions' code, the files
-    defining them (helpers they call), and the frame's template."""
-    digest = hashlib.sha256(_TEMPLATE.read_bytes())
-    digest.update(_MATH.read_bytes())  # pair_math: functions terms call
+    """A hash of everything the term's compiled kernels depend on: the frame's own sources
+    (``_FRAME_SOURCES``) and the term's functions with all they reach through their
+    globals, defaults and closures (helpers they call, wherever defined, and constants,
+    which numba compiles in). A helper reached as an attribute (``module.helper``) is not
+    followed."""
+    digest = hashlib.sha256()
+    for path in _FRAME_SOURCES:
+        digest.update(path.read_bytes())
     digest.update(repr((term.name, term.uses_data, term.parameters)).encode())
+    seen: set = set()
     for function in (term.energy, term.curvature):
-        if function is None:
-            digest.update(b"-")
-            continue
-        try:
-            digest.update(Path(inspect.getsourcefile(function)).read_bytes())
-        except (TypeError, OSError):
-            pass
-        _hash_code(digest, function.__code__)
+        _hash_value(digest, function, seen)
     return digest.hexdigest()
+
+
+def _hash_value(digest, value, seen: set) -> None:
+    """Add ``value`` to ``digest``: a function (or numba dispatcher) by its code and what it
+    reaches, plain values and arrays by their contents; other objects (modules, classes)
+    are named in the code that uses them."""
+    value = getattr(value, "py_func", value)  # a numba dispatcher: its Python function
+    if isinstance(value, FunctionType):
+        if value in seen:
+            return
+        seen.add(value)
+        _hash_code(digest, value.__code__)
+        for inner in (
+            *(value.__defaults__ or ()),
+            *(c.cell_contents for c in value.__closure__ or ()),
+        ):
+            _hash_value(digest, inner, seen)
+        for name in _names(value.__code__):
+            if name in value.__globals__:
+                digest.update(name.encode())
+                _hash_value(digest, value.__globals__[name], seen)
+    elif isinstance(value, tuple | list):
+        for item in value:
+            _hash_value(digest, item, seen)
+    elif isinstance(value, np.ndarray):
+        digest.update(repr((value.dtype.str, value.shape)).encode())
+        digest.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, int | float | complex | str | bytes | np.generic) or value is None:
+        digest.update(repr(value).encode())
 
 
 def _hash_code(digest, code: CodeType) -> None:
@@ -244,8 +303,16 @@ def _hash_code(digest, code: CodeType) -> None:
     for constant in code.co_consts:
         if isinstance(constant, CodeType):
             _hash_code(digest, constant)
+        elif isinstance(constant, frozenset):  # ``x in {...}``: sorted, as the order varies
+            digest.update(repr(sorted(map(repr, constant))).encode())
         else:
             digest.update(repr(constant).encode())
+
+
+def _names(code: CodeType) -> list[str]:
+    """The global (and attribute) names a code object and those nested in it use."""
+    nested = (c for c in code.co_consts if isinstance(c, CodeType))
+    return [*code.co_names, *(name for inner in nested for name in _names(inner))]
 
 
 def _identifier(name: str) -> str:
@@ -303,6 +370,9 @@ class PairPotential:
     MIXING: Mapping[str, Mapping[str, str]] = {}
     #: Parameter checks: name -> "positive" | "nonnegative" (others: any finite number).
     LIMITS: Mapping[str, str] = {}
+    #: The parameters users give (keywords, config keys), where a style converts them into
+    #: its term's (LJ: epsilon, sigma -> c6, c12); None: the term's own.
+    PARAMETERS: tuple[str, ...] | None = None
 
     def __init__(
         self,
@@ -340,9 +410,12 @@ class PairPotential:
         per_type = set(self.MIXING.get(mixing, {})) if mixing else set()
         self.values = {}
         for name in names:
-            array = np.asarray(values[name], dtype=np.float64)
+            what = "a number or one number per type" if name in per_type else "a number"
+            try:
+                array = np.asarray(values[name], dtype=np.float64)
+            except (TypeError, ValueError):
+                array = np.empty(0)  # not numbers: refused below
             if array.ndim > 1 or array.size == 0 or (array.ndim == 1 and name not in per_type):
-                what = "a number or one number per type" if name in per_type else "a number"
                 raise ValueError(f"{name} must be {what}, got {values[name]!r}")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"{name} must be finite, got {values[name]!r}")
@@ -382,8 +455,8 @@ class PairPotential:
 
     # ------------------------------------------------------------ per style
     def parameter_names(self) -> tuple[str, ...]:
-        """The user-facing parameter names (the term's, unless a style converts them)."""
-        return self.term.parameters
+        """The user-facing parameter names (``PARAMETERS``, else the term's)."""
+        return self.term.parameters if self.PARAMETERS is None else self.PARAMETERS
 
     def coefficients(self, values: Mapping[str, float], ti: int, tj: int) -> tuple[float, ...]:
         """The term's parameters for one type pair from its (checked) values."""
@@ -507,12 +580,12 @@ class PairPotential:
             total_virial = np.zeros(6)
             energies = np.zeros(n if per_atom else 0)
             virials = np.zeros((n if per_atom else 0, 6))
-            energy = kernels._atom_forces(geometry, n_types, table, mode, self.data, forces,
+            energy = kernels.atom_forces(geometry, n_types, table, mode, self.data, forces,
                                           total_virial, energies, virials)  # fmt: skip
             result = ForceResult(
                 energy=energy,
                 forces=forces,
-                virial=_symmetric(total_virial) if virial or per_atom else None,
+                virial=symmetric(total_virial) if virial or per_atom else None,
                 energies=energies if per_atom else None,
                 virials=virials if per_atom else None,
             )
@@ -536,7 +609,7 @@ class PairPotential:
         slot_positions, slot_types, buffers, energies, virials = scratch
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-        kernel = kernels._frame_forces_threaded if chunks > 1 else kernels._frame_forces
+        kernel = kernels.frame_forces_threaded if chunks > 1 else kernels.frame_forces
         kernel(
             state.positions, state.types, _slots(frame), n_types, table, mode, self.data, virial,
             slot_positions, slot_types, buffers, energies, virials, forces,
@@ -544,7 +617,7 @@ class PairPotential:
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
             forces=forces,
-            virial=_symmetric(virials.sum(axis=0)) if virial else None,
+            virial=symmetric(virials.sum(axis=0)) if virial else None,
         )
 
     def _explain_non_finite(self, state, neighbors) -> None:
@@ -610,7 +683,7 @@ class PairPotential:
         transverse = np.empty(listed)
         radial = np.empty(listed)
         unit = np.empty((listed, 3))
-        n_pairs = kernels._atom_curvatures(
+        n_pairs = kernels.atom_curvatures(
             geometry, n_types, table, mode, self.data, pair_i, pair_j, transverse, radial, unit
         )
         return PairHessian(
@@ -642,7 +715,7 @@ class PairPotential:
             self._hessian_buffers = held
         written = np.zeros(chunks, dtype=np.int64)
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-        write = kernels._frame_curvatures_threaded if chunks > 1 else kernels._frame_curvatures
+        write = kernels.frame_curvatures_threaded if chunks > 1 else kernels.frame_curvatures
         write(state.positions, state.types, _slots(frame), n_types, table, mode, self.data,
               slot_positions, slot_types, held, written)  # fmt: skip
         first = frame.starts[frame.bounds[:-1]]
@@ -665,28 +738,20 @@ class PairPotential:
     def config_values(cls, params: dict, type_names: Sequence[str]) -> dict:
         """Turn a config table (type names resolved) into constructor keywords.
 
-        Keys: the style's parameters (a number, or for those the style mixes a
-        table ``{name = value}`` covering every type), ``cutoff``,
+        Keys: the style's ``PARAMETERS`` (a number, or for those the style mixes
+        a table ``{name = value}`` covering every type), ``cutoff``,
         ``cutoff_mode``, ``r_on``, ``mixing`` (styles that mix), and
         ``pairs``, a list of tables ``{types = [name, name], key = value, ...}``.
         """
+        names = cls.PARAMETERS or ()
         params = dict(params)
-        names = cls.config_keys()
-        allowed = {*names, "cutoff", "cutoff_mode", "r_on", "pairs"} | (
-            {"mixing"} if cls.MIXING else set()
-        )
-        unknown = set(params) - allowed
-        if unknown:
-            raise ValueError(
-                f"unknown key(s): {', '.join(sorted(unknown))} (allowed: "
-                f"{', '.join(sorted(allowed))})"
-            )
-        index = {name: i for i, name in enumerate(type_names)}
+        refuse_unknown_keys(params, {*names, "cutoff", "cutoff_mode", "r_on", "pairs"}
+                            | ({"mixing"} if cls.MIXING else set()))  # fmt: skip
         for key in names:
             value = params.get(key)
             if isinstance(value, Mapping):
                 missing = [name for name in type_names if name not in value]
-                extra = [name for name in value if name not in index]
+                extra = [name for name in value if name not in type_names]
                 if missing or extra:
                     raise ValueError(
                         f"{key}: give one value per type {list(type_names)}"
@@ -694,34 +759,14 @@ class PairPotential:
                         + (f"; unknown types {extra}" if extra else "")
                     )
                 params[key] = [value[name] for name in type_names]
-        pairs = {}
-        for number, entry in enumerate(params.pop("pairs", None) or []):
-            if not isinstance(entry, Mapping) or "types" not in entry:
-                raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
-            entry = dict(entry)
-            types = entry.pop("types")
-            if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
-                raise ValueError(
-                    f"pairs[{number}].types must name two of the types {list(type_names)}, "
-                    f"got {types!r}"
-                )
-            bad = set(entry) - {*names, "cutoff", "r_on"}
-            if bad:
-                raise ValueError(f"pairs[{number}]: unknown key(s) {', '.join(sorted(bad))}")
-            for key, value in entry.items():
-                _number(f"pairs[{number}].{key}", value)
-            pairs[(index[types[0]], index[types[1]])] = entry
+        keys = {*names, "cutoff", "r_on"}
+        pairs = config_pairs(params.pop("pairs", None), type_names, keys, numbers=keys)
         for key in (*names, "cutoff", "r_on"):
             value = params.get(key)
             for v in value if isinstance(value, list) else [value]:
                 if v is not None:
                     _number(key, v)
         return {**params, "pairs": pairs}
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        """The parameter keys a config table of this style takes."""
-        return ()
 
     @classmethod
     def from_config(cls, params: Mapping, type_names: Sequence[str]):
@@ -782,6 +827,40 @@ def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarra
     )  # fmt: skip
 
 
+def refuse_unknown_keys(params: Mapping, allowed: set[str]) -> None:
+    """Raise ValueError naming the keys of a config table that are not ``allowed``."""
+    unknown = set(params) - allowed
+    if unknown:
+        raise ValueError(
+            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
+        )
+
+
+def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: set[str]) -> dict:
+    """``[[potentials.pairs]]`` tables as ``{(ti, tj): {key: value}}``: each names two of the
+    types (``types = [a, b]``) and any of ``keys``, those in ``numbers`` numbers; errors say
+    which entry is wrong."""
+    index = {name: i for i, name in enumerate(type_names)}
+    pairs = {}
+    for number, entry in enumerate(entries or []):
+        if not isinstance(entry, Mapping) or "types" not in entry:
+            raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
+        entry = dict(entry)
+        types = entry.pop("types")
+        if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
+            raise ValueError(
+                f"pairs[{number}].types must name two of the types {list(type_names)}, "
+                f"got {types!r}"
+            )
+        bad = set(entry) - keys
+        if bad:
+            raise ValueError(f"pairs[{number}]: unknown key(s) {', '.join(sorted(bad))}")
+        for key in numbers.intersection(entry):
+            _number(f"pairs[{number}].{key}", entry[key])
+        pairs[(index[types[0]], index[types[1]])] = entry
+    return pairs
+
+
 def _number(key: str, value) -> None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ValueError(f"{key}: expected a number, got {value!r}")
@@ -801,11 +880,6 @@ def _unshared(buffers) -> bool:
     probe = (np.empty(0),)
     baseline = max(sys.getrefcount(array) for array in probe)
     return all(sys.getrefcount(buffer) <= baseline for buffer in buffers)
-
-
-def _symmetric(v: np.ndarray) -> np.ndarray:
-    xx, yy, zz, yz, xz, xy = v
-    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
 def _all_pairs(n: int):

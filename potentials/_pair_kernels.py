@@ -20,6 +20,10 @@ when the term changes), with these names set in that module first:
 Everything else (slot-frame gather, chunks and threads, scatter-sum, type-pair
 tables, cutoff modes, virial, per-atom values, curvature passes) is here, once
 for every term; the term is inlined into the vectorised pair loops.
+
+The six kernels ``PairPotential`` calls have public names (``atom_forces``,
+``atom_curvatures``, ``frame_forces``, ``frame_curvatures`` and the last two's
+``_threaded`` forms): they are this module's interface; the rest is private.
 """
 
 from __future__ import annotations
@@ -122,7 +126,7 @@ def _curvature_terms(r2, p, rc2, ro2, inv_den, mode, data):
 
 # ---------------------------------------------------------------- atom order
 @njit(cache=True, error_model="numpy")
-def _atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, virials):
+def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, virials):
     """Add the pair forces to ``forces`` (zeroed by caller) and return the energy.
 
     ``geometry`` is (positions, types, lengths, inverse, tilt, starts, neighbors):
@@ -142,7 +146,7 @@ def _atom_forces(geometry, n_types, table, mode, data, forces, virial, energies,
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _atom_forces_loop(geometry, n_types, table, mode, data, out):
-    """The loop of ``_atom_forces`` for one cutoff mode (inlined there with mode fixed)."""
+    """The loop of ``atom_forces`` for one cutoff mode (inlined there with mode fixed)."""
     positions, types, lengths, inverse, tilt, starts, neighbors = geometry
     forces, virial, energies, virials = out
     n = positions.shape[0]
@@ -202,11 +206,11 @@ def _atom_forces_loop(geometry, n_types, table, mode, data, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transverse, radial,
+def atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transverse, radial,
                      unit):  # fmt: skip
     """Write the Hessian block of every pair inside its cutoff; return how many.
 
-    Arguments as in ``_atom_forces``; outputs as in ``_atom_curvatures_loop``.
+    Arguments as in ``atom_forces``; outputs as in ``_atom_curvatures_loop``.
     """
     out = (pair_i, pair_j, transverse, radial, unit)
     if mode == 0:
@@ -254,7 +258,7 @@ def _atom_curvatures_loop(geometry, n_types, table, mode, data, out):
 
 # ---------------------------------------------------------------- slot frame
 @njit(cache=True, error_model="numpy")
-def _frame_forces(
+def frame_forces(
     positions, types, slots, n_types, table, mode, data, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
@@ -269,7 +273,7 @@ def _frame_forces(
     ``virials[c]``. The chunk buffers are summed in chunk order into
     ``forces`` (N, 3, by atom), so the result is the same on every run for a
     given chunk count. A pair (p, q) is separated by frame[p] - frame[q] -
-    shifts[codes[k]]: no minimum image. ``_frame_forces_threaded`` runs
+    shifts[codes[k]]: no minimum image. ``frame_forces_threaded`` runs
     the chunks on numba's threads; no two chunks write the same memory.
     """
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
@@ -288,11 +292,11 @@ def _frame_forces(
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _frame_forces_threaded(
+def frame_forces_threaded(
     positions, types, slots, n_types, table, mode, data, with_virial,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
-    """``_frame_forces`` with one chunk per thread (same arguments, same result)."""
+    """``frame_forces`` with one chunk per thread (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
@@ -313,7 +317,7 @@ def _frame_chunk(
     chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, buffers,
     energies, virials,
 ):  # fmt: skip
-    """The pairs of one chunk of ``_frame_forces``, into ``buffers[chunk]``.
+    """The pairs of one chunk of ``frame_forces``, into ``buffers[chunk]``.
 
     Dispatches to the loop compiled for this cutoff mode, virial or not,
     and one atom type or several (constants inside the loop). The loops are
@@ -476,7 +480,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
 
 # ------------------------------------------------------- curvatures in the slot frame
 @njit(cache=True, error_model="numpy")
-def _frame_curvatures(positions, types, slots, n_types, table, mode, data, frame, frame_types,
+def frame_curvatures(positions, types, slots, n_types, table, mode, data, frame, frame_types,
                       out, written):  # fmt: skip
     """Gather the slot frame, then write the pair blocks of every pair inside its cutoff,
     chunk by chunk.
@@ -485,7 +489,7 @@ def _frame_curvatures(positions, types, slots, n_types, table, mode, data, frame
     ``pair_j`` as atom indices, ``transverse``, ``radial``, ``unit``; see
     ``_curvature_terms``) from the index where its listed pairs start,
     ``starts[bounds[c]]``, and sets ``written[c]`` to their number: no two
-    chunks write the same memory. ``_frame_curvatures_threaded`` runs the
+    chunks write the same memory. ``frame_curvatures_threaded`` runs the
     chunks on numba's threads.
     """
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
@@ -500,9 +504,9 @@ def _frame_curvatures(positions, types, slots, n_types, table, mode, data, frame
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, frame,
+def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, frame,
                                frame_types, out, written):  # fmt: skip
-    """``_frame_curvatures`` with one chunk per thread (same arguments, same result)."""
+    """``frame_curvatures`` with one chunk per thread (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
@@ -516,7 +520,7 @@ def _frame_curvatures_threaded(positions, types, slots, n_types, table, mode, da
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, data, out):
-    """One chunk of ``_frame_curvatures``, with the loop compiled per mode and type count;
+    """One chunk of ``frame_curvatures``, with the loop compiled per mode and type count;
     returns the number of the chunk's pairs inside."""
     args = (chunk, frame, frame_types, slots, n_types, table, data)
     single = n_types == 1

@@ -79,6 +79,7 @@ class LennardJones(PairPotential):
     """
 
     style = "lj"
+    PARAMETERS = ("epsilon", "sigma")
     MIXING = {
         "lorentz-berthelot": {"epsilon": "geometric", "sigma": "arithmetic"},
         "geometric": {"epsilon": "geometric", "sigma": "geometric"},
@@ -97,13 +98,6 @@ class LennardJones(PairPotential):
     ) -> None:
         super().__init__(LJ_TERM, cutoff, cutoff_mode, r_on, pairs, mixing,
                          epsilon=epsilon, sigma=sigma)  # fmt: skip
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return ("epsilon", "sigma")
-
-    def parameter_names(self) -> tuple[str, ...]:
-        return ("epsilon", "sigma")
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, float]:
         """(c6, c12) = (4 eps sigma^6, 4 eps sigma^12)."""

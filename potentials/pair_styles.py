@@ -63,16 +63,13 @@ class Morse(PairPotential):
     """
 
     style = "morse"
+    PARAMETERS = ("d0", "alpha", "r0")
     LIMITS = {"d0": "nonnegative", "alpha": "positive", "r0": "nonnegative"}
 
     def __init__(self, d0: float = 1.0, alpha: float = 1.0, r0: float = 1.0,
                  cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
                  pairs: Pairs = None) -> None:  # fmt: skip
         super().__init__(MORSE, cutoff, cutoff_mode, r_on, pairs, d0=d0, alpha=alpha, r0=r0)
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return MORSE.parameters
 
 
 MORSE = PairTerm(morse_energy, morse_curvature, name="morse")
@@ -108,6 +105,7 @@ class Mie(PairPotential):
     """
 
     style = "mie"
+    PARAMETERS = ("epsilon", "sigma", "n", "m")
     MIXING = {
         "lorentz-berthelot": {"epsilon": "geometric", "sigma": "arithmetic", "n": "arithmetic",
                               "m": "arithmetic"},
@@ -122,13 +120,6 @@ class Mie(PairPotential):
                  pairs: Pairs = None, mixing: str = "lorentz-berthelot") -> None:  # fmt: skip
         super().__init__(MIE, cutoff, cutoff_mode, r_on, pairs, mixing, epsilon=epsilon,
                          sigma=sigma, n=n, m=m)  # fmt: skip
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return ("epsilon", "sigma", "n", "m")
-
-    def parameter_names(self) -> tuple[str, ...]:
-        return self.config_keys()
 
     def check_pair(self, values, ti: int, tj: int) -> None:
         if not values["n"] > values["m"]:
@@ -183,19 +174,13 @@ class Buckingham(PairPotential):
     """
 
     style = "buckingham"
+    PARAMETERS = ("a", "rho", "c")
     LIMITS = {"a": "nonnegative", "rho": "positive", "c": "nonnegative"}
 
     def __init__(self, a: float = 1.0, rho: float = 1.0, c: float = 0.0, cutoff: float = 2.5,
                  cutoff_mode: str = "shift", r_on: float | None = None,
                  pairs: Pairs = None) -> None:  # fmt: skip
         super().__init__(BUCKINGHAM, cutoff, cutoff_mode, r_on, pairs, a=a, rho=rho, c=c)
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return ("a", "rho", "c")
-
-    def parameter_names(self) -> tuple[str, ...]:
-        return self.config_keys()
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, ...]:
         """(A, 1/rho, C, r_b^2), r_b the barrier: where u'(r) = 0 below r = 7 rho."""
@@ -271,6 +256,7 @@ class Yukawa(PairPotential):
     """
 
     style = "yukawa"
+    PARAMETERS = ("a", "kappa")
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"kappa": "nonnegative"}
 
@@ -278,10 +264,6 @@ class Yukawa(PairPotential):
                  cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
                  pairs: Pairs = None, mixing: str = "geometric") -> None:  # fmt: skip
         super().__init__(YUKAWA, cutoff, cutoff_mode, r_on, pairs, mixing, a=a, kappa=kappa)
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return YUKAWA.parameters
 
 
 YUKAWA = PairTerm(yukawa_energy, yukawa_curvature, name="yukawa")
@@ -320,6 +302,7 @@ class Soft(PairPotential):
     """
 
     style = "soft"
+    PARAMETERS = ("a",)
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"a": "nonnegative"}
 
@@ -327,13 +310,6 @@ class Soft(PairPotential):
                  cutoff_mode: str = "none", r_on: float | None = None, pairs: Pairs = None,
                  mixing: str = "geometric") -> None:  # fmt: skip
         super().__init__(SOFT, cutoff, cutoff_mode, r_on, pairs, mixing, a=a)
-
-    @classmethod
-    def config_keys(cls) -> tuple[str, ...]:
-        return ("a",)
-
-    def parameter_names(self) -> tuple[str, ...]:
-        return ("a",)
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, ...]:
         """(A, pi / rc)."""

@@ -28,13 +28,23 @@ from pathlib import Path
 import numpy as np
 from numba.extending import register_jitable
 
-from potentials._pair_frame import PairPotential, PairTerm, collapse_error
+from potentials._pair_frame import (
+    TERM,
+    PairPotential,
+    PairTerm,
+    collapse_error,
+    config_pairs,
+    refuse_unknown_keys,
+)
 
 __all__ = ["Table", "TableSection", "read_table"]
 
 INTERPOLATIONS = ("linear", "spline")
 #: Arrays of one built table in the data array, each ``n`` long, in this order.
 RSQ, ENERGY, FORCE, ENERGY2, FORCE2 = range(5)
+#: The term's parameter that is the table's first r^2 (its parameters: offset, n, innersq,
+#: invdelta, deltasq6).
+INNERSQ = 2
 
 
 @dataclass
@@ -61,20 +71,16 @@ def read_table(path, keyword: str) -> TableSection:
         raise ValueError(f"table file {path} not found") from None
     except (OSError, UnicodeDecodeError) as error:
         raise ValueError(f"table file {path}: cannot read it ({error})") from None
-    content = [(number, line.split()) for number, line in enumerate(lines, 1)
-               if line.strip() and not line.lstrip().startswith("#")]  # fmt: skip
+    # The words of each line, '#' and what follows it dropped (LAMMPS's reader does the same).
+    content = [(number, line.split("#", 1)[0].split()) for number, line in enumerate(lines, 1)]
+    content = [(number, words) for number, words in content if words]
     position = 0
-    while position < len(content):
-        number, words = content[position]
-        if words[0] == keyword:
-            break
-        # Another section: skip its parameter line and its points.
-        if position + 1 >= len(content):
-            position = len(content)
-            break
-        count = _parameters(path, *content[position + 1])[0]
-        position += 2 + count
-    else:
+    while position < len(content) and content[position][1][0] != keyword:
+        if position + 1 == len(content):  # a last line that starts no section of ours
+            position += 1
+        else:  # another section: skip its parameter line and its points
+            position += 2 + _parameters(path, *content[position + 1])[0]
+    if position >= len(content):
         raise ValueError(f"table file {path}: no section named {keyword!r}")
     if position + 1 >= len(content):
         raise ValueError(f"{path}:{content[position][0]}: section {keyword} has no parameter line")
@@ -337,13 +343,16 @@ class Table(PairPotential):
         it must lie above the first distance and not beyond the last.
     cutoff_mode : {"none", "shift", "smooth"}
         Default ``"none"`` (LAMMPS's table is not shifted).
+    r_on : float, optional
+        Onset of switching for ``"smooth"``, as in :class:`PairPotential`.
     pairs : mapping, optional
-        ``{(ti, tj): {"file": ..., "keyword": ..., "cutoff": ...}}``: another
-        table (or cutoff) for chosen type pairs.
+        ``{(ti, tj): {"file": ..., "keyword": ..., "cutoff": ..., "r_on": ...}}``:
+        another table (or cutoff) for chosen type pairs.
     """
 
     style = "table"
-    _PAIR_KEYS = {"file", "keyword", "cutoff", "r_on"}
+    PARAMETERS = ()
+    PAIR_KEYS = {"file", "keyword", "cutoff", "r_on"}
 
     def __init__(self, file, keyword: str, interpolation: str = "linear",
                  points: int | None = None, cutoff: float | None = None,
@@ -356,50 +365,45 @@ class Table(PairPotential):
         if points is not None and (isinstance(points, bool) or not isinstance(points, int)
                                    or points < 2):  # fmt: skip
             raise ValueError(f"points must be an integer >= 2, got {points!r}")
-        self.file, self.keyword, self.interpolation, self.points = (
-            file,
-            keyword,
-            interpolation,
-            points,
-        )
-        self.table_pairs = {}
+        self.file, self.keyword = file, keyword
+        self.interpolation, self.points = interpolation, points
+        self.table_pairs = {}  # (ti, tj) -> the pair's own file, keyword, cutoff, r_on
         for key, entry in (pairs or {}).items():
-            bad = set(entry) - self._PAIR_KEYS
+            bad = set(entry) - self.PAIR_KEYS
             if bad:
                 raise ValueError(f"unknown pair parameter(s) {sorted(bad)} for pair {key}")
             ti, tj = (int(t) for t in key)
             self.table_pairs[(min(ti, tj), max(ti, tj))] = dict(entry)
-        self._segments: dict = {}
+        # The term's parameters of each pair's table (None: the default), read before the
+        # frame builds its parameter tables from them (``coefficients``).
+        self._parameters: dict = {}
+        built: dict = {}
         chunks: list[np.ndarray] = []
-        default = self._segment(file, keyword, cutoff, chunks, None)
+        default = self._build(None, file, keyword, cutoff, built, chunks)
+        numeric = {}
         for key, entry in self.table_pairs.items():
-            self._segment(entry.get("file", file), entry.get("keyword", keyword),
-                          entry.get("cutoff", cutoff), chunks, key)  # fmt: skip
-        numeric = {key: {k: v for k, v in entry.items() if k in ("cutoff", "r_on")}
-                   for key, entry in self.table_pairs.items()}  # fmt: skip
-        for key in self.table_pairs:
-            numeric[key]["cutoff"] = self._cutoffs[key]
+            own = self._build(key, entry.get("file", file), entry.get("keyword", keyword),
+                              entry.get("cutoff", cutoff), built, chunks)  # fmt: skip
+            numeric[key] = {"cutoff": own, **{k: entry[k] for k in ("r_on",) if k in entry}}
         super().__init__(TERMS[interpolation], default, cutoff_mode, r_on, numeric,
                          data=np.concatenate(chunks))  # fmt: skip
 
-    def _segment(self, file, keyword, cutoff, chunks, key):
-        """Read and build one pair's table (once per file, keyword and cutoff); return the
-        cutoff."""
+    def _build(self, key, file, keyword, cutoff, built: dict, chunks: list) -> float:
+        """Read and build the table of pair ``key`` (None: the default) into ``chunks``
+        (once per file, keyword and cutoff: ``built``); return its cutoff."""
         section = read_table(file, keyword)
         if cutoff is None:
             cutoff = section.r_high
-        where = f"table {section.path} section {keyword}"
         if isinstance(cutoff, bool) or not isinstance(cutoff, int | float):
             raise ValueError(f"cutoff must be a number, got {cutoff!r}")
+        where = f"table {section.path} section {keyword}"
         if not section.r_low < cutoff <= section.r_high:
             raise ValueError(
                 f"{where} covers r = {section.r_low:g} to {section.r_high:g}; the cutoff "
                 f"{cutoff:g} must lie above its first distance and not beyond its last"
             )
-        self._cutoffs = getattr(self, "_cutoffs", {})
-        self._cutoffs[key] = float(cutoff)
         ident = (str(section.path), keyword, float(cutoff))
-        if ident not in self._segments:
+        if ident not in built:
             points = self.points or len(section.r)
             arrays, innersq, delta = build_table(section, points, float(cutoff),
                                                  self.interpolation)  # fmt: skip
@@ -407,40 +411,20 @@ class Table(PairPotential):
                 raise ValueError(f"{where}: the built table is not finite")
             offset = sum(len(c) for c in chunks)
             chunks.append(arrays.ravel())
-            self._segments[ident] = (float(offset), float(points), innersq, 1.0 / delta,
-                                     delta * delta / 6.0)  # fmt: skip
-        self._cutoffs[key] = float(cutoff)
+            built[ident] = (float(offset), float(points), innersq, 1.0 / delta,
+                            delta * delta / 6.0)  # fmt: skip
+        self._parameters[key] = built[ident]
         return float(cutoff)
 
-    def parameter_names(self) -> tuple[str, ...]:
-        """None: a pair's table (file, keyword, cutoff) gives the term's parameters."""
-        return ()
-
-    def pair_parameters(self, ti: int, tj: int) -> dict:
-        key = (min(ti, tj), max(ti, tj))
-        entry = self.table_pairs.get(key, {})
-        cutoff = self._cutoffs.get(key if key in self.table_pairs else None)
-        params = {
-            "file": str(Path(entry.get("file", self.file))),
-            "keyword": entry.get("keyword", self.keyword),
-            "cutoff": cutoff,
-            "r_on": entry.get("r_on", self.r_on if hasattr(self, "r_on") else None),
-        }
-        if params["r_on"] is None:
-            params["r_on"] = 0.66 * cutoff
-        if getattr(self, "cutoff_mode", "none") == "smooth" and not params["r_on"] < cutoff:
-            raise ValueError(
-                f"r_on ({params['r_on']:g}) must be smaller than the cutoff ({cutoff:g}) for "
-                f"pair ({ti}, {tj})"
-            )
-        return params
-
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, ...]:
-        return self._segments[(values["file"], values["keyword"], values["cutoff"])]
+        """The pair's table: (offset in ``data``, points, first r^2, 1 / spacing in r^2,
+        spacing^2 / 6)."""
+        key = (min(ti, tj), max(ti, tj))
+        return self._parameters[key if key in self._parameters else None]
 
     def _explain_non_finite(self, state, neighbors) -> None:
         table = self._cached_tables(max(state.n_types, self.n_types_fixed or 1))
-        error = collapse_error(self, state, neighbors, table[-3],
+        error = collapse_error(self, state, neighbors, table[TERM + INNERSQ],
                                "below the table's first distance")  # fmt: skip
         if error is not None:
             raise error
@@ -451,6 +435,8 @@ class Table(PairPotential):
                "cutoff_mode": self.cutoff_mode}  # fmt: skip
         if self.points is not None:
             out["points"] = self.points
+        if self.r_on is not None:
+            out["r_on"] = self.r_on
         if self.table_pairs:
             out["pairs"] = {f"{i}-{j}": v for (i, j), v in self.table_pairs.items()}
         return out
@@ -459,33 +445,13 @@ class Table(PairPotential):
     def from_config(cls, params: Mapping, type_names):
         """Keys: ``file``, ``keyword``, ``interpolation``, ``points``, ``cutoff``,
         ``cutoff_mode``, ``r_on`` and ``pairs`` (``{types = [a, b], file, keyword,
-        cutoff}``)."""
+        cutoff, r_on}``)."""
         params = dict(params)
-        allowed = {"file", "keyword", "interpolation", "points", "cutoff", "cutoff_mode",
-                   "r_on", "pairs"}  # fmt: skip
-        unknown = set(params) - allowed
-        if unknown:
-            raise ValueError(
-                f"unknown key(s): {', '.join(sorted(unknown))} (allowed: "
-                f"{', '.join(sorted(allowed))})"
-            )
+        refuse_unknown_keys(params, {"file", "keyword", "interpolation", "points", "cutoff",
+                                     "cutoff_mode", "r_on", "pairs"})  # fmt: skip
         for key in ("file", "keyword"):
             if not isinstance(params.get(key), str):
                 raise ValueError(f"{key}: expected a string, got {params.get(key)!r}")
-        index = {name: i for i, name in enumerate(type_names)}
-        pairs = {}
-        for number, entry in enumerate(params.pop("pairs", None) or []):
-            if not isinstance(entry, Mapping) or "types" not in entry:
-                raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
-            entry = dict(entry)
-            types = entry.pop("types")
-            if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
-                raise ValueError(
-                    f"pairs[{number}].types must name two of the types {list(type_names)}, "
-                    f"got {types!r}"
-                )
-            bad = set(entry) - cls._PAIR_KEYS
-            if bad:
-                raise ValueError(f"pairs[{number}]: unknown key(s) {', '.join(sorted(bad))}")
-            pairs[(index[types[0]], index[types[1]])] = entry
+        pairs = config_pairs(params.pop("pairs", None), type_names, cls.PAIR_KEYS,
+                             numbers={"cutoff", "r_on"})  # fmt: skip
         return cls(**params, pairs=pairs)

@@ -51,7 +51,7 @@ def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
         "from potentials._pair_frame import kernels_for\n"
         "from integrators import _kernels\n"
         "lj = potentials.LennardJones(cutoff=2.5)\n"
-        "pair = kernels_for(lj.term)._frame_forces\n"
+        "pair = kernels_for(lj.term).frame_forces\n"
         "kernels = [_cell_kernels._bin_atoms, pair, _kernels._kick]\n"
         "print(json.dumps([k._cache._cache_path for k in kernels]))\n"
         "s = md.lattice('fcc', 3, density=0.8)\n"

@@ -11,6 +11,7 @@ lists for every registered style; test_vs_lammps.py compares with LAMMPS.
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import re
 import subprocess
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 
 import md
-from integrators import ImplicitEuler
+from integrators import ImplicitEuler, VelocityVerlet
 from md.errors import PairCollapseError, SimulationError
 from md.forcefield import ForceField
 from md.neighbors import NeighborList
@@ -266,8 +267,8 @@ def test_a_term_without_curvature_is_refused_by_implicit_euler():
         return u, 2.0 * u / (width * width)
 
     potential = PairPotential(gaussian, epsilon=1.0, width=0.8, cutoff=2.5)
-    state = md.maxwell_boltzmann(md.lattice("fcc", 3, density=0.9), 0.5, seed=3)
-    md.Simulation(state.copy(), [potential], md.VelocityVerlet(0.01)).run(3)  # explicit: fine
+    state = md.maxwell_boltzmann(md.lattice("fcc", 4, density=0.9), 0.5, seed=3)
+    md.Simulation(state.copy(), [potential], VelocityVerlet(0.01)).run(3)  # explicit: fine
     with pytest.raises((TypeError, SimulationError), match="no curvature"):
         md.Simulation(state, [potential], ImplicitEuler(0.01)).run(1)
 
@@ -319,7 +320,7 @@ def test_buckingham_collapse_names_the_pair_and_the_step():
     state = md.State(positions=[[1, 1, 1], [1 + 1.3 * barrier, 1, 1]], box=10.0, pbc=False,
                      velocities=[[3.0, 0, 0], [-3.0, 0, 0]])  # fmt: skip
     with pytest.raises(SimulationError, match="atoms 0 and 1"):
-        md.Simulation(state, [buck], md.VelocityVerlet(0.002)).run(200)
+        md.Simulation(state, [buck], VelocityVerlet(0.002)).run(200)
 
 
 def test_buckingham_without_a_barrier_is_refused():
@@ -404,24 +405,56 @@ def test_table_interpolates_a_smooth_function_closely(tmp_path):
 
 
 # ---------------------------------------------------------------- kernel cache
-def test_frame_kernels_load_from_the_cache_in_a_second_process(tmp_path):
-    """The kernels built per term are cached: a second process loads them, compiling none."""
-    code = (
-        "import json, md, potentials\n"
-        "from potentials._pair_frame import kernels_for\n"
-        "s = md.lattice('fcc', 4, density=0.8)\n"
-        "p = potentials.Yukawa(a=1.0, kappa=1.0, cutoff=2.0)\n"
-        "md.ForceField([p]).compute(s)\n"
-        "k = kernels_for(p.term)._frame_forces\n"
-        "hits, misses = k.stats.cache_hits.values(), k.stats.cache_misses.values()\n"
-        "print(json.dumps([sum(hits), sum(misses)]))\n"
-    )
-    env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)}
-    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                           cwd=tmp_path, check=True) for _ in range(2)]  # fmt: skip
-    first, second = (list(map(int, run.stdout.split()[-1].strip("[]").split(","))) for run in runs)
-    assert first == [0, 1]
-    assert second == [1, 0]
+_CACHE_CHILD = """
+import json, md
+from potentials import PairPotential, pair_term
+from potentials._pair_frame import kernels_for
+
+@pair_term
+def soft_wall(r2, k, width):
+    gap = width - r2**0.5
+    return 0.5 * k * gap * gap, k * gap / r2**0.5
+
+state = md.lattice("fcc", 5, density=0.8)
+potential = PairPotential(soft_wall, k=10.0, width=1.3, cutoff=1.3, cutoff_mode="none")
+forcefield = md.ForceField([potential], skin=0.3)
+result = forcefield.compute(state)
+kernel = kernels_for(potential.term).frame_forces
+print(json.dumps({"frame": forcefield.neighbor_list.frame is not None,
+                  "hits": sum(kernel.stats.cache_hits.values()),
+                  "misses": sum(kernel.stats.cache_misses.values()),
+                  "file": kernels_for(potential.term).__file__, "energy": result.energy}))
+"""
+
+
+def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(tmp_path):
+    """A user's term defined in a script: two processes compiling it at once both finish
+    and leave one complete copy of the frame's kernels (no temporaries); a third process
+    loads the compiled kernels from numba's cache, compiling none."""
+    env = {"XDG_CACHE_HOME": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin",
+           "PYTHONPATH": str(ROOT)}  # fmt: skip
+
+    def start():
+        command = [sys.executable, "-c", _CACHE_CHILD]
+        return subprocess.Popen(command, env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+    def report(process):
+        out, err = process.communicate(timeout=1800)
+        assert process.returncode == 0, err
+        return json.loads(out.splitlines()[-1])
+
+    together = [start(), start()]
+    first, second = (report(process) for process in together)
+    third = report(start())
+    assert first["frame"] and first["energy"] > 0  # the slot-frame path, overlapping walls
+    assert first["file"] == second["file"] == third["file"]
+    copies = list((tmp_path / "cache/leapmd/numba/pair_terms").iterdir())
+    assert [path.name for path in copies] == [Path(first["file"]).name]
+    assert Path(first["file"]).read_bytes() == (ROOT / "potentials/_pair_kernels.py").read_bytes()
+    assert first["energy"] == second["energy"] == third["energy"]
+    assert third["hits"] == 1 and third["misses"] == 0
+    assert first["misses"] + first["hits"] == 1 and second["misses"] + second["hits"] == 1
 
 
 # ---------------------------------------------------------------- vector exp
