@@ -430,13 +430,10 @@ class Table(PairPotential):
             raise error
 
     def describe(self) -> dict:
-        out = {"type": "table", "file": str(self.file), "keyword": self.keyword,
-               "interpolation": self.interpolation, "cutoff": self.default_cutoff,
-               "cutoff_mode": self.cutoff_mode}  # fmt: skip
+        out = super().describe()
+        out.update(file=str(self.file), keyword=self.keyword, interpolation=self.interpolation)
         if self.points is not None:
             out["points"] = self.points
-        if self.r_on is not None:
-            out["r_on"] = self.r_on
         if self.table_pairs:
             out["pairs"] = {f"{i}-{j}": v for (i, j), v in self.table_pairs.items()}
         return out
