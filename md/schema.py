@@ -15,10 +15,8 @@ refused; a value of the wrong kind too; times, rates and pressures are
 converted by their declared unit), and the manual's config reference is
 generated from them. Plug-ins check their own values' ranges in their
 constructors; a declared ``positive``/``minimum`` is checked when the config
-is read.
+is read. For example:
 
-Examples
---------
 >>> steps = Key("steps", "integer", 1000, unit="steps", doc="time steps to run", minimum=0)
 >>> steps.check(40)
 40
