@@ -43,6 +43,7 @@ from md._files import atomic_path
 from md._kernel_cache import cache_directory, kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
+from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials.base import ForceResult
@@ -373,6 +374,8 @@ class PairPotential:
     #: The parameters users give (keywords, config keys), where a style converts them into
     #: its term's (LJ: epsilon, sigma -> c6, c12); None: the term's own.
     PARAMETERS: tuple[str, ...] | None = None
+    #: The keys of a style's config table (:func:`pair_config_keys`; see :meth:`from_config`).
+    CONFIG_KEYS: tuple[Key, ...] = ()
 
     def __init__(
         self,
@@ -745,8 +748,7 @@ class PairPotential:
         """
         names = cls.PARAMETERS or ()
         params = dict(params)
-        refuse_unknown_keys(params, {*names, "cutoff", "cutoff_mode", "r_on", "pairs"}
-                            | ({"mixing"} if cls.MIXING else set()))  # fmt: skip
+        check_names(params, cls.CONFIG_KEYS)
         for key in names:
             value = params.get(key)
             if isinstance(value, Mapping):
@@ -827,13 +829,34 @@ def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarra
     )  # fmt: skip
 
 
-def refuse_unknown_keys(params: Mapping, allowed: set[str]) -> None:
-    """Raise ValueError naming the keys of a config table that are not ``allowed``."""
-    unknown = set(params) - allowed
-    if unknown:
-        raise ValueError(
-            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
-        )
+def pair_config_keys(*parameters: Key, cutoff: float | None = 2.5, cutoff_mode: str = "shift",
+                     mixing: tuple[str, ...] = (), mixing_doc: str = "",
+                     pair_keys: tuple[str, ...] | None = None,
+                     cutoff_doc: str = "") -> tuple[Key, ...]:  # fmt: skip
+    """A pair style's ``CONFIG_KEYS``: its own ``parameters``, then the keys the frame takes
+    with the style's defaults: ``cutoff``, ``cutoff_mode``, ``r_on``, ``mixing`` (styles
+    that mix: the rules, the first the default) and ``pairs``, whose tables take
+    ``pair_keys`` (default: the parameters), ``cutoff`` and ``r_on``; ``cutoff_doc`` says
+    what a ``cutoff`` default of None means."""
+    mixed = (Key("mixing", "string", mixing[0], choices=mixing, doc=mixing_doc),) if mixing else ()
+    names = ", ".join(f"`{name}`" for name in pair_keys or key_names(parameters))
+    return (
+        *parameters,
+        Key("cutoff", "number", cutoff, unit="length",
+            doc="The pair cutoff, for every pair not given its own in `pairs`.",
+            default_doc=cutoff_doc),
+        Key("cutoff_mode", "string", cutoff_mode, choices=tuple(CUTOFF_MODES),
+            doc='`"none"`: truncated; `"shift"`: energy continuous at the cutoff (LAMMPS\'s '
+                '`pair_modify shift yes`); `"smooth"`: energy and force switched off between '
+                "`r_on` and the cutoff."),
+        Key("r_on", "number", None, unit="length",
+            doc='Where switching starts with `cutoff_mode = "smooth"`.',
+            default_doc="0.66 `cutoff` per pair"),
+        *mixed,
+        Key("pairs", "list of tables", None,
+            doc="Single type pairs given their own values: `[[potentials.pairs]]` tables with "
+                f"`types = [a, b]` and any of {names}, `cutoff`, `r_on`."),
+    )  # fmt: skip
 
 
 def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: set[str]) -> dict:

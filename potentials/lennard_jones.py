@@ -6,7 +6,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from potentials._pair_frame import CUTOFF_MODES, PairPotential, PairTerm
+from md.schema import Key
+from potentials._pair_frame import CUTOFF_MODES, PairPotential, PairTerm, pair_config_keys
 
 __all__ = ["CUTOFF_MODES", "MIXING_RULES", "LennardJones"]
 
@@ -85,6 +86,16 @@ class LennardJones(PairPotential):
         "geometric": {"epsilon": "geometric", "sigma": "geometric"},
     }
     LIMITS = {"epsilon": "nonnegative", "sigma": "positive"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("epsilon", "number, list or table", 1.0, unit="energy",
+            doc="The well depth: one number, or per type (`{Ar = 0.0104, Kr = 0.014}`, "
+                "covering every type), mixed by `mixing`."),
+        Key("sigma", "number, list or table", 1.0, unit="length",
+            doc="The size, given as `epsilon` is."),
+        mixing=MIXING_RULES,
+        mixing_doc="The rule for unlike pairs of per-type values: epsilon geometric; sigma "
+                   "arithmetic (`lorentz-berthelot`) or geometric.",
+    )  # fmt: skip
 
     def __init__(
         self,

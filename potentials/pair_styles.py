@@ -16,7 +16,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numba.extending import register_jitable
 
-from potentials._pair_frame import PairPotential, PairTerm, collapse_error
+from md.schema import Key
+from potentials._pair_frame import PairPotential, PairTerm, collapse_error, pair_config_keys
 from potentials.pair_math import exp
 
 __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
@@ -65,6 +66,11 @@ class Morse(PairPotential):
     style = "morse"
     PARAMETERS = ("d0", "alpha", "r0")
     LIMITS = {"d0": "nonnegative", "alpha": "positive", "r0": "nonnegative"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("d0", "number", 1.0, unit="energy", doc="The well depth D0, >= 0."),
+        Key("alpha", "number", 1.0, unit="1/length", doc="The well's width alpha, > 0."),
+        Key("r0", "number", 1.0, unit="length", doc="The distance of the minimum, >= 0."),
+    )  # fmt: skip
 
     def __init__(self, d0: float = 1.0, alpha: float = 1.0, r0: float = 1.0,
                  cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
@@ -113,6 +119,21 @@ class Mie(PairPotential):
                       "m": "geometric"},
     }  # fmt: skip
     LIMITS = {"epsilon": "nonnegative", "sigma": "positive", "n": "positive", "m": "positive"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("epsilon", "number, list or table", 1.0, unit="energy",
+            doc="The well depth, >= 0: one number, or per type (`{A = 1.0, B = 0.6}`, "
+                "covering every type), mixed by `mixing`."),
+        Key("sigma", "number, list or table", 1.0, unit="length",
+            doc="The size, > 0, given as `epsilon` is."),
+        Key("n", "number, list or table", 12.0,
+            doc="The repulsive exponent (LAMMPS's gamma_R), larger than `m`; given as "
+                "`epsilon` is."),
+        Key("m", "number, list or table", 6.0,
+            doc="The attractive exponent (LAMMPS's gamma_A), > 0; given as `epsilon` is."),
+        mixing=tuple(MIXING),
+        mixing_doc="The rule for unlike pairs of per-type values: epsilon geometric; sigma, n "
+                   "and m arithmetic (`lorentz-berthelot`) or geometric.",
+    )  # fmt: skip
 
     def __init__(self, epsilon: float | Sequence[float] = 1.0, sigma: float | Sequence[float] = 1.0,
                  n: float | Sequence[float] = 12.0, m: float | Sequence[float] = 6.0,
@@ -176,6 +197,11 @@ class Buckingham(PairPotential):
     style = "buckingham"
     PARAMETERS = ("a", "rho", "c")
     LIMITS = {"a": "nonnegative", "rho": "positive", "c": "nonnegative"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("a", "number", 1.0, unit="energy", doc="The repulsion's prefactor A, >= 0."),
+        Key("rho", "number", 1.0, unit="length", doc="The repulsion's range rho, > 0."),
+        Key("c", "number", 0.0, unit="energy*length^6", doc="The dispersion coefficient C, >= 0."),
+    )  # fmt: skip
 
     def __init__(self, a: float = 1.0, rho: float = 1.0, c: float = 0.0, cutoff: float = 2.5,
                  cutoff_mode: str = "shift", r_on: float | None = None,
@@ -259,6 +285,14 @@ class Yukawa(PairPotential):
     PARAMETERS = ("a", "kappa")
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"kappa": "nonnegative"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("a", "number, list or table", 1.0, unit="energy*length",
+            doc="The prefactor A: one number, or per type (`{A = 1.0, B = 2.0}`, covering "
+                "every type), unlike pairs sqrt(A_i A_j)."),
+        Key("kappa", "number", 1.0, unit="1/length", doc="The screening constant kappa, >= 0."),
+        mixing=tuple(MIXING),
+        mixing_doc="The rule for unlike pairs of per-type `a`: geometric, as LAMMPS mixes it.",
+    )  # fmt: skip
 
     def __init__(self, a: float | Sequence[float] = 1.0, kappa: float = 1.0,
                  cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
@@ -305,6 +339,13 @@ class Soft(PairPotential):
     PARAMETERS = ("a",)
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"a": "nonnegative"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("a", "number, list or table", 1.0, unit="energy",
+            doc="The height A (u(0) = 2A), >= 0: one number, or per type (`{A = 1.0, B = 2.0}`, "
+                "covering every type), unlike pairs sqrt(A_i A_j)."),
+        cutoff=1.0, cutoff_mode="none", mixing=tuple(MIXING),
+        mixing_doc="The rule for unlike pairs of per-type `a`: geometric, as LAMMPS mixes it.",
+    )  # fmt: skip
 
     def __init__(self, a: float | Sequence[float] = 1.0, cutoff: float = 1.0,
                  cutoff_mode: str = "none", r_on: float | None = None, pairs: Pairs = None,

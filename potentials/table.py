@@ -28,13 +28,14 @@ from pathlib import Path
 import numpy as np
 from numba.extending import register_jitable
 
+from md.schema import REQUIRED, Key, check_names
 from potentials._pair_frame import (
     TERM,
     PairPotential,
     PairTerm,
     collapse_error,
     config_pairs,
-    refuse_unknown_keys,
+    pair_config_keys,
 )
 
 __all__ = ["Table", "TableSection", "read_table"]
@@ -353,6 +354,19 @@ class Table(PairPotential):
     style = "table"
     PARAMETERS = ()
     PAIR_KEYS = {"file", "keyword", "cutoff", "r_on"}
+    CONFIG_KEYS = pair_config_keys(
+        Key("file", "path", REQUIRED,
+            doc="A LAMMPS `pair_style table` file, relative to the config."),
+        Key("keyword", "string", REQUIRED, doc="The section of the file to read."),
+        Key("interpolation", "string", "linear", choices=INTERPOLATIONS,
+            doc="`linear` or `spline`, as LAMMPS's `pair_style table` interpolates."),
+        Key("points", "integer", None, minimum=2,
+            doc="The table length LAMMPS's `pair_style table` calls N: the section is "
+                "interpolated onto that many points first.",
+            default_doc="the section's own N"),
+        cutoff=None, cutoff_mode="none", pair_keys=("file", "keyword"),
+        cutoff_doc="the section's last distance",
+    )  # fmt: skip
 
     def __init__(self, file, keyword: str, interpolation: str = "linear",
                  points: int | None = None, cutoff: float | None = None,
@@ -444,8 +458,7 @@ class Table(PairPotential):
         ``cutoff_mode``, ``r_on`` and ``pairs`` (``{types = [a, b], file, keyword,
         cutoff, r_on}``)."""
         params = dict(params)
-        refuse_unknown_keys(params, {"file", "keyword", "interpolation", "points", "cutoff",
-                                     "cutoff_mode", "r_on", "pairs"})  # fmt: skip
+        check_names(params, cls.CONFIG_KEYS)
         for key in ("file", "keyword"):
             if not isinstance(params.get(key), str):
                 raise ValueError(f"{key}: expected a string, got {params.get(key)!r}")
