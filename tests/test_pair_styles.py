@@ -554,7 +554,7 @@ BAD = {
     "table unsorted": ('type = "table"\nfile = "unsorted.table"\nkeyword = "T"',
                        "unsorted.table:5: distances must increase"),
     "interpolation": ('type = "table"\nfile = "pair.table"\nkeyword = "T"\ninterpolation = "cubic"',
-                      "interpolation must be one of"),
+                      "interpolation: must be one of 'linear', 'spline', got 'cubic'"),
 }  # fmt: skip
 
 
