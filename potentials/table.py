@@ -1,13 +1,13 @@
 """Tabulated pair potentials read from LAMMPS ``pair_style table`` files.
 
 A file holds sections, each a keyword line, a parameter line
-``N n [R rlo rhi | RSQ rlo rhi] [FP fplo fphi]`` and n lines
+``N n [R rlo rhi | RSQ rlo rhi] [FPRIME fplo fphi]`` and n lines
 ``index r energy force`` (blank lines and ``#`` comments anywhere). With
 ``R`` or ``RSQ`` the distances are recomputed evenly spaced in r or r^2 from
 rlo to rhi, as LAMMPS does; without them the file's r must increase.
 
 The table is then built as LAMMPS builds it: the file's energy and force are
-splined in r (natural end slopes from the forces, or FP), and sampled at
+splined in r (natural end slopes from the forces, or FPRIME), and sampled at
 ``points`` values evenly spaced in r^2 from the first distance to the cutoff,
 the force stored as f/r; ``"linear"`` interpolates these linearly in r^2,
 ``"spline"`` through cubic splines in r^2 (LAMMPS's ``linear`` and
@@ -60,7 +60,7 @@ class TableSection:
     spacing: str | None  # "R", "RSQ" or None (the file's own r)
     r_low: float
     r_high: float
-    slopes: tuple[float, float] | None  # FP fplo fphi
+    slopes: tuple[float, float] | None  # FPRIME fplo fphi
 
 
 def read_table(path, keyword: str) -> TableSection:
@@ -139,13 +139,13 @@ def _parameters(path, number, words):
             elif word in ("R", "RSQ"):
                 spacing, low, high = word, float(words[k + 1]), float(words[k + 2])
                 k += 3
-            elif word == "FP":
+            elif word == "FPRIME":
                 slopes = (float(words[k + 1]), float(words[k + 2]))
                 k += 3
             else:
                 raise ValueError(
                     f"{path}:{number}: unknown table parameter {word!r} (expected N, R, RSQ, "
-                    "FP; BITMAP tables are not supported)"
+                    "FPRIME; BITMAP tables are not supported)"
                 )
     except (IndexError, ValueError) as error:
         if "unknown table parameter" in str(error):
@@ -234,7 +234,7 @@ def build_table(section: TableSection, points: int, cutoff: float, interpolation
         out[FORCE2, :-1] = f[1:] - f[:-1]
         return out, innersq, delta
     out[ENERGY2] = _spline(rsq, e, -f[0], -f[-1])
-    # End slopes of f/r in r^2: from FP where given, else secants over a tenth of a bin.
+    # End slopes of f/r in r^2: from FPRIME where given, else secants over a tenth of a bin.
     secant = 0.1
     if section.slopes is not None:
         low = (section.slopes[0] / math.sqrt(innersq) - f[0] / innersq) / (2.0 * math.sqrt(innersq))

@@ -447,7 +447,7 @@ def test_tilted_pair_style_equals_lammps(style, shift):
 
 
 def _write_table(path: Path) -> None:
-    """A LAMMPS table file with three sections: R, RSQ (with FP) and the file's own r."""
+    """A LAMMPS table file with three sections: R, RSQ (with FPRIME) and the file's own r."""
     rows = ["# tabulated Morse-like and soft-core pairs", ""]
     for keyword, spacing, n in (("WELL", "R 0.6 2.5", 800), ("CORE", "RSQ 0.6 2.2", 800),
                                 ("OWN", "", 500)):  # fmt: skip
@@ -458,7 +458,7 @@ def _write_table(path: Path) -> None:
         depth = {"WELL": 1.0, "CORE": 0.4, "OWN": 0.7}[keyword]
         e = depth * (np.exp(-5.0 * (r - 1.1)) - 2.0 * np.exp(-2.5 * (r - 1.1)))
         f = depth * 5.0 * (np.exp(-5.0 * (r - 1.1)) - np.exp(-2.5 * (r - 1.1)))
-        head = f"N {n} {spacing}" + (" FP -40.0 0.05" if keyword == "CORE" else "")
+        head = f"N {n} {spacing}" + (" FPRIME -40.0 0.05" if keyword == "CORE" else "")
         rows += [keyword, head.replace("  ", " ").strip(), ""]
         rows += [f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}" for k in range(n)]
         rows.append("")
@@ -468,7 +468,7 @@ def _write_table(path: Path) -> None:
 @pytest.mark.parametrize("points", [800, 1200])
 @pytest.mark.parametrize("interpolation", ["linear", "spline"])
 def test_tilted_table_equals_lammps(interpolation, points, tmp_path):
-    """pair_style table on the same file (R, RSQ with FP, and the file's own r; one
+    """pair_style table on the same file (R, RSQ with FPRIME, and the file's own r; one
     explicit unlike pair with its own section and cutoff): the same interpolation, so the
     same numbers to 1e-10. With 800 points and linear interpolation, the RSQ section
     ending at its pair's cutoff is used as read (LAMMPS's exact match); otherwise every
