@@ -149,7 +149,9 @@ class IncrementalSolver:
         self.history: list[np.ndarray] = []
         self._masses = None  # (atom masses, per-coordinate masses, their inverses)
 
-    def solve(self, state, forcefield, h: float, name: str, reach: float = 1.0) -> np.ndarray:
+    def solve(
+        self, state, forcefield, h: float, name: str, reach: float = 1.0, velocities=None
+    ) -> np.ndarray:
         """Return the displacement ``dx`` (N, 3) that makes Phi stationary.
 
         On return ``state.positions`` holds ``x0 + dx`` and ``forcefield``
@@ -158,17 +160,21 @@ class IncrementalSolver:
         is raised; ``name`` labels the method in the message. ``reach`` is
         the time ``x0 + dx`` stands for, in steps from ``x0`` (1 for implicit
         Euler, 1/2 for the midpoint): the predictor extrapolates the
-        accelerations of the last steps to it.
+        accelerations of the last steps to it. ``velocities`` (N, 3) replaces
+        ``v0`` = ``state.velocities`` in Phi: a method whose step equation is
+        ``M (dx - s) = h^2 F(x0 + dx)`` with another known shift ``s`` (the
+        trapezoidal rule, BDF2) passes ``s / h``.
         """
         x0 = state.positions.copy()
+        velocities = state.velocities if velocities is None else velocities
         try:
-            return self._solve(state, forcefield, h, name, x0, reach)
+            return self._solve(state, forcefield, h, name, x0, reach, velocities)
         except BaseException:
             state.positions[:] = x0
             raise
 
     # ------------------------------------------------------------------ solve
-    def _solve(self, state, forcefield, h, name, x0, reach):
+    def _solve(self, state, forcefield, h, name, x0, reach, velocities):
         stats = self.statistics
         step = state.step + 1
         masses, inverse_masses = self._mass_vectors(state.masses)
@@ -180,7 +186,7 @@ class IncrementalSolver:
         accelerations = np.empty_like(forces0)
         predicted = np.empty_like(forces0)
         largest_acceleration, largest_target = _in_chunks(
-            _start_terms, _start_terms_threaded, state.velocities.ravel(), forces0,
+            _start_terms, _start_terms_threaded, velocities.ravel(), forces0,
             inverse_masses, h, h2, target, accelerations, predicted,
         )  # fmt: skip
         history = [a for a in self.history if a.shape == accelerations.shape]
@@ -188,7 +194,7 @@ class IncrementalSolver:
             # The acceleration at x0 + dx, extrapolated from this and the last steps'
             # (Lagrange, in steps): the prediction's error falls from O(h^3) to
             # O(h^(3 + len(history))), a Newton iteration in about one step of ten.
-            weights = _extrapolation_weights(len(history), reach)
+            weights = extrapolation_weights(len(history), reach)
             _extrapolate(target, h2, weights, accelerations, history[-1],
                          history[0] if len(history) > 1 else history[-1], predicted)  # fmt: skip
         scale = max(largest_acceleration, largest_target / h2)
@@ -511,7 +517,7 @@ def _jacobi(diagonal, h2, hessian_diagonal):
     return out
 
 
-def _extrapolation_weights(n_history: int, reach: float) -> tuple[float, float, float]:
+def extrapolation_weights(n_history: int, reach: float) -> tuple[float, float, float]:
     """Lagrange weights of a(0), a(-1), a(-2) (steps) for a(reach), from the newest
     ``n_history`` + 1 of them (linear or quadratic); unused ones are 0."""
     t = float(reach)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
 
+import numpy as np
+from numpy.typing import NDArray
+
 from md._checks import positive
 from md.errors import ConvergenceError
 
@@ -66,6 +69,33 @@ class Integrator(Protocol):
     def describe(self) -> dict: ...
 
 
+@runtime_checkable
+class SupportsAmplification(Protocol):
+    """Optional capability: the method's amplification on the harmonic oscillator.
+
+    ``amplification(omega_dt)`` returns the roots of the characteristic
+    polynomial of the method applied to x'' = -omega^2 x with step dt, as
+    :func:`amplification_roots` orders them: the principal root first (the
+    one that follows the exact e^(i omega dt) as omega dt -> 0; for the
+    methods here, the one of largest modulus). Its modulus is the amplitude
+    ratio per step, below 1 for a method that damps; its argument the phase
+    per step, omega dt when exact. A one-step method has two roots (the
+    conjugate pair), a k-step method 2k.
+    """
+
+    @staticmethod
+    def amplification(omega_dt: float) -> NDArray[np.complex128]: ...
+
+
+def amplification_roots(*polynomials) -> NDArray[np.complex128]:
+    """Return the roots of the product of ``polynomials`` (coefficients, highest
+    power first), the largest modulus first and of a conjugate pair the one with
+    the non-negative imaginary part first."""
+    roots = np.concatenate([np.roots(np.asarray(p, dtype=np.complex128)) for p in polynomials])
+    order = np.lexsort((-roots.imag, -np.round(np.abs(roots), 12)))
+    return roots[order]
+
+
 class IntegratorBase:
     """Defaults of the capability flags; every integrator in the registry derives from it."""
 
@@ -87,4 +117,11 @@ def check_dt(dt: float) -> float:
     return positive(dt, "dt")
 
 
-__all__ = ["ConvergenceError", "Integrator", "IntegratorBase", "check_dt"]
+__all__ = [
+    "ConvergenceError",
+    "Integrator",
+    "IntegratorBase",
+    "SupportsAmplification",
+    "amplification_roots",
+    "check_dt",
+]

@@ -23,12 +23,13 @@ from md._checks import bond_array, bond_type_array, positive_array, read_bonds_f
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import NonFiniteError
 from potentials._kernels import _add_half_pair_virial
-from potentials.base import ForceResult
+from potentials.base import BondLaw, ForceResult
 from potentials.pair_hessian import PairHessian
 
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
 _FENE = 1
+_FORM_NAMES = {_HARMONIC: "harmonic", _FENE: "fene"}
 
 
 class BondStretchError(NonFiniteError):
@@ -193,6 +194,11 @@ class _BondedPotential:
             state.n_atoms, bonds[:, 0].copy(), bonds[:, 1].copy(), transverse, radial, unit,
             unique=False,
         )  # fmt: skip
+
+    def bond_law(self) -> BondLaw:
+        """Return the law of every bond (per-type parameters spread per bond)."""
+        k, length = (table[self.bond_types] for table in self._tables)
+        return BondLaw(_FORM_NAMES[self._form], self.bonds.astype(np.int64), k, length)
 
     def bond_lengths(self, state) -> NDArray[np.float64]:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
