@@ -53,6 +53,8 @@ LAYERS = {
     4: [
         "md.analysis",
         "md.integrator_study",
+        "md.damping",
+        "md._plot_style",
         "md.calculator",
         "md.validate",
         "md.convert",
