@@ -6,8 +6,9 @@ import numpy as np
 
 from integrators.base import amplification_roots
 from integrators.implicit_euler import ImplicitBase
-from integrators.trapezoidal import trapezoidal_displacement
 
+#: Alexander's two-stage, stiffly accurate, L-stable SDIRK method: A = [[g, 0], [1 - g, g]].
+SDIRK_GAMMA = 1.0 - 1.0 / np.sqrt(2.0)
 #: Keys of BDF2's own history in :meth:`BDF2.get_state` (besides the predictor's).
 _HISTORY_KEYS = ("last_displacement", "previous_velocities")
 
@@ -46,13 +47,19 @@ class BDF2(ImplicitBase):
     :math:`1/\sqrt{2\omega\Delta t}` per step.
 
     The start. A two-step method needs one step of history; the first step
-    (and the first after :meth:`reset`) is one trapezoidal step
-    (:class:`integrators.trapezoidal.Trapezoidal`, the same solver and cost).
-    Its local error is O(dt^3), so it adds an O(dt^3) term to the global error
-    against BDF2's own O(dt^2): an implicit Euler start (local error O(dt^2))
-    would add a second-order error of its own, of the same order as the
-    method's and larger than it at every dt measured
-    (``tests/test_implicit_family.py``).
+    (and the first after :meth:`reset`) is one step of Alexander's two-stage
+    SDIRK method (gamma = 1 - 1/sqrt(2), stiffly accurate), whose stages are
+    each a backward Euler step of gamma dt from a shifted start, solved by
+    the same solver. It is second order, so it adds an O(dt^3) term to the
+    global error against BDF2's own O(dt^2), where an implicit Euler start
+    (local error O(dt^2)) adds a second-order error of its own, larger than
+    BDF2's at every dt measured; and it is L-stable like BDF2 itself, so it
+    damps stiff bond vibrations at once, where a trapezoidal start (also
+    second order) leaves them ringing undamped (|rho| -> 1 as omega dt grows)
+    and the first BDF2 step extrapolates from a ringing pair of points: on
+    the stiff chain of ``examples/implicit-stiff.toml`` at 100 times
+    velocity Verlet's step, that step's Newton solve then does not converge
+    (``tests/test_implicit_family.py`` measures both).
 
     Parameters
     ----------
@@ -101,8 +108,8 @@ class BDF2(ImplicitBase):
         previous_velocities = state.velocities.copy()
         history = self._previous
         if history is None or history[0].shape != state.positions.shape:
-            displacement = trapezoidal_displacement(
-                self._solver, state, forcefield, self.dt, self._label + " (trapezoidal start)"
+            displacement = sdirk2_displacement(
+                self._solver, state, forcefield, self.dt, self._label + " (SDIRK2 start)"
             )
         else:
             last_displacement, older_velocities = history
@@ -169,4 +176,39 @@ class BDF2(ImplicitBase):
         self._previous = None if last is None else (last, older)
 
 
-__all__ = ["BDF2"]
+def sdirk2_displacement(solver, state, forcefield, dt: float, name: str):
+    """One step of Alexander's L-stable SDIRK2; leave ``state`` at its end, return dx.
+
+    Each stage is a backward Euler step of h = gamma dt: stage 1 from (x0, v0),
+    M (X1 - x0 - h v0) = h^2 F(X1), V1 = (X1 - x0) / h; stage 2 from
+    x^ = x0 + (1 - gamma) dt V1 with velocity v^ = v0 + (1 - gamma) dt A1
+    (A1 = M^-1 F(X1)), M (X2 - x^ - h v^) = h^2 F(X2). The step ends at the
+    last stage (stiffly accurate): x1 = X2, v1 = (X2 - x^) / h. Both solves go
+    through ``solver`` (an :class:`integrators._newton.IncrementalSolver`);
+    its predictor history gets the step's start accelerations once.
+    Leaves step and time alone.
+    """
+    h = SDIRK_GAMMA * dt
+    rest = (1.0 - SDIRK_GAMMA) * dt
+    x0 = state.positions.copy()
+    v0 = state.velocities
+    history = solver.history
+    first = solver.solve(state, forcefield, h, name, reach=SDIRK_GAMMA)
+    after_first = solver.history  # the step's start accelerations appended once
+    stage_velocities = first / h
+    stage_accelerations = forcefield.compute(state, virial=False).forces / state.masses[:, None]
+    state.positions[:] = x0
+    back = rest * stage_velocities  # x^ - x0
+    v_hat = v0 + rest * stage_accelerations
+    try:
+        displacement = solver.solve(state, forcefield, h, name, reach=1.0,
+                                    velocities=back / h + v_hat)  # fmt: skip
+    except BaseException:
+        solver.history = history  # the step was not taken
+        raise
+    solver.history = after_first
+    state.velocities[:] = (displacement - back) / h
+    return displacement
+
+
+__all__ = ["BDF2", "sdirk2_displacement"]

@@ -134,7 +134,7 @@ def measure_damping(
     ----------
     integrators : dict
         Name -> factory ``f(dt)`` returning the integrator; implicit ones should
-        be built with a tight solver tolerance (1e-12), or the measurement
+        be built with a tight solver tolerance (1e-11), or the measurement
         measures the tolerance. Integrators without ``amplification`` are
         measured with a two-term recurrence and no theory.
     omega_dts : sequence of float
