@@ -30,15 +30,20 @@ figure; ``md integrators --damping`` prints the table.
 from __future__ import annotations
 
 import csv
+import inspect
 import math
+import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from integrators import INTEGRATORS
 from integrators.base import SupportsAmplification
 from md._plot_style import grouped, legend_outside, styles
-from md.errors import ConvergenceError, NonFiniteError
+from md.config import Config, load_config
+from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.forcefield import ForceField
 from md.state import State
 from potentials.springs import HarmonicBonds
@@ -64,6 +69,12 @@ DAMPING_COLUMNS = (
 _STEPS_PER_TERM = 8
 #: Signal values below this fraction of the start are left out of the fit.
 _SMALLEST = 1e-250
+#: The solver tolerance of implicit integrators in the measurement: tight enough that
+#: the damping measured is the method's (a loose solve changes it; tested), loose
+#: enough for the round-off floor at omega dt = 100 (a residual of ~2e-12).
+SOLVER_TOL = 1e-11
+#: Output files of ``md integrators --damping``.
+DAMPING_FILES = {"csv": "damping.csv", "plot": "damping.png"}
 #: Damping per step below this is drawn as none (round-off of |rho| = 1).
 _NO_DAMPING = 1e-11
 #: A run stops once its signal has fallen below this fraction of the start (and
@@ -338,13 +349,189 @@ def plot_damping(rows: Sequence[DampingRow], theories: dict, path, time_label: s
     plt.close(fig)
 
 
+# ------------------------------------------------------------------ from a config
+
+
+def default_integrators() -> list[str]:
+    """Velocity Verlet and every registered integrator with an amplification factor
+    other than the explicit family (the implicit methods and XPBD), one name per class."""
+    names, seen = [], set()
+    for name, cls in INTEGRATORS.items():
+        if cls in seen or not isinstance(cls, type):
+            continue
+        seen.add(cls)
+        if name == "verlet" or (hasattr(cls, "amplification") and "tol" in _parameters(cls)):
+            names.append(name)
+    return names
+
+
+def _parameters(cls) -> set[str]:
+    return set(inspect.signature(cls).parameters)
+
+
+@dataclass
+class DampingStudy:
+    """A validated damping measurement that has written nothing (see :func:`prepare_damping`).
+
+    Attributes
+    ----------
+    names : list of str
+        Integrators measured.
+    omega_dts : list of float
+        The ladder of omega dt.
+    dt : float
+        The config's time step [time]; the bond's frequency is omega_dt / dt.
+    time_label : str
+        The config's time unit, for the figure.
+    files : dict of Path
+        ``csv`` and ``plot``: where damping.csv and damping.png go.
+    overwrite : bool
+        Replace existing files.
+    """
+
+    names: list[str]
+    omega_dts: list[float]
+    dt: float
+    time_label: str
+    files: dict[str, Path] = field(default_factory=dict)
+    overwrite: bool = False
+
+    def factory(self, name: str) -> Callable[[float], object]:
+        """Build integrator ``name`` at a dt, implicit ones at :data:`SOLVER_TOL`."""
+        cls = INTEGRATORS[name]
+        if "tol" in _parameters(cls):
+            return lambda dt: cls(dt, tol=SOLVER_TOL)
+        return lambda dt: cls(dt)
+
+    def run(self, progress: Callable[[str], None] | None = None) -> list[DampingRow]:
+        """Measure, write damping.csv and damping.png, and return the rows.
+
+        If writing fails, the files of this call are removed before the error
+        is raised.
+        """
+        rows = measure_damping({name: self.factory(name) for name in self.names},
+                               self.omega_dts, dt=self.dt, progress=progress)  # fmt: skip
+        written = []
+        try:
+            for kind, path in self.files.items():
+                path.parent.mkdir(parents=True, exist_ok=True)
+                if self.overwrite:
+                    path.unlink(missing_ok=True)
+                written.append(path)
+                if kind == "csv":
+                    write_damping_csv(rows, path)
+                else:
+                    theories = {n: INTEGRATORS[n] for n in self.names}
+                    plot_damping(rows, theories, path, self.time_label)
+        except BaseException:
+            for path in written:
+                path.unlink(missing_ok=True)
+            raise
+        return rows
+
+
+def prepare_damping(
+    config: str | os.PathLike | Config,
+    integrators: str | Sequence[str] | None = None,
+    omega_dts: str | Sequence[float] | None = None,
+    out: str | os.PathLike | None = None,
+    overwrite: bool = False,
+) -> DampingStudy:
+    """Validate what ``md integrators CONFIG --damping`` measures; write nothing.
+
+    The measurement runs on its own two-bead bond, at the config's dt and in
+    its units, so the damping of a mode of frequency omega in the config's
+    system can be read off at omega dt.
+
+    Parameters
+    ----------
+    config : path or Config
+        The config (its ``[integrator] dt`` and units are used).
+    integrators : str or sequence of str, optional
+        Names (a comma-separated string or a list); default
+        :func:`default_integrators`. Each must be a deterministic fixed-step
+        integrator of the registry.
+    omega_dts : str or sequence of float, optional
+        The ladder: ``"MIN:MAX:N"`` (log-spaced), a comma list, or numbers;
+        default :data:`OMEGA_DT` (0.01 to 100, 17 points).
+    out : path, optional
+        Output folder (default ``integrators-<config stem>``).
+    overwrite : bool
+        Replace damping.csv and damping.png if they exist.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown or unsuitable integrator, a bad ladder, or output files
+        that exist without ``overwrite``.
+    """
+    if not isinstance(config, Config):
+        config = load_config(config)
+    names = _damping_names(integrators)
+    ladder = _ladder(omega_dts)
+    folder = Path(out) if out is not None else Path(f"integrators-{Path(config.source).stem}")
+    files = {kind: folder / name for kind, name in DAMPING_FILES.items()}
+    existing = [str(p) for p in files.values() if p.exists()]
+    if existing and not overwrite:
+        raise ConfigError(f"output file(s) exist: {', '.join(existing)}; pass --overwrite or --out")
+    units = config.units
+    dt = float(config.integrator["dt"])
+    label = f"{dt / units.config_time:g} {units.config_time_label}"
+    return DampingStudy(names, ladder, dt, label, files, overwrite)
+
+
+def _damping_names(integrators) -> list[str]:
+    if integrators is None:
+        return default_integrators()
+    names = integrators.split(",") if isinstance(integrators, str) else list(integrators)
+    names = [n.strip() for n in names if n.strip()]
+    unknown = [n for n in names if n not in INTEGRATORS]
+    if unknown or not names:
+        raise ConfigError(f"--integrators: unknown {', '.join(unknown) or '(none given)'}; "
+                          f"known: {', '.join(INTEGRATORS)}")  # fmt: skip
+    unsuited = [n for n in names if INTEGRATORS[n].thermostat or INTEGRATORS[n].stochastic
+                or INTEGRATORS[n].adaptive or INTEGRATORS[n].requires_constraints]  # fmt: skip
+    if unsuited:
+        raise ConfigError(
+            f"--damping measures deterministic fixed-step integrators on a bond; not "
+            f"{', '.join(unsuited)} (thermostat, adaptive or constrained)"
+        )
+    return list(dict.fromkeys(names))
+
+
+def _ladder(omega_dts) -> list[float]:
+    if omega_dts is None:
+        return list(OMEGA_DT)
+    try:
+        if isinstance(omega_dts, str):
+            if ":" in omega_dts:
+                low, high, n = omega_dts.split(":")
+                values = np.geomspace(float(low), float(high), int(n)).tolist()
+            else:
+                values = [float(v) for v in omega_dts.split(",")]
+        else:
+            values = [float(v) for v in omega_dts]
+    except ValueError:
+        raise ConfigError(
+            f"omega dt ladder must be MIN:MAX:N or a comma list of numbers, got {omega_dts!r}"
+        ) from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise ConfigError(f"omega dt ladder needs positive, finite values, got {omega_dts!r}")
+    return values
+
+
 __all__ = [
     "DAMPING_COLUMNS",
+    "DAMPING_FILES",
     "OMEGA_DT",
+    "SOLVER_TOL",
     "DampingRow",
+    "DampingStudy",
     "bond_oscillator",
+    "default_integrators",
     "measure_damping",
     "plot_damping",
+    "prepare_damping",
     "theory_curve",
     "write_damping_csv",
 ]
