@@ -506,7 +506,10 @@ def _ladder(omega_dts) -> list[float]:
         if isinstance(omega_dts, str):
             if ":" in omega_dts:
                 low, high, n = omega_dts.split(":")
-                values = np.geomspace(float(low), float(high), int(n)).tolist()
+                low, high, n = float(low), float(high), int(n)
+                ends = [low, high] if n > 0 else []
+                ok = ends and all(math.isfinite(v) and v > 0 for v in ends)
+                values = np.geomspace(low, high, n).tolist() if ok else ends
             else:
                 values = [float(v) for v in omega_dts.split(",")]
         else:

@@ -413,8 +413,13 @@ def fit_order(steps, errors, floor: float = 0.0, slope_tolerance: float = 0.15):
         flat = 0
         while flat < len(local) and local[flat] < MIN_FIT_SLOPE:
             flat += 1
-        reason = (f"round-off or solver-tolerance floor reached at dt = {steps[above[flat]]:.3g}; "
-                  if flat else "")  # fmt: skip
+        if flat == len(local):
+            reason = "the error does not fall as dt shrinks; "
+        elif flat:
+            where = steps[above[flat]]
+            reason = f"round-off or solver-tolerance floor reached at dt = {where:.3g}; "
+        else:
+            reason = ""
         notes.insert(0, f"no order: {reason}no {MIN_FIT_POINTS} successive points agree on a "
                         f"slope within {slope_tolerance:g} (local slopes {slopes})")  # fmt: skip
         return math.nan, [], "; ".join(notes)

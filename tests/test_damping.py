@@ -143,3 +143,58 @@ def test_csv_and_figure(tmp_path, rows):
         write_damping_csv(rows, tmp_path / "damping.csv")
     plot_damping(rows, {n: INTEGRATORS[n] for n in ("verlet", *IMPLICIT)}, tmp_path / "d.png")
     assert (tmp_path / "d.png").stat().st_size > 10_000
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+@pytest.fixture
+def config(tmp_path):
+    from conftest import lj_config_text
+
+    path = tmp_path / "lj.toml"
+    path.write_text(lj_config_text(run=None, output=None))
+    return path
+
+
+def test_cli_damping_writes_csv_figure_and_table(tmp_path, config, capsys):
+    from md.cli import main
+
+    out = tmp_path / "out"
+    argv = ["integrators", str(config), "--damping", "--integrators", "implicit_euler,bdf2",
+            "--omega-dt", "0.1,10", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "implicit_euler" in printed and "damping.csv" in printed
+    with open(out / "damping.csv", newline="") as handle:
+        table = list(csv.DictReader(handle))
+    assert [(r["integrator"], float(r["omega_dt"])) for r in table] == [
+        ("implicit_euler", 0.1), ("implicit_euler", 10.0), ("bdf2", 0.1), ("bdf2", 10.0)
+    ]  # fmt: skip
+    assert float(table[1]["measured"]) == pytest.approx(1 / math.sqrt(101), rel=1e-9)
+    assert (out / "damping.png").stat().st_size > 10_000
+    # Existing files: refused without --overwrite, untouched.
+    before = (out / "damping.csv").read_bytes()
+    assert main(argv) == 2
+    assert "exist" in capsys.readouterr().err
+    assert (out / "damping.csv").read_bytes() == before
+    assert main([*argv, "--overwrite"]) == 0
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--integrators", "nope"], "unknown nope"),
+        (["--integrators", "langevin"], "deterministic fixed-step"),
+        (["--omega-dt", "0:1:3"], "positive"),
+        (["--omega-dt", "a,b"], "MIN:MAX:N"),
+    ],
+)
+def test_cli_damping_bad_input_exits_2_and_writes_nothing(tmp_path, config, capsys, extra,
+                                                          message):  # fmt: skip
+    from md.cli import main
+
+    out = tmp_path / "out"
+    assert main(["integrators", str(config), "--damping", "--out", str(out), *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

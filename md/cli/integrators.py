@@ -420,7 +420,8 @@ def _print_study_table(reports, units) -> None:
     print(header)
     for r in reports:
         run = r.measured_run()
-        order = f"{r.order:.2f}" + ("/tol" if r.order_vs == "tol" else "")
+        order = f"{r.order:.2f}" if math.isfinite(r.order) else "-"
+        order += "/tol" if r.order_vs == "tol" and math.isfinite(r.order) else ""
         expected = "-" if math.isnan(r.expected_order) else f"{r.expected_order:g}"
         print(
             f"{r.name:<18}{order:>7}{expected:>7}{r.fit_points:>8}{r.dt_max_stable / t:>15.4g}"
@@ -428,9 +429,12 @@ def _print_study_table(reports, units) -> None:
             f"{(run.max_energy_error if run else math.nan):>12.3e}"
             f"{r.evals_per_time * t:>10.4g}{r.wall_per_time * t:>10.4g}{r.reference_dt / t:>9.4g}"
         )
+    for r in reports:
+        if r.fit_note:
+            print(f"  {r.name}: {r.fit_note}")
     floor = next((r.floor for r in reports), math.nan)
     print(
         f"(times in config units, {units.config_time_label}; energies in {units.labels['energy']}; "
         f"orders fitted in the asymptotic range above the reference's error floor {floor:.2e}; "
-        "'/tol': the slope against the tolerance)"
+        "'/tol': the slope against the tolerance; '-': no order, see the note)"
     )
