@@ -32,6 +32,9 @@ _ARMIJO = 1e-4
 _MAX_BACKTRACKS = 30
 _FORCING = 0.3
 _MAX_FORCING = 0.1
+#: GMRES: inner iterations per restart, and restarts, before it gives up (then LU).
+_GMRES_RESTART = 40
+_GMRES_CYCLES = 5
 
 
 class StageSolver:
@@ -187,18 +190,7 @@ class StageSolver:
             solver = "direct" if size < DIRECT_SOLVER_LIMIT and sparse else "cg"
         coefficients = dt2 * _POSITION_MATRIX
         if solver == "direct":
-            hessians = [op.tocsr() for op in operators]
-            mass_matrix = sp.diags(masses)
-            blocks = [[mass_matrix if i == j else None for j in range(2)] for i in range(2)]
-            for i in range(2):
-                for j in range(2):
-                    term = coefficients[i, j] * hessians[j]
-                    blocks[i][j] = term if blocks[i][j] is None else blocks[i][j] + term
-            matrix = sp.bmat(blocks, format="csc")
-            try:
-                direction = spla.splu(matrix).solve(rhs)
-            except RuntimeError:  # exactly singular
-                direction = np.full_like(rhs, np.nan)
+            direction = _stage_lu(masses, coefficients, [op.tocsr() for op in operators], rhs)
             stats["linear_iterations"] += 1
         else:
             # The stage system is not symmetric: GMRES, with the inverse of each stage's
@@ -228,7 +220,7 @@ class StageSolver:
                 counted[0] += 1
 
             eta = min(_MAX_FORCING, max(_FORCING * residual, self.tol / max(residual, 1e-300)))
-            direction, _ = spla.gmres(
+            direction, info = spla.gmres(
                 spla.LinearOperator((2 * size, 2 * size), matvec=product),
                 rhs,
                 rtol=eta,
@@ -236,12 +228,36 @@ class StageSolver:
                 M=spla.LinearOperator((2 * size, 2 * size), matvec=lambda r: inverse_diagonal * r),
                 callback=count,
                 callback_type="pr_norm",
+                restart=_GMRES_RESTART,
+                maxiter=_GMRES_CYCLES,
             )
             stats["linear_iterations"] += counted[0]
+            if info != 0 and 2 * size <= 2 * DIRECT_SOLVER_LIMIT:
+                # GMRES stalls where the step is long against the stiffest mode (the
+                # system is then far from mass-dominated): factorise instead.
+                stats["fallbacks"] += 1
+                hessians = [op.tocsr() for op in operators]
+                direction = _stage_lu(masses, coefficients, hessians, rhs)
+                stats["linear_iterations"] += 1
         if not np.all(np.isfinite(direction)):
             stats["fallbacks"] += 1
             return -residual_vector
         return direction.reshape(2, size)
+
+
+def _stage_lu(masses, coefficients, hessians, rhs):
+    """Solve the assembled stage system (M delta_ij + c_ij H_j) p = rhs by sparse LU
+    (NaNs if it is exactly singular)."""
+    mass_matrix = sp.diags(masses)
+    blocks = [[mass_matrix if i == j else None for j in range(2)] for i in range(2)]
+    for i in range(2):
+        for j in range(2):
+            term = coefficients[i, j] * hessians[j]
+            blocks[i][j] = term if blocks[i][j] is None else blocks[i][j] + term
+    try:
+        return spla.splu(sp.bmat(blocks, format="csc")).solve(rhs)
+    except RuntimeError:  # exactly singular
+        return np.full_like(rhs, np.nan)
 
 
 class GaussLegendre4(ImplicitBase):
