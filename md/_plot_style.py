@@ -87,28 +87,35 @@ def legend_outside(fig, ax, handles_labels=None, title: str | None = None) -> No
 
 
 def reference_slopes(ax, xs, ys, orders, sign: int = 1) -> None:
-    """Draw dashed lines of slope ``sign * p`` for each p in ``orders`` on log-log axes.
+    """Draw short dashed lines of slope ``sign * p`` for each p in ``orders`` (log-log).
 
-    Each line runs over the upper half decade-range of ``xs`` (sign 1: error
-    against dt) or the lower one (sign -1: error against work), anchored at
-    the geometric middle of ``ys``, and is labelled "order p" at its end.
+    They sit below the data, in a strip the y axis is extended by: starting
+    from the bottom-left corner and rising to the right (sign 1: error
+    against dt), or ending in the bottom-right corner (sign -1: error against
+    work); each is labelled "order p" at its upper end.
     """
     xs = [x for x in xs if x > 0 and math.isfinite(x)]
     ys = [y for y in ys if y > 0 and math.isfinite(y)]
-    if len(xs) < 2 or not ys:
+    orders = sorted({p for p in orders if math.isfinite(p) and p > 0})
+    if len(xs) < 2 or not ys or not orders:
         return
     low, high = min(xs), max(xs)
     span = math.log10(high / low) if high > low else 1.0
-    # A segment over a third of the x range, on the side where the curves start.
-    if sign > 0:
-        x0, x1 = high / 10 ** (span / 3), high
-    else:
-        x0, x1 = low, low * 10 ** (span / 3)
-    y_mid = 10 ** ((math.log10(min(ys)) + math.log10(max(ys))) / 2)
-    for p in sorted(set(orders)):
-        slope = sign * p
-        y0 = y_mid
-        y1 = y0 * (x1 / x0) ** slope
-        ax.loglog([x0, x1], [y0, y1], color="0.45", ls=(0, (4, 3)), lw=0.9, zorder=0)
-        ax.annotate(f"order {p:g}", (x1, y1), fontsize="x-small", color="0.35",
-                    xytext=(3, 0), textcoords="offset points", va="center")  # fmt: skip
+    run = 10 ** (0.12 * span)  # each line covers an eighth of the x range
+    bottom = min(ys) / 10 ** (0.2 + 0.12 * span * max(orders))
+    for k, p in enumerate(orders):
+        if sign > 0:
+            x0 = low * 10 ** (0.15 * span * k)
+            x1 = x0 * run
+            y0, y1 = bottom, bottom * run**p
+            label_at = (x1, y1)
+        else:
+            x1 = high / 10 ** (0.15 * span * k)
+            x0 = x1 / run
+            y0, y1 = bottom * run**p, bottom
+            label_at = (x0, y0)
+        ax.loglog([x0, x1], [y0, y1], color="0.45", ls=(0, (4, 3)), lw=1.0, zorder=0)
+        side = "left" if sign > 0 else "right"
+        ax.annotate(f"order {p:g}", label_at, fontsize="x-small", color="0.3",
+                    xytext=(2, 2), textcoords="offset points", ha=side)  # fmt: skip
+    ax.set_ylim(bottom=bottom / 2)
