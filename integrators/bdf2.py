@@ -123,8 +123,7 @@ class BDF2(ImplicitBase):
             )
             state.velocities[:] = (displacement - back) / h
         self._previous = (displacement.copy(), previous_velocities)
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Forget the last step and the predictor's history: the next step is a

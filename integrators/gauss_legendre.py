@@ -345,8 +345,7 @@ class GaussLegendre4(ImplicitBase):
         drift = (_POSITION_WEIGHTS @ stage_accelerations).reshape(shape)
         state.positions += dt * velocities + (dt * dt) * drift
         velocities += dt * kick
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
 
 
 __all__ = ["GaussLegendre4", "StageSolver"]

@@ -86,8 +86,7 @@ class Trapezoidal(ImplicitBase):
     def step(self, state, forcefield) -> None:
         """Advance ``state`` by ``dt`` in place."""
         trapezoidal_displacement(self._solver, state, forcefield, self.dt, self._label)
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
 
 __all__ = ["Trapezoidal", "trapezoidal_displacement"]

@@ -215,8 +215,7 @@ class XPBD(IntegratorBase):
         stats["overstretched"] += int(overstretched)
         if not largest <= self.tol * dt * dt * scale:
             stats["unconverged_steps"] += 1
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Nothing to forget: XPBD is a one-step method (``statistics`` are kept)."""
