@@ -55,7 +55,7 @@ class BDF2(ImplicitBase):
     (local error O(dt^2)) adds a second-order error of its own, larger than
     BDF2's at every dt measured; and it is L-stable like BDF2 itself, so it
     damps stiff bond vibrations at once, where a trapezoidal start (also
-    second order) leaves them ringing undamped (|rho| -> 1 as omega dt grows)
+    second order) leaves them ringing undamped (``|rho|`` -> 1 as omega dt grows)
     and the first BDF2 step extrapolates from a ringing pair of points: on
     the stiff chain of ``examples/implicit-stiff.toml`` at 100 times
     velocity Verlet's step, that step's Newton solve then does not converge
@@ -99,7 +99,7 @@ class BDF2(ImplicitBase):
     @staticmethod
     def amplification(omega_dt: float):
         """The roots of (3/2 -+ i omega dt) rho^2 - 2 rho + 1/2 (both signs): the
-        principal pair, then the parasitic pair (|rho| -> 1/3 as omega dt -> 0)."""
+        principal pair, then the parasitic pair (``|rho|`` -> 1/3 as omega dt -> 0)."""
         z = float(omega_dt)
         return amplification_roots([1.5 - 1j * z, -2.0, 0.5], [1.5 + 1j * z, -2.0, 0.5])
 
@@ -184,7 +184,9 @@ def sdirk2_displacement(solver, state, forcefield, dt: float, name: str):
     (A1 = M^-1 F(X1)), M (X2 - x^ - h v^) = h^2 F(X2). The step ends at the
     last stage (stiffly accurate): x1 = X2, v1 = (X2 - x^) / h. Both solves go
     through ``solver`` (an :class:`integrators._newton.IncrementalSolver`);
-    its predictor history gets the step's start accelerations once.
+    its predictor history gets the step's start accelerations once, and its
+    ``statistics["steps"]`` counts the step once (its other counters count both
+    solves).
     Leaves step and time alone.
     """
     h = SDIRK_GAMMA * dt
@@ -206,6 +208,7 @@ def sdirk2_displacement(solver, state, forcefield, dt: float, name: str):
         solver.history = history  # the step was not taken
         raise
     solver.history = after_first
+    solver.statistics["steps"] -= 1  # two solves, one step
     state.velocities[:] = (displacement - back) / h
     return displacement
 

@@ -330,7 +330,7 @@ class GaussLegendre4(ImplicitBase):
     @staticmethod
     def amplification(omega_dt: float):
         """rho = (1 - z^2/12 + i z/2) / (1 - z^2/12 - i z/2), z = omega dt, and its
-        conjugate: |rho| = 1 for every omega dt."""
+        conjugate: ``|rho| = 1`` for every omega dt."""
         z = float(omega_dt)
         p, q = 1.0 - z * z / 12.0, 0.5 * z
         return amplification_roots([p * p + q * q, -2.0 * (p * p - q * q), p * p + q * q])

@@ -232,7 +232,7 @@ class ImplicitMidpoint(ImplicitBase):
     @staticmethod
     def amplification(omega_dt: float):
         """rho = (1 +- i omega dt / 2) / (1 -+ i omega dt / 2) (the Cayley transform):
-        |rho| = 1 for every omega dt, phase 2 atan(omega dt / 2) per step."""
+        ``|rho| = 1`` for every omega dt, phase 2 atan(omega dt / 2) per step."""
         return cayley_roots(omega_dt)
 
     def step(self, state, forcefield) -> None:

@@ -80,7 +80,7 @@ class Trapezoidal(ImplicitBase):
 
     @staticmethod
     def amplification(omega_dt: float):
-        """The Cayley transform, as implicit midpoint's: |rho| = 1 for every omega dt."""
+        """The Cayley transform, as implicit midpoint's: ``|rho| = 1`` for every omega dt."""
         return cayley_roots(omega_dt)
 
     def step(self, state, forcefield) -> None:
