@@ -41,10 +41,10 @@ import numpy as np
 
 from integrators import INTEGRATORS
 from integrators.base import SupportsAmplification
-from md._plot_style import grouped, legend_outside, styles
 from md.config import Config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.forcefield import ForceField
+from md.plot_style import grouped, legend_outside, styles
 from md.state import State
 from potentials.springs import HarmonicBonds
 

@@ -83,10 +83,10 @@ from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import ForceSplit, Integrator
 from md._checks import count, positive
 from md._files import removed_on_error, unwritable_folder
-from md._plot_style import grouped, legend_outside, reference_slopes, styles
 from md.config import Config, build_system, integrator_from_config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
+from md.plot_style import grouped, legend_outside, reference_slopes, styles
 from md.run import build_potentials
 from md.simulation import Simulation
 from md.state import State
