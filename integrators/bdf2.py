@@ -104,7 +104,7 @@ class BDF2(ImplicitBase):
         return amplification_roots([1.5 - 1j * z, -2.0, 0.5], [1.5 + 1j * z, -2.0, 0.5])
 
     def step(self, state, forcefield) -> None:
-        """Advance ``state`` by ``dt`` in place (the first step is trapezoidal)."""
+        """Advance ``state`` by ``dt`` in place (the first step is one SDIRK2 step)."""
         previous_velocities = state.velocities.copy()
         history = self._previous
         if history is None or history[0].shape != state.positions.shape:
@@ -127,7 +127,7 @@ class BDF2(ImplicitBase):
 
     def reset(self) -> None:
         """Forget the last step and the predictor's history: the next step is a
-        trapezoidal start again. The cumulative ``statistics`` are kept."""
+        SDIRK2 start again. The cumulative ``statistics`` are kept."""
         super().reset()
         self._previous = None
 

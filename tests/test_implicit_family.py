@@ -212,6 +212,46 @@ def test_damping_methods_lose_oscillator_energy_by_their_factor():
     assert ratio == pytest.approx(rho**2, rel=1e-3)
 
 
+# ------------------------------------------------------------ the shared solver
+
+
+@pytest.mark.parametrize("cls", NEW)
+def test_newton_methods_report_implicit_eulers_telemetry_and_agree_across_linear_solvers(cls):
+    """The same counters as implicit Euler, counting real work (Hessians evaluated, linear
+    iterations, more of them with an iterative solver than with LU), and the same
+    trajectory from sparse LU and from the iterative solver to the Newton tolerance."""
+    runs = {}
+    for linear_solver in ("direct", "cg"):
+        state = _lj_cluster()
+        integrator = cls(0.005, tol=1e-10, linear_solver=linear_solver)
+        md.Simulation(state, [LennardJones(cutoff=12.0)], integrator).run(5)
+        stats = integrator.statistics
+        assert set(stats) == set(ImplicitEuler(0.005).statistics), stats
+        assert stats["steps"] == 5 and stats["newton_iterations"] >= 5, stats
+        assert stats["hessian_evaluations"] >= 1 and stats["linear_iterations"] >= 1, stats
+        runs[linear_solver] = (state, stats)
+    assert runs["cg"][1]["linear_iterations"] > runs["direct"][1]["linear_iterations"]
+    np.testing.assert_allclose(runs["cg"][0].positions, runs["direct"][0].positions,
+                               rtol=0, atol=1e-9)  # fmt: skip
+
+
+@pytest.mark.parametrize("cls", NEW)
+def test_convergence_failure_names_the_step_and_leaves_the_state(cls):
+    state = _lj_cluster()
+    sim = md.Simulation(state, [LennardJones(cutoff=12.0)], cls(0.005, tol=1e-10))
+    sim.run(3)  # BDF2 has its history now
+    integrator = cls(0.005, tol=1e-15, max_iter=1)
+    integrator.set_state(sim.integrator.get_state())
+    sim.integrator = integrator
+    before = state.copy()
+    with pytest.raises(md.ConvergenceError, match="step 4") as caught:
+        sim.run(1)
+    assert caught.value.step == 4 and caught.value.residual > 1e-15
+    np.testing.assert_array_equal(state.positions, before.positions)
+    np.testing.assert_array_equal(state.velocities, before.velocities)
+    assert state.step == 3 and state.time == before.time
+
+
 # ------------------------------------------------------------------ symplecticity
 
 
@@ -414,6 +454,37 @@ def test_xpbd_takes_pair_forces_explicitly_and_keeps_momentum():
     np.testing.assert_allclose(after, momentum, rtol=0, atol=1e-12)
     stats = xpbd.statistics
     assert stats["steps"] == 300 and stats["sweeps"] >= 300
+
+
+def test_xpbd_kernel_runs_as_python():
+    """The sweeps kernel under NUMBA_DISABLE_JIT (its Python function) gives the compiled
+    kernel's result: harmonic and FENE bonds across a periodic boundary."""
+    from integrators.xpbd import _xpbd_sweeps
+
+    rng = np.random.default_rng(7)
+    n = 12
+    positions = np.zeros((n, 3))
+    positions[:, 0] = np.arange(n) * 0.9 - 1.0  # the chain crosses x = 0 of a 10-wide box
+    positions += rng.normal(scale=0.1, size=positions.shape)
+    positions %= 10.0
+    bonds = np.column_stack([np.arange(n - 1), np.arange(1, n)]).astype(np.int64)
+    forms = (np.arange(n - 1) % 2).astype(np.int64)  # harmonic, FENE, harmonic, ...
+    stiffness = np.where(forms == 0, 500.0, 30.0)
+    rest = np.where(forms == 0, 1.0, 1.5)
+    lengths, inverse = np.full(3, 10.0), np.full(3, 0.1)
+    results = []
+    for kernel in (_xpbd_sweeps, _xpbd_sweeps.py_func):
+        moved, displacement = positions.copy(), np.zeros_like(positions)
+        multipliers = np.zeros(n - 1)
+        out = kernel(moved, displacement, np.ones(n), lengths, inverse, np.zeros(3), bonds, forms,
+                     stiffness, rest, 0.01**2, multipliers, 40, 1e-12)  # fmt: skip
+        results.append((out, moved, displacement, multipliers))
+    (compiled, *arrays), (python, *python_arrays) = results
+    assert compiled[0] == python[0] and compiled[2] == python[2] == 0
+    assert compiled[1] == pytest.approx(python[1], rel=1e-9, abs=1e-15)
+    assert np.abs(arrays[1]).max() > 1e-3  # the sweeps did move the atoms
+    for a, b in zip(arrays, python_arrays, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
 
 
 def test_xpbd_compliance_replaces_the_spring_constant():
