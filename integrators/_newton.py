@@ -81,6 +81,18 @@ def check_solver_options(tol: float, max_iter: int, linear_solver: str) -> tuple
     return tol, int(max_iter), linear_solver
 
 
+def not_converged(step: int, residual: float, name: str, max_iter: int,
+                  tol: float) -> ConvergenceError:  # fmt: skip
+    """The error of a Newton solve that used its ``max_iter`` iterations."""
+    return ConvergenceError(
+        step,
+        residual,
+        f"step {step}: {name} Newton solve did not converge in {max_iter} iteration(s) "
+        f"(residual {residual:.3g} > tol {tol:g}); try a smaller dt, a larger max_iter or a "
+        "looser tol",
+    )
+
+
 def new_statistics() -> dict[str, int]:
     """Return zeroed cumulative solver counters."""
     return {
@@ -270,13 +282,7 @@ class IncrementalSolver:
                 )
             dx, phi, grad, residual, noise, _ = accepted
         if not residual <= self.tol:
-            raise ConvergenceError(
-                step,
-                residual,
-                f"step {step}: {name} Newton solve did not converge in {self.max_iter} "
-                f"iteration(s) (residual {residual:.3g} > tol {self.tol:g}); "
-                "try a smaller dt, a larger max_iter or a looser tol",
-            )
+            raise not_converged(step, residual, name, self.max_iter, self.tol)
         stats["steps"] += 1
         self.history = (history + [accelerations])[-PREDICTOR_HISTORY:]
         return dx.reshape(x0.shape)

@@ -13,6 +13,7 @@ from integrators._newton import (
     DIRECT_SOLVER_ROW_NNZ,
     PREDICTOR_HISTORY,
     extrapolation_weights,
+    not_converged,
 )
 from integrators.base import ConvergenceError, amplification_roots
 from integrators.implicit_euler import ImplicitBase
@@ -160,13 +161,7 @@ class StageSolver:
             displacements = trial
             residual_vector, stage_accelerations, residual, merit = values
         if not residual <= self.tol:
-            raise ConvergenceError(
-                step,
-                residual,
-                f"step {step}: {name} Newton solve did not converge in {self.max_iter} "
-                f"iteration(s) (residual {residual:.3g} > tol {self.tol:g}); "
-                "try a smaller dt, a larger max_iter or a looser tol",
-            )
+            raise not_converged(step, residual, name, self.max_iter, self.tol)
         stats["steps"] += 1
         self.history = (history + [accelerations0])[-PREDICTOR_HISTORY:]
         return stage_accelerations

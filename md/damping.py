@@ -29,7 +29,6 @@ figure; ``md integrators --damping`` prints the table.
 
 from __future__ import annotations
 
-import csv
 import inspect
 import math
 import os
@@ -41,6 +40,7 @@ import numpy as np
 
 from integrators import INTEGRATORS
 from integrators.base import SupportsAmplification
+from md._files import write_csv_rows
 from md.config import Config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.forcefield import ForceField
@@ -256,11 +256,7 @@ def _principal_root(signal: np.ndarray, n_terms: int):
 
 def write_damping_csv(rows: Sequence[DampingRow], path) -> None:
     """Write one line per row with :data:`DAMPING_COLUMNS` (exclusive create)."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(DAMPING_COLUMNS))
-        writer.writeheader()
-        for row in rows:
-            writer.writerow(row.row())
+    write_csv_rows(path, DAMPING_COLUMNS, (row.row() for row in rows))
 
 
 def theory_curve(integrator, omega_dts) -> tuple[np.ndarray, np.ndarray]:

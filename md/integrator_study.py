@@ -66,7 +66,6 @@ module is library code (no printing).
 
 from __future__ import annotations
 
-import csv
 import functools
 import inspect
 import logging
@@ -82,7 +81,7 @@ import numpy as np
 from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import ForceSplit, Integrator
 from md._checks import count, positive
-from md._files import removed_on_error, unwritable_folder
+from md._files import removed_on_error, unwritable_folder, write_csv_rows
 from md.config import Config, build_system, integrator_from_config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
@@ -556,27 +555,24 @@ def _report(name, runs, dts, span, measure_dt) -> IntegratorReport:
 
 def write_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per integrator with :data:`CSV_COLUMNS` (and the measuring dt)."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=[*CSV_COLUMNS, "measured_at_dt"])
-        writer.writeheader()
-        for report in reports:
-            writer.writerow({**report.row(), "measured_at_dt": report.reference_dt})
+    rows = ({**report.row(), "measured_at_dt": report.reference_dt} for report in reports)
+    write_csv_rows(path, [*CSV_COLUMNS, "measured_at_dt"], rows)
 
 
 def write_work_precision_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per run with :data:`WORK_PRECISION_COLUMNS` (the work-precision data)."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(WORK_PRECISION_COLUMNS))
-        writer.writeheader()
-        for report in reports:
-            for run in report.runs:
-                writer.writerow({
-                    "integrator": report.name, "dt": run.dt, "tol": run.tol,
-                    "stable": run.stable, "position_error": run.error,
-                    "max_energy_error": run.max_energy_error,
-                    "force_evaluations": run.evaluations if run.stable else math.nan,
-                    "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
-                })  # fmt: skip
+    rows = (
+        {
+            "integrator": report.name, "dt": run.dt, "tol": run.tol,
+            "stable": run.stable, "position_error": run.error,
+            "max_energy_error": run.max_energy_error,
+            "force_evaluations": run.evaluations if run.stable else math.nan,
+            "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
+        }
+        for report in reports
+        for run in report.runs
+    )  # fmt: skip
+    write_csv_rows(path, WORK_PRECISION_COLUMNS, rows)
 
 
 def _pyplot():
@@ -882,11 +878,7 @@ def _measure(report, rows, sim, wall, evaluations, span) -> None:
 
 def write_thermostat_csv(reports: Sequence[ThermostatReport], path) -> None:
     """Write one row per thermostat with :data:`THERMOSTAT_CSV_COLUMNS`."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(THERMOSTAT_CSV_COLUMNS))
-        writer.writeheader()
-        for report in reports:
-            writer.writerow(report.row())
+    write_csv_rows(path, THERMOSTAT_CSV_COLUMNS, (report.row() for report in reports))
 
 
 def plot_thermostats(reports: Sequence[ThermostatReport], path, labels=None) -> None:
