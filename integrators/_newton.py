@@ -106,7 +106,21 @@ def new_statistics() -> dict[str, int]:
     }
 
 
-class IncrementalSolver:
+class NewtonOptions:
+    """What every Newton solver of the implicit family holds: its options, the
+    ``statistics`` it adds to, and the predictor's ``history``, M^-1 F at the
+    start of the last solves (oldest first, at most :data:`PREDICTOR_HISTORY`,
+    each (3N,)), which the predictor extrapolates and checkpoints keep."""
+
+    def __init__(self, tol: float, max_iter: int, linear_solver: str, statistics: dict) -> None:
+        self.tol = tol
+        self.max_iter = max_iter
+        self.linear_solver = linear_solver
+        self.statistics = statistics
+        self.history: list[np.ndarray] = []
+
+
+class IncrementalSolver(NewtonOptions):
     """Minimise the incremental potential of one implicit step by Newton's method.
 
     Convergence is measured by the scale-aware residual
@@ -152,13 +166,7 @@ class IncrementalSolver:
     """
 
     def __init__(self, tol: float, max_iter: int, linear_solver: str, statistics: dict) -> None:
-        self.tol = tol
-        self.max_iter = max_iter
-        self.linear_solver = linear_solver
-        self.statistics = statistics
-        #: M^-1 F at the start of the last solves (oldest first, at most
-        #: PREDICTOR_HISTORY, each (3N,)): the predictor extrapolates them.
-        self.history: list[np.ndarray] = []
+        super().__init__(tol, max_iter, linear_solver, statistics)
         self._masses = None  # (atom masses, per-coordinate masses, their inverses)
 
     def solve(

@@ -12,6 +12,7 @@ from integrators._newton import (
     DIRECT_SOLVER_LIMIT,
     DIRECT_SOLVER_ROW_NNZ,
     PREDICTOR_HISTORY,
+    NewtonOptions,
     extrapolation_weights,
     not_converged,
 )
@@ -38,7 +39,7 @@ _GMRES_RESTART = 40
 _GMRES_CYCLES = 5
 
 
-class StageSolver:
+class StageSolver(NewtonOptions):
     """Newton's method on the two coupled stages of a Gauss-Legendre step.
 
     The unknowns are the stage displacements D_i = X_i - x0 (i = 1, 2); with
@@ -64,13 +65,6 @@ class StageSolver:
     incremental solver keeps it, and checkpointed the same way), or, when
     that prediction is far off (stiff forces), the force-free D_i = dt c_i v0.
     """
-
-    def __init__(self, tol: float, max_iter: int, linear_solver: str, statistics: dict) -> None:
-        self.tol = tol
-        self.max_iter = max_iter
-        self.linear_solver = linear_solver
-        self.statistics = statistics
-        self.history: list[np.ndarray] = []
 
     def solve(self, state, forcefield, dt: float, name: str):
         """Return the converged stage accelerations a_j, shape (2, 3N).
