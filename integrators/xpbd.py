@@ -12,10 +12,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from integrators.base import IntegratorBase, amplification_roots, check_dt
+from integrators.base import DT, IntegratorBase, amplification_roots, check_dt
 from md._checks import count, positive
 from md.box import periodic_lengths, periodic_tilt, separation
 from md.errors import NonFiniteError
+from md.schema import Key
 from potentials.base import SupportsBondLaw
 
 #: Kernel codes of the bond laws.
@@ -110,6 +111,18 @@ class XPBD(IntegratorBase):
 
     order = 1
     splits_forces = True
+    CONFIG_KEYS = (
+        DT,
+        Key("iterations", "integer", 50, minimum=1,
+            doc="Most Gauss-Seidel sweeps over the bonds per step; a step that uses them all "
+                "without reaching `tol` is counted (`unconverged_steps`), not refused."),
+        Key("tol", "number", 1e-8, positive=True,
+            doc="The sweeps stop once every bond's residual, relative to the step's largest "
+                "acceleration term (as the implicit solvers' `tol`), is below it."),
+        Key("compliance", "number", None, unit="length^2/energy", positive=True,
+            doc="Every harmonic bond's compliance, in place of 1/`k` (positive and finite).",
+            default_doc="1/`k` of each bond"),
+    )  # fmt: skip
 
     def __init__(
         self, dt: float, iterations: int = 50, tol: float = 1e-8, compliance: float | None = None

@@ -471,7 +471,7 @@ def prepare_damping(
     if existing and not overwrite:
         raise ConfigError(f"output file(s) exist: {', '.join(existing)}; pass --overwrite or --out")
     units = config.units
-    dt = float(config.integrator["dt"])
+    dt = float(config.integrator.dt)
     label = f"{dt / units.config_time:g} {units.config_time_label}"
     return DampingStudy(names, ladder, dt, label, files, overwrite)
 
