@@ -77,6 +77,28 @@ def test_global_order_on_the_oscillator(cls, order):
     assert np.all(np.abs(slopes - order) < 0.1), (slopes, errors)
 
 
+@pytest.mark.slow
+def test_md_integrators_measures_the_implicit_orders_from_three_points_or_more(tmp_path, capsys):
+    """The issue's command on examples/integrators_lj.toml (108 atoms; ~2 CPU minutes):
+    orders 1, 2, 2, 2, 4 within 0.15, each fitted from at least 3 points, and the
+    figures written."""
+    import csv
+
+    names = ["implicit_euler", "implicit_midpoint", "bdf2", "trapezoidal", "gauss_legendre4"]
+    out = tmp_path / "study"
+    assert main(["integrators", str(ROOT / "examples" / "integrators_lj.toml"),
+                 "--integrators", ",".join(names), "--out", str(out)]) == 0  # fmt: skip
+    capsys.readouterr()
+    with open(out / "integrators.csv", newline="") as handle:
+        rows = {row["integrator"]: row for row in csv.DictReader(handle)}
+    assert list(rows) == names
+    for name, expected in zip(names, (1, 2, 2, 2, 4), strict=True):
+        assert float(rows[name]["order"]) == pytest.approx(expected, abs=0.15), rows[name]
+        assert int(rows[name]["fit_points"]) >= 3, rows[name]
+    for figure in ("error_vs_dt.png", "work_precision.png"):
+        assert (out / figure).stat().st_size > 10_000
+
+
 def _lj_cluster():
     state = md.lattice("fcc", 2, density=1.0)
     state.pbc[:] = False
