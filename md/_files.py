@@ -10,9 +10,10 @@ Readers therefore see the old file or the new one, never a mixture.
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from md.errors import OutputBusyError
@@ -100,6 +101,15 @@ def write_text_atomic(path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically and durably."""
     with atomic_path(path) as temporary:
         temporary.write_text(text)
+
+
+def write_csv_rows(path, columns: Sequence[str], rows: Iterable[dict]) -> None:
+    """Write ``rows`` (dicts keyed by ``columns``) under a header line; create ``path``
+    exclusively, so an existing file is never replaced (:class:`FileExistsError`)."""
+    with open(path, "x", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 @contextlib.contextmanager

@@ -25,12 +25,13 @@ from md.errors import BondStretchError
 from md.schema import REQUIRED, Key
 from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
 from potentials._kernels import _add_half_pair_virial
-from potentials.base import ForceResult
+from potentials.base import BondLaw, ForceResult
 from potentials.pair_hessian import PairHessian
 
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
 _FENE = 1
+_FORM_NAMES = {_HARMONIC: "harmonic", _FENE: "fene"}
 
 
 class _BondedPotential:
@@ -136,6 +137,11 @@ class _BondedPotential:
             state.n_atoms, bonds[:, 0].copy(), bonds[:, 1].copy(), transverse, radial, unit,
             unique=False,
         )  # fmt: skip
+
+    def bond_law(self) -> BondLaw:
+        """Return the law of every bond (per-type parameters spread per bond)."""
+        k, length = (table[self.bond_types] for table in self._tables)
+        return BondLaw(_FORM_NAMES[self._form], self.bonds.astype(np.int64), k, length)
 
     def bond_lengths(self, state) -> NDArray[np.float64]:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
