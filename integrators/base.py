@@ -47,6 +47,11 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
+    ``distributed``
+        It runs on one rank's atoms in a run decomposed over MPI ranks
+        (:mod:`md.distributed`): its sums over atoms go through
+        :func:`md.parallel.global_sum`, and its private per-atom arrays, named
+        in ``per_atom_state`` (keys of ``get_state()``), move with their atoms.
     """
 
     dt: float
@@ -58,6 +63,8 @@ class Integrator(Protocol):
     adaptive: ClassVar[bool]
     splits_forces: ClassVar[bool]
     order: ClassVar[int | None]
+    distributed: ClassVar[bool]
+    per_atom_state: ClassVar[tuple[str, ...]]
 
     def step(self, state: State, forcefield: ForceField) -> None: ...
 
@@ -77,6 +84,8 @@ class IntegratorBase:
     adaptive: ClassVar[bool] = False
     splits_forces: ClassVar[bool] = False
     order: ClassVar[int | None] = None
+    distributed: ClassVar[bool] = False
+    per_atom_state: ClassVar[tuple[str, ...]] = ()
 
     def reset(self) -> None:
         """Drop private history (nothing, for a one-step method)."""

@@ -9,6 +9,7 @@ import numpy as np
 from integrators._thermostat import Thermostat, make_rng
 from integrators.rattle import constrained_verlet_step
 from md._checks import positive
+from md.parallel import global_sum
 from md.thermo import kinetic_energy
 
 
@@ -77,7 +78,7 @@ class Bussi(Thermostat):
 
     def step(self, state, forcefield) -> None:
         self._prepare(state)
-        n_dof = self.degrees_of_freedom(state.n_atoms)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
         c = math.exp(-0.5 * self.dt / self.tau)
         self._rescale(state, n_dof, c)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
@@ -85,7 +86,7 @@ class Bussi(Thermostat):
         self._advance(state)
 
     def _rescale(self, state, n_dof: int, c: float) -> None:
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         if kinetic <= 0.0 or n_dof <= 0:
             return  # nothing to rescale: a system at rest stays at rest
         target = 0.5 * n_dof * self.kT

@@ -10,6 +10,7 @@ from numba import njit
 from integrators._thermostat import Thermostat, check_temperature
 from integrators.rattle import constrained_verlet_step
 from md._checks import positive
+from md.parallel import global_sum
 from md.thermo import kinetic_energy
 
 #: Suzuki-Yoshida weights of the fourth-order composition (three stages).
@@ -102,7 +103,7 @@ class NoseHooverChain(Thermostat):
 
     def step(self, state, forcefield) -> None:
         self._prepare(state)
-        n_dof = self.degrees_of_freedom(state.n_atoms)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
         if n_dof <= 0:
             raise ValueError(f"no degrees of freedom left to thermostat ({state.n_atoms} atoms)")
         half = 0.5 * self.dt
@@ -118,7 +119,7 @@ class NoseHooverChain(Thermostat):
         Martyna-Tobias-Klein integrator calls this for its particle chain).
         """
         self._n_dof = n_dof
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         scale = chain_half_step(self.xi, self.v_xi, self.masses(n_dof), kinetic, float(n_dof),
                                 self.kT, duration, YOSHIDA_WEIGHTS, self.n_substeps)  # fmt: skip
         state.velocities *= scale

@@ -47,6 +47,7 @@ class RESPA(IntegratorBase):
     """
 
     order = 2
+    distributed = True
     splits_forces = True
 
     def __init__(self, dt: float, inner_steps: int = 2, fast: str | Sequence[int] = "bonded"):

@@ -47,6 +47,7 @@ keep_freed_memory()  # freed temporaries reused, not page-faulted in afresh (md.
 with kernel_cache():
     from md._version import __version__
     from md.build import lattice, maxwell_boltzmann
+    from md.domain import Grid  # noqa: F401 - its kernels cached with the rest
     from md.errors import (
         CheckpointError,
         ConfigError,
