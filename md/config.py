@@ -151,6 +151,9 @@ class RunConfig:
     skin: float = 0.3
     thermo_every: int = 100
     threads: int | None = None  # kernel threads (None: every core); not physics
+    # Bricks along a, b, c when run over MPI ranks (None: chosen from P and the cell);
+    # not physics either (md.distributed).
+    decomposition: tuple[int, int, int] | None = None
 
 
 @dataclass
@@ -259,6 +262,11 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         thermo_every=table.integer("thermo_every", RunConfig.thermo_every, minimum=1),
         threads=table.integer("threads", None, minimum=1),
     )
+    if "decomposition" in table.data:
+        run.decomposition = table.triple("decomposition", _MISSING, int)
+        if any(p < 1 for p in run.decomposition):
+            raise table.error("decomposition", f"must be positive integers, got "
+                              f"{list(run.decomposition)}")  # fmt: skip
     table.finish()
 
     table = _Table(top.take("output", {}), "output", source)

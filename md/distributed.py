@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._cell_kernels import _largest_displacement2
+from md._files import OutputBusyError
 from md.box import cell_matrix, minimum_image, periodic_tilt, perpendicular_widths
 from md.domain import (
     Grid,
@@ -71,19 +72,23 @@ from md.domain import (
 )
 from md.errors import (
     AngleCollapseError,
+    CheckpointError,
+    ConfigError,
     ConvergenceError,
     DecompositionError,
     NonFiniteError,
     SimulationError,
+    TrajectoryError,
 )
 from md.forcefield import ForceField
+from md.minimize import minimize
 from md.parallel import (
     chunk_count,
     copy_into,
     global_max,
     global_sum,
     same_values,
-    set_reductions,
+    using_reductions,
 )
 from md.simulation import Simulation
 from md.state import State
@@ -104,6 +109,8 @@ LOOKAHEAD = 1.5
 BOND_SKINS = 2.5
 #: Fewest atoms per thread worth a chunk of their own in the displacement pass.
 _MIN_PASS_ATOMS = 16_000
+#: The identity, for a cell that has not changed since the build.
+_IDENTITY = np.eye(3)
 #: Stop requests as numbers, for the reduction that makes every rank see them.
 _STOPS = {"SIGINT": 1.0, "SIGTERM": 2.0}
 
@@ -118,6 +125,41 @@ def launched_ranks() -> int:
             except ValueError:
                 continue
     return 1
+
+
+def _in_rank_order(gathered: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rows of ``gathered`` (one per rank) added in rank order."""
+    total = gathered[0].copy()
+    for rank in range(1, gathered.shape[0]):
+        total += gathered[rank]
+    return total
+
+
+def ranks_per_node(ranks) -> int:
+    """Ranks the launcher started on this node (they share its cores), else all of them."""
+    for name in ("MPI_LOCALNRANKS", "OMPI_COMM_WORLD_LOCAL_SIZE", "SLURM_NTASKS_PER_NODE"):
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    return ranks.n_ranks
+
+
+def launch_rank() -> int:
+    """This process's rank as the launcher's environment gives it (0 without a launcher);
+    readable before MPI starts, for deciding who prints."""
+    for name in ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "SLURM_PROCID"):
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value) if launched_ranks() > 1 else 0
+    return 0
+
+
+def on_root(ranks, value_of):
+    """``value_of()`` as rank 0 computes it, on every rank (only rank 0 calls it); just
+    ``value_of()`` without ranks."""
+    if ranks is None:
+        return value_of()
+    return ranks.broadcast(value_of() if ranks.rank == 0 else None)
 
 
 def mpi_ranks() -> MPIRanks | None:
@@ -162,13 +204,14 @@ class MPIRanks:
         self._double = MPI.DOUBLE
 
     def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        return _in_rank_order(self.gather_values(values))
+
+    def gather_values(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Every rank's ``values`` (k,), as a (P, k) array on every rank."""
         values = np.ascontiguousarray(values, dtype=np.float64).ravel()
         gathered = np.empty((self.n_ranks, values.size))
         self.comm.Allgather(values, gathered)
-        total = gathered[0].copy()
-        for rank in range(1, self.n_ranks):
-            total += gathered[rank]
-        return total
+        return gathered
 
     def max(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         values = np.ascontiguousarray(values, dtype=np.float64).ravel()
@@ -246,6 +289,10 @@ _FAMILIES = (
     ("convergence", ConvergenceError),
     ("decomposition", DecompositionError),
     ("nonfinite", NonFiniteError),
+    ("config", ConfigError),
+    ("checkpoint", CheckpointError),
+    ("trajectory", TrajectoryError),
+    ("busy", OutputBusyError),
     ("os", OSError),
 )
 
@@ -370,7 +417,7 @@ class Domain:
         for name in ("positions", "velocities", "masses", "types", "ids"):
             setattr(state, name, np.ascontiguousarray(getattr(state, name)[order]))
         carried = {name: np.ascontiguousarray(value[order]) for name, value in carried.items()}
-        if global_sum(lost):
+        if global_sum(lost, self.ranks):
             raise DecompositionError(
                 "an atom moved more than a brick between two neighbour-list builds; the "
                 "dynamics is blowing up (time step too large?)"
@@ -398,7 +445,7 @@ class Domain:
         home = fractions - images
         outside = np.maximum(np.maximum(self.bounds[0] - home, home - self.bounds[1]), 0.0)
         strayed = outside[:, pbc] * widths[pbc]
-        margin = global_max(float(strayed.max()) if strayed.size else 0.0)
+        margin = global_max(float(strayed.max()) if strayed.size else 0.0, self.ranks)
         shell = reach + margin
         brick = widths / self.shape
         narrow = pbc & (brick < shell + margin)
@@ -604,6 +651,13 @@ class DistributedForceField:
         self.n_builds = 0
         self.virial_wanted = False
         self.migrate_pending = False
+        #: Set by the simulation at each step start: the look-ahead measures from there.
+        self.step_start = np.empty((0, 3))
+        #: A stop request of this rank (1 SIGINT, 2 SIGTERM, 3 other), shared at the next
+        #: evaluation; ``stop_seen`` and ``ahead`` are the largest over the ranks there.
+        self.stop_code = 0.0
+        self.stop_seen = 0.0
+        self.ahead = 0.0
         indexed = [_index_bonded(i, p) for i, p in enumerate(self.potentials)]
         self._bonded = [b for b in indexed if b is not None]
         self.bond_reach = float(bond_reach)
@@ -674,42 +728,55 @@ class DistributedForceField:
         return result
 
     def _evaluate(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
-        self.refresh(state)
-        start = time.perf_counter()
-        local_state = self.domain.local_state
-        error, result = None, None
-        try:
-            self.local.invalidate()  # the local forces are summed into in place below
-            if which is None:
-                result = self.local.compute(local_state, per_atom, virial)
-            else:
-                result = self.local.compute_subset(local_state, which, virial)
-        except Exception as caught:  # shared with every rank below
-            error = self._global_error(caught)
-        middle = time.perf_counter()
-        totals = np.zeros(11)
-        totals[0] = error is not None
-        if result is not None:
-            totals[1] = result.energy
-            if virial and result.virial is not None:
-                totals[2:] = np.asarray(result.virial).ravel()
-        totals = global_sum(totals)
+        """Exchange, compute, share: one reduction carries the energy and virial, whether a
+        rank failed or found its list outrun (then every rank rebuilds and evaluates again),
+        and what the next step start needs (the look-ahead, a stop request)."""
+        for _ in range(2):
+            covered, ahead, finite = self.refresh(state)
+            start = time.perf_counter()
+            error, result = None, None
+            try:
+                self.local.invalidate()  # the local forces are summed into in place below
+                if which is None:
+                    result = self.local.compute(self.domain.local_state, per_atom, virial)
+                else:
+                    result = self.local.compute_subset(self.domain.local_state, which, virial)
+            except Exception as caught:  # shared with every rank below
+                error = self._global_error(caught)
+            middle = time.perf_counter()
+            values = np.zeros(15)
+            values[0] = error is not None
+            if result is not None:
+                values[1] = result.energy
+                if virial and result.virial is not None:
+                    values[2:11] = np.asarray(result.virial).ravel()
+            values[11:15] = (not covered, ahead, self.stop_code, not finite)
+            gathered = self.ranks.gather_values(values)
+            totals, worst = _in_rank_order(gathered[:, :11]), gathered[:, 11:].max(axis=0)
+            self.timings["force"] += middle - start
+            self.timings["comm"] += time.perf_counter() - middle
+            if worst[3]:
+                raise NonFiniteError("particle positions are not finite")
+            self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
+            if not worst[0]:
+                break
+            self.rebuild(state, migrate=False)  # some rank's list was outrun: all rebuild
         if totals[0]:
             agree(self.ranks, error)
+        start = time.perf_counter()
         forces = self.domain.reverse(np.array(result.forces, dtype=np.float64)).copy()
         energies = virials = None
         if per_atom:
             energies = self.domain.reverse(np.array(result.energies)[:, None])[:, 0].copy()
             if result.virials is not None:
                 virials = self.domain.reverse(np.array(result.virials)).copy()
-        self.timings["force"] += middle - start
-        self.timings["comm"] += time.perf_counter() - middle
+        self.timings["comm"] += time.perf_counter() - start
         if not math.isfinite(totals[1]):
             raise NonFiniteError(f"potential energy is {totals[1]}")
         return ForceResult(
             energy=float(totals[1]),
             forces=forces,
-            virial=totals[2:].reshape(3, 3).copy() if virial else None,
+            virial=totals[2:11].reshape(3, 3).copy() if virial else None,
             energies=energies,
             virials=virials,
         )
@@ -733,32 +800,31 @@ class DistributedForceField:
         return local
 
     # ----------------------------------------------------------------- rebuilds
-    def refresh(self, state: State) -> None:
-        """Bring the local system to ``state``'s positions: send the ghosts', or rebuild
-        (keeping owners) when the list no longer covers the cutoff. Collective."""
-        if self._exchanged is not None and _same(self._exchanged, state):
-            return
-        start = time.perf_counter()
+    def refresh(self, state: State) -> tuple[bool, float, bool]:
+        """Bring the local system to ``state``'s positions (sending the ghosts'); return
+        (whether this rank's list still covers the cutoff, the look-ahead ratio, whether
+        its positions are finite). Collective; the first call builds."""
         if self.reference is None or self.reference.shape != state.positions.shape:
             self.rebuild(state, migrate=False)
-            return
+        if self._exchanged is not None and _same(self._exchanged, state):
+            return True, self.ahead, True
+        start = time.perf_counter()
         mapping, allowed = self.allowance(state)
-        if mapping is None:
+        begin = self.step_start if self.step_start.shape == state.positions.shape else None
+        if mapping is None and begin is None:
             chunks = chunk_count(state.n_atoms, _MIN_PASS_ATOMS)
             moved2 = _largest_displacement2(state.positions, self.reference, chunks)
+            step2 = 0.0
         else:
-            scratch = np.empty_like(state.positions)
-            moved2, _ = moved_since(state.positions, self.reference, mapping, scratch)
-        worst, broken = global_max(np.array([_ratio(math.sqrt(moved2), allowed),
-                                             0.0 if math.isfinite(moved2) else 1.0]))  # fmt: skip
-        if broken:
-            raise NonFiniteError("particle positions are not finite")
-        if worst > 1.0:
-            self.rebuild(state, migrate=False)
-            return
+            moved2, step2 = moved_since(state.positions, self.reference,
+                                        _IDENTITY if mapping is None else mapping,
+                                        state.positions if begin is None else begin)  # fmt: skip
         self.domain.update(state)
         self._exchanged = _key(state, self._exchanged)
         self.timings["comm"] += time.perf_counter() - start
+        moved, step_move = math.sqrt(moved2), math.sqrt(step2)
+        finite = math.isfinite(moved2)
+        return moved <= allowed, _ratio(moved + LOOKAHEAD * step_move, allowed), finite
 
     def allowance(self, state: State) -> tuple[NDArray | None, float]:
         """(the cell's deformation since the build, None if unchanged; the largest move an
@@ -800,7 +866,8 @@ class DistributedForceField:
                 nl.build(self.domain.local_state)
         except (NonFiniteError, ValueError) as caught:  # shared with every rank below
             error = caught
-        longest, failed = global_max(np.array([longest, error is not None], dtype=np.float64))
+        longest, failed = global_max(np.array([longest, error is not None], dtype=np.float64),
+                                     self.ranks)  # fmt: skip
         if failed:
             agree(self.ranks, error)
         if self._bonded:
@@ -815,6 +882,7 @@ class DistributedForceField:
         self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
         self.local.invalidate()
         self._exchanged = _key(state, self._exchanged)
+        self.ahead = 0.0
         self.n_builds += 1
         self.timings["neighbor"] += time.perf_counter() - start
         return carried
@@ -857,6 +925,14 @@ class DistributedForceField:
                 part = potential.with_angles(local, types)
             self.local.potentials[bonded.index] = part
         return longest
+
+
+def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A copy of ``values``, in ``into``'s memory when it fits."""
+    if into.shape != values.shape:
+        return values.copy()
+    copy_into(into, values)
+    return into
 
 
 def _ratio(moved: float, allowed: float) -> float:
@@ -943,14 +1019,9 @@ class DistributedSimulation(Simulation):
                                  f"for {ranks.n_ranks} ranks")  # fmt: skip
             check_grid(shape, state.box, state.tilt, state.pbc, reach, what)
         self.grid = Grid(shape)
-        set_reductions(ranks)
         self.forcefield = DistributedForceField(whole.potentials, skin, ranks, self.grid, arm)
         self._masses = state.masses.copy() if ranks.rank == 0 else None
         self._types = state.types.copy() if ranks.rank == 0 else None
-        self._step_start = np.empty((0, 3))
-        self._resumed_move: float | None = None
-        self._rebuild_due = False
-        self._stop = 0.0
         self.state = self._part(state, self.forcefield.domain.owner_of(state))
         self.forcefield.rebuild(self.state, migrate=False)
         self.forcefield.migrate_pending = False
@@ -973,40 +1044,48 @@ class DistributedSimulation(Simulation):
         """As :meth:`Simulation.attach`; the observer runs on rank 0 with the whole system."""
         super().attach(_Gathered(observer), interval)
 
+    def observe(self, observer) -> None:
+        """Call ``observer`` now as an attached one would be (rank 0, whole system;
+        collective)."""
+        _Gathered(observer)(self)
+
+    def run(self, n_steps: int) -> None:
+        """As :meth:`Simulation.run`, on every rank together."""
+        with using_reductions(self.ranks):
+            super().run(n_steps)
+
+    def thermo(self) -> dict[str, float]:
+        """As :meth:`Simulation.thermo`, over the whole system (collective)."""
+        with using_reductions(self.ranks):
+            return super().thermo()
+
+    def minimize(self, fmax: float, max_steps: int = 10_000, **options):
+        """:func:`md.minimize.minimize` of the whole system (collective); atoms migrate
+        between its steps as in a run. Returns its MinimizeResult."""
+        with using_reductions(self.ranks):
+            return minimize(self.state, self.forcefield, fmax, max_steps,
+                            between_steps=self.redistribute, **options)  # fmt: skip
+
     # -------------------------------------------------------------- the loop
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """As :meth:`Simulation.request_stop`; every rank stops after the same step (the
+        request is shared at the next force evaluation)."""
+        super().request_stop(reason)
+        self.forcefield.stop_code = _STOPS.get(reason, 3.0)
+
     def _stopping(self) -> bool:
-        """Start a step on every rank alike: stop when any rank was asked to; else migrate
-        and rebuild when the coming step could outrun the list (or the last build, forced
-        inside a step, kept owners). Collective."""
-        stop = 0.0 if self.stop_requested is None else _STOPS.get(self.stop_requested, 3.0)
-        if self._ahead(stop):
+        """Start a step on every rank alike, from what the last force evaluation shared:
+        stop when any rank was asked to; else migrate and rebuild when the coming step
+        could outrun the list (or the last build, forced inside a step, kept owners)."""
+        forcefield = self.forcefield
+        if forcefield.stop_seen:
             names = {value: name for name, value in _STOPS.items()}
-            self.stop_requested = names.get(self._stop, self.stop_requested or "stop requested")
+            self.stop_requested = names.get(forcefield.stop_seen, "stop requested")
             return True
-        if self._rebuild_due:
+        if forcefield.ahead > 1.0 or forcefield.migrate_pending:
             self._guarded(self._migrate, self.state.step)
+        forcefield.step_start = _copied(self.state.positions, forcefield.step_start)
         return False
-
-    def _ahead(self, stop: float = 0.0) -> bool:
-        """Measure the moves (collective); set ``_rebuild_due``; return whether to stop.
-
-        The largest move of any atom since the build plus ``LOOKAHEAD`` times the
-        largest move of the last step, both over every rank, against the list's
-        allowance (the same numbers on every rank, and restored by a checkpoint).
-        """
-        state, forcefield = self.state, self.forcefield
-        mapping, allowed = forcefield.allowance(state)
-        if self._step_start.shape != state.positions.shape:
-            self._step_start = state.positions.copy()
-        moved2, step2 = moved_since(state.positions, forcefield.reference,
-                                    np.eye(3) if mapping is None else mapping,
-                                    self._step_start)  # fmt: skip
-        moved, step_move, self._stop, pending = global_max(np.array([
-            math.sqrt(moved2), math.sqrt(step2), stop, float(forcefield.migrate_pending)]))
-        if self._resumed_move is not None:  # the first step after a resume: the saved move
-            step_move, self._resumed_move = self._resumed_move, None
-        self._rebuild_due = _ratio(moved + LOOKAHEAD * step_move, allowed) > 1.0 or pending > 0
-        return self._stop > 0
 
     def _migrate(self, carried: dict | None = None) -> dict:
         """Migrate atoms (with the integrator's per-atom state and ``carried``) and rebuild.
@@ -1020,17 +1099,18 @@ class DistributedSimulation(Simulation):
         if extra:
             saved.update({key: moved[key] for key in extra})
             integrator.set_state(saved)
-        self._step_start = self.state.positions.copy()
         return moved
 
     def redistribute(self, velocities: NDArray[np.float64]) -> NDArray[np.float64]:
         """Between two steps of a minimiser (FIRE): migrate, with its ``velocities``, when
         the next step could outrun the list; return the velocities of the atoms now owned.
         Collective."""
-        self._ahead()
-        if not self._rebuild_due:
-            return velocities
-        return self._migrate({("minimizer", "velocities"): velocities})[("minimizer", "velocities")]
+        forcefield = self.forcefield
+        if forcefield.ahead > 1.0 or forcefield.migrate_pending:
+            key = ("minimizer", "velocities")
+            velocities = self._migrate({key: velocities})[key]
+        forcefield.step_start = _copied(self.state.positions, forcefield.step_start)
+        return velocities
 
     def _check_displacement(self, limit: float) -> None:
         """The blow-up guard, over every rank: all stop if any atom moved too far."""
@@ -1039,7 +1119,7 @@ class DistributedSimulation(Simulation):
             super()._check_displacement(limit)
         except SimulationError as caught:
             error = caught
-        if global_max(0.0 if error is None else 1.0):
+        if global_max(0.0 if error is None else 1.0, self.ranks):
             agree(self.ranks, error)
 
     def timing_summary(self) -> dict[str, float]:
@@ -1055,11 +1135,6 @@ class DistributedSimulation(Simulation):
         :class:`GlobalView` there, None on the other ranks."""
         state = self.state
         row = self.thermo() if thermo else None
-        step2 = 0.0
-        if self._step_start.shape == state.positions.shape:  # the last step's move, as _ahead
-            _, step2 = moved_since(state.positions, state.positions, np.eye(3),
-                                   self._step_start.copy())  # fmt: skip
-        last_move = global_max(math.sqrt(step2))
         columns = [state.ids[:, None].astype(np.float64), state.positions, state.velocities]
         reference = self.forcefield.reference
         if reference is None or reference.shape != state.positions.shape:
@@ -1088,10 +1163,10 @@ class DistributedSimulation(Simulation):
             pbc=state.pbc, types=self._types, type_names=state.type_names, step=state.step,
             time=state.time, tilt=state.tilt,
         )  # fmt: skip
-        start = 14
+        start = 11  # after id, positions, velocities, build positions and rank
         gathered_forces = None
         if forces:
-            gathered_forces, start = whole[:, 14:17].copy(), 17
+            gathered_forces, start = whole[:, 11:14].copy(), 14
         if saved is not None:
             saved = dict(saved)
             for key, shape in shapes:
@@ -1100,10 +1175,10 @@ class DistributedSimulation(Simulation):
                 start += size
         layout = {
             "grid": list(self.grid.shape),
-            "owners": whole[:, 13].astype(np.int64),
+            "owners": whole[:, 10].astype(np.int64),
             "bond_reach": self.forcefield.bond_reach,
             "migrate_pending": self.forcefield.migrate_pending,
-            "last_move": last_move,
+            "ahead": self.forcefield.ahead,
         }
         reference = whole[:, 7:10].copy()
         return GlobalView(
@@ -1113,6 +1188,16 @@ class DistributedSimulation(Simulation):
             forcefield=_ForceFieldView(self.forcefield, gathered_forces, row, reference, layout),
             units=self.units,
         )
+
+    def light_view(self, thermo: bool = True) -> GlobalView | None:
+        """Step, time and (with ``thermo``) the thermo row of the whole system, without the
+        atoms (collective): a :class:`GlobalView` on rank 0 whose ``state`` is rank 0's
+        part, None on the other ranks."""
+        row = self.thermo() if thermo else None
+        if self.rank != 0:
+            return None
+        return GlobalView(state=self.state, row=row, integrator=self.integrator,
+                          forcefield=None, units=self.units)  # fmt: skip
 
     def resume(self, state: State, reference, reference_cell=None, layout=None) -> None:
         """Continue from a checkpoint: ``state`` is its whole system, ``reference`` the
@@ -1144,13 +1229,14 @@ class DistributedSimulation(Simulation):
         part_at_build = self._part(at_build, owners)
         if same:
             forcefield.bond_reach = float(layout.get("bond_reach", forcefield.bond_reach))
-            self._resumed_move = float(layout.get("last_move", 0.0))
         forcefield.invalidate()
         forcefield.rebuild(part_at_build, migrate=False)
-        forcefield.migrate_pending = bool(layout.get("migrate_pending", False)) if same else False
-        self._step_start = np.empty((0, 3))
+        forcefield.step_start = np.empty((0, 3))
         self._localize_integrator()
         forcefield.refresh(self.state)
+        # What the uninterrupted run's next step start would have seen.
+        forcefield.migrate_pending = bool(layout.get("migrate_pending", False)) if same else False
+        forcefield.ahead = float(layout.get("ahead", 0.0)) if same else 0.0
 
     def _localize_integrator(self) -> None:
         """Cut the integrator's whole-system per-atom state down to this rank's atoms."""
@@ -1191,23 +1277,42 @@ def refuse_undistributable(integrator, potentials) -> None:
 
 
 # ------------------------------------------------------------------ views
+class Elsewhere:
+    """The stand-in, on the other ranks, for an observer that rank 0 holds (a trajectory
+    writer): it says what the gather for it needs, and is never called."""
+
+    uses_virial = True
+
+    def __init__(self, store_forces: bool = False) -> None:
+        self.store_forces = bool(store_forces)
+
+    def __call__(self, sim) -> None:
+        raise RuntimeError("an observer held by rank 0 was called on another rank")
+
+
 class _Gathered:
     """An observer run on rank 0 with the whole system; the others take part in the gather."""
 
     def __init__(self, observer) -> None:
         self.observer = observer
         self.uses_virial = getattr(observer, "uses_virial", True)
+        #: False for an observer that reads only the step, time and thermo (a thermo
+        #: table, a progress bar): it gets them without the atoms being gathered.
+        self.whole_system = getattr(observer, "whole_system", True)
 
     def __call__(self, sim: DistributedSimulation) -> None:
-        view = sim.global_view(forces=bool(getattr(self.observer, "store_forces", False)),
-                               thermo=self.uses_virial)  # fmt: skip
+        if self.whole_system:
+            view = sim.global_view(forces=bool(getattr(self.observer, "store_forces", False)),
+                                   thermo=self.uses_virial)  # fmt: skip
+        else:
+            view = sim.light_view(thermo=self.uses_virial)
         error = None
         if view is not None:
             try:
                 self.observer(view)
             except Exception as caught:  # shared with every rank below
                 error = caught
-        if global_max(0.0 if error is None else 1.0):
+        if global_max(0.0 if error is None else 1.0, sim.ranks):
             agree(sim.ranks, error)
 
 

@@ -245,7 +245,7 @@ def add_rows(values, indices, rows):
 def moved_since(positions, reference, mapping, previous):
     """Return (largest squared distance of an atom from its build position carried along with
     the cell, ``reference[i] @ mapping``, largest squared move since ``previous``), both inf
-    if a position is not finite; then ``previous`` := ``positions``."""
+    if a position is not finite."""
     since_build = 0.0
     since_previous = 0.0
     finite = True
@@ -258,7 +258,6 @@ def moved_since(positions, reference, mapping, previous):
                       + reference[i, 2] * mapping[2, a])  # fmt: skip
             d2 += (x - mapped) ** 2
             s2 += (x - previous[i, a]) ** 2
-            previous[i, a] = x
         if not (d2 < np.inf and s2 < np.inf):  # also NaN
             finite = False
         since_build = max(since_build, d2)

@@ -12,15 +12,18 @@ round-off (only the order of the force sums differs).
 ``Simulation(threads=...)``). The default is every core numba may use
 (``NUMBA_NUM_THREADS``, normally the core count).
 
-A run decomposed over MPI ranks (:mod:`md.distributed`) is also one process-wide
-setting: while it runs, :func:`global_sum` and :func:`global_max` reduce over
-every rank (the integrators' kinetic energies, degrees of freedom and noise
-momenta, FIRE's powers and norms); in any other process they return their
-argument unchanged, and nothing about MPI is imported.
+A run decomposed over MPI ranks (:mod:`md.distributed`) sets one more, for
+the duration of its collective calls (:func:`using_reductions`): there
+:func:`global_sum` and :func:`global_max` reduce over every rank (the
+integrators' kinetic energies, degrees of freedom and noise momenta, FIRE's
+powers and norms); anywhere else they return their argument unchanged, and
+nothing about MPI is imported.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Protocol
 
 import numba
@@ -96,26 +99,41 @@ def n_ranks() -> int:
     return 1 if _reductions is None else _reductions.n_ranks
 
 
-def global_sum(value):
+@contextlib.contextmanager
+def using_reductions(reductions: Reductions | None) -> Iterator[None]:
+    """Within the block, :func:`global_sum` and :func:`global_max` reduce over ``reductions``
+    (a decomposed run's collective calls: its steps, thermo rows, minimisation)."""
+    previous = set_reductions(reductions)
+    try:
+        yield
+    finally:
+        set_reductions(previous)
+
+
+def global_sum(value, over: Reductions | None = None):
     """``value`` (a number or an array) summed over the ranks; ``value`` itself on one rank.
 
-    Every rank of a decomposed run must call it at the same point (a collective call).
+    The ranks are ``over``, else those of :func:`using_reductions`. Every rank of
+    a decomposed run must call it at the same point (a collective call).
     Integers stay integers (exact below 2^53).
     """
-    if _reductions is None:
+    reductions = over if over is not None else _reductions
+    if reductions is None:
         return value
-    total = _reductions.sum(np.atleast_1d(np.asarray(value, dtype=np.float64)))
+    total = reductions.sum(np.atleast_1d(np.asarray(value, dtype=np.float64)))
     if np.ndim(value) == 0:
         total = total[0]
         return int(total) if isinstance(value, int | np.integer) else float(total)
     return total.reshape(np.shape(value))
 
 
-def global_max(value):
-    """``value`` (a number or an array) maximised over the ranks; ``value`` itself on one rank."""
-    if _reductions is None:
+def global_max(value, over: Reductions | None = None):
+    """``value`` (a number or an array) maximised over the ranks (``over``, else those of
+    :func:`using_reductions`); ``value`` itself on one rank."""
+    reductions = over if over is not None else _reductions
+    if reductions is None:
         return value
-    largest = _reductions.max(np.atleast_1d(np.asarray(value, dtype=np.float64)))
+    largest = reductions.max(np.atleast_1d(np.asarray(value, dtype=np.float64)))
     return float(largest[0]) if np.ndim(value) == 0 else largest.reshape(np.shape(value))
 
 

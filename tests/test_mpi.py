@@ -1,0 +1,248 @@
+"""One system over several MPI ranks (md.distributed): ``mpiexec -n P md run``.
+
+Each test launches real ranks with ``mpiexec`` (the ``[mpi]`` extra: mpi4py and
+the mpich wheel) and is skipped without them. The systems are small, so that a
+launch takes seconds even with the ranks oversubscribed on two cores.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import md
+
+ROOT = Path(__file__).resolve().parents[1]
+HAVE_MPI = shutil.which("mpiexec") is not None and (
+    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
+)
+needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
+
+#: The LAMMPS LJ melt (fcc at density 0.8442 started at T = 3), 384 atoms: the cell is
+#: 10.1 x 6.7 x 6.7, wide enough for 3 bricks along x and 2 x 2 of cutoff + skin = 2.8.
+MELT = """\
+units = "lj"
+seed = 87287
+[system]
+lattice = "fcc"
+cells = [6, 4, 4]
+density = 0.8442
+temperature = 3.0
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+cutoff_mode = "shift"
+[integrator]
+type = "{integrator}"
+dt = 0.005
+{extra}
+[run]
+steps = {steps}
+skin = 0.3
+thermo_every = 100
+{run_extra}
+[output]
+path = "melt.h5"
+every = 100
+velocities = true
+"""
+
+
+def write_config(folder: Path, name: str = "melt.toml", integrator: str = "verlet",
+                 extra: str = "", steps: int = 500, run_extra: str = "") -> Path:  # fmt: skip
+    path = folder / name
+    path.write_text(MELT.format(integrator=integrator, extra=extra, steps=steps,
+                                run_extra=run_extra))  # fmt: skip
+    return path
+
+
+def launch(n_ranks: int, *args: str, cwd: Path, timeout: float = 240):
+    """Run ``python -m md.cli ARGS`` (or ``python ARGS`` when the first is a script) on
+    ``n_ranks`` MPI ranks with this checkout first on the path."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get(
+        "PYTHONPATH", "")])}  # fmt: skip
+    # MPICH's ranks poll while they wait; on a machine with fewer cores than ranks they
+    # would take the cores from the rank they wait for: yield instead.
+    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")
+    command = ["mpiexec", "-n", str(n_ranks), sys.executable]
+    command += list(args) if args[0].endswith(".py") else ["-m", "md.cli", *args]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout)  # fmt: skip
+
+
+def unwrapped(path: Path, frame: int = -1) -> np.ndarray:
+    """Positions of a frame of an H5MD file, unwrapped with their images."""
+    with h5py.File(path, "r") as f:
+        group = f["particles/trajectory"]
+        edges = group["box/edges/value"][frame]
+        return group["position/value"][frame] + group["image/value"][frame] * edges
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    """The melt run on one process, as the reference."""
+    folder = tmp_path_factory.mktemp("serial")
+    config = write_config(folder)
+    _, summary = md.run_config(config, output=folder / "serial.h5")
+    assert summary.status == "completed"
+    return folder / "serial.h5"
+
+
+@needs_mpi
+@pytest.mark.parametrize("n_ranks", [2, 3, 4])
+def test_lj_melt_over_ranks_follows_the_serial_run(serial, tmp_path, n_ranks):
+    config = write_config(tmp_path)
+    out = tmp_path / "out.h5"
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
+                  cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr + done.stdout
+    # rank 0 alone speaks for the run
+    assert done.stdout.count("md run: 384 atoms over") == 1, done.stdout
+    assert done.stdout.count("Wrote 6 frames") == 1
+    with h5py.File(serial, "r") as a, h5py.File(out, "r") as b:
+        for name in ("position/step", "species", "mass"):
+            np.testing.assert_array_equal(a[f"particles/trajectory/{name}"][()],
+                                          b[f"particles/trajectory/{name}"][()])  # fmt: skip
+        # frame 0, before any force: the same atoms in the same order, bit for bit
+        for name in ("position/value", "velocity/value", "image/value"):
+            np.testing.assert_array_equal(a[f"particles/trajectory/{name}"][0],
+                                          b[f"particles/trajectory/{name}"][0])  # fmt: skip
+        assert b["parameters"].attrs["mpi_ranks"] == n_ranks
+        for name in ("potential_energy", "total_energy", "pressure"):
+            np.testing.assert_allclose(b[f"observables/{name}/value"][()],
+                                       a[f"observables/{name}/value"][()], rtol=1e-9)  # fmt: skip
+    # After 500 steps of a chaotic liquid only the order of the force sums differs:
+    # round-off, amplified by the dynamics, stays below 1e-10 of the positions.
+    reference, positions = unwrapped(serial), unwrapped(out)
+    relative = np.linalg.norm(positions - reference) / np.linalg.norm(reference)
+    assert relative < 1e-10
+    assert relative > 0.0 or n_ranks == 1  # the ranks really summed in another order
+
+
+@needs_mpi
+def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
+    config = write_config(tmp_path)
+    script = tmp_path / "drive.py"
+    script.write_text(
+        "import sys, md\n"
+        "sim, summary = md.run_config(sys.argv[1], output=sys.argv[2])\n"
+        "assert summary.status == 'completed', summary.message\n"
+        "with open(f'rank{sim.rank}.txt', 'w') as f:\n"
+        "    print(sim.ranks.n_ranks, sim.state.n_atoms, *sim.grid.shape, file=f)\n"
+    )
+    out = tmp_path / "lib.h5"
+    done = launch(2, str(script), str(config), str(out), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr + done.stdout
+    lines = [(tmp_path / f"rank{r}.txt").read_text().split() for r in range(2)]
+    owned = [int(line[1]) for line in lines]
+    assert all(line[0] == "2" and line[2:] == ["2", "1", "1"] for line in lines)
+    assert sum(owned) == 384 and min(owned) > 0  # each rank holds its brick's atoms
+    relative = np.linalg.norm(unwrapped(out) - unwrapped(serial)) / np.linalg.norm(
+        unwrapped(serial))  # fmt: skip
+    assert relative < 1e-10
+
+
+PROBE = (
+    "import sys, md\n"
+    "from md.simulation import Simulation\n"
+    "sim, summary = md.run_config(sys.argv[1], output=sys.argv[2], steps=20)\n"
+    "assert summary.status == 'completed'\n"
+    "assert type(sim) is Simulation, type(sim)\n"
+    "assert 'mpi4py' not in sys.modules\n"
+    "print('serial', sim.state.n_atoms)\n"
+)
+
+
+def test_one_process_imports_no_mpi(tmp_path):
+    """Without a launcher a run is the serial engine and never loads mpi4py."""
+    config = write_config(tmp_path)
+    env = {k: v for k, v in os.environ.items() if k not in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE",
+                                                            "SLURM_STEP_NUM_TASKS")}  # fmt: skip
+    env["PYTHONPATH"] = str(ROOT)
+    done = subprocess.run([sys.executable, "-c", PROBE, str(config), str(tmp_path / "a.h5")],
+                          env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "serial 384" in done.stdout
+
+
+@needs_mpi
+def test_one_rank_under_mpiexec_is_the_serial_run(serial, tmp_path):
+    config = write_config(tmp_path)
+    script = tmp_path / "probe.py"
+    script.write_text(PROBE)
+    done = launch(1, str(script), str(config), str(tmp_path / "a.h5"), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "serial 384" in done.stdout
+    out = tmp_path / "b.h5"
+    done = launch(1, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(unwrapped(out), unwrapped(serial))  # bit for bit
+
+
+def test_launched_without_mpi4py_is_refused(tmp_path):
+    """A launcher's several processes with no mpi4py: a clear refusal, exit 2, no output."""
+    config = write_config(tmp_path)
+    code = (
+        "import sys\n"
+        "sys.modules['mpi4py'] = None  # as if it were not installed\n"
+        "from md.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PMI_SIZE": "2", "PMI_RANK": "0"}
+    out = tmp_path / "x.h5"
+    done = subprocess.run([sys.executable, "-c", code, "run", str(config), "--output", str(out)],
+                          env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "mpi4py is not installed" in done.stderr
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ refusals
+def _refused(tmp_path, n_ranks: int, config: Path) -> str:
+    out = tmp_path / "refused.h5"
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
+                  cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 2, done.stderr + done.stdout
+    assert not out.exists() and not Path(str(out) + ".ckpt").exists()
+    assert done.stderr.count("md: error:") == 1, done.stderr  # rank 0 alone reports
+    return done.stderr
+
+
+@needs_mpi
+def test_bricks_thinner_than_the_shell_are_refused(tmp_path):
+    config = write_config(tmp_path, run_extra="decomposition = [4, 1, 1]")
+    message = _refused(tmp_path, 4, config)
+    # 10.08 / 4 = 2.52 < 2.8; the largest grid that fits is 3 x 2 x 2
+    assert "[run] decomposition" in message
+    assert "thinner than cutoff + skin = 2.8" in message
+    assert "[3, 2, 2] (12 ranks)" in message
+
+
+@needs_mpi
+def test_too_many_ranks_for_the_cell_are_refused(tmp_path):
+    config = write_config(tmp_path)
+    message = _refused(tmp_path, 5, config)  # 5 bricks along any axis are too thin
+    assert "5 ranks cannot share this cell" in message
+    assert "[3, 2, 2]" in message
+
+
+@needs_mpi
+@pytest.mark.parametrize(
+    ("integrator", "extra", "expected"),
+    [
+        ("implicit_euler", "", "does not run decomposed over MPI ranks"),
+        ("rattle", "[integrator.constraints]\nbonds = [[0, 1]]", "rigid bonds"),
+    ],
+)
+def test_undistributed_integrators_are_refused(tmp_path, integrator, extra, expected):
+    config = write_config(tmp_path, integrator=integrator, extra=extra)
+    message = _refused(tmp_path, 2, config)
+    assert expected in message
+    assert "one rank" in message
