@@ -847,6 +847,10 @@ class DistributedForceField:
         start = time.perf_counter()
         carried = dict(carried or {})
         if migrate:
+            # Results of the current positions travel with their atoms; older ones (a
+            # minimiser migrates after moving the atoms, before evaluating) are dropped.
+            self._cache = {which: held for which, held in self._cache.items()
+                           if _same(held[0], state)}  # fmt: skip
             cached = {("cached", which): held[1].forces for which, held in self._cache.items()}
             moved = self.domain.migrate(state, {**carried, **cached})
             carried = {name: moved[name] for name in carried}

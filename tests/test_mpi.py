@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import md
+from md.checkpoint import read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_MPI = shutil.which("mpiexec") is not None and (
@@ -246,3 +247,141 @@ def test_undistributed_integrators_are_refused(tmp_path, integrator, extra, expe
     message = _refused(tmp_path, 2, config)
     assert expected in message
     assert "one rank" in message
+
+
+# ------------------------------------------------------- beyond the LJ melt
+#: A bead-spring melt (FENE + WCA, Kremer-Grest) relaxed by FIRE, then in a Langevin
+#: bath: bonds cross the bricks, the minimiser migrates atoms, and the noise is keyed by
+#: (seed, step, atom id), so every rank count draws the same kicks.
+POLYMER = """\
+units = "lj"
+seed = 7
+[system]
+polymer = "melt"
+chains = 20
+chain_length = 25
+density = 0.85
+bond_length = 0.97
+temperature = 1.0
+[[potentials]]
+type = "lj"
+cutoff = 1.122462048309373
+cutoff_mode = "shift"
+[[potentials]]
+type = "fene"
+bonds = "system"
+k = 30.0
+r_max = 1.5
+[minimize]
+fmax = 1.0
+max_steps = 2000
+max_force = 100.0
+[integrator]
+type = "langevin"
+dt = 0.005
+temperature = 1.0
+friction = 0.5
+[run]
+steps = 500
+thermo_every = 100
+[output]
+path = "polymer.h5"
+every = 100
+"""
+
+
+def _serial_and_ranks(tmp_path, text: str, n_ranks: int) -> tuple[Path, Path, str]:
+    config = tmp_path / "config.toml"
+    config.write_text(text)
+    _, summary = md.run_config(config, output=tmp_path / "serial.h5")
+    assert summary.status == "completed", summary.message
+    out = tmp_path / "ranks.h5"
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
+                  cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr + done.stdout
+    return tmp_path / "serial.h5", out, done.stdout
+
+
+@needs_mpi
+def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
+    serial_out, out, stdout = _serial_and_ranks(tmp_path, POLYMER, 3)
+    assert "over 3 MPI ranks" in stdout
+    # the minimiser took the same path (its step count is printed)
+    with h5py.File(serial_out, "r") as a, h5py.File(out, "r") as b:
+        np.testing.assert_array_equal(a["connectivity/fene"][()], b["connectivity/fene"][()])
+    reference, positions = unwrapped(serial_out), unwrapped(out)
+    assert np.linalg.norm(positions - reference) / np.linalg.norm(reference) < 1e-10
+    np.testing.assert_allclose(unwrapped(out, 0), unwrapped(serial_out, 0), rtol=0, atol=1e-9)
+
+
+@needs_mpi
+def test_npt_volume_follows_the_serial_run(tmp_path):
+    """c_rescale barostat with Langevin, 200 steps: the bricks follow the cell."""
+    text = MELT.format(
+        integrator="langevin", extra="temperature = 1.0\nfriction = 1.0", steps=200,
+        run_extra="",
+    ).replace("[run]", '[barostat]\ntype = "c_rescale"\npressure = 1.0\ntau = 1.0\n'
+                       "compressibility = 0.1\n[run]")  # fmt: skip
+    serial_out, out, _ = _serial_and_ranks(tmp_path, text, 2)
+    with h5py.File(serial_out, "r") as a, h5py.File(out, "r") as b:
+        volume = a["observables/volume/value"][()]
+        assert volume[-1] > 1.05 * volume[0]  # the cell really moved (P starts near 5)
+        np.testing.assert_allclose(b["observables/volume/value"][()], volume, rtol=1e-12)
+    reference = unwrapped(serial_out)
+    assert np.linalg.norm(unwrapped(out) - reference) / np.linalg.norm(reference) < 1e-10
+
+
+@needs_mpi
+def test_checkpoint_resumes_on_another_rank_count(serial, tmp_path):
+    """Half the melt on 2 ranks, the rest on 3 ranks and, from the same checkpoint, on
+    2 ranks again (bit for bit with an uninterrupted 2-rank run) and on one process."""
+    config = write_config(tmp_path)
+    first = tmp_path / "first.h5"
+    done = launch(2, "run", str(config), "--output", str(first), "--steps", "250",
+                  "--no-progress", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    copies = {}
+    for name in ("two", "three", "one"):
+        copies[name] = tmp_path / f"{name}.h5"
+        shutil.copy(first, copies[name])
+        shutil.copy(str(first) + ".ckpt", str(copies[name]) + ".ckpt")
+    for name, n_ranks in (("two", 2), ("three", 3)):
+        done = launch(n_ranks, "run", str(config), "--output", str(copies[name]), "--resume",
+                      "--no-progress", cwd=tmp_path)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+    _, summary = md.run_config(config, output=copies["one"], resume=True)
+    assert summary.status == "completed"
+    whole = tmp_path / "whole.h5"
+    done = launch(2, "run", str(config), "--output", str(whole), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(unwrapped(copies["two"]), unwrapped(whole))
+    reference = unwrapped(serial)
+    for name in ("three", "one"):
+        with h5py.File(copies[name], "r") as f:
+            assert list(f["particles/trajectory/position/step"][()]) == [0, 100, 200, 300, 400,
+                                                                         500]  # fmt: skip
+        relative = np.linalg.norm(unwrapped(copies[name]) - reference) / np.linalg.norm(reference)
+        assert relative < 1e-10
+
+
+@needs_mpi
+def test_a_blow_up_stops_every_rank_with_the_serial_message(tmp_path):
+    """dt = 0.04 blows the hot melt up at step 2: every rank stops, exit 1 as in serial,
+    the same message (global atom id and step), the step-0 checkpoint intact."""
+    config = write_config(tmp_path)
+    config.write_text(config.read_text().replace("dt = 0.005", "dt = 0.04"))
+    out = tmp_path / "blow.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    serial_run = subprocess.run(
+        [sys.executable, "-m", "md.cli", "run", str(config), "--output", str(tmp_path / "s.h5"),
+         "--no-progress"], env=env, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert serial_run.returncode == 1
+    done = launch(3, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 1, done.stderr
+    message = [line for line in done.stderr.splitlines() if line.startswith("md: error:")]
+    expected = [line for line in serial_run.stderr.splitlines() if line.startswith("md: error:")]
+    assert len(message) == 1 and "step 2: atom" in message[0]
+    assert message[0].replace(str(out), "X") == expected[0].replace(str(tmp_path / "s.h5"), "X")
+    saved = read_checkpoint(str(out) + ".ckpt")
+    assert saved.state.step == 0 and saved.state.n_atoms == 384
