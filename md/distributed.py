@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from md._cell_kernels import _largest_displacement2
+from integrators.base import constraints_of
 from md._files import OutputBusyError
 from md.box import cell_matrix, minimum_image, periodic_tilt, perpendicular_widths
 from md.domain import (
@@ -82,6 +82,7 @@ from md.errors import (
 )
 from md.forcefield import ForceField
 from md.minimize import minimize
+from md.neighbors import largest_displacement2
 from md.parallel import (
     chunk_count,
     copy_into,
@@ -813,7 +814,7 @@ class DistributedForceField:
         begin = self.step_start if self.step_start.shape == state.positions.shape else None
         if mapping is None and begin is None:
             chunks = chunk_count(state.n_atoms, _MIN_PASS_ATOMS)
-            moved2 = _largest_displacement2(state.positions, self.reference, chunks)
+            moved2 = largest_displacement2(state.positions, self.reference, chunks)
             step2 = 0.0
         else:
             moved2, step2 = moved_since(state.positions, self.reference,
@@ -1261,7 +1262,7 @@ class DistributedSimulation(Simulation):
 def refuse_undistributable(integrator, potentials) -> None:
     """Raise ValueError if the integrator or a potential cannot run decomposed over ranks."""
     name = integrator.describe().get("type", type(integrator).__name__)
-    if getattr(integrator, "constraints", None) is not None:
+    if constraints_of(integrator) is not None:
         raise ValueError(
             f"rigid bonds (the {name} integrator's constraints) do not run decomposed over MPI "
             "ranks: run this config on one rank (without mpiexec)"

@@ -5,12 +5,14 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from md._cell_kernels import _max_displacement2
+from integrators.base import ThermoTerms
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
+from md.neighbors import max_displacement2
 from md.parallel import global_sum, set_threads
 from md.state import State
 from md.thermo import (
@@ -26,6 +28,18 @@ from potentials.base import Potential
 logger = logging.getLogger(__name__)
 
 Observer = Callable[["Simulation"], None]
+
+
+@runtime_checkable
+class VirialUse(Protocol):
+    """Optional hook of an observer: ``uses_virial = False`` says it reads no pressure.
+
+    On steps where only such observers run, the force field skips the
+    virial (see :meth:`Simulation.attach`); an observer without the
+    attribute is assumed to read it.
+    """
+
+    uses_virial: bool
 
 
 class Simulation:
@@ -117,7 +131,7 @@ class Simulation:
         if isinstance(interval, bool) or not isinstance(interval, int | np.integer) or interval < 1:
             raise ValueError(f"observer interval must be a positive integer, got {interval!r}")
         self._observers.append((observer, int(interval)))
-        if getattr(observer, "uses_virial", True):
+        if not isinstance(observer, VirialUse) or observer.uses_virial:
             self._virial_intervals.append(int(interval))
 
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -141,6 +155,15 @@ class Simulation:
             moves farther than ``max_displacement`` in one step; the state is
             left at the failing step and observers have seen every step
             before it.
+
+        Notes
+        -----
+        The run leaves the process's memory allocator as it is. The implicit
+        integrators free and allocate arrays of 3N doubles every step, which
+        glibc's defaults return to the kernel and page-fault in again (an
+        implicit Euler step on 32000 atoms took 1.8 times as long, see
+        :mod:`md._memory`); ``md run`` avoids this with
+        :func:`md.keep_freed_memory`, which a program may call once itself.
         """
         if isinstance(n_steps, bool) or not isinstance(n_steps, int | np.integer) or n_steps < 0:
             raise ValueError(f"n_steps must be a non-negative integer, got {n_steps!r}")
@@ -179,7 +202,7 @@ class Simulation:
 
     def _check_displacement(self, limit: float) -> None:
         """Raise SimulationError if a particle moved farther than ``limit`` this step."""
-        moved2 = _max_displacement2(self.state.positions, self._previous)
+        moved2 = max_displacement2(self.state.positions, self._previous)
         if moved2 <= limit * limit:
             return
         step = self.state.step
@@ -214,8 +237,10 @@ class Simulation:
         kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         # Thermostats and constrained integrators (integrators/_thermostat.py) give their
         # degrees of freedom, the constraint virial and the heat bath's energy.
-        terms = getattr(self.integrator, "thermo_terms", None)
-        terms = terms(state, result) if terms is not None else {}
+        integrator = self.integrator
+        terms = (
+            integrator.thermo_terms(state, result) if isinstance(integrator, ThermoTerms) else {}
+        )
         n_dof = terms.get("n_dof", degrees_of_freedom(global_sum(state.n_atoms)))
         kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
