@@ -161,7 +161,7 @@ def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
 PROBE = (
     "import sys, md\n"
     "from md.simulation import Simulation\n"
-    "sim, summary = md.run_config(sys.argv[1], output=sys.argv[2], steps=20)\n"
+    "sim, summary = md.run_config(sys.argv[1], output=sys.argv[2], steps=int(sys.argv[3]))\n"
     "assert summary.status == 'completed'\n"
     "assert type(sim) is Simulation, type(sim)\n"
     "assert 'mpi4py' not in sys.modules\n"
@@ -175,7 +175,7 @@ def test_one_process_imports_no_mpi(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE",
                                                             "SLURM_STEP_NUM_TASKS")}  # fmt: skip
     env["PYTHONPATH"] = str(ROOT)
-    done = subprocess.run([sys.executable, "-c", PROBE, str(config), str(tmp_path / "a.h5")],
+    done = subprocess.run([sys.executable, "-c", PROBE, str(config), str(tmp_path / "a.h5"), "20"],
                           env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "serial 384" in done.stdout
@@ -186,12 +186,10 @@ def test_one_rank_under_mpiexec_is_the_serial_run(serial, tmp_path):
     config = write_config(tmp_path)
     script = tmp_path / "probe.py"
     script.write_text(PROBE)
-    done = launch(1, str(script), str(config), str(tmp_path / "a.h5"), cwd=tmp_path)
+    out = tmp_path / "a.h5"
+    done = launch(1, str(script), str(config), str(out), "500", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert "serial 384" in done.stdout
-    out = tmp_path / "b.h5"
-    done = launch(1, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
-    assert done.returncode == 0, done.stderr
     np.testing.assert_array_equal(unwrapped(out), unwrapped(serial))  # bit for bit
 
 
@@ -235,6 +233,7 @@ def test_bricks_thinner_than_the_shell_are_refused(tmp_path):
 
 
 @needs_mpi
+@pytest.mark.slow  # several launches of up to 4 ranks
 def test_too_many_ranks_for_the_cell_are_refused(tmp_path):
     config = write_config(tmp_path)
     message = _refused(tmp_path, 5, config)  # 5 bricks along any axis are too thin
@@ -247,7 +246,10 @@ def test_too_many_ranks_for_the_cell_are_refused(tmp_path):
     ("integrator", "extra", "expected"),
     [
         ("implicit_euler", "", "does not run decomposed over MPI ranks"),
-        ("rattle", "[integrator.constraints]\nbonds = [[0, 1]]", "rigid bonds"),
+        pytest.param("implicit_midpoint", "", "does not run decomposed over MPI ranks",
+                     marks=pytest.mark.slow),
+        pytest.param("rattle", "[integrator.constraints]\nbonds = [[0, 1]]", "rigid bonds",
+                     marks=pytest.mark.slow),
     ],
 )
 def test_undistributed_integrators_are_refused(tmp_path, integrator, extra, expected):
@@ -258,9 +260,10 @@ def test_undistributed_integrators_are_refused(tmp_path, integrator, extra, expe
 
 
 # ------------------------------------------------------- beyond the LJ melt
-#: A bead-spring melt (FENE + WCA, Kremer-Grest) relaxed by FIRE, then in a Langevin
-#: bath: bonds cross the bricks, the minimiser migrates atoms, and the noise is keyed by
-#: (seed, step, atom id), so every rank count draws the same kicks.
+#: A bead-spring melt (FENE + WCA, Kremer-Grest, with cosine angles) relaxed by FIRE,
+#: then in a Langevin bath: bonds and angles cross the bricks, the minimiser migrates
+#: atoms, and the noise is keyed by (seed, step, atom id), so every rank count draws the
+#: same kicks.
 POLYMER = """\
 units = "lj"
 seed = 7
@@ -280,6 +283,10 @@ type = "fene"
 bonds = "system"
 k = 30.0
 r_max = 1.5
+[[potentials]]
+type = "angle_cosine"
+angles = "system"
+k = 2.0
 [minimize]
 fmax = 1.0
 max_steps = 2000
@@ -316,7 +323,9 @@ def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
     assert "over 3 MPI ranks" in stdout
     # the minimiser took the same path (its step count is printed)
     with h5py.File(serial_out, "r") as a, h5py.File(out, "r") as b:
-        np.testing.assert_array_equal(a["connectivity/fene"][()], b["connectivity/fene"][()])
+        for name in ("fene", "angle_cosine"):
+            np.testing.assert_array_equal(a[f"connectivity/{name}"][()],
+                                          b[f"connectivity/{name}"][()])  # fmt: skip
     reference, positions = unwrapped(serial_out), unwrapped(out)
     assert np.linalg.norm(positions - reference) / np.linalg.norm(reference) < 1e-10
     np.testing.assert_allclose(unwrapped(out, 0), unwrapped(serial_out, 0), rtol=0, atol=1e-9)
@@ -340,6 +349,7 @@ def test_npt_volume_follows_the_serial_run(tmp_path):
 
 
 @needs_mpi
+@pytest.mark.slow  # several launches of up to 4 ranks
 def test_checkpoint_resumes_on_another_rank_count(serial, tmp_path):
     """Half the melt on 2 ranks, the rest on 3 ranks and, from the same checkpoint, on
     2 ranks again (bit for bit with an uninterrupted 2-rank run) and on one process."""
@@ -396,6 +406,7 @@ def test_a_blow_up_stops_every_rank_with_the_serial_message(tmp_path):
 
 
 @needs_mpi
+@pytest.mark.slow  # several launches of up to 4 ranks
 def test_tilted_cell_over_four_ranks_follows_the_serial_run(tmp_path):
     """A triclinic melt cut into 2 x 1 x 2 bricks: ghosts cross tilted faces.
 
@@ -437,6 +448,7 @@ INTEGRATOR_TABLES = {
 
 
 @needs_mpi
+@pytest.mark.slow  # several launches of up to 4 ranks
 def test_every_distributed_integrator_follows_the_serial_run(tmp_path):
     """60 steps of the melt with each integrator on 2 ranks and on one process."""
     for name, table in INTEGRATOR_TABLES.items():
