@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -471,3 +473,51 @@ def test_every_distributed_integrator_follows_the_serial_run(tmp_path):
             assert list(f["particles/trajectory/position/step"][()]) == [0, 30, 60]
         gap = relative_gap(tmp_path / f"{name}_2.h5", tmp_path / f"{name}_1.h5")
         assert gap < 1e-12, (name, gap)
+
+
+@needs_mpi
+@pytest.mark.slow  # a 3000-step run on 2 ranks, killed, resumed, and run again whole
+def test_a_rank_killed_ends_the_run_and_the_checkpoint_resumes_it(tmp_path):
+    """SIGKILL to rank 1 mid-run: the launcher ends rank 0 too (nothing hangs), and the
+    last checkpoint resumes to the same bits as an uninterrupted run on the same ranks."""
+    text = MELT.format(integrator="verlet", extra="", steps=3000, run_extra="")
+    config = tmp_path / "long.toml"
+    config.write_text(text.replace("velocities = true",
+                                   "velocities = true\ncheckpoint_every = 100"))  # fmt: skip
+    out = tmp_path / "killed.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1"}
+    command = ["mpiexec", "-n", "2", sys.executable, "-m", "md.cli", "run", str(config),
+               "--output", str(out), "--no-progress", "-q"]  # fmt: skip
+    launcher = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 200
+        while time.monotonic() < deadline and not (
+            Path(str(out) + ".ckpt").exists() and read_checkpoint(str(out) + ".ckpt").state.step
+        ):
+            time.sleep(0.5)
+        ranks = [p for p in Path("/proc").iterdir() if p.name.isdigit()]
+        victims = []
+        for process in ranks:
+            try:
+                environ = (process / "environ").read_bytes().split(b"\0")
+                cmdline = (process / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"PMI_RANK=1" in environ and str(out).encode() in cmdline:
+                victims.append(int(process.name))
+        assert len(victims) == 1
+        os.kill(victims[0], signal.SIGKILL)
+        assert launcher.wait(timeout=120) != 0  # rank 0 was ended as well
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    saved = read_checkpoint(str(out) + ".ckpt")
+    assert 0 < saved.state.step < 3000
+    done = launch(2, "run", str(config), "--output", str(out), "--resume", "--no-progress",
+                  cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    whole = tmp_path / "whole.h5"
+    done = launch(2, "run", str(config), "--output", str(whole), "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(unwrapped(out), unwrapped(whole))
