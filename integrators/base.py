@@ -70,7 +70,7 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
-    ``distributed``
+    ``distributed`` (optional: False when absent)
         It runs on one rank's atoms in a run decomposed over MPI ranks
         (:mod:`md.distributed`): its sums over atoms go through
         :func:`md.parallel.global_sum`, and its private per-atom arrays, named
@@ -90,8 +90,6 @@ class Integrator(Protocol):
     adaptive: ClassVar[bool]
     splits_forces: ClassVar[bool]
     order: ClassVar[int | None]
-    distributed: ClassVar[bool]
-    per_atom_state: ClassVar[tuple[str, ...]]
 
     def step(self, state: State, forcefield: ForceField) -> None: ...
 
