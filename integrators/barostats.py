@@ -60,8 +60,9 @@ from integrators.mtk import MartynaTobiasKlein
 from md._checks import MAX_SEED, count, positive
 from md.box import TILT_AXES, reduced_tilt
 from md.errors import SimulationError
+from md.parallel import global_sum
 from md.schema import REQUIRED, Key, Varies
-from md.thermo import kinetic_energy, pressure, pressure_tensor
+from md.thermo import kinetic_energy, kinetic_tensor, pressure
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
 BAROSTATS = {"c_rescale": True, "mtk": True, "berendsen": False}
@@ -226,6 +227,7 @@ class PressureCoupled(IntegratorBase):
 
     stochastic = True
     splits_forces = False
+    distributed = True
 
     def __init__(self, integrator, barostat: Barostat) -> None:
         if barostat.kind == "mtk":
@@ -263,7 +265,7 @@ class PressureCoupled(IntegratorBase):
         terms = self.inner.thermo_terms(state, result)
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
         volume = state.volume
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         before = kinetic + result.energy
         interval = self.dt * barostat.every
         if barostat.couple == "isotropic":
@@ -277,7 +279,8 @@ class PressureCoupled(IntegratorBase):
             if barostat.kind == "c_rescale":
                 state.velocities /= mu
         else:
-            tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
+            kinetic_part = global_sum(kinetic_tensor(state.velocities, state.masses))
+            tensor = (kinetic_part + virial) / volume
             mu = barostat.deformation(tensor, volume, self.kT, interval, state.pbc)
             if not (np.all(np.isfinite(mu)) and np.all(np.diag(mu) > 0)):
                 raise SimulationError(state.step, f"the barostat's deformation is {mu.tolist()}")
@@ -291,7 +294,7 @@ class PressureCoupled(IntegratorBase):
             energy = forcefield.compute(state, virial=False).energy
         except ValueError as error:  # the box shrank below what the cutoff allows
             raise SimulationError(state.step, f"after a barostat move: {error}") from None
-        after = kinetic_energy(state.velocities, state.masses) + energy
+        after = global_sum(kinetic_energy(state.velocities, state.masses)) + energy
         barostat.reservoir -= (after - before) + barostat.pressure * (state.volume - volume)
         barostat.moves += 1
 

@@ -75,6 +75,11 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
+    ``distributed`` (optional: False when absent)
+        It runs on one rank's atoms in a run decomposed over MPI ranks
+        (:mod:`md.distributed`): its sums over atoms go through
+        :func:`md.parallel.global_sum`, and its private per-atom arrays, named
+        in ``per_atom_state`` (keys of ``get_state()``), move with their atoms.
 
     ``CONFIG_KEYS`` (a tuple of :class:`md.schema.Key`) declares the keys its
     ``[integrator]`` table takes: one per constructor argument but ``kB``,
@@ -209,6 +214,8 @@ class IntegratorBase:
     adaptive: ClassVar[bool] = False
     splits_forces: ClassVar[bool] = False
     order: ClassVar[int | None] = None
+    distributed: ClassVar[bool] = False
+    per_atom_state: ClassVar[tuple[str, ...]] = ()
 
     def reset(self) -> None:
         """Drop private history (nothing, for a one-step method)."""

@@ -29,6 +29,7 @@ class VelocityVerlet(IntegratorBase):
     """
 
     order = 2
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)

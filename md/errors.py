@@ -15,6 +15,16 @@ class NonFiniteError(FloatingPointError):
     """A coordinate or energy became NaN or infinite."""
 
 
+class DecompositionError(NonFiniteError):
+    """A run decomposed over MPI ranks cannot go on (:mod:`md.distributed`).
+
+    An atom moved farther than a brick between two neighbour-list builds, or
+    a bond outgrew the ghost shell: signs of a blow-up. A
+    :class:`NonFiniteError`, so the simulation loop reports it as a
+    :class:`SimulationError` at the failing step.
+    """
+
+
 class ConvergenceError(RuntimeError):
     """An iterative step (implicit solve, SHAKE/RATTLE) failed to converge at ``step``."""
 
@@ -162,6 +172,7 @@ __all__ = [
     "ConfigError",
     "ConstraintError",
     "ConvergenceError",
+    "DecompositionError",
     "NonFiniteError",
     "OutputBusyError",
     "SimulationError",

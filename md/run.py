@@ -18,14 +18,18 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import time
+import tomllib
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+import numpy as np
 
 from integrators.barostats import Barostat, pressure_control
 from integrators.base import ForceSplit, Statistics, constraints_of
@@ -47,7 +51,16 @@ from md.config import (
     input_files,
     integrator_from_config,
     load_config,
+    parse_config,
     potential_from_config,
+)
+from md.distributed import (
+    DistributedSimulation,
+    Elsewhere,
+    agree,
+    mpi_ranks,
+    on_root,
+    ranks_per_node,
 )
 from md.errors import (
     CheckpointError,
@@ -59,7 +72,7 @@ from md.errors import (
 )
 from md.interrupts import take_pending
 from md.minimize import MinimizeResult, minimize
-from md.parallel import set_threads
+from md.parallel import global_sum, max_threads, set_threads
 from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
@@ -179,6 +192,10 @@ class PreparedRun:
     parameters: dict
     config_file: str
     minimized: MinimizeResult | None = None
+    #: Atoms in the whole system (a decomposed run's ``sim.state`` holds one rank's).
+    n_atoms: int = 0
+    #: The ranks of a run decomposed over MPI (None: one process).
+    ranks: object = None
 
     @property
     def resuming(self) -> bool:
@@ -202,10 +219,13 @@ class PreparedRun:
             return None
         if self.minimized is None:
             sim = self.sim
-            self.minimized = minimize(
-                sim.state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
-                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
-            )  # fmt: skip
+            options = {"max_force": stage.max_force, "max_step": stage.max_step,
+                       "callback": callback, "report_every": stage.report_every}  # fmt: skip
+            if self.ranks is not None:
+                self.minimized = sim.minimize(stage.fmax, stage.max_steps, **options)
+            else:
+                self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
+                                          stage.max_steps, **options)  # fmt: skip
             sim.integrator.reset()  # history taken at the old positions is stale
         return self.minimized
 
@@ -242,18 +262,37 @@ class PreparedRun:
         OSError
             If the first checkpoint or the trajectory cannot be written.
         """
-        with exclusive_claim(self.output):
+        with self._claim():
             self.minimize(minimize_progress)
             return self._execute(observers, handle_signals)
 
+    @contextlib.contextmanager
+    def _claim(self):
+        """:func:`exclusive_claim` on the output, by rank 0 alone in a decomposed run (every
+        rank learns whether it got it)."""
+        if self.ranks is None:
+            with exclusive_claim(self.output):
+                yield
+            return
+        with contextlib.ExitStack() as stack:
+            error = None
+            if self.ranks.rank == 0:
+                try:
+                    stack.enter_context(exclusive_claim(self.output))
+                except OSError as caught:
+                    error = caught
+            agree(self.ranks, error)
+            yield
+
     def _execute(self, observers, handle_signals: bool) -> RunSummary:
-        sim, state, config = self.sim, self.sim.state, self.config
+        sim, state, config, ranks = self.sim, self.sim.state, self.config, self.ranks
         summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
-        writer = self._open_outputs()
+        writer = self._open_outputs()  # None on the other ranks of a decomposed run
         saver = Checkpointer(
             self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
         )
-        sim.attach(writer, interval=config.output.every)
+        sim.attach(writer if writer is not None else Elsewhere(config.output.forces),
+                   interval=config.output.every)  # fmt: skip
         # After the writer, so a checkpoint counts the frame of its own step. With
         # checkpoint_every = 0 it only fires at the start of a fresh run (step 0).
         sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
@@ -264,10 +303,15 @@ class PreparedRun:
         previous = _catch_stop_signals(sim) if handle_signals else {}
         start = time.perf_counter()
         try:
-            with writer:
+            with writer if writer is not None else contextlib.nullcontext():
                 sim.run(self.n_steps)
-                if sim.stop_requested is None or saver.last_step != state.step:
-                    saver(sim)  # at the end, and after a signal
+                saved_at = on_root(ranks, lambda: saver.last_step)
+                if sim.stop_requested is None or saved_at != state.step:
+                    # At the end, and after a signal (a decomposed run gathers it on rank 0).
+                    if ranks is None:
+                        saver(sim)
+                    else:
+                        sim.observe(saver)
         except (SimulationError, ConvergenceError) as error:
             summary.status, summary.message = FAILED, str(error)
         except KeyboardInterrupt:  # a second signal while stopping: leave at once
@@ -277,13 +321,16 @@ class PreparedRun:
         finally:
             _restore_signals(previous)
         summary.wall = time.perf_counter() - start
-        if summary.status == OUTPUT_ERROR and self.checkpoint is None and writer.n_frames == 0:
+        n_frames = on_root(ranks, lambda: writer.n_frames)
+        last_step = on_root(ranks, lambda: saver.last_step)
+        if summary.status == OUTPUT_ERROR and self.checkpoint is None and n_frames == 0:
             # Not even the first frame fitted: keep nothing, so a plain re-run can start.
-            self.output.unlink(missing_ok=True)
-            self.checkpoint_path.unlink(missing_ok=True)
-            saver.last_step = None
-        summary.n_frames = writer.n_frames
-        summary.last_checkpoint_step = saver.last_step
+            if ranks is None or ranks.rank == 0:
+                self.output.unlink(missing_ok=True)
+                self.checkpoint_path.unlink(missing_ok=True)
+            last_step = None
+        summary.n_frames = n_frames
+        summary.last_checkpoint_step = last_step
         summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
         if summary.status == COMPLETED and sim.stop_requested is not None:
             summary.status, summary.signal = STOPPED, sim.stop_requested
@@ -293,15 +340,30 @@ class PreparedRun:
             summary.statistics = dict(sim.integrator.statistics)
         return summary
 
-    def _open_outputs(self) -> H5MDWriter:
+    def _open_outputs(self) -> H5MDWriter | None:
         """Under the claim: the first checkpoint, then the trajectory writer.
 
         A fresh run checks again that its outputs are still free (another run
         may have finished meanwhile). If the trajectory cannot be created (disk
         full), the checkpoint written a moment before is removed again, so a
-        plain re-run is not refused because of it.
+        plain re-run is not refused because of it. A decomposed run gathers the
+        whole system on rank 0, which writes; the other ranks get None.
         """
-        state, config = self.sim.state, self.config
+        if self.ranks is None:
+            sim = self.sim
+            return self._create_outputs(sim.state, sim.integrator, sim.forcefield)
+        view = self.sim.global_view(thermo=False)
+        error = writer = None
+        if view is not None:
+            try:
+                writer = self._create_outputs(view.state, view.integrator, view.forcefield)
+            except (OSError, ValueError, RuntimeError) as caught:  # every rank learns it below
+                error = caught
+        agree(self.ranks, error)
+        return writer
+
+    def _create_outputs(self, state, integrator, forcefield) -> H5MDWriter:
+        config = self.config
         for path in (self.output, self.checkpoint_path):  # a killed run's half-written files
             remove_stale_temporaries(path)
         if self.checkpoint is None:
@@ -312,12 +374,12 @@ class PreparedRun:
             # First a checkpoint of the start, then the trajectory: whenever a run is
             # killed, --resume finds a checkpoint (the file may not exist yet).
             write_checkpoint(
-                self.checkpoint_path, state, self.sim.integrator, self.sim.forcefield,
+                self.checkpoint_path, state, integrator, forcefield,
                 fingerprint=self.fingerprint, run_id=self.run_id,
                 extra={"config_file": self.config_file},
             )  # fmt: skip
             try:
-                return self._new_trajectory(overwrite=self.overwrite)
+                return self._new_trajectory(state, overwrite=self.overwrite)
             except BaseException:
                 self.checkpoint_path.unlink(missing_ok=True)
                 raise
@@ -326,16 +388,16 @@ class PreparedRun:
                 self.output, state, units=config.units, append=True,
                 keep_frames=self.checkpoint.n_frames,
             )  # fmt: skip
-        return self._new_trajectory(overwrite=True)
+        return self._new_trajectory(state, overwrite=True)
 
-    def _new_trajectory(self, overwrite: bool) -> H5MDWriter:
+    def _new_trajectory(self, state: State, overwrite: bool) -> H5MDWriter:
         output = self.config.output
         return H5MDWriter(
-            self.output, self.sim.state, units=self.config.units, velocities=output.velocities,
+            self.output, state, units=self.config.units, velocities=output.velocities,
             forces=output.forces, parameters=self.parameters, overwrite=overwrite,
             topology=run_topology(self.sim),
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
-            triclinic=not self.sim.state.is_orthorhombic
+            triclinic=not state.is_orthorhombic
             or (self.config.barostat is not None
                 and self.config.barostat.get("couple") == "triclinic"),  # fmt: skip
             conserved=self.sim.integrator.thermostat,
@@ -352,7 +414,9 @@ def prepare(
 ) -> PreparedRun:
     """Validate and build the run a config describes; write nothing.
 
-    Parameters are those of :func:`run_config`.
+    Parameters are those of :func:`run_config`. Under an MPI launcher with
+    several processes (``mpiexec -n P``), every rank validates alike, and the
+    run is built decomposed over them (:class:`md.distributed.DistributedSimulation`).
 
     Raises
     ------
@@ -360,6 +424,63 @@ def prepare(
         For anything wrong with the config, its files, the output path or the
         checkpoint to resume; the message names the file, key or value.
     """
+    try:
+        ranks = mpi_ranks()
+    except RuntimeError as error:  # several processes but no mpi4py
+        raise ConfigError(str(error)) from None
+    inputs, error = None, None
+    try:
+        inputs = _inputs(path_or_config, steps, output, overwrite, resume, ranks)
+    except INPUT_ERRORS as caught:
+        if ranks is None:
+            raise
+        error = caught  # every rank raises the first rank's error below, none waits
+    if ranks is not None:
+        agree(ranks, error)
+    config, config_file, output, saved_path, fingerprint, checkpoint = inputs
+    try:
+        sim = _build_simulation(config, checkpoint, saved_path, threads, ranks)
+    except MemoryError:
+        raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
+    integrator, units = sim.integrator, config.units
+    run_id = checkpoint.run_id if checkpoint is not None else uuid.uuid4().hex
+    if ranks is not None and checkpoint is None:
+        run_id = ranks.broadcast(run_id)
+    parameters = {
+        "config": config.text,
+        "config_file": config_file,
+        "potentials": [p.describe() for p in sim.potentials],
+        "integrator": integrator.describe(),
+        "dt_config": integrator.dt / units.config_time,
+        "dt_config_unit": units.config_time_label,
+        "skin": config.run.skin,
+        "seed": -1 if config.seed is None else config.seed,
+        "n_steps": config.run.steps,
+        "run_id": run_id,
+    }
+    if ranks is not None:
+        parameters["mpi_ranks"] = ranks.n_ranks
+        parameters["decomposition"] = list(sim.grid.shape)
+    return PreparedRun(
+        config=config,
+        sim=sim,
+        output=output,
+        checkpoint_path=saved_path,
+        n_steps=config.run.steps - sim.state.step,
+        overwrite=overwrite,
+        checkpoint=checkpoint,
+        fingerprint=fingerprint,
+        run_id=run_id,
+        parameters=parameters,
+        config_file=config_file,
+        n_atoms=_whole_count(sim, ranks),
+        ranks=ranks,
+    )
+
+
+def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks):
+    """Read and check the config, the output paths and a checkpoint to resume (no
+    collective calls: a decomposed run's ranks agree on the outcome afterwards)."""
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
     if steps is not None:
@@ -368,6 +489,8 @@ def prepare(
                                                                          minimum=0)))  # fmt: skip
         except ValueError as error:
             raise ConfigError(str(error)) from None
+    if ranks is not None and config.seed is None:
+        config = _seeded(config, ranks)
     output = Path(output) if output is not None else config.output.path
     if output.name in ("", ".", ".."):
         raise ConfigError(f"output path {str(output)!r} names no file")
@@ -398,7 +521,7 @@ def prepare(
             raise ConfigError(
                 f"--resume: {config_file} changed the physics since checkpoint "
                 f"{saved_path} was written ({'; '.join(changes)}); only [run] steps, "
-                "thermo_every and [output] every/checkpoint_every may change"
+                "thermo_every, decomposition and [output] every/checkpoint_every may change"
             )
         if output.exists():
             _check_resumable(output, checkpoint)
@@ -414,37 +537,25 @@ def prepare(
                     f"output file {path} already exists; pass --overwrite to replace it, "
                     "--resume to continue it, or --output to choose another path"
                 )
-    try:
-        sim = _build_simulation(config, checkpoint, saved_path, threads)
-    except MemoryError:
-        raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
-    integrator, state, units = sim.integrator, sim.state, config.units
-    run_id = checkpoint.run_id if checkpoint is not None else uuid.uuid4().hex
-    parameters = {
-        "config": config.text,
-        "config_file": config_file,
-        "potentials": [p.describe() for p in sim.potentials],
-        "integrator": integrator.describe(),
-        "dt_config": integrator.dt / units.config_time,
-        "dt_config_unit": units.config_time_label,
-        "skin": config.run.skin,
-        "seed": -1 if config.seed is None else config.seed,
-        "n_steps": config.run.steps,
-        "run_id": run_id,
-    }
-    return PreparedRun(
-        config=config,
-        sim=sim,
-        output=output,
-        checkpoint_path=saved_path,
-        n_steps=config.run.steps - state.step,
-        overwrite=overwrite,
-        checkpoint=checkpoint,
-        fingerprint=fingerprint,
-        run_id=run_id,
-        parameters=parameters,
-        config_file=config_file,
-    )
+    return config, config_file, output, saved_path, fingerprint, checkpoint
+
+
+def _seeded(config: Config, ranks) -> Config:
+    """``config`` with a seed drawn by rank 0 for all ranks: each builds the same system and
+    the same random streams (a config without one draws them from fresh entropy)."""
+    if not config.text:
+        raise ConfigError(f"{config.source}: a run over several MPI ranks needs a seed")
+    seed = ranks.broadcast(int(np.random.SeedSequence().generate_state(1)[0]) >> 1)
+    data = tomllib.loads(config.text)
+    data["seed"] = seed
+    seeded = parse_config(data, source=config.source, text=config.text,
+                          base=Path(config.source).parent)  # fmt: skip
+    return replace(seeded, run=replace(seeded.run, steps=config.run.steps))
+
+
+def _whole_count(sim, ranks) -> int:
+    """Atoms in the whole system."""
+    return sim.state.n_atoms if ranks is None else int(global_sum(sim.state.n_atoms, ranks))
 
 
 def run_config(
@@ -555,7 +666,7 @@ def build_potentials(config: Config, type_names, bonds=None) -> list:
     ]
 
 
-def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> Simulation:
+def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ranks=None):
     if checkpoint is not None:
         try:
             state, potentials, integrator = build_components(config, checkpoint.state)
@@ -571,21 +682,25 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
     guard = guard if guard > 0 and not integrator.adaptive else None
     where = "--threads" if threads is not None else f"{config.source}: [run] threads"
     threads = threads if threads is not None else config.run.threads
+    if threads is None and ranks is not None:  # the cores of a node, shared by its ranks
+        threads = max(1, max_threads() // ranks_per_node(ranks))
     try:
         set_threads(threads)
     except ValueError as error:
         raise ConfigError(f"{where}: {error}") from None
     try:
-        sim = Simulation(
-            state,
-            potentials,
-            integrator,
-            skin=config.run.skin,
-            units=config.units,
-            max_displacement=guard,
-        )
+        if ranks is None:
+            sim = Simulation(state, potentials, integrator, skin=config.run.skin,
+                             units=config.units, max_displacement=guard)  # fmt: skip
+        else:
+            sim = DistributedSimulation(
+                state, potentials, integrator, skin=config.run.skin, units=config.units,
+                max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
+            )  # fmt: skip
     except ValueError as error:
-        raise ConfigError(f"{config.source}: {error}") from None
+        where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (
+            config.source)  # fmt: skip
+        raise ConfigError(f"{where}: {error}") from None
     if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
         try:
             integrator.split(sim.forcefield)
@@ -593,11 +708,16 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
             raise ConfigError(f"{config.source}: [integrator] ({integrator.describe()['type']}): "
                               f"{error}") from None  # fmt: skip
     if checkpoint is not None:
-        restore(checkpoint, integrator, sim.forcefield)
+        if ranks is None:
+            restore(checkpoint, integrator, sim.forcefield)
+        else:  # the integrator's whole-system state, then the ranks' parts and lists
+            restore(checkpoint, integrator)
+            sim.resume(checkpoint.state, checkpoint.neighbor_reference, checkpoint.neighbor_cell,
+                       checkpoint.decomposition)  # fmt: skip
         if checkpoint.n_frames:  # else frame 0 was never kept: write it again
             sim.skip_initial_observation()
     try:
-        sim.forcefield.compute(state)
+        sim.forcefield.compute(sim.state)
     except NonFiniteError as error:
         raise ConfigError(
             f"{config.source}: the initial configuration cannot be evaluated: {error} "

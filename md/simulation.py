@@ -13,13 +13,13 @@ from integrators.base import ThermoTerms
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.neighbors import max_displacement2
-from md.parallel import set_threads
+from md.parallel import global_sum, set_threads
 from md.state import State
 from md.thermo import (
+    degrees_of_freedom,
     kinetic_energy,
+    kinetic_tensor,
     pressure,
-    pressure_tensor,
-    temperature,
     tensor_components,
 )
 from md.units import UnitSystem, get_units
@@ -174,7 +174,7 @@ class Simulation:
             self._observed_start = True
         forcefield_timings = self.forcefield.timings
         for _ in range(int(n_steps)):
-            if self.stop_requested is not None:
+            if self._stopping():
                 break
             before = forcefield_timings["neighbor"] + forcefield_timings["force"]
             start = time.perf_counter()
@@ -195,6 +195,11 @@ class Simulation:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False
 
+    def _stopping(self) -> bool:
+        """Whether :meth:`run` stops before the next step (a decomposed run also agrees on
+        it across ranks and moves atoms between them here)."""
+        return self.stop_requested is not None
+
     def _check_displacement(self, limit: float) -> None:
         """Raise SimulationError if a particle moved farther than ``limit`` this step."""
         moved2 = max_displacement2(self.state.positions, self._previous)
@@ -207,9 +212,10 @@ class Simulation:
             )
         distances = np.linalg.norm(self.state.positions - self._previous, axis=1)
         atom = int(np.argmax(distances))
+        named = atom if self.state.ids is None else int(self.state.ids[atom])
         raise SimulationError(
             step,
-            f"atom {atom} moved {distances[atom]:.4g} in one step, more than the "
+            f"atom {named} moved {distances[atom]:.4g} in one step, more than the "
             f"neighbour-list skin {limit:g}; the dynamics is blowing up "
             "(time step too large, or overlapping atoms?)",
         )
@@ -227,20 +233,23 @@ class Simulation:
         """
         state = self.state
         result = self.forcefield.compute(state)
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        # Sums over atoms go through global_sum: over every rank in a decomposed run.
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         # Thermostats and constrained integrators (integrators/_thermostat.py) give their
         # degrees of freedom, the constraint virial and the heat bath's energy.
         integrator = self.integrator
         terms = (
             integrator.thermo_terms(state, result) if isinstance(integrator, ThermoTerms) else {}
         )
-        kinetic_temperature = temperature(state.velocities, state.masses, self.units.kB)
-        if "n_dof" in terms:
-            n_dof = terms["n_dof"]
-            kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
+        n_dof = terms.get("n_dof", degrees_of_freedom(global_sum(state.n_atoms)))
+        kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
         volume = state.volume
-        tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
+        if volume > 0:
+            tensor = (global_sum(kinetic_tensor(state.velocities, state.masses)) + virial) / volume
+        else:
+            tensor = np.full((3, 3), np.nan)
+        mass = global_sum(float(np.sum(state.masses)))
         row = {
             "step": state.step,
             "time": state.time,
@@ -250,7 +259,7 @@ class Simulation:
             "temperature": kinetic_temperature,
             "pressure": pressure(kinetic, virial, volume),
             "volume": volume,
-            "density": float(np.sum(state.masses)) / volume if volume > 0 else float("nan"),
+            "density": mass / volume if volume > 0 else float("nan"),
             **tensor_components(tensor),
         }
         if "reservoir_energy" in terms:

@@ -11,6 +11,7 @@ Both potentials offer the optional Hessian capability
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from collections.abc import Mapping, Sequence
 
@@ -59,6 +60,20 @@ class _BondedPotential:
     @property
     def n_bonds(self) -> int:
         return len(self.bonds)
+
+    def with_bonds(self, bonds: ArrayLike, bond_types: ArrayLike) -> _BondedPotential:
+        """The same potential over another bond list, whose ``bond_types`` index the same
+        per-type parameters: one rank's share of the bonds, over its local atoms, in a run
+        decomposed over MPI ranks (:mod:`md.distributed`)."""
+        part = copy.copy(self)
+        part.bonds = bond_array(bonds)
+        part.bond_types = np.array(bond_types, dtype=self.bond_types.dtype, copy=True)
+        if part.bond_types.shape != (len(part.bonds),):
+            raise ValueError(f"{len(part.bonds)} bonds but {part.bond_types.shape} bond types")
+        part.bonds.flags.writeable = False
+        part.bond_types.flags.writeable = False
+        part._max_index = int(part.bonds.max()) if len(part.bonds) else -1
+        return part
 
     # ----------------------------------------------------------------- compute
     def check(self, state) -> None:

@@ -64,6 +64,8 @@ LAYERS = {
         "md.build",
         "md.polymers",
         "md.minimize",
+        "md.domain",
+        "md.distributed",
     ],
     3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.run"],
     4: [

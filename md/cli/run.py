@@ -8,6 +8,8 @@ unwritable output, 130/143 stopped by SIGINT/SIGTERM after a checkpoint).
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -21,6 +23,7 @@ from md.cli._common import (
     EXIT_TERMINATED,
     fail,
 )
+from md.distributed import launch_rank
 from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
 from md.observers import Progress
 from md.parallel import get_threads
@@ -54,7 +57,19 @@ def _print_minimize(step: int, energy: float, fmax: float) -> None:
 
 
 def main(args) -> int:
-    """Body of ``md run``; returns the exit code."""
+    """Body of ``md run``; returns the exit code.
+
+    Under ``mpiexec -n P`` every rank runs it; rank 0 prints for the run (the
+    ranks share every error, so all return the same code) and the others are silent.
+    """
+    if launch_rank() == 0:
+        return _main(args)
+    with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink), \
+            contextlib.redirect_stderr(sink):  # fmt: skip
+        return _main(args)
+
+
+def _main(args) -> int:
     # Everything is validated and built before the output file is touched.
     try:
         run = prepare(
@@ -75,7 +90,7 @@ def main(args) -> int:
         else ""
     )
     print(
-        f"md run: {state.n_atoms} atoms, {n_steps} steps, dt = "
+        f"md run: {run.n_atoms} atoms{_ranks(run)}, {n_steps} steps, dt = "
         f"{sim.integrator.dt / units.config_time:g} {units.config_time_label}, units {units.name}, "
         f"output {output} every {config.output.every} steps{resuming}"
     )
@@ -149,12 +164,15 @@ def main(args) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
-    _print_summary(sim, summary)
+    _print_summary(sim, summary, run.n_atoms)
     return EXIT_OK
 
 
 class _ThermoTable:
     """Observer printing one thermo row every interval (above the progress bar)."""
+
+    #: Reads only thermo: a run decomposed over MPI ranks need not gather its atoms.
+    whole_system = False
 
     columns = (
         "step",
@@ -205,15 +223,22 @@ def _progress_bar(total: int, disable: bool):
     )
 
 
-def _print_summary(sim, summary) -> None:
+def _ranks(run) -> str:
+    """", over P MPI ranks (bricks a x b x c)" for a decomposed run."""
+    if run.ranks is None:
+        return ""
+    shape = " x ".join(str(p) for p in run.parameters["decomposition"])
+    return f" over {run.ranks.n_ranks} MPI ranks (bricks {shape})"
+
+
+def _print_summary(sim, summary, n_atoms: int) -> None:
     first, wall, n_steps = summary.first, summary.wall, summary.n_steps
     output, n_frames = summary.output, summary.n_frames
-    state = sim.state
     timings = summary.timings
     other = max(wall - sum(timings.values()), 0.0)
-    atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
+    atom_steps = n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
     print(
-        f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
+        f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
     )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
