@@ -10,6 +10,7 @@ Readers therefore see the old file or the new one, never a mixture.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
@@ -81,13 +82,24 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     'done'
     """
     path = Path(path)
-    descriptor, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        descriptor, name = tempfile.mkstemp(
+            prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
+        )
+    except OSError as error:
+        raise output_error(error, path) from None
     temporary = Path(name)
     try:
         usual_permissions(descriptor)
         os.close(descriptor)
         yield temporary
         move_into_place(temporary, path, exclusive=exclusive)
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        if disk_full(error):
+            raise output_error(error, path) from None
+        raise
     except BaseException:
         with contextlib.suppress(OSError):
             temporary.unlink()
@@ -98,6 +110,51 @@ def write_text_atomic(path, text: str) -> None:
     """Replace ``path`` with ``text`` atomically and durably."""
     with atomic_path(path) as temporary:
         temporary.write_text(text)
+
+
+def write_bytes_atomic(path, data: bytes, exclusive: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically and durably (see :func:`atomic_path`).
+
+    Python's own writes report a full disk as ``OSError`` (ENOSPC), which
+    :func:`atomic_path` words as "disk full", removing the temporary file.
+    """
+    with atomic_path(path, exclusive=exclusive) as temporary:
+        temporary.write_bytes(data)
+
+
+def disk_full(error: BaseException) -> bool:
+    """Whether ``error`` says the disk (or the user's quota) is full.
+
+    Python reports it as ``OSError`` with errno ENOSPC or EDQUOT; HDF5 (through
+    h5py) as a ``RuntimeError`` or ``OSError`` whose message carries the C
+    library's text.
+    """
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    text = str(error).lower()
+    return any(
+        words in text
+        for words in ("no space left on device", "disk quota exceeded", "errno = 28,", "disk full")
+    )
+
+
+def output_error(error: BaseException, path, detail: str = "") -> OSError:
+    """The ``OSError`` to report for a failed write of ``path``.
+
+    A full disk (:func:`disk_full`) becomes ENOSPC saying "disk full: cannot
+    write PATH" (and ``detail``); another ``OSError`` is returned unchanged;
+    anything else (HDF5's ``RuntimeError``) becomes an ``OSError`` (EIO)
+    carrying its message.
+    """
+    if disk_full(error):
+        text = str(error)
+        if "disk full" in text:
+            return error if isinstance(error, OSError) else OSError(errno.ENOSPC, text)
+        extra = f"; {detail}" if detail else ""
+        return OSError(errno.ENOSPC, f"disk full: cannot write {path}{extra}")
+    if isinstance(error, OSError):
+        return error
+    return OSError(errno.EIO, f"cannot write {path}: {error}")
 
 
 class OutputBusyError(FileExistsError):
