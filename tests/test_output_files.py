@@ -18,7 +18,6 @@ import pytest
 from conftest import lj_config_text
 
 import md
-from md.cli import main
 
 QUIET = ["-q", "--no-progress"]
 
@@ -95,7 +94,8 @@ def test_a_frame_hdf5_cannot_write_is_reported_without_crashing(tmp_path, small_
     saying "disk full" and a process that exits normally, keeping the frames before it."""
     disk = small_disk(400)
     script = tmp_path / "fill.py"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(
+        textwrap.dedent(f"""
         import numpy as np
         from md.state import State
         from md.trajectory import H5MDWriter, read_trajectory, verify_frames
@@ -114,7 +114,8 @@ def test_a_frame_hdf5_cannot_write_is_reported_without_crashing(tmp_path, small_
         writer.close()
         verify_frames({str(disk / "x.h5")!r}, writer.n_frames)  # the kept frames are intact
         print("kept", writer.n_frames, "read", read_trajectory({str(disk / "x.h5")!r}).n_frames)
-    """))
+    """)
+    )
     done = subprocess.run(
         [sys.executable, str(script)], capture_output=True, text=True, timeout=300,
         env={**os.environ, "PYTHONPATH": str(Path(md.__file__).resolve().parents[1])},
