@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -64,6 +65,47 @@ def move_into_place(source, target, exclusive: bool = False) -> None:
     sync_directory(target.parent)
 
 
+#: What ``stat`` calls the files that are not regular files, for messages.
+_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def output_target(path) -> Path:
+    """The file that writing the output ``path`` replaces: a symlink's target, else ``path``.
+
+    Outputs are written through a symbolic link into the file it points to
+    (the link stays), and only ever replace regular files: a FIFO, a device
+    node (``/dev/null``), a socket or a directory is refused, never unlinked.
+
+    Raises
+    ------
+    ValueError
+        If ``path`` (or the end of its links) exists and is not a regular file,
+        or its links cannot be followed (a loop); the message names the kind.
+    """
+    path = Path(path)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        return target  # a new file (or a dangling link's target, created as `>` would)
+    except OSError as error:
+        raise ValueError(f"output {path}: {error.strerror}") from None
+    if stat.S_ISREG(mode):
+        return target
+    kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+    via = f" (the target of symlink {path})" if target != path else ""
+    raise ValueError(
+        f"output {target}{via} is {kind}; outputs are written only to regular files "
+        "(--overwrite never replaces anything else): choose another output"
+    )
+
+
 @contextlib.contextmanager
 def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success move it into place durably.
@@ -71,6 +113,10 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     The temporary file exists (empty, with the usual permissions) when the
     block starts, so writers may open it by name in any mode. If the block
     raises, the temporary file is removed and ``path`` is left as it was.
+    A symbolic link is written through (its target is replaced, the link
+    stays); a ``path`` that is not a regular file raises ValueError before
+    anything is written (:func:`output_target`). A full disk raises OSError
+    (ENOSPC) saying "disk full".
 
     Examples
     --------
@@ -81,7 +127,7 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     >>> target.read_text()
     'done'
     """
-    path = Path(path)
+    path = output_target(path)
     try:
         descriptor, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as error:

@@ -35,7 +35,8 @@ class MinimizeResult:
     """How a minimisation ended.
 
     ``fmax`` is the largest per-atom force norm at the end [energy/length];
-    ``history`` holds (step, energy, fmax) every ``report_every`` steps.
+    ``history`` holds (step, energy, fmax) every ``report_every`` steps;
+    ``stopped`` says that the caller's ``stop`` asked to end before convergence.
     """
 
     converged: bool
@@ -44,9 +45,12 @@ class MinimizeResult:
     fmax: float
     target: float
     history: list[tuple[int, float, float]] = field(default_factory=list)
+    stopped: bool = False
 
     def describe(self) -> str:
         verdict = "converged" if self.converged else "NOT converged"
+        if self.stopped:
+            verdict = "stopped"
         relation = "<=" if self.converged else ">"
         return (
             f"{verdict} after {self.steps} steps: max force {self.fmax:.4g} {relation} "
@@ -101,11 +105,14 @@ class FIRE:
         max_steps: int,
         callback: Callable[[int, float, float], None] | None = None,
         report_every: int = 100,
+        stop: Callable[[], bool] | None = None,
     ) -> MinimizeResult:
         """Move ``state.positions`` towards a local minimum until every |F_i| <= ``fmax``.
 
         Velocities, step and time of the state are left as they were. ``callback(step,
         energy, fmax)`` is called every ``report_every`` steps and at the end.
+        ``stop()`` is asked before each step; when it returns True the
+        minimisation ends there (``result.stopped``), at a consistent state.
 
         Raises
         ------
@@ -137,6 +144,9 @@ class FIRE:
                 result.converged = True
                 break
             if step == max_steps:
+                break
+            if stop is not None and stop():
+                result.stopped = True
                 break
             forces = self._capped(forces)
             power = float(np.sum(forces * velocity))
@@ -189,6 +199,7 @@ def minimize(
     max_step: float = 0.1,
     callback: Callable[[int, float, float], None] | None = None,
     report_every: int = 100,
+    stop: Callable[[], bool] | None = None,
 ) -> MinimizeResult:
     """Relax ``state`` with FIRE 2.0 (a push-off when ``max_force`` is given); see :class:`FIRE`.
 
@@ -202,7 +213,7 @@ def minimize(
     1.12246
     """
     fire = FIRE(dt=dt, max_step=max_step, max_force=max_force)
-    return fire.run(state, forcefield, fmax, max_steps, callback, report_every)
+    return fire.run(state, forcefield, fmax, max_steps, callback, report_every, stop)
 
 
 __all__ = ["FIRE", "MinimizeResult", "minimize"]

@@ -142,6 +142,13 @@ def main(args) -> int:
             f"before are kept in {output}, {checkpointed}"
         )
         return EXIT_BAD_INPUT
+    if summary.status == STOPPED and summary.message:  # while minimising: nothing written
+        print(
+            f"md run: {summary.signal} received {summary.message}; nothing was written. "
+            f"Start again with: md run {args.config}",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
     if summary.status == STOPPED:
         print(
             f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
