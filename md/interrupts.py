@@ -12,8 +12,10 @@ one that was dropped.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 
 #: Signals recorded by the start-up handler and not yet taken.
 _pending: list[int] = []
@@ -40,4 +42,30 @@ def take_pending() -> bool:
     return seen
 
 
-__all__ = ["take_pending", "watch"]
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[list[str]]:
+    """Inside the block, SIGTERM raises KeyboardInterrupt, as Ctrl-C does.
+
+    A command that writes a file whole (through a temporary file) then
+    cleans up on ``kill`` as on Ctrl-C, instead of dying with its temporary
+    file left behind. Yields a list that holds ``"SIGTERM"`` once one came,
+    so the command can say which signal stopped it. The previous handler is
+    restored at the end; outside the main thread this does nothing.
+    """
+    received: list[str] = []
+
+    def handler(signum, frame):
+        received.append("SIGTERM")
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+__all__ = ["sigterm_as_interrupt", "take_pending", "watch"]

@@ -60,6 +60,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from md._checks import count
 from md._files import disk_full, write_bytes_atomic
 from md._version import __version__
 from md.box import cell_matrix, wrap
@@ -207,6 +208,7 @@ class H5MDWriter:
                 _write_topology(self._file, topology)
             if self._in_memory:
                 return
+            self._file.flush()  # the image holds what has been flushed
             image = self._file.id.get_file_image()
         except BaseException:
             self._drop_memory_file()
@@ -886,17 +888,18 @@ class TrajectoryReader:
             If ``start`` or ``stop`` lies outside the file's frames, or the
             slice selects none; the message gives the number of frames.
         ValueError
-            If ``step`` is not a positive integer.
+            If ``step`` is not a positive integer (at most 2^53).
         """
         n = self.n_frames
-        if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 1):
-            raise ValueError(f"step must be a positive integer, got {step!r}")
+        if step is not None:
+            step = count(step, "step", minimum=1)
         for name, value, limit in (("start", start, n - 1), ("stop", stop, n)):
             if value is not None and not -n <= value <= limit:
                 raise IndexError(
                     f"{self.path} holds {n} frames (0 to {n - 1}); {name} {value} is out of range"
                 )
-        frames = range(n)[slice(start, stop, step)]
+        # A step beyond the frames selects the first alone; h5py takes no larger one.
+        frames = range(n)[slice(start, stop, None if step is None else min(step, max(n, 1)))]
         if len(frames) == 0:
             raise IndexError(
                 f"{self.path} holds {n} frames; start {start}, stop {stop}, step {step} select none"

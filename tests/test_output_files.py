@@ -280,3 +280,244 @@ def test_a_resumed_run_that_fills_the_disk_names_the_checkpoint_it_resumed_from(
     from md.trajectory import read_trajectory
 
     assert read_trajectory(disk / "out.h5").steps.tolist() == [0, 10, 20, 30, 40, 50, 60]
+
+
+# ---------------------------------------------- item 3: md convert on a full disk
+@pytest.fixture(scope="module")
+def trajectory_500(tmp_path_factory):
+    """21 frames of 500 atoms."""
+    folder = tmp_path_factory.mktemp("traj500")
+    config = folder / "run.toml"
+    output = 'path = "t.h5"\nevery = 10'
+    config.write_text(lj_config_text(cells=5, run="steps = 200", output=output))
+    assert _md(["run", str(config), *QUIET], folder).returncode == 0
+    return folder / "t.h5"
+
+
+@pytest.mark.parametrize(("suffix", "kb"), [("dcd", 16), ("dcd", 64), ("xtc", 48)])
+def test_md_convert_on_a_full_disk_exits_2_and_leaves_nothing(
+    trajectory_500, small_disk, suffix, kb
+):
+    """Before: "Wrote 21 frames" and exit 0, leaving a short file (the XTC and DCD writers
+    are C code that does not check its writes)."""
+    disk = small_disk(kb)
+    done = _md(
+        ["convert", str(trajectory_500), str(disk / f"out.{suffix}"), "--no-progress"],
+        disk.parent,
+    )
+    _assert_disk_full_and_nothing_left(done, disk)
+
+
+# ------------------------------------------------ item 14: md convert --step
+def test_md_convert_refuses_a_huge_step_with_a_message(trajectory_500, tmp_path, capsys):
+    out = tmp_path / "out.xyz"
+    assert main(["convert", str(trajectory_500), str(out), "--step", str(10**23)]) == 2
+    err = capsys.readouterr().err
+    assert "step must be at most" in err and "Traceback" not in err, err
+    assert not out.exists()
+    # a step beyond the frames (but countable) takes the first frame, as a slice does
+    assert main(["convert", str(trajectory_500), str(out), "--step", str(10**6)]) == 0
+    assert out.read_text().count("step=") == 1
+
+
+# ----------------------------------- item 4: nothing replaces a running run's output
+def test_no_command_replaces_the_output_of_a_running_run(tmp_path, trajectory_500):
+    import signal
+    import time
+
+    config = tmp_path / "long.toml"
+    config.write_text(
+        lj_config_text(
+            run="steps = 10000000\nthermo_every = 1000000",
+            output='path = "live.h5"\nevery = 50\ncheckpoint_every = 1000',
+        )
+    )
+    live = tmp_path / "live.h5"
+    link = tmp_path / "link.h5"
+    link.symlink_to(live)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "md.cli", "run", str(config), *QUIET],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 600
+        while not (tmp_path / "live.h5.ckpt").exists() or not live.exists():
+            assert run.poll() is None and time.monotonic() < deadline, run.communicate()
+            time.sleep(0.1)
+        time.sleep(1.0)
+        for target in (live, link):
+            for command in (
+                ["minimize", str(config), "-o", str(target), "--overwrite", "-q"],
+                ["convert", str(trajectory_500), str(target), "--format", "xyz", "--overwrite"],
+            ):
+                inode = live.stat().st_ino
+                done = _md(command, tmp_path)
+                assert done.returncode == 2, (command, done.stderr)
+                assert "being written by another run" in done.stderr, done.stderr
+                assert f"pid {run.pid}" in done.stderr
+                assert live.stat().st_ino == inode  # not replaced
+                assert link.is_symlink()
+        assert run.poll() is None  # the run goes on
+    finally:
+        run.send_signal(signal.SIGTERM)
+        _, err = run.communicate(timeout=300)
+    assert run.returncode == 143, err
+    resumed = _md(["run", str(config), "--resume", "--steps", str(_steps(live) + 100), *QUIET],
+                  tmp_path)  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    from md.trajectory import verify_frames
+
+    verify_frames(live)  # every frame intact after the resume
+
+
+def _steps(path: Path) -> int:
+    from md.checkpoint import read_checkpoint
+
+    return read_checkpoint(Path(str(path) + ".ckpt")).state.step
+
+
+def test_md_render_respects_a_claim_on_its_picture(tmp_path, trajectory_500):
+    """md render claims its output as md run does, so two writers never share a picture."""
+    from md._files import exclusive_claim
+
+    picture = tmp_path / "shot.png"
+    picture.write_bytes(b"old")
+    with exclusive_claim(picture):
+        done = _md(["render", str(trajectory_500), "-o", str(picture), "--overwrite"], tmp_path)
+    assert done.returncode == 2 and "being written by another run" in done.stderr, done.stderr
+    assert picture.read_bytes() == b"old"
+
+
+# ------------------------------------ item 7: special files and symlinks as outputs
+def _special(path: Path, kind: str) -> None:
+    import stat
+
+    if kind == "fifo":
+        os.mkfifo(path)
+        return
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        pytest.skip("making a device node needs root")
+    os.mknod(path, stat.S_IFCHR | 0o666, os.makedev(1, 3))  # what /dev/null is
+
+
+def _output_command(command: str, tmp_path: Path, target: Path, trajectory: Path) -> list[str]:
+    config = tmp_path / "small.toml"
+    config.write_text(lj_config_text(run="steps = 10"))
+    return {
+        "run": ["run", str(config), "-o", str(target), "--overwrite", *QUIET],
+        "minimize": ["minimize", str(config), "-o", str(target), "--overwrite", "-q"],
+        "convert": ["convert", str(trajectory), str(target), "--overwrite", "--no-progress"],
+        "render": ["render", str(trajectory), "-o", str(target), "--overwrite", "--size", "64"],
+    }[command]
+
+
+SUFFIX = {"run": ".h5", "minimize": ".h5", "convert": ".xyz", "render": ".png"}
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+@pytest.mark.parametrize("command", ["run", "minimize", "convert", "render"])
+def test_overwrite_never_replaces_a_special_file(
+    tmp_path, monkeypatch, capsys, trajectory_500, command, kind
+):
+    """Before: --overwrite unlinked a FIFO or a device node and put a regular file there."""
+    import stat
+
+    monkeypatch.chdir(tmp_path)
+    target = tmp_path / f"special{SUFFIX[command]}"
+    _special(target, kind)
+    before = os.lstat(target)
+    assert main(_output_command(command, tmp_path, target, trajectory_500)) == 2
+    err = capsys.readouterr().err
+    assert ("a FIFO" if kind == "fifo" else "a character device") in err, err
+    assert "not a regular file" in err or "only to regular files" in err
+    after = os.lstat(target)
+    assert after.st_ino == before.st_ino and stat.S_IFMT(after.st_mode) == stat.S_IFMT(
+        before.st_mode
+    )
+
+
+@pytest.mark.parametrize("command", ["run", "minimize", "convert", "render"])
+def test_overwrite_writes_through_a_symlink_into_its_target(
+    tmp_path, monkeypatch, trajectory_500, command
+):
+    """Before: the link was replaced by a regular file and its target left as it was."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / f"target{SUFFIX[command]}"
+    target.write_bytes(b"old contents")
+    link = tmp_path / f"link{SUFFIX[command]}"
+    link.symlink_to(target)
+    assert main(_output_command(command, tmp_path, link, trajectory_500)) == 0
+    assert link.is_symlink() and link.resolve() == target
+    assert target.read_bytes() != b"old contents"
+    if command in ("run", "minimize"):
+        from md.trajectory import read_trajectory
+
+        assert read_trajectory(link).n_frames >= 1
+
+
+# ------------------------------- item 8: an interrupted md convert leaves no temporaries
+@pytest.fixture(scope="module")
+def long_trajectory(tmp_path_factory):
+    """300 frames of 2000 atoms (no dynamics needed): converting them to extxyz takes seconds."""
+    import numpy as np
+
+    from md.state import State
+    from md.trajectory import H5MDWriter
+
+    path = tmp_path_factory.mktemp("long") / "t.h5"
+    rng = np.random.default_rng(3)
+    n = 2000
+    state = State(
+        positions=20 * rng.random((n, 3)), velocities=np.zeros((n, 3)), masses=np.ones(n),
+        box=np.full(3, 20.0), pbc=np.ones(3, bool),
+    )  # fmt: skip
+    with H5MDWriter(path, state) as writer:
+        for step in range(300):
+            state.step = step
+            writer.write(state)
+    return path
+
+
+def _convert_until_its_temporary_appears(trajectory: Path, out: Path) -> subprocess.Popen:
+    import time
+
+    process = subprocess.Popen(
+        [sys.executable, "-m", "md.cli", "convert", str(trajectory), str(out), "--no-progress"],
+        cwd=out.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 300
+    while not list(out.parent.glob(f".{out.name}.*.tmp")):
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+        time.sleep(0.01)
+    return process
+
+
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGINT"])
+def test_a_signal_during_md_convert_says_so_and_leaves_no_temporary(
+    tmp_path, long_trajectory, name
+):
+    """Before: SIGTERM ended md convert silently (exit -15) with its temporary left."""
+    import signal
+
+    out = tmp_path / "out.extxyz"
+    process = _convert_until_its_temporary_appears(long_trajectory, out)
+    process.send_signal(getattr(signal, name))
+    _, err = process.communicate(timeout=300)
+    assert process.returncode == (143 if name == "SIGTERM" else 130), err
+    assert f"{name} received; stopped, nothing was written to {out}" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_the_next_md_convert_removes_a_killed_conversions_temporary(tmp_path, long_trajectory):
+    import signal
+
+    out = tmp_path / "out.extxyz"
+    process = _convert_until_its_temporary_appears(long_trajectory, out)
+    process.send_signal(signal.SIGKILL)  # nothing can clean up after this
+    process.communicate(timeout=300)
+    assert list(tmp_path.glob(".out.extxyz.*.tmp"))
+    again = ["convert", str(long_trajectory), str(out), "--stop", "3", "--no-progress"]
+    done = _md(again, tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.extxyz"]
