@@ -148,6 +148,9 @@ class H5MDWriter:
     OSError
         If the file cannot be written; a full disk says "disk full", and the
         path is then left as it was (a new file is not created).
+    ValueError
+        If ``path`` exists and is not a regular file (a FIFO, a device node);
+        a symbolic link is written through into its target.
     TrajectoryError
         With ``append``, if the file is not one of ours, holds another atom
         count, or fewer than ``keep_frames`` frames.
