@@ -135,7 +135,7 @@ def _remount(folder: Path, kb: int) -> None:
     assert done.returncode == 0, done.stderr
 
 
-@pytest.mark.parametrize("kb", [8, 40, 96])
+@pytest.mark.parametrize("kb", [8, pytest.param(40, marks=pytest.mark.slow), 96])
 def test_md_minimize_on_a_full_disk_leaves_nothing_and_the_rerun_works(run_config, small_disk, kb):
     """Before: a bus error at 8 kB; a zero-frame file at 96 kB that refused the re-run."""
     disk = small_disk(kb)
@@ -143,8 +143,8 @@ def test_md_minimize_on_a_full_disk_leaves_nothing_and_the_rerun_works(run_confi
     done = _md(command, run_config.parent)
     _assert_disk_full_and_nothing_left(done, disk)
     _remount(disk, 4096)  # room made: the same command now works
-    again = _md(command, run_config.parent)
-    assert again.returncode == 0, again.stderr
+    monkeypatch.chdir(run_config.parent)
+    assert main(command) == 0
     from md.trajectory import read_trajectory
 
     assert read_trajectory(disk / "relaxed.h5").n_frames == 1
@@ -256,7 +256,7 @@ def test_sigterm_while_minimising_says_so_and_writes_nothing(tmp_path, command):
 
 # ------------------------------------- item 17: "no checkpoint was written" when one exists
 def test_a_resumed_run_that_fills_the_disk_names_the_checkpoint_it_resumed_from(
-    tmp_path, small_disk
+    tmp_path, monkeypatch, capsys, small_disk
 ):
     disk = small_disk(4096)
     config = tmp_path / "run.toml"
@@ -267,16 +267,17 @@ def test_a_resumed_run_that_fills_the_disk_names_the_checkpoint_it_resumed_from(
             "checkpoint_every = 0",  # a checkpoint at the start and at the end only
         )
     )
-    assert _md(["run", str(config), *QUIET], tmp_path).returncode == 0
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(config), *QUIET]) == 0
     free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
     (disk / "filler").write_bytes(b"\0" * (free - 120_000))  # room for a few frames
-    full = _md(["run", str(config), "--resume", "--steps", "100000", *QUIET], tmp_path)
-    assert full.returncode == 2, full.stderr
-    assert "disk full" in full.stderr and "no checkpoint was written" not in full.stderr
-    assert f"the last checkpoint (step 20) in {disk / 'out.h5.ckpt'}" in full.stderr, full.stderr
+    capsys.readouterr()
+    assert main(["run", str(config), "--resume", "--steps", "100000", *QUIET]) == 2
+    err = capsys.readouterr().err
+    assert "disk full" in err and "no checkpoint was written" not in err
+    assert f"the last checkpoint (step 20) in {disk / 'out.h5.ckpt'}" in err, err
     (disk / "filler").unlink()
-    again = _md(["run", str(config), "--resume", "--steps", "60", *QUIET], tmp_path)
-    assert again.returncode == 0, again.stderr
+    assert main(["run", str(config), "--resume", "--steps", "60", *QUIET]) == 0
     from md.trajectory import read_trajectory
 
     assert read_trajectory(disk / "out.h5").steps.tolist() == [0, 10, 20, 30, 40, 50, 60]
@@ -321,7 +322,10 @@ def test_md_convert_refuses_a_huge_step_with_a_message(trajectory_500, tmp_path,
 
 
 # ----------------------------------- item 4: nothing replaces a running run's output
-def test_no_command_replaces_the_output_of_a_running_run(tmp_path, trajectory_500):
+def test_no_command_replaces_the_output_of_a_running_run(
+    tmp_path, monkeypatch, capsys, trajectory_500
+):
+    """Before: md minimize and md convert --overwrite replaced it (and --resume failed)."""
     import signal
     import time
 
@@ -351,10 +355,10 @@ def test_no_command_replaces_the_output_of_a_running_run(tmp_path, trajectory_50
                 ["convert", str(trajectory_500), str(target), "--format", "xyz", "--overwrite"],
             ):
                 inode = live.stat().st_ino
-                done = _md(command, tmp_path)
-                assert done.returncode == 2, (command, done.stderr)
-                assert "being written by another run" in done.stderr, done.stderr
-                assert f"pid {run.pid}" in done.stderr
+                monkeypatch.chdir(tmp_path)
+                assert main(command) == 2, command
+                err = capsys.readouterr().err
+                assert "being written by another run" in err and f"pid {run.pid}" in err, err
                 assert live.stat().st_ino == inode  # not replaced
                 assert link.is_symlink()
         assert run.poll() is None  # the run goes on
@@ -362,9 +366,8 @@ def test_no_command_replaces_the_output_of_a_running_run(tmp_path, trajectory_50
         run.send_signal(signal.SIGTERM)
         _, err = run.communicate(timeout=300)
     assert run.returncode == 143, err
-    resumed = _md(["run", str(config), "--resume", "--steps", str(_steps(live) + 100), *QUIET],
-                  tmp_path)  # fmt: skip
-    assert resumed.returncode == 0, resumed.stderr
+    resume = ["run", str(config), "--resume", "--steps", str(_steps(live) + 100), *QUIET]
+    assert main(resume) == 0
     from md.trajectory import verify_frames
 
     verify_frames(live)  # every frame intact after the resume
@@ -517,7 +520,5 @@ def test_the_next_md_convert_removes_a_killed_conversions_temporary(tmp_path, lo
     process.send_signal(signal.SIGKILL)  # nothing can clean up after this
     process.communicate(timeout=300)
     assert list(tmp_path.glob(".out.extxyz.*.tmp"))
-    again = ["convert", str(long_trajectory), str(out), "--stop", "3", "--no-progress"]
-    done = _md(again, tmp_path)
-    assert done.returncode == 0, done.stderr
+    assert main(["convert", str(long_trajectory), str(out), "--stop", "3", "--no-progress"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.extxyz"]
