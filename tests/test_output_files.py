@@ -136,7 +136,9 @@ def _remount(folder: Path, kb: int) -> None:
 
 
 @pytest.mark.parametrize("kb", [8, pytest.param(40, marks=pytest.mark.slow), 96])
-def test_md_minimize_on_a_full_disk_leaves_nothing_and_the_rerun_works(run_config, small_disk, kb):
+def test_md_minimize_on_a_full_disk_leaves_nothing_and_the_rerun_works(
+    run_config, monkeypatch, small_disk, kb
+):
     """Before: a bus error at 8 kB; a zero-frame file at 96 kB that refused the re-run."""
     disk = small_disk(kb)
     command = ["minimize", str(run_config), "-o", str(disk / "relaxed.h5"), "-q"]
