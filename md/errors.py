@@ -48,8 +48,33 @@ class AnalysisError(ValueError):
     """A trajectory lacks what an analysis needs, or its parameters do not fit the data."""
 
 
+class AngleCollapseError(NonFiniteError):
+    """An angle has an arm of zero length (two of its atoms at one place): no angle.
+
+    Raised by the angle potentials (:mod:`potentials.angles`). A
+    :class:`NonFiniteError`, so the simulation loop reports it as a
+    :class:`SimulationError` at the failing step.
+
+    Attributes
+    ----------
+    angle : int
+        Index of the first such angle in the angle list.
+    atoms : tuple of int
+        Its atoms ``(i, j, k)``, ``j`` the vertex.
+    """
+
+    def __init__(self, angle: int, atoms: tuple[int, int, int]) -> None:
+        self.angle = angle
+        self.atoms = atoms
+        super().__init__(
+            f"angle {angle} {atoms} has an arm of zero length (atoms at one place), so its "
+            "angle is undefined"
+        )
+
+
 __all__ = [
     "AnalysisError",
+    "AngleCollapseError",
     "CheckpointError",
     "ConfigError",
     "ConvergenceError",

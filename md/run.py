@@ -62,6 +62,7 @@ from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
+from potentials.base import BondedAngles
 
 #: Statuses of a finished :meth:`PreparedRun.execute`.
 COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
@@ -650,7 +651,8 @@ def minimize_config(
 
 # ------------------------------------------------------------------ helpers
 def run_topology(sim: Simulation) -> Topology:
-    """The bonds a run's trajectory stores: its bonded potentials' and its constraints'."""
+    """The bonds and angles a run's trajectory stores: its bonded potentials' and its
+    constraints'."""
     constraints = getattr(sim.integrator, "constraints", None)
     extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
     return sim.forcefield.topology(extra=extra)
@@ -674,6 +676,14 @@ def build_components(config: Config, state: State | None = None):
         potential_from_config(entry, state.type_names, config.source, index, bonds)
         for index, entry in enumerate(config.potentials)
     ]
+    for index, potential in enumerate(potentials):
+        if not isinstance(potential, BondedAngles):
+            continue  # the others are checked with the force field (Simulation)
+        try:  # angles name atoms: say which table names one the system lacks
+            potential.check(state)
+        except ValueError as error:
+            kind = config.potentials[index]["type"]
+            raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:
@@ -777,14 +787,15 @@ def _refuse_claimed(output: Path) -> None:
 
 
 def _input_files(config: Config, path_or_config) -> list[Path]:
-    """The files a run reads: the config, a structure file, bonds files."""
+    """The files a run reads: the config, a structure file, bonds and angles files."""
     files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
     if config.system.structure is not None:
         files.append(Path(config.system.structure))
     tables = [*config.potentials, config.integrator.get("constraints") or {}]
     for table in tables:
-        if isinstance(table, dict) and isinstance(table.get("bonds_file"), str):
-            files.append(Path(table["bonds_file"]))
+        for key in ("bonds_file", "angles_file"):
+            if isinstance(table, dict) and isinstance(table.get(key), str):
+                files.append(Path(table[key]))
     return files
 
 

@@ -112,6 +112,20 @@ class Bonded(Protocol):
 
 
 @runtime_checkable
+class BondedAngles(Protocol):
+    """Optional capability: a fixed angle list, stored in trajectories as topology.
+
+    ``angles`` is an (A, 3) integer array of atom triples ``(i, j, k)``, ``j``
+    the vertex, ``angle_types`` an (A,) type index per angle, and
+    ``angle_style`` names the form ("angle_harmonic", "angle_cosine").
+    """
+
+    angles: NDArray[np.int64]
+    angle_types: NDArray[np.int64]
+    angle_style: str
+
+
+@runtime_checkable
 class SupportsHessianOperator(Protocol):
     """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
 
