@@ -95,6 +95,11 @@ class Langevin(Thermostat):
         self.rng = make_rng(seed)
         self._noise: np.ndarray | None = None
 
+    @classmethod
+    def coupling(cls, tau: float) -> dict:
+        """Langevin couples through its friction: 1 / ``tau``."""
+        return {"friction": 1.0 / tau}
+
     def step(self, state, forcefield) -> None:
         self._prepare(state)
         dt, half = self.dt, 0.5 * self.dt

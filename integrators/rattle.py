@@ -29,49 +29,11 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from integrators._kernels import kick, kick_drift
-from integrators.base import ConvergenceError, IntegratorBase, check_dt
+from integrators.base import IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
+from md.errors import ConstraintError
 from md.thermo import degrees_of_freedom as unconstrained_dof
-
-#: Stage names used in error messages.
-_STAGES = {"positions": "SHAKE (bond lengths)", "velocities": "RATTLE (bond velocities)"}
-
-
-class ConstraintError(ConvergenceError):
-    """SHAKE or RATTLE did not converge within ``max_iter`` iterations.
-
-    Attributes
-    ----------
-    step : int
-        The step being taken when it failed.
-    residual : float
-        Largest relative error left: |r - d| / d for positions, the relative
-        bond-length change per step |r . v_ij| dt / d^2 for velocities.
-    bond, i, j : int
-        Index of the worst bond and its atoms.
-    """
-
-    def __init__(self, step, stage, residual, bond, i, j, tol, max_iter) -> None:
-        self.stage = stage
-        self.bond = bond
-        self.i = i
-        self.j = j
-        if np.isfinite(residual):
-            problem = (
-                f"did not converge in {max_iter} iterations: bond {bond} (atoms {i}-{j}) has "
-                f"relative error {residual:.3g} > tol {tol:g}"
-            )
-        else:
-            problem = (
-                f"cannot correct bond {bond} (atoms {i}-{j}): it turned by 90 degrees or "
-                "more within the step"
-            )
-        message = (
-            f"step {step}: {_STAGES.get(stage, stage)} {problem} (is dt too large, or a "
-            "constrained bond torn apart by the forces?)"
-        )
-        super().__init__(step, residual, message)
 
 
 class BondConstraints:
@@ -456,8 +418,7 @@ class Rattle(IntegratorBase):
         self.constraints.bind(state, self.dt, state.step + 1)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
         self._steps += 1
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Nothing to forget: RATTLE is a one-step method."""

@@ -133,8 +133,7 @@ class RK4(IntegratorBase):
         except BaseException:
             work.restore(state)
             raise
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
         self.statistics["steps"] += 1
 
     def reset(self) -> None:
@@ -299,8 +298,7 @@ class RKF45(IntegratorBase):
             np.copyto(state.velocities, self._start_velocities)
             raise
         self._h = h
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
         stats["steps"] += 1
 
     def reset(self) -> None:

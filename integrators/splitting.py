@@ -214,8 +214,7 @@ class Splitting(IntegratorBase):
                 kick(state.velocities, forces, inverse_masses, c * dt)
             else:
                 _drift(state.positions, state.velocities, c * dt)
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
 
     def describe(self) -> dict:
         return {"type": self.name, "dt": self.dt}

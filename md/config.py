@@ -493,7 +493,7 @@ def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) 
         friction = table.number("friction", None, minimum=0.0)
         if friction is not None:
             extra["friction"] = friction / units.config_time
-        if getattr(cls, "stochastic", False) and "seed" not in table.data and seed is not None:
+        if cls.stochastic and "seed" not in table.data and seed is not None:
             extra["seed"] = [seed, 1]
     constraints = table.take("constraints", None)
     if constraints is not None:

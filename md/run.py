@@ -18,6 +18,7 @@ Examples
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import time
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from integrators.barostats import Barostat, pressure_control
+from integrators.base import ForceSplit, Statistics, constraints_of
 from md._checks import count, positive
 from md._files import claim_holder, exclusive_claim, output_target, remove_stale_temporaries
 from md.checkpoint import (
@@ -109,6 +111,9 @@ class RunSummary:
         The error, for ``failed`` and ``output_error``.
     signal : str or None
         ``"SIGINT"`` or ``"SIGTERM"`` for ``stopped``.
+    statistics : dict
+        The integrator's cumulative counters at the end (its ``statistics``
+        hook, :class:`integrators.base.Statistics`; empty without one).
     """
 
     status: str
@@ -123,6 +128,27 @@ class RunSummary:
     last_checkpoint_step: int | None = None
     message: str = ""
     signal: str | None = None
+    statistics: dict = field(default_factory=dict)
+
+    def relative_change(self, key: str = "total_energy") -> float:
+        """(last - first) of a thermo quantity over the first total energy's scale.
+
+        The scale is the larger of |total energy| and the kinetic energy at the
+        start (so a total energy near zero does not blow the ratio up). NaN
+        when the run has no ``last`` row (it did not complete) or no ``key``.
+        """
+        first, last = self.first, self.last
+        if key not in first or key not in last:
+            return math.nan
+        scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
+        return (last[key] - first[key]) / scale
+
+    def per_step(self) -> dict[str, float]:
+        """The integrator's counters divided by its steps (``steps`` itself left out)."""
+        steps = self.statistics.get("steps")
+        if not steps:
+            return {}
+        return {name: value / steps for name, value in self.statistics.items() if name != "steps"}
 
 
 @dataclass
@@ -291,6 +317,8 @@ class PreparedRun:
             summary.status, summary.signal = STOPPED, sim.stop_requested
         if summary.status == COMPLETED:
             summary.last = sim.thermo()
+        if isinstance(sim.integrator, Statistics):
+            summary.statistics = dict(sim.integrator.statistics)
         return summary
 
     def _open_outputs(self) -> H5MDWriter:
@@ -337,7 +365,7 @@ class PreparedRun:
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
             triclinic=not self.sim.state.is_orthorhombic
             or (self.config.barostat or {}).get("couple") == "triclinic",
-            conserved=bool(getattr(self.sim.integrator, "thermostat", False)),
+            conserved=self.sim.integrator.thermostat,
         )  # fmt: skip
 
 
@@ -653,7 +681,7 @@ def minimize_config(
 def run_topology(sim: Simulation) -> Topology:
     """The bonds and angles a run's trajectory stores: its bonded potentials' and its
     constraints'."""
-    constraints = getattr(sim.integrator, "constraints", None)
+    constraints = constraints_of(sim.integrator)
     extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
     return sim.forcefield.topology(extra=extra)
 
@@ -672,10 +700,7 @@ def build_components(config: Config, state: State | None = None):
             f"{built.n_atoms}"
         )
     state = built if state is None else state
-    potentials = [
-        potential_from_config(entry, state.type_names, config.source, index, bonds)
-        for index, entry in enumerate(config.potentials)
-    ]
+    potentials = build_potentials(config, state.type_names, bonds)
     for index, potential in enumerate(potentials):
         if not isinstance(potential, BondedAngles):
             continue  # the others are checked with the force field (Simulation)
@@ -690,13 +715,25 @@ def build_components(config: Config, state: State | None = None):
             integrator = pressure_control(integrator, Barostat(**config.barostat))
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None
-    constraints = getattr(integrator, "constraints", None)
+    constraints = constraints_of(integrator)
     if constraints is not None:  # start on the bond lengths, so step 0 is reported there
         try:
             constraints.bind(state, integrator.dt)
         except (ValueError, ConvergenceError) as error:
             raise ConfigError(f"{config.source}: [integrator.constraints]: {error}") from None
     return state, potentials, integrator
+
+
+def build_potentials(config: Config, type_names, bonds=None) -> list:
+    """Fresh potentials from the config's ``[[potentials]]``, as ``md run`` builds them.
+
+    ``bonds`` is the system's topology (``build_system``'s second value), which
+    ``bonds = "system"`` takes. Raises ConfigError naming the table.
+    """
+    return [
+        potential_from_config(entry, type_names, config.source, index, bonds)
+        for index, entry in enumerate(config.potentials)
+    ]
 
 
 def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> Simulation:
@@ -725,7 +762,7 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
         )
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
-    if integrator.splits_forces:  # RESPA: both kinds of potential must be there
+    if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
         try:
             integrator.split(sim.forcefield)
         except ValueError as error:
@@ -881,6 +918,7 @@ __all__ = [
     "PreparedRun",
     "RunSummary",
     "build_components",
+    "build_potentials",
     "minimize_config",
     "prepare",
     "prepare_minimize",

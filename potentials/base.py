@@ -126,6 +126,20 @@ class BondedAngles(Protocol):
 
 
 @runtime_checkable
+class TypedParameters(Protocol):
+    """Optional capability: parameters that can depend on the particle type.
+
+    ``per_type_parameters`` is True when they do (one value per type, or
+    explicit pair values), so whoever maps particles onto type indices must
+    follow the parameters' type order: the ASE calculator then asks for
+    ``type_names``. A potential without the attribute acts alike on every type.
+    """
+
+    @property
+    def per_type_parameters(self) -> bool: ...
+
+
+@runtime_checkable
 class SupportsHessianOperator(Protocol):
     """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
 

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
-from md.errors import NonFiniteError
+from md.errors import BondStretchError
 from potentials._bonded import config_values, symmetric, type_tables
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -30,36 +30,6 @@ from potentials.pair_hessian import PairHessian
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
 _FENE = 1
-
-
-class BondStretchError(NonFiniteError):
-    """A FENE bond reached its maximum extension ``r_max`` (infinite energy).
-
-    A subclass of :class:`md.errors.NonFiniteError`, so the simulation loop
-    reports it as a :class:`md.simulation.SimulationError` at the failing step.
-
-    Attributes
-    ----------
-    bond : int
-        Index of the first overstretched bond in the bond list.
-    i, j : int
-        Its atoms.
-    length : float
-        Its length [length].
-    r_max : float
-        Its maximum extension [length].
-    """
-
-    def __init__(self, bond: int, i: int, j: int, length: float, r_max: float) -> None:
-        self.bond = bond
-        self.i = i
-        self.j = j
-        self.length = length
-        self.r_max = r_max
-        super().__init__(
-            f"FENE bond {bond} between atoms {i} and {j} is stretched to length "
-            f"{length:.6g} >= r_max = {r_max:g}"
-        )
 
 
 class _BondedPotential:

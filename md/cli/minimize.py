@@ -15,7 +15,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from md._files import OutputBusyError
 from md.cli._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -24,7 +23,7 @@ from md.cli._common import (
     EXIT_TERMINATED,
     fail,
 )
-from md.errors import ConfigError
+from md.errors import ConfigError, OutputBusyError
 from md.run import FAILED, OUTPUT_ERROR, STOPPED, prepare_minimize
 
 
