@@ -26,6 +26,11 @@ def fail(message: str) -> None:
     print(f"md: error: {message}", file=sys.stderr)
 
 
+def exit_for_signal(name: str | None) -> int:
+    """The exit code for a command stopped by signal ``name``: 143 for SIGTERM, else 130."""
+    return EXIT_TERMINATED if name == "SIGTERM" else EXIT_INTERRUPTED
+
+
 def writing_whole_file(command: str, output, body: Callable[[], int]) -> int:
     """Return ``body()``, or 130/143 with a message if SIGINT/SIGTERM stops it.
 
@@ -42,4 +47,4 @@ def writing_whole_file(command: str, output, body: Callable[[], int]) -> int:
                 f"md {command}: {name} received; stopped, nothing was written to {output}",
                 file=sys.stderr,
             )
-            return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+            return exit_for_signal(name)

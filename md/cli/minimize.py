@@ -15,14 +15,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from md.cli._common import (
-    EXIT_BAD_INPUT,
-    EXIT_FAILED,
-    EXIT_INTERRUPTED,
-    EXIT_OK,
-    EXIT_TERMINATED,
-    fail,
-)
+from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, exit_for_signal, fail
 from md.errors import ConfigError, OutputBusyError
 from md.run import FAILED, OUTPUT_ERROR, STOPPED, prepare_minimize
 
@@ -91,7 +84,7 @@ def main(args) -> int:
             f"force {result.fmax:.4g}); nothing was written to {output}",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
+        return exit_for_signal(summary.signal)
     print(f"md minimize: {result.describe()}")
     if summary.status == OUTPUT_ERROR:
         fail(f"cannot write {output} ({summary.message}); nothing was written")

@@ -18,7 +18,7 @@ from md.cli._common import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
-    EXIT_TERMINATED,
+    exit_for_signal,
     fail,
 )
 from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
@@ -147,7 +147,7 @@ def main(args) -> int:
             f"Start again with: md run {args.config}",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
+        return exit_for_signal(summary.signal)
     if summary.status == STOPPED:
         print(
             f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
@@ -155,7 +155,7 @@ def main(args) -> int:
             f"md run {args.config} --resume",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
+        return exit_for_signal(summary.signal)
     _print_summary(sim, summary)
     return EXIT_OK
 
