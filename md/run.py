@@ -634,16 +634,17 @@ def prepare_minimize(
     """
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
-    stage = replace(config.minimize or MinimizeConfig())
+    overrides = {}
     try:
         if fmax is not None:
-            stage.fmax = positive(fmax, "--fmax")
+            overrides["fmax"] = positive(fmax, "--fmax")
         if max_steps is not None:
-            stage.max_steps = count(max_steps, "--max-steps", minimum=1)
+            overrides["max_steps"] = count(max_steps, "--max-steps", minimum=1)
         if max_force is not None:
-            stage.max_force = positive(max_force, "--max-force")
+            overrides["max_force"] = positive(max_force, "--max-force")
     except ValueError as error:
         raise ConfigError(str(error)) from None
+    stage = replace(config.minimize or MinimizeConfig(), **overrides)
     if output is None:
         output = config.output.path.with_name(f"{config.output.path.stem}_min.h5")
     output = _writable_output(Path(output))
