@@ -211,7 +211,8 @@ def exclusive_claim(path) -> Iterator[Path]:
     and host; the kernel drops it when the holder exits, however it exits, so
     a killed run never leaves a stale claim. A second claimant fails at once
     with :class:`OutputBusyError` naming the holder. The lock file is removed
-    when the block ends.
+    when the block ends; a disk too full to hold it raises OSError saying
+    "disk full" (the lock file is removed again).
     """
     import fcntl  # POSIX only, as flock is
 
@@ -238,9 +239,12 @@ def exclusive_claim(path) -> Iterator[Path]:
             break
         os.close(descriptor)
     try:
-        os.ftruncate(descriptor, 0)
-        host = os.uname().nodename if hasattr(os, "uname") else "this host"
-        os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
+        try:
+            os.ftruncate(descriptor, 0)
+            host = os.uname().nodename if hasattr(os, "uname") else "this host"
+            os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
+        except OSError as error:  # a full disk has no room for even these few bytes
+            raise output_error(error, path, f"no room for its lock file {lock_path.name}") from None
         yield lock_path
     finally:
         with contextlib.suppress(OSError):

@@ -18,6 +18,7 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -54,6 +55,7 @@ from md.errors import (
     ConfigError,
     ConvergenceError,
     NonFiniteError,
+    OutputBusyError,
     SimulationError,
     TrajectoryError,
 )
@@ -565,7 +567,13 @@ class PreparedMinimize:
         OutputBusyError
             If another run claimed the output meanwhile.
         """
-        with exclusive_claim(self.output):
+        with contextlib.ExitStack() as claimed:
+            try:
+                claimed.enter_context(exclusive_claim(self.output))
+            except OutputBusyError:
+                raise
+            except OSError as error:  # no room even for the claim's lock file
+                return MinimizeSummary(OUTPUT_ERROR, self.output, message=str(error))
             remove_stale_temporaries(self.output)
             if self.output.exists() and not self.overwrite:
                 raise ConfigError(f"output file {self.output} appeared while minimising started")

@@ -7,6 +7,7 @@ broke was the process itself (segmentation faults and bus errors in HDF5).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
@@ -459,6 +460,24 @@ def test_overwrite_writes_through_a_symlink_into_its_target(
         from md.trajectory import read_trajectory
 
         assert read_trajectory(link).n_frames >= 1
+
+
+@pytest.mark.parametrize("command", ["run", "minimize", "convert", "render"])
+def test_a_disk_without_a_byte_left_is_reported_by_every_command(
+    tmp_path, monkeypatch, capsys, small_disk, trajectory_500, command
+):
+    """Before: md minimize ended in a traceback (ENOSPC writing the claim's lock file),
+    md run said "No space left on device" without naming it."""
+    disk = small_disk(64)
+    with open(disk / "filler", "wb") as filler, contextlib.suppress(OSError):
+        filler.write(b"\0" * (1 << 20))  # fills the disk: not a byte left
+    assert os.statvfs(disk).f_bavail == 0
+    monkeypatch.chdir(tmp_path)
+    target = disk / f"out{SUFFIX[command]}"
+    assert main(_output_command(command, tmp_path, target, trajectory_500)) == 2
+    err = capsys.readouterr().err
+    assert "disk full" in err, err
+    assert sorted(p.name for p in disk.iterdir()) == ["filler"]
 
 
 # ------------------------------- item 8: an interrupted md convert leaves no temporaries

@@ -85,7 +85,8 @@ def main(args) -> int:
             file=sys.stderr,
         )
         return exit_for_signal(summary.signal)
-    print(f"md minimize: {result.describe()}")
+    if result is not None:
+        print(f"md minimize: {result.describe()}")
     if summary.status == OUTPUT_ERROR:
         fail(f"cannot write {output} ({summary.message}); nothing was written")
         return EXIT_BAD_INPUT
