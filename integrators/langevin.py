@@ -27,7 +27,7 @@ class Langevin(Thermostat):
     sampled with an error of order dt^2 that is much smaller than other
     splittings' (exact for a harmonic system at any stable dt). The
     end-of-step velocities in ``state.velocities`` read a kinetic
-    temperature low by about dt^2 <|F|^2/m> / (12 N kB T) (exactly
+    temperature low by about ``dt^2 <|F|^2/m> / (12 N kB T)`` (exactly
     1 - dt^2 k / 4m for a harmonic oscillator; about 0.2 % for the LJ
     liquid at T = 1, dt = 0.005).
 

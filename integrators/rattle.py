@@ -48,8 +48,8 @@ class BondConstraints:
         Bond lengths [length]. By default each bond keeps the length it has
         when an integrator first sees the state.
     tol : float
-        Relative tolerance: SHAKE stops when every |r - d| / d <= tol, RATTLE
-        when every |r . v_ij| dt / d^2 <= tol (the bond-length change over one
+        Relative tolerance: SHAKE stops when every ``|r - d| / d <= tol``, RATTLE
+        when every ``|r . v_ij| dt / d^2 <= tol`` (the bond-length change over one
         step, relative to its length).
     max_iter : int
         Iterations (sweeps over all bonds) before :class:`ConstraintError`.
@@ -213,7 +213,7 @@ class BondConstraints:
         )
 
     def errors(self, state) -> NDArray[np.float64]:
-        """Return |r - d| / d for every constrained pair (dimensionless)."""
+        """Return ``|r - d| / d`` for every constrained pair (dimensionless)."""
         if self.lengths is None:
             raise ValueError("the constraints have no lengths yet (bind them to a state first)")
         vectors = self.bond_vectors(state)
@@ -292,8 +292,8 @@ class BondConstraints:
 
         Solves (J M^-1 J^T) lambda = -(J M^-1 F + w) for the multipliers,
         where row k of J holds +r_k on atom i and -r_k on atom j
-        (r_k = r_i - r_j) and w_k = |v_i - v_j|^2: the forces J^T lambda that
-        keep every d^2|r_k|^2/dt^2 zero given the potential forces F and the
+        (r_k = r_i - r_j) and ``w_k = |v_i - v_j|^2``: the forces J^T lambda that
+        keep every ``d^2 |r_k|^2 / dt^2`` zero given the potential forces F and the
         current velocities (assumed tangent, as after RATTLE).
 
         Returns

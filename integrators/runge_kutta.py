@@ -150,7 +150,7 @@ class RKF45(IntegratorBase):
     observers land on the requested times) in as many internal substeps as
     the error control needs. Each substep evaluates six forces; the fifth-order
     solution is propagated and the difference to the embedded fourth-order
-    one is the local error estimate
+    one is the local error estimate::
 
         err = max |h sum_j (b5_j - b4_j) k_j|
 

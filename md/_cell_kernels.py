@@ -12,6 +12,63 @@ with a ``_threaded`` twin run their chunks on numba's threads; the plain one
 runs them in turn, off the thread pool. The candidate tests are LLVM-IR
 intrinsics built from ``md._simd`` (vector blocks, compare masks, AVX2 lane
 permutes where numba compiles for AVX2, a portable bit-mask scan elsewhere).
+
+The rebuild check
+-----------------
+``NeighborList.update`` asks ``_largest_displacement2`` whether any atom moved
+more than skin/2 since the last build: one compiled entry for the serial and
+the threaded pass (``_max_displacement2_threaded``), so the threaded one loads
+at the first check of any run; it also catches non-finite positions. When a
+barostat changed the cell, the build's positions are first mapped affinely
+into the new cell and the allowance shrinks with the deformation's smallest
+singular value, so the list is kept and its lengths, tilt and shifts follow
+the cell (see ``md.neighbors``).
+
+A build
+-------
+A build is one compiled call, ``_cell_list``. The grid, lengths and image
+shifts of an unchanged periodic cell are kept from the last build, so the
+build makes few interpreter calls, each slow once the pair kernels have
+flushed the caches. In order:
+
+1. ``_bin_atoms``, a counting sort by cell (threaded: ``_bin_atoms_threaded``,
+   same result), gives the slot order: atoms sorted by (x, y) column and z
+   cell, wrapped into the box, their coordinates stored by row.
+2. ``_frame_pairs`` (one chunk of slots per thread: ``_frame_pairs_threaded``)
+   writes the half list over the forward half of the 5 x 5 x 5 half-radius
+   cells around each slot:
+
+   - ``_slot_layout`` (threaded over (x, y) columns: ``_slot_layout_threaded``,
+     ``_fill_columns``) lays the slots out again by z cell, x, y, so that a
+     row of cells along y in one z layer is contiguous, and in the same pass
+     writes each slot's cell and packed tag;
+   - per (x, y) column, ``_gather_column`` copies the forward cells, as such
+     rows (3 runs per z cell), shifted by their image, into one candidate
+     array ordered by z cell (image cells past a periodic z edge included;
+     slot and image code packed in a uint32; runs copied in vector blocks of
+     ``GATHER_BLOCK`` entries by ``_gather_run`` and ``_copy_block``);
+   - each slot tests that array's range of z cells cz - 2 to cz + 2, its own
+     column's later slots up to cz + 2 read in place from the coordinate rows
+     (padded by ``ROW_PADDING``; the earlier slots list their pairs with it),
+     and near a periodic top the images of the column's bottom cells, in
+     8-lane vector blocks (LLVM-IR intrinsics): ``_near_pack`` writes the
+     hits' packed slot and code as it tests, by AVX2 lane permutes on x86
+     with AVX2 (``_near_pack_blocks``), else by scanning a bit mask
+     (``_near_pack_scan``: ``_near_bits``, then cttz); ``_keep`` counts
+     before it writes near the end of the chunk's region;
+   - a single chunk is unpacked into slots and a one-byte image code per pair
+     at its end; several are joined by ``_join_chunks``, on the threads: each
+     chunk is unpacked straight to its place in the list where that overlaps
+     no other chunk's region (with two chunks, always), the rest in place and
+     then moved (memmove, ``md._simd.move_within``).
+3. ``_balanced_bounds`` splits the rows into chunks of equal pair counts for
+   the pair kernels.
+
+``_brute_force_pairs`` (over atom indices, minimum image) replaces all of
+this when a periodic axis has room for fewer than 5 half-radius cells; it is
+also the reference the cell search is tested against. ``_atom_space_list``
+translates a slot list into one over atom indices for potentials that read
+``neighbors.starts``/``neighbors.neighbors``.
 """
 
 from __future__ import annotations
@@ -33,6 +90,7 @@ from md._simd import (
     load_vector,
     move_within,
     permute_lanes,
+    python_twin,
     splat,
     store_vector,
     trailing_zeros,
@@ -599,6 +657,17 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, slots, cx, cy, cz, c_
             return m + last - first
 
 
+def _copy_block_twin(xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
+    """``_copy_block`` in Python (``md._simd.python_twin``)."""
+    block = slice(first, first + GATHER_BLOCK)
+    to = slice(m, m + GATHER_BLOCK)
+    cx[to] = xs[block] + sx
+    cy[to] = ys[block] + sy
+    cz[to] = zs[block] + sz
+    c_packed[to] = slots[block] | tag
+
+
+@python_twin(_copy_block_twin)
 @intrinsic
 def _copy_block(typingctx, xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
     """Copy ``GATHER_BLOCK`` entries from ``first`` to the candidates at ``m``: coordinates
@@ -672,12 +741,28 @@ class _Candidates:
         return values, builder.fcmp_ordered("<", d2, self.r2)
 
 
+def _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, count):
+    """Python twin of ``_Candidates``: bool per candidate start..start+count-1, closer than
+    sqrt(r2_max), with the same arithmetic (no fused multiply-add)."""
+    lanes = slice(start, start + count)
+    with np.errstate(over="ignore", invalid="ignore"):  # lanes past the last are any bits
+        dx, dy, dz = xi - tx[lanes], yi - ty[lanes], zi - tz[lanes]
+        return dx * dx + dy * dy + dz * dz < r2_max
+
+
 def _candidate_types(tx, ty, tz, packed):
     """Whether the candidate arrays are what ``_Candidates`` reads."""
     wanted = (types.float64, types.float64, types.float64, types.uint32)
     return all(is_vector_array(a, d) for a, d in zip((tx, ty, tz, packed), wanted, strict=True))
 
 
+def _near_bits_twin(xi, yi, zi, r2_max, tx, ty, tz, packed, start):
+    """``_near_bits`` in Python (``md._simd.python_twin``)."""
+    near = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, 64)
+    return np.uint64(sum(1 << int(k) for k in np.flatnonzero(near)))
+
+
+@python_twin(_near_bits_twin)
 @intrinsic
 def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start):
     """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max).
@@ -744,8 +829,22 @@ def _permute_packer(blocks: int, whole: bool):
             at = builder.add(at, builder.ctpop(mask))
         return at
 
+    def twin(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
+        """The same in Python (``md._simd.python_twin``): each block's 8 lanes stored as
+        the permute leaves them (kept values first, then lane 0's as the table's zeros
+        pick)."""
+        for block in range(blocks):
+            first = start + 8 * block
+            kept = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, first, 8)
+            if not whole:
+                kept &= 8 * block + np.arange(8) < valid
+            mask = int(np.dot(kept, 1 << np.arange(8)))
+            out[at : at + 8] = packed[first : first + 8][table[mask]]
+            at += int(kept.sum())
+        return np.int64(at)
+
     typer.__name__ = f"_near_pack_{blocks}_{'whole' if whole else 'partial'}"
-    return intrinsic(typer)
+    return python_twin(twin)(intrinsic(typer))
 
 
 _near_pack_permute_whole = _permute_packer(8, whole=True)

@@ -76,8 +76,8 @@ class ConstraintError(ConvergenceError):
     step : int
         The step being taken when it failed.
     residual : float
-        Largest relative error left: |r - d| / d for positions, the relative
-        bond-length change per step |r . v_ij| dt / d^2 for velocities.
+        Largest relative error left: ``|r - d| / d`` for positions, the relative
+        bond-length change per step ``|r . v_ij| dt / d^2`` for velocities.
     stage : str
         ``"positions"`` (SHAKE) or ``"velocities"`` (RATTLE).
     bond, i, j : int

@@ -7,7 +7,8 @@ object cache, and an exception raised in a ctypes callback is printed
 run would go on. :func:`watch` installs a handler that first records the
 signal, then raises as Python's own does; whoever takes over SIGINT later (the
 run's stop handler, see :mod:`md.run`) calls :func:`take_pending` and honours
-one that was dropped.
+one that was dropped. The ``md`` command watches while it runs
+(:func:`watching`, in :func:`md.cli.main`); ``import md`` installs nothing.
 """
 
 from __future__ import annotations
@@ -33,6 +34,24 @@ def watch() -> None:
     """
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _record_and_raise)
+
+
+@contextlib.contextmanager
+def watching() -> Iterator[None]:
+    """:func:`watch` inside the block; SIGINT's previous handler is restored after it.
+
+    Only from the main thread; elsewhere the block runs with signals left alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    watch()
+    try:
+        yield
+    finally:
+        if previous is not None:  # None: a handler not set from Python, which cannot be put back
+            signal.signal(signal.SIGINT, previous)
 
 
 def take_pending() -> bool:
@@ -65,7 +84,8 @@ def sigterm_as_interrupt() -> Iterator[list[str]]:
     try:
         yield received
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if previous is not None:  # None: a handler not set from Python, which cannot be put back
+            signal.signal(signal.SIGTERM, previous)
 
 
-__all__ = ["sigterm_as_interrupt", "take_pending", "watch"]
+__all__ = ["sigterm_as_interrupt", "take_pending", "watch", "watching"]

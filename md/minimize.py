@@ -107,7 +107,7 @@ class FIRE:
         report_every: int = 100,
         stop: Callable[[], bool] | None = None,
     ) -> MinimizeResult:
-        """Move ``state.positions`` towards a local minimum until every |F_i| <= ``fmax``.
+        """Move ``state.positions`` towards a local minimum until every ``|F_i| <= fmax``.
 
         Velocities, step and time of the state are left as they were. ``callback(step,
         energy, fmax)`` is called every ``report_every`` steps and at the end.

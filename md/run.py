@@ -135,7 +135,7 @@ class RunSummary:
     def relative_change(self, key: str = "total_energy") -> float:
         """(last - first) of a thermo quantity over the first total energy's scale.
 
-        The scale is the larger of |total energy| and the kinetic energy at the
+        The scale is the larger of the magnitude of the total energy and the kinetic energy at the
         start (so a total energy near zero does not blow the ratio up). NaN
         when the run has no ``last`` row (it did not complete) or no ``key``.
         """
