@@ -30,13 +30,21 @@ existing file is replaced only with ``overwrite=True``.
 
 from __future__ import annotations
 
+import errno
+import os
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from md._files import atomic_path
+from md._files import (
+    atomic_path,
+    disk_full,
+    exclusive_claim,
+    output_target,
+    remove_stale_temporaries,
+)
 from md._version import __version__
 from md.box import cell_matrix
 from md.topology import Topology
@@ -126,38 +134,70 @@ def convert(
     IndexError
         A frame selection outside the file's frames, or one that selects none.
     FileExistsError
-        ``output`` exists and ``overwrite`` is not given.
+        ``output`` exists and ``overwrite`` is not given, or another run is
+        writing it (:class:`md._files.OutputBusyError`).
+    OSError
+        The output could not be written ("disk full" when there is no room);
+        nothing is left behind.
     TrajectoryError
         The input is not an H5MD trajectory of ours (or is damaged).
+
+    Notes
+    -----
+    ``output`` is written through a symbolic link into its target; a special
+    file (FIFO, device node) is refused with ValueError, never replaced. The
+    output is claimed as ``md run`` claims its own, so a running simulation's
+    trajectory is never replaced, and temporaries an interrupted conversion
+    left beside it are removed.
     """
-    trajectory, output = Path(trajectory), Path(output)
+    trajectory = Path(trajectory)
     kind = output_format(output, format)
+    output = output_target(output)  # a symlink's target; a special file is refused
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output} already exists; choose another name or pass --overwrite")
     if output.exists() and output.resolve() == trajectory.resolve():
         raise ValueError(f"{output} is the input trajectory; choose another output")
     if not output.parent.is_dir():
         raise FileNotFoundError(f"{output}: directory {output.parent} does not exist")
-    with TrajectoryReader(trajectory) as reader:
+    with TrajectoryReader(trajectory) as reader, exclusive_claim(output):
         frames = reader.select(start, stop, step)
         if kind in SINGLE_FRAME:
             frames = frames[-1:]
         writer_class = WRITERS[kind]
+        remove_stale_temporaries(output)  # an interrupted conversion's, under the claim
         with atomic_path(output, exclusive=not overwrite) as temporary:
             writer = writer_class(temporary, reader, frames, unwrap=unwrap, kind=kind)
+            count = 0
             try:
-                count = 0
-                for frame in reader.frames(frames, chunk=chunk):
-                    writer.write(frame)
-                    count += 1
-                    if progress is not None:
-                        progress(count)
-            finally:
-                writer.close()
+                try:
+                    for frame in reader.frames(frames, chunk=chunk):
+                        writer.write(frame)
+                        count += 1
+                        if progress is not None:
+                            progress(count)
+                finally:
+                    writer.close()
+                writer.verify(temporary, count)
+            except (OSError, RuntimeError) as error:  # the writers' libraries raise either
+                raise _write_failure(error, temporary, output, reader.n_atoms) from None
     return count
 
 
 # ---------------------------------------------------------------------- helpers
+def _write_failure(error: BaseException, temporary: Path, output: Path, n_atoms: int) -> OSError:
+    """The OSError for a failed conversion: "disk full" when the disk has no room for a frame.
+
+    The writers' C libraries (XTC, TRR, DCD) do not say why a write failed, so
+    the free space left beside the temporary file decides.
+    """
+    detail = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
+    stats = os.statvfs(temporary.parent)
+    # room for less than one frame of float32 x, y, z
+    if disk_full(error) or stats.f_bavail * stats.f_frsize < 12 * n_atoms + 4096:
+        return OSError(errno.ENOSPC, f"disk full: cannot write {output} ({detail})")
+    return OSError(errno.EIO, f"cannot write {output}: {detail}")
+
+
 def _positions(frame: Frame, unwrap: bool):
     return frame.unwrapped() if unwrap else frame.positions
 
@@ -205,7 +245,22 @@ def molecules(topology: Topology, n_atoms: int) -> np.ndarray:
 _QUANTITY = {"length": "length", "time": "time", "velocity": "speed", "force": "force"}
 
 
-class _MDAnalysisWriter:
+class _Writer:
+    """A format's writer: ``__init__(path, reader, frames, unwrap, kind)``, ``write(frame)``,
+    ``close()`` and ``verify(path, count)``."""
+
+    def close(self) -> None:
+        """Finish the file (flush, close)."""
+
+    def verify(self, path: Path, count: int) -> None:
+        """Raise OSError unless the closed file holds ``count`` frames.
+
+        Only writers whose library does not report failed writes check: the
+        others raise from ``write`` or ``close`` already.
+        """
+
+
+class _MDAnalysisWriter(_Writer):
     """XTC, TRR, DCD and AMBER NetCDF through MDAnalysis's writers.
 
     Frames go in as MDAnalysis's base units (Angstrom, ps, kJ/(mol
@@ -274,8 +329,29 @@ class _MDAnalysisWriter:
     def close(self) -> None:
         self.writer.close()
 
+    def verify(self, path: Path, count: int) -> None:
+        """Raise OSError unless ``path`` holds ``count`` frames.
 
-class _ASEWriter:
+        The XTC, TRR and DCD writers are C code that does not check its
+        writes: on a full disk they end without error, leaving a short file.
+        """
+        from MDAnalysis.lib.formats.libdcd import DCDFile  # MDAnalysis: with the writer
+        from MDAnalysis.lib.formats.libmdaxdr import TRRFile, XTCFile  # as is DCDFile
+
+        opener = {"DCD": DCDFile, "XTC": XTCFile, "TRR": TRRFile}.get(self.kind)
+        if opener is None:  # NetCDF: written by scipy, which raises on a failed write
+            return
+        try:
+            with opener(str(path)) as written:
+                found = written.n_frames if self.kind == "DCD" else len(written.offsets)
+        except (OSError, RuntimeError, ValueError, EOFError) as error:
+            unreadable = f"the {self.kind} file written cannot be read ({error})"
+            raise OSError(errno.EIO, unreadable) from None
+        if found != count:
+            raise OSError(errno.EIO, f"{found} of the {count} frames reached the {self.kind} file")
+
+
+class _ASEWriter(_Writer):
     """Plain XYZ, extended XYZ and ASE trajectories through ``ase.io``.
 
     Extended XYZ and ASE trajectories carry the potential energy, forces and
@@ -323,7 +399,7 @@ class _ASEWriter:
         self.handle.close()
 
 
-class _LammpsDataWriter:
+class _LammpsDataWriter(_Writer):
     """A LAMMPS data file (``atom_style full``) through ASE's writer, with bonds and angles.
 
     Atom types are numbered 1, 2, ... in the order of the type names, which
@@ -400,9 +476,6 @@ class _LammpsDataWriter:
                 lines[index] = f"{head}# {name}\n"
         self.path.write_text("".join(lines))
 
-    def close(self) -> None:
-        pass
-
 
 def _add_angles(lines: list[str], topology: Topology) -> None:
     """Add the angle counts to a data file's header and its ``Angles`` section at the end."""
@@ -423,7 +496,7 @@ def _add_angles(lines: list[str], topology: Topology) -> None:
     ]
 
 
-class _LammpsDumpWriter:
+class _LammpsDumpWriter(_Writer):
     """A LAMMPS text dump (``.lammpstrj``), written here: MDAnalysis and ASE only read them.
 
     Columns ``id type mol x y z ix iy iz`` (and ``vx vy vz``, ``fx fy fz``
@@ -489,7 +562,7 @@ class _LammpsDumpWriter:
         self.handle.close()
 
 
-class _GSDWriter:
+class _GSDWriter(_Writer):
     """GSD (HOOMD-blue's format) through the ``gsd`` package: types, masses, bonds, angles,
     box.
 

@@ -61,4 +61,31 @@ def take_pending() -> bool:
     return seen
 
 
-__all__ = ["take_pending", "watch", "watching"]
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[list[str]]:
+    """Inside the block, SIGTERM raises KeyboardInterrupt, as Ctrl-C does.
+
+    A command that writes a file whole (through a temporary file) then
+    cleans up on ``kill`` as on Ctrl-C, instead of dying with its temporary
+    file left behind. Yields a list that holds ``"SIGTERM"`` once one came,
+    so the command can say which signal stopped it. The previous handler is
+    restored at the end; outside the main thread this does nothing.
+    """
+    received: list[str] = []
+
+    def handler(signum, frame):
+        received.append("SIGTERM")
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield received
+    finally:
+        if previous is not None:  # None: a handler not set from Python, which cannot be put back
+            signal.signal(signal.SIGTERM, previous)
+
+
+__all__ = ["sigterm_as_interrupt", "take_pending", "watch", "watching"]

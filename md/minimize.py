@@ -36,7 +36,8 @@ class MinimizeResult:
     """How a minimisation ended.
 
     ``fmax`` is the largest per-atom force norm at the end [energy/length];
-    ``history`` holds (step, energy, fmax) every ``report_every`` steps.
+    ``history`` holds (step, energy, fmax) every ``report_every`` steps;
+    ``stopped`` says that the caller's ``stop`` asked to end before convergence.
     """
 
     converged: bool
@@ -45,9 +46,12 @@ class MinimizeResult:
     fmax: float
     target: float
     history: list[tuple[int, float, float]] = field(default_factory=list)
+    stopped: bool = False
 
     def describe(self) -> str:
         verdict = "converged" if self.converged else "NOT converged"
+        if self.stopped:
+            verdict = "stopped"
         relation = "<=" if self.converged else ">"
         return (
             f"{verdict} after {self.steps} steps: max force {self.fmax:.4g} {relation} "
@@ -103,6 +107,7 @@ class FIRE:
         callback: Callable[[int, float, float], None] | None = None,
         report_every: int = 100,
         between_steps: Callable[[np.ndarray], np.ndarray] | None = None,
+        stop: Callable[[], bool] | None = None,
     ) -> MinimizeResult:
         """Move ``state.positions`` towards a local minimum until every ``|F_i| <= fmax``.
 
@@ -113,6 +118,8 @@ class FIRE:
         holds (a decomposed run migrates atoms between ranks there,
         :meth:`md.distributed.DistributedSimulation.minimize`); its sums and maxima
         over atoms go through :func:`md.parallel.global_sum` and ``global_max``.
+        ``stop()`` is asked before each step; when it returns True the
+        minimisation ends there (``result.stopped``), at a consistent state.
 
         Raises
         ------
@@ -144,6 +151,9 @@ class FIRE:
                 result.converged = True
                 break
             if step == max_steps:
+                break
+            if stop is not None and stop():
+                result.stopped = True
                 break
             forces = self._capped(forces)
             power = global_sum(float(np.sum(forces * velocity)))
@@ -197,6 +207,7 @@ def minimize(
     callback: Callable[[int, float, float], None] | None = None,
     report_every: int = 100,
     between_steps: Callable[[np.ndarray], np.ndarray] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> MinimizeResult:
     """Relax ``state`` with FIRE 2.0 (a push-off when ``max_force`` is given); see :class:`FIRE`.
 
@@ -210,7 +221,9 @@ def minimize(
     1.12246
     """
     fire = FIRE(dt=dt, max_step=max_step, max_force=max_force)
-    return fire.run(state, forcefield, fmax, max_steps, callback, report_every, between_steps)
+    return fire.run(
+        state, forcefield, fmax, max_steps, callback, report_every, between_steps, stop
+    )
 
 
 __all__ = ["FIRE", "MinimizeResult", "minimize"]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from md._files import atomic_path
+from md._files import atomic_path, exclusive_claim, output_target, remove_stale_temporaries
 from md.box import cell_matrix, minimum_image
 from md.trajectory import Frame, TrajectoryReader
 
@@ -68,9 +68,15 @@ def render(
     IndexError
         A frame outside the file's frames.
     FileExistsError
-        ``output`` exists and ``overwrite`` is not given.
+        ``output`` exists and ``overwrite`` is not given, or another run is
+        writing it (its claim, see :func:`md._files.exclusive_claim`).
     TrajectoryError
         The input is not an H5MD trajectory of ours.
+
+    Notes
+    -----
+    A symbolic link is written through into its target; a special file
+    (FIFO, device node) is refused with ValueError, never replaced.
     """
     output = Path(output)
     if engine not in ENGINES:
@@ -79,6 +85,7 @@ def render(
         raise ValueError(f"size must be an integer number of pixels in 16..{MAX_PIXELS}")
     if output.suffix.lower() != ".png":
         raise ValueError(f"{output}: pictures are written as PNG; name the output *.png")
+    output = output_target(output)  # a symlink's target; a special file is refused
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output} already exists; choose another name or pass --overwrite")
     if engine == "povray" and shutil.which("povray") is None:
@@ -95,11 +102,13 @@ def render(
                 f"{reader.path} holds {n} frames (0 to {n - 1}); frame {frame} is out of range"
             )
         snapshot = reader.frame(frame)
-        with atomic_path(output, exclusive=not overwrite) as temporary:
-            if engine == "matplotlib":
-                _draw_matplotlib(reader, snapshot, temporary, size, elevation, azimuth)
-            else:
-                _draw_povray(reader, snapshot, temporary, size, elevation, azimuth)
+        with exclusive_claim(output):
+            remove_stale_temporaries(output)  # an interrupted render's, under the claim
+            with atomic_path(output, exclusive=not overwrite) as temporary:
+                if engine == "matplotlib":
+                    _draw_matplotlib(reader, snapshot, temporary, size, elevation, azimuth)
+                else:
+                    _draw_povray(reader, snapshot, temporary, size, elevation, azimuth)
     return output
 
 

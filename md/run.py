@@ -33,8 +33,8 @@ import numpy as np
 
 from integrators.barostats import Barostat, pressure_control
 from integrators.base import ForceSplit, Statistics, constraints_of
-from md._checks import count
-from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
+from md._checks import count, positive
+from md._files import claim_holder, exclusive_claim, output_target, remove_stale_temporaries
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -47,6 +47,7 @@ from md.checkpoint import (
 )
 from md.config import (
     Config,
+    MinimizeConfig,
     build_system,
     input_files,
     integrator_from_config,
@@ -67,6 +68,7 @@ from md.errors import (
     ConfigError,
     ConvergenceError,
     NonFiniteError,
+    OutputBusyError,
     SimulationError,
     TrajectoryError,
 )
@@ -100,7 +102,9 @@ class RunSummary:
         solve did not converge: ``message`` names the step); ``"output_error"``
         (the trajectory could not be written, e.g. disk full); ``"stopped"``
         (a signal asked it to stop: ``signal`` names it; a checkpoint was
-        written); ``"aborted"`` (a second signal while stopping).
+        written, unless ``message`` says the run stopped while minimising,
+        before anything was written); ``"aborted"`` (a second signal while
+        stopping).
     output, checkpoint : Path
         The trajectory and its checkpoint.
     n_steps : int
@@ -115,7 +119,9 @@ class RunSummary:
     timings : dict
         Seconds per section (neighbour, force, integrate, observers) in the loop.
     last_checkpoint_step : int or None
-        Step of the last checkpoint written.
+        Step of the checkpoint on disk at the end: the last one written, or
+        the one resumed from or written at the start if none was written
+        since; None if there is none.
     message : str
         The error, for ``failed`` and ``output_error``.
     signal : str or None
@@ -206,26 +212,33 @@ class PreparedRun:
         """True when resuming a run that already took all its steps."""
         return self.checkpoint is not None and self.n_steps == 0
 
-    def minimize(self, callback: Callable[[int, float, float], None] | None = None):
+    def minimize(
+        self,
+        callback: Callable[[int, float, float], None] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ):
         """Run the config's ``[minimize]`` stage on the state; return its MinimizeResult.
 
         Only a fresh run minimises (a resumed one starts from its checkpoint,
         which holds the minimised state), and only once. FIRE 2.0 moves the
         positions (velocities stay as drawn); ``callback(step, energy, fmax)``
-        reports progress. Returns None when there is nothing to do.
+        reports progress; ``stop()`` True ends it early (``result.stopped``).
+        Returns None when there is nothing to do.
         """
         stage = self.config.minimize
         if stage is None or self.checkpoint is not None:
             return None
-        if self.minimized is None:
+        if self.minimized is None or self.minimized.stopped:
             sim = self.sim
             options = {"max_force": stage.max_force, "max_step": stage.max_step,
                        "callback": callback, "report_every": stage.report_every}  # fmt: skip
             if self.ranks is not None:
+                # Not ``stop``: a signal reaches one rank, and every rank must take the
+                # same steps; a decomposed run stops after the stage instead.
                 self.minimized = sim.minimize(stage.fmax, stage.max_steps, **options)
             else:
                 self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
-                                          stage.max_steps, **options)  # fmt: skip
+                                          stage.max_steps, stop=stop, **options)  # fmt: skip
             sim.integrator.reset()  # history taken at the old positions is stale
         return self.minimized
 
@@ -263,7 +276,21 @@ class PreparedRun:
             If the first checkpoint or the trajectory cannot be written.
         """
         with self._claim():
-            self.minimize(minimize_progress)
+            if self.config.minimize is not None and self.checkpoint is None:
+                stop = _Stop()
+                previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+                try:
+                    self.minimize(minimize_progress, stop=stop)
+                finally:
+                    _restore_signals(previous)
+                if stop.signal is not None and self.ranks is not None:
+                    # Every rank must leave together: the run stops at its first step.
+                    self.sim.request_stop(stop.signal)
+                elif stop.signal is not None:
+                    return RunSummary(
+                        STOPPED, self.output, self.checkpoint_path, self.n_steps,
+                        message="while minimising", signal=stop.signal,
+                    )  # fmt: skip
             return self._execute(observers, handle_signals)
 
     @contextlib.contextmanager
@@ -299,8 +326,13 @@ class PreparedRun:
         for observer, interval in observers:
             sim.attach(observer, interval=interval)
         summary.first = sim.thermo()
+        start_step = state.step  # _open_outputs wrote (or resumed) a checkpoint here
         timings_before = sim.timing_summary()
-        previous = _catch_stop_signals(sim) if handle_signals else {}
+        previous = (
+            _catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
+            if handle_signals
+            else {}
+        )
         start = time.perf_counter()
         try:
             with writer if writer is not None else contextlib.nullcontext():
@@ -331,6 +363,8 @@ class PreparedRun:
             last_step = None
         summary.n_frames = n_frames
         summary.last_checkpoint_step = last_step
+        if last_step is None and self.checkpoint_path.exists():
+            summary.last_checkpoint_step = start_step  # none since: the start's is there
         summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
         if summary.status == COMPLETED and sim.stop_requested is not None:
             summary.status, summary.signal = STOPPED, sim.stop_requested
@@ -491,23 +525,11 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
             raise ConfigError(str(error)) from None
     if ranks is not None and config.seed is None:
         config = _seeded(config, ranks)
-    output = Path(output) if output is not None else config.output.path
-    if output.name in ("", ".", ".."):
-        raise ConfigError(f"output path {str(output)!r} names no file")
+    output = _writable_output(Path(output) if output is not None else config.output.path)
     saved_path = checkpoint_path(output)
-    if output.exists() and output.is_dir():
-        raise ConfigError(f"output path {output} is a directory")
-    if not output.parent.is_dir():
-        raise ConfigError(f"output directory {output.parent} does not exist")
-    if not os.access(output.parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"output directory {output.parent} is not writable")
+    _writable_output(saved_path)
     _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
-    holder = claim_holder(output)
-    if holder is not None:
-        raise ConfigError(
-            f"{output} is being written by another run ({holder}); wait for it to end, "
-            "or choose another --output"
-        )
+    _refuse_claimed(output)
     fingerprint = physics_fingerprint(config)
     checkpoint = None
     if resume:
@@ -606,6 +628,181 @@ def run_config(
     return prepared.sim, prepared.execute()
 
 
+# ------------------------------------------------------------------ md minimize
+#: Suffixes of the H5MD files ``md minimize`` writes.
+H5MD_SUFFIXES = (".h5", ".hdf5", ".h5md", ".hdf")
+
+
+@dataclass
+class MinimizeSummary:
+    """What :meth:`PreparedMinimize.execute` did.
+
+    ``status`` is ``"completed"`` (the structure was written; ``result.converged``
+    says whether FIRE reached ``fmax``), ``"failed"`` (forces became
+    non-finite), ``"output_error"`` (the file could not be written, e.g. disk
+    full: nothing was left) or ``"stopped"`` (a signal, named in ``signal``:
+    nothing was written). ``message`` holds the error.
+    """
+
+    status: str
+    output: Path
+    result: MinimizeResult | None = None
+    message: str = ""
+    signal: str | None = None
+
+
+@dataclass
+class PreparedMinimize:
+    """A validated minimisation that has written nothing yet (see :func:`prepare_minimize`).
+
+    ``stage`` holds the FIRE settings in use (the config's ``[minimize]``
+    with the arguments' overrides); ``output`` is the file to write (a
+    symlink's target).
+    """
+
+    config: Config
+    sim: Simulation
+    output: Path
+    overwrite: bool
+    stage: MinimizeConfig
+
+    def execute(
+        self,
+        callback: Callable[[int, float, float], None] | None = None,
+        handle_signals: bool = True,
+    ) -> MinimizeSummary:
+        """Claim the output, minimise, and write the structure as a one-frame H5MD file.
+
+        The file is built in memory and written whole at the end, so a full
+        disk, an error or a signal leaves no file behind. SIGINT/SIGTERM stop
+        the minimisation at its next step (a second one at once).
+
+        Raises
+        ------
+        ConfigError
+            If the output appeared meanwhile.
+        OutputBusyError
+            If another run claimed the output meanwhile.
+        """
+        with contextlib.ExitStack() as claimed:
+            try:
+                claimed.enter_context(exclusive_claim(self.output))
+            except OutputBusyError:
+                raise
+            except OSError as error:  # no room even for the claim's lock file
+                return MinimizeSummary(OUTPUT_ERROR, self.output, message=str(error))
+            remove_stale_temporaries(self.output)
+            if self.output.exists() and not self.overwrite:
+                raise ConfigError(f"output file {self.output} appeared while minimising started")
+            return self._execute(callback, handle_signals)
+
+    def _execute(self, callback, handle_signals: bool) -> MinimizeSummary:
+        sim, stage, state = self.sim, self.stage, self.sim.state
+        stop = _Stop()
+        previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+        try:
+            result = minimize(
+                state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
+                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
+                stop=stop,
+            )  # fmt: skip
+        except NonFiniteError as error:
+            return MinimizeSummary(FAILED, self.output, message=str(error))
+        finally:
+            _restore_signals(previous)
+        if result.stopped:
+            return MinimizeSummary(STOPPED, self.output, result, signal=stop.signal)
+        try:
+            with H5MDWriter(
+                self.output, state, units=self.config.units, overwrite=self.overwrite,
+                topology=run_topology(sim), in_memory=True,
+                parameters={"config": self.config.text, "minimize": result.describe()},
+            ) as writer:  # fmt: skip
+                writer.write(state, thermo=sim.thermo())
+        except OSError as error:
+            return MinimizeSummary(OUTPUT_ERROR, self.output, result, message=str(error))
+        return MinimizeSummary(COMPLETED, self.output, result)
+
+
+def prepare_minimize(
+    path_or_config: str | os.PathLike | Config,
+    output: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    fmax: float | None = None,
+    max_steps: int | None = None,
+    max_force: float | None = None,
+    threads: int | None = None,
+) -> PreparedMinimize:
+    """Validate and build what ``md minimize`` does; write nothing.
+
+    Parameters
+    ----------
+    path_or_config : path or Config
+        The config describing the system; its ``[minimize]`` table gives
+        the defaults.
+    output : path, optional
+        H5MD file to write (``.h5``, ``.hdf5``, ``.h5md``); default
+        ``<[output] path stem>_min.h5``.
+    overwrite : bool
+        Replace an existing output (never a file another run is writing,
+        one of the config's inputs, or anything but a regular file).
+    fmax, max_steps, max_force : optional
+        Override ``[minimize]`` fmax [energy/length], max_steps and the
+        push-off's force cap.
+    threads : int, optional
+        Kernel threads, overriding ``[run] threads``.
+
+    Raises
+    ------
+    ConfigError
+        For anything wrong; the message names the option, key or file.
+    """
+    config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
+    config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
+    overrides = {}
+    try:
+        if fmax is not None:
+            overrides["fmax"] = positive(fmax, "--fmax")
+        if max_steps is not None:
+            overrides["max_steps"] = count(max_steps, "--max-steps", minimum=1)
+        if max_force is not None:
+            overrides["max_force"] = positive(max_force, "--max-force")
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    stage = replace(config.minimize or MinimizeConfig(), **overrides)
+    if output is None:
+        output = config.output.path.with_name(f"{config.output.path.stem}_min.h5")
+    output = _writable_output(Path(output))
+    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output,))
+    if output.suffix.lower() not in H5MD_SUFFIXES:
+        raise ConfigError(
+            f"{output}: md minimize writes H5MD, so name the output *.h5; to get another "
+            f"format, convert it afterwards: md convert {output.with_suffix('.h5')} {output}"
+        )
+    _refuse_claimed(output)
+    if output.exists() and not overwrite:
+        raise ConfigError(f"{output} already exists; pass --overwrite or choose --output")
+    state, potentials, integrator = build_components(config)
+    _set_threads(config, threads)
+    try:
+        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units)
+    except ValueError as error:
+        raise ConfigError(f"{config.source}: {error}") from None
+    return PreparedMinimize(config, sim, output, overwrite, stage)
+
+
+def minimize_config(
+    path_or_config: str | os.PathLike | Config, **options
+) -> tuple[Simulation, MinimizeSummary]:
+    """Minimise the structure a config builds and write it, as ``md minimize`` does.
+
+    ``options`` are those of :func:`prepare_minimize`. Returns the Simulation
+    (at the relaxed state) and a :class:`MinimizeSummary`.
+    """
+    prepared = prepare_minimize(path_or_config, **options)
+    return prepared.sim, prepared.execute()
+
+
 # ------------------------------------------------------------------ helpers
 def run_topology(sim: Simulation) -> Topology:
     """The bonds and angles a run's trajectory stores: its bonded potentials' and its
@@ -680,14 +877,7 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
     cutoffs = [p.cutoff for p in potentials if p.cutoff is not None]
     guard = max([config.run.skin, *(0.1 * c for c in cutoffs)])
     guard = guard if guard > 0 and not integrator.adaptive else None
-    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
-    threads = threads if threads is not None else config.run.threads
-    if threads is None and ranks is not None:  # the cores of a node, shared by its ranks
-        threads = max(1, max_threads() // ranks_per_node(ranks))
-    try:
-        set_threads(threads)
-    except ValueError as error:
-        raise ConfigError(f"{where}: {error}") from None
+    _set_threads(config, threads, ranks)
     try:
         if ranks is None:
             sim = Simulation(state, potentials, integrator, skin=config.run.skin,
@@ -724,6 +914,50 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
             "(overlapping atoms, or a stretched bond?)"
         ) from None
     return sim
+
+
+def _set_threads(config: Config, threads: int | None, ranks=None) -> None:
+    """Set the kernel threads: ``threads`` (``--threads``) or the config's ``[run] threads``;
+    with neither, in a decomposed run, a node's cores shared by its ranks."""
+    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
+    threads = threads if threads is not None else config.run.threads
+    if threads is None and ranks is not None:
+        threads = max(1, max_threads() // ranks_per_node(ranks))
+    try:
+        set_threads(threads)
+    except ValueError as error:
+        raise ConfigError(f"{where}: {error}") from None
+
+
+def _writable_output(output: Path) -> Path:
+    """The file an output path writes (a symlink's target); ConfigError if it cannot be one.
+
+    Refused: a path naming no file, a directory, a special file (FIFO, device
+    node, socket: never replaced), a missing or unwritable directory.
+    """
+    if output.name in ("", ".", ".."):
+        raise ConfigError(f"output path {str(output)!r} names no file")
+    if output.is_dir():
+        raise ConfigError(f"output path {output} is a directory")
+    try:
+        target = output_target(output)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    if not target.parent.is_dir():
+        raise ConfigError(f"output directory {target.parent} does not exist")
+    if not os.access(target.parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"output directory {target.parent} is not writable")
+    return target
+
+
+def _refuse_claimed(output: Path) -> None:
+    """ConfigError if a live run holds the claim on ``output`` (see md._files.exclusive_claim)."""
+    holder = claim_holder(output)
+    if holder is not None:
+        raise ConfigError(
+            f"{output} is being written by another run ({holder}); wait for it to end, "
+            "or choose another --output"
+        )
 
 
 def _input_files(config: Config, path_or_config) -> list[Path]:
@@ -764,13 +998,17 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     verify_frames(output, n)  # the frames kept must be intact (checksums)
 
 
-def _catch_stop_signals(sim: Simulation) -> dict:
-    """SIGINT/SIGTERM ask the run to stop after the current step; a second one stops at once."""
+def _catch_stop_signals(request: Callable[[str], None], pending: Callable[[], str | None]) -> dict:
+    """SIGINT/SIGTERM call ``request(name)`` (stop at the next step); a second one stops at once.
+
+    ``pending()`` says whether a stop was asked for already. Returns the
+    handlers replaced, for :func:`_restore_signals`.
+    """
 
     def handler(signum, frame):
-        if sim.stop_requested is not None:
+        if pending() is not None:
             raise KeyboardInterrupt
-        sim.request_stop(signal.Signals(signum).name)
+        request(signal.Signals(signum).name)
 
     previous = {}
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -779,8 +1017,24 @@ def _catch_stop_signals(sim: Simulation) -> dict:
         except ValueError:  # not the main thread: leave signals alone
             break
     if previous and take_pending():  # a Ctrl-C during start-up that compilation swallowed
-        sim.request_stop("SIGINT")
+        request("SIGINT")
     return previous
+
+
+class _Stop:
+    """A stop asked for by a signal while minimising: FIRE's ``stop`` callable."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+
+    def request(self, name: str) -> None:
+        self.signal = name
+
+    def pending(self) -> str | None:
+        return self.signal
+
+    def __call__(self) -> bool:
+        return self.signal is not None
 
 
 def _restore_signals(previous: dict) -> None:
@@ -789,11 +1043,15 @@ def _restore_signals(previous: dict) -> None:
 
 
 __all__ = [
+    "MinimizeSummary",
+    "PreparedMinimize",
     "PreparedRun",
     "RunSummary",
     "build_components",
     "build_potentials",
+    "minimize_config",
     "prepare",
+    "prepare_minimize",
     "run_config",
 ]
 # Errors a caller of prepare() should expect, for ``except`` clauses.

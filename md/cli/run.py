@@ -20,7 +20,7 @@ from md.cli._common import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
-    EXIT_TERMINATED,
+    exit_for_signal,
     fail,
 )
 from md.distributed import launch_rank
@@ -156,6 +156,13 @@ def _main(args) -> int:
             f"before are kept in {output}, {checkpointed}"
         )
         return EXIT_BAD_INPUT
+    if summary.status == STOPPED and summary.message:  # while minimising: nothing written
+        print(
+            f"md run: {summary.signal} received {summary.message}; nothing was written. "
+            f"Start again with: md run {args.config}",
+            file=sys.stderr,
+        )
+        return exit_for_signal(summary.signal)
     if summary.status == STOPPED:
         print(
             f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
@@ -163,7 +170,7 @@ def _main(args) -> int:
             f"md run {args.config} --resume",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
+        return exit_for_signal(summary.signal)
     _print_summary(sim, summary, run.n_atoms)
     return EXIT_OK
 
