@@ -219,6 +219,24 @@ def reduced_tilt(box, tilt, pbc) -> NDArray[np.float64]:
     return np.array([xy, xz, yz])
 
 
+def cell_deformation(box_before, tilt_before, box_after, tilt_after, pbc) -> NDArray[np.float64]:
+    """The deformation M that took the cell from before to after (rows: ``H1 = H0 M``).
+
+    Positions that followed the cell affinely moved as ``r -> r M`` (what a
+    barostat does). A cell whose tilt was flipped to the equivalent shorter
+    one (:func:`reduced_tilt`) after the move is recognised: its basis change,
+    an integer matrix U with ``H1 ~ U H0`` for a small deformation, is undone
+    first. Open axes take a unit length, so M is the identity along them.
+    """
+    pbc = np.asarray(pbc, dtype=bool)
+    before = cell_matrix(np.where(pbc, box_before, 1.0), periodic_tilt(tilt_before, pbc))
+    after = cell_matrix(np.where(pbc, box_after, 1.0), periodic_tilt(tilt_after, pbc))
+    basis = np.rint(after @ np.linalg.inv(before))
+    if not np.array_equal(basis, np.eye(3)) and abs(round(np.linalg.det(basis))) == 1:
+        after = np.linalg.solve(basis, after)  # the cell before its flip
+    return np.linalg.solve(before, after)
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def min_image_component(d, length, inverse):
     """Minimum image of one displacement component (length 0: open axis)."""
