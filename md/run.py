@@ -492,7 +492,9 @@ def build_components(config: Config, state: State | None = None):
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:
-            integrator = pressure_control(integrator, Barostat(**config.barostat))
+            barostat = Barostat(**config.barostat)
+            barostat.check(state.pbc)
+            integrator = pressure_control(integrator, barostat)
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None
     constraints = getattr(integrator, "constraints", None)

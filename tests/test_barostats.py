@@ -438,3 +438,69 @@ def test_the_readme_npt_snippet_runs_the_32000_atom_melt(tmp_path):
     assert np.mean(traj.observables["temperature"][-4:]) == pytest.approx(1.0, rel=0.05)
     assert np.mean(traj.observables["pressure"][-4:]) == pytest.approx(1.0, abs=0.3)
 
+
+# ------------------------------------------------------- overshoot and open axes (issue 33)
+@pytest.mark.parametrize("couple", ["isotropic", "anisotropic"])
+@pytest.mark.parametrize("barostat", ["pressure = 1.0\ntau = 0.001", "pressure = 500.0\ntau = 1.0"])
+def test_a_berendsen_move_that_overshoots_fails_with_a_message(tmp_path, capsys, couple,
+                                                                barostat):  # fmt: skip
+    """1 - beta dt (P0 - P) / tau < 0: was a TypeError (the complex cube root) when isotropic."""
+    barostat = f'type = "berendsen"\n{barostat}\ncouple = "{couple}"'
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=barostat))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "step 10: the berendsen barostat's " in err
+    assert "its move overshoots" in err and "use a larger [barostat] tau" in err
+    assert "Traceback" not in err
+    assert read_trajectory("npt.h5").n_frames == 1  # the frames before it are kept
+
+
+def test_berendsen_scale_factor_is_the_real_cube_root():
+    barostat = Barostat("berendsen", 1.0, tau=0.001, compressibility=0.1)
+    assert barostat.scale_factor(0.0, 100.0, 1.0, 0.05) == pytest.approx(-(4.0 ** (1 / 3)))
+    assert barostat.scale_factor(0.999, 100.0, 1.0, 0.05) == pytest.approx(0.995 ** (1 / 3))
+
+
+OPEN_SYSTEM = CONFIG.replace("temperature = 1.0\n[[", "temperature = 1.0\npbc = {pbc}\n[[")
+
+
+@pytest.mark.parametrize(
+    ("pbc", "barostat", "message"),
+    [
+        ("false", C_RESCALE, "the c_rescale barostat needs periodic axes"),
+        ("false", C_RESCALE.replace("c_rescale", "berendsen"), "the berendsen barostat needs"),
+        ("false", C_RESCALE + '\ncouple = "anisotropic"', "periodic along none"),
+        ("[true, true, false]", C_RESCALE, "isotropic coupling scales all three edges, but "
+         "the system is open along z"),
+        ("[true, true, false]", MTK, "[barostat]: the mtk barostat needs a box periodic along "
+         "x, y and z; the system is open along z"),
+    ],
+)  # fmt: skip
+def test_a_barostat_refuses_what_it_cannot_scale(tmp_path, capsys, pbc, barostat, message):
+    integrator = NHC if "mtk" in barostat else LANGEVIN
+    config = OPEN_SYSTEM.replace("{pbc}", pbc).format(integrator=integrator, barostat=barostat)
+    (tmp_path / "npt.toml").write_text(config)
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "cannot create" not in err
+    assert not (tmp_path / "npt.h5").exists() and not (tmp_path / "npt.h5.ckpt").exists()
+
+
+def test_anisotropic_coupling_of_a_slab_keeps_the_open_edge(tmp_path):
+    barostat = C_RESCALE + '\ncouple = "anisotropic"'
+    config = OPEN_SYSTEM.replace("{pbc}", "[true, true, false]")
+    (tmp_path / "npt.toml").write_text(config.format(integrator=LANGEVIN, barostat=barostat))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 0
+    boxes = read_trajectory("npt.h5").boxes
+    assert np.all(boxes[:, 2] == boxes[0, 2]) and np.ptp(boxes[:, 0]) > 0
+
+
+def test_the_python_api_refuses_an_open_cluster_too():
+    state = md.lattice("fcc", 4, density=0.8, pbc=False)
+    md.maxwell_boltzmann(state, 1.0, seed=1)
+    integrator = PressureCoupled(Langevin(0.005, temperature=1.0, friction=1.0, seed=2),
+                                 Barostat("c_rescale", 1.0, tau=1.0, compressibility=0.1))  # fmt: skip
+    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
+    with pytest.raises(ValueError, match="periodic along none"):
+        sim.run(10)
