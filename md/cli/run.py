@@ -155,7 +155,11 @@ def main(args) -> int:
 
 
 class _ThermoTable:
-    """Observer printing one thermo row every interval (above the progress bar)."""
+    """Observer printing one thermo row every interval (above the progress bar).
+
+    It keeps no rows: memory stays flat however long the run (the run's
+    summary takes its first and last rows from ``sim.thermo()``).
+    """
 
     columns = (
         "step",
@@ -173,14 +177,13 @@ class _ThermoTable:
     def __init__(self, units, quiet: bool) -> None:
         self.units = units
         self.quiet = quiet
-        self.rows: list[dict] = []
         self._printed_header = False
+        self.uses_virial = not quiet  # quiet: prints nothing, so its steps need no virial
 
     def __call__(self, sim) -> None:
-        row = sim.thermo()
-        self.rows.append(row)
         if self.quiet:
             return
+        row = sim.thermo()
         conserved = ("conserved_energy",) if "conserved_energy" in row else ()  # thermostats
         if not self._printed_header:
             headers = self.headers + (("Conserved",) if conserved else ())
