@@ -463,9 +463,12 @@ def _write_topology(f: h5py.File, topology: Topology) -> None:
 
 
 def _read_topology(f: h5py.File) -> Topology:
+    """The bonds of ``/connectivity``, checked against the atom count (TrajectoryError
+    naming the file, the bond type's dataset and the bond)."""
     if "connectivity" not in f:
         return Topology.empty()
     group = f["connectivity"]
+    n_atoms = len(f["particles/trajectory/mass"])
     order = maybe_json(group.attrs.get("bond_types", "[]"))
     names = [name for name in order if name in group] if isinstance(order, list) else []
     names += sorted(name for name in group if name not in names)
@@ -474,6 +477,17 @@ def _read_topology(f: h5py.File) -> Topology:
         pairs = group[name][()]
         if pairs.ndim != 2 or pairs.shape[1] != 2:  # another kind of tuple list: not bonds
             continue
+        outside = ((pairs < 0) | (pairs >= n_atoms)).any(axis=1)
+        bad = np.flatnonzero(outside | (pairs[:, 0] == pairs[:, 1]))
+        if bad.size:
+            first = int(bad[0])
+            what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
+                    else "joins an atom to itself")  # fmt: skip
+            raise TrajectoryError(
+                f"{f.filename}: /connectivity/{name}: bond {first} "
+                f"{tuple(pairs[first].tolist())} {what} ({bad.size} such bond(s)); the file's "
+                "connectivity is damaged"
+            )
         groups[name] = pairs.astype(np.int64)
     return Topology.from_groups(groups)
 
@@ -484,6 +498,8 @@ def read_topology(path) -> Topology:
     with open_h5md(path) as f:
         try:
             return _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError, OSError) as error:
             raise TrajectoryError(f"{path}: unreadable connectivity ({error})") from None
 
@@ -753,6 +769,9 @@ class TrajectoryReader:
             # Complete frames: those every per-frame dataset holds (a killed write may
             # leave one partial frame).
             self.n_frames = _complete_frames(f)
+        except TrajectoryError:  # already names the file and what is wrong
+            self._file.close()
+            raise
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             self._file.close()
             raise TrajectoryError(
@@ -990,6 +1009,8 @@ def open_trajectory(path, **kwargs):
             names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
             n_frames = len(f["particles/trajectory/position/step"])
             topology = _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
     if n_frames == 0:  # MDAnalysis's reader cannot open a file without frames
