@@ -8,6 +8,7 @@ system (``lj`` or ``metal``, where times are in fs) into engine units here.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import tomllib
@@ -515,12 +516,36 @@ def integrator_from_config(entry: dict, source: str, system_bonds=None):
             params["constraints"] = constraints
         except (ValueError, TypeError) as error:
             raise ConfigError(f"{source}: [integrator.constraints]: {error}") from None
+    _check_keys(INTEGRATORS[kind], params, source, "integrator", kind)
     try:
         return INTEGRATORS[kind](**params)
     except TypeError as error:
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
     except ValueError as error:
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
+
+
+def _check_keys(cls, params: dict, source: str, table: str, kind: str) -> None:
+    """ConfigError naming a required key of ``cls`` missing from ``params`` (the keys of
+    ``[table]`` with ``type = kind``), or a key it does not take, instead of Python's own
+    "__init__() missing 1 required positional argument"."""
+    try:
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):  # no signature to read: the call reports
+        return
+    parameters = signature.parameters.values()
+    named = {p.name: p for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    if not any(p.kind == p.VAR_KEYWORD for p in parameters):
+        extra = sorted(set(params) - set(named))
+        if extra:  # first: a key of another type (friction for bussi) explains a missing one
+            raise ConfigError(
+                f"{source}: [{table}] {', '.join(extra)}: does not apply to type = {kind!r}, "
+                f"which takes {', '.join(name for name in named if name != 'kB')}"
+            )
+    missing = [name for name, p in named.items() if p.default is p.empty and name not in params]
+    if missing:
+        keys = " ".join(f"[{table}] {name}" for name in missing)
+        raise ConfigError(f"{source}: missing required key {keys} (type = {kind!r} needs it)")
 
 
 def build_system(config: Config):
@@ -566,7 +591,9 @@ def build_system(config: Config):
             )
         else:
             try:
-                state, topology = read_structure(system.structure, system.format, config.units)
+                state, topology = read_structure(
+                    system.structure, system.format, config.units, mass=system.mass
+                )
             except ValueError as error:
                 raise ConfigError(f"{where} structure: {error}") from None
             if not topology.n_bonds:
