@@ -95,6 +95,12 @@ class RunSummary:
         Seconds spent in the loop.
     first, last : dict
         ``sim.thermo()`` before and after the loop.
+    start : dict
+        The energies at the start of the whole run (step 0): ``step``,
+        ``total_energy``, ``kinetic_energy`` and, with a thermostat,
+        ``conserved_energy``. A resumed run takes them from its checkpoint,
+        so drifts can be measured over the whole run; empty when resuming
+        from a checkpoint written before checkpoints kept them.
     timings : dict
         Seconds per section (neighbour, force, integrate, observers) in the loop.
     last_checkpoint_step : int or None
@@ -113,10 +119,15 @@ class RunSummary:
     wall: float = 0.0
     first: dict = field(default_factory=dict)
     last: dict = field(default_factory=dict)
+    start: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     last_checkpoint_step: int | None = None
     message: str = ""
     signal: str | None = None
+
+
+#: What a checkpoint keeps of the run's first thermo row, to measure drifts from it.
+_START_KEYS = ("step", "total_energy", "kinetic_energy", "conserved_energy")
 
 
 @dataclass
@@ -221,17 +232,22 @@ class PreparedRun:
     def _execute(self, observers, handle_signals: bool) -> RunSummary:
         sim, state, config = self.sim, self.sim.state, self.config
         summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
-        writer = self._open_outputs()
+        summary.first = sim.thermo()
+        if self.checkpoint is None:
+            summary.start = {key: summary.first[key] for key in _START_KEYS if key in summary.first}
+        else:
+            summary.start = dict(self.checkpoint.extra.get("start") or {})
+        writer = self._open_outputs(summary.start)
         saver = Checkpointer(
-            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
-        )
+            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file,
+            start=summary.start,
+        )  # fmt: skip
         sim.attach(writer, interval=config.output.every)
         # After the writer, so a checkpoint counts the frame of its own step. With
         # checkpoint_every = 0 it only fires at the start of a fresh run (step 0).
         sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
         for observer, interval in observers:
             sim.attach(observer, interval=interval)
-        summary.first = sim.thermo()
         timings_before = sim.timing_summary()
         previous = _catch_stop_signals(sim) if handle_signals else {}
         start = time.perf_counter()
@@ -263,7 +279,7 @@ class PreparedRun:
             summary.last = sim.thermo()
         return summary
 
-    def _open_outputs(self) -> H5MDWriter:
+    def _open_outputs(self, start: dict) -> H5MDWriter:
         """Under the claim: the first checkpoint, then the trajectory writer.
 
         A fresh run checks again that its outputs are still free (another run
@@ -284,7 +300,7 @@ class PreparedRun:
             write_checkpoint(
                 self.checkpoint_path, state, self.sim.integrator, self.sim.forcefield,
                 fingerprint=self.fingerprint, run_id=self.run_id,
-                extra={"config_file": self.config_file},
+                extra={"config_file": self.config_file, "start": start},
             )  # fmt: skip
             try:
                 return self._new_trajectory(overwrite=self.overwrite)
@@ -459,6 +475,7 @@ def run_config(
         return prepared.sim, RunSummary(
             COMPLETED, prepared.output, prepared.checkpoint_path, 0,
             n_frames=prepared.checkpoint.n_frames,
+            start=dict(prepared.checkpoint.extra.get("start") or {}),
         )  # fmt: skip
     return prepared.sim, prepared.execute()
 

@@ -216,8 +216,12 @@ def _print_summary(sim, summary) -> None:
     timings = summary.timings
     other = max(wall - sum(timings.values()), 0.0)
     atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
-    energy_scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
-    drift = (last["total_energy"] - first["total_energy"]) / energy_scale
+    # Drifts over the whole run: from step 0's energies, which a resumed run takes from its
+    # checkpoint (one written before checkpoints kept them: from where it resumed).
+    start = summary.start if "total_energy" in summary.start else first
+    since = "" if int(start["step"]) == 0 else f" since step {int(start['step'])}"
+    energy_scale = max(abs(start["total_energy"]), abs(start["kinetic_energy"]), 1e-300)
+    drift = (last["total_energy"] - start["total_energy"]) / energy_scale
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
@@ -238,8 +242,8 @@ def _print_summary(sim, summary) -> None:
         )
         if per_step:
             print(f"Integrator, per step: {per_step}")
-    print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
-    if "conserved_energy" in first:  # a thermostat: its conserved quantity should not drift
-        change = (last["conserved_energy"] - first["conserved_energy"]) / energy_scale
-        print(f"Relative conserved-quantity drift (incl. heat bath): {change:.3e}")
+    print(f"Relative total-energy drift (E_end - E_start)/|E_start|{since}: {drift:.3e}")
+    if "conserved_energy" in start:  # a thermostat: its conserved quantity should not drift
+        change = (last["conserved_energy"] - start["conserved_energy"]) / energy_scale
+        print(f"Relative conserved-quantity drift (incl. heat bath){since}: {change:.3e}")
     print(f"Wrote {n_frames} frames to {output}")
