@@ -343,6 +343,10 @@ class _LammpsDataWriter:
         self, path: Path, reader: TrajectoryReader, frames: range, unwrap: bool, kind: str
     ) -> None:
         self.path, self.reader, self.unwrap = path, reader, unwrap
+        # ASE's writer converts from its units to the ones named; "ASE" to ASE's own is the
+        # identity, so reduced (lj) values are written exactly as they are (a round trip
+        # through metal gave masses of 0.99999999974).
+        self._ase_units = "ASE" if reader.units.name == "lj" else "metal"
         if len(reader.type_names) > len(self._STAND_INS):
             raise ValueError(
                 f"LAMMPS data output takes up to {len(self._STAND_INS)} atom types, the "
@@ -363,8 +367,6 @@ class _LammpsDataWriter:
         masses = atoms.get_masses()
         atoms.set_chemical_symbols([self._STAND_INS[t] for t in reader.types])
         atoms.set_masses(masses)
-        if reader.units.name == "lj":  # the writer converts ASE to metal: write lj unchanged
-            atoms.set_velocities(state.velocities / lammps_units(1.0, "velocity", "ASE", "metal"))
         partners = [[] for _ in range(reader.n_atoms)]
         for (i, j), t in zip(topology.bonds.tolist(), topology.bond_types.tolist(), strict=True):
             partners[i].append(f"{j}({t + 1})")
@@ -373,10 +375,16 @@ class _LammpsDataWriter:
         stand_ins = list(self._STAND_INS[: len(reader.type_names)])
         with open(self.path, "w") as handle:
             write_lammps_data(
-                handle, atoms, specorder=stand_ins, masses=True, velocities=True,
-                atom_style="full", units="metal", bonds=True,
+                handle, atoms, specorder=stand_ins, masses=True, velocities=False,
+                atom_style="full", units=self._ase_units, bonds=True,
             )  # fmt: skip
         lines = self.path.read_text().splitlines(keepends=True)
+        # Velocities written here: ASE's writer divides momenta by masses, which is not
+        # always the velocity back to the last bit.
+        factor = lammps_units(1.0, "velocity", "ASE", self._ase_units)
+        lines.append("\nVelocities\n\n")
+        lines += [f"{i + 1:>6} {x:23.17g} {y:23.17g} {z:23.17g}\n"
+                  for i, (x, y, z) in enumerate((state.velocities * factor).tolist())]  # fmt: skip
         units = "lj" if reader.units.name == "lj" else "metal"
         types = " ".join(f"{t + 1}={name}" for t, name in enumerate(reader.type_names))
         bond_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.bond_type_names))

@@ -187,7 +187,6 @@ _STYLE_BY_COLUMNS = {5: "atomic", 6: "bond", 7: "full"}
 
 def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, Topology]:
     import ase.io  # ASE's LAMMPS data reader: loaded only for data files
-    from ase.calculators.lammps import convert as lammps_units  # with ASE's reader
 
     try:
         header = _lammps_header(path)
@@ -210,7 +209,9 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
             "Atoms header, e.g. 'Atoms # full'"
         )
     try:
-        atoms = ase.io.read(path, format="lammps-data", atom_style=style, units="metal")
+        # Reduced (lj) values are taken as written: ASE's units to its own is the identity.
+        atoms = ase.io.read(path, format="lammps-data", atom_style=style,
+                            units="ASE" if units.name == "lj" else "metal")  # fmt: skip
     except Exception as error:  # ASE raises many types for unreadable files
         hint = ""
         if isinstance(error, KeyError):  # ASE looks ids and types up in dicts
@@ -235,8 +236,6 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
         masses = _given_masses(path, mass, types, type_names)
     with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused by State
         velocities = atoms.get_velocities()  # ASE converted metal (A/ps) to its own units
-    if units.name == "lj":  # reduced values are taken as written
-        velocities = velocities * lammps_units(1.0, "velocity", "ASE", "metal")
     try:
         state = State(
             positions=atoms.get_positions() - header["lo"],
