@@ -410,7 +410,8 @@ def _engine_frame(cell, pbc) -> tuple[NDArray[np.float64], NDArray[np.float64], 
     filled: list[int] = []
     for k in np.flatnonzero(pbc):
         if np.linalg.norm(h[k]) <= tolerance:
-            raise ValueError(f"atoms are periodic along {'xyz'[k]} but the cell has no length there")
+            axis = "xyz"[k]
+            raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
         rest = h[k] - rotation[:, filled] @ (rotation[:, filled].T @ h[k])
         if np.linalg.norm(rest) <= tolerance:
             raise ValueError(f"{what}: the periodic cell vectors are linearly dependent: "

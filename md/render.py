@@ -1,10 +1,11 @@
 """Pictures of a trajectory frame without writing code: matplotlib, or POV-Ray where installed.
 
 :func:`render` draws one frame of an H5MD trajectory: atoms as spheres
-coloured by type, bonds as lines, the box edges (along open axes, the stored edge widened to the atoms' extent, or
-their bounding box where the edge is zero: :func:`md.box.enclosing_cell`).
-Positions are drawn wrapped into the box; a bond that crosses a periodic boundary is drawn
-from each of its atoms towards the other's nearest image, so it pokes out
+coloured by type, bonds as lines, the box edges (along open axes the stored
+edge widened to the atoms' extent, or their bounding box where the edge is
+zero: :func:`md.box.enclosing_cell`). Positions are drawn wrapped into the
+box; a bond that crosses a periodic boundary is drawn from each of its
+atoms towards the other's nearest image, so it pokes out
 of the box on both sides instead of spanning it. ``engine="povray"`` writes
 the same scene through ASE's POV-Ray writer and renders it with the
 ``povray`` program (bonds and box included), for publication pictures.

@@ -93,7 +93,8 @@ def _read_ase(path: Path, format: str | None) -> State:
         atoms = ase.io.read(path, format=format)
     except Exception as error:  # ase.io raises many types for unreadable files
         how = f" as format {format!r}" if format else ""
-        raise ValueError(f"cannot read {path}{how}: ASE's reader failed ({_reason(error)})") from None
+        reason = _reason(error)
+        raise ValueError(f"cannot read {path}{how}: ASE's reader failed ({reason})") from None
     if isinstance(atoms, list):
         atoms = atoms[-1]
     try:
@@ -215,8 +216,10 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
     except Exception as error:  # ASE raises many types for unreadable files
         hint = ""
         if isinstance(error, KeyError):  # ASE looks ids and types up in dicts
-            hint = (": an id the file refers to is not defined (an atom id in Bonds, Angles or "
-                    "Velocities missing from Atoms, or an atom type missing from Masses)")  # fmt: skip
+            hint = (
+                ": an id the file refers to is not defined (an atom id in Bonds, Angles or "
+                "Velocities missing from Atoms, or an atom type missing from Masses)"
+            )
         raise ValueError(
             f"cannot read {path} as a LAMMPS data file with atom_style {style}: ASE's reader "
             f"failed ({_reason(error)}){hint}"

@@ -499,8 +499,10 @@ def test_anisotropic_coupling_of_a_slab_keeps_the_open_edge(tmp_path):
 def test_the_python_api_refuses_an_open_cluster_too():
     state = md.lattice("fcc", 4, density=0.8, pbc=False)
     md.maxwell_boltzmann(state, 1.0, seed=1)
-    integrator = PressureCoupled(Langevin(0.005, temperature=1.0, friction=1.0, seed=2),
-                                 Barostat("c_rescale", 1.0, tau=1.0, compressibility=0.1))  # fmt: skip
+    integrator = PressureCoupled(
+        Langevin(0.005, temperature=1.0, friction=1.0, seed=2),
+        Barostat("c_rescale", 1.0, tau=1.0, compressibility=0.1),
+    )
     sim = md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
     with pytest.raises(ValueError, match="periodic along none"):
         sim.run(10)

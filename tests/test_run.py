@@ -89,8 +89,8 @@ def _drift_lines(out: str) -> list[str]:
                                         "tau = 0.1"])  # fmt: skip
 def test_a_resumed_run_reports_the_drift_of_the_whole_run(tmp_path, capsys, integrator):
     """Was the drift of the resumed part only: the checkpoint now keeps step 0's energies."""
-    (tmp_path / "run.toml").write_text(lj_config_text(integrator=integrator,
-                                                      run="steps = 40\nthermo_every = 10"))  # fmt: skip
+    text = lj_config_text(integrator=integrator, run="steps = 40\nthermo_every = 10")
+    (tmp_path / "run.toml").write_text(text)
     quiet = ("-q", "--no-progress")
     assert main(["run", str(tmp_path / "run.toml"), "-o", str(tmp_path / "whole.h5"), *quiet]) == 0
     whole = _drift_lines(capsys.readouterr().out)
