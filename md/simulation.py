@@ -103,7 +103,8 @@ class Simulation:
         self.max_displacement = max_displacement
         self.stop_requested: str | None = None
         self._previous = np.empty((0, 3))
-        self._previous_cell = (np.zeros(3), np.zeros(3))
+        self._previous_cell = (b"", b"")  # box and tilt before the step, as bytes
+        self._mapped = np.empty((0, 3))  # the step's start carried along with the cell
 
     @property
     def potentials(self) -> list[Potential]:
@@ -168,8 +169,7 @@ class Simulation:
                 if self._previous.shape != state.positions.shape:
                     self._previous = np.empty_like(state.positions)
                 np.copyto(self._previous, state.positions)
-                np.copyto(self._previous_cell[0], state.box)
-                np.copyto(self._previous_cell[1], state.tilt)
+                self._previous_cell = (state.box.tobytes(), state.tilt.tobytes())
             upcoming = state.step + 1
             self.forcefield.virial_wanted = any(upcoming % k == 0 for k in self._virial_intervals)
             self._guarded(lambda: self.integrator.step(state, self.forcefield), upcoming)
@@ -193,11 +193,13 @@ class Simulation:
         """
         state = self.state
         previous = self._previous
-        box, tilt = self._previous_cell
-        if not (np.array_equal(box, state.box) and np.array_equal(tilt, state.tilt)):
+        if self._previous_cell != (state.box.tobytes(), state.tilt.tobytes()):
+            box, tilt = (np.frombuffer(b, dtype=np.float64) for b in self._previous_cell)
             deformation = cell_deformation(box, tilt, state.box, state.tilt, state.pbc)
             self._check_cell_move(deformation, limit)
-            previous = previous @ deformation
+            if self._mapped.shape != previous.shape:
+                self._mapped = np.empty_like(previous)
+            previous = np.matmul(previous, deformation, out=self._mapped)
         moved2 = _max_displacement2(state.positions, previous)
         if moved2 <= limit * limit:
             return
