@@ -109,7 +109,11 @@ class Barostat:
         return BAROSTATS[self.kind]
 
     def scale_factor(self, p_now: float, volume: float, kT: float, dt: float) -> float:
-        """The isotropic scale factor mu of one move lasting ``dt``."""
+        """The isotropic scale factor mu of one move lasting ``dt``.
+
+        For ``berendsen`` the real cube root: zero or negative when the move
+        overshoots (``beta dt (P0 - P) / tau > 1``), which the caller reports.
+        """
         rate = self.compressibility / self.tau
         if self.kind == "berendsen":  # the real cube root: negative when the move overshoots
             return float(np.cbrt(1.0 - rate * dt * (self.pressure - p_now)))

@@ -46,6 +46,7 @@ def _structures() -> dict:
     slab = fcc111("Ar", (4, 4, 3), a=5.26)
     slab.cell[2] = 0.0  # periodic in x and y (a tilted cell), no length along z
     slab.pbc = [True, True, False]
+    slab.info.pop("adsorbate_info", None)  # extxyz cannot store it (and says so)
     return {"cluster": cluster, "slab": slab}
 
 
