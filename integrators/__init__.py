@@ -11,6 +11,7 @@ Bussi, Nose-Hoover chains, Berendsen) sample at a temperature; they and
 """
 
 from md._kernel_cache import kernel_cache
+from md.errors import ConstraintError
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
@@ -22,7 +23,7 @@ with kernel_cache():
     from integrators.langevin import Langevin
     from integrators.leapfrog import Leapfrog
     from integrators.nose_hoover import NoseHooverChain
-    from integrators.rattle import BondConstraints, ConstraintError, Rattle
+    from integrators.rattle import BondConstraints, Rattle
     from integrators.respa import RESPA
     from integrators.runge_kutta import RK4, RKF45
     from integrators.splitting import (

@@ -83,6 +83,11 @@ class Thermostat(IntegratorBase):
         self.reservoir = 0.0
         self._steps = 0
 
+    @classmethod
+    def coupling(cls, tau: float) -> dict:
+        """Keyword arguments that couple the thermostat with time constant ``tau`` [time]."""
+        return {"tau": tau}
+
     @property
     def kT(self) -> float:
         """Target thermal energy kB T [energy]."""
@@ -154,8 +159,7 @@ class Thermostat(IntegratorBase):
 
     def _advance(self, state) -> None:
         self._steps += 1
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def _describe(self, kind: str, **params) -> dict:
         described = {"type": kind, "dt": self.dt, "temperature": self.temperature, "kB": self.kB,

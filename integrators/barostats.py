@@ -48,7 +48,13 @@ import math
 
 import numpy as np
 
-from integrators.base import IntegratorBase
+from integrators.base import (
+    Integrator,
+    IntegratorBase,
+    Restartable,
+    Statistics,
+    constraints_of,
+)
 from integrators.mtk import MartynaTobiasKlein
 from md._checks import count, positive
 from md.box import TILT_AXES, reduced_tilt
@@ -204,7 +210,7 @@ def pressure_control(integrator, barostat: Barostat):
         Nose-Hoover chains), with a message that names what to use instead.
     """
     if barostat.kind == "mtk":
-        if not getattr(integrator, "thermostat", False):
+        if not (isinstance(integrator, Integrator) and integrator.thermostat):
             raise ValueError(
                 "a barostat needs a thermostat: the mtk barostat runs with [integrator] "
                 "type = 'nose_hoover_chain', not an NVE integrator"
@@ -228,7 +234,7 @@ class PressureCoupled(IntegratorBase):
     def __init__(self, integrator, barostat: Barostat) -> None:
         if barostat.kind == "mtk":
             raise ValueError("the mtk barostat is its own integrator: use pressure_control()")
-        if not getattr(integrator, "thermostat", False):
+        if not (isinstance(integrator, Integrator) and integrator.thermostat):
             raise ValueError(
                 "a barostat needs a thermostat ([integrator] type langevin, bussi, "
                 "nose_hoover_chain or berendsen), not an NVE integrator"
@@ -243,7 +249,7 @@ class PressureCoupled(IntegratorBase):
 
     @property
     def constraints(self):
-        return getattr(self.inner, "constraints", None)
+        return constraints_of(self.inner)
 
     @property
     def kT(self) -> float:
@@ -311,7 +317,7 @@ class PressureCoupled(IntegratorBase):
 
     @property
     def statistics(self) -> dict:
-        stats = dict(getattr(self.inner, "statistics", {}))
+        stats = dict(self.inner.statistics) if isinstance(self.inner, Statistics) else {}
         stats["barostat_moves"] = self.barostat.moves
         return stats
 
@@ -319,7 +325,7 @@ class PressureCoupled(IntegratorBase):
         self.inner.reset()
 
     def get_state(self) -> dict:
-        inner = self.inner.get_state() if hasattr(self.inner, "get_state") else None
+        inner = self.inner.get_state() if isinstance(self.inner, Restartable) else None
         barostat = self.barostat
         return {
             "inner": inner,

@@ -1,4 +1,24 @@
-"""The Integrator protocol, its capability flags, and the checks integrators share."""
+"""The Integrator protocol, its capability flags, its optional hooks, and what integrators share.
+
+The optional hooks are small ``runtime_checkable`` protocols; the engine
+asks ``isinstance(integrator, Hook)`` before it calls one, so an integrator
+that leaves a hook out is simply not asked:
+
+=====================  ==========================================  ============================
+protocol               members                                     used by
+=====================  ==========================================  ============================
+:class:`Constrained`   ``constraints`` (BondConstraints or None)   md.run (binding, topology),
+                                                                   barostats
+:class:`ThermoTerms`   ``thermo_terms(state, result)``             Simulation.thermo
+:class:`Statistics`    ``statistics`` (dict of counters)           md run's summary, barostats
+:class:`Restartable`   ``get_state()``, ``set_state(saved)``       checkpoints
+:class:`ForceSplit`    ``split(forcefield)``                       md.run (RESPA's check)
+=====================  ==========================================  ============================
+
+:class:`IntegratorBase` gives the flags' defaults, ``constraints = None``
+(so every integrator in the registry is :class:`Constrained`) and
+:meth:`IntegratorBase.end_step`, the bookkeeping that closes every step.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +28,10 @@ from md._checks import positive
 from md.errors import ConvergenceError
 
 if TYPE_CHECKING:  # annotations only: integrators import nothing above layer 0 of md
+    from integrators.rattle import BondConstraints
     from md.forcefield import ForceField
     from md.state import State
+    from potentials.base import ForceResult
 
 
 @runtime_checkable
@@ -66,9 +88,75 @@ class Integrator(Protocol):
     def describe(self) -> dict: ...
 
 
-class IntegratorBase:
-    """Defaults of the capability flags; every integrator in the registry derives from it."""
+@runtime_checkable
+class Constrained(Protocol):
+    """Optional hook: the integrator's rigid bonds (None when it has none).
 
+    ``md.run`` binds them to the starting state (moving it onto the bond
+    lengths) and stores their bonds in the trajectory's topology; a
+    barostat passes on its inner integrator's.
+    """
+
+    constraints: BondConstraints | None
+
+
+@runtime_checkable
+class ThermoTerms(Protocol):
+    """Optional hook: what the integrator adds to ``Simulation.thermo()``.
+
+    ``thermo_terms(state, result)`` returns a dict with any of ``n_dof``
+    (degrees of freedom of the kinetic temperature), ``virial`` (a (3, 3)
+    constraint virial added to the pair virial) and ``reservoir_energy``
+    (a heat bath's or barostat's energy, giving ``conserved_energy``).
+    """
+
+    def thermo_terms(self, state: State, result: ForceResult) -> dict: ...
+
+
+@runtime_checkable
+class Statistics(Protocol):
+    """Optional hook: cumulative counters (``steps``, solver iterations, ...) as a dict."""
+
+    statistics: dict
+
+
+@runtime_checkable
+class Restartable(Protocol):
+    """Optional hook: private state (history, random generator) as plain data.
+
+    ``get_state()`` returns it (or None: nothing to keep) for a checkpoint;
+    ``set_state(saved)`` takes it back, so a resumed run continues bit for
+    bit. The two come together: a checkpoint holding private state cannot
+    be resumed by an integrator without ``set_state``.
+    """
+
+    def get_state(self) -> dict | None: ...
+
+    def set_state(self, saved: dict) -> None: ...
+
+
+@runtime_checkable
+class ForceSplit(Protocol):
+    """Optional hook of an integrator with ``splits_forces``: its groups of potentials.
+
+    ``split(forcefield)`` returns ``(fast, slow)``, tuples of indices into
+    ``forcefield.potentials``, or raises ValueError when one group is empty;
+    ``md.run`` calls it before the run so that a config without, say, bonds
+    is refused up front.
+    """
+
+    def split(self, forcefield: ForceField) -> tuple[tuple[int, ...], tuple[int, ...]]: ...
+
+
+class IntegratorBase:
+    """Defaults of the capability flags, and the step's bookkeeping.
+
+    Every integrator in the registry derives from it. ``constraints`` is
+    None (no rigid bonds) unless the integrator sets it.
+    """
+
+    dt: float
+    constraints: BondConstraints | None = None
     thermostat: ClassVar[bool] = False
     stochastic: ClassVar[bool] = False
     canonical: ClassVar[bool] = True
@@ -81,10 +169,36 @@ class IntegratorBase:
     def reset(self) -> None:
         """Drop private history (nothing, for a one-step method)."""
 
+    def end_step(self, state: State) -> None:
+        """Close a step: advance ``state.step`` by one and ``state.time`` by ``dt``.
+
+        Every integrator calls it last in ``step``, once positions and
+        velocities hold the new point, so the counters move only for a step
+        that was taken.
+        """
+        state.step += 1
+        state.time += self.dt
+
+
+def constraints_of(integrator) -> BondConstraints | None:
+    """The integrator's rigid bonds, or None (none, or no :class:`Constrained` hook)."""
+    return integrator.constraints if isinstance(integrator, Constrained) else None
+
 
 def check_dt(dt: float) -> float:
     """Return ``dt`` as a float, or raise ValueError if it is not finite and > 0."""
     return positive(dt, "dt")
 
 
-__all__ = ["ConvergenceError", "Integrator", "IntegratorBase", "check_dt"]
+__all__ = [
+    "Constrained",
+    "ConvergenceError",
+    "ForceSplit",
+    "Integrator",
+    "IntegratorBase",
+    "Restartable",
+    "Statistics",
+    "ThermoTerms",
+    "check_dt",
+    "constraints_of",
+]

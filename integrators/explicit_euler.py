@@ -40,8 +40,7 @@ class ExplicitEuler(IntegratorBase):
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state, virial=False).forces
         _explicit_euler(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt)
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
         self.statistics["steps"] += 1
 
     def reset(self) -> None:
@@ -84,8 +83,7 @@ class SymplecticEuler(IntegratorBase):
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state, virial=False).forces
         kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, self.dt, self.dt)
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
         self.statistics["steps"] += 1
 
     def reset(self) -> None:

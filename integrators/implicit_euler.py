@@ -164,8 +164,7 @@ class ImplicitEuler(_ImplicitBase):
         displacement = self._solver.solve(state, forcefield, self.dt, self._label)
         # The solver left the positions at x0 + dx.
         state.velocities[:] = displacement / self.dt
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
 
 class ImplicitMidpoint(_ImplicitBase):
@@ -220,8 +219,7 @@ class ImplicitMidpoint(_ImplicitBase):
         displacement = self._solver.solve(state, forcefield, half, self._label, reach=0.5)
         state.positions[:] = x0 + 2.0 * displacement
         state.velocities[:] = 2.0 * displacement / half - state.velocities
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
 
 __all__ = ["ImplicitEuler", "ImplicitMidpoint"]

@@ -27,7 +27,7 @@ class Langevin(Thermostat):
     sampled with an error of order dt^2 that is much smaller than other
     splittings' (exact for a harmonic system at any stable dt). The
     end-of-step velocities in ``state.velocities`` read a kinetic
-    temperature low by about dt^2 <|F|^2/m> / (12 N kB T) (exactly
+    temperature low by about ``dt^2 <|F|^2/m> / (12 N kB T)`` (exactly
     1 - dt^2 k / 4m for a harmonic oscillator; about 0.2 % for the LJ
     liquid at T = 1, dt = 0.005).
 
@@ -94,6 +94,11 @@ class Langevin(Thermostat):
         self.seed = seed if not isinstance(seed, np.random.Generator) else None
         self.rng = make_rng(seed)
         self._noise: np.ndarray | None = None
+
+    @classmethod
+    def coupling(cls, tau: float) -> dict:
+        """Langevin couples through its friction: 1 / ``tau``."""
+        return {"friction": 1.0 / tau}
 
     def step(self, state, forcefield) -> None:
         self._prepare(state)

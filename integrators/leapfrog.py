@@ -86,8 +86,7 @@ class Leapfrog(IntegratorBase):
             kick_drift(state.positions, self._half, forces, inverse_masses, 0.5 * dt, dt)
         forces = forcefield.compute(state, virial=False).forces
         _synchronise(state.velocities, self._half, forces, inverse_masses, 0.5 * dt)
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
         self.statistics["steps"] += 1
         self._remember(state)
 

@@ -134,10 +134,6 @@ class MartynaTobiasKlein(IntegratorBase):
     def kT(self) -> float:
         return self.chain.kT
 
-    @property
-    def constraints(self):
-        return None
-
     def free_components(self) -> list[tuple[int, int]]:
         """Entries (row, column) of Omega that move; the isotropic mode moves (0, 0) for all."""
         couple = self.barostat.couple
@@ -183,8 +179,7 @@ class MartynaTobiasKlein(IntegratorBase):
         self.chain.thermalize(state, n_dof, half)
         self._barostat_chain(n_dof, half)
         self._steps += 1
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def _barostat_chain(self, n_dof: int, duration: float) -> None:
         free = self.free_components()

@@ -29,49 +29,11 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from integrators._kernels import kick, kick_drift
-from integrators.base import ConvergenceError, IntegratorBase, check_dt
+from integrators.base import IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
+from md.errors import ConstraintError
 from md.thermo import degrees_of_freedom as unconstrained_dof
-
-#: Stage names used in error messages.
-_STAGES = {"positions": "SHAKE (bond lengths)", "velocities": "RATTLE (bond velocities)"}
-
-
-class ConstraintError(ConvergenceError):
-    """SHAKE or RATTLE did not converge within ``max_iter`` iterations.
-
-    Attributes
-    ----------
-    step : int
-        The step being taken when it failed.
-    residual : float
-        Largest relative error left: |r - d| / d for positions, the relative
-        bond-length change per step |r . v_ij| dt / d^2 for velocities.
-    bond, i, j : int
-        Index of the worst bond and its atoms.
-    """
-
-    def __init__(self, step, stage, residual, bond, i, j, tol, max_iter) -> None:
-        self.stage = stage
-        self.bond = bond
-        self.i = i
-        self.j = j
-        if np.isfinite(residual):
-            problem = (
-                f"did not converge in {max_iter} iterations: bond {bond} (atoms {i}-{j}) has "
-                f"relative error {residual:.3g} > tol {tol:g}"
-            )
-        else:
-            problem = (
-                f"cannot correct bond {bond} (atoms {i}-{j}): it turned by 90 degrees or "
-                "more within the step"
-            )
-        message = (
-            f"step {step}: {_STAGES.get(stage, stage)} {problem} (is dt too large, or a "
-            "constrained bond torn apart by the forces?)"
-        )
-        super().__init__(step, residual, message)
 
 
 class BondConstraints:
@@ -86,8 +48,8 @@ class BondConstraints:
         Bond lengths [length]. By default each bond keeps the length it has
         when an integrator first sees the state.
     tol : float
-        Relative tolerance: SHAKE stops when every |r - d| / d <= tol, RATTLE
-        when every |r . v_ij| dt / d^2 <= tol (the bond-length change over one
+        Relative tolerance: SHAKE stops when every ``|r - d| / d <= tol``, RATTLE
+        when every ``|r . v_ij| dt / d^2 <= tol`` (the bond-length change over one
         step, relative to its length).
     max_iter : int
         Iterations (sweeps over all bonds) before :class:`ConstraintError`.
@@ -251,7 +213,7 @@ class BondConstraints:
         )
 
     def errors(self, state) -> NDArray[np.float64]:
-        """Return |r - d| / d for every constrained pair (dimensionless)."""
+        """Return ``|r - d| / d`` for every constrained pair (dimensionless)."""
         if self.lengths is None:
             raise ValueError("the constraints have no lengths yet (bind them to a state first)")
         vectors = self.bond_vectors(state)
@@ -330,8 +292,8 @@ class BondConstraints:
 
         Solves (J M^-1 J^T) lambda = -(J M^-1 F + w) for the multipliers,
         where row k of J holds +r_k on atom i and -r_k on atom j
-        (r_k = r_i - r_j) and w_k = |v_i - v_j|^2: the forces J^T lambda that
-        keep every d^2|r_k|^2/dt^2 zero given the potential forces F and the
+        (r_k = r_i - r_j) and ``w_k = |v_i - v_j|^2``: the forces J^T lambda that
+        keep every ``d^2 |r_k|^2 / dt^2`` zero given the potential forces F and the
         current velocities (assumed tangent, as after RATTLE).
 
         Returns
@@ -456,8 +418,7 @@ class Rattle(IntegratorBase):
         self.constraints.bind(state, self.dt, state.step + 1)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
         self._steps += 1
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Nothing to forget: RATTLE is a one-step method."""

@@ -104,8 +104,7 @@ class RESPA(IntegratorBase):
                 kick_drift(state.positions, state.velocities, forces, inverse_masses, h, h)
             combined = self._outer(state, forcefield, fast, slow)
             kick(state.velocities, combined, inverse_masses, 0.5 * dt)
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
 
     def _outer(self, state, forcefield, fast, slow):
         """F_s + F_f / n: the outer half kick dt/2 and the inner half kick h/2, merged."""

@@ -133,8 +133,7 @@ class RK4(IntegratorBase):
         except BaseException:
             work.restore(state)
             raise
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
         self.statistics["steps"] += 1
 
     def reset(self) -> None:
@@ -151,7 +150,7 @@ class RKF45(IntegratorBase):
     observers land on the requested times) in as many internal substeps as
     the error control needs. Each substep evaluates six forces; the fifth-order
     solution is propagated and the difference to the embedded fourth-order
-    one is the local error estimate
+    one is the local error estimate::
 
         err = max |h sum_j (b5_j - b4_j) k_j|
 
@@ -299,8 +298,7 @@ class RKF45(IntegratorBase):
             np.copyto(state.velocities, self._start_velocities)
             raise
         self._h = h
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
         stats["steps"] += 1
 
     def reset(self) -> None:

@@ -12,23 +12,23 @@ they satisfy) and the error constant.
 One class, :class:`Splitting`, steps through any table with the two kernels
 of ``integrators._kernels``; the named methods below are tables:
 
-==================  =====  ======  ===================================================
-name                order  forces  coefficients
-==================  =====  ======  ===================================================
-``yoshida4``        4      3       Forest and Ruth (1990) / Yoshida (1990): velocity
-                                   Verlet composed with weights w1, w0, w1,
-                                   w1 = 1 / (2 - 2^(1/3)), w0 = 1 - 2 w1
-``yoshida6``        6      7       Yoshida (1990), solution A: seven velocity Verlet
-                                   substeps (w3, w2, w1, w0, w1, w2, w3)
-``pefrl``           4      4       Omelyan, Mryglod and Folk, Comput. Phys. Commun.
-                                   146, 188 (2002): position-extended Forest-Ruth-like,
-                                   optimised error constant
-``blanes_moan``     4      6       Blanes and Moan, J. Comput. Appl. Math. 142, 313
-                                   (2002): the optimised 6-stage partitioned RK
-                                   method (drift first)
-``blanes_moan_rkn`` 4      6       the same paper's optimised 6-stage
-                                   Runge-Kutta-Nystrom method (kick first)
-==================  =====  ======  ===================================================
+===================  =====  ======  ===================================================
+name                 order  forces  coefficients
+===================  =====  ======  ===================================================
+``yoshida4``         4      3       Forest and Ruth (1990) / Yoshida (1990): velocity
+                                    Verlet composed with weights w1, w0, w1,
+                                    w1 = 1 / (2 - 2^(1/3)), w0 = 1 - 2 w1
+``yoshida6``         6      7       Yoshida (1990), solution A: seven velocity Verlet
+                                    substeps (w3, w2, w1, w0, w1, w2, w3)
+``pefrl``            4      4       Omelyan, Mryglod and Folk, Comput. Phys. Commun.
+                                    146, 188 (2002): position-extended Forest-Ruth-like,
+                                    optimised error constant
+``blanes_moan``      4      6       Blanes and Moan, J. Comput. Appl. Math. 142, 313
+                                    (2002): the optimised 6-stage partitioned RK
+                                    method (drift first)
+``blanes_moan_rkn``  4      6       the same paper's optimised 6-stage
+                                    Runge-Kutta-Nystrom method (kick first)
+===================  =====  ======  ===================================================
 
 "forces" counts force evaluations per step: a method that starts and ends
 with a kick reuses the last kick's forces at the start of the next step
@@ -214,8 +214,7 @@ class Splitting(IntegratorBase):
                 kick(state.velocities, forces, inverse_masses, c * dt)
             else:
                 _drift(state.positions, state.velocities, c * dt)
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
 
     def describe(self) -> dict:
         return {"type": self.name, "dt": self.dt}

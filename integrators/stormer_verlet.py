@@ -53,8 +53,7 @@ class StormerVerlet(IntegratorBase):
         _drift(state.positions, state.velocities, 0.5 * dt)
         forces = forcefield.compute(state, virial=False).forces
         kick_drift(state.positions, state.velocities, forces, 1.0 / state.masses, dt, 0.5 * dt)
-        state.step += 1
-        state.time += dt
+        self.end_step(state)
         self.statistics["steps"] += 1
 
     def reset(self) -> None:

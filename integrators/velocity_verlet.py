@@ -40,8 +40,7 @@ class VelocityVerlet(IntegratorBase):
         kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)
-        state.step += 1
-        state.time += self.dt
+        self.end_step(state)
 
     def reset(self) -> None:
         """Nothing to forget: velocity Verlet is a one-step method."""

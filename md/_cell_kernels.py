@@ -12,6 +12,63 @@ with a ``_threaded`` twin run their chunks on numba's threads; the plain one
 runs them in turn, off the thread pool. The candidate tests are LLVM-IR
 intrinsics built from ``md._simd`` (vector blocks, compare masks, AVX2 lane
 permutes where numba compiles for AVX2, a portable bit-mask scan elsewhere).
+
+The rebuild check
+-----------------
+``NeighborList.update`` asks ``_largest_displacement2`` whether any atom moved
+more than skin/2 since the last build: one compiled entry for the serial and
+the threaded pass (``_max_displacement2_threaded``), so the threaded one loads
+at the first check of any run; it also catches non-finite positions. When a
+barostat changed the cell, the build's positions are first mapped affinely
+into the new cell and the allowance shrinks with the deformation's smallest
+singular value, so the list is kept and its lengths, tilt and shifts follow
+the cell (see ``md.neighbors``).
+
+A build
+-------
+A build is one compiled call, ``_cell_list``. The grid, lengths and image
+shifts of an unchanged periodic cell are kept from the last build, so the
+build makes few interpreter calls, each slow once the pair kernels have
+flushed the caches. In order:
+
+1. ``_bin_atoms``, a counting sort by cell (threaded: ``_bin_atoms_threaded``,
+   same result), gives the slot order: atoms sorted by (x, y) column and z
+   cell, wrapped into the box, their coordinates stored by row.
+2. ``_frame_pairs`` (one chunk of slots per thread: ``_frame_pairs_threaded``)
+   writes the half list over the forward half of the 5 x 5 x 5 half-radius
+   cells around each slot:
+
+   - ``_slot_layout`` (threaded over (x, y) columns: ``_slot_layout_threaded``,
+     ``_fill_columns``) lays the slots out again by z cell, x, y, so that a
+     row of cells along y in one z layer is contiguous, and in the same pass
+     writes each slot's cell and packed tag;
+   - per (x, y) column, ``_gather_column`` copies the forward cells, as such
+     rows (3 runs per z cell), shifted by their image, into one candidate
+     array ordered by z cell (image cells past a periodic z edge included;
+     slot and image code packed in a uint32; runs copied in vector blocks of
+     ``GATHER_BLOCK`` entries by ``_gather_run`` and ``_copy_block``);
+   - each slot tests that array's range of z cells cz - 2 to cz + 2, its own
+     column's later slots up to cz + 2 read in place from the coordinate rows
+     (padded by ``ROW_PADDING``; the earlier slots list their pairs with it),
+     and near a periodic top the images of the column's bottom cells, in
+     8-lane vector blocks (LLVM-IR intrinsics): ``_near_pack`` writes the
+     hits' packed slot and code as it tests, by AVX2 lane permutes on x86
+     with AVX2 (``_near_pack_blocks``), else by scanning a bit mask
+     (``_near_pack_scan``: ``_near_bits``, then cttz); ``_keep`` counts
+     before it writes near the end of the chunk's region;
+   - a single chunk is unpacked into slots and a one-byte image code per pair
+     at its end; several are joined by ``_join_chunks``, on the threads: each
+     chunk is unpacked straight to its place in the list where that overlaps
+     no other chunk's region (with two chunks, always), the rest in place and
+     then moved (memmove, ``md._simd.move_within``).
+3. ``_balanced_bounds`` splits the rows into chunks of equal pair counts for
+   the pair kernels.
+
+``_brute_force_pairs`` (over atom indices, minimum image) replaces all of
+this when a periodic axis has room for fewer than 5 half-radius cells; it is
+also the reference the cell search is tested against. ``_atom_space_list``
+translates a slot list into one over atom indices for potentials that read
+``neighbors.starts``/``neighbors.neighbors``.
 """
 
 from __future__ import annotations

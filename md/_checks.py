@@ -128,19 +128,95 @@ def bond_array(bonds, name: str = "bonds") -> NDArray[np.int64]:
     return array
 
 
-def bond_type_array(bond_types, n_bonds: int) -> NDArray[np.int64]:
-    """Return one non-negative integer type per bond as an int64 copy."""
+def bond_type_array(bond_types, n_bonds: int, item: str = "bond") -> NDArray[np.int64]:
+    """Return one non-negative integer type per bond (or per ``item``) as an int64 copy."""
+    name = f"{item}_types"
     array = np.asarray(bond_types)
     if array.shape != (n_bonds,):
-        raise ValueError(
-            f"bond_types must have shape ({n_bonds},) (one per bond), got {array.shape}"
-        )
+        raise ValueError(f"{name} must have shape ({n_bonds},) (one per {item}), got {array.shape}")
     if array.size and not _integral(array):
-        raise ValueError("bond_types must be integers")
+        raise ValueError(f"{name} must be integers")
     array = np.array(array, dtype=np.int64, order="C", copy=True)
     if array.size and array.min() < 0:
-        raise ValueError("bond_types must be non-negative")
+        raise ValueError(f"{name} must be non-negative")
     return array
+
+
+def angle_array(angles, name: str = "angles") -> NDArray[np.int64]:
+    """Return angles as a C-contiguous (A, 3) int64 copy of ``(i, j, k)`` triples.
+
+    ``j`` is the vertex (LAMMPS's order: atom2 is the apex). Refuses
+    negative indices and a triple that names one atom twice.
+
+    Examples
+    --------
+    >>> angle_array([[0, 1, 2]]).tolist()
+    [[0, 1, 2]]
+    >>> angle_array([[0, 1, 0]])
+    Traceback (most recent call last):
+    ...
+    ValueError: angle 0 (0, 1, 0) names atom 0 twice
+    """
+    array = np.asarray(angles)
+    if array.size == 0:
+        array = array.reshape(0, 3)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (A, 3): triples (i, j, k), j the vertex; "
+                         f"got shape {array.shape}")  # fmt: skip
+    if array.size and not _integral(array):
+        raise ValueError(f"{name} must be integer atom indices")
+    array = np.array(array, dtype=np.int64, order="C", copy=True)
+    if array.size and array.min() < 0:
+        bad = int(np.flatnonzero((array < 0).any(axis=1))[0])
+        raise ValueError(f"angle {bad} {tuple(array[bad].tolist())} has a negative atom index")
+    repeated = (
+        (array[:, 0] == array[:, 1]) | (array[:, 1] == array[:, 2]) | (array[:, 0] == array[:, 2])
+    )
+    if repeated.any():
+        bad = int(np.flatnonzero(repeated)[0])
+        triple = array[bad].tolist()
+        twice = next(a for a in triple if triple.count(a) > 1)
+        raise ValueError(f"angle {bad} {tuple(triple)} names atom {twice} twice")
+    return array
+
+
+def read_index_file(path, width: int, key: str) -> NDArray[np.int64]:
+    """Read a text table of ``width`` integer atom indices per line (``#`` comments).
+
+    Every problem is reported with the file and line: ``key`` (the config
+    key that named the file, e.g. ``angles_file``) starts the message.
+    Blank and comment lines are skipped.
+    """
+    if not isinstance(path, str | Path):
+        raise ValueError(f"{key} must be a path, got {path!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{key} not found: {path}")
+    rows = []
+    try:
+        with open(path, encoding="utf-8") as handle:
+            for number, line in enumerate(handle, start=1):
+                text = line.split("#", 1)[0].strip()
+                if not text:
+                    continue
+                words = text.split()
+                try:
+                    values = [int(word) for word in words]
+                except ValueError:
+                    values = []
+                if len(words) != width or len(values) != width:
+                    raise ValueError(
+                        f"{key} {path}: line {number}: expected {width} integer atom indices, "
+                        f"got {text!r}"
+                    )
+                if min(values) < 0:
+                    raise ValueError(
+                        f"{key} {path}: line {number}: negative atom index in {text!r}"
+                    )
+                rows.append(values)
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{key} {path}: cannot read ({error})") from None
+    return np.array(rows, dtype=np.int64).reshape(-1, width)
 
 
 def read_bonds_file(path) -> NDArray[np.int64]:

@@ -15,6 +15,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from md.errors import OutputBusyError
+
 
 def usual_permissions(descriptor: int) -> None:
     """Give a file from ``tempfile.mkstemp`` (mode 0600) the mode a plain open() would.
@@ -100,10 +102,6 @@ def write_text_atomic(path, text: str) -> None:
         temporary.write_text(text)
 
 
-class OutputBusyError(FileExistsError):
-    """Another live process holds the claim on an output (the message names it)."""
-
-
 @contextlib.contextmanager
 def exclusive_claim(path) -> Iterator[Path]:
     """Hold an exclusive claim on ``path`` (a lock file ``PATH.lock``) for the block.
@@ -181,3 +179,46 @@ def remove_stale_temporaries(path) -> list[Path]:
             stale.unlink()
             removed.append(stale)
     return removed
+
+
+def unwritable_folder(folder) -> str | None:
+    """Why files cannot be made in ``folder``, or None if they can (it may not exist yet).
+
+    Looks at the folder, or at its nearest existing parent when it is still to
+    be made: a path that is not a folder, a read-only filesystem, or no write
+    permission. Nothing is created. A later write can still fail (a full
+    disk), so callers handle ``OSError`` as well.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        return f"{folder} exists and is not a folder"
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a folder, so {folder} cannot be made"
+    if os.access(existing, os.W_OK | os.X_OK):
+        return None
+    try:
+        read_only = bool(os.statvfs(existing).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    why = "is on a read-only filesystem" if read_only else "is not writable"
+    return f"{existing} {why}" + ("" if existing == folder else f", so {folder} cannot be made")
+
+
+@contextlib.contextmanager
+def removed_on_error() -> Iterator[list[Path]]:
+    """Yield a list for the paths a block writes; if the block raises OSError, remove them.
+
+    A command that writes several files (CSV files, figures) then leaves none
+    of a set it could not finish (a full disk) rather than some of them.
+    """
+    written: list[Path] = []
+    try:
+        yield written
+    except OSError:
+        for path in written:
+            with contextlib.suppress(OSError):
+                Path(path).unlink()
+        raise

@@ -45,7 +45,7 @@ from md.box import TILT_AXES, cell_matrix, perpendicular_widths, reduced_tilt, r
 from md.forcefield import ForceField
 from md.state import State, types_from_ase
 from potentials import POTENTIALS
-from potentials.base import Potential
+from potentials.base import Potential, TypedParameters
 
 #: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
 _SORT_FROM = 8192
@@ -155,7 +155,11 @@ class MDCalculator(Calculator):
         self.sort_atoms = sort_atoms
         self.potentials, self.type_names = _build_potentials(potentials, type_names)
         if self.type_names is None and types_from == "numbers":
-            per_type = [type(p).__name__ for p in self.potentials if _has_per_type_parameters(p)]
+            per_type = [
+                type(p).__name__
+                for p in self.potentials
+                if isinstance(p, TypedParameters) and p.per_type_parameters
+            ]
             if per_type:
                 raise ValueError(
                     f"{', '.join(per_type)} has per-type parameters, so MDCalculator needs "
@@ -489,13 +493,6 @@ def _identical(old, new, but: str = "") -> bool:
         np.array_equal(old.arrays[name], new.arrays[name])
         for name in all_changes
         if name in old.arrays and name != but
-    )
-
-
-def _has_per_type_parameters(potential) -> bool:
-    """True if the potential's parameters depend on the particle type index."""
-    return getattr(potential, "n_types_fixed", None) is not None or bool(
-        getattr(potential, "pairs", None)
     )
 
 

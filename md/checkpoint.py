@@ -7,7 +7,8 @@ pickle) holding
   step and time;
 - the integrator's private state, from its ``get_state()`` (half-step
   velocities, adaptive substep size, thermostat variables, the random
-  generator's state); integrators without ``get_state`` have none;
+  generator's state); integrators that are not
+  :class:`integrators.base.Restartable` have none;
 - the positions at which the neighbour list was last built, so that a
   resumed run rebuilds the very same list and sums forces in the same order
   (the continuation is then bit-for-bit identical to an uninterrupted run);
@@ -35,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from integrators.base import Restartable
 from md._files import atomic_path
 from md.errors import CheckpointError
 from md.state import State
@@ -140,14 +142,13 @@ def write_checkpoint(
         "pbc": state.pbc,
         "types": state.types,
     }
-    nl = getattr(forcefield, "neighbor_list", None)
+    nl = None if forcefield is None else forcefield.neighbor_list
     reference = None if nl is None else nl.reference_positions
     if reference is not None and reference.shape == state.positions.shape:
         arrays["neighbor_reference"] = reference
         # the cell of that build: a list kept through a barostat's moves is rebuilt in it
         arrays["neighbor_box"], arrays["neighbor_tilt"] = nl.reference_cell
-    get_state = getattr(integrator, "get_state", None)
-    saved = get_state() if get_state is not None else None
+    saved = integrator.get_state() if isinstance(integrator, Restartable) else None
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -261,20 +262,19 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
             f"not {integrator.describe()}"
         )
     saved = checkpoint.integrator_state
-    set_state = getattr(integrator, "set_state", None)
     if saved is not None:
-        if set_state is None:
+        if not isinstance(integrator, Restartable):
             raise CheckpointError(
                 f"{checkpoint.path}: holds private state for {type(integrator).__name__}, "
                 "which cannot take it"
             )
         try:
-            set_state(saved)
+            integrator.set_state(saved)
         except (KeyError, ValueError, TypeError) as error:
             raise CheckpointError(
                 f"{checkpoint.path}: the integrator's saved state does not fit ({error})"
             ) from None
-    nl = getattr(forcefield, "neighbor_list", None)
+    nl = None if forcefield is None else forcefield.neighbor_list
     if nl is not None and checkpoint.neighbor_reference is not None:
         nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference,
                       *(checkpoint.neighbor_cell or ()))  # fmt: skip

@@ -22,7 +22,7 @@ from integrators.rattle import BondConstraints
 from md._checks import MAX_COUNT, MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError
-from md.polymers import polymer_melt, single_chain
+from md.polymers import chain_angles, polymer_melt, single_chain
 from md.structure import read_structure
 from md.topology import Topology
 from md.units import UNIT_SYSTEMS, UnitSystem, eV_per_A3_in_bar
@@ -237,9 +237,10 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     for index, entry in enumerate(raw_potentials):
         table = _Table(entry, f"potentials.{index}", source)
         kind = table.string("type", choices=tuple(POTENTIALS))
-        bonds_file = table.data.get("bonds_file")
-        if isinstance(bonds_file, str) and not Path(bonds_file).is_absolute():
-            table.data["bonds_file"] = str(base / bonds_file)  # relative to the config
+        for key in ("bonds_file", "angles_file"):
+            listed = table.data.get(key)
+            if isinstance(listed, str) and not Path(listed).is_absolute():
+                table.data[key] = str(base / listed)  # relative to the config
         potentials.append({"type": kind, **table.data})
 
     table = _Table(top.take("integrator"), "integrator", source)
@@ -361,6 +362,11 @@ def _parse_system(table: _Table, base: Path) -> SystemConfig:
 
 #: Where bonds = "system" finds its bonds.
 _SYSTEM_BONDS = "bonds from [system]: a polymer builder, or a structure file that holds bonds"
+#: Where angles = "system" finds its angles.
+_SYSTEM_ANGLES = (
+    "angles from [system]: a polymer builder (consecutive triples along each chain), or a "
+    "structure file that holds angles (LAMMPS data Angles, GSD angles, an H5MD file of ours)"
+)
 
 
 def potential_from_config(entry: dict, type_names, source: str, index: int, system_bonds=None):
@@ -368,19 +374,27 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
 
     ``bonds = "system"`` takes the bonds of ``[system]`` (a polymer builder's
     or a structure file's; ``system_bonds``, a Topology or an array), and
-    their bond types when the file has several and the table gives none.
+    their bond types when the file has several and the table gives none;
+    ``angles = "system"`` likewise takes its angles (``system_bonds`` a Topology).
     """
     params = dict(entry)
     kind = params.pop("type")
     where = f"{source}: [potentials.{index}] ({kind})"
+    topology = system_bonds
     if params.get("bonds") == "system":
-        if system_bonds is None:
+        if system_bonds is None or not len(system_bonds):
             raise ConfigError(f'{where}: bonds = "system" needs {_SYSTEM_BONDS}')
         if isinstance(system_bonds, Topology):
             if len(system_bonds.bond_type_names) > 1 and "bond_types" not in params:
                 params["bond_types"] = system_bonds.bond_types
             system_bonds = system_bonds.bonds
         params["bonds"] = system_bonds
+    if params.get("angles") == "system":
+        if not isinstance(topology, Topology) or not topology.n_angles:
+            raise ConfigError(f'{where}: angles = "system" needs {_SYSTEM_ANGLES}')
+        if len(topology.angle_type_names) > 1 and "angle_types" not in params:
+            params["angle_types"] = topology.angle_types
+        params["angles"] = topology.angles
     try:
         return POTENTIALS[kind].from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
@@ -480,7 +494,7 @@ def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) 
         friction = table.number("friction", None, minimum=0.0)
         if friction is not None:
             extra["friction"] = friction / units.config_time
-        if getattr(cls, "stochastic", False) and "seed" not in table.data and seed is not None:
+        if cls.stochastic and "seed" not in table.data and seed is not None:
             extra["seed"] = [seed, 1]
     constraints = table.take("constraints", None)
     if constraints is not None:
@@ -549,11 +563,13 @@ def _check_keys(cls, params: dict, source: str, table: str, kind: str) -> None:
 
 
 def build_system(config: Config):
-    """Return ``(state, topology)``: the initial State and its bonds (or None).
+    """Return ``(state, topology)``: the initial State and its bonds and angles (or None).
 
     The bonds are a polymer builder's, or those a structure file holds (LAMMPS
     data, GSD, H5MD), as a :class:`md.topology.Topology`; ``bonds = "system"``
-    in a potential or in ``[integrator.constraints]`` takes them.
+    in a potential or in ``[integrator.constraints]`` takes them. The angles
+    are a polymer builder's consecutive triples along each chain, or a
+    structure file's; ``angles = "system"`` in an angle potential takes them.
     """
     system = config.system
     where = f"{config.source}: [system]"
@@ -571,7 +587,10 @@ def build_system(config: Config):
                 pbc=system.pbc if system.pbc is not None else False,
             )  # fmt: skip
         if system.polymer is not None:
+            chains = system.chains if system.polymer == "melt" else 1
             topology = Topology.from_bonds(bonds)
+            if system.chain_length > 2:
+                topology = topology.with_angles(chain_angles(chains, system.chain_length))
             state.type_names = (system.type_name,)
             if system.mass is not None:
                 state.masses[:] = system.mass
@@ -596,7 +615,7 @@ def build_system(config: Config):
                 )
             except ValueError as error:
                 raise ConfigError(f"{where} structure: {error}") from None
-            if not topology.n_bonds:
+            if not (topology.n_bonds or topology.n_angles):
                 topology = None
             if isinstance(system.mass, dict):
                 unknown = sorted(set(system.mass) - set(state.type_names))

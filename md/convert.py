@@ -13,6 +13,7 @@ suffix                  library            units written (metal runs)
 ``.xyz``, ``.extxyz``   ase.io             ASE: Angstrom, eV, eV/Angstrom
 ``.traj``               ase.io             ASE
 ``.data``               ase.io (LAMMPS)    LAMMPS ``metal``, one frame, with bonds
+                                           and angles
 ``.gsd``                gsd                Angstrom, ps, amu (GSD has no units)
 ``.lammpstrj``          our own (text)     LAMMPS ``metal`` (no library writes dumps)
 ======================  =================  =====================================
@@ -327,11 +328,15 @@ class _ASEWriter:
 
 
 class _LammpsDataWriter:
-    """A LAMMPS data file (``atom_style full``) through ASE's writer, with bonds.
+    """A LAMMPS data file (``atom_style full``) through ASE's writer, with bonds and angles.
 
     Atom types are numbered 1, 2, ... in the order of the type names, which
     the ``Masses`` comments give; the title line names the units and the
-    bond types; molecules are the bonded clusters. Units are LAMMPS
+    bond and angle types; molecules are the bonded clusters. Angles go
+    into an ``Angles`` section (``id type i j k``, j the vertex) with the
+    ``angles`` and ``angle types`` header lines that ``read_data`` needs;
+    like the bonds, they carry no coefficients (no ``Angle Coeffs``: set
+    ``angle_style`` and ``angle_coeff`` in the LAMMPS input). Units are LAMMPS
     ``metal`` for metal runs, and the reduced values unchanged for ``lj``
     runs.
     """
@@ -376,7 +381,7 @@ class _LammpsDataWriter:
         with open(self.path, "w") as handle:
             write_lammps_data(
                 handle, atoms, specorder=stand_ins, masses=True, velocities=False,
-                atom_style="full", units=self._ase_units, bonds=True,
+                atom_style="full", units=self._ase_units, bonds=topology.n_bonds > 0,
             )  # fmt: skip
         lines = self.path.read_text().splitlines(keepends=True)
         # Velocities written here: ASE's writer divides momenta by masses, which is not
@@ -388,10 +393,12 @@ class _LammpsDataWriter:
         units = "lj" if reader.units.name == "lj" else "metal"
         types = " ".join(f"{t + 1}={name}" for t, name in enumerate(reader.type_names))
         bond_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.bond_type_names))
+        angle_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.angle_type_names))
         lines[0] = (
             f"LAMMPS data file written by leapmd {__version__} (units {units}; step "
             f"{frame.step}; atom types {types}"
             + (f"; bond types {bond_types}" if bond_types else "")
+            + (f"; angle types {angle_types}" if angle_types else "")
             + ")\n"
         )
         for index, line in enumerate(lines[:40]):  # open axes: the bounds of the atoms
@@ -402,6 +409,8 @@ class _LammpsDataWriter:
                     continue
                 low, high = origin[axis], origin[axis] + lengths[axis]
                 lines[index] = f"{low:.17g} {high:.17g}  {words[2]} {words[3]}\n"
+        if topology.n_angles:
+            _add_angles(lines, topology)
         in_masses = False
         for index, line in enumerate(lines):  # the Masses comments: our names, not stand-ins
             if line.strip() == "Masses":
@@ -416,6 +425,25 @@ class _LammpsDataWriter:
 
     def close(self) -> None:
         pass
+
+
+def _add_angles(lines: list[str], topology: Topology) -> None:
+    """Add the angle counts to a data file's header and its ``Angles`` section at the end."""
+    header = [
+        index for index, line in enumerate(lines)
+        if line.split()[1:] in (["atom", "types"], ["bond", "types"])
+    ]  # fmt: skip
+    counts = [f"{topology.n_angles} angles\n", f"{len(topology.angle_type_names)} angle types\n"]
+    lines[header[-1] + 1 : header[-1] + 1] = counts
+    if lines[-1].strip():
+        lines.append("\n")
+    lines += ["\nAngles\n\n"]
+    lines += [
+        f"{number} {t + 1} {i + 1} {j + 1} {k + 1}\n"
+        for number, ((i, j, k), t) in enumerate(
+            zip(topology.angles.tolist(), topology.angle_types.tolist(), strict=True), start=1
+        )
+    ]
 
 
 class _LammpsDumpWriter:
@@ -487,7 +515,8 @@ class _LammpsDumpWriter:
 
 
 class _GSDWriter:
-    """GSD (HOOMD-blue's format) through the ``gsd`` package: types, masses, bonds, box.
+    """GSD (HOOMD-blue's format) through the ``gsd`` package: types, masses, bonds, angles,
+    box.
 
     GSD boxes are centred on the origin: positions are shifted by half the
     box. GSD holds single-precision positions and has no units: the values
@@ -533,6 +562,11 @@ class _GSDWriter:
             snapshot.bonds.types = list(topology.bond_type_names)
             snapshot.bonds.typeid = topology.bond_types.astype(np.uint32)
             snapshot.bonds.group = topology.bonds.astype(np.uint32)
+        if topology.n_angles:
+            snapshot.angles.N = topology.n_angles
+            snapshot.angles.types = list(topology.angle_type_names)
+            snapshot.angles.typeid = topology.angle_types.astype(np.uint32)
+            snapshot.angles.group = topology.angles.astype(np.uint32)
         self.handle.append(snapshot)
 
     def close(self) -> None:

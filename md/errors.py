@@ -8,6 +8,8 @@ step involved.
 
 from __future__ import annotations
 
+import math
+
 
 class NonFiniteError(FloatingPointError):
     """A coordinate or energy became NaN or infinite."""
@@ -32,6 +34,78 @@ class SimulationError(RuntimeError):
         super().__init__(f"step {step}: {message}")
 
 
+class BondStretchError(NonFiniteError):
+    """A FENE bond reached its maximum extension ``r_max`` (infinite energy).
+
+    A subclass of :class:`NonFiniteError`, so the simulation loop reports it
+    as a :class:`SimulationError` at the failing step.
+
+    Attributes
+    ----------
+    bond : int
+        Index of the first overstretched bond in the bond list.
+    i, j : int
+        Its atoms.
+    length : float
+        Its length [length].
+    r_max : float
+        Its maximum extension [length].
+    """
+
+    def __init__(self, bond: int, i: int, j: int, length: float, r_max: float) -> None:
+        self.bond = bond
+        self.i = i
+        self.j = j
+        self.length = length
+        self.r_max = r_max
+        super().__init__(
+            f"FENE bond {bond} between atoms {i} and {j} is stretched to length "
+            f"{length:.6g} >= r_max = {r_max:g}"
+        )
+
+
+#: Stage names of :class:`ConstraintError` messages.
+_CONSTRAINT_STAGES = {"positions": "SHAKE (bond lengths)", "velocities": "RATTLE (bond velocities)"}
+
+
+class ConstraintError(ConvergenceError):
+    """SHAKE or RATTLE did not converge within ``max_iter`` iterations.
+
+    Attributes
+    ----------
+    step : int
+        The step being taken when it failed.
+    residual : float
+        Largest relative error left: ``|r - d| / d`` for positions, the relative
+        bond-length change per step ``|r . v_ij| dt / d^2`` for velocities.
+    stage : str
+        ``"positions"`` (SHAKE) or ``"velocities"`` (RATTLE).
+    bond, i, j : int
+        Index of the worst bond and its atoms.
+    """
+
+    def __init__(self, step, stage, residual, bond, i, j, tol, max_iter) -> None:
+        self.stage = stage
+        self.bond = bond
+        self.i = i
+        self.j = j
+        if math.isfinite(residual):
+            problem = (
+                f"did not converge in {max_iter} iterations: bond {bond} (atoms {i}-{j}) has "
+                f"relative error {residual:.3g} > tol {tol:g}"
+            )
+        else:
+            problem = (
+                f"cannot correct bond {bond} (atoms {i}-{j}): it turned by 90 degrees or "
+                "more within the step"
+            )
+        message = (
+            f"step {step}: {_CONSTRAINT_STAGES.get(stage, stage)} {problem} (is dt too large, "
+            "or a constrained bond torn apart by the forces?)"
+        )
+        super().__init__(step, residual, message)
+
+
 class ConfigError(ValueError):
     """An invalid configuration: the message names the file, key and value."""
 
@@ -48,12 +122,49 @@ class AnalysisError(ValueError):
     """A trajectory lacks what an analysis needs, or its parameters do not fit the data."""
 
 
+class AngleCollapseError(NonFiniteError):
+    """An angle has an arm of zero length (two of its atoms at one place): no angle.
+
+    Raised by the angle potentials (:mod:`potentials.angles`). A
+    :class:`NonFiniteError`, so the simulation loop reports it as a
+    :class:`SimulationError` at the failing step.
+
+    Attributes
+    ----------
+    angle : int
+        Index of the first such angle in the angle list.
+    atoms : tuple of int
+        Its atoms ``(i, j, k)``, ``j`` the vertex.
+    """
+
+    def __init__(self, angle: int, atoms: tuple[int, int, int]) -> None:
+        self.angle = angle
+        self.atoms = atoms
+        super().__init__(
+            f"angle {angle} {atoms} has an arm of zero length (atoms at one place), so its "
+            "angle is undefined"
+        )
+
+
+class SweepError(ValueError):
+    """Bad sweep input: a varied key or value, a config, an output folder (named)."""
+
+
+class OutputBusyError(FileExistsError):
+    """Another live process holds the claim on an output (the message names it)."""
+
+
 __all__ = [
     "AnalysisError",
+    "AngleCollapseError",
+    "BondStretchError",
     "CheckpointError",
     "ConfigError",
+    "ConstraintError",
     "ConvergenceError",
     "NonFiniteError",
+    "OutputBusyError",
     "SimulationError",
+    "SweepError",
     "TrajectoryError",
 ]

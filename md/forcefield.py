@@ -15,6 +15,7 @@ from md.state import State
 from md.topology import Topology, combine
 from potentials.base import (
     Bonded,
+    BondedAngles,
     ForceResult,
     Potential,
     SupportsHessian,
@@ -211,18 +212,24 @@ class ForceField:
         return HessianSum(terms)
 
     def topology(self, extra=()) -> Topology:
-        """Return the bonds of the bonded potentials (and ``extra`` parts) as one Topology.
+        """Return the bonds and angles of the bonded potentials (and ``extra`` parts) as
+        one Topology.
 
         ``extra`` holds further ``(style, bonds, bond_types)`` parts, such as
-        an integrator's constraints. Bond type names are the potentials'
-        ``bond_style`` (see :func:`md.topology.combine`).
+        an integrator's constraints. Type names are the potentials'
+        ``bond_style`` and ``angle_style`` (see :func:`md.topology.combine`).
         """
         parts = [
             (potential.bond_style, potential.bonds, potential.bond_types)
             for potential in self.potentials
             if isinstance(potential, Bonded)
         ]
-        return combine([*parts, *extra])
+        angle_parts = [
+            (potential.angle_style, potential.angles, potential.angle_types)
+            for potential in self.potentials
+            if isinstance(potential, BondedAngles)
+        ]
+        return combine([*parts, *extra], angle_parts)
 
     @staticmethod
     def _key_of(state: State, old: tuple | None = None) -> tuple:

@@ -102,7 +102,7 @@ class FIRE:
         callback: Callable[[int, float, float], None] | None = None,
         report_every: int = 100,
     ) -> MinimizeResult:
-        """Move ``state.positions`` towards a local minimum until every |F_i| <= ``fmax``.
+        """Move ``state.positions`` towards a local minimum until every ``|F_i| <= fmax``.
 
         Velocities, step and time of the state are left as they were. ``callback(step,
         energy, fmax)`` is called every ``report_every`` steps and at the end.

@@ -3,6 +3,9 @@
 Each builder returns ``(state, bonds)``: a :class:`~md.state.State` with
 unit masses and one bead type ``"M"``, and the (B, 2) bond list for
 :class:`potentials.springs.FENEBonds` or :class:`~potentials.springs.HarmonicBonds`.
+:func:`chain_angles` gives the matching (A, 3) angle list (consecutive
+triples along each chain) for :mod:`potentials.angles`, which makes the
+chains semiflexible.
 Chains are grown as random walks of fixed step ``bond_length`` that reject
 any step landing closer than ``min_distance`` to a bead already placed
 (minimum image along periodic axes), so the structure starts free of
@@ -206,6 +209,29 @@ def single_chain(
 
 
 # ------------------------------------------------------------------- helpers
+
+
+def chain_angles(n_chains: int, chain_length: int) -> NDArray[np.int64]:
+    """Return the angles of the chains the builders make: consecutive bead triples.
+
+    Bead ``b`` of chain ``c`` is atom ``c * chain_length + b`` (as
+    :func:`polymer_melt` and :func:`single_chain` number them); each chain
+    of L beads has the L - 2 angles ``(i, i + 1, i + 2)``, the middle bead
+    the vertex.
+
+    Returns
+    -------
+    ndarray of int64, shape (n_chains * (chain_length - 2), 3)
+
+    Examples
+    --------
+    >>> chain_angles(2, 4).tolist()
+    [[0, 1, 2], [1, 2, 3], [4, 5, 6], [5, 6, 7]]
+    """
+    n_chains = count(n_chains, "n_chains", 1)
+    chain_length = count(chain_length, "chain_length", 2)
+    first = (np.arange(n_chains)[:, None] * chain_length + np.arange(chain_length - 2)).ravel()
+    return np.stack([first, first + 1, first + 2], axis=1).astype(np.int64)
 
 
 def _result(positions, box, pbc, n_chains: int, chain_length: int):

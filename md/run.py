@@ -18,6 +18,7 @@ Examples
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import time
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from integrators.barostats import Barostat, pressure_control
+from integrators.base import ForceSplit, Statistics, constraints_of
 from md._checks import count
 from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
 from md.checkpoint import (
@@ -61,6 +63,7 @@ from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
+from potentials.base import BondedAngles
 
 #: Statuses of a finished :meth:`PreparedRun.execute`.
 COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
@@ -109,6 +112,9 @@ class RunSummary:
         The error, for ``failed`` and ``output_error``.
     signal : str or None
         ``"SIGINT"`` or ``"SIGTERM"`` for ``stopped``.
+    statistics : dict
+        The integrator's cumulative counters at the end (its ``statistics``
+        hook, :class:`integrators.base.Statistics`; empty without one).
     """
 
     status: str
@@ -124,6 +130,35 @@ class RunSummary:
     last_checkpoint_step: int | None = None
     message: str = ""
     signal: str | None = None
+    statistics: dict = field(default_factory=dict)
+
+    @property
+    def reference(self) -> dict:
+        """The row drifts are measured from: ``start`` (step 0, also for a resumed run)
+        where it is known, else ``first``."""
+        return self.start if "total_energy" in self.start else self.first
+
+    def relative_change(self, key: str = "total_energy") -> float:
+        """(last - reference) of a thermo quantity over the reference total energy's scale.
+
+        Over the whole run: from step 0 (:attr:`reference`), which a resumed
+        run takes from its checkpoint. The scale is the larger of the
+        magnitude of the total energy and the kinetic energy there (so a
+        total energy near zero does not blow the ratio up). NaN when the run
+        has no ``last`` row (it did not complete) or no ``key``.
+        """
+        first, last = self.reference, self.last
+        if key not in first or key not in last:
+            return math.nan
+        scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
+        return (last[key] - first[key]) / scale
+
+    def per_step(self) -> dict[str, float]:
+        """The integrator's counters divided by its steps (``steps`` itself left out)."""
+        steps = self.statistics.get("steps")
+        if not steps:
+            return {}
+        return {name: value / steps for name, value in self.statistics.items() if name != "steps"}
 
 
 #: What a checkpoint keeps of the run's first thermo row, to measure drifts from it.
@@ -277,6 +312,8 @@ class PreparedRun:
             summary.status, summary.signal = STOPPED, sim.stop_requested
         if summary.status == COMPLETED:
             summary.last = sim.thermo()
+        if isinstance(sim.integrator, Statistics):
+            summary.statistics = dict(sim.integrator.statistics)
         return summary
 
     def _open_outputs(self, start: dict) -> H5MDWriter:
@@ -323,7 +360,7 @@ class PreparedRun:
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
             triclinic=not self.sim.state.is_orthorhombic
             or (self.config.barostat or {}).get("couple") == "triclinic",
-            conserved=bool(getattr(self.sim.integrator, "thermostat", False)),
+            conserved=self.sim.integrator.thermostat,
         )  # fmt: skip
 
 
@@ -482,8 +519,9 @@ def run_config(
 
 # ------------------------------------------------------------------ helpers
 def run_topology(sim: Simulation) -> Topology:
-    """The bonds a run's trajectory stores: its bonded potentials' and its constraints'."""
-    constraints = getattr(sim.integrator, "constraints", None)
+    """The bonds and angles a run's trajectory stores: its bonded potentials' and its
+    constraints'."""
+    constraints = constraints_of(sim.integrator)
     extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
     return sim.forcefield.topology(extra=extra)
 
@@ -502,10 +540,15 @@ def build_components(config: Config, state: State | None = None):
             f"{built.n_atoms}"
         )
     state = built if state is None else state
-    potentials = [
-        potential_from_config(entry, state.type_names, config.source, index, bonds)
-        for index, entry in enumerate(config.potentials)
-    ]
+    potentials = build_potentials(config, state.type_names, bonds)
+    for index, potential in enumerate(potentials):
+        if not isinstance(potential, BondedAngles):
+            continue  # the others are checked with the force field (Simulation)
+        try:  # angles name atoms: say which table names one the system lacks
+            potential.check(state)
+        except ValueError as error:
+            kind = config.potentials[index]["type"]
+            raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:
@@ -514,13 +557,25 @@ def build_components(config: Config, state: State | None = None):
             integrator = pressure_control(integrator, barostat)
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None
-    constraints = getattr(integrator, "constraints", None)
+    constraints = constraints_of(integrator)
     if constraints is not None:  # start on the bond lengths, so step 0 is reported there
         try:
             constraints.bind(state, integrator.dt)
         except (ValueError, ConvergenceError) as error:
             raise ConfigError(f"{config.source}: [integrator.constraints]: {error}") from None
     return state, potentials, integrator
+
+
+def build_potentials(config: Config, type_names, bonds=None) -> list:
+    """Fresh potentials from the config's ``[[potentials]]``, as ``md run`` builds them.
+
+    ``bonds`` is the system's topology (``build_system``'s second value), which
+    ``bonds = "system"`` takes. Raises ConfigError naming the table.
+    """
+    return [
+        potential_from_config(entry, type_names, config.source, index, bonds)
+        for index, entry in enumerate(config.potentials)
+    ]
 
 
 def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> Simulation:
@@ -554,7 +609,7 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
         )
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
-    if integrator.splits_forces:  # RESPA: both kinds of potential must be there
+    if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
         try:
             integrator.split(sim.forcefield)
         except ValueError as error:
@@ -575,14 +630,15 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
 
 
 def _input_files(config: Config, path_or_config) -> list[Path]:
-    """The files a run reads: the config, a structure file, bonds files."""
+    """The files a run reads: the config, a structure file, bonds and angles files."""
     files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
     if config.system.structure is not None:
         files.append(Path(config.system.structure))
     tables = [*config.potentials, config.integrator.get("constraints") or {}]
     for table in tables:
-        if isinstance(table, dict) and isinstance(table.get("bonds_file"), str):
-            files.append(Path(table["bonds_file"]))
+        for key in ("bonds_file", "angles_file"):
+            if isinstance(table, dict) and isinstance(table.get(key), str):
+                files.append(Path(table[key]))
     return files
 
 
@@ -642,6 +698,13 @@ def _restore_signals(previous: dict) -> None:
         signal.signal(signum, handler)
 
 
-__all__ = ["PreparedRun", "RunSummary", "build_components", "prepare", "run_config"]
+__all__ = [
+    "PreparedRun",
+    "RunSummary",
+    "build_components",
+    "build_potentials",
+    "prepare",
+    "run_config",
+]
 # Errors a caller of prepare() should expect, for ``except`` clauses.
 INPUT_ERRORS = (ConfigError, CheckpointError, TrajectoryError)

@@ -5,9 +5,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from integrators.base import ThermoTerms
 from md._cell_kernels import _max_displacement2
 from md.box import cell_deformation
 from md.errors import NonFiniteError, SimulationError
@@ -27,6 +29,18 @@ from potentials.base import Potential
 logger = logging.getLogger(__name__)
 
 Observer = Callable[["Simulation"], None]
+
+
+@runtime_checkable
+class VirialUse(Protocol):
+    """Optional hook of an observer: ``uses_virial = False`` says it reads no pressure.
+
+    On steps where only such observers run, the force field skips the
+    virial (see :meth:`Simulation.attach`); an observer without the
+    attribute is assumed to read it.
+    """
+
+    uses_virial: bool
 
 
 class Simulation:
@@ -126,7 +140,7 @@ class Simulation:
         if isinstance(interval, bool) or not isinstance(interval, int | np.integer) or interval < 1:
             raise ValueError(f"observer interval must be a positive integer, got {interval!r}")
         self._observers.append((observer, int(interval)))
-        if getattr(observer, "uses_virial", True):
+        if not isinstance(observer, VirialUse) or observer.uses_virial:
             self._virial_intervals.append(int(interval))
 
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -251,8 +265,10 @@ class Simulation:
         kinetic = kinetic_energy(state.velocities, state.masses)
         # Thermostats and constrained integrators (integrators/_thermostat.py) give their
         # degrees of freedom, the constraint virial and the heat bath's energy.
-        terms = getattr(self.integrator, "thermo_terms", None)
-        terms = terms(state, result) if terms is not None else {}
+        integrator = self.integrator
+        terms = (
+            integrator.thermo_terms(state, result) if isinstance(integrator, ThermoTerms) else {}
+        )
         kinetic_temperature = temperature(state.velocities, state.masses, self.units.kB)
         if "n_dof" in terms:
             n_dof = terms["n_dof"]

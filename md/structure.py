@@ -1,23 +1,24 @@
 """Starting structures from files: anything ``ase.io`` reads, LAMMPS data, GSD and our H5MD.
 
 :func:`read_structure` returns a :class:`md.state.State` in engine units and
-the file's bonds as a :class:`md.topology.Topology` (empty where the format
-holds none). ``[system] structure`` in configs comes here.
+the file's bonds and angles as a :class:`md.topology.Topology` (empty where
+the format holds none). ``[system] structure`` in configs comes here.
 
 - LAMMPS data files (``.data``, ``.lmp``; ``format = "lammps-data"``) are
   parsed by ASE's reader in double precision (the atom style named in the
   ``Atoms # style`` header, else guessed from the column count): atoms,
-  masses, velocities, bonds and bond types, the box from ``xlo xhi`` ...
-  (positions are shifted so the box starts at the origin). Type names come from the
-  ``Masses`` comments (``1 39.948 # Ar``) when every type has one, else
-  the type numbers; bond type names from a leapmd title line. Units are
+  masses, velocities, bonds and bond types, angles and angle types, the box
+  from ``xlo xhi`` ... (positions are shifted so the box starts at the
+  origin). Type names come from the ``Masses`` comments (``1 39.948 # Ar``)
+  when every type has one, else the type numbers; bond and angle type names
+  from a leapmd title line. Units are
   LAMMPS ``metal`` for metal runs (velocities in Angstrom/ps) and the
   reduced values for ``lj`` runs. Tilted (triclinic) boxes are read as they are.
 - GSD files (``.gsd``; ``format = "gsd"``) through the ``gsd`` package:
-  the last frame (or ``frame``), types, masses, velocities, images and
-  bonds; the origin-centred GSD box is shifted to start at the origin.
+  the last frame (or ``frame``), types, masses, velocities, images,
+  bonds and angles; the origin-centred GSD box is shifted to start at the origin.
 - H5MD trajectories of ours (``.h5``, ``.h5md``): the last frame and the
-  stored bonds.
+  stored bonds and angles.
 - Anything else goes to ``ase.io.read`` (the last frame of the file).
 """
 
@@ -139,7 +140,7 @@ def _lammps_header(path: Path) -> dict:
     """Box bounds, tilt, Masses comments and a leapmd title from a data file's text."""
     header = {
         "lo": np.zeros(3), "hi": np.zeros(3), "tilt": None, "names": {}, "bond_names": {},
-        "style": None, "columns": 0, "masses": False,
+        "angle_names": {}, "style": None, "columns": 0, "masses": False,
     }  # fmt: skip
     axis = {"x": 0, "y": 1, "z": 2}
     with open(path, errors="replace") as handle:
@@ -173,11 +174,12 @@ def _lammps_header(path: Path) -> dict:
         for item in match.group(1).split():
             number, _, name = item.partition("=")
             header["names"].setdefault(int(number), name)
-    match = re.search(r"bond types ([^;)]*)", title)
-    if match and "leapmd" in title:
-        for item in match.group(1).split():
-            number, _, name = item.partition("=")
-            header["bond_names"][int(number)] = name
+    for kind in ("bond", "angle"):
+        match = re.search(rf"{kind} types ([^;)]*)", title)
+        if match and "leapmd" in title:
+            for item in match.group(1).split():
+                number, _, name = item.partition("=")
+                header[f"{kind}_names"][int(number)] = name
     return header
 
 
@@ -265,6 +267,22 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
         kinds = np.unique(bond_numbers)
         bond_names = [header["bond_names"].get(int(k), f"bond{int(k)}") for k in kinds]
         topology = Topology.from_bonds(pairs, np.searchsorted(kinds, bond_numbers), bond_names)
+    triples, angle_numbers = [], []
+    for j, listed in enumerate(atoms.arrays.get("angles", ())):  # ASE: "i-k(type)" at vertex j
+        if listed == "_":
+            continue
+        for entry in listed.split(","):
+            ends, _, kind = entry.partition("(")
+            i, _, k = ends.partition("-")
+            triples.append((int(i), j, int(k)))
+            angle_numbers.append(int(kind.rstrip(")")))
+    if triples:
+        kinds = np.unique(angle_numbers)
+        names = [header["angle_names"].get(int(k), f"angle{int(k)}") for k in kinds]
+        try:
+            topology = topology.with_angles(triples, np.searchsorted(kinds, angle_numbers), names)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
     return state, topology
 
 
@@ -326,6 +344,16 @@ def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, To
             np.asarray(bonds.group, dtype=np.int64).reshape(-1, 2),
             np.asarray(bonds.typeid, dtype=np.int64),
             list(bonds.types) if bonds.types else None,
+        )
+    angles = snapshot.angles
+    if angles.N:
+        names = list(angles.types) if angles.types else None
+        if names is not None:  # one namespace with the bond types (H5MD connectivity)
+            names = [f"angle_{n}" if n in topology.bond_type_names else n for n in names]
+        topology = topology.with_angles(
+            np.asarray(angles.group, dtype=np.int64).reshape(-1, 3),
+            np.asarray(angles.typeid, dtype=np.int64),
+            names,
         )
     return state, topology
 

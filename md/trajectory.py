@@ -14,11 +14,18 @@ MDAnalysis's H5MD reader needs)::
         velocity/{step,time,value}             optional
         force/{step,time,value}                optional
         species (N,) int32, mass (N,) float64  time-independent
-    connectivity/              bonds, when the run has any (H5MD 1.1's tuple lists):
+    connectivity/              bonds and angles, when the run has any (H5MD 1.1's
+                               tuple lists):
         <bond type> (B, 2) int32 atom index pairs, one dataset per bond type
                                ("spring", "fene", "constraint", ...), each with
                                attribute particles_group -> /particles/trajectory;
                                attribute bond_types (JSON) gives the type order
+        <angle type> (A, 3) int32 atom index triples (i, j, k), j the vertex,
+                               one dataset per angle type ("angle_harmonic",
+                               "angle_cosine", ...), likewise; attribute
+                               angle_types (JSON) gives their order. MDAnalysis's
+                               H5MD reader reads no connectivity:
+                               :func:`open_trajectory` adds bonds and angles.
     observables/
         potential_energy, kinetic_energy, total_energy, temperature,
         pressure, volume, density, pxx pyy pzz pxy pxz pyz (the pressure
@@ -190,7 +197,7 @@ class H5MDWriter:
                 with h5py.File(temporary, "w") as f:
                     self._file = f
                     self._create_layout(state, parameters or {}, author)
-                    if topology is not None and topology.n_bonds:
+                    if topology is not None and (topology.n_bonds or topology.n_angles):
                         _write_topology(f, topology)
                 self._file = None
         except FileExistsError:
@@ -456,40 +463,55 @@ class H5MDWriter:
 def _write_topology(f: h5py.File, topology: Topology) -> None:
     connectivity = f.create_group("connectivity")
     connectivity.attrs["bond_types"] = json.dumps(list(topology.bond_type_names))
+    if topology.n_angles:
+        connectivity.attrs["angle_types"] = json.dumps(list(topology.angle_type_names))
     particles = f["particles/trajectory"].ref
-    for name, pairs in topology.by_type().items():
-        dataset = connectivity.create_dataset(name, data=pairs.astype(np.int32).reshape(-1, 2))
+    members = [*topology.by_type().items(), *topology.angles_by_type().items()]
+    for name, listed in members:
+        dataset = connectivity.create_dataset(name, data=listed.astype(np.int32))
         dataset.attrs["particles_group"] = particles
 
 
 def _read_topology(f: h5py.File) -> Topology:
-    """The bonds of ``/connectivity``, checked against the atom count (TrajectoryError
-    naming the file, the bond type's dataset and the bond)."""
+    """The bonds and angles of ``/connectivity``, checked against the atom count
+    (TrajectoryError naming the file, the type's dataset and the bond or angle)."""
     if "connectivity" not in f:
         return Topology.empty()
     group = f["connectivity"]
     n_atoms = len(f["particles/trajectory/mass"])
-    order = maybe_json(group.attrs.get("bond_types", "[]"))
-    names = [name for name in order if name in group] if isinstance(order, list) else []
+    names = []
+    for key in ("bond_types", "angle_types"):
+        order = maybe_json(group.attrs.get(key, "[]"))
+        if isinstance(order, list):
+            names += [name for name in order if name in group and name not in names]
     names += sorted(name for name in group if name not in names)
-    groups = {}
+    groups = {2: {}, 3: {}}  # tuple size -> {type name: members}: bonds, angles
     for name in names:
-        pairs = group[name][()]
-        if pairs.ndim != 2 or pairs.shape[1] != 2:  # another kind of tuple list: not bonds
-            continue
-        outside = ((pairs < 0) | (pairs >= n_atoms)).any(axis=1)
-        bad = np.flatnonzero(outside | (pairs[:, 0] == pairs[:, 1]))
-        if bad.size:
-            first = int(bad[0])
-            what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
-                    else "joins an atom to itself")  # fmt: skip
-            raise TrajectoryError(
-                f"{f.filename}: /connectivity/{name}: bond {first} "
-                f"{tuple(pairs[first].tolist())} {what} ({bad.size} such bond(s)); the file's "
-                "connectivity is damaged"
-            )
-        groups[name] = pairs.astype(np.int64)
-    return Topology.from_groups(groups)
+        listed = group[name][()]
+        size = listed.shape[1] if listed.ndim == 2 else 0
+        if size in groups:  # other tuple lists (dihedrals, ...) are skipped
+            _check_members(f, name, listed, n_atoms)
+            groups[size][name] = listed.astype(np.int64)
+    return Topology.from_groups(groups[2], groups[3])
+
+
+def _check_members(f: h5py.File, name: str, listed, n_atoms: int) -> None:
+    """TrajectoryError naming the file, dataset and entry of a bond or angle that names an
+    atom outside the file's atoms, or one atom twice."""
+    kind = "bond" if listed.shape[1] == 2 else "angle"
+    outside = ((listed < 0) | (listed >= n_atoms)).any(axis=1)
+    ordered = np.sort(listed, axis=1)
+    repeated = (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)
+    bad = np.flatnonzero(outside | repeated)
+    if bad.size:
+        first = int(bad[0])
+        what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
+                else "names one atom twice")  # fmt: skip
+        raise TrajectoryError(
+            f"{f.filename}: /connectivity/{name}: {kind} {first} "
+            f"{tuple(listed[first].tolist())} {what} ({bad.size} such {kind}(s)); the file's "
+            "connectivity is damaged"
+        )
 
 
 def read_topology(path) -> Topology:
@@ -990,15 +1012,16 @@ def verify_frames(path, n_frames: int | None = None) -> int:
 def open_trajectory(path, **kwargs):
     """Open a trajectory we wrote as an MDAnalysis ``Universe``.
 
-    Masses, types (the type names) and bonds (``u.bonds``, typed by bond
-    type name) come from the file. Reduced-unit
+    Masses, types (the type names), bonds (``u.bonds``, typed by bond
+    type name) and angles (``u.angles``, typed by angle type name) come
+    from the file. Reduced-unit
     files carry no unit attributes, so they are opened with
     ``convert_units=False``; metal files are converted to MDAnalysis's units
     (Angstrom, ps, kJ/(mol Angstrom)) as usual. Extra keyword arguments go to
     MDAnalysis's H5MD reader.
     """
     import MDAnalysis as mda  # heavy: MDAnalysis is imported on first use
-    from MDAnalysis.core.topologyattrs import Bonds  # with MDAnalysis, on first use
+    from MDAnalysis.core.topologyattrs import Angles, Bonds  # with MDAnalysis, on first use
 
     path = Path(path)
     with open_h5md(path) as f:
@@ -1029,6 +1052,14 @@ def open_trajectory(path, **kwargs):
             Bonds(
                 [tuple(pair) for pair in topology.bonds.tolist()],
                 types=[names[t] for t in topology.bond_types],
+            )
+        )
+    if topology.n_angles:
+        names = topology.angle_type_names
+        universe.add_TopologyAttr(
+            Angles(
+                [tuple(triple) for triple in topology.angles.tolist()],
+                types=[names[t] for t in topology.angle_types],
             )
         )
     return universe
@@ -1102,7 +1133,7 @@ def trajectory_summary(traj) -> dict:
     if traj.forces is not None:
         stored.append("force")
     stored += sorted(traj.observables)
-    if traj.topology.n_bonds:
+    if traj.topology.n_bonds or traj.topology.n_angles:
         stored.append("connectivity")
     summary = {
         "path": str(traj.path),
@@ -1120,6 +1151,7 @@ def trajectory_summary(traj) -> dict:
         "pbc": traj.pbc.tolist(),
         "stored": stored,
         "bonds": {name: len(pairs) for name, pairs in traj.topology.by_type().items()},
+        "angles": {name: len(listed) for name, listed in traj.topology.angles_by_type().items()},
     }
     total = traj.observables.get("total_energy")
     if total is not None and len(total) and np.all(np.isfinite(total)):

@@ -112,6 +112,34 @@ class Bonded(Protocol):
 
 
 @runtime_checkable
+class BondedAngles(Protocol):
+    """Optional capability: a fixed angle list, stored in trajectories as topology.
+
+    ``angles`` is an (A, 3) integer array of atom triples ``(i, j, k)``, ``j``
+    the vertex, ``angle_types`` an (A,) type index per angle, and
+    ``angle_style`` names the form ("angle_harmonic", "angle_cosine").
+    """
+
+    angles: NDArray[np.int64]
+    angle_types: NDArray[np.int64]
+    angle_style: str
+
+
+@runtime_checkable
+class TypedParameters(Protocol):
+    """Optional capability: parameters that can depend on the particle type.
+
+    ``per_type_parameters`` is True when they do (one value per type, or
+    explicit pair values), so whoever maps particles onto type indices must
+    follow the parameters' type order: the ASE calculator then asks for
+    ``type_names``. A potential without the attribute acts alike on every type.
+    """
+
+    @property
+    def per_type_parameters(self) -> bool: ...
+
+
+@runtime_checkable
 class SupportsHessianOperator(Protocol):
     """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
 

@@ -106,6 +106,11 @@ class LennardJones:
             [self.default_cutoff] + [p["cutoff"] for p in self.pairs.values() if "cutoff" in p]
         )
 
+    @property
+    def per_type_parameters(self) -> bool:
+        """True with per-type epsilon and sigma or explicit ``pairs`` (``TypedParameters``)."""
+        return self.n_types_fixed is not None or bool(self.pairs)
+
     @classmethod
     def from_config(cls, params: Mapping, type_names: Sequence[str]) -> LennardJones:
         """Build from a config table; per-type values are keyed by type name.

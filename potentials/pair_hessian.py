@@ -1,6 +1,6 @@
 """The Hessian of a pair potential, kept as one 3x3 block per interacting pair.
 
-A pair energy u(|x_i - x_j|) contributes a symmetric 3x3 block K to the
+A pair energy ``u(|x_i - x_j|)`` contributes a symmetric 3x3 block K to the
 Hessian blocks (i, i) and (j, j) and -K to (i, j) and (j, i). A
 :class:`PairHessian` stores just K's two eigenvalues and its axis for each
 pair (plus the summed diagonal blocks), which is all that Newton-Krylov

@@ -19,9 +19,10 @@ import scipy.sparse
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from md._checks import bond_array, bond_type_array, positive_array, read_bonds_file
+from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
-from md.errors import NonFiniteError
+from md.errors import BondStretchError
+from potentials._bonded import config_values, symmetric, type_tables
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
@@ -29,36 +30,6 @@ from potentials.pair_hessian import PairHessian
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
 _FENE = 1
-
-
-class BondStretchError(NonFiniteError):
-    """A FENE bond reached its maximum extension ``r_max`` (infinite energy).
-
-    A subclass of :class:`md.errors.NonFiniteError`, so the simulation loop
-    reports it as a :class:`md.simulation.SimulationError` at the failing step.
-
-    Attributes
-    ----------
-    bond : int
-        Index of the first overstretched bond in the bond list.
-    i, j : int
-        Its atoms.
-    length : float
-        Its length [length].
-    r_max : float
-        Its maximum extension [length].
-    """
-
-    def __init__(self, bond: int, i: int, j: int, length: float, r_max: float) -> None:
-        self.bond = bond
-        self.i = i
-        self.j = j
-        self.length = length
-        self.r_max = r_max
-        super().__init__(
-            f"FENE bond {bond} between atoms {i} and {j} is stretched to length "
-            f"{length:.6g} >= r_max = {r_max:g}"
-        )
 
 
 class _BondedPotential:
@@ -75,42 +46,13 @@ class _BondedPotential:
 
     def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
         self.bonds = bond_array(bonds)
-        n_bonds = len(self.bonds)
-        given = {
-            name: positive_array(value, name, allow_zero=True, what="bond type")
-            for name, value in params.items()
-        }
-        per_type = [name for name, value in given.items() if value.ndim == 1]
-        if bond_types is None:
-            if per_type:
-                raise ValueError(
-                    f"{', '.join(per_type)} given per bond type, so bond_types "
-                    "(one type index per bond) is needed"
-                )
-            self.bond_types = np.zeros(n_bonds, dtype=np.int64)
-            self.per_type = False
-            n_types = 1
-        else:
-            self.bond_types = bond_type_array(bond_types, n_bonds)
-            self.per_type = True
-            lengths = {len(given[name]) for name in per_type}
-            if len(lengths) > 1:
-                raise ValueError(
-                    "per-type parameters must have one value per bond type, got lengths "
-                    + ", ".join(f"{name}: {len(given[name])}" for name in per_type)
-                )
-            used = int(self.bond_types.max()) + 1 if n_bonds else 1
-            n_types = lengths.pop() if lengths else used
-            if used > n_types:
-                raise ValueError(
-                    f"bond_types go up to {used - 1} but {', '.join(per_type)} "
-                    f"{'has' if len(per_type) == 1 else 'have'} values for {n_types} bond types"
-                )
+        self.bond_types, self.per_type, self._tables = type_tables(
+            params, bond_types, len(self.bonds), "bond"
+        )
         # Read-only: the checks made here must stay true.
         self.bonds.flags.writeable = False
         self.bond_types.flags.writeable = False
-        self._tables = [np.broadcast_to(value, (n_types,)).copy() for value in given.values()]
-        self._max_index = int(self.bonds.max()) if n_bonds else -1
+        self._max_index = int(self.bonds.max()) if len(self.bonds) else -1
 
     @property
     def n_bonds(self) -> int:
@@ -157,7 +99,7 @@ class _BondedPotential:
         return ForceResult(
             energy=energy,
             forces=forces,
-            virial=_symmetric(virial),
+            virial=symmetric(virial),
             energies=energies if per_atom else None,
             virials=virials if per_atom else None,
         )
@@ -362,35 +304,7 @@ def _plain(values: np.ndarray, per_type: bool):
 
 def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
     """Check a bond potential's config table; return constructor arguments."""
-    params = dict(params)
-    allowed = {"bonds", "bonds_file", "bond_types", *names}
-    unknown = set(params) - allowed
-    if unknown:
-        raise ValueError(
-            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
-        )
-    if ("bonds" in params) == ("bonds_file" in params):
-        raise ValueError("give exactly one of 'bonds' (a list of [i, j]) and 'bonds_file'")
-    if "bonds_file" in params:
-        params["bonds"] = read_bonds_file(params.pop("bonds_file"))
-    for name in names:
-        value = params.get(name)
-        values = value if isinstance(value, list) else [value]
-        if any(isinstance(v, bool) or not isinstance(v, int | float | None) for v in values):
-            raise ValueError(f"{name}: expected a number or a list of numbers, got {value!r}")
-    for name in ("bonds", "bond_types"):
-        value = params.get(name)
-        if value is None or isinstance(value, np.ndarray):
-            continue
-        flat = [v for row in value for v in (row if isinstance(row, list) else [row])]
-        if any(isinstance(v, bool) or not isinstance(v, int) for v in flat):
-            raise ValueError(f"{name}: expected integers, got {value!r}")
-    return params
-
-
-def _symmetric(v: np.ndarray) -> np.ndarray:
-    xx, yy, zz, yz, xz, xy = v
-    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return config_values(params, names, "bond", read_bonds_file, "[i, j]")
 
 
 # ------------------------------------------------------------------- kernels

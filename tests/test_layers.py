@@ -52,6 +52,7 @@ LAYERS = {
     3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.run"],
     4: [
         "md.analysis",
+        "md.analysis_output",
         "md.integrator_study",
         "md.calculator",
         "md.validate",

@@ -13,7 +13,14 @@ import pytest
 import md
 from md.neighbors import NeighborList
 from md.thermo import pressure
-from potentials import POTENTIALS, FENEBonds, HarmonicBonds, LennardJones
+from potentials import (
+    POTENTIALS,
+    CosineAngles,
+    FENEBonds,
+    HarmonicAngles,
+    HarmonicBonds,
+    LennardJones,
+)
 
 R_MIN = 2.0 ** (1.0 / 6.0)
 FD_STEP = 1e-6  # central-difference step [length]
@@ -53,6 +60,18 @@ def _bond_types(n_types):
     return np.arange(len(_contract_bonds())) % n_types
 
 
+def _contract_angles():
+    """Angles among atoms 0..59: consecutive triples, others across the system, one
+    listed twice."""
+    chain = [(i, i + 1, i + 2) for i in range(58)]
+    cross = [(0, 30, 59), (7, 52, 13), (44, 13, 7), (21, 3, 40), (25, 26, 27)]
+    return np.array(chain + cross)
+
+
+def _angle_types(n_types):
+    return np.arange(len(_contract_angles())) % n_types
+
+
 def _no_kinks(potential, ti, tj):
     """Bond energies are smooth in the positions (within their range)."""
     return []
@@ -78,6 +97,27 @@ FACTORIES = {
             "uniform": lambda: FENEBonds(_contract_bonds(), k=7.0, r_max=10.0),
             "typed": lambda: FENEBonds(
                 _contract_bonds(), k=[30.0, 5.0], r_max=[10.0, 14.0], bond_types=_bond_types(2)
+            ),
+        },
+        "kinks": _no_kinks,
+    },
+    "angle_harmonic": {
+        "variants": {
+            "uniform": lambda: HarmonicAngles(_contract_angles(), k=2.5, theta0=109.5),
+            "typed": lambda: HarmonicAngles(
+                _contract_angles(),
+                k=[1.0, 3.0, 0.5],
+                theta0=[180.0, 75.0, 0.0],
+                angle_types=_angle_types(3),
+            ),  # fmt: skip
+        },
+        "kinks": _no_kinks,  # random triples are never within 0.06 degrees of 0 or 180
+    },
+    "angle_cosine": {
+        "variants": {
+            "uniform": lambda: CosineAngles(_contract_angles(), k=1.7),
+            "typed": lambda: CosineAngles(
+                _contract_angles(), k=[4.0, 0.25], angle_types=_angle_types(2)
             ),
         },
         "kinks": _no_kinks,

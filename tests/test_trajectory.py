@@ -334,11 +334,13 @@ def polymer_file(tmp_path_factory):
 
 
 @pytest.mark.parametrize(("pair", "what"), [((3, 999), "names an atom outside 0..31"),
-                                            ((5, 5), "joins an atom to itself")])  # fmt: skip
+                                            ((5, 5), "names one atom twice"),
+                                            ((4, 40, 6), "names an atom outside 0..31"),
+                                            ((7, 8, 7), "names one atom twice")])  # fmt: skip
 def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_path, monkeypatch,
                                                            capsys, pair, what):  # fmt: skip
     """md info, md analyze and conversion to GSD accepted an out-of-range bond (the GSD got
-    it), LAMMPS data, render and the API failed with a raw IndexError."""
+    it), LAMMPS data, render and the API failed with a raw IndexError. Angles alike."""
     import shutil
 
     from md.cli import main
@@ -347,8 +349,12 @@ def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_pa
     monkeypatch.chdir(tmp_path)
     shutil.copy(polymer_file, "bad.h5")
     with h5py.File("bad.h5", "r+") as f:
-        f["connectivity/fene"][3] = pair
-    message = f"bad.h5: /connectivity/fene: bond 3 {pair} {what}"
+        if len(pair) == 2:
+            f["connectivity/fene"][3] = pair
+        else:  # an angle list (a triple per angle, the vertex in the middle)
+            f["connectivity"].create_dataset("bend", data=[[0, 1, 2], [1, 2, 3], [2, 3, 4], pair])
+    name, kind = ("fene", "bond") if len(pair) == 2 else ("bend", "angle")
+    message = f"bad.h5: /connectivity/{name}: {kind} 3 {pair} {what}"
     for command in (["info", "bad.h5"], ["analyze", "bad.h5", "--no-progress"],
                     ["convert", "bad.h5", "bad.gsd"], ["convert", "bad.h5", "bad.data"],
                     ["render", "bad.h5", "-o", "bad.png"]):  # fmt: skip

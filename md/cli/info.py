@@ -43,9 +43,10 @@ def main(args) -> int:
         xy, xz, yz = summary["tilt"]
         print(f"  tilt         xy {xy:.6g}  xz {xz:.6g}  yz {yz:.6g}  (triclinic)")
     print(f"  stored       {', '.join(summary['stored'])}")
-    if summary["bonds"]:
-        counts = ", ".join(f"{count} {name}" for name, count in summary["bonds"].items())
-        print(f"  bonds        {counts}")
+    for key in ("bonds", "angles"):
+        if summary.get(key):
+            counts = ", ".join(f"{count} {name}" for name, count in summary[key].items())
+            print(f"  {key:<12} {counts}")
     for key in ("integrator", "potentials", "seed", "skin"):
         if key in traj.parameters:
             print(f"  {key:<12} {json.dumps(traj.parameters[key])}")

@@ -13,7 +13,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from md._files import OutputBusyError
 from md.cli._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -22,7 +21,7 @@ from md.cli._common import (
     EXIT_TERMINATED,
     fail,
 )
-from md.errors import CheckpointError, ConfigError, TrajectoryError
+from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
 from md.observers import Progress
 from md.parallel import get_threads
 from md.run import ABORTED, FAILED, OUTPUT_ERROR, STOPPED, prepare
@@ -210,7 +209,7 @@ def _progress_bar(total: int, disable: bool):
 
 
 def _print_summary(sim, summary) -> None:
-    first, last, wall, n_steps = summary.first, summary.last, summary.wall, summary.n_steps
+    first, wall, n_steps = summary.first, summary.wall, summary.n_steps
     output, n_frames = summary.output, summary.n_frames
     state = sim.state
     timings = summary.timings
@@ -218,10 +217,8 @@ def _print_summary(sim, summary) -> None:
     atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
     # Drifts over the whole run: from step 0's energies, which a resumed run takes from its
     # checkpoint (one written before checkpoints kept them: from where it resumed).
-    start = summary.start if "total_energy" in summary.start else first
-    since = "" if int(start["step"]) == 0 else f" since step {int(start['step'])}"
-    energy_scale = max(abs(start["total_energy"]), abs(start["kinetic_energy"]), 1e-300)
-    drift = (last["total_energy"] - start["total_energy"]) / energy_scale
+    origin = int(summary.reference["step"])
+    since = "" if origin == 0 else f" since step {origin}"
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
@@ -233,17 +230,14 @@ def _print_summary(sim, summary) -> None:
     nl = sim.forcefield.neighbor_list
     if nl is not None:
         print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
-    statistics = getattr(sim.integrator, "statistics", None)
-    if statistics and statistics.get("steps"):
-        per_step = ", ".join(
-            f"{name.replace('_', ' ')} {value / statistics['steps']:.3g}"
-            for name, value in statistics.items()
-            if name != "steps"
-        )
-        if per_step:
-            print(f"Integrator, per step: {per_step}")
+    per_step = ", ".join(
+        f"{name.replace('_', ' ')} {value:.3g}" for name, value in summary.per_step().items()
+    )
+    if per_step:
+        print(f"Integrator, per step: {per_step}")
+    drift = summary.relative_change("total_energy")
     print(f"Relative total-energy drift (E_end - E_start)/|E_start|{since}: {drift:.3e}")
-    if "conserved_energy" in start:  # a thermostat: its conserved quantity should not drift
-        change = (last["conserved_energy"] - start["conserved_energy"]) / energy_scale
+    if "conserved_energy" in first:  # a thermostat: its conserved quantity should not drift
+        change = summary.relative_change("conserved_energy")
         print(f"Relative conserved-quantity drift (incl. heat bath){since}: {change:.3e}")
     print(f"Wrote {n_frames} frames to {output}")

@@ -98,35 +98,12 @@ def add_parser(subparsers) -> None:
 def main(args) -> int:
     """Body of ``md sweep``; returns the exit code."""
     try:
-        if args.max_runs < 1:
-            raise sw.SweepError(f"--max-runs must be >= 1, got {args.max_runs}")
-        vary = [sw.parse_vary(text, max_values=args.max_runs) for text in args.vary]
-        if args.replicas < 1:
-            raise sw.SweepError(f"--replicas must be >= 1, got {args.replicas}")
-        if not (math.isfinite(args.discard) and 0.0 <= args.discard < 1.0):
-            raise sw.SweepError(f"--discard must be a fraction in [0, 1), got {args.discard}")
-        if args.blocks < 1:
-            raise sw.SweepError(f"--blocks must be >= 1, got {args.blocks}")
-        if args.workers is not None and args.workers < 1:
-            raise sw.SweepError(f"--workers must be >= 1, got {args.workers}")
-        if args.workers is not None and args.scheduler is not None:
-            raise sw.SweepError(
-                "--workers sets the size of the local cluster; with --scheduler the cluster's "
-                "own workers run the sweep"
-            )
-        plot = None
-        if args.plot is not None:
-            plot = sw.resolve_column(args.plot)
-            if plot == "diffusion" and not args.diffusion:
-                raise sw.SweepError("--plot diffusion needs --diffusion")
-            if not vary:
-                raise sw.SweepError("--plot needs a --vary key for its x axis")
+        vary, plot = sw.check_options(
+            args.vary, args.replicas, max_runs=args.max_runs, discard=args.discard,
+            n_blocks=args.blocks, workers=args.workers, scheduler=args.scheduler,
+            diffusion=args.diffusion, plot=args.plot,
+        )  # fmt: skip
         n_runs = sw.count_runs(vary, args.replicas)
-        if n_runs > args.max_runs:
-            raise sw.SweepError(
-                f"the sweep has {n_runs} runs, more than the cap of {args.max_runs}; pass "
-                f"--max-runs {n_runs} to allow it"
-            )
         print(f"md sweep: planning and validating {n_runs} run(s) ...", flush=True)
         plan = sw.plan_sweep(args.config, vary, args.replicas, args.out, max_runs=args.max_runs)
         complete = sw.check_outputs(plan, args.overwrite)

@@ -75,8 +75,10 @@ first use). Importing it does not import Dask; the functions that need Dask impo
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Mapping, Sequence
 
+from md.errors import SweepError
 from md.sweeps.client import CONNECT_TIMEOUT, SweepProgress, connect, run_sweep
 from md.sweeps.plan import (
     ALIASES,
@@ -86,7 +88,6 @@ from md.sweeps.plan import (
     PARTIAL_DIR,
     RESULTS,
     TABLE_FILE,
-    SweepError,
     SweepPlan,
     check_outputs,
     count_runs,
@@ -104,6 +105,82 @@ logger = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------- API
+def check_options(
+    vary: Mapping[str, Sequence] | Sequence = (),
+    replicas: int = 1,
+    *,
+    max_runs: int = MAX_RUNS,
+    discard: float = 0.0,
+    n_blocks: int = 5,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    diffusion: bool = False,
+    plot: str | None = None,
+):
+    """Check a sweep's options before anything is read, planned or run.
+
+    ``vary`` is as for :func:`plan_sweep` (``"KEY=V1,V2"`` strings are parsed
+    here, with at most ``max_runs`` values each); ``plot`` names a result
+    column to draw against the first varied key.
+
+    Returns
+    -------
+    vary : mapping or list of (key, values)
+        The varied keys with their values, for :func:`plan_sweep`.
+    plot : str or None
+        The result column ``plot`` names (aliases resolved).
+
+    Raises
+    ------
+    SweepError
+        Naming the option: a cap below 1 or exceeded, no replicas, a discarded
+        fraction outside [0, 1), no blocks or workers, workers with a
+        scheduler, a plot column that is unknown, needs ``diffusion``, or has
+        no varied key for its x axis.
+    """
+
+    def whole(value, option: str) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise SweepError(f"{option} must be >= 1, got {value}")
+        return value
+
+    whole(max_runs, "--max-runs")
+    if isinstance(vary, str):
+        vary = [vary]
+    if not isinstance(vary, Mapping):
+        vary = [parse_vary(v, max_values=max_runs) if isinstance(v, str) else tuple(v)
+                for v in vary]  # fmt: skip
+    whole(replicas, "--replicas")
+    try:
+        in_range = math.isfinite(discard) and 0.0 <= discard < 1.0
+    except TypeError:
+        in_range = False
+    if not in_range:
+        raise SweepError(f"--discard must be a fraction in [0, 1), got {discard}")
+    whole(n_blocks, "--blocks")
+    if workers is not None:
+        whole(workers, "--workers")
+        if scheduler is not None:
+            raise SweepError(
+                "--workers sets the size of the local cluster; with --scheduler the cluster's "
+                "own workers run the sweep"
+            )
+    column = None
+    if plot is not None:
+        column = resolve_column(plot)
+        if column == "diffusion" and not diffusion:
+            raise SweepError("--plot diffusion needs --diffusion")
+        if not vary:
+            raise SweepError("--plot needs a --vary key for its x axis")
+    n_runs = count_runs(vary, replicas)
+    if n_runs > max_runs:
+        raise SweepError(
+            f"the sweep has {n_runs} runs, more than the cap of {max_runs}; pass "
+            f"--max-runs {n_runs} to allow it"
+        )
+    return vary, column
+
+
 def sweep(
     config,
     vary: Mapping[str, Sequence] | Sequence[str] = (),
@@ -160,6 +237,8 @@ def sweep(
     SweepTable
         One row per run; also written to ``OUT/sweep.csv``.
     """
+    vary, _ = check_options(vary, replicas, max_runs=max_runs, discard=discard, n_blocks=n_blocks,
+                            workers=workers, scheduler=scheduler, diffusion=diffusion)  # fmt: skip
     plan = plan_sweep(config, vary, replicas, out, max_runs=max_runs)
     check_outputs(plan, overwrite)
     with connect(client, scheduler, workers, timeout=timeout) as dask_client:
@@ -182,6 +261,7 @@ __all__ = [
     "SweepPlan",
     "SweepProgress",
     "SweepTable",
+    "check_options",
     "check_outputs",
     "count_runs",
     "connect",

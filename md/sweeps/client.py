@@ -16,12 +16,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from md._files import write_text_atomic
+from md.errors import SweepError
 from md.sweeps.plan import (
     CONFIG_DIR,
     LOG_DIR,
     PARTIAL_DIR,
     TABLE_FILE,
-    SweepError,
     SweepPlan,
     check_outputs,
 )

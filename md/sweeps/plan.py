@@ -17,7 +17,7 @@ import numpy as np
 import tomli_w
 
 from md.config import Config, parse_config
-from md.errors import ConfigError, TrajectoryError
+from md.errors import ConfigError, SweepError, TrajectoryError
 from md.forcefield import ForceField
 from md.run import build_components
 from md.trajectory import read_frame_steps
@@ -56,10 +56,6 @@ ALIASES = {
     "drift": "energy_drift_per_atom",
     "D": "diffusion",
 }
-
-
-class SweepError(ValueError):
-    """Bad sweep input: a varied key or value, a config, an output folder (named)."""
 
 
 # ------------------------------------------------------------------ planning

@@ -13,7 +13,8 @@ import numpy as np
 
 from md._files import write_text_atomic
 from md.analysis import unit_labels
-from md.sweeps.plan import ALIASES, RESULTS, SweepError, SweepPlan, format_value
+from md.errors import SweepError
+from md.sweeps.plan import ALIASES, RESULTS, SweepPlan, format_value
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,100 @@
+"""What the bonded potentials (bonds, angles) share: per-type parameter tables and
+the checks of their config tables. Imported only within ``potentials``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from md._checks import bond_type_array, positive_array
+
+
+def type_tables(
+    params: dict[str, ArrayLike], item_types, n_items: int, item: str
+) -> tuple[np.ndarray, bool, list[np.ndarray]]:
+    """Check parameters given once or per type; return ``(types, per_type, tables)``.
+
+    ``params`` maps names to a number or a list (one value per ``item`` type),
+    each finite and >= 0; ``item_types`` holds one type index per member (a
+    bond, an angle) or is None when every parameter is a single number.
+    ``tables`` holds one float64 array per parameter, one entry per type.
+    """
+    given = {
+        name: positive_array(value, name, allow_zero=True, what=f"{item} type")
+        for name, value in params.items()
+    }
+    per_type = [name for name, value in given.items() if value.ndim == 1]
+    key = f"{item}_types"
+    if item_types is None:
+        if per_type:
+            raise ValueError(
+                f"{', '.join(per_type)} given per {item} type, so {key} "
+                f"(one type index per {item}) is needed"
+            )
+        types = np.zeros(n_items, dtype=np.int64)
+        n_types = 1
+    else:
+        types = bond_type_array(item_types, n_items, item)
+        lengths = {len(given[name]) for name in per_type}
+        if len(lengths) > 1:
+            raise ValueError(
+                f"per-type parameters must have one value per {item} type, got lengths "
+                + ", ".join(f"{name}: {len(given[name])}" for name in per_type)
+            )
+        used = int(types.max()) + 1 if n_items else 1
+        n_types = lengths.pop() if lengths else used
+        if used > n_types:
+            raise ValueError(
+                f"{key} go up to {used - 1} but {', '.join(per_type)} "
+                f"{'has' if len(per_type) == 1 else 'have'} values for {n_types} {item} types"
+            )
+    tables = [np.broadcast_to(value, (n_types,)).copy() for value in given.values()]
+    return types, item_types is not None, tables
+
+
+def config_values(
+    params: Mapping, names: tuple[str, ...], item: str, read_file: Callable, example: str
+) -> dict:
+    """Check a bonded potential's config table; return constructor arguments.
+
+    The members are given as ``<item>s`` (a list of index lists) or
+    ``<item>s_file`` (read by ``read_file(path)``), with optional
+    ``<item>_types``; ``names`` are the parameters, each a number or a list.
+    ``example`` shows one member in messages (``"[i, j]"``).
+    """
+    params = dict(params)
+    members, file_key, types_key = f"{item}s", f"{item}s_file", f"{item}_types"
+    allowed = {members, file_key, types_key, *names}
+    unknown = set(params) - allowed
+    if unknown:
+        raise ValueError(
+            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
+        )
+    if (members in params) == (file_key in params):
+        raise ValueError(f"give exactly one of '{members}' (a list of {example}) and "
+                         f"'{file_key}'")  # fmt: skip
+    if file_key in params:
+        params[members] = read_file(params.pop(file_key))
+    for name in names:
+        value = params.get(name)
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(v, bool) or not isinstance(v, int | float | None) for v in values):
+            raise ValueError(f"{name}: expected a number or a list of numbers, got {value!r}")
+    for name in (members, types_key):
+        value = params.get(name)
+        if value is None or isinstance(value, np.ndarray):
+            continue
+        if not isinstance(value, list):
+            raise ValueError(f"{name}: expected a list, got {value!r}")
+        flat = [v for row in value for v in (row if isinstance(row, list) else [row])]
+        if any(isinstance(v, bool) or not isinstance(v, int) for v in flat):
+            raise ValueError(f"{name}: expected integers, got {value!r}")
+    return params
+
+
+def symmetric(v: np.ndarray) -> np.ndarray:
+    """The (3, 3) tensor of a virial stored as (xx, yy, zz, yz, xz, xy)."""
+    xx, yy, zz, yz, xz, xy = v
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
