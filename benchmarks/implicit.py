@@ -213,6 +213,7 @@ def main(argv=None) -> None:
         "--threads", type=int, default=1, help="kernel threads for both integrators (1)"
     )
     args = parser.parse_args(argv)
+    md.keep_freed_memory()  # as md run does (md._memory); import md leaves malloc alone
     if args.threads < 1:
         parser.error("--threads must be >= 1")
     set_threads(args.threads)

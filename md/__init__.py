@@ -17,31 +17,13 @@ The Python API::
 
 The package is layered; each module imports only from layers below it (see
 ARCHITECTURE.md). This facade re-exports the public names; it is the only
-module allowed to reach every layer.
+module allowed to reach every layer. Importing it changes nothing process-wide
+(no signal handlers, excepthook or allocator settings): those belong to the
+``md`` command's entry (:func:`md.cli.main`, ``md_command``).
 """
 
-import os
-import sys
-
-
-def _interrupted_quietly(kind, value, traceback, previous=sys.excepthook) -> None:
-    """Ctrl-C while the ``md`` command is still starting: a line, not a traceback."""
-    if issubclass(kind, KeyboardInterrupt):
-        print("md: interrupted", file=sys.stderr)
-        return
-    previous(kind, value, traceback)
-
-
-if sys.argv and os.path.basename(sys.argv[0]) == "md":  # the `md` command (console script)
-    sys.excepthook = _interrupted_quietly
-    from md.interrupts import watch
-
-    watch()  # a Ctrl-C that numba's compilation swallows is still seen (md.interrupts)
-
-from md._kernel_cache import kernel_cache  # noqa: E402 - after the start-up hook above
-from md._memory import keep_freed_memory  # noqa: E402
-
-keep_freed_memory()  # freed temporaries reused, not page-faulted in afresh (md._memory)
+from md._kernel_cache import kernel_cache
+from md._memory import keep_freed_memory
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
@@ -73,6 +55,7 @@ def __getattr__(name: str):
     if name in _LAZY:
         import importlib  # resolves the upper-layer names listed in _LAZY
 
+        # the facade alone may import a computed name: one of _LAZY's upper-layer modules
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
@@ -101,6 +84,7 @@ __all__ = [
     "UnitSystem",
     "__version__",
     "get_units",
+    "keep_freed_memory",
     "lattice",
     "maxwell_boltzmann",
     "open_trajectory",

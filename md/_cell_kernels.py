@@ -90,6 +90,7 @@ from md._simd import (
     load_vector,
     move_within,
     permute_lanes,
+    python_twin,
     splat,
     store_vector,
     trailing_zeros,
@@ -656,6 +657,17 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, slots, cx, cy, cz, c_
             return m + last - first
 
 
+def _copy_block_twin(xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
+    """``_copy_block`` in Python (``md._simd.python_twin``)."""
+    block = slice(first, first + GATHER_BLOCK)
+    to = slice(m, m + GATHER_BLOCK)
+    cx[to] = xs[block] + sx
+    cy[to] = ys[block] + sy
+    cz[to] = zs[block] + sz
+    c_packed[to] = slots[block] | tag
+
+
+@python_twin(_copy_block_twin)
 @intrinsic
 def _copy_block(typingctx, xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
     """Copy ``GATHER_BLOCK`` entries from ``first`` to the candidates at ``m``: coordinates
@@ -729,12 +741,28 @@ class _Candidates:
         return values, builder.fcmp_ordered("<", d2, self.r2)
 
 
+def _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, count):
+    """Python twin of ``_Candidates``: bool per candidate start..start+count-1, closer than
+    sqrt(r2_max), with the same arithmetic (no fused multiply-add)."""
+    lanes = slice(start, start + count)
+    with np.errstate(over="ignore", invalid="ignore"):  # lanes past the last are any bits
+        dx, dy, dz = xi - tx[lanes], yi - ty[lanes], zi - tz[lanes]
+        return dx * dx + dy * dy + dz * dz < r2_max
+
+
 def _candidate_types(tx, ty, tz, packed):
     """Whether the candidate arrays are what ``_Candidates`` reads."""
     wanted = (types.float64, types.float64, types.float64, types.uint32)
     return all(is_vector_array(a, d) for a, d in zip((tx, ty, tz, packed), wanted, strict=True))
 
 
+def _near_bits_twin(xi, yi, zi, r2_max, tx, ty, tz, packed, start):
+    """``_near_bits`` in Python (``md._simd.python_twin``)."""
+    near = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, 64)
+    return np.uint64(sum(1 << int(k) for k in np.flatnonzero(near)))
+
+
+@python_twin(_near_bits_twin)
 @intrinsic
 def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start):
     """Bit k set where candidate ``start + k`` (k < 64) is closer than sqrt(r2_max).
@@ -801,8 +829,22 @@ def _permute_packer(blocks: int, whole: bool):
             at = builder.add(at, builder.ctpop(mask))
         return at
 
+    def twin(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
+        """The same in Python (``md._simd.python_twin``): each block's 8 lanes stored as
+        the permute leaves them (kept values first, then lane 0's as the table's zeros
+        pick)."""
+        for block in range(blocks):
+            first = start + 8 * block
+            kept = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, first, 8)
+            if not whole:
+                kept &= 8 * block + np.arange(8) < valid
+            mask = int(np.dot(kept, 1 << np.arange(8)))
+            out[at : at + 8] = packed[first : first + 8][table[mask]]
+            at += int(kept.sum())
+        return np.int64(at)
+
     typer.__name__ = f"_near_pack_{blocks}_{'whole' if whole else 'partial'}"
-    return intrinsic(typer)
+    return python_twin(twin)(intrinsic(typer))
 
 
 _near_pack_permute_whole = _permute_packer(8, whole=True)

@@ -25,11 +25,18 @@ The CPU is the one numba compiles for: ``NUMBA_CPU_FEATURES`` when set, else
 the host's (numba's own rule; its cache keys compiled code on the same).
 No numba or llvmlite function here is private; none of them has a
 well-kept library equivalent, which is why they are written out here.
+
+Every intrinsic has a Python twin (:func:`python_twin`) that computes the same
+thing with numpy: under ``NUMBA_DISABLE_JIT=1`` the kernels run as Python (to
+step through one in a debugger, or for coverage and tracebacks), numba cannot
+call an intrinsic from Python, and the twin stands in for it. Each twin is
+tested against its intrinsic (tests/test_disable_jit.py).
 """
 
 from __future__ import annotations
 
 import platform
+from collections.abc import Callable
 
 import numpy as np
 from llvmlite import binding, ir
@@ -50,6 +57,21 @@ def _compiled_features() -> set[str]:
 PERMUTE = platform.machine().lower() in ("x86_64", "amd64") and "+avx2" in _compiled_features()
 
 
+def python_twin(twin: Callable) -> Callable:
+    """Decorate an intrinsic with ``twin``, a plain function computing the same from Python.
+
+    The intrinsic keeps it as ``.python_twin`` (so tests compare the two), and
+    under ``NUMBA_DISABLE_JIT=1``, where kernels run as Python and numba
+    refuses to call an intrinsic, the decorated name is the twin itself.
+    """
+
+    def decorate(compiled):
+        compiled.python_twin = twin
+        return twin if config.DISABLE_JIT else compiled
+
+    return decorate
+
+
 def _permutation_table() -> np.ndarray:
     """(256, 8) int32: row m lists the set bits of the 8-bit mask m, then zeros."""
     table = np.zeros((256, 8), dtype=np.int32)
@@ -63,6 +85,24 @@ def _permutation_table() -> np.ndarray:
 PERMUTATIONS = _permutation_table()
 
 
+def _trailing_zeros(word) -> np.int64:
+    word = int(word)
+    return np.int64((word & -word).bit_length() - 1)
+
+
+def _bit_count(word) -> np.int64:
+    return np.int64(int(word).bit_count())
+
+
+def _float_bits(x) -> np.int64:
+    return np.float64(x).view(np.int64)
+
+
+def _bits_float(bits) -> np.float64:
+    return np.int64(bits).view(np.float64)
+
+
+@python_twin(_trailing_zeros)
 @intrinsic
 def trailing_zeros(typingctx, word):
     """Index of the lowest set bit of a non-zero uint64 (LLVM's cttz), as an int64."""
@@ -74,6 +114,7 @@ def trailing_zeros(typingctx, word):
     return sig, codegen
 
 
+@python_twin(_bit_count)
 @intrinsic
 def bit_count(typingctx, word):
     """Number of set bits of a uint64 (LLVM's ctpop), as an int64."""
@@ -85,6 +126,7 @@ def bit_count(typingctx, word):
     return sig, codegen
 
 
+@python_twin(_float_bits)
 @intrinsic
 def float_bits(typingctx, x):
     """The bit pattern of a float64 as an int64."""
@@ -96,6 +138,7 @@ def float_bits(typingctx, x):
     return sig, codegen
 
 
+@python_twin(_bits_float)
 @intrinsic
 def bits_float(typingctx, bits):
     """The float64 of an int64 bit pattern (inverse of ``float_bits``)."""
@@ -167,6 +210,19 @@ def permute_lanes(builder, values, mask, table):
     return builder.call(permd, [values, load_vector(builder, table, row, words)])
 
 
+def _stream_store(array, index, value) -> None:
+    array[index] = value
+
+
+def _store_fence() -> None:
+    """Python's stores are ordered already."""
+
+
+def _move_within(array, to, start, count) -> None:
+    array[to : to + count] = array[start : start + count]  # numpy copies overlaps first
+
+
+@python_twin(_stream_store)
 @intrinsic
 def stream_store(typingctx, array, index, value):
     """``array[index] = value`` as a non-temporal store: written to memory through the
@@ -186,6 +242,7 @@ def stream_store(typingctx, array, index, value):
     return sig, codegen
 
 
+@python_twin(_store_fence)
 @intrinsic
 def store_fence(typingctx):
     """A full memory fence (``mfence`` on x86): every earlier store, non-temporal ones
@@ -199,6 +256,7 @@ def store_fence(typingctx):
     return sig, codegen
 
 
+@python_twin(_move_within)
 @intrinsic
 def move_within(typingctx, array, to, start, count):
     """``array[to:to + count] = array[start:start + count]`` for a contiguous 1-D array,

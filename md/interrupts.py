@@ -7,13 +7,16 @@ object cache, and an exception raised in a ctypes callback is printed
 run would go on. :func:`watch` installs a handler that first records the
 signal, then raises as Python's own does; whoever takes over SIGINT later (the
 run's stop handler, see :mod:`md.run`) calls :func:`take_pending` and honours
-one that was dropped.
+one that was dropped. The ``md`` command watches while it runs
+(:func:`watching`, in :func:`md.cli.main`); ``import md`` installs nothing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 
 #: Signals recorded by the start-up handler and not yet taken.
 _pending: list[int] = []
@@ -33,6 +36,24 @@ def watch() -> None:
         signal.signal(signal.SIGINT, _record_and_raise)
 
 
+@contextlib.contextmanager
+def watching() -> Iterator[None]:
+    """:func:`watch` inside the block; SIGINT's previous handler is restored after it.
+
+    Only from the main thread; elsewhere the block runs with signals left alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    watch()
+    try:
+        yield
+    finally:
+        if previous is not None:  # None: a handler not set from Python, which cannot be put back
+            signal.signal(signal.SIGINT, previous)
+
+
 def take_pending() -> bool:
     """Whether a SIGINT arrived since :func:`watch` (or the last call); forgets it."""
     seen = bool(_pending)
@@ -40,4 +61,4 @@ def take_pending() -> bool:
     return seen
 
 
-__all__ = ["take_pending", "watch"]
+__all__ = ["take_pending", "watch", "watching"]

@@ -17,6 +17,7 @@ from md._cell_kernels import (
     _cell_list,
     _largest_coordinates,
     _largest_displacement2,
+    _max_displacement2,
     _shift_table,
 )
 from md.box import (
@@ -89,6 +90,16 @@ class SlotFrame:
     @property
     def n_chunks(self) -> int:
         return len(self.bounds) - 1
+
+
+def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
+    """Largest squared distance of any atom from its place in ``reference`` [length^2].
+
+    inf if any position is not finite (``reference`` must be). One serial pass,
+    the kernel of the list's own rebuild test; :class:`md.simulation.Simulation`'s
+    blow-up guard (``max_displacement``) uses it.
+    """
+    return _max_displacement2(positions, reference)
 
 
 def _square(length: float) -> float:

@@ -38,7 +38,7 @@ def show(path_or_universe, **kwargs):
         If the path is not a trajectory of ours.
     """
     try:
-        nglview = importlib.import_module("nglview")
+        nglview = importlib.import_module("nglview")  # optional: md.show only
     except ImportError:
         raise ImportError(INSTALL_HINT) from None
     if isinstance(path_or_universe, str | os.PathLike):

@@ -1,10 +1,14 @@
-"""Velocity Verlet and the Simulation loop: conservation, reversibility, exactness, semantics."""
+"""Velocity Verlet: conservation, reversibility, exactness, its registry entry and dt checks.
+
+The Simulation loop's own tests are in test_simulation.py, the ForceField's in
+test_forcefield.py."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from conftest import Tether
+from test_simulation import Recorder, lj_simulation
 
 import md
 from integrators import INTEGRATORS, VelocityVerlet
@@ -18,28 +22,6 @@ def _liquid(cells=5, temperature=1.5, seed=7):
     return md.maxwell_boltzmann(state, temperature, seed=seed)
 
 
-def _simulation(state, dt, cutoff_mode="smooth"):
-    return md.Simulation(
-        state, [LennardJones(cutoff=2.5, cutoff_mode=cutoff_mode)], VelocityVerlet(dt=dt)
-    )
-
-
-class Recorder:
-    """Observer keeping (step, time, total energy) rows."""
-
-    def __init__(self, energy=False) -> None:
-        self.steps: list[int] = []
-        self.times: list[float] = []
-        self.energies: list[float] = []
-        self.energy = energy
-
-    def __call__(self, sim) -> None:
-        self.steps.append(sim.state.step)
-        self.times.append(sim.state.time)
-        if self.energy:
-            self.energies.append(sim.thermo()["total_energy"] / sim.state.n_atoms)
-
-
 # ----------------------------------------------------------- energy behaviour
 
 RUN_TIME = 10.0  # tau, after 1 tau of melting at dt = 0.005
@@ -49,11 +31,11 @@ SAMPLE_EVERY = 0.05  # tau
 @pytest.fixture(scope="module")
 def nve_runs():
     """Total energy per atom E(t) of a 500-atom LJ liquid (rc 2.5, smooth) at two time steps."""
-    melt = _simulation(_liquid(), 0.005)
+    melt = lj_simulation(_liquid(), 0.005)
     melt.run(200)
     runs = {}
     for dt in (0.005, 0.0025):
-        sim = _simulation(melt.state.copy(), dt)
+        sim = lj_simulation(melt.state.copy(), dt)
         sim.state.step, sim.state.time = 0, 0.0
         recorder = Recorder(energy=True)
         sim.attach(recorder, interval=round(SAMPLE_EVERY / dt))
@@ -93,7 +75,7 @@ def test_energy_fluctuation_falls_fourfold_when_dt_halves(nve_runs):
 @pytest.mark.slow
 def test_long_run_has_no_drift():
     """10^5 steps (500 tau) of a 256-atom liquid: drift below 2e-4 eps per atom."""
-    sim = _simulation(_liquid(cells=4, temperature=1.2, seed=3), 0.005)
+    sim = lj_simulation(_liquid(cells=4, temperature=1.2, seed=3), 0.005)
     sim.run(200)
     recorder = Recorder(energy=True)
     sim.attach(recorder, interval=100)
@@ -158,7 +140,7 @@ def test_time_reversibility(fcc_lattice):
     """Forward 200 steps, reverse the velocities, 200 steps back: the start to ~1e-10."""
     state = fcc_lattice(cells=3, perturbation=0.05, temperature=1.0)
     start_positions, start_velocities = state.positions.copy(), state.velocities.copy()
-    sim = _simulation(state, 0.005)
+    sim = lj_simulation(state, 0.005)
     sim.run(200)
     assert np.abs(state.positions - start_positions).max() > 0.1  # it really went somewhere
     state.velocities *= -1.0
@@ -171,85 +153,14 @@ def test_total_momentum_is_conserved(fcc_lattice):
     state = fcc_lattice(cells=3, perturbation=0.05, temperature=2.0)
     state.velocities += [0.3, -0.1, 0.2]  # a drifting centre of mass
     momentum = (state.masses[:, None] * state.velocities).sum(axis=0)
-    sim = _simulation(state, 0.005, cutoff_mode="shift")
+    sim = lj_simulation(state, 0.005, cutoff_mode="shift")
     sim.run(100)
     np.testing.assert_allclose(
         (state.masses[:, None] * state.velocities).sum(axis=0), momentum, atol=1e-11
     )
 
 
-# ---------------------------------------------------------------- bookkeeping
-
-
-def test_one_force_evaluation_per_step(fcc_lattice):
-    sim = _simulation(fcc_lattice(cells=3, temperature=1.0), 0.005)
-    pressures = []
-    sim.attach(lambda s: pressures.append(s.thermo()["pressure"]), interval=7)
-    sim.run(50)
-    # The fresh run evaluates step 0 once, then each step reuses the last forces;
-    # observed steps compute the virial with their forces, so thermo() costs nothing.
-    assert sim.forcefield.n_evaluations == 51
-    assert len(pressures) == 1 + 50 // 7
-    sim.run(30)
-    assert sim.forcefield.n_evaluations == 81
-    sim.thermo()  # step 80 was not observed: its evaluation skipped the virial
-    assert sim.forcefield.n_evaluations == 82
-    sim.thermo()  # now served from the cache
-    assert sim.forcefield.n_evaluations == 82
-
-
-def test_integrator_alone_uses_the_cache(fcc_lattice):
-    state = fcc_lattice(cells=3, temperature=1.0)
-    forcefield = md.ForceField([LennardJones(cutoff=2.5)])
-    integrator = VelocityVerlet(dt=0.005)
-    integrator.step(state, forcefield)
-    assert forcefield.n_evaluations == 2
-    for _ in range(9):
-        integrator.step(state, forcefield)
-    assert forcefield.n_evaluations == 11
-    assert state.step == 10 and state.time == pytest.approx(0.05, rel=1e-14)
-
-
-def test_force_cache_follows_positions_box_and_types(random_gas):
-    state = random_gas(30, 6.0, n_types=2)
-    lj = LennardJones(epsilon=[1.0, 0.5], sigma=[1.0, 1.2], cutoff=2.5)
-    forcefield = md.ForceField([lj])
-    first = forcefield.compute(state)
-    assert forcefield.compute(state) is first
-    state.positions[0, 0] += 1e-3
-    assert forcefield.compute(state).energy == lj.energy_forces(state, None).energy
-    state.box[:] = 6.5
-    assert forcefield.compute(state).energy == pytest.approx(lj.energy_forces(state, None).energy)
-    state.types[:] = 1 - state.types
-    assert forcefield.compute(state).energy == pytest.approx(lj.energy_forces(state, None).energy)
-    assert forcefield.n_evaluations == 4
-
-
-def test_force_field_sums_its_potentials(random_gas):
-    state = random_gas(60, 7.0, n_types=2)
-    short = LennardJones(epsilon=[1.0, 0.5], sigma=[1.0, 1.2], cutoff=2.0)
-    long = LennardJones(epsilon=0.3, sigma=0.9, cutoff=3.2, cutoff_mode="smooth")
-    forcefield = md.ForceField([short, long], skin=0.2)
-    assert forcefield.cutoff == 3.2  # one list, at the longest cutoff
-    total = forcefield.compute(state)
-    assert total.energies is None
-    with_energies = forcefield.compute(state, per_atom=True)  # recomputed for energies
-    assert forcefield.n_evaluations == 2
-    parts = [p.energy_forces(state, None, per_atom=True) for p in (short, long)]
-    assert with_energies.energy == pytest.approx(sum(r.energy for r in parts), rel=1e-12)
-    np.testing.assert_allclose(with_energies.forces, parts[0].forces + parts[1].forces, atol=1e-11)
-    np.testing.assert_allclose(with_energies.virial, parts[0].virial + parts[1].virial, atol=1e-11)
-    np.testing.assert_allclose(
-        with_energies.energies, parts[0].energies + parts[1].energies, atol=1e-12
-    )
-
-
-def test_force_cache_follows_periodicity():
-    state = md.State(positions=[[0.2, 0.0, 0.0], [5.6, 0.0, 0.0]], box=6.0, pbc=True)
-    forcefield = md.ForceField([LennardJones(cutoff=2.5)])
-    assert forcefield.compute(state).energy > 1.0  # 0.6 apart through the x face
-    state.pbc[:] = False  # now 5.4 apart: beyond the cutoff
-    assert forcefield.compute(state).energy == 0.0
+# ------------------------------------------------------- registry and arguments
 
 
 def test_registry_names_velocity_verlet():
@@ -261,81 +172,3 @@ def test_registry_names_velocity_verlet():
 def test_invalid_dt_raises(dt):
     with pytest.raises(ValueError, match="dt"):
         VelocityVerlet(dt=dt)
-
-
-# ------------------------------------------------------------------ observers
-
-
-def test_fresh_run_observes_step_zero_once_and_respects_intervals(fcc_lattice):
-    sim = _simulation(fcc_lattice(cells=3, temperature=1.0), 0.005)
-    every, fifth = Recorder(), Recorder()
-    sim.attach(every)
-    sim.attach(fifth, interval=5)
-    sim.run(12)
-    assert every.steps == list(range(13))
-    assert fifth.steps == [0, 5, 10]
-    np.testing.assert_allclose(every.times, 0.005 * np.arange(13), rtol=1e-12)
-    sim.run(8)  # continued: step 12 is not observed again
-    assert every.steps == list(range(21))
-    assert fifth.steps == [0, 5, 10, 15, 20]
-
-
-def test_zero_step_run_then_continue(fcc_lattice):
-    sim = _simulation(fcc_lattice(cells=3, temperature=1.0), 0.005)
-    recorder = Recorder()
-    sim.attach(recorder, interval=2)
-    sim.run(0)
-    assert recorder.steps == [0]
-    sim.run(0)
-    sim.run(4)
-    assert recorder.steps == [0, 2, 4]
-
-
-def test_continued_state_is_not_observed_before_its_first_step(fcc_lattice):
-    state = fcc_lattice(cells=3, temperature=1.0)
-    first = _simulation(state, 0.005)
-    first.run(20)
-    second = _simulation(state, 0.005)  # e.g. a restart from a saved state
-    recorder = Recorder()
-    second.attach(recorder, interval=5)
-    second.run(10)
-    assert recorder.steps == [25, 30]
-
-
-@pytest.mark.parametrize("interval", [0, -1, 1.5, True, "2"])
-def test_invalid_observer_interval_raises(interval, dimer):
-    sim = md.Simulation(dimer(), [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005))
-    with pytest.raises(ValueError, match="interval"):
-        sim.attach(Recorder(), interval=interval)
-
-
-@pytest.mark.parametrize("n_steps", [-1, 2.0, True])
-def test_invalid_step_count_raises(n_steps, dimer):
-    sim = md.Simulation(dimer(), [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005))
-    with pytest.raises(ValueError, match="n_steps"):
-        sim.run(n_steps)
-
-
-# ------------------------------------------------------------------- blow-ups
-
-
-def test_huge_time_step_raises_with_the_failing_step(fcc_lattice):
-    state = fcc_lattice(cells=3, temperature=1.0)
-    sim = _simulation(state, 0.1, cutoff_mode="shift")
-    recorder = Recorder()
-    sim.attach(recorder)
-    with pytest.raises(md.SimulationError) as caught:
-        sim.run(1000)
-    error = caught.value
-    assert error.step > 0
-    assert f"step {error.step}" in str(error)
-    assert isinstance(error.__cause__, md.NonFiniteError)
-    # Observers saw every step before the failing one, and no later step.
-    assert recorder.steps == list(range(error.step))
-
-
-def test_overlapping_atoms_raise_at_step_zero(dimer):
-    sim = md.Simulation(dimer(r=0.0), [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005))
-    with pytest.raises(md.SimulationError, match="step 0") as caught:
-        sim.run(10)
-    assert caught.value.step == 0

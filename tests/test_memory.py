@@ -1,4 +1,7 @@
-"""md._memory: freed temporaries are reused in place, not page-faulted in afresh."""
+"""md._memory: freed temporaries are reused in place, not page-faulted in afresh.
+
+That the ``md`` command keeps it and ``import md`` does not: tests/test_process.py.
+"""
 
 from __future__ import annotations
 
@@ -10,18 +13,19 @@ import sys
 import pytest
 
 # A 16 MB array written, freed, and allocated and written again: with freed memory kept
-# its pages are still mapped; with glibc's defaults the first goes back to the kernel.
+# (as the md command keeps it) its pages are still mapped; with glibc's defaults the first
+# goes back to the kernel.
 _TOUCH = """
 import json, resource
 import numpy as np
 import md
-from md._memory import keep_freed_memory
+kept = md.keep_freed_memory()
 first = np.ones(2 * 1024 * 1024)
 del first
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 second = np.ones(2 * 1024 * 1024)
 faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
-print(json.dumps({"kept": keep_freed_memory(), "faults": faults,
+print(json.dumps({"kept": kept, "faults": faults,
                   "pages": second.nbytes // 4096}))
 """
 
@@ -35,7 +39,7 @@ def _touch(**environment) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_import_md_keeps_freed_memory_for_the_next_array():
+def test_kept_freed_memory_serves_the_next_array():
     result = _touch()
     if not result["kept"]:
         pytest.skip("no glibc mallopt here: the C library decides")

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import md
-from md.neighbors import NeighborList
+from md.neighbors import NeighborList, max_displacement2
 
 
 def reference_pairs(positions, box, pbc, radius):
@@ -414,6 +414,7 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
     positions = reference + rng.normal(scale=0.1, size=reference.shape)
     exact = ((positions - reference) ** 2).sum(axis=1).max()
     assert _max_displacement2(positions, reference) == exact
+    assert max_displacement2(positions, reference) == exact  # the public name (Simulation's)
     assert _max_displacement2_threaded(positions, reference, 3) == exact
     for chunks in (1, 3):
         assert _largest_displacement2(positions, reference, chunks) == exact
@@ -424,6 +425,7 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
             broken = positions.copy()
             broken[atom, axis] = bad
             assert _max_displacement2(broken, reference) == np.inf
+            assert max_displacement2(broken, reference) == np.inf
             assert _max_displacement2_threaded(broken, reference, 3) == np.inf
             assert _largest_displacement2(broken, reference, 3) == np.inf
 

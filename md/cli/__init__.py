@@ -14,6 +14,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from md._memory import keep_freed_memory
 from md._version import __version__
 from md.cli import (
     analyze,
@@ -27,7 +28,7 @@ from md.cli import (
     validate,
 )
 from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
-from md.interrupts import take_pending
+from md.interrupts import take_pending, watching
 
 #: Subcommand modules, in the order ``md --help`` lists them.
 SUBCOMMANDS = {
@@ -54,7 +55,23 @@ def build_parser() -> ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``md`` command; returns the exit code."""
+    """Entry point of the ``md`` command; returns the exit code.
+
+    The command's process-wide settings are made here, never by ``import md``:
+    glibc's malloc keeps freed memory from now on, for the implicit integrators'
+    temporaries (:func:`md._memory.keep_freed_memory`; it cannot be undone), and
+    SIGINT is watched while the command runs, so a Ctrl-C that a compiling
+    kernel swallows still stops it (:func:`md.interrupts.watching`; the previous
+    handler is restored on return). The console script enters through
+    ``md_command.main``, which also turns a Ctrl-C while the libraries load into
+    a line rather than a traceback.
+    """
+    keep_freed_memory()
+    with watching():
+        return _run_command(argv)
+
+
+def _run_command(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     try:
         code = SUBCOMMANDS[args.command].main(args)

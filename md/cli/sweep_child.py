@@ -3,7 +3,9 @@
 The sweep's Dask tasks start each run this way (see :mod:`md.sweeps.tasks`):
 on Linux the child asks the kernel to kill it when its parent, the Dask
 worker, dies (``PR_SET_PDEATHSIG``), so a retried task never writes beside a
-run still going.
+run still going. The library is loaded before that request (``python -m``
+imports ``md`` and ``md.cli`` before this module): a worker that dies in the
+meantime is seen by the parent check after it, and the child exits.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
+
+from md.cli import main as md_main
 
 #: Exit code when the parent (the Dask worker) died before this run started.
 EXIT_ORPHANED = 137
@@ -34,8 +38,6 @@ def main(argv: list[str]) -> int:
             pass
     if os.getppid() != parent:
         return EXIT_ORPHANED  # the worker died while starting this run
-    from md.cli import main as md_main  # after the prctl: the import takes a while
-
     return md_main(argv[1:])
 
 

@@ -1,0 +1,251 @@
+"""Kernels run as Python under ``NUMBA_DISABLE_JIT=1`` (a debugger, coverage, tracebacks).
+
+numba cannot call an LLVM-IR intrinsic from Python, so each has a Python twin
+(``md._simd.python_twin``) that stands in for it in that mode. Here every
+intrinsic is compared with its twin on the same inputs (compiled), and the
+serial engine, LJ and velocity Verlet over an O(N^2) list and over a cell list
+(both the AVX2 permute path and the bit-mask scan), is run with numba off in a
+subprocess and compared with the compiled run.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numba import njit
+
+from md import _cell_kernels
+from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
+from md._simd import (
+    PERMUTATIONS,
+    PERMUTE,
+    bit_count,
+    bits_float,
+    float_bits,
+    move_within,
+    store_fence,
+    stream_store,
+    trailing_zeros,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _modules_with_intrinsics() -> list[str]:
+    """Every project module whose source builds an intrinsic (``intrinsic(`` or ``@intrinsic``)."""
+    found = []
+    for package in ("md", "potentials", "integrators"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            text = path.read_text()
+            if "@intrinsic" in text or "intrinsic(" in text:
+                found.append(".".join(path.relative_to(ROOT).with_suffix("").parts))
+    return found
+
+
+def test_every_intrinsic_has_a_python_twin():
+    intrinsic_type = type(trailing_zeros)
+    modules = _modules_with_intrinsics()
+    assert {"md._simd", "md._cell_kernels"} <= set(modules)
+    found = []
+    for name in modules:
+        for attribute, value in vars(importlib.import_module(name)).items():
+            if isinstance(value, intrinsic_type):
+                found.append(attribute)
+                assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
+    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block"} <= set(found)
+
+
+@njit
+def _scalars(word, x, bits):
+    return trailing_zeros(word), bit_count(word), float_bits(x), bits_float(bits)
+
+
+def test_scalar_twins_equal_their_intrinsics(rng):
+    words = [np.uint64(1), np.uint64(1 << 63), np.uint64(2**64 - 1)]
+    words += [np.uint64(w) | np.uint64(1 << 40) for w in rng.integers(0, 2**63, 50)]
+    floats = [0.0, -0.0, 1.0, np.inf, -np.inf, np.nan, 5e-324, 1.7e308, *rng.normal(size=50)]
+    for word, x in zip(words * 2, floats, strict=False):
+        bits = np.int64(rng.integers(-(2**63), 2**63 - 1))
+        compiled = _scalars(word, x, bits)
+        twins = (
+            trailing_zeros.python_twin(word),
+            bit_count.python_twin(word),
+            float_bits.python_twin(x),
+            bits_float.python_twin(bits),
+        )
+        assert compiled[:3] == twins[:3], (word, x)
+        assert np.array_equal(compiled[3], twins[3], equal_nan=True)
+        assert all(isinstance(t, np.int64) for t in twins[:3]) and isinstance(twins[3], np.float64)
+
+
+@njit
+def _stores(array, values):
+    for k in range(values.shape[0]):
+        stream_store(array, np.uint64(k), values[k])
+    store_fence()
+
+
+@njit
+def _move(array, to, start, count):
+    move_within(array, to, start, count)
+
+
+def test_store_and_move_twins_equal_their_intrinsics(rng):
+    values = rng.normal(size=20)
+    compiled, twin = np.zeros(20), np.zeros(20)
+    _stores(compiled, values)
+    for k in range(20):
+        stream_store.python_twin(twin, np.uint64(k), values[k])
+    store_fence.python_twin()
+    assert np.array_equal(compiled, twin) and np.array_equal(compiled, values)
+    for to, start, count in [(0, 5, 10), (5, 0, 10), (3, 3, 4), (0, 0, 0), (10, 2, 9)]:
+        base = rng.integers(0, 1000, 30).astype(np.int32)
+        compiled, twin = base.copy(), base.copy()
+        _move(compiled, to, start, count)
+        move_within.python_twin(twin, to, start, count)
+        expected = base.copy()
+        expected[to : to + count] = base[start : start + count].copy()
+        assert np.array_equal(compiled, twin) and np.array_equal(compiled, expected)
+
+
+def _candidates(rng, n=200):
+    """A centre and candidates around it, some beyond r2_max = 1, with uint32 tags."""
+    xs, ys, zs = (rng.uniform(-1.2, 1.2, n) for _ in range(3))
+    packed = rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)
+    return xs, ys, zs, packed
+
+
+@njit
+def _copy(xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m):
+    _copy_block(xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz, c_packed, m)
+
+
+@njit
+def _bits(xi, yi, zi, r2, tx, ty, tz, packed, start):
+    return _near_bits(xi, yi, zi, r2, tx, ty, tz, packed, start)
+
+
+def test_vector_twins_of_the_cell_search_equal_their_intrinsics(rng):
+    xs, ys, zs, packed = _candidates(rng)
+    for first, m in [(0, 0), (13, 40), (150, 3)]:
+        compiled = [np.zeros(200) for _ in range(3)] + [np.zeros(200, dtype=np.uint32)]
+        twin = [a.copy() for a in compiled]
+        tag = np.uint32(5) << np.uint32(27)
+        _copy(xs, ys, zs, packed, first, 0.5, -1.0, 2.0, tag, *compiled, m)
+        _copy_block.python_twin(xs, ys, zs, packed, first, 0.5, -1.0, 2.0, tag, *twin, m)
+        assert all(np.array_equal(a, b) for a, b in zip(compiled, twin, strict=True))
+        assert np.array_equal(compiled[0][m : m + GATHER_BLOCK], xs[first : first + 8] + 0.5)
+    for start in (0, 7, 100, 136):
+        centre = rng.uniform(-0.3, 0.3, 3)
+        compiled = _bits(*centre, 1.0, xs, ys, zs, packed, start)
+        assert compiled == _near_bits.python_twin(*centre, 1.0, xs, ys, zs, packed, start)
+        assert 0 < bit_count.python_twin(compiled) < 64  # both kinds of lane were tested
+
+
+@njit
+def _pack_whole(xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at):
+    return _cell_kernels._near_pack_permute_whole(
+        xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at
+    )
+
+
+@njit
+def _pack_block(xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at):
+    return _cell_kernels._near_pack_permute_block(
+        xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at
+    )
+
+
+@pytest.mark.skipif(not PERMUTE, reason="the AVX2 permute intrinsics exist only with AVX2")
+@pytest.mark.parametrize("call", [_pack_whole, _pack_block], ids=["whole", "block"])
+def test_permute_twins_equal_their_intrinsics(rng, call):
+    packer = _cell_kernels._near_pack_permute_whole
+    if call is _pack_block:
+        packer = _cell_kernels._near_pack_permute_block
+    xs, ys, zs, packed = _candidates(rng)
+    for start, valid, at in [(0, 64, 0), (5, 64, 17), (64, 3, 2), (100, 8, 0), (120, 1, 9)]:
+        centre = rng.uniform(-0.3, 0.3, 3)
+        args = (*centre, 1.0, xs, ys, zs, packed, start, valid, PERMUTATIONS)
+        compiled, twin = np.zeros(200, np.uint32), np.zeros(200, np.uint32)
+        end = call(*args, compiled, at)
+        assert end == packer.python_twin(*args, twin, at)
+        assert np.array_equal(compiled, twin)
+
+
+# The serial engine with numba off, against the compiled run.
+
+_RUN = """
+import json, sys
+import numpy as np
+import md
+from md._simd import PERMUTE
+from integrators import VelocityVerlet
+from potentials import LennardJones
+results = {}
+# (fcc cells, LJ cutoff): an O(N^2) list (box < 5 half-radius cells), a cell list
+for cells, cutoff in [(3, 2.5), (4, 1.5)]:
+    state = md.lattice("fcc", cells, density=0.8442)
+    md.maxwell_boltzmann(state, temperature=1.5, seed=3)
+    sim = md.Simulation(state, [LennardJones(cutoff=cutoff)], VelocityVerlet(dt=0.005),
+                        skin=0.05, threads=1, max_displacement=0.5)
+    sim.run(6)
+    nl = sim.forcefield.neighbor_list
+    pairs = [(i, int(j)) for i in range(len(state.positions))
+             for j in nl.neighbors[nl.starts[i]:nl.starts[i + 1]]]
+    results[str(cells)] = {
+        "cells": nl.used_cells, "builds": nl.n_builds, "pairs": sorted(pairs),
+        "positions": state.positions.tolist(), "velocities": state.velocities.tolist(),
+        "forces": sim.forcefield.compute(state).forces.tolist(),
+        "thermo": {k: float(v) for k, v in sim.thermo().items()},
+        "permute": PERMUTE,
+        "as_python": not hasattr(md._cell_kernels._cell_list, "py_func"),  # no dispatcher
+    }
+print(json.dumps(results))
+"""
+
+
+def _engine(**env) -> dict:
+    environment = {**os.environ, **env}
+    paths = [str(ROOT), os.environ.get("PYTHONPATH")]
+    environment["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
+    done = subprocess.run(
+        [sys.executable, "-c", _RUN], env=environment, capture_output=True, text=True,
+        timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def compiled_run():
+    return _engine(NUMBA_DISABLE_JIT="0")
+
+
+@pytest.mark.parametrize(
+    "features",
+    [None, pytest.param("-avx2", marks=pytest.mark.slow)],  # the host's path by default
+    ids=["host CPU (AVX2: permute path)", "no AVX2 (scan path)"],
+)
+def test_serial_engine_under_disable_jit_matches_the_compiled_run(compiled_run, features):
+    env = {"NUMBA_DISABLE_JIT": "1"}
+    if features is not None:
+        env["NUMBA_CPU_FEATURES"] = features  # read by md._simd only: nothing is compiled
+    python = _engine(**env)
+    assert python["4"]["as_python"] and not compiled_run["4"]["as_python"]
+    assert python["4"]["permute"] == (PERMUTE and features is None)
+    for cells, uses_cells in [("3", False), ("4", True)]:
+        ours, reference = python[cells], compiled_run[cells]
+        assert ours["cells"] is reference["cells"] is uses_cells
+        assert ours["builds"] == reference["builds"] > 1  # a rebuild within the run
+        assert ours["pairs"] == reference["pairs"]  # the same list, exactly
+        for key in ("positions", "velocities", "forces"):
+            np.testing.assert_allclose(ours[key], reference[key], rtol=1e-11, atol=1e-11)
+        for key, value in reference["thermo"].items():
+            assert ours["thermo"][key] == pytest.approx(value, rel=1e-11, abs=1e-11), key
