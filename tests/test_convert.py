@@ -19,6 +19,7 @@ import h5py
 import MDAnalysis as mda
 import numpy as np
 import pytest
+from conftest import POLYMER
 
 import md
 from integrators import VelocityVerlet
@@ -40,36 +41,6 @@ TOLERANCE = {
     "data": 1e-6, "xyz": 1e-9, "extxyz": 1e-8, "traj": 1e-14,
 }  # fmt: skip
 
-POLYMER = """
-units = "lj"
-seed = 3
-[system]
-polymer = "melt"
-chains = 4
-chain_length = 8
-density = 0.8
-bond_length = 0.97
-temperature = 1.0
-[[potentials]]
-type = "lj"
-cutoff = 1.122462048309373
-cutoff_mode = "shift"
-[[potentials]]
-type = "fene"
-bonds = "system"
-k = 30.0
-r_max = 1.5
-[integrator]
-type = "verlet"
-dt = 0.002
-[run]
-steps = 60
-[output]
-path = "polymer.h5"
-every = 10
-velocities = true
-forces = true
-"""
 FENE = '[[potentials]]\ntype = "fene"\nbonds = "system"\nk = 30.0\nr_max = 1.5\n'
 QUIET = ("-q", "--no-progress")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+from conftest import POLYMER
 
 import md
 from integrators import VelocityVerlet
@@ -297,34 +298,6 @@ def test_a_file_without_frames_is_reported_not_crashed_on(tmp_path):
 
 
 # --------------------------------------------------- damaged connectivity (issue 33 item 16)
-POLYMER = """
-units = "lj"
-seed = 3
-[system]
-polymer = "melt"
-chains = 4
-chain_length = 8
-density = 0.8
-temperature = 1.0
-[[potentials]]
-type = "lj"
-cutoff = 1.122462048309373
-[[potentials]]
-type = "fene"
-bonds = "system"
-k = 30.0
-r_max = 1.5
-[integrator]
-type = "verlet"
-dt = 0.002
-[run]
-steps = 20
-[output]
-path = "polymer.h5"
-every = 10
-"""
-
-
 @pytest.fixture(scope="module")
 def polymer_file(tmp_path_factory):
     folder = tmp_path_factory.mktemp("bonds")
