@@ -31,6 +31,19 @@ import numpy as np
 from integrators.base import IntegratorBase, check_dt
 from integrators.rattle import as_constraints, constrained_thermo_terms
 from md._checks import positive
+from md.schema import REQUIRED, Key
+
+# The keys the thermostats share (each class lists its own in CONFIG_KEYS).
+TEMPERATURE = Key("temperature", "number", REQUIRED, unit="temperature", minimum=0.0,
+                  doc="The target temperature.")  # fmt: skip
+TAU = Key("tau", "number", REQUIRED, unit="time", positive=True,
+          doc="The coupling time; about 100 `dt` is usual.")  # fmt: skip
+SEED = Key("seed", "integer or list of integers", None,
+           doc="The random stream, for repeatable runs.",
+           default_doc="derived from the top-level `seed` (none there: fresh entropy)")  # fmt: skip
+FIX_COM = Key("fix_com", "boolean", True,
+              doc="Keep the total momentum (3 fewer degrees of freedom); false for systems in "
+                  "an external field.")  # fmt: skip
 
 
 def check_temperature(temperature: float, positive: bool = False) -> float:

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -56,14 +57,50 @@ from integrators.base import (
     constraints_of,
 )
 from integrators.mtk import MartynaTobiasKlein
-from md._checks import count, positive
+from md._checks import MAX_SEED, count, positive
 from md.box import TILT_AXES, reduced_tilt
 from md.errors import SimulationError
+from md.schema import REQUIRED, Key, Varies
 from md.thermo import kinetic_energy, pressure, pressure_tensor
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
 BAROSTATS = {"c_rescale": True, "mtk": True, "berendsen": False}
 COUPLINGS = ("isotropic", "anisotropic", "triclinic")
+
+_PRESSURE = Key("pressure", "number", REQUIRED, unit="pressure", doc="The target pressure P0.")
+_COUPLE = Key("couple", "string", "isotropic", choices=COUPLINGS,
+              doc="One scale factor (`isotropic`), one per edge on its diagonal pressure "
+                  "(`anisotropic`), or also the tilts towards zero shear stress (`triclinic`).")
+#: The keys of a ``[barostat]`` table, per type (the config reads them in this order).
+BAROSTAT_KEYS = {
+    "c_rescale": (
+        _PRESSURE,
+        Key("tau", "number", REQUIRED, unit="time", positive=True,
+            doc="The coupling time: how fast the volume relaxes."),
+        _COUPLE,
+        Key("compressibility", "number", Varies(lj=0.1, metal=4.5e-5), unit="1/pressure",
+            positive=True,
+            doc="The isothermal compressibility beta of the coupling; with `tau` it sets only "
+                "how fast the volume relaxes (an LJ liquid's order of magnitude in lj units, "
+                "GROMACS's default in metal units)."),
+        Key("every", "integer", 10, unit="steps", minimum=1,
+            doc="Steps between barostat moves (each move spans `every` steps)."),
+        Key("seed", "integer", None, minimum=0, maximum=MAX_SEED,
+            doc="The random stream of the cell moves.",
+            default_doc="derived from the top-level `seed`"),
+    ),
+    "mtk": (
+        _PRESSURE,
+        Key("tau", "number", REQUIRED, unit="time", positive=True,
+            doc="The period of the barostat's oscillation."),
+        _COUPLE,
+    ),
+}  # fmt: skip
+BAROSTAT_KEYS["berendsen"] = (
+    *BAROSTAT_KEYS["c_rescale"][:-1],
+    replace(BAROSTAT_KEYS["c_rescale"][-1], doc="Accepted and kept; Berendsen's moves draw no "
+            "random numbers."),
+)  # fmt: skip
 
 
 class Barostat:

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
 
 from md._checks import positive
 from md.errors import ConvergenceError
+from md.schema import REQUIRED, Key
 
 if TYPE_CHECKING:  # annotations only: integrators import nothing above layer 0 of md
     from integrators.rattle import BondConstraints
@@ -69,6 +70,10 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
+
+    ``CONFIG_KEYS`` (a tuple of :class:`md.schema.Key`) declares the keys its
+    ``[integrator]`` table takes: one per constructor argument but ``kB``,
+    which the config supplies from its unit system.
     """
 
     dt: float
@@ -148,13 +153,20 @@ class ForceSplit(Protocol):
     def split(self, forcefield: ForceField) -> tuple[tuple[int, ...], tuple[int, ...]]: ...
 
 
+#: The time step, a key of every integrator's config table.
+DT = Key("dt", "number", REQUIRED, unit="time", positive=True, doc="The time step.")
+
+
 class IntegratorBase:
     """Defaults of the capability flags, and the step's bookkeeping.
 
     Every integrator in the registry derives from it. ``constraints`` is
-    None (no rigid bonds) unless the integrator sets it.
+    None (no rigid bonds) unless the integrator sets it. ``CONFIG_KEYS`` is
+    ``(DT,)``: an integrator with more constructor arguments declares them
+    too (a test compares the declaration with the signature).
     """
 
+    CONFIG_KEYS: ClassVar[tuple[Key, ...]] = (DT,)
     dt: float
     constraints: BondConstraints | None = None
     thermostat: ClassVar[bool] = False
@@ -191,6 +203,7 @@ def check_dt(dt: float) -> float:
 
 
 __all__ = [
+    "DT",
     "Constrained",
     "ConvergenceError",
     "ForceSplit",

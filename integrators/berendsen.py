@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 
-from integrators._thermostat import Thermostat
-from integrators.rattle import constrained_verlet_step
+from integrators._thermostat import FIX_COM, TAU, TEMPERATURE, Thermostat
+from integrators.base import DT
+from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
 from md.thermo import kinetic_energy
 
@@ -66,6 +68,11 @@ class Berendsen(Thermostat):
     """
 
     canonical = False
+    CONFIG_KEYS = (
+        DT, TEMPERATURE,
+        replace(TAU, doc="The coupling time (`tau` = `dt` rescales to the target at once)."),
+        CONSTRAINTS, FIX_COM,
+    )  # fmt: skip
 
     def __init__(
         self,

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
-from integrators._thermostat import Thermostat, make_rng
-from integrators.rattle import constrained_verlet_step
+from integrators._thermostat import FIX_COM, SEED, TAU, TEMPERATURE, Thermostat, make_rng
+from integrators.base import DT
+from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
 from md.thermo import kinetic_energy
 
@@ -59,6 +61,11 @@ class Bussi(Thermostat):
     """
 
     stochastic = True
+    CONFIG_KEYS = (
+        DT, TEMPERATURE,
+        replace(TAU, doc="The relaxation time of the kinetic energy; about 100 `dt` is usual."),
+        SEED, CONSTRAINTS, FIX_COM,
+    )  # fmt: skip
 
     def __init__(
         self,

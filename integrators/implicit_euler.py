@@ -16,12 +16,14 @@ from __future__ import annotations
 import numpy as np
 
 from integrators._newton import (
+    LINEAR_SOLVERS,
     PREDICTOR_HISTORY,
     IncrementalSolver,
     check_solver_options,
     new_statistics,
 )
-from integrators.base import IntegratorBase, check_dt
+from integrators.base import DT, IntegratorBase, check_dt
+from md.schema import Key
 
 
 class _ImplicitBase(IntegratorBase):
@@ -29,6 +31,17 @@ class _ImplicitBase(IntegratorBase):
 
     _type = ""
     _label = ""
+    CONFIG_KEYS = (
+        DT,
+        Key("tol", "number", 1e-8,
+            doc="Newton's convergence threshold on the relative residual (an acceleration "
+                "error relative to the largest of the step's accelerations and velocities / "
+                "`dt`)."),
+        Key("max_iter", "integer", 50, doc="Most Newton iterations per step."),
+        Key("linear_solver", "string", "auto", choices=LINEAR_SOLVERS,
+            doc='Sparse LU (`"direct"`) or conjugate gradients (`"cg"`); `"auto"` factorises '
+                "small bonded systems (below 3000 unknowns) and uses CG for the rest."),
+    )  # fmt: skip
 
     def __init__(
         self, dt: float, tol: float = 1e-8, max_iter: int = 50, linear_solver: str = "auto"

@@ -8,8 +8,11 @@ import numpy as np
 from numba import njit
 
 from integrators._kernels import _drift, kick
-from integrators._thermostat import Thermostat, make_rng
+from integrators._thermostat import FIX_COM, SEED, TEMPERATURE, Thermostat, make_rng
+from integrators.base import DT
+from integrators.rattle import CONSTRAINTS
 from md._checks import positive
+from md.schema import REQUIRED, Key
 
 
 class Langevin(Thermostat):
@@ -78,6 +81,16 @@ class Langevin(Thermostat):
     """
 
     stochastic = True
+    CONFIG_KEYS = (
+        DT,
+        TEMPERATURE,
+        Key("friction", "number", REQUIRED, unit="1/time", minimum=0.0,
+            doc="The friction coefficient gamma: 0 is velocity Verlet, about 1/(100 dt) "
+                "disturbs the dynamics little, 1/dt or more is overdamped."),
+        SEED,
+        CONSTRAINTS,
+        FIX_COM,
+    )  # fmt: skip
 
     def __init__(
         self,

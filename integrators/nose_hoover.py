@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numba import njit
 
-from integrators._thermostat import Thermostat, check_temperature
-from integrators.rattle import constrained_verlet_step
+from integrators._thermostat import FIX_COM, TAU, TEMPERATURE, Thermostat, check_temperature
+from integrators.base import DT
+from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
+from md.schema import Key
 from md.thermo import kinetic_energy
 
 #: Suzuki-Yoshida weights of the fourth-order composition (three stages).
@@ -70,6 +73,17 @@ class NoseHooverChain(Thermostat):
     """
 
     _saved = ("xi", "v_xi")
+    CONFIG_KEYS = (
+        DT,
+        TEMPERATURE,
+        replace(TAU, doc="The period of the thermostat's oscillation; about 100 `dt` is usual."),
+        Key("chain_length", "integer", 3,
+            doc="Chained thermostat variables, >= 1 (1: plain Nose-Hoover)."),
+        Key("n_substeps", "integer", 1,
+            doc="Substeps of each chain half step, >= 1 (more for a very short `tau`)."),
+        CONSTRAINTS,
+        FIX_COM,
+    )  # fmt: skip
 
     def __init__(
         self,

@@ -29,10 +29,11 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from integrators._kernels import kick, kick_drift
-from integrators.base import IntegratorBase, check_dt
+from integrators.base import DT, IntegratorBase, check_dt
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import ConstraintError
+from md.schema import REQUIRED, Key, check_names
 from md.thermo import degrees_of_freedom as unconstrained_dof
 
 
@@ -60,6 +61,25 @@ class BondConstraints:
     >>> constraints.n_constraints
     2
     """
+
+    #: The keys of an ``[integrator.constraints]`` table (see :meth:`from_config`).
+    CONFIG_KEYS = (
+        Key("bonds", 'list or "system"', None,
+            doc='The constrained atom pairs, a list of `[i, j]`, or `"system"`: the bonds '
+                "`[system]` made (a polymer) or read (a structure file). Give this or "
+                "`bonds_file`."),
+        Key("bonds_file", "path", None,
+            doc="A text file of two integer columns (atom indices; `#` comments), relative to "
+                "the config. Give this or `bonds`."),
+        Key("lengths", "number or list", None, unit="length",
+            doc="The bond lengths, one for all or one per bond.",
+            default_doc="each bond's starting length"),
+        Key("tol", "number", 1e-8,
+            doc="Relative tolerance of SHAKE (bond lengths) and RATTLE (bond-length rates), "
+                "in (0, 1)."),
+        Key("max_iter", "integer", 1000,
+            doc="Sweeps over all bonds before the step fails with a constraint error."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -109,13 +129,7 @@ class BondConstraints:
         one per bond; default: the starting lengths), ``tol``, ``max_iter``.
         """
         params = dict(params)
-        allowed = {"bonds", "bonds_file", "lengths", "tol", "max_iter"}
-        unknown = set(params) - allowed
-        if unknown:
-            raise ValueError(
-                f"unknown key(s): {', '.join(sorted(unknown))} "
-                f"(allowed: {', '.join(sorted(allowed))})"
-            )
+        check_names(params, cls.CONFIG_KEYS)
         if ("bonds" in params) == ("bonds_file" in params):
             raise ValueError("give exactly one of 'bonds' (a list of [i, j], or \"system\") "
                              "and 'bonds_file'")  # fmt: skip
@@ -366,6 +380,12 @@ def constrained_thermo_terms(constraints, n_dof: int, state, result) -> dict:
     return terms
 
 
+#: Rigid bonds, a key of the integrators that take them: the ``[integrator.constraints]``
+#: table, whose keys are :attr:`BondConstraints.CONFIG_KEYS`.
+CONSTRAINTS = Key("constraints", "table", None,
+                  doc="Rigid bonds: the `[integrator.constraints]` table (below).")  # fmt: skip
+
+
 class Rattle(IntegratorBase):
     """Velocity Verlet with rigid bonds: SHAKE after the drift, RATTLE after the last kick.
 
@@ -396,6 +416,12 @@ class Rattle(IntegratorBase):
     J.-P. Ryckaert, G. Ciccotti, H. J. C. Berendsen, J. Comput. Phys. 23, 327
     (1977) (SHAKE); H. C. Andersen, J. Comput. Phys. 52, 24 (1983) (RATTLE).
     """
+
+    CONFIG_KEYS = (
+        DT,
+        Key("constraints", "table", REQUIRED,
+            doc="The rigid bonds: the `[integrator.constraints]` table (below)."),
+    )  # fmt: skip
 
     order = 2
 
@@ -554,4 +580,4 @@ def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, 
     return max_iter + 1, worst, worst_bond
 
 
-__all__ = ["BondConstraints", "ConstraintError", "Rattle"]
+__all__ = ["CONSTRAINTS", "BondConstraints", "ConstraintError", "Rattle"]

@@ -21,10 +21,12 @@ and Skeel 2003). In practice keep dt below about a third of the bond period.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 from integrators._kernels import kick, kick_drift
-from integrators.base import IntegratorBase, check_dt
+from integrators.base import DT, IntegratorBase, check_dt
 from md._checks import count
+from md.schema import Key
 
 
 class RESPA(IntegratorBase):
@@ -48,6 +50,14 @@ class RESPA(IntegratorBase):
 
     order = 2
     splits_forces = True
+    CONFIG_KEYS = (
+        replace(DT, doc="The outer time step: the slow forces' step."),
+        Key("inner_steps", "integer", 2,
+            doc="Fast substeps per outer step, >= 1 (1: velocity Verlet)."),
+        Key("fast", '"bonded" or list of integers', "bonded",
+            doc='Which potentials are fast: `"bonded"` (those without a cutoff: springs, FENE '
+                "bonds, angles) or their indices in `[[potentials]]`."),
+    )  # fmt: skip
 
     def __init__(self, dt: float, inner_steps: int = 2, fast: str | Sequence[int] = "bonded"):
         self.dt = check_dt(dt)

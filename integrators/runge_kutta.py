@@ -15,13 +15,15 @@ state is restored to where the step started before the exception propagates.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numba import njit
 
-from integrators.base import ConvergenceError, IntegratorBase, check_dt
+from integrators.base import DT, ConvergenceError, IntegratorBase, check_dt
 from md._checks import positive
 from md.errors import NonFiniteError
+from md.schema import Key
 
 
 class _Tableau:
@@ -208,6 +210,16 @@ class RKF45(IntegratorBase):
     #: The step size is chosen by the error control, so ``dt`` only sets the
     #: output times; an order of accuracy in ``dt`` is not meaningful.
     adaptive = True
+    CONFIG_KEYS = (
+        replace(DT, doc="The output time step (the substeps are the error control's)."),
+        Key("tol", "number", 1e-8,
+            doc="Absolute local error tolerance per substep (max norm over positions and "
+                "velocities)."),
+        Key("dt_min", "number", None, unit="time", positive=True,
+            doc="The smallest substep the control may ask for.", default_doc="1e-12 `dt`"),
+        Key("max_substeps", "integer", 100000,
+            doc="Most substeps (accepted and rejected) within one output step."),
+    )  # fmt: skip
 
     def __init__(
         self,

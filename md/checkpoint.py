@@ -291,12 +291,17 @@ def physics_fingerprint(config) -> dict:
     order, hence round-off) and which per-atom data the trajectory stores.
     Excluded, so they may change on resume: ``[run] steps`` and
     ``thermo_every``, ``[output] path``, ``every`` and ``checkpoint_every``.
+
+    The layout is what checkpoints hold, so it stays as it is: a plug-in
+    section is its type and the values its record holds (``"kind"`` naming
+    a barostat's type), the system every field of its record.
     """
     system = {
         key: (str(value) if isinstance(value, Path) else value)
         for key, value in dataclasses.asdict(config.system).items()
     }
     structure = getattr(config.system, "structure", None)
+    barostat = getattr(config, "barostat", None)
     if structure is not None:
         try:
             system["structure_sha256"] = hashlib.sha256(Path(structure).read_bytes()).hexdigest()
@@ -307,10 +312,10 @@ def physics_fingerprint(config) -> dict:
             "units": config.units.name,
             "seed": config.seed,
             "system": system,
-            "potentials": config.potentials,
-            "integrator": config.integrator,
+            "potentials": [{"type": p.type, **p.values} for p in config.potentials],
+            "integrator": {"type": config.integrator.type, **config.integrator.values},
             # only when set, so checkpoints written before barostats existed still resume
-            **({"barostat": config.barostat} if getattr(config, "barostat", None) else {}),
+            **({"barostat": {"kind": barostat.type, **barostat.values}} if barostat else {}),
             "run": {"skin": config.run.skin},
             "output": {
                 "velocities": config.output.velocities,

@@ -1,48 +1,70 @@
-"""Run configuration: TOML read into small dataclasses, validated before anything runs.
+"""Run configuration: TOML read into typed records, validated before anything runs.
+
+Each section of a config is read into a frozen record. The fixed sections are
+dataclasses whose fields declare their keys (:func:`md.schema.key`):
+:class:`SystemConfig`, :class:`RunConfig`, :class:`OutputConfig`,
+:class:`MinimizeConfig`. The plug-in sections (``[[potentials]]``,
+``[integrator]``, ``[barostat]``) become :class:`PluginEntry` records whose
+keys the plug-in named by ``type`` declares in its ``CONFIG_KEYS``
+(``potentials.POTENTIALS``, ``integrators.INTEGRATORS``,
+``integrators.barostats.BAROSTAT_KEYS``). :func:`sections` lists them all, and
+the manual's config reference is generated from it, so a key is declared in
+one place: adding a field to a record, or a :class:`md.schema.Key` to a
+plug-in's ``CONFIG_KEYS``, is all it takes for the config to accept the key
+and the reference to describe it.
 
 Every problem is reported as a :class:`ConfigError` naming the file, the key
-and the offending value. Names resolve through ``POTENTIALS`` and
-``INTEGRATORS``; physical quantities are converted from the config's unit
-system (``lj`` or ``metal``, where times are in fs) into engine units here.
+and the offending value. Times, rates and pressures are converted from the
+config's unit system (``lj`` or ``metal``, where times are in fs and pressures
+in bar) into engine units here, by the unit their key declares.
 """
 
 from __future__ import annotations
 
-import inspect
 import logging
 import math
 import tomllib
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from integrators import INTEGRATORS, NoseHooverChain
-from integrators.barostats import BAROSTATS, COUPLINGS
+from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
-from md._checks import MAX_COUNT, MAX_SEED
+from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError
 from md.polymers import chain_angles, polymer_melt, single_chain
+from md.schema import REQUIRED, Key, Varies, key, key_names, section_keys
 from md.structure import read_structure
 from md.topology import Topology
-from md.units import UNIT_SYSTEMS, UnitSystem, eV_per_A3_in_bar
+from md.units import UNIT_SYSTEMS, UnitSystem
 from potentials import POTENTIALS
 
-_MISSING = object()
 #: Largest lattice accepted (4 x 10^7 fcc atoms), so a typo cannot exhaust memory.
 _MAX_CELLS = 10_000_000
 logger = logging.getLogger(__name__)
 
 
 class _Table:
-    """A TOML table being consumed key by key; leftovers are unknown keys."""
+    """A TOML table being consumed key by key; leftovers are unknown keys.
 
-    def __init__(self, data: Any, where: str, source: str) -> None:
+    ``units`` converts numbers by their key's declared unit (None: the
+    section holds no converted quantity); ``base`` is the folder that
+    relative ``path`` keys are relative to.
+    """
+
+    def __init__(self, data: Any, where: str, source: str, base: Path = Path("."),
+                 units: UnitSystem | None = None) -> None:  # fmt: skip
         if not isinstance(data, dict):
             raise ConfigError(f"{source}: [{where}] must be a table, got {type(data).__name__}")
         self.data = dict(data)
         self.where = where
         self.source = source
+        self.base = base
+        self.units = units
 
     def error(self, key: str, message: str) -> ConfigError:
         return ConfigError(f"{self.source}: {self._name(key)}: {message}")
@@ -50,64 +72,89 @@ class _Table:
     def _name(self, key: str) -> str:
         return f"[{self.where}] {key}" if self.where else key
 
-    def take(self, key: str, default: Any = _MISSING) -> Any:
-        if key not in self.data:
-            if default is _MISSING:
-                raise ConfigError(f"{self.source}: missing required key {self._name(key)}")
+    def take(self, name: str, default: Any = REQUIRED) -> Any:
+        """The raw value of ``name`` (a section's table), or ``default``."""
+        if name not in self.data:
+            if default is REQUIRED:
+                raise ConfigError(f"{self.source}: missing required key {self._name(name)}")
             return default
-        return self.data.pop(key)
+        return self.data.pop(name)
 
-    def number(self, key, default=_MISSING, positive=False, minimum=None) -> float:
-        value = self.take(key, default)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.error(key, f"expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise self.error(key, f"must be finite, got {value!r}")
-        if positive and not value > 0:
-            raise self.error(key, f"must be positive, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise self.error(key, f"must be >= {minimum}, got {value!r}")
-        return float(value)
+    def read(self, key: Key, case: str | None = None, needs: str = "") -> Any:
+        """The checked value of ``key`` (in engine units), or its default in ``case``.
 
-    def integer(self, key, default=_MISSING, minimum=None, maximum=MAX_COUNT) -> int:
-        value = self.take(key, default)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(key, f"expected an integer, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise self.error(key, f"must be >= {minimum}, got {value!r}")
-        if value > maximum:
-            raise self.error(key, f"must be at most {maximum}, got {value!r}")
-        return int(value)
+        ``needs`` is added to the message for a missing required key.
+        """
+        if key.name not in self.data:
+            default = key.default_in(case)
+            if default is REQUIRED:
+                raise ConfigError(
+                    f"{self.source}: missing required key {self._name(key.name)}{needs}"
+                )
+            return self.convert(key, default)
+        value = self.data.pop(key.name)
+        try:
+            value = key.check(value)
+        except ValueError as error:
+            raise self.error(key.name, str(error)) from None
+        if key.kind == "path" and not Path(value).is_absolute():
+            value = str(self.base / value)  # relative to the config
+        elif key.kind == "output path":
+            value = Path(value)  # relative to the working directory
+        return self.convert(key, value)
 
-    def string(self, key, default=_MISSING, choices=None) -> str:
-        value = self.take(key, default)
-        if value is None:
-            return None
-        if not isinstance(value, str):
-            raise self.error(key, f"expected a string, got {value!r}")
-        if choices is not None and value not in choices:
-            raise self.error(key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
-        return value
+    def convert(self, key: Key, value: Any) -> Any:
+        """``value`` of a number ``key`` in engine units (times, rates, pressures)."""
+        if value is None or key.kind != "number" or key.unit is None:
+            return value
+        if self.units is None:
+            if key.unit in _CONVERTED:
+                raise AssertionError(f"[{self.where}] {key.name}: no units to convert it yet")
+            return value
+        return self.units.from_config(key.unit, value)
 
-    def boolean(self, key, default=_MISSING) -> bool:
-        value = self.take(key, default)
-        if not isinstance(value, bool):
-            raise self.error(key, f"expected true or false, got {value!r}")
-        return value
+    def plugin(self, kind: str, keys: tuple[Key, ...], others: set[str],
+               fill_defaults: bool = False) -> dict:  # fmt: skip
+        """The values of a plug-in table of type ``kind`` declaring ``keys``.
 
-    def triple(self, key, default, kind) -> tuple:
-        """A value given once for all axes or as a list of three."""
-        value = self.take(key, default)
-        values = value if isinstance(value, list) else [value] * 3
-        if len(values) != 3 or not all(_is_kind(v, kind) for v in values):
-            raise self.error(key, f"expected {kind.__name__} or a list of three, got {value!r}")
-        return tuple(values)
+        A key the type does not declare is refused, said to belong to another
+        type when ``others`` (the keys of every type) holds it. Given keys
+        are checked and converted; with ``fill_defaults`` the rest take their
+        defaults, else they are left out (the plug-in's own apply).
+        """
+        names = key_names(keys)
+        foreign = [name for name in self.data if name not in names]
+        if any(name in others for name in foreign):
+            raise ConfigError(
+                f"{self.source}: [{self.where}] {', '.join(foreign)}: does not apply to "
+                f"type = {kind!r}, which takes {', '.join(names)}"
+            )
+        if foreign:
+            raise ConfigError(
+                f"{self.source}: [{self.where}] ({kind}): unknown key(s): "
+                f"{', '.join(sorted(foreign))} (allowed: {', '.join(sorted(names))})"
+            )
+        case = None if self.units is None else self.units.name
+        needs = f" (type = {kind!r} needs it)"
+        return {
+            k.name: self.read(k, case, needs)
+            for k in keys
+            if fill_defaults or k.name in self.data or k.default_in(case) is REQUIRED
+        }
 
-    def finish(self) -> None:
+    def fields(self, record, case: str | None = None) -> dict:
+        """The values of the keys a record class declares that apply in ``case``."""
+        return {k.name: self.read(k, case) for k in section_keys(record) if k.applies(case)}
+
+    def finish(self, keys: tuple[Key, ...] = (), case: str | None = None) -> None:
+        """Refuse what is left: keys of another kind of system, or unknown keys."""
+        elsewhere = [k for k in keys if k.name in self.data and not k.applies(case)]
+        if elsewhere:
+            kinds = sorted({_SYSTEM_KINDS[c] for k in elsewhere for c in k.when})
+            raise ConfigError(
+                f"{self.source}: [{self.where}] {', '.join(k.name for k in elsewhere)}: does "
+                f"not apply to {_SYSTEM_KINDS[case]} (only to {' or '.join(kinds)})"
+            )
         if self.data:
             unknown = ", ".join(sorted(self.data))
             raise ConfigError(f"{self.source}: unknown key(s) in {self._where()}: {unknown}")
@@ -116,83 +163,249 @@ class _Table:
         return f"[{self.where}]" if self.where else "the top level"
 
 
-def _is_kind(value, kind) -> bool:
-    if kind is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if kind is float:
-        return isinstance(value, int | float) and not isinstance(value, bool)
-    return isinstance(value, kind)
+#: Quantities a config gives in its own units (times in fs, pressures in bar for metal).
+_CONVERTED = ("time", "1/time", "pressure", "1/pressure")
+
+# ------------------------------------------------------------------ fixed sections
+#: The kinds of [system], named as keys' ``when`` and ``Varies`` defaults name them.
+_SYSTEM_KINDS = {
+    "lattice": "a lattice",
+    "melt": 'polymer = "melt"',
+    "chain": 'polymer = "chain"',
+    "structure": "a structure file",
+}
+SYSTEM_KINDS = MappingProxyType(_SYSTEM_KINDS)
+_POLYMER = ("melt", "chain")
 
 
-@dataclass
+@dataclass(frozen=True)
 class SystemConfig:
-    """What to simulate: a lattice or a structure file, and initial velocities."""
+    """``[system]``: what to simulate, a lattice, a polymer or a structure file, and its start.
 
-    lattice: str | None = None
-    polymer: str | None = None
-    chains: int = 1
-    chain_length: int = 2
-    bond_length: float = 0.97
-    straight: bool = False
-    cells: tuple[int, int, int] = (1, 1, 1)
-    density: float | None = None
-    lattice_constant: float | None = None
-    shear: tuple[float, float, float] | None = None  # HOOMD-style tilt factors of a lattice
-    structure: Path | None = None
-    format: str | None = None  # ase.io format of a structure file (None: guessed from the name)
-    mass: float | dict[str, float] | None = None  # a number, or per type name for structures
-    type_name: str = "A"
-    pbc: tuple[bool, bool, bool] | None = None
-    temperature: float | None = None
+    Exactly one of ``lattice``, ``polymer`` and ``structure`` says the kind of
+    system (:data:`SYSTEM_KINDS`); each key applies to the kinds its
+    declaration names (``when``). Fields of keys that do not apply hold a
+    fixed value (``unset``), as they always have: checkpoints compare them.
+    """
+
+    lattice: str | None = key(None, "string", choices=("sc", "bcc", "fcc"), when=("lattice",),
+        doc="A cubic lattice filling the box; needs `cells` and one of `density` and "
+            "`lattice_constant`.")  # fmt: skip
+    polymer: str | None = key(None, "string", choices=("melt", "chain"), when=_POLYMER,
+        doc="Bead-spring chains: `melt` (chains at a density, periodic) or `chain` (one chain, "
+            "open); see the polymers guide.")  # fmt: skip
+    chains: int = key(REQUIRED, "integer", unset=1, minimum=1, when=("melt",),
+                      doc="The number of chains.")  # fmt: skip
+    chain_length: int = key(REQUIRED, "integer", unset=2, minimum=2, when=_POLYMER,
+                            doc="Beads per chain.")  # fmt: skip
+    bond_length: float = key(0.97, "number", unit="length", positive=True, when=_POLYMER,
+        doc="The bead spacing the builder places (0.97: Kremer-Grest's mean bond).")  # fmt: skip
+    straight: bool = key(False, "boolean", when=("chain",),
+                         doc="Build the chain straight instead of as a random walk.")  # fmt: skip
+    cells: tuple[int, int, int] = key(REQUIRED, "integer or list of three", unset=(1, 1, 1),
+        when=("lattice",), doc="Unit cells along x, y and z (one number: all three).")  # fmt: skip
+    density: float | None = key(Varies(lattice=None, melt=REQUIRED), "number", unset=None,
+        unit="number density", positive=True, when=("lattice", "melt"),
+        doc="Atoms (beads) per volume. A lattice needs this or `lattice_constant`.")  # fmt: skip
+    lattice_constant: float | None = key(None, "number", unit="length", positive=True,
+        when=("lattice",), doc="The cubic cell's edge; instead of `density`.")  # fmt: skip
+    shear: tuple[float, float, float] | None = key(None, "number or list of three",
+        when=("lattice",),
+        doc="Tilt factors (xy, xz, yz) of a lattice in a sheared cell (HOOMD-blue's).")  # fmt: skip
+    structure: Path | None = key(None, "path", when=("structure",),
+        doc="A structure file (anything ase.io reads, LAMMPS data, GSD, H5MD), relative to "
+            "the config; its bonds and angles come along.")  # fmt: skip
+    format: str | None = key(None, "string", when=("structure",),
+        doc="The ase.io format of the structure file.",
+        default_doc="guessed from the name")  # fmt: skip
+    mass: float | dict[str, float] | None = key(None, "number or table", unit="mass",
+        doc="Atom mass, > 0; for a structure file also per type name (`{Ar = 39.95}`).",
+        default_doc="1; a structure file's own, else ASE's table")  # fmt: skip
+    type_name: str = key(Varies(lattice="A", melt="M", chain="M"), "string", unset="A",
+        when=("lattice", *_POLYMER), doc="The atoms' type name.")  # fmt: skip
+    pbc: tuple[bool, bool, bool] | None = key(None, "boolean or list of three",
+        doc="Periodic along x, y and z (one value: all three).",
+        default_doc='true; false for `polymer = "chain"`; a structure file\'s own')  # fmt: skip
+    temperature: float | None = key(None, "number", unit="temperature", minimum=0.0,
+        doc="Draw Maxwell-Boltzmann velocities at exactly this temperature (zero total "
+            "momentum).", default_doc="zero velocities, or a structure file's own")  # fmt: skip
 
 
-@dataclass
+@dataclass(frozen=True)
 class RunConfig:
-    steps: int = 1000
-    skin: float = 0.3
-    thermo_every: int = 100
-    threads: int | None = None  # kernel threads (None: every core); not physics
+    """``[run]``: how long, and how the engine runs it (all optional)."""
+
+    steps: int = key(1000, "integer", unit="steps", minimum=0,
+                     doc="Time steps to run (`md run --steps` overrides it).")  # fmt: skip
+    skin: float = key(0.3, "number", unit="length", minimum=0.0,
+        doc="Neighbour-list skin: the list is rebuilt when an atom moved more than half of "
+            "it.")  # fmt: skip
+    thermo_every: int = key(100, "integer", unit="steps", minimum=1,
+                            doc="Steps between lines of the thermo table.")  # fmt: skip
+    threads: int | None = key(None, "integer", minimum=1,
+        doc="Kernel threads (`md run --threads` overrides it); not physics.",
+        default_doc="every core")  # fmt: skip
 
 
-@dataclass
+@dataclass(frozen=True)
 class OutputConfig:
-    path: Path = Path("trajectory.h5")
-    every: int = 100
-    velocities: bool = False
-    forces: bool = False
-    checkpoint_every: int = 1000  # steps between checkpoints (0: only at the end and on signals)
+    """``[output]``: the trajectory and checkpoints (all optional)."""
+
+    path: Path = key(Path("trajectory.h5"), "output path",
+        doc="The H5MD trajectory, relative to the working directory; never overwritten "
+            "without `--overwrite` (`md run --output` overrides it).")  # fmt: skip
+    every: int = key(100, "integer", unit="steps", minimum=1,
+                     doc="Steps between frames (positions, box, observables).")  # fmt: skip
+    velocities: bool = key(False, "boolean", doc="Store velocities in every frame.")
+    forces: bool = key(False, "boolean", doc="Store forces in every frame.")
+    checkpoint_every: int = key(1000, "integer", unit="steps", minimum=0,
+        doc="Steps between checkpoints (0: only at the end and on signals).")  # fmt: skip
 
 
-@dataclass
+@dataclass(frozen=True)
 class MinimizeConfig:
     """``[minimize]``: FIRE 2.0 before the dynamics (see :mod:`md.minimize`).
 
-    ``fmax`` [energy/length] and ``max_force`` (the push-off's force cap,
-    None: no cap) in engine units; ``max_step`` [length].
+    ``fmax`` and ``max_force`` [energy/length] and ``max_step`` [length] are
+    in engine units, which are the config's in both unit systems.
     """
 
-    fmax: float = 1e-2
-    max_steps: int = 10_000
-    max_force: float | None = None
-    max_step: float = 0.1
-    report_every: int = 100
+    fmax: float = key(1e-2, "number", unit="force", positive=True,
+                      doc="Converged when the largest force is below this.")  # fmt: skip
+    max_steps: int = key(10_000, "integer", minimum=1, doc="Most FIRE steps.")
+    max_force: float | None = key(None, "number", unit="force", positive=True,
+        doc="Cap on the forces of a push-off before FIRE (overlapping starts).",
+        default_doc="no cap")  # fmt: skip
+    max_step: float = key(0.1, "number", unit="length", positive=True,
+                          doc="Largest move of an atom in one step.")  # fmt: skip
+    report_every: int = key(100, "integer", unit="steps", minimum=1,
+                            doc="Steps between progress reports.")  # fmt: skip
 
 
-@dataclass
+#: The top level's own keys (the rest are the sections).
+TOP_KEYS = (
+    Key("units", "string", None, choices=tuple(UNIT_SYSTEMS),
+        doc='`"lj"`: reduced (epsilon = sigma = m = kB = 1, time in tau); `"metal"`: eV, '
+            "Angstrom, amu, K, with times in fs and pressures in bar.",
+        default_doc='`"metal"` with a structure file, else `"lj"`'),
+    Key("seed", "integer", None, minimum=0, maximum=MAX_SEED,
+        doc="Seeds the initial velocities and, for a thermostat or barostat without its own "
+            "`seed`, their random streams.", default_doc="fresh entropy"),
+)  # fmt: skip
+
+
+# ------------------------------------------------------------------ plug-in sections
+@dataclass(frozen=True)
+class PluginEntry:
+    """A plug-in section read: the ``type`` it names and the values it is built with.
+
+    ``values`` (read-only) holds the keys given, checked and in engine units,
+    and what the config adds: ``kB`` for a thermostat, a seed derived from
+    the top-level one for a stochastic thermostat or a barostat, and for a
+    barostat the default of every key not given.
+    """
+
+    type: str
+    values: Mapping[str, Any]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
+
+    def __reduce__(self):
+        return (type(self), (self.type, dict(self.values)))
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.values
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """The value of ``name`` if the table gave it (or the config added it), else ``default``."""
+        return self.values.get(name, default)
+
+    @property
+    def dt(self) -> float:
+        """The time step [time] (of an ``[integrator]``)."""
+        return self.values["dt"]
+
+
+@dataclass(frozen=True)
+class Section:
+    """One section of a config, as :func:`sections` lists it for the reference.
+
+    A fixed section has ``keys``; a plug-in section has ``types``, the keys
+    of each type its ``type`` may name, and ``summaries``, one line about
+    each type (from the plug-in's docstring).
+    """
+
+    name: str
+    title: str
+    doc: str
+    keys: tuple[Key, ...] = ()
+    types: Mapping[str, tuple[Key, ...]] | None = None
+    summaries: Mapping[str, str] | None = None
+
+
+def _summary(obj) -> str:
+    doc = (getattr(obj, "__doc__", None) or "").strip()
+    return doc.split("\n\n")[0].replace("\n", " ") if doc else ""
+
+
+def sections() -> tuple[Section, ...]:
+    """Every section a config may hold, with its keys, in the reference's order."""
+    return (
+        Section("", "Top level", "Scalars before the first table.", TOP_KEYS),
+        Section("system", "[system]",
+                "What to simulate. Exactly one of `lattice`, `polymer` and `structure`; each "
+                "other key applies to the kinds of system its row names.",
+                section_keys(SystemConfig)),
+        Section("potentials", "[[potentials]]",
+                "One table per potential, summed; `type` names it.",
+                types={n: c.CONFIG_KEYS for n, c in POTENTIALS.items()},
+                summaries={n: _summary(c) for n, c in POTENTIALS.items()}),
+        Section("integrator", "[integrator]",
+                "How the system moves; `type` names the integrator or thermostat.",
+                types={n: c.CONFIG_KEYS for n, c in INTEGRATORS.items()},
+                summaries={n: _summary(c) for n, c in INTEGRATORS.items()}),
+        Section("integrator.constraints", "[integrator.constraints]",
+                "Rigid bonds, for the integrators whose keys list `constraints`.",
+                BondConstraints.CONFIG_KEYS),
+        Section("barostat", "[barostat]",
+                "Constant pressure, with a thermostat as `[integrator]`; `type` names it.",
+                types=dict(BAROSTAT_KEYS), summaries=dict(_BAROSTAT_SUMMARIES)),
+        Section("minimize", "[minimize]",
+                "FIRE 2.0 before the dynamics, on a fresh run (optional).",
+                section_keys(MinimizeConfig)),
+        Section("run", "[run]", "How long, and how the engine runs it (optional).",
+                section_keys(RunConfig)),
+        Section("output", "[output]", "The trajectory and checkpoints (optional).",
+                section_keys(OutputConfig)),
+    )  # fmt: skip
+
+
+_BAROSTAT_SUMMARIES = {
+    "c_rescale": "Stochastic cell rescaling (Bernetti and Bussi): samples the "
+                 "isothermal-isobaric ensemble with any canonical thermostat.",
+    "mtk": "Martyna-Tobias-Klein: cell and particles integrated together, with "
+           "`[integrator] type = \"nose_hoover_chain\"`.",
+    "berendsen": "Berendsen's weak coupling: relaxes the volume, for equilibration only "
+                 "(it does not sample the isothermal-isobaric ensemble).",
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
 class Config:
-    """A validated run configuration (engine units, objects not yet built)."""
+    """A validated run configuration: typed records in engine units, objects not yet built."""
 
     source: str
     text: str
     units: UnitSystem
     seed: int | None
     system: SystemConfig
-    potentials: list[dict]
-    integrator: dict
+    potentials: tuple[PluginEntry, ...]
+    integrator: PluginEntry
     run: RunConfig
     output: OutputConfig
     minimize: MinimizeConfig | None = None
-    barostat: dict | None = None  # Barostat keyword arguments in engine units
+    barostat: PluginEntry | None = None
 
 
 def load_config(path) -> Config:
@@ -220,71 +433,45 @@ def load_config(path) -> Config:
 
 def parse_config(data: dict, source: str = "<config>", text: str = "", base=".") -> Config:
     """Validate a config already parsed into a dict (see :func:`load_config`)."""
-    top = _Table(data, "", source)
-    units_name = top.string("units", None, choices=tuple(UNIT_SYSTEMS))
-    seed = top.integer("seed", None, minimum=0, maximum=MAX_SEED)
-    system = _parse_system(_Table(top.take("system"), "system", source), Path(base))
+    base = Path(base)
+    top = _Table(data, "", source, base)
+    units_key, seed_key = TOP_KEYS
+    units_name = top.read(units_key)
+    seed = top.read(seed_key)
+    system = _parse_system(_Table(top.take("system"), "system", source, base))
     # Structure files come from ASE's world (eV, Angstrom, amu): metal units unless told.
     units = UNIT_SYSTEMS[units_name or ("metal" if system.structure is not None else "lj")]
 
     raw_potentials = top.take("potentials")
-    base = Path(base)
     if not isinstance(raw_potentials, list) or not raw_potentials:
         raise ConfigError(
             f"{source}: potentials must be a non-empty array of tables ([[potentials]])"
         )
+    every_key = {k.name for c in POTENTIALS.values() for k in c.CONFIG_KEYS}
     potentials = []
     for index, entry in enumerate(raw_potentials):
-        table = _Table(entry, f"potentials.{index}", source)
-        kind = table.string("type", choices=tuple(POTENTIALS))
-        for key in ("bonds_file", "angles_file"):
-            listed = table.data.get(key)
-            if isinstance(listed, str) and not Path(listed).is_absolute():
-                table.data[key] = str(base / listed)  # relative to the config
-        potentials.append({"type": kind, **table.data})
+        table = _Table(entry, f"potentials.{index}", source, base, units)
+        kind = table.read(_type_key(POTENTIALS))
+        values = table.plugin(kind, POTENTIALS[kind].CONFIG_KEYS, every_key)
+        potentials.append(PluginEntry(kind, values))
 
-    table = _Table(top.take("integrator"), "integrator", source)
-    kind = table.string("type", choices=tuple(INTEGRATORS))
-    dt = table.number("dt", positive=True) * units.config_time
-    # Other times an integrator takes (RKF45's smallest substep) are converted too.
-    dt_min = table.number("dt_min", None, positive=True)
-    extra = _thermostat_params(table, INTEGRATORS[kind], units, seed, base)
-    integrator = {"type": kind, "dt": dt, **table.data, **extra}
-    if dt_min is not None:
-        integrator["dt_min"] = dt_min * units.config_time
-
-    table = _Table(top.take("run", {}), "run", source)
-    run = RunConfig(
-        steps=table.integer("steps", RunConfig.steps, minimum=0),
-        skin=table.number("skin", RunConfig.skin, minimum=0.0),
-        thermo_every=table.integer("thermo_every", RunConfig.thermo_every, minimum=1),
-        threads=table.integer("threads", None, minimum=1),
+    integrator = _parse_integrator(
+        _Table(top.take("integrator"), "integrator", source, base, units), seed
     )
+    table = _Table(top.take("run", {}), "run", source, base, units)
+    run = RunConfig(**table.fields(RunConfig))
     table.finish()
-
-    table = _Table(top.take("output", {}), "output", source)
-    output = OutputConfig(
-        path=Path(table.string("path", str(OutputConfig.path))),
-        every=table.integer("every", OutputConfig.every, minimum=1),
-        velocities=table.boolean("velocities", False),
-        forces=table.boolean("forces", False),
-        checkpoint_every=table.integer(
-            "checkpoint_every", OutputConfig.checkpoint_every, minimum=0
-        ),
-    )
+    table = _Table(top.take("output", {}), "output", source, base, units)
+    output = OutputConfig(**table.fields(OutputConfig))
     table.finish()
     barostat = None
     if "barostat" in top.data:
-        barostat = _parse_barostat(
-            _Table(top.take("barostat"), "barostat", source),
-            units,
-            seed,
-            INTEGRATORS[kind],
-            "constraints" in integrator,
-        )
+        table = _Table(top.take("barostat"), "barostat", source, base, units)
+        barostat = _parse_barostat(table, seed, integrator)
     minimize = None
     if "minimize" in top.data:
-        minimize = _parse_minimize(_Table(top.take("minimize"), "minimize", source), integrator)
+        table = _Table(top.take("minimize"), "minimize", source, base, units)
+        minimize = _parse_minimize(table, integrator)
     top.finish()
     return Config(
         source=source,
@@ -292,7 +479,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         units=units,
         seed=seed,
         system=system,
-        potentials=potentials,
+        potentials=tuple(potentials),
         integrator=integrator,
         run=run,
         output=output,
@@ -301,63 +488,143 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     )
 
 
-def _parse_system(table: _Table, base: Path) -> SystemConfig:
-    lattice = table.string("lattice", None, choices=("sc", "bcc", "fcc"))
-    structure = table.string("structure", None)
-    polymer = table.string("polymer", None, choices=("melt", "chain"))
+def _type_key(registry: Mapping) -> Key:
+    return Key("type", "string", REQUIRED, choices=tuple(registry))
+
+
+def _parse_system(table: _Table) -> SystemConfig:
+    keys = {k.name: k for k in section_keys(SystemConfig)}
+    lattice = table.read(keys["lattice"])
+    structure = table.read(keys["structure"])
+    polymer = table.read(keys["polymer"])
     if sum(x is not None for x in (lattice, structure, polymer)) != 1:
         raise ConfigError(
             f"{table.source}: [system] needs exactly one of 'lattice', 'structure' and 'polymer'"
         )
-    system = SystemConfig(lattice=lattice, polymer=polymer)
-    if polymer is not None:
-        system.chain_length = table.integer("chain_length", minimum=2)
-        system.bond_length = table.number("bond_length", 0.97, positive=True)
-        if polymer == "melt":
-            system.chains = table.integer("chains", minimum=1)
-            system.density = table.number("density", positive=True)
-        else:
-            system.straight = table.boolean("straight", False)
-        system.type_name = table.string("type_name", "M")
-    elif lattice is not None:
-        cells = table.triple("cells", _MISSING, int)
+    case = "lattice" if lattice is not None else polymer if polymer is not None else "structure"
+    values = {"lattice": lattice, "polymer": polymer}
+    if structure is not None:
+        values["structure"] = Path(structure)
+        if not values["structure"].is_file():
+            raise table.error("structure", f"file not found: {values['structure']}")
+    if case == "structure" and isinstance(table.data.get("mass"), dict):
+        values["mass"] = {}  # per type name (chemical symbol); the rest from ASE's table
+        for name, value in table.take("mass").items():
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise table.error("mass", f"{name}: expected a positive number, got {value!r}")
+            values["mass"][name] = float(value)
+    else:
+        values["mass"] = table.read(replace(keys["mass"], kind="number", positive=True))
+    for name, k in keys.items():
+        if name not in values and k.applies(case):
+            values[name] = table.read(k, case)
+    cells = values.get("cells")
+    if cells is not None:
         if any(c < 1 for c in cells):
             raise table.error("cells", f"must be positive integers, got {list(cells)}")
         if math.prod(cells) > _MAX_CELLS:
             raise table.error("cells", f"{list(cells)} is more than {_MAX_CELLS:,} unit cells")
-        system.cells = cells
-        system.density = table.number("density", None, positive=True)
-        system.lattice_constant = table.number("lattice_constant", None, positive=True)
-        if (system.density is None) == (system.lattice_constant is None):
-            raise ConfigError(
-                f"{table.source}: [system] a lattice needs exactly one of 'density' and "
-                "'lattice_constant'"
-            )
-        system.type_name = table.string("type_name", "A")
-        if "shear" in table.data:
-            system.shear = table.triple("shear", _MISSING, float)
-    else:
-        system.structure = (
-            (base / structure) if not Path(structure).is_absolute() else Path(structure)
+    if case == "lattice" and (values["density"] is None) == (values["lattice_constant"] is None):
+        raise ConfigError(
+            f"{table.source}: [system] a lattice needs exactly one of 'density' and "
+            "'lattice_constant'"
         )
-        if not system.structure.is_file():
-            raise table.error("structure", f"file not found: {system.structure}")
-        system.format = table.string("format", None)
-    if structure is not None and isinstance(table.data.get("mass"), dict):
-        system.mass = {}  # per type name (chemical symbol); the rest from ASE's table
-        for name, value in table.take("mass").items():
-            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-                raise table.error("mass", f"{name}: expected a positive number, got {value!r}")
-            system.mass[name] = float(value)
-    else:
-        system.mass = table.number("mass", None, positive=True)
-    pbc = table.take("pbc", None)
-    if pbc is not None:
-        table.data["pbc"] = pbc
-        system.pbc = table.triple("pbc", _MISSING, bool)
-    system.temperature = table.number("temperature", None, minimum=0.0)
+    table.finish(tuple(keys.values()), case)
+    return SystemConfig(**values)
+
+
+def _parse_integrator(table: _Table, seed: int | None) -> PluginEntry:
+    """``[integrator]``: its type's keys; ``kB`` and a derived seed for a thermostat.
+
+    ``temperature`` stays in config units and ``kB`` of the unit system goes
+    with it; a stochastic thermostat without its own ``seed`` gets a random
+    stream derived from the top-level seed (independent of the velocity draw).
+    ``[integrator.constraints]`` is checked here and built later.
+    """
+    kind = table.read(_type_key(INTEGRATORS))
+    cls = INTEGRATORS[kind]
+    if "constraints" in table.data and not cls.supports_constraints:
+        raise ConfigError(f"{table.source}: [integrator] ({kind}) {_refuse_constraints()}")
+    every_key = {k.name for c in INTEGRATORS.values() for k in c.CONFIG_KEYS}
+    values = table.plugin(kind, cls.CONFIG_KEYS, every_key)
+    if "constraints" in values:  # only the keys given, as for the integrator's own
+        constraints = _Table(values["constraints"], "integrator.constraints", table.source,
+                             table.base, table.units)  # fmt: skip
+        values["constraints"] = {k.name: constraints.read(k) for k in BondConstraints.CONFIG_KEYS
+                                 if k.name in constraints.data}  # fmt: skip
+        constraints.finish()
+    if cls.thermostat:
+        values["kB"] = table.units.kB
+        if cls.stochastic and "seed" not in values and seed is not None:
+            values["seed"] = [seed, 1]
+    return PluginEntry(kind, values)
+
+
+def _refuse_constraints() -> str:
+    takers = [n for n, c in INTEGRATORS.items() if c.supports_constraints]
+    return f"does not apply constraints; use one of {', '.join(takers)}"
+
+
+def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) -> PluginEntry:
+    """``[barostat]``: its type's keys, every one with its default if not given.
+
+    Pressure is in epsilon/sigma^3 (lj) or bar (metal), tau in config time
+    units, compressibility in sigma^3/epsilon or 1/bar; converted to engine units.
+    """
+    kind = table.read(_type_key(BAROSTAT_KEYS))
+    integrator_cls = INTEGRATORS[integrator.type]
+    if not integrator_cls.thermostat:
+        raise table.error(
+            "type",
+            "a barostat needs a thermostat ([integrator] type langevin, bussi, "
+            "nose_hoover_chain or berendsen); the integrator given runs at constant energy",
+        )
+    own = key_names(BAROSTAT_KEYS[kind])
+    if kind == "mtk":
+        if integrator_cls is not NoseHooverChain:
+            raise table.error(
+                "type",
+                "the mtk barostat runs with its own Nose-Hoover chains: set [integrator] "
+                "type = 'nose_hoover_chain' (or use type = 'c_rescale' with any thermostat)",
+            )
+        if "constraints" in integrator:
+            raise table.error("type", "the mtk barostat does not keep [integrator.constraints]; "
+                              "use type = 'c_rescale'")  # fmt: skip
+        for name in key_names(BAROSTAT_KEYS["c_rescale"]):
+            if name in table.data and name not in own:
+                raise table.error(name, "does not apply to the mtk barostat (it moves the "
+                                  "cell every step, deterministically)")  # fmt: skip
+    every_key = {k.name for keys in BAROSTAT_KEYS.values() for k in keys}
+    values = table.plugin(kind, BAROSTAT_KEYS[kind], every_key, fill_defaults=True)
+    if "seed" in own and values["seed"] is None and seed is not None:
+        values["seed"] = [seed, 2]
+    if kind == "berendsen":
+        logger.warning(
+            "[barostat] type = 'berendsen' relaxes the volume but does not sample the "
+            "isothermal-isobaric ensemble: use it to equilibrate, then c_rescale"
+        )
+    return PluginEntry(kind, values)
+
+
+def _parse_minimize(table: _Table, integrator: PluginEntry) -> MinimizeConfig:
+    """``[minimize]``: FIRE's targets, in the config's units (force and length units are
+    the engine's in both unit systems: eV/Angstrom, epsilon/sigma)."""
+    if "constraints" in integrator:
+        raise table.error("fmax", "a [minimize] stage cannot keep [integrator.constraints]")
+    result = MinimizeConfig(**table.fields(MinimizeConfig))
     table.finish()
-    return system
+    return result
+
+
+def input_files(config: Config) -> list[Path]:
+    """The files a config reads: a structure file, and what its ``path`` keys name."""
+    files = [] if config.system.structure is None else [Path(config.system.structure)]
+    tables = [(p.values, POTENTIALS[p.type].CONFIG_KEYS) for p in config.potentials]
+    tables.append((config.integrator.get("constraints") or {}, BondConstraints.CONFIG_KEYS))
+    for values, keys in tables:
+        files += [Path(values[k.name]) for k in keys
+                  if k.kind == "path" and isinstance(values.get(k.name), str)]  # fmt: skip
+    return files
 
 
 #: Where bonds = "system" finds its bonds.
@@ -369,7 +636,8 @@ _SYSTEM_ANGLES = (
 )
 
 
-def potential_from_config(entry: dict, type_names, source: str, index: int, system_bonds=None):
+def potential_from_config(entry: PluginEntry, type_names, source: str, index: int,
+                          system_bonds=None):  # fmt: skip
     """Build a potential from its config table (type names resolved to indices).
 
     ``bonds = "system"`` takes the bonds of ``[system]`` (a polymer builder's
@@ -377,8 +645,8 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
     their bond types when the file has several and the table gives none;
     ``angles = "system"`` likewise takes its angles (``system_bonds`` a Topology).
     """
-    params = dict(entry)
-    kind = params.pop("type")
+    params = dict(entry.values)
+    kind = entry.type
     where = f"{source}: [potentials.{index}] ({kind})"
     topology = system_bonds
     if params.get("bonds") == "system":
@@ -401,165 +669,28 @@ def potential_from_config(entry: dict, type_names, source: str, index: int, syst
         raise ConfigError(f"{where}: {error}") from None
 
 
-#: Default compressibility of the barostat's coupling, per unit system [config units]:
-#: an LJ liquid's order of magnitude (sigma^3/epsilon), and GROMACS's default (1/bar).
-_COMPRESSIBILITY = {"lj": 0.1, "metal": 4.5e-5}
-
-
-def _parse_barostat(table: _Table, units: UnitSystem, seed, integrator_cls,
-                    constrained: bool) -> dict:  # fmt: skip
-    """``[barostat]``: type, pressure, tau, couple, compressibility, every, seed.
-
-    Pressure is in epsilon/sigma^3 (lj) or bar (metal), tau in config time
-    units, compressibility in sigma^3/epsilon or 1/bar; converted to engine units.
-    """
-    kind = table.string("type", choices=tuple(BAROSTATS))
-    if not integrator_cls.thermostat:
-        raise table.error(
-            "type",
-            "a barostat needs a thermostat ([integrator] type langevin, bussi, "
-            "nose_hoover_chain or berendsen); the integrator given runs at constant energy",
-        )
-    to_engine = 1.0 / eV_per_A3_in_bar if units.name == "metal" else 1.0  # bar -> eV/A^3
-    pressure = table.number("pressure") * to_engine
-    tau = table.number("tau", positive=True) * units.config_time
-    couple = table.string("couple", "isotropic", choices=COUPLINGS)
-    if kind == "mtk":
-        if integrator_cls is not NoseHooverChain:
-            raise table.error(
-                "type",
-                "the mtk barostat runs with its own Nose-Hoover chains: set [integrator] "
-                "type = 'nose_hoover_chain' (or use type = 'c_rescale' with any thermostat)",
-            )
-        if constrained:
-            raise table.error("type", "the mtk barostat does not keep [integrator.constraints]; "
-                              "use type = 'c_rescale'")  # fmt: skip
-        for key in ("compressibility", "every", "seed"):
-            if key in table.data:
-                raise table.error(key, "does not apply to the mtk barostat (it moves the "
-                                  "cell every step, deterministically)")  # fmt: skip
-        table.finish()
-        return {"kind": kind, "pressure": pressure, "tau": tau, "couple": couple}
-    compressibility = (
-        table.number("compressibility", _COMPRESSIBILITY[units.name], positive=True) / to_engine
-    )
-    every = table.integer("every", 10, minimum=1)
-    own_seed = table.integer("seed", None, minimum=0, maximum=MAX_SEED)
-    table.finish()
-    if kind == "berendsen":
-        logger.warning(
-            "[barostat] type = 'berendsen' relaxes the volume but does not sample the "
-            "isothermal-isobaric ensemble: use it to equilibrate, then c_rescale"
-        )
-    return {
-        "kind": kind, "pressure": pressure, "tau": tau, "compressibility": compressibility,
-        "couple": couple, "every": every,
-        "seed": own_seed if own_seed is not None else (None if seed is None else [seed, 2]),
-    }  # fmt: skip
-
-
-def _parse_minimize(table: _Table, integrator: dict) -> MinimizeConfig:
-    """``[minimize]``: FIRE's targets, in the config's units (force and length units are
-    the engine's in both unit systems: eV/Angstrom, epsilon/sigma)."""
-    if "constraints" in integrator:
-        raise table.error("fmax", "a [minimize] stage cannot keep [integrator.constraints]")
-    defaults = MinimizeConfig()
-    result = MinimizeConfig(
-        fmax=table.number("fmax", defaults.fmax, positive=True),
-        max_steps=table.integer("max_steps", defaults.max_steps, minimum=1),
-        max_force=table.number("max_force", None, positive=True),
-        max_step=table.number("max_step", defaults.max_step, positive=True),
-        report_every=table.integer("report_every", defaults.report_every, minimum=1),
-    )
-    table.finish()
-    return result
-
-
-def _thermostat_params(table: _Table, cls, units: UnitSystem, seed, base: Path) -> dict:
-    """Take a thermostat's keys from [integrator], converted to engine units.
-
-    ``temperature`` stays in config units and ``kB`` of the unit system goes
-    with it; ``tau`` [config time] and ``friction`` [1/config time] are
-    converted; a stochastic thermostat without its own ``seed`` gets a random
-    stream derived from the top-level seed (independent of the velocity draw).
-    ``[integrator.constraints]`` is checked to be a table (built later).
-    """
-    extra = {}
-    if cls.thermostat:
-        extra["temperature"] = table.number("temperature", minimum=0.0)
-        extra["kB"] = units.kB
-        tau = table.number("tau", None, positive=True)
-        if tau is not None:
-            extra["tau"] = tau * units.config_time
-        friction = table.number("friction", None, minimum=0.0)
-        if friction is not None:
-            extra["friction"] = friction / units.config_time
-        if cls.stochastic and "seed" not in table.data and seed is not None:
-            extra["seed"] = [seed, 1]
-    constraints = table.take("constraints", None)
-    if constraints is not None:
-        if not isinstance(constraints, dict):
-            raise table.error("constraints", "expected a table [integrator.constraints]")
-        constraints = dict(constraints)
-        bonds_file = constraints.get("bonds_file")
-        if isinstance(bonds_file, str) and not Path(bonds_file).is_absolute():
-            constraints["bonds_file"] = str(Path(base) / bonds_file)  # relative to the config
-        extra["constraints"] = constraints
-    return extra
-
-
-def integrator_from_config(entry: dict, source: str, system_bonds=None):
-    """Build the integrator from its config table (dt already in engine units).
+def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
+    """Build the integrator from its config entry (dt already in engine units).
 
     ``[integrator.constraints]`` becomes :class:`integrators.rattle.BondConstraints`;
     its ``bonds = "system"`` takes ``system_bonds`` (a Topology or an array).
     """
     if isinstance(system_bonds, Topology):
         system_bonds = system_bonds.bonds
-    params = dict(entry)
-    kind = params.pop("type")
+    params = dict(entry.values)
+    kind = entry.type
     if "constraints" in params:
         if not INTEGRATORS[kind].supports_constraints:
-            takers = [n for n, c in INTEGRATORS.items() if c.supports_constraints]
-            raise ConfigError(
-                f"{source}: [integrator] ({kind}) does not apply constraints; use one of "
-                f"{', '.join(takers)}"
-            )
+            raise ConfigError(f"{source}: [integrator] ({kind}) {_refuse_constraints()}")
         try:
             constraints = BondConstraints.from_config(params["constraints"], system_bonds)
             params["constraints"] = constraints
         except (ValueError, TypeError) as error:
             raise ConfigError(f"{source}: [integrator.constraints]: {error}") from None
-    _check_keys(INTEGRATORS[kind], params, source, "integrator", kind)
     try:
         return INTEGRATORS[kind](**params)
-    except TypeError as error:
+    except (TypeError, ValueError) as error:
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
-    except ValueError as error:
-        raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
-
-
-def _check_keys(cls, params: dict, source: str, table: str, kind: str) -> None:
-    """ConfigError naming a required key of ``cls`` missing from ``params`` (the keys of
-    ``[table]`` with ``type = kind``), or a key it does not take, instead of Python's own
-    "__init__() missing 1 required positional argument"."""
-    try:
-        signature = inspect.signature(cls)
-    except (TypeError, ValueError):  # no signature to read: the call reports
-        return
-    parameters = signature.parameters.values()
-    named = {p.name: p for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
-    if not any(p.kind == p.VAR_KEYWORD for p in parameters):
-        extra = sorted(set(params) - set(named))
-        if extra:  # first: a key of another type (friction for bussi) explains a missing one
-            raise ConfigError(
-                f"{source}: [{table}] {', '.join(extra)}: does not apply to type = {kind!r}, "
-                f"which takes {', '.join(name for name in named if name != 'kB')}"
-            )
-    missing = [name for name, p in named.items() if p.default is p.empty and name not in params]
-    if missing:
-        keys = " ".join(f"[{table}] {name}" for name in missing)
-        raise ConfigError(f"{source}: missing required key {keys} (type = {kind!r} needs it)")
 
 
 def build_system(config: Config):
@@ -644,11 +775,21 @@ def build_system(config: Config):
 
 
 __all__ = [
+    "SYSTEM_KINDS",
+    "TOP_KEYS",
     "Config",
     "ConfigError",
+    "MinimizeConfig",
+    "OutputConfig",
+    "PluginEntry",
+    "RunConfig",
+    "Section",
+    "SystemConfig",
     "build_system",
+    "input_files",
     "integrator_from_config",
     "load_config",
     "parse_config",
     "potential_from_config",
+    "sections",
 ]

@@ -82,7 +82,13 @@ from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import ForceSplit, Integrator
 from md._checks import count, positive
 from md._files import removed_on_error, unwritable_folder
-from md.config import Config, build_system, integrator_from_config, load_config
+from md.config import (
+    Config,
+    PluginEntry,
+    build_system,
+    integrator_from_config,
+    load_config,
+)
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.run import build_potentials
@@ -1041,7 +1047,7 @@ def prepare_study(
         source = Path(config.source)
     units = config.units
     t = units.config_time
-    config_dt = config.integrator["dt"] / t
+    config_dt = config.integrator.dt / t
     ladder = [dt * t for dt in _parse_dts(dts, config_dt)]
     run_span = (100 * config_dt if span is None else _positive_option(span, "--time")) * t
     names = _integrator_names(integrators, INTEGRATORS)
@@ -1085,7 +1091,7 @@ def prepare_study(
         study.thermostat(name)
     if equilibrate:
         try:
-            Simulation(state, study.potentials(), VelocityVerlet(config.integrator["dt"]),
+            Simulation(state, study.potentials(), VelocityVerlet(config.integrator.dt),
                        skin=config.run.skin, units=units).run(equilibrate)  # fmt: skip
         except (SimulationError, ValueError) as error:
             raise ConfigError(f"{config.source}: equilibration failed: {error}") from None
@@ -1172,7 +1178,7 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
     """
     t = config.units.config_time
     entry = config.integrator
-    dt = entry["dt"]
+    dt = entry.dt
     if temperature is None:
         temperature = entry.get("temperature", config.system.temperature)
     if temperature is None:
@@ -1186,9 +1192,9 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
     if tau is not None:
         tau = _positive_option(tau, "--tau") * t
     elif "tau" in entry:
-        tau = entry["tau"]
+        tau = entry.get("tau")
     elif entry.get("friction"):
-        tau = 1.0 / entry["friction"]
+        tau = 1.0 / entry.get("friction")
     else:
         tau = 100 * dt
     if sample_time is not None:
@@ -1208,13 +1214,13 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
 def _build_thermostat(config, name: str, setup: ThermostatSetup, bonds):
     """Thermostat ``name`` at the study's target and coupling, built as ``md run`` builds one."""
     cls = INTEGRATORS[name]
-    entry = {"type": name, "dt": config.integrator["dt"], "temperature": setup.temperature,
-             "kB": config.units.kB, **cls.coupling(setup.tau)}  # fmt: skip
+    values = {"dt": config.integrator.dt, "temperature": setup.temperature,
+              "kB": config.units.kB, **cls.coupling(setup.tau)}  # fmt: skip
     if cls.stochastic:
-        entry["seed"] = [0 if config.seed is None else config.seed, 1]
+        values["seed"] = [0 if config.seed is None else config.seed, 1]
     if "constraints" in config.integrator:
-        entry["constraints"] = config.integrator["constraints"]
-    return integrator_from_config(entry, config.source, bonds)
+        values["constraints"] = config.integrator.get("constraints")
+    return integrator_from_config(PluginEntry(name, values), config.source, bonds)
 
 
 def _check_length(study_names, thermostat_names, dts, span, setup, equilibrate, max_steps,

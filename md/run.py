@@ -24,7 +24,7 @@ import signal
 import time
 import uuid
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from integrators.barostats import Barostat, pressure_control
@@ -44,6 +44,7 @@ from md.checkpoint import (
 from md.config import (
     Config,
     build_system,
+    input_files,
     integrator_from_config,
     load_config,
     potential_from_config,
@@ -359,7 +360,8 @@ class PreparedRun:
             topology=run_topology(self.sim),
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
             triclinic=not self.sim.state.is_orthorhombic
-            or (self.config.barostat or {}).get("couple") == "triclinic",
+            or (self.config.barostat is not None
+                and self.config.barostat.get("couple") == "triclinic"),  # fmt: skip
             conserved=self.sim.integrator.thermostat,
         )  # fmt: skip
 
@@ -386,7 +388,8 @@ def prepare(
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
     if steps is not None:
         try:
-            config.run.steps = count(steps, "--steps", minimum=0)
+            config = replace(config, run=replace(config.run, steps=count(steps, "--steps",
+                                                                         minimum=0)))  # fmt: skip
         except ValueError as error:
             raise ConfigError(str(error)) from None
     output = Path(output) if output is not None else config.output.path
@@ -547,12 +550,12 @@ def build_components(config: Config, state: State | None = None):
         try:  # angles name atoms: say which table names one the system lacks
             potential.check(state)
         except ValueError as error:
-            kind = config.potentials[index]["type"]
+            kind = config.potentials[index].type
             raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.barostat is not None:
         try:
-            barostat = Barostat(**config.barostat)
+            barostat = Barostat(config.barostat.type, **config.barostat.values)
             barostat.check(state.pbc)
             integrator = pressure_control(integrator, barostat)
         except ValueError as error:
@@ -632,14 +635,7 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
 def _input_files(config: Config, path_or_config) -> list[Path]:
     """The files a run reads: the config, a structure file, bonds and angles files."""
     files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
-    if config.system.structure is not None:
-        files.append(Path(config.system.structure))
-    tables = [*config.potentials, config.integrator.get("constraints") or {}]
-    for table in tables:
-        for key in ("bonds_file", "angles_file"):
-            if isinstance(table, dict) and isinstance(table.get(key), str):
-                files.append(Path(table[key]))
-    return files
+    return files + input_files(config)
 
 
 def _refuse_inputs_as_outputs(config: Config, config_file: str, path_or_config, outputs) -> None:

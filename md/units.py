@@ -61,6 +61,11 @@ class UnitSystem:
         For trajectory files: quantity -> (H5MD unit string, factor from
         engine units to file units). Empty for reduced units, which carry no
         unit attributes.
+    config_units : dict
+        For configs: quantity -> (unit as a config gives it, factor, power);
+        a config value ``x`` is ``x * factor`` (power 1) or ``x / factor``
+        (power -1) in engine units. The quantities are those config keys
+        declare (``md.schema.Key.unit``); the config reference shows the labels.
     """
 
     name: str
@@ -69,7 +74,35 @@ class UnitSystem:
     config_time_label: str
     labels: dict[str, str] = field(default_factory=dict)
     h5md: dict[str, tuple[str, float]] = field(default_factory=dict)
+    config_units: dict[str, tuple[str, float, int]] = field(default_factory=dict)
 
+    def from_config(self, quantity: str, value: float) -> float:
+        """``value`` of ``quantity``, as a config gives it, in engine units.
+
+        Examples
+        --------
+        >>> round(METAL.from_config("time", 1.0) / fs, 12)  # 1 fs
+        1.0
+        """
+        _, factor, power = self.config_units[quantity]
+        return value * factor if power == 1 else value / factor
+
+
+def _config_units(time: str, time_unit: float, pressure: tuple[str, str], to_engine: float,
+                  labels: dict[str, str]) -> dict[str, tuple[str, float, int]]:  # fmt: skip
+    """Config units of one system: times and pressures (and their inverses) converted,
+    the rest as they are. ``pressure`` holds the labels of pressure and its inverse."""
+    return {
+        "time": (time, time_unit, 1),
+        "1/time": (f"1/{time}", time_unit, -1),
+        "pressure": (pressure[0], to_engine, 1),
+        "1/pressure": (pressure[1], to_engine, -1),
+        **{quantity: (label, 1.0, 1) for quantity, label in labels.items()},
+    }
+
+
+#: Quantities that have the same unit in every system.
+_PLAIN_UNITS = {"degrees": "degrees", "steps": "steps"}
 
 LJ = UnitSystem(
     name="lj",
@@ -85,6 +118,11 @@ LJ = UnitSystem(
         "volume": "sigma^3",
         "density": "m/sigma^3",
     },
+    config_units=_config_units("τ", 1.0, ("ε/σ³", "σ³/ε"), 1.0, {
+        "length": "σ", "energy": "ε", "temperature": "ε/kB", "mass": "m",
+        "number density": "1/σ³", "force": "ε/σ", "energy/length^2": "ε/σ²",
+        "energy/radian^2": "ε/rad²", **_PLAIN_UNITS,
+    }),  # fmt: skip
 )
 
 METAL = UnitSystem(
@@ -113,6 +151,11 @@ METAL = UnitSystem(
         "volume": ("Angstrom3", 1.0),
         "density": ("amu Angstrom-3", 1.0),
     },
+    config_units=_config_units("fs", fs, ("bar", "1/bar"), 1.0 / eV_per_A3_in_bar, {
+        "length": "Å", "energy": "eV", "temperature": "K", "mass": "amu",
+        "number density": "1/Å³", "force": "eV/Å", "energy/length^2": "eV/Å²",
+        "energy/radian^2": "eV/rad²", **_PLAIN_UNITS,
+    }),  # fmt: skip
 )
 
 UNIT_SYSTEMS: dict[str, UnitSystem] = {"lj": LJ, "metal": METAL}

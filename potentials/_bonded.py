@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from md._checks import bond_type_array, positive_array
+from md.schema import Key, check_names
 
 
 def type_tables(
@@ -54,24 +55,40 @@ def type_tables(
     return types, item_types is not None, tables
 
 
+def bonded_keys(item: str, example: str, *parameters: Key) -> tuple[Key, ...]:
+    """The config keys of a bonded potential: its members (``<item>s`` or
+    ``<item>s_file``), their ``<item>_types``, and its ``parameters``."""
+    members, file_key = f"{item}s", f"{item}s_file"
+    return (
+        Key(members, 'list or "system"', None,
+            doc=f'The {item}s, a list of `{example}` atom indices, or `"system"`: the {item}s '
+                f"`[system]` made (a polymer) or read (a structure file). Give this or "
+                f"`{file_key}`."),
+        Key(file_key, "path", None,
+            doc=f"A text file of {example.count(',') + 1} integer columns (`#` comments), "
+                f"relative to the config. Give this or `{members}`."),
+        *parameters,
+        Key(f"{item}_types", "list of integers", None,
+            doc=f"One type index per {item}, into per-type parameters given as lists.",
+            default_doc=f'all {item}s one type (`"system"`: the file\'s types)'),
+    )  # fmt: skip
+
+
 def config_values(
-    params: Mapping, names: tuple[str, ...], item: str, read_file: Callable, example: str
+    params: Mapping, keys: tuple[Key, ...], item: str, read_file: Callable, example: str
 ) -> dict:
     """Check a bonded potential's config table; return constructor arguments.
 
-    The members are given as ``<item>s`` (a list of index lists) or
-    ``<item>s_file`` (read by ``read_file(path)``), with optional
-    ``<item>_types``; ``names`` are the parameters, each a number or a list.
-    ``example`` shows one member in messages (``"[i, j]"``).
+    ``keys`` are the potential's declared keys (:func:`bonded_keys`): the
+    members, given as ``<item>s`` (a list of index lists) or ``<item>s_file``
+    (read by ``read_file(path)``), optional ``<item>_types``, and the
+    parameters, each a number or a list. ``example`` shows one member in
+    messages (``"[i, j]"``).
     """
     params = dict(params)
     members, file_key, types_key = f"{item}s", f"{item}s_file", f"{item}_types"
-    allowed = {members, file_key, types_key, *names}
-    unknown = set(params) - allowed
-    if unknown:
-        raise ValueError(
-            f"unknown key(s): {', '.join(sorted(unknown))} (allowed: {', '.join(sorted(allowed))})"
-        )
+    check_names(params, keys)
+    names = [k.name for k in keys if k.name not in (members, file_key, types_key)]
     if (members in params) == (file_key in params):
         raise ValueError(f"give exactly one of '{members}' (a list of {example}) and "
                          f"'{file_key}'")  # fmt: skip

@@ -49,7 +49,8 @@ from numpy.typing import ArrayLike, NDArray
 from md._checks import angle_array, read_index_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import AngleCollapseError
-from potentials._bonded import config_values, symmetric, type_tables
+from md.schema import REQUIRED, Key
+from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
 from potentials.base import ForceResult
 
 #: Kernel codes for the angle forms.
@@ -206,6 +207,15 @@ class HarmonicAngles(_AnglePotential):
 
     _form = _HARMONIC
     angle_style = "angle_harmonic"
+    #: The keys of its config table (see :meth:`from_config`).
+    CONFIG_KEYS = bonded_keys(
+        "angle", "[i, j, k]",
+        Key("k", "number or list", REQUIRED, unit="energy/radian^2",
+            doc="K of K (theta - theta0)^2 (no factor 1/2, as in LAMMPS), >= 0: one for all "
+                "angles, or one per angle type."),
+        Key("theta0", "number or list", REQUIRED, unit="degrees",
+            doc="The rest angle, 0 to 180: one, or one per angle type."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -233,11 +243,7 @@ class HarmonicAngles(_AnglePotential):
         (degrees; numbers, or lists indexed by angle type) and optional
         ``angle_types`` (one integer per angle). ``type_names`` is unused.
         """
-        values = _config_values(params, ("k", "theta0"))
-        missing = [name for name in ("k", "theta0") if name not in values]
-        if missing:
-            raise ValueError(f"missing key(s): {', '.join(missing)}")
-        return cls(**values)
+        return cls(**_config_values(params, cls.CONFIG_KEYS))
 
     def describe(self) -> dict:
         return self._describe(
@@ -272,6 +278,12 @@ class CosineAngles(_AnglePotential):
 
     _form = _COSINE
     angle_style = "angle_cosine"
+    #: The keys of its config table (see :meth:`from_config`).
+    CONFIG_KEYS = bonded_keys(
+        "angle", "[i, j, k]",
+        Key("k", "number or list", REQUIRED, unit="energy",
+            doc="K of K (1 + cos theta), >= 0: one for all angles, or one per angle type."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -294,10 +306,7 @@ class CosineAngles(_AnglePotential):
         :meth:`HarmonicAngles.from_config`), ``k`` (a number, or a list
         indexed by angle type), optional ``angle_types``.
         """
-        values = _config_values(params, ("k",))
-        if "k" not in values:
-            raise ValueError("missing key(s): k")
-        return cls(**values)
+        return cls(**_config_values(params, cls.CONFIG_KEYS))
 
     def describe(self) -> dict:
         return self._describe(k=_plain(self.k, self.per_type))
@@ -338,9 +347,9 @@ def _read_angles_file(path) -> NDArray[np.int64]:
     return read_index_file(path, 3, "angles_file")
 
 
-def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
+def _config_values(params: Mapping, keys: tuple[Key, ...]) -> dict:
     """Check an angle potential's config table; return constructor arguments."""
-    return config_values(params, names, "angle", _read_angles_file, "[i, j, k]")
+    return config_values(params, keys, "angle", _read_angles_file, "[i, j, k]")
 
 
 # ------------------------------------------------------------------- kernels

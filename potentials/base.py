@@ -68,7 +68,9 @@ class Potential(Protocol):
     neighbors)`` (:class:`SupportsHessianOperator`: pair blocks applied
     without assembly, and clamped where a pair's curvature is negative).
     ``from_config(params, type_names)`` (a classmethod) builds the potential
-    from a config table; the registry ``potentials.POTENTIALS`` maps config
+    from a config table, whose keys the class declares in ``CONFIG_KEYS`` (a
+    tuple of :class:`md.schema.Key`: the config refuses others and the config
+    reference lists them); the registry ``potentials.POTENTIALS`` maps config
     names to classes.
     """
 

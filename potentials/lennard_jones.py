@@ -12,6 +12,7 @@ from numba import njit, prange
 from md._checks import positive_array, positive_scalar
 from md._simd import store_fence, stream_store
 from md.box import min_image, periodic_lengths, periodic_tilt, separation
+from md.schema import Key, check_names
 from md.state import State
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
@@ -60,6 +61,29 @@ class LennardJones:
     >>> abs(lj.pair_energy(2.5 - 1e-9)) < 1e-8  # shifted: continuous at the cutoff
     True
     """
+
+    #: The keys of its config table (see :meth:`from_config`).
+    CONFIG_KEYS = (
+        Key("epsilon", "number, list or table", 1.0, unit="energy",
+            doc="The well depth: one number, or per type (`{Ar = 0.0104, Kr = 0.014}`, "
+                "covering every type), mixed by `mixing`."),
+        Key("sigma", "number, list or table", 1.0, unit="length",
+            doc="The size, given as `epsilon` is."),
+        Key("cutoff", "number", 2.5, unit="length", doc="The pair cutoff."),
+        Key("cutoff_mode", "string", "shift", choices=tuple(CUTOFF_MODES),
+            doc='`"none"`: truncated; `"shift"`: energy continuous at the cutoff (ASE\'s '
+                'default); `"smooth"`: energy and force switched off between `r_on` and the '
+                "cutoff (ASE's `smooth=True`)."),
+        Key("r_on", "number", None, unit="length",
+            doc='Where switching starts with `cutoff_mode = "smooth"`.',
+            default_doc="0.66 `cutoff` per pair"),
+        Key("mixing", "string", "lorentz-berthelot", choices=MIXING_RULES,
+            doc="The rule for unlike pairs of per-type values: epsilon geometric; sigma "
+                "arithmetic (`lorentz-berthelot`) or geometric."),
+        Key("pairs", "list of tables", None,
+            doc="Single pairs set apart from mixing: `[[potentials.pairs]]` tables with "
+                "`types = [a, b]` and any of `epsilon`, `sigma`, `cutoff`, `r_on`."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -121,10 +145,7 @@ class LennardJones:
         ``{types = [name, name], epsilon, sigma, cutoff, r_on}``.
         """
         params = dict(params)
-        allowed = {"epsilon", "sigma", "cutoff", "cutoff_mode", "r_on", "mixing", "pairs"}
-        unknown = set(params) - allowed
-        if unknown:
-            raise ValueError(f"unknown key(s): {', '.join(sorted(unknown))}")
+        check_names(params, cls.CONFIG_KEYS)
         index = {name: i for i, name in enumerate(type_names)}
         for key in ("epsilon", "sigma"):
             value = params.get(key)

@@ -22,7 +22,8 @@ from numpy.typing import ArrayLike, NDArray
 from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import BondStretchError
-from potentials._bonded import config_values, symmetric, type_tables
+from md.schema import REQUIRED, Key
+from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
@@ -193,6 +194,14 @@ class HarmonicBonds(_BondedPotential):
 
     _form = _HARMONIC
     bond_style = "spring"
+    #: The keys of its config table (see :meth:`from_config`).
+    CONFIG_KEYS = bonded_keys(
+        "bond", "[i, j]",
+        Key("k", "number or list", REQUIRED, unit="energy/length^2",
+            doc="The spring constant, >= 0: one for all bonds, or one per bond type."),
+        Key("r0", "number or list", REQUIRED, unit="length",
+            doc="The rest length, >= 0: one, or one per bond type."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -214,11 +223,7 @@ class HarmonicBonds(_BondedPotential):
         by bond type) and optional ``bond_types`` (one integer per bond).
         ``type_names`` is unused: bonds name atoms, not types.
         """
-        values = _config_values(params, ("k", "r0"))
-        missing = [name for name in ("k", "r0") if name not in values]
-        if missing:
-            raise ValueError(f"missing key(s): {', '.join(missing)}")
-        return cls(**values)
+        return cls(**_config_values(params, cls.CONFIG_KEYS))
 
     def describe(self) -> dict:
         return self._describe(k=_plain(self.k, self.per_type), r0=_plain(self.r0, self.per_type))
@@ -265,6 +270,14 @@ class FENEBonds(_BondedPotential):
 
     _form = _FENE
     bond_style = "fene"
+    #: The keys of its config table (see :meth:`from_config`).
+    CONFIG_KEYS = bonded_keys(
+        "bond", "[i, j]",
+        Key("k", "number or list", 30.0, unit="energy/length^2",
+            doc="The spring constant, >= 0: one for all bonds, or one per bond type."),
+        Key("r_max", "number or list", 1.5, unit="length",
+            doc="The maximum extension, > 0: one, or one per bond type."),
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -286,8 +299,7 @@ class FENEBonds(_BondedPotential):
         :meth:`HarmonicBonds.from_config`), ``k`` (default 30), ``r_max``
         (default 1.5), optional ``bond_types``.
         """
-        values = _config_values(params, ("k", "r_max"))
-        return cls(**values)
+        return cls(**_config_values(params, cls.CONFIG_KEYS))
 
     def describe(self) -> dict:
         return self._describe(
@@ -302,9 +314,9 @@ def _plain(values: np.ndarray, per_type: bool):
     return values.tolist() if per_type else float(values[0])
 
 
-def _config_values(params: Mapping, names: tuple[str, ...]) -> dict:
+def _config_values(params: Mapping, keys: tuple[Key, ...]) -> dict:
     """Check a bond potential's config table; return constructor arguments."""
-    return config_values(params, names, "bond", read_bonds_file, "[i, j]")
+    return config_values(params, keys, "bond", read_bonds_file, "[i, j]")
 
 
 # ------------------------------------------------------------------- kernels

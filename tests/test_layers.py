@@ -49,6 +49,7 @@ LAYERS = {
         "md.errors",
         "md.thermo",
         "md._checks",
+        "md.schema",
         "md._files",
         "md.topology",
         "md.interrupts",

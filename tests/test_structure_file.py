@@ -216,7 +216,7 @@ def test_units_can_still_be_chosen(tmp_path):
     ase.io.write(tmp_path / "argon.xyz", atoms)
     default = load_config(_config(tmp_path, "argon.xyz"))
     assert default.units.name == "metal"
-    assert default.integrator["dt"] == 5.0 * ase.units.fs  # dt read in fs
+    assert default.integrator.dt == 5.0 * ase.units.fs  # dt read in fs
     chosen = load_config(_config(tmp_path, "argon.xyz", units='units = "lj"'))
     assert chosen.units.name == "lj"
-    assert chosen.integrator["dt"] == 5.0  # dt read in tau
+    assert chosen.integrator.dt == 5.0  # dt read in tau

@@ -87,7 +87,7 @@ def main(args) -> int:
         setup = study.setup
         print(
             f"md integrators (thermostats): {n_atoms} atoms, T = {setup.temperature:g} "
-            f"{units.labels['temperature']}, dt {study.config.integrator['dt'] / t:g} {label}, "
+            f"{units.labels['temperature']}, dt {study.config.integrator.dt / t:g} {label}, "
             f"tau {setup.tau / t:g} {label}, {setup.n_equilibrate} steps to equilibrate, "
             f"{setup.n_sample} sampled"
         )
