@@ -161,8 +161,7 @@ class MartynaTobiasKlein(IntegratorBase):
 
     # ------------------------------------------------------------------- step
     def step(self, state, forcefield) -> None:
-        if not np.all(state.pbc):
-            raise ValueError("the mtk barostat needs a box periodic along x, y and z")
+        self.barostat.check(state.pbc)
         n_dof = self.chain.degrees_of_freedom(global_sum(state.n_atoms))
         if n_dof <= 0:
             raise ValueError(f"no degrees of freedom left to thermostat ({state.n_atoms} atoms)")

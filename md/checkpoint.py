@@ -21,6 +21,8 @@ pickle) holding
   last build, so that a resume on the same grid rebuilds the same ghosts and
   lists (:meth:`md.distributed.DistributedSimulation.resume`); any other rank
   count, or one process, resumes from the same file.
+- in ``extra``, the config file's name and the run's energies at step 0
+  (``start``), from which a resumed run reports its drifts.
 
 Writing goes to a temporary file in the same directory, which is flushed,
 synced and renamed over the previous checkpoint (``os.replace``), so a crash
@@ -453,16 +455,21 @@ class Checkpointer:
         Identifier shared with the trajectory.
     config : str
         The config file name, kept for messages.
+    start : dict, optional
+        The run's energies at step 0 (plain numbers), kept so that a resumed
+        run reports drifts over the whole run.
     """
 
     uses_virial = False  # saves the state; its steps need no virial
 
-    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str) -> None:
+    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str,
+                 start: dict | None = None) -> None:  # fmt: skip
         self.path = Path(path)
         self.writer = writer
         self.fingerprint = fingerprint
         self.run_id = run_id
         self.config = config
+        self.start = dict(start or {})
         self.last_step: int | None = None
 
     def __call__(self, sim) -> None:
@@ -476,6 +483,6 @@ class Checkpointer:
             n_frames=self.writer.n_frames,
             last_frame_step=-1 if last is None else last,
             run_id=self.run_id,
-            extra={"config_file": self.config},
+            extra={"config_file": self.config, "start": self.start},
         )
         self.last_step = sim.state.step

@@ -748,7 +748,9 @@ def build_system(config: Config):
             )
         else:
             try:
-                state, topology = read_structure(system.structure, system.format, config.units)
+                state, topology = read_structure(
+                    system.structure, system.format, config.units, mass=system.mass
+                )
             except ValueError as error:
                 raise ConfigError(f"{where} structure: {error}") from None
             if not (topology.n_bonds or topology.n_angles):

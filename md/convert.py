@@ -19,7 +19,11 @@ suffix                  library            units written (metal runs)
 ======================  =================  =====================================
 
 Reduced-unit (``lj``) runs are written unchanged, in sigma, tau and
-epsilon, wherever the format would otherwise convert. Where a format has a
+epsilon, wherever the format would otherwise convert. Formats that need a
+box with a volume (LAMMPS data and dumps, GSD) get, along open axes, the
+stored edge widened to the atoms' extent, or the atoms' bounding box where
+the edge is zero (a cluster or a slab read without a cell there:
+:func:`md.box.enclosing_cell`). Where a format has a
 header or metadata (extxyz's comment line, the LAMMPS data title, DCD and
 NetCDF remarks) the units are stated there.
 
@@ -46,7 +50,7 @@ from md._files import (
     remove_stale_temporaries,
 )
 from md._version import __version__
-from md.box import cell_matrix
+from md.box import cell_matrix, enclosing_cell
 from md.topology import Topology
 from md.trajectory import Frame, TrajectoryReader
 
@@ -420,6 +424,10 @@ class _LammpsDataWriter(_Writer):
         self, path: Path, reader: TrajectoryReader, frames: range, unwrap: bool, kind: str
     ) -> None:
         self.path, self.reader, self.unwrap = path, reader, unwrap
+        # ASE's writer converts from its units to the ones named; "ASE" to ASE's own is the
+        # identity, so reduced (lj) values are written exactly as they are (a round trip
+        # through metal gave masses of 0.99999999974).
+        self._ase_units = "ASE" if reader.units.name == "lj" else "metal"
         if len(reader.type_names) > len(self._STAND_INS):
             raise ValueError(
                 f"LAMMPS data output takes up to {len(self._STAND_INS)} atom types, the "
@@ -434,11 +442,12 @@ class _LammpsDataWriter(_Writer):
         state = reader.state(frame, unwrap=True)
         atoms = state.to_ase()
         atoms.positions[:] = _positions(frame, self.unwrap)
+        # A box with a volume: open axes span the atoms (their xlo xhi lines are set below).
+        origin, lengths, tilt = enclosing_cell(atoms.positions, frame.box, reader.pbc, frame.tilt)
+        atoms.set_cell(cell_matrix(lengths, tilt))
         masses = atoms.get_masses()
         atoms.set_chemical_symbols([self._STAND_INS[t] for t in reader.types])
         atoms.set_masses(masses)
-        if reader.units.name == "lj":  # the writer converts ASE to metal: write lj unchanged
-            atoms.set_velocities(state.velocities / lammps_units(1.0, "velocity", "ASE", "metal"))
         partners = [[] for _ in range(reader.n_atoms)]
         for (i, j), t in zip(topology.bonds.tolist(), topology.bond_types.tolist(), strict=True):
             partners[i].append(f"{j}({t + 1})")
@@ -447,10 +456,16 @@ class _LammpsDataWriter(_Writer):
         stand_ins = list(self._STAND_INS[: len(reader.type_names)])
         with open(self.path, "w") as handle:
             write_lammps_data(
-                handle, atoms, specorder=stand_ins, masses=True, velocities=True,
-                atom_style="full", units="metal", bonds=topology.n_bonds > 0,
+                handle, atoms, specorder=stand_ins, masses=True, velocities=False,
+                atom_style="full", units=self._ase_units, bonds=topology.n_bonds > 0,
             )  # fmt: skip
         lines = self.path.read_text().splitlines(keepends=True)
+        # Velocities written here: ASE's writer divides momenta by masses, which is not
+        # always the velocity back to the last bit.
+        factor = lammps_units(1.0, "velocity", "ASE", self._ase_units)
+        lines.append("\nVelocities\n\n")
+        lines += [f"{i + 1:>6} {x:23.17g} {y:23.17g} {z:23.17g}\n"
+                  for i, (x, y, z) in enumerate((state.velocities * factor).tolist())]  # fmt: skip
         units = "lj" if reader.units.name == "lj" else "metal"
         types = " ".join(f"{t + 1}={name}" for t, name in enumerate(reader.type_names))
         bond_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.bond_type_names))
@@ -462,6 +477,14 @@ class _LammpsDataWriter(_Writer):
             + (f"; angle types {angle_types}" if angle_types else "")
             + ")\n"
         )
+        for index, line in enumerate(lines[:40]):  # open axes: the bounds of the atoms
+            words = line.split()
+            if len(words) == 4 and words[2] in ("xlo", "ylo", "zlo"):
+                axis = "xyz".index(words[2][0])
+                if reader.pbc[axis]:
+                    continue
+                low, high = origin[axis], origin[axis] + lengths[axis]
+                lines[index] = f"{low:.17g} {high:.17g}  {words[2]} {words[3]}\n"
         if topology.n_angles:
             _add_angles(lines, topology)
         in_masses = False
@@ -527,25 +550,27 @@ class _LammpsDumpWriter(_Writer):
         out = self.handle
         out.write(f"ITEM: TIMESTEP\n{frame.step}\n")
         out.write(f"ITEM: NUMBER OF ATOMS\n{self.reader.n_atoms}\n")
-        if not np.any(frame.tilt != 0.0):
+        positions = _positions(frame, self.unwrap)
+        (ox, oy, oz), (lx, ly, lz), (xy, xz, yz) = enclosing_cell(
+            positions, frame.box, self.reader.pbc, frame.tilt
+        )
+        if xy == 0.0 and xz == 0.0 and yz == 0.0:
             out.write(f"ITEM: BOX BOUNDS {self.bounds}\n")
-            for length in frame.box:
-                out.write(f"0 {length:.17g}\n")
+            for low, length in ((ox, lx), (oy, ly), (oz, lz)):
+                out.write(f"{low:.17g} {low + length:.17g}\n")
         else:  # LAMMPS's triclinic dump header: bounds of the tilted box, then each tilt
-            xy, xz, yz = frame.tilt
-            lx, ly, lz = frame.box
             low = min(0.0, xy, xz, xy + xz)
             high = max(0.0, xy, xz, xy + xz)
             out.write(f"ITEM: BOX BOUNDS xy xz yz {self.bounds}\n")
-            out.write(f"{low:.17g} {lx + high:.17g} {xy:.17g}\n")
-            out.write(f"{min(0.0, yz):.17g} {ly + max(0.0, yz):.17g} {xz:.17g}\n")
-            out.write(f"0 {lz:.17g} {yz:.17g}\n")
+            out.write(f"{ox + low:.17g} {ox + lx + high:.17g} {xy:.17g}\n")
+            out.write(f"{oy + min(0.0, yz):.17g} {oy + ly + max(0.0, yz):.17g} {xz:.17g}\n")
+            out.write(f"{oz:.17g} {oz + lz:.17g} {yz:.17g}\n")
         out.write(f"ITEM: ATOMS {self.columns}\n")
         parts = [
             self.ids[:, None],
             (self.reader.types + 1)[:, None],
             self.molecules[:, None],
-            _positions(frame, self.unwrap),
+            positions,
             _images(frame, self.unwrap),
         ]
         formats = ["%d", "%d", "%d", "%.10g", "%.10g", "%.10g", "%d", "%d", "%d"]
@@ -586,16 +611,18 @@ class _GSDWriter(_Writer):
         reader = self.reader
         snapshot = self.hoomd.Frame()
         snapshot.configuration.step = frame.step
-        lx, ly, lz = frame.box
-        xy, xz, yz = frame.tilt  # HOOMD's tilt factors are these over Ly, Lz, Lz
+        positions = frame.positions if not self.unwrap else frame.unwrapped()
+        origin, lengths, tilt = enclosing_cell(positions, frame.box, reader.pbc, frame.tilt)
+        lx, ly, lz = lengths
+        xy, xz, yz = tilt  # HOOMD's tilt factors are these over Ly, Lz, Lz
         snapshot.configuration.box = [lx, ly, lz, xy / ly, xz / lz, yz / lz]
         snapshot.configuration.dimensions = 3
         snapshot.particles.N = reader.n_atoms
         snapshot.particles.types = list(reader.type_names)
         snapshot.particles.typeid = reader.types.astype(np.uint32)
         snapshot.particles.mass = reader.masses.astype(np.float32)
-        positions = frame.positions if not self.unwrap else frame.unwrapped()
-        centre = 0.5 * frame.cell.sum(axis=0)  # HOOMD boxes are centred on the origin
+        # HOOMD boxes are centred on the origin
+        centre = origin + 0.5 * cell_matrix(lengths, tilt).sum(axis=0)
         snapshot.particles.position = (positions - centre).astype(np.float32)
         snapshot.particles.image = _images(frame, self.unwrap).astype(np.int32)
         if frame.velocities is not None:

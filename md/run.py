@@ -116,6 +116,12 @@ class RunSummary:
         Seconds spent in the loop.
     first, last : dict
         ``sim.thermo()`` before and after the loop.
+    start : dict
+        The energies at the start of the whole run (step 0): ``step``,
+        ``total_energy``, ``kinetic_energy`` and, with a thermostat,
+        ``conserved_energy``. A resumed run takes them from its checkpoint,
+        so drifts can be measured over the whole run; empty when resuming
+        from a checkpoint written before checkpoints kept them.
     timings : dict
         Seconds per section (neighbour, force, integrate, observers) in the loop.
     last_checkpoint_step : int or None
@@ -139,20 +145,29 @@ class RunSummary:
     wall: float = 0.0
     first: dict = field(default_factory=dict)
     last: dict = field(default_factory=dict)
+    start: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     last_checkpoint_step: int | None = None
     message: str = ""
     signal: str | None = None
     statistics: dict = field(default_factory=dict)
 
-    def relative_change(self, key: str = "total_energy") -> float:
-        """(last - first) of a thermo quantity over the first total energy's scale.
+    @property
+    def reference(self) -> dict:
+        """The row drifts are measured from: ``start`` (step 0, also for a resumed run)
+        where it is known, else ``first``."""
+        return self.start if "total_energy" in self.start else self.first
 
-        The scale is the larger of the magnitude of the total energy and the kinetic energy at the
-        start (so a total energy near zero does not blow the ratio up). NaN
-        when the run has no ``last`` row (it did not complete) or no ``key``.
+    def relative_change(self, key: str = "total_energy") -> float:
+        """(last - reference) of a thermo quantity over the reference total energy's scale.
+
+        Over the whole run: from step 0 (:attr:`reference`), which a resumed
+        run takes from its checkpoint. The scale is the larger of the
+        magnitude of the total energy and the kinetic energy there (so a
+        total energy near zero does not blow the ratio up). NaN when the run
+        has no ``last`` row (it did not complete) or no ``key``.
         """
-        first, last = self.first, self.last
+        first, last = self.reference, self.last
         if key not in first or key not in last:
             return math.nan
         scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
@@ -164,6 +179,10 @@ class RunSummary:
         if not steps:
             return {}
         return {name: value / steps for name, value in self.statistics.items() if name != "steps"}
+
+
+#: What a checkpoint keeps of the run's first thermo row, to measure drifts from it.
+_START_KEYS = ("step", "total_energy", "kinetic_energy", "conserved_energy")
 
 
 @dataclass
@@ -314,10 +333,16 @@ class PreparedRun:
     def _execute(self, observers, handle_signals: bool) -> RunSummary:
         sim, state, config, ranks = self.sim, self.sim.state, self.config, self.ranks
         summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
-        writer = self._open_outputs()  # None on the other ranks of a decomposed run
+        summary.first = sim.thermo()
+        if self.checkpoint is None:
+            summary.start = {key: summary.first[key] for key in _START_KEYS if key in summary.first}
+        else:
+            summary.start = dict(self.checkpoint.extra.get("start") or {})
+        writer = self._open_outputs(summary.start)  # None on the other ranks of a decomposed run
         saver = Checkpointer(
-            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
-        )
+            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file,
+            start=summary.start,
+        )  # fmt: skip
         sim.attach(writer if writer is not None else Elsewhere(config.output.forces),
                    interval=config.output.every)  # fmt: skip
         # After the writer, so a checkpoint counts the frame of its own step. With
@@ -325,7 +350,6 @@ class PreparedRun:
         sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
         for observer, interval in observers:
             sim.attach(observer, interval=interval)
-        summary.first = sim.thermo()
         start_step = state.step  # _open_outputs wrote (or resumed) a checkpoint here
         timings_before = sim.timing_summary()
         previous = (
@@ -374,7 +398,7 @@ class PreparedRun:
             summary.statistics = dict(sim.integrator.statistics)
         return summary
 
-    def _open_outputs(self) -> H5MDWriter | None:
+    def _open_outputs(self, start: dict) -> H5MDWriter | None:
         """Under the claim: the first checkpoint, then the trajectory writer.
 
         A fresh run checks again that its outputs are still free (another run
@@ -385,18 +409,18 @@ class PreparedRun:
         """
         if self.ranks is None:
             sim = self.sim
-            return self._create_outputs(sim.state, sim.integrator, sim.forcefield)
+            return self._create_outputs(sim.state, sim.integrator, sim.forcefield, start)
         view = self.sim.global_view(thermo=False)
         error = writer = None
         if view is not None:
             try:
-                writer = self._create_outputs(view.state, view.integrator, view.forcefield)
+                writer = self._create_outputs(view.state, view.integrator, view.forcefield, start)
             except (OSError, ValueError, RuntimeError) as caught:  # every rank learns it below
                 error = caught
         agree(self.ranks, error)
         return writer
 
-    def _create_outputs(self, state, integrator, forcefield) -> H5MDWriter:
+    def _create_outputs(self, state, integrator, forcefield, start: dict) -> H5MDWriter:
         config = self.config
         for path in (self.output, self.checkpoint_path):  # a killed run's half-written files
             remove_stale_temporaries(path)
@@ -410,7 +434,7 @@ class PreparedRun:
             write_checkpoint(
                 self.checkpoint_path, state, integrator, forcefield,
                 fingerprint=self.fingerprint, run_id=self.run_id,
-                extra={"config_file": self.config_file},
+                extra={"config_file": self.config_file, "start": start},
             )  # fmt: skip
             try:
                 return self._new_trajectory(state, overwrite=self.overwrite)
@@ -624,6 +648,7 @@ def run_config(
         return prepared.sim, RunSummary(
             COMPLETED, prepared.output, prepared.checkpoint_path, 0,
             n_frames=prepared.checkpoint.n_frames,
+            start=dict(prepared.checkpoint.extra.get("start") or {}),
         )  # fmt: skip
     return prepared.sim, prepared.execute()
 
@@ -839,6 +864,7 @@ def build_components(config: Config, state: State | None = None):
     if config.barostat is not None:
         try:
             barostat = Barostat(config.barostat.type, **config.barostat.values)
+            barostat.check(state.pbc)
             integrator = pressure_control(integrator, barostat)
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None

@@ -10,6 +10,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from integrators.base import ThermoTerms
+from md.box import cell_deformation
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.neighbors import max_displacement2
@@ -60,7 +61,13 @@ class Simulation:
     max_displacement : float, optional
         Blow-up guard [length]: a particle moving farther than this in one
         step stops the run with a :class:`SimulationError` (``md run`` uses
-        the skin). None: no check. Kept as an attribute of that name.
+        the skin). None: no check. Kept as an attribute of that name. When
+        the cell moved in the step (a barostat), the move is measured from
+        the particle's old position carried along with the cell (the affine
+        part, which grows with the box, is not counted); a cell move that
+        changed the distances between neighbours (up to the neighbour-list
+        radius apart) by more than the guard stops the run too, naming the
+        box's strain.
     threads : int, optional
         Threads for the force and neighbour kernels, set process-wide through
         :func:`md.parallel.set_threads`; None leaves the setting as it is
@@ -110,6 +117,8 @@ class Simulation:
         self.max_displacement = max_displacement
         self.stop_requested: str | None = None
         self._previous = np.empty((0, 3))
+        self._previous_cell = (b"", b"")  # box and tilt before the step, as bytes
+        self._mapped = np.empty((0, 3))  # the step's start carried along with the cell
 
     @property
     def potentials(self) -> list[Potential]:
@@ -183,6 +192,7 @@ class Simulation:
                 if self._previous.shape != state.positions.shape:
                     self._previous = np.empty_like(state.positions)
                 np.copyto(self._previous, state.positions)
+                self._previous_cell = (state.box.tobytes(), state.tilt.tobytes())
             upcoming = state.step + 1
             self.forcefield.virial_wanted = any(upcoming % k == 0 for k in self._virial_intervals)
             self._guarded(lambda: self.integrator.step(state, self.forcefield), upcoming)
@@ -201,23 +211,57 @@ class Simulation:
         return self.stop_requested is not None
 
     def _check_displacement(self, limit: float) -> None:
-        """Raise SimulationError if a particle moved farther than ``limit`` this step."""
-        moved2 = max_displacement2(self.state.positions, self._previous)
+        """Raise SimulationError if a particle moved farther than ``limit`` this step.
+
+        If the cell changed (a barostat), each particle's old position is first
+        carried along with the cell (``r M``, M the cell's deformation), so only
+        the motion relative to the deformed cell counts; a deformation that by
+        itself moved neighbours (up to the list radius apart) by more than
+        ``limit`` relative to each other is reported as the barostat's doing.
+        """
+        state = self.state
+        previous = self._previous
+        if self._previous_cell != (state.box.tobytes(), state.tilt.tobytes()):
+            box, tilt = (np.frombuffer(b, dtype=np.float64) for b in self._previous_cell)
+            deformation = cell_deformation(box, tilt, state.box, state.tilt, state.pbc)
+            self._check_cell_move(deformation, limit)
+            if self._mapped.shape != previous.shape:
+                self._mapped = np.empty_like(previous)
+            previous = np.matmul(previous, deformation, out=self._mapped)
+        moved2 = max_displacement2(state.positions, previous)
         if moved2 <= limit * limit:
             return
-        step = self.state.step
+        step = state.step
         if not np.isfinite(moved2):
             raise SimulationError(
                 step, "positions became NaN or infinite; the dynamics blew up (is dt too large?)"
             )
-        distances = np.linalg.norm(self.state.positions - self._previous, axis=1)
+        distances = np.linalg.norm(state.positions - previous, axis=1)
         atom = int(np.argmax(distances))
-        named = atom if self.state.ids is None else int(self.state.ids[atom])
+        named = atom if state.ids is None else int(state.ids[atom])
+        relative = " relative to the moving cell" if previous is not self._previous else ""
         raise SimulationError(
             step,
-            f"atom {named} moved {distances[atom]:.4g} in one step, more than the "
+            f"atom {named} moved {distances[atom]:.4g} in one step{relative}, more than the "
             f"neighbour-list skin {limit:g}; the dynamics is blowing up "
             "(time step too large, or overlapping atoms?)",
+        )
+
+    def _check_cell_move(self, deformation, limit: float) -> None:
+        """Raise SimulationError if the cell's deformation alone moved neighbours apart by
+        more than ``limit`` (the strain times the neighbour-list radius)."""
+        if not np.all(np.isfinite(deformation)):
+            raise SimulationError(self.state.step, "the box became NaN or infinite")
+        strain = float(np.linalg.norm(deformation - np.eye(3), ord=2))
+        nl = self.forcefield.neighbor_list
+        if nl is None or strain * nl.list_radius <= limit:
+            return
+        raise SimulationError(
+            self.state.step,
+            f"the barostat moved the box by {100 * strain:.3g}% in one step, which changes "
+            f"the distance between neighbours {nl.list_radius:g} apart by "
+            f"{strain * nl.list_radius:.3g}, more than the neighbour-list skin {limit:g}: the "
+            "pressure coupling is far too strong; use a larger [barostat] tau",
         )
 
     def thermo(self) -> dict[str, float]:

@@ -147,12 +147,13 @@ class State:
         if not np.all(np.isfinite(self.positions)):
             bad = int(np.argwhere(~np.isfinite(self.positions))[0, 0])
             raise ValueError(f"positions of atom {bad} are not finite: {self.positions[bad]}")
-        if not np.all(np.isfinite(self.velocities)):
-            bad = int(np.argwhere(~np.isfinite(self.velocities))[0, 0])
-            raise ValueError(f"velocities of atom {bad} are not finite: {self.velocities[bad]}")
+        # Masses before velocities: velocities from momenta / mass are NaN where a mass is 0.
         if self.masses.size and not np.all(self.masses > 0):  # also catches NaN
             bad = int(np.argwhere(~(self.masses > 0))[0, 0])
             raise ValueError(f"masses must be positive; atom {bad} has mass {self.masses[bad]}")
+        if not np.all(np.isfinite(self.velocities)):
+            bad = int(np.argwhere(~np.isfinite(self.velocities))[0, 0])
+            raise ValueError(f"velocities of atom {bad} are not finite: {self.velocities[bad]}")
         with np.errstate(divide="ignore", over="ignore"):
             usable = np.isfinite(self.masses) & np.isfinite(1.0 / self.masses)
         if self.masses.size and not np.all(usable):  # integrators divide by the mass
@@ -265,7 +266,8 @@ class State:
         )  # fmt: skip
         masses = atoms.get_masses()
         momenta = atoms.get_momenta()
-        velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused below
+            velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
         remembered = getattr(atoms, "_leapmd_velocities", None)
         if (
             remembered is not None

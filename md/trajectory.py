@@ -578,9 +578,12 @@ def _write_topology(f: h5py.File, topology: Topology) -> None:
 
 
 def _read_topology(f: h5py.File) -> Topology:
+    """The bonds and angles of ``/connectivity``, checked against the atom count
+    (TrajectoryError naming the file, the type's dataset and the bond or angle)."""
     if "connectivity" not in f:
         return Topology.empty()
     group = f["connectivity"]
+    n_atoms = len(f["particles/trajectory/mass"])
     names = []
     for key in ("bond_types", "angle_types"):
         order = maybe_json(group.attrs.get(key, "[]"))
@@ -592,8 +595,28 @@ def _read_topology(f: h5py.File) -> Topology:
         listed = group[name][()]
         size = listed.shape[1] if listed.ndim == 2 else 0
         if size in groups:  # other tuple lists (dihedrals, ...) are skipped
+            _check_members(f, name, listed, n_atoms)
             groups[size][name] = listed.astype(np.int64)
     return Topology.from_groups(groups[2], groups[3])
+
+
+def _check_members(f: h5py.File, name: str, listed, n_atoms: int) -> None:
+    """TrajectoryError naming the file, dataset and entry of a bond or angle that names an
+    atom outside the file's atoms, or one atom twice."""
+    kind = "bond" if listed.shape[1] == 2 else "angle"
+    outside = ((listed < 0) | (listed >= n_atoms)).any(axis=1)
+    ordered = np.sort(listed, axis=1)
+    repeated = (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)
+    bad = np.flatnonzero(outside | repeated)
+    if bad.size:
+        first = int(bad[0])
+        what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
+                else "names one atom twice")  # fmt: skip
+        raise TrajectoryError(
+            f"{f.filename}: /connectivity/{name}: {kind} {first} "
+            f"{tuple(listed[first].tolist())} {what} ({bad.size} such {kind}(s)); the file's "
+            "connectivity is damaged"
+        )
 
 
 def read_topology(path) -> Topology:
@@ -602,6 +625,8 @@ def read_topology(path) -> Topology:
     with open_h5md(path) as f:
         try:
             return _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError, OSError) as error:
             raise TrajectoryError(f"{path}: unreadable connectivity ({error})") from None
 
@@ -871,6 +896,9 @@ class TrajectoryReader:
             # Complete frames: those every per-frame dataset holds (a killed write may
             # leave one partial frame).
             self.n_frames = _complete_frames(f)
+        except TrajectoryError:  # already names the file and what is wrong
+            self._file.close()
+            raise
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             self._file.close()
             raise TrajectoryError(
@@ -1110,6 +1138,8 @@ def open_trajectory(path, **kwargs):
             names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
             n_frames = len(f["particles/trajectory/position/step"])
             topology = _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
     if n_frames == 0:  # MDAnalysis's reader cannot open a file without frames

@@ -176,7 +176,11 @@ def _main(args) -> int:
 
 
 class _ThermoTable:
-    """Observer printing one thermo row every interval (above the progress bar)."""
+    """Observer printing one thermo row every interval (above the progress bar).
+
+    It keeps no rows: memory stays flat however long the run (the run's
+    summary takes its first and last rows from ``sim.thermo()``).
+    """
 
     #: Reads only thermo: a run decomposed over MPI ranks need not gather its atoms.
     whole_system = False
@@ -197,14 +201,13 @@ class _ThermoTable:
     def __init__(self, units, quiet: bool) -> None:
         self.units = units
         self.quiet = quiet
-        self.rows: list[dict] = []
         self._printed_header = False
+        self.uses_virial = not quiet  # quiet: prints nothing, so its steps need no virial
 
     def __call__(self, sim) -> None:
-        row = sim.thermo()
-        self.rows.append(row)
         if self.quiet:
             return
+        row = sim.thermo()
         conserved = ("conserved_energy",) if "conserved_energy" in row else ()  # thermostats
         if not self._printed_header:
             headers = self.headers + (("Conserved",) if conserved else ())
@@ -244,6 +247,10 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
     timings = summary.timings
     other = max(wall - sum(timings.values()), 0.0)
     atom_steps = n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
+    # Drifts over the whole run: from step 0's energies, which a resumed run takes from its
+    # checkpoint (one written before checkpoints kept them: from where it resumed).
+    origin = int(summary.reference["step"])
+    since = "" if origin == 0 else f" since step {origin}"
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
@@ -261,8 +268,8 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
     if per_step:
         print(f"Integrator, per step: {per_step}")
     drift = summary.relative_change("total_energy")
-    print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
+    print(f"Relative total-energy drift (E_end - E_start)/|E_start|{since}: {drift:.3e}")
     if "conserved_energy" in first:  # a thermostat: its conserved quantity should not drift
         change = summary.relative_change("conserved_energy")
-        print(f"Relative conserved-quantity drift (incl. heat bath): {change:.3e}")
+        print(f"Relative conserved-quantity drift (incl. heat bath){since}: {change:.3e}")
     print(f"Wrote {n_frames} frames to {output}")
