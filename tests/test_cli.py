@@ -252,7 +252,13 @@ def test_output_is_hashed_unchanged_by_a_refused_run(tmp_path):
 EXAMPLES = sorted((__import__("pathlib").Path(__file__).parents[1] / "examples").glob("*.toml"))
 
 
-@pytest.mark.parametrize("example", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+# The implicit stiff chain (7 s) runs with -m slow: the default suite keeps within 10 minutes.
+EXAMPLE_CASES = [
+    pytest.param(p, marks=pytest.mark.slow) if p.stem == "implicit-stiff" else p for p in EXAMPLES
+]
+
+
+@pytest.mark.parametrize("example", EXAMPLE_CASES, ids=[p.stem for p in EXAMPLES])
 def test_examples_run(tmp_path, example):
     """Every shipped example config is valid and runs (a few steps here)."""
     out = tmp_path / f"{example.stem}.h5"

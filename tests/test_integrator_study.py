@@ -63,6 +63,7 @@ def test_stability_scan_finds_the_blow_up(liquid):
     assert 0.01 <= report.dt_max_stable <= 0.04  # LJ liquid: VV limit near dt ~ 0.02-0.03
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_cli_writes_table_csv_and_plots(tmp_path, capsys):
     config = tmp_path / "study.toml"
     config.write_text(CONFIG)

@@ -320,6 +320,7 @@ def _serial_and_ranks(tmp_path, text: str, n_ranks: int) -> tuple[Path, Path, st
 
 
 @needs_mpi
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
     serial_out, out, stdout = _serial_and_ranks(tmp_path, POLYMER, 3)
     assert "over 3 MPI ranks" in stdout

@@ -398,6 +398,7 @@ def test_a_damaged_checkpoint_header_never_suggests_allow_pickle(finished, capsy
     assert "damaged" in err and "allow_pickle" not in err and "--overwrite" in err, err
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_ctrl_c_during_a_sweep_prints_no_traceback(tmp_path):
     """Ctrl-C in a terminal signals the whole process group: the sweep, its Dask
     workers and their runs. Only the sweep answers (exit 130, one line)."""
