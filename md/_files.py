@@ -19,6 +19,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from md.errors import OutputBusyError
+from md.interrupts import raise_if_stopped
 
 
 def usual_permissions(descriptor: int) -> None:
@@ -140,6 +141,7 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
         usual_permissions(descriptor)
         os.close(descriptor)
         yield temporary
+        raise_if_stopped()  # a stop signal whose KeyboardInterrupt was swallowed
         move_into_place(temporary, path, exclusive=exclusive)
     except OSError as error:
         with contextlib.suppress(OSError):

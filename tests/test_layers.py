@@ -50,9 +50,9 @@ LAYERS = {
         "md.thermo",
         "md._checks",
         "md.schema",
+        "md.interrupts",
         "md._files",
         "md.topology",
-        "md.interrupts",
     ],
     1: ["potentials.*", "integrators.*"],
     2: [

@@ -543,3 +543,32 @@ def test_the_next_md_convert_removes_a_killed_conversions_temporary(tmp_path, lo
     assert list(tmp_path.glob(".out.extxyz.*.tmp"))
     assert main(["convert", str(long_trajectory), str(out), "--stop", "3", "--no-progress"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.extxyz"]
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the lost one
+def test_a_stop_signal_whose_exception_is_swallowed_still_stops_a_whole_file_write(
+    tmp_path, capsys
+):
+    """Before (CI, stop 39): SIGTERM landed in a weakref callback, Python printed "Exception
+    ignored" and md convert went on to write its file and exit 0."""
+    import os
+    import signal
+
+    from md._files import atomic_path
+    from md.cli._common import writing_whole_file
+
+    class SignalledWhileCollected:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)  # its KeyboardInterrupt is raised here, and lost
+
+    out = tmp_path / "out.txt"
+
+    def body() -> int:
+        with atomic_path(out) as temporary:
+            temporary.write_text("complete")
+            SignalledWhileCollected()
+        return 0
+
+    assert writing_whole_file("convert", out, body) == 143
+    assert "SIGTERM received; stopped, nothing was written to" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -40,11 +40,15 @@ def writing_whole_file(command: str, output, body: Callable[[], int]) -> int:
     """
     with sigterm_as_interrupt() as terminated:
         try:
-            return body()
+            code = body()
         except KeyboardInterrupt:
-            name = terminated[0] if terminated else "SIGINT"
-            print(
-                f"md {command}: {name} received; stopped, nothing was written to {output}",
-                file=sys.stderr,
-            )
-            return exit_for_signal(name)
+            code = None
+        if code is not None and not terminated:
+            return code
+        name = terminated[0] if terminated else "SIGINT"
+        if code is None:
+            what = f"stopped, nothing was written to {output}"
+        else:  # the signal's exception was swallowed after the file was in place
+            what = f"stopped after {output} was written"
+        print(f"md {command}: {name} received; {what}", file=sys.stderr)
+        return exit_for_signal(name)
