@@ -1,9 +1,11 @@
 """Time integrators on the :class:`integrators.base.Integrator` protocol.
 
 ``INTEGRATORS`` maps the names used in configs to the classes. The core are
-velocity Verlet, leapfrog and implicit Euler; the rest of the classical family
-and the higher-order symplectic splittings (Yoshida 4 and 6, PEFRL,
-Blanes-Moan; :mod:`integrators.splitting`) serve accuracy, comparison and
+velocity Verlet, leapfrog and implicit Euler; the rest of the classical family,
+the implicit family (implicit midpoint, the trapezoidal rule, BDF2, two-stage
+Gauss-Legendre, and XPBD for stiff bonds) and the higher-order symplectic
+splittings (Yoshida 4 and 6, PEFRL, Blanes-Moan; :mod:`integrators.splitting`)
+serve accuracy, comparison and
 teaching (``md integrators`` measures them all). The thermostats (Langevin,
 Bussi, Nose-Hoover chains, Berendsen) sample at a temperature; they and
 :class:`Rattle` (velocity Verlet with SHAKE/RATTLE) take rigid-bond
@@ -16,9 +18,11 @@ from md.errors import ConstraintError
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
     from integrators.base import ConvergenceError, Integrator
+    from integrators.bdf2 import BDF2
     from integrators.berendsen import Berendsen
     from integrators.bussi import Bussi
     from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
+    from integrators.gauss_legendre import GaussLegendre4
     from integrators.implicit_euler import ImplicitEuler, ImplicitMidpoint
     from integrators.langevin import Langevin
     from integrators.leapfrog import Leapfrog
@@ -35,7 +39,9 @@ with kernel_cache():
         Yoshida6,
     )
     from integrators.stormer_verlet import StormerVerlet
+    from integrators.trapezoidal import Trapezoidal
     from integrators.velocity_verlet import VelocityVerlet
+    from integrators.xpbd import XPBD
 
 INTEGRATORS = {
     "verlet": VelocityVerlet,
@@ -55,6 +61,10 @@ INTEGRATORS = {
     "rkf45": RKF45,
     "implicit_euler": ImplicitEuler,
     "implicit_midpoint": ImplicitMidpoint,
+    "trapezoidal": Trapezoidal,
+    "bdf2": BDF2,
+    "gauss_legendre4": GaussLegendre4,
+    "xpbd": XPBD,
     "rattle": Rattle,
     "langevin": Langevin,
     "bussi": Bussi,
@@ -64,6 +74,7 @@ INTEGRATORS = {
 }
 
 __all__ = [
+    "BDF2",
     "INTEGRATORS",
     "RESPA",
     "RK4",
@@ -76,6 +87,7 @@ __all__ = [
     "ConstraintError",
     "ConvergenceError",
     "ExplicitEuler",
+    "GaussLegendre4",
     "ImplicitEuler",
     "ImplicitMidpoint",
     "Integrator",
@@ -87,7 +99,9 @@ __all__ = [
     "Splitting",
     "StormerVerlet",
     "SymplecticEuler",
+    "Trapezoidal",
     "VelocityVerlet",
+    "XPBD",
     "Yoshida4",
     "Yoshida6",
 ]

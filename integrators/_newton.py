@@ -81,6 +81,18 @@ def check_solver_options(tol: float, max_iter: int, linear_solver: str) -> tuple
     return tol, int(max_iter), linear_solver
 
 
+def not_converged(step: int, residual: float, name: str, max_iter: int,
+                  tol: float) -> ConvergenceError:  # fmt: skip
+    """The error of a Newton solve that used its ``max_iter`` iterations."""
+    return ConvergenceError(
+        step,
+        residual,
+        f"step {step}: {name} Newton solve did not converge in {max_iter} iteration(s) "
+        f"(residual {residual:.3g} > tol {tol:g}); try a smaller dt, a larger max_iter or a "
+        "looser tol",
+    )
+
+
 def new_statistics() -> dict[str, int]:
     """Return zeroed cumulative solver counters."""
     return {
@@ -94,7 +106,21 @@ def new_statistics() -> dict[str, int]:
     }
 
 
-class IncrementalSolver:
+class NewtonOptions:
+    """What every Newton solver of the implicit family holds: its options, the
+    ``statistics`` it adds to, and the predictor's ``history``, M^-1 F at the
+    start of the last solves (oldest first, at most :data:`PREDICTOR_HISTORY`,
+    each (3N,)), which the predictor extrapolates and checkpoints keep."""
+
+    def __init__(self, tol: float, max_iter: int, linear_solver: str, statistics: dict) -> None:
+        self.tol = tol
+        self.max_iter = max_iter
+        self.linear_solver = linear_solver
+        self.statistics = statistics
+        self.history: list[np.ndarray] = []
+
+
+class IncrementalSolver(NewtonOptions):
     """Minimise the incremental potential of one implicit step by Newton's method.
 
     Convergence is measured by the scale-aware residual
@@ -140,16 +166,12 @@ class IncrementalSolver:
     """
 
     def __init__(self, tol: float, max_iter: int, linear_solver: str, statistics: dict) -> None:
-        self.tol = tol
-        self.max_iter = max_iter
-        self.linear_solver = linear_solver
-        self.statistics = statistics
-        #: M^-1 F at the start of the last solves (oldest first, at most
-        #: PREDICTOR_HISTORY, each (3N,)): the predictor extrapolates them.
-        self.history: list[np.ndarray] = []
+        super().__init__(tol, max_iter, linear_solver, statistics)
         self._masses = None  # (atom masses, per-coordinate masses, their inverses)
 
-    def solve(self, state, forcefield, h: float, name: str, reach: float = 1.0) -> np.ndarray:
+    def solve(
+        self, state, forcefield, h: float, name: str, reach: float = 1.0, velocities=None
+    ) -> np.ndarray:
         """Return the displacement ``dx`` (N, 3) that makes Phi stationary.
 
         On return ``state.positions`` holds ``x0 + dx`` and ``forcefield``
@@ -158,17 +180,21 @@ class IncrementalSolver:
         is raised; ``name`` labels the method in the message. ``reach`` is
         the time ``x0 + dx`` stands for, in steps from ``x0`` (1 for implicit
         Euler, 1/2 for the midpoint): the predictor extrapolates the
-        accelerations of the last steps to it.
+        accelerations of the last steps to it. ``velocities`` (N, 3) replaces
+        ``v0`` = ``state.velocities`` in Phi: a method whose step equation is
+        ``M (dx - s) = h^2 F(x0 + dx)`` with another known shift ``s`` (the
+        trapezoidal rule, BDF2) passes ``s / h``.
         """
         x0 = state.positions.copy()
+        velocities = state.velocities if velocities is None else velocities
         try:
-            return self._solve(state, forcefield, h, name, x0, reach)
+            return self._solve(state, forcefield, h, name, x0, reach, velocities)
         except BaseException:
             state.positions[:] = x0
             raise
 
     # ------------------------------------------------------------------ solve
-    def _solve(self, state, forcefield, h, name, x0, reach):
+    def _solve(self, state, forcefield, h, name, x0, reach, velocities):
         stats = self.statistics
         step = state.step + 1
         masses, inverse_masses = self._mass_vectors(state.masses)
@@ -180,7 +206,7 @@ class IncrementalSolver:
         accelerations = np.empty_like(forces0)
         predicted = np.empty_like(forces0)
         largest_acceleration, largest_target = _in_chunks(
-            _start_terms, _start_terms_threaded, state.velocities.ravel(), forces0,
+            _start_terms, _start_terms_threaded, velocities.ravel(), forces0,
             inverse_masses, h, h2, target, accelerations, predicted,
         )  # fmt: skip
         history = [a for a in self.history if a.shape == accelerations.shape]
@@ -188,7 +214,7 @@ class IncrementalSolver:
             # The acceleration at x0 + dx, extrapolated from this and the last steps'
             # (Lagrange, in steps): the prediction's error falls from O(h^3) to
             # O(h^(3 + len(history))), a Newton iteration in about one step of ten.
-            weights = _extrapolation_weights(len(history), reach)
+            weights = extrapolation_weights(len(history), reach)
             _extrapolate(target, h2, weights, accelerations, history[-1],
                          history[0] if len(history) > 1 else history[-1], predicted)  # fmt: skip
         scale = max(largest_acceleration, largest_target / h2)
@@ -264,13 +290,7 @@ class IncrementalSolver:
                 )
             dx, phi, grad, residual, noise, _ = accepted
         if not residual <= self.tol:
-            raise ConvergenceError(
-                step,
-                residual,
-                f"step {step}: {name} Newton solve did not converge in {self.max_iter} "
-                f"iteration(s) (residual {residual:.3g} > tol {self.tol:g}); "
-                "try a smaller dt, a larger max_iter or a looser tol",
-            )
+            raise not_converged(step, residual, name, self.max_iter, self.tol)
         stats["steps"] += 1
         self.history = (history + [accelerations])[-PREDICTOR_HISTORY:]
         return dx.reshape(x0.shape)
@@ -511,7 +531,7 @@ def _jacobi(diagonal, h2, hessian_diagonal):
     return out
 
 
-def _extrapolation_weights(n_history: int, reach: float) -> tuple[float, float, float]:
+def extrapolation_weights(n_history: int, reach: float) -> tuple[float, float, float]:
     """Lagrange weights of a(0), a(-1), a(-2) (steps) for a(reach), from the newest
     ``n_history`` + 1 of them (linear or quadratic); unused ones are 0."""
     t = float(reach)

@@ -31,6 +31,7 @@ import numpy as np
 from integrators.base import IntegratorBase, check_dt
 from integrators.rattle import as_constraints, constrained_thermo_terms
 from md._checks import positive
+from md.parallel import global_sum
 from md.schema import REQUIRED, Key
 
 # The keys the thermostats share (each class lists its own in CONFIG_KEYS).
@@ -85,6 +86,11 @@ class Thermostat(IntegratorBase):
     supports_constraints = True
     #: Whether it samples the canonical ensemble (Berendsen does not).
     canonical = True
+    #: The random stream of a stochastic thermostat drawn in sequence (Bussi), whose state
+    #: checkpoints keep; None for one keyed by step and atom (Langevin).
+    rng: np.random.Generator | None = None
+    #: Runs decomposed over MPI ranks (its sums are global; not with constraints).
+    distributed = True
     _saved: tuple[str, ...] = ()
 
     def __init__(self, dt, temperature, kB=1.0, constraints=None, fix_com=True) -> None:
@@ -127,7 +133,7 @@ class Thermostat(IntegratorBase):
 
     def thermo_terms(self, state, result) -> dict:
         """Degrees of freedom, constraint virial and reservoir energy for ``Simulation.thermo``."""
-        n_dof = self.degrees_of_freedom(state.n_atoms)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
         terms = constrained_thermo_terms(self.constraints, n_dof, state, result)
         terms["reservoir_energy"] = self.reservoir_energy()
         return terms
@@ -141,7 +147,7 @@ class Thermostat(IntegratorBase):
         for name in self._saved:
             value = getattr(self, name)
             saved[name] = value.tolist() if isinstance(value, np.ndarray) else copy.deepcopy(value)
-        if self.stochastic:
+        if self.rng is not None:
             saved["rng"] = copy.deepcopy(self.rng.bit_generator.state)
         if self.constraints is not None:
             saved["constraints"] = self.constraints.get_state()
@@ -160,7 +166,7 @@ class Thermostat(IntegratorBase):
                     raise ValueError(f"saved {name} has shape {value.shape}, "
                                      f"expected {current.shape}")  # fmt: skip
             setattr(self, name, value)
-        if self.stochastic:
+        if self.rng is not None:
             self.rng.bit_generator.state = copy.deepcopy(saved["rng"])
         if self.constraints is not None and "constraints" in saved:
             self.constraints.set_state(saved["constraints"])

@@ -60,8 +60,9 @@ from integrators.mtk import MartynaTobiasKlein
 from md._checks import MAX_SEED, count, positive
 from md.box import TILT_AXES, reduced_tilt
 from md.errors import SimulationError
+from md.parallel import global_sum
 from md.schema import REQUIRED, Key, Varies
-from md.thermo import kinetic_energy, pressure, pressure_tensor
+from md.thermo import kinetic_energy, kinetic_tensor, pressure
 
 #: Barostat types and whether they sample the isothermal-isobaric ensemble.
 BAROSTATS = {"c_rescale": True, "mtk": True, "berendsen": False}
@@ -152,10 +153,14 @@ class Barostat:
         return BAROSTATS[self.kind]
 
     def scale_factor(self, p_now: float, volume: float, kT: float, dt: float) -> float:
-        """The isotropic scale factor mu of one move lasting ``dt``."""
+        """The isotropic scale factor mu of one move lasting ``dt``.
+
+        For ``berendsen`` the real cube root: zero or negative when the move
+        overshoots (``beta dt (P0 - P) / tau > 1``), which the caller reports.
+        """
         rate = self.compressibility / self.tau
-        if self.kind == "berendsen":
-            return (1.0 - rate * dt * (self.pressure - p_now)) ** (1.0 / 3.0)
+        if self.kind == "berendsen":  # the real cube root: negative when the move overshoots
+            return float(np.cbrt(1.0 - rate * dt * (self.pressure - p_now)))
         drift = -rate * (self.pressure - p_now - kT / volume) * dt
         noise = math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
         return math.exp((drift + noise) / 3.0)
@@ -186,6 +191,43 @@ class Barostat:
                     shear += math.sqrt(2.0 * kT * rate * dt / volume) * self.rng.standard_normal()
                 mu[a, b] = shear
         return mu
+
+    def check(self, pbc) -> None:
+        """Raise ValueError if this barostat cannot act on a system with periodicity ``pbc``.
+
+        A pressure needs a volume, which only periodic axes give: ``mtk`` needs
+        all three periodic; the others at least one, and isotropic coupling
+        (which scales every edge alike) all three, since it would also scale
+        the nominal length of an open axis.
+        """
+        flags = [bool(p) for p in pbc]
+        if all(flags):
+            return
+        open_axes = ", ".join("xyz"[k] for k in range(3) if not flags[k])
+        if self.kind == "mtk":
+            raise ValueError(
+                f"the mtk barostat needs a box periodic along x, y and z; the system is open "
+                f"along {open_axes} (pbc {flags})"
+            )
+        if not any(flags):
+            raise ValueError(
+                f"the {self.kind} barostat needs periodic axes (a volume to scale); the system "
+                f"is periodic along none (pbc {flags}): drop [barostat] or make the box periodic"
+            )
+        if self.couple == "isotropic":
+            raise ValueError(
+                f"isotropic coupling scales all three edges, but the system is open along "
+                f"{open_axes} (pbc {flags}); use couple = 'anisotropic' (or 'triclinic'), which "
+                "scales only the periodic edges"
+            )
+
+    def overshoot(self, what: str) -> str:
+        """The message for a move that overshot: what went wrong, and what to change."""
+        return (
+            f"the {self.kind} barostat's {what}: its move overshoots (the pressure is too far "
+            "from the target for the coupling); use a larger [barostat] tau, or a target "
+            "pressure nearer the current one"
+        )
 
     def describe(self) -> dict:
         if self.kind == "mtk":
@@ -226,6 +268,7 @@ class PressureCoupled(IntegratorBase):
 
     stochastic = True
     splits_forces = False
+    distributed = True
 
     def __init__(self, integrator, barostat: Barostat) -> None:
         if barostat.kind == "mtk":
@@ -259,28 +302,33 @@ class PressureCoupled(IntegratorBase):
 
     def _move(self, state, forcefield) -> None:
         barostat = self.barostat
+        barostat.check(state.pbc)
         result = forcefield.compute(state, virial=True)
         terms = self.inner.thermo_terms(state, result)
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
         volume = state.volume
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         before = kinetic + result.energy
         interval = self.dt * barostat.every
         if barostat.couple == "isotropic":
             p_now = pressure(kinetic, virial, volume)
             mu = barostat.scale_factor(p_now, volume, self.kT, interval)
             if not (math.isfinite(mu) and mu > 0):
-                raise SimulationError(state.step, f"the barostat's scale factor is {mu}")
+                raise SimulationError(state.step, barostat.overshoot(f"scale factor is {mu:.4g}"))
             state.positions *= mu
             state.box = state.box * mu
             state.tilt = state.tilt * mu
             if barostat.kind == "c_rescale":
                 state.velocities /= mu
         else:
-            tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
+            kinetic_part = global_sum(kinetic_tensor(state.velocities, state.masses))
+            tensor = (kinetic_part + virial) / volume
             mu = barostat.deformation(tensor, volume, self.kT, interval, state.pbc)
             if not (np.all(np.isfinite(mu)) and np.all(np.diag(mu) > 0)):
-                raise SimulationError(state.step, f"the barostat's deformation is {mu.tolist()}")
+                scales = ", ".join(f"{x:.4g}" for x in np.diag(mu))
+                raise SimulationError(
+                    state.step, barostat.overshoot(f"scale factors of the edges are {scales}")
+                )
             cell = state.cell @ mu
             state.positions[:] = state.positions @ mu
             state.box = np.diag(cell).copy()
@@ -290,8 +338,10 @@ class PressureCoupled(IntegratorBase):
         try:
             energy = forcefield.compute(state, virial=False).energy
         except ValueError as error:  # the box shrank below what the cutoff allows
-            raise SimulationError(state.step, f"after a barostat move: {error}") from None
-        after = kinetic_energy(state.velocities, state.masses) + energy
+            raise SimulationError(
+                state.step, barostat.overshoot(f"move left a box the cutoff does not fit ({error})")
+            ) from None
+        after = global_sum(kinetic_energy(state.velocities, state.masses)) + energy
         barostat.reservoir -= (after - before) + barostat.pressure * (state.volume - volume)
         barostat.moves += 1
 

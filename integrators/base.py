@@ -12,7 +12,9 @@ protocol               members                                     used by
 :class:`ThermoTerms`   ``thermo_terms(state, result)``             Simulation.thermo
 :class:`Statistics`    ``statistics`` (dict of counters)           md run's summary, barostats
 :class:`Restartable`   ``get_state()``, ``set_state(saved)``       checkpoints
-:class:`ForceSplit`    ``split(forcefield)``                       md.run (RESPA's check)
+:class:`ForceSplit`    ``split(forcefield)``                       md.run (RESPA's, XPBD's check)
+:class:`SupportsAm-    ``amplification(omega_dt)`` (static)        md.damping (theory curves)
+plification`
 =====================  ==========================================  ============================
 
 :class:`IntegratorBase` gives the flags' defaults, ``constraints = None``
@@ -23,6 +25,9 @@ protocol               members                                     used by
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
 
 from md._checks import positive
 from md.errors import ConvergenceError
@@ -70,6 +75,11 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
+    ``distributed`` (optional: False when absent)
+        It runs on one rank's atoms in a run decomposed over MPI ranks
+        (:mod:`md.distributed`): its sums over atoms go through
+        :func:`md.parallel.global_sum`, and its private per-atom arrays, named
+        in ``per_atom_state`` (keys of ``get_state()``), move with their atoms.
 
     ``CONFIG_KEYS`` (a tuple of :class:`md.schema.Key`) declares the keys its
     ``[integrator]`` table takes: one per constructor argument but ``kB``,
@@ -153,6 +163,33 @@ class ForceSplit(Protocol):
     def split(self, forcefield: ForceField) -> tuple[tuple[int, ...], tuple[int, ...]]: ...
 
 
+@runtime_checkable
+class SupportsAmplification(Protocol):
+    """Optional hook: the method's amplification on the harmonic oscillator.
+
+    ``amplification(omega_dt)`` returns the roots of the characteristic
+    polynomial of the method applied to x'' = -omega^2 x with step dt, as
+    :func:`amplification_roots` orders them: the principal root first (the
+    one that follows the exact e^(i omega dt) as omega dt -> 0; for the
+    methods here, the one of largest modulus). Its modulus is the amplitude
+    ratio per step, below 1 for a method that damps; its argument the phase
+    per step, omega dt when exact. A one-step method has two roots (the
+    conjugate pair), a k-step method 2k.
+    """
+
+    @staticmethod
+    def amplification(omega_dt: float) -> NDArray[np.complex128]: ...
+
+
+def amplification_roots(*polynomials) -> NDArray[np.complex128]:
+    """Return the roots of the product of ``polynomials`` (coefficients, highest
+    power first), the largest modulus first and of a conjugate pair the one with
+    the non-negative imaginary part first."""
+    roots = np.concatenate([np.roots(np.asarray(p, dtype=np.complex128)) for p in polynomials])
+    order = np.lexsort((-roots.imag, -np.round(np.abs(roots), 12)))
+    return roots[order]
+
+
 #: The time step, a key of every integrator's config table.
 DT = Key("dt", "number", REQUIRED, unit="time", positive=True, doc="The time step.")
 
@@ -177,6 +214,8 @@ class IntegratorBase:
     adaptive: ClassVar[bool] = False
     splits_forces: ClassVar[bool] = False
     order: ClassVar[int | None] = None
+    distributed: ClassVar[bool] = False
+    per_atom_state: ClassVar[tuple[str, ...]] = ()
 
     def reset(self) -> None:
         """Drop private history (nothing, for a one-step method)."""
@@ -211,7 +250,9 @@ __all__ = [
     "IntegratorBase",
     "Restartable",
     "Statistics",
+    "SupportsAmplification",
     "ThermoTerms",
+    "amplification_roots",
     "check_dt",
     "constraints_of",
 ]

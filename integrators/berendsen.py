@@ -10,6 +10,7 @@ from integrators._thermostat import FIX_COM, TAU, TEMPERATURE, Thermostat
 from integrators.base import DT
 from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
+from md.parallel import global_sum
 from md.thermo import kinetic_energy
 
 logger = logging.getLogger(__name__)
@@ -94,8 +95,8 @@ class Berendsen(Thermostat):
     def step(self, state, forcefield) -> None:
         self._prepare(state)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
-        n_dof = self.degrees_of_freedom(state.n_atoms)
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         if kinetic > 0.0 and n_dof > 0:
             temperature = 2.0 * kinetic / (n_dof * self.kB)
             factor = 1.0 + self.dt / self.tau * (self.temperature / temperature - 1.0)

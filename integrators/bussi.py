@@ -11,6 +11,7 @@ from integrators._thermostat import FIX_COM, SEED, TAU, TEMPERATURE, Thermostat,
 from integrators.base import DT
 from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
+from md.parallel import global_sum
 from md.thermo import kinetic_energy
 
 
@@ -84,7 +85,7 @@ class Bussi(Thermostat):
 
     def step(self, state, forcefield) -> None:
         self._prepare(state)
-        n_dof = self.degrees_of_freedom(state.n_atoms)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
         c = math.exp(-0.5 * self.dt / self.tau)
         self._rescale(state, n_dof, c)
         constrained_verlet_step(state, forcefield, self.dt, self.constraints)
@@ -92,7 +93,7 @@ class Bussi(Thermostat):
         self._advance(state)
 
     def _rescale(self, state, n_dof: int, c: float) -> None:
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         if kinetic <= 0.0 or n_dof <= 0:
             return  # nothing to rescale: a system at rest stays at rest
         target = 0.5 * n_dof * self.kT

@@ -32,6 +32,7 @@ class ExplicitEuler(IntegratorBase):
     """
 
     order = 1
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
@@ -75,6 +76,7 @@ class SymplecticEuler(IntegratorBase):
     """
 
     order = 1
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)

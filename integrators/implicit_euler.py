@@ -22,12 +22,15 @@ from integrators._newton import (
     check_solver_options,
     new_statistics,
 )
-from integrators.base import DT, IntegratorBase, check_dt
+from integrators.base import DT, IntegratorBase, amplification_roots, check_dt
 from md.schema import Key
 
 
-class _ImplicitBase(IntegratorBase):
-    """Options, statistics and the solver shared by the two implicit methods."""
+class ImplicitBase(IntegratorBase):
+    """Options, statistics, the Newton solver and its checkpointed predictor history,
+    shared by the implicit methods built on :class:`integrators._newton.IncrementalSolver`
+    (implicit Euler, implicit midpoint, the trapezoidal rule, BDF2) and by
+    Gauss-Legendre (whose stage solver keeps the same ``history``)."""
 
     _type = ""
     _label = ""
@@ -101,7 +104,14 @@ class _ImplicitBase(IntegratorBase):
         return {"type": self._type, "dt": self.dt, "tol": self.tol, "max_iter": self.max_iter}
 
 
-class ImplicitEuler(_ImplicitBase):
+def cayley_roots(omega_dt: float):
+    """Roots of (1 + z^2/4) rho^2 - 2 (1 - z^2/4) rho + (1 + z^2/4), z = omega dt: the
+    amplification of implicit midpoint and the trapezoidal rule on linear forces."""
+    q = 0.25 * float(omega_dt) ** 2
+    return amplification_roots([1.0 + q, -2.0 * (1.0 - q), 1.0 + q])
+
+
+class ImplicitEuler(ImplicitBase):
     r"""Implicit (backward) Euler: first order, unconditionally stable, dissipative.
 
     .. math::
@@ -172,6 +182,13 @@ class ImplicitEuler(_ImplicitBase):
     _type = "implicit_euler"
     _label = "implicit Euler"
 
+    @staticmethod
+    def amplification(omega_dt: float):
+        """rho = 1 / (1 -+ i omega dt), the roots of (1 + (omega dt)^2) rho^2 - 2 rho + 1:
+        the amplitude shrinks by 1 / sqrt(1 + (omega dt)^2) per step."""
+        z2 = float(omega_dt) ** 2
+        return amplification_roots([1.0 + z2, -2.0, 1.0])
+
     def step(self, state, forcefield) -> None:
         """Advance ``state`` by ``dt`` in place."""
         displacement = self._solver.solve(state, forcefield, self.dt, self._label)
@@ -180,7 +197,7 @@ class ImplicitEuler(_ImplicitBase):
         self.end_step(state)
 
 
-class ImplicitMidpoint(_ImplicitBase):
+class ImplicitMidpoint(ImplicitBase):
     r"""Implicit midpoint rule: second order, symplectic, time-reversible.
 
     .. math::
@@ -224,6 +241,12 @@ class ImplicitMidpoint(_ImplicitBase):
 
     _type = "implicit_midpoint"
     _label = "implicit midpoint"
+
+    @staticmethod
+    def amplification(omega_dt: float):
+        """rho = (1 +- i omega dt / 2) / (1 -+ i omega dt / 2) (the Cayley transform):
+        ``|rho| = 1`` for every omega dt, phase 2 atan(omega dt / 2) per step."""
+        return cayley_roots(omega_dt)
 
     def step(self, state, forcefield) -> None:
         """Advance ``state`` by ``dt`` in place."""

@@ -8,10 +8,12 @@ import numpy as np
 from numba import njit
 
 from integrators._kernels import _drift, kick
-from integrators._thermostat import FIX_COM, SEED, TEMPERATURE, Thermostat, make_rng
+from integrators._noise import gaussian_noise, seed_key
+from integrators._thermostat import FIX_COM, SEED, TEMPERATURE, Thermostat
 from integrators.base import DT
 from integrators.rattle import CONSTRAINTS
 from md._checks import positive
+from md.parallel import global_sum
 from md.schema import REQUIRED, Key
 
 
@@ -44,8 +46,14 @@ class Langevin(Thermostat):
     after O and at the end of the step: the geodesic form of BAOAB with one
     drift per A.
 
-    The run is reproducible from ``seed``; :meth:`get_state` includes the
-    generator's state, so a checkpointed run continues with the same noise.
+    The noise is counter-based: atom i's three numbers at step n are
+    Philox4x64-10 of the counter (n, i) under a key drawn from ``seed``
+    (:mod:`integrators._noise`), so the trajectory depends on the seed alone,
+    not on the order of the atoms or on how a decomposed run splits them over
+    MPI ranks (``state.ids`` names each atom), and a checkpointed run (which
+    keeps the key) continues with the same noise. (Before this stream,
+    Langevin drew from numpy's sequential generator: a run resumed from a
+    checkpoint written then continues with the new stream.)
     ``reservoir_energy`` is minus the kinetic energy the O steps added
     (the heat taken by the bath).
 
@@ -62,7 +70,8 @@ class Langevin(Thermostat):
         Boltzmann constant [energy/temperature] (1 in reduced units; ``md.units.kB``
         in metal units).
     seed : int, list of int, numpy Generator or None
-        Seed of the random stream (None: fresh entropy, not reproducible).
+        Seed of the noise's key (None: fresh entropy, not reproducible; a
+        Generator: the key is drawn from it).
     constraints : BondConstraints or array_like of int, shape (B, 2), optional
         Rigid bonds (see :class:`integrators.rattle.BondConstraints`).
     fix_com : bool
@@ -105,8 +114,9 @@ class Langevin(Thermostat):
         super().__init__(dt, temperature, kB, constraints, fix_com)
         self.friction = positive(friction, "friction", allow_zero=True)
         self.seed = seed if not isinstance(seed, np.random.Generator) else None
-        self.rng = make_rng(seed)
+        self.key = seed_key(seed)
         self._noise: np.ndarray | None = None
+        self._ids = np.zeros(0, dtype=np.int64)
 
     @classmethod
     def coupling(cls, tau: float) -> dict:
@@ -124,7 +134,6 @@ class Langevin(Thermostat):
             self._noise = np.empty_like(state.velocities)
         c = math.exp(-self.friction * dt)
         sigmas = np.sqrt((1.0 - c * c) * self.kT * inverse_masses)
-        fix_com = self.fix_com and state.n_atoms > 1
 
         # With constraints, a velocity component off the constraint surface before a drift
         # is exactly what SHAKE's correction removes, so projections (RATTLE) are needed
@@ -132,18 +141,42 @@ class Langevin(Thermostat):
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)  # B
         self._drift(state, half, inverse_masses, step, project=True)  # A
-        self.rng.standard_normal(out=self._noise)  # O
+        gaussian_noise(self.key, step, self._atom_ids(state), self._noise)  # O
         before = _kinetic(state.velocities, masses)
-        _ornstein_uhlenbeck(state.velocities, self._noise, masses, sigmas, c, fix_com)
+        # The noise's momentum and mass, and the atom count, over every rank.
+        total = global_sum(np.array([*_scale_noise(self._noise, masses, sigmas), state.n_atoms]))
+        drift = total[:3] / total[3] if self.fix_com and total[4] > 1 else np.zeros(3)
+        _relax(state.velocities, self._noise, c, drift)
         if constraints is not None:
             constraints.rattle(state, dt, inverse_masses, step)
-        self.reservoir -= _kinetic(state.velocities, masses) - before
+        self.reservoir -= global_sum(_kinetic(state.velocities, masses) - before)
         self._drift(state, half, inverse_masses, step, project=False)  # A
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)  # B
         if constraints is not None:
             constraints.rattle(state, dt, inverse_masses, step)
         self._advance(state)
+
+    def _atom_ids(self, state) -> np.ndarray:
+        """Each atom's id in the whole system: ``state.ids``, or its index."""
+        if state.ids is not None:
+            return state.ids
+        if self._ids.shape[0] != state.n_atoms:
+            self._ids = np.arange(state.n_atoms, dtype=np.int64)
+        return self._ids
+
+    def get_state(self) -> dict:
+        """As :meth:`Thermostat.get_state`, with the noise's key."""
+        saved = super().get_state()
+        saved["key"] = [int(word) for word in self.key]
+        return saved
+
+    def set_state(self, saved: dict) -> None:
+        """As :meth:`Thermostat.set_state`; the key too, if the checkpoint has one (older
+        ones, of the sequential stream, do not: the seed's key serves)."""
+        super().set_state(saved)
+        if "key" in saved:
+            self.key = np.array(saved["key"], dtype=np.uint64)
 
     def _drift(self, state, duration, inverse_masses, step, project) -> None:
         constraints = self.constraints
@@ -178,16 +211,13 @@ def _kinetic(velocities, masses):
 
 
 @njit(cache=True, error_model="numpy")
-def _ornstein_uhlenbeck(velocities, noise, masses, sigmas, c, fix_com):
-    """v = c v + sigma_i xi_i in place; noise (N, 3) holds xi and is overwritten by
-    sigma_i xi_i. With fix_com the noise's centre-of-mass velocity is removed first
-    (the mass-weighted projection, exact for any masses)."""
-    n = velocities.shape[0]
+def _scale_noise(noise, masses, sigmas):
+    """noise_i *= sigma_i in place; return the noise's momentum (px, py, pz) and the mass."""
     px = 0.0
     py = 0.0
     pz = 0.0
     total_mass = 0.0
-    for i in range(n):
+    for i in range(noise.shape[0]):
         s = sigmas[i]
         noise[i, 0] *= s
         noise[i, 1] *= s
@@ -196,18 +226,17 @@ def _ornstein_uhlenbeck(velocities, noise, masses, sigmas, c, fix_com):
         py += masses[i] * noise[i, 1]
         pz += masses[i] * noise[i, 2]
         total_mass += masses[i]
-    if fix_com:
-        px /= total_mass
-        py /= total_mass
-        pz /= total_mass
-    else:
-        px = 0.0
-        py = 0.0
-        pz = 0.0
-    for i in range(n):
-        velocities[i, 0] = c * velocities[i, 0] + noise[i, 0] - px
-        velocities[i, 1] = c * velocities[i, 1] + noise[i, 1] - py
-        velocities[i, 2] = c * velocities[i, 2] + noise[i, 2] - pz
+    return px, py, pz, total_mass
+
+
+@njit(cache=True, error_model="numpy")
+def _relax(velocities, noise, c, drift):
+    """v = c v + noise - drift in place (``drift``: the noise's centre-of-mass velocity, or
+    zeros): the O step of BAOAB."""
+    for i in range(velocities.shape[0]):
+        velocities[i, 0] = c * velocities[i, 0] + noise[i, 0] - drift[0]
+        velocities[i, 1] = c * velocities[i, 1] + noise[i, 1] - drift[1]
+        velocities[i, 2] = c * velocities[i, 2] + noise[i, 2] - drift[2]
 
 
 __all__ = ["Langevin"]

@@ -63,6 +63,8 @@ class Leapfrog(IntegratorBase):
     """
 
     order = 2
+    distributed = True
+    per_atom_state = ("half_velocities",)
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)

@@ -56,6 +56,7 @@ from integrators.base import IntegratorBase
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, NoseHooverChain, chain_half_step
 from md.box import reduced_tilt
 from md.errors import SimulationError
+from md.parallel import global_sum
 from md.thermo import kinetic_tensor
 
 #: Upper off-diagonal entries (row, column) of Omega, in column convention, freed by
@@ -109,6 +110,7 @@ class MartynaTobiasKlein(IntegratorBase):
     stochastic = False
     canonical = True
     supports_constraints = False
+    distributed = True
 
     def __init__(self, thermostat, barostat) -> None:
         if not isinstance(thermostat, NoseHooverChain):
@@ -159,9 +161,8 @@ class MartynaTobiasKlein(IntegratorBase):
 
     # ------------------------------------------------------------------- step
     def step(self, state, forcefield) -> None:
-        if not np.all(state.pbc):
-            raise ValueError("the mtk barostat needs a box periodic along x, y and z")
-        n_dof = self.chain.degrees_of_freedom(state.n_atoms)
+        self.barostat.check(state.pbc)
+        n_dof = self.chain.degrees_of_freedom(global_sum(state.n_atoms))
         if n_dof <= 0:
             raise ValueError(f"no degrees of freedom left to thermostat ({state.n_atoms} atoms)")
         half = 0.5 * self.dt
@@ -192,7 +193,7 @@ class MartynaTobiasKlein(IntegratorBase):
     def _kick_cell(self, state, virial, n_dof: int, duration: float) -> None:
         """Omega += duration * (V (P_int - P0) + 2K / N_f) / W on the free components."""
         velocities = state.velocities
-        kinetic = kinetic_tensor(velocities, state.masses)  # sum_i m_i v_i v_i^T
+        kinetic = global_sum(kinetic_tensor(velocities, state.masses))  # sum_i m_i v_i v_i^T
         force = kinetic + virial
         force[np.diag_indices(3)] += (
             np.trace(kinetic) / n_dof - self.barostat.pressure * state.volume
@@ -229,7 +230,7 @@ class MartynaTobiasKlein(IntegratorBase):
     # ----------------------------------------------------------- bookkeeping
     def thermo_terms(self, state, result) -> dict:
         terms = dict(self.chain.thermo_terms(state, result))
-        n_dof = terms.get("n_dof", self.chain.degrees_of_freedom(state.n_atoms))
+        n_dof = terms.get("n_dof", self.chain.degrees_of_freedom(global_sum(state.n_atoms)))
         q = self._chain_masses()
         kT = self.kT
         barostat_chain = (

@@ -12,6 +12,7 @@ from integrators._thermostat import FIX_COM, TAU, TEMPERATURE, Thermostat, check
 from integrators.base import DT
 from integrators.rattle import CONSTRAINTS, constrained_verlet_step
 from md._checks import positive
+from md.parallel import global_sum
 from md.schema import Key
 from md.thermo import kinetic_energy
 
@@ -116,7 +117,7 @@ class NoseHooverChain(Thermostat):
 
     def step(self, state, forcefield) -> None:
         self._prepare(state)
-        n_dof = self.degrees_of_freedom(state.n_atoms)
+        n_dof = self.degrees_of_freedom(global_sum(state.n_atoms))
         if n_dof <= 0:
             raise ValueError(f"no degrees of freedom left to thermostat ({state.n_atoms} atoms)")
         half = 0.5 * self.dt
@@ -132,7 +133,7 @@ class NoseHooverChain(Thermostat):
         Martyna-Tobias-Klein integrator calls this for its particle chain).
         """
         self._n_dof = n_dof
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         scale = chain_half_step(self.xi, self.v_xi, self.masses(n_dof), kinetic, float(n_dof),
                                 self.kT, duration, YOSHIDA_WEIGHTS, self.n_substeps)  # fmt: skip
         state.velocities *= scale

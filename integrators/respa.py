@@ -49,6 +49,7 @@ class RESPA(IntegratorBase):
     """
 
     order = 2
+    distributed = True
     splits_forces = True
     CONFIG_KEYS = (
         replace(DT, doc="The outer time step: the slow forces' step."),

@@ -23,6 +23,7 @@ from numba import njit
 from integrators.base import DT, ConvergenceError, IntegratorBase, check_dt
 from md._checks import positive
 from md.errors import NonFiniteError
+from md.parallel import global_max
 from md.schema import Key
 
 
@@ -119,6 +120,7 @@ class RK4(IntegratorBase):
     """
 
     order = 4
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
@@ -210,6 +212,7 @@ class RKF45(IntegratorBase):
     #: The step size is chosen by the error control, so ``dt`` only sets the
     #: output times; an order of accuracy in ``dt`` is not meaningful.
     adaptive = True
+    distributed = True
     CONFIG_KEYS = (
         replace(DT, doc="The output time step (the substeps are the error control's)."),
         Key("tol", "number", 1e-8,
@@ -280,7 +283,7 @@ class RKF45(IntegratorBase):
                     take, last = h, False
                 try:
                     work.advance(state, forcefield, _RKF45, take, inverse_masses)
-                    error = _error_norm(work.kx, work.kv, _RKF45.error, take)
+                    error = global_max(_error_norm(work.kx, work.kv, _RKF45.error, take))
                 except NonFiniteError:
                     error = math.inf
                 if error <= self.tol:

@@ -191,6 +191,7 @@ class Splitting(IntegratorBase):
 
     #: The method's order (None: not one of the named tables).
     order: int | None = None
+    distributed = True
 
     def __init__(self, dt: float, table, name: str = "splitting") -> None:
         self.dt = check_dt(dt)

@@ -43,6 +43,7 @@ class StormerVerlet(IntegratorBase):
     """
 
     order = 2
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)

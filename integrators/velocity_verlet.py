@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from integrators._kernels import kick, kick_drift
-from integrators.base import IntegratorBase, check_dt
+from integrators.base import IntegratorBase, amplification_roots, check_dt
 
 
 class VelocityVerlet(IntegratorBase):
@@ -29,6 +29,7 @@ class VelocityVerlet(IntegratorBase):
     """
 
     order = 2
+    distributed = True
 
     def __init__(self, dt: float) -> None:
         self.dt = check_dt(dt)
@@ -41,6 +42,14 @@ class VelocityVerlet(IntegratorBase):
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)
         self.end_step(state)
+
+    @staticmethod
+    def amplification(omega_dt: float):
+        """Roots of rho^2 - (2 - (omega dt)^2) rho + 1 (see
+        :class:`integrators.base.SupportsAmplification`): on the unit circle for
+        omega dt <= 2, one of them outside beyond (the stability limit)."""
+        z2 = float(omega_dt) ** 2
+        return amplification_roots([1.0, -(2.0 - z2), 1.0])
 
     def reset(self) -> None:
         """Nothing to forget: velocity Verlet is a one-step method."""

@@ -1185,3 +1185,41 @@ def _largest_coordinates(positions, copy):
             if not x <= largest[a]:  # also NaN
                 largest[a] = x if np.isfinite(x) else np.inf
     return largest[0], largest[1], largest[2]
+
+
+@njit(cache=True, error_model="numpy")
+def _keep_owned_pairs(order, starts, neighbors, codes, ids, n_owned):
+    """Keep, in place, only the listed pairs whose atom with the smaller id is owned; return
+    the new pair count.
+
+    The pair filter of a rank in a decomposed run (``NeighborList.keep_owned``): atoms
+    ``0 .. n_owned - 1`` are the rank's own, the rest ghost copies of other ranks' atoms
+    (or periodic images), ``ids`` their global ids. Each pair of the whole system is then
+    kept on exactly one rank, and ghost-ghost pairs on none. ``order``: the atom in each
+    slot (empty for a list over atom indices); ``codes``: one per pair, or empty. The
+    kept pairs keep their order; ``starts`` is rewritten.
+    """
+    n = starts.shape[0] - 1
+    slot_ids = np.empty(n, dtype=np.int64)
+    slot_owned = np.empty(n, dtype=np.bool_)
+    for p in range(n):
+        a = order[p] if order.shape[0] > 0 else p
+        slot_ids[p] = ids[a]
+        slot_owned[p] = a < n_owned
+    with_codes = codes.shape[0] > 0
+    kept = 0
+    begin = starts[0]
+    for p in range(n):
+        end = starts[p + 1]
+        own_id = slot_ids[p]
+        owned = slot_owned[p]
+        for k in range(begin, end):
+            q = neighbors[k]
+            if owned if own_id < slot_ids[q] else slot_owned[q]:
+                neighbors[kept] = q
+                if with_codes:
+                    codes[kept] = codes[k]
+                kept += 1
+        begin = end
+        starts[p + 1] = kept
+    return kept

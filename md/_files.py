@@ -10,12 +10,16 @@ Readers therefore see the old file or the new one, never a mixture.
 from __future__ import annotations
 
 import contextlib
+import csv
+import errno
 import os
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from md.errors import OutputBusyError
+from md.interrupts import raise_if_stopped
 
 
 def usual_permissions(descriptor: int) -> None:
@@ -65,6 +69,47 @@ def move_into_place(source, target, exclusive: bool = False) -> None:
     sync_directory(target.parent)
 
 
+#: What ``stat`` calls the files that are not regular files, for messages.
+_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def output_target(path) -> Path:
+    """The file that writing the output ``path`` replaces: a symlink's target, else ``path``.
+
+    Outputs are written through a symbolic link into the file it points to
+    (the link stays), and only ever replace regular files: a FIFO, a device
+    node (``/dev/null``), a socket or a directory is refused, never unlinked.
+
+    Raises
+    ------
+    ValueError
+        If ``path`` (or the end of its links) exists and is not a regular file,
+        or its links cannot be followed (a loop); the message names the kind.
+    """
+    path = Path(path)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        return target  # a new file (or a dangling link's target, created as `>` would)
+    except OSError as error:
+        raise ValueError(f"output {path}: {error.strerror}") from None
+    if stat.S_ISREG(mode):
+        return target
+    kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+    via = f" (the target of symlink {path})" if target != path else ""
+    raise ValueError(
+        f"output {target}{via} is {kind}; outputs are written only to regular files "
+        "(--overwrite never replaces anything else): choose another output"
+    )
+
+
 @contextlib.contextmanager
 def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success move it into place durably.
@@ -72,6 +117,10 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     The temporary file exists (empty, with the usual permissions) when the
     block starts, so writers may open it by name in any mode. If the block
     raises, the temporary file is removed and ``path`` is left as it was.
+    A symbolic link is written through (its target is replaced, the link
+    stays); a ``path`` that is not a regular file raises ValueError before
+    anything is written (:func:`output_target`). A full disk raises OSError
+    (ENOSPC) saying "disk full".
 
     Examples
     --------
@@ -82,14 +131,24 @@ def atomic_path(path, exclusive: bool = False) -> Iterator[Path]:
     >>> target.read_text()
     'done'
     """
-    path = Path(path)
-    descriptor, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    path = output_target(path)
+    try:
+        descriptor, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as error:
+        raise output_error(error, path) from None
     temporary = Path(name)
     try:
         usual_permissions(descriptor)
         os.close(descriptor)
         yield temporary
+        raise_if_stopped()  # a stop signal whose KeyboardInterrupt was swallowed
         move_into_place(temporary, path, exclusive=exclusive)
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        if disk_full(error):
+            raise output_error(error, path) from None
+        raise
     except BaseException:
         with contextlib.suppress(OSError):
             temporary.unlink()
@@ -102,6 +161,60 @@ def write_text_atomic(path, text: str) -> None:
         temporary.write_text(text)
 
 
+def write_csv_rows(path, columns: Sequence[str], rows: Iterable[dict]) -> None:
+    """Write ``rows`` (dicts keyed by ``columns``) under a header line; create ``path``
+    exclusively, so an existing file is never replaced (:class:`FileExistsError`)."""
+    with open(path, "x", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_bytes_atomic(path, data: bytes, exclusive: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically and durably (see :func:`atomic_path`).
+
+    Python's own writes report a full disk as ``OSError`` (ENOSPC), which
+    :func:`atomic_path` words as "disk full", removing the temporary file.
+    """
+    with atomic_path(path, exclusive=exclusive) as temporary:
+        temporary.write_bytes(data)
+
+
+def disk_full(error: BaseException) -> bool:
+    """Whether ``error`` says the disk (or the user's quota) is full.
+
+    Python reports it as ``OSError`` with errno ENOSPC or EDQUOT; HDF5 (through
+    h5py) as a ``RuntimeError`` or ``OSError`` whose message carries the C
+    library's text.
+    """
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    text = str(error).lower()
+    return any(
+        words in text
+        for words in ("no space left on device", "disk quota exceeded", "errno = 28,", "disk full")
+    )
+
+
+def output_error(error: BaseException, path, detail: str = "") -> OSError:
+    """The ``OSError`` to report for a failed write of ``path``.
+
+    A full disk (:func:`disk_full`) becomes ENOSPC saying "disk full: cannot
+    write PATH" (and ``detail``); another ``OSError`` is returned unchanged;
+    anything else (HDF5's ``RuntimeError``) becomes an ``OSError`` (EIO)
+    carrying its message.
+    """
+    if disk_full(error):
+        text = str(error)
+        if "disk full" in text:
+            return error if isinstance(error, OSError) else OSError(errno.ENOSPC, text)
+        extra = f"; {detail}" if detail else ""
+        return OSError(errno.ENOSPC, f"disk full: cannot write {path}{extra}")
+    if isinstance(error, OSError):
+        return error
+    return OSError(errno.EIO, f"cannot write {path}: {error}")
+
+
 @contextlib.contextmanager
 def exclusive_claim(path) -> Iterator[Path]:
     """Hold an exclusive claim on ``path`` (a lock file ``PATH.lock``) for the block.
@@ -110,7 +223,8 @@ def exclusive_claim(path) -> Iterator[Path]:
     and host; the kernel drops it when the holder exits, however it exits, so
     a killed run never leaves a stale claim. A second claimant fails at once
     with :class:`OutputBusyError` naming the holder. The lock file is removed
-    when the block ends.
+    when the block ends; a disk too full to hold it raises OSError saying
+    "disk full" (the lock file is removed again).
     """
     import fcntl  # POSIX only, as flock is
 
@@ -137,9 +251,12 @@ def exclusive_claim(path) -> Iterator[Path]:
             break
         os.close(descriptor)
     try:
-        os.ftruncate(descriptor, 0)
-        host = os.uname().nodename if hasattr(os, "uname") else "this host"
-        os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
+        try:
+            os.ftruncate(descriptor, 0)
+            host = os.uname().nodename if hasattr(os, "uname") else "this host"
+            os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
+        except OSError as error:  # a full disk has no room for even these few bytes
+            raise output_error(error, path, f"no room for its lock file {lock_path.name}") from None
         yield lock_path
     finally:
         with contextlib.suppress(OSError):

@@ -49,11 +49,13 @@ def perpendicular_widths(box, tilt=None) -> NDArray[np.float64]:
 
     For an orthorhombic box these are the edges; tilt only makes them shorter.
     The minimum-image convention holds for pairs closer than half the smallest.
+    A zero edge (an open axis without a length, as a slab read without its c
+    vector) counts as a unit edge, so the widths across the others stay finite.
     """
     box = np.asarray(box, dtype=np.float64)
     if is_orthorhombic(tilt):
         return box.copy()
-    h = cell_matrix(box, tilt)
+    h = cell_matrix(np.where(box > 0.0, box, 1.0), tilt)
     volume = abs(np.linalg.det(h))
     a, b, c = h
     return np.array([volume / np.linalg.norm(np.cross(b, c)),
@@ -217,6 +219,58 @@ def reduced_tilt(box, tilt, pbc) -> NDArray[np.float64]:
         xz -= np.rint(xz / box[0]) * box[0]  # c -= m a
         xy -= np.rint(xy / box[0]) * box[0]  # b -= m a
     return np.array([xy, xz, yz])
+
+
+#: Room left between the outermost atom and a side of :func:`enclosing_cell` it defines.
+_MARGIN = 0.5
+
+
+def enclosing_cell(positions, box, pbc, tilt=None):
+    """Return ``(origin, lengths, tilt)`` of a cell that holds the atoms along open axes.
+
+    What viewers and file formats that need a box with a volume are given.
+    Periodic axes keep their edge (origin 0); an open axis spans its stored
+    edge ``[0, L]``, widened where atoms lie outside it, or, where the edge is
+    zero (a cluster or slab read from a file without a cell there), the
+    atoms' extent alone: their bounding box. A side that atoms define lies
+    half a length unit beyond the outermost one (LAMMPS assigns an atom to a
+    box only if ``lo <= x < hi``).
+    Tilts that involve an open axis are dropped, as the kernels drop them.
+    """
+    pbc = np.asarray(pbc, dtype=bool)
+    lengths = np.array(box, dtype=np.float64)
+    origin = np.zeros(3)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    for axis in np.flatnonzero(~pbc):
+        low, high = 0.0, float(lengths[axis])
+        if len(positions):
+            first, last = float(positions[:, axis].min()), float(positions[:, axis].max())
+            if not high > 0.0 or first < low:
+                low = first - _MARGIN
+            if not high > 0.0 or last >= high:
+                high = last + _MARGIN
+        if not high > low:
+            low, high = low - _MARGIN, high + _MARGIN
+        origin[axis], lengths[axis] = low, high - low
+    return origin, lengths, periodic_tilt(tilt, pbc)
+
+
+def cell_deformation(box_before, tilt_before, box_after, tilt_after, pbc) -> NDArray[np.float64]:
+    """The deformation M that took the cell from before to after (rows: ``H1 = H0 M``).
+
+    Positions that followed the cell affinely moved as ``r -> r M`` (what a
+    barostat does). A cell whose tilt was flipped to the equivalent shorter
+    one (:func:`reduced_tilt`) after the move is recognised: its basis change,
+    an integer matrix U with ``H1 ~ U H0`` for a small deformation, is undone
+    first. Open axes take a unit length, so M is the identity along them.
+    """
+    pbc = np.asarray(pbc, dtype=bool)
+    before = cell_matrix(np.where(pbc, box_before, 1.0), periodic_tilt(tilt_before, pbc))
+    after = cell_matrix(np.where(pbc, box_after, 1.0), periodic_tilt(tilt_after, pbc))
+    basis = np.rint(after @ np.linalg.inv(before))
+    if not np.array_equal(basis, np.eye(3)) and abs(round(np.linalg.det(basis))) == 1:
+        after = np.linalg.solve(basis, after)  # the cell before its flip
+    return np.linalg.solve(before, after)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

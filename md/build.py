@@ -108,7 +108,10 @@ def maxwell_boltzmann(
 
     The centre-of-mass momentum is removed, and with ``exact`` the velocities
     are scaled so the kinetic temperature (3N - 3 degrees of freedom) equals
-    ``temperature`` exactly, as LAMMPS's ``velocity create`` does.
+    ``temperature`` exactly, as LAMMPS's ``velocity create`` does. A single
+    atom keeps its momentum (removing it would leave the atom at rest) and
+    its 3 degrees of freedom (:func:`md.thermo.degrees_of_freedom`), so it
+    too starts at exactly ``temperature``.
 
     Parameters
     ----------
@@ -128,7 +131,7 @@ def maxwell_boltzmann(
     if state.n_atoms > 1:
         momentum = (masses[:, None] * velocities).sum(axis=0)
         velocities -= momentum / masses.sum()
-    if exact and state.n_atoms > 1:
+    if exact:
         kinetic = kinetic_energy(velocities, masses)
         if kinetic > 0:
             target = 0.5 * degrees_of_freedom(state.n_atoms) * kB * temperature

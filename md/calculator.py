@@ -17,13 +17,15 @@ Conventions, as in ASE (``ase.calculators.lj.LennardJones`` in particular):
   half and half between its atoms and divided by the whole cell's volume, so
   they sum to ``stress``.
 - ``energies`` split each pair's energy half and half; they sum to ``energy``.
-- Stress and per-atom stresses exist only when the cell has three non-zero
-  edges (a volume), whatever the ``pbc`` flags; otherwise asking for them
-  raises ``PropertyNotImplementedError``, as for ASE's own LennardJones.
-- Any cell goes in, triclinic and rotated ones included: the engine works in
-  the restricted frame of :func:`md.box.restricted_cell` (a along x, b in
-  the xy plane), and forces, stress and per-atom stresses are rotated back
-  into the frame of ``atoms.cell``.
+- Stress and per-atom stresses exist only when the cell has a volume (three
+  independent vectors), whatever the ``pbc`` flags; otherwise asking for
+  them raises ``PropertyNotImplementedError``, as for ASE's own LennardJones.
+- Any cell goes in with any ``pbc``, triclinic and rotated ones included:
+  the engine works in the restricted frame of :func:`md.box.restricted_cell`
+  (a along x, b in the xy plane), built from the periodic cell vectors only
+  when some axes are open (the vectors of open axes translate nothing), and
+  forces, stress and per-atom stresses are rotated back into the frame of
+  ``atoms.cell``. No atoms at all give zero energy and empty forces.
 """
 
 from __future__ import annotations
@@ -102,7 +104,7 @@ class MDCalculator(Calculator):
     ``UnitCellFilter``) relax all six strain components. A triclinic cell is
     rotated into the engine's frame (see the module notes) and its tilt
     factors reduced to the shortest equivalent ones (the same lattice).
-    Along open axes the cell may have zero length. A cell narrower than the
+    Along open axes the cell may have zero length or any direction. A cell narrower than the
     minimum image allows (an orthorhombic edge shorter than twice the cutoff,
     or a tilted cell narrower than twice the cutoff plus skin) is handled by
     evaluating an internal supercell, replicated along the narrow axes; energy
@@ -175,6 +177,7 @@ class MDCalculator(Calculator):
         self._shifts = np.zeros((1, 3))
         self._edges = np.zeros(3)
         self._tilt = np.zeros(3)
+        self._volume = 0.0
         self._rotation: NDArray[np.float64] | None = None  # None: the identity
         self._cell = np.zeros((3, 3))
         self._order: NDArray[np.int64] | None = None
@@ -219,7 +222,7 @@ class MDCalculator(Calculator):
         rotation = self._rotation
         forces = self._originals(result.forces)
         self.results["forces"] = forces if rotation is None else forces @ rotation.T
-        volume = float(np.prod(self._edges))
+        volume = self._volume
         if volume > 0 and result.virial is not None:
             stress = -result.virial / (volume * copies)
             if rotation is not None:
@@ -269,19 +272,12 @@ class MDCalculator(Calculator):
                 self._sort(positions)  # the list is rebuilt now anyway
             return state
         self._cell = atoms.cell.array.copy()
-        edges, tilt, rotation = restricted_cell(self._cell, "atoms.cell (MDCalculator)")
-        self._rotation = None if np.array_equal(rotation, np.eye(3)) else rotation
         pbc = np.array(atoms.pbc, dtype=bool)
-        for k, pair in enumerate(TILT_AXES):
-            if tilt[k] != 0.0 and not pbc[list(pair)].all():
-                raise ValueError(
-                    f"atoms.cell is tilted between axes {'xyz'[pair[0]]} and {'xyz'[pair[1]]} "
-                    f"(after rotation), which must then both be periodic; pbc is {pbc.tolist()}"
-                )
+        edges, tilt, rotation = _engine_frame(self._cell, pbc)
+        self._rotation = None if np.array_equal(rotation, np.eye(3)) else rotation
         tilt = reduced_tilt(edges, tilt, pbc)
-        if np.any(pbc & (edges == 0)):
-            axis = "xyz"[int(np.argmax(pbc & (edges == 0)))]
-            raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
+        # ASE's calculators give a stress when the cell has a volume, whatever the pbc.
+        self._volume = float(np.prod(edges)) if pbc.all() else _volume(self._cell)
         rebuild = state is None or n != self._n_atoms
         if rebuild or {"numbers", "tags"} & set(system_changes):
             types, names = types_from_ase(
@@ -327,6 +323,7 @@ class MDCalculator(Calculator):
             neighbor_list = self.forcefield.neighbor_list
             self._sorting = (
                 neighbor_list is not None
+                and n > 0
                 and not self._indexed
                 and (
                     self.sort_atoms is True
@@ -382,6 +379,69 @@ class MDCalculator(Calculator):
         unsorted = np.empty_like(values)
         unsorted[self._order] = values
         return unsorted[:n]
+
+
+def _engine_frame(cell, pbc) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray]:
+    """Return ``(edges, tilt, rotation)`` of an ASE cell in the engine's frame, for any pbc.
+
+    Only periodic cell vectors are translations: a fully periodic cell goes
+    through :func:`md.box.restricted_cell`. Otherwise the rotation Q (positions
+    ``r @ Q``) takes the first periodic vector along its own axis, the second
+    into the plane of its axis and the first's, and so on; the open axes
+    complete a right-handed frame and their vectors, which translate nothing,
+    are ignored (their edge is kept as their length, without tilt). So a
+    tilted or rotated cell is accepted with any pbc, and Q is exactly the
+    identity for a cell already in the engine's form.
+
+    Raises
+    ------
+    ValueError
+        If the cell is not finite, a periodic axis has no length, or the
+        periodic vectors are linearly dependent.
+    """
+    what = "atoms.cell (MDCalculator)"
+    if pbc.all():
+        edges, tilt, rotation = restricted_cell(cell, what)
+        if np.any(edges == 0):
+            axis = "xyz"[int(np.argmax(edges == 0))]
+            raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
+        return edges, tilt, rotation
+    h = np.asarray(cell, dtype=np.float64)
+    if not np.all(np.isfinite(h)):
+        raise ValueError(f"{what} has entries that are not finite: {h.tolist()}")
+    tolerance = 1e-12 * max(1.0, float(np.abs(h).max()))
+    rotation = np.zeros((3, 3))
+    filled: list[int] = []
+    for k in np.flatnonzero(pbc):
+        if np.linalg.norm(h[k]) <= tolerance:
+            axis = "xyz"[k]
+            raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
+        rest = h[k] - rotation[:, filled] @ (rotation[:, filled].T @ h[k])
+        if np.linalg.norm(rest) <= tolerance:
+            raise ValueError(f"{what}: the periodic cell vectors are linearly dependent: "
+                             f"{h.tolist()}")  # fmt: skip
+        rotation[:, k] = rest / np.linalg.norm(rest)
+        filled.append(int(k))
+    for k in np.flatnonzero(~pbc):  # the coordinate axis itself where it is free, else another
+        for candidate in (k, *range(3)):
+            unit = np.eye(3)[candidate]
+            rest = unit - rotation[:, filled] @ (rotation[:, filled].T @ unit)
+            if np.linalg.norm(rest) > 0.5:
+                break
+        rotation[:, k] = rest / np.linalg.norm(rest)
+        filled.append(int(k))
+    if np.linalg.det(rotation) < 0:
+        rotation[:, int(np.flatnonzero(~pbc)[-1])] *= -1.0
+    lower = h @ rotation
+    edges = np.where(pbc, np.diag(lower), np.linalg.norm(h, axis=1))
+    tilt = np.array([lower[j, i] if pbc[i] and pbc[j] else 0.0 for i, j in TILT_AXES])
+    return edges, np.where(np.abs(tilt) <= tolerance, 0.0, tilt), rotation
+
+
+def _volume(cell) -> float:
+    """The cell's volume where it has one (three independent vectors, as ASE's rank), else 0."""
+    cell = np.asarray(cell, dtype=np.float64)
+    return abs(float(np.linalg.det(cell))) if np.linalg.matrix_rank(cell) == 3 else 0.0
 
 
 def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):

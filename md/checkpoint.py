@@ -16,7 +16,13 @@ pickle) holding
   length, the output cadence and the thermo table), compared on resume;
 - the number of trajectory frames written up to the checkpoint, the step of
   the last one, and the run id stored in the trajectory, so that a resume
-  discards frames written after the checkpoint and refuses a foreign file.
+  discards frames written after the checkpoint and refuses a foreign file;
+- for a run decomposed over MPI ranks, its grid and each atom's owner at the
+  last build, so that a resume on the same grid rebuilds the same ghosts and
+  lists (:meth:`md.distributed.DistributedSimulation.resume`); any other rank
+  count, or one process, resumes from the same file.
+- in ``extra``, the config file's name and the run's energies at step 0
+  (``start``), from which a resumed run reports its drifts.
 
 Writing goes to a temporary file in the same directory, which is flushed,
 synced and renamed over the previous checkpoint (``os.replace``), so a crash
@@ -88,6 +94,7 @@ class Checkpoint:
     run_id: str
     extra: dict = field(default_factory=dict)
     neighbor_cell: tuple | None = None
+    decomposition: dict | None = None
 
 
 # ---------------------------------------------------------------------- writing
@@ -146,6 +153,10 @@ def write_checkpoint(
         arrays["neighbor_reference"] = reference
         # the cell of that build: a list kept through a barostat's moves is rebuilt in it
         arrays["neighbor_box"], arrays["neighbor_tilt"] = nl.reference_cell
+    layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
+    if layout is not None:
+        arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
+        layout = {key: value for key, value in layout.items() if key != "owners"}
     saved = integrator.get_state() if isinstance(integrator, Restartable) else None
     meta = {
         "format": FORMAT,
@@ -161,6 +172,8 @@ def write_checkpoint(
         "run_id": str(run_id),
         "extra": _plain(extra or {}),
     }
+    if layout is not None:
+        meta["decomposition"] = _plain(layout)
     arrays["meta"] = np.array(json.dumps(meta))
     with atomic_path(path) as temporary, open(temporary, "wb") as handle:
         np.savez(handle, **arrays)
@@ -212,6 +225,11 @@ def read_checkpoint(path) -> Checkpoint:
         if reference is not None and reference.shape != state.positions.shape:
             raise ValueError("neighbour-list positions do not match the atom count")
         saved = meta["integrator_state"]
+        layout = meta.get("decomposition")
+        if layout is not None:
+            layout = {**layout, "owners": arrays.get("domain_owners")}
+            if layout["owners"] is None or layout["owners"].shape != (state.n_atoms,):
+                raise ValueError("the decomposition's owners do not match the atom count")
         return Checkpoint(
             path=path,
             state=state,
@@ -228,6 +246,7 @@ def read_checkpoint(path) -> Checkpoint:
                 if "neighbor_box" in arrays and reference is not None
                 else None
             ),
+            decomposition=layout,
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -436,16 +455,21 @@ class Checkpointer:
         Identifier shared with the trajectory.
     config : str
         The config file name, kept for messages.
+    start : dict, optional
+        The run's energies at step 0 (plain numbers), kept so that a resumed
+        run reports drifts over the whole run.
     """
 
     uses_virial = False  # saves the state; its steps need no virial
 
-    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str) -> None:
+    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str,
+                 start: dict | None = None) -> None:  # fmt: skip
         self.path = Path(path)
         self.writer = writer
         self.fingerprint = fingerprint
         self.run_id = run_id
         self.config = config
+        self.start = dict(start or {})
         self.last_step: int | None = None
 
     def __call__(self, sim) -> None:
@@ -459,6 +483,6 @@ class Checkpointer:
             n_frames=self.writer.n_frames,
             last_frame_step=-1 if last is None else last,
             run_id=self.run_id,
-            extra={"config_file": self.config},
+            extra={"config_file": self.config, "start": self.start},
         )
         self.last_step = sim.state.step

@@ -245,6 +245,10 @@ class RunConfig:
     threads: int | None = key(None, "integer", minimum=1,
         doc="Kernel threads (`md run --threads` overrides it); not physics.",
         default_doc="every core")  # fmt: skip
+    decomposition: tuple[int, int, int] | None = key(None, "integer or list of three",
+        doc="Bricks along a, b and c when the run is shared by MPI ranks (`mpiexec -n P md "
+            "run`; their product is P, see the MPI guide); not physics.",
+        default_doc="chosen from P and the cell")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -463,6 +467,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     )
     table = _Table(top.take("run", {}), "run", source, base, units)
     run = RunConfig(**table.fields(RunConfig))
+    if run.decomposition is not None and min(run.decomposition) < 1:
+        raise table.error("decomposition",
+                          f"must be positive integers, got {list(run.decomposition)}")  # fmt: skip
     table.finish()
     table = _Table(top.take("output", {}), "output", source, base, units)
     output = OutputConfig(**table.fields(OutputConfig))
@@ -752,7 +759,9 @@ def build_system(config: Config):
             )
         else:
             try:
-                state, topology = read_structure(system.structure, system.format, config.units)
+                state, topology = read_structure(
+                    system.structure, system.format, config.units, mass=system.mass
+                )
             except ValueError as error:
                 raise ConfigError(f"{where} structure: {error}") from None
             if not (topology.n_bonds or topology.n_angles):

@@ -19,7 +19,11 @@ suffix                  library            units written (metal runs)
 ======================  =================  =====================================
 
 Reduced-unit (``lj``) runs are written unchanged, in sigma, tau and
-epsilon, wherever the format would otherwise convert. Where a format has a
+epsilon, wherever the format would otherwise convert. Formats that need a
+box with a volume (LAMMPS data and dumps, GSD) get, along open axes, the
+stored edge widened to the atoms' extent, or the atoms' bounding box where
+the edge is zero (a cluster or a slab read without a cell there:
+:func:`md.box.enclosing_cell`). Where a format has a
 header or metadata (extxyz's comment line, the LAMMPS data title, DCD and
 NetCDF remarks) the units are stated there.
 
@@ -30,15 +34,23 @@ existing file is replaced only with ``overwrite=True``.
 
 from __future__ import annotations
 
+import errno
+import os
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from md._files import atomic_path
+from md._files import (
+    atomic_path,
+    disk_full,
+    exclusive_claim,
+    output_target,
+    remove_stale_temporaries,
+)
 from md._version import __version__
-from md.box import cell_matrix
+from md.box import cell_matrix, enclosing_cell
 from md.topology import Topology
 from md.trajectory import Frame, TrajectoryReader
 
@@ -126,38 +138,70 @@ def convert(
     IndexError
         A frame selection outside the file's frames, or one that selects none.
     FileExistsError
-        ``output`` exists and ``overwrite`` is not given.
+        ``output`` exists and ``overwrite`` is not given, or another run is
+        writing it (:class:`md._files.OutputBusyError`).
+    OSError
+        The output could not be written ("disk full" when there is no room);
+        nothing is left behind.
     TrajectoryError
         The input is not an H5MD trajectory of ours (or is damaged).
+
+    Notes
+    -----
+    ``output`` is written through a symbolic link into its target; a special
+    file (FIFO, device node) is refused with ValueError, never replaced. The
+    output is claimed as ``md run`` claims its own, so a running simulation's
+    trajectory is never replaced, and temporaries an interrupted conversion
+    left beside it are removed.
     """
-    trajectory, output = Path(trajectory), Path(output)
+    trajectory = Path(trajectory)
     kind = output_format(output, format)
+    output = output_target(output)  # a symlink's target; a special file is refused
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output} already exists; choose another name or pass --overwrite")
     if output.exists() and output.resolve() == trajectory.resolve():
         raise ValueError(f"{output} is the input trajectory; choose another output")
     if not output.parent.is_dir():
         raise FileNotFoundError(f"{output}: directory {output.parent} does not exist")
-    with TrajectoryReader(trajectory) as reader:
+    with TrajectoryReader(trajectory) as reader, exclusive_claim(output):
         frames = reader.select(start, stop, step)
         if kind in SINGLE_FRAME:
             frames = frames[-1:]
         writer_class = WRITERS[kind]
+        remove_stale_temporaries(output)  # an interrupted conversion's, under the claim
         with atomic_path(output, exclusive=not overwrite) as temporary:
             writer = writer_class(temporary, reader, frames, unwrap=unwrap, kind=kind)
+            count = 0
             try:
-                count = 0
-                for frame in reader.frames(frames, chunk=chunk):
-                    writer.write(frame)
-                    count += 1
-                    if progress is not None:
-                        progress(count)
-            finally:
-                writer.close()
+                try:
+                    for frame in reader.frames(frames, chunk=chunk):
+                        writer.write(frame)
+                        count += 1
+                        if progress is not None:
+                            progress(count)
+                finally:
+                    writer.close()
+                writer.verify(temporary, count)
+            except (OSError, RuntimeError) as error:  # the writers' libraries raise either
+                raise _write_failure(error, temporary, output, reader.n_atoms) from None
     return count
 
 
 # ---------------------------------------------------------------------- helpers
+def _write_failure(error: BaseException, temporary: Path, output: Path, n_atoms: int) -> OSError:
+    """The OSError for a failed conversion: "disk full" when the disk has no room for a frame.
+
+    The writers' C libraries (XTC, TRR, DCD) do not say why a write failed, so
+    the free space left beside the temporary file decides.
+    """
+    detail = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
+    stats = os.statvfs(temporary.parent)
+    # room for less than one frame of float32 x, y, z
+    if disk_full(error) or stats.f_bavail * stats.f_frsize < 12 * n_atoms + 4096:
+        return OSError(errno.ENOSPC, f"disk full: cannot write {output} ({detail})")
+    return OSError(errno.EIO, f"cannot write {output}: {detail}")
+
+
 def _positions(frame: Frame, unwrap: bool):
     return frame.unwrapped() if unwrap else frame.positions
 
@@ -205,7 +249,22 @@ def molecules(topology: Topology, n_atoms: int) -> np.ndarray:
 _QUANTITY = {"length": "length", "time": "time", "velocity": "speed", "force": "force"}
 
 
-class _MDAnalysisWriter:
+class _Writer:
+    """A format's writer: ``__init__(path, reader, frames, unwrap, kind)``, ``write(frame)``,
+    ``close()`` and ``verify(path, count)``."""
+
+    def close(self) -> None:
+        """Finish the file (flush, close)."""
+
+    def verify(self, path: Path, count: int) -> None:
+        """Raise OSError unless the closed file holds ``count`` frames.
+
+        Only writers whose library does not report failed writes check: the
+        others raise from ``write`` or ``close`` already.
+        """
+
+
+class _MDAnalysisWriter(_Writer):
     """XTC, TRR, DCD and AMBER NetCDF through MDAnalysis's writers.
 
     Frames go in as MDAnalysis's base units (Angstrom, ps, kJ/(mol
@@ -274,8 +333,29 @@ class _MDAnalysisWriter:
     def close(self) -> None:
         self.writer.close()
 
+    def verify(self, path: Path, count: int) -> None:
+        """Raise OSError unless ``path`` holds ``count`` frames.
 
-class _ASEWriter:
+        The XTC, TRR and DCD writers are C code that does not check its
+        writes: on a full disk they end without error, leaving a short file.
+        """
+        from MDAnalysis.lib.formats.libdcd import DCDFile  # MDAnalysis: with the writer
+        from MDAnalysis.lib.formats.libmdaxdr import TRRFile, XTCFile  # as is DCDFile
+
+        opener = {"DCD": DCDFile, "XTC": XTCFile, "TRR": TRRFile}.get(self.kind)
+        if opener is None:  # NetCDF: written by scipy, which raises on a failed write
+            return
+        try:
+            with opener(str(path)) as written:
+                found = written.n_frames if self.kind == "DCD" else len(written.offsets)
+        except (OSError, RuntimeError, ValueError, EOFError) as error:
+            unreadable = f"the {self.kind} file written cannot be read ({error})"
+            raise OSError(errno.EIO, unreadable) from None
+        if found != count:
+            raise OSError(errno.EIO, f"{found} of the {count} frames reached the {self.kind} file")
+
+
+class _ASEWriter(_Writer):
     """Plain XYZ, extended XYZ and ASE trajectories through ``ase.io``.
 
     Extended XYZ and ASE trajectories carry the potential energy, forces and
@@ -323,7 +403,7 @@ class _ASEWriter:
         self.handle.close()
 
 
-class _LammpsDataWriter:
+class _LammpsDataWriter(_Writer):
     """A LAMMPS data file (``atom_style full``) through ASE's writer, with bonds and angles.
 
     Atom types are numbered 1, 2, ... in the order of the type names, which
@@ -344,6 +424,10 @@ class _LammpsDataWriter:
         self, path: Path, reader: TrajectoryReader, frames: range, unwrap: bool, kind: str
     ) -> None:
         self.path, self.reader, self.unwrap = path, reader, unwrap
+        # ASE's writer converts from its units to the ones named; "ASE" to ASE's own is the
+        # identity, so reduced (lj) values are written exactly as they are (a round trip
+        # through metal gave masses of 0.99999999974).
+        self._ase_units = "ASE" if reader.units.name == "lj" else "metal"
         if len(reader.type_names) > len(self._STAND_INS):
             raise ValueError(
                 f"LAMMPS data output takes up to {len(self._STAND_INS)} atom types, the "
@@ -358,11 +442,12 @@ class _LammpsDataWriter:
         state = reader.state(frame, unwrap=True)
         atoms = state.to_ase()
         atoms.positions[:] = _positions(frame, self.unwrap)
+        # A box with a volume: open axes span the atoms (their xlo xhi lines are set below).
+        origin, lengths, tilt = enclosing_cell(atoms.positions, frame.box, reader.pbc, frame.tilt)
+        atoms.set_cell(cell_matrix(lengths, tilt))
         masses = atoms.get_masses()
         atoms.set_chemical_symbols([self._STAND_INS[t] for t in reader.types])
         atoms.set_masses(masses)
-        if reader.units.name == "lj":  # the writer converts ASE to metal: write lj unchanged
-            atoms.set_velocities(state.velocities / lammps_units(1.0, "velocity", "ASE", "metal"))
         partners = [[] for _ in range(reader.n_atoms)]
         for (i, j), t in zip(topology.bonds.tolist(), topology.bond_types.tolist(), strict=True):
             partners[i].append(f"{j}({t + 1})")
@@ -371,10 +456,16 @@ class _LammpsDataWriter:
         stand_ins = list(self._STAND_INS[: len(reader.type_names)])
         with open(self.path, "w") as handle:
             write_lammps_data(
-                handle, atoms, specorder=stand_ins, masses=True, velocities=True,
-                atom_style="full", units="metal", bonds=topology.n_bonds > 0,
+                handle, atoms, specorder=stand_ins, masses=True, velocities=False,
+                atom_style="full", units=self._ase_units, bonds=topology.n_bonds > 0,
             )  # fmt: skip
         lines = self.path.read_text().splitlines(keepends=True)
+        # Velocities written here: ASE's writer divides momenta by masses, which is not
+        # always the velocity back to the last bit.
+        factor = lammps_units(1.0, "velocity", "ASE", self._ase_units)
+        lines.append("\nVelocities\n\n")
+        lines += [f"{i + 1:>6} {x:23.17g} {y:23.17g} {z:23.17g}\n"
+                  for i, (x, y, z) in enumerate((state.velocities * factor).tolist())]  # fmt: skip
         units = "lj" if reader.units.name == "lj" else "metal"
         types = " ".join(f"{t + 1}={name}" for t, name in enumerate(reader.type_names))
         bond_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.bond_type_names))
@@ -386,6 +477,14 @@ class _LammpsDataWriter:
             + (f"; angle types {angle_types}" if angle_types else "")
             + ")\n"
         )
+        for index, line in enumerate(lines[:40]):  # open axes: the bounds of the atoms
+            words = line.split()
+            if len(words) == 4 and words[2] in ("xlo", "ylo", "zlo"):
+                axis = "xyz".index(words[2][0])
+                if reader.pbc[axis]:
+                    continue
+                low, high = origin[axis], origin[axis] + lengths[axis]
+                lines[index] = f"{low:.17g} {high:.17g}  {words[2]} {words[3]}\n"
         if topology.n_angles:
             _add_angles(lines, topology)
         in_masses = False
@@ -399,9 +498,6 @@ class _LammpsDataWriter:
                 name = reader.type_names[stand_ins.index(symbol.strip())]
                 lines[index] = f"{head}# {name}\n"
         self.path.write_text("".join(lines))
-
-    def close(self) -> None:
-        pass
 
 
 def _add_angles(lines: list[str], topology: Topology) -> None:
@@ -423,7 +519,7 @@ def _add_angles(lines: list[str], topology: Topology) -> None:
     ]
 
 
-class _LammpsDumpWriter:
+class _LammpsDumpWriter(_Writer):
     """A LAMMPS text dump (``.lammpstrj``), written here: MDAnalysis and ASE only read them.
 
     Columns ``id type mol x y z ix iy iz`` (and ``vx vy vz``, ``fx fy fz``
@@ -454,25 +550,27 @@ class _LammpsDumpWriter:
         out = self.handle
         out.write(f"ITEM: TIMESTEP\n{frame.step}\n")
         out.write(f"ITEM: NUMBER OF ATOMS\n{self.reader.n_atoms}\n")
-        if not np.any(frame.tilt != 0.0):
+        positions = _positions(frame, self.unwrap)
+        (ox, oy, oz), (lx, ly, lz), (xy, xz, yz) = enclosing_cell(
+            positions, frame.box, self.reader.pbc, frame.tilt
+        )
+        if xy == 0.0 and xz == 0.0 and yz == 0.0:
             out.write(f"ITEM: BOX BOUNDS {self.bounds}\n")
-            for length in frame.box:
-                out.write(f"0 {length:.17g}\n")
+            for low, length in ((ox, lx), (oy, ly), (oz, lz)):
+                out.write(f"{low:.17g} {low + length:.17g}\n")
         else:  # LAMMPS's triclinic dump header: bounds of the tilted box, then each tilt
-            xy, xz, yz = frame.tilt
-            lx, ly, lz = frame.box
             low = min(0.0, xy, xz, xy + xz)
             high = max(0.0, xy, xz, xy + xz)
             out.write(f"ITEM: BOX BOUNDS xy xz yz {self.bounds}\n")
-            out.write(f"{low:.17g} {lx + high:.17g} {xy:.17g}\n")
-            out.write(f"{min(0.0, yz):.17g} {ly + max(0.0, yz):.17g} {xz:.17g}\n")
-            out.write(f"0 {lz:.17g} {yz:.17g}\n")
+            out.write(f"{ox + low:.17g} {ox + lx + high:.17g} {xy:.17g}\n")
+            out.write(f"{oy + min(0.0, yz):.17g} {oy + ly + max(0.0, yz):.17g} {xz:.17g}\n")
+            out.write(f"{oz:.17g} {oz + lz:.17g} {yz:.17g}\n")
         out.write(f"ITEM: ATOMS {self.columns}\n")
         parts = [
             self.ids[:, None],
             (self.reader.types + 1)[:, None],
             self.molecules[:, None],
-            _positions(frame, self.unwrap),
+            positions,
             _images(frame, self.unwrap),
         ]
         formats = ["%d", "%d", "%d", "%.10g", "%.10g", "%.10g", "%d", "%d", "%d"]
@@ -489,7 +587,7 @@ class _LammpsDumpWriter:
         self.handle.close()
 
 
-class _GSDWriter:
+class _GSDWriter(_Writer):
     """GSD (HOOMD-blue's format) through the ``gsd`` package: types, masses, bonds, angles,
     box.
 
@@ -513,16 +611,18 @@ class _GSDWriter:
         reader = self.reader
         snapshot = self.hoomd.Frame()
         snapshot.configuration.step = frame.step
-        lx, ly, lz = frame.box
-        xy, xz, yz = frame.tilt  # HOOMD's tilt factors are these over Ly, Lz, Lz
+        positions = frame.positions if not self.unwrap else frame.unwrapped()
+        origin, lengths, tilt = enclosing_cell(positions, frame.box, reader.pbc, frame.tilt)
+        lx, ly, lz = lengths
+        xy, xz, yz = tilt  # HOOMD's tilt factors are these over Ly, Lz, Lz
         snapshot.configuration.box = [lx, ly, lz, xy / ly, xz / lz, yz / lz]
         snapshot.configuration.dimensions = 3
         snapshot.particles.N = reader.n_atoms
         snapshot.particles.types = list(reader.type_names)
         snapshot.particles.typeid = reader.types.astype(np.uint32)
         snapshot.particles.mass = reader.masses.astype(np.float32)
-        positions = frame.positions if not self.unwrap else frame.unwrapped()
-        centre = 0.5 * frame.cell.sum(axis=0)  # HOOMD boxes are centred on the origin
+        # HOOMD boxes are centred on the origin
+        centre = origin + 0.5 * cell_matrix(lengths, tilt).sum(axis=0)
         snapshot.particles.position = (positions - centre).astype(np.float32)
         snapshot.particles.image = _images(frame, self.unwrap).astype(np.int32)
         if frame.velocities is not None:

@@ -34,6 +34,16 @@ class PairCollapseError(NonFiniteError):
         )
 
 
+class DecompositionError(NonFiniteError):
+    """A run decomposed over MPI ranks cannot go on (:mod:`md.distributed`).
+
+    An atom moved farther than a brick between two neighbour-list builds, or
+    a bond outgrew the ghost shell: signs of a blow-up. A
+    :class:`NonFiniteError`, so the simulation loop reports it as a
+    :class:`SimulationError` at the failing step.
+    """
+
+
 class ConvergenceError(RuntimeError):
     """An iterative step (implicit solve, SHAKE/RATTLE) failed to converge at ``step``."""
 
@@ -181,6 +191,7 @@ __all__ = [
     "ConfigError",
     "ConstraintError",
     "ConvergenceError",
+    "DecompositionError",
     "NonFiniteError",
     "OutputBusyError",
     "PairCollapseError",

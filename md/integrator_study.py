@@ -66,8 +66,8 @@ module is library code (no printing).
 
 from __future__ import annotations
 
-import csv
 import functools
+import inspect
 import logging
 import math
 import os
@@ -81,7 +81,7 @@ import numpy as np
 from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import ForceSplit, Integrator
 from md._checks import count, positive
-from md._files import removed_on_error, unwritable_folder
+from md._files import removed_on_error, unwritable_folder, write_csv_rows
 from md.config import (
     Config,
     PluginEntry,
@@ -91,6 +91,7 @@ from md.config import (
 )
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
+from md.plot_style import grouped, legend_outside, reference_slopes, styles
 from md.run import build_potentials
 from md.simulation import Simulation
 from md.state import State
@@ -108,6 +109,7 @@ CSV_COLUMNS = (
     "fit_low",
     "fit_high",
     "fit_points",
+    "fit_note",
     "energy_drift",
     "energy_fluctuation",
     "evals_per_time",
@@ -174,6 +176,7 @@ class IntegratorReport:
     order_vs: str = "dt"
     fit_range: tuple[float, float] = (math.nan, math.nan)
     fit_points: int = 0
+    fit_note: str = ""
     floor: float = math.nan
 
     def measured_run(self) -> RunRecord | None:
@@ -191,6 +194,7 @@ class IntegratorReport:
             "fit_low": self.fit_range[0],
             "fit_high": self.fit_range[1],
             "fit_points": self.fit_points,
+            "fit_note": self.fit_note,
             "max_energy_error": run.max_energy_error if run else math.nan,
             "position_error": run.error if run else math.nan,
             "energy_drift": self.energy_drift,
@@ -200,6 +204,8 @@ class IntegratorReport:
         }
 
 
+#: Tolerance of the implicit integrators' solves in the study (see compare_integrators).
+SOLVER_TOL = 1e-12
 #: Default tolerance ladder of adaptive integrators.
 TOLERANCES = (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10)
 
@@ -222,6 +228,7 @@ def compare_integrators(
     tolerances: Sequence[float] = TOLERANCES,
     slope_tolerance: float = 0.15,
     progress: Callable[[str], None] | None = None,
+    solver_tol: float | None = SOLVER_TOL,
 ) -> list[IntegratorReport]:
     """Run every integrator over the dt ladder and measure it.
 
@@ -255,8 +262,14 @@ def compare_integrators(
         the middle of the ladder); an integrator unstable there is measured
         at its largest stable dt below it.
     slope_tolerance : float
-        How far a successive slope may stray from the finest pair's and still
-        count as asymptotic.
+        How far a local slope may stray from the fitted one and still count as
+        asymptotic (see :func:`fit_order`).
+    solver_tol : float or None
+        The tolerance implicit integrators solve their steps to: a factory that
+        is an integrator class taking ``tol`` (and is not adaptive) is called
+        as ``f(dt, tol=solver_tol)``. A solve stopped at the default 1e-8 leaves
+        an error of its own that the finer steps' errors fall to, and the fit
+        measures that floor instead of the method (None: the classes' default).
     """
     dts = sorted(float(dt) for dt in dts)
     if len(dts) < 2 or dts[0] <= 0:
@@ -290,6 +303,10 @@ def compare_integrators(
     reports = []
     for name, factory in integrators.items():
         adaptive = bool(getattr(factory, "adaptive", False))
+        if solver_tol is not None and not adaptive and _takes_tol(factory):
+            order = getattr(factory, "order", None)
+            factory = functools.partial(factory, tol=solver_tol)
+            factory.order = order
         runs = []
         if adaptive:
             dt = span / 10  # output steps long enough that the controller picks the substeps
@@ -327,45 +344,131 @@ def compare_integrators(
         if adaptive:
             report.order_vs = "tol"
             ladder = [r for r in runs if r.stable]
-            report.order, report.fit_range, report.fit_points = _fit_order(
+            report.order, report.fit_range, report.fit_points, report.fit_note = _fit_order(
                 [r.tol for r in ladder], ladder, floor, slope_tolerance
             )
         else:
-            ladder = [r for r in runs if r.dt <= dts[-1] * 1.0000001 and r.stable]
-            report.order, report.fit_range, report.fit_points = _fit_order(
+            # The stability scan's runs too: for a high-order method they may be the
+            # only errors above the reference's floor; the fit leaves out any that have
+            # left the asymptotic range.
+            ladder = [r for r in runs if r.stable]
+            report.order, report.fit_range, report.fit_points, report.fit_note = _fit_order(
                 [r.dt for r in ladder], ladder, floor, slope_tolerance
             )
         reports.append(report)
     return reports
 
 
-def _fit_order(steps, runs, floor, slope_tolerance):
-    """Fit log(error) against log(step) over the asymptotic range; mark the runs used.
+def _takes_tol(factory) -> bool:
+    """Whether ``factory`` is an integrator class with a ``tol`` parameter."""
+    return isinstance(factory, type) and "tol" in inspect.signature(factory).parameters
 
-    Points at or below ``floor`` are dropped; from the finest step upward the
-    range grows while each successive slope stays within ``slope_tolerance``
-    of the finest pair's. Returns (slope, (low, high), n_points); NaN slope
-    with fewer than two points.
+
+#: Fewest points an order is fitted from: two points give a slope whatever the errors do.
+MIN_FIT_POINTS = 3
+#: A range whose slope is below this is not a convergence range (the error does not fall
+#: with the step: a floor, or saturation near the stability limit), whatever its length.
+MIN_FIT_SLOPE = 0.5
+
+
+def fit_order(steps, errors, floor: float = 0.0, slope_tolerance: float = 0.15):
+    """Fit the order of convergence over the asymptotic range, or say why there is none.
+
+    The points are (step, error) pairs; those at or below ``floor`` (the
+    reference's error) are left out. The asymptotic range is the longest run
+    of at least :data:`MIN_FIT_POINTS` successive points (the finest of equal
+    length) whose every local slope, between neighbours, lies within
+    ``slope_tolerance`` of the least-squares slope through them, and whose
+    slope is at least :data:`MIN_FIT_SLOPE`. Points finer than it depart from
+    the trend (round-off, the solver's tolerance, the reference), coarser ones
+    leave the asymptotic regime on the way to the stability limit.
+
+    Returns
+    -------
+    slope : float
+        The order, NaN when no range qualifies.
+    used : list of int
+        Indices (into the given points) of the points fitted, empty if none.
+    note : str
+        Why there is no order, or which points were left out and why; "" when
+        every point was used.
+
+    Examples
+    --------
+    >>> steps = [0.01, 0.02, 0.04, 0.08]
+    >>> slope, used, note = fit_order(steps, [1e-12, 4e-8, 1.6e-7, 6.4e-7], floor=1e-13)
+    >>> round(slope, 3), used
+    (2.0, [1, 2, 3])
+    >>> note
+    'the finest 1 point(s) (dt <= 0.01) depart from the trend (local slope 15.3): left out'
     """
-    points = sorted(
-        (step, run)
-        for step, run in zip(steps, runs, strict=True)
-        if math.isfinite(run.error) and run.error > floor
-    )
-    for _, run in points:
+    order = sorted(range(len(steps)), key=lambda k: steps[k])
+    finite = [k for k in order if math.isfinite(errors[k]) and errors[k] > 0.0]
+    above = [k for k in finite if errors[k] > floor]
+    below = [steps[k] for k in finite if errors[k] <= floor]
+    notes = []
+    if below:
+        notes.append(
+            f"{len(below)} point(s) at dt <= {max(below):.3g} below the reference's error "
+            f"floor {floor:.2e}"
+        )
+    if len(above) < MIN_FIT_POINTS:
+        notes.insert(0, f"no order: only {len(above)} point(s) above the reference's error "
+                        f"floor (an order needs {MIN_FIT_POINTS})")  # fmt: skip
+        return math.nan, [], "; ".join(notes)
+    x = np.log([steps[k] for k in above])
+    y = np.log([errors[k] for k in above])
+    local = np.diff(y) / np.diff(x)
+    best = None
+    for i in range(len(above)):
+        for j in range(i + MIN_FIT_POINTS - 1, len(above)):
+            slope = float(np.polyfit(x[i : j + 1], y[i : j + 1], 1)[0])
+            if slope < MIN_FIT_SLOPE or np.any(np.abs(local[i:j] - slope) > slope_tolerance):
+                continue
+            if best is None or (j - i, -i) > (best[1] - best[0], -best[0]):
+                best = (i, j, slope)
+    slopes = ", ".join(f"{v:.2f}" for v in local)
+    if best is None:
+        # Where the error stops falling as dt shrinks: a floor.
+        flat = 0
+        while flat < len(local) and local[flat] < MIN_FIT_SLOPE:
+            flat += 1
+        if flat == len(local):
+            reason = "the error does not fall as dt shrinks; "
+        elif flat:
+            where = steps[above[flat]]
+            reason = f"round-off or solver-tolerance floor reached at dt = {where:.3g}; "
+        else:
+            reason = ""
+        notes.insert(0, f"no order: {reason}no {MIN_FIT_POINTS} successive points agree on a "
+                        f"slope within {slope_tolerance:g} (local slopes {slopes})")  # fmt: skip
+        return math.nan, [], "; ".join(notes)
+    i, j, slope = best
+    if i:
+        kind = "an error floor (round-off or solver tolerance)" if local[i - 1] < slope else (
+            "depart from the trend")  # fmt: skip
+        what = f"reach {kind}" if kind.startswith("an") else kind
+        notes.insert(0, f"the finest {i} point(s) (dt <= {steps[above[i - 1]]:.3g}) {what} "
+                        f"(local slope {local[i - 1]:.3g}): left out")  # fmt: skip
+    if j < len(above) - 1:
+        notes.append(
+            f"{len(above) - 1 - j} coarser point(s) (dt >= {steps[above[j + 1]]:.3g}) beyond "
+            f"the asymptotic range (local slope {local[j]:.3g}): left out"
+        )
+    return slope, above[i : j + 1], "; ".join(notes)
+
+
+def _fit_order(steps, runs, floor, slope_tolerance):
+    """:func:`fit_order` over runs; mark the runs used. Returns (slope, (low, high),
+    n_points, note)."""
+    for run in runs:
         run.in_fit = False
-    if len(points) < 2:
-        return math.nan, (math.nan, math.nan), len(points)
-    logs = np.log([[s, r.error] for s, r in points])
-    slopes = np.diff(logs[:, 1]) / np.diff(logs[:, 0])
-    keep = 2
-    while keep < len(points) and abs(slopes[keep - 1] - slopes[0]) <= slope_tolerance:
-        keep += 1
-    used = points[:keep]
-    for _, run in used:
-        run.in_fit = True
-    slope = float(np.polyfit(logs[:keep, 0], logs[:keep, 1], 1)[0])
-    return slope, (used[0][0], used[-1][0]), keep
+    slope, used, note = fit_order(steps, [r.error for r in runs], floor, slope_tolerance)
+    for k in used:
+        runs[k].in_fit = True
+    if not used:
+        return slope, (math.nan, math.nan), 0, note
+    return slope, (steps[used[0]], steps[used[-1]]), len(used), note
 
 
 def _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
@@ -458,27 +561,24 @@ def _report(name, runs, dts, span, measure_dt) -> IntegratorReport:
 
 def write_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per integrator with :data:`CSV_COLUMNS` (and the measuring dt)."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=[*CSV_COLUMNS, "measured_at_dt"])
-        writer.writeheader()
-        for report in reports:
-            writer.writerow({**report.row(), "measured_at_dt": report.reference_dt})
+    rows = ({**report.row(), "measured_at_dt": report.reference_dt} for report in reports)
+    write_csv_rows(path, [*CSV_COLUMNS, "measured_at_dt"], rows)
 
 
 def write_work_precision_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per run with :data:`WORK_PRECISION_COLUMNS` (the work-precision data)."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(WORK_PRECISION_COLUMNS))
-        writer.writeheader()
-        for report in reports:
-            for run in report.runs:
-                writer.writerow({
-                    "integrator": report.name, "dt": run.dt, "tol": run.tol,
-                    "stable": run.stable, "position_error": run.error,
-                    "max_energy_error": run.max_energy_error,
-                    "force_evaluations": run.evaluations if run.stable else math.nan,
-                    "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
-                })  # fmt: skip
+    rows = (
+        {
+            "integrator": report.name, "dt": run.dt, "tol": run.tol,
+            "stable": run.stable, "position_error": run.error,
+            "max_energy_error": run.max_energy_error,
+            "force_evaluations": run.evaluations if run.stable else math.nan,
+            "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
+        }
+        for report in reports
+        for run in report.runs
+    )  # fmt: skip
+    write_csv_rows(path, WORK_PRECISION_COLUMNS, rows)
 
 
 def _pyplot():
@@ -491,35 +591,51 @@ def _pyplot():
 
 
 def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str = "") -> None:
-    """Log-log global position error against dt: filled points are those the order fit used."""
+    """Log-log global position error against dt, one colour and marker per integrator.
+
+    Integrators are grouped by family (line style and hue; the legend lists
+    them family by family, outside the axes). Filled markers are the points the
+    order fit used, hollow ones the rest; dashed grey lines are reference slopes
+    for the orders expected; a dotted line is the reference's error floor.
+    """
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.0, 5.2))
-    for k, report in enumerate(reports):
-        if report.order_vs != "dt":
-            continue
+    shown = [r for r in reports if r.order_vs == "dt"]
+    names = grouped([r.name for r in shown])
+    by_name = {r.name: r for r in shown}
+    style = styles(names)
+    fig, ax = plt.subplots(figsize=(8.6, 5.6))
+    xs, ys = [], []
+    for name in names:
+        report, s = by_name[name], style[name]
         points = sorted((r.dt, r.error, r.in_fit) for r in report.runs if r.stable and r.error > 0)
         if not points:
             continue
         dts, errors, used = zip(*points, strict=True)
-        colour = f"C{k % 10}"
-        ax.loglog(dts, errors, "-", color=colour, lw=0.8)
-        fit = [(d, e) for d, e, u in points if u]
-        if fit:
-            ax.loglog(*zip(*fit, strict=True), "o", color=colour,
-                      label=f"{report.name} (order {report.order:.2f})")  # fmt: skip
-        rest = [(d, e) for d, e, u in points if not u]
-        if rest:
-            ax.loglog(*zip(*rest, strict=True), "o", mfc="none", color=colour)
+        xs += dts
+        ys += errors
+        order = f"{report.order:.2f}" if math.isfinite(report.order) else "none"
+        ax.loglog(dts, errors, ls=s["linestyle"], color=s["color"], lw=0.9,
+                  label=f"{name} (order {order}, {report.fit_points} pts)")  # fmt: skip
+        for fitted in (True, False):
+            chosen = [(d, e) for d, e, u in points if u == fitted]
+            if chosen:
+                ax.loglog(*zip(*chosen, strict=True), ls="none", marker=s["marker"],
+                          color=s["color"], mfc=s["color"] if fitted else "white", ms=5,
+                          mew=1.0)  # fmt: skip
+    expected = [r.expected_order for r in shown if math.isfinite(r.expected_order)]
+    reference_slopes(ax, xs, ys, expected or [1, 2, 4])
     floors = [r.floor for r in reports if math.isfinite(r.floor)]
     if floors:
         ax.axhline(floors[0], color="k", ls=":", lw=0.8, label="reference error floor (x10)")
     ax.set_xlabel(f"time step dt {time_label}".strip())
     ax.set_ylabel("RMS position error at the final time")
-    ax.set_title("Global error against a Richardson-checked reference (hollow: not fitted)")
-    ax.legend(fontsize="x-small", ncol=2)
+    ax.set_title("Global error against a Richardson-checked reference\n"
+                 "(filled: fitted for the order; hollow: left out; grey: reference slopes)",
+                 fontsize="medium")  # fmt: skip
+    legend_outside(fig, ax)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -527,36 +643,47 @@ def plot_work_precision(reports: Sequence[IntegratorReport], path, labels=None) 
     """Work-precision diagrams: energy and position error against wall time and force calls.
 
     One curve per integrator over its stable runs (its dt ladder up to the
-    stability limit, or its tolerance ladder), as SciMLBenchmarks draws them.
+    stability limit, or its tolerance ladder), as SciMLBenchmarks draws them;
+    one colour and marker per integrator, families grouped, the legend beside
+    the panels; on the force-evaluation panels, reference slopes -1, -2, -4
+    (error ~ work^-p for an order-p method, work ~ 1/dt).
     """
     labels = labels or {}
     plt = _pyplot()
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5))
+    fig, axes = plt.subplots(2, 2, figsize=(12.5, 8.5))
     measures = (("max_energy_error", "max |E(t) - E(0)| per atom"),
                 ("error", "RMS position error at the final time"))  # fmt: skip
     works = (("wall", "wall time [s]"), ("evaluations", "force evaluations"))
-    for k, report in enumerate(reports):
-        runs = sorted((r for r in report.runs if r.stable), key=lambda r: (r.dt, -r.tol))
-        if not runs:
-            continue
+    names = grouped([r.name for r in reports])
+    by_name = {r.name: r for r in reports}
+    style = styles(names)
+    drawn = {(row, column): ([], []) for row in range(2) for column in range(2)}
+    for name in names:
+        s = style[name]
+        runs = sorted((r for r in by_name[name].runs if r.stable), key=lambda r: (r.dt, -r.tol))
         for row, (measure, _) in enumerate(measures):
             for column, (work, _) in enumerate(works):
-                x = [getattr(r, work) for r in runs]
-                y = [getattr(r, measure) for r in runs]
-                pairs = [(a, b) for a, b in zip(x, y, strict=True) if a > 0 and b > 0]
-                if pairs:
-                    axes[row, column].loglog(*zip(*pairs, strict=True), "o-", ms=3,
-                                             color=f"C{k % 10}", label=report.name)  # fmt: skip
+                pairs = [(getattr(r, work), getattr(r, measure)) for r in runs]
+                pairs = [(a, b) for a, b in pairs if a > 0 and b > 0]
+                if not pairs:
+                    continue
+                x, y = zip(*pairs, strict=True)
+                drawn[row, column][0].extend(x)
+                drawn[row, column][1].extend(y)
+                axes[row, column].loglog(x, y, ls=s["linestyle"], marker=s["marker"], ms=4,
+                                         color=s["color"], lw=0.9, label=name)  # fmt: skip
     for row, (_, measure_label) in enumerate(measures):
         for column, (_, work_label) in enumerate(works):
             ax = axes[row, column]
+            if column == 1:
+                reference_slopes(ax, *drawn[row, column], [1, 2, 4], sign=-1)
             ax.set_xlabel(work_label)
             ax.set_ylabel(f"{measure_label} {labels.get(('energy', 'length')[row], '')}".strip())
             ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize="x-small", ncol=2)
+    legend_outside(fig, axes[0, 1], title="integrator (by family)")
     fig.suptitle("Work-precision: error against cost, one curve per integrator over its dt ladder")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -757,11 +884,7 @@ def _measure(report, rows, sim, wall, evaluations, span) -> None:
 
 def write_thermostat_csv(reports: Sequence[ThermostatReport], path) -> None:
     """Write one row per thermostat with :data:`THERMOSTAT_CSV_COLUMNS`."""
-    with open(path, "x", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(THERMOSTAT_CSV_COLUMNS))
-        writer.writeheader()
-        for report in reports:
-            writer.writerow(report.row())
+    write_csv_rows(path, THERMOSTAT_CSV_COLUMNS, (report.row() for report in reports))
 
 
 def plot_thermostats(reports: Sequence[ThermostatReport], path, labels=None) -> None:

@@ -61,4 +61,53 @@ def take_pending() -> bool:
     return seen
 
 
-__all__ = ["take_pending", "watch", "watching"]
+#: The signal lists of the :func:`sigterm_as_interrupt` blocks now open, innermost last.
+_writing_blocks: list[list[str]] = []
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[list[str]]:
+    """Inside the block, SIGTERM raises KeyboardInterrupt, as Ctrl-C does.
+
+    A command that writes a file whole (through a temporary file) then
+    cleans up on ``kill`` as on Ctrl-C, instead of dying with its temporary
+    file left behind. Yields a list that holds the name of each stop signal
+    (``"SIGTERM"``, ``"SIGINT"``) that came, so the command can say which one
+    stopped it. Both are recorded before they raise: an exception raised
+    where Python only prints it (a weakref callback, a ``__del__``, a ctypes
+    callback) is lost, and :func:`raise_if_stopped`, which
+    :func:`md._files.atomic_path` calls before it moves a file into place,
+    raises it again. The previous handlers are restored at the end; outside
+    the main thread this does nothing.
+    """
+    received: list[str] = []
+
+    def handler(signum, frame):
+        received.append(signal.Signals(signum).name)
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
+    _writing_blocks.append(received)
+    try:
+        yield received
+    finally:
+        _writing_blocks.remove(received)
+        for sig, handler_before in previous.items():
+            if handler_before is not None:  # None: set outside Python, cannot be put back
+                signal.signal(sig, handler_before)
+
+
+def raise_if_stopped() -> None:
+    """Raise KeyboardInterrupt if a stop signal came inside an open :func:`sigterm_as_interrupt`.
+
+    For the last moment before a result becomes visible: a signal whose
+    exception was swallowed on its way still stops the command there.
+    """
+    if any(_writing_blocks):
+        raise KeyboardInterrupt
+
+
+__all__ = ["raise_if_stopped", "sigterm_as_interrupt", "take_pending", "watch", "watching"]

@@ -27,6 +27,7 @@ import numpy as np
 
 from md._checks import count, positive
 from md.forcefield import ForceField
+from md.parallel import global_max, global_sum
 from md.state import State
 
 
@@ -35,7 +36,8 @@ class MinimizeResult:
     """How a minimisation ended.
 
     ``fmax`` is the largest per-atom force norm at the end [energy/length];
-    ``history`` holds (step, energy, fmax) every ``report_every`` steps.
+    ``history`` holds (step, energy, fmax) every ``report_every`` steps;
+    ``stopped`` says that the caller's ``stop`` asked to end before convergence.
     """
 
     converged: bool
@@ -44,9 +46,12 @@ class MinimizeResult:
     fmax: float
     target: float
     history: list[tuple[int, float, float]] = field(default_factory=list)
+    stopped: bool = False
 
     def describe(self) -> str:
         verdict = "converged" if self.converged else "NOT converged"
+        if self.stopped:
+            verdict = "stopped"
         relation = "<=" if self.converged else ">"
         return (
             f"{verdict} after {self.steps} steps: max force {self.fmax:.4g} {relation} "
@@ -101,11 +106,20 @@ class FIRE:
         max_steps: int,
         callback: Callable[[int, float, float], None] | None = None,
         report_every: int = 100,
+        between_steps: Callable[[np.ndarray], np.ndarray] | None = None,
+        stop: Callable[[], bool] | None = None,
     ) -> MinimizeResult:
         """Move ``state.positions`` towards a local minimum until every ``|F_i| <= fmax``.
 
         Velocities, step and time of the state are left as they were. ``callback(step,
         energy, fmax)`` is called every ``report_every`` steps and at the end.
+        ``between_steps(velocities)``, called before each step, may replace the
+        state's arrays and returns the minimiser's velocities for the atoms it then
+        holds (a decomposed run migrates atoms between ranks there,
+        :meth:`md.distributed.DistributedSimulation.minimize`); its sums and maxima
+        over atoms go through :func:`md.parallel.global_sum` and ``global_max``.
+        ``stop()`` is asked before each step; when it returns True the
+        minimisation ends there (``result.stopped``), at a consistent state.
 
         Raises
         ------
@@ -117,17 +131,17 @@ class FIRE:
         fmax = positive(fmax, "fmax")
         max_steps = count(max_steps, "max_steps", minimum=1)
         report_every = count(report_every, "report_every", minimum=1)
-        positions = state.positions
-        velocity = np.zeros_like(positions)
+        velocity = np.zeros_like(state.positions)
         dt, alpha = self.dt0, self.alpha_start
         positive_steps = 0
         result = MinimizeResult(False, 0, math.nan, math.nan, fmax)
         for step in range(max_steps + 1):
+            if between_steps is not None:
+                velocity = between_steps(velocity)
+            positions = state.positions
             evaluated = forcefield.compute(state, virial=False)
             forces = evaluated.forces
-            largest = (
-                float(np.sqrt(np.max(np.sum(forces * forces, axis=1)))) if len(forces) else 0.0
-            )
+            largest = global_max(_largest_norm(forces))
             result.steps, result.energy, result.fmax = step, float(evaluated.energy), largest
             if step % report_every == 0:
                 result.history.append((step, result.energy, largest))
@@ -138,8 +152,11 @@ class FIRE:
                 break
             if step == max_steps:
                 break
+            if stop is not None and stop():
+                result.stopped = True
+                break
             forces = self._capped(forces)
-            power = float(np.sum(forces * velocity))
+            power = global_sum(float(np.sum(forces * velocity)))
             if power > 0.0:
                 positive_steps += 1
                 if positive_steps > self.n_delay:
@@ -153,13 +170,13 @@ class FIRE:
                 positions -= 0.5 * dt * velocity  # back half a step, then stop
                 velocity[:] = 0.0
             velocity += dt * forces  # semi-implicit Euler, unit masses
-            norm_v = math.sqrt(float(np.sum(velocity * velocity)))
-            norm_f = math.sqrt(float(np.sum(forces * forces)))
+            norm_v = math.sqrt(global_sum(float(np.sum(velocity * velocity))))
+            norm_f = math.sqrt(global_sum(float(np.sum(forces * forces))))
             if norm_f > 0.0:
                 velocity *= 1.0 - alpha
                 velocity += alpha * norm_v / norm_f * forces
             displacement = dt * velocity
-            longest = _largest_norm(displacement)
+            longest = global_max(_largest_norm(displacement))
             if longest > self.max_step:
                 displacement *= self.max_step / longest
             positions += displacement
@@ -189,6 +206,8 @@ def minimize(
     max_step: float = 0.1,
     callback: Callable[[int, float, float], None] | None = None,
     report_every: int = 100,
+    between_steps: Callable[[np.ndarray], np.ndarray] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> MinimizeResult:
     """Relax ``state`` with FIRE 2.0 (a push-off when ``max_force`` is given); see :class:`FIRE`.
 
@@ -202,7 +221,9 @@ def minimize(
     1.12246
     """
     fire = FIRE(dt=dt, max_step=max_step, max_force=max_force)
-    return fire.run(state, forcefield, fmax, max_steps, callback, report_every)
+    return fire.run(
+        state, forcefield, fmax, max_steps, callback, report_every, between_steps, stop
+    )
 
 
 __all__ = ["FIRE", "MinimizeResult", "minimize"]

@@ -15,6 +15,7 @@ from md._cell_kernels import (
     _balanced_bounds,
     _brute_force_pairs,
     _cell_list,
+    _keep_owned_pairs,
     _largest_coordinates,
     _largest_displacement2,
     _max_displacement2,
@@ -100,6 +101,13 @@ def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.floa
     blow-up guard (``max_displacement``) uses it.
     """
     return _max_displacement2(positions, reference)
+
+
+def largest_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64],
+                          chunks: int) -> float:  # fmt: skip
+    """As :func:`max_displacement2`, in ``chunks`` chunks on the threads when ``chunks`` > 1
+    (the list's own rebuild test; :mod:`md.distributed` asks it for a rank's atoms)."""
+    return _largest_displacement2(positions, reference, chunks)
 
 
 def _square(length: float) -> float:
@@ -212,6 +220,20 @@ class NeighborList:
         self._cell_memo = None  # (key, data) of _cell_data
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
+        self._owned: tuple[NDArray[np.int64], int] | None = None
+
+    def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
+        """From the next build on, list only the pairs this rank of a decomposed run evaluates.
+
+        The State is one rank's atoms, ``0 .. n_owned - 1``, followed by ghost
+        copies of atoms other ranks own (and periodic images); ``ids`` (N,) are
+        their global ids. Of each pair the rank whose atom has the smaller id
+        keeps it, so every pair of the whole system is listed on exactly one rank
+        and pairs of two ghosts on none (:mod:`md.distributed` sends the ghosts'
+        forces back to their owners). None lists every pair again.
+        """
+        self._owned = None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64),
+                                                int(n_owned))  # fmt: skip
 
     @property
     def list_radius(self) -> float:
@@ -416,6 +438,8 @@ class NeighborList:
         else:
             self._build_cells(state, grid, chunks)
             self.shifts = shifts
+        if self._owned is not None:
+            self._drop_unowned(chunks)
         self._reference = reference
         self._box = state.box.copy()
         self._tilt = state.tilt.copy()
@@ -493,6 +517,19 @@ class NeighborList:
         self.slot_neighbors = self._neighbor_buffer[:count]
         self.codes = self._code_buffer[:count]
         self.bounds = bounds
+
+    def _drop_unowned(self, chunks: int) -> None:
+        """Apply :meth:`keep_owned`'s rule to the list just built."""
+        ids, n_owned = self._owned
+        if ids.shape[0] != len(self.slot_starts) - 1:
+            raise ValueError(f"keep_owned was given {ids.shape[0]} ids for "
+                             f"{len(self.slot_starts) - 1} atoms")  # fmt: skip
+        order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
+        count = _keep_owned_pairs(order, self.slot_starts, self.slot_neighbors, self.codes, ids,
+                                  n_owned)  # fmt: skip
+        self.slot_neighbors = self.slot_neighbors[:count]
+        self.codes = self.codes[:count] if len(self.codes) else self.codes
+        self.bounds = _balanced_bounds(self.slot_starts, chunks)
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""

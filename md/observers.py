@@ -30,6 +30,8 @@ class Progress:
 
     #: Reads no pressure, so its steps need no virial (see ``Simulation.attach``).
     uses_virial = False
+    #: Reads only the step: a run decomposed over MPI ranks need not gather its atoms.
+    whole_system = False
 
     def __init__(self, bar) -> None:
         self.bar = bar

@@ -11,15 +11,42 @@ round-off (only the order of the force sums differs).
 ``set_threads(n)`` (``md run --threads``, ``[run] threads`` in a config,
 ``Simulation(threads=...)``). The default is every core numba may use
 (``NUMBA_NUM_THREADS``, normally the core count).
+
+A run decomposed over MPI ranks (:mod:`md.distributed`) sets one more, for
+the duration of its collective calls (:func:`using_reductions`): there
+:func:`global_sum` and :func:`global_max` reduce over every rank (the
+integrators' kinetic energies, degrees of freedom and noise momenta, FIRE's
+powers and norms); anywhere else they return their argument unchanged, and
+nothing about MPI is imported.
 """
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Protocol
 
 import numba
 import numpy as np
 from numba import njit, prange
 
+
+class Reductions(Protocol):
+    """Sums and maxima over the ranks of a decomposed run (see :mod:`md.distributed`)."""
+
+    n_ranks: int
+
+    def sum(self, values: np.ndarray) -> np.ndarray:
+        """Element-wise sum over the ranks, added in rank order: the same bits on every rank."""
+        ...
+
+    def max(self, values: np.ndarray) -> np.ndarray:
+        """Element-wise maximum over the ranks."""
+        ...
+
 _threads: int | None = None
+#: The reductions of a decomposed run (None: this process holds the whole system).
+_reductions: Reductions | None = None
 #: Fewest elements per thread worth a chunk of their own in a memory-bound pass.
 _MIN_CHUNK_VALUES = 150_000
 
@@ -57,6 +84,57 @@ def get_threads() -> int:
     if _threads is None:
         return set_threads(None)
     return _threads
+
+
+def set_reductions(reductions: Reductions | None) -> Reductions | None:
+    """Make :func:`global_sum` and :func:`global_max` reduce over ``reductions``'s ranks
+    (None: this process alone); return the previous setting, for restoring it."""
+    global _reductions
+    previous, _reductions = _reductions, reductions
+    return previous
+
+
+def n_ranks() -> int:
+    """Ranks the system is decomposed over (1 outside a decomposed run)."""
+    return 1 if _reductions is None else _reductions.n_ranks
+
+
+@contextlib.contextmanager
+def using_reductions(reductions: Reductions | None) -> Iterator[None]:
+    """Within the block, :func:`global_sum` and :func:`global_max` reduce over ``reductions``
+    (a decomposed run's collective calls: its steps, thermo rows, minimisation)."""
+    previous = set_reductions(reductions)
+    try:
+        yield
+    finally:
+        set_reductions(previous)
+
+
+def global_sum(value, over: Reductions | None = None):
+    """``value`` (a number or an array) summed over the ranks; ``value`` itself on one rank.
+
+    The ranks are ``over``, else those of :func:`using_reductions`. Every rank of
+    a decomposed run must call it at the same point (a collective call).
+    Integers stay integers (exact below 2^53).
+    """
+    reductions = over if over is not None else _reductions
+    if reductions is None:
+        return value
+    total = reductions.sum(np.atleast_1d(np.asarray(value, dtype=np.float64)))
+    if np.ndim(value) == 0:
+        total = total[0]
+        return int(total) if isinstance(value, int | np.integer) else float(total)
+    return total.reshape(np.shape(value))
+
+
+def global_max(value, over: Reductions | None = None):
+    """``value`` (a number or an array) maximised over the ranks (``over``, else those of
+    :func:`using_reductions`); ``value`` itself on one rank."""
+    reductions = over if over is not None else _reductions
+    if reductions is None:
+        return value
+    largest = reductions.max(np.atleast_1d(np.asarray(value, dtype=np.float64)))
+    return float(largest[0]) if np.ndim(value) == 0 else largest.reshape(np.shape(value))
 
 
 def chunk_count(n: int, fewest: int) -> int:

@@ -1,9 +1,11 @@
 """Pictures of a trajectory frame without writing code: matplotlib, or POV-Ray where installed.
 
 :func:`render` draws one frame of an H5MD trajectory: atoms as spheres
-coloured by type, bonds as lines, the box edges. Positions are drawn
-wrapped into the box; a bond that crosses a periodic boundary is drawn
-from each of its atoms towards the other's nearest image, so it pokes out
+coloured by type, bonds as lines, the box edges (along open axes the stored
+edge widened to the atoms' extent, or their bounding box where the edge is
+zero: :func:`md.box.enclosing_cell`). Positions are drawn wrapped into the
+box; a bond that crosses a periodic boundary is drawn from each of its
+atoms towards the other's nearest image, so it pokes out
 of the box on both sides instead of spanning it. ``engine="povray"`` writes
 the same scene through ASE's POV-Ray writer and renders it with the
 ``povray`` program (bonds and box included), for publication pictures.
@@ -18,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from md._files import atomic_path
-from md.box import cell_matrix, minimum_image
+from md._files import atomic_path, exclusive_claim, output_target, remove_stale_temporaries
+from md.box import cell_matrix, enclosing_cell, minimum_image
 from md.trajectory import Frame, TrajectoryReader
 
 #: Engines :func:`render` offers.
@@ -68,9 +70,15 @@ def render(
     IndexError
         A frame outside the file's frames.
     FileExistsError
-        ``output`` exists and ``overwrite`` is not given.
+        ``output`` exists and ``overwrite`` is not given, or another run is
+        writing it (its claim, see :func:`md._files.exclusive_claim`).
     TrajectoryError
         The input is not an H5MD trajectory of ours.
+
+    Notes
+    -----
+    A symbolic link is written through into its target; a special file
+    (FIFO, device node) is refused with ValueError, never replaced.
     """
     output = Path(output)
     if engine not in ENGINES:
@@ -79,6 +87,7 @@ def render(
         raise ValueError(f"size must be an integer number of pixels in 16..{MAX_PIXELS}")
     if output.suffix.lower() != ".png":
         raise ValueError(f"{output}: pictures are written as PNG; name the output *.png")
+    output = output_target(output)  # a symlink's target; a special file is refused
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output} already exists; choose another name or pass --overwrite")
     if engine == "povray" and shutil.which("povray") is None:
@@ -95,11 +104,13 @@ def render(
                 f"{reader.path} holds {n} frames (0 to {n - 1}); frame {frame} is out of range"
             )
         snapshot = reader.frame(frame)
-        with atomic_path(output, exclusive=not overwrite) as temporary:
-            if engine == "matplotlib":
-                _draw_matplotlib(reader, snapshot, temporary, size, elevation, azimuth)
-            else:
-                _draw_povray(reader, snapshot, temporary, size, elevation, azimuth)
+        with exclusive_claim(output):
+            remove_stale_temporaries(output)  # an interrupted render's, under the claim
+            with atomic_path(output, exclusive=not overwrite) as temporary:
+                if engine == "matplotlib":
+                    _draw_matplotlib(reader, snapshot, temporary, size, elevation, azimuth)
+                else:
+                    _draw_povray(reader, snapshot, temporary, size, elevation, azimuth)
     return output
 
 
@@ -119,11 +130,14 @@ def bond_segments(reader: TrajectoryReader, snapshot: Frame) -> np.ndarray:
     return np.concatenate([first, second])
 
 
-def box_edges(box, tilt=None) -> np.ndarray:
-    """Return the 12 edges of the cell (edge lengths ``box``, tilt factors ``tilt``) as
-    (12, 2, 3) segments; a tilted cell is drawn as its parallelepiped."""
+def box_edges(box, tilt=None, origin=None) -> np.ndarray:
+    """Return the 12 edges of the cell (edge lengths ``box``, tilt factors ``tilt``, corner
+    ``origin``, default 0) as (12, 2, 3) segments; a tilted cell is drawn as its
+    parallelepiped."""
     fractional = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
     corners = fractional @ cell_matrix(np.asarray(box, dtype=float), tilt)
+    if origin is not None:
+        corners += np.asarray(origin, dtype=float)
     edges = [
         (a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1
     ]  # corners that differ in one coordinate
@@ -142,7 +156,7 @@ def _draw_matplotlib(reader, snapshot, path: Path, size: int, elevation, azimuth
     dpi = 100
     fig = Figure(figsize=(size / dpi, size / dpi), dpi=dpi)
     ax = fig.add_subplot(projection="3d")
-    box = snapshot.box
+    origin, box, tilt = enclosing_cell(snapshot.positions, snapshot.box, reader.pbc, snapshot.tilt)
     colours = [f"C{t % 10}" for t in range(len(reader.type_names))]
     # Marker area [points^2]: atoms about half their spacing across, at the view's scale
     # (the box spans roughly half the picture).
@@ -157,7 +171,7 @@ def _draw_matplotlib(reader, snapshot, path: Path, size: int, elevation, azimuth
     segments = bond_segments(reader, snapshot)
     if len(segments):
         ax.add_collection3d(Line3DCollection(segments, colors="0.3", linewidths=0.8))
-    edges = box_edges(box, snapshot.tilt)
+    edges = box_edges(box, tilt, origin)
     ax.add_collection3d(Line3DCollection(edges, colors="k", linewidths=0.8))
     low, high = edges.min(axis=(0, 1)), edges.max(axis=(0, 1))
     ax.set_xlim(low[0], high[0])
@@ -180,7 +194,10 @@ def _draw_povray(reader, snapshot, path: Path, size: int, elevation, azimuth) ->
     from matplotlib.colors import to_rgb  # the type colours of the matplotlib engine
 
     atoms = reader.state(snapshot, unwrap=False).to_ase()
-    radius = _atom_radius(reader, snapshot.box)
+    origin, box, tilt = enclosing_cell(snapshot.positions, snapshot.box, reader.pbc, snapshot.tilt)
+    atoms.set_cell(cell_matrix(box, tilt))  # drawn from the origin: move the atoms with it
+    atoms.positions -= origin
+    radius = _atom_radius(reader, box)
     bonds = reader.topology.bonds
     r = snapshot.positions
     # Each bond to its partner's nearest image: ASE takes the partner's cell offset,

@@ -18,19 +18,23 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import time
+import tomllib
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
+
 from integrators.barostats import Barostat, pressure_control
 from integrators.base import ForceSplit, Statistics, constraints_of
-from md._checks import count
-from md._files import claim_holder, exclusive_claim, remove_stale_temporaries
+from md._checks import count, positive
+from md._files import claim_holder, exclusive_claim, output_target, remove_stale_temporaries
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -43,23 +47,34 @@ from md.checkpoint import (
 )
 from md.config import (
     Config,
+    MinimizeConfig,
     build_system,
     input_files,
     integrator_from_config,
     load_config,
+    parse_config,
     potential_from_config,
+)
+from md.distributed import (
+    DistributedSimulation,
+    Elsewhere,
+    agree,
+    mpi_ranks,
+    on_root,
+    ranks_per_node,
 )
 from md.errors import (
     CheckpointError,
     ConfigError,
     ConvergenceError,
     NonFiniteError,
+    OutputBusyError,
     SimulationError,
     TrajectoryError,
 )
 from md.interrupts import take_pending
 from md.minimize import MinimizeResult, minimize
-from md.parallel import set_threads
+from md.parallel import global_sum, max_threads, set_threads
 from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
@@ -87,7 +102,9 @@ class RunSummary:
         solve did not converge: ``message`` names the step); ``"output_error"``
         (the trajectory could not be written, e.g. disk full); ``"stopped"``
         (a signal asked it to stop: ``signal`` names it; a checkpoint was
-        written); ``"aborted"`` (a second signal while stopping).
+        written, unless ``message`` says the run stopped while minimising,
+        before anything was written); ``"aborted"`` (a second signal while
+        stopping).
     output, checkpoint : Path
         The trajectory and its checkpoint.
     n_steps : int
@@ -99,10 +116,18 @@ class RunSummary:
         Seconds spent in the loop.
     first, last : dict
         ``sim.thermo()`` before and after the loop.
+    start : dict
+        The energies at the start of the whole run (step 0): ``step``,
+        ``total_energy``, ``kinetic_energy`` and, with a thermostat,
+        ``conserved_energy``. A resumed run takes them from its checkpoint,
+        so drifts can be measured over the whole run; empty when resuming
+        from a checkpoint written before checkpoints kept them.
     timings : dict
         Seconds per section (neighbour, force, integrate, observers) in the loop.
     last_checkpoint_step : int or None
-        Step of the last checkpoint written.
+        Step of the checkpoint on disk at the end: the last one written, or
+        the one resumed from or written at the start if none was written
+        since; None if there is none.
     message : str
         The error, for ``failed`` and ``output_error``.
     signal : str or None
@@ -120,20 +145,29 @@ class RunSummary:
     wall: float = 0.0
     first: dict = field(default_factory=dict)
     last: dict = field(default_factory=dict)
+    start: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     last_checkpoint_step: int | None = None
     message: str = ""
     signal: str | None = None
     statistics: dict = field(default_factory=dict)
 
-    def relative_change(self, key: str = "total_energy") -> float:
-        """(last - first) of a thermo quantity over the first total energy's scale.
+    @property
+    def reference(self) -> dict:
+        """The row drifts are measured from: ``start`` (step 0, also for a resumed run)
+        where it is known, else ``first``."""
+        return self.start if "total_energy" in self.start else self.first
 
-        The scale is the larger of the magnitude of the total energy and the kinetic energy at the
-        start (so a total energy near zero does not blow the ratio up). NaN
-        when the run has no ``last`` row (it did not complete) or no ``key``.
+    def relative_change(self, key: str = "total_energy") -> float:
+        """(last - reference) of a thermo quantity over the reference total energy's scale.
+
+        Over the whole run: from step 0 (:attr:`reference`), which a resumed
+        run takes from its checkpoint. The scale is the larger of the
+        magnitude of the total energy and the kinetic energy there (so a
+        total energy near zero does not blow the ratio up). NaN when the run
+        has no ``last`` row (it did not complete) or no ``key``.
         """
-        first, last = self.first, self.last
+        first, last = self.reference, self.last
         if key not in first or key not in last:
             return math.nan
         scale = max(abs(first["total_energy"]), abs(first["kinetic_energy"]), 1e-300)
@@ -145,6 +179,10 @@ class RunSummary:
         if not steps:
             return {}
         return {name: value / steps for name, value in self.statistics.items() if name != "steps"}
+
+
+#: What a checkpoint keeps of the run's first thermo row, to measure drifts from it.
+_START_KEYS = ("step", "total_energy", "kinetic_energy", "conserved_energy")
 
 
 @dataclass
@@ -179,6 +217,10 @@ class PreparedRun:
     parameters: dict
     config_file: str
     minimized: MinimizeResult | None = None
+    #: Atoms in the whole system (a decomposed run's ``sim.state`` holds one rank's).
+    n_atoms: int = 0
+    #: The ranks of a run decomposed over MPI (None: one process).
+    ranks: object = None
 
     @property
     def resuming(self) -> bool:
@@ -189,23 +231,33 @@ class PreparedRun:
         """True when resuming a run that already took all its steps."""
         return self.checkpoint is not None and self.n_steps == 0
 
-    def minimize(self, callback: Callable[[int, float, float], None] | None = None):
+    def minimize(
+        self,
+        callback: Callable[[int, float, float], None] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ):
         """Run the config's ``[minimize]`` stage on the state; return its MinimizeResult.
 
         Only a fresh run minimises (a resumed one starts from its checkpoint,
         which holds the minimised state), and only once. FIRE 2.0 moves the
         positions (velocities stay as drawn); ``callback(step, energy, fmax)``
-        reports progress. Returns None when there is nothing to do.
+        reports progress; ``stop()`` True ends it early (``result.stopped``).
+        Returns None when there is nothing to do.
         """
         stage = self.config.minimize
         if stage is None or self.checkpoint is not None:
             return None
-        if self.minimized is None:
+        if self.minimized is None or self.minimized.stopped:
             sim = self.sim
-            self.minimized = minimize(
-                sim.state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
-                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
-            )  # fmt: skip
+            options = {"max_force": stage.max_force, "max_step": stage.max_step,
+                       "callback": callback, "report_every": stage.report_every}  # fmt: skip
+            if self.ranks is not None:
+                # Not ``stop``: a signal reaches one rank, and every rank must take the
+                # same steps; a decomposed run stops after the stage instead.
+                self.minimized = sim.minimize(stage.fmax, stage.max_steps, **options)
+            else:
+                self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
+                                          stage.max_steps, stop=stop, **options)  # fmt: skip
             sim.integrator.reset()  # history taken at the old positions is stale
         return self.minimized
 
@@ -242,32 +294,80 @@ class PreparedRun:
         OSError
             If the first checkpoint or the trajectory cannot be written.
         """
-        with exclusive_claim(self.output):
-            self.minimize(minimize_progress)
+        with self._claim():
+            if self.config.minimize is not None and self.checkpoint is None:
+                stop = _Stop()
+                previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+                try:
+                    self.minimize(minimize_progress, stop=stop)
+                finally:
+                    _restore_signals(previous)
+                if stop.signal is not None and self.ranks is not None:
+                    # Every rank must leave together: the run stops at its first step.
+                    self.sim.request_stop(stop.signal)
+                elif stop.signal is not None:
+                    return RunSummary(
+                        STOPPED, self.output, self.checkpoint_path, self.n_steps,
+                        message="while minimising", signal=stop.signal,
+                    )  # fmt: skip
             return self._execute(observers, handle_signals)
 
+    @contextlib.contextmanager
+    def _claim(self):
+        """:func:`exclusive_claim` on the output, by rank 0 alone in a decomposed run (every
+        rank learns whether it got it)."""
+        if self.ranks is None:
+            with exclusive_claim(self.output):
+                yield
+            return
+        with contextlib.ExitStack() as stack:
+            error = None
+            if self.ranks.rank == 0:
+                try:
+                    stack.enter_context(exclusive_claim(self.output))
+                except OSError as caught:
+                    error = caught
+            agree(self.ranks, error)
+            yield
+
     def _execute(self, observers, handle_signals: bool) -> RunSummary:
-        sim, state, config = self.sim, self.sim.state, self.config
+        sim, state, config, ranks = self.sim, self.sim.state, self.config, self.ranks
         summary = RunSummary(COMPLETED, self.output, self.checkpoint_path, self.n_steps)
-        writer = self._open_outputs()
+        summary.first = sim.thermo()
+        if self.checkpoint is None:
+            summary.start = {key: summary.first[key] for key in _START_KEYS if key in summary.first}
+        else:
+            summary.start = dict(self.checkpoint.extra.get("start") or {})
+        writer = self._open_outputs(summary.start)  # None on the other ranks of a decomposed run
         saver = Checkpointer(
-            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file
-        )
-        sim.attach(writer, interval=config.output.every)
+            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file,
+            start=summary.start,
+        )  # fmt: skip
+        sim.attach(writer if writer is not None else Elsewhere(config.output.forces),
+                   interval=config.output.every)  # fmt: skip
         # After the writer, so a checkpoint counts the frame of its own step. With
         # checkpoint_every = 0 it only fires at the start of a fresh run (step 0).
         sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
         for observer, interval in observers:
             sim.attach(observer, interval=interval)
-        summary.first = sim.thermo()
+        start_step = state.step  # _open_outputs wrote (or resumed) a checkpoint here
         timings_before = sim.timing_summary()
-        previous = _catch_stop_signals(sim) if handle_signals else {}
+        previous = (
+            _catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
+            if handle_signals
+            else {}
+        )
         start = time.perf_counter()
         try:
-            with writer:
+            with writer if writer is not None else contextlib.nullcontext():
                 sim.run(self.n_steps)
-                if sim.stop_requested is None or saver.last_step != state.step:
-                    saver(sim)  # at the end, and after a signal
+                saved_at = on_root(ranks, lambda: saver.last_step)
+                if sim.stop_requested is None or saved_at != state.step:
+                    # At the end, and after a signal (a decomposed run gathers it on rank 0).
+                    if ranks is None:
+                        saver(sim)
+                    else:
+                        sim.observe(saver)
         except (SimulationError, ConvergenceError) as error:
             summary.status, summary.message = FAILED, str(error)
         except KeyboardInterrupt:  # a second signal while stopping: leave at once
@@ -277,13 +377,18 @@ class PreparedRun:
         finally:
             _restore_signals(previous)
         summary.wall = time.perf_counter() - start
-        if summary.status == OUTPUT_ERROR and self.checkpoint is None and writer.n_frames == 0:
+        n_frames = on_root(ranks, lambda: writer.n_frames)
+        last_step = on_root(ranks, lambda: saver.last_step)
+        if summary.status == OUTPUT_ERROR and self.checkpoint is None and n_frames == 0:
             # Not even the first frame fitted: keep nothing, so a plain re-run can start.
-            self.output.unlink(missing_ok=True)
-            self.checkpoint_path.unlink(missing_ok=True)
-            saver.last_step = None
-        summary.n_frames = writer.n_frames
-        summary.last_checkpoint_step = saver.last_step
+            if ranks is None or ranks.rank == 0:
+                self.output.unlink(missing_ok=True)
+                self.checkpoint_path.unlink(missing_ok=True)
+            last_step = None
+        summary.n_frames = n_frames
+        summary.last_checkpoint_step = last_step
+        if last_step is None and self.checkpoint_path.exists():
+            summary.last_checkpoint_step = start_step  # none since: the start's is there
         summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
         if summary.status == COMPLETED and sim.stop_requested is not None:
             summary.status, summary.signal = STOPPED, sim.stop_requested
@@ -293,15 +398,30 @@ class PreparedRun:
             summary.statistics = dict(sim.integrator.statistics)
         return summary
 
-    def _open_outputs(self) -> H5MDWriter:
+    def _open_outputs(self, start: dict) -> H5MDWriter | None:
         """Under the claim: the first checkpoint, then the trajectory writer.
 
         A fresh run checks again that its outputs are still free (another run
         may have finished meanwhile). If the trajectory cannot be created (disk
         full), the checkpoint written a moment before is removed again, so a
-        plain re-run is not refused because of it.
+        plain re-run is not refused because of it. A decomposed run gathers the
+        whole system on rank 0, which writes; the other ranks get None.
         """
-        state, config = self.sim.state, self.config
+        if self.ranks is None:
+            sim = self.sim
+            return self._create_outputs(sim.state, sim.integrator, sim.forcefield, start)
+        view = self.sim.global_view(thermo=False)
+        error = writer = None
+        if view is not None:
+            try:
+                writer = self._create_outputs(view.state, view.integrator, view.forcefield, start)
+            except (OSError, ValueError, RuntimeError) as caught:  # every rank learns it below
+                error = caught
+        agree(self.ranks, error)
+        return writer
+
+    def _create_outputs(self, state, integrator, forcefield, start: dict) -> H5MDWriter:
+        config = self.config
         for path in (self.output, self.checkpoint_path):  # a killed run's half-written files
             remove_stale_temporaries(path)
         if self.checkpoint is None:
@@ -312,12 +432,12 @@ class PreparedRun:
             # First a checkpoint of the start, then the trajectory: whenever a run is
             # killed, --resume finds a checkpoint (the file may not exist yet).
             write_checkpoint(
-                self.checkpoint_path, state, self.sim.integrator, self.sim.forcefield,
+                self.checkpoint_path, state, integrator, forcefield,
                 fingerprint=self.fingerprint, run_id=self.run_id,
-                extra={"config_file": self.config_file},
+                extra={"config_file": self.config_file, "start": start},
             )  # fmt: skip
             try:
-                return self._new_trajectory(overwrite=self.overwrite)
+                return self._new_trajectory(state, overwrite=self.overwrite)
             except BaseException:
                 self.checkpoint_path.unlink(missing_ok=True)
                 raise
@@ -326,16 +446,16 @@ class PreparedRun:
                 self.output, state, units=config.units, append=True,
                 keep_frames=self.checkpoint.n_frames,
             )  # fmt: skip
-        return self._new_trajectory(overwrite=True)
+        return self._new_trajectory(state, overwrite=True)
 
-    def _new_trajectory(self, overwrite: bool) -> H5MDWriter:
+    def _new_trajectory(self, state: State, overwrite: bool) -> H5MDWriter:
         output = self.config.output
         return H5MDWriter(
-            self.output, self.sim.state, units=self.config.units, velocities=output.velocities,
+            self.output, state, units=self.config.units, velocities=output.velocities,
             forces=output.forces, parameters=self.parameters, overwrite=overwrite,
             topology=run_topology(self.sim),
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
-            triclinic=not self.sim.state.is_orthorhombic
+            triclinic=not state.is_orthorhombic
             or (self.config.barostat is not None
                 and self.config.barostat.get("couple") == "triclinic"),  # fmt: skip
             conserved=self.sim.integrator.thermostat,
@@ -352,7 +472,9 @@ def prepare(
 ) -> PreparedRun:
     """Validate and build the run a config describes; write nothing.
 
-    Parameters are those of :func:`run_config`.
+    Parameters are those of :func:`run_config`. Under an MPI launcher with
+    several processes (``mpiexec -n P``), every rank validates alike, and the
+    run is built decomposed over them (:class:`md.distributed.DistributedSimulation`).
 
     Raises
     ------
@@ -360,6 +482,63 @@ def prepare(
         For anything wrong with the config, its files, the output path or the
         checkpoint to resume; the message names the file, key or value.
     """
+    try:
+        ranks = mpi_ranks()
+    except RuntimeError as error:  # several processes but no mpi4py
+        raise ConfigError(str(error)) from None
+    inputs, error = None, None
+    try:
+        inputs = _inputs(path_or_config, steps, output, overwrite, resume, ranks)
+    except INPUT_ERRORS as caught:
+        if ranks is None:
+            raise
+        error = caught  # every rank raises the first rank's error below, none waits
+    if ranks is not None:
+        agree(ranks, error)
+    config, config_file, output, saved_path, fingerprint, checkpoint = inputs
+    try:
+        sim = _build_simulation(config, checkpoint, saved_path, threads, ranks)
+    except MemoryError:
+        raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
+    integrator, units = sim.integrator, config.units
+    run_id = checkpoint.run_id if checkpoint is not None else uuid.uuid4().hex
+    if ranks is not None and checkpoint is None:
+        run_id = ranks.broadcast(run_id)
+    parameters = {
+        "config": config.text,
+        "config_file": config_file,
+        "potentials": [p.describe() for p in sim.potentials],
+        "integrator": integrator.describe(),
+        "dt_config": integrator.dt / units.config_time,
+        "dt_config_unit": units.config_time_label,
+        "skin": config.run.skin,
+        "seed": -1 if config.seed is None else config.seed,
+        "n_steps": config.run.steps,
+        "run_id": run_id,
+    }
+    if ranks is not None:
+        parameters["mpi_ranks"] = ranks.n_ranks
+        parameters["decomposition"] = list(sim.grid.shape)
+    return PreparedRun(
+        config=config,
+        sim=sim,
+        output=output,
+        checkpoint_path=saved_path,
+        n_steps=config.run.steps - sim.state.step,
+        overwrite=overwrite,
+        checkpoint=checkpoint,
+        fingerprint=fingerprint,
+        run_id=run_id,
+        parameters=parameters,
+        config_file=config_file,
+        n_atoms=_whole_count(sim, ranks),
+        ranks=ranks,
+    )
+
+
+def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks):
+    """Read and check the config, the output paths and a checkpoint to resume (no
+    collective calls: a decomposed run's ranks agree on the outcome afterwards)."""
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
     if steps is not None:
@@ -368,23 +547,13 @@ def prepare(
                                                                          minimum=0)))  # fmt: skip
         except ValueError as error:
             raise ConfigError(str(error)) from None
-    output = Path(output) if output is not None else config.output.path
-    if output.name in ("", ".", ".."):
-        raise ConfigError(f"output path {str(output)!r} names no file")
+    if ranks is not None and config.seed is None:
+        config = _seeded(config, ranks)
+    output = _writable_output(Path(output) if output is not None else config.output.path)
     saved_path = checkpoint_path(output)
-    if output.exists() and output.is_dir():
-        raise ConfigError(f"output path {output} is a directory")
-    if not output.parent.is_dir():
-        raise ConfigError(f"output directory {output.parent} does not exist")
-    if not os.access(output.parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"output directory {output.parent} is not writable")
+    _writable_output(saved_path)
     _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
-    holder = claim_holder(output)
-    if holder is not None:
-        raise ConfigError(
-            f"{output} is being written by another run ({holder}); wait for it to end, "
-            "or choose another --output"
-        )
+    _refuse_claimed(output)
     fingerprint = physics_fingerprint(config)
     checkpoint = None
     if resume:
@@ -398,7 +567,7 @@ def prepare(
             raise ConfigError(
                 f"--resume: {config_file} changed the physics since checkpoint "
                 f"{saved_path} was written ({'; '.join(changes)}); only [run] steps, "
-                "thermo_every and [output] every/checkpoint_every may change"
+                "thermo_every, decomposition and [output] every/checkpoint_every may change"
             )
         if output.exists():
             _check_resumable(output, checkpoint)
@@ -414,37 +583,25 @@ def prepare(
                     f"output file {path} already exists; pass --overwrite to replace it, "
                     "--resume to continue it, or --output to choose another path"
                 )
-    try:
-        sim = _build_simulation(config, checkpoint, saved_path, threads)
-    except MemoryError:
-        raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
-    integrator, state, units = sim.integrator, sim.state, config.units
-    run_id = checkpoint.run_id if checkpoint is not None else uuid.uuid4().hex
-    parameters = {
-        "config": config.text,
-        "config_file": config_file,
-        "potentials": [p.describe() for p in sim.potentials],
-        "integrator": integrator.describe(),
-        "dt_config": integrator.dt / units.config_time,
-        "dt_config_unit": units.config_time_label,
-        "skin": config.run.skin,
-        "seed": -1 if config.seed is None else config.seed,
-        "n_steps": config.run.steps,
-        "run_id": run_id,
-    }
-    return PreparedRun(
-        config=config,
-        sim=sim,
-        output=output,
-        checkpoint_path=saved_path,
-        n_steps=config.run.steps - state.step,
-        overwrite=overwrite,
-        checkpoint=checkpoint,
-        fingerprint=fingerprint,
-        run_id=run_id,
-        parameters=parameters,
-        config_file=config_file,
-    )
+    return config, config_file, output, saved_path, fingerprint, checkpoint
+
+
+def _seeded(config: Config, ranks) -> Config:
+    """``config`` with a seed drawn by rank 0 for all ranks: each builds the same system and
+    the same random streams (a config without one draws them from fresh entropy)."""
+    if not config.text:
+        raise ConfigError(f"{config.source}: a run over several MPI ranks needs a seed")
+    seed = ranks.broadcast(int(np.random.SeedSequence().generate_state(1)[0]) >> 1)
+    data = tomllib.loads(config.text)
+    data["seed"] = seed
+    seeded = parse_config(data, source=config.source, text=config.text,
+                          base=Path(config.source).parent)  # fmt: skip
+    return replace(seeded, run=replace(seeded.run, steps=config.run.steps))
+
+
+def _whole_count(sim, ranks) -> int:
+    """Atoms in the whole system."""
+    return sim.state.n_atoms if ranks is None else int(global_sum(sim.state.n_atoms, ranks))
 
 
 def run_config(
@@ -491,7 +648,183 @@ def run_config(
         return prepared.sim, RunSummary(
             COMPLETED, prepared.output, prepared.checkpoint_path, 0,
             n_frames=prepared.checkpoint.n_frames,
+            start=dict(prepared.checkpoint.extra.get("start") or {}),
         )  # fmt: skip
+    return prepared.sim, prepared.execute()
+
+
+# ------------------------------------------------------------------ md minimize
+#: Suffixes of the H5MD files ``md minimize`` writes.
+H5MD_SUFFIXES = (".h5", ".hdf5", ".h5md", ".hdf")
+
+
+@dataclass
+class MinimizeSummary:
+    """What :meth:`PreparedMinimize.execute` did.
+
+    ``status`` is ``"completed"`` (the structure was written; ``result.converged``
+    says whether FIRE reached ``fmax``), ``"failed"`` (forces became
+    non-finite), ``"output_error"`` (the file could not be written, e.g. disk
+    full: nothing was left) or ``"stopped"`` (a signal, named in ``signal``:
+    nothing was written). ``message`` holds the error.
+    """
+
+    status: str
+    output: Path
+    result: MinimizeResult | None = None
+    message: str = ""
+    signal: str | None = None
+
+
+@dataclass
+class PreparedMinimize:
+    """A validated minimisation that has written nothing yet (see :func:`prepare_minimize`).
+
+    ``stage`` holds the FIRE settings in use (the config's ``[minimize]``
+    with the arguments' overrides); ``output`` is the file to write (a
+    symlink's target).
+    """
+
+    config: Config
+    sim: Simulation
+    output: Path
+    overwrite: bool
+    stage: MinimizeConfig
+
+    def execute(
+        self,
+        callback: Callable[[int, float, float], None] | None = None,
+        handle_signals: bool = True,
+    ) -> MinimizeSummary:
+        """Claim the output, minimise, and write the structure as a one-frame H5MD file.
+
+        The file is built in memory and written whole at the end, so a full
+        disk, an error or a signal leaves no file behind. SIGINT/SIGTERM stop
+        the minimisation at its next step (a second one at once).
+
+        Raises
+        ------
+        ConfigError
+            If the output appeared meanwhile.
+        OutputBusyError
+            If another run claimed the output meanwhile.
+        """
+        with contextlib.ExitStack() as claimed:
+            try:
+                claimed.enter_context(exclusive_claim(self.output))
+            except OutputBusyError:
+                raise
+            except OSError as error:  # no room even for the claim's lock file
+                return MinimizeSummary(OUTPUT_ERROR, self.output, message=str(error))
+            remove_stale_temporaries(self.output)
+            if self.output.exists() and not self.overwrite:
+                raise ConfigError(f"output file {self.output} appeared while minimising started")
+            return self._execute(callback, handle_signals)
+
+    def _execute(self, callback, handle_signals: bool) -> MinimizeSummary:
+        sim, stage, state = self.sim, self.stage, self.sim.state
+        stop = _Stop()
+        previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+        try:
+            result = minimize(
+                state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
+                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
+                stop=stop,
+            )  # fmt: skip
+        except NonFiniteError as error:
+            return MinimizeSummary(FAILED, self.output, message=str(error))
+        finally:
+            _restore_signals(previous)
+        if result.stopped:
+            return MinimizeSummary(STOPPED, self.output, result, signal=stop.signal)
+        try:
+            with H5MDWriter(
+                self.output, state, units=self.config.units, overwrite=self.overwrite,
+                topology=run_topology(sim), in_memory=True,
+                parameters={"config": self.config.text, "minimize": result.describe()},
+            ) as writer:  # fmt: skip
+                writer.write(state, thermo=sim.thermo())
+        except OSError as error:
+            return MinimizeSummary(OUTPUT_ERROR, self.output, result, message=str(error))
+        return MinimizeSummary(COMPLETED, self.output, result)
+
+
+def prepare_minimize(
+    path_or_config: str | os.PathLike | Config,
+    output: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    fmax: float | None = None,
+    max_steps: int | None = None,
+    max_force: float | None = None,
+    threads: int | None = None,
+) -> PreparedMinimize:
+    """Validate and build what ``md minimize`` does; write nothing.
+
+    Parameters
+    ----------
+    path_or_config : path or Config
+        The config describing the system; its ``[minimize]`` table gives
+        the defaults.
+    output : path, optional
+        H5MD file to write (``.h5``, ``.hdf5``, ``.h5md``); default
+        ``<[output] path stem>_min.h5``.
+    overwrite : bool
+        Replace an existing output (never a file another run is writing,
+        one of the config's inputs, or anything but a regular file).
+    fmax, max_steps, max_force : optional
+        Override ``[minimize]`` fmax [energy/length], max_steps and the
+        push-off's force cap.
+    threads : int, optional
+        Kernel threads, overriding ``[run] threads``.
+
+    Raises
+    ------
+    ConfigError
+        For anything wrong; the message names the option, key or file.
+    """
+    config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
+    config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
+    overrides = {}
+    try:
+        if fmax is not None:
+            overrides["fmax"] = positive(fmax, "--fmax")
+        if max_steps is not None:
+            overrides["max_steps"] = count(max_steps, "--max-steps", minimum=1)
+        if max_force is not None:
+            overrides["max_force"] = positive(max_force, "--max-force")
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    stage = replace(config.minimize or MinimizeConfig(), **overrides)
+    if output is None:
+        output = config.output.path.with_name(f"{config.output.path.stem}_min.h5")
+    output = _writable_output(Path(output))
+    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output,))
+    if output.suffix.lower() not in H5MD_SUFFIXES:
+        raise ConfigError(
+            f"{output}: md minimize writes H5MD, so name the output *.h5; to get another "
+            f"format, convert it afterwards: md convert {output.with_suffix('.h5')} {output}"
+        )
+    _refuse_claimed(output)
+    if output.exists() and not overwrite:
+        raise ConfigError(f"{output} already exists; pass --overwrite or choose --output")
+    state, potentials, integrator = build_components(config)
+    _set_threads(config, threads)
+    try:
+        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units)
+    except ValueError as error:
+        raise ConfigError(f"{config.source}: {error}") from None
+    return PreparedMinimize(config, sim, output, overwrite, stage)
+
+
+def minimize_config(
+    path_or_config: str | os.PathLike | Config, **options
+) -> tuple[Simulation, MinimizeSummary]:
+    """Minimise the structure a config builds and write it, as ``md minimize`` does.
+
+    ``options`` are those of :func:`prepare_minimize`. Returns the Simulation
+    (at the relaxed state) and a :class:`MinimizeSummary`.
+    """
+    prepared = prepare_minimize(path_or_config, **options)
     return prepared.sim, prepared.execute()
 
 
@@ -531,6 +864,7 @@ def build_components(config: Config, state: State | None = None):
     if config.barostat is not None:
         try:
             barostat = Barostat(config.barostat.type, **config.barostat.values)
+            barostat.check(state.pbc)
             integrator = pressure_control(integrator, barostat)
         except ValueError as error:
             raise ConfigError(f"{config.source}: [barostat]: {error}") from None
@@ -555,7 +889,7 @@ def build_potentials(config: Config, type_names, bonds=None) -> list:
     ]
 
 
-def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> Simulation:
+def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ranks=None):
     if checkpoint is not None:
         try:
             state, potentials, integrator = build_components(config, checkpoint.state)
@@ -569,23 +903,20 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
     cutoffs = [p.cutoff for p in potentials if p.cutoff is not None]
     guard = max([config.run.skin, *(0.1 * c for c in cutoffs)])
     guard = guard if guard > 0 and not integrator.adaptive else None
-    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
-    threads = threads if threads is not None else config.run.threads
+    _set_threads(config, threads, ranks)
     try:
-        set_threads(threads)
+        if ranks is None:
+            sim = Simulation(state, potentials, integrator, skin=config.run.skin,
+                             units=config.units, max_displacement=guard)  # fmt: skip
+        else:
+            sim = DistributedSimulation(
+                state, potentials, integrator, skin=config.run.skin, units=config.units,
+                max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
+            )  # fmt: skip
     except ValueError as error:
+        where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (
+            config.source)  # fmt: skip
         raise ConfigError(f"{where}: {error}") from None
-    try:
-        sim = Simulation(
-            state,
-            potentials,
-            integrator,
-            skin=config.run.skin,
-            units=config.units,
-            max_displacement=guard,
-        )
-    except ValueError as error:
-        raise ConfigError(f"{config.source}: {error}") from None
     if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
         try:
             integrator.split(sim.forcefield)
@@ -593,17 +924,66 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads) -> 
             raise ConfigError(f"{config.source}: [integrator] ({integrator.describe()['type']}): "
                               f"{error}") from None  # fmt: skip
     if checkpoint is not None:
-        restore(checkpoint, integrator, sim.forcefield)
+        if ranks is None:
+            restore(checkpoint, integrator, sim.forcefield)
+        else:  # the integrator's whole-system state, then the ranks' parts and lists
+            restore(checkpoint, integrator)
+            sim.resume(checkpoint.state, checkpoint.neighbor_reference, checkpoint.neighbor_cell,
+                       checkpoint.decomposition)  # fmt: skip
         if checkpoint.n_frames:  # else frame 0 was never kept: write it again
             sim.skip_initial_observation()
     try:
-        sim.forcefield.compute(state)
+        sim.forcefield.compute(sim.state)
     except NonFiniteError as error:
         raise ConfigError(
             f"{config.source}: the initial configuration cannot be evaluated: {error} "
             "(overlapping atoms, or a stretched bond?)"
         ) from None
     return sim
+
+
+def _set_threads(config: Config, threads: int | None, ranks=None) -> None:
+    """Set the kernel threads: ``threads`` (``--threads``) or the config's ``[run] threads``;
+    with neither, in a decomposed run, a node's cores shared by its ranks."""
+    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
+    threads = threads if threads is not None else config.run.threads
+    if threads is None and ranks is not None:
+        threads = max(1, max_threads() // ranks_per_node(ranks))
+    try:
+        set_threads(threads)
+    except ValueError as error:
+        raise ConfigError(f"{where}: {error}") from None
+
+
+def _writable_output(output: Path) -> Path:
+    """The file an output path writes (a symlink's target); ConfigError if it cannot be one.
+
+    Refused: a path naming no file, a directory, a special file (FIFO, device
+    node, socket: never replaced), a missing or unwritable directory.
+    """
+    if output.name in ("", ".", ".."):
+        raise ConfigError(f"output path {str(output)!r} names no file")
+    if output.is_dir():
+        raise ConfigError(f"output path {output} is a directory")
+    try:
+        target = output_target(output)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    if not target.parent.is_dir():
+        raise ConfigError(f"output directory {target.parent} does not exist")
+    if not os.access(target.parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"output directory {target.parent} is not writable")
+    return target
+
+
+def _refuse_claimed(output: Path) -> None:
+    """ConfigError if a live run holds the claim on ``output`` (see md._files.exclusive_claim)."""
+    holder = claim_holder(output)
+    if holder is not None:
+        raise ConfigError(
+            f"{output} is being written by another run ({holder}); wait for it to end, "
+            "or choose another --output"
+        )
 
 
 def _input_files(config: Config, path_or_config) -> list[Path]:
@@ -644,13 +1024,17 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     verify_frames(output, n)  # the frames kept must be intact (checksums)
 
 
-def _catch_stop_signals(sim: Simulation) -> dict:
-    """SIGINT/SIGTERM ask the run to stop after the current step; a second one stops at once."""
+def _catch_stop_signals(request: Callable[[str], None], pending: Callable[[], str | None]) -> dict:
+    """SIGINT/SIGTERM call ``request(name)`` (stop at the next step); a second one stops at once.
+
+    ``pending()`` says whether a stop was asked for already. Returns the
+    handlers replaced, for :func:`_restore_signals`.
+    """
 
     def handler(signum, frame):
-        if sim.stop_requested is not None:
+        if pending() is not None:
             raise KeyboardInterrupt
-        sim.request_stop(signal.Signals(signum).name)
+        request(signal.Signals(signum).name)
 
     previous = {}
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -659,8 +1043,24 @@ def _catch_stop_signals(sim: Simulation) -> dict:
         except ValueError:  # not the main thread: leave signals alone
             break
     if previous and take_pending():  # a Ctrl-C during start-up that compilation swallowed
-        sim.request_stop("SIGINT")
+        request("SIGINT")
     return previous
+
+
+class _Stop:
+    """A stop asked for by a signal while minimising: FIRE's ``stop`` callable."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+
+    def request(self, name: str) -> None:
+        self.signal = name
+
+    def pending(self) -> str | None:
+        return self.signal
+
+    def __call__(self) -> bool:
+        return self.signal is not None
 
 
 def _restore_signals(previous: dict) -> None:
@@ -669,11 +1069,15 @@ def _restore_signals(previous: dict) -> None:
 
 
 __all__ = [
+    "MinimizeSummary",
+    "PreparedMinimize",
     "PreparedRun",
     "RunSummary",
     "build_components",
     "build_potentials",
+    "minimize_config",
     "prepare",
+    "prepare_minimize",
     "run_config",
 ]
 # Errors a caller of prepare() should expect, for ``except`` clauses.

@@ -10,16 +10,17 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from integrators.base import ThermoTerms
+from md.box import cell_deformation
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.neighbors import max_displacement2
-from md.parallel import set_threads
+from md.parallel import global_sum, set_threads
 from md.state import State
 from md.thermo import (
+    degrees_of_freedom,
     kinetic_energy,
+    kinetic_tensor,
     pressure,
-    pressure_tensor,
-    temperature,
     tensor_components,
 )
 from md.units import UnitSystem, get_units
@@ -60,7 +61,13 @@ class Simulation:
     max_displacement : float, optional
         Blow-up guard [length]: a particle moving farther than this in one
         step stops the run with a :class:`SimulationError` (``md run`` uses
-        the skin). None: no check. Kept as an attribute of that name.
+        the skin). None: no check. Kept as an attribute of that name. When
+        the cell moved in the step (a barostat), the move is measured from
+        the particle's old position carried along with the cell (the affine
+        part, which grows with the box, is not counted); a cell move that
+        changed the distances between neighbours (up to the neighbour-list
+        radius apart) by more than the guard stops the run too, naming the
+        box's strain.
     threads : int, optional
         Threads for the force and neighbour kernels, set process-wide through
         :func:`md.parallel.set_threads`; None leaves the setting as it is
@@ -110,6 +117,8 @@ class Simulation:
         self.max_displacement = max_displacement
         self.stop_requested: str | None = None
         self._previous = np.empty((0, 3))
+        self._previous_cell = (b"", b"")  # box and tilt before the step, as bytes
+        self._mapped = np.empty((0, 3))  # the step's start carried along with the cell
 
     @property
     def potentials(self) -> list[Potential]:
@@ -174,7 +183,7 @@ class Simulation:
             self._observed_start = True
         forcefield_timings = self.forcefield.timings
         for _ in range(int(n_steps)):
-            if self.stop_requested is not None:
+            if self._stopping():
                 break
             before = forcefield_timings["neighbor"] + forcefield_timings["force"]
             start = time.perf_counter()
@@ -183,6 +192,7 @@ class Simulation:
                 if self._previous.shape != state.positions.shape:
                     self._previous = np.empty_like(state.positions)
                 np.copyto(self._previous, state.positions)
+                self._previous_cell = (state.box.tobytes(), state.tilt.tobytes())
             upcoming = state.step + 1
             self.forcefield.virial_wanted = any(upcoming % k == 0 for k in self._virial_intervals)
             self._guarded(lambda: self.integrator.step(state, self.forcefield), upcoming)
@@ -195,23 +205,63 @@ class Simulation:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False
 
+    def _stopping(self) -> bool:
+        """Whether :meth:`run` stops before the next step (a decomposed run also agrees on
+        it across ranks and moves atoms between them here)."""
+        return self.stop_requested is not None
+
     def _check_displacement(self, limit: float) -> None:
-        """Raise SimulationError if a particle moved farther than ``limit`` this step."""
-        moved2 = max_displacement2(self.state.positions, self._previous)
+        """Raise SimulationError if a particle moved farther than ``limit`` this step.
+
+        If the cell changed (a barostat), each particle's old position is first
+        carried along with the cell (``r M``, M the cell's deformation), so only
+        the motion relative to the deformed cell counts; a deformation that by
+        itself moved neighbours (up to the list radius apart) by more than
+        ``limit`` relative to each other is reported as the barostat's doing.
+        """
+        state = self.state
+        previous = self._previous
+        if self._previous_cell != (state.box.tobytes(), state.tilt.tobytes()):
+            box, tilt = (np.frombuffer(b, dtype=np.float64) for b in self._previous_cell)
+            deformation = cell_deformation(box, tilt, state.box, state.tilt, state.pbc)
+            self._check_cell_move(deformation, limit)
+            if self._mapped.shape != previous.shape:
+                self._mapped = np.empty_like(previous)
+            previous = np.matmul(previous, deformation, out=self._mapped)
+        moved2 = max_displacement2(state.positions, previous)
         if moved2 <= limit * limit:
             return
-        step = self.state.step
+        step = state.step
         if not np.isfinite(moved2):
             raise SimulationError(
                 step, "positions became NaN or infinite; the dynamics blew up (is dt too large?)"
             )
-        distances = np.linalg.norm(self.state.positions - self._previous, axis=1)
+        distances = np.linalg.norm(state.positions - previous, axis=1)
         atom = int(np.argmax(distances))
+        named = atom if state.ids is None else int(state.ids[atom])
+        relative = " relative to the moving cell" if previous is not self._previous else ""
         raise SimulationError(
             step,
-            f"atom {atom} moved {distances[atom]:.4g} in one step, more than the "
+            f"atom {named} moved {distances[atom]:.4g} in one step{relative}, more than the "
             f"neighbour-list skin {limit:g}; the dynamics is blowing up "
             "(time step too large, or overlapping atoms?)",
+        )
+
+    def _check_cell_move(self, deformation, limit: float) -> None:
+        """Raise SimulationError if the cell's deformation alone moved neighbours apart by
+        more than ``limit`` (the strain times the neighbour-list radius)."""
+        if not np.all(np.isfinite(deformation)):
+            raise SimulationError(self.state.step, "the box became NaN or infinite")
+        strain = float(np.linalg.norm(deformation - np.eye(3), ord=2))
+        nl = self.forcefield.neighbor_list
+        if nl is None or strain * nl.list_radius <= limit:
+            return
+        raise SimulationError(
+            self.state.step,
+            f"the barostat moved the box by {100 * strain:.3g}% in one step, which changes "
+            f"the distance between neighbours {nl.list_radius:g} apart by "
+            f"{strain * nl.list_radius:.3g}, more than the neighbour-list skin {limit:g}: the "
+            "pressure coupling is far too strong; use a larger [barostat] tau",
         )
 
     def thermo(self) -> dict[str, float]:
@@ -227,20 +277,23 @@ class Simulation:
         """
         state = self.state
         result = self.forcefield.compute(state)
-        kinetic = kinetic_energy(state.velocities, state.masses)
+        # Sums over atoms go through global_sum: over every rank in a decomposed run.
+        kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         # Thermostats and constrained integrators (integrators/_thermostat.py) give their
         # degrees of freedom, the constraint virial and the heat bath's energy.
         integrator = self.integrator
         terms = (
             integrator.thermo_terms(state, result) if isinstance(integrator, ThermoTerms) else {}
         )
-        kinetic_temperature = temperature(state.velocities, state.masses, self.units.kB)
-        if "n_dof" in terms:
-            n_dof = terms["n_dof"]
-            kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
+        n_dof = terms.get("n_dof", degrees_of_freedom(global_sum(state.n_atoms)))
+        kinetic_temperature = 2.0 * kinetic / (n_dof * self.units.kB) if n_dof > 0 else 0.0
         virial = result.virial + terms["virial"] if "virial" in terms else result.virial
         volume = state.volume
-        tensor = pressure_tensor(state.velocities, state.masses, virial, volume)
+        if volume > 0:
+            tensor = (global_sum(kinetic_tensor(state.velocities, state.masses)) + virial) / volume
+        else:
+            tensor = np.full((3, 3), np.nan)
+        mass = global_sum(float(np.sum(state.masses)))
         row = {
             "step": state.step,
             "time": state.time,
@@ -250,7 +303,7 @@ class Simulation:
             "temperature": kinetic_temperature,
             "pressure": pressure(kinetic, virial, volume),
             "volume": volume,
-            "density": float(np.sum(state.masses)) / volume if volume > 0 else float("nan"),
+            "density": mass / volume if volume > 0 else float("nan"),
             **tensor_components(tensor),
         }
         if "reservoir_energy" in terms:

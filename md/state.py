@@ -66,6 +66,11 @@ class State:
         orthorhombic box; each may be non-zero only when both axes it
         couples are periodic. The cell vectors are a = (Lx, 0, 0),
         b = (xy, Ly, 0) and c = (xz, yz, Lz) (:attr:`cell`).
+    ids : ndarray of int64, shape (N,), optional
+        Each atom's index in the whole system, when this State holds a part
+        of it (one rank's atoms in a run decomposed over MPI ranks,
+        :mod:`md.distributed`); None: atom i is atom i. Langevin's noise is
+        keyed by it, so a trajectory does not depend on how the system was cut.
 
     Examples
     --------
@@ -85,6 +90,7 @@ class State:
     step: int = 0
     time: float = 0.0
     tilt: NDArray[np.float64] | None = None
+    ids: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         # The State owns copies of its arrays: integrators update them in place,
@@ -123,6 +129,11 @@ class State:
         if types.size and not np.all(types == np.round(types)):
             raise ValueError(f"types must be integers, got {self.types!r}")
         self.types = np.array(types, dtype=np.int32, order="C", copy=True)
+        if self.ids is not None:
+            ids = np.asarray(self.ids)
+            if ids.shape != (n,) or (ids.size and not np.issubdtype(ids.dtype, np.integer)):
+                raise ValueError(f"ids must be integers of shape ({n},), got {ids.shape}")
+            self.ids = np.array(ids, dtype=np.int64, order="C", copy=True)
         n_types = int(self.types.max()) + 1 if n else 1
         if self.type_names is None:
             self.type_names = tuple(_default_type_name(t) for t in range(n_types))
@@ -136,12 +147,13 @@ class State:
         if not np.all(np.isfinite(self.positions)):
             bad = int(np.argwhere(~np.isfinite(self.positions))[0, 0])
             raise ValueError(f"positions of atom {bad} are not finite: {self.positions[bad]}")
-        if not np.all(np.isfinite(self.velocities)):
-            bad = int(np.argwhere(~np.isfinite(self.velocities))[0, 0])
-            raise ValueError(f"velocities of atom {bad} are not finite: {self.velocities[bad]}")
+        # Masses before velocities: velocities from momenta / mass are NaN where a mass is 0.
         if self.masses.size and not np.all(self.masses > 0):  # also catches NaN
             bad = int(np.argwhere(~(self.masses > 0))[0, 0])
             raise ValueError(f"masses must be positive; atom {bad} has mass {self.masses[bad]}")
+        if not np.all(np.isfinite(self.velocities)):
+            bad = int(np.argwhere(~np.isfinite(self.velocities))[0, 0])
+            raise ValueError(f"velocities of atom {bad} are not finite: {self.velocities[bad]}")
         with np.errstate(divide="ignore", over="ignore"):
             usable = np.isfinite(self.masses) & np.isfinite(1.0 / self.masses)
         if self.masses.size and not np.all(usable):  # integrators divide by the mass
@@ -207,6 +219,7 @@ class State:
             step=self.step,
             time=self.time,
             tilt=self.tilt.copy(),
+            ids=None if self.ids is None else self.ids.copy(),
         )
         momenta = getattr(self, "_ase_momenta", None)
         if momenta is not None:
@@ -253,7 +266,8 @@ class State:
         )  # fmt: skip
         masses = atoms.get_masses()
         momenta = atoms.get_momenta()
-        velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused below
+            velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
         remembered = getattr(atoms, "_leapmd_velocities", None)
         if (
             remembered is not None

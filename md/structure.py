@@ -54,9 +54,17 @@ def structure_kind(path, format: str | None = None) -> str:
 
 
 def read_structure(
-    path, format: str | None = None, units: str | UnitSystem = "metal"
+    path, format: str | None = None, units: str | UnitSystem = "metal", mass=None
 ) -> tuple[State, Topology]:
     """Read a starting structure; return ``(state, topology)`` in engine units.
+
+    Parameters
+    ----------
+    mass : float or dict, optional
+        Masses for a LAMMPS data file without a ``Masses`` section: one for
+        every atom, or one per type name (the config's ``[system] mass``,
+        which replaces the file's masses anyway). Without it such a file is
+        refused.
 
     Raises
     ------
@@ -67,9 +75,10 @@ def read_structure(
     path = Path(path)
     units = get_units(units)
     kind = structure_kind(path, format)
-    reader = {"lammps-data": _read_lammps_data, "gsd": _read_gsd, "h5md": _read_h5md}.get(kind)
-    if reader is not None:
-        state, topology = reader(path, units)
+    if kind == "lammps-data":
+        state, topology = _read_lammps_data(path, units, mass)
+    elif kind in ("gsd", "h5md"):
+        state, topology = {"gsd": _read_gsd, "h5md": _read_h5md}[kind](path, units)
     else:
         state, topology = _read_ase(path, format), Topology.empty()
     topology.check(state.n_atoms, where=f"{path}")
@@ -85,13 +94,23 @@ def _read_ase(path: Path, format: str | None) -> State:
         atoms = ase.io.read(path, format=format)
     except Exception as error:  # ase.io raises many types for unreadable files
         how = f" as format {format!r}" if format else ""
-        raise ValueError(f"cannot read {path}{how} ({error})") from None
+        reason = _reason(error)
+        raise ValueError(f"cannot read {path}{how}: ASE's reader failed ({reason})") from None
     if isinstance(atoms, list):
         atoms = atoms[-1]
     try:
         return State.from_ase(atoms)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
+
+
+def _reason(error: BaseException) -> str:
+    """An exception of ASE's readers as text that says what it is: a bare KeyError(64)
+    reads "64" on its own."""
+    text = str(error)
+    if isinstance(error, LookupError) or not text:
+        return f"{type(error).__name__} {text}".strip()
+    return text
 
 
 def _check_xyz_count(path: Path, format: str | None) -> None:
@@ -169,17 +188,19 @@ def _lammps_header(path: Path) -> dict:
 _STYLE_BY_COLUMNS = {5: "atomic", 6: "bond", 7: "full"}
 
 
-def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
+def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, Topology]:
     import ase.io  # ASE's LAMMPS data reader: loaded only for data files
-    from ase.calculators.lammps import convert as lammps_units  # with ASE's reader
 
     try:
         header = _lammps_header(path)
     except (OSError, ValueError) as error:
         raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
     tilt = np.zeros(3) if header["tilt"] is None else np.asarray(header["tilt"], float)
-    if not header["masses"]:
-        raise ValueError(f"{path}: no Masses section; add one (masses per atom type)")
+    if not header["masses"] and mass is None:
+        raise ValueError(
+            f"{path}: no Masses section; add one (masses per atom type) or give the masses "
+            "([system] mass)"
+        )
     box = header["hi"] - header["lo"]
     if not np.all(box > 0):
         raise ValueError(f"{path}: no box (xlo xhi, ylo yhi, zlo zhi lines) or an empty one")
@@ -191,10 +212,19 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
             "Atoms header, e.g. 'Atoms # full'"
         )
     try:
-        atoms = ase.io.read(path, format="lammps-data", atom_style=style, units="metal")
+        # Reduced (lj) values are taken as written: ASE's units to its own is the identity.
+        atoms = ase.io.read(path, format="lammps-data", atom_style=style,
+                            units="ASE" if units.name == "lj" else "metal")  # fmt: skip
     except Exception as error:  # ASE raises many types for unreadable files
+        hint = ""
+        if isinstance(error, KeyError):  # ASE looks ids and types up in dicts
+            hint = (
+                ": an id the file refers to is not defined (an atom id in Bonds, Angles or "
+                "Velocities missing from Atoms, or an atom type missing from Masses)"
+            )
         raise ValueError(
-            f"cannot read {path} as a LAMMPS data file with atom_style {style} ({error})"
+            f"cannot read {path} as a LAMMPS data file with atom_style {style}: ASE's reader "
+            f"failed ({_reason(error)}){hint}"
         ) from None
     numbers = np.asarray(atoms.arrays["type"], dtype=np.int64)
     distinct = np.unique(numbers)
@@ -205,19 +235,25 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
         type_names = tuple(names[int(t)] for t in distinct)
     else:
         type_names = tuple(str(t) for t in distinct)
-    velocities = atoms.get_velocities()  # ASE converted metal (A/ps) to its own units
-    if units.name == "lj":  # reduced values are taken as written
-        velocities = velocities * lammps_units(1.0, "velocity", "ASE", "metal")
-    state = State(
-        positions=atoms.get_positions() - header["lo"],
-        velocities=velocities,
-        masses=atoms.get_masses(),
-        box=box,
-        pbc=True,
-        types=np.searchsorted(distinct, numbers),
-        type_names=type_names,
-        tilt=tilt,  # LAMMPS's restricted triclinic box is the engine's convention
-    )
+    types = np.searchsorted(distinct, numbers)
+    masses = atoms.get_masses()
+    if not header["masses"]:  # ASE guessed them: take the ones given
+        masses = _given_masses(path, mass, types, type_names)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused by State
+        velocities = atoms.get_velocities()  # ASE converted metal (A/ps) to its own units
+    try:
+        state = State(
+            positions=atoms.get_positions() - header["lo"],
+            velocities=velocities,
+            masses=masses,
+            box=box,
+            pbc=True,
+            types=types,
+            type_names=type_names,
+            tilt=tilt,  # LAMMPS's restricted triclinic box is the engine's convention
+        )
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     pairs, bond_numbers = [], []
     for i, listed in enumerate(atoms.arrays.get("bonds", ())):
         if listed == "_":
@@ -248,6 +284,19 @@ def _read_lammps_data(path: Path, units: UnitSystem) -> tuple[State, Topology]:
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
     return state, topology
+
+
+def _given_masses(path: Path, mass, types, type_names) -> np.ndarray:
+    """Per-atom masses from ``mass`` (one number, or one per type name) for a file without."""
+    if not isinstance(mass, dict):
+        return np.full(len(types), float(mass))
+    missing = [name for name in type_names if name not in mass]
+    if missing:
+        raise ValueError(
+            f"{path}: no Masses section, and the masses given name no mass for type(s) "
+            f"{', '.join(missing)} (the file's types: {', '.join(type_names)})"
+        )
+    return np.array([float(mass[type_names[t]]) for t in types])
 
 
 # ---------------------------------------------------------------------- GSD

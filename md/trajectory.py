@@ -52,11 +52,13 @@ attributes, so MDAnalysis must open them with ``convert_units=False``, which
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import resource
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,7 +67,8 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from md._files import atomic_path
+from md._checks import count
+from md._files import disk_full, write_bytes_atomic
 from md._version import __version__
 from md.box import cell_matrix, wrap
 from md.errors import TrajectoryError
@@ -138,11 +141,23 @@ class H5MDWriter:
         Also store ``conserved_energy`` (the thermostat's and barostat's
         conserved quantity, from ``sim.thermo()``), so that analyses measure
         the drift of a thermostatted run on it rather than on the total energy.
+    in_memory : bool
+        Build the whole file in memory and write it to ``path`` only when the
+        writer is closed, at once (temporary file, rename): the path then holds
+        the complete file or nothing, also on a full disk. For small files
+        written in one go, such as a minimised structure; leaving the ``with``
+        block by an exception writes nothing.
 
     Raises
     ------
     FileExistsError
         If ``path`` exists and neither ``overwrite`` nor ``append`` is given.
+    OSError
+        If the file cannot be written; a full disk says "disk full", and the
+        path is then left as it was (a new file is not created).
+    ValueError
+        If ``path`` exists and is not a regular file (a FIFO, a device node);
+        a symbolic link is written through into its target.
     TrajectoryError
         With ``append``, if the file is not one of ours, holds another atom
         count, or fewer than ``keep_frames`` frames.
@@ -169,6 +184,7 @@ class H5MDWriter:
         topology: Topology | None = None,
         triclinic: bool | None = None,
         conserved: bool = False,
+        in_memory: bool = False,
     ) -> None:
         self.path = Path(path)
         self.store_conserved = bool(conserved)
@@ -182,6 +198,8 @@ class H5MDWriter:
         self.n_frames = 0
         self._last_step: int | None = None
         self._file = None
+        self._overwrite = bool(overwrite)
+        self._in_memory = bool(in_memory) and not append
         if append:
             self._open_existing(state, keep_frames)
             return
@@ -189,25 +207,39 @@ class H5MDWriter:
             raise FileExistsError(
                 f"{self.path} already exists; choose another output path or pass --overwrite"
             )
-        # The layout is written to a temporary file and renamed into place, so the path
-        # never holds a half-made file (a run killed while starting leaves nothing).
+        # The layout is made in memory and written by Python into a temporary file that
+        # is renamed into place: HDF5 never meets a full disk while creating it (after a
+        # failed write HDF5 can no longer close the file, and the process crashes when
+        # it does), and the path never holds a half-made file.
+        self._file = _memory_file()
+        try:
+            self._create_layout(state, parameters or {}, author)
+            if topology is not None and (topology.n_bonds or topology.n_angles):
+                _write_topology(self._file, topology)
+            if self._in_memory:
+                return
+            self._file.flush()  # the image holds what has been flushed
+            image = self._file.id.get_file_image()
+        except BaseException:
+            self._drop_memory_file()
+            raise
+        self._drop_memory_file()
         try:
             # Without overwrite the rename is exclusive: a file that appeared meanwhile wins.
-            with atomic_path(self.path, exclusive=not overwrite) as temporary:
-                with h5py.File(temporary, "w") as f:
-                    self._file = f
-                    self._create_layout(state, parameters or {}, author)
-                    if topology is not None and (topology.n_bonds or topology.n_angles):
-                        _write_topology(f, topology)
-                self._file = None
+            write_bytes_atomic(self.path, image, exclusive=not overwrite)
         except FileExistsError:
             raise FileExistsError(f"{self.path} appeared while the run was starting") from None
-        finally:
-            self._file = None
         # locking=False: readers (md info, md analyze, MDAnalysis) may open the file
         # while the run writes it; our own claim (md._files) keeps other writers out.
         self._file = h5py.File(self.path, "r+", rdcc_nbytes=_CHUNK_CACHE, locking=False)
         self._bind()
+
+    def _drop_memory_file(self) -> None:
+        """Close the in-memory file and forget its datasets (nothing reaches the disk)."""
+        self._values, self._step, self._time = {}, None, None
+        if self._file is not None:
+            self._file.close()
+        self._file = None
 
     @property
     def last_step(self) -> int | None:
@@ -264,10 +296,14 @@ class H5MDWriter:
             self._last_step = int(self._step[keep - 1]) if keep else None
             self._file.flush()
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
-            self._file.close()
-            if isinstance(error, TrajectoryError):
-                raise
-            raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
+            failure = (
+                error if isinstance(error, TrajectoryError)
+                else TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})")
+            )  # fmt: skip
+        else:
+            return
+        self._abandon()  # outside the except block: no traceback holds HDF5 objects
+        raise failure
 
     # ------------------------------------------------------------------ layout
     def _create_layout(self, state: State, parameters: dict, author: str | None) -> None:
@@ -380,8 +416,20 @@ class H5MDWriter:
                 "triclinic=True"
             )
         frame = self.n_frames
+        if not self._in_memory:
+            self._check_space(frame)
+        try:
+            self._append(state, frame, thermo, forces)
+        except (RuntimeError, OSError) as error:  # HDF5 raises either for a failed write
+            # Let go of the file while the traceback still holds its datasets: they are
+            # closed with it, after its descriptor points elsewhere (see _abandon).
+            self._abandon()
+            raise _write_failure(error, self.path, frame) from None
+        self.n_frames = frame + 1
+        self._last_step = state.step
+
+    def _append(self, state: State, frame: int, thermo: dict | None, forces) -> None:
         size = frame + 1
-        self._check_space(frame)
         # Two commits: every other dataset grows and is flushed first, the positions last,
         # so a run killed in between leaves a file whose position count (what MDAnalysis
         # reads) is the count of complete frames (what our readers take).
@@ -407,9 +455,32 @@ class H5MDWriter:
         self._file.flush()
         self._values["position"].resize(size, axis=0)
         self._values["position"][frame] = wrapped * self._factor("length")
-        self.n_frames = size
-        self._last_step = state.step
         self._file.flush()
+
+    def _abandon(self) -> None:
+        """Let go of a file that HDF5 failed to write (a full disk), without crashing.
+
+        After a failed write HDF5 holds metadata it cannot write back, and
+        closing the file, freeing one of its datasets or HDF5's own clean-up
+        at exit then crashes the process (segmentation fault). So the file's
+        descriptor is first pointed at ``/dev/null``: what HDF5 still writes
+        goes nowhere, and the file on disk keeps what the last successful
+        flush wrote. Then the datasets are let go and the file is closed.
+        """
+        f = self._file
+        if f is not None and f.id.valid:
+            if not self._in_memory:
+                with contextlib.suppress(OSError, RuntimeError, TypeError, ValueError):
+                    descriptor = f.id.get_vfd_handle()
+                    null = os.open(os.devnull, os.O_RDWR)
+                    try:
+                        os.dup2(null, int(descriptor))
+                    finally:
+                        os.close(null)
+            with contextlib.suppress(RuntimeError, OSError):
+                f.close()  # closes every dataset of the file too
+        self._file = None
+        self._values, self._step, self._time = {}, None, None
 
     def _check_space(self, frame: int) -> None:
         """Raise OSError(ENOSPC) if the disk or the file-size limit may not hold one more frame.
@@ -445,19 +516,53 @@ class H5MDWriter:
             )
 
     def close(self) -> None:
-        """Close the file; after a failed write (disk full) the last flushed frames remain."""
-        if self._file is not None and self._file.id.valid:
+        """Close the file; after a failed write (disk full) the last flushed frames remain.
+
+        An in-memory writer (``in_memory=True``) writes its file now, whole.
+
+        Raises
+        ------
+        OSError
+            An in-memory writer's file could not be written ("disk full"); the
+            path is left as it was.
+        """
+        if self._file is None or not self._file.id.valid:
+            return
+        if self._in_memory:
             try:
-                self._file.close()
-            except (RuntimeError, OSError):
-                # HDF5 could not write its metadata back: what the last flush wrote stays.
-                self._file = None
+                self._file.flush()
+                image = self._file.id.get_file_image()
+            finally:
+                self._drop_memory_file()
+            write_bytes_atomic(self.path, image, exclusive=not self._overwrite)
+            return
+        try:
+            self._file.close()
+        except (RuntimeError, OSError):
+            # HDF5 could not write its metadata back: what the last flush wrote stays.
+            self._abandon()
 
     def __enter__(self) -> H5MDWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if self._in_memory and exc_type is not None:
+            self._drop_memory_file()  # an in-memory file is written whole or not at all
+        else:
+            self.close()
+
+
+def _memory_file() -> h5py.File:
+    """A new HDF5 file that lives in memory only (HDF5's core driver, no backing store)."""
+    return h5py.File(f"leapmd-{uuid.uuid4().hex}.h5", "w", driver="core", backing_store=False)
+
+
+def _write_failure(error: BaseException, path: Path, frame: int) -> OSError:
+    """A fresh OSError for a frame HDF5 could not write (no traceback of HDF5 objects)."""
+    kept = f"the {frame} frames written before are kept"
+    if disk_full(error):
+        return OSError(errno.ENOSPC, f"disk full: cannot write frame {frame + 1} to {path}; {kept}")
+    return OSError(errno.EIO, f"cannot write frame {frame + 1} to {path} ({error}); {kept}")
 
 
 def _write_topology(f: h5py.File, topology: Topology) -> None:
@@ -473,9 +578,12 @@ def _write_topology(f: h5py.File, topology: Topology) -> None:
 
 
 def _read_topology(f: h5py.File) -> Topology:
+    """The bonds and angles of ``/connectivity``, checked against the atom count
+    (TrajectoryError naming the file, the type's dataset and the bond or angle)."""
     if "connectivity" not in f:
         return Topology.empty()
     group = f["connectivity"]
+    n_atoms = len(f["particles/trajectory/mass"])
     names = []
     for key in ("bond_types", "angle_types"):
         order = maybe_json(group.attrs.get(key, "[]"))
@@ -487,8 +595,28 @@ def _read_topology(f: h5py.File) -> Topology:
         listed = group[name][()]
         size = listed.shape[1] if listed.ndim == 2 else 0
         if size in groups:  # other tuple lists (dihedrals, ...) are skipped
+            _check_members(f, name, listed, n_atoms)
             groups[size][name] = listed.astype(np.int64)
     return Topology.from_groups(groups[2], groups[3])
+
+
+def _check_members(f: h5py.File, name: str, listed, n_atoms: int) -> None:
+    """TrajectoryError naming the file, dataset and entry of a bond or angle that names an
+    atom outside the file's atoms, or one atom twice."""
+    kind = "bond" if listed.shape[1] == 2 else "angle"
+    outside = ((listed < 0) | (listed >= n_atoms)).any(axis=1)
+    ordered = np.sort(listed, axis=1)
+    repeated = (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)
+    bad = np.flatnonzero(outside | repeated)
+    if bad.size:
+        first = int(bad[0])
+        what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
+                else "names one atom twice")  # fmt: skip
+        raise TrajectoryError(
+            f"{f.filename}: /connectivity/{name}: {kind} {first} "
+            f"{tuple(listed[first].tolist())} {what} ({bad.size} such {kind}(s)); the file's "
+            "connectivity is damaged"
+        )
 
 
 def read_topology(path) -> Topology:
@@ -497,6 +625,8 @@ def read_topology(path) -> Topology:
     with open_h5md(path) as f:
         try:
             return _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError, OSError) as error:
             raise TrajectoryError(f"{path}: unreadable connectivity ({error})") from None
 
@@ -766,6 +896,9 @@ class TrajectoryReader:
             # Complete frames: those every per-frame dataset holds (a killed write may
             # leave one partial frame).
             self.n_frames = _complete_frames(f)
+        except TrajectoryError:  # already names the file and what is wrong
+            self._file.close()
+            raise
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             self._file.close()
             raise TrajectoryError(
@@ -799,17 +932,18 @@ class TrajectoryReader:
             If ``start`` or ``stop`` lies outside the file's frames, or the
             slice selects none; the message gives the number of frames.
         ValueError
-            If ``step`` is not a positive integer.
+            If ``step`` is not a positive integer (at most 2^53).
         """
         n = self.n_frames
-        if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 1):
-            raise ValueError(f"step must be a positive integer, got {step!r}")
+        if step is not None:
+            step = count(step, "step", minimum=1)
         for name, value, limit in (("start", start, n - 1), ("stop", stop, n)):
             if value is not None and not -n <= value <= limit:
                 raise IndexError(
                     f"{self.path} holds {n} frames (0 to {n - 1}); {name} {value} is out of range"
                 )
-        frames = range(n)[slice(start, stop, step)]
+        # A step beyond the frames selects the first alone; h5py takes no larger one.
+        frames = range(n)[slice(start, stop, None if step is None else min(step, max(n, 1)))]
         if len(frames) == 0:
             raise IndexError(
                 f"{self.path} holds {n} frames; start {start}, stop {stop}, step {step} select none"
@@ -1004,6 +1138,8 @@ def open_trajectory(path, **kwargs):
             names = maybe_json(f["parameters"].attrs.get("type_names", "[]"))
             n_frames = len(f["particles/trajectory/position/step"])
             topology = _read_topology(f)
+        except TrajectoryError:
+            raise
         except (KeyError, ValueError, TypeError) as error:
             raise TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})") from None
     if n_frames == 0:  # MDAnalysis's reader cannot open a file without frames

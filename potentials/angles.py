@@ -38,6 +38,7 @@ x_ij (x) F_i + x_kj (x) F_k.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from collections.abc import Mapping, Sequence
 
@@ -86,6 +87,20 @@ class _AnglePotential:
     @property
     def n_angles(self) -> int:
         return len(self.angles)
+
+    def with_angles(self, angles: ArrayLike, angle_types: ArrayLike) -> _AnglePotential:
+        """The same potential over another angle list, whose ``angle_types`` index the same
+        per-type parameters: one rank's share of the angles, over its local atoms, in a run
+        decomposed over MPI ranks (:mod:`md.distributed`)."""
+        part = copy.copy(self)
+        part.angles = angle_array(angles)
+        part.angle_types = np.array(angle_types, dtype=self.angle_types.dtype, copy=True)
+        if part.angle_types.shape != (len(part.angles),):
+            raise ValueError(f"{len(part.angles)} angles but {part.angle_types.shape} types")
+        part.angles.flags.writeable = False
+        part.angle_types.flags.writeable = False
+        part._max_index = int(part.angles.max()) if len(part.angles) else -1
+        return part
 
     def check(self, state) -> None:
         """Raise ValueError if an angle names an atom the state does not have."""

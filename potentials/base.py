@@ -146,3 +146,36 @@ class SupportsHessianOperator(Protocol):
     """Optional capability: the Hessian as pair blocks (a ``PairHessian``)."""
 
     def hessian_operator(self, state: State, neighbors: NeighborList | None) -> PairHessian: ...
+
+
+@dataclass(frozen=True)
+class BondLaw:
+    """A bonded potential's radial law, bond by bond, as plain arrays.
+
+    For solvers that move bonds one at a time (XPBD) and must evaluate the
+    law at trial lengths themselves.
+
+    Attributes
+    ----------
+    form : {"harmonic", "fene"}
+        ``"harmonic"``: U = k/2 (r - length)^2 (``length`` is the rest length);
+        ``"fene"``: U = -k/2 length^2 ln(1 - r^2 / length^2) (``length`` is r_max).
+    bonds : ndarray of int64, shape (B, 2)
+        Atom pairs.
+    k : ndarray of float64, shape (B,)
+        Spring constant of each bond [energy/length^2].
+    length : ndarray of float64, shape (B,)
+        Rest length (harmonic) or maximum extension (FENE) of each bond [length].
+    """
+
+    form: str
+    bonds: NDArray[np.int64]
+    k: NDArray[np.float64]
+    length: NDArray[np.float64]
+
+
+@runtime_checkable
+class SupportsBondLaw(Protocol):
+    """Optional capability: the radial law of each bond (:class:`BondLaw`)."""
+
+    def bond_law(self) -> BondLaw: ...

@@ -11,6 +11,7 @@ Both potentials offer the optional Hessian capability
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from collections.abc import Mapping, Sequence
 
@@ -25,12 +26,13 @@ from md.errors import BondStretchError
 from md.schema import REQUIRED, Key
 from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
 from potentials._kernels import _add_half_pair_virial
-from potentials.base import ForceResult
+from potentials.base import BondLaw, ForceResult
 from potentials.pair_hessian import PairHessian
 
 #: Kernel codes for the bond forms.
 _HARMONIC = 0
 _FENE = 1
+_FORM_NAMES = {_HARMONIC: "harmonic", _FENE: "fene"}
 
 
 class _BondedPotential:
@@ -58,6 +60,20 @@ class _BondedPotential:
     @property
     def n_bonds(self) -> int:
         return len(self.bonds)
+
+    def with_bonds(self, bonds: ArrayLike, bond_types: ArrayLike) -> _BondedPotential:
+        """The same potential over another bond list, whose ``bond_types`` index the same
+        per-type parameters: one rank's share of the bonds, over its local atoms, in a run
+        decomposed over MPI ranks (:mod:`md.distributed`)."""
+        part = copy.copy(self)
+        part.bonds = bond_array(bonds)
+        part.bond_types = np.array(bond_types, dtype=self.bond_types.dtype, copy=True)
+        if part.bond_types.shape != (len(part.bonds),):
+            raise ValueError(f"{len(part.bonds)} bonds but {part.bond_types.shape} bond types")
+        part.bonds.flags.writeable = False
+        part.bond_types.flags.writeable = False
+        part._max_index = int(part.bonds.max()) if len(part.bonds) else -1
+        return part
 
     # ----------------------------------------------------------------- compute
     def check(self, state) -> None:
@@ -136,6 +152,11 @@ class _BondedPotential:
             state.n_atoms, bonds[:, 0].copy(), bonds[:, 1].copy(), transverse, radial, unit,
             unique=False,
         )  # fmt: skip
+
+    def bond_law(self) -> BondLaw:
+        """Return the law of every bond (per-type parameters spread per bond)."""
+        k, length = (table[self.bond_types] for table in self._tables)
+        return BondLaw(_FORM_NAMES[self._form], self.bonds.astype(np.int64), k, length)
 
     def bond_lengths(self, state) -> NDArray[np.float64]:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""

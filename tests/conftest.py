@@ -149,6 +149,39 @@ def lj_config_text(
     return text
 
 
+#: A small bead-spring melt (lj units, 4 chains of 8 with FENE bonds) writing polymer.h5.
+POLYMER = """
+units = "lj"
+seed = 3
+[system]
+polymer = "melt"
+chains = 4
+chain_length = 8
+density = 0.8
+bond_length = 0.97
+temperature = 1.0
+[[potentials]]
+type = "lj"
+cutoff = 1.122462048309373
+cutoff_mode = "shift"
+[[potentials]]
+type = "fene"
+bonds = "system"
+k = 30.0
+r_max = 1.5
+[integrator]
+type = "verlet"
+dt = 0.002
+[run]
+steps = 60
+[output]
+path = "polymer.h5"
+every = 10
+velocities = true
+forces = true
+"""
+
+
 @pytest.fixture
 def lj_config():
     """Factory: ``lj_config(**keys)`` is :func:`lj_config_text` (see there)."""

@@ -296,3 +296,209 @@ def test_triclinic_coupling_in_a_config_writes_cell_matrices(tmp_path):
 
     with h5py.File("npt.h5") as f:
         assert f["particles/trajectory/box/edges/value"].ndim == 3
+
+
+# ------------------------------------------- the blow-up guard under a moving cell (issue 33)
+NPT_GUARD = """
+units = "lj"
+seed = 11
+[system]
+lattice = "fcc"
+cells = {cells}
+density = {density}
+temperature = {temperature}
+{shear}
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+[integrator]
+type = "langevin"
+dt = {dt}
+temperature = {temperature}
+friction = 1.0
+[barostat]
+type = "c_rescale"
+pressure = {pressure}
+tau = {tau}
+compressibility = {compressibility}
+couple = "{couple}"
+[run]
+steps = {steps}
+thermo_every = 100
+[output]
+path = "npt.h5"
+every = 50
+"""
+GUARD_CASES = {
+    # Each of these stopped at step 10 ("atom ... moved 0.6-0.85 in one step, more than the
+    # skin") before the guard measured motion relative to the moving cell.
+    "pressure 30": dict(cells=5, density=0.8442, temperature=1.0, pressure=30.0,
+                        compressibility=0.1),
+    "cavitation": dict(cells=6, density=0.75, temperature=0.9, pressure=-2.0,
+                       compressibility=1.0),
+    "dilute gas": dict(cells=4, density=0.05, temperature=1.0, pressure=2.0,
+                       compressibility=1.0),
+    "sheared by 0.5": dict(cells=5, density=0.8442, temperature=0.5, pressure=0.0,
+                           compressibility=0.1, couple="triclinic",
+                           shear="shear = [0.5, 0.0, 0.0]"),
+}  # fmt: skip
+
+
+def _guard_config(tmp_path, **values):
+    settings = dict(dt=0.005, tau=1.0, couple="isotropic", shear="", steps=300) | values
+    (tmp_path / "npt.toml").write_text(NPT_GUARD.format(**settings))
+
+
+@pytest.mark.parametrize("case", GUARD_CASES)
+def test_the_blow_up_guard_does_not_count_the_barostats_affine_move(tmp_path, capsys, case):
+    """The box's own move carries far atoms more than the skin: not a blow-up."""
+    _guard_config(tmp_path, **GUARD_CASES[case])
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 0, capsys.readouterr().err
+    traj = read_trajectory("npt.h5")
+    volume, pressure = traj.observables["volume"], traj.observables["pressure"]
+    start = volume[0]
+    if case == "pressure 30":
+        assert volume[-1] < 0.8 * start
+        assert np.mean(pressure[2:]) == pytest.approx(30.0, rel=0.15)
+    elif case == "dilute gas":
+        assert volume[-1] < 0.3 * start  # compressed towards P = 2
+    elif case == "cavitation":
+        assert volume[-1] > 2 * start  # stretched past what the liquid holds: it cavitates
+    else:  # the shear stress is relaxed, the cell sheared back
+        assert abs(traj.observables["pxy"][0]) > 10
+        assert np.abs(traj.observables["pxy"][2:]).max() < 1.0
+        assert traj.tilts[-1, 0] < 0.9 * traj.tilts[0, 0]
+
+
+def test_a_blow_up_under_a_barostat_is_still_caught(tmp_path, capsys):
+    _guard_config(tmp_path, **GUARD_CASES["pressure 30"] | dict(dt=0.04, tau=100.0))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 1
+    assert "in one step, more than the neighbour-list skin 0.3" in capsys.readouterr().err
+
+
+def test_an_absurd_barostat_move_is_named_with_the_box_strain_and_tau(tmp_path, capsys):
+    _guard_config(tmp_path, **GUARD_CASES["pressure 30"] | dict(tau=0.3))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "step 10: the barostat moved the box by 17.2% in one step" in err
+    assert "use a larger [barostat] tau" in err
+
+
+def test_the_displacement_guard_sees_through_a_tilt_flip():
+    """A move right after the cell's tilt flipped to the shorter one (a lattice-basis change,
+    no motion): the deformation is the barostat's, not the flip's."""
+    from md.box import cell_deformation, reduced_tilt
+
+    box, tilt, pbc = np.array([6.0, 6.0, 6.0]), np.array([2.99, 0.0, 0.0]), np.ones(3, bool)
+    mu = np.eye(3)
+    mu[1, 0] = 0.01  # a small shear that takes xy past Lx / 2
+    cell = md.box.cell_matrix(box, tilt) @ mu
+    new_box = np.diag(cell).copy()
+    new_tilt = reduced_tilt(new_box, cell[[1, 2, 2], [0, 0, 1]], pbc)
+    assert new_tilt[0] < 0  # flipped
+    np.testing.assert_allclose(cell_deformation(box, tilt, new_box, new_tilt, pbc), mu,
+                               atol=1e-14)  # fmt: skip
+
+
+def _manual_npt_snippet(root) -> str:
+    """The first TOML block under the manual's "Pressure control" heading (was README's)."""
+    page = (root / "docs" / "guide" / "thermostats-and-barostats.md").read_text()
+    section = page[page.index("## Pressure control") :]
+    start = section.index("```toml\n") + len("```toml\n")
+    return section[start : section.index("```", start)]
+
+
+@pytest.mark.slow
+def test_the_documented_npt_snippet_runs_the_32000_atom_melt(tmp_path):
+    """examples/lj_melt.toml under the manual's (formerly README's) NPT snippet stopped at
+    step 20 as "blowing up" (atom 31999 moved 0.37); it runs its 1000 steps to T 1 and P 1."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "examples" / "lj_melt.toml").read_text()
+    head, _, tail = text.partition("[integrator]")
+    tail = tail[tail.index("[run]") :]
+    snippet = _manual_npt_snippet(root)
+    assert "[barostat]" in snippet and 'type = "c_rescale"' in snippet
+    (tmp_path / "npt.toml").write_text(head + snippet.strip() + "\n\n" + tail)
+    done = subprocess.run(
+        [sys.executable, "-m", "md.cli", "run", "npt.toml", "--no-progress", "-q"],
+        cwd=tmp_path, capture_output=True, text=True, env={**__import__("os").environ,
+        "PYTHONPATH": str(root)},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    traj = read_trajectory(tmp_path / "lj_melt.h5")
+    assert traj.steps[-1] == 1000
+    assert np.mean(traj.observables["temperature"][-4:]) == pytest.approx(1.0, rel=0.05)
+    assert np.mean(traj.observables["pressure"][-4:]) == pytest.approx(1.0, abs=0.3)
+
+
+# ------------------------------------------------------- overshoot and open axes (issue 33)
+@pytest.mark.parametrize("couple", ["isotropic", "anisotropic"])
+@pytest.mark.parametrize("barostat", ["pressure = 1.0\ntau = 0.001", "pressure = 500.0\ntau = 1.0"])
+def test_a_berendsen_move_that_overshoots_fails_with_a_message(tmp_path, capsys, couple,
+                                                                barostat):  # fmt: skip
+    """1 - beta dt (P0 - P) / tau < 0: was a TypeError (the complex cube root) when isotropic."""
+    barostat = f'type = "berendsen"\n{barostat}\ncouple = "{couple}"'
+    (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=barostat))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "step 10: the berendsen barostat's " in err
+    assert "its move overshoots" in err and "use a larger [barostat] tau" in err
+    assert "Traceback" not in err
+    assert read_trajectory("npt.h5").n_frames == 1  # the frames before it are kept
+
+
+def test_berendsen_scale_factor_is_the_real_cube_root():
+    barostat = Barostat("berendsen", 1.0, tau=0.001, compressibility=0.1)
+    assert barostat.scale_factor(0.0, 100.0, 1.0, 0.05) == pytest.approx(-(4.0 ** (1 / 3)))
+    assert barostat.scale_factor(0.999, 100.0, 1.0, 0.05) == pytest.approx(0.995 ** (1 / 3))
+
+
+OPEN_SYSTEM = CONFIG.replace("temperature = 1.0\n[[", "temperature = 1.0\npbc = {pbc}\n[[")
+
+
+@pytest.mark.parametrize(
+    ("pbc", "barostat", "message"),
+    [
+        ("false", C_RESCALE, "the c_rescale barostat needs periodic axes"),
+        ("false", C_RESCALE.replace("c_rescale", "berendsen"), "the berendsen barostat needs"),
+        ("false", C_RESCALE + '\ncouple = "anisotropic"', "periodic along none"),
+        ("[true, true, false]", C_RESCALE, "isotropic coupling scales all three edges, but "
+         "the system is open along z"),
+        ("[true, true, false]", MTK, "[barostat]: the mtk barostat needs a box periodic along "
+         "x, y and z; the system is open along z"),
+    ],
+)  # fmt: skip
+def test_a_barostat_refuses_what_it_cannot_scale(tmp_path, capsys, pbc, barostat, message):
+    integrator = NHC if "mtk" in barostat else LANGEVIN
+    config = OPEN_SYSTEM.replace("{pbc}", pbc).format(integrator=integrator, barostat=barostat)
+    (tmp_path / "npt.toml").write_text(config)
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "cannot create" not in err
+    assert not (tmp_path / "npt.h5").exists() and not (tmp_path / "npt.h5.ckpt").exists()
+
+
+def test_anisotropic_coupling_of_a_slab_keeps_the_open_edge(tmp_path):
+    barostat = C_RESCALE + '\ncouple = "anisotropic"'
+    config = OPEN_SYSTEM.replace("{pbc}", "[true, true, false]")
+    (tmp_path / "npt.toml").write_text(config.format(integrator=LANGEVIN, barostat=barostat))
+    assert main(["run", "npt.toml", "--no-progress", "-q"]) == 0
+    boxes = read_trajectory("npt.h5").boxes
+    assert np.all(boxes[:, 2] == boxes[0, 2]) and np.ptp(boxes[:, 0]) > 0
+
+
+def test_the_python_api_refuses_an_open_cluster_too():
+    state = md.lattice("fcc", 4, density=0.8, pbc=False)
+    md.maxwell_boltzmann(state, 1.0, seed=1)
+    integrator = PressureCoupled(
+        Langevin(0.005, temperature=1.0, friction=1.0, seed=2),
+        Barostat("c_rescale", 1.0, tau=1.0, compressibility=0.1),
+    )
+    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
+    with pytest.raises(ValueError, match="periodic along none"):
+        sim.run(10)

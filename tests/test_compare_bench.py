@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare.py"
 
 
@@ -26,6 +28,7 @@ def run_compare(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_quick_run_prints_a_row_for_ours(tmp_path):
     report = tmp_path / "report.json"
     done = run_compare("--quick", "--peers", "none", "--json", str(report))
@@ -73,6 +76,7 @@ def test_existing_json_is_not_overwritten(tmp_path):
     assert report.read_text() == "keep"
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
     bench = SCRIPT.parent
     runs = {

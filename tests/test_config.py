@@ -135,7 +135,11 @@ def test_input_files_are_the_paths_keys_name(tmp_path):
          '(only to polymer = "melt")'),
         ("system", {"straight": True, "chains": 4}, "[system] chains, straight: does not apply "
          'to a lattice (only to polymer = "chain" or polymer = "melt")'),
-        ("run", {"decomposition": 1}, "run.toml: unknown key(s) in [run]: decomposition"),
+        ("run", {"ranks": 4}, "run.toml: unknown key(s) in [run]: ranks"),
+        ("run", {"decomposition": [2, 0, 1]},
+         "run.toml: [run] decomposition: must be positive integers, got [2, 0, 1]"),
+        ("run", {"decomposition": [2, 1]},
+         "run.toml: [run] decomposition: expected int or a list of three, got [2, 1]"),
     ],
 )  # fmt: skip
 def test_a_key_in_the_wrong_place_is_refused_naming_it(section, values, message):

@@ -7,6 +7,7 @@ format's precision), box, types, and bonds where the format holds them.
 
 from __future__ import annotations
 
+import itertools
 import shutil
 import sys
 import tracemalloc
@@ -18,6 +19,7 @@ import h5py
 import MDAnalysis as mda
 import numpy as np
 import pytest
+from conftest import POLYMER
 
 import md
 from integrators import VelocityVerlet
@@ -39,36 +41,6 @@ TOLERANCE = {
     "data": 1e-6, "xyz": 1e-9, "extxyz": 1e-8, "traj": 1e-14,
 }  # fmt: skip
 
-POLYMER = """
-units = "lj"
-seed = 3
-[system]
-polymer = "melt"
-chains = 4
-chain_length = 8
-density = 0.8
-bond_length = 0.97
-temperature = 1.0
-[[potentials]]
-type = "lj"
-cutoff = 1.122462048309373
-cutoff_mode = "shift"
-[[potentials]]
-type = "fene"
-bonds = "system"
-k = 30.0
-r_max = 1.5
-[integrator]
-type = "verlet"
-dt = 0.002
-[run]
-steps = 60
-[output]
-path = "polymer.h5"
-every = 10
-velocities = true
-forces = true
-"""
 FENE = '[[potentials]]\ntype = "fene"\nbonds = "system"\nk = 30.0\nr_max = 1.5\n'
 QUIET = ("-q", "--no-progress")
 
@@ -603,3 +575,28 @@ def test_readers_keep_only_frames_every_dataset_holds(polymer, tmp_path):
     with TrajectoryReader(path) as reader:
         assert reader.n_frames == 7
     assert md.trajectory.read_frame_steps(path)[0].tolist() == whole.steps.tolist()
+
+
+def test_lammps_data_from_a_reduced_run_states_its_values_exactly(tmp_path):
+    """Masses, positions and velocities as stored (issue 33 item 18: a round trip of the
+    units through ASE's metal wrote a mass of 1 as 0.99999999974)."""
+    config = tmp_path / "run.toml"
+    config.write_text(POLYMER.replace("temperature = 1.0", "temperature = 1.0\nmass = 1.7")
+                      .replace("polymer.h5", "heavy.h5"))  # fmt: skip
+    md.run_config(config, output=tmp_path / "heavy.h5")
+    assert main(["convert", "heavy.h5", "heavy.data", "--stop", "1"]) == 0  # frame 0: wrapped
+    lines = (tmp_path / "heavy.data").read_text().splitlines()
+
+    def section(name):
+        start = lines.index(name) + 2
+        rows = itertools.takewhile(str.strip, lines[start:])
+        return np.array([[float(w) for w in row.split("#")[0].split()] for row in rows])
+
+    with TrajectoryReader(tmp_path / "heavy.h5") as reader:
+        frame = reader.frame(0)
+    assert section("Masses").tolist() == [[1.0, 1.7]]
+    atoms = section("Atoms # full")
+    velocities = section("Velocities")
+    np.testing.assert_array_equal(atoms[:, 0], np.arange(1, 33))
+    np.testing.assert_array_equal(atoms[:, 4:7], frame.positions)
+    np.testing.assert_array_equal(velocities[:, 1:], frame.velocities)

@@ -318,14 +318,14 @@ def test_extrapolated_predictor_reaches_the_same_solution_in_fewer_iterations(in
 def test_extrapolation_weights_are_exact_for_quadratics(reach):
     """Weights for a(0), a(-1), a(-2) reproduce a(reach) for any polynomial of degree
     1 (one past step) or 2 (two)."""
-    from integrators._newton import _extrapolation_weights
+    from integrators._newton import extrapolation_weights
 
     for n_history, coefficients in ((1, (0.3, -1.7, 0.0)), (2, (0.3, -1.7, 2.9))):
 
         def a(t, c=coefficients):
             return c[0] + c[1] * t + c[2] * t * t
 
-        weights = _extrapolation_weights(n_history, reach)
+        weights = extrapolation_weights(n_history, reach)
         assert weights[2] == 0.0 or n_history == 2
         estimate = sum(w * a(-k) for k, w in enumerate(weights))
         assert estimate == pytest.approx(a(reach), rel=1e-14, abs=1e-14)

@@ -16,6 +16,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import md
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,6 +45,7 @@ def test_a_process_outside_the_checkout_imports_the_real_packages(tmp_path):
     assert all(f is not None and f.endswith("__init__.py") for f in files), files
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
     cache = tmp_path / "xdg"
     code = (

@@ -63,6 +63,7 @@ def test_stability_scan_finds_the_blow_up(liquid):
     assert 0.01 <= report.dt_max_stable <= 0.04  # LJ liquid: VV limit near dt ~ 0.02-0.03
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_cli_writes_table_csv_and_plots(tmp_path, capsys):
     config = tmp_path / "study.toml"
     config.write_text(CONFIG)
@@ -144,7 +145,7 @@ def every_order():
     return compare_integrators(
         make_state=_cluster,
         potentials_factory=lambda: [LennardJones(cutoff=8.0)],
-        integrators={name: _factory(cls) for name, cls in classes.items()},
+        integrators=classes,  # implicit ones solve to compare_integrators' solver_tol
         dts=[0.005 / 2**k for k in range(5)],
         span=0.5,
         reference=_factory(INTEGRATORS["yoshida6"]),
@@ -181,9 +182,41 @@ def test_the_window_stops_where_the_asymptotic_range_ends():
     dts = [0.001, 0.002, 0.004, 0.008, 0.016]
     errors = [1e-6, 4e-6, 1.6e-5, 3e-5, 4e-5]
     runs = [RunRecord(dt=d, stable=True, error=e) for d, e in zip(dts, errors, strict=True)]
-    slope, (low, high), n = _fit_order(dts, runs, floor=1e-9, slope_tolerance=0.15)
+    slope, (low, high), n, note = _fit_order(dts, runs, floor=1e-9, slope_tolerance=0.15)
     assert slope == pytest.approx(2.0, abs=1e-9) and (low, high, n) == (0.001, 0.004, 3)
     assert [r.in_fit for r in runs] == [True, True, True, False, False]
+    assert note == (
+        "2 coarser point(s) (dt >= 0.008) beyond the asymptotic range (local slope 0.907): left out"
+    )
+
+
+def test_an_order_needs_three_points_in_the_asymptotic_range():
+    """Two points give a slope whatever the errors do: no order from them, and the note
+    says why (the AVX-512 run that fitted implicit midpoint at 3.54 from 2 points)."""
+    from md.integrator_study import fit_order
+
+    dts = [0.00015625 * 2**k for k in range(6)]
+    # Implicit midpoint as one machine measured it: the finest point under the trend.
+    errors = [1.25e-07, 1.46e-06, 5.85e-06, 2.34e-05, 9.35e-05, 3.73e-04]
+    slope, used, note = fit_order(dts, errors, floor=4.26e-13)
+    assert slope == pytest.approx(2.0, abs=0.01) and used == [1, 2, 3, 4, 5]
+    assert note.startswith("the finest 1 point(s) (dt <= 0.000156) depart from the trend")
+    # Only two points above the reference's floor: no order.
+    slope, used, note = fit_order(dts[:4], [1e-14, 2e-14, 4e-12, 6e-11], floor=1e-13)
+    assert math.isnan(slope) and used == []
+    assert note.startswith("no order: only 2 point(s) above the reference's error floor")
+    assert "2 point(s) at dt <= 0.000313 below the reference's error floor 1.00e-13" in note
+    # A round-off floor: the error stops falling at the fine end, and the rest disagree.
+    errors = [3e-12, 2.9e-12, 3.2e-12, 4e-11, 2e-9, 9e-9]
+    slope, used, note = fit_order(dts, errors, floor=1e-14)
+    assert math.isnan(slope)
+    assert note.startswith(
+        "no order: round-off or solver-tolerance floor reached at dt = 0.000625; no 3 "
+        "successive points agree"
+    ), note
+    # Saturation alone (slope ~0.2) is no convergence range, however long.
+    slope, used, note = fit_order(dts, [0.10, 0.115, 0.13, 0.15, 0.17, 0.19], floor=0.0)
+    assert math.isnan(slope) and note.startswith("no order: the error does not fall")
 
 
 def test_work_precision_rows_for_every_run(every_order, tmp_path):

@@ -78,3 +78,52 @@ def test_prepare_writes_nothing_and_reports_the_plan(config, tmp_path):
     assert run.parameters["n_steps"] == 12 and run.sim.state.n_atoms == 108
     summary = run.execute(handle_signals=False)
     assert summary.status == "completed" and summary.n_frames == 2
+
+
+def _drift_lines(out: str) -> list[str]:
+    return [line for line in out.splitlines() if "drift" in line]
+
+
+@pytest.mark.parametrize("integrator", ['type = "verlet"\ndt = 0.005',
+                                        'type = "bussi"\ndt = 0.005\ntemperature = 1.0\n'
+                                        "tau = 0.1"])  # fmt: skip
+def test_a_resumed_run_reports_the_drift_of_the_whole_run(tmp_path, capsys, integrator):
+    """Was the drift of the resumed part only: the checkpoint now keeps step 0's energies."""
+    text = lj_config_text(integrator=integrator, run="steps = 40\nthermo_every = 10")
+    (tmp_path / "run.toml").write_text(text)
+    quiet = ("-q", "--no-progress")
+    assert main(["run", str(tmp_path / "run.toml"), "-o", str(tmp_path / "whole.h5"), *quiet]) == 0
+    whole = _drift_lines(capsys.readouterr().out)
+    part = str(tmp_path / "part.h5")
+    assert main(["run", str(tmp_path / "run.toml"), "-o", part, "--steps", "20", *quiet]) == 0
+    capsys.readouterr()
+    assert main(["run", str(tmp_path / "run.toml"), "-o", part, "--resume", *quiet]) == 0
+    resumed = _drift_lines(capsys.readouterr().out)
+    assert len(whole) == (2 if "bussi" in integrator else 1)
+    assert resumed == whole  # bit-for-bit continuation: the same numbers, from step 0
+    _, whole = md.run_config(tmp_path / "run.toml", output=tmp_path / "api.h5")
+    md.run_config(tmp_path / "run.toml", output=tmp_path / "api2.h5", steps=20)
+    _, again = md.run_config(tmp_path / "run.toml", output=tmp_path / "api2.h5", resume=True)
+    assert again.first["step"] == 20 and again.start["step"] == 0
+    assert again.start == whole.start == {key: whole.first[key] for key in again.start}
+
+
+def test_a_checkpoint_without_the_start_energies_reports_from_where_it_resumed(tmp_path, capsys):
+    import json
+
+    (tmp_path / "run.toml").write_text(lj_config_text(run="steps = 40\nthermo_every = 10"))
+    part, quiet = str(tmp_path / "part.h5"), ("-q", "--no-progress")
+    assert main(["run", str(tmp_path / "run.toml"), "-o", part, "--steps", "20", *quiet]) == 0
+    checkpoint = tmp_path / "part.h5.ckpt"
+    with np.load(checkpoint) as npz:  # as checkpoints were written before they kept them
+        arrays = {name: npz[name] for name in npz.files}
+    meta = json.loads(str(arrays["meta"][()]))
+    del meta["extra"]["start"]
+    arrays["meta"] = np.array(json.dumps(meta))
+    with open(checkpoint, "wb") as handle:
+        np.savez(handle, **arrays)
+    capsys.readouterr()
+    assert main(["run", str(tmp_path / "run.toml"), "-o", part, "--resume", *quiet]) == 0
+    assert "Relative total-energy drift (E_end - E_start)/|E_start| since step 20:" in (
+        capsys.readouterr().out
+    )

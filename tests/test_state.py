@@ -330,6 +330,26 @@ def test_maxwell_boltzmann_zero_temperature_is_at_rest_and_negative_raises():
         md.maxwell_boltzmann(state, -1.0, seed=1)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_one_atom_starts_at_the_temperature_asked_for(tmp_path, capsys, seed):
+    """Was the raw draw (T = 0.82 for T = 1): a single atom keeps its momentum and its
+    three degrees of freedom, and is scaled to the temperature like any system."""
+    from md.cli import main
+
+    state = md.State(positions=np.zeros((1, 3)), box=10.0, pbc=False)
+    md.maxwell_boltzmann(state, 1.0, seed=seed)
+    assert md.thermo.temperature(state.velocities, state.masses) == pytest.approx(1.0, rel=1e-12)
+    (tmp_path / "one.toml").write_text(
+        f'units = "lj"\nseed = {seed}\n[system]\nlattice = "sc"\ncells = 1\ndensity = 0.01\n'
+        'temperature = 1.0\npbc = false\n[[potentials]]\ntype = "lj"\ncutoff = 2.5\n'
+        '[integrator]\ntype = "verlet"\ndt = 0.005\n[run]\nsteps = 2\nthermo_every = 1\n'
+        f'[output]\npath = "{tmp_path / "one.h5"}"\n'
+    )  # fmt: skip
+    assert main(["run", str(tmp_path / "one.toml"), "--no-progress"]) == 0
+    first = capsys.readouterr().out.splitlines()[2].split()  # the step-0 row
+    assert first[0] == "0" and float(first[2]) == pytest.approx(1.0, rel=1e-5)
+
+
 def test_positions_and_velocities_are_owned():
     positions = np.zeros((2, 3))
     positions[1, 0] = 1.5

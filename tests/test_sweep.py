@@ -353,6 +353,7 @@ def test_a_failing_run_is_reported_and_the_rest_complete(
     assert "step 1: atom" in (out / "logs" / "dt=0.5_r0.log").read_text()
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_an_interrupted_run_resumes_from_its_checkpoint(base_config, serial, cluster, tmp_path):
     out = tmp_path / "out"
     plan = plan_sweep(base_config, VARY, REPLICAS, out=out)
@@ -376,6 +377,7 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(base_config, serial, clu
     assert not (out / ".partial").exists()
 
 
+@pytest.mark.slow  # keeps the default suite within its 10 minutes
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and prctl")
 def test_killing_a_worker_mid_run_still_completes_the_sweep(base_config, serial, tmp_path):
     cluster, client = start_cluster()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+from conftest import POLYMER
 
 import md
 from integrators import VelocityVerlet
@@ -294,3 +295,45 @@ def test_a_file_without_frames_is_reported_not_crashed_on(tmp_path):
     assert read_trajectory(path).n_frames == 0
     with pytest.raises(TrajectoryError, match="no frames yet"):
         open_trajectory(path)
+
+
+# --------------------------------------------------- damaged connectivity (issue 33 item 16)
+@pytest.fixture(scope="module")
+def polymer_file(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("bonds")
+    (folder / "polymer.toml").write_text(POLYMER)
+    md.run_config(folder / "polymer.toml", output=folder / "polymer.h5")
+    return folder / "polymer.h5"
+
+
+@pytest.mark.parametrize(("pair", "what"), [((3, 999), "names an atom outside 0..31"),
+                                            ((5, 5), "names one atom twice"),
+                                            ((4, 40, 6), "names an atom outside 0..31"),
+                                            ((7, 8, 7), "names one atom twice")])  # fmt: skip
+def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_path, monkeypatch,
+                                                           capsys, pair, what):  # fmt: skip
+    """md info, md analyze and conversion to GSD accepted an out-of-range bond (the GSD got
+    it), LAMMPS data, render and the API failed with a raw IndexError. Angles alike."""
+    import shutil
+
+    from md.cli import main
+    from md.trajectory import TrajectoryReader, read_topology
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(polymer_file, "bad.h5")
+    with h5py.File("bad.h5", "r+") as f:
+        if len(pair) == 2:
+            f["connectivity/fene"][3] = pair
+        else:  # an angle list (a triple per angle, the vertex in the middle)
+            f["connectivity"].create_dataset("bend", data=[[0, 1, 2], [1, 2, 3], [2, 3, 4], pair])
+    name, kind = ("fene", "bond") if len(pair) == 2 else ("bend", "angle")
+    message = f"bad.h5: /connectivity/{name}: {kind} 3 {pair} {what}"
+    for command in (["info", "bad.h5"], ["analyze", "bad.h5", "--no-progress"],
+                    ["convert", "bad.h5", "bad.gsd"], ["convert", "bad.h5", "bad.data"],
+                    ["render", "bad.h5", "-o", "bad.png"]):  # fmt: skip
+        assert main(command) == 2, command
+        assert message in capsys.readouterr().err, command
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]  # nothing written
+    for reader in (read_trajectory, open_trajectory, TrajectoryReader, read_topology):
+        with pytest.raises(TrajectoryError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            reader("bad.h5")

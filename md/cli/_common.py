@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
+
+from md.interrupts import sigterm_as_interrupt
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 EXIT_TERMINATED = 143  # SIGTERM: 128 + 15
@@ -21,3 +24,31 @@ class ArgumentParser(argparse.ArgumentParser):
 def fail(message: str) -> None:
     """Print ``md: error: MESSAGE`` to stderr (the caller returns the exit code)."""
     print(f"md: error: {message}", file=sys.stderr)
+
+
+def exit_for_signal(name: str | None) -> int:
+    """The exit code for a command stopped by signal ``name``: 143 for SIGTERM, else 130."""
+    return EXIT_TERMINATED if name == "SIGTERM" else EXIT_INTERRUPTED
+
+
+def writing_whole_file(command: str, output, body: Callable[[], int]) -> int:
+    """Return ``body()``, or 130/143 with a message if SIGINT/SIGTERM stops it.
+
+    For commands that write one file through a temporary (``md convert``,
+    ``md render``): SIGTERM raises as Ctrl-C does, so the temporary is removed
+    either way and the command says that nothing was written to ``output``.
+    """
+    with sigterm_as_interrupt() as terminated:
+        try:
+            code = body()
+        except KeyboardInterrupt:
+            code = None
+        if code is not None and not terminated:
+            return code
+        name = terminated[0] if terminated else "SIGINT"
+        if code is None:
+            what = f"stopped, nothing was written to {output}"
+        else:  # the signal's exception was swallowed after the file was in place
+            what = f"stopped after {output} was written"
+        print(f"md {command}: {name} received; {what}", file=sys.stderr)
+        return exit_for_signal(name)

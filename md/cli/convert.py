@@ -7,7 +7,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
+from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail, writing_whole_file
 from md.convert import FORMATS, SINGLE_FRAME, convert, output_format
 from md.errors import TrajectoryError
 from md.trajectory import TrajectoryReader
@@ -46,7 +46,11 @@ def add_parser(subparsers) -> None:
 
 
 def main(args) -> int:
-    """Body of ``md convert``; returns the exit code."""
+    """Body of ``md convert``; returns the exit code (130/143 after SIGINT/SIGTERM)."""
+    return writing_whole_file("convert", args.output, lambda: _convert(args))
+
+
+def _convert(args) -> int:
     try:
         kind = output_format(args.output, args.format)
         with TrajectoryReader(args.trajectory) as reader:

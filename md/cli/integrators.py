@@ -3,7 +3,9 @@
 Order of accuracy, stability limit, energy drift and cost per integrator,
 and for thermostats the temperature error and sampling efficiency, with CSV
 files and plots: :func:`md.integrator_study.prepare_study` and
-:meth:`~md.integrator_study.Study.run`. This module parses the options,
+:meth:`~md.integrator_study.Study.run`. With ``--damping``, numerical damping
+on a harmonic bond instead: :func:`md.damping.prepare_damping` and
+:meth:`~md.damping.DampingStudy.run`. This module parses the options,
 prints the tables and maps errors to exit codes (2 bad input or an
 unwritable output, 1 the reference runs blew up).
 """
@@ -14,6 +16,7 @@ import math
 from pathlib import Path
 
 from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, fail
+from md.damping import prepare_damping
 from md.errors import ConfigError, SimulationError
 from md.integrator_study import prepare_study
 
@@ -61,12 +64,24 @@ def add_parser(subparsers) -> None:
         help="time each thermostat is sampled after equilibrating for 10 tau, config time "
         "units (default 4000 dt)",
     )
+    study.add_argument(
+        "--damping",
+        action="store_true",
+        help="measure numerical damping instead: amplitude ratio and phase per step on a "
+        "harmonic bond over omega*dt from 0.01 to 100, against each method's theory "
+        "(damping.csv, damping.png); default integrators: verlet and the implicit family",
+    )
+    study.add_argument(
+        "--omega-dt", help="with --damping: the omega*dt ladder, MIN:MAX:N or a comma list"
+    )
     study.add_argument("--out", type=Path, help="output folder (default integrators-<config>)")
     study.add_argument("--overwrite", action="store_true", help="replace existing output files")
 
 
 def main(args) -> int:
     """Body of ``md integrators``; returns the exit code."""
+    if args.damping:
+        return _damping(args)
     try:
         study = prepare_study(
             args.config, integrators=args.integrators, dts=args.dt_range, span=args.time,
@@ -111,6 +126,51 @@ def main(args) -> int:
     return EXIT_OK
 
 
+def _damping(args) -> int:
+    """``md integrators CONFIG --damping``: the damping measurement and its table."""
+    try:
+        study = prepare_damping(args.config, args.integrators, args.omega_dt, args.out,
+                                args.overwrite)  # fmt: skip
+    except ConfigError as error:
+        fail(str(error))
+        return EXIT_BAD_INPUT
+    print(
+        f"md integrators --damping: a harmonic bond at dt {study.time_label}, omega dt "
+        f"{min(study.omega_dts):g} to {max(study.omega_dts):g} ({len(study.omega_dts)} points)"
+    )
+    try:
+        rows = study.run(progress=lambda message: print(f"  {message}", flush=True))
+    except OSError as error:
+        fail(f"cannot write the damping files in {study.files['csv'].parent}: {error}")
+        return EXIT_BAD_INPUT
+    shown = [z for z in (0.01, 0.1, 1.0, 10.0, 100.0)
+             if any(abs(r.omega_dt - z) < 1e-9 * z for r in rows)]  # fmt: skip
+    print(f"{'integrator':<18}" + "".join(f"{f'|rho| @ {z:g}':>15}" for z in shown)
+          + f"{'max |d - d_th| / d_th':>24}")  # fmt: skip
+    for name in study.names:
+        mine = [r for r in rows if r.integrator == name]
+        cells = []
+        for z in shown:
+            row = next(r for r in mine if abs(r.omega_dt - z) < 1e-9 * z)
+            cells.append(f"{row.measured:>15.6g}" if math.isfinite(row.measured) else f"{'-':>15}")
+        deviations = [
+            abs(r.damping_measured - r.damping_theory) / r.damping_theory
+            for r in mine
+            if math.isfinite(r.measured) and r.damping_theory > 1e-9
+        ]
+        worst = f"{max(deviations):.2e}" if deviations else "(no damping)"
+        print(f"{name:<18}" + "".join(cells) + f"{worst:>24}")
+        for row in mine:
+            if row.note and not row.note.startswith("unstable"):
+                print(f"  {name} at omega dt {row.omega_dt:.3g}: {row.note}")
+    print(
+        "(|rho|: amplitude kept per step, measured; d = 1 - |rho|, the damping per step, "
+        "against theory where the method damps; '-': beyond the stability limit)"
+    )
+    print(f"Wrote {study.files['csv']}, {study.files['plot']}")
+    return EXIT_OK
+
+
 def _print_thermostat_table(reports, units) -> None:
     t = units.config_time
     header = (
@@ -146,7 +206,8 @@ def _print_study_table(reports, units) -> None:
     print(header)
     for r in reports:
         run = r.measured_run()
-        order = f"{r.order:.2f}" + ("/tol" if r.order_vs == "tol" else "")
+        order = f"{r.order:.2f}" if math.isfinite(r.order) else "-"
+        order += "/tol" if r.order_vs == "tol" and math.isfinite(r.order) else ""
         expected = "-" if math.isnan(r.expected_order) else f"{r.expected_order:g}"
         print(
             f"{r.name:<18}{order:>7}{expected:>7}{r.fit_points:>8}{r.dt_max_stable / t:>15.4g}"
@@ -154,9 +215,12 @@ def _print_study_table(reports, units) -> None:
             f"{(run.max_energy_error if run else math.nan):>12.3e}"
             f"{r.evals_per_time * t:>10.4g}{r.wall_per_time * t:>10.4g}{r.reference_dt / t:>9.4g}"
         )
+    for r in reports:
+        if r.fit_note:
+            print(f"  {r.name}: {r.fit_note}")
     floor = next((r.floor for r in reports), math.nan)
     print(
         f"(times in config units, {units.config_time_label}; energies in {units.labels['energy']}; "
         f"orders fitted in the asymptotic range above the reference's error floor {floor:.2e}; "
-        "'/tol': the slope against the tolerance)"
+        "'/tol': the slope against the tolerance; '-': no order, see the note)"
     )

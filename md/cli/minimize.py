@@ -3,20 +3,21 @@
 Builds the system as ``md run`` would, minimises it (``[minimize]`` of the
 config, or the options here), prints progress and the final max force, and
 writes the relaxed structure as a one-frame H5MD file (with its bonds), which
-``[system] structure`` can start a run from.
+``[system] structure`` can start a run from. The work is
+:func:`md.run.prepare_minimize` and :meth:`md.run.PreparedMinimize.execute`.
+Exit codes: 0 converged, 1 not converged (the structure is still written) or
+non-finite forces, 2 bad input or an unwritable output (nothing is left),
+130/143 stopped by SIGINT/SIGTERM (nothing is written).
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, fail
-from md.config import MinimizeConfig, load_config
-from md.errors import ConfigError, NonFiniteError, TrajectoryError
-from md.minimize import minimize
-from md.run import build_components, run_topology
-from md.simulation import Simulation
-from md.trajectory import H5MDWriter
+from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, exit_for_signal, fail
+from md.errors import ConfigError, OutputBusyError
+from md.run import FAILED, OUTPUT_ERROR, STOPPED, prepare_minimize
 
 
 def add_parser(subparsers) -> None:
@@ -37,6 +38,11 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--fmax", type=float, help="target max force per atom [energy/length]")
     parser.add_argument("--max-steps", type=int, help="most FIRE steps")
     parser.add_argument("--max-force", type=float, help="cap each atom's force (push-off)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        help="threads for the force and neighbour kernels (overrides [run] threads)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
 
@@ -44,30 +50,19 @@ def add_parser(subparsers) -> None:
 def main(args) -> int:
     """Body of ``md minimize``; returns the exit code."""
     try:
-        config = load_config(args.config)
-        stage = config.minimize or MinimizeConfig()
-        fmax = stage.fmax if args.fmax is None else args.fmax
-        max_steps = stage.max_steps if args.max_steps is None else args.max_steps
-        max_force = stage.max_force if args.max_force is None else args.max_force
-        if not fmax > 0:
-            raise ConfigError(f"--fmax must be positive, got {fmax}")
-        if isinstance(max_steps, bool) or max_steps < 1:
-            raise ConfigError(f"--max-steps must be >= 1, got {max_steps}")
-        if max_force is not None and not max_force > 0:
-            raise ConfigError(f"--max-force must be positive, got {max_force}")
-        output = args.output or config.output.path.with_name(f"{config.output.path.stem}_min.h5")
-        if output.exists() and not args.overwrite:
-            raise ConfigError(f"{output} already exists; pass --overwrite or choose --output")
-        state, potentials, integrator = build_components(config)
-        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units)
-    except (ConfigError, ValueError) as error:
+        prepared = prepare_minimize(
+            args.config, output=args.output, overwrite=args.overwrite, fmax=args.fmax,
+            max_steps=args.max_steps, max_force=args.max_force, threads=args.threads,
+        )  # fmt: skip
+    except ConfigError as error:
         fail(str(error))
         return EXIT_BAD_INPUT
-    units = config.units
+    stage, units, output = prepared.stage, prepared.config.units, prepared.output
     force_unit = f"{units.labels['energy']}/{units.labels['length']}"
+    cap = f", forces capped at {stage.max_force:g}" if stage.max_force is not None else ""
     print(
-        f"md minimize: {state.n_atoms} atoms, FIRE 2.0 to max force <= {fmax:g} {force_unit}, "
-        f"at most {max_steps} steps" + (f", forces capped at {max_force:g}" if max_force else "")
+        f"md minimize: {prepared.sim.state.n_atoms} atoms, FIRE 2.0 to max force <= "
+        f"{stage.fmax:g} {force_unit}, at most {stage.max_steps} steps{cap}"
     )
 
     def report(step, energy, largest):
@@ -75,21 +70,25 @@ def main(args) -> int:
             print(f"  step {step:>7}  energy {energy:.10g}  max force {largest:.4g}", flush=True)
 
     try:
-        result = minimize(state, sim.forcefield, fmax, max_steps, max_force=max_force,
-                          max_step=stage.max_step, callback=report,
-                          report_every=stage.report_every)  # fmt: skip
-    except NonFiniteError as error:
-        fail(f"minimisation failed: {error}")
-        return EXIT_FAILED
-    print(f"md minimize: {result.describe()}")
-    try:
-        with H5MDWriter(output, state, units=units, overwrite=args.overwrite,
-                        topology=run_topology(sim),
-                        parameters={"config": config.text, "minimize": result.describe()},
-                        ) as writer:  # fmt: skip
-            writer.write(state, thermo=sim.thermo())
-    except (FileExistsError, TrajectoryError, OSError) as error:
+        summary = prepared.execute(callback=report)
+    except (ConfigError, OutputBusyError) as error:
         fail(str(error))
+        return EXIT_BAD_INPUT
+    if summary.status == FAILED:
+        fail(f"minimisation failed: {summary.message}")
+        return EXIT_FAILED
+    result = summary.result
+    if summary.status == STOPPED:
+        print(
+            f"md minimize: {summary.signal} received; stopped at step {result.steps} (max "
+            f"force {result.fmax:.4g}); nothing was written to {output}",
+            file=sys.stderr,
+        )
+        return exit_for_signal(summary.signal)
+    if result is not None:
+        print(f"md minimize: {result.describe()}")
+    if summary.status == OUTPUT_ERROR:
+        fail(f"cannot write {output} ({summary.message}); nothing was written")
         return EXIT_BAD_INPUT
     print(f"Wrote the relaxed structure to {output}")
     return EXIT_OK if result.converged else EXIT_FAILED

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
+from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail, writing_whole_file
 from md.errors import TrajectoryError
 from md.render import ENGINES, render
 
@@ -33,7 +33,11 @@ def add_parser(subparsers) -> None:
 
 
 def main(args) -> int:
-    """Body of ``md render``; returns the exit code."""
+    """Body of ``md render``; returns the exit code (130/143 after SIGINT/SIGTERM)."""
+    return writing_whole_file("render", args.output, lambda: _render(args))
+
+
+def _render(args) -> int:
     try:
         path = render(
             args.trajectory, args.output, frame=args.frame, engine=args.engine,

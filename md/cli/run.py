@@ -8,6 +8,8 @@ unwritable output, 130/143 stopped by SIGINT/SIGTERM after a checkpoint).
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -18,9 +20,10 @@ from md.cli._common import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
-    EXIT_TERMINATED,
+    exit_for_signal,
     fail,
 )
+from md.distributed import launch_rank
 from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
 from md.observers import Progress
 from md.parallel import get_threads
@@ -54,7 +57,19 @@ def _print_minimize(step: int, energy: float, fmax: float) -> None:
 
 
 def main(args) -> int:
-    """Body of ``md run``; returns the exit code."""
+    """Body of ``md run``; returns the exit code.
+
+    Under ``mpiexec -n P`` every rank runs it; rank 0 prints for the run (the
+    ranks share every error, so all return the same code) and the others are silent.
+    """
+    if launch_rank() == 0:
+        return _main(args)
+    with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink), \
+            contextlib.redirect_stderr(sink):  # fmt: skip
+        return _main(args)
+
+
+def _main(args) -> int:
     # Everything is validated and built before the output file is touched.
     try:
         run = prepare(
@@ -75,7 +90,7 @@ def main(args) -> int:
         else ""
     )
     print(
-        f"md run: {state.n_atoms} atoms, {n_steps} steps, dt = "
+        f"md run: {run.n_atoms} atoms{_ranks(run)}, {n_steps} steps, dt = "
         f"{sim.integrator.dt / units.config_time:g} {units.config_time_label}, units {units.name}, "
         f"output {output} every {config.output.every} steps{resuming}"
     )
@@ -141,6 +156,13 @@ def main(args) -> int:
             f"before are kept in {output}, {checkpointed}"
         )
         return EXIT_BAD_INPUT
+    if summary.status == STOPPED and summary.message:  # while minimising: nothing written
+        print(
+            f"md run: {summary.signal} received {summary.message}; nothing was written. "
+            f"Start again with: md run {args.config}",
+            file=sys.stderr,
+        )
+        return exit_for_signal(summary.signal)
     if summary.status == STOPPED:
         print(
             f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
@@ -148,13 +170,20 @@ def main(args) -> int:
             f"md run {args.config} --resume",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED if summary.signal == "SIGINT" else EXIT_TERMINATED
-    _print_summary(sim, summary)
+        return exit_for_signal(summary.signal)
+    _print_summary(sim, summary, run.n_atoms)
     return EXIT_OK
 
 
 class _ThermoTable:
-    """Observer printing one thermo row every interval (above the progress bar)."""
+    """Observer printing one thermo row every interval (above the progress bar).
+
+    It keeps no rows: memory stays flat however long the run (the run's
+    summary takes its first and last rows from ``sim.thermo()``).
+    """
+
+    #: Reads only thermo: a run decomposed over MPI ranks need not gather its atoms.
+    whole_system = False
 
     columns = (
         "step",
@@ -172,14 +201,13 @@ class _ThermoTable:
     def __init__(self, units, quiet: bool) -> None:
         self.units = units
         self.quiet = quiet
-        self.rows: list[dict] = []
         self._printed_header = False
+        self.uses_virial = not quiet  # quiet: prints nothing, so its steps need no virial
 
     def __call__(self, sim) -> None:
-        row = sim.thermo()
-        self.rows.append(row)
         if self.quiet:
             return
+        row = sim.thermo()
         conserved = ("conserved_energy",) if "conserved_energy" in row else ()  # thermostats
         if not self._printed_header:
             headers = self.headers + (("Conserved",) if conserved else ())
@@ -205,15 +233,26 @@ def _progress_bar(total: int, disable: bool):
     )
 
 
-def _print_summary(sim, summary) -> None:
+def _ranks(run) -> str:
+    """", over P MPI ranks (bricks a x b x c)" for a decomposed run."""
+    if run.ranks is None:
+        return ""
+    shape = " x ".join(str(p) for p in run.parameters["decomposition"])
+    return f" over {run.ranks.n_ranks} MPI ranks (bricks {shape})"
+
+
+def _print_summary(sim, summary, n_atoms: int) -> None:
     first, wall, n_steps = summary.first, summary.wall, summary.n_steps
     output, n_frames = summary.output, summary.n_frames
-    state = sim.state
     timings = summary.timings
     other = max(wall - sum(timings.values()), 0.0)
-    atom_steps = state.n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
+    atom_steps = n_atoms * n_steps / wall if wall > 0 and n_steps else float("nan")
+    # Drifts over the whole run: from step 0's energies, which a resumed run takes from its
+    # checkpoint (one written before checkpoints kept them: from where it resumed).
+    origin = int(summary.reference["step"])
+    since = "" if origin == 0 else f" since step {origin}"
     print(
-        f"\nLoop time {wall:.3f} s for {n_steps} steps of {state.n_atoms} atoms: "
+        f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
     )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
@@ -229,8 +268,8 @@ def _print_summary(sim, summary) -> None:
     if per_step:
         print(f"Integrator, per step: {per_step}")
     drift = summary.relative_change("total_energy")
-    print(f"Relative total-energy drift (E_end - E_start)/|E_start|: {drift:.3e}")
+    print(f"Relative total-energy drift (E_end - E_start)/|E_start|{since}: {drift:.3e}")
     if "conserved_energy" in first:  # a thermostat: its conserved quantity should not drift
         change = summary.relative_change("conserved_energy")
-        print(f"Relative conserved-quantity drift (incl. heat bath): {change:.3e}")
+        print(f"Relative conserved-quantity drift (incl. heat bath){since}: {change:.3e}")
     print(f"Wrote {n_frames} frames to {output}")

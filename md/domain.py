@@ -1,0 +1,333 @@
+"""The geometry of a run decomposed over MPI ranks: one brick of the cell per rank.
+
+The cell is cut in its own (fractional) coordinates into a grid of
+``px x py x pz`` bricks, as LAMMPS's ``comm_style brick`` does: brick
+``(cx, cy, cz)`` holds the atoms whose fractional coordinates ``s`` (the
+wrapped position ``s @ cell``, ``0 <= s < 1`` along periodic axes) lie in
+``[cx / px, (cx + 1) / px)`` along a, and so on. A tilted cell gives
+parallelepiped bricks; a barostat's cell change moves them with the cell.
+Open axes are never cut.
+
+Each rank keeps copies (*ghosts*) of the atoms within the *reach* of its
+brick: the neighbour list's radius (cutoff + skin), or more where bonds are
+longer. So a brick must be at least that wide across each cut axis
+(perpendicular width over the count along it), and the messages only ever
+go to the six face neighbours (:mod:`md.distributed`). This module holds the
+grid arithmetic, the choice of grid and the kernels of the exchange (it
+imports no MPI; ``md`` imports it so numba caches its kernels with the rest).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from md.box import perpendicular_widths
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A ``px x py x pz`` grid of bricks, one per rank.
+
+    Rank ``r`` sits at ``(cx, cy, cz)`` with ``r = (cx * py + cy) * pz + cz``.
+
+    Examples
+    --------
+    >>> grid = Grid((2, 3, 1))
+    >>> grid.n_ranks, grid.coordinates(4), grid.rank_of((1, 1, 0))
+    (6, (1, 1, 0), 4)
+    >>> grid.neighbor(4, axis=1, step=1), grid.neighbor(4, axis=1, step=-1)
+    (5, 3)
+    """
+
+    shape: tuple[int, int, int]
+
+    @property
+    def n_ranks(self) -> int:
+        return math.prod(self.shape)
+
+    def coordinates(self, rank: int) -> tuple[int, int, int]:
+        _, py, pz = self.shape
+        return rank // (py * pz), (rank // pz) % py, rank % pz
+
+    def rank_of(self, coordinates) -> int:
+        _, py, pz = self.shape
+        cx, cy, cz = (int(c) % p for c, p in zip(coordinates, self.shape, strict=True))
+        return (cx * py + cy) * pz + cz
+
+    def neighbor(self, rank: int, axis: int, step: int) -> int:
+        """The rank ``step`` (+1 or -1) bricks along ``axis``, periodically."""
+        coordinates = list(self.coordinates(rank))
+        coordinates[axis] += step
+        return self.rank_of(coordinates)
+
+    def bounds(self, rank: int) -> NDArray[np.float64]:
+        """(2, 3): the brick's lower and upper fractional coordinates."""
+        coordinates = np.array(self.coordinates(rank), dtype=np.float64)
+        counts = np.array(self.shape, dtype=np.float64)
+        return np.stack([coordinates / counts, (coordinates + 1.0) / counts])
+
+
+def brick_widths(shape, box, tilt, pbc) -> NDArray[np.float64]:
+    """Perpendicular width of a brick across each axis [length] (inf along open axes)."""
+    widths = perpendicular_widths(box, tilt) / np.asarray(shape, dtype=np.float64)
+    return np.where(np.asarray(pbc, dtype=bool), widths, np.inf)
+
+
+def largest_grid(box, tilt, pbc, reach: float) -> tuple[int, int, int]:
+    """The most bricks along each axis that are still ``reach`` wide (1 along open axes)."""
+    widths = perpendicular_widths(box, tilt)
+    return tuple(
+        max(1, int(math.floor(width / reach * (1.0 + 1e-12)))) if periodic else 1
+        for width, periodic in zip(widths.tolist(), np.asarray(pbc).tolist(), strict=True)
+    )
+
+
+def check_grid(shape, box, tilt, pbc, reach: float, what: str = "cutoff + skin") -> None:
+    """Raise ValueError if a brick of ``shape`` is thinner than ``reach`` across a periodic
+    axis, or an open axis is cut; the message names the largest grid that fits.
+
+    ``what`` says what the reach is made of, for the message.
+    """
+    shape = tuple(int(p) for p in shape)
+    pbc = np.asarray(pbc, dtype=bool)
+    if len(shape) != 3 or any(p < 1 for p in shape):
+        raise ValueError(f"decomposition must be three positive integers, got {list(shape)}")
+    cut_open = [axis for axis in range(3) if shape[axis] > 1 and not pbc[axis]]
+    if cut_open:
+        raise ValueError(
+            f"decomposition {list(shape)} cuts the open axis {'xyz'[cut_open[0]]}; only "
+            "periodic axes are cut into bricks (give 1 there)"
+        )
+    widths = brick_widths(shape, box, tilt, pbc)
+    thin = [axis for axis in range(3) if pbc[axis] and widths[axis] < reach]
+    if not thin:
+        return
+    axis = thin[0]
+    largest = largest_grid(box, tilt, pbc, reach)
+    if shape[axis] == 1:
+        raise ValueError(
+            f"the cell is {widths[axis]:.4g} wide across {'xyz'[axis]}, less than {what} = "
+            f"{reach:.4g}, the shell of ghost atoms each rank keeps: too small a system to "
+            "share between ranks; run it on one rank"
+        )
+    raise ValueError(
+        f"decomposition {list(shape)} cuts the cell into bricks {widths[axis]:.4g} wide "
+        f"across {'xyz'[axis]}, thinner than {what} = {reach:.4g}, the shell of ghost "
+        f"atoms each rank keeps; the largest decomposition that fits this cell is "
+        f"{list(largest)} ({math.prod(largest)} ranks): run on at most that many ranks, "
+        "or on a larger system"
+    )
+
+
+def choose_grid(n_ranks: int, box, tilt, pbc, reach: float,
+                what: str = "cutoff + skin") -> tuple[int, int, int]:  # fmt: skip
+    """The grid of ``n_ranks`` bricks with the least brick surface that fits the cell.
+
+    Only periodic axes are cut, and every brick is at least ``reach`` wide
+    (see :func:`check_grid`). Among the grids that fit, the one whose bricks
+    have the smallest surface (the ghost shell's volume, hence the halo
+    traffic) wins; ties go to the grid listed first (more bricks along x).
+
+    Raises
+    ------
+    ValueError
+        If no grid of ``n_ranks`` fits, naming the largest that does.
+
+    Examples
+    --------
+    >>> choose_grid(4, [20.0, 20.0, 10.0], None, [True] * 3, 2.8)
+    (2, 2, 1)
+    >>> choose_grid(6, [30.0, 20.0, 10.0], None, [True] * 3, 2.8)
+    (3, 2, 1)
+    """
+    pbc = np.asarray(pbc, dtype=bool)
+    widths = perpendicular_widths(box, tilt)
+    best, best_area = None, math.inf
+    for shape in _factorisations(n_ranks):
+        if any(p > 1 and not periodic for p, periodic in zip(shape, pbc, strict=True)):
+            continue
+        brick = widths / np.array(shape, dtype=np.float64)
+        if any(w < reach for w, periodic in zip(brick, pbc, strict=True) if periodic):
+            continue
+        area = brick[0] * brick[1] + brick[1] * brick[2] + brick[0] * brick[2]
+        if area < best_area * (1.0 - 1e-12):
+            best, best_area = shape, area
+    if best is None:
+        largest = largest_grid(box, tilt, pbc, reach)
+        raise ValueError(
+            f"{n_ranks} ranks cannot share this cell: no grid of {n_ranks} bricks keeps "
+            f"every brick {what} = {reach:.4g} wide (the shell of ghost atoms each rank "
+            f"keeps; cell widths {np.round(widths, 4).tolist()}); the largest decomposition "
+            f"that fits is {list(largest)} ({math.prod(largest)} ranks)"
+        )
+    return best
+
+
+def _factorisations(n: int):
+    """Every (px, py, pz) with px py pz = n, px largest first."""
+    for px in range(n, 0, -1):
+        if n % px:
+            continue
+        for py in range(n // px, 0, -1):
+            if (n // px) % py:
+                continue
+            yield px, py, n // px // py
+
+
+def grid_candidates(n: int) -> list[tuple[int, int, int]]:
+    """Every grid of ``n`` bricks (for messages and tests)."""
+    return list(_factorisations(n))
+
+
+# ------------------------------------------------------------------- kernels
+
+
+@njit(cache=True, error_model="numpy")
+def fractional_coordinates(positions, box, tilt, pbc, out):
+    """Write each position's coordinates along the cell vectors (``s`` with ``r = s @ cell``)
+    into ``out`` (N, 3); 0.5 along open axes, which are never cut. ``tilt`` is zero where
+    an axis it couples is open (``md.box.periodic_tilt``)."""
+    for i in range(positions.shape[0]):
+        sz = positions[i, 2] / box[2] if pbc[2] else 0.5
+        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
+        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
+        sx = x / box[0] if pbc[0] else 0.5
+        out[i, 0] = sx
+        out[i, 1] = sy
+        out[i, 2] = sz
+
+
+@njit(cache=True, error_model="numpy")
+def brick_of(fractions, shape, out):
+    """Write the grid coordinates of the brick holding each wrapped fractional position
+    (rows of ``fractions``, taken modulo 1) into ``out`` (N, 3), int64."""
+    for i in range(fractions.shape[0]):
+        for a in range(3):
+            s = fractions[i, a] - np.floor(fractions[i, a])
+            c = int(np.floor(s * shape[a]))
+            out[i, a] = min(max(c, 0), shape[a] - 1)
+
+
+@njit(cache=True, error_model="numpy")
+def home_positions(positions, images, cell, out):
+    """out[i] = positions[i] - images[i] @ cell: each atom at the image nearest its brick
+    (``cell``: rows a, b, c)."""
+    for i in range(positions.shape[0]):
+        n0, n1, n2 = images[i, 0], images[i, 1], images[i, 2]
+        for a in range(3):
+            out[i, a] = positions[i, a] - (n0 * cell[0, a] + n1 * cell[1, a] + n2 * cell[2, a])
+
+
+@njit(cache=True, error_model="numpy")
+def pack_rows(values, indices, shift, out):
+    """out[k] = values[indices[k]] + shift (one row added to every row)."""
+    for k in range(indices.shape[0]):
+        i = indices[k]
+        for a in range(values.shape[1]):
+            out[k, a] = values[i, a] + shift[a]
+
+
+@njit(cache=True, error_model="numpy")
+def add_rows(values, indices, rows):
+    """values[indices[k]] += rows[k], in order (``indices`` never repeat within a call)."""
+    for k in range(indices.shape[0]):
+        i = indices[k]
+        for a in range(values.shape[1]):
+            values[i, a] += rows[k, a]
+
+
+@njit(cache=True, error_model="numpy")
+def moved_since(positions, reference, mapping, previous):
+    """Return (largest squared distance of an atom from its build position carried along with
+    the cell, ``reference[i] @ mapping``, largest squared move since ``previous``), both inf
+    if a position is not finite."""
+    since_build = 0.0
+    since_previous = 0.0
+    finite = True
+    for i in range(positions.shape[0]):
+        d2 = 0.0
+        s2 = 0.0
+        for a in range(3):
+            x = positions[i, a]
+            mapped = (reference[i, 0] * mapping[0, a] + reference[i, 1] * mapping[1, a]
+                      + reference[i, 2] * mapping[2, a])  # fmt: skip
+            d2 += (x - mapped) ** 2
+            s2 += (x - previous[i, a]) ** 2
+        if not (d2 < np.inf and s2 < np.inf):  # also NaN
+            finite = False
+        since_build = max(since_build, d2)
+        since_previous = max(since_previous, s2)
+    if not finite:
+        return np.inf, np.inf
+    return since_build, since_previous
+
+
+@njit(cache=True, error_model="numpy")
+def anchored_items(owned_ids, starts, order):
+    """The items (bonds, angles) whose anchor atom is owned, and the local index of that
+    anchor: ``order[starts[g]:starts[g + 1]]`` are the items of atom id g."""
+    total = 0
+    for i in range(owned_ids.shape[0]):
+        g = owned_ids[i]
+        if g + 1 < starts.shape[0]:
+            total += starts[g + 1] - starts[g]
+    items = np.empty(total, dtype=np.int64)
+    anchors = np.empty(total, dtype=np.int64)
+    k = 0
+    for i in range(owned_ids.shape[0]):
+        g = owned_ids[i]
+        if g + 1 >= starts.shape[0]:
+            continue
+        for b in range(starts[g], starts[g + 1]):
+            items[k] = order[b]
+            anchors[k] = i
+            k += 1
+    return items, anchors
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_copies(anchors, partners, sorted_ids, by_id, positions, found, distances):
+    """For each item k, the local copy of atom id ``partners[k]`` nearest to local atom
+    ``anchors[k]`` (-1 and inf if it has none): ``sorted_ids`` are the local atoms' ids in
+    increasing order, ``by_id`` the local index of each."""
+    n = sorted_ids.shape[0]
+    for k in range(anchors.shape[0]):
+        a = anchors[k]
+        g = partners[k]
+        j = np.searchsorted(sorted_ids, g)
+        best = -1
+        best2 = np.inf
+        while j < n and sorted_ids[j] == g:
+            c = by_id[j]
+            dx = positions[c, 0] - positions[a, 0]
+            dy = positions[c, 1] - positions[a, 1]
+            dz = positions[c, 2] - positions[a, 2]
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 < best2:
+                best, best2 = c, d2
+            j += 1
+        found[k] = best
+        distances[k] = np.sqrt(best2)
+
+
+__all__ = [
+    "Grid",
+    "add_rows",
+    "anchored_items",
+    "brick_of",
+    "brick_widths",
+    "check_grid",
+    "choose_grid",
+    "fractional_coordinates",
+    "grid_candidates",
+    "home_positions",
+    "largest_grid",
+    "moved_since",
+    "nearest_copies",
+    "pack_rows",
+]
