@@ -614,8 +614,9 @@ class PairPotential:
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         kernel = kernels.frame_forces_threaded if chunks > 1 else kernels.frame_forces
         kernel(
-            state.positions, state.types, _slots(frame), n_types, table, mode, self.data, virial,
-            slot_positions, slot_types, buffers, energies, virials, forces,
+            state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
+            bool(virial), n_types == 1, slot_positions, slot_types, buffers, energies, virials,
+            forces,
         )  # fmt: skip
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
@@ -719,8 +720,8 @@ class PairPotential:
         written = np.zeros(chunks, dtype=np.int64)
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         write = kernels.frame_curvatures_threaded if chunks > 1 else kernels.frame_curvatures
-        write(state.positions, state.types, _slots(frame), n_types, table, mode, self.data,
-              slot_positions, slot_types, held, written)  # fmt: skip
+        write(state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
+              n_types == 1, slot_positions, slot_types, held, written)  # fmt: skip
         first = frame.starts[frame.bounds[:-1]]
         return PairHessian(n, *held, pieces=np.column_stack((first, first + written)))
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit, prange
+from numba import literally, njit, prange
 
 from md._simd import store_fence, stream_store
 from md.box import min_image, separation
@@ -259,7 +259,7 @@ def _atom_curvatures_loop(geometry, n_types, table, mode, data, out):
 # ---------------------------------------------------------------- slot frame
 @njit(cache=True, error_model="numpy")
 def frame_forces(
-    positions, types, slots, n_types, table, mode, data, with_virial,
+    positions, types, slots, n_types, table, mode, data, with_virial, single,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """Pair forces over a slot-frame list (``md.neighbors.SlotFrame``), chunk by chunk.
@@ -276,6 +276,9 @@ def frame_forces(
     shifts[codes[k]]: no minimum image. ``frame_forces_threaded`` runs
     the chunks on numba's threads; no two chunks write the same memory.
     """
+    literally(mode)  # one compiled variant per mode, virial flag and single type,
+    literally(with_virial)  # each compiled when first called
+    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
@@ -284,8 +287,8 @@ def frame_forces(
         )
     for chunk in range(n_chunks):
         _frame_chunk(
-            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, buffers,
-            energies, virials,
+            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
+            buffers, energies, virials,
         )  # fmt: skip
     for chunk in range(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
@@ -293,10 +296,13 @@ def frame_forces(
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def frame_forces_threaded(
-    positions, types, slots, n_types, table, mode, data, with_virial,
+    positions, types, slots, n_types, table, mode, data, with_virial, single,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """``frame_forces`` with one chunk per thread (same arguments, same result)."""
+    literally(mode)
+    literally(with_virial)
+    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
@@ -305,8 +311,8 @@ def frame_forces_threaded(
         )
     for chunk in prange(n_chunks):
         _frame_chunk(
-            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, buffers,
-            energies, virials,
+            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
+            buffers, energies, virials,
         )  # fmt: skip
     for chunk in prange(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
@@ -314,18 +320,23 @@ def frame_forces_threaded(
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _frame_chunk(
-    chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, buffers,
-    energies, virials,
+    chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
+    buffers, energies, virials,
 ):  # fmt: skip
     """The pairs of one chunk of ``frame_forces``, into ``buffers[chunk]``.
 
     Dispatches to the loop compiled for this cutoff mode, virial or not,
     and one atom type or several (constants inside the loop). The loops are
-    inlined here, so this function carries their floating-point flags.
+    inlined here, so this function carries their floating-point flags. The
+    three flags are literal arguments: numba compiles this function once per
+    combination used and prunes the branches the combination does not take,
+    so a run compiles the variants it needs, not all twelve.
     """
+    literally(mode)
+    literally(with_virial)
+    literally(single)
     args = (chunk, frame, frame_types, slots, n_types, table, data)
     out = (buffers, energies, virials)
-    single = n_types == 1
     if mode == 0:
         if with_virial:
             if single:
@@ -480,8 +491,8 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
 
 # ------------------------------------------------------- curvatures in the slot frame
 @njit(cache=True, error_model="numpy")
-def frame_curvatures(positions, types, slots, n_types, table, mode, data, frame, frame_types,
-                      out, written):  # fmt: skip
+def frame_curvatures(positions, types, slots, n_types, table, mode, data, single, frame,
+                      frame_types, out, written):  # fmt: skip
     """Gather the slot frame, then write the pair blocks of every pair inside its cutoff,
     chunk by chunk.
 
@@ -492,6 +503,8 @@ def frame_curvatures(positions, types, slots, n_types, table, mode, data, frame,
     chunks write the same memory. ``frame_curvatures_threaded`` runs the
     chunks on numba's threads.
     """
+    literally(mode)
+    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
@@ -500,13 +513,15 @@ def frame_curvatures(positions, types, slots, n_types, table, mode, data, frame,
         )
     for chunk in range(n_chunks):
         written[chunk] = _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                table, mode, data, out)  # fmt: skip
+                                                table, mode, data, single, out)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, frame,
-                               frame_types, out, written):  # fmt: skip
+def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, single,
+                               frame, frame_types, out, written):  # fmt: skip
     """``frame_curvatures`` with one chunk per thread (same arguments, same result)."""
+    literally(mode)
+    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
@@ -515,15 +530,18 @@ def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, dat
         )
     for chunk in prange(n_chunks):
         written[chunk] = _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                table, mode, data, out)  # fmt: skip
+                                                table, mode, data, single, out)  # fmt: skip
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
-def _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, data, out):
-    """One chunk of ``frame_curvatures``, with the loop compiled per mode and type count;
-    returns the number of the chunk's pairs inside."""
+def _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, data,
+                           single, out):  # fmt: skip
+    """One chunk of ``frame_curvatures``, with the loop compiled per mode and type count
+    (literal arguments, as in ``_frame_chunk``); returns the number of the chunk's pairs
+    inside."""
+    literally(mode)
+    literally(single)
     args = (chunk, frame, frame_types, slots, n_types, table, data)
-    single = n_types == 1
     if mode == 0:
         if single:
             return _frame_curvature_loop(args, 0, True, out)
