@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 
@@ -71,3 +72,30 @@ def _longest_row(starts, first, last):
     for p in range(first, last):
         most = max(most, starts[p + 1] - starts[p])
     return most
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
+    """Partner positions with their image shifts, contiguous for a vectorised pair loop.
+
+    Slices from 0 and unsigned partner slots: indices LLVM knows are not
+    negative, so no wrap-around code. Shared by every pair term (nothing in it
+    depends on the term), so it compiles once.
+    """
+    for k in range(partners.shape[0]):
+        q = np.uint32(partners[k])
+        code = partner_codes[k]
+        gx[k] = frame[q, 0] + shifts[code, 0]
+        gy[k] = frame[q, 1] + shifts[code, 1]
+        gz[k] = frame[q, 2] + shifts[code, 2]
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_pair_columns(frame_types, partners, row, table, params):
+    """Each partner's type-pair column of ``table`` (every row) into ``params[:, k]``,
+    so a pair loop over several atom types reads contiguous parameters, no table."""
+    n_rows = table.shape[0]
+    for k in range(partners.shape[0]):
+        column = row + frame_types[np.uint32(partners[k])]
+        for r in range(n_rows):
+            params[r, k] = table[r, column]

@@ -38,6 +38,8 @@ from md.box import min_image, separation
 from potentials._kernels import (
     _add_half_pair_virial,
     _gather_frame,
+    _gather_pair_columns,
+    _gather_partners,
     _longest_row,
     _sum_chunk_forces,
 )
@@ -120,8 +122,9 @@ def _curvature_terms(r2, p, rc2, ro2, inv_den, mode, data):
 
 
 # The loops below each run with the cutoff mode a compile-time constant: their
-# dispatchers call the inlined loop once per mode. A mode test inside a pair loop
-# made LJ's 2.4 times slower.
+# dispatchers take it as a literal argument (numba.literally) and inline the loop,
+# so each mode used compiles once. A mode test inside a pair loop made LJ's 2.4
+# times slower.
 
 
 # ---------------------------------------------------------------- atom order
@@ -136,12 +139,9 @@ def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, 
     per-atom energies and, into ``virials`` (N, 6, zeroed), the per-atom
     virials (half of each pair to each atom).
     """
-    out = (forces, virial, energies, virials)
-    if mode == 0:
-        return _atom_forces_loop(geometry, n_types, table, 0, data, out)
-    if mode == 1:
-        return _atom_forces_loop(geometry, n_types, table, 1, data, out)
-    return _atom_forces_loop(geometry, n_types, table, 2, data, out)
+    literally(mode)
+    return _atom_forces_loop(geometry, n_types, table, mode, data,
+                             (forces, virial, energies, virials))  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -212,12 +212,9 @@ def atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transv
 
     Arguments as in ``atom_forces``; outputs as in ``_atom_curvatures_loop``.
     """
-    out = (pair_i, pair_j, transverse, radial, unit)
-    if mode == 0:
-        return _atom_curvatures_loop(geometry, n_types, table, 0, data, out)
-    if mode == 1:
-        return _atom_curvatures_loop(geometry, n_types, table, 1, data, out)
-    return _atom_curvatures_loop(geometry, n_types, table, 2, data, out)
+    literally(mode)
+    return _atom_curvatures_loop(geometry, n_types, table, mode, data,
+                                 (pair_i, pair_j, transverse, radial, unit))  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -325,74 +322,19 @@ def _frame_chunk(
 ):  # fmt: skip
     """The pairs of one chunk of ``frame_forces``, into ``buffers[chunk]``.
 
-    Dispatches to the loop compiled for this cutoff mode, virial or not,
-    and one atom type or several (constants inside the loop). The loops are
-    inlined here, so this function carries their floating-point flags. The
-    three flags are literal arguments: numba compiles this function once per
-    combination used and prunes the branches the combination does not take,
-    so a run compiles the variants it needs, not all twelve.
+    The cutoff mode, the virial flag and the single-type flag are literal
+    arguments: numba compiles this function once per combination used, with
+    the three as constants in the inlined loop (which LLVM then specialises),
+    so a run compiles the one or two variants it needs, not all twelve. The
+    loop is inlined here, so this function carries its floating-point flags.
+    (Calling the inlined loop once per combination from one function made
+    numba type all twelve copies in every variant: 45 s instead of 6 s per term.)
     """
     literally(mode)
     literally(with_virial)
     literally(single)
     args = (chunk, frame, frame_types, slots, n_types, table, data)
-    out = (buffers, energies, virials)
-    if mode == 0:
-        if with_virial:
-            if single:
-                _frame_chunk_loop(args, 0, True, True, out)
-            else:
-                _frame_chunk_loop(args, 0, True, False, out)
-        elif single:
-            _frame_chunk_loop(args, 0, False, True, out)
-        else:
-            _frame_chunk_loop(args, 0, False, False, out)
-    elif mode == 1:
-        if with_virial:
-            if single:
-                _frame_chunk_loop(args, 1, True, True, out)
-            else:
-                _frame_chunk_loop(args, 1, True, False, out)
-        elif single:
-            _frame_chunk_loop(args, 1, False, True, out)
-        else:
-            _frame_chunk_loop(args, 1, False, False, out)
-    elif with_virial:
-        if single:
-            _frame_chunk_loop(args, 2, True, True, out)
-        else:
-            _frame_chunk_loop(args, 2, True, False, out)
-    elif single:
-        _frame_chunk_loop(args, 2, False, True, out)
-    else:
-        _frame_chunk_loop(args, 2, False, False, out)
-
-
-@njit(cache=True, error_model="numpy")
-def _gather_partners(frame, frame_types, shifts, partners, partner_codes, row, table, mode,
-                     single, gx, gy, gz, params):  # fmt: skip
-    """Partner positions (with their image shifts) and, with several types, their
-    table columns, contiguous for a vectorised pair loop.
-
-    Slices from 0 and unsigned partner slots: indices LLVM knows are not
-    negative, so no wrap-around code.
-    """
-    for k in range(partners.shape[0]):
-        q = np.uint32(partners[k])
-        code = partner_codes[k]
-        gx[k] = frame[q, 0] + shifts[code, 0]
-        gy[k] = frame[q, 1] + shifts[code, 1]
-        gz[k] = frame[q, 2] + shifts[code, 2]
-        if not single:  # contiguous per-partner parameters: the pair loop reads no table
-            column = row + frame_types[q]
-            params[RC2, k] = table[RC2, column]
-            for term_row in range(TERM, TERM + N_TERM):
-                params[term_row, k] = table[term_row, column]
-            if mode == 1:
-                params[SHIFT, k] = table[SHIFT, column]
-            elif mode == 2:
-                params[RO2, k] = table[RO2, column]
-                params[INV_DEN, k] = table[INV_DEN, column]
+    _frame_chunk_loop(args, mode, with_virial, single, (buffers, energies, virials))
 
 
 @njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
@@ -434,8 +376,9 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         row = frame_types[p] * n_types
         partners = neighbors[starts[p] : starts[p + 1]]
         m = partners.shape[0]
-        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
-                         row, table, mode, single, gx, gy, gz, params)  # fmt: skip
+        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
+        if not single:  # contiguous per-partner parameters: the pair loop reads no table
+            _gather_pair_columns(frame_types, partners, row, table, params)
         for k in range(m):
             dx = xi - gx[k]
             dy = yi - gy[k]
@@ -542,17 +485,7 @@ def _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mod
     literally(mode)
     literally(single)
     args = (chunk, frame, frame_types, slots, n_types, table, data)
-    if mode == 0:
-        if single:
-            return _frame_curvature_loop(args, 0, True, out)
-        return _frame_curvature_loop(args, 0, False, out)
-    if mode == 1:
-        if single:
-            return _frame_curvature_loop(args, 1, True, out)
-        return _frame_curvature_loop(args, 1, False, out)
-    if single:
-        return _frame_curvature_loop(args, 2, True, out)
-    return _frame_curvature_loop(args, 2, False, out)
+    return _frame_curvature_loop(args, mode, single, out)
 
 
 @njit(cache=True, inline="always", fastmath=_VECTOR_MATH, error_model="numpy")
@@ -589,8 +522,9 @@ def _frame_curvature_loop(args, mode, single, out):
         row = frame_types[p] * n_types
         partners = neighbors[starts[p] : starts[p + 1]]
         m = partners.shape[0]
-        _gather_partners(frame, frame_types, shifts, partners, codes[starts[p] : starts[p + 1]],
-                         row, table, mode, single, gx, gy, gz, params)  # fmt: skip
+        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
+        if not single:  # contiguous per-partner parameters: the pair loop reads no table
+            _gather_pair_columns(frame_types, partners, row, table, params)
         for k in range(m):
             dx = xi - gx[k]
             dy = yi - gy[k]
