@@ -4,7 +4,7 @@ prints one JSON line.
     mpiexec -n 2 python benchmarks/_mpi_worker.py '{"engine": "ours", "cells": [20, 20, 20],
                                                     "steps": 100, "threads": 1}'
 
-Keys: ``engine`` (``ours``, ``lammps`` or ``probe``), ``cells`` (fcc cells along
+Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
 x, y and z), ``steps``, ``threads`` (per rank). The workload is
 ``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's
 bench/in.lj: fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin
@@ -22,6 +22,7 @@ alone: the system, the first neighbour list and forces come before the clock.
   yes``, our rebuild rule. Times from its log: "Loop time" and the section
   rows (average over the ranks).
 - ``probe``: whether LAMMPS loads here, was built with MPI, and sees the ranks.
+- ``pingpong``: message latency and bandwidth between ranks 0 and 1 (mpi4py).
 """
 
 from __future__ import annotations
@@ -73,6 +74,35 @@ def _builds(sim) -> int:
     return int(counted if counted is not None else sim.forcefield.neighbor_list.n_builds)
 
 
+def _time_rebuild_messages(sim) -> dict:
+    """Time the migration and the ghost search of a decomposed run (they are part of its
+    comm section) by wrapping this rank's Domain methods; {"seconds": ...} fills in."""
+    spent = {"seconds": 0.0}
+    domain = getattr(sim.forcefield, "domain", None)
+    if domain is None:
+        return spent
+    for name in ("migrate", "build"):
+        method = getattr(domain, name)
+
+        def timed(*args, _method=method, **kwargs):
+            start = time.perf_counter()
+            try:
+                return _method(*args, **kwargs)
+            finally:
+                spent["seconds"] += time.perf_counter() - start
+
+        setattr(domain, name, timed)
+    return spent
+
+
+def _local_atoms(sim) -> list[int]:
+    """(owned, ghost) atoms of this rank (ghosts 0 on one process)."""
+    domain = getattr(sim.forcefield, "domain", None)
+    if domain is None:
+        return [sim.state.n_atoms, 0]
+    return [domain.n_owned, domain.local_state.n_atoms - domain.n_owned]
+
+
 def run_ours(job: dict) -> dict | None:
     from md.parallel import set_threads
 
@@ -83,6 +113,7 @@ def run_ours(job: dict) -> dict | None:
     del warm
     sim = _simulation(job["cells"])
     sim.run(0)  # the first list and forces, outside the clock
+    rebuilds = _time_rebuild_messages(sim)
     before, builds = sim.timing_summary(), _builds(sim)
     comm.Barrier()
     start = time.perf_counter()
@@ -90,14 +121,17 @@ def run_ours(job: dict) -> dict | None:
     wall = time.perf_counter() - start
     sections = {k: v - before[k] for k, v in sim.timing_summary().items()}
     sections.setdefault("comm", 0.0)
+    sections["rebuild_comm"] = rebuilds["seconds"]  # part of comm
     walls = comm.gather(wall, root=0)
     split = comm.gather(sections, root=0)
     builds = _builds(sim) - builds
-    if comm.Get_rank() != 0:
-        return None
     n_ranks = comm.Get_size()
     average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
+    local = comm.gather(_local_atoms(sim), root=0)
+    if comm.Get_rank() != 0:
+        return None
     return {
+        "local_atoms": local,
         "loop_time": max(walls),
         "sections": average,
         "comm_share": sum(s["comm"] / w for s, w in zip(split, walls, strict=True)) / n_ranks,
@@ -177,7 +211,43 @@ def run_probe(job: dict) -> dict | None:
     return found if comm.Get_rank() == 0 else None
 
 
-RUNNERS = {"ours": run_ours, "lammps": run_lammps, "probe": run_probe}
+def run_pingpong(job: dict) -> dict | None:
+    """Half the round trip of a message between ranks 0 and 1 (median of repeats) for a
+    few sizes, and of an all-gather of 15 doubles (the reduction of each force evaluation)."""
+    import numpy as np
+
+    comm = _comm()
+    rank = comm.Get_rank()
+    out: dict = {"sizes": [], "seconds": []}
+    for size in (8, 1024, 65536, 1 << 20, 8 << 20):
+        buffer = np.zeros(size, dtype=np.uint8)
+        repeats = 200 if size <= 65536 else 20
+        times = []
+        for _ in range(repeats + 5):
+            comm.Barrier()
+            start = time.perf_counter()
+            if rank == 0:
+                comm.Send(buffer, dest=1, tag=7)
+                comm.Recv(buffer, source=1, tag=7)
+            elif rank == 1:
+                comm.Recv(buffer, source=0, tag=7)
+                comm.Send(buffer, dest=0, tag=7)
+            times.append((time.perf_counter() - start) / 2)
+        out["sizes"].append(size)
+        out["seconds"].append(sorted(times[5:])[len(times[5:]) // 2])
+    values = np.zeros(15)
+    gathered = np.empty((comm.Get_size(), 15))
+    times = []
+    for _ in range(205):
+        comm.Barrier()
+        start = time.perf_counter()
+        comm.Allgather(values, gathered)
+        times.append(time.perf_counter() - start)
+    out["allgather_15"] = sorted(times[5:])[100]
+    return out if rank == 0 else None
+
+
+RUNNERS = {"ours": run_ours, "lammps": run_lammps, "probe": run_probe, "pingpong": run_pingpong}
 
 
 def main(argv: list[str] | None = None) -> int:

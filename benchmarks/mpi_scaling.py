@@ -15,7 +15,9 @@ Prints the machine (CPU model, vector ISA, cores, load), then
     "comm" section (halo exchange, reverse pass, migration and reductions),
     LAMMPS's its "Comm" row, both averaged over the ranks;
 (c) weak scaling at 32000 atoms per rank (1 rank: 20^3 cells, 2 ranks:
-    40 x 20 x 20 cells).
+    40 x 20 x 20 cells);
+(d) the latency and bandwidth of messages between two ranks here (a mpi4py
+    ping-pong), for the model in ``benchmarks/README.md``.
 
 Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
 runs (interleaved), and the tables give medians and the min-max. Rates are
@@ -239,6 +241,23 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
     return figures
 
 
+def print_pingpong() -> dict | None:
+    """(d) Latency and bandwidth of messages between two ranks of this machine."""
+    try:
+        found = launch(None, {"engine": "pingpong", "ranks": 2}, timeout=300)
+    except (RuntimeError, subprocess.TimeoutExpired) as error:
+        print(f"\n(d) ping-pong failed: {str(error)[:300]}")
+        return None
+    print("\n(d) Messages between 2 ranks on this machine (mpi4py ping-pong, half the round "
+          "trip, median)")  # fmt: skip
+    rows = []
+    for size, seconds in zip(found["sizes"], found["seconds"], strict=True):
+        rows.append([f"{size} B", f"{seconds * 1e6:.1f} us", f"{size / seconds / 1e9:.2f} GB/s"])
+    print_table(["message", "time", "rate"], rows)
+    print(f"  all-gather of 15 doubles over 2 ranks: {found['allgather_15'] * 1e6:.1f} us")
+    return found
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
@@ -260,6 +279,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(jobs)} runs x {repeats} repeats, interleaved:")
     measured = measure(jobs, repeats, args.timeout)
     figures = report(measured, args.quick, lammps)
+    pingpong = print_pingpong()
+    if pingpong:
+        figures["pingpong"] = pingpong
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     print(f"\nload average after the runs: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.json:

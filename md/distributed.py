@@ -436,30 +436,45 @@ class Domain:
             since the last migration.
         """
         names = list(carried)
-        shapes = [np.shape(carried[name])[1:] for name in names]
+        # The state's per-atom arrays, then the carried ones: only the atoms that leave
+        # are packed into rows of floats (integers are exact below 2^53); the others
+        # stay in their arrays, which are compacted once per sweep that moved any.
+        arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
+        arrays += [np.asarray(carried[name]) for name in names]
         lost = 0
+        fractions = np.empty((state.n_atoms, 3))
+        tilt = periodic_tilt(state.tilt, state.pbc)
         for axis in range(3):
             p = self.grid.shape[axis]
             if p == 1:
                 continue
-            bricks = np.empty((state.n_atoms, 3), dtype=np.int64)
-            brick_of(self.fractions(state), self.shape, bricks)
+            n = arrays[0].shape[0]
+            fractions = fractions[:n] if fractions.shape[0] >= n else np.empty((n, 3))
+            fractional_coordinates(arrays[0], state.box, tilt, state.pbc, fractions)
+            bricks = np.empty((n, 3), dtype=np.int64)
+            brick_of(fractions, self.shape, bricks)
             delta = (bricks[:, axis] - self.coordinates[axis]) % p
             up = delta == 1
             down = (delta == p - 1) & ~up
             lost += int(np.count_nonzero((delta != 0) & ~up & ~down))
-            stay = ~(up | down)
-            rows = _rows(state, [carried[name] for name in names])
             upper = self.grid.neighbor(self.rank, axis, 1)
             lower = self.grid.neighbor(self.rank, axis, -1)
-            from_lower = self.ranks.exchange_rows(rows[up], upper, lower, 2 * axis)
-            from_upper = self.ranks.exchange_rows(rows[down], lower, upper, 2 * axis + 1)
-            rows = np.concatenate([rows[stay], from_lower, from_upper])
-            carried = dict(zip(names, _unrows(state, rows, shapes), strict=True))
-        order = np.argsort(state.ids, kind="stable")
-        for name in ("positions", "velocities", "masses", "types", "ids"):
-            setattr(state, name, np.ascontiguousarray(getattr(state, name)[order]))
-        carried = {name: np.ascontiguousarray(value[order]) for name, value in carried.items()}
+            ups, downs = np.flatnonzero(up), np.flatnonzero(down)
+            from_lower = self.ranks.exchange_rows(_packed(arrays, ups), upper, lower, 2 * axis)
+            from_upper = self.ranks.exchange_rows(_packed(arrays, downs), lower, upper,
+                                                  2 * axis + 1)  # fmt: skip
+            if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
+                continue
+            stay = np.flatnonzero(~(up | down))
+            incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
+            arrays = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming, strict=True)]
+        ids = arrays[4]
+        if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):
+            order = np.argsort(ids, kind="stable")
+            arrays = [a[order] for a in arrays]
+        arrays = [np.ascontiguousarray(a) for a in arrays]
+        state.positions, state.velocities, state.masses, state.types, state.ids = arrays[:5]
+        carried = dict(zip(names, arrays[5:], strict=True))
         if global_sum(lost, self.ranks):
             raise DecompositionError(
                 "an atom moved more than a brick between two neighbour-list builds; the "
@@ -576,26 +591,21 @@ class Domain:
         return held[:n]
 
 
-def _rows(state: State, extra) -> NDArray[np.float64]:
-    """The owned atoms' data as rows of floats (integers are exact below 2^53)."""
-    n = state.n_atoms
-    columns = [state.positions, state.velocities, state.masses[:, None],
-               state.types[:, None].astype(np.float64), state.ids[:, None].astype(np.float64)]
-    columns += [np.reshape(a, (n, int(np.prod(np.shape(a)[1:])))) for a in extra]  # fmt: skip
+def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Rows ``rows`` of the per-atom ``arrays`` side by side, as floats (integers are exact
+    below 2^53): one row per atom that leaves."""
+    columns = [np.reshape(a[rows], (len(rows), int(np.prod(a.shape[1:], dtype=np.int64))))
+               .astype(np.float64, copy=False) for a in arrays]  # fmt: skip
     return np.concatenate(columns, axis=1)
 
 
-def _unrows(state: State, rows, shapes) -> list[NDArray]:
-    """Put :func:`_rows`'s rows back into ``state``; return the extra arrays."""
-    state.positions = np.ascontiguousarray(rows[:, 0:3])
-    state.velocities = np.ascontiguousarray(rows[:, 3:6])
-    state.masses = np.ascontiguousarray(rows[:, 6])
-    state.types = rows[:, 7].astype(np.int32)
-    state.ids = rows[:, 8].astype(np.int64)
-    out, start = [], 9
-    for shape in shapes:
-        size = int(np.prod(shape))
-        out.append(np.ascontiguousarray(rows[:, start : start + size].reshape((-1, *shape))))
+def _unpacked(rows: NDArray[np.float64], like) -> list[NDArray]:
+    """:func:`_packed`'s rows back as arrays of the shapes and types of ``like``."""
+    out, start = [], 0
+    for a in like:
+        size = int(np.prod(a.shape[1:], dtype=np.int64))
+        part = rows[:, start : start + size].reshape((-1, *a.shape[1:]))
+        out.append(part.astype(a.dtype))
         start += size
     return out
 
