@@ -65,6 +65,7 @@ from md.domain import (
     check_grid,
     choose_grid,
     fractional_coordinates,
+    home_images,
     home_positions,
     moved_since,
     nearest_copies,
@@ -498,12 +499,10 @@ class Domain:
         cell = cell_matrix(box, tilt)
         widths = perpendicular_widths(box, tilt)
         fractions = self.fractions(state)
-        images = np.zeros((state.n_atoms, 3), dtype=np.int64)
-        images[:, pbc] = np.floor(fractions[:, pbc] - self.center[pbc] + 0.5).astype(np.int64)
-        home = fractions - images
-        outside = np.maximum(np.maximum(self.bounds[0] - home, home - self.bounds[1]), 0.0)
-        strayed = outside[:, pbc] * widths[pbc]
-        margin = global_max(float(strayed.max()) if strayed.size else 0.0, self.ranks)
+        images = np.empty((state.n_atoms, 3), dtype=np.int64)
+        home = np.empty((state.n_atoms, 3))
+        strayed = home_images(fractions, self.center, self.bounds, widths, pbc, images, home)
+        margin = global_max(strayed, self.ranks)
         shell = reach + margin
         brick = widths / self.shape
         narrow = pbc & (brick < shell + margin)
@@ -515,22 +514,29 @@ class Domain:
                 f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
                 "smaller time step"
             )
-        positions = np.empty((state.n_atoms, 3))
+        # One row per local atom: position (3), fractional position (3), id, type; the
+        # ghosts of each sweep are appended in place (the table grows by half when full).
+        n = state.n_atoms
+        data = np.empty((n + n // 2 + 64, 8))
+        positions = np.empty((n, 3))
         home_positions(state.positions, images, cell, positions)
-        data = np.column_stack([positions, home, state.ids.astype(np.float64),
-                                state.types.astype(np.float64)])  # fmt: skip
+        data[:n, :3] = positions
+        data[:n, 3:6] = home
+        data[:n, 6] = state.ids
+        data[:n, 7] = state.types
+        count = n
         swaps: list[_Swap] = []
         for axis in range(3):
             if not pbc[axis]:
                 continue
             p, c = self.grid.shape[axis], self.coordinates[axis]
             reach_fraction = shell / widths[axis]
-            count = data.shape[0]
-            lower = np.flatnonzero(data[:, 3 + axis] < self.bounds[0, axis] + reach_fraction)
-            upper = np.flatnonzero(data[:, 3 + axis] >= self.bounds[1, axis] - reach_fraction)
+            end = count  # this sweep sends the atoms before its own ghosts
+            column = data[:end, 3 + axis]
+            lower = np.flatnonzero(column < self.bounds[0, axis] + reach_fraction)
+            upper = np.flatnonzero(column >= self.bounds[1, axis] - reach_fraction)
             down = self.grid.neighbor(self.rank, axis, -1)
             up = self.grid.neighbor(self.rank, axis, 1)
-            received: list[NDArray[np.float64]] = []
             for send, shift, dest, source in (
                 (lower, 1 if c == 0 else 0, down, up),
                 (upper, -1 if c == p - 1 else 0, up, down),
@@ -541,18 +547,21 @@ class Domain:
                 tag = len(swaps)
                 if dest != self.rank:
                     rows = self.ranks.exchange_rows(rows, dest, source, tag)
-                offset = count + sum(len(r) for r in received)
-                swaps.append(_Swap(send, axis, shift, dest, source, offset, len(rows), tag))
-                received.append(rows)
-            data = np.concatenate([data, *received])
+                if count + len(rows) > data.shape[0]:
+                    grown = np.empty((count + len(rows) + data.shape[0] // 2, 8))
+                    grown[:count] = data[:count]
+                    data = grown
+                data[count : count + len(rows)] = rows
+                swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
+                count += len(rows)
         self.swaps = swaps
         self.images = images
-        self.n_owned = state.n_atoms
+        self.n_owned = n
         self.reach, self.margin = reach, margin
-        self.local_ids = np.ascontiguousarray(data[:, 6].astype(np.int64))
+        self.local_ids = data[:count, 6].astype(np.int64)
         self.local_state = State(
-            positions=data[:, :3], box=box, pbc=False, types=data[:, 7].astype(np.int32),
-            type_names=state.type_names,
+            positions=np.ascontiguousarray(data[:count, :3]), box=box, pbc=False,
+            types=data[:count, 7].astype(np.int32), type_names=state.type_names,
         )  # fmt: skip
 
     def update(self, state: State) -> None:
