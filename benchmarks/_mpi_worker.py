@@ -125,11 +125,11 @@ def run_ours(job: dict) -> dict | None:
     walls = comm.gather(wall, root=0)
     split = comm.gather(sections, root=0)
     builds = _builds(sim) - builds
-    n_ranks = comm.Get_size()
-    average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
     local = comm.gather(_local_atoms(sim), root=0)
     if comm.Get_rank() != 0:
         return None
+    n_ranks = comm.Get_size()
+    average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
     return {
         "local_atoms": local,
         "loop_time": max(walls),
@@ -256,7 +256,16 @@ def main(argv: list[str] | None = None) -> int:
         print("usage: _mpi_worker.py JOB_JSON", file=sys.stderr)
         return 2
     job = json.loads(argv[0])
-    result = RUNNERS[job["engine"]](job)
+    try:
+        result = RUNNERS[job["engine"]](job)
+    except BaseException:
+        if "mpi4py.MPI" in sys.modules:  # end every rank: none is left waiting for this one
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.flush()
+            sys.modules["mpi4py.MPI"].COMM_WORLD.Abort(1)
+        raise
     if result is not None:
         result.setdefault("n_steps", job.get("steps"))
         print(json.dumps(result), flush=True)

@@ -17,7 +17,9 @@ Prints the machine (CPU model, vector ISA, cores, load), then
 (c) weak scaling at 32000 atoms per rank (1 rank: 20^3 cells, 2 ranks:
     40 x 20 x 20 cells);
 (d) the latency and bandwidth of messages between two ranks here (a mpi4py
-    ping-pong), for the model in ``benchmarks/README.md``.
+    ping-pong);
+(e) a model of the parallel efficiency at 64 and 1024 ranks from these
+    figures (see ``benchmarks/README.md``).
 
 Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
 runs (interleaved), and the tables give medians and the min-max. Rates are
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -258,6 +261,99 @@ def print_pingpong() -> dict | None:
     return found
 
 
+#: Inter-node messages: a typical InfiniBand (EDR/HDR) figure at the MPI level, assumed,
+#: not measured here: latency [s] and bandwidth [bytes/s].
+INFINIBAND = (1.5e-6, 10e9)
+#: The LJ melt: number density, cutoff + skin (the ghost shell) [sigma].
+DENSITY, SHELL = 0.8442, 2.8
+
+
+def ghosts_per_atom(box, grid) -> float:
+    """Ghost atoms per owned atom of a brick of ``box / grid`` (ghost shell r = SHELL on
+    every face, periodic images of uncut axes included):
+    ((Lx + 2r)(Ly + 2r)(Lz + 2r) - Lx Ly Lz) / (Lx Ly Lz)."""
+    edges = [b / p for b, p in zip(box, grid, strict=True)]
+    inner = edges[0] * edges[1] * edges[2]
+    outer = (edges[0] + 2 * SHELL) * (edges[1] + 2 * SHELL) * (edges[2] + 2 * SHELL)
+    return (outer - inner) / inner
+
+
+def efficiency(n_atoms: int, ranks: int, per_atom: float, rebuild: float, builds: float,
+               latency: float, bandwidth: float) -> tuple[float, float, tuple]:  # fmt: skip
+    """The model's parallel efficiency of ``n_atoms`` on ``ranks`` (and the ghosts per atom,
+    the grid): compute c n against compute + messages + rebuild work, per step.
+
+    Per step: 6 ghost-position and 6 ghost-force messages (12 latencies, 2 x 24 bytes per
+    ghost) and one all-gather of 15 doubles (log2 P latencies, P x 120 bytes); per build
+    (``builds`` per step) the migration and ghost search, ``rebuild`` seconds per local
+    atom (owned + ghost), as measured on 2 ranks here. Load balance is taken as perfect.
+    """
+    sys.path.insert(0, str(HERE.parent))
+    from md.domain import choose_grid
+
+    edge = (n_atoms / DENSITY) ** (1 / 3)
+    grid = choose_grid(ranks, [edge] * 3, None, [True] * 3, SHELL) if ranks > 1 else (1, 1, 1)
+    ghosts = ghosts_per_atom([edge] * 3, grid)
+    n = n_atoms / ranks
+    compute = per_atom * n
+    halo = 12 * latency + 2 * 24 * ghosts * n / bandwidth
+    reduce = math.log2(ranks) * latency + ranks * 120 / bandwidth if ranks > 1 else 0.0
+    rebuilding = builds * rebuild * n * (1 + ghosts) if ranks > 1 else 0.0
+    return compute / (compute + halo + reduce + rebuilding), ghosts, grid
+
+
+def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | None) -> dict:
+    """(e) The efficiency model at 64 and 1024 ranks for the larger melt, from the per-atom
+    cost on one rank, the halo volume per brick and the measured messages."""
+    label, cells, _ = SIZES[quick][-1]
+    one = find(measured, engine="ours", cells=cells, ranks=1, threads=1)
+    two = find(measured, engine="ours", cells=cells, ranks=2, threads=1)
+    if one is None or two is None or not pingpong:
+        return {}
+    n_atoms = one.job.n_atoms
+    per_atom = 1.0 / one.median()
+    runs = two.runs
+    builds = statistics.median(r["n_builds"] / r["n_steps"] for r in runs)
+    local = statistics.median(sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"])
+                              for r in runs)  # fmt: skip
+    owned = statistics.median(sum(x[0] for x in r["local_atoms"]) / len(r["local_atoms"])
+                              for r in runs)  # fmt: skip
+    rebuild = statistics.median(r["sections"]["rebuild_comm"] / max(r["n_builds"], 1) / local
+                                for r in runs)  # fmt: skip
+    # Latency of the smallest message; bandwidth at 1 MB, the size of a halo message of a
+    # brick of about a million atoms.
+    megabyte = pingpong["sizes"].index(1 << 20)
+    here = (pingpong["seconds"][0], pingpong["sizes"][megabyte] / pingpong["seconds"][megabyte])
+    edge = (n_atoms / DENSITY) ** (1 / 3)
+    print(f"\n(e) Model of the parallel efficiency at {n_atoms} atoms (see benchmarks/README.md)")
+    print(f"  per-atom cost on 1 rank x 1 thread c = {per_atom * 1e9:.0f} ns per atom-step; "
+          f"{builds:.2f} builds per step; migration + ghost search {rebuild * 1e9:.0f} ns per "
+          f"local atom per build (2 ranks here, waits included)")  # fmt: skip
+    print(f"  ghosts per owned atom on 2 ranks: measured {(local - owned) / owned:.3f}, "
+          f"model {ghosts_per_atom([edge] * 3, tuple(two.runs[0]['grid'])):.3f}")
+    print(f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
+          f"between nodes {INFINIBAND[0] * 1e6:.1f} us + {INFINIBAND[1] / 1e9:.0f} GB/s "
+          "(typical InfiniBand, assumed)")  # fmt: skip
+    rows, model = [], {}
+    for ranks in (2, 64, 1024):
+        cells_row = [str(ranks)]
+        for name, (latency, bandwidth) in (("here", here), ("infiniband", INFINIBAND)):
+            value, ghosts, grid = efficiency(n_atoms, ranks, per_atom, rebuild, builds,
+                                             latency, bandwidth)  # fmt: skip
+            model[f"{ranks} {name}"] = value
+            cells_row.append(f"{value:.2f}")
+        cells_row[1:1] = [" x ".join(map(str, grid)), f"{n_atoms // ranks}", f"{ghosts:.2f}"]
+        if ranks == 2:
+            measured_2 = two.median() / 2 / one.median()
+            cells_row.append(f"{measured_2:.2f}")
+        else:
+            cells_row.append("-")
+        rows.append(cells_row)
+    print_table(["ranks", "grid", "atoms/rank", "ghosts/atom", "E (shared memory)",
+                 "E (InfiniBand)", "E measured"], rows)  # fmt: skip
+    return model
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
@@ -282,9 +378,11 @@ def main(argv: list[str] | None = None) -> int:
     pingpong = print_pingpong()
     if pingpong:
         figures["pingpong"] = pingpong
+        figures["model"] = print_model(measured, args.quick, pingpong)
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     print(f"\nload average after the runs: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.json:
+        figures["runs"] = [{"job": vars(job), "runs": item.runs} for job, item in measured.items()]
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0
 
