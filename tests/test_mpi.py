@@ -641,6 +641,7 @@ def _faulty_runs(tmp_path: Path, fault: str, rank: int):
 
 
 @needs_mpi
+@pytest.mark.slow  # a run on one process and one on 2 ranks: about 11 s
 def test_one_rank_with_a_non_finite_energy_stops_every_rank_as_a_serial_run(tmp_path):
     """Two atoms on top of each other in rank 1's brick at step 11: both ranks stop with
     the serial run's message and exit code (1), and the step-10 checkpoint is intact."""
