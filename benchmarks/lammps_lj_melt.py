@@ -36,13 +36,17 @@ NEIGH_MODIFY = {
 _SECTIONS = ("Pair", "Neigh", "Comm", "Output", "Modify", "Other")
 
 
-def commands(cells: int, steps: int, neigh: str, seed: int) -> list[str]:
-    """Return the LAMMPS input of the LJ melt workload, one command per item."""
+def commands(cells, steps: int, neigh: str, seed: int) -> list[str]:
+    """Return the LAMMPS input of the LJ melt workload, one command per item.
+
+    ``cells``: fcc cells along each axis, one number or (nx, ny, nz).
+    """
+    nx, ny, nz = (cells, cells, cells) if isinstance(cells, int) else cells
     return [
         "units lj",
         "atom_style atomic",
         "lattice fcc 0.8442",
-        f"region box block 0 {cells} 0 {cells} 0 {cells}",
+        f"region box block 0 {nx} 0 {ny} 0 {nz}",
         "create_box 1 box",
         "create_atoms 1 box",
         "mass 1 1.0",

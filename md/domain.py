@@ -214,6 +214,29 @@ def brick_of(fractions, shape, out):
 
 
 @njit(cache=True, error_model="numpy")
+def home_images(fractions, center, bounds, widths, pbc, images, home):
+    """For each atom: the periodic image nearest the brick centred on ``center`` (rows of
+    ``images``, int64; 0 along open axes) and its fractional coordinates there (``home``);
+    return how far the farthest atom lies outside the brick (``bounds``: (2, 3) lower and
+    upper fractional corners; ``widths``: the cell's perpendicular widths) [length]."""
+    strayed = 0.0
+    for i in range(fractions.shape[0]):
+        for a in range(3):
+            s = fractions[i, a]
+            if pbc[a]:
+                k = np.floor(s - center[a] + 0.5)
+                images[i, a] = int(k)
+                h = s - k
+                outside = max(bounds[0, a] - h, h - bounds[1, a], 0.0)
+                strayed = max(strayed, outside * widths[a])
+            else:
+                images[i, a] = 0
+                h = s
+            home[i, a] = h
+    return strayed
+
+
+@njit(cache=True, error_model="numpy")
 def home_positions(positions, images, cell, out):
     """out[i] = positions[i] - images[i] @ cell: each atom at the image nearest its brick
     (``cell``: rows a, b, c)."""
@@ -325,6 +348,7 @@ __all__ = [
     "choose_grid",
     "fractional_coordinates",
     "grid_candidates",
+    "home_images",
     "home_positions",
     "largest_grid",
     "moved_since",

@@ -181,11 +181,10 @@ class Simulation:
             self._guarded(lambda: self.forcefield.compute(state), state.step)
             self._notify(all_observers=True)
             self._observed_start = True
-        forcefield_timings = self.forcefield.timings
         for _ in range(int(n_steps)):
             if self._stopping():
                 break
-            before = forcefield_timings["neighbor"] + forcefield_timings["force"]
+            before = self._timed_elsewhere()
             start = time.perf_counter()
             limit = self.max_displacement
             if limit is not None:
@@ -199,8 +198,7 @@ class Simulation:
             if limit is not None:
                 self._check_displacement(limit)
             elapsed = time.perf_counter() - start
-            spent_in_forces = forcefield_timings["neighbor"] + forcefield_timings["force"] - before
-            self.timings["integrate"] += elapsed - spent_in_forces
+            self.timings["integrate"] += elapsed - (self._timed_elsewhere() - before)
             if self._observers:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False
@@ -319,13 +317,25 @@ class Simulation:
             "output": self.timings["output"],
         }
 
+    def _timed_elsewhere(self) -> float:
+        """Seconds counted so far in the force field's sections and in communication, which
+        the integrate and output sections leave out (so no time is counted twice)."""
+        timings = self.forcefield.timings
+        return timings["neighbor"] + timings["force"] + self._comm_seconds()
+
+    def _comm_seconds(self) -> float:
+        """Seconds spent communicating with other ranks (none in a one-process run)."""
+        return 0.0
+
     def _notify(self, all_observers: bool) -> None:
+        before = self._timed_elsewhere()
         start = time.perf_counter()
         step = self.state.step
         for observer, interval in self._observers:
             if all_observers or step % interval == 0:
                 observer(self)
-        self.timings["output"] += time.perf_counter() - start
+        elapsed = time.perf_counter() - start
+        self.timings["output"] += elapsed - (self._timed_elsewhere() - before)
 
     @staticmethod
     def _guarded(action, step: int):

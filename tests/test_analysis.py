@@ -294,6 +294,7 @@ def ornstein_uhlenbeck(rng, n_atoms, n_frames, dt, gamma, kT):
     return positions, velocities, exact
 
 
+@pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_msd_and_vacf_recover_the_diffusion_of_an_ornstein_uhlenbeck_process(tmp_path, rng):
     dt, gamma, kT = 0.05, 1.0, 1.5
     positions, velocities, exact = ornstein_uhlenbeck(rng, 64, 1500, dt, gamma, kT)

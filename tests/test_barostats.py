@@ -49,6 +49,7 @@ def test_ideal_gas_mean_volume_is_n_plus_1_kt_over_p(gas_at_1):
     assert gas_at_1.mean() == pytest.approx((N_GAS + 1) * 1.0 / 1.0, rel=0.03)
 
 
+@pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_compressibility_from_fluctuations_matches_the_equation_of_state(gas_at_1):
     from md.analysis import isothermal_compressibility
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -373,7 +375,7 @@ def test_hessians_evaluated_within_a_step_reuse_the_last_ones_buffers(monkeypatc
     # The reuse is opportunistic (reference counts: an operator kept alive a little
     # longer, e.g. by garbage awaiting the cycle collector in a long test session, makes
     # one evaluation allocate afresh), so most evaluations, not all, find the buffers.
-    reused = sum(a == b for a, b in zip(addresses[1:], addresses[2:]))
+    reused = sum(a == b for a, b in itertools.pairwise(addresses[1:]))
     assert reused >= (len(addresses) - 2) / 2, addresses
 
 

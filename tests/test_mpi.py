@@ -135,6 +135,29 @@ def test_lj_melt_over_ranks_follows_the_serial_run(serial, tmp_path, n_ranks):
     relative = np.linalg.norm(positions - reference) / np.linalg.norm(reference)
     assert relative < 1e-10
     assert relative > 0.0 or n_ranks == 1  # the ranks really summed in another order
+    sections = summary_sections(done.stdout)
+    assert sections["comm"] > 0.0
+    assert_sections_within_wall(sections, loop_time(done.stdout), tolerance=5e-4)
+
+
+def summary_sections(stdout: str) -> dict[str, float]:
+    """The seconds of each row of the run summary's section table."""
+    table = stdout.split("Section")[1].split("Neighbour list builds")[0]
+    rows = [line.split() for line in table.splitlines()[1:] if line.strip()]
+    return {row[0]: float(row[1]) for row in rows}
+
+
+def loop_time(stdout: str) -> float:
+    return float(stdout.split("Loop time ")[1].split(" s ")[0])
+
+
+def assert_sections_within_wall(sections: dict, wall: float, tolerance: float = 0.0) -> None:
+    """The sections (comm included; "other" is the rest) are disjoint: they add up to at
+    most the loop's wall time, and none is negative."""
+    counted = {name: seconds for name, seconds in sections.items() if name != "other"}
+    assert set(counted) == {"force", "neighbor", "integrate", "output", "comm"}, counted
+    assert min(counted.values()) >= -tolerance, counted
+    assert sum(counted.values()) <= wall + tolerance, (counted, wall)
 
 
 @needs_mpi
@@ -147,12 +170,19 @@ def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
         "assert summary.status == 'completed', summary.message\n"
         "with open(f'rank{sim.rank}.txt', 'w') as f:\n"
         "    print(sim.ranks.n_ranks, sim.state.n_atoms, *sim.grid.shape, file=f)\n"
+        "    print(summary.wall, *(f'{k}={v!r}' for k, v in summary.timings.items()), file=f)\n"
     )
     out = tmp_path / "lib.h5"
     done = launch(2, str(script), str(config), str(out), cwd=tmp_path)
     assert done.returncode == 0, done.stderr + done.stdout
-    lines = [(tmp_path / f"rank{r}.txt").read_text().split() for r in range(2)]
+    texts = [(tmp_path / f"rank{r}.txt").read_text().splitlines() for r in range(2)]
+    lines = [text[0].split() for text in texts]
     owned = [int(line[1]) for line in lines]
+    for text in texts:  # every rank's sections, comm its own, within its wall time
+        wall, *timings = text[1].split()
+        sections = {k: float(v) for k, v in (item.split("=") for item in timings)}
+        assert sections["comm"] > 0.0
+        assert_sections_within_wall(sections, float(wall))
     assert all(line[0] == "2" and line[2:] == ["2", "1", "1"] for line in lines)
     assert sum(owned) == 384 and min(owned) > 0  # each rank holds its brick's atoms
     relative = np.linalg.norm(unwrapped(out) - unwrapped(serial)) / np.linalg.norm(
@@ -522,3 +552,128 @@ def test_a_rank_killed_ends_the_run_and_the_checkpoint_resumes_it(tmp_path):
     done = launch(2, "run", str(config), "--output", str(whole), "--no-progress", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     np.testing.assert_array_equal(unwrapped(out), unwrapped(whole))
+
+
+# --------------------------------------------------------------- one rank fails
+#: ``md run`` with two faults planted on one rank (given by the FAULT_RANK variable; a
+#: one-process run is rank 0), each from the step-10 checkpoint on: ``overlap`` puts two
+#: atoms of a listed pair on top of each other inside that rank's brick (its LJ energy
+#: is then not finite), ``disk`` makes that rank's disk report no free space to the
+#: trajectory writer. Each rank writes its exit code to ``exit<rank>.txt``.
+FAULTY_RUN = """\
+import os, sys
+from pathlib import Path
+import numpy as np
+import md.checkpoint
+from md.forcefield import ForceField
+from md.trajectory import H5MDWriter
+
+rank = int(os.environ.get("PMI_RANK", "0")) if int(os.environ.get("PMI_SIZE", "1")) > 1 else 0
+fault, target = os.environ["FAULT"], int(os.environ["FAULT_RANK"])
+armed = Path("armed")
+
+saving = md.checkpoint.Checkpointer.__call__
+def save(self, sim):
+    saving(self, sim)
+    if sim.state.step == 10:
+        armed.touch()  # rank 0 saves; the ranks agree after it, so all see the file
+md.checkpoint.Checkpointer.__call__ = save
+
+evaluating = ForceField._evaluate
+def overlapping(self, state, *args, **kwargs):
+    if fault == "overlap" and rank == target and armed.exists():
+        starts, neighbors = self.neighbor_list.starts, self.neighbor_list.neighbors
+        rows = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+        gaps = np.linalg.norm(state.positions[rows] - state.positions[neighbors], axis=1)
+        k = int(np.flatnonzero(gaps < 2.5)[0])  # a pair within the cutoff, not through a
+        state.positions[neighbors[k]] = state.positions[rows[k]]  # wall: on top of each other
+    return evaluating(self, state, *args, **kwargs)
+ForceField._evaluate = overlapping
+
+checking = H5MDWriter._check_space
+def full(self, frame):
+    if fault == "disk" and rank == target and armed.exists():
+        real = os.statvfs
+        os.statvfs = lambda path: os.statvfs_result((4096, 4096, 1000, 0, 0, 100, 0, 0, 0, 255))
+        try:
+            return checking(self, frame)
+        finally:
+            os.statvfs = real
+    return checking(self, frame)
+H5MDWriter._check_space = full
+
+from md.cli import main
+code = 1
+try:
+    code = main(sys.argv[1:])
+finally:
+    Path(f"exit{rank}.txt").write_text(str(code))
+sys.exit(code)
+"""
+
+
+def _faulty_runs(tmp_path: Path, fault: str, rank: int):
+    """The faulty run on one process and on 2 ranks (the fault on ``rank``): (serial, ranks)
+    results, each with its output path."""
+    config = write_config(tmp_path, steps=40)
+    config.write_text(config.read_text().replace(
+        '"melt.h5"\nevery = 100', '"melt.h5"\nevery = 5\ncheckpoint_every = 10'))  # fmt: skip
+    script = tmp_path / "faulty.py"
+    script.write_text(FAULTY_RUN)
+    results = []
+    for n_ranks in (1, 2):
+        folder = tmp_path / f"p{n_ranks}"
+        folder.mkdir()
+        out = folder / "melt.h5"
+        args = [str(script), "run", str(config), "--output", str(out), "--no-progress"]
+        env = {**os.environ, "FAULT": fault, "FAULT_RANK": str(rank if n_ranks > 1 else 0),
+               "PYTHONPATH": str(ROOT), "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1"}  # fmt: skip
+        command = [sys.executable, *args]
+        if n_ranks > 1:
+            command = ["mpiexec", "-n", str(n_ranks), *command]
+        done = subprocess.run(command, cwd=folder, env=env, capture_output=True, text=True,
+                              timeout=240)  # fmt: skip
+        codes = [int((folder / f"exit{r}.txt").read_text()) for r in range(n_ranks)]
+        errors = [line.replace(str(out), "OUT") for line in done.stderr.splitlines()
+                  if line.startswith("md: error:")]  # fmt: skip
+        results.append((done, codes, errors, out))
+    return results
+
+
+@needs_mpi
+@pytest.mark.slow  # a run on one process and one on 2 ranks: about 11 s
+def test_one_rank_with_a_non_finite_energy_stops_every_rank_as_a_serial_run(tmp_path):
+    """Two atoms on top of each other in rank 1's brick at step 11: both ranks stop with
+    the serial run's message and exit code (1), and the step-10 checkpoint is intact."""
+    (serial, serial_codes, expected, _), (done, codes, errors, out) = _faulty_runs(
+        tmp_path, "overlap", rank=1)  # fmt: skip
+    assert serial.returncode == 1 and serial_codes == [1], serial.stderr[-2000:]
+    assert len(expected) == 1 and "step 11: potential energy is" in expected[0], expected
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert codes == [1, 1]  # every rank ended, with the serial exit code
+    assert errors == expected  # rank 0 alone reports, in the serial words
+    saved = read_checkpoint(str(out) + ".ckpt")
+    assert saved.state.step == 10 and saved.state.n_atoms == 384
+    assert np.all(np.isfinite(saved.state.positions))
+    with h5py.File(out, "r") as f:  # the frames before the failure are readable
+        assert list(f["particles/trajectory/position/step"][()]) == [0, 5, 10]
+
+
+@needs_mpi
+@pytest.mark.slow  # a run on one process and one on 2 ranks: about 10 s
+def test_a_full_disk_on_rank_0_stops_every_rank_with_exit_2(tmp_path):
+    """Rank 0's disk fills after the step-10 checkpoint: the step-15 frame is refused,
+    every rank stops, exit 2 as in serial, "disk full" in the message, and the frames and
+    the checkpoint written before are intact."""
+    (serial, serial_codes, expected, _), (done, codes, errors, out) = _faulty_runs(
+        tmp_path, "disk", rank=0)  # fmt: skip
+    assert serial.returncode == 2 and serial_codes == [2], serial.stderr[-2000:]
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert codes == [2, 2]
+    assert len(errors) == 1 and "disk full" in errors[0], done.stderr[-2000:]
+    assert errors == expected
+    assert "Traceback" not in done.stderr
+    saved = read_checkpoint(str(out) + ".ckpt")
+    assert saved.state.step == 10 and saved.state.n_atoms == 384
+    with h5py.File(out, "r") as f:
+        assert list(f["particles/trajectory/position/step"][()]) == [0, 5, 10]

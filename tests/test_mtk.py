@@ -111,6 +111,7 @@ def _liquid_series(integrator, steps=6000, every=10):
     return np.array(rows)
 
 
+@pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_mtk_gives_the_density_of_stochastic_cell_rescaling():
     mtk = _liquid_series(pressure_control(NoseHooverChain(0.005, temperature=1.5, tau=0.5),
                                           Barostat("mtk", 2.0, tau=1.0)))  # fmt: skip

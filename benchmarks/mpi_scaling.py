@@ -1,0 +1,391 @@
+"""MPI scaling of the LJ melt: ours (``md.distributed``) next to LAMMPS on the same ranks.
+
+    python benchmarks/mpi_scaling.py              # about 10 minutes on 2 cores
+    python benchmarks/mpi_scaling.py --quick      # a smoke run, about 2 minutes
+
+Prints the machine (CPU model, vector ISA, cores, load), then
+
+(a) strong scaling of the 32000-atom LJ melt (``examples/lj_melt.toml``) and
+    of a 2,048,000-atom melt (the same config on an 80^3-cell lattice: same
+    density and temperature) on 1 rank x 1 thread, 2 ranks x 1 thread and
+    1 rank x 2 threads, each next to LAMMPS with the same ranks and threads
+    (``mpiexec -n P`` of ``_mpi_worker.py``; LAMMPS's OPENMP package for its
+    threads);
+(b) the share of the loop spent communicating: ours is the run summary's
+    "comm" section (halo exchange, reverse pass, migration and reductions),
+    LAMMPS's its "Comm" row, both averaged over the ranks;
+(c) weak scaling at 32000 atoms per rank (1 rank: 20^3 cells, 2 ranks:
+    40 x 20 x 20 cells);
+(d) the latency and bandwidth of messages between two ranks here (a mpi4py
+    ping-pong);
+(e) a model of the parallel efficiency at 64 and 1024 ranks from these
+    figures (see ``benchmarks/README.md``).
+
+Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
+runs (interleaved), and the tables give medians and the min-max. Rates are
+atom-steps per second of the timed loop (setup, the first list and forces
+excluded, as LAMMPS's "Loop time"). Ranks wait by polling (MPICH's default),
+as LAMMPS's do: on a machine with fewer free cores than ranks x threads the
+rows measure the contention, not the code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from _machine import machine_line
+from lj_melt import find_libmpi
+
+HERE = Path(__file__).resolve().parent
+WORKER = HERE / "_mpi_worker.py"
+#: (label, cells, steps): the full run and --quick.
+SIZES = {
+    False: [("32000", (20, 20, 20), 200), ("2M", (80, 80, 80), 20)],
+    True: [("32000", (20, 20, 20), 50), ("256000", (40, 40, 40), 10)],
+}
+#: (ranks, threads per rank) of the strong-scaling rows.
+LAYOUTS = [(1, 1), (2, 1), (1, 2)]
+#: Weak scaling: 32000 atoms (20^3 fcc cells) per rank, the ranks stacked along x.
+WEAK_CELLS = 20
+#: Issue 35's targets on a 2-core machine.
+TARGET_RANKS_OVER_THREADS = 0.85
+
+
+@dataclass(frozen=True)
+class Job:
+    engine: str  # "ours" or "lammps"
+    cells: tuple[int, int, int]
+    steps: int
+    ranks: int
+    threads: int
+
+    @property
+    def n_atoms(self) -> int:
+        return 4 * self.cells[0] * self.cells[1] * self.cells[2]
+
+
+@dataclass
+class Measured:
+    job: Job
+    runs: list[dict] = field(default_factory=list)
+
+    def rates(self) -> list[float]:
+        return [self.job.n_atoms * r["n_steps"] / r["loop_time"] for r in self.runs]
+
+    def median(self) -> float:
+        return statistics.median(self.rates()) if self.runs else float("nan")
+
+    def comm_share(self) -> float:
+        return statistics.median(r["comm_share"] for r in self.runs) if self.runs else float("nan")
+
+
+def environment(threads: int) -> dict[str, str]:
+    """Each rank's environment: OMP threads for LAMMPS, libmpi on the loader path, this
+    checkout first on the Python path."""
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    paths = [str(HERE.parent), *[p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]]
+    env["PYTHONPATH"] = os.pathsep.join(paths)
+    folder = find_libmpi()
+    if folder is not None:
+        libs = [p for p in env.get("LD_LIBRARY_PATH", "").split(os.pathsep) if p]
+        env["LD_LIBRARY_PATH"] = os.pathsep.join([str(folder), *libs])
+    return env
+
+
+def launch(job: Job | None, payload: dict, timeout: float) -> dict:
+    """Run the worker on ``payload['ranks']`` ranks; return rank 0's JSON line."""
+    ranks = payload.pop("ranks", 1)
+    command = ["mpiexec", "-n", str(ranks), sys.executable, str(WORKER), json.dumps(payload)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout,
+                          env=environment(int(payload.get("threads", 1))))  # fmt: skip
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    if done.returncode != 0 or not lines:
+        what = "probe" if job is None else f"{job.engine} {job.ranks}x{job.threads} {job.cells}"
+        raise RuntimeError(f"{what} failed (exit {done.returncode}): {done.stderr[-1500:]}")
+    return json.loads(lines[-1])
+
+
+def probe_lammps() -> tuple[bool, str]:
+    """Whether LAMMPS runs here under ``mpiexec -n 2`` (built with MPI, sees 2 ranks)."""
+    try:
+        found = launch(None, {"engine": "probe", "ranks": 2}, timeout=120)
+    except (RuntimeError, subprocess.TimeoutExpired) as error:
+        return False, f"LAMMPS does not run under mpiexec here: {str(error)[:300]}"
+    if not found["has_mpi_support"] or found["world_size"] != 2:
+        return False, f"this LAMMPS ({found['version']}) was built without MPI: left out"
+    omp = "with" if found["omp"] else "without"
+    return True, f"LAMMPS {found['version']}, MPI (2 ranks seen), {omp} OPENMP"
+
+
+def jobs_for(quick: bool, lammps: bool) -> list[Job]:
+    engines = ["ours", "lammps"] if lammps else ["ours"]
+    jobs = []
+    for _, cells, steps in SIZES[quick]:
+        for ranks, threads in LAYOUTS:
+            jobs += [Job(engine, cells, steps, ranks, threads) for engine in engines]
+    weak_steps = SIZES[quick][0][2]
+    weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
+    jobs += [Job(engine, weak, weak_steps, 2, 1) for engine in engines]
+    return jobs
+
+
+def measure(jobs: list[Job], repeats: int, timeout: float) -> dict[Job, Measured]:
+    measured = {job: Measured(job) for job in jobs}
+    for repeat in range(repeats):
+        for job in jobs:
+            payload = {"engine": job.engine, "cells": list(job.cells), "steps": job.steps,
+                       "threads": job.threads, "ranks": job.ranks}  # fmt: skip
+            result = launch(job, payload, timeout)
+            measured[job].runs.append(result)
+            print(f"  [{repeat + 1}/{repeats}] {job.engine:<6} {job.ranks} rank(s) x "
+                  f"{job.threads} thread(s), {job.n_atoms} atoms: "
+                  f"{job.n_atoms * result['n_steps'] / result['loop_time'] / 1e6:.2f} M "
+                  f"atom-steps/s, comm {100 * result['comm_share']:.1f} %", flush=True)  # fmt: skip
+    return measured
+
+
+def spread(item: Measured) -> str:
+    rates = item.rates()
+    return f"{min(rates) / 1e6:.2f}-{max(rates) / 1e6:.2f}" if rates else "-"
+
+
+def cell(value: float, fmt: str = ".2f") -> str:
+    return "-" if value != value else format(value, fmt)
+
+
+def print_table(headers: list[str], rows: list[list[str]]) -> None:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
+    print("  ".join(h.rjust(w) for h, w in zip(headers, widths, strict=True)))
+    for row in rows:
+        print("  ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)))
+
+
+def find(measured: dict[Job, Measured], **match) -> Measured | None:
+    for job, item in measured.items():
+        if all(getattr(job, key) == value for key, value in match.items()):
+            return item
+    return None
+
+
+def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
+    figures: dict = {}
+    print("\n(a) Strong scaling: median M atom-steps/s (min-max); speed-up over the same "
+          "engine's 1 x 1; ours/LAMMPS at the same ranks and threads")  # fmt: skip
+    for label, cells, _ in SIZES[quick]:
+        rows = []
+        base = {e: find(measured, engine=e, cells=cells, ranks=1, threads=1)
+                for e in ("ours", "lammps")}  # fmt: skip
+        for ranks, threads in LAYOUTS:
+            ours = find(measured, engine="ours", cells=cells, ranks=ranks, threads=threads)
+            peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
+            row = [f"{label}", f"{ranks} x {threads}", cell(ours.median() / 1e6), spread(ours),
+                   cell(ours.median() / base["ours"].median())]  # fmt: skip
+            if lammps:
+                row += [cell(peer.median() / 1e6), spread(peer),
+                        cell(peer.median() / base["lammps"].median()),
+                        cell(ours.median() / peer.median())]  # fmt: skip
+            rows.append(row)
+            figures[f"{label} {ranks}x{threads}"] = {
+                "ours": ours.median(), "lammps": peer.median() if peer else None,
+                "ours_comm": ours.comm_share(), "lammps_comm": peer.comm_share() if peer else None,
+            }  # fmt: skip
+        headers = ["atoms", "ranks x threads", "ours", "min-max", "speed-up"]
+        if lammps:
+            headers += ["LAMMPS", "min-max", "speed-up", "ours/LAMMPS"]
+        print_table(headers, rows)
+        two_ranks = find(measured, engine="ours", cells=cells, ranks=2, threads=1).median()
+        two_threads = find(measured, engine="ours", cells=cells, ranks=1, threads=2).median()
+        ratio = two_ranks / two_threads
+        figures[f"{label} ranks/threads"] = ratio
+        print(f"  ours, 2 ranks x 1 thread / 1 rank x 2 threads at {label} atoms: {ratio:.2f} "
+              f"(target >= {TARGET_RANKS_OVER_THREADS} on the 2M melt)")  # fmt: skip
+
+    print("\n(b) Share of the loop spent communicating (median over repeats, mean over ranks)")
+    rows = []
+    for label, cells, _ in SIZES[quick]:
+        for ranks, threads in LAYOUTS:
+            ours = find(measured, engine="ours", cells=cells, ranks=ranks, threads=threads)
+            peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
+            split = statistics.median(r["sections"]["comm"] for r in ours.runs)
+            row = [label, f"{ranks} x {threads}", f"{100 * ours.comm_share():.1f} %",
+                   f"{split:.3f}"]  # fmt: skip
+            if lammps:
+                row += [f"{100 * peer.comm_share():.1f} %",
+                        f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}"]
+            rows.append(row)
+    headers = ["atoms", "ranks x threads", "ours comm", "s"]
+    if lammps:
+        headers += ["LAMMPS Comm", "s"]
+    print_table(headers, rows)
+    print("  (one rank: ours has no comm section, periodic images are in its neighbour list; "
+          "LAMMPS copies ghosts to itself)")  # fmt: skip
+
+    print(f"\n(c) Weak scaling: {4 * WEAK_CELLS**3} atoms per rank; efficiency = rate per rank "
+          "on 2 ranks / rate on 1")  # fmt: skip
+    rows = []
+    one = (WEAK_CELLS,) * 3
+    two = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
+    for engine in ("ours", "lammps") if lammps else ("ours",):
+        single = find(measured, engine=engine, cells=one, ranks=1, threads=1)
+        double = find(measured, engine=engine, cells=two, ranks=2, threads=1)
+        efficiency = double.median() / 2 / single.median()
+        figures[f"weak {engine}"] = efficiency
+        rows.append([engine, cell(single.median() / 1e6), cell(double.median() / 1e6),
+                     f"{efficiency:.2f}", f"{100 * double.comm_share():.1f} %"])  # fmt: skip
+    print_table(["engine", "1 rank", "2 ranks", "efficiency", "comm at 2"], rows)
+    return figures
+
+
+def print_pingpong() -> dict | None:
+    """(d) Latency and bandwidth of messages between two ranks of this machine."""
+    try:
+        found = launch(None, {"engine": "pingpong", "ranks": 2}, timeout=300)
+    except (RuntimeError, subprocess.TimeoutExpired) as error:
+        print(f"\n(d) ping-pong failed: {str(error)[:300]}")
+        return None
+    print("\n(d) Messages between 2 ranks on this machine (mpi4py ping-pong, half the round "
+          "trip, median)")  # fmt: skip
+    rows = []
+    for size, seconds in zip(found["sizes"], found["seconds"], strict=True):
+        rows.append([f"{size} B", f"{seconds * 1e6:.1f} us", f"{size / seconds / 1e9:.2f} GB/s"])
+    print_table(["message", "time", "rate"], rows)
+    print(f"  all-gather of 15 doubles over 2 ranks: {found['allgather_15'] * 1e6:.1f} us")
+    return found
+
+
+#: Inter-node messages: a typical InfiniBand (EDR/HDR) figure at the MPI level, assumed,
+#: not measured here: latency [s] and bandwidth [bytes/s].
+INFINIBAND = (1.5e-6, 10e9)
+#: The LJ melt: number density, cutoff + skin (the ghost shell) [sigma].
+DENSITY, SHELL = 0.8442, 2.8
+
+
+def ghosts_per_atom(box, grid) -> float:
+    """Ghost atoms per owned atom of a brick of ``box / grid`` (ghost shell r = SHELL on
+    every face, periodic images of uncut axes included):
+    ((Lx + 2r)(Ly + 2r)(Lz + 2r) - Lx Ly Lz) / (Lx Ly Lz)."""
+    edges = [b / p for b, p in zip(box, grid, strict=True)]
+    inner = edges[0] * edges[1] * edges[2]
+    outer = (edges[0] + 2 * SHELL) * (edges[1] + 2 * SHELL) * (edges[2] + 2 * SHELL)
+    return (outer - inner) / inner
+
+
+def efficiency(n_atoms: int, ranks: int, per_atom: float, rebuild: float, builds: float,
+               latency: float, bandwidth: float) -> tuple[float, float, tuple]:  # fmt: skip
+    """The model's parallel efficiency of ``n_atoms`` on ``ranks`` (and the ghosts per atom,
+    the grid): compute c n against compute + messages + rebuild work, per step.
+
+    Per step: 6 ghost-position and 6 ghost-force messages (12 latencies, 2 x 24 bytes per
+    ghost) and one all-gather of 15 doubles (log2 P latencies, P x 120 bytes); per build
+    (``builds`` per step) the migration and ghost search, ``rebuild`` seconds per local
+    atom (owned + ghost), as measured on 2 ranks here. Load balance is taken as perfect.
+    """
+    sys.path.insert(0, str(HERE.parent))
+    from md.domain import choose_grid
+
+    edge = (n_atoms / DENSITY) ** (1 / 3)
+    grid = choose_grid(ranks, [edge] * 3, None, [True] * 3, SHELL) if ranks > 1 else (1, 1, 1)
+    ghosts = ghosts_per_atom([edge] * 3, grid)
+    n = n_atoms / ranks
+    compute = per_atom * n
+    halo = 12 * latency + 2 * 24 * ghosts * n / bandwidth
+    reduce = math.log2(ranks) * latency + ranks * 120 / bandwidth if ranks > 1 else 0.0
+    rebuilding = builds * rebuild * n * (1 + ghosts) if ranks > 1 else 0.0
+    return compute / (compute + halo + reduce + rebuilding), ghosts, grid
+
+
+def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | None) -> dict:
+    """(e) The efficiency model at 64 and 1024 ranks for the larger melt, from the per-atom
+    cost on one rank, the halo volume per brick and the measured messages."""
+    label, cells, _ = SIZES[quick][-1]
+    one = find(measured, engine="ours", cells=cells, ranks=1, threads=1)
+    two = find(measured, engine="ours", cells=cells, ranks=2, threads=1)
+    if one is None or two is None or not pingpong:
+        return {}
+    n_atoms = one.job.n_atoms
+    per_atom = 1.0 / one.median()
+    runs = two.runs
+    builds = statistics.median(r["n_builds"] / r["n_steps"] for r in runs)
+    local = statistics.median(sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"])
+                              for r in runs)  # fmt: skip
+    owned = statistics.median(sum(x[0] for x in r["local_atoms"]) / len(r["local_atoms"])
+                              for r in runs)  # fmt: skip
+    rebuild = statistics.median(r["sections"]["rebuild_comm"] / max(r["n_builds"], 1) / local
+                                for r in runs)  # fmt: skip
+    # Latency of the smallest message; bandwidth at 1 MB, the size of a halo message of a
+    # brick of about a million atoms.
+    megabyte = pingpong["sizes"].index(1 << 20)
+    here = (pingpong["seconds"][0], pingpong["sizes"][megabyte] / pingpong["seconds"][megabyte])
+    edge = (n_atoms / DENSITY) ** (1 / 3)
+    print(f"\n(e) Model of the parallel efficiency at {n_atoms} atoms (see benchmarks/README.md)")
+    print(f"  per-atom cost on 1 rank x 1 thread c = {per_atom * 1e9:.0f} ns per atom-step; "
+          f"{builds:.2f} builds per step; migration + ghost search {rebuild * 1e9:.0f} ns per "
+          f"local atom per build (2 ranks here, waits included)")  # fmt: skip
+    print(f"  ghosts per owned atom on 2 ranks: measured {(local - owned) / owned:.3f}, "
+          f"model {ghosts_per_atom([edge] * 3, tuple(two.runs[0]['grid'])):.3f}")
+    print(f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
+          f"between nodes {INFINIBAND[0] * 1e6:.1f} us + {INFINIBAND[1] / 1e9:.0f} GB/s "
+          "(typical InfiniBand, assumed)")  # fmt: skip
+    rows, model = [], {}
+    for ranks in (2, 64, 1024):
+        cells_row = [str(ranks)]
+        for name, (latency, bandwidth) in (("here", here), ("infiniband", INFINIBAND)):
+            value, ghosts, grid = efficiency(n_atoms, ranks, per_atom, rebuild, builds,
+                                             latency, bandwidth)  # fmt: skip
+            model[f"{ranks} {name}"] = value
+            cells_row.append(f"{value:.2f}")
+        cells_row[1:1] = [" x ".join(map(str, grid)), f"{n_atoms // ranks}", f"{ghosts:.2f}"]
+        if ranks == 2:
+            measured_2 = two.median() / 2 / one.median()
+            cells_row.append(f"{measured_2:.2f}")
+        else:
+            cells_row.append("-")
+        rows.append(cells_row)
+    print_table(["ranks", "grid", "atoms/rank", "ghosts/atom", "E (shared memory)",
+                 "E (InfiniBand)", "E measured"], rows)  # fmt: skip
+    return model
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="32000 and 256000 atoms, few steps, 1 repeat (a smoke run)")
+    parser.add_argument("--repeats", type=int, default=None, help="repeats (3; --quick 1)")
+    parser.add_argument("--no-lammps", action="store_true", help="our engine only")
+    parser.add_argument("--timeout", type=float, default=600, help="seconds per launch (600)")
+    parser.add_argument("--json", help="write the medians to this file")
+    args = parser.parse_args(argv)
+    repeats = args.repeats or (1 if args.quick else 3)
+    print(machine_line())
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    print(f"load average before the runs: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    lammps = False
+    if not args.no_lammps:
+        lammps, note = probe_lammps()
+        print(note)
+    jobs = jobs_for(args.quick, lammps)
+    print(f"{len(jobs)} runs x {repeats} repeats, interleaved:")
+    measured = measure(jobs, repeats, args.timeout)
+    figures = report(measured, args.quick, lammps)
+    pingpong = print_pingpong()
+    if pingpong:
+        figures["pingpong"] = pingpong
+        figures["model"] = print_model(measured, args.quick, pingpong)
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    print(f"\nload average after the runs: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    if args.json:
+        figures["runs"] = [{"job": vars(job), "runs": item.runs} for job, item in measured.items()]
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
