@@ -18,11 +18,13 @@ kernels apart, keyed by a hash of the term's source.
 
 from __future__ import annotations
 
+import ast
 import atexit
 import functools
 import hashlib
 import importlib.util
 import inspect
+import itertools
 import logging
 import math
 import shutil
@@ -67,6 +69,11 @@ _FRAME_SOURCES = (
     *(Path(importlib.util.find_spec(name).origin)
       for name in ("potentials._kernels", "md.box", "md._simd")),
 )  # fmt: skip
+#: The template's entry points (what this module calls) and the arguments of theirs that
+#: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
+_ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
+            "frame_curvatures", "frame_curvatures_threaded")  # fmt: skip
+_FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
 logger = logging.getLogger(__name__)
 _RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
 
@@ -211,7 +218,7 @@ def _template_copy(stem: str) -> Path:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             with atomic_path(path, exclusive=True) as partial:
-                partial.write_bytes(_TEMPLATE.read_bytes())
+                partial.write_bytes(_TEMPLATE.read_bytes() + _variant_source().encode())
         except FileExistsError:  # another process wrote it first: the same bytes
             return path
         except OSError as error:
@@ -219,6 +226,43 @@ def _template_copy(stem: str) -> Path:
             continue
         return path
     raise OSError(f"no folder to write the pair kernels to ({folders[0]} is not writable)")
+
+
+@functools.cache
+def _variant_source() -> str:
+    """One small kernel per entry point and combination of its flags (``_FLAGS``),
+    appended to each term's copy of the template: it calls the entry point with the
+    flags as constants, which the entry point takes as literal arguments.
+
+    numba then compiles each variant when it is first called, with one copy of the
+    pair loop specialised to its flags (a few seconds), rather than all twelve at once;
+    and a call from Python finds its compiled variant by the usual type match. (An entry
+    point that asks for literal arguments, called from Python, retypes its arguments on
+    every call: 13 times slower than the loop it runs on a small system.)
+    """
+    tree = ast.parse(_TEMPLATE.read_text())
+    arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
+                 if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES}  # fmt: skip
+    lines = ["", "", "# Variants, appended to this copy by potentials._pair_frame._variant_source."]
+    for entry in _ENTRIES:
+        names = arguments[entry]
+        flags = [name for name in names if name in _FLAGS]
+        for values in itertools.product(*(_FLAGS[name] for name in flags)):
+            fixed = dict(zip(flags, values, strict=True))
+            passed = ", ".join(repr(fixed[name]) if name in fixed else name for name in names)
+            lines += ["", "", '@njit(cache=True, error_model="numpy")',
+                      f"def {_variant_name(entry, fixed)}({', '.join(names)}):",
+                      f"    return {entry}({passed})"]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def _variant_name(entry: str, flags: Mapping[str, object]) -> str:
+    return entry + "__" + "_".join(f"{name}{int(value)}" for name, value in flags.items())
+
+
+def _variant(kernels: ModuleType, entry: str, **flags):
+    """The compiled variant of ``entry`` for these flags (given in the entry's order)."""
+    return getattr(kernels, _variant_name(entry, flags))
 
 
 @functools.cache
@@ -262,6 +306,7 @@ def _fingerprint(term: PairTerm) -> str:
     digest = hashlib.sha256()
     for path in _FRAME_SOURCES:
         digest.update(path.read_bytes())
+    digest.update(_variant_source().encode())
     digest.update(repr((term.name, term.uses_data, term.parameters)).encode())
     seen: set = set()
     for function in (term.energy, term.curvature):
@@ -583,8 +628,9 @@ class PairPotential:
             total_virial = np.zeros(6)
             energies = np.zeros(n if per_atom else 0)
             virials = np.zeros((n if per_atom else 0, 6))
-            energy = kernels.atom_forces(geometry, n_types, table, mode, self.data, forces,
-                                          total_virial, energies, virials)  # fmt: skip
+            energy = _variant(kernels, "atom_forces", mode=mode)(
+                geometry, n_types, table, mode, self.data, forces, total_virial, energies, virials
+            )
             result = ForceResult(
                 energy=energy,
                 forces=forces,
@@ -612,7 +658,9 @@ class PairPotential:
         slot_positions, slot_types, buffers, energies, virials = scratch
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-        kernel = kernels.frame_forces_threaded if chunks > 1 else kernels.frame_forces
+        entry = "frame_forces_threaded" if chunks > 1 else "frame_forces"
+        kernel = _variant(kernels, entry, mode=int(mode), with_virial=bool(virial),
+                          single=n_types == 1)  # fmt: skip
         kernel(
             state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
             bool(virial), n_types == 1, slot_positions, slot_types, buffers, energies, virials,
@@ -687,7 +735,7 @@ class PairPotential:
         transverse = np.empty(listed)
         radial = np.empty(listed)
         unit = np.empty((listed, 3))
-        n_pairs = kernels.atom_curvatures(
+        n_pairs = _variant(kernels, "atom_curvatures", mode=mode)(
             geometry, n_types, table, mode, self.data, pair_i, pair_j, transverse, radial, unit
         )
         return PairHessian(
@@ -719,7 +767,8 @@ class PairPotential:
             self._hessian_buffers = held
         written = np.zeros(chunks, dtype=np.int64)
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
-        write = kernels.frame_curvatures_threaded if chunks > 1 else kernels.frame_curvatures
+        entry = "frame_curvatures_threaded" if chunks > 1 else "frame_curvatures"
+        write = _variant(kernels, entry, mode=int(mode), single=n_types == 1)
         write(state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
               n_types == 1, slot_positions, slot_types, held, written)  # fmt: skip
         first = frame.starts[frame.bounds[:-1]]

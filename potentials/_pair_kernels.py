@@ -21,9 +21,14 @@ Everything else (slot-frame gather, chunks and threads, scatter-sum, type-pair
 tables, cutoff modes, virial, per-atom values, curvature passes) is here, once
 for every term; the term is inlined into the vectorised pair loops.
 
-The six kernels ``PairPotential`` calls have public names (``atom_forces``,
-``atom_curvatures``, ``frame_forces``, ``frame_curvatures`` and the last two's
-``_threaded`` forms): they are this module's interface; the rest is private.
+The six entry points have public names (``atom_forces``, ``atom_curvatures``,
+``frame_forces``, ``frame_curvatures`` and the last two's ``_threaded``
+forms): they are this module's interface; the rest is private. Their cutoff
+mode, virial flag and single-type flag are literal arguments: each term's copy
+of this file ends in small kernels, one per entry point and combination of
+flags (``potentials._pair_frame._variant_source``), that call them with the
+flags as constants, and ``PairPotential`` calls those, so only the
+combinations a run uses are compiled.
 """
 
 from __future__ import annotations

@@ -233,7 +233,8 @@ def build_table(section: TableSection, points: int, cutoff: float, interpolation
         out[ENERGY2, :-1] = e[1:] - e[:-1]
         out[FORCE2, :-1] = f[1:] - f[:-1]
         return out, innersq, delta
-    out[ENERGY2] = _spline(rsq, e, -f[0], -f[-1])
+    # End slopes of e in r^2: de/d(r^2) = -f / (2 r), f the force (not yet f/r here).
+    out[ENERGY2] = _spline(rsq, e, -f[0] / (2.0 * inner), -f[-1] / (2.0 * cutoff))
     # End slopes of f/r in r^2: from FPRIME where given, else secants over a tenth of a bin.
     secant = 0.1
     if section.slopes is not None:

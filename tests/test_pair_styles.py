@@ -419,10 +419,12 @@ state = md.lattice("fcc", 5, density=0.8)
 potential = PairPotential(soft_wall, k=10.0, width=1.3, cutoff=1.3, cutoff_mode="none")
 forcefield = md.ForceField([potential], skin=0.3)
 result = forcefield.compute(state)
-kernel = kernels_for(potential.term).frame_forces
+kernels = kernels_for(potential.term)
+variants = [getattr(kernels, name) for name in dir(kernels) if name.startswith("frame_forces__")]
+used = [kernel for kernel in variants if kernel.stats.cache_hits or kernel.stats.cache_misses]
 print(json.dumps({"frame": forcefield.neighbor_list.frame is not None,
-                  "hits": sum(kernel.stats.cache_hits.values()),
-                  "misses": sum(kernel.stats.cache_misses.values()),
+                  "hits": sum(sum(kernel.stats.cache_hits.values()) for kernel in used),
+                  "misses": sum(sum(kernel.stats.cache_misses.values()) for kernel in used),
                   "file": kernels_for(potential.term).__file__, "energy": result.energy}))
 """
 
@@ -453,7 +455,8 @@ def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(t
     copies = [path for path in (tmp_path / "cache/leapmd/numba/pair_terms").iterdir()
               if path.name != "__pycache__"]  # fmt: skip
     assert [path.name for path in copies] == [Path(first["file"]).name]
-    assert Path(first["file"]).read_bytes() == (ROOT / "potentials/_pair_kernels.py").read_bytes()
+    template = (ROOT / "potentials/_pair_kernels.py").read_bytes()
+    assert Path(first["file"]).read_bytes().startswith(template)  # and the variants after it
     assert first["energy"] == second["energy"] == third["energy"]
     assert third["hits"] == 1 and third["misses"] == 0
     assert first["misses"] + first["hits"] == 1 and second["misses"] + second["hits"] == 1
