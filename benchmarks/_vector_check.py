@@ -4,7 +4,8 @@ Run as a script (``compare.py`` runs it in a child process): it points numba's
 cache at an empty folder, so the kernels are compiled here and their machine
 code can be inspected (numba keeps no assembly for kernels loaded from its
 cache), runs a small LJ system through the slot-frame force kernel and the
-cell search, and prints one JSON object: per kernel, the packed
+cell search (with ``--pair-styles``, every pair style's pair loop too), and
+prints one JSON object: per kernel, the packed
 double-precision arithmetic instructions (FMA, multiply, add, subtract,
 compare, divide, square root) on 256-bit (ymm) and 512-bit (zmm) registers.
 A kernel with none ran scalar.
@@ -39,27 +40,38 @@ def main() -> None:
     cache = tempfile.mkdtemp(prefix="leapmd_vector_check_")
     os.environ["NUMBA_CACHE_DIR"] = cache  # before numba is imported
     try:
-        report()
+        report(styles="--pair-styles" in sys.argv)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
 
 
-def report() -> None:
+def report(styles: bool = False) -> None:
+    """Print the packed counts; ``styles``: also every pair style's pair loop (minutes)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
     import numpy as np
 
     import md
     from md import _cell_kernels
-    from potentials import LennardJones, lennard_jones
+    from potentials import POTENTIALS, LennardJones, PairPotential
+    from potentials._pair_frame import kernels_for
 
     state = md.lattice("fcc", 6, density=0.8442)
     state.positions += np.random.default_rng(0).normal(scale=0.05, size=state.positions.shape)
-    forcefield = md.ForceField([LennardJones(cutoff=2.5)], skin=0.3)
+    lj = LennardJones(cutoff=2.5)
+    forcefield = md.ForceField([lj], skin=0.3)
     forcefield.compute(state, virial=False)
     kernels = {
-        "LJ pair loop (lennard_jones._lj_frame_chunk)": lennard_jones._lj_frame_chunk,
+        "LJ pair loop (the frame's _frame_chunk)": kernels_for(lj.term)._frame_chunk,
         "cell search (_cell_kernels._frame_pairs_chunk)": _cell_kernels._frame_pairs_chunk,
     }
+    if styles:
+        defaults = {"table": None, "buckingham": {"a": 2000.0, "rho": 0.15, "c": 1.0}}
+        for name, style in POTENTIALS.items():
+            if not issubclass(style, PairPotential) or name in ("lj", "table"):
+                continue
+            potential = style(**(defaults.get(name) or {}), cutoff=2.5)
+            md.ForceField([potential], skin=0.3).compute(state, virial=False)
+            kernels[f"{name} pair loop"] = kernels_for(potential.term)._frame_chunk
     out = {}
     for name, kernel in kernels.items():
         counts = {"ymm": 0, "zmm": 0}

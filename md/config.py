@@ -457,6 +457,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         table = _Table(entry, f"potentials.{index}", source, base, units)
         kind = table.read(_type_key(POTENTIALS))
         values = table.plugin(kind, POTENTIALS[kind].CONFIG_KEYS, every_key)
+        for entry in _pair_files(values):  # a table style's file for one type pair
+            if not Path(entry["file"]).is_absolute():
+                entry["file"] = str(base / entry["file"])  # relative to the config
         potentials.append(PluginEntry(kind, values))
 
     integrator = _parse_integrator(
@@ -631,7 +634,15 @@ def input_files(config: Config) -> list[Path]:
     for values, keys in tables:
         files += [Path(values[k.name]) for k in keys
                   if k.kind == "path" and isinstance(values.get(k.name), str)]  # fmt: skip
+        files += [Path(entry["file"]) for entry in _pair_files(values)]
     return files
+
+
+def _pair_files(values: Mapping) -> list[dict]:
+    """The ``[[potentials.pairs]]`` tables of a potential's values that name a ``file``
+    (a table style's file for one type pair; a path, as the style's own ``file``)."""
+    return [entry for entry in values.get("pairs") or []
+            if isinstance(entry, dict) and isinstance(entry.get("file"), str)]  # fmt: skip
 
 
 #: Where bonds = "system" finds its bonds.

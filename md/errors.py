@@ -15,6 +15,25 @@ class NonFiniteError(FloatingPointError):
     """A coordinate or energy became NaN or infinite."""
 
 
+class PairCollapseError(NonFiniteError):
+    """Two atoms came closer than a pair potential allows: inside the barrier of an
+    energy that falls to minus infinity (Buckingham), or below a table's first
+    distance. Named with the pair, its types, distance, the limit and the step.
+
+    A subclass of :class:`NonFiniteError`, so the simulation loop reports it as a
+    :class:`SimulationError` at the failing step.
+    """
+
+    def __init__(self, style: str, i: int, j: int, type_names, distance: float,
+                 limit: float, step: int, reason: str) -> None:  # fmt: skip
+        self.i, self.j, self.distance, self.limit, self.step = i, j, distance, limit, step
+        pair = "-".join(str(name) for name in type_names)
+        super().__init__(
+            f"{style}: atoms {i} and {j} (types {pair}) are {distance:.6g} apart at step "
+            f"{step}, closer than r = {limit:.6g}: {reason}"
+        )
+
+
 class DecompositionError(NonFiniteError):
     """A run decomposed over MPI ranks cannot go on (:mod:`md.distributed`).
 
@@ -175,6 +194,7 @@ __all__ = [
     "DecompositionError",
     "NonFiniteError",
     "OutputBusyError",
+    "PairCollapseError",
     "SimulationError",
     "SweepError",
     "TrajectoryError",

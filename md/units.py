@@ -121,7 +121,8 @@ LJ = UnitSystem(
     config_units=_config_units("τ", 1.0, ("ε/σ³", "σ³/ε"), 1.0, {
         "length": "σ", "energy": "ε", "temperature": "ε/kB", "mass": "m",
         "number density": "1/σ³", "force": "ε/σ", "energy/length^2": "ε/σ²",
-        "length^2/energy": "σ²/ε", "energy/radian^2": "ε/rad²", **_PLAIN_UNITS,
+        "length^2/energy": "σ²/ε", "energy/radian^2": "ε/rad²", "1/length": "1/σ",
+        "energy*length": "ε σ", "energy*length^6": "ε σ⁶", **_PLAIN_UNITS,
     }),  # fmt: skip
 )
 
@@ -154,7 +155,8 @@ METAL = UnitSystem(
     config_units=_config_units("fs", fs, ("bar", "1/bar"), 1.0 / eV_per_A3_in_bar, {
         "length": "Å", "energy": "eV", "temperature": "K", "mass": "amu",
         "number density": "1/Å³", "force": "eV/Å", "energy/length^2": "eV/Å²",
-        "length^2/energy": "Å²/eV", "energy/radian^2": "eV/rad²", **_PLAIN_UNITS,
+        "length^2/energy": "Å²/eV", "energy/radian^2": "eV/rad²", "1/length": "1/Å",
+        "energy*length": "eV Å", "energy*length^6": "eV Å⁶", **_PLAIN_UNITS,
     }),  # fmt: skip
 )
 

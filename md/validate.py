@@ -62,10 +62,23 @@ from md.simulation import Simulation
 from md.state import State
 from md.thermo import kinetic_energy
 from md.thermo import temperature as kinetic_temperature
-from potentials import LennardJones
+from potentials import POTENTIALS
 
 #: Argon-like Lennard-Jones parameters in metal units.
 ARGON = {"epsilon": 0.0104, "sigma": 3.40, "cutoff": 8.5, "mass": 39.948}
+#: Argon-like parameters of each pair style for ``potential=`` [metal units]: the well
+#: of LJ's depth and curvature (Morse), a softer Mie, a Buckingham fit whose barrier
+#: lies near 1 Angstrom, and purely repulsive Yukawa and soft fluids at the same density.
+ARGON_STYLES = {
+    "lj": {"epsilon": ARGON["epsilon"], "sigma": ARGON["sigma"]},
+    "morse": {"d0": ARGON["epsilon"], "alpha": 1.57, "r0": 2 ** (1 / 6) * ARGON["sigma"]},
+    "mie": {"epsilon": ARGON["epsilon"], "sigma": ARGON["sigma"], "n": 13.0, "m": 6.5},
+    "buckingham": {"a": 3300.0, "rho": 0.3, "c": 64.3},
+    "yukawa": {"a": 0.1, "kappa": 1 / ARGON["sigma"]},
+    "soft": {"a": 0.01},
+}
+#: Soft spheres: the cutoff is the sphere diameter.
+_STYLE_CUTOFFS = {"soft": ARGON["sigma"]}
 #: Number density of liquid argon near its boiling point (1.40 g/cm^3) [1/Angstrom^3].
 LIQUID_ARGON_DENSITY = 1.40 / ARGON["mass"] * 6.02214076e23 * 1e-24
 
@@ -149,6 +162,8 @@ class AseValidation:
     passed : bool
         Replays identical, and drift and fluctuation of the two runs agree
         within ``energy_tolerance`` of the fluctuation (every run).
+    potential : dict
+        The pair potential's ``describe()``.
     """
 
     n_atoms: int
@@ -161,6 +176,7 @@ class AseValidation:
     ladder: list[TrajectoryComparison] = field(default_factory=list)
     energy_tolerance: float = 0.01
     passed: bool = False
+    potential: dict = field(default_factory=dict)
 
 
 def argon_liquid(
@@ -170,8 +186,11 @@ def argon_liquid(
     n_equilibrate: int = 500,
     dt_fs: float = 5.0,
     cutoff_mode: str = "shift",
+    style: str = "lj",
 ):
-    """Return ``(state, potential)``: a thermalised argon-like LJ liquid in metal units.
+    """Return ``(state, potential)``: a thermalised argon-like liquid in metal units.
+
+    ``style`` picks the pair potential (``ARGON_STYLES``; LJ by default).
 
     Atoms start on an fcc lattice at the density of liquid argon, in at
     least 4 x 4 x 4 cells so every edge exceeds twice the cutoff; extra
@@ -195,10 +214,11 @@ def argon_liquid(
         pbc=True,
         type_names=("Ar",),
     )
-    potential = LennardJones(
-        epsilon=ARGON["epsilon"],
-        sigma=ARGON["sigma"],
-        cutoff=ARGON["cutoff"],
+    if style not in ARGON_STYLES:
+        raise ValueError(f"potential must be one of {', '.join(ARGON_STYLES)}, got {style!r}")
+    potential = POTENTIALS[style](
+        **ARGON_STYLES[style],
+        cutoff=_STYLE_CUTOFFS.get(style, ARGON["cutoff"]),
         cutoff_mode=cutoff_mode,
     )
     maxwell_boltzmann(state, 2.0 * temperature, seed=rng, kB=units.kB)
@@ -347,6 +367,7 @@ def validate_ase(
     n_equilibrate: int = 500,
     energy_tolerance: float = 0.01,
     skin: float = 1.0,
+    potential: str = "lj",
 ) -> AseValidation:
     """Compare ASE's velocity Verlet (with MDCalculator) and ours on argon; see the module doc.
 
@@ -363,7 +384,7 @@ def validate_ase(
     seed : int
         Seed of the lattice vacancies and the velocities.
     cutoff_mode : {"shift", "smooth"}
-        Lennard-Jones cutoff treatment (ASE's plain and smooth modes).
+        Cutoff treatment (ASE's plain and smooth modes).
     ladder_dts : sequence of float
         Time steps of the drift table [fs]; empty for none.
     ladder_span_fs : float
@@ -376,6 +397,9 @@ def validate_ase(
         fluctuation in every run.
     skin : float
         Neighbour-list skin of both runs [Angstrom].
+    potential : str
+        The pair style, with argon-like parameters (``ARGON_STYLES``): "lj",
+        "morse", "mie", "buckingham", "yukawa" or "soft".
     """
     for name, value in (("n_atoms", n_atoms), ("n_steps", n_steps)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -391,7 +415,7 @@ def validate_ase(
     if not (math.isfinite(temperature) and temperature > 0):
         raise ValueError(f"temperature must be positive, got {temperature!r}")
     state, potential = argon_liquid(
-        n_atoms, temperature, seed, n_equilibrate, dt_fs, cutoff_mode=cutoff_mode
+        n_atoms, temperature, seed, n_equilibrate, dt_fs, cutoff_mode=cutoff_mode, style=potential
     )
     t_ours = kinetic_temperature(state.velocities, state.masses, units.kB)
     main = compare_trajectories(state, potential, dt_fs, n_steps, skin)
@@ -409,6 +433,7 @@ def validate_ase(
         main=main,
         ladder=ladder,
         energy_tolerance=energy_tolerance,
+        potential=potential.describe(),
     )
     report.passed = all(_energy_agrees(run, energy_tolerance) for run in [main, *ladder]) and all(
         run.replay_identical for run in [main, *ladder]
@@ -429,8 +454,7 @@ def format_report(report: AseValidation) -> str:
     main = report.main
     n = report.n_atoms
     lines = [
-        f"md validate ase: {n} argon-like LJ atoms (epsilon {ARGON['epsilon']} eV, sigma "
-        f"{ARGON['sigma']} A, cutoff {ARGON['cutoff']} A, {report.cutoff_mode}), density "
+        f"md validate ase: {n} argon-like atoms ({_described(report.potential)}), density "
         f"{report.density:.5f} A^-3, seed {report.seed}",
         f"start temperature {report.temperature:.3f} K with 3N-3 degrees of freedom (ours) = "
         f"{report.temperature_ase:.3f} K with 3N (ASE's get_temperature)",
@@ -475,6 +499,12 @@ def format_report(report: AseValidation) -> str:
         f"and fluctuation equal within {report.energy_tolerance:g} of the fluctuation.",
     ]
     return "\n".join(lines)
+
+
+def _described(parameters: dict) -> str:
+    """'lj: epsilon 0.0104, sigma 3.4, cutoff 8.5, shift' from a potential's describe()."""
+    shown = [f"{k} {v:g}" for k, v in parameters.items() if isinstance(v, float)]
+    return f"{parameters.get('type')}: {', '.join(shown)}, {parameters.get('cutoff_mode')}"
 
 
 def _rate(rate: float) -> str:

@@ -1,7 +1,8 @@
-"""numba helpers shared by the pair and bond kernels."""
+"""numba helpers shared by the pair and bond kernels (term-free parts of the pair frame)."""
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 
@@ -30,3 +31,71 @@ def _add_half_pair_virial(virials, i, j, fx, fy, fz, dx, dy, dz):
     virials[j, 3] += w3
     virials[j, 4] += w4
     virials[j, 5] += w5
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_frame(
+    chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+):
+    """Slot positions and types of one chunk's share of the slots (images count cell vectors)."""
+    n = positions.shape[0]
+    xy, xz, yz = tilt[0], tilt[1], tilt[2]
+    sheared = xy != 0.0 or xz != 0.0 or yz != 0.0
+    for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+        atom = order[p]
+        frame[p, 0] = positions[atom, 0] + lengths[0] * images[p, 0]
+        frame[p, 1] = positions[atom, 1] + lengths[1] * images[p, 1]
+        frame[p, 2] = positions[atom, 2] + lengths[2] * images[p, 2]
+        if sheared:
+            frame[p, 0] += xy * images[p, 1] + xz * images[p, 2]
+            frame[p, 1] += yz * images[p, 2]
+        frame_types[p] = types[atom]
+
+
+@njit(cache=True, error_model="numpy")
+def _sum_chunk_forces(chunk, n_chunks, order, buffers, forces):
+    """Sum the chunk buffers, in chunk order, into the atoms' forces (one share of the slots)."""
+    n = order.shape[0]
+    for p in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+        atom = order[p]
+        for a in range(3):
+            total = buffers[0, p, a]
+            for other in range(1, n_chunks):
+                total += buffers[other, p, a]
+            forces[atom, a] = total
+
+
+@njit(cache=True, error_model="numpy")
+def _longest_row(starts, first, last):
+    """Most partners of any of the slots first..last-1 (the size of per-row scratch)."""
+    most = 0
+    for p in range(first, last):
+        most = max(most, starts[p + 1] - starts[p])
+    return most
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
+    """Partner positions with their image shifts, contiguous for a vectorised pair loop.
+
+    Slices from 0 and unsigned partner slots: indices LLVM knows are not
+    negative, so no wrap-around code. Shared by every pair term (nothing in it
+    depends on the term), so it compiles once.
+    """
+    for k in range(partners.shape[0]):
+        q = np.uint32(partners[k])
+        code = partner_codes[k]
+        gx[k] = frame[q, 0] + shifts[code, 0]
+        gy[k] = frame[q, 1] + shifts[code, 1]
+        gz[k] = frame[q, 2] + shifts[code, 2]
+
+
+@njit(cache=True, error_model="numpy")
+def _gather_pair_columns(frame_types, partners, row, table, params):
+    """Each partner's type-pair column of ``table`` (every row) into ``params[:, k]``,
+    so a pair loop over several atom types reads contiguous parameters, no table."""
+    n_rows = table.shape[0]
+    for k in range(partners.shape[0]):
+        column = row + frame_types[np.uint32(partners[k])]
+        for r in range(n_rows):
+            params[r, k] = table[r, column]

@@ -108,7 +108,7 @@ BAD_CONFIGS = {
     "negative mass": (("density = 0.8442", "density = 0.8442\nmass = -1.0"), "mass"),
     "zero mass": (("density = 0.8442", "density = 0.8442\nmass = 0.0"), "mass"),
     "cutoff too long": (("cutoff = 2.5", "cutoff = 3.5"), "cutoff"),
-    "unknown potential": (('type = "lj"', 'type = "morse"'), "morse"),
+    "unknown potential": (('type = "lj"', 'type = "no_such_style"'), "no_such_style"),
     "unknown integrator": (('type = "verlet"', 'type = "magic"'), "magic"),
     "bad cutoff mode": (("cutoff = 2.5", 'cutoff = 2.5\ncutoff_mode = "soft"'), "soft"),
     "r_on beyond cutoff": (

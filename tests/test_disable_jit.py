@@ -5,7 +5,9 @@ numba cannot call an LLVM-IR intrinsic from Python, so each has a Python twin
 intrinsic is compared with its twin on the same inputs (compiled), and the
 serial engine, LJ and velocity Verlet over an O(N^2) list and over a cell list
 (both the AVX2 permute path and the bit-mask scan), is run with numba off in a
-subprocess and compared with the compiled run.
+subprocess and compared with the compiled run; so are the pair frame's other
+paths (Morse's vectorising exp, a spline table, a user's term; per-atom values
+and Hessian blocks; LJ runs on the frame too).
 """
 
 from __future__ import annotations
@@ -211,12 +213,12 @@ print(json.dumps(results))
 """
 
 
-def _engine(**env) -> dict:
+def _engine(script: str = _RUN, **env) -> dict:
     environment = {**os.environ, **env}
     paths = [str(ROOT), os.environ.get("PYTHONPATH")]
     environment["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
     done = subprocess.run(
-        [sys.executable, "-c", _RUN], env=environment, capture_output=True, text=True,
+        [sys.executable, "-c", script], env=environment, capture_output=True, text=True,
         timeout=900,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -249,3 +251,59 @@ def test_serial_engine_under_disable_jit_matches_the_compiled_run(compiled_run, 
             np.testing.assert_allclose(ours[key], reference[key], rtol=1e-11, atol=1e-11)
         for key, value in reference["thermo"].items():
             assert ours["thermo"][key] == pytest.approx(value, rel=1e-11, abs=1e-11), key
+
+
+# The pair frame's other paths with numba off: a term calling pair_math.exp (Morse), a
+# tabulated term with jittable helpers and a data array, and a user's term, each through
+# the slot-frame kernel, the atom-order kernel (per-atom values) and the Hessian blocks.
+
+_FRAME_RUN = """
+import json
+import numpy as np
+import md
+from potentials import Morse, PairPotential, Table, pair_term
+
+@pair_term
+def soft_wall(r2, k, width):
+    gap = width - r2**0.5
+    return 0.5 * k * gap * gap, k * gap / r2**0.5
+
+r = np.linspace(0.5, 2.0, 200)
+e = np.exp(-3.0 * r)
+rows = "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {3.0 * e[k]:.17g}\\n" for k in range(200))
+with open("pair.table", "w") as handle:
+    handle.write("E\\nN 200 R 0.5 2.0\\n\\n" + rows)
+state = md.lattice("fcc", 4, density=0.8, shear=(0.2, 0.0, 0.1))
+state.positions += np.random.default_rng(1).normal(0.0, 0.04, state.positions.shape)
+results = {}
+for name, potential in [("morse", Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=1.5)),
+                        ("table", Table("pair.table", "E", "spline", cutoff=1.5)),
+                        ("user", PairPotential(soft_wall, k=5.0, width=1.3, cutoff=1.3))]:
+    forcefield = md.ForceField([potential], skin=0.1)
+    fast = forcefield.compute(state, virial=True)
+    nl = forcefield.neighbor_list
+    per_atom = potential.energy_forces(state, nl, per_atom=True)
+    blocks = potential.hessian_operator(state, nl).tocsr() if name != "user" else None
+    results[name] = {
+        "frame": nl.frame is not None, "energy": fast.energy, "forces": fast.forces.tolist(),
+        "virial": fast.virial.tolist(), "energies": per_atom.energies.tolist(),
+        "hessian": None if blocks is None else blocks.toarray().tolist(),
+    }
+print(json.dumps(results))
+"""
+
+
+def test_pair_frame_under_disable_jit_matches_the_compiled_run(tmp_path):
+    compiled = _engine(_FRAME_RUN.replace("pair.table", str(tmp_path / "a.table")),
+                       NUMBA_DISABLE_JIT="0")  # fmt: skip
+    python = _engine(_FRAME_RUN.replace("pair.table", str(tmp_path / "b.table")),
+                     NUMBA_DISABLE_JIT="1")  # fmt: skip
+    for name, reference in compiled.items():
+        ours = python[name]
+        assert ours["frame"] and reference["frame"], name  # the slot-frame path ran
+        assert ours["energy"] == pytest.approx(reference["energy"], rel=1e-11), name
+        for key in ("forces", "virial", "energies", "hessian"):
+            if reference[key] is not None:
+                scale = np.abs(reference[key]).max()
+                np.testing.assert_allclose(ours[key], reference[key], rtol=0,
+                                           atol=1e-11 * scale, err_msg=f"{name} {key}")  # fmt: skip

@@ -51,13 +51,14 @@ def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
     code = (
         "import json, md, potentials, integrators\n"
         "from md import _cell_kernels\n"
-        "from potentials import lennard_jones\n"
+        "from potentials._pair_frame import kernels_for\n"
         "from integrators import _kernels\n"
-        "kernels = [_cell_kernels._bin_atoms, lennard_jones._lj_frame_forces, _kernels._kick]\n"
+        "lj = potentials.LennardJones(cutoff=2.5)\n"
+        "pair = kernels_for(lj.term).frame_forces\n"
+        "kernels = [_cell_kernels._bin_atoms, pair, _kernels._kick]\n"
         "print(json.dumps([k._cache._cache_path for k in kernels]))\n"
         "s = md.lattice('fcc', 3, density=0.8)\n"
-        "md.Simulation(s, [potentials.LennardJones(cutoff=2.5)],"
-        " integrators.VelocityVerlet(0.005)).run(2)\n"
+        "md.Simulation(s, [lj], integrators.VelocityVerlet(0.005)).run(2)\n"
     )
     result = _child(code, cwd=tmp_path, XDG_CACHE_HOME=str(cache))
     assert result.returncode == 0, result.stderr

@@ -6,6 +6,10 @@ needs a factory in ``FACTORIES`` below, or its contract tests fail.
 
 from __future__ import annotations
 
+import functools
+import tempfile
+from pathlib import Path
+
 import ase.calculators.lj
 import numpy as np
 import pytest
@@ -15,11 +19,17 @@ from md.neighbors import NeighborList
 from md.thermo import pressure
 from potentials import (
     POTENTIALS,
+    Buckingham,
     CosineAngles,
     FENEBonds,
     HarmonicAngles,
     HarmonicBonds,
     LennardJones,
+    Mie,
+    Morse,
+    Soft,
+    Table,
+    Yukawa,
 )
 
 R_MIN = 2.0 ** (1.0 / 6.0)
@@ -42,9 +52,40 @@ def _lj(cutoff_mode):
 
 
 def _lj_kinks(potential, ti, tj):
-    """Distances where the LJ pair energy or its derivatives are not smooth."""
+    """Distances where a pair energy or its derivatives are not smooth (cutoff, r_on)."""
     p = potential.pair_parameters(ti, tj)
     return [p["cutoff"], p["r_on"]]
+
+
+def _pair_variants(build):
+    """One variant per cutoff mode of a pair style (``build(mode)``)."""
+    return {mode: (lambda mode=mode: build(mode)) for mode in ("none", "shift", "smooth")}
+
+
+#: Two-type pair styles for the contract: explicit pairs, per-pair cutoffs and r_on.
+PAIRS = {(0, 1): {"cutoff": 2.1}, (1, 1): {"cutoff": 2.45, "r_on": 1.9}}
+
+
+@functools.cache
+def contract_table_file() -> Path:
+    """A LAMMPS table file (Morse-like, two sections: R and RSQ spacing) in a temporary
+    folder, for the table style's contract variants."""
+    folder = Path(tempfile.mkdtemp(prefix="leapmd-table-"))
+    path = folder / "contract.table"
+    lines = ["# contract table", ""]
+    for keyword, spacing in (("DENSE", "R"), ("SQUARED", "RSQ")):
+        n, low, high = 3000, 0.5, 2.6
+        i = np.arange(n)
+        r = low + (high - low) * i / (n - 1)
+        if spacing == "RSQ":
+            r = np.sqrt(low**2 + (high**2 - low**2) * i / (n - 1))
+        e = np.exp(-2.0 * (r - 1.1)) - 2.0 * np.exp(-(r - 1.1))
+        f = 2.0 * (np.exp(-2.0 * (r - 1.1)) - np.exp(-(r - 1.1)))
+        lines += [keyword, f"N {n} {spacing} {low} {high}", ""]
+        lines += [f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}" for k in range(n)]
+        lines.append("")
+    path.write_text("\n".join(lines))
+    return path
 
 
 def _contract_bonds():
@@ -79,6 +120,75 @@ def _no_kinks(potential, ti, tj):
 
 #: registry name -> {"variants": {id: zero-argument builder}, "kinks": f(potential, ti, tj)}
 FACTORIES = {
+    "morse": {
+        "variants": _pair_variants(
+            lambda mode: Morse(
+                d0=0.8,
+                alpha=2.5,
+                r0=1.1,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs={**PAIRS, (0, 1): {"cutoff": 2.1, "d0": 1.3}},
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "mie": {
+        "variants": _pair_variants(
+            lambda mode: Mie(
+                epsilon=[1.0, 0.6],
+                sigma=[1.0, 1.15],
+                n=[14.0, 12.0],
+                m=6.5,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs=PAIRS,
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "buckingham": {
+        "variants": _pair_variants(
+            lambda mode: Buckingham(
+                a=2000.0,
+                rho=0.15,
+                c=1.0,
+                cutoff=2.4,
+                cutoff_mode=mode,
+                pairs={**PAIRS, (1, 1): {"cutoff": 2.45, "c": 1.5}},
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "yukawa": {
+        "variants": _pair_variants(
+            lambda mode: Yukawa(a=[2.0, 1.0], kappa=1.5, cutoff=2.4, cutoff_mode=mode, pairs=PAIRS)
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "soft": {
+        "variants": _pair_variants(
+            lambda mode: Soft(
+                a=[1.0, 3.0], cutoff=1.3, cutoff_mode=mode, pairs={(0, 1): {"cutoff": 1.1}}
+            )
+        ),  # fmt: skip
+        "kinks": _lj_kinks,
+    },
+    "table": {
+        "variants": {
+            "spline-none": lambda: Table(
+                contract_table_file(),
+                "DENSE",
+                "spline",
+                cutoff=2.4,
+                pairs={(0, 1): {"keyword": "SQUARED", "cutoff": 2.1}},
+            ),
+            "spline-shift": lambda: Table(
+                contract_table_file(), "SQUARED", "spline", cutoff=2.45, cutoff_mode="shift"
+            ),
+        },  # fmt: skip
+        "kinks": _lj_kinks,
+    },
     "lj": {
         "variants": {mode: (lambda mode=mode: _lj(mode)) for mode in ("none", "shift", "smooth")},
         "kinks": _lj_kinks,
@@ -584,6 +694,114 @@ def test_multi_type_system_matches_an_independent_reference(mode, random_gas):
     result = lj.energy_forces(state, nl)
     assert result.energy == pytest.approx(energy, rel=1e-12)
     np.testing.assert_allclose(result.forces, forces, rtol=1e-10, atol=1e-10 * np.abs(forces).max())
+
+
+def _cell_matrix(state):
+    """Rows a, b, c: the cell vectors (LAMMPS's convention: a = (lx, 0, 0), b = (xy, ly, 0),
+    c = (xz, yz, lz))."""
+    (lx, ly, lz), (xy, xz, yz) = state.box, state.tilt
+    return np.array([[lx, 0.0, 0.0], [xy, ly, 0.0], [xz, yz, lz]])
+
+
+def _numpy_lj(state, table, mode):
+    """LJ written out in numpy, independent of the engine: every pair (i < j) at each of
+    its periodic images (-1, 0, 1 cells along each periodic axis; positions wrapped
+    first), the cutoff treatment of ``mode`` (the shift, or S(s) u(s) with
+    S = (rc2 - s)^2 (rc2 + 2 s - 3 ro2) / (rc2 - ro2)^3 between ro2 and rc2).
+    ``table[ti][tj]`` = (epsilon, sigma, cutoff, r_on). Returns energy, forces,
+    virial (3, 3), per-atom energies and per-atom virials (xx, yy, zz, yz, xz, xy), and
+    the (3N, 3N) Hessian."""
+    h = _cell_matrix(state)
+    fractional = np.linalg.solve(h.T, state.positions.T).T
+    fractional -= np.floor(fractional) * state.pbc
+    x = fractional @ h
+    n = state.n_atoms
+    energies, forces = np.zeros(n), np.zeros((n, 3))
+    virials, hessian = np.zeros((n, 6)), np.zeros((3 * n, 3 * n))
+    ranges = [(-1, 0, 1) if periodic else (0,) for periodic in state.pbc]
+    shifts = np.array([[a, b, c] for a in ranges[0] for b in ranges[1] for c in ranges[2]]) @ h
+    i, j = np.triu_indices(n, 1)
+    d = (x[i] - x[j])[:, None, :] + shifts[None, :, :]  # (pairs, images, 3)
+    i = np.repeat(i, len(shifts))
+    j = np.repeat(j, len(shifts))
+    d = d.reshape(-1, 3)
+    s = np.einsum("ij,ij->i", d, d)
+    eps, sigma, rc, ro = np.asarray(table)[state.types[i], state.types[j]].T
+    keep = s < rc**2
+    i, j, d, s, eps, sigma, rc2, ro2 = (v[keep] for v in (i, j, d, s, eps, sigma, rc**2, ro**2))
+    c6, c12 = 4.0 * eps * sigma**6, 4.0 * eps * sigma**12
+    # u(s) and its derivatives in s = r^2.
+    g = c12 / s**6 - c6 / s**3
+    g1 = -6.0 * c12 / s**7 + 3.0 * c6 / s**4
+    g2 = 42.0 * c12 / s**8 - 12.0 * c6 / s**5
+    if mode == "shift":
+        g = g - (c12 / rc2**6 - c6 / rc2**3)
+    elif mode == "smooth":
+        den = (rc2 - ro2) ** 3
+        on = s > ro2
+        switch = np.where(on, (rc2 - s) ** 2 * (rc2 + 2.0 * s - 3.0 * ro2) / den, 1.0)
+        d1 = np.where(on, 6.0 * (rc2 - s) * (ro2 - s) / den, 0.0)
+        d2 = np.where(on, 6.0 * (2.0 * s - ro2 - rc2) / den, 0.0)
+        g, g1, g2 = switch * g, d1 * g + switch * g1, d2 * g + 2.0 * d1 * g1 + switch * g2
+    pair_forces = -2.0 * g1[:, None] * d  # on i; -grad_i u = -u'(s) 2 d
+    np.add.at(forces, i, pair_forces)
+    np.add.at(forces, j, -pair_forces)
+    np.add.at(energies, i, 0.5 * g)
+    np.add.at(energies, j, 0.5 * g)
+    w = np.einsum("pa,pb->pab", pair_forces, d)
+    voigt = w[:, [0, 1, 2, 2, 2, 1], [0, 1, 2, 1, 0, 0]]
+    np.add.at(virials, i, 0.5 * voigt)
+    np.add.at(virials, j, 0.5 * voigt)
+    blocks = 2.0 * g1[:, None, None] * np.eye(3) + 4.0 * g2[:, None, None] * np.einsum(
+        "pa,pb->pab", d, d
+    )
+    for a in range(3):
+        for b in range(3):
+            np.add.at(hessian, (3 * i + a, 3 * i + b), blocks[:, a, b])
+            np.add.at(hessian, (3 * j + a, 3 * j + b), blocks[:, a, b])
+            np.add.at(hessian, (3 * i + a, 3 * j + b), -blocks[:, a, b])
+            np.add.at(hessian, (3 * j + a, 3 * i + b), -blocks[:, a, b])
+    return g.sum(), forces, w.sum(axis=0), energies, virials, hessian
+
+
+@pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
+@pytest.mark.parametrize("mode", ["none", "shift", "smooth"])
+def test_lj_equals_lj_written_out_in_numpy(mode, cell, fcc_lattice):
+    """LJ on the pair frame against LJ written out in numpy (every image of every pair):
+    three types mixed by Lorentz-Berthelot, an explicit unlike pair with its own cutoff
+    and r_on, another like pair with its own cutoff; the energy, forces, virial (the
+    threaded slot-frame kernel), the per-atom energies and virials (atom-order kernel)
+    and the Hessian to 1e-12 of the largest value, in every cutoff mode and cell shape."""
+    state = fcc_lattice(cells=5, perturbation=0.07, n_types=3)
+    if cell == "tilted":
+        state.tilt = np.array([0.2, -0.15, 0.1]) * state.box[[0, 0, 1]]
+    elif cell == "slab":
+        state.pbc = np.array([True, True, False])
+    epsilon, sigma = [1.0, 0.4, 2.0], [1.0, 1.3, 0.9]
+    lj = LennardJones(epsilon=epsilon, sigma=sigma, cutoff=2.6, cutoff_mode=mode, r_on=2.0,
+                      pairs={(0, 2): {"epsilon": 0.1, "cutoff": 2.2, "r_on": 1.7},
+                             (1, 1): {"cutoff": 2.8}})  # fmt: skip
+    table = [[(np.sqrt(epsilon[a] * epsilon[b]), 0.5 * (sigma[a] + sigma[b]), 2.6, 2.0)
+              for b in range(3)] for a in range(3)]  # fmt: skip
+    table[0][2] = table[2][0] = (0.1, table[0][2][1], 2.2, 1.7)
+    table[1][1] = (*table[1][1][:2], 2.8, 2.0)
+    energy, forces, virial, energies, virials, hessian = _numpy_lj(state, table, mode)
+    nl = NeighborList(lj.cutoff, 0.3)
+    nl.update(state)
+    assert nl.frame is not None  # the slot-frame kernel, not the atom-order one
+
+    def close(ours, theirs):
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-12 * np.abs(theirs).max())
+
+    fast = lj.energy_forces(state, nl, virial=True)
+    per_atom = lj.energy_forces(state, nl, per_atom=True)
+    for result in (fast, per_atom):
+        assert result.energy == pytest.approx(energy, rel=1e-12)
+        close(result.forces, forces)
+        close(result.virial, virial)
+    close(per_atom.energies, energies)
+    close(per_atom.virials, virials)
+    close(lj.hessian(state, nl).toarray(), hessian)
 
 
 def test_lj_rejects_more_types_than_it_has_parameters(random_gas):

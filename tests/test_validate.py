@@ -103,3 +103,14 @@ def test_cli_bad_arguments_exit_2(capsys, arguments, message):
     assert main(["validate", "ase", *arguments]) == 2
     err = capsys.readouterr().err
     assert err.startswith("md: error:") and message in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("potential", ["morse", "buckingham"])
+def test_cli_validates_other_pair_styles(capsys, potential):
+    """ASE's VelocityVerlet with MDCalculator follows ours step for step with the new pair
+    styles too (ASE's operation order replayed bitwise, equal energy behaviour)."""
+    args = ["validate", "ase", "--atoms", "108", "--steps", "30", "--ladder", "4"]
+    assert main([*args, "--ladder-time", "40", "--potential", potential]) == 0
+    out = capsys.readouterr().out
+    assert f"argon-like atoms ({potential}:" in out
+    assert "ASE order replayed bitwise  yes" in out and "PASSED" in out

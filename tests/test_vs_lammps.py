@@ -65,7 +65,17 @@ from md.forcefield import ForceField
 from md.polymers import chain_angles
 from md.thermo import pressure_tensor
 from md.trajectory import H5MDWriter
-from potentials import CosineAngles, HarmonicAngles, LennardJones
+from potentials import (
+    Buckingham,
+    CosineAngles,
+    HarmonicAngles,
+    LennardJones,
+    Mie,
+    Morse,
+    Soft,
+    Table,
+    Yukawa,
+)
 
 #: Our pressure-tensor indices of LAMMPS's (xx, yy, zz, xy, xz, yz).
 LAMMPS_TENSOR = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
@@ -339,6 +349,146 @@ def test_lammps_reads_the_angles_of_our_data_files(tmp_path):
     ours = potential.energy_forces(state)
     assert ours.energy == pytest.approx(theirs["energy"], rel=1e-12)
     _assert_close(ours.forces, theirs["forces"], 1e-10)
+
+
+def _lammps_run(state: md.State, pair_lines, atom_style="atomic") -> dict:
+    """The cell, masses and atoms of ``state`` with LAMMPS's ``pair_lines``, after ``run 0``
+    (``_run_zero``'s snapshot)."""
+    lmp = _start_lammps()  # skips without LAMMPS
+    name = pair_lines[0].split()[1]
+    if not lmp.has_style("pair", name):
+        lmp.close()
+        pytest.skip(f"this LAMMPS lacks pair style {name}")
+    (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()  # repr: every digit
+    lmp.commands_list([
+        "units lj", f"atom_style {atom_style}", "boundary p p p", "atom_modify map array",
+        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+        "create_box 3 cell", *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
+        *pair_lines, "neighbor 0.3 bin",
+    ])  # fmt: skip
+    n = state.n_atoms
+    created = lmp.create_atoms(n, list(range(1, n + 1)), (state.types + 1).tolist(),
+                               state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
+                               state.velocities.ravel().tolist())  # fmt: skip
+    assert created == n
+    return _run_zero(lmp, n)
+
+
+# ------------------------------------------------------------------ other pair styles
+STYLE_CUTOFF = 2.5
+#: style -> (our potential for a cutoff mode, LAMMPS's pair lines for shift yes/no). Type
+#: pair (0, 1) is explicit in each, with a cutoff of its own; the rest are mixed where the
+#: style mixes (each code by its own rule) or take the values given for all pairs.
+PAIR_STYLES = {
+    "morse": (
+        lambda mode: Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
+                           pairs={(0, 1): {"d0": 0.7, "alpha": 2.5, "r0": 1.2, "cutoff": 2.2}}),
+        [f"pair_style morse {STYLE_CUTOFF}", "pair_coeff * * 1.0 3.0 1.1",
+         "pair_coeff 1 2 0.7 2.5 1.2 2.2"],
+    ),
+    "mie": (
+        lambda mode: Mie(epsilon=EPSILON, sigma=SIGMA, n=[12.0, 14.0, 13.0], m=[6.0, 7.0, 6.5],
+                         cutoff=STYLE_CUTOFF, cutoff_mode=mode,
+                         pairs={(0, 1): {"epsilon": 0.8, "sigma": 1.2, "n": 15.0, "m": 5.5,
+                                         "cutoff": 2.2}}),
+        [f"pair_style mie/cut {STYLE_CUTOFF}", "pair_modify mix arithmetic",
+         "pair_coeff 1 1 1.0 1.0 12.0 6.0", "pair_coeff 2 2 0.6 1.15 14.0 7.0",
+         "pair_coeff 3 3 1.3 0.9 13.0 6.5", "pair_coeff 1 2 0.8 1.2 15.0 5.5 2.2"],
+    ),
+    "buckingham": (
+        lambda mode: Buckingham(a=2000.0, rho=0.15, c=1.0, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
+                                pairs={(0, 1): {"a": 1500.0, "rho": 0.16, "c": 1.4,
+                                                "cutoff": 2.2}}),
+        [f"pair_style buck {STYLE_CUTOFF}", "pair_coeff * * 2000.0 0.15 1.0",
+         "pair_coeff 1 2 1500.0 0.16 1.4 2.2"],
+    ),
+    "yukawa": (
+        lambda mode: Yukawa(a=[1.0, 2.0, 0.5], kappa=1.2, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
+                            pairs={(0, 1): {"a": 3.0, "cutoff": 2.2}}),
+        [f"pair_style yukawa 1.2 {STYLE_CUTOFF}", "pair_modify mix geometric",
+         "pair_coeff 1 1 1.0", "pair_coeff 2 2 2.0", "pair_coeff 3 3 0.5",
+         "pair_coeff 1 2 3.0 2.2"],
+    ),
+    "soft": (
+        lambda mode: Soft(a=[1.0, 2.0, 3.0], cutoff=1.2, cutoff_mode=mode,
+                          pairs={(0, 1): {"a": 5.0, "cutoff": 1.1}}),
+        ["pair_style soft 1.2", "pair_modify mix geometric", "pair_coeff 1 1 1.0",
+         "pair_coeff 2 2 2.0", "pair_coeff 3 3 3.0", "pair_coeff 1 2 5.0 1.1"],
+    ),
+}  # fmt: skip
+
+
+def _check_against(ours_fast, ours_per_atom, theirs, state) -> None:
+    assert ours_fast.energy == pytest.approx(theirs["energy"], rel=1e-10)
+    _assert_close(ours_fast.forces, theirs["forces"], 1e-10)
+    _assert_close((ours_fast.virial / state.volume)[LAMMPS_TENSOR], theirs["virial"], 1e-10)
+    tensor = pressure_tensor(state.velocities, state.masses, ours_fast.virial, state.volume)
+    _assert_close(tensor[LAMMPS_TENSOR], theirs["pressure"], 1e-10)
+    assert ours_per_atom.energy == pytest.approx(theirs["energy"], rel=1e-10)
+    _assert_close(ours_per_atom.forces, theirs["forces"], 1e-10)
+    _assert_close(ours_per_atom.energies, theirs["energies"], 1e-10)
+    _assert_close(ours_per_atom.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-10)
+
+
+@pytest.mark.parametrize("shift", [False, True], ids=["plain", "shifted"])
+@pytest.mark.parametrize("style", list(PAIR_STYLES))
+def test_tilted_pair_style_equals_lammps(style, shift):
+    """Energy, forces, W/V, the full P tensor (threaded cell-list kernel) and per-atom
+    energies and virials (atom-order kernel) of each pair style on the three-type tilted
+    system, with one explicit unlike pair, plain and shifted, to 1e-10 of LAMMPS's."""
+    state = _tilted_mixture()
+    build, lines = PAIR_STYLES[style]
+    potential = build("shift" if shift else "none")
+    lines = [*lines[:1], f"pair_modify shift {'yes' if shift else 'no'}", *lines[1:]]
+    forcefield = ForceField([potential], skin=0.3)
+    fast = forcefield.compute(state, virial=True)
+    per_atom = forcefield.compute(state, per_atom=True)
+    _check_against(fast, per_atom, _lammps_run(state, lines), state)
+
+
+def _write_table(path: Path) -> None:
+    """A LAMMPS table file with three sections: R, RSQ (with FPRIME) and the file's own r."""
+    rows = ["# tabulated Morse-like and soft-core pairs", ""]
+    for keyword, spacing, n in (("WELL", "R 0.6 2.5", 800), ("CORE", "RSQ 0.6 2.2", 800),
+                                ("OWN", "", 500)):  # fmt: skip
+        if spacing.startswith("RSQ"):
+            r = np.sqrt(0.36 + (2.2**2 - 0.36) * np.arange(n) / (n - 1))
+        else:
+            r = np.linspace(0.6, 2.5, n) if spacing else np.geomspace(0.6, 2.5, n)
+        depth = {"WELL": 1.0, "CORE": 0.4, "OWN": 0.7}[keyword]
+        e = depth * (np.exp(-5.0 * (r - 1.1)) - 2.0 * np.exp(-2.5 * (r - 1.1)))
+        f = depth * 5.0 * (np.exp(-5.0 * (r - 1.1)) - np.exp(-2.5 * (r - 1.1)))
+        head = f"N {n} {spacing}" + (" FPRIME -40.0 0.05" if keyword == "CORE" else "")
+        rows += [keyword, head.replace("  ", " ").strip(), ""]
+        rows += [f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}" for k in range(n)]
+        rows.append("")
+    path.write_text("\n".join(rows))
+
+
+@pytest.mark.parametrize("points", [800, 1200])
+@pytest.mark.parametrize("interpolation", ["linear", "spline"])
+def test_tilted_table_equals_lammps(interpolation, points, tmp_path):
+    """pair_style table on the same file (R, RSQ with FPRIME, and the file's own r; one
+    explicit unlike pair with its own section and cutoff): the same interpolation, so the
+    same numbers to 1e-10. With 800 points and linear interpolation, the RSQ section
+    ending at its pair's cutoff is used as read (LAMMPS's exact match); otherwise every
+    section is splined onto the table's points first, in both codes."""
+    path = tmp_path / "pairs.table"
+    _write_table(path)
+    state = _tilted_mixture()
+    ours = Table(path, "WELL", interpolation, points=points, cutoff=2.4,
+                 pairs={(0, 1): {"keyword": "CORE", "cutoff": 2.2},
+                        (2, 2): {"keyword": "OWN"}})  # fmt: skip
+    lines = [
+        f"pair_style table {interpolation} {points}",
+        f"pair_coeff * * {path} WELL 2.4",
+        f"pair_coeff 1 2 {path} CORE 2.2",
+        f"pair_coeff 3 3 {path} OWN 2.4",
+    ]
+    forcefield = ForceField([ours], skin=0.3)
+    fast = forcefield.compute(state, virial=True)
+    per_atom = forcefield.compute(state, per_atom=True)
+    _check_against(fast, per_atom, _lammps_run(state, lines), state)
 
 
 # ------------------------------------------------------------------ constant pressure

@@ -6,7 +6,7 @@ import sys
 
 from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, fail
 from md.errors import SimulationError
-from md.validate import format_report, validate_ase
+from md.validate import ARGON_STYLES, format_report, validate_ase
 
 
 def add_parser(subparsers) -> None:
@@ -38,7 +38,13 @@ def add_parser(subparsers) -> None:
     )
     ase.add_argument("--seed", type=int, default=2024, help="random seed (default 2024)")
     ase.add_argument(
-        "--cutoff-mode", choices=("shift", "smooth"), default="shift", help="LJ cutoff treatment"
+        "--cutoff-mode", choices=("shift", "smooth"), default="shift", help="cutoff treatment"
+    )
+    ase.add_argument(
+        "--potential",
+        choices=tuple(ARGON_STYLES),
+        default="lj",
+        help="pair style, with argon-like parameters (default lj)",
     )
     ase.add_argument(
         "--ladder", default="1,2,5,10", help="time steps of the drift table in fs ('' for none)"
@@ -63,6 +69,7 @@ def main(args) -> int:
             temperature=args.temperature,
             seed=args.seed,
             cutoff_mode=args.cutoff_mode,
+            potential=args.potential,
             ladder_dts=ladder,
             ladder_span_fs=args.ladder_time,
         )

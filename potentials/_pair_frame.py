@@ -1,0 +1,964 @@
+"""The pair-kernel frame: everything a pair potential needs except its pair term.
+
+A pair potential supplies a :class:`PairTerm`: its energy u and force over
+distance -u'(r)/r as a plain numba-compatible function of r^2 and its
+parameters (and, optionally, u's first two derivatives with respect to
+s = r^2, for Hessians). :class:`PairPotential` does the rest: type-pair
+parameter tables (per-type values mixed, explicit pairs), the cutoff modes
+(``none``, ``shift``, ``smooth`` with ``r_on``), the threaded slot-frame
+kernels over a cell-built list and the atom-order kernels (minimum image,
+per-atom energies and virials), the virial, orthorhombic and triclinic cells,
+open axes, and the curvature passes that implicit integrators use.
+
+The kernels live in ``potentials/_pair_kernels.py``, a template executed once
+per term as a module of its own (:func:`kernels_for`) with the term's
+functions inlined into its vectorised loops; numba caches each term's
+kernels apart, keyed by a hash of the term's source.
+"""
+
+from __future__ import annotations
+
+import ast
+import atexit
+import functools
+import hashlib
+import importlib.util
+import inspect
+import itertools
+import logging
+import math
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import CodeType, FunctionType, ModuleType
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from numba.core import config
+
+from md._checks import positive_scalar
+from md._files import atomic_path
+from md._kernel_cache import cache_directory, kernel_cache
+from md.box import minimum_image, periodic_lengths, periodic_tilt
+from md.errors import PairCollapseError
+from md.schema import Key, check_names, key_names
+from md.state import State
+from potentials._bonded import symmetric
+from potentials.base import ForceResult
+from potentials.pair_hessian import PairHessian
+
+CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
+#: Rows of the parameter table the frame owns; the term's parameters follow from TERM
+#: (the same numbers as in ``_pair_kernels``).
+RC2, RO2, SHIFT, INV_DEN, TERM = range(5)
+#: Mixing rules for per-type values: how a type pair's value follows from two types'.
+MIXING_FUNCTIONS = {
+    "geometric": lambda a, b: float(np.sqrt(a * b)),
+    "arithmetic": lambda a, b: 0.5 * float(a + b),
+}
+_TEMPLATE = Path(__file__).with_name("_pair_kernels.py")
+#: The files compiled into every term's kernels: the template, the modules whose kernels it
+#: inlines, and pair_math (functions terms call). Part of each term's fingerprint.
+_FRAME_SOURCES = (
+    _TEMPLATE,
+    Path(__file__).with_name("pair_math.py"),
+    *(Path(importlib.util.find_spec(name).origin)
+      for name in ("potentials._kernels", "md.box", "md._simd")),
+)  # fmt: skip
+#: The template's entry points (what this module calls) and the arguments of theirs that
+#: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
+_ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
+            "frame_curvatures", "frame_curvatures_threaded")  # fmt: skip
+_FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
+logger = logging.getLogger(__name__)
+_RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
+
+
+@dataclass(eq=False)
+class PairTerm:
+    """A pair term: plain functions of r^2 and the parameters, for the frame to inline.
+
+    Parameters
+    ----------
+    energy : callable
+        ``energy(r2, *params) -> (u, f_over_r)``: the pair energy u(r) and
+        -u'(r) / r at squared distance ``r2``, neither truncated nor shifted
+        (the frame applies the cutoff). numba-compatible Python: arithmetic,
+        ``math``/``numpy`` functions, no branches where a select will do
+        (``x if c else y``), so that the loop vectorises.
+    curvature : callable, optional
+        ``curvature(r2, *params) -> (u, du_ds, d2u_ds2)``: u and its first two
+        derivatives with respect to s = r^2 (for a u written in r:
+        du/ds = u'(r) / (2 r), d2u/ds2 = (u''(r) - u'(r)/r) / (4 r^2)). Needed
+        for Hessians (implicit integrators' Newton steps); without it they
+        are refused.
+    name : str, optional
+        A name for messages and the kernel cache (default: the function's).
+    uses_data : bool
+        The functions take the potential's data array as their second
+        argument, ``energy(r2, data, *params)`` (tabulated potentials).
+
+    Attributes
+    ----------
+    parameters : tuple of str
+        The parameter names, from ``energy``'s signature.
+    """
+
+    energy: Callable
+    curvature: Callable | None = None
+    name: str = ""
+    uses_data: bool = False
+    parameters: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        names = list(inspect.signature(self.energy).parameters)
+        skip = 2 if self.uses_data else 1
+        if len(names) <= skip - 1:
+            raise TypeError(f"pair term {self.energy!r} must take r2 as its first argument")
+        self.parameters = tuple(names[skip:])
+        self.name = self.name or self.energy.__name__
+        if self.curvature is not None:
+            theirs = tuple(list(inspect.signature(self.curvature).parameters)[skip:])
+            if theirs != self.parameters:
+                raise TypeError(
+                    f"pair term {self.name}: curvature takes {theirs}, energy {self.parameters}"
+                )
+
+    def with_curvature(self, curvature: Callable) -> Callable:
+        """Attach ``curvature`` (a decorator: ``@term.with_curvature``); returns it."""
+        self.curvature = curvature
+        self.__post_init__()
+        return curvature
+
+    def energy_at(self, r2: float, params, data=None) -> tuple[float, float]:
+        """(u, f/r) evaluated in Python (tables' shifts, tests)."""
+        extra = (np.empty(0) if data is None else data,) if self.uses_data else ()
+        try:
+            u, fr = self.energy(np.float64(r2), *extra, *(np.float64(p) for p in params))
+        except (OverflowError, ZeroDivisionError):
+            return math.inf, math.inf
+        return float(u), float(fr)
+
+
+def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool = False):
+    """Decorator: turn ``energy(r2, *params) -> (u, f_over_r)`` into a :class:`PairTerm`.
+
+    Examples
+    --------
+    >>> import math
+    >>> @pair_term
+    ... def gaussian_core(r2, epsilon, sigma):
+    ...     u = epsilon * math.exp(-r2 / (sigma * sigma))
+    ...     return u, 2.0 * u / (sigma * sigma)
+    >>> gaussian_core.parameters
+    ('epsilon', 'sigma')
+    >>> potential = PairPotential(gaussian_core, epsilon=1.0, sigma=1.0, cutoff=3.0)
+    """
+
+    def wrap(function: Callable) -> PairTerm:
+        return PairTerm(function, name=name, uses_data=uses_data)
+
+    return wrap if energy is None else wrap(energy)
+
+
+# ------------------------------------------------------------------ kernels per term
+_LOADED: dict[str, ModuleType] = {}
+
+
+def kernels_for(term: PairTerm) -> ModuleType:
+    """The frame's kernels with ``term`` inlined: ``_pair_kernels`` run as a module of its own.
+
+    Loaded once per process and term. numba names a kernel's cache files after its
+    source file and function, and keys them by signature and bytecode, which are the
+    same for every term; so each term runs its own copy of the template, a file named
+    after the term and a hash of everything its compiled kernels depend on
+    (:func:`_fingerprint`), in ``pair_terms/`` of the per-user kernel cache folder.
+    An unchanged term then loads its compiled kernels from numba's cache in every
+    later process; an edited one gets a new copy and compiles afresh.
+    """
+    key = _fingerprint(term)
+    module = _LOADED.get(key)
+    if module is not None:
+        return module
+    stem = f"{_identifier(term.name)}_{key[:20]}"
+    name = f"potentials._pair_kernels_{stem}"
+    spec = importlib.util.spec_from_file_location(name, _template_copy(stem))
+    module = importlib.util.module_from_spec(spec)
+    module.__dict__.update(_adapters(term))
+    sys.modules[name] = module  # numba's parallel lowering looks kernels' modules up by name
+    try:
+        with kernel_cache():
+            spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    _LOADED[key] = module
+    return module
+
+
+def _template_copy(stem: str) -> Path:
+    """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder.
+
+    Written whole under a temporary name and hard-linked into place, so a reader
+    sees the complete file or none, and of two processes writing the same copy at
+    once the second finds the first's and leaves it as it is (its modification
+    time, which numba's cache index records, never changes). If the folder cannot
+    be written, the copy goes to a temporary folder for this process only.
+    """
+    folders = [Path(config.CACHE_DIR or cache_directory()) / "pair_terms", None]
+    for folder in folders:
+        folder = folder or _scratch_folder()
+        path = folder / f"{stem}.py"
+        if path.exists():
+            return path
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path, exclusive=True) as partial:
+                partial.write_bytes(_TEMPLATE.read_bytes() + _variant_source().encode())
+        except FileExistsError:  # another process wrote it first: the same bytes
+            return path
+        except OSError as error:
+            logger.warning("cannot write %s (%s); using a temporary folder", path, error)
+            continue
+        return path
+    raise OSError(f"no folder to write the pair kernels to ({folders[0]} is not writable)")
+
+
+@functools.cache
+def _variant_source() -> str:
+    """One small kernel per entry point and combination of its flags (``_FLAGS``),
+    appended to each term's copy of the template: it calls the entry point with the
+    flags as constants, which the entry point takes as literal arguments.
+
+    numba then compiles each variant when it is first called, with one copy of the
+    pair loop specialised to its flags (a few seconds), rather than all twelve at once;
+    and a call from Python finds its compiled variant by the usual type match. (An entry
+    point that asks for literal arguments, called from Python, retypes its arguments on
+    every call: 13 times slower than the loop it runs on a small system.)
+    """
+    tree = ast.parse(_TEMPLATE.read_text())
+    arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
+                 if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES}  # fmt: skip
+    lines = ["", "", "# Variants, appended to this copy by potentials._pair_frame._variant_source."]
+    for entry in _ENTRIES:
+        names = arguments[entry]
+        flags = [name for name in names if name in _FLAGS]
+        for values in itertools.product(*(_FLAGS[name] for name in flags)):
+            fixed = dict(zip(flags, values, strict=True))
+            passed = ", ".join(repr(fixed[name]) if name in fixed else name for name in names)
+            lines += ["", "", '@njit(cache=True, error_model="numpy")',
+                      f"def {_variant_name(entry, fixed)}({', '.join(names)}):",
+                      f"    return {entry}({passed})"]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def _variant_name(entry: str, flags: Mapping[str, object]) -> str:
+    return entry + "__" + "_".join(f"{name}{int(value)}" for name, value in flags.items())
+
+
+def _variant(kernels: ModuleType, entry: str, **flags):
+    """The compiled variant of ``entry`` for these flags (given in the entry's order)."""
+    return getattr(kernels, _variant_name(entry, flags))
+
+
+@functools.cache
+def _scratch_folder() -> Path:
+    """A temporary folder for this process's template copies, removed when it exits."""
+    folder = tempfile.mkdtemp(prefix="leapmd-pair-terms-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return Path(folder)
+
+
+def _adapters(term: PairTerm) -> dict:
+    """The names the template expects: the term's functions taking one tuple of parameters,
+    and the tuple read from a table column."""
+    n = len(term.parameters)
+    p = "".join(f"p[{i}], " for i in range(n))
+    data = "data, " if term.uses_data else ""
+    column = "".join(f"table[{TERM + i}, k], " for i in range(n))
+    source = (
+        f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
+        f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
+        f"def _column(table, k):\n    return ({column})\n"
+    )
+    options = {"inline": "always", "error_model": "numpy"}
+    namespace = {
+        "energy": njit(**options)(term.energy),
+        "curvature": None if term.curvature is None else njit(**options)(term.curvature),
+    }
+    exec(compile(source, f"<pair term {term.name}>", "exec"), namespace)  # noqa: S102
+    adapters = {name: njit(**options)(namespace[name]) for name in ("_pair_energy", "_column")}
+    adapters["_pair_curvature"] = njit(**options)(namespace["_pair_curvature"])
+    adapters["N_TERM"] = n
+    return adapters
+
+
+def _fingerprint(term: PairTerm) -> str:
+    """A hash of everything the term's compiled kernels depend on: the frame's own sources
+    (``_FRAME_SOURCES``) and the term's functions with all they reach through their
+    globals, defaults and closures (helpers they call, wherever defined, and constants,
+    which numba compiles in). A helper reached as an attribute (``module.helper``) is not
+    followed."""
+    digest = hashlib.sha256()
+    for path in _FRAME_SOURCES:
+        digest.update(path.read_bytes())
+    digest.update(_variant_source().encode())
+    digest.update(repr((term.name, term.uses_data, term.parameters)).encode())
+    seen: set = set()
+    for function in (term.energy, term.curvature):
+        _hash_value(digest, function, seen)
+    return digest.hexdigest()
+
+
+def _hash_value(digest, value, seen: set) -> None:
+    """Add ``value`` to ``digest``: a function (or numba dispatcher) by its code and what it
+    reaches, plain values and arrays by their contents; other objects (modules, classes)
+    are named in the code that uses them."""
+    value = getattr(value, "py_func", value)  # a numba dispatcher: its Python function
+    if isinstance(value, FunctionType):
+        if value in seen:
+            return
+        seen.add(value)
+        _hash_code(digest, value.__code__)
+        for inner in (
+            *(value.__defaults__ or ()),
+            *(c.cell_contents for c in value.__closure__ or ()),
+        ):
+            _hash_value(digest, inner, seen)
+        for name in _names(value.__code__):
+            if name in value.__globals__:
+                digest.update(name.encode())
+                _hash_value(digest, value.__globals__[name], seen)
+    elif isinstance(value, tuple | list):
+        for item in value:
+            _hash_value(digest, item, seen)
+    elif isinstance(value, np.ndarray):
+        digest.update(repr((value.dtype.str, value.shape)).encode())
+        digest.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, int | float | complex | str | bytes | np.generic) or value is None:
+        digest.update(repr(value).encode())
+
+
+def _hash_code(digest, code: CodeType) -> None:
+    digest.update(code.co_code)
+    digest.update(repr(code.co_names).encode())
+    for constant in code.co_consts:
+        if isinstance(constant, CodeType):
+            _hash_code(digest, constant)
+        elif isinstance(constant, frozenset):  # ``x in {...}``: sorted, as the order varies
+            digest.update(repr(sorted(map(repr, constant))).encode())
+        else:
+            digest.update(repr(constant).encode())
+
+
+def _names(code: CodeType) -> list[str]:
+    """The global (and attribute) names a code object and those nested in it use."""
+    nested = (c for c in code.co_consts if isinstance(c, CodeType))
+    return [*code.co_names, *(name for inner in nested for name in _names(inner))]
+
+
+def _identifier(name: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in name) or "term"
+
+
+# ------------------------------------------------------------------ the potential
+class PairPotential:
+    r"""A pair potential on the pair-kernel frame, from a :class:`PairTerm` and its values.
+
+    Parameters
+    ----------
+    term : PairTerm
+        The pair term (see :func:`pair_term`).
+    cutoff : float
+        Pair cutoff [length] for every pair not overridden in ``pairs``.
+    cutoff_mode : {"none", "shift", "smooth"}
+        ``"none"``: truncated, energy and force jump at the cutoff.
+        ``"shift"``: energy shifted by u(cutoff) so it is continuous there
+        (LAMMPS's ``pair_modify shift yes``); the force still jumps.
+        ``"smooth"``: u(r) is multiplied by the switching polynomial
+        S(s) = (rc^2 - s)^2 (rc^2 + 2 s - 3 ro^2) / (rc^2 - ro^2)^3 in
+        s = r^2 between ``r_on`` and the cutoff (1 below, 0 above), so energy
+        and force are continuous (CHARMM's switch, ASE's LennardJones
+        ``smooth=True``).
+    r_on : float, optional
+        Onset of switching for ``"smooth"`` [length]; defaults to 0.66 times
+        each pair's cutoff.
+    pairs : mapping, optional
+        Values for chosen type pairs, overriding the others:
+        ``{(ti, tj): {"cutoff": ..., "r_on": ..., name: value}}`` (any subset).
+    mixing : str, optional
+        Rule for unlike pairs of per-type values (the styles that mix say which).
+    data : ndarray, optional
+        The array a term with ``uses_data`` reads (tables).
+    **values
+        The term's parameters, one number each (the same for every pair), or,
+        where the style mixes, one per type.
+
+    Examples
+    --------
+    >>> @pair_term
+    ... def harmonic_wall(r2, k, r0):
+    ...     r = r2**0.5
+    ...     return 0.5 * k * (r - r0) ** 2, -k * (r - r0) / r
+    >>> wall = PairPotential(harmonic_wall, k=10.0, r0=1.0, cutoff=1.0, cutoff_mode="none")
+    >>> round(wall.pair_energy(0.5), 12)
+    1.25
+    """
+
+    #: Config ``type`` of a built-in style (None for a potential built from a user's term).
+    style: str | None = None
+    #: Mixing rules: rule name -> {parameter: "geometric" | "arithmetic"}; the parameters
+    #: named there may be given per type. Empty: every parameter is one number or per pair.
+    MIXING: Mapping[str, Mapping[str, str]] = {}
+    #: Parameter checks: name -> "positive" | "nonnegative" (others: any finite number).
+    LIMITS: Mapping[str, str] = {}
+    #: The parameters users give (keywords, config keys), where a style converts them into
+    #: its term's (LJ: epsilon, sigma -> c6, c12); None: the term's own.
+    PARAMETERS: tuple[str, ...] | None = None
+    #: The keys of a style's config table (:func:`pair_config_keys`; see :meth:`from_config`).
+    CONFIG_KEYS: tuple[Key, ...] = ()
+
+    def __init__(
+        self,
+        term: PairTerm,
+        cutoff: float,
+        cutoff_mode: str = "shift",
+        r_on: float | None = None,
+        pairs: Mapping[tuple[int, int], Mapping[str, float]] | None = None,
+        mixing: str | None = None,
+        data: np.ndarray | None = None,
+        **values,
+    ) -> None:
+        if not isinstance(term, PairTerm):
+            raise TypeError(f"expected a PairTerm (see potentials.pair_term), got {term!r}")
+        self.term = term
+        label = self.style or term.name
+        if cutoff_mode not in CUTOFF_MODES:
+            raise ValueError(
+                f"cutoff_mode must be one of {', '.join(CUTOFF_MODES)}, got {cutoff_mode!r}"
+            )
+        if (mixing is not None or self.MIXING) and mixing not in self.MIXING:
+            rules = ", ".join(self.MIXING) or "none (this style does not mix)"
+            raise ValueError(f"mixing must be one of {rules}, got {mixing!r}")
+        names = self.parameter_names()
+        clash = _RESERVED.intersection(names)
+        if clash:
+            raise TypeError(f"pair term {term.name}: parameter names {sorted(clash)} are taken")
+        unknown = set(values) - set(names)
+        missing = [n for n in names if n not in values]
+        if unknown:
+            raise ValueError(f"{label}: unknown parameter(s) {sorted(unknown)}")
+        if missing:
+            raise ValueError(f"{label}: missing parameter(s) {missing}")
+        self.mixing = mixing
+        per_type = set(self.MIXING.get(mixing, {})) if mixing else set()
+        self.values = {}
+        for name in names:
+            what = "a number or one number per type" if name in per_type else "a number"
+            try:
+                array = np.asarray(values[name], dtype=np.float64)
+            except (TypeError, ValueError):
+                array = np.empty(0)  # not numbers: refused below
+            if array.ndim > 1 or array.size == 0 or (array.ndim == 1 and name not in per_type):
+                raise ValueError(f"{name} must be {what}, got {values[name]!r}")
+            if not np.all(np.isfinite(array)):
+                raise ValueError(f"{name} must be finite, got {values[name]!r}")
+            self.values[name] = array
+        lengths = {a.size for a in self.values.values() if a.ndim == 1}
+        if len(lengths) > 1:
+            raise ValueError(
+                f"{', '.join(sorted(per_type))}: the values given per type must all have one "
+                f"value per type (got lists of {sorted(lengths)} values)"
+            )
+        self.n_types_fixed = lengths.pop() if lengths else None
+        self.default_cutoff = positive_scalar(cutoff, "cutoff")
+        self.cutoff_mode = cutoff_mode
+        self.r_on = None if r_on is None else positive_scalar(r_on, "r_on")
+        self.data = np.zeros(0) if data is None else np.ascontiguousarray(data, dtype=np.float64)
+        self.pairs = {}
+        allowed = set(names) | {"cutoff", "r_on"}
+        for key, entry in (pairs or {}).items():
+            ti, tj = (int(t) for t in key)
+            if ti < 0 or tj < 0:
+                raise ValueError(f"pair types must be non-negative, got {key}")
+            bad = set(entry) - allowed
+            if bad:
+                raise ValueError(f"unknown pair parameter(s) {sorted(bad)} for pair {key}")
+            self.pairs[(min(ti, tj), max(ti, tj))] = dict(entry)
+        # Validates every pair now, not at run time.
+        self.tables(self.n_types_fixed or 1 + max((max(k) for k in self.pairs), default=0))
+        self.cutoff = max(
+            [self.default_cutoff] + [p["cutoff"] for p in self.pairs.values() if "cutoff" in p]
+        )
+        self._kernels = None
+
+    @property
+    def per_type_parameters(self) -> bool:
+        """True with per-type values or explicit ``pairs`` (``TypedParameters``)."""
+        return self.n_types_fixed is not None or bool(self.pairs)
+
+    # ------------------------------------------------------------ per style
+    def parameter_names(self) -> tuple[str, ...]:
+        """The user-facing parameter names (``PARAMETERS``, else the term's)."""
+        return self.term.parameters if self.PARAMETERS is None else self.PARAMETERS
+
+    def coefficients(self, values: Mapping[str, float], ti: int, tj: int) -> tuple[float, ...]:
+        """The term's parameters for one type pair from its (checked) values."""
+        return tuple(np.float64(values[name]) for name in self.term.parameters)
+
+    def check_pair(self, values: Mapping[str, float], ti: int, tj: int) -> None:
+        """Raise ValueError if one pair's values are not allowed (beyond LIMITS)."""
+
+    def cutoff_energy(self, coefficients: tuple, rc2: float) -> float:
+        """u at the cutoff (the shift of ``"shift"``): the term evaluated there."""
+        return self.term.energy_at(rc2, coefficients, self.data)[0]
+
+    # ------------------------------------------------------------ tables
+    def pair_parameters(self, ti: int, tj: int) -> dict[str, float]:
+        """Return the parameter values, cutoff and r_on of the type pair (ti, tj)."""
+        params = {}
+        rules = self.MIXING.get(self.mixing, {}) if self.mixing else {}
+        for name, array in self.values.items():
+            if array.ndim == 0:
+                params[name] = float(array)
+                continue
+            n = len(array)
+            if ti >= n or tj >= n:
+                raise ValueError(
+                    f"{type(self).__name__} has parameters for {n} types, but type "
+                    f"{max(ti, tj)} occurs"
+                )
+            params[name] = MIXING_FUNCTIONS[rules[name]](array[ti], array[tj])
+        params.update(cutoff=self.default_cutoff, r_on=self.r_on)
+        params.update(self.pairs.get((min(ti, tj), max(ti, tj)), {}))
+        for name, rule in self.LIMITS.items():
+            params[name] = positive_scalar(params[name], name, allow_zero=rule == "nonnegative")
+        for name in self.values:
+            value = params[name]
+            if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value!r} for pair ({ti}, {tj})")
+            params[name] = float(value)
+        params["cutoff"] = positive_scalar(params["cutoff"], "cutoff")
+        if params["r_on"] is None:
+            params["r_on"] = 0.66 * params["cutoff"]
+        if self.cutoff_mode == "smooth" and not params["r_on"] < params["cutoff"]:
+            raise ValueError(
+                f"r_on ({params['r_on']:g}) must be smaller than the cutoff "
+                f"({params['cutoff']:g}) for pair ({ti}, {tj})"
+            )
+        self.check_pair(params, ti, tj)
+        return params
+
+    def tables(self, n_types: int) -> np.ndarray:
+        """The kernels' parameters: a (TERM + n, n_types * n_types) table, column
+        ti * n_types + tj.
+
+        Rows ``RC2`` and ``RO2`` (squared cutoff and switching start), ``SHIFT``
+        (u at the cutoff), ``INV_DEN`` (1 / (rc^2 - ro^2)^3, the switching
+        function's scale), then the term's n parameters.
+        """
+        n_term = len(self.term.parameters)
+        table = np.zeros((TERM + n_term, n_types * n_types))
+        for ti in range(n_types):
+            for tj in range(n_types):
+                p = self.pair_parameters(ti, tj)
+                k = ti * n_types + tj
+                with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+                    coefficients = self.coefficients(p, ti, tj)
+                    table[TERM:, k] = coefficients
+                    table[RC2, k] = np.float64(p["cutoff"]) ** 2
+                    table[RO2, k] = np.float64(p["r_on"]) ** 2
+                    table[SHIFT, k] = self.cutoff_energy(coefficients, table[RC2, k])
+                    if table[RC2, k] > table[RO2, k]:
+                        table[INV_DEN, k] = 1.0 / (table[RC2, k] - table[RO2, k]) ** 3
+                if not np.all(np.isfinite(table[:, k])):
+                    shown = ", ".join(f"{n} {p[n]:g}" for n in (*self.values, "cutoff"))
+                    raise ValueError(
+                        f"{shown} of type pair ({ti}, {tj}) are beyond double precision: the "
+                        "pair's coefficients and its energy at the cutoff must be finite"
+                    )
+        return table
+
+    def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:
+        """Return the pair energy u(r) with the cutoff treatment applied [energy]."""
+        positions = np.array([[0.0, 0.0, 0.0], [float(r), 0.0, 0.0]])
+        state = State(positions=positions, box=[1.0, 1.0, 1.0], pbc=False,
+                      types=np.array([ti, tj]), type_names=None)  # fmt: skip
+        return self.energy_forces(state, None).energy
+
+    # ------------------------------------------------------------ compute
+    def check(self, state) -> None:
+        if self.n_types_fixed is not None and state.n_types > self.n_types_fixed:
+            raise ValueError(
+                f"{type(self).__name__} has parameters for {self.n_types_fixed} types but the "
+                f"system has {state.n_types} ({', '.join(state.type_names)})"
+            )
+
+    def energy_forces(
+        self, state, neighbors, per_atom: bool = False, virial: bool = True
+    ) -> ForceResult:
+        """Return energy, forces, virial (and per-atom energies and virials) for ``state``.
+
+        ``neighbors`` is a NeighborList with a radius >= ``cutoff``, or None
+        for the O(N^2) all-pairs loop (small systems, tests). Over a list
+        built by cells, the threaded slot-frame kernel runs (no minimum
+        image, one chunk per thread); per-atom results and O(N^2) lists use
+        the serial kernel over atom indices. ``virial=False`` skips the
+        virial, leaving ``result.virial`` None.
+        """
+        kernels = self._loaded()
+        n = state.n_atoms
+        n_types = max(state.n_types, self.n_types_fixed or 1)
+        table = self._cached_tables(n_types)
+        mode = CUTOFF_MODES[self.cutoff_mode]
+        frame = None if neighbors is None or per_atom else neighbors.frame
+        if frame is not None:
+            self._check_radius(neighbors)
+            result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode,
+                                               virial)  # fmt: skip
+        else:
+            geometry = self._geometry(state, neighbors)
+            forces = np.zeros((n, 3))
+            total_virial = np.zeros(6)
+            energies = np.zeros(n if per_atom else 0)
+            virials = np.zeros((n if per_atom else 0, 6))
+            energy = _variant(kernels, "atom_forces", mode=mode)(
+                geometry, n_types, table, mode, self.data, forces, total_virial, energies, virials
+            )
+            result = ForceResult(
+                energy=energy,
+                forces=forces,
+                virial=symmetric(total_virial) if virial or per_atom else None,
+                energies=energies if per_atom else None,
+                virials=virials if per_atom else None,
+            )
+        if not math.isfinite(result.energy):
+            self._explain_non_finite(state, neighbors)
+        return result
+
+    def _frame_energy_forces(self, kernels, state, frame, n_types, table, mode, virial: bool):
+        n = state.n_atoms
+        chunks = frame.n_chunks
+        scratch = getattr(self, "_scratch", None)
+        if scratch is None or scratch[0].shape[0] != n or scratch[2].shape[0] != chunks:
+            scratch = (
+                np.empty((n, 3)),
+                np.empty(n, dtype=state.types.dtype),
+                np.empty((chunks, n, 3)),
+                np.empty(chunks),
+                np.empty((chunks, 6)),
+            )
+            self._scratch = scratch
+        slot_positions, slot_types, buffers, energies, virials = scratch
+        forces = np.empty((n, 3))
+        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+        entry = "frame_forces_threaded" if chunks > 1 else "frame_forces"
+        kernel = _variant(kernels, entry, mode=int(mode), with_virial=bool(virial),
+                          single=n_types == 1)  # fmt: skip
+        kernel(
+            state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
+            bool(virial), n_types == 1, slot_positions, slot_types, buffers, energies, virials,
+            forces,
+        )  # fmt: skip
+        return ForceResult(
+            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+            forces=forces,
+            virial=symmetric(virials.sum(axis=0)) if virial else None,
+        )
+
+    def _explain_non_finite(self, state, neighbors) -> None:
+        """Called when the energy is not finite; a style whose term has a forbidden inner
+        region (Buckingham) raises an error naming the pair there. By default the
+        caller's NonFiniteError (overlapping atoms) stands."""
+
+    def hessian(self, state, neighbors) -> sp.csr_matrix:
+        r"""Return the (3N, 3N) Hessian of the energy, :math:`\partial^2 U / \partial x \partial x`.
+
+        Exact for every cutoff mode: inside the cutoff the second derivative
+        of u(r) (``"none"``, ``"shift"``: the shift is a constant) or of
+        S(s) u(s) (``"smooth"``); pairs beyond the cutoff contribute nothing
+        (the jump of the truncated modes at the cutoff is not a derivative).
+        Each pair adds a 3x3 block K to the (i, i) and (j, j) blocks and -K
+        to (i, j) and (j, i), so every block row sums to zero (translation
+        invariance) and the matrix is symmetric. Needs the term's curvature.
+
+        Parameters
+        ----------
+        state : State
+            The configuration; left untouched.
+        neighbors : NeighborList or None
+            A list with a radius >= ``cutoff``, or None for all pairs.
+
+        Returns
+        -------
+        scipy.sparse.csr_matrix, shape (3N, 3N)
+            Row and column 3 i + a is coordinate a of atom i [energy/length^2];
+            canonical (sorted column indices, no duplicates), with every
+            diagonal block stored.
+        """
+        return self.hessian_operator(state, neighbors).tocsr()
+
+    def hessian_operator(self, state, neighbors) -> PairHessian:
+        """Return the Hessian as pair blocks, to apply without assembling it.
+
+        The same matrix as :meth:`hessian` (arguments alike), as a
+        :class:`potentials.pair_hessian.PairHessian`: one 3x3 block per pair
+        inside the cutoff. Its ``matvec`` costs about a force evaluation,
+        which is what a Newton-Krylov solver needs.
+        """
+        if self.term.curvature is None:
+            raise TypeError(
+                f"pair term {self.term.name} has no curvature, so its Hessian (which implicit "
+                "integrators' Newton steps need) is not available: give the term one "
+                "(PairTerm(..., curvature=...) or @term.with_curvature), or use an explicit "
+                "integrator"
+            )
+        kernels = self._loaded()
+        n = state.n_atoms
+        n_types = max(state.n_types, self.n_types_fixed or 1)
+        table = self._cached_tables(n_types)
+        mode = CUTOFF_MODES[self.cutoff_mode]
+        frame = None if neighbors is None else neighbors.frame
+        if frame is not None:
+            self._check_radius(neighbors)
+            return self._frame_hessian(kernels, state, frame, n_types, table, mode)
+        geometry = self._geometry(state, neighbors)
+        listed = len(geometry[-1])  # room for every listed pair; those inside are kept
+        pair_i = np.empty(listed, dtype=np.int64)
+        pair_j = np.empty(listed, dtype=np.int64)
+        transverse = np.empty(listed)
+        radial = np.empty(listed)
+        unit = np.empty((listed, 3))
+        n_pairs = _variant(kernels, "atom_curvatures", mode=mode)(
+            geometry, n_types, table, mode, self.data, pair_i, pair_j, transverse, radial, unit
+        )
+        return PairHessian(
+            n, pair_i[:n_pairs], pair_j[:n_pairs], transverse[:n_pairs], radial[:n_pairs],
+            unit[:n_pairs],
+        )  # fmt: skip
+
+    def _frame_hessian(self, kernels, state, frame, n_types, table, mode) -> PairHessian:
+        """``hessian_operator`` over a slot-frame list, in one threaded pass: each chunk
+        writes the blocks of its pairs inside the cutoff from where its listed pairs
+        start, so no pass counts them first; the operator takes each chunk's run as one
+        of its pieces and skips the gaps the pairs beyond the cutoff leave. The Jacobi
+        diagonal is summed when the solver asks for it."""
+        n = state.n_atoms
+        chunks = frame.n_chunks
+        slot_positions = np.empty((n, 3))
+        slot_types = np.empty(n, dtype=state.types.dtype)
+        room = int(frame.starts[-1])  # every listed pair
+        # The blocks go into buffers kept from the last call when nothing uses them any
+        # more (the last operator is gone): fresh arrays of tens of MB cost page faults
+        # that take as long as writing them.
+        held = getattr(self, "_hessian_buffers", None)
+        if held is None or held[0].shape[0] < room or not _unshared(held):
+            size = int(room * 1.05) + 1024
+            held = (
+                np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int32), np.empty(size),
+                np.empty(size), np.empty((size, 3)),
+            )  # fmt: skip
+            self._hessian_buffers = held
+        written = np.zeros(chunks, dtype=np.int64)
+        # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
+        entry = "frame_curvatures_threaded" if chunks > 1 else "frame_curvatures"
+        write = _variant(kernels, entry, mode=int(mode), single=n_types == 1)
+        write(state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
+              n_types == 1, slot_positions, slot_types, held, written)  # fmt: skip
+        first = frame.starts[frame.bounds[:-1]]
+        return PairHessian(n, *held, pieces=np.column_stack((first, first + written)))
+
+    def describe(self) -> dict:
+        out = {"type": self.style or self.term.name}
+        out.update({name: array.tolist() for name, array in self.values.items()})
+        out.update(cutoff=self.default_cutoff, cutoff_mode=self.cutoff_mode)
+        if self.mixing is not None:
+            out["mixing"] = self.mixing
+        if self.r_on is not None:
+            out["r_on"] = self.r_on
+        if self.pairs:
+            out["pairs"] = {f"{i}-{j}": v for (i, j), v in self.pairs.items()}
+        return out
+
+    # ------------------------------------------------------------ config
+    @classmethod
+    def config_values(cls, params: dict, type_names: Sequence[str]) -> dict:
+        """Turn a config table (type names resolved) into constructor keywords.
+
+        Keys: the style's ``PARAMETERS`` (a number, or for those the style mixes
+        a table ``{name = value}`` covering every type), ``cutoff``,
+        ``cutoff_mode``, ``r_on``, ``mixing`` (styles that mix), and
+        ``pairs``, a list of tables ``{types = [name, name], key = value, ...}``.
+        """
+        names = cls.PARAMETERS or ()
+        params = dict(params)
+        check_names(params, cls.CONFIG_KEYS)
+        for key in names:
+            value = params.get(key)
+            if isinstance(value, Mapping):
+                missing = [name for name in type_names if name not in value]
+                extra = [name for name in value if name not in type_names]
+                if missing or extra:
+                    raise ValueError(
+                        f"{key}: give one value per type {list(type_names)}"
+                        + (f"; missing {missing}" if missing else "")
+                        + (f"; unknown types {extra}" if extra else "")
+                    )
+                params[key] = [value[name] for name in type_names]
+        keys = {*names, "cutoff", "r_on"}
+        pairs = config_pairs(params.pop("pairs", None), type_names, keys, numbers=keys)
+        for key in (*names, "cutoff", "r_on"):
+            value = params.get(key)
+            for v in value if isinstance(value, list) else [value]:
+                if v is not None:
+                    _number(key, v)
+        return {**params, "pairs": pairs}
+
+    @classmethod
+    def from_config(cls, params: Mapping, type_names: Sequence[str]):
+        """Build from a config table; per-type values are keyed by type name."""
+        return cls(**cls.config_values(dict(params), type_names))
+
+    # ------------------------------------------------------------ helpers
+    def _loaded(self):
+        if self._kernels is None:
+            self._kernels = kernels_for(self.term)
+        return self._kernels
+
+    def _geometry(self, state, neighbors):
+        """(positions, types, lengths, inverse, tilt, starts, neighbors) over atom indices."""
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        if neighbors is None:
+            starts, partners = _all_pairs(state.n_atoms)
+        else:
+            self._check_radius(neighbors)
+            starts, partners = neighbors.starts, neighbors.neighbors
+        return (state.positions, state.types, lengths, inverse, tilt, starts, partners)
+
+    def _check_radius(self, neighbors) -> None:
+        if neighbors.list_radius < self.cutoff:
+            raise ValueError(
+                f"neighbour list radius {neighbors.list_radius:g} is below the "
+                f"{self.style or self.term.name} cutoff {self.cutoff:g}"
+            )
+
+    def _cached_tables(self, n_types: int):
+        cache = getattr(self, "_table_cache", None)
+        if cache is None or cache[0] != n_types:
+            self._table_cache = (n_types, self.tables(n_types))
+        return self._table_cache[1]
+
+
+def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarray, reason: str):
+    """The PairCollapseError for the closest pair inside its type pair's ``limit2`` (a squared
+    distance per table column), or None if no pair is; ``reason`` says what lies inside."""
+    n_types = max(state.n_types, potential.n_types_fixed or 1)
+    starts, partners = potential._geometry(state, neighbors)[5:]
+    i = np.repeat(np.arange(state.n_atoms), np.diff(starts))
+    j = np.asarray(partners, dtype=np.int64)
+    d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt)
+    r2 = np.einsum("ij,ij->i", d, d)
+    columns = state.types[i] * n_types + state.types[j]
+    inside = np.flatnonzero(r2 < limit2[columns])
+    if not len(inside):
+        return None
+    worst = inside[np.argmin(r2[inside] / limit2[columns[inside]])]
+    a, b = int(i[worst]), int(j[worst])
+    names = state.type_names
+    return PairCollapseError(
+        potential.style or potential.term.name, a, b,
+        (names[state.types[a]], names[state.types[b]]), float(np.sqrt(r2[worst])),
+        float(np.sqrt(limit2[columns[worst]])), state.step, reason,
+    )  # fmt: skip
+
+
+def pair_config_keys(*parameters: Key, cutoff: float | None = 2.5, cutoff_mode: str = "shift",
+                     mixing: tuple[str, ...] = (), mixing_doc: str = "",
+                     pair_keys: tuple[str, ...] | None = None,
+                     cutoff_doc: str = "") -> tuple[Key, ...]:  # fmt: skip
+    """A pair style's ``CONFIG_KEYS``: its own ``parameters``, then the keys the frame takes
+    with the style's defaults: ``cutoff``, ``cutoff_mode``, ``r_on``, ``mixing`` (styles
+    that mix: the rules, the first the default) and ``pairs``, whose tables take
+    ``pair_keys`` (default: the parameters), ``cutoff`` and ``r_on``; ``cutoff_doc`` says
+    what a ``cutoff`` default of None means."""
+    mixed = (Key("mixing", "string", mixing[0], choices=mixing, doc=mixing_doc),) if mixing else ()
+    names = ", ".join(f"`{name}`" for name in pair_keys or key_names(parameters))
+    return (
+        *parameters,
+        Key("cutoff", "number", cutoff, unit="length",
+            doc="The pair cutoff, for every pair not given its own in `pairs`.",
+            default_doc=cutoff_doc),
+        Key("cutoff_mode", "string", cutoff_mode, choices=tuple(CUTOFF_MODES),
+            doc='`"none"`: truncated; `"shift"`: energy continuous at the cutoff (LAMMPS\'s '
+                '`pair_modify shift yes`); `"smooth"`: energy and force switched off between '
+                "`r_on` and the cutoff."),
+        Key("r_on", "number", None, unit="length",
+            doc='Where switching starts with `cutoff_mode = "smooth"`.',
+            default_doc="0.66 `cutoff` per pair"),
+        *mixed,
+        Key("pairs", "list of tables", None,
+            doc="Single type pairs given their own values: `[[potentials.pairs]]` tables with "
+                f"`types = [a, b]` and any of {names}, `cutoff`, `r_on`."),
+    )  # fmt: skip
+
+
+def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: set[str]) -> dict:
+    """``[[potentials.pairs]]`` tables as ``{(ti, tj): {key: value}}``: each names two of the
+    types (``types = [a, b]``) and any of ``keys``, those in ``numbers`` numbers; errors say
+    which entry is wrong."""
+    index = {name: i for i, name in enumerate(type_names)}
+    pairs = {}
+    for number, entry in enumerate(entries or []):
+        if not isinstance(entry, Mapping) or "types" not in entry:
+            raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
+        entry = dict(entry)
+        types = entry.pop("types")
+        if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
+            raise ValueError(
+                f"pairs[{number}].types must name two of the types {list(type_names)}, "
+                f"got {types!r}"
+            )
+        bad = set(entry) - keys
+        if bad:
+            raise ValueError(f"pairs[{number}]: unknown key(s) {', '.join(sorted(bad))}")
+        for key in numbers.intersection(entry):
+            _number(f"pairs[{number}].{key}", entry[key])
+        pairs[(index[types[0]], index[types[1]])] = entry
+    return pairs
+
+
+def _number(key: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{key}: expected a number, got {value!r}")
+
+
+def _slots(frame) -> tuple:
+    return (
+        frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
+        frame.codes, frame.bounds, frame.tilt,
+    )  # fmt: skip
+
+
+def _unshared(buffers) -> bool:
+    """Whether nothing but ``buffers`` refers to its arrays (no view, no operator built
+    on them), by CPython's reference counts: each at most that of an array held only by
+    a tuple and counted the same way (interpreters differ in what the count includes)."""
+    probe = (np.empty(0),)
+    baseline = max(sys.getrefcount(array) for array in probe)
+    return all(sys.getrefcount(buffer) <= baseline for buffer in buffers)
+
+
+def _all_pairs(n: int):
+    """CSR half list of every pair, for neighbour-free evaluation."""
+    counts = np.arange(n - 1, -1, -1, dtype=np.int64)
+    starts = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    neighbors = np.concatenate([np.arange(i + 1, n) for i in range(n)] or [np.zeros(0)])
+    return starts, neighbors.astype(np.int32)
