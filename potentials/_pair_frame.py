@@ -436,6 +436,7 @@ class PairPotential:
         if not isinstance(term, PairTerm):
             raise TypeError(f"expected a PairTerm (see potentials.pair_term), got {term!r}")
         self.term = term
+        self._run_variants: set = set()  # the slot-frame kernels this object has run
         label = self.style or term.name
         if cutoff_mode not in CUTOFF_MODES:
             raise ValueError(
@@ -659,13 +660,19 @@ class PairPotential:
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         entry = "frame_forces_threaded" if chunks > 1 else "frame_forces"
-        kernel = _variant(kernels, entry, mode=int(mode), with_virial=bool(virial),
-                          single=n_types == 1)  # fmt: skip
-        kernel(
-            state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
-            bool(virial), n_types == 1, slot_positions, slot_types, buffers, energies, virials,
-            forces,
-        )  # fmt: skip
+        arguments = (state.positions, state.types, _slots(frame), n_types, table, int(mode),
+                     self.data, bool(virial), n_types == 1, slot_positions, slot_types, buffers,
+                     energies, virials, forces)  # fmt: skip
+        # A run asks for forces with the virial (thermo steps) and without (the rest): the
+        # first call of a process runs both variants, so both compile (or load) before the
+        # loop starts rather than one in the middle of its timing.
+        variants = [bool(virial)] if (entry, mode, n_types == 1) in self._run_variants else [
+            not virial, bool(virial)]  # fmt: skip
+        self._run_variants.add((entry, mode, n_types == 1))
+        for with_virial in variants:
+            kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
+                              single=n_types == 1)  # fmt: skip
+            kernel(*arguments)
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
             forces=forces,
