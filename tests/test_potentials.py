@@ -241,8 +241,12 @@ def _contract_cases():
         if spec is None:
             yield pytest.param((name, None), id=f"{name}-NO-FACTORY")
             continue
+        # The pair styles beyond LJ, Morse and the table compile a term each on a cold
+        # cache: their contracts run with -m slow.
+        slow = name in ("mie", "buckingham", "yukawa", "soft")
         for variant in spec["variants"]:
-            yield pytest.param((name, variant), id=f"{name}-{variant}")
+            yield pytest.param((name, variant), id=f"{name}-{variant}",
+                               marks=pytest.mark.slow if slow else ())  # fmt: skip
 
 
 CONTRACT_CASES = list(_contract_cases())

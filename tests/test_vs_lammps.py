@@ -431,7 +431,10 @@ def _check_against(ours_fast, ours_per_atom, theirs, state) -> None:
 
 
 @pytest.mark.parametrize("shift", [False, True], ids=["plain", "shifted"])
-@pytest.mark.parametrize("style", list(PAIR_STYLES))
+@pytest.mark.parametrize("style", [
+    pytest.param(name, marks=() if name in ("morse", "buckingham") else pytest.mark.slow)
+    for name in PAIR_STYLES
+])  # the rest compile a term each: -m slow
 def test_tilted_pair_style_equals_lammps(style, shift):
     """Energy, forces, W/V, the full P tensor (threaded cell-list kernel) and per-atom
     energies and virials (atom-order kernel) of each pair style on the three-type tilted
