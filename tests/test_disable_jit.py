@@ -293,6 +293,7 @@ print(json.dumps(results))
 """
 
 
+@pytest.mark.slow  # the frame's loops in plain Python: 25 s on a cold cache
 def test_pair_frame_under_disable_jit_matches_the_compiled_run(tmp_path):
     compiled = _engine(_FRAME_RUN.replace("pair.table", str(tmp_path / "a.table")),
                        NUMBA_DISABLE_JIT="0")  # fmt: skip
