@@ -663,9 +663,10 @@ class PairPotential:
         arguments = (state.positions, state.types, _slots(frame), n_types, table, int(mode),
                      self.data, bool(virial), n_types == 1, slot_positions, slot_types, buffers,
                      energies, virials, forces)  # fmt: skip
-        # A run asks for forces with the virial (thermo steps) and without (the rest): the
-        # first call of a process runs both variants, so both compile (or load) before the
-        # loop starts rather than one in the middle of its timing.
+        # A run asks for forces with the virial (thermo steps) and without (the rest): this
+        # object's first call for a kernel runs both variants (one force evaluation more,
+        # once), so both compile (or load) before a run's loop starts rather than one in
+        # the middle of its timing.
         variants = [bool(virial)] if (entry, mode, n_types == 1) in self._run_variants else [
             not virial, bool(virial)]  # fmt: skip
         self._run_variants.add((entry, mode, n_types == 1))
