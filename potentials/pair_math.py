@@ -5,14 +5,23 @@ a vector form. numba's ``math.exp`` is a call to the C library's scalar
 ``exp`` unless numba finds Intel's SVML (``icc_rt``), so a loop computing
 exp (Morse, Buckingham, Yukawa) stays scalar. :func:`exp` here is written in
 arithmetic that vectorises: Cody-Waite reduction x = k ln 2 + r with
-|r| <= ln 2 / 2, exp(r) by its Taylor polynomial to degree 13 (truncation
-below 1e-17 relative), and 2^k assembled from its bits.
+|r| <= ln 2 / 2 (k rounded by adding 1.5 * 2^52, whose low bits then give
+2^k), exp(r) = 1 + r + r^2 q(r) with q a near-minimax polynomial of degree 9
+(its error below 2e-17 relative), evaluated in Estrin's order: pairs of
+terms, then pairs of pairs, so its chain of dependent steps is 5 long where
+Horner's would be 10. The pair loops are limited by that chain (each pair
+waits for its sqrt, exp and division in turn, and the CPU holds only a few
+pairs in flight), not by the count of operations. Against the Horner
+evaluation of the degree-13 Taylor polynomial this replaced, per pair as a
+multiple of LJ's cost: Morse 1.75 -> 1.62, Buckingham 1.79 -> 1.62, Yukawa
+1.68 -> 1.53 (``benchmarks/pair_styles.py``, 1 thread, Zen 3, medians of
+three runs of each tree taken in turn).
 
 Error bound: at most 1 unit in the last place of numpy's ``exp`` over
-[-707, 709] (measured: ``tests/test_pair_styles.py`` checks 1 ulp on a
+[-707, 709.78] (measured: ``tests/test_pair_styles.py`` checks 1 ulp on a
 million points); below -708 the result is 0 (the true value is below 1e-307),
-above 709.78 it is infinite, NaN stays NaN. In Python (no compilation, or
-``NUMBA_DISABLE_JIT=1``) :func:`exp` is ``math.exp``.
+above ln(DBL_MAX) = 709.7827 it is infinite, NaN stays NaN. In Python (no
+compilation, or ``NUMBA_DISABLE_JIT=1``) :func:`exp` is ``math.exp``.
 """
 
 from __future__ import annotations
@@ -29,10 +38,26 @@ __all__ = ["exp"]
 _LOG2E = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01  # ln 2 to 32 bits: k * _LN2_HI is exact for |k| < 2^20
 _LN2_LO = 1.90821492927058770002e-10
+#: ln of the largest double: exp overflows above it.
+_LN_MAX = 709.782712893384
 #: 1.5 * 2^52: adding it rounds a float to an integer held in the low mantissa bits.
 _ROUND = 6755399441055744.0
 _ROUND_BITS = int(np.float64(_ROUND).view(np.int64))
-_TAYLOR = tuple(1.0 / math.factorial(k) for k in range(14))
+#: q(r) = (exp(r) - 1 - r) / r^2 on |r| <= ln 2 / 2 as c2 + c3 r + ... + c11 r^9: the
+#: Chebyshev fit of degree 9 (mpmath.chebyfit at 50 digits), near-minimax, its error in
+#: q at most 1.05e-16, so at most 1.8e-17 relative in exp(r) = 1 + r + r^2 q(r).
+_COEFFICIENTS = (
+    0.50000000000000010211,
+    0.16666666666666667452,
+    0.041666666666624161903,
+    0.0083333333333300644495,
+    0.0013888888917196719077,
+    0.00019841269863040545271,
+    0.000024801521322368693266,
+    2.7557268480310025526e-6,
+    2.7620075879983366586e-7,
+    2.5100375832561233664e-8,
+)
 
 
 def exp(x):
@@ -41,37 +66,38 @@ def exp(x):
 
 
 # Compiled as a function of its own whose only fast-math flag is "contract" (its rounding
-# tricks must not be reassociated away, but a multiply-add may fuse: the Horner steps and
-# the Cody-Waite reduction become FMAs, which only round less; Morse's pair loop went from
-# 2.06 to 1.75 times LJ's cost per pair), which LLVM then inlines into the vectorised pair
-# loops.
+# tricks must not be reassociated away, but a multiply-add may fuse: the polynomial's steps
+# and the Cody-Waite reduction become FMAs, which only round less; Morse's pair loop went
+# from 2.06 to 1.75 times LJ's cost per pair with the Horner form), which LLVM then inlines
+# into the vectorised pair loops.
 @overload(exp, jit_options={"fastmath": {"contract"}, "error_model": "numpy"})
 def _exp_compiled(x):
-    c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13 = _TAYLOR[2:]
+    c2, c3, c4, c5, c6, c7, c8, c9, c10, c11 = _COEFFICIENTS
     round_bits = np.int64(_ROUND_BITS)
 
     def implementation(x):
-        k = np.floor(x * _LOG2E + 0.5)  # the integer nearest x / ln 2
+        # k, the integer nearest x / ln 2, as x log2(e) + 1.5 * 2^52 rounds it (one fused
+        # multiply-add; the sum's low mantissa bits hold k, used again for 2^k below).
+        shifted = x * _LOG2E + _ROUND
+        k = shifted - _ROUND
         r = (x - k * _LN2_HI) - k * _LN2_LO
-        p = c13
-        p = p * r + c12
-        p = p * r + c11
-        p = p * r + c10
-        p = p * r + c9
-        p = p * r + c8
-        p = p * r + c7
-        p = p * r + c6
-        p = p * r + c5
-        p = p * r + c4
-        p = p * r + c3
-        p = p * r + c2
-        p = p * r + 1.0
-        p = p * r + 1.0
-        # 2^k from k's bits: k + 1.5 * 2^52 holds k in its low mantissa bits.
-        scale = bits_float((float_bits(k + _ROUND) - round_bits + np.int64(1023)) << np.int64(52))
-        value = p * scale
+        # exp(r) = 1 + r + r^2 q(r): q's terms in Estrin's order (pairs, then pairs of pairs),
+        # so that the chain of dependent steps is 5 long, not 13: the pair loops have many
+        # pairs in flight, and a long chain makes each wait.
+        r2 = r * r
+        r4 = r2 * r2
+        r8 = r4 * r4
+        a = c2 + c3 * r
+        b = c4 + c5 * r
+        c = c6 + c7 * r
+        d = c8 + c9 * r
+        e = c10 + c11 * r
+        q = ((a + b * r2) + (c + d * r2) * r4) + e * r8
+        # 2^(k - 1) from k's bits (k - 1, so that k = 1024, reached from x = 709.44 on,
+        # still has a finite power of two), times 2 exp(r) = 2 + 2 (r + r^2 q).
+        half_scale = bits_float((float_bits(shifted) - round_bits + np.int64(1022)) << np.int64(52))
+        value = (2.0 + 2.0 * (r + r2 * q)) * half_scale
         value = value if x > -708.0 else 0.0
-        return value if x < 709.78 else (math.inf if x == x else x)
+        return value if x < _LN_MAX else (math.inf if x == x else x)
 
     return implementation
-

@@ -477,8 +477,8 @@ def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(t
 # ---------------------------------------------------------------- vector exp
 def test_vector_exp_is_within_its_stated_error_bound():
     """potentials.pair_math.exp, compiled as the pair loops compile it (fast-math flags):
-    at most 1 ulp from numpy's exp on [-707, 709], 0 below -708, inf above 709.78, NaN
-    for NaN; ``math.exp`` itself in Python."""
+    at most 1 ulp from numpy's exp on [-707, 709.7827] (up to the largest double), 0 below
+    -708, inf above ln(DBL_MAX), NaN for NaN; ``math.exp`` itself in Python."""
     from numba import njit
 
     from potentials.pair_math import exp
@@ -490,6 +490,7 @@ def test_vector_exp_is_within_its_stated_error_bound():
 
     rng = np.random.default_rng(4)
     x = np.concatenate([np.linspace(-707.0, 709.0, 500_001), rng.uniform(-60.0, 5.0, 500_000),
+                        np.linspace(709.0, 709.7827, 10_001),  # 2^k with k = 1024 from 709.44
                         np.arange(-40, 41) * math.log(2.0)])  # fmt: skip
     out = np.empty_like(x)
     evaluate(x, out)
