@@ -7,11 +7,12 @@ belongs to that run alone. The job is a JSON object on the command line::
     python benchmarks/_compare_worker.py '{"engine": "ours", "cells": 20, "steps": 100}'
 
 Keys: ``engine`` (``ours``, ``lammps``, ``openmm``, ``asap3``, ``ase``,
-``startup`` or ``probe``), ``cells`` (fcc cells per edge), ``steps``,
-``threads``; for LAMMPS ``variant`` (``plain``, ``opt``, ``omp``) and
-``neigh`` (``check``, ``every20``); for ours ``h5md_every`` and ``h5md_dir``
-(attach an H5MD writer). The workload is that of ``lj_melt.py`` (LAMMPS's
-bench/in.lj). Every engine but LAMMPS starts from our own initial state
+``gromacs``, ``startup`` or ``probe``), ``cells`` (fcc cells per edge),
+``steps``, ``threads``; for LAMMPS ``variant`` (``plain``, ``opt``, ``omp``)
+and ``neigh`` (``check``, ``every20``); for GROMACS ``gmx`` (the binary),
+``rlist`` (sigma, or null for GROMACS's own buffer) and ``pin``; for ours
+``h5md_every`` and ``h5md_dir`` (attach an H5MD writer). The workload is that
+of ``lj_melt.py`` (LAMMPS's bench/in.lj). Every engine but LAMMPS starts from our own initial state
 (fcc positions, Gaussian velocities of the same seed), converted to its units:
 
 - ASE and asap3 (eV, Angstrom, amu): sigma = 1 Angstrom, epsilon = 1 eV and
@@ -22,6 +23,8 @@ bench/in.lj). Every engine but LAMMPS starts from our own initial state
   40 amu, so tau = 0.34 sqrt(40) ps = 2.1503 ps (1 kJ/mol = 1 amu nm^2 ps^-2),
   dt = 0.005 tau = 0.010752 ps, cutoff 2.5 sigma = 0.85 nm; lengths scale by
   sigma and velocities by sigma / tau.
+- GROMACS: the same units as OpenMM (``gromacs_lj_melt.py`` writes the files
+  and runs ``gmx grompp`` and ``gmx mdrun`` in a temporary folder).
 
 The result holds the loop time [s] (setup excluded: the first neighbour list
 and forces are computed before the clock starts), the number of atoms and
@@ -106,6 +109,18 @@ def _our_simulation(cells: int):
     return md.Simulation(state, [potential], VelocityVerlet(dt=DT), skin=SKIN)
 
 
+#: The environment variables that set how waiting OpenMP threads wait.
+WAIT_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME", "NUMBA_THREADING_LAYER")
+
+
+def _threading_layer(numba) -> str | None:
+    """numba's threading layer once a parallel kernel ran (None if none did)."""
+    try:
+        return numba.threading_layer()
+    except ValueError:
+        return None
+
+
 def run_ours(job: dict) -> dict:
     """Our engine: warm-up on a small system (numba), baseline, then the timed run."""
     import integrators  # noqa: F401
@@ -140,9 +155,13 @@ def run_ours(job: dict) -> dict:
         if writer is not None:
             writer.close()
             path.unlink(missing_ok=True)
+    import numba
+
     result.update(
         n_atoms=sim.state.n_atoms,
         threads=threads,
+        threading_layer=_threading_layer(numba),
+        wait_policy={k: os.environ[k] for k in WAIT_VARIABLES if k in os.environ},
         potential_energy=energy,
         baseline_kib=baseline,
         peak_kib=peak_kib(),
@@ -374,6 +393,20 @@ def run_ase(job: dict) -> dict:
     }
 
 
+# ------------------------------------------------------------------------ GROMACS
+
+
+def run_gromacs(job: dict) -> dict:
+    """GROMACS (gmx grompp + mdrun, gromacs_lj_melt.py), timed by md.log's wall time."""
+    from gromacs_lj_melt import run
+
+    import md  # noqa: F401  (the initial state comes from our builder)
+
+    state = initial_state(job["cells"])
+    return run(job["gmx"], state, job["steps"], int(job.get("threads", 1)),
+               rlist=job.get("rlist"), pin=job.get("pin", "off"))  # fmt: skip
+
+
 # ------------------------------------------------------------------ start-up, probe
 
 
@@ -417,6 +450,7 @@ RUNNERS = {
     "openmm": run_openmm,
     "asap3": run_asap3,
     "ase": run_ase,
+    "gromacs": run_gromacs,
     "startup": run_startup,
     "probe": run_probe,
 }

@@ -25,6 +25,13 @@ Peers (``pip install -e '.[bench]'``; a missing one is skipped with a note):
 - ``ase``: ASE's own ``ase.calculators.lj.LennardJones`` under
   ``ase.md.verlet.VelocityVerlet``, on the small box only (``--small``, 864
   atoms) and for few steps (``--ase-steps``): measured, not extrapolated.
+- ``gromacs``, ``gromacs-double``: ``gmx mdrun`` (mixed precision) and
+  ``gmx_d mdrun`` (double) on the same melt in argon-like units (sigma 0.34 nm,
+  epsilon 1 kJ/mol, 40 amu), truncated LJ, zero charges, NVE leap-frog,
+  ``-ntmpi 1 -ntomp N -nb cpu``, GROMACS's own Verlet buffer with nstlist 20
+  (``--gmx-rlist 2.8`` fixes the list radius instead); timed by md.log's wall
+  time (``gromacs_lj_melt.py``). The binaries: ``--gmx``/``--gmx-d``, else
+  ``$GMX``/``$GMX_D``, else ``gmx``/``gmx_d`` on the PATH.
 
 Every run is a fresh child process (``_compare_worker.py``), so its peak
 memory is its own; repeats are interleaved round-robin over the engines, so
@@ -54,11 +61,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from _machine import machine_line
+from gromacs_lj_melt import GMX_D_ENV, GMX_ENV, PIN_CHOICES, build_info, find_gmx
 from lj_melt import find_libmpi, print_breakdown
 
 WORKER = Path(__file__).with_name("_compare_worker.py")
 VECTOR_CHECK = Path(__file__).with_name("_vector_check.py")
-PEERS = ("lammps", "lammps-opt", "lammps-omp", "openmm", "asap3", "ase")
+PEERS = ("lammps", "lammps-opt", "lammps-omp", "openmm", "asap3", "ase", "gromacs",
+         "gromacs-double")  # fmt: skip
+#: GROMACS peers are binaries, not modules: peer name -> precision variant.
+GROMACS_PEERS = {"gromacs": "mixed", "gromacs-double": "double"}
 #: The modules each peer needs, and how to get them.
 PEER_MODULES = {
     "lammps": "lammps",
@@ -83,6 +94,7 @@ NEIGHBOR_TARGET = 0.15  # neighbour work (list checks and builds), fraction of t
 MEMORY_TARGET = 0.6  # [KB/atom] at about 1M atoms
 SCALING_TOLERANCE = 0.2  # rate within 20 % of the reference size's
 NOISY = 1.3  # max/min of a row's rates above which the row is starred
+STEADY_TARGET = 1.15  # max/min of our threaded rates over the repeats (issue 37)
 CHILD_TIMEOUT = 1800  # [s]
 LABELS = {
     ("ours", ""): "leapmd",
@@ -92,6 +104,8 @@ LABELS = {
     ("openmm", ""): "OpenMM CPU",
     ("asap3", ""): "asap3",
     ("ase", ""): "ASE LJ",
+    ("gromacs", "mixed"): "GROMACS",
+    ("gromacs", "double"): "GROMACS double",
 }
 
 
@@ -147,8 +161,11 @@ class Measured:
         return self.runs[0]["n_atoms"]
 
     @property
-    def kib_per_atom(self) -> float:
-        """Median peak memory above the baseline per atom [KiB]."""
+    def kib_per_atom(self) -> float | None:
+        """Median peak memory above the baseline per atom [KiB]; None where a run has no
+        baseline (GROMACS: only its whole process's peak is known)."""
+        if any("baseline_kib" not in run for run in self.runs):
+            return None
         return statistics.median(
             (run["peak_kib"] - run["baseline_kib"]) / run["n_atoms"] for run in self.runs
         )
@@ -183,6 +200,9 @@ class Runner:
         self.failed: dict[Job, str] = {}
         self.h5md_dir = h5md_dir
         self._libmpi = None
+        #: GROMACS: the binary of each variant found usable, and the run options.
+        self.gmx: dict[str, str] = {}
+        self.gmx_options: dict = {"rlist": None, "pin": "off"}
 
     def environment(self, job: Job) -> dict[str, str]:
         """The child's environment: OMP_NUM_THREADS = threads; libmpi for LAMMPS."""
@@ -212,7 +232,10 @@ class Runner:
         return json.loads(lines[-1])
 
     def run(self, job: Job) -> dict:
-        return self.child(job.payload(self.h5md_dir), self.environment(job))
+        payload = job.payload(self.h5md_dir)
+        if job.engine == "gromacs":
+            payload.update(gmx=self.gmx[job.variant], **self.gmx_options)
+        return self.child(payload, self.environment(job))
 
     def interleaved(self, jobs: Sequence[Job], repeats: int, title: str) -> list[Measured]:
         """Run every job ``repeats`` times, round-robin; reuse runs made earlier."""
@@ -297,9 +320,10 @@ def print_noise_note(measured: Sequence[Measured]) -> None:
 
 
 def memory_cell(measured: Measured) -> str:
-    if measured.n_atoms < MIN_MEMORY_ATOMS:
+    value = measured.kib_per_atom
+    if measured.n_atoms < MIN_MEMORY_ATOMS or value is None:
         return "-"
-    return f"{measured.kib_per_atom:.2f}"
+    return f"{value:.2f}"
 
 
 def find(measured: Sequence[Measured], **match) -> Measured | None:
@@ -345,6 +369,9 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
         jobs += [Job("openmm", t, cells, steps) for t in args.threads]
     if "asap3" in peers:
         jobs += [Job("asap3", t, cells, steps) for t in args.threads]
+    for name, variant in GROMACS_PEERS.items():
+        if name in peers:
+            jobs += [Job("gromacs", t, cells, steps, variant) for t in args.threads]
     if "ase" in peers and serial:
         small = cells_for(args.small)
         jobs.append(Job("ours", 1, small, scaled_steps(4 * small**3, args.atoms, steps)))
@@ -361,6 +388,12 @@ def ratio_to_ours(item: Measured, measured: Sequence[Measured]) -> float | None:
     return None if ours is None else ours.median / item.median
 
 
+def row_label(item: Measured) -> str:
+    """The job's label; GROMACS's with the SIMD level its binary was built for."""
+    simd = item.runs[0].get("simd") if item.job.engine == "gromacs" else None
+    return f"{item.job.label} ({simd})" if simd else item.job.label
+
+
 def print_comparison(measured: list[Measured], args) -> None:
     rows = []
     for item in measured:
@@ -368,7 +401,7 @@ def print_comparison(measured: list[Measured], args) -> None:
         rates = item.rates
         rows.append(
             [
-                item.job.label,
+                row_label(item),
                 str(item.job.threads),
                 str(item.n_atoms),
                 str(item.job.steps),
@@ -397,26 +430,95 @@ def print_comparison(measured: list[Measured], args) -> None:
     print_noise_note(measured)
     print_energy_check(measured)
     print_builds(measured, 4 * cells_for(args.atoms) ** 3)
+    print_gromacs(measured)
+    print_steadiness(measured)
+
+
+#: Relative agreement of the initial energy that says "same system"; an engine summing
+#: its energy in single precision (GROMACS mixed) gets ENERGY_RTOL_SINGLE.
+ENERGY_RTOL, ENERGY_RTOL_SINGLE = 1e-6, 1e-4
 
 
 def print_energy_check(measured: Sequence[Measured]) -> None:
     """Initial potential energy per atom of every engine against ours (same system)."""
-    by_atoms: dict[int, list[tuple[str, float]]] = {}
+    by_atoms: dict[int, list[tuple[str, float, float]]] = {}
     for item in measured:
-        energy = item.runs[0].get("potential_energy")
+        run = item.runs[0]
+        energy = run.get("potential_energy")
         if energy is not None:
-            by_atoms.setdefault(item.n_atoms, []).append((item.job.label, energy))
+            rtol = ENERGY_RTOL_SINGLE if run.get("precision") == "mixed" else ENERGY_RTOL
+            by_atoms.setdefault(item.n_atoms, []).append((item.job.label, energy, rtol))
     for n_atoms, values in sorted(by_atoms.items()):
-        reference = next((e for label, e in values if label == "leapmd"), None)
-        if reference is None or len({label for label, _ in values}) < 2:
+        reference = next((e for label, e, _ in values if label == "leapmd"), None)
+        if reference is None or len({label for label, _, _ in values}) < 2:
             continue
-        worst = max(abs(e - reference) / abs(reference) for _, e in values)
-        names = sorted({label for label, _ in values})
-        verdict = "same system" if worst < 1e-6 else "WARNING: the systems differ"
+        errors = [(abs(e - reference) / abs(reference), rtol) for _, e, rtol in values]
+        worst = max(error for error, _ in errors)
+        names = sorted({label for label, _, _ in values})
+        same = all(error < rtol for error, rtol in errors)
+        verdict = "same system" if same else "WARNING: the systems differ"
+        loose = sorted({label for label, _, rtol in values if rtol > ENERGY_RTOL})
+        if loose:
+            verdict += (
+                f" (to {ENERGY_RTOL:.0e}; {', '.join(loose)}, which sum in single precision, "
+                f"to {ENERGY_RTOL_SINGLE:.0e})"
+            )
         print(
             f"initial potential energy per atom at {n_atoms} atoms: {reference:.7f} "
             f"(ours); {', '.join(names)} agree to {worst:.1e} relative: {verdict}"
         )
+
+
+def print_gromacs(measured: Sequence[Measured]) -> None:
+    """Per GROMACS row: its build, SIMD level and kernel, the pair list mdrun chose, and
+    the cycle counters of the median run."""
+    for item in measured:
+        if item.job.engine != "gromacs":
+            continue
+        run = item.median_run()
+        best = f", this CPU's best per GROMACS: {run['simd_best']}" if run.get("simd_best") else ""
+        inner = ""
+        if run.get("inner_nstlist"):
+            inner = (
+                f", inner list pruned every {run['inner_nstlist']} steps to "
+                f"{run['inner_rlist_nm']:.3f} nm ({run['inner_rlist_sigma']:.3f} sigma)"
+            )
+        buffer = "fixed" if run.get("buffer") == "fixed" else "GROMACS's Verlet buffer"
+        counters = ", ".join(
+            f"{name} {c['count']}x {c['seconds']:.3f} s" for name, c in run["counters"].items()
+        )
+        peak = run.get("mdrun_peak_kib")
+        print(
+            f"{item.job.label}, {item.job.threads}t: GROMACS {run['version']} ({run['precision']}"
+            f", {run['binary']}), SIMD {run['simd']}{best}; {run['kernel']} kernels; "
+            f"{run['omp_threads']} OpenMP thread(s), pin {run['pin']}; list ({buffer}): "
+            f"nstlist {run['nstlist']}, rlist {run['rlist_nm']:.3f} nm "
+            f"({run['rlist_sigma']:.3f} sigma){inner}; pair work: "
+            f"{', '.join(run.get('pair_kernels') or ['?'])}; median run {run['loop_time']:.3f} s "
+            f"wall, {run['core_time']:.3f} s core; counters: {counters}"
+            + ("" if peak is None else f"; mdrun peak resident set {peak / 1024:.0f} MB")
+        )
+
+
+def print_steadiness(measured: Sequence[Measured]) -> None:
+    """Every threaded row's rate per repeat and max/min; ours against STEADY_TARGET."""
+    for item in measured:
+        if item.job.threads < 2:
+            continue
+        rates = item.rates
+        ratio = max(rates) / min(rates)
+        line = (
+            f"per repeat, {row_label(item)} {item.job.threads}t {short_count(item.n_atoms)}: "
+            f"{', '.join(fmt(rate) for rate in rates)}; max/min {ratio:.2f}"
+        )
+        if item.job.engine == "ours":
+            modify = [run["sections"]["Modify"] for run in item.runs if "sections" in run]
+            if modify:
+                line += f"; Modify {', '.join(f'{1e3 * m:.0f}' for m in modify)} ms"
+            verdict = "met" if ratio < STEADY_TARGET else "NOT met"
+            few = " (fewer than 5 repeats: not conclusive)" if len(rates) < 5 else ""
+            line += f"; target max/min < {STEADY_TARGET}: {verdict}{few}"
+        print(line)
 
 
 def print_builds(measured: Sequence[Measured], atoms: int) -> None:
@@ -808,11 +910,64 @@ def resolve_peers(text: str, parser) -> list[str]:
     return names
 
 
-def available_peers(wanted: Sequence[str], runner: Runner) -> tuple[set[str], dict]:
-    """The wanted peers that are installed and usable here, printing a note for the rest."""
+def gromacs_probe(binary: str) -> dict:
+    """``gmx --version``: version, precision and SIMD level; raise RuntimeError if it fails."""
+    try:
+        done = subprocess.run(
+            [binary, "--version"], capture_output=True, text=True, timeout=120,
+            env=dict(os.environ, GMX_MAXBACKUP="-1"),
+        )  # fmt: skip
+    except (OSError, subprocess.SubprocessError) as error:
+        raise RuntimeError(f"{binary} --version: {error}") from error
+    info = build_info(done.stdout + done.stderr)
+    if done.returncode != 0 or info["version"] is None:
+        raise RuntimeError(f"{binary} --version exit {done.returncode}, no GROMACS version")
+    return {**info, "binary": binary}
+
+
+def usable_gromacs(name: str, runner: Runner, explicit: str | None) -> dict | None:
+    """The probe of the GROMACS peer ``name`` if its binary is found and has the right
+    precision (its binary then goes into ``runner.gmx``); else None, with a note."""
+    variant = GROMACS_PEERS[name]
+    option = "--gmx" if variant == "mixed" else "--gmx-d"
+    binary = find_gmx(variant, explicit)
+    if binary is None:
+        print(
+            f"note: {name} skipped: no {'gmx' if variant == 'mixed' else 'gmx_d'} binary (pass "
+            f"{option} PATH or set ${GMX_ENV if variant == 'mixed' else GMX_D_ENV}; "
+            "'apt-get install gromacs' gives gmx and gmx_d; benchmarks/README.md says how to "
+            "build one for this CPU's SIMD)"
+        )
+        return None
+    try:
+        probe = gromacs_probe(binary)
+    except RuntimeError as error:
+        print(f"note: {name} skipped: {error}")
+        return None
+    if probe["precision"] != variant:
+        print(
+            f"note: {name} skipped: {binary} is GROMACS in {probe['precision']} precision, "
+            f"not {variant} (see {option})"
+        )
+        return None
+    runner.gmx[variant] = binary
+    return probe
+
+
+def available_peers(
+    wanted: Sequence[str], runner: Runner, gmx: dict[str, str | None] | None = None
+) -> tuple[set[str], dict]:
+    """The wanted peers that are installed and usable here, printing a note for the rest.
+    ``gmx``: the GROMACS binaries named on the command line, by peer name."""
     usable = set()
     info: dict = {}
     for name in wanted:
+        if name in GROMACS_PEERS:
+            probe = usable_gromacs(name, runner, (gmx or {}).get(name))
+            if probe is not None:
+                usable.add(name)
+                info[name] = probe
+            continue
         module = PEER_MODULES[name]
         if importlib.util.find_spec(module) is None:
             print(
@@ -863,6 +1018,29 @@ def build_parser() -> argparse.ArgumentParser:
         "--lammps-original",
         action="store_true",
         help="also LAMMPS with bench/in.lj's 'neigh_modify every 20 delay 0 check no'",
+    )
+    parser.add_argument(
+        "--gmx",
+        default=None,
+        help=f"GROMACS mixed-precision binary (default ${GMX_ENV}, else gmx on the PATH)",
+    )
+    parser.add_argument(
+        "--gmx-d",
+        default=None,
+        help=f"GROMACS double-precision binary (default ${GMX_D_ENV}, else gmx_d on the PATH)",
+    )
+    parser.add_argument(
+        "--gmx-rlist",
+        type=float,
+        default=None,
+        help="GROMACS: fixed list radius in sigma, e.g. 2.8 (default: "
+        "GROMACS's own Verlet buffer for nstlist 20)",
+    )
+    parser.add_argument(
+        "--gmx-pin",
+        choices=PIN_CHOICES,
+        default="off",
+        help="GROMACS's mdrun -pin (off, as ours and LAMMPS run unpinned)",
     )
     parser.add_argument("--no-scaling", action="store_true", help="skip the scaling table")
     parser.add_argument("--memory", action="store_true", help="peak memory at --memory-atoms")
@@ -916,6 +1094,10 @@ def check_args(args, parser) -> None:
     for name in ("repeats", "steps", "ase_steps", "h5md_steps", "h5md_every"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    if args.gmx_rlist is not None and not args.gmx_rlist >= 2.5:
+        parser.error(
+            f"--gmx-rlist: the list radius must reach the 2.5 sigma cutoff, got {args.gmx_rlist}"
+        )
     if args.json is not None and args.json.exists() and not args.overwrite:
         parser.error(f"--json: {args.json} exists; pass --overwrite to replace it")
     if args.all:
@@ -964,6 +1146,13 @@ def print_header(args, peers: set[str], info: dict) -> None:
                 versions.append(name)
     if "ase" in peers:
         versions.append(f"ase {importlib.metadata.version('ase')}")
+    for name in GROMACS_PEERS:
+        if name in peers:
+            probe = info[name]
+            versions.append(
+                f"{name} {probe['version']} ({probe['precision']}, SIMD {probe['simd']}, "
+                f"{probe['binary']})"
+            )
     print("peers: " + (", ".join(versions) if versions else "none"))
     notes = []
     if peers & {"lammps", "lammps-opt", "lammps-omp"}:
@@ -982,6 +1171,20 @@ def print_header(args, peers: set[str], info: dict) -> None:
             "ASE/asap3: sigma 1 A, epsilon 1 eV, mass 1 amu, so ASE's time unit is tau and "
             "dt = 0.005; asap3 keeps its own neighbour-list skin; ASE's list uses skin 0.3"
         )
+    if peers & set(GROMACS_PEERS):
+        buffer = (
+            f"fixed rlist {args.gmx_rlist} sigma"
+            if args.gmx_rlist is not None
+            else "GROMACS's own Verlet buffer (rlist it chose printed below)"
+        )
+        notes.append(
+            "GROMACS: sigma 0.34 nm, epsilon 1 kJ/mol, mass 40 amu, dt 0.005 tau = 0.010752 "
+            "ps; LJ cut at 0.85 nm, no modifier, no charges (Coulomb cut-off: GROMACS skips "
+            f"Coulomb for uncharged clusters), NVE leap-frog, nstlist 20, {buffer}; "
+            "-ntmpi 1 -ntomp N -nb cpu; time = md.log's wall time of its loop "
+            "(steps force evaluations and updates, step 0's pair search included); its "
+            "SIMD level beside its rows"
+        )
     for note in notes:
         print("note: " + note)
 
@@ -992,8 +1195,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     check_args(args, parser)
     wanted = resolve_peers(args.peers, parser)
     runner = Runner()
+    runner.gmx_options.update(rlist=args.gmx_rlist, pin=args.gmx_pin)
     started = time.perf_counter()
-    peers, info = available_peers(wanted, runner)
+    peers, info = available_peers(
+        wanted, runner, {"gromacs": args.gmx, "gromacs-double": args.gmx_d}
+    )
     print_header(args, peers, info)
     report: dict = {"argv": list(sys.argv[1:] if argv is None else argv), "peers": info}
 

@@ -84,9 +84,11 @@ def time_loop(sim, steps: int) -> dict:
     neighbor_list = sim.forcefield.neighbor_list
     before = sim.timing_summary()
     builds_before = neighbor_list.n_builds
+    threads_before = thread_accounting()
     start = time.perf_counter()
     sim.run(steps)
     loop_time = time.perf_counter() - start
+    threads_after = thread_accounting()
     after = sim.timing_summary()
     spent = {key: after[key] - before[key] for key in after}
     sections = {
@@ -101,7 +103,51 @@ def time_loop(sim, steps: int) -> dict:
         "sections": sections,
         "n_builds": neighbor_list.n_builds - builds_before,
         "n_pairs": int(neighbor_list.n_pairs),
+        "thread_use": thread_use(threads_before, threads_after),
     }
+
+
+def thread_accounting() -> dict[int, tuple[float, int, int]]:
+    """Per thread of this process (Linux /proc): CPU seconds (user + system) and the
+    voluntary and involuntary context switches so far; {} where /proc is missing."""
+    ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    accounts = {}
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return {}
+    for tid in tasks:
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as handle:
+                fields = handle.read().rsplit(")", 1)[1].split()
+            with open(f"/proc/self/task/{tid}/status") as handle:
+                status = dict(line.split(":", 1) for line in handle if ":" in line)
+        except OSError:
+            continue  # the thread ended
+        cpu = (int(fields[11]) + int(fields[12])) / ticks  # utime, stime
+        voluntary = int(status.get("voluntary_ctxt_switches", "0"))
+        involuntary = int(status.get("nonvoluntary_ctxt_switches", "0"))
+        accounts[int(tid)] = (cpu, voluntary, involuntary)
+    return accounts
+
+
+def thread_use(before: dict, after: dict) -> dict:
+    """What the process's threads did between two :func:`thread_accounting` snapshots:
+    CPU seconds of the main thread and of the others (numba's pool, BLAS), and their
+    voluntary and involuntary context switches. A waiting pool thread that spins shows
+    as CPU time near the wall time; one that sleeps, as voluntary switches."""
+    main = os.getpid()
+    use = {"main_cpu": 0.0, "other_cpu": 0.0, "main_voluntary": 0, "main_involuntary": 0,
+           "other_voluntary": 0, "other_involuntary": 0, "other_threads": 0}  # fmt: skip
+    for tid, (cpu, voluntary, involuntary) in after.items():
+        cpu0, voluntary0, involuntary0 = before.get(tid, (0.0, 0, 0))
+        who = "main" if tid == main else "other"
+        use[f"{who}_cpu"] += cpu - cpu0
+        use[f"{who}_voluntary"] += voluntary - voluntary0
+        use[f"{who}_involuntary"] += involuntary - involuntary0
+        if tid != main and cpu > cpu0:
+            use["other_threads"] += 1
+    return use
 
 
 def find_libmpi() -> Path | None:

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare.py"
@@ -62,9 +63,9 @@ def test_bad_threads_is_refused():
 
 
 def test_unknown_peer_is_refused():
-    done = run_compare("--quick", "--peers", "gromacs")
+    done = run_compare("--quick", "--peers", "namd")
     assert done.returncode == 2
-    assert "gromacs" in done.stderr
+    assert "namd" in done.stderr
 
 
 def test_existing_json_is_not_overwritten(tmp_path):
@@ -132,3 +133,242 @@ def test_vector_check_counts_packed_double_arithmetic_only():
         vmovupd	%ymm1, (%rax)
     """
     assert packed_counts(assembly) == {"ymm": 4, "zmm": 2}
+
+
+# ------------------------------------------------------------------ the GROMACS peer
+
+#: The parts of a GROMACS md.log the harness reads, as GROMACS 2022 writes them (a run of
+#: this melt: 32000 atoms, 2 OpenMP threads, 100 force evaluations).
+MD_LOG = """\
+              :-) GROMACS - gmx mdrun, 2022.5-Debian_2022.5_2 (-:
+
+GROMACS version:    2022.5-Debian_2022.5_2
+Precision:          mixed
+MPI library:        thread_mpi
+SIMD instructions:  SSE4.1
+
+Highest SIMD level supported by all nodes in run: AVX2_256
+SIMD instructions selected at compile time:       SSE4.1
+
+Input Parameters:
+   integrator                     = md
+   nsteps                         = 99
+   cutoff-scheme                  = Verlet
+   nstlist                        = 20
+   verlet-buffer-tolerance        = 0.005
+   rlist                          = 0.896
+
+Using 2 OpenMP threads
+
+Using SIMD 4x4 nonbonded short-range kernels
+
+Using a 4x4 pair-list setup:
+  updated every 20 steps, buffer 0.046 nm, rlist 0.896 nm
+
+   Energies (kJ/mol)
+        LJ (SR)   Coulomb (SR)      Potential    Kinetic En.   Total Energy
+   -2.16749e+05    0.00000e+00   -2.16749e+05    1.43995e+05   -7.27540e+04
+    Temperature Pressure (bar)
+    3.60816e+02   -1.56420e+03
+
+ Computing:                               M-Number         M-Flops  % Flops
+-----------------------------------------------------------------------------
+ Pair Search distance check              17.649566         158.846     1.6
+ NxN LJ [F]                             281.909488        9303.013    95.3
+ NxN LJ [V&F]                             4.861712         209.054     2.1
+
+     R E A L   C Y C L E   A N D   T I M E   A C C O U N T I N G
+
+On 1 MPI rank, each using 2 OpenMP threads
+
+ Computing:          Num   Num      Call    Wall time         Giga-Cycles
+                     Ranks Threads  Count      (s)         total sum    %
+-----------------------------------------------------------------------------
+ Neighbor search        1    2          5       1.048          5.124   3.4
+ Force                  1    2        100       8.342         40.801  27.1
+ NB X/F buffer ops.     1    2        195      10.563         51.663  34.3
+ Update                 1    2        100       7.257         35.491  23.5
+ Rest                                           3.624         17.722  11.8
+-----------------------------------------------------------------------------
+ Total                                         30.833        150.802 100.0
+-----------------------------------------------------------------------------
+
+               Core t (s)   Wall t (s)        (%)
+       Time:       61.667       30.833      200.0
+                 (ns/day)    (hour/ns)
+Performance:        3.013        7.966
+"""
+
+#: The list lines of a run with dynamic pruning and a changed nstlist (GROMACS 2026 wording).
+MD_LOG_DUAL = """\
+Likely fastest SIMD instructions supported by all nodes: AVX_512
+SIMD instructions selected at compile time:              AVX2_256
+   nstlist                        = 10
+   rlist                          = 0.9
+Changing nstlist from 10 to 25, rlist from 0.9 to 0.95
+
+Using SIMD2xMM 4x8 nonbonded short-range kernels
+
+Using a dual 4x8 pair-list setup updated with dynamic pruning:
+  outer list: updated every 25 steps, buffer 0.104 nm, rlist 0.954 nm
+  inner list: updated every  4 steps, buffer 0.011 nm, rlist 0.861 nm
+       Time:        1.000        0.500      200.0
+"""
+
+
+def _gromacs_module():
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import gromacs_lj_melt
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return gromacs_lj_melt
+
+
+def test_md_log_parsing_reads_time_counters_list_and_simd():
+    gmx = _gromacs_module()
+    log = gmx.parse_md_log(MD_LOG)
+    assert (log["loop_time"], log["core_time"]) == (30.833, 61.667)
+    assert log["version"] == "2022.5-Debian_2022.5_2" and log["precision"] == "mixed"
+    assert (log["simd"], log["simd_best"], log["kernel"]) == ("SSE4.1", "AVX2_256", "SIMD 4x4")
+    assert (log["omp_threads"], log["nsteps"], log["nstlist"]) == (2, 99, 20)
+    assert log["rlist_nm"] == 0.896 and log["inner_nstlist"] is None
+    # The counters: one row each with its call count and wall time; "Rest" has no count.
+    assert log["counters"] == {
+        "Neighbor search": {"count": 5, "seconds": 1.048},
+        "Force": {"count": 100, "seconds": 8.342},
+        "NB X/F buffer ops.": {"count": 195, "seconds": 10.563},
+        "Update": {"count": 100, "seconds": 7.257},
+    }
+    # LJ-only cluster kernels ran: no "Elec." row, so zero charges cost no Coulomb work.
+    assert log["pair_kernels"] == ["NxN LJ [F]", "NxN LJ [V&F]"]
+    assert log["lj_energy"] == -2.16749e05
+    assert gmx.build_info(MD_LOG) == {
+        "version": "2022.5-Debian_2022.5_2",
+        "precision": "mixed",
+        "simd": "SSE4.1",
+    }
+
+
+def test_md_log_parsing_takes_the_list_mdrun_used():
+    """A changed nstlist and a dual list: the outer list's interval and radius win over the
+    .mdp's, and the pruned inner list is reported."""
+    gmx = _gromacs_module()
+    log = gmx.parse_md_log(MD_LOG_DUAL)
+    assert (log["nstlist"], log["rlist_nm"]) == (25, 0.954)
+    assert (log["inner_nstlist"], log["inner_rlist_nm"]) == (4, 0.861)
+    assert (log["simd_best"], log["kernel"]) == ("AVX_512", "SIMD2xMM 4x8")
+    unfinished = MD_LOG.split("               Core t")[0]
+    with pytest.raises(ValueError, match="Time:"):
+        gmx.parse_md_log(unfinished)
+
+
+def _gro_fields(text: str, decimals: int):
+    """Read a .gro back by GROMACS's rule: fields as wide as the distance between the
+    first line's decimal points."""
+    lines = text.splitlines()
+    n = int(lines[1])
+    first = lines[2]
+    points = [i for i, c in enumerate(first) if c == "."]
+    width = points[1] - points[0]
+    assert width == decimals + 5
+    rows = np.array(
+        [[float(line[20 + k * width : 20 + (k + 1) * width]) for k in range(6)]
+         for line in lines[2 : 2 + n]]
+    )  # fmt: skip
+    box = np.array([float(v) for v in lines[2 + n].split()])
+    return n, rows[:, :3], rows[:, 3:], box, lines[2 : 2 + n]
+
+
+def test_gro_file_is_the_melt_at_its_density():
+    import md
+
+    gmx = _gromacs_module()
+    cells = 5
+    state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=87287)
+    sigma, tau = gmx.SIGMA, gmx.TAU
+    assert math.isclose(tau, 0.34 * math.sqrt(40.0))  # ps, for 1 kJ/mol and 40 amu
+    text = gmx.gro_text(state.positions * sigma, state.velocities * (sigma / tau),
+                        state.box * sigma)  # fmt: skip
+    n, positions, velocities, box, lines = _gro_fields(text, gmx.GRO_DECIMALS)
+    assert n == 4 * cells**3 == len(positions)
+    # The box: cells fcc cells of edge (4 / 0.8442)^(1/3) sigma, in nm; the density is ours.
+    edge = cells * (4 / 0.8442) ** (1 / 3) * sigma
+    np.testing.assert_allclose(box, [edge] * 3, rtol=1e-7)
+    assert math.isclose(n / np.prod(box / sigma), 0.8442, rel_tol=1e-6)
+    # Positions and velocities round-trip to the written precision, inside the box.
+    np.testing.assert_allclose(positions, state.positions * sigma, atol=0.51e-7)
+    np.testing.assert_allclose(velocities, state.velocities * (sigma / tau), atol=0.51e-8)
+    assert positions.min() >= 0 and (positions < box).all()
+    # The temperature the velocities carry: T* 3.0 is 3 epsilon / kB = 360.8 K here.
+    kinetic = 0.5 * gmx.MASS * (velocities**2).sum()  # kJ/mol
+    dof = 3 * n - 3
+    assert math.isclose(2 * kinetic / (dof * 0.0083144626), 3.0 / 0.0083144626, rel_tol=1e-5)
+    # Atom and residue numbers count from 1; one atom per residue.
+    assert lines[0][:20] == "    1AR      AR    1" and lines[-1][:5] == f"{n:5d}"
+
+
+def test_gro_numbers_wrap_and_bad_coordinates_are_refused():
+    gmx = _gromacs_module()
+    n = 100_001
+    positions = np.zeros((n, 3))
+    text = gmx.gro_text(positions, positions, np.ones(3), decimals=3)
+    lines = text.splitlines()
+    assert lines[1].strip() == str(n)
+    assert lines[2 + 99_998][:5] == "99999" and lines[2 + 99_999][:5] == "    0"
+    with pytest.raises(ValueError, match="field"):
+        gmx.gro_text(np.full((1, 3), 1e6), np.zeros((1, 3)), np.ones(3))
+    with pytest.raises(ValueError, match="shape"):
+        gmx.gro_text(np.zeros((2, 3)), np.zeros((3, 3)), np.ones(3))
+
+
+def _mdp_values(text: str) -> dict[str, str]:
+    values = {}
+    for line in text.splitlines():
+        line = line.split(";")[0]
+        if "=" in line:
+            key, value = (part.strip() for part in line.split("=", 1))
+            values[key] = value
+    return values
+
+
+def test_mdp_is_nve_truncated_lj_without_charges_work():
+    gmx = _gromacs_module()
+    own = _mdp_values(gmx.mdp_text(100))
+    # steps force evaluations: GROMACS's loop runs steps 0 .. nsteps inclusive
+    assert own["nsteps"] == "99" and own["integrator"] == "md"
+    assert math.isclose(float(own["dt"]), 0.005 * 0.34 * math.sqrt(40.0), rel_tol=1e-8)
+    assert math.isclose(float(own["rvdw"]), 0.85) and math.isclose(float(own["rcoulomb"]), 0.85)
+    assert own["vdw-modifier"] == "None" and own["DispCorr"] == "no"
+    assert own["coulombtype"] == "Cut-off" and own["cutoff-scheme"] == "Verlet"
+    assert own["tcoupl"] == own["pcoupl"] == "no" and own["nstlist"] == "20"
+    assert "rlist" not in own and "verlet-buffer-tolerance" not in own  # GROMACS's own buffer
+    fixed = _mdp_values(gmx.mdp_text(100, rlist=2.8))
+    assert fixed["verlet-buffer-tolerance"] == "-1"
+    assert math.isclose(float(fixed["rlist"]), 2.8 * 0.34)
+    with pytest.raises(ValueError, match="cutoff"):
+        gmx.mdp_text(100, rlist=2.4)
+    with pytest.raises(ValueError, match="positive"):
+        gmx.mdp_text(0)
+    topology = gmx.topology_text(32000)
+    molecules = topology.split("[ molecules ]")[1].split()
+    assert molecules == ["AR", "32000"]
+    atomtype = topology.split("[ atomtypes ]")[1].splitlines()[2].split()
+    assert atomtype == ["AR", "40.0", "0.0", "A", "0.34", "1.0"]  # no charge
+
+
+def test_gromacs_peer_without_binary_is_skipped_with_a_note(tmp_path):
+    """No gmx anywhere: the harness says how to get one and runs the rest."""
+    missing = str(tmp_path / "no-gmx")
+    done = run_compare("--quick", "--peers", "gromacs,gromacs-double", "--gmx", missing,
+                       "--gmx-d", missing, "--no-vector-check")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "gromacs skipped" in done.stdout and "gromacs-double skipped" in done.stdout
+    assert "apt-get install gromacs" in done.stdout
+    assert any(line.startswith("leapmd ") for line in done.stdout.splitlines())
+
+
+def test_bad_gmx_rlist_is_refused():
+    done = run_compare("--quick", "--peers", "none", "--gmx-rlist", "2.0")
+    assert done.returncode == 2
+    assert "--gmx-rlist" in done.stderr
