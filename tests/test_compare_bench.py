@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -372,3 +373,27 @@ def test_bad_gmx_rlist_is_refused():
     done = run_compare("--quick", "--peers", "none", "--gmx-rlist", "2.0")
     assert done.returncode == 2
     assert "--gmx-rlist" in done.stderr
+
+
+@pytest.mark.slow  # two GROMACS runs and ours: about a minute
+@pytest.mark.skipif(
+    shutil.which("gmx") is None or shutil.which("gmx_d") is None,
+    reason="GROMACS (gmx and gmx_d) is not installed",
+)
+def test_gromacs_peers_run_the_same_melt(tmp_path):
+    """With gmx and gmx_d installed, both run the melt: their initial energy agrees with ours
+    (GROMACS mixed to its single-precision sum), their rates are finite and their list
+    radius reaches the cutoff."""
+    report = tmp_path / "report.json"
+    done = run_compare("--quick", "--peers", "gromacs,gromacs-double", "--threads", "1",
+                       "--no-scaling", "--no-vector-check", "--json", str(report))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "same system" in done.stdout and "WARNING" not in done.stdout, done.stdout
+    data = json.loads(report.read_text())
+    gromacs = [m for m in data["comparison"] if m["job"]["engine"] == "gromacs"]
+    assert sorted(m["job"]["variant"] for m in gromacs) == ["double", "mixed"]
+    for measured in gromacs:
+        assert all(math.isfinite(r) and r > 0 for r in measured["rates"])
+        run = measured["runs"][0]
+        assert run["rlist_sigma"] >= 2.5 and run["nstlist"] >= 1
+        assert run["precision"] == measured["job"]["variant"]
