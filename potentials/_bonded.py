@@ -1,8 +1,11 @@
-"""What the bonded potentials (bonds, angles) share: per-type parameter tables and
-the checks of their config tables. Imported only within ``potentials``."""
+"""What the bonded potentials (bonds, angles) share: the list of atom tuples they hold,
+per-type parameter tables and the checks of their config tables. Imported only within
+``potentials``."""
 
 from __future__ import annotations
 
+import copy
+import hashlib
 from collections.abc import Callable, Mapping
 
 import numpy as np
@@ -10,6 +13,58 @@ from numpy.typing import ArrayLike
 
 from md._checks import bond_type_array, positive_array
 from md.schema import Key, check_names
+
+
+class ListedTuples:
+    """A potential over a fixed list of atom tuples (bonds, angles) with a type per tuple.
+
+    Holds the list and its types read-only (the checks made when they were set must stay
+    true), the largest atom index they name, and what follows from them alone: the
+    check against a state's atoms, the same potential over another list (one rank's
+    share in a decomposed run) and the list's part of ``describe()``. Subclasses set
+    ``ITEM``, the word for one tuple ("bond", "angle"), and expose the list under
+    their own names.
+    """
+
+    cutoff = None  # bonded: no neighbour list needed
+    #: What one tuple is called in messages and descriptions.
+    ITEM: str
+
+    def _set_list(self, items: np.ndarray, types: np.ndarray) -> None:
+        items.flags.writeable = False
+        types.flags.writeable = False
+        self._items = items
+        self._types = types
+        self._max_index = int(items.max()) if len(items) else -1
+
+    def _with_list(self, items: np.ndarray, types: ArrayLike):
+        """A copy over ``items`` (checked already) whose ``types`` index the same tables."""
+        types = np.array(types, dtype=self._types.dtype, copy=True)
+        if types.shape != (len(items),):
+            raise ValueError(f"{len(items)} {self.ITEM}s but {types.shape} {self.ITEM} types")
+        part = copy.copy(self)
+        part._set_list(items, types)
+        return part
+
+    def _check_indices(self, n_atoms: int) -> None:
+        """Raise ValueError naming the first tuple with an atom index >= ``n_atoms``."""
+        if self._max_index >= n_atoms:
+            bad = int(np.flatnonzero((self._items >= n_atoms).any(axis=1))[0])
+            atoms = tuple(int(a) for a in self._items[bad])
+            raise ValueError(
+                f"{self.ITEM} {bad} {atoms} refers to atom {max(atoms)}, but the system has "
+                f"{n_atoms} atoms (indices 0..{n_atoms - 1})"
+            )
+
+    def _list_description(self, style: str, per_type: bool, n_types: int, **params) -> dict:
+        """``describe()``'s dict: the style, ``params``, the tuple count, a hash of the list
+        and, with per-type parameters, the type count."""
+        digest = hashlib.sha256(np.ascontiguousarray(self._items, dtype="<i8").tobytes())
+        out = {"type": style, **params, f"n_{self.ITEM}s": len(self._items)}
+        out[f"{self.ITEM}s_sha256"] = digest.hexdigest()
+        if per_type:
+            out[f"n_{self.ITEM}_types"] = n_types
+        return out
 
 
 def type_tables(

@@ -38,8 +38,6 @@ x_ij (x) F_i + x_kj (x) F_k.
 
 from __future__ import annotations
 
-import copy
-import hashlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -51,7 +49,13 @@ from md._checks import angle_array, read_index_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import AngleCollapseError
 from md.schema import REQUIRED, Key
-from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
+from potentials._bonded import (
+    ListedTuples,
+    bonded_keys,
+    config_values,
+    symmetric,
+    type_tables,
+)
 from potentials.base import ForceResult
 
 #: Kernel codes for the angle forms.
@@ -62,45 +66,44 @@ _COSINE = 1
 SMALL = 0.001
 
 
-class _AnglePotential:
+class _AnglePotential(ListedTuples):
     """Shared orchestration of the angle potentials: validation, buffers, kernels.
 
     Subclasses set ``_form`` (a kernel code) and ``angle_style`` and call
     :meth:`_setup` with the per-angle-type parameter arrays.
     """
 
-    cutoff = None  # bonded: no neighbour list needed
+    ITEM = "angle"
     _form: int
     #: Name of the angle form: its config type, and the angle type name in files.
     angle_style: str
 
     def _setup(self, angles, angle_types, params: dict[str, ArrayLike]) -> None:
-        self.angles = angle_array(angles)
-        self.angle_types, self.per_type, self._tables = type_tables(
-            params, angle_types, len(self.angles), "angle"
+        angles = angle_array(angles)
+        types, self.per_type, self._tables = type_tables(
+            params, angle_types, len(angles), "angle"
         )
-        # Read-only: the checks made here must stay true.
-        self.angles.flags.writeable = False
-        self.angle_types.flags.writeable = False
-        self._max_index = int(self.angles.max()) if len(self.angles) else -1
+        self._set_list(angles, types)
+
+    @property
+    def angles(self) -> NDArray[np.int64]:
+        """The (A, 3) atom indices of the angles, vertex in the middle (read-only)."""
+        return self._items
+
+    @property
+    def angle_types(self) -> NDArray[np.int64]:
+        """The (A,) type index of each angle (read-only)."""
+        return self._types
 
     @property
     def n_angles(self) -> int:
-        return len(self.angles)
+        return len(self._items)
 
     def with_angles(self, angles: ArrayLike, angle_types: ArrayLike) -> _AnglePotential:
         """The same potential over another angle list, whose ``angle_types`` index the same
         per-type parameters: one rank's share of the angles, over its local atoms, in a run
         decomposed over MPI ranks (:mod:`md.distributed`)."""
-        part = copy.copy(self)
-        part.angles = angle_array(angles)
-        part.angle_types = np.array(angle_types, dtype=self.angle_types.dtype, copy=True)
-        if part.angle_types.shape != (len(part.angles),):
-            raise ValueError(f"{len(part.angles)} angles but {part.angle_types.shape} types")
-        part.angles.flags.writeable = False
-        part.angle_types.flags.writeable = False
-        part._max_index = int(part.angles.max()) if len(part.angles) else -1
-        return part
+        return self._with_list(angle_array(angles), angle_types)
 
     def check(self, state) -> None:
         """Raise ValueError if an angle names an atom the state does not have."""
@@ -177,21 +180,8 @@ class _AnglePotential:
         raise NotImplementedError
 
     def _describe(self, **params) -> dict:
-        digest = hashlib.sha256(np.ascontiguousarray(self.angles, dtype="<i8").tobytes())
-        out = {"type": self.angle_style, **params, "n_angles": self.n_angles}
-        out["angles_sha256"] = digest.hexdigest()
-        if self.per_type:
-            out["n_angle_types"] = len(self._tables[0])
-        return out
-
-    def _check_indices(self, n_atoms: int) -> None:
-        if self._max_index >= n_atoms:
-            bad = int(np.flatnonzero((self.angles >= n_atoms).any(axis=1))[0])
-            triple = tuple(int(a) for a in self.angles[bad])
-            raise ValueError(
-                f"angle {bad} {triple} refers to atom {max(triple)}, but the system has "
-                f"{n_atoms} atoms (indices 0..{n_atoms - 1})"
-            )
+        return self._list_description(self.angle_style, self.per_type, len(self._tables[0]),
+                                      **params)  # fmt: skip
 
 
 class HarmonicAngles(_AnglePotential):

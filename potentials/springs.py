@@ -11,8 +11,6 @@ Both potentials offer the optional Hessian capability
 
 from __future__ import annotations
 
-import copy
-import hashlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -24,7 +22,13 @@ from md._checks import bond_array, read_bonds_file
 from md.box import minimum_image, periodic_lengths, periodic_tilt, separation
 from md.errors import BondStretchError
 from md.schema import REQUIRED, Key
-from potentials._bonded import bonded_keys, config_values, symmetric, type_tables
+from potentials._bonded import (
+    ListedTuples,
+    bonded_keys,
+    config_values,
+    symmetric,
+    type_tables,
+)
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import BondLaw, ForceResult
 from potentials.pair_hessian import PairHessian
@@ -35,45 +39,42 @@ _FENE = 1
 _FORM_NAMES = {_HARMONIC: "harmonic", _FENE: "fene"}
 
 
-class _BondedPotential:
+class _BondedPotential(ListedTuples):
     """Shared orchestration of the bond potentials: validation, buffers, kernels.
 
     Subclasses set ``_form`` (a kernel code) and ``bond_style`` and call
     :meth:`_setup` with the per-bond-type parameter arrays.
     """
 
-    cutoff = None  # bonded: no neighbour list needed
+    ITEM = "bond"
     _form: int
     #: Name of the bond form, used in descriptions and as the bond type name in files.
     bond_style: str
 
     def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
-        self.bonds = bond_array(bonds)
-        self.bond_types, self.per_type, self._tables = type_tables(
-            params, bond_types, len(self.bonds), "bond"
-        )
-        # Read-only: the checks made here must stay true.
-        self.bonds.flags.writeable = False
-        self.bond_types.flags.writeable = False
-        self._max_index = int(self.bonds.max()) if len(self.bonds) else -1
+        bonds = bond_array(bonds)
+        types, self.per_type, self._tables = type_tables(params, bond_types, len(bonds), "bond")
+        self._set_list(bonds, types)
+
+    @property
+    def bonds(self) -> NDArray[np.int64]:
+        """The (B, 2) atom indices of the bonds (read-only)."""
+        return self._items
+
+    @property
+    def bond_types(self) -> NDArray[np.int64]:
+        """The (B,) type index of each bond (read-only)."""
+        return self._types
 
     @property
     def n_bonds(self) -> int:
-        return len(self.bonds)
+        return len(self._items)
 
     def with_bonds(self, bonds: ArrayLike, bond_types: ArrayLike) -> _BondedPotential:
         """The same potential over another bond list, whose ``bond_types`` index the same
         per-type parameters: one rank's share of the bonds, over its local atoms, in a run
         decomposed over MPI ranks (:mod:`md.distributed`)."""
-        part = copy.copy(self)
-        part.bonds = bond_array(bonds)
-        part.bond_types = np.array(bond_types, dtype=self.bond_types.dtype, copy=True)
-        if part.bond_types.shape != (len(part.bonds),):
-            raise ValueError(f"{len(part.bonds)} bonds but {part.bond_types.shape} bond types")
-        part.bonds.flags.writeable = False
-        part.bond_types.flags.writeable = False
-        part._max_index = int(part.bonds.max()) if len(part.bonds) else -1
-        return part
+        return self._with_list(bond_array(bonds), bond_types)
 
     # ----------------------------------------------------------------- compute
     def check(self, state) -> None:
@@ -165,21 +166,8 @@ class _BondedPotential:
         return np.linalg.norm(minimum_image(d, state.box, state.pbc, state.tilt), axis=1)
 
     def _describe(self, **params) -> dict:
-        digest = hashlib.sha256(np.ascontiguousarray(self.bonds, dtype="<i8").tobytes())
-        out = {"type": self.bond_style, **params, "n_bonds": self.n_bonds}
-        out["bonds_sha256"] = digest.hexdigest()
-        if self.per_type:
-            out["n_bond_types"] = len(self._tables[0])
-        return out
-
-    def _check_indices(self, n_atoms: int) -> None:
-        if self._max_index >= n_atoms:
-            bad = int(np.flatnonzero((self.bonds >= n_atoms).any(axis=1))[0])
-            i, j = (int(a) for a in self.bonds[bad])
-            raise ValueError(
-                f"bond {bad} ({i}, {j}) refers to atom {max(i, j)}, but the system has "
-                f"{n_atoms} atoms (indices 0..{n_atoms - 1})"
-            )
+        return self._list_description(self.bond_style, self.per_type, len(self._tables[0]),
+                                      **params)  # fmt: skip
 
     def _raise_stretched(self, state, bad: int):
         i, j = (int(a) for a in self.bonds[bad])
