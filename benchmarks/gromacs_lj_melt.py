@@ -269,18 +269,13 @@ def parse_md_log(text: str) -> dict:
     changed = re.search(r"Changing nstlist from \d+ to (\d+), rlist from [\d.]+ to ([\d.]+)", text)
     if changed:
         nstlist, rlist = int(changed.group(1)), float(changed.group(2))
-    outer = re.search(
-        r"outer list: updated every\s+(\d+) steps, buffer ([\d.]+) nm, "
-        r"rlist ([\d.]+) nm",
-        text,
-    )
+    outer, inner = (
+        re.search(rf"{which} list: updated every\s+(\d+) steps, buffer ([\d.]+) nm, "
+                  r"rlist ([\d.]+) nm", text)
+        for which in ("outer", "inner")
+    )  # fmt: skip
     if outer:
         nstlist, rlist = int(outer.group(1)), float(outer.group(3))
-    inner = re.search(
-        r"inner list: updated every\s+(\d+) steps, buffer ([\d.]+) nm, "
-        r"rlist ([\d.]+) nm",
-        text,
-    )
     single = re.search(
         r"Using a (?:single )?[\dx]+ pair-list setup:\s*\n\s*updated every\s+(\d+)"
         r" steps, buffer ([\d.]+) nm, rlist ([\d.]+) nm",
