@@ -1,4 +1,4 @@
-"""Functions for pair terms that vectorise where numba's own do not.
+"""Functions for pair terms that vectorise where numba's own do not: exp and log.
 
 LLVM turns a pair loop into vector instructions only if every call in it has
 a vector form. numba's ``math.exp`` is a call to the C library's scalar
@@ -22,6 +22,11 @@ Error bound: at most 1 unit in the last place of numpy's ``exp`` over
 million points); below -708 the result is 0 (the true value is below 1e-307),
 above ln(DBL_MAX) = 709.7827 it is infinite, NaN stays NaN. In Python (no
 compilation, or ``NUMBA_DISABLE_JIT=1``) :func:`exp` is ``math.exp``.
+
+:func:`log` works the same way (x = 2^e m from the bits, a polynomial for
+log m; see its docstring), so that pair terms can take powers with any
+exponent as ``exp(y * log(x))``: Mie's pair loop went from 6.6-7.2 to about
+2.5 times LJ's cost per pair with it.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from numba.extending import overload
 
 from md._simd import bits_float, float_bits
 
-__all__ = ["exp"]
+__all__ = ["exp", "log"]
 
 _LOG2E = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01  # ln 2 to 32 bits: k * _LN2_HI is exact for |k| < 2^20
@@ -99,5 +104,70 @@ def _exp_compiled(x):
         value = (2.0 + 2.0 * (r + r2 * q)) * half_scale
         value = value if x > -708.0 else 0.0
         return value if x < _LN_MAX else (math.inf if x == x else x)
+
+    return implementation
+
+
+#: log(1 + f) = f - s (f - z P(z)), s = f / (2 + f), z = s^2, for sqrt(2)/2 <= 1 + f < sqrt(2):
+#: P(z) = (2 atanh(s) - 2 s) / (s z) = 2/3 + 2 z/5 + ... as a degree-6 Chebyshev fit on
+#: 0 <= z <= (3 - 2 sqrt 2)^2 (mpmath.chebyfit at 50 digits; its error below 4e-16, so
+#: below 5e-18 relative in log(1 + f)).
+_LOG_COEFFICIENTS = (
+    0.66666666666666696862,
+    0.3999999999989950449,
+    0.28571428625975484921,
+    0.22222211134795079855,
+    0.1818288912526172208,
+    0.15331721600556041269,
+    0.1461644968504340586,
+)
+_SQRT2 = 1.4142135623730951
+#: The smallest normal double; below it log scales its argument by 2^54 first.
+_TINY = 2.2250738585072014e-308
+_MANTISSA = 0x000FFFFFFFFFFFFF
+_ONE_BITS = 0x3FF0000000000000
+#: 2^52 as bits, with which an exponent field's value becomes a float by one subtraction.
+_TWO52_BITS = 0x4330000000000000
+
+
+def log(x):
+    """Natural log for pair terms: math.log in Python, a vectorisable polynomial when compiled.
+
+    x = 2^e m with sqrt(2)/2 <= m < sqrt(2) from the bits of x, log m = log(1 + f) from
+    a polynomial (``_LOG_COEFFICIENTS``), log x = e ln 2 + log m. Measured within 1 ulp of
+    numpy's log (``tests/test_pair_styles.py``); log 0 = -inf, log of a negative number
+    or NaN is NaN, log inf = inf. Pair terms use it for powers with any exponent:
+    ``exp(-0.5 * n * log(r2))`` is r^-n (Mie), where ``r2 ** (-0.5 * n)`` would call the
+    C library's scalar pow and keep the loop scalar.
+    """
+    return math.log(x)
+
+
+@overload(log, jit_options={"fastmath": {"contract"}, "error_model": "numpy"})
+def _log_compiled(x):
+    p0, p1, p2, p3, p4, p5, p6 = _LOG_COEFFICIENTS
+    mantissa, one_bits, two52_bits = np.int64(_MANTISSA), np.int64(_ONE_BITS), np.int64(_TWO52_BITS)
+    shift = np.int64(52)
+
+    def implementation(x):
+        tiny = x < _TINY  # subnormal (or not positive: replaced below)
+        y = x * 18014398509481984.0 if tiny else x  # 2^54
+        bits = float_bits(y)
+        # e + 1023 as a float: the exponent field under 2^52's bits, less 2^52.
+        k = bits_float(two52_bits | (bits >> shift)) - (4503599627370496.0 + 1023.0)
+        m = bits_float((bits & mantissa) | one_bits)  # in [1, 2)
+        big = m > _SQRT2
+        m = m * 0.5 if big else m
+        k = k + 1.0 if big else k
+        k = k - 54.0 if tiny else k
+        f = m - 1.0
+        s = f / (2.0 + f)
+        z = s * s
+        z2 = z * z
+        z4 = z2 * z2
+        q = ((p0 + p1 * z) + (p2 + p3 * z) * z2) + ((p4 + p5 * z) + p6 * z2) * z4
+        value = k * _LN2_HI + (f - (s * (f - z * q) - k * _LN2_LO))
+        value = value if x > 0.0 else (-math.inf if x == 0.0 else math.nan)
+        return value if x < math.inf else x
 
     return implementation

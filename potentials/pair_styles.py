@@ -5,7 +5,8 @@ and -u'(r)/r, and one returning u and its derivatives in s = r^2) plus a
 small class naming its parameters, their checks and mixing; the frame
 (``potentials._pair_frame``) supplies everything else. The energies are
 LAMMPS's (``pair_style morse``, ``mie/cut``, ``buck``, ``yukawa``, ``soft``).
-The exponentials are :func:`potentials.pair_math.exp`, which vectorises.
+The exponentials (and Mie's powers, as exp of a log) are :mod:`potentials.pair_math`'s,
+which vectorise.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from numba.extending import register_jitable
 
 from md.schema import Key
 from potentials._pair_frame import PairPotential, PairTerm, collapse_error, pair_config_keys
-from potentials.pair_math import exp
+from potentials.pair_math import exp, log
 
 __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
 
@@ -83,17 +84,23 @@ MORSE = PairTerm(morse_energy, morse_curvature, name="morse")
 
 # ------------------------------------------------------------------------- Mie
 def mie_energy(r2, cn, cm, n, m):
-    """u = cn / r^n - cm / r^m and -u'(r) / r."""
+    """u = cn / r^n - cm / r^m and -u'(r) / r.
+
+    The powers are exp(-n/2 log r^2) (:func:`potentials.pair_math.log` and ``exp``, which
+    vectorise; ``**`` with a non-integer exponent would call the scalar pow).
+    """
     inv_r2 = 1.0 / r2
-    a = cn * inv_r2 ** (0.5 * n)
-    b = cm * inv_r2 ** (0.5 * m)
+    log_r2 = log(r2)
+    a = cn * exp(-0.5 * n * log_r2)
+    b = cm * exp(-0.5 * m * log_r2)
     return a - b, (n * a - m * b) * inv_r2
 
 
 def mie_curvature(r2, cn, cm, n, m):
     inv_r2 = 1.0 / r2
-    a = cn * inv_r2 ** (0.5 * n)
-    b = cm * inv_r2 ** (0.5 * m)
+    log_r2 = log(r2)
+    a = cn * exp(-0.5 * n * log_r2)
+    b = cm * exp(-0.5 * m * log_r2)
     g1 = 0.5 * (m * b - n * a) * inv_r2
     g2 = 0.25 * (n * (n + 2.0) * a - m * (m + 2.0) * b) * inv_r2 * inv_r2
     return a - b, g1, g2
