@@ -30,6 +30,12 @@ class ListedTuples:
     #: What one tuple is called in messages and descriptions.
     ITEM: str
 
+    def _setup_list(self, items: np.ndarray, item_types, params: dict[str, ArrayLike]) -> None:
+        """Hold ``items`` (checked already) with their types and per-type parameter tables
+        (:func:`type_tables`: ``per_type`` and ``_tables``)."""
+        types, self.per_type, self._tables = type_tables(params, item_types, len(items), self.ITEM)
+        self._set_list(items, types)
+
     def _set_list(self, items: np.ndarray, types: np.ndarray) -> None:
         items.flags.writeable = False
         types.flags.writeable = False
@@ -56,14 +62,14 @@ class ListedTuples:
                 f"{n_atoms} atoms (indices 0..{n_atoms - 1})"
             )
 
-    def _list_description(self, style: str, per_type: bool, n_types: int, **params) -> dict:
+    def _list_description(self, style: str, **params) -> dict:
         """``describe()``'s dict: the style, ``params``, the tuple count, a hash of the list
         and, with per-type parameters, the type count."""
         digest = hashlib.sha256(np.ascontiguousarray(self._items, dtype="<i8").tobytes())
         out = {"type": style, **params, f"n_{self.ITEM}s": len(self._items)}
         out[f"{self.ITEM}s_sha256"] = digest.hexdigest()
-        if per_type:
-            out[f"n_{self.ITEM}_types"] = n_types
+        if self.per_type:
+            out[f"n_{self.ITEM}_types"] = len(self._tables[0])
         return out
 
 

@@ -54,7 +54,6 @@ from potentials._bonded import (
     bonded_keys,
     config_values,
     symmetric,
-    type_tables,
 )
 from potentials.base import ForceResult
 
@@ -79,11 +78,7 @@ class _AnglePotential(ListedTuples):
     angle_style: str
 
     def _setup(self, angles, angle_types, params: dict[str, ArrayLike]) -> None:
-        angles = angle_array(angles)
-        types, self.per_type, self._tables = type_tables(
-            params, angle_types, len(angles), "angle"
-        )
-        self._set_list(angles, types)
+        self._setup_list(angle_array(angles), angle_types, params)
 
     @property
     def angles(self) -> NDArray[np.int64]:
@@ -180,8 +175,7 @@ class _AnglePotential(ListedTuples):
         raise NotImplementedError
 
     def _describe(self, **params) -> dict:
-        return self._list_description(self.angle_style, self.per_type, len(self._tables[0]),
-                                      **params)  # fmt: skip
+        return self._list_description(self.angle_style, **params)
 
 
 class HarmonicAngles(_AnglePotential):

@@ -9,7 +9,7 @@ arithmetic that vectorises: Cody-Waite reduction x = k ln 2 + r with
 2^k), exp(r) = 1 + r + r^2 q(r) with q a near-minimax polynomial of degree 9
 (its error below 2e-17 relative), evaluated in Estrin's order: pairs of
 terms, then pairs of pairs, so its chain of dependent steps is 5 long where
-Horner's would be 10. The pair loops are limited by that chain (each pair
+the Horner form it replaced took 13. The pair loops are limited by that chain (each pair
 waits for its sqrt, exp and division in turn, and the CPU holds only a few
 pairs in flight), not by the count of operations. Against the Horner
 evaluation of the degree-13 Taylor polynomial this replaced, per pair as a
@@ -87,8 +87,8 @@ def _exp_compiled(x):
         k = shifted - _ROUND
         r = (x - k * _LN2_HI) - k * _LN2_LO
         # exp(r) = 1 + r + r^2 q(r): q's terms in Estrin's order (pairs, then pairs of pairs),
-        # so that the chain of dependent steps is 5 long, not 13: the pair loops have many
-        # pairs in flight, and a long chain makes each wait.
+        # so that the chain of dependent steps is 5 long, not 13: a pair loop holds only a
+        # few pairs in flight, so a long chain makes it wait.
         r2 = r * r
         r4 = r2 * r2
         r8 = r4 * r4
@@ -153,7 +153,7 @@ def _log_compiled(x):
         tiny = x < _TINY  # subnormal (or not positive: replaced below)
         y = x * 18014398509481984.0 if tiny else x  # 2^54
         bits = float_bits(y)
-        # e + 1023 as a float: the exponent field under 2^52's bits, less 2^52.
+        # e as a float: the exponent field put under 2^52's bits, less 2^52 and the bias.
         k = bits_float(two52_bits | (bits >> shift)) - (4503599627370496.0 + 1023.0)
         m = bits_float((bits & mantissa) | one_bits)  # in [1, 2)
         big = m > _SQRT2

@@ -27,7 +27,6 @@ from potentials._bonded import (
     bonded_keys,
     config_values,
     symmetric,
-    type_tables,
 )
 from potentials._kernels import _add_half_pair_virial
 from potentials.base import BondLaw, ForceResult
@@ -52,9 +51,7 @@ class _BondedPotential(ListedTuples):
     bond_style: str
 
     def _setup(self, bonds, bond_types, params: dict[str, ArrayLike]) -> None:
-        bonds = bond_array(bonds)
-        types, self.per_type, self._tables = type_tables(params, bond_types, len(bonds), "bond")
-        self._set_list(bonds, types)
+        self._setup_list(bond_array(bonds), bond_types, params)
 
     @property
     def bonds(self) -> NDArray[np.int64]:
@@ -166,8 +163,7 @@ class _BondedPotential(ListedTuples):
         return np.linalg.norm(minimum_image(d, state.box, state.pbc, state.tilt), axis=1)
 
     def _describe(self, **params) -> dict:
-        return self._list_description(self.bond_style, self.per_type, len(self._tables[0]),
-                                      **params)  # fmt: skip
+        return self._list_description(self.bond_style, **params)
 
     def _raise_stretched(self, state, bad: int):
         i, j = (int(a) for a in self.bonds[bad])
