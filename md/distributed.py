@@ -29,10 +29,16 @@ move of any atom since the last build exceeds skin/2 (a global maximum; a
 cell deformation is allowed for as :class:`md.neighbors.NeighborList` does).
 Atoms migrate to the rank whose brick holds them at rebuilds taken between
 steps: :class:`DistributedSimulation` rebuilds at the start of a step when
-the coming step could cross the limit (the largest move since the build plus
-``LOOKAHEAD`` times the last step's); a rebuild forced inside a step (by an
-integrator's stage) keeps the owners and widens the ghost shell by as far as
-owned atoms have left their bricks, and the next step migrates them.
+some atom's coming move could take it past the limit (each atom's next move
+bounded from its last two, :func:`md.domain.moved_since`), and lays the
+ghosts and the list out where the step is expected to take the atoms
+(dt v + dt^2 a / 2), so that its lists last as many steps as one process's;
+a rebuild forced inside a step (by an integrator's stage, or a move the
+look-ahead missed) keeps the owners and widens the ghost shell by as far as
+owned atoms have left their bricks, and the next step migrates them. The
+migration merges the staying and arriving atoms in id order in one compiled
+pass per array, and the ghost search runs on compiled passes over a table
+the Domain keeps between builds (``md.domain``).
 
 Reductions add in rank order on every rank (an all-gather, then a sum), so
 all ranks hold the same bits and a run on P ranks is deterministic; runs on
@@ -45,6 +51,7 @@ more than one process (:func:`mpi_ranks`).
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
@@ -67,9 +74,15 @@ from md.domain import (
     fractional_coordinates,
     home_images,
     home_positions,
+    lay_out_owned,
+    leaving_along,
+    merged_order,
     moved_since,
+    near_faces,
     nearest_copies,
     pack_rows,
+    split_table,
+    take_rows,
 )
 from md.errors import (
     AngleCollapseError,
@@ -103,9 +116,10 @@ logger = logging.getLogger(__name__)
 #: Environment variables in which launchers give the number of processes they started
 #: (MPICH's and Intel MPI's hydra, Slurm's srun with PMI, Open MPI).
 SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "SLURM_STEP_NUM_TASKS")
-#: A step starts with a rebuild (and migration) when the largest move since the last
-#: build plus this many times the last step's largest move reaches the list's limit.
-LOOKAHEAD = 1.5
+#: A step starts with a rebuild (and migration) when some atom's next move could take it
+#: past the list's limit (``md.domain.moved_since`` bounds each atom's next move from its
+#: last two) with this many times the last step's largest move to spare.
+LOOKAHEAD = 0.05
 #: Ghost shell beyond the longest bond, in skins: the bonds of the last build may
 #: stretch by a skin before the next, plus the slack of a rebuild forced inside a step.
 BOND_SKINS = 2.5
@@ -113,6 +127,10 @@ BOND_SKINS = 2.5
 _MIN_PASS_ATOMS = 16_000
 #: The identity, for a cell that has not changed since the build.
 _IDENTITY = np.eye(3)
+#: No positions: no step start before the last one is known.
+_NONE = np.empty((0, 3))
+#: The key under which a rebuild's heading travels with the migrating atoms.
+_HEADING = ("build", "heading")
 #: Stop requests as numbers, for the reduction that makes every rank see them.
 _STOPS = {"SIGINT": 1.0, "SIGTERM": 2.0}
 
@@ -408,7 +426,7 @@ class Domain:
         self.images = np.zeros((0, 3), dtype=np.int64)
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
-        self._buffers: dict[int, NDArray[np.float64]] = {}
+        self._buffers: dict[object, NDArray] = {}
 
     def fractions(self, state: State) -> NDArray[np.float64]:
         """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
@@ -438,37 +456,39 @@ class Domain:
         """
         names = list(carried)
         # The state's per-atom arrays, then the carried ones: only the atoms that leave
-        # are packed into rows of floats (integers are exact below 2^53); the others
-        # stay in their arrays, which are compacted once per sweep that moved any.
+        # are packed into rows of floats (integers are exact below 2^53); each sweep that
+        # moved any merges the staying atoms and the arriving ones in increasing id in one
+        # pass per array (a rank keeps its atoms in increasing id).
         arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
-        arrays += [np.asarray(carried[name]) for name in names]
+        arrays += [np.ascontiguousarray(carried[name]) for name in names]
         lost = 0
-        fractions = np.empty((state.n_atoms, 3))
         tilt = periodic_tilt(state.tilt, state.pbc)
+        shape = self.shape
         for axis in range(3):
-            p = self.grid.shape[axis]
-            if p == 1:
+            if self.grid.shape[axis] == 1:
                 continue
-            n = arrays[0].shape[0]
-            fractions = fractions[:n] if fractions.shape[0] >= n else np.empty((n, 3))
-            fractional_coordinates(arrays[0], state.box, tilt, state.pbc, fractions)
-            bricks = np.empty((n, 3), dtype=np.int64)
-            brick_of(fractions, self.shape, bricks)
-            delta = (bricks[:, axis] - self.coordinates[axis]) % p
-            up = delta == 1
-            down = (delta == p - 1) & ~up
-            lost += int(np.count_nonzero((delta != 0) & ~up & ~down))
+            ups, downs, far = leaving_along(arrays[0], state.box, tilt, state.pbc, shape, axis,
+                                            self.coordinates[axis])  # fmt: skip
+            lost += far
             upper = self.grid.neighbor(self.rank, axis, 1)
             lower = self.grid.neighbor(self.rank, axis, -1)
-            ups, downs = np.flatnonzero(up), np.flatnonzero(down)
             from_lower = self.ranks.exchange_rows(_packed(arrays, ups), upper, lower, 2 * axis)
             from_upper = self.ranks.exchange_rows(_packed(arrays, downs), lower, upper,
                                                   2 * axis + 1)  # fmt: skip
             if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
                 continue
-            stay = np.flatnonzero(~(up | down))
+            gone = np.zeros(arrays[0].shape[0], dtype=np.bool_)
+            gone[ups] = True
+            gone[downs] = True
             incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
-            arrays = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming, strict=True)]
+            order = merged_order(arrays[4], gone, incoming[4])
+            if order.size == 0 and len(incoming[4]) + int(np.count_nonzero(~gone)) > 0:
+                stay = np.flatnonzero(~gone)  # ids out of order: merge by sorting
+                both = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming,
+                                                                       strict=True)]  # fmt: skip
+                arrays = [a[np.argsort(both[4], kind="stable")] for a in both]
+                continue
+            arrays = [_merged(a, b, order) for a, b in zip(arrays, incoming, strict=True)]
         ids = arrays[4]
         if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):
             order = np.argsort(ids, kind="stable")
@@ -498,9 +518,10 @@ class Domain:
         tilt = periodic_tilt(state.tilt, pbc)
         cell = cell_matrix(box, tilt)
         widths = perpendicular_widths(box, tilt)
-        fractions = self.fractions(state)
-        images = np.empty((state.n_atoms, 3), dtype=np.int64)
-        home = np.empty((state.n_atoms, 3))
+        fractions = self._buffer(state.n_atoms, 3, "fractions")
+        fractional_coordinates(state.positions, box, tilt, pbc, fractions)
+        images = self._buffer(state.n_atoms, 3, "images", np.int64)
+        home = self._buffer(state.n_atoms, 3, "home")
         strayed = home_images(fractions, self.center, self.bounds, widths, pbc, images, home)
         margin = global_max(strayed, self.ranks)
         shell = reach + margin
@@ -517,13 +538,8 @@ class Domain:
         # One row per local atom: position (3), fractional position (3), id, type; the
         # ghosts of each sweep are appended in place (the table grows by half when full).
         n = state.n_atoms
-        data = np.empty((n + n // 2 + 64, 8))
-        positions = np.empty((n, 3))
-        home_positions(state.positions, images, cell, positions)
-        data[:n, :3] = positions
-        data[:n, 3:6] = home
-        data[:n, 6] = state.ids
-        data[:n, 7] = state.types
+        data = self._buffer(n + n // 2 + 64, 8, "table")
+        lay_out_owned(state.positions, images, cell, home, state.ids, state.types, data)
         count = n
         swaps: list[_Swap] = []
         for axis in range(3):
@@ -531,10 +547,9 @@ class Domain:
                 continue
             p, c = self.grid.shape[axis], self.coordinates[axis]
             reach_fraction = shell / widths[axis]
-            end = count  # this sweep sends the atoms before its own ghosts
-            column = data[:end, 3 + axis]
-            lower = np.flatnonzero(column < self.bounds[0, axis] + reach_fraction)
-            upper = np.flatnonzero(column >= self.bounds[1, axis] - reach_fraction)
+            # this sweep sends the atoms before its own ghosts
+            lower, upper = near_faces(data, count, 3 + axis, self.bounds[0, axis] + reach_fraction,
+                                      self.bounds[1, axis] - reach_fraction)  # fmt: skip
             down = self.grid.neighbor(self.rank, axis, -1)
             up = self.grid.neighbor(self.rank, axis, 1)
             for send, shift, dest, source in (
@@ -550,7 +565,7 @@ class Domain:
                 if count + len(rows) > data.shape[0]:
                     grown = np.empty((count + len(rows) + data.shape[0] // 2, 8))
                     grown[:count] = data[:count]
-                    data = grown
+                    self._buffers[("table", 8)] = data = grown
                 data[count : count + len(rows)] = rows
                 swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
                 count += len(rows)
@@ -558,11 +573,11 @@ class Domain:
         self.images = images
         self.n_owned = n
         self.reach, self.margin = reach, margin
-        self.local_ids = data[:count, 6].astype(np.int64)
-        self.local_state = State(
-            positions=np.ascontiguousarray(data[:count, :3]), box=box, pbc=False,
-            types=data[:count, 7].astype(np.int32), type_names=state.type_names,
-        )  # fmt: skip
+        positions = np.empty((count, 3))
+        self.local_ids = np.empty(count, dtype=np.int64)
+        types = np.empty(count, dtype=np.int32)
+        split_table(data, count, positions, self.local_ids, types)
+        self.local_state = State.adopting(positions, types, box, False, state.type_names)
 
     def update(self, state: State) -> None:
         """Write the owned positions into the local system and send the ghosts' (collective)."""
@@ -592,11 +607,13 @@ class Domain:
             add_rows(values, swap.send, buffer)
         return values[: self.n_owned]
 
-    def _buffer(self, n: int, k: int) -> NDArray[np.float64]:
-        held = self._buffers.get(k)
+    def _buffer(self, n: int, k: int, name: str = "message", dtype=np.float64) -> NDArray:
+        """n rows of k values from memory this Domain keeps under (name, k): a fresh 10^8-byte
+        array costs its page faults (~0.1 s) at every build."""
+        held = self._buffers.get((name, k))
         if held is None or held.shape[0] < n:
-            held = np.empty((n + n // 4 + 16, k))
-            self._buffers[k] = held
+            held = np.empty((n + n // 4 + 16, k), dtype=dtype)
+            self._buffers[(name, k)] = held
         return held[:n]
 
 
@@ -606,6 +623,16 @@ def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:
     columns = [np.reshape(a[rows], (len(rows), int(np.prod(a.shape[1:], dtype=np.int64))))
                .astype(np.float64, copy=False) for a in arrays]  # fmt: skip
     return np.concatenate(columns, axis=1)
+
+
+def _merged(old: NDArray, incoming: NDArray, order: NDArray[np.int64]) -> NDArray:
+    """The rows of ``old`` then ``incoming`` (same dtype and row shape) in ``order``
+    (:func:`md.domain.merged_order`)."""
+    out = np.empty((len(order), *old.shape[1:]), dtype=old.dtype)
+    width = int(np.prod(old.shape[1:], dtype=np.int64))
+    take_rows(old.reshape(len(old), width), np.ascontiguousarray(incoming).reshape(-1, width),
+              order, out.reshape(len(order), width))  # fmt: skip
+    return out
 
 
 def _unpacked(rows: NDArray[np.float64], like) -> list[NDArray]:
@@ -717,6 +744,8 @@ class DistributedForceField:
         self.migrate_pending = False
         #: Set by the simulation at each step start: the look-ahead measures from there.
         self.step_start = np.empty((0, 3))
+        #: The step start before that (empty when atoms migrated in between).
+        self.step_before = np.empty((0, 3))
         #: A stop request of this rank (1 SIGINT, 2 SIGTERM, 3 other), shared at the next
         #: evaluation; ``stop_seen`` and ``ahead`` are the largest over the ranks there.
         self.stop_code = 0.0
@@ -827,7 +856,10 @@ class DistributedForceField:
         if totals[0]:
             agree(self.ranks, error)
         with self.ranks.clock:
-            forces = self.domain.reverse(np.array(result.forces, dtype=np.float64)).copy()
+            # The local result is this evaluation's own (the local cache was just cleared):
+            # the ghosts' rows are summed into it in place and the owned rows returned as they
+            # are (a 10^6-atom rank saves two copies of its forces a step).
+            forces = self.domain.reverse(np.asarray(result.forces, dtype=np.float64))
             energies = virials = None
             if per_atom:
                 energies = self.domain.reverse(np.array(result.energies)[:, None])[:, 0].copy()
@@ -876,18 +908,38 @@ class DistributedForceField:
         if mapping is None and begin is None:
             chunks = chunk_count(state.n_atoms, _MIN_PASS_ATOMS)
             moved2 = largest_displacement2(state.positions, self.reference, chunks)
-            step2 = 0.0
+            step2, coming2 = 0.0, moved2
         else:
-            moved2, step2 = moved_since(state.positions, self.reference,
-                                        _IDENTITY if mapping is None else mapping,
-                                        state.positions if begin is None else begin)  # fmt: skip
+            before = self.step_before if begin is not None else _NONE
+            moved2, step2, coming2 = moved_since(state.positions, self.reference,
+                                                 _IDENTITY if mapping is None else mapping,
+                                                 state.positions if begin is None else begin,
+                                                 before)  # fmt: skip
         self.timings["neighbor"] += time.perf_counter() - start  # the list's check
         with self.ranks.clock:
             self.domain.update(state)
         self._exchanged = _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
-        return moved <= allowed, _ratio(moved + LOOKAHEAD * step_move, allowed), finite
+        coming = math.sqrt(coming2) + LOOKAHEAD * step_move
+        return moved <= allowed, _ratio(coming, allowed), finite
+
+    def cached_forces(self, state: State) -> NDArray[np.float64] | None:
+        """The forces on ``state``'s owned atoms if they are at hand (computed at these
+        positions and cell), else None; nothing is computed."""
+        held = self._cache.get(None)
+        if held is not None and _same(held[0], state):
+            return held[1].forces
+        return None
+
+    def start_step(self, positions: NDArray[np.float64], migrated: bool) -> None:
+        """Note the owned ``positions`` at a step start, keeping the last step start's
+        unless atoms ``migrated`` since (the look-ahead uses both)."""
+        if migrated or self.step_start.shape != positions.shape:
+            self.step_before = _NONE
+        else:
+            self.step_before, self.step_start = self.step_start, self.step_before
+        self.step_start = _copied(positions, self.step_start)
 
     def allowance(self, state: State) -> tuple[NDArray | None, float]:
         """(the cell's deformation since the build, None if unchanged; the largest move an
@@ -903,15 +955,25 @@ class DistributedForceField:
         smallest = float(np.linalg.svd(mapping, compute_uv=False).min())
         return mapping, 0.5 * (smallest * (cutoff + self.skin) - cutoff)
 
-    def rebuild(self, state: State, migrate: bool, carried: dict | None = None) -> dict:
+    def rebuild(self, state: State, migrate: bool, carried: dict | None = None,
+                heading: NDArray[np.float64] | None = None) -> dict:  # fmt: skip
         """Rebuild the ghosts and the local list at ``state``; with ``migrate``, first move
         atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
         bricks. Collective. Returns the carried arrays, migrated.
+
+        ``heading``, each owned atom's expected move over the coming step (migrated with
+        it), lays the ghosts and the list out at the positions the step is expected to
+        reach: a rebuild taken at a step start then lasts as many steps as one taken
+        after the step's move, as a single process's is (a list built where the atoms are
+        would lose a step's worth of skin). Any build position is valid: the list is
+        checked against it at every evaluation.
 
         Its time goes to ``timings["neighbor"]``, less the migration's and the ghost
         search's (on the ranks' clock)."""
         start, communicated = time.perf_counter(), self.ranks.clock.seconds
         carried = dict(carried or {})
+        if heading is not None:
+            carried[_HEADING] = heading
         if migrate:
             # Results of the current positions travel with their atoms; older ones (a
             # minimiser migrates after moving the atoms, before evaluating) are dropped.
@@ -926,9 +988,14 @@ class DistributedForceField:
                 result.energies = result.virials = None
                 self._cache[which] = (_key(state), result)
         self.migrate_pending = not migrate
+        at = state
+        heading = carried.pop(_HEADING, None)
+        if heading is not None:
+            at = copy.copy(state)
+            at.positions = state.positions + heading
         reach = self.reach
         with self.ranks.clock:
-            self.domain.build(state, reach)
+            self.domain.build(at, reach)
         error, longest = None, 0.0
         try:
             longest = self._localize_bonded()
@@ -949,11 +1016,14 @@ class DistributedForceField:
                     "the last build; bonds must not stretch that fast"
                 )
             self.bond_reach = longest
-        self.reference = state.positions.copy()
+        self.reference = at.positions.copy() if at is state else at.positions
         self.reference_cell = (state.box.copy(), state.tilt.copy())
         self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
         self.local.invalidate()
-        self._exchanged = _key(state, self._exchanged)
+        # Built where the atoms are: the local system holds their positions. Built ahead of
+        # them: the next evaluation sends positions on every rank (a rank whose atoms reach
+        # their predicted positions to the last bit must not skip a collective exchange).
+        self._exchanged = _key(state, self._exchanged) if at is state else None
         self.ahead = 0.0
         self.n_builds += 1
         elapsed = time.perf_counter() - start
@@ -1155,20 +1225,33 @@ class DistributedSimulation(Simulation):
             names = {value: name for name, value in _STOPS.items()}
             self.stop_requested = names.get(forcefield.stop_seen, "stop requested")
             return True
-        if forcefield.ahead > 1.0 or forcefield.migrate_pending:
-            self._guarded(self._migrate, self.state.step)
-        forcefield.step_start = _copied(self.state.positions, forcefield.step_start)
+        migrating = forcefield.ahead > 1.0 or forcefield.migrate_pending
+        if migrating:
+            self._guarded(lambda: self._migrate(heading=self._heading()), self.state.step)
+        forcefield.start_step(self.state.positions, migrating)
         return False
 
-    def _migrate(self, carried: dict | None = None) -> dict:
-        """Migrate atoms (with the integrator's per-atom state and ``carried``) and rebuild.
-        Collective."""
+    def _heading(self) -> NDArray[np.float64] | None:
+        """Each owned atom's expected move over the coming step, dt v + dt^2 a / 2 with the
+        forces at hand (None without a time step): velocity Verlet's move."""
+        dt = getattr(self.integrator, "dt", None)
+        if dt is None or self.state.velocities is None:
+            return None
+        heading = float(dt) * self.state.velocities
+        forces = self.forcefield.cached_forces(self.state)
+        if forces is not None:  # + dt^2 a / 2: velocity Verlet's move exactly
+            heading += (0.5 * float(dt) ** 2) * forces / self.state.masses[:, None]
+        return heading
+
+    def _migrate(self, carried: dict | None = None, heading=None) -> dict:
+        """Migrate atoms (with the integrator's per-atom state and ``carried``) and rebuild
+        (at ``heading``, see :meth:`DistributedForceField.rebuild`). Collective."""
         integrator = self.integrator
         keys = self.per_atom_keys()
         saved = integrator.get_state() if keys else {}
         extra = {key: np.asarray(saved[key]) for key in keys if saved.get(key) is not None}
         carried = {**extra, **(carried or {})}
-        moved = self.forcefield.rebuild(self.state, migrate=True, carried=carried)
+        moved = self.forcefield.rebuild(self.state, migrate=True, carried=carried, heading=heading)
         if extra:
             saved.update({key: moved[key] for key in extra})
             integrator.set_state(saved)
@@ -1179,10 +1262,11 @@ class DistributedSimulation(Simulation):
         the next step could outrun the list; return the velocities of the atoms now owned.
         Collective."""
         forcefield = self.forcefield
-        if forcefield.ahead > 1.0 or forcefield.migrate_pending:
+        migrating = forcefield.ahead > 1.0 or forcefield.migrate_pending
+        if migrating:
             key = ("minimizer", "velocities")
             velocities = self._migrate({key: velocities})[key]
-        forcefield.step_start = _copied(self.state.positions, forcefield.step_start)
+        forcefield.start_step(self.state.positions, migrating)
         return velocities
 
     def _check_displacement(self, limit: float) -> None:
@@ -1309,7 +1393,7 @@ class DistributedSimulation(Simulation):
             forcefield.bond_reach = float(layout.get("bond_reach", forcefield.bond_reach))
         forcefield.invalidate()
         forcefield.rebuild(part_at_build, migrate=False)
-        forcefield.step_start = np.empty((0, 3))
+        forcefield.step_start = forcefield.step_before = _NONE
         self._localize_integrator()
         forcefield.refresh(self.state)
         # What the uninterrupted run's next step start would have seen.

@@ -237,6 +237,130 @@ def home_images(fractions, center, bounds, widths, pbc, images, home):
 
 
 @njit(cache=True, error_model="numpy")
+def leaving_along(positions, box, tilt, pbc, shape, axis, coordinate):
+    """The atoms whose bricks lie one step up and one step down ``axis`` from the brick at
+    ``coordinate`` along it (index arrays, increasing), and how many lie further away: the
+    split of one migration sweep, in one pass (bricks as :func:`brick_of` of
+    :func:`fractional_coordinates` finds them). With two bricks along the axis, "up"
+    takes both neighbours."""
+    n = positions.shape[0]
+    p = shape[axis]
+    up = np.empty(n, dtype=np.int64)
+    down = np.empty(n, dtype=np.int64)
+    n_up = 0
+    n_down = 0
+    lost = 0
+    for i in range(n):
+        sz = positions[i, 2] / box[2] if pbc[2] else 0.5
+        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
+        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
+        sx = x / box[0] if pbc[0] else 0.5
+        f = sx if axis == 0 else (sy if axis == 1 else sz)
+        f = f - np.floor(f)
+        c = min(max(int(np.floor(f * p)), 0), p - 1)
+        delta = (c - coordinate) % p
+        if delta == 0:
+            continue
+        if delta == 1:
+            up[n_up] = i
+            n_up += 1
+        elif delta == p - 1:
+            down[n_down] = i
+            n_down += 1
+        else:
+            lost += 1
+    return up[:n_up].copy(), down[:n_down].copy(), lost
+
+
+@njit(cache=True, error_model="numpy")
+def merged_order(ids, gone, incoming_ids):
+    """Where each row of a rank's arrays after a migration sweep comes from, in increasing
+    id: ``k < len(ids)`` an atom that stays (``gone[k]`` false), ``len(ids) + j`` incoming
+    row j. ``ids`` must increase (as a rank keeps them); an empty array if they do not."""
+    n = ids.shape[0]
+    m = incoming_ids.shape[0]
+    staying = 0
+    last = -1
+    for i in range(n):
+        if not gone[i]:
+            if ids[i] <= last:
+                return np.empty(0, dtype=np.int64)
+            last = ids[i]
+            staying += 1
+    arriving = np.argsort(incoming_ids, kind="mergesort")
+    order = np.empty(staying + m, dtype=np.int64)
+    i = 0
+    j = 0
+    for k in range(staying + m):
+        while i < n and gone[i]:
+            i += 1
+        if j < m and (i >= n or incoming_ids[arriving[j]] < ids[i]):
+            order[k] = n + arriving[j]
+            j += 1
+        else:
+            order[k] = i
+            i += 1
+    return order
+
+
+@njit(cache=True, error_model="numpy")
+def take_rows(old, incoming, order, out):
+    """out[k] = old[order[k]], or incoming[order[k] - len(old)] past the old rows (2-D)."""
+    n = old.shape[0]
+    for k in range(order.shape[0]):
+        source = order[k]
+        if source < n:
+            for a in range(old.shape[1]):
+                out[k, a] = old[source, a]
+        else:
+            for a in range(old.shape[1]):
+                out[k, a] = incoming[source - n, a]
+
+
+@njit(cache=True, error_model="numpy")
+def lay_out_owned(positions, images, cell, home, ids, types, data):
+    """The first rows of a ghost-search table: each owned atom at its image nearest the
+    brick (3 columns), its fractional coordinates there (3), id and type."""
+    for i in range(positions.shape[0]):
+        n0, n1, n2 = images[i, 0], images[i, 1], images[i, 2]
+        for a in range(3):
+            data[i, a] = positions[i, a] - (n0 * cell[0, a] + n1 * cell[1, a] + n2 * cell[2, a])
+            data[i, 3 + a] = home[i, a]
+        data[i, 6] = ids[i]
+        data[i, 7] = types[i]
+
+
+@njit(cache=True, error_model="numpy")
+def near_faces(data, end, column, lower, upper):
+    """Rows before ``end`` of a ghost-search table whose fractional ``column`` lies below
+    ``lower`` and at or above ``upper``: the atoms one sweep sends down and up."""
+    below = np.empty(end, dtype=np.int64)
+    above = np.empty(end, dtype=np.int64)
+    n_below = 0
+    n_above = 0
+    for i in range(end):
+        f = data[i, column]
+        if f < lower:
+            below[n_below] = i
+            n_below += 1
+        if f >= upper:
+            above[n_above] = i
+            n_above += 1
+    return below[:n_below].copy(), above[:n_above].copy()
+
+
+@njit(cache=True, error_model="numpy")
+def split_table(data, count, positions, ids, types):
+    """The columns of a ghost-search table's first ``count`` rows as the local system's
+    positions, ids and types."""
+    for i in range(count):
+        for a in range(3):
+            positions[i, a] = data[i, a]
+        ids[i] = np.int64(data[i, 6])
+        types[i] = np.int32(data[i, 7])
+
+
+@njit(cache=True, error_model="numpy")
 def home_positions(positions, images, cell, out):
     """out[i] = positions[i] - images[i] @ cell: each atom at the image nearest its brick
     (``cell``: rows a, b, c)."""
@@ -265,29 +389,50 @@ def add_rows(values, indices, rows):
 
 
 @njit(cache=True, error_model="numpy")
-def moved_since(positions, reference, mapping, previous):
+def moved_since(positions, reference, mapping, previous, before):
     """Return (largest squared distance of an atom from its build position carried along with
-    the cell, ``reference[i] @ mapping``, largest squared move since ``previous``), both inf
-    if a position is not finite."""
+    the cell, ``reference[i] @ mapping``; largest squared move since ``previous``; the
+    largest squared distance from the build position an atom may reach in its next move),
+    all inf if a position is not finite.
+
+    The next move is taken as the last one, s = x - previous, give or take how much the
+    last move differed from the one before, (previous - before): |d + s| + 1.5 |s - s'|
+    for each atom, d its distance from the build position (with no ``before``, rows 0,
+    half its last move instead). A velocity Verlet move changes by dt^2 a from one step
+    to the next, so that much of a margin is each atom's own, not the fastest one's.
+    """
     since_build = 0.0
     since_previous = 0.0
+    coming = 0.0
     finite = True
+    known = before.shape[0] == positions.shape[0]
     for i in range(positions.shape[0]):
         d2 = 0.0
         s2 = 0.0
+        c2 = 0.0
+        e2 = 0.0
         for a in range(3):
             x = positions[i, a]
             mapped = (reference[i, 0] * mapping[0, a] + reference[i, 1] * mapping[1, a]
                       + reference[i, 2] * mapping[2, a])  # fmt: skip
-            d2 += (x - mapped) ** 2
-            s2 += (x - previous[i, a]) ** 2
+            d = x - mapped
+            s = x - previous[i, a]
+            d2 += d * d
+            s2 += s * s
+            c2 += (d + s) * (d + s)
+            if known:
+                e = s - (previous[i, a] - before[i, a])
+                e2 += e * e
         if not (d2 < np.inf and s2 < np.inf):  # also NaN
             finite = False
         since_build = max(since_build, d2)
         since_previous = max(since_previous, s2)
+        margin = 1.5 * np.sqrt(e2) if known else 0.5 * np.sqrt(s2)
+        reach = np.sqrt(c2) + margin
+        coming = max(coming, reach * reach)
     if not finite:
-        return np.inf, np.inf
-    return since_build, since_previous
+        return np.inf, np.inf, np.inf
+    return since_build, since_previous, coming
 
 
 @njit(cache=True, error_model="numpy")
@@ -351,7 +496,13 @@ __all__ = [
     "home_images",
     "home_positions",
     "largest_grid",
+    "lay_out_owned",
+    "leaving_along",
+    "merged_order",
     "moved_since",
+    "near_faces",
     "nearest_copies",
     "pack_rows",
+    "split_table",
+    "take_rows",
 ]

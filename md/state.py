@@ -142,6 +142,28 @@ class State:
         self.time = float(self.time)
         self.validate()
 
+    @classmethod
+    def adopting(cls, positions, types, box, pbc, type_names) -> State:
+        """A State that takes ``positions`` ((N, 3) float64) and ``types`` ((N,) int32),
+        both C-contiguous, as they are: no copies and no checks. For systems the engine
+        lays out itself from a checked State's values, such as an MPI rank's local system
+        (laid out anew at every neighbour-list build, where copying and checking 10^6 atoms
+        cost as much as finding the ghosts). Unit masses, zero velocities, no tilt."""
+        state = cls.__new__(cls)
+        n = positions.shape[0]
+        state.positions = positions
+        state.velocities = np.zeros((n, 3))
+        state.masses = np.ones(n)
+        state.box = np.array(box, dtype=np.float64)
+        state.pbc = np.broadcast_to(np.asarray(pbc, dtype=bool), (3,)).copy()
+        state.types = types
+        state.type_names = tuple(str(name) for name in type_names)
+        state.step = 0
+        state.time = 0.0
+        state.tilt = np.zeros(3)
+        state.ids = None
+        return state
+
     def validate(self) -> None:
         """Raise ValueError naming the first physically invalid field."""
         if not np.all(np.isfinite(self.positions)):

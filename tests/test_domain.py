@@ -1,0 +1,150 @@
+"""The kernels of a decomposed run's migration, ghost search and look-ahead (md.domain),
+against numpy's way of doing the same; no MPI needed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from md.box import cell_matrix
+from md.domain import (
+    brick_of,
+    fractional_coordinates,
+    lay_out_owned,
+    leaving_along,
+    merged_order,
+    moved_since,
+    near_faces,
+    split_table,
+    take_rows,
+)
+from md.state import State
+
+BOX = np.array([10.0, 8.0, 7.0])
+TILT = np.array([1.5, -0.8, 0.6])
+PBC = np.array([True, True, True])
+
+
+def scattered(n: int, seed: int = 0) -> np.ndarray:
+    """Positions in and around the tilted cell (some an image or two away)."""
+    rng = np.random.default_rng(seed)
+    fractions = rng.uniform(-1.2, 2.2, (n, 3))
+    return fractions @ cell_matrix(BOX, TILT)
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
+def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape):
+    positions = scattered(5000)
+    fractions = np.empty_like(positions)
+    fractional_coordinates(positions, BOX, TILT, PBC, fractions)
+    bricks = np.empty((len(positions), 3), dtype=np.int64)
+    grid = np.array(shape, dtype=np.int64)
+    brick_of(fractions, grid, bricks)
+    for axis in range(3):
+        p = shape[axis]
+        if p == 1:
+            continue
+        for coordinate in range(p):
+            up, down, lost = leaving_along(positions, BOX, TILT, PBC, grid, axis, coordinate)
+            delta = (bricks[:, axis] - coordinate) % p
+            np.testing.assert_array_equal(up, np.flatnonzero(delta == 1))
+            np.testing.assert_array_equal(down, np.flatnonzero((delta == p - 1) & (delta != 1)))
+            assert lost == np.count_nonzero((delta != 0) & (delta != 1) & (delta != p - 1))
+            assert len(up) > 0 and (p == 2 or len(down) > 0)
+
+
+def test_merged_order_and_take_rows_equal_a_sort_by_id():
+    rng = np.random.default_rng(1)
+    ids = np.sort(rng.choice(100_000, 3000, replace=False)).astype(np.int64)
+    gone = rng.random(len(ids)) < 0.1
+    arriving = rng.choice(np.setdiff1d(np.arange(100_000), ids), 400, replace=False)
+    order = merged_order(ids, gone, arriving.astype(np.int64))
+    old = rng.random((len(ids), 3))
+    incoming = rng.random((len(arriving), 3))
+    out = np.empty((len(order), 3))
+    take_rows(old, incoming, order, out)
+    # numpy: keep, append, sort by id
+    both_ids = np.concatenate([ids[~gone], arriving])
+    by_id = np.argsort(both_ids, kind="stable")
+    np.testing.assert_array_equal(out, np.concatenate([old[~gone], incoming])[by_id])
+    np.testing.assert_array_equal(np.diff(both_ids[by_id]) > 0, True)
+    # ids out of order: no order (the caller sorts)
+    shuffled = ids.copy()
+    shuffled[[5, 6]] = shuffled[[6, 5]]
+    assert merged_order(shuffled, np.zeros(len(ids), dtype=bool), arriving).size == 0
+
+
+def test_near_faces_and_the_table_round_trip():
+    rng = np.random.default_rng(2)
+    n = 2000
+    positions = scattered(n, seed=3)
+    images = rng.integers(-1, 2, (n, 3))
+    home = rng.random((n, 3))
+    ids = rng.permutation(n).astype(np.int64)
+    types = rng.integers(0, 3, n).astype(np.int32)
+    table = np.empty((n + 10, 8))
+    cell = cell_matrix(BOX, TILT)
+    lay_out_owned(positions, images, cell, home, ids, types, table)
+    np.testing.assert_allclose(table[:n, :3], positions - images @ cell, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(table[:n, 3:6], home)
+    for column in (3, 4, 5):
+        below, above = near_faces(table, n, column, 0.2, 0.7)
+        np.testing.assert_array_equal(below, np.flatnonzero(home[:, column - 3] < 0.2))
+        np.testing.assert_array_equal(above, np.flatnonzero(home[:, column - 3] >= 0.7))
+    out = np.empty((n, 3))
+    out_ids = np.empty(n, dtype=np.int64)
+    out_types = np.empty(n, dtype=np.int32)
+    split_table(table, n, out, out_ids, out_types)
+    np.testing.assert_array_equal(out, table[:n, :3])
+    np.testing.assert_array_equal(out_ids, ids)
+    np.testing.assert_array_equal(out_types, types)
+
+
+def test_the_look_ahead_bounds_each_atoms_next_move():
+    """Velocity Verlet on a set of anharmonic oscillators: the bound moved_since gives from
+    the last two moves holds for the true next position of every atom, and is exact
+    (|d + s|) for atoms moving at constant velocity."""
+    rng = np.random.default_rng(4)
+    n, dt = 500, 0.005
+    x = rng.normal(0.0, 1.0, (n, 3))
+    v = rng.normal(0.0, 2.0, (n, 3))
+
+    def force(r):
+        return -4.0 * r - 3.0 * r**3
+
+    f = force(x)
+    history = [x.copy()]
+    for _ in range(40):
+        v += 0.5 * dt * f
+        x += dt * v
+        f = force(x)
+        v += 0.5 * dt * f
+        history.append(x.copy())
+    reference = history[0]
+    for k in range(2, 39):
+        now, previous, before = history[k], history[k - 1], history[k - 2]
+        d2, s2, c2 = moved_since(now, reference, np.eye(3), previous, before)
+        assert d2 == pytest.approx(np.max(np.sum((now - reference) ** 2, axis=1)))
+        assert s2 == pytest.approx(np.max(np.sum((now - previous) ** 2, axis=1)))
+        true_next = np.sqrt(np.max(np.sum((history[k + 1] - reference) ** 2, axis=1)))
+        assert true_next <= np.sqrt(c2)
+    # constant velocity: the next move is the last one, exactly
+    steady = [reference + t * 0.01 * np.ones(3) for t in range(3)]
+    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], steady[0])
+    assert np.sqrt(c2) == pytest.approx(0.03 * np.sqrt(3))
+    # without the step before: half the last move as the margin
+    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], np.empty((0, 3)))
+    assert np.sqrt(c2) == pytest.approx(0.035 * np.sqrt(3))
+    broken = steady[2].copy()
+    broken[3, 1] = np.nan
+    assert moved_since(broken, reference, np.eye(3), steady[1], steady[0]) == (np.inf,) * 3
+
+
+def test_an_adopted_state_shares_its_arrays():
+    positions = np.zeros((4, 3))
+    types = np.array([0, 1, 1, 0], dtype=np.int32)
+    state = State.adopting(positions, types, BOX, False, ("A", "B"))
+    assert state.positions is positions and state.types is types
+    assert state.n_atoms == 4 and state.n_types == 2 and not state.pbc.any()
+    np.testing.assert_array_equal(state.masses, 1.0)
+    np.testing.assert_array_equal(state.tilt, 0.0)
