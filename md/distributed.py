@@ -129,8 +129,6 @@ _MIN_PASS_ATOMS = 16_000
 _IDENTITY = np.eye(3)
 #: No positions: no step start before the last one is known.
 _NONE = np.empty((0, 3))
-#: The key under which a rebuild's heading travels with the migrating atoms.
-_HEADING = ("build", "heading")
 #: Stop requests as numbers, for the reduction that makes every rank see them.
 _STOPS = {"SIGINT": 1.0, "SIGTERM": 2.0}
 
@@ -805,14 +803,20 @@ class DistributedForceField:
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
+        usable = False
         if held is not None and _same(held[0], state):
             result = held[1]
-            if (not per_atom or result.energies is not None) and (
+            usable = (not per_atom or result.energies is not None) and (
                 not virial or result.virial is not None
-            ):
-                return result
+            )
+        exchanged = self._exchanged is not None and _same(self._exchanged, state)
+        # Decided together: a rank that owns no atoms sees its (no) positions unchanged
+        # while the others' moved, and must still evaluate and exchange with them.
+        usable, exchanged = self._all_ranks(usable, exchanged)
+        if usable:
+            return held[1]
         virial = virial or self.virial_wanted
-        result = self._evaluate(state, which, per_atom, virial)
+        result = self._evaluate(state, which, per_atom, virial, exchanged)
         if which is None:
             self.n_evaluations += 1
         else:
@@ -820,12 +824,19 @@ class DistributedForceField:
         self._cache[which] = (_key(state, held[0] if held else None), result)
         return result
 
-    def _evaluate(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
+    def _all_ranks(self, *flags: bool) -> tuple[bool, ...]:
+        """Whether each of ``flags`` holds on every rank (one reduction; collective)."""
+        failing = self.ranks.max(np.array([0.0 if flag else 1.0 for flag in flags]))
+        return tuple(bool(value == 0.0) for value in failing)
+
+    def _evaluate(self, state: State, which, per_atom: bool, virial: bool,
+                  exchanged: bool = False) -> ForceResult:  # fmt: skip
         """Exchange, compute, share: one reduction carries the energy and virial, whether a
         rank failed or found its list outrun (then every rank rebuilds and evaluates again),
         and what the next step start needs (the look-ahead, a stop request)."""
         for _ in range(2):
-            covered, ahead, finite = self.refresh(state)
+            covered, ahead, finite = self.refresh(state, exchanged)
+            exchanged = False  # a rebuild below lays the local system out anew
             start = time.perf_counter()
             error, result = None, None
             try:
@@ -894,13 +905,15 @@ class DistributedForceField:
         return local
 
     # ----------------------------------------------------------------- rebuilds
-    def refresh(self, state: State) -> tuple[bool, float, bool]:
-        """Bring the local system to ``state``'s positions (sending the ghosts'); return
-        (whether this rank's list still covers the cutoff, the look-ahead ratio, whether
-        its positions are finite). Collective; the first call builds."""
+    def refresh(self, state: State, exchanged: bool = False) -> tuple[bool, float, bool]:
+        """Bring the local system to ``state``'s positions (sending the ghosts') unless every
+        rank found them ``exchanged`` already; return (whether this rank's list still
+        covers the cutoff, the look-ahead ratio, whether its positions are finite).
+        Collective; the first call builds."""
         if self.reference is None or self.reference.shape != state.positions.shape:
             self.rebuild(state, migrate=False)
-        if self._exchanged is not None and _same(self._exchanged, state):
+            exchanged = False
+        if exchanged:
             return True, self.ahead, True
         start = time.perf_counter()
         mapping, allowed = self.allowance(state)
@@ -923,6 +936,15 @@ class DistributedForceField:
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
         return moved <= allowed, _ratio(coming, allowed), finite
+
+    def coming_moves(self, state: State, dt: float) -> NDArray[np.float64]:
+        """Each owned atom's expected move over a step of ``dt``: dt v + dt^2 a / 2 (velocity
+        Verlet's move) with the forces at hand, dt v without."""
+        moves = float(dt) * state.velocities
+        forces = self.cached_forces(state)
+        if forces is not None:
+            moves += (0.5 * float(dt) ** 2) * forces / state.masses[:, None]
+        return moves
 
     def cached_forces(self, state: State) -> NDArray[np.float64] | None:
         """The forces on ``state``'s owned atoms if they are at hand (computed at these
@@ -956,24 +978,22 @@ class DistributedForceField:
         return mapping, 0.5 * (smallest * (cutoff + self.skin) - cutoff)
 
     def rebuild(self, state: State, migrate: bool, carried: dict | None = None,
-                heading: NDArray[np.float64] | None = None) -> dict:  # fmt: skip
+                dt: float | None = None) -> dict:  # fmt: skip
         """Rebuild the ghosts and the local list at ``state``; with ``migrate``, first move
         atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
         bricks. Collective. Returns the carried arrays, migrated.
 
-        ``heading``, each owned atom's expected move over the coming step (migrated with
-        it), lays the ghosts and the list out at the positions the step is expected to
-        reach: a rebuild taken at a step start then lasts as many steps as one taken
-        after the step's move, as a single process's is (a list built where the atoms are
-        would lose a step's worth of skin). Any build position is valid: the list is
-        checked against it at every evaluation.
+        With ``dt``, the time step about to be taken, the ghosts and the list are laid out
+        where that step is expected to take the atoms (:meth:`coming_moves`): a rebuild
+        taken at a step start then lasts as many steps as one taken after the step's move,
+        as a single process's is (a list built where the atoms are would lose a step's
+        worth of skin). Any build position is valid: the list is checked against it at
+        every evaluation.
 
         Its time goes to ``timings["neighbor"]``, less the migration's and the ghost
         search's (on the ranks' clock)."""
         start, communicated = time.perf_counter(), self.ranks.clock.seconds
         carried = dict(carried or {})
-        if heading is not None:
-            carried[_HEADING] = heading
         if migrate:
             # Results of the current positions travel with their atoms; older ones (a
             # minimiser migrates after moving the atoms, before evaluating) are dropped.
@@ -989,10 +1009,9 @@ class DistributedForceField:
                 self._cache[which] = (_key(state), result)
         self.migrate_pending = not migrate
         at = state
-        heading = carried.pop(_HEADING, None)
-        if heading is not None:
+        if dt is not None and state.velocities is not None:
             at = copy.copy(state)
-            at.positions = state.positions + heading
+            at.positions = state.positions + self.coming_moves(state, dt)
         reach = self.reach
         with self.ranks.clock:
             self.domain.build(at, reach)
@@ -1227,31 +1246,20 @@ class DistributedSimulation(Simulation):
             return True
         migrating = forcefield.ahead > 1.0 or forcefield.migrate_pending
         if migrating:
-            self._guarded(lambda: self._migrate(heading=self._heading()), self.state.step)
+            dt = getattr(self.integrator, "dt", None)
+            self._guarded(lambda: self._migrate(dt=dt), self.state.step)
         forcefield.start_step(self.state.positions, migrating)
         return False
 
-    def _heading(self) -> NDArray[np.float64] | None:
-        """Each owned atom's expected move over the coming step, dt v + dt^2 a / 2 with the
-        forces at hand (None without a time step): velocity Verlet's move."""
-        dt = getattr(self.integrator, "dt", None)
-        if dt is None or self.state.velocities is None:
-            return None
-        heading = float(dt) * self.state.velocities
-        forces = self.forcefield.cached_forces(self.state)
-        if forces is not None:  # + dt^2 a / 2: velocity Verlet's move exactly
-            heading += (0.5 * float(dt) ** 2) * forces / self.state.masses[:, None]
-        return heading
-
-    def _migrate(self, carried: dict | None = None, heading=None) -> dict:
+    def _migrate(self, carried: dict | None = None, dt: float | None = None) -> dict:
         """Migrate atoms (with the integrator's per-atom state and ``carried``) and rebuild
-        (at ``heading``, see :meth:`DistributedForceField.rebuild`). Collective."""
+        (ahead of a step of ``dt``, see :meth:`DistributedForceField.rebuild`). Collective."""
         integrator = self.integrator
         keys = self.per_atom_keys()
         saved = integrator.get_state() if keys else {}
         extra = {key: np.asarray(saved[key]) for key in keys if saved.get(key) is not None}
         carried = {**extra, **(carried or {})}
-        moved = self.forcefield.rebuild(self.state, migrate=True, carried=carried, heading=heading)
+        moved = self.forcefield.rebuild(self.state, migrate=True, carried=carried, dt=dt)
         if extra:
             saved.update({key: moved[key] for key in extra})
             integrator.set_state(saved)

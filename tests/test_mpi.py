@@ -196,6 +196,66 @@ def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
     assert relative < 1e-10
 
 
+#: Atoms in the first third of a cell three times the lattice's length along x: on three
+#: bricks along x the other two ranks own no atoms (and only ghosts, or nothing).
+VACUUM = (
+    "import sys\n"
+    "import numpy as np\n"
+    "import md\n"
+    "from integrators import VelocityVerlet\n"
+    "from potentials import LennardJones\n"
+    "def system():\n"
+    "    lattice = md.lattice('fcc', (4, 4, 4), density=0.8442)\n"
+    "    box = lattice.box.copy()\n"
+    "    box[0] *= 3.0\n"
+    "    velocities = np.random.default_rng(7).normal(0.0, 1.0, lattice.positions.shape)\n"
+    "    return md.State(positions=lattice.positions, velocities=velocities, masses=1.0,\n"
+    "                    box=box)\n"
+    "def simulation(state, **options):\n"
+    "    return options.pop('kind')(state, [LennardJones(cutoff=2.5)],\n"
+    "                               VelocityVerlet(dt=0.002), skin=0.3, **options)\n"
+    "if __name__ == '__main__':\n"
+    "    from md.distributed import DistributedSimulation\n"
+    "    sim = simulation(system(), kind=DistributedSimulation, decomposition=[3, 1, 1])\n"
+    "    owned = sim.ranks.all_objects(sim.state.n_atoms)\n"
+    "    sim.run(40)\n"
+    "    energy = sim.thermo()['potential_energy']\n"
+    "    view = sim.global_view()\n"
+    "    if sim.rank == 0:\n"
+    "        np.save(sys.argv[1], view.state.positions)\n"
+    "        print('owned', *owned, 'energy', repr(energy))\n"
+)
+
+
+@needs_mpi
+def test_ranks_that_own_no_atoms_keep_step_with_the_others(tmp_path):
+    """Two of three bricks empty (vacuum): every evaluation, exchange and reduction is still
+    taken by every rank together (a rank with no atoms once saw its positions 'unchanged'
+    and skipped them: a hang), and the run follows the serial one."""
+    script = tmp_path / "vacuum.py"
+    script.write_text(VACUUM)
+    out = tmp_path / "positions.npy"
+    done = launch(3, str(script), str(out), cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr + done.stdout
+    words = done.stdout.split()
+    assert words[:4] == ["owned", "256", "0", "0"], done.stdout
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import vacuum
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("vacuum", None)
+    from md.simulation import Simulation
+
+    alone = vacuum.simulation(vacuum.system(), kind=Simulation)
+    alone.run(40)
+    assert float(words[5]) == pytest.approx(alone.thermo()["potential_energy"], rel=1e-12)
+    positions = np.load(out)
+    relative = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(
+        alone.state.positions)  # fmt: skip
+    assert relative < 1e-12
+
+
 PROBE = (
     "import sys, md\n"
     "from md.simulation import Simulation\n"
