@@ -686,3 +686,47 @@ print("ok")
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                           text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("shape", ["open", "periodic"])
+def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, threads,
+                                                                      fcc_lattice):  # fmt: skip
+    """A rank's list (NeighborList.keep_owned): of every pair within the list radius, those
+    whose atom with the smaller id is owned, after the cell search and the O(N^2) one
+    alike (one or two chunks)."""
+    from md.parallel import get_threads, set_threads
+
+    state = fcc_lattice(cells=7, perturbation=0.1, pbc=shape != "open")
+    n = state.n_atoms
+    rng = np.random.default_rng(5)
+    ids = rng.permutation(n).astype(np.int64)
+    n_owned = n // 3
+    before = get_threads()
+    set_threads(threads)
+    try:
+        whole = NeighborList(cutoff=1.5, skin=0.3)
+        whole.build(state)
+        mine = NeighborList(cutoff=1.5, skin=0.3)
+        mine.keep_owned(ids, n_owned)
+        mine.build(state)
+    finally:
+        set_threads(before)
+    assert whole.used_cells and mine.used_cells
+    pairs = whole.pairs()
+    first, second = pairs[:, 0], pairs[:, 1]
+    keep = np.where(ids[first] < ids[second], first < n_owned, second < n_owned)
+    np.testing.assert_array_equal(mine.pairs(), pairs[keep])
+    assert 0 < keep.sum() < len(pairs)
+    # the O(N^2) search keeps the same pairs
+    few = md.State(positions=rng.uniform(0.0, 4.0, (60, 3)), box=[4.0, 4.0, 4.0])
+    alone = NeighborList(cutoff=1.5, skin=0.3)
+    alone.build(few)
+    small = NeighborList(cutoff=1.5, skin=0.3)
+    small.keep_owned(ids[:60], 20)
+    small.build(few)
+    assert not small.used_cells
+    expected = alone.pairs()
+    a, b = expected[:, 0], expected[:, 1]
+    rule = np.where(ids[:60][a] < ids[:60][b], a < 20, b < 20)
+    np.testing.assert_array_equal(small.pairs(), expected[rule])
