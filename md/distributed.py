@@ -481,10 +481,9 @@ class Domain:
             incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
             order = merged_order(arrays[4], gone, incoming[4])
             if order.size == 0 and len(incoming[4]) + int(np.count_nonzero(~gone)) > 0:
-                stay = np.flatnonzero(~gone)  # ids out of order: merge by sorting
-                both = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming,
-                                                                       strict=True)]  # fmt: skip
-                arrays = [a[np.argsort(both[4], kind="stable")] for a in both]
+                stay = np.flatnonzero(~gone)  # ids out of order: appended, sorted below
+                arrays = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming,
+                                                                         strict=True)]  # fmt: skip
                 continue
             arrays = [_merged(a, b, order) for a, b in zip(arrays, incoming, strict=True)]
         ids = arrays[4]
@@ -809,7 +808,10 @@ class DistributedForceField:
             usable = (not per_atom or result.energies is not None) and (
                 not virial or result.virial is not None
             )
-        exchanged = self._exchanged is not None and _same(self._exchanged, state)
+        # A rank that can use its result does not compare its exchanged positions (a full
+        # pass over them each step): "not exchanged" is always safe, it only sends again.
+        exchanged = (not usable and self._exchanged is not None
+                     and _same(self._exchanged, state))  # fmt: skip
         # Decided together: a rank that owns no atoms sees its (no) positions unchanged
         # while the others' moved, and must still evaluate and exchange with them.
         usable, exchanged = self._all_ranks(usable, exchanged)
