@@ -1209,17 +1209,30 @@ def _keep_owned_pairs(order, starts, neighbors, codes, ids, n_owned):
     with_codes = codes.shape[0] > 0
     kept = 0
     begin = starts[0]
+    # The test per pair is ordered so that its branches are predictable: an owned row
+    # keeps its owned partners (nearly all of them) without comparing ids, a ghost row
+    # drops its ghost partners likewise; the ids are compared only across the brick's
+    # face. (Comparing ids first, a coin toss per pair where the ids follow no spatial
+    # order, cost 0.19 s against 0.05 s on 26 million pairs.)
     for p in range(n):
         end = starts[p + 1]
         own_id = slot_ids[p]
-        owned = slot_owned[p]
-        for k in range(begin, end):
-            q = neighbors[k]
-            if owned if own_id < slot_ids[q] else slot_owned[q]:
-                neighbors[kept] = q
-                if with_codes:
-                    codes[kept] = codes[k]
-                kept += 1
+        if slot_owned[p]:
+            for k in range(begin, end):
+                q = neighbors[k]
+                if slot_owned[q] or own_id < slot_ids[q]:
+                    neighbors[kept] = q
+                    if with_codes:
+                        codes[kept] = codes[k]
+                    kept += 1
+        else:
+            for k in range(begin, end):
+                q = neighbors[k]
+                if slot_owned[q] and slot_ids[q] < own_id:
+                    neighbors[kept] = q
+                    if with_codes:
+                        codes[kept] = codes[k]
+                    kept += 1
         begin = end
         starts[p + 1] = kept
     return kept
