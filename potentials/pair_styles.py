@@ -19,7 +19,7 @@ from numba.extending import register_jitable
 
 from md.schema import Key
 from potentials._pair_frame import PairPotential, PairTerm, collapse_error, pair_config_keys
-from potentials.pair_math import exp, log
+from potentials.pair_math import exp, log, reciprocal
 
 __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
 
@@ -36,8 +36,9 @@ def _in_s(r, du, d2u):
 def morse_energy(r2, d0, alpha, r0):
     """u = D0 [exp(-2 a (r - r0)) - 2 exp(-a (r - r0))] and -u'(r) / r."""
     r = math.sqrt(r2)
+    inv_r = reciprocal(r)  # beside the exp, not after it (see pair_math.reciprocal)
     e = exp(-alpha * (r - r0))
-    return d0 * (e * e - 2.0 * e), 2.0 * alpha * d0 * (e * e - e) / r
+    return d0 * (e * e - 2.0 * e), 2.0 * alpha * d0 * (e * e - e) * inv_r
 
 
 def morse_curvature(r2, d0, alpha, r0):
@@ -170,11 +171,12 @@ MIE = PairTerm(mie_energy, mie_curvature, name="mie")
 def buckingham_energy(r2, a, inv_rho, c, barrier2):
     """u = A exp(-r / rho) - C / r^6 and -u'(r) / r; u = -inf inside the barrier."""
     r = math.sqrt(r2)
-    inv_r2 = 1.0 / r2
+    inv_r = reciprocal(r)  # beside the exp, not after it (see pair_math.reciprocal)
+    inv_r2 = inv_r * inv_r
     inv_r6 = inv_r2 * inv_r2 * inv_r2
     e = a * exp(-r * inv_rho)
     u = e - c * inv_r6
-    fr = e * inv_rho / r - 6.0 * c * inv_r6 * inv_r2
+    fr = e * inv_rho * inv_r - 6.0 * c * inv_r6 * inv_r2
     return (u if r2 >= barrier2 else -math.inf), fr
 
 
@@ -265,7 +267,7 @@ BUCKINGHAM = PairTerm(buckingham_energy, buckingham_curvature, name="buckingham"
 def yukawa_energy(r2, a, kappa):
     """u = A exp(-kappa r) / r and -u'(r) / r."""
     r = math.sqrt(r2)
-    inv_r = 1.0 / r
+    inv_r = reciprocal(r)  # beside the exp, not after it (see pair_math.reciprocal)
     u = a * exp(-kappa * r) * inv_r
     return u, u * (kappa * r + 1.0) * inv_r * inv_r
 

@@ -533,6 +533,32 @@ def test_vector_log_is_within_its_stated_error_bound():
     assert log(0.5) == math.log(0.5)
 
 
+def test_reciprocal_is_ieee_division_in_a_fast_math_loop():
+    """potentials.pair_math.reciprocal inside a loop compiled with the pair loops' fast-math
+    flags: 1 / x to the bit (numpy's division), inf at +-0, 0 at inf, NaN for NaN; and the
+    same in Python."""
+    from numba import njit
+
+    from potentials.pair_math import reciprocal
+
+    @njit(fastmath={"reassoc", "contract", "nsz", "arcp"}, error_model="numpy")
+    def evaluate(x, y, out):
+        for i in range(x.shape[0]):
+            out[i] = y[i] * reciprocal(x[i])  # LLVM may not fold this into y / x
+
+    rng = np.random.default_rng(6)
+    x = np.concatenate([10.0 ** rng.uniform(-300.0, 300.0, 100_000), rng.uniform(0.5, 3.0, 100_000),
+                        np.array([0.0, -0.0, np.inf, -np.inf, np.nan])])  # fmt: skip
+    ones = np.ones_like(x)
+    out = np.empty_like(x)
+    evaluate(x, ones, out)
+    with np.errstate(divide="ignore"):
+        expected = 1.0 / x
+    assert np.array_equal(out, expected, equal_nan=True)
+    assert out[-5] == np.inf and out[-4] == -np.inf and out[-3] == 0.0
+    assert [reciprocal(v) for v in (4.0, 0.0, -0.0)] == [0.25, math.inf, -math.inf]
+
+
 # ---------------------------------------------------------------- configs and the CLI
 CONFIG = """
 units = "lj"
