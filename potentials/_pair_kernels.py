@@ -144,6 +144,23 @@ def _padding_distance(table):
     return 1.001 * np.sqrt(far2) if far2 > 0.0 else 1.0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params):
+    """Pad a row's m gathered partners to a whole number of vectors; return the padded
+    count. The pair loop then has no scalar remainder loop, where an exp-based term costs
+    about as much per pair as per vector. The padding sits ``far`` from atom i along x
+    and, with several types, takes the row's first partner's parameters."""
+    padded = (m + (LANES - 1)) & ~(LANES - 1) if m > 0 else 0
+    for k in range(m, padded):
+        gx[k] = xi + far
+        gy[k] = yi
+        gz[k] = zi
+        if not single:
+            for r in range(params.shape[0]):
+                params[r, k] = params[r, 0]
+    return padded
+
+
 # The loops below each run with the cutoff mode a compile-time constant: their
 # dispatchers take it as a literal argument (numba.literally) and inline the loop,
 # so each mode used compiles once. A mode test inside a pair loop made LJ's 2.4
@@ -403,17 +420,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
         if not single:  # contiguous per-partner parameters: the pair loop reads no table
             _gather_pair_columns(frame_types, partners, row, table, params)
-        # The pair loop runs over a whole number of vectors: the row is padded with
-        # partners past the cutoff, so no pair falls to the scalar remainder loop,
-        # where an exp-based term costs about as much per pair as per vector.
-        padded = (m + (LANES - 1)) & ~(LANES - 1) if m > 0 else 0
-        for k in range(m, padded):
-            gx[k] = xi + far
-            gy[k] = yi
-            gz[k] = zi
-            if not single:
-                for r in range(TERM + N_TERM):
-                    params[r, k] = params[r, 0]
+        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
         for k in range(padded):
             dx = xi - gx[k]
             dy = yi - gy[k]
@@ -561,17 +568,7 @@ def _frame_curvature_loop(args, mode, single, out):
         _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
         if not single:  # contiguous per-partner parameters: the pair loop reads no table
             _gather_pair_columns(frame_types, partners, row, table, params)
-        # The pair loop runs over a whole number of vectors: the row is padded with
-        # partners past the cutoff, so no pair falls to the scalar remainder loop,
-        # where an exp-based term costs about as much per pair as per vector.
-        padded = (m + (LANES - 1)) & ~(LANES - 1) if m > 0 else 0
-        for k in range(m, padded):
-            gx[k] = xi + far
-            gy[k] = yi
-            gz[k] = zi
-            if not single:
-                for r in range(TERM + N_TERM):
-                    params[r, k] = params[r, 0]
+        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
         for k in range(padded):
             dx = xi - gx[k]
             dy = yi - gy[k]
