@@ -62,9 +62,10 @@ RC2, RO2, SHIFT, INV_DEN, TERM = range(5)
 
 #: The pair loop's rows are padded to a multiple of this many partners: AVX2's four
 #: doubles per vector (LLVM vectorises the loop four wide and does not interleave it,
-#: as the asm of Morse's and LJ's loops shows). On AVX-512 the vectors hold eight and
-#: the last four pairs of some rows run scalar again; padding to 8 cost LJ about 2 %
-#: here and gained the exp-based terms nothing.
+#: as the asm of Morse's and LJ's loops shows). Compiled for AVX-512 (inspected, not
+#: run here) a Morse-like loop runs eight wide with a four-wide vector epilogue, which
+#: takes a padded row's last four; padding to 8 cost LJ about 2 % on AVX2 and gained
+#: the exp-based terms nothing there.
 LANES = 4
 
 #: LLVM may reorder the sums of the pair loop (energy, force on atom i, virial) into
