@@ -718,6 +718,20 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, thr
     keep = np.where(ids[first] < ids[second], first < n_owned, second < n_owned)
     np.testing.assert_array_equal(mine.pairs(), pairs[keep])
     assert 0 < keep.sum() < len(pairs)
+    # in slot space, each kept pair keeps its image code (the filter moves rows as blocks)
+    if len(whole.codes):
+        assert np.array_equal(whole.order, mine.order)
+
+        def slot_pairs(listed):
+            rows = np.repeat(np.arange(len(listed.slot_starts) - 1),
+                             np.diff(listed.slot_starts))  # fmt: skip
+            return rows, listed.slot_neighbors.astype(np.int64), listed.codes.astype(np.int64)
+
+        p, q, code = slot_pairs(whole)
+        a, b = whole.order[p], whole.order[q]
+        rule = np.where(ids[a] < ids[b], a < n_owned, b < n_owned)
+        expected = np.stack([p[rule], q[rule], code[rule]], axis=1)
+        np.testing.assert_array_equal(np.stack(slot_pairs(mine), axis=1), expected)
     # the O(N^2) search keeps the same pairs
     few = md.State(positions=rng.uniform(0.0, 4.0, (60, 3)), box=[4.0, 4.0, 4.0])
     alone = NeighborList(cutoff=1.5, skin=0.3)
