@@ -7,22 +7,28 @@ a vector form. numba's ``math.exp`` is a call to the C library's scalar
 exp (Morse, Buckingham, Yukawa) stays scalar. :func:`exp` here is written in
 arithmetic that vectorises: Cody-Waite reduction x = k ln 2 + r with
 |r| <= ln 2 / 2 (k rounded by adding 1.5 * 2^52, whose low bits then give
-2^k), exp(r) = 1 + r + r^2 q(r) with q a near-minimax polynomial of degree 9
-(its error below 2e-17 relative), evaluated in Estrin's order: pairs of
-terms, then pairs of pairs, so its chain of dependent steps is 5 long where
-the Horner form it replaced took 13. The pair loops are limited by that chain (each pair
-waits for its sqrt, exp and division in turn, and the CPU holds only a few
-pairs in flight), not by the count of operations. Against the Horner
-evaluation of the degree-13 Taylor polynomial this replaced, per pair as a
-multiple of LJ's cost: Morse 1.75 -> 1.62, Buckingham 1.79 -> 1.62, Yukawa
-1.68 -> 1.53 (``benchmarks/pair_styles.py``, 1 thread, Zen 3, medians of
-three runs of each tree taken in turn).
+2^k), exp(r) = 1 + r + r^2 q(r) with q a polynomial of degree 7 fitted to
+minimise the largest relative error of exp(r) (not of q: near r = 0 the
+factor r^2 makes q's error harmless), evaluated in Estrin's order: pairs of
+terms, then pairs of pairs, so its chain of dependent steps is 4 long where
+the Horner form it replaced took 13. The pair loops are limited by that chain and by
+the count of operations (each pair waits for its sqrt, exp and division in
+turn, and the CPU holds only a few pairs in flight). Per pair as a multiple
+of LJ's cost (``benchmarks/pair_styles.py``, 1 thread, Zen 3): Horner's
+degree-13 Taylor polynomial, Morse 1.75 and Buckingham 1.79; Estrin's order
+with a degree-9 Chebyshev fit (1 ulp), 1.62 and 1.62, later 1.51 and 1.56
+after other changes; the degree-7 fit, 1.45 and 1.48 (in-process A/B of
+the three degrees, 151 repeats: degree 8, 1.46 and 1.53).
 
-Error bound: at most 1 unit in the last place of numpy's ``exp`` over
-[-707, 709.78] (measured: ``tests/test_pair_styles.py`` checks 1 ulp on a
-million points); below -708 the result is 0 (the true value is below 1e-307),
-above ln(DBL_MAX) = 709.7827 it is infinite, NaN stays NaN. In Python (no
-compilation, or ``NUMBA_DISABLE_JIT=1``) :func:`exp` is ``math.exp``.
+Error bound: at most 2e-14 relative (46 bits of the 53; the fit's own error
+is 1.65e-14, the rest is rounding), measured against numpy's ``exp`` on a
+million points of [-707, 709.78] by ``tests/test_pair_styles.py``. That is
+below the 44 bits GROMACS asks of its SIMD math in double precision
+(``GMX_SIMD_ACCURACY_BITS_DOUBLE``), and far below what a force field's
+parameters carry. Below -708 the result is 0 (the true value is below
+1e-307), above ln(DBL_MAX) = 709.7827 it is infinite, NaN stays NaN. In
+Python (no compilation, or ``NUMBA_DISABLE_JIT=1``) :func:`exp` is
+``math.exp``, correctly rounded to within the C library's 1 ulp.
 
 :func:`log` works the same way (x = 2^e m from the bits, a polynomial for
 log m; see its docstring), so that pair terms can take powers with any
@@ -52,20 +58,20 @@ _LN_MAX = 709.782712893384
 #: 1.5 * 2^52: adding it rounds a float to an integer held in the low mantissa bits.
 _ROUND = 6755399441055744.0
 _ROUND_BITS = int(np.float64(_ROUND).view(np.int64))
-#: q(r) = (exp(r) - 1 - r) / r^2 on |r| <= ln 2 / 2 as c2 + c3 r + ... + c11 r^9: the
-#: Chebyshev fit of degree 9 (mpmath.chebyfit at 50 digits), near-minimax, its error in
-#: q at most 1.05e-16, so at most 1.8e-17 relative in exp(r) = 1 + r + r^2 q(r).
+#: q(r) = (exp(r) - 1 - r) / r^2 on |r| <= ln 2 / 2 as c2 + c3 r + ... + c9 r^7, fitted
+#: (mpmath at 40 digits, Lawson's iteration on 600 Chebyshev nodes) to minimise the largest
+#: of |r^2 (q_fit(r) - q(r)) / exp(r)|, the relative error it leaves in exp(r) = 1 + r +
+#: r^2 q(r): 1.6445e-14 on a grid of 20001 points. One degree lower than a 1-ulp exp
+#: needs (three multiply-adds fewer per call).
 _COEFFICIENTS = (
-    0.50000000000000010211,
-    0.16666666666666667452,
-    0.041666666666624161903,
-    0.0083333333333300644495,
-    0.0013888888917196719077,
-    0.00019841269863040545271,
-    0.000024801521322368693266,
-    2.7557268480310025526e-6,
-    2.7620075879983366586e-7,
-    2.5100375832561233664e-8,
+    0.49999999999664543904,
+    0.1666666666726472099,
+    0.041666666962082501709,
+    0.008333333095244361573,
+    0.0013888811173253205598,
+    0.00019841538962672452587,
+    0.00002488079510201509357,
+    2.7493087196024121296e-6,
 )
 
 
@@ -81,7 +87,7 @@ def exp(x):
 # into the vectorised pair loops.
 @overload(exp, jit_options={"fastmath": {"contract"}, "error_model": "numpy"})
 def _exp_compiled(x):
-    c2, c3, c4, c5, c6, c7, c8, c9, c10, c11 = _COEFFICIENTS
+    c2, c3, c4, c5, c6, c7, c8, c9 = _COEFFICIENTS
     round_bits = np.int64(_ROUND_BITS)
 
     def implementation(x):
@@ -91,17 +97,15 @@ def _exp_compiled(x):
         k = shifted - _ROUND
         r = (x - k * _LN2_HI) - k * _LN2_LO
         # exp(r) = 1 + r + r^2 q(r): q's terms in Estrin's order (pairs, then pairs of pairs),
-        # so that the chain of dependent steps is 5 long, not 13: a pair loop holds only a
+        # so that the chain of dependent steps is 4 long, not 9: a pair loop holds only a
         # few pairs in flight, so a long chain makes it wait.
         r2 = r * r
         r4 = r2 * r2
-        r8 = r4 * r4
         a = c2 + c3 * r
         b = c4 + c5 * r
         c = c6 + c7 * r
         d = c8 + c9 * r
-        e = c10 + c11 * r
-        q = ((a + b * r2) + (c + d * r2) * r4) + e * r8
+        q = (a + b * r2) + (c + d * r2) * r4
         # 2^(k - 1) from k's bits (k - 1, so that k = 1024, reached from x = 709.44 on,
         # still has a finite power of two), times 2 exp(r) = 2 + 2 (r + r^2 q).
         half_scale = bits_float((float_bits(shifted) - round_bits + np.int64(1022)) << np.int64(52))
