@@ -9,8 +9,11 @@ two face neighbours the atoms (owned, and ghosts from the earlier sweeps)
 within the reach of their faces, shifted by a cell vector across a periodic
 boundary; a single brick along an axis sends to itself.
 
-A rank's owned atoms followed by its ghosts form an ordinary open system (no
-periodic axis, images explicit), which the rank evaluates with an ordinary
+A rank's owned atoms followed by its ghosts form an ordinary system, open
+along the cut axes (images explicit) and periodic along the others whose cell
+vector has no component along a cut axis (no ghosts there: the cell list
+finds those images as a single process does,
+:func:`md.domain.local_periodic_axes`), which the rank evaluates with an ordinary
 :class:`md.forcefield.ForceField` (threaded kernels and all). Its neighbour
 list keeps, of each pair, only the one the rank owning the pair's lower-id
 atom evaluates (:meth:`md.neighbors.NeighborList.keep_owned`), so every pair
@@ -63,7 +66,13 @@ from numpy.typing import NDArray
 
 from integrators.base import constraints_of
 from md._files import OutputBusyError
-from md.box import cell_matrix, minimum_image, periodic_tilt, perpendicular_widths
+from md.box import (
+    cell_matrix,
+    minimum_image,
+    periodic_lengths,
+    periodic_tilt,
+    perpendicular_widths,
+)
 from md.domain import (
     Grid,
     add_rows,
@@ -76,6 +85,7 @@ from md.domain import (
     home_positions,
     lay_out_owned,
     leaving_along,
+    local_periodic_axes,
     merged_order,
     moved_since,
     near_faces,
@@ -401,7 +411,10 @@ class Domain:
     ----------
     local_state : State
         The rank's local system: its owned atoms (first ``n_owned``) at their
-        images nearest the brick, then the ghosts; open along every axis.
+        images nearest the brick, then the ghosts; periodic along
+        ``local_pbc``, open along the other axes.
+    local_pbc : ndarray of bool
+        The axes the last build left periodic (no ghosts along them).
     local_ids : ndarray of int64
         The global id of each local atom.
     reach, margin : float
@@ -422,6 +435,7 @@ class Domain:
         self.n_owned = 0
         self.swaps: list[_Swap] = []
         self.images = np.zeros((0, 3), dtype=np.int64)
+        self.local_pbc = np.zeros(3, dtype=bool)
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
@@ -539,8 +553,9 @@ class Domain:
         lay_out_owned(state.positions, images, cell, home, state.ids, state.types, data)
         count = n
         swaps: list[_Swap] = []
+        local_pbc = local_periodic_axes(self.shape, pbc, tilt)
         for axis in range(3):
-            if not pbc[axis]:
+            if not pbc[axis] or local_pbc[axis]:
                 continue
             p, c = self.grid.shape[axis], self.coordinates[axis]
             reach_fraction = shell / widths[axis]
@@ -574,11 +589,25 @@ class Domain:
         self.local_ids = np.empty(count, dtype=np.int64)
         types = np.empty(count, dtype=np.int32)
         split_table(data, count, positions, self.local_ids, types)
-        self.local_state = State.adopting(positions, types, box, False, state.type_names)
+        self.local_pbc = local_pbc
+        self.local_state = State.adopting(positions, types, box, local_pbc, state.type_names)
+        self.local_state.tilt = periodic_tilt(tilt, local_pbc)
+
+    def layout_holds(self, state: State) -> bool:
+        """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
+        that tilts the cell towards a cut axis needs a build with explicit images)."""
+        if not self.local_pbc.any():
+            return True
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
 
     def update(self, state: State) -> None:
         """Write the owned positions into the local system and send the ghosts' (collective)."""
-        cell = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        cell = cell_matrix(state.box, tilt)
+        if self.local_pbc.any():  # the cell the local system's own images follow
+            self.local_state.box[:] = state.box
+            self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
         positions = self.local_state.positions
         home_positions(state.positions, self.images, cell, positions[: self.n_owned])
         for swap in self.swaps:
@@ -937,7 +966,8 @@ class DistributedForceField:
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
-        return moved <= allowed, _ratio(coming, allowed), finite
+        covered = moved <= allowed and self.domain.layout_holds(state)
+        return covered, _ratio(coming, allowed), finite
 
     def coming_moves(self, state: State, dt: float) -> NDArray[np.float64]:
         """Each owned atom's expected move over a step of ``dt``: dt v + dt^2 a / 2 (velocity
@@ -1056,7 +1086,10 @@ class DistributedForceField:
         return the longest bond (angle arm) among them [length]."""
         domain = self.domain
         ids = domain.local_ids
-        positions = domain.local_state.positions
+        local = domain.local_state
+        positions = local.positions
+        lengths, inverse = periodic_lengths(local.box, local.pbc)
+        tilt = periodic_tilt(local.tilt, local.pbc)
         by_id = np.argsort(ids, kind="stable")
         sorted_ids = np.ascontiguousarray(ids[by_id])
         longest = 0.0
@@ -1071,7 +1104,8 @@ class DistributedForceField:
                 found = np.empty(len(items), dtype=np.int64)
                 distances = np.empty(len(items))
                 partners = np.ascontiguousarray(items[:, column])
-                nearest_copies(anchors, partners, sorted_ids, by_id, positions, found, distances)
+                nearest_copies(anchors, partners, sorted_ids, by_id, positions, lengths, inverse,
+                               tilt, found, distances)  # fmt: skip
                 if len(found) and found.min() < 0:
                     raise DecompositionError(
                         "a bonded atom has no copy on its partner's rank: a bond is longer "

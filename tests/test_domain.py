@@ -12,6 +12,7 @@ from md.domain import (
     fractional_coordinates,
     lay_out_owned,
     leaving_along,
+    local_periodic_axes,
     merged_order,
     moved_since,
     near_faces,
@@ -148,3 +149,26 @@ def test_an_adopted_state_shares_its_arrays():
     assert state.n_atoms == 4 and state.n_types == 2 and not state.pbc.any()
     np.testing.assert_array_equal(state.masses, 1.0)
     np.testing.assert_array_equal(state.tilt, 0.0)
+
+
+def test_local_periodic_axes_are_the_uncut_ones_whose_vector_stays_off_cut_axes():
+    """A rank keeps an axis periodic (no ghosts across it) when one brick spans it and its
+    cell vector (b = (xy, ly, 0), c = (xz, yz, lz)) has no component along a cut axis."""
+    pbc = np.array([True, True, True])
+    assert local_periodic_axes((2, 1, 1), pbc, np.zeros(3)).tolist() == [False, True, True]
+    assert local_periodic_axes((1, 1, 1), pbc, np.zeros(3)).tolist() == [True, True, True]
+    assert local_periodic_axes((2, 2, 2), pbc, np.zeros(3)).tolist() == [False] * 3
+    # yz couples two uncut axes: both stay periodic, tilted
+    assert local_periodic_axes((2, 1, 1), pbc, np.array([0.0, 0.0, 0.3])).tolist() == [
+        False, True, True]  # fmt: skip
+    # xy leans b along cut x; xz leans c along it
+    assert local_periodic_axes((2, 1, 1), pbc, np.array([0.3, 0.0, 0.0])).tolist() == [
+        False, False, True]  # fmt: skip
+    assert local_periodic_axes((2, 1, 1), pbc, np.array([0.0, 0.2, 0.0])).tolist() == [
+        False, True, False]  # fmt: skip
+    # yz with y cut: c leans along y
+    assert local_periodic_axes((1, 2, 1), pbc, np.array([0.0, 0.0, 0.3])).tolist() == [
+        True, False, False]  # fmt: skip
+    # an open axis is never periodic
+    assert local_periodic_axes((2, 1, 1), np.array([True, False, True]), np.zeros(3)).tolist() == [
+        False, False, True]  # fmt: skip

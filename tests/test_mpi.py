@@ -344,10 +344,18 @@ def test_too_many_ranks_for_the_cell_are_refused(tmp_path):
     ("integrator", "extra", "expected"),
     [
         ("implicit_euler", "", "does not run decomposed over MPI ranks"),
-        pytest.param("implicit_midpoint", "", "does not run decomposed over MPI ranks",
-                     marks=pytest.mark.slow),
-        pytest.param("rattle", "[integrator.constraints]\nbonds = [[0, 1]]", "rigid bonds",
-                     marks=pytest.mark.slow),
+        pytest.param(
+            "implicit_midpoint",
+            "",
+            "does not run decomposed over MPI ranks",
+            marks=pytest.mark.slow,
+        ),
+        pytest.param(
+            "rattle",
+            "[integrator.constraints]\nbonds = [[0, 1]]",
+            "rigid bonds",
+            marks=pytest.mark.slow,
+        ),
     ],
 )
 def test_undistributed_integrators_are_refused(tmp_path, integrator, extra, expected):
@@ -506,8 +514,16 @@ def test_a_blow_up_stops_every_rank_with_the_serial_message(tmp_path):
 
 @needs_mpi
 @pytest.mark.slow  # several launches of up to 4 ranks
-def test_tilted_cell_over_four_ranks_follows_the_serial_run(tmp_path):
-    """A triclinic melt cut into 2 x 1 x 2 bricks: ghosts cross tilted faces.
+@pytest.mark.parametrize(
+    "shear, n_ranks, bricks",
+    [
+        ((0.3, 0.1, 0.2), 4, "2 x 1 x 2"),  # y's vector leans along cut x: explicit images
+        ((0.0, 0.0, 0.25), 2, "2 x 1 x 1"),  # y and z stay periodic on each rank, tilted yz
+    ],
+)
+def test_tilted_cell_over_ranks_follows_the_serial_run(tmp_path, shear, n_ranks, bricks):
+    """A triclinic melt cut into bricks: ghosts cross tilted faces, or (2 x 1 x 1 with
+    only yz tilted) each rank's cell list finds the y and z images itself, tilted.
 
     The runs differ only in the order of the force sums: at step 100 by round-off
     (1e-15 of the positions), then the chaotic liquid amplifies it about 20 times
@@ -515,9 +531,9 @@ def test_tilted_cell_over_four_ranks_follows_the_serial_run(tmp_path):
     step 500; a missed or doubled pair would show at once.
     """
     text = MELT.format(integrator="verlet", extra="", steps=500, run_extra="").replace(
-        "temperature = 3.0", "temperature = 3.0\nshear = [0.3, 0.1, 0.2]")  # fmt: skip
-    serial_out, out, stdout = _serial_and_ranks(tmp_path, text, 4)
-    assert "bricks 2 x 1 x 2" in stdout
+        "temperature = 3.0", f"temperature = 3.0\nshear = {list(shear)}")  # fmt: skip
+    serial_out, out, stdout = _serial_and_ranks(tmp_path, text, n_ranks)
+    assert f"bricks {bricks}" in stdout
     gaps = [relative_gap(out, serial_out, frame) for frame in range(6)]
     assert gaps[0] == 0.0
     assert gaps[1] < 1e-14
