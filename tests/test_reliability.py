@@ -297,9 +297,13 @@ def test_ctrl_c_while_md_starts_prints_no_traceback(tmp_path, delay):
     config.write_text(lj_config_text(run="steps = 1000000"))
     paths = [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, paths))}  # md_command
+    # SIGINT at its default, as a terminal starts a command: a test run started in the
+    # background (`pytest &` from a script) has SIGINT ignored, which its children
+    # inherit, so the interpreter would never see this signal before md's own handler.
     process = subprocess.Popen(
         [*_md_command(), "run", str(config), "-q", "--no-progress"], cwd=tmp_path,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     time.sleep(delay)
     process.send_signal(signal.SIGINT)
