@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from md.box import perpendicular_widths, separation
+from md.box import TILT_AXES, perpendicular_widths, separation
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ def local_periodic_axes(shape, pbc, tilt) -> NDArray[np.bool_]:
     cut axis keeps j explicit (its image would cross the cut).
     """
     local = np.asarray(pbc, dtype=bool) & (np.asarray(shape) == 1)
-    for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+    for k, (i, j) in enumerate(TILT_AXES):  # (x, y), (x, z), (y, z): j after i
         if tilt[k] != 0.0 and not local[i]:
             local[j] = False
     return local
