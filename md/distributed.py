@@ -436,6 +436,7 @@ class Domain:
         self.swaps: list[_Swap] = []
         self.images = np.zeros((0, 3), dtype=np.int64)
         self.local_pbc = np.zeros(3, dtype=bool)
+        self._built_tilt = b""
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
@@ -593,14 +594,15 @@ class Domain:
         types = np.empty(count, dtype=np.int32)
         split_table(data, count, positions, self.local_ids, types)
         self.local_pbc = local_pbc
+        self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(positions, types, box, local_pbc, state.type_names)
         self.local_state.tilt = periodic_tilt(tilt, local_pbc)
 
     def layout_holds(self, state: State) -> bool:
         """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
         that tilts the cell towards a cut axis needs a build with explicit images)."""
-        if not self.local_pbc.any():
-            return True
+        if not self.local_pbc.any() or state.tilt.tobytes() == self._built_tilt:
+            return True  # (checked at every force call: the cheap answers first)
         tilt = periodic_tilt(state.tilt, state.pbc)
         return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
 
