@@ -111,7 +111,9 @@ def _exp_compiled(x):
         half_scale = bits_float((float_bits(shifted) - round_bits + np.int64(1022)) << np.int64(52))
         value = (2.0 + 2.0 * (r + r2 * q)) * half_scale
         value = value if x > -708.0 else 0.0
-        return value if x < _LN_MAX else (math.inf if x == x else x)
+        # inf from x >= ln(max), NaN from NaN (NaN fails both tests above), as one product:
+        # a third test (x == x) and its select cost Buckingham's pair loop ~6 % of its time.
+        return value if x < _LN_MAX else x * math.inf
 
     return implementation
 
