@@ -298,7 +298,7 @@ def _neighbor_cell(c, offset, n, periodic):
 @njit(cache=True, error_model="numpy")
 def _frame_pairs(
     wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
-    bounds, capacity, starts, neighbors, codes, counts,
+    bounds, capacity, starts, neighbors, codes, counts, owners,
 ):  # fmt: skip
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
@@ -322,6 +322,9 @@ def _frame_pairs(
     unordered pair is listed once, under the slot whose cell sees the other
     through the own cell (then under the lower slot) or one of the
     lexicographically positive offsets (13 for reach 1, 62 for reach 2).
+    ``owners`` = (slot_owned, slot_ids, column_mixed) (``_slot_owners``) keeps
+    only the pairs a rank of a decomposed run evaluates, row by row as the
+    search writes them (empty arrays: every pair).
     ``codes[k]`` names the image shift s
     of that neighbour cell, so the pair displacement is
     ``wrapped[:, p] - wrapped[:, q] - s`` with no minimum image (see
@@ -333,13 +336,14 @@ def _frame_pairs(
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
             cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
+            owners,
         )  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _frame_pairs_threaded(
     wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
-    bounds, capacity, starts, neighbors, codes, counts,
+    bounds, capacity, starts, neighbors, codes, counts, owners,
 ):  # fmt: skip
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     planes, tags, most = layout
@@ -347,13 +351,14 @@ def _frame_pairs_threaded(
         _frame_pairs_chunk(
             chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
             cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
+            owners,
         )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
     chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts,
-    planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
+    planes, tags, bounds, capacity, most, starts, neighbors, codes, counts, owners,
 ):  # fmt: skip
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
@@ -374,7 +379,13 @@ def _frame_pairs_chunk(
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
+    With ``owners`` (a rank's list), a row found beside a ghost (a ghost's
+    own row, or one in a column with ghosts within ``reach`` columns) keeps
+    only its pairs whose atom with the smaller id is owned
+    (``_keep_owned_row``), while its hits are in the cache.
     """
+    slot_owned, slot_ids, column_mixed = owners
+    filtering = slot_owned.shape[0] > 0
     nz = n_cells[2]
     most_cell, most_column = most
     base = chunk * capacity
@@ -406,7 +417,9 @@ def _frame_pairs_chunk(
             column, n_cells, reach, ghost, periodic, box, tilt, planes, runs, run_shifts, cx,
             cy, cz, c_packed, z_start, own,
         )  # fmt: skip
+        mixed = column_mixed[column] if filtering else False
         for i in range(p, stop):
+            row_begin = count
             kz = slot_cell[i] - column * nz
             first = z_start[max(kz - reach + ghost, 0)]  # forward cells cz -/+ reach
             last = z_start[min(kz + reach + ghost, n_z - 1) + 1]
@@ -450,6 +463,10 @@ def _frame_pairs_chunk(
                         tx, ty, tz, tp, a, b = own[0], own[1], own[2], own[3], 0, ghost_last
                     count += _keep(xs[i], ys[i], zs[i], r2_max, tx, ty, tz, tp, a, b, masks,
                                    base, count, capacity, packed_list)  # fmt: skip
+            # (past the capacity nothing was written: the count stays an upper bound)
+            if (mixed or (filtering and not slot_owned[i])) and count <= capacity:
+                count = _keep_owned_row(packed_list, base + row_begin, base + count,
+                                        slot_owned, slot_ids, i) - base  # fmt: skip
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
@@ -887,6 +904,63 @@ _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _keep_owned_row(out, first, last, slot_owned, slot_ids, i):
+    """Keep, in place, row i's packed pairs ``out[first:last]`` whose atom with the
+    smaller id is owned (``_keep_owned_pairs``'s rule); return the new end."""
+    own = slot_owned[i] != 0
+    own_id = slot_ids[i]
+    kept = first
+    for k in range(first, last):
+        value = out[k]
+        q = value & _SLOT_MASK
+        if own:
+            keep = slot_owned[q] != 0 or own_id < slot_ids[q]
+        else:
+            keep = slot_owned[q] != 0 and slot_ids[q] < own_id
+        out[kept] = value  # written always, counted when kept: no branch to mispredict
+        kept += keep
+    return kept
+
+
+@njit(cache=True, error_model="numpy")
+def _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic):
+    """(slot_owned, slot_ids, column_mixed) for ``_frame_pairs``'s filter: per slot,
+    whether its atom is owned (index < ``n_owned``) and its global id; per (x, y)
+    column, whether a ghost lies in it or in a column within ``reach`` along x or
+    y (its rows' partners may then be ghosts). Empty ``ids``: three empty arrays."""
+    if ids.shape[0] == 0:
+        return (np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64),
+                np.empty(0, dtype=np.bool_))  # fmt: skip
+    n = order.shape[0]
+    slot_owned = np.empty(n, dtype=np.uint8)
+    slot_ids = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        a = order[p]
+        slot_owned[p] = a < n_owned
+        slot_ids[p] = ids[a]
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    has_ghost = np.zeros(nx * ny, dtype=np.bool_)
+    for column in range(nx * ny):
+        for p in range(cell_starts[column * nz], cell_starts[column * nz + nz]):
+            if slot_owned[p] == 0:
+                has_ghost[column] = True
+                break
+    column_mixed = np.zeros(nx * ny, dtype=np.bool_)
+    for column in range(nx * ny):
+        kx0 = column // ny
+        ky0 = column % ny
+        for ox in range(-reach, reach + 1):
+            kx, _ = _neighbor_cell(kx0, ox, nx, periodic[0])
+            if kx < 0:
+                continue
+            for oy in range(-reach, reach + 1):
+                ky, _ = _neighbor_cell(ky0, oy, ny, periodic[1])
+                if ky >= 0 and has_ghost[kx * ny + ky]:
+                    column_mixed[column] = True
+    return slot_owned, slot_ids, column_mixed
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, count, capacity,
           out):  # fmt: skip
     """List the candidates first..last-1 closer than sqrt(r2_max), packed, at
@@ -921,7 +995,7 @@ def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, co
 @njit(cache=True, error_model="numpy")
 def _cell_list(
     positions, origin, cell_width, n_cells, reach, periodic, box, tilt, r2_max, chunks,
-    neighbors, codes,
+    neighbors, codes, ids, n_owned,
 ):  # fmt: skip
     """The cell search's whole build in one compiled call: bin, search, join.
 
@@ -933,7 +1007,10 @@ def _cell_list(
     one), each in its region of ``len(neighbors) // chunks`` entries of both
     buffers. When a chunk finds more pairs than that, nothing is joined and
     count is minus the largest chunk's count: grow both buffers to hold that
-    many per chunk and call again.
+    many per chunk and call again. With ``ids`` (N,) (a rank of a decomposed
+    run, ``NeighborList.keep_owned``: atoms below ``n_owned`` are its own) the
+    list keeps only the pairs whose atom with the smaller id is owned, filtered
+    by the search (empty ``ids``: every pair).
 
     One call rather than a dozen small numpy ones between the kernels: in a
     run, the pair kernels have evicted the interpreter's working set from the
@@ -966,14 +1043,15 @@ def _cell_list(
     starts = np.zeros(n + 1, dtype=np.int64)
     counts = np.zeros(chunks, dtype=np.int64)
     capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
+    owners = _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic)
     if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
         _frame_pairs_threaded(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
                               cell_starts, layout, bounds, capacity, starts, neighbors, codes,
-                              counts)  # fmt: skip
+                              counts, owners)  # fmt: skip
     else:
         _frame_pairs(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
                      cell_starts, layout, bounds, capacity, starts, neighbors, codes,
-                     counts)  # fmt: skip
+                     counts, owners)  # fmt: skip
     most = counts.max()
     if most > capacity:
         return order, images, starts, bounds, -most

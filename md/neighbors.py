@@ -110,6 +110,10 @@ def largest_displacement2(positions: NDArray[np.float64], reference: NDArray[np.
     return _largest_displacement2(positions, reference, chunks)
 
 
+#: ``_cell_list``'s ids when every pair is listed (no :meth:`NeighborList.keep_owned`).
+_NO_IDS = np.empty(0, dtype=np.int64)
+
+
 def _square(length: float) -> float:
     """length**2, or inf where that overflows (a huge skin: every pair is listed)."""
     with np.errstate(over="ignore"):
@@ -438,7 +442,7 @@ class NeighborList:
         else:
             self._build_cells(state, grid, chunks)
             self.shifts = shifts
-        if self._owned is not None:
+        if self._owned is not None and grid is None:
             self._drop_unowned(chunks)
         self._reference = reference
         self._box = state.box.copy()
@@ -500,11 +504,12 @@ class NeighborList:
 
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         origin, width, n_cells, reach = grid
+        ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
         r2_max = _square(self.list_radius)
         while True:
             order, images, starts, bounds, count = _cell_list(
                 state.positions, origin, width, n_cells, reach, state.pbc, state.box, self.tilt,
-                r2_max, chunks, self._neighbor_buffer, self._code_buffer,
+                r2_max, chunks, self._neighbor_buffer, self._code_buffer, ids, n_owned,
             )  # fmt: skip
             if count >= 0:
                 break
@@ -518,12 +523,20 @@ class NeighborList:
         self.codes = self._code_buffer[:count]
         self.bounds = bounds
 
-    def _drop_unowned(self, chunks: int) -> None:
-        """Apply :meth:`keep_owned`'s rule to the list just built."""
+    def _owned_ids(self, n_atoms: int) -> tuple[NDArray[np.int64], int]:
+        """:meth:`keep_owned`'s ids and owned count, checked against ``n_atoms``
+        (empty ids, 0 without them: every pair is listed)."""
+        if self._owned is None:
+            return _NO_IDS, 0
         ids, n_owned = self._owned
-        if ids.shape[0] != len(self.slot_starts) - 1:
-            raise ValueError(f"keep_owned was given {ids.shape[0]} ids for "
-                             f"{len(self.slot_starts) - 1} atoms")  # fmt: skip
+        if ids.shape[0] != n_atoms:
+            raise ValueError(f"keep_owned was given {ids.shape[0]} ids for {n_atoms} atoms")
+        return ids, n_owned
+
+    def _drop_unowned(self, chunks: int) -> None:
+        """Apply :meth:`keep_owned`'s rule to the list the O(N^2) search just built (the
+        cell search applies it as it searches)."""
+        ids, n_owned = self._owned_ids(len(self.slot_starts) - 1)
         order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
         count = _keep_owned_pairs(order, self.slot_starts, self.slot_neighbors, self.codes, ids,
                                   n_owned)  # fmt: skip

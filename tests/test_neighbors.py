@@ -549,7 +549,8 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
     def build(chunks, size):
         neighbors, codes = np.full(size, -1, dtype=np.int32), np.full(size, 255, dtype=np.uint8)
         out = _cell_list(state.positions, origin, width, n_cells, reach, state.pbc, state.box,
-                         nl.tilt, r2, chunks, neighbors, codes)  # fmt: skip
+                         nl.tilt, r2, chunks, neighbors, codes, np.empty(0, dtype=np.int64),
+                         0)  # fmt: skip
         return out, neighbors, codes
 
     (order, images, starts, bounds, count), neighbors, codes = build(1, 3 * nl.n_pairs)
@@ -688,20 +689,27 @@ print("ok")
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
 
 
+@pytest.mark.parametrize("owners", ["slab", "scattered"])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("shape", ["open", "periodic"])
-def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, threads,
+def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, threads, owners,
                                                                       fcc_lattice):  # fmt: skip
     """A rank's list (NeighborList.keep_owned): of every pair within the list radius, those
-    whose atom with the smaller id is owned, after the cell search and the O(N^2) one
-    alike (one or two chunks)."""
+    whose atom with the smaller id is owned, after the cell search (which filters the rows
+    beside ghosts as it finds them) and the O(N^2) one alike (one or two chunks). Owned
+    atoms as a rank holds them (a slab, as the lattice orders them: columns of cells far
+    from every ghost, which the search does not filter, and columns beside them) or
+    scattered (every row filtered)."""
+    from md._cell_kernels import _slot_owners
     from md.parallel import get_threads, set_threads
 
     state = fcc_lattice(cells=7, perturbation=0.1, pbc=shape != "open")
     n = state.n_atoms
     rng = np.random.default_rng(5)
+    if owners == "scattered":
+        state.positions[:] = state.positions[rng.permutation(n)]
     ids = rng.permutation(n).astype(np.int64)
-    n_owned = n // 3
+    n_owned = n // 2
     before = get_threads()
     set_threads(threads)
     try:
@@ -713,6 +721,15 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, thr
     finally:
         set_threads(before)
     assert whole.used_cells and mine.used_cells
+    # the slab leaves columns with no ghost within reach (their rows are not filtered)
+    origin, width, n_cells, reach = mine._grid(state)
+    cell = np.floor((state.positions[mine.order] - origin) / width).astype(np.int64)
+    cell = np.where(state.pbc, cell % n_cells, np.clip(cell, 0, n_cells - 1))
+    in_cell = np.bincount((cell[:, 0] * n_cells[1] + cell[:, 1]) * n_cells[2] + cell[:, 2],
+                          minlength=int(np.prod(n_cells)))  # fmt: skip
+    cell_starts = np.concatenate([[0], np.cumsum(in_cell)])
+    mixed = _slot_owners(mine.order, ids, n_owned, cell_starts, n_cells, reach, state.pbc)[2]
+    assert mixed.any() and (owners == "scattered") == mixed.all()
     pairs = whole.pairs()
     first, second = pairs[:, 0], pairs[:, 1]
     keep = np.where(ids[first] < ids[second], first < n_owned, second < n_owned)
@@ -744,3 +761,8 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_smaller_id(shape, thr
     a, b = expected[:, 0], expected[:, 1]
     rule = np.where(ids[:60][a] < ids[:60][b], a < 20, b < 20)
     np.testing.assert_array_equal(small.pairs(), expected[rule])
+    # ids that are not one per atom are refused by either search
+    for listed, atoms in ((mine, state), (small, few)):
+        listed.keep_owned(ids[:10], 5)
+        with pytest.raises(ValueError, match=f"10 ids for {atoms.n_atoms} atoms"):
+            listed.build(atoms)
