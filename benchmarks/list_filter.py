@@ -1,8 +1,9 @@
 """Cost of a decomposed rank's pair filter (``NeighborList.keep_owned``) in a list build.
 
 A rank of an MPI run builds its list over its own atoms and the ghost copies
-of its neighbours' atoms, then keeps each pair on one rank only
-(``md._cell_kernels._keep_owned_pairs``). This times full list builds of an
+of its neighbours' atoms and keeps each pair on one rank only: the cell search
+filters the rows beside ghosts as it finds them (``_keep_owned_row``; rows far
+from every ghost are not checked). This times full list builds of an
 open fcc block (48 x 60 x 60 cells, 691,200 atoms, cutoff 2.5 + skin 0.3, 1
 thread) with the first 85 % of the atoms "owned" and the rest "ghosts", with
 and without the filter, for ids in lattice order and for randomly permuted ids

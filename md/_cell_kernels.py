@@ -55,7 +55,10 @@ flushed the caches. In order:
      hits' packed slot and code as it tests, by AVX2 lane permutes on x86
      with AVX2 (``_near_pack_blocks``), else by scanning a bit mask
      (``_near_pack_scan``: ``_near_bits``, then cttz); ``_keep`` counts
-     before it writes near the end of the chunk's region;
+     before it writes near the end of the chunk's region; for a rank of a
+     decomposed run, the rows beside ghosts then keep only the pairs whose
+     atom with the smaller id is owned (``_keep_owned_row``, per column
+     flags from ``_slot_owners``);
    - a single chunk is unpacked into slots and a one-byte image code per pair
      at its end; several are joined by ``_join_chunks``, on the threads: each
      chunk is unpacked straight to its place in the list where that overlaps
