@@ -76,6 +76,11 @@ class SlotFrame:
     bounds : ndarray of int64, shape (C + 1,)
     tilt : ndarray of float64, shape (3,)
         Tilt factors (xy, xz, yz) at the build (zeros: orthorhombic) [length].
+    shifted : ndarray of bool, shape (N,)
+        Whether row p may have a pair with an image shift (a code other than
+        13, the zero shift): set for every row that has one (and some that
+        do not); the pair kernels gather the other rows' partners without
+        their codes.
     """
 
     order: NDArray[np.int64]
@@ -87,6 +92,7 @@ class SlotFrame:
     codes: NDArray[np.uint8]
     bounds: NDArray[np.int64]
     tilt: NDArray[np.float64]
+    shifted: NDArray[np.bool_]
 
     @property
     def n_chunks(self) -> int:
@@ -211,6 +217,7 @@ class NeighborList:
         self.slot_starts = np.zeros(1, dtype=np.int64)
         self.slot_neighbors = np.zeros(0, dtype=np.int32)
         self.codes = np.zeros(0, dtype=np.uint8)
+        self.shifted_rows = np.zeros(0, dtype=np.bool_)  # per slot row (cell search)
         self.shifts = np.zeros((27, 3))
         self.bounds = np.zeros(2, dtype=np.int64)
         self._neighbor_buffer = np.zeros(1024, dtype=np.int32)
@@ -254,7 +261,7 @@ class NeighborList:
             return None
         return SlotFrame(
             self.order, self.images, self.lengths, self.shifts, self.slot_starts,
-            self.slot_neighbors, self.codes, self.bounds, self.tilt,
+            self.slot_neighbors, self.codes, self.bounds, self.tilt, self.shifted_rows,
         )  # fmt: skip
 
     @property
@@ -428,6 +435,7 @@ class NeighborList:
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list = None, None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
+        self.shifted_rows = None
         self.lengths = lengths
         self.tilt = tilt
         self.used_cells = grid is not None
@@ -496,6 +504,7 @@ class NeighborList:
             self._neighbor_buffer = np.empty(_grown(count), dtype=np.int32)
             self._code_buffer = np.empty(_grown(count), dtype=np.uint8)
         self.order = None
+        self.shifted_rows = np.zeros(0, dtype=np.bool_)
         self.images = np.zeros((n, 3), dtype=np.int32)
         self.slot_starts = starts
         self.slot_neighbors = self._neighbor_buffer[:count]
@@ -507,7 +516,7 @@ class NeighborList:
         ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
         r2_max = _square(self.list_radius)
         while True:
-            order, images, starts, bounds, count = _cell_list(
+            order, images, starts, bounds, count, shifted = _cell_list(
                 state.positions, origin, width, n_cells, reach, state.pbc, state.box, self.tilt,
                 r2_max, chunks, self._neighbor_buffer, self._code_buffer, ids, n_owned,
             )  # fmt: skip
@@ -521,6 +530,7 @@ class NeighborList:
         self.slot_starts = starts
         self.slot_neighbors = self._neighbor_buffer[:count]
         self.codes = self._code_buffer[:count]
+        self.shifted_rows = shifted
         self.bounds = bounds
 
     def _owned_ids(self, n_atoms: int) -> tuple[NDArray[np.int64], int]:

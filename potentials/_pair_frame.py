@@ -950,7 +950,7 @@ def _number(key: str, value) -> None:
 def _slots(frame) -> tuple:
     return (
         frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
-        frame.codes, frame.bounds, frame.tilt,
+        frame.codes, frame.bounds, frame.tilt, frame.shifted,
     )  # fmt: skip
 
 

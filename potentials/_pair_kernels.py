@@ -45,6 +45,7 @@ from potentials._kernels import (
     _gather_frame,
     _gather_pair_columns,
     _gather_partners,
+    _gather_unshifted,
     _longest_row,
     _sum_chunk_forces,
 )
@@ -303,7 +304,7 @@ def frame_forces(
     """Pair forces over a slot-frame list (``md.neighbors.SlotFrame``), chunk by chunk.
 
     ``slots`` is (order, images, lengths, shifts, starts, neighbors, codes,
-    bounds, tilt), the fields of the SlotFrame. Gathers ``frame[p] =
+    bounds, tilt, shifted), the fields of the SlotFrame. Gathers ``frame[p] =
     positions[order[p]] + images[p] @ h`` (h the cell matrix) and the slot types, then
     chunk c (slots ``bounds[c]`` to ``bounds[c + 1]``) adds its pairs' forces
     into its own ``buffers[c]`` (C, N, 3), its energy into ``energies[c]``
@@ -392,6 +393,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
     chunk, frame, frame_types, slots, n_types, table, data = args
     buffers, energies, virials = out
     shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
+    shifted = slots[9]
     buffer = buffers[chunk]
     for p in range(frame.shape[0]):
         buffer[p, 0] = 0.0
@@ -418,7 +420,11 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         row = frame_types[p] * n_types
         partners = neighbors[starts[p] : starts[p + 1]]
         m = partners.shape[0]
-        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
+        if shifted[p]:
+            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
+                             gz)  # fmt: skip
+        else:  # no partner across the cell's edge: no codes, no shifts to read
+            _gather_unshifted(frame, partners, gx, gy, gz)
         if not single:  # contiguous per-partner parameters: the pair loop reads no table
             _gather_pair_columns(frame_types, partners, row, table, params)
         padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
@@ -538,8 +544,8 @@ def _frame_curvature_loop(args, mode, single, out):
     how many were inside."""
     chunk, frame, frame_types, slots, n_types, table, data = args
     pair_i, pair_j, transverse, radial, unit = out
-    order, shifts, starts, neighbors, codes, bounds = (
-        slots[0], slots[3], slots[4], slots[5], slots[6], slots[7],
+    order, shifts, starts, neighbors, codes, bounds, shifted = (
+        slots[0], slots[3], slots[4], slots[5], slots[6], slots[7], slots[9],
     )  # fmt: skip
     most = _longest_row(starts, bounds[chunk], bounds[chunk + 1]) + LANES
     gx = np.empty(most)
@@ -566,7 +572,11 @@ def _frame_curvature_loop(args, mode, single, out):
         row = frame_types[p] * n_types
         partners = neighbors[starts[p] : starts[p + 1]]
         m = partners.shape[0]
-        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
+        if shifted[p]:
+            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
+                             gz)  # fmt: skip
+        else:  # no partner across the cell's edge: no codes, no shifts to read
+            _gather_unshifted(frame, partners, gx, gy, gz)
         if not single:  # contiguous per-partner parameters: the pair loop reads no table
             _gather_pair_columns(frame_types, partners, row, table, params)
         padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)

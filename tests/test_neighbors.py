@@ -530,10 +530,10 @@ def _pairs_within(state, radius):
 
 @pytest.mark.parametrize("shape", ["periodic", "open", "sheared"])
 def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_lattice):
-    """``_cell_list`` (bin, search, join in one compiled call) gives the same slots and
-    pairs in 1, 2, 3 or 5 search chunks, joined across real gaps between the chunks'
-    regions; a buffer too small is reported as minus the largest chunk's count, and a
-    buffer of that many per chunk then holds the list. The rows of its balanced
+    """``_cell_list`` (bin, search, join in one compiled call) gives the same slots,
+    pairs and shifted-row flags in 1, 2, 3 or 5 search chunks, joined across real gaps
+    between the chunks' regions; a buffer too small is reported as minus the largest
+    chunk's count, and a buffer of that many per chunk then holds the list. The rows of its balanced
     chunks split the pairs as evenly as rows allow."""
     from md._cell_kernels import _cell_list
 
@@ -553,20 +553,27 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
                          0)  # fmt: skip
         return out, neighbors, codes
 
-    (order, images, starts, bounds, count), neighbors, codes = build(1, 3 * nl.n_pairs)
+    (order, images, starts, bounds, count, shifted), neighbors, codes = build(1, 3 * nl.n_pairs)
     assert count == nl.n_pairs and np.array_equal(starts, nl.slot_starts)
     assert np.array_equal(neighbors[:count], nl.slot_neighbors)
     assert np.array_equal(codes[:count], nl.codes) and np.array_equal(order, nl.order)
+    # each row's flag: set on every row with a pair with an image shift (a code other than
+    # 13), and otherwise only near a periodic edge (on rows whose pairs happen not to cross)
+    rows = np.repeat(np.arange(state.n_atoms), np.diff(starts))
+    crossing = np.bincount(rows, weights=codes[:count] != 13, minlength=state.n_atoms) > 0
+    assert np.array_equal(nl.frame.shifted, shifted) and np.all(shifted[crossing])
+    assert crossing.any() == (shape != "open") and shifted.any() == (shape != "open")
+    assert not shifted.all()
     for chunks in (2, 3, 5):
         small = build(chunks, nl.n_pairs // 2)[0][4]
         assert small < 0 and -small * chunks > nl.n_pairs // 2
-        (o, i, s, b, c), nb, cd = build(chunks, -small * chunks)
+        (o, i, s, b, c, sh), nb, cd = build(chunks, -small * chunks)
         assert c == count and np.array_equal(o, order) and np.array_equal(i, images)
         assert np.array_equal(s, starts) and np.array_equal(nb[:c], neighbors[:count])
-        assert np.array_equal(cd[:c], codes[:count])
-        (o, i, s, b, c), nb, cd = build(chunks, 3 * nl.n_pairs)  # gaps between regions
+        assert np.array_equal(cd[:c], codes[:count]) and np.array_equal(sh, shifted)
+        (o, i, s, b, c, sh), nb, cd = build(chunks, 3 * nl.n_pairs)  # gaps between regions
         assert np.array_equal(s, starts) and np.array_equal(nb[:c], neighbors[:count])
-        assert np.array_equal(cd[:c], codes[:count])
+        assert np.array_equal(cd[:c], codes[:count]) and np.array_equal(sh, shifted)
         assert b[0] == 0 and b[-1] == state.n_atoms and np.all(np.diff(b) >= 0)
         per_chunk = np.diff(s[b])
         assert per_chunk.max() - per_chunk.min() <= 2 * np.diff(s).max()
