@@ -1,0 +1,185 @@
+"""Where the pair frame's Lennard-Jones force call spends its time.
+
+The frame's per-row passes (see ``potentials/_pair_kernels.py``): gather the
+partners' positions (with their image shifts) into contiguous scratch, the
+vectorised pair loop, the sum of atom i's force, and the scatter of the
+partners' forces. This script times a replica of that loop (single type,
+cutoff mode "none", no virial; checked to give the frame's energy and forces
+bit for bit) with parts left out, in interleaved repeats, beside the frame
+itself with and without its unshifted-row gather (``SlotFrame.shifted``: the
+same compiled kernel given a frame whose rows are all marked shifted). Each
+row: median time, per listed pair, and the median of per-repeat ratios to the
+full replica. A variant without a part computes wrong forces: it only shows
+what the part costs.
+
+    python benchmarks/frame_breakdown.py                  # 32000 atoms, 1 thread, 41 repeats
+    python benchmarks/frame_breakdown.py --cells 50 --repeats 11 --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
+
+from _machine import machine_line  # noqa: E402
+
+import md  # noqa: E402
+from md.parallel import set_threads  # noqa: E402
+from potentials import LennardJones  # noqa: E402
+from potentials._kernels import _gather_partners, _gather_unshifted  # noqa: E402
+from potentials._pair_frame import CUTOFF_MODES  # noqa: E402
+
+VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
+LANES = 4
+
+
+def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
+    """The frame's chunk loop for one chunk, with the named parts kept."""
+
+    @njit(fastmath=VECTOR_MATH, error_model="numpy")
+    def loop(frame, shifts, starts, neighbors, codes, shifted, buffer, rc2, c6, c12, far):
+        n = frame.shape[0]
+        for p in range(n):
+            buffer[p, 0] = 0.0
+            buffer[p, 1] = 0.0
+            buffer[p, 2] = 0.0
+        most = LANES
+        for p in range(n):
+            most = max(most, starts[p + 1] - starts[p] + LANES)
+        gx, gy, gz = np.zeros(most), np.zeros(most), np.zeros(most)
+        sfx, sfy, sfz = np.zeros(most), np.zeros(most), np.zeros(most)
+        energy = 0.0
+        for p in range(n):
+            xi, yi, zi = frame[p, 0], frame[p, 1], frame[p, 2]
+            partners = neighbors[starts[p] : starts[p + 1]]
+            m = partners.shape[0]
+            if gather:
+                if shifted[p]:
+                    _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]],
+                                     gx, gy, gz)  # fmt: skip
+                else:
+                    _gather_unshifted(frame, partners, gx, gy, gz)
+            padded = (m + (LANES - 1)) & ~(LANES - 1) if m > 0 else 0
+            for k in range(m, padded):
+                gx[k] = xi + far
+                gy[k] = yi
+                gz[k] = zi
+            for k in range(padded):
+                dx = xi - gx[k]
+                dy = yi - gy[k]
+                dz = zi - gz[k]
+                r2 = dx * dx + dy * dy + dz * dz
+                inside = 1.0 if r2 < rc2 else 0.0
+                if arithmetic:
+                    inv_r2 = 1.0 / r2
+                    inv_r6 = inv_r2 * inv_r2 * inv_r2
+                    a = c12 * inv_r6 * inv_r6
+                    b = c6 * inv_r6
+                    u, fr = a - b, (12.0 * a - 6.0 * b) * inv_r2
+                else:
+                    u, fr = r2, c6
+                energy += u * inside
+                fr *= inside
+                sfx[k] = fr * dx
+                sfy[k] = fr * dy
+                sfz[k] = fr * dz
+            if row_sum:
+                fxi = fyi = fzi = 0.0
+                for k in range(m):
+                    fxi += sfx[k]
+                    fyi += sfy[k]
+                    fzi += sfz[k]
+                buffer[p, 0] += fxi
+                buffer[p, 1] += fyi
+                buffer[p, 2] += fzi
+            if scatter:
+                for k in range(m):
+                    q = np.uint32(partners[k])
+                    buffer[q, 0] -= sfx[k]
+                    buffer[q, 1] -= sfy[k]
+                    buffer[q, 2] -= sfz[k]
+        return energy
+
+    return loop
+
+
+VARIANTS = {
+    "replica (all parts)": (True, True, True, True),
+    "without LJ arithmetic": (True, False, True, True),
+    "without gather": (False, True, True, True),
+    "without scatter": (True, True, True, False),
+    "without sum, scatter": (True, True, False, False),
+    "pair loop only": (False, True, False, False),
+    "rows only (no parts)": (False, False, False, False),
+}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
+    parser.add_argument("--repeats", type=int, default=41, help="interleaved repeats (41)")
+    parser.add_argument("--threads", type=int, default=1, help="threads of the frame (1)")
+    args = parser.parse_args(argv)
+    print(machine_line())
+    set_threads(args.threads)
+    state = md.lattice("fcc", args.cells, density=0.8442)
+    state.positions += np.random.default_rng(1).normal(0.0, 0.05, state.positions.shape)
+    lj = LennardJones(cutoff=2.5, cutoff_mode="none")
+    neighbors = md.NeighborList(2.5, 0.3)
+    neighbors.update(state)
+    frame = neighbors.frame
+    every_row = dataclasses.replace(frame, shifted=np.ones_like(frame.shifted))
+    kernels, table = lj._loaded(), lj._cached_tables(1)
+
+    def call(slot_frame):
+        return lj._frame_energy_forces(kernels, state, slot_frame, 1, table,
+                                       CUTOFF_MODES["none"], False)  # fmt: skip
+
+    reference = call(frame)
+    slot_positions = state.positions[frame.order] + frame.images * state.box
+    buffer = np.zeros_like(slot_positions)
+    inputs = (slot_positions, frame.shifts, frame.starts, frame.neighbors, frame.codes,
+              frame.shifted, buffer, 6.25, 4.0, 4.0, 2.51)  # fmt: skip
+    loops = {name: replica(*parts) for name, parts in VARIANTS.items()}
+    energy = loops["replica (all parts)"](*inputs)
+    forces = np.empty_like(buffer)
+    forces[frame.order] = buffer
+    same = energy == reference.energy and np.array_equal(forces, reference.forces)
+    if args.threads > 1 or not same:
+        print(f"replica against the frame: {'same bits' if same else 'DIFFERENT'} "
+              f"({args.threads} thread(s): the replica runs one chunk)")  # fmt: skip
+    for loop in loops.values():
+        loop(*inputs)  # compile
+    call(every_row)
+    timed = {"frame LJ": lambda: call(frame),
+             "frame LJ, every row shifted": lambda: call(every_row)}  # fmt: skip
+    timed.update({name: (lambda loop=loop: loop(*inputs)) for name, loop in loops.items()})
+    times = {name: [] for name in timed}
+    for _ in range(args.repeats):
+        for name, run in timed.items():
+            start = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - start)
+    pairs = neighbors.n_pairs
+    print(f"{state.n_atoms} atoms, {pairs} listed pairs, {frame.shifted.mean():.0%} of the rows "
+          f"marked shifted; {args.repeats} interleaved repeats; the frame on {args.threads} "
+          f"thread(s), the replica on 1; replica same bits as the frame: {same}")  # fmt: skip
+    base = times["replica (all parts)"]
+    print(f"{'':30s}{'ms':>8}{'ns/pair':>9}{'/ replica':>11}")
+    for name, values in times.items():
+        ratio = statistics.median(t / b for t, b in zip(values, base, strict=True))
+        median = statistics.median(values)
+        print(f"{name:30s}{1e3 * median:8.2f}{1e9 * median / pairs:9.2f}{ratio:11.3f}")
+
+
+if __name__ == "__main__":
+    main()
