@@ -15,8 +15,9 @@ vector has no component along a cut axis (no ghosts there: the cell list
 finds those images as a single process does,
 :func:`md.domain.local_periodic_axes`), which the rank evaluates with an ordinary
 :class:`md.forcefield.ForceField` (threaded kernels and all). Its neighbour
-list keeps, of each pair, only the one the rank owning the pair's lower-id
-atom evaluates (:meth:`md.neighbors.NeighborList.keep_owned`), so every pair
+list keeps only the pairs whose designated atom it owns (the lower id when the
+ids' sum is even, the higher when odd: :meth:`md.neighbors.NeighborList.keep_owned`,
+which splits the pairs across each face about evenly), so every pair
 is evaluated once in the whole run and pairs of two ghosts not at all; each
 bond (angle) is evaluated by the owner of its first atom (vertex), with its
 partners' nearest copies. The forces on ghosts then go back to their owners

@@ -238,10 +238,13 @@ class NeighborList:
 
         The State is one rank's atoms, ``0 .. n_owned - 1``, followed by ghost
         copies of atoms other ranks own (and periodic images); ``ids`` (N,) are
-        their global ids. Of each pair the rank whose atom has the smaller id
-        keeps it, so every pair of the whole system is listed on exactly one rank
-        and pairs of two ghosts on none (:mod:`md.distributed` sends the ghosts'
-        forces back to their owners). None lists every pair again.
+        their global ids. Of each pair the rank that owns its designated atom
+        keeps it (the smaller id when the ids' sum is even, the larger when it is
+        odd: ``md._cell_kernels.designates``, which shares the pairs across a
+        brick's face about evenly between its two ranks), so every pair of the
+        whole system is listed on exactly one rank and pairs of two ghosts on
+        none (:mod:`md.distributed` sends the ghosts' forces back to their
+        owners). None lists every pair again.
         """
         self._owned = None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64),
                                                 int(n_owned))  # fmt: skip
