@@ -1075,7 +1075,7 @@ def _cell_list(
         count = _join_chunks(bounds, capacity, counts, starts, neighbors, codes)
     else:  # unpacked by the search; rows counted from the buffer's start
         count = counts[0]
-    shifted = _shifted_rows(slot_cell, n_cells, reach, periodic)
+    shifted = _shifted_rows(cell_starts, n_cells, reach, periodic)
     return order, images, starts, _balanced_bounds(starts, chunks), count, shifted
 
 
@@ -1169,7 +1169,7 @@ UNSHIFTED_CODE = 13
 
 
 @njit(cache=True, error_model="numpy")
-def _shifted_rows(slot_cell, n_cells, reach, periodic):
+def _shifted_rows(cell_starts, n_cells, reach, periodic):
     """Per slot, whether its row may hold a pair with an image shift (a code other than
     ``UNSHIFTED_CODE``); the pair kernels gather the other rows' partners without
     reading codes and shifts (LJ's force call -5 % at 32000 atoms).
@@ -1179,21 +1179,22 @@ def _shifted_rows(slot_cell, n_cells, reach, periodic):
     only a cell that near the edge of a periodic axis sees images (a third of
     the rows at 32000 atoms, a seventh at 500000). A flag may be set on a row
     whose pairs all turn out unshifted, never left off one that has a shift.
+    Cell by cell (``cell_starts``: the slots of cell (x ny + y) nz + z), with no
+    integer division per slot (three per slot took 0.4 ms at 32000 atoms, 7 % of
+    a build).
     """
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    wrap_x, wrap_y, wrap_z = periodic[0], periodic[1], periodic[2]
-    shifted = np.empty(slot_cell.shape[0], dtype=np.bool_)
-    for p in range(slot_cell.shape[0]):
-        cell = slot_cell[p]
-        kz = cell % nz
-        column = cell // nz
-        ky = column % ny
-        kx = column // ny
-        shifted[p] = (
-            (wrap_x and kx + reach >= nx)
-            or (wrap_y and (ky < reach or ky + reach >= ny))
-            or (wrap_z and (kz < reach or kz + reach >= nz))
-        )
+    shifted = np.empty(cell_starts[nx * ny * nz], dtype=np.bool_)
+    cell = 0
+    for kx in range(nx):
+        near_x = periodic[0] and kx + reach >= nx
+        for ky in range(ny):
+            near_xy = near_x or (periodic[1] and (ky < reach or ky + reach >= ny))
+            for kz in range(nz):
+                flag = near_xy or (periodic[2] and (kz < reach or kz + reach >= nz))
+                for p in range(cell_starts[cell], cell_starts[cell + 1]):
+                    shifted[p] = flag
+                cell += 1
     return shifted
 
 
