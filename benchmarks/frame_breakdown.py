@@ -7,7 +7,7 @@ partners' forces. This script times a replica of that loop (single type,
 cutoff mode "none", no virial; checked to give the frame's energy and forces
 bit for bit) with parts left out, in interleaved repeats, beside the frame
 itself with and without its unshifted-row gather (``SlotFrame.shifted``: the
-same compiled kernel given a frame whose rows are all marked shifted). Each
+same potential given a list whose frame has every row marked shifted). Each
 row: median time, per listed pair, and the median of per-repeat ratios to the
 full replica. A variant without a part computes wrong forces: it only shows
 what the part costs.
@@ -36,7 +36,6 @@ import md  # noqa: E402
 from md.parallel import set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 from potentials._kernels import _gather_partners, _gather_unshifted  # noqa: E402
-from potentials._pair_frame import CUTOFF_MODES  # noqa: E402
 
 VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
 LANES = 4
@@ -112,6 +111,16 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
     return loop
 
 
+class EveryRowShifted:
+    """A neighbour list seen with every row of its frame marked shifted: the pair frame
+    then gathers every row with its codes and shifts, as it did before the flags."""
+
+    def __init__(self, neighbors: md.NeighborList) -> None:
+        self.list_radius = neighbors.list_radius
+        self.frame = dataclasses.replace(neighbors.frame,
+                                         shifted=np.ones_like(neighbors.frame.shifted))  # fmt: skip
+
+
 VARIANTS = {
     "replica (all parts)": (True, True, True, True),
     "without LJ arithmetic": (True, False, True, True),
@@ -137,14 +146,12 @@ def main(argv=None) -> None:
     neighbors = md.NeighborList(2.5, 0.3)
     neighbors.update(state)
     frame = neighbors.frame
-    every_row = dataclasses.replace(frame, shifted=np.ones_like(frame.shifted))
-    kernels, table = lj._loaded(), lj._cached_tables(1)
+    every_row = EveryRowShifted(neighbors)
 
-    def call(slot_frame):
-        return lj._frame_energy_forces(kernels, state, slot_frame, 1, table,
-                                       CUTOFF_MODES["none"], False)  # fmt: skip
+    def call(listed):
+        return lj.energy_forces(state, listed, virial=False)
 
-    reference = call(frame)
+    reference = call(neighbors)
     slot_positions = state.positions[frame.order] + frame.images * state.box
     buffer = np.zeros_like(slot_positions)
     inputs = (slot_positions, frame.shifts, frame.starts, frame.neighbors, frame.codes,
@@ -160,7 +167,7 @@ def main(argv=None) -> None:
     for loop in loops.values():
         loop(*inputs)  # compile
     call(every_row)
-    timed = {"frame LJ": lambda: call(frame),
+    timed = {"frame LJ": lambda: call(neighbors),
              "frame LJ, every row shifted": lambda: call(every_row)}  # fmt: skip
     timed.update({name: (lambda loop=loop: loop(*inputs)) for name, loop in loops.items()})
     times = {name: [] for name in timed}

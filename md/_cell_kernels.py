@@ -103,6 +103,8 @@ from md.box import cell_matrix, min_image, periodic_tilt
 #: The cell search packs a candidate's slot and image code into one uint32: slot in the
 #: low bits, code (< 27) in the top five. So a list holds at most MAX_SLOTS atoms.
 _CODE_SHIFT = np.uint32(27)
+#: The code of an unshifted pair (no wrap along any axis: 9 + 3 + 1).
+UNSHIFTED_CODE = 13
 _SLOT_MASK = np.uint32((1 << 27) - 1)
 MAX_SLOTS = 1 << 27
 #: Entries the cell search's gather copies at once (see ``_gather_run``): the (z, x, y)
@@ -556,7 +558,7 @@ def _layout_arrays(size, cell_starts, n_cells):
 
 
 #: The packed code of a candidate seen with no image shift.
-_UNSHIFTED = np.uint32(13) << _CODE_SHIFT
+_UNSHIFTED = np.uint32(UNSHIFTED_CODE) << _CODE_SHIFT
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -1162,10 +1164,6 @@ def _join_rest(capacity, counts, offsets, moves, neighbors, codes):
             move_within(neighbors, offsets[chunk], base, counts[chunk])
             move_within(codes, offsets[chunk], base, counts[chunk])
     return offsets[counts.shape[0]]
-
-
-#: The code of an unshifted pair (no wrap along any axis: 9 + 3 + 1).
-UNSHIFTED_CODE = 13
 
 
 @njit(cache=True, error_model="numpy")

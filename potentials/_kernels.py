@@ -92,7 +92,8 @@ def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
 
 @njit(cache=True, error_model="numpy")
 def _gather_unshifted(frame, partners, gx, gy, gz):
-    """``_gather_partners`` for a row whose partners all have code 13 (no image shift):
+    """``_gather_partners`` for a row whose partners all have code 13 (``UNSHIFTED_CODE``
+    of ``md._cell_kernels``, no image shift):
     their codes and the shift table are not read (LJ's force call -5 % at 32000 atoms)."""
     for k in range(partners.shape[0]):
         q = np.uint32(partners[k])
