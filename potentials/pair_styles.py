@@ -19,7 +19,7 @@ from numba.extending import register_jitable
 
 from md.schema import Key
 from potentials._pair_frame import PairPotential, PairTerm, collapse_error, pair_config_keys
-from potentials.pair_math import exp, log, reciprocal
+from potentials.pair_math import cos, exp, log, reciprocal, sin
 
 __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
 
@@ -320,7 +320,7 @@ def soft_energy(r2, a, k):
     r = math.sqrt(r2)
     safe = r if r2 > 0.0 else 1.0
     x = k * r
-    return a * (1.0 + math.cos(x)), (a * k * math.sin(x) / safe if r2 > 0.0 else a * k * k)
+    return a * (1.0 + cos(x)), (a * k * sin(x) / safe if r2 > 0.0 else a * k * k)
 
 
 def soft_curvature(r2, a, k):
@@ -328,12 +328,12 @@ def soft_curvature(r2, a, k):
     x = k * r
     small = x < 1e-2  # series below: the exact forms cancel to nothing there
     safe = r if not small else 1.0
-    g1 = -0.5 * a * k * math.sin(x) / safe
-    g2 = 0.25 * (-a * k * k * math.cos(x) - 2.0 * g1) / (safe * safe)
+    g1 = -0.5 * a * k * sin(x) / safe
+    g2 = 0.25 * (-a * k * k * cos(x) - 2.0 * g1) / (safe * safe)
     k2 = k * k
     g1 = g1 if not small else -0.5 * a * k2 * (1.0 - x * x / 6.0)
     g2 = g2 if not small else a * k2 * k2 * (1.0 / 12.0 - x * x / 240.0)
-    return a * (1.0 + math.cos(x)), g1, g2
+    return a * (1.0 + cos(x)), g1, g2
 
 
 class Soft(PairPotential):
