@@ -91,6 +91,7 @@ from md.domain import (
     moved_since,
     near_faces,
     nearest_copies,
+    nonzero_rows,
     pack_rows,
     split_table,
     take_rows,
@@ -435,7 +436,8 @@ class Domain:
         self.margin = 0.0
         self.n_owned = 0
         self.swaps: list[_Swap] = []
-        self.images = np.zeros((0, 3), dtype=np.int64)
+        self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
+        self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
         self._built_tilt = b""
         self.local_state: State | None = None
@@ -587,7 +589,7 @@ class Domain:
                 swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
                 count += len(rows)
         self.swaps = swaps
-        self.images = images
+        self.imaged, self.images = nonzero_rows(images)
         self.n_owned = n
         self.reach, self.margin = reach, margin
         positions = np.empty((count, 3))
@@ -615,7 +617,8 @@ class Domain:
             self.local_state.box[:] = state.box
             self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
         positions = self.local_state.positions
-        home_positions(state.positions, self.images, cell, positions[: self.n_owned])
+        home_positions(state.positions, self.imaged, self.images, cell,
+                       positions[: self.n_owned])  # fmt: skip
         for swap in self.swaps:
             shift = swap.shift * cell[swap.axis]
             target = positions[swap.offset : swap.offset + swap.count]
@@ -638,6 +641,20 @@ class Domain:
             self.ranks.exchange(part, swap.source, buffer, swap.dest, 16 + swap.tag)
             add_rows(values, swap.send, buffer)
         return values[: self.n_owned]
+
+    def reserve(self, state: State, carried: dict) -> None:
+        """Allocate and fill the arrays the first migration merges into (``state``'s
+        per-atom arrays and the ``carried`` ones, name -> an array shaped like it), so
+        that the first migration of a run does not pay their page faults (1M atoms on the
+        Emerald Rapids VM: 0.108 s for the first migration, 0.040 s for later ones). The
+        second migration's arrays are left to it: reserving them too would hold a third
+        copy of the per-atom arrays until the first migration frees the originals."""
+        arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
+        keyed = [(("state", k), a) for k, a in enumerate(arrays) if a is not None]
+        keyed += [(("carried", name), like) for name, like in carried.items()]
+        for key, like in keyed:
+            if key not in self._held:
+                self._held_rows(key, like, len(like)).fill(0)  # written: its pages mapped
 
     def _held_rows(self, key, like: NDArray, n: int) -> NDArray:
         """n rows shaped and typed as ``like``'s, in memory that does not hold ``like``: one of
@@ -1035,6 +1052,11 @@ class DistributedForceField:
         smallest = float(np.linalg.svd(mapping, compute_uv=False).min())
         return mapping, 0.5 * (smallest * (cutoff + self.skin) - cutoff)
 
+    def reserve(self, state: State) -> None:
+        """Map the memory the first migration writes ``state``'s arrays and the cached
+        forces into, now rather than inside the run (see :meth:`Domain.reserve`)."""
+        self.domain.reserve(state, {("cached", None): state.positions})
+
     def rebuild(self, state: State, migrate: bool, carried: dict | None = None,
                 dt: float | None = None) -> dict:  # fmt: skip
         """Rebuild the ghosts and the local list at ``state``; with ``migrate``, first move
@@ -1249,6 +1271,7 @@ class DistributedSimulation(Simulation):
         self.state = self._part(state, self.forcefield.domain.owner_of(state))
         self.forcefield.rebuild(self.state, migrate=False)
         self.forcefield.migrate_pending = False
+        self.forcefield.reserve(self.state)
 
     @property
     def rank(self) -> int:

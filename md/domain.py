@@ -380,11 +380,35 @@ def split_table(data, count, positions, ids, types):
 
 
 @njit(cache=True, error_model="numpy")
-def home_positions(positions, images, cell, out):
-    """out[i] = positions[i] - images[i] @ cell: each atom at the image nearest its brick
-    (``cell``: rows a, b, c)."""
+def nonzero_rows(images):
+    """The rows of an (n, 3) integer array that are not all 0 (indices, increasing), and
+    those rows: the atoms :func:`home_positions` shifts, and their images."""
+    listed = np.empty(images.shape[0], dtype=np.int64)
+    count = 0
+    for i in range(images.shape[0]):
+        listed[count] = i
+        count += (images[i, 0] != 0) | (images[i, 1] != 0) | (images[i, 2] != 0)
+    listed = listed[:count].copy()
+    rows = np.empty((count, 3), dtype=images.dtype)
+    for k in range(count):
+        for a in range(3):
+            rows[k, a] = images[listed[k], a]
+    return listed, rows
+
+
+@njit(cache=True, error_model="numpy")
+def home_positions(positions, listed, images, cell, out):
+    """out[i] = positions[i] - n_i @ cell: each atom at the image nearest its brick
+    (``cell``: rows a, b, c), where n_i is ``images[k]`` for ``i = listed[k]`` and 0 for
+    every atom not listed (most of them: only atoms that crossed a periodic face since
+    the positions were last wrapped have an image of their own). One copy and a short
+    pass, not a product per atom: the same values (x - 0 is x)."""
     for i in range(positions.shape[0]):
-        n0, n1, n2 = images[i, 0], images[i, 1], images[i, 2]
+        for a in range(3):
+            out[i, a] = positions[i, a]
+    for k in range(listed.shape[0]):
+        i = listed[k]
+        n0, n1, n2 = images[k, 0], images[k, 1], images[k, 2]
         for a in range(3):
             out[i, a] = positions[i, a] - (n0 * cell[0, a] + n1 * cell[1, a] + n2 * cell[2, a])
 
@@ -515,6 +539,7 @@ __all__ = [
     "grid_candidates",
     "home_images",
     "home_positions",
+    "nonzero_rows",
     "largest_grid",
     "lay_out_owned",
     "local_periodic_axes",

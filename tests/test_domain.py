@@ -10,12 +10,14 @@ from md.box import cell_matrix
 from md.domain import (
     brick_of,
     fractional_coordinates,
+    home_positions,
     lay_out_owned,
     leaving_along,
     local_periodic_axes,
     merged_order,
     moved_since,
     near_faces,
+    nonzero_rows,
     split_table,
     take_rows,
 )
@@ -172,3 +174,26 @@ def test_local_periodic_axes_are_the_uncut_ones_whose_vector_stays_off_cut_axes(
     # an open axis is never periodic
     assert local_periodic_axes((2, 1, 1), np.array([True, False, True]), np.zeros(3)).tolist() == [
         False, False, True]  # fmt: skip
+
+
+def test_home_positions_shift_exactly_the_atoms_with_an_image():
+    """nonzero_rows lists the atoms whose image is not 0 (and their images); home_positions
+    from that list equals positions - images @ cell for every atom, to the bit."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    positions = rng.uniform(-5.0, 15.0, (n, 3))
+    images = np.zeros((n, 3), dtype=np.int64)
+    crossed = rng.choice(n, 40, replace=False)
+    images[crossed] = rng.integers(-2, 3, (40, 3))
+    images[crossed[0]] = (0, 0, 1)  # one axis alone
+    cell = cell_matrix(np.array([10.0, 9.0, 8.0]), np.array([1.5, -0.5, 2.0]))
+    listed, rows = nonzero_rows(images)
+    expected = np.flatnonzero(np.any(images != 0, axis=1))
+    assert np.array_equal(listed, expected) and np.array_equal(rows, images[expected])
+    out = np.empty_like(positions)
+    home_positions(positions, listed, rows, cell, out)
+    reference = positions - (images[:, :1] * cell[0] + images[:, 1:2] * cell[1]
+                             + images[:, 2:] * cell[2])  # fmt: skip
+    assert np.array_equal(out[listed], reference[listed])
+    others = np.setdiff1d(np.arange(n), listed)
+    assert np.array_equal(out[others], positions[others])
