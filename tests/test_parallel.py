@@ -284,7 +284,7 @@ def test_threaded_per_atom_passes_change_no_bits(monkeypatch):
         set_threads(before)
 
 
-@pytest.mark.parametrize("where", [0, 1500, 2999])
+@pytest.mark.parametrize("where", [0, 700, 1500, 2999])
 def test_chunked_comparison_and_copy(monkeypatch, where):
     """same_values finds a difference (or a NaN) in any chunk; copy_into copies every one."""
     import md.parallel
