@@ -78,13 +78,13 @@ from md.domain import (
     Grid,
     add_rows,
     anchored_items,
+    append_rows,
     brick_of,
     check_grid,
     choose_grid,
     fractional_coordinates,
     home_images,
     home_positions,
-    lay_out_owned,
     leaving_along,
     local_periodic_axes,
     merged_order,
@@ -93,7 +93,7 @@ from md.domain import (
     nearest_copies,
     nonzero_rows,
     pack_rows,
-    split_table,
+    table_rows,
     take_rows,
 )
 from md.errors import (
@@ -553,11 +553,20 @@ class Domain:
                 f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
                 "smaller time step"
             )
-        # One row per local atom: position (3), fractional position (3), id, type; the
-        # ghosts of each sweep are appended in place (the table grows by half when full).
+        # The local system is written where it will stay: the owned atoms first, at their
+        # images nearest the brick (a copy; only the atoms with an image of their own are
+        # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
+        # their fractional coordinates kept beside them for the later sweeps. Sweeps send
+        # rows of position (3), fractional position (3), id and type.
         n = state.n_atoms
-        data = self._buffer(n + n // 2 + 64, 8, "table")
-        lay_out_owned(state.positions, images, cell, home, state.ids, state.types, data)
+        self.imaged, self.images = nonzero_rows(images)
+        positions = np.empty((n + n // 2 + 64, 3))
+        ids = np.empty(len(positions), dtype=np.int64)
+        types = np.empty(len(positions), dtype=np.int32)
+        home_positions(state.positions, self.imaged, self.images, cell, positions[:n])
+        ids[:n] = state.ids
+        types[:n] = state.types
+        ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
         count = n
         swaps: list[_Swap] = []
         local_pbc = local_periodic_axes(self.shape, pbc, tilt)
@@ -566,39 +575,44 @@ class Domain:
                 continue
             p, c = self.grid.shape[axis], self.coordinates[axis]
             reach_fraction = shell / widths[axis]
-            # this sweep sends the atoms before its own ghosts
-            lower, upper = near_faces(data, count, 3 + axis, self.bounds[0, axis] + reach_fraction,
-                                      self.bounds[1, axis] - reach_fraction)  # fmt: skip
+            # this sweep sends the atoms before its own ghosts, in local order
+            faces = (self.bounds[0, axis] + reach_fraction, self.bounds[1, axis] - reach_fraction)
+            lower, upper = near_faces(home, n, axis, *faces)
+            if count > n:
+                ghost_lower, ghost_upper = near_faces(ghost_fractions, count - n, axis, *faces)
+                lower = np.concatenate([lower, ghost_lower + n])
+                upper = np.concatenate([upper, ghost_upper + n])
             down = self.grid.neighbor(self.rank, axis, -1)
             up = self.grid.neighbor(self.rank, axis, 1)
             for send, shift, dest, source in (
                 (lower, 1 if c == 0 else 0, down, up),
                 (upper, -1 if c == p - 1 else 0, up, down),
             ):
-                rows = data[send]
+                rows = np.empty((len(send), 8))
+                table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
                 rows[:, :3] += shift * cell[axis]
                 rows[:, 3 + axis] += shift
                 tag = len(swaps)
                 if dest != self.rank:
                     rows = self.ranks.exchange_rows(rows, dest, source, tag)
-                if count + len(rows) > data.shape[0]:
-                    grown = np.empty((count + len(rows) + data.shape[0] // 2, 8))
-                    grown[:count] = data[:count]
-                    self._buffers[("table", 8)] = data = grown
-                data[count : count + len(rows)] = rows
+                if count + len(rows) > len(positions):
+                    size = count + len(rows) + len(positions) // 2
+                    positions, ids, types = (_grown(a, count, size) for a in (positions, ids,
+                                                                               types))  # fmt: skip
+                    old = ghost_fractions
+                    ghost_fractions = self._buffer(size - n, 3, "ghost fractions")
+                    ghost_fractions[: count - n] = old[: count - n]
+                append_rows(rows, count, n, positions, ghost_fractions, ids, types)
                 swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
                 count += len(rows)
         self.swaps = swaps
-        self.imaged, self.images = nonzero_rows(images)
         self.n_owned = n
         self.reach, self.margin = reach, margin
-        positions = np.empty((count, 3))
-        self.local_ids = np.empty(count, dtype=np.int64)
-        types = np.empty(count, dtype=np.int32)
-        split_table(data, count, positions, self.local_ids, types)
+        self.local_ids = ids[:count]
         self.local_pbc = local_pbc
         self._built_tilt = state.tilt.tobytes()
-        self.local_state = State.adopting(positions, types, box, local_pbc, state.type_names)
+        self.local_state = State.adopting(positions[:count], types[:count], box, local_pbc,
+                                          state.type_names)  # fmt: skip
         self.local_state.tilt = periodic_tilt(tilt, local_pbc)
 
     def layout_holds(self, state: State) -> bool:
@@ -684,6 +698,14 @@ class Domain:
             held = np.empty((n + n // 4 + 16, k), dtype=dtype)
             self._buffers[(name, k)] = held
         return held[:n]
+
+
+def _grown(values: NDArray, count: int, size: int) -> NDArray:
+    """A fresh array of ``size`` rows shaped and typed as ``values``, its first ``count``
+    rows copied from ``values``."""
+    grown = np.empty((size, *values.shape[1:]), dtype=values.dtype)
+    grown[:count] = values[:count]
+    return grown
 
 
 def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:

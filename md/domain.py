@@ -337,16 +337,34 @@ def take_rows(old, incoming, order, out):
 
 
 @njit(cache=True, error_model="numpy")
-def lay_out_owned(positions, images, cell, home, ids, types, data):
-    """The first rows of a ghost-search table: each owned atom at its image nearest the
-    brick (3 columns), its fractional coordinates there (3), id and type."""
-    for i in range(positions.shape[0]):
-        n0, n1, n2 = images[i, 0], images[i, 1], images[i, 2]
+def table_rows(positions, owned_fractions, ghost_fractions, ids, types, n_owned, send, out):
+    """The rows a ghost sweep sends, one per local atom ``send[k]``: its position (3), its
+    fractional coordinates (3: an owned atom's from ``owned_fractions``, a ghost's from
+    ``ghost_fractions``, both at the image the local system holds), id and type."""
+    for k in range(send.shape[0]):
+        i = send[k]
         for a in range(3):
-            data[i, a] = positions[i, a] - (n0 * cell[0, a] + n1 * cell[1, a] + n2 * cell[2, a])
-            data[i, 3 + a] = home[i, a]
-        data[i, 6] = ids[i]
-        data[i, 7] = types[i]
+            out[k, a] = positions[i, a]
+        if i < n_owned:
+            for a in range(3):
+                out[k, 3 + a] = owned_fractions[i, a]
+        else:
+            for a in range(3):
+                out[k, 3 + a] = ghost_fractions[i - n_owned, a]
+        out[k, 6] = ids[i]
+        out[k, 7] = types[i]
+
+
+@njit(cache=True, error_model="numpy")
+def append_rows(rows, start, n_owned, positions, ghost_fractions, ids, types):
+    """:func:`table_rows`' rows, received, as local atoms ``start`` onwards (ghosts)."""
+    for k in range(rows.shape[0]):
+        i = start + k
+        for a in range(3):
+            positions[i, a] = rows[k, a]
+            ghost_fractions[i - n_owned, a] = rows[k, 3 + a]
+        ids[i] = np.int64(rows[k, 6])
+        types[i] = np.int32(rows[k, 7])
 
 
 @njit(cache=True, error_model="numpy")
@@ -366,17 +384,6 @@ def near_faces(data, end, column, lower, upper):
             above[n_above] = i
             n_above += 1
     return below[:n_below].copy(), above[:n_above].copy()
-
-
-@njit(cache=True, error_model="numpy")
-def split_table(data, count, positions, ids, types):
-    """The columns of a ghost-search table's first ``count`` rows as the local system's
-    positions, ids and types."""
-    for i in range(count):
-        for a in range(3):
-            positions[i, a] = data[i, a]
-        ids[i] = np.int64(data[i, 6])
-        types[i] = np.int32(data[i, 7])
 
 
 @njit(cache=True, error_model="numpy")
@@ -530,6 +537,7 @@ def nearest_copies(anchors, partners, sorted_ids, by_id, positions, lengths, inv
 __all__ = [
     "Grid",
     "add_rows",
+    "append_rows",
     "anchored_items",
     "brick_of",
     "brick_widths",
@@ -541,7 +549,6 @@ __all__ = [
     "home_positions",
     "nonzero_rows",
     "largest_grid",
-    "lay_out_owned",
     "local_periodic_axes",
     "leaving_along",
     "merged_order",
@@ -549,6 +556,6 @@ __all__ = [
     "near_faces",
     "nearest_copies",
     "pack_rows",
-    "split_table",
+    "table_rows",
     "take_rows",
 ]

@@ -8,17 +8,17 @@ import pytest
 
 from md.box import cell_matrix
 from md.domain import (
+    append_rows,
     brick_of,
     fractional_coordinates,
     home_positions,
-    lay_out_owned,
     leaving_along,
     local_periodic_axes,
     merged_order,
     moved_since,
     near_faces,
     nonzero_rows,
-    split_table,
+    table_rows,
     take_rows,
 )
 from md.state import State
@@ -77,30 +77,39 @@ def test_merged_order_and_take_rows_equal_a_sort_by_id():
     assert merged_order(shuffled, np.zeros(len(ids), dtype=bool), arriving).size == 0
 
 
-def test_near_faces_and_the_table_round_trip():
+def test_near_faces_and_the_sweep_rows_round_trip():
+    """near_faces picks the rows below and at or above the bounds, in order; table_rows packs
+    owned atoms' and ghosts' rows (fractions from the right array) and append_rows unpacks
+    them as new ghosts, to the bit."""
     rng = np.random.default_rng(2)
-    n = 2000
-    positions = scattered(n, seed=3)
-    images = rng.integers(-1, 2, (n, 3))
+    n, m = 2000, 300
+    positions = np.concatenate([scattered(n, seed=3), scattered(m, seed=4)])
     home = rng.random((n, 3))
-    ids = rng.permutation(n).astype(np.int64)
-    types = rng.integers(0, 3, n).astype(np.int32)
-    table = np.empty((n + 10, 8))
-    cell = cell_matrix(BOX, TILT)
-    lay_out_owned(positions, images, cell, home, ids, types, table)
-    np.testing.assert_allclose(table[:n, :3], positions - images @ cell, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(table[:n, 3:6], home)
-    for column in (3, 4, 5):
-        below, above = near_faces(table, n, column, 0.2, 0.7)
-        np.testing.assert_array_equal(below, np.flatnonzero(home[:, column - 3] < 0.2))
-        np.testing.assert_array_equal(above, np.flatnonzero(home[:, column - 3] >= 0.7))
-    out = np.empty((n, 3))
-    out_ids = np.empty(n, dtype=np.int64)
-    out_types = np.empty(n, dtype=np.int32)
-    split_table(table, n, out, out_ids, out_types)
-    np.testing.assert_array_equal(out, table[:n, :3])
-    np.testing.assert_array_equal(out_ids, ids)
-    np.testing.assert_array_equal(out_types, types)
+    ghost_fractions = rng.random((m, 3))
+    ids = rng.permutation(n + m).astype(np.int64)
+    types = rng.integers(0, 3, n + m).astype(np.int32)
+    for column in (0, 1, 2):
+        below, above = near_faces(home, n, column, 0.2, 0.7)
+        np.testing.assert_array_equal(below, np.flatnonzero(home[:, column] < 0.2))
+        np.testing.assert_array_equal(above, np.flatnonzero(home[:, column] >= 0.7))
+    send = np.concatenate([np.sort(rng.choice(n, 50, replace=False)),
+                           n + np.sort(rng.choice(m, 20, replace=False))])  # fmt: skip
+    rows = np.empty((len(send), 8))
+    table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
+    np.testing.assert_array_equal(rows[:, :3], positions[send])
+    np.testing.assert_array_equal(rows[:50, 3:6], home[send[:50]])
+    np.testing.assert_array_equal(rows[50:, 3:6], ghost_fractions[send[50:] - n])
+    np.testing.assert_array_equal(rows[:, 6], ids[send])
+    np.testing.assert_array_equal(rows[:, 7], types[send])
+    grown = len(send) + n + m
+    out, out_fractions = np.zeros((grown, 3)), np.zeros((grown - n, 3))
+    out_ids, out_types = np.zeros(grown, dtype=np.int64), np.zeros(grown, dtype=np.int32)
+    append_rows(rows, n + m, n, out, out_fractions, out_ids, out_types)
+    np.testing.assert_array_equal(out[n + m :], positions[send])
+    np.testing.assert_array_equal(out_fractions[m:], rows[:, 3:6])
+    np.testing.assert_array_equal(out_ids[n + m :], ids[send])
+    np.testing.assert_array_equal(out_types[n + m :], types[send])
+    assert not out[: n + m].any() and not out_fractions[:m].any()  # nothing else written
 
 
 def test_the_look_ahead_bounds_each_atoms_next_move():
