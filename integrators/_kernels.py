@@ -7,8 +7,10 @@ from numba import njit, prange
 from md.parallel import chunk_count
 
 #: Fewest atoms per thread worth a chunk of their own in these memory-bound passes
-#: (below, waking a thread costs more than the pass).
-_MIN_CHUNK_ATOMS = 50_000
+#: (below, waking a thread costs more than the pass). 16000, as the displacement check's:
+#: the 32000-atom melt at 2 threads (Emerald Rapids VM) spends 28-32 ms per 100 steps in
+#: its integrator with the passes split, 44-46 ms with them whole (the earlier 50000).
+_MIN_CHUNK_ATOMS = 16_000
 
 
 def _chunks(n: int) -> int:

@@ -47,8 +47,10 @@ class Reductions(Protocol):
 _threads: int | None = None
 #: The reductions of a decomposed run (None: this process holds the whole system).
 _reductions: Reductions | None = None
-#: Fewest elements per thread worth a chunk of their own in a memory-bound pass.
-_MIN_CHUNK_VALUES = 150_000
+#: Fewest elements per thread worth a chunk of their own in a memory-bound pass (the
+#: force cache's copy and comparison of positions: 16000 atoms' worth, as the kick passes'
+#: threshold in integrators._kernels).
+_MIN_CHUNK_VALUES = 48_000
 
 
 def max_threads() -> int:
