@@ -369,8 +369,9 @@ def append_rows(rows, start, n_owned, positions, ghost_fractions, ids, types):
 
 @njit(cache=True, error_model="numpy")
 def near_faces(data, end, column, lower, upper):
-    """Rows before ``end`` of a ghost-search table whose fractional ``column`` lies below
-    ``lower`` and at or above ``upper``: the atoms one sweep sends down and up."""
+    """Rows before ``end`` of fractional coordinates ``data`` (owned atoms' or ghosts')
+    whose ``column`` lies below ``lower`` and at or above ``upper``: the atoms one sweep
+    sends down and up."""
     below = np.empty(end, dtype=np.int64)
     above = np.empty(end, dtype=np.int64)
     n_below = 0
