@@ -281,25 +281,26 @@ def _sin_cos_parts():
 _parts = _sin_cos_parts()
 
 
+@register_jitable
+def _in_quadrant(s, c, quadrant):
+    """sin(k pi/2 + r) from sin r, cos r and k mod 4 (cos x is sin in the next quadrant)."""
+    value = c if (quadrant & np.int64(1)) != 0 else s
+    return -value if (quadrant & np.int64(2)) != 0 else value
+
+
 @overload(sin, jit_options={"fastmath": {"contract"}, "error_model": "numpy"})
 def _sin_compiled(x):
-    one, two = np.int64(1), np.int64(2)
-
     def implementation(x):
         s, c, quadrant = _parts(x)
-        value = c if (quadrant & one) != 0 else s
-        return -value if (quadrant & two) != 0 else value
+        return _in_quadrant(s, c, quadrant)
 
     return implementation
 
 
 @overload(cos, jit_options={"fastmath": {"contract"}, "error_model": "numpy"})
 def _cos_compiled(x):
-    one, two = np.int64(1), np.int64(2)
-
     def implementation(x):
         s, c, quadrant = _parts(x)
-        value = s if (quadrant & one) != 0 else c
-        return -value if ((quadrant + one) & two) != 0 else value
+        return _in_quadrant(s, c, quadrant + np.int64(1))
 
     return implementation
