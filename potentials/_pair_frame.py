@@ -30,6 +30,7 @@ import math
 import shutil
 import sys
 import tempfile
+import textwrap
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +49,7 @@ from md.errors import PairCollapseError
 from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
-from potentials.base import ForceResult
+from potentials.base import PRECISIONS, ForceResult
 from potentials.pair_hessian import PairHessian
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
@@ -166,11 +167,14 @@ def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool
 
 
 # ------------------------------------------------------------------ kernels per term
-_LOADED: dict[str, ModuleType] = {}
+_LOADED: dict[tuple[str, str], ModuleType] = {}
 
 
-def kernels_for(term: PairTerm) -> ModuleType:
+def kernels_for(term: PairTerm, precision: str = "double") -> ModuleType:
     """The frame's kernels with ``term`` inlined: ``_pair_kernels`` run as a module of its own.
+
+    ``precision="mixed"`` gives a second copy whose term computes in float32
+    (:func:`float32_version`), for the mixed-precision pair loop.
 
     Loaded once per process and term. numba names a kernel's cache files after its
     source file and function, and keys them by signature and bytecode, which are the
@@ -180,15 +184,17 @@ def kernels_for(term: PairTerm) -> ModuleType:
     An unchanged term then loads its compiled kernels from numba's cache in every
     later process; an edited one gets a new copy and compiles afresh.
     """
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     key = _fingerprint(term)
-    module = _LOADED.get(key)
+    module = _LOADED.get((key, precision))
     if module is not None:
         return module
-    stem = f"{_identifier(term.name)}_{key[:20]}"
+    stem = f"{_identifier(term.name)}_{key[:20]}" + ("_mixed" if precision == "mixed" else "")
     name = f"potentials._pair_kernels_{stem}"
     spec = importlib.util.spec_from_file_location(name, _template_copy(stem))
     module = importlib.util.module_from_spec(spec)
-    module.__dict__.update(_adapters(term))
+    module.__dict__.update(_adapters(term, precision))
     sys.modules[name] = module  # numba's parallel lowering looks kernels' modules up by name
     try:
         with kernel_cache():
@@ -196,7 +202,7 @@ def kernels_for(term: PairTerm) -> ModuleType:
     except BaseException:
         del sys.modules[name]
         raise
-    _LOADED[key] = module
+    _LOADED[key, precision] = module
     return module
 
 
@@ -273,28 +279,107 @@ def _scratch_folder() -> Path:
     return Path(folder)
 
 
-def _adapters(term: PairTerm) -> dict:
+def _adapters(term: PairTerm, precision: str = "double") -> dict:
     """The names the template expects: the term's functions taking one tuple of parameters,
-    and the tuple read from a table column."""
+    and the tuple read from a table column. In mixed precision ``_pair_energy`` is the
+    term's float32 version, its results rounded to float32 (a helper it calls may
+    compute in double)."""
     n = len(term.parameters)
     p = "".join(f"p[{i}], " for i in range(n))
     data = "data, " if term.uses_data else ""
     column = "".join(f"table[{TERM + i}, k], " for i in range(n))
+    if precision == "mixed":
+        energy = float32_version(term.energy) or term.energy
+        energy_source = (f"def _pair_energy(r2, p, data):\n    u, fr = energy(r2, {data}{p})\n"
+                         "    return float32(u), float32(fr)\n")  # fmt: skip
+    else:
+        energy = term.energy
+        energy_source = f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
     source = (
-        f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
-        f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
-        f"def _column(table, k):\n    return ({column})\n"
+        energy_source
+        + f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
+        + f"def _column(table, k):\n    return ({column})\n"
     )
     options = {"inline": "always", "error_model": "numpy"}
     namespace = {
-        "energy": njit(**options)(term.energy),
+        "energy": njit(**options)(energy),
         "curvature": None if term.curvature is None else njit(**options)(term.curvature),
+        "float32": np.float32,
     }
+    real = np.float32 if precision == "mixed" else np.float64
     exec(compile(source, f"<pair term {term.name}>", "exec"), namespace)  # noqa: S102
     adapters = {name: njit(**options)(namespace[name]) for name in ("_pair_energy", "_column")}
     adapters["_pair_curvature"] = njit(**options)(namespace["_pair_curvature"])
     adapters["N_TERM"] = n
+    adapters["REAL"] = real
     return adapters
+
+
+#: Names whose value is a float constant, in ``math`` and numpy: float64 to numba.
+_FLOAT_NAMES = {"inf", "pi", "e", "nan", "tau"}
+
+
+def float32_version(function: Callable) -> Callable | None:
+    """``function`` with its own float constants made float32, for mixed precision.
+
+    numba types a literal such as ``12.0`` (and ``math.inf``, ``np.pi``) as float64,
+    and float32 times float64 is float64: a pair term written for double would turn
+    the mixed-precision loop back into double. So its source is parsed and every
+    float literal, every ``inf``/``pi``/``e``/``nan`` read from a module and every
+    global bound to a float, wrapped
+    in ``np.float32(...)``; integers (``r2 ** 3``) keep float32 as they are. Only the
+    function's own body: helpers it calls (``pair_math.exp``) run in their own
+    precision, as numba promotes their float32 arguments. Returns None where the
+    source cannot be read or is not one ``def`` (a lambda, a function made by
+    ``exec``); the double function then serves, correct and slower.
+    """
+    function = getattr(function, "py_func", function)
+    try:
+        source = textwrap.dedent(inspect.getsource(function))
+        tree = ast.parse(source)
+    except (OSError, TypeError, SyntaxError):
+        return None
+    if len(tree.body) != 1 or not isinstance(tree.body[0], ast.FunctionDef):
+        return None
+    definition = tree.body[0]
+    definition.decorator_list = []
+    floats = {name for name, value in function.__globals__.items()
+              if isinstance(value, float | np.floating)}  # fmt: skip
+    tree = ast.fix_missing_locations(_Float32Constants(floats).visit(tree))
+    code = compile(tree, f"<float32 {function.__qualname__}>", "exec")
+    namespace = dict(function.__globals__)
+    if function.__closure__:
+        namespace.update(zip(function.__code__.co_freevars,
+                             (cell.cell_contents for cell in function.__closure__),
+                             strict=True))  # fmt: skip
+    namespace["_float32_"] = np.float32
+    exec(code, namespace)  # noqa: S102
+    made = namespace[definition.name]
+    made.__defaults__ = function.__defaults__
+    return made
+
+
+class _Float32Constants(ast.NodeTransformer):
+    """Wraps float literals, module float constants and the names in ``floats`` (globals
+    bound to a float) in ``_float32_(...)``."""
+
+    def __init__(self, floats: set[str]) -> None:
+        self.floats = floats
+
+    def visit_Name(self, node: ast.Name) -> ast.AST:
+        if isinstance(node.ctx, ast.Load) and node.id in self.floats:
+            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
+        return node
+
+    def visit_Constant(self, node: ast.Constant) -> ast.AST:
+        if isinstance(node.value, float):
+            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
+        return node
+
+    def visit_Attribute(self, node: ast.Attribute) -> ast.AST:
+        if node.attr in _FLOAT_NAMES and isinstance(node.value, ast.Name):
+            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
+        return self.generic_visit(node)
 
 
 def _fingerprint(term: PairTerm) -> str:
@@ -421,6 +506,8 @@ class PairPotential:
     PARAMETERS: tuple[str, ...] | None = None
     #: The keys of a style's config table (:func:`pair_config_keys`; see :meth:`from_config`).
     CONFIG_KEYS: tuple[Key, ...] = ()
+    #: The precisions :meth:`energy_forces` offers (``potentials.base.PRECISIONS``).
+    PRECISIONS = PRECISIONS
 
     def __init__(
         self,
@@ -602,8 +689,9 @@ class PairPotential:
             )
 
     def energy_forces(
-        self, state, neighbors, per_atom: bool = False, virial: bool = True
-    ) -> ForceResult:
+        self, state, neighbors, per_atom: bool = False, virial: bool = True,
+        precision: str = "double",
+    ) -> ForceResult:  # fmt: skip
         """Return energy, forces, virial (and per-atom energies and virials) for ``state``.
 
         ``neighbors`` is a NeighborList with a radius >= ``cutoff``, or None
@@ -612,11 +700,19 @@ class PairPotential:
         image, one chunk per thread); per-atom results and O(N^2) lists use
         the serial kernel over atom indices. ``virial=False`` skips the
         virial, leaving ``result.virial`` None.
+
+        ``precision="mixed"`` computes the pair terms in float32 (separations
+        taken in double and rounded once, parameters, u and f/r), in the
+        slot-frame and the atom-order kernels alike; every sum and the results
+        are float64: about 5e-7 of the largest force.
         """
-        kernels = self._loaded()
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "
+                             f"got {precision!r}")  # fmt: skip
+        kernels = self._loaded(precision)
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
-        table = self._cached_tables(n_types)
+        table = self._cached_tables(n_types, np.float32 if precision == "mixed" else np.float64)
         mode = CUTOFF_MODES[self.cutoff_mode]
         frame = None if neighbors is None or per_atom else neighbors.frame
         if frame is not None:
@@ -667,9 +763,9 @@ class PairPotential:
         # object's first call for a kernel runs both variants (one force evaluation more,
         # once), so both compile (or load) before a run's loop starts rather than one in
         # the middle of its timing.
-        variants = [bool(virial)] if (entry, mode, n_types == 1) in self._run_variants else [
-            not virial, bool(virial)]  # fmt: skip
-        self._run_variants.add((entry, mode, n_types == 1))
+        ran = (entry, mode, n_types == 1, table.dtype.str)
+        variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
+        self._run_variants.add(ran)
         for with_virial in variants:
             kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
                               single=n_types == 1)  # fmt: skip
@@ -834,10 +930,12 @@ class PairPotential:
         return cls(**cls.config_values(dict(params), type_names))
 
     # ------------------------------------------------------------ helpers
-    def _loaded(self):
+    def _loaded(self, precision: str = "double"):
         if self._kernels is None:
-            self._kernels = kernels_for(self.term)
-        return self._kernels
+            self._kernels = {}
+        if precision not in self._kernels:
+            self._kernels[precision] = kernels_for(self.term, precision)
+        return self._kernels[precision]
 
     def _geometry(self, state, neighbors):
         """(positions, types, lengths, inverse, tilt, starts, neighbors) over atom indices."""
@@ -857,11 +955,17 @@ class PairPotential:
                 f"{self.style or self.term.name} cutoff {self.cutoff:g}"
             )
 
-    def _cached_tables(self, n_types: int):
+    def _cached_tables(self, n_types: int, dtype=np.float64):
+        """The parameter table for ``n_types`` types (and its float32 copy, for mixed
+        precision), made once."""
         cache = getattr(self, "_table_cache", None)
         if cache is None or cache[0] != n_types:
-            self._table_cache = (n_types, self.tables(n_types))
-        return self._table_cache[1]
+            cache = self._table_cache = (n_types, self.tables(n_types), {})
+        if dtype == np.float64:
+            return cache[1]
+        if dtype not in cache[2]:
+            cache[2][dtype] = cache[1].astype(dtype)
+        return cache[2][dtype]
 
 
 def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarray, reason: str):

@@ -14,6 +14,12 @@ if TYPE_CHECKING:
     from potentials.pair_hessian import PairHessian
 
 
+#: The precisions a potential may offer (its ``PRECISIONS``; the ForceField passes
+#: ``precision=`` only to those that list the one asked for): ``"double"`` everywhere,
+#: ``"mixed"`` (float32 pair arithmetic, double sums) in the pair-kernel frame.
+PRECISIONS = ("double", "mixed")
+
+
 @dataclass
 class ForceResult:
     """Energy, forces and virial of a configuration.

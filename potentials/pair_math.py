@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import types
 from numba.extending import overload, register_jitable
 
 from md._simd import bits_float, float_bits
@@ -203,6 +204,13 @@ def reciprocal(x):
 
 @overload(reciprocal, jit_options={"fastmath": False, "error_model": "numpy"})
 def _reciprocal_compiled(x):
+    if x == types.float32:  # mixed precision: stays float32
+
+        def single(x):
+            return np.float32(1.0) / x
+
+        return single
+
     def implementation(x):
         return 1.0 / x
 
