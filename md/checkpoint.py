@@ -81,6 +81,9 @@ class Checkpoint:
         last (-1 if none).
     run_id : str
         Identifier shared with the trajectory file.
+    precision : str
+        The force field's precision (``"double"`` or ``"mixed"``; ``"double"``
+        for checkpoints written before mixed precision existed).
     """
 
     path: Path
@@ -95,6 +98,7 @@ class Checkpoint:
     extra: dict = field(default_factory=dict)
     neighbor_cell: tuple | None = None
     decomposition: dict | None = None
+    precision: str = "double"
 
 
 # ---------------------------------------------------------------------- writing
@@ -121,7 +125,7 @@ def write_checkpoint(
         Its ``describe()`` and, if it has one, ``get_state()`` are stored.
     forcefield : ForceField, optional
         Its neighbour list's build positions are stored, so the resumed run
-        rebuilds the same list.
+        rebuilds the same list, and its precision, which :func:`restore` checks.
     fingerprint : dict, optional
         Physics configuration to compare on resume (plain data).
     n_frames, last_frame_step : int
@@ -174,6 +178,7 @@ def write_checkpoint(
     }
     if layout is not None:
         meta["decomposition"] = _plain(layout)
+    meta["precision"] = str(getattr(forcefield, "precision", "double"))
     arrays["meta"] = np.array(json.dumps(meta))
     with atomic_path(path) as temporary, open(temporary, "wb") as handle:
         np.savez(handle, **arrays)
@@ -247,6 +252,7 @@ def read_checkpoint(path) -> Checkpoint:
                 else None
             ),
             decomposition=layout,
+            precision=str(meta.get("precision", "double")),
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -271,8 +277,15 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
     Raises
     ------
     CheckpointError
-        If the integrator differs from the one saved, or rejects the state.
+        If the integrator differs from the one saved, or rejects the state, or
+        ``forcefield`` has another precision than the run that wrote it.
     """
+    precision = getattr(forcefield, "precision", checkpoint.precision)
+    if precision != checkpoint.precision:
+        raise CheckpointError(
+            f"{checkpoint.path}: written by a run in {checkpoint.precision} precision, "
+            f"not {precision}; resume with precision = \"{checkpoint.precision}\""
+        )
     if _plain(integrator.describe()) != checkpoint.integrator:
         raise CheckpointError(
             f"{checkpoint.path}: written by integrator {checkpoint.integrator}, "
@@ -333,7 +346,10 @@ def physics_fingerprint(config) -> dict:
             "integrator": {"type": config.integrator.type, **config.integrator.values},
             # only when set, so checkpoints written before barostats existed still resume
             **({"barostat": {"kind": barostat.type, **barostat.values}} if barostat else {}),
-            "run": {"skin": config.run.skin},
+            # precision only when mixed, as the barostat: older checkpoints still resume
+            "run": {"skin": config.run.skin,
+                    **({"precision": config.run.precision}
+                       if config.run.precision != "double" else {})},  # fmt: skip
             "output": {
                 "velocities": config.output.velocities,
                 "forces": config.output.forces,

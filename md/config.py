@@ -249,6 +249,11 @@ class RunConfig:
         doc="Bricks along a, b and c when the run is shared by MPI ranks (`mpiexec -n P md "
             "run`; their product is P, see the MPI guide); not physics.",
         default_doc="chosen from P and the cell")  # fmt: skip
+    precision: str = key("double", "string", choices=("double", "mixed"),
+        doc="`mixed`: the pair potentials' pair loops in float32 (separations rounded from "
+            "double, pair forces about 1e-6 relative), every sum, the positions and the "
+            "integrator in double; bonds and angles stay double. A checkpoint keeps it: "
+            "a resume must ask for the same.")  # fmt: skip
 
 
 @dataclass(frozen=True)

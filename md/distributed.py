@@ -803,6 +803,8 @@ class DistributedForceField:
     grid : Grid
     bond_reach : float
         The longest bond (or angle arm) of the starting state [length].
+    precision : {"double", "mixed"}
+        Of the local force field's pair loops (see :class:`md.forcefield.ForceField`).
 
     Attributes
     ----------
@@ -820,11 +822,13 @@ class DistributedForceField:
         step start migrates.
     """
 
-    def __init__(self, potentials, skin: float, ranks, grid: Grid, bond_reach: float) -> None:
+    def __init__(self, potentials, skin: float, ranks, grid: Grid, bond_reach: float,
+                 precision: str = "double") -> None:  # fmt: skip
         self.potentials = list(potentials)
         self.ranks = ranks
         self.skin = float(skin)
-        self.local = ForceField(self.potentials, skin)
+        self.local = ForceField(self.potentials, skin, precision=precision)
+        self.precision = self.local.precision
         self.neighbor_list = self.local.neighbor_list
         self.domain = Domain(ranks, grid)
         self.timings = {"neighbor": 0.0, "force": 0.0}
@@ -1245,7 +1249,7 @@ class DistributedSimulation(Simulation):
 
     Parameters
     ----------
-    state, potentials, integrator, skin, units, max_displacement, threads
+    state, potentials, integrator, skin, units, max_displacement, threads, precision
         As for :class:`md.simulation.Simulation`; ``state`` is the whole system.
     ranks : MPIRanks, optional
         The ranks (default: :func:`mpi_ranks`).
@@ -1264,12 +1268,13 @@ class DistributedSimulation(Simulation):
 
     def __init__(self, state: State, potentials, integrator, skin: float = 0.3, units="lj",
                  max_displacement: float | None = None, threads: int | None = None, ranks=None,
-                 decomposition=None) -> None:  # fmt: skip
+                 decomposition=None, precision: str = "double") -> None:  # fmt: skip
         ranks = ranks if ranks is not None else mpi_ranks()
         if ranks is None:
             raise ValueError("a DistributedSimulation needs several MPI ranks (run under mpiexec)")
         super().__init__(state, potentials, integrator, skin=skin, units=units,
-                         max_displacement=max_displacement, threads=threads)  # fmt: skip
+                         max_displacement=max_displacement, threads=threads,
+                         precision=precision)  # fmt: skip
         refuse_undistributable(integrator, self.forcefield.potentials)
         self.ranks = ranks
         whole = self.forcefield
@@ -1287,7 +1292,8 @@ class DistributedSimulation(Simulation):
                                  f"for {ranks.n_ranks} ranks")  # fmt: skip
             check_grid(shape, state.box, state.tilt, state.pbc, reach, what)
         self.grid = Grid(shape)
-        self.forcefield = DistributedForceField(whole.potentials, skin, ranks, self.grid, arm)
+        self.forcefield = DistributedForceField(whole.potentials, skin, ranks, self.grid, arm,
+                                                precision=precision)  # fmt: skip
         self._masses = state.masses.copy() if ranks.rank == 0 else None
         self._types = state.types.copy() if ranks.rank == 0 else None
         self.state = self._part(state, self.forcefield.domain.owner_of(state))

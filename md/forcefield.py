@@ -14,6 +14,7 @@ from md.parallel import copy_into, same_values
 from md.state import State
 from md.topology import Topology, combine
 from potentials.base import (
+    PRECISIONS,
     Bonded,
     BondedAngles,
     ForceResult,
@@ -39,6 +40,11 @@ class ForceField:
         Terms to sum.
     skin : float
         Neighbour-list skin [length].
+    precision : {"double", "mixed"}
+        ``"mixed"``: the pair potentials that offer it (``PRECISIONS`` lists
+        ``"mixed"``: those of the pair-kernel frame) run their pair loop in
+        float32, with double sums and results; the others (bonds, angles)
+        stay double. See :meth:`potentials.PairPotential.energy_forces`.
 
     Attributes
     ----------
@@ -52,10 +58,22 @@ class ForceField:
         Simulation sets it for steps whose end an observer will see.
     """
 
-    def __init__(self, potentials: Sequence[Potential], skin: float = 0.3) -> None:
+    def __init__(self, potentials: Sequence[Potential], skin: float = 0.3,
+                 precision: str = "double") -> None:  # fmt: skip
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "
+                             f"got {precision!r}")  # fmt: skip
+        self.precision = precision
+        # what each potential is asked for: only those that offer mixed precision get it
+        self._options = {
+            id(p): {"precision": precision}
+            if precision != "double" and precision in getattr(p, "PRECISIONS", ())
+            else {}
+            for p in self.potentials
+        }
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}
@@ -120,7 +138,7 @@ class ForceField:
         middle = time.perf_counter()
         results = [
             p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None,
-                            per_atom, virial=virial)
+                            per_atom, virial=virial, **self._options[id(p)])
             for p in potentials
         ]  # fmt: skip
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)

@@ -810,7 +810,8 @@ def prepare_minimize(
     state, potentials, integrator = build_components(config)
     _set_threads(config, threads)
     try:
-        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units)
+        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units,
+                         precision=config.run.precision)  # fmt: skip
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
     return PreparedMinimize(config, sim, output, overwrite, stage)
@@ -907,11 +908,13 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
     try:
         if ranks is None:
             sim = Simulation(state, potentials, integrator, skin=config.run.skin,
-                             units=config.units, max_displacement=guard)  # fmt: skip
+                             units=config.units, max_displacement=guard,
+                             precision=config.run.precision)  # fmt: skip
         else:
             sim = DistributedSimulation(
                 state, potentials, integrator, skin=config.run.skin, units=config.units,
                 max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
+                precision=config.run.precision,
             )  # fmt: skip
     except ValueError as error:
         where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (

@@ -254,6 +254,7 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
+        + (", mixed precision" if sim.forcefield.precision == "mixed" else "")
     )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
     for name, seconds in [*timings.items(), ("other", other)]:
