@@ -424,6 +424,22 @@ def _serial_and_ranks(tmp_path, text: str, n_ranks: int) -> tuple[Path, Path, st
 
 
 @needs_mpi
+def test_mixed_precision_over_ranks_follows_the_serial_mixed_run(tmp_path):
+    """Each rank's pair loops run in float32 too: 2 ranks follow the serial mixed run to
+    float32 round-off grown over 100 steps, and both differ from the double run by more."""
+    config = write_config(tmp_path, steps=100, run_extra='precision = "mixed"')
+    serial_out, out, stdout = _serial_and_ranks(tmp_path, config.read_text(), 2)
+    assert "over 2 MPI ranks" in stdout and "mixed precision" in stdout
+    double = tmp_path / "double.toml"
+    double.write_text(config.read_text().replace('precision = "mixed"', ""))
+    _, summary = md.run_config(double, output=tmp_path / "double.h5")
+    assert summary.status == "completed"
+    gap = relative_gap(out, serial_out)
+    assert gap < 1e-5, gap
+    assert relative_gap(tmp_path / "double.h5", serial_out) > 1e-9
+
+
+@needs_mpi
 @pytest.mark.slow  # keeps the default suite within its 10 minutes
 def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
     serial_out, out, stdout = _serial_and_ranks(tmp_path, POLYMER, 3)

@@ -1,0 +1,129 @@
+"""Mixed against double precision: force-call time, MD rate, force error and NVE drift.
+
+On the LJ melt's configuration (fcc at reduced density 0.8442, cutoff 2.5,
+skin 0.3): the time of ``energy_forces(virial=False)`` in each precision,
+taking turns within each repeat (a loaded machine slows both alike), the
+median of the per-repeat ratios mixed/double; the MD loop's rate (velocity
+Verlet, dt 0.005) in each precision, again interleaved; the largest force
+difference relative to the largest force; and the NVE energy drift of each
+over ``--drift-steps`` steps of a smaller melt (started at T = 0.8 from fcc),
+as the slope of a straight-line fit to the total energy per atom per tau.
+Compilation is excluded (a warm-up call).
+
+    python benchmarks/mixed_precision.py                       # 32000 atoms, 1 and 2 threads
+    python benchmarks/mixed_precision.py --threads 1 --repeats 31 --drift-steps 20000
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
+
+from _machine import machine_line  # noqa: E402
+
+import md  # noqa: E402
+from integrators import VelocityVerlet  # noqa: E402
+from md.build import maxwell_boltzmann  # noqa: E402
+from md.forcefield import ForceField  # noqa: E402
+from md.parallel import set_threads  # noqa: E402
+from potentials import LennardJones  # noqa: E402
+
+PRECISIONS = ("double", "mixed")
+DT = 0.005
+
+
+def melt(cells: int, temperature: float, seed: int = 1) -> md.State:
+    return maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), temperature, seed=seed)
+
+
+def force_calls(cells: int, repeats: int) -> dict:
+    """Median seconds per force call in each precision and the median per-repeat ratio."""
+    state = melt(cells, 1.0)
+    state.positions += np.random.default_rng(0).normal(scale=0.05, size=state.positions.shape)
+    fields = {p: ForceField([LennardJones(cutoff=2.5)], precision=p) for p in PRECISIONS}
+    results = {p: f.compute(state, virial=False) for p, f in fields.items()}  # warm-up
+    error = np.abs(results["mixed"].forces - results["double"].forces).max() / np.abs(
+        results["double"].forces).max()  # fmt: skip
+    nl = fields["double"].neighbor_list
+    potentials = {p: f.potentials[0] for p, f in fields.items()}
+    times = {p: [] for p in PRECISIONS}
+    for _ in range(repeats):
+        for precision in PRECISIONS:
+            start = time.perf_counter()
+            potentials[precision].energy_forces(state, nl, virial=False, precision=precision)
+            times[precision].append(time.perf_counter() - start)
+    ratios = [m / d for m, d in zip(times["mixed"], times["double"], strict=True)]
+    return {"double": statistics.median(times["double"]),
+            "mixed": statistics.median(times["mixed"]),
+            "ratio": statistics.median(ratios), "error": error}  # fmt: skip
+
+
+def md_rates(cells: int, steps: int, repeats: int) -> dict:
+    """Median atom-steps per second of the MD loop in each precision (interleaved)."""
+    sims = {p: md.Simulation(melt(cells, 1.0), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
+                             precision=p) for p in PRECISIONS}  # fmt: skip
+    for sim in sims.values():
+        sim.run(10)  # warm-up
+    rates = {p: [] for p in PRECISIONS}
+    for _ in range(repeats):
+        for precision, sim in sims.items():
+            start = time.perf_counter()
+            sim.run(steps)
+            rates[precision].append(sim.state.n_atoms * steps / (time.perf_counter() - start))
+    ratios = [m / d for m, d in zip(rates["mixed"], rates["double"], strict=True)]
+    return {"double": statistics.median(rates["double"]),
+            "mixed": statistics.median(rates["mixed"]), "ratio": statistics.median(ratios)}
+
+
+def drift(cells: int, steps: int, precision: str) -> float:
+    """|slope| of the total energy per atom per tau over ``steps`` NVE steps."""
+    sim = md.Simulation(melt(cells, 0.8, seed=3), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
+                        precision=precision)  # fmt: skip
+    every = max(steps // 50, 1)
+    times, energies = [], []
+    for _ in range(steps // every):
+        sim.run(every)
+        times.append(sim.state.time)
+        energies.append(sim.thermo()["total_energy"])
+    return abs(np.polyfit(times, energies, 1)[0]) / sim.state.n_atoms
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
+    parser.add_argument("--threads", default="1,2", help="thread counts (1,2)")
+    parser.add_argument("--repeats", type=int, default=21, help="interleaved repeats (21)")
+    parser.add_argument("--steps", type=int, default=100, help="MD steps per repeat (100)")
+    parser.add_argument("--drift-cells", type=int, default=8, help="drift run's cells (8)")
+    parser.add_argument("--drift-steps", type=int, default=10_000, help="drift steps (10000)")
+    args = parser.parse_args(argv)
+    print(machine_line())
+    n_atoms = 4 * args.cells**3
+    for threads in (int(t) for t in args.threads.split(",")):
+        set_threads(threads)
+        calls = force_calls(args.cells, args.repeats)
+        rates = md_rates(args.cells, args.steps, max(args.repeats // 3, 3))
+        print(f"\n{n_atoms} atoms, {threads} thread(s), medians of {args.repeats} interleaved "
+              "repeats:")  # fmt: skip
+        print(f"  force call   double {1e3 * calls['double']:.2f} ms, mixed "
+              f"{1e3 * calls['mixed']:.2f} ms: mixed/double {calls['ratio']:.3f}")
+        print(f"  MD loop      double {rates['double'] / 1e6:.2f} M atom-steps/s, mixed "
+              f"{rates['mixed'] / 1e6:.2f} M: mixed/double {rates['ratio']:.3f}")
+        print(f"  max |F_mixed - F_double| / max |F|: {calls['error']:.1e}")
+    drifts = {p: drift(args.drift_cells, args.drift_steps, p) for p in PRECISIONS}
+    print(f"\nNVE drift, {4 * args.drift_cells**3} atoms, {args.drift_steps} steps of dt {DT} "
+          "(energy per atom per tau, |slope| of a line fit):")  # fmt: skip
+    for precision, value in drifts.items():
+        print(f"  {precision:<7}{value:.2e}")
+    print(f"  mixed/double {drifts['mixed'] / drifts['double']:.2f} (target: within 10)")
+
+
+if __name__ == "__main__":
+    main()
