@@ -126,11 +126,13 @@ AR  {n_atoms}
 """
 
 
-def mdp_text(steps: int, rlist: float | None = None, nstlist: int = NSTLIST) -> str:
+def mdp_text(steps: int, rlist: float | None = None, nstlist: int = NSTLIST,
+             modifier: str = "None") -> str:  # fmt: skip
     """The .mdp of a run doing ``steps`` force evaluations and updates (``nsteps = steps -
     1``: GROMACS's loop also does step ``nsteps``): NVE leap-frog, truncated LJ, no
     charges; ``rlist`` [sigma] fixes the list radius (no Verlet buffer estimate), None lets
-    GROMACS size its buffer."""
+    GROMACS size its buffer; ``modifier`` is the ``vdw-modifier`` (``Potential-shift``:
+    the energy shifted to zero at the cutoff, as ours and LAMMPS's ``shift yes``)."""
     if steps < 1 or nstlist < 1:
         raise ValueError(f"steps and nstlist must be positive, got {steps} and {nstlist}")
     if rlist is not None and rlist < CUTOFF:
@@ -154,7 +156,7 @@ nstlist = {nstlist}
 pbc = xyz
 {buffer}
 vdwtype = Cut-off
-vdw-modifier = None
+vdw-modifier = {modifier}
 rvdw = {rc:.6f}
 DispCorr = no
 coulombtype = Cut-off
@@ -242,7 +244,7 @@ def parse_md_log(text: str) -> dict:
     """What a GROMACS md.log says about the run: version, precision, SIMD level (built
     for and best for this CPU), nonbonded kernel, the pair list mdrun used (nstlist, rlist,
     the dynamically pruned inner list), OpenMP threads, the loop's wall and core time, the
-    cycle counters, and the step-0 LJ energy.
+    cycle counters, the step-0 LJ energy and the conserved-energy drift.
 
     Raises
     ------
@@ -261,6 +263,8 @@ def parse_md_log(text: str) -> dict:
         "omp_threads": _number(r"Using (\d+) OpenMP threads?", text, int),
         "ns_per_day": _number(r"^Performance:\s+([\d.]+)", text),
         "nsteps": _number(r"^\s*nsteps\s*=\s*(\d+)", text, int),
+        # from its first and last energies [kJ/mol/ps per atom]
+        "conserved_drift": _number(r"Conserved energy drift:\s+([-\d.eE+]+) kJ/mol/ps", text),
     }
     # The list mdrun used: a change of nstlist overrides the .mdp's; the dual-list line
     # gives the outer list's interval and radius, and the inner list's when it prunes.
@@ -386,6 +390,7 @@ def run(
     nstlist: int = NSTLIST,
     pin: str = "off",
     keep: str | None = None,
+    modifier: str = "None",
 ) -> dict:
     """Run ``steps`` steps of ``state`` (reduced units) in GROMACS; return md.log's figures.
 
@@ -400,7 +405,7 @@ def run(
                 state.positions * SIGMA, state.velocities * (SIGMA / TAU), state.box * SIGMA
             ),
             "topol.top": topology_text(state.n_atoms),
-            "run.mdp": mdp_text(steps, rlist, nstlist),
+            "run.mdp": mdp_text(steps, rlist, nstlist, modifier),
         }
         for name, text in files.items():
             (Path(folder) / name).write_text(text)

@@ -6,12 +6,20 @@ taking turns within each repeat (a loaded machine slows both alike), the
 median of the per-repeat ratios mixed/double; the MD loop's rate (velocity
 Verlet, dt 0.005) in each precision, again interleaved; the largest force
 difference relative to the largest force; and the NVE energy drift of each
-over ``--drift-steps`` steps of a smaller melt (started at T = 0.8 from fcc),
-as the slope of a straight-line fit to the total energy per atom per tau.
+over ``--drift-steps`` steps of a smaller melt (LAMMPS's: fcc at T = 3, run
+2000 steps in double first, so that every run starts from the same liquid),
+as the total energy's change from the first step to the last per atom per
+tau (GROMACS's "Conserved energy drift" is the same difference) and as the
+slope of a straight-line fit. ``--gromacs`` runs that melt in GROMACS too
+(``gmx``, mixed precision: ``--gmx PATH`` or ``$GMX``; and ``gmx_d``), from
+the same positions and velocities, with the list radius fixed at 2.8 sigma
+(our cutoff plus skin), nstlist 10 and the energy shifted at the cutoff as ours
+is (``vdw-modifier = Potential-shift``), and prints its drift beside ours.
 Compilation is excluded (a warm-up call).
 
     python benchmarks/mixed_precision.py                       # 32000 atoms, 1 and 2 threads
     python benchmarks/mixed_precision.py --threads 1 --repeats 31 --drift-steps 20000
+    python benchmarks/mixed_precision.py --threads 1 --gromacs --gmx /path/to/avx512/gmx
 """
 
 from __future__ import annotations
@@ -82,17 +90,47 @@ def md_rates(cells: int, steps: int, repeats: int) -> dict:
             "mixed": statistics.median(rates["mixed"]), "ratio": statistics.median(ratios)}
 
 
-def drift(cells: int, steps: int, precision: str) -> float:
-    """|slope| of the total energy per atom per tau over ``steps`` NVE steps."""
-    sim = md.Simulation(melt(cells, 0.8, seed=3), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
+def liquid(cells: int) -> md.State:
+    """The melt after 2000 steps from fcc at T = 3 (double), the drift runs' start."""
+    sim = md.Simulation(melt(cells, 3.0, seed=3), [LennardJones(cutoff=2.5)], VelocityVerlet(DT))
+    sim.run(2000)
+    state = sim.state.copy()
+    state.step, state.time = 0, 0.0
+    return state
+
+
+def drift(start: md.State, steps: int, precision: str) -> tuple[float, float]:
+    """(end-point, |fit slope|) drift of the total energy per atom per tau over ``steps``
+    NVE steps from ``start``."""
+    sim = md.Simulation(start.copy(), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
                         precision=precision)  # fmt: skip
     every = max(steps // 50, 1)
-    times, energies = [], []
+    times, energies = [0.0], [sim.thermo()["total_energy"]]
     for _ in range(steps // every):
         sim.run(every)
         times.append(sim.state.time)
         energies.append(sim.thermo()["total_energy"])
-    return abs(np.polyfit(times, energies, 1)[0]) / sim.state.n_atoms
+    n = sim.state.n_atoms
+    return ((energies[-1] - energies[0]) / times[-1] / n,
+            abs(np.polyfit(times, energies, 1)[0]) / n)  # fmt: skip
+
+
+def gromacs_drifts(start: md.State, steps: int, binaries: dict) -> dict:
+    """GROMACS's conserved-energy drift per atom per tau (reduced units) of the same melt."""
+    import gromacs_lj_melt as gmx
+
+    found = {}
+    for variant, explicit in binaries.items():
+        binary = gmx.find_gmx(variant, explicit)
+        if binary is None:
+            print(f"note: no GROMACS {variant}-precision binary; skipped")
+            continue
+        result = gmx.run(binary, start, steps, 1, rlist=gmx.FIXED_RLIST, nstlist=10,
+                         modifier="Potential-shift")  # fmt: skip
+        drift_ps = result["conserved_drift"]  # kJ/mol/ps per atom; epsilon = 1 kJ/mol
+        label = f"GROMACS {result.get('version', '?')} {variant} ({result.get('simd', '?')})"
+        found[label] = None if drift_ps is None else drift_ps * gmx.TAU
+    return found
 
 
 def main(argv=None) -> None:
@@ -103,6 +141,9 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=100, help="MD steps per repeat (100)")
     parser.add_argument("--drift-cells", type=int, default=8, help="drift run's cells (8)")
     parser.add_argument("--drift-steps", type=int, default=10_000, help="drift steps (10000)")
+    parser.add_argument("--gromacs", action="store_true", help="GROMACS's drift beside ours")
+    parser.add_argument("--gmx", default=None, help="GROMACS mixed binary (default $GMX, gmx)")
+    parser.add_argument("--gmx-d", default=None, help="GROMACS double binary (default gmx_d)")
     args = parser.parse_args(argv)
     print(machine_line())
     n_atoms = 4 * args.cells**3
@@ -117,12 +158,21 @@ def main(argv=None) -> None:
         print(f"  MD loop      double {rates['double'] / 1e6:.2f} M atom-steps/s, mixed "
               f"{rates['mixed'] / 1e6:.2f} M: mixed/double {rates['ratio']:.3f}")
         print(f"  max |F_mixed - F_double| / max |F|: {calls['error']:.1e}")
-    drifts = {p: drift(args.drift_cells, args.drift_steps, p) for p in PRECISIONS}
-    print(f"\nNVE drift, {4 * args.drift_cells**3} atoms, {args.drift_steps} steps of dt {DT} "
-          "(energy per atom per tau, |slope| of a line fit):")  # fmt: skip
-    for precision, value in drifts.items():
-        print(f"  {precision:<7}{value:.2e}")
-    print(f"  mixed/double {drifts['mixed'] / drifts['double']:.2f} (target: within 10)")
+    start = liquid(args.drift_cells)
+    drifts = {p: drift(start, args.drift_steps, p) for p in PRECISIONS}
+    print(f"\nNVE drift, {4 * args.drift_cells**3} atoms of liquid, {args.drift_steps} "
+          f"steps of dt {DT} (total energy per atom per tau: last minus first; |slope| of a "
+          "line fit):")  # fmt: skip
+    for precision, (ends, fit) in drifts.items():
+        print(f"  ours {precision:<8}{ends:+.2e}   fit {fit:.2e}")
+    if args.gromacs:
+        found = gromacs_drifts(start, args.drift_steps,
+                               {"mixed": args.gmx, "double": args.gmx_d})  # fmt: skip
+        for label, value in found.items():
+            print(f"  {label}: " + ("no drift line in md.log" if value is None
+                                     else f"{value:+.2e}"))  # fmt: skip
+    ratio = abs(drifts["mixed"][0]) / max(abs(drifts["double"][0]), 1e-300)
+    print(f"  |mixed| / |double| (last minus first) {ratio:.2f} (target: within 10)")
 
 
 if __name__ == "__main__":
