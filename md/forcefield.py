@@ -92,6 +92,8 @@ class ForceField:
         """Raise ValueError if the potentials cannot act on ``state`` (types, box)."""
         for potential in self.potentials:
             potential.check(state)
+            if self._options[id(potential)]:  # a precision it offers: can it hold the values?
+                potential.check_precision(state, self.precision)
         if self.neighbor_list is not None:
             self.neighbor_list.check_box(state.box, state.pbc, state.tilt)
 

@@ -688,6 +688,12 @@ class PairPotential:
                 f"system has {state.n_types} ({', '.join(state.type_names)})"
             )
 
+    def check_precision(self, state, precision: str) -> None:
+        """Raise ValueError if a parameter of ``state``'s type pairs cannot be held in
+        ``precision`` (float32's range, for ``"mixed"``); the ForceField asks at set-up."""
+        if precision == "mixed":
+            self._cached_tables(max(state.n_types, self.n_types_fixed or 1), np.float32)
+
     def energy_forces(
         self, state, neighbors, per_atom: bool = False, virial: bool = True,
         precision: str = "double",
@@ -964,8 +970,27 @@ class PairPotential:
         if dtype == np.float64:
             return cache[1]
         if dtype not in cache[2]:
-            cache[2][dtype] = cache[1].astype(dtype)
+            cache[2][dtype] = self._narrowed(cache[1], dtype)
         return cache[2][dtype]
+
+    def _narrowed(self, table: np.ndarray, dtype) -> np.ndarray:
+        """``table`` in ``dtype`` (float32: mixed precision); ValueError naming the value if
+        one would overflow or lose its digits below float32's normal range (a parameter in
+        units where it is 1e-50, say: the pair loop would compute with 0 or inf)."""
+        info = np.finfo(dtype)
+        magnitude = np.abs(table)
+        bad = (magnitude > info.max) | ((magnitude < info.tiny) & (magnitude > 0.0))
+        if np.any(bad):
+            row, column = (int(i[0]) for i in np.nonzero(bad))
+            names = ("cutoff^2", "r_on^2", "the energy at the cutoff", "the switch's scale",
+                     *self.term.parameters)  # fmt: skip
+            raise ValueError(
+                f"{self.style or self.term.name}: {names[row]} = {table[row, column]:g} (type-pair "
+                f"column {column}) is outside {np.dtype(dtype).name}'s range "
+                f"({info.tiny:.2g} to {info.max:.2g}); mixed precision cannot hold it: run in "
+                "double precision or in units that bring it into range"
+            )
+        return table.astype(dtype)
 
 
 def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarray, reason: str):

@@ -245,6 +245,17 @@ def test_bad_precision_is_refused_naming_the_key(tmp_path, monkeypatch, capsys):
         ForceField([LennardJones(cutoff=2.5)], precision="half")
 
 
+def test_parameters_beyond_float32_are_refused_in_mixed_precision(fcc_lattice):
+    """A c12 of 1e-60 (sigma in metres, say) would be 0 in float32: refused, naming it."""
+    state = fcc_lattice(cells=3)
+    potential = PairPotential(LennardJones(cutoff=2.5).term, c6=1.0, c12=1e-60, cutoff=2.5)
+    with pytest.raises(ValueError, match=r"c12 = 1e-60 .* outside float32's range"):
+        potential.energy_forces(state, None, precision="mixed")
+    assert np.isfinite(potential.energy_forces(state, None).energy)  # double holds it
+    with pytest.raises(ValueError, match="c12 = 1e-60"):  # before a run starts
+        md.Simulation(state, [potential], VelocityVerlet(dt=0.005), precision="mixed")
+
+
 def test_bonded_terms_stay_double_beside_mixed_pairs(fcc_lattice):
     """FENE bonds offer no mixed precision: the force field asks only the pair potential."""
     state = fcc_lattice(cells=6, perturbation=0.02)
