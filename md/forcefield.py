@@ -67,13 +67,6 @@ class ForceField:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "
                              f"got {precision!r}")  # fmt: skip
         self.precision = precision
-        # what each potential is asked for: only those that offer mixed precision get it
-        self._options = {
-            id(p): {"precision": precision}
-            if precision != "double" and precision in getattr(p, "PRECISIONS", ())
-            else {}
-            for p in self.potentials
-        }
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}
@@ -92,7 +85,7 @@ class ForceField:
         """Raise ValueError if the potentials cannot act on ``state`` (types, box)."""
         for potential in self.potentials:
             potential.check(state)
-            if self._options[id(potential)]:  # a precision it offers: can it hold the values?
+            if self._options(potential):  # a precision it offers: can it hold the values?
                 potential.check_precision(state, self.precision)
         if self.neighbor_list is not None:
             self.neighbor_list.check_box(state.box, state.pbc, state.tilt)
@@ -140,7 +133,7 @@ class ForceField:
         middle = time.perf_counter()
         results = [
             p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None,
-                            per_atom, virial=virial, **self._options[id(p)])
+                            per_atom, virial=virial, **self._options(p))
             for p in potentials
         ]  # fmt: skip
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
@@ -149,6 +142,15 @@ class ForceField:
         if not np.isfinite(total.energy):
             raise NonFiniteError(f"potential energy is {total.energy}")
         return total
+
+    def _options(self, potential) -> dict:
+        """What ``potential`` is asked for beyond the protocol: ``precision`` when it is
+        not double and the potential lists it in its ``PRECISIONS`` (others, such as
+        bonds, are not asked: they run double). A run's potentials may be objects this
+        force field was not built with (a decomposed run's local bonded terms)."""
+        if self.precision != "double" and self.precision in getattr(potential, "PRECISIONS", ()):
+            return {"precision": self.precision}
+        return {}
 
     def compute_subset(self, state: State, which, virial: bool = False) -> ForceResult:
         """Return the energy and forces of the potentials ``which`` (indices) alone.
