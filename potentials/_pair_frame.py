@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import CodeType, FunctionType, ModuleType
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
@@ -63,9 +64,11 @@ MIXING_FUNCTIONS = {
 }
 _TEMPLATE = Path(__file__).with_name("_pair_kernels.py")
 #: The files compiled into every term's kernels: the template, the modules whose kernels it
-#: inlines, and pair_math (functions terms call). Part of each term's fingerprint.
+#: inlines, pair_math (functions terms call) and this module (the adapters it writes into
+#: each copy: which function a precision's copy calls). Part of each term's fingerprint.
 _FRAME_SOURCES = (
     _TEMPLATE,
+    Path(__file__),
     Path(__file__).with_name("pair_math.py"),
     *(Path(importlib.util.find_spec(name).origin)
       for name in ("potentials._kernels", "md.box", "md._simd")),
@@ -282,21 +285,15 @@ def _scratch_folder() -> Path:
 def _adapters(term: PairTerm, precision: str = "double") -> dict:
     """The names the template expects: the term's functions taking one tuple of parameters,
     and the tuple read from a table column. In mixed precision ``_pair_energy`` is the
-    term's float32 version, its results rounded to float32 (a helper it calls may
-    compute in double)."""
+    term's float32 version where that computes in float32 throughout
+    (:func:`single_precision_term`), else the term itself, in double."""
     n = len(term.parameters)
     p = "".join(f"p[{i}], " for i in range(n))
     data = "data, " if term.uses_data else ""
     column = "".join(f"table[{TERM + i}, k], " for i in range(n))
-    if precision == "mixed":
-        energy = float32_version(term.energy) or term.energy
-        energy_source = (f"def _pair_energy(r2, p, data):\n    u, fr = energy(r2, {data}{p})\n"
-                         "    return float32(u), float32(fr)\n")  # fmt: skip
-    else:
-        energy = term.energy
-        energy_source = f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
+    energy = (single_precision_term(term) if precision == "mixed" else None) or term.energy
     source = (
-        energy_source
+        f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
         + f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
         + f"def _column(table, k):\n    return ({column})\n"
     )
@@ -304,7 +301,6 @@ def _adapters(term: PairTerm, precision: str = "double") -> dict:
     namespace = {
         "energy": njit(**options)(energy),
         "curvature": None if term.curvature is None else njit(**options)(term.curvature),
-        "float32": np.float32,
     }
     real = np.float32 if precision == "mixed" else np.float64
     exec(compile(source, f"<pair term {term.name}>", "exec"), namespace)  # noqa: S102
@@ -313,6 +309,30 @@ def _adapters(term: PairTerm, precision: str = "double") -> dict:
     adapters["N_TERM"] = n
     adapters["REAL"] = real
     return adapters
+
+
+def single_precision_term(term: PairTerm) -> Callable | None:
+    """The term's energy function for the mixed-precision loops, or None for its own.
+
+    :func:`float32_version` of it if that, given float32 arguments, returns float32:
+    its arithmetic then stays float32. A term that calls a helper computing in double
+    (``pair_math.exp``: Morse, Buckingham, Yukawa) would convert to double and back
+    around every call, which made Morse's force call 1.22 times double's; such a term
+    runs as it is, in double, from r^2 and parameters rounded to float32 (1.0x).
+    """
+    single = float32_version(term.energy)
+    if single is None:
+        return None
+    arguments = [np.float32(1.5)] + ([np.zeros(1)] if term.uses_data else [])
+    arguments += [np.float32(1.0)] * len(term.parameters)
+    try:
+        compiled = njit(error_model="numpy")(single)
+        compiled.compile(tuple(numba.typeof(a) for a in arguments))
+    except Exception:  # noqa: BLE001 (numba's typing errors have no common base): use the term
+        logger.debug("pair term %s: no float32 version", term.name, exc_info=True)
+        return None
+    returned = compiled.nopython_signatures[-1].return_type
+    return single if str(returned) == "UniTuple(float32 x 2)" else None
 
 
 #: Names whose value is a float constant, in ``math`` and numpy: float64 to numba.

@@ -32,7 +32,7 @@ from md.forcefield import ForceField
 from md.parallel import get_threads, set_threads
 from md.trajectory import read_trajectory
 from potentials import LennardJones, Morse, PairPotential, Table, pair_term
-from potentials._pair_frame import float32_version, kernels_for
+from potentials._pair_frame import float32_version, kernels_for, single_precision_term
 from potentials.springs import FENEBonds
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -276,6 +276,10 @@ def test_float32_version_rewrites_the_terms_own_constants():
     assert fr == pytest.approx(exact[1], rel=4 * EPS32)
     # no source to rewrite: None, and the double function serves (correct, slower)
     assert float32_version(eval("lambda r2, a: (a / r2, a / r2)")) is None  # noqa: S307
+    # a term whose float32 version still computes in double (pair_math.exp: Morse) runs
+    # as it is; one that stays float32 (LJ) runs its float32 version
+    assert single_precision_term(Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.5).term) is None
+    assert single_precision_term(LennardJones(cutoff=2.5).term) is not None
     mixed = kernels_for(gaussian_bump, "mixed")
     assert mixed is not kernels_for(gaussian_bump) and mixed is kernels_for(gaussian_bump, "mixed")
 
