@@ -250,8 +250,8 @@ class RunConfig:
             "run`; their product is P, see the MPI guide); not physics.",
         default_doc="chosen from P and the cell")  # fmt: skip
     precision: str = key("double", "string", choices=("double", "mixed"),
-        doc="`mixed`: the pair potentials' pair loops in float32 (separations rounded from "
-            "double, pair forces about 1e-6 relative), every sum, the positions and the "
+        doc="`mixed`: the pair potentials' pair terms in float32 (r^2 rounded from double; "
+            "forces within about 3e-7 of the largest), every sum, the positions and the "
             "integrator in double; bonds and angles stay double. A checkpoint keeps it: "
             "a resume must ask for the same.")  # fmt: skip
 

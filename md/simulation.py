@@ -73,11 +73,12 @@ class Simulation:
         :func:`md.parallel.set_threads`; None leaves the setting as it is
         (every core unless set).
     precision : {"double", "mixed"}
-        ``"mixed"`` runs the pair loops of the pair-kernel frame in float32
-        (separations rounded from double, pair terms, pair forces) with every
-        sum, the positions, velocities and the integrator in double; bonded
-        terms stay double. Pair forces agree with double to about 1e-6
-        relative. Kept in the ForceField (``sim.forcefield.precision``).
+        ``"mixed"`` computes the pair terms of the pair-kernel frame in
+        float32 (r^2 rounded from double, parameters, u and f/r) with the pair
+        forces, every sum, the positions, velocities and the integrator in
+        double; bonded terms stay double. Forces agree with double to about
+        3e-7 of the largest. Kept in the ForceField
+        (``sim.forcefield.precision``).
 
     Attributes
     ----------

@@ -727,10 +727,11 @@ class PairPotential:
         the serial kernel over atom indices. ``virial=False`` skips the
         virial, leaving ``result.virial`` None.
 
-        ``precision="mixed"`` computes the pair terms in float32 (separations
-        taken in double and rounded once, parameters, u and f/r), in the
-        slot-frame and the atom-order kernels alike; every sum and the results
-        are float64: about 5e-7 of the largest force.
+        ``precision="mixed"`` computes the pair terms in float32 (r^2 taken in
+        double and rounded once, parameters, u and f/r; see
+        :func:`single_precision_term`), in the slot-frame and the atom-order
+        kernels alike; the pair forces f/r * d, every sum and the results are
+        float64: about 3e-7 of the largest force.
         """
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "

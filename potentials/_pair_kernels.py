@@ -190,8 +190,8 @@ def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, 
     as (xx, yy, zz, yz, xz, xy) and, when ``energies`` has length N, the
     per-atom energies and, into ``virials`` (N, 6, zeroed), the per-atom
     virials (half of each pair to each atom). A float32 ``table`` (a
-    mixed-precision copy) computes the pair terms in float32 from separations
-    taken in double; every sum stays double.
+    mixed-precision copy) computes the pair terms in float32 from r^2 taken in
+    double; the forces and every sum stay double.
     """
     literally(mode)
     return _atom_forces_loop(geometry, n_types, table, mode, data,

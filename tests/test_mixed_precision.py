@@ -136,7 +136,7 @@ def test_the_atom_order_kernel_runs_mixed_too(path, fcc_lattice):
 
 
 def test_separations_keep_float32_accuracy_far_from_the_origin(fcc_lattice):
-    """Separations are taken in double and rounded once, so an atom at x = 10^5 sigma has
+    """Separations and r^2 are taken in double, r^2 rounded once, so an atom at x = 10^5 sigma has
     its force to float32 round-off (float32 coordinates, as GROMACS's mixed precision holds
     them, would carry 0.004 sigma of error there: LJ forces wrong by tens of percent)."""
     near = fcc_lattice(cells=5, perturbation=0.05)
