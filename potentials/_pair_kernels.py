@@ -9,9 +9,10 @@ when the term changes), with these names set in that module first:
     The term's energy and -du/dr / r at squared distance r2, unshifted and
     untruncated; ``p`` is the tuple of the term's parameters for the type pair,
     ``data`` the potential's data array (tables; empty for most terms). In a
-    mixed-precision copy (``kernels_for(term, "mixed")``) it takes and returns
-    float32: the term's function with its float constants made float32
-    (``_pair_frame.float32_version``).
+    mixed-precision copy (``kernels_for(term, "mixed")``) it takes float32 r2
+    and parameters: the term's function with its float constants made float32
+    where that computes in float32 throughout (``_pair_frame.
+    single_precision_term``), else the term itself (it then returns doubles).
 ``_pair_curvature(r2, p, data) -> (u, du_ds, d2u_ds2)``
     u and its first two derivatives with respect to s = r^2 (None when the term
     has no curvature: the Python layer refuses to ask for a Hessian then).
