@@ -424,6 +424,7 @@ def _serial_and_ranks(tmp_path, text: str, n_ranks: int) -> tuple[Path, Path, st
 
 
 @needs_mpi
+@pytest.mark.slow  # keeps the default suite within its 10 minutes (each rank compiles, cold)
 def test_mixed_precision_over_ranks_follows_the_serial_mixed_run(tmp_path):
     """Each rank's pair loops run in float32 too: 2 ranks follow the serial mixed run to
     float32 round-off grown over 100 steps, and both differ from the double run by more."""
