@@ -14,13 +14,13 @@ from md.parallel import copy_into, same_values
 from md.state import State
 from md.topology import Topology, combine
 from potentials.base import (
-    PRECISIONS,
     Bonded,
     BondedAngles,
     ForceResult,
     Potential,
     SupportsHessian,
     SupportsHessianOperator,
+    check_precision_name,
 )
 from potentials.pair_hessian import HessianSum
 
@@ -63,10 +63,7 @@ class ForceField:
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "
-                             f"got {precision!r}")  # fmt: skip
-        self.precision = precision
+        self.precision = check_precision_name(precision)
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}

@@ -50,7 +50,7 @@ from md.errors import PairCollapseError
 from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
-from potentials.base import PRECISIONS, ForceResult
+from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
@@ -187,8 +187,7 @@ def kernels_for(term: PairTerm, precision: str = "double") -> ModuleType:
     An unchanged term then loads its compiled kernels from numba's cache in every
     later process; an edited one gets a new copy and compiles afresh.
     """
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    check_precision_name(precision)
     key = _fingerprint(term)
     module = _LOADED.get((key, precision))
     if module is not None:
@@ -294,8 +293,8 @@ def _adapters(term: PairTerm, precision: str = "double") -> dict:
     energy = (single_precision_term(term) if precision == "mixed" else None) or term.energy
     source = (
         f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
-        + f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
-        + f"def _column(table, k):\n    return ({column})\n"
+        f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
+        f"def _column(table, k):\n    return ({column})\n"
     )
     options = {"inline": "always", "error_model": "numpy"}
     namespace = {
@@ -346,8 +345,8 @@ def float32_version(function: Callable) -> Callable | None:
     and float32 times float64 is float64: a pair term written for double would turn
     the mixed-precision loop back into double. So its source is parsed and every
     float literal, every ``inf``/``pi``/``e``/``nan`` read from a module and every
-    global bound to a float, wrapped
-    in ``np.float32(...)``; integers (``r2 ** 3``) keep float32 as they are. Only the
+    global bound to a float wrapped in ``np.float32(...)``; integers (``r2 ** 3``)
+    keep float32 as they are. Only the
     function's own body: helpers it calls (``pair_math.exp``) run in their own
     precision, as numba promotes their float32 arguments. Returns None where the
     source cannot be read or is not one ``def`` (a lambda, a function made by
@@ -733,10 +732,7 @@ class PairPotential:
         kernels alike; the pair forces f/r * d, every sum and the results are
         float64: about 3e-7 of the largest force.
         """
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, "
-                             f"got {precision!r}")  # fmt: skip
-        kernels = self._loaded(precision)
+        kernels = self._loaded(check_precision_name(precision))
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
         table = self._cached_tables(n_types, np.float32 if precision == "mixed" else np.float64)

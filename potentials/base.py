@@ -20,6 +20,13 @@ if TYPE_CHECKING:
 PRECISIONS = ("double", "mixed")
 
 
+def check_precision_name(precision) -> str:
+    """Return ``precision`` if it is one of :data:`PRECISIONS`, else raise ValueError."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    return precision
+
+
 @dataclass
 class ForceResult:
     """Energy, forces and virial of a configuration.
