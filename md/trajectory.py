@@ -697,12 +697,18 @@ class Trajectory:
 def read_trajectory(path) -> Trajectory:
     """Read an H5MD file written by :class:`H5MDWriter` into engine units.
 
+    A file that a run is writing is read as of a moment between two frames.
+
     Raises
     ------
     TrajectoryError
         If the file is missing, not HDF5, or lacks what the layout requires.
     """
     path = Path(path)
+    return while_written(path, lambda: _read_trajectory(path))
+
+
+def _read_trajectory(path: Path) -> Trajectory:
     with open_h5md(path) as f:
         try:
             # Complete frames only: a run killed inside a write may have grown some
@@ -1080,7 +1086,8 @@ def verify_frames(path, n_frames: int | None = None) -> int:
 
     Frame datasets carry HDF5's Fletcher-32 checksum per chunk (one frame per
     chunk), so flipped bytes anywhere in a stored frame are found here.
-    Returns the number of frames checked.
+    Returns the number of frames checked. A frame that a live run is writing
+    is not taken for a damaged one (see :func:`while_written`).
 
     Raises
     ------
@@ -1088,6 +1095,10 @@ def verify_frames(path, n_frames: int | None = None) -> int:
         Naming the first damaged frame and dataset.
     """
     path = Path(path)
+    return while_written(path, lambda: _verify_frames(path, n_frames))
+
+
+def _verify_frames(path: Path, n_frames: int | None) -> int:
     with open_h5md(path) as f:
         group = f["particles/trajectory"]
         datasets = {
@@ -1189,6 +1200,37 @@ def retry_transient(action, attempts: int = 20, pause: float = 0.05):
                 raise
             time.sleep(pause)
     return None
+
+
+def _file_signature(path: Path) -> tuple[int, int] | None:
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_size, stat.st_mtime_ns
+
+
+def while_written(path: Path, read, settle: float = 0.1, patience: float = 5.0):
+    """Run ``read()`` (which opens ``path`` itself), again while the file is being written.
+
+    A reader that opens the file while a run flushes a frame can see the
+    frame's datasets grown before its data, which reads as a truncated file
+    ("addr overflow") or a failed checksum. Such an error is believed only
+    once the file has stayed unchanged (size and modification time) from
+    the start of the read to ``settle`` seconds after it failed; while the
+    file keeps changing the read is tried again with a fresh open, for up to
+    ``patience`` seconds. A damaged file that nothing writes is reported
+    after one extra pause of ``settle`` seconds.
+    """
+    deadline = time.monotonic() + patience
+    while True:
+        before = _file_signature(path)
+        try:
+            return read()
+        except TrajectoryError:
+            time.sleep(settle)
+            if _file_signature(path) == before or time.monotonic() > deadline:
+                raise
 
 
 def open_h5md(path: Path) -> h5py.File:

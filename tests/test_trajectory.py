@@ -337,3 +337,38 @@ def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_pa
     for reader in (read_trajectory, open_trajectory, TrajectoryReader, read_topology):
         with pytest.raises(TrajectoryError, match=message.replace("(", r"\(").replace(")", r"\)")):
             reader("bad.h5")
+
+
+# ------------------------------------------- a file that a live run is writing
+def test_a_read_that_fails_while_the_file_changes_is_tried_again(tmp_path):
+    from md.trajectory import while_written
+
+    path = tmp_path / "growing.h5"
+    path.write_bytes(b"frame 1")
+    calls = []
+
+    def read():
+        calls.append(len(calls))
+        if len(calls) < 3:
+            path.write_bytes(b"frame 1" * (len(calls) + 1))  # the writer adds a frame meanwhile
+            raise TrajectoryError("frame 1 is damaged (addr overflow)")
+        return "frames read"
+
+    assert while_written(path, read, settle=0.01) == "frames read"
+    assert len(calls) == 3
+
+
+def test_a_damaged_file_that_nothing_writes_is_reported_after_one_read(tmp_path):
+    from md.trajectory import while_written
+
+    path = tmp_path / "damaged.h5"
+    path.write_bytes(b"frame 1")
+    calls = []
+
+    def read():
+        calls.append(1)
+        raise TrajectoryError("frame 0 is damaged")
+
+    with pytest.raises(TrajectoryError, match="frame 0 is damaged"):
+        while_written(path, read, settle=0.01)
+    assert len(calls) == 1
