@@ -160,7 +160,9 @@ def write_checkpoint(
     layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
     if layout is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
-        layout = {key: value for key, value in layout.items() if key != "owners"}
+        if layout.get("slots") is not None:  # each atom's row on its rank
+            arrays["domain_slots"] = np.asarray(layout["slots"], dtype=np.int64)
+        layout = {key: value for key, value in layout.items() if key not in ("owners", "slots")}
     saved = integrator.get_state() if isinstance(integrator, Restartable) else None
     meta = {
         "format": FORMAT,
@@ -232,9 +234,12 @@ def read_checkpoint(path) -> Checkpoint:
         saved = meta["integrator_state"]
         layout = meta.get("decomposition")
         if layout is not None:
-            layout = {**layout, "owners": arrays.get("domain_owners")}
+            layout = {**layout, "owners": arrays.get("domain_owners"),
+                      "slots": arrays.get("domain_slots")}  # fmt: skip
             if layout["owners"] is None or layout["owners"].shape != (state.n_atoms,):
                 raise ValueError("the decomposition's owners do not match the atom count")
+            if layout["slots"] is not None and layout["slots"].shape != (state.n_atoms,):
+                raise ValueError("the decomposition's atom rows do not match the atom count")
         return Checkpoint(
             path=path,
             state=state,

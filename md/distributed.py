@@ -39,10 +39,11 @@ ghosts and the list out where the step is expected to take the atoms
 (dt v + dt^2 a / 2), so that its lists last as many steps as one process's;
 a rebuild forced inside a step (by an integrator's stage, or a move the
 look-ahead missed) keeps the owners and widens the ghost shell by as far as
-owned atoms have left their bricks, and the next step migrates them. The
-migration merges the staying and arriving atoms in id order in one compiled
-pass per array, and the ghost search runs on compiled passes over a table
-the Domain keeps between builds (``md.domain``).
+owned atoms have left their bricks, and the next step migrates them. A
+migration changes only the rows that move (arrivals take the leavers' rows),
+so a rank's atom order follows its history (checkpoints record it); the ghost
+search runs on compiled passes over a table the Domain keeps between builds
+(``md.domain``).
 
 Reductions add in rank order on every rank (an all-gather, then a sum), so
 all ranks hold the same bits and a run on P ranks is deterministic; runs on
@@ -83,18 +84,18 @@ from md.domain import (
     check_grid,
     choose_grid,
     fractional_coordinates,
-    home_images,
+    home_layout,
     home_positions,
     leaving_along,
     local_periodic_axes,
-    merged_order,
     moved_since,
     near_faces,
     nearest_copies,
-    nonzero_rows,
     pack_rows,
+    predicted_positions,
+    refill_plan,
+    refill_rows,
     table_rows,
-    take_rows,
 )
 from md.errors import (
     AngleCollapseError,
@@ -443,7 +444,9 @@ class Domain:
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
-        self._held: dict[object, list] = {}
+        self._stores: dict[object, NDArray] = {}
+        self._local: dict[str, list] = {}
+        self._parity = 0
 
     def fractions(self, state: State) -> NDArray[np.float64]:
         """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
@@ -462,8 +465,15 @@ class Domain:
     # ------------------------------------------------------------------ migration
     def migrate(self, state: State, carried: dict) -> dict:
         """Move the owned atoms, and the per-atom arrays ``carried``, to the ranks whose
-        bricks hold them, in one sweep per cut axis; ``state``'s arrays are replaced,
-        sorted by id. Collective.
+        bricks hold them, in one sweep per cut axis; ``state``'s arrays are replaced by
+        views of arrays this Domain keeps. Collective.
+
+        Each sweep changes only the rows that move (:func:`md.domain.refill_plan`):
+        arriving atoms fill the rows of the leaving ones, and staying atoms past the new
+        end fill what is left. A rank's atom order is so a function of its run's history
+        (deterministic on any P; a checkpoint records it, see :meth:`DistributedSimulation.
+        global_view`), not sorted by id: a sorted merge rewrote every row of every array
+        (a 10^6-atom rank: 30 ms of a 50 ms migration on the Emerald Rapids VM).
 
         Raises
         ------
@@ -473,12 +483,11 @@ class Domain:
         """
         names = list(carried)
         # The state's per-atom arrays, then the carried ones: only the atoms that leave
-        # are packed into rows of floats (integers are exact below 2^53); each sweep that
-        # moved any merges the staying atoms and the arriving ones in increasing id in one
-        # pass per array (a rank keeps its atoms in increasing id).
+        # are packed into rows of floats (integers are exact below 2^53).
         arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
-        arrays += [np.ascontiguousarray(carried[name]) for name in names]
+        arrays += [np.asarray(carried[name]) for name in names]
         keys = [("state", k) for k in range(5)] + [("carried", name) for name in names]
+        n = state.n_atoms
         lost = 0
         tilt = periodic_tilt(state.tilt, state.pbc)
         shape = self.shape
@@ -495,23 +504,14 @@ class Domain:
                                                   2 * axis + 1)  # fmt: skip
             if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
                 continue
-            gone = np.zeros(arrays[0].shape[0], dtype=np.bool_)
-            gone[ups] = True
-            gone[downs] = True
             incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
-            order = merged_order(arrays[4], gone, incoming[4])
-            if order.size == 0 and len(incoming[4]) + int(np.count_nonzero(~gone)) > 0:
-                stay = np.flatnonzero(~gone)  # ids out of order: appended, sorted below
-                arrays = [np.concatenate([a[stay], b]) for a, b in zip(arrays, incoming,
-                                                                         strict=True)]  # fmt: skip
-                continue
-            arrays = [_merged(a, b, order, self._held_rows(key, a, len(order)))
+            leaving = np.sort(np.concatenate([ups, downs]))
+            m = len(incoming[0])
+            plan = refill_plan(leaving, n, m)
+            size = n - len(leaving) + m
+            arrays = [self._refilled(key, a, n, size, b, plan)
                       for key, a, b in zip(keys, arrays, incoming, strict=True)]  # fmt: skip
-        ids = arrays[4]
-        if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):
-            order = np.argsort(ids, kind="stable")
-            arrays = [a[order] for a in arrays]
-        arrays = [np.ascontiguousarray(a) for a in arrays]
+            n = size
         state.positions, state.velocities, state.masses, state.types, state.ids = arrays[:5]
         carried = dict(zip(names, arrays[5:], strict=True))
         if global_sum(lost, self.ranks):
@@ -520,6 +520,36 @@ class Domain:
                 "dynamics is blowing up (time step too large?)"
             )
         return carried
+
+    def _refilled(self, key, values: NDArray, n: int, size: int, incoming: NDArray,
+                  plan) -> NDArray:  # fmt: skip
+        """``values`` (n rows) after a sweep's :func:`md.domain.refill_plan`: ``size`` rows of
+        the array kept under ``key``, changed in place where ``values`` already is its
+        first rows (the usual case), else copied into it first."""
+        store = self._store(key, values, n, size)
+        width = int(np.prod(values.shape[1:], dtype=np.int64))
+        sources, targets, arrivals = plan
+        refill_rows(store.reshape(len(store), width), sources, targets,
+                    np.ascontiguousarray(incoming).reshape(-1, width), arrivals)  # fmt: skip
+        return store[:size]
+
+    def _store(self, key, values: NDArray, n: int, size: int) -> NDArray:
+        """The array kept under ``key`` for ``values``' rows, holding them in its first ``n``
+        rows and room for ``size``: ``values``' own memory when it is that array's
+        beginning, else a copy (into a larger array when it needs room; the room is an
+        eighth more, so that a rank's count can grow for several migrations)."""
+        store = self._stores.get(key)
+        fits = (store is not None and store.dtype == values.dtype
+                and store.shape[1:] == values.shape[1:]
+                and store.shape[0] >= max(n, size))  # fmt: skip
+        if fits and n and values.ctypes.data == store.ctypes.data and values.base is store:
+            return store  # values are its first rows: changed in place
+        if not fits:
+            rows = max(n, size)
+            store = np.empty((rows + rows // 8 + 16, *values.shape[1:]), dtype=values.dtype)
+            self._stores[key] = store
+        store[:n] = values[:n]
+        return store
 
     # -------------------------------------------------------------------- ghosts
     def build(self, state: State, reach: float) -> None:
@@ -536,11 +566,19 @@ class Domain:
         tilt = periodic_tilt(state.tilt, pbc)
         cell = cell_matrix(box, tilt)
         widths = perpendicular_widths(box, tilt)
-        fractions = self._buffer(state.n_atoms, 3, "fractions")
-        fractional_coordinates(state.positions, box, tilt, pbc, fractions)
-        images = self._buffer(state.n_atoms, 3, "images", np.int64)
-        home = self._buffer(state.n_atoms, 3, "home")
-        strayed = home_images(fractions, self.center, self.bounds, widths, pbc, images, home)
+        # The local system is written where it will stay: the owned atoms first, at their
+        # images nearest the brick (a copy; only the atoms with an image of their own are
+        # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
+        # their fractional coordinates kept beside them for the later sweeps. Sweeps send
+        # rows of position (3), fractional position (3), id and type.
+        n = state.n_atoms
+        self._parity ^= 1  # the local arrays of the build before this one stay as they are
+        positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
+        home = self._buffer(n, 3, "home")
+        self.imaged, self.images, strayed = home_layout(
+            state.positions, box, tilt, pbc, cell, self.center, self.bounds, widths, home,
+            positions[:n], self._buffer(n, 3, "images", np.int64),
+        )  # fmt: skip
         margin = global_max(strayed, self.ranks)
         shell = reach + margin
         brick = widths / self.shape
@@ -553,17 +591,8 @@ class Domain:
                 f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
                 "smaller time step"
             )
-        # The local system is written where it will stay: the owned atoms first, at their
-        # images nearest the brick (a copy; only the atoms with an image of their own are
-        # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
-        # their fractional coordinates kept beside them for the later sweeps. Sweeps send
-        # rows of position (3), fractional position (3), id and type.
-        n = state.n_atoms
-        self.imaged, self.images = nonzero_rows(images)
-        positions = np.empty((n + n // 2 + 64, 3))
-        ids = np.empty(len(positions), dtype=np.int64)
-        types = np.empty(len(positions), dtype=np.int32)
-        home_positions(state.positions, self.imaged, self.images, cell, positions[:n])
+        ids = self._local_rows("ids", len(positions), (), np.int64)
+        types = self._local_rows("types", len(positions), (), np.int32)
         ids[:n] = state.ids
         types[:n] = state.types
         ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
@@ -599,6 +628,8 @@ class Domain:
                     size = count + len(rows) + len(positions) // 2
                     positions, ids, types = (_grown(a, count, size) for a in (positions, ids,
                                                                                types))  # fmt: skip
+                    for name, grown in (("positions", positions), ("ids", ids), ("types", types)):
+                        self._local[name][self._parity] = grown  # kept for the next builds
                     old = ghost_fractions
                     ghost_fractions = self._buffer(size - n, 3, "ghost fractions")
                     ghost_fractions[: count - n] = old[: count - n]
@@ -613,6 +644,8 @@ class Domain:
         self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(positions[:count], types[:count], box, local_pbc,
                                           state.type_names)  # fmt: skip
+        # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
+        # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
         self.local_state.tilt = periodic_tilt(tilt, local_pbc)
 
     def layout_holds(self, state: State) -> bool:
@@ -657,38 +690,29 @@ class Domain:
         return values[: self.n_owned]
 
     def reserve(self, state: State, carried: dict) -> None:
-        """Allocate and fill the arrays the first migration merges into (``state``'s
-        per-atom arrays and the ``carried`` ones, name -> an array shaped like it), so
-        that the first migration of a run does not pay their page faults (1M atoms on the
-        Emerald Rapids VM: 0.108 s for the first migration, 0.040 s for later ones). The
-        second migration's arrays are left to it: reserving them too would hold a third
-        copy of the per-atom arrays until the first migration frees the originals."""
+        """Give ``state``'s per-atom arrays their room for migrations now (a copy into the
+        arrays this Domain keeps; ``state``'s arrays become views of them), and map the
+        memory of the ``carried`` ones (name -> an array shaped like it), so that the first
+        migration of a run does not pay their page faults (1M atoms on the Emerald Rapids
+        VM: 0.108 s for the first migration, 0.040 s for later ones)."""
+        n = state.n_atoms
         arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
-        keyed = [(("state", k), a) for k, a in enumerate(arrays) if a is not None]
-        keyed += [(("carried", name), like) for name, like in carried.items()]
-        for key, like in keyed:
-            if key not in self._held:
-                self._held_rows(key, like, len(like)).fill(0)  # written: its pages mapped
+        kept = [self._store(("state", k), a, n, n)[:n] for k, a in enumerate(arrays)]
+        state.positions, state.velocities, state.masses, state.types, state.ids = kept
+        for name, like in carried.items():
+            if ("carried", name) not in self._stores:
+                self._store(("carried", name), like, n, n).fill(0)  # written: its pages mapped
 
-    def _held_rows(self, key, like: NDArray, n: int) -> NDArray:
-        """n rows shaped and typed as ``like``'s, in memory that does not hold ``like``: one of
-        two arrays kept under ``key``, so that migrations alternate between them.
-
-        A migration's merged arrays replace the state's; written into fresh arrays, their
-        first touch costs page faults (a fresh 24 MB array filled: 83 ms on the 2-core
-        EPYC VM, the same array refilled: 1.7 ms), two thirds of a migration of 10^6
-        atoms. The arrays a migration replaces are not used after it (their atoms
-        have moved), so the one after it writes into them. Costs one more copy of the
-        per-atom arrays held (about 100 bytes per atom).
-        """
-        pair = self._held.setdefault(key, [None, None])
-        k = 1 if pair[0] is not None and np.may_share_memory(pair[0], like) else 0
-        held = pair[k]
-        if (held is None or held.dtype != like.dtype or held.shape[1:] != like.shape[1:]
-                or held.shape[0] < n):  # fmt: skip
-            held = np.empty((n + n // 8 + 16, *like.shape[1:]), dtype=like.dtype)
-            pair[k] = held
-        return held[:n]
+    def _local_rows(self, name: str, n: int, tail: tuple, dtype) -> NDArray:
+        """An array of at least n rows (of shape ``tail``) for the local system's ``name``:
+        one of two kept under it, alternating from build to build (the local system of
+        the last build is still in use while this one is laid out)."""
+        pair = self._local.setdefault(name, [None, None])
+        held = pair[self._parity]
+        if held is None or held.shape[0] < n:
+            held = np.empty((n + n // 8, *tail), dtype=dtype)
+            pair[self._parity] = held
+        return held
 
     def _buffer(self, n: int, k: int, name: str = "message", dtype=np.float64) -> NDArray:
         """n rows of k values from memory this Domain keeps under (name, k): a fresh 10^8-byte
@@ -714,16 +738,6 @@ def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:
     columns = [np.reshape(a[rows], (len(rows), int(np.prod(a.shape[1:], dtype=np.int64))))
                .astype(np.float64, copy=False) for a in arrays]  # fmt: skip
     return np.concatenate(columns, axis=1)
-
-
-def _merged(old: NDArray, incoming: NDArray, order: NDArray[np.int64], out: NDArray) -> NDArray:
-    """The rows of ``old`` then ``incoming`` (same dtype and row shape) in ``order``
-    (:func:`md.domain.merged_order`), written into ``out`` (as many rows as ``order``,
-    not overlapping ``old``) and returned."""
-    width = int(np.prod(old.shape[1:], dtype=np.int64))
-    take_rows(old.reshape(len(old), width), np.ascontiguousarray(incoming).reshape(-1, width),
-              order, out.reshape(len(order), width))  # fmt: skip
-    return out
 
 
 def _unpacked(rows: NDArray[np.float64], like) -> list[NDArray]:
@@ -1038,14 +1052,15 @@ class DistributedForceField:
         covered = moved <= allowed and self.domain.layout_holds(state)
         return covered, _ratio(coming, allowed), finite
 
-    def coming_moves(self, state: State, dt: float) -> NDArray[np.float64]:
-        """Each owned atom's expected move over a step of ``dt``: dt v + dt^2 a / 2 (velocity
-        Verlet's move) with the forces at hand, dt v without."""
-        moves = float(dt) * state.velocities
+    def coming_positions(self, state: State, dt: float) -> NDArray[np.float64]:
+        """Where the owned atoms are expected after a step of ``dt``: r + dt v + dt^2 a / 2
+        (velocity Verlet's move) with the forces at hand, r + dt v without (a new array)."""
         forces = self.cached_forces(state)
-        if forces is not None:
-            moves += (0.5 * float(dt) ** 2) * forces / state.masses[:, None]
-        return moves
+        out = np.empty_like(state.positions)
+        predicted_positions(state.positions, state.velocities,
+                            _NONE if forces is None else forces, state.masses, float(dt),
+                            out)  # fmt: skip
+        return out
 
     def cached_forces(self, state: State) -> NDArray[np.float64] | None:
         """The forces on ``state``'s owned atoms if they are at hand (computed at these
@@ -1090,7 +1105,7 @@ class DistributedForceField:
         bricks. Collective. Returns the carried arrays, migrated.
 
         With ``dt``, the time step about to be taken, the ghosts and the list are laid out
-        where that step is expected to take the atoms (:meth:`coming_moves`): a rebuild
+        where that step is expected to take the atoms (:meth:`coming_positions`): a rebuild
         taken at a step start then lasts as many steps as one taken after the step's move,
         as a single process's is (a list built where the atoms are would lose a step's
         worth of skin). Any build position is valid: the list is checked against it at
@@ -1117,7 +1132,7 @@ class DistributedForceField:
         at = state
         if dt is not None and state.velocities is not None:
             at = copy.copy(state)
-            at.positions = state.positions + self.coming_moves(state, dt)
+            at.positions = self.coming_positions(state, dt)
         reach = self.reach
         with self.ranks.clock:
             self.domain.build(at, reach)
@@ -1305,9 +1320,12 @@ class DistributedSimulation(Simulation):
     def rank(self) -> int:
         return self.ranks.rank
 
-    def _part(self, state: State, owners: NDArray[np.int64]) -> State:
-        """This rank's atoms of the whole system ``state`` (those ``owners`` gives it)."""
+    def _part(self, state: State, owners: NDArray[np.int64], slots=None) -> State:
+        """This rank's atoms of the whole system ``state`` (those ``owners`` gives it), in
+        increasing id, or in the order of their ``slots`` (rows on the rank) if given."""
         mine = np.flatnonzero(owners == self.ranks.rank)
+        if slots is not None:
+            mine = mine[np.argsort(np.asarray(slots)[mine], kind="stable")]
         return State(
             positions=state.positions[mine], velocities=state.velocities[mine],
             masses=state.masses[mine], box=state.box, pbc=state.pbc, types=state.types[mine],
@@ -1456,9 +1474,15 @@ class DistributedSimulation(Simulation):
                 size = int(np.prod(shape))
                 saved[key] = whole[:, start : start + size].reshape((n, *shape)).copy()
                 start += size
+        # Each atom's row on its rank: the gathered rows come rank after rank, each rank's
+        # in its own order (a resume on this grid restores it, for the same bits).
+        ranks = rows[:, 10].astype(np.int64)
+        slots = np.empty(n, dtype=np.int64)
+        slots[rows[:, 0].astype(np.int64)] = np.arange(n) - np.searchsorted(ranks, ranks)
         layout = {
             "grid": list(self.grid.shape),
             "owners": whole[:, 10].astype(np.int64),
+            "slots": slots,
             "bond_reach": self.forcefield.bond_reach,
             "migrate_pending": self.forcefield.migrate_pending,
             "ahead": self.forcefield.ahead,
@@ -1508,8 +1532,9 @@ class DistributedSimulation(Simulation):
                 at_build.tilt = np.array(tilt, dtype=np.float64)
         owners = (np.asarray(layout["owners"], dtype=np.int64) if same
                   else forcefield.domain.owner_of(at_build))  # fmt: skip
-        self.state = self._part(state, owners)
-        part_at_build = self._part(at_build, owners)
+        slots = layout.get("slots") if same else None  # (checkpoints before it: by id)
+        self.state = self._part(state, owners, slots)
+        part_at_build = self._part(at_build, owners, slots)
         if same:
             forcefield.bond_reach = float(layout.get("bond_reach", forcefield.bond_reach))
         forcefield.invalidate()

@@ -233,26 +233,46 @@ def brick_of(fractions, shape, out):
 
 
 @njit(cache=True, error_model="numpy")
-def home_images(fractions, center, bounds, widths, pbc, images, home):
-    """For each atom: the periodic image nearest the brick centred on ``center`` (rows of
-    ``images``, int64; 0 along open axes) and its fractional coordinates there (``home``);
-    return how far the farthest atom lies outside the brick (``bounds``: (2, 3) lower and
-    upper fractional corners; ``widths``: the cell's perpendicular widths) [length]."""
+def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, out, rows):
+    """The owned atoms of a build at the periodic images nearest the brick centred on
+    ``center``, in one pass: each atom's fractional coordinates there (``home``, N x 3;
+    0.5 along open axes, which are never cut, as :func:`fractional_coordinates`), its
+    position there (``out``: positions - n @ cell, ``cell``'s rows a, b, c, a plain copy
+    where n = 0) and, for the atoms whose image n is not 0, their indices and images
+    (``rows``, scratch of N x 3 int64). ``bounds`` are the brick's (2, 3) lower and upper
+    fractional corners, ``widths`` the cell's perpendicular widths.
+
+    Returns (imaged, images, strayed): the atoms with an image of their own
+    (increasing), their images (int64 rows) and how far the farthest atom lies
+    outside the brick [length]."""
     strayed = 0.0
-    for i in range(fractions.shape[0]):
-        for a in range(3):
-            s = fractions[i, a]
-            if pbc[a]:
-                k = np.floor(s - center[a] + 0.5)
-                images[i, a] = int(k)
-                h = s - k
-                outside = max(bounds[0, a] - h, h - bounds[1, a], 0.0)
-                strayed = max(strayed, outside * widths[a])
-            else:
-                images[i, a] = 0
-                h = s
-            home[i, a] = h
-    return strayed
+    count = 0
+    imaged = np.empty(positions.shape[0], dtype=np.int64)
+    for i in range(positions.shape[0]):
+        sz = positions[i, 2] / box[2] if pbc[2] else 0.5
+        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
+        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
+        sx = x / box[0] if pbc[0] else 0.5
+        kx = np.floor(sx - center[0] + 0.5) if pbc[0] else 0.0
+        ky = np.floor(sy - center[1] + 0.5) if pbc[1] else 0.0
+        kz = np.floor(sz - center[2] + 0.5) if pbc[2] else 0.0
+        hx, hy, hz = sx - kx, sy - ky, sz - kz
+        home[i, 0], home[i, 1], home[i, 2] = hx, hy, hz
+        if pbc[0]:
+            strayed = max(strayed, max(bounds[0, 0] - hx, hx - bounds[1, 0], 0.0) * widths[0])
+        if pbc[1]:
+            strayed = max(strayed, max(bounds[0, 1] - hy, hy - bounds[1, 1], 0.0) * widths[1])
+        if pbc[2]:
+            strayed = max(strayed, max(bounds[0, 2] - hz, hz - bounds[1, 2], 0.0) * widths[2])
+        if kx != 0.0 or ky != 0.0 or kz != 0.0:
+            for a in range(3):
+                out[i, a] = positions[i, a] - (kx * cell[0, a] + ky * cell[1, a] + kz * cell[2, a])
+            rows[count, 0], rows[count, 1], rows[count, 2] = int(kx), int(ky), int(kz)
+            imaged[count] = i
+            count += 1
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = positions[i, 0], positions[i, 1], positions[i, 2]
+    return imaged[:count].copy(), rows[:count].copy(), strayed
 
 
 @njit(cache=True, error_model="numpy")
@@ -270,16 +290,20 @@ def leaving_along(positions, box, tilt, pbc, shape, axis, coordinate):
     n_down = 0
     lost = 0
     for i in range(n):
+        # only the fractions the axis needs (z's for all, y's for x and y)
         sz = positions[i, 2] / box[2] if pbc[2] else 0.5
-        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
-        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
-        sx = x / box[0] if pbc[0] else 0.5
-        f = sx if axis == 0 else (sy if axis == 1 else sz)
+        f = sz
+        if axis < 2:
+            sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
+            f = sy
+            if axis == 0:
+                x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
+                f = x / box[0] if pbc[0] else 0.5
         f = f - np.floor(f)
-        c = min(max(int(np.floor(f * p)), 0), p - 1)
-        delta = (c - coordinate) % p
-        if delta == 0:
-            continue
+        c = min(max(int(f * p), 0), p - 1)  # f in [0, 1): truncation is the floor
+        if c == coordinate:
+            continue  # (most atoms: no integer modulo on this path)
+        delta = c - coordinate if c > coordinate else c - coordinate + p
         if delta == 1:
             up[n_up] = i
             n_up += 1
@@ -292,48 +316,52 @@ def leaving_along(positions, box, tilt, pbc, shape, axis, coordinate):
 
 
 @njit(cache=True, error_model="numpy")
-def merged_order(ids, gone, incoming_ids):
-    """Where each row of a rank's arrays after a migration sweep comes from, in increasing
-    id: ``k < len(ids)`` an atom that stays (``gone[k]`` false), ``len(ids) + j`` incoming
-    row j. ``ids`` must increase (as a rank keeps them); an empty array if they do not."""
-    n = ids.shape[0]
-    m = incoming_ids.shape[0]
-    staying = 0
-    last = -1
-    for i in range(n):
-        if not gone[i]:
-            if ids[i] <= last:
-                return np.empty(0, dtype=np.int64)
-            last = ids[i]
-            staying += 1
-    arriving = np.argsort(incoming_ids, kind="mergesort")
-    order = np.empty(staying + m, dtype=np.int64)
-    i = 0
-    j = 0
-    for k in range(staying + m):
-        while i < n and gone[i]:
-            i += 1
-        if j < m and (i >= n or incoming_ids[arriving[j]] < ids[i]):
-            order[k] = n + arriving[j]
-            j += 1
-        else:
-            order[k] = i
-            i += 1
-    return order
+def refill_plan(leaving, n, m):
+    """Where a migration sweep puts the rows of a rank's arrays, in place: ``leaving`` (the
+    rows that leave, increasing) of ``n`` rows, ``m`` rows arriving. Returns (sources,
+    targets, arrivals): row ``sources[k]`` moves to row ``targets[k]``, arriving row j
+    goes to ``arrivals[j]``; afterwards the first ``n - len(leaving) + m`` rows hold every
+    staying and arriving atom. Arrivals fill the holes the leavers left (the lowest
+    first), then go past the end; holes left over are filled by the staying rows past the
+    new end, lowest first. Only the rows that move are touched: O(moved), not O(n)."""
+    g = leaving.shape[0]
+    size = n - g + m
+    arrivals = np.empty(m, dtype=np.int64)
+    filled = min(m, g)
+    for j in range(filled):
+        arrivals[j] = leaving[j]
+    for j in range(filled, m):
+        arrivals[j] = n + j - filled
+    holes = 0  # holes below the new end, among leaving[filled:]
+    for k in range(filled, g):
+        if leaving[k] < size:
+            holes += 1
+    sources = np.empty(holes, dtype=np.int64)
+    targets = np.empty(holes, dtype=np.int64)
+    tail = size  # the staying rows at or past the new end, in increasing order
+    skip = filled
+    while skip < g and leaving[skip] < size:
+        skip += 1
+    for k in range(holes):
+        while skip < g and leaving[skip] == tail:
+            skip += 1
+            tail += 1
+        targets[k] = leaving[filled + k]
+        sources[k] = tail
+        tail += 1
+    return sources, targets, arrivals
 
 
 @njit(cache=True, error_model="numpy")
-def take_rows(old, incoming, order, out):
-    """out[k] = old[order[k]], or incoming[order[k] - len(old)] past the old rows (2-D)."""
-    n = old.shape[0]
-    for k in range(order.shape[0]):
-        source = order[k]
-        if source < n:
-            for a in range(old.shape[1]):
-                out[k, a] = old[source, a]
-        else:
-            for a in range(old.shape[1]):
-                out[k, a] = incoming[source - n, a]
+def refill_rows(values, sources, targets, incoming, arrivals):
+    """Apply :func:`refill_plan` to a 2-D array in place: values[targets[k]] =
+    values[sources[k]], then values[arrivals[j]] = incoming[j]."""
+    for k in range(sources.shape[0]):
+        for a in range(values.shape[1]):
+            values[targets[k], a] = values[sources[k], a]
+    for j in range(arrivals.shape[0]):
+        for a in range(values.shape[1]):
+            values[arrivals[j], a] = incoming[j, a]
 
 
 @njit(cache=True, error_model="numpy")
@@ -388,23 +416,6 @@ def near_faces(data, end, column, lower, upper):
 
 
 @njit(cache=True, error_model="numpy")
-def nonzero_rows(images):
-    """The rows of an (n, 3) integer array that are not all 0 (indices, increasing), and
-    those rows: the atoms :func:`home_positions` shifts, and their images."""
-    listed = np.empty(images.shape[0], dtype=np.int64)
-    count = 0
-    for i in range(images.shape[0]):
-        listed[count] = i
-        count += (images[i, 0] != 0) | (images[i, 1] != 0) | (images[i, 2] != 0)
-    listed = listed[:count].copy()
-    rows = np.empty((count, 3), dtype=images.dtype)
-    for k in range(count):
-        for a in range(3):
-            rows[k, a] = images[listed[k], a]
-    return listed, rows
-
-
-@njit(cache=True, error_model="numpy")
 def home_positions(positions, listed, images, cell, out):
     """out[i] = positions[i] - n_i @ cell: each atom at the image nearest its brick
     (``cell``: rows a, b, c), where n_i is ``images[k]`` for ``i = listed[k]`` and 0 for
@@ -419,6 +430,22 @@ def home_positions(positions, listed, images, cell, out):
         n0, n1, n2 = images[k, 0], images[k, 1], images[k, 2]
         for a in range(3):
             out[i, a] = positions[i, a] - (n0 * cell[0, a] + n1 * cell[1, a] + n2 * cell[2, a])
+
+
+@njit(cache=True, error_model="numpy")
+def predicted_positions(positions, velocities, forces, masses, dt, out):
+    """out = positions + dt v + dt^2 F / (2 m): where a velocity Verlet step of ``dt`` takes
+    each atom; without the dt^2 term when ``forces`` has no rows."""
+    half = 0.5 * dt * dt
+    with_forces = forces.shape[0] == positions.shape[0]
+    for i in range(positions.shape[0]):
+        kick = half / masses[i] if with_forces else 0.0
+        for a in range(3):
+            move = dt * velocities[i, a]
+            if with_forces:
+                move += kick * forces[i, a]
+            out[i, a] = positions[i, a] + move
+    return out
 
 
 @njit(cache=True, error_model="numpy")
@@ -546,17 +573,17 @@ __all__ = [
     "choose_grid",
     "fractional_coordinates",
     "grid_candidates",
-    "home_images",
+    "home_layout",
     "home_positions",
-    "nonzero_rows",
     "largest_grid",
     "local_periodic_axes",
     "leaving_along",
-    "merged_order",
     "moved_since",
     "near_faces",
     "nearest_copies",
     "pack_rows",
+    "predicted_positions",
+    "refill_plan",
+    "refill_rows",
     "table_rows",
-    "take_rows",
 ]

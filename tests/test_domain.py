@@ -11,15 +11,16 @@ from md.domain import (
     append_rows,
     brick_of,
     fractional_coordinates,
+    home_layout,
     home_positions,
     leaving_along,
     local_periodic_axes,
-    merged_order,
     moved_since,
     near_faces,
-    nonzero_rows,
+    predicted_positions,
+    refill_plan,
+    refill_rows,
     table_rows,
-    take_rows,
 )
 from md.state import State
 
@@ -56,25 +57,36 @@ def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape):
             assert len(up) > 0 and (p == 2 or len(down) > 0)
 
 
-def test_merged_order_and_take_rows_equal_a_sort_by_id():
-    rng = np.random.default_rng(1)
-    ids = np.sort(rng.choice(100_000, 3000, replace=False)).astype(np.int64)
-    gone = rng.random(len(ids)) < 0.1
-    arriving = rng.choice(np.setdiff1d(np.arange(100_000), ids), 400, replace=False)
-    order = merged_order(ids, gone, arriving.astype(np.int64))
-    old = rng.random((len(ids), 3))
-    incoming = rng.random((len(arriving), 3))
-    out = np.empty((len(order), 3))
-    take_rows(old, incoming, order, out)
-    # numpy: keep, append, sort by id
-    both_ids = np.concatenate([ids[~gone], arriving])
-    by_id = np.argsort(both_ids, kind="stable")
-    np.testing.assert_array_equal(out, np.concatenate([old[~gone], incoming])[by_id])
-    np.testing.assert_array_equal(np.diff(both_ids[by_id]) > 0, True)
-    # ids out of order: no order (the caller sorts)
-    shuffled = ids.copy()
-    shuffled[[5, 6]] = shuffled[[6, 5]]
-    assert merged_order(shuffled, np.zeros(len(ids), dtype=bool), arriving).size == 0
+@pytest.mark.parametrize(
+    ("n", "n_leaving", "m"),
+    [(3000, 300, 400), (3000, 400, 300), (3000, 300, 300), (3000, 0, 50), (3000, 50, 0),
+     (50, 50, 7), (50, 50, 0), (0, 0, 9), (10, 3, 0)],
+)  # fmt: skip
+def test_the_refill_plan_keeps_every_staying_and_arriving_atom_once_and_moves_few(n, n_leaving,
+                                                                                  m):  # fmt: skip
+    rng = np.random.default_rng(n + 7 * n_leaving + m)
+    ids = rng.permutation(100_000)[:n].astype(np.int64)
+    arriving = np.setdiff1d(np.arange(100_000, 101_000), ids)[:m]
+    leaving = np.sort(rng.choice(n, n_leaving, replace=False)).astype(np.int64)
+    size = n - n_leaving + m
+    values = np.zeros((max(n, size) + 5, 2))
+    values[:n, 0], values[:n, 1] = ids, ids * 0.5  # each row's data follows its id
+    before = values.copy()
+    incoming = np.stack([arriving, arriving * 0.5], axis=1).astype(np.float64)
+    sources, targets, arrivals = refill_plan(leaving, n, m)
+    refill_rows(values, sources, targets, incoming, arrivals)
+    kept = values[:size]
+    expected = np.concatenate([np.delete(ids, leaving), arriving])
+    np.testing.assert_array_equal(np.sort(kept[:, 0]), np.sort(expected))
+    np.testing.assert_array_equal(kept[:, 1], kept[:, 0] * 0.5)
+    # O(moved): only holes, the new end and the arrivals' rows are written
+    assert len(sources) <= n_leaving and len(arrivals) == m
+    untouched = np.setdiff1d(np.arange(size), np.concatenate([targets, arrivals]))
+    np.testing.assert_array_equal(kept[untouched], before[untouched])
+    # the same plan again: the same rows (a run on P ranks is deterministic)
+    again = refill_plan(leaving, n, m)
+    for a, b in zip(again, (sources, targets, arrivals), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_near_faces_and_the_sweep_rows_round_trip():
@@ -185,24 +197,61 @@ def test_local_periodic_axes_are_the_uncut_ones_whose_vector_stays_off_cut_axes(
         False, False, True]  # fmt: skip
 
 
-def test_home_positions_shift_exactly_the_atoms_with_an_image():
-    """nonzero_rows lists the atoms whose image is not 0 (and their images); home_positions
-    from that list equals positions - images @ cell for every atom, to the bit."""
+@pytest.mark.parametrize("pbc", [(True, True, True), (True, False, True)])
+def test_home_layout_puts_each_atom_at_the_image_nearest_the_brick(pbc):
+    """home_layout's one pass equals the definition: fractional coordinates, the image
+    nearest the brick centre, positions - images @ cell (to the bit: a plain copy where
+    the image is 0), the atoms with an image listed, and how far the farthest strays;
+    home_positions (the per-step copy) from that list gives the same positions."""
     rng = np.random.default_rng(3)
     n = 2000
-    positions = rng.uniform(-5.0, 15.0, (n, 3))
+    pbc = np.array(pbc)
+    box, tilt = np.array([10.0, 9.0, 8.0]), np.array([1.5, -0.5, 2.0])
+    tilt = np.where([pbc[1], pbc[2], pbc[2]], tilt, 0.0)  # as md.box.periodic_tilt
+    cell = cell_matrix(box, tilt)
+    bounds = np.array([[0.5, 0.0, 0.25], [1.0, 1.0, 0.75]])  # brick (1, 0, 1) of 2 x 1 x 2
+    center = bounds.mean(axis=0)
+    widths = np.array([10.0, 9.0, 8.0])
+    reach = np.minimum(0.6 * (bounds[1] - bounds[0]), 0.49)  # past the brick, within a cell
+    inside = center + rng.uniform(-1.0, 1.0, (n, 3)) * reach
     images = np.zeros((n, 3), dtype=np.int64)
     crossed = rng.choice(n, 40, replace=False)
     images[crossed] = rng.integers(-2, 3, (40, 3))
     images[crossed[0]] = (0, 0, 1)  # one axis alone
-    cell = cell_matrix(np.array([10.0, 9.0, 8.0]), np.array([1.5, -0.5, 2.0]))
-    listed, rows = nonzero_rows(images)
+    images[:, ~pbc] = 0
+    inside[:, ~pbc] = 0.5  # open axes: fraction 0.5 by definition
+    positions = (inside + images) @ cell
+    home, out = np.empty((n, 3)), np.empty((n, 3))
+    scratch = np.empty((n, 3), dtype=np.int64)
+    imaged, rows, strayed = home_layout(positions, box, tilt, pbc, cell, center, bounds,
+                                        widths, home, out, scratch)  # fmt: skip
+    fractions = np.empty((n, 3))
+    fractional_coordinates(positions, box, tilt, pbc, fractions)
+    found = np.where(pbc, np.floor(fractions - center + 0.5), 0.0).astype(np.int64)
+    np.testing.assert_array_equal(found, images)
     expected = np.flatnonzero(np.any(images != 0, axis=1))
-    assert np.array_equal(listed, expected) and np.array_equal(rows, images[expected])
-    out = np.empty_like(positions)
-    home_positions(positions, listed, rows, cell, out)
+    assert np.array_equal(imaged, expected) and np.array_equal(rows, images[expected])
+    np.testing.assert_array_equal(home, fractions - found)
     reference = positions - (images[:, :1] * cell[0] + images[:, 1:2] * cell[1]
                              + images[:, 2:] * cell[2])  # fmt: skip
-    assert np.array_equal(out[listed], reference[listed])
-    others = np.setdiff1d(np.arange(n), listed)
+    assert np.array_equal(out[imaged], reference[imaged])
+    others = np.setdiff1d(np.arange(n), imaged)
     assert np.array_equal(out[others], positions[others])
+    outside = np.maximum(np.maximum(bounds[0] - home, home - bounds[1]), 0.0) * widths
+    assert strayed == outside[:, pbc].max() and strayed > 0  # (open axes never stray)
+    again = np.empty_like(out)
+    home_positions(positions, imaged, rows, cell, again)
+    np.testing.assert_array_equal(again, out)
+
+
+def test_predicted_positions_take_a_velocity_verlet_step_of_the_free_motion():
+    """r + dt v + dt^2 F / (2 m); without forces r + dt v (to round-off of the formula)."""
+    rng = np.random.default_rng(5)
+    positions, velocities, forces = (rng.normal(size=(50, 3)) for _ in range(3))
+    masses = rng.uniform(0.5, 2.0, 50)
+    out = np.empty_like(positions)
+    predicted_positions(positions, velocities, forces, masses, 0.01, out)
+    expected = positions + 0.01 * velocities + 0.5 * 0.01**2 * forces / masses[:, None]
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-15)
+    predicted_positions(positions, velocities, np.empty((0, 3)), masses, 0.01, out)
+    np.testing.assert_allclose(out, positions + 0.01 * velocities, rtol=0, atol=1e-15)
