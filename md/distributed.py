@@ -95,6 +95,7 @@ from md.domain import (
     predicted_positions,
     refill_plan,
     refill_rows,
+    shift_rows,
     table_rows,
 )
 from md.errors import (
@@ -142,6 +143,7 @@ _MIN_PASS_ATOMS = 16_000
 _IDENTITY = np.eye(3)
 #: No positions: no step start before the last one is known.
 _NONE = np.empty((0, 3))
+_NO_ROWS = np.empty((0, 3))  # (never written: a copy into no rows)
 #: Stop requests as numbers, for the reduction that makes every rank see them.
 _STOPS = {"SIGINT": 1.0, "SIGTERM": 2.0}
 
@@ -656,16 +658,28 @@ class Domain:
         tilt = periodic_tilt(state.tilt, state.pbc)
         return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
 
-    def update(self, state: State) -> None:
-        """Write the owned positions into the local system and send the ghosts' (collective)."""
+    def owned_rows(self, state: State) -> NDArray[np.float64]:
+        """The local system's rows of ``state``'s owned atoms, to copy their positions into
+        (then :meth:`update` with ``copied``); no rows if the layout is not ``state``'s."""
+        if self.local_state is None or self.n_owned != state.n_atoms:
+            return _NO_ROWS
+        return self.local_state.positions[: self.n_owned]
+
+    def update(self, state: State, copied: bool = False) -> None:
+        """Write the owned positions into the local system (only the few at another image
+        if they were ``copied`` there already, see :meth:`owned_rows`) and send the ghosts'
+        (collective)."""
         tilt = periodic_tilt(state.tilt, state.pbc)
         cell = cell_matrix(state.box, tilt)
         if self.local_pbc.any():  # the cell the local system's own images follow
             self.local_state.box[:] = state.box
             self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
         positions = self.local_state.positions
-        home_positions(state.positions, self.imaged, self.images, cell,
-                       positions[: self.n_owned])  # fmt: skip
+        owned = positions[: self.n_owned]
+        if copied:
+            shift_rows(state.positions, self.imaged, self.images, cell, owned)
+        else:
+            home_positions(state.positions, self.imaged, self.images, cell, owned)
         for swap in self.swaps:
             shift = swap.shift * cell[swap.axis]
             target = positions[swap.offset : swap.offset + swap.count]
@@ -1035,16 +1049,19 @@ class DistributedForceField:
         if mapping is None and begin is None:
             chunks = chunk_count(state.n_atoms, _MIN_PASS_ATOMS)
             moved2 = largest_displacement2(state.positions, self.reference, chunks)
-            step2, coming2 = 0.0, moved2
+            step2, coming2, copied = 0.0, moved2, False
         else:
             before = self.step_before if begin is not None else _NONE
+            # the same pass writes the owned positions into the local system (not a message)
+            owned = self.domain.owned_rows(state)
             moved2, step2, coming2 = moved_since(state.positions, self.reference,
                                                  _IDENTITY if mapping is None else mapping,
                                                  state.positions if begin is None else begin,
-                                                 before)  # fmt: skip
+                                                 before, owned)  # fmt: skip
+            copied = len(owned) > 0
         self.timings["neighbor"] += time.perf_counter() - start  # the list's check
         with self.ranks.clock:
-            self.domain.update(state)
+            self.domain.update(state, copied)
         self._exchanged = _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)

@@ -425,6 +425,12 @@ def home_positions(positions, listed, images, cell, out):
     for i in range(positions.shape[0]):
         for a in range(3):
             out[i, a] = positions[i, a]
+    shift_rows(positions, listed, images, cell, out)
+
+
+@njit(cache=True, error_model="numpy")
+def shift_rows(positions, listed, images, cell, out):
+    """:func:`home_positions` for the listed atoms only (the others already copied)."""
     for k in range(listed.shape[0]):
         i = listed[k]
         n0, n1, n2 = images[k, 0], images[k, 1], images[k, 2]
@@ -467,11 +473,13 @@ def add_rows(values, indices, rows):
 
 
 @njit(cache=True, error_model="numpy")
-def moved_since(positions, reference, mapping, previous, before):
+def moved_since(positions, reference, mapping, previous, before, copy):
     """Return (largest squared distance of an atom from its build position carried along with
     the cell, ``reference[i] @ mapping``; largest squared move since ``previous``; the
     largest squared distance from the build position an atom may reach in its next move),
-    all inf if a position is not finite.
+    all inf if a position is not finite. With ``copy`` (as many rows as ``positions``,
+    else no rows), the positions are copied into it in the same pass (a decomposed run's
+    local system takes its owned positions so, with one read of them a step).
 
     The next move is taken as the last one, s = x - previous, give or take how much the
     last move differed from the one before, (previous - before): |d + s| + 1.5 |s - s'|
@@ -484,6 +492,7 @@ def moved_since(positions, reference, mapping, previous, before):
     coming = 0.0
     finite = True
     known = before.shape[0] == positions.shape[0]
+    copying = copy.shape[0] == positions.shape[0]
     for i in range(positions.shape[0]):
         d2 = 0.0
         s2 = 0.0
@@ -491,6 +500,8 @@ def moved_since(positions, reference, mapping, previous, before):
         e2 = 0.0
         for a in range(3):
             x = positions[i, a]
+            if copying:
+                copy[i, a] = x
             mapped = (reference[i, 0] * mapping[0, a] + reference[i, 1] * mapping[1, a]
                       + reference[i, 2] * mapping[2, a])  # fmt: skip
             d = x - mapped
@@ -585,5 +596,6 @@ __all__ = [
     "predicted_positions",
     "refill_plan",
     "refill_rows",
+    "shift_rows",
     "table_rows",
 ]

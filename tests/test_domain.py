@@ -145,23 +145,25 @@ def test_the_look_ahead_bounds_each_atoms_next_move():
         v += 0.5 * dt * f
         history.append(x.copy())
     reference = history[0]
+    none, copy = np.empty((0, 3)), np.empty((n, 3))
     for k in range(2, 39):
         now, previous, before = history[k], history[k - 1], history[k - 2]
-        d2, s2, c2 = moved_since(now, reference, np.eye(3), previous, before)
+        d2, s2, c2 = moved_since(now, reference, np.eye(3), previous, before, copy)
+        np.testing.assert_array_equal(copy, now)  # the positions copied in the same pass
         assert d2 == pytest.approx(np.max(np.sum((now - reference) ** 2, axis=1)))
         assert s2 == pytest.approx(np.max(np.sum((now - previous) ** 2, axis=1)))
         true_next = np.sqrt(np.max(np.sum((history[k + 1] - reference) ** 2, axis=1)))
         assert true_next <= np.sqrt(c2)
     # constant velocity: the next move is the last one, exactly
     steady = [reference + t * 0.01 * np.ones(3) for t in range(3)]
-    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], steady[0])
+    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], steady[0], none)
     assert np.sqrt(c2) == pytest.approx(0.03 * np.sqrt(3))
     # without the step before: half the last move as the margin
-    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], np.empty((0, 3)))
+    _, _, c2 = moved_since(steady[2], reference, np.eye(3), steady[1], none, none)
     assert np.sqrt(c2) == pytest.approx(0.035 * np.sqrt(3))
     broken = steady[2].copy()
     broken[3, 1] = np.nan
-    assert moved_since(broken, reference, np.eye(3), steady[1], steady[0]) == (np.inf,) * 3
+    assert moved_since(broken, reference, np.eye(3), steady[1], steady[0], none) == (np.inf,) * 3
 
 
 def test_an_adopted_state_shares_its_arrays():
