@@ -11,7 +11,8 @@ Keys: ``engine`` (``ours``, ``lammps``, ``openmm``, ``asap3``, ``ase``,
 ``steps``, ``threads``; for LAMMPS ``variant`` (``plain``, ``opt``, ``omp``)
 and ``neigh`` (``check``, ``every20``); for GROMACS ``gmx`` (the binary),
 ``rlist`` (sigma, or null for GROMACS's own buffer) and ``pin``; for ours
-``h5md_every`` and ``h5md_dir`` (attach an H5MD writer). The workload is that
+``variant`` (``""``, or ``mixed`` for mixed precision), ``h5md_every`` and
+``h5md_dir`` (attach an H5MD writer). The workload is that
 of ``lj_melt.py`` (LAMMPS's bench/in.lj). Every engine but LAMMPS starts from our own initial state
 (fcc positions, Gaussian velocities of the same seed), converted to its units:
 
@@ -99,14 +100,15 @@ def _set_our_threads(threads: int) -> int:
     return parallel.get_threads()
 
 
-def _our_simulation(cells: int):
+def _our_simulation(cells: int, precision: str = "double"):
     import md
     from integrators import VelocityVerlet
     from potentials import LennardJones
 
     state = initial_state(cells)
     potential = LennardJones(epsilon=1.0, sigma=1.0, cutoff=CUTOFF, cutoff_mode="none")
-    return md.Simulation(state, [potential], VelocityVerlet(dt=DT), skin=SKIN)
+    return md.Simulation(state, [potential], VelocityVerlet(dt=DT), skin=SKIN,
+                         precision=precision)  # fmt: skip
 
 
 #: The environment variables that set how waiting OpenMP threads wait.
@@ -131,12 +133,13 @@ def run_ours(job: dict) -> dict:
     if h5md_every:
         from md.trajectory import H5MDWriter
     threads = _set_our_threads(int(job.get("threads", 1)))
-    warm = _our_simulation(WARMUP_CELLS)
+    precision = job.get("variant") or "double"  # "mixed": Simulation(precision="mixed")
+    warm = _our_simulation(WARMUP_CELLS, precision)
     warm.run(WARMUP_STEPS)
     del warm
     baseline = rss_kib()
 
-    sim = _our_simulation(job["cells"])
+    sim = _our_simulation(job["cells"], precision)
     energy = sim.thermo()["potential_energy"] / sim.state.n_atoms
     writer = None
     if h5md_every:
@@ -163,6 +166,7 @@ def run_ours(job: dict) -> dict:
         threading_layer=_threading_layer(numba),
         wait_policy={k: os.environ[k] for k in WAIT_VARIABLES if k in os.environ},
         potential_energy=energy,
+        precision=precision,
         baseline_kib=baseline,
         peak_kib=peak_kib(),
     )

