@@ -78,6 +78,12 @@ class MDCalculator(Calculator):
         number of atoms, their types, the cell or ``pbc`` changed. The
         default 0.5 suits argon-like liquids and solids under ASE's
         integrators (benchmarks/ase_calculator.py).
+    precision : {"double", "mixed"}
+        ``"mixed"`` runs the pair terms of the pair-kernel frame in float32
+        (positions, separations' squares taken in double, and every sum kept
+        in double), as ``[run] precision = "mixed"`` does: forces agree with
+        double ones to float32 round-off (about 1e-7 relative). Bonded terms
+        and the per-atom stresses stay double.
     sort_atoms : bool or "auto"
         Hold the atoms internally in spatial order (re-sorted whenever the
         neighbour list is rebuilt), which keeps each atom's neighbours close
@@ -144,6 +150,7 @@ class MDCalculator(Calculator):
         types_from: str = "numbers",
         skin: float = 0.5,
         sort_atoms: bool | str = "auto",
+        precision: str = "double",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -166,7 +173,7 @@ class MDCalculator(Calculator):
                     "type_names (the chemical symbol of each type, in parameter order), "
                     "or types_from='tags'"
                 )
-        self.forcefield = ForceField(self.potentials, skin=skin)
+        self.forcefield = ForceField(self.potentials, skin=skin, precision=precision)
         # Bonded terms name atoms by index: no reordering, no internal supercell.
         self._indexed = [type(p).__name__ for p in self.potentials if p.cutoff is None]
         self._state: State | None = None

@@ -514,3 +514,25 @@ def test_bonded_terms_keep_atom_indices():
     small.calc = MDCalculator([lj, HarmonicBonds([[0, 1]], k=0.5, r0=3.0)])
     with pytest.raises(ValueError, match="cannot replicate"):
         small.get_forces()
+
+
+def test_mixed_precision_forces_equal_double_ones_to_float32_round_off():
+    """precision="mixed" reaches the pair frame: forces, energy and stress within float32
+    round-off of double's, and not equal to them (the float32 path really ran)."""
+    atoms = argon(cells=4, rattle=0.1)
+    atoms.calc = ours()
+    forces, energy, stress = (atoms.get_forces(), atoms.get_potential_energy(),
+                              atoms.get_stress())  # fmt: skip
+    mixed = atoms.copy()
+    mixed.calc = ours(precision="mixed")
+    scale = np.abs(forces).max()
+    gap = np.abs(mixed.get_forces() - forces).max() / scale
+    assert 0 < gap < 1e-5, gap
+    assert mixed.get_potential_energy() == pytest.approx(energy, rel=1e-6)
+    np.testing.assert_allclose(mixed.get_stress(), stress, rtol=0, atol=1e-6 * np.abs(stress).max())
+    assert mixed.calc.forcefield.precision == "mixed"
+
+
+def test_an_unknown_precision_is_refused_naming_it():
+    with pytest.raises(ValueError, match="half"):
+        ours(precision="half")
