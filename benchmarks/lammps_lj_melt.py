@@ -67,12 +67,14 @@ def parse_log(text: str) -> dict:
     )
     if loop is None:
         raise RuntimeError("no 'Loop time' line in the LAMMPS log")
-    sections = {}
+    sections, least = {}, {}
     for line in text.splitlines():
         parts = [p.strip() for p in line.split("|")]
         if len(parts) >= 3 and parts[0] in _SECTIONS:
             # "min | avg | max | %varavg | %total"; Other has only the average.
             sections[parts[0]] = float(parts[2])
+            if parts[1]:
+                least[parts[0]] = float(parts[1])
     builds = re.search(r"Neighbor list builds = (\d+)", text)
     dangerous = re.search(r"Dangerous builds = (\d+)", text)
     return {
@@ -81,6 +83,7 @@ def parse_log(text: str) -> dict:
         "n_steps": int(loop.group(3)),
         "n_atoms": int(loop.group(4)),
         "sections": sections,
+        "sections_min": least,  # the least time a rank spent in each (one rank: the same)
         "n_builds": int(builds.group(1)) if builds else None,
         "n_dangerous": int(dangerous.group(1)) if dangerous else None,
     }
