@@ -10,7 +10,10 @@ itself with and without its unshifted-row gather (``SlotFrame.shifted``: the
 same potential given a list whose frame has every row marked shifted). Each
 row: median time, per listed pair, and the median of per-repeat ratios to the
 full replica. A variant without a part computes wrong forces: it only shows
-what the part costs.
+what the part costs. Two more rows time the replica in float32 throughout (slot
+positions, shifts, gathered partners, arithmetic, pair forces; the scatter into a
+float32 or a double buffer): what a float32 slot frame could gain at most, with
+its force error against double printed.
 
     python benchmarks/frame_breakdown.py                  # 32000 atoms, 1 thread, 41 repeats
     python benchmarks/frame_breakdown.py --cells 50 --repeats 11 --threads 2
@@ -111,6 +114,82 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
     return loop
 
 
+F32 = np.float32
+
+
+def replica32(double_buffer: bool):
+    """The replica (all parts) in float32 throughout: slot positions, shifts, the
+    gathered partners, the pair arithmetic and the pair forces (a float32 slot frame,
+    the plan of stop 48's note: positions kept relative to their cell, so that float32
+    keeps its precision in any box; here plain float32 positions, which at 33 sigma
+    only the timing needs). ``double_buffer``: the forces are scattered into a double
+    buffer (a conversion per partner) rather than a float32 one. Energy per row in
+    float32, summed in double."""
+
+    @njit(fastmath=VECTOR_MATH, error_model="numpy")
+    def loop(frame, shifts, starts, neighbors, codes, shifted, buffer, rc2, c6, c12, far):
+        n = frame.shape[0]
+        for p in range(n):
+            buffer[p, 0] = 0.0
+            buffer[p, 1] = 0.0
+            buffer[p, 2] = 0.0
+        most = LANES * 2
+        for p in range(n):
+            most = max(most, starts[p + 1] - starts[p] + LANES * 2)
+        gx, gy, gz = np.zeros(most, F32), np.zeros(most, F32), np.zeros(most, F32)
+        sfx, sfy, sfz = np.zeros(most, F32), np.zeros(most, F32), np.zeros(most, F32)
+        energy = 0.0
+        one, zero, twelve, six = F32(1.0), F32(0.0), F32(12.0), F32(6.0)
+        for p in range(n):
+            xi, yi, zi = frame[p, 0], frame[p, 1], frame[p, 2]
+            partners = neighbors[starts[p] : starts[p + 1]]
+            m = partners.shape[0]
+            if shifted[p]:
+                _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]],
+                                 gx, gy, gz)  # fmt: skip
+            else:
+                _gather_unshifted(frame, partners, gx, gy, gz)
+            padded = (m + (2 * LANES - 1)) & ~(2 * LANES - 1) if m > 0 else 0
+            for k in range(m, padded):
+                gx[k] = xi + far
+                gy[k] = yi
+                gz[k] = zi
+            row = zero
+            for k in range(padded):
+                dx = xi - gx[k]
+                dy = yi - gy[k]
+                dz = zi - gz[k]
+                r2 = dx * dx + dy * dy + dz * dz
+                inside = one if r2 < rc2 else zero
+                inv_r2 = one / r2
+                inv_r6 = inv_r2 * inv_r2 * inv_r2
+                a = c12 * inv_r6 * inv_r6
+                b = c6 * inv_r6
+                u, fr = a - b, (twelve * a - six * b) * inv_r2
+                row += u * inside
+                fr *= inside
+                sfx[k] = fr * dx
+                sfy[k] = fr * dy
+                sfz[k] = fr * dz
+            energy += row
+            fxi = fyi = fzi = zero
+            for k in range(m):
+                fxi += sfx[k]
+                fyi += sfy[k]
+                fzi += sfz[k]
+            buffer[p, 0] += fxi
+            buffer[p, 1] += fyi
+            buffer[p, 2] += fzi
+            for k in range(m):
+                q = np.uint32(partners[k])
+                buffer[q, 0] -= sfx[k]
+                buffer[q, 1] -= sfy[k]
+                buffer[q, 2] -= sfz[k]
+        return energy
+
+    return loop
+
+
 class EveryRowShifted:
     """A neighbour list seen with every row of its frame marked shifted: the pair frame
     then gathers every row with its codes and shifts, as it did before the flags."""
@@ -157,6 +236,7 @@ def main(argv=None) -> None:
     inputs = (slot_positions, frame.shifts, frame.starts, frame.neighbors, frame.codes,
               frame.shifted, buffer, 6.25, 4.0, 4.0, 2.51)  # fmt: skip
     loops = {name: replica(*parts) for name, parts in VARIANTS.items()}
+    variant_inputs = {}
     energy = loops["replica (all parts)"](*inputs)
     forces = np.empty_like(buffer)
     forces[frame.order] = buffer
@@ -164,12 +244,31 @@ def main(argv=None) -> None:
     if args.threads > 1 or not same:
         print(f"replica against the frame: {'same bits' if same else 'DIFFERENT'} "
               f"({args.threads} thread(s): the replica runs one chunk)")  # fmt: skip
-    for loop in loops.values():
-        loop(*inputs)  # compile
+    # The float32 replicas (a float32 slot frame's loop): same list, float32 inputs.
+    single = (slot_positions.astype(F32), frame.shifts.astype(F32), frame.starts,
+              frame.neighbors, frame.codes, frame.shifted)  # fmt: skip
+    constants = (F32(6.25), F32(4.0), F32(4.0), F32(2.51))
+    for name, wide in (("float32 replica, float32 buffer", False),
+                       ("float32 replica, double buffer", True)):  # fmt: skip
+        out = np.zeros(buffer.shape, np.float64 if wide else F32)
+        loop32 = replica32(wide)
+        loops[name] = loop32
+        inputs32 = (*single, out, *constants)
+        energy32 = loop32(*inputs32)
+        forces32 = np.empty(buffer.shape)
+        forces32[frame.order] = out
+        gap = np.abs(forces32 - reference.forces).max() / np.abs(reference.forces).max()
+        print(f"{name}: energy {energy32:.8g} (double {reference.energy:.8g}), max |F32 - F| "
+              f"/ max |F| = {gap:.1e}")  # fmt: skip
+        variant_inputs[name] = inputs32
+    for name, loop in loops.items():
+        loop(*variant_inputs.get(name, inputs))  # compile
     call(every_row)
     timed = {"frame LJ": lambda: call(neighbors),
              "frame LJ, every row shifted": lambda: call(every_row)}  # fmt: skip
-    timed.update({name: (lambda loop=loop: loop(*inputs)) for name, loop in loops.items()})
+    for name, loop in loops.items():
+        arguments = variant_inputs.get(name, inputs)
+        timed[name] = lambda loop=loop, arguments=arguments: loop(*arguments)
     times = {name: [] for name in timed}
     for _ in range(args.repeats):
         for name, run in timed.items():
