@@ -257,3 +257,91 @@ def test_predicted_positions_take_a_velocity_verlet_step_of_the_free_motion():
     np.testing.assert_allclose(out, expected, rtol=0, atol=1e-15)
     predicted_positions(positions, velocities, np.empty((0, 3)), masses, 0.01, out)
     np.testing.assert_allclose(out, positions + 0.01 * velocities, rtol=0, atol=1e-15)
+
+
+class Loopback:
+    """Rank 0 of a 2 x 1 x 1 grid, its neighbour played by the test: every row exchange
+    returns the next of ``answers`` and keeps what was sent; reductions are identities."""
+
+    rank, n_ranks = 0, 2
+
+    def __init__(self, answers) -> None:
+        from md.distributed import CommClock
+
+        self.answers, self.sent, self.clock = list(answers), [], CommClock()
+
+    def exchange_rows(self, rows, dest, source, tag):
+        self.sent.append(np.array(rows))
+        return self.answers.pop(0)
+
+    def sum(self, values):
+        return values
+
+    def max(self, values):
+        return values
+
+
+def atoms(ids, x_low, x_high, seed):
+    """Atoms ``ids`` with x in [x_low, x_high) of a 10^3 box, velocities and the extra
+    per-atom column following the id (so that every row can be checked)."""
+    rng = np.random.default_rng(seed)
+    ids = np.asarray(ids, dtype=np.int64)
+    positions = np.column_stack([rng.uniform(x_low, x_high, len(ids)),
+                                 rng.uniform(0, 10, (len(ids), 2))])  # fmt: skip
+    state = State(positions=positions, velocities=np.outer(ids, [1.0, 2.0, 3.0]),
+                  masses=1.0 + ids, box=np.full(3, 10.0), pbc=np.ones(3, bool),
+                  types=ids % 2, type_names=("A", "B"))  # fmt: skip
+    state.ids = ids
+    return state, {"extra": ids * 0.5}
+
+
+def test_migration_keeps_every_atom_once_in_place_and_grows_past_its_room():
+    """Domain.migrate on a loopback neighbour: leavers are sent (all of their columns),
+    arrivals kept, every row's data still its atom's; a second migration changes the
+    same memory (the state's arrays are views of the Domain's); many arrivals grow it."""
+    from md.distributed import Domain, _packed
+    from md.domain import Grid
+
+    state, carried = atoms(range(200), 0.0, 5.0, 1)
+    state.positions[:30, 0] += 5.0  # 30 atoms now in the other brick: they leave
+    newcomers, extra = atoms(range(1000, 1040), 0.5, 4.5, 2)
+    arriving = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
+                        newcomers.types, newcomers.ids, extra["extra"]], np.arange(40))  # fmt: skip
+    nothing = np.empty((0, arriving.shape[1]))
+    ranks = Loopback([arriving, nothing] * 3)
+    domain = Domain(ranks, Grid((2, 1, 1)))
+    domain.reserve(state, {})
+
+    def check(state, carried, expected):
+        assert sorted(state.ids.tolist()) == sorted(expected)
+        np.testing.assert_array_equal(state.velocities, np.outer(state.ids, [1.0, 2.0, 3.0]))
+        np.testing.assert_array_equal(state.masses, 1.0 + state.ids)
+        np.testing.assert_array_equal(state.types, state.ids % 2)
+        np.testing.assert_array_equal(carried["extra"], state.ids * 0.5)
+        assert np.all(state.positions[:, 0] < 5.0)
+
+    carried = domain.migrate(state, carried)
+    sent = np.concatenate(ranks.sent[:2])
+    assert sorted(sent[:, 8].astype(int).tolist()) == list(range(30))  # ids column
+    check(state, carried, [*range(30, 200), *range(1000, 1040)])
+    before = state.positions
+    # a second sweep: 5 leave, 20 more arrive (ids 2000...), in the same memory
+    state.positions[:5, 0] += 5.0
+    gone = state.ids[:5].tolist()
+    newcomers, extra = atoms(range(2000, 2020), 0.5, 4.5, 3)
+    ranks.answers[0] = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
+                                newcomers.types, newcomers.ids, extra["extra"]],
+                               np.arange(20))  # fmt: skip
+    expected = sorted(set(state.ids.tolist()) - set(gone)) + list(range(2000, 2020))
+    carried = domain.migrate(state, carried)
+    check(state, carried, expected)
+    assert np.shares_memory(state.positions, before)  # in place: 225 rows of 241 kept
+    # 300 arrivals: past the eighth of room kept, the arrays grow and keep every atom
+    newcomers, extra = atoms(range(5000, 5300), 0.5, 4.5, 4)
+    ranks.answers[0] = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
+                                newcomers.types, newcomers.ids, extra["extra"]],
+                               np.arange(300))  # fmt: skip
+    expected = state.ids.tolist() + list(range(5000, 5300))
+    carried = domain.migrate(state, carried)
+    check(state, carried, expected)
+    assert not np.shares_memory(state.positions, before)
