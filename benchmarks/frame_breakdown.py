@@ -44,8 +44,20 @@ VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
 LANES = 4
 
 
-def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
-    """The frame's chunk loop for one chunk, with the named parts kept."""
+F32 = np.float32
+
+
+def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool, real=np.float64):
+    """The frame's chunk loop for one chunk, with the named parts kept.
+
+    ``real`` np.float32: the loop in float32 throughout (slot positions, shifts,
+    gathered partners, arithmetic, pair forces, padded to eight lanes; the energy
+    summed per row in float32, then in double): a float32 slot frame's loop (the
+    plan of stop 48's note keeps positions relative to their cell, so that float32
+    keeps its precision in any box; plain float32 positions serve the timing). The
+    force buffer passed in is float32 or double (then a conversion per partner)."""
+    lanes = LANES if real is np.float64 else 2 * LANES
+    per_row = real is not np.float64  # double: the energy summed per pair, as the frame
 
     @njit(fastmath=VECTOR_MATH, error_model="numpy")
     def loop(frame, shifts, starts, neighbors, codes, shifted, buffer, rc2, c6, c12, far):
@@ -54,11 +66,12 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
             buffer[p, 0] = 0.0
             buffer[p, 1] = 0.0
             buffer[p, 2] = 0.0
-        most = LANES
+        most = lanes
         for p in range(n):
-            most = max(most, starts[p + 1] - starts[p] + LANES)
-        gx, gy, gz = np.zeros(most), np.zeros(most), np.zeros(most)
-        sfx, sfy, sfz = np.zeros(most), np.zeros(most), np.zeros(most)
+            most = max(most, starts[p + 1] - starts[p] + lanes)
+        gx, gy, gz = np.zeros(most, real), np.zeros(most, real), np.zeros(most, real)
+        sfx, sfy, sfz = np.zeros(most, real), np.zeros(most, real), np.zeros(most, real)
+        one, zero, twelve, six = real(1.0), real(0.0), real(12.0), real(6.0)
         energy = 0.0
         for p in range(n):
             xi, yi, zi = frame[p, 0], frame[p, 1], frame[p, 2]
@@ -70,32 +83,38 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
                                      gx, gy, gz)  # fmt: skip
                 else:
                     _gather_unshifted(frame, partners, gx, gy, gz)
-            padded = (m + (LANES - 1)) & ~(LANES - 1) if m > 0 else 0
+            padded = (m + (lanes - 1)) & ~(lanes - 1) if m > 0 else 0
             for k in range(m, padded):
                 gx[k] = xi + far
                 gy[k] = yi
                 gz[k] = zi
+            row = zero
             for k in range(padded):
                 dx = xi - gx[k]
                 dy = yi - gy[k]
                 dz = zi - gz[k]
                 r2 = dx * dx + dy * dy + dz * dz
-                inside = 1.0 if r2 < rc2 else 0.0
+                inside = one if r2 < rc2 else zero
                 if arithmetic:
-                    inv_r2 = 1.0 / r2
+                    inv_r2 = one / r2
                     inv_r6 = inv_r2 * inv_r2 * inv_r2
                     a = c12 * inv_r6 * inv_r6
                     b = c6 * inv_r6
-                    u, fr = a - b, (12.0 * a - 6.0 * b) * inv_r2
+                    u, fr = a - b, (twelve * a - six * b) * inv_r2
                 else:
                     u, fr = r2, c6
-                energy += u * inside
+                if per_row:
+                    row += u * inside
+                else:
+                    energy += u * inside
                 fr *= inside
                 sfx[k] = fr * dx
                 sfy[k] = fr * dy
                 sfz[k] = fr * dz
+            if per_row:
+                energy += row
             if row_sum:
-                fxi = fyi = fzi = 0.0
+                fxi = fyi = fzi = zero
                 for k in range(m):
                     fxi += sfx[k]
                     fyi += sfy[k]
@@ -109,82 +128,6 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool):
                     buffer[q, 0] -= sfx[k]
                     buffer[q, 1] -= sfy[k]
                     buffer[q, 2] -= sfz[k]
-        return energy
-
-    return loop
-
-
-F32 = np.float32
-
-
-def replica32(double_buffer: bool):
-    """The replica (all parts) in float32 throughout: slot positions, shifts, the
-    gathered partners, the pair arithmetic and the pair forces (a float32 slot frame,
-    the plan of stop 48's note: positions kept relative to their cell, so that float32
-    keeps its precision in any box; here plain float32 positions, which at 33 sigma
-    only the timing needs). ``double_buffer``: the forces are scattered into a double
-    buffer (a conversion per partner) rather than a float32 one. Energy per row in
-    float32, summed in double."""
-
-    @njit(fastmath=VECTOR_MATH, error_model="numpy")
-    def loop(frame, shifts, starts, neighbors, codes, shifted, buffer, rc2, c6, c12, far):
-        n = frame.shape[0]
-        for p in range(n):
-            buffer[p, 0] = 0.0
-            buffer[p, 1] = 0.0
-            buffer[p, 2] = 0.0
-        most = LANES * 2
-        for p in range(n):
-            most = max(most, starts[p + 1] - starts[p] + LANES * 2)
-        gx, gy, gz = np.zeros(most, F32), np.zeros(most, F32), np.zeros(most, F32)
-        sfx, sfy, sfz = np.zeros(most, F32), np.zeros(most, F32), np.zeros(most, F32)
-        energy = 0.0
-        one, zero, twelve, six = F32(1.0), F32(0.0), F32(12.0), F32(6.0)
-        for p in range(n):
-            xi, yi, zi = frame[p, 0], frame[p, 1], frame[p, 2]
-            partners = neighbors[starts[p] : starts[p + 1]]
-            m = partners.shape[0]
-            if shifted[p]:
-                _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]],
-                                 gx, gy, gz)  # fmt: skip
-            else:
-                _gather_unshifted(frame, partners, gx, gy, gz)
-            padded = (m + (2 * LANES - 1)) & ~(2 * LANES - 1) if m > 0 else 0
-            for k in range(m, padded):
-                gx[k] = xi + far
-                gy[k] = yi
-                gz[k] = zi
-            row = zero
-            for k in range(padded):
-                dx = xi - gx[k]
-                dy = yi - gy[k]
-                dz = zi - gz[k]
-                r2 = dx * dx + dy * dy + dz * dz
-                inside = one if r2 < rc2 else zero
-                inv_r2 = one / r2
-                inv_r6 = inv_r2 * inv_r2 * inv_r2
-                a = c12 * inv_r6 * inv_r6
-                b = c6 * inv_r6
-                u, fr = a - b, (twelve * a - six * b) * inv_r2
-                row += u * inside
-                fr *= inside
-                sfx[k] = fr * dx
-                sfy[k] = fr * dy
-                sfz[k] = fr * dz
-            energy += row
-            fxi = fyi = fzi = zero
-            for k in range(m):
-                fxi += sfx[k]
-                fyi += sfy[k]
-                fzi += sfz[k]
-            buffer[p, 0] += fxi
-            buffer[p, 1] += fyi
-            buffer[p, 2] += fzi
-            for k in range(m):
-                q = np.uint32(partners[k])
-                buffer[q, 0] -= sfx[k]
-                buffer[q, 1] -= sfy[k]
-                buffer[q, 2] -= sfz[k]
         return energy
 
     return loop
@@ -251,7 +194,7 @@ def main(argv=None) -> None:
     for name, wide in (("float32 replica, float32 buffer", False),
                        ("float32 replica, double buffer", True)):  # fmt: skip
         out = np.zeros(buffer.shape, np.float64 if wide else F32)
-        loop32 = replica32(wide)
+        loop32 = replica(True, True, True, True, real=F32)
         loops[name] = loop32
         inputs32 = (*single, out, *constants)
         energy32 = loop32(*inputs32)
