@@ -15,9 +15,6 @@ Peers (``pip install -e '.[bench]'``; a missing one is skipped with a note):
   delay 0 check yes`` (our rule: rebuild when an atom moved skin/2, checked
   every step); ``--lammps-original`` adds the original ``every 20 check no``.
 
-``--mixed`` adds our engine in mixed precision (``[run] precision = "mixed"``) at
-each thread count, and a column of its ratios to every peer (GROMACS mixed is
-its like-for-like peer).
 - ``lammps-opt``: the OPT package's ``lj/cut/opt`` (1 thread).
 - ``lammps-omp``: the OPENMP package (``-sf omp -pk omp N``), N = each
   ``--threads`` value.
@@ -36,6 +33,10 @@ its like-for-like peer).
   (``--gmx-rlist 2.8`` fixes the list radius instead); timed by md.log's wall
   time (``gromacs_lj_melt.py``). The binaries: ``--gmx``/``--gmx-d``, else
   ``$GMX``/``$GMX_D``, else ``gmx``/``gmx_d`` on the PATH.
+
+``--mixed`` adds our engine in mixed precision (``[run] precision = "mixed"``) at
+each thread count, and a column of its ratios to every peer (GROMACS mixed is
+its like-for-like peer).
 
 Every run is a fresh child process (``_compare_worker.py``), so its peak
 memory is its own; repeats are interleaved round-robin over the engines, so
@@ -394,7 +395,6 @@ def ratio_to_ours(item: Measured, measured: Sequence[Measured],
         return None
     ours = find(measured, engine="ours", threads=item.job.threads, n_atoms=item.n_atoms,
                 variant=variant, h5md_every=0)  # fmt: skip
-    ours = ours if ours is not None and not ours.job.h5md_every else None
     return None if ours is None else ours.median / item.median
 
 

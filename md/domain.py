@@ -206,16 +206,23 @@ def grid_candidates(n: int) -> list[tuple[int, int, int]]:
 # ------------------------------------------------------------------- kernels
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _cell_fractions(positions, i, box, tilt, pbc):
+    """Atom i's coordinates along the cell vectors, (sx, sy, sz); 0.5 along open axes."""
+    sz = positions[i, 2] / box[2] if pbc[2] else 0.5
+    sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
+    x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
+    sx = x / box[0] if pbc[0] else 0.5
+    return sx, sy, sz
+
+
 @njit(cache=True, error_model="numpy")
 def fractional_coordinates(positions, box, tilt, pbc, out):
     """Write each position's coordinates along the cell vectors (``s`` with ``r = s @ cell``)
     into ``out`` (N, 3); 0.5 along open axes, which are never cut. ``tilt`` is zero where
     an axis it couples is open (``md.box.periodic_tilt``)."""
     for i in range(positions.shape[0]):
-        sz = positions[i, 2] / box[2] if pbc[2] else 0.5
-        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
-        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
-        sx = x / box[0] if pbc[0] else 0.5
+        sx, sy, sz = _cell_fractions(positions, i, box, tilt, pbc)
         out[i, 0] = sx
         out[i, 1] = sy
         out[i, 2] = sz
@@ -249,10 +256,7 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
     count = 0
     imaged = np.empty(positions.shape[0], dtype=np.int64)
     for i in range(positions.shape[0]):
-        sz = positions[i, 2] / box[2] if pbc[2] else 0.5
-        sy = (positions[i, 1] - sz * tilt[2]) / box[1] if pbc[1] else 0.5
-        x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
-        sx = x / box[0] if pbc[0] else 0.5
+        sx, sy, sz = _cell_fractions(positions, i, box, tilt, pbc)
         kx = np.floor(sx - center[0] + 0.5) if pbc[0] else 0.0
         ky = np.floor(sy - center[1] + 0.5) if pbc[1] else 0.0
         kz = np.floor(sz - center[2] + 0.5) if pbc[2] else 0.0

@@ -1228,6 +1228,8 @@ def while_written(path: Path, read, settle: float = 0.1, patience: float = 5.0):
         try:
             return read()
         except TrajectoryError:
+            if before is None:  # no file: nothing is writing it
+                raise
             time.sleep(settle)
             if _file_signature(path) == before or time.monotonic() > deadline:
                 raise
