@@ -1,0 +1,400 @@
+"""Would GROMACS's cluster-pair layout make our Lennard-Jones force call faster?
+
+An experiment, not a part of the engine: the 32000-atom melt's LJ forces
+(cutoff 2.5, list radius 2.8, single type, no virial) computed over a list of
+cluster pairs, the layout of GROMACS's nbnxm kernels, and timed against the pair
+frame's force call (``LennardJones.energy_forces`` over the slot frame) in
+interleaved repeats, double and float32.
+
+The clusters: columns of the xy plane about (4 / density)^(1/3) wide, each
+sorted by z and cut into clusters of four atoms (the last one padded with
+fillers, far away and apart); positions stored relative to the cluster's
+centre, so float32 keeps its precision in any box. The list: for each cluster
+the clusters (itself included, a periodic image as a separate entry) whose
+bounding boxes come within the list radius, each pair once, with its offset
+(difference of the two centres less the image shift) rounded to the kernel's
+precision. Two kernels, both vectorised by LLVM from plain loops:
+
+``flat``
+    The 4x4 atom pairs of a cluster pair as one loop of 16 lanes (i's
+    coordinates stored broadcast and j's replicated, so both are contiguous
+    loads); the i forces summed per lane in scratch, the j forces per lane into
+    a replicated buffer, both reduced per atom at the end.
+``j buffer``
+    Per i-cluster, the j-clusters' shifted positions copied into contiguous
+    scratch (four at a time), then one vectorised loop per i atom over all of
+    them, its force a register reduction; the j forces scattered back per
+    cluster. ``pair loop only`` times that loop without the copy and the
+    scatter: what the layout gives if those cost nothing.
+
+Each row: median ms, the median of per-repeat ratios to the frame's double call,
+and the largest force difference from it. The list evaluates every atom pair of
+every listed cluster pair; the line above the table gives how many that is per
+pair of the frame's list.
+
+    python benchmarks/cluster_pairs.py                 # 32000 atoms, 31 repeats
+    python benchmarks/cluster_pairs.py --cells 12 --repeats 11
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
+
+from _machine import machine_line  # noqa: E402
+
+import md  # noqa: E402
+from md.parallel import set_threads  # noqa: E402
+from potentials import LennardJones  # noqa: E402
+
+VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
+M = 4  # atoms per cluster
+LANES = M * M  # atom pairs per cluster pair
+PAD = 16  # the j buffer's rows padded to whole vector iterations (8 float32 lanes, unrolled 2)
+PAD_AT = 10.0  # padding lanes' coordinates: past the cutoff from any i atom (within 2 of 0)
+#: A filler's z relative to its cluster's centre: -FILLER where it is a j atom, +FILLER as an
+#: i atom (so no two fillers meet), 10 apart in x within a cluster. Not farther: float32's
+#: 1/r^12 underflows into slow denormals past r ~ 1400.
+FILLER = 100.0
+
+
+@njit(cache=True)
+def cluster_grid(positions, box, density):
+    """Columns, clusters and their atoms; returns (ncx, ncy, first cluster per column,
+    atom per cluster slot (-1: filler), centres, bounding boxes (lo, hi), relative
+    positions (clusters, 3, M))."""
+    n = positions.shape[0]
+    side = (M / density) ** (1.0 / 3.0)
+    ncx = max(1, int(box[0] / side))
+    ncy = max(1, int(box[1] / side))
+    wrapped = np.empty((n, 3))
+    column = np.empty(n, np.int64)
+    counts = np.zeros(ncx * ncy + 1, np.int64)
+    for i in range(n):
+        for d in range(3):
+            wrapped[i, d] = positions[i, d] % box[d]
+        cx = min(int(wrapped[i, 0] * ncx / box[0]), ncx - 1)
+        cy = min(int(wrapped[i, 1] * ncy / box[1]), ncy - 1)
+        column[i] = cx * ncy + cy
+        counts[column[i] + 1] += 1
+    starts = np.cumsum(counts)
+    fill = starts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[column[i]]] = i
+        fill[column[i]] += 1
+    n_columns = ncx * ncy
+    first = np.zeros(n_columns + 1, np.int64)
+    for c in range(n_columns):
+        first[c + 1] = first[c] + (starts[c + 1] - starts[c] + M - 1) // M
+    n_clusters = first[n_columns]
+    atom = np.full(n_clusters * M, -1, np.int64)
+    for c in range(n_columns):
+        members = order[starts[c] : starts[c + 1]]
+        by_z = members[np.argsort(wrapped[members, 2])]
+        atom[first[c] * M : first[c] * M + by_z.shape[0]] = by_z
+    centre = np.zeros((n_clusters, 3))
+    bounds = np.zeros((n_clusters, 6))
+    relative = np.zeros((n_clusters, 3, M))
+    for cl in range(n_clusters):
+        for d in range(3):
+            bounds[cl, d] = np.inf
+            bounds[cl, 3 + d] = -np.inf
+        for b in range(M):
+            i = atom[cl * M + b]
+            if i >= 0:
+                for d in range(3):
+                    bounds[cl, d] = min(bounds[cl, d], wrapped[i, d])
+                    bounds[cl, 3 + d] = max(bounds[cl, 3 + d], wrapped[i, d])
+        for d in range(3):
+            centre[cl, d] = 0.5 * (bounds[cl, d] + bounds[cl, 3 + d])
+        for b in range(M):
+            i = atom[cl * M + b]
+            for d in range(3):
+                relative[cl, d, b] = wrapped[i, d] - centre[cl, d] if i >= 0 else 0.0
+            if i < 0:  # a filler: far from every atom (as a j atom; see FILLER)
+                relative[cl, 0, b] = 10.0 * b
+                relative[cl, 2, b] = -FILLER
+    return ncx, ncy, first, atom, centre, bounds, relative
+
+
+@njit(cache=True)
+def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius):
+    """For each cluster, the clusters (index >= its own; itself at zero shift only)
+    whose bounding boxes come within ``radius``, with offset centre_i - centre_j -
+    shift. Returns (starts, partners, offsets)."""
+    n_clusters = centre.shape[0]
+    column_of = np.empty(n_clusters, np.int64)
+    for c in range(ncx * ncy):
+        column_of[first[c] : first[c + 1]] = c
+    reach_x = int(np.ceil(radius * ncx / box[0]))
+    reach_y = int(np.ceil(radius * ncy / box[1]))
+    capacity = n_clusters * 64
+    partners = np.empty(capacity, np.int32)
+    offsets = np.empty((capacity, 3))
+    starts = np.zeros(n_clusters + 1, np.int64)
+    shift = np.zeros(3)
+    k = 0
+    for ci in range(n_clusters):
+        cx, cy = column_of[ci] // ncy, column_of[ci] % ncy
+        for dx in range(-reach_x, reach_x + 1):
+            ux = (cx + dx) % ncx
+            shift[0] = ((cx + dx) - ux) // ncx * box[0]
+            for dy in range(-reach_y, reach_y + 1):
+                uy = (cy + dy) % ncy
+                shift[1] = ((cy + dy) - uy) // ncy * box[1]
+                col = ux * ncy + uy
+                for dz in range(-1, 2):
+                    shift[2] = dz * box[2]
+                    zero = shift[0] == 0.0 and shift[1] == 0.0 and dz == 0
+                    for cj in range(first[col], first[col + 1]):
+                        if cj < ci or (cj == ci and not zero):
+                            continue  # each pair once (boxes wider than twice the radius)
+                        gap2 = 0.0
+                        for d in range(3):
+                            above = bounds[cj, d] + shift[d] - bounds[ci, 3 + d]
+                            below = bounds[ci, d] - bounds[cj, 3 + d] - shift[d]
+                            gap = max(above, below, 0.0)
+                            gap2 += gap * gap
+                        if gap2 < radius * radius:
+                            if k == capacity:
+                                capacity *= 2
+                                partners = np.concatenate((partners, np.empty_like(partners)))
+                                offsets = np.concatenate((offsets, np.empty_like(offsets)))
+                            partners[k] = cj
+                            for d in range(3):
+                                offsets[k, d] = centre[ci, d] - centre[cj, d] - shift[d]
+                            k += 1
+        starts[ci + 1] = k
+    return starts, partners[:k].copy(), offsets[:k].copy()
+
+
+def flat_kernel(real):
+    """The 16 atom pairs of a cluster pair as one vector loop (see the docstring)."""
+
+    @njit(fastmath=VECTOR_MATH, error_model="numpy")
+    def kernel(xi, xj, starts, partners, offsets, rc2, fi, fj):
+        cut = np.full(2 * LANES, real(rc2))  # the second half: a cluster with itself, b > a
+        for a in range(M):
+            for b in range(a + 1):
+                cut[LANES + a * M + b] = real(-1.0)
+        acc = np.zeros(4 * LANES, real)
+        fj[:] = 0.0
+        energy = 0.0
+        for ci in range(starts.shape[0] - 1):
+            bi = ci * 3 * LANES
+            acc[:] = 0.0
+            for k in range(starts[ci], starts[ci + 1]):
+                cj = np.uint32(partners[k])
+                bj = cj * 3 * LANES
+                ox, oy, oz = offsets[k, 0], offsets[k, 1], offsets[k, 2]
+                bc = LANES if cj == ci else 0
+                for lane in range(LANES):
+                    dx = xi[bi + lane] - xj[bj + lane] + ox
+                    dy = xi[bi + LANES + lane] - xj[bj + LANES + lane] + oy
+                    dz = xi[bi + 2 * LANES + lane] - xj[bj + 2 * LANES + lane] + oz
+                    r2 = dx * dx + dy * dy + dz * dz
+                    keep = r2 < cut[bc + lane]
+                    # clamped: a far filler's 1/r^12 would underflow into slow denormals
+                    ir2 = real(1.0) / min(r2, cut[bc + lane])
+                    ir6 = ir2 * ir2 * ir2
+                    fr = ir6 * (real(48.0) * ir6 - real(24.0)) * ir2 if keep else real(0.0)
+                    u = real(4.0) * ir6 * (ir6 - real(1.0))
+                    acc[3 * LANES + lane] += u if keep else real(0.0)
+                    acc[lane] += fr * dx
+                    acc[LANES + lane] += fr * dy
+                    acc[2 * LANES + lane] += fr * dz
+                    fj[bj + lane] -= fr * dx
+                    fj[bj + LANES + lane] -= fr * dy
+                    fj[bj + 2 * LANES + lane] -= fr * dz
+            fi[bi : bi + 3 * LANES] = acc[: 3 * LANES]
+            energy += acc[3 * LANES :].sum()
+        return energy
+
+    return kernel
+
+
+def flat_forces(fi, fj):
+    """Per-atom forces (clusters, 3, M) from the flat kernel's lane buffers: i lane
+    a*M+b belongs to atom a, j lane a*M+b to atom b."""
+    lanes_i = fi.reshape(-1, 3, M, M)
+    lanes_j = fj.reshape(-1, 3, M, M)
+    return lanes_i.sum(axis=3) + lanes_j.sum(axis=2)
+
+
+def buffer_kernel(real, copy=True, scatter=True):
+    """Per i-cluster j buffer, one vector loop per i atom (see the docstring)."""
+
+    @njit(fastmath=VECTOR_MATH, error_model="numpy")
+    def kernel(x, counts, starts, partners, offsets, rc2r, forces):
+        rc2 = real(rc2r)
+        most = 0
+        for ci in range(starts.shape[0] - 1):
+            most = max(most, starts[ci + 1] - starts[ci])
+        size = M * most + PAD
+        # padding until copied into (the loop-only variant reads them as they are)
+        bx, by, bz = (np.full(size, real(PAD_AT)), np.full(size, real(PAD_AT)),
+                      np.full(size, real(PAD_AT)))  # fmt: skip
+        gx, gy, gz = np.zeros(size, real), np.zeros(size, real), np.zeros(size, real)
+        forces[:] = 0.0
+        energy = 0.0
+        for ci in range(starts.shape[0] - 1):
+            xs = x[ci]
+            fs = forces[ci]
+            for a in range(counts[ci]):  # the cluster with itself, pairs b > a
+                for b in range(a + 1, counts[ci]):
+                    dx, dy, dz = xs[0, a] - xs[0, b], xs[1, a] - xs[1, b], xs[2, a] - xs[2, b]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    if r2 < rc2:
+                        ir2 = real(1.0) / r2
+                        ir6 = ir2 * ir2 * ir2
+                        fr = ir6 * (real(48.0) * ir6 - real(24.0)) * ir2
+                        energy += real(4.0) * ir6 * (ir6 - real(1.0))
+                        for d, g in ((0, dx), (1, dy), (2, dz)):
+                            fs[d, a] += fr * g
+                            fs[d, b] -= fr * g
+            m = 0
+            for k in range(starts[ci], starts[ci + 1]):
+                cj = np.uint32(partners[k])
+                if cj == ci:
+                    continue
+                if copy:
+                    xc = x[cj]
+                    for b in range(M):
+                        bx[m + b] = xc[0, b] - offsets[k, 0]
+                        by[m + b] = xc[1, b] - offsets[k, 1]
+                        bz[m + b] = xc[2, b] - offsets[k, 2]
+                m += M
+            padded = (m + PAD - 1) // PAD * PAD
+            bx[m:padded] = PAD_AT
+            by[m:padded] = PAD_AT
+            bz[m:padded] = PAD_AT
+            gx[:padded] = 0.0
+            gy[:padded] = 0.0
+            gz[:padded] = 0.0
+            for a in range(counts[ci]):  # not the fillers (their far 1/r^12 underflows)
+                xa, ya, za = xs[0, a], xs[1, a], xs[2, a]
+                sx = sy = sz = e = real(0.0)
+                for lane in range(padded):
+                    dx = xa - bx[lane]
+                    dy = ya - by[lane]
+                    dz = za - bz[lane]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    keep = r2 < rc2
+                    ir2 = real(1.0) / min(r2, rc2)
+                    ir6 = ir2 * ir2 * ir2
+                    fr = ir6 * (real(48.0) * ir6 - real(24.0)) * ir2 if keep else real(0.0)
+                    e += real(4.0) * ir6 * (ir6 - real(1.0)) if keep else real(0.0)
+                    sx += fr * dx
+                    sy += fr * dy
+                    sz += fr * dz
+                    gx[lane] += fr * dx
+                    gy[lane] += fr * dy
+                    gz[lane] += fr * dz
+                fs[0, a] += sx
+                fs[1, a] += sy
+                fs[2, a] += sz
+                energy += e
+            if scatter:
+                m = 0
+                for k in range(starts[ci], starts[ci + 1]):
+                    cj = np.uint32(partners[k])
+                    if cj == ci:
+                        continue
+                    fc = forces[cj]
+                    for b in range(M):
+                        fc[0, b] -= gx[m + b]
+                        fc[1, b] -= gy[m + b]
+                        fc[2, b] -= gz[m + b]
+                    m += M
+        return energy
+
+    return kernel
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
+    parser.add_argument("--repeats", type=int, default=31, help="interleaved repeats (31)")
+    args = parser.parse_args(argv)
+    print(machine_line())
+    set_threads(1)
+    state = md.lattice("fcc", args.cells, density=0.8442)
+    # a liquid's disorder: the lattice's atoms displaced by 0.15 sigma (rms per axis)
+    state.positions += np.random.default_rng(1).normal(0.0, 0.15, state.positions.shape)
+    lj = LennardJones(cutoff=2.5, cutoff_mode="none")
+    neighbors = md.NeighborList(2.5, 0.3)
+    neighbors.update(state)
+    reference = lj.energy_forces(state, neighbors, virial=False)
+    density = state.n_atoms / np.prod(state.box)
+    ncx, ncy, first, atom, centre, bounds, relative = cluster_grid(state.positions, state.box,
+                                                                   density)  # fmt: skip
+    starts, partners, offsets = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.8)
+    n_clusters = centre.shape[0]
+    real_atoms = atom >= 0
+    counts = real_atoms.reshape(-1, M).sum(axis=1)  # fillers come last in a cluster
+    evaluated = len(partners) * LANES
+    print(f"{state.n_atoms} atoms in {n_clusters} clusters of {M} ({real_atoms.mean():.1%} "
+          f"atoms, the rest fillers), {len(partners)} cluster pairs: {evaluated} atom pairs "
+          f"evaluated, {evaluated / neighbors.n_pairs:.2f} per pair of the frame's list "
+          f"({neighbors.n_pairs}); 1 thread, {args.repeats} interleaved repeats")  # fmt: skip
+
+    def per_atom(cluster_forces):
+        forces = np.zeros((state.n_atoms, 3))
+        forces[atom[real_atoms]] = cluster_forces.transpose(0, 2, 1).reshape(-1, 3)[real_atoms]
+        return forces
+
+    timed = {"frame (double)": lambda: lj.energy_forces(state, neighbors, virial=False)}
+    gaps = {"frame (double)": 0.0}
+    scale = np.abs(reference.forces).max()
+    for real in (np.float64, np.float32):
+        x = relative.astype(real)
+        off = offsets.astype(real)
+        as_i = x.copy()
+        as_i[:, 2, :][~real_atoms.reshape(-1, M)] = FILLER  # fillers as i atoms
+        broadcast = np.ascontiguousarray(np.repeat(as_i, M, axis=2))  # lane a*M+b: atom a
+        replicated = np.ascontiguousarray(np.tile(x, (1, 1, M)))  # lane a*M+b: atom b
+        fi, fj = np.zeros(broadcast.size, real), np.zeros(broadcast.size, real)
+        flat = flat_kernel(real)
+        xi_flat, xj_flat = broadcast.ravel(), replicated.ravel()
+        name = f"flat 4x4 ({real.__name__})"
+        arguments = (xi_flat, xj_flat, starts, partners, off, 6.25, fi, fj)
+        timed[name] = lambda k=flat, a=arguments: k(*a)
+        timed[name]()
+        gaps[name] = np.abs(per_atom(flat_forces(fi, fj)) - reference.forces).max() / scale
+        for label, parts in (("j buffer", (True, True)), ("pair loop only", (False, False))):
+            forces = np.zeros(x.shape, real)
+            kernel = buffer_kernel(real, *parts)
+            name = f"{label} ({real.__name__})"
+            arguments = (x, counts, starts, partners, off, 6.25, forces)
+            timed[name] = lambda k=kernel, a=arguments: k(*a)
+            timed[name]()
+            gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
+    if max(gaps[name] for name in gaps if "only" not in name) > 1e-4:
+        print(f"cluster forces differ from the frame's: {gaps}", file=sys.stderr)
+        return 1
+    times = {name: [] for name in timed}
+    for _ in range(args.repeats):
+        for name, call in timed.items():
+            start = time.perf_counter()
+            call()
+            times[name].append(time.perf_counter() - start)
+    base = times["frame (double)"]
+    print(f"{'':28s}{'ms':>8}{'/ frame':>9}{'max dF / max F':>16}")
+    for name, values in times.items():
+        ratio = statistics.median(t / b for t, b in zip(values, base, strict=True))
+        gap = "(skips work)" if "only" in name else f"{gaps[name]:.1e}"
+        print(f"{name:28s}{1e3 * statistics.median(values):8.2f}{ratio:9.3f}{gap:>16}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
