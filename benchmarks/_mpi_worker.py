@@ -5,11 +5,12 @@ prints one JSON line.
                                                     "steps": 100, "threads": 1}'
 
 Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
-x, y and z), ``steps``, ``threads`` (per rank). The workload is
-``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's
-bench/in.lj: fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin
-0.3, velocity Verlet / ``fix nve``, dt 0.005). Both engines time the loop
-alone: the system, the first neighbour list and forces come before the clock.
+x, y and z), ``steps``, ``threads`` (per rank); for ``ours``, optionally ``balance_every``
+(dynamic load balancing, ``[run] balance_every``; default 0, off) and
+``balance_threshold``. The workload is ``examples/lj_melt.toml`` with its lattice
+replaced by ``cells`` (LAMMPS's bench/in.lj: fcc at reduced density 0.8442, T* 3.0,
+LJ cut at 2.5 sigma, skin 0.3, velocity Verlet / ``fix nve``, dt 0.005). Both engines
+time the loop alone: the system, the first neighbour list and forces come before the clock.
 
 - ``ours``: the config's system, potentials and integrator
   (``md.run.build_components``), on a :class:`md.distributed.DistributedSimulation`
@@ -50,8 +51,9 @@ def _comm():
 
 
 # --------------------------------------------------------------------------- ours
-def _simulation(cells):
-    """The LJ melt config's simulation with ``cells`` fcc cells (decomposed under ranks)."""
+def _simulation(cells, balance_every: int = 0, balance_threshold: float = 1.05):
+    """The LJ melt config's simulation with ``cells`` fcc cells (decomposed under ranks,
+    balanced every ``balance_every`` steps if not 0)."""
     from md.config import parse_config
     from md.distributed import DistributedSimulation, mpi_ranks
     from md.run import build_components
@@ -65,7 +67,8 @@ def _simulation(cells):
     if ranks is None:
         return Simulation(state, potentials, integrator, skin=config.run.skin)
     return DistributedSimulation(state, potentials, integrator, skin=config.run.skin,
-                                 ranks=ranks)  # fmt: skip
+                                 ranks=ranks, balance_every=balance_every,
+                                 balance_threshold=balance_threshold)  # fmt: skip
 
 
 def _builds(sim) -> int:
@@ -95,6 +98,12 @@ def _time_rebuild_messages(sim) -> dict:
     return spent
 
 
+def _cuts(sim) -> list[list[float]] | None:
+    """The planes between the bricks now (None on one process)."""
+    domain = getattr(sim.forcefield, "domain", None)
+    return None if domain is None else [list(planes) for planes in domain.grid.cuts]
+
+
 def _local_atoms(sim) -> list[int]:
     """(owned, ghost) atoms of this rank (ghosts 0 on one process)."""
     domain = getattr(sim.forcefield, "domain", None)
@@ -111,7 +120,8 @@ def run_ours(job: dict) -> dict | None:
     warm = _simulation(WARMUP_CELLS)
     warm.run(WARMUP_STEPS)
     del warm
-    sim = _simulation(job["cells"])
+    sim = _simulation(job["cells"], int(job.get("balance_every", 0)),
+                      float(job.get("balance_threshold", 1.05)))  # fmt: skip
     sim.run(0)  # the first list and forces, outside the clock
     rebuilds = _time_rebuild_messages(sim)
     before, builds = sim.timing_summary(), _builds(sim)
@@ -140,6 +150,10 @@ def run_ours(job: dict) -> dict | None:
         "n_atoms": 4 * int(job["cells"][0] * job["cells"][1] * job["cells"][2]),
         "n_builds": builds,
         "grid": list(getattr(getattr(sim, "grid", None), "shape", (1, 1, 1))),
+        # load balancing: checks that moved the planes, the last imbalance seen, the cuts
+        "balances": getattr(sim.forcefield, "balances", 0),
+        "imbalance": getattr(sim.forcefield, "imbalance", 1.0),
+        "cuts": _cuts(sim),
     }
 
 

@@ -249,6 +249,17 @@ class RunConfig:
         doc="Bricks along a, b and c when the run is shared by MPI ranks (`mpiexec -n P md "
             "run`; their product is P, see the MPI guide); not physics.",
         default_doc="chosen from P and the cell")  # fmt: skip
+    balance_every: int = key(0, "integer", unit="steps", minimum=0,
+        doc="Under MPI, dynamic load balancing: steps between checks of the ranks' busy "
+            "time (wall time less time spent communicating); where the busiest rank's "
+            "exceeds the mean by more than `balance_threshold`, the planes between bricks "
+            "move towards an even share at the next migration (as LAMMPS's `fix balance "
+            "... shift`). 0: never. A balanced run's trajectory depends on the ranks' "
+            "timings, so it is not repeatable bit for bit; not physics.",
+        default_doc="0 (never)")  # fmt: skip
+    balance_threshold: float = key(1.05, "number", minimum=1.0,
+        doc="The imbalance (busiest rank's busy time over the mean) at which "
+            "`balance_every`'s checks move the planes.")  # fmt: skip
     precision: str = key("double", "string", choices=("double", "mixed"),
         doc="`mixed`: the pair potentials' pair terms in float32 (r^2 rounded from double; "
             "forces within about 3e-7 of the largest), every sum, the positions and the "

@@ -80,6 +80,7 @@ from md.domain import (
     add_rows,
     anchored_items,
     append_rows,
+    balanced_cuts,
     brick_of,
     check_grid,
     choose_grid,
@@ -430,11 +431,9 @@ class Domain:
     def __init__(self, ranks, grid: Grid) -> None:
         self.ranks = ranks
         self.rank = ranks.rank
-        self.grid = grid
         self.coordinates = grid.coordinates(self.rank)
-        self.bounds = grid.bounds(self.rank)
-        self.center = self.bounds.mean(axis=0)
         self.shape = np.array(grid.shape, dtype=np.int64)
+        self.set_grid(grid)
         self.reach = 0.0
         self.margin = 0.0
         self.n_owned = 0
@@ -450,6 +449,16 @@ class Domain:
         self._local: dict[str, list] = {}
         self._parity = 0
 
+    def set_grid(self, grid: Grid) -> None:
+        """Take ``grid``'s cuts (same shape): atoms go to their new bricks at the next
+        migration (:meth:`migrate`), which must come before the next :meth:`build`."""
+        if grid.shape != tuple(self.shape.tolist()):
+            raise ValueError(f"a grid of {list(grid.shape)} for a domain of {self.shape.tolist()}")
+        self.grid = grid
+        self.bounds = grid.bounds(self.rank)
+        self.center = self.bounds.mean(axis=0)
+        self.cuts = grid.cut_table()
+
     def fractions(self, state: State) -> NDArray[np.float64]:
         """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
         out = np.empty((state.n_atoms, 3))
@@ -460,7 +469,7 @@ class Domain:
     def owner_of(self, state: State) -> NDArray[np.int64]:
         """The rank whose brick holds each atom of ``state`` now."""
         bricks = np.empty((state.n_atoms, 3), dtype=np.int64)
-        brick_of(self.fractions(state), self.shape, bricks)
+        brick_of(self.fractions(state), self.shape, self.cuts, bricks)
         _, py, pz = self.grid.shape
         return (bricks[:, 0] * py + bricks[:, 1]) * pz + bricks[:, 2]
 
@@ -496,8 +505,8 @@ class Domain:
         for axis in range(3):
             if self.grid.shape[axis] == 1:
                 continue
-            ups, downs, far = leaving_along(arrays[0], state.box, tilt, state.pbc, shape, axis,
-                                            self.coordinates[axis])  # fmt: skip
+            ups, downs, far = leaving_along(arrays[0], state.box, tilt, state.pbc, shape,
+                                            self.cuts, axis, self.coordinates[axis])  # fmt: skip
             lost += far
             upper = self.grid.neighbor(self.rank, axis, 1)
             lower = self.grid.neighbor(self.rank, axis, -1)
@@ -583,7 +592,7 @@ class Domain:
         )  # fmt: skip
         margin = global_max(strayed, self.ranks)
         shell = reach + margin
-        brick = widths / self.shape
+        brick = widths * self.grid.thinnest()
         narrow = pbc & (brick < shell + margin)
         if np.any(narrow):
             axis = int(np.argmax(narrow))
@@ -848,10 +857,22 @@ class DistributedForceField:
     migrate_pending : bool
         The last build kept owners (it was forced inside a step): the next
         step start migrates.
+    balance_every, balance_threshold
+        Dynamic load balancing (off where ``balance_every`` is 0): at the first
+        migration ``balance_every`` steps or more after the last check, the ranks
+        share their busy seconds since then (wall time less the time they spent
+        communicating, waits included); where the busiest rank's exceed the mean
+        by more than the factor ``balance_threshold``, the planes between bricks
+        move towards an even share (:func:`md.domain.balanced_cuts`, per cut
+        axis), and the migration takes the atoms to their new bricks.
+    imbalance, balances
+        The busiest rank's busy seconds over the mean at the last check; how many
+        checks moved the planes.
     """
 
     def __init__(self, potentials, skin: float, ranks, grid: Grid, bond_reach: float,
-                 precision: str = "double") -> None:  # fmt: skip
+                 precision: str = "double", balance_every: int = 0,
+                 balance_threshold: float = 1.05) -> None:  # fmt: skip
         self.potentials = list(potentials)
         self.ranks = ranks
         self.skin = float(skin)
@@ -882,6 +903,14 @@ class DistributedForceField:
         self._cell_bytes: tuple = ()
         self._cache: dict = {}
         self._exchanged: tuple | None = None
+        if balance_every < 0 or not balance_threshold >= 1.0:
+            raise ValueError(f"balance_every must be >= 0 and balance_threshold >= 1, got "
+                             f"{balance_every} and {balance_threshold}")  # fmt: skip
+        self.balance_every = int(balance_every)
+        self.balance_threshold = float(balance_threshold)
+        self.imbalance = 1.0
+        self.balances = 0
+        self._busy_mark: tuple[float, float, int] | None = None  # (wall, comm, step) then
 
     @property
     def cutoff(self) -> float | None:
@@ -1138,6 +1167,8 @@ class DistributedForceField:
             self._cache = {which: held for which, held in self._cache.items()
                            if _same(held[0], state)}  # fmt: skip
             cached = {("cached", which): held[1].forces for which, held in self._cache.items()}
+            if self.balance_every:
+                self._balance(state)
             with self.ranks.clock:
                 moved = self.domain.migrate(state, {**carried, **cached})
             carried = {name: moved[name] for name in carried}
@@ -1186,6 +1217,44 @@ class DistributedForceField:
         elapsed = time.perf_counter() - start
         self.timings["neighbor"] += elapsed - (self.ranks.clock.seconds - communicated)
         return carried
+
+    def _balance(self, state: State) -> None:
+        """Move the planes between bricks towards an even share of the ranks' busy time,
+        if ``balance_every`` steps have passed since the last check and the imbalance
+        exceeds ``balance_threshold`` (see the class's docstring). Collective; the
+        migration that follows takes the atoms to their new bricks."""
+        now, communicated = time.perf_counter(), self.ranks.clock.seconds
+        mark = self._busy_mark
+        if mark is not None and state.step - mark[2] < self.balance_every:
+            return
+        self._busy_mark = (now, communicated, state.step)
+        if mark is None:  # the first migration starts the clock
+            return
+        mine = np.zeros(self.ranks.n_ranks)
+        mine[self.ranks.rank] = max((now - mark[0]) - (communicated - mark[1]), 0.0)
+        with self.ranks.clock:
+            busy = self.ranks.sum(mine)  # one non-zero term per entry: the same on every rank
+        mean = float(busy.mean())
+        self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
+        if self.imbalance <= self.balance_threshold:
+            return
+        grid = self.domain.grid
+        widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+        where = np.array([grid.coordinates(rank) for rank in range(self.ranks.n_ranks)])
+        # a brick keeps room for the ghost shell and how far atoms stray before a build
+        room = self.reach + self.skin
+        for axis in range(3):
+            p = grid.shape[axis]
+            if p == 1 or p * room > widths[axis]:
+                continue
+            costs = np.bincount(where[:, axis], weights=busy, minlength=p)
+            planes = balanced_cuts(grid.cuts[axis], costs, room / widths[axis])
+            grid = grid.with_cuts(axis, planes)
+        self.domain.set_grid(grid)
+        self.balances += 1
+        logger.info("step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s", state.step,
+                    np.round(busy, 4).tolist(), self.imbalance,
+                    [np.round(c, 4).tolist() for c in grid.cuts])  # fmt: skip
 
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
@@ -1288,6 +1357,10 @@ class DistributedSimulation(Simulation):
     decomposition : sequence of three ints, optional
         Bricks along a, b and c (default: chosen from the rank count and the
         cell, :func:`md.domain.choose_grid`).
+    balance_every, balance_threshold
+        Dynamic load balancing, off by default (see
+        :class:`DistributedForceField`): a balanced run's trajectory depends on
+        the ranks' timings, so it is no longer repeatable bit for bit.
 
     Raises
     ------
@@ -1300,7 +1373,8 @@ class DistributedSimulation(Simulation):
 
     def __init__(self, state: State, potentials, integrator, skin: float = 0.3, units="lj",
                  max_displacement: float | None = None, threads: int | None = None, ranks=None,
-                 decomposition=None, precision: str = "double") -> None:  # fmt: skip
+                 decomposition=None, precision: str = "double", balance_every: int = 0,
+                 balance_threshold: float = 1.05) -> None:  # fmt: skip
         ranks = ranks if ranks is not None else mpi_ranks()
         if ranks is None:
             raise ValueError("a DistributedSimulation needs several MPI ranks (run under mpiexec)")
@@ -1325,7 +1399,8 @@ class DistributedSimulation(Simulation):
             check_grid(shape, state.box, state.tilt, state.pbc, reach, what)
         self.grid = Grid(shape)
         self.forcefield = DistributedForceField(whole.potentials, skin, ranks, self.grid, arm,
-                                                precision=precision)  # fmt: skip
+                                                precision=precision, balance_every=balance_every,
+                                                balance_threshold=balance_threshold)  # fmt: skip
         self._masses = state.masses.copy() if ranks.rank == 0 else None
         self._types = state.types.copy() if ranks.rank == 0 else None
         self.state = self._part(state, self.forcefield.domain.owner_of(state))
@@ -1498,6 +1573,7 @@ class DistributedSimulation(Simulation):
         slots[rows[:, 0].astype(np.int64)] = np.arange(n) - np.searchsorted(ranks, ranks)
         layout = {
             "grid": list(self.grid.shape),
+            "cuts": [list(planes) for planes in self.forcefield.domain.grid.cuts],
             "owners": whole[:, 10].astype(np.int64),
             "slots": slots,
             "bond_reach": self.forcefield.bond_reach,
@@ -1547,6 +1623,8 @@ class DistributedSimulation(Simulation):
                 box, tilt = reference_cell
                 at_build.box = np.array(box, dtype=np.float64)
                 at_build.tilt = np.array(tilt, dtype=np.float64)
+        if same and layout.get("cuts") is not None:  # planes moved by load balancing
+            forcefield.domain.set_grid(Grid(self.grid.shape, layout["cuts"]))
         owners = (np.asarray(layout["owners"], dtype=np.int64) if same
                   else forcefield.domain.owner_of(at_build))  # fmt: skip
         slots = layout.get("slots") if same else None  # (checkpoints before it: by id)

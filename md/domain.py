@@ -4,9 +4,11 @@ The cell is cut in its own (fractional) coordinates into a grid of
 ``px x py x pz`` bricks, as LAMMPS's ``comm_style brick`` does: brick
 ``(cx, cy, cz)`` holds the atoms whose fractional coordinates ``s`` (the
 wrapped position ``s @ cell``, ``0 <= s < 1`` along periodic axes) lie in
-``[cx / px, (cx + 1) / px)`` along a, and so on. A tilted cell gives
-parallelepiped bricks; a barostat's cell change moves them with the cell.
-Open axes are never cut.
+``[cuts_a[cx], cuts_a[cx + 1])`` along a, and so on, where the cuts of an
+axis start even (``cx / px``) and move when the run balances its ranks'
+work (:func:`balanced_cuts`, as LAMMPS's ``fix balance ... shift``). A
+tilted cell gives parallelepiped bricks; a barostat's cell change moves
+them with the cell. Open axes are never cut.
 
 Each rank keeps copies (*ghosts*) of the atoms within the *reach* of its
 brick: the neighbour list's radius (cutoff + skin), or more where bonds are
@@ -34,6 +36,8 @@ class Grid:
     """A ``px x py x pz`` grid of bricks, one per rank.
 
     Rank ``r`` sits at ``(cx, cy, cz)`` with ``r = (cx * py + cy) * pz + cz``.
+    ``cuts`` gives, per axis, the ``p + 1`` fractional coordinates of the
+    planes between its bricks, from 0 to 1 (default: even, ``c / p``).
 
     Examples
     --------
@@ -42,9 +46,26 @@ class Grid:
     (6, (1, 1, 0), 4)
     >>> grid.neighbor(4, axis=1, step=1), grid.neighbor(4, axis=1, step=-1)
     (5, 3)
+    >>> Grid((2, 1, 1), cuts=((0.0, 0.6, 1.0), (0.0, 1.0), (0.0, 1.0))).bounds(1).tolist()
+    [[0.6, 0.0, 0.0], [1.0, 1.0, 1.0]]
     """
 
     shape: tuple[int, int, int]
+    cuts: tuple[tuple[float, ...], ...] | None = None
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(p) for p in self.shape)
+        object.__setattr__(self, "shape", shape)
+        if self.cuts is None:
+            cuts = tuple(tuple(c / p for c in range(p + 1)) for p in shape)
+        else:
+            cuts = tuple(tuple(float(c) for c in axis) for axis in self.cuts)
+        for axis, (p, planes) in enumerate(zip(shape, cuts, strict=True)):
+            steps = np.diff(planes)
+            if len(planes) != p + 1 or planes[0] != 0.0 or planes[-1] != 1.0 or np.any(steps <= 0):
+                raise ValueError(f"the cuts along {'xyz'[axis]} must be {p + 1} increasing "
+                                 f"fractions from 0 to 1, got {list(planes)}")  # fmt: skip
+        object.__setattr__(self, "cuts", cuts)
 
     @property
     def n_ranks(self) -> int:
@@ -67,9 +88,26 @@ class Grid:
 
     def bounds(self, rank: int) -> NDArray[np.float64]:
         """(2, 3): the brick's lower and upper fractional coordinates."""
-        coordinates = np.array(self.coordinates(rank), dtype=np.float64)
-        counts = np.array(self.shape, dtype=np.float64)
-        return np.stack([coordinates / counts, (coordinates + 1.0) / counts])
+        c = self.coordinates(rank)
+        return np.array([[self.cuts[a][c[a]] for a in range(3)],
+                         [self.cuts[a][c[a] + 1] for a in range(3)]])  # fmt: skip
+
+    def cut_table(self) -> NDArray[np.float64]:
+        """(3, max p + 1) array of the cuts, each row padded with 1.0 (for the kernels)."""
+        table = np.ones((3, max(self.shape) + 1))
+        for axis, planes in enumerate(self.cuts):
+            table[axis, : len(planes)] = planes
+        return table
+
+    def thinnest(self) -> NDArray[np.float64]:
+        """(3,): the thinnest brick along each axis, as a fraction of the cell."""
+        return np.array([min(np.diff(planes)) for planes in self.cuts])
+
+    def with_cuts(self, axis: int, planes) -> Grid:
+        """This grid with the cuts along ``axis`` replaced by ``planes``."""
+        cuts = list(self.cuts)
+        cuts[axis] = tuple(float(c) for c in planes)
+        return Grid(self.shape, tuple(cuts))
 
 
 def local_periodic_axes(shape, pbc, tilt) -> NDArray[np.bool_]:
@@ -203,6 +241,42 @@ def grid_candidates(n: int) -> list[tuple[int, int, int]]:
     return list(_factorisations(n))
 
 
+def balanced_cuts(cuts, costs, minimum: float, damping: float = 0.5) -> NDArray[np.float64]:
+    """Cuts along one axis that share the work ``costs`` evenly between its slabs.
+
+    ``cuts`` are the axis's ``p + 1`` planes (fractions, 0 to 1), ``costs`` the work
+    measured in each of its ``p`` slabs (the busy seconds of the ranks in it), taken as
+    spread evenly across each slab: the targets are the planes that give every slab
+    ``sum(costs) / p`` under that model (LAMMPS's ``balance shift`` does the same per
+    dimension). Each inner plane moves ``damping`` of the way to its target (the model
+    is only right near the planes; a full step overshoots), at most half the narrower
+    slab beside it (so no atom's brick moves by more than one), and every slab keeps at
+    least ``minimum`` of the cell (the ghost shell must fit in a brick).
+
+    Examples
+    --------
+    >>> balanced_cuts([0.0, 0.5, 1.0], [3.0, 1.0], minimum=0.1, damping=1.0).tolist()
+    [0.0, 0.3333333333333333, 1.0]
+    >>> balanced_cuts([0.0, 0.5, 1.0], [3.0, 1.0], minimum=0.1).tolist()
+    [0.0, 0.41666666666666663, 1.0]
+    """
+    cuts = np.asarray(cuts, dtype=np.float64)
+    costs = np.maximum(np.asarray(costs, dtype=np.float64), 1e-300)
+    p = len(costs)
+    if len(cuts) != p + 1 or p * minimum > 1.0 + 1e-12:
+        raise ValueError(f"{p} slabs of at least {minimum:.4g} do not fit cuts {cuts.tolist()}")
+    cumulative = np.concatenate([[0.0], np.cumsum(costs)])
+    targets = np.interp(np.arange(1, p) * cumulative[-1] / p, cumulative, cuts)
+    widths = np.diff(cuts)
+    new = cuts.copy()
+    for k in range(1, p):
+        limit = 0.5 * min(widths[k - 1], widths[k])
+        new[k] = cuts[k] + np.clip(damping * (targets[k - 1] - cuts[k]), -limit, limit)
+    for k in range(1, p):  # every slab at least minimum wide (feasible: p * minimum <= 1)
+        new[k] = min(max(new[k], new[k - 1] + minimum), 1.0 - (p - k) * minimum)
+    return new
+
+
 # ------------------------------------------------------------------- kernels
 
 
@@ -228,15 +302,27 @@ def fractional_coordinates(positions, box, tilt, pbc, out):
         out[i, 2] = sz
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _slab(s, p, planes):
+    """The slab of ``p`` holding the fraction ``s`` in [0, 1): the even grid's guess,
+    then moved to the slab whose planes (a row of :meth:`Grid.cut_table`) enclose it."""
+    c = min(max(int(s * p), 0), p - 1)  # s in [0, 1): truncation is the floor
+    while c > 0 and s < planes[c]:
+        c -= 1
+    while c < p - 1 and s >= planes[c + 1]:
+        c += 1
+    return c
+
+
 @njit(cache=True, error_model="numpy")
-def brick_of(fractions, shape, out):
+def brick_of(fractions, shape, cuts, out):
     """Write the grid coordinates of the brick holding each wrapped fractional position
-    (rows of ``fractions``, taken modulo 1) into ``out`` (N, 3), int64."""
+    (rows of ``fractions``, taken modulo 1) into ``out`` (N, 3), int64; ``cuts`` is the
+    grid's :meth:`Grid.cut_table`."""
     for i in range(fractions.shape[0]):
         for a in range(3):
             s = fractions[i, a] - np.floor(fractions[i, a])
-            c = int(np.floor(s * shape[a]))
-            out[i, a] = min(max(c, 0), shape[a] - 1)
+            out[i, a] = _slab(s, shape[a], cuts[a])
 
 
 @njit(cache=True, error_model="numpy")
@@ -280,7 +366,7 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
 
 
 @njit(cache=True, error_model="numpy")
-def leaving_along(positions, box, tilt, pbc, shape, axis, coordinate):
+def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
     """The atoms whose bricks lie one step up and one step down ``axis`` from the brick at
     ``coordinate`` along it (index arrays, increasing), and how many lie further away: the
     split of one migration sweep, in one pass (bricks as :func:`brick_of` of
@@ -304,7 +390,7 @@ def leaving_along(positions, box, tilt, pbc, shape, axis, coordinate):
                 x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
                 f = x / box[0] if pbc[0] else 0.5
         f = f - np.floor(f)
-        c = min(max(int(f * p), 0), p - 1)  # f in [0, 1): truncation is the floor
+        c = _slab(f, p, cuts[axis])
         if c == coordinate:
             continue  # (most atoms: no integer modulo on this path)
         delta = c - coordinate if c > coordinate else c - coordinate + p
@@ -582,6 +668,7 @@ __all__ = [
     "add_rows",
     "append_rows",
     "anchored_items",
+    "balanced_cuts",
     "brick_of",
     "brick_widths",
     "check_grid",

@@ -567,7 +567,8 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
             raise ConfigError(
                 f"--resume: {config_file} changed the physics since checkpoint "
                 f"{saved_path} was written ({'; '.join(changes)}); only [run] steps, "
-                "thermo_every, decomposition and [output] every/checkpoint_every may change"
+                "thermo_every, threads, decomposition, balance_every, balance_threshold and "
+                "[output] every/checkpoint_every may change"
             )
         if output.exists():
             _check_resumable(output, checkpoint)
@@ -914,7 +915,8 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
             sim = DistributedSimulation(
                 state, potentials, integrator, skin=config.run.skin, units=config.units,
                 max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
-                precision=config.run.precision,
+                precision=config.run.precision, balance_every=config.run.balance_every,
+                balance_threshold=config.run.balance_threshold,
             )  # fmt: skip
     except ValueError as error:
         where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (

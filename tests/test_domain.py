@@ -8,7 +8,9 @@ import pytest
 
 from md.box import cell_matrix
 from md.domain import (
+    Grid,
     append_rows,
+    balanced_cuts,
     brick_of,
     fractional_coordinates,
     home_layout,
@@ -36,20 +38,50 @@ def scattered(n: int, seed: int = 0) -> np.ndarray:
     return fractions @ cell_matrix(BOX, TILT)
 
 
+def uneven(shape, seed: int = 3) -> Grid:
+    """A grid of ``shape`` whose cuts were moved (as load balancing moves them)."""
+    rng = np.random.default_rng(seed)
+    cuts = []
+    for p in shape:
+        widths = rng.uniform(0.5, 1.5, p)
+        cuts.append(np.concatenate([[0.0], np.cumsum(widths)[:-1] / widths.sum(), [1.0]]))
+    return Grid(shape, tuple(cuts))
+
+
+@pytest.mark.parametrize("even", [True, False])
 @pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
-def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape):
+def test_brick_of_puts_each_atom_between_its_bricks_planes(shape, even):
+    positions = scattered(5000)
+    fractions = np.empty_like(positions)
+    fractional_coordinates(positions, BOX, TILT, PBC, fractions)
+    grid = Grid(shape) if even else uneven(shape)
+    bricks = np.empty((len(positions), 3), dtype=np.int64)
+    brick_of(fractions, np.array(shape), grid.cut_table(), bricks)
+    wrapped = fractions - np.floor(fractions)
+    for axis in range(3):
+        expected = np.searchsorted(grid.cuts[axis], wrapped[:, axis], side="right") - 1
+        np.testing.assert_array_equal(bricks[:, axis], expected)
+    if even:  # the even grid's planes are c / p: the same as truncating s * p
+        np.testing.assert_array_equal(bricks, np.floor(wrapped * np.array(shape)).astype(int))
+
+
+@pytest.mark.parametrize("even", [True, False])
+@pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
+def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape, even):
     positions = scattered(5000)
     fractions = np.empty_like(positions)
     fractional_coordinates(positions, BOX, TILT, PBC, fractions)
     bricks = np.empty((len(positions), 3), dtype=np.int64)
     grid = np.array(shape, dtype=np.int64)
-    brick_of(fractions, grid, bricks)
+    cuts = (Grid(shape) if even else uneven(shape)).cut_table()
+    brick_of(fractions, grid, cuts, bricks)
     for axis in range(3):
         p = shape[axis]
         if p == 1:
             continue
         for coordinate in range(p):
-            up, down, lost = leaving_along(positions, BOX, TILT, PBC, grid, axis, coordinate)
+            up, down, lost = leaving_along(positions, BOX, TILT, PBC, grid, cuts, axis,
+                                           coordinate)  # fmt: skip
             delta = (bricks[:, axis] - coordinate) % p
             np.testing.assert_array_equal(up, np.flatnonzero(delta == 1))
             np.testing.assert_array_equal(down, np.flatnonzero((delta == p - 1) & (delta != 1)))
@@ -345,3 +377,63 @@ def test_migration_keeps_every_atom_once_in_place_and_grows_past_its_room():
     carried = domain.migrate(state, carried)
     check(state, carried, expected)
     assert not np.shares_memory(state.positions, before)
+
+
+def test_grid_bounds_follow_its_cuts_and_bad_cuts_are_refused():
+    grid = uneven((3, 2, 1))
+    for rank in range(grid.n_ranks):
+        c = grid.coordinates(rank)
+        lower, upper = grid.bounds(rank)
+        for axis in range(3):
+            assert lower[axis] == grid.cuts[axis][c[axis]]
+            assert upper[axis] == grid.cuts[axis][c[axis] + 1]
+    np.testing.assert_allclose(grid.thinnest(), [min(np.diff(c)) for c in grid.cuts])
+    assert Grid((2, 1, 1)).bounds(1).tolist() == [[0.5, 0.0, 0.0], [1.0, 1.0, 1.0]]
+    for cuts in (((0.0, 0.7, 0.6, 1.0),), ((0.0, 1.0),), ((0.1, 0.5, 1.0),)):
+        with pytest.raises(ValueError, match="cuts along x must be 3 increasing"):
+            Grid((2, 1, 1), (*cuts, (0.0, 1.0), (0.0, 1.0)))
+
+
+def test_balanced_cuts_share_the_modelled_work_evenly():
+    """With the work spread evenly within each slab (the model), a full step puts every
+    plane where the work below it is its share; a damped step goes part of the way; no
+    plane moves more than half a slab; a balanced axis stays; slabs keep their minimum."""
+    rng = np.random.default_rng(5)
+    unclipped = 0
+    for p in (2, 3, 5, 5, 5):
+        cuts = np.array(uneven((p, 1, 1), seed=int(rng.integers(100))).cuts[0])
+        density = rng.uniform(0.7, 1.4, p)  # work per unit fraction in each slab
+        costs = density * np.diff(cuts)
+        edges = np.concatenate([[0.0], np.cumsum(costs)])
+        inner = slice(1, p)
+        # the plane below which the model's work is k / p of the total, by bisection
+        shares = np.arange(1, p) * edges[-1] / p
+        targets = np.array([_bisect(cuts, edges, share) for share in shares])
+        halves = 0.5 * np.minimum(np.diff(cuts)[:-1], np.diff(cuts)[1:])
+        for damping in (1.0, 0.5):
+            moved = balanced_cuts(cuts, costs, minimum=0.01, damping=damping)
+            step = np.clip(damping * (targets - cuts[inner]), -halves, halves)
+            np.testing.assert_allclose(moved[inner], cuts[inner] + step, atol=1e-12)
+            assert moved[0] == 0.0 and moved[-1] == 1.0 and np.all(np.diff(moved) > 0.01)
+        if np.all(np.abs(targets - cuts[inner]) < halves):
+            unclipped += 1
+            full = balanced_cuts(cuts, costs, minimum=0.01, damping=1.0)
+            np.testing.assert_allclose(np.diff(np.interp(full, cuts, edges)), edges[-1] / p,
+                                       rtol=1e-10)  # fmt: skip
+    assert unclipped >= 2  # the even share itself was checked
+    even = balanced_cuts([0.0, 0.25, 0.5, 0.75, 1.0], [2.0, 2.0, 2.0, 2.0], minimum=0.1)
+    np.testing.assert_allclose(even, [0.0, 0.25, 0.5, 0.75, 1.0], atol=1e-15)
+    # a slab no thinner than the minimum, however slow its rank
+    squeezed = balanced_cuts([0.0, 0.5, 1.0], [1000.0, 1.0], minimum=0.45, damping=1.0)
+    np.testing.assert_allclose(squeezed, [0.0, 0.45, 1.0])
+    with pytest.raises(ValueError, match="do not fit"):
+        balanced_cuts([0.0, 0.5, 1.0], [1.0, 2.0], minimum=0.6)
+
+
+def _bisect(cuts, edges, share: float) -> float:
+    """The fraction x where the model's work below x, interp(x, cuts, edges), is share."""
+    lo, hi = 0.0, 1.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.interp(mid, cuts, edges) < share else (lo, mid)
+    return 0.5 * (lo + hi)

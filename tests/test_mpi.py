@@ -788,3 +788,90 @@ def test_a_full_disk_on_rank_0_stops_every_rank_with_exit_2(tmp_path):
     assert saved.state.step == 10 and saved.state.n_atoms == 384
     with h5py.File(out, "r") as f:
         assert list(f["particles/trajectory/position/step"][()]) == [0, 5, 10]
+
+
+#: The 384-atom melt on two ranks with rank 1 made slow (a pair potential that sleeps there
+#: at every evaluation): load balancing must move the plane between the bricks so that
+#: rank 1 owns fewer atoms, and the trajectory must still be the serial one.
+SLOW_RANK = (
+    "import sys, time\n"
+    "import numpy as np\n"
+    "import md\n"
+    "from integrators import VelocityVerlet\n"
+    "from potentials import LennardJones\n"
+    "class SlowOnRankOne(LennardJones):\n"
+    "    def energy_forces(self, *args, **kwargs):\n"
+    "        from mpi4py import MPI\n"
+    "        if MPI.COMM_WORLD.Get_rank() == 1:\n"
+    "            time.sleep(0.004)\n"
+    "        return super().energy_forces(*args, **kwargs)\n"
+    "def system():\n"
+    "    lattice = md.lattice('fcc', (6, 4, 4), density=0.8442)\n"
+    "    velocities = np.random.default_rng(3).normal(0.0, 1.7, lattice.positions.shape)\n"
+    "    return md.State(positions=lattice.positions, velocities=velocities, masses=1.0,\n"
+    "                    box=lattice.box)\n"
+    "def simulation(state, kind, potential=LennardJones, **options):\n"
+    "    return kind(state, [potential(cutoff=2.5)], VelocityVerlet(dt=0.005), skin=0.3,\n"
+    "                **options)\n"
+    "if __name__ == '__main__':\n"
+    "    from md.distributed import DistributedSimulation\n"
+    "    sim = simulation(system(), DistributedSimulation, SlowOnRankOne,\n"
+    "                     decomposition=[2, 1, 1], balance_every=10, balance_threshold=1.02)\n"
+    "    sim.run(150)\n"
+    "    owned = sim.ranks.all_objects(sim.state.n_atoms)\n"
+    "    view = sim.global_view()\n"
+    "    if sim.rank == 0:\n"
+    "        np.save(sys.argv[1], view.state.positions)\n"
+    "        ff = sim.forcefield\n"
+    "        print('owned', *owned, 'balances', ff.balances, 'cut', ff.domain.grid.cuts[0][1],\n"
+    "              'layout', view.forcefield.decomposition['cuts'][0][1])\n"
+)
+
+
+@needs_mpi
+def test_load_balancing_shrinks_a_slow_ranks_brick_and_keeps_the_trajectory(tmp_path):
+    script = tmp_path / "slow_rank.py"
+    script.write_text(SLOW_RANK)
+    out = tmp_path / "positions.npy"
+    done = launch(2, str(script), str(out), cwd=tmp_path, timeout=180)
+    assert done.returncode == 0, done.stderr + done.stdout
+    words = done.stdout.split()
+    assert words[0] == "owned" and words[3] == "balances", done.stdout
+    owned = [int(words[1]), int(words[2])]
+    cut, saved = float(words[6]), float(words[8])
+    assert int(words[4]) >= 3  # moved the plane at most checks
+    assert cut > 0.55 and saved == cut  # rank 1's brick [cut, 1) shrank; checkpoints keep it
+    assert sum(owned) == 384 and owned[1] < 0.8 * owned[0], owned
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import slow_rank
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("slow_rank", None)
+    from md.simulation import Simulation
+
+    alone = slow_rank.simulation(slow_rank.system(), Simulation)
+    alone.run(150)
+    positions = np.load(out)
+    relative = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(
+        alone.state.positions)  # fmt: skip
+    assert relative < 1e-10
+
+
+@needs_mpi
+@pytest.mark.slow  # two launches
+def test_a_balanced_run_checkpoints_its_cuts_and_resumes(serial, tmp_path):
+    """[run] balance_every with threshold 1 moves the planes at every check (two ranks'
+    busy times always differ); the checkpoint records them, a resume on the same grid
+    takes them back, and the run agrees with the serial one."""
+    config = write_config(tmp_path, run_extra="balance_every = 20\nbalance_threshold = 1.0")
+    out = tmp_path / "out.h5"
+    done = launch(2, "run", str(config), "--output", str(out), "--steps", "250",
+                  "--no-progress", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr + done.stdout
+    cuts = read_checkpoint(str(out) + ".ckpt").decomposition["cuts"]
+    assert cuts[0][1] != 0.5 and cuts[1] == [0.0, 1.0], cuts
+    done = launch(2, "run", str(config), "--output", str(out), "--resume", "--no-progress",
+                  cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr + done.stdout
+    assert relative_gap(out, serial) < 1e-10
