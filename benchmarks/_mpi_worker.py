@@ -5,12 +5,13 @@ prints one JSON line.
                                                     "steps": 100, "threads": 1}'
 
 Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
-x, y and z), ``steps``, ``threads`` (per rank); for ``ours``, optionally ``balance_every``
-(dynamic load balancing, ``[run] balance_every``; default 0, off) and
-``balance_threshold``. The workload is ``examples/lj_melt.toml`` with its lattice
-replaced by ``cells`` (LAMMPS's bench/in.lj: fcc at reduced density 0.8442, T* 3.0,
-LJ cut at 2.5 sigma, skin 0.3, velocity Verlet / ``fix nve``, dt 0.005). Both engines
-time the loop alone: the system, the first neighbour list and forces come before the clock.
+x, y and z), ``steps``, ``threads`` (per rank); optionally ``balance_every`` (dynamic load
+balancing: ours ``[run] balance_every``, LAMMPS ``fix balance ... weight time``; default 0,
+off) and, for ours, ``balance_threshold``. The workload is ``examples/lj_melt.toml``
+with its lattice replaced by ``cells`` (LAMMPS's bench/in.lj: fcc at reduced density
+0.8442, T* 3.0, LJ cut at 2.5 sigma, skin 0.3, velocity Verlet / ``fix nve``, dt
+0.005). Both engines time the loop alone: the system, the first neighbour list and
+forces come before the clock.
 
 - ``ours``: the config's system, potentials and integrator
   (``md.run.build_components``), on a :class:`md.distributed.DistributedSimulation`
@@ -174,7 +175,8 @@ def run_lammps(job: dict) -> dict | None:
     lmp = lammps(comm=comm, cmdargs=args)
     try:
         seed = int(tomllib.loads(CONFIG.read_text())["seed"])
-        lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed))
+        lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed,
+                                   int(job.get("balance_every", 0))))  # fmt: skip
     finally:
         lmp.close()
     if comm.Get_rank() != 0:

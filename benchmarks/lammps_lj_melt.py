@@ -36,12 +36,17 @@ NEIGH_MODIFY = {
 _SECTIONS = ("Pair", "Neigh", "Comm", "Output", "Modify", "Other")
 
 
-def commands(cells, steps: int, neigh: str, seed: int) -> list[str]:
+def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0) -> list[str]:
     """Return the LAMMPS input of the LJ melt workload, one command per item.
 
-    ``cells``: fcc cells along each axis, one number or (nx, ny, nz).
+    ``cells``: fcc cells along each axis, one number or (nx, ny, nz). ``balance_every``:
+    if not 0, ``fix balance`` every that many steps, shifting the planes between the
+    ranks' bricks by their measured time (``weight time``, threshold 1.02: what our
+    ``[run] balance_every`` does).
     """
     nx, ny, nz = (cells, cells, cells) if isinstance(cells, int) else cells
+    balance = ([f"fix 2 all balance {balance_every} 1.02 shift xyz 10 1.02 weight time 1.0"]
+               if balance_every else [])  # fmt: skip
     return [
         "units lj",
         "atom_style atomic",
@@ -56,6 +61,7 @@ def commands(cells, steps: int, neigh: str, seed: int) -> list[str]:
         "neighbor 0.3 bin",
         NEIGH_MODIFY[neigh],
         "fix 1 all nve",
+        *balance,
         f"run {steps}",
     ]
 

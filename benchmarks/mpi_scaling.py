@@ -21,6 +21,10 @@ Prints the machine (CPU model, vector ISA, cores, load), then
 (e) a model of the parallel efficiency at 64 and 1024 ranks from these
     figures (see ``benchmarks/README.md``).
 
+``--balance-every N`` adds, at each size, ours on 2 ranks x 1 thread with dynamic
+load balancing (``[run] balance_every = N``, threshold 1.02): its rate, comm share and
+ratio to 1 rank x 2 threads are printed below (a) and (b).
+
 Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
 runs (interleaved), and the tables give medians and the min-max. Rates are
 atom-steps per second of the timed loop (setup, the first list and forces
@@ -55,6 +59,8 @@ SIZES = {
 LAYOUTS = [(1, 1), (2, 1), (1, 2)]
 #: Weak scaling: 32000 atoms (20^3 fcc cells) per rank, the ranks stacked along x.
 WEAK_CELLS = 20
+#: The imbalance (busiest rank's busy time over the mean) at which --balance-every moves planes.
+BALANCE_THRESHOLD = 1.02
 #: Issue 35's targets on a 2-core machine.
 TARGET_RANKS_OVER_THREADS = 0.85
 
@@ -66,6 +72,7 @@ class Job:
     steps: int
     ranks: int
     threads: int
+    balance_every: int = 0  # ours: dynamic load balancing (0: off)
 
     @property
     def n_atoms(self) -> int:
@@ -129,12 +136,14 @@ def probe_lammps() -> tuple[bool, str]:
     return True, f"LAMMPS {found['version']}, MPI (2 ranks seen), {omp} OPENMP"
 
 
-def jobs_for(quick: bool, lammps: bool) -> list[Job]:
+def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     engines = ["ours", "lammps"] if lammps else ["ours"]
     jobs = []
     for _, cells, steps in SIZES[quick]:
         for ranks, threads in LAYOUTS:
             jobs += [Job(engine, cells, steps, ranks, threads) for engine in engines]
+        if balance_every:
+            jobs.append(Job("ours", cells, steps, 2, 1, balance_every))
     weak_steps = SIZES[quick][0][2]
     weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
     jobs += [Job(engine, weak, weak_steps, 2, 1) for engine in engines]
@@ -147,9 +156,12 @@ def measure(jobs: list[Job], repeats: int, timeout: float) -> dict[Job, Measured
         for job in jobs:
             payload = {"engine": job.engine, "cells": list(job.cells), "steps": job.steps,
                        "threads": job.threads, "ranks": job.ranks}  # fmt: skip
+            if job.balance_every:
+                payload.update(balance_every=job.balance_every, balance_threshold=BALANCE_THRESHOLD)
             result = launch(job, payload, timeout)
             measured[job].runs.append(result)
-            print(f"  [{repeat + 1}/{repeats}] {job.engine:<6} {job.ranks} rank(s) x "
+            balanced = f", balanced ({result['balances']} moves)" if job.balance_every else ""
+            print(f"  [{repeat + 1}/{repeats}] {job.engine:<6}{balanced} {job.ranks} rank(s) x "
                   f"{job.threads} thread(s), {job.n_atoms} atoms: "
                   f"{job.n_atoms * result['n_steps'] / result['loop_time'] / 1e6:.2f} M "
                   f"atom-steps/s, comm {100 * result['comm_share']:.1f} %", flush=True)  # fmt: skip
@@ -173,6 +185,7 @@ def print_table(headers: list[str], rows: list[list[str]]) -> None:
 
 
 def find(measured: dict[Job, Measured], **match) -> Measured | None:
+    match.setdefault("balance_every", 0)
     for job, item in measured.items():
         if all(getattr(job, key) == value for key, value in match.items()):
             return item
@@ -211,6 +224,20 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
         figures[f"{label} ranks/threads"] = ratio
         print(f"  ours, 2 ranks x 1 thread / 1 rank x 2 threads at {label} atoms: {ratio:.2f} "
               f"(target >= {TARGET_RANKS_OVER_THREADS} on the 2M melt)")  # fmt: skip
+        balanced = [item for job, item in measured.items()
+                    if job.balance_every and job.cells == cells]  # fmt: skip
+        if balanced:
+            item = balanced[0]
+            ratio = item.median() / two_threads
+            figures[f"{label} balanced 2x1"] = {
+                "ours": item.median(), "ours_comm": item.comm_share(),
+                "ours_comm_min": item.comm_share("comm_share_min"), "over_1x2": ratio,
+            }  # fmt: skip
+            print(f"  ours balanced (every {item.job.balance_every} steps), 2 x 1: "
+                  f"{item.median() / 1e6:.2f} M atom-steps/s ({spread(item)}), comm "
+                  f"{100 * item.comm_share():.1f} % (least rank "
+                  f"{100 * item.comm_share('comm_share_min'):.1f} %), / 1 x 2: "
+                  f"{ratio:.2f}")  # fmt: skip
 
     print("\n(b) Share of the loop spent communicating (median over repeats, mean over ranks)")
     rows = []
@@ -370,6 +397,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lammps", action="store_true", help="our engine only")
     parser.add_argument("--timeout", type=float, default=600, help="seconds per launch (600)")
     parser.add_argument("--json", help="write the medians to this file")
+    parser.add_argument("--balance-every", type=int, default=0, metavar="N",
+                        help="also ours on 2 ranks with load balancing every N steps")
     args = parser.parse_args(argv)
     repeats = args.repeats or (1 if args.quick else 3)
     print(machine_line())
@@ -379,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_lammps:
         lammps, note = probe_lammps()
         print(note)
-    jobs = jobs_for(args.quick, lammps)
+    jobs = jobs_for(args.quick, lammps, args.balance_every)
     print(f"{len(jobs)} runs x {repeats} repeats, interleaved:")
     measured = measure(jobs, repeats, args.timeout)
     figures = report(measured, args.quick, lammps)
