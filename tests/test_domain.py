@@ -48,15 +48,22 @@ def uneven(shape, seed: int = 3) -> Grid:
     return Grid(shape, tuple(cuts))
 
 
-@pytest.mark.parametrize("even", [True, False])
-@pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
-def test_brick_of_puts_each_atom_between_its_bricks_planes(shape, even):
+def placed(shape, even: bool):
+    """Scattered positions, their fractions, a grid of ``shape`` (even or with moved
+    planes) and each position's brick by :func:`brick_of`."""
     positions = scattered(5000)
     fractions = np.empty_like(positions)
     fractional_coordinates(positions, BOX, TILT, PBC, fractions)
     grid = Grid(shape) if even else uneven(shape)
     bricks = np.empty((len(positions), 3), dtype=np.int64)
     brick_of(fractions, np.array(shape), grid.cut_table(), bricks)
+    return positions, fractions, grid, bricks
+
+
+@pytest.mark.parametrize("even", [True, False])
+@pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
+def test_brick_of_puts_each_atom_between_its_bricks_planes(shape, even):
+    _, fractions, grid, bricks = placed(shape, even)
     wrapped = fractions - np.floor(fractions)
     for axis in range(3):
         expected = np.searchsorted(grid.cuts[axis], wrapped[:, axis], side="right") - 1
@@ -68,13 +75,8 @@ def test_brick_of_puts_each_atom_between_its_bricks_planes(shape, even):
 @pytest.mark.parametrize("even", [True, False])
 @pytest.mark.parametrize("shape", [(2, 1, 1), (3, 2, 1), (4, 3, 2), (1, 1, 5)])
 def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape, even):
-    positions = scattered(5000)
-    fractions = np.empty_like(positions)
-    fractional_coordinates(positions, BOX, TILT, PBC, fractions)
-    bricks = np.empty((len(positions), 3), dtype=np.int64)
-    grid = np.array(shape, dtype=np.int64)
-    cuts = (Grid(shape) if even else uneven(shape)).cut_table()
-    brick_of(fractions, grid, cuts, bricks)
+    positions, _, planes, bricks = placed(shape, even)
+    grid, cuts = np.array(shape, dtype=np.int64), planes.cut_table()
     for axis in range(3):
         p = shape[axis]
         if p == 1:

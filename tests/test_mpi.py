@@ -7,6 +7,7 @@ launch takes seconds even with the ranks oversubscribed on two cores.
 
 from __future__ import annotations
 
+import importlib
 import os
 import shutil
 import signal
@@ -94,6 +95,30 @@ def relative_gap(path: Path, reference: Path, frame: int = -1) -> float:
     """|x - x_ref| / |x_ref| over all positions of a frame."""
     expected = unwrapped(reference, frame)
     return float(np.linalg.norm(unwrapped(path, frame) - expected) / np.linalg.norm(expected))
+
+
+def launch_script(tmp_path: Path, name: str, source: str, n_ranks: int, timeout: float):
+    """Write ``source`` as ``NAME.py``, run it on ``n_ranks`` ranks with the path of a
+    ``positions.npy`` to write, and import it here (for its one-process twin). Returns
+    (the finished launch, its stdout's words, the module, the saved positions)."""
+    script = tmp_path / f"{name}.py"
+    script.write_text(source)
+    out = tmp_path / "positions.npy"
+    done = launch(n_ranks, str(script), str(out), cwd=tmp_path, timeout=timeout)
+    assert done.returncode == 0, done.stderr + done.stdout
+    sys.path.insert(0, str(tmp_path))
+    try:
+        module = importlib.import_module(name)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop(name, None)
+    return done, done.stdout.split(), module, np.load(out)
+
+
+def gap_to(positions: np.ndarray, alone) -> float:
+    """|x - x_serial| / |x_serial| against a one-process Simulation ``alone``."""
+    return float(np.linalg.norm(positions - alone.state.positions)
+                 / np.linalg.norm(alone.state.positions))  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -232,28 +257,14 @@ def test_ranks_that_own_no_atoms_keep_step_with_the_others(tmp_path):
     """Two of three bricks empty (vacuum): every evaluation, exchange and reduction is still
     taken by every rank together (a rank with no atoms once saw its positions 'unchanged'
     and skipped them: a hang), and the run follows the serial one."""
-    script = tmp_path / "vacuum.py"
-    script.write_text(VACUUM)
-    out = tmp_path / "positions.npy"
-    done = launch(3, str(script), str(out), cwd=tmp_path, timeout=120)
-    assert done.returncode == 0, done.stderr + done.stdout
-    words = done.stdout.split()
+    done, words, vacuum, positions = launch_script(tmp_path, "vacuum", VACUUM, 3, timeout=120)
     assert words[:4] == ["owned", "256", "0", "0"], done.stdout
-    sys.path.insert(0, str(tmp_path))
-    try:
-        import vacuum
-    finally:
-        sys.path.remove(str(tmp_path))
-        sys.modules.pop("vacuum", None)
     from md.simulation import Simulation
 
     alone = vacuum.simulation(vacuum.system(), kind=Simulation)
     alone.run(40)
     assert float(words[5]) == pytest.approx(alone.thermo()["potential_energy"], rel=1e-12)
-    positions = np.load(out)
-    relative = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(
-        alone.state.positions)  # fmt: skip
-    assert relative < 1e-12
+    assert gap_to(positions, alone) < 1e-12
 
 
 PROBE = (
@@ -830,32 +841,19 @@ SLOW_RANK = (
 
 @needs_mpi
 def test_load_balancing_shrinks_a_slow_ranks_brick_and_keeps_the_trajectory(tmp_path):
-    script = tmp_path / "slow_rank.py"
-    script.write_text(SLOW_RANK)
-    out = tmp_path / "positions.npy"
-    done = launch(2, str(script), str(out), cwd=tmp_path, timeout=180)
-    assert done.returncode == 0, done.stderr + done.stdout
-    words = done.stdout.split()
+    done, words, slow_rank, positions = launch_script(tmp_path, "slow_rank", SLOW_RANK, 2,
+                                                      timeout=180)  # fmt: skip
     assert words[0] == "owned" and words[3] == "balances", done.stdout
     owned = [int(words[1]), int(words[2])]
     cut, saved = float(words[6]), float(words[8])
     assert int(words[4]) >= 3  # moved the plane at most checks
     assert cut > 0.55 and saved == cut  # rank 1's brick [cut, 1) shrank; checkpoints keep it
     assert sum(owned) == 384 and owned[1] < 0.8 * owned[0], owned
-    sys.path.insert(0, str(tmp_path))
-    try:
-        import slow_rank
-    finally:
-        sys.path.remove(str(tmp_path))
-        sys.modules.pop("slow_rank", None)
     from md.simulation import Simulation
 
     alone = slow_rank.simulation(slow_rank.system(), Simulation)
     alone.run(150)
-    positions = np.load(out)
-    relative = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(
-        alone.state.positions)  # fmt: skip
-    assert relative < 1e-10
+    assert gap_to(positions, alone) < 1e-10
 
 
 @needs_mpi
