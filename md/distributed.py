@@ -1397,8 +1397,7 @@ class DistributedSimulation(Simulation):
                 raise ValueError(f"decomposition {list(shape)} has {math.prod(shape)} bricks "
                                  f"for {ranks.n_ranks} ranks")  # fmt: skip
             check_grid(shape, state.box, state.tilt, state.pbc, reach, what)
-        self.grid = Grid(shape)
-        self.forcefield = DistributedForceField(whole.potentials, skin, ranks, self.grid, arm,
+        self.forcefield = DistributedForceField(whole.potentials, skin, ranks, Grid(shape), arm,
                                                 precision=precision, balance_every=balance_every,
                                                 balance_threshold=balance_threshold)  # fmt: skip
         self._masses = state.masses.copy() if ranks.rank == 0 else None
@@ -1411,6 +1410,11 @@ class DistributedSimulation(Simulation):
     @property
     def rank(self) -> int:
         return self.ranks.rank
+
+    @property
+    def grid(self) -> Grid:
+        """The bricks now (load balancing moves the planes between them)."""
+        return self.forcefield.domain.grid
 
     def _part(self, state: State, owners: NDArray[np.int64], slots=None) -> State:
         """This rank's atoms of the whole system ``state`` (those ``owners`` gives it), in
@@ -1573,7 +1577,7 @@ class DistributedSimulation(Simulation):
         slots[rows[:, 0].astype(np.int64)] = np.arange(n) - np.searchsorted(ranks, ranks)
         layout = {
             "grid": list(self.grid.shape),
-            "cuts": [list(planes) for planes in self.forcefield.domain.grid.cuts],
+            "cuts": [list(planes) for planes in self.grid.cuts],
             "owners": whole[:, 10].astype(np.int64),
             "slots": slots,
             "bond_reach": self.forcefield.bond_reach,
