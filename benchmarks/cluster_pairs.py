@@ -13,7 +13,7 @@ centre, so float32 keeps its precision in any box. The list: for each cluster
 the clusters (itself included, a periodic image as a separate entry) whose
 bounding boxes come within the list radius, each pair once, with its offset
 (difference of the two centres less the image shift) rounded to the kernel's
-precision. Two kernels, both vectorised by LLVM from plain loops:
+precision. The kernels (the first two vectorised by LLVM from plain loops):
 
 ``flat``
     The 4x4 atom pairs of a cluster pair as one loop of 16 lanes (i's
@@ -26,6 +26,16 @@ precision. Two kernels, both vectorised by LLVM from plain loops:
     them, its force a register reduction; the j forces scattered back per
     cluster. ``pair loop only`` times that loop without the copy and the
     scatter: what the layout gives if those cost nothing.
+``simd 2x4``
+    Written as LLVM vector IR (a numba intrinsic per i-cluster, float32 only):
+    two i atoms by four j atoms in each 8-lane register (the idea of GROMACS's
+    2xMM kernels), two registers per cluster pair, the i forces and the energy
+    accumulated in registers across the whole j loop, a j-cluster's forces
+    summed across the register's halves and added to memory once.
+``pruned``
+    The same over the cluster pairs that have an atom pair within the list
+    radius (the bounding boxes keep about a third more), as GROMACS's pair
+    search checks atom distances after the boxes.
 
 Each row: median ms, the median of per-repeat ratios to the frame's double call,
 and the largest force difference from it. The list evaluates every atom pair of
@@ -45,13 +55,17 @@ import time
 from pathlib import Path
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
 
 from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
+from md._simd import array_data, splat  # noqa: E402
 from md.parallel import set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 
@@ -320,6 +334,151 @@ def buffer_kernel(real, copy=True, scatter=True):
     return kernel
 
 
+@njit(cache=True)
+def pruned(relative, counts, starts, partners, offsets, radius):
+    """The cluster pairs (of ``cluster_pairs``) with an atom pair within ``radius``
+    (fillers left out; a cluster with itself: pairs b > a). Returns (starts, partners,
+    offsets) of those."""
+    keep = np.zeros(partners.shape[0], np.bool_)
+    new_starts = np.zeros_like(starts)
+    for ci in range(starts.shape[0] - 1):
+        kept = 0
+        for k in range(starts[ci], starts[ci + 1]):
+            cj = partners[k]
+            for a in range(counts[ci]):
+                for b in range(a + 1 if cj == ci else 0, counts[cj]):
+                    r2 = 0.0
+                    for d in range(3):
+                        g = relative[ci, d, a] - relative[cj, d, b] + offsets[k, d]
+                        r2 += g * g
+                    if r2 < radius * radius:
+                        keep[k] = True
+            kept += keep[k]
+        new_starts[ci + 1] = new_starts[ci] + kept
+    return new_starts, partners[keep].copy(), offsets[keep].copy()
+
+
+# ------------------------------------------------------------------ simd 2x4 (float32)
+_F32 = ir.FloatType()
+_I64 = ir.IntType(64)
+_V4 = ir.VectorType(_F32, 4)
+_V8 = ir.VectorType(_F32, 8)
+_FLAGS = ("contract", "reassoc", "nsz", "arcp")
+
+
+def _lanes(builder, a, b, lanes):
+    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)),
+                                                    lanes))  # fmt: skip
+
+
+def _at(builder, pointer, index, vector=_V4):
+    return builder.bitcast(builder.gep(pointer, [index]), vector.as_pointer())
+
+
+def _index(n: int):
+    return ir.Constant(_I64, n)
+
+
+def _eight(x: float):
+    return ir.Constant(_V8, [x] * 8)
+
+
+@intrinsic
+def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, forces):
+    """LJ between i-cluster ``ci`` and the j-clusters ``partners[start:end]`` (flat float32
+    arrays: positions [x0..x3, y0..y3, z0..z3] per cluster, offsets 3 per pair); adds the
+    i forces to ``forces[ci]``, subtracts the j forces from ``forces[cj]``; returns the
+    energy."""
+    sig = types.float64(xi, xj, offsets, partners, start, end, ci, rc2, forces)
+
+    def codegen(context, builder, signature, args):
+        xi_p, xj_p, off_p, part_p = (array_data(context, builder, signature.args[n], args[n])
+                                     for n in range(4))  # fmt: skip
+        f_p = array_data(context, builder, signature.args[8], args[8])
+        start, end, ci, rc2 = args[4:8]
+        fl = _FLAGS
+        base_i = builder.mul(ci, _index(12))
+        own = [builder.load(_at(builder, xi_p, builder.add(base_i, _index(4 * d))),
+                            align=4) for d in range(3)]  # fmt: skip
+        # i atoms (0, 1) and (2, 3), each broadcast over four lanes
+        pairs_i = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
+                   for h in range(2)]  # fmt: skip
+        # the squared cutoff per lane: -1 for the pairs a cluster with itself leaves out
+        # (b <= a), so one compare masks both (no mask arithmetic, which AVX2 lacks)
+        cut = splat(builder, rc2, _V8)
+        own_cuts = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), 8), keep), cut,
+                                   _eight(-1.0))
+                    for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])]  # fmt: skip
+        sums = [cgutils.alloca_once_value(builder, _eight(0.0)) for _ in range(7)]
+        with cgutils.for_range_slice(builder, start, end, _index(1)) as (k, _):
+            cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
+            itself = builder.icmp_signed("==", cj, ci)
+            k3 = builder.mul(k, _index(3))
+            base_j = builder.mul(cj, _index(12))
+            shifted = []  # x_j - offset, the four j atoms twice
+            for d in range(3):
+                offset = builder.load(builder.gep(off_p, [builder.add(k3, _index(d))]))
+                four = builder.load(_at(builder, xj_p, builder.add(base_j, _index(4 * d))), align=4)
+                shifted.append(builder.fsub(_lanes(builder, four, four, [0, 1, 2, 3] * 2),
+                                            splat(builder, offset, _V8), flags=fl))  # fmt: skip
+            fj = [_eight(0.0)] * 3
+            for h in range(2):
+                dx = [builder.fsub(pairs_i[h][d], shifted[d], flags=fl) for d in range(3)]
+                r2 = builder.fmul(dx[0], dx[0], flags=fl)
+                for d in (1, 2):
+                    r2 = builder.fadd(r2, builder.fmul(dx[d], dx[d], flags=fl), flags=fl)
+                mask = builder.fcmp_ordered("<", r2, builder.select(itself, own_cuts[h], cut))
+                ir2 = builder.fdiv(_eight(1.0), builder.select(mask, r2, _eight(1.0)), flags=fl)
+                ir6 = builder.fmul(builder.fmul(ir2, ir2, flags=fl), ir2, flags=fl)
+                fr = builder.fmul(ir6, builder.fsub(builder.fmul(_eight(48.0), ir6, flags=fl),
+                                                    _eight(24.0), flags=fl), flags=fl)  # fmt: skip
+                fr = builder.select(mask, builder.fmul(fr, ir2, flags=fl), _eight(0.0))
+                u = builder.fmul(builder.fmul(_eight(4.0), ir6, flags=fl),
+                                 builder.fsub(ir6, _eight(1.0), flags=fl), flags=fl)  # fmt: skip
+                energy = builder.load(sums[6])
+                builder.store(builder.fadd(energy, builder.select(mask, u, _eight(0.0)), flags=fl),
+                              sums[6])  # fmt: skip
+                for d in range(3):
+                    g = builder.fmul(fr, dx[d], flags=fl)
+                    builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
+                                  sums[3 * h + d])  # fmt: skip
+                    fj[d] = builder.fadd(fj[d], g, flags=fl)
+            for d in range(3):
+                low = _lanes(builder, fj[d], fj[d], [0, 1, 2, 3])
+                high = _lanes(builder, fj[d], fj[d], [4, 5, 6, 7])
+                at = _at(builder, f_p, builder.add(base_j, _index(4 * d)))
+                old = builder.load(at, align=4)
+                builder.store(builder.fsub(old, builder.fadd(low, high, flags=fl), flags=fl), at,
+                              align=4)  # fmt: skip
+        for d in range(3):  # lanes 0-3: atom 0 (2), 4-7: atom 1 (3) of each pair of i atoms
+            first, second = builder.load(sums[d]), builder.load(sums[3 + d])
+            total = None
+            for j in range(4):
+                part = _lanes(builder, first, second, [j, 4 + j, 8 + j, 12 + j])
+                total = part if total is None else builder.fadd(total, part, flags=fl)
+            at = _at(builder, f_p, builder.add(base_i, _index(4 * d)))
+            builder.store(builder.fadd(builder.load(at, align=4), total, flags=fl), at, align=4)
+        lanes = builder.load(sums[6])
+        energy = builder.extract_element(lanes, ir.Constant(ir.IntType(32), 0))
+        for lane in range(1, 8):
+            energy = builder.fadd(energy, builder.extract_element(lanes, _index(lane)))
+        return builder.fpext(energy, ir.DoubleType())
+
+    return sig, codegen
+
+
+@njit(cache=True)
+def simd_forces(xi, xj, offsets, starts, partners, rc2, forces):
+    """LJ over a cluster list with the simd 2x4 kernel (float32 arrays as
+    ``_simd_i_cluster`` takes them; ``rc2`` a float32)."""
+    forces[:] = 0.0
+    energy = 0.0
+    for ci in range(starts.shape[0] - 1):
+        energy += _simd_i_cluster(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, rc2,
+                                  forces)  # fmt: skip
+    return energy
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
@@ -378,6 +537,33 @@ def main(argv=None) -> int:
             timed[name] = lambda k=kernel, a=arguments: k(*a)
             timed[name]()
             gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
+    # the simd kernel (float32) on the list and on the pruned list, the flat one pruned
+    kept = pruned(relative, counts, starts, partners, offsets, 2.8)
+    within = pruned(relative, counts, starts, partners, offsets, 2.5)[1]
+    print(f"cluster pairs with an atom pair within 2.8: {len(kept[1])} "
+          f"({len(kept[1]) / len(partners):.1%}), within the cutoff 2.5: {len(within)} "
+          f"({len(within) / len(partners):.1%})")  # fmt: skip
+    x = relative.astype(np.float32)
+    as_i = x.copy()
+    as_i[:, 2, :][~real_atoms.reshape(-1, M)] = FILLER
+    for label, lists, off in (("simd 2x4", (starts, partners), offsets),
+                              ("simd 2x4, pruned", kept[:2], kept[2])):  # fmt: skip
+        forces = np.zeros(x.shape, np.float32)
+        arguments = (as_i.ravel(), x.ravel(), off.astype(np.float32).ravel(), lists[0], lists[1],
+                     np.float32(6.25), forces.reshape(-1))  # fmt: skip
+        name = f"{label} (float32)"
+        timed[name] = lambda a=arguments: simd_forces(*a)
+        timed[name]()
+        gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
+    broadcast = np.ascontiguousarray(np.repeat(as_i, M, axis=2)).ravel()
+    replicated = np.ascontiguousarray(np.tile(x, (1, 1, M))).ravel()
+    fi, fj = np.zeros(broadcast.size, np.float32), np.zeros(broadcast.size, np.float32)
+    arguments = (broadcast, replicated, kept[0], kept[1], kept[2].astype(np.float32), 6.25, fi, fj)
+    flat = flat_kernel(np.float32)
+    timed["flat 4x4, pruned (float32)"] = lambda a=arguments: flat(*a)
+    timed["flat 4x4, pruned (float32)"]()
+    gaps["flat 4x4, pruned (float32)"] = (np.abs(per_atom(flat_forces(fi, fj)) - reference.forces)
+                                          .max() / scale)  # fmt: skip
     if max(gaps[name] for name in gaps if "only" not in name) > 1e-4:
         print(f"cluster forces differ from the frame's: {gaps}", file=sys.stderr)
         return 1
