@@ -140,6 +140,19 @@ def cluster_grid(positions, box, density):
     return ncx, ncy, first, atom, centre, bounds, relative
 
 
+@njit(cache=True, inline="always")
+def _first_reaching(tops, begin, end, low):
+    """The first index in [begin, end) whose ``tops`` (increasing there) is >= ``low``
+    (end if none): a binary search (numba's np.searchsorted took 100 ns a call here)."""
+    while begin < end:
+        middle = (begin + end) // 2
+        if tops[middle] < low:
+            begin = middle + 1
+        else:
+            end = middle
+    return begin
+
+
 @njit(cache=True)
 def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, counts=None,
                   sure=0.0):  # fmt: skip
@@ -193,7 +206,7 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                     zero = shift[0] == 0.0 and shift[1] == 0.0 and dz == 0
                     low = bounds[ci, 2] - radius - shift[2]  # the window in the column's frame
                     high = bounds[ci, 5] + radius - shift[2]
-                    begin = first[col] + np.searchsorted(tops[first[col] : first[col + 1]], low)
+                    begin = _first_reaching(tops, first[col], first[col + 1], low)
                     for cj in range(max(begin, ci), first[col + 1]):
                         if bounds[cj, 2] > high:
                             break
