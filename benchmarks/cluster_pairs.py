@@ -140,19 +140,6 @@ def cluster_grid(positions, box, density):
     return ncx, ncy, first, atom, centre, bounds, relative
 
 
-@njit(cache=True, inline="always")
-def _first_reaching(tops, begin, end, low):
-    """The first index in [begin, end) whose ``tops`` (increasing there) is >= ``low``
-    (end if none): a binary search (numba's np.searchsorted took 100 ns a call here)."""
-    while begin < end:
-        middle = (begin + end) // 2
-        if tops[middle] < low:
-            begin = middle + 1
-        else:
-            end = middle
-    return begin
-
-
 @njit(cache=True)
 def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, counts=None,
                   sure=0.0):  # fmt: skip
@@ -161,7 +148,9 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
     shift. Returns (starts, partners, offsets).
 
     A column's clusters are sorted by z (so are their boxes' lower and upper z), so
-    each column is searched from the first cluster whose box reaches the window.
+    each neighbouring column's window of candidates is a run of its clusters that only
+    moves up as ci moves up its own column (two cursors per column and image); without
+    the atom check the candidates are filtered branch-free.
     With ``relative`` and ``counts`` (atoms per cluster), a pair whose boxes are
     ``sure`` or farther apart is kept only if an atom pair lies within ``radius``
     (closer boxes are kept unchecked)."""
@@ -172,7 +161,8 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
     width_x, width_y = box[0] / ncx, box[1] / ncy
     reach_x = int(np.ceil(radius / width_x))
     reach_y = int(np.ceil(radius / width_y))
-    tops = bounds[:, 5].copy()  # each column's upper z, increasing within the column
+    tops = bounds[:, 5].copy()  # each column's upper and lower z, increasing within it
+    floors = bounds[:, 2].copy()
     capacity = n_clusters * 64
     partners = np.empty(capacity, np.int32)
     offsets = np.empty((capacity, 3))
@@ -180,8 +170,17 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
     shift = np.zeros(3)
     r2max = radius * radius
     k = 0
+    # Sliding windows: along a column the clusters' boxes rise, so for each neighbouring
+    # (column, image) the window of j-clusters only moves up as ci does; two cursors per
+    # slot, reset at each new i column (no binary search: its branches mispredict).
+    n_slots = (2 * reach_x + 1) * (2 * reach_y + 1) * 3
+    lower_at = np.full(n_slots, -1, np.int64)
+    upper_at = np.full(n_slots, -1, np.int64)
     for ci in range(n_clusters):
         cx, cy = column_of[ci] // ncy, column_of[ci] % ncy
+        if ci == first[column_of[ci]]:
+            lower_at[:] = -1
+            upper_at[:] = -1
         for dx in range(-reach_x, reach_x + 1):
             ux = (cx + dx) % ncx
             shift[0] = ((cx + dx) - ux) // ncx * box[0]
@@ -206,12 +205,38 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                     zero = shift[0] == 0.0 and shift[1] == 0.0 and dz == 0
                     low = bounds[ci, 2] - radius - shift[2]  # the window in the column's frame
                     high = bounds[ci, 5] + radius - shift[2]
-                    begin = _first_reaching(tops, first[col], first[col + 1], low)
-                    for cj in range(max(begin, ci), first[col + 1]):
-                        if bounds[cj, 2] > high:
-                            break
-                        if cj == ci and not zero:
-                            continue  # each pair once (boxes wider than twice the radius)
+                    slot = ((dx + reach_x) * (2 * reach_y + 1) + dy + reach_y) * 3 + dz + 1
+                    begin = lower_at[slot] if lower_at[slot] >= 0 else first[col]
+                    while begin < first[col + 1] and tops[begin] < low:
+                        begin += 1
+                    end = max(upper_at[slot], begin)
+                    while end < first[col + 1] and floors[end] <= high:
+                        end += 1
+                    lower_at[slot], upper_at[slot] = begin, end
+                    begin = max(begin, ci)
+                    end = max(end, begin)
+                    if begin == ci and not zero:
+                        begin += 1  # each pair once (boxes wider than twice the radius)
+                    if k + (end - begin) > capacity:
+                        capacity = 2 * (k + (end - begin))
+                        partners = np.concatenate((partners[:k], np.empty(capacity - k, np.int32)))
+                        offsets = np.concatenate((offsets[:k], np.empty((capacity - k, 3))))
+                    sx, sy, sz = shift[0], shift[1], shift[2]
+                    if relative is None:  # branch-free: write every candidate, keep the near
+                        for cj in range(begin, end):
+                            ex = max(bounds[cj, 0] + sx - bounds[ci, 3],
+                                     bounds[ci, 0] - bounds[cj, 3] - sx, 0.0)  # fmt: skip
+                            ey = max(bounds[cj, 1] + sy - bounds[ci, 4],
+                                     bounds[ci, 1] - bounds[cj, 4] - sy, 0.0)  # fmt: skip
+                            ez = max(bounds[cj, 2] + sz - bounds[ci, 5],
+                                     bounds[ci, 2] - bounds[cj, 5] - sz, 0.0)  # fmt: skip
+                            partners[k] = cj
+                            offsets[k, 0] = centre[ci, 0] - centre[cj, 0] - sx
+                            offsets[k, 1] = centre[ci, 1] - centre[cj, 1] - sy
+                            offsets[k, 2] = centre[ci, 2] - centre[cj, 2] - sz
+                            k += ex * ex + ey * ey + ez * ez < r2max
+                        continue
+                    for cj in range(begin, end):
                         gap2 = 0.0
                         for d in range(3):
                             above = bounds[cj, d] + shift[d] - bounds[ci, 3 + d]
@@ -220,7 +245,7 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                             gap2 += gap * gap
                         if gap2 >= r2max:
                             continue
-                        if relative is not None and gap2 >= sure * sure:
+                        if gap2 >= sure * sure:
                             near = False
                             for a in range(counts[ci]):
                                 for b in range(a + 1 if cj == ci else 0, counts[cj]):
@@ -232,10 +257,6 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                                     near = near or r2 < r2max
                             if not near:
                                 continue
-                        if k == capacity:
-                            capacity *= 2
-                            partners = np.concatenate((partners, np.empty_like(partners)))
-                            offsets = np.concatenate((offsets, np.empty_like(offsets)))
                         partners[k] = cj
                         for d in range(3):
                             offsets[k, d] = centre[ci, d] - centre[cj, d] - shift[d]
