@@ -731,6 +731,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     marked = kept_pairs(starts, partners, offsets, near)
     compaction = min(compaction, time.perf_counter() - start)
+
     def listed(lists):  # the (ci, cj) of a list
         owners = np.repeat(np.arange(len(lists[0]) - 1), np.diff(lists[0]))
         return set(zip(owners.tolist(), lists[1].tolist(), strict=True))
