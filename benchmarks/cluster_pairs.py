@@ -200,6 +200,8 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                 if gx * gx + gy * gy >= r2max:
                     continue
                 col = ux * ncy + uy
+                if first[col + 1] <= ci:
+                    continue  # a column before ci's: every pair there was listed from its side
                 for dz in range(-1, 2):
                     if (dz == -1 and bounds[ci, 2] >= radius) or (
                         dz == 1 and bounds[ci, 5] + radius < box[2]
@@ -565,21 +567,11 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
 
 
 @njit(cache=True)
-def simd_forces(xi, xj, offsets, starts, partners, rc2, forces):
+def simd_forces(xi, xj, offsets, starts, partners, rc2, forces, near, radius2):
     """LJ over a cluster list with the simd 2x4 kernel (float32 arrays as
-    ``_simd_i_cluster`` takes them; ``rc2`` a float32)."""
-    forces[:] = 0.0
-    energy = 0.0
-    for ci in range(starts.shape[0] - 1):
-        energy += _simd_i_cluster(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, rc2,
-                                  forces, None, rc2)  # fmt: skip
-    return energy
-
-
-@njit(cache=True)
-def simd_forces_marking(xi, xj, offsets, starts, partners, rc2, forces, near, radius2):
-    """``simd_forces`` that also marks in ``near`` (uint8 per cluster pair) the pairs with an
-    atom pair within ``radius2`` (squared, float32), for :func:`kept_pairs`."""
+    ``_simd_i_cluster`` takes them; ``rc2`` a float32). Unless ``near`` is None, also
+    marks there (uint8 per cluster pair) the pairs with an atom pair within ``radius2``
+    (squared, float32), for :func:`kept_pairs`."""
     forces[:] = 0.0
     energy = 0.0
     for ci in range(starts.shape[0] - 1):
@@ -597,12 +589,17 @@ def kept_pairs(starts, partners, offsets, near):
         for k in range(starts[ci], starts[ci + 1]):
             count += near[k]
         new_starts[ci + 1] = count
-    kept = np.empty(count + 1, np.int64)  # (branch-free: one row past the last kept)
+    # branch-free: every row written, the count advanced by the mark (one spare row)
+    kept_partners = np.empty(count + 1, partners.dtype)
+    kept_offsets = np.empty((count + 1, 3), offsets.dtype)
     n = 0
     for k in range(near.shape[0]):
-        kept[n] = k
+        kept_partners[n] = partners[k]
+        kept_offsets[n, 0] = offsets[k, 0]
+        kept_offsets[n, 1] = offsets[k, 1]
+        kept_offsets[n, 2] = offsets[k, 2]
         n += near[k]
-    return new_starts, partners[kept[:n]], offsets[kept[:n]]
+    return new_starts, kept_partners[:n], kept_offsets[:n]
 
 
 def build_times(state, neighbors, density, repeats: int = 5) -> None:
@@ -712,7 +709,7 @@ def main(argv=None) -> int:
                               ("simd 2x4, pruned", kept[:2], kept[2])):  # fmt: skip
         forces = np.zeros(x.shape, np.float32)
         arguments = (as_i.ravel(), x.ravel(), off.astype(np.float32).ravel(), lists[0], lists[1],
-                     np.float32(6.25), forces.reshape(-1))  # fmt: skip
+                     np.float32(6.25), forces.reshape(-1), None, np.float32(0.0))  # fmt: skip
         name = f"{label} (float32)"
         timed[name] = lambda a=arguments: simd_forces(*a)
         timed[name]()
@@ -722,7 +719,7 @@ def main(argv=None) -> int:
     forces = np.zeros(x.shape, np.float32)
     arguments = (as_i.ravel(), x.ravel(), offsets.astype(np.float32).ravel(), starts, partners,
                  np.float32(6.25), forces.reshape(-1), near, np.float32(2.8**2))  # fmt: skip
-    timed["simd 2x4, marking (float32)"] = lambda a=arguments: simd_forces_marking(*a)
+    timed["simd 2x4, marking (float32)"] = lambda a=arguments: simd_forces(*a)
     timed["simd 2x4, marking (float32)"]()
     gaps["simd 2x4, marking (float32)"] = np.abs(per_atom(forces) - reference.forces).max() / scale
     start = time.perf_counter()
