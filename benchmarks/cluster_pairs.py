@@ -178,6 +178,7 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
     # (column, image) the window of j-clusters only moves up as ci does; two cursors per
     # slot, reset at each new i column (no binary search: its branches mispredict).
     n_slots = (2 * reach_x + 1) * (2 * reach_y + 1) * 3
+    near_scratch = np.empty(64, np.int64)
     lower_at = np.full(n_slots, -1, np.int64)
     upper_at = np.full(n_slots, -1, np.int64)
     for ci in range(n_clusters):
@@ -228,19 +229,27 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                         partners = np.concatenate((partners[:k], np.empty(capacity - k, np.int32)))
                         offsets = np.concatenate((offsets[:k], np.empty((capacity - k, 3))))
                     sx, sy, sz = shift[0], shift[1], shift[2]
-                    if relative is None:  # branch-free: write every candidate, keep the near
-                        for cj in range(begin, end):
-                            ex = max(bounds[cj, 0] + sx - bounds[ci, 3],
-                                     bounds[ci, 0] - bounds[cj, 3] - sx, 0.0)  # fmt: skip
-                            ey = max(bounds[cj, 1] + sy - bounds[ci, 4],
-                                     bounds[ci, 1] - bounds[cj, 4] - sy, 0.0)  # fmt: skip
-                            ez = max(bounds[cj, 2] + sz - bounds[ci, 5],
-                                     bounds[ci, 2] - bounds[cj, 5] - sz, 0.0)  # fmt: skip
+                    if relative is None:
+                        # the boxes' gaps first (no dependence between candidates), then a
+                        # branch-free compaction whose only chain is the count
+                        if end - begin > near_scratch.shape[0]:
+                            near_scratch = np.empty(2 * (end - begin), np.int64)
+                        for j in range(end - begin):
+                            cj = begin + j
+                            ex = max(max(bounds[cj, 0] + sx - bounds[ci, 3],
+                                         bounds[ci, 0] - bounds[cj, 3] - sx), 0.0)  # fmt: skip
+                            ey = max(max(bounds[cj, 1] + sy - bounds[ci, 4],
+                                         bounds[ci, 1] - bounds[cj, 4] - sy), 0.0)  # fmt: skip
+                            ez = max(max(bounds[cj, 2] + sz - bounds[ci, 5],
+                                         bounds[ci, 2] - bounds[cj, 5] - sz), 0.0)  # fmt: skip
+                            near_scratch[j] = ex * ex + ey * ey + ez * ez < r2max
+                        for j in range(end - begin):
+                            cj = begin + j
                             partners[k] = cj
                             offsets[k, 0] = centre[ci, 0] - centre[cj, 0] - sx
                             offsets[k, 1] = centre[ci, 1] - centre[cj, 1] - sy
                             offsets[k, 2] = centre[ci, 2] - centre[cj, 2] - sz
-                            k += ex * ex + ey * ey + ez * ez < r2max
+                            k += near_scratch[j]
                         continue
                     for cj in range(begin, end):
                         gap2 = 0.0
