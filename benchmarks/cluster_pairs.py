@@ -452,6 +452,7 @@ _F32 = ir.FloatType()
 _I64 = ir.IntType(64)
 _V4 = ir.VectorType(_F32, 4)
 _V8 = ir.VectorType(_F32, 8)
+_D4 = ir.VectorType(ir.DoubleType(), 4)
 _FLAGS = ("contract", "reassoc", "nsz", "arcp")
 
 
@@ -478,8 +479,10 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
     """LJ between i-cluster ``ci`` and the j-clusters ``partners[start:end]`` (flat float32
     arrays: positions [x0..x3, y0..y3, z0..z3] per cluster, offsets 3 per pair); adds the
     i forces to ``forces[ci]``, subtracts the j forces from ``forces[cj]``; returns the
-    energy. Unless ``near`` is None, ``near[k]`` is set to whether cluster pair k has an
-    atom pair within ``radius2`` (squared): GROMACS's dynamic pruning, at no extra pass."""
+    energy. ``forces`` is float32, or float64 (each cluster pair's j sums and each i
+    cluster's sums then added in double). Unless ``near`` is None, ``near[k]`` is set to
+    whether cluster pair k has an atom pair within ``radius2`` (squared): GROMACS's
+    dynamic pruning, at no extra pass."""
     sig = types.float64(xi, xj, offsets, partners, start, end, ci, rc2, forces, near, radius2)
     marking = not isinstance(near, types.NoneType)
 
@@ -487,6 +490,8 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
         xi_p, xj_p, off_p, part_p = (array_data(context, builder, signature.args[n], args[n])
                                      for n in range(4))  # fmt: skip
         f_p = array_data(context, builder, signature.args[8], args[8])
+        wide = signature.args[8].dtype == types.float64
+        bytes_ = 8 if wide else 4
         start, end, ci, rc2 = args[4:8]
         near_p = array_data(context, builder, signature.args[9], args[9]) if marking else None
         fl = _FLAGS
@@ -554,18 +559,23 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
             for d in range(3):
                 low = _lanes(builder, fj[d], fj[d], [0, 1, 2, 3])
                 high = _lanes(builder, fj[d], fj[d], [4, 5, 6, 7])
-                at = _at(builder, f_p, builder.add(base_j, _index(4 * d)))
-                old = builder.load(at, align=4)
-                builder.store(builder.fsub(old, builder.fadd(low, high, flags=fl), flags=fl), at,
-                              align=4)  # fmt: skip
+                summed = builder.fadd(low, high, flags=fl)
+                if wide:  # a double force buffer: the j sums' error does not grow
+                    summed = builder.fpext(summed, _D4)
+                at = _at(builder, f_p, builder.add(base_j, _index(4 * d)), summed.type)
+                old = builder.load(at, align=bytes_)
+                builder.store(builder.fsub(old, summed, flags=fl), at, align=bytes_)
         for d in range(3):  # lanes 0-3: atom 0 (2), 4-7: atom 1 (3) of each pair of i atoms
             first, second = builder.load(sums[d]), builder.load(sums[3 + d])
             total = None
             for j in range(4):
                 part = _lanes(builder, first, second, [j, 4 + j, 8 + j, 12 + j])
                 total = part if total is None else builder.fadd(total, part, flags=fl)
-            at = _at(builder, f_p, builder.add(base_i, _index(4 * d)))
-            builder.store(builder.fadd(builder.load(at, align=4), total, flags=fl), at, align=4)
+            if wide:
+                total = builder.fpext(total, _D4)
+            at = _at(builder, f_p, builder.add(base_i, _index(4 * d)), total.type)
+            builder.store(builder.fadd(builder.load(at, align=bytes_), total, flags=fl), at,
+                          align=bytes_)  # fmt: skip
         lanes = builder.load(sums[6])
         energy = builder.extract_element(lanes, ir.Constant(ir.IntType(32), 0))
         for lane in range(1, 8):
@@ -723,6 +733,13 @@ def main(argv=None) -> int:
         timed[name] = lambda a=arguments: simd_forces(*a)
         timed[name]()
         gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
+    # the same into a double force buffer (sums of float32 cluster-pair terms in double)
+    wide = np.zeros(x.shape, np.float64)
+    arguments = (as_i.ravel(), x.ravel(), kept[2].astype(np.float32).ravel(), kept[0], kept[1],
+                 np.float32(6.25), wide.reshape(-1), None, np.float32(0.0))  # fmt: skip
+    timed["simd 2x4, pruned, double sums"] = lambda a=arguments: simd_forces(*a)
+    timed["simd 2x4, pruned, double sums"]()
+    gaps["simd 2x4, pruned, double sums"] = np.abs(per_atom(wide) - reference.forces).max() / scale
     # the prune from the kernel's own r^2 (a force call that also marks the near pairs)
     near = np.zeros(len(partners), np.uint8)
     forces = np.zeros(x.shape, np.float32)
