@@ -69,7 +69,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, fr
 from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
-from md._simd import array_data, splat  # noqa: E402
+from md._simd import array_data, load_vector, splat, store_vector  # noqa: E402
 from md.parallel import set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 
@@ -423,30 +423,6 @@ def buffer_kernel(real, copy=True, scatter=True):
     return kernel
 
 
-@njit(cache=True)
-def pruned(relative, counts, starts, partners, offsets, radius):
-    """The cluster pairs (of ``cluster_pairs``) with an atom pair within ``radius``
-    (fillers left out; a cluster with itself: pairs b > a). Returns (starts, partners,
-    offsets) of those."""
-    keep = np.zeros(partners.shape[0], np.bool_)
-    new_starts = np.zeros_like(starts)
-    for ci in range(starts.shape[0] - 1):
-        kept = 0
-        for k in range(starts[ci], starts[ci + 1]):
-            cj = partners[k]
-            for a in range(counts[ci]):
-                for b in range(a + 1 if cj == ci else 0, counts[cj]):
-                    r2 = 0.0
-                    for d in range(3):
-                        g = relative[ci, d, a] - relative[cj, d, b] + offsets[k, d]
-                        r2 += g * g
-                    if r2 < radius * radius:
-                        keep[k] = True
-            kept += keep[k]
-        new_starts[ci + 1] = new_starts[ci] + kept
-    return new_starts, partners[keep].copy(), offsets[keep].copy()
-
-
 # ------------------------------------------------------------------ simd 2x4 (float32)
 _F32 = ir.FloatType()
 _I64 = ir.IntType(64)
@@ -459,10 +435,6 @@ _FLAGS = ("contract", "reassoc", "nsz", "arcp")
 def _lanes(builder, a, b, lanes):
     return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)),
                                                     lanes))  # fmt: skip
-
-
-def _at(builder, pointer, index, vector=_V4):
-    return builder.bitcast(builder.gep(pointer, [index]), vector.as_pointer())
 
 
 def _index(n: int):
@@ -491,13 +463,12 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
                                      for n in range(4))  # fmt: skip
         f_p = array_data(context, builder, signature.args[8], args[8])
         wide = signature.args[8].dtype == types.float64
-        bytes_ = 8 if wide else 4
         start, end, ci, rc2 = args[4:8]
         near_p = array_data(context, builder, signature.args[9], args[9]) if marking else None
         fl = _FLAGS
         base_i = builder.mul(ci, _index(12))
-        own = [builder.load(_at(builder, xi_p, builder.add(base_i, _index(4 * d))),
-                            align=4) for d in range(3)]  # fmt: skip
+        own = [load_vector(builder, xi_p, builder.add(base_i, _index(4 * d)), _V4)
+               for d in range(3)]  # fmt: skip
         # i atoms (0, 1) and (2, 3), each broadcast over four lanes
         pairs_i = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
                    for h in range(2)]  # fmt: skip
@@ -522,7 +493,7 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
             shifted = []  # x_j - offset, the four j atoms twice
             for d in range(3):
                 offset = builder.load(builder.gep(off_p, [builder.add(k3, _index(d))]))
-                four = builder.load(_at(builder, xj_p, builder.add(base_j, _index(4 * d))), align=4)
+                four = load_vector(builder, xj_p, builder.add(base_j, _index(4 * d)), _V4)
                 shifted.append(builder.fsub(_lanes(builder, four, four, [0, 1, 2, 3] * 2),
                                             splat(builder, offset, _V8), flags=fl))  # fmt: skip
             fj = [_eight(0.0)] * 3
@@ -562,9 +533,9 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
                 summed = builder.fadd(low, high, flags=fl)
                 if wide:  # a double force buffer: the j sums' error does not grow
                     summed = builder.fpext(summed, _D4)
-                at = _at(builder, f_p, builder.add(base_j, _index(4 * d)), summed.type)
-                old = builder.load(at, align=bytes_)
-                builder.store(builder.fsub(old, summed, flags=fl), at, align=bytes_)
+                index = builder.add(base_j, _index(4 * d))
+                old = load_vector(builder, f_p, index, summed.type)
+                store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
         for d in range(3):  # lanes 0-3: atom 0 (2), 4-7: atom 1 (3) of each pair of i atoms
             first, second = builder.load(sums[d]), builder.load(sums[3 + d])
             total = None
@@ -573,9 +544,9 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
                 total = part if total is None else builder.fadd(total, part, flags=fl)
             if wide:
                 total = builder.fpext(total, _D4)
-            at = _at(builder, f_p, builder.add(base_i, _index(4 * d)), total.type)
-            builder.store(builder.fadd(builder.load(at, align=bytes_), total, flags=fl), at,
-                          align=bytes_)  # fmt: skip
+            index = builder.add(base_i, _index(4 * d))
+            old = load_vector(builder, f_p, index, total.type)
+            store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
         lanes = builder.load(sums[6])
         energy = builder.extract_element(lanes, ir.Constant(ir.IntType(32), 0))
         for lane in range(1, 8):
@@ -762,8 +733,10 @@ def main(argv=None) -> int:
             gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
     build_times(state, neighbors, density)
     # the simd kernel (float32) on the list and on the pruned list, the flat one pruned
-    kept = pruned(relative, counts, starts, partners, offsets, 2.8)
-    within = pruned(relative, counts, starts, partners, offsets, 2.5)[1]
+    # (the search with its atom check at every distance: no pair kept unchecked)
+    kept = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.8, relative, counts, 0.0)
+    within = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.5, relative, counts,
+                           0.0)[1]  # fmt: skip
     print(f"cluster pairs with an atom pair within 2.8: {len(kept[1])} "
           f"({len(kept[1]) / len(partners):.1%}), within the cutoff 2.5: {len(within)} "
           f"({len(within) / len(partners):.1%})")  # fmt: skip

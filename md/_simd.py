@@ -178,7 +178,9 @@ def array_data(context, builder, array_type, array):
 
 def _element_bytes(vector: ir.VectorType) -> int:
     element = vector.element
-    return 8 if isinstance(element, ir.DoubleType) else element.width // 8
+    if isinstance(element, ir.DoubleType):
+        return 8
+    return 4 if isinstance(element, ir.FloatType) else element.width // 8
 
 
 def load_vector(builder, pointer, index, vector: ir.VectorType):
