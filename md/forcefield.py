@@ -44,7 +44,10 @@ class ForceField:
         ``"mixed"``: the pair potentials that offer it (``PRECISIONS`` lists
         ``"mixed"``: those of the pair-kernel frame) run their pair loop in
         float32, with double sums and results; the others (bonds, angles)
-        stay double. See :meth:`potentials.PairPotential.energy_forces`.
+        stay double. The neighbour list is then built in the cluster-pair
+        layout where the cell allows (:class:`md.neighbors.NeighborList`'s
+        ``clusters``), whose kernels compute eight atom pairs per vector. See
+        :meth:`potentials.PairPotential.energy_forces`.
 
     Attributes
     ----------
@@ -65,7 +68,9 @@ class ForceField:
             raise ValueError("a ForceField needs at least one potential")
         self.precision = check_precision_name(precision)
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
-        self.neighbor_list = NeighborList(max(cutoffs), skin) if cutoffs else None
+        # mixed precision: the cluster-pair layout, whose kernels compute in float32 lanes
+        clusters = self.precision == "mixed"
+        self.neighbor_list = NeighborList(max(cutoffs), skin, clusters) if cutoffs else None
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
         self.virial_wanted = False

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba.core import config as numba_config
 from numpy.typing import NDArray
 
 from md._cell_kernels import (
@@ -20,6 +21,14 @@ from md._cell_kernels import (
     _largest_displacement2,
     _max_displacement2,
     _shift_table,
+)
+from md._cluster_kernels import (
+    CLUSTER,
+    balanced_chunks,
+    cluster_grid,
+    column_counts,
+    keep_marked,
+    search_pairs,
 )
 from md.box import (
     TILT_NAMES,
@@ -99,6 +108,62 @@ class SlotFrame:
         return len(self.bounds) - 1
 
 
+class ClusterFrame:
+    """The neighbour list in GROMACS's cluster-pair layout, as the cluster kernels read it.
+
+    Built by :class:`NeighborList` with ``clusters=True`` (see
+    :mod:`md._cluster_kernels` for the grid and the search). Slot s holds atom
+    ``atom[s]`` (-1: a filler), in cluster s // 4; its position relative to its
+    cluster is ``positions[atom[s]] - origin[s]``. I cluster c's partners are
+    ``partners[starts[c]:starts[c + 1]]``, pair k's atoms separated by
+    ``x_rel[c, a] - x_rel[j, b] + offsets[k]`` (float32). Chunk t (one per thread)
+    covers i clusters ``bounds[t]`` to ``bounds[t + 1]``.
+
+    As built, the list holds every cluster pair whose bounding boxes come within
+    the list radius; the first force call marks the pairs that have an atom pair
+    within it (``needs_pruning`` until then) and hands the marks to :meth:`prune`,
+    which keeps only those (about two thirds): GROMACS's dynamic pruning, from the
+    distances the kernel computes anyway. The marks must come from ``reference``,
+    the positions of the build (the list's guarantee counts displacements from
+    there): a first call at other positions (a resumed run's, whose list was
+    rebuilt at its checkpoint's build positions) marks at ``reference`` first.
+    """
+
+    size = CLUSTER
+
+    def __init__(self, atom, origin, starts, partners, offsets, radius: float, chunks: int,
+                 reference):  # fmt: skip
+        self.atom = atom
+        self.origin = origin
+        self.reference = reference
+        self.starts = starts
+        self.partners = partners
+        self.offsets = offsets
+        self.radius = float(radius)
+        self.chunks = int(chunks)
+        self.bounds = balanced_chunks(starts, self.chunks)
+        self.needs_pruning = True
+
+    @property
+    def n_clusters(self) -> int:
+        return len(self.starts) - 1
+
+    @property
+    def n_pairs(self) -> int:
+        """Cluster pairs listed."""
+        return int(self.starts[-1])
+
+    def prune(self, near: NDArray[np.uint8]) -> None:
+        """Keep only the pairs ``near`` marks (nonzero), in place; rebalance the chunks."""
+        if near.shape != (self.n_pairs,):
+            raise ValueError(f"{near.shape[0]} marks for {self.n_pairs} cluster pairs")
+        count = keep_marked(self.starts, self.partners, self.offsets, near)
+        self.partners = self.partners[:count]
+        self.offsets = self.offsets[:count]
+        self.bounds = balanced_chunks(self.starts, self.chunks)
+        self.needs_pruning = False
+
+
 def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
     """Largest squared distance of any atom from its place in ``reference`` [length^2].
 
@@ -157,6 +222,15 @@ class NeighborList:
         periodic box edge (the minimum-image convention).
     skin : float
         Extra list radius [length], >= 0.
+    clusters : bool
+        Build the list in GROMACS's cluster-pair layout (:class:`ClusterFrame`,
+        read by the pair potentials' mixed-precision cluster kernels) where the
+        cell allows it: periodic along every axis, orthorhombic, every edge
+        longer than twice the list radius and five columns of clusters across x
+        and y (else, and on one rank of a decomposed run, the slot frame is
+        built as usual). The slot list is then built only if something asks for
+        it (``frame``, ``starts``, ``pairs()``: per-atom results, Hessians), at
+        the positions of the build.
 
     Attributes
     ----------
@@ -198,13 +272,17 @@ class NeighborList:
     False
     """
 
-    def __init__(self, cutoff: float, skin: float = 0.3) -> None:
+    def __init__(self, cutoff: float, skin: float = 0.3, clusters: bool = False) -> None:
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError(f"neighbour list cutoff must be positive and finite, got {cutoff}")
         if not (np.isfinite(skin) and skin >= 0):
             raise ValueError(f"skin must be >= 0 and finite, got {skin}")
         self.cutoff = float(cutoff)
         self.skin = float(skin)
+        self.clusters_wanted = bool(clusters)
+        self._clusters: ClusterFrame | None = None
+        self._slots_pending = False  # a cluster build: the slot list on first use
+        self._cluster_room = 64  # pairs of room per cluster in the search's buffers
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
         self._rebuild_distance2 = _square(0.5 * self.skin)
         self.n_builds = 0
@@ -255,11 +333,19 @@ class NeighborList:
 
     @property
     def n_pairs(self) -> int:
+        self._slot_list()
         return int(self.slot_starts[-1])
+
+    @property
+    def clusters(self) -> ClusterFrame | None:
+        """The cluster-pair list of the last build, or None (not asked for, or a cell it
+        does not serve: see ``clusters`` in the class docstring)."""
+        return self._clusters
 
     @property
     def frame(self) -> SlotFrame | None:
         """The slot frame of the last build (None after an O(N^2) build: use ``starts``)."""
+        self._slot_list()
         if self.order is None:
             return None
         return SlotFrame(
@@ -393,6 +479,8 @@ class NeighborList:
             same_cell = np.array_equal(self._box, state.box) and np.array_equal(
                 self._tilt, state.tilt
             )
+            if not same_cell and self._clusters is not None:
+                return True  # cluster offsets and origins hold the build's box lengths
         if same_cell:
             reference, allowed2 = self._reference, self._rebuild_distance2
         else:
@@ -436,14 +524,20 @@ class NeighborList:
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
         # Drop the old list first, so it and the new one are never held together.
-        self.order, self._atom_list = None, None
+        self.order, self._atom_list, self._clusters = None, None, None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
+        self._slots_pending = False
         self.lengths = lengths
         self.tilt = tilt
         self.used_cells = grid is not None
         chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
-        if grid is None:
+        columns = self._cluster_columns(state) if grid is not None else None
+        if columns is not None:
+            self._build_clusters(state, columns, chunks, reference)
+            self.shifts = shifts
+            self._slots_pending = True
+        elif grid is None:
             self._build_brute_force(state)
             self.bounds = _balanced_bounds(self.slot_starts, chunks)
         elif n > MAX_SLOTS:
@@ -488,6 +582,50 @@ class NeighborList:
         data = (lengths, tilt, self._grid(state), _shift_table(state.box, state.pbc, tilt), limits)
         self._cell_memo = (key, data) if np.all(state.pbc) else None
         return data
+
+    def _cluster_columns(self, state: State) -> tuple[int, int] | None:
+        """(ncx, ncy) of a cluster build of ``state``, or None where the slot frame serves."""
+        if not self.clusters_wanted or self._owned is not None or numba_config.DISABLE_JIT:
+            return None
+        box, radius = state.box, self.list_radius
+        if not (np.all(state.pbc) and is_orthorhombic(state.tilt)) or np.any(box <= 2 * radius):
+            return None
+        columns = []
+        for axis, count in enumerate(column_counts(box, state.n_atoms, radius)):
+            # a column must not meet two images of another: 2 reach + 1 columns across at
+            # least (more, narrower columns than the density asks for in a sparse system)
+            while count < 2 * math.ceil(radius * count / box[axis]) + 1:
+                count += 1
+            columns.append(count)
+        return columns[0], columns[1]
+
+    def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int,
+                        reference: NDArray[np.float64]) -> None:  # fmt: skip
+        ncx, ncy = columns
+        first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+        radius = self.list_radius
+        while True:
+            found = search_pairs(state.box, ncx, ncy, first, lower, upper, radius, chunks,
+                                 self._cluster_room)  # fmt: skip
+            if found is not None:
+                break
+            self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
+        starts, partners, offsets = found
+        self._clusters = ClusterFrame(atom, origin, starts, partners, offsets, radius, chunks,
+                                      reference)  # fmt: skip
+
+    def _slot_list(self) -> None:
+        """After a cluster build, build the slot list at the build's positions and cell
+        (once): what the frame's kernels, per-atom results and ``pairs()`` read."""
+        if not self._slots_pending:
+            return
+        self._slots_pending = False
+        at_build = State(positions=self._reference.copy(), box=self._box.copy(),
+                         pbc=self._pbc.copy(), tilt=self._tilt.copy())  # fmt: skip
+        lengths, tilt = self.lengths, self.tilt  # the cell followed since, if any
+        _, _, grid, _, _ = self._cell_data(at_build)
+        self._build_cells(at_build, grid, chunk_count(at_build.n_atoms, _MIN_CHUNK_ATOMS))
+        self.lengths, self.tilt = lengths, tilt
 
     def _build_brute_force(self, state: State) -> None:
         positions = state.positions
@@ -559,12 +697,14 @@ class NeighborList:
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""
+        self._slot_list()
         if self.order is None:
             return positions.copy()
         return positions[self.order] + self.images @ cell_matrix(self.lengths, self.tilt)
 
     def _atom_space(self) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
         """The list over atom indices (cached until the next build)."""
+        self._slot_list()
         if self.order is None:
             return self.slot_starts, self.slot_neighbors
         if self._atom_list is None:

@@ -5,6 +5,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+#: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
+CLUSTER = 4
+#: Where fillers sit, relative to their cluster's origin (md._cluster_kernels.FILLER).
+FILLER = 100.0
+
 
 @njit(cache=True, inline="always")
 def _add_half_pair_virial(virials, i, j, fx, fy, fz, dx, dy, dz):
@@ -111,3 +116,65 @@ def _gather_pair_columns(frame_types, partners, row, table, params):
         column = row + frame_types[np.uint32(partners[k])]
         for r in range(n_rows):
             params[r, k] = table[r, column]
+
+
+@njit(cache=True, error_model="numpy")
+def _cluster_positions(positions, atom, origin, xi, xj):
+    """Each slot's position relative to its origin, in float32, as the kernels read
+    them: per cluster [x0..x3, y0..y3, z0..z3]; ``xi`` for the i role, ``xj`` for the
+    j role (they differ only in where the fillers sit)."""
+    for s in range(atom.shape[0]):
+        cl, b = s // CLUSTER, s % CLUSTER
+        base = cl * 3 * CLUSTER + b
+        i = atom[s]
+        if i >= 0:
+            for d in range(3):
+                value = np.float32(positions[i, d] - origin[s, d])
+                xi[base + d * CLUSTER] = value
+                xj[base + d * CLUSTER] = value
+        else:
+            xi[base] = xj[base] = np.float32(10.0 * b)
+            xi[base + CLUSTER] = xj[base + CLUSTER] = np.float32(0.0)
+            xi[base + 2 * CLUSTER] = np.float32(FILLER)
+            xj[base + 2 * CLUSTER] = np.float32(-FILLER)
+
+
+@njit(cache=True, error_model="numpy")
+def _slot_types(types, atom, out):
+    """Each slot's atom type (0 for a filler)."""
+    for s in range(atom.shape[0]):
+        out[s] = types[atom[s]] if atom[s] >= 0 else 0
+
+
+@njit(cache=True, error_model="numpy")
+def _cluster_atom_forces(buffers, atom, forces):
+    """Sum the chunks' cluster-ordered forces (chunks, clusters * 12), in chunk order, into
+    ``forces`` (N, 3) in atom order."""
+    chunks = buffers.shape[0]
+    for s in range(atom.shape[0]):
+        i = atom[s]
+        if i < 0:
+            continue
+        base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
+        for d in range(3):
+            f = buffers[0, base + d * CLUSTER]
+            for c in range(1, chunks):
+                f += buffers[c, base + d * CLUSTER]
+            forces[i, d] = f
+
+
+@njit(cache=True, error_model="numpy")
+def _cluster_moments(atom, xi, forces):
+    """The sum over atoms of x_rel (x) F (3, 3): the virial's part that the cluster
+    kernels leave out (they add each pair's offset (x) force)."""
+    moments = np.zeros((3, 3))
+    for s in range(atom.shape[0]):
+        i = atom[s]
+        if i < 0:
+            continue
+        base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
+        for d in range(3):
+            x = np.float64(xi[base + d * CLUSTER])
+            for e in range(3):
+                moments[d, e] += x * forces[i, e]
+    return moments

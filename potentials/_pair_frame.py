@@ -50,6 +50,13 @@ from md.errors import PairCollapseError
 from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
+from potentials._cluster_ir import slp_vectorising
+from potentials._kernels import (
+    _cluster_atom_forces,
+    _cluster_moments,
+    _cluster_positions,
+    _slot_types,
+)
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 
@@ -70,13 +77,15 @@ _FRAME_SOURCES = (
     _TEMPLATE,
     Path(__file__),
     Path(__file__).with_name("pair_math.py"),
+    Path(__file__).with_name("_cluster_ir.py"),
     *(Path(importlib.util.find_spec(name).origin)
       for name in ("potentials._kernels", "md.box", "md._simd")),
 )  # fmt: skip
 #: The template's entry points (what this module calls) and the arguments of theirs that
 #: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
 _ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
-            "frame_curvatures", "frame_curvatures_threaded")  # fmt: skip
+            "frame_curvatures", "frame_curvatures_threaded", "cluster_forces",
+            "cluster_forces_threaded")  # fmt: skip
 _FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
 logger = logging.getLogger(__name__)
 _RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
@@ -737,8 +746,15 @@ class PairPotential:
         n_types = max(state.n_types, self.n_types_fixed or 1)
         table = self._cached_tables(n_types, np.float32 if precision == "mixed" else np.float64)
         mode = CUTOFF_MODES[self.cutoff_mode]
-        frame = None if neighbors is None or per_atom else neighbors.frame
-        if frame is not None:
+        clusters = None
+        if neighbors is not None and not per_atom and precision == "mixed":
+            clusters = getattr(neighbors, "clusters", None)
+        frame = None if neighbors is None or per_atom or clusters is not None else neighbors.frame
+        if clusters is not None:
+            self._check_radius(neighbors)
+            result = self._cluster_energy_forces(kernels, state, clusters, n_types, table, mode,
+                                                 virial)  # fmt: skip
+        elif frame is not None:
             self._check_radius(neighbors)
             result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode,
                                                virial)  # fmt: skip
@@ -761,6 +777,73 @@ class PairPotential:
         if not math.isfinite(result.energy):
             self._explain_non_finite(state, neighbors)
         return result
+
+    def _cluster_energy_forces(self, kernels, state, clusters, n_types, table, mode,
+                               virial: bool):  # fmt: skip
+        """Mixed precision over a cluster-pair list (``md.neighbors.ClusterFrame``): the
+        relative positions in float32, the cluster kernel per chunk (on the threads when
+        there are several), marking the pairs to keep on the list's first call (then
+        :meth:`~md.neighbors.ClusterFrame.prune`), the chunks' forces summed into atom
+        order, and the virial from the kernel's offset part plus the positions' part."""
+        n = state.n_atoms
+        atom = clusters.atom
+        n_clusters = len(atom) // 4
+        chunks = len(clusters.bounds) - 1
+        scratch = getattr(self, "_cluster_scratch", None)
+        if scratch is None or scratch[0].shape[0] != 12 * n_clusters or len(scratch[3]) != chunks:
+            scratch = (
+                np.empty(12 * n_clusters, np.float32),
+                np.empty(12 * n_clusters, np.float32),
+                np.empty(4 * n_clusters, np.int32),
+                np.empty((chunks, 12 * n_clusters)),
+                np.empty(chunks),
+                np.empty((chunks, 9)),
+            )
+            self._cluster_scratch = scratch
+        xi, xj, slot_types, buffers, energies, virials = scratch
+        single = n_types == 1
+        if not single:
+            _slot_types(state.types, atom, slot_types)
+        entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
+        reach2 = np.float32(clusters.radius**2)
+
+        def run(positions, virial: bool, near) -> None:
+            _cluster_positions(positions, atom, clusters.origin, xi, xj)
+            lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1),
+                     clusters.bounds)  # fmt: skip
+            # as the slot frame's first call: both virial variants run once (they compile
+            # or load before a run's loop), the one asked for last
+            ran = (entry, mode, single, near is None)
+            variants = [virial] if ran in self._run_variants else [not virial, virial]
+            self._run_variants.add(ran)
+            with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
+                for with_virial in variants:
+                    kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
+                                      single=single)  # fmt: skip
+                    kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
+                           with_virial, single, near, reach2, buffers, energies,
+                           virials)  # fmt: skip
+
+        if clusters.needs_pruning:  # marks from the build's positions (ClusterFrame)
+            near = np.empty(clusters.n_pairs, np.uint8)
+            at_build = np.array_equal(clusters.reference, state.positions)
+            run(clusters.reference, bool(virial) and at_build, near)
+            clusters.prune(near)
+            if not at_build:
+                run(state.positions, bool(virial), None)
+        else:
+            run(state.positions, bool(virial), None)
+        forces = np.empty((n, 3))
+        _cluster_atom_forces(buffers, atom, forces)
+        total = None
+        if virial:
+            w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
+            total = 0.5 * (w + w.T)
+        return ForceResult(
+            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+            forces=forces,
+            virial=total,
+        )
 
     def _frame_energy_forces(self, kernels, state, frame, n_types, table, mode, virial: bool):
         n = state.n_atoms

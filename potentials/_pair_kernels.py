@@ -49,6 +49,7 @@ from numba import literally, njit, prange
 
 from md._simd import store_fence, stream_store
 from md.box import min_image, separation
+from potentials._cluster_ir import cluster_row
 from potentials._kernels import (
     _add_half_pair_virial,
     _gather_frame,
@@ -369,6 +370,79 @@ def frame_forces_threaded(
         )  # fmt: skip
     for chunk in prange(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
+
+
+# ---------------------------------------------------------------- cluster pairs
+#: One i cluster against its row of j clusters, this term's pair function in every lane
+#: (``potentials._cluster_ir``).
+_cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
+
+
+@njit(cache=True, error_model="numpy")
+def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
+                   single, near, reach2, buffers, energies, virials):  # fmt: skip
+    """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
+
+    ``clusters`` is (starts, partners, offsets, bounds): each i cluster's row of
+    partners and their offsets (float32, 3 per pair, flat), and the i-cluster range of
+    each chunk. ``xi``/``xj`` the clusters' relative positions in the i and j roles
+    (float32, 12 per cluster), ``slot_types`` each slot's type. Chunk c adds its
+    clusters' forces into its own ``buffers[c]`` (C, clusters * 12, zeroed here), its
+    energy into ``energies[c]`` and, if ``with_virial``, offset (x) force of each pair
+    into ``virials[c]`` (9, row-major; the relative positions' part is added by the
+    caller). ``near`` (uint8 per pair) or None: mark the pairs with an atom pair
+    within ``reach2``. The table is float32: mixed precision only.
+    """
+    literally(mode)
+    literally(with_virial)
+    literally(single)
+    for chunk in range(clusters[3].shape[0] - 1):
+        _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
+                       with_virial, single, near, reach2, buffers, energies, virials)  # fmt: skip
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
+                            with_virial, single, near, reach2, buffers, energies,
+                            virials):  # fmt: skip
+    """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
+    literally(mode)
+    literally(with_virial)
+    literally(single)
+    for chunk in prange(clusters[3].shape[0] - 1):
+        _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
+                       with_virial, single, near, reach2, buffers, energies, virials)  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
+                   with_virial, single, near, reach2, buffers, energies, virials):  # fmt: skip
+    starts, partners, offsets, bounds = clusters
+    cut2 = REAL(0.0)
+    for column in range(table.shape[1]):
+        cut2 = max(cut2, REAL(table[RC2, column]))
+    out = buffers[chunk]
+    out[:] = 0.0
+    virials[chunk, :] = 0.0
+    energy = 0.0
+    for ci in range(bounds[chunk], bounds[chunk + 1]):
+        if single and with_virial:
+            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
+                                   None, n_types, table, mode, data, cut2, out, near, reach2,
+                                   virials[chunk])  # fmt: skip
+        elif single:
+            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
+                                   None, n_types, table, mode, data, cut2, out, near, reach2,
+                                   None)  # fmt: skip
+        elif with_virial:
+            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
+                                   slot_types, n_types, table, mode, data, cut2, out, near,
+                                   reach2, virials[chunk])  # fmt: skip
+        else:
+            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
+                                   slot_types, n_types, table, mode, data, cut2, out, near,
+                                   reach2, None)  # fmt: skip
+    energies[chunk] = energy
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")

@@ -57,6 +57,7 @@ LAYERS = {
     1: ["potentials.*", "integrators.*"],
     2: [
         "md._cell_kernels",
+        "md._cluster_kernels",
         "md.neighbors",
         "md.forcefield",
         "md.simulation",
@@ -91,7 +92,7 @@ PLUGIN_IMPORTS = {
 }
 #: The module each private module of md above layer 0 serves: the only one that imports it
 #: (md is one package across layers, so "within its own package" says too little there).
-PRIVATE_OWNERS = {"md._cell_kernels": "md.neighbors"}
+PRIVATE_OWNERS = {"md._cell_kernels": "md.neighbors", "md._cluster_kernels": "md.neighbors"}
 #: Project imports allowed inside functions, with why.
 LATE_PROJECT_IMPORTS = {
     ("md", "md.sweeps"): "md.sweep() loads the Dask machinery on first use",

@@ -1,0 +1,335 @@
+"""Kernels of the cluster-pair list (:class:`md.neighbors.NeighborList` with ``clusters=True``).
+
+GROMACS's pair-search layout (its "nbnxm" grid), written here for numba: the
+box's xy plane is cut into columns about (4 / density)^(1/3) wide, each
+column's atoms sorted by z and cut into clusters of ``CLUSTER`` (4) atoms, the
+last one of a column padded with fillers. A cluster pair is listed when the two
+clusters' bounding boxes come within the list radius; the pair kernels then
+evaluate all 4 x 4 atom pairs of each listed cluster pair, in SIMD lanes.
+
+A cluster's atoms are stored relative to an origin per slot (the cluster's
+centre plus the box lengths that wrapped the atom at the build), so float32
+keeps its precision in any box; a cluster pair carries its offset, the
+difference of the two centres less the periodic image shift, so the
+separation of atoms a and b of clusters (i, j) is ``x[i, a] - x[j, b] +
+offset``: no minimum image, and the float32 offset is the double one rounded
+once.
+
+Only fully periodic, orthorhombic cells wide enough that no cluster meets
+another one's image twice (the caller checks): the slot frame serves the rest.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Atoms per cluster (the kernels' i and j clusters alike).
+CLUSTER = 4
+
+@njit(cache=True, error_model="numpy")
+def column_counts(box, n_atoms, radius):
+    """(ncx, ncy): columns of about four atoms' volume per z-slab of one cluster, no
+    narrower than needed for at most two columns' reach (the search's sweep) on each side."""
+    density = n_atoms / (box[0] * box[1] * box[2])
+    side = (CLUSTER / density) ** (1.0 / 3.0)
+    ncx = max(1, int(box[0] / side))
+    ncy = max(1, int(box[1] / side))
+    return ncx, ncy
+
+
+@njit(cache=True, error_model="numpy")
+def cluster_grid(positions, box, ncx, ncy):
+    """Sort atoms into columns, each by z, cut into clusters of ``CLUSTER``.
+
+    Returns (first, atom, origin, lower, upper): ``first[c]`` the first cluster of
+    column c (ncx * ncy + 1 entries); ``atom[s]`` the atom in slot s (cluster s //
+    CLUSTER), -1 for a filler; ``origin[s]`` the slot's origin (the cluster's centre
+    plus the wrap of its atom, which subtracted from the atom's position gives its
+    place relative to the centre); the clusters' bounding boxes ``lower``/``upper``
+    (clusters, 3) in the wrapped frame.
+    """
+    n = positions.shape[0]
+    wrapped = np.empty((n, 3))
+    column = np.empty(n, np.int64)
+    n_columns = ncx * ncy
+    counts = np.zeros(n_columns + 1, np.int64)
+    for i in range(n):
+        for d in range(3):
+            wrapped[i, d] = positions[i, d] - np.floor(positions[i, d] / box[d]) * box[d]
+            if wrapped[i, d] >= box[d]:  # rounding of a tiny negative coordinate
+                wrapped[i, d] -= box[d]
+        cx = min(int(wrapped[i, 0] * ncx / box[0]), ncx - 1)
+        cy = min(int(wrapped[i, 1] * ncy / box[1]), ncy - 1)
+        column[i] = cx * ncy + cy
+        counts[column[i] + 1] += 1
+    for c in range(n_columns):
+        counts[c + 1] += counts[c]
+    fill = counts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[column[i]]] = i
+        fill[column[i]] += 1
+    first = np.zeros(n_columns + 1, np.int64)
+    for c in range(n_columns):
+        first[c + 1] = first[c] + (counts[c + 1] - counts[c] + CLUSTER - 1) // CLUSTER
+    n_clusters = first[n_columns]
+    atom = np.full(n_clusters * CLUSTER, -1, np.int64)
+    heights = np.empty(n)
+    for c in range(n_columns):
+        a, b = counts[c], counts[c + 1]
+        for m in range(a, b):
+            heights[m] = wrapped[order[m], 2]
+        by_z = np.argsort(heights[a:b], kind="mergesort")  # stable: equal z keep atom order
+        for m in range(b - a):
+            atom[first[c] * CLUSTER + m] = order[a + by_z[m]]
+    origin = np.zeros((n_clusters * CLUSTER, 3))
+    lower = np.empty((n_clusters, 3))
+    upper = np.empty((n_clusters, 3))
+    for cl in range(n_clusters):
+        for d in range(3):
+            lower[cl, d] = np.inf
+            upper[cl, d] = -np.inf
+        for b in range(CLUSTER):
+            i = atom[cl * CLUSTER + b]
+            if i >= 0:
+                for d in range(3):
+                    lower[cl, d] = min(lower[cl, d], wrapped[i, d])
+                    upper[cl, d] = max(upper[cl, d], wrapped[i, d])
+        for b in range(CLUSTER):
+            s = cl * CLUSTER + b
+            i = atom[s]
+            for d in range(3):
+                centre = 0.5 * (lower[cl, d] + upper[cl, d])
+                origin[s, d] = centre + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
+    return first, atom, origin, lower, upper
+
+
+@njit(cache=True, error_model="numpy")
+def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster):
+    """The cluster pairs whose bounding boxes come within ``radius``.
+
+    Each pair once (j >= i; a cluster with an image of itself at one of the two
+    opposite shifts; the box must be wider than twice the cutoff, so that an atom
+    pair lies within it at one image at most), each i cluster's row starting with
+    the cluster itself at zero shift, with its offset, centre_i - centre_j - image
+    shift, in float32. Returns (starts, partners int32, offsets (pairs, 3) float32)
+    grouped by i cluster, or None where ``per_cluster`` pairs of room per cluster
+    did not suffice (search again with more).
+
+    The columns are searched in ``chunks`` runs of about equal cluster counts on the
+    threads, each into its own buffers, then copied together. Per column of i clusters,
+    each neighbouring column (and periodic image in z) is swept once: along both
+    columns the clusters' boxes rise in z, so the window of j clusters an i cluster can
+    reach only moves up as i does (two cursors, no search). The windows are kept per i
+    cluster and column, then each i cluster's candidates are tested box against box
+    and written branch-free (the count advances by the test's result).
+    """
+    n_columns = ncx * ncy
+    n_clusters = lower.shape[0]
+    column_bounds = np.zeros(chunks + 1, np.int64)
+    c = 0
+    for t in range(1, chunks):
+        while c < n_columns and first[c] < t * n_clusters // chunks:
+            c += 1
+        column_bounds[t] = c
+    column_bounds[chunks] = n_columns
+    room = np.zeros(chunks, np.int64)
+    for t in range(chunks):
+        room[t] = per_cluster * (first[column_bounds[t + 1]] - first[column_bounds[t]]) + 64
+    most = room.max()
+    part_partners = np.empty((chunks, most), np.int32)
+    part_offsets = np.empty((chunks, most, 3), np.float32)
+    counts = np.zeros(n_clusters, np.int64)
+    used = np.zeros(chunks, np.int64)
+    if chunks == 1:
+        used[0] = _search_columns(box, ncx, ncy, first, lower, upper, radius, 0, n_columns,
+                                  counts, part_partners[0], part_offsets[0])  # fmt: skip
+    else:
+        _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
+                       part_partners, part_offsets, used)  # fmt: skip
+    if used.min() < 0:
+        return None
+    starts = np.zeros(n_clusters + 1, np.int64)
+    for ci in range(n_clusters):
+        starts[ci + 1] = starts[ci] + counts[ci]
+    if chunks == 1:
+        return starts, part_partners[0, : used[0]], part_offsets[0, : used[0]]
+    partners = np.empty(starts[n_clusters], np.int32)
+    offsets = np.empty((starts[n_clusters], 3), np.float32)
+    _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets, partners,
+                 offsets)  # fmt: skip
+    return starts, partners, offsets
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
+                   part_partners, part_offsets, used):  # fmt: skip
+    """:func:`_search_columns` for each chunk of columns, on the threads."""
+    for t in prange(column_bounds.shape[0] - 1):
+        used[t] = _search_columns(box, ncx, ncy, first, lower, upper, radius, column_bounds[t],
+                                  column_bounds[t + 1], counts, part_partners[t, : room[t]],
+                                  part_offsets[t, : room[t]])  # fmt: skip
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets, partners,
+                 offsets):  # fmt: skip
+    """Copy each chunk's rows to their place in the whole list, on the threads."""
+    for t in prange(column_bounds.shape[0] - 1):
+        begin = starts[first[column_bounds[t]]]
+        for k in range(used[t]):
+            partners[begin + k] = part_partners[t, k]
+            for d in range(3):
+                offsets[begin + k, d] = part_offsets[t, k, d]
+
+
+@njit(cache=True, error_model="numpy")
+def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners,
+                    offsets):  # fmt: skip
+    """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
+    each row's length into ``counts[ci]``, the rows one after another into ``partners``
+    and ``offsets`` from their start. Returns the pairs written, or minus the pairs found
+    so far where the buffers ran out (the caller grows them and searches again).
+    """
+    width_x, width_y = box[0] / ncx, box[1] / ncy
+    reach_x = int(np.ceil(radius / width_x))
+    reach_y = int(np.ceil(radius / width_y))
+    n_slots = 3 * (2 * reach_x + 1) * (2 * reach_y + 1)
+    most = 0
+    for c in range(c0, c1):
+        most = max(most, first[c + 1] - first[c])
+    window_begin = np.zeros((most, n_slots), np.int64)
+    window_end = np.zeros((most, n_slots), np.int64)
+    slot_shift = np.zeros((n_slots, 3))
+    r2max = radius * radius
+    capacity = partners.shape[0]
+    k = 0
+    for c in range(c0, c1):
+        f0, f1 = first[c], first[c + 1]
+        if f1 == f0:
+            continue
+        cx, cy = c // ncy, c % ncy
+        window_begin[: f1 - f0] = 0
+        window_end[: f1 - f0] = 0
+        m = 0
+        for dx in range(-reach_x, reach_x + 1):
+            ux = cx + dx
+            sx = 0.0
+            if ux < 0:
+                ux += ncx
+                sx = -box[0]
+            elif ux >= ncx:
+                ux -= ncx
+                sx = box[0]
+            x0, x1 = (cx + dx) * width_x, (cx + dx + 1) * width_x  # in the i column's frame
+            for dy in range(-reach_y, reach_y + 1):
+                uy = cy + dy
+                sy = 0.0
+                if uy < 0:
+                    uy += ncy
+                    sy = -box[1]
+                elif uy >= ncy:
+                    uy -= ncy
+                    sy = box[1]
+                col = ux * ncy + uy
+                g0, g1 = first[col], first[col + 1]
+                if g1 <= f0 or g1 == g0:
+                    continue  # a column before c's (listed from its side) or an empty one
+                y0, y1 = (cy + dy) * width_y, (cy + dy + 1) * width_y
+                for dz in range(-1, 2):
+                    slot = 3 * m + dz + 1
+                    sz = dz * box[2]
+                    slot_shift[slot, 0] = sx
+                    slot_shift[slot, 1] = sy
+                    slot_shift[slot, 2] = sz
+                    # a cluster meets its own image at +shift and -shift: the pair once
+                    positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
+                    zero = sx == 0.0 and sy == 0.0 and dz == 0
+                    begin = g0
+                    end = g0
+                    for ci in range(f0, f1):
+                        if dz == -1 and lower[ci, 2] >= radius:
+                            break  # the image below is out of reach from here up
+                        if dz == 1 and upper[ci, 2] + radius < box[2]:
+                            continue  # the image above: only the column's top clusters
+                        low = lower[ci, 2] - radius - sz
+                        high = upper[ci, 2] + radius - sz
+                        while begin < g1 and upper[begin, 2] < low:
+                            begin += 1
+                        end = max(end, begin)
+                        while end < g1 and lower[end, 2] <= high:
+                            end += 1
+                        gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
+                        gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
+                        if gx * gx + gy * gy < r2max:
+                            b = max(begin, ci)
+                            if b == ci and (not positive or zero):
+                                b += 1  # itself: first in its row; its image at -shift: at +shift
+                            window_begin[ci - f0, slot] = b
+                            window_end[ci - f0, slot] = max(end, b)
+                m += 1
+        for ci in range(f0, f1):
+            row = ci - f0
+            total = 1
+            for slot in range(3 * m):
+                total += window_end[row, slot] - window_begin[row, slot]
+            if k + total > capacity:
+                return -(k + total)
+            row_start = k
+            lx, ly, lz = lower[ci, 0], lower[ci, 1], lower[ci, 2]
+            ux_, uy_, uz_ = upper[ci, 0], upper[ci, 1], upper[ci, 2]
+            ox, oy, oz = 0.5 * (lx + ux_), 0.5 * (ly + uy_), 0.5 * (lz + uz_)
+            partners[k] = ci  # the cluster with itself first (the kernels rely on it)
+            offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
+            k += 1
+            for slot in range(3 * m):
+                sx, sy, sz = slot_shift[slot, 0], slot_shift[slot, 1], slot_shift[slot, 2]
+                for cj in range(window_begin[row, slot], window_end[row, slot]):
+                    ex = max(lower[cj, 0] + sx - ux_, lx - upper[cj, 0] - sx, 0.0)
+                    ey = max(lower[cj, 1] + sy - uy_, ly - upper[cj, 1] - sy, 0.0)
+                    ez = max(lower[cj, 2] + sz - uz_, lz - upper[cj, 2] - sz, 0.0)
+                    partners[k] = cj
+                    offsets[k, 0] = ox - 0.5 * (lower[cj, 0] + upper[cj, 0]) - sx
+                    offsets[k, 1] = oy - 0.5 * (lower[cj, 1] + upper[cj, 1]) - sy
+                    offsets[k, 2] = oz - 0.5 * (lower[cj, 2] + upper[cj, 2]) - sz
+                    k += ex * ex + ey * ey + ez * ez < r2max
+            counts[ci] = k - row_start
+    return k
+
+
+@njit(cache=True, error_model="numpy")
+def keep_marked(starts, partners, offsets, near):
+    """Compact the list in place to the pairs ``near`` marks (nonzero); returns the
+    new count (``starts`` rewritten, ``partners``/``offsets`` valid up to it)."""
+    n = 0
+    begin = starts[0]
+    for ci in range(starts.shape[0] - 1):
+        end = starts[ci + 1]
+        for k in range(begin, end):
+            partners[n] = partners[k]
+            offsets[n, 0] = offsets[k, 0]
+            offsets[n, 1] = offsets[k, 1]
+            offsets[n, 2] = offsets[k, 2]
+            n += near[k] != 0
+        begin = end
+        starts[ci + 1] = n
+    return n
+
+
+@njit(cache=True, error_model="numpy")
+def balanced_chunks(starts, chunks):
+    """Cluster ranges of ``chunks`` chunks with about equal pair counts (chunks + 1)."""
+    n = starts.shape[0] - 1
+    bounds = np.zeros(chunks + 1, np.int64)
+    total = starts[n]
+    c = 1
+    for ci in range(n):
+        while c < chunks and starts[ci] >= c * total / chunks:
+            bounds[c] = ci
+            c += 1
+    while c < chunks:
+        bounds[c] = n
+        c += 1
+    bounds[chunks] = n
+    return bounds

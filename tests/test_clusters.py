@@ -1,0 +1,278 @@
+"""The cluster-pair list (GROMACS's layout) and the mixed-precision cluster kernels.
+
+The list is checked against an O(N^2) minimum-image search: every atom pair
+within the list radius lies in exactly one listed cluster pair at the image
+that brings it within reach, before and after the pruning that the first force
+call drives; the kernels against the double-precision slot frame (forces,
+energy, virial to float32 round-off, and not equal to them), on several types,
+cutoff modes, pair terms, thread counts, unwrapped positions and sparse columns.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import md
+from integrators import VelocityVerlet
+from md._cluster_kernels import CLUSTER
+from md.forcefield import ForceField
+from md.neighbors import NeighborList
+from md.parallel import get_threads, set_threads
+from potentials import LennardJones, Morse
+from potentials._kernels import FILLER
+
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def reference_pairs(state, radius):
+    """Set of (i, j), i < j, closer than ``radius`` by minimum image."""
+    d = state.positions[:, None, :] - state.positions[None, :, :]
+    d -= state.box * np.round(d / state.box)
+    r2 = np.einsum("ijk,ijk->ij", d, d)
+    i, j = np.nonzero(np.triu(r2 < radius * radius, k=1))
+    return set(zip(i.tolist(), j.tolist(), strict=True))
+
+
+def relative_positions(state, clusters):
+    """(clusters, 4, 3) positions relative to the slots' origins in the i and the j role,
+    fillers where the kernels put them (apart in x, +-FILLER in z: two never meet)."""
+    rel = state.positions[np.maximum(clusters.atom, 0)] - clusters.origin
+    filler = clusters.atom < 0
+    rel[filler] = 0.0
+    rel[filler, 0] = 10.0 * (np.nonzero(filler)[0] % CLUSTER)
+    rel_i, rel_j = rel.copy(), rel.copy()
+    rel_i[filler, 2], rel_j[filler, 2] = FILLER, -FILLER
+    return rel_i.reshape(-1, CLUSTER, 3), rel_j.reshape(-1, CLUSTER, 3)
+
+
+def listed_atom_pairs(state, clusters, radius):
+    """The atom pairs within ``radius`` of every listed cluster pair, from the list's own
+    geometry (relative positions and offsets), as a list (so that a pair listed twice
+    shows), each (min, max)."""
+    rel_i, rel_j = relative_positions(state, clusters)
+    atoms = clusters.atom.reshape(-1, CLUSTER)
+    found = []
+    for ci in range(clusters.n_clusters):
+        for k in range(clusters.starts[ci], clusters.starts[ci + 1]):
+            cj = clusters.partners[k]
+            d = rel_i[ci][:, None, :] - rel_j[cj][None, :, :] + clusters.offsets[k].astype(float)
+            close = np.einsum("abk,abk->ab", d, d) < radius * radius
+            if k == clusters.starts[ci]:
+                assert cj == ci and not clusters.offsets[k].any(), "a row starts with itself"
+                close = np.triu(close, k=1)
+            for a, b in zip(*np.nonzero(close), strict=True):
+                i, j = atoms[ci, a], atoms[cj, b]
+                assert i >= 0 and j >= 0, "a filler came within reach"
+                found.append((min(i, j), max(i, j)))
+    return found
+
+
+def assert_covers(state, clusters, radius):
+    found = listed_atom_pairs(state, clusters, radius)
+    assert len(found) == len(set(found)), "an atom pair is listed twice"
+    expected = reference_pairs(state, radius)
+    missing, extra = expected - set(found), set(found) - expected
+    assert not missing and not extra, (sorted(missing)[:5], sorted(extra)[:5])
+
+
+SYSTEMS = {
+    "liquid-like lattice": dict(cells=6, perturbation=0.15),
+    "two types": dict(cells=6, perturbation=0.1, n_types=2),
+}
+
+
+@pytest.mark.parametrize("system", SYSTEMS.values(), ids=SYSTEMS.keys())
+def test_cluster_list_holds_every_pair_within_the_radius_once(system, fcc_lattice, rng):
+    state = fcc_lattice(**system)
+    state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box  # unwrapped
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    assert nl.update(state)
+    clusters = nl.clusters
+    assert clusters is not None and clusters.needs_pruning
+    assert_covers(state, clusters, nl.list_radius)
+    # every atom in one slot, fillers only at the end of a column's last cluster
+    assert sorted(clusters.atom[clusters.atom >= 0].tolist()) == list(range(state.n_atoms))
+
+
+@pytest.mark.parametrize(
+    ("n_atoms", "box"),
+    [(60, 12.0), (300, (11.0, 12.5, 14.0)), (120, (8.0, 8.0, 30.0))],
+    ids=["sparse gas: tall clusters", "uneven edges", "long z: images of a tall cluster"],
+)
+def test_sparse_columns_and_their_images_are_searched_exactly(n_atoms, box, random_gas):
+    """Few atoms per column: clusters span much of the box in z, and a cluster meets
+    images of itself and of its column's other clusters."""
+    state = random_gas(n_atoms, box, min_distance=0.6, images=2)
+    nl = NeighborList(1.5, 0.3, clusters=True)
+    nl.update(state)
+    assert nl.clusters is not None
+    assert_covers(state, nl.clusters, nl.list_radius)
+
+
+def test_pruning_keeps_exactly_the_pairs_with_an_atom_pair_within_reach(fcc_lattice):
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    nl.update(state)
+    before = nl.clusters.n_pairs
+    LennardJones(cutoff=2.5).energy_forces(state, nl, precision="mixed")
+    clusters = nl.clusters
+    assert not clusters.needs_pruning
+    assert 0.4 * before < clusters.n_pairs < before
+    assert_covers(state, clusters, nl.list_radius)
+    # and every kept pair has an atom pair within reach (the rest were dropped)
+    rel_i, rel_j = relative_positions(state, clusters)
+    owners = np.repeat(np.arange(clusters.n_clusters), np.diff(clusters.starts))
+    for ci, cj, offset in zip(owners, clusters.partners, clusters.offsets, strict=True):
+        d = rel_i[ci][:, None, :] - rel_j[cj][None, :, :] + offset.astype(float)
+        assert (np.einsum("abk,abk->ab", d, d) < nl.list_radius**2 * (1 + 1e-6)).any() or ci == cj
+
+
+@pytest.mark.parametrize("cell", ["small", "tilted", "open axis", "decomposed rank"])
+def test_cells_the_cluster_search_does_not_serve_get_the_slot_frame(cell, fcc_lattice):
+    state = fcc_lattice(cells=3 if cell == "small" else 6, perturbation=0.05,
+                        pbc=(True, True, False) if cell == "open axis" else True)  # fmt: skip
+    if cell == "tilted":
+        state.tilt = np.array([0.5, 0.0, 0.0])
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    if cell == "decomposed rank":
+        nl.keep_owned(np.arange(state.n_atoms), state.n_atoms)
+    nl.update(state)
+    assert nl.clusters is None
+    assert nl.frame is not None or cell == "small"
+
+
+def test_a_cell_change_rebuilds_the_clusters(fcc_lattice):
+    """Offsets and origins hold the build's box lengths: a barostat's step rebuilds."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    nl.update(state)
+    assert not nl.update(state)
+    state.box = state.box * 1.001
+    state.positions *= 1.001
+    assert nl.update(state)
+    assert_covers(state, nl.clusters, nl.list_radius)
+
+
+def test_the_slot_list_is_built_on_demand_at_the_build_positions(fcc_lattice, rng):
+    """Per-atom results read the atom-order list: after a cluster build it comes from the
+    positions of the build, so it holds what a slot build there would have held."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    nl.update(state)
+    at_build = state.copy()
+    state.positions += rng.normal(scale=0.02, size=state.positions.shape)
+    assert not nl.update(state)
+    plain = NeighborList(2.5, 0.3)
+    plain.update(at_build)
+    np.testing.assert_array_equal(nl.pairs(), plain.pairs())
+    mixed = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    result = mixed.compute(state, per_atom=True)
+    double = ForceField([LennardJones(cutoff=2.5)]).compute(state, per_atom=True)
+    assert np.abs(result.energies - double.energies).max() < 1e-5
+
+
+def _relative_error(mixed, double):
+    return np.abs(mixed - double).max() / np.abs(double).max()
+
+
+POTENTIALS = {
+    "lj-none": lambda: LennardJones(cutoff=2.5, cutoff_mode="none"),
+    "lj-shift": lambda: LennardJones(cutoff=2.5),
+    "lj-smooth": lambda: LennardJones(cutoff=2.5, cutoff_mode="smooth"),
+    "lj-two-types": lambda: LennardJones(epsilon=[1.0, 0.7], sigma=[1.0, 0.9], cutoff=2.5,
+                                         pairs={(0, 1): {"epsilon": 0.5, "cutoff": 2.1}}),
+    "morse (double term)": lambda: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.5),
+}
+DEFAULT = {("lj-shift", 1), ("lj-shift", 2), ("lj-two-types", 1)}
+
+
+def _kernel_cases():
+    return [pytest.param(name, threads,
+                         marks=() if (name, threads) in DEFAULT else pytest.mark.slow)
+            for name in POTENTIALS for threads in (1, 2)]  # fmt: skip
+
+
+@pytest.mark.parametrize(("name", "threads"), _kernel_cases())
+def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threads, fcc_lattice,
+                                                                     rng):  # fmt: skip
+    state = fcc_lattice(cells=8, perturbation=0.08, n_types=2 if "two" in name else 1)
+    state.positions += rng.integers(-3, 4, size=state.positions.shape) * state.box
+    potential = POTENTIALS[name]()
+    before = get_threads()
+    try:
+        set_threads(threads)
+        double = ForceField([potential]).compute(state, virial=True)
+        field = ForceField([potential], precision="mixed")
+        results = [field.compute(state, virial=True)]  # the marking call, on the whole list
+        field.invalidate()
+        results.append(field.compute(state, virial=True))  # on the pruned list
+        clusters = field.neighbor_list.clusters
+        assert clusters is not None and len(clusters.bounds) - 1 == threads
+    finally:
+        set_threads(before)
+    for mixed in results:
+        error = _relative_error(mixed.forces, double.forces)
+        assert 1e-3 * EPS32 < error < 200 * EPS32, error  # float32 lanes, double sums
+        assert abs(mixed.energy - double.energy) < 20 * EPS32 * abs(double.energy)
+        assert _relative_error(mixed.virial, double.virial) < 20 * EPS32
+        # Newton's third law to float32 round-off: a pair's force enters the i sums and the
+        # j sums in float32 lanes before each is added in double (random-walk accumulation)
+        scale = np.sqrt(state.n_atoms) * np.abs(double.forces).max()
+        assert np.abs(mixed.forces.sum(axis=0)).max() < 10 * EPS32 * scale
+    # pruning changes which cluster pairs are visited, not the sums' terms
+    assert _relative_error(results[0].forces, results[1].forces) < 10 * EPS32
+
+
+def test_the_cluster_kernel_gives_the_same_forces_on_every_call(fcc_lattice):
+    """A fixed summation order: two evaluations of one state are bit for bit equal (what a
+    checkpoint's bit-for-bit resume rests on)."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    field.compute(state)
+    field.invalidate()
+    first = field.compute(state)
+    field.invalidate()
+    second = field.compute(state)
+    assert np.array_equal(first.forces, second.forces) and first.energy == second.energy
+
+
+def test_overlapping_atoms_give_an_infinite_energy_not_a_finite_one(fcc_lattice):
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    state.positions[1] = state.positions[0]
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    field.neighbor_list.update(state)
+    result = LennardJones(cutoff=2.5).energy_forces(state, field.neighbor_list, precision="mixed")
+    assert not np.isfinite(result.energy)
+
+
+def test_a_mixed_melt_runs_on_the_cluster_list(fcc_lattice):
+    """Simulation(precision="mixed") takes the cluster layout where the cell allows, and its
+    short run follows the double run to float32 round-off's growth."""
+    runs = {}
+    for precision in ("double", "mixed"):
+        state = md.build.maxwell_boltzmann(md.lattice("fcc", 6, density=0.8442), 1.0, seed=5)
+        sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
+                            precision=precision)  # fmt: skip
+        sim.run(50)
+        runs[precision] = sim
+    assert runs["mixed"].forcefield.neighbor_list.clusters is not None
+    assert runs["double"].forcefield.neighbor_list.clusters is None
+    gap = np.abs(runs["mixed"].state.positions - runs["double"].state.positions).max()
+    assert 0 < gap < 1e-3
+
+
+def test_the_search_gives_one_list_on_any_number_of_chunks_and_grows_its_room(fcc_lattice):
+    """Columns searched in chunks on the threads, rows copied together: the same list as
+    one chunk; buffers too small for the rows ask for more room (None), not a short list."""
+    from md._cluster_kernels import cluster_grid, column_counts, search_pairs
+
+    state = fcc_lattice(cells=8, perturbation=0.1)
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 64)
+             for chunks in (1, 2, 3)]  # fmt: skip
+    for other in lists[1:]:
+        for a, b in zip(lists[0], other, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 2, 2) is None
