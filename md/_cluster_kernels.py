@@ -4,7 +4,8 @@ GROMACS's pair-search layout (its "nbnxm" grid), written here for numba: the
 box's xy plane is cut into columns about (4 / density)^(1/3) wide, each
 column's atoms sorted by z and cut into clusters of ``CLUSTER`` (4) atoms, the
 last one of a column padded with fillers. A cluster pair is listed when the two
-clusters' bounding boxes come within the list radius; the pair kernels then
+clusters' bounding boxes may come within the list radius (column by column,
+see :func:`search_pairs`); the pair kernels then
 evaluate all 4 x 4 atom pairs of each listed cluster pair, in SIMD lanes.
 
 A cluster's atoms are stored relative to an origin per slot (the cluster's
@@ -107,23 +108,28 @@ def cluster_grid(positions, box, ncx, ncy):
 
 @njit(cache=True, error_model="numpy")
 def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster):
-    """The cluster pairs whose bounding boxes come within ``radius``.
+    """The candidate cluster pairs of a list of radius ``radius``.
 
-    Each pair once (j >= i; a cluster with an image of itself at one of the two
-    opposite shifts; the box must be wider than twice the cutoff, so that an atom
-    pair lies within it at one image at most), each i cluster's row starting with
-    the cluster itself at zero shift, with its offset, centre_i - centre_j - image
-    shift, in float32. Returns (starts, partners int32, offsets (pairs, 3) float32)
-    grouped by i cluster, or None where ``per_cluster`` pairs of room per cluster
-    did not suffice (search again with more).
+    For each i cluster, the clusters j >= i of the columns whose rectangle its
+    bounding box comes within ``radius`` of (in xy, images included) and whose
+    bounding box overlaps its own, widened by ``radius``, in z: a superset of the
+    pairs with an atom pair within reach, which the cluster kernels' first call
+    prunes to those (a box-to-box test here cost more time than it saved there).
+    Each pair once (a cluster with an image of itself at one of the two opposite
+    shifts; the box must be wider than twice the cutoff, so that an atom pair lies
+    within it at one image at most), each row starting with the cluster itself at
+    zero shift, with its offset, centre_i - centre_j - image shift, in float32.
+    Returns (starts, partners int32, offsets (pairs, 3) float32) grouped by i
+    cluster, or None where ``per_cluster`` pairs of room per cluster did not suffice
+    (search again with more).
 
     The columns are searched in ``chunks`` runs of about equal cluster counts on the
     threads, each into its own buffers, then copied together. Per column of i clusters,
     each neighbouring column (and periodic image in z) is swept once: along both
     columns the clusters' boxes rise in z, so the window of j clusters an i cluster can
     reach only moves up as i does (two cursors, no search). The windows are kept per i
-    cluster and column, then each i cluster's candidates are tested box against box
-    and written branch-free (the count advances by the test's result).
+    cluster and column, then each i cluster's windows are written out, a vectorised copy
+    each.
     """
     n_columns = ncx * ncy
     n_clusters = lower.shape[0]
@@ -199,9 +205,17 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
     most = 0
     for c in range(c0, c1):
         most = max(most, first[c + 1] - first[c])
-    window_begin = np.zeros((most, n_slots), np.int64)
-    window_end = np.zeros((most, n_slots), np.int64)
+    window_begin = np.empty((most, n_slots), np.int64)
+    window_end = np.empty((most, n_slots), np.int64)
     slot_shift = np.zeros((n_slots, 3))
+    a = first[c0]
+    b = first[c1]
+    centre_x = 0.5 * (lower[a:b, 0] + upper[a:b, 0])  # of this run's clusters, from a
+    centre_y = 0.5 * (lower[a:b, 1] + upper[a:b, 1])
+    centre_z = 0.5 * (lower[a:b, 2] + upper[a:b, 2])
+    all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # of every cluster (the partners)
+    all_y = 0.5 * (lower[:, 1] + upper[:, 1])
+    all_z = 0.5 * (lower[:, 2] + upper[:, 2])
     r2max = radius * radius
     capacity = partners.shape[0]
     k = 0
@@ -210,8 +224,6 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
         if f1 == f0:
             continue
         cx, cy = c // ncy, c % ncy
-        window_begin[: f1 - f0] = 0
-        window_end[: f1 - f0] = 0
         m = 0
         for dx in range(-reach_x, reach_x + 1):
             ux = cx + dx
@@ -249,10 +261,14 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     begin = g0
                     end = g0
                     for ci in range(f0, f1):
-                        if dz == -1 and lower[ci, 2] >= radius:
-                            break  # the image below is out of reach from here up
-                        if dz == 1 and upper[ci, 2] + radius < box[2]:
-                            continue  # the image above: only the column's top clusters
+                        row = ci - f0
+                        window_begin[row, slot] = 0
+                        window_end[row, slot] = 0
+                        # the images below and above: only a column's lowest (highest) clusters
+                        if (dz == -1 and lower[ci, 2] >= radius) or (
+                            dz == 1 and upper[ci, 2] + radius < box[2]
+                        ):
+                            continue
                         low = lower[ci, 2] - radius - sz
                         high = upper[ci, 2] + radius - sz
                         while begin < g1 and upper[begin, 2] < low:
@@ -263,11 +279,11 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                         gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
                         gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
                         if gx * gx + gy * gy < r2max:
-                            b = max(begin, ci)
-                            if b == ci and (not positive or zero):
-                                b += 1  # itself: first in its row; its image at -shift: at +shift
-                            window_begin[ci - f0, slot] = b
-                            window_end[ci - f0, slot] = max(end, b)
+                            first_j = max(begin, ci)
+                            if first_j == ci and (not positive or zero):
+                                first_j += 1  # itself: first in its row; its -shift image: at +
+                            window_begin[row, slot] = first_j
+                            window_end[row, slot] = max(end, first_j)
                 m += 1
         for ci in range(f0, f1):
             row = ci - f0
@@ -276,25 +292,21 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                 total += window_end[row, slot] - window_begin[row, slot]
             if k + total > capacity:
                 return -(k + total)
-            row_start = k
-            lx, ly, lz = lower[ci, 0], lower[ci, 1], lower[ci, 2]
-            ux_, uy_, uz_ = upper[ci, 0], upper[ci, 1], upper[ci, 2]
-            ox, oy, oz = 0.5 * (lx + ux_), 0.5 * (ly + uy_), 0.5 * (lz + uz_)
+            counts[ci] = total
+            ox, oy, oz = centre_x[ci - a], centre_y[ci - a], centre_z[ci - a]
             partners[k] = ci  # the cluster with itself first (the kernels rely on it)
             offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
             k += 1
             for slot in range(3 * m):
-                sx, sy, sz = slot_shift[slot, 0], slot_shift[slot, 1], slot_shift[slot, 2]
-                for cj in range(window_begin[row, slot], window_end[row, slot]):
-                    ex = max(lower[cj, 0] + sx - ux_, lx - upper[cj, 0] - sx, 0.0)
-                    ey = max(lower[cj, 1] + sy - uy_, ly - upper[cj, 1] - sy, 0.0)
-                    ez = max(lower[cj, 2] + sz - uz_, lz - upper[cj, 2] - sz, 0.0)
-                    partners[k] = cj
-                    offsets[k, 0] = ox - 0.5 * (lower[cj, 0] + upper[cj, 0]) - sx
-                    offsets[k, 1] = oy - 0.5 * (lower[cj, 1] + upper[cj, 1]) - sy
-                    offsets[k, 2] = oz - 0.5 * (lower[cj, 2] + upper[cj, 2]) - sz
-                    k += ex * ex + ey * ey + ez * ez < r2max
-            counts[ci] = k - row_start
+                sx, sy, sz = ox - slot_shift[slot, 0], oy - slot_shift[slot, 1], oz - slot_shift[
+                    slot, 2]  # fmt: skip
+                lo, hi = window_begin[row, slot], window_end[row, slot]
+                for j in range(hi - lo):  # no dependence between j: vectorised
+                    partners[k + j] = lo + j
+                    offsets[k + j, 0] = sx - all_x[lo + j]
+                    offsets[k + j, 1] = sy - all_y[lo + j]
+                    offsets[k + j, 2] = sz - all_z[lo + j]
+                k += hi - lo
     return k
 
 

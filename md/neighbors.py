@@ -119,8 +119,9 @@ class ClusterFrame:
     ``x_rel[c, a] - x_rel[j, b] + offsets[k]`` (float32). Chunk t (one per thread)
     covers i clusters ``bounds[t]`` to ``bounds[t + 1]``.
 
-    As built, the list holds every cluster pair whose bounding boxes come within
-    the list radius; the first force call marks the pairs that have an atom pair
+    As built, the list holds the candidates of the search (bounding boxes within
+    the list radius along z, columns within it in xy: every cluster pair with an
+    atom pair within the list radius, and half as many more); the first force call marks the pairs that have an atom pair
     within it (``needs_pruning`` until then) and hands the marks to :meth:`prune`,
     which keeps only those (about two thirds): GROMACS's dynamic pruning, from the
     distances the kernel computes anyway. The marks must come from ``reference``,

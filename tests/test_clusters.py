@@ -270,7 +270,7 @@ def test_the_search_gives_one_list_on_any_number_of_chunks_and_grows_its_room(fc
     state = fcc_lattice(cells=8, perturbation=0.1)
     ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
     first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 64)
+    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 256)
              for chunks in (1, 2, 3)]  # fmt: skip
     for other in lists[1:]:
         for a, b in zip(lists[0], other, strict=True):
