@@ -23,10 +23,20 @@ another one's image twice (the caller checks): the slot frame serves the rest.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from md._simd import array_data, load_vector, splat
 
 #: Atoms per cluster (the kernels' i and j clusters alike).
 CLUSTER = 4
+#: A filler's z relative to its cluster's origin: ``-FILLER`` in the j role, ``+FILLER``
+#: in the i role (so two fillers never meet), spread 10 apart in x within a cluster. Not
+#: farther: float32's 1/r^12 underflows into slow denormals past r ~ 1400, and the
+#: kernels' masks keep fillers out of every sum anyway.
+FILLER = 100.0
 
 @njit(cache=True, error_model="numpy")
 def column_counts(box, n_atoms, radius):
@@ -345,3 +355,95 @@ def balanced_chunks(starts, chunks):
         c += 1
     bounds[chunks] = n
     return bounds
+
+
+@njit(cache=True, error_model="numpy")
+def cluster_positions(positions, atom, origin, xi, xj):
+    """Each slot's position relative to its origin, in float32, as the kernels read
+    them: per cluster [x0..x3, y0..y3, z0..z3]; ``xi`` for the i role, ``xj`` for the
+    j role (they differ only in where the fillers sit)."""
+    for s in range(atom.shape[0]):
+        base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
+        i = atom[s]
+        if i >= 0:
+            for d in range(3):
+                value = np.float32(positions[i, d] - origin[s, d])
+                xi[base + d * CLUSTER] = value
+                xj[base + d * CLUSTER] = value
+        else:
+            xi[base] = xj[base] = np.float32(10.0 * (s % CLUSTER))
+            xi[base + CLUSTER] = xj[base + CLUSTER] = np.float32(0.0)
+            xi[base + 2 * CLUSTER] = np.float32(FILLER)
+            xj[base + 2 * CLUSTER] = np.float32(-FILLER)
+
+
+_F32 = ir.FloatType()
+_I64 = ir.IntType(64)
+_V4 = ir.VectorType(_F32, 4)
+_V8 = ir.VectorType(_F32, 8)
+_MASK8 = ir.VectorType(ir.IntType(1), 8)
+
+
+def _lanes(builder, a, b, lanes):
+    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), 8), lanes))
+
+
+@intrinsic
+def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near):
+    """Set ``near[k]`` for i cluster ``ci``'s pairs ``start`` to ``end``: whether an atom
+    pair lies closer than sqrt(``reach2``) (a float32), in the cluster kernels' layout
+    and lanes (two i atoms by four j atoms per 8-lane vector, the row's first pair the
+    cluster with itself, whose lower triangle does not count; it is always kept)."""
+    sig = types.void(xi, xj, offsets, partners, start, end, ci, reach2, near)
+
+    def codegen(context, builder, signature, args):
+        xi_p, xj_p, off_p, part_p = (array_data(context, builder, signature.args[n], args[n])
+                                     for n in range(4))  # fmt: skip
+        near_p = array_data(context, builder, signature.args[8], args[8])
+        start, end, ci, reach2 = args[4:8]
+        base_i = builder.mul(ci, ir.Constant(_I64, 3 * CLUSTER))
+        own = [load_vector(builder, xi_p, builder.add(base_i, ir.Constant(_I64, 4 * d)), _V4)
+               for d in range(3)]  # fmt: skip
+        halves = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
+                  for h in range(2)]  # fmt: skip
+        reach = splat(builder, reach2, _V8)
+        never = ir.Constant(_V8, [-1.0] * 8)
+        own_reach = [builder.select(ir.Constant(_MASK8, keep), reach, never)
+                     for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])]  # fmt: skip
+        with cgutils.for_range_slice(builder, start, end, ir.Constant(_I64, 1)) as (k, _):
+            cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
+            itself = builder.icmp_signed("==", k, start)
+            base_j = builder.mul(cj, ir.Constant(_I64, 3 * CLUSTER))
+            k3 = builder.mul(k, ir.Constant(_I64, 3))
+            within = None
+            shifted = []
+            for d in range(3):
+                offset = builder.load(builder.gep(off_p, [builder.add(k3, ir.Constant(_I64, d))]))
+                four = load_vector(builder, xj_p, builder.add(base_j, ir.Constant(_I64, 4 * d)),
+                                   _V4)  # fmt: skip
+                shifted.append(builder.fsub(_lanes(builder, four, four, [0, 1, 2, 3] * 2),
+                                            splat(builder, offset, _V8)))  # fmt: skip
+            for h in range(2):
+                dx = [builder.fsub(halves[h][d], shifted[d]) for d in range(3)]
+                r2 = builder.fmul(dx[0], dx[0])
+                for d in (1, 2):
+                    r2 = builder.fadd(r2, builder.fmul(dx[d], dx[d]))
+                bound = builder.select(itself, own_reach[h], reach)
+                close = builder.fcmp_ordered("<", r2, bound)
+                within = close if within is None else builder.or_(within, close)
+            anything = builder.icmp_unsigned("!=", builder.bitcast(within, ir.IntType(8)),
+                                             ir.Constant(ir.IntType(8), 0))  # fmt: skip
+            anything = builder.or_(anything, itself)
+            builder.store(builder.zext(anything, ir.IntType(8)), builder.gep(near_p, [k]))
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, error_model="numpy")
+def mark_pairs(xi, xj, starts, partners, offsets, reach2, near):
+    """:func:`_mark_row` for every i cluster: ``near[k]`` whether cluster pair k has an
+    atom pair within sqrt(``reach2``) at the positions ``xi``/``xj`` (float32, see
+    :func:`cluster_positions`); ``offsets`` flat (3 per pair)."""
+    for ci in range(starts.shape[0] - 1):
+        _mark_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, reach2, near)

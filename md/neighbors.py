@@ -26,8 +26,10 @@ from md._cluster_kernels import (
     CLUSTER,
     balanced_chunks,
     cluster_grid,
+    cluster_positions,
     column_counts,
     keep_marked,
+    mark_pairs,
     search_pairs,
 )
 from md.box import (
@@ -114,36 +116,26 @@ class ClusterFrame:
     Built by :class:`NeighborList` with ``clusters=True`` (see
     :mod:`md._cluster_kernels` for the grid and the search). Slot s holds atom
     ``atom[s]`` (-1: a filler), in cluster s // 4; its position relative to its
-    cluster is ``positions[atom[s]] - origin[s]``. I cluster c's partners are
-    ``partners[starts[c]:starts[c + 1]]``, pair k's atoms separated by
-    ``x_rel[c, a] - x_rel[j, b] + offsets[k]`` (float32). Chunk t (one per thread)
-    covers i clusters ``bounds[t]`` to ``bounds[t + 1]``.
+    cluster is ``positions[atom[s]] - origin[s]`` (:meth:`relative_positions`). I
+    cluster c's partners are ``partners[starts[c]:starts[c + 1]]``, the first of
+    them c itself; pair k's atoms are separated by ``x_rel[c, a] - x_rel[j, b] +
+    offsets[k]`` (float32). Chunk t (one per thread) covers i clusters
+    ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts.
 
-    As built, the list holds the candidates of the search (bounding boxes within
-    the list radius along z, columns within it in xy: every cluster pair with an
-    atom pair within the list radius, and half as many more); the first force call marks the pairs that have an atom pair
-    within it (``needs_pruning`` until then) and hands the marks to :meth:`prune`,
-    which keeps only those (about two thirds): GROMACS's dynamic pruning, from the
-    distances the kernel computes anyway. The marks must come from ``reference``,
-    the positions of the build (the list's guarantee counts displacements from
-    there): a first call at other positions (a resumed run's, whose list was
-    rebuilt at its checkpoint's build positions) marks at ``reference`` first.
+    The list holds the cluster pairs that had an atom pair within the list radius
+    at the build: the search's candidates (see :func:`md._cluster_kernels.search_pairs`)
+    checked atom by atom in 8-lane vectors (GROMACS's pruning), about two thirds of them.
     """
 
     size = CLUSTER
 
-    def __init__(self, atom, origin, starts, partners, offsets, radius: float, chunks: int,
-                 reference):  # fmt: skip
+    def __init__(self, atom, origin, starts, partners, offsets, chunks: int):
         self.atom = atom
         self.origin = origin
-        self.reference = reference
         self.starts = starts
         self.partners = partners
         self.offsets = offsets
-        self.radius = float(radius)
-        self.chunks = int(chunks)
-        self.bounds = balanced_chunks(starts, self.chunks)
-        self.needs_pruning = True
+        self.bounds = balanced_chunks(starts, int(chunks))
 
     @property
     def n_clusters(self) -> int:
@@ -154,15 +146,12 @@ class ClusterFrame:
         """Cluster pairs listed."""
         return int(self.starts[-1])
 
-    def prune(self, near: NDArray[np.uint8]) -> None:
-        """Keep only the pairs ``near`` marks (nonzero), in place; rebalance the chunks."""
-        if near.shape != (self.n_pairs,):
-            raise ValueError(f"{near.shape[0]} marks for {self.n_pairs} cluster pairs")
-        count = keep_marked(self.starts, self.partners, self.offsets, near)
-        self.partners = self.partners[:count]
-        self.offsets = self.offsets[:count]
-        self.bounds = balanced_chunks(self.starts, self.chunks)
-        self.needs_pruning = False
+    def relative_positions(self, positions: NDArray[np.float64], xi: NDArray[np.float32],
+                           xj: NDArray[np.float32]) -> None:  # fmt: skip
+        """Write the slots' positions relative to their origins into ``xi`` and ``xj``
+        (float32, 12 per cluster: x0..x3, y0..y3, z0..z3), in the i and the j role (they
+        differ in where the fillers sit: far apart, never within reach of anything)."""
+        cluster_positions(positions, self.atom, self.origin, xi, xj)
 
 
 def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
@@ -535,7 +524,7 @@ class NeighborList:
         chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
         columns = self._cluster_columns(state) if grid is not None else None
         if columns is not None:
-            self._build_clusters(state, columns, chunks, reference)
+            self._build_clusters(state, columns, chunks)
             self.shifts = shifts
             self._slots_pending = True
         elif grid is None:
@@ -600,8 +589,7 @@ class NeighborList:
             columns.append(count)
         return columns[0], columns[1]
 
-    def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int,
-                        reference: NDArray[np.float64]) -> None:  # fmt: skip
+    def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int) -> None:
         ncx, ncy = columns
         first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
         radius = self.list_radius
@@ -612,8 +600,17 @@ class NeighborList:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
         starts, partners, offsets = found
-        self._clusters = ClusterFrame(atom, origin, starts, partners, offsets, radius, chunks,
-                                      reference)  # fmt: skip
+        # keep the pairs with an atom pair within reach (in float32: the radius widened by
+        # 1e-5 so that rounding can only keep a pair more, never drop one)
+        xi = np.empty(3 * len(atom), np.float32)
+        xj = np.empty(3 * len(atom), np.float32)
+        cluster_positions(state.positions, atom, origin, xi, xj)
+        near = np.empty(len(partners), np.uint8)
+        reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
+        mark_pairs(xi, xj, starts, partners, offsets.reshape(-1), reach2, near)
+        count = keep_marked(starts, partners, offsets, near)
+        self._clusters = ClusterFrame(atom, origin, starts, partners[:count], offsets[:count],
+                                      chunks)  # fmt: skip
 
     def _slot_list(self) -> None:
         """After a cluster build, build the slot list at the build's positions and cell

@@ -43,6 +43,8 @@ from numba.extending import intrinsic
 
 from md._simd import array_data, load_vector, splat, store_vector
 
+__all__ = ["cluster_row", "slp_vectorising"]
+
 _F32 = ir.FloatType()
 _F64 = ir.DoubleType()
 _I8 = ir.IntType(8)
@@ -126,49 +128,45 @@ def cluster_row(pair, rows):
     template's names are set only in each term's copy).
 
     ``row(xi, xj, offsets, partners, start, end, ci, slot_types, n_types, table, mode,
-    data, cut2, forces, near, reach2, virial) -> energy`` (float64):
+    data, cut2, forces, virial) -> energy`` (float64):
 
     - ``xi``, ``xj``: float32 (clusters * 12,), each cluster [x0..x3, y0..y3, z0..z3]
       relative to its origin, for the i and the j role;
     - ``offsets`` float32 (pairs * 3,), ``partners`` int32: cluster pairs
       ``start`` to ``end`` are i cluster ``ci``'s, the first of them ``ci`` with itself
-      at zero offset (only its pairs b > a are evaluated; marking keeps it);
+      at zero offset (only its pairs b > a are evaluated);
     - ``slot_types`` int32 per slot, or None when every atom has type 0 (column 0);
     - ``table``, ``mode``, ``data``: passed to ``pair`` (mode a literal);
     - ``cut2``: float32, the largest squared cutoff of the table;
     - ``forces`` float64 (clusters * 12,): the i forces added, the j forces subtracted,
       each cluster pair's j sums and every ``_FLUSH`` pairs' i sums added in double (so
       no float32 sum runs over more than 8 ``_FLUSH`` terms, whatever the row's length);
-    - ``near`` uint8 per pair, or None: set to whether the pair has an atom pair
-      within ``reach2`` (squared, float32) - GROMACS's dynamic pruning;
     - ``virial`` float64 (9,), or None: adds offset (x) (force on the i cluster) per
       pair, the part of the virial the relative positions do not carry.
     """
 
     @intrinsic
     def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-            table, mode, data, cut2, forces, near, reach2, virial):  # fmt: skip
+            table, mode, data, cut2, forces, virial):  # fmt: skip
         real = table.dtype
         mode_type = getattr(mode, "literal_type", mode)
         pair_sig = typingctx.resolve_function_type(
             numba.typeof(pair), (real, types.int64, table, mode_type, data), {}
         )
         sig = types.float64(xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-                            table, mode, data, cut2, forces, near, reach2, virial)  # fmt: skip
+                            table, mode, data, cut2, forces, virial)  # fmt: skip
         single = isinstance(slot_types, types.NoneType)
-        marking = not isinstance(near, types.NoneType)
         with_virial = not isinstance(virial, types.NoneType)
 
         def codegen(context, builder, signature, args):
             fl = _FLAGS
             (xi_v, xj_v, off_v, part_v, start_v, end_v, ci_v, types_v, ntypes_v, table_v,
-             mode_v, data_v, cut_v, forces_v, near_v, reach_v, virial_v) = args  # fmt: skip
+             mode_v, data_v, cut_v, forces_v, virial_v) = args  # fmt: skip
             arg = signature.args
             xi_p, xj_p, off_p, part_p = (array_data(context, builder, arg[n], args[n])
                                          for n in range(4))  # fmt: skip
             f_p = array_data(context, builder, arg[13], forces_v)
-            near_p = array_data(context, builder, arg[14], near_v) if marking else None
-            vir_p = array_data(context, builder, arg[16], virial_v) if with_virial else None
+            vir_p = array_data(context, builder, arg[14], virial_v) if with_virial else None
             types_p = None if single else array_data(context, builder, arg[7], types_v)
             literal = getattr(arg[10], "literal_value", None)
             mode_c = _index(literal) if literal is not None else builder.sext(mode_v, _I64)
@@ -185,10 +183,6 @@ def cluster_row(pair, rows):
             cut = splat(builder, cut_v, _V8)
             own_cuts = [builder.select(ir.Constant(_MASK8, keep), cut, _eight(-1.0))
                         for keep in _OWN_LANES]  # fmt: skip
-            if marking:
-                reach = splat(builder, reach_v, _V8)
-                own_reach = [builder.select(ir.Constant(_MASK8, keep), reach, _eight(-1.0))
-                             for keep in _OWN_LANES]  # fmt: skip
             if single:  # every lane reads column 0: from a local copy
                 type_rows = None
                 table_v = _local_column(context, builder, arg[9], table_v, rows())
@@ -245,7 +239,6 @@ def cluster_row(pair, rows):
                             t = builder.load(builder.gep(types_p, [slot]))
                             tj.append(builder.sext(t, _I64))
                     fj = [_eight(0.0)] * 3
-                    within = None
                     for h in range(2):
                         dx = [builder.fsub(pairs_i[h][d], shifted[d], flags=fl) for d in range(3)]
                         r2 = builder.fmul(dx[0], dx[0], flags=fl)
@@ -253,10 +246,6 @@ def cluster_row(pair, rows):
                             r2 = builder.fadd(r2, builder.fmul(dx[d], dx[d], flags=fl), flags=fl)
                         limit = builder.select(itself, own_cuts[h], cut)
                         mask = builder.fcmp_ordered("<", r2, limit)
-                        if marking:
-                            bound = builder.select(itself, own_reach[h], reach)
-                            close = builder.fcmp_ordered("<", r2, bound)
-                            within = close if within is None else builder.or_(within, close)
                         safe = builder.select(mask, r2, cut)
                         if not single:
                             columns = [builder.add(type_rows[2 * h + lane // 4], tj[lane % 4])
@@ -283,12 +272,6 @@ def cluster_row(pair, rows):
                             builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
                                           sums[3 * h + d])  # fmt: skip
                             fj[d] = builder.fadd(fj[d], g, flags=fl)
-                    if marking:  # a cluster with itself stays first in its row
-                        anything = builder.icmp_unsigned(
-                            "!=", builder.bitcast(within, _I8), ir.Constant(_I8, 0)
-                        )
-                        anything = builder.or_(anything, itself)
-                        builder.store(builder.zext(anything, _I8), builder.gep(near_p, [k]))
                     totals = []
                     for d in range(3):
                         low = _lanes(builder, fj[d], fj[d], [0, 1, 2, 3])

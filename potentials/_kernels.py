@@ -7,8 +7,6 @@ from numba import njit
 
 #: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
 CLUSTER = 4
-#: Where fillers sit, relative to their cluster's origin (md._cluster_kernels.FILLER).
-FILLER = 100.0
 
 
 @njit(cache=True, inline="always")
@@ -116,27 +114,6 @@ def _gather_pair_columns(frame_types, partners, row, table, params):
         column = row + frame_types[np.uint32(partners[k])]
         for r in range(n_rows):
             params[r, k] = table[r, column]
-
-
-@njit(cache=True, error_model="numpy")
-def _cluster_positions(positions, atom, origin, xi, xj):
-    """Each slot's position relative to its origin, in float32, as the kernels read
-    them: per cluster [x0..x3, y0..y3, z0..z3]; ``xi`` for the i role, ``xj`` for the
-    j role (they differ only in where the fillers sit)."""
-    for s in range(atom.shape[0]):
-        cl, b = s // CLUSTER, s % CLUSTER
-        base = cl * 3 * CLUSTER + b
-        i = atom[s]
-        if i >= 0:
-            for d in range(3):
-                value = np.float32(positions[i, d] - origin[s, d])
-                xi[base + d * CLUSTER] = value
-                xj[base + d * CLUSTER] = value
-        else:
-            xi[base] = xj[base] = np.float32(10.0 * b)
-            xi[base + CLUSTER] = xj[base + CLUSTER] = np.float32(0.0)
-            xi[base + 2 * CLUSTER] = np.float32(FILLER)
-            xj[base + 2 * CLUSTER] = np.float32(-FILLER)
 
 
 @njit(cache=True, error_model="numpy")

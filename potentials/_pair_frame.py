@@ -51,12 +51,7 @@ from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials._cluster_ir import slp_vectorising
-from potentials._kernels import (
-    _cluster_atom_forces,
-    _cluster_moments,
-    _cluster_positions,
-    _slot_types,
-)
+from potentials._kernels import _cluster_atom_forces, _cluster_moments, _slot_types
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 
@@ -782,9 +777,8 @@ class PairPotential:
                                virial: bool):  # fmt: skip
         """Mixed precision over a cluster-pair list (``md.neighbors.ClusterFrame``): the
         relative positions in float32, the cluster kernel per chunk (on the threads when
-        there are several), marking the pairs to keep on the list's first call (then
-        :meth:`~md.neighbors.ClusterFrame.prune`), the chunks' forces summed into atom
-        order, and the virial from the kernel's offset part plus the positions' part."""
+        there are several), the chunks' forces summed into atom order, and the virial
+        from the kernel's offset part plus the positions' part."""
         n = state.n_atoms
         atom = clusters.atom
         n_clusters = len(atom) // 4
@@ -805,34 +799,20 @@ class PairPotential:
         if not single:
             _slot_types(state.types, atom, slot_types)
         entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
-        reach2 = np.float32(clusters.radius**2)
-
-        def run(positions, virial: bool, near) -> None:
-            _cluster_positions(positions, atom, clusters.origin, xi, xj)
-            lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1),
-                     clusters.bounds)  # fmt: skip
-            # as the slot frame's first call: both virial variants run once (they compile
-            # or load before a run's loop), the one asked for last
-            ran = (entry, mode, single, near is None)
-            variants = [virial] if ran in self._run_variants else [not virial, virial]
-            self._run_variants.add(ran)
-            with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
-                for with_virial in variants:
-                    kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
-                                      single=single)  # fmt: skip
-                    kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
-                           with_virial, single, near, reach2, buffers, energies,
-                           virials)  # fmt: skip
-
-        if clusters.needs_pruning:  # marks from the build's positions (ClusterFrame)
-            near = np.empty(clusters.n_pairs, np.uint8)
-            at_build = np.array_equal(clusters.reference, state.positions)
-            run(clusters.reference, bool(virial) and at_build, near)
-            clusters.prune(near)
-            if not at_build:
-                run(state.positions, bool(virial), None)
-        else:
-            run(state.positions, bool(virial), None)
+        clusters.relative_positions(state.positions, xi, xj)
+        lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1),
+                 clusters.bounds)  # fmt: skip
+        # as the slot frame's first call: both virial variants run once (they compile or
+        # load before a run's loop), the one asked for last
+        ran = (entry, mode, single)
+        variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
+        self._run_variants.add(ran)
+        with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
+            for with_virial in variants:
+                kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
+                                  single=single)  # fmt: skip
+                kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
+                       with_virial, single, buffers, energies, virials)  # fmt: skip
         forces = np.empty((n, 3))
         _cluster_atom_forces(buffers, atom, forces)
         total = None

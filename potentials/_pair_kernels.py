@@ -380,7 +380,7 @@ _cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
 
 @njit(cache=True, error_model="numpy")
 def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
-                   single, near, reach2, buffers, energies, virials):  # fmt: skip
+                   single, buffers, energies, virials):  # fmt: skip
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
     ``clusters`` is (starts, partners, offsets, bounds): each i cluster's row of
@@ -390,33 +390,31 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     clusters' forces into its own ``buffers[c]`` (C, clusters * 12, zeroed here), its
     energy into ``energies[c]`` and, if ``with_virial``, offset (x) force of each pair
     into ``virials[c]`` (9, row-major; the relative positions' part is added by the
-    caller). ``near`` (uint8 per pair) or None: mark the pairs with an atom pair
-    within ``reach2``. The table is float32: mixed precision only.
+    caller). The table is float32: mixed precision only.
     """
     literally(mode)
     literally(with_virial)
     literally(single)
     for chunk in range(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, near, reach2, buffers, energies, virials)  # fmt: skip
+                       with_virial, single, buffers, energies, virials)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
-                            with_virial, single, near, reach2, buffers, energies,
-                            virials):  # fmt: skip
+                            with_virial, single, buffers, energies, virials):  # fmt: skip
     """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
     literally(mode)
     literally(with_virial)
     literally(single)
     for chunk in prange(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, near, reach2, buffers, energies, virials)  # fmt: skip
+                       with_virial, single, buffers, energies, virials)  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                   with_virial, single, near, reach2, buffers, energies, virials):  # fmt: skip
+                   with_virial, single, buffers, energies, virials):  # fmt: skip
     starts, partners, offsets, bounds = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
@@ -426,22 +424,20 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):
+        first, last = starts[ci], starts[ci + 1]
         if single and with_virial:
-            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
-                                   None, n_types, table, mode, data, cut2, out, near, reach2,
-                                   virials[chunk])  # fmt: skip
+            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
+                                   table, mode, data, cut2, out, virials[chunk])  # fmt: skip
         elif single:
-            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
-                                   None, n_types, table, mode, data, cut2, out, near, reach2,
-                                   None)  # fmt: skip
+            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
+                                   table, mode, data, cut2, out, None)  # fmt: skip
         elif with_virial:
-            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
-                                   slot_types, n_types, table, mode, data, cut2, out, near,
-                                   reach2, virials[chunk])  # fmt: skip
+            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
+                                   n_types, table, mode, data, cut2, out,
+                                   virials[chunk])  # fmt: skip
         else:
-            energy += _cluster_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
-                                   slot_types, n_types, table, mode, data, cut2, out, near,
-                                   reach2, None)  # fmt: skip
+            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
+                                   n_types, table, mode, data, cut2, out, None)  # fmt: skip
     energies[chunk] = energy
 
 

@@ -15,12 +15,11 @@ import pytest
 
 import md
 from integrators import VelocityVerlet
-from md._cluster_kernels import CLUSTER
+from md._cluster_kernels import CLUSTER, FILLER, cluster_grid, column_counts, search_pairs
 from md.forcefield import ForceField
 from md.neighbors import NeighborList
 from md.parallel import get_threads, set_threads
 from potentials import LennardJones, Morse
-from potentials._kernels import FILLER
 
 EPS32 = float(np.finfo(np.float32).eps)
 
@@ -89,7 +88,7 @@ def test_cluster_list_holds_every_pair_within_the_radius_once(system, fcc_lattic
     nl = NeighborList(2.5, 0.3, clusters=True)
     assert nl.update(state)
     clusters = nl.clusters
-    assert clusters is not None and clusters.needs_pruning
+    assert clusters is not None
     assert_covers(state, clusters, nl.list_radius)
     # every atom in one slot, fillers only at the end of a column's last cluster
     assert sorted(clusters.atom[clusters.atom >= 0].tolist()) == list(range(state.n_atoms))
@@ -110,22 +109,41 @@ def test_sparse_columns_and_their_images_are_searched_exactly(n_atoms, box, rand
     assert_covers(state, nl.clusters, nl.list_radius)
 
 
-def test_pruning_keeps_exactly_the_pairs_with_an_atom_pair_within_reach(fcc_lattice):
+def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fcc_lattice):
+    """The build prunes the search's candidates atom by atom (GROMACS's pruning): the kept
+    pairs are those of the candidates with an atom pair within the list radius (a row's
+    first pair, the cluster with itself, always), to float32's rounding at the edge."""
     state = fcc_lattice(cells=6, perturbation=0.1)
     nl = NeighborList(2.5, 0.3, clusters=True)
     nl.update(state)
-    before = nl.clusters.n_pairs
-    LennardJones(cutoff=2.5).energy_forces(state, nl, precision="mixed")
     clusters = nl.clusters
-    assert not clusters.needs_pruning
-    assert 0.4 * before < clusters.n_pairs < before
-    assert_covers(state, clusters, nl.list_radius)
-    # and every kept pair has an atom pair within reach (the rest were dropped)
+    radius = nl.list_radius
+    ncx, ncy = column_counts(state.box, state.n_atoms, radius)
+    first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, radius,
+                                             1, 256)  # fmt: skip
+    assert 0.4 * len(partners) < clusters.n_pairs < len(partners)
     rel_i, rel_j = relative_positions(state, clusters)
-    owners = np.repeat(np.arange(clusters.n_clusters), np.diff(clusters.starts))
-    for ci, cj, offset in zip(owners, clusters.partners, clusters.offsets, strict=True):
+
+    def closest(ci, cj, offset):
         d = rel_i[ci][:, None, :] - rel_j[cj][None, :, :] + offset.astype(float)
-        assert (np.einsum("abk,abk->ab", d, d) < nl.list_radius**2 * (1 + 1e-6)).any() or ci == cj
+        r2 = np.einsum("abk,abk->ab", d, d)
+        return np.sqrt(np.triu(r2, k=1)[np.triu_indices(4, 1)].min() if ci == cj and not
+                       offset.any() else r2.min())  # fmt: skip
+
+    kept = {(ci, int(cj), tuple(o)) for ci in range(clusters.n_clusters)
+            for cj, o in zip(clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]],
+                             clusters.offsets[clusters.starts[ci]:clusters.starts[ci + 1]],
+                             strict=True)}  # fmt: skip
+    for ci in range(len(starts) - 1):
+        for k in range(starts[ci], starts[ci + 1]):
+            key = (ci, int(partners[k]), tuple(offsets[k]))
+            if k == starts[ci]:
+                assert key in kept
+                continue
+            distance = closest(ci, partners[k], offsets[k])
+            if abs(distance - radius) > 1e-4:
+                assert (key in kept) == (distance < radius), (key, distance)
 
 
 @pytest.mark.parametrize("cell", ["small", "tilted", "open axis", "decomposed rank"])
@@ -204,9 +222,9 @@ def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threa
         set_threads(threads)
         double = ForceField([potential]).compute(state, virial=True)
         field = ForceField([potential], precision="mixed")
-        results = [field.compute(state, virial=True)]  # the marking call, on the whole list
+        results = [field.compute(state, virial=True)]
         field.invalidate()
-        results.append(field.compute(state, virial=True))  # on the pruned list
+        results.append(field.compute(state, virial=False))  # the other variant
         clusters = field.neighbor_list.clusters
         assert clusters is not None and len(clusters.bounds) - 1 == threads
     finally:
@@ -215,13 +233,15 @@ def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threa
         error = _relative_error(mixed.forces, double.forces)
         assert 1e-3 * EPS32 < error < 200 * EPS32, error  # float32 lanes, double sums
         assert abs(mixed.energy - double.energy) < 20 * EPS32 * abs(double.energy)
-        assert _relative_error(mixed.virial, double.virial) < 20 * EPS32
+    assert _relative_error(results[0].virial, double.virial) < 20 * EPS32
+    assert results[1].virial is None
+    for mixed in results:
         # Newton's third law to float32 round-off: a pair's force enters the i sums and the
         # j sums in float32 lanes before each is added in double (random-walk accumulation)
         scale = np.sqrt(state.n_atoms) * np.abs(double.forces).max()
         assert np.abs(mixed.forces.sum(axis=0)).max() < 10 * EPS32 * scale
-    # pruning changes which cluster pairs are visited, not the sums' terms
-    assert _relative_error(results[0].forces, results[1].forces) < 10 * EPS32
+    # the virial's variant adds the same pair forces in the same order
+    assert np.array_equal(results[0].forces, results[1].forces)
 
 
 def test_the_cluster_kernel_gives_the_same_forces_on_every_call(fcc_lattice):
