@@ -117,7 +117,8 @@ def cluster_grid(positions, box, ncx, ncy):
 
 
 @njit(cache=True, error_model="numpy")
-def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster):
+def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj,
+                 reach2):  # fmt: skip
     """The candidate cluster pairs of a list of radius ``radius``.
 
     For each i cluster, the clusters j >= i of the columns whose rectangle its
@@ -131,7 +132,10 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     zero shift, with its offset, centre_i - centre_j - image shift, in float32.
     Returns (starts, partners int32, offsets (pairs, 3) float32) grouped by i
     cluster, or None where ``per_cluster`` pairs of room per cluster did not suffice
-    (search again with more).
+    (search again with more). With the relative positions ``xi``/``xj`` (float32, see
+    :func:`cluster_positions`) only the pairs with an atom pair closer than
+    sqrt(``reach2``) are kept, each row checked (:func:`_mark_row`) and compacted as it
+    is written; with None for both, every candidate.
 
     The columns are searched in ``chunks`` runs of about equal cluster counts on the
     threads, each into its own buffers, then copied together. Per column of i clusters,
@@ -160,10 +164,11 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     used = np.zeros(chunks, np.int64)
     if chunks == 1:
         used[0] = _search_columns(box, ncx, ncy, first, lower, upper, radius, 0, n_columns,
-                                  counts, part_partners[0], part_offsets[0])  # fmt: skip
+                                  counts, part_partners[0], part_offsets[0], xi, xj,
+                                  reach2)  # fmt: skip
     else:
         _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
-                       part_partners, part_offsets, used)  # fmt: skip
+                       part_partners, part_offsets, used, xi, xj, reach2)  # fmt: skip
     if used.min() < 0:
         return None
     starts = np.zeros(n_clusters + 1, np.int64)
@@ -180,12 +185,12 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
-                   part_partners, part_offsets, used):  # fmt: skip
+                   part_partners, part_offsets, used, xi, xj, reach2):  # fmt: skip
     """:func:`_search_columns` for each chunk of columns, on the threads."""
     for t in prange(column_bounds.shape[0] - 1):
         used[t] = _search_columns(box, ncx, ncy, first, lower, upper, radius, column_bounds[t],
                                   column_bounds[t + 1], counts, part_partners[t, : room[t]],
-                                  part_offsets[t, : room[t]])  # fmt: skip
+                                  part_offsets[t, : room[t]], xi, xj, reach2)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -202,7 +207,7 @@ def _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets
 
 @njit(cache=True, error_model="numpy")
 def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners,
-                    offsets):  # fmt: skip
+                    offsets, xi, xj, reach2):  # fmt: skip
     """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
     each row's length into ``counts[ci]``, the rows one after another into ``partners``
     and ``offsets`` from their start. Returns the pairs written, or minus the pairs found
@@ -228,6 +233,7 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
     all_z = 0.5 * (lower[:, 2] + upper[:, 2])
     r2max = radius * radius
     capacity = partners.shape[0]
+    near = np.empty(capacity if xi is not None else 0, np.uint8)
     k = 0
     for c in range(c0, c1):
         f0, f1 = first[c], first[c + 1]
@@ -302,7 +308,7 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                 total += window_end[row, slot] - window_begin[row, slot]
             if k + total > capacity:
                 return -(k + total)
-            counts[ci] = total
+            row_start = k
             ox, oy, oz = centre_x[ci - a], centre_y[ci - a], centre_z[ci - a]
             partners[k] = ci  # the cluster with itself first (the kernels rely on it)
             offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
@@ -317,26 +323,19 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     offsets[k + j, 1] = sy - all_y[lo + j]
                     offsets[k + j, 2] = sz - all_z[lo + j]
                 k += hi - lo
+            if xi is not None:  # keep the pairs with an atom pair within reach (the row is
+                # still in the cache: marked in vector IR, compacted in place)
+                _mark_row(xi, xj, offsets, partners, row_start, k, ci, reach2, near)
+                kept = row_start
+                for q in range(row_start, k):
+                    partners[kept] = partners[q]
+                    offsets[kept, 0] = offsets[q, 0]
+                    offsets[kept, 1] = offsets[q, 1]
+                    offsets[kept, 2] = offsets[q, 2]
+                    kept += near[q]
+                k = kept
+            counts[ci] = k - row_start
     return k
-
-
-@njit(cache=True, error_model="numpy")
-def keep_marked(starts, partners, offsets, near):
-    """Compact the list in place to the pairs ``near`` marks (nonzero); returns the
-    new count (``starts`` rewritten, ``partners``/``offsets`` valid up to it)."""
-    n = 0
-    begin = starts[0]
-    for ci in range(starts.shape[0] - 1):
-        end = starts[ci + 1]
-        for k in range(begin, end):
-            partners[n] = partners[k]
-            offsets[n, 0] = offsets[k, 0]
-            offsets[n, 1] = offsets[k, 1]
-            offsets[n, 2] = offsets[k, 2]
-            n += near[k] != 0
-        begin = end
-        starts[ci + 1] = n
-    return n
 
 
 @njit(cache=True, error_model="numpy")
@@ -438,12 +437,3 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
         return context.get_dummy_value()
 
     return sig, codegen
-
-
-@njit(cache=True, error_model="numpy")
-def mark_pairs(xi, xj, starts, partners, offsets, reach2, near):
-    """:func:`_mark_row` for every i cluster: ``near[k]`` whether cluster pair k has an
-    atom pair within sqrt(``reach2``) at the positions ``xi``/``xj`` (float32, see
-    :func:`cluster_positions`); ``offsets`` flat (3 per pair)."""
-    for ci in range(starts.shape[0] - 1):
-        _mark_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, reach2, near)

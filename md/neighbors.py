@@ -28,8 +28,6 @@ from md._cluster_kernels import (
     cluster_grid,
     cluster_positions,
     column_counts,
-    keep_marked,
-    mark_pairs,
     search_pairs,
 )
 from md.box import (
@@ -593,24 +591,20 @@ class NeighborList:
         ncx, ncy = columns
         first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
         radius = self.list_radius
+        # the pairs with an atom pair within reach, checked in float32: the radius widened
+        # by 1e-5 so that rounding can only keep a pair more, never drop one
+        xi = np.empty(3 * len(atom), np.float32)
+        xj = np.empty(3 * len(atom), np.float32)
+        cluster_positions(state.positions, atom, origin, xi, xj)
+        reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
         while True:
             found = search_pairs(state.box, ncx, ncy, first, lower, upper, radius, chunks,
-                                 self._cluster_room)  # fmt: skip
+                                 self._cluster_room, xi, xj, reach2)  # fmt: skip
             if found is not None:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
         starts, partners, offsets = found
-        # keep the pairs with an atom pair within reach (in float32: the radius widened by
-        # 1e-5 so that rounding can only keep a pair more, never drop one)
-        xi = np.empty(3 * len(atom), np.float32)
-        xj = np.empty(3 * len(atom), np.float32)
-        cluster_positions(state.positions, atom, origin, xi, xj)
-        near = np.empty(len(partners), np.uint8)
-        reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
-        mark_pairs(xi, xj, starts, partners, offsets.reshape(-1), reach2, near)
-        count = keep_marked(starts, partners, offsets, near)
-        self._clusters = ClusterFrame(atom, origin, starts, partners[:count], offsets[:count],
-                                      chunks)  # fmt: skip
+        self._clusters = ClusterFrame(atom, origin, starts, partners, offsets, chunks)
 
     def _slot_list(self) -> None:
         """After a cluster build, build the slot list at the build's positions and cell

