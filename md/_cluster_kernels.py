@@ -220,8 +220,11 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
     most = 0
     for c in range(c0, c1):
         most = max(most, first[c + 1] - first[c])
+    # per i cluster of the column, its non-empty windows: slot, first and end j cluster
+    window_slot = np.empty((most, n_slots), np.int64)
     window_begin = np.empty((most, n_slots), np.int64)
     window_end = np.empty((most, n_slots), np.int64)
+    windows = np.zeros(most, np.int64)
     slot_shift = np.zeros((n_slots, 3))
     a = first[c0]
     b = first[c1]
@@ -240,6 +243,7 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
         if f1 == f0:
             continue
         cx, cy = c // ncy, c % ncy
+        windows[: f1 - f0] = 0
         m = 0
         for dx in range(-reach_x, reach_x + 1):
             ux = cx + dx
@@ -274,38 +278,49 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     # a cluster meets its own image at +shift and -shift: the pair once
                     positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
                     zero = sx == 0.0 and sy == 0.0 and dz == 0
+                    # the images below and above reach only a column's lowest (highest)
+                    # clusters: sweep those
+                    lowest, highest = f0, f1
+                    if dz == -1:
+                        while highest > f0 and lower[highest - 1, 2] >= radius:
+                            highest -= 1
+                    elif dz == 1:
+                        while lowest < f1 and upper[lowest, 2] + radius < box[2]:
+                            lowest += 1
                     begin = g0
                     end = g0
-                    for ci in range(f0, f1):
-                        row = ci - f0
-                        window_begin[row, slot] = 0
-                        window_end[row, slot] = 0
-                        # the images below and above: only a column's lowest (highest) clusters
-                        if (dz == -1 and lower[ci, 2] >= radius) or (
-                            dz == 1 and upper[ci, 2] + radius < box[2]
-                        ):
-                            continue
+                    last = g1 - 1
+                    for ci in range(lowest, highest):
                         low = lower[ci, 2] - radius - sz
                         high = upper[ci, 2] + radius - sz
+                        # the cursors move a cluster or two per i cluster: two steps without
+                        # a branch, then a loop that is seldom entered
+                        for _ in range(2):
+                            begin += (begin < g1) & (upper[min(begin, last), 2] < low)
                         while begin < g1 and upper[begin, 2] < low:
                             begin += 1
                         end = max(end, begin)
+                        for _ in range(2):
+                            end += (end < g1) & (lower[min(end, last), 2] <= high)
                         while end < g1 and lower[end, 2] <= high:
                             end += 1
                         gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
                         gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
-                        if gx * gx + gy * gy < r2max:
-                            first_j = max(begin, ci)
-                            if first_j == ci and (not positive or zero):
-                                first_j += 1  # itself: first in its row; its -shift image: at +
-                            window_begin[row, slot] = first_j
-                            window_end[row, slot] = max(end, first_j)
+                        first_j = max(begin, ci)
+                        # itself: first in its row; its image at -shift: listed at +shift
+                        first_j += (first_j == ci) & ((not positive) | zero)
+                        row = ci - f0
+                        w = windows[row]  # written always, kept (counted) if not empty
+                        window_slot[row, w] = slot
+                        window_begin[row, w] = first_j
+                        window_end[row, w] = end
+                        windows[row] = w + ((gx * gx + gy * gy < r2max) & (end > first_j))
                 m += 1
         for ci in range(f0, f1):
             row = ci - f0
             total = 1
-            for slot in range(3 * m):
-                total += window_end[row, slot] - window_begin[row, slot]
+            for w in range(windows[row]):
+                total += window_end[row, w] - window_begin[row, w]
             if k + total > capacity:
                 return -(k + total)
             row_start = k
@@ -313,10 +328,11 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
             partners[k] = ci  # the cluster with itself first (the kernels rely on it)
             offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
             k += 1
-            for slot in range(3 * m):
+            for w in range(windows[row]):
+                slot = window_slot[row, w]
                 sx, sy, sz = ox - slot_shift[slot, 0], oy - slot_shift[slot, 1], oz - slot_shift[
                     slot, 2]  # fmt: skip
-                lo, hi = window_begin[row, slot], window_end[row, slot]
+                lo, hi = window_begin[row, w], window_end[row, w]
                 for j in range(hi - lo):  # no dependence between j: vectorised
                     partners[k + j] = lo + j
                     offsets[k + j, 0] = sx - all_x[lo + j]
