@@ -28,7 +28,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from md._simd import array_data, load_vector, splat
+from md._simd import array_data, load_vector, python_twin, splat
 
 #: Atoms per cluster (the kernels' i and j clusters alike).
 CLUSTER = 4
@@ -403,6 +403,22 @@ def _lanes(builder, a, b, lanes):
     return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), 8), lanes))
 
 
+def _mark_row_twin(xi, xj, offsets, partners, start, end, ci, reach2, near):
+    """:func:`_mark_row` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    flat = offsets.reshape(-1)
+    own = xi[ci * 3 * CLUSTER : (ci + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+    for k in range(start, end):
+        cj = partners[k]
+        other = xj[cj * 3 * CLUSTER : (cj + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+        d = own[:, :, None] - other[:, None, :] + flat[3 * k : 3 * k + 3, None, None]
+        r2 = (d * d).sum(axis=0)
+        close = r2 < reach2
+        if k == start:  # the cluster with itself: pairs b > a count, and it is kept
+            close = np.triu(close, k=1) | True
+        near[k] = close.any()
+
+
+@python_twin(_mark_row_twin)
 @intrinsic
 def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near):
     """Set ``near[k]`` for i cluster ``ci``'s pairs ``start`` to ``end``: whether an atom

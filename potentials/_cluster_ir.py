@@ -22,6 +22,10 @@ it). Measured on LJ (32000-atom melt, 1 thread): the same time as LJ written
 by hand in vector IR; eight scalar copies without the vectoriser, 3.4 times
 as long.
 
+The intrinsic has no Python twin (``md._simd.python_twin``): under
+``NUMBA_DISABLE_JIT=1`` the neighbour list builds no clusters, so the slot
+frame, which runs as Python, serves mixed precision instead.
+
 Lanes whose pair is out of the list radius, or not a pair (an atom with
 itself, the lower triangle of a cluster with itself, fillers) are evaluated
 at r^2 = the table's largest squared cutoff, where every type pair's term is

@@ -25,6 +25,13 @@ from numba import njit
 
 from md import _cell_kernels
 from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
+from md._cluster_kernels import (
+    _mark_row,
+    cluster_grid,
+    cluster_positions,
+    column_counts,
+    search_pairs,
+)
 from md._simd import (
     PERMUTATIONS,
     PERMUTE,
@@ -61,7 +68,35 @@ def test_every_intrinsic_has_a_python_twin():
             if isinstance(value, intrinsic_type):
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
-    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block"} <= set(found)
+    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_mark_row"} <= set(found)
+
+
+@njit
+def _marks(xi, xj, starts, partners, offsets, reach2, near):
+    for ci in range(starts.shape[0] - 1):
+        _mark_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, reach2, near)
+
+
+def test_the_cluster_marks_twin_equals_its_intrinsic(fcc_lattice):
+    """The atom-distance check of the cluster search, compiled and as numpy, on every
+    candidate of a liquid-like lattice (a reach between the lattice's shells, so both
+    marks occur)."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
+                                             256, None, None, np.float32(0.0))  # fmt: skip
+    xi = np.empty(3 * len(atom), np.float32)
+    xj = np.empty(3 * len(atom), np.float32)
+    cluster_positions(state.positions, atom, origin, xi, xj)
+    compiled = np.zeros(len(partners), np.uint8)
+    twin = np.zeros(len(partners), np.uint8)
+    _marks(xi, xj, starts, partners, offsets, np.float32(2.0**2), compiled)
+    for ci in range(len(starts) - 1):
+        _mark_row.python_twin(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
+                              np.float32(2.0**2), twin)  # fmt: skip
+    np.testing.assert_array_equal(compiled, twin)
+    assert 0 < compiled.sum() < len(compiled)
 
 
 @njit
