@@ -30,9 +30,11 @@ Everything else (slot-frame gather, chunks and threads, scatter-sum, type-pair
 tables, cutoff modes, virial, per-atom values, curvature passes) is here, once
 for every term; the term is inlined into the vectorised pair loops.
 
-The six entry points have public names (``atom_forces``, ``atom_curvatures``,
-``frame_forces``, ``frame_curvatures`` and the last two's ``_threaded``
-forms): they are this module's interface; the rest is private. Their cutoff
+The eight entry points have public names (``atom_forces``, ``atom_curvatures``,
+``frame_forces``, ``frame_curvatures``, ``cluster_forces`` and the last three's
+``_threaded`` forms): they are this module's interface; the rest is private. The
+cluster entries (mixed precision over a cluster-pair list) reach the term through
+``_cluster_row`` (``potentials._cluster_ir``), which calls ``_pair`` per vector lane. Their cutoff
 mode, virial flag and single-type flag are literal arguments: each term's copy
 of this file ends in small kernels, one per entry point and combination of
 flags (``potentials._pair_frame._variant_source``), that call them with the
