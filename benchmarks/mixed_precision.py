@@ -4,8 +4,9 @@ On the LJ melt's configuration (fcc at reduced density 0.8442, cutoff 2.5,
 skin 0.3): the time of ``energy_forces(virial=False)`` in each precision, each
 over its ForceField's own list (double: the slot frame; mixed: the cluster
 pairs, where the cell allows), taking turns within each repeat (a loaded
-machine slows both alike), the median of the per-repeat ratios mixed/double; the MD loop's rate (velocity
-Verlet, dt 0.005) in each precision, again interleaved; the largest force
+machine slows both alike), the median of the per-repeat ratios mixed/double;
+the MD loop's rate (velocity Verlet, dt 0.005) in each precision, again
+interleaved; the largest force
 difference relative to the largest force; and the NVE energy drift of each
 over ``--drift-steps`` steps of a smaller melt (LAMMPS's: fcc at T = 3, run
 2000 steps in double first, so that every run starts from the same liquid),
