@@ -205,6 +205,17 @@ def _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets
                 offsets[begin + k, d] = part_offsets[t, k, d]
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _periodic_column(index, count, length):
+    """A column index one period out of range at most, brought into it, and the shift
+    (-length, 0 or length) that takes the column there."""
+    if index < 0:
+        return index + count, -length
+    if index >= count:
+        return index - count, length
+    return index, 0.0
+
+
 @njit(cache=True, error_model="numpy")
 def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners,
                     offsets, xi, xj, reach2):  # fmt: skip
@@ -246,24 +257,10 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
         windows[: f1 - f0] = 0
         m = 0
         for dx in range(-reach_x, reach_x + 1):
-            ux = cx + dx
-            sx = 0.0
-            if ux < 0:
-                ux += ncx
-                sx = -box[0]
-            elif ux >= ncx:
-                ux -= ncx
-                sx = box[0]
+            ux, sx = _periodic_column(cx + dx, ncx, box[0])
             x0, x1 = (cx + dx) * width_x, (cx + dx + 1) * width_x  # in the i column's frame
             for dy in range(-reach_y, reach_y + 1):
-                uy = cy + dy
-                sy = 0.0
-                if uy < 0:
-                    uy += ncy
-                    sy = -box[1]
-                elif uy >= ncy:
-                    uy -= ncy
-                    sy = box[1]
+                uy, sy = _periodic_column(cy + dy, ncy, box[1])
                 col = ux * ncy + uy
                 g0, g1 = first[col], first[col + 1]
                 if g1 <= f0 or g1 == g0:

@@ -123,16 +123,22 @@ def _slot_types(types, atom, out):
         out[s] = types[atom[s]] if atom[s] >= 0 else 0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _slot_base(s):
+    """Where slot s's x sits in a cluster-ordered array (12 values per cluster: x0..x3,
+    y0..y3, z0..z3); its y and z follow CLUSTER and 2 CLUSTER later."""
+    return (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
+
+
 @njit(cache=True, error_model="numpy")
 def _cluster_atom_forces(buffers, atom, forces):
     """Sum the chunks' cluster-ordered forces (chunks, clusters * 12), in chunk order, into
     ``forces`` (N, 3) in atom order."""
     chunks = buffers.shape[0]
     for s in range(atom.shape[0]):
-        i = atom[s]
+        i, base = atom[s], _slot_base(s)
         if i < 0:
             continue
-        base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
         for d in range(3):
             f = buffers[0, base + d * CLUSTER]
             for c in range(1, chunks):
@@ -146,10 +152,9 @@ def _cluster_moments(atom, xi, forces):
     kernels leave out (they add each pair's offset (x) force)."""
     moments = np.zeros((3, 3))
     for s in range(atom.shape[0]):
-        i = atom[s]
+        i, base = atom[s], _slot_base(s)
         if i < 0:
             continue
-        base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
         for d in range(3):
             x = np.float64(xi[base + d * CLUSTER])
             for e in range(3):
