@@ -213,10 +213,11 @@ class NeighborList:
     clusters : bool
         Build the list in GROMACS's cluster-pair layout (:class:`ClusterFrame`,
         read by the pair potentials' mixed-precision cluster kernels) where the
-        cell allows it: periodic along every axis, orthorhombic, every edge
-        longer than twice the list radius and five columns of clusters across x
-        and y (else, and on one rank of a decomposed run, the slot frame is
-        built as usual). The slot list is then built only if something asks for
+        cell allows it: periodic along every axis and orthorhombic, every edge
+        longer than twice the list radius (else, on one rank of a decomposed
+        run and under ``NUMBA_DISABLE_JIT``, the slot frame is built as usual;
+        a sparse system gets columns narrower than its density asks, so that no
+        column meets two images of another). The slot list is then built only if something asks for
         it (``frame``, ``starts``, ``pairs()``: per-atom results, Hessians), at
         the positions of the build.
 
