@@ -734,7 +734,12 @@ class PairPotential:
         double and rounded once, parameters, u and f/r; see
         :func:`single_precision_term`), in the slot-frame and the atom-order
         kernels alike; the pair forces f/r * d, every sum and the results are
-        float64: about 3e-7 of the largest force.
+        float64: about 3e-7 of the largest force. Over a list that holds cluster
+        pairs (``neighbors.clusters``: ``NeighborList(clusters=True)``, which a
+        mixed-precision ForceField builds where the cell allows) it runs the
+        cluster kernels instead (:mod:`potentials._cluster_ir`): float32
+        separations and pair forces, eight pairs per vector, sums in double
+        every few pairs; Newton's third law then holds to float32 round-off.
         """
         kernels = self._loaded(check_precision_name(precision))
         n = state.n_atoms
