@@ -15,7 +15,14 @@ import pytest
 
 import md
 from integrators import VelocityVerlet
-from md._cluster_kernels import CLUSTER, FILLER, cluster_grid, column_counts, search_pairs
+from md._cluster_kernels import (
+    CLUSTER,
+    FILLER,
+    cluster_grid,
+    cluster_positions,
+    column_counts,
+    search_pairs,
+)
 from md.forcefield import ForceField
 from md.neighbors import NeighborList
 from md.parallel import get_threads, set_threads
@@ -109,6 +116,18 @@ def test_sparse_columns_and_their_images_are_searched_exactly(n_atoms, box, rand
     assert_covers(state, nl.clusters, nl.list_radius)
 
 
+def candidates(state, radius, chunks, room=256):
+    """The search's candidates: its atom check with a reach that keeps every pair (the
+    variant the engine compiles; None for the positions would compile another)."""
+    ncx, ncy = column_counts(state.box, state.n_atoms, radius)
+    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    xi = np.empty(3 * len(atom), np.float32)
+    xj = np.empty(3 * len(atom), np.float32)
+    cluster_positions(state.positions, atom, origin, xi, xj)
+    return search_pairs(state.box, ncx, ncy, first, lower, upper, radius, chunks, room, xi, xj,
+                        np.float32(1e30))  # fmt: skip
+
+
 def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fcc_lattice):
     """The build prunes the search's candidates atom by atom (GROMACS's pruning): the kept
     pairs are those of the candidates with an atom pair within the list radius (a row's
@@ -118,10 +137,7 @@ def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fc
     nl.update(state)
     clusters = nl.clusters
     radius = nl.list_radius
-    ncx, ncy = column_counts(state.box, state.n_atoms, radius)
-    first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, radius,
-                                             1, 256, None, None, np.float32(0.0))  # fmt: skip
+    starts, partners, offsets = candidates(state, radius, 1)
     assert 0.4 * len(partners) < clusters.n_pairs < len(partners)
     rel_i, rel_j = relative_positions(state, clusters)
 
@@ -286,15 +302,9 @@ def test_a_mixed_melt_runs_on_the_cluster_list(fcc_lattice):
 def test_the_search_gives_one_list_on_any_number_of_chunks_and_grows_its_room(fcc_lattice):
     """Columns searched in chunks on the threads, rows copied together: the same list as
     one chunk; buffers too small for the rows ask for more room (None), not a short list."""
-    from md._cluster_kernels import cluster_grid, column_counts, search_pairs
-
     state = fcc_lattice(cells=8, perturbation=0.1)
-    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
-    first, _, _, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    lists = [search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, chunks, 256, None, None,
-                          np.float32(0.0)) for chunks in (1, 2, 3)]  # fmt: skip
+    lists = [candidates(state, 2.8, chunks) for chunks in (1, 2, 3)]
     for other in lists[1:]:
         for a, b in zip(lists[0], other, strict=True):
             np.testing.assert_array_equal(a, b)
-    assert search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 2, 2, None, None,
-                        np.float32(0.0)) is None
+    assert candidates(state, 2.8, 2, room=2) is None

@@ -84,11 +84,11 @@ def test_the_cluster_marks_twin_equals_its_intrinsic(fcc_lattice):
     state = fcc_lattice(cells=6, perturbation=0.1)
     ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
     first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
-                                             256, None, None, np.float32(0.0))  # fmt: skip
     xi = np.empty(3 * len(atom), np.float32)
     xj = np.empty(3 * len(atom), np.float32)
     cluster_positions(state.positions, atom, origin, xi, xj)
+    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
+                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
     compiled = np.zeros(len(partners), np.uint8)
     twin = np.zeros(len(partners), np.uint8)
     _marks(xi, xj, starts, partners, offsets, np.float32(2.0**2), compiled)
