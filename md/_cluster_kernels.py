@@ -3,10 +3,10 @@
 GROMACS's pair-search layout (its "nbnxm" grid), written here for numba: the
 box's xy plane is cut into columns about (4 / density)^(1/3) wide, each
 column's atoms sorted by z and cut into clusters of ``CLUSTER`` (4) atoms, the
-last one of a column padded with fillers. A cluster pair is listed when the two
-clusters' bounding boxes may come within the list radius (column by column,
-see :func:`search_pairs`); the pair kernels then
-evaluate all 4 x 4 atom pairs of each listed cluster pair, in SIMD lanes.
+last one of a column padded with fillers. A cluster pair is listed when one of
+its atom pairs lies within the list radius (:func:`search_pairs`: a sweep of
+the neighbouring columns, then each candidate checked atom by atom); the pair
+kernels evaluate all 4 x 4 atom pairs of each listed cluster pair, in SIMD lanes.
 
 A cluster's atoms are stored relative to an origin per slot (the cluster's
 centre plus the box lengths that wrapped the atom at the build), so float32
@@ -28,7 +28,15 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from md._simd import array_data, load_vector, python_twin, splat
+from md._simd import (
+    CLUSTER_OWN_LANES,
+    array_data,
+    cluster_i_halves,
+    cluster_j_shifted,
+    python_twin,
+    splat,
+    squared_distances,
+)
 
 #: Atoms per cluster (the kernels' i and j clusters alike).
 CLUSTER = 4
@@ -38,15 +46,22 @@ CLUSTER = 4
 #: kernels' masks keep fillers out of every sum anyway.
 FILLER = 100.0
 
+
 @njit(cache=True, error_model="numpy")
 def column_counts(box, n_atoms, radius):
-    """(ncx, ncy): columns of about four atoms' volume per z-slab of one cluster, no
-    narrower than needed for at most two columns' reach (the search's sweep) on each side."""
+    """(ncx, ncy): columns about (CLUSTER / density)^(1/3) wide, so that a cluster is
+    about as tall as wide; more, narrower ones where fewer would let a column meet two
+    images of another within ``radius`` (2 reach + 1 columns across at least: a sparse
+    system). The box must be wider than twice ``radius``."""
     density = n_atoms / (box[0] * box[1] * box[2])
     side = (CLUSTER / density) ** (1.0 / 3.0)
-    ncx = max(1, int(box[0] / side))
-    ncy = max(1, int(box[1] / side))
-    return ncx, ncy
+    counts = [0, 0]
+    for axis in range(2):
+        count = max(1, int(box[axis] / side))
+        while count < 2 * int(np.ceil(radius * count / box[axis])) + 1:
+            count += 1
+        counts[axis] = count
+    return counts[0], counts[1]
 
 
 @njit(cache=True, error_model="numpy")
@@ -119,16 +134,15 @@ def cluster_grid(positions, box, ncx, ncy):
 @njit(cache=True, error_model="numpy")
 def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj,
                  reach2):  # fmt: skip
-    """The candidate cluster pairs of a list of radius ``radius``.
+    """The cluster pairs of a list of radius ``radius``.
 
-    For each i cluster, the clusters j >= i of the columns whose rectangle its
-    bounding box comes within ``radius`` of (in xy, images included) and whose
-    bounding box overlaps its own, widened by ``radius``, in z: a superset of the
-    pairs with an atom pair within reach, which the cluster kernels' first call
-    prunes to those (a box-to-box test here cost more time than it saved there).
-    Each pair once (a cluster with an image of itself at one of the two opposite
-    shifts; the box must be wider than twice the cutoff, so that an atom pair lies
-    within it at one image at most), each row starting with the cluster itself at
+    The candidates: for each i cluster, the clusters j >= i of the columns whose
+    rectangle its bounding box comes within ``radius`` of (in xy, images included)
+    and whose bounding box overlaps its own, widened by ``radius``, in z (a box-to-box
+    test on top of that cost more time than it saved). Each pair once (a cluster with
+    an image of itself at one of the two opposite shifts; the box must be wider than
+    twice the cutoff, so that an atom pair lies within it at one image at most), each
+    row starting with the cluster itself at
     zero shift, with its offset, centre_i - centre_j - image shift, in float32.
     Returns (starts, partners int32, offsets (pairs, 3) float32) grouped by i
     cluster, or None where ``per_cluster`` pairs of room per cluster did not suffice
@@ -391,13 +405,8 @@ def cluster_positions(positions, atom, origin, xi, xj):
 
 _F32 = ir.FloatType()
 _I64 = ir.IntType(64)
-_V4 = ir.VectorType(_F32, 4)
 _V8 = ir.VectorType(_F32, 8)
 _MASK8 = ir.VectorType(ir.IntType(1), 8)
-
-
-def _lanes(builder, a, b, lanes):
-    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), 8), lanes))
 
 
 def _mark_row_twin(xi, xj, offsets, partners, start, end, ci, reach2, near):
@@ -429,33 +438,19 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
                                      for n in range(4))  # fmt: skip
         near_p = array_data(context, builder, signature.args[8], args[8])
         start, end, ci, reach2 = args[4:8]
-        base_i = builder.mul(ci, ir.Constant(_I64, 3 * CLUSTER))
-        own = [load_vector(builder, xi_p, builder.add(base_i, ir.Constant(_I64, 4 * d)), _V4)
-               for d in range(3)]  # fmt: skip
-        halves = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
-                  for h in range(2)]  # fmt: skip
+        size = ir.Constant(_I64, 3 * CLUSTER)
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size))
         reach = splat(builder, reach2, _V8)
         never = ir.Constant(_V8, [-1.0] * 8)
         own_reach = [builder.select(ir.Constant(_MASK8, keep), reach, never)
-                     for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])]  # fmt: skip
+                     for keep in CLUSTER_OWN_LANES]  # fmt: skip
         with cgutils.for_range_slice(builder, start, end, ir.Constant(_I64, 1)) as (k, _):
             cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
             itself = builder.icmp_signed("==", k, start)
-            base_j = builder.mul(cj, ir.Constant(_I64, 3 * CLUSTER))
-            k3 = builder.mul(k, ir.Constant(_I64, 3))
+            _, shifted = cluster_j_shifted(builder, xj_p, builder.mul(cj, size), off_p, k)
             within = None
-            shifted = []
-            for d in range(3):
-                offset = builder.load(builder.gep(off_p, [builder.add(k3, ir.Constant(_I64, d))]))
-                four = load_vector(builder, xj_p, builder.add(base_j, ir.Constant(_I64, 4 * d)),
-                                   _V4)  # fmt: skip
-                shifted.append(builder.fsub(_lanes(builder, four, four, [0, 1, 2, 3] * 2),
-                                            splat(builder, offset, _V8)))  # fmt: skip
             for h in range(2):
-                dx = [builder.fsub(halves[h][d], shifted[d]) for d in range(3)]
-                r2 = builder.fmul(dx[0], dx[0])
-                for d in (1, 2):
-                    r2 = builder.fadd(r2, builder.fmul(dx[d], dx[d]))
+                _, r2 = squared_distances(builder, halves[h], shifted)
                 bound = builder.select(itself, own_reach[h], reach)
                 close = builder.fcmp_ordered("<", r2, bound)
                 within = close if within is None else builder.or_(within, close)

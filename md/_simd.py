@@ -8,8 +8,11 @@ prove safe; but some single machine operations have no Python spelling:
 - ``float_bits`` and ``bits_float``, a float64 read as its int64 bit pattern
   and back (for a maximum over non-negative floats that must also see NaNs:
   the integer maximum vectorises, a float maximum that checks for NaN does not);
-- helpers for intrinsics that compute on LLVM vectors (``splat``,
-  ``array_data``, ``load_vector``, ``compare_mask``), and ``PERMUTE``, whether the
+- helpers for intrinsics that compute on LLVM vectors (``splat``, ``shuffle``,
+  ``array_data``, ``load_vector``, ``compare_mask``; and the lanes of the
+  cluster-pair kernels, ``cluster_i_halves``, ``cluster_j_shifted``,
+  ``squared_distances``, shared by the list's atom check in md and the force
+  kernel in potentials), and ``PERMUTE``, whether the
   kernels are compiled for an x86 CPU with AVX2, whose ``vpermd`` moves
   selected lanes of a vector to its front (``permute_lanes``, with
   ``PERMUTATIONS``). Kernels that use it keep a portable path for every
@@ -169,6 +172,57 @@ def splat(builder, value, vector: ir.VectorType):
     one = builder.insert_element(undefined, value, ir.Constant(ir.IntType(32), 0))
     lanes = ir.Constant(ir.VectorType(ir.IntType(32), vector.count), [0] * vector.count)
     return builder.shuffle_vector(one, undefined, lanes)
+
+
+def shuffle(builder, a, b, lanes):
+    """The lanes of ``a`` then ``b`` (numbered on) that ``lanes`` lists, as one vector."""
+    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)),
+                                                    lanes))  # fmt: skip
+
+
+#: The cluster-pair kernels' lanes (GROMACS's 2xMM layout, clusters of 4): lane l of
+#: half h pairs i atom 2h + l // 4 with j atom l % 4. The lanes that count in a cluster
+#: with itself (j atom after i atom), per half.
+CLUSTER_OWN_LANES = ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])
+_V4 = ir.VectorType(ir.FloatType(), 4)
+_V8 = ir.VectorType(ir.FloatType(), 8)
+_I64 = ir.IntType(64)
+
+
+def cluster_i_halves(builder, xi, base):
+    """An i cluster's atoms as the two halves' 8-lane float32 vectors, [[x, y, z] of half
+    0, [x, y, z] of half 1]: ``xi`` points at float32 [x0..x3, y0..y3, z0..z3] from
+    ``base``; half h holds atom 2h in lanes 0-3 and atom 2h + 1 in lanes 4-7."""
+    own = [load_vector(builder, xi, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
+           for d in range(3)]  # fmt: skip
+    return [[shuffle(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
+            for h in range(2)]  # fmt: skip
+
+
+def cluster_j_shifted(builder, xj, base, offsets, pair, flags=()):
+    """Pair ``pair``'s offset (three float32 scalars from ``offsets``, 3 per pair) and its
+    j cluster's atoms less it, each coordinate as an 8-lane vector holding the four j
+    atoms twice (``xj`` laid out as in :func:`cluster_i_halves`, from ``base``)."""
+    first = builder.mul(pair, ir.Constant(_I64, 3))
+    offset = [builder.load(builder.gep(offsets, [builder.add(first, ir.Constant(_I64, d))]))
+              for d in range(3)]  # fmt: skip
+    shifted = []
+    for d in range(3):
+        four = load_vector(builder, xj, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
+        twice = shuffle(builder, four, four, [0, 1, 2, 3] * 2)
+        shifted.append(builder.fsub(twice, splat(builder, offset[d], _V8), flags=flags))
+    return offset, shifted
+
+
+def squared_distances(builder, half, shifted, flags=()):
+    """(separations [dx, dy, dz], r^2) of a half's eight atom pairs: ``half`` from
+    :func:`cluster_i_halves`, ``shifted`` from :func:`cluster_j_shifted`."""
+    separation = [builder.fsub(half[d], shifted[d], flags=flags) for d in range(3)]
+    r2 = builder.fmul(separation[0], separation[0], flags=flags)
+    for d in (1, 2):
+        r2 = builder.fadd(r2, builder.fmul(separation[d], separation[d], flags=flags),
+                          flags=flags)  # fmt: skip
+    return separation, r2
 
 
 def array_data(context, builder, array_type, array):

@@ -23,7 +23,6 @@ from md._cell_kernels import (
     _shift_table,
 )
 from md._cluster_kernels import (
-    CLUSTER,
     balanced_chunks,
     cluster_grid,
     cluster_positions,
@@ -122,10 +121,8 @@ class ClusterFrame:
 
     The list holds the cluster pairs that had an atom pair within the list radius
     at the build: the search's candidates (see :func:`md._cluster_kernels.search_pairs`)
-    checked atom by atom in 8-lane vectors (GROMACS's pruning), about two thirds of them.
+    checked atom by atom in 8-lane vectors (GROMACS's pruning), about half of them on the LJ melt.
     """
-
-    size = CLUSTER
 
     def __init__(self, atom, origin, starts, partners, offsets, chunks: int):
         self.atom = atom
@@ -579,14 +576,7 @@ class NeighborList:
         box, radius = state.box, self.list_radius
         if not (np.all(state.pbc) and is_orthorhombic(state.tilt)) or np.any(box <= 2 * radius):
             return None
-        columns = []
-        for axis, count in enumerate(column_counts(box, state.n_atoms, radius)):
-            # a column must not meet two images of another: 2 reach + 1 columns across at
-            # least (more, narrower columns than the density asks for in a sparse system)
-            while count < 2 * math.ceil(radius * count / box[axis]) + 1:
-                count += 1
-            columns.append(count)
-        return columns[0], columns[1]
+        return column_counts(box, state.n_atoms, radius)
 
     def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int) -> None:
         ncx, ncy = columns

@@ -45,7 +45,17 @@ from numba.core import cgutils, compiler
 from numba.core.cpu import FastMathOptions
 from numba.extending import intrinsic
 
-from md._simd import array_data, load_vector, splat, store_vector
+from md._simd import (
+    CLUSTER_OWN_LANES,
+    array_data,
+    cluster_i_halves,
+    cluster_j_shifted,
+    load_vector,
+    shuffle,
+    splat,
+    squared_distances,
+    store_vector,
+)
 
 __all__ = ["cluster_row", "slp_vectorising"]
 
@@ -54,16 +64,12 @@ _F64 = ir.DoubleType()
 _I8 = ir.IntType(8)
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
-_V4 = ir.VectorType(_F32, 4)
 _V8 = ir.VectorType(_F32, 8)
 _D4 = ir.VectorType(_F64, 4)
 _MASK8 = ir.VectorType(ir.IntType(1), 8)
 #: As the frame's pair loops: sums may be reassociated into lanes, multiply-adds fused;
 #: no "nnan"/"ninf" (overlapping atoms must still give an infinite energy).
 _FLAGS = ("contract", "reassoc", "nsz", "arcp")
-#: Lanes kept in a cluster with itself (lane l: i atom 2h + l // 4, j atom l % 4): the
-#: pairs b > a of the first and second vector.
-_OWN_LANES = ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])
 
 #: Cluster pairs whose i forces and energy are summed in float32 lanes before they are
 #: added to the double sums (a power of 2).
@@ -82,11 +88,6 @@ def slp_vectorising():
             yield
         finally:
             numba.config.SLP_VECTORIZE = before
-
-
-def _lanes(builder, a, b, lanes):
-    mask = ir.Constant(ir.VectorType(_I32, len(lanes)), lanes)
-    return builder.shuffle_vector(a, b, mask)
 
 
 def _index(n: int):
@@ -174,19 +175,18 @@ def cluster_row(pair, rows):
             types_p = None if single else array_data(context, builder, arg[7], types_v)
             literal = getattr(arg[10], "literal_value", None)
             mode_c = _index(literal) if literal is not None else builder.sext(mode_v, _I64)
+            # not from numba's subroutine cache: it keys by code object, which is the same
+            # for every term's copy of the template (CPython's code equality ignores the
+            # file), so a second term would get the first one's compiled _pair
             cres = context.compile_subroutine(builder, pair.py_func, pair_sig,
-                                              flags=_subroutine_flags())  # fmt: skip
+                                              flags=_subroutine_flags(), caching=False)  # fmt: skip
             pair_real = context.get_value_type(pair_sig.return_type.dtype)
             table_real = context.get_value_type(real)
             base_i = builder.mul(ci_v, _index(3 * 4))
-            own = [load_vector(builder, xi_p, builder.add(base_i, _index(4 * d)), _V4)
-                   for d in range(3)]  # fmt: skip
-            # i atoms (0, 1) and (2, 3), each broadcast over four lanes
-            pairs_i = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
-                       for h in range(2)]  # fmt: skip
+            pairs_i = cluster_i_halves(builder, xi_p, base_i)  # i atoms (0, 1) and (2, 3)
             cut = splat(builder, cut_v, _V8)
             own_cuts = [builder.select(ir.Constant(_MASK8, keep), cut, _eight(-1.0))
-                        for keep in _OWN_LANES]  # fmt: skip
+                        for keep in CLUSTER_OWN_LANES]  # fmt: skip
             if single:  # every lane reads column 0: from a local copy
                 type_rows = None
                 table_v = _local_column(context, builder, arg[9], table_v, rows())
@@ -209,7 +209,7 @@ def cluster_row(pair, rows):
                 for narrow, halves in zip(sums, wide, strict=True):
                     lanes = builder.load(narrow)
                     for half, total in enumerate(halves):
-                        four = _lanes(builder, lanes, lanes, list(range(4 * half, 4 * half + 4)))
+                        four = shuffle(builder, lanes, lanes, list(range(4 * half, 4 * half + 4)))
                         part = builder.fpext(four, _D4)
                         builder.store(builder.fadd(builder.load(total), part, flags=fl), total)
                     builder.store(_eight(0.0), narrow)
@@ -223,17 +223,9 @@ def cluster_row(pair, rows):
                 last = builder.select(builder.icmp_signed("<", last, end_v), last, end_v)
                 with cgutils.for_range_slice(builder, group, last, _index(1)) as (k, _):
                     cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
-                    k3 = builder.mul(k, _index(3))
-                    offset = [builder.load(builder.gep(off_p, [builder.add(k3, _index(d))]))
-                              for d in range(3)]  # fmt: skip
                     itself = builder.icmp_signed("==", k, start_v)  # listed first in its row
                     base_j = builder.mul(cj, _index(12))
-                    shifted = []  # x_j - offset, the four j atoms twice
-                    for d in range(3):
-                        four = load_vector(builder, xj_p, builder.add(base_j, _index(4 * d)), _V4)
-                        twice = _lanes(builder, four, four, [0, 1, 2, 3] * 2)
-                        moved = splat(builder, offset[d], _V8)
-                        shifted.append(builder.fsub(twice, moved, flags=fl))
+                    offset, shifted = cluster_j_shifted(builder, xj_p, base_j, off_p, k, fl)
                     if single:
                         columns = [_index(0)] * 8
                     else:
@@ -244,10 +236,7 @@ def cluster_row(pair, rows):
                             tj.append(builder.sext(t, _I64))
                     fj = [_eight(0.0)] * 3
                     for h in range(2):
-                        dx = [builder.fsub(pairs_i[h][d], shifted[d], flags=fl) for d in range(3)]
-                        r2 = builder.fmul(dx[0], dx[0], flags=fl)
-                        for d in (1, 2):
-                            r2 = builder.fadd(r2, builder.fmul(dx[d], dx[d], flags=fl), flags=fl)
+                        dx, r2 = squared_distances(builder, pairs_i[h], shifted, fl)
                         limit = builder.select(itself, own_cuts[h], cut)
                         mask = builder.fcmp_ordered("<", r2, limit)
                         safe = builder.select(mask, r2, cut)
@@ -278,8 +267,8 @@ def cluster_row(pair, rows):
                             fj[d] = builder.fadd(fj[d], g, flags=fl)
                     totals = []
                     for d in range(3):
-                        low = _lanes(builder, fj[d], fj[d], [0, 1, 2, 3])
-                        high = _lanes(builder, fj[d], fj[d], [4, 5, 6, 7])
+                        low = shuffle(builder, fj[d], fj[d], [0, 1, 2, 3])
+                        high = shuffle(builder, fj[d], fj[d], [4, 5, 6, 7])
                         summed = builder.fpext(builder.fadd(low, high, flags=fl), _D4)
                         index = builder.add(base_j, _index(4 * d))
                         old = load_vector(builder, f_p, index, _D4)

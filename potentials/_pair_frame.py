@@ -786,7 +786,7 @@ class PairPotential:
         from the kernel's offset part plus the positions' part."""
         n = state.n_atoms
         atom = clusters.atom
-        n_clusters = len(atom) // 4
+        n_clusters = clusters.n_clusters
         chunks = len(clusters.bounds) - 1
         scratch = getattr(self, "_cluster_scratch", None)
         if scratch is None or scratch[0].shape[0] != 12 * n_clusters or len(scratch[3]) != chunks:

@@ -10,6 +10,8 @@ cutoff modes, pair terms, thread counts, unwrapped positions and sparse columns.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,7 @@ from md._cluster_kernels import (
 from md.forcefield import ForceField
 from md.neighbors import NeighborList
 from md.parallel import get_threads, set_threads
-from potentials import LennardJones, Morse
+from potentials import LennardJones, Morse, PairPotential, pair_term
 
 EPS32 = float(np.finfo(np.float32).eps)
 
@@ -218,7 +220,9 @@ POTENTIALS = {
                                          pairs={(0, 1): {"epsilon": 0.5, "cutoff": 2.1}}),
     "morse (double term)": lambda: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.5),
 }
-DEFAULT = {("lj-shift", 1), ("lj-shift", 2)}  # each other case compiles its own kernels (~17 s)
+#: each other case compiles its own kernels (~17 s); two threads run in the default suite
+#: in test_two_terms_in_one_process_each_run_their_own_pair_function
+DEFAULT = {("lj-shift", 1)}
 
 
 def _kernel_cases():
@@ -308,3 +312,30 @@ def test_the_search_gives_one_list_on_any_number_of_chunks_and_grows_its_room(fc
         for a, b in zip(lists[0], other, strict=True):
             np.testing.assert_array_equal(a, b)
     assert candidates(state, 2.8, 2, room=2) is None
+
+
+@pair_term
+def gaussian_bump(r2, height, width):
+    """A user term (the frame's own example): not LJ, whose kernels a test ran before."""
+    u = height * math.exp(-r2 / (width * width))
+    return u, 2.0 * u / (width * width)
+
+
+def test_two_terms_in_one_process_each_run_their_own_pair_function(fcc_lattice):
+    """Each term's copy of the template compiles its own cluster kernels: numba's cache of
+    compiled subroutines keys by code object, the same for every copy, and once handed a
+    second term the first one's pair function (LJ's forces for a Gaussian)."""
+    state = fcc_lattice(cells=8, perturbation=0.05)
+    before = get_threads()
+    try:
+        set_threads(2)
+        for potential in (LennardJones(cutoff=2.5),
+                          PairPotential(gaussian_bump, height=1.0, width=0.8, cutoff=2.5)):
+            double = ForceField([potential]).compute(state)
+            field = ForceField([potential], precision="mixed")
+            mixed = field.compute(state)
+            assert len(field.neighbor_list.clusters.bounds) - 1 == 2
+            assert _relative_error(mixed.forces, double.forces) < 200 * EPS32
+            assert abs(mixed.energy - double.energy) < 20 * EPS32 * abs(double.energy)
+    finally:
+        set_threads(before)
