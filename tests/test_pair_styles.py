@@ -188,9 +188,13 @@ def test_spline_table_hessian_is_the_jacobian_of_its_forces(tmp_path, random_gas
 
 
 # --------------------------------------------------------- frame vs atom order
-@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
-@pytest.mark.parametrize("style", styles(["morse", "yukawa", "wca"]))
+@pytest.mark.parametrize(("style", "threads"), [
+    # each term and threaded variant compiles apart: Morse on one thread runs by default
+    # (LJ's threaded slot-frame kernels: tests/test_parallel.py), the rest with -m slow
+    pytest.param(*case, marks=() if case == ("morse", 1) else pytest.mark.slow)
+    for case in [("morse", 1), ("morse", 2), ("yukawa", 1), ("yukawa", 2), ("wca", 1), ("wca", 2)]
+])  # fmt: skip
 def test_slot_frame_kernels_equal_the_atom_order_kernels(style, cell, threads, fcc_lattice):
     """The threaded slot-frame kernels (forces, virial, Hessian blocks) give the atom-order
     kernels' results to round-off in every cell shape, with one chunk or two."""
@@ -283,8 +287,8 @@ def test_a_term_without_curvature_is_refused_by_implicit_euler():
         md.Simulation(state, [potential], ImplicitEuler(0.01)).run(1)
 
 
-@pytest.mark.parametrize("name", ["morse", "wca"])
-def test_implicit_euler_runs_on_the_frame(name):
+@pytest.mark.parametrize("name", [pytest.param("morse", marks=pytest.mark.slow), "wca"])
+def test_implicit_euler_runs_on_the_frame(name):  # Morse's Hessian kernels compile: -m slow
     """Newton with the frame's Hessian converges, and the dynamics dissipates energy as
     implicit Euler must (never gains it)."""
     potential = (Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=2.3) if name == "morse"

@@ -430,11 +430,14 @@ def _check_against(ours_fast, ours_per_atom, theirs, state) -> None:
     _assert_close(ours_per_atom.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-10)
 
 
-@pytest.mark.parametrize("shift", [False, True], ids=["plain", "shifted"])
-@pytest.mark.parametrize("style", [
-    pytest.param(name, marks=() if name in ("morse", "buckingham") else pytest.mark.slow)
-    for name in PAIR_STYLES
-])  # the rest compile a term each: -m slow
+@pytest.mark.parametrize(("style", "shift"), [
+    # each (style, shift) compiles a term's kernels: Morse plain and Buckingham shifted run
+    # by default, the rest with -m slow
+    pytest.param(name, shift, id=f"{name}-{'shifted' if shift else 'plain'}",
+                 marks=() if (name, shift) in (("morse", False), ("buckingham", True))
+                 else pytest.mark.slow)
+    for name in PAIR_STYLES for shift in (False, True)
+])  # fmt: skip
 def test_tilted_pair_style_equals_lammps(style, shift):
     """Energy, forces, W/V, the full P tensor (threaded cell-list kernel) and per-atom
     energies and virials (atom-order kernel) of each pair style on the three-type tilted
@@ -469,7 +472,10 @@ def _write_table(path: Path) -> None:
 
 
 @pytest.mark.parametrize("points", [800, 1200])
-@pytest.mark.parametrize("interpolation", ["linear", "spline"])
+@pytest.mark.parametrize("interpolation", [
+    pytest.param("linear", marks=pytest.mark.slow),  # its kernels compile apart: -m slow
+    "spline",
+])  # fmt: skip
 def test_tilted_table_equals_lammps(interpolation, points, tmp_path):
     """pair_style table on the same file (R, RSQ with FPRIME, and the file's own r; one
     explicit unlike pair with its own section and cutoff): the same interpolation, so the
