@@ -461,3 +461,87 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+
+@njit(cache=True, error_model="numpy")
+def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts,
+                kept_partners, kept_offsets):  # fmt: skip
+    """Keep the pairs of the cluster list (``starts``, ``partners``, ``offsets``) that
+    have an atom pair closer than sqrt(``reach2``) at the relative positions ``xi``/``xj``
+    (GROMACS's dynamic pruning of an outer list to an inner one), each row in its
+    order, the cluster itself still first: their row offsets into ``kept_starts`` and
+    the pairs into ``kept_partners``/``kept_offsets`` (one longer than the list; ``near``,
+    one byte per pair, is scratch). Returns the pairs kept. Rows are marked
+    (:func:`_mark_row`) in the chunks ``bounds`` (i cluster ranges) on the threads,
+    counted, then compacted straight to their place, again on the threads."""
+    n_clusters = starts.shape[0] - 1
+    if bounds.shape[0] == 2:
+        _mark_rows(starts, partners, offsets, 0, n_clusters, xi, xj, reach2, near, kept_starts)
+    else:
+        _mark_chunks(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts)
+    kept_starts[0] = 0
+    for ci in range(n_clusters):
+        kept_starts[ci + 1] += kept_starts[ci]
+    if bounds.shape[0] == 2:
+        _compact_rows(starts, partners, offsets, 0, n_clusters, near, kept_starts,
+                      kept_partners, kept_offsets)  # fmt: skip
+    else:
+        _compact_chunks(starts, partners, offsets, bounds, near, kept_starts, kept_partners,
+                        kept_offsets)  # fmt: skip
+        # a chunk's last row may have written a dropped pair over the next chunk's first
+        # one, after that was written: the cluster itself, put back
+        for t in range(1, bounds.shape[0] - 1):
+            ci = bounds[t]
+            if ci < n_clusters:
+                k, q = kept_starts[ci], starts[ci]
+                kept_partners[k] = partners[q]
+                for d in range(3):
+                    kept_offsets[k, d] = offsets[q, d]
+    return kept_starts[n_clusters]
+
+
+@njit(cache=True, error_model="numpy")
+def _mark_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, near, kept_starts):
+    """Mark the pairs of i clusters ``c0`` to ``c1``; each row's kept count into
+    ``kept_starts[ci + 1]``."""
+    for ci in range(c0, c1):
+        a, b = starts[ci], starts[ci + 1]
+        _mark_row(xi, xj, offsets, partners, a, b, ci, reach2, near)
+        count = 0
+        for q in range(a, b):
+            count += near[q]
+        kept_starts[ci + 1] = count
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _mark_chunks(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts):
+    """:func:`_mark_rows` for each chunk of i clusters, on the threads."""
+    for t in prange(bounds.shape[0] - 1):
+        _mark_rows(starts, partners, offsets, bounds[t], bounds[t + 1], xi, xj, reach2, near,
+                   kept_starts)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _compact_rows(starts, partners, offsets, c0, c1, near, kept_starts, kept_partners,
+                  kept_offsets):  # fmt: skip
+    """Copy the marked pairs of i clusters ``c0`` to ``c1`` to their rows' places (every
+    pair written, a dropped one where the next kept pair, or the next row, overwrites
+    it: no branch)."""
+    for ci in range(c0, c1):
+        k = kept_starts[ci]
+        for q in range(starts[ci], starts[ci + 1]):
+            kept_partners[k] = partners[q]
+            kept_offsets[k, 0] = offsets[q, 0]
+            kept_offsets[k, 1] = offsets[q, 1]
+            kept_offsets[k, 2] = offsets[q, 2]
+            k += near[q]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _compact_chunks(starts, partners, offsets, bounds, near, kept_starts, kept_partners,
+                    kept_offsets):  # fmt: skip
+    """:func:`_compact_rows` for each chunk of i clusters, on the threads."""
+    for t in prange(bounds.shape[0] - 1):
+        _compact_rows(starts, partners, offsets, bounds[t], bounds[t + 1], near, kept_starts,
+                      kept_partners, kept_offsets)  # fmt: skip

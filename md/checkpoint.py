@@ -74,6 +74,9 @@ class Checkpoint:
     neighbor_cell : tuple of two ndarrays (3,), or None
         Edge lengths and tilt of the cell at that build [length] (None in
         checkpoints written before lists were kept through cell changes).
+    neighbor_pruned : ndarray of float64, shape (N, 3), or None
+        Positions of the cluster list's last prune [length] (None where the
+        list is not pruned: see ``outer_skin`` in :class:`md.neighbors.NeighborList`).
     fingerprint : dict
         The physics configuration (see :func:`physics_fingerprint`).
     n_frames, last_frame_step : int
@@ -98,6 +101,7 @@ class Checkpoint:
     extra: dict = field(default_factory=dict)
     neighbor_cell: tuple | None = None
     decomposition: dict | None = None
+    neighbor_pruned: np.ndarray | None = None
     precision: str = "double"
 
 
@@ -157,6 +161,9 @@ def write_checkpoint(
         arrays["neighbor_reference"] = reference
         # the cell of that build: a list kept through a barostat's moves is rebuilt in it
         arrays["neighbor_box"], arrays["neighbor_tilt"] = nl.reference_cell
+        pruned = nl.pruned_positions  # the cluster list's last prune: the pairs it holds
+        if pruned is not None:
+            arrays["neighbor_pruned"] = pruned
     layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
     if layout is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
@@ -231,6 +238,9 @@ def read_checkpoint(path) -> Checkpoint:
         reference = arrays.get("neighbor_reference")
         if reference is not None and reference.shape != state.positions.shape:
             raise ValueError("neighbour-list positions do not match the atom count")
+        pruned = arrays.get("neighbor_pruned") if reference is not None else None
+        if pruned is not None and pruned.shape != state.positions.shape:
+            raise ValueError("the neighbour list's pruned positions do not match the atom count")
         saved = meta["integrator_state"]
         layout = meta.get("decomposition")
         if layout is not None:
@@ -258,6 +268,7 @@ def read_checkpoint(path) -> Checkpoint:
             ),
             decomposition=layout,
             precision=str(meta.get("precision", "double")),
+            neighbor_pruned=pruned,
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -311,8 +322,9 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
             ) from None
     nl = None if forcefield is None else forcefield.neighbor_list
     if nl is not None and checkpoint.neighbor_reference is not None:
-        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference,
-                      *(checkpoint.neighbor_cell or ()))  # fmt: skip
+        box, tilt = checkpoint.neighbor_cell or (None, None)
+        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference, box, tilt,
+                      pruned=checkpoint.neighbor_pruned)  # fmt: skip
         # The result cache may hold forces from the built configuration; drop it.
         forcefield.invalidate()
 

@@ -27,6 +27,7 @@ from md._cluster_kernels import (
     cluster_grid,
     cluster_positions,
     column_counts,
+    prune_pairs,
     search_pairs,
 )
 from md.box import (
@@ -57,6 +58,10 @@ _MIN_CHUNK_ATOMS = 1000
 _MIN_PASS_ATOMS = 16_000
 #: Head room of the pair buffer over the count that did not fit.
 _GROWTH = 1.05
+#: The verdict of :meth:`NeighborList._verdict` that asks for the cluster list to be pruned.
+_PRUNE = "prune"
+#: The outer cluster list's skin in skins, by default (see ``outer_skin``).
+_OUTER_SKINS = 4.0
 
 
 @dataclass(frozen=True)
@@ -216,7 +221,19 @@ class NeighborList:
         a sparse system gets columns narrower than its density asks, so that no
         column meets two images of another). The slot list is then built only if something asks for
         it (``frame``, ``starts``, ``pairs()``: per-atom results, Hessians), at
-        the positions of the build.
+        the positions of the last build or prune.
+    outer_skin : float or None
+        With ``clusters``, GROMACS's dynamic pruning: the cluster search lists the
+        pairs within ``cutoff + outer_skin`` (the outer list), and the list the
+        kernels read is that one pruned to the pairs within ``cutoff + skin``
+        (one atom-by-atom pass over the outer list, much cheaper than a search).
+        When an atom has moved more than ``skin / 2`` since the last prune, the
+        outer list is pruned again if no atom moved more than ``(outer_skin -
+        skin) / 2`` since the search (every pair then within ``cutoff + skin`` is
+        still in it), else searched again: exact, as the plain skin rule is.
+        None: ``4 * skin`` (a search a third as often as without). ``outer_skin
+        <= skin``, or a box shorter than twice the outer radius, searches at
+        ``cutoff + skin`` and never prunes.
 
     Attributes
     ----------
@@ -243,7 +260,9 @@ class NeighborList:
         Slot ranges of the chunks the force kernels split the work into,
         balanced by pair count, one per thread.
     n_builds : int
-        Number of builds so far.
+        Number of builds so far (cluster searches, with ``clusters``).
+    n_prunes : int
+        Number of times the outer cluster list was pruned again between searches.
     n_followed : int
         Number of times the list was kept through a change of the cell.
 
@@ -258,15 +277,29 @@ class NeighborList:
     False
     """
 
-    def __init__(self, cutoff: float, skin: float = 0.3, clusters: bool = False) -> None:
+    def __init__(self, cutoff: float, skin: float = 0.3, clusters: bool = False,
+                 outer_skin: float | None = None) -> None:  # fmt: skip
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError(f"neighbour list cutoff must be positive and finite, got {cutoff}")
         if not (np.isfinite(skin) and skin >= 0):
             raise ValueError(f"skin must be >= 0 and finite, got {skin}")
+        if outer_skin is None:
+            outer_skin = _OUTER_SKINS * skin
+        if not (np.isfinite(outer_skin) and outer_skin >= 0):
+            raise ValueError(f"outer_skin must be >= 0 and finite, got {outer_skin}")
         self.cutoff = float(cutoff)
         self.skin = float(skin)
+        self.outer_skin = float(outer_skin)
         self.clusters_wanted = bool(clusters)
         self._clusters: ClusterFrame | None = None
+        self._outer: ClusterFrame | None = None  # the searched list, when pruned
+        self._pruned_at: NDArray[np.float64] | None = None  # positions at its last prune
+        # Squared half of what the outer list has over the inner one: the farthest an atom
+        # may have moved since the search for a prune to find every pair.
+        self._prune_distance2 = _square(0.5 * (self.outer_skin - self.skin))
+        self.n_prunes = 0
+        self._prune_buffers: list = [None, None]  # see _prune
+        self._prune_turn = 0
         self._slots_pending = False  # a cluster build: the slot list on first use
         self._cluster_room = 64  # pairs of room per cluster in the search's buffers
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
@@ -352,13 +385,15 @@ class NeighborList:
         return self._box.copy(), self._tilt.copy()
 
     def rebuild_at(self, state: State, positions: NDArray[np.float64], box=None,
-                   tilt=None) -> None:  # fmt: skip
+                   tilt=None, pruned=None) -> None:  # fmt: skip
         """Build the list as it was built at ``positions`` (a checkpoint's), for ``state``.
 
         ``box`` and ``tilt`` are the cell of that build (default: ``state``'s);
-        the list then follows the cell to ``state``'s, as it had in the run. A
-        resumed run so has the same list, hence the same force summation
-        order, as the run that was never interrupted.
+        the list then follows the cell to ``state``'s, as it had in the run;
+        ``pruned``, the positions of the cluster list's last prune
+        (:attr:`pruned_positions`), prunes it there. A resumed run so has the
+        same list, hence the same force summation order, as the run that was
+        never interrupted.
         """
         at_build = state.copy()
         at_build.positions[:] = positions
@@ -366,7 +401,19 @@ class NeighborList:
             at_build.box = np.array(box, dtype=np.float64)
             at_build.tilt = np.zeros(3) if tilt is None else np.array(tilt, dtype=np.float64)
         self.build(at_build)
+        if pruned is not None and self._outer is not None:
+            pruned = np.asarray(pruned, dtype=np.float64)
+            if pruned.shape != state.positions.shape:
+                raise ValueError(f"pruned positions have shape {pruned.shape}, the state "
+                                 f"{state.positions.shape}")  # fmt: skip
+            self._prune(pruned)
         self.update(state)
+
+    @property
+    def pruned_positions(self) -> NDArray[np.float64] | None:
+        """Positions at the last prune of the cluster list (a copy; the search's own
+        positions if none since), or None where the list is not pruned."""
+        return None if self._outer is None else self._pruned_at.copy()
 
     @property
     def starts(self) -> NDArray[np.int64]:
@@ -428,6 +475,9 @@ class NeighborList:
         if verdict is True:
             self.build(state)
             return True
+        if verdict is _PRUNE:
+            self._prune(state.positions)
+            return False
         if verdict is None:  # the build's own cell
             if self.n_followed == self._followed_at_build:
                 return False  # never left it: nothing to restore
@@ -442,8 +492,9 @@ class NeighborList:
 
     def _verdict(self, state: State):
         """True: rebuild; None: the list holds and ``state``'s cell is the build's;
-        else the list holds in the cell of ``state``, whose periodic lengths and
-        tilt are returned.
+        ``_PRUNE``: prune the outer cluster list again (``outer_skin``); else the
+        list holds in the cell of ``state``, whose periodic lengths and tilt are
+        returned.
 
         With the cells H0 at the build and H now (rows: cell vectors), the
         build's positions mapped affinely are r0 M, M = H0^-1 H. A pair not
@@ -467,6 +518,15 @@ class NeighborList:
             )
             if not same_cell and self._clusters is not None:
                 return True  # cluster offsets and origins hold the build's box lengths
+        chunks = chunk_count(len(self._reference), _MIN_PASS_ATOMS)
+        if same_cell and self._outer is not None:
+            moved2 = _largest_displacement2(state.positions, self._pruned_at, chunks)
+            if not math.isfinite(moved2):
+                raise NonFiniteError("particle positions are not finite")
+            if moved2 <= self._rebuild_distance2:
+                return None
+            moved2 = _largest_displacement2(state.positions, self._reference, chunks)
+            return _PRUNE if moved2 <= self._prune_distance2 else True
         if same_cell:
             reference, allowed2 = self._reference, self._rebuild_distance2
         else:
@@ -482,7 +542,6 @@ class NeighborList:
             if not allowed > 0:
                 return True
             reference, allowed2 = self._reference @ m, _square(allowed)
-        chunks = chunk_count(len(reference), _MIN_PASS_ATOMS)
         moved2 = _largest_displacement2(state.positions, reference, chunks)
         if not math.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
@@ -510,7 +569,8 @@ class NeighborList:
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
         # Drop the old list first, so it and the new one are never held together.
-        self.order, self._atom_list, self._clusters = None, None, None
+        self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
+        self._prune_buffers = [None, None]
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
@@ -573,15 +633,25 @@ class NeighborList:
         """(ncx, ncy) of a cluster build of ``state``, or None where the slot frame serves."""
         if not self.clusters_wanted or self._owned is not None or numba_config.DISABLE_JIT:
             return None
-        box, radius = state.box, self.list_radius
-        if not (np.all(state.pbc) and is_orthorhombic(state.tilt)) or np.any(box <= 2 * radius):
+        box = state.box
+        if not (np.all(state.pbc) and is_orthorhombic(state.tilt)) or np.any(
+            box <= 2 * self.list_radius
+        ):
             return None
-        return column_counts(box, state.n_atoms, radius)
+        return column_counts(box, state.n_atoms, self._search_radius(box))
+
+    def _search_radius(self, box: NDArray[np.float64]) -> float:
+        """The radius of a cluster search in ``box``: the outer list's where the box is
+        wider than twice it (pruning on), else the list radius."""
+        outer = self.cutoff + self.outer_skin
+        if self.outer_skin > self.skin and np.all(box > 2 * outer):
+            return outer
+        return self.list_radius
 
     def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int) -> None:
         ncx, ncy = columns
         first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-        radius = self.list_radius
+        radius = self._search_radius(state.box)
         # the pairs with an atom pair within reach, checked in float32: the radius widened
         # by 1e-5 so that rounding can only keep a pair more, never drop one
         xi = np.empty(3 * len(atom), np.float32)
@@ -595,15 +665,57 @@ class NeighborList:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
         starts, partners, offsets = found
-        self._clusters = ClusterFrame(atom, origin, starts, partners, offsets, chunks)
+        frame = ClusterFrame(atom, origin, starts, partners, offsets, chunks)
+        if radius > self.list_radius:
+            self._outer = frame
+            self._prune(state.positions, relative=(xi, xj))
+        else:
+            self._clusters, self._pruned_at = frame, None
+
+    def _prune(self, positions: NDArray[np.float64], relative=None) -> None:
+        """The outer cluster list pruned to the pairs with an atom pair within the list
+        radius at ``positions`` (checked in float32, the radius widened by 1e-5 as the
+        search's is) becomes the list the kernels read; the slot list is built again
+        on demand, at these positions. ``relative``: the slots' relative positions
+        (:meth:`ClusterFrame.relative_positions`) where the caller has them."""
+        outer = self._outer
+        n, size = outer.n_clusters, outer.n_pairs + 1
+        if relative is None:
+            relative = (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
+            outer.relative_positions(positions, *relative)
+        # Two sets of buffers, taken in turns: a pruned list's arrays stay valid until
+        # the second prune after it (a new build allocates afresh).
+        self._prune_turn ^= 1
+        buffers = self._prune_buffers[self._prune_turn]
+        if buffers is None or buffers[0].shape[0] != n + 1 or buffers[1].shape[0] < size:
+            buffers = (np.empty(n + 1, np.int64), np.empty(size, np.int32),
+                       np.empty((size, 3), np.float32), np.empty(size, np.uint8))  # fmt: skip
+            self._prune_buffers[self._prune_turn] = buffers
+        starts, partners, offsets, near = buffers
+        reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
+        kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
+                           *relative, reach2, near, starts, partners, offsets)  # fmt: skip
+        self._clusters = ClusterFrame(outer.atom, outer.origin, starts, partners[:kept],
+                                      offsets[:kept], len(outer.bounds) - 1)  # fmt: skip
+        if self._pruned_at is None or self._pruned_at.shape != positions.shape:
+            self._pruned_at = np.empty_like(positions)
+        self._pruned_at[:] = positions
+        if self._reference is not None:  # a prune between searches (not the search's own)
+            self.n_prunes += 1
+            self.order, self._atom_list = None, None
+            self.images = self.slot_neighbors = self.codes = self.slot_starts = None
+            self.shifted_rows = None
+            self._slots_pending = True
 
     def _slot_list(self) -> None:
-        """After a cluster build, build the slot list at the build's positions and cell
-        (once): what the frame's kernels, per-atom results and ``pairs()`` read."""
+        """After a cluster build or prune, build the slot list at its positions and the
+        build's cell (once): what the frame's kernels, per-atom results and ``pairs()``
+        read."""
         if not self._slots_pending:
             return
         self._slots_pending = False
-        at_build = State(positions=self._reference.copy(), box=self._box.copy(),
+        at = self._reference if self._pruned_at is None else self._pruned_at
+        at_build = State(positions=at.copy(), box=self._box.copy(),
                          pbc=self._pbc.copy(), tilt=self._tilt.copy())  # fmt: skip
         lengths, tilt = self.lengths, self.tilt  # the cell followed since, if any
         _, _, grid, _, _ = self._cell_data(at_build)

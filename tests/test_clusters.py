@@ -133,9 +133,10 @@ def candidates(state, radius, chunks, room=256):
 def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fcc_lattice):
     """The build prunes the search's candidates atom by atom (GROMACS's pruning): the kept
     pairs are those of the candidates with an atom pair within the list radius (a row's
-    first pair, the cluster with itself, always), to float32's rounding at the edge."""
+    first pair, the cluster with itself, always), to float32's rounding at the edge (no
+    outer list: the search's own check)."""
     state = fcc_lattice(cells=6, perturbation=0.1)
-    nl = NeighborList(2.5, 0.3, clusters=True)
+    nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=0.3)
     nl.update(state)
     clusters = nl.clusters
     radius = nl.list_radius
@@ -162,6 +163,144 @@ def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fc
             distance = closest(ci, partners[k], offsets[k])
             if abs(distance - radius) > 1e-4:
                 assert (key in kept) == (distance < radius), (key, distance)
+
+
+def closest_distances(state, clusters, rows=None):
+    """Per listed cluster pair, its closest atom pair's distance (the cluster with itself:
+    its distinct atoms), from the list's own geometry."""
+    rel_i, rel_j = relative_positions(state, clusters)
+    distances = np.empty(clusters.n_pairs)
+    for ci in range(clusters.n_clusters) if rows is None else rows:
+        for k in range(clusters.starts[ci], clusters.starts[ci + 1]):
+            d = rel_i[ci][:, None, :] - rel_j[clusters.partners[k]][None, :, :]
+            d += clusters.offsets[k].astype(float)
+            r2 = np.einsum("abk,abk->ab", d, d)
+            if k == clusters.starts[ci]:
+                r2 = r2[np.triu_indices(CLUSTER, 1)]
+            distances[k] = np.sqrt(r2.min())
+    return distances
+
+
+def rows_of(clusters):
+    return [[(int(j), tuple(o.tolist())) for j, o in
+             zip(clusters.partners[clusters.starts[c]:clusters.starts[c + 1]],
+                 clusters.offsets[clusters.starts[c]:clusters.starts[c + 1]], strict=True)]
+            for c in range(clusters.n_clusters)]  # fmt: skip
+
+
+def moved_by(state, rng, largest):
+    """``state`` with every atom moved in a random direction, the farthest by ``largest``."""
+    moved = state.copy()
+    step = rng.normal(size=state.positions.shape)
+    step /= np.linalg.norm(step, axis=1)[:, None]
+    moved.positions += step * rng.uniform(0.0, largest, size=(state.n_atoms, 1))
+    moved.positions[0] = state.positions[0] + step[0] * largest
+    return moved
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_prune_keeps_exactly_the_outer_pairs_within_the_list_radius(threads, fcc_lattice,
+                                                                      rng):  # fmt: skip
+    """GROMACS's dynamic pruning: the search lists the pairs within cutoff + outer_skin;
+    once an atom has moved past skin / 2, the list the kernels read becomes the outer
+    pairs with an atom pair within cutoff + skin at the new positions, each row in its
+    order (to float32's rounding at the edge), on one thread or two."""
+    state = fcc_lattice(cells=8, perturbation=0.1)
+    before = get_threads()
+    try:
+        set_threads(threads)
+        nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=1.2)
+        nl.update(state)
+        outer = nl._outer
+        assert outer is not None and outer.n_pairs > 1.3 * nl.clusters.n_pairs
+        moved = moved_by(state, rng, 0.3)  # past skin / 2, within (outer - skin) / 2
+        assert not nl.update(moved)
+        assert (nl.n_builds, nl.n_prunes) == (1, 1)
+        np.testing.assert_array_equal(nl.pruned_positions, moved.positions)
+        np.testing.assert_array_equal(nl.reference_positions, state.positions)
+        assert len(nl.clusters.bounds) - 1 == threads
+    finally:
+        set_threads(before)
+    distances = closest_distances(moved, outer)
+    radius = nl.list_radius
+    expected = [[pair for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row,
+                                         strict=True)
+                 if k == outer.starts[c] or distances[k] < radius + 1e-4]
+                for c, row in enumerate(rows_of(outer))]  # fmt: skip
+    kept = rows_of(nl.clusters)
+    uncertain = {(c, pair) for c, row in enumerate(rows_of(outer))
+                 for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row, strict=True)
+                 if abs(distances[k] - radius) <= 1e-4}  # fmt: skip
+    for c in range(outer.n_clusters):
+        assert kept[c][0] == (c, (0.0, 0.0, 0.0))
+        assert [p for p in kept[c] if (c, p) not in uncertain] == [
+            p for p in expected[c] if (c, p) not in uncertain]
+    assert_covers(moved, nl.clusters, radius)  # every pair within reach, once
+
+
+def test_pruning_misses_no_pair_within_the_cutoff_until_the_next_search(fcc_lattice, rng):
+    """A random walk, the list updated every step: each step every atom pair within the
+    cutoff lies in exactly one cluster pair of the list the kernels read; the walk takes
+    the list through prunes and searches (an atom past skin / 2 since the last prune:
+    prune; past (outer_skin - skin) / 2 since the search: search)."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    nl = NeighborList(2.5, 0.2, clusters=True, outer_skin=0.8)
+    nl.update(state)
+    for _ in range(14):
+        state = moved_by(state, rng, 0.07)
+        nl.update(state)
+        assert_covers(state, nl.clusters, nl.cutoff)
+    assert nl.n_builds >= 2 and nl.n_prunes >= 3, (nl.n_builds, nl.n_prunes)
+
+
+def test_the_verdict_prunes_then_searches(fcc_lattice):
+    """One atom moved: up to skin / 2 nothing; past it a prune (the list's pruned
+    positions move on, the search's stay); when a prune is due and the atom is past
+    (outer_skin - skin) / 2 from the search, a new search; a list without an outer one
+    (outer_skin <= skin) searches at skin / 2."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=1.1)  # prune past 0.15, search 0.4
+    nl.update(state)
+    for distance, builds, prunes in [(0.14, 1, 0), (0.16, 1, 1), (0.30, 1, 1), (0.32, 1, 2),
+                                     (0.41, 1, 2), (0.48, 2, 2)]:  # fmt: skip
+        moved = state.copy()
+        moved.positions[7, 0] += distance
+        nl.update(moved)
+        assert (nl.n_builds, nl.n_prunes) == (builds, prunes), distance
+    plain = NeighborList(2.5, 0.3, clusters=True, outer_skin=0.3)
+    plain.update(state)
+    assert plain.pruned_positions is None
+    moved = state.copy()
+    moved.positions[7, 0] += 0.16
+    assert plain.update(moved) and plain.n_prunes == 0
+
+
+def test_a_box_too_small_for_the_outer_list_searches_at_the_list_radius(fcc_lattice):
+    state = fcc_lattice(cells=5, perturbation=0.05)  # edge 8.4: > 2 x 2.8, < 2 x 4.3
+    nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=1.8)
+    nl.update(state)
+    assert nl.clusters is not None and nl.pruned_positions is None
+    assert_covers(state, nl.clusters, nl.list_radius)
+
+
+def test_rebuild_at_a_checkpoints_positions_gives_the_same_pruned_list(fcc_lattice, rng):
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    nl = NeighborList(2.5, 0.3, clusters=True)
+    nl.update(state)
+    now = moved_by(state, rng, 0.2)
+    nl.update(now)
+    assert nl.n_prunes == 1
+    again = NeighborList(2.5, 0.3, clusters=True)
+    again.rebuild_at(now, nl.reference_positions, pruned=nl.pruned_positions)
+    assert rows_of(again.clusters) == rows_of(nl.clusters)
+    with pytest.raises(ValueError, match="pruned positions have shape"):
+        again.rebuild_at(now, nl.reference_positions, pruned=nl.pruned_positions[:-1])
+
+
+@pytest.mark.parametrize("outer", [-0.1, math.nan, math.inf])
+def test_a_bad_outer_skin_is_refused(outer):
+    with pytest.raises(ValueError, match="outer_skin must be >= 0 and finite"):
+        NeighborList(2.5, 0.3, clusters=True, outer_skin=outer)
 
 
 @pytest.mark.parametrize("cell", ["small", "tilted", "open axis", "decomposed rank"])

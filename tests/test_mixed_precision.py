@@ -198,12 +198,25 @@ def test_checkpoint_resumes_bit_for_bit_in_mixed_precision(tmp_path):
                             first.forcefield)  # fmt: skip
     saved = read_checkpoint(path)
     assert saved.precision == "mixed"
-    again = md.Simulation(saved.state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
-                          precision="mixed")  # fmt: skip
-    restore(saved, again.integrator, again.forcefield)
-    again.run(35)
+    # the cluster list was pruned since its search: the pairs the kernels sum depend on
+    # where, and the checkpoint says it
+    assert first.forcefield.neighbor_list.n_prunes >= 1
+    assert not np.array_equal(saved.neighbor_pruned, saved.neighbor_reference)
+
+    def resumed(checkpoint):
+        again = md.Simulation(checkpoint.state, [LennardJones(cutoff=2.5)],
+                              VelocityVerlet(dt=0.005), precision="mixed")  # fmt: skip
+        restore(checkpoint, again.integrator, again.forcefield)
+        again.run(35)
+        return again
+
+    again = resumed(saved)
     assert np.array_equal(again.state.positions, whole.state.positions)
     assert np.array_equal(again.state.velocities, whole.state.velocities)
+    # the control: the list pruned at the search's positions instead sums other pairs
+    unpruned = read_checkpoint(path)
+    unpruned.neighbor_pruned = None
+    assert not np.array_equal(resumed(unpruned).state.positions, whole.state.positions)
     # the control: the double run is another trajectory (so the test can tell them apart)
     assert not np.array_equal(_lj_simulation("double", 60).state.positions,
                               whole.state.positions)  # fmt: skip

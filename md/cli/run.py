@@ -263,6 +263,9 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
     nl = sim.forcefield.neighbor_list
     if nl is not None:
         print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
+        if nl.n_prunes:
+            print(f"Cluster list prunes: {nl.n_prunes} (the outer list pruned again when an "
+                  "atom moved > skin/2, searched again past (outer_skin - skin)/2)")
     per_step = ", ".join(
         f"{name.replace('_', ' ')} {value:.3g}" for name, value in summary.per_step().items()
     )
