@@ -269,6 +269,13 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
             continue
         cx, cy = c // ncy, c % ncy
         windows[: f1 - f0] = 0
+        # the images below and above reach only the column's lowest (highest) clusters:
+        # those the sweeps at dz = -1 (+1) take
+        below_end, above_begin = f0, f1
+        while below_end < f1 and lower[below_end, 2] < radius:
+            below_end += 1
+        while above_begin > f0 and upper[above_begin - 1, 2] + radius >= box[2]:
+            above_begin -= 1
         m = 0
         for dx in range(-reach_x, reach_x + 1):
             ux, sx = _periodic_column(cx + dx, ncx, box[0])
@@ -289,15 +296,8 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     # a cluster meets its own image at +shift and -shift: the pair once
                     positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
                     zero = sx == 0.0 and sy == 0.0 and dz == 0
-                    # the images below and above reach only a column's lowest (highest)
-                    # clusters: sweep those
-                    lowest, highest = f0, f1
-                    if dz == -1:
-                        while highest > f0 and lower[highest - 1, 2] >= radius:
-                            highest -= 1
-                    elif dz == 1:
-                        while lowest < f1 and upper[lowest, 2] + radius < box[2]:
-                            lowest += 1
+                    lowest = above_begin if dz == 1 else f0
+                    highest = below_end if dz == -1 else f1
                     begin = g0
                     end = g0
                     last = g1 - 1
