@@ -298,8 +298,7 @@ class NeighborList:
         # may have moved since the search for a prune to find every pair.
         self._prune_distance2 = _square(0.5 * (self.outer_skin - self.skin))
         self.n_prunes = 0
-        self._prune_buffers: list = [None, None]  # see _prune
-        self._prune_turn = 0
+        self._prune_buffers = None  # see _prune
         self._slots_pending = False  # a cluster build: the slot list on first use
         self._cluster_room = 64  # pairs of room per cluster in the search's buffers
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
@@ -570,7 +569,7 @@ class NeighborList:
             )
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
-        self._prune_buffers = [None, None]
+        self._prune_buffers = None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
@@ -683,14 +682,13 @@ class NeighborList:
         if relative is None:
             relative = (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
             outer.relative_positions(positions, *relative)
-        # Two sets of buffers, taken in turns: a pruned list's arrays stay valid until
-        # the second prune after it (a new build allocates afresh).
-        self._prune_turn ^= 1
-        buffers = self._prune_buffers[self._prune_turn]
-        if buffers is None or buffers[0].shape[0] != n + 1 or buffers[1].shape[0] < size:
+        # One set of buffers per search, written over by each prune: a pruned list's
+        # arrays hold until the next prune (copy them to keep them longer).
+        buffers = self._prune_buffers
+        if buffers is None:
             buffers = (np.empty(n + 1, np.int64), np.empty(size, np.int32),
                        np.empty((size, 3), np.float32), np.empty(size, np.uint8))  # fmt: skip
-            self._prune_buffers[self._prune_turn] = buffers
+            self._prune_buffers = buffers
         starts, partners, offsets, near = buffers
         reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
         kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
