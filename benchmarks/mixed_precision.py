@@ -22,11 +22,13 @@ Compilation is excluded (a warm-up call).
     python benchmarks/mixed_precision.py                       # 32000 atoms, 1 and 2 threads
     python benchmarks/mixed_precision.py --threads 1 --repeats 31 --drift-steps 20000
     python benchmarks/mixed_precision.py --threads 1 --gromacs --gmx /path/to/avx512/gmx
+    python benchmarks/mixed_precision.py --drift-only --gromacs --seeds 5   # drifts of 5 liquids
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import time
@@ -95,13 +97,13 @@ def md_rates(cells: int, steps: int, repeats: int) -> dict:
             "mixed": statistics.median(rates["mixed"]), "ratio": statistics.median(ratios)}
 
 
-def liquid(cells: int) -> md.State:
-    """The melt after 2000 steps from fcc at T = 3 (double), the drift runs' start: on one
-    thread, so that the start (and so the drifts) is the same for any --threads (the
-    force sums' order follows the chunk count)."""
+def liquid(cells: int, seed: int = 3) -> md.State:
+    """The melt after 2000 steps from fcc at T = 3 (double; velocities from ``seed``), the
+    drift runs' start: on one thread, so that the start (and so the drifts) is the same
+    for any --threads (the force sums' order follows the chunk count)."""
     threads = get_threads()
-    sim = md.Simulation(melt(cells, 3.0, seed=3), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
-                        threads=1)  # fmt: skip
+    sim = md.Simulation(melt(cells, 3.0, seed=seed), [LennardJones(cutoff=2.5)],
+                        VelocityVerlet(DT), threads=1)  # fmt: skip
     try:
         sim.run(2000)
     finally:
@@ -156,10 +158,16 @@ def main(argv=None) -> None:
     parser.add_argument("--gromacs", action="store_true", help="GROMACS's drift beside ours")
     parser.add_argument("--gmx", default=None, help="GROMACS mixed binary (default $GMX, gmx)")
     parser.add_argument("--gmx-d", default=None, help="GROMACS double binary (default gmx_d)")
+    parser.add_argument("--seeds", type=int, default=1,
+                        help="drift runs from this many liquids (velocity seeds 3, 4, ...), "
+                             "with the medians of the drifts and of their ratios (1)")
+    parser.add_argument("--drift-only", action="store_true", help="skip the timings")
     args = parser.parse_args(argv)
+    if args.seeds < 1:
+        parser.error(f"--seeds must be at least 1, got {args.seeds}")
     print(machine_line())
     n_atoms = 4 * args.cells**3
-    for threads in (int(t) for t in args.threads.split(",")):
+    for threads in () if args.drift_only else (int(t) for t in args.threads.split(",")):
         set_threads(threads)
         calls = force_calls(args.cells, args.repeats)
         rates = md_rates(args.cells, args.steps, max(args.repeats // 3, 3))
@@ -170,21 +178,40 @@ def main(argv=None) -> None:
         print(f"  MD loop      double {rates['double'] / 1e6:.2f} M atom-steps/s, mixed "
               f"{rates['mixed'] / 1e6:.2f} M: mixed/double {rates['ratio']:.3f}")
         print(f"  max |F_mixed - F_double| / max |F|: {calls['error']:.1e}")
-    start = liquid(args.drift_cells)
-    drifts = {p: drift(start, args.drift_steps, p) for p in PRECISIONS}
     print(f"\nNVE drift, {4 * args.drift_cells**3} atoms of liquid, {args.drift_steps} "
           f"steps of dt {DT} (total energy per atom per tau: last minus first; |slope| of a "
           "line fit):")  # fmt: skip
-    for precision, (ends, fit) in drifts.items():
-        print(f"  ours {precision:<8}{ends:+.2e}   fit {fit:.2e}")
-    if args.gromacs:
-        found = gromacs_drifts(start, args.drift_steps,
-                               {"mixed": args.gmx, "double": args.gmx_d})  # fmt: skip
-        for label, value in found.items():
-            print(f"  {label}: " + ("no drift line in md.log" if value is None
-                                     else f"{value:+.2e}"))  # fmt: skip
-    ratio = abs(drifts["mixed"][0]) / max(abs(drifts["double"][0]), 1e-300)
-    print(f"  |mixed| / |double| (last minus first) {ratio:.2f} (target: within 10)")
+    table = {}  # engine -> end-point drift per seed
+    for seed in range(3, 3 + args.seeds):
+        start = liquid(args.drift_cells, seed)
+        if args.seeds > 1:
+            print(f" liquid of seed {seed}:")
+        for precision in PRECISIONS:
+            ends, fit = drift(start, args.drift_steps, precision)
+            table.setdefault(f"ours {precision}", []).append(ends)
+            print(f"  ours {precision:<8}{ends:+.2e}   fit {fit:.2e}")
+        if args.gromacs:
+            found = gromacs_drifts(start, args.drift_steps,
+                                   {"mixed": args.gmx, "double": args.gmx_d})  # fmt: skip
+            for label, value in found.items():
+                print(f"  {label}: " + ("no drift line in md.log" if value is None
+                                         else f"{value:+.2e}"))  # fmt: skip
+                table.setdefault(label, []).append(math.nan if value is None else value)
+    magnitudes = {name: [abs(x) for x in values] for name, values in table.items()}
+    mixed, double = magnitudes["ours mixed"], magnitudes["ours double"]
+    ratios = [m / max(d, 1e-300) for m, d in zip(mixed, double, strict=True)]
+    if args.seeds > 1:
+        print(f" medians over {args.seeds} liquids of |drift|: " + ", ".join(
+            f"{name} {statistics.median(values):.2e}" for name, values in magnitudes.items()))
+    print(f"  |mixed| / |double| (last minus first) {statistics.median(ratios):.2f}"
+          + (" (median over the liquids)" if args.seeds > 1 else "") + " (target: within 10)")
+    for name, values in magnitudes.items():
+        if "GROMACS" in name and " mixed " in name and not any(map(math.isnan, values)):
+            against = statistics.median(m / max(g, 1e-300) for m, g in zip(mixed, values,
+                                                                           strict=True))
+            print(f"  |ours mixed| / |{name}| {against:.2f}"
+                  + (" (median over the liquids)" if args.seeds > 1 else "")
+                  + " (target: at most 1)")
 
 
 if __name__ == "__main__":

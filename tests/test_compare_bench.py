@@ -418,3 +418,23 @@ def test_gromacs_peers_run_the_same_melt(tmp_path):
         run = measured["runs"][0]
         assert run["rlist_sigma"] >= 2.5 and run["nstlist"] >= 1
         assert run["precision"] == measured["job"]["variant"]
+
+
+MIXED = SCRIPT.parent / "mixed_precision.py"
+
+
+def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
+    """benchmarks/mixed_precision.py --drift-only --seeds 2: one block per liquid, each with
+    both precisions' drifts, then the medians (no timing, no GROMACS); --seeds 0 exits 2."""
+    def run(*args):
+        return subprocess.run([sys.executable, str(MIXED), *args], capture_output=True,
+                              text=True, timeout=300, cwd=MIXED.parents[1])  # fmt: skip
+
+    done = run("--drift-only", "--seeds", "2", "--drift-cells", "3", "--drift-steps", "20")
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert out.count("liquid of seed") == 2 and out.count("\n  ours mixed ") == 2, out
+    assert "medians over 2 liquids" in out and "(median over the liquids)" in out, out
+    assert "force call" not in out, out  # --drift-only
+    refused = run("--seeds", "0")
+    assert refused.returncode == 2 and "--seeds must be at least 1, got 0" in refused.stderr
