@@ -409,6 +409,12 @@ class NeighborList:
         self.update(state)
 
     @property
+    def outer_clusters(self) -> ClusterFrame | None:
+        """The outer cluster list of the last search (``outer_skin``), or None where the
+        list is not pruned."""
+        return self._outer
+
+    @property
     def pruned_positions(self) -> NDArray[np.float64] | None:
         """Positions at the last prune of the cluster list (a copy; the search's own
         positions if none since), or None where the list is not pruned."""

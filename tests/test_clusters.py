@@ -211,7 +211,7 @@ def test_a_prune_keeps_exactly_the_outer_pairs_within_the_list_radius(threads, f
         set_threads(threads)
         nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=1.2)
         nl.update(state)
-        outer = nl._outer
+        outer = nl.outer_clusters
         assert outer is not None and outer.n_pairs > 1.3 * nl.clusters.n_pairs
         moved = moved_by(state, rng, 0.3)  # past skin / 2, within (outer - skin) / 2
         assert not nl.update(moved)

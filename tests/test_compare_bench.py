@@ -438,3 +438,27 @@ def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
     assert "force call" not in out, out  # --drift-only
     refused = run("--seeds", "0")
     assert refused.returncode == 2 and "--seeds must be at least 1, got 0" in refused.stderr
+
+
+PRUNING = SCRIPT.parent / "cluster_pruning.py"
+
+
+def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones():
+    """benchmarks/cluster_pruning.py: the list without an outer one never prunes, the one
+    with it prunes and lists more outer pairs than inner ones; bad --outer exits 2."""
+    def run(*args):
+        return subprocess.run([sys.executable, str(PRUNING), *args], capture_output=True,
+                              text=True, timeout=300, cwd=PRUNING.parents[1])  # fmt: skip
+
+    done = run("--cells", "6", "--outer", "0.3,1.2", "--steps", "40", "--repeats", "1",
+               "--warm", "20")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    rows = {line.split()[0]: line.split() for line in done.stdout.splitlines()
+            if line.split() and line.split()[0] in ("0.3", "1.2")}  # fmt: skip
+    # outer skin, ms/step, searches, prunes, pairs, outer pairs, ratio
+    assert rows["0.3"][3] == "0" and rows["0.3"][5] == "-", done.stdout
+    assert int(rows["1.2"][3]) > 0 and int(rows["1.2"][5]) > int(rows["1.2"][4]), done.stdout
+    assert float(rows["0.3"][6]) == 1.0
+    for bad in ("0.3,-1", "a,b"):
+        refused = run("--outer", bad)
+        assert refused.returncode == 2 and "--outer" in refused.stderr, refused.stderr

@@ -1,0 +1,99 @@
+"""The cluster list's dynamic pruning: the MD loop of the mixed-precision melt per outer skin.
+
+On LAMMPS's LJ melt (fcc at reduced density 0.8442, T* = 3 start, rc 2.5, skin 0.3,
+velocity Verlet dt 0.005, mixed precision on the cluster-pair list), one Simulation
+per outer skin (``NeighborList(..., clusters=True, outer_skin=...)``; an outer skin
+equal to the skin searches at cutoff + skin and never prunes), each run past the
+melt's first ``--warm`` steps, then ``--steps`` steps per repeat, taking turns within
+each repeat. Prints per outer skin the median time per step, the searches and prunes
+per repeat, the outer and inner list sizes in cluster pairs, and the median of the
+per-repeat ratios to the first outer skin given. Compilation is excluded (the warm-up).
+
+    python benchmarks/cluster_pruning.py                        # outer 0.3, 0.9, 1.2, 1.5
+    python benchmarks/cluster_pruning.py --threads 2 --outer 0.3,1.2 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
+
+from _machine import machine_line  # noqa: E402
+
+import md  # noqa: E402
+from integrators import VelocityVerlet  # noqa: E402
+from md.build import maxwell_boltzmann  # noqa: E402
+from md.neighbors import NeighborList  # noqa: E402
+from md.parallel import set_threads  # noqa: E402
+from potentials import LennardJones  # noqa: E402
+
+CUTOFF, SKIN, DT = 2.5, 0.3, 0.005
+
+
+def simulation(cells: int, outer: float) -> md.Simulation:
+    start = maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=1)
+    sim = md.Simulation(start, [LennardJones(cutoff=CUTOFF)], VelocityVerlet(DT),
+                        precision="mixed", skin=SKIN)  # fmt: skip
+    sim.forcefield.neighbor_list = NeighborList(CUTOFF, SKIN, clusters=True, outer_skin=outer)
+    sim.forcefield.invalidate()
+    return sim
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
+    parser.add_argument("--threads", type=int, default=1, help="threads (1)")
+    parser.add_argument("--outer", default="0.3,0.9,1.2,1.5",
+                        help="outer skins, the first the reference (0.3,0.9,1.2,1.5)")
+    parser.add_argument("--steps", type=int, default=200, help="steps per repeat (200)")
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats (3)")
+    parser.add_argument("--warm", type=int, default=300, help="steps before timing (300)")
+    args = parser.parse_args(argv)
+    try:
+        outers = [float(x) for x in args.outer.split(",")]
+    except ValueError:
+        parser.error(f"--outer takes comma-separated numbers, got {args.outer!r}")
+    if any(not outer >= 0 for outer in outers):
+        parser.error(f"--outer skins must be >= 0, got {args.outer!r}")
+    for name in ("cells", "threads", "steps", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
+    set_threads(args.threads)
+    print(machine_line())
+    print(f"{4 * args.cells**3} atoms, {args.threads} thread(s), mixed precision, skin {SKIN}; "
+          f"{args.repeats} repeats of {args.steps} steps after {args.warm}")  # fmt: skip
+    sims = {}
+    for outer in outers:
+        sims[outer] = simulation(args.cells, outer)
+        sims[outer].run(args.warm)
+    times = {outer: [] for outer in outers}
+    counts = {outer: [] for outer in outers}
+    for _ in range(args.repeats):
+        for outer, sim in sims.items():
+            nl = sim.forcefield.neighbor_list
+            builds, prunes = nl.n_builds, nl.n_prunes
+            start = time.perf_counter()
+            sim.run(args.steps)
+            times[outer].append((time.perf_counter() - start) / args.steps)
+            counts[outer].append((nl.n_builds - builds, nl.n_prunes - prunes))
+    reference = times[outers[0]]
+    print(f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
+          f"{'outer pairs':>11} {'ratio':>6}")  # fmt: skip
+    for outer in outers:
+        nl = sims[outer].forcefield.neighbor_list
+        ratio = statistics.median(t / r for t, r in zip(times[outer], reference, strict=True))
+        searches = statistics.median(c[0] for c in counts[outer])
+        prunes = statistics.median(c[1] for c in counts[outer])
+        pairs = nl.clusters.n_pairs if nl.clusters is not None else "-"
+        outer_pairs = nl.outer_clusters.n_pairs if nl.outer_clusters is not None else "-"
+        print(f"{outer:>10g} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
+              f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
