@@ -684,7 +684,7 @@ class NeighborList:
         on demand, at these positions. ``relative``: the slots' relative positions
         (:meth:`ClusterFrame.relative_positions`) where the caller has them."""
         outer = self._outer
-        n, size = outer.n_clusters, outer.n_pairs + 1
+        n, size = outer.n_clusters, outer.n_pairs
         if relative is None:
             relative = (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
             outer.relative_positions(positions, *relative)
