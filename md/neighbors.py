@@ -685,17 +685,21 @@ class NeighborList:
         (:meth:`ClusterFrame.relative_positions`) where the caller has them."""
         outer = self._outer
         n, size = outer.n_clusters, outer.n_pairs
-        if relative is None:
-            relative = (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
-            outer.relative_positions(positions, *relative)
-        # One set of buffers per search, written over by each prune: a pruned list's
-        # arrays hold until the next prune (copy them to keep them longer).
+        # One set of buffers per search (the relative positions: the search's own),
+        # written over by each prune: a pruned list's arrays hold until the next prune
+        # (copy them to keep them longer).
         buffers = self._prune_buffers
         if buffers is None:
+            if relative is None:
+                relative = (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
+                outer.relative_positions(positions, *relative)
             buffers = (np.empty(n + 1, np.int64), np.empty(size, np.int32),
-                       np.empty((size, 3), np.float32), np.empty(size, np.uint8))  # fmt: skip
+                       np.empty((size, 3), np.float32), np.empty(size, np.uint8), *relative)
             self._prune_buffers = buffers
-        starts, partners, offsets, near = buffers
+        starts, partners, offsets, near, xi, xj = buffers
+        if relative is None:
+            outer.relative_positions(positions, xi, xj)
+            relative = (xi, xj)
         reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
         kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
                            *relative, reach2, near, starts, partners, offsets)  # fmt: skip
