@@ -61,7 +61,7 @@ _GROWTH = 1.05
 #: The verdict of :meth:`NeighborList._verdict` that asks for the cluster list to be pruned.
 _PRUNE = "prune"
 #: The outer cluster list's skin in skins, by default (see ``outer_skin``).
-_OUTER_SKINS = 4.0
+_OUTER_SKINS = 5.0
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ class NeighborList:
         outer list is pruned again if no atom moved more than ``(outer_skin -
         skin) / 2`` since the search (every pair then within ``cutoff + skin`` is
         still in it), else searched again: exact, as the plain skin rule is.
-        None: ``4 * skin`` (a search a third as often as without). ``outer_skin
+        None: ``5 * skin`` (a search about a quarter as often as without). ``outer_skin
         <= skin``, or a box shorter than twice the outer radius, searches at
         ``cutoff + skin`` and never prunes.
 
