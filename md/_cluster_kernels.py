@@ -351,16 +351,9 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     offsets[k + j, 2] = sz - all_z[lo + j]
                 k += hi - lo
             if xi is not None:  # keep the pairs with an atom pair within reach (the row is
-                # still in the cache: marked in vector IR, compacted in place)
-                _mark_row(xi, xj, offsets, partners, row_start, k, ci, reach2, near)
-                kept = row_start
-                for q in range(row_start, k):
-                    partners[kept] = partners[q]
-                    offsets[kept, 0] = offsets[q, 0]
-                    offsets[kept, 1] = offsets[q, 1]
-                    offsets[kept, 2] = offsets[q, 2]
-                    kept += near[q]
-                k = kept
+                # still in the cache), compacted in place
+                k = _keep_near(xi, xj, partners, offsets, row_start, k, ci, reach2, near,
+                               partners, offsets, row_start)  # fmt: skip
             counts[ci] = k - row_start
     return k
 
@@ -519,13 +512,25 @@ def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, near, kept_st
     count into ``kept_starts[ci + 1]``."""
     k = starts[c0]
     for ci in range(c0, c1):
-        a, b = starts[ci], starts[ci + 1]
-        _mark_row(xi, xj, offsets, partners, a, b, ci, reach2, near)
         row = k
-        for q in range(a, b):
-            kept_partners[k] = partners[q]
-            kept_offsets[k, 0] = offsets[q, 0]
-            kept_offsets[k, 1] = offsets[q, 1]
-            kept_offsets[k, 2] = offsets[q, 2]
-            k += near[q]
+        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2, near,
+                       kept_partners, kept_offsets, k)  # fmt: skip
         kept_starts[ci + 1] = k - row
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _keep_near(xi, xj, partners, offsets, start, end, ci, reach2, near, kept_partners,
+               kept_offsets, k):  # fmt: skip
+    """Mark i cluster ``ci``'s pairs ``start`` to ``end`` (:func:`_mark_row`) and copy the
+    marked ones to ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same
+    arrays, ``k`` <= ``start``: in place); returns the end of the copied row. Every pair
+    is written, a dropped one where the next kept one overwrites it (no branch), never
+    past ``k + end - start``."""
+    _mark_row(xi, xj, offsets, partners, start, end, ci, reach2, near)
+    for q in range(start, end):
+        kept_partners[k] = partners[q]
+        kept_offsets[k, 0] = offsets[q, 0]
+        kept_offsets[k, 1] = offsets[q, 1]
+        kept_offsets[k, 2] = offsets[q, 2]
+        k += near[q]
+    return k
