@@ -1763,11 +1763,14 @@ class _IntegratorView:
 
 @dataclass
 class _ListView:
-    """The neighbour list's build, for checkpoints: positions and cell of the last build."""
+    """The neighbour list's build, for checkpoints: positions and cell of the last build
+    (a rank's list is never a pruned cluster list: no prune positions, no prunes)."""
 
     reference_positions: NDArray[np.float64] | None
     reference_cell: tuple | None
     n_builds: int
+    pruned_positions: None = None
+    n_prunes: int = 0
 
 
 class _ForceFieldView:
