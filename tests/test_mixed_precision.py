@@ -320,3 +320,22 @@ def numba_compiled(function):
         return cast(u), cast(fr)
 
     return call
+
+
+def test_md_run_reports_the_cluster_lists_prunes(tmp_path, monkeypatch, capsys):
+    """A mixed run on the cluster list prunes between searches and `md run` says how often
+    (a double run has no cluster list and prints no such line)."""
+    monkeypatch.chdir(tmp_path)
+    for precision in ("mixed", "double"):
+        config = tmp_path / f"{precision}.toml"
+        config.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
+                                         run=f'steps = 60\nprecision = "{precision}"'))
+        capsys.readouterr()
+        assert main(["run", str(config), "--no-progress"]) == 0
+        out = capsys.readouterr().out
+        if precision == "mixed":
+            prunes = int(out.split("Cluster list prunes: ")[1].split()[0])
+            builds = int(out.split("Neighbour list builds: ")[1].split()[0])
+            assert prunes >= 2 and builds >= 1, out
+        else:
+            assert "Cluster list prunes" not in out and "Neighbour list builds" in out, out
