@@ -331,7 +331,7 @@ def test_md_run_reports_the_cluster_lists_prunes(tmp_path, monkeypatch, capsys):
         config.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
                                          run=f'steps = 60\nprecision = "{precision}"'))
         capsys.readouterr()
-        assert main(["run", str(config), "--no-progress"]) == 0
+        assert main(["run", str(config), "--no-progress", "-o", f"{precision}.h5"]) == 0
         out = capsys.readouterr().out
         if precision == "mixed":
             prunes = int(out.split("Cluster list prunes: ")[1].split()[0])
