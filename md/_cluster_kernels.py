@@ -29,10 +29,10 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from md._simd import (
-    CLUSTER_OWN_LANES,
     array_data,
     cluster_i_halves,
     cluster_j_shifted,
+    cluster_own_lanes,
     python_twin,
     splat,
     squared_distances,
@@ -436,7 +436,7 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
         reach = splat(builder, reach2, _V8)
         never = ir.Constant(_V8, [-1.0] * 8)
         own_reach = [builder.select(ir.Constant(_MASK8, keep), reach, never)
-                     for keep in CLUSTER_OWN_LANES]  # fmt: skip
+                     for keep in cluster_own_lanes()]  # fmt: skip
         with cgutils.for_range_slice(builder, start, end, ir.Constant(_I64, 1)) as (k, _):
             cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
             itself = builder.icmp_signed("==", k, start)

@@ -180,37 +180,46 @@ def shuffle(builder, a, b, lanes):
                                                     lanes))  # fmt: skip
 
 
-#: The cluster-pair kernels' lanes (GROMACS's 2xMM layout, clusters of 4): lane l of
-#: half h pairs i atom 2h + l // 4 with j atom l % 4. The lanes that count in a cluster
-#: with itself (j atom after i atom), per half.
-CLUSTER_OWN_LANES = ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])
 _V4 = ir.VectorType(ir.FloatType(), 4)
-_V8 = ir.VectorType(ir.FloatType(), 8)
 _I64 = ir.IntType(64)
 
 
-def cluster_i_halves(builder, xi, base):
-    """An i cluster's atoms as the two halves' 8-lane float32 vectors, [[x, y, z] of half
-    0, [x, y, z] of half 1]: ``xi`` points at float32 [x0..x3, y0..y3, z0..z3] from
-    ``base``; half h holds atom 2h in lanes 0-3 and atom 2h + 1 in lanes 4-7."""
+def cluster_own_lanes(lanes: int = 8) -> list[list[int]]:
+    """Per vector of ``lanes`` (8 or 16), the lanes that count in a cluster with itself
+    (j atom after i atom): lane l of vector h pairs i atom (lanes // 4) h + l // 4 with j
+    atom l % 4."""
+    rows = lanes // 4
+    return [[int(lane % 4 > rows * h + lane // 4) for lane in range(lanes)]
+            for h in range(4 // rows)]  # fmt: skip
+
+
+def cluster_i_halves(builder, xi, base, lanes: int = 8):
+    """An i cluster's atoms as float32 vectors of ``lanes`` (8 or 16), one [x, y, z] per
+    vector of the cluster pair: ``xi`` points at float32 [x0..x3, y0..y3, z0..z3] from
+    ``base``; with 8 lanes vector h holds atom 2h in lanes 0-3 and atom 2h + 1 in lanes
+    4-7, with 16 one vector holds atom a in lanes 4a to 4a + 3."""
     own = [load_vector(builder, xi, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
            for d in range(3)]  # fmt: skip
-    return [[shuffle(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
-            for h in range(2)]  # fmt: skip
+    rows = lanes // 4
+    return [[shuffle(builder, v, v, [a for a in range(rows * h, rows * h + rows)
+                                     for _ in range(4)]) for v in own]
+            for h in range(4 // rows)]  # fmt: skip
 
 
-def cluster_j_shifted(builder, xj, base, offsets, pair, flags=()):
+def cluster_j_shifted(builder, xj, base, offsets, pair, flags=(), lanes: int = 8):
     """Pair ``pair``'s offset (three float32 scalars from ``offsets``, 3 per pair) and its
-    j cluster's atoms less it, each coordinate as an 8-lane vector holding the four j
-    atoms twice (``xj`` laid out as in :func:`cluster_i_halves`, from ``base``)."""
+    j cluster's atoms less it, each coordinate a vector of ``lanes`` holding the four j
+    atoms ``lanes / 4`` times (``xj`` laid out as in :func:`cluster_i_halves`, from
+    ``base``)."""
     first = builder.mul(pair, ir.Constant(_I64, 3))
     offset = [builder.load(builder.gep(offsets, [builder.add(first, ir.Constant(_I64, d))]))
               for d in range(3)]  # fmt: skip
+    vector = ir.VectorType(ir.FloatType(), lanes)
     shifted = []
     for d in range(3):
         four = load_vector(builder, xj, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
-        twice = shuffle(builder, four, four, [0, 1, 2, 3] * 2)
-        shifted.append(builder.fsub(twice, splat(builder, offset[d], _V8), flags=flags))
+        repeated = shuffle(builder, four, four, [0, 1, 2, 3] * (lanes // 4))
+        shifted.append(builder.fsub(repeated, splat(builder, offset[d], vector), flags=flags))
     return offset, shifted
 
 

@@ -8,6 +8,17 @@ describes the layout). The idea is GROMACS's 2xMM kernels: two i atoms by four
 j atoms fill one 8-lane float32 vector, two vectors cover a cluster pair, the
 i forces and the energy stay in registers over the whole row, and a j
 cluster's forces are summed across the two halves and added to memory once.
+With ``lanes=16`` one vector holds the whole 4x4 cluster pair (an AVX-512
+register; measured no faster than 8 lanes on Emerald Rapids, so the kernels
+use 8).
+
+The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
+and distances are computed before pair k's term. The chain from a partner's
+index to its j forces (loads, distances, the term's division, the j sums) is
+longer than the out-of-order window covers, and the kernel waited on it
+(``llvm-mca`` of the loop: bound by the chain, not by its ports); ahead by one
+it takes 0.81 of the time on the 32000-atom melt (AVX-512 and AVX2 code),
+ahead by two or three longer again (the carried vectors spill).
 
 What numba cannot spell is the registers: in a loop LLVM keeps such per-lane
 sums in memory (a numba 4x4 cluster loop measured no faster than the slot
@@ -46,10 +57,10 @@ from numba.core.cpu import FastMathOptions
 from numba.extending import intrinsic
 
 from md._simd import (
-    CLUSTER_OWN_LANES,
     array_data,
     cluster_i_halves,
     cluster_j_shifted,
+    cluster_own_lanes,
     load_vector,
     shuffle,
     splat,
@@ -64,9 +75,7 @@ _F64 = ir.DoubleType()
 _I8 = ir.IntType(8)
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
-_V8 = ir.VectorType(_F32, 8)
 _D4 = ir.VectorType(_F64, 4)
-_MASK8 = ir.VectorType(ir.IntType(1), 8)
 #: As the frame's pair loops: sums may be reassociated into lanes, multiply-adds fused;
 #: no "nnan"/"ninf" (overlapping atoms must still give an infinite energy).
 _FLAGS = ("contract", "reassoc", "nsz", "arcp")
@@ -94,8 +103,8 @@ def _index(n: int):
     return ir.Constant(_I64, n)
 
 
-def _eight(x: float):
-    return ir.Constant(_V8, [x] * 8)
+def _eight(x: float, lanes: int = 8):
+    return ir.Constant(ir.VectorType(_F32, lanes), [x] * lanes)
 
 
 def _subroutine_flags():
@@ -127,10 +136,11 @@ def _local_column(context, builder, table_type, table, rows: int):
     return copy
 
 
-def cluster_row(pair, rows):
+def cluster_row(pair, rows, lanes: int = 8):
     """The row intrinsic for the frame's ``pair`` dispatcher (see the module docstring),
     whose parameter tables have ``rows()`` rows (asked when a kernel compiles: the
-    template's names are set only in each term's copy).
+    template's names are set only in each term's copy), in vectors of ``lanes`` float32
+    (8, or 16: see the module docstring).
 
     ``row(xi, xj, offsets, partners, start, end, ci, slot_types, n_types, table, mode,
     data, cut2, forces, virial) -> energy`` (float64):
@@ -149,6 +159,8 @@ def cluster_row(pair, rows):
     - ``virial`` float64 (9,), or None: adds offset (x) (force on the i cluster) per
       pair, the part of the virial the relative positions do not carry.
     """
+    if lanes not in (8, 16):
+        raise ValueError(f"cluster rows have 8 or 16 lanes, not {lanes}")
 
     @intrinsic
     def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
@@ -183,10 +195,17 @@ def cluster_row(pair, rows):
             pair_real = context.get_value_type(pair_sig.return_type.dtype)
             table_real = context.get_value_type(real)
             base_i = builder.mul(ci_v, _index(3 * 4))
-            pairs_i = cluster_i_halves(builder, xi_p, base_i)  # i atoms (0, 1) and (2, 3)
-            cut = splat(builder, cut_v, _V8)
-            own_cuts = [builder.select(ir.Constant(_MASK8, keep), cut, _eight(-1.0))
-                        for keep in CLUSTER_OWN_LANES]  # fmt: skip
+            vector = ir.VectorType(_F32, lanes)
+            passes = 16 // lanes  # vectors per cluster pair
+            per_pass = lanes // 4  # i atoms per vector
+            pairs_i = cluster_i_halves(builder, xi_p, base_i, lanes)
+            cut = splat(builder, cut_v, vector)
+            own_cuts = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), lanes), keep),
+                                       cut, _eight(-1.0, lanes))
+                        for keep in cluster_own_lanes(lanes)]  # fmt: skip
+            if lanes == 16:  # the SLP vectoriser's widest vectors: zmm (LLVM's X86 default
+                # for Intel's AVX-512 CPUs is 256 bits, which splits the term in two)
+                set.add(builder.function.attributes, '"prefer-vector-width"="512"')
             if single:  # every lane reads column 0: from a local copy
                 type_rows = None
                 table_v = _local_column(context, builder, arg[9], table_v, rows())
@@ -197,119 +216,150 @@ def cluster_row(pair, rows):
                     slot = builder.add(builder.mul(ci_v, _index(4)), _index(a))
                     t = builder.sext(builder.load(builder.gep(types_p, [slot])), _I64)
                     type_rows.append(builder.mul(t, n_types_v))
-            sums = [cgutils.alloca_once_value(builder, _eight(0.0)) for _ in range(7)]
+            # per vector of the pair: x, y, z of the i forces; then the energy
+            sums = [cgutils.alloca_once_value(builder, _eight(0.0, lanes))
+                    for _ in range(3 * passes + 1)]  # fmt: skip
 
-            # the double lanes in 4-lane halves: an 8-double vector is a zmm register on an
-            # AVX-512 CPU, whose use in this loop made it 1.6 times as slow
+            # the double lanes in 4-lane quarters (lanes 4q to 4q + 3: one i atom's): an
+            # 8-double vector is a zmm register on an AVX-512 CPU, whose use in this loop
+            # (the 8-lane kernel's) made it 1.6 times as slow
             wide = [[cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
-                     for _ in range(2)] for _ in range(7)]  # fmt: skip
+                     for _ in range(per_pass)] for _ in sums]  # fmt: skip
 
             def flush():
                 """Add the float32 i-force and energy lanes to their double lanes, zero them."""
-                for narrow, halves in zip(sums, wide, strict=True):
-                    lanes = builder.load(narrow)
-                    for half, total in enumerate(halves):
-                        four = shuffle(builder, lanes, lanes, list(range(4 * half, 4 * half + 4)))
+                for narrow, quarters in zip(sums, wide, strict=True):
+                    values = builder.load(narrow)
+                    for q, total in enumerate(quarters):
+                        four = shuffle(builder, values, values, list(range(4 * q, 4 * q + 4)))
                         part = builder.fpext(four, _D4)
                         builder.store(builder.fadd(builder.load(total), part, flags=fl), total)
-                    builder.store(_eight(0.0), narrow)
+                    builder.store(_eight(0.0, lanes), narrow)
+
+            def pair_at(cj, base_j, offset, separations):
+                """One cluster pair: the term in every lane, the i sums, the j forces."""
+                if single:
+                    columns = [_index(0)] * lanes
+                else:
+                    tj = []
+                    for b in range(4):
+                        slot = builder.add(builder.mul(cj, _index(4)), _index(b))
+                        t = builder.load(builder.gep(types_p, [slot]))
+                        tj.append(builder.sext(t, _I64))
+                fj = [_eight(0.0, lanes)] * 3
+                for h in range(passes):
+                    *dx, safe = separations[h]
+                    if not single:
+                        columns = [builder.add(type_rows[per_pass * h + lane // 4],
+                                               tj[lane % 4]) for lane in range(lanes)]
+                    u = fr = ir.Constant(vector, ir.Undefined)
+                    for lane in range(lanes):
+                        where = ir.Constant(_I32, lane)
+                        x = builder.extract_element(safe, where)
+                        if table_real != _F32:
+                            x = builder.fpext(x, table_real)
+                        values = context.call_internal(
+                            builder, cres.fndesc, pair_sig,
+                            [x, columns[lane], table_v, mode_c, data_v],
+                        )  # fmt: skip
+                        parts = [builder.extract_value(values, n) for n in range(2)]
+                        if pair_real != _F32:
+                            parts = [builder.fptrunc(p, _F32) for p in parts]
+                        u = builder.insert_element(u, parts[0], where)
+                        fr = builder.insert_element(fr, parts[1], where)
+                    energy = builder.load(sums[-1])
+                    builder.store(builder.fadd(energy, u, flags=fl), sums[-1])
+                    for d in range(3):
+                        g = builder.fmul(fr, dx[d], flags=fl)
+                        builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
+                                      sums[3 * h + d])  # fmt: skip
+                        fj[d] = builder.fadd(fj[d], g, flags=fl)
+                totals = []
+                for d in range(3):  # j atom b's force: the sum of lanes b, b + 4, ...
+                    folded, width = fj[d], lanes
+                    while width > 4:
+                        width //= 2
+                        low = shuffle(builder, folded, folded, list(range(width)))
+                        high = shuffle(builder, folded, folded, list(range(width, 2 * width)))
+                        folded = builder.fadd(low, high, flags=fl)
+                    summed = builder.fpext(folded, _D4)
+                    index = builder.add(base_j, _index(4 * d))
+                    old = load_vector(builder, f_p, index, _D4)
+                    store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
+                    if with_virial:
+                        total = builder.extract_element(summed, ir.Constant(_I32, 0))
+                        for lane in range(1, 4):
+                            total = builder.fadd(total, builder.extract_element(
+                                summed, ir.Constant(_I32, lane)), flags=fl)  # fmt: skip
+                        totals.append(total)
+                if with_virial:  # offset (x) the force on the i cluster from this pair
+                    for d in range(3):
+                        o = builder.fpext(offset[d], _F64)
+                        for e in range(3):
+                            slot = builder.gep(vir_p, [_index(3 * d + e)])
+                            term = builder.fmul(o, totals[e], flags=fl)
+                            added = builder.fadd(builder.load(slot), term, flags=fl)
+                            builder.store(added, slot)
+
+            def look(k):
+                """Pair k's j cluster (index, first coordinate), offset and shifted j atoms."""
+                cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
+                base_j = builder.mul(cj, _index(12))
+                offset, shifted = cluster_j_shifted(builder, xj_p, base_j, off_p, k, fl, lanes)
+                itself = builder.icmp_signed("==", k, start_v)  # listed first in its row
+                values = [cj, base_j, *offset]
+                for h in range(passes):
+                    dx, r2 = squared_distances(builder, pairs_i[h], shifted, fl)
+                    limit = builder.select(itself, own_cuts[h], cut)
+                    values += [*dx, builder.select(builder.fcmp_ordered("<", r2, limit), r2, cut)]
+                return values
 
             # groups of _FLUSH cluster pairs: the i sums and the energy go to double after
             # each, so their float32 round-off does not grow with the row's length (a
             # conditional flush inside one loop made the kernel 1.6 times as slow)
+            # software-pipelined by one pair: the loads and distances of pair k + 1 are
+            # issued before pair k's term, whose inputs are then ready (the chain from a
+            # partner's index to its j forces is longer than the out-of-order window
+            # covers: the kernel waited on it)
             step = _index(_FLUSH)
-            with cgutils.for_range_slice(builder, start_v, end_v, step) as (group, _):
-                last = builder.add(group, _index(_FLUSH))
-                last = builder.select(builder.icmp_signed("<", last, end_v), last, end_v)
-                with cgutils.for_range_slice(builder, group, last, _index(1)) as (k, _):
-                    cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
-                    itself = builder.icmp_signed("==", k, start_v)  # listed first in its row
-                    base_j = builder.mul(cj, _index(12))
-                    offset, shifted = cluster_j_shifted(builder, xj_p, base_j, off_p, k, fl)
-                    if single:
-                        columns = [_index(0)] * 8
-                    else:
-                        tj = []
-                        for b in range(4):
-                            slot = builder.add(builder.mul(cj, _index(4)), _index(b))
-                            t = builder.load(builder.gep(types_p, [slot]))
-                            tj.append(builder.sext(t, _I64))
-                    fj = [_eight(0.0)] * 3
-                    for h in range(2):
-                        dx, r2 = squared_distances(builder, pairs_i[h], shifted, fl)
-                        limit = builder.select(itself, own_cuts[h], cut)
-                        mask = builder.fcmp_ordered("<", r2, limit)
-                        safe = builder.select(mask, r2, cut)
-                        if not single:
-                            columns = [builder.add(type_rows[2 * h + lane // 4], tj[lane % 4])
-                                       for lane in range(8)]  # fmt: skip
-                        u = fr = ir.Constant(_V8, ir.Undefined)
-                        for lane in range(8):
-                            where = ir.Constant(_I32, lane)
-                            x = builder.extract_element(safe, where)
-                            if table_real != _F32:
-                                x = builder.fpext(x, table_real)
-                            values = context.call_internal(
-                                builder, cres.fndesc, pair_sig,
-                                [x, columns[lane], table_v, mode_c, data_v],
-                            )  # fmt: skip
-                            parts = [builder.extract_value(values, n) for n in range(2)]
-                            if pair_real != _F32:
-                                parts = [builder.fptrunc(p, _F32) for p in parts]
-                            u = builder.insert_element(u, parts[0], where)
-                            fr = builder.insert_element(fr, parts[1], where)
-                        energy = builder.load(sums[6])
-                        builder.store(builder.fadd(energy, u, flags=fl), sums[6])
-                        for d in range(3):
-                            g = builder.fmul(fr, dx[d], flags=fl)
-                            builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
-                                          sums[3 * h + d])  # fmt: skip
-                            fj[d] = builder.fadd(fj[d], g, flags=fl)
-                    totals = []
-                    for d in range(3):
-                        low = shuffle(builder, fj[d], fj[d], [0, 1, 2, 3])
-                        high = shuffle(builder, fj[d], fj[d], [4, 5, 6, 7])
-                        summed = builder.fpext(builder.fadd(low, high, flags=fl), _D4)
-                        index = builder.add(base_j, _index(4 * d))
-                        old = load_vector(builder, f_p, index, _D4)
-                        store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
-                        if with_virial:
-                            total = builder.extract_element(summed, ir.Constant(_I32, 0))
-                            for lane in range(1, 4):
-                                total = builder.fadd(total, builder.extract_element(
-                                    summed, ir.Constant(_I32, lane)), flags=fl)  # fmt: skip
-                            totals.append(total)
-                    if with_virial:  # offset (x) the force on the i cluster from this pair
-                        for d in range(3):
-                            o = builder.fpext(offset[d], _F64)
-                            for e in range(3):
-                                slot = builder.gep(vir_p, [_index(3 * d + e)])
-                                term = builder.fmul(o, totals[e], flags=fl)
-                                added = builder.fadd(builder.load(slot), term, flags=fl)
-                                builder.store(added, slot)
-                flush()
-            for d in range(3):  # lanes 0-3: atom 0 (2), 4-7: atom 1 (3), per pair of i atoms
-                total = None
-                for h in range(2):  # half 0 of pair h: i atom 2h, half 1: i atom 2h + 1
-                    for half in range(2):
-                        lanes = builder.load(wide[3 * h + d][half])
-                        parts = [builder.extract_element(lanes, ir.Constant(_I32, j))
+            with builder.if_then(builder.icmp_signed("<", start_v, end_v)):
+                ahead = [cgutils.alloca_once_value(builder, v) for v in look(start_v)]
+                end_less = builder.sub(end_v, _index(1))
+                with cgutils.for_range_slice(builder, start_v, end_v, step) as (group, _):
+                    last = builder.add(group, _index(_FLUSH))
+                    last = builder.select(builder.icmp_signed("<", last, end_v), last, end_v)
+                    with cgutils.for_range_slice(builder, group, last, _index(1)) as (k, _):
+                        current = [builder.load(slot) for slot in ahead]
+                        following = builder.add(k, _index(1))
+                        following = builder.select(builder.icmp_signed("<", following, end_v),
+                                                   following, end_less)  # fmt: skip
+                        for slot, value in zip(ahead, look(following), strict=True):
+                            builder.store(value, slot)
+                        cj, base_j, offset = current[0], current[1], current[2:5]
+                        separations = [current[5 + 4 * h:9 + 4 * h] for h in range(passes)]
+                        pair_at(cj, base_j, offset, separations)
+                    flush()
+
+            for d in range(3):  # quarter q of vector h: i atom per_pass * h + q
+                total = ir.Constant(_D4, ir.Undefined)
+                for h in range(passes):
+                    for q in range(per_pass):
+                        quarter = builder.load(wide[3 * h + d][q])
+                        parts = [builder.extract_element(quarter, ir.Constant(_I32, j))
                                  for j in range(4)]  # fmt: skip
                         atom_sum = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
                                                 builder.fadd(parts[2], parts[3], flags=fl),
                                                 flags=fl)  # fmt: skip
-                        slot = 2 * h + half
-                        total = builder.insert_element(
-                            ir.Constant(_D4, ir.Undefined) if total is None else total, atom_sum,
-                            ir.Constant(_I32, slot))  # fmt: skip
+                        total = builder.insert_element(total, atom_sum,
+                                                       ir.Constant(_I32, per_pass * h + q))
                 index = builder.add(base_i, _index(4 * d))
                 old = load_vector(builder, f_p, index, _D4)
                 store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
             energy = None
-            for half in wide[6]:
-                lanes = builder.load(half)
+            for quarter in wide[-1]:
+                values = builder.load(quarter)
                 for lane in range(4):
-                    part = builder.extract_element(lanes, ir.Constant(_I32, lane))
+                    part = builder.extract_element(values, ir.Constant(_I32, lane))
                     energy = part if energy is None else builder.fadd(energy, part)
             return energy
 

@@ -479,3 +479,61 @@ def test_two_terms_in_one_process_each_run_their_own_pair_function(fcc_lattice):
             assert abs(mixed.energy - double.energy) < 20 * EPS32 * abs(double.energy)
     finally:
         set_threads(before)
+
+
+def _row_kernel(term_module, lanes):
+    """An i-cluster loop over ``cluster_row(..., lanes)`` of a term's float32 pair
+    function: one type, no virial (the engine's kernels use 8 lanes)."""
+    from numba import njit
+
+    from potentials._cluster_ir import cluster_row
+
+    row = cluster_row(term_module._pair, lambda: term_module.TERM + term_module.N_TERM,
+                      lanes=lanes)  # fmt: skip
+
+    @njit(error_model="numpy")
+    def run(xi, xj, starts, partners, offsets, table, mode, data, cut2, out):
+        out[:] = 0.0
+        energy = 0.0
+        for ci in range(len(starts) - 1):
+            energy += row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, None, 1,
+                          table, mode, data, cut2, out, None)  # fmt: skip
+        return energy
+
+    return run
+
+
+def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
+    """``cluster_row(lanes=16)`` (a whole 4x4 cluster pair per vector, for CPUs where a
+    zmm register pays; on Emerald Rapids it measured no faster than 8) sums the same pair
+    terms: forces and energy to float32 round-off of the 8-lane row's and of double."""
+    from potentials._pair_frame import CUTOFF_MODES, kernels_for
+
+    state = fcc_lattice(cells=6, perturbation=0.08)
+    potential = LennardJones(cutoff=2.5)
+    double = ForceField([potential]).compute(state)
+    field = ForceField([potential], precision="mixed")
+    field.neighbor_list.update(state)
+    clusters = field.neighbor_list.clusters
+    xi = np.empty(12 * clusters.n_clusters, np.float32)
+    xj = np.empty_like(xi)
+    clusters.relative_positions(state.positions, xi, xj)
+    module = kernels_for(potential.term, "mixed")
+    table = potential.tables(1).astype(np.float32)
+    cut2 = np.float32(table[module.RC2].max())
+    mode = int(CUTOFF_MODES[potential.cutoff_mode])
+    results = {}
+    for lanes in (8, 16):
+        out = np.empty(12 * clusters.n_clusters)
+        energy = _row_kernel(module, lanes)(xi, xj, clusters.starts, clusters.partners,
+                                            clusters.offsets.reshape(-1), table, mode,
+                                            potential.data, cut2, out)  # fmt: skip
+        forces = np.zeros((state.n_atoms, 3))
+        slots = out.reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
+        real = clusters.atom >= 0
+        np.add.at(forces, clusters.atom[real], slots[real])
+        results[lanes] = (energy, forces)
+    for energy, forces in results.values():
+        assert _relative_error(forces, double.forces) < 200 * EPS32
+        assert abs(energy - double.energy) < 20 * EPS32 * abs(double.energy)
+    assert _relative_error(results[16][1], results[8][1]) < 20 * EPS32
