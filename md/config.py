@@ -240,6 +240,14 @@ class RunConfig:
     skin: float = key(0.3, "number", unit="length", minimum=0.0,
         doc="Neighbour-list skin: the list is rebuilt when an atom moved more than half of "
             "it.")  # fmt: skip
+    outer_skin: float | None = key(None, "number", unit="length", minimum=0.0,
+        doc="The cluster list's outer skin (mixed precision on one process): the search "
+            "lists the pairs within cutoff + `outer_skin`, and the list the kernels read is "
+            "that one pruned to cutoff + `skin`, again whenever an atom moved more than half "
+            "the skin, until one moved more than half of `outer_skin - skin` since the "
+            "search (as GROMACS's dynamic pruning). At most `skin`: no outer list, a search "
+            "whenever the skin says. Not physics: the kernels sum the same pairs.",
+        default_doc="5 x `skin`")  # fmt: skip
     thermo_every: int = key(100, "integer", unit="steps", minimum=1,
                             doc="Steps between lines of the thermo table.")  # fmt: skip
     threads: int | None = key(None, "integer", minimum=1,

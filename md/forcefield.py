@@ -48,6 +48,9 @@ class ForceField:
         layout where the cell allows (:class:`md.neighbors.NeighborList`'s
         ``clusters``), whose kernels compute eight atom pairs per vector. See
         :meth:`potentials.PairPotential.energy_forces`.
+    outer_skin : float, optional
+        The cluster list's outer skin [length], passed to the
+        :class:`~md.neighbors.NeighborList` (None: its default, 5 x ``skin``).
 
     Attributes
     ----------
@@ -62,7 +65,7 @@ class ForceField:
     """
 
     def __init__(self, potentials: Sequence[Potential], skin: float = 0.3,
-                 precision: str = "double") -> None:  # fmt: skip
+                 precision: str = "double", outer_skin: float | None = None) -> None:  # fmt: skip
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
@@ -70,7 +73,8 @@ class ForceField:
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         # mixed precision: the cluster-pair layout, whose kernels compute in float32 lanes
         clusters = self.precision == "mixed"
-        self.neighbor_list = NeighborList(max(cutoffs), skin, clusters) if cutoffs else None
+        self.neighbor_list = (NeighborList(max(cutoffs), skin, clusters, outer_skin=outer_skin)
+                              if cutoffs else None)  # fmt: skip
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
         self.virial_wanted = False

@@ -812,7 +812,8 @@ def prepare_minimize(
     _set_threads(config, threads)
     try:
         sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units,
-                         precision=config.run.precision)  # fmt: skip
+                         precision=config.run.precision,
+                         outer_skin=config.run.outer_skin)  # fmt: skip
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
     return PreparedMinimize(config, sim, output, overwrite, stage)
@@ -910,7 +911,8 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
         if ranks is None:
             sim = Simulation(state, potentials, integrator, skin=config.run.skin,
                              units=config.units, max_displacement=guard,
-                             precision=config.run.precision)  # fmt: skip
+                             precision=config.run.precision,
+                             outer_skin=config.run.outer_skin)  # fmt: skip
         else:
             sim = DistributedSimulation(
                 state, potentials, integrator, skin=config.run.skin, units=config.units,

@@ -79,6 +79,9 @@ class Simulation:
         double; bonded terms stay double. Forces agree with double to about
         3e-7 of the largest. Kept in the ForceField
         (``sim.forcefield.precision``).
+    outer_skin : float, optional
+        The cluster list's outer skin [length] (mixed precision): see
+        :class:`md.neighbors.NeighborList`. None: its default, 5 x ``skin``.
 
     Attributes
     ----------
@@ -108,11 +111,13 @@ class Simulation:
         max_displacement: float | None = None,
         threads: int | None = None,
         precision: str = "double",
+        outer_skin: float | None = None,
     ) -> None:
         if threads is not None:
             set_threads(threads)
         self.state = state
-        self.forcefield = ForceField(potentials, skin=skin, precision=precision)
+        self.forcefield = ForceField(potentials, skin=skin, precision=precision,
+                                     outer_skin=outer_skin)  # fmt: skip
         self.forcefield.check(state)
         self.integrator = integrator
         self.units = get_units(units)

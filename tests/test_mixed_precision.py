@@ -339,3 +339,30 @@ def test_md_run_reports_the_cluster_lists_prunes(tmp_path, monkeypatch, capsys):
             assert prunes >= 2 and builds >= 1, out
         else:
             assert "Cluster list prunes" not in out and "Neighbour list builds" in out, out
+
+
+def test_the_outer_skin_is_a_run_key(tmp_path, monkeypatch, capsys):
+    """`[run] outer_skin` reaches the cluster list: at the skin itself there is no outer list
+    (no prunes, a search whenever the skin says: more of them than with the default's); a
+    negative one is refused, naming the key, before anything is written."""
+    monkeypatch.chdir(tmp_path)
+    counts = {}
+    for name, extra in (("default", ""), ("none", "outer_skin = 0.3")):
+        config = tmp_path / f"{name}.toml"
+        config.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
+                                         run=f'steps = 60\nprecision = "mixed"\n{extra}'))
+        capsys.readouterr()
+        assert main(["run", str(config), "--no-progress", "-o", f"{name}.h5"]) == 0
+        out = capsys.readouterr().out
+        prunes = out.split("Cluster list prunes: ")  # printed when there were any
+        counts[name] = (int(prunes[1].split()[0]) if len(prunes) > 1 else 0,
+                        int(out.split("Neighbour list builds: ")[1].split()[0]))
+    assert counts["none"][0] == 0 and counts["default"][0] >= 2, counts
+    assert counts["none"][1] > counts["default"][1], counts
+    bad = tmp_path / "bad.toml"
+    bad.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
+                                  run='steps = 10\nprecision = "mixed"\nouter_skin = -1.0'))
+    capsys.readouterr()
+    assert main(["run", str(bad), "--no-progress", "-o", "bad.h5"]) != 0
+    assert "outer_skin" in capsys.readouterr().err
+    assert not (tmp_path / "bad.h5").exists()
