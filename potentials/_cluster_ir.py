@@ -216,6 +216,8 @@ def cluster_row(pair, rows, lanes: int = 8):
                     slot = builder.add(builder.mul(ci_v, _index(4)), _index(a))
                     t = builder.sext(builder.load(builder.gep(types_p, [slot])), _I64)
                     type_rows.append(builder.mul(t, n_types_v))
+            fma = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(vector, [vector] * 3), f"llvm.fma.v{lanes}f32")
             # per vector of the pair: x, y, z of the i forces; then the energy
             sums = [cgutils.alloca_once_value(builder, _eight(0.0, lanes))
                     for _ in range(3 * passes + 1)]  # fmt: skip
@@ -246,7 +248,7 @@ def cluster_row(pair, rows, lanes: int = 8):
                         slot = builder.add(builder.mul(cj, _index(4)), _index(b))
                         t = builder.load(builder.gep(types_p, [slot]))
                         tj.append(builder.sext(t, _I64))
-                fj = [_eight(0.0, lanes)] * 3
+                fj = [None] * 3
                 for h in range(passes):
                     *dx, safe = separations[h]
                     if not single:
@@ -269,11 +271,11 @@ def cluster_row(pair, rows, lanes: int = 8):
                         fr = builder.insert_element(fr, parts[1], where)
                     energy = builder.load(sums[-1])
                     builder.store(builder.fadd(energy, u, flags=fl), sums[-1])
-                    for d in range(3):
-                        g = builder.fmul(fr, dx[d], flags=fl)
-                        builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
-                                      sums[3 * h + d])  # fmt: skip
-                        fj[d] = builder.fadd(fj[d], g, flags=fl)
+                    for d in range(3):  # fused: the pair force f/r d enters two sums
+                        total = builder.load(sums[3 * h + d])
+                        builder.store(builder.call(fma, [fr, dx[d], total]), sums[3 * h + d])
+                        fj[d] = (builder.fmul(fr, dx[d], flags=fl) if fj[d] is None
+                                 else builder.call(fma, [fr, dx[d], fj[d]]))  # fmt: skip
                 totals = []
                 for d in range(3):  # j atom b's force: the sum of lanes b, b + 4, ...
                     folded, width = fj[d], lanes
