@@ -462,3 +462,21 @@ def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones(
     for bad in ("0.3,-1", "a,b"):
         refused = run("--outer", bad)
         assert refused.returncode == 2 and "--outer" in refused.stderr, refused.stderr
+
+
+def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
+    """mixed_precision.py's multi-liquid summary: how often ours is the smaller |drift|,
+    the two-sided sign test (3 of 3: p = 2 / 8; 2 of 4: 1) and a bootstrap interval that
+    holds the ratio of the medians."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from mixed_precision import _compared
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    line = _compared([1.0, 1.0, 1.0], [2.0, 2.0, 2.0], "peer")
+    assert "below peer in 3 of 3 liquids (sign test p = 0.25)" in line, line
+    assert "ratio of the medians 0.50, bootstrap 90 % interval 0.50-0.50" in line, line
+    mixed = _compared([1.0, 3.0, 2.0, 5.0], [2.0, 1.0, 4.0, 4.0], "peer")
+    assert "in 2 of 4 liquids (sign test p = 1)" in mixed, mixed
+    low, high = (float(x) for x in mixed.split("interval ")[1].split("-"))
+    assert low <= 2.5 / 3.0 <= high, mixed
