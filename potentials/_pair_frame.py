@@ -76,6 +76,13 @@ _FRAME_SOURCES = (
     *(Path(importlib.util.find_spec(name).origin)
       for name in ("potentials._kernels", "md.box", "md._simd")),
 )  # fmt: skip
+#: Those files as they were when this module was imported: the code this process runs
+#: (the modules they define are loaded by then). Each term's fingerprint hashes them and
+#: its copy of the template is written from them, never from the files as they are later:
+#: a source edited while a process runs must not get the old code's kernels stored in the
+#: shared cache under the new code's fingerprint (where every later process would load
+#: them as the new code's).
+_SOURCES = {path: path.read_bytes() for path in _FRAME_SOURCES}
 #: The template's entry points (what this module calls) and the arguments of theirs that
 #: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
 _ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
@@ -230,7 +237,7 @@ def _template_copy(stem: str) -> Path:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             with atomic_path(path, exclusive=True) as partial:
-                partial.write_bytes(_TEMPLATE.read_bytes() + _variant_source().encode())
+                partial.write_bytes(_SOURCES[_TEMPLATE] + _variant_source().encode())
         except FileExistsError:  # another process wrote it first: the same bytes
             return path
         except OSError as error:
@@ -252,7 +259,7 @@ def _variant_source() -> str:
     point that asks for literal arguments, called from Python, retypes its arguments on
     every call: 13 times slower than the loop it runs on a small system.)
     """
-    tree = ast.parse(_TEMPLATE.read_text())
+    tree = ast.parse(_SOURCES[_TEMPLATE].decode())
     arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
                  if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES}  # fmt: skip
     lines = ["", "", "# Variants, appended to this copy by potentials._pair_frame._variant_source."]
@@ -407,13 +414,13 @@ class _Float32Constants(ast.NodeTransformer):
 
 def _fingerprint(term: PairTerm) -> str:
     """A hash of everything the term's compiled kernels depend on: the frame's own sources
-    (``_FRAME_SOURCES``) and the term's functions with all they reach through their
-    globals, defaults and closures (helpers they call, wherever defined, and constants,
-    which numba compiles in). A helper reached as an attribute (``module.helper``) is not
-    followed."""
+    (``_FRAME_SOURCES``, as imported: ``_SOURCES``) and the term's functions with all
+    they reach through their globals, defaults and closures (helpers they call, wherever
+    defined, and constants, which numba compiles in). A helper reached as an attribute
+    (``module.helper``) is not followed."""
     digest = hashlib.sha256()
     for path in _FRAME_SOURCES:
-        digest.update(path.read_bytes())
+        digest.update(_SOURCES[path])
     digest.update(_variant_source().encode())
     digest.update(repr((term.name, term.uses_data, term.parameters)).encode())
     seen: set = set()

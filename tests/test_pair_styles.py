@@ -478,6 +478,28 @@ def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(t
     assert first["misses"] + first["hits"] == 2 and second["misses"] + second["hits"] == 2
 
 
+def test_a_source_edited_while_a_process_runs_does_not_rename_its_kernels(monkeypatch, tmp_path):
+    """The term's fingerprint and its template copy come from the frame's sources as this
+    process imported them (the code it runs), not as the files read later: otherwise a
+    source edited during a run got the old code's compiled kernels stored in the shared
+    cache under the new code's fingerprint, where later processes loaded them (found: a
+    kernel change that seemed to change nothing)."""
+    from numba.core import config
+
+    from potentials import _pair_frame
+
+    term = LennardJones(cutoff=2.5).term
+    before = _pair_frame._fingerprint(term)
+    template = (ROOT / "potentials/_pair_kernels.py").read_bytes()
+    monkeypatch.setattr(Path, "read_bytes", lambda self: b"# edited since")
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "# edited since")
+    assert _pair_frame._fingerprint(term) == before
+    monkeypatch.setattr(config, "CACHE_DIR", str(tmp_path))
+    copy = _pair_frame._template_copy("edited_lj")
+    monkeypatch.undo()
+    assert copy.read_bytes().startswith(template)
+
+
 # ---------------------------------------------------------------- vector exp
 def test_vector_exp_is_within_its_stated_error_bound():
     """potentials.pair_math.exp, compiled as the pair loops compile it (fast-math flags):
