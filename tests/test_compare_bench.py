@@ -480,3 +480,23 @@ def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
     assert "in 2 of 4 liquids (sign test p = 1)" in mixed, mixed
     low, high = (float(x) for x in mixed.split("interval ")[1].split("-"))
     assert low <= 2.5 / 3.0 <= high, mixed
+
+
+def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
+    """benchmarks/cluster_kernel.py on a small melt: the machine line, then the call's
+    time per cluster pair; a cell too small for the cutoff exits non-zero, saying why."""
+    script = SCRIPT.parent / "cluster_kernel.py"
+
+    def run(*args):
+        return subprocess.run([sys.executable, str(script), *args], capture_output=True,
+                              text=True, timeout=600, cwd=SCRIPT.parents[1])  # fmt: skip
+
+    done = run("--cells", "6", "--calls", "3")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("machine: "), done.stdout
+    line = done.stdout.splitlines()[-1]
+    assert line.startswith("864 atoms, ") and "ns per cluster pair" in line, line
+    assert float(line.split("min ")[1].split()[0]) > 0
+    refused = run("--cells", "2")
+    assert refused.returncode != 0 and "too long for the box" in refused.stderr, refused.stderr
+    assert run("--calls", "0").returncode == 2
