@@ -322,23 +322,28 @@ def numba_compiled(function):
     return call
 
 
+def _run_counting(tmp_path, capsys, name: str, run: str) -> tuple[str, int, int]:
+    """`md run` of the small LJ melt with the ``[run]`` lines ``run``, into ``name``.h5:
+    its output, the cluster list's prunes (0 when it prints none) and the list builds."""
+    config = tmp_path / f"{name}.toml"
+    config.write_text(lj_config_text(cells=6, temperature=2.0, output=None, run=run))
+    capsys.readouterr()
+    assert main(["run", str(config), "--no-progress", "-o", f"{name}.h5"]) == 0
+    out = capsys.readouterr().out
+    prunes = out.split("Cluster list prunes: ")  # printed when there were any
+    return (out, int(prunes[1].split()[0]) if len(prunes) > 1 else 0,
+            int(out.split("Neighbour list builds: ")[1].split()[0]))  # fmt: skip
+
+
 def test_md_run_reports_the_cluster_lists_prunes(tmp_path, monkeypatch, capsys):
     """A mixed run on the cluster list prunes between searches and `md run` says how often
     (a double run has no cluster list and prints no such line)."""
     monkeypatch.chdir(tmp_path)
-    for precision in ("mixed", "double"):
-        config = tmp_path / f"{precision}.toml"
-        config.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
-                                         run=f'steps = 60\nprecision = "{precision}"'))
-        capsys.readouterr()
-        assert main(["run", str(config), "--no-progress", "-o", f"{precision}.h5"]) == 0
-        out = capsys.readouterr().out
-        if precision == "mixed":
-            prunes = int(out.split("Cluster list prunes: ")[1].split()[0])
-            builds = int(out.split("Neighbour list builds: ")[1].split()[0])
-            assert prunes >= 2 and builds >= 1, out
-        else:
-            assert "Cluster list prunes" not in out and "Neighbour list builds" in out, out
+    out, prunes, builds = _run_counting(tmp_path, capsys, "mixed",
+                                        'steps = 60\nprecision = "mixed"')  # fmt: skip
+    assert prunes >= 2 and builds >= 1, out
+    out, _, _ = _run_counting(tmp_path, capsys, "double", 'steps = 60\nprecision = "double"')
+    assert "Cluster list prunes" not in out and "Neighbour list builds" in out, out
 
 
 def test_the_outer_skin_is_a_run_key(tmp_path, monkeypatch, capsys):
@@ -346,17 +351,9 @@ def test_the_outer_skin_is_a_run_key(tmp_path, monkeypatch, capsys):
     (no prunes, a search whenever the skin says: more of them than with the default's); a
     negative one is refused, naming the key, before anything is written."""
     monkeypatch.chdir(tmp_path)
-    counts = {}
-    for name, extra in (("default", ""), ("none", "outer_skin = 0.3")):
-        config = tmp_path / f"{name}.toml"
-        config.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
-                                         run=f'steps = 60\nprecision = "mixed"\n{extra}'))
-        capsys.readouterr()
-        assert main(["run", str(config), "--no-progress", "-o", f"{name}.h5"]) == 0
-        out = capsys.readouterr().out
-        prunes = out.split("Cluster list prunes: ")  # printed when there were any
-        counts[name] = (int(prunes[1].split()[0]) if len(prunes) > 1 else 0,
-                        int(out.split("Neighbour list builds: ")[1].split()[0]))
+    counts = {name: _run_counting(tmp_path, capsys, name,
+                                  f'steps = 60\nprecision = "mixed"\n{extra}')[1:]
+              for name, extra in (("default", ""), ("none", "outer_skin = 0.3"))}  # fmt: skip
     assert counts["none"][0] == 0 and counts["default"][0] >= 2, counts
     assert counts["none"][1] > counts["default"][1], counts
     bad = tmp_path / "bad.toml"
