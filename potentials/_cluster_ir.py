@@ -304,7 +304,9 @@ def cluster_row(pair, rows, lanes: int = 8):
                             builder.store(added, slot)
 
             def look(k):
-                """Pair k's j cluster (index, first coordinate), offset and shifted j atoms."""
+                """Pair k's j cluster (index, first coordinate), its offset, and per vector
+                the separations and squared distances (those out of reach or not pairs at
+                ``cut``): what ``pair_at`` takes."""
                 cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
                 base_j = builder.mul(cj, _index(12))
                 offset, shifted = cluster_j_shifted(builder, xj_p, base_j, off_p, k, fl, lanes)
@@ -318,11 +320,11 @@ def cluster_row(pair, rows, lanes: int = 8):
 
             # groups of _FLUSH cluster pairs: the i sums and the energy go to double after
             # each, so their float32 round-off does not grow with the row's length (a
-            # conditional flush inside one loop made the kernel 1.6 times as slow)
-            # software-pipelined by one pair: the loads and distances of pair k + 1 are
-            # issued before pair k's term, whose inputs are then ready (the chain from a
-            # partner's index to its j forces is longer than the out-of-order window
-            # covers: the kernel waited on it)
+            # conditional flush inside one loop made the kernel 1.6 times as slow); one pair
+            # ahead: pair k + 1's loads and distances are issued before pair k's term, whose
+            # inputs are then ready (the chain from a partner's index to its j forces is
+            # longer than the out-of-order window covers: the kernel waited on it). The
+            # pair after a row's last is its last again, looked at and not used.
             step = _index(_FLUSH)
             with builder.if_then(builder.icmp_signed("<", start_v, end_v)):
                 ahead = [cgutils.alloca_once_value(builder, v) for v in look(start_v)]
