@@ -381,7 +381,22 @@ def cluster_positions(positions, atom, origin, xi, xj):
     """Each slot's position relative to its origin, in float32, as the kernels read
     them: per cluster [x0..x3, y0..y3, z0..z3]; ``xi`` for the i role, ``xj`` for the
     j role (they differ only in where the fillers sit)."""
-    for s in range(atom.shape[0]):
+    _slot_positions(positions, atom, origin, xi, xj, 0, atom.shape[0])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def cluster_positions_threaded(positions, atom, origin, xi, xj, chunks):
+    """:func:`cluster_positions` in ``chunks`` runs of slots on the threads (the same
+    values: each slot's are its own)."""
+    n = atom.shape[0]
+    for c in prange(chunks):
+        _slot_positions(positions, atom, origin, xi, xj, c * n // chunks, (c + 1) * n // chunks)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _slot_positions(positions, atom, origin, xi, xj, first, end):
+    """:func:`cluster_positions` for slots ``first`` to ``end``."""
+    for s in range(first, end):
         base = (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
         i = atom[s]
         if i >= 0:

@@ -26,6 +26,7 @@ from md._cluster_kernels import (
     balanced_chunks,
     cluster_grid,
     cluster_positions,
+    cluster_positions_threaded,
     column_counts,
     prune_pairs,
     search_pairs,
@@ -150,8 +151,13 @@ class ClusterFrame:
                            xj: NDArray[np.float32]) -> None:  # fmt: skip
         """Write the slots' positions relative to their origins into ``xi`` and ``xj``
         (float32, 12 per cluster: x0..x3, y0..y3, z0..z3), in the i and the j role (they
-        differ in where the fillers sit: far apart, never within reach of anything)."""
-        cluster_positions(positions, self.atom, self.origin, xi, xj)
+        differ in where the fillers sit: far apart, never within reach of anything), on the
+        threads when there are enough slots."""
+        chunks = chunk_count(len(self.atom), _MIN_PASS_ATOMS)
+        if chunks == 1:
+            cluster_positions(positions, self.atom, self.origin, xi, xj)
+        else:
+            cluster_positions_threaded(positions, self.atom, self.origin, xi, xj, chunks)
 
 
 def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 #: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
 CLUSTER = 4
@@ -134,8 +134,23 @@ def _slot_base(s):
 def _cluster_atom_forces(buffers, atom, forces):
     """Sum the chunks' cluster-ordered forces (chunks, clusters * 12), in chunk order, into
     ``forces`` (N, 3) in atom order."""
+    _slot_forces(buffers, atom, forces, 0, atom.shape[0])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _cluster_atom_forces_threaded(buffers, atom, forces, runs):
+    """:func:`_cluster_atom_forces` in ``runs`` runs of slots on the threads (the same
+    bits: each atom's sum is its own, in chunk order)."""
+    n = atom.shape[0]
+    for r in prange(runs):
+        _slot_forces(buffers, atom, forces, r * n // runs, (r + 1) * n // runs)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _slot_forces(buffers, atom, forces, first, end):
+    """:func:`_cluster_atom_forces` for slots ``first`` to ``end``."""
     chunks = buffers.shape[0]
-    for s in range(atom.shape[0]):
+    for s in range(first, end):
         i, base = atom[s], _slot_base(s)
         if i < 0:
             continue

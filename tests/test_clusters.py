@@ -537,3 +537,33 @@ def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
         assert _relative_error(forces, double.forces) < 200 * EPS32
         assert abs(energy - double.energy) < 20 * EPS32 * abs(double.energy)
     assert _relative_error(results[16][1], results[8][1]) < 20 * EPS32
+
+
+def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
+    """The per-step passes around the kernel, split into runs on the threads (used from
+    16000 slots a thread): the float32 relative positions and the chunks' sum into atom
+    order equal the serial passes bit for bit, fillers included."""
+    from md._cluster_kernels import cluster_positions_threaded
+    from potentials._kernels import _cluster_atom_forces, _cluster_atom_forces_threaded
+
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    field.neighbor_list.update(state)
+    clusters = field.neighbor_list.clusters
+    assert (clusters.atom < 0).any(), "the test wants fillers"
+    size = 12 * clusters.n_clusters
+    serial = [np.full(size, np.nan, np.float32) for _ in range(2)]
+    clusters.relative_positions(state.positions, *serial)
+    for runs in (2, 3, 7):
+        threaded = [np.full(size, np.nan, np.float32) for _ in range(2)]
+        cluster_positions_threaded(state.positions, clusters.atom, clusters.origin, *threaded,
+                                   runs)  # fmt: skip
+        for a, b in zip(serial, threaded, strict=True):
+            assert np.array_equal(a, b)
+    buffers = rng.normal(size=(3, size))
+    expected = np.zeros((state.n_atoms, 3))
+    _cluster_atom_forces(buffers, clusters.atom, expected)
+    for runs in (2, 5):
+        forces = np.zeros((state.n_atoms, 3))
+        _cluster_atom_forces_threaded(buffers, clusters.atom, forces, runs)
+        assert np.array_equal(forces, expected)
