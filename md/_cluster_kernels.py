@@ -471,8 +471,6 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
     return sig, codegen
 
 
-
-
 @njit(cache=True, error_model="numpy")
 def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts,
                 kept_partners, kept_offsets):  # fmt: skip

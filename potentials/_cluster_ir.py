@@ -103,7 +103,7 @@ def _index(n: int):
     return ir.Constant(_I64, n)
 
 
-def _eight(x: float, lanes: int = 8):
+def _filled(x: float, lanes: int = 8):
     return ir.Constant(ir.VectorType(_F32, lanes), [x] * lanes)
 
 
@@ -201,7 +201,7 @@ def cluster_row(pair, rows, lanes: int = 8):
             pairs_i = cluster_i_halves(builder, xi_p, base_i, lanes)
             cut = splat(builder, cut_v, vector)
             own_cuts = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), lanes), keep),
-                                       cut, _eight(-1.0, lanes))
+                                       cut, _filled(-1.0, lanes))
                         for keep in cluster_own_lanes(lanes)]  # fmt: skip
             if lanes == 16:  # the SLP vectoriser's widest vectors: zmm (LLVM's X86 default
                 # for Intel's AVX-512 CPUs is 256 bits, which splits the term in two)
@@ -219,7 +219,7 @@ def cluster_row(pair, rows, lanes: int = 8):
             fma = cgutils.get_or_insert_function(
                 builder.module, ir.FunctionType(vector, [vector] * 3), f"llvm.fma.v{lanes}f32")
             # per vector of the pair: x, y, z of the i forces; then the energy
-            sums = [cgutils.alloca_once_value(builder, _eight(0.0, lanes))
+            sums = [cgutils.alloca_once_value(builder, _filled(0.0, lanes))
                     for _ in range(3 * passes + 1)]  # fmt: skip
 
             # the double lanes in 4-lane quarters (lanes 4q to 4q + 3: one i atom's): an
@@ -236,7 +236,7 @@ def cluster_row(pair, rows, lanes: int = 8):
                         four = shuffle(builder, values, values, list(range(4 * q, 4 * q + 4)))
                         part = builder.fpext(four, _D4)
                         builder.store(builder.fadd(builder.load(total), part, flags=fl), total)
-                    builder.store(_eight(0.0, lanes), narrow)
+                    builder.store(_filled(0.0, lanes), narrow)
 
             def pair_at(cj, base_j, offset, separations):
                 """One cluster pair: the term in every lane, the i sums, the j forces."""

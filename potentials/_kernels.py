@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from md.parallel import chunk_count
+
 #: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
 CLUSTER = 4
 
@@ -128,6 +130,21 @@ def _slot_base(s):
     """Where slot s's x sits in a cluster-ordered array (12 values per cluster: x0..x3,
     y0..y3, z0..z3); its y and z follow CLUSTER and 2 CLUSTER later."""
     return (s // CLUSTER) * 3 * CLUSTER + s % CLUSTER
+
+
+#: Fewest slots per thread worth a run of their own in the pass that sums the cluster
+#: kernels' chunks into atom order (memory-bound; as the list's displacement check).
+_MIN_PASS_SLOTS = 16_000
+
+
+def cluster_atom_forces(buffers, atom, forces) -> None:
+    """:func:`_cluster_atom_forces`, in runs of slots on the threads where there are
+    enough of them (the same bits on any number)."""
+    runs = chunk_count(len(atom), _MIN_PASS_SLOTS)
+    if runs == 1:
+        _cluster_atom_forces(buffers, atom, forces)
+    else:
+        _cluster_atom_forces_threaded(buffers, atom, forces, runs)
 
 
 @njit(cache=True, error_model="numpy")

@@ -47,24 +47,15 @@ from md._files import atomic_path
 from md._kernel_cache import cache_directory, kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
-from md.parallel import chunk_count
 from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials._cluster_ir import slp_vectorising
-from potentials._kernels import (
-    _cluster_atom_forces,
-    _cluster_atom_forces_threaded,
-    _cluster_moments,
-    _slot_types,
-)
+from potentials._kernels import _cluster_moments, _slot_types, cluster_atom_forces
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
-#: Fewest slots per thread worth a run of their own in the pass that sums the cluster
-#: kernels' chunks into atom order (memory-bound; as the list's displacement check).
-_MIN_PASS_SLOTS = 16_000
 #: Rows of the parameter table the frame owns; the term's parameters follow from TERM
 #: (the same numbers as in ``_pair_kernels``).
 RC2, RO2, SHIFT, INV_DEN, TERM = range(5)
@@ -835,11 +826,7 @@ class PairPotential:
                 kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
                        with_virial, single, buffers, energies, virials)  # fmt: skip
         forces = np.empty((n, 3))
-        runs = chunk_count(len(atom), _MIN_PASS_SLOTS)
-        if runs == 1:
-            _cluster_atom_forces(buffers, atom, forces)
-        else:
-            _cluster_atom_forces_threaded(buffers, atom, forces, runs)
+        cluster_atom_forces(buffers, atom, forces)
         total = None
         if virial:
             w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
