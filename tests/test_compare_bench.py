@@ -484,7 +484,8 @@ def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
 
 def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     """benchmarks/cluster_kernel.py on a small melt: the machine line, then the call's
-    time per cluster pair; a cell too small for the cutoff exits non-zero, saying why."""
+    time per cluster pair (per listed pair with --precision double); a cell too small for
+    the cutoff exits non-zero, saying why."""
     script = SCRIPT.parent / "cluster_kernel.py"
 
     def run(*args):
@@ -497,6 +498,13 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     line = done.stdout.splitlines()[-1]
     assert line.startswith("864 atoms, ") and "ns per cluster pair" in line, line
     assert float(line.split("min ")[1].split()[0]) > 0
+    double = run("--cells", "6", "--calls", "3", "--precision", "double")
+    assert double.returncode == 0, double.stderr
+    line = double.stdout.splitlines()[-1]
+    assert line.startswith("864 atoms, ") and "ns per listed pair" in line, line
+    listed = int(line.split("atoms, ")[1].split()[0])
+    assert 864 * 20 < listed < 864 * 60  # half a list within 2.8 sigma at rho* 0.8442: ~38
     refused = run("--cells", "2")
     assert refused.returncode != 0 and "too long for the box" in refused.stderr, refused.stderr
     assert run("--calls", "0").returncode == 2
+    assert run("--precision", "single").returncode == 2
