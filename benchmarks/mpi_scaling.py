@@ -23,7 +23,10 @@ Prints the machine (CPU model, vector ISA, cores, load), then
 
 ``--balance-every N`` adds, at each size, ours on 2 ranks x 1 thread with dynamic
 load balancing (``[run] balance_every = N``, threshold 1.02): its rate, comm share and
-ratio to 1 rank x 2 threads are printed below (a) and (b).
+ratio to 1 rank x 2 threads are printed below (a) and (b). ``--bind`` launches every
+run with ``mpiexec -bind-to core`` (each rank on a core of its own, ours and LAMMPS
+alike): on a machine whose cores run at different speeds a rank then stays on its
+core, which load balancing can allow for.
 
 Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
 runs (interleaved), and the tables give medians and the min-max. Rates are
@@ -111,10 +114,13 @@ def environment(threads: int) -> dict[str, str]:
     return env
 
 
-def launch(job: Job | None, payload: dict, timeout: float) -> dict:
-    """Run the worker on ``payload['ranks']`` ranks; return rank 0's JSON line."""
+def launch(job: Job | None, payload: dict, timeout: float, bind: bool = False) -> dict:
+    """Run the worker on ``payload['ranks']`` ranks (``bind``: each on a core of its own,
+    ``mpiexec -bind-to core``); return rank 0's JSON line."""
     ranks = payload.pop("ranks", 1)
-    command = ["mpiexec", "-n", str(ranks), sys.executable, str(WORKER), json.dumps(payload)]
+    binding = ["-bind-to", "core"] if bind else []
+    command = ["mpiexec", *binding, "-n", str(ranks), sys.executable, str(WORKER),
+               json.dumps(payload)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, timeout=timeout,
                           env=environment(int(payload.get("threads", 1))))  # fmt: skip
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
@@ -150,7 +156,8 @@ def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     return jobs
 
 
-def measure(jobs: list[Job], repeats: int, timeout: float) -> dict[Job, Measured]:
+def measure(jobs: list[Job], repeats: int, timeout: float,
+            bind: bool = False) -> dict[Job, Measured]:  # fmt: skip
     measured = {job: Measured(job) for job in jobs}
     for repeat in range(repeats):
         for job in jobs:
@@ -158,7 +165,7 @@ def measure(jobs: list[Job], repeats: int, timeout: float) -> dict[Job, Measured
                        "threads": job.threads, "ranks": job.ranks}  # fmt: skip
             if job.balance_every:
                 payload.update(balance_every=job.balance_every, balance_threshold=BALANCE_THRESHOLD)
-            result = launch(job, payload, timeout)
+            result = launch(job, payload, timeout, bind)
             measured[job].runs.append(result)
             balanced = f", balanced ({result['balances']} moves)" if job.balance_every else ""
             print(f"  [{repeat + 1}/{repeats}] {job.engine:<6}{balanced} {job.ranks} rank(s) x "
@@ -257,6 +264,17 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
     if lammps:
         headers += ["LAMMPS Comm", "s", "least rank"]
     print_table(headers, rows)
+    label, cells, _ = SIZES[quick][-1]
+    peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
+    if peer is not None:
+        runs = [("ours", find(measured, engine="ours", cells=cells, ranks=2, threads=1))]
+        runs += [(f"ours balanced (every {job.balance_every})", item)
+                 for job, item in measured.items() if job.balance_every and job.cells == cells]
+        for name, item in runs:
+            verdict = "met" if item.comm_share() <= peer.comm_share() else "not met"
+            print(f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
+                  f"LAMMPS's: {100 * item.comm_share():.1f} % against "
+                  f"{100 * peer.comm_share():.1f} % ({verdict})")  # fmt: skip
     print("  (one rank: ours has no comm section, periodic images are in its neighbour list; "
           "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
           "communicated least, mostly its own messages and work, since the other waited "
@@ -397,6 +415,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lammps", action="store_true", help="our engine only")
     parser.add_argument("--timeout", type=float, default=600, help="seconds per launch (600)")
     parser.add_argument("--json", help="write the medians to this file")
+    parser.add_argument("--bind", action="store_true",
+                        help="each rank on a core of its own (mpiexec -bind-to core)")
     parser.add_argument("--balance-every", type=int, default=0, metavar="N",
                         help="also ours on 2 ranks with load balancing every N steps")
     args = parser.parse_args(argv)
@@ -409,8 +429,9 @@ def main(argv: list[str] | None = None) -> int:
         lammps, note = probe_lammps()
         print(note)
     jobs = jobs_for(args.quick, lammps, args.balance_every)
-    print(f"{len(jobs)} runs x {repeats} repeats, interleaved:")
-    measured = measure(jobs, repeats, args.timeout)
+    bound = ", every rank bound to a core (mpiexec -bind-to core)" if args.bind else ""
+    print(f"{len(jobs)} runs x {repeats} repeats, interleaved{bound}:")
+    measured = measure(jobs, repeats, args.timeout, args.bind)
     figures = report(measured, args.quick, lammps)
     pingpong = print_pingpong()
     if pingpong:

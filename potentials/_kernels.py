@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from md._simd import gather_rows4, gather_shifted_rows4, scatter_sub_rows4
 from md.parallel import chunk_count
 
 #: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
@@ -85,9 +86,15 @@ def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
 
     Slices from 0 and unsigned partner slots: indices LLVM knows are not
     negative, so no wrap-around code. Shared by every pair term (nothing in it
-    depends on the term), so it compiles once.
+    depends on the term), so it compiles once. Four partners at a time are loaded
+    and transposed in vector registers (``md._simd.gather_shifted_rows4``), the rest
+    one by one.
     """
-    for k in range(partners.shape[0]):
+    m = partners.shape[0]
+    whole = m - m % 4
+    for k in range(0, whole, 4):
+        gather_shifted_rows4(frame, partners, shifts, partner_codes, k, gx, gy, gz)
+    for k in range(whole, m):
         q = np.uint32(partners[k])
         code = partner_codes[k]
         gx[k] = frame[q, 0] + shifts[code, 0]
@@ -99,12 +106,34 @@ def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
 def _gather_unshifted(frame, partners, gx, gy, gz):
     """``_gather_partners`` for a row whose partners all have code 13 (``UNSHIFTED_CODE``
     of ``md._cell_kernels``, no image shift):
-    their codes and the shift table are not read (LJ's force call -5 % at 32000 atoms)."""
-    for k in range(partners.shape[0]):
+    their codes and the shift table are not read (LJ's force call -5 % at 32000 atoms).
+    Four partners at a time are loaded and transposed in vector registers
+    (``md._simd.gather_rows4``), the rest one by one."""
+    m = partners.shape[0]
+    whole = m - m % 4
+    for k in range(0, whole, 4):
+        gather_rows4(frame, partners, k, gx, gy, gz)
+    for k in range(whole, m):
         q = np.uint32(partners[k])
         gx[k] = frame[q, 0]
         gy[k] = frame[q, 1]
         gz[k] = frame[q, 2]
+
+
+@njit(cache=True, error_model="numpy")
+def _scatter_partners(buffer, partners, sfx, sfy, sfz):
+    """``buffer[q] -= (sfx[k], sfy[k], sfz[k])`` for each partner q = ``partners[k]`` of a
+    row (distinct slots): four at a time transposed in vector registers
+    (``md._simd.scatter_sub_rows4``; the same roundings), the rest one by one."""
+    m = partners.shape[0]
+    whole = m - m % 4
+    for k in range(0, whole, 4):
+        scatter_sub_rows4(buffer, partners, k, sfx, sfy, sfz)
+    for k in range(whole, m):
+        q = np.uint32(partners[k])
+        buffer[q, 0] -= sfx[k]
+        buffer[q, 1] -= sfy[k]
+        buffer[q, 2] -= sfz[k]
 
 
 @njit(cache=True, error_model="numpy")

@@ -59,6 +59,7 @@ from potentials._kernels import (
     _gather_partners,
     _gather_unshifted,
     _longest_row,
+    _scatter_partners,
     _sum_chunk_forces,
 )
 
@@ -565,11 +566,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
                 wyz += sfz[k] * dy
                 wxz += sfz[k] * dx
                 wxy += sfy[k] * dx
-        for k in range(m):
-            q = np.uint32(partners[k])
-            buffer[q, 0] -= sfx[k]
-            buffer[q, 1] -= sfy[k]
-            buffer[q, 2] -= sfz[k]
+        _scatter_partners(buffer, partners, sfx, sfy, sfz)
         buffer[p, 0] += fxi
         buffer[p, 1] += fyi
         buffer[p, 2] += fzi

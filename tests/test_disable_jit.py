@@ -38,7 +38,10 @@ from md._simd import (
     bit_count,
     bits_float,
     float_bits,
+    gather_rows4,
+    gather_shifted_rows4,
     move_within,
+    scatter_sub_rows4,
     store_fence,
     stream_store,
     trailing_zeros,
@@ -150,6 +153,56 @@ def test_store_and_move_twins_equal_their_intrinsics(rng):
         expected = base.copy()
         expected[to : to + count] = base[start : start + count].copy()
         assert np.array_equal(compiled, twin) and np.array_equal(compiled, expected)
+
+
+@njit
+def _rows4(rows, partners, columns, forces):
+    for k in range(0, partners.shape[0], 4):
+        gather_rows4(rows, partners, k, columns[0], columns[1], columns[2])
+        scatter_sub_rows4(rows, partners, k, forces[0], forces[1], forces[2])
+
+
+@njit
+def _shifted_rows4(rows, partners, shifts, codes, columns):
+    for k in range(0, partners.shape[0], 4):
+        gather_shifted_rows4(rows, partners, shifts, codes, k, columns[0], columns[1],
+                             columns[2])  # fmt: skip
+
+
+def _rows4_twin(rows, partners, columns, forces):
+    for k in range(0, partners.shape[0], 4):
+        gather_rows4.python_twin(rows, partners, k, columns[0], columns[1], columns[2])
+        scatter_sub_rows4.python_twin(rows, partners, k, forces[0], forces[1], forces[2])
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.uint32])
+def test_row_gather_and_scatter_twins_equal_their_intrinsics(rng, dtype):
+    """Four partners' rows gathered into columns (with image shifts added, and without)
+    and forces subtracted from them: the intrinsics (16-byte loads, transposes in
+    registers) give the twin's bits, which are plain indexing's, at any partner (first
+    and last rows included)."""
+    rows = rng.normal(size=(41, 3))
+    partners = np.concatenate([[0, 40, 17, 3],
+                               rng.permutation(41)[:12]]).astype(dtype)  # fmt: skip
+    forces = rng.normal(size=(3, 16))
+    compiled, twin = (rows.copy(), np.zeros((3, 16))), (rows.copy(), np.zeros((3, 16)))
+    _rows4(compiled[0], partners, compiled[1], forces)
+    _rows4_twin(twin[0], partners, twin[1], forces)
+    assert np.array_equal(compiled[1], twin[1]) and np.array_equal(compiled[0], twin[0])
+    expected = rows.copy()
+    for k in range(0, 16, 4):  # each group gathered before its forces are taken off
+        group = partners[k : k + 4]
+        np.testing.assert_array_equal(compiled[1][:, k : k + 4], expected[group].T)
+        expected[group] -= forces[:, k : k + 4].T
+    np.testing.assert_array_equal(compiled[0], expected)
+    shifts = rng.normal(size=(27, 3))
+    codes = rng.integers(0, 27, 16).astype(np.uint8)
+    compiled, twin = np.zeros((3, 16)), np.zeros((3, 16))
+    _shifted_rows4(rows, partners, shifts, codes, compiled)
+    for k in range(0, 16, 4):
+        gather_shifted_rows4.python_twin(rows, partners, shifts, codes, k, *twin)
+    assert np.array_equal(compiled, twin)
+    np.testing.assert_array_equal(compiled, (rows[partners] + shifts[codes]).T)
 
 
 def _candidates(rng, n=200):
