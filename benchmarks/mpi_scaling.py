@@ -24,8 +24,8 @@ Prints the machine (CPU model, vector ISA, cores, load), then
 ``--balance-every N`` adds, at each size, ours on 2 ranks x 1 thread with dynamic
 load balancing (``[run] balance_every = N``, threshold 1.02): its rate, comm share and
 ratio to 1 rank x 2 threads are printed below (a) and (b). ``--bind`` launches every
-run with ``mpiexec -bind-to core`` (each rank on a core of its own, ours and LAMMPS
-alike): on a machine whose cores run at different speeds a rank then stays on its
+run with ``mpiexec -bind-to core:T`` (each rank on T cores of its own, T its threads;
+ours and LAMMPS alike): on a machine whose cores run at different speeds a rank then stays on its
 core, which load balancing can allow for.
 
 Every run is a fresh ``mpiexec`` launch; repeats go round-robin over all the
@@ -115,10 +115,10 @@ def environment(threads: int) -> dict[str, str]:
 
 
 def launch(job: Job | None, payload: dict, timeout: float, bind: bool = False) -> dict:
-    """Run the worker on ``payload['ranks']`` ranks (``bind``: each on a core of its own,
-    ``mpiexec -bind-to core``); return rank 0's JSON line."""
+    """Run the worker on ``payload['ranks']`` ranks (``bind``: each on cores of its own,
+    one per thread: ``mpiexec -bind-to core:T``); return rank 0's JSON line."""
     ranks = payload.pop("ranks", 1)
-    binding = ["-bind-to", "core"] if bind else []
+    binding = ["-bind-to", f"core:{int(payload.get('threads', 1))}"] if bind else []
     command = ["mpiexec", *binding, "-n", str(ranks), sys.executable, str(WORKER),
                json.dumps(payload)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, timeout=timeout,
@@ -416,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=600, help="seconds per launch (600)")
     parser.add_argument("--json", help="write the medians to this file")
     parser.add_argument("--bind", action="store_true",
-                        help="each rank on a core of its own (mpiexec -bind-to core)")
+                        help="each rank on cores of its own, one per thread "
+                             "(mpiexec -bind-to core:T)")
     parser.add_argument("--balance-every", type=int, default=0, metavar="N",
                         help="also ours on 2 ranks with load balancing every N steps")
     args = parser.parse_args(argv)
@@ -429,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
         lammps, note = probe_lammps()
         print(note)
     jobs = jobs_for(args.quick, lammps, args.balance_every)
-    bound = ", every rank bound to a core (mpiexec -bind-to core)" if args.bind else ""
+    bound = ", every rank bound to cores of its own (mpiexec -bind-to core:T)" if args.bind else ""
     print(f"{len(jobs)} runs x {repeats} repeats, interleaved{bound}:")
     measured = measure(jobs, repeats, args.timeout, args.bind)
     figures = report(measured, args.quick, lammps)
