@@ -4,10 +4,12 @@ The frame's per-row passes (see ``potentials/_pair_kernels.py``): gather the
 partners' positions (with their image shifts) into contiguous scratch, the
 vectorised pair loop, the sum of atom i's force, and the scatter of the
 partners' forces. This script times a replica of that loop (single type,
-cutoff mode "none", no virial; checked to give the frame's energy and forces
-bit for bit) with parts left out, in interleaved repeats, beside the frame
-itself with and without its unshifted-row gather (``SlotFrame.shifted``: the
-same potential given a list whose frame has every row marked shifted). Each
+cutoff mode "none", no virial; checked to give the frame's energy bit for bit and
+its forces to round-off: atom i's force is a sum inside the vectorised pair loop,
+which each loop's vectoriser may group its own way) with parts left out, in
+interleaved repeats, beside the frame itself with and without its unshifted-row
+gather (``SlotFrame.shifted``: the same potential given a list whose frame has
+every row marked shifted). Each
 row: median time, per listed pair, and the median of per-repeat ratios to the
 full replica. A variant without a part computes wrong forces: it only shows
 what the part costs. Two more rows time the replica in float32 throughout (slot
@@ -38,7 +40,11 @@ from _machine import machine_line  # noqa: E402
 import md  # noqa: E402
 from md.parallel import set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
-from potentials._kernels import _gather_partners, _gather_unshifted  # noqa: E402
+from potentials._kernels import (  # noqa: E402
+    _gather_partners,
+    _gather_unshifted,
+    _scatter_partners,
+)
 
 VECTOR_MATH = {"reassoc", "contract", "nsz", "arcp"}
 LANES = 4
@@ -58,6 +64,7 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool, real=n
     force buffer passed in is float32 or double (then a conversion per partner)."""
     lanes = LANES if real is np.float64 else 2 * LANES
     per_row = real is not np.float64  # double: the energy summed per pair, as the frame
+    frame_scatter = real is np.float64  # the frame's own scatter (double rows only)
 
     @njit(fastmath=VECTOR_MATH, error_model="numpy")
     def loop(frame, shifts, starts, neighbors, codes, shifted, buffer, rc2, c6, c12, far):
@@ -89,6 +96,7 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool, real=n
                 gy[k] = yi
                 gz[k] = zi
             row = zero
+            fxi = fyi = fzi = zero
             for k in range(padded):
                 dx = xi - gx[k]
                 dy = yi - gy[k]
@@ -111,23 +119,25 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool, real=n
                 sfx[k] = fr * dx
                 sfy[k] = fr * dy
                 sfz[k] = fr * dz
-            if per_row:
-                energy += row
-            if row_sum:
-                fxi = fyi = fzi = zero
-                for k in range(m):
+                if row_sum:  # in the pair loop, as the frame sums it
                     fxi += sfx[k]
                     fyi += sfy[k]
                     fzi += sfz[k]
+            if per_row:
+                energy += row
+            if scatter:
+                if frame_scatter:
+                    _scatter_partners(buffer, partners, sfx, sfy, sfz)
+                else:
+                    for k in range(m):
+                        q = np.uint32(partners[k])
+                        buffer[q, 0] -= sfx[k]
+                        buffer[q, 1] -= sfy[k]
+                        buffer[q, 2] -= sfz[k]
+            if row_sum:
                 buffer[p, 0] += fxi
                 buffer[p, 1] += fyi
                 buffer[p, 2] += fzi
-            if scatter:
-                for k in range(m):
-                    q = np.uint32(partners[k])
-                    buffer[q, 0] -= sfx[k]
-                    buffer[q, 1] -= sfy[k]
-                    buffer[q, 2] -= sfz[k]
         return energy
 
     return loop
@@ -184,9 +194,11 @@ def main(argv=None) -> None:
     forces = np.empty_like(buffer)
     forces[frame.order] = buffer
     same = energy == reference.energy and np.array_equal(forces, reference.forces)
+    apart = float(np.max(np.abs(forces - reference.forces)) / np.max(np.abs(reference.forces)))
     if args.threads > 1 or not same:
         print(f"replica against the frame: {'same bits' if same else 'DIFFERENT'} "
-              f"({args.threads} thread(s): the replica runs one chunk)")  # fmt: skip
+              f"({args.threads} thread(s): the replica runs one chunk); energy "
+              f"{energy - reference.energy:+.3g} apart, forces {apart:.2g} of the largest")
     # The float32 replicas (a float32 slot frame's loop): same list, float32 inputs.
     single = (slot_positions.astype(F32), frame.shifts.astype(F32), frame.starts,
               frame.neighbors, frame.codes, frame.shifted)  # fmt: skip

@@ -17,10 +17,11 @@ prove safe; but some single machine operations have no Python spelling:
   selected lanes of a vector to its front (``permute_lanes``, with
   ``PERMUTATIONS``). Kernels that use it keep a portable path for every
   other CPU;
-- ``gather_rows4`` and ``scatter_sub_rows4``: four rows of an (N, 3) array
-  read into (or subtracted from) three columns through 16-byte loads and
-  transposes in registers, for the slot frame's partner gather and force
-  scatter (LLVM does not vectorise a gather of rows by index);
+- ``gather_rows4``, ``gather_shifted_rows4`` (image shifts added) and
+  ``scatter_sub_rows4``: four rows of an (N, 3) array read into (or
+  subtracted from) three columns through 16-byte loads and transposes in
+  registers, for the slot frame's partner gather and force scatter (LLVM
+  does not vectorise a gather of rows by index);
 - ``move_within``: C's ``memmove`` inside one array (numba's slice assignment
   copies overlapping slices through a temporary, element by element);
 - ``stream_store`` and ``store_fence``: a non-temporal store (LLVM's
@@ -369,10 +370,6 @@ def _scatter_sub_rows4(rows, partners, k, fx, fy, fz) -> None:
         rows[q, 2] -= fz[n]
 
 
-_D2 = ir.VectorType(ir.DoubleType(), 2)
-_D4 = ir.VectorType(ir.DoubleType(), 4)
-
-
 def _rows_and_partners(context, builder, signature, args, k):
     """Data pointers of the (N, 3) rows and the three columns, and the four partners'
     first elements (3 q) from ``partners[k:k + 4]``."""
@@ -387,14 +384,22 @@ def _rows_and_partners(context, builder, signature, args, k):
 
 
 def _rows4_types(rows, partners, columns) -> bool:
-    """The types ``gather_rows4`` and ``scatter_sub_rows4`` take (raw pointer reads)."""
+    """Whether ``rows`` is a C-contiguous (N, 3) float64 or float32 array, ``partners``
+    C-contiguous int32 or uint32, and ``columns`` C-contiguous of the rows' type (raw
+    pointer reads)."""
     return (
         isinstance(rows, types.Array) and rows.ndim == 2 and rows.layout == "C"
-        and rows.dtype == types.float64
+        and rows.dtype in (types.float64, types.float32)
         and isinstance(partners, types.Array) and partners.ndim == 1
         and partners.layout == "C" and partners.dtype in (types.int32, types.uint32)
-        and all(is_vector_array(c, types.float64) for c in columns)
+        and all(is_vector_array(c, rows.dtype) for c in columns)
     )  # fmt: skip
+
+
+def _vectors(context, array_type) -> tuple[ir.VectorType, ir.VectorType]:
+    """2- and 4-lane vectors of ``array_type``'s elements."""
+    element = context.get_value_type(array_type.dtype)
+    return ir.VectorType(element, 2), ir.VectorType(element, 4)
 
 
 def _gather_codegen(shifted: bool):
@@ -403,17 +408,18 @@ def _gather_codegen(shifted: bool):
     def codegen(context, builder, signature, args):
         k = args[-4]
         data, columns, firsts = _rows_and_partners(context, builder, signature, args, k)
+        two, four = _vectors(context, signature.args[0])
         if shifted:
             table = array_data(context, builder, signature.args[2], args[2])
             codes = array_data(context, builder, signature.args[3], args[3])
         pairs, zs = [], []
         for n, first in enumerate(firsts):
-            xy = load_vector(builder, data, first, _D2)
+            xy = load_vector(builder, data, first, two)
             z = builder.load(builder.gep(data, [builder.add(first, ir.Constant(_I64, 2))]))
             if shifted:  # the same additions as scalar code: the same bits
                 code = builder.load(builder.gep(codes, [builder.add(k, ir.Constant(_I64, n))]))
                 row = builder.mul(builder.zext(code, _I64), ir.Constant(_I64, 3))
-                xy = builder.fadd(xy, load_vector(builder, table, row, _D2))
+                xy = builder.fadd(xy, load_vector(builder, table, row, two))
                 z = builder.fadd(z, builder.load(builder.gep(
                     table, [builder.add(row, ir.Constant(_I64, 2))])))  # fmt: skip
             pairs.append(xy)
@@ -422,7 +428,7 @@ def _gather_codegen(shifted: bool):
         high = shuffle(builder, pairs[1], pairs[3], [0, 1, 2, 3])  # x1 y1 x3 y3
         x = shuffle(builder, low, high, [0, 4, 2, 6])
         y = shuffle(builder, low, high, [1, 5, 3, 7])
-        z = ir.Constant(_D4, ir.Undefined)
+        z = ir.Constant(four, ir.Undefined)
         for n, value in enumerate(zs):
             z = builder.insert_element(z, value, ir.Constant(ir.IntType(32), n))
         for column, value in zip(columns, (x, y, z), strict=True):
@@ -436,8 +442,8 @@ def _gather_codegen(shifted: bool):
 @intrinsic
 def gather_rows4(typingctx, rows, partners, k, gx, gy, gz):
     """``gx[n], gy[n], gz[n] = rows[q]`` for the four partners q = ``partners[n]``, n = k
-    to k + 3, of a C-contiguous (N, 3) float64 array: per partner a 16-byte load of (x,
-    y) and an 8-byte load of z, transposed in registers into a 4-lane store per column
+    to k + 3, of a C-contiguous (N, 3) float64 (or float32) array: per partner a 16-byte
+    (8-byte) load of (x, y) and a load of z, transposed in registers into a 4-lane store per column
     (where a loop of scalar copies spends three loads and three stores per partner).
     Partner slots are read as unsigned (non-negative); no bounds checks: the caller
     keeps k + 3 inside ``partners`` and each q inside ``rows``."""
@@ -450,10 +456,10 @@ def gather_rows4(typingctx, rows, partners, k, gx, gy, gz):
 @intrinsic
 def gather_shifted_rows4(typingctx, rows, partners, shifts, codes, k, gx, gy, gz):
     """:func:`gather_rows4` with each partner's image shift added: ``rows[q] +
-    shifts[codes[n]]`` (``shifts`` a C-contiguous (S, 3) float64 table, ``codes`` uint8
+    shifts[codes[n]]`` (``shifts`` a C-contiguous (S, 3) table of the rows' type, ``codes`` uint8
     from index 0 as ``partners``)."""
     if not (_rows4_types(rows, partners, (gx, gy, gz))
-            and _rows4_types(shifts, partners, ())
+            and _rows4_types(shifts, partners, ()) and shifts.dtype == rows.dtype
             and isinstance(codes, types.Array) and codes.ndim == 1 and codes.layout == "C"
             and codes.dtype == types.uint8):  # fmt: skip
         return None
@@ -466,8 +472,8 @@ def gather_shifted_rows4(typingctx, rows, partners, shifts, codes, k, gx, gy, gz
 def scatter_sub_rows4(typingctx, rows, partners, k, fx, fy, fz):
     """``rows[q] -= (fx[n], fy[n], fz[n])`` for the four partners q = ``partners[n]``, n =
     k to k + 3, which must be distinct: the three columns loaded as 4-lane vectors and
-    transposed in registers, then per partner a 16-byte subtraction of (x, y) and an
-    8-byte one of z (the same roundings as scalar code). No bounds checks, as
+    transposed in registers, then per partner one subtraction of (x, y) as a pair and
+    one of z (the same roundings as scalar code). No bounds checks, as
     :func:`gather_rows4`."""
     if not _rows4_types(rows, partners, (fx, fy, fz)):
         return None
@@ -475,13 +481,14 @@ def scatter_sub_rows4(typingctx, rows, partners, k, fx, fy, fz):
 
     def codegen(context, builder, signature, args):
         data, columns, firsts = _rows_and_partners(context, builder, signature, args, args[2])
-        x, y, z = (load_vector(builder, column, args[2], _D4) for column in columns)
+        two, four = _vectors(context, signature.args[0])
+        x, y, z = (load_vector(builder, column, args[2], four) for column in columns)
         even = shuffle(builder, x, y, [0, 4, 2, 6])  # x0 y0 x2 y2
         odd = shuffle(builder, x, y, [1, 5, 3, 7])  # x1 y1 x3 y3
         for n, first in enumerate(firsts):
             source = even if n % 2 == 0 else odd
             half = shuffle(builder, source, source, [2 * (n // 2), 2 * (n // 2) + 1])
-            old = load_vector(builder, data, first, _D2)
+            old = load_vector(builder, data, first, two)
             store_vector(builder, builder.fsub(old, half), data, first)
             at = builder.gep(data, [builder.add(first, ir.Constant(_I64, 2))])
             value = builder.extract_element(z, ir.Constant(ir.IntType(32), n))

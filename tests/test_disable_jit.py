@@ -175,17 +175,18 @@ def _rows4_twin(rows, partners, columns, forces):
         scatter_sub_rows4.python_twin(rows, partners, k, forces[0], forces[1], forces[2])
 
 
-@pytest.mark.parametrize("dtype", [np.int32, np.uint32])
-def test_row_gather_and_scatter_twins_equal_their_intrinsics(rng, dtype):
+@pytest.mark.parametrize(("dtype", "real"), [(np.int32, np.float64), (np.uint32, np.float64),
+                                           (np.int32, np.float32)])  # fmt: skip
+def test_row_gather_and_scatter_twins_equal_their_intrinsics(rng, dtype, real):
     """Four partners' rows gathered into columns (with image shifts added, and without)
     and forces subtracted from them: the intrinsics (16-byte loads, transposes in
     registers) give the twin's bits, which are plain indexing's, at any partner (first
     and last rows included)."""
-    rows = rng.normal(size=(41, 3))
+    rows = rng.normal(size=(41, 3)).astype(real)
     partners = np.concatenate([[0, 40, 17, 3],
                                rng.permutation(41)[:12]]).astype(dtype)  # fmt: skip
-    forces = rng.normal(size=(3, 16))
-    compiled, twin = (rows.copy(), np.zeros((3, 16))), (rows.copy(), np.zeros((3, 16)))
+    forces = rng.normal(size=(3, 16)).astype(real)
+    compiled, twin = (rows.copy(), np.zeros((3, 16), real)), (rows.copy(), np.zeros((3, 16), real))
     _rows4(compiled[0], partners, compiled[1], forces)
     _rows4_twin(twin[0], partners, twin[1], forces)
     assert np.array_equal(compiled[1], twin[1]) and np.array_equal(compiled[0], twin[0])
@@ -195,9 +196,9 @@ def test_row_gather_and_scatter_twins_equal_their_intrinsics(rng, dtype):
         np.testing.assert_array_equal(compiled[1][:, k : k + 4], expected[group].T)
         expected[group] -= forces[:, k : k + 4].T
     np.testing.assert_array_equal(compiled[0], expected)
-    shifts = rng.normal(size=(27, 3))
+    shifts = rng.normal(size=(27, 3)).astype(real)
     codes = rng.integers(0, 27, 16).astype(np.uint8)
-    compiled, twin = np.zeros((3, 16)), np.zeros((3, 16))
+    compiled, twin = np.zeros((3, 16), real), np.zeros((3, 16), real)
     _shifted_rows4(rows, partners, shifts, codes, compiled)
     for k in range(0, 16, 4):
         gather_shifted_rows4.python_twin(rows, partners, shifts, codes, k, *twin)
