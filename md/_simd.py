@@ -16,7 +16,8 @@ prove safe; but some single machine operations have no Python spelling:
   kernels are compiled for an x86 CPU with AVX2, whose ``vpermd`` moves
   selected lanes of a vector to its front (``permute_lanes``, with
   ``PERMUTATIONS``). Kernels that use it keep a portable path for every
-  other CPU;
+  other CPU. ``ZMM`` says whether that CPU has AVX-512F (16 float32 lanes
+  per register: the cluster kernel's vector width);
 - ``gather_rows4``, ``gather_shifted_rows4`` (image shifts added) and
   ``scatter_sub_rows4``: four rows of an (N, 3) array read into (or
   subtracted from) three columns through 16-byte loads and transposes in
@@ -61,8 +62,14 @@ def _compiled_features() -> set[str]:
     return set(features.split(","))
 
 
+_X86 = platform.machine().lower() in ("x86_64", "amd64")
+
 #: True when the kernels are compiled for x86-64 with AVX2 (``permute_lanes`` exists).
-PERMUTE = platform.machine().lower() in ("x86_64", "amd64") and "+avx2" in _compiled_features()
+PERMUTE = _X86 and "+avx2" in _compiled_features()
+
+#: True when they are compiled for x86-64 with AVX-512F: 16 float32 lanes in one
+#: register (a zmm), where the cluster kernel takes a whole 4x4 cluster pair at once.
+ZMM = _X86 and "+avx512f" in _compiled_features() and "-evex512" not in _compiled_features()
 
 
 def python_twin(twin: Callable) -> Callable:

@@ -8,9 +8,13 @@ describes the layout). The idea is GROMACS's 2xMM kernels: two i atoms by four
 j atoms fill one 8-lane float32 vector, two vectors cover a cluster pair, the
 i forces and the energy stay in registers over the whole row, and a j
 cluster's forces are summed across the two halves and added to memory once.
-With ``lanes=16`` one vector holds the whole 4x4 cluster pair (an AVX-512
-register; measured no faster than 8 lanes on Emerald Rapids, so the kernels
-use 8).
+With ``lanes=16`` one vector holds the whole 4x4 cluster pair: the kernels'
+width where the CPU numba compiles for has AVX-512F (``md._simd.ZMM``), 8
+lanes elsewhere. On the 32000-atom melt (Emerald Rapids, one thread, the
+kernel's two widths alternated in one process) 16 lanes took 0.89 of the
+8-lane time (per-block ratios 0.84-0.95); compiled for AVX2 alone, where a
+16-lane vector is two ymm registers, it took 1.07 (the loop spills), so
+AVX2 keeps 8.
 
 The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
 and distances are computed before pair k's term. The chain from a partner's
@@ -57,6 +61,7 @@ from numba.core.cpu import FastMathOptions
 from numba.extending import intrinsic
 
 from md._simd import (
+    ZMM,
     array_data,
     cluster_i_halves,
     cluster_j_shifted,
@@ -81,8 +86,9 @@ _D4 = ir.VectorType(_F64, 4)
 _FLAGS = ("contract", "reassoc", "nsz", "arcp")
 
 #: Cluster pairs whose i forces and energy are summed in float32 lanes before they are
-#: added to the double sums (a power of 2).
-_FLUSH = 8
+#: added to the double sums (a power of 2). 16 took 0.95 of the time of 8 with 16 lanes
+#: (0.96 with 8, within the noise there), for a float32 sum of 16 terms, not 8.
+_FLUSH = 16
 
 _SLP_LOCK = threading.Lock()
 
@@ -136,11 +142,11 @@ def _local_column(context, builder, table_type, table, rows: int):
     return copy
 
 
-def cluster_row(pair, rows, lanes: int = 8):
+def cluster_row(pair, rows, lanes: int | None = None):
     """The row intrinsic for the frame's ``pair`` dispatcher (see the module docstring),
     whose parameter tables have ``rows()`` rows (asked when a kernel compiles: the
     template's names are set only in each term's copy), in vectors of ``lanes`` float32
-    (8, or 16: see the module docstring).
+    (8, or 16; None: 16 where ``md._simd.ZMM``, else 8; see the module docstring).
 
     ``row(xi, xj, offsets, partners, start, end, ci, slot_types, n_types, table, mode,
     data, cut2, forces, virial) -> energy`` (float64):
@@ -155,10 +161,12 @@ def cluster_row(pair, rows, lanes: int = 8):
     - ``cut2``: float32, the largest squared cutoff of the table;
     - ``forces`` float64 (clusters * 12,): the i forces added, the j forces subtracted,
       each cluster pair's j sums and every ``_FLUSH`` pairs' i sums added in double (so
-      no float32 sum runs over more than 8 ``_FLUSH`` terms, whatever the row's length);
+      no float32 sum runs over more than ``_FLUSH`` terms, whatever the row's length);
     - ``virial`` float64 (9,), or None: adds offset (x) (force on the i cluster) per
       pair, the part of the virial the relative positions do not carry.
     """
+    if lanes is None:
+        lanes = 16 if ZMM else 8
     if lanes not in (8, 16):
         raise ValueError(f"cluster rows have 8 or 16 lanes, not {lanes}")
 

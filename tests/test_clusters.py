@@ -483,7 +483,8 @@ def test_two_terms_in_one_process_each_run_their_own_pair_function(fcc_lattice):
 
 def _row_kernel(term_module, lanes):
     """An i-cluster loop over ``cluster_row(..., lanes)`` of a term's float32 pair
-    function: one type, no virial (the engine's kernels use 8 lanes)."""
+    function: one type, no virial (the engine's kernels use 16 lanes where the CPU has
+    AVX-512, else 8)."""
     from numba import njit
 
     from potentials._cluster_ir import cluster_row
@@ -504,9 +505,10 @@ def _row_kernel(term_module, lanes):
 
 
 def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
-    """``cluster_row(lanes=16)`` (a whole 4x4 cluster pair per vector, for CPUs where a
-    zmm register pays; on Emerald Rapids it measured no faster than 8) sums the same pair
-    terms: forces and energy to float32 round-off of the 8-lane row's and of double."""
+    """``cluster_row(lanes=16)`` (a whole 4x4 cluster pair per vector: the kernels' width
+    where the CPU has AVX-512) sums the same pair terms as ``lanes=8`` (AVX2's): forces
+    and energy to float32 round-off of each other's and of double, whichever this CPU
+    runs in the engine."""
     from potentials._pair_frame import CUTOFF_MODES, kernels_for
 
     state = fcc_lattice(cells=6, perturbation=0.08)
@@ -567,3 +569,52 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
         forces = np.zeros((state.n_atoms, 3))
         _cluster_atom_forces_threaded(buffers, clusters.atom, forces, runs)
         assert np.array_equal(forces, expected)
+
+
+_AVX2_ONLY = (
+    "+64bit,+avx,+avx2,+bmi,+bmi2,+cmov,+cx16,+f16c,+fma,+lzcnt,+mmx,+movbe,+pclmul,+popcnt,"
+    "+sahf,+sse,+sse2,+sse3,+sse4.1,+sse4.2,+ssse3,+xsave,-avx512f,-avx512bw,-avx512dq,"
+    "-avx512vl,-avx512cd"
+)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not md._simd.PERMUTE, reason="an x86-64 CPU with AVX2 runs AVX2 code")
+def test_kernels_compiled_for_avx2_keep_eight_lanes_and_the_forces(tmp_path):
+    """Compiled for AVX2 alone (a child process, kernels compiled afresh) the cluster
+    kernel takes 8 lanes (``md._simd.ZMM`` false; with AVX-512 the engine's own runs 16,
+    see ``ZMM``), and its mixed forces equal double to float32 round-off."""
+    import os
+    import subprocess
+    import sys
+
+    script = """
+import numpy as np
+import md, md._simd
+from md.forcefield import ForceField
+from potentials import LennardJones
+assert md._simd.PERMUTE and not md._simd.ZMM
+state = md.lattice("fcc", 8, density=0.8442)
+state.positions += np.random.default_rng(5).normal(scale=0.05, size=state.positions.shape)
+double = ForceField([LennardJones(cutoff=2.5)]).compute(state)
+field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+mixed = field.compute(state)
+assert field.neighbor_list.clusters is not None
+eps = float(np.finfo(np.float32).eps)
+error = np.abs(mixed.forces - double.forces).max() / np.abs(double.forces).max()
+assert 1e-3 * eps < error < 200 * eps, error
+assert abs(mixed.energy - double.energy) < 20 * eps * abs(double.energy)
+print("ok")
+"""
+    env = dict(os.environ, NUMBA_CPU_NAME="haswell", NUMBA_CPU_FEATURES=_AVX2_ONLY,
+               NUMBA_CACHE_DIR=str(tmp_path / "numba"), XDG_CACHE_HOME=str(tmp_path))  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
+
+
+def test_the_wide_flag_follows_the_compiled_features():
+    """``ZMM`` (16-lane cluster rows) is set exactly where numba compiles for AVX-512F."""
+    features = md._simd._compiled_features()
+    assert md._simd.ZMM == (md._simd.PERMUTE and "+avx512f" in features
+                            and "-evex512" not in features)  # fmt: skip

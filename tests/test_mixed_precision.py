@@ -118,7 +118,7 @@ def test_mixed_forces_equal_double_ones_to_float32_round_off(case, cell, threads
     if clusters is None:  # the frame: pair forces f/r * d in double, so Newton's third law
         # holds to the double sums' round-off, not float32's
         np.testing.assert_allclose(mixed.forces.sum(axis=0), 0.0, atol=1e-10 * state.n_atoms)
-    else:  # the clusters' pair forces are float32, their sums double (per 8 pairs of lanes)
+    else:  # the clusters' pair forces are float32, their sums double (per 16 cluster pairs)
         scale = np.sqrt(state.n_atoms) * np.abs(double.forces).max()
         assert np.abs(mixed.forces.sum(axis=0)).max() < 10 * EPS32 * scale
 
