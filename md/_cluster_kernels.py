@@ -29,6 +29,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from md._simd import (
+    ZMM,
     array_data,
     cluster_i_halves,
     cluster_j_shifted,
@@ -302,6 +303,10 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     end = g0
                     last = g1 - 1
                     for ci in range(lowest, highest):
+                        gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
+                        gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
+                        if gx * gx + gy * gy >= r2max:
+                            continue  # out of reach in xy: the cursors catch up later
                         low = lower[ci, 2] - radius - sz
                         high = upper[ci, 2] + radius - sz
                         # the cursors move a cluster or two per i cluster: two steps without
@@ -315,8 +320,6 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                             end += (end < g1) & (lower[min(end, last), 2] <= high)
                         while end < g1 and lower[end, 2] <= high:
                             end += 1
-                        gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
-                        gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
                         first_j = max(begin, ci)
                         # itself: first in its row; its image at -shift: listed at +shift
                         first_j += (first_j == ci) & ((not positive) | zero)
@@ -325,7 +328,7 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                         window_slot[row, w] = slot
                         window_begin[row, w] = first_j
                         window_end[row, w] = end
-                        windows[row] = w + ((gx * gx + gy * gy < r2max) & (end > first_j))
+                        windows[row] = w + (end > first_j)
                 m += 1
         for ci in range(f0, f1):
             row = ci - f0
@@ -413,8 +416,10 @@ def _slot_positions(positions, atom, origin, xi, xj, first, end):
 
 _F32 = ir.FloatType()
 _I64 = ir.IntType(64)
-_V8 = ir.VectorType(_F32, 8)
-_MASK8 = ir.VectorType(ir.IntType(1), 8)
+#: The lanes of the atom check's vectors: the cluster kernel's (md._simd.ZMM).
+_LANES = 16 if ZMM else 8
+_VECTOR = ir.VectorType(_F32, _LANES)
+_MASK = ir.VectorType(ir.IntType(1), _LANES)
 
 
 def _mark_row_twin(xi, xj, offsets, partners, start, end, ci, reach2, near):
@@ -437,8 +442,9 @@ def _mark_row_twin(xi, xj, offsets, partners, start, end, ci, reach2, near):
 def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near):
     """Set ``near[k]`` for i cluster ``ci``'s pairs ``start`` to ``end``: whether an atom
     pair lies closer than sqrt(``reach2``) (a float32), in the cluster kernels' layout
-    and lanes (two i atoms by four j atoms per 8-lane vector, the row's first pair the
-    cluster with itself, whose lower triangle does not count; it is always kept)."""
+    and lanes (a 4x4 cluster pair in one 16-lane vector where the CPU has AVX-512, else
+    two i atoms by four j atoms per 8-lane vector; the row's first pair the cluster with
+    itself, whose lower triangle does not count; it is always kept)."""
     sig = types.void(xi, xj, offsets, partners, start, end, ci, reach2, near)
 
     def codegen(context, builder, signature, args):
@@ -447,23 +453,25 @@ def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near
         near_p = array_data(context, builder, signature.args[8], args[8])
         start, end, ci, reach2 = args[4:8]
         size = ir.Constant(_I64, 3 * CLUSTER)
-        halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size))
-        reach = splat(builder, reach2, _V8)
-        never = ir.Constant(_V8, [-1.0] * 8)
-        own_reach = [builder.select(ir.Constant(_MASK8, keep), reach, never)
-                     for keep in cluster_own_lanes()]  # fmt: skip
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size), _LANES)
+        reach = splat(builder, reach2, _VECTOR)
+        never = ir.Constant(_VECTOR, [-1.0] * _LANES)
+        own_reach = [builder.select(ir.Constant(_MASK, keep), reach, never)
+                     for keep in cluster_own_lanes(_LANES)]  # fmt: skip
         with cgutils.for_range_slice(builder, start, end, ir.Constant(_I64, 1)) as (k, _):
             cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
             itself = builder.icmp_signed("==", k, start)
-            _, shifted = cluster_j_shifted(builder, xj_p, builder.mul(cj, size), off_p, k)
+            _, shifted = cluster_j_shifted(builder, xj_p, builder.mul(cj, size), off_p, k,
+                                           lanes=_LANES)  # fmt: skip
             within = None
-            for h in range(2):
+            for h in range(len(halves)):
                 _, r2 = squared_distances(builder, halves[h], shifted)
                 bound = builder.select(itself, own_reach[h], reach)
                 close = builder.fcmp_ordered("<", r2, bound)
                 within = close if within is None else builder.or_(within, close)
-            anything = builder.icmp_unsigned("!=", builder.bitcast(within, ir.IntType(8)),
-                                             ir.Constant(ir.IntType(8), 0))  # fmt: skip
+            bits = ir.IntType(_LANES)
+            anything = builder.icmp_unsigned("!=", builder.bitcast(within, bits),
+                                             ir.Constant(bits, 0))  # fmt: skip
             anything = builder.or_(anything, itself)
             builder.store(builder.zext(anything, ir.IntType(8)), builder.gep(near_p, [k]))
         return context.get_dummy_value()
