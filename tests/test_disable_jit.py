@@ -27,6 +27,7 @@ from md import _cell_kernels
 from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
 from md._cluster_kernels import (
     _mark_row,
+    _near_pair,
     cluster_grid,
     cluster_positions,
     column_counts,
@@ -71,7 +72,8 @@ def test_every_intrinsic_has_a_python_twin():
             if isinstance(value, intrinsic_type):
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
-    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_mark_row"} <= set(found)
+    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_mark_row",
+            "_near_pair"} <= set(found)  # fmt: skip
 
 
 @njit
@@ -100,6 +102,43 @@ def test_the_cluster_marks_twin_equals_its_intrinsic(fcc_lattice):
                               np.float32(2.0**2), twin)  # fmt: skip
     np.testing.assert_array_equal(compiled, twin)
     assert 0 < compiled.sum() < len(compiled)
+
+
+@njit
+def _near_pairs(xi, xj, starts, partners, offsets, reach2, near):
+    for ci in range(starts.shape[0] - 1):
+        for k in range(starts[ci] + 1, starts[ci + 1]):  # not the cluster with itself
+            near[k] = _near_pair(xi, xj, ci, partners[k], offsets[k, 0], offsets[k, 1],
+                                 offsets[k, 2], reach2)  # fmt: skip
+
+
+def test_the_search_candidates_check_equals_its_twin_and_the_row_marks(fcc_lattice):
+    """The search's check of one candidate (the offset in registers), compiled and as
+    numpy, gives the row marks' verdict on every pair but a row's first (the cluster
+    with itself, which the marks always keep)."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    xi = np.empty(3 * len(atom), np.float32)
+    xj = np.empty(3 * len(atom), np.float32)
+    cluster_positions(state.positions, atom, origin, xi, xj)
+    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
+                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
+    reach2 = np.float32(2.0**2)
+    compiled = np.zeros(len(partners), np.uint8)
+    marks = np.zeros(len(partners), np.uint8)
+    _near_pairs(xi, xj, starts, partners, offsets, reach2, compiled)
+    _marks(xi, xj, starts, partners, offsets, reach2, marks)
+    rows = starts[:-1]
+    marks[rows] = 0
+    np.testing.assert_array_equal(compiled, marks)
+    assert 0 < compiled.sum() < len(compiled) - len(rows)
+    for k in range(0, len(partners), 7):
+        if k in set(rows.tolist()):
+            continue
+        ci = int(np.searchsorted(starts, k, side="right") - 1)
+        twin = _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k], reach2)
+        assert twin == bool(compiled[k]), k
 
 
 @njit
