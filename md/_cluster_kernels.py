@@ -25,15 +25,12 @@ from __future__ import annotations
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
-from numba.core import cgutils
 from numba.extending import intrinsic
 
 from md._simd import (
     ZMM,
     array_data,
     cluster_i_halves,
-    cluster_j_shifted,
-    cluster_own_lanes,
     load_vector,
     python_twin,
     shuffle,
@@ -430,64 +427,6 @@ _I64 = ir.IntType(64)
 _LANES = 16 if ZMM else 8
 _VECTOR = ir.VectorType(_F32, _LANES)
 _V4 = ir.VectorType(_F32, CLUSTER)
-_MASK = ir.VectorType(ir.IntType(1), _LANES)
-
-
-def _mark_row_twin(xi, xj, offsets, partners, start, end, ci, reach2, near):
-    """:func:`_mark_row` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
-    flat = offsets.reshape(-1)
-    own = xi[ci * 3 * CLUSTER : (ci + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
-    for k in range(start, end):
-        cj = partners[k]
-        other = xj[cj * 3 * CLUSTER : (cj + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
-        d = own[:, :, None] - other[:, None, :] + flat[3 * k : 3 * k + 3, None, None]
-        r2 = (d * d).sum(axis=0)
-        close = r2 < reach2
-        if k == start:  # the cluster with itself: pairs b > a count, and it is kept
-            close = np.triu(close, k=1) | True
-        near[k] = close.any()
-
-
-@python_twin(_mark_row_twin)
-@intrinsic
-def _mark_row(typingctx, xi, xj, offsets, partners, start, end, ci, reach2, near):
-    """Set ``near[k]`` for i cluster ``ci``'s pairs ``start`` to ``end``: whether an atom
-    pair lies closer than sqrt(``reach2``) (a float32), in the cluster kernels' layout
-    and lanes (a 4x4 cluster pair in one 16-lane vector where the CPU has AVX-512, else
-    two i atoms by four j atoms per 8-lane vector; the row's first pair the cluster with
-    itself, whose lower triangle does not count; it is always kept)."""
-    sig = types.void(xi, xj, offsets, partners, start, end, ci, reach2, near)
-
-    def codegen(context, builder, signature, args):
-        xi_p, xj_p, off_p, part_p = (array_data(context, builder, signature.args[n], args[n])
-                                     for n in range(4))  # fmt: skip
-        near_p = array_data(context, builder, signature.args[8], args[8])
-        start, end, ci, reach2 = args[4:8]
-        size = ir.Constant(_I64, 3 * CLUSTER)
-        halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size), _LANES)
-        reach = splat(builder, reach2, _VECTOR)
-        never = ir.Constant(_VECTOR, [-1.0] * _LANES)
-        own_reach = [builder.select(ir.Constant(_MASK, keep), reach, never)
-                     for keep in cluster_own_lanes(_LANES)]  # fmt: skip
-        with cgutils.for_range_slice(builder, start, end, ir.Constant(_I64, 1)) as (k, _):
-            cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
-            itself = builder.icmp_signed("==", k, start)
-            _, shifted = cluster_j_shifted(builder, xj_p, builder.mul(cj, size), off_p, k,
-                                           lanes=_LANES)  # fmt: skip
-            within = None
-            for h in range(len(halves)):
-                _, r2 = squared_distances(builder, halves[h], shifted)
-                bound = builder.select(itself, own_reach[h], reach)
-                close = builder.fcmp_ordered("<", r2, bound)
-                within = close if within is None else builder.or_(within, close)
-            bits = ir.IntType(_LANES)
-            anything = builder.icmp_unsigned("!=", builder.bitcast(within, bits),
-                                             ir.Constant(bits, 0))  # fmt: skip
-            anything = builder.or_(anything, itself)
-            builder.store(builder.zext(anything, ir.IntType(8)), builder.gep(near_p, [k]))
-        return context.get_dummy_value()
-
-    return sig, codegen
 
 
 def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
@@ -503,10 +442,11 @@ def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
 @intrinsic
 def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
     """Whether i cluster ``ci`` and j cluster ``cj`` at offset (``ox``, ``oy``, ``oz``)
-    (float32, as the list stores it) have an atom pair closer than sqrt(``reach2``):
-    :func:`_mark_row`'s check of one pair that is not the cluster with itself, for the
-    search to check a candidate before it is written (the same float32 operations, so
-    the same verdict)."""
+    (float32, as the list stores it) have an atom pair closer than sqrt(``reach2``): the
+    search's and the prune's check of a pair that is not the cluster with itself (the
+    first of each row, always kept), in the cluster kernels' layout and lanes (a 4x4
+    cluster pair in one 16-lane vector where the CPU has AVX-512, else two i atoms by
+    four j atoms per 8-lane vector), the offset in registers."""
     sig = types.boolean(xi, xj, ci, cj, ox, oy, oz, reach2)
 
     def codegen(context, builder, signature, args):
@@ -536,28 +476,28 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
 
 
 @njit(cache=True, error_model="numpy")
-def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts,
+def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
                 kept_partners, kept_offsets):  # fmt: skip
     """Keep the pairs of the cluster list (``starts``, ``partners``, ``offsets``) that
     have an atom pair closer than sqrt(``reach2``) at the relative positions ``xi``/``xj``
     (GROMACS's dynamic pruning of an outer list to an inner one), each row in its
     order, the cluster itself still first: their row offsets into ``kept_starts`` and
-    the pairs into ``kept_partners``/``kept_offsets`` (as long as the list; ``near``,
-    one byte per pair, is scratch). Returns the pairs kept.
+    the pairs into ``kept_partners``/``kept_offsets`` (as long as the list). Returns the
+    pairs kept.
 
-    The chunks ``bounds`` (i cluster ranges) run on the threads, each row marked
-    (:func:`_mark_row`) and compacted while it is in the cache (the outer list is read
-    once: in a run the prune is bound by memory, 0.85x the time of a separate mark
-    pass and compaction on one thread), each chunk's kept rows written from where its
+    The chunks ``bounds`` (i cluster ranges) run on the threads, each pair checked
+    (:func:`_near_pair`) as it is copied, the next one copied after it only if it is kept
+    (the outer list is read once; 0.85 of the time of marking a row and then compacting
+    it, on one thread), each chunk's kept rows written from where its
     rows begin in the list; then every chunk but the first is moved down to its place,
     in order (a move never overwrites rows not yet moved)."""
     n_clusters = starts.shape[0] - 1
     chunks = bounds.shape[0] - 1
     if chunks == 1:
-        _prune_rows(starts, partners, offsets, 0, n_clusters, xi, xj, reach2, near,
+        _prune_rows(starts, partners, offsets, 0, n_clusters, xi, xj, reach2,
                     kept_starts, kept_partners, kept_offsets)  # fmt: skip
     else:
-        _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts,
+        _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
                       kept_partners, kept_offsets)  # fmt: skip
     kept_starts[0] = 0
     for ci in range(n_clusters):  # the counts, into row offsets
@@ -572,42 +512,49 @@ def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_st
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, near, kept_starts,
+def _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
                   kept_partners, kept_offsets):  # fmt: skip
     """:func:`_prune_rows` for each chunk of i clusters, on the threads."""
     for t in prange(bounds.shape[0] - 1):
-        _prune_rows(starts, partners, offsets, bounds[t], bounds[t + 1], xi, xj, reach2, near,
+        _prune_rows(starts, partners, offsets, bounds[t], bounds[t + 1], xi, xj, reach2,
                     kept_starts, kept_partners, kept_offsets)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
-def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, near, kept_starts,
+def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts,
                 kept_partners, kept_offsets):  # fmt: skip
-    """Mark and compact the rows of i clusters ``c0`` to ``c1``, the kept pairs written
+    """Check and compact the rows of i clusters ``c0`` to ``c1``, the kept pairs written
     one after another from ``starts[c0]`` (every pair is written, a dropped one where the
     next kept one overwrites it: no branch; never past the chunk's own rows), each row's
     count into ``kept_starts[ci + 1]``."""
     k = starts[c0]
     for ci in range(c0, c1):
         row = k
-        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2, near,
+        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2,
                        kept_partners, kept_offsets, k)  # fmt: skip
         kept_starts[ci + 1] = k - row
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _keep_near(xi, xj, partners, offsets, start, end, ci, reach2, near, kept_partners,
+def _keep_near(xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
                kept_offsets, k):  # fmt: skip
-    """Mark i cluster ``ci``'s pairs ``start`` to ``end`` (:func:`_mark_row`) and copy the
-    marked ones to ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same
-    arrays, ``k`` <= ``start``: in place); returns the end of the copied row. Every pair
-    is written, a dropped one where the next kept one overwrites it (no branch), never
-    past ``k + end - start``."""
-    _mark_row(xi, xj, offsets, partners, start, end, ci, reach2, near)
-    for q in range(start, end):
-        kept_partners[k] = partners[q]
-        kept_offsets[k, 0] = offsets[q, 0]
-        kept_offsets[k, 1] = offsets[q, 1]
-        kept_offsets[k, 2] = offsets[q, 2]
-        k += near[q]
+    """Copy i cluster ``ci``'s pairs ``start`` to ``end`` that have an atom pair within
+    reach (:func:`_near_pair`; the first, the cluster with itself, always) to
+    ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same arrays, ``k``
+    <= ``start``: in place); returns the end of the copied row. Every pair is written, a
+    dropped one where the next kept one overwrites it (no branch), never past ``k + end
+    - start``."""
+    if start == end:
+        return k
+    kept_partners[k] = partners[start]  # the cluster with itself: kept
+    kept_offsets[k, 0] = offsets[start, 0]
+    kept_offsets[k, 1] = offsets[start, 1]
+    kept_offsets[k, 2] = offsets[start, 2]
+    k += 1
+    for q in range(start + 1, end):
+        cj = partners[q]
+        o0, o1, o2 = offsets[q, 0], offsets[q, 1], offsets[q, 2]
+        kept_partners[k] = cj
+        kept_offsets[k, 0], kept_offsets[k, 1], kept_offsets[k, 2] = o0, o1, o2
+        k += _near_pair(xi, xj, ci, cj, o0, o1, o2, reach2)
     return k

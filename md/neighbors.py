@@ -697,17 +697,17 @@ class NeighborList:
         if self._prune_buffers is None:
             self._prune_buffers = (
                 np.empty(n + 1, np.int64), np.empty(size, np.int32),
-                np.empty((size, 3), np.float32), np.empty(size, np.uint8),
+                np.empty((size, 3), np.float32),
                 *(relative or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))),
             )  # fmt: skip
-        starts, partners, offsets, near, xi, xj = self._prune_buffers
+        starts, partners, offsets, xi, xj = self._prune_buffers
         if relative is not None:
             xi, xj = relative
         else:
             outer.relative_positions(positions, xi, xj)
         reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
         kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
-                           xi, xj, reach2, near, starts, partners, offsets)  # fmt: skip
+                           xi, xj, reach2, starts, partners, offsets)  # fmt: skip
         self._clusters = ClusterFrame(outer.atom, outer.origin, starts, partners[:kept],
                                       offsets[:kept], len(outer.bounds) - 1)  # fmt: skip
         if self._pruned_at is None or self._pruned_at.shape != positions.shape:

@@ -26,7 +26,6 @@ from numba import njit
 from md import _cell_kernels
 from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
 from md._cluster_kernels import (
-    _mark_row,
     _near_pair,
     cluster_grid,
     cluster_positions,
@@ -72,36 +71,9 @@ def test_every_intrinsic_has_a_python_twin():
             if isinstance(value, intrinsic_type):
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
-    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_mark_row",
-            "_near_pair"} <= set(found)  # fmt: skip
-
-
-@njit
-def _marks(xi, xj, starts, partners, offsets, reach2, near):
-    for ci in range(starts.shape[0] - 1):
-        _mark_row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, reach2, near)
-
-
-def test_the_cluster_marks_twin_equals_its_intrinsic(fcc_lattice):
-    """The atom-distance check of the cluster search, compiled and as numpy, on every
-    candidate of a liquid-like lattice (a reach between the lattice's shells, so both
-    marks occur)."""
-    state = fcc_lattice(cells=6, perturbation=0.1)
-    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
-    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    xi = np.empty(3 * len(atom), np.float32)
-    xj = np.empty(3 * len(atom), np.float32)
-    cluster_positions(state.positions, atom, origin, xi, xj)
-    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
-                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
-    compiled = np.zeros(len(partners), np.uint8)
-    twin = np.zeros(len(partners), np.uint8)
-    _marks(xi, xj, starts, partners, offsets, np.float32(2.0**2), compiled)
-    for ci in range(len(starts) - 1):
-        _mark_row.python_twin(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci,
-                              np.float32(2.0**2), twin)  # fmt: skip
-    np.testing.assert_array_equal(compiled, twin)
-    assert 0 < compiled.sum() < len(compiled)
+    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_near_pair"} <= set(
+        found
+    )
 
 
 @njit
@@ -112,10 +84,10 @@ def _near_pairs(xi, xj, starts, partners, offsets, reach2, near):
                                  offsets[k, 2], reach2)  # fmt: skip
 
 
-def test_the_search_candidates_check_equals_its_twin_and_the_row_marks(fcc_lattice):
-    """The search's check of one candidate (the offset in registers), compiled and as
-    numpy, gives the row marks' verdict on every pair but a row's first (the cluster
-    with itself, which the marks always keep)."""
+def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_lattice):
+    """The atom-distance check of the cluster search and prune, compiled and as numpy, on
+    every pair of a list (a reach between the lattice's shells, so both verdicts occur),
+    and against the atoms' own distances (double, minimum image) away from the reach."""
     state = fcc_lattice(cells=6, perturbation=0.1)
     ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
     first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
@@ -124,21 +96,27 @@ def test_the_search_candidates_check_equals_its_twin_and_the_row_marks(fcc_latti
     cluster_positions(state.positions, atom, origin, xi, xj)
     starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
                                              256, xi, xj, np.float32(2.8**2))  # fmt: skip
-    reach2 = np.float32(2.0**2)
+    reach = 2.0
     compiled = np.zeros(len(partners), np.uint8)
-    marks = np.zeros(len(partners), np.uint8)
-    _near_pairs(xi, xj, starts, partners, offsets, reach2, compiled)
-    _marks(xi, xj, starts, partners, offsets, reach2, marks)
-    rows = starts[:-1]
-    marks[rows] = 0
-    np.testing.assert_array_equal(compiled, marks)
-    assert 0 < compiled.sum() < len(compiled) - len(rows)
-    for k in range(0, len(partners), 7):
-        if k in set(rows.tolist()):
-            continue
-        ci = int(np.searchsorted(starts, k, side="right") - 1)
-        twin = _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k], reach2)
-        assert twin == bool(compiled[k]), k
+    _near_pairs(xi, xj, starts, partners, offsets, np.float32(reach**2), compiled)
+    rows = set(starts[:-1].tolist())
+    checked = 0
+    for ci in range(len(starts) - 1):
+        for k in range(starts[ci] + 1, starts[ci + 1]):
+            twin = _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k],
+                                          np.float32(reach**2))  # fmt: skip
+            assert twin == bool(compiled[k]), k
+            mine = atom[4 * ci : 4 * ci + 4]
+            theirs = atom[4 * partners[k] : 4 * partners[k] + 4]
+            mine, theirs = mine[mine >= 0], theirs[theirs >= 0]
+            d = state.positions[mine][:, None] - state.positions[theirs][None]
+            d -= state.box * np.round(d / state.box)
+            r = np.sqrt((d * d).sum(axis=-1)).min() if len(mine) and len(theirs) else np.inf
+            if abs(r - reach) > 1e-4:  # float32 decides the pairs at the reach itself
+                assert bool(compiled[k]) == (r < reach), (k, r)
+                checked += 1
+    assert checked > 0.9 * (len(partners) - len(rows))
+    assert 0 < compiled.sum() < len(partners) - len(rows)
 
 
 @njit
