@@ -19,6 +19,16 @@ listed atom pair::
     python benchmarks/cluster_kernel.py
     python benchmarks/cluster_kernel.py --precision double
     python benchmarks/cluster_kernel.py --cells 10 --calls 20 --threads 2
+    python benchmarks/cluster_kernel.py --lanes 8,16
+
+``--lanes 8,16`` times the cluster kernel alone (the engine's entry point, one thread,
+no virial; without the float32 relative positions and the sum into atom order) at each
+vector width (``kernels_for(..., cluster_lanes=...)``), compiled side by side in this
+process and called in alternating blocks of ``--calls`` (this VM's speed drifts by 2x
+within minutes, so widths timed in separate processes do not compare): the minimum per
+width and the median and range of the per-block ratios to the first width. The engine
+uses 16 lanes where the CPU numba compiles for has AVX-512 (``md._simd.ZMM``), else 8;
+16 lanes on an AVX2-only CPU are two registers per vector.
 """
 
 from __future__ import annotations
@@ -49,9 +59,25 @@ def main(argv=None) -> None:
     parser.add_argument("--precision", choices=("mixed", "double"), default="mixed",
                         help="mixed: the cluster kernel (default); double: the slot frame's "
                              "force call, per listed atom pair")  # fmt: skip
+    parser.add_argument("--lanes", default=None,
+                        help="comma-separated vector widths (8, 16): the cluster kernel at "
+                             "each, alternated in this process (mixed only)")  # fmt: skip
+    parser.add_argument("--blocks", type=int, default=30,
+                        help="alternating blocks of --calls per width with --lanes (30)")
     args = parser.parse_args(argv)
-    if args.cells < 1 or args.calls < 1 or args.threads < 1:
-        parser.error("--cells, --calls and --threads must be at least 1")
+    if args.cells < 1 or args.calls < 1 or args.threads < 1 or args.blocks < 1:
+        parser.error("--cells, --calls, --threads and --blocks must be at least 1")
+    widths = None
+    if args.lanes is not None:
+        try:
+            widths = [int(x) for x in args.lanes.split(",")]
+        except ValueError:
+            parser.error(f"--lanes takes widths such as 8,16, not {args.lanes!r}")
+        if not widths or any(w not in (8, 16) for w in widths):
+            parser.error(f"--lanes takes 8 and/or 16, not {args.lanes!r}")
+        if args.precision != "mixed":
+            parser.error("--lanes times the cluster kernel: mixed precision only")
+        args.threads = 1
     set_threads(args.threads)
     print(machine_line() + f"; {get_threads()} thread(s)")
     state = md.lattice("fcc", args.cells, density=0.8442)
@@ -65,6 +91,9 @@ def main(argv=None) -> None:
     if clusters is None and args.precision == "mixed":
         sys.exit(f"no cluster list for {state.n_atoms} atoms in this cell: use more --cells")
     potential, neighbors = field.potentials[0], field.neighbor_list
+    if widths is not None:
+        compare_widths(potential, neighbors, state, widths, args.calls, args.blocks)
+        return
     times = []
     for _ in range(args.calls):
         start = time.perf_counter()
@@ -78,6 +107,56 @@ def main(argv=None) -> None:
     print(f"{state.n_atoms} atoms, {pairs} {what}, {args.calls} calls: "
           f"min {1e3 * best:.3f} ms ({1e9 * best / pairs:.2f} ns per {what[:-1]}), "
           f"median {1e3 * middle:.3f} ms ({1e9 * middle / pairs:.2f} ns)")
+
+
+def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
+    """The cluster kernel at each width in ``widths``, alternated (see the module
+    docstring): the engine's own entry point, from a kernel module per width."""
+    from md._simd import ZMM
+    from potentials._cluster_ir import slp_vectorising
+    from potentials._pair_frame import CUTOFF_MODES, kernels_for
+
+    clusters = neighbors.clusters
+    xi = np.empty(12 * clusters.n_clusters, np.float32)
+    xj = np.empty_like(xi)
+    clusters.relative_positions(state.positions, xi, xj)
+    table = potential.tables(1).astype(np.float32)
+    mode = int(CUTOFF_MODES[potential.cutoff_mode])
+    lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1), clusters.bounds)
+    chunks = len(clusters.bounds) - 1
+    buffers = np.empty((chunks, 12 * clusters.n_clusters))
+    energies, virials = np.empty(chunks), np.empty((chunks, 9))
+    slot_types = np.zeros(4 * clusters.n_clusters, np.int32)
+    entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
+    name = f"{entry}__mode{mode}_with_virial0_single1"
+    arguments = (xi, xj, lists, slot_types, 1, table, mode, potential.data, False, True,
+                 buffers, energies, virials)  # fmt: skip
+    kernels, sums = {}, {}
+    for lanes in widths:
+        kernels[lanes] = getattr(kernels_for(potential.term, "mixed", cluster_lanes=lanes), name)
+        with slp_vectorising():  # compiles (or loads) here, with the SLP vectoriser
+            kernels[lanes](*arguments)
+        sums[lanes] = float(energies.sum())
+    best = {lanes: [] for lanes in widths}
+    for block in range(blocks):
+        for lanes in widths if block % 2 == 0 else widths[::-1]:
+            times = []
+            for _ in range(calls):
+                start = time.perf_counter()
+                kernels[lanes](*arguments)
+                times.append(time.perf_counter() - start)
+            best[lanes].append(min(times))
+    pairs = len(clusters.partners)
+    print(f"{state.n_atoms} atoms, {pairs} cluster pairs; the cluster kernel alone, {blocks} "
+          f"alternating blocks of {calls} calls; the engine's width here: "
+          f"{16 if ZMM else 8} lanes")  # fmt: skip
+    first = widths[0]
+    for lanes in widths:
+        ratios = [b / a for a, b in zip(best[first], best[lanes], strict=True)]
+        print(f"{lanes} lanes: min {1e3 * min(best[lanes]):.3f} ms "
+              f"({1e9 * min(best[lanes]) / pairs:.2f} ns per cluster pair), energy "
+              f"{sums[lanes]:.6f}; per-block ratio to {first} lanes: median "
+              f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})")
 
 
 if __name__ == "__main__":

@@ -181,14 +181,18 @@ def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool
 
 
 # ------------------------------------------------------------------ kernels per term
-_LOADED: dict[tuple[str, str], ModuleType] = {}
+_LOADED: dict[tuple[str, str, int | None], ModuleType] = {}
 
 
-def kernels_for(term: PairTerm, precision: str = "double") -> ModuleType:
+def kernels_for(term: PairTerm, precision: str = "double",
+                cluster_lanes: int | None = None) -> ModuleType:  # fmt: skip
     """The frame's kernels with ``term`` inlined: ``_pair_kernels`` run as a module of its own.
 
     ``precision="mixed"`` gives a second copy whose term computes in float32
-    (:func:`float32_version`), for the mixed-precision pair loop.
+    (:func:`float32_version`), for the mixed-precision pair loop. ``cluster_lanes`` (8
+    or 16) gives a copy whose cluster kernel has that vector width instead of the CPU's
+    (``potentials._cluster_ir.cluster_row``), for benchmarks that compare the widths in
+    one process; the engine uses the default, None.
 
     Loaded once per process and term. numba names a kernel's cache files after its
     source file and function, and keys them by signature and bytecode, which are the
@@ -199,13 +203,21 @@ def kernels_for(term: PairTerm, precision: str = "double") -> ModuleType:
     later process; an edited one gets a new copy and compiles afresh.
     """
     check_precision_name(precision)
+    if cluster_lanes not in (None, 8, 16):
+        raise ValueError(f"cluster_lanes must be 8, 16 or None, got {cluster_lanes!r}")
     key = _fingerprint(term)
-    module = _LOADED.get((key, precision))
+    module = _LOADED.get((key, precision, cluster_lanes))
     if module is not None:
         return module
     stem = f"{_identifier(term.name)}_{key[:20]}" + ("_mixed" if precision == "mixed" else "")
+    extra = ""
+    if cluster_lanes is not None:
+        stem += f"_lanes{cluster_lanes}"
+        extra = ("\n\n# The cluster kernel's width, fixed by kernels_for(cluster_lanes=...).\n"
+                 "_cluster_row = cluster_row(_pair, lambda: TERM + N_TERM, "
+                 f"lanes={cluster_lanes})\n")
     name = f"potentials._pair_kernels_{stem}"
-    spec = importlib.util.spec_from_file_location(name, _template_copy(stem))
+    spec = importlib.util.spec_from_file_location(name, _template_copy(stem, extra))
     module = importlib.util.module_from_spec(spec)
     module.__dict__.update(_adapters(term, precision))
     sys.modules[name] = module  # numba's parallel lowering looks kernels' modules up by name
@@ -215,11 +227,11 @@ def kernels_for(term: PairTerm, precision: str = "double") -> ModuleType:
     except BaseException:
         del sys.modules[name]
         raise
-    _LOADED[key, precision] = module
+    _LOADED[key, precision, cluster_lanes] = module
     return module
 
 
-def _template_copy(stem: str) -> Path:
+def _template_copy(stem: str, extra: str = "") -> Path:
     """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder.
 
     Written whole under a temporary name and hard-linked into place, so a reader
@@ -237,7 +249,8 @@ def _template_copy(stem: str) -> Path:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             with atomic_path(path, exclusive=True) as partial:
-                partial.write_bytes(_SOURCES[_TEMPLATE] + _variant_source().encode())
+                partial.write_bytes(_SOURCES[_TEMPLATE] + _variant_source().encode()
+                                    + extra.encode())  # fmt: skip
         except FileExistsError:  # another process wrote it first: the same bytes
             return path
         except OSError as error:

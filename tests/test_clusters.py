@@ -618,3 +618,17 @@ def test_the_wide_flag_follows_the_compiled_features():
     features = md._simd._compiled_features()
     assert md._simd.ZMM == (md._simd.PERMUTE and "+avx512f" in features
                             and "-evex512" not in features)  # fmt: skip
+
+
+def test_a_kernel_module_of_either_width_and_no_other():
+    """``kernels_for(..., cluster_lanes=...)`` (the benchmark's side-by-side widths) gives
+    a module of its own per width, the default one the engine's; other widths are refused."""
+    from potentials._pair_frame import kernels_for
+
+    term = LennardJones(cutoff=2.5).term
+    default = kernels_for(term, "mixed")
+    eight = kernels_for(term, "mixed", cluster_lanes=8)
+    assert eight is not default and eight is kernels_for(term, "mixed", cluster_lanes=8)
+    assert "_lanes8" in eight.__name__ and "_lanes" not in default.__name__
+    with pytest.raises(ValueError, match="cluster_lanes must be 8, 16 or None"):
+        kernels_for(term, "mixed", cluster_lanes=4)

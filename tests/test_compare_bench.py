@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import md._simd
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compare.py"
 
 
@@ -508,3 +510,26 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     assert refused.returncode != 0 and "too long for the box" in refused.stderr, refused.stderr
     assert run("--calls", "0").returncode == 2
     assert run("--precision", "single").returncode == 2
+    for bad in (("--lanes", "4"), ("--lanes", "8,x"), ("--lanes", "8", "--precision", "double")):
+        refused = run("--cells", "6", *bad)
+        assert refused.returncode == 2 and "--lanes" in refused.stderr, refused.stderr
+
+
+@pytest.mark.skipif(not md._simd.PERMUTE, reason="16 lanes compile for x86-64 with AVX2 or more")
+def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
+    """``--lanes 8,16``: the cluster kernel at both widths, alternated, each the same sum of pair
+    terms (energies to float32 round-off of each other), with the per-block ratios."""
+    script = SCRIPT.parent / "cluster_kernel.py"
+    done = subprocess.run([sys.executable, str(script), "--cells", "6", "--calls", "2",
+                           "--blocks", "2", "--lanes", "8,16"], capture_output=True, text=True,
+                          timeout=600, cwd=SCRIPT.parents[1])  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("machine: ")
+    assert "the cluster kernel alone, 2 alternating" in lines[1], lines
+    rows = {int(line.split()[0]): line for line in lines[2:]}
+    assert set(rows) == {8, 16}, lines
+    energies = {lanes: float(line.split("energy ")[1].split(";")[0]) for lanes, line in
+                rows.items()}  # fmt: skip
+    assert abs(energies[16] - energies[8]) < 1e-5 * abs(energies[8]), energies
+    assert "median 1.000" in rows[8] and float(rows[16].split("median ")[1].split()[0]) > 0
