@@ -515,6 +515,7 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
         assert refused.returncode == 2 and "--lanes" in refused.stderr, refused.stderr
 
 
+@pytest.mark.slow  # two cluster kernels compiled in a child process: about 25 s
 @pytest.mark.skipif(not md._simd.PERMUTE, reason="16 lanes compile for x86-64 with AVX2 or more")
 def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
     """``--lanes 8,16``: the cluster kernel at both widths, alternated, each the same sum of pair
