@@ -13,8 +13,8 @@ width where the CPU numba compiles for has AVX-512F (``md._simd.ZMM``), 8
 lanes elsewhere. On the 32000-atom melt (Emerald Rapids, one thread, the
 kernel's two widths alternated in one process) 16 lanes took 0.89 of the
 8-lane time (per-block ratios 0.84-0.95); compiled for AVX2 alone, where a
-16-lane vector is two ymm registers, it took 1.07 (the loop spills), so
-AVX2 keeps 8.
+16-lane vector is two ymm registers, 1.07 and 0.99 in two measurements (no
+gain), so AVX2 keeps 8 (``benchmarks/cluster_kernel.py --lanes 8,16``).
 
 The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
 and distances are computed before pair k's term. The chain from a partner's
