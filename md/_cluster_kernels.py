@@ -31,9 +31,8 @@ from md._simd import (
     ZMM,
     array_data,
     cluster_i_halves,
-    load_vector,
+    cluster_j_less,
     python_twin,
-    shuffle,
     splat,
     squared_distances,
 )
@@ -426,7 +425,6 @@ _I64 = ir.IntType(64)
 #: The lanes of the atom check's vectors: the cluster kernel's (md._simd.ZMM).
 _LANES = 16 if ZMM else 8
 _VECTOR = ir.VectorType(_F32, _LANES)
-_V4 = ir.VectorType(_F32, CLUSTER)
 
 
 def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
@@ -457,13 +455,8 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
         size = ir.Constant(_I64, 3 * CLUSTER)
         halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size), _LANES)
         reach = splat(builder, reach2, _VECTOR)
-        base = builder.mul(cj, size)
-        shifted = []
-        for d, offset in enumerate((ox, oy, oz)):
-            index = builder.add(base, ir.Constant(_I64, CLUSTER * d))
-            four = load_vector(builder, xj_p, index, _V4)
-            repeated = shuffle(builder, four, four, [0, 1, 2, 3] * (_LANES // CLUSTER))
-            shifted.append(builder.fsub(repeated, splat(builder, offset, _VECTOR)))
+        shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), (ox, oy, oz),
+                                 lanes=_LANES)  # fmt: skip
         within = None
         for half in halves:
             _, r2 = squared_distances(builder, half, shifted)

@@ -10,7 +10,7 @@ prove safe; but some single machine operations have no Python spelling:
   the integer maximum vectorises, a float maximum that checks for NaN does not);
 - helpers for intrinsics that compute on LLVM vectors (``splat``, ``shuffle``,
   ``array_data``, ``load_vector``, ``compare_mask``; and the lanes of the
-  cluster-pair kernels, ``cluster_i_halves``, ``cluster_j_shifted``,
+  cluster-pair kernels, ``cluster_i_halves``, ``cluster_j_shifted`` (``cluster_j_less``),
   ``squared_distances``, shared by the list's atom check in md and the force
   kernel in potentials), and ``PERMUTE``, whether the
   kernels are compiled for an x86 CPU with AVX2, whose ``vpermd`` moves
@@ -226,13 +226,21 @@ def cluster_j_shifted(builder, xj, base, offsets, pair, flags=(), lanes: int = 8
     first = builder.mul(pair, ir.Constant(_I64, 3))
     offset = [builder.load(builder.gep(offsets, [builder.add(first, ir.Constant(_I64, d))]))
               for d in range(3)]  # fmt: skip
+    return offset, cluster_j_less(builder, xj, base, offset, flags, lanes)
+
+
+def cluster_j_less(builder, xj, base, offset, flags=(), lanes: int = 8):
+    """A j cluster's atoms less ``offset`` (three float32 scalars), each coordinate a
+    vector of ``lanes`` holding the four j atoms ``lanes / 4`` times (``xj`` laid out as in
+    :func:`cluster_i_halves`, from ``base``): :func:`cluster_j_shifted` with the offset
+    already in registers."""
     vector = ir.VectorType(ir.FloatType(), lanes)
     shifted = []
     for d in range(3):
         four = load_vector(builder, xj, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
         repeated = shuffle(builder, four, four, [0, 1, 2, 3] * (lanes // 4))
         shifted.append(builder.fsub(repeated, splat(builder, offset[d], vector), flags=flags))
-    return offset, shifted
+    return shifted
 
 
 def squared_distances(builder, half, shifted, flags=()):
