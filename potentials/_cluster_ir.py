@@ -142,6 +142,32 @@ def _local_column(context, builder, table_type, table, rows: int):
     return copy
 
 
+def _j_sums_16(builder, fj, fl):
+    """A 16-lane cluster pair's j forces (``fj``: x, y, z, lane 4 a + b the pair of i atom
+    a and j atom b) summed over the i atoms, in double: [(x and y of j atoms 0-3, 8
+    doubles, 0), (z, 4 doubles, 8)], each with its first element's place in the cluster.
+
+    x and y are folded in one vector (their quarters of i atoms 0, 1 beside those of 2, 3,
+    then the halves), z beside them, and x, y converted as one 8-double vector: 15
+    vector operations where three 16 -> 8 -> 4 folds and conversions take 21 (the
+    kernel is bound by its vector operations, two ports of them on AVX-512)."""
+    x, y, z = fj
+    low = shuffle(builder, x, y, [*range(0, 8), *range(16, 24)])  # i atoms 0, 1 of x, y
+    high = shuffle(builder, x, y, [*range(8, 16), *range(24, 32)])  # i atoms 2, 3
+    xy = builder.fadd(low, high, flags=fl)  # [x (0+2), x (1+3), y (0+2), y (1+3)]
+    z8 = builder.fadd(shuffle(builder, z, z, list(range(8))),
+                      shuffle(builder, z, z, list(range(8, 16))), flags=fl)  # fmt: skip
+    z16 = shuffle(builder, z8, z8, [*range(8), *range(8)])
+    first = shuffle(builder, xy, z16, [*range(0, 4), *range(8, 12), *range(16, 20),
+                                       *range(16, 20)])  # fmt: skip
+    second = shuffle(builder, xy, z16, [*range(4, 8), *range(12, 16), *range(20, 24),
+                                        *range(20, 24)])  # fmt: skip
+    sums = builder.fadd(first, second, flags=fl)  # [x, y, z, z] of j atoms 0-3
+    xy8 = builder.fpext(shuffle(builder, sums, sums, list(range(8))), ir.VectorType(_F64, 8))
+    z4 = builder.fpext(shuffle(builder, sums, sums, list(range(8, 12))), _D4)
+    return [(xy8, 0), (z4, 8)]
+
+
 def cluster_row(pair, rows, lanes: int | None = None):
     """The row intrinsic for the frame's ``pair`` dispatcher (see the module docstring),
     whose parameter tables have ``rows()`` rows (asked when a kernel compiles: the
@@ -236,6 +262,15 @@ def cluster_row(pair, rows, lanes: int | None = None):
             wide = [[cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
                      for _ in range(per_pass)] for _ in sums]  # fmt: skip
 
+            # the virial's offset part: per offset axis, per vector of the j sums (x and y
+            # in one at 16 lanes), offset (x) those sums lane by lane, summed in the
+            # vir_p slots after the row (per pair through memory it took 2.8 times as long
+            # as the kernel without the virial)
+            shapes = [(8, 0), (4, 8)] if lanes == 16 else [(4, 0), (4, 4), (4, 8)]
+            moments = [[cgutils.alloca_once_value(builder, ir.Constant(
+                ir.VectorType(_F64, count), [0.0] * count)) for count, _ in shapes]
+                for _ in range(3)] if with_virial else None  # fmt: skip
+
             def flush():
                 """Add the float32 i-force and energy lanes to their double lanes, zero them."""
                 for narrow, quarters in zip(sums, wide, strict=True):
@@ -284,32 +319,25 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         builder.store(builder.call(fma, [fr, dx[d], total]), sums[3 * h + d])
                         fj[d] = (builder.fmul(fr, dx[d], flags=fl) if fj[d] is None
                                  else builder.call(fma, [fr, dx[d], fj[d]]))  # fmt: skip
-                totals = []
-                for d in range(3):  # j atom b's force: the sum of lanes b, b + 4, ...
-                    folded, width = fj[d], lanes
-                    while width > 4:
-                        width //= 2
-                        low = shuffle(builder, folded, folded, list(range(width)))
-                        high = shuffle(builder, folded, folded, list(range(width, 2 * width)))
-                        folded = builder.fadd(low, high, flags=fl)
-                    summed = builder.fpext(folded, _D4)
-                    index = builder.add(base_j, _index(4 * d))
-                    old = load_vector(builder, f_p, index, _D4)
+                if lanes == 16:
+                    parts = _j_sums_16(builder, fj, fl)
+                else:
+                    parts = []
+                    for d in range(3):  # j atom b's force: the sum of lanes b, b + 4
+                        low = shuffle(builder, fj[d], fj[d], list(range(4)))
+                        high = shuffle(builder, fj[d], fj[d], list(range(4, 8)))
+                        parts.append((builder.fpext(builder.fadd(low, high, flags=fl), _D4),
+                                      4 * d))  # fmt: skip
+                for summed, first in parts:  # subtracted from the j cluster's x, y, z
+                    index = builder.add(base_j, _index(first))
+                    old = load_vector(builder, f_p, index, summed.type)
                     store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
-                    if with_virial:
-                        total = builder.extract_element(summed, ir.Constant(_I32, 0))
-                        for lane in range(1, 4):
-                            total = builder.fadd(total, builder.extract_element(
-                                summed, ir.Constant(_I32, lane)), flags=fl)  # fmt: skip
-                        totals.append(total)
-                if with_virial:  # offset (x) the force on the i cluster from this pair
-                    for d in range(3):
+                if with_virial:  # offset (x) the force on the i cluster from this pair,
+                    for d in range(3):  # in double lanes, summed after the row
                         o = builder.fpext(offset[d], _F64)
-                        for e in range(3):
-                            slot = builder.gep(vir_p, [_index(3 * d + e)])
-                            term = builder.fmul(o, totals[e], flags=fl)
-                            added = builder.fadd(builder.load(slot), term, flags=fl)
-                            builder.store(added, slot)
+                        for (summed, _), slot in zip(parts, moments[d], strict=True):
+                            term = builder.fmul(splat(builder, o, summed.type), summed, flags=fl)
+                            builder.store(builder.fadd(builder.load(slot), term, flags=fl), slot)
 
             def look(k):
                 """Pair k's j cluster (index, first coordinate), its offset, and per vector
@@ -367,6 +395,19 @@ def cluster_row(pair, rows, lanes: int | None = None):
                 index = builder.add(base_i, _index(4 * d))
                 old = load_vector(builder, f_p, index, _D4)
                 store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
+            if with_virial:
+                for d in range(3):
+                    for (count, first), slot in zip(shapes, moments[d], strict=True):
+                        values = builder.load(slot)
+                        for lane in range(0, count, 4):
+                            parts = [builder.extract_element(values, ir.Constant(_I32, lane + j))
+                                     for j in range(4)]  # fmt: skip
+                            total = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
+                                                 builder.fadd(parts[2], parts[3], flags=fl),
+                                                 flags=fl)  # fmt: skip
+                            target = builder.gep(vir_p, [_index(3 * d + (first + lane) // 4)])
+                            builder.store(builder.fadd(builder.load(target), total, flags=fl),
+                                          target)  # fmt: skip
             energy = None
             for quarter in wide[-1]:
                 values = builder.load(quarter)
