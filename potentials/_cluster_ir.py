@@ -81,6 +81,7 @@ _I8 = ir.IntType(8)
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
 _D4 = ir.VectorType(_F64, 4)
+_D8 = ir.VectorType(_F64, 8)
 #: As the frame's pair loops: sums may be reassociated into lanes, multiply-adds fused;
 #: no "nnan"/"ninf" (overlapping atoms must still give an infinite energy).
 _FLAGS = ("contract", "reassoc", "nsz", "arcp")
@@ -163,9 +164,29 @@ def _j_sums_16(builder, fj, fl):
     second = shuffle(builder, xy, z16, [*range(4, 8), *range(12, 16), *range(20, 24),
                                         *range(20, 24)])  # fmt: skip
     sums = builder.fadd(first, second, flags=fl)  # [x, y, z, z] of j atoms 0-3
-    xy8 = builder.fpext(shuffle(builder, sums, sums, list(range(8))), ir.VectorType(_F64, 8))
+    xy8 = builder.fpext(shuffle(builder, sums, sums, list(range(8))), _D8)
     z4 = builder.fpext(shuffle(builder, sums, sums, list(range(8, 12))), _D4)
     return [(xy8, 0), (z4, 8)]
+
+
+def _i_sums_16(builder, sums, fl):
+    """The 16-lane float32 sums of the i forces x, y, z and the energy (lane 4 a + b: i
+    atom a, j atom b) summed over the j atoms: [x, y, z, energy] of i atoms 0-3, one
+    vector. Two rounds of two-vector shuffles and adds, 9 vector operations where the
+    lanes' 16 quarters converted and added one by one take about 60."""
+    x, y, z, e = sums
+    rounds = []
+    for first, second in ((x, y), (z, e)):  # j atoms 0 + 2, 1 + 3, of two sums beside
+        low = shuffle(builder, first, second, [4 * a + b + 16 * (w // 2) for a in range(4)
+                                               for w, b in enumerate((0, 1, 0, 1))])  # fmt: skip
+        high = shuffle(builder, first, second, [4 * a + b + 16 * (w // 2) for a in range(4)
+                                                for w, b in enumerate((2, 3, 2, 3))])  # fmt: skip
+        rounds.append(builder.fadd(low, high, flags=fl))  # [q0 (a): x, x, y, y, ...]
+    # sum k (x, y, z, energy) of atom a: lanes 4 a + 2 (k % 2) and + 1 of rounds[k // 2]
+    lanes = [16 * (k // 2) + 4 * a + 2 * (k % 2) for k in range(4) for a in range(4)]
+    low = shuffle(builder, rounds[0], rounds[1], lanes)
+    high = shuffle(builder, rounds[0], rounds[1], [lane + 1 for lane in lanes])
+    return builder.fadd(low, high, flags=fl)
 
 
 def cluster_row(pair, rows, lanes: int | None = None):
@@ -256,11 +277,18 @@ def cluster_row(pair, rows, lanes: int | None = None):
             sums = [cgutils.alloca_once_value(builder, _filled(0.0, lanes))
                     for _ in range(3 * passes + 1)]  # fmt: skip
 
-            # the double lanes in 4-lane quarters (lanes 4q to 4q + 3: one i atom's): an
-            # 8-double vector is a zmm register on an AVX-512 CPU, whose use in this loop
-            # (the 8-lane kernel's) made it 1.6 times as slow
-            wide = [[cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
-                     for _ in range(per_pass)] for _ in sums]  # fmt: skip
+            # the double sums. 8 lanes: in 4-lane quarters (lanes 4q to 4q + 3: one i
+            # atom's); an 8-double vector is a zmm register on an AVX-512 CPU, whose use in
+            # this loop (the 8-lane kernel's) made it 1.6 times as slow. 16 lanes: the
+            # float32 sums folded over the j atoms first (_i_sums_16), x and y of the four
+            # i atoms in one 8-double vector, z and the energy in another (0.89 of the
+            # kernel's time with the quarters).
+            if lanes == 8:
+                wide = [[cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
+                         for _ in range(per_pass)] for _ in sums]  # fmt: skip
+            else:
+                wide16 = [cgutils.alloca_once_value(builder, ir.Constant(_D8, [0.0] * 8))
+                          for _ in range(2)]  # fmt: skip
 
             # the virial's offset part: per offset axis, per vector of the j sums (x and y
             # in one at 16 lanes), offset (x) those sums lane by lane, summed in the
@@ -273,6 +301,15 @@ def cluster_row(pair, rows, lanes: int | None = None):
 
             def flush():
                 """Add the float32 i-force and energy lanes to their double lanes, zero them."""
+                if lanes == 16:
+                    folded = _i_sums_16(builder, [builder.load(narrow) for narrow in sums], fl)
+                    for half, total in enumerate(wide16):
+                        part = shuffle(builder, folded, folded, list(range(8 * half, 8 * half + 8)))
+                        part = builder.fpext(part, _D8)
+                        builder.store(builder.fadd(builder.load(total), part, flags=fl), total)
+                    for narrow in sums:
+                        builder.store(_filled(0.0, lanes), narrow)
+                    return
                 for narrow, quarters in zip(sums, wide, strict=True):
                     values = builder.load(narrow)
                     for q, total in enumerate(quarters):
@@ -380,21 +417,40 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         pair_at(cj, base_j, offset, separations)
                     flush()
 
-            for d in range(3):  # quarter q of vector h: i atom per_pass * h + q
-                total = ir.Constant(_D4, ir.Undefined)
-                for h in range(passes):
-                    for q in range(per_pass):
-                        quarter = builder.load(wide[3 * h + d][q])
-                        parts = [builder.extract_element(quarter, ir.Constant(_I32, j))
-                                 for j in range(4)]  # fmt: skip
-                        atom_sum = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
-                                                builder.fadd(parts[2], parts[3], flags=fl),
-                                                flags=fl)  # fmt: skip
-                        total = builder.insert_element(total, atom_sum,
-                                                       ir.Constant(_I32, per_pass * h + q))
-                index = builder.add(base_i, _index(4 * d))
+            if lanes == 16:  # x, y; then z of the i cluster's atoms 0-3, and the energy
+                xy, ze = (builder.load(total) for total in wide16)
+                old = load_vector(builder, f_p, base_i, _D8)
+                store_vector(builder, builder.fadd(old, xy, flags=fl), f_p, base_i)
+                index = builder.add(base_i, _index(8))
                 old = load_vector(builder, f_p, index, _D4)
-                store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
+                z = shuffle(builder, ze, ze, list(range(4)))
+                store_vector(builder, builder.fadd(old, z, flags=fl), f_p, index)
+                energy = None
+                for lane in range(4, 8):
+                    part = builder.extract_element(ze, ir.Constant(_I32, lane))
+                    energy = part if energy is None else builder.fadd(energy, part)
+            else:
+                for d in range(3):  # quarter q of vector h: i atom per_pass * h + q
+                    total = ir.Constant(_D4, ir.Undefined)
+                    for h in range(passes):
+                        for q in range(per_pass):
+                            quarter = builder.load(wide[3 * h + d][q])
+                            parts = [builder.extract_element(quarter, ir.Constant(_I32, j))
+                                     for j in range(4)]  # fmt: skip
+                            atom_sum = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
+                                                    builder.fadd(parts[2], parts[3], flags=fl),
+                                                    flags=fl)  # fmt: skip
+                            total = builder.insert_element(total, atom_sum,
+                                                           ir.Constant(_I32, per_pass * h + q))
+                    index = builder.add(base_i, _index(4 * d))
+                    old = load_vector(builder, f_p, index, _D4)
+                    store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
+                energy = None
+                for quarter in wide[-1]:
+                    values = builder.load(quarter)
+                    for lane in range(4):
+                        part = builder.extract_element(values, ir.Constant(_I32, lane))
+                        energy = part if energy is None else builder.fadd(energy, part)
             if with_virial:
                 for d in range(3):
                     for (count, first), slot in zip(shapes, moments[d], strict=True):
@@ -408,12 +464,6 @@ def cluster_row(pair, rows, lanes: int | None = None):
                             target = builder.gep(vir_p, [_index(3 * d + (first + lane) // 4)])
                             builder.store(builder.fadd(builder.load(target), total, flags=fl),
                                           target)  # fmt: skip
-            energy = None
-            for quarter in wide[-1]:
-                values = builder.load(quarter)
-                for lane in range(4):
-                    part = builder.extract_element(values, ir.Constant(_I32, lane))
-                    energy = part if energy is None else builder.fadd(energy, part)
             return energy
 
         return sig, codegen
