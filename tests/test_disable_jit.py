@@ -26,6 +26,7 @@ from numba import njit
 from md import _cell_kernels
 from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
 from md._cluster_kernels import (
+    _keep_near,
     _near_pair,
     cluster_grid,
     cluster_positions,
@@ -71,9 +72,8 @@ def test_every_intrinsic_has_a_python_twin():
             if isinstance(value, intrinsic_type):
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
-    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_near_pair"} <= set(
-        found
-    )
+    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_near_pair",
+            "_keep_near"} <= set(found)  # fmt: skip
 
 
 @njit
@@ -117,6 +117,67 @@ def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_latti
                 checked += 1
     assert checked > 0.9 * (len(partners) - len(rows))
     assert 0 < compiled.sum() < len(partners) - len(rows)
+
+
+@njit
+def _keep_rows(xi, xj, starts, partners, offsets, reach2, kept_partners, kept_offsets, ends):
+    k = 0
+    for ci in range(starts.shape[0] - 1):
+        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2,
+                       kept_partners, kept_offsets, k)  # fmt: skip
+        ends[ci] = k
+
+
+def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
+    """The prune's row copy (:func:`md._cluster_kernels._keep_near`, the loop in IR):
+    the pairs kept and their order as its Python twin's and as ``_near_pair`` decides
+    them pair by pair (the cluster itself always first), rows compacted one after
+    another, into other arrays and in place; empty rows keep nothing."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    xi = np.empty(3 * len(atom), np.float32)
+    xj = np.empty(3 * len(atom), np.float32)
+    cluster_positions(state.positions, atom, origin, xi, xj)
+    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
+                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
+    # an empty row in the middle: the first row's pairs moved to the second
+    starts = starts.copy()
+    starts[1] = starts[0]
+    reach2 = np.float32(2.0**2)
+    n = len(partners)
+    expected_partners, expected_offsets, expected_ends = [], [], []
+    for ci in range(len(starts) - 1):
+        for k in range(starts[ci], starts[ci + 1]):
+            if k == starts[ci] or _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k],
+                                                         reach2):  # fmt: skip
+                expected_partners.append(partners[k])
+                expected_offsets.append(offsets[k])
+        expected_ends.append(len(expected_partners))
+    kept = len(expected_partners)
+    assert 0 < kept < n
+    for in_place in (False, True):
+        ends = np.zeros(len(starts) - 1, np.int64)
+        twin_ends = np.zeros_like(ends)
+        if in_place:
+            kp, ko = partners.copy(), offsets.copy()
+            _keep_rows(xi, xj, starts, kp, ko, reach2, kp, ko, ends)
+            tp, to = partners.copy(), offsets.copy()
+            source_p, source_o = tp, to
+        else:
+            kp, ko = np.zeros_like(partners), np.zeros_like(offsets)
+            _keep_rows(xi, xj, starts, partners, offsets, reach2, kp, ko, ends)
+            tp, to = np.zeros_like(partners), np.zeros_like(offsets)
+            source_p, source_o = partners, offsets
+        k = 0
+        for ci in range(len(starts) - 1):
+            k = _keep_near.python_twin(xi, xj, source_p, source_o, starts[ci], starts[ci + 1],
+                                       ci, reach2, tp, to, k)  # fmt: skip
+            twin_ends[ci] = k
+        assert np.array_equal(ends, expected_ends) and np.array_equal(twin_ends, expected_ends)
+        assert np.array_equal(kp[:kept], expected_partners)
+        assert np.array_equal(ko[:kept], np.array(expected_offsets))
+        assert np.array_equal(tp[:kept], kp[:kept]) and np.array_equal(to[:kept], ko[:kept])
 
 
 @njit
