@@ -148,10 +148,12 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     cluster, or None where ``per_cluster`` pairs of room per cluster did not suffice
     (search again with more). With the relative positions ``xi``/``xj`` (float32, see
     :func:`cluster_positions`) only the pairs with an atom pair closer than
-    sqrt(``reach2``) are kept: each candidate is checked (:func:`_near_pair`, its offset
-    in registers) as it is written, and the next one written after it only if it is
-    kept (0.78 of the time of writing a row and then checking and compacting it, at
-    radius 4.0 on the 32000-atom melt, one thread); with None for both, every candidate.
+    sqrt(``reach2``) are kept: each candidate is checked (:func:`_near_pair`'s check, its
+    offset in registers) as it is written, and the next one written after it only if it
+    is kept (0.78 of the time of writing a row and then checking and compacting it, at
+    radius 4.0 on the 32000-atom melt, one thread), a window of candidates at a time in
+    IR (:func:`_keep_window`: the i cluster loaded once per window, 0.93 of the search's
+    time with numba's loop over them); with None for both, every candidate.
 
     The columns are searched in ``chunks`` runs of about equal cluster counts on the
     threads, each into its own buffers, then copied together. Per column of i clusters,
@@ -358,12 +360,8 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     continue
                 # each candidate written, and kept (the next one written after it) only
                 # where an atom pair is within reach: no branch, no second pass
-                for j in range(lo, hi):
-                    o0, o1, o2 = np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), \
-                        np.float32(sz - all_z[j])  # fmt: skip
-                    partners[k] = j
-                    offsets[k, 0], offsets[k, 1], offsets[k, 2] = o0, o1, o2
-                    k += _near_pair(xi, xj, ci, j, o0, o1, o2, reach2)
+                k = _keep_window(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2,
+                                 partners, offsets, k)  # fmt: skip
             counts[ci] = k - row_start
     return k
 
@@ -428,6 +426,19 @@ _LANES = 16 if ZMM else 8
 _VECTOR = ir.VectorType(_F32, _LANES)
 
 
+def _any_near(builder, halves, shifted, reach):
+    """An i1: whether any atom pair of the cluster pair (``halves`` from
+    ``cluster_i_halves``, ``shifted`` from ``cluster_j_less``) is closer than sqrt of
+    ``reach`` (a vector of the squared reach)."""
+    within = None
+    for half in halves:
+        _, r2 = squared_distances(builder, half, shifted)
+        close = builder.fcmp_ordered("<", r2, reach)
+        within = close if within is None else builder.or_(within, close)
+    bits = ir.IntType(_LANES)
+    return builder.icmp_unsigned("!=", builder.bitcast(within, bits), ir.Constant(bits, 0))
+
+
 def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
     """:func:`_near_pair` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     own = xi[ci * 3 * CLUSTER : (ci + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
@@ -458,13 +469,7 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
         reach = splat(builder, reach2, _VECTOR)
         shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), (ox, oy, oz),
                                  lanes=_LANES)  # fmt: skip
-        within = None
-        for half in halves:
-            _, r2 = squared_distances(builder, half, shifted)
-            close = builder.fcmp_ordered("<", r2, reach)
-            within = close if within is None else builder.or_(within, close)
-        bits = ir.IntType(_LANES)
-        return builder.icmp_unsigned("!=", builder.bitcast(within, bits), ir.Constant(bits, 0))
+        return _any_near(builder, halves, shifted, reach)
 
     return sig, codegen
 
@@ -529,6 +534,70 @@ def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts,
         k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2,
                        kept_partners, kept_offsets, k)  # fmt: skip
         kept_starts[ci + 1] = k - row
+
+
+def _keep_window_twin(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners,
+                      offsets, k):  # fmt: skip
+    """:func:`_keep_window` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    for j in range(lo, hi):
+        o = (np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), np.float32(sz - all_z[j]))
+        partners[k] = j
+        offsets[k, 0], offsets[k, 1], offsets[k, 2] = o
+        k += _near_pair_twin(xi, xj, ci, j, *o, reach2)
+    return k
+
+
+@python_twin(_keep_window_twin)
+@intrinsic
+def _keep_window(typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2,
+                 partners, offsets, k):  # fmt: skip
+    """The search's candidates ``lo`` to ``hi`` (j clusters of one window) of i cluster
+    ``ci``: each written to ``partners``/``offsets`` from ``k`` on, its offset ``s -
+    all[j]`` (double, then float32, per axis), and kept (the next one written after it)
+    where an atom pair is closer than sqrt(``reach2``) (:func:`_near_pair`'s check);
+    returns the new end. The loop in IR so that the i cluster's vectors are loaded once
+    per window (numba's loop reloaded them for every candidate: its float32 stores might
+    be the positions, as far as LLVM knows)."""
+    if partners.dtype != types.int32 or offsets.dtype != types.float32:
+        raise TypeError(f"_keep_window: int32 partners and float32 offsets, got {partners} "
+                        f"and {offsets}")  # fmt: skip
+    sig = types.int64(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners,
+                      offsets, k)  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
+        ci_v, lo_v, hi_v, k_v = (context.cast(builder, args[n], arg[n], types.int64)
+                                 for n in (2, 3, 4, 14))  # fmt: skip
+        shift = [context.cast(builder, args[n], arg[n], types.float64) for n in (5, 6, 7)]
+        centres = [(arg[n], context.make_array(arg[n])(context, builder, args[n]))
+                   for n in (8, 9, 10)]  # fmt: skip
+        reach2 = args[11]
+        part_type, off_type = arg[12], arg[13]
+        part_a = context.make_array(part_type)(context, builder, args[12])
+        off_a = context.make_array(off_type)(context, builder, args[13])
+        result = cgutils.alloca_once_value(builder, k_v)
+        size = ir.Constant(_I64, 3 * CLUSTER)
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci_v, size), _LANES)
+        reach = splat(builder, reach2, _VECTOR)
+        with cgutils.for_range_slice(builder, lo_v, hi_v, ir.Constant(_I64, 1)) as (j, _):
+            to = builder.load(result)
+            offset = []
+            for d, (centre_type, centre) in enumerate(centres):
+                at = cgutils.get_item_pointer(context, builder, centre_type, centre, [j])
+                value = builder.fptrunc(builder.fsub(shift[d], builder.load(at)), _F32)
+                slot = cgutils.get_item_pointer(context, builder, off_type, off_a,
+                                                [to, ir.Constant(_I64, d)])  # fmt: skip
+                builder.store(value, slot)
+                offset.append(value)
+            slot = cgutils.get_item_pointer(context, builder, part_type, part_a, [to])
+            builder.store(builder.trunc(j, ir.IntType(32)), slot)
+            shifted = cluster_j_less(builder, xj_p, builder.mul(j, size), offset, lanes=_LANES)
+            near = _any_near(builder, halves, shifted, reach)
+            builder.store(builder.add(to, builder.zext(near, _I64)), result)
+        return builder.load(result)
+
+    return sig, codegen
 
 
 def _keep_near_twin(xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
@@ -603,14 +672,7 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
                 cj = builder.sext(builder.load(builder.gep(part_p, [q])), _I64)
                 shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), offset,
                                          lanes=_LANES)  # fmt: skip
-                within = None
-                for half in halves:
-                    _, r2 = squared_distances(builder, half, shifted)
-                    close = builder.fcmp_ordered("<", r2, reach)
-                    within = close if within is None else builder.or_(within, close)
-                bits = ir.IntType(_LANES)
-                near = builder.icmp_unsigned("!=", builder.bitcast(within, bits),
-                                             ir.Constant(bits, 0))  # fmt: skip
+                near = _any_near(builder, halves, shifted, reach)
                 builder.store(builder.add(to, builder.zext(near, _I64)), result)
         return builder.load(result)
 

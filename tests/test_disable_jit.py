@@ -27,6 +27,7 @@ from md import _cell_kernels
 from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
 from md._cluster_kernels import (
     _keep_near,
+    _keep_window,
     _near_pair,
     cluster_grid,
     cluster_positions,
@@ -73,7 +74,7 @@ def test_every_intrinsic_has_a_python_twin():
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
     assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_near_pair",
-            "_keep_near"} <= set(found)  # fmt: skip
+            "_keep_near", "_keep_window"} <= set(found)  # fmt: skip
 
 
 @njit
@@ -178,6 +179,57 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
         assert np.array_equal(kp[:kept], expected_partners)
         assert np.array_equal(ko[:kept], np.array(expected_offsets))
         assert np.array_equal(tp[:kept], kp[:kept]) and np.array_equal(to[:kept], ko[:kept])
+
+
+@njit
+def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, ends):
+    k = 0
+    for w in range(rows.shape[0]):
+        k = _keep_window(xi, xj, rows[w], spans[w, 0], spans[w, 1], shifts[w, 0], shifts[w, 1],
+                         shifts[w, 2], centres[0], centres[1], centres[2], reach2, partners,
+                         offsets, k)  # fmt: skip
+        ends[w] = k
+
+
+def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
+    """The search's window of candidates (:func:`md._cluster_kernels._keep_window`, the
+    loop in IR): each candidate's float32 offset (centre difference less the shift, in
+    double, then rounded), and the candidates kept as ``_near_pair`` decides them, in
+    order, as its Python twin writes them; an empty window writes nothing."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+    xi = np.empty(3 * len(atom), np.float32)
+    xj = np.empty(3 * len(atom), np.float32)
+    cluster_positions(state.positions, atom, origin, xi, xj)
+    centres = np.ascontiguousarray((0.5 * (lower + upper)).T)
+    n = len(lower)
+    rows = rng.integers(0, n, 40)
+    spans = np.stack([np.maximum(rows - 8, 0), np.minimum(rows + 8, n)], axis=1)  # its column
+    spans[5, 1] = spans[5, 0]  # an empty window
+    images = np.zeros((40, 3))
+    images[::4] = rng.choice([-1.0, 1.0], (10, 3))  # far images: none kept
+    shifts = centres.T[rows] - images * state.box
+    reach2 = np.float32(2.0**2)
+    room = int((spans[:, 1] - spans[:, 0]).sum()) + 1
+    partners, offsets = np.zeros(room, np.int32), np.zeros((room, 3), np.float32)
+    ends = np.zeros(40, np.int64)
+    _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, ends)
+    twin_partners, twin_offsets = np.zeros_like(partners), np.zeros_like(offsets)
+    k, kept = 0, []
+    for w in range(40):
+        for j in range(spans[w, 0], spans[w, 1]):
+            o = (shifts[w] - centres[:, j]).astype(np.float32)
+            if _near_pair.python_twin(xi, xj, rows[w], j, *o, reach2):
+                kept.append((j, o))
+        k = _keep_window.python_twin(xi, xj, rows[w], spans[w, 0], spans[w, 1], *shifts[w],
+                                     *centres, reach2, twin_partners, twin_offsets, k)  # fmt: skip
+        assert ends[w] == k == len(kept), w
+    assert 0 < len(kept) < room - 1
+    assert np.array_equal(partners[: len(kept)], [j for j, _ in kept])
+    assert np.array_equal(offsets[: len(kept)], np.array([o for _, o in kept]))
+    assert np.array_equal(twin_partners[: k], partners[: k])
+    assert np.array_equal(twin_offsets[: k], offsets[: k])
 
 
 @njit
