@@ -85,10 +85,9 @@ def _near_pairs(xi, xj, starts, partners, offsets, reach2, near):
                                  offsets[k, 2], reach2)  # fmt: skip
 
 
-def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_lattice):
-    """The atom-distance check of the cluster search and prune, compiled and as numpy, on
-    every pair of a list (a reach between the lattice's shells, so both verdicts occur),
-    and against the atoms' own distances (double, minimum image) away from the reach."""
+def _cluster_list(fcc_lattice):
+    """A rattled lattice's clusters and their list of radius 2.8: (state, atom, xi, xj,
+    (lower, upper) bounding boxes, starts, partners, offsets)."""
     state = fcc_lattice(cells=6, perturbation=0.1)
     ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
     first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
@@ -97,6 +96,14 @@ def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_latti
     cluster_positions(state.positions, atom, origin, xi, xj)
     starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
                                              256, xi, xj, np.float32(2.8**2))  # fmt: skip
+    return state, atom, xi, xj, (lower, upper), starts, partners, offsets
+
+
+def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_lattice):
+    """The atom-distance check of the cluster search and prune, compiled and as numpy, on
+    every pair of a list (a reach between the lattice's shells, so both verdicts occur),
+    and against the atoms' own distances (double, minimum image) away from the reach."""
+    state, atom, xi, xj, _, starts, partners, offsets = _cluster_list(fcc_lattice)
     reach = 2.0
     compiled = np.zeros(len(partners), np.uint8)
     _near_pairs(xi, xj, starts, partners, offsets, np.float32(reach**2), compiled)
@@ -134,14 +141,7 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
     the pairs kept and their order as its Python twin's and as ``_near_pair`` decides
     them pair by pair (the cluster itself always first), rows compacted one after
     another, into other arrays and in place; empty rows keep nothing."""
-    state = fcc_lattice(cells=6, perturbation=0.1)
-    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
-    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    xi = np.empty(3 * len(atom), np.float32)
-    xj = np.empty(3 * len(atom), np.float32)
-    cluster_positions(state.positions, atom, origin, xi, xj)
-    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
-                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
+    state, atom, xi, xj, _, starts, partners, offsets = _cluster_list(fcc_lattice)
     # an empty row in the middle: the first row's pairs moved to the second
     starts = starts.copy()
     starts[1] = starts[0]
@@ -196,12 +196,7 @@ def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
     loop in IR): each candidate's float32 offset (centre difference less the shift, in
     double, then rounded), and the candidates kept as ``_near_pair`` decides them, in
     order, as its Python twin writes them; an empty window writes nothing."""
-    state = fcc_lattice(cells=6, perturbation=0.1)
-    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
-    first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
-    xi = np.empty(3 * len(atom), np.float32)
-    xj = np.empty(3 * len(atom), np.float32)
-    cluster_positions(state.positions, atom, origin, xi, xj)
+    state, atom, xi, xj, (lower, upper), *_ = _cluster_list(fcc_lattice)
     centres = np.ascontiguousarray((0.5 * (lower + upper)).T)
     n = len(lower)
     rows = rng.integers(0, n, 40)
