@@ -625,37 +625,37 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
     ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same arrays, ``k``
     <= ``start``: in place); returns the end of the copied row. Every pair is written, a
     dropped one where the next kept one overwrites it (no branch), never past ``k + end
-    - start``. ``offsets`` and ``kept_offsets`` are C-contiguous (pairs, 3).
+    - start``. ``offsets`` and ``kept_offsets``: (pairs, 3).
 
     The row's loop is written here, not in numba, so that the i cluster's vectors are
     loaded once per row: numba's loop reloaded and re-shuffled them for every pair (the
     float32 offsets it stores might be the float32 positions, as far as LLVM knows)."""
-    for name, array in (("offsets", offsets), ("kept_offsets", kept_offsets)):
-        if getattr(array, "layout", "C") != "C":
-            raise TypeError(f"_keep_near: {name} must be C-contiguous, got {array}")
+    if partners.dtype != kept_partners.dtype or offsets.dtype != kept_offsets.dtype:
+        raise TypeError(f"_keep_near: the kept arrays as the list's, got {kept_partners} for "
+                        f"{partners} and {kept_offsets} for {offsets}")  # fmt: skip
     sig = types.int64(xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
                       kept_offsets, k)  # fmt: skip
 
     def codegen(context, builder, signature, args):
         arg = signature.args
-        xi_p, xj_p, part_p, off_p = (array_data(context, builder, arg[n], args[n])
-                                     for n in range(4))  # fmt: skip
-        kept_p, kept_off_p = (array_data(context, builder, arg[n], args[n]) for n in (8, 9))
+        xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
+        arrays = {n: (arg[n], context.make_array(arg[n])(context, builder, args[n]))
+                  for n in (2, 3, 8, 9)}  # fmt: skip
         start_v, end_v, ci_v, k_v = (context.cast(builder, args[n], arg[n], types.int64)
                                      for n in (4, 5, 6, 10))  # fmt: skip
         reach2 = args[7]
-        three = ir.Constant(_I64, 3)
         result = cgutils.alloca_once_value(builder, k_v)
+
+        def at(n, *index):
+            return cgutils.get_item_pointer(context, builder, *arrays[n], list(index))
 
         def copy(q, to):
             """Pair q's partner and offset to place ``to``; the offset, three scalars."""
-            builder.store(builder.load(builder.gep(part_p, [q])), builder.gep(kept_p, [to]))
+            builder.store(builder.load(at(2, q)), at(8, to))
             offset = []
             for d in range(3):
-                value = builder.load(builder.gep(off_p, [builder.add(builder.mul(q, three),
-                                                                     ir.Constant(_I64, d))]))
-                builder.store(value, builder.gep(kept_off_p, [builder.add(
-                    builder.mul(to, three), ir.Constant(_I64, d))]))  # fmt: skip
+                value = builder.load(at(3, q, ir.Constant(_I64, d)))
+                builder.store(value, at(9, to, ir.Constant(_I64, d)))
                 offset.append(value)
             return offset
 
@@ -669,7 +669,7 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
             with cgutils.for_range_slice(builder, first, end_v, ir.Constant(_I64, 1)) as (q, _):
                 to = builder.load(result)
                 offset = copy(q, to)
-                cj = builder.sext(builder.load(builder.gep(part_p, [q])), _I64)
+                cj = builder.sext(builder.load(at(2, q)), _I64)
                 shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), offset,
                                          lanes=_LANES)  # fmt: skip
                 near = _any_near(builder, halves, shifted, reach)

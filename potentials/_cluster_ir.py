@@ -189,6 +189,13 @@ def _i_sums_16(builder, sums, fl):
     return builder.fadd(low, high, flags=fl)
 
 
+def _four_sum(builder, values, first: int, fl):
+    """The sum of ``values``' lanes ``first`` to ``first + 3`` (a scalar), pairwise."""
+    parts = [builder.extract_element(values, ir.Constant(_I32, first + j)) for j in range(4)]
+    return builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
+                        builder.fadd(parts[2], parts[3], flags=fl), flags=fl)  # fmt: skip
+
+
 def cluster_row(pair, rows, lanes: int | None = None):
     """The row intrinsic for the frame's ``pair`` dispatcher (see the module docstring),
     whose parameter tables have ``rows()`` rows (asked when a kernel compiles: the
@@ -435,11 +442,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
                     for h in range(passes):
                         for q in range(per_pass):
                             quarter = builder.load(wide[3 * h + d][q])
-                            parts = [builder.extract_element(quarter, ir.Constant(_I32, j))
-                                     for j in range(4)]  # fmt: skip
-                            atom_sum = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
-                                                    builder.fadd(parts[2], parts[3], flags=fl),
-                                                    flags=fl)  # fmt: skip
+                            atom_sum = _four_sum(builder, quarter, 0, fl)
                             total = builder.insert_element(total, atom_sum,
                                                            ir.Constant(_I32, per_pass * h + q))
                     index = builder.add(base_i, _index(4 * d))
@@ -456,11 +459,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
                     for (count, first), slot in zip(shapes, moments[d], strict=True):
                         values = builder.load(slot)
                         for lane in range(0, count, 4):
-                            parts = [builder.extract_element(values, ir.Constant(_I32, lane + j))
-                                     for j in range(4)]  # fmt: skip
-                            total = builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
-                                                 builder.fadd(parts[2], parts[3], flags=fl),
-                                                 flags=fl)  # fmt: skip
+                            total = _four_sum(builder, values, lane, fl)
                             target = builder.gep(vir_p, [_index(3 * d + (first + lane) // 4)])
                             builder.store(builder.fadd(builder.load(target), total, flags=fl),
                                           target)  # fmt: skip
