@@ -452,11 +452,13 @@ def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
 @intrinsic
 def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
     """Whether i cluster ``ci`` and j cluster ``cj`` at offset (``ox``, ``oy``, ``oz``)
-    (float32, as the list stores it) have an atom pair closer than sqrt(``reach2``): the
-    search's and the prune's check of a pair that is not the cluster with itself (the
-    first of each row, always kept), in the cluster kernels' layout and lanes (a 4x4
-    cluster pair in one 16-lane vector where the CPU has AVX-512, else two i atoms by
-    four j atoms per 8-lane vector), the offset in registers."""
+    (float32, as the list stores it) have an atom pair closer than sqrt(``reach2``), in
+    the cluster kernels' layout and lanes (a 4x4 cluster pair in one 16-lane vector where
+    the CPU has AVX-512, else two i atoms by four j atoms per 8-lane vector), the offset
+    in registers: for a pair that is not the cluster with itself (the first of each row,
+    always kept). The search and the prune run the same check (``_any_near``) inside their
+    own loops (:func:`_keep_window`, :func:`_keep_near`); this one pair at a time is its
+    unit, which the tests hold against the atoms' own distances."""
     sig = types.boolean(xi, xj, ci, cj, ox, oy, oz, reach2)
 
     def codegen(context, builder, signature, args):
