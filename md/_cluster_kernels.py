@@ -679,15 +679,3 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
         return builder.load(result)
 
     return sig, codegen
-    kept_partners[k] = partners[start]  # the cluster with itself: kept
-    kept_offsets[k, 0] = offsets[start, 0]
-    kept_offsets[k, 1] = offsets[start, 1]
-    kept_offsets[k, 2] = offsets[start, 2]
-    k += 1
-    for q in range(start + 1, end):
-        cj = partners[q]
-        o0, o1, o2 = offsets[q, 0], offsets[q, 1], offsets[q, 2]
-        kept_partners[k] = cj
-        kept_offsets[k, 0], kept_offsets[k, 1], kept_offsets[k, 2] = o0, o1, o2
-        k += _near_pair(xi, xj, ci, cj, o0, o1, o2, reach2)
-    return k
