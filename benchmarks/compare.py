@@ -448,6 +448,39 @@ def print_comparison(measured: list[Measured], args) -> None:
     print_builds(measured, 4 * cells_for(args.atoms) ** 3)
     print_gromacs(measured)
     print_steadiness(measured)
+    print_repeat_ratios(measured)
+
+
+def repeat_ratios(item: Measured, ours: Measured) -> list[float]:
+    """Repeat k of ``ours`` over repeat k of the peer ``item``, for the repeats both have
+    (the two ran in the same round of the interleaving, minutes apart at most)."""
+    return [a / b for a, b in zip(ours.rates, item.rates, strict=False)]
+
+
+def print_repeat_ratios(measured: Sequence[Measured]) -> None:
+    """Ours (double, and mixed when run) over every peer row at the same threads and atoms,
+    repeat by repeat, and the median of those ratios: on a machine whose speed drifts
+    between rounds a ratio within a round is steadier than the ratio of the medians."""
+    lines = []
+    for item in measured:
+        if item.job.engine == "ours" or len(item.rates) < 2:
+            continue
+        for variant in ("", "mixed"):
+            ours = find(measured, engine="ours", threads=item.job.threads,
+                        n_atoms=item.n_atoms, variant=variant, h5md_every=0)  # fmt: skip
+            if ours is None:
+                continue
+            ratios = repeat_ratios(item, ours)
+            if len(ratios) < 2:
+                continue
+            lines.append(
+                f"  {ours.job.label} / {row_label(item)}, {item.job.threads}t "
+                f"{short_count(item.n_atoms)}: median {statistics.median(ratios):.2f} "
+                f"({', '.join(f'{r:.2f}' for r in ratios)})"
+            )
+    if lines:
+        print("ours / peer per repeat (same round), median (each):")
+        print("\n".join(lines))
 
 
 #: Relative agreement of the initial energy that says "same system"; a mixed-precision run

@@ -534,3 +534,40 @@ def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
                 rows.items()}  # fmt: skip
     assert abs(energies[16] - energies[8]) < 1e-5 * abs(energies[8]), energies
     assert "median 1.000" in rows[8] and float(rows[16].split("median ")[1].split()[0]) > 0
+
+
+def _compare_module():
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import compare
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return compare
+
+
+def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
+    compare = _compare_module()
+
+    def measured(engine, variant, threads, loop_times, simd=None):
+        job = compare.Job(engine=engine, threads=threads, cells=20, steps=100, variant=variant)
+        runs = [{"n_atoms": 32000, "loop_time": t, **({"simd": simd} if simd else {})}
+                for t in loop_times]  # fmt: skip
+        return compare.Measured(job, runs)
+
+    # rounds 1-3: ours double 1.0, 2.0, 1.0 s; GROMACS double 2.0, 2.0, 4.0 s: ratios 2, 1, 4
+    ours = measured("ours", "", 1, [1.0, 2.0, 1.0])
+    mixed = measured("ours", "mixed", 1, [0.5, 4.0, 4.0])
+    peer = measured("gromacs", "double", 1, [2.0, 2.0, 4.0], simd="AVX_512")
+    other_threads = measured("gromacs", "double", 2, [1.0, 1.0, 1.0], simd="AVX_512")
+    assert compare.repeat_ratios(peer, ours) == [2.0, 1.0, 4.0]
+    compare.print_repeat_ratios([ours, mixed, peer, other_threads])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("ours / peer per repeat")
+    assert any("leapmd / GROMACS double (AVX_512), 1t 32k: median 2.00 (2.00, 1.00, 4.00)"
+               in line for line in lines), lines  # fmt: skip
+    # the median of the per-round ratios: 4, 0.5, 1 -> 1, where the ratio of the medians
+    # (0.8 M / 1.6 M atom-steps/s) would say 0.5
+    assert any("leapmd mixed / GROMACS double (AVX_512), 1t 32k: median 1.00 (4.00, 0.50, "
+               "1.00)" in line for line in lines), lines  # fmt: skip
+    # no row of ours at 2 threads: the 2-thread peer gets no line
+    assert not any(" 2t " in line for line in lines), lines
