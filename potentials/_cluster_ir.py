@@ -14,7 +14,12 @@ lanes elsewhere. On the 32000-atom melt (Emerald Rapids, one thread, the
 kernel's two widths alternated in one process) 16 lanes took 0.89 of the
 8-lane time (per-block ratios 0.84-0.95); compiled for AVX2 alone, where a
 16-lane vector is two ymm registers, 1.07 and 0.99 in two measurements (no
-gain), so AVX2 keeps 8 (``benchmarks/cluster_kernel.py --lanes 8,16``).
+gain), so AVX2 keeps 8 (``benchmarks/cluster_kernel.py --lanes 8,16``). On a
+Zen 4 EPYC, whose AVX-512 runs on 256-bit units, the widths take the same time
+(16 lanes 1.01 of 8): there the loop is bound by its floating-point operations
+(77 instructions a pair at 16 lanes, 55 of them on zmm; 128 at 8), and a
+third of them are the j forces' fold, conversion and store (without those the
+kernel took 0.60 of its time; without the energy sum 0.96).
 
 The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
 and distances are computed before pair k's term. The chain from a partner's
