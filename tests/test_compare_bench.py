@@ -7,6 +7,7 @@ reports it, and that bad options are refused with exit code 2.
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import shutil
@@ -240,13 +241,17 @@ Using a dual 4x8 pair-list setup updated with dynamic pruning:
 """
 
 
-def _gromacs_module():
+def _benchmark_module(name: str):
+    """A script of benchmarks/ imported as a module (the folder is not a package)."""
     sys.path.insert(0, str(SCRIPT.parent))
     try:
-        import gromacs_lj_melt
+        return importlib.import_module(name)
     finally:
         sys.path.remove(str(SCRIPT.parent))
-    return gromacs_lj_melt
+
+
+def _gromacs_module():
+    return _benchmark_module("gromacs_lj_melt")
 
 
 def test_md_log_parsing_reads_time_counters_list_and_simd():
@@ -536,17 +541,10 @@ def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
     assert "median 1.000" in rows[8] and float(rows[16].split("median ")[1].split()[0]) > 0
 
 
-def _compare_module():
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import compare
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return compare
 
 
 def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
-    compare = _compare_module()
+    compare = _benchmark_module("compare")
 
     def measured(engine, variant, threads, loop_times, simd=None):
         job = compare.Job(engine=engine, threads=threads, cells=20, steps=100, variant=variant)
