@@ -404,6 +404,27 @@ def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threa
     assert _relative_error(results[0].forces, results[1].forces) < 10 * EPS32
 
 
+def test_rows_of_every_length_give_the_double_forces(fcc_lattice):
+    """A crystal slab beside a dilute gas of its lattice sites: rows of the cluster alone
+    (evaluated before the row's loop, its lower triangle masked), of a few pairs and of
+    more than a flush group of pairs (``potentials._cluster_ir._FLUSH``) all give the
+    double frame's forces."""
+    lattice = fcc_lattice(cells=8, perturbation=0.05)
+    x = lattice.positions
+    keep = (x[:, 0] < 0.4 * lattice.box[0]) | (np.arange(lattice.n_atoms) % 29 == 0)
+    state = md.State(positions=x[keep], box=lattice.box)
+    double = ForceField([LennardJones(cutoff=2.5)]).compute(state)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    mixed = field.compute(state)
+    clusters = field.neighbor_list.clusters
+    assert clusters is not None
+    lengths = np.diff(clusters.starts)
+    assert lengths.min() == 1 and lengths.max() > 17 and np.any((lengths > 1) & (lengths < 5))
+    scale = np.abs(double.forces).max()
+    assert np.abs(mixed.forces - double.forces).max() < 200 * EPS32 * scale
+    assert abs(mixed.energy - double.energy) < 50 * EPS32 * abs(double.energy)
+
+
 def test_the_cluster_kernel_gives_the_same_forces_on_every_call(fcc_lattice):
     """A fixed summation order: two evaluations of one state are bit for bit equal (what a
     checkpoint's bit-for-bit resume rests on)."""
