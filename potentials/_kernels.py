@@ -166,45 +166,50 @@ def _slot_base(s):
 _MIN_PASS_SLOTS = 16_000
 
 
-def cluster_atom_forces(buffers, atom, forces) -> None:
+def cluster_atom_forces(buffers, atom, bounds, forces) -> None:
     """:func:`_cluster_atom_forces`, in runs of slots on the threads where there are
     enough of them (the same bits on any number)."""
     runs = chunk_count(len(atom), _MIN_PASS_SLOTS)
     if runs == 1:
-        _cluster_atom_forces(buffers, atom, forces)
+        _cluster_atom_forces(buffers, atom, bounds, forces)
     else:
-        _cluster_atom_forces_threaded(buffers, atom, forces, runs)
+        _cluster_atom_forces_threaded(buffers, atom, bounds, forces, runs)
 
 
 @njit(cache=True, error_model="numpy")
-def _cluster_atom_forces(buffers, atom, forces):
+def _cluster_atom_forces(buffers, atom, bounds, forces):
     """Sum the chunks' cluster-ordered forces (chunks, clusters * 12), in chunk order, into
-    ``forces`` (N, 3) in atom order."""
-    _slot_forces(buffers, atom, forces, 0, atom.shape[0])
+    ``forces`` (N, 3) in atom order. Chunk c, whose i clusters start at ``bounds[c]``,
+    writes no cluster before that one (a row's partners are its i cluster and clusters
+    after it): its buffer below is neither zeroed by the kernel nor read here."""
+    _slot_forces(buffers, atom, bounds, forces, 0, atom.shape[0])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _cluster_atom_forces_threaded(buffers, atom, forces, runs):
+def _cluster_atom_forces_threaded(buffers, atom, bounds, forces, runs):
     """:func:`_cluster_atom_forces` in ``runs`` runs of slots on the threads (the same
     bits: each atom's sum is its own, in chunk order)."""
     n = atom.shape[0]
     for r in prange(runs):
-        _slot_forces(buffers, atom, forces, r * n // runs, (r + 1) * n // runs)
+        _slot_forces(buffers, atom, bounds, forces, r * n // runs, (r + 1) * n // runs)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _slot_forces(buffers, atom, forces, first, end):
-    """:func:`_cluster_atom_forces` for slots ``first`` to ``end``."""
-    chunks = buffers.shape[0]
-    for s in range(first, end):
-        i, base = atom[s], _slot_base(s)
-        if i < 0:
-            continue
-        for d in range(3):
-            f = buffers[0, base + d * CLUSTER]
-            for c in range(1, chunks):
-                f += buffers[c, base + d * CLUSTER]
-            forces[i, d] = f
+def _slot_forces(buffers, atom, bounds, forces, first, end):
+    """:func:`_cluster_atom_forces` for slots ``first`` to ``end``: the slots of chunk k's
+    i clusters (and of those after them up to chunk k + 1's) take chunks 0 to k."""
+    for k in range(bounds.shape[0] - 1):
+        lo = max(first, bounds[k] * CLUSTER)
+        hi = min(end, bounds[k + 1] * CLUSTER)
+        for s in range(lo, hi):
+            i, base = atom[s], _slot_base(s)
+            if i < 0:
+                continue
+            for d in range(3):
+                f = buffers[0, base + d * CLUSTER]
+                for c in range(1, k + 1):
+                    f += buffers[c, base + d * CLUSTER]
+                forces[i, d] = f
 
 
 @njit(cache=True, error_model="numpy")

@@ -839,7 +839,7 @@ class PairPotential:
                 kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
                        with_virial, single, buffers, energies, virials)  # fmt: skip
         forces = np.empty((n, 3))
-        cluster_atom_forces(buffers, atom, forces)
+        cluster_atom_forces(buffers, atom, clusters.bounds, forces)
         total = None
         if virial:
             w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)

@@ -390,7 +390,8 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     partners and their offsets (float32, 3 per pair, flat), and the i-cluster range of
     each chunk. ``xi``/``xj`` the clusters' relative positions in the i and j roles
     (float32, 12 per cluster), ``slot_types`` each slot's type. Chunk c adds its
-    clusters' forces into its own ``buffers[c]`` (C, clusters * 12, zeroed here), its
+    clusters' forces into its own ``buffers[c]`` (C, clusters * 12, zeroed here from
+    the chunk's first cluster on: no pair reaches one before it), its
     energy into ``energies[c]`` and, if ``with_virial``, offset (x) force of each pair
     into ``virials[c]`` (9, row-major; the relative positions' part is added by the
     caller). The table is float32: mixed precision only.
@@ -423,7 +424,7 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
     for column in range(table.shape[1]):
         cut2 = max(cut2, REAL(table[RC2, column]))
     out = buffers[chunk]
-    out[:] = 0.0
+    out[12 * bounds[chunk]:] = 0.0  # no pair of the chunk reaches a cluster before its first
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):

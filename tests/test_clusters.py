@@ -20,6 +20,7 @@ from integrators import VelocityVerlet
 from md._cluster_kernels import (
     CLUSTER,
     FILLER,
+    balanced_chunks,
     cluster_grid,
     cluster_positions,
     column_counts,
@@ -584,12 +585,54 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
         for a, b in zip(serial, threaded, strict=True):
             assert np.array_equal(a, b)
     buffers = rng.normal(size=(3, size))
+    bounds = balanced_chunks(clusters.starts, 3)
     expected = np.zeros((state.n_atoms, 3))
-    _cluster_atom_forces(buffers, clusters.atom, expected)
+    _cluster_atom_forces(buffers, clusters.atom, bounds, expected)
     for runs in (2, 5):
         forces = np.zeros((state.n_atoms, 3))
-        _cluster_atom_forces_threaded(buffers, clusters.atom, forces, runs)
+        _cluster_atom_forces_threaded(buffers, clusters.atom, bounds, forces, runs)
         assert np.array_equal(forces, expected)
+
+
+def test_chunks_write_no_cluster_before_their_first_and_the_sum_skips_it(fcc_lattice, rng):
+    """Every row's partners are its i cluster and clusters after it, so chunk c's buffer
+    holds nothing before its first cluster (``bounds[c]``): the kernel leaves that part
+    alone and the sum into atom order reads none of it (garbage there changes nothing).
+    The forces on any number of chunks are the double frame's to float32 round-off."""
+    from potentials._kernels import _cluster_atom_forces
+
+    state = fcc_lattice(cells=8, perturbation=0.1)
+    state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box
+    double = ForceField([LennardJones(cutoff=2.5)]).compute(state)
+    before = get_threads()
+    try:
+        set_threads(2)
+        field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+        mixed = field.compute(state, virial=False)
+    finally:
+        set_threads(before)
+    clusters = field.neighbor_list.clusters
+    for ci in range(clusters.n_clusters):
+        row = clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]]
+        assert row[0] == ci and np.all(row >= ci)
+    assert len(clusters.bounds) - 1 == 2
+    assert _relative_error(mixed.forces, double.forces) < 200 * EPS32
+    # the sum alone: garbage before each chunk's first cluster is not read
+    real = clusters.atom >= 0
+    for chunks in (2, 3, 5):
+        bounds = balanced_chunks(clusters.starts, chunks)
+        buffers = rng.normal(size=(chunks, 12 * clusters.n_clusters))
+        whole = buffers.copy()
+        for c in range(1, chunks):
+            buffers[c, : 12 * bounds[c]] = np.nan
+            whole[c, : 12 * bounds[c]] = 0.0
+        forces = np.empty((state.n_atoms, 3))
+        _cluster_atom_forces(buffers, clusters.atom, bounds, forces)
+        slots = whole.sum(axis=0).reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
+        summed = np.zeros((state.n_atoms, 3))
+        summed[clusters.atom[real]] = slots[real]
+        assert np.isfinite(forces).all()
+        assert np.allclose(forces, summed, rtol=1e-13, atol=1e-13)
 
 
 _AVX2_ONLY = (
