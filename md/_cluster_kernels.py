@@ -78,9 +78,44 @@ def cluster_grid(positions, box, ncx, ncy):
     n = positions.shape[0]
     wrapped = np.empty((n, 3))
     column = np.empty(n, np.int64)
-    n_columns = ncx * ncy
-    counts = np.zeros(n_columns + 1, np.int64)
-    for i in range(n):
+    _wrap_atoms(positions, box, ncx, ncy, wrapped, column, 0, n)
+    counts, order, first = _column_order(column, ncx * ncy)
+    atom = np.full(first[-1] * CLUSTER, -1, np.int64)
+    heights = np.empty(n)
+    for c in range(ncx * ncy):
+        _column_atoms(wrapped, counts, order, first, heights, atom, c)
+    origin, lower, upper = _grid_boxes(first[-1])
+    for cl in range(first[-1]):
+        _cluster_box(positions, wrapped, atom, origin, lower, upper, cl)
+    return first, atom, origin, lower, upper
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def cluster_grid_threaded(positions, box, ncx, ncy, chunks):
+    """:func:`cluster_grid` on the threads (the same arrays, bit for bit): the atoms'
+    wrap in ``chunks`` runs, the columns' sorts and the clusters' boxes in parallel;
+    the count and stable scatter of the atoms into columns stay serial."""
+    n = positions.shape[0]
+    wrapped = np.empty((n, 3))
+    column = np.empty(n, np.int64)
+    for t in prange(chunks):
+        _wrap_atoms(positions, box, ncx, ncy, wrapped, column, t * n // chunks,
+                    (t + 1) * n // chunks)  # fmt: skip
+    counts, order, first = _column_order(column, ncx * ncy)
+    atom = np.full(first[-1] * CLUSTER, -1, np.int64)
+    heights = np.empty(n)
+    for c in prange(ncx * ncy):
+        _column_atoms(wrapped, counts, order, first, heights, atom, c)
+    origin, lower, upper = _grid_boxes(first[-1])
+    for cl in prange(first[-1]):
+        _cluster_box(positions, wrapped, atom, origin, lower, upper, cl)
+    return first, atom, origin, lower, upper
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _wrap_atoms(positions, box, ncx, ncy, wrapped, column, begin, end):
+    """Atoms ``begin`` to ``end`` wrapped into the box, and their columns."""
+    for i in range(begin, end):
         for d in range(3):
             wrapped[i, d] = positions[i, d] - np.floor(positions[i, d] / box[d]) * box[d]
             if wrapped[i, d] >= box[d]:  # rounding of a tiny negative coordinate
@@ -88,6 +123,16 @@ def cluster_grid(positions, box, ncx, ncy):
         cx = min(int(wrapped[i, 0] * ncx / box[0]), ncx - 1)
         cy = min(int(wrapped[i, 1] * ncy / box[1]), ncy - 1)
         column[i] = cx * ncy + cy
+
+
+@njit(cache=True, error_model="numpy")
+def _column_order(column, n_columns):
+    """(counts, order, first): the atoms' offsets per column (n_columns + 1), the atoms
+    grouped by column in atom order (a stable counting sort), and each column's first
+    cluster (n_columns + 1)."""
+    n = column.shape[0]
+    counts = np.zeros(n_columns + 1, np.int64)
+    for i in range(n):
         counts[column[i] + 1] += 1
     for c in range(n_columns):
         counts[c + 1] += counts[c]
@@ -99,36 +144,44 @@ def cluster_grid(positions, box, ncx, ncy):
     first = np.zeros(n_columns + 1, np.int64)
     for c in range(n_columns):
         first[c + 1] = first[c] + (counts[c + 1] - counts[c] + CLUSTER - 1) // CLUSTER
-    n_clusters = first[n_columns]
-    atom = np.full(n_clusters * CLUSTER, -1, np.int64)
-    heights = np.empty(n)
-    for c in range(n_columns):
-        a, b = counts[c], counts[c + 1]
-        for m in range(a, b):
-            heights[m] = wrapped[order[m], 2]
-        by_z = np.argsort(heights[a:b], kind="mergesort")  # stable: equal z keep atom order
-        for m in range(b - a):
-            atom[first[c] * CLUSTER + m] = order[a + by_z[m]]
-    origin = np.zeros((n_clusters * CLUSTER, 3))
-    lower = np.empty((n_clusters, 3))
-    upper = np.empty((n_clusters, 3))
-    for cl in range(n_clusters):
-        for d in range(3):
-            lower[cl, d] = np.inf
-            upper[cl, d] = -np.inf
-        for b in range(CLUSTER):
-            i = atom[cl * CLUSTER + b]
-            if i >= 0:
-                for d in range(3):
-                    lower[cl, d] = min(lower[cl, d], wrapped[i, d])
-                    upper[cl, d] = max(upper[cl, d], wrapped[i, d])
-        for b in range(CLUSTER):
-            s = cl * CLUSTER + b
-            i = atom[s]
+    return counts, order, first
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _column_atoms(wrapped, counts, order, first, heights, atom, c):
+    """Column c's atoms sorted by z into its clusters' slots."""
+    a, b = counts[c], counts[c + 1]
+    for m in range(a, b):
+        heights[m] = wrapped[order[m], 2]
+    by_z = np.argsort(heights[a:b], kind="mergesort")  # stable: equal z keep atom order
+    for m in range(b - a):
+        atom[first[c] * CLUSTER + m] = order[a + by_z[m]]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _grid_boxes(n_clusters):
+    return (np.zeros((n_clusters * CLUSTER, 3)), np.empty((n_clusters, 3)),
+            np.empty((n_clusters, 3)))  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _cluster_box(positions, wrapped, atom, origin, lower, upper, cl):
+    """Cluster cl's bounding box (wrapped frame) and its slots' origins."""
+    for d in range(3):
+        lower[cl, d] = np.inf
+        upper[cl, d] = -np.inf
+    for b in range(CLUSTER):
+        i = atom[cl * CLUSTER + b]
+        if i >= 0:
             for d in range(3):
-                centre = 0.5 * (lower[cl, d] + upper[cl, d])
-                origin[s, d] = centre + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
-    return first, atom, origin, lower, upper
+                lower[cl, d] = min(lower[cl, d], wrapped[i, d])
+                upper[cl, d] = max(upper[cl, d], wrapped[i, d])
+    for b in range(CLUSTER):
+        s = cl * CLUSTER + b
+        i = atom[s]
+        for d in range(3):
+            centre = 0.5 * (lower[cl, d] + upper[cl, d])
+            origin[s, d] = centre + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
 
 
 @njit(cache=True, error_model="numpy")

@@ -424,7 +424,7 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
     for column in range(table.shape[1]):
         cut2 = max(cut2, REAL(table[RC2, column]))
     out = buffers[chunk]
-    out[12 * bounds[chunk]:] = 0.0  # no pair of the chunk reaches a cluster before its first
+    out[12 * bounds[chunk] :] = 0.0  # no pair of the chunk reaches a cluster before its first
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):
