@@ -25,7 +25,6 @@ from md._cell_kernels import (
 from md._cluster_kernels import (
     balanced_chunks,
     cluster_grid,
-    cluster_grid_threaded,
     cluster_positions,
     cluster_positions_threaded,
     column_counts,
@@ -662,12 +661,9 @@ class NeighborList:
 
     def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int) -> None:
         ncx, ncy = columns
-        if chunks > 1:
-            first, atom, origin, lower, upper = cluster_grid_threaded(
-                state.positions, state.box, ncx, ncy, chunks
-            )
-        else:
-            first, atom, origin, lower, upper = cluster_grid(state.positions, state.box, ncx, ncy)
+        first, atom, origin, lower, upper = cluster_grid(
+            state.positions, state.box, ncx, ncy, chunks
+        )
         radius = self._search_radius(state.box)
         # the pairs with an atom pair within reach, checked in float32: the radius widened
         # by 1e-5 so that rounding can only keep a pair more, never drop one

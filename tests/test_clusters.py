@@ -595,20 +595,23 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
 
 
 def test_the_threaded_grid_gives_the_serial_arrays(fcc_lattice, rng):
-    """``cluster_grid_threaded`` (the wrap in runs, the columns' sorts and the clusters'
-    boxes on the threads) returns the serial grid's arrays bit for bit, for atoms
+    """``cluster_grid`` on the threads (the wrap in runs, the columns' sorts and the
+    clusters' boxes in parallel) returns the arrays of one thread bit for bit, for atoms
     several box lengths out and equal heights in a column (a lattice's planes)."""
-    from md._cluster_kernels import cluster_grid_threaded
-
     state = fcc_lattice(cells=7)
     moved = state.positions + rng.normal(scale=0.2, size=state.positions.shape)
     moved += rng.integers(-3, 4, size=moved.shape) * state.box
+    ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
+    before = get_threads()
     for positions in (state.positions, moved):
-        ncx, ncy = column_counts(state.box, state.n_atoms, 2.8)
-        serial = cluster_grid(positions, state.box, ncx, ncy)
+        try:
+            set_threads(1)
+            serial = cluster_grid(positions, state.box, ncx, ncy)
+        finally:
+            set_threads(before)
         assert positions is state.positions or (serial[1] < 0).any(), "the test wants fillers"
-        for runs in (2, 3, 5):
-            threaded = cluster_grid_threaded(positions, state.box, ncx, ncy, runs)
+        for runs in (1, 2, 3, 5):
+            threaded = cluster_grid(positions, state.box, ncx, ncy, runs)
             for a, b in zip(serial, threaded, strict=True):
                 assert a.dtype == b.dtype and np.array_equal(a, b)
 
