@@ -146,6 +146,7 @@ def _column_atoms(wrapped, counts, order, first, heights, atom, c):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _grid_boxes(n_clusters):
+    """The slots' origins (zeroed) and the clusters' lower and upper corners."""
     return (np.zeros((n_clusters * CLUSTER, 3)), np.empty((n_clusters, 3)),
             np.empty((n_clusters, 3)))  # fmt: skip
 

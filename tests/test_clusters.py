@@ -619,8 +619,9 @@ def test_the_threaded_grid_gives_the_serial_arrays(fcc_lattice, rng):
 def test_chunks_write_no_cluster_before_their_first_and_the_sum_skips_it(fcc_lattice, rng):
     """Every row's partners are its i cluster and clusters after it, so chunk c's buffer
     holds nothing before its first cluster (``bounds[c]``): the kernel leaves that part
-    alone and the sum into atom order reads none of it (garbage there changes nothing).
-    The forces on any number of chunks are the double frame's to float32 round-off."""
+    alone and the sum into atom order reads none of it (garbage there changes nothing, on
+    2, 3 and 5 chunks). The forces on two chunks are the double frame's to float32
+    round-off."""
     from potentials._kernels import _cluster_atom_forces
 
     state = fcc_lattice(cells=8, perturbation=0.1)

@@ -541,8 +541,6 @@ def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
     assert "median 1.000" in rows[8] and float(rows[16].split("median ")[1].split()[0]) > 0
 
 
-
-
 def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
     compare = _benchmark_module("compare")
 
