@@ -114,6 +114,7 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     docstring): the engine's own entry point, from a kernel module per width."""
     from md._simd import ZMM
     from potentials._cluster_ir import slp_vectorising
+    from potentials._kernels import J_STRIDE, zeros_on_lines
     from potentials._pair_frame import CUTOFF_MODES, kernels_for
 
     clusters = neighbors.clusters
@@ -125,12 +126,14 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1), clusters.bounds)
     chunks = len(clusters.bounds) - 1
     buffers = np.empty((chunks, 12 * clusters.n_clusters))
+    j_sums = zeros_on_lines((chunks, J_STRIDE * clusters.n_clusters), np.float32)
+    j_counts = np.zeros((chunks, clusters.n_clusters), np.int32)
     energies, virials = np.empty(chunks), np.empty((chunks, 9))
     slot_types = np.zeros(4 * clusters.n_clusters, np.int32)
     entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
     name = f"{entry}__mode{mode}_with_virial0_single1"
     arguments = (xi, xj, lists, slot_types, 1, table, mode, potential.data, False, True,
-                 buffers, energies, virials)  # fmt: skip
+                 buffers, j_sums, j_counts, energies, virials)  # fmt: skip
     kernels, sums = {}, {}
     for lanes in widths:
         kernels[lanes] = getattr(kernels_for(potential.term, "mixed", cluster_lanes=lanes), name)

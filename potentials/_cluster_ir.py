@@ -7,8 +7,8 @@ its row of j clusters in the cluster-pair list (:mod:`md._cluster_kernels`
 describes the layout). The idea is GROMACS's 2xMM kernels: two i atoms by four
 j atoms fill one 8-lane float32 vector, two vectors cover a cluster pair, the
 i forces and the energy stay in registers over the whole row, and a j
-cluster's forces are summed across the two halves and added to memory once.
-With ``lanes=16`` one vector holds the whole 4x4 cluster pair: the kernels'
+cluster's forces are added to its float32 lanes in memory, lane by lane (see
+below). With ``lanes=16`` one vector holds the whole 4x4 cluster pair: the kernels'
 width where the CPU numba compiles for has AVX-512F (``md._simd.ZMM``), 8
 lanes elsewhere. On the 32000-atom melt (Emerald Rapids, one thread, the
 kernel's two widths alternated in one process) 16 lanes took 0.89 of the
@@ -18,8 +18,21 @@ gain), so AVX2 keeps 8 (``benchmarks/cluster_kernel.py --lanes 8,16``). On a
 Zen 4 EPYC, whose AVX-512 runs on 256-bit units, the widths take the same time
 (16 lanes 1.01 of 8): there the loop is bound by its floating-point operations
 (77 instructions a pair at 16 lanes, 55 of them on zmm; 128 at 8), and a
-third of them are the j forces' fold, conversion and store (without those the
+third of them were the j forces' fold, conversion and store (without those the
 kernel took 0.60 of its time; without the energy sum 0.96).
+
+So a j cluster's forces are not folded over the i atoms pair by pair: each pair
+adds its lanes (x, y, z: three vectors, fused into the term's multiply) to the
+j cluster's lanes in ``j_sums``, float32, and counts the pair in ``j_counts``;
+a row that brings a cluster's count to ``_J_FLUSH`` folds those lanes over the i
+atoms, subtracts them from its double forces and zeroes them after its loop,
+and the caller folds what the rows left (:func:`potentials._kernels.
+cluster_j_remainders`). No float32 sum of a j force runs over more than
+``_J_FLUSH`` pairs, however many rows a cluster is the partner of. On the Zen 4
+EPYC (32000-atom melt, one thread, alternating processes) the kernel took 0.74
+of the folding kernel's time with 16 lanes (1.90 against 2.55-2.61 ms), 0.91
+with 8 compiled for AVX2; the lanes with no bound at all would take 0.71, a
+fold every 16 pairs inside the loop (a branch per pair) 0.83.
 
 The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
 and distances are computed before pair k's term. The chain from a partner's
@@ -77,6 +90,7 @@ from md._simd import (
     squared_distances,
     store_vector,
 )
+from potentials._kernels import J_STRIDE
 
 __all__ = ["cluster_row", "slp_vectorising"]
 
@@ -95,6 +109,12 @@ _FLAGS = ("contract", "reassoc", "nsz", "arcp")
 #: added to the double sums (a power of 2). 16 took 0.95 of the time of 8 with 16 lanes
 #: (0.96 with 8, within the noise there), for a float32 sum of 16 terms, not 8.
 _FLUSH = 16
+
+#: Cluster pairs whose j forces a j cluster's float32 lanes hold at most before they
+#: are folded into its double forces (at the end of the row that fills them): 32 took
+#: 0.96 of the kernel time of 16 (most clusters are the partners of ~30 rows of the
+#: melt's list, so most lanes are folded once, after the rows).
+_J_FLUSH = 32
 
 _SLP_LOCK = threading.Lock()
 
@@ -208,7 +228,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
     (8, or 16; None: 16 where ``md._simd.ZMM``, else 8; see the module docstring).
 
     ``row(xi, xj, offsets, partners, start, end, ci, slot_types, n_types, table, mode,
-    data, cut2, forces, virial) -> energy`` (float64):
+    data, cut2, forces, j_sums, j_counts, virial) -> energy`` (float64):
 
     - ``xi``, ``xj``: float32 (clusters * 12,), each cluster [x0..x3, y0..y3, z0..z3]
       relative to its origin, for the i and the j role;
@@ -218,9 +238,15 @@ def cluster_row(pair, rows, lanes: int | None = None):
     - ``slot_types`` int32 per slot, or None when every atom has type 0 (column 0);
     - ``table``, ``mode``, ``data``: passed to ``pair`` (mode a literal);
     - ``cut2``: float32, the largest squared cutoff of the table;
-    - ``forces`` float64 (clusters * 12,): the i forces added, the j forces subtracted,
-      each cluster pair's j sums and every ``_FLUSH`` pairs' i sums added in double (so
-      no float32 sum runs over more than ``_FLUSH`` terms, whatever the row's length);
+    - ``forces`` float64 (clusters * 12,): the i forces added, every ``_FLUSH`` pairs'
+      i sums in double (so no float32 sum runs over more than ``_FLUSH`` terms, whatever
+      the row's length); the j forces subtracted where a j cluster's lanes fill;
+    - ``j_sums`` float32 (clusters * ``J_STRIDE``,), 64-byte aligned for speed, and
+      ``j_counts`` int32 (clusters,): each cluster's j forces in float32 lanes (x, y, z
+      at 0, 16, 32; lane 4 a + b the pair of i atom a and j atom b) and the cluster pairs
+      in them, below ``_J_FLUSH`` after every row (a row that fills a cluster's lanes
+      folds them into ``forces`` and zeroes them); the caller folds the rest
+      (:func:`potentials._kernels.cluster_j_remainders`), which zeroes them too;
     - ``virial`` float64 (9,), or None: adds offset (x) (force on the i cluster) per
       pair, the part of the virial the relative positions do not carry.
     """
@@ -231,26 +257,29 @@ def cluster_row(pair, rows, lanes: int | None = None):
 
     @intrinsic
     def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-            table, mode, data, cut2, forces, virial):  # fmt: skip
+            table, mode, data, cut2, forces, j_sums, j_counts, virial):  # fmt: skip
         real = table.dtype
         mode_type = getattr(mode, "literal_type", mode)
         pair_sig = typingctx.resolve_function_type(
             numba.typeof(pair), (real, types.int64, table, mode_type, data), {}
         )
         sig = types.float64(xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-                            table, mode, data, cut2, forces, virial)  # fmt: skip
+                            table, mode, data, cut2, forces, j_sums, j_counts,
+                            virial)  # fmt: skip
         single = isinstance(slot_types, types.NoneType)
         with_virial = not isinstance(virial, types.NoneType)
 
         def codegen(context, builder, signature, args):
             fl = _FLAGS
             (xi_v, xj_v, off_v, part_v, start_v, end_v, ci_v, types_v, ntypes_v, table_v,
-             mode_v, data_v, cut_v, forces_v, virial_v) = args  # fmt: skip
+             mode_v, data_v, cut_v, forces_v, js_v, jc_v, virial_v) = args  # fmt: skip
             arg = signature.args
             xi_p, xj_p, off_p, part_p = (array_data(context, builder, arg[n], args[n])
                                          for n in range(4))  # fmt: skip
             f_p = array_data(context, builder, arg[13], forces_v)
-            vir_p = array_data(context, builder, arg[14], virial_v) if with_virial else None
+            js_p = array_data(context, builder, arg[14], js_v)
+            jc_p = array_data(context, builder, arg[15], jc_v)
+            vir_p = array_data(context, builder, arg[16], virial_v) if with_virial else None
             types_p = None if single else array_data(context, builder, arg[7], types_v)
             literal = getattr(arg[10], "literal_value", None)
             mode_c = _index(literal) if literal is not None else builder.sext(mode_v, _I64)
@@ -330,6 +359,31 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         builder.store(builder.fadd(builder.load(total), part, flags=fl), total)
                     builder.store(_filled(0.0, lanes), narrow)
 
+            def j_parts(fj):
+                """The j forces (``fj``: x, y, z vectors) summed over the i atoms, in
+                double: [(vector, its first element's place in the cluster's 12)]."""
+                if lanes == 16:
+                    return _j_sums_16(builder, fj, fl)
+                parts = []
+                for d in range(3):  # j atom b's force: the sum of lanes b, b + 4
+                    low = shuffle(builder, fj[d], fj[d], list(range(4)))
+                    high = shuffle(builder, fj[d], fj[d], list(range(4, 8)))
+                    parts.append((builder.fpext(builder.fadd(low, high, flags=fl), _D4),
+                                  4 * d))  # fmt: skip
+                return parts
+
+            def flush_j(base_j, base_s):
+                """Fold the j cluster's float32 lanes (from ``base_s`` in ``j_sums``),
+                subtract them from its double forces (from ``base_j``), zero them."""
+                indices = [builder.add(base_s, _index(16 * d)) for d in range(3)]
+                lanes_j = [load_vector(builder, js_p, index, vector) for index in indices]
+                for summed, first in j_parts(lanes_j):
+                    index = builder.add(base_j, _index(first))
+                    old = load_vector(builder, f_p, index, summed.type)
+                    store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
+                for index in indices:
+                    store_vector(builder, _filled(0.0, lanes), js_p, index)
+
             def pair_at(cj, base_j, offset, separations):
                 """One cluster pair: the term in every lane, the i sums, the j forces."""
                 if single:
@@ -341,6 +395,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         t = builder.load(builder.gep(types_p, [slot]))
                         tj.append(builder.sext(t, _I64))
                 fj = [None] * 3
+                terms = []  # per vector: the pair forces f/r and the separations
                 for h in range(passes):
                     *dx, safe = separations[h]
                     if not single:
@@ -366,27 +421,34 @@ def cluster_row(pair, rows, lanes: int | None = None):
                     for d in range(3):  # fused: the pair force f/r d enters two sums
                         total = builder.load(sums[3 * h + d])
                         builder.store(builder.call(fma, [fr, dx[d], total]), sums[3 * h + d])
-                        fj[d] = (builder.fmul(fr, dx[d], flags=fl) if fj[d] is None
-                                 else builder.call(fma, [fr, dx[d], fj[d]]))  # fmt: skip
-                if lanes == 16:
-                    parts = _j_sums_16(builder, fj, fl)
-                else:
-                    parts = []
-                    for d in range(3):  # j atom b's force: the sum of lanes b, b + 4
-                        low = shuffle(builder, fj[d], fj[d], list(range(4)))
-                        high = shuffle(builder, fj[d], fj[d], list(range(4, 8)))
-                        parts.append((builder.fpext(builder.fadd(low, high, flags=fl), _D4),
-                                      4 * d))  # fmt: skip
-                for summed, first in parts:  # subtracted from the j cluster's x, y, z
-                    index = builder.add(base_j, _index(first))
-                    old = load_vector(builder, f_p, index, summed.type)
-                    store_vector(builder, builder.fsub(old, summed, flags=fl), f_p, index)
+                    terms.append((fr, dx))
                 if with_virial:  # offset (x) the force on the i cluster from this pair,
-                    for d in range(3):  # in double lanes, summed after the row
+                    for fr, dx in terms:  # in double lanes, summed after the row
+                        for d in range(3):
+                            fj[d] = (builder.fmul(fr, dx[d], flags=fl) if fj[d] is None
+                                     else builder.call(fma, [fr, dx[d], fj[d]]))  # fmt: skip
+                    parts = j_parts(fj)
+                    for d in range(3):
                         o = builder.fpext(offset[d], _F64)
                         for (summed, _), slot in zip(parts, moments[d], strict=True):
                             term = builder.fmul(splat(builder, o, summed.type), summed, flags=fl)
                             builder.store(builder.fadd(builder.load(slot), term, flags=fl), slot)
+                # the j forces added to the j cluster's float32 lanes, fused into the
+                # term's multiply, and the pair counted; a cluster whose count reaches
+                # _J_FLUSH is folded at the end of the row (a branch here, per pair, made
+                # the kernel 1.06 times as slow)
+                base_s = builder.mul(cj, _index(J_STRIDE))
+                for d in range(3):
+                    index = builder.add(base_s, _index(16 * d))
+                    lanes_d = load_vector(builder, js_p, index, vector)
+                    for fr, dx in terms:
+                        lanes_d = builder.call(fma, [fr, dx[d], lanes_d])
+                    store_vector(builder, lanes_d, js_p, index)
+                count_p = builder.gep(jc_p, [cj])
+                count = builder.add(builder.load(count_p), ir.Constant(_I32, 1))
+                builder.store(count, count_p)
+                full = builder.icmp_signed(">=", count, ir.Constant(_I32, _J_FLUSH))
+                builder.store(builder.or_(builder.load(any_full), full), any_full)
 
             def look(k, own=False):
                 """Pair k's j cluster (index, first coordinate), its offset, and per vector
@@ -424,6 +486,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
             # covers: the kernel waited on it). The pair after a row's last is its last
             # again, looked at and not used.
             step = _index(_FLUSH)
+            any_full = cgutils.alloca_once_value(builder, ir.Constant(ir.IntType(1), 0))
             with builder.if_then(builder.icmp_signed("<", start_v, end_v)):
                 end_less = builder.sub(end_v, _index(1))
                 second = builder.add(start_v, _index(1))
@@ -445,6 +508,18 @@ def cluster_row(pair, rows, lanes: int | None = None):
                             builder.store(value, slot)
                         evaluate(current)
                     flush()
+                # the row's j clusters with _FLUSH pairs in their lanes: folded into their
+                # double forces (a row adds one pair to each: none holds more)
+                with builder.if_then(builder.load(any_full), likely=False):
+                    with cgutils.for_range_slice(builder, start_v, end_v, _index(1)) as (k, _):
+                        cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
+                        count_p = builder.gep(jc_p, [cj])
+                        full = builder.icmp_signed(">=", builder.load(count_p),
+                                                   ir.Constant(_I32, _J_FLUSH))  # fmt: skip
+                        with builder.if_then(full):
+                            flush_j(builder.mul(cj, _index(12)),
+                                    builder.mul(cj, _index(J_STRIDE)))  # fmt: skip
+                            builder.store(ir.Constant(_I32, 0), count_p)
 
             if lanes == 16:  # x, y; then z of the i cluster's atoms 0-3, and the energy
                 xy, ze = (builder.load(total) for total in wide16)

@@ -212,6 +212,44 @@ def _slot_forces(buffers, atom, bounds, forces, first, end):
                 forces[i, d] = f
 
 
+#: float32 values per cluster in the cluster kernels' j lanes (``potentials._cluster_ir``).
+J_STRIDE = 48
+
+#: Bytes of a cache line, and of an AVX-512 register.
+_LINE = 64
+
+
+def zeros_on_lines(shape, dtype) -> np.ndarray:
+    """A C-ordered array of zeros whose data start on a cache line (numpy's own start 16
+    bytes past one: every 64-byte vector of the cluster kernels' j lanes would then span
+    two lines)."""
+    dtype = np.dtype(dtype)
+    size = int(np.prod(shape))
+    raw = np.zeros(size + _LINE // dtype.itemsize, dtype)
+    skip = (-raw.ctypes.data % _LINE) // dtype.itemsize
+    return raw[skip : skip + size].reshape(shape)
+
+
+@njit(cache=True, error_model="numpy")
+def cluster_j_remainders(j_sums, j_counts, forces, first):
+    """The j forces the cluster kernel's rows left in float32 lanes (``j_sums``, 48 per
+    cluster: x, y, z in 16 lanes, lane 4 a + b the pair of i atom a and j atom b; fewer
+    than a flush's worth of pairs, ``j_counts``), for clusters ``first`` on: folded over
+    the i atoms as the rows fold them, subtracted from ``forces`` (12 per cluster), and
+    set to zero with their counts."""
+    for cluster in range(first, j_counts.shape[0]):
+        if j_counts[cluster] == 0:
+            continue
+        j_counts[cluster] = 0
+        lanes, base = J_STRIDE * cluster, 3 * CLUSTER * cluster
+        for d in range(3):
+            for b in range(CLUSTER):
+                at = lanes + 16 * d + b
+                total = (j_sums[at] + j_sums[at + 8]) + (j_sums[at + 4] + j_sums[at + 12])
+                forces[base + CLUSTER * d + b] -= np.float64(total)
+        j_sums[lanes : lanes + J_STRIDE] = 0.0
+
+
 @njit(cache=True, error_model="numpy")
 def _cluster_moments(atom, xi, forces):
     """The sum over atoms of x_rel (x) F (3, 3): the virial's part that the cluster

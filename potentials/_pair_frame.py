@@ -51,7 +51,13 @@ from md.schema import Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials._cluster_ir import slp_vectorising
-from potentials._kernels import _cluster_moments, _slot_types, cluster_atom_forces
+from potentials._kernels import (
+    J_STRIDE,
+    _cluster_moments,
+    _slot_types,
+    cluster_atom_forces,
+    zeros_on_lines,
+)
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 
@@ -815,11 +821,14 @@ class PairPotential:
                 np.empty(12 * n_clusters, np.float32),
                 np.empty(4 * n_clusters, np.int32),
                 np.empty((chunks, 12 * n_clusters)),
+                # the kernels' j lanes and their pair counts: zero, and left zero by each call
+                zeros_on_lines((chunks, J_STRIDE * n_clusters), np.float32),
+                np.zeros((chunks, n_clusters), np.int32),
                 np.empty(chunks),
                 np.empty((chunks, 9)),
             )
             self._cluster_scratch = scratch
-        xi, xj, slot_types, buffers, energies, virials = scratch
+        xi, xj, slot_types, buffers, j_sums, j_counts, energies, virials = scratch
         single = n_types == 1
         if not single:
             _slot_types(state.types, atom, slot_types)
@@ -837,7 +846,8 @@ class PairPotential:
                 kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
                                   single=single)  # fmt: skip
                 kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
-                       with_virial, single, buffers, energies, virials)  # fmt: skip
+                       with_virial, single, buffers, j_sums, j_counts, energies,
+                       virials)  # fmt: skip
         forces = np.empty((n, 3))
         cluster_atom_forces(buffers, atom, clusters.bounds, forces)
         total = None

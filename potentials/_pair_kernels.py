@@ -61,6 +61,7 @@ from potentials._kernels import (
     _longest_row,
     _scatter_partners,
     _sum_chunk_forces,
+    cluster_j_remainders,
 )
 
 if TYPE_CHECKING:  # set in this module's namespace by kernels_for before it runs
@@ -383,7 +384,7 @@ _cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
 
 @njit(cache=True, error_model="numpy")
 def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
-                   single, buffers, energies, virials):  # fmt: skip
+                   single, buffers, j_sums, j_counts, energies, virials):  # fmt: skip
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
     ``clusters`` is (starts, partners, offsets, bounds): each i cluster's row of
@@ -394,54 +395,64 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     the chunk's first cluster on: no pair reaches one before it), its
     energy into ``energies[c]`` and, if ``with_virial``, offset (x) force of each pair
     into ``virials[c]`` (9, row-major; the relative positions' part is added by the
-    caller). The table is float32: mixed precision only.
+    caller). ``j_sums[c]`` (float32, clusters * 48) and ``j_counts[c]`` (int32, per
+    cluster) are the chunk's j forces in float32 lanes and the pairs in them
+    (``potentials._cluster_ir``): zero on entry, and left zero. The table is float32:
+    mixed precision only.
     """
     literally(mode)
     literally(with_virial)
     literally(single)
     for chunk in range(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, energies, virials)  # fmt: skip
+                       with_virial, single, buffers, j_sums, j_counts, energies,
+                       virials)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
-                            with_virial, single, buffers, energies, virials):  # fmt: skip
+                            with_virial, single, buffers, j_sums, j_counts, energies,
+                            virials):  # fmt: skip
     """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
     literally(mode)
     literally(with_virial)
     literally(single)
     for chunk in prange(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, energies, virials)  # fmt: skip
+                       with_virial, single, buffers, j_sums, j_counts, energies,
+                       virials)  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                   with_virial, single, buffers, energies, virials):  # fmt: skip
+                   with_virial, single, buffers, j_sums, j_counts, energies, virials):  # fmt: skip
     starts, partners, offsets, bounds = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
         cut2 = max(cut2, REAL(table[RC2, column]))
     out = buffers[chunk]
     out[12 * bounds[chunk] :] = 0.0  # no pair of the chunk reaches a cluster before its first
+    lanes, counts = j_sums[chunk], j_counts[chunk]
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):
         first, last = starts[ci], starts[ci + 1]
         if single and with_virial:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, virials[chunk])  # fmt: skip
+                                   table, mode, data, cut2, out, lanes, counts,
+                                   virials[chunk])  # fmt: skip
         elif single:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, None)  # fmt: skip
+                                   table, mode, data, cut2, out, lanes, counts, None)  # fmt: skip
         elif with_virial:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out,
+                                   n_types, table, mode, data, cut2, out, lanes, counts,
                                    virials[chunk])  # fmt: skip
         else:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out, None)  # fmt: skip
+                                   n_types, table, mode, data, cut2, out, lanes, counts,
+                                   None)  # fmt: skip
+    cluster_j_remainders(lanes, counts, out, bounds[chunk])
     energies[chunk] = energy
 
 

@@ -506,39 +506,42 @@ def test_two_terms_in_one_process_each_run_their_own_pair_function(fcc_lattice):
 def _row_kernel(term_module, lanes):
     """An i-cluster loop over ``cluster_row(..., lanes)`` of a term's float32 pair
     function: one type, no virial (the engine's kernels use 16 lanes where the CPU has
-    AVX-512, else 8)."""
+    AVX-512, else 8). Returns the energy and the largest j-lane pair count any row left."""
     from numba import njit
 
     from potentials._cluster_ir import cluster_row
+    from potentials._kernels import cluster_j_remainders
 
     row = cluster_row(term_module._pair, lambda: term_module.TERM + term_module.N_TERM,
                       lanes=lanes)  # fmt: skip
 
     @njit(error_model="numpy")
-    def run(xi, xj, starts, partners, offsets, table, mode, data, cut2, out):
+    def run(xi, xj, starts, partners, offsets, table, mode, data, cut2, out, j_sums,
+            j_counts):  # fmt: skip
         out[:] = 0.0
         energy = 0.0
+        most = 0
         for ci in range(len(starts) - 1):
             energy += row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, None, 1,
-                          table, mode, data, cut2, out, None)  # fmt: skip
-        return energy
+                          table, mode, data, cut2, out, j_sums, j_counts, None)  # fmt: skip
+            most = max(most, j_counts.max())
+        cluster_j_remainders(j_sums, j_counts, out, 0)
+        return energy, most
 
     return run
 
 
-def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
-    """``cluster_row(lanes=16)`` (a whole 4x4 cluster pair per vector: the kernels' width
-    where the CPU has AVX-512) sums the same pair terms as ``lanes=8`` (AVX2's): forces
-    and energy to float32 round-off of each other's and of double, whichever this CPU
-    runs in the engine."""
+def _row_forces(state, potential, lanes):
+    """The forces and energy of ``_row_kernel`` over the mixed ForceField's cluster list of
+    ``state`` (atom order), the largest j-lane count after a row, and the j lanes and
+    counts after the call."""
+    from potentials._kernels import J_STRIDE
     from potentials._pair_frame import CUTOFF_MODES, kernels_for
 
-    state = fcc_lattice(cells=6, perturbation=0.08)
-    potential = LennardJones(cutoff=2.5)
-    double = ForceField([potential]).compute(state)
     field = ForceField([potential], precision="mixed")
     field.neighbor_list.update(state)
     clusters = field.neighbor_list.clusters
+    assert clusters is not None
     xi = np.empty(12 * clusters.n_clusters, np.float32)
     xj = np.empty_like(xi)
     clusters.relative_positions(state.positions, xi, xj)
@@ -546,21 +549,57 @@ def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
     table = potential.tables(1).astype(np.float32)
     cut2 = np.float32(table[module.RC2].max())
     mode = int(CUTOFF_MODES[potential.cutoff_mode])
-    results = {}
-    for lanes in (8, 16):
-        out = np.empty(12 * clusters.n_clusters)
-        energy = _row_kernel(module, lanes)(xi, xj, clusters.starts, clusters.partners,
-                                            clusters.offsets.reshape(-1), table, mode,
-                                            potential.data, cut2, out)  # fmt: skip
-        forces = np.zeros((state.n_atoms, 3))
-        slots = out.reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
-        real = clusters.atom >= 0
-        np.add.at(forces, clusters.atom[real], slots[real])
-        results[lanes] = (energy, forces)
+    out = np.empty(12 * clusters.n_clusters)
+    j_sums = np.zeros(J_STRIDE * clusters.n_clusters, np.float32)
+    j_counts = np.zeros(clusters.n_clusters, np.int32)
+    energy, most = _row_kernel(module, lanes)(
+        xi, xj, clusters.starts, clusters.partners, clusters.offsets.reshape(-1), table, mode,
+        potential.data, cut2, out, j_sums, j_counts)  # fmt: skip
+    forces = np.zeros((state.n_atoms, 3))
+    slots = out.reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
+    real = clusters.atom >= 0
+    np.add.at(forces, clusters.atom[real], slots[real])
+    return energy, forces, most, j_sums, j_counts
+
+
+def test_sixteen_lane_rows_give_the_eight_lane_forces(fcc_lattice):
+    """``cluster_row(lanes=16)`` (a whole 4x4 cluster pair per vector: the kernels' width
+    where the CPU has AVX-512) sums the same pair terms as ``lanes=8`` (AVX2's): forces
+    and energy to float32 round-off of each other's and of double, whichever this CPU
+    runs in the engine."""
+    state = fcc_lattice(cells=6, perturbation=0.08)
+    potential = LennardJones(cutoff=2.5)
+    double = ForceField([potential]).compute(state)
+    results = {lanes: _row_forces(state, potential, lanes)[:2] for lanes in (8, 16)}
     for energy, forces in results.values():
         assert _relative_error(forces, double.forces) < 200 * EPS32
         assert abs(energy - double.energy) < 20 * EPS32 * abs(double.energy)
     assert _relative_error(results[16][1], results[8][1]) < 20 * EPS32
+
+
+@pytest.mark.parametrize("lanes", [8, 16])
+def test_the_j_lanes_hold_a_bounded_number_of_pairs_and_are_left_zero(lanes, fcc_lattice):
+    """A j cluster's forces are summed in float32 lanes for at most ``_J_FLUSH`` cluster
+    pairs (then folded into its double forces at the end of the row that filled them), so
+    their round-off does not grow with the neighbour count: at a 4 sigma cutoff some
+    clusters are the partners of more than twice as many rows, yet every row leaves fewer
+    than ``_J_FLUSH`` pairs in any cluster's lanes (a row folds those it filled). After
+    the call the lanes and counts are zero again (the engine's scratch relies on it), and
+    the forces are the double frame's to float32 round-off."""
+    from potentials._cluster_ir import _J_FLUSH
+
+    state = fcc_lattice(cells=7, perturbation=0.08)
+    potential = LennardJones(cutoff=4.0)
+    double = ForceField([potential]).compute(state)
+    energy, forces, most, j_sums, j_counts = _row_forces(state, potential, lanes)
+    partners = ForceField([potential], precision="mixed")
+    partners.neighbor_list.update(state)
+    rows_per_cluster = np.bincount(partners.neighbor_list.clusters.partners)
+    assert rows_per_cluster.max() > 2 * _J_FLUSH  # the lanes fill more than once
+    assert 0 < most < _J_FLUSH  # a row leaves none full: it folds those it filled
+    assert not j_sums.any() and not j_counts.any()
+    assert _relative_error(forces, double.forces) < 200 * EPS32
+    assert abs(energy - double.energy) < 20 * EPS32 * abs(double.energy)
 
 
 def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
