@@ -22,7 +22,9 @@ listed atom pair::
     python benchmarks/cluster_kernel.py --lanes 8,16
 
 ``--lanes 8,16`` times the cluster kernel alone (the engine's entry point, one thread,
-no virial; without the float32 relative positions and the sum into atom order) at each
+no virial; without the float32 relative positions; with one chunk the kernel writes the
+forces into atom order itself, cluster by cluster, where two threads' chunks are summed
+by a pass after it) at each
 vector width (``kernels_for(..., cluster_lanes=...)``), compiled side by side in this
 process and called in alternating blocks of ``--calls`` (this VM's speed drifts by 2x
 within minutes, so widths timed in separate processes do not compare): the minimum per
@@ -132,8 +134,10 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     slot_types = np.zeros(4 * clusters.n_clusters, np.int32)
     entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
     name = f"{entry}__mode{mode}_with_virial0_single1"
+    forces = np.empty((state.n_atoms, 3))
     arguments = (xi, xj, lists, slot_types, 1, table, mode, potential.data, False, True,
-                 buffers, j_sums, j_counts, energies, virials)  # fmt: skip
+                 buffers, j_sums, j_counts, clusters.atom, forces, energies,
+                 virials)  # fmt: skip
     kernels, sums = {}, {}
     for lanes in widths:
         kernels[lanes] = getattr(kernels_for(potential.term, "mixed", cluster_lanes=lanes), name)

@@ -26,8 +26,9 @@ adds its lanes (x, y, z: three vectors, fused into the term's multiply) to the
 j cluster's lanes in ``j_sums``, float32, and counts the pair in ``j_counts``;
 a row that brings a cluster's count to ``_J_FLUSH`` folds those lanes over the i
 atoms, subtracts them from its double forces and zeroes them after its loop,
-and the caller folds what the rows left (:func:`potentials._kernels.
-cluster_j_remainders`). No float32 sum of a j force runs over more than
+each row folds its own cluster's lanes at its end (no later row adds to them),
+and the caller folds those of the clusters after its last row
+(:func:`potentials._kernels.cluster_j_remainders`). No float32 sum of a j force runs over more than
 ``_J_FLUSH`` pairs, however many rows a cluster is the partner of. On the Zen 4
 EPYC (32000-atom melt, one thread, alternating processes) the kernel took 0.74
 of the folding kernel's time with 16 lanes (1.90 against 2.55-2.61 ms), 0.91
@@ -245,8 +246,10 @@ def cluster_row(pair, rows, lanes: int | None = None):
       ``j_counts`` int32 (clusters,): each cluster's j forces in float32 lanes (x, y, z
       at 0, 16, 32; lane 4 a + b the pair of i atom a and j atom b) and the cluster pairs
       in them, below ``_J_FLUSH`` after every row (a row that fills a cluster's lanes
-      folds them into ``forces`` and zeroes them); the caller folds the rest
-      (:func:`potentials._kernels.cluster_j_remainders`), which zeroes them too;
+      folds them into ``forces`` and zeroes them, and at its end folds and zeroes its own
+      cluster's, which no later row adds to); the caller folds those of the clusters
+      after its last row (:func:`potentials._kernels.cluster_j_remainders`), which
+      zeroes them too;
     - ``virial`` float64 (9,), or None: adds offset (x) (force on the i cluster) per
       pair, the part of the virial the relative positions do not carry.
     """
@@ -508,8 +511,9 @@ def cluster_row(pair, rows, lanes: int | None = None):
                             builder.store(value, slot)
                         evaluate(current)
                     flush()
-                # the row's j clusters with _FLUSH pairs in their lanes: folded into their
-                # double forces (a row adds one pair to each: none holds more)
+                # the row's j clusters with _J_FLUSH pairs in their lanes: folded into
+                # their double forces (a row adds a pair to each, two to a cluster it
+                # meets at two images)
                 with builder.if_then(builder.load(any_full), likely=False):
                     with cgutils.for_range_slice(builder, start_v, end_v, _index(1)) as (k, _):
                         cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
@@ -520,6 +524,11 @@ def cluster_row(pair, rows, lanes: int | None = None):
                             flush_j(builder.mul(cj, _index(12)),
                                     builder.mul(cj, _index(J_STRIDE)))  # fmt: skip
                             builder.store(ir.Constant(_I32, 0), count_p)
+            # the i cluster's own j lanes: no later row adds to them (a row's partners are
+            # its cluster and later ones), so they are folded into its forces here, in
+            # vectors (the caller folds only those of clusters after its rows)
+            flush_j(base_i, builder.mul(ci_v, _index(J_STRIDE)))
+            builder.store(ir.Constant(_I32, 0), builder.gep(jc_p, [ci_v]))
 
             if lanes == 16:  # x, y; then z of the i cluster's atoms 0-3, and the energy
                 xy, ze = (builder.load(total) for total in wide16)

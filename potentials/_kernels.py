@@ -250,6 +250,17 @@ def cluster_j_remainders(j_sums, j_counts, forces, first):
         j_sums[lanes : lanes + J_STRIDE] = 0.0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _cluster_slot_forces(out, atom, cluster, forces):
+    """Cluster ``cluster``'s forces in ``out`` (12 per cluster) into ``forces`` (N, 3), in
+    atom order (``atom``: each slot's atom, -1 for a filler)."""
+    for b in range(CLUSTER):
+        i = atom[CLUSTER * cluster + b]
+        if i >= 0:
+            for d in range(3):
+                forces[i, d] = out[3 * CLUSTER * cluster + CLUSTER * d + b]
+
+
 @njit(cache=True, error_model="numpy")
 def _cluster_moments(atom, xi, forces):
     """The sum over atoms of x_rel (x) F (3, 3): the virial's part that the cluster

@@ -841,15 +841,16 @@ class PairPotential:
         ran = (entry, mode, single)
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
+        forces = np.empty((n, 3))
         with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
             for with_virial in variants:
                 kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
                                   single=single)  # fmt: skip
                 kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
-                       with_virial, single, buffers, j_sums, j_counts, energies,
-                       virials)  # fmt: skip
-        forces = np.empty((n, 3))
-        cluster_atom_forces(buffers, atom, clusters.bounds, forces)
+                       with_virial, single, buffers, j_sums, j_counts, atom, forces,
+                       energies, virials)  # fmt: skip
+        if chunks > 1:  # one chunk writes the forces in atom order itself
+            cluster_atom_forces(buffers, atom, clusters.bounds, forces)
         total = None
         if virial:
             w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)

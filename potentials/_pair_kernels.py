@@ -54,6 +54,7 @@ from md.box import min_image, separation
 from potentials._cluster_ir import cluster_row
 from potentials._kernels import (
     _add_half_pair_virial,
+    _cluster_slot_forces,
     _gather_frame,
     _gather_pair_columns,
     _gather_partners,
@@ -384,7 +385,8 @@ _cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
 
 @njit(cache=True, error_model="numpy")
 def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
-                   single, buffers, j_sums, j_counts, energies, virials):  # fmt: skip
+                   single, buffers, j_sums, j_counts, atom, forces, energies,
+                   virials):  # fmt: skip
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
     ``clusters`` is (starts, partners, offsets, bounds): each i cluster's row of
@@ -405,27 +407,28 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     literally(single)
     for chunk in range(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, j_sums, j_counts, energies,
+                       with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
                        virials)  # fmt: skip
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
-                            with_virial, single, buffers, j_sums, j_counts, energies,
-                            virials):  # fmt: skip
+                            with_virial, single, buffers, j_sums, j_counts, atom, forces,
+                            energies, virials):  # fmt: skip
     """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
     literally(mode)
     literally(with_virial)
     literally(single)
     for chunk in prange(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, j_sums, j_counts, energies,
+                       with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
                        virials)  # fmt: skip
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                   with_virial, single, buffers, j_sums, j_counts, energies, virials):  # fmt: skip
+                   with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
+                   virials):  # fmt: skip
     starts, partners, offsets, bounds = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
@@ -433,6 +436,7 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
     out = buffers[chunk]
     out[12 * bounds[chunk] :] = 0.0  # no pair of the chunk reaches a cluster before its first
     lanes, counts = j_sums[chunk], j_counts[chunk]
+    whole = bounds.shape[0] == 2  # one chunk
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):
@@ -452,7 +456,9 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
                                    n_types, table, mode, data, cut2, out, lanes, counts,
                                    None)  # fmt: skip
-    cluster_j_remainders(lanes, counts, out, bounds[chunk])
+        if whole:  # cluster ci's forces are final: into atom order (no pass over them after)
+            _cluster_slot_forces(out, atom, ci, forces)
+    cluster_j_remainders(lanes, counts, out, bounds[chunk + 1])  # rows fold their own
     energies[chunk] = energy
 
 
