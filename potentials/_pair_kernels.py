@@ -399,8 +399,11 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     into ``virials[c]`` (9, row-major; the relative positions' part is added by the
     caller). ``j_sums[c]`` (float32, clusters * 48) and ``j_counts[c]`` (int32, per
     cluster) are the chunk's j forces in float32 lanes and the pairs in them
-    (``potentials._cluster_ir``): zero on entry, and left zero. The table is float32:
-    mixed precision only.
+    (``potentials._cluster_ir``): zero on entry, and left zero. With one chunk each
+    cluster's forces are final after its own row (no later row adds to them) and are
+    written there into ``forces`` (N, 3) in atom order (``atom``: each slot's atom, -1
+    for a filler); with several the caller sums the buffers into it. The table is
+    float32: mixed precision only.
     """
     literally(mode)
     literally(with_virial)
