@@ -28,12 +28,14 @@ a row that brings a cluster's count to ``_J_FLUSH`` folds those lanes over the i
 atoms, subtracts them from its double forces and zeroes them after its loop,
 each row folds its own cluster's lanes at its end (no later row adds to them),
 and the caller folds those of the clusters after its last row
-(:func:`potentials._kernels.cluster_j_remainders`). No float32 sum of a j force runs over more than
-``_J_FLUSH`` pairs, however many rows a cluster is the partner of. On the Zen 4
-EPYC (32000-atom melt, one thread, alternating processes) the kernel took 0.74
-of the folding kernel's time with 16 lanes (1.90 against 2.55-2.61 ms), 0.91
-with 8 compiled for AVX2; the lanes with no bound at all would take 0.71, a
-fold every 16 pairs inside the loop (a branch per pair) 0.83.
+(:func:`potentials._kernels.cluster_j_remainders`). No float32 sum of a j
+force runs over more than ``_J_FLUSH`` pairs (one more where a row meets a
+cluster at two periodic images), however many rows a cluster is the partner
+of. On the Zen 4 EPYC (32000-atom melt, one thread, alternating processes)
+the kernel took 0.72 of the folding kernel's time with 16 lanes (1.835
+against 2.55-2.61 ms), 0.92 with 8 compiled for AVX2; the lanes with no bound
+at all would take 0.71, a fold every 16 pairs inside the loop (a branch per
+pair) 0.83.
 
 The loop over a row runs one pair ahead: pair k + 1's partner, coordinates
 and distances are computed before pair k's term. The chain from a partner's
