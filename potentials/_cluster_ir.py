@@ -116,7 +116,7 @@ _FLUSH = 16
 #: Cluster pairs whose j forces a j cluster's float32 lanes hold at most before they
 #: are folded into its double forces (at the end of the row that fills them): 32 took
 #: 0.96 of the kernel time of 16 (most clusters are the partners of ~30 rows of the
-#: melt's list, so most lanes are folded once, after the rows).
+#: melt's list, so most lanes are folded once, at the end of their own cluster's row).
 _J_FLUSH = 32
 
 _SLP_LOCK = threading.Lock()

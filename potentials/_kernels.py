@@ -254,11 +254,11 @@ def cluster_j_remainders(j_sums, j_counts, forces, first):
 def _cluster_slot_forces(out, atom, cluster, forces):
     """Cluster ``cluster``'s forces in ``out`` (12 per cluster) into ``forces`` (N, 3), in
     atom order (``atom``: each slot's atom, -1 for a filler)."""
-    for b in range(CLUSTER):
-        i = atom[CLUSTER * cluster + b]
+    for s in range(CLUSTER * cluster, CLUSTER * (cluster + 1)):
+        i, base = atom[s], _slot_base(s)
         if i >= 0:
             for d in range(3):
-                forces[i, d] = out[3 * CLUSTER * cluster + CLUSTER * d + b]
+                forces[i, d] = out[base + d * CLUSTER]
 
 
 @njit(cache=True, error_model="numpy")
