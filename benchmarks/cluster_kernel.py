@@ -125,11 +125,13 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     clusters.relative_positions(state.positions, xi, xj)
     table = potential.tables(1).astype(np.float32)
     mode = int(CUTOFF_MODES[potential.cutoff_mode])
-    lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1), clusters.bounds)
+    lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1), clusters.bounds,
+             clusters.windows)  # fmt: skip
     chunks = len(clusters.bounds) - 1
-    buffers = np.empty((chunks, 12 * clusters.n_clusters))
-    j_sums = zeros_on_lines((chunks, J_STRIDE * clusters.n_clusters), np.float32)
-    j_counts = np.zeros((chunks, clusters.n_clusters), np.int32)
+    room = clusters.window_clusters
+    buffers = np.empty(12 * room)
+    j_sums = zeros_on_lines(J_STRIDE * room, np.float32)
+    j_counts = np.zeros(room, np.int32)
     energies, virials = np.empty(chunks), np.empty((chunks, 9))
     slot_types = np.zeros(4 * clusters.n_clusters, np.int32)
     entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"

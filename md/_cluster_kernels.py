@@ -425,6 +425,30 @@ def balanced_chunks(starts, chunks):
 
 
 @njit(cache=True, error_model="numpy")
+def chunk_windows(starts, partners, bounds):
+    """Each chunk's window of clusters (chunks, 3): its first i cluster, one past the
+    last cluster any of its rows reaches (a row's partners are its i cluster and later
+    ones, so nothing before the first), and where the window starts in scratch that
+    holds all the chunks' windows one after the other (in clusters). A chunk's forces
+    and j lanes need room for its window only: about the chunk's own clusters and the
+    layer of columns its rows reach past them (the first chunk's reach the far side of
+    a periodic box), not the whole list per thread."""
+    chunks = bounds.shape[0] - 1
+    windows = np.zeros((chunks, 3), np.int64)
+    place = 0
+    for c in range(chunks):
+        first, end = bounds[c], bounds[c + 1]
+        if chunks > 1:  # one chunk: every cluster, no pass over the list
+            for k in range(starts[first], starts[bounds[c + 1]]):
+                end = max(end, np.int64(partners[k]) + 1)
+        else:
+            end = starts.shape[0] - 1
+        windows[c, 0], windows[c, 1], windows[c, 2] = first, end, place
+        place += end - first
+    return windows
+
+
+@njit(cache=True, error_model="numpy")
 def cluster_positions(positions, atom, origin, xi, xj):
     """Each slot's position relative to its origin, in float32, as the kernels read
     them: per cluster [x0..x3, y0..y3, z0..z3]; ``xi`` for the i role, ``xj`` for the

@@ -24,6 +24,7 @@ from md._cell_kernels import (
 )
 from md._cluster_kernels import (
     balanced_chunks,
+    chunk_windows,
     cluster_grid,
     cluster_positions,
     cluster_positions_threaded,
@@ -123,7 +124,10 @@ class ClusterFrame:
     cluster c's partners are ``partners[starts[c]:starts[c + 1]]``, the first of
     them c itself; pair k's atoms are separated by ``x_rel[c, a] - x_rel[j, b] +
     offsets[k]`` (float32). Chunk t (one per thread) covers i clusters
-    ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts.
+    ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts; its rows reach
+    clusters ``windows[t, 0]`` (= ``bounds[t]``) to ``windows[t, 1]``, and its part of
+    the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
+    (:func:`md._cluster_kernels.chunk_windows`; ``window_clusters`` in all).
 
     The list holds the cluster pairs that had an atom pair within the list radius
     at the build: the search's candidates (see :func:`md._cluster_kernels.search_pairs`)
@@ -137,6 +141,13 @@ class ClusterFrame:
         self.partners = partners
         self.offsets = offsets
         self.bounds = balanced_chunks(starts, int(chunks))
+        self.windows = chunk_windows(starts, partners, self.bounds)
+
+    @property
+    def window_clusters(self) -> int:
+        """The chunks' windows' clusters together: the per-chunk scratch's length."""
+        first, end, place = self.windows[-1]
+        return int(place + end - first)
 
     @property
     def n_clusters(self) -> int:

@@ -231,7 +231,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
     (8, or 16; None: 16 where ``md._simd.ZMM``, else 8; see the module docstring).
 
     ``row(xi, xj, offsets, partners, start, end, ci, slot_types, n_types, table, mode,
-    data, cut2, forces, j_sums, j_counts, virial) -> energy`` (float64):
+    data, cut2, forces, j_sums, j_counts, window, virial) -> energy`` (float64):
 
     - ``xi``, ``xj``: float32 (clusters * 12,), each cluster [x0..x3, y0..y3, z0..z3]
       relative to its origin, for the i and the j role;
@@ -241,11 +241,14 @@ def cluster_row(pair, rows, lanes: int | None = None):
     - ``slot_types`` int32 per slot, or None when every atom has type 0 (column 0);
     - ``table``, ``mode``, ``data``: passed to ``pair`` (mode a literal);
     - ``cut2``: float32, the largest squared cutoff of the table;
-    - ``forces`` float64 (clusters * 12,): the i forces added, every ``_FLUSH`` pairs'
+    - ``forces`` float64 (12 per cluster from cluster ``window`` on: cluster c at
+      12 (c - ``window``); the same for ``j_sums`` and ``j_counts``, so a chunk's
+      scratch need only cover the clusters its rows reach): the i forces added, every
+      ``_FLUSH`` pairs'
       i sums in double (so no float32 sum runs over more than ``_FLUSH`` terms, whatever
       the row's length); the j forces subtracted where a j cluster's lanes fill;
-    - ``j_sums`` float32 (clusters * ``J_STRIDE``,), 64-byte aligned for speed, and
-      ``j_counts`` int32 (clusters,): each cluster's j forces in float32 lanes (x, y, z
+    - ``j_sums`` float32 (``J_STRIDE`` per cluster), 64-byte aligned for speed, and
+      ``j_counts`` int32 (one per cluster): each cluster's j forces in float32 lanes (x, y, z
       at 0, 16, 32; lane 4 a + b the pair of i atom a and j atom b) and the cluster pairs
       in them, below ``_J_FLUSH`` after every row (a row that fills a cluster's lanes
       folds them into ``forces`` and zeroes them, and at its end folds and zeroes its own
@@ -262,14 +265,14 @@ def cluster_row(pair, rows, lanes: int | None = None):
 
     @intrinsic
     def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-            table, mode, data, cut2, forces, j_sums, j_counts, virial):  # fmt: skip
+            table, mode, data, cut2, forces, j_sums, j_counts, window, virial):  # fmt: skip
         real = table.dtype
         mode_type = getattr(mode, "literal_type", mode)
         pair_sig = typingctx.resolve_function_type(
             numba.typeof(pair), (real, types.int64, table, mode_type, data), {}
         )
         sig = types.float64(xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-                            table, mode, data, cut2, forces, j_sums, j_counts,
+                            table, mode, data, cut2, forces, j_sums, j_counts, window,
                             virial)  # fmt: skip
         single = isinstance(slot_types, types.NoneType)
         with_virial = not isinstance(virial, types.NoneType)
@@ -277,14 +280,20 @@ def cluster_row(pair, rows, lanes: int | None = None):
         def codegen(context, builder, signature, args):
             fl = _FLAGS
             (xi_v, xj_v, off_v, part_v, start_v, end_v, ci_v, types_v, ntypes_v, table_v,
-             mode_v, data_v, cut_v, forces_v, js_v, jc_v, virial_v) = args  # fmt: skip
+             mode_v, data_v, cut_v, forces_v, js_v, jc_v, window_v, virial_v) = args  # fmt: skip
             arg = signature.args
             xi_p, xj_p, off_p, part_p = (array_data(context, builder, arg[n], args[n])
                                          for n in range(4))  # fmt: skip
+            # the window's arrays, addressed by cluster: their pointers moved back by the
+            # window's first cluster (once per row; before the allocation, never read there)
+            shift = builder.neg(builder.sext(window_v, _I64) if window_v.type != _I64
+                                else window_v)  # fmt: skip
             f_p = array_data(context, builder, arg[13], forces_v)
+            f_p = builder.gep(f_p, [builder.mul(shift, _index(12))])
             js_p = array_data(context, builder, arg[14], js_v)
-            jc_p = array_data(context, builder, arg[15], jc_v)
-            vir_p = array_data(context, builder, arg[16], virial_v) if with_virial else None
+            js_p = builder.gep(js_p, [builder.mul(shift, _index(J_STRIDE))])
+            jc_p = builder.gep(array_data(context, builder, arg[15], jc_v), [shift])
+            vir_p = array_data(context, builder, arg[17], virial_v) if with_virial else None
             types_p = None if single else array_data(context, builder, arg[7], types_v)
             literal = getattr(arg[10], "literal_value", None)
             mode_c = _index(literal) if literal is not None else builder.sext(mode_v, _I64)

@@ -166,50 +166,56 @@ def _slot_base(s):
 _MIN_PASS_SLOTS = 16_000
 
 
-def cluster_atom_forces(buffers, atom, bounds, forces) -> None:
+def cluster_atom_forces(buffers, atom, windows, forces) -> None:
     """:func:`_cluster_atom_forces`, in runs of slots on the threads where there are
     enough of them (the same bits on any number)."""
     runs = chunk_count(len(atom), _MIN_PASS_SLOTS)
     if runs == 1:
-        _cluster_atom_forces(buffers, atom, bounds, forces)
+        _cluster_atom_forces(buffers, atom, windows, forces)
     else:
-        _cluster_atom_forces_threaded(buffers, atom, bounds, forces, runs)
+        _cluster_atom_forces_threaded(buffers, atom, windows, forces, runs)
 
 
 @njit(cache=True, error_model="numpy")
-def _cluster_atom_forces(buffers, atom, bounds, forces):
-    """Sum the chunks' cluster-ordered forces (chunks, clusters * 12), in chunk order, into
-    ``forces`` (N, 3) in atom order. Chunk c, whose i clusters start at ``bounds[c]``,
-    writes no cluster before that one (a row's partners are its i cluster and clusters
-    after it): its buffer below is neither zeroed by the kernel nor read here."""
-    _slot_forces(buffers, atom, bounds, forces, 0, atom.shape[0])
+def _cluster_atom_forces(buffers, atom, windows, forces):
+    """Sum the chunks' cluster-ordered forces, in chunk order, into ``forces`` (N, 3) in
+    atom order. ``windows`` (chunks, 3; ``md._cluster_kernels.chunk_windows``): chunk c
+    wrote clusters ``windows[c, 0]`` (its first i cluster: a row's partners are its i
+    cluster and clusters after it) to ``windows[c, 1]``, 12 values each, into
+    ``buffers`` from 12 * ``windows[c, 2]`` on; nothing of a chunk outside its window
+    is read."""
+    _slot_forces(buffers, atom, windows, forces, 0, atom.shape[0])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _cluster_atom_forces_threaded(buffers, atom, bounds, forces, runs):
+def _cluster_atom_forces_threaded(buffers, atom, windows, forces, runs):
     """:func:`_cluster_atom_forces` in ``runs`` runs of slots on the threads (the same
     bits: each atom's sum is its own, in chunk order)."""
     n = atom.shape[0]
     for r in prange(runs):
-        _slot_forces(buffers, atom, bounds, forces, r * n // runs, (r + 1) * n // runs)
+        _slot_forces(buffers, atom, windows, forces, r * n // runs, (r + 1) * n // runs)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _slot_forces(buffers, atom, bounds, forces, first, end):
+def _slot_forces(buffers, atom, windows, forces, first, end):
     """:func:`_cluster_atom_forces` for slots ``first`` to ``end``: the slots of chunk k's
-    i clusters (and of those after them up to chunk k + 1's) take chunks 0 to k."""
-    for k in range(bounds.shape[0] - 1):
-        lo = max(first, bounds[k] * CLUSTER)
-        hi = min(end, bounds[k + 1] * CLUSTER)
+    i clusters take those of chunks 0 to k whose windows reach them."""
+    chunks = windows.shape[0]
+    for k in range(chunks):
+        lo = max(first, windows[k, 0] * CLUSTER)
+        hi = min(end, (windows[k + 1, 0] if k + 1 < chunks else windows[k, 1]) * CLUSTER)
         for s in range(lo, hi):
-            i, base = atom[s], _slot_base(s)
+            i, base, cluster = atom[s], _slot_base(s), s // CLUSTER
             if i < 0:
                 continue
-            for d in range(3):
-                f = buffers[0, base + d * CLUSTER]
-                for c in range(1, k + 1):
-                    f += buffers[c, base + d * CLUSTER]
-                forces[i, d] = f
+            fx = fy = fz = 0.0
+            for c in range(k + 1):
+                if cluster < windows[c, 1]:
+                    at = 3 * CLUSTER * (windows[c, 2] - windows[c, 0]) + base
+                    fx += buffers[at]
+                    fy += buffers[at + CLUSTER]
+                    fz += buffers[at + 2 * CLUSTER]
+            forces[i, 0], forces[i, 1], forces[i, 2] = fx, fy, fz
 
 
 #: float32 values per cluster in the cluster kernels' j lanes (``potentials._cluster_ir``).

@@ -814,16 +814,22 @@ class PairPotential:
         atom = clusters.atom
         n_clusters = clusters.n_clusters
         chunks = len(clusters.bounds) - 1
+        # the chunks' forces and j lanes: room for each chunk's window (the clusters its
+        # rows reach), not the whole list per chunk; the windows move with each prune, so
+        # several chunks get a sixteenth more than they ask
+        need = clusters.window_clusters
         scratch = getattr(self, "_cluster_scratch", None)
-        if scratch is None or scratch[0].shape[0] != 12 * n_clusters or len(scratch[3]) != chunks:
+        if (scratch is None or scratch[0].shape[0] != 12 * n_clusters
+                or len(scratch[6]) != chunks or len(scratch[5]) < need):  # fmt: skip
+            room = need + need // 16 if chunks > 1 else need
             scratch = (
                 np.empty(12 * n_clusters, np.float32),
                 np.empty(12 * n_clusters, np.float32),
                 np.empty(4 * n_clusters, np.int32),
-                np.empty((chunks, 12 * n_clusters)),
+                np.empty(12 * room),
                 # the kernels' j lanes and their pair counts: zero, and left zero by each call
-                zeros_on_lines((chunks, J_STRIDE * n_clusters), np.float32),
-                np.zeros((chunks, n_clusters), np.int32),
+                zeros_on_lines(J_STRIDE * room, np.float32),
+                np.zeros(room, np.int32),
                 np.empty(chunks),
                 np.empty((chunks, 9)),
             )
@@ -835,7 +841,7 @@ class PairPotential:
         entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
         clusters.relative_positions(state.positions, xi, xj)
         lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1),
-                 clusters.bounds)  # fmt: skip
+                 clusters.bounds, clusters.windows)  # fmt: skip
         # as the slot frame's first call: both virial variants run once (they compile or
         # load before a run's loop), the one asked for last
         ran = (entry, mode, single)
@@ -850,7 +856,7 @@ class PairPotential:
                        with_virial, single, buffers, j_sums, j_counts, atom, forces,
                        energies, virials)  # fmt: skip
         if chunks > 1:  # one chunk writes the forces in atom order itself
-            cluster_atom_forces(buffers, atom, clusters.bounds, forces)
+            cluster_atom_forces(buffers, atom, clusters.windows, forces)
         total = None
         if virial:
             w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)

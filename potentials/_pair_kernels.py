@@ -53,6 +53,7 @@ from md._simd import store_fence, stream_store
 from md.box import min_image, separation
 from potentials._cluster_ir import cluster_row
 from potentials._kernels import (
+    J_STRIDE,
     _add_half_pair_virial,
     _cluster_slot_forces,
     _gather_frame,
@@ -432,13 +433,18 @@ def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, 
 def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
                    with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
                    virials):  # fmt: skip
-    starts, partners, offsets, bounds = clusters
+    starts, partners, offsets, bounds, windows = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
         cut2 = max(cut2, REAL(table[RC2, column]))
-    out = buffers[chunk]
-    out[12 * bounds[chunk] :] = 0.0  # no pair of the chunk reaches a cluster before its first
-    lanes, counts = j_sums[chunk], j_counts[chunk]
+    # the chunk's window: the clusters its rows reach, addressed by cluster from the
+    # window's first (``low``) in the chunk's part of the scratch
+    low, place = windows[chunk, 0], windows[chunk, 2]
+    size = windows[chunk, 1] - low
+    out = buffers[12 * place : 12 * (place + size)]
+    out[:] = 0.0
+    lanes = j_sums[J_STRIDE * place : J_STRIDE * (place + size)]
+    counts = j_counts[place : place + size]
     whole = bounds.shape[0] == 2  # one chunk
     virials[chunk, :] = 0.0
     energy = 0.0
@@ -446,22 +452,24 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
         first, last = starts[ci], starts[ci + 1]
         if single and with_virial:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, lanes, counts,
+                                   table, mode, data, cut2, out, lanes, counts, low,
                                    virials[chunk])  # fmt: skip
         elif single:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, lanes, counts, None)  # fmt: skip
+                                   table, mode, data, cut2, out, lanes, counts, low,
+                                   None)  # fmt: skip
         elif with_virial:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out, lanes, counts,
+                                   n_types, table, mode, data, cut2, out, lanes, counts, low,
                                    virials[chunk])  # fmt: skip
         else:
             energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out, lanes, counts,
+                                   n_types, table, mode, data, cut2, out, lanes, counts, low,
                                    None)  # fmt: skip
         if whole:  # cluster ci's forces are final: into atom order (no pass over them after)
             _cluster_slot_forces(out, atom, ci, forces)
-    cluster_j_remainders(lanes, counts, out, bounds[chunk + 1])  # rows fold their own
+    # rows fold their own clusters' lanes; those of the window's clusters after them, here
+    cluster_j_remainders(lanes, counts, out, bounds[chunk + 1] - low)
     energies[chunk] = energy
 
 

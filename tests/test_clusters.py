@@ -21,13 +21,14 @@ from md._cluster_kernels import (
     CLUSTER,
     FILLER,
     balanced_chunks,
+    chunk_windows,
     cluster_grid,
     cluster_positions,
     column_counts,
     search_pairs,
 )
 from md.forcefield import ForceField
-from md.neighbors import NeighborList
+from md.neighbors import ClusterFrame, NeighborList
 from md.parallel import get_threads, set_threads
 from potentials import LennardJones, Morse, PairPotential, pair_term
 
@@ -523,7 +524,7 @@ def _row_kernel(term_module, lanes):
         most = 0
         for ci in range(len(starts) - 1):
             energy += row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, None, 1,
-                          table, mode, data, cut2, out, j_sums, j_counts, None)  # fmt: skip
+                          table, mode, data, cut2, out, j_sums, j_counts, 0, None)  # fmt: skip
             most = max(most, j_counts.max())
         cluster_j_remainders(j_sums, j_counts, out, 0)
         return energy, most
@@ -623,13 +624,14 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
                                    runs)  # fmt: skip
         for a, b in zip(serial, threaded, strict=True):
             assert np.array_equal(a, b)
-    buffers = rng.normal(size=(3, size))
-    bounds = balanced_chunks(clusters.starts, 3)
+    windows = chunk_windows(clusters.starts, clusters.partners,
+                            balanced_chunks(clusters.starts, 3))  # fmt: skip
+    buffers = rng.normal(size=12 * (windows[-1, 2] + windows[-1, 1] - windows[-1, 0]))
     expected = np.zeros((state.n_atoms, 3))
-    _cluster_atom_forces(buffers, clusters.atom, bounds, expected)
+    _cluster_atom_forces(buffers, clusters.atom, windows, expected)
     for runs in (2, 5):
         forces = np.zeros((state.n_atoms, 3))
-        _cluster_atom_forces_threaded(buffers, clusters.atom, bounds, forces, runs)
+        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, forces, runs)
         assert np.array_equal(forces, expected)
 
 
@@ -655,46 +657,90 @@ def test_the_threaded_grid_gives_the_serial_arrays(fcc_lattice, rng):
                 assert a.dtype == b.dtype and np.array_equal(a, b)
 
 
-def test_chunks_write_no_cluster_before_their_first_and_the_sum_skips_it(fcc_lattice, rng):
-    """Every row's partners are its i cluster and clusters after it, so chunk c's buffer
-    holds nothing before its first cluster (``bounds[c]``): the kernel leaves that part
-    alone and the sum into atom order reads none of it (garbage there changes nothing, on
-    2, 3 and 5 chunks). The forces on two chunks are the double frame's to float32
-    round-off."""
+def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_that(
+        fcc_lattice, rng):  # fmt: skip
+    """Every row's partners are its i cluster and clusters after it, and a chunk's rows
+    reach only a layer of columns past its own clusters (the first chunk's: the far
+    side of the periodic box too), so each chunk's forces and j lanes take room for
+    that window only (``chunk_windows``), one window after another: on 2, 3, 5 and 8
+    chunks the windows hold every pair and together less than chunks times the list
+    (on this small lattice 1.6, 2.0, 3.0 and 3.8 times; the reach is a larger part of
+    a small box). The sum into atom order reads each chunk's window and
+    nothing else (garbage around the windows changes nothing)."""
     from potentials._kernels import _cluster_atom_forces
 
-    state = fcc_lattice(cells=8, perturbation=0.1)
+    state = fcc_lattice(cells=12, perturbation=0.1)
     state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box
-    double = ForceField([LennardJones(cutoff=2.5)]).compute(state)
-    before = get_threads()
-    try:
-        set_threads(2)
-        field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
-        mixed = field.compute(state, virial=False)
-    finally:
-        set_threads(before)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    field.neighbor_list.update(state)
     clusters = field.neighbor_list.clusters
-    for ci in range(clusters.n_clusters):
+    n = clusters.n_clusters
+    for ci in range(n):
         row = clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]]
         assert row[0] == ci and np.all(row >= ci)
-    assert len(clusters.bounds) - 1 == 2
-    assert _relative_error(mixed.forces, double.forces) < 200 * EPS32
-    # the sum alone: garbage before each chunk's first cluster is not read
     real = clusters.atom >= 0
-    for chunks in (2, 3, 5):
+    for chunks in (2, 3, 5, 8):
         bounds = balanced_chunks(clusters.starts, chunks)
-        buffers = rng.normal(size=(chunks, 12 * clusters.n_clusters))
-        whole = buffers.copy()
-        for c in range(1, chunks):
-            buffers[c, : 12 * bounds[c]] = np.nan
-            whole[c, : 12 * bounds[c]] = 0.0
+        windows = chunk_windows(clusters.starts, clusters.partners, bounds)
+        assert np.array_equal(windows[:, 0], bounds[:-1]) and windows[-1, 1] == n
+        sizes = windows[:, 1] - windows[:, 0]
+        assert np.array_equal(windows[:, 2], np.concatenate([[0], np.cumsum(sizes)[:-1]]))
+        for c in range(chunks):  # each window ends past the last cluster its rows reach
+            reached = clusters.partners[clusters.starts[bounds[c]]:clusters.starts[bounds[c + 1]]]
+            assert windows[c, 1] == max(bounds[c + 1], reached.max(initial=-1) + 1)
+        total = int(sizes.sum())
+        assert total < {2: 0.85, 3: 0.75, 5: 0.65, 8: 0.55}[chunks] * chunks * n, total / n
+        # the sum alone, against the windows added into whole-list buffers by numpy
+        buffers = np.full(12 * total + 24, np.nan)
+        whole = np.zeros((chunks, 12 * n))
+        for c, (first, end, place) in enumerate(windows):
+            values = rng.normal(size=12 * (end - first))
+            buffers[12 * place : 12 * (place + end - first)] = values
+            whole[c, 12 * first : 12 * end] = values
         forces = np.empty((state.n_atoms, 3))
-        _cluster_atom_forces(buffers, clusters.atom, bounds, forces)
+        _cluster_atom_forces(buffers, clusters.atom, windows, forces)
         slots = whole.sum(axis=0).reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
         summed = np.zeros((state.n_atoms, 3))
         summed[clusters.atom[real]] = slots[real]
         assert np.isfinite(forces).all()
         assert np.allclose(forces, summed, rtol=1e-13, atol=1e-13)
+
+
+class _Chunked:
+    """A cluster list's arrays cut into another number of chunks, as a neighbour list
+    hands them to the pair kernels."""
+
+    def __init__(self, neighbors, chunks):
+        c = neighbors.clusters
+        self.clusters = ClusterFrame(c.atom, c.origin, c.starts, c.partners, c.offsets, chunks)
+        self.list_radius = neighbors.list_radius
+
+
+@pytest.mark.parametrize("name", ["lj-shift", pytest.param("lj-two-types", marks=pytest.mark.slow)])
+def test_any_number_of_chunks_in_their_windows_gives_the_forces_of_one(name, fcc_lattice, rng):
+    """The kernel over 1, 2, 3, 5 and 8 chunks, each in its own window of scratch (on
+    this machine's threads, several chunks a thread): the forces, energy and virial of
+    one chunk to float32 round-off and Newton's third law, and the same bits on a second
+    call (the j lanes left zero by the first)."""
+    state = fcc_lattice(cells=9, perturbation=0.08, n_types=2 if "two" in name else 1)
+    state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box
+    potential = POTENTIALS[name]()
+    double = ForceField([potential]).compute(state, virial=True)
+    field = ForceField([potential], precision="mixed")
+    field.neighbor_list.update(state)
+    results = {}
+    for chunks in (1, 2, 3, 5, 8):
+        neighbors = _Chunked(field.neighbor_list, chunks)
+        results[chunks] = potential.energy_forces(state, neighbors, precision="mixed")
+        again = potential.energy_forces(state, neighbors, precision="mixed")
+        assert np.array_equal(again.forces, results[chunks].forces)
+    scale = np.sqrt(state.n_atoms) * np.abs(double.forces).max()
+    for result in results.values():
+        assert _relative_error(result.forces, double.forces) < 200 * EPS32
+        assert abs(result.energy - double.energy) < 20 * EPS32 * abs(double.energy)
+        assert _relative_error(result.virial, double.virial) < 20 * EPS32
+        assert np.abs(result.forces.sum(axis=0)).max() < 10 * EPS32 * scale
+        assert _relative_error(result.forces, results[1].forces) < 20 * EPS32
 
 
 _AVX2_ONLY = (
