@@ -390,21 +390,24 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
                    virials):  # fmt: skip
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
-    ``clusters`` is (starts, partners, offsets, bounds): each i cluster's row of
-    partners and their offsets (float32, 3 per pair, flat), and the i-cluster range of
-    each chunk. ``xi``/``xj`` the clusters' relative positions in the i and j roles
-    (float32, 12 per cluster), ``slot_types`` each slot's type. Chunk c adds its
-    clusters' forces into its own ``buffers[c]`` (C, clusters * 12, zeroed here from
-    the chunk's first cluster on: no pair reaches one before it), its
-    energy into ``energies[c]`` and, if ``with_virial``, offset (x) force of each pair
-    into ``virials[c]`` (9, row-major; the relative positions' part is added by the
-    caller). ``j_sums[c]`` (float32, clusters * 48) and ``j_counts[c]`` (int32, per
-    cluster) are the chunk's j forces in float32 lanes and the pairs in them
+    ``clusters`` is (starts, partners, offsets, bounds, windows): each i cluster's
+    row of partners and their offsets (float32, 3 per pair, flat), the i-cluster range
+    of each chunk, and each chunk's window (first, end, place;
+    ``md._cluster_kernels.chunk_windows``): the clusters its rows reach, and where
+    their part of the scratch starts. ``xi``/``xj`` the clusters' relative positions
+    in the i and j roles (float32, 12 per cluster), ``slot_types`` each slot's type.
+    Chunk c adds its window's forces into ``buffers`` (float64, 12 per cluster from
+    12 * place on; zeroed here), its energy into ``energies[c]`` and, if
+    ``with_virial``, offset (x) force of each pair into ``virials[c]`` (9, row-major;
+    the relative positions' part is added by the caller). ``j_sums`` (float32, 48 per
+    cluster) and ``j_counts`` (int32, one per cluster), at the same places, hold the
+    chunk's j forces in float32 lanes and the pairs in them
     (``potentials._cluster_ir``): zero on entry, and left zero. With one chunk each
     cluster's forces are final after its own row (no later row adds to them) and are
     written there into ``forces`` (N, 3) in atom order (``atom``: each slot's atom, -1
-    for a filler); with several the caller sums the buffers into it. The table is
-    float32: mixed precision only.
+    for a filler); with several the caller sums the windows into it
+    (``potentials._kernels.cluster_atom_forces``). The table is float32: mixed
+    precision only.
     """
     literally(mode)
     literally(with_virial)
