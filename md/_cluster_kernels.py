@@ -424,25 +424,36 @@ def balanced_chunks(starts, chunks):
     return bounds
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def row_reach(starts, partners):
+    """Per i cluster, one past the last cluster its row reaches (its largest partner + 1;
+    a row's partners are its cluster and later ones), on the threads."""
+    n = starts.shape[0] - 1
+    reach = np.empty(n, np.int64)
+    for ci in prange(n):
+        last = np.int32(ci)
+        for k in range(starts[ci], starts[ci + 1]):
+            last = max(last, partners[k])
+        reach[ci] = np.int64(last) + 1
+    return reach
+
+
 @njit(cache=True, error_model="numpy")
-def chunk_windows(starts, partners, bounds):
+def chunk_windows(reach, bounds):
     """Each chunk's window of clusters (chunks, 3): its first i cluster, one past the
-    last cluster any of its rows reaches (a row's partners are its i cluster and later
-    ones, so nothing before the first), and where the window starts in scratch that
-    holds all the chunks' windows one after the other (in clusters). A chunk's forces
-    and j lanes need room for its window only: about the chunk's own clusters and the
-    layer of columns its rows reach past them (the first chunk's reach the far side of
-    a periodic box), not the whole list per thread."""
+    last cluster any of its rows reaches (``reach``: per row, as :func:`row_reach`, or
+    a bound on it), and where the window starts in scratch that holds all the chunks'
+    windows one after the other (in clusters). A chunk's forces and j lanes need room
+    for its window only: about the chunk's own clusters and the layer of columns its
+    rows reach past them (the first chunks' reach the far side of a periodic box), not
+    the whole list per thread."""
     chunks = bounds.shape[0] - 1
     windows = np.zeros((chunks, 3), np.int64)
     place = 0
     for c in range(chunks):
         first, end = bounds[c], bounds[c + 1]
-        if chunks > 1:  # one chunk: every cluster, no pass over the list
-            for k in range(starts[first], starts[bounds[c + 1]]):
-                end = max(end, np.int64(partners[k]) + 1)
-        else:
-            end = starts.shape[0] - 1
+        for ci in range(first, bounds[c + 1]):
+            end = max(end, reach[ci])
         windows[c, 0], windows[c, 1], windows[c, 2] = first, end, place
         place += end - first
     return windows

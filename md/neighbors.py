@@ -30,6 +30,7 @@ from md._cluster_kernels import (
     cluster_positions_threaded,
     column_counts,
     prune_pairs,
+    row_reach,
     search_pairs,
 )
 from md.box import (
@@ -125,23 +126,45 @@ class ClusterFrame:
     them c itself; pair k's atoms are separated by ``x_rel[c, a] - x_rel[j, b] +
     offsets[k]`` (float32). Chunk t (one per thread) covers i clusters
     ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts; its rows reach
-    clusters ``windows[t, 0]`` (= ``bounds[t]``) to ``windows[t, 1]``, and its part of
-    the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
-    (:func:`md._cluster_kernels.chunk_windows`; ``window_clusters`` in all).
+    clusters ``windows[t, 0]`` (= ``bounds[t]``) to at most ``windows[t, 1]``, and its
+    part of the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
+    (:func:`md._cluster_kernels.chunk_windows`; ``window_clusters`` in all). A pruned
+    list takes ``reach`` (per row, one past its last partner) from its outer list: a
+    bound that costs no pass over the pairs at each prune.
 
     The list holds the cluster pairs that had an atom pair within the list radius
     at the build: the search's candidates (see :func:`md._cluster_kernels.search_pairs`)
     checked atom by atom in 8-lane vectors (GROMACS's pruning), about half of them on the LJ melt.
     """
 
-    def __init__(self, atom, origin, starts, partners, offsets, chunks: int):
+    def __init__(self, atom, origin, starts, partners, offsets, chunks: int, reach=None):
         self.atom = atom
         self.origin = origin
         self.starts = starts
         self.partners = partners
         self.offsets = offsets
         self.bounds = balanced_chunks(starts, int(chunks))
-        self.windows = chunk_windows(starts, partners, self.bounds)
+        self._reach = reach
+        self._windows = None
+
+    @property
+    def reach(self) -> NDArray[np.int64]:
+        """Per i cluster, one past the last cluster its row reaches, or a bound on it
+        (found on first use: :func:`md._cluster_kernels.row_reach`)."""
+        if self._reach is None:
+            self._reach = row_reach(self.starts, self.partners)
+        return self._reach
+
+    @property
+    def windows(self) -> NDArray[np.int64]:
+        """Each chunk's window (first, end, place), found on first use: one chunk's is
+        the whole list, with no pass over it."""
+        if self._windows is None:
+            if len(self.bounds) == 2:
+                self._windows = np.array([[0, self.n_clusters, 0]], np.int64)
+            else:
+                self._windows = chunk_windows(self.reach, self.bounds)
+        return self._windows
 
     @property
     def window_clusters(self) -> int:
@@ -721,8 +744,10 @@ class NeighborList:
         reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
         kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
                            xi, xj, reach2, starts, partners, offsets)  # fmt: skip
+        chunks = len(outer.bounds) - 1
         self._clusters = ClusterFrame(outer.atom, outer.origin, starts, partners[:kept],
-                                      offsets[:kept], len(outer.bounds) - 1)  # fmt: skip
+                                      offsets[:kept], chunks,
+                                      reach=outer.reach if chunks > 1 else None)  # fmt: skip
         if self._pruned_at is None or self._pruned_at.shape != positions.shape:
             self._pruned_at = np.empty_like(positions)
         self._pruned_at[:] = positions

@@ -25,6 +25,7 @@ from md._cluster_kernels import (
     cluster_grid,
     cluster_positions,
     column_counts,
+    row_reach,
     search_pairs,
 )
 from md.forcefield import ForceField
@@ -624,7 +625,7 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
                                    runs)  # fmt: skip
         for a, b in zip(serial, threaded, strict=True):
             assert np.array_equal(a, b)
-    windows = chunk_windows(clusters.starts, clusters.partners,
+    windows = chunk_windows(row_reach(clusters.starts, clusters.partners),
                             balanced_chunks(clusters.starts, 3))  # fmt: skip
     buffers = rng.normal(size=12 * (windows[-1, 2] + windows[-1, 1] - windows[-1, 0]))
     expected = np.zeros((state.n_atoms, 3))
@@ -671,17 +672,27 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
 
     state = fcc_lattice(cells=12, perturbation=0.1)
     state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box
-    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
-    field.neighbor_list.update(state)
+    before = get_threads()
+    try:
+        set_threads(2)
+        field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+        field.neighbor_list.update(state)
+    finally:
+        set_threads(before)
     clusters = field.neighbor_list.clusters
     n = clusters.n_clusters
+    # the engine's windows, of a list pruned from the outer list (whose row reach they
+    # take: a bound): they cover every pair, and are no smaller than the exact ones
+    assert field.neighbor_list.outer_clusters is not None and len(clusters.bounds) == 3
+    exact = chunk_windows(row_reach(clusters.starts, clusters.partners), clusters.bounds)
+    assert np.all(clusters.windows[:, 1] >= exact[:, 1]) and clusters.windows[-1, 1] == n
     for ci in range(n):
         row = clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]]
         assert row[0] == ci and np.all(row >= ci)
     real = clusters.atom >= 0
     for chunks in (2, 3, 5, 8):
         bounds = balanced_chunks(clusters.starts, chunks)
-        windows = chunk_windows(clusters.starts, clusters.partners, bounds)
+        windows = chunk_windows(row_reach(clusters.starts, clusters.partners), bounds)
         assert np.array_equal(windows[:, 0], bounds[:-1]) and windows[-1, 1] == n
         sizes = windows[:, 1] - windows[:, 0]
         assert np.array_equal(windows[:, 2], np.concatenate([[0], np.cumsum(sizes)[:-1]]))
