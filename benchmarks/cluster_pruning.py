@@ -8,9 +8,14 @@ melt's first ``--warm`` steps, then ``--steps`` steps per repeat, taking turns w
 each repeat. Prints per outer skin the median time per step, the searches and prunes
 per repeat, the outer and inner list sizes in cluster pairs, and the median of the
 per-repeat ratios to the first outer skin given. Compilation is excluded (the warm-up).
+``--sections`` also prints where a step goes per outer skin: the force call, the list
+(its searches and prunes, each call timed: ``md.neighbors``' ``search_pairs`` and
+``prune_pairs`` wrapped in timers, the rest of a search's build and the per-step
+displacement check) and the integrator, in ms per step.
 
     python benchmarks/cluster_pruning.py                        # outer 0.3, 0.9, 1.2, 1.5
     python benchmarks/cluster_pruning.py --threads 2 --outer 0.3,1.2 --repeats 5
+    python benchmarks/cluster_pruning.py --outer 1.5 --sections --threads 2
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, fr
 from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
+import md.neighbors  # noqa: E402
 from integrators import VelocityVerlet  # noqa: E402
 from md.build import maxwell_boltzmann  # noqa: E402
 from md.neighbors import NeighborList  # noqa: E402
@@ -53,6 +59,8 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=200, help="steps per repeat (200)")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats (3)")
     parser.add_argument("--warm", type=int, default=300, help="steps before timing (300)")
+    parser.add_argument("--sections", action="store_true",
+                        help="also where a step goes: force, searches, prunes, integrator")
     args = parser.parse_args(argv)
     try:
         outers = [float(x) for x in args.outer.split(",")]
@@ -73,14 +81,19 @@ def main(argv=None) -> None:
         sims[outer].run(args.warm)
     times = {outer: [] for outer in outers}
     counts = {outer: [] for outer in outers}
+    calls = _timed_calls() if args.sections else None
+    split = {outer: [] for outer in outers}
     for _ in range(args.repeats):
         for outer, sim in sims.items():
             nl = sim.forcefield.neighbor_list
             builds, prunes = nl.n_builds, nl.n_prunes
+            before = _seconds(sim, calls)
             start = time.perf_counter()
             sim.run(args.steps)
             times[outer].append((time.perf_counter() - start) / args.steps)
             counts[outer].append((nl.n_builds - builds, nl.n_prunes - prunes))
+            after = _seconds(sim, calls)
+            split[outer].append({k: (after[k] - before[k]) / args.steps for k in after})
     reference = times[outers[0]]
     print(f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
           f"{'outer pairs':>11} {'ratio':>6}")  # fmt: skip
@@ -93,6 +106,44 @@ def main(argv=None) -> None:
         outer_pairs = nl.outer_clusters.n_pairs if nl.outer_clusters is not None else "-"
         print(f"{outer:>10g} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
               f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}")  # fmt: skip
+    if calls is None:
+        return
+    print("where a step goes, ms per step (median over the repeats): the force call; the list:"
+          " searches (search_pairs), prunes (prune_pairs, a search's own included), the rest"
+          " (grid, relative positions, the displacement check); the integrator")
+    names = ("force", "search", "prune", "list rest", "integrator")
+    print(f"{'outer skin':>10} " + " ".join(f"{name:>10}" for name in names))
+    for outer in outers:
+        parts = split[outer]
+        rest = [p["neighbor"] - p["search"] - p["prune"] for p in parts]
+        values = [statistics.median(p[k] for p in parts) for k in ("force", "search", "prune")]
+        values += [statistics.median(rest), statistics.median(p["integrate"] for p in parts)]
+        print(f"{outer:>10g} " + " ".join(f"{1e3 * v:>10.3f}" for v in values))
+
+
+def _timed_calls() -> dict:
+    """Wrap ``md.neighbors``' search and prune kernels in timers (seconds in total)."""
+    totals = {"search": 0.0, "prune": 0.0}
+    for key, name in (("search", "search_pairs"), ("prune", "prune_pairs")):
+        kernel = getattr(md.neighbors, name)
+
+        def timed(*args, _kernel=kernel, _key=key):
+            start = time.perf_counter()
+            try:
+                return _kernel(*args)
+            finally:
+                totals[_key] += time.perf_counter() - start
+
+        setattr(md.neighbors, name, timed)
+    return totals
+
+
+def _seconds(sim: md.Simulation, calls: dict | None) -> dict:
+    """The run's seconds so far: force call, list, integrator and, if timed, the
+    searches and prunes (all the runs' together: taken as differences around one)."""
+    return {"force": sim.forcefield.timings["force"],
+             "neighbor": sim.forcefield.timings["neighbor"],
+             "integrate": sim.timings["integrate"], **(calls or {})}  # fmt: skip
 
 
 if __name__ == "__main__":
