@@ -31,6 +31,13 @@ within minutes, so widths timed in separate processes do not compare): the minim
 width and the median and range of the per-block ratios to the first width. The engine
 uses 16 lanes where the CPU numba compiles for has AVX-512 (``md._simd.ZMM``), else 8;
 16 lanes on an AVX2-only CPU are two registers per vector.
+
+``--windows`` prints, instead of timing, the per-chunk scratch of the cluster kernel on
+2, 4, 8, 16 and 64 chunks (threads), in lists' worth: each chunk's window of the clusters
+its rows reach (``md._cluster_kernels.chunk_windows``), from the outer list's row reach
+as the engine takes it and from the pruned list's own::
+
+    python benchmarks/cluster_kernel.py --windows --cells 80
 """
 
 from __future__ import annotations
@@ -66,6 +73,8 @@ def main(argv=None) -> None:
                              "each, alternated in this process (mixed only)")  # fmt: skip
     parser.add_argument("--blocks", type=int, default=30,
                         help="alternating blocks of --calls per width with --lanes (30)")
+    parser.add_argument("--windows", action="store_true",
+                        help="print the chunks' scratch windows in lists' worth, no timing")
     args = parser.parse_args(argv)
     if args.cells < 1 or args.calls < 1 or args.threads < 1 or args.blocks < 1:
         parser.error("--cells, --calls, --threads and --blocks must be at least 1")
@@ -93,6 +102,11 @@ def main(argv=None) -> None:
     if clusters is None and args.precision == "mixed":
         sys.exit(f"no cluster list for {state.n_atoms} atoms in this cell: use more --cells")
     potential, neighbors = field.potentials[0], field.neighbor_list
+    if args.windows:
+        if clusters is None:
+            sys.exit("--windows: the cluster list's (mixed precision only)")
+        print_windows(neighbors)
+        return
     if widths is not None:
         compare_widths(potential, neighbors, state, widths, args.calls, args.blocks)
         return
@@ -166,6 +180,24 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
               f"({1e9 * min(best[lanes]) / pairs:.2f} ns per cluster pair), energy "
               f"{sums[lanes]:.6f}; per-block ratio to {first} lanes: median "
               f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})")
+
+
+def print_windows(neighbors) -> None:
+    """The chunks' windows, in lists' worth of scratch, per chunk count."""
+    from md._cluster_kernels import balanced_chunks, chunk_windows, row_reach
+
+    clusters, outer = neighbors.clusters, neighbors.outer_clusters
+    own = row_reach(clusters.starts, clusters.partners)
+    reach = outer.reach if outer is not None else own
+    n = clusters.n_clusters
+    print(f"{n} clusters; scratch in lists' worth per chunk count (threads), from the "
+          f"{'outer' if outer is not None else 'pruned'} list's row reach as the engine "
+          f"takes it (the pruned list's own); one list per chunk before stop 60")  # fmt: skip
+    for chunks in (2, 4, 8, 16, 64):
+        bounds = balanced_chunks(clusters.starts, chunks)
+        worth = [float((w[:, 1] - w[:, 0]).sum()) / n
+                 for w in (chunk_windows(reach, bounds), chunk_windows(own, bounds))]
+        print(f"{chunks:>3} chunks: {worth[0]:.2f} ({worth[1]:.2f})")
 
 
 if __name__ == "__main__":
