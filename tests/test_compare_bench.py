@@ -469,6 +469,19 @@ def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones(
     for bad in ("0.3,-1", "a,b"):
         refused = run("--outer", bad)
         assert refused.returncode == 2 and "--outer" in refused.stderr, refused.stderr
+    # --sections: where a step goes; the searches and prunes are timed, and the parts add
+    # up to no more than the step
+    split = run("--cells", "6", "--outer", "1.2", "--steps", "40", "--repeats", "1",
+                "--warm", "20", "--sections")  # fmt: skip
+    assert split.returncode == 0, split.stderr
+    lines = split.stdout.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.split()[:2] == ["outer", "skin"]
+                  and "force" in line)  # fmt: skip
+    step = float(next(line.split()[1] for line in lines if line.split()[:1] == ["1.2"]))
+    parts = [float(x) for x in lines[header + 1].split()[1:]]
+    assert lines[header + 1].split()[0] == "1.2" and len(parts) == 5, lines
+    assert all(x >= 0 for x in parts) and parts[0] > 0 and parts[1] > 0, parts
+    assert sum(parts) <= 1.05 * step, (parts, step)
 
 
 def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
@@ -518,6 +531,16 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     for bad in (("--lanes", "4"), ("--lanes", "8,x"), ("--lanes", "8", "--precision", "double")):
         refused = run("--cells", "6", *bad)
         assert refused.returncode == 2 and "--lanes" in refused.stderr, refused.stderr
+    # --windows: the chunks' scratch in lists' worth, one list at one chunk's share, more
+    # chunks more scratch but less than a list each; the engine's (outer reach) no smaller
+    windows = run("--cells", "10", "--windows")
+    assert windows.returncode == 0, windows.stderr
+    rows = [line.split() for line in windows.stdout.splitlines() if "chunks:" in line]
+    worth = {int(row[0]): (float(row[2]), float(row[3].strip("()"))) for row in rows}
+    assert sorted(worth) == [2, 4, 8, 16, 64], windows.stdout
+    for chunks, (engine, own) in worth.items():
+        assert 1.0 < own <= engine < chunks, (chunks, engine, own)
+    assert worth[2][0] < worth[64][0]
 
 
 @pytest.mark.slow  # two cluster kernels compiled in a child process: about 25 s
