@@ -684,7 +684,8 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
     # the engine's windows, of a list pruned from the outer list (whose row reach they
     # take: a bound): they cover every pair, and are no smaller than the exact ones
     assert field.neighbor_list.outer_clusters is not None and len(clusters.bounds) == 3
-    exact = chunk_windows(row_reach(clusters.starts, clusters.partners), clusters.bounds)
+    reach = row_reach(clusters.starts, clusters.partners)
+    exact = chunk_windows(reach, clusters.bounds)
     assert np.all(clusters.windows[:, 1] >= exact[:, 1]) and clusters.windows[-1, 1] == n
     for ci in range(n):
         row = clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]]
@@ -692,7 +693,7 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
     real = clusters.atom >= 0
     for chunks in (2, 3, 5, 8):
         bounds = balanced_chunks(clusters.starts, chunks)
-        windows = chunk_windows(row_reach(clusters.starts, clusters.partners), bounds)
+        windows = chunk_windows(reach, bounds)
         assert np.array_equal(windows[:, 0], bounds[:-1]) and windows[-1, 1] == n
         sizes = windows[:, 1] - windows[:, 0]
         assert np.array_equal(windows[:, 2], np.concatenate([[0], np.cumsum(sizes)[:-1]]))

@@ -531,8 +531,9 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     for bad in (("--lanes", "4"), ("--lanes", "8,x"), ("--lanes", "8", "--precision", "double")):
         refused = run("--cells", "6", *bad)
         assert refused.returncode == 2 and "--lanes" in refused.stderr, refused.stderr
-    # --windows: the chunks' scratch in lists' worth, one list at one chunk's share, more
-    # chunks more scratch but less than a list each; the engine's (outer reach) no smaller
+    # --windows: the chunks' scratch in lists' worth: more than one list, less than one per
+    # chunk, growing with the chunks; the engine's (from the outer list's reach) no smaller
+    # than the pruned list's own
     windows = run("--cells", "10", "--windows")
     assert windows.returncode == 0, windows.stderr
     rows = [line.split() for line in windows.stdout.splitlines() if "chunks:" in line]
