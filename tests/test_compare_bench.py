@@ -591,3 +591,65 @@ def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
                "1.00)" in line for line in lines), lines  # fmt: skip
     # no row of ours at 2 threads: the 2-thread peer gets no line
     assert not any(" 2t " in line for line in lines), lines
+
+
+#: Run in a child: set up two threads, warm up as the worker does, take a timed system's
+#: setup force call, then list every numba dispatcher that gained a compiled or loaded
+#: version in the 40 steps after it (what the timed loop would pay for).
+_LOADS_IN_THE_LOOP = """
+import gc, json, sys
+sys.path.insert(0, sys.argv[1])
+import md
+from md.parallel import get_threads, set_threads
+from numba.core.dispatcher import Dispatcher
+
+md.keep_freed_memory()
+set_threads(2)
+if get_threads() < 2:
+    print(json.dumps(None))
+    sys.exit()
+import _compare_worker as worker
+
+def versions():
+    return {id(d): (d, len(d.overloads)) for d in gc.get_objects()
+            if issubclass(type(d), Dispatcher)}
+
+found = {}
+for precision in ("double", "mixed"):
+    worker.warm_up(worker.WARMUP_CELLS, precision)
+    if sys.argv[2] == "both":
+        worker.warm_up(worker.WARMUP_CELLS_THREADED, precision)
+    sim = worker._our_simulation(20, precision)
+    sim.forcefield.compute(sim.state)  # time_loop's untimed setup
+    nl = sim.forcefield.neighbor_list
+    builds, prunes, before = nl.n_builds, nl.n_prunes, versions()
+    sim.run(40)
+    found[precision] = {
+        "new": sorted(d.py_func.__qualname__ for key, (d, n) in versions().items()
+                      if n > before.get(key, (None, 0))[1]),
+        "builds": nl.n_builds - builds, "prunes": nl.n_prunes - prunes}
+print(json.dumps(found))
+"""
+
+
+@pytest.mark.parametrize("warm_ups", ["both", "small"])
+def test_the_warm_up_leaves_no_kernel_to_load_in_a_two_thread_timed_loop(warm_ups):
+    """On two threads the 32000-atom melt splits its passes over the atoms into chunks,
+    whose threaded kernels the 864-atom warm-up never calls: numba loaded them in the
+    timed loop's first step (24 ms of a 250 ms run). The worker's second warm-up takes
+    them; without it (``small``) the loop still loads them, which shows the check can
+    see such a load."""
+    done = subprocess.run([sys.executable, "-c", _LOADS_IN_THE_LOOP, str(SCRIPT.parent),
+                           warm_ups], capture_output=True, text=True, timeout=300,
+                          cwd=SCRIPT.parents[1])  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    found = json.loads(done.stdout)
+    if found is None:
+        pytest.skip("numba runs fewer than two threads here")
+    # the 40 steps searched and (mixed) pruned: the loop's list paths were taken
+    assert found["double"]["builds"] >= 1 and found["mixed"]["builds"] >= 1, found
+    assert found["mixed"]["prunes"] >= 1, found
+    if warm_ups == "both":
+        assert found == {k: {**v, "new": []} for k, v in found.items()}, found
+    else:
+        assert "_kick_drift_threaded" in found["double"]["new"], found
