@@ -134,7 +134,7 @@ class Job:
     @property
     def label(self) -> str:
         label = LABELS[(self.engine, self.variant)]
-        if self.engine == "lammps" and self.neigh != "check":
+        if self.engine in ("lammps", "ours") and self.neigh != "check":
             label += f" ({self.neigh})"
         if self.h5md_every:
             label += f" + H5MD/{self.h5md_every}"
@@ -364,6 +364,10 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
     jobs = [Job("ours", t, cells, steps) for t in args.threads]
     if args.mixed:
         jobs += [Job("ours", t, cells, steps, "mixed") for t in args.threads]
+    if args.gromacs_rule:  # ours with GROMACS's list rule: every 20 steps, no check
+        for variant in ("", "mixed") if args.mixed else ("",):
+            jobs += [Job("ours", t, cells, steps, variant, neigh="every20")
+                     for t in args.threads]  # fmt: skip
     serial = 1 in args.threads
     if "lammps" in peers and serial:
         jobs.append(Job("lammps", 1, cells, steps, "plain"))
@@ -394,7 +398,7 @@ def ratio_to_ours(item: Measured, measured: Sequence[Measured],
     if item.job.engine == "ours":
         return None
     ours = find(measured, engine="ours", threads=item.job.threads, n_atoms=item.n_atoms,
-                variant=variant, h5md_every=0)  # fmt: skip
+                variant=variant, h5md_every=0, neigh="check")  # fmt: skip
     return None if ours is None else ours.median / item.median
 
 
@@ -465,9 +469,11 @@ def print_repeat_ratios(measured: Sequence[Measured]) -> None:
     for item in measured:
         if item.job.engine == "ours" or len(item.rates) < 2:
             continue
-        for variant in ("", "mixed"):
+        for variant, neigh in (("", "check"), ("mixed", "check"), ("", "every20"),
+                               ("mixed", "every20")):  # fmt: skip
             ours = find(measured, engine="ours", threads=item.job.threads,
-                        n_atoms=item.n_atoms, variant=variant, h5md_every=0)  # fmt: skip
+                        n_atoms=item.n_atoms, variant=variant, h5md_every=0,
+                        neigh=neigh)  # fmt: skip
             if ours is None:
                 continue
             ratios = repeat_ratios(item, ours)
@@ -1072,6 +1078,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--mixed",
         action="store_true",
         help="also ours in mixed precision (Simulation(precision='mixed')), with its ratios",
+    )
+    parser.add_argument(
+        "--gromacs-rule",
+        action="store_true",
+        help="also ours (and ours mixed, with --mixed) with GROMACS's list rule: rebuilt "
+        "every 20 steps with no check, at rlist 2.832 sigma (neighbor_every = 20, "
+        "neighbor_check = false, skin 0.332); not exact, as GROMACS's is not",
     )
     parser.add_argument(
         "--gmx",

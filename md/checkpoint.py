@@ -77,6 +77,9 @@ class Checkpoint:
     neighbor_pruned : ndarray of float64, shape (N, 3), or None
         Positions of the cluster list's last prune [length] (None where the
         list is not pruned: see ``outer_skin`` in :class:`md.neighbors.NeighborList`).
+    neighbor_step : int or None
+        The step of that build, from which a list looked at every ``every`` steps
+        counts (None in checkpoints written before it was kept).
     fingerprint : dict
         The physics configuration (see :func:`physics_fingerprint`).
     n_frames, last_frame_step : int
@@ -103,6 +106,7 @@ class Checkpoint:
     decomposition: dict | None = None
     neighbor_pruned: np.ndarray | None = None
     precision: str = "double"
+    neighbor_step: int | None = None
 
 
 # ---------------------------------------------------------------------- writing
@@ -164,6 +168,9 @@ def write_checkpoint(
         pruned = nl.pruned_positions  # the cluster list's last prune: the pairs it holds
         if pruned is not None:
             arrays["neighbor_pruned"] = pruned
+        built = getattr(nl, "built_step", None)  # where `every` counts from
+        if built is not None:
+            arrays["neighbor_step"] = np.array(built, dtype=np.int64)
     layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
     if layout is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
@@ -269,6 +276,9 @@ def read_checkpoint(path) -> Checkpoint:
             decomposition=layout,
             precision=str(meta.get("precision", "double")),
             neighbor_pruned=pruned,
+            neighbor_step=(int(arrays["neighbor_step"])
+                           if "neighbor_step" in arrays and reference is not None
+                           else None),  # fmt: skip
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -324,7 +334,8 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
     if nl is not None and checkpoint.neighbor_reference is not None:
         box, tilt = checkpoint.neighbor_cell or (None, None)
         nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference, box, tilt,
-                      pruned=checkpoint.neighbor_pruned)  # fmt: skip
+                      pruned=checkpoint.neighbor_pruned,
+                      step=checkpoint.neighbor_step)  # fmt: skip
         # The result cache may hold forces from the built configuration; drop it.
         forcefield.invalidate()
 
@@ -364,9 +375,14 @@ def physics_fingerprint(config) -> dict:
             # only when set, so checkpoints written before barostats existed still resume
             **({"barostat": {"kind": barostat.type, **barostat.values}} if barostat else {}),
             # precision only when mixed, as the barostat: older checkpoints still resume
+            # the list's rule only when not the exact default, as precision
             "run": {"skin": config.run.skin,
                     **({"precision": config.run.precision}
-                       if config.run.precision != "double" else {})},  # fmt: skip
+                       if config.run.precision != "double" else {}),
+                    **({"neighbor_every": config.run.neighbor_every,
+                        "neighbor_check": config.run.neighbor_check}
+                       if (config.run.neighbor_every, config.run.neighbor_check) != (1, True)
+                       else {})},  # fmt: skip
             "output": {
                 "velocities": config.output.velocities,
                 "forces": config.output.forces,

@@ -248,6 +248,16 @@ class RunConfig:
             "search (as GROMACS's dynamic pruning). At most `skin`: no outer list, a search "
             "whenever the skin says. Not physics: the kernels sum the same pairs.",
         default_doc="5 x `skin`")  # fmt: skip
+    neighbor_every: int = key(1, "integer", unit="steps", minimum=1,
+        doc="Look at the neighbour list only every this many steps (LAMMPS's `neigh_modify "
+            "every`, GROMACS's `nstlist`); between looks it is kept whatever the atoms do. "
+            "Above 1 a pair can come within the cutoff unseen until the next look, and the "
+            "energy drifts: the default, 1, misses none. One process only.")  # fmt: skip
+    neighbor_check: bool = key(True, "boolean",
+        doc="At a look, rebuild only if an atom moved more than half the skin since the last "
+            "build (LAMMPS's `check yes`); false: rebuild at every look (`check no`, as "
+            "GROMACS does every `nstlist` steps), which misses pairs too. One process "
+            "only.")  # fmt: skip
     thermo_every: int = key(100, "integer", unit="steps", minimum=1,
                             doc="Steps between lines of the thermo table.")  # fmt: skip
     threads: int | None = key(None, "integer", minimum=1,

@@ -51,6 +51,9 @@ class ForceField:
     outer_skin : float, optional
         The cluster list's outer skin [length], passed to the
         :class:`~md.neighbors.NeighborList` (None: its default, 5 x ``skin``).
+    neighbor_every, neighbor_check : int, bool
+        The list's ``every`` and ``check`` (LAMMPS's ``neigh_modify``): 1 and True,
+        the defaults, keep it exact; see :class:`~md.neighbors.NeighborList`.
 
     Attributes
     ----------
@@ -65,7 +68,8 @@ class ForceField:
     """
 
     def __init__(self, potentials: Sequence[Potential], skin: float = 0.3,
-                 precision: str = "double", outer_skin: float | None = None) -> None:  # fmt: skip
+                 precision: str = "double", outer_skin: float | None = None,
+                 neighbor_every: int = 1, neighbor_check: bool = True) -> None:  # fmt: skip
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
@@ -73,7 +77,8 @@ class ForceField:
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         # mixed precision: the cluster-pair layout, whose kernels compute in float32 lanes
         clusters = self.precision == "mixed"
-        self.neighbor_list = (NeighborList(max(cutoffs), skin, clusters, outer_skin=outer_skin)
+        self.neighbor_list = (NeighborList(max(cutoffs), skin, clusters, outer_skin=outer_skin,
+                                           every=neighbor_every, check=neighbor_check)
                               if cutoffs else None)  # fmt: skip
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0

@@ -124,12 +124,20 @@ class FIRE:
         Raises
         ------
         ValueError
-            If ``fmax`` is not > 0 or ``max_steps`` not a positive integer.
+            If ``fmax`` is not > 0 or ``max_steps`` not a positive integer, or the
+            force field's neighbour list is not exact (``every`` > 1 or no check).
         NonFiniteError
             If forces or energy become non-finite.
         """
         fmax = positive(fmax, "fmax")
         max_steps = count(max_steps, "max_steps", minimum=1)
+        neighbors = forcefield.neighbor_list
+        if neighbors is not None and not neighbors.exact:
+            raise ValueError(
+                f"minimisation needs a neighbour list looked at on every evaluation, not "
+                f"every {neighbors.every} step(s) with check={neighbors.check}: the state's "
+                "step does not advance while minimising, so the list would never be rebuilt"
+            )
         report_every = count(report_every, "report_every", minimum=1)
         velocity = np.zeros_like(state.positions)
         dt, alpha = self.dt0, self.alpha_start

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass
@@ -274,6 +275,19 @@ class NeighborList:
         None: ``5 * skin`` (a search about a quarter as often as without). ``outer_skin
         <= skin``, or a box shorter than twice the outer radius, searches at
         ``cutoff + skin`` and never prunes.
+    every : int
+        Look at the list only every ``every`` steps (LAMMPS's ``neigh_modify every``):
+        between looks it is kept whatever the atoms did, counted from the step of its
+        build (``state.step`` at the evaluation), so a rebuild comes at the first
+        evaluation at least ``every`` steps after it. 1 (the default): at every step.
+    check : bool
+        At a look, rebuild only if an atom has moved more than ``skin / 2`` since
+        the build (LAMMPS's ``check yes``, the default); False: rebuild at every look
+        (``check no``; with ``every``, GROMACS's fixed ``nstlist``). Only ``every=1``
+        with ``check`` is exact: otherwise a pair that comes within the cutoff
+        between two looks is missed until the next build, the energy drifts, and the
+        cluster list is searched at the list radius with no outer list (its prunes
+        serve the exact rule).
 
     Attributes
     ----------
@@ -318,11 +332,19 @@ class NeighborList:
     """
 
     def __init__(self, cutoff: float, skin: float = 0.3, clusters: bool = False,
-                 outer_skin: float | None = None) -> None:  # fmt: skip
+                 outer_skin: float | None = None, every: int = 1,
+                 check: bool = True) -> None:  # fmt: skip
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError(f"neighbour list cutoff must be positive and finite, got {cutoff}")
         if not (np.isfinite(skin) and skin >= 0):
             raise ValueError(f"skin must be >= 0 and finite, got {skin}")
+        if isinstance(every, bool) or not isinstance(every, int | np.integer) or every < 1:
+            raise ValueError(f"neighbour list 'every' must be an integer >= 1, got {every!r}")
+        if not isinstance(check, bool | np.bool_):
+            raise ValueError(f"neighbour list 'check' must be True or False, got {check!r}")
+        self.every = int(every)
+        self.check = bool(check)
+        self._built_step: int | None = None  # state.step at the last build
         if outer_skin is None:
             outer_skin = _OUTER_SKINS * skin
         if not (np.isfinite(outer_skin) and outer_skin >= 0):
@@ -390,6 +412,29 @@ class NeighborList:
         return self.cutoff + self.skin
 
     @property
+    def exact(self) -> bool:
+        """Whether the list is looked at every step with the displacement check, so that
+        no pair within the cutoff is ever missed (``every == 1`` and ``check``)."""
+        return self.every == 1 and self.check
+
+    @property
+    def built_step(self) -> int | None:
+        """``state.step`` of the last build (None before the first)."""
+        return self._built_step
+
+    @contextlib.contextmanager
+    def exactly(self):
+        """Within the block, look at the list at every evaluation with the check
+        (``every=1``, ``check=True``), whatever the list was made with: for work whose
+        evaluations do not advance ``state.step`` (a minimisation)."""
+        every, check = self.every, self.check
+        self.every, self.check = 1, True
+        try:
+            yield self
+        finally:
+            self.every, self.check = every, check
+
+    @property
     def n_pairs(self) -> int:
         self._slot_list()
         return int(self.slot_starts[-1])
@@ -424,18 +469,21 @@ class NeighborList:
         return self._box.copy(), self._tilt.copy()
 
     def rebuild_at(self, state: State, positions: NDArray[np.float64], box=None,
-                   tilt=None, pruned=None) -> None:  # fmt: skip
+                   tilt=None, pruned=None, step=None) -> None:  # fmt: skip
         """Build the list as it was built at ``positions`` (a checkpoint's), for ``state``.
 
         ``box`` and ``tilt`` are the cell of that build (default: ``state``'s);
         the list then follows the cell to ``state``'s, as it had in the run;
         ``pruned``, the positions of the cluster list's last prune
-        (:attr:`pruned_positions`), prunes it there. A resumed run so has the
-        same list, hence the same force summation order, as the run that was
-        never interrupted.
+        (:attr:`pruned_positions`), prunes it there; ``step``, the step of that build
+        (:attr:`built_step`; default: ``state``'s), from which ``every`` counts. A
+        resumed run so has the same list, hence the same force summation order, as
+        the run that was never interrupted.
         """
         at_build = state.copy()
         at_build.positions[:] = positions
+        if step is not None:
+            at_build.step = int(step)
         if box is not None:
             at_build.box = np.array(box, dtype=np.float64)
             at_build.tilt = np.zeros(3) if tilt is None else np.array(tilt, dtype=np.float64)
@@ -563,6 +611,12 @@ class NeighborList:
             )
             if not same_cell and self._clusters is not None:
                 return True  # cluster offsets and origins hold the build's box lengths
+        if same_cell and not self.exact:
+            since = state.step - self._built_step
+            if 0 <= since < self.every:
+                return None  # not a look: kept whatever the atoms did
+            if not self.check:
+                return True
         chunks = chunk_count(len(self._reference), _MIN_PASS_ATOMS)
         if same_cell and self._outer is not None:
             moved2 = _largest_displacement2(state.positions, self._pruned_at, chunks)
@@ -647,6 +701,7 @@ class NeighborList:
         self._cell_bytes = (self._box.tobytes(), self._tilt.tobytes(), self._pbc.tobytes())
         self._build_cell = (self.lengths, self.tilt)
         self._followed_at_build = self.n_followed
+        self._built_step = int(state.step)
         self.n_builds += 1
 
     def _cell_data(self, state: State):
@@ -686,10 +741,10 @@ class NeighborList:
         return column_counts(box, state.n_atoms, self._search_radius(box))
 
     def _search_radius(self, box: NDArray[np.float64]) -> float:
-        """The radius of a cluster search in ``box``: the outer list's where the box is
-        wider than twice it (pruning on), else the list radius."""
+        """The radius of a cluster search in ``box``: the outer list's where the list is
+        exact and the box wider than twice it (pruning on), else the list radius."""
         outer = self.cutoff + self.outer_skin
-        if self.outer_skin > self.skin and np.all(box > 2 * outer):
+        if self.exact and self.outer_skin > self.skin and np.all(box > 2 * outer):
             return outer
         return self.list_radius
 

@@ -256,8 +256,12 @@ class PreparedRun:
                 # same steps; a decomposed run stops after the stage instead.
                 self.minimized = sim.minimize(stage.fmax, stage.max_steps, **options)
             else:
-                self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
-                                          stage.max_steps, stop=stop, **options)  # fmt: skip
+                neighbors = sim.forcefield.neighbor_list
+                # a list looked at every N steps only would not follow the minimiser,
+                # whose steps are not the state's
+                with neighbors.exactly() if neighbors is not None else contextlib.nullcontext():
+                    self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
+                                              stage.max_steps, stop=stop, **options)  # fmt: skip
             sim.integrator.reset()  # history taken at the old positions is stale
         return self.minimized
 
@@ -912,8 +916,16 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
             sim = Simulation(state, potentials, integrator, skin=config.run.skin,
                              units=config.units, max_displacement=guard,
                              precision=config.run.precision,
-                             outer_skin=config.run.outer_skin)  # fmt: skip
+                             outer_skin=config.run.outer_skin,
+                             neighbor_every=config.run.neighbor_every,
+                             neighbor_check=config.run.neighbor_check)  # fmt: skip
         else:
+            if (config.run.neighbor_every, config.run.neighbor_check) != (1, True):
+                raise ValueError(
+                    "[run] neighbor_every and neighbor_check: a run decomposed over MPI ranks "
+                    "looks at its neighbour lists at every step; run this config on one rank "
+                    "(without mpiexec), or leave them at 1 and true"
+                )
             sim = DistributedSimulation(
                 state, potentials, integrator, skin=config.run.skin, units=config.units,
                 max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,

@@ -82,6 +82,13 @@ class Simulation:
     outer_skin : float, optional
         The cluster list's outer skin [length] (mixed precision): see
         :class:`md.neighbors.NeighborList`. None: its default, 5 x ``skin``.
+    neighbor_every, neighbor_check : int, bool
+        Look at the neighbour list only every ``neighbor_every`` steps, and at a
+        look rebuild it only if an atom moved more than half the skin
+        (``neighbor_check``) or always (False): LAMMPS's ``neigh_modify every N
+        check yes/no``, GROMACS's ``nstlist``. The defaults, 1 and True, are exact;
+        anything else can miss pairs between looks (the energy drifts): see
+        :class:`md.neighbors.NeighborList`.
 
     Attributes
     ----------
@@ -112,12 +119,15 @@ class Simulation:
         threads: int | None = None,
         precision: str = "double",
         outer_skin: float | None = None,
+        neighbor_every: int = 1,
+        neighbor_check: bool = True,
     ) -> None:
         if threads is not None:
             set_threads(threads)
         self.state = state
         self.forcefield = ForceField(potentials, skin=skin, precision=precision,
-                                     outer_skin=outer_skin)  # fmt: skip
+                                     outer_skin=outer_skin, neighbor_every=neighbor_every,
+                                     neighbor_check=neighbor_check)  # fmt: skip
         self.forcefield.check(state)
         self.integrator = integrator
         self.units = get_units(units)

@@ -437,14 +437,19 @@ def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
         return subprocess.run([sys.executable, str(MIXED), *args], capture_output=True,
                               text=True, timeout=300, cwd=MIXED.parents[1])  # fmt: skip
 
-    done = run("--drift-only", "--seeds", "2", "--drift-cells", "3", "--drift-steps", "20")
+    done = run("--drift-only", "--seeds", "2", "--drift-cells", "3", "--drift-steps", "20",
+               "--every", "10")  # fmt: skip
     assert done.returncode == 0, done.stderr
     out = done.stdout
-    assert out.count("liquid of seed") == 2 and out.count("\n  ours mixed ") == 2, out
+    assert out.count("liquid of seed") == 2 and out.count("\n  ours mixed  ") == 2, out
+    # --every: ours mixed once more with the list rebuilt every 10 steps, no check
+    assert out.count("\n  ours mixed (every 10, no check) ") == 2, out
     assert "medians over 2 liquids" in out and "(median over the liquids)" in out, out
     assert "force call" not in out, out  # --drift-only
     refused = run("--seeds", "0")
     assert refused.returncode == 2 and "--seeds must be at least 1, got 0" in refused.stderr
+    refused = run("--every", "0")
+    assert refused.returncode == 2 and "--every must be at least 1, got 0" in refused.stderr
 
 
 PRUNING = SCRIPT.parent / "cluster_pruning.py"
@@ -653,3 +658,30 @@ def test_the_warm_up_leaves_no_kernel_to_load_in_a_two_thread_timed_loop(warm_up
         assert found == {k: {**v, "new": []} for k, v in found.items()}, found
     else:
         assert "_kick_drift_threaded" in found["double"]["new"], found
+
+
+def test_the_gromacs_rule_adds_our_rows_with_its_list_and_the_ratios_keep_the_exact_ones():
+    """``--gromacs-rule``: ours (and ours mixed) once more with GROMACS's list rule (every 20
+    steps, no check, skin 0.332), labelled by it; the table's ours/peer and mixed/peer
+    columns still take the exact rows."""
+    compare = _benchmark_module("compare")
+    worker = _benchmark_module("_compare_worker")
+    args = compare.build_parser().parse_args(["--mixed", "--gromacs-rule", "--peers", "none"])
+    args.threads = [1]  # as main() parses it
+    jobs = compare.comparison_jobs(args, set())
+    rules = {(j.variant, j.neigh) for j in jobs if j.engine == "ours"}
+    assert rules == {("", "check"), ("mixed", "check"), ("", "every20"), ("mixed", "every20")}
+    labels = {j.label for j in jobs if j.neigh == "every20"}
+    assert labels == {"leapmd (every20)", "leapmd mixed (every20)"}
+    assert worker.GROMACS_RULE == {"every": 20, "check": False, "skin": 0.332}
+    with pytest.raises(ValueError, match="unknown list rule 'every5'"):
+        worker._our_simulation(3, neigh="every5")
+
+    def measured(variant, neigh, loop_time):
+        job = compare.Job("ours", 1, 20, 100, variant, neigh=neigh)
+        return compare.Measured(job, [{"n_atoms": 32000, "loop_time": loop_time}])
+
+    peer = compare.Measured(compare.Job("gromacs", 1, 20, 100, "mixed"),
+                            [{"n_atoms": 32000, "loop_time": 1.0}])  # fmt: skip
+    rows = [measured("mixed", "every20", 0.5), measured("mixed", "check", 2.0), peer]
+    assert compare.ratio_to_ours(peer, rows, "mixed") == 0.5  # the exact row's, not 2.0

@@ -332,6 +332,15 @@ def _refused(tmp_path, n_ranks: int, config: Path) -> str:
 
 
 @needs_mpi
+def test_a_list_looked_at_every_n_steps_is_refused_under_ranks(tmp_path):
+    """``[run] neighbor_every``/``neighbor_check`` are for one process: refused before
+    anything is written, naming the keys."""
+    config = write_config(tmp_path, run_extra="neighbor_every = 10\nneighbor_check = false")
+    message = _refused(tmp_path, 2, config)
+    assert "neighbor_every and neighbor_check" in message and "one rank" in message
+
+
+@needs_mpi
 def test_bricks_thinner_than_the_shell_are_refused(tmp_path):
     config = write_config(tmp_path, run_extra="decomposition = [4, 1, 1]")
     message = _refused(tmp_path, 4, config)

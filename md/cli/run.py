@@ -262,7 +262,13 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
         print(f"{name:<10}{seconds:>12.4f}{share:>9.1f}")
     nl = sim.forcefield.neighbor_list
     if nl is not None:
-        print(f"Neighbour list builds: {nl.n_builds} (rebuilt when an atom moved > skin/2)")
+        if getattr(nl, "exact", True):
+            rule = "rebuilt when an atom moved > skin/2"
+        else:
+            rule = (f"looked at every {nl.every} steps, "
+                    + ("rebuilt there if an atom moved > skin/2" if nl.check else "rebuilt there")
+                    + "; not exact: pairs can be missed between looks")  # fmt: skip
+        print(f"Neighbour list builds: {nl.n_builds} ({rule})")
         if nl.n_prunes:
             print(f"Cluster list prunes: {nl.n_prunes} (the outer list pruned again when an "
                   "atom moved > skin/2, searched again past (outer_skin - skin)/2)")
