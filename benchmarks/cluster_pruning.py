@@ -11,11 +11,15 @@ per-repeat ratios to the first outer skin given. Compilation is excluded (the wa
 ``--sections`` also prints where a step goes per outer skin: the force call, the list
 (its searches and prunes, each call timed: ``md.neighbors``' ``search_pairs`` and
 ``prune_pairs`` wrapped in timers, the rest of a search's build and the per-step
-displacement check) and the integrator, in ms per step.
+displacement check) and the integrator, in ms per step. ``--every N`` adds a row with
+GROMACS's list rule (``neighbor_every=N``, no check, no outer list, skin ``--every-skin``,
+0.332: rlist 2.832 as GROMACS's Verlet buffer picks for nstlist 20 on this melt); not
+exact, so its ratio is not the pruning's but the rule's.
 
     python benchmarks/cluster_pruning.py                        # outer 0.3, 0.9, 1.2, 1.5
     python benchmarks/cluster_pruning.py --threads 2 --outer 0.3,1.2 --repeats 5
     python benchmarks/cluster_pruning.py --outer 1.5 --sections --threads 2
+    python benchmarks/cluster_pruning.py --outer 1.5 --every 20 --repeats 7 --threads 2
 """
 
 from __future__ import annotations
@@ -41,11 +45,14 @@ from potentials import LennardJones  # noqa: E402
 CUTOFF, SKIN, DT = 2.5, 0.3, 0.005
 
 
-def simulation(cells: int, outer: float) -> md.Simulation:
+def simulation(cells: int, outer: float, every: int = 1, skin: float = SKIN) -> md.Simulation:
+    """The mixed melt with the cluster list of ``outer`` skin; ``every`` > 1: the list
+    rebuilt every that many steps with no check, at ``skin``, no outer list."""
     start = maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=1)
     sim = md.Simulation(start, [LennardJones(cutoff=CUTOFF)], VelocityVerlet(DT),
-                        precision="mixed", skin=SKIN)  # fmt: skip
-    sim.forcefield.neighbor_list = NeighborList(CUTOFF, SKIN, clusters=True, outer_skin=outer)
+                        precision="mixed", skin=skin)  # fmt: skip
+    sim.forcefield.neighbor_list = NeighborList(CUTOFF, skin, clusters=True, outer_skin=outer,
+                                                every=every, check=every == 1)  # fmt: skip
     sim.forcefield.invalidate()
     return sim
 
@@ -61,6 +68,10 @@ def main(argv=None) -> None:
     parser.add_argument("--warm", type=int, default=300, help="steps before timing (300)")
     parser.add_argument("--sections", action="store_true",
                         help="also where a step goes: force, searches, prunes, integrator")
+    parser.add_argument("--every", type=int, default=0,
+                        help="also a row with the list rebuilt every N steps, no check")
+    parser.add_argument("--every-skin", type=float, default=0.332,
+                        help="that row's skin (0.332: GROMACS's rlist 2.832 for nstlist 20)")
     args = parser.parse_args(argv)
     try:
         outers = [float(x) for x in args.outer.split(",")]
@@ -68,6 +79,9 @@ def main(argv=None) -> None:
         parser.error(f"--outer takes comma-separated numbers, got {args.outer!r}")
     if any(not outer >= 0 for outer in outers):
         parser.error(f"--outer skins must be >= 0, got {args.outer!r}")
+    if args.every < 0 or (args.every and not args.every_skin > 0):
+        parser.error(f"--every must be >= 1 (0: no such row) and --every-skin > 0, got "
+                     f"{args.every} and {args.every_skin}")
     for name in ("cells", "threads", "steps", "repeats"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
@@ -75,14 +89,17 @@ def main(argv=None) -> None:
     print(machine_line())
     print(f"{4 * args.cells**3} atoms, {args.threads} thread(s), mixed precision, skin {SKIN}; "
           f"{args.repeats} repeats of {args.steps} steps after {args.warm}")  # fmt: skip
-    sims = {}
-    for outer in outers:
-        sims[outer] = simulation(args.cells, outer)
-        sims[outer].run(args.warm)
-    times = {outer: [] for outer in outers}
-    counts = {outer: [] for outer in outers}
+    sims = {f"{outer:g}": simulation(args.cells, outer) for outer in outers}
+    if args.every:
+        sims[f"every {args.every}"] = simulation(args.cells, args.every_skin, args.every,
+                                                 args.every_skin)  # fmt: skip
+    for sim in sims.values():
+        sim.run(args.warm)
+    rows = list(sims)
+    times = {row: [] for row in rows}
+    counts = {row: [] for row in rows}
     calls = _timed_calls() if args.sections else None
-    split = {outer: [] for outer in outers}
+    split = {row: [] for row in rows}
     for _ in range(args.repeats):
         for outer, sim in sims.items():
             nl = sim.forcefield.neighbor_list
@@ -94,17 +111,17 @@ def main(argv=None) -> None:
             counts[outer].append((nl.n_builds - builds, nl.n_prunes - prunes))
             after = _seconds(sim, calls)
             split[outer].append({k: (after[k] - before[k]) / args.steps for k in after})
-    reference = times[outers[0]]
+    reference = times[rows[0]]
     print(f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
           f"{'outer pairs':>11} {'ratio':>6}")  # fmt: skip
-    for outer in outers:
+    for outer in rows:
         nl = sims[outer].forcefield.neighbor_list
         ratio = statistics.median(t / r for t, r in zip(times[outer], reference, strict=True))
         searches = statistics.median(c[0] for c in counts[outer])
         prunes = statistics.median(c[1] for c in counts[outer])
         pairs = nl.clusters.n_pairs if nl.clusters is not None else "-"
         outer_pairs = nl.outer_clusters.n_pairs if nl.outer_clusters is not None else "-"
-        print(f"{outer:>10g} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
+        print(f"{outer:>10} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
               f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}")  # fmt: skip
     if calls is None:
         return
@@ -113,12 +130,12 @@ def main(argv=None) -> None:
           " (grid, relative positions, the displacement check); the integrator")
     names = ("force", "search", "prune", "list rest", "integrator")
     print(f"{'outer skin':>10} " + " ".join(f"{name:>10}" for name in names))
-    for outer in outers:
+    for outer in rows:
         parts = split[outer]
         rest = [p["neighbor"] - p["search"] - p["prune"] for p in parts]
         values = [statistics.median(p[k] for p in parts) for k in ("force", "search", "prune")]
         values += [statistics.median(rest), statistics.median(p["integrate"] for p in parts)]
-        print(f"{outer:>10g} " + " ".join(f"{1e3 * v:>10.3f}" for v in values))
+        print(f"{outer:>10} " + " ".join(f"{1e3 * v:>10.3f}" for v in values))
 
 
 def _timed_calls() -> dict:

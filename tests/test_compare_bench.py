@@ -487,6 +487,16 @@ def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones(
     assert lines[header + 1].split()[0] == "1.2" and len(parts) == 5, lines
     assert all(x >= 0 for x in parts) and parts[0] > 0 and parts[1] > 0, parts
     assert sum(parts) <= 1.05 * step, (parts, step)
+    # --every: a row with GROMACS's rule (every N steps, no check): no prunes, no outer list
+    lazy = run("--cells", "6", "--outer", "1.2", "--steps", "40", "--repeats", "1",
+               "--warm", "20", "--every", "10")  # fmt: skip
+    assert lazy.returncode == 0, lazy.stderr
+    row = next(line.split() for line in lazy.stdout.splitlines()
+               if line.split()[:2] == ["every", "10"])  # fmt: skip
+    # every, 10, ms/step, searches, prunes, pairs, outer pairs, ratio
+    assert row[4] == "0" and row[6] == "-" and float(row[3]) >= 3, lazy.stdout
+    refused = run("--every", "-2")
+    assert refused.returncode == 2 and "--every" in refused.stderr, refused.stderr
 
 
 def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
