@@ -345,6 +345,8 @@ class NeighborList:
         self.every = int(every)
         self.check = bool(check)
         self._built_step: int | None = None  # state.step at the last build
+        # (step, positions) of a resume: evaluations there are not looks (see rebuild_at)
+        self._resumed_at: tuple[int, NDArray[np.float64]] | None = None
         if outer_skin is None:
             outer_skin = _OUTER_SKINS * skin
         if not (np.isfinite(outer_skin) and outer_skin >= 0):
@@ -478,7 +480,9 @@ class NeighborList:
         (:attr:`pruned_positions`), prunes it there; ``step``, the step of that build
         (:attr:`built_step`; default: ``state``'s), from which ``every`` counts. A
         resumed run so has the same list, hence the same force summation order, as
-        the run that was never interrupted.
+        the run that was never interrupted. (A list looked at every ``every`` steps
+        does not look at ``state``'s positions again at ``state``'s step: the run
+        evaluated them within the step before, as a step ends, and looked there.)
         """
         at_build = state.copy()
         at_build.positions[:] = positions
@@ -494,6 +498,8 @@ class NeighborList:
                 raise ValueError(f"pruned positions have shape {pruned.shape}, the state "
                                  f"{state.positions.shape}")  # fmt: skip
             self._prune(pruned)
+        if not self.exact:
+            self._resumed_at = (int(state.step), state.positions.copy())
         self.update(state)
 
     @property
@@ -612,6 +618,11 @@ class NeighborList:
             if not same_cell and self._clusters is not None:
                 return True  # cluster offsets and origins hold the build's box lengths
         if same_cell and not self.exact:
+            if self._resumed_at is not None:
+                step, positions = self._resumed_at
+                if state.step == step and np.array_equal(state.positions, positions):
+                    return None  # the resume's own positions, looked at before the checkpoint
+                self._resumed_at = None
             since = state.step - self._built_step
             if 0 <= since < self.every:
                 return None  # not a look: kept whatever the atoms did
@@ -702,6 +713,7 @@ class NeighborList:
         self._build_cell = (self.lengths, self.tilt)
         self._followed_at_build = self.n_followed
         self._built_step = int(state.step)
+        self._resumed_at = None
         self.n_builds += 1
 
     def _cell_data(self, state: State):

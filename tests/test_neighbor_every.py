@@ -102,17 +102,19 @@ def test_a_pair_that_comes_within_the_cutoff_between_looks_is_missed_until_the_n
     assert all(abs(lazy[k][1]) > 0 for k in range(50, 60) if lazy[k][0] < 2.5)
 
 
-@pytest.mark.parametrize("precision", ["double", "mixed"])
-def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision):
+@pytest.mark.parametrize(("precision", "at"), [("double", 17), ("mixed", 17), ("double", 21),
+                                               ("mixed", 21)])  # fmt: skip
+def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision, at):
     """The checkpoint keeps the step of the last build, from which ``every`` counts: a
-    resume rebuilds on the same steps, so the trajectory is the same bits; resumed
-    without it (as from an older checkpoint) the list is rebuilt at the resume's step
-    and the run departs."""
+    resume rebuilds on the same steps, so the trajectory is the same bits, also from step
+    21, where the next look is the first step's (the resume evaluates the checkpoint's
+    positions again at its step, which the run had evaluated within the step before: not
+    a look); resumed without it (as from an older checkpoint) the run departs."""
     whole = _melt(precision, every=7, check=False)
     whole.run(40)
     first = _melt(precision, every=7, check=False)
-    first.run(17)
-    path = write_checkpoint(tmp_path / "at17.ckpt", first.state, first.integrator,
+    first.run(at)
+    path = write_checkpoint(tmp_path / "ckpt.npz", first.state, first.integrator,
                             first.forcefield)  # fmt: skip
     saved = read_checkpoint(path)
     assert saved.neighbor_step == first.forcefield.neighbor_list.built_step == 14
@@ -121,7 +123,7 @@ def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision):
         again = _melt(precision, every=7, check=False)
         again.state = checkpoint.state
         restore(checkpoint, again.integrator, again.forcefield)
-        again.run(23)
+        again.run(40 - at)
         return again
 
     again = resumed(saved)
