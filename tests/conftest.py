@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import md
+from md.checkpoint import restore
 from potentials.base import ForceResult
 
 SEED = 20240607
@@ -217,3 +218,18 @@ class Tether:
 
     def describe(self) -> dict:
         return {"type": "tether", "k": self.k}
+
+
+def resumed_run(checkpoint, build, steps: int):
+    """The simulation ``build(state)`` makes from ``checkpoint``'s state, restored from the
+    checkpoint (integrator state, neighbour list) and run ``steps`` steps."""
+    sim = build(checkpoint.state)
+    restore(checkpoint, sim.integrator, sim.forcefield)
+    sim.run(steps)
+    return sim
+
+
+def assert_same_end(sim, other) -> None:
+    """Two runs ended at the same positions and velocities, bit for bit."""
+    assert np.array_equal(sim.state.positions, other.state.positions)
+    assert np.array_equal(sim.state.velocities, other.state.velocities)

@@ -16,7 +16,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
+from conftest import assert_same_end, lj_config_text, resumed_run
 
 import md
 from integrators import VelocityVerlet
@@ -204,15 +204,11 @@ def test_checkpoint_resumes_bit_for_bit_in_mixed_precision(tmp_path):
     assert not np.array_equal(saved.neighbor_pruned, saved.neighbor_reference)
 
     def resumed(checkpoint):
-        again = md.Simulation(checkpoint.state, [LennardJones(cutoff=2.5)],
-                              VelocityVerlet(dt=0.005), precision="mixed")  # fmt: skip
-        restore(checkpoint, again.integrator, again.forcefield)
-        again.run(35)
-        return again
+        return resumed_run(checkpoint, lambda state: md.Simulation(
+            state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision="mixed"),
+            35)  # fmt: skip
 
-    again = resumed(saved)
-    assert np.array_equal(again.state.positions, whole.state.positions)
-    assert np.array_equal(again.state.velocities, whole.state.velocities)
+    assert_same_end(resumed(saved), whole)
     # the control: the list pruned at the search's positions instead sums other pairs
     unpruned = read_checkpoint(path)
     unpruned.neighbor_pruned = None

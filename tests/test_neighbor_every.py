@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
+from conftest import assert_same_end, lj_config_text, resumed_run
 
 import md
 from integrators import VelocityVerlet
-from md.checkpoint import read_checkpoint, restore, write_checkpoint
+from md.checkpoint import read_checkpoint, write_checkpoint
 from md.cli import main
 from md.minimize import minimize
 from md.neighbors import NeighborList
@@ -19,8 +19,10 @@ from md.trajectory import read_trajectory
 from potentials import LennardJones
 
 
-def _melt(precision="double", every=1, check=True, cells=6, seed=3):
-    state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 1.5, seed=seed)
+def _melt(precision="double", every=1, check=True, cells=6, seed=3, state=None):
+    """The LJ melt's simulation with the list rule (``state``: start from it)."""
+    if state is None:
+        state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 1.5, seed=seed)
     return md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
                          precision=precision, neighbor_every=every,
                          neighbor_check=check)  # fmt: skip
@@ -120,15 +122,10 @@ def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision, a
     assert saved.neighbor_step == first.forcefield.neighbor_list.built_step == 14
 
     def resumed(checkpoint):
-        again = _melt(precision, every=7, check=False)
-        again.state = checkpoint.state
-        restore(checkpoint, again.integrator, again.forcefield)
-        again.run(40 - at)
-        return again
+        return resumed_run(checkpoint, lambda state: _melt(precision, every=7, check=False,
+                                                           state=state), 40 - at)  # fmt: skip
 
-    again = resumed(saved)
-    assert np.array_equal(again.state.positions, whole.state.positions)
-    assert np.array_equal(again.state.velocities, whole.state.velocities)
+    assert_same_end(resumed(saved), whole)
     older = read_checkpoint(path)
     older.neighbor_step = None
     assert not np.array_equal(resumed(older).state.positions, whole.state.positions)
