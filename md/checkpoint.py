@@ -168,9 +168,8 @@ def write_checkpoint(
         pruned = nl.pruned_positions  # the cluster list's last prune: the pairs it holds
         if pruned is not None:
             arrays["neighbor_pruned"] = pruned
-        built = getattr(nl, "built_step", None)  # where `every` counts from
-        if built is not None:
-            arrays["neighbor_step"] = np.array(built, dtype=np.int64)
+        if nl.built_step is not None:  # where `every` counts from
+            arrays["neighbor_step"] = np.array(nl.built_step, dtype=np.int64)
     layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
     if layout is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)

@@ -1771,6 +1771,7 @@ class _ListView:
     n_builds: int
     pruned_positions: None = None
     n_prunes: int = 0
+    built_step: None = None  # ranks always look at their lists: no step to count from
 
 
 class _ForceFieldView:

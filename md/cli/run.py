@@ -262,7 +262,7 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
         print(f"{name:<10}{seconds:>12.4f}{share:>9.1f}")
     nl = sim.forcefield.neighbor_list
     if nl is not None:
-        if getattr(nl, "exact", True):
+        if nl.exact:
             rule = "rebuilt when an atom moved > skin/2"
         else:
             rule = (f"looked at every {nl.every} steps, "
