@@ -735,6 +735,14 @@ class Domain:
         if held is None or held.shape[0] < n:
             held = np.empty((n + n // 8, *tail), dtype=dtype)
             pair[self._parity] = held
+            other = pair[1 - self._parity]
+            if other is None or other.shape[0] < n:
+                # The next build's array now, its pages mapped (written): the first build
+                # is a run's set-up, the next one is inside its loop, where a 10^6-atom
+                # rank's fresh arrays took their page faults at the first rebuild.
+                other = np.empty_like(held)
+                other.fill(0)
+                pair[1 - self._parity] = other
         return held
 
     def _buffer(self, n: int, k: int, name: str = "message", dtype=np.float64) -> NDArray:
