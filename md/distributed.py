@@ -884,7 +884,8 @@ class DistributedForceField:
         self.potentials = list(potentials)
         self.ranks = ranks
         self.skin = float(skin)
-        self.local = ForceField(self.potentials, skin, precision=precision)
+        # its results are this object's to keep (cached per owned positions, _cache)
+        self.local = ForceField(self.potentials, skin, precision=precision, cache=False)
         self.precision = self.local.precision
         self.neighbor_list = self.local.neighbor_list
         self.domain = Domain(ranks, grid)
@@ -1005,7 +1006,6 @@ class DistributedForceField:
             start = time.perf_counter()
             error, result = None, None
             try:
-                self.local.invalidate()  # the local forces are summed into in place below
                 if which is None:
                     result = self.local.compute(self.domain.local_state, per_atom, virial)
                 else:
@@ -1032,7 +1032,7 @@ class DistributedForceField:
         if totals[0]:
             agree(self.ranks, error)
         with self.ranks.clock:
-            # The local result is this evaluation's own (the local cache was just cleared):
+            # The local result is this evaluation's own (the local force field keeps none):
             # the ghosts' rows are summed into it in place and the owned rows returned as they
             # are (a 10^6-atom rank saves two copies of its forces a step).
             forces = self.domain.reverse(np.asarray(result.forces, dtype=np.float64))
@@ -1215,7 +1215,6 @@ class DistributedForceField:
         self.reference = at.positions.copy() if at is state else at.positions
         self.reference_cell = (state.box.copy(), state.tilt.copy())
         self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
-        self.local.invalidate()
         # Built where the atoms are: the local system holds their positions. Built ahead of
         # them: the next evaluation sends positions on every rank (a rank whose atoms reach
         # their predicted positions to the last bit must not skip a collective exchange).

@@ -54,6 +54,12 @@ class ForceField:
     neighbor_every, neighbor_check : int, bool
         The list's ``every`` and ``check`` (LAMMPS's ``neigh_modify``): 1 and True,
         the defaults, keep it exact; see :class:`~md.neighbors.NeighborList`.
+    cache : bool
+        Keep the last result (and a copy of the positions it belongs to) for a call at
+        the same positions (the default). A caller that keeps its own, such as a
+        decomposed run's ranks, turns it off: every call evaluates, and no positions
+        are copied (a 10^6-atom rank copied 24 MB a step for a result it never asked
+        for again).
 
     Attributes
     ----------
@@ -69,7 +75,8 @@ class ForceField:
 
     def __init__(self, potentials: Sequence[Potential], skin: float = 0.3,
                  precision: str = "double", outer_skin: float | None = None,
-                 neighbor_every: int = 1, neighbor_check: bool = True) -> None:  # fmt: skip
+                 neighbor_every: int = 1, neighbor_check: bool = True,
+                 cache: bool = True) -> None:  # fmt: skip
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
@@ -87,6 +94,7 @@ class ForceField:
         self._key: tuple[np.ndarray, ...] | None = None
         self._subsets: dict[tuple[int, ...], tuple[tuple, ForceResult]] = {}
         self.n_subset_evaluations = 0
+        self.cache = bool(cache)
 
     @property
     def cutoff(self) -> float | None:
@@ -129,8 +137,9 @@ class ForceField:
         virial = virial or self.virial_wanted  # a fresh evaluation includes it if wanted
         total = self._evaluate(state, self.potentials, per_atom, virial)
         self.n_evaluations += 1
-        self._cached = total
-        self._key = self._key_of(state, self._key)
+        if self.cache:
+            self._cached = total
+            self._key = self._key_of(state, self._key)
         return total
 
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
@@ -193,7 +202,8 @@ class ForceField:
             return held[1]
         total = self._evaluate(state, [self.potentials[i] for i in which], False, virial)
         self.n_subset_evaluations += 1
-        self._subsets[which] = (self._key_of(state, held[0] if held else None), total)
+        if self.cache:
+            self._subsets[which] = (self._key_of(state, held[0] if held else None), total)
         return total
 
     def hessian(self, state: State) -> sp.csr_matrix:

@@ -39,6 +39,41 @@ def test_force_cache_follows_positions_box_and_types(random_gas):
     assert forcefield.n_evaluations == 4
 
 
+
+def test_a_force_field_without_cache_evaluates_every_call_and_copies_nothing(random_gas):
+    """cache=False (a decomposed run's local force field, whose caller keeps the results):
+    each call evaluates, subsets too, the results equal the cached field's, and no call
+    allocates a copy of the positions (tracemalloc: the cached field's first call does)."""
+    import tracemalloc
+
+    state = random_gas(3000, 30.0, n_types=2)
+    lj = LennardJones(epsilon=[1.0, 0.5], sigma=[1.0, 1.2], cutoff=2.5)
+    cached, plain = md.ForceField([lj]), md.ForceField([lj], cache=False)
+    expected = cached.compute(state)
+    first, second = plain.compute(state), plain.compute(state)
+    assert first is not second and plain.n_evaluations == 2
+    np.testing.assert_array_equal(first.forces, expected.forces)
+    assert first.energy == expected.energy
+    plain.compute_subset(state, [0])
+    plain.compute_subset(state, [0])
+    assert plain.n_subset_evaluations == 2
+    assert cached.compute(state) is expected  # (the default keeps it)
+
+    def largest_allocation(forcefield):
+        tracemalloc.start()
+        try:
+            forcefield.compute(state)
+            snapshot = tracemalloc.take_snapshot()
+        finally:
+            tracemalloc.stop()
+        return max((stat.size for stat in snapshot.statistics("lineno")
+                    if "forcefield.py" in stat.traceback[0].filename), default=0)  # fmt: skip
+
+    state.positions[0, 0] += 1e-3
+    fresh = md.ForceField([lj])
+    assert largest_allocation(fresh) >= state.positions.nbytes  # its key: a copy
+    assert largest_allocation(plain) < state.positions.nbytes / 8
+
 def test_force_field_sums_its_potentials(random_gas):
     state = random_gas(60, 7.0, n_types=2)
     short = LennardJones(epsilon=[1.0, 0.5], sigma=[1.0, 1.2], cutoff=2.0)
