@@ -81,8 +81,10 @@ def _builds(sim) -> int:
 
 
 def _time_rebuild_messages(sim) -> dict:
-    """Time the migration and the ghost search of a decomposed run (they are part of its
-    comm section) by wrapping this rank's Domain methods; {"seconds": ...} fills in."""
+    """Time the migration and the ghost build of a decomposed run (the model's rebuild
+    cost: its comm section holds them but for the owned atoms' layout, see
+    ``md.distributed.Domain.build``) by wrapping this rank's Domain methods;
+    {"seconds": ...} fills in."""
     spent = {"seconds": 0.0}
     domain = getattr(sim.forcefield, "domain", None)
     if domain is None:
@@ -142,7 +144,7 @@ def run_ours(job: dict) -> dict | None:
     wall = time.perf_counter() - start
     sections = {k: v - before[k] for k, v in sim.timing_summary().items()}
     sections.setdefault("comm", 0.0)
-    sections["rebuild_comm"] = rebuilds["seconds"]  # part of comm
+    sections["rebuild_comm"] = rebuilds["seconds"]  # migrations and ghost builds
     walls = comm.gather(wall, root=0)
     split = comm.gather(sections, root=0)
     builds = _builds(sim) - builds

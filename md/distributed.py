@@ -567,6 +567,11 @@ class Domain:
         """Find the ghosts within ``reach`` of the brick (widened by as far as owned atoms
         have strayed from it) and lay out the local system. Collective.
 
+        The ghost search (from the reduction of the strays on: the faces' atoms, their
+        packing and messages) runs on the ranks' clock, the communication section; the
+        layout of the owned atoms before it (their images nearest the brick, copied into
+        the local system) does not, as LAMMPS's Comm leaves out its ``Domain::pbc``.
+
         Raises
         ------
         DecompositionError
@@ -590,6 +595,19 @@ class Domain:
             state.positions, box, tilt, pbc, cell, self.center, self.bounds, widths, home,
             positions[:n], self._buffer(n, 3, "images", np.int64),
         )  # fmt: skip
+        self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
+        self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
+        with self.ranks.clock:
+            self._find_ghosts(state, reach, strayed, positions, home, n)
+
+    def _find_ghosts(self, state: State, reach: float, strayed: float, positions, home,
+                     n: int) -> None:  # fmt: skip
+        """:meth:`build`'s ghost search and the local system's state, after the owned
+        atoms' layout (``positions``' first ``n`` rows, their fractions ``home``)."""
+        box, pbc = state.box, state.pbc
+        tilt = periodic_tilt(state.tilt, pbc)
+        cell = cell_matrix(box, tilt)
+        widths = perpendicular_widths(box, tilt)
         margin = global_max(strayed, self.ranks)
         shell = reach + margin
         brick = widths * self.grid.thinnest()
@@ -602,10 +620,8 @@ class Domain:
                 f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
                 "smaller time step"
             )
-        ids = self._local_rows("ids", len(positions), (), np.int64)
-        types = self._local_rows("types", len(positions), (), np.int32)
-        ids[:n] = state.ids
-        types[:n] = state.types
+        ids = self._local["ids"][self._parity]  # (their owned rows written by build)
+        types = self._local["types"][self._parity]
         ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
         count = n
         swaps: list[_Swap] = []
@@ -1190,8 +1206,7 @@ class DistributedForceField:
             at = copy.copy(state)
             at.positions = self.coming_positions(state, dt)
         reach = self.reach
-        with self.ranks.clock:
-            self.domain.build(at, reach)
+        self.domain.build(at, reach)  # its ghost search on the ranks' clock
         error, longest = None, 0.0
         try:
             longest = self._localize_bonded()
