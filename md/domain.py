@@ -391,6 +391,7 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
     n_down = 0
     lost = 0
     inverse = _inverse_lengths(box)
+    own_lower, own_upper = cuts[axis][coordinate], cuts[axis][coordinate + 1]
     for i in range(n):
         # only the fractions the axis needs (z's for all, y's for x and y), as
         # _cell_fractions computes them
@@ -403,9 +404,11 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
                 x = positions[i, 0] - sy * tilt[0] - sz * tilt[1]
                 f = x * inverse[0] if pbc[0] else 0.5
         f = f - np.floor(f)
+        if own_lower <= f < own_upper:
+            continue  # most atoms: still in this slab, as _slab would find
         c = _slab(f, p, cuts[axis])
         if c == coordinate:
-            continue  # (most atoms: no integer modulo on this path)
+            continue
         delta = c - coordinate if c > coordinate else c - coordinate + p
         if delta == 1:
             up[n_up] = i
