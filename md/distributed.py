@@ -693,7 +693,8 @@ class Domain:
     def update(self, state: State, copied: bool = False) -> None:
         """Write the owned positions into the local system (only the few at another image
         if they were ``copied`` there already, see :meth:`owned_rows`) and send the ghosts'
-        (collective)."""
+        (collective). The sweeps (packing and messages) run on the ranks' clock, the owned
+        rows' copy before them does not (as :meth:`build`'s layout)."""
         tilt = periodic_tilt(state.tilt, state.pbc)
         cell = cell_matrix(state.box, tilt)
         if self.local_pbc.any():  # the cell the local system's own images follow
@@ -705,15 +706,16 @@ class Domain:
             shift_rows(state.positions, self.imaged, self.images, cell, owned)
         else:
             home_positions(state.positions, self.imaged, self.images, cell, owned)
-        for swap in self.swaps:
-            shift = swap.shift * cell[swap.axis]
-            target = positions[swap.offset : swap.offset + swap.count]
-            if swap.dest == self.rank:
-                pack_rows(positions, swap.send, shift, target)
-                continue
-            buffer = self._buffer(len(swap.send), 3)
-            pack_rows(positions, swap.send, shift, buffer)
-            self.ranks.exchange(buffer, swap.dest, target, swap.source, swap.tag)
+        with self.ranks.clock:
+            for swap in self.swaps:
+                shift = swap.shift * cell[swap.axis]
+                target = positions[swap.offset : swap.offset + swap.count]
+                if swap.dest == self.rank:
+                    pack_rows(positions, swap.send, shift, target)
+                    continue
+                buffer = self._buffer(len(swap.send), 3)
+                pack_rows(positions, swap.send, shift, buffer)
+                self.ranks.exchange(buffer, swap.dest, target, swap.source, swap.tag)
 
     def reverse(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
@@ -1096,7 +1098,7 @@ class DistributedForceField:
             exchanged = False
         if exchanged:
             return True, self.ahead, True
-        start = time.perf_counter()
+        start, communicated = time.perf_counter(), self.ranks.clock.seconds
         mapping, allowed = self.allowance(state)
         begin = self.step_start if self.step_start.shape == state.positions.shape else None
         if mapping is None and begin is None:
@@ -1112,9 +1114,11 @@ class DistributedForceField:
                                                  state.positions if begin is None else begin,
                                                  before, owned)  # fmt: skip
             copied = len(owned) > 0
-        self.timings["neighbor"] += time.perf_counter() - start  # the list's check
-        with self.ranks.clock:
-            self.domain.update(state, copied)
+        # the list's check and the owned rows of its local system; the ghosts' messages on
+        # the ranks' clock
+        self.domain.update(state, copied)
+        self.timings["neighbor"] += (time.perf_counter() - start
+                                     - (self.ranks.clock.seconds - communicated))  # fmt: skip
         self._exchanged = _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
