@@ -474,3 +474,57 @@ def test_the_second_ghost_build_lays_the_local_system_out_in_memory_made_at_the_
     # the arrays of the owned atoms alone: 0.5 of local_bytes now (temporaries), 3.1
     # before (the next set made here, and fresh velocities and masses for the local state)
     assert peak < local_bytes, (peak, local_bytes)
+
+
+def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layout(monkeypatch):
+    """What the run summary's comm section counts (docs/guide/mpi.md): a build's ghost
+    search (the faces' atoms, their packing, the messages) and a step's ghost positions
+    run on the ranks' clock; the owned atoms' layout before them (at a build their images
+    nearest the brick, at a step their rows' copy) does not, as LAMMPS's Comm leaves out
+    its Domain::pbc."""
+    import md.distributed as distributed
+    from md.distributed import Domain
+    from md.domain import Grid
+
+    class Clock:
+        """A CommClock that says whether it is running."""
+
+        def __init__(self) -> None:
+            self.depth, self.seconds = 0, 0.0
+
+        def __enter__(self):
+            self.depth += 1
+            return self
+
+        def __exit__(self, *exc) -> None:
+            self.depth -= 1
+
+    class Neighbour(Loopback):
+        def exchange(self, send, dest, receive, source, tag):
+            self.sent.append(np.array(send))
+            receive[...] = 0.0
+
+    ranks = Neighbour([np.empty((0, 8))] * 4)
+    ranks.clock = Clock()
+    calls = []
+    for name in ("home_layout", "near_faces", "table_rows", "pack_rows", "home_positions",
+                 "shift_rows"):  # fmt: skip
+        kernel = getattr(distributed, name)
+
+        def recorded(*args, _kernel=kernel, _name=name):
+            calls.append((_name, ranks.clock.depth > 0))
+            return _kernel(*args)
+
+        monkeypatch.setattr(distributed, name, recorded)
+    state, _ = atoms(range(2000), 0.0, 5.0, 6)
+    domain = Domain(ranks, Grid((2, 1, 1)))
+    domain.reserve(state, {})
+    domain.build(state, 0.5)
+    domain.update(state)  # every owned row copied (home_positions)
+    domain.update(state, copied=True)  # the rows were copied by the caller (shift_rows)
+    on_clock = {name: {inside for called, inside in calls if called == name}
+                for name, _ in calls}  # fmt: skip
+    assert on_clock == {"home_layout": {False}, "near_faces": {True}, "table_rows": {True},
+                        "pack_rows": {True}, "home_positions": {False},
+                        "shift_rows": {False}}  # fmt: skip
+    assert ranks.clock.depth == 0 and len(ranks.sent) == 2 + 4  # 2 sweeps' rows, 2 x 2 steps
