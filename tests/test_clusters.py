@@ -286,6 +286,21 @@ def test_a_box_too_small_for_the_outer_list_searches_at_the_list_radius(fcc_latt
     assert_covers(state, nl.clusters, nl.list_radius)
 
 
+
+@pytest.mark.parametrize(("cells", "outer"), [(5, False), (6, True)])
+def test_no_outer_list_where_it_needs_many_narrower_columns(cells, outer, fcc_lattice):
+    """A box just over twice the outer radius (500 atoms, edge 8.40 against 2 x 4.0) would
+    need 23 x 23 columns for 125 clusters, so that no column meets two images of another:
+    its search took 4 ms against 0.2 at the list radius (5 x 5 columns). Such a box
+    searches at the list radius, without pruning; 864 atoms (edge 10.1, 7 x 7 columns
+    against the density's 6 x 6) keep the outer list. Both lists hold every pair."""
+    state = fcc_lattice(cells=cells, perturbation=0.05)
+    nl = NeighborList(2.5, 0.3, clusters=True)  # outer skin 1.5: radius 4.0
+    nl.update(state)
+    assert (nl.outer_clusters is not None) == outer
+    assert nl.clusters is not None and (nl.pruned_positions is not None) == outer
+    assert_covers(state, nl.clusters, nl.list_radius)
+
 def test_rebuild_at_a_checkpoints_positions_gives_the_same_pruned_list(fcc_lattice, rng):
     state = fcc_lattice(cells=6, perturbation=0.1)
     nl = NeighborList(2.5, 0.3, clusters=True)
