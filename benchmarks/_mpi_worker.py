@@ -7,10 +7,11 @@ prints one JSON line.
 Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
 x, y and z), ``steps``, ``threads`` (per rank); optionally ``balance_every`` (dynamic load
 balancing: ours ``[run] balance_every``, LAMMPS ``fix balance ... weight time``; default 0,
-off) and, for ours, ``balance_threshold``. The workload is ``examples/lj_melt.toml``
-with its lattice replaced by ``cells`` (LAMMPS's bench/in.lj: fcc at reduced density
-0.8442, T* 3.0, LJ cut at 2.5 sigma, skin 0.3, velocity Verlet / ``fix nve``, dt
-0.005). Both engines time the loop alone: the system, the first neighbour list and
+off), for ours ``balance_threshold``, for LAMMPS ``velocities`` (``gaussian``, the
+default, as our config draws them; ``uniform``, LAMMPS's bench/in.lj). The workload is
+``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's bench/in.lj:
+fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin 0.3, velocity Verlet /
+``fix nve``, dt 0.005). Both engines time the loop alone: the system, the first neighbour list and
 forces come before the clock.
 
 - ``ours``: the config's system, potentials and integrator
@@ -188,7 +189,8 @@ def run_lammps(job: dict) -> dict | None:
     try:
         seed = int(tomllib.loads(CONFIG.read_text())["seed"])
         lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed,
-                                   int(job.get("balance_every", 0))))  # fmt: skip
+                                   int(job.get("balance_every", 0)),
+                                   job.get("velocities", "gaussian")))  # fmt: skip
     finally:
         lmp.close()
     if comm.Get_rank() != 0:

