@@ -154,6 +154,7 @@ def run_ours(job: dict) -> dict | None:
         return None
     n_ranks = comm.Get_size()
     average = {name: sum(s[name] for s in split) / n_ranks for name in split[0]}
+    busy = [s["force"] + s["neighbor"] for s in split]
     return {
         "local_atoms": local,
         "loop_time": max(walls),
@@ -161,6 +162,9 @@ def run_ours(job: dict) -> dict | None:
         "comm_share": sum(s["comm"] / w for s, w in zip(split, walls, strict=True)) / n_ranks,
         # the least-waiting rank's share: its comm is mostly its own work, not the waits
         "comm_share_min": min(s["comm"] / w for s, w in zip(split, walls, strict=True)),
+        # the busiest rank's force and neighbour time over the least busy one's: the
+        # imbalance its comm section's waits absorb
+        "busy_spread": max(busy) / min(busy) if min(busy) > 0 else 1.0,
         "n_atoms": 4 * int(job["cells"][0] * job["cells"][1] * job["cells"][2]),
         "n_builds": builds,
         "grid": list(getattr(getattr(sim, "grid", None), "shape", (1, 1, 1))),
@@ -204,6 +208,10 @@ def run_lammps(job: dict) -> dict | None:
     result["comm_share"] = result["sections"].get("Comm", 0.0) / result["loop_time"]
     least = result["sections_min"].get("Comm", result["sections"].get("Comm", 0.0))
     result["comm_share_min"] = least / result["loop_time"]
+    low, high = result["sections_min"], result["sections_max"]
+    if low.get("Pair") and "Neigh" in low:
+        result["busy_spread"] = ((high["Pair"] + high.get("Neigh", 0.0))
+                                 / (low["Pair"] + low["Neigh"]))  # fmt: skip
     return result
 
 

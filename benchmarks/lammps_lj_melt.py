@@ -81,7 +81,7 @@ def parse_log(text: str) -> dict:
     )
     if loop is None:
         raise RuntimeError("no 'Loop time' line in the LAMMPS log")
-    sections, least = {}, {}
+    sections, least, most = {}, {}, {}
     for line in text.splitlines():
         parts = [p.strip() for p in line.split("|")]
         if len(parts) >= 3 and parts[0] in _SECTIONS:
@@ -89,6 +89,8 @@ def parse_log(text: str) -> dict:
             sections[parts[0]] = float(parts[2])
             if parts[1]:
                 least[parts[0]] = float(parts[1])
+            if len(parts) >= 4 and parts[3]:
+                most[parts[0]] = float(parts[3])
     builds = re.search(r"Neighbor list builds = (\d+)", text)
     dangerous = re.search(r"Dangerous builds = (\d+)", text)
     return {
@@ -98,6 +100,7 @@ def parse_log(text: str) -> dict:
         "n_atoms": int(loop.group(4)),
         "sections": sections,
         "sections_min": least,  # the least time a rank spent in each (one rank: the same)
+        "sections_max": most,  # the most
         "n_builds": int(builds.group(1)) if builds else None,
         "n_dangerous": int(dangerous.group(1)) if dangerous else None,
     }

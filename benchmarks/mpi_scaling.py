@@ -182,6 +182,15 @@ def spread(item: Measured) -> str:
     return f"{min(rates) / 1e6:.2f}-{max(rates) / 1e6:.2f}" if rates else "-"
 
 
+def busy_spread(item: Measured) -> str:
+    """The median over the repeats of the busiest rank's force and neighbour time over the
+    least busy one's (each engine's own sections: ours force + neighbor, LAMMPS's Pair +
+    Neigh, their max over min; an upper bound for LAMMPS, whose max and min may be two
+    ranks)."""
+    spreads = [r.get("busy_spread") for r in item.runs]
+    return "-" if not spreads or None in spreads else f"{statistics.median(spreads):.2f}"
+
+
 def build_count(item: Measured) -> str:
     """The median list builds of the timed loops (the same workload: about the same count)."""
     counts = [r.get("n_builds") for r in item.runs]
@@ -263,16 +272,16 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             split = statistics.median(r["sections"]["comm"] for r in ours.runs)
             row = [label, f"{ranks} x {threads}", f"{100 * ours.comm_share():.1f} %",
                    f"{split:.3f}", f"{100 * ours.comm_share('comm_share_min'):.1f} %",
-                   build_count(ours)]  # fmt: skip
+                   build_count(ours), busy_spread(ours) if ranks > 1 else "-"]  # fmt: skip
             if lammps:
                 row += [f"{100 * peer.comm_share():.1f} %",
                         f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}",
                         f"{100 * peer.comm_share('comm_share_min'):.1f} %",
-                        build_count(peer)]  # fmt: skip
+                        build_count(peer), busy_spread(peer) if ranks > 1 else "-"]  # fmt: skip
             rows.append(row)
-    headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank", "builds"]
+    headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank", "builds", "busy"]
     if lammps:
-        headers += ["LAMMPS Comm", "s", "least rank", "builds"]
+        headers += ["LAMMPS Comm", "s", "least rank", "builds", "busy"]
     print_table(headers, rows)
     label, cells, _ = SIZES[quick][-1]
     peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
@@ -286,8 +295,9 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
                   f"LAMMPS's: {100 * item.comm_share():.1f} % against "
                   f"{100 * peer.comm_share():.1f} % ({verdict})")  # fmt: skip
     print("  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
-          "ghost search; one rank: ours has no comm section, periodic images are in its "
-          "neighbour list; "
+          "ghost search; busy: the busiest rank's force and neighbour time over the least "
+          "busy one's, the imbalance the other rank's comm section waits out; one rank: "
+          "ours has no comm section, periodic images are in its neighbour list; "
           "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
           "communicated least, mostly its own messages and work, since the other waited "
           "for it: on a machine whose cores run at different speeds the mean is mostly "
