@@ -210,7 +210,7 @@ def run_lammps(job: dict) -> dict | None:
     result["comm_share_min"] = least / result["loop_time"]
     low, high = result["sections_min"], result["sections_max"]
     if low.get("Pair") and "Neigh" in low:
-        result["busy_spread"] = ((high["Pair"] + high.get("Neigh", 0.0))
+        result["busy_spread"] = ((high["Pair"] + high["Neigh"])
                                  / (low["Pair"] + low["Neigh"]))  # fmt: skip
     return result
 

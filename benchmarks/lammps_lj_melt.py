@@ -100,7 +100,7 @@ def parse_log(text: str) -> dict:
         "n_atoms": int(loop.group(4)),
         "sections": sections,
         "sections_min": least,  # the least time a rank spent in each (one rank: the same)
-        "sections_max": most,  # the most
+        "sections_max": most,  # and the most
         "n_builds": int(builds.group(1)) if builds else None,
         "n_dangerous": int(dangerous.group(1)) if dangerous else None,
     }

@@ -50,8 +50,10 @@ from __future__ import annotations
 
 import ctypes
 import importlib.metadata
+import os
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -603,7 +605,8 @@ def _lammps_melt_velocities(cells: int, velocities: str) -> np.ndarray:
     """The benchmarks' LAMMPS melt (``lammps_lj_melt.commands``) up to its run: velocities."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        from lammps_lj_melt import commands
+        with mock.patch.dict(os.environ):  # the script sets OMP_NUM_THREADS for its own runs
+            from lammps_lj_melt import commands
     finally:
         sys.path.remove(str(BENCHMARKS))
     lmp = _start_lammps()
