@@ -474,10 +474,15 @@ class Domain:
         return (bricks[:, 0] * py + bricks[:, 1]) * pz + bricks[:, 2]
 
     # ------------------------------------------------------------------ migration
-    def migrate(self, state: State, carried: dict) -> dict:
+    def migrate(self, state: State, carried: dict, spent: tuple = ()) -> dict:
         """Move the owned atoms, and the per-atom arrays ``carried``, to the ranks whose
         bricks hold them, in one sweep per cut axis; ``state``'s arrays are replaced by
         views of arrays this Domain keeps. Collective.
+
+        The carried arrays named in ``spent`` are the caller's to give away: each moves
+        in the memory of the array it is the first rows of (a force evaluation's local
+        result, owned rows then ghosts), where that has room, rather than being copied
+        into memory of this Domain's first (a 10^6-atom rank's forces: 3 ms a migration).
 
         Each sweep changes only the rows that move (:func:`md.domain.refill_plan`):
         arriving atoms fill the rows of the leaving ones, and staying atoms past the new
@@ -520,7 +525,8 @@ class Domain:
             m = len(incoming[0])
             plan = refill_plan(leaving, n, m)
             size = n - len(leaving) + m
-            arrays = [self._refilled(key, a, n, size, b, plan)
+            arrays = [self._refilled(key, a, n, size, b, plan,
+                                    key[0] == "carried" and key[1] in spent)
                       for key, a, b in zip(keys, arrays, incoming, strict=True)]  # fmt: skip
             n = size
         state.positions, state.velocities, state.masses, state.types, state.ids = arrays[:5]
@@ -533,11 +539,15 @@ class Domain:
         return carried
 
     def _refilled(self, key, values: NDArray, n: int, size: int, incoming: NDArray,
-                  plan) -> NDArray:  # fmt: skip
+                  plan, spent: bool = False) -> NDArray:  # fmt: skip
         """``values`` (n rows) after a sweep's :func:`md.domain.refill_plan`: ``size`` rows of
         the array kept under ``key``, changed in place where ``values`` already is its
-        first rows (the usual case), else copied into it first."""
-        store = self._store(key, values, n, size)
+        first rows (the usual case), else copied into it first; if ``values`` is
+        ``spent``, the array it is the first rows of, changed in place, where that has
+        the room."""
+        store = _room_of(values, size) if spent else None
+        if store is None:
+            store = self._store(key, values, n, size)
         width = int(np.prod(values.shape[1:], dtype=np.int64))
         sources, targets, arrivals = plan
         refill_rows(store.reshape(len(store), width), sources, targets,
@@ -773,6 +783,18 @@ class Domain:
         return held[:n]
 
 
+def _room_of(values: NDArray, size: int) -> NDArray | None:
+    """The C-contiguous array whose first rows ``values`` are (itself, or the array it is
+    a view of), if that has at least ``size`` rows; else None."""
+    root = values if values.base is None else values.base
+    if (not isinstance(root, np.ndarray) or root.base is not None
+            or not root.flags.c_contiguous or not values.flags.c_contiguous
+            or root.dtype != values.dtype or root.shape[1:] != values.shape[1:]
+            or root.ctypes.data != values.ctypes.data or root.shape[0] < size):  # fmt: skip
+        return None
+    return root
+
+
 def _grown(values: NDArray, count: int, size: int) -> NDArray:
     """A fresh array of ``size`` rows shaped and typed as ``values``, its first ``count``
     rows copied from ``values``."""
@@ -926,6 +948,7 @@ class DistributedForceField:
         self._bonded = [b for b in indexed if b is not None]
         self.bond_reach = float(bond_reach)
         self.reference: NDArray[np.float64] | None = None
+        self._reference_memory = np.empty((0, 3))  # (reference is a view of its first rows)
         self.reference_cell: tuple | None = None
         self._cell_bytes: tuple = ()
         self._cache: dict = {}
@@ -1126,11 +1149,14 @@ class DistributedForceField:
         covered = moved <= allowed and self.domain.layout_holds(state)
         return covered, _ratio(coming, allowed), finite
 
-    def coming_positions(self, state: State, dt: float) -> NDArray[np.float64]:
+    def coming_positions(self, state: State, dt: float,
+                         out: NDArray | None = None) -> NDArray[np.float64]:  # fmt: skip
         """Where the owned atoms are expected after a step of ``dt``: r + dt v + dt^2 a / 2
-        (velocity Verlet's move) with the forces at hand, r + dt v without (a new array)."""
+        (velocity Verlet's move) with the forces at hand, r + dt v without (in ``out``,
+        else a new array)."""
         forces = self.cached_forces(state)
-        out = np.empty_like(state.positions)
+        if out is None:
+            out = np.empty_like(state.positions)
         predicted_positions(state.positions, state.velocities,
                             _NONE if forces is None else forces, state.masses, float(dt),
                             out)  # fmt: skip
@@ -1198,17 +1224,27 @@ class DistributedForceField:
             if self.balance_every:
                 self._balance(state)
             with self.ranks.clock:
-                moved = self.domain.migrate(state, {**carried, **cached})
+                # (the cached forces are the evaluations' own arrays: they move in them)
+                moved = self.domain.migrate(state, {**carried, **cached}, spent=tuple(cached))
             carried = {name: moved[name] for name in carried}
             for which, (_, result) in list(self._cache.items()):
                 result.forces = moved[("cached", which)]
                 result.energies = result.virials = None
                 self._cache[which] = (_key(state), result)
         self.migrate_pending = not migrate
+        # The build positions go where the last build's were (that list is done with): a
+        # fresh 10^6-atom array cost its page faults at every build (the predicted
+        # positions 5 -> 19 ms a build on the Zen 4 VM). No reference until it is whole.
+        self.reference = None
+        memory = self._reference_memory
+        if memory.shape[0] < state.n_atoms:
+            memory = np.empty((state.n_atoms + state.n_atoms // 8 + 16, 3))
+            self._reference_memory = memory
+        reference = memory[: state.n_atoms]
         at = state
         if dt is not None and state.velocities is not None:
             at = copy.copy(state)
-            at.positions = self.coming_positions(state, dt)
+            at.positions = self.coming_positions(state, dt, out=reference)
         reach = self.reach
         self.domain.build(at, reach)  # its ghost search on the ranks' clock
         error, longest = None, 0.0
@@ -1231,7 +1267,9 @@ class DistributedForceField:
                     "the last build; bonds must not stretch that fast"
                 )
             self.bond_reach = longest
-        self.reference = at.positions.copy() if at is state else at.positions
+        if at is state:
+            copy_into(reference, state.positions)
+        self.reference = reference
         self.reference_cell = (state.box.copy(), state.tilt.copy())
         self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
         # Built where the atoms are: the local system holds their positions. Built ahead of
@@ -1285,6 +1323,8 @@ class DistributedForceField:
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
         return the longest bond (angle arm) among them [length]."""
+        if not self._bonded:
+            return 0.0  # (the id sort below: 5-7 ms a build for a 10^6-atom rank)
         domain = self.domain
         ids = domain.local_ids
         local = domain.local_state
