@@ -18,8 +18,9 @@ Prints the machine (CPU model, vector ISA, cores, load), then
     40 x 20 x 20 cells);
 (d) the latency and bandwidth of messages between two ranks here (a mpi4py
     ping-pong);
-(e) a model of the parallel efficiency at 64 and 1024 ranks from these
-    figures (see ``benchmarks/README.md``).
+(e) a model of each engine's parallel efficiency at 64 and 1024 ranks from these
+    figures and a tiny melt (1152 atoms, on 1 and 2 ranks: the fixed costs of a
+    step), checked on the runs it was not fitted to (see ``benchmarks/README.md``).
 
 ``--balance-every N`` adds, at each size, ours on 2 ranks x 1 thread with dynamic
 load balancing (``[run] balance_every = N``, threshold 1.02): its rate, comm share and
@@ -62,6 +63,9 @@ SIZES = {
 LAYOUTS = [(1, 1), (2, 1), (1, 2)]
 #: Weak scaling: 32000 atoms (20^3 fcc cells) per rank, the ranks stacked along x.
 WEAK_CELLS = 20
+#: The smallest melt, for the model's fixed costs of a step: 1152 atoms, two bricks of cutoff
+#: + skin along x on 2 ranks (steps: the full run and --quick).
+TINY_CELLS, TINY_STEPS = (8, 6, 6), {False: 1000, True: 200}
 #: The imbalance (busiest rank's busy time over the mean) at which --balance-every moves planes.
 BALANCE_THRESHOLD = 1.02
 #: Issue 35's targets on a 2-core machine.
@@ -153,6 +157,8 @@ def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     weak_steps = SIZES[quick][0][2]
     weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
     jobs += [Job(engine, weak, weak_steps, 2, 1) for engine in engines]
+    jobs += [Job(engine, TINY_CELLS, TINY_STEPS[quick], ranks, 1)
+             for ranks in (1, 2) for engine in engines]  # fmt: skip
     return jobs
 
 
@@ -343,90 +349,204 @@ INFINIBAND = (1.5e-6, 10e9)
 DENSITY, SHELL = 0.8442, 2.8
 
 
-def ghosts_per_atom(box, grid) -> float:
-    """Ghost atoms per owned atom of a brick of ``box / grid`` (ghost shell r = SHELL on
-    every face, periodic images of uncut axes included):
-    ((Lx + 2r)(Ly + 2r)(Lz + 2r) - Lx Ly Lz) / (Lx Ly Lz)."""
+def ghosts_per_atom(box, grid, images: bool = True) -> float:
+    """Ghost atoms per owned atom of a brick of ``box / grid``, the ghost shell r = SHELL
+    wide: ((Lx + 2r)(Ly + 2r)(Lz + 2r) - Lx Ly Lz) / (Lx Ly Lz) with ``images`` (LAMMPS:
+    the periodic images along an uncut axis are ghosts too), else with a shell on the
+    faces of the cut axes only (ours: an uncut axis stays periodic in the rank's list)."""
     edges = [b / p for b, p in zip(box, grid, strict=True)]
+    shells = [2 * SHELL if images or p > 1 else 0.0 for p in grid]
     inner = edges[0] * edges[1] * edges[2]
-    outer = (edges[0] + 2 * SHELL) * (edges[1] + 2 * SHELL) * (edges[2] + 2 * SHELL)
+    outer = math.prod(e + r for e, r in zip(edges, shells, strict=True))
     return (outer - inner) / inner
 
 
-def efficiency(n_atoms: int, ranks: int, per_atom: float, rebuild: float, builds: float,
-               latency: float, bandwidth: float) -> tuple[float, float, tuple]:  # fmt: skip
-    """The model's parallel efficiency of ``n_atoms`` on ``ranks`` (and the ghosts per atom,
-    the grid): compute c n against compute + messages + rebuild work, per step.
+def melt_box(cells) -> list[float]:
+    """The box of the LJ melt on ``cells`` fcc cells (4 atoms a cell at DENSITY)."""
+    edge = (4 / DENSITY) ** (1 / 3)
+    return [c * edge for c in cells]
 
-    Per step: 6 ghost-position and 6 ghost-force messages (12 latencies, 2 x 24 bytes per
-    ghost) and one all-gather of 15 doubles (log2 P latencies, P x 120 bytes); per build
-    (``builds`` per step) the migration and ghost search, ``rebuild`` seconds per local
-    atom (owned + ghost), as measured on 2 ranks here. Load balance is taken as perfect.
-    """
+
+def melt_grid(cells, ranks: int) -> tuple[int, ...]:
+    """The bricks ``md.domain.choose_grid`` cuts the melt's box into for ``ranks``."""
     sys.path.insert(0, str(HERE.parent))
     from md.domain import choose_grid
 
-    edge = (n_atoms / DENSITY) ** (1 / 3)
-    grid = choose_grid(ranks, [edge] * 3, None, [True] * 3, SHELL) if ranks > 1 else (1, 1, 1)
-    ghosts = ghosts_per_atom([edge] * 3, grid)
-    n = n_atoms / ranks
-    compute = per_atom * n
-    halo = 12 * latency + 2 * 24 * ghosts * n / bandwidth
-    reduce = math.log2(ranks) * latency + ranks * 120 / bandwidth if ranks > 1 else 0.0
-    rebuilding = builds * rebuild * n * (1 + ghosts) if ranks > 1 else 0.0
-    return compute / (compute + halo + reduce + rebuilding), ghosts, grid
+    if ranks == 1:
+        return (1, 1, 1)
+    return tuple(choose_grid(ranks, melt_box(cells), None, [True] * 3, SHELL))
+
+
+#: The sections of each engine's step that are its own work (not messages or waits).
+BUSY = {"ours": ("force", "neighbor", "integrate"), "lammps": ("Pair", "Neigh", "Modify")}
+
+
+@dataclass
+class StepModel:
+    """One engine's time of a step on each of P ranks [s], for n = N / P atoms a brick
+    with g ghosts per owned atom (:func:`ghosts_per_atom`; LAMMPS's count the periodic
+    images of uncut axes):
+
+        T_1 = c(N) N
+        T_P = c(n) n (1 + h g) + 4 k alpha + 2 x 24 B x g n / beta + 3 log2(P) alpha
+              + b gamma n (1 + g) + t
+
+    c(n): the same engine's cost per atom-step on one rank and thread, measured on the
+    melt nearest n atoms (1152, 32000 or 2M atoms: small ones run from the caches, and
+    their fixed costs of a step are in it); h: a ghost's share of the rank's own work
+    (pairs, list, integration) against an owned atom's, from the busy time of the
+    32000-atom melt on 2 ranks (on a VM whose vCPUs slow each other down, that is in it
+    too); k cut axes, each with 2 position and 2 force messages a step; three reductions
+    a step; b builds a step, each with a migration and a ghost search of gamma per local
+    atom (ours measured on 2 ranks; LAMMPS's are in its Comm, left to its other terms);
+    t: what a decomposed step costs besides (the calls' own time, their bookkeeping, a
+    step's waits), from the 1152-atom melt on 2 ranks less the other terms.
+    """
+
+    name: str
+    images: bool
+    per_atom: dict = field(default_factory=dict)  # atoms -> c
+    ghost_cost: float = 0.0
+    decomposed_fixed: float = 0.0
+    rebuild: float = 0.0
+    builds: float = 0.0
+
+    def cost(self, n: float) -> float:
+        """c at the measured size nearest n atoms (by ratio)."""
+        nearest = min(self.per_atom, key=lambda size: abs(math.log(size / n)))
+        return self.per_atom[nearest]
+
+    def ghosts(self, cells, ranks: int) -> tuple[float, tuple]:
+        grid = melt_grid(cells, ranks)
+        return ghosts_per_atom(melt_box(cells), grid, self.images), grid
+
+    def step(self, cells, ranks: int, latency: float, bandwidth: float,
+             fixed: bool = True) -> float:  # fmt: skip
+        """T_P for the melt on ``cells`` (without t if not ``fixed``)."""
+        n_atoms = 4 * math.prod(cells)
+        if ranks == 1:
+            return self.cost(n_atoms) * n_atoms
+        ghosts, grid = self.ghosts(cells, ranks)
+        n = n_atoms / ranks
+        cut = sum(p > 1 for p in grid)
+        work = self.cost(n) * n * (1 + self.ghost_cost * ghosts)
+        messages = 4 * cut * latency + 2 * 24 * ghosts * n / bandwidth
+        reductions = 3 * math.log2(ranks) * latency
+        rebuilds = self.builds * self.rebuild * n * (1 + ghosts)
+        return (work + messages + reductions + rebuilds
+                + (self.decomposed_fixed if fixed else 0.0))  # fmt: skip
+
+    def efficiency(self, cells, ranks: int, latency: float, bandwidth: float) -> float:
+        """T_1 over P T_P."""
+        one = self.step(cells, 1, latency, bandwidth)
+        return one / (ranks * self.step(cells, ranks, latency, bandwidth))
+
+
+def step_seconds(item: Measured) -> float:
+    """The median time of a step of ``item``'s loop [s]."""
+    return item.job.n_atoms / item.median()
+
+
+def busy_seconds(item: Measured) -> float:
+    """The median over the repeats of a rank's own work a step (:data:`BUSY`'s sections,
+    mean over the ranks) [s]."""
+    keys = BUSY[item.job.engine]
+    return statistics.median(sum(r["sections"].get(k, 0.0) for k in keys) / r["n_steps"]
+                             for r in item.runs)  # fmt: skip
+
+
+def calibrate(engine: str, measured: dict[Job, Measured], quick: bool,
+              here: tuple[float, float]) -> StepModel | None:  # fmt: skip
+    """:class:`StepModel` of ``engine`` from its runs here (None if some are missing)."""
+    middle, large = SIZES[quick][0][1], SIZES[quick][-1][1]
+    ones = [find(measured, engine=engine, cells=c, ranks=1, threads=1)
+            for c in (TINY_CELLS, middle, large)]  # fmt: skip
+    tiny = find(measured, engine=engine, cells=TINY_CELLS, ranks=2, threads=1)
+    two = find(measured, engine=engine, cells=middle, ranks=2, threads=1)
+    big = find(measured, engine=engine, cells=large, ranks=2, threads=1)
+    if any(item is None or not item.runs for item in [*ones, tiny, two, big]):
+        return None
+    model = StepModel(engine, images=engine != "ours")
+    model.per_atom = {item.job.n_atoms: 1.0 / item.median() for item in ones}
+    ghosts, _ = model.ghosts(middle, 2)
+    owned = two.job.n_atoms / 2 * model.cost(two.job.n_atoms / 2)
+    # (h and t cannot be negative: a negative fit is the noise of the medians, taken as 0)
+    model.ghost_cost = max((busy_seconds(two) / owned - 1) / ghosts, 0.0)
+    if engine == "ours":
+        model.builds = statistics.median(r["n_builds"] / r["n_steps"] for r in big.runs)
+        model.rebuild = statistics.median(
+            r["sections"]["rebuild_comm"] / max(r["n_builds"], 1)
+            / (sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"])) for r in big.runs
+        )  # fmt: skip
+    model.decomposed_fixed = max(step_seconds(tiny) - model.step(TINY_CELLS, 2, *here,
+                                                                 fixed=False), 0.0)  # fmt: skip
+    return model
 
 
 def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | None) -> dict:
-    """(e) The efficiency model at 64 and 1024 ranks for the larger melt, from the per-atom
-    cost on one rank, the halo volume per brick and the measured messages."""
-    label, cells, _ = SIZES[quick][-1]
-    one = find(measured, engine="ours", cells=cells, ranks=1, threads=1)
-    two = find(measured, engine="ours", cells=cells, ranks=2, threads=1)
-    if one is None or two is None or not pingpong:
+    """(e) The model of each engine's efficiency at 64 and 1024 ranks for the larger melt
+    (:class:`StepModel`, from its runs here), with this machine's messages and with
+    InfiniBand's; checked against the runs it was not fitted to."""
+    if not pingpong:
         return {}
-    n_atoms = one.job.n_atoms
-    per_atom = 1.0 / one.median()
-    runs = two.runs
-    builds = statistics.median(r["n_builds"] / r["n_steps"] for r in runs)
-    local = statistics.median(sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"])
-                              for r in runs)  # fmt: skip
-    owned = statistics.median(sum(x[0] for x in r["local_atoms"]) / len(r["local_atoms"])
-                              for r in runs)  # fmt: skip
-    rebuild = statistics.median(r["sections"]["rebuild_comm"] / max(r["n_builds"], 1) / local
-                                for r in runs)  # fmt: skip
     # Latency of the smallest message; bandwidth at 1 MB, the size of a halo message of a
     # brick of about a million atoms.
     megabyte = pingpong["sizes"].index(1 << 20)
     here = (pingpong["seconds"][0], pingpong["sizes"][megabyte] / pingpong["seconds"][megabyte])
-    edge = (n_atoms / DENSITY) ** (1 / 3)
-    print(f"\n(e) Model of the parallel efficiency at {n_atoms} atoms (see benchmarks/README.md)")
-    print(f"  per-atom cost on 1 rank x 1 thread c = {per_atom * 1e9:.0f} ns per atom-step; "
-          f"{builds:.2f} builds per step; migration + ghost search {rebuild * 1e9:.0f} ns per "
-          f"local atom per build (2 ranks here, waits included)")  # fmt: skip
-    print(f"  ghosts per owned atom on 2 ranks: measured {(local - owned) / owned:.3f}, "
-          f"model {ghosts_per_atom([edge] * 3, tuple(two.runs[0]['grid'])):.3f}")
+    models = [m for m in (calibrate(e, measured, quick, here) for e in ("ours", "lammps")) if m]
+    if not models:
+        return {}
+    cells = SIZES[quick][-1][1]
+    n_atoms = 4 * math.prod(cells)
+    print(f"\n(e) Model of the parallel efficiency at {n_atoms} atoms from each engine's runs "
+          "here (see benchmarks/README.md)")  # fmt: skip
+    print("  T_1 = c(N) N;  T_P = c(n) n (1 + h g) + 4 k alpha + 48 B g n / beta "
+          "+ 3 log2(P) alpha + b gamma n (1 + g) + t")  # fmt: skip
     print(f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
           f"between nodes {INFINIBAND[0] * 1e6:.1f} us + {INFINIBAND[1] / 1e9:.0f} GB/s "
           "(typical InfiniBand, assumed)")  # fmt: skip
-    rows, model = [], {}
+    figures: dict = {}
+    weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
+    for model in models:
+        costs = ", ".join(f"{c * 1e9:.0f} ns at {n}" for n, c in sorted(model.per_atom.items()))
+        print(f"  {model.name}: c {costs} atoms; h = {model.ghost_cost:.2f}, t = "
+              f"{model.decomposed_fixed * 1e6:.0f} us, b = {model.builds:.2f}, gamma = "
+              f"{model.rebuild * 1e9:.0f} ns")  # fmt: skip
+        parameters = vars(model).copy()
+        parameters["per_atom"] = {str(k): v for k, v in model.per_atom.items()}
+        figures[f"{model.name} parameters"] = parameters
+        checks = []
+        for label, check_cells in ((f"{n_atoms} atoms", cells), ("weak", weak)):
+            item = find(measured, engine=model.name, cells=check_cells, ranks=2, threads=1)
+            if item is None or not item.runs:
+                continue
+            predicted, actual = model.step(check_cells, 2, *here), step_seconds(item)
+            figures[f"{model.name} check {label}"] = [predicted, actual]
+            checks.append(f"{item.job.n_atoms} atoms on 2 ranks {predicted * 1e3:.2f} ms a "
+                          f"step, measured {actual * 1e3:.2f}")  # fmt: skip
+        print(f"    checks (not fitted): {'; '.join(checks)}")
+    rows = []
     for ranks in (2, 64, 1024):
-        cells_row = [str(ranks)]
-        for name, (latency, bandwidth) in (("here", here), ("infiniband", INFINIBAND)):
-            value, ghosts, grid = efficiency(n_atoms, ranks, per_atom, rebuild, builds,
-                                             latency, bandwidth)  # fmt: skip
-            model[f"{ranks} {name}"] = value
-            cells_row.append(f"{value:.2f}")
-        cells_row[1:1] = [" x ".join(map(str, grid)), f"{n_atoms // ranks}", f"{ghosts:.2f}"]
-        if ranks == 2:
-            measured_2 = two.median() / 2 / one.median()
-            cells_row.append(f"{measured_2:.2f}")
-        else:
-            cells_row.append("-")
-        rows.append(cells_row)
-    print_table(["ranks", "grid", "atoms/rank", "ghosts/atom", "E (shared memory)",
-                 "E (InfiniBand)", "E measured"], rows)  # fmt: skip
-    return model
+        grid = melt_grid(cells, ranks)
+        row = [str(ranks), " x ".join(map(str, grid)), f"{n_atoms // ranks}"]
+        for model in models:
+            row.append(f"{model.ghosts(cells, ranks)[0]:.2f}")
+            for name, (latency, bandwidth) in (("here", here), ("infiniband", INFINIBAND)):
+                value = model.efficiency(cells, ranks, latency, bandwidth)
+                figures[f"{model.name} {ranks} {name}"] = value
+                row.append(f"{value:.2f}")
+            one = find(measured, engine=model.name, cells=cells, ranks=1, threads=1)
+            two = find(measured, engine=model.name, cells=cells, ranks=2, threads=1)
+            row.append(f"{two.median() / 2 / one.median():.2f}" if ranks == 2 else "-")
+        rows.append(row)
+    headers = ["ranks", "grid", "atoms/rank"]
+    for model in models:
+        headers += [f"{model.name} g", "E here", "E InfiniBand", "E measured"]
+    print_table(headers, rows)
+    print("  (g: ghosts per owned atom, LAMMPS's with the periodic images of uncut axes; "
+          "E: T_1 / (P T_P), measured: the 2-rank rate over twice the 1-rank rate; load "
+          "balance perfect but for the waits in t)")  # fmt: skip
+    return figures
 
 
 def main(argv: list[str] | None = None) -> int:

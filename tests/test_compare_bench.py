@@ -695,3 +695,60 @@ def test_the_gromacs_rule_adds_our_rows_with_its_list_and_the_ratios_keep_the_ex
                             [{"n_atoms": 32000, "loop_time": 1.0}])  # fmt: skip
     rows = [measured("mixed", "every20", 0.5), measured("mixed", "check", 2.0), peer]
     assert compare.ratio_to_ours(peer, rows, "mixed") == 0.5  # the exact row's, not 2.0
+
+
+def _scaling_runs(module, model, here, cells, ranks: int, steps: int = 100) -> object:
+    """A ``mpi_scaling.Measured`` of one run whose times are ``model``'s for ``cells`` on
+    ``ranks``: the loop its step time, the rank's own work c(n) n (1 + h g), the
+    rebuilds gamma n (1 + g) each."""
+    job = module.Job(model.name, tuple(cells), steps, ranks, 1)
+    n = job.n_atoms / ranks
+    ghosts = model.ghosts(cells, ranks)[0] if ranks > 1 else 0.0
+    own = model.cost(n) * n * (1 + model.ghost_cost * ghosts)
+    builds = round(model.builds * steps)
+    run = {
+        "n_steps": steps,
+        "loop_time": model.step(cells, ranks, *here) * steps,
+        "sections": {"force": own * steps, "neighbor": 0.0, "integrate": 0.0,
+                     "rebuild_comm": model.rebuild * builds * n * (1 + ghosts)},  # fmt: skip
+        "n_builds": builds,
+        "local_atoms": [[n, ghosts * n]] * ranks,
+    }
+    return module.Measured(job, [run])
+
+
+def test_the_mpi_scaling_model_gives_back_the_costs_its_runs_were_made_with():
+    """benchmarks/mpi_scaling.py's model of a decomposed step (StepModel): calibrated on
+    runs made from a model of known costs (the 1152-, 32000- and 2M-atom melts on 1 and 2
+    ranks), it finds those costs again, so also its efficiency at any P; a brick of ours
+    has ghost shells on the faces of its cut axes only, LAMMPS's on all six (the
+    periodic images of the uncut ones)."""
+    module = _benchmark_module("mpi_scaling")
+    here = (3.5e-6, 3.2e9)
+    truth = module.StepModel("ours", images=False,
+                             per_atom={1152: 2.2e-7, 32000: 2.0e-7, 2048000: 2.25e-7},
+                             ghost_cost=0.7, decomposed_fixed=4e-4, rebuild=2.5e-8,
+                             builds=0.2)  # fmt: skip
+    cells = [module.TINY_CELLS, *(c for _, c, _ in module.SIZES[False])]
+    measured = {}
+    for size in cells:
+        for ranks in (1, 2):
+            item = _scaling_runs(module, truth, here, size, ranks)
+            measured[item.job] = item
+    found = module.calibrate("ours", measured, False, here)
+    assert found.per_atom == pytest.approx(truth.per_atom, rel=1e-9)
+    for name in ("ghost_cost", "decomposed_fixed", "rebuild", "builds"):
+        assert getattr(found, name) == pytest.approx(getattr(truth, name), rel=1e-9), name
+    assert found.cost(2000) == found.per_atom[1152]  # the nearest measured size
+    assert found.cost(700_000) == found.per_atom[2048000]
+    big = module.SIZES[False][-1][1]
+    one, many = found.step(big, 1, *here), found.step(big, 64, *here)
+    assert found.efficiency(big, 64, *here) == pytest.approx(one / (64 * many), rel=1e-12)
+    assert found.efficiency(big, 1024, *here) < found.efficiency(big, 64, *here) < 1.0
+    box = module.melt_box((80, 80, 80))
+    lx = box[0] / 2
+    assert module.ghosts_per_atom(box, (2, 1, 1), images=False) == pytest.approx(
+        2 * module.SHELL / lx, rel=1e-12)
+    shells = (lx + 2 * module.SHELL) * (box[1] + 2 * module.SHELL) ** 2
+    assert module.ghosts_per_atom(box, (2, 1, 1)) == pytest.approx(
+        shells / (lx * box[1] ** 2) - 1, rel=1e-12)
