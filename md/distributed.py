@@ -548,7 +548,7 @@ class Domain:
         store = _room_of(values, size) if spent else None
         if store is None:
             store = self._store(key, values, n, size)
-        width = int(np.prod(values.shape[1:], dtype=np.int64))
+        width = math.prod(values.shape[1:])
         sources, targets, arrivals = plan
         refill_rows(store.reshape(len(store), width), sources, targets,
                     np.ascontiguousarray(incoming).reshape(-1, width), arrivals)  # fmt: skip
@@ -806,16 +806,20 @@ def _grown(values: NDArray, count: int, size: int) -> NDArray:
 def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:
     """Rows ``rows`` of the per-atom ``arrays`` side by side, as floats (integers are exact
     below 2^53): one row per atom that leaves."""
-    columns = [np.reshape(a[rows], (len(rows), int(np.prod(a.shape[1:], dtype=np.int64))))
-               .astype(np.float64, copy=False) for a in arrays]  # fmt: skip
-    return np.concatenate(columns, axis=1)
+    widths = [math.prod(a.shape[1:]) for a in arrays]
+    out = np.empty((len(rows), sum(widths)))
+    start = 0
+    for a, width in zip(arrays, widths, strict=True):
+        out[:, start : start + width] = a[rows].reshape(len(rows), width)
+        start += width
+    return out
 
 
 def _unpacked(rows: NDArray[np.float64], like) -> list[NDArray]:
     """:func:`_packed`'s rows back as arrays of the shapes and types of ``like``."""
     out, start = [], 0
     for a in like:
-        size = int(np.prod(a.shape[1:], dtype=np.int64))
+        size = math.prod(a.shape[1:])
         part = rows[:, start : start + size].reshape((-1, *a.shape[1:]))
         out.append(part.astype(a.dtype))
         start += size
