@@ -300,6 +300,13 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             print(f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
                   f"LAMMPS's: {100 * item.comm_share():.1f} % against "
                   f"{100 * peer.comm_share():.1f} % ({verdict})")  # fmt: skip
+            # the repeats go round-robin: run i of each engine is of the same round
+            rounds = list(zip(item.runs, peer.runs, strict=False))
+            lower = sum(a["comm_share"] <= b["comm_share"] for a, b in rounds)
+            pairs = ", ".join(f"{100 * a['comm_share']:.1f}/{100 * b['comm_share']:.1f}"
+                              for a, b in rounds)  # fmt: skip
+            print(f"    per round ({name}/LAMMPS, %): {pairs}; {name} no larger in {lower} "
+                  f"of {len(rounds)}")  # fmt: skip
     print("  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
           "ghost search; busy: the busiest rank's force and neighbour time over the least "
           "busy one's, the imbalance the other rank's comm section waits out; one rank: "
