@@ -376,7 +376,8 @@ def melt_box(cells) -> list[float]:
 
 def melt_grid(cells, ranks: int) -> tuple[int, ...]:
     """The bricks ``md.domain.choose_grid`` cuts the melt's box into for ``ranks``."""
-    sys.path.insert(0, str(HERE.parent))
+    if str(HERE.parent) not in sys.path:  # (called for every term of the model)
+        sys.path.insert(0, str(HERE.parent))
     from md.domain import choose_grid
 
     if ranks == 1:
