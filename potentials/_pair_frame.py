@@ -269,14 +269,18 @@ def _template_copy(stem: str, extra: str = "") -> Path:
 @functools.cache
 def _variant_source() -> str:
     """One small kernel per entry point and combination of its flags (``_FLAGS``),
-    appended to each term's copy of the template: it calls the entry point with the
-    flags as constants, which the entry point takes as literal arguments.
+    appended to each term's copy of the template: the entry point inlined (it is
+    ``inline="always"``) with the flags as constants; a threaded entry's variant is
+    ``parallel=True``, for its ``prange`` loops.
 
     numba then compiles each variant when it is first called, with one copy of the
     pair loop specialised to its flags (a few seconds), rather than all twelve at once;
     and a call from Python finds its compiled variant by the usual type match. (An entry
     point that asks for literal arguments, called from Python, retypes its arguments on
-    every call: 13 times slower than the loop it runs on a small system.)
+    every call: 13 times slower than the loop it runs on a small system.) Inlined, not
+    called: a variant that called its entry would run the entry's own compiled code in
+    a process that compiled it, and its linked copy when loaded from the cache, which
+    rounded differently (see the template's note above its atom-order kernels).
     """
     tree = ast.parse(_SOURCES[_TEMPLATE].decode())
     arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
@@ -288,7 +292,8 @@ def _variant_source() -> str:
         for values in itertools.product(*(_FLAGS[name] for name in flags)):
             fixed = dict(zip(flags, values, strict=True))
             passed = ", ".join(repr(fixed[name]) if name in fixed else name for name in names)
-            lines += ["", "", '@njit(cache=True, error_model="numpy")',
+            parallel = ", parallel=True" if entry.endswith("_threaded") else ""
+            lines += ["", "", f'@njit(cache=True{parallel}, error_model="numpy")',
                       f"def {_variant_name(entry, fixed)}({', '.join(names)}):",
                       f"    return {entry}({passed})"]  # fmt: skip
     return "\n".join(lines) + "\n"

@@ -35,11 +35,12 @@ The eight entry points have public names (``atom_forces``, ``atom_curvatures``,
 ``_threaded`` forms): they are this module's interface; the rest is private. The
 cluster entries (mixed precision over a cluster-pair list) reach the term through
 ``_cluster_row`` (``potentials._cluster_ir``), which calls ``_pair`` per vector lane. Their cutoff
-mode, virial flag and single-type flag are literal arguments: each term's copy
-of this file ends in small kernels, one per entry point and combination of
-flags (``potentials._pair_frame._variant_source``), that call them with the
-flags as constants, and ``PairPotential`` calls those, so only the
-combinations a run uses are compiled.
+mode, virial flag and single-type flag are compile-time constants: each term's
+copy of this file ends in small kernels, one per entry point and combination of
+flags (``potentials._pair_frame._variant_source``), into which the entry point is
+inlined with the flags as constants, and ``PairPotential`` calls those, so only
+the combinations a run uses are compiled (see the note above the atom-order
+kernels on why they are inlined).
 """
 
 from __future__ import annotations
@@ -181,14 +182,24 @@ def _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params):
     return padded
 
 
-# The loops below each run with the cutoff mode a compile-time constant: their
-# dispatchers take it as a literal argument (numba.literally) and inline the loop,
-# so each mode used compiles once. A mode test inside a pair loop made LJ's 2.4
-# times slower.
+# The loops below each run with the cutoff mode a compile-time constant: each entry
+# point is inlined (numba's inline="always") into the variants that call it with the
+# mode and flags as constants (potentials._pair_frame._variant_source), so each mode
+# used compiles once. A mode test inside a pair loop made LJ's 2.4 times slower.
+#
+# The entry points are inlined rather than called so that a variant is one compiled
+# function holding its loop, and the same code runs whether this process compiled it
+# or loaded it from numba's cache. A call from one compiled function to another is
+# linked as a weak copy of the callee, optimised again inside the caller; a process
+# that compiles the callee also loads the callee's own code, and the weak copy's calls
+# bind to that, while a process that loads the caller from the cache runs the copy.
+# For the cluster kernel, whose term lanes LLVM's SLP vectoriser fuses, the two
+# differed in float32 rounding: mixed-precision runs with a fresh cache left those
+# with a warm one after ~20 steps (tests/test_reproducible.py).
 
 
 # ---------------------------------------------------------------- atom order
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, virials):
     """Add the pair forces to ``forces`` (zeroed by caller) and return the energy.
 
@@ -201,7 +212,6 @@ def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, 
     mixed-precision copy) computes the pair terms in float32 from r^2 taken in
     double; the forces and every sum stay double.
     """
-    literally(mode)
     return _atom_forces_loop(geometry, n_types, table, mode, data,
                              (forces, virial, energies, virials))  # fmt: skip
 
@@ -267,14 +277,13 @@ def _atom_forces_loop(geometry, n_types, table, mode, data, out):
     return energy
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transverse, radial,
                      unit):  # fmt: skip
     """Write the Hessian block of every pair inside its cutoff; return how many.
 
     Arguments as in ``atom_forces``; outputs as in ``_atom_curvatures_loop``.
     """
-    literally(mode)
     return _atom_curvatures_loop(geometry, n_types, table, mode, data,
                                  (pair_i, pair_j, transverse, radial, unit))  # fmt: skip
 
@@ -316,7 +325,7 @@ def _atom_curvatures_loop(geometry, n_types, table, mode, data, out):
 
 
 # ---------------------------------------------------------------- slot frame
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def frame_forces(
     positions, types, slots, n_types, table, mode, data, with_virial, single,
     frame, frame_types, buffers, energies, virials, forces,
@@ -336,9 +345,6 @@ def frame_forces(
     shifts[codes[k]]: no minimum image. ``frame_forces_threaded`` runs
     the chunks on numba's threads; no two chunks write the same memory.
     """
-    literally(mode)  # one compiled variant per mode, virial flag and single type,
-    literally(with_virial)  # each compiled when first called
-    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
@@ -354,15 +360,12 @@ def frame_forces(
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True, inline="always", error_model="numpy")
 def frame_forces_threaded(
     positions, types, slots, n_types, table, mode, data, with_virial, single,
     frame, frame_types, buffers, energies, virials, forces,
 ):  # fmt: skip
     """``frame_forces`` with one chunk per thread (same arguments, same result)."""
-    literally(mode)
-    literally(with_virial)
-    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
@@ -384,7 +387,7 @@ def frame_forces_threaded(
 _cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
                    single, buffers, j_sums, j_counts, atom, forces, energies,
                    virials):  # fmt: skip
@@ -409,23 +412,17 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     (``potentials._kernels.cluster_atom_forces``). The table is float32: mixed
     precision only.
     """
-    literally(mode)
-    literally(with_virial)
-    literally(single)
     for chunk in range(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
                        with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
                        virials)  # fmt: skip
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True, inline="always", error_model="numpy")
 def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
                             with_virial, single, buffers, j_sums, j_counts, atom, forces,
                             energies, virials):  # fmt: skip
     """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
-    literally(mode)
-    literally(with_virial)
-    literally(single)
     for chunk in prange(clusters[3].shape[0] - 1):
         _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
                        with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
@@ -612,7 +609,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
 
 
 # ------------------------------------------------------- curvatures in the slot frame
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def frame_curvatures(positions, types, slots, n_types, table, mode, data, single, frame,
                       frame_types, out, written):  # fmt: skip
     """Gather the slot frame, then write the pair blocks of every pair inside its cutoff,
@@ -625,8 +622,6 @@ def frame_curvatures(positions, types, slots, n_types, table, mode, data, single
     chunks write the same memory. ``frame_curvatures_threaded`` runs the
     chunks on numba's threads.
     """
-    literally(mode)
-    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in range(n_chunks):
@@ -638,12 +633,10 @@ def frame_curvatures(positions, types, slots, n_types, table, mode, data, single
                                                 table, mode, data, single, out)  # fmt: skip
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True, inline="always", error_model="numpy")
 def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, single,
                                frame, frame_types, out, written):  # fmt: skip
     """``frame_curvatures`` with one chunk per thread (same arguments, same result)."""
-    literally(mode)
-    literally(single)
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
