@@ -90,7 +90,8 @@ def test_mixed_runs_equal_cold_and_warm_and_resume_at_every_checkpoint(tmp_path)
         for cut in range(5, 40, 5):
             resumed = warm[f"{name}_from{cut}"]
             assert np.array_equal(resumed, cold[name]), (
-                f"{name} resumed at step {cut}: {np.abs(resumed - cold[name]).max():.3g} away")
+                f"{name} resumed at step {cut}: {np.abs(resumed - cold[name]).max():.3g} away"
+            )
 
 
 def _relative_energy_error(state) -> float:
