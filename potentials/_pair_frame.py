@@ -792,7 +792,7 @@ class PairPotential:
             for tj in range(n_types):
                 p = self.pair_parameters(ti, tj)
                 k = ti * n_types + tj
-                with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+                with np.errstate(all="ignore"):
                     coefficients = self.coefficients(p, ti, tj)
                     table[TERM:, k] = coefficients
                     table[RC2, k] = np.float64(p["cutoff"]) ** 2
@@ -822,8 +822,7 @@ class PairPotential:
         else:
             rc = math.sqrt(column[RC2])
             for r, where in ((rc, "the cutoff"), (1.001 * rc, "just beyond the cutoff")):
-                with np.errstate(over="ignore", under="ignore", invalid="ignore",
-                                 divide="ignore"):  # fmt: skip
+                with np.errstate(all="ignore"):
                     u, fr = self.term.energy_at(r * r, coefficients, self.data)
                 if not (abs(u) <= HEADROOM and abs(fr) * r <= HEADROOM):
                     problem = (f"at r = {r:g} ({where}) the pair term gives u = {u:g} and "
