@@ -116,7 +116,11 @@ class PairTerm:
         -u'(r) / r at squared distance ``r2``, neither truncated nor shifted
         (the frame applies the cutoff). numba-compatible Python: arithmetic,
         ``math``/``numpy`` functions, no branches where a select will do
-        (``x if c else y``), so that the loop vectorises.
+        (``x if c else y``), so that the loop vectorises. It is evaluated in
+        Python when a potential is built, at each type pair's cutoff and just
+        beyond it (where the pair loops evaluate it for listed pairs and mask
+        it): it must return a tuple of two finite numbers there, below
+        ``HEADROOM`` (1.3e154) in magnitude.
     curvature : callable, optional
         ``curvature(r2, *params) -> (u, du_ds, d2u_ds2)``: u and its first two
         derivatives with respect to s = r^2 (for a u written in r:
