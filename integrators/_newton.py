@@ -58,6 +58,10 @@ _CHORD_REDUCTION = 0.1
 #: CG iterations than the Newton iterations they save).
 _FORCING = 0.3
 _MAX_FORCING = 0.1
+#: The smallest ``tol``: four units in the last place of 1. The residual is an acceleration
+#: error relative to the largest of the step's accelerations, from differences of numbers
+#: of that size, so its round-off is a few such units; a tol below them is never reached.
+TOL_FLOOR = 4.0 * float(np.finfo(np.float64).eps)
 #: Past steps whose start accelerations the predictor extrapolates (quadratic in time).
 #: On the 32000-atom LJ melt (dt 0.005, tol 1e-6) it cuts the predictor's residual about
 #: threefold and Newton iterations per step from 2.10 to 2.00, CG's from 4.07 to 3.63.
@@ -66,12 +70,25 @@ PREDICTOR_HISTORY = 2
 
 def check_solver_options(tol: float, max_iter: int, linear_solver: str) -> tuple[float, int, str]:
     """Validate and return ``(tol, max_iter, linear_solver)``; raise ValueError otherwise."""
+    if isinstance(tol, bool | np.bool_ | str | bytes):
+        raise ValueError(f"tol must be a number, got {tol!r}")
     try:
         tol = float(tol)
     except (TypeError, ValueError):
         raise ValueError(f"tol must be a number, got {tol!r}") from None
     if not (0.0 < tol < np.inf):
         raise ValueError(f"tol must be positive and finite, got {tol!r}")
+    if tol >= 1.0:
+        raise ValueError(
+            f"tol must be below 1, got {tol!r}: the residual is relative to the step's largest "
+            "acceleration, so a tol of 1 or more accepts the first guess unsolved"
+        )
+    if tol < TOL_FLOOR:
+        raise ValueError(
+            f"tol must be at least {TOL_FLOOR:.3g}, got {tol!r}: the relative residual is "
+            "computed in double precision to a few units in its last place, so a smaller "
+            "tol is never reached"
+        )
     if isinstance(max_iter, bool) or not isinstance(max_iter, int | np.integer) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     if linear_solver not in LINEAR_SOLVERS:

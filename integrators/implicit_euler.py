@@ -39,7 +39,7 @@ class ImplicitBase(IntegratorBase):
         Key("tol", "number", 1e-8,
             doc="Newton's convergence threshold on the relative residual (an acceleration "
                 "error relative to the largest of the step's accelerations and velocities / "
-                "`dt`)."),
+                "`dt`), at least 4 x the double epsilon (8.9e-16) and below 1."),
         Key("max_iter", "integer", 50, doc="Most Newton iterations per step."),
         Key("linear_solver", "string", "auto", choices=LINEAR_SOLVERS,
             doc='Sparse LU (`"direct"`) or conjugate gradients (`"cg"`); `"auto"` factorises '

@@ -956,7 +956,7 @@ def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ran
     except NonFiniteError as error:
         raise ConfigError(
             f"{config.source}: the initial configuration cannot be evaluated: {error} "
-            "(overlapping atoms, or a stretched bond?)"
+            "(overlapping atoms, a stretched bond, or a parameter beyond double precision?)"
         ) from None
     return sim
 

@@ -27,6 +27,8 @@ import inspect
 import itertools
 import logging
 import math
+import numbers
+import re
 import shutil
 import sys
 import tempfile
@@ -97,6 +99,10 @@ _ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_thre
 _FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
 logger = logging.getLogger(__name__)
 _RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
+#: The largest pair energy and force the frame accepts at a cutoff: the square root of the
+#: largest double, so that a sum over pairs, a square (kinetic energy after a step) or a
+#: product of two (the virial) cannot overflow.
+HEADROOM = math.sqrt(sys.float_info.max)
 
 
 @dataclass(eq=False)
@@ -110,7 +116,11 @@ class PairTerm:
         -u'(r) / r at squared distance ``r2``, neither truncated nor shifted
         (the frame applies the cutoff). numba-compatible Python: arithmetic,
         ``math``/``numpy`` functions, no branches where a select will do
-        (``x if c else y``), so that the loop vectorises.
+        (``x if c else y``), so that the loop vectorises. It is evaluated in
+        Python when a potential is built, at each type pair's cutoff and just
+        beyond it (where the pair loops evaluate it for listed pairs and mask
+        it): it must return a tuple of two finite numbers there, below
+        ``HEADROOM`` (1.3e154) in magnitude.
     curvature : callable, optional
         ``curvature(r2, *params) -> (u, du_ds, d2u_ds2)``: u and its first two
         derivatives with respect to s = r^2 (for a u written in r:
@@ -156,13 +166,58 @@ class PairTerm:
         return curvature
 
     def energy_at(self, r2: float, params, data=None) -> tuple[float, float]:
-        """(u, f/r) evaluated in Python (tables' shifts, tests)."""
+        """(u, f/r) evaluated in Python (tables' shifts, the frame's checks, tests).
+
+        Raises TypeError naming the term if it does not return two numbers.
+        """
+        return self._evaluate(self.energy, r2, params, data, ("u", "f_over_r"))
+
+    def curvature_at(self, r2: float, params, data=None) -> tuple[float, float, float]:
+        """(u, du/ds, d2u/ds2) evaluated in Python; TypeError unless three numbers."""
+        return self._evaluate(self.curvature, r2, params, data, ("u", "du_ds", "d2u_ds2"))
+
+    def _evaluate(self, function: Callable, r2: float, params, data, names) -> tuple:
         extra = (np.empty(0) if data is None else data,) if self.uses_data else ()
         try:
-            u, fr = self.energy(np.float64(r2), *extra, *(np.float64(p) for p in params))
+            returned = function(np.float64(r2), *extra, *(np.float64(p) for p in params))
         except (OverflowError, ZeroDivisionError):
-            return math.inf, math.inf
-        return float(u), float(fr)
+            return (math.inf,) * len(names)
+        except ValueError:  # a domain error of math's (cos(inf)): NaN when compiled
+            return (math.nan,) * len(names)
+        if not (isinstance(returned, tuple) and len(returned) == len(names)
+                and all(map(_is_number, returned))):  # fmt: skip
+            got = (f"{len(returned)} values ({', '.join(map(_shown, returned))})"
+                   if isinstance(returned, tuple) else _shown(returned))  # fmt: skip
+            signature = ", ".join(("r2", *(("data",) if self.uses_data else ()), *self.parameters))
+            count = {2: "two", 3: "three"}[len(names)]
+            raise TypeError(
+                f"pair term {self.name}: {function.__name__}({signature}) must return a tuple "
+                f"of {count} numbers ({', '.join(names)}), got {got}"
+            )
+        return tuple(float(value) for value in returned)
+
+
+def _is_number(value) -> bool:
+    """A real number (numpy's included, a 0-d array of one too), not a bool."""
+    if isinstance(value, np.ndarray):
+        return value.ndim == 0 and value.dtype.kind in "iuf"
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+
+
+def _shown(value) -> str:
+    """A returned value for messages: a number as a float, anything else by its type too."""
+    if _is_number(value):
+        return repr(float(value))
+    return f"{type(value).__name__} {value!r}"
+
+
+def _numbers(value) -> bool:
+    """A number, or a list, tuple or array of them (no strings, no bools)."""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iuf"
+    if isinstance(value, list | tuple):
+        return all(_is_number(item) for item in value)
+    return _is_number(value)
 
 
 def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool = False):
@@ -505,6 +560,39 @@ def _identifier(name: str) -> str:
 
 
 # ------------------------------------------------------------------ the potential
+def _compiling_the_term(method: Callable) -> Callable:
+    """Wrap a method that runs the term's kernels: numba's error from compiling the term
+    into them (the first call of each kernel compiles it) becomes a TypeError naming the
+    term and what a term must be."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except numba.core.errors.NumbaError as error:
+            raise TypeError(_compile_message(self.term, error)) from None
+
+    return wrapper
+
+
+def _compile_message(term: PairTerm, error: Exception) -> str:
+    """What is wrong with a term numba cannot compile, with numba's first complaint."""
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", str(error))  # numba's highlighting
+    lines = [line.strip() for line in plain.splitlines() if line.strip()]
+    said = [line for line in lines if not line.startswith(("Failed in", "During:", "- "))]
+    complaint = said[0] if said else type(error).__name__
+    signature = ", ".join(("r2", *(("data",) if term.uses_data else ()), *term.parameters))
+    curvature = ""
+    if term.curvature is not None:
+        curvature = f", and {term.curvature.__name__} a tuple of three (u, du_ds, d2u_ds2)"
+    return (
+        f"pair term {term.name}: numba cannot compile it into the pair kernels ({complaint}); "
+        f"{term.energy.__name__}({signature}) must be numba-compatible Python (arithmetic, math "
+        "and numpy functions, helpers decorated with numba.njit or register_jitable) that "
+        "returns a tuple of two floats (u, f_over_r)" + curvature
+    )
+
+
 class PairPotential:
     r"""A pair potential on the pair-kernel frame, from a :class:`PairTerm` and its values.
 
@@ -579,6 +667,7 @@ class PairPotential:
         self.term = term
         self._run_variants: set = set()  # the slot-frame kernels this object has run
         label = self.style or term.name
+        prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if cutoff_mode not in CUTOFF_MODES:
             raise ValueError(
                 f"cutoff_mode must be one of {', '.join(CUTOFF_MODES)}, got {cutoff_mode!r}"
@@ -601,12 +690,13 @@ class PairPotential:
         self.values = {}
         for name in names:
             what = "a number or one number per type" if name in per_type else "a number"
-            try:
-                array = np.asarray(values[name], dtype=np.float64)
+            try:  # strings ("1.0") and bools numpy would take as numbers are refused
+                array = (np.asarray(values[name], dtype=np.float64)
+                         if _numbers(values[name]) else np.empty(0))  # fmt: skip
             except (TypeError, ValueError):
                 array = np.empty(0)  # not numbers: refused below
             if array.ndim > 1 or array.size == 0 or (array.ndim == 1 and name not in per_type):
-                raise ValueError(f"{name} must be {what}, got {values[name]!r}")
+                raise ValueError(f"{prefix}{name} must be {what}, got {values[name]!r}")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"{name} must be finite, got {values[name]!r}")
             self.values[name] = array
@@ -711,7 +801,7 @@ class PairPotential:
             for tj in range(n_types):
                 p = self.pair_parameters(ti, tj)
                 k = ti * n_types + tj
-                with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+                with np.errstate(all="ignore"):
                     coefficients = self.coefficients(p, ti, tj)
                     table[TERM:, k] = coefficients
                     table[RC2, k] = np.float64(p["cutoff"]) ** 2
@@ -719,13 +809,57 @@ class PairPotential:
                     table[SHIFT, k] = self.cutoff_energy(coefficients, table[RC2, k])
                     if table[RC2, k] > table[RO2, k]:
                         table[INV_DEN, k] = 1.0 / (table[RC2, k] - table[RO2, k]) ** 3
-                if not np.all(np.isfinite(table[:, k])):
-                    shown = ", ".join(f"{n} {p[n]:g}" for n in (*self.values, "cutoff"))
-                    raise ValueError(
-                        f"{shown} of type pair ({ti}, {tj}) are beyond double precision: the "
-                        "pair's coefficients and its energy at the cutoff must be finite"
-                    )
+                self._check_column(p, ti, tj, table[:, k])
         return table
+
+    def _check_column(self, values: Mapping, ti: int, tj: int, column: np.ndarray) -> None:
+        """Raise ValueError unless a type pair's table column is finite and its term gives
+        finite u and f/r below HEADROOM at the cutoff and just beyond it (the pair loops
+        evaluate the term at every listed pair and mask those beyond the cutoff by a
+        product, so a NaN or infinity there reaches the forces). The message names the
+        value of the largest or smallest magnitude when one is beyond HEADROOM or the
+        column overflowed, else the term and what it returned."""
+        given = {name: values[name] for name in self.values}
+        given["cutoff"] = values["cutoff"]
+        if self.r_on is not None or "r_on" in self.pairs.get((min(ti, tj), max(ti, tj)), {}):
+            given["r_on"] = values["r_on"]
+        settings = np.concatenate((column[[RC2, RO2, INV_DEN]], column[TERM:]))
+        coefficients = tuple(column[TERM:])
+        problem = None
+        if not np.all(np.isfinite(settings)):
+            problem = "the pair's coefficients (or the cutoff's square) overflow"
+        else:
+            rc = math.sqrt(column[RC2])
+            for r, where in ((rc, "the cutoff"), (1.001 * rc, "just beyond the cutoff")):
+                with np.errstate(all="ignore"):
+                    u, fr = self.term.energy_at(r * r, coefficients, self.data)
+                if not (abs(u) <= HEADROOM and abs(fr) * r <= HEADROOM):
+                    problem = (f"at r = {r:g} ({where}) the pair term gives u = {u:g} and "
+                               f"-u'(r) = {fr * r:g}")  # fmt: skip
+                    break
+            if not (problem or math.isfinite(column[SHIFT])):
+                problem = f"the energy at the cutoff is {column[SHIFT]:g}"
+        if problem is None:
+            if self.term.curvature is not None:  # its shape (three numbers), for Hessians
+                self.term.curvature_at(column[RC2], coefficients, self.data)
+            return
+        prefix = "" if self.style else f"pair term {self.term.name}: "
+        shown = ", ".join(f"{name} = {value:g}" for name, value in given.items())
+        nonzero = [name for name in given if given[name] != 0.0]
+        extreme = max(nonzero, key=lambda name: abs(math.log10(abs(given[name]))), default=None)
+        magnitude = 0.0 if extreme is None else abs(given[extreme])
+        if extreme is not None and (not 1.0 / HEADROOM <= magnitude <= HEADROOM
+                                    or not np.all(np.isfinite(settings))):  # fmt: skip
+            raise ValueError(
+                f"{prefix}{extreme} = {given[extreme]:g} (type pair ({ti}, {tj}); {shown}) is "
+                f"beyond what double precision can compute with: {problem}; the pair's energy "
+                f"and force must be finite and below {HEADROOM:.3g} there"
+            )
+        raise ValueError(
+            f"{prefix}with {shown} (type pair ({ti}, {tj})) {problem}: a pair term must return "
+            "two finite numbers (u, f_over_r = -u'(r)/r) at and beyond its cutoff, below "
+            f"{HEADROOM:.3g} in magnitude, so that sums over pairs stay finite"
+        )
 
     def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:
         """Return the pair energy u(r) with the cutoff treatment applied [energy]."""
@@ -748,6 +882,7 @@ class PairPotential:
         if precision == "mixed":
             self._cached_tables(max(state.n_types, self.n_types_fixed or 1), np.float32)
 
+    @_compiling_the_term
     def energy_forces(
         self, state, neighbors, per_atom: bool = False, virial: bool = True,
         precision: str = "double",
@@ -941,6 +1076,7 @@ class PairPotential:
         """
         return self.hessian_operator(state, neighbors).tocsr()
 
+    @_compiling_the_term
     def hessian_operator(self, state, neighbors) -> PairHessian:
         """Return the Hessian as pair blocks, to apply without assembling it.
 

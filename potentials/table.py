@@ -41,6 +41,9 @@ from potentials._pair_frame import (
 __all__ = ["Table", "TableSection", "read_table"]
 
 INTERPOLATIONS = ("linear", "spline")
+#: The most ``points`` a table is built with: 40 MB, built point by point in Python in
+#: several seconds; LAMMPS's tables use thousands (spacings of 1e-6 in r^2 at 10^6).
+MAX_POINTS = 10**6
 #: Arrays of one built table in the data array, each ``n`` long, in this order.
 RSQ, ENERGY, FORCE, ENERGY2, FORCE2 = range(5)
 #: The term's parameter that is the table's first r^2 (its parameters: offset, n, innersq,
@@ -361,9 +364,9 @@ class Table(PairPotential):
         Key("keyword", "string", REQUIRED, doc="The section of the file to read."),
         Key("interpolation", "string", "linear", choices=INTERPOLATIONS,
             doc="`linear` or `spline`, as LAMMPS's `pair_style table` interpolates."),
-        Key("points", "integer", None, minimum=2,
+        Key("points", "integer", None, minimum=2, maximum=MAX_POINTS,
             doc="The table length LAMMPS's `pair_style table` calls N: the section is "
-                "interpolated onto that many points first.",
+                f"interpolated onto that many points first (at most {MAX_POINTS}).",
             default_doc="the section's own N"),
         cutoff=None, cutoff_mode="none", pair_keys=("file", "keyword"),
         cutoff_doc="the section's last distance",
@@ -378,8 +381,11 @@ class Table(PairPotential):
                 f"interpolation must be one of {', '.join(INTERPOLATIONS)}, got {interpolation!r}"
             )
         if points is not None and (isinstance(points, bool) or not isinstance(points, int)
-                                   or points < 2):  # fmt: skip
-            raise ValueError(f"points must be an integer >= 2, got {points!r}")
+                                   or not 2 <= points <= MAX_POINTS):  # fmt: skip
+            raise ValueError(
+                f"points must be an integer from 2 to {MAX_POINTS} (each point takes 40 bytes "
+                f"and is built in Python), got {points!r}"
+            )
         self.file, self.keyword = file, keyword
         self.interpolation, self.points = interpolation, points
         self.table_pairs = {}  # (ti, tj) -> the pair's own file, keyword, cutoff, r_on
@@ -420,8 +426,14 @@ class Table(PairPotential):
         ident = (str(section.path), keyword, float(cutoff))
         if ident not in built:
             points = self.points or len(section.r)
-            arrays, innersq, delta = build_table(section, points, float(cutoff),
-                                                 self.interpolation)  # fmt: skip
+            try:
+                arrays, innersq, delta = build_table(section, points, float(cutoff),
+                                                     self.interpolation)  # fmt: skip
+            except MemoryError:
+                raise ValueError(
+                    f"{where}: points = {points} is too many to hold in memory "
+                    f"({5 * 8 * points / 1e9:.3g} GB)"
+                ) from None
             if not np.all(np.isfinite(arrays)):
                 raise ValueError(f"{where}: the built table is not finite")
             offset = sum(len(c) for c in chunks)
