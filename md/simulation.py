@@ -201,7 +201,8 @@ class Simulation:
             raise ValueError(f"n_steps must be a non-negative integer, got {n_steps!r}")
         state = self.state
         if state.step == 0 and not self._observed_start:
-            self._guarded(lambda: self.forcefield.compute(state), state.step)
+            self._guarded(lambda: self.forcefield.compute(state), state.step,
+                          hint="the starting configuration cannot be evaluated")  # fmt: skip
             self._notify(all_observers=True)
             self._observed_start = True
         for _ in range(int(n_steps)):
@@ -361,10 +362,8 @@ class Simulation:
         self.timings["output"] += elapsed - (self._timed_elsewhere() - before)
 
     @staticmethod
-    def _guarded(action, step: int):
+    def _guarded(action, step: int, hint: str = "the dynamics blew up (is dt too large?)"):
         try:
             return action()
         except NonFiniteError as error:
-            raise SimulationError(
-                step, f"{error}; the dynamics blew up (is dt too large?)"
-            ) from error
+            raise SimulationError(step, f"{error}; {hint}") from error

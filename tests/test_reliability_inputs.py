@@ -285,3 +285,18 @@ def test_md_run_refuses_implicit_tol_out_of_reach(tol, message, tmp_path, monkey
     integrator = f'type = "implicit_euler"\ndt = 0.002\ntol = {tol}'
     error = _refused(tmp_path, monkeypatch, capsys, 'type = "lj"\ncutoff = 2.5', integrator)
     assert "[integrator]" in error and message in error, error
+
+
+def test_a_start_that_cannot_be_evaluated_is_not_blamed_on_dt():
+    """Overlapping atoms at step 0: the first force call fails before any dynamics, so
+    the message says the starting configuration, not "is dt too large?"."""
+    from integrators import VelocityVerlet
+    from md.errors import SimulationError
+    from potentials import LennardJones
+
+    state = md.lattice("fcc", 3, density=0.8442)
+    state.positions[1] = state.positions[0]
+    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005))
+    with pytest.raises(SimulationError, match="starting configuration") as caught:
+        sim.run(1)
+    assert "dt" not in str(caught.value)
