@@ -42,7 +42,7 @@ from potentials import LennardJones
 
 folder, resume = sys.argv[1], sys.argv[2] == "resume"
 STEPS, EVERY = 40, 5
-CASES = {"clusters": (5, 1), "outer": (6, 2)}  # fcc cells, threads
+CASES = {"clusters": (5, 1), "outer": (6, 1)}  # fcc cells, threads
 
 def build(state):
     sim = md.Simulation(state, [LennardJones(cutoff=2.5, cutoff_mode="smooth", r_on=2.0)],
