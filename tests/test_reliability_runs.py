@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import lj_config_text
+from test_mpi import needs_mpi
 
 import md
 from integrators import VelocityVerlet
@@ -314,3 +315,104 @@ def test_the_mpi_guide_lists_every_refused_integrator_and_xpbd_is_not_called_rat
     message = str(raised.value)
     assert "the xpbd integrator does not run decomposed" in message
     assert "RATTLE" not in message
+
+
+# ------------------------------------------------------ under MPI (2 ranks, 48 atoms)
+#: 48 LJ atoms (fcc 3 x 2 x 2, cutoff 1.5): two bricks along x of at least cutoff + skin.
+SMALL = """\
+units = "lj"
+seed = 11
+[system]
+lattice = "fcc"
+cells = [3, 2, 2]
+density = 0.8442
+temperature = 1.5
+[[potentials]]
+type = "lj"
+cutoff = 1.5
+cutoff_mode = "shift"
+[integrator]
+{integrator}
+[run]
+steps = {steps}
+thermo_every = 1000
+[output]
+path = "named.h5"
+every = 10
+velocities = true
+checkpoint_every = 10
+"""
+
+
+def _mpi_words(n_ranks: int) -> list[str]:
+    return ["mpiexec", "-n", str(n_ranks), sys.executable, "-m", "md.cli"]
+
+
+def _mpi_env() -> dict:
+    # MPICH's waiting ranks would take the cores from the one they wait for: yield instead.
+    return {**_env(), "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1"}
+
+
+@needs_mpi
+def test_the_hint_under_mpiexec_names_the_ranks_and_resumes(tmp_path, small_disk):
+    """A full disk on 2 ranks: the hint is ``mpiexec -n 2 md run ... --output ... --resume``,
+    and run as printed (once there is room) it completes the run. Before: ``md run CONFIG
+    --resume``, which looked for the config's output and found no checkpoint."""
+    disk = small_disk(4096)
+    config = tmp_path / "run.toml"
+    config.write_text(SMALL.format(integrator='type = "verlet"\ndt = 0.005', steps=20))
+    free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
+    (disk / "filler").write_bytes(b"\0" * (free - 300_000))
+    output = disk / "out.h5"
+    full = subprocess.run(
+        [*_mpi_words(2), "run", str(config), "-o", str(output), "--steps", "400", *QUIET],
+        cwd=tmp_path, env=_mpi_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert full.returncode == 2, full.stderr + full.stdout
+    assert "disk full" in full.stderr, full.stderr
+    hint = full.stderr.split("continue with: ")[1].strip()
+    assert hint.startswith("mpiexec -n 2 md run ") and f"--output {output}" in hint, hint
+    (disk / "filler").unlink()
+    again = subprocess.run(_md_words(hint) + QUIET, cwd=tmp_path, env=_mpi_env(),
+                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 0, again.stderr + again.stdout
+    assert "resuming at step" in again.stdout
+    from md.trajectory import read_trajectory
+
+    assert read_trajectory(output).steps.tolist() == list(range(0, 401, 10))
+
+
+@needs_mpi
+def test_rkf45_on_two_ranks_takes_the_serial_substeps(tmp_path):
+    """Before: the step-size factor, smooth in the error estimate, passed the estimate's
+    last bits (forces summed in another order on 2 ranks) on to every later substep,
+    where they grew: with a smooth cutoff 2 ranks took other substeps (292 + 220 against
+    294 + 239 here) and were 1e-6 from the serial positions after 20 steps. The factor
+    rounded to a power of 2^(1/4): the same substeps, the positions to round-off."""
+    config = tmp_path / "rkf.toml"
+    text = SMALL.format(integrator='type = "rkf45"\ndt = 0.02\ntol = 1e-7', steps=20)
+    config.write_text(text.replace('cutoff_mode = "shift"', 'cutoff_mode = "smooth"\nr_on = 1.2'))
+    _, serial = md.run_config(config, output=tmp_path / "serial.h5")
+    assert serial.status == "completed", serial.message
+    assert serial.statistics["rejected"] > 0  # the control is at work
+    script = tmp_path / "ranks.py"
+    script.write_text(
+        "import sys, md\n"
+        "_, summary = md.run_config(sys.argv[1], output=sys.argv[2])\n"
+        "assert summary.status == 'completed', summary.message\n"
+        "print('statistics', summary.statistics['accepted'], summary.statistics['rejected'])\n"
+    )
+    done = subprocess.run(
+        ["mpiexec", "-n", "2", sys.executable, str(script), str(config), "ranks.h5"],
+        cwd=tmp_path, env=_mpi_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr + done.stdout
+    words = done.stdout.split("statistics")[1].split()
+    assert [int(words[0]), int(words[1])] == [serial.statistics["accepted"],
+                                              serial.statistics["rejected"]]  # fmt: skip
+    from md.trajectory import read_trajectory
+
+    a, b = read_trajectory(tmp_path / "serial.h5"), read_trajectory(tmp_path / "ranks.h5")
+    assert a.steps.tolist() == b.steps.tolist() == [0, 10, 20]
+    gap = np.abs(a.positions - b.positions).max()  # unwrapped
+    assert gap < 1e-12, gap
