@@ -145,7 +145,8 @@ def test_the_hint_after_a_full_disk_repeats_the_output_and_resumes(
 
 
 def test_a_checkpoint_that_cannot_be_written_says_so(tmp_path, small_disk):
-    """Before: a full disk at a checkpoint said only "[Errno 28] No space left on device"."""
+    """Before: a full disk at a checkpoint named the file only: not that it was the
+    checkpoint, at which step, nor that the one before is intact."""
     from md.checkpoint import Checkpointer
 
     disk = small_disk(64)
@@ -386,9 +387,10 @@ def test_the_hint_under_mpiexec_names_the_ranks_and_resumes(tmp_path, small_disk
 def test_rkf45_on_two_ranks_takes_the_serial_substeps(tmp_path):
     """Before: the step-size factor, smooth in the error estimate, passed the estimate's
     last bits (forces summed in another order on 2 ranks) on to every later substep,
-    where they grew: with a smooth cutoff 2 ranks took other substeps (292 + 220 against
-    294 + 239 here) and were 1e-6 from the serial positions after 20 steps. The factor
-    rounded to a power of 2^(1/4): the same substeps, the positions to round-off."""
+    where they grew: with a smooth cutoff 2 ranks took other substeps (297 accepted and
+    242 rejected against the serial 292 and 220) and were 1e-6 from the serial positions
+    after 20 steps. The factor rounded to a power of 2^(1/4): the same substeps, the
+    positions to round-off."""
     config = tmp_path / "rkf.toml"
     text = SMALL.format(integrator='type = "rkf45"\ndt = 0.02\ntol = 1e-7', steps=20)
     config.write_text(text.replace('cutoff_mode = "shift"', 'cutoff_mode = "smooth"\nr_on = 1.2'))
