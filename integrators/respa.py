@@ -23,6 +23,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import replace
 
+import numpy as np
+
 from integrators._kernels import kick, kick_drift
 from integrators.base import DT, IntegratorBase, check_dt
 from md._checks import count
@@ -63,8 +65,8 @@ class RESPA(IntegratorBase):
     def __init__(self, dt: float, inner_steps: int = 2, fast: str | Sequence[int] = "bonded"):
         self.dt = check_dt(dt)
         self.inner_steps = count(inner_steps, "inner_steps", minimum=1)
-        if isinstance(fast, str):
-            if fast != "bonded":
+        if isinstance(fast, str) or not isinstance(fast, Sequence | np.ndarray):
+            if fast != "bonded":  # also true, 3: not a list, so nothing to iterate over
                 raise ValueError(
                     f'fast must be "bonded" or a list of potential indices, got {fast!r}'
                 )

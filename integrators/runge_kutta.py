@@ -161,7 +161,14 @@ class RKF45(IntegratorBase):
     over every position [length] and velocity [length/time] component (an
     absolute max norm, so it is independent of where the origin lies). A
     substep is accepted when err <= ``tol``; the next substep size is
-    h 0.9 (tol / err)^(1/5), limited to [0.2 h, 5 h]. A substep never
+    h 0.9 (tol / err)^(1/5) with the factor rounded down to a power of
+    2^(1/4) and limited to [0.2 h, 5 h]. The rounding keeps the last bits of
+    err out of the substep sizes: a factor smooth in err would pass them on
+    to every later substep, where they grow (each size sets where the next
+    error is measured), and two runs whose forces differ only in round-off
+    (another order of the sums: another number of MPI ranks) would part by
+    about ``tol`` within a few steps; rounded, they take the same substeps
+    and agree to round-off, as fixed-step methods do. A substep never
     overshoots the output time: the last one is cut to what remains (or the
     remainder is split in two rather than leave a sliver). The proposed size
     after the last accepted substep is kept for the next call (``reset``
@@ -344,12 +351,15 @@ class RKF45(IntegratorBase):
         }
 
     def _factor(self, error: float) -> float:
-        """Step-size factor 0.9 (tol/err)^(1/5), limited to [0.2, 5]."""
+        """Step-size factor 0.9 (tol/err)^(1/5) rounded down to a power of 2^(1/4),
+        limited to [0.2, 5] (the rounding: see the class docstring)."""
         if error == 0.0:
             return self.GROWTH_MAX
         if not math.isfinite(error):
             return self.SHRINK_MIN
         factor = self.SAFETY * (self.tol / error) ** 0.2
+        if factor > 0.0:  # not an underflow of (tol / err)
+            factor = 2.0 ** (math.floor(4.0 * math.log2(factor)) / 4.0)
         return min(self.GROWTH_MAX, max(self.SHRINK_MIN, factor))
 
 

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from integrators.base import Restartable
-from md._files import atomic_path
+from md._files import atomic_path, disk_full
 from md.errors import CheckpointError
 from md.state import State
 
@@ -521,16 +521,35 @@ class Checkpointer:
         self.last_step: int | None = None
 
     def __call__(self, sim) -> None:
+        """Write the checkpoint of ``sim``'s state.
+
+        Raises
+        ------
+        OSError
+            If it cannot be written; the message says it was the checkpoint, at
+            which step ("disk full" when there was no room), and that the
+            previous checkpoint is left as it was.
+        """
         last = self.writer.last_step
-        write_checkpoint(
-            self.path,
-            sim.state,
-            sim.integrator,
-            sim.forcefield,
-            fingerprint=self.fingerprint,
-            n_frames=self.writer.n_frames,
-            last_frame_step=-1 if last is None else last,
-            run_id=self.run_id,
-            extra={"config_file": self.config, "start": self.start},
-        )
+        try:
+            write_checkpoint(
+                self.path,
+                sim.state,
+                sim.integrator,
+                sim.forcefield,
+                fingerprint=self.fingerprint,
+                n_frames=self.writer.n_frames,
+                last_frame_step=-1 if last is None else last,
+                run_id=self.run_id,
+                extra={"config_file": self.config, "start": self.start},
+            )
+        except OSError as error:
+            what = "disk full" if disk_full(error) else (error.strerror or str(error))
+            previous = "the one written before" if self.last_step is None else (
+                f"the one of step {self.last_step}")  # fmt: skip
+            raise OSError(
+                error.errno,
+                f"{what}: cannot write the checkpoint {self.path} at step {sim.state.step}; "
+                f"{previous} is left as it was",
+            ) from None
         self.last_step = sim.state.step

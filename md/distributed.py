@@ -1741,9 +1741,10 @@ def refuse_undistributable(integrator, potentials) -> None:
         )
     if not getattr(integrator, "distributed", False):
         raise ValueError(
-            f"the {name} integrator does not run decomposed over MPI ranks (it needs the whole "
-            "system at once: RATTLE and the implicit methods): run this config on one rank "
-            "(without mpiexec), or choose another integrator"
+            f"the {name} integrator does not run decomposed over MPI ranks (its step needs "
+            "the whole system at once, as the implicit methods' solves and XPBD's sweeps over "
+            "the bonds do): run this config on one rank (without mpiexec), or choose another "
+            "integrator"
         )
     for potential in potentials:
         if potential.cutoff is None and not isinstance(potential, Bonded | BondedAngles):

@@ -219,10 +219,28 @@ def choose_grid(n_ranks: int, box, tilt, pbc, reach: float,
         raise ValueError(
             f"{n_ranks} ranks cannot share this cell: no grid of {n_ranks} bricks keeps "
             f"every brick {what} = {reach:.4g} wide (the shell of ghost atoms each rank "
-            f"keeps; cell widths {np.round(widths, 4).tolist()}); the largest decomposition "
-            f"that fits is {list(largest)} ({math.prod(largest)} ranks)"
+            f"keeps; cell widths {np.round(widths, 4).tolist()}); "
+            + _counts_that_fit(n_ranks, largest)
         )
     return best
+
+
+def _counts_that_fit(n_ranks: int, largest) -> str:
+    """What a refusal of ``n_ranks`` says fits: the most ranks below it that some grid
+    within ``largest`` takes, and ``largest`` itself."""
+    top = math.prod(largest)
+    fitting: dict[int, tuple[int, int, int]] = {}
+    for a in range(largest[0], 0, -1):  # the first grid of a count cuts x most
+        for b in range(largest[1], 0, -1):
+            for c in range(largest[2], 0, -1):
+                fitting.setdefault(a * b * c, (a, b, c))
+    below = max((count for count in fitting if 1 < count < n_ranks), default=None)
+    whole = f"the largest decomposition that fits is {list(largest)} ({top} ranks)"
+    if top == 1:
+        return f"{whole}: too small a system to share between ranks; run it on one rank"
+    if below is None or below == top:
+        return whole
+    return f"{below} ranks work as well (grid {list(fitting[below])}), and {whole}"
 
 
 def _factorisations(n: int):

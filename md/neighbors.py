@@ -317,6 +317,11 @@ class NeighborList:
         Number of builds so far (cluster searches, with ``clusters``).
     n_prunes : int
         Number of times the outer cluster list was pruned again between searches.
+    n_late_looks : int
+        Looks of a list that is not :attr:`exact` at which an atom had moved more
+        than ``skin / 2`` since the build: the list may have missed pairs within
+        the cutoff before the look (LAMMPS's "dangerous builds"). The first is
+        logged as a warning. Always 0 for the exact list.
     n_followed : int
         Number of times the list was kept through a change of the cell.
 
@@ -368,6 +373,7 @@ class NeighborList:
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
         self._rebuild_distance2 = _square(0.5 * self.skin)
         self.n_builds = 0
+        self.n_late_looks = 0
         self.n_followed = 0
         self.used_cells = False
         self.order: NDArray[np.int64] | None = None
@@ -627,6 +633,7 @@ class NeighborList:
             if 0 <= since < self.every:
                 return None  # not a look: kept whatever the atoms did
             if not self.check:
+                self._note_late_look(state)  # one pass per look, to say what was missed
                 return True
         chunks = chunk_count(len(self._reference), _MIN_PASS_ATOMS)
         if same_cell and self._outer is not None:
@@ -656,10 +663,36 @@ class NeighborList:
         if not math.isfinite(moved2):
             raise NonFiniteError("particle positions are not finite")
         if moved2 > allowed2:
+            if same_cell and not self.exact:  # a look found the list stale already
+                self._count_late_look(state, moved2)
             return True
         if same_cell:
             return None
         return periodic_lengths(state.box, pbc)[0], periodic_tilt(state.tilt, pbc)
+
+    def _note_late_look(self, state: State) -> None:
+        """At a look of a list rebuilt there unchecked (``check=False``): count it in
+        :attr:`n_late_looks` if an atom moved more than ``skin / 2`` since the build."""
+        chunks = chunk_count(len(self._reference), _MIN_PASS_ATOMS)
+        moved2 = _largest_displacement2(state.positions, self._reference, chunks)
+        if moved2 > self._rebuild_distance2:  # NaN: the build raises it
+            self._count_late_look(state, moved2)
+
+    def _count_late_look(self, state: State, moved2: float) -> None:
+        """A look (``every > 1`` or no check) found an atom more than ``skin / 2`` from
+        where the list was built: pairs may have come within the cutoff unseen since.
+        Counted; the first one of the list is logged as a warning."""
+        self.n_late_looks += 1
+        if self.n_late_looks > 1:
+            return
+        logger.warning(
+            "neighbour list looked at every %d steps%s: at step %d an atom had moved %.4g "
+            "since the build at step %d, more than skin/2 = %.4g, so pairs within the "
+            "cutoff may have been missed meanwhile (the energy drifts); a larger skin or a "
+            "smaller neighbor_every avoids it (further such looks are only counted)",
+            self.every, "" if self.check else " without the check", int(state.step),
+            math.sqrt(moved2), self._built_step, 0.5 * self.skin,
+        )  # fmt: skip
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""

@@ -19,6 +19,7 @@ Examples
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import signal
@@ -81,6 +82,8 @@ from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
 from potentials.base import BondedAngles
 
+logger = logging.getLogger(__name__)
+
 #: Statuses of a finished :meth:`PreparedRun.execute`.
 COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
     "completed",
@@ -135,6 +138,13 @@ class RunSummary:
     statistics : dict
         The integrator's cumulative counters at the end (its ``statistics``
         hook, :class:`integrators.base.Statistics`; empty without one).
+    late_looks : int
+        Looks of a neighbour list that is not exact (``[run] neighbor_every``
+        above 1, or ``neighbor_check = false``) at which an atom had moved more
+        than half the skin since the list was built, so that pairs within the
+        cutoff may have been missed before (see
+        :attr:`md.neighbors.NeighborList.n_late_looks`); always 0 for the
+        exact list.
     """
 
     status: str
@@ -151,6 +161,7 @@ class RunSummary:
     message: str = ""
     signal: str | None = None
     statistics: dict = field(default_factory=dict)
+    late_looks: int = 0
 
     @property
     def reference(self) -> dict:
@@ -356,6 +367,8 @@ class PreparedRun:
             sim.attach(observer, interval=interval)
         start_step = state.step  # _open_outputs wrote (or resumed) a checkpoint here
         timings_before = sim.timing_summary()
+        neighbors = sim.forcefield.neighbor_list
+        late_before = neighbors.n_late_looks if neighbors is not None else 0
         previous = (
             _catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
             if handle_signals
@@ -394,6 +407,14 @@ class PreparedRun:
         if last_step is None and self.checkpoint_path.exists():
             summary.last_checkpoint_step = start_step  # none since: the start's is there
         summary.timings = {k: v - timings_before[k] for k, v in sim.timing_summary().items()}
+        if neighbors is not None:
+            summary.late_looks = neighbors.n_late_looks - late_before
+            if summary.late_looks:  # the first one was a warning: the count goes to the log
+                logger.info(
+                    "%d looks at the neighbour list (every %d steps%s) found an atom moved "
+                    "more than skin/2 since the build: pairs may have been missed",
+                    summary.late_looks, neighbors.every, "" if neighbors.check else ", no check",
+                )  # fmt: skip
         if summary.status == COMPLETED and sim.stop_requested is not None:
             summary.status, summary.signal = STOPPED, sim.stop_requested
         if summary.status == COMPLETED:
@@ -897,6 +918,13 @@ def build_potentials(config: Config, type_names, bonds=None) -> list:
 
 
 def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ranks=None):
+    shape = config.run.decomposition
+    if ranks is None and shape is not None and math.prod(shape) != 1:
+        raise ConfigError(
+            f"{config.source}: [run] decomposition {list(shape)} has {math.prod(shape)} bricks, "
+            f"but this run is one process: start it under MPI (mpiexec -n {math.prod(shape)} "
+            "md run ...), or drop the key"
+        )
     if checkpoint is not None:
         try:
             state, potentials, integrator = build_components(config, checkpoint.state)

@@ -50,6 +50,10 @@ def main(args) -> int:
     for key in ("integrator", "potentials", "seed", "skin"):
         if key in traj.parameters:
             print(f"  {key:<12} {json.dumps(traj.parameters[key])}")
+    if "mpi_ranks" in traj.parameters:  # written decomposed: the ranks and their grid
+        shape = traj.parameters.get("decomposition")
+        bricks = f" (bricks {' x '.join(str(p) for p in shape)})" if shape is not None else ""
+        print(f"  mpi ranks    {traj.parameters['mpi_ranks']}{bricks}")
     energy = summary.get("energy")
     if energy:
         e_label = units.labels["energy"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -142,12 +143,12 @@ def _main(args) -> int:
         if not output.exists():
             fail(
                 f"cannot write output at step {state.step} ({summary.message}); nothing was "
-                "kept: make room and run again"
+                f"kept: make room, then run again: {_again(args, run, resume=False)}"
             )
             return EXIT_BAD_INPUT
         checkpointed = (
             f"the last checkpoint (step {summary.last_checkpoint_step}) in {saved_path}; "
-            f"continue with md run {args.config} --resume"
+            f"make room, then continue with: {_again(args, run, resume=True)}"
             if summary.last_checkpoint_step is not None
             else "no checkpoint was written"
         )
@@ -159,7 +160,7 @@ def _main(args) -> int:
     if summary.status == STOPPED and summary.message:  # while minimising: nothing written
         print(
             f"md run: {summary.signal} received {summary.message}; nothing was written. "
-            f"Start again with: md run {args.config}",
+            f"Start again with: {_again(args, run, resume=False)}",
             file=sys.stderr,
         )
         return exit_for_signal(summary.signal)
@@ -167,7 +168,7 @@ def _main(args) -> int:
         print(
             f"md run: {summary.signal} received; stopped after step {state.step}, checkpoint "
             f"written to {saved_path}, {summary.n_frames} frames in {output}. Continue with: "
-            f"md run {args.config} --resume",
+            f"{_again(args, run, resume=True)}",
             file=sys.stderr,
         )
         return exit_for_signal(summary.signal)
@@ -233,6 +234,22 @@ def _progress_bar(total: int, disable: bool):
     )
 
 
+def _again(args, run, resume: bool) -> str:
+    """The command that continues (``resume``) or starts again this run: the same config,
+    ``--output`` and ``--steps``, under ``mpiexec -n P`` when it ran on P ranks."""
+    words = ["mpiexec", "-n", str(run.ranks.n_ranks)] if run.ranks is not None else []
+    words += ["md", "run", str(args.config)]
+    if args.output is not None:
+        words += ["--output", str(args.output)]
+    if args.steps is not None:
+        words += ["--steps", str(args.steps)]
+    if resume:
+        words.append("--resume")
+    elif args.overwrite:  # stopped before anything was written: the old output is still there
+        words.append("--overwrite")
+    return shlex.join(words)
+
+
 def _ranks(run) -> str:
     """", over P MPI ranks (bricks a x b x c)" for a decomposed run."""
     if run.ranks is None:
@@ -269,6 +286,10 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
                     + ("rebuilt there if an atom moved > skin/2" if nl.check else "rebuilt there")
                     + "; not exact: pairs can be missed between looks")  # fmt: skip
         print(f"Neighbour list builds: {nl.n_builds} ({rule})")
+        if not nl.exact:
+            print(f"Late looks: {summary.late_looks} (looks at which an atom had moved > "
+                  "skin/2 since the build: pairs within the cutoff may have been missed "
+                  "before them)")  # fmt: skip
         if nl.n_prunes:
             print(f"Cluster list prunes: {nl.n_prunes} (the outer list pruned again when an "
                   "atom moved > skin/2, searched again past (outer_skin - skin)/2)")
