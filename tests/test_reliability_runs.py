@@ -418,3 +418,28 @@ def test_rkf45_on_two_ranks_takes_the_serial_substeps(tmp_path):
     assert a.steps.tolist() == b.steps.tolist() == [0, 10, 20]
     gap = np.abs(a.positions - b.positions).max()  # unwrapped
     assert gap < 1e-12, gap
+
+
+def test_sigterm_to_md_run_while_it_builds_says_so(tmp_path):
+    """As md minimize: a SIGTERM while the run is built (and compiled) ended it silently,
+    killed by the signal; now it says so, writes nothing and exits 143."""
+    config = tmp_path / "melt.toml"
+    config.write_text(lj_config_text())
+    script = tmp_path / "kill_early.py"
+    script.write_text(
+        "import os, signal, sys, time\n"
+        "import md.cli.run as command\n"
+        "def building(*args, **kwargs):\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(5)\n"
+        "    raise AssertionError('the signal did not stop the build')\n"
+        "command.prepare = building\n"
+        "from md.cli import main\n"
+        "sys.exit(main(['run', sys.argv[1]]))\n"
+    )
+    done = subprocess.run([sys.executable, str(script), str(config)], cwd=tmp_path, env=_env(),
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 143, (done.returncode, done.stderr)
+    assert "SIGTERM received before the run started; nothing was written" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not list(tmp_path.glob("*.h5*"))
