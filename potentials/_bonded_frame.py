@@ -450,7 +450,7 @@ class _TermPotential(ListedTuples):
     def describe(self) -> dict:
         """The style (a user's term: ``{ITEM}_term`` and the term's name), each parameter
         (a number, or a list per type), the tuple count and a hash of the list."""
-        style = getattr(self, f"{self.ITEM}_style")
+        style = getattr(type(self), f"{self.ITEM}_style")
         extra = {"term": self.term.name} if style == f"{self.ITEM}_term" else {}
         return self._list_description(style, **extra, **self._described_values())
 
@@ -482,7 +482,8 @@ class BondPotential(_TermPotential):
     """
 
     ITEM = "bond"
-    #: Name of the bond style in descriptions (the built-in styles': their config type).
+    #: Name of the bond style: the built-in styles' config type, the bond type name in
+    #: files; a user's term's name (``describe()`` says ``"bond_term"`` and the name).
     bond_style = "bond_term"
 
     def __init__(self, term: BondTerm, bonds: ArrayLike, bond_types: ArrayLike | None = None,
@@ -491,6 +492,8 @@ class BondPotential(_TermPotential):
             self._setup_term(term, bond_array(bonds), bond_types, values)
         except ValueError as error:
             raise ValueError(f"bond term {getattr(term, 'name', term)}: {error}") from None
+        if type(self).bond_style == "bond_term":  # a user's: topology names its type
+            self.bond_style = term.name
 
     @property
     def bonds(self) -> NDArray[np.int64]:
@@ -584,7 +587,8 @@ class AnglePotential(_TermPotential):
     """
 
     ITEM = "angle"
-    #: Name of the angle style: its config type, and the angle type name in files.
+    #: Name of the angle style: its config type, and the angle type name in files (a
+    #: user's term's name; ``describe()`` says ``"angle_term"`` and the name).
     angle_style = "angle_term"
 
     def __init__(self, term: AngleTerm, angles: ArrayLike, angle_types: ArrayLike | None = None,
@@ -593,6 +597,8 @@ class AnglePotential(_TermPotential):
             self._setup_term(term, angle_array(angles), angle_types, values)
         except ValueError as error:
             raise ValueError(f"angle term {getattr(term, 'name', term)}: {error}") from None
+        if type(self).angle_style == "angle_term":  # a user's: topology names its type
+            self.angle_style = term.name
 
     @property
     def angles(self) -> NDArray[np.int64]:

@@ -39,9 +39,9 @@ def bond_forces(positions, lengths, inverse, tilt, bonds, bond_types, table,
     bonds: (B, 2) atom indices, bond_types: (B,) columns of ``table``. Writes
     ``virial`` as (xx, yy, zz, yz, xz, xy) of sum r_ij (x) F_ij, and, when
     ``energies`` has length N, half of each bond energy and, into ``virials``
-    (N, 6, zeroed), half of its virial to each of its atoms. ``bad`` is the first
-    bond whose energy is not finite (a FENE bond at or beyond r_max), whose terms
-    are left out, or -1.
+    (N, 6, zeroed), half of its virial to each of its atoms. ``bad`` is -1 when the
+    energy is finite, else the first bond whose energy is not (a FENE bond at or
+    beyond r_max): the results are then not to be used.
     """
     n = positions.shape[0]
     per_atom = energies.shape[0] == n
@@ -53,10 +53,6 @@ def bond_forces(positions, lengths, inverse, tilt, bonds, bond_types, table,
         j = bonds[b, 1]
         dx, dy, dz = separation(positions, i, j, lengths, inverse, tilt)
         u, g = _bond(dx * dx + dy * dy + dz * dz, _params(table, bond_types[b]))  # noqa: F821
-        if not np.isfinite(u):
-            if bad < 0:
-                bad = b
-            continue
         energy += u
         # Force on i is -u'(r) r_ij / r.
         fx = -g * dx
@@ -79,7 +75,23 @@ def bond_forces(positions, lengths, inverse, tilt, bonds, bond_types, table,
             energies[j] += 0.5 * u
             _add_half_pair_virial(virials, i, j, fx, fy, fz, dx, dy, dz)
     _store_virial(virial, wxx, wyy, wzz, wyz, wxz, wxy)
+    if not np.isfinite(energy):  # some bond's energy is not finite: find the first
+        bad = _first_non_finite(positions, lengths, inverse, tilt, bonds, bond_types, table)
     return energy, bad
+
+
+@njit(cache=True, error_model="numpy")
+def _first_non_finite(positions, lengths, inverse, tilt, bonds, bond_types, table):
+    """The first bond whose energy is not finite, or -1 (a finite sum overflowed).
+
+    A sum of bond energies is finite only if each is, so the force loop tests its sum
+    once and looks for the bond here, rather than testing every bond as it goes."""
+    for b in range(bonds.shape[0]):
+        dx, dy, dz = separation(positions, bonds[b, 0], bonds[b, 1], lengths, inverse, tilt)
+        u, _ = _bond(dx * dx + dy * dy + dz * dz, _params(table, bond_types[b]))  # noqa: F821
+        if not np.isfinite(u):
+            return b
+    return -1
 
 
 @njit(cache=True, error_model="numpy")
