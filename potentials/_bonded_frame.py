@@ -559,11 +559,16 @@ class BondPotential(_TermPotential):
 
     def _raise_bad(self, state, bad: int):
         i, j = (int(a) for a in self.bonds[bad])
-        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt)
         raise NonFiniteError(
             f"bond term {self.term.name}: bond {bad} between atoms {i} and {j} (length "
-            f"{float(np.linalg.norm(d))!r}) has a non-finite energy"
+            f"{self._length(state, bad)!r}) has a non-finite energy"
         )
+
+    def _length(self, state, bond: int) -> float:
+        """The length of bond ``bond`` in ``state`` (minimum image)."""
+        i, j = self.bonds[bond]
+        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt)
+        return float(np.linalg.norm(d))
 
 
 class AnglePotential(_TermPotential):

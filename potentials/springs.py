@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from md._checks import bond_array, read_bonds_file
-from md.box import minimum_image
 from md.errors import BondStretchError
 from md.schema import REQUIRED, Key
 from potentials._bonded import bonded_keys, config_values
@@ -211,10 +210,8 @@ class FENEBonds(_LawBonds):
 
     def _raise_bad(self, state, bad: int):
         i, j = (int(a) for a in self.bonds[bad])
-        d = minimum_image(state.positions[i] - state.positions[j], state.box, state.pbc, state.tilt)
-        raise BondStretchError(
-            bad, i, j, float(np.linalg.norm(d)), float(self.r_max[self.bond_types[bad]])
-        )
+        r_max = float(self.r_max[self.bond_types[bad]])
+        raise BondStretchError(bad, i, j, self._length(state, bad), r_max)
 
 
 # ------------------------------------------------------------------- helpers
