@@ -399,6 +399,18 @@ class _TermPotential(ListedTuples):
         term.check(self._tables)
         self._kernels = None
 
+    def _user_setup(self, term: BondedTerm, to_array: Callable, items, item_types,
+                    values: Mapping[str, ArrayLike]) -> None:  # fmt: skip
+        """:meth:`_setup_term` for a user's term: messages name the term, and the style
+        (the type name in topology) is the term's name unless a subclass names one."""
+        try:
+            self._setup_term(term, to_array(items), item_types, values)
+        except ValueError as error:
+            raise ValueError(f"{self.ITEM} term {getattr(term, 'name', term)}: {error}") from None
+        style = f"{self.ITEM}_style"
+        if getattr(type(self), style) == f"{self.ITEM}_term":
+            setattr(self, style, term.name)
+
     def _loops(self) -> ModuleType:
         if self._kernels is None:
             self._kernels = kernels_for(self.term)
@@ -488,12 +500,7 @@ class BondPotential(_TermPotential):
 
     def __init__(self, term: BondTerm, bonds: ArrayLike, bond_types: ArrayLike | None = None,
                  **values: float | ArrayLike) -> None:  # fmt: skip
-        try:
-            self._setup_term(term, bond_array(bonds), bond_types, values)
-        except ValueError as error:
-            raise ValueError(f"bond term {getattr(term, 'name', term)}: {error}") from None
-        if type(self).bond_style == "bond_term":  # a user's: topology names its type
-            self.bond_style = term.name
+        self._user_setup(term, bond_array, bonds, bond_types, values)
 
     @property
     def bonds(self) -> NDArray[np.int64]:
@@ -598,12 +605,7 @@ class AnglePotential(_TermPotential):
 
     def __init__(self, term: AngleTerm, angles: ArrayLike, angle_types: ArrayLike | None = None,
                  **values: float | ArrayLike) -> None:  # fmt: skip
-        try:
-            self._setup_term(term, angle_array(angles), angle_types, values)
-        except ValueError as error:
-            raise ValueError(f"angle term {getattr(term, 'name', term)}: {error}") from None
-        if type(self).angle_style == "angle_term":  # a user's: topology names its type
-            self.angle_style = term.name
+        self._user_setup(term, angle_array, angles, angle_types, values)
 
     @property
     def angles(self) -> NDArray[np.int64]:
