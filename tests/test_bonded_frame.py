@@ -308,3 +308,57 @@ def test_user_terms_run_in_a_simulation_with_explicit_and_implicit_steps(chains)
     implicit = md.Simulation(start.copy(), potentials, ImplicitEuler(dt=0.01, tol=1e-10))
     implicit.run(5)
     assert np.all(np.isfinite(implicit.state.positions))
+
+
+_DISABLE_JIT_RUN = """
+import json, math
+import numpy as np
+from md.polymers import chain_angles, polymer_melt
+from potentials import (BondPotential, CosineAngles, FENEBonds, HarmonicAngles,
+                        HarmonicBonds, bond_term)
+
+@bond_term
+def morse(r, d0, alpha, r0):
+    e = math.exp(-alpha * (r - r0))
+    return d0 * (1.0 - e) ** 2, 2.0 * alpha * d0 * (1.0 - e) * e
+
+state, bonds = polymer_melt(3, 6, density=0.8, seed=2, box_shape="cubic")
+state.positions[:] += np.random.default_rng(3).normal(scale=0.05, size=state.positions.shape)
+angles = chain_angles(3, 6)
+results = {}
+for name, potential in [("fene", FENEBonds(bonds)), ("spring", HarmonicBonds(bonds, k=9.0, r0=1.0)),
+                        ("cosine", CosineAngles(angles, k=1.5)),
+                        ("harmonic", HarmonicAngles(angles, k=2.0, theta0=150.0)),
+                        ("morse", BondPotential(morse, bonds, d0=1.0, alpha=2.0, r0=1.0))]:
+    result = potential.energy_forces(state, per_atom=True)
+    results[name] = [result.energy, result.forces.tolist(), result.virial.tolist(),
+                     result.energies.tolist(), result.virials.tolist(),
+                     None if name == "morse" else potential.hessian(state).toarray().tolist()]
+print(json.dumps(results))
+"""
+
+
+def test_the_bonded_frame_runs_under_disable_jit_as_compiled():
+    """With numba off (a debugger, coverage) the template's loops run as Python and give
+    the compiled results, for the built-in styles and a user's term."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    def run(disable: str) -> dict:
+        root = str(Path(__file__).resolve().parents[1])
+        paths = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
+        env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": paths}
+        done = subprocess.run([sys.executable, "-c", _DISABLE_JIT_RUN], env=env,
+                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    compiled, python = run("0"), run("1")
+    for name, reference in compiled.items():
+        for ours, theirs in zip(python[name], reference, strict=True):
+            if theirs is not None:
+                scale = np.abs(theirs).max()
+                np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-12 * scale, err_msg=name)
