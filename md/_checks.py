@@ -65,6 +65,18 @@ def positive_array(value, name: str, allow_zero: bool = False, what: str = "type
     return array
 
 
+def finite_array(value, name: str, what: str = "type"):
+    """Return a float64 scalar or 1-D array whose entries are finite (of either sign)."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or a list of numbers, got {value!r}") from None
+    if array.ndim > 1 or array.size == 0 or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be a finite number or a list with one per {what}, "
+                         f"got {value!r}")  # fmt: skip
+    return array
+
+
 def positive_scalar(value, name: str, allow_zero: bool = False) -> float:
     """Like :func:`positive`, for values that may arrive as numpy scalars or 0-d arrays."""
     array = positive_array(value, name, allow_zero)

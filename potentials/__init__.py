@@ -2,13 +2,24 @@
 
 ``POTENTIALS`` maps the names used in configs to the classes. Pair potentials
 share one pair-kernel frame (:class:`PairPotential`); a user's own pair term
-(:func:`pair_term`) gets the same lists, threads, virials and Hessians.
+(:func:`pair_term`) gets the same lists, threads, virials and Hessians. Bonds and
+angles share the bonded frame likewise: a user's bond term (:func:`bond_term`, with
+:class:`BondPotential`) or angle term (:func:`angle_term`, :class:`AnglePotential`)
+gets the loops, per-type parameters, virials and Hessians of the built-in styles.
 """
 
 from md._kernel_cache import kernel_cache
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
+    from potentials._bonded_frame import (
+        AnglePotential,
+        AngleTerm,
+        BondPotential,
+        BondTerm,
+        angle_term,
+        bond_term,
+    )
     from potentials._pair_frame import PairPotential, PairTerm, pair_term
     from potentials.angles import AngleCollapseError, CosineAngles, HarmonicAngles
     from potentials.base import ForceResult, Potential, SupportsHessian
@@ -34,6 +45,10 @@ POTENTIALS = {
 __all__ = [
     "POTENTIALS",
     "AngleCollapseError",
+    "AnglePotential",
+    "AngleTerm",
+    "BondPotential",
+    "BondTerm",
     "BondStretchError",
     "Buckingham",
     "CosineAngles",
@@ -51,5 +66,7 @@ __all__ = [
     "SupportsHessian",
     "Table",
     "Yukawa",
+    "angle_term",
+    "bond_term",
     "pair_term",
 ]

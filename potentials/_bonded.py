@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike
 
-from md._checks import bond_type_array, positive_array
+from md._checks import bond_type_array, finite_array, positive_array
 from md.schema import Key, check_names
 
 
@@ -30,10 +30,12 @@ class ListedTuples:
     #: What one tuple is called in messages and descriptions.
     ITEM: str
 
-    def _setup_list(self, items: np.ndarray, item_types, params: dict[str, ArrayLike]) -> None:
+    def _setup_list(self, items: np.ndarray, item_types, params: dict[str, ArrayLike],
+                    nonnegative: bool = True) -> None:  # fmt: skip
         """Hold ``items`` (checked already) with their types and per-type parameter tables
         (:func:`type_tables`: ``per_type`` and ``_tables``)."""
-        types, self.per_type, self._tables = type_tables(params, item_types, len(items), self.ITEM)
+        types, self.per_type, self._tables = type_tables(params, item_types, len(items),
+                                                         self.ITEM, nonnegative)  # fmt: skip
         self._set_list(items, types)
 
     def _set_list(self, items: np.ndarray, types: np.ndarray) -> None:
@@ -69,22 +71,25 @@ class ListedTuples:
         out = {"type": style, **params, f"n_{self.ITEM}s": len(self._items)}
         out[f"{self.ITEM}s_sha256"] = digest.hexdigest()
         if self.per_type:
-            out[f"n_{self.ITEM}_types"] = len(self._tables[0])
+            out[f"n_{self.ITEM}_types"] = len(self._tables[0]) if self._tables else None
         return out
 
 
 def type_tables(
-    params: dict[str, ArrayLike], item_types, n_items: int, item: str
+    params: dict[str, ArrayLike], item_types, n_items: int, item: str, nonnegative: bool = True
 ) -> tuple[np.ndarray, bool, list[np.ndarray]]:
     """Check parameters given once or per type; return ``(types, per_type, tables)``.
 
     ``params`` maps names to a number or a list (one value per ``item`` type),
-    each finite and >= 0; ``item_types`` holds one type index per member (a
+    each finite (and >= 0 if ``nonnegative``); ``item_types`` holds one type index per member (a
     bond, an angle) or is None when every parameter is a single number.
     ``tables`` holds one float64 array per parameter, one entry per type.
     """
+    what = f"{item} type"
     given = {
-        name: positive_array(value, name, allow_zero=True, what=f"{item} type")
+        name: positive_array(value, name, allow_zero=True, what=what)
+        if nonnegative
+        else finite_array(value, name, what)
         for name, value in params.items()
     }
     per_type = [name for name, value in given.items() if value.ndim == 1]

@@ -293,7 +293,16 @@ def kernels_for(term: PairTerm, precision: str = "double",
 
 
 def _template_copy(stem: str, extra: str = "") -> Path:
-    """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder.
+    """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder
+    (:func:`template_copy`)."""
+    return template_copy("pair_terms", stem,
+                         _SOURCES[_TEMPLATE] + _variant_source().encode() + extra.encode())
+
+
+def template_copy(folder_name: str, stem: str, text: bytes) -> Path:
+    """A kernel template's copy for one term, ``text``: ``FOLDER_NAME/STEM.py`` in the kernel
+    cache folder (the stem names the term and a hash of the copy's code: the same stem, the
+    same bytes).
 
     Written whole under a temporary name and hard-linked into place, so a reader
     sees the complete file or none, and of two processes writing the same copy at
@@ -301,7 +310,7 @@ def _template_copy(stem: str, extra: str = "") -> Path:
     time, which numba's cache index records, never changes). If the folder cannot
     be written, the copy goes to a temporary folder for this process only.
     """
-    folders = [Path(config.CACHE_DIR or cache_directory()) / "pair_terms", None]
+    folders = [Path(config.CACHE_DIR or cache_directory()) / folder_name, None]
     for folder in folders:
         folder = folder or _scratch_folder()
         path = folder / f"{stem}.py"
@@ -310,15 +319,15 @@ def _template_copy(stem: str, extra: str = "") -> Path:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             with atomic_path(path, exclusive=True) as partial:
-                partial.write_bytes(_SOURCES[_TEMPLATE] + _variant_source().encode()
-                                    + extra.encode())  # fmt: skip
+                partial.write_bytes(text)
         except FileExistsError:  # another process wrote it first: the same bytes
             return path
         except OSError as error:
             logger.warning("cannot write %s (%s); using a temporary folder", path, error)
             continue
         return path
-    raise OSError(f"no folder to write the pair kernels to ({folders[0]} is not writable)")
+    raise OSError(f"no folder to write the {folder_name} kernels to ({folders[0]} is not "
+                  "writable)")  # fmt: skip
 
 
 @functools.cache
