@@ -60,8 +60,8 @@ from potentials.springs import BondStretchError
 logger = logging.getLogger(__name__)
 
 #: A step starts with a rebuild (and migration) when some atom's next move could take it
-#: past the list's limit (``moved_since`` of ``_domain_kernels`` bounds each atom's next move from its
-#: last two) with this many times the last step's largest move to spare.
+#: past the list's limit (``moved_since`` of ``_domain_kernels`` bounds each atom's next
+#: move from its last two) with this many times the last step's largest move to spare.
 LOOKAHEAD = 0.05
 #: Ghost shell beyond the longest bond, in skins: the bonds of the last build may
 #: stretch by a skin before the next, plus the slack of a rebuild forced inside a step.

@@ -227,7 +227,11 @@ def agree(ranks, error: BaseException | None) -> None:
     the same message, so every rank reports the same failure and none is left
     waiting for the others.
     """
-    report = None if error is None else (_family(error), str(error), getattr(error, "step", 0))
+    if error is None:
+        report = None
+    else:  # the step only for the families whose rebuilt errors name it (they all have one)
+        step = error.step if isinstance(error, SimulationError | ConvergenceError) else 0
+        report = (_family(error), str(error), step)
     for rank, got in enumerate(ranks.all_objects(report)):
         if got is None:
             continue

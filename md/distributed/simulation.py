@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from integrators.base import constraints_of
+from integrators.base import Distributable, Restartable, constraints_of
 from md.distributed.forcefield import BOND_SKINS, DistributedForceField, longest_arm
 from md.distributed.grid import Grid, check_grid, choose_grid
 from md.distributed.ranks import agree, mpi_ranks
@@ -170,7 +170,7 @@ class DistributedSimulation(Simulation):
             return True
         migrating = forcefield.ahead > 1.0 or forcefield.migrate_pending
         if migrating:
-            dt = getattr(self.integrator, "dt", None)
+            dt = self.integrator.dt  # (every integrator has one: the Integrator protocol)
             self._guarded(lambda: self._migrate(dt=dt), self.state.step)
         forcefield.start_step(self.state.positions, migrating)
         return False
@@ -222,7 +222,9 @@ class DistributedSimulation(Simulation):
 
     # ------------------------------------------------------------ whole system
     def per_atom_keys(self) -> tuple[str, ...]:
-        return tuple(getattr(self.integrator, "per_atom_state", ()))
+        """The keys of the integrator's saved state that are per-atom arrays (Distributable)."""
+        integrator = self.integrator
+        return tuple(integrator.per_atom_state) if isinstance(integrator, Distributable) else ()
 
     def global_view(self, forces: bool = False, thermo: bool = True) -> GlobalView | None:
         """The whole system gathered on rank 0, in its atom order (collective): a
@@ -238,7 +240,7 @@ class DistributedSimulation(Simulation):
         if forces:
             columns.append(self.forcefield.compute(state).forces)
         keys = self.per_atom_keys()
-        saved = self.integrator.get_state() if hasattr(self.integrator, "get_state") else None
+        saved = self.integrator.get_state() if isinstance(self.integrator, Restartable) else None
         shapes = []
         for key in keys:
             value = None if saved is None else saved.get(key)
@@ -366,7 +368,7 @@ def refuse_undistributable(integrator, potentials) -> None:
             f"rigid bonds (the {name} integrator's constraints) do not run decomposed over MPI "
             "ranks: run this config on one rank (without mpiexec)"
         )
-    if not getattr(integrator, "distributed", False):
+    if not (isinstance(integrator, Distributable) and integrator.distributed):
         raise ValueError(
             f"the {name} integrator does not run decomposed over MPI ranks (its step needs "
             "the whole system at once, as the implicit methods' solves and XPBD's sweeps over "

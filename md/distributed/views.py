@@ -7,19 +7,47 @@ for an observer that rank 0 holds (:class:`Elsewhere`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from md.distributed.ranks import agree
 from md.parallel import global_max
+from md.simulation import VirialUse
 from md.state import State
 from md.topology import Topology
 from potentials.base import ForceResult
 
 if TYPE_CHECKING:
     from md.distributed.simulation import DistributedSimulation
+
+
+@runtime_checkable
+class WholeSystemUse(Protocol):
+    """Optional hook of an observer: ``whole_system = False`` says it reads only the step,
+    time and thermo (a thermo table, a progress bar), so a decomposed run hands it those
+    without gathering the atoms; an observer without the attribute gets the whole system."""
+
+    whole_system: bool
+
+
+@runtime_checkable
+class ForcesUse(Protocol):
+    """Optional hook of an observer: ``store_forces = True`` says it reads the forces (a
+    trajectory writer storing them), so a decomposed run gathers them too; an observer
+    without the attribute is handed none."""
+
+    store_forces: bool
+
+
+@runtime_checkable
+class Decomposed(Protocol):
+    """What a force field seen by rank 0's observers of a decomposed run has beyond a
+    ForceField's: ``decomposition``, the layout a checkpoint records (the grid, its cut
+    planes, each atom's owner and row, and what the next step start would see)."""
+
+    decomposition: dict
 
 
 class Elsewhere:
@@ -40,15 +68,16 @@ class Gathered:
 
     def __init__(self, observer) -> None:
         self.observer = observer
-        self.uses_virial = getattr(observer, "uses_virial", True)
+        self.uses_virial = observer.uses_virial if isinstance(observer, VirialUse) else True
         #: False for an observer that reads only the step, time and thermo (a thermo
         #: table, a progress bar): it gets them without the atoms being gathered.
-        self.whole_system = getattr(observer, "whole_system", True)
+        self.whole_system = (observer.whole_system if isinstance(observer, WholeSystemUse)
+                             else True)  # fmt: skip
 
     def __call__(self, sim: DistributedSimulation) -> None:
         if self.whole_system:
-            view = sim.global_view(forces=bool(getattr(self.observer, "store_forces", False)),
-                                   thermo=self.uses_virial)  # fmt: skip
+            forces = isinstance(self.observer, ForcesUse) and bool(self.observer.store_forces)
+            view = sim.global_view(forces=forces, thermo=self.uses_virial)
         else:
             view = sim.light_view(thermo=self.uses_virial)
         error = None
@@ -96,6 +125,7 @@ class IntegratorView:
         return self._saved
 
     def __getattr__(self, name):
+        # a proxy: every other attribute is the integrator's own (not a capability probe)
         return getattr(self._integrator, name)
 
 
@@ -123,6 +153,7 @@ class ForceFieldView:
         self.neighbor_list = ListView(reference if complete else None,
                                        forcefield.reference_cell, forcefield.n_builds)  # fmt: skip
         self.decomposition = layout
+        self.precision = forcefield.precision  # what a checkpoint of the run records
 
     def compute(self, state: State, per_atom: bool = False, virial: bool = True) -> ForceResult:
         if self._forces is None:
