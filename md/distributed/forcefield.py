@@ -39,19 +39,10 @@ from md.distributed._domain_kernels import (
 from md.distributed.grid import Grid, balanced_cuts
 from md.distributed.halo import Domain
 from md.distributed.ranks import agree, in_rank_order
-from md.errors import (
-    AngleCollapseError,
-    DecompositionError,
-    NonFiniteError,
-)
+from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
-from md.parallel import (
-    chunk_count,
-    copy_into,
-    global_max,
-    same_values,
-)
+from md.parallel import chunk_count, copy_into, global_max, same_values
 from md.state import State
 from md.topology import Topology
 from potentials.base import Bonded, BondedAngles, ForceResult
@@ -74,7 +65,6 @@ _IDENTITY = np.eye(3)
 _NONE = np.empty((0, 3))
 
 
-# ---------------------------------------------------------------- force field
 @dataclass
 class _Bonded:
     """A bonded potential's items indexed by their anchor atom's id (a bond's first atom,

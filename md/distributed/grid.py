@@ -295,9 +295,6 @@ def balanced_cuts(cuts, costs, minimum: float, damping: float = 0.5) -> NDArray[
     return new
 
 
-# ------------------------------------------------------------------- kernels
-
-
 __all__ = [
     "Grid",
     "balanced_cuts",

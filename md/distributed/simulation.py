@@ -15,14 +15,9 @@ from md.distributed.forcefield import BOND_SKINS, DistributedForceField, longest
 from md.distributed.grid import Grid, check_grid, choose_grid
 from md.distributed.ranks import agree, mpi_ranks
 from md.distributed.views import ForceFieldView, Gathered, GlobalView, IntegratorView
-from md.errors import (
-    SimulationError,
-)
+from md.errors import SimulationError
 from md.minimize import minimize
-from md.parallel import (
-    global_max,
-    using_reductions,
-)
+from md.parallel import global_max, using_reductions
 from md.simulation import Simulation
 from md.state import State
 from potentials.base import Bonded, BondedAngles
@@ -33,7 +28,6 @@ _STOPS = {"SIGINT": 1.0, "SIGTERM": 2.0}
 _NONE = np.empty((0, 3))
 
 
-# ----------------------------------------------------------------- simulation
 class DistributedSimulation(Simulation):
     """A Simulation whose system is shared by the ranks of an MPI run.
 
