@@ -375,10 +375,10 @@ def melt_box(cells) -> list[float]:
 
 
 def melt_grid(cells, ranks: int) -> tuple[int, ...]:
-    """The bricks ``md.domain.choose_grid`` cuts the melt's box into for ``ranks``."""
+    """The bricks ``md.distributed.grid.choose_grid`` cuts the melt's box into for ``ranks``."""
     if str(HERE.parent) not in sys.path:  # (called for every term of the model)
         sys.path.insert(0, str(HERE.parent))
-    from md.domain import choose_grid
+    from md.distributed import choose_grid
 
     if ranks == 1:
         return (1, 1, 1)

@@ -145,7 +145,7 @@ class Thermostat(IntegratorBase):
         """Return the private state as plain data (bath, random stream, chain, bond lengths)."""
         saved = {"reservoir": self.reservoir, "steps": self._steps}
         for name in self._saved:
-            value = getattr(self, name)
+            value = getattr(self, name)  # its own saved attributes, by name
             saved[name] = value.tolist() if isinstance(value, np.ndarray) else copy.deepcopy(value)
         if self.rng is not None:
             saved["rng"] = copy.deepcopy(self.rng.bit_generator.state)
@@ -158,7 +158,7 @@ class Thermostat(IntegratorBase):
         self.reservoir = float(saved["reservoir"])
         self._steps = int(saved.get("steps", 0))
         for name in self._saved:
-            current = getattr(self, name)
+            current = getattr(self, name)  # (as get_state)
             value = saved[name]
             if isinstance(current, np.ndarray):
                 value = np.array(value, dtype=current.dtype)

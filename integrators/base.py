@@ -4,18 +4,22 @@ The optional hooks are small ``runtime_checkable`` protocols; the engine
 asks ``isinstance(integrator, Hook)`` before it calls one, so an integrator
 that leaves a hook out is simply not asked:
 
-=====================  ==========================================  ============================
-protocol               members                                     used by
-=====================  ==========================================  ============================
-:class:`Constrained`   ``constraints`` (BondConstraints or None)   md.run (binding, topology),
-                                                                   barostats
-:class:`ThermoTerms`   ``thermo_terms(state, result)``             Simulation.thermo
-:class:`Statistics`    ``statistics`` (dict of counters)           md run's summary, barostats
-:class:`Restartable`   ``get_state()``, ``set_state(saved)``       checkpoints
-:class:`ForceSplit`    ``split(forcefield)``                       md.run (RESPA's, XPBD's check)
-:class:`SupportsAm-    ``amplification(omega_dt)`` (static)        md.damping (theory curves)
+======================  ==========================================  ==============================
+protocol                members                                     used by
+======================  ==========================================  ==============================
+:class:`Constrained`    ``constraints`` (BondConstraints or None)   md.run (binding, topology),
+                                                                    barostats
+:class:`ThermoTerms`    ``thermo_terms(state, result)``             Simulation.thermo
+:class:`Statistics`     ``statistics`` (dict of counters)           md run's summary, barostats
+:class:`Restartable`    ``get_state()``, ``set_state(saved)``       checkpoints
+:class:`ForceSplit`     ``split(forcefield)``                       md.run (RESPA's, XPBD's check)
+:class:`SupportsAm-     ``amplification(omega_dt)`` (static)        md.damping (theory curves)
 plification`
-=====================  ==========================================  ============================
+:class:`Distributable`  ``distributed``, ``per_atom_state``         md.distributed
+:class:`DeclaresOrder`  ``order`` (of an integrator or a factory)   md.integrator_study
+:class:`DeclaresAdap-   ``adaptive`` (the same)                     md.integrator_study
+tive`
+======================  ==========================================  ==============================
 
 :class:`IntegratorBase` gives the flags' defaults, ``constraints = None``
 (so every integrator in the registry is :class:`Constrained`) and
@@ -75,7 +79,7 @@ class Integrator(Protocol):
         The global order of accuracy in ``dt`` the method is built for (None:
         adaptive, stochastic or thermostatted), which ``md integrators``
         measures and the tests check.
-    ``distributed`` (optional: False when absent)
+    ``distributed`` (optional: False when absent, see :class:`Distributable`)
         It runs on one rank's atoms in a run decomposed over MPI ranks
         (:mod:`md.distributed`): its sums over atoms go through
         :func:`md.parallel.global_sum`, and its private per-atom arrays, named
@@ -194,6 +198,38 @@ def amplification_roots(*polynomials) -> NDArray[np.complex128]:
 DT = Key("dt", "number", REQUIRED, unit="time", positive=True, doc="The time step.")
 
 
+@runtime_checkable
+class Distributable(Protocol):
+    """Optional flags: whether the integrator runs decomposed over MPI ranks.
+
+    ``distributed`` True says it runs on one rank's atoms (its sums over atoms go
+    through :func:`md.parallel.global_sum`); ``per_atom_state`` names the keys of
+    ``get_state()`` that are per-atom arrays, which move with their atoms. The two
+    come together (:class:`IntegratorBase` gives both); an integrator without them
+    is not run decomposed.
+    """
+
+    distributed: bool
+    per_atom_state: tuple[str, ...]
+
+
+@runtime_checkable
+class DeclaresOrder(Protocol):
+    """Optional flag of an integrator, or of a factory of integrators (a class, or a
+    ``functools.partial`` given one): ``order``, the global order in ``dt`` it is built
+    for (None: none to measure). A plain function that makes integrators has none."""
+
+    order: int | None
+
+
+@runtime_checkable
+class DeclaresAdaptive(Protocol):
+    """Optional flag of an integrator or a factory of them: ``adaptive``, True when it
+    chooses its own substeps (absent: a fixed-step method)."""
+
+    adaptive: bool
+
+
 class IntegratorBase:
     """Defaults of the capability flags, and the step's bookkeeping.
 
@@ -245,6 +281,9 @@ __all__ = [
     "DT",
     "Constrained",
     "ConvergenceError",
+    "DeclaresAdaptive",
+    "DeclaresOrder",
+    "Distributable",
     "ForceSplit",
     "Integrator",
     "IntegratorBase",

@@ -271,7 +271,7 @@ class MartynaTobiasKlein(IntegratorBase):
         self.chain.set_state(saved["chain"])
         self._steps = int(saved["steps"])
         for name in ("omega", "xi", "v_xi"):
-            current = getattr(self, name)
+            current = getattr(self, name)  # its own array of that name
             value = np.array(saved[name], dtype=np.float64)
             if value.shape != current.shape:
                 raise ValueError(f"saved {name} has shape {value.shape}, expected {current.shape}")

@@ -29,7 +29,6 @@ from md._memory import keep_freed_memory
 with kernel_cache():
     from md._version import __version__
     from md.build import lattice, maxwell_boltzmann
-    from md.domain import Grid  # noqa: F401 - its kernels cached with the rest
     from md.errors import (
         CheckpointError,
         ConfigError,

@@ -253,7 +253,7 @@ def exclusive_claim(path) -> Iterator[Path]:
     try:
         try:
             os.ftruncate(descriptor, 0)
-            host = os.uname().nodename if hasattr(os, "uname") else "this host"
+            host = os.uname().nodename if hasattr(os, "uname") else "this host"  # not on Windows
             os.write(descriptor, f"pid {os.getpid()} on {host}".encode())
         except OSError as error:  # a full disk has no room for even these few bytes
             raise output_error(error, path, f"no room for its lock file {lock_path.name}") from None

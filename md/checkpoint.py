@@ -42,6 +42,7 @@ import numpy as np
 
 from integrators.base import Restartable
 from md._files import atomic_path, disk_full
+from md.distributed.views import Decomposed
 from md.errors import CheckpointError
 from md.state import State
 
@@ -170,7 +171,8 @@ def write_checkpoint(
             arrays["neighbor_pruned"] = pruned
         if nl.built_step is not None:  # where `every` counts from
             arrays["neighbor_step"] = np.array(nl.built_step, dtype=np.int64)
-    layout = getattr(forcefield, "decomposition", None)  # a decomposed run's grid and owners
+    # a decomposed run's grid and owners (its rank-0 view of the force field holds them)
+    layout = forcefield.decomposition if isinstance(forcefield, Decomposed) else None
     if layout is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
         if layout.get("slots") is not None:  # each atom's row on its rank
@@ -193,7 +195,7 @@ def write_checkpoint(
     }
     if layout is not None:
         meta["decomposition"] = _plain(layout)
-    meta["precision"] = str(getattr(forcefield, "precision", "double"))
+    meta["precision"] = "double" if forcefield is None else str(forcefield.precision)
     arrays["meta"] = np.array(json.dumps(meta))
     with atomic_path(path) as temporary, open(temporary, "wb") as handle:
         np.savez(handle, **arrays)
@@ -305,7 +307,7 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
         If the integrator differs from the one saved, or rejects the state, or
         ``forcefield`` has another precision than the run that wrote it.
     """
-    precision = getattr(forcefield, "precision", checkpoint.precision)
+    precision = checkpoint.precision if forcefield is None else forcefield.precision
     if precision != checkpoint.precision:
         raise CheckpointError(
             f"{checkpoint.path}: written by a run in {checkpoint.precision} precision, "
@@ -357,8 +359,8 @@ def physics_fingerprint(config) -> dict:
         key: (str(value) if isinstance(value, Path) else value)
         for key, value in dataclasses.asdict(config.system).items()
     }
-    structure = getattr(config.system, "structure", None)
-    barostat = getattr(config, "barostat", None)
+    structure = config.system.structure
+    barostat = config.barostat
     if structure is not None:
         try:
             system["structure_sha256"] = hashlib.sha256(Path(structure).read_bytes()).hexdigest()

@@ -115,7 +115,7 @@ class DampingRow:
         return self.phase_measured / self.omega_dt - 1.0
 
     def row(self) -> dict:
-        return {name: getattr(self, name) for name in DAMPING_COLUMNS}
+        return {name: getattr(self, name) for name in DAMPING_COLUMNS}  # its own fields
 
 
 def bond_oscillator(omega: float, mass: float = 1.0, amplitude: float = 0.1):
@@ -356,7 +356,8 @@ def default_integrators() -> list[str]:
         if cls in seen or not isinstance(cls, type):
             continue
         seen.add(cls)
-        if name == "verlet" or (hasattr(cls, "amplification") and "tol" in _parameters(cls)):
+        if name == "verlet" or (isinstance(cls, SupportsAmplification)
+                                and "tol" in _parameters(cls)):  # fmt: skip
             names.append(name)
     return names
 

@@ -21,6 +21,7 @@ from potentials.base import (
     Potential,
     SupportsHessian,
     SupportsHessianOperator,
+    SupportsPrecision,
     check_precision_name,
 )
 from potentials.pair_hessian import HessianSum
@@ -178,7 +179,8 @@ class ForceField:
         not double and the potential lists it in its ``PRECISIONS`` (others, such as
         bonds, are not asked: they run double). A run's potentials may be objects this
         force field was not built with (a decomposed run's local bonded terms)."""
-        if self.precision != "double" and self.precision in getattr(potential, "PRECISIONS", ()):
+        if (self.precision != "double" and isinstance(potential, SupportsPrecision)
+                and self.precision in potential.PRECISIONS):  # fmt: skip
             return {"precision": self.precision}
         return {}
 
@@ -325,7 +327,7 @@ def _refuse_non_finite(total: ForceResult, potentials, results: list[ForceResult
     if not math.isfinite(total.energy):
         raise NonFiniteError(f"potential energy is {total.energy}")
     for field in ("forces", "virial"):
-        values = getattr(total, field)
+        values = getattr(total, field)  # the ForceResult field named by the loop
         if values is None or np.all(np.isfinite(values)):
             continue
         culprits = [potential for potential, result in zip(potentials, results, strict=True)

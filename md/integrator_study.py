@@ -79,7 +79,7 @@ from pathlib import Path
 import numpy as np
 
 from integrators import INTEGRATORS, VelocityVerlet
-from integrators.base import ForceSplit, Integrator
+from integrators.base import DeclaresAdaptive, DeclaresOrder, ForceSplit, Integrator
 from md._checks import count, positive
 from md._files import removed_on_error, unwritable_folder, write_csv_rows
 from md.config import (
@@ -280,7 +280,7 @@ def compare_integrators(
         named = [integrators.get("yoshida6"), integrators.get("rk4")]
         reference = next((f for f in named if f is not None), next(iter(integrators.values())))
     reference_dt = reference_dt or dts[0] / 8
-    reference_order = reference_order or getattr(reference, "order", None) or 4
+    reference_order = reference_order or _declared_order(reference) or 4
     say = progress or (lambda message: None)
     say(f"reference runs: dt = {reference_dt:g} and {reference_dt / 2:g}")
     args = (make_state, potentials_factory)
@@ -302,9 +302,9 @@ def compare_integrators(
 
     reports = []
     for name, factory in integrators.items():
-        adaptive = bool(getattr(factory, "adaptive", False))
+        adaptive = isinstance(factory, DeclaresAdaptive) and bool(factory.adaptive)
         if solver_tol is not None and not adaptive and _takes_tol(factory):
-            order = getattr(factory, "order", None)
+            order = _declared_order(factory)
             factory = functools.partial(factory, tol=solver_tol)
             factory.order = order
         runs = []
@@ -339,7 +339,7 @@ def compare_integrators(
         measured_at = span / 10 if adaptive else (measure_dt or dts[len(dts) // 2])
         report = _report(name, runs, dts, span, measured_at)
         report.floor = floor
-        expected = getattr(factory, "order", None)
+        expected = _declared_order(factory)
         report.expected_order = math.nan if expected is None else float(expected)
         if adaptive:
             report.order_vs = "tol"
@@ -357,6 +357,12 @@ def compare_integrators(
             )
         reports.append(report)
     return reports
+
+
+def _declared_order(factory) -> int | None:
+    """The order in dt a factory's integrators are built for, where it declares one (an
+    integrator class, or a partial given one above); None for a plain function."""
+    return factory.order if isinstance(factory, DeclaresOrder) else None
 
 
 def _takes_tol(factory) -> bool:
@@ -663,6 +669,7 @@ def plot_work_precision(reports: Sequence[IntegratorReport], path, labels=None) 
         runs = sorted((r for r in by_name[name].runs if r.stable), key=lambda r: (r.dt, -r.tol))
         for row, (measure, _) in enumerate(measures):
             for column, (work, _) in enumerate(works):
+                # (two of the run record's fields, by name: the axes of this panel)
                 pairs = [(getattr(r, work), getattr(r, measure)) for r in runs]
                 pairs = [(a, b) for a, b in pairs if a > 0 and b > 0]
                 if not pairs:
@@ -764,7 +771,7 @@ class ThermostatReport:
     def row(self) -> dict:
         return {
             "thermostat": self.name,
-            **{k: getattr(self, k) for k in THERMOSTAT_CSV_COLUMNS[1:]},
+            **{k: getattr(self, k) for k in THERMOSTAT_CSV_COLUMNS[1:]},  # its own fields
         }
 
 

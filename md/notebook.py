@@ -62,6 +62,7 @@ def _with_bonds(nglview, universe):
             self.atomgroup.universe.trajectory[0]
             stream = mda.lib.util.NamedStream(io.StringIO(), "structure.pdb")
             atoms = self.atomgroup.atoms
+            # MDAnalysis: a Universe has a bonds attribute only when its topology lists bonds
             bonds = "all" if hasattr(atoms.universe, "bonds") else None
             with mda.Writer(stream, atoms.n_atoms, multiframe=False, bonds=bonds) as writer:
                 with warnings.catch_warnings():

@@ -252,7 +252,7 @@ class State:
             tilt=self.tilt.copy(),
             ids=None if self.ids is None else self.ids.copy(),
         )
-        momenta = getattr(self, "_ase_momenta", None)
+        momenta = getattr(self, "_ase_momenta", None)  # set only by from_ase (not a field)
         if momenta is not None:
             copied._ase_momenta = momenta.copy()
         return copied
@@ -299,7 +299,7 @@ class State:
         momenta = atoms.get_momenta()
         with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused below
             velocities = momenta / masses[:, None]  # as ase.Atoms.get_velocities
-        remembered = getattr(atoms, "_leapmd_velocities", None)
+        remembered = getattr(atoms, "_leapmd_velocities", None)  # ASE Atoms from to_ase only
         if (
             remembered is not None
             and remembered.shape == momenta.shape
@@ -350,7 +350,7 @@ class State:
             atoms.info["type_names"] = list(self.type_names)
         masses = self.masses[:, None]
         momenta = self.velocities * masses  # as ase.Atoms.set_velocities
-        remembered = getattr(self, "_ase_momenta", None)
+        remembered = getattr(self, "_ase_momenta", None)  # (as in copy)
         if (
             remembered is not None
             and remembered.shape == momenta.shape

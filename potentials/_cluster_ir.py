@@ -267,7 +267,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
     def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
             table, mode, data, cut2, forces, j_sums, j_counts, window, virial):  # fmt: skip
         real = table.dtype
-        mode_type = getattr(mode, "literal_type", mode)
+        mode_type = getattr(mode, "literal_type", mode)  # numba: a Literal type, or a plain one
         pair_sig = typingctx.resolve_function_type(
             numba.typeof(pair), (real, types.int64, table, mode_type, data), {}
         )
@@ -295,7 +295,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
             jc_p = builder.gep(array_data(context, builder, arg[15], jc_v), [shift])
             vir_p = array_data(context, builder, arg[17], virial_v) if with_virial else None
             types_p = None if single else array_data(context, builder, arg[7], types_v)
-            literal = getattr(arg[10], "literal_value", None)
+            literal = getattr(arg[10], "literal_value", None)  # numba: only a Literal type has it
             mode_c = _index(literal) if literal is not None else builder.sext(mode_v, _I64)
             # not from numba's subroutine cache: it keys by code object, which is the same
             # for every term's copy of the template (CPython's code equality ignores the

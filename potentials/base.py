@@ -107,6 +107,15 @@ class Potential(Protocol):
 
 
 @runtime_checkable
+class SupportsPrecision(Protocol):
+    """Optional capability: the precisions ``energy_forces`` offers (a subset of
+    :data:`PRECISIONS`); the ForceField passes ``precision=`` to a potential that lists
+    the one asked for, and to no other (those run double)."""
+
+    PRECISIONS: tuple[str, ...]
+
+
+@runtime_checkable
 class SupportsHessian(Protocol):
     """Optional capability: the (3N, 3N) second derivative of the energy."""
 

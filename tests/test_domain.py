@@ -1,4 +1,4 @@
-"""The kernels of a decomposed run's migration, ghost search and look-ahead (md.domain),
+"""The kernels of a decomposed run's migration, ghost search and look-ahead (md.distributed),
 against numpy's way of doing the same; no MPI needed."""
 
 from __future__ import annotations
@@ -7,16 +7,13 @@ import numpy as np
 import pytest
 
 from md.box import cell_matrix
-from md.domain import (
-    Grid,
+from md.distributed._domain_kernels import (
     append_rows,
-    balanced_cuts,
     brick_of,
     fractional_coordinates,
     home_layout,
     home_positions,
     leaving_along,
-    local_periodic_axes,
     moved_since,
     near_faces,
     predicted_positions,
@@ -24,6 +21,7 @@ from md.domain import (
     refill_rows,
     table_rows,
 )
+from md.distributed.grid import Grid, balanced_cuts, local_periodic_axes
 from md.state import State
 
 BOX = np.array([10.0, 8.0, 7.0])
@@ -333,8 +331,8 @@ def test_migration_keeps_every_atom_once_in_place_and_grows_past_its_room():
     """Domain.migrate on a loopback neighbour: leavers are sent (all of their columns),
     arrivals kept, every row's data still its atom's; a second migration changes the
     same memory (the state's arrays are views of the Domain's); many arrivals grow it."""
-    from md.distributed import Domain, _packed
-    from md.domain import Grid
+    from md.distributed.halo import Domain
+    from md.distributed.migration import _packed
 
     state, carried = atoms(range(200), 0.0, 5.0, 1)
     state.positions[:30, 0] += 5.0  # 30 atoms now in the other brick: they leave
@@ -387,8 +385,8 @@ def test_spent_carried_arrays_move_in_their_own_memory_where_it_has_room():
     is the first rows of, where that has room for the atoms owned after it; without
     room, or not spent, it goes into the Domain's memory and the caller's array is left
     as it was. Every row stays its atom's."""
-    from md.distributed import Domain, _packed
-    from md.domain import Grid
+    from md.distributed.halo import Domain
+    from md.distributed.migration import _packed
 
     def forces_of(ids):
         return np.outer(ids, [-1.0, 0.5, 2.0])
@@ -536,8 +534,7 @@ def test_the_second_ghost_build_lays_the_local_system_out_in_memory_made_at_the_
     state's velocities and masses are views, not arrays written at every build."""
     import tracemalloc
 
-    from md.distributed import Domain
-    from md.domain import Grid
+    from md.distributed.halo import Domain
 
     state, _ = atoms(range(20000), 0.0, 5.0, 5)
     no_ghosts = np.empty((0, 8))
@@ -569,9 +566,8 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     run on the ranks' clock; the owned atoms' layout before them (at a build their images
     nearest the brick, at a step their rows' copy) does not, as LAMMPS's Comm leaves out
     its Domain::pbc."""
-    import md.distributed as distributed
-    from md.distributed import Domain
-    from md.domain import Grid
+    import md.distributed.halo as halo
+    from md.distributed.halo import Domain
 
     class Clock:
         """A CommClock that says whether it is running."""
@@ -596,13 +592,13 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     calls = []
     for name in ("home_layout", "near_faces", "table_rows", "pack_rows", "home_positions",
                  "shift_rows"):  # fmt: skip
-        kernel = getattr(distributed, name)
+        kernel = getattr(halo, name)
 
         def recorded(*args, _kernel=kernel, _name=name):
             calls.append((_name, ranks.clock.depth > 0))
             return _kernel(*args)
 
-        monkeypatch.setattr(distributed, name, recorded)
+        monkeypatch.setattr(halo, name, recorded)
     state, _ = atoms(range(2000), 0.0, 5.0, 6)
     domain = Domain(ranks, Grid((2, 1, 1)))
     domain.reserve(state, {})

@@ -268,7 +268,7 @@ def test_sigterm_to_md_minimize_before_fire_starts_says_so(tmp_path):
 
 def test_the_automatic_grid_refusal_names_the_smaller_count_that_works():
     """Before: 3 ranks on a cell that takes [2, 2, 1] were told only of the 4-rank grid."""
-    from md.domain import choose_grid
+    from md.distributed import choose_grid
 
     with pytest.raises(ValueError) as raised:
         choose_grid(3, [6.0, 6.0, 3.0], None, [True] * 3, 2.8)

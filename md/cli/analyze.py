@@ -84,7 +84,7 @@ def add_parser(subparsers) -> None:
 
 def main(args) -> int:
     """Body of ``md analyze``; returns the exit code."""
-    explicit = [name for name in ANALYSES if getattr(args, name)]
+    explicit = [name for name in ANALYSES if getattr(args, name)]  # argparse's flag per name
     try:
         prepared = prepare_analysis(
             args.trajectory, None if args.all or not explicit else explicit, required=explicit,

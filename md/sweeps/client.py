@@ -184,6 +184,7 @@ def connect(
             remote.close()
         return
     if workers is None:
+        # (os.sched_getaffinity exists on Linux only)
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
         workers = workers or os.cpu_count() or 1
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:

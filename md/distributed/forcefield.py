@@ -1,0 +1,644 @@
+"""The force field of one rank of a decomposed run (:class:`DistributedForceField`).
+
+A rank evaluates its local system (owned atoms and ghosts, :mod:`md.distributed.halo`)
+with an ordinary :class:`md.forcefield.ForceField`. Its neighbour list keeps only
+the pairs whose designated atom it owns (the lower id when the ids' sum is even,
+the higher when odd: :meth:`md.neighbors.NeighborList.keep_owned`), so every pair
+is evaluated once in the whole run; each bond (angle) is evaluated by the owner
+of its first atom (vertex), with its partners' nearest copies. The ghosts' forces
+go back to their owners (newton on), and the energy and virial are sums over the
+ranks. The list is rebuilt when the largest move of any atom since the last build
+exceeds skin/2 (a global maximum); atoms migrate at rebuilds taken between steps,
+and the ghosts and list are laid out where the step is expected to take the atoms.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from md.box import (
+    cell_matrix,
+    minimum_image,
+    periodic_lengths,
+    periodic_tilt,
+    perpendicular_widths,
+)
+from md.distributed._domain_kernels import (
+    anchored_items,
+    moved_since,
+    nearest_copies,
+    predicted_positions,
+)
+from md.distributed.grid import Grid, balanced_cuts
+from md.distributed.halo import Domain
+from md.distributed.ranks import agree, in_rank_order
+from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
+from md.forcefield import ForceField
+from md.neighbors import largest_displacement2
+from md.parallel import chunk_count, copy_into, global_max, same_values
+from md.state import State
+from md.topology import Topology
+from potentials.base import Bonded, BondedAngles, ForceResult
+from potentials.springs import BondStretchError
+
+logger = logging.getLogger(__name__)
+
+#: A step starts with a rebuild (and migration) when some atom's next move could take it
+#: past the list's limit (``moved_since`` of ``_domain_kernels`` bounds each atom's next
+#: move from its last two) with this many times the last step's largest move to spare.
+LOOKAHEAD = 0.05
+#: Ghost shell beyond the longest bond, in skins: the bonds of the last build may
+#: stretch by a skin before the next, plus the slack of a rebuild forced inside a step.
+BOND_SKINS = 2.5
+#: Fewest atoms per thread worth a chunk of their own in the displacement pass.
+_MIN_PASS_ATOMS = 16_000
+#: The identity, for a cell that has not changed since the build.
+_IDENTITY = np.eye(3)
+#: No positions: no step start before the last one is known.
+_NONE = np.empty((0, 3))
+
+
+@dataclass
+class _Bonded:
+    """A bonded potential's items indexed by their anchor atom's id (a bond's first atom,
+    an angle's vertex), and the items this rank evaluated at the last build."""
+
+    index: int  # in the force field's list
+    items: NDArray[np.int64]  # (B, 2) bonds or (A, 3) angles, global ids
+    types: NDArray[np.int64]
+    anchor: int  # column of the anchor atom
+    order: NDArray[np.int64]  # items sorted by anchor id
+    starts: NDArray[np.int64]  # CSR offsets into order, by anchor id
+    local: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+def _index_bonded(index: int, potential) -> _Bonded | None:
+    """A bonded potential's items by anchor (None for a potential that lists no atoms)."""
+    if isinstance(potential, Bonded):
+        items, types, anchor = potential.bonds, potential.bond_types, 0
+    elif isinstance(potential, BondedAngles):
+        items, types, anchor = potential.angles, potential.angle_types, 1
+    else:
+        return None
+    items = np.asarray(items, dtype=np.int64)
+    order = np.argsort(items[:, anchor], kind="stable")
+    n_ids = int(items.max()) + 2 if len(items) else 1
+    starts = np.searchsorted(items[order, anchor], np.arange(n_ids)).astype(np.int64)
+    return _Bonded(index, items, np.asarray(types, dtype=np.int64), anchor, order, starts)
+
+
+def longest_arm(potentials, state: State) -> float:
+    """The longest bond, or angle arm from its vertex, of ``potentials`` in ``state``
+    (minimum image; 0 without bonds) [length]."""
+    longest = 0.0
+    for potential in potentials:
+        bonded = _index_bonded(0, potential)
+        if bonded is None or not len(bonded.items):
+            continue
+        anchors = bonded.items[:, bonded.anchor]
+        for column in range(bonded.items.shape[1]):
+            if column == bonded.anchor:
+                continue
+            d = state.positions[bonded.items[:, column]] - state.positions[anchors]
+            d = minimum_image(d, state.box, state.pbc, state.tilt)
+            longest = max(longest, float(np.sqrt((d * d).sum(axis=1)).max()))
+    return longest
+
+
+class DistributedForceField:
+    """The force field of one rank of a decomposed run (the interface of ForceField).
+
+    ``compute(state)`` takes this rank's owned atoms (``state.ids``: their
+    global ids) and returns their forces, with the energy and virial of the
+    whole system; results are cached while the owned positions and the cell
+    stay the same. It is collective: every rank calls it at the same point.
+
+    Parameters
+    ----------
+    potentials : sequence of Potential
+        The whole system's potentials (bonded ones over global atom ids).
+    skin : float
+        Neighbour-list skin [length].
+    ranks : MPIRanks
+    grid : Grid
+    bond_reach : float
+        The longest bond (or angle arm) of the starting state [length].
+    precision : {"double", "mixed"}
+        Of the local force field's pair loops (see :class:`md.forcefield.ForceField`).
+
+    Attributes
+    ----------
+    local : ForceField
+        The force field of the rank's local system (owned atoms and ghosts);
+        its neighbour list is ``neighbor_list``.
+    timings : dict
+        Seconds in ``"neighbor"`` (the list's checks and rebuilds, bonded items
+        found) and ``"force"`` (the local kernels). The time spent
+        communicating (ghost positions out and forces back, migration, the
+        ghost search's messages, reductions) is not in them: it is
+        ``ranks.clock.seconds``, as its own section.
+    migrate_pending : bool
+        The last build kept owners (it was forced inside a step): the next
+        step start migrates.
+    balance_every, balance_threshold
+        Dynamic load balancing (off where ``balance_every`` is 0): at the first
+        migration ``balance_every`` steps or more after the last check, the ranks
+        share their busy seconds since then (wall time less the time they spent
+        communicating, waits included); where the busiest rank's exceed the mean
+        by more than the factor ``balance_threshold``, the planes between bricks
+        move towards an even share (:func:`md.distributed.grid.balanced_cuts`, per cut
+        axis), and the migration takes the atoms to their new bricks.
+    imbalance, balances
+        The busiest rank's busy seconds over the mean at the last check; how many
+        checks moved the planes.
+    """
+
+    def __init__(self, potentials, skin: float, ranks, grid: Grid, bond_reach: float,
+                 precision: str = "double", balance_every: int = 0,
+                 balance_threshold: float = 1.05) -> None:  # fmt: skip
+        self.potentials = list(potentials)
+        self.ranks = ranks
+        self.skin = float(skin)
+        # its results are this object's to keep (cached per owned positions, _cache)
+        self.local = ForceField(self.potentials, skin, precision=precision, cache=False)
+        self.precision = self.local.precision
+        self.neighbor_list = self.local.neighbor_list
+        self.domain = Domain(ranks, grid)
+        self.timings = {"neighbor": 0.0, "force": 0.0}
+        self.n_evaluations = 0
+        self.n_subset_evaluations = 0
+        self.n_builds = 0
+        self.virial_wanted = False
+        self.migrate_pending = False
+        #: Set by the simulation at each step start: the look-ahead measures from there.
+        self.step_start = np.empty((0, 3))
+        #: The step start before that (empty when atoms migrated in between).
+        self.step_before = np.empty((0, 3))
+        #: A stop request of this rank (1 SIGINT, 2 SIGTERM, 3 other), shared at the next
+        #: evaluation; ``stop_seen`` and ``ahead`` are the largest over the ranks there.
+        self.stop_code = 0.0
+        self.stop_seen = 0.0
+        self.ahead = 0.0
+        indexed = [_index_bonded(i, p) for i, p in enumerate(self.potentials)]
+        self._bonded = [b for b in indexed if b is not None]
+        self.bond_reach = float(bond_reach)
+        self.reference: NDArray[np.float64] | None = None
+        self._reference_memory = np.empty((0, 3))  # (reference is a view of its first rows)
+        self.reference_cell: tuple | None = None
+        self._cell_bytes: tuple = ()
+        self._cache: dict = {}
+        self._exchanged: tuple | None = None
+        if balance_every < 0 or not balance_threshold >= 1.0:
+            raise ValueError(f"balance_every must be >= 0 and balance_threshold >= 1, got "
+                             f"{balance_every} and {balance_threshold}")  # fmt: skip
+        self.balance_every = int(balance_every)
+        self.balance_threshold = float(balance_threshold)
+        self.imbalance = 1.0
+        self.balances = 0
+        self._busy_mark: tuple[float, float, int] | None = None  # (wall, comm, step) then
+
+    @property
+    def cutoff(self) -> float | None:
+        return self.local.cutoff
+
+    @property
+    def reach(self) -> float:
+        """The ghost shell a build needs: the list radius, or the longest bond plus skins."""
+        pairs = self.cutoff + self.skin if self.cutoff is not None else 0.0
+        bonds = self.bond_reach + BOND_SKINS * self.skin if self._bonded else 0.0
+        return max(pairs, bonds)
+
+    def check(self, state: State) -> None:
+        """Nothing to check per rank: the whole system was checked before it was cut."""
+
+    def invalidate(self) -> None:
+        """Forget cached results (and which positions the ghosts hold)."""
+        self._cache.clear()
+        self._exchanged = None
+
+    def topology(self, extra=()) -> Topology:
+        """The whole system's bonds and angles (as :meth:`ForceField.topology`)."""
+        return ForceField(self.potentials).topology(extra)
+
+    def hessian_operator(self, state: State):
+        raise NotImplementedError("second derivatives are not available in a decomposed run")
+
+    def hessian(self, state: State):
+        raise NotImplementedError("second derivatives are not available in a decomposed run")
+
+    # ------------------------------------------------------------------ results
+    def compute(self, state: State, per_atom: bool = False, virial: bool = True) -> ForceResult:
+        """Forces on ``state``'s (owned) atoms; energy and virial of the whole system."""
+        return self._result(state, None, per_atom, virial)
+
+    def compute_subset(self, state: State, which, virial: bool = False) -> ForceResult:
+        """As :meth:`ForceField.compute_subset`, over the ranks."""
+        which = tuple(int(i) for i in which)
+        for i in which:
+            if not 0 <= i < len(self.potentials):
+                raise IndexError(f"potential index {i} out of range "
+                                 f"(0..{len(self.potentials) - 1})")  # fmt: skip
+        return self._result(state, which, False, virial)
+
+    def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
+        held = self._cache.get(which)
+        usable = False
+        if held is not None and _same(held[0], state):
+            result = held[1]
+            usable = (not per_atom or result.energies is not None) and (
+                not virial or result.virial is not None
+            )
+        # A rank that can use its result does not compare its exchanged positions (a full
+        # pass over them each step): "not exchanged" is always safe, it only sends again.
+        exchanged = (not usable and self._exchanged is not None
+                     and _same(self._exchanged, state))  # fmt: skip
+        # Decided together: a rank that owns no atoms sees its (no) positions unchanged
+        # while the others' moved, and must still evaluate and exchange with them.
+        usable, exchanged = self._all_ranks(usable, exchanged)
+        if usable:
+            return held[1]
+        virial = virial or self.virial_wanted
+        result = self._evaluate(state, which, per_atom, virial, exchanged)
+        if which is None:
+            self.n_evaluations += 1
+        else:
+            self.n_subset_evaluations += 1
+        self._cache[which] = (_key(state, held[0] if held else None), result)
+        return result
+
+    def _all_ranks(self, *flags: bool) -> tuple[bool, ...]:
+        """Whether each of ``flags`` holds on every rank (one reduction; collective)."""
+        failing = self.ranks.max(np.array([0.0 if flag else 1.0 for flag in flags]))
+        return tuple(bool(value == 0.0) for value in failing)
+
+    def _evaluate(self, state: State, which, per_atom: bool, virial: bool,
+                  exchanged: bool = False) -> ForceResult:  # fmt: skip
+        """Exchange, compute, share: one reduction carries the energy and virial, whether a
+        rank failed or found its list outrun (then every rank rebuilds and evaluates again),
+        and what the next step start needs (the look-ahead, a stop request)."""
+        for _ in range(2):
+            covered, ahead, finite = self.refresh(state, exchanged)
+            exchanged = False  # a rebuild below lays the local system out anew
+            start = time.perf_counter()
+            error, result = None, None
+            try:
+                if which is None:
+                    result = self.local.compute(self.domain.local_state, per_atom, virial)
+                else:
+                    result = self.local.compute_subset(self.domain.local_state, which, virial)
+            except Exception as caught:  # shared with every rank below
+                error = self._global_error(caught)
+            middle = time.perf_counter()
+            values = np.zeros(15)
+            values[0] = error is not None
+            if result is not None:
+                values[1] = result.energy
+                if virial and result.virial is not None:
+                    values[2:11] = np.asarray(result.virial).ravel()
+            values[11:15] = (not covered, ahead, self.stop_code, not finite)
+            gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
+            totals, worst = in_rank_order(gathered[:, :11]), gathered[:, 11:].max(axis=0)
+            self.timings["force"] += middle - start
+            if worst[3]:
+                raise NonFiniteError("particle positions are not finite")
+            self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
+            if not worst[0]:
+                break
+            self.rebuild(state, migrate=False)  # some rank's list was outrun: all rebuild
+        if totals[0]:
+            agree(self.ranks, error)
+        with self.ranks.clock:
+            # The local result is this evaluation's own (the local force field keeps none):
+            # the ghosts' rows are summed into it in place and the owned rows returned as they
+            # are (a 10^6-atom rank saves two copies of its forces a step).
+            forces = self.domain.reverse(np.asarray(result.forces, dtype=np.float64))
+            energies = virials = None
+            if per_atom:
+                energies = self.domain.reverse(np.array(result.energies)[:, None])[:, 0].copy()
+                if result.virials is not None:
+                    virials = self.domain.reverse(np.array(result.virials)).copy()
+        if not math.isfinite(totals[1]):
+            raise NonFiniteError(f"potential energy is {totals[1]}")
+        return ForceResult(
+            energy=float(totals[1]),
+            forces=forces,
+            virial=totals[2:11].reshape(3, 3).copy() if virial else None,
+            energies=energies,
+            virials=virials,
+        )
+
+    def _global_error(self, error: Exception) -> Exception:
+        """A bonded term's error, naming the whole system's bond (angle) and atoms."""
+        ids = self.domain.local_ids
+        if isinstance(error, BondStretchError):
+            bond = self._global_item(2, error.bond)
+            return BondStretchError(bond, int(ids[error.i]), int(ids[error.j]), error.length,
+                                    error.r_max)  # fmt: skip
+        if isinstance(error, AngleCollapseError):
+            angle = self._global_item(3, error.angle)
+            return AngleCollapseError(angle, tuple(int(ids[a]) for a in error.atoms))
+        return error
+
+    def _global_item(self, width: int, local: int) -> int:
+        for bonded in self._bonded:
+            if bonded.items.shape[1] == width and local < len(bonded.local):
+                return int(bonded.local[local])
+        return local
+
+    # ----------------------------------------------------------------- rebuilds
+    def refresh(self, state: State, exchanged: bool = False) -> tuple[bool, float, bool]:
+        """Bring the local system to ``state``'s positions (sending the ghosts') unless every
+        rank found them ``exchanged`` already; return (whether this rank's list still
+        covers the cutoff, the look-ahead ratio, whether its positions are finite).
+        Collective; the first call builds."""
+        if self.reference is None or self.reference.shape != state.positions.shape:
+            self.rebuild(state, migrate=False)
+            exchanged = False
+        if exchanged:
+            return True, self.ahead, True
+        start, communicated = time.perf_counter(), self.ranks.clock.seconds
+        mapping, allowed = self.allowance(state)
+        begin = self.step_start if self.step_start.shape == state.positions.shape else None
+        if mapping is None and begin is None:
+            chunks = chunk_count(state.n_atoms, _MIN_PASS_ATOMS)
+            moved2 = largest_displacement2(state.positions, self.reference, chunks)
+            step2, coming2, copied = 0.0, moved2, False
+        else:
+            before = self.step_before if begin is not None else _NONE
+            # the same pass writes the owned positions into the local system (not a message)
+            owned = self.domain.owned_rows(state)
+            moved2, step2, coming2 = moved_since(state.positions, self.reference,
+                                                 _IDENTITY if mapping is None else mapping,
+                                                 state.positions if begin is None else begin,
+                                                 before, owned)  # fmt: skip
+            copied = len(owned) > 0
+        # the list's check and the owned rows of its local system; the ghosts' messages on
+        # the ranks' clock
+        self.domain.update(state, copied)
+        self.timings["neighbor"] += (time.perf_counter() - start
+                                     - (self.ranks.clock.seconds - communicated))  # fmt: skip
+        self._exchanged = _key(state, self._exchanged)
+        moved, step_move = math.sqrt(moved2), math.sqrt(step2)
+        finite = math.isfinite(moved2)
+        coming = math.sqrt(coming2) + LOOKAHEAD * step_move
+        covered = moved <= allowed and self.domain.layout_holds(state)
+        return covered, _ratio(coming, allowed), finite
+
+    def coming_positions(self, state: State, dt: float,
+                         out: NDArray | None = None) -> NDArray[np.float64]:  # fmt: skip
+        """Where the owned atoms are expected after a step of ``dt``: r + dt v + dt^2 a / 2
+        (velocity Verlet's move) with the forces at hand, r + dt v without (in ``out``,
+        else a new array)."""
+        forces = self.cached_forces(state)
+        if out is None:
+            out = np.empty_like(state.positions)
+        predicted_positions(state.positions, state.velocities,
+                            _NONE if forces is None else forces, state.masses, float(dt),
+                            out)  # fmt: skip
+        return out
+
+    def cached_forces(self, state: State) -> NDArray[np.float64] | None:
+        """The forces on ``state``'s owned atoms if they are at hand (computed at these
+        positions and cell), else None; nothing is computed."""
+        held = self._cache.get(None)
+        if held is not None and _same(held[0], state):
+            return held[1].forces
+        return None
+
+    def start_step(self, positions: NDArray[np.float64], migrated: bool) -> None:
+        """Note the owned ``positions`` at a step start, keeping the last step start's
+        unless atoms ``migrated`` since (the look-ahead uses both)."""
+        if migrated or self.step_start.shape != positions.shape:
+            self.step_before = _NONE
+        else:
+            self.step_before, self.step_start = self.step_start, self.step_before
+        self.step_start = _copied(positions, self.step_start)
+
+    def allowance(self, state: State) -> tuple[NDArray | None, float]:
+        """(the cell's deformation since the build, None if unchanged; the largest move an
+        atom may make before the list misses a pair within the cutoff) [length]."""
+        cutoff = self.cutoff or 0.0
+        if (state.box.tobytes(), state.tilt.tobytes()) == self._cell_bytes:
+            return None, 0.5 * self.skin
+        box0, tilt0 = self.reference_cell
+        before = cell_matrix(np.where(state.pbc, box0, 1.0), periodic_tilt(tilt0, state.pbc))
+        after = cell_matrix(np.where(state.pbc, state.box, 1.0),
+                            periodic_tilt(state.tilt, state.pbc))  # fmt: skip
+        mapping = np.linalg.solve(before, after)
+        smallest = float(np.linalg.svd(mapping, compute_uv=False).min())
+        return mapping, 0.5 * (smallest * (cutoff + self.skin) - cutoff)
+
+    def reserve(self, state: State) -> None:
+        """Map the memory the first migration writes ``state``'s arrays and the cached
+        forces into, now rather than inside the run (see :meth:`Domain.reserve`)."""
+        self.domain.reserve(state, {("cached", None): state.positions})
+
+    def rebuild(self, state: State, migrate: bool, carried: dict | None = None,
+                dt: float | None = None) -> dict:  # fmt: skip
+        """Rebuild the ghosts and the local list at ``state``; with ``migrate``, first move
+        atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
+        bricks. Collective. Returns the carried arrays, migrated.
+
+        With ``dt``, the time step about to be taken, the ghosts and the list are laid out
+        where that step is expected to take the atoms (:meth:`coming_positions`): a rebuild
+        taken at a step start then lasts as many steps as one taken after the step's move,
+        as a single process's is (a list built where the atoms are would lose a step's
+        worth of skin). Any build position is valid: the list is checked against it at
+        every evaluation.
+
+        Its time goes to ``timings["neighbor"]``, less the migration's and the ghost
+        search's (on the ranks' clock)."""
+        start, communicated = time.perf_counter(), self.ranks.clock.seconds
+        carried = dict(carried or {})
+        if migrate:
+            # Results of the current positions travel with their atoms; older ones (a
+            # minimiser migrates after moving the atoms, before evaluating) are dropped.
+            self._cache = {which: held for which, held in self._cache.items()
+                           if _same(held[0], state)}  # fmt: skip
+            cached = {("cached", which): held[1].forces for which, held in self._cache.items()}
+            if self.balance_every:
+                self._balance(state)
+            with self.ranks.clock:
+                # (the cached forces are the evaluations' own arrays: they move in them)
+                moved = self.domain.migrate(state, {**carried, **cached}, spent=tuple(cached))
+            carried = {name: moved[name] for name in carried}
+            for which, (_, result) in list(self._cache.items()):
+                result.forces = moved[("cached", which)]
+                result.energies = result.virials = None
+                self._cache[which] = (_key(state), result)
+        self.migrate_pending = not migrate
+        # The build positions go where the last build's were (that list is done with): a
+        # fresh 10^6-atom array cost its page faults at every build (the predicted
+        # positions 5 -> 19 ms a build on the Zen 4 VM). No reference until it is whole.
+        self.reference = None
+        memory = self._reference_memory
+        if memory.shape[0] < state.n_atoms:
+            memory = np.empty((state.n_atoms + state.n_atoms // 8 + 16, 3))
+            self._reference_memory = memory
+        reference = memory[: state.n_atoms]
+        at = state
+        if dt is not None and state.velocities is not None:
+            at = copy.copy(state)
+            at.positions = self.coming_positions(state, dt, out=reference)
+        reach = self.reach
+        self.domain.build(at, reach)  # its ghost search on the ranks' clock
+        error, longest = None, 0.0
+        try:
+            longest = self._localize_bonded()
+            nl = self.local.neighbor_list
+            if nl is not None:
+                nl.keep_owned(self.domain.local_ids, self.domain.n_owned)
+                nl.build(self.domain.local_state)
+        except (NonFiniteError, ValueError) as caught:  # shared with every rank below
+            error = caught
+        longest, failed = global_max(np.array([longest, error is not None], dtype=np.float64),
+                                     self.ranks)  # fmt: skip
+        if failed:
+            agree(self.ranks, error)
+        if self._bonded:
+            if longest > reach:
+                raise DecompositionError(
+                    f"a bond is {longest:.4g} long, beyond the ghost shell ({reach:.4g}) of "
+                    "the last build; bonds must not stretch that fast"
+                )
+            self.bond_reach = longest
+        if at is state:
+            copy_into(reference, state.positions)
+        self.reference = reference
+        self.reference_cell = (state.box.copy(), state.tilt.copy())
+        self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
+        # Built where the atoms are: the local system holds their positions. Built ahead of
+        # them: the next evaluation sends positions on every rank (a rank whose atoms reach
+        # their predicted positions to the last bit must not skip a collective exchange).
+        self._exchanged = _key(state, self._exchanged) if at is state else None
+        self.ahead = 0.0
+        self.n_builds += 1
+        elapsed = time.perf_counter() - start
+        self.timings["neighbor"] += elapsed - (self.ranks.clock.seconds - communicated)
+        return carried
+
+    def _balance(self, state: State) -> None:
+        """Move the planes between bricks towards an even share of the ranks' busy time,
+        if ``balance_every`` steps have passed since the last check and the imbalance
+        exceeds ``balance_threshold`` (see the class's docstring). Collective; the
+        migration that follows takes the atoms to their new bricks."""
+        now, communicated = time.perf_counter(), self.ranks.clock.seconds
+        mark = self._busy_mark
+        if mark is not None and state.step - mark[2] < self.balance_every:
+            return
+        self._busy_mark = (now, communicated, state.step)
+        if mark is None:  # the first migration starts the clock
+            return
+        mine = np.zeros(self.ranks.n_ranks)
+        mine[self.ranks.rank] = max((now - mark[0]) - (communicated - mark[1]), 0.0)
+        with self.ranks.clock:
+            busy = self.ranks.sum(mine)  # one non-zero term per entry: the same on every rank
+        mean = float(busy.mean())
+        self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
+        if self.imbalance <= self.balance_threshold:
+            return
+        grid = self.domain.grid
+        widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+        where = np.array([grid.coordinates(rank) for rank in range(self.ranks.n_ranks)])
+        # a brick keeps room for the ghost shell and how far atoms stray before a build
+        room = self.reach + self.skin
+        for axis in range(3):
+            p = grid.shape[axis]
+            if p == 1 or p * room > widths[axis]:
+                continue
+            costs = np.bincount(where[:, axis], weights=busy, minlength=p)
+            planes = balanced_cuts(grid.cuts[axis], costs, room / widths[axis])
+            grid = grid.with_cuts(axis, planes)
+        self.domain.set_grid(grid)
+        self.balances += 1
+        logger.info("step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s", state.step,
+                    np.round(busy, 4).tolist(), self.imbalance,
+                    [np.round(c, 4).tolist() for c in grid.cuts])  # fmt: skip
+
+    def _localize_bonded(self) -> float:
+        """Give the local force field this rank's bonds and angles over local indices;
+        return the longest bond (angle arm) among them [length]."""
+        if not self._bonded:
+            return 0.0  # (the id sort below: 5-7 ms a build for a 10^6-atom rank)
+        domain = self.domain
+        ids = domain.local_ids
+        local = domain.local_state
+        positions = local.positions
+        lengths, inverse = periodic_lengths(local.box, local.pbc)
+        tilt = periodic_tilt(local.tilt, local.pbc)
+        by_id = np.argsort(ids, kind="stable")
+        sorted_ids = np.ascontiguousarray(ids[by_id])
+        longest = 0.0
+        for bonded in self._bonded:
+            chosen, anchors = anchored_items(ids[: domain.n_owned], bonded.starts, bonded.order)
+            items = bonded.items[chosen]
+            local = np.empty_like(items)
+            for column in range(items.shape[1]):
+                if column == bonded.anchor:
+                    local[:, column] = anchors
+                    continue
+                found = np.empty(len(items), dtype=np.int64)
+                distances = np.empty(len(items))
+                partners = np.ascontiguousarray(items[:, column])
+                nearest_copies(anchors, partners, sorted_ids, by_id, positions, lengths, inverse,
+                               tilt, found, distances)  # fmt: skip
+                if len(found) and found.min() < 0:
+                    raise DecompositionError(
+                        "a bonded atom has no copy on its partner's rank: a bond is longer "
+                        "than the ghost shell"
+                    )
+                local[:, column] = found
+                if len(distances):
+                    longest = max(longest, float(distances.max()))
+            bonded.local = chosen
+            potential = self.potentials[bonded.index]
+            types = bonded.types[chosen]
+            if isinstance(potential, Bonded):
+                part = potential.with_bonds(local, types)
+            else:
+                part = potential.with_angles(local, types)
+            self.local.potentials[bonded.index] = part
+        return longest
+
+
+def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A copy of ``values``, in ``into``'s memory when it fits."""
+    if into.shape != values.shape:
+        return values.copy()
+    copy_into(into, values)
+    return into
+
+
+def _ratio(moved: float, allowed: float) -> float:
+    """moved / allowed, inf when nothing may move but something did."""
+    if allowed > 0:
+        return moved / allowed
+    return math.inf if moved > 0 else 0.0
+
+
+def _key(state: State, old: tuple | None = None) -> tuple:
+    """What a result depends on: the owned positions (copied, into ``old``'s array when it
+    fits) and the cell."""
+    if old is not None and old[0].shape == state.positions.shape:
+        copy_into(old[0], state.positions)
+        positions = old[0]
+    else:
+        positions = state.positions.copy()
+    return positions, state.box.tobytes(), state.tilt.tobytes()
+
+
+def _same(key: tuple, state: State) -> bool:
+    positions, box, tilt = key
+    return (
+        positions.shape == state.positions.shape
+        and box == state.box.tobytes()
+        and tilt == state.tilt.tobytes()
+        and same_values(positions, state.positions)
+    )

@@ -1,0 +1,352 @@
+"""The halo: a rank's brick, its owned atoms and the ghost shell around them.
+
+Ghosts are found as LAMMPS's brick communication finds them: three sweeps, along
+a, b and c, each sending to the two face neighbours the atoms (owned, and ghosts
+from the earlier sweeps) within the reach of their faces, shifted by a cell
+vector across a periodic boundary; a single brick along an axis sends to itself.
+The owned atoms followed by the ghosts form the rank's local system, open along
+the cut axes (images explicit) and periodic along the others whose cell vector
+has no component along a cut axis (:func:`md.distributed.grid.local_periodic_axes`).
+:meth:`Domain.update` sends the ghosts' positions along the sweeps, and
+:meth:`Domain.reverse` their forces back along the reverse of them; the atoms
+themselves move between ranks in :mod:`md.distributed.migration`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from md.box import cell_matrix, periodic_tilt, perpendicular_widths
+from md.distributed._domain_kernels import (
+    add_rows,
+    append_rows,
+    brick_of,
+    fractional_coordinates,
+    home_layout,
+    home_positions,
+    near_faces,
+    pack_rows,
+    shift_rows,
+    table_rows,
+)
+from md.distributed.grid import Grid, local_periodic_axes
+from md.distributed.migration import RowStore, migrate
+from md.errors import DecompositionError
+from md.parallel import global_max
+from md.state import State
+
+_NO_ROWS = np.empty((0, 3))  # (never written: a copy into no rows)
+
+
+@dataclass
+class _Swap:
+    """One message of the ghost exchange: the local atoms ``send`` go to ``dest``, shifted
+    by ``shift`` cell vectors along ``axis``; ``count`` atoms arrive from ``source`` into
+    local indices ``offset`` onwards. The forces on those go back the same way."""
+
+    send: NDArray[np.int64]
+    axis: int
+    shift: int
+    dest: int
+    source: int
+    offset: int
+    count: int
+    tag: int
+
+
+class Domain:
+    """This rank's brick, its ghost shell and the messages that fill it.
+
+    Parameters
+    ----------
+    ranks : MPIRanks
+        The communicator (``rank``, ``n_ranks``, exchanges).
+    grid : Grid
+        The bricks; this rank's is ``grid.coordinates(ranks.rank)``.
+
+    Attributes
+    ----------
+    local_state : State
+        The rank's local system: its owned atoms (first ``n_owned``) at their
+        images nearest the brick, then the ghosts; periodic along
+        ``local_pbc``, open along the other axes.
+    local_pbc : ndarray of bool
+        The axes the last build left periodic (no ghosts along them).
+    local_ids : ndarray of int64
+        The global id of each local atom.
+    reach, margin : float
+        The ghost shell of the last build, and how far owned atoms had
+        strayed from their bricks then [length].
+    """
+
+    def __init__(self, ranks, grid: Grid) -> None:
+        self.ranks = ranks
+        self.rank = ranks.rank
+        self.coordinates = grid.coordinates(self.rank)
+        self.shape = np.array(grid.shape, dtype=np.int64)
+        self.set_grid(grid)
+        self.reach = 0.0
+        self.margin = 0.0
+        self.n_owned = 0
+        self.swaps: list[_Swap] = []
+        self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
+        self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
+        self.local_pbc = np.zeros(3, dtype=bool)
+        self._built_tilt = b""
+        self.local_state: State | None = None
+        self.local_ids = np.zeros(0, dtype=np.int64)
+        self._buffers: dict[object, NDArray] = {}
+        self.rows = RowStore()  # the owned atoms' arrays, kept for migrations
+        self._local: dict[str, list] = {}
+        self._parity = 0
+
+    def set_grid(self, grid: Grid) -> None:
+        """Take ``grid``'s cuts (same shape): atoms go to their new bricks at the next
+        migration (:meth:`migrate`), which must come before the next :meth:`build`."""
+        if grid.shape != tuple(self.shape.tolist()):
+            raise ValueError(f"a grid of {list(grid.shape)} for a domain of {self.shape.tolist()}")
+        self.grid = grid
+        self.bounds = grid.bounds(self.rank)
+        self.center = self.bounds.mean(axis=0)
+        self.cuts = grid.cut_table()
+
+    def fractions(self, state: State) -> NDArray[np.float64]:
+        """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
+        out = np.empty((state.n_atoms, 3))
+        fractional_coordinates(state.positions, state.box, periodic_tilt(state.tilt, state.pbc),
+                               state.pbc, out)  # fmt: skip
+        return out
+
+    def owner_of(self, state: State) -> NDArray[np.int64]:
+        """The rank whose brick holds each atom of ``state`` now."""
+        bricks = np.empty((state.n_atoms, 3), dtype=np.int64)
+        brick_of(self.fractions(state), self.shape, self.cuts, bricks)
+        _, py, pz = self.grid.shape
+        return (bricks[:, 0] * py + bricks[:, 1]) * pz + bricks[:, 2]
+
+    # ------------------------------------------------------------------ migration
+    def migrate(self, state: State, carried: dict, spent: tuple = ()) -> dict:
+        """Move the owned atoms, and the per-atom arrays ``carried``, to the ranks whose
+        bricks hold them (:func:`md.distributed.migration.migrate`, which says what
+        ``spent`` gives away). Collective.
+
+        Raises
+        ------
+        DecompositionError
+            On every rank, if an atom moved more than one brick along an axis
+            since the last migration.
+        """
+        return migrate(self, state, carried, spent)
+
+    # -------------------------------------------------------------------- ghosts
+    def build(self, state: State, reach: float) -> None:
+        """Find the ghosts within ``reach`` of the brick (widened by as far as owned atoms
+        have strayed from it) and lay out the local system. Collective.
+
+        The ghost search (from the reduction of the strays on: the faces' atoms, their
+        packing and messages) runs on the ranks' clock, the communication section; the
+        layout of the owned atoms before it (their images nearest the brick, copied into
+        the local system) does not, as LAMMPS's Comm leaves out its ``Domain::pbc``.
+
+        Raises
+        ------
+        DecompositionError
+            On every rank, if owned atoms strayed so far that the ghost shell
+            would need atoms from beyond the face neighbours.
+        """
+        box, pbc = state.box, state.pbc
+        tilt = periodic_tilt(state.tilt, pbc)
+        cell = cell_matrix(box, tilt)
+        widths = perpendicular_widths(box, tilt)
+        # The local system is written where it will stay: the owned atoms first, at their
+        # images nearest the brick (a copy; only the atoms with an image of their own are
+        # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
+        # their fractional coordinates kept beside them for the later sweeps. Sweeps send
+        # rows of position (3), fractional position (3), id and type.
+        n = state.n_atoms
+        self._parity ^= 1  # the local arrays of the build before this one stay as they are
+        positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
+        home = self._buffer(n, 3, "home")
+        self.imaged, self.images, strayed = home_layout(
+            state.positions, box, tilt, pbc, cell, self.center, self.bounds, widths, home,
+            positions[:n], self._buffer(n, 3, "images", np.int64),
+        )  # fmt: skip
+        self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
+        self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
+        with self.ranks.clock:
+            self._find_ghosts(state, reach, strayed, positions, home, n)
+
+    def _find_ghosts(self, state: State, reach: float, strayed: float, positions, home,
+                     n: int) -> None:  # fmt: skip
+        """:meth:`build`'s ghost search and the local system's state, after the owned
+        atoms' layout (``positions``' first ``n`` rows, their fractions ``home``)."""
+        box, pbc = state.box, state.pbc
+        tilt = periodic_tilt(state.tilt, pbc)
+        cell = cell_matrix(box, tilt)
+        widths = perpendicular_widths(box, tilt)
+        margin = global_max(strayed, self.ranks)
+        shell = reach + margin
+        brick = widths * self.grid.thinnest()
+        narrow = pbc & (brick < shell + margin)
+        if np.any(narrow):
+            axis = int(np.argmax(narrow))
+            raise DecompositionError(
+                f"owned atoms strayed up to {margin:.3g} from their bricks inside a step, so "
+                f"the ghost shell would have to reach {shell + margin:.4g} across "
+                f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
+                "smaller time step"
+            )
+        ids = self._local["ids"][self._parity]  # (their owned rows written by build)
+        types = self._local["types"][self._parity]
+        ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
+        count = n
+        swaps: list[_Swap] = []
+        local_pbc = local_periodic_axes(self.shape, pbc, tilt)
+        for axis in range(3):
+            if not pbc[axis] or local_pbc[axis]:
+                continue
+            p, c = self.grid.shape[axis], self.coordinates[axis]
+            reach_fraction = shell / widths[axis]
+            # this sweep sends the atoms before its own ghosts, in local order
+            faces = (self.bounds[0, axis] + reach_fraction, self.bounds[1, axis] - reach_fraction)
+            lower, upper = near_faces(home, n, axis, *faces)
+            if count > n:
+                ghost_lower, ghost_upper = near_faces(ghost_fractions, count - n, axis, *faces)
+                lower = np.concatenate([lower, ghost_lower + n])
+                upper = np.concatenate([upper, ghost_upper + n])
+            down = self.grid.neighbor(self.rank, axis, -1)
+            up = self.grid.neighbor(self.rank, axis, 1)
+            for send, shift, dest, source in (
+                (lower, 1 if c == 0 else 0, down, up),
+                (upper, -1 if c == p - 1 else 0, up, down),
+            ):
+                rows = np.empty((len(send), 8))
+                table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
+                rows[:, :3] += shift * cell[axis]
+                rows[:, 3 + axis] += shift
+                tag = len(swaps)
+                if dest != self.rank:
+                    rows = self.ranks.exchange_rows(rows, dest, source, tag)
+                if count + len(rows) > len(positions):
+                    size = count + len(rows) + len(positions) // 2
+                    positions, ids, types = (_grown(a, count, size) for a in (positions, ids,
+                                                                               types))  # fmt: skip
+                    for name, grown in (("positions", positions), ("ids", ids), ("types", types)):
+                        self._local[name][self._parity] = grown  # kept for the next builds
+                    old = ghost_fractions
+                    ghost_fractions = self._buffer(size - n, 3, "ghost fractions")
+                    ghost_fractions[: count - n] = old[: count - n]
+                append_rows(rows, count, n, positions, ghost_fractions, ids, types)
+                swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
+                count += len(rows)
+        self.swaps = swaps
+        self.n_owned = n
+        self.reach, self.margin = reach, margin
+        self.local_ids = ids[:count]
+        self.local_pbc = local_pbc
+        self._built_tilt = state.tilt.tobytes()
+        self.local_state = State.adopting(positions[:count], types[:count], box, local_pbc,
+                                          state.type_names)  # fmt: skip
+        # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
+        # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
+        self.local_state.tilt = periodic_tilt(tilt, local_pbc)
+
+    def layout_holds(self, state: State) -> bool:
+        """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
+        that tilts the cell towards a cut axis needs a build with explicit images)."""
+        if not self.local_pbc.any() or state.tilt.tobytes() == self._built_tilt:
+            return True  # (checked at every force call: the cheap answers first)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
+
+    def owned_rows(self, state: State) -> NDArray[np.float64]:
+        """The local system's rows of ``state``'s owned atoms, to copy their positions into
+        (then :meth:`update` with ``copied``); no rows if the layout is not ``state``'s."""
+        if self.local_state is None or self.n_owned != state.n_atoms:
+            return _NO_ROWS
+        return self.local_state.positions[: self.n_owned]
+
+    def update(self, state: State, copied: bool = False) -> None:
+        """Write the owned positions into the local system (only the few at another image
+        if they were ``copied`` there already, see :meth:`owned_rows`) and send the ghosts'
+        (collective). The sweeps (packing and messages) run on the ranks' clock, the owned
+        rows' copy before them does not (as :meth:`build`'s layout)."""
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        cell = cell_matrix(state.box, tilt)
+        if self.local_pbc.any():  # the cell the local system's own images follow
+            self.local_state.box[:] = state.box
+            self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
+        positions = self.local_state.positions
+        owned = positions[: self.n_owned]
+        if copied:
+            shift_rows(state.positions, self.imaged, self.images, cell, owned)
+        else:
+            home_positions(state.positions, self.imaged, self.images, cell, owned)
+        with self.ranks.clock:
+            for swap in self.swaps:
+                shift = swap.shift * cell[swap.axis]
+                target = positions[swap.offset : swap.offset + swap.count]
+                if swap.dest == self.rank:
+                    pack_rows(positions, swap.send, shift, target)
+                    continue
+                buffer = self._buffer(len(swap.send), 3)
+                pack_rows(positions, swap.send, shift, buffer)
+                self.ranks.exchange(buffer, swap.dest, target, swap.source, swap.tag)
+
+    def reverse(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
+        along the reverse of the sweeps; return the owned rows (a view). Collective."""
+        for swap in reversed(self.swaps):
+            part = values[swap.offset : swap.offset + swap.count]
+            if swap.dest == self.rank:
+                add_rows(values, swap.send, part)
+                continue
+            buffer = self._buffer(len(swap.send), values.shape[1])
+            self.ranks.exchange(part, swap.source, buffer, swap.dest, 16 + swap.tag)
+            add_rows(values, swap.send, buffer)
+        return values[: self.n_owned]
+
+    def reserve(self, state: State, carried: dict) -> None:
+        """Give ``state``'s per-atom arrays, and those ``carried`` (name -> an array shaped
+        like it), their room for migrations now (:meth:`md.distributed.migration.RowStore.
+        reserve`): the first migration of a run then pays no page faults."""
+        self.rows.reserve(state, carried)
+
+    def _local_rows(self, name: str, n: int, tail: tuple, dtype) -> NDArray:
+        """An array of at least n rows (of shape ``tail``) for the local system's ``name``:
+        one of two kept under it, alternating from build to build (the local system of
+        the last build is still in use while this one is laid out)."""
+        pair = self._local.setdefault(name, [None, None])
+        held = pair[self._parity]
+        if held is None or held.shape[0] < n:
+            held = np.empty((n + n // 8, *tail), dtype=dtype)
+            pair[self._parity] = held
+            other = pair[1 - self._parity]
+            if other is None or other.shape[0] < n:
+                # The next build's array now, its pages mapped (written): the first build
+                # is a run's set-up, the next one is inside its loop, where a 10^6-atom
+                # rank's fresh arrays took their page faults at the first rebuild.
+                other = np.empty_like(held)
+                other.fill(0)
+                pair[1 - self._parity] = other
+        return held
+
+    def _buffer(self, n: int, k: int, name: str = "message", dtype=np.float64) -> NDArray:
+        """n rows of k values from memory this Domain keeps under (name, k): a fresh 10^8-byte
+        array costs its page faults (~0.1 s) at every build."""
+        held = self._buffers.get((name, k))
+        if held is None or held.shape[0] < n:
+            held = np.empty((n + n // 4 + 16, k), dtype=dtype)
+            self._buffers[(name, k)] = held
+        return held[:n]
+
+
+def _grown(values: NDArray, count: int, size: int) -> NDArray:
+    """A fresh array of ``size`` rows shaped and typed as ``values``, its first ``count``
+    rows copied from ``values``."""
+    grown = np.empty((size, *values.shape[1:]), dtype=values.dtype)
+    grown[:count] = values[:count]
+    return grown

@@ -1,0 +1,273 @@
+"""The ranks of a decomposed run: how many a launcher started, the communicator's
+operations (:class:`MPIRanks`, over mpi4py), the clock of their communication, and
+:func:`agree`, which makes every rank raise the same error.
+
+Reductions add in rank order on every rank (an all-gather, then a sum), so all
+ranks hold the same bits and a run on P ranks is deterministic. mpi4py is not
+imported unless a launcher started more than one process (:func:`mpi_ranks`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from md._files import OutputBusyError
+from md.errors import (
+    CheckpointError,
+    ConfigError,
+    ConvergenceError,
+    DecompositionError,
+    NonFiniteError,
+    SimulationError,
+    TrajectoryError,
+)
+
+#: Environment variables in which launchers give the number of processes they started
+#: (MPICH's and Intel MPI's hydra, Slurm's srun with PMI, Open MPI).
+SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "SLURM_STEP_NUM_TASKS")
+
+
+def launched_ranks() -> int:
+    """How many processes the MPI launcher started this one among (1 without a launcher)."""
+    for name in SIZE_VARIABLES:
+        value = os.environ.get(name)
+        if value:
+            try:
+                return max(1, int(value))
+            except ValueError:
+                continue
+    return 1
+
+
+def in_rank_order(gathered: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rows of ``gathered`` (one per rank) added in rank order."""
+    total = gathered[0].copy()
+    for rank in range(1, gathered.shape[0]):
+        total += gathered[rank]
+    return total
+
+
+def ranks_per_node(ranks) -> int:
+    """Ranks the launcher started on this node (they share its cores), else all of them."""
+    for name in ("MPI_LOCALNRANKS", "OMPI_COMM_WORLD_LOCAL_SIZE", "SLURM_NTASKS_PER_NODE"):
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    return ranks.n_ranks
+
+
+def launch_rank() -> int:
+    """This process's rank as the launcher's environment gives it (0 without a launcher);
+    readable before MPI starts, for deciding who prints."""
+    for name in ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "SLURM_PROCID"):
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value) if launched_ranks() > 1 else 0
+    return 0
+
+
+def on_root(ranks, value_of):
+    """``value_of()`` as rank 0 computes it, on every rank (only rank 0 calls it); just
+    ``value_of()`` without ranks."""
+    if ranks is None:
+        return value_of()
+    return ranks.broadcast(value_of() if ranks.rank == 0 else None)
+
+
+def mpi_ranks() -> MPIRanks | None:
+    """The ranks of this run when a launcher started several processes, else None.
+
+    Imports mpi4py only then: with one process (no launcher, or ``mpiexec -n
+    1``) nothing changes and nothing is imported.
+
+    Raises
+    ------
+    RuntimeError
+        If a launcher started several processes but mpi4py is not installed.
+    """
+    if launched_ranks() <= 1:
+        return None
+    try:
+        from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+    except ImportError:
+        raise RuntimeError(
+            f"this process is one of {launched_ranks()} that an MPI launcher started, but "
+            "mpi4py is not installed, so they cannot share one system: pip install "
+            "'leapmd[mpi]' (or run without mpiexec)"
+        ) from None
+    comm = MPI.COMM_WORLD
+    return MPIRanks(comm) if comm.Get_size() > 1 else None
+
+
+class CommClock:
+    """Wall time spent communicating [s]: every collective call, message and its packing
+    runs inside ``with clock:``; a section inside another counts once.
+
+    Examples
+    --------
+    >>> clock = CommClock()
+    >>> with clock:
+    ...     with clock:  # nested: not counted twice
+    ...         pass
+    >>> clock.seconds >= 0.0
+    True
+    """
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._depth = 0
+        self._start = 0.0
+
+    def __enter__(self) -> CommClock:
+        if self._depth == 0:
+            self._start = time.perf_counter()
+        self._depth += 1
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._depth -= 1
+        if self._depth == 0:
+            self.seconds += time.perf_counter() - self._start
+
+
+class MPIRanks:
+    """An MPI communicator as a decomposed run uses it (an :class:`md.parallel.Reductions`).
+
+    Sums are all-gathered and added in rank order, so every rank holds the
+    same bits; maxima use MPI's reduction (exact in any order). Every call is
+    timed on ``clock`` (a :class:`CommClock`), which the run's summary reports
+    as its "comm" section.
+    """
+
+    def __init__(self, comm) -> None:
+        from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+
+        self.comm = comm
+        self.rank = comm.Get_rank()
+        self.n_ranks = comm.Get_size()
+        self.clock = CommClock()
+        self._max = MPI.MAX
+        self._double = MPI.DOUBLE
+
+    def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        with self.clock:
+            return in_rank_order(self.gather_values(values))
+
+    def gather_values(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Every rank's ``values`` (k,), as a (P, k) array on every rank."""
+        with self.clock:
+            values = np.ascontiguousarray(values, dtype=np.float64).ravel()
+            gathered = np.empty((self.n_ranks, values.size))
+            self.comm.Allgather(values, gathered)
+            return gathered
+
+    def max(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        with self.clock:
+            values = np.ascontiguousarray(values, dtype=np.float64).ravel()
+            out = np.empty_like(values)
+            self.comm.Allreduce(values, out, op=self._max)
+            return out
+
+    def exchange(self, send, dest: int, receive, source: int, tag: int) -> None:
+        """Send ``send`` to ``dest`` while receiving ``receive`` from ``source``."""
+        with self.clock:
+            self.comm.Sendrecv(send, dest, tag, receive, source, tag)
+
+    def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
+        """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
+        with self.clock:
+            count = np.array([rows.shape[0]], dtype=np.int64)
+            incoming = np.empty(1, dtype=np.int64)
+            self.comm.Sendrecv(count, dest, tag, incoming, source, tag)
+            received = np.empty((int(incoming[0]), rows.shape[1]))
+            self.comm.Sendrecv(np.ascontiguousarray(rows), dest, tag, received, source, tag)
+            return received
+
+    def all_objects(self, value) -> list:
+        """Every rank's ``value`` (picklable), in rank order."""
+        with self.clock:
+            return self.comm.allgather(value)
+
+    def broadcast(self, value, root: int = 0):
+        """Rank ``root``'s ``value`` on every rank."""
+        with self.clock:
+            return self.comm.bcast(value, root=root)
+
+    def gather_rows(self, rows) -> NDArray[np.float64] | None:
+        """On rank 0, every rank's rows (n_r, k) stacked in rank order; None elsewhere."""
+        with self.clock:
+            rows = np.ascontiguousarray(rows, dtype=np.float64)
+            width = rows.shape[1]
+            counts = self.comm.gather(rows.size, root=0)
+            if self.rank != 0:
+                self.comm.Gatherv(rows, None, root=0)
+                return None
+            out = np.empty((sum(counts) // width if width else 0, width))
+            displacements = np.concatenate([[0], np.cumsum(counts[:-1])]).astype(np.int64)
+            self.comm.Gatherv(rows, [out, counts, displacements, self._double], root=0)
+            return out
+
+    def abort(self, code: int = 1) -> None:
+        """End every rank at once (for an error one rank cannot share with the others)."""
+        self.comm.Abort(code)
+
+
+# ------------------------------------------------------------------ agreement
+def agree(ranks, error: BaseException | None) -> None:
+    """Raise on every rank the error of the lowest rank that has one (a collective call).
+
+    That rank raises its error as it is; the others raise one of the same
+    family (:class:`SimulationError`, :class:`ConvergenceError`, the
+    :class:`NonFiniteError` kinds, ``OSError``, else ``RuntimeError``) with
+    the same message, so every rank reports the same failure and none is left
+    waiting for the others.
+    """
+    if error is None:
+        report = None
+    else:  # the step only for the families whose rebuilt errors name it (they all have one)
+        step = error.step if isinstance(error, SimulationError | ConvergenceError) else 0
+        report = (_family(error), str(error), step)
+    for rank, got in enumerate(ranks.all_objects(report)):
+        if got is None:
+            continue
+        if rank == ranks.rank:
+            raise error
+        raise _rebuilt(*got)
+
+
+def _family(error: BaseException) -> str:
+    for name, kind in _FAMILIES:
+        if isinstance(error, kind):
+            return name
+    return "runtime"
+
+
+_FAMILIES = (
+    ("simulation", SimulationError),
+    ("convergence", ConvergenceError),
+    ("decomposition", DecompositionError),
+    ("nonfinite", NonFiniteError),
+    ("config", ConfigError),
+    ("checkpoint", CheckpointError),
+    ("trajectory", TrajectoryError),
+    ("busy", OutputBusyError),
+    ("os", OSError),
+)
+
+
+def _rebuilt(family: str, message: str, step: int) -> BaseException:
+    """An error of ``family`` whose text is ``message`` (SimulationError and ConvergenceError
+    prefix theirs with the step; here the message already has it)."""
+    if family == "simulation":
+        error = SimulationError(step, "")
+    elif family == "convergence":
+        error = ConvergenceError(step, math.nan, message)
+    else:
+        return dict(_FAMILIES).get(family, RuntimeError)(message)
+    error.args = (message,)
+    return error
