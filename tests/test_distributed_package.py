@@ -73,6 +73,14 @@ ALLOWED = {
         'getattr(self, "_hessian_buffers", None)': "buffers made on first use",
         'getattr(self, "_table_cache", None)': "a cache made on first use",
     },
+    "potentials/_bonded_frame.py": {
+        'getattr(function, "py_func", function)': "a numba dispatcher's Python function",
+        "getattr(term, role)": "the term's energy or curvature function, by role",
+        "getattr(term, 'name', term)": "a message naming what was given as a term",
+        "getattr(type(self), style)": "the style's own class attribute, by name",
+        'getattr(self._loops(), f"{self.ITEM}_forces")': "a generated kernel, by name",
+        'getattr(type(self), f"{self.ITEM}_style")': "the style's own class attribute",
+    },
     "integrators/mtk.py": {"getattr(self, name)": "its own arrays, by name"},
     "integrators/_thermostat.py": {"getattr(self, name)": "its own saved attributes, by name"},
 }
