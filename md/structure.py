@@ -310,6 +310,13 @@ def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, To
             snapshot = trajectory[frame]
     except Exception as error:  # gsd raises many types for unreadable files
         raise ValueError(f"cannot read {path} as a GSD file ({error})") from None
+    try:
+        return _gsd_structure(snapshot, units)
+    except ValueError as error:  # State and Topology name what is wrong, not the file
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _gsd_structure(snapshot, units: UnitSystem) -> tuple[State, Topology]:
     box = np.asarray(snapshot.configuration.box, dtype=np.float64)
     lengths = box[:3]
     # HOOMD's tilt factors are dimensionless: xy Ly, xz Lz and yz Lz are the engine's.
