@@ -27,6 +27,7 @@ import inspect
 import itertools
 import logging
 import math
+import operator
 import shutil
 import sys
 import tempfile
@@ -159,10 +160,16 @@ class PairTerm:
         """(u, f/r) evaluated in Python (tables' shifts, tests)."""
         extra = (np.empty(0) if data is None else data,) if self.uses_data else ()
         try:
-            u, fr = self.energy(np.float64(r2), *extra, *(np.float64(p) for p in params))
+            result = self.energy(np.float64(r2), *extra, *(np.float64(p) for p in params))
         except (OverflowError, ZeroDivisionError):
             return math.inf, math.inf
-        return float(u), float(fr)
+        try:
+            u, fr = result
+            return float(u), float(fr)
+        except (TypeError, ValueError):  # not two numbers: say what the frame needs
+            raise TypeError(
+                f"pair term {self.name} must return two numbers (u, -u'(r)/r), got {result!r}"
+            ) from None
 
 
 def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool = False):
@@ -574,11 +581,13 @@ class PairPotential:
         self.term = term
         self._run_variants: set = set()  # the slot-frame kernels this object has run
         label = self.style or term.name
-        if cutoff_mode not in CUTOFF_MODES:
+        if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
             raise ValueError(
                 f"cutoff_mode must be one of {', '.join(CUTOFF_MODES)}, got {cutoff_mode!r}"
             )
-        if (mixing is not None or self.MIXING) and mixing not in self.MIXING:
+        if (mixing is not None or self.MIXING) and (
+            not isinstance(mixing, str) or mixing not in self.MIXING
+        ):
             rules = ", ".join(self.MIXING) or "none (this style does not mix)"
             raise ValueError(f"mixing must be one of {rules}, got {mixing!r}")
         names = self.parameter_names()
@@ -615,13 +624,18 @@ class PairPotential:
         self.default_cutoff = positive_scalar(cutoff, "cutoff")
         self.cutoff_mode = cutoff_mode
         self.r_on = None if r_on is None else positive_scalar(r_on, "r_on")
-        self.data = np.zeros(0) if data is None else np.ascontiguousarray(data, dtype=np.float64)
+        try:
+            self.data = np.zeros(0) if data is None else np.ascontiguousarray(data, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{label}: data must be an array of numbers, got {data!r}") from None
         self.pairs = {}
         allowed = set(names) | {"cutoff", "r_on"}
+        if pairs is not None and not isinstance(pairs, Mapping):
+            raise ValueError(f"{label}: pairs must map type pairs (i, j) to values, got {pairs!r}")
         for key, entry in (pairs or {}).items():
-            ti, tj = (int(t) for t in key)
-            if ti < 0 or tj < 0:
-                raise ValueError(f"pair types must be non-negative, got {key}")
+            ti, tj = _pair_types(key)
+            if not isinstance(entry, Mapping):
+                raise ValueError(f"pairs[{key!r}] must map parameter names to values, got {entry}")
             bad = set(entry) - allowed
             if bad:
                 raise ValueError(f"unknown pair parameter(s) {sorted(bad)} for pair {key}")
@@ -1113,6 +1127,21 @@ class PairPotential:
                 "double precision or in units that bring it into range"
             )
         return table.astype(dtype)
+
+
+#: Type numbers a ``pairs`` key may name: a table per parameter has this squared entries.
+MAX_PAIR_TYPE = 1024
+
+
+def _pair_types(key) -> tuple[int, int]:
+    """The two type numbers of a ``pairs`` key, refused unless two integers in range."""
+    try:
+        ti, tj = (operator.index(t) for t in key)
+    except (TypeError, ValueError):
+        raise ValueError(f"pairs keys must be two type numbers (i, j), got {key!r}") from None
+    if not (0 <= ti < MAX_PAIR_TYPE and 0 <= tj < MAX_PAIR_TYPE):
+        raise ValueError(f"pair types must lie in 0 .. {MAX_PAIR_TYPE - 1}, got {key}")
+    return ti, tj
 
 
 def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarray, reason: str):

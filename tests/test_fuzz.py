@@ -829,3 +829,164 @@ def test_damaged_gsd_frames_are_refused_naming_the_file(how):
     """Finding: a GSD frame with a NaN position or velocity, a type id past its types or a
     zero mass was refused by State without the file's name (read_structure's contract)."""
     check_structure("gsd", ("gsd", how), run=False)
+
+
+# ------------------------------------------------------------------ user pair terms
+def _gaussian_core():
+    from potentials import pair_term
+    from potentials.pair_math import exp
+
+    @pair_term
+    def gaussian_core(r2, epsilon, sigma):
+        """u = epsilon exp(-r^2 / sigma^2), and -u'(r)/r."""
+        u = epsilon * exp(-r2 / (sigma * sigma))
+        return u, 2.0 * u / (sigma * sigma)
+
+    return gaussian_core
+
+
+PARAMETER_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=64),
+    st.sampled_from([1.0, 0.5, 0.0, -1.0, 1e300, 5e-324, 2.0, 3]),
+    st.lists(st.floats(-2, 2), max_size=3),
+    st.lists(st.lists(st.floats(0, 2), max_size=2), max_size=2),
+    st.text(max_size=3),
+    st.none(),
+    st.booleans(),
+    st.dictionaries(st.text(max_size=2), st.floats(0, 2), max_size=2),
+)
+PAIR_KEYS = st.one_of(
+    st.tuples(st.integers(-1, 3), st.integers(-1, 3)),
+    st.sampled_from([(0,), (0, 1, 2), "ab", 5, ("A", "B"), (0.5, 1), (2**70, 0)]),
+)
+
+
+ARGUMENT_NAMES = ["cutoff", "epsilon", "sigma", "cutoff_mode", "r_on", "mixing", "pairs", "data",
+                  "other"]  # fmt: skip
+
+
+@st.composite
+def pair_potential_arguments(draw):
+    """Keyword arguments for PairPotential(gaussian_core, ...): mostly right, some not."""
+    arguments = {"cutoff": 2.0, "epsilon": 1.0, "sigma": 1.0}
+    names = ARGUMENT_NAMES
+    for _ in range(draw(st.integers(1, 3))):
+        name = draw(st.sampled_from(names))
+        if draw(st.integers(0, 5)) == 0:
+            arguments.pop(name, None)
+        elif name == "cutoff_mode":
+            arguments[name] = draw(st.one_of(st.sampled_from(["none", "shift", "smooth", "x"]),
+                                             PARAMETER_VALUES))  # fmt: skip
+        elif name == "mixing":
+            arguments[name] = draw(st.one_of(st.sampled_from(["geometric", "lorentz-berthelot"]),
+                                             PARAMETER_VALUES))  # fmt: skip
+        elif name == "pairs":
+            entries = st.dictionaries(
+                st.sampled_from(["epsilon", "sigma", "cutoff", "r_on", "x"]), PARAMETER_VALUES,
+                max_size=3,
+            )  # fmt: skip
+            arguments[name] = draw(st.one_of(
+                st.dictionaries(PAIR_KEYS, st.one_of(entries, PARAMETER_VALUES), max_size=3),
+                PARAMETER_VALUES,
+            ))  # fmt: skip
+        else:
+            arguments[name] = draw(PARAMETER_VALUES)
+    return arguments
+
+
+def check_pair_potential(arguments: dict, run: bool = False) -> None:
+    """PairPotential builds, or refuses with a ValueError/TypeError naming an argument; a built
+    one gives finite energies on a small crystal, or refuses the crystal naming the cutoff."""
+    import md
+    from integrators import VelocityVerlet
+    from md.errors import SimulationError
+    from potentials import PairPotential
+
+    with time_limit(60):
+        try:
+            potential = PairPotential(_gaussian_core(), **arguments)
+        except (ValueError, TypeError) as error:
+            text = str(error)
+            named = [*ARGUMENT_NAMES, "pair", "gaussian_core", "parameter"]
+            assert any(name in text for name in named), (arguments, text)
+            assert "\n" not in text.strip(), text
+            return
+        assert potential.cutoff > 0 and math.isfinite(potential.cutoff)
+        state = md.lattice("fcc", 3, density=0.8)
+        try:
+            potential.check(state)
+            energy = potential.pair_energy(0.9 * potential.cutoff)
+        except ValueError as error:
+            assert "cutoff" in str(error) or "pair" in str(error), str(error)
+            return
+        assert not math.isnan(energy)
+        if run:
+            sim = md.Simulation(state, [potential], VelocityVerlet(0.002))
+            try:
+                sim.run(2)
+            except (ValueError, SimulationError) as error:
+                assert str(error), error
+            else:
+                assert np.all(np.isfinite(state.positions))
+
+
+def test_a_gaussian_core_term_runs():
+    check_pair_potential({"cutoff": 2.0, "epsilon": 1.0, "sigma": 1.0}, run=True)
+
+
+@settings(FUZZ, max_examples=150)
+@given(arguments=pair_potential_arguments())
+def test_random_pair_potential_arguments_build_or_refuse(arguments):
+    check_pair_potential(arguments)
+
+
+def _returns_one_value(r2, epsilon):
+    return epsilon / r2
+
+
+def _returns_three_values(r2, epsilon):
+    return epsilon / r2, 0.0, 1.0
+
+
+def _returns_text(r2, epsilon):
+    return "u", "f"
+
+
+@pytest.mark.parametrize("energy", [_returns_one_value, _returns_three_values, _returns_text])
+def test_a_term_returning_other_than_two_numbers_is_refused_naming_it(energy):
+    """Finding: such a term failed inside the frame ("cannot unpack non-iterable
+    numpy.float64 object"), naming neither the term nor what it must return."""
+    from potentials import PairPotential, pair_term
+
+    term = pair_term(energy)
+    with pytest.raises(TypeError, match=rf"pair term {energy.__name__} must return two numbers"):
+        PairPotential(term, cutoff=2.0, epsilon=1.0)
+
+
+#: Findings of the fuzzing above: each failed with Python's own words ("unhashable type:
+#: 'list'", "'int' object is not iterable", "Maximum allowed dimension exceeded", ...).
+BAD_ARGUMENTS = {
+    "cutoff_mode a list": ({"cutoff_mode": []}, "cutoff_mode must be one of"),
+    "mixing a list": ({"mixing": [1.0]}, "mixing must be one of"),
+    "pairs key too short": ({"pairs": {(0,): {}}}, r"pairs keys must be two type numbers"),
+    "pairs key a number": ({"pairs": {5: {}}}, r"pairs keys must be two type numbers"),
+    "pairs key text": ({"pairs": {"ab": {}}}, r"pairs keys must be two type numbers"),
+    "pairs key a fraction": ({"pairs": {(0.5, 1): {}}}, r"pairs keys must be two type numbers"),
+    "pairs type huge": ({"pairs": {(2**70, 0): {}}}, r"pair types must lie in 0 \.\. 1023"),
+    "pairs type large": ({"pairs": {(10**6, 0): {}}}, r"pair types must lie in 0 \.\. 1023"),
+    "pairs entry None": ({"pairs": {(0, 0): None}}, r"pairs\[\(0, 0\)\] must map parameter"),
+    "pairs a list": ({"pairs": [1.0]}, "pairs must map type pairs"),
+    "data a dict": ({"data": {}}, "data must be an array of numbers"),
+    "data text": ({"data": ""}, "data must be an array of numbers"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_ARGUMENTS))
+def test_bad_pair_potential_arguments_are_refused_by_name(case):
+    from potentials import PairPotential
+
+    change, message = BAD_ARGUMENTS[case]
+    arguments = {"cutoff": 2.0, "epsilon": 1.0, "sigma": 1.0, **change}
+    with pytest.raises(ValueError, match=message):
+        PairPotential(_gaussian_core(), **arguments)
+    check_pair_potential(arguments)
