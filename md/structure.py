@@ -377,6 +377,8 @@ def _read_h5md(path: Path, units: UnitSystem) -> tuple[State, Topology]:
             topology = reader.topology
     except TrajectoryError as error:
         raise ValueError(str(error)) from None
+    except ValueError as error:  # State's checks of the frame name the atom, not the file
+        raise ValueError(f"{path}: {error}") from None
     state.step, state.time = 0, 0.0  # a starting structure: the new run counts from zero
     return state, topology
 

@@ -990,3 +990,22 @@ def test_bad_pair_potential_arguments_are_refused_by_name(case):
     with pytest.raises(ValueError, match=message):
         PairPotential(_gaussian_core(), **arguments)
     check_pair_potential(arguments)
+
+
+@pytest.mark.parametrize("how", ["strings", "nan", "shape", "negative", "empty"])
+def test_every_dataset_of_our_h5md_damaged_is_refused_naming_the_file(how):
+    """Finding (benchmarks/fuzz_long.py): an H5MD file of ours whose per-frame datasets hold
+    text escaped read_structure as a bare TypeError ("can't multiply sequence by non-int"),
+    and NaN positions, velocities or masses as State's message without the file's name."""
+    import h5py
+
+    with tempfile.TemporaryDirectory() as name:
+        path = Path(name) / "s.h5"
+        path.write_bytes(valid_structure("h5md_ours"))
+        datasets = []
+        with h5py.File(path, "r") as f:
+            f.visititems(lambda n, item: datasets.append(n) if isinstance(item, h5py.Dataset)
+                         else None)  # fmt: skip
+    assert len(datasets) > 10
+    for pick in range(len(datasets)):
+        check_structure("h5md_ours", ("h5", how, pick), run=False)

@@ -1,0 +1,140 @@
+"""The fuzzing of tests/test_fuzz.py for a time budget: configs, TOML text, structure files
+and pair-term arguments, with fresh random seeds and every registered plug-in type.
+
+    PYTHONPATH=. python3 benchmarks/fuzz_long.py --seconds 600
+    PYTHONPATH=. python3 benchmarks/fuzz_long.py --seconds 120 --targets structure,pair
+
+It runs the targets in turn, a batch of examples at a time, until the budget is
+spent (a batch that has started finishes, and hypothesis shrinks what it finds),
+then prints each distinct finding once, with its smallest failing example.
+Exit code 0 when nothing was found, 1 otherwise. A finding becomes a regression
+test in tests/test_fuzz.py (an ``@example`` or a plain test) once it is fixed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import seed as fixed_seed
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import test_fuzz as fuzz  # noqa: E402  (the strategies and checks live with the tests)
+
+
+def _targets() -> dict:
+    every = fuzz.every_type()
+    return {
+        "config": (
+            fuzz.mutated_configs(types=every),
+            lambda case: fuzz.check_config_text(fuzz.to_toml(case[1]), case[0]),
+        ),
+        "toml": (fuzz.garbled_texts(), lambda case: fuzz.check_config_text(case[1], case[0])),
+        "structure": (fuzz.broken_structures(), lambda case: fuzz.check_structure(*case)),
+        "pair": (
+            fuzz.pair_potential_arguments(),
+            lambda arguments: fuzz.check_pair_potential(arguments, run=True),
+        ),
+    }
+
+
+def _failures(error: BaseException) -> list[BaseException]:
+    """The distinct failures hypothesis reports: one error, or an exception group of them."""
+    if isinstance(error, BaseExceptionGroup):
+        return [leaf for inner in error.exceptions for leaf in _failures(inner)]
+    return [error]
+
+
+def _describe(error: BaseException) -> tuple[str, str]:
+    """(a key for telling findings apart, the text to print)."""
+    message = str(error).strip()
+    head = f"{type(error).__name__}: {message.splitlines()[0][:300] if message else ''}"
+    notes = "\n".join(getattr(error, "__notes__", []))
+    frames = traceback.extract_tb(error.__traceback__)
+    where = next(
+        (
+            f"{f.filename}:{f.lineno}"
+            for f in reversed(frames)
+            if "/tests/" not in f.filename and "hypothesis" not in f.filename
+        ),
+        "",
+    )
+    return f"{type(error).__name__}|{where}|{head[:120]}", f"{head}\n  at {where}\n{notes}"
+
+
+def probe(strategy, check, examples: int, seed: int, current: list):
+    """Run ``check`` on ``examples`` draws of ``strategy``; return the failures."""
+
+    def body(case):
+        current[0] = case
+        check(case)
+
+    test = settings(
+        max_examples=examples,
+        deadline=None,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+    )(given(case=strategy)(body))
+    try:
+        fixed_seed(seed)(test)()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as error:  # a failed check, or a hang (fuzz.Hang: not shrunk)
+        failures = _failures(error)
+        if isinstance(error, fuzz.Hang):
+            error.add_note(f"while checking {current[0]!r}")
+        return failures
+    return []
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=600.0, help="time budget (default 600)")
+    parser.add_argument(
+        "--targets",
+        default="config,toml,structure,pair",
+        help="comma-separated: config, toml, structure, pair",
+    )
+    parser.add_argument("--batch", type=int, default=25, help="examples per batch (default 25)")
+    parser.add_argument("--seed", type=int, default=None, help="first seed (default: random)")
+    args = parser.parse_args(argv)
+    targets = _targets()
+    chosen = [name.strip() for name in args.targets.split(",") if name.strip()]
+    unknown = sorted(set(chosen) - set(targets))
+    if unknown:
+        parser.error(f"unknown target(s) {', '.join(unknown)}; choose from {', '.join(targets)}")
+    seed = random.randrange(2**32) if args.seed is None else args.seed
+    deadline = time.monotonic() + args.seconds
+    findings: dict[str, tuple[str, str]] = {}
+    counts = dict.fromkeys(chosen, 0)
+    current = [None]
+    round_ = 0
+    print(f"fuzz_long: {args.seconds:g} s on {', '.join(chosen)}, first seed {seed}", flush=True)
+    while time.monotonic() < deadline:
+        name = chosen[round_ % len(chosen)]
+        strategy, check = targets[name]
+        batch_seed = seed + round_
+        for error in probe(strategy, check, args.batch, batch_seed, current):
+            key, text = _describe(error)
+            if key not in findings:
+                findings[key] = (name, text)
+                print(f"\n[{name}] finding (seed {batch_seed}):\n{text}", flush=True)
+        counts[name] += args.batch
+        round_ += 1
+    tried = ", ".join(f"{name} {n}" for name, n in counts.items())
+    print(
+        f"\nfuzz_long: {round_} batches ({tried} examples at most), "
+        f"{len(findings)} distinct finding(s)"
+    )
+    for name, text in findings.values():
+        print(f"- [{name}] {text.splitlines()[0]}")
+    return 1 if findings else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
