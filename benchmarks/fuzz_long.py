@@ -18,6 +18,7 @@ import random
 import sys
 import time
 import traceback
+from collections import Counter
 from pathlib import Path
 
 from hypothesis import HealthCheck, given, settings
@@ -67,12 +68,13 @@ def _describe(error: BaseException) -> tuple[str, str]:
     return f"{type(error).__name__}|{where}|{head[:120]}", f"{head}\n  at {where}\n{notes}"
 
 
-def probe(strategy, check, examples: int, seed: int, current: list):
-    """Run ``check`` on ``examples`` draws of ``strategy``; return the failures."""
+def probe(strategy, check, examples: int, seed: int, current: list, outcomes: Counter):
+    """Run ``check`` on ``examples`` draws of ``strategy``, counting what each returned
+    (a run, a refusal) in ``outcomes``; return the failures."""
 
     def body(case):
         current[0] = case
-        check(case)
+        outcomes[check(case)] += 1
 
     test = settings(
         max_examples=examples,
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
     seed = random.randrange(2**32) if args.seed is None else args.seed
     deadline = time.monotonic() + args.seconds
     findings: dict[str, tuple[str, str]] = {}
-    counts = dict.fromkeys(chosen, 0)
+    outcomes = {name: Counter() for name in chosen}
     current = [None]
     round_ = 0
     print(f"fuzz_long: {args.seconds:g} s on {', '.join(chosen)}, first seed {seed}", flush=True)
@@ -119,18 +121,18 @@ def main(argv=None) -> int:
         name = chosen[round_ % len(chosen)]
         strategy, check = targets[name]
         batch_seed = seed + round_
-        for error in probe(strategy, check, args.batch, batch_seed, current):
+        for error in probe(strategy, check, args.batch, batch_seed, current, outcomes[name]):
             key, text = _describe(error)
             if key not in findings:
                 findings[key] = (name, text)
                 print(f"\n[{name}] finding (seed {batch_seed}):\n{text}", flush=True)
-        counts[name] += args.batch
         round_ += 1
-    tried = ", ".join(f"{name} {n}" for name, n in counts.items())
     print(
-        f"\nfuzz_long: {round_} batches ({tried} examples at most), "
-        f"{len(findings)} distinct finding(s)"
+        f"\nfuzz_long: {round_} batches, {len(findings)} distinct finding(s); outcomes "
+        "(with hypothesis's shrinking runs):"
     )
+    for name, counter in outcomes.items():
+        print(f"  {name}: " + ", ".join(f"{what} {n}" for what, n in counter.most_common()))
     for name, text in findings.values():
         print(f"- [{name}] {text.splitlines()[0]}")
     return 1 if findings else 0

@@ -220,6 +220,7 @@ def compare(whole: Path, pieces: Path) -> list[str]:
         try:
             universe = open_trajectory(folder / "soak.h5")
             universe.trajectory[-1]
+            universe.trajectory.close()
             if universe.atoms.n_atoms != ca.n_atoms:
                 problems.append(f"MDAnalysis sees {universe.atoms.n_atoms} atoms in {folder}")
         except Exception as error:  # MDAnalysis failing to open it is the finding

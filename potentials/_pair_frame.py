@@ -1203,12 +1203,15 @@ def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: se
     which entry is wrong."""
     index = {name: i for i, name in enumerate(type_names)}
     pairs = {}
+    if entries is not None and not isinstance(entries, list):
+        raise ValueError(f"pairs must be an array of tables (types = [a, b], ...), got {entries!r}")
     for number, entry in enumerate(entries or []):
         if not isinstance(entry, Mapping) or "types" not in entry:
             raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
         entry = dict(entry)
         types = entry.pop("types")
-        if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
+        if (not isinstance(types, list) or len(types) != 2
+                or any(not isinstance(n, str) or n not in index for n in types)):  # fmt: skip
             raise ValueError(
                 f"pairs[{number}].types must name two of the types {list(type_names)}, "
                 f"got {types!r}"

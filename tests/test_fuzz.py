@@ -391,8 +391,8 @@ def judge_run(
     assert read_checkpoint(checkpoint_path(output)).state.step == steps >= trajectory.steps[-1]
 
 
-def check_config_text(text: str, base: str, extra: tuple[str, ...] = ()) -> None:
-    """Run ``text`` as a config in a fresh folder and judge the outcome."""
+def check_config_text(text: str, base: str, extra: tuple[str, ...] = ()) -> str:
+    """Run ``text`` as a config in a fresh folder and judge the outcome; return it."""
     with tempfile.TemporaryDirectory() as name:
         folder = Path(name)
         (folder / "sub").mkdir()
@@ -407,6 +407,7 @@ def check_config_text(text: str, base: str, extra: tuple[str, ...] = ()) -> None
         judge_run(folder, before, code, out, err)
         if code == 2:
             assert "run.toml" in err or "--" in err, err  # names the config or the option
+        return f"exit {code}"
 
 
 FUZZ = settings(max_examples=60, deadline=None, derandomize=True, database=None,
@@ -424,6 +425,28 @@ def test_the_base_configs_run():
 def test_mutated_configs_run_or_exit_2(case):
     base, data = case
     check_config_text(to_toml(data), base)
+
+
+@pytest.mark.parametrize(
+    "pairs",
+    ["1", "2.5", "true", '"Ar"', '[{types = [["Ar"], "Kr"], d0 = 0.05}]',
+     '[{types = [{a = 1}, "Kr"]}]', '[{types = [1, 2]}]'],
+)  # fmt: skip
+def test_pairs_of_the_wrong_kind_exit_2_naming_pairs(pairs):
+    """Finding (benchmarks/fuzz_long.py): ``pairs = 1`` in a pair style's table, or a type
+    in ``types`` that is a list, ended ``md run`` in a traceback ("'int' object is not
+    iterable", "unhashable type: 'list'")."""
+    line = 'pairs = [{types = ["Ar", "Kr"], d0 = 0.05, cutoff = 1.8}]'
+    assert line in TWO_TYPES
+    text = TWO_TYPES.replace(line, f"pairs = {pairs}")
+    with tempfile.TemporaryDirectory() as name:
+        folder = Path(name)
+        two_type_structure(folder)
+        (folder / "run.toml").write_text(text)
+        with inside(folder):
+            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"])
+        judge_run(folder, {Path("run.toml"), Path("two.xyz")}, code, out, err)
+    assert code == 2 and "[potentials.1]" in err and "pairs" in err, err
 
 
 @settings(FUZZ, max_examples=30)
@@ -767,9 +790,9 @@ def place_structure(folder: Path, kind: str, content) -> Path:
     return path
 
 
-def check_structure(kind: str, content, run: bool = True) -> None:
+def check_structure(kind: str, content, run: bool = True) -> str:
     """read_structure gives a State and Topology or a ValueError naming the file; ``md run``
-    on it runs or exits 2 (judged as any run)."""
+    on it runs or exits 2 (judged as any run). Returns the outcome."""
     from md.state import State
     from md.structure import read_structure
     from md.topology import Topology
@@ -778,9 +801,11 @@ def check_structure(kind: str, content, run: bool = True) -> None:
         folder = Path(name)
         path = place_structure(folder, kind, content)
         with time_limit(30):
+            read = "read"
             try:
                 state, topology = read_structure(path, units="metal")
             except ValueError as error:
+                read = "refused"
                 assert path.name in str(error), error
                 assert "\n" not in str(error).strip(), error
             else:
@@ -789,12 +814,13 @@ def check_structure(kind: str, content, run: bool = True) -> None:
                 assert np.all(np.isfinite(state.velocities)), state.velocities
                 assert np.all(state.masses > 0) and np.all(np.isfinite(state.box))
         if not run:
-            return
+            return read
         (folder / "run.toml").write_text(STRUCTURE_RUN.format(name=path.name))
         before = files_in(folder)
         with inside(folder):
             code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"], limit=60)
         judge_run(folder, before, code, out, err)
+        return f"{kind} {read}, exit {code}"
 
 
 @pytest.mark.parametrize("kind", TEXT_KINDS + BINARY_KINDS)
@@ -894,7 +920,7 @@ def pair_potential_arguments(draw):
     return arguments
 
 
-def check_pair_potential(arguments: dict, run: bool = False) -> None:
+def check_pair_potential(arguments: dict, run: bool = False) -> str:
     """PairPotential builds, or refuses with a ValueError/TypeError naming an argument; a built
     one gives finite energies on a small crystal, or refuses the crystal naming the cutoff."""
     import md
@@ -910,7 +936,7 @@ def check_pair_potential(arguments: dict, run: bool = False) -> None:
             named = [*ARGUMENT_NAMES, "pair", "gaussian_core", "parameter"]
             assert any(name in text for name in named), (arguments, text)
             assert "\n" not in text.strip(), text
-            return
+            return "refused"
         assert potential.cutoff > 0 and math.isfinite(potential.cutoff)
         state = md.lattice("fcc", 3, density=0.8)
         try:
@@ -918,16 +944,18 @@ def check_pair_potential(arguments: dict, run: bool = False) -> None:
             energy = potential.pair_energy(0.9 * potential.cutoff)
         except ValueError as error:
             assert "cutoff" in str(error) or "pair" in str(error), str(error)
-            return
+            return "refused on the crystal"
         assert not math.isnan(energy)
-        if run:
-            sim = md.Simulation(state, [potential], VelocityVerlet(0.002))
-            try:
-                sim.run(2)
-            except (ValueError, SimulationError) as error:
-                assert str(error), error
-            else:
-                assert np.all(np.isfinite(state.positions))
+        if not run:
+            return "built"
+        sim = md.Simulation(state, [potential], VelocityVerlet(0.002))
+        try:
+            sim.run(2)
+        except (ValueError, SimulationError) as error:
+            assert str(error), error
+            return "run failed with a message"
+        assert np.all(np.isfinite(state.positions))
+        return "ran"
 
 
 def test_a_gaussian_core_term_runs():
@@ -1009,3 +1037,46 @@ def test_every_dataset_of_our_h5md_damaged_is_refused_naming_the_file(how):
     assert len(datasets) > 10
     for pick in range(len(datasets)):
         check_structure("h5md_ours", ("h5", how, pick), run=False)
+
+
+# ------------------------------------------------------------------ the long scripts
+def _script(name: str):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_bench_{name}", ROOT / "benchmarks" / name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow  # three md processes of a few seconds each
+def test_soak_script_smoke(tmp_path, capsys):
+    """benchmarks/soak.py on 32 atoms, 600 steps and one SIGTERM/resume cycle: it passes,
+    and it fails when the resumed run is made to differ."""
+    soak = _script("soak.py")
+    argv = ["--steps", "600", "--atoms", "32", "--checkpoint-every", "50", "--cycles", "1",
+            "--workdir", str(tmp_path / "a")]  # fmt: skip
+    assert soak.main(argv) == 0, capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "1 SIGTERM/resume cycles" in out and "soak: OK" in out
+    # The checks bite: a run whose final velocities differ in one bit is reported.
+    pieces = tmp_path / "a" / "pieces" / "soak.h5"
+    import h5py
+
+    with h5py.File(pieces, "r+") as f:
+        values = f["particles/trajectory/velocity/value"]
+        last = values[-1]
+        last[0, 0] = np.nextafter(last[0, 0], np.inf)
+        values[-1] = last
+    problems = soak.compare(tmp_path / "a" / "whole", tmp_path / "a" / "pieces")
+    assert any("velocities of the frames differ" in p for p in problems), problems
+
+
+def test_fuzz_long_script_smoke(capsys):
+    """benchmarks/fuzz_long.py runs its targets for a budget and reports no finding."""
+    fuzz_long = _script("fuzz_long.py")
+    code = fuzz_long.main(["--seconds", "1", "--targets", "toml,pair", "--batch", "3",
+                           "--seed", "5"])  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "0 distinct finding(s)" in out
