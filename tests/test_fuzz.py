@@ -29,6 +29,8 @@ import math
 import os
 import re
 import signal
+import subprocess
+import sys
 import tempfile
 import tomllib
 from pathlib import Path
@@ -309,6 +311,10 @@ def garbled_texts(draw):
 
 
 # ------------------------------------------------------------------ running and judging
+#: Seconds a case may take: a hang, past the slowest cold compile of kernels on a loaded machine.
+LIMIT = 180.0
+
+
 class Hang(BaseException):
     """A case ran past its time limit (a BaseException, so nothing in the engine swallows it)."""
 
@@ -343,12 +349,16 @@ def files_in(folder: Path) -> set[Path]:
     return {p.relative_to(folder) for p in folder.rglob("*") if p.is_file()}
 
 
-def run_md(argv, limit: float = 60.0) -> tuple[int, str, str]:
+def run_md(argv, limit: float | None = None) -> tuple[int, str, str]:
     """``md.cli.main(argv)`` in this process: (exit code, stdout, stderr)."""
     from md.cli import main
 
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), time_limit(limit):
+    with (
+        contextlib.redirect_stdout(out),
+        contextlib.redirect_stderr(err),
+        time_limit(limit or LIMIT),
+    ):
         try:
             code = main(argv)
         except SystemExit as stop:  # argparse's own exit
@@ -800,7 +810,7 @@ def check_structure(kind: str, content, run: bool = True) -> str:
     with tempfile.TemporaryDirectory() as name:
         folder = Path(name)
         path = place_structure(folder, kind, content)
-        with time_limit(30):
+        with time_limit(LIMIT):
             read = "read"
             try:
                 state, topology = read_structure(path, units="metal")
@@ -818,7 +828,7 @@ def check_structure(kind: str, content, run: bool = True) -> str:
         (folder / "run.toml").write_text(STRUCTURE_RUN.format(name=path.name))
         before = files_in(folder)
         with inside(folder):
-            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"], limit=60)
+            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"])
         judge_run(folder, before, code, out, err)
         return f"{kind} {read}, exit {code}"
 
@@ -928,7 +938,7 @@ def check_pair_potential(arguments: dict, run: bool = False) -> str:
     from md.errors import SimulationError
     from potentials import PairPotential
 
-    with time_limit(60):
+    with time_limit(LIMIT):
         try:
             potential = PairPotential(_gaussian_core(), **arguments)
         except (ValueError, TypeError) as error:
@@ -1037,6 +1047,40 @@ def test_every_dataset_of_our_h5md_damaged_is_refused_naming_the_file(how):
     assert len(datasets) > 10
     for pick in range(len(datasets)):
         check_structure("h5md_ours", ("h5", how, pick), run=False)
+
+
+# ------------------------------------------------------------------ real processes
+#: A few fuzzed cases for ``md run`` in a process of its own: (config, structure, exit code).
+REAL_CASES = {
+    "valid": (SMALL, None, 0),
+    "pairs a number": (
+        TWO_TYPES.replace('pairs = [{types = ["Ar", "Kr"], d0 = 0.05, cutoff = 1.8}]', "pairs = 1"),
+        "two",
+        2,
+    ),
+    "a GSD frame with NaN": (STRUCTURE_RUN.format(name="s.gsd"), "gsd", 2),
+}
+
+
+@pytest.mark.parametrize("case", list(REAL_CASES))
+def test_fuzzed_cases_in_a_real_md_process(case, tmp_path):
+    """As the user meets them: ``python -m md.cli run`` exits 0 with its files, or 2 with
+    one ``md: error:`` line and no file, never a traceback."""
+    text, structure, expected = REAL_CASES[case]
+    if structure == "two":
+        two_type_structure(tmp_path)
+    elif structure == "gsd":
+        place_structure(tmp_path, "gsd", ("gsd", "nan_position"))
+    (tmp_path / "run.toml").write_text(text)
+    before = files_in(tmp_path)
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path}
+    done = subprocess.run(
+        [sys.executable, "-m", "md.cli", "run", "run.toml", "--no-progress", "-q"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    judge_run(tmp_path, before, done.returncode, done.stdout, done.stderr)
+    assert done.returncode == expected, done.stderr
 
 
 # ------------------------------------------------------------------ the long scripts
