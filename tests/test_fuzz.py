@@ -958,8 +958,8 @@ def check_pair_potential(arguments: dict, run: bool = False) -> str:
         assert not math.isnan(energy)
         if not run:
             return "built"
-        sim = md.Simulation(state, [potential], VelocityVerlet(0.002))
         try:
+            sim = md.Simulation(state, [potential], VelocityVerlet(0.002))  # checks the cutoff
             sim.run(2)
         except (ValueError, SimulationError) as error:
             assert str(error), error
