@@ -854,6 +854,36 @@ def test_the_valid_structures_read(kind):
     check_structure(kind, valid_structure(kind))
 
 
+def _huge_counts() -> dict:
+    xyz = valid_structure("xyz").decode()
+    data = valid_structure("lammps").decode()
+    return {
+        "xyz, a second frame's count": (".xyz", xyz + "999999999999\n"),
+        "extxyz, a second frame's count": (".extxyz", xyz + "100000\nnext\nAr 0 0 0\n"),
+        "lammps data, the atoms line": (".data", data.replace("12 atoms", "1000000000 atoms")),
+    }
+
+
+@pytest.mark.parametrize("case", list(_huge_counts()))
+def test_a_huge_atom_count_anywhere_is_refused_at_once(case):
+    """Findings (benchmarks/fuzz_long.py): a count line of 10^12 atoms after the first
+    frame of an xyz file, or "1000000000 atoms" in a LAMMPS data header, kept ASE's
+    readers busy for minutes (skipping lines one by one; allocating for every atom); only
+    the first line of an xyz file was checked against the file's size."""
+    from md.structure import read_structure
+
+    suffix, text = _huge_counts()[case]
+    with tempfile.TemporaryDirectory() as name:
+        path = Path(name) / f"s{suffix}"
+        path.write_text(text)
+        with time_limit(20), pytest.raises(ValueError, match=r"declares \d+ atoms, more than"):
+            read_structure(path, units="metal")
+        (Path(name) / "run.toml").write_text(STRUCTURE_RUN.format(name=path.name))
+        with inside(Path(name)), time_limit(60):
+            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"])
+    assert code == 2 and path.name in err and "declares" in err, err
+
+
 @settings(FUZZ, max_examples=80)
 @given(case=broken_structures())
 def test_mutated_structures_read_or_refuse(case):
