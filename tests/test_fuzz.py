@@ -459,6 +459,24 @@ def test_pairs_of_the_wrong_kind_exit_2_naming_pairs(pairs):
     assert code == 2 and "[potentials.1]" in err and "pairs" in err, err
 
 
+@pytest.mark.parametrize("path", ["", ".", "sub", "missing/x.h5", "sub/.."])
+@pytest.mark.parametrize("where", ["config", "--output"])
+def test_an_output_path_that_cannot_be_written_is_named_with_its_source(path, where):
+    """Finding (benchmarks/fuzz_long.py): ``[output] path = ""`` gave "md: error: output
+    path '.' names no file", naming neither the config nor the key (nor --output)."""
+    text = SMALL if where == "--output" else SMALL.replace('path = "out.h5"', f'path = "{path}"')
+    extra = ("--output", path) if where == "--output" else ()
+    with tempfile.TemporaryDirectory() as name:
+        folder = Path(name)
+        (folder / "sub").mkdir()
+        (folder / "run.toml").write_text(text)
+        with inside(folder):
+            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q", *extra])
+        judge_run(folder, {Path("run.toml")}, code, out, err)
+    named = "--output: " if where == "--output" else "run.toml: [output] path: "
+    assert code == 2 and f"md: error: {named}" in err, err
+
+
 @settings(FUZZ, max_examples=30)
 @given(case=garbled_texts())
 def test_garbled_toml_runs_or_exits_2(case):
