@@ -6,6 +6,7 @@ and pair-term arguments, with fresh random seeds and every registered plug-in ty
 
 It runs the targets in turn, a batch of examples at a time, until the budget is
 spent (a batch that has started finishes, and hypothesis shrinks what it finds),
+its address space capped by ``--memory-gb`` (a huge allocation is a finding),
 then prints each distinct finding once, with its smallest failing example.
 Exit code 0 when nothing was found, 1 otherwise. A finding becomes a regression
 test in tests/test_fuzz.py (an ``@example`` or a plain test) once it is fixed.
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import random
+import resource
 import sys
 import time
 import traceback
@@ -116,7 +118,17 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--batch", type=int, default=25, help="examples per batch (default 25)")
     parser.add_argument("--seed", type=int, default=None, help="first seed (default: random)")
+    parser.add_argument(
+        "--memory-gb",
+        type=float,
+        default=6.0,
+        help="address space allowed to this process (default 6 GB): a case "
+        "that allocates past it is a finding, not the machine's end",
+    )
     args = parser.parse_args(argv)
+    if args.memory_gb > 0:
+        limit = int(args.memory_gb * 2**30)
+        resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
     targets = _targets()
     chosen = [name.strip() for name in args.targets.split(",") if name.strip()]
     unknown = sorted(set(chosen) - set(targets))
