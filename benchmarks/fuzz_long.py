@@ -1,5 +1,5 @@
-"""The fuzzing of tests/test_fuzz.py for a time budget: configs, TOML text, structure files
-and pair-term arguments, with fresh random seeds and every registered plug-in type.
+"""The fuzzing of tests/test_fuzz.py for a time budget: configs, TOML text, structure files,
+pair tables and pair-term arguments, with fresh random seeds and every registered plug-in type.
 
     PYTHONPATH=. python3 benchmarks/fuzz_long.py --seconds 600
     PYTHONPATH=. python3 benchmarks/fuzz_long.py --seconds 120 --targets structure,pair
@@ -39,6 +39,10 @@ def _targets() -> dict:
         ),
         "toml": (fuzz.garbled_texts(), lambda case: fuzz.check_config_text(case[1], case[0])),
         "structure": (fuzz.broken_structures(), lambda case: fuzz.check_structure(*case)),
+        "table": (
+            fuzz.st.builds(fuzz._pair_table).flatmap(fuzz.mutated_text),
+            fuzz.check_table,
+        ),
         "pair": (
             fuzz.pair_potential_arguments(),
             lambda arguments: fuzz.check_pair_potential(arguments, run=True),
@@ -113,8 +117,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=600.0, help="time budget (default 600)")
     parser.add_argument(
         "--targets",
-        default="config,toml,structure,pair",
-        help="comma-separated: config, toml, structure, pair",
+        default="config,toml,structure,table,pair",
+        help="comma-separated: config, toml, structure, table, pair",
     )
     parser.add_argument("--batch", type=int, default=25, help="examples per batch (default 25)")
     parser.add_argument("--seed", type=int, default=None, help="first seed (default: random)")

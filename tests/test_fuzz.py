@@ -13,6 +13,7 @@ code 2, never a traceback, a hang or a partial file:
   lines and bytes mutated (truncated, numbers made garbage, NaN or huge,
   counts wrong, columns missing) and their datasets damaged, read with
   :func:`md.structure.read_structure` and run with ``md run``;
+- LAMMPS pair tables (``type = "table"``): a valid table file's lines mutated;
 - the user-term path: :class:`potentials.PairPotential` given random
   parameter values, cutoffs, modes and per-pair tables.
 
@@ -913,6 +914,48 @@ def test_damaged_gsd_frames_are_refused_naming_the_file(how):
     """Finding: a GSD frame with a NaN position or velocity, a type id past its types or a
     zero mass was refused by State without the file's name (read_structure's contract)."""
     check_structure("gsd", ("gsd", how), run=False)
+
+
+# ------------------------------------------------------------------ pair tables
+def _pair_table() -> bytes:
+    """A LAMMPS pair_style table file: a Morse well, 40 points from r = 0.6 to 2.3."""
+    r = np.linspace(0.6, 2.3, 40)
+    e = np.exp(-6.0 * (r - 1.1)) - 2.0 * np.exp(-3.0 * (r - 1.1))
+    f = 6.0 * (np.exp(-6.0 * (r - 1.1)) - np.exp(-3.0 * (r - 1.1)))
+    lines = ["# a Morse table", "", "T", "N 40 R 0.6 2.3", ""]
+    lines += [f"{k + 1} {r[k]:.10g} {e[k]:.10g} {f[k]:.10g}" for k in range(40)]
+    return ("\n".join(lines) + "\n").encode()
+
+
+TABLE_RUN = SMALL.replace(
+    'type = "lj"\ncutoff = 2.5\ncutoff_mode = "smooth"\nr_on = 2.0',
+    'type = "table"\nfile = "pair.table"\nkeyword = "T"\ncutoff = 2.3',
+).replace("density = 0.8442", "density = 0.7")
+
+
+def check_table(content: bytes) -> str:
+    """``md run`` with a mutated pair table: a run, or exit 2 naming the table or config."""
+    with tempfile.TemporaryDirectory() as name:
+        folder = Path(name)
+        (folder / "pair.table").write_bytes(content)
+        (folder / "run.toml").write_text(TABLE_RUN)
+        before = files_in(folder)
+        with inside(folder):
+            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q", "--steps", "4"])
+        judge_run(folder, before, code, out, err)
+        if code == 2:
+            assert "pair.table" in err or "run.toml" in err, err
+        return f"exit {code}"
+
+
+def test_the_pair_table_runs():
+    assert check_table(_pair_table()) == "exit 0"
+
+
+@settings(FUZZ, max_examples=40)
+@given(content=st.builds(_pair_table).flatmap(mutated_text))
+def test_mutated_pair_tables_run_or_exit_2(content):
+    check_table(content)
 
 
 # ------------------------------------------------------------------ user pair terms
