@@ -34,8 +34,8 @@ def _targets() -> dict:
     every = fuzz.every_type()
     return {
         "config": (
-            fuzz.mutated_configs(types=every),
-            lambda case: fuzz.check_config_text(fuzz.to_toml(case[1]), case[0]),
+            fuzz.st.tuples(fuzz.mutated_configs(types=every), fuzz.FLAGS),
+            lambda case: fuzz.check_config_text(fuzz.to_toml(case[0][1]), case[0][0], case[1]),
         ),
         "toml": (fuzz.garbled_texts(), lambda case: fuzz.check_config_text(case[1], case[0])),
         "structure": (fuzz.broken_structures(), lambda case: fuzz.check_structure(*case)),
