@@ -25,6 +25,7 @@ plain test). The default suite's part is bounded and derandomized.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import math
 import os
@@ -197,6 +198,7 @@ VALUES = st.one_of(
 )  # fmt: skip
 
 
+@functools.cache
 def _schema_names() -> list[str]:
     """Every key name the config declares anywhere: plausible wrong places for a key."""
     from md.config import sections
@@ -205,7 +207,7 @@ def _schema_names() -> list[str]:
     for section in sections():
         for keys in [section.keys, *(section.types or {}).values()]:
             names.update(entry.name for entry in keys)
-    return sorted(names)
+    return sorted(names)  # sampled_from takes a list; it is not changed
 
 
 #: Plug-in names a mutation may swap in. The default suite keeps to the kernels the
