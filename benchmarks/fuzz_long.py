@@ -8,16 +8,20 @@ It runs the targets in turn, a batch of examples at a time, until the budget is
 spent (a batch that has started finishes, and hypothesis shrinks what it finds),
 its address space capped by ``--memory-gb`` (a huge allocation is a finding),
 then prints each distinct finding once, with its smallest failing example.
-Exit code 0 when nothing was found, 1 otherwise. A finding becomes a regression
+Exit code 0 when nothing was found, 1 otherwise, 3 when a case never returned
+(stuck where no signal reaches it: it prints the case and its stack). A finding becomes a regression
 test in tests/test_fuzz.py (an ``@example`` or a plain test) once it is fixed.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
+import os
 import random
 import resource
 import sys
+import threading
 import time
 import traceback
 from collections import Counter
@@ -74,13 +78,39 @@ def _describe(error: BaseException) -> tuple[str, str]:
     return f"{type(error).__name__}|{where}|{head[:120]}", f"{head}\n  at {where}\n{notes}"
 
 
+#: Seconds after which a case stuck where no signal reaches it (inside a C library) ends
+#: the run: fuzz.time_limit's alarm, and the retry's, have had their turn.
+WATCHDOG = 2 * fuzz.LIMIT + 60
+
+
+def guarded(check, case):
+    """``check(case)``, ending the process with the case and a traceback if it never returns."""
+
+    def give_up():
+        print(
+            f"\nfuzz_long: finding: no return after {WATCHDOG:g} s, and no signal gets in "
+            f"(a C library's loop?) while checking {case!r}; its stack:",
+            flush=True,
+        )
+        faulthandler.dump_traceback(all_threads=True)  # the main thread is the one stuck
+        os._exit(3)
+
+    watchdog = threading.Timer(WATCHDOG, give_up)
+    watchdog.daemon = True
+    watchdog.start()
+    try:
+        return check(case)
+    finally:
+        watchdog.cancel()
+
+
 def probe(strategy, check, examples: int, seed: int, current: list, outcomes: Counter):
     """Run ``check`` on ``examples`` draws of ``strategy``, counting what each returned
     (a run, a refusal) in ``outcomes``; return the failures."""
 
     def body(case):
         current[0] = case
-        outcomes[check(case)] += 1
+        outcomes[guarded(check, case)] += 1
 
     test = settings(
         max_examples=examples,
@@ -100,7 +130,7 @@ def probe(strategy, check, examples: int, seed: int, current: list, outcomes: Co
             # Once more: kernels compiled on the way (slow on a loaded machine) are cached
             # now, so a case that was only slow passes; one that hangs hangs again.
             try:
-                outcomes[check(case)] += 1
+                outcomes[guarded(check, case)] += 1
             except fuzz.Hang:
                 return failures
             except Exception as again:  # a real finding behind the slowness
