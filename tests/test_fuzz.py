@@ -277,10 +277,9 @@ def mutated_configs(draw, types=None):
         elif op == "retype":
             section = draw(st.sampled_from(["potentials", "integrator"]))
             tables = data.get(section)
-            if isinstance(tables, list) and tables and isinstance(tables[0], dict):
-                tables[draw(st.integers(0, len(tables) - 1))]["type"] = draw(
-                    st.sampled_from(types["potentials"])
-                )
+            entries = [t for t in tables if isinstance(t, dict)] if isinstance(tables, list) else []
+            if entries:
+                draw(st.sampled_from(entries))["type"] = draw(st.sampled_from(types["potentials"]))
             elif isinstance(tables, dict):
                 tables["type"] = draw(st.sampled_from(types["integrator"]))
     return base, data
