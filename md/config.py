@@ -675,7 +675,10 @@ def input_files(config: Config) -> list[Path]:
 def _pair_files(values: Mapping) -> list[dict]:
     """The ``[[potentials.pairs]]`` tables of a potential's values that name a ``file``
     (a table style's file for one type pair; a path, as the style's own ``file``)."""
-    return [entry for entry in values.get("pairs") or []
+    pairs = values.get("pairs")
+    if not isinstance(pairs, list):  # none, or not tables: refused with the style's keys
+        return []
+    return [entry for entry in pairs
             if isinstance(entry, dict) and isinstance(entry.get("file"), str)]  # fmt: skip
 
 

@@ -574,7 +574,11 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
             raise ConfigError(str(error)) from None
     if ranks is not None and config.seed is None:
         config = _seeded(config, ranks)
-    output = _writable_output(Path(output) if output is not None else config.output.path)
+    where = "--output" if output is not None else f"{config.source}: [output] path"
+    try:
+        output = _writable_output(Path(output) if output is not None else config.output.path)
+    except ConfigError as error:  # say where the path came from
+        raise ConfigError(f"{where}: {error}") from None
     saved_path = checkpoint_path(output)
     _writable_output(saved_path)
     _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))

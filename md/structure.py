@@ -114,25 +114,34 @@ def _reason(error: BaseException) -> str:
 
 
 def _check_xyz_count(path: Path, format: str | None) -> None:
-    """Refuse an (ext)xyz file whose atom-count line exceeds what the file can hold.
+    """Refuse an (ext)xyz file whose atom-count lines exceed what the file can hold.
 
-    ASE's extxyz reader trusts that line and, given an absurd count, loops for
-    a very long time; every atom needs a line of at least 8 bytes.
+    ASE's extxyz reader trusts every frame's count line and, given an absurd one,
+    loops for a very long time; every atom needs a line of at least 8 bytes. The
+    frames are walked as ASE walks them (a count, a comment, the atoms) up to a
+    blank line or the end.
     """
     kind = (format or Path(path).suffix.lstrip(".")).lower()
     if kind not in ("xyz", "extxyz"):
         return
     try:
-        with open(path, "rb") as handle:
-            first = handle.readline(64).strip()
         size = Path(path).stat().st_size
+        with open(path, "rb") as handle:
+            while True:
+                count = handle.readline(64).strip()
+                if not count.isdigit():  # the end, a blank line, or not a count: ASE's to say
+                    return
+                if int(count) * 8 > size - handle.tell():
+                    raise ValueError(
+                        f"{path}: the count line at byte {handle.tell() - len(count) - 1} "
+                        f"declares {int(count)} atoms, more than a file of {size} bytes can "
+                        "hold"
+                    )
+                for _ in range(int(count) + 1):  # the comment line and the atoms
+                    if not handle.readline():
+                        return
     except OSError as error:
         raise ValueError(f"cannot read {path} ({error})") from None
-    if first.isdigit() and int(first) * 8 > size:
-        raise ValueError(
-            f"{path}: the first line declares {int(first)} atoms, more than a file of "
-            f"{size} bytes can hold"
-        )
 
 
 # ---------------------------------------------------------------------- LAMMPS data
@@ -140,7 +149,7 @@ def _lammps_header(path: Path) -> dict:
     """Box bounds, tilt, Masses comments and a leapmd title from a data file's text."""
     header = {
         "lo": np.zeros(3), "hi": np.zeros(3), "tilt": None, "names": {}, "bond_names": {},
-        "angle_names": {}, "style": None, "columns": 0, "masses": False,
+        "angle_names": {}, "style": None, "columns": 0, "masses": False, "atoms": 0,
     }  # fmt: skip
     axis = {"x": 0, "y": 1, "z": 2}
     with open(path, errors="replace") as handle:
@@ -153,6 +162,9 @@ def _lammps_header(path: Path) -> dict:
                 k = axis.get(words[2][0])
                 if k is not None:
                     header["lo"][k], header["hi"][k] = float(words[0]), float(words[1])
+                continue
+            if len(words) == 2 and words[1] == "atoms" and section is None:
+                header["atoms"] = int(words[0])
                 continue
             if len(words) >= 6 and words[3:6] == ["xy", "xz", "yz"]:
                 header["tilt"] = [float(w) for w in words[:3]]
@@ -195,6 +207,12 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
         header = _lammps_header(path)
     except (OSError, ValueError) as error:
         raise ValueError(f"cannot read {path} as a LAMMPS data file ({error})") from None
+    size = path.stat().st_size
+    if header["atoms"] * 8 > size:  # ASE's reader would allocate for them all first
+        raise ValueError(
+            f"{path}: the header declares {header['atoms']} atoms, more than a file of {size} "
+            "bytes can hold"
+        )
     tilt = np.zeros(3) if header["tilt"] is None else np.asarray(header["tilt"], float)
     if not header["masses"] and mass is None:
         raise ValueError(
@@ -310,6 +328,13 @@ def _read_gsd(path: Path, units: UnitSystem, frame: int = -1) -> tuple[State, To
             snapshot = trajectory[frame]
     except Exception as error:  # gsd raises many types for unreadable files
         raise ValueError(f"cannot read {path} as a GSD file ({error})") from None
+    try:
+        return _gsd_structure(snapshot, units)
+    except ValueError as error:  # State and Topology name what is wrong, not the file
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _gsd_structure(snapshot, units: UnitSystem) -> tuple[State, Topology]:
     box = np.asarray(snapshot.configuration.box, dtype=np.float64)
     lengths = box[:3]
     # HOOMD's tilt factors are dimensionless: xy Ly, xz Lz and yz Lz are the engine's.
@@ -370,6 +395,8 @@ def _read_h5md(path: Path, units: UnitSystem) -> tuple[State, Topology]:
             topology = reader.topology
     except TrajectoryError as error:
         raise ValueError(str(error)) from None
+    except ValueError as error:  # State's checks of the frame name the atom, not the file
+        raise ValueError(f"{path}: {error}") from None
     state.step, state.time = 0, 0.0  # a starting structure: the new run counts from zero
     return state, topology
 

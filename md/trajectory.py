@@ -983,34 +983,42 @@ class TrajectoryReader:
                     verify_frames(self.path)  # raises naming the damaged frame
                 raise TrajectoryError(f"{self.path}: cannot read frames ({error})") from None
             for k, index in enumerate(part):
-                observables = {
-                    name.split("/", 1)[1]: float(values[k])
-                    / self._factor(_OBSERVABLE_UNITS.get(name.split("/", 1)[1], ""))
-                    for name, values in read.items()
-                    if name.startswith("observables/")
-                }
-                positions = read["position"][k] * scale_length
-                box, tilt = split_edges(read["edges"][k] * scale_length, frames=False)
-                yield Frame(
-                    index=index,
-                    step=int(read["step"][k]),
-                    time=float(read["time"][k]) / self._factor("time"),
-                    positions=positions,
-                    images=(
-                        read["image"][k].astype(np.int32)
-                        if "image" in read
-                        else np.zeros(positions.shape, dtype=np.int32)
-                    ),
-                    box=box,
-                    tilt=tilt,
-                    velocities=(
-                        read["velocity"][k] / self._factor("velocity")
-                        if "velocity" in read
-                        else None
-                    ),
-                    forces=read["force"][k] / self._factor("force") if "force" in read else None,
-                    observables=observables,
-                )
+                try:
+                    frame = self._frame(read, k, index, scale_length)
+                except (TypeError, ValueError) as error:  # datasets of the wrong kind
+                    raise TrajectoryError(
+                        f"{self.path}: frame {index} is not a frame written by leapmd ({error})"
+                    ) from None
+                yield frame
+
+    def _frame(self, read: dict, k: int, index: int, scale_length: float) -> Frame:
+        """Frame ``index``, the ``k``-th of the datasets' slices ``read``."""
+        observables = {
+            name.split("/", 1)[1]: float(values[k])
+            / self._factor(_OBSERVABLE_UNITS.get(name.split("/", 1)[1], ""))
+            for name, values in read.items()
+            if name.startswith("observables/")
+        }
+        positions = read["position"][k] * scale_length
+        box, tilt = split_edges(read["edges"][k] * scale_length, frames=False)
+        return Frame(
+            index=index,
+            step=int(read["step"][k]),
+            time=float(read["time"][k]) / self._factor("time"),
+            positions=positions,
+            images=(
+                read["image"][k].astype(np.int32)
+                if "image" in read
+                else np.zeros(positions.shape, dtype=np.int32)
+            ),
+            box=box,
+            tilt=tilt,
+            velocities=(
+                read["velocity"][k] / self._factor("velocity") if "velocity" in read else None
+            ),
+            forces=read["force"][k] / self._factor("force") if "force" in read else None,
+            observables=observables,
+        )
 
     def state(self, frame: Frame, unwrap: bool = True) -> State:
         """Return a frame as a State (continuous positions unless ``unwrap=False``)."""

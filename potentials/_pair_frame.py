@@ -28,6 +28,7 @@ import itertools
 import logging
 import math
 import numbers
+import operator
 import re
 import shutil
 import sys
@@ -677,11 +678,13 @@ class PairPotential:
         self._run_variants: set = set()  # the slot-frame kernels this object has run
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
-        if cutoff_mode not in CUTOFF_MODES:
+        if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
             raise ValueError(
                 f"cutoff_mode must be one of {', '.join(CUTOFF_MODES)}, got {cutoff_mode!r}"
             )
-        if (mixing is not None or self.MIXING) and mixing not in self.MIXING:
+        if (mixing is not None or self.MIXING) and (
+            not isinstance(mixing, str) or mixing not in self.MIXING
+        ):
             rules = ", ".join(self.MIXING) or "none (this style does not mix)"
             raise ValueError(f"mixing must be one of {rules}, got {mixing!r}")
         names = self.parameter_names()
@@ -719,13 +722,18 @@ class PairPotential:
         self.default_cutoff = positive_scalar(cutoff, "cutoff")
         self.cutoff_mode = cutoff_mode
         self.r_on = None if r_on is None else positive_scalar(r_on, "r_on")
-        self.data = np.zeros(0) if data is None else np.ascontiguousarray(data, dtype=np.float64)
+        try:
+            self.data = np.zeros(0) if data is None else np.ascontiguousarray(data, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{label}: data must be an array of numbers, got {data!r}") from None
         self.pairs = {}
         allowed = set(names) | {"cutoff", "r_on"}
+        if pairs is not None and not isinstance(pairs, Mapping):
+            raise ValueError(f"{label}: pairs must map type pairs (i, j) to values, got {pairs!r}")
         for key, entry in (pairs or {}).items():
-            ti, tj = (int(t) for t in key)
-            if ti < 0 or tj < 0:
-                raise ValueError(f"pair types must be non-negative, got {key}")
+            ti, tj = _pair_types(key)
+            if not isinstance(entry, Mapping):
+                raise ValueError(f"pairs[{key!r}] must map parameter names to values, got {entry}")
             bad = set(entry) - allowed
             if bad:
                 raise ValueError(f"unknown pair parameter(s) {sorted(bad)} for pair {key}")
@@ -1265,6 +1273,21 @@ class PairPotential:
         return table.astype(dtype)
 
 
+#: Type numbers a ``pairs`` key may name: a table per parameter has this squared entries.
+MAX_PAIR_TYPE = 1024
+
+
+def _pair_types(key) -> tuple[int, int]:
+    """The two type numbers of a ``pairs`` key, refused unless two integers in range."""
+    try:
+        ti, tj = (operator.index(t) for t in key)
+    except (TypeError, ValueError):
+        raise ValueError(f"pairs keys must be two type numbers (i, j), got {key!r}") from None
+    if not (0 <= ti < MAX_PAIR_TYPE and 0 <= tj < MAX_PAIR_TYPE):
+        raise ValueError(f"pair types must lie in 0 .. {MAX_PAIR_TYPE - 1}, got {key}")
+    return ti, tj
+
+
 def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarray, reason: str):
     """The PairCollapseError for the closest pair inside its type pair's ``limit2`` (a squared
     distance per table column), or None if no pair is; ``reason`` says what lies inside."""
@@ -1324,12 +1347,15 @@ def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: se
     which entry is wrong."""
     index = {name: i for i, name in enumerate(type_names)}
     pairs = {}
+    if entries is not None and not isinstance(entries, list):
+        raise ValueError(f"pairs must be an array of tables (types = [a, b], ...), got {entries!r}")
     for number, entry in enumerate(entries or []):
         if not isinstance(entry, Mapping) or "types" not in entry:
             raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
         entry = dict(entry)
         types = entry.pop("types")
-        if not isinstance(types, list) or len(types) != 2 or any(n not in index for n in types):
+        if (not isinstance(types, list) or len(types) != 2
+                or any(not isinstance(n, str) or n not in index for n in types)):  # fmt: skip
             raise ValueError(
                 f"pairs[{number}].types must name two of the types {list(type_names)}, "
                 f"got {types!r}"
