@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from typing import TypeVar
 
 from md.interrupts import sigterm_as_interrupt
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 EXIT_TERMINATED = 143  # SIGTERM: 128 + 15
 EXIT_BROKEN_PIPE = 141  # SIGPIPE: 128 + 13, the reader of our output went away
+_T = TypeVar("_T")
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -52,3 +54,24 @@ def writing_whole_file(command: str, output, body: Callable[[], int]) -> int:
             what = f"stopped after {output} was written"
         print(f"md {command}: {name} received; {what}", file=sys.stderr)
         return exit_for_signal(name)
+
+
+def built_unless_stopped(
+    build: Callable[[], _T], command: str, stage: str
+) -> tuple[_T | None, int | None]:
+    """``build()`` (validating, building, compiling: before the command's own stop handler)
+    with SIGTERM taken as a stop: ``(result, None)``, or, when a stop signal came, ``(None,
+    exit code)`` after a line saying it came before ``stage`` started and nothing was written.
+    The build's own errors pass through."""
+    with sigterm_as_interrupt() as received:
+        result = None
+        try:
+            result = build()
+        except KeyboardInterrupt:
+            if not received:
+                received.append("SIGINT")
+        if received:  # raised, or swallowed on its way (a compiling kernel's callback)
+            print(f"md {command}: {received[0]} received before {stage} started; nothing "
+                  "was written", file=sys.stderr)  # fmt: skip
+            return None, exit_for_signal(received[0])
+    return result, None

@@ -15,9 +15,15 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, exit_for_signal, fail
+from md.cli._common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+    built_unless_stopped,
+    exit_for_signal,
+    fail,
+)
 from md.errors import ConfigError, OutputBusyError
-from md.interrupts import sigterm_as_interrupt
 from md.run import FAILED, OUTPUT_ERROR, STOPPED, prepare_minimize
 
 
@@ -52,22 +58,16 @@ def main(args) -> int:
     """Body of ``md minimize``; returns the exit code."""
     # Building (and compiling) comes before FIRE's own stop handler: a signal there
     # stops the command with a line, as one while minimising does.
-    with sigterm_as_interrupt() as received:
-        try:
-            prepared = prepare_minimize(
-                args.config, output=args.output, overwrite=args.overwrite, fmax=args.fmax,
-                max_steps=args.max_steps, max_force=args.max_force, threads=args.threads,
-            )  # fmt: skip
-        except ConfigError as error:
-            fail(str(error))
-            return EXIT_BAD_INPUT
-        except KeyboardInterrupt:
-            if not received:
-                received.append("SIGINT")
-        if received:  # raised, or swallowed on its way (a compiling kernel's callback)
-            print(f"md minimize: {received[0]} received before minimising started; nothing "
-                  "was written", file=sys.stderr)  # fmt: skip
-            return exit_for_signal(received[0])
+    try:
+        prepared, stopped = built_unless_stopped(lambda: prepare_minimize(
+            args.config, output=args.output, overwrite=args.overwrite, fmax=args.fmax,
+            max_steps=args.max_steps, max_force=args.max_force, threads=args.threads,
+        ), "minimize", "minimising")  # fmt: skip
+    except ConfigError as error:
+        fail(str(error))
+        return EXIT_BAD_INPUT
+    if stopped is not None:
+        return stopped
     stage, units, output = prepared.stage, prepared.config.units, prepared.output
     force_unit = f"{units.labels['energy']}/{units.labels['length']}"
     cap = f", forces capped at {stage.max_force:g}" if stage.max_force is not None else ""

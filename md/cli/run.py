@@ -21,12 +21,12 @@ from md.cli._common import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
+    built_unless_stopped,
     exit_for_signal,
     fail,
 )
 from md.distributed import launch_rank
 from md.errors import CheckpointError, ConfigError, OutputBusyError, TrajectoryError
-from md.interrupts import sigterm_as_interrupt
 from md.observers import Progress
 from md.parallel import get_threads
 from md.run import ABORTED, FAILED, OUTPUT_ERROR, STOPPED, prepare
@@ -75,22 +75,16 @@ def _main(args) -> int:
     # Everything is validated and built before the output file is touched. Building (and
     # compiling) comes before the run's own stop handler: a signal there stops the command
     # with a line, as one during the run does.
-    with sigterm_as_interrupt() as received:
-        try:
-            run = prepare(
-                args.config, steps=args.steps, output=args.output, overwrite=args.overwrite,
-                resume=args.resume, threads=args.threads,
-            )  # fmt: skip
-        except (ConfigError, CheckpointError, TrajectoryError) as error:
-            fail(str(error))
-            return EXIT_BAD_INPUT
-        except KeyboardInterrupt:
-            if not received:
-                received.append("SIGINT")
-        if received:  # raised, or swallowed on its way (a compiling kernel's callback)
-            print(f"md run: {received[0]} received before the run started; nothing was "
-                  "written", file=sys.stderr)  # fmt: skip
-            return exit_for_signal(received[0])
+    try:
+        run, stopped = built_unless_stopped(lambda: prepare(
+            args.config, steps=args.steps, output=args.output, overwrite=args.overwrite,
+            resume=args.resume, threads=args.threads,
+        ), "run", "the run")  # fmt: skip
+    except (ConfigError, CheckpointError, TrajectoryError) as error:
+        fail(str(error))
+        return EXIT_BAD_INPUT
+    if stopped is not None:
+        return stopped
     sim, state, config, units = run.sim, run.sim.state, run.config, run.config.units
     output, saved_path, n_steps = run.output, run.checkpoint_path, run.n_steps
     if run.complete:
