@@ -2,7 +2,8 @@
 
 ``POTENTIALS`` maps the names used in configs to the classes. Pair potentials
 share one pair-kernel frame (:class:`PairPotential`); a user's own pair term
-(:func:`pair_term`) gets the same lists, threads, virials and Hessians. Bonds and
+(:func:`pair_term`) gets the same lists, threads, virials and Hessians, and
+:func:`check_term` compares its derivatives with finite differences. Bonds and
 angles share the bonded frame likewise: a user's bond term (:func:`bond_term`, with
 :class:`BondPotential`) or angle term (:func:`angle_term`, :class:`AnglePotential`)
 gets the loops, per-type parameters, virials and Hessians of the built-in styles.
@@ -20,11 +21,12 @@ with kernel_cache():
         angle_term,
         bond_term,
     )
-    from potentials._pair_frame import PairPotential, PairTerm, pair_term
+    from potentials._pair_frame import PairPotential
     from potentials.angles import AngleCollapseError, CosineAngles, HarmonicAngles
     from potentials.base import ForceResult, Potential, SupportsHessian
     from potentials.lennard_jones import LennardJones
     from potentials.pair_styles import Buckingham, Mie, Morse, Soft, Yukawa
+    from potentials.pair_term import PairTerm, TermCheck, check_term, pair_term
     from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
     from potentials.table import Table
 
@@ -65,8 +67,10 @@ __all__ = [
     "Soft",
     "SupportsHessian",
     "Table",
+    "TermCheck",
     "Yukawa",
     "angle_term",
     "bond_term",
+    "check_term",
     "pair_term",
 ]

@@ -1,6 +1,6 @@
 """The pair-kernel frame's kernels, compiled once per pair term.
 
-This file is a template: ``potentials._pair_frame.kernels_for(term)`` executes
+This file is a template: ``potentials._pair_codegen.kernels_for(term)`` executes
 it as a module of its own for each pair term (named after the term and a hash
 of its source, so numba caches each term's kernels apart and recompiles them
 when the term changes), with these names set in that module first:
@@ -11,7 +11,7 @@ when the term changes), with these names set in that module first:
     ``data`` the potential's data array (tables; empty for most terms). In a
     mixed-precision copy (``kernels_for(term, "mixed")``) it takes float32 r2
     and parameters: the term's function with its float constants made float32
-    where that computes in float32 throughout (``_pair_frame.
+    where that computes in float32 throughout (``_pair_codegen.
     single_precision_term``), else the term itself (it then returns doubles).
 ``_pair_curvature(r2, p, data) -> (u, du_ds, d2u_ds2)``
     u and its first two derivatives with respect to s = r^2 (None when the term
@@ -37,7 +37,7 @@ cluster entries (mixed precision over a cluster-pair list) reach the term throug
 ``_cluster_row`` (``potentials._cluster_ir``), which calls ``_pair`` per vector lane. Their cutoff
 mode, virial flag and single-type flag are compile-time constants: each term's
 copy of this file ends in small kernels, one per entry point and combination of
-flags (``potentials._pair_frame._variant_source``), into which the entry point is
+flags (``potentials._pair_codegen._variant_source``), into which the entry point is
 inlined with the flags as constants, and ``PairPotential`` calls those, so only
 the combinations a run uses are compiled (see the note above the atom-order
 kernels on why they are inlined).
@@ -184,7 +184,7 @@ def _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params):
 
 # The loops below each run with the cutoff mode a compile-time constant: each entry
 # point is inlined (numba's inline="always") into the variants that call it with the
-# mode and flags as constants (potentials._pair_frame._variant_source), so each mode
+# mode and flags as constants (potentials._pair_codegen._variant_source), so each mode
 # used compiles once. A mode test inside a pair loop made LJ's 2.4 times slower.
 #
 # The entry points are inlined rather than called so that a variant is one compiled
