@@ -182,6 +182,28 @@ def _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params):
     return padded
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _gather_row(p, frame, frame_types, slots, n_types, table, single, far, gx, gy, gz, params):
+    """Slot p's partners into the scratch rows, the prologue of each slot's pair loop in
+    both slot-frame loops (forces, curvatures): their positions, with the image shift
+    where the row crosses the cell's edge, and, with several types, their pair columns
+    (the pair loop then reads no table), padded to whole vectors (``_pad_row``). Returns
+    (partners, m, padded): the partners' slots, their number and the padded count."""
+    shifts, starts, neighbors, codes, shifted = slots[3], slots[4], slots[5], slots[6], slots[9]
+    partners = neighbors[starts[p] : starts[p + 1]]
+    m = partners.shape[0]
+    if shifted[p]:
+        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
+                         gz)  # fmt: skip
+    else:  # no partner across the cell's edge: no codes, no shifts to read
+        _gather_unshifted(frame, partners, gx, gy, gz)
+    if not single:
+        _gather_pair_columns(frame_types, partners, frame_types[p] * n_types, table, params)
+    padded = _pad_row(m, frame[p, 0], frame[p, 1], frame[p, 2], far, single, gx, gy, gz,
+                      params)  # fmt: skip
+    return partners, m, padded
+
+
 # The loops below each run with the cutoff mode a compile-time constant: each entry
 # point is inlined (numba's inline="always") into the variants that call it with the
 # mode and flags as constants (potentials._pair_codegen._variant_source), so each mode
@@ -522,8 +544,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
     """
     chunk, frame, frame_types, slots, n_types, table, data = args
     buffers, energies, virials = out
-    shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
-    shifted = slots[9]
+    starts, bounds = slots[4], slots[7]
     buffer = buffers[chunk]
     for p in range(frame.shape[0]):
         buffer[p, 0] = 0.0
@@ -548,17 +569,8 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        row = frame_types[p] * n_types
-        partners = neighbors[starts[p] : starts[p + 1]]
-        m = partners.shape[0]
-        if shifted[p]:
-            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
-                             gz)  # fmt: skip
-        else:  # no partner across the cell's edge: no codes, no shifts to read
-            _gather_unshifted(frame, partners, gx, gy, gz)
-        if not single:  # contiguous per-partner parameters: the pair loop reads no table
-            _gather_pair_columns(frame_types, partners, row, table, params)
-        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
+        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
+                                          far, gx, gy, gz, params)  # fmt: skip
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
@@ -667,9 +679,7 @@ def _frame_curvature_loop(args, mode, single, out):
     how many were inside."""
     chunk, frame, frame_types, slots, n_types, table, data = args
     pair_i, pair_j, transverse, radial, unit = out
-    order, shifts, starts, neighbors, codes, bounds, shifted = (
-        slots[0], slots[3], slots[4], slots[5], slots[6], slots[7], slots[9],
-    )  # fmt: skip
+    order, starts, bounds = slots[0], slots[4], slots[7]
     most = _longest_row(starts, bounds[chunk], bounds[chunk + 1]) + LANES
     gx = np.empty(most)
     gy = np.empty(most)
@@ -692,17 +702,8 @@ def _frame_curvature_loop(args, mode, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        row = frame_types[p] * n_types
-        partners = neighbors[starts[p] : starts[p + 1]]
-        m = partners.shape[0]
-        if shifted[p]:
-            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
-                             gz)  # fmt: skip
-        else:  # no partner across the cell's edge: no codes, no shifts to read
-            _gather_unshifted(frame, partners, gx, gy, gz)
-        if not single:  # contiguous per-partner parameters: the pair loop reads no table
-            _gather_pair_columns(frame_types, partners, row, table, params)
-        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
+        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
+                                          far, gx, gy, gz, params)  # fmt: skip
         for k in range(padded):
             dx = xi - gx[k]
             dy = yi - gy[k]
