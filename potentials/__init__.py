@@ -26,7 +26,7 @@ with kernel_cache():
     from potentials.base import ForceResult, Potential, SupportsHessian
     from potentials.lennard_jones import LennardJones
     from potentials.pair_styles import Buckingham, Mie, Morse, Soft, Yukawa
-    from potentials.pair_term import PairTerm, TermCheck, check_term, pair_term
+    from potentials.pair_terms import PairTerm, TermCheck, check_term, pair_term
     from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
     from potentials.table import Table
 

@@ -44,7 +44,7 @@ from potentials._bonded import ListedTuples, symmetric
 from potentials._codegen import hash_value, identifier, template_copy
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
-from potentials.pair_term import is_number, shown
+from potentials.pair_terms import is_number, shown
 
 #: Floor on sin(theta) where an angle term of theta divides by it (du/dc = -u'(theta) /
 #: sin theta): LAMMPS's SMALL in angle_harmonic.cpp.

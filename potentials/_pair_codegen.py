@@ -59,7 +59,7 @@ from numba import njit
 from md._kernel_cache import kernel_cache
 from potentials._codegen import hash_value, identifier, template_copy
 from potentials.base import check_precision_name
-from potentials.pair_term import PairTerm
+from potentials.pair_terms import PairTerm
 
 #: Rows of the parameter table the frame owns; the term's parameters follow from TERM
 #: (the same numbers as in ``_pair_kernels``).

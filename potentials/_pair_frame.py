@@ -1,6 +1,6 @@
 """The pair-kernel frame: everything a pair potential needs except its pair term.
 
-A pair potential supplies a :class:`~potentials.pair_term.PairTerm`: its
+A pair potential supplies a :class:`~potentials.pair_terms.PairTerm`: its
 energy u and force over distance -u'(r)/r as a plain numba-compatible function
 of r^2 and its parameters (and, optionally, u's first two derivatives with
 respect to s = r^2, for Hessians). :class:`PairPotential` does the rest:
@@ -18,7 +18,7 @@ docstring says where the generated code goes and how to see and clear it).
 
 At about 900 lines this module is over the house's 800: nearly all of it is the one
 class :class:`PairPotential` (tables, checks, the kernel calls of each path), whose
-methods share its buffers and tables; the public term API is ``potentials.pair_term``
+methods share its buffers and tables; the public term API is ``potentials.pair_terms``
 and the code generator ``potentials._pair_codegen``.
 """
 
@@ -61,7 +61,7 @@ from potentials._pair_codegen import (
 )
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
-from potentials.pair_term import HEADROOM, PairTerm, all_numbers
+from potentials.pair_terms import HEADROOM, PairTerm, all_numbers
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
 #: Mixing rules for per-type values: how a type pair's value follows from two types'.
@@ -140,7 +140,7 @@ class PairPotential:
 
     Examples
     --------
-    >>> from potentials.pair_term import pair_term
+    >>> from potentials.pair_terms import pair_term
     >>> @pair_term
     ... def harmonic_wall(r2, k, r0):
     ...     r = r2**0.5

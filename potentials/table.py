@@ -31,7 +31,7 @@ from numba.extending import register_jitable
 from md.schema import REQUIRED, Key, check_names
 from potentials._pair_codegen import TERM
 from potentials._pair_frame import PairPotential, collapse_error, config_pairs, pair_config_keys
-from potentials.pair_term import PairTerm
+from potentials.pair_terms import PairTerm
 
 __all__ = ["Table", "TableSection", "read_table"]
 
