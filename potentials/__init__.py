@@ -3,10 +3,11 @@
 ``POTENTIALS`` maps the names used in configs to the classes. Pair potentials
 share one pair-kernel frame (:class:`PairPotential`); a user's own pair term
 (:func:`pair_term`) gets the same lists, threads, virials and Hessians, and
-:func:`check_term` compares its derivatives with finite differences. Bonds and
-angles share the bonded frame likewise: a user's bond term (:func:`bond_term`, with
-:class:`BondPotential`) or angle term (:func:`angle_term`, :class:`AnglePotential`)
-gets the loops, per-type parameters, virials and Hessians of the built-in styles.
+:func:`check_term` compares its derivatives with finite differences (a bonded
+term's too). Bonds and angles share the bonded frame likewise: a user's bond term
+(:func:`bond_term`, with :class:`BondPotential`) or angle term (:func:`angle_term`,
+:class:`AnglePotential`) gets the loops, per-type parameters, virials and Hessians
+of the built-in styles.
 """
 
 from md._kernel_cache import kernel_cache
@@ -26,9 +27,10 @@ with kernel_cache():
     from potentials.base import ForceResult, Potential, SupportsHessian
     from potentials.lennard_jones import LennardJones
     from potentials.pair_styles import Buckingham, Mie, Morse, Soft, Yukawa
-    from potentials.pair_terms import PairTerm, TermCheck, check_term, pair_term
+    from potentials.pair_terms import PairTerm, pair_term
     from potentials.springs import BondStretchError, FENEBonds, HarmonicBonds
     from potentials.table import Table
+    from potentials.term_check import TermCheck, check_term
 
 POTENTIALS = {
     "lj": LennardJones,

@@ -1,5 +1,5 @@
-"""potentials.check_term: a pair term's hand-written derivatives against finite differences
-of its own energy (the guide tells users to call it on their terms)."""
+"""potentials.check_term: a pair or bonded term's hand-written derivatives against finite
+differences of its own energy (the guide tells users to call it on their terms)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,8 @@ from potentials import (
     Soft,
     TermCheck,
     Yukawa,
+    angle_term,
+    bond_term,
     check_term,
     pair_term,
 )
@@ -117,7 +119,7 @@ def test_bad_arguments_are_refused_clearly():
         check_term(term, [1.0, 1.0], (0.0, 2.0))
     with pytest.raises(ValueError, match="parameter sigma must be a finite number"):
         check_term(term, [1.0, np.nan], (0.5, 2.0))
-    with pytest.raises(TypeError, match="expects a PairTerm"):
+    with pytest.raises(TypeError, match="expects a PairTerm, BondTerm or AngleTerm"):
         check_term(_gaussian, [1.0, 1.0], (0.5, 2.0))
 
     @pair_term
@@ -126,3 +128,53 @@ def test_bad_arguments_are_refused_clearly():
 
     with pytest.raises(ValueError, match=r"pair term singular: u is inf at r = 1"):
         check_term(singular, [1.0], (0.5, 1.5), points=3)
+
+
+# ---------------------------------------------------------------- bonded terms
+def test_the_built_in_bonded_terms_pass_in_each_variable():
+    """Harmonic and FENE bonds (terms in r^2), harmonic angles (in theta) and cosine angles
+    (in cos theta): each derivative, times the chain rule's factor, against differences
+    in r or theta, over the whole range of angles, 0 and pi included."""
+    from potentials import angles, springs
+
+    cases = [
+        (springs.HARMONIC, {"k": 100.0, "r0": 1.0}, (0.5, 2.0), "du_dr_over_r"),
+        (springs.FENE, {"k": 30.0, "r_max": 1.5}, (0.5, 1.45), "du_dr_over_r"),
+        (angles.HARMONIC, {"k": 50.0, "theta0": 1.9}, (0.0, math.pi), "du_dtheta"),
+        (angles.COSINE, {"k": 50.0}, (0.0, math.pi), "du_dc"),
+    ]
+    for term, params, r_range, first in cases:
+        report = check_term(term, params, r_range)
+        assert first in report.errors and "curvature u" in report.errors, report
+        assert max(report.errors.values()) < 1e-6, report
+
+
+def test_a_wrong_bonded_derivative_is_caught_and_named():
+    @bond_term(name="my_morse")
+    def morse(r, d0, alpha, r0):
+        e = math.exp(-alpha * (r - r0))
+        return d0 * (1.0 - e) ** 2, 2.0 * d0 * alpha * e * (1.0 - e)
+
+    assert check_term(morse, [1.0, 2.0, 1.0], (0.6, 3.0)).errors["du_dr"] < 1e-8
+
+    @bond_term(name="my_spring")
+    def spring(r, k):
+        return 0.5 * k * r * r, -k * r  # the sign of du/dr wrong
+
+    with pytest.raises(ValueError, match=r"bond term my_spring: du_dr disagrees .* at r = 2,"):
+        check_term(spring, [1.0], (0.5, 2.0))
+
+    @angle_term(name="my_cosine", variable="cos")
+    def cosine(c, k):
+        return k * (1.0 + c), k
+
+    def bad_curvature(c, k):
+        return k * (1.0 + c), k, 2.0 * k  # u is linear in c: d2u_dc2 must be 0
+
+    assert check_term(cosine, [3.0], (0.1, 3.0)).errors["du_dc"] < 1e-8
+    cosine.with_curvature(bad_curvature)
+    with pytest.raises(ValueError, match=r"angle term my_cosine: d2u_dc2 \* -sin\(theta\) "
+                                         r"disagrees .* worst at theta = "):  # fmt: skip
+        check_term(cosine, [3.0], (0.1, 3.0))
+    with pytest.raises(ValueError, match="two angles in radians"):
+        check_term(cosine, [3.0], (0.0, 4.0))
