@@ -53,7 +53,7 @@ def report(styles: bool = False) -> None:
     import md
     from md import _cell_kernels
     from potentials import POTENTIALS, LennardJones, PairPotential
-    from potentials._pair_frame import kernels_for
+    from potentials._pair_codegen import kernels_for
 
     state = md.lattice("fcc", 6, density=0.8442)
     state.positions += np.random.default_rng(0).normal(scale=0.05, size=state.positions.shape)

@@ -131,7 +131,8 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     from md._simd import ZMM
     from potentials._cluster_ir import slp_vectorising
     from potentials._kernels import J_STRIDE, zeros_on_lines
-    from potentials._pair_frame import CUTOFF_MODES, kernels_for
+    from potentials._pair_codegen import kernels_for
+    from potentials._pair_frame import CUTOFF_MODES
 
     clusters = neighbors.clusters
     xi = np.empty(12 * clusters.n_clusters, np.float32)

@@ -13,7 +13,7 @@ second derivative. ``potentials.springs`` and ``potentials.angles`` are its styl
 The loops live in ``potentials/_bonded_kernels.py``, a template executed once
 per term as a module of its own (:func:`kernels_for`) with the term inlined; numba
 caches each term's loops apart, keyed by a hash of the term's code (as the pair
-frame does, ``potentials._pair_frame``).
+frame does, ``potentials._pair_codegen``).
 """
 
 from __future__ import annotations
@@ -41,9 +41,10 @@ from md._kernel_cache import kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import AngleCollapseError, NonFiniteError
 from potentials._bonded import ListedTuples, symmetric
-from potentials._pair_frame import _hash_value, _identifier, _is_number, _shown, template_copy
+from potentials._codegen import hash_value, identifier, template_copy
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
+from potentials.pair_terms import is_number, shown
 
 #: Floor on sin(theta) where an angle term of theta divides by it (du/dc = -u'(theta) /
 #: sin theta): LAMMPS's SMALL in angle_harmonic.cpp.
@@ -51,7 +52,7 @@ SMALL = 0.001
 
 _TEMPLATE = Path(__file__).with_name("_bonded_kernels.py")
 #: The files compiled into every term's loops (part of each term's fingerprint), read
-#: when this module is imported: the code this process runs (see ``_pair_frame._SOURCES``).
+#: when this module is imported: the code this process runs (see ``_pair_codegen._SOURCES``).
 _SOURCES = {
     path: path.read_bytes()
     for path in (_TEMPLATE, Path(__file__),
@@ -158,9 +159,9 @@ class BondedTerm:
         except (OverflowError, ZeroDivisionError, ValueError):  # inf, NaN when compiled
             return (math.nan,) * len(names)
         if not (isinstance(returned, tuple) and len(returned) == len(names)
-                and all(map(_is_number, returned))):  # fmt: skip
-            got = (f"{len(returned)} values ({', '.join(map(_shown, returned))})"
-                   if isinstance(returned, tuple) else _shown(returned))  # fmt: skip
+                and all(map(is_number, returned))):  # fmt: skip
+            got = (f"{len(returned)} values ({', '.join(map(shown, returned))})"
+                   if isinstance(returned, tuple) else shown(returned))  # fmt: skip
             count = {2: "two", 3: "three"}[len(names)]
             raise TypeError(
                 f"{self.KIND} term {self.name}: {function.__name__}({self.signature()}) must "
@@ -296,7 +297,7 @@ def kernels_for(term: BondedTerm) -> ModuleType:
     module = _LOADED.get(key)
     if module is not None:
         return module
-    stem = f"{_identifier(term.name)}_{key[:20]}"
+    stem = f"{identifier(term.name)}_{key[:20]}"
     name = f"potentials._bonded_kernels_{stem}"
     path = template_copy("bonded_terms", stem, _SOURCES[_TEMPLATE])
     spec = importlib.util.spec_from_file_location(name, path)
@@ -336,14 +337,14 @@ def _adapters(term: BondedTerm) -> dict:
 
 def _fingerprint(term: BondedTerm) -> str:
     """A hash of the frame's sources and the term's functions with all they reach
-    (``_pair_frame._hash_value``)."""
+    (``_codegen.hash_value``)."""
     digest = hashlib.sha256()
     for text in _SOURCES.values():
         digest.update(text)
     digest.update(repr((term.KIND, term.variable, term.name, term.parameters)).encode())
     seen: set = set()
     for function in (term.energy, term.curvature):
-        _hash_value(digest, function, seen)
+        hash_value(digest, function, seen)
     return digest.hexdigest()
 
 

@@ -1,53 +1,42 @@
 """The pair-kernel frame: everything a pair potential needs except its pair term.
 
-A pair potential supplies a :class:`PairTerm`: its energy u and force over
-distance -u'(r)/r as a plain numba-compatible function of r^2 and its
-parameters (and, optionally, u's first two derivatives with respect to
-s = r^2, for Hessians). :class:`PairPotential` does the rest: type-pair
-parameter tables (per-type values mixed, explicit pairs), the cutoff modes
-(``none``, ``shift``, ``smooth`` with ``r_on``), the threaded slot-frame
+A pair potential supplies a :class:`~potentials.pair_terms.PairTerm`: its
+energy u and force over distance -u'(r)/r as a plain numba-compatible function
+of r^2 and its parameters (and, optionally, u's first two derivatives with
+respect to s = r^2, for Hessians). :class:`PairPotential` does the rest:
+type-pair parameter tables (per-type values mixed, explicit pairs), the cutoff
+modes (``none``, ``shift``, ``smooth`` with ``r_on``), the threaded slot-frame
 kernels over a cell-built list and the atom-order kernels (minimum image,
 per-atom energies and virials), the virial, orthorhombic and triclinic cells,
 open axes, and the curvature passes that implicit integrators use.
 
-The kernels live in ``potentials/_pair_kernels.py``, a template executed once
-per term as a module of its own (:func:`kernels_for`) with the term's
-functions inlined into its vectorised loops; numba caches each term's
-kernels apart, keyed by a hash of the term's source.
+The kernels live in ``potentials/_pair_kernels.py``, a template that
+``potentials._pair_codegen.kernels_for`` runs once per term as a module of its
+own with the term's functions inlined into its vectorised loops; numba caches
+each term's kernels apart, keyed by a hash of the term's source (that module's
+docstring says where the generated code goes and how to see and clear it).
+
+At about 900 lines this module is over the house's 800: nearly all of it is the one
+class :class:`PairPotential` (tables, checks, the kernel calls of each path), whose
+methods share its buffers and tables; the public term API is ``potentials.pair_terms``
+and the code generator ``potentials._pair_codegen``.
 """
 
 from __future__ import annotations
 
-import ast
-import atexit
 import functools
-import hashlib
-import importlib.util
-import inspect
-import itertools
 import logging
 import math
-import numbers
 import operator
 import re
-import shutil
 import sys
-import tempfile
-import textwrap
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from types import CodeType, FunctionType, ModuleType
 
 import numba
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
-from numba.core import config
 
 from md._checks import positive_scalar
-from md._files import atomic_path
-from md._kernel_cache import cache_directory, kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
 from md.schema import Key, check_names, key_names
@@ -61,515 +50,29 @@ from potentials._kernels import (
     cluster_atom_forces,
     zeros_on_lines,
 )
+from potentials._pair_codegen import (
+    INV_DEN,
+    RC2,
+    RO2,
+    SHIFT,
+    TERM,
+    kernels_for,
+    variant,
+)
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
+from potentials.pair_terms import HEADROOM, PairTerm, all_numbers
 
 CUTOFF_MODES = {"none": 0, "shift": 1, "smooth": 2}
-#: Rows of the parameter table the frame owns; the term's parameters follow from TERM
-#: (the same numbers as in ``_pair_kernels``).
-RC2, RO2, SHIFT, INV_DEN, TERM = range(5)
 #: Mixing rules for per-type values: how a type pair's value follows from two types'.
 MIXING_FUNCTIONS = {
     "geometric": lambda a, b: float(np.sqrt(a * b)),
     "arithmetic": lambda a, b: 0.5 * float(a + b),
 }
-_TEMPLATE = Path(__file__).with_name("_pair_kernels.py")
-#: The files compiled into every term's kernels: the template, the modules whose kernels it
-#: inlines, pair_math (functions terms call) and this module (the adapters it writes into
-#: each copy: which function a precision's copy calls). Part of each term's fingerprint.
-_FRAME_SOURCES = (
-    _TEMPLATE,
-    Path(__file__),
-    Path(__file__).with_name("pair_math.py"),
-    Path(__file__).with_name("_cluster_ir.py"),
-    *(Path(importlib.util.find_spec(name).origin)
-      for name in ("potentials._kernels", "md.box", "md._simd")),
-)  # fmt: skip
-#: Those files as they were when this module was imported: the code this process runs
-#: (the modules they define are loaded by then). Each term's fingerprint hashes them and
-#: its copy of the template is written from them, never from the files as they are later:
-#: a source edited while a process runs must not get the old code's kernels stored in the
-#: shared cache under the new code's fingerprint (where every later process would load
-#: them as the new code's).
-_SOURCES = {path: path.read_bytes() for path in _FRAME_SOURCES}
-#: The template's entry points (what this module calls) and the arguments of theirs that
-#: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
-_ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
-            "frame_curvatures", "frame_curvatures_threaded", "cluster_forces",
-            "cluster_forces_threaded")  # fmt: skip
-_FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
 logger = logging.getLogger(__name__)
 _RESERVED = {"cutoff", "cutoff_mode", "r_on", "pairs", "mixing", "types", "type"}
-#: The largest pair energy and force the frame accepts at a cutoff: the square root of the
-#: largest double, so that a sum over pairs, a square (kinetic energy after a step) or a
-#: product of two (the virial) cannot overflow.
-HEADROOM = math.sqrt(sys.float_info.max)
 
 
-@dataclass(eq=False)
-class PairTerm:
-    """A pair term: plain functions of r^2 and the parameters, for the frame to inline.
-
-    Parameters
-    ----------
-    energy : callable
-        ``energy(r2, *params) -> (u, f_over_r)``: the pair energy u(r) and
-        -u'(r) / r at squared distance ``r2``, neither truncated nor shifted
-        (the frame applies the cutoff). numba-compatible Python: arithmetic,
-        ``math``/``numpy`` functions, no branches where a select will do
-        (``x if c else y``), so that the loop vectorises. It is evaluated in
-        Python when a potential is built, at each type pair's cutoff and just
-        beyond it (where the pair loops evaluate it for listed pairs and mask
-        it): it must return a tuple of two finite numbers there, below
-        ``HEADROOM`` (1.3e154) in magnitude.
-    curvature : callable, optional
-        ``curvature(r2, *params) -> (u, du_ds, d2u_ds2)``: u and its first two
-        derivatives with respect to s = r^2 (for a u written in r:
-        du/ds = u'(r) / (2 r), d2u/ds2 = (u''(r) - u'(r)/r) / (4 r^2)). Needed
-        for Hessians (implicit integrators' Newton steps); without it they
-        are refused.
-    name : str, optional
-        A name for messages and the kernel cache (default: the function's).
-    uses_data : bool
-        The functions take the potential's data array as their second
-        argument, ``energy(r2, data, *params)`` (tabulated potentials).
-
-    Attributes
-    ----------
-    parameters : tuple of str
-        The parameter names, from ``energy``'s signature.
-    """
-
-    energy: Callable
-    curvature: Callable | None = None
-    name: str = ""
-    uses_data: bool = False
-    parameters: tuple[str, ...] = field(init=False)
-
-    def __post_init__(self) -> None:
-        names = list(inspect.signature(self.energy).parameters)
-        skip = 2 if self.uses_data else 1
-        if len(names) <= skip - 1:
-            raise TypeError(f"pair term {self.energy!r} must take r2 as its first argument")
-        self.parameters = tuple(names[skip:])
-        self.name = self.name or self.energy.__name__
-        if self.curvature is not None:
-            theirs = tuple(list(inspect.signature(self.curvature).parameters)[skip:])
-            if theirs != self.parameters:
-                raise TypeError(
-                    f"pair term {self.name}: curvature takes {theirs}, energy {self.parameters}"
-                )
-
-    def with_curvature(self, curvature: Callable) -> Callable:
-        """Attach ``curvature`` (a decorator: ``@term.with_curvature``); returns it."""
-        self.curvature = curvature
-        self.__post_init__()
-        return curvature
-
-    def energy_at(self, r2: float, params, data=None) -> tuple[float, float]:
-        """(u, f/r) evaluated in Python (tables' shifts, the frame's checks, tests).
-
-        Raises TypeError naming the term if it does not return two numbers.
-        """
-        return self._evaluate(self.energy, r2, params, data, ("u", "f_over_r"))
-
-    def curvature_at(self, r2: float, params, data=None) -> tuple[float, float, float]:
-        """(u, du/ds, d2u/ds2) evaluated in Python; TypeError unless three numbers."""
-        return self._evaluate(self.curvature, r2, params, data, ("u", "du_ds", "d2u_ds2"))
-
-    def _evaluate(self, function: Callable, r2: float, params, data, names) -> tuple:
-        extra = (np.empty(0) if data is None else data,) if self.uses_data else ()
-        try:
-            returned = function(np.float64(r2), *extra, *(np.float64(p) for p in params))
-        except (OverflowError, ZeroDivisionError):
-            return (math.inf,) * len(names)
-        except ValueError:  # a domain error of math's (cos(inf)): NaN when compiled
-            return (math.nan,) * len(names)
-        if not (isinstance(returned, tuple) and len(returned) == len(names)
-                and all(map(_is_number, returned))):  # fmt: skip
-            got = (f"{len(returned)} values ({', '.join(map(_shown, returned))})"
-                   if isinstance(returned, tuple) else _shown(returned))  # fmt: skip
-            signature = ", ".join(("r2", *(("data",) if self.uses_data else ()), *self.parameters))
-            count = {2: "two", 3: "three"}[len(names)]
-            raise TypeError(
-                f"pair term {self.name}: {function.__name__}({signature}) must return a tuple "
-                f"of {count} numbers ({', '.join(names)}), got {got}"
-            )
-        return tuple(float(value) for value in returned)
-
-
-def _is_number(value) -> bool:
-    """A real number (numpy's included, a 0-d array of one too), not a bool."""
-    if isinstance(value, np.ndarray):
-        return value.ndim == 0 and value.dtype.kind in "iuf"
-    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
-
-
-def _shown(value) -> str:
-    """A returned value for messages: a number as a float, anything else by its type too."""
-    if _is_number(value):
-        return repr(float(value))
-    return f"{type(value).__name__} {value!r}"
-
-
-def _numbers(value) -> bool:
-    """A number, or a list, tuple or array of them (no strings, no bools)."""
-    if isinstance(value, np.ndarray):
-        return value.dtype.kind in "iuf"
-    if isinstance(value, list | tuple):
-        return all(_is_number(item) for item in value)
-    return _is_number(value)
-
-
-def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool = False):
-    """Decorator: turn ``energy(r2, *params) -> (u, f_over_r)`` into a :class:`PairTerm`.
-
-    Examples
-    --------
-    >>> import math
-    >>> @pair_term
-    ... def gaussian_core(r2, epsilon, sigma):
-    ...     u = epsilon * math.exp(-r2 / (sigma * sigma))
-    ...     return u, 2.0 * u / (sigma * sigma)
-    >>> gaussian_core.parameters
-    ('epsilon', 'sigma')
-    >>> potential = PairPotential(gaussian_core, epsilon=1.0, sigma=1.0, cutoff=3.0)
-    """
-
-    def wrap(function: Callable) -> PairTerm:
-        return PairTerm(function, name=name, uses_data=uses_data)
-
-    return wrap if energy is None else wrap(energy)
-
-
-# ------------------------------------------------------------------ kernels per term
-_LOADED: dict[tuple[str, str, int | None], ModuleType] = {}
-
-
-def kernels_for(term: PairTerm, precision: str = "double",
-                cluster_lanes: int | None = None) -> ModuleType:  # fmt: skip
-    """The frame's kernels with ``term`` inlined: ``_pair_kernels`` run as a module of its own.
-
-    ``precision="mixed"`` gives a second copy whose term computes in float32
-    (:func:`float32_version`), for the mixed-precision pair loop. ``cluster_lanes`` (8
-    or 16) gives a copy whose cluster kernel has that vector width instead of the CPU's
-    (``potentials._cluster_ir.cluster_row``), for benchmarks that compare the widths in
-    one process; the engine uses the default, None.
-
-    Loaded once per process and term. numba names a kernel's cache files after its
-    source file and function, and keys them by signature and bytecode, which are the
-    same for every term; so each term runs its own copy of the template, a file named
-    after the term and a hash of everything its compiled kernels depend on
-    (:func:`_fingerprint`), in ``pair_terms/`` of the per-user kernel cache folder.
-    An unchanged term then loads its compiled kernels from numba's cache in every
-    later process; an edited one gets a new copy and compiles afresh.
-    """
-    check_precision_name(precision)
-    if cluster_lanes not in (None, 8, 16):
-        raise ValueError(f"cluster_lanes must be 8, 16 or None, got {cluster_lanes!r}")
-    key = _fingerprint(term)
-    module = _LOADED.get((key, precision, cluster_lanes))
-    if module is not None:
-        return module
-    stem = f"{_identifier(term.name)}_{key[:20]}" + ("_mixed" if precision == "mixed" else "")
-    extra = ""
-    if cluster_lanes is not None:
-        stem += f"_lanes{cluster_lanes}"
-        extra = ("\n\n# The cluster kernel's width, fixed by kernels_for(cluster_lanes=...).\n"
-                 "_cluster_row = cluster_row(_pair, lambda: TERM + N_TERM, "
-                 f"lanes={cluster_lanes})\n")
-    name = f"potentials._pair_kernels_{stem}"
-    spec = importlib.util.spec_from_file_location(name, _template_copy(stem, extra))
-    module = importlib.util.module_from_spec(spec)
-    module.__dict__.update(_adapters(term, precision))
-    sys.modules[name] = module  # numba's parallel lowering looks kernels' modules up by name
-    try:
-        with kernel_cache():
-            spec.loader.exec_module(module)
-    except BaseException:
-        del sys.modules[name]
-        raise
-    _LOADED[key, precision, cluster_lanes] = module
-    return module
-
-
-def _template_copy(stem: str, extra: str = "") -> Path:
-    """The template's copy for one term: ``pair_terms/STEM.py`` in the kernel cache folder
-    (:func:`template_copy`)."""
-    return template_copy("pair_terms", stem,
-                         _SOURCES[_TEMPLATE] + _variant_source().encode() + extra.encode())
-
-
-def template_copy(folder_name: str, stem: str, text: bytes) -> Path:
-    """A kernel template's copy for one term, ``text``: ``FOLDER_NAME/STEM.py`` in the kernel
-    cache folder (the stem names the term and a hash of the copy's code: the same stem, the
-    same bytes).
-
-    Written whole under a temporary name and hard-linked into place, so a reader
-    sees the complete file or none, and of two processes writing the same copy at
-    once the second finds the first's and leaves it as it is (its modification
-    time, which numba's cache index records, never changes). If the folder cannot
-    be written, the copy goes to a temporary folder for this process only.
-    """
-    folders = [Path(config.CACHE_DIR or cache_directory()) / folder_name, None]
-    for folder in folders:
-        folder = folder or _scratch_folder()
-        path = folder / f"{stem}.py"
-        if path.exists():
-            return path
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            with atomic_path(path, exclusive=True) as partial:
-                partial.write_bytes(text)
-        except FileExistsError:  # another process wrote it first: the same bytes
-            return path
-        except OSError as error:
-            logger.warning("cannot write %s (%s); using a temporary folder", path, error)
-            continue
-        return path
-    raise OSError(f"no folder to write the {folder_name} kernels to ({folders[0]} is not "
-                  "writable)")  # fmt: skip
-
-
-@functools.cache
-def _variant_source() -> str:
-    """One small kernel per entry point and combination of its flags (``_FLAGS``),
-    appended to each term's copy of the template: the entry point inlined (it is
-    ``inline="always"``) with the flags as constants; a threaded entry's variant is
-    ``parallel=True``, for its ``prange`` loops.
-
-    numba then compiles each variant when it is first called, with one copy of the
-    pair loop specialised to its flags (a few seconds), rather than all twelve at once;
-    and a call from Python finds its compiled variant by the usual type match. (An entry
-    point that asks for literal arguments, called from Python, retypes its arguments on
-    every call: 13 times slower than the loop it runs on a small system.) Inlined, not
-    called: a variant that called its entry would run the entry's own compiled code in
-    a process that compiled it, and its linked copy when loaded from the cache, which
-    rounded differently (see the template's note above its atom-order kernels).
-    """
-    tree = ast.parse(_SOURCES[_TEMPLATE].decode())
-    arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
-                 if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES}  # fmt: skip
-    lines = ["", "", "# Variants, appended to this copy by potentials._pair_frame._variant_source."]
-    for entry in _ENTRIES:
-        names = arguments[entry]
-        flags = [name for name in names if name in _FLAGS]
-        for values in itertools.product(*(_FLAGS[name] for name in flags)):
-            fixed = dict(zip(flags, values, strict=True))
-            passed = ", ".join(repr(fixed[name]) if name in fixed else name for name in names)
-            parallel = ", parallel=True" if entry.endswith("_threaded") else ""
-            lines += ["", "", f'@njit(cache=True{parallel}, error_model="numpy")',
-                      f"def {_variant_name(entry, fixed)}({', '.join(names)}):",
-                      f"    return {entry}({passed})"]  # fmt: skip
-    return "\n".join(lines) + "\n"
-
-
-def _variant_name(entry: str, flags: Mapping[str, object]) -> str:
-    return entry + "__" + "_".join(f"{name}{int(value)}" for name, value in flags.items())
-
-
-def _variant(kernels: ModuleType, entry: str, **flags):
-    """The compiled variant of ``entry`` for these flags (given in the entry's order)."""
-    return getattr(kernels, _variant_name(entry, flags))
-
-
-@functools.cache
-def _scratch_folder() -> Path:
-    """A temporary folder for this process's template copies, removed when it exits."""
-    folder = tempfile.mkdtemp(prefix="leapmd-pair-terms-")
-    atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    return Path(folder)
-
-
-def _adapters(term: PairTerm, precision: str = "double") -> dict:
-    """The names the template expects: the term's functions taking one tuple of parameters,
-    and the tuple read from a table column. In mixed precision ``_pair_energy`` is the
-    term's float32 version where that computes in float32 throughout
-    (:func:`single_precision_term`), else the term itself, in double."""
-    n = len(term.parameters)
-    p = "".join(f"p[{i}], " for i in range(n))
-    data = "data, " if term.uses_data else ""
-    column = "".join(f"table[{TERM + i}, k], " for i in range(n))
-    energy = (single_precision_term(term) if precision == "mixed" else None) or term.energy
-    source = (
-        f"def _pair_energy(r2, p, data):\n    return energy(r2, {data}{p})\n"
-        f"def _pair_curvature(r2, p, data):\n    return curvature(r2, {data}{p})\n"
-        f"def _column(table, k):\n    return ({column})\n"
-    )
-    options = {"inline": "always", "error_model": "numpy"}
-    namespace = {
-        "energy": njit(**options)(energy),
-        "curvature": None if term.curvature is None else njit(**options)(term.curvature),
-    }
-    real = np.float32 if precision == "mixed" else np.float64
-    exec(compile(source, f"<pair term {term.name}>", "exec"), namespace)  # noqa: S102
-    adapters = {name: njit(**options)(namespace[name]) for name in ("_pair_energy", "_column")}
-    adapters["_pair_curvature"] = njit(**options)(namespace["_pair_curvature"])
-    adapters["N_TERM"] = n
-    adapters["REAL"] = real
-    return adapters
-
-
-def single_precision_term(term: PairTerm) -> Callable | None:
-    """The term's energy function for the mixed-precision loops, or None for its own.
-
-    :func:`float32_version` of it if that, given float32 arguments, returns float32:
-    its arithmetic then stays float32. A term that calls a helper computing in double
-    (``pair_math.exp``: Morse, Buckingham, Yukawa) would convert to double and back
-    around every call, which made Morse's force call 1.22 times double's; such a term
-    runs as it is, in double, from r^2 and parameters rounded to float32 (1.0x).
-    """
-    single = float32_version(term.energy)
-    if single is None:
-        return None
-    arguments = [np.float32(1.5)] + ([np.zeros(1)] if term.uses_data else [])
-    arguments += [np.float32(1.0)] * len(term.parameters)
-    try:
-        compiled = njit(error_model="numpy")(single)
-        compiled.compile(tuple(numba.typeof(a) for a in arguments))
-    except Exception:  # noqa: BLE001 (numba's typing errors have no common base): use the term
-        logger.debug("pair term %s: no float32 version", term.name, exc_info=True)
-        return None
-    returned = compiled.nopython_signatures[-1].return_type
-    return single if str(returned) == "UniTuple(float32 x 2)" else None
-
-
-#: Names whose value is a float constant, in ``math`` and numpy: float64 to numba.
-_FLOAT_NAMES = {"inf", "pi", "e", "nan", "tau"}
-
-
-def float32_version(function: Callable) -> Callable | None:
-    """``function`` with its own float constants made float32, for mixed precision.
-
-    numba types a literal such as ``12.0`` (and ``math.inf``, ``np.pi``) as float64,
-    and float32 times float64 is float64: a pair term written for double would turn
-    the mixed-precision loop back into double. So its source is parsed and every
-    float literal, every ``inf``/``pi``/``e``/``nan`` read from a module and every
-    global bound to a float wrapped in ``np.float32(...)``; integers (``r2 ** 3``)
-    keep float32 as they are. Only the
-    function's own body: helpers it calls (``pair_math.exp``) run in their own
-    precision, as numba promotes their float32 arguments. Returns None where the
-    source cannot be read or is not one ``def`` (a lambda, a function made by
-    ``exec``); the double function then serves, correct and slower.
-    """
-    function = getattr(function, "py_func", function)
-    try:
-        source = textwrap.dedent(inspect.getsource(function))
-        tree = ast.parse(source)
-    except (OSError, TypeError, SyntaxError):
-        return None
-    if len(tree.body) != 1 or not isinstance(tree.body[0], ast.FunctionDef):
-        return None
-    definition = tree.body[0]
-    definition.decorator_list = []
-    floats = {name for name, value in function.__globals__.items()
-              if isinstance(value, float | np.floating)}  # fmt: skip
-    tree = ast.fix_missing_locations(_Float32Constants(floats).visit(tree))
-    code = compile(tree, f"<float32 {function.__qualname__}>", "exec")
-    namespace = dict(function.__globals__)
-    if function.__closure__:
-        namespace.update(zip(function.__code__.co_freevars,
-                             (cell.cell_contents for cell in function.__closure__),
-                             strict=True))  # fmt: skip
-    namespace["_float32_"] = np.float32
-    exec(code, namespace)  # noqa: S102
-    made = namespace[definition.name]
-    made.__defaults__ = function.__defaults__
-    return made
-
-
-class _Float32Constants(ast.NodeTransformer):
-    """Wraps float literals, module float constants and the names in ``floats`` (globals
-    bound to a float) in ``_float32_(...)``."""
-
-    def __init__(self, floats: set[str]) -> None:
-        self.floats = floats
-
-    def visit_Name(self, node: ast.Name) -> ast.AST:
-        if isinstance(node.ctx, ast.Load) and node.id in self.floats:
-            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
-        return node
-
-    def visit_Constant(self, node: ast.Constant) -> ast.AST:
-        if isinstance(node.value, float):
-            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
-        return node
-
-    def visit_Attribute(self, node: ast.Attribute) -> ast.AST:
-        if node.attr in _FLOAT_NAMES and isinstance(node.value, ast.Name):
-            return ast.Call(ast.Name("_float32_", ast.Load()), [node], [])
-        return self.generic_visit(node)
-
-
-def _fingerprint(term: PairTerm) -> str:
-    """A hash of everything the term's compiled kernels depend on: the frame's own sources
-    (``_FRAME_SOURCES``, as imported: ``_SOURCES``) and the term's functions with all
-    they reach through their globals, defaults and closures (helpers they call, wherever
-    defined, and constants, which numba compiles in). A helper reached as an attribute
-    (``module.helper``) is not followed."""
-    digest = hashlib.sha256()
-    for path in _FRAME_SOURCES:
-        digest.update(_SOURCES[path])
-    digest.update(_variant_source().encode())
-    digest.update(repr((term.name, term.uses_data, term.parameters)).encode())
-    seen: set = set()
-    for function in (term.energy, term.curvature):
-        _hash_value(digest, function, seen)
-    return digest.hexdigest()
-
-
-def _hash_value(digest, value, seen: set) -> None:
-    """Add ``value`` to ``digest``: a function (or numba dispatcher) by its code and what it
-    reaches, plain values and arrays by their contents; other objects (modules, classes)
-    are named in the code that uses them."""
-    value = getattr(value, "py_func", value)  # a numba dispatcher: its Python function
-    if isinstance(value, FunctionType):
-        if value in seen:
-            return
-        seen.add(value)
-        _hash_code(digest, value.__code__)
-        for inner in (
-            *(value.__defaults__ or ()),
-            *(c.cell_contents for c in value.__closure__ or ()),
-        ):
-            _hash_value(digest, inner, seen)
-        for name in _names(value.__code__):
-            if name in value.__globals__:
-                digest.update(name.encode())
-                _hash_value(digest, value.__globals__[name], seen)
-    elif isinstance(value, tuple | list):
-        for item in value:
-            _hash_value(digest, item, seen)
-    elif isinstance(value, np.ndarray):
-        digest.update(repr((value.dtype.str, value.shape)).encode())
-        digest.update(np.ascontiguousarray(value).tobytes())
-    elif isinstance(value, int | float | complex | str | bytes | np.generic) or value is None:
-        digest.update(repr(value).encode())
-
-
-def _hash_code(digest, code: CodeType) -> None:
-    digest.update(code.co_code)
-    digest.update(repr(code.co_names).encode())
-    for constant in code.co_consts:
-        if isinstance(constant, CodeType):
-            _hash_code(digest, constant)
-        elif isinstance(constant, frozenset):  # ``x in {...}``: sorted, as the order varies
-            digest.update(repr(sorted(map(repr, constant))).encode())
-        else:
-            digest.update(repr(constant).encode())
-
-
-def _names(code: CodeType) -> list[str]:
-    """The global (and attribute) names a code object and those nested in it use."""
-    nested = (c for c in code.co_consts if isinstance(c, CodeType))
-    return [*code.co_names, *(name for inner in nested for name in _names(inner))]
-
-
-def _identifier(name: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in name) or "term"
-
-
-# ------------------------------------------------------------------ the potential
 def _compiling_the_term(method: Callable) -> Callable:
     """Wrap a method that runs the term's kernels: numba's error from compiling the term
     into them (the first call of each kernel compiles it) becomes a TypeError naming the
@@ -637,6 +140,7 @@ class PairPotential:
 
     Examples
     --------
+    >>> from potentials.pair_terms import pair_term
     >>> @pair_term
     ... def harmonic_wall(r2, k, r0):
     ...     r = r2**0.5
@@ -704,7 +208,7 @@ class PairPotential:
             what = "a number or one number per type" if name in per_type else "a number"
             try:  # strings ("1.0") and bools numpy would take as numbers are refused
                 array = (np.asarray(values[name], dtype=np.float64)
-                         if _numbers(values[name]) else np.empty(0))  # fmt: skip
+                         if all_numbers(values[name]) else np.empty(0))  # fmt: skip
             except (TypeError, ValueError):
                 array = np.empty(0)  # not numbers: refused below
             if array.ndim > 1 or array.size == 0 or (array.ndim == 1 and name not in per_type):
@@ -947,7 +451,7 @@ class PairPotential:
             total_virial = np.zeros(6)
             energies = np.zeros(n if per_atom else 0)
             virials = np.zeros((n if per_atom else 0, 6))
-            energy = _variant(kernels, "atom_forces", mode=mode)(
+            energy = variant(kernels, "atom_forces", mode=mode)(
                 geometry, n_types, table, mode, self.data, forces, total_virial, energies, virials
             )
             result = ForceResult(
@@ -1007,7 +511,7 @@ class PairPotential:
         forces = np.empty((n, 3))
         with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
             for with_virial in variants:
-                kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
+                kernel = variant(kernels, entry, mode=int(mode), with_virial=with_virial,
                                   single=single)  # fmt: skip
                 kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
                        with_virial, single, buffers, j_sums, j_counts, atom, forces,
@@ -1052,7 +556,7 @@ class PairPotential:
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
         for with_virial in variants:
-            kernel = _variant(kernels, entry, mode=int(mode), with_virial=with_virial,
+            kernel = variant(kernels, entry, mode=int(mode), with_virial=with_virial,
                               single=n_types == 1)  # fmt: skip
             kernel(*arguments)
         return ForceResult(
@@ -1125,7 +629,7 @@ class PairPotential:
         transverse = np.empty(listed)
         radial = np.empty(listed)
         unit = np.empty((listed, 3))
-        n_pairs = _variant(kernels, "atom_curvatures", mode=mode)(
+        n_pairs = variant(kernels, "atom_curvatures", mode=mode)(
             geometry, n_types, table, mode, self.data, pair_i, pair_j, transverse, radial, unit
         )
         return PairHessian(
@@ -1158,7 +662,7 @@ class PairPotential:
         written = np.zeros(chunks, dtype=np.int64)
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         entry = "frame_curvatures_threaded" if chunks > 1 else "frame_curvatures"
-        write = _variant(kernels, entry, mode=int(mode), single=n_types == 1)
+        write = variant(kernels, entry, mode=int(mode), single=n_types == 1)
         write(state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
               n_types == 1, slot_positions, slot_types, held, written)  # fmt: skip
         first = frame.starts[frame.bounds[:-1]]

@@ -1,6 +1,6 @@
 """The pair-kernel frame's kernels, compiled once per pair term.
 
-This file is a template: ``potentials._pair_frame.kernels_for(term)`` executes
+This file is a template: ``potentials._pair_codegen.kernels_for(term)`` executes
 it as a module of its own for each pair term (named after the term and a hash
 of its source, so numba caches each term's kernels apart and recompiles them
 when the term changes), with these names set in that module first:
@@ -11,7 +11,7 @@ when the term changes), with these names set in that module first:
     ``data`` the potential's data array (tables; empty for most terms). In a
     mixed-precision copy (``kernels_for(term, "mixed")``) it takes float32 r2
     and parameters: the term's function with its float constants made float32
-    where that computes in float32 throughout (``_pair_frame.
+    where that computes in float32 throughout (``_pair_codegen.
     single_precision_term``), else the term itself (it then returns doubles).
 ``_pair_curvature(r2, p, data) -> (u, du_ds, d2u_ds2)``
     u and its first two derivatives with respect to s = r^2 (None when the term
@@ -37,7 +37,7 @@ cluster entries (mixed precision over a cluster-pair list) reach the term throug
 ``_cluster_row`` (``potentials._cluster_ir``), which calls ``_pair`` per vector lane. Their cutoff
 mode, virial flag and single-type flag are compile-time constants: each term's
 copy of this file ends in small kernels, one per entry point and combination of
-flags (``potentials._pair_frame._variant_source``), into which the entry point is
+flags (``potentials._pair_codegen._variant_source``), into which the entry point is
 inlined with the flags as constants, and ``PairPotential`` calls those, so only
 the combinations a run uses are compiled (see the note above the atom-order
 kernels on why they are inlined).
@@ -182,9 +182,31 @@ def _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params):
     return padded
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _gather_row(p, frame, frame_types, slots, n_types, table, single, far, gx, gy, gz, params):
+    """Slot p's partners into the scratch rows, the prologue of each slot's pair loop in
+    both slot-frame loops (forces, curvatures): their positions, with the image shift
+    where the row crosses the cell's edge, and, with several types, their pair columns
+    (the pair loop then reads no table), padded to whole vectors (``_pad_row``). Returns
+    (partners, m, padded): the partners' slots, their number and the padded count."""
+    shifts, starts, neighbors, codes, shifted = slots[3], slots[4], slots[5], slots[6], slots[9]
+    partners = neighbors[starts[p] : starts[p + 1]]
+    m = partners.shape[0]
+    if shifted[p]:
+        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
+                         gz)  # fmt: skip
+    else:  # no partner across the cell's edge: no codes, no shifts to read
+        _gather_unshifted(frame, partners, gx, gy, gz)
+    if not single:
+        _gather_pair_columns(frame_types, partners, frame_types[p] * n_types, table, params)
+    padded = _pad_row(m, frame[p, 0], frame[p, 1], frame[p, 2], far, single, gx, gy, gz,
+                      params)  # fmt: skip
+    return partners, m, padded
+
+
 # The loops below each run with the cutoff mode a compile-time constant: each entry
 # point is inlined (numba's inline="always") into the variants that call it with the
-# mode and flags as constants (potentials._pair_frame._variant_source), so each mode
+# mode and flags as constants (potentials._pair_codegen._variant_source), so each mode
 # used compiles once. A mode test inside a pair loop made LJ's 2.4 times slower.
 #
 # The entry points are inlined rather than called so that a variant is one compiled
@@ -522,8 +544,7 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
     """
     chunk, frame, frame_types, slots, n_types, table, data = args
     buffers, energies, virials = out
-    shifts, starts, neighbors, codes, bounds = slots[3], slots[4], slots[5], slots[6], slots[7]
-    shifted = slots[9]
+    starts, bounds = slots[4], slots[7]
     buffer = buffers[chunk]
     for p in range(frame.shape[0]):
         buffer[p, 0] = 0.0
@@ -548,17 +569,8 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        row = frame_types[p] * n_types
-        partners = neighbors[starts[p] : starts[p + 1]]
-        m = partners.shape[0]
-        if shifted[p]:
-            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
-                             gz)  # fmt: skip
-        else:  # no partner across the cell's edge: no codes, no shifts to read
-            _gather_unshifted(frame, partners, gx, gy, gz)
-        if not single:  # contiguous per-partner parameters: the pair loop reads no table
-            _gather_pair_columns(frame_types, partners, row, table, params)
-        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
+        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
+                                          far, gx, gy, gz, params)  # fmt: skip
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
@@ -667,9 +679,7 @@ def _frame_curvature_loop(args, mode, single, out):
     how many were inside."""
     chunk, frame, frame_types, slots, n_types, table, data = args
     pair_i, pair_j, transverse, radial, unit = out
-    order, shifts, starts, neighbors, codes, bounds, shifted = (
-        slots[0], slots[3], slots[4], slots[5], slots[6], slots[7], slots[9],
-    )  # fmt: skip
+    order, starts, bounds = slots[0], slots[4], slots[7]
     most = _longest_row(starts, bounds[chunk], bounds[chunk + 1]) + LANES
     gx = np.empty(most)
     gy = np.empty(most)
@@ -692,17 +702,8 @@ def _frame_curvature_loop(args, mode, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        row = frame_types[p] * n_types
-        partners = neighbors[starts[p] : starts[p + 1]]
-        m = partners.shape[0]
-        if shifted[p]:
-            _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
-                             gz)  # fmt: skip
-        else:  # no partner across the cell's edge: no codes, no shifts to read
-            _gather_unshifted(frame, partners, gx, gy, gz)
-        if not single:  # contiguous per-partner parameters: the pair loop reads no table
-            _gather_pair_columns(frame_types, partners, row, table, params)
-        padded = _pad_row(m, xi, yi, zi, far, single, gx, gy, gz, params)
+        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
+                                          far, gx, gy, gz, params)  # fmt: skip
         for k in range(padded):
             dx = xi - gx[k]
             dy = yi - gy[k]

@@ -7,7 +7,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from md.schema import Key
-from potentials._pair_frame import CUTOFF_MODES, PairPotential, PairTerm, pair_config_keys
+from potentials._pair_frame import CUTOFF_MODES, PairPotential, pair_config_keys
+from potentials.pair_terms import PairTerm
 
 __all__ = ["CUTOFF_MODES", "MIXING_RULES", "LennardJones"]
 

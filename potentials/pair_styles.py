@@ -18,8 +18,9 @@ import numpy as np
 from numba.extending import register_jitable
 
 from md.schema import Key
-from potentials._pair_frame import PairPotential, PairTerm, collapse_error, pair_config_keys
+from potentials._pair_frame import PairPotential, collapse_error, pair_config_keys
 from potentials.pair_math import cos, exp, log, reciprocal, sin
+from potentials.pair_terms import PairTerm
 
 __all__ = ["Buckingham", "Mie", "Morse", "Soft", "Yukawa"]
 

@@ -29,14 +29,9 @@ import numpy as np
 from numba.extending import register_jitable
 
 from md.schema import REQUIRED, Key, check_names
-from potentials._pair_frame import (
-    TERM,
-    PairPotential,
-    PairTerm,
-    collapse_error,
-    config_pairs,
-    pair_config_keys,
-)
+from potentials._pair_codegen import TERM
+from potentials._pair_frame import PairPotential, collapse_error, config_pairs, pair_config_keys
+from potentials.pair_terms import PairTerm
 
 __all__ = ["Table", "TableSection", "read_table"]
 

@@ -553,7 +553,8 @@ def _row_forces(state, potential, lanes):
     ``state`` (atom order), the largest j-lane count after a row, and the j lanes and
     counts after the call."""
     from potentials._kernels import J_STRIDE
-    from potentials._pair_frame import CUTOFF_MODES, kernels_for
+    from potentials._pair_codegen import kernels_for
+    from potentials._pair_frame import CUTOFF_MODES
 
     field = ForceField([potential], precision="mixed")
     field.neighbor_list.update(state)
@@ -822,7 +823,7 @@ def test_the_wide_flag_follows_the_compiled_features():
 def test_a_kernel_module_of_either_width_and_no_other():
     """``kernels_for(..., cluster_lanes=...)`` (the benchmark's side-by-side widths) gives
     a module of its own per width, the default one the engine's; other widths are refused."""
-    from potentials._pair_frame import kernels_for
+    from potentials._pair_codegen import kernels_for
 
     term = LennardJones(cutoff=2.5).term
     default = kernels_for(term, "mixed")

@@ -63,10 +63,14 @@ ALLOWED = {
     },
     # potentials/_pair_frame.py is changed by another item meanwhile: its probes of the
     # list's clusters and its lazily made scratch buffers are left for it.
-    "potentials/_pair_frame.py": {
-        "getattr(kernels, _variant_name(entry, flags))": "a generated kernel, by name",
+    "potentials/_pair_codegen.py": {
+        "getattr(kernels, variant_name(entry, flags))": "a generated kernel, by name",
         'getattr(function, "py_func", function)': "a numba dispatcher's Python function",
+    },
+    "potentials/_codegen.py": {
         'getattr(value, "py_func", value)': "a numba dispatcher's Python function",
+    },
+    "potentials/_pair_frame.py": {
         'getattr(neighbors, "clusters", None)': "left for the pair frame's own item",
         'getattr(self, "_cluster_scratch", None)': "a buffer made on first use",
         'getattr(self, "_scratch", None)': "a buffer made on first use",

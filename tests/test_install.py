@@ -51,7 +51,7 @@ def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
     code = (
         "import json, md, potentials, integrators\n"
         "from md import _cell_kernels\n"
-        "from potentials._pair_frame import kernels_for\n"
+        "from potentials._pair_codegen import kernels_for\n"
         "from integrators import _kernels\n"
         "lj = potentials.LennardJones(cutoff=2.5)\n"
         "pair = kernels_for(lj.term).frame_forces\n"

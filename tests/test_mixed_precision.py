@@ -32,7 +32,7 @@ from md.forcefield import ForceField
 from md.parallel import get_threads, set_threads
 from md.trajectory import read_trajectory
 from potentials import LennardJones, Morse, PairPotential, Table, pair_term
-from potentials._pair_frame import float32_version, kernels_for, single_precision_term
+from potentials._pair_codegen import float32_version, kernels_for, single_precision_term
 from potentials.springs import FENEBonds
 
 EPS32 = float(np.finfo(np.float32).eps)

@@ -422,7 +422,7 @@ def test_table_interpolates_a_smooth_function_closely(tmp_path):
 _CACHE_CHILD = """
 import json, md
 from potentials import PairPotential, pair_term
-from potentials._pair_frame import kernels_for
+from potentials._pair_codegen import kernels_for
 
 @pair_term
 def soft_wall(r2, k, width):
@@ -486,16 +486,16 @@ def test_a_source_edited_while_a_process_runs_does_not_rename_its_kernels(monkey
     kernel change that seemed to change nothing)."""
     from numba.core import config
 
-    from potentials import _pair_frame
+    from potentials import _pair_codegen
 
     term = LennardJones(cutoff=2.5).term
-    before = _pair_frame._fingerprint(term)
+    before = _pair_codegen._fingerprint(term)
     template = (ROOT / "potentials/_pair_kernels.py").read_bytes()
     monkeypatch.setattr(Path, "read_bytes", lambda self: b"# edited since")
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "# edited since")
-    assert _pair_frame._fingerprint(term) == before
+    assert _pair_codegen._fingerprint(term) == before
     monkeypatch.setattr(config, "CACHE_DIR", str(tmp_path))
-    copy = _pair_frame._template_copy("edited_lj")
+    copy = _pair_codegen._template_copy("edited_lj")
     monkeypatch.undo()
     assert copy.read_bytes().startswith(template)
 
