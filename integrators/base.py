@@ -39,9 +39,8 @@ from md.schema import REQUIRED, Key
 
 if TYPE_CHECKING:  # annotations only: integrators import nothing above layer 0 of md
     from integrators.rattle import BondConstraints
-    from md.forcefield import ForceField
     from md.state import State
-    from potentials.base import ForceResult
+    from potentials.base import ForceResult, ForceSource
 
 
 @runtime_checkable
@@ -100,7 +99,7 @@ class Integrator(Protocol):
     splits_forces: ClassVar[bool]
     order: ClassVar[int | None]
 
-    def step(self, state: State, forcefield: ForceField) -> None: ...
+    def step(self, state: State, forcefield: ForceSource) -> None: ...
 
     def reset(self) -> None: ...
 
@@ -164,7 +163,7 @@ class ForceSplit(Protocol):
     is refused up front.
     """
 
-    def split(self, forcefield: ForceField) -> tuple[tuple[int, ...], tuple[int, ...]]: ...
+    def split(self, forcefield: ForceSource) -> tuple[tuple[int, ...], tuple[int, ...]]: ...
 
 
 @runtime_checkable

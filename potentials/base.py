@@ -57,6 +57,40 @@ class ForceResult:
 
 
 @runtime_checkable
+class ForceSource(Protocol):
+    """What integrators, the simulation and checkpoints ask of a force field.
+
+    :class:`md.forcefield.ForceField` (one process) and
+    :class:`md.distributed.DistributedForceField` (one rank of a decomposed run) both
+    meet it, so an integrator takes either without looking for methods
+    (``tests/test_distributed_package.py`` checks both). ``compute`` caches its result
+    while positions and cell are unchanged; ``virial_wanted`` asks the next calls for the
+    virial (an observer will read it); ``timings`` holds seconds by section.
+    """
+
+    potentials: list
+    precision: str
+    virial_wanted: bool
+    timings: dict
+
+    def compute(self, state: State, per_atom: bool = False, virial: bool = True) -> ForceResult:
+        """Energy, forces (and virial) of ``state``."""
+        ...
+
+    def compute_subset(self, state: State, which, virial: bool = False) -> ForceResult:
+        """The same for the potentials numbered in ``which`` (RESPA's splits)."""
+        ...
+
+    def hessian_operator(self, state: State):
+        """The Hessian as a linear operator (the implicit integrators' Newton steps)."""
+        ...
+
+    def invalidate(self) -> None:
+        """Forget the cached result (the positions changed behind its back)."""
+        ...
+
+
+@runtime_checkable
 class Potential(Protocol):
     """What the ForceField needs of a potential.
 

@@ -245,3 +245,22 @@ def test_a_decomposed_runs_checkpoint_records_its_precision(tmp_path):
     assert saved.precision == "mixed"
     assert saved.decomposition["grid"] == [2, 1, 1]
     assert list(np.asarray(saved.decomposition["owners"])) == [0, 1]
+
+
+def test_the_force_field_and_the_distributed_one_meet_one_declared_protocol():
+    """``potentials.base.ForceSource``: what integrators ask of a force field, met by the
+    one-process ForceField (an instance) and the decomposed run's (its class's methods and
+    the attributes its constructor sets), so no caller looks for ``compute`` by duck type."""
+    import inspect
+
+    import md
+    from md.distributed import DistributedForceField
+    from potentials import LennardJones
+    from potentials.base import ForceSource
+
+    assert isinstance(md.ForceField([LennardJones(cutoff=2.5)]), ForceSource)
+    members = ("compute", "compute_subset", "hessian_operator", "invalidate")
+    assert all(callable(getattr(DistributedForceField, name)) for name in members)
+    source = inspect.getsource(DistributedForceField.__init__)
+    for name in ("potentials", "precision", "virial_wanted", "timings"):
+        assert f"self.{name} =" in source, name
