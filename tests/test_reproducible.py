@@ -73,16 +73,21 @@ np.savez(f"{folder}/{'warm' if resume else 'cold'}.npz", **ends)
 """
 
 
-@pytest.mark.skipif(os.environ.get("NUMBA_DISABLE_JIT") == "1", reason="compiles kernels")
-def test_mixed_runs_equal_cold_and_warm_and_resume_at_every_checkpoint(tmp_path):
-    # a cache folder of its own: the first child compiles every kernel, the second loads them
+def _cold_and_warm(tmp_path, child: str):
+    """Run ``child`` in a cache folder of its own: the first run compiles every kernel,
+    the second ("resume") loads them; returns both runs' ends."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"),
                XDG_CACHE_HOME=str(tmp_path))  # fmt: skip
     for mode in ("cold", "resume"):
-        done = subprocess.run([sys.executable, "-c", CHILD, str(tmp_path), mode], env=env,
+        done = subprocess.run([sys.executable, "-c", child, str(tmp_path), mode], env=env,
                               capture_output=True, text=True, timeout=900)  # fmt: skip
         assert done.returncode == 0, done.stderr[-3000:]
-    cold, warm = np.load(tmp_path / "cold.npz"), np.load(tmp_path / "warm.npz")
+    return np.load(tmp_path / "cold.npz"), np.load(tmp_path / "warm.npz")
+
+
+@pytest.mark.skipif(os.environ.get("NUMBA_DISABLE_JIT") == "1", reason="compiles kernels")
+def test_mixed_runs_equal_cold_and_warm_and_resume_at_every_checkpoint(tmp_path):
+    cold, warm = _cold_and_warm(tmp_path, CHILD)
     assert list((tmp_path / "numba").rglob("*.nbi")), "the first child compiled nothing"
     assert cold["clusters_prunes"] == 0 < cold["outer_prunes"]  # the two list paths
     for name in ("clusters", "outer"):
@@ -111,3 +116,22 @@ def test_mixed_energy_error_averages_out_on_a_liquid_not_on_a_lattice(fcc_lattic
     assert 0.1 * EPS32 < lattice < 3 * EPS32, lattice
     assert max(disordered) < 0.1 * EPS32, disordered
     assert lattice > 10 * np.median(disordered), (lattice, disordered)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="open (issue 65 item 1): the threaded cluster kernel (several "
+    "chunks) still differs between a cold and a warm cache",
+    strict=False,
+)
+def test_threaded_mixed_runs_equal_cold_and_warm(tmp_path):
+    """2048 atoms on two threads: the cluster kernel's chunks run on numba's threads (its
+    parfor). Measured: cold and warm 1.8e-8 apart after 40 steps, and in a warm process a
+    run resumed at a thermo step (10, 20, 30) leaves the uninterrupted one."""
+    child = CHILD.replace('CASES = {"clusters": (5, 1), "outer": (6, 1)}',
+                          'CASES = {"clusters": (8, 2)}')  # fmt: skip
+    assert child != CHILD
+    cold, warm = _cold_and_warm(tmp_path, child)
+    assert np.array_equal(cold["clusters"], warm["clusters"])
+    for cut in range(5, 40, 5):
+        assert np.array_equal(warm[f"clusters_from{cut}"], warm["clusters"]), cut
