@@ -247,20 +247,7 @@ def test_sigterm_to_md_minimize_before_fire_starts_says_so(tmp_path):
     while it built the system; here the signal comes from within that build."""
     config = tmp_path / "melt.toml"
     config.write_text(lj_config_text())
-    script = tmp_path / "kill_early.py"
-    script.write_text(
-        "import os, signal, sys, time\n"
-        "import md.cli.minimize as command\n"
-        "def building(*args, **kwargs):\n"
-        "    os.kill(os.getpid(), signal.SIGTERM)\n"
-        "    time.sleep(5)\n"
-        "    raise AssertionError('the signal did not stop the build')\n"
-        "command.prepare_minimize = building\n"
-        "from md.cli import main\n"
-        "sys.exit(main(['minimize', sys.argv[1]]))\n"
-    )
-    done = subprocess.run([sys.executable, str(script), str(config)], cwd=tmp_path, env=_env(),
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = _sigterm_while_building(tmp_path, config, "minimize", "prepare_minimize")
     assert done.returncode == 143, (done.returncode, done.stderr)
     assert "SIGTERM received before minimising started; nothing was written" in done.stderr
     assert "Traceback" not in done.stderr
@@ -425,21 +412,27 @@ def test_sigterm_to_md_run_while_it_builds_says_so(tmp_path):
     killed by the signal; now it says so, writes nothing and exits 143."""
     config = tmp_path / "melt.toml"
     config.write_text(lj_config_text())
-    script = tmp_path / "kill_early.py"
-    script.write_text(
-        "import os, signal, sys, time\n"
-        "import md.cli.run as command\n"
-        "def building(*args, **kwargs):\n"
-        "    os.kill(os.getpid(), signal.SIGTERM)\n"
-        "    time.sleep(5)\n"
-        "    raise AssertionError('the signal did not stop the build')\n"
-        "command.prepare = building\n"
-        "from md.cli import main\n"
-        "sys.exit(main(['run', sys.argv[1]]))\n"
-    )
-    done = subprocess.run([sys.executable, str(script), str(config)], cwd=tmp_path, env=_env(),
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = _sigterm_while_building(tmp_path, config, "run", "prepare")
     assert done.returncode == 143, (done.returncode, done.stderr)
     assert "SIGTERM received before the run started; nothing was written" in done.stderr
     assert "Traceback" not in done.stderr
     assert not list(tmp_path.glob("*.h5*"))
+
+
+def _sigterm_while_building(tmp_path, config, command: str, builder: str):
+    """Run ``md COMMAND CONFIG`` in a child whose build (``md.cli.COMMAND.BUILDER``) sends
+    the process SIGTERM and then waits: the signal comes from within the build."""
+    script = tmp_path / "kill_early.py"
+    script.write_text(
+        "import os, signal, sys, time\n"
+        f"import md.cli.{command} as command\n"
+        "def building(*args, **kwargs):\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(5)\n"
+        "    raise AssertionError('the signal did not stop the build')\n"
+        f"command.{builder} = building\n"
+        "from md.cli import main\n"
+        f"sys.exit(main(['{command}', sys.argv[1]]))\n"
+    )
+    return subprocess.run([sys.executable, str(script), str(config)], cwd=tmp_path, env=_env(),
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
