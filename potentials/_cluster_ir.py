@@ -104,9 +104,23 @@ _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
 _D4 = ir.VectorType(_F64, 4)
 _D8 = ir.VectorType(_F64, 8)
-#: As the frame's pair loops: sums may be reassociated into lanes, multiply-adds fused;
-#: no "nnan"/"ninf" (overlapping atoms must still give an infinite energy).
-_FLAGS = ("contract", "reassoc", "nsz", "arcp")
+#: The floating-point freedom of the row's instructions and of its pair term (``_pair``,
+#: compiled as a subroutine and copied into every lane): none that changes a value ("nsz"
+#: only lets a zero's sign go; no "nnan"/"ninf" either: overlapping atoms must still give
+#: an infinite energy). The slot frame's loops also take "reassoc", "contract" and "arcp";
+#: here they only let LLVM round differently each time it optimises the code, and numba
+#: optimises a kernel more than once where another function links it in. A threaded
+#: kernel is such a case: numba outlines the ``prange`` body into a function of its own
+#: library, optimised there and again in each library that links it; a process that
+#: compiled the kernel runs the first copy (loaded first; the linked copies are weak), a
+#: process that loaded it from the cache the last. With "reassoc" the two rounded
+#: differently (2048 atoms, 2 threads, one force call: 1.3e-5 apart with it on the row's
+#: sums, 4.8e-7 with it on the term of a two-type LJ; ``tests/test_reproducible.py``);
+#: without, they are equal. The cost: the kernel took 1.11 of the time with the slot
+#: frame's flags (1.09 with "contract" kept on the term, 1.02 with only the row's sums
+#: strict), on the 32000-atom melt, Zen 5, one and two threads, the two versions compiled
+#: side by side and timed in 30 alternating blocks (the median ratio).
+_FLAGS = ("nsz",)
 
 #: Cluster pairs whose i forces and energy are summed in float32 lanes before they are
 #: added to the double sums (a power of 2). 16 took 0.95 of the time of 8 with 16 lanes

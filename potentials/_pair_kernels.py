@@ -217,7 +217,11 @@ def _gather_row(p, frame, frame_types, slots, n_types, table, single, far, gx, g
 # bind to that, while a process that loads the caller from the cache runs the copy.
 # For the cluster kernel, whose term lanes LLVM's SLP vectoriser fuses, the two
 # differed in float32 rounding: mixed-precision runs with a fresh cache left those
-# with a warm one after ~20 steps (tests/test_reproducible.py).
+# with a warm one after ~20 steps (tests/test_reproducible.py). A threaded variant's
+# prange body is outlined by numba into a function of its own library all the same, so
+# the cluster kernel's instructions take no floating-point freedom that changes a value
+# (potentials._cluster_ir._FLAGS): then every copy rounds alike however often LLVM
+# optimises it.
 
 
 # ---------------------------------------------------------------- atom order
