@@ -12,7 +12,6 @@ import copy
 import hashlib
 import io
 import itertools
-import math
 import os
 import shutil
 import tempfile
@@ -21,6 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from _configs import argon_structure_run, to_toml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -72,49 +72,6 @@ KEYS = {
     "run": ["steps", "skin", "thermo_every"],
     "output": ["path", "every", "velocities", "forces", "checkpoint_every"],
 }  # fmt: skip
-
-
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.encode("unicode_escape").decode().replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(value)
-
-
-def _toml_key(key: str) -> str:
-    return '"' + key.encode("unicode_escape").decode().replace('"', '\\"') + '"'
-
-
-def to_toml(data: dict) -> str:
-    """A small TOML writer: top-level scalars, tables and one array of tables."""
-    lines = []
-    for key, value in data.items():
-        if not isinstance(value, dict) and not (
-            isinstance(value, list) and value and all(isinstance(v, dict) for v in value)
-        ):
-            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
-    for key, value in data.items():
-        if isinstance(value, dict):
-            lines.append(f"[{_toml_key(key)}]")
-            lines += [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()]
-        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-            for entry in value:
-                lines.append(f"[[{_toml_key(key)}]]")
-                lines += [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in entry.items()]
-    return "\n".join(lines) + "\n"
 
 
 @st.composite
@@ -270,28 +227,7 @@ def _xyz(positions, box, symbols=None, pbc="T T T", count=None) -> str:
     return "\n".join(lines) + "\n"
 
 
-STRUCTURE_CONFIG = """\
-[system]
-structure = "s.xyz"
-temperature = 50.0
-
-[[potentials]]
-type = "lj"
-epsilon = 0.0104
-sigma = 3.4
-cutoff = 8.5
-
-[integrator]
-type = "verlet"
-dt = 1.0
-
-[run]
-steps = 5
-
-[output]
-path = "s.h5"
-every = 5
-"""
+STRUCTURE_CONFIG = argon_structure_run("s.xyz", run="steps = 5", output='path = "s.h5"\nevery = 5')
 
 
 def _structures():

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _configs import argon_structure_run, config_text, to_toml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -46,76 +47,29 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------ base inputs
 #: examples/lj_small.toml shrunk: 108 atoms (the smallest fcc box that holds the cutoff).
-SMALL = """\
-units = "lj"
-seed = 2024
-
-[system]
-lattice = "fcc"
-cells = 3
-density = 0.8442
-temperature = 1.5
-
-[[potentials]]
-type = "lj"
-cutoff = 2.5
-cutoff_mode = "smooth"
-r_on = 2.0
-
-[integrator]
-type = "verlet"
-dt = 0.005
-
-[run]
-steps = 4
-thermo_every = 2
-
-[output]
-path = "out.h5"
-every = 2
-velocities = true
-checkpoint_every = 2
-"""
+SMALL = config_text(
+    top='units = "lj"\nseed = 2024',
+    system='lattice = "fcc"\ncells = 3\ndensity = 0.8442\ntemperature = 1.5',
+    potentials='type = "lj"\ncutoff = 2.5\ncutoff_mode = "smooth"\nr_on = 2.0',
+    integrator='type = "verlet"\ndt = 0.005',
+    run="steps = 4\nthermo_every = 2",
+    output='path = "out.h5"\nevery = 2\nvelocities = true\ncheckpoint_every = 2',
+)
 
 #: Two types from a structure file, a pair style that mixes and one that takes pairs.
-TWO_TYPES = """\
-units = "lj"
-seed = 7
-
-[system]
-structure = "two.xyz"
-temperature = 1.0
-mass = {Ar = 1.0, Kr = 2.0}
-
-[[potentials]]
-type = "mie"
-epsilon = {Ar = 1.0, Kr = 0.8}
-sigma = {Ar = 1.0, Kr = 1.1}
-n = 12.0
-m = 6.0
-mixing = "lorentz-berthelot"
-cutoff = 2.5
-
-[[potentials]]
-type = "morse"
-d0 = 0.1
-alpha = 3.0
-r0 = 1.2
-cutoff = 2.0
-pairs = [{types = ["Ar", "Kr"], d0 = 0.05, cutoff = 1.8}]
-
-[integrator]
-type = "verlet"
-dt = 0.002
-
-[run]
-steps = 4
-thermo_every = 2
-
-[output]
-path = "two.h5"
-every = 2
-"""
+TWO_TYPES = config_text(
+    top='units = "lj"\nseed = 7',
+    system='structure = "two.xyz"\ntemperature = 1.0\nmass = {Ar = 1.0, Kr = 2.0}',
+    potentials=[
+        'type = "mie"\nepsilon = {Ar = 1.0, Kr = 0.8}\nsigma = {Ar = 1.0, Kr = 1.1}\n'
+        'n = 12.0\nm = 6.0\nmixing = "lorentz-berthelot"\ncutoff = 2.5',
+        'type = "morse"\nd0 = 0.1\nalpha = 3.0\nr0 = 1.2\ncutoff = 2.0\n'
+        'pairs = [{types = ["Ar", "Kr"], d0 = 0.05, cutoff = 1.8}]',
+    ],
+    integrator='type = "verlet"\ndt = 0.002',
+    run="steps = 4\nthermo_every = 2",
+    output='path = "two.h5"\nevery = 2',
+)
 
 BASES = {"small": SMALL, "two_types": TWO_TYPES}
 
@@ -127,52 +81,6 @@ def two_type_structure(folder: Path) -> None:
     lines += [f"{'Ar' if i % 2 else 'Kr'} {x:.3f} {y:.3f} {z:.3f}" for i, (x, y, z) in
               enumerate(grid + 0.3)]  # fmt: skip
     (folder / "two.xyz").write_text("\n".join(lines) + "\n")
-
-
-# ------------------------------------------------------------------ a TOML writer
-def toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return toml_key(value)
-    if isinstance(value, list):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(value)
-
-
-def toml_key(key: str) -> str:
-    escaped = key.replace("\\", "\\\\").replace('"', '\\"')
-    return '"' + "".join(c if c.isprintable() else f"\\u{ord(c):04x}" for c in escaped) + '"'
-
-
-def _array_of_tables(value) -> bool:
-    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
-
-
-def to_toml(data: dict) -> str:
-    """TOML for a config dict: top-level values, then tables and arrays of tables (their
-    own nested values inline)."""
-    lines = [f"{toml_key(k)} = {toml_value(v)}" for k, v in data.items()
-             if not isinstance(v, dict) and not _array_of_tables(v)]  # fmt: skip
-    for key, value in data.items():
-        if isinstance(value, dict):
-            lines.append(f"[{toml_key(key)}]")
-            lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()]
-        elif _array_of_tables(value):
-            for entry in value:
-                lines.append(f"[[{toml_key(key)}]]")
-                lines += [f"{toml_key(k)} = {toml_value(v)}" for k, v in entry.items()]
-    return "\n".join(lines) + "\n"
 
 
 # ------------------------------------------------------------------ config mutations
@@ -496,29 +404,6 @@ def test_garbled_toml_runs_or_exits_2(case):
 GAS = np.random.default_rng(5).uniform(0.5, 19.5, (12, 3))
 GAS_VELOCITIES = np.random.default_rng(6).normal(scale=0.01, size=(12, 3))
 BOX = 20.0
-
-STRUCTURE_RUN = """\
-[system]
-structure = "{name}"
-temperature = 50.0
-
-[[potentials]]
-type = "lj"
-epsilon = 0.0104
-sigma = 3.4
-cutoff = 8.5
-
-[integrator]
-type = "verlet"
-dt = 1.0
-
-[run]
-steps = 4
-
-[output]
-path = "s.h5"
-every = 2
-"""
 
 
 def _plain_xyz() -> bytes:
@@ -850,7 +735,7 @@ def check_structure(kind: str, content, run: bool = True) -> str:
                 assert np.all(state.masses > 0) and np.all(np.isfinite(state.box))
         if not run:
             return read
-        (folder / "run.toml").write_text(STRUCTURE_RUN.format(name=path.name))
+        (folder / "run.toml").write_text(argon_structure_run(path.name))
         before = files_in(folder)
         with inside(folder):
             code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"])
@@ -903,7 +788,7 @@ def test_a_huge_atom_count_anywhere_is_refused_at_once(case):
         path.write_text(text)
         with time_limit(20), pytest.raises(ValueError, match=r"declares \d+ atoms, more than"):
             read_structure(path, units="metal")
-        (Path(name) / "run.toml").write_text(STRUCTURE_RUN.format(name=path.name))
+        (Path(name) / "run.toml").write_text(argon_structure_run(path.name))
         with inside(Path(name)), time_limit(60):
             code, out, err = run_md(["run", "run.toml", "--no-progress", "-q"])
     assert code == 2 and path.name in err and "declares" in err, err
@@ -1156,7 +1041,7 @@ REAL_CASES = {
         "two",
         2,
     ),
-    "a GSD frame with NaN": (STRUCTURE_RUN.format(name="s.gsd"), "gsd", 2),
+    "a GSD frame with NaN": (argon_structure_run("s.gsd"), "gsd", 2),
 }
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _configs import fcc_run
 
 import md
 from integrators import ImplicitEuler, VelocityVerlet
@@ -620,27 +621,6 @@ def test_reciprocal_is_ieee_division_in_a_fast_math_loop():
 
 
 # ---------------------------------------------------------------- configs and the CLI
-CONFIG = """
-units = "lj"
-seed = 1
-[system]
-lattice = "fcc"
-cells = 4
-density = 0.8
-temperature = 0.5
-[[potentials]]
-{potential}
-[integrator]
-type = "verlet"
-dt = 0.002
-[run]
-steps = 4
-thermo_every = 2
-[output]
-path = "out.h5"
-every = 2
-"""
-
 GOOD = {
     "morse": 'type = "morse"\nd0 = 1.0\nalpha = 3.0\nr0 = 1.1\ncutoff = 2.2',
     "mie": 'type = "mie"\nepsilon = 1.0\nsigma = 1.0\nn = 13.0\nm = 6.5\ncutoff = 2.5',
@@ -668,7 +648,7 @@ def test_md_run_with_each_style(style, tmp_path, monkeypatch):
     folder.mkdir()
     _table_file(folder)  # the path in the config is relative to the config's folder
     config = folder / "run.toml"
-    config.write_text(CONFIG.format(potential=GOOD[style]))
+    config.write_text(fcc_run(GOOD[style]))
     assert main(["run", str(config), "--no-progress", "-q", "-o", "out.h5"]) == 0
     assert (tmp_path / "out.h5").exists()
 
@@ -703,7 +683,7 @@ def test_md_run_refuses_bad_pair_input_with_exit_2_writing_nothing(case, tmp_pat
     (tmp_path / "unsorted.table").write_text("T\nN 3\n\n1 1.0 1 0.0\n2 0.9 0.0 0.0\n3 2 0 0\n")
     potential, message = BAD[case]
     config = tmp_path / "run.toml"
-    text = CONFIG.format(potential=potential)
+    text = fcc_run(potential)
     config.write_text(text.replace('lattice = "fcc"', 'lattice = "fcc"\ntype_name = "A"'))
     assert main(["run", str(config), "--no-progress", "-o", "out.h5"]) == 2
     error = capsys.readouterr().err

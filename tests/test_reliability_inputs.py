@@ -12,6 +12,7 @@ import re
 
 import numpy as np
 import pytest
+from _configs import VERLET, fcc_run
 
 import md
 from integrators import INTEGRATORS
@@ -19,27 +20,6 @@ from md.errors import NonFiniteError
 from md.forcefield import ForceField
 from potentials import Buckingham, Morse, PairPotential, Soft, Table, Yukawa, pair_term
 from potentials.base import ForceResult
-
-CONFIG = """
-units = "lj"
-seed = 1
-[system]
-lattice = "fcc"
-cells = 4
-density = 0.8
-temperature = 0.5
-[[potentials]]
-{potential}
-[integrator]
-{integrator}
-[run]
-steps = 4
-thermo_every = 2
-[output]
-path = "out.h5"
-every = 2
-"""
-VERLET = 'type = "verlet"\ndt = 0.002'
 
 
 def _table_file(folder) -> None:
@@ -57,7 +37,7 @@ def _refused(tmp_path, monkeypatch, capsys, potential: str, integrator: str = VE
     monkeypatch.chdir(tmp_path)
     _table_file(tmp_path)
     config = tmp_path / "run.toml"
-    config.write_text(CONFIG.format(potential=potential, integrator=integrator))
+    config.write_text(fcc_run(potential, integrator))
     code = main(["run", str(config), "--no-progress", "-q"])
     error = capsys.readouterr().err
     assert code == 2, error

@@ -7,6 +7,7 @@ import ase.io
 import ase.units
 import numpy as np
 import pytest
+from _configs import argon_structure_run
 from ase.build import bulk
 
 import md
@@ -95,36 +96,19 @@ def test_types_by_symbol_order_and_errors(rng):
 
 
 # -------------------------------------------------------- structure = "file"
-CONFIG = """\
-seed = 4
-{units}
-[system]
-structure = "{name}"
-{system}
-[[potentials]]
-type = "lj"
-epsilon = 0.0104
-sigma = 3.40
-cutoff = 8.5
-
-[integrator]
-type = "verlet"
-dt = 5.0
-
-[run]
-steps = 4
-thermo_every = 2
-
-[output]
-path = "out.h5"
-every = 2
-velocities = true
-"""
-
-
 def _config(tmp_path, name, system="temperature = 40.0", units=""):
     path = tmp_path / "run.toml"
-    path.write_text(CONFIG.format(name=name, system=system, units=units))
+    top = "\n".join(line for line in ("seed = 4", units) if line)
+    path.write_text(
+        argon_structure_run(
+            name,
+            system=system,
+            top=top,
+            dt=5.0,
+            run="steps = 4\nthermo_every = 2",
+            output='path = "out.h5"\nevery = 2\nvelocities = true',
+        )
+    )
     return path
 
 
