@@ -627,7 +627,7 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
     units, compressibility in sigma^3/epsilon or 1/bar; converted to engine units.
     """
     kind = table.read(_type_key(BAROSTAT_KEYS))
-    integrator_cls = integrator_class(integrator.type)
+    integrator_cls = integrator_class(integrator.type)  # resolved: read before [barostat]
     if not integrator_cls.thermostat:
         raise table.error(
             "type",
@@ -729,7 +729,10 @@ def potential_from_config(entry: PluginEntry, type_names, source: str, index: in
         if len(topology.angle_type_names) > 1 and "angle_types" not in params:
             params["angle_types"] = topology.angle_types
         params["angles"] = topology.angles
-    cls = potential_class(kind)
+    try:
+        cls = potential_class(kind)
+    except PluginError as error:
+        raise ConfigError(f"{source}: [potentials.{index}] type: {error}") from None
     try:
         return cls.from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
@@ -750,7 +753,10 @@ def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
         system_bonds = system_bonds.bonds
     params = dict(entry.values)
     kind = entry.type
-    cls = integrator_class(kind)
+    try:
+        cls = integrator_class(kind)
+    except PluginError as error:
+        raise ConfigError(f"{source}: [integrator] type: {error}") from None
     if "constraints" in params:
         if not cls.supports_constraints:
             raise ConfigError(f"{source}: [integrator] ({kind}) {_refuse_constraints()}")

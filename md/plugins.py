@@ -36,6 +36,8 @@ from md.errors import PluginError
 #: Entry-point group of each registry kind.
 GROUPS = {"potentials": "leapmd.potentials", "integrators": "leapmd.integrators"}
 logger = logging.getLogger(__name__)
+#: The shadowed entry points warned about, per group.
+_WARNED: set[tuple[str, tuple[str, ...]]] = set()
 
 
 def load(name: str, kind: str, builtins: Mapping[str, object],
@@ -55,7 +57,10 @@ def load(name: str, kind: str, builtins: Mapping[str, object],
         label = f"plug-in {name!r}"
     else:
         found, label = _entry_point(name, kind, builtins)
-    problem = check(found)
+    try:
+        problem = check(found)
+    except Exception as error:  # noqa: BLE001 (reading the user's class may raise anything)
+        problem = f"reading it raised {type(error).__name__}: {error}"
     if problem:
         raise PluginError(f"{label}: {problem}")
     return found
@@ -122,8 +127,9 @@ def _import(module_name: str, label: str):
 def _entry_point(name: str, kind: str, builtins: Mapping[str, object]) -> tuple[object, str]:
     group = GROUPS[kind]
     points = entry_points(group=group)
-    shadowed = sorted({p.name for p in points if p.name in builtins})
-    if shadowed:
+    shadowed = tuple(sorted({p.name for p in points if p.name in builtins}))
+    if shadowed and (group, shadowed) not in _WARNED:  # once per process
+        _WARNED.add((group, shadowed))
         logger.warning("entry point(s) %s of %s are shadowed by the built-ins of those names; "
                        "name them by module:attribute", ", ".join(shadowed), group)  # fmt: skip
     matches = [p for p in points if p.name == name]

@@ -92,8 +92,10 @@ def _potential_problem(found) -> str | None:
     keys = found.CONFIG_KEYS
     if not isinstance(keys, tuple) or not all(hasattr(k, "check") for k in keys):
         return f"CONFIG_KEYS must be a tuple of md.schema.Key, got {keys!r}"
-    if frame is None or found.from_config.__func__ is not frame.from_config.__func__:
+    if frame is None:
         return None  # its own from_config reads its keys
+    if getattr(found.from_config, "__func__", None) is not frame.from_config.__func__:
+        return None  # likewise
     names = key_names(keys)
     if frame is not PairPotential:  # the frame reads <item>s_file into <item>s
         names = tuple(n for n in names if n != f"{frame.ITEM}s_file")
