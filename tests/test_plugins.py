@@ -27,6 +27,7 @@ from integrators import integrator_class
 from md.cli import main
 from md.config import load_config
 from md.errors import PluginError
+from md.schema import REQUIRED
 from md.state import State
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -309,3 +310,22 @@ def test_the_ase_calculator_takes_a_plug_in_table_as_a_config_does(plugin_path):
     assert atoms.get_potential_energy() == pytest.approx(2.0 * math.exp(-((0.9 / 0.8) ** 2)))
     with pytest.raises(ValueError, match=r"potentials\[0\]: type plug-in 'user_pair:Gaussian'"):
         MDCalculator(potentials=[dict(table, type="user_pair:Gaussian")])
+
+
+def test_an_angle_style_without_config_keys_reads_its_table(tmp_path):
+    @potentials.angle_term(variable="cos")
+    def bend(c, k, c0):
+        return k * (c - c0) ** 2, 2.0 * k * (c - c0)
+
+    class Bend(potentials.AnglePotential):
+        def __init__(self, angles, k, c0=-1.0, angle_types=None):
+            super().__init__(bend, angles, angle_types, k=k, c0=c0)
+
+    keys = {k.name: k.default for k in Bend.CONFIG_KEYS}
+    assert list(keys) == ["angles", "angles_file", "k", "c0", "angle_types"]
+    assert keys["c0"] == -1.0 and keys["k"] is REQUIRED
+    (tmp_path / "angles.txt").write_text("# i j k\n0 1 2\n1 2 3\n")
+    built = Bend.from_config({"angles_file": str(tmp_path / "angles.txt"), "k": 2.0})
+    assert built.angles.tolist() == [[0, 1, 2], [1, 2, 3]]
+    with pytest.raises(ValueError, match="give exactly one of 'angles'"):
+        Bend.from_config({"k": 2.0})
