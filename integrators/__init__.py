@@ -10,14 +10,21 @@ teaching (``md integrators`` measures them all). The thermostats (Langevin,
 Bussi, Nose-Hoover chains, Berendsen) sample at a temperature; they and
 :class:`Rattle` (velocity Verlet with SHAKE/RATTLE) take rigid-bond
 ``constraints``.
+
+:func:`integrator_class` resolves a config's ``type``: a name in ``INTEGRATORS``, a
+plug-in registered under the entry-point group ``leapmd.integrators``, or a
+``module:attribute`` path (:mod:`md.plugins`); a plug-in is an
+:class:`IntegratorBase` subclass, as the built-in integrators are.
 """
 
+from md import plugins
 from md._kernel_cache import kernel_cache
 from md.errors import ConstraintError
+from md.schema import key_names
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
-    from integrators.base import ConvergenceError, Integrator
+    from integrators.base import ConvergenceError, Integrator, IntegratorBase
     from integrators.bdf2 import BDF2
     from integrators.berendsen import Berendsen
     from integrators.bussi import Bussi
@@ -73,6 +80,35 @@ INTEGRATORS = {
     "berendsen": Berendsen,
 }
 
+
+
+def integrator_class(name: str) -> type:
+    """The integrator class a config's ``type = name`` names: a built-in
+    (``INTEGRATORS``, which win over plug-ins of the same name), a plug-in under the
+    entry-point group ``leapmd.integrators``, or ``module:attribute``.
+
+    Raises :class:`md.errors.PluginError` naming the plug-in when it is missing, its import
+    raises, it is not an :class:`IntegratorBase` subclass with ``step`` and ``describe``,
+    or its constructor does not take its config keys.
+    """
+    return plugins.load(name, "integrators", INTEGRATORS, _integrator_problem)
+
+
+def _integrator_problem(found) -> str | None:
+    """What keeps ``found`` from serving as a config's integrator (None: nothing)."""
+    if not (isinstance(found, type) and issubclass(found, IntegratorBase)):
+        what = found.__name__ if isinstance(found, type) else f"{type(found).__name__} {found!r}"
+        return f"{what} is not an integrator: subclass integrators.base.IntegratorBase"
+    missing = [m for m in ("step", "describe") if not callable(getattr(found, m, None))]
+    if missing:
+        return f"{found.__name__} does not define {' and '.join(missing)}()"
+    keys = found.CONFIG_KEYS
+    if not isinstance(keys, tuple) or not all(hasattr(k, "check") for k in keys):
+        return f"CONFIG_KEYS must be a tuple of md.schema.Key, got {keys!r}"
+    supplied = ("kB",) if found.thermostat else ()  # the config adds kB (and seed, declared)
+    return plugins.signature_problem(found, key_names(keys), supplied)
+
+
 __all__ = [
     "BDF2",
     "INTEGRATORS",
@@ -91,6 +127,7 @@ __all__ = [
     "ImplicitEuler",
     "ImplicitMidpoint",
     "Integrator",
+    "IntegratorBase",
     "Langevin",
     "Leapfrog",
     "NoseHooverChain",
@@ -104,4 +141,5 @@ __all__ = [
     "XPBD",
     "Yoshida4",
     "Yoshida6",
+    "integrator_class",
 ]

@@ -42,9 +42,10 @@ from ase.stress import full_3x3_to_voigt_6_stress
 from numpy.typing import NDArray
 
 from md.box import TILT_AXES, cell_matrix, perpendicular_widths, reduced_tilt, restricted_cell
+from md.errors import PluginError
 from md.forcefield import ForceField
 from md.state import State, types_from_ase
-from potentials import POTENTIALS
+from potentials import potential_class
 from potentials.base import Potential, TypedParameters
 
 #: Internal atom count from which ``sort_atoms="auto"`` orders atoms spatially.
@@ -61,8 +62,9 @@ class MDCalculator(Calculator):
         cutoff=8.5)]``, or config-style tables whose per-type values are
         keyed by chemical symbol, e.g. ``{"type": "lj", "epsilon": {"Ar":
         0.0104, "Kr": 0.0140}, "sigma": {"Ar": 3.40, "Kr": 3.65}, "cutoff":
-        9.0}`` (built through ``potentials.POTENTIALS[type].from_config``;
-        the keys also give ``type_names`` when it is not passed).
+        9.0}`` (built through ``potentials.potential_class(type).from_config``:
+        a built-in style or a plug-in, as in a config; the keys also give
+        ``type_names`` when it is not passed).
     type_names : sequence of str, optional
         Name of each type index, in the order of per-type parameters. With
         ``types_from="numbers"`` these are chemical symbols and an atom's
@@ -479,12 +481,12 @@ def _build_potentials(entries: Sequence, type_names: Sequence[str] | None):
             continue
         params = dict(entry)
         kind = params.pop("type", None)
-        if kind not in POTENTIALS:
-            raise ValueError(
-                f"potentials[{index}]: type must be one of {', '.join(POTENTIALS)}, got {kind!r}"
-            )
+        try:  # a built-in style or a plug-in (md.plugins), as in a config
+            cls = potential_class(kind)
+        except PluginError as error:
+            raise ValueError(f"potentials[{index}]: type {error}") from None
         try:
-            built.append(POTENTIALS[kind].from_config(params, names or ()))
+            built.append(cls.from_config(params, names or ()))
         except (TypeError, ValueError) as error:
             raise ValueError(f"potentials[{index}] ({kind}): {error}") from None
     return built, names

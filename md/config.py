@@ -30,18 +30,18 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from integrators import INTEGRATORS, NoseHooverChain
+from integrators import INTEGRATORS, NoseHooverChain, integrator_class
 from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
 from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
-from md.errors import ConfigError
+from md.errors import ConfigError, PluginError
 from md.polymers import chain_angles, polymer_melt, single_chain
 from md.schema import REQUIRED, Key, Varies, key, key_names, section_keys
 from md.structure import read_structure
 from md.topology import Topology
 from md.units import UNIT_SYSTEMS, UnitSystem
-from potentials import POTENTIALS
+from potentials import POTENTIALS, potential_class
 
 #: Largest lattice accepted (4 x 10^7 fcc atoms), so a typo cannot exhaust memory.
 _MAX_CELLS = 10_000_000
@@ -396,11 +396,13 @@ def sections() -> tuple[Section, ...]:
                 "other key applies to the kinds of system its row names.",
                 section_keys(SystemConfig)),
         Section("potentials", "[[potentials]]",
-                "One table per potential, summed; `type` names it.",
+                "One table per potential, summed; `type` names it: a style below, or a "
+                "plug-in (an entry-point name or `module:attribute`; see the Plug-ins page).",
                 types={n: c.CONFIG_KEYS for n, c in POTENTIALS.items()},
                 summaries={n: _summary(c) for n, c in POTENTIALS.items()}),
         Section("integrator", "[integrator]",
-                "How the system moves; `type` names the integrator or thermostat.",
+                "How the system moves; `type` names the integrator or thermostat (or a "
+                "plug-in, as for `[[potentials]]`).",
                 types={n: c.CONFIG_KEYS for n, c in INTEGRATORS.items()},
                 summaries={n: _summary(c) for n, c in INTEGRATORS.items()}),
         Section("integrator.constraints", "[integrator.constraints]",
@@ -489,8 +491,8 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     potentials = []
     for index, entry in enumerate(raw_potentials):
         table = _Table(entry, f"potentials.{index}", source, base, units)
-        kind = table.read(_type_key(POTENTIALS))
-        values = table.plugin(kind, POTENTIALS[kind].CONFIG_KEYS, every_key)
+        kind, cls = _read_type(table, potential_class)
+        values = table.plugin(kind, cls.CONFIG_KEYS, every_key)
         for entry in _pair_files(values):  # a table style's file for one type pair
             if not Path(entry["file"]).is_absolute():
                 entry["file"] = str(base / entry["file"])  # relative to the config
@@ -534,6 +536,16 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
 
 def _type_key(registry: Mapping) -> Key:
     return Key("type", "string", REQUIRED, choices=tuple(registry))
+
+
+def _read_type(table: _Table, resolve) -> tuple[str, type]:
+    """A plug-in section's ``type`` and the class it names (``resolve``: a registry's
+    ``potential_class`` or ``integrator_class``; a plug-in's import happens here)."""
+    kind = table.read(Key("type", "string", REQUIRED))
+    try:
+        return kind, resolve(kind)
+    except PluginError as error:
+        raise table.error("type", str(error)) from None
 
 
 def _parse_system(table: _Table) -> SystemConfig:
@@ -585,8 +597,7 @@ def _parse_integrator(table: _Table, seed: int | None) -> PluginEntry:
     stream derived from the top-level seed (independent of the velocity draw).
     ``[integrator.constraints]`` is checked here and built later.
     """
-    kind = table.read(_type_key(INTEGRATORS))
-    cls = INTEGRATORS[kind]
+    kind, cls = _read_type(table, integrator_class)
     if "constraints" in table.data and not cls.supports_constraints:
         raise ConfigError(f"{table.source}: [integrator] ({kind}) {_refuse_constraints()}")
     every_key = {k.name for c in INTEGRATORS.values() for k in c.CONFIG_KEYS}
@@ -616,7 +627,7 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
     units, compressibility in sigma^3/epsilon or 1/bar; converted to engine units.
     """
     kind = table.read(_type_key(BAROSTAT_KEYS))
-    integrator_cls = INTEGRATORS[integrator.type]
+    integrator_cls = integrator_class(integrator.type)  # resolved: read before [barostat]
     if not integrator_cls.thermostat:
         raise table.error(
             "type",
@@ -663,7 +674,7 @@ def _parse_minimize(table: _Table, integrator: PluginEntry) -> MinimizeConfig:
 def input_files(config: Config) -> list[Path]:
     """The files a config reads: a structure file, and what its ``path`` keys name."""
     files = [] if config.system.structure is None else [Path(config.system.structure)]
-    tables = [(p.values, POTENTIALS[p.type].CONFIG_KEYS) for p in config.potentials]
+    tables = [(p.values, potential_class(p.type).CONFIG_KEYS) for p in config.potentials]
     tables.append((config.integrator.get("constraints") or {}, BondConstraints.CONFIG_KEYS))
     for values, keys in tables:
         files += [Path(values[k.name]) for k in keys
@@ -719,9 +730,17 @@ def potential_from_config(entry: PluginEntry, type_names, source: str, index: in
             params["angle_types"] = topology.angle_types
         params["angles"] = topology.angles
     try:
-        return POTENTIALS[kind].from_config(params, tuple(type_names))
+        cls = potential_class(kind)
+    except PluginError as error:
+        raise ConfigError(f"{source}: [potentials.{index}] type: {error}") from None
+    try:
+        return cls.from_config(params, tuple(type_names))
     except (ValueError, TypeError) as error:
         raise ConfigError(f"{where}: {error}") from None
+    except Exception as error:  # noqa: BLE001 (a plug-in's constructor may raise anything)
+        if kind in POTENTIALS:
+            raise
+        raise ConfigError(f"{where}: building it raised {type(error).__name__}: {error}") from None
 
 
 def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
@@ -734,8 +753,12 @@ def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
         system_bonds = system_bonds.bonds
     params = dict(entry.values)
     kind = entry.type
+    try:
+        cls = integrator_class(kind)
+    except PluginError as error:
+        raise ConfigError(f"{source}: [integrator] type: {error}") from None
     if "constraints" in params:
-        if not INTEGRATORS[kind].supports_constraints:
+        if not cls.supports_constraints:
             raise ConfigError(f"{source}: [integrator] ({kind}) {_refuse_constraints()}")
         try:
             constraints = BondConstraints.from_config(params["constraints"], system_bonds)
@@ -743,9 +766,14 @@ def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
         except (ValueError, TypeError) as error:
             raise ConfigError(f"{source}: [integrator.constraints]: {error}") from None
     try:
-        return INTEGRATORS[kind](**params)
+        return cls(**params)
     except (TypeError, ValueError) as error:
         raise ConfigError(f"{source}: [integrator] ({kind}): {error}") from None
+    except Exception as error:  # noqa: BLE001 (a plug-in's constructor may raise anything)
+        if kind in INTEGRATORS:
+            raise
+        raise ConfigError(f"{source}: [integrator] ({kind}): building it raised "
+                          f"{type(error).__name__}: {error}") from None  # fmt: skip
 
 
 def build_system(config: Config):

@@ -139,6 +139,12 @@ class ConfigError(ValueError):
     """An invalid configuration: the message names the file, key and value."""
 
 
+class PluginError(ValueError):
+    """A plug-in a config names cannot be used: not found, its import raised, or it is not
+    a class of the kind its section needs or its constructor does not fit its keys (the
+    message names the plug-in and what is wrong; :mod:`md.plugins`)."""
+
+
 class TrajectoryError(ValueError):
     """A file is not a trajectory this package can read (names the file and what is wrong)."""
 
@@ -195,6 +201,7 @@ __all__ = [
     "NonFiniteError",
     "OutputBusyError",
     "PairCollapseError",
+    "PluginError",
     "SimulationError",
     "SweepError",
     "TrajectoryError",

@@ -36,11 +36,12 @@ import scipy.sparse
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from md._checks import angle_array, bond_array
+from md._checks import angle_array, bond_array, read_bonds_file, read_index_file
 from md._kernel_cache import kernel_cache
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import AngleCollapseError, NonFiniteError
-from potentials._bonded import ListedTuples, symmetric
+from md.schema import REQUIRED, Key
+from potentials._bonded import ListedTuples, bonded_keys, config_values, symmetric
 from potentials._codegen import hash_value, identifier, template_copy
 from potentials.base import ForceResult
 from potentials.pair_hessian import PairHessian
@@ -374,11 +375,56 @@ def _compiling_the_term(method: Callable) -> Callable:
 
 # ------------------------------------------------------------------ the potentials
 class _TermPotential(ListedTuples):
-    """What bond and angle potentials share: a term, its per-type tables, its loops."""
+    """What bond and angle potentials share: a term, its per-type tables, its loops, and
+    a config table's reading (``CONFIG_KEYS``, :meth:`from_config`)."""
 
     term: BondedTerm
     #: Whether the parameters must be >= 0 (the built-in styles') or only finite.
     NONNEGATIVE = False
+    #: The keys of a style's config table (:func:`bond_config_keys`, :func:`angle_config_keys`).
+    CONFIG_KEYS: tuple[Key, ...] = ()
+    #: One member as a config writes it, for messages (``"[i, j]"``).
+    EXAMPLE = ""
+    #: Whether ``CONFIG_KEYS`` was made from the constructor (:meth:`__init_subclass__`).
+    _derived_keys = False
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        """A style that declares no ``CONFIG_KEYS`` (a plug-in's, say) and whose constructor
+        takes no ``term`` gets them from its constructor: the members (``bonds`` or
+        ``bonds_file``; ``angles`` or ``angles_file``), their types, and each other argument
+        as a parameter, a number or one per type, with the constructor's default."""
+        super().__init_subclass__(**kwargs)
+        if "CONFIG_KEYS" in cls.__dict__ or (cls.CONFIG_KEYS and not cls._derived_keys):
+            return
+        try:
+            signature = inspect.signature(cls.__init__).parameters
+        except (TypeError, ValueError):
+            return
+        item = getattr(cls, "ITEM", "")
+        own = ("self", f"{item}s", f"{item}_types")
+        if "term" in signature or not item:
+            return  # the frame's own classes, built from a term
+        parameters = tuple(
+            Key(name, "number or list", REQUIRED if p.default is p.empty else p.default,
+                doc=f"A parameter of {cls.__name__}: one for all {item}s, or one per {item} type.")
+            for name, p in signature.items()
+            if name not in own and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+        )  # fmt: skip
+        cls.CONFIG_KEYS = bonded_keys(item, cls.EXAMPLE, *parameters)
+        cls._derived_keys = True
+
+    @classmethod
+    def from_config(cls, params: Mapping, type_names=()):
+        """Build from a config table: the members (``<item>s``, a list of atom index lists,
+        or ``<item>s_file``, a text file of them), optional ``<item>_types`` and the
+        parameters, each a number or a list per type. ``type_names`` is unused: bonds and
+        angles name atoms, not types."""
+        return cls(**config_values(params, cls.CONFIG_KEYS, cls.ITEM, cls._read_file,
+                                   cls.EXAMPLE))  # fmt: skip
+
+    @staticmethod
+    def _read_file(path) -> np.ndarray:
+        raise NotImplementedError
 
     def _setup_term(self, term: BondedTerm, items: np.ndarray, item_types,
                     values: Mapping[str, ArrayLike]) -> None:  # fmt: skip
@@ -495,9 +541,11 @@ class BondPotential(_TermPotential):
     """
 
     ITEM = "bond"
+    EXAMPLE = "[i, j]"
     #: Name of the bond style: the built-in styles' config type, the bond type name in
     #: files; a user's term's name (``describe()`` says ``"bond_term"`` and the name).
     bond_style = "bond_term"
+    _read_file = staticmethod(read_bonds_file)
 
     def __init__(self, term: BondTerm, bonds: ArrayLike, bond_types: ArrayLike | None = None,
                  **values: float | ArrayLike) -> None:  # fmt: skip
@@ -600,9 +648,14 @@ class AnglePotential(_TermPotential):
     """
 
     ITEM = "angle"
+    EXAMPLE = "[i, j, k]"
     #: Name of the angle style: its config type, and the angle type name in files (a
     #: user's term's name; ``describe()`` says ``"angle_term"`` and the name).
     angle_style = "angle_term"
+
+    @staticmethod
+    def _read_file(path) -> np.ndarray:
+        return read_index_file(path, 3, "angles_file")
 
     def __init__(self, term: AngleTerm, angles: ArrayLike, angle_types: ArrayLike | None = None,
                  **values: float | ArrayLike) -> None:  # fmt: skip
@@ -664,6 +717,19 @@ class AnglePotential(_TermPotential):
 
     def _raise_bad(self, state, bad: int):
         raise AngleCollapseError(bad, tuple(int(a) for a in self.angles[bad]))
+
+
+def bond_config_keys(*parameters: Key) -> tuple[Key, ...]:
+    """A bond style's ``CONFIG_KEYS``: ``bonds`` or ``bonds_file``, its ``parameters``
+    (:class:`md.schema.Key`, kind ``"number or list"``: one per bond type) and
+    ``bond_types``; :meth:`BondPotential.from_config` reads them."""
+    return bonded_keys("bond", BondPotential.EXAMPLE, *parameters)
+
+
+def angle_config_keys(*parameters: Key) -> tuple[Key, ...]:
+    """An angle style's ``CONFIG_KEYS``: ``angles`` or ``angles_file``, its ``parameters``
+    and ``angle_types``; :meth:`AnglePotential.from_config` reads them."""
+    return bonded_keys("angle", AnglePotential.EXAMPLE, *parameters)
 
 
 def angle_values(state, angles: ArrayLike) -> NDArray[np.float64]:

@@ -25,6 +25,7 @@ and the code generator ``potentials._pair_codegen``.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import math
 import operator
@@ -39,7 +40,7 @@ import scipy.sparse as sp
 from md._checks import positive_scalar
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
-from md.schema import Key, check_names, key_names
+from md.schema import REQUIRED, Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials._cluster_ir import slp_vectorising
@@ -164,6 +165,20 @@ class PairPotential:
     CONFIG_KEYS: tuple[Key, ...] = ()
     #: The precisions :meth:`energy_forces` offers (``potentials.base.PRECISIONS``).
     PRECISIONS = PRECISIONS
+    #: Whether ``CONFIG_KEYS`` was made from the constructor (:meth:`__init_subclass__`).
+    _derived_keys = False
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        """A style that declares no ``CONFIG_KEYS`` (a plug-in's, say) gets them from its
+        constructor: its ``PARAMETERS`` (else its constructor's own arguments) as numbers
+        (one per type where ``MIXING`` names them) with the constructor's defaults, then the
+        frame's keys (:func:`pair_config_keys`), ``cutoff`` and ``cutoff_mode`` with the
+        constructor's defaults."""
+        super().__init_subclass__(**kwargs)
+        if "CONFIG_KEYS" in cls.__dict__ or (cls.CONFIG_KEYS and not cls._derived_keys):
+            return
+        cls.CONFIG_KEYS = _derived_config_keys(cls)
+        cls._derived_keys = True
 
     def __init__(
         self,
@@ -690,7 +705,9 @@ class PairPotential:
         ``cutoff_mode``, ``r_on``, ``mixing`` (styles that mix), and
         ``pairs``, a list of tables ``{types = [name, name], key = value, ...}``.
         """
-        names = cls.PARAMETERS or ()
+        names = cls.PARAMETERS
+        if names is None:  # the keys made from the constructor name them
+            names = tuple(n for n in key_names(cls.CONFIG_KEYS) if n not in _RESERVED)
         params = dict(params)
         check_names(params, cls.CONFIG_KEYS)
         for key in names:
@@ -843,6 +860,36 @@ def pair_config_keys(*parameters: Key, cutoff: float | None = 2.5, cutoff_mode: 
             doc="Single type pairs given their own values: `[[potentials.pairs]]` tables with "
                 f"`types = [a, b]` and any of {names}, `cutoff`, `r_on`."),
     )  # fmt: skip
+
+
+def _derived_config_keys(cls) -> tuple[Key, ...]:
+    """The ``CONFIG_KEYS`` of a style that declares none, from its constructor's signature
+    (see :meth:`PairPotential.__init_subclass__`)."""
+    try:
+        signature = inspect.signature(cls.__init__).parameters
+    except (TypeError, ValueError):
+        signature = {}
+    names = cls.PARAMETERS
+    if names is None:
+        names = tuple(n for n, p in signature.items() if n not in (*_RESERVED, "self", "term",
+                      "data") and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))  # fmt: skip
+
+    def default(name: str, otherwise=REQUIRED):
+        parameter = signature.get(name)
+        if parameter is None or parameter.default is parameter.empty:
+            return otherwise
+        return parameter.default
+
+    per_type = {name for rules in cls.MIXING.values() for name in rules}
+    parameters = tuple(
+        Key(name, "number, list or table" if name in per_type else "number", default(name),
+            doc=f"A parameter of {cls.__name__}"
+                + (" (one number, or per type, mixed by `mixing`)." if name in per_type else "."))
+        for name in names
+    )  # fmt: skip
+    return pair_config_keys(*parameters, cutoff=default("cutoff"),
+                            cutoff_mode=default("cutoff_mode", "shift"),
+                            mixing=tuple(cls.MIXING))  # fmt: skip
 
 
 def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: set[str]) -> dict:

@@ -66,10 +66,12 @@ def in_scratch(tmp_path, monkeypatch):
 
     One thread, so that the examples' timings do not depend on idle cores (a page
     that sets threads itself, as the performance page does, still can); the
-    process's thread count is restored afterwards.
+    process's thread count is restored afterwards. The example plug-in package is
+    importable, as the plug-ins page's ``PYTHONPATH=examples/plugin_package`` makes it.
     """
     shutil.copytree(ROOT / "examples", tmp_path / "examples")
     monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path / "examples" / "plugin_package"))
     threads = get_threads()
     set_threads(1)
     yield tmp_path

@@ -55,6 +55,10 @@ tests follow from that declaration:
 - **A new potential or integrator**: its class with `CONFIG_KEYS`, and its entry
   in `potentials.POTENTIALS` or `integrators.INTEGRATORS`; its section of this
   page appears by itself.
+- **A plug-in from outside the package** (a `module:attribute` path or an entry
+  point; see [Plug-ins](../guide/plugins.md)): its class's `CONFIG_KEYS`, declared
+  or made from its constructor; they are checked as a built-in's are, but not
+  listed here.
 
 The `kind` (one of `md.schema.KINDS`) says how the value is checked when the
 config is read; `unit` names a quantity of `md.units.UnitSystem.config_units`,
