@@ -92,7 +92,7 @@ from md.config import (
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.plot_style import grouped, legend_outside, reference_slopes, styles
-from md.run import build_potentials
+from md.assemble import build_potentials
 from md.simulation import Simulation
 from md.state import State
 from md.thermo import kinetic_energy

@@ -31,7 +31,7 @@ from md.cli import main
 from md.config import load_config
 from md.damping import bond_oscillator
 from md.polymers import single_chain
-from md.run import build_components
+from md.assemble import build_components
 from potentials import FENEBonds, HarmonicBonds, LennardJones
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -34,7 +34,8 @@ from md.calculator import MDCalculator
 from md.checkpoint import read_checkpoint, restore, write_checkpoint
 from md.errors import CheckpointError
 from md.observers import Progress
-from md.run import RunSummary, run_topology
+from md.assemble import run_topology
+from md.run import RunSummary
 from md.simulation import VirialUse
 from potentials import HarmonicBonds, LennardJones
 from potentials.base import ForceResult, TypedParameters

@@ -33,7 +33,7 @@ from md.cli import main
 from md.config import load_config
 from md.errors import AnalysisError, ConfigError
 from md.integrator_study import CSV_COLUMNS, prepare_study
-from md.run import build_components
+from md.assemble import build_components
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = lj_config_text(

@@ -19,7 +19,7 @@ import tomli_w
 from md.config import Config, parse_config
 from md.errors import ConfigError, SweepError, TrajectoryError
 from md.forcefield import ForceField
-from md.run import build_components
+from md.assemble import build_components
 from md.trajectory import read_frame_steps
 
 logger = logging.getLogger(__name__)
