@@ -82,6 +82,7 @@ from integrators import INTEGRATORS, VelocityVerlet
 from integrators.base import DeclaresAdaptive, DeclaresOrder, ForceSplit, Integrator
 from md._checks import count, positive
 from md._files import removed_on_error, unwritable_folder, write_csv_rows
+from md.assemble import build_potentials
 from md.config import (
     Config,
     PluginEntry,
@@ -92,7 +93,6 @@ from md.config import (
 from md.errors import ConfigError, ConvergenceError, NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.plot_style import grouped, legend_outside, reference_slopes, styles
-from md.assemble import build_potentials
 from md.simulation import Simulation
 from md.state import State
 from md.thermo import kinetic_energy

@@ -29,11 +29,11 @@ from test_respa import FENE, RUN
 import md.analysis_output
 import md.integrator_study
 from md.analysis import AnalysisResults, MSDResult, ThermoResult, analyze, prepare_analysis
+from md.assemble import build_components
 from md.cli import main
 from md.config import load_config
 from md.errors import AnalysisError, ConfigError
 from md.integrator_study import CSV_COLUMNS, prepare_study
-from md.assemble import build_components
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = lj_config_text(
