@@ -30,8 +30,8 @@ from md.assemble import build_components
 from md.checkpoint import CheckpointError, checkpoint_path, read_checkpoint, restore
 from md.cli import main
 from md.config import load_config
-from md.damping import bond_oscillator
 from md.polymers import single_chain
+from md.studies import bond_oscillator
 from potentials import FENEBonds, HarmonicBonds, LennardJones
 
 ROOT = Path(__file__).resolve().parents[1]
