@@ -78,8 +78,7 @@ LAYERS = {
     3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.assemble", "md.run"],
     4: [
         "md.render",
-        "md.analysis_output",
-        "md.analysis",
+        "md.analysis.*",
         "md.studies.*",
         "md.calculator",
         "md.validate",

@@ -26,7 +26,7 @@ import pytest
 from conftest import lj_config_text
 from test_respa import FENE, RUN
 
-import md.analysis_output
+import md.analysis.output
 import md.studies.study
 from md.analysis import AnalysisResults, MSDResult, ThermoResult, analyze, prepare_analysis
 from md.assemble import build_components
@@ -293,7 +293,7 @@ def test_analysis_that_fails_to_write_leaves_none_of_its_files(trajectory, tmp_p
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setitem(md.analysis_output.WRITERS, "msd", disk_full)
+    monkeypatch.setitem(md.analysis.output.WRITERS, "msd", disk_full)
     out = tmp_path / "o"
     assert main(["analyze", str(trajectory), "--thermo", "--msd", "--out", str(out),
                  "--no-progress"]) == 2  # fmt: skip

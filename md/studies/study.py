@@ -22,13 +22,7 @@ from integrators.base import ForceSplit
 from md._checks import count, positive
 from md._files import removed_on_error, unwritable_folder
 from md.assemble import build_potentials
-from md.config import (
-    Config,
-    PluginEntry,
-    build_system,
-    integrator_from_config,
-    load_config,
-)
+from md.config import Config, PluginEntry, build_system, integrator_from_config, load_config
 from md.errors import ConfigError, SimulationError
 from md.forcefield import ForceField
 from md.simulation import Simulation
