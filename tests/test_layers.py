@@ -75,7 +75,7 @@ LAYERS = {
         "md.distributed.simulation",
         "md.distributed",
     ],
-    3: ["md.trajectory", "md.checkpoint", "md.structure", "md.config", "md.assemble", "md.run"],
+    3: ["md.trajectory.*", "md.checkpoint", "md.structure", "md.config", "md.assemble", "md.run"],
     4: [
         "md.render",
         "md.analysis.*",
