@@ -56,9 +56,7 @@ LAYERS = {
     ],
     1: ["potentials.*", "integrators.*"],
     2: [
-        "md._cell_kernels",
-        "md._cluster_kernels",
-        "md.neighbors",
+        "md.neighbors.*",
         "md.forcefield",
         "md.simulation",
         "md.observers",
@@ -96,7 +94,7 @@ PLUGIN_IMPORTS = {
 }
 #: The module each private module of md above layer 0 serves: the only one that imports it
 #: (md is one package across layers, so "within its own package" says too little there).
-PRIVATE_OWNERS = {"md._cell_kernels": "md.neighbors", "md._cluster_kernels": "md.neighbors"}
+PRIVATE_OWNERS: dict[str, str] = {}
 #: Project imports allowed inside functions, with why.
 LATE_PROJECT_IMPORTS = {
     ("md", "md.sweeps"): "md.sweep() loads the Dask machinery on first use",
@@ -515,10 +513,10 @@ def test_checker_lets_correct_imports_through():
 @pytest.mark.parametrize(
     "module, source",
     [
-        ("md.simulation", "from md._cell_kernels import _max_displacement2\n"),
-        ("md.simulation", "from md._cell_kernels import MAX_SLOTS\n"),  # a private module
-        ("md.run", "import md._cell_kernels\n"),
-        ("md.forcefield", "from md import _cell_kernels\n"),
+        ("md.simulation", "from md.neighbors._build_kernels import _max_displacement2\n"),
+        ("md.simulation", "from md.neighbors._cell_kernels import MAX_SLOTS\n"),  # private
+        ("md.run", "import md.neighbors._cell_kernels\n"),
+        ("md.forcefield", "from md.neighbors import _cell_kernels\n"),
         ("md.simulation", "from md.neighbors import _MAX_CELLS_PER_ATOM\n"),
         ("md.forcefield", "from md._checks import _private_helper\n"),  # layer 0: public only
         ("potentials.springs", "from integrators._kernels import kick\n"),  # another package
@@ -532,7 +530,8 @@ def test_checker_flags_private_names_and_modules(module, source):
 
 def test_checker_lets_a_package_use_its_own_private_modules():
     for module, source in [
-        ("md.neighbors", "from md._cell_kernels import _cell_list, MAX_SLOTS\n"),
+        ("md.neighbors.lists", "from md.neighbors._cell_kernels import _brute_force_pairs\n"),
+        ("md.neighbors._build_kernels", "from md.neighbors._cell_kernels import MAX_SLOTS\n"),
         ("integrators.langevin", "from integrators._kernels import _drift\n"),
         ("potentials.springs", "from potentials._kernels import _add_half_pair_virial\n"),
         ("md.run", "from md._files import atomic_path\n"),

@@ -1,4 +1,13 @@
-"""Verlet neighbour lists built from cell lists."""
+"""Verlet neighbour lists built from cell lists.
+
+A note on its length (about 1000 lines, over the 800 where a module is split): nearly
+all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
+brute-force, cell and cluster builds and the prune share its buffers and reference
+positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
+kernels. The kernels are the package's private modules (``_cell_kernels`` and
+``_candidates``: the search; ``_build_kernels``: the build around it;
+``_cluster_kernels``: the cluster-pair list).
+"""
 
 from __future__ import annotations
 
@@ -11,19 +20,26 @@ import numpy as np
 from numba.core import config as numba_config
 from numpy.typing import NDArray
 
-from md._cell_kernels import (
-    MAX_SLOTS,
+from md.box import (
+    TILT_NAMES,
+    cell_matrix,
+    is_orthorhombic,
+    periodic_lengths,
+    periodic_tilt,
+    perpendicular_widths,
+)
+from md.errors import NonFiniteError
+from md.neighbors._build_kernels import (
     _atom_space_list,
     _balanced_bounds,
-    _brute_force_pairs,
     _cell_list,
-    _keep_owned_pairs,
     _largest_coordinates,
     _largest_displacement2,
     _max_displacement2,
     _shift_table,
 )
-from md._cluster_kernels import (
+from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
+from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
     cluster_grid,
@@ -34,15 +50,6 @@ from md._cluster_kernels import (
     row_reach,
     search_pairs,
 )
-from md.box import (
-    TILT_NAMES,
-    cell_matrix,
-    is_orthorhombic,
-    periodic_lengths,
-    periodic_tilt,
-    perpendicular_widths,
-)
-from md.errors import NonFiniteError
 from md.parallel import chunk_count
 from md.state import State
 
