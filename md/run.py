@@ -22,7 +22,6 @@ import contextlib
 import logging
 import math
 import os
-import signal
 import time
 import tomllib
 import uuid
@@ -33,14 +32,13 @@ from pathlib import Path
 import numpy as np
 
 from integrators.base import Statistics
-from md._checks import count, positive
-from md._files import claim_holder, exclusive_claim, output_target, remove_stale_temporaries
+from md._checks import count
+from md._files import exclusive_claim, remove_stale_temporaries
 from md.assemble import (
     build_components,
     build_potentials,
     build_simulation,
     run_topology,
-    set_run_threads,
 )
 from md.checkpoint import (
     Checkpoint,
@@ -53,8 +51,6 @@ from md.checkpoint import (
 )
 from md.config import (
     Config,
-    MinimizeConfig,
-    input_files,
     load_config,
     parse_config,
 )
@@ -63,28 +59,30 @@ from md.errors import (
     CheckpointError,
     ConfigError,
     ConvergenceError,
-    NonFiniteError,
-    OutputBusyError,
     SimulationError,
     TrajectoryError,
 )
-from md.interrupts import take_pending
+from md.guards import (
+    ABORTED,
+    COMPLETED,
+    FAILED,
+    OUTPUT_ERROR,
+    STOPPED,
+    StopRequest,
+    catch_stop_signals,
+    refuse_claimed,
+    refuse_inputs_as_outputs,
+    restore_signals,
+    writable_output,
+)
 from md.minimize import MinimizeResult, minimize
 from md.parallel import global_sum
+from md.relax import MinimizeSummary, PreparedMinimize, minimize_config, prepare_minimize
 from md.simulation import Simulation
 from md.state import State
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
 
 logger = logging.getLogger(__name__)
-
-#: Statuses of a finished :meth:`PreparedRun.execute`.
-COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
-    "completed",
-    "failed",
-    "output_error",
-    "stopped",
-    "aborted",
-)
 
 
 @dataclass
@@ -304,12 +302,12 @@ class PreparedRun:
         """
         with self._claim():
             if self.config.minimize is not None and self.checkpoint is None:
-                stop = _Stop()
-                previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+                stop = StopRequest()
+                previous = catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
                 try:
                     self.minimize(minimize_progress, stop=stop)
                 finally:
-                    _restore_signals(previous)
+                    restore_signals(previous)
                 if stop.signal is not None and self.ranks is not None:
                     # Every rank must leave together: the run stops at its first step.
                     self.sim.request_stop(stop.signal)
@@ -363,7 +361,7 @@ class PreparedRun:
         neighbors = sim.forcefield.neighbor_list
         late_before = neighbors.n_late_looks if neighbors is not None else 0
         previous = (
-            _catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
+            catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
             if handle_signals
             else {}
         )
@@ -385,7 +383,7 @@ class PreparedRun:
         except (OSError, RuntimeError) as error:  # disk full (h5py raises either), file removed
             summary.status, summary.message = OUTPUT_ERROR, str(error)
         finally:
-            _restore_signals(previous)
+            restore_signals(previous)
         summary.wall = time.perf_counter() - start
         n_frames = on_root(ranks, lambda: writer.n_frames)
         last_step = on_root(ranks, lambda: saver.last_step)
@@ -569,13 +567,13 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
         config = _seeded(config, ranks)
     where = "--output" if output is not None else f"{config.source}: [output] path"
     try:
-        output = _writable_output(Path(output) if output is not None else config.output.path)
+        output = writable_output(Path(output) if output is not None else config.output.path)
     except ConfigError as error:  # say where the path came from
         raise ConfigError(f"{where}: {error}") from None
     saved_path = checkpoint_path(output)
-    _writable_output(saved_path)
-    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
-    _refuse_claimed(output)
+    writable_output(saved_path)
+    refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
+    refuse_claimed(output)
     fingerprint = physics_fingerprint(config)
     checkpoint = None
     if resume:
@@ -676,236 +674,7 @@ def run_config(
     return prepared.sim, prepared.execute()
 
 
-# ------------------------------------------------------------------ md minimize
-#: Suffixes of the H5MD files ``md minimize`` writes.
-H5MD_SUFFIXES = (".h5", ".hdf5", ".h5md", ".hdf")
-
-
-@dataclass
-class MinimizeSummary:
-    """What :meth:`PreparedMinimize.execute` did.
-
-    ``status`` is ``"completed"`` (the structure was written; ``result.converged``
-    says whether FIRE reached ``fmax``), ``"failed"`` (forces became
-    non-finite), ``"output_error"`` (the file could not be written, e.g. disk
-    full: nothing was left) or ``"stopped"`` (a signal, named in ``signal``:
-    nothing was written). ``message`` holds the error.
-    """
-
-    status: str
-    output: Path
-    result: MinimizeResult | None = None
-    message: str = ""
-    signal: str | None = None
-
-
-@dataclass
-class PreparedMinimize:
-    """A validated minimisation that has written nothing yet (see :func:`prepare_minimize`).
-
-    ``stage`` holds the FIRE settings in use (the config's ``[minimize]``
-    with the arguments' overrides); ``output`` is the file to write (a
-    symlink's target).
-    """
-
-    config: Config
-    sim: Simulation
-    output: Path
-    overwrite: bool
-    stage: MinimizeConfig
-
-    def execute(
-        self,
-        callback: Callable[[int, float, float], None] | None = None,
-        handle_signals: bool = True,
-    ) -> MinimizeSummary:
-        """Claim the output, minimise, and write the structure as a one-frame H5MD file.
-
-        The file is built in memory and written whole at the end, so a full
-        disk, an error or a signal leaves no file behind. SIGINT/SIGTERM stop
-        the minimisation at its next step (a second one at once).
-
-        Raises
-        ------
-        ConfigError
-            If the output appeared meanwhile.
-        OutputBusyError
-            If another run claimed the output meanwhile.
-        """
-        with contextlib.ExitStack() as claimed:
-            try:
-                claimed.enter_context(exclusive_claim(self.output))
-            except OutputBusyError:
-                raise
-            except OSError as error:  # no room even for the claim's lock file
-                return MinimizeSummary(OUTPUT_ERROR, self.output, message=str(error))
-            remove_stale_temporaries(self.output)
-            if self.output.exists() and not self.overwrite:
-                raise ConfigError(f"output file {self.output} appeared while minimising started")
-            return self._execute(callback, handle_signals)
-
-    def _execute(self, callback, handle_signals: bool) -> MinimizeSummary:
-        sim, stage, state = self.sim, self.stage, self.sim.state
-        stop = _Stop()
-        previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
-        try:
-            result = minimize(
-                state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
-                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
-                stop=stop,
-            )  # fmt: skip
-        except NonFiniteError as error:
-            return MinimizeSummary(FAILED, self.output, message=str(error))
-        finally:
-            _restore_signals(previous)
-        if result.stopped:
-            return MinimizeSummary(STOPPED, self.output, result, signal=stop.signal)
-        try:
-            with H5MDWriter(
-                self.output, state, units=self.config.units, overwrite=self.overwrite,
-                topology=run_topology(sim), in_memory=True,
-                parameters={"config": self.config.text, "minimize": result.describe()},
-            ) as writer:  # fmt: skip
-                writer.write(state, thermo=sim.thermo())
-        except OSError as error:
-            return MinimizeSummary(OUTPUT_ERROR, self.output, result, message=str(error))
-        return MinimizeSummary(COMPLETED, self.output, result)
-
-
-def prepare_minimize(
-    path_or_config: str | os.PathLike | Config,
-    output: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    fmax: float | None = None,
-    max_steps: int | None = None,
-    max_force: float | None = None,
-    threads: int | None = None,
-) -> PreparedMinimize:
-    """Validate and build what ``md minimize`` does; write nothing.
-
-    Parameters
-    ----------
-    path_or_config : path or Config
-        The config describing the system; its ``[minimize]`` table gives
-        the defaults.
-    output : path, optional
-        H5MD file to write (``.h5``, ``.hdf5``, ``.h5md``); default
-        ``<[output] path stem>_min.h5``.
-    overwrite : bool
-        Replace an existing output (never a file another run is writing,
-        one of the config's inputs, or anything but a regular file).
-    fmax, max_steps, max_force : optional
-        Override ``[minimize]`` fmax [energy/length], max_steps and the
-        push-off's force cap.
-    threads : int, optional
-        Kernel threads, overriding ``[run] threads``.
-
-    Raises
-    ------
-    ConfigError
-        For anything wrong; the message names the option, key or file.
-    """
-    config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
-    config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
-    overrides = {}
-    try:
-        if fmax is not None:
-            overrides["fmax"] = positive(fmax, "--fmax")
-        if max_steps is not None:
-            overrides["max_steps"] = count(max_steps, "--max-steps", minimum=1)
-        if max_force is not None:
-            overrides["max_force"] = positive(max_force, "--max-force")
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    stage = replace(config.minimize or MinimizeConfig(), **overrides)
-    if output is None:
-        output = config.output.path.with_name(f"{config.output.path.stem}_min.h5")
-    output = _writable_output(Path(output))
-    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output,))
-    if output.suffix.lower() not in H5MD_SUFFIXES:
-        raise ConfigError(
-            f"{output}: md minimize writes H5MD, so name the output *.h5; to get another "
-            f"format, convert it afterwards: md convert {output.with_suffix('.h5')} {output}"
-        )
-    _refuse_claimed(output)
-    if output.exists() and not overwrite:
-        raise ConfigError(f"{output} already exists; pass --overwrite or choose --output")
-    state, potentials, integrator = build_components(config)
-    set_run_threads(config, threads)
-    try:
-        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units,
-                         precision=config.run.precision,
-                         outer_skin=config.run.outer_skin)  # fmt: skip
-    except ValueError as error:
-        raise ConfigError(f"{config.source}: {error}") from None
-    return PreparedMinimize(config, sim, output, overwrite, stage)
-
-
-def minimize_config(
-    path_or_config: str | os.PathLike | Config, **options
-) -> tuple[Simulation, MinimizeSummary]:
-    """Minimise the structure a config builds and write it, as ``md minimize`` does.
-
-    ``options`` are those of :func:`prepare_minimize`. Returns the Simulation
-    (at the relaxed state) and a :class:`MinimizeSummary`.
-    """
-    prepared = prepare_minimize(path_or_config, **options)
-    return prepared.sim, prepared.execute()
-
-
 # ------------------------------------------------------------------ helpers
-def _writable_output(output: Path) -> Path:
-    """The file an output path writes (a symlink's target); ConfigError if it cannot be one.
-
-    Refused: a path naming no file, a directory, a special file (FIFO, device
-    node, socket: never replaced), a missing or unwritable directory.
-    """
-    if output.name in ("", ".", ".."):
-        raise ConfigError(f"output path {str(output)!r} names no file")
-    if output.is_dir():
-        raise ConfigError(f"output path {output} is a directory")
-    try:
-        target = output_target(output)
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    if not target.parent.is_dir():
-        raise ConfigError(f"output directory {target.parent} does not exist")
-    if not os.access(target.parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"output directory {target.parent} is not writable")
-    return target
-
-
-def _refuse_claimed(output: Path) -> None:
-    """ConfigError if a live run holds the claim on ``output`` (see md._files.exclusive_claim)."""
-    holder = claim_holder(output)
-    if holder is not None:
-        raise ConfigError(
-            f"{output} is being written by another run ({holder}); wait for it to end, "
-            "or choose another --output"
-        )
-
-
-def _input_files(config: Config, path_or_config) -> list[Path]:
-    """The files a run reads: the config, a structure file, bonds and angles files."""
-    files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
-    return files + input_files(config)
-
-
-def _refuse_inputs_as_outputs(config: Config, config_file: str, path_or_config, outputs) -> None:
-    """Raise ConfigError if an output (or its checkpoint) is one of the run's input files."""
-    for source in _input_files(config, path_or_config):
-        for target in outputs:
-            try:
-                same = source.exists() and target.exists() and os.path.samefile(source, target)
-            except OSError:
-                same = False
-            if same or source.resolve() == target.resolve():
-                raise ConfigError(
-                    f"output {target} is an input of this run ({source}); choose another "
-                    "--output (--overwrite never replaces the run's own inputs)"
-                )
-
-
 def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     """Raise ConfigError unless ``output`` holds the frames ``checkpoint`` counted."""
     steps, parameters = read_frame_steps(output)
@@ -923,51 +692,12 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     verify_frames(output, n)  # the frames kept must be intact (checksums)
 
 
-def _catch_stop_signals(request: Callable[[str], None], pending: Callable[[], str | None]) -> dict:
-    """SIGINT/SIGTERM call ``request(name)`` (stop at the next step); a second one stops at once.
-
-    ``pending()`` says whether a stop was asked for already. Returns the
-    handlers replaced, for :func:`_restore_signals`.
-    """
-
-    def handler(signum, frame):
-        if pending() is not None:
-            raise KeyboardInterrupt
-        request(signal.Signals(signum).name)
-
-    previous = {}
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        try:
-            previous[signum] = signal.signal(signum, handler)
-        except ValueError:  # not the main thread: leave signals alone
-            break
-    if previous and take_pending():  # a Ctrl-C during start-up that compilation swallowed
-        request("SIGINT")
-    return previous
-
-
-class _Stop:
-    """A stop asked for by a signal while minimising: FIRE's ``stop`` callable."""
-
-    def __init__(self) -> None:
-        self.signal: str | None = None
-
-    def request(self, name: str) -> None:
-        self.signal = name
-
-    def pending(self) -> str | None:
-        return self.signal
-
-    def __call__(self) -> bool:
-        return self.signal is not None
-
-
-def _restore_signals(previous: dict) -> None:
-    for signum, handler in previous.items():
-        signal.signal(signum, handler)
-
-
 __all__ = [
+    "ABORTED",
+    "COMPLETED",
+    "FAILED",
+    "OUTPUT_ERROR",
+    "STOPPED",
     "MinimizeSummary",
     "PreparedMinimize",
     "PreparedRun",

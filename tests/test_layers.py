@@ -73,7 +73,16 @@ LAYERS = {
         "md.distributed.simulation",
         "md.distributed",
     ],
-    3: ["md.trajectory.*", "md.checkpoint", "md.structure", "md.config", "md.assemble", "md.run"],
+    3: [
+        "md.trajectory.*",
+        "md.checkpoint",
+        "md.structure",
+        "md.config",
+        "md.assemble",
+        "md.guards",
+        "md.relax",
+        "md.run",
+    ],
     4: [
         "md.render",
         "md.analysis.*",

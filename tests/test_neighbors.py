@@ -329,10 +329,10 @@ def test_cutoff_too_long_for_a_periodic_edge_raises(edge):
 def test_more_atoms_than_the_packed_slots_hold_raises(monkeypatch, fcc_lattice):
     """The cell search packs slot and image code in 32 bits: a list of more atoms than that
     holds is refused with the limit in the message, not silently wrapped."""
-    import md.neighbors
+    import md.neighbors.lists
 
     state = fcc_lattice(cells=5)  # 500 atoms
-    monkeypatch.setattr(md.neighbors, "MAX_SLOTS", 499)
+    monkeypatch.setattr(md.neighbors.lists, "MAX_SLOTS", 499)
     with pytest.raises(ValueError, match="at most 499 atoms per process, got 500"):
         NeighborList(2.5, 0.3).build(state)
 
