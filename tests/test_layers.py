@@ -21,6 +21,7 @@ sources that break it, so a rule that stopped finding anything would fail.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -479,6 +480,49 @@ def test_late_exemptions_are_still_needed():
             module,
             imported,
         )
+
+
+def _doc_spellings(entry: str) -> list[str]:
+    """How ARCHITECTURE.md may name an entry of LAYERS: ``md/box.py`` for a module, and a
+    family ``md/analysis/*`` for a package (``md.analysis.*``) or any module inside one."""
+    parts = entry.removesuffix(".*").split(".")
+    if entry.endswith(".*"):
+        return ["/".join(parts) + "/*"]
+    spellings = ["/".join(parts) + ".py"]
+    if entry in MODULES and MODULES[entry].name == "__init__.py":
+        spellings.append("/".join(parts) + "/*")
+    spellings += ["/".join(parts[:k]) + "/*" for k in range(len(parts) - 1, 1, -1)]
+    return spellings
+
+
+def unnamed_modules(text: str, layers: dict[int, list[str]]) -> list[str]:
+    """The entries of ``layers`` that ``text`` names in none of their spellings."""
+    return [
+        entry
+        for entries in layers.values()
+        for entry in entries
+        if not any(re.search(rf"(?<![\w/.]){re.escape(s)}(?![\w])", text)
+                   for s in _doc_spellings(entry))
+    ]  # fmt: skip
+
+
+def test_architecture_names_every_module_of_the_layer_table():
+    text = (ROOT / "ARCHITECTURE.md").read_text()
+    assert not unnamed_modules(text, LAYERS), "ARCHITECTURE.md does not name these modules"
+
+
+def test_the_architecture_check_flags_an_unnamed_module():
+    text = (ROOT / "ARCHITECTURE.md").read_text()
+    assert unnamed_modules(text.replace("md/box.py", "md/box"), LAYERS) == ["md.box"]
+    assert unnamed_modules(text.replace("md/neighbors/*", "md/neighbors"), LAYERS) == [
+        "md.neighbors.*"
+    ]
+    family = {4: ["md.analysis.*", "md.distributed.grid", "md.distributed"]}
+    assert not unnamed_modules("md/analysis/* md/distributed/*", family)
+    assert unnamed_modules("md/analysis.py md/cli/run.py", {4: ["md.analysis.*", "md.run"]}) == [
+        "md.analysis.*",
+        "md.run",
+    ]
 
 
 # The checker on sources that break each rule: every pattern must be flagged.
