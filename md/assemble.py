@@ -86,6 +86,12 @@ def build_potentials(config: Config, type_names, bonds=None) -> list:
 
 
 def build_simulation(config: Config, checkpoint, saved_path: Path, threads, ranks=None):
+    """The Simulation ``md run`` runs: built from the config (or ``checkpoint``'s state,
+    restored into it), on ``ranks`` a DistributedSimulation, its first forces evaluated.
+
+    Raises ConfigError naming the file and table (``--resume`` and ``saved_path`` for a
+    checkpoint that does not fit the config) for anything that cannot be built.
+    """
     shape = config.run.decomposition
     if ranks is None and shape is not None and math.prod(shape) != 1:
         raise ConfigError(

@@ -119,6 +119,7 @@ class StopRequest:
 
 
 def restore_signals(previous: dict) -> None:
+    """Put back the handlers :func:`catch_stop_signals` replaced."""
     for signum, handler in previous.items():
         signal.signal(signum, handler)
 

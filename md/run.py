@@ -34,12 +34,9 @@ import numpy as np
 from integrators.base import Statistics
 from md._checks import count
 from md._files import exclusive_claim, remove_stale_temporaries
-from md.assemble import (
-    build_components,
-    build_potentials,
-    build_simulation,
-    run_topology,
-)
+from md.assemble import build_components as build_components  # moved; importable from here
+from md.assemble import build_potentials as build_potentials  # moved; importable from here
+from md.assemble import build_simulation, run_topology
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -77,7 +74,10 @@ from md.guards import (
 )
 from md.minimize import MinimizeResult, minimize
 from md.parallel import global_sum
-from md.relax import MinimizeSummary, PreparedMinimize, minimize_config, prepare_minimize
+from md.relax import MinimizeSummary as MinimizeSummary  # moved; importable from here
+from md.relax import PreparedMinimize as PreparedMinimize  # moved; importable from here
+from md.relax import minimize_config as minimize_config  # moved; importable from here
+from md.relax import prepare_minimize as prepare_minimize  # moved; importable from here
 from md.simulation import Simulation
 from md.state import State
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
@@ -693,20 +693,9 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
 
 
 __all__ = [
-    "ABORTED",
-    "COMPLETED",
-    "FAILED",
-    "OUTPUT_ERROR",
-    "STOPPED",
-    "MinimizeSummary",
-    "PreparedMinimize",
     "PreparedRun",
     "RunSummary",
-    "build_components",
-    "build_potentials",
-    "minimize_config",
     "prepare",
-    "prepare_minimize",
     "run_config",
 ]
 # Errors a caller of prepare() should expect, for ``except`` clauses.
