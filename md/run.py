@@ -74,6 +74,7 @@ from md.guards import (
 )
 from md.minimize import MinimizeResult, minimize
 from md.parallel import global_sum
+from md.relax import H5MD_SUFFIXES as H5MD_SUFFIXES  # moved; importable from here
 from md.relax import MinimizeSummary as MinimizeSummary  # moved; importable from here
 from md.relax import PreparedMinimize as PreparedMinimize  # moved; importable from here
 from md.relax import minimize_config as minimize_config  # moved; importable from here
