@@ -15,7 +15,7 @@ fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin 0.3, velocity V
 forces come before the clock.
 
 - ``ours``: the config's system, potentials and integrator
-  (``md.run.build_components``), on a :class:`md.distributed.DistributedSimulation`
+  (``md.assemble.build_components``), on a :class:`md.distributed.DistributedSimulation`
   under several ranks, else a :class:`md.simulation.Simulation`, in a process set up
   as ``md run`` sets it up (``md.keep_freed_memory()``: at 2M atoms on 2 ranks it
   halves the page faults of the list builds, 35-52 to 23-26 thousand a run), after a
@@ -60,9 +60,9 @@ def _comm():
 def _simulation(cells, balance_every: int = 0, balance_threshold: float = 1.05):
     """The LJ melt config's simulation with ``cells`` fcc cells (decomposed under ranks,
     balanced every ``balance_every`` steps if not 0)."""
+    from md.assemble import build_components
     from md.config import parse_config
     from md.distributed import DistributedSimulation, mpi_ranks
-    from md.run import build_components
     from md.simulation import Simulation
 
     data = tomllib.loads(CONFIG.read_text())

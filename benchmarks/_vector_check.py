@@ -51,7 +51,7 @@ def report(styles: bool = False) -> None:
     import numpy as np
 
     import md
-    from md import _cell_kernels
+    from md.neighbors import _cell_kernels
     from potentials import POTENTIALS, LennardJones, PairPotential
     from potentials._pair_codegen import kernels_for
 

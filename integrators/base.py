@@ -7,17 +7,17 @@ that leaves a hook out is simply not asked:
 ======================  ==========================================  ==============================
 protocol                members                                     used by
 ======================  ==========================================  ==============================
-:class:`Constrained`    ``constraints`` (BondConstraints or None)   md.run (binding, topology),
+:class:`Constrained`    ``constraints`` (BondConstraints or None)   md.assemble (bind, topology),
                                                                     barostats
 :class:`ThermoTerms`    ``thermo_terms(state, result)``             Simulation.thermo
 :class:`Statistics`     ``statistics`` (dict of counters)           md run's summary, barostats
 :class:`Restartable`    ``get_state()``, ``set_state(saved)``       checkpoints
-:class:`ForceSplit`     ``split(forcefield)``                       md.run (RESPA's, XPBD's check)
-:class:`SupportsAm-     ``amplification(omega_dt)`` (static)        md.damping (theory curves)
+:class:`ForceSplit`     ``split(forcefield)``                       md.assemble (RESPA/XPBD check)
+:class:`SupportsAm-     ``amplification(omega_dt)`` (static)        md.studies (damping theory)
 plification`
 :class:`Distributable`  ``distributed``, ``per_atom_state``         md.distributed
-:class:`DeclaresOrder`  ``order`` (of an integrator or a factory)   md.integrator_study
-:class:`DeclaresAdap-   ``adaptive`` (the same)                     md.integrator_study
+:class:`DeclaresOrder`  ``order`` (of an integrator or a factory)   md.studies.integrator_study
+:class:`DeclaresAdap-   ``adaptive`` (the same)                     md.studies.integrator_study
 tive`
 ======================  ==========================================  ==============================
 

@@ -22,7 +22,6 @@ import contextlib
 import logging
 import math
 import os
-import signal
 import time
 import tomllib
 import uuid
@@ -32,10 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators.barostats import Barostat, pressure_control
-from integrators.base import ForceSplit, Statistics, constraints_of
-from md._checks import count, positive
-from md._files import claim_holder, exclusive_claim, output_target, remove_stale_temporaries
+from integrators.base import Statistics
+from md._checks import count
+from md._files import exclusive_claim, remove_stale_temporaries
+from md.assemble import build_components as build_components  # moved; importable from here
+from md.assemble import build_potentials as build_potentials  # moved; importable from here
+from md.assemble import build_simulation, run_topology
 from md.checkpoint import (
     Checkpoint,
     Checkpointer,
@@ -43,55 +44,46 @@ from md.checkpoint import (
     fingerprint_changes,
     physics_fingerprint,
     read_checkpoint,
-    restore,
     write_checkpoint,
 )
 from md.config import (
     Config,
-    MinimizeConfig,
-    build_system,
-    input_files,
-    integrator_from_config,
     load_config,
     parse_config,
-    potential_from_config,
 )
-from md.distributed import (
-    DistributedSimulation,
-    Elsewhere,
-    agree,
-    mpi_ranks,
-    on_root,
-    ranks_per_node,
-)
+from md.distributed import Elsewhere, agree, mpi_ranks, on_root
 from md.errors import (
     CheckpointError,
     ConfigError,
     ConvergenceError,
-    NonFiniteError,
-    OutputBusyError,
     SimulationError,
     TrajectoryError,
 )
-from md.interrupts import take_pending
+from md.guards import (
+    ABORTED,
+    COMPLETED,
+    FAILED,
+    OUTPUT_ERROR,
+    STOPPED,
+    StopRequest,
+    catch_stop_signals,
+    refuse_claimed,
+    refuse_inputs_as_outputs,
+    restore_signals,
+    writable_output,
+)
 from md.minimize import MinimizeResult, minimize
-from md.parallel import global_sum, max_threads, set_threads
+from md.parallel import global_sum
+from md.relax import H5MD_SUFFIXES as H5MD_SUFFIXES  # moved; importable from here
+from md.relax import MinimizeSummary as MinimizeSummary  # moved; importable from here
+from md.relax import PreparedMinimize as PreparedMinimize  # moved; importable from here
+from md.relax import minimize_config as minimize_config  # moved; importable from here
+from md.relax import prepare_minimize as prepare_minimize  # moved; importable from here
 from md.simulation import Simulation
 from md.state import State
-from md.topology import Topology
 from md.trajectory import H5MDWriter, read_frame_steps, verify_frames
-from potentials.base import BondedAngles
 
 logger = logging.getLogger(__name__)
-
-#: Statuses of a finished :meth:`PreparedRun.execute`.
-COMPLETED, FAILED, OUTPUT_ERROR, STOPPED, ABORTED = (
-    "completed",
-    "failed",
-    "output_error",
-    "stopped",
-    "aborted",
-)
 
 
 @dataclass
@@ -311,12 +303,12 @@ class PreparedRun:
         """
         with self._claim():
             if self.config.minimize is not None and self.checkpoint is None:
-                stop = _Stop()
-                previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
+                stop = StopRequest()
+                previous = catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
                 try:
                     self.minimize(minimize_progress, stop=stop)
                 finally:
-                    _restore_signals(previous)
+                    restore_signals(previous)
                 if stop.signal is not None and self.ranks is not None:
                     # Every rank must leave together: the run stops at its first step.
                     self.sim.request_stop(stop.signal)
@@ -370,7 +362,7 @@ class PreparedRun:
         neighbors = sim.forcefield.neighbor_list
         late_before = neighbors.n_late_looks if neighbors is not None else 0
         previous = (
-            _catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
+            catch_stop_signals(sim.request_stop, lambda: sim.stop_requested)
             if handle_signals
             else {}
         )
@@ -392,7 +384,7 @@ class PreparedRun:
         except (OSError, RuntimeError) as error:  # disk full (h5py raises either), file removed
             summary.status, summary.message = OUTPUT_ERROR, str(error)
         finally:
-            _restore_signals(previous)
+            restore_signals(previous)
         summary.wall = time.perf_counter() - start
         n_frames = on_root(ranks, lambda: writer.n_frames)
         last_step = on_root(ranks, lambda: saver.last_step)
@@ -522,7 +514,7 @@ def prepare(
         agree(ranks, error)
     config, config_file, output, saved_path, fingerprint, checkpoint = inputs
     try:
-        sim = _build_simulation(config, checkpoint, saved_path, threads, ranks)
+        sim = build_simulation(config, checkpoint, saved_path, threads, ranks)
     except MemoryError:
         raise ConfigError(f"{config_file}: the system is too large to build in memory") from None
     integrator, units = sim.integrator, config.units
@@ -576,13 +568,13 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
         config = _seeded(config, ranks)
     where = "--output" if output is not None else f"{config.source}: [output] path"
     try:
-        output = _writable_output(Path(output) if output is not None else config.output.path)
+        output = writable_output(Path(output) if output is not None else config.output.path)
     except ConfigError as error:  # say where the path came from
         raise ConfigError(f"{where}: {error}") from None
     saved_path = checkpoint_path(output)
-    _writable_output(saved_path)
-    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
-    _refuse_claimed(output)
+    writable_output(saved_path)
+    refuse_inputs_as_outputs(config, config_file, path_or_config, (output, saved_path))
+    refuse_claimed(output)
     fingerprint = physics_fingerprint(config)
     checkpoint = None
     if resume:
@@ -683,381 +675,7 @@ def run_config(
     return prepared.sim, prepared.execute()
 
 
-# ------------------------------------------------------------------ md minimize
-#: Suffixes of the H5MD files ``md minimize`` writes.
-H5MD_SUFFIXES = (".h5", ".hdf5", ".h5md", ".hdf")
-
-
-@dataclass
-class MinimizeSummary:
-    """What :meth:`PreparedMinimize.execute` did.
-
-    ``status`` is ``"completed"`` (the structure was written; ``result.converged``
-    says whether FIRE reached ``fmax``), ``"failed"`` (forces became
-    non-finite), ``"output_error"`` (the file could not be written, e.g. disk
-    full: nothing was left) or ``"stopped"`` (a signal, named in ``signal``:
-    nothing was written). ``message`` holds the error.
-    """
-
-    status: str
-    output: Path
-    result: MinimizeResult | None = None
-    message: str = ""
-    signal: str | None = None
-
-
-@dataclass
-class PreparedMinimize:
-    """A validated minimisation that has written nothing yet (see :func:`prepare_minimize`).
-
-    ``stage`` holds the FIRE settings in use (the config's ``[minimize]``
-    with the arguments' overrides); ``output`` is the file to write (a
-    symlink's target).
-    """
-
-    config: Config
-    sim: Simulation
-    output: Path
-    overwrite: bool
-    stage: MinimizeConfig
-
-    def execute(
-        self,
-        callback: Callable[[int, float, float], None] | None = None,
-        handle_signals: bool = True,
-    ) -> MinimizeSummary:
-        """Claim the output, minimise, and write the structure as a one-frame H5MD file.
-
-        The file is built in memory and written whole at the end, so a full
-        disk, an error or a signal leaves no file behind. SIGINT/SIGTERM stop
-        the minimisation at its next step (a second one at once).
-
-        Raises
-        ------
-        ConfigError
-            If the output appeared meanwhile.
-        OutputBusyError
-            If another run claimed the output meanwhile.
-        """
-        with contextlib.ExitStack() as claimed:
-            try:
-                claimed.enter_context(exclusive_claim(self.output))
-            except OutputBusyError:
-                raise
-            except OSError as error:  # no room even for the claim's lock file
-                return MinimizeSummary(OUTPUT_ERROR, self.output, message=str(error))
-            remove_stale_temporaries(self.output)
-            if self.output.exists() and not self.overwrite:
-                raise ConfigError(f"output file {self.output} appeared while minimising started")
-            return self._execute(callback, handle_signals)
-
-    def _execute(self, callback, handle_signals: bool) -> MinimizeSummary:
-        sim, stage, state = self.sim, self.stage, self.sim.state
-        stop = _Stop()
-        previous = _catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
-        try:
-            result = minimize(
-                state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
-                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
-                stop=stop,
-            )  # fmt: skip
-        except NonFiniteError as error:
-            return MinimizeSummary(FAILED, self.output, message=str(error))
-        finally:
-            _restore_signals(previous)
-        if result.stopped:
-            return MinimizeSummary(STOPPED, self.output, result, signal=stop.signal)
-        try:
-            with H5MDWriter(
-                self.output, state, units=self.config.units, overwrite=self.overwrite,
-                topology=run_topology(sim), in_memory=True,
-                parameters={"config": self.config.text, "minimize": result.describe()},
-            ) as writer:  # fmt: skip
-                writer.write(state, thermo=sim.thermo())
-        except OSError as error:
-            return MinimizeSummary(OUTPUT_ERROR, self.output, result, message=str(error))
-        return MinimizeSummary(COMPLETED, self.output, result)
-
-
-def prepare_minimize(
-    path_or_config: str | os.PathLike | Config,
-    output: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    fmax: float | None = None,
-    max_steps: int | None = None,
-    max_force: float | None = None,
-    threads: int | None = None,
-) -> PreparedMinimize:
-    """Validate and build what ``md minimize`` does; write nothing.
-
-    Parameters
-    ----------
-    path_or_config : path or Config
-        The config describing the system; its ``[minimize]`` table gives
-        the defaults.
-    output : path, optional
-        H5MD file to write (``.h5``, ``.hdf5``, ``.h5md``); default
-        ``<[output] path stem>_min.h5``.
-    overwrite : bool
-        Replace an existing output (never a file another run is writing,
-        one of the config's inputs, or anything but a regular file).
-    fmax, max_steps, max_force : optional
-        Override ``[minimize]`` fmax [energy/length], max_steps and the
-        push-off's force cap.
-    threads : int, optional
-        Kernel threads, overriding ``[run] threads``.
-
-    Raises
-    ------
-    ConfigError
-        For anything wrong; the message names the option, key or file.
-    """
-    config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
-    config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
-    overrides = {}
-    try:
-        if fmax is not None:
-            overrides["fmax"] = positive(fmax, "--fmax")
-        if max_steps is not None:
-            overrides["max_steps"] = count(max_steps, "--max-steps", minimum=1)
-        if max_force is not None:
-            overrides["max_force"] = positive(max_force, "--max-force")
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    stage = replace(config.minimize or MinimizeConfig(), **overrides)
-    if output is None:
-        output = config.output.path.with_name(f"{config.output.path.stem}_min.h5")
-    output = _writable_output(Path(output))
-    _refuse_inputs_as_outputs(config, config_file, path_or_config, (output,))
-    if output.suffix.lower() not in H5MD_SUFFIXES:
-        raise ConfigError(
-            f"{output}: md minimize writes H5MD, so name the output *.h5; to get another "
-            f"format, convert it afterwards: md convert {output.with_suffix('.h5')} {output}"
-        )
-    _refuse_claimed(output)
-    if output.exists() and not overwrite:
-        raise ConfigError(f"{output} already exists; pass --overwrite or choose --output")
-    state, potentials, integrator = build_components(config)
-    _set_threads(config, threads)
-    try:
-        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units,
-                         precision=config.run.precision,
-                         outer_skin=config.run.outer_skin)  # fmt: skip
-    except ValueError as error:
-        raise ConfigError(f"{config.source}: {error}") from None
-    return PreparedMinimize(config, sim, output, overwrite, stage)
-
-
-def minimize_config(
-    path_or_config: str | os.PathLike | Config, **options
-) -> tuple[Simulation, MinimizeSummary]:
-    """Minimise the structure a config builds and write it, as ``md minimize`` does.
-
-    ``options`` are those of :func:`prepare_minimize`. Returns the Simulation
-    (at the relaxed state) and a :class:`MinimizeSummary`.
-    """
-    prepared = prepare_minimize(path_or_config, **options)
-    return prepared.sim, prepared.execute()
-
-
 # ------------------------------------------------------------------ helpers
-def run_topology(sim: Simulation) -> Topology:
-    """The bonds and angles a run's trajectory stores: its bonded potentials' and its
-    constraints'."""
-    constraints = constraints_of(sim.integrator)
-    extra = [] if constraints is None else [("constraint", constraints.bonds, None)]
-    return sim.forcefield.topology(extra=extra)
-
-
-def build_components(config: Config, state: State | None = None):
-    """Build the system, potentials and integrator; return ``(state, potentials, integrator)``.
-
-    ``state`` replaces the built system (a checkpoint's). Constraints, if
-    any, are bound to it, moving it onto the bond lengths. Raises
-    ConfigError naming the file and section for anything that cannot be built.
-    """
-    built, bonds = build_system(config)
-    if state is not None and state.n_atoms != built.n_atoms:
-        raise ConfigError(
-            f"{config.source}: the state holds {state.n_atoms} atoms, the config builds "
-            f"{built.n_atoms}"
-        )
-    state = built if state is None else state
-    potentials = build_potentials(config, state.type_names, bonds)
-    for index, potential in enumerate(potentials):
-        if not isinstance(potential, BondedAngles):
-            continue  # the others are checked with the force field (Simulation)
-        try:  # angles name atoms: say which table names one the system lacks
-            potential.check(state)
-        except ValueError as error:
-            kind = config.potentials[index].type
-            raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
-    integrator = integrator_from_config(config.integrator, config.source, bonds)
-    if config.barostat is not None:
-        try:
-            barostat = Barostat(config.barostat.type, **config.barostat.values)
-            barostat.check(state.pbc)
-            integrator = pressure_control(integrator, barostat)
-        except ValueError as error:
-            raise ConfigError(f"{config.source}: [barostat]: {error}") from None
-    constraints = constraints_of(integrator)
-    if constraints is not None:  # start on the bond lengths, so step 0 is reported there
-        try:
-            constraints.bind(state, integrator.dt)
-        except (ValueError, ConvergenceError) as error:
-            raise ConfigError(f"{config.source}: [integrator.constraints]: {error}") from None
-    return state, potentials, integrator
-
-
-def build_potentials(config: Config, type_names, bonds=None) -> list:
-    """Fresh potentials from the config's ``[[potentials]]``, as ``md run`` builds them.
-
-    ``bonds`` is the system's topology (``build_system``'s second value), which
-    ``bonds = "system"`` takes. Raises ConfigError naming the table.
-    """
-    return [
-        potential_from_config(entry, type_names, config.source, index, bonds)
-        for index, entry in enumerate(config.potentials)
-    ]
-
-
-def _build_simulation(config: Config, checkpoint, saved_path: Path, threads, ranks=None):
-    shape = config.run.decomposition
-    if ranks is None and shape is not None and math.prod(shape) != 1:
-        raise ConfigError(
-            f"{config.source}: [run] decomposition {list(shape)} has {math.prod(shape)} bricks, "
-            f"but this run is one process: start it under MPI (mpiexec -n {math.prod(shape)} "
-            "md run ...), or drop the key"
-        )
-    if checkpoint is not None:
-        try:
-            state, potentials, integrator = build_components(config, checkpoint.state)
-        except ConfigError as error:
-            raise ConfigError(f"--resume: checkpoint {saved_path}: {error}") from None
-    else:
-        state, potentials, integrator = build_components(config)
-    # Blow-up guard: nobody moves farther than the skin in one step, nor than a tenth
-    # of the longest cutoff (a tiny skin only means frequent rebuilds). Adaptive
-    # integrators take long output steps on purpose.
-    cutoffs = [p.cutoff for p in potentials if p.cutoff is not None]
-    guard = max([config.run.skin, *(0.1 * c for c in cutoffs)])
-    guard = guard if guard > 0 and not integrator.adaptive else None
-    _set_threads(config, threads, ranks)
-    try:
-        if ranks is None:
-            sim = Simulation(state, potentials, integrator, skin=config.run.skin,
-                             units=config.units, max_displacement=guard,
-                             precision=config.run.precision,
-                             outer_skin=config.run.outer_skin,
-                             neighbor_every=config.run.neighbor_every,
-                             neighbor_check=config.run.neighbor_check)  # fmt: skip
-        else:
-            if (config.run.neighbor_every, config.run.neighbor_check) != (1, True):
-                raise ValueError(
-                    "[run] neighbor_every and neighbor_check: a run decomposed over MPI ranks "
-                    "looks at its neighbour lists at every step; run this config on one rank "
-                    "(without mpiexec), or leave them at 1 and true"
-                )
-            sim = DistributedSimulation(
-                state, potentials, integrator, skin=config.run.skin, units=config.units,
-                max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
-                precision=config.run.precision, balance_every=config.run.balance_every,
-                balance_threshold=config.run.balance_threshold,
-            )  # fmt: skip
-    except ValueError as error:
-        where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (
-            config.source)  # fmt: skip
-        raise ConfigError(f"{where}: {error}") from None
-    if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
-        try:
-            integrator.split(sim.forcefield)
-        except ValueError as error:
-            raise ConfigError(f"{config.source}: [integrator] ({integrator.describe()['type']}): "
-                              f"{error}") from None  # fmt: skip
-    if checkpoint is not None:
-        if ranks is None:
-            restore(checkpoint, integrator, sim.forcefield)
-        else:  # the integrator's whole-system state, then the ranks' parts and lists
-            restore(checkpoint, integrator)
-            sim.resume(checkpoint.state, checkpoint.neighbor_reference, checkpoint.neighbor_cell,
-                       checkpoint.decomposition)  # fmt: skip
-        if checkpoint.n_frames:  # else frame 0 was never kept: write it again
-            sim.skip_initial_observation()
-    try:
-        sim.forcefield.compute(sim.state)
-    except NonFiniteError as error:
-        raise ConfigError(
-            f"{config.source}: the initial configuration cannot be evaluated: {error} "
-            "(overlapping atoms, a stretched bond, or a parameter beyond double precision?)"
-        ) from None
-    return sim
-
-
-def _set_threads(config: Config, threads: int | None, ranks=None) -> None:
-    """Set the kernel threads: ``threads`` (``--threads``) or the config's ``[run] threads``;
-    with neither, in a decomposed run, a node's cores shared by its ranks."""
-    where = "--threads" if threads is not None else f"{config.source}: [run] threads"
-    threads = threads if threads is not None else config.run.threads
-    if threads is None and ranks is not None:
-        threads = max(1, max_threads() // ranks_per_node(ranks))
-    try:
-        set_threads(threads)
-    except ValueError as error:
-        raise ConfigError(f"{where}: {error}") from None
-
-
-def _writable_output(output: Path) -> Path:
-    """The file an output path writes (a symlink's target); ConfigError if it cannot be one.
-
-    Refused: a path naming no file, a directory, a special file (FIFO, device
-    node, socket: never replaced), a missing or unwritable directory.
-    """
-    if output.name in ("", ".", ".."):
-        raise ConfigError(f"output path {str(output)!r} names no file")
-    if output.is_dir():
-        raise ConfigError(f"output path {output} is a directory")
-    try:
-        target = output_target(output)
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    if not target.parent.is_dir():
-        raise ConfigError(f"output directory {target.parent} does not exist")
-    if not os.access(target.parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"output directory {target.parent} is not writable")
-    return target
-
-
-def _refuse_claimed(output: Path) -> None:
-    """ConfigError if a live run holds the claim on ``output`` (see md._files.exclusive_claim)."""
-    holder = claim_holder(output)
-    if holder is not None:
-        raise ConfigError(
-            f"{output} is being written by another run ({holder}); wait for it to end, "
-            "or choose another --output"
-        )
-
-
-def _input_files(config: Config, path_or_config) -> list[Path]:
-    """The files a run reads: the config, a structure file, bonds and angles files."""
-    files = [] if isinstance(path_or_config, Config) else [Path(path_or_config)]
-    return files + input_files(config)
-
-
-def _refuse_inputs_as_outputs(config: Config, config_file: str, path_or_config, outputs) -> None:
-    """Raise ConfigError if an output (or its checkpoint) is one of the run's input files."""
-    for source in _input_files(config, path_or_config):
-        for target in outputs:
-            try:
-                same = source.exists() and target.exists() and os.path.samefile(source, target)
-            except OSError:
-                same = False
-            if same or source.resolve() == target.resolve():
-                raise ConfigError(
-                    f"output {target} is an input of this run ({source}); choose another "
-                    "--output (--overwrite never replaces the run's own inputs)"
-                )
-
-
 def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     """Raise ConfigError unless ``output`` holds the frames ``checkpoint`` counted."""
     steps, parameters = read_frame_steps(output)
@@ -1075,60 +693,10 @@ def _check_resumable(output: Path, checkpoint: Checkpoint) -> None:
     verify_frames(output, n)  # the frames kept must be intact (checksums)
 
 
-def _catch_stop_signals(request: Callable[[str], None], pending: Callable[[], str | None]) -> dict:
-    """SIGINT/SIGTERM call ``request(name)`` (stop at the next step); a second one stops at once.
-
-    ``pending()`` says whether a stop was asked for already. Returns the
-    handlers replaced, for :func:`_restore_signals`.
-    """
-
-    def handler(signum, frame):
-        if pending() is not None:
-            raise KeyboardInterrupt
-        request(signal.Signals(signum).name)
-
-    previous = {}
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        try:
-            previous[signum] = signal.signal(signum, handler)
-        except ValueError:  # not the main thread: leave signals alone
-            break
-    if previous and take_pending():  # a Ctrl-C during start-up that compilation swallowed
-        request("SIGINT")
-    return previous
-
-
-class _Stop:
-    """A stop asked for by a signal while minimising: FIRE's ``stop`` callable."""
-
-    def __init__(self) -> None:
-        self.signal: str | None = None
-
-    def request(self, name: str) -> None:
-        self.signal = name
-
-    def pending(self) -> str | None:
-        return self.signal
-
-    def __call__(self) -> bool:
-        return self.signal is not None
-
-
-def _restore_signals(previous: dict) -> None:
-    for signum, handler in previous.items():
-        signal.signal(signum, handler)
-
-
 __all__ = [
-    "MinimizeSummary",
-    "PreparedMinimize",
     "PreparedRun",
     "RunSummary",
-    "build_components",
-    "build_potentials",
-    "minimize_config",
     "prepare",
-    "prepare_minimize",
     "run_config",
 ]
 # Errors a caller of prepare() should expect, for ``except`` clauses.

@@ -406,7 +406,7 @@ def test_writer_refuses_a_frame_the_disk_cannot_hold(tmp_path, monkeypatch):
             writer.write(state)
         real = os.statvfs(tmp_path)
         monkeypatch.setattr(
-            "md.trajectory.os.statvfs",
+            "md.trajectory.writer.os.statvfs",
             lambda _path: SimpleNamespace(f_bavail=1, f_frsize=real.f_frsize),
         )
         state.step += 1

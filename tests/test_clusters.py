@@ -17,7 +17,9 @@ import pytest
 
 import md
 from integrators import VelocityVerlet
-from md._cluster_kernels import (
+from md.forcefield import ForceField
+from md.neighbors import ClusterFrame, NeighborList
+from md.neighbors._cluster_kernels import (
     CLUSTER,
     FILLER,
     balanced_chunks,
@@ -28,8 +30,6 @@ from md._cluster_kernels import (
     row_reach,
     search_pairs,
 )
-from md.forcefield import ForceField
-from md.neighbors import ClusterFrame, NeighborList
 from md.parallel import get_threads, set_threads
 from potentials import LennardJones, Morse, PairPotential, pair_term
 
@@ -624,7 +624,7 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     """The per-step passes around the kernel, split into runs on the threads (used from
     16000 slots a thread): the float32 relative positions and the chunks' sum into atom
     order equal the serial passes bit for bit, fillers included."""
-    from md._cluster_kernels import cluster_positions_threaded
+    from md.neighbors._cluster_kernels import cluster_positions_threaded
     from potentials._kernels import _cluster_atom_forces, _cluster_atom_forces_threaded
 
     state = fcc_lattice(cells=6, perturbation=0.1)

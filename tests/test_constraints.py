@@ -13,9 +13,9 @@ from integrators import BondConstraints, ConstraintError, Langevin, Rattle
 from integrators.rattle import constrained_verlet_step
 from md.cli import main
 from md.config import ConfigError, integrator_from_config, parse_config
-from md.integrator_study import statistical_inefficiency
 from md.observers import ThermoLog
 from md.polymers import polymer_melt
+from md.studies import statistical_inefficiency
 from potentials import LennardJones
 
 WCA = 2.0 ** (1.0 / 6.0)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from integrators import INTEGRATORS
-from md.damping import (
+from md.forcefield import ForceField
+from md.studies.damping import (
     DAMPING_COLUMNS,
     OMEGA_DT,
     bond_oscillator,
@@ -17,7 +18,6 @@ from md.damping import (
     plot_damping,
     write_damping_csv,
 )
-from md.forcefield import ForceField
 
 IMPLICIT = ("implicit_euler", "implicit_midpoint", "trapezoidal", "bdf2", "gauss_legendre4", "xpbd")
 

@@ -23,17 +23,6 @@ import numpy as np
 import pytest
 from numba import njit
 
-from md import _cell_kernels
-from md._cell_kernels import GATHER_BLOCK, _copy_block, _near_bits
-from md._cluster_kernels import (
-    _keep_near,
-    _keep_window,
-    _near_pair,
-    cluster_grid,
-    cluster_positions,
-    column_counts,
-    search_pairs,
-)
 from md._simd import (
     PERMUTATIONS,
     PERMUTE,
@@ -47,6 +36,18 @@ from md._simd import (
     store_fence,
     stream_store,
     trailing_zeros,
+)
+from md.neighbors import _candidates as candidate_kernels
+from md.neighbors._candidates import _near_bits
+from md.neighbors._cell_kernels import GATHER_BLOCK, _copy_block
+from md.neighbors._cluster_kernels import (
+    _keep_near,
+    _keep_window,
+    _near_pair,
+    cluster_grid,
+    cluster_positions,
+    column_counts,
+    search_pairs,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,7 +67,7 @@ def _modules_with_intrinsics() -> list[str]:
 def test_every_intrinsic_has_a_python_twin():
     intrinsic_type = type(trailing_zeros)
     modules = _modules_with_intrinsics()
-    assert {"md._simd", "md._cell_kernels"} <= set(modules)
+    assert {"md._simd", "md.neighbors._cell_kernels", "md.neighbors._candidates"} <= set(modules)
     found = []
     for name in modules:
         for attribute, value in vars(importlib.import_module(name)).items():
@@ -137,7 +138,7 @@ def _keep_rows(xi, xj, starts, partners, offsets, reach2, kept_partners, kept_of
 
 
 def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
-    """The prune's row copy (:func:`md._cluster_kernels._keep_near`, the loop in IR):
+    """The prune's row copy (:func:`md.neighbors._cluster_kernels._keep_near`, loop in IR):
     the pairs kept and their order as its Python twin's and as ``_near_pair`` decides
     them pair by pair (the cluster itself always first), rows compacted one after
     another, into other arrays and in place; empty rows keep nothing."""
@@ -192,7 +193,7 @@ def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, en
 
 
 def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
-    """The search's window of candidates (:func:`md._cluster_kernels._keep_window`, the
+    """The search's window of candidates (:func:`md.neighbors._cluster_kernels._keep_window`, the
     loop in IR): each candidate's float32 offset (centre difference less the shift, in
     double, then rounded), and the candidates kept as ``_near_pair`` decides them, in
     order, as its Python twin writes them; an empty window writes nothing."""
@@ -367,14 +368,14 @@ def test_vector_twins_of_the_cell_search_equal_their_intrinsics(rng):
 
 @njit
 def _pack_whole(xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at):
-    return _cell_kernels._near_pack_permute_whole(
+    return candidate_kernels._near_pack_permute_whole(
         xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at
     )
 
 
 @njit
 def _pack_block(xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at):
-    return _cell_kernels._near_pack_permute_block(
+    return candidate_kernels._near_pack_permute_block(
         xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at
     )
 
@@ -382,9 +383,9 @@ def _pack_block(xi, yi, zi, r2, tx, ty, tz, packed, start, valid, table, out, at
 @pytest.mark.skipif(not PERMUTE, reason="the AVX2 permute intrinsics exist only with AVX2")
 @pytest.mark.parametrize("call", [_pack_whole, _pack_block], ids=["whole", "block"])
 def test_permute_twins_equal_their_intrinsics(rng, call):
-    packer = _cell_kernels._near_pack_permute_whole
+    packer = candidate_kernels._near_pack_permute_whole
     if call is _pack_block:
-        packer = _cell_kernels._near_pack_permute_block
+        packer = candidate_kernels._near_pack_permute_block
     xs, ys, zs, packed = _candidates(rng)
     for start, valid, at in [(0, 64, 0), (5, 64, 17), (64, 3, 2), (100, 8, 0), (120, 1, 9)]:
         centre = rng.uniform(-0.3, 0.3, 3)
@@ -421,7 +422,8 @@ for cells, cutoff in [(3, 2.5), (4, 1.5)]:
         "forces": sim.forcefield.compute(state).forces.tolist(),
         "thermo": {k: float(v) for k, v in sim.thermo().items()},
         "permute": PERMUTE,
-        "as_python": not hasattr(md._cell_kernels._cell_list, "py_func"),  # no dispatcher
+        # no dispatcher
+        "as_python": not hasattr(md.neighbors._build_kernels._cell_list, "py_func"),
     }
 print(json.dumps(results))
 """

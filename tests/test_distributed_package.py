@@ -44,9 +44,11 @@ ALLOWED = {
         "getattr(total, field)": "ForceResult fields named by the loop",
         "getattr(result, field)": "ForceResult fields named by the loop",
     },
-    "md/damping.py": {"getattr(self, name) for name in DAMPING_COLUMNS": "its own fields"},
-    "md/integrator_study.py": {
+    "md/studies/damping.py": {"getattr(self, name) for name in DAMPING_COLUMNS": "its own fields"},
+    "md/studies/integrator_study.py": {
         "getattr(r, work), getattr(r, measure)": "a run record's fields, by name",
+    },
+    "md/studies/thermostat_study.py": {
         "getattr(self, k) for k in THERMOSTAT_CSV_COLUMNS": "its own fields",
     },
     "md/state.py": {

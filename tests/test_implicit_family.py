@@ -26,12 +26,12 @@ from integrators import (
     Yoshida6,
 )
 from integrators._newton import IncrementalSolver, new_statistics
+from md.assemble import build_components
 from md.checkpoint import CheckpointError, checkpoint_path, read_checkpoint, restore
 from md.cli import main
 from md.config import load_config
-from md.damping import bond_oscillator
 from md.polymers import single_chain
-from md.run import build_components
+from md.studies import bond_oscillator
 from potentials import FENEBonds, HarmonicBonds, LennardJones
 
 ROOT = Path(__file__).resolve().parents[1]

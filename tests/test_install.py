@@ -50,12 +50,12 @@ def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
     cache = tmp_path / "xdg"
     code = (
         "import json, md, potentials, integrators\n"
-        "from md import _cell_kernels\n"
+        "from md.neighbors import _build_kernels\n"
         "from potentials._pair_codegen import kernels_for\n"
         "from integrators import _kernels\n"
         "lj = potentials.LennardJones(cutoff=2.5)\n"
         "pair = kernels_for(lj.term).frame_forces\n"
-        "kernels = [_cell_kernels._bin_atoms, pair, _kernels._kick]\n"
+        "kernels = [_build_kernels._bin_atoms, pair, _kernels._kick]\n"
         "print(json.dumps([k._cache._cache_path for k in kernels]))\n"
         "s = md.lattice('fcc', 3, density=0.8)\n"
         "md.Simulation(s, [lj], integrators.VelocityVerlet(0.005)).run(2)\n"
@@ -71,9 +71,9 @@ def test_kernels_cache_per_user_not_beside_their_sources(tmp_path):
 def test_numba_cache_dir_set_by_the_user_wins_and_others_are_untouched(tmp_path):
     code = (
         "import json, md, numba\n"
-        "from md import _cell_kernels\n"
+        "from md.neighbors import _build_kernels\n"
         "from numba.core import config\n"
-        "print(json.dumps([_cell_kernels._bin_atoms._cache._cache_path, config.CACHE_DIR]))\n"
+        "print(json.dumps([_build_kernels._bin_atoms._cache._cache_path, config.CACHE_DIR]))\n"
     )
     result = _child(code, cwd=tmp_path, NUMBA_CACHE_DIR=str(tmp_path / "mine"))
     assert result.returncode == 0, result.stderr

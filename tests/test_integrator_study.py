@@ -12,7 +12,7 @@ from conftest import lj_config_text
 import md
 from integrators import INTEGRATORS, VelocityVerlet
 from md.cli import main
-from md.integrator_study import CSV_COLUMNS, WORK_PRECISION_COLUMNS, compare_integrators
+from md.studies import CSV_COLUMNS, WORK_PRECISION_COLUMNS, compare_integrators
 from potentials import LennardJones
 
 CONFIG = lj_config_text(
@@ -178,7 +178,7 @@ def test_fits_drop_points_at_the_reference_floor(every_order):
 
 def test_the_window_stops_where_the_asymptotic_range_ends():
     """A synthetic ladder: second order, then saturating towards the stability limit."""
-    from md.integrator_study import RunRecord, _fit_order
+    from md.studies.integrator_study import RunRecord, _fit_order
 
     dts = [0.001, 0.002, 0.004, 0.008, 0.016]
     errors = [1e-6, 4e-6, 1.6e-5, 3e-5, 4e-5]
@@ -194,7 +194,7 @@ def test_the_window_stops_where_the_asymptotic_range_ends():
 def test_an_order_needs_three_points_in_the_asymptotic_range():
     """Two points give a slope whatever the errors do: no order from them, and the note
     says why (the AVX-512 run that fitted implicit midpoint at 3.54 from 2 points)."""
-    from md.integrator_study import fit_order
+    from md.studies import fit_order
 
     dts = [0.00015625 * 2**k for k in range(6)]
     # Implicit midpoint as one machine measured it: the finest point under the trend.
@@ -221,7 +221,7 @@ def test_an_order_needs_three_points_in_the_asymptotic_range():
 
 
 def test_work_precision_rows_for_every_run(every_order, tmp_path):
-    from md.integrator_study import plot_work_precision, write_work_precision_csv
+    from md.studies import plot_work_precision, write_work_precision_csv
 
     write_work_precision_csv(every_order, tmp_path / "wp.csv")
     with open(tmp_path / "wp.csv") as handle:

@@ -127,7 +127,8 @@ def test_minimize_stage_starts_the_melt_near_its_temperature(tmp_path):
     relaxed, raw = read_trajectory("melt.h5"), read_trajectory("raw.h5")
     # frame 0 is the minimised structure: its forces are below fmax
     state = relaxed.state(0)
-    from md.run import build_components, load_config
+    from md.assemble import build_components
+    from md.config import load_config
 
     _, potentials, _ = build_components(load_config(tmp_path / "melt.toml"))
     assert _max_force(state, md.ForceField(potentials)) <= 1.0

@@ -100,7 +100,7 @@ def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
     """The search copies each cell's slots in blocks of GATHER_BLOCK: cells holding
     several blocks' worth (a dense random gas), partly filled blocks and empty cells all
     give the exact list, in a periodic and an open box."""
-    from md._cell_kernels import GATHER_BLOCK
+    from md.neighbors._cell_kernels import GATHER_BLOCK
 
     state = md.State(positions=rng.uniform(0.0, 6.0, size=(1500, 3)), box=6.0, pbc=pbc)
     state.positions[:100] = rng.uniform(0.0, 0.5, size=(100, 3))  # one very full corner
@@ -117,7 +117,7 @@ def test_crowded_cells_searched_in_several_blocks_match_brute_force(pbc, rng):
 def _candidates(n, rng, first=5, pad=64):
     """Packed candidates at first..first+n-1 around the origin, ``pad`` entries past them
     set to pass the distance test, and the packed values of those within 0.8."""
-    from md._cell_kernels import _CODE_SHIFT
+    from md.neighbors._cell_kernels import _CODE_SHIFT
 
     size = first + n + pad
     xyz = rng.uniform(-1.0, 1.0, size=(3, size))
@@ -138,7 +138,7 @@ def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
     values equal a plain numpy selection, in order; the entries past the last candidate
     (set to pass the test) are never kept, and past the capacity the hits are counted
     but not written."""
-    from md._cell_kernels import _keep
+    from md.neighbors._candidates import _keep
 
     first = 5
     arrays, r2_max, wanted = _candidates(n, rng, first)
@@ -168,8 +168,12 @@ def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid
     from numba import njit
 
     import md._simd
-    from md._cell_kernels import _near_pack_blocks, _near_pack_permute_whole, _near_pack_scan
     from md._simd import PERMUTATIONS
+    from md.neighbors._candidates import (
+        _near_pack_blocks,
+        _near_pack_permute_whole,
+        _near_pack_scan,
+    )
 
     if path != "scan" and not md._simd.PERMUTE:
         pytest.skip("compiled for a CPU without AVX2: the permute path is not used")
@@ -325,10 +329,10 @@ def test_cutoff_too_long_for_a_periodic_edge_raises(edge):
 def test_more_atoms_than_the_packed_slots_hold_raises(monkeypatch, fcc_lattice):
     """The cell search packs slot and image code in 32 bits: a list of more atoms than that
     holds is refused with the limit in the message, not silently wrapped."""
-    import md.neighbors
+    import md.neighbors.lists
 
     state = fcc_lattice(cells=5)  # 500 atoms
-    monkeypatch.setattr(md.neighbors, "MAX_SLOTS", 499)
+    monkeypatch.setattr(md.neighbors.lists, "MAX_SLOTS", 499)
     with pytest.raises(ValueError, match="at most 499 atoms per process, got 500"):
         NeighborList(2.5, 0.3).build(state)
 
@@ -404,7 +408,7 @@ def test_max_displacement_equals_numpy_and_flags_every_non_finite_coordinate(rng
     """The rebuild check's largest squared displacement (an integer maximum over bit
     patterns) equals numpy's, and any NaN (either sign) or infinity, in any atom and
     coordinate, gives inf, serial and threaded."""
-    from md._cell_kernels import (
+    from md.neighbors._build_kernels import (
         _largest_displacement2,
         _max_displacement2,
         _max_displacement2_threaded,
@@ -455,13 +459,8 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     """The cell search's counting sort and its second (z, x, y) layout (with the slots'
     cells, tags and largest counts) run in chunks on threads; each gives exactly the
     serial result, atoms in index order within a cell."""
-    from md._cell_kernels import (
-        GATHER_BLOCK,
-        _bin_atoms,
-        _bin_atoms_threaded,
-        _slot_layout,
-        _slot_layout_threaded,
-    )
+    from md.neighbors._build_kernels import _bin_atoms, _bin_atoms_threaded
+    from md.neighbors._cell_kernels import GATHER_BLOCK, _slot_layout, _slot_layout_threaded
 
     n = 3000
     positions = rng.uniform(-3.0, 13.0, size=(n, 3))  # some outside the box
@@ -535,7 +534,7 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
     between the chunks' regions; a buffer too small is reported as minus the largest
     chunk's count, and a buffer of that many per chunk then holds the list. The rows of its balanced
     chunks split the pairs as evenly as rows allow."""
-    from md._cell_kernels import _cell_list
+    from md.neighbors._build_kernels import _cell_list
 
     state = fcc_lattice(cells=6, perturbation=0.1, pbc=shape != "open")
     if shape == "sheared":
@@ -582,7 +581,7 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
 def test_balanced_bounds_start_each_chunk_at_the_first_row_past_its_share():
     """Chunk c starts at the first row starting at or after ceil(c P / chunks), never
     before the chunk ahead; empty rows, no pairs and one chunk included."""
-    from md._cell_kernels import _balanced_bounds
+    from md.neighbors._build_kernels import _balanced_bounds
 
     rng = np.random.default_rng(11)
     for _ in range(500):
@@ -600,7 +599,7 @@ def test_one_list_rebuilt_in_cell_after_cell_stays_exact(random_gas):
     """A list keeps a build's cell data (grid, lengths, shifts) for the next build in the
     same periodic cell; rebuilt in other edges, another tilt, another periodicity, with
     fewer atoms and back in the first cell, it is exact every time."""
-    from md._cell_kernels import _shift_table
+    from md.neighbors._build_kernels import _shift_table
 
     state = random_gas(300, 8.0, min_distance=0.6, images=2)
     nl = NeighborList(cutoff=1.2, skin=0.3)
@@ -697,7 +696,7 @@ print("ok")
 
 
 def _designates(a, b):
-    """md._cell_kernels.designates for arrays: whether a (not b) is the pair's designated
+    """md.neighbors._cell_kernels.designates for arrays: whether a (not b) is the pair's designated
     atom."""
     return (a < b) != ((a + b) % 2 == 1)
 
@@ -715,7 +714,7 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(shape
     does not filter, and columns beside them) or scattered (every row filtered). With ids
     in the lattice's order (all the slab's ids below the others') the rank keeps about
     half of the pairs across its faces, not all of them."""
-    from md._cell_kernels import _slot_owners
+    from md.neighbors._cell_kernels import _slot_owners
     from md.parallel import get_threads, set_threads
 
     state = fcc_lattice(cells=7, perturbation=0.1, pbc=shape != "open")

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from test_neighbors import assert_list_is_exact, reference_pairs
 
 import md
-import md.neighbors
+import md.neighbors.lists
 from integrators import VelocityVerlet
 from md.neighbors import NeighborList
 from md.parallel import get_threads, max_threads, set_threads
@@ -41,7 +41,7 @@ def chunks(monkeypatch):
     """
 
     def use(n: int) -> None:
-        monkeypatch.setattr(md.neighbors, "_MIN_CHUNK_ATOMS", 16)
+        monkeypatch.setattr(md.neighbors.lists, "_MIN_CHUNK_ATOMS", 16)
         monkeypatch.setattr(md.parallel, "get_threads", lambda: n)
 
     return use
@@ -108,7 +108,7 @@ def test_virial_can_be_skipped_and_is_then_computed_on_demand():
 
 @pytest.mark.parametrize("reach", [1, 2])
 def test_cells_one_or_half_a_radius_wide_give_the_exact_list(reach, monkeypatch):
-    monkeypatch.setattr(md.neighbors, "_REACH", reach)
+    monkeypatch.setattr(md.neighbors.lists, "_REACH", reach)
     for pbc in (True, False, (True, False, True)):
         state = _liquid(cells=6)
         state.pbc[:] = pbc
@@ -155,7 +155,7 @@ def test_no_pair_is_missed_and_every_image_is_right_after_moves_up_to_half_the_s
     within the cutoff, and the slot frame gives each listed pair its minimum-image
     displacement (so no kernel needs a minimum image)."""
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(md.neighbors, "_MIN_CHUNK_ATOMS", 8)
+        patch.setattr(md.neighbors.lists, "_MIN_CHUNK_ATOMS", 8)
         patch.setattr(md.parallel, "get_threads", lambda: n_chunks)
         _check_moves(seed, n_atoms, edges_over_radius, pbc, skin)
 
@@ -273,7 +273,7 @@ def test_threaded_per_atom_passes_change_no_bits(monkeypatch):
         for threaded in (False, True):
             if threaded:
                 monkeypatch.setattr(integrators._kernels, "_MIN_CHUNK_ATOMS", 100)
-                monkeypatch.setattr(md.neighbors, "_MIN_PASS_ATOMS", 100)
+                monkeypatch.setattr(md.neighbors.lists, "_MIN_PASS_ATOMS", 100)
                 monkeypatch.setattr(md.parallel, "_MIN_CHUNK_VALUES", 100)
             assert (integrators._kernels._chunks(2048) == 2) is threaded
             assert (md.parallel._chunks(3 * 2048) == 2) is threaded

@@ -8,7 +8,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from integrators import INTEGRATORS  # noqa: E402
-from md.plot_style import FAMILIES, grouped, legend_outside, reference_slopes, styles  # noqa: E402
+from md.studies.plot_style import FAMILIES, grouped, legend_outside, reference_slopes, styles  # noqa: E402
 
 
 def test_every_integrator_has_its_own_colour_and_marker():

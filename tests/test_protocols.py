@@ -30,11 +30,12 @@ from integrators.base import (
     ThermoTerms,
     constraints_of,
 )
+from md.assemble import run_topology
 from md.calculator import MDCalculator
 from md.checkpoint import read_checkpoint, restore, write_checkpoint
 from md.errors import CheckpointError
 from md.observers import Progress
-from md.run import RunSummary, run_topology
+from md.run import RunSummary
 from md.simulation import VirialUse
 from potentials import HarmonicBonds, LennardJones
 from potentials.base import ForceResult, TypedParameters

@@ -1,6 +1,6 @@
 """``md integrators`` and ``md analyze`` from Python: prepare (validate, write nothing), then run.
 
-The library functions (:func:`md.integrator_study.prepare_study`,
+The library functions (:func:`md.studies.prepare_study`,
 :func:`md.analysis.prepare_analysis` / :func:`md.analysis.analyze`) do what the
 commands do, file for file; the commands only parse, print and map errors to
 exit codes. Also the commands' refusals of issue 33 (items 14 and 15): RESPA
@@ -26,14 +26,14 @@ import pytest
 from conftest import lj_config_text
 from test_respa import FENE, RUN
 
-import md.analysis_output
-import md.integrator_study
+import md.analysis.output
+import md.studies.study
 from md.analysis import AnalysisResults, MSDResult, ThermoResult, analyze, prepare_analysis
+from md.assemble import build_components
 from md.cli import main
 from md.config import load_config
 from md.errors import AnalysisError, ConfigError
-from md.integrator_study import CSV_COLUMNS, prepare_study
-from md.run import build_components
+from md.studies import CSV_COLUMNS, prepare_study
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = lj_config_text(
@@ -158,7 +158,7 @@ def test_a_study_that_fails_to_write_leaves_none_of_its_files(study_config, tmp_
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(md.integrator_study, "plot_work_precision", disk_full)
+    monkeypatch.setattr(md.studies.study, "plot_work_precision", disk_full)
     with pytest.raises(OSError, match="No space left"):
         study.run()
     assert list(out.iterdir()) == []  # the CSVs and plots written before are gone
@@ -293,7 +293,7 @@ def test_analysis_that_fails_to_write_leaves_none_of_its_files(trajectory, tmp_p
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setitem(md.analysis_output.WRITERS, "msd", disk_full)
+    monkeypatch.setitem(md.analysis.output.WRITERS, "msd", disk_full)
     out = tmp_path / "o"
     assert main(["analyze", str(trajectory), "--thermo", "--msd", "--out", str(out),
                  "--no-progress"]) == 2  # fmt: skip

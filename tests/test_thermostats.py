@@ -32,8 +32,8 @@ from integrators import (
 )
 from md.cli import main
 from md.config import ConfigError, integrator_from_config, parse_config
-from md.integrator_study import compare_thermostats, statistical_inefficiency
 from md.observers import ThermoLog
+from md.studies import compare_thermostats, statistical_inefficiency
 from potentials import ForceResult, LennardJones
 
 T0 = 1.2  # target temperature of the LJ liquid [eps/kB]

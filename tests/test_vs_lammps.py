@@ -625,8 +625,8 @@ def test_the_benchmarks_lammps_melt_draws_its_velocities_as_our_config_does():
     error here 0.03); the uniform option still gives LAMMPS's bench/in.lj (1.8)."""
     import tomllib
 
+    from md.assemble import build_components
     from md.config import parse_config
-    from md.run import build_components
 
     cells = 12  # 6912 atoms, 20736 components
     data = tomllib.loads(MELT_CONFIG.read_text())

@@ -3,7 +3,7 @@
 The work is :func:`md.analysis.prepare_analysis` (checks what the file holds
 before computing anything) and :meth:`md.analysis.PreparedAnalysis.run`
 (computes, and writes per analysis a PNG plot and a CSV file of the data
-behind it, :mod:`md.analysis_output`, plus ``summary.json`` with the scalar
+behind it, :mod:`md.analysis.output`, plus ``summary.json`` with the scalar
 results); this module parses the options, prints a short table and maps
 errors to exit code 2.
 
@@ -31,7 +31,7 @@ import math
 from pathlib import Path
 
 from md.analysis import ANALYSES, prepare_analysis
-from md.analysis_output import THERMO_LABELS
+from md.analysis.output import THERMO_LABELS
 from md.cli._common import EXIT_BAD_INPUT, EXIT_OK, fail
 from md.errors import AnalysisError, TrajectoryError
 

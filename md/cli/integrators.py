@@ -2,10 +2,10 @@
 
 Order of accuracy, stability limit, energy drift and cost per integrator,
 and for thermostats the temperature error and sampling efficiency, with CSV
-files and plots: :func:`md.integrator_study.prepare_study` and
-:meth:`~md.integrator_study.Study.run`. With ``--damping``, numerical damping
-on a harmonic bond instead: :func:`md.damping.prepare_damping` and
-:meth:`~md.damping.DampingStudy.run`. This module parses the options,
+files and plots: :func:`md.studies.study.prepare_study` and
+:meth:`~md.studies.study.Study.run`. With ``--damping``, numerical damping
+on a harmonic bond instead: :func:`md.studies.damping.prepare_damping` and
+:meth:`~md.studies.damping.DampingStudy.run`. This module parses the options,
 prints the tables and maps errors to exit codes (2 bad input or an
 unwritable output, 1 the reference runs blew up).
 """
@@ -16,9 +16,8 @@ import math
 from pathlib import Path
 
 from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, fail
-from md.damping import prepare_damping
 from md.errors import ConfigError, SimulationError
-from md.integrator_study import prepare_study
+from md.studies import prepare_damping, prepare_study
 
 
 def add_parser(subparsers) -> None:

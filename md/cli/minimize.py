@@ -4,7 +4,7 @@ Builds the system as ``md run`` would, minimises it (``[minimize]`` of the
 config, or the options here), prints progress and the final max force, and
 writes the relaxed structure as a one-frame H5MD file (with its bonds), which
 ``[system] structure`` can start a run from. The work is
-:func:`md.run.prepare_minimize` and :meth:`md.run.PreparedMinimize.execute`.
+:func:`md.relax.prepare_minimize` and :meth:`md.relax.PreparedMinimize.execute`.
 Exit codes: 0 converged, 1 not converged (the structure is still written) or
 non-finite forces, 2 bad input or an unwritable output (nothing is left),
 130/143 stopped by SIGINT/SIGTERM (nothing is written).
@@ -24,7 +24,8 @@ from md.cli._common import (
     fail,
 )
 from md.errors import ConfigError, OutputBusyError
-from md.run import FAILED, OUTPUT_ERROR, STOPPED, prepare_minimize
+from md.guards import FAILED, OUTPUT_ERROR, STOPPED
+from md.relax import prepare_minimize
 
 
 def add_parser(subparsers) -> None:

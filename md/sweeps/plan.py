@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 import tomli_w
 
+from md.assemble import build_components
 from md.config import Config, parse_config
 from md.errors import ConfigError, SweepError, TrajectoryError
 from md.forcefield import ForceField
-from md.run import build_components
 from md.trajectory import read_frame_steps
 
 logger = logging.getLogger(__name__)

@@ -44,8 +44,8 @@ from md._files import write_csv_rows
 from md.config import Config, load_config
 from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.forcefield import ForceField
-from md.plot_style import grouped, legend_outside, styles
 from md.state import State
+from md.studies.plot_style import grouped, legend_outside, styles
 from potentials.springs import HarmonicBonds
 
 #: The default ladder of omega dt: 0.01 to 100, four points per decade.

@@ -119,3 +119,13 @@ def reference_slopes(ax, xs, ys, orders, sign: int = 1) -> None:
         ax.annotate(f"order {p:g}", label_at, fontsize="x-small", color="0.3",
                     xytext=(2, 2), textcoords="offset points", ha=side)  # fmt: skip
     ax.set_ylim(bottom=bottom / 2)
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (no display), loaded on first use."""
+    import matplotlib  # heavy: matplotlib only when plotting
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # heavy: matplotlib only when plotting
+
+    return plt

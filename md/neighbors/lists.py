@@ -1,4 +1,13 @@
-"""Verlet neighbour lists built from cell lists."""
+"""Verlet neighbour lists built from cell lists.
+
+A note on its length (about 1000 lines, over the 800 where a module is split): nearly
+all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
+brute-force, cell and cluster builds and the prune share its buffers and reference
+positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
+kernels. The kernels are the package's private modules (``_cell_kernels`` and
+``_candidates``: the search; ``_build_kernels``: the build around it;
+``_cluster_kernels``: the cluster-pair list).
+"""
 
 from __future__ import annotations
 
@@ -11,19 +20,26 @@ import numpy as np
 from numba.core import config as numba_config
 from numpy.typing import NDArray
 
-from md._cell_kernels import (
-    MAX_SLOTS,
+from md.box import (
+    TILT_NAMES,
+    cell_matrix,
+    is_orthorhombic,
+    periodic_lengths,
+    periodic_tilt,
+    perpendicular_widths,
+)
+from md.errors import NonFiniteError
+from md.neighbors._build_kernels import (
     _atom_space_list,
     _balanced_bounds,
-    _brute_force_pairs,
     _cell_list,
-    _keep_owned_pairs,
     _largest_coordinates,
     _largest_displacement2,
     _max_displacement2,
     _shift_table,
 )
-from md._cluster_kernels import (
+from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
+from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
     cluster_grid,
@@ -34,15 +50,6 @@ from md._cluster_kernels import (
     row_reach,
     search_pairs,
 )
-from md.box import (
-    TILT_NAMES,
-    cell_matrix,
-    is_orthorhombic,
-    periodic_lengths,
-    periodic_tilt,
-    perpendicular_widths,
-)
-from md.errors import NonFiniteError
 from md.parallel import chunk_count
 from md.state import State
 
@@ -120,7 +127,7 @@ class ClusterFrame:
     """The neighbour list in GROMACS's cluster-pair layout, as the cluster kernels read it.
 
     Built by :class:`NeighborList` with ``clusters=True`` (see
-    :mod:`md._cluster_kernels` for the grid and the search). Slot s holds atom
+    :mod:`md.neighbors._cluster_kernels` for the grid and the search). Slot s holds atom
     ``atom[s]`` (-1: a filler), in cluster s // 4; its position relative to its
     cluster is ``positions[atom[s]] - origin[s]`` (:meth:`relative_positions`). I
     cluster c's partners are ``partners[starts[c]:starts[c + 1]]``, the first of
@@ -129,12 +136,12 @@ class ClusterFrame:
     ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts; its rows reach
     clusters ``windows[t, 0]`` (= ``bounds[t]``) to at most ``windows[t, 1]``, and its
     part of the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
-    (:func:`md._cluster_kernels.chunk_windows`; ``window_clusters`` in all). A pruned
+    (:func:`md.neighbors._cluster_kernels.chunk_windows`; ``window_clusters`` in all). A pruned
     list takes ``reach`` (per row, one past its last partner) from its outer list: a
     bound that costs no pass over the pairs at each prune.
 
     The list holds the cluster pairs that had an atom pair within the list radius
-    at the build: the search's candidates (see :func:`md._cluster_kernels.search_pairs`)
+    at the build: the search's candidates (see :func:`md.neighbors._cluster_kernels.search_pairs`)
     checked atom by atom in 8-lane vectors (GROMACS's pruning), about half of them on the LJ melt.
     """
 
@@ -151,7 +158,7 @@ class ClusterFrame:
     @property
     def reach(self) -> NDArray[np.int64]:
         """Per i cluster, one past the last cluster its row reaches, or a bound on it
-        (found on first use: :func:`md._cluster_kernels.row_reach`)."""
+        (found on first use: :func:`md.neighbors._cluster_kernels.row_reach`)."""
         if self._reach is None:
             self._reach = row_reach(self.starts, self.partners)
         return self._reach
@@ -406,7 +413,7 @@ class NeighborList:
         copies of atoms other ranks own (and periodic images); ``ids`` (N,) are
         their global ids. Of each pair the rank that owns its designated atom
         keeps it (the smaller id when the ids' sum is even, the larger when it is
-        odd: ``md._cell_kernels.designates``, which shares the pairs across a
+        odd: ``md.neighbors._cell_kernels.designates``, which shares the pairs across a
         brick's face about evenly between its two ranks), so every pair of the
         whole system is listed on exactly one rank and pairs of two ghosts on
         none (:mod:`md.distributed` sends the ghosts' forces back to their
@@ -789,7 +796,7 @@ class NeighborList:
         """The radius of a cluster search in ``box``: the outer list's where the list is
         exact and the box wider than twice it (pruning on), else the list radius. Not the
         outer one either where it needs more than twice the columns the density asks for
-        (:func:`md._cluster_kernels.column_counts`: a box just over twice the radius wide,
+        (:func:`md.neighbors._cluster_kernels.column_counts`: a box just over twice the radius wide,
         such as 500 atoms of the LJ melt at 4.0 sigma, needed 23 x 23 columns for 125
         clusters, and its search took 4 ms against 0.2 at the list radius)."""
         outer = self.cutoff + self.outer_skin

@@ -1,0 +1,20 @@
+"""Neighbour lists and their kernels: :mod:`md.neighbors.lists` (:class:`NeighborList`,
+:class:`SlotFrame`, :class:`ClusterFrame`, the displacement checks) and the private kernel
+modules it calls (``_cell_kernels``, ``_candidates``, ``_build_kernels``,
+``_cluster_kernels``). The public names are importable from ``md.neighbors``."""
+
+from md.neighbors.lists import (
+    ClusterFrame,
+    NeighborList,
+    SlotFrame,
+    largest_displacement2,
+    max_displacement2,
+)
+
+__all__ = [
+    "ClusterFrame",
+    "NeighborList",
+    "SlotFrame",
+    "largest_displacement2",
+    "max_displacement2",
+]
