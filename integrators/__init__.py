@@ -20,7 +20,7 @@ plug-in registered under the entry-point group ``leapmd.integrators``, or a
 from md import plugins
 from md._kernel_cache import kernel_cache
 from md.errors import ConstraintError
-from md.schema import key_names
+from md.schema import Key, key_names
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
@@ -103,7 +103,7 @@ def _integrator_problem(found) -> str | None:
     if missing:
         return f"{found.__name__} does not define {' and '.join(missing)}()"
     keys = found.CONFIG_KEYS
-    if not isinstance(keys, tuple) or not all(hasattr(k, "check") for k in keys):
+    if not isinstance(keys, tuple) or not all(isinstance(k, Key) for k in keys):
         return f"CONFIG_KEYS must be a tuple of md.schema.Key, got {keys!r}"
     supplied = ("kB",) if found.thermostat else ()  # the config adds kB (and seed, declared)
     return plugins.signature_problem(found, key_names(keys), supplied)

@@ -21,7 +21,7 @@ constructor (see those classes' ``__init_subclass__``), with them they are made 
 
 from md import plugins
 from md._kernel_cache import kernel_cache
-from md.schema import key_names
+from md.schema import Key, key_names
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
@@ -86,16 +86,17 @@ def _potential_problem(found) -> str | None:
         return f"is {type(found).__name__} {found!r}, not {_KIND}"
     frame = next((c for c in (PairPotential, BondPotential, AnglePotential)
                   if issubclass(found, c)), None)  # fmt: skip
-    missing = [m for m in _MEMBERS if not hasattr(found, m)]
+    missing = [m for m in _MEMBERS if not hasattr(found, m)]  # a foreign class's protocol
     if frame is None and missing:
         return f"{found.__name__} is not {_KIND} (it lacks {', '.join(missing)})"
     keys = found.CONFIG_KEYS
-    if not isinstance(keys, tuple) or not all(hasattr(k, "check") for k in keys):
+    if not isinstance(keys, tuple) or not all(isinstance(k, Key) for k in keys):
         return f"CONFIG_KEYS must be a tuple of md.schema.Key, got {keys!r}"
     if frame is None:
         return None  # its own from_config reads its keys
+    # a from_config of its own (not the frame's) reads its keys itself
     if getattr(found.from_config, "__func__", None) is not frame.from_config.__func__:
-        return None  # likewise
+        return None
     names = key_names(keys)
     if frame is not PairPotential:  # the frame reads <item>s_file into <item>s
         names = tuple(n for n in names if n != f"{frame.ITEM}s_file")

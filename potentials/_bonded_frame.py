@@ -385,6 +385,8 @@ class _TermPotential(ListedTuples):
     CONFIG_KEYS: tuple[Key, ...] = ()
     #: One member as a config writes it, for messages (``"[i, j]"``).
     EXAMPLE = ""
+    #: The word for one member (``BondPotential``: "bond"); empty on this shared base.
+    ITEM = ""
     #: Whether ``CONFIG_KEYS`` was made from the constructor (:meth:`__init_subclass__`).
     _derived_keys = False
 
@@ -400,7 +402,7 @@ class _TermPotential(ListedTuples):
             signature = inspect.signature(cls.__init__).parameters
         except (TypeError, ValueError):
             return
-        item = getattr(cls, "ITEM", "")
+        item = cls.ITEM
         own = ("self", f"{item}s", f"{item}_types")
         if "term" in signature or not item:
             return  # the frame's own classes, built from a term

@@ -59,6 +59,18 @@ ALLOWED = {
     "md/notebook.py": {'hasattr(atoms.universe, "bonds")': "an MDAnalysis Universe's bonds"},
     "md/sweeps/client.py": {'hasattr(os, "sched_getaffinity")': "Linux only"},
     "md/_files.py": {'hasattr(os, "uname")': "not on Windows"},
+    "md/plugins.py": {
+        "if not hasattr(found, part)": "a plug-in's module:attribute path, followed",
+        "found = getattr(found, part)": "a plug-in's module:attribute path, followed",
+        'getattr(module, "__file__", None)': "a module's file, absent for built-in modules",
+    },
+    "potentials/__init__.py": {
+        "if not hasattr(found, m)": "a plug-in class's members of the Potential protocol",
+        'getattr(found.from_config, "__func__", None)': "whether a plug-in has its own",
+    },
+    "integrators/__init__.py": {
+        "callable(getattr(found, m, None))": "a plug-in integrator's step and describe",
+    },
     "potentials/_cluster_ir.py": {
         'getattr(mode, "literal_type", mode)': "numba: a Literal type or a plain one",
         'getattr(arg[10], "literal_value", None)': "numba: only Literal types have it",
