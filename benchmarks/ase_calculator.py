@@ -269,12 +269,16 @@ def main(argv=None) -> int:
     for n, results, _ in rows:
         if n == 2048 and "ase" in results:
             ratio = results["ase"][0]["median"] / results["ours"][0]["median"]
-            aims.append(f">= 100x ASE's LJ at 2048 atoms: {ratio:.0f}x "
-                        f"{'met' if ratio >= 100 else 'NOT met'}")  # fmt: skip
+            aims.append(
+                f">= 100x ASE's LJ at 2048 atoms: {ratio:.0f}x "
+                f"{'met' if ratio >= 100 else 'NOT met'}"
+            )
         if "asap3" in results:
             ratio = results["asap3"][1]["median"] / results["ours"][1]["median"]
-            aims.append(f"within 2x of asap3 under ASE's VelocityVerlet at {n} atoms: "
-                        f"{ratio:.2f}x {'met' if ratio >= 0.5 else 'NOT met'}")  # fmt: skip
+            aims.append(
+                f"within 2x of asap3 under ASE's VelocityVerlet at {n} atoms: "
+                f"{ratio:.2f}x {'met' if ratio >= 0.5 else 'NOT met'}"
+            )
     if aims:
         print("Aims: " + "; ".join(aims))
     return 0 if all(math.isfinite(r[1]["ours"][0]["median"]) for r in rows) else 1

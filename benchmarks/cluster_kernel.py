@@ -65,16 +65,30 @@ def main(argv=None) -> None:
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
     parser.add_argument("--calls", type=int, default=40, help="timed calls (40)")
     parser.add_argument("--threads", type=int, default=1, help="threads (1)")
-    parser.add_argument("--precision", choices=("mixed", "double"), default="mixed",
-                        help="mixed: the cluster kernel (default); double: the slot frame's "
-                             "force call, per listed atom pair")  # fmt: skip
-    parser.add_argument("--lanes", default=None,
-                        help="comma-separated vector widths (8, 16): the cluster kernel at "
-                             "each, alternated in this process (mixed only)")  # fmt: skip
-    parser.add_argument("--blocks", type=int, default=30,
-                        help="alternating blocks of --calls per width with --lanes (30)")
-    parser.add_argument("--windows", action="store_true",
-                        help="print the chunks' scratch windows in lists' worth, no timing")
+    parser.add_argument(
+        "--precision",
+        choices=("mixed", "double"),
+        default="mixed",
+        help="mixed: the cluster kernel (default); double: the slot frame's "
+        "force call, per listed atom pair",
+    )
+    parser.add_argument(
+        "--lanes",
+        default=None,
+        help="comma-separated vector widths (8, 16): the cluster kernel at "
+        "each, alternated in this process (mixed only)",
+    )
+    parser.add_argument(
+        "--blocks",
+        type=int,
+        default=30,
+        help="alternating blocks of --calls per width with --lanes (30)",
+    )
+    parser.add_argument(
+        "--windows",
+        action="store_true",
+        help="print the chunks' scratch windows in lists' worth, no timing",
+    )
     args = parser.parse_args(argv)
     if args.cells < 1 or args.calls < 1 or args.threads < 1 or args.blocks < 1:
         parser.error("--cells, --calls, --threads and --blocks must be at least 1")
@@ -120,9 +134,11 @@ def main(argv=None) -> None:
     else:
         pairs, what = neighbors.n_pairs, "listed pairs"
     best, middle = min(times), statistics.median(times)
-    print(f"{state.n_atoms} atoms, {pairs} {what}, {args.calls} calls: "
-          f"min {1e3 * best:.3f} ms ({1e9 * best / pairs:.2f} ns per {what[:-1]}), "
-          f"median {1e3 * middle:.3f} ms ({1e9 * middle / pairs:.2f} ns)")
+    print(
+        f"{state.n_atoms} atoms, {pairs} {what}, {args.calls} calls: "
+        f"min {1e3 * best:.3f} ms ({1e9 * best / pairs:.2f} ns per {what[:-1]}), "
+        f"median {1e3 * middle:.3f} ms ({1e9 * middle / pairs:.2f} ns)"
+    )
 
 
 def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
@@ -140,8 +156,13 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     clusters.relative_positions(state.positions, xi, xj)
     table = potential.tables(1).astype(np.float32)
     mode = int(CUTOFF_MODES[potential.cutoff_mode])
-    lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1), clusters.bounds,
-             clusters.windows)  # fmt: skip
+    lists = (
+        clusters.starts,
+        clusters.partners,
+        clusters.offsets.reshape(-1),
+        clusters.bounds,
+        clusters.windows,
+    )
     chunks = len(clusters.bounds) - 1
     room = clusters.window_clusters
     buffers = np.empty(12 * room)
@@ -152,9 +173,25 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
     entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
     name = f"{entry}__mode{mode}_with_virial0_single1"
     forces = np.empty((state.n_atoms, 3))
-    arguments = (xi, xj, lists, slot_types, 1, table, mode, potential.data, False, True,
-                 buffers, j_sums, j_counts, clusters.atom, forces, energies,
-                 virials)  # fmt: skip
+    arguments = (
+        xi,
+        xj,
+        lists,
+        slot_types,
+        1,
+        table,
+        mode,
+        potential.data,
+        False,
+        True,
+        buffers,
+        j_sums,
+        j_counts,
+        clusters.atom,
+        forces,
+        energies,
+        virials,
+    )
     kernels, sums = {}, {}
     for lanes in widths:
         kernels[lanes] = getattr(kernels_for(potential.term, "mixed", cluster_lanes=lanes), name)
@@ -171,16 +208,20 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
                 times.append(time.perf_counter() - start)
             best[lanes].append(min(times))
     pairs = len(clusters.partners)
-    print(f"{state.n_atoms} atoms, {pairs} cluster pairs; the cluster kernel alone, {blocks} "
-          f"alternating blocks of {calls} calls; the engine's width here: "
-          f"{16 if ZMM else 8} lanes")  # fmt: skip
+    print(
+        f"{state.n_atoms} atoms, {pairs} cluster pairs; the cluster kernel alone, {blocks} "
+        f"alternating blocks of {calls} calls; the engine's width here: "
+        f"{16 if ZMM else 8} lanes"
+    )
     first = widths[0]
     for lanes in widths:
         ratios = [b / a for a, b in zip(best[first], best[lanes], strict=True)]
-        print(f"{lanes} lanes: min {1e3 * min(best[lanes]):.3f} ms "
-              f"({1e9 * min(best[lanes]) / pairs:.2f} ns per cluster pair), energy "
-              f"{sums[lanes]:.6f}; per-block ratio to {first} lanes: median "
-              f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})")
+        print(
+            f"{lanes} lanes: min {1e3 * min(best[lanes]):.3f} ms "
+            f"({1e9 * min(best[lanes]) / pairs:.2f} ns per cluster pair), energy "
+            f"{sums[lanes]:.6f}; per-block ratio to {first} lanes: median "
+            f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})"
+        )
 
 
 def print_windows(neighbors) -> None:
@@ -191,13 +232,17 @@ def print_windows(neighbors) -> None:
     own = row_reach(clusters.starts, clusters.partners)
     reach = outer.reach if outer is not None else own
     n = clusters.n_clusters
-    print(f"{n} clusters; scratch in lists' worth per chunk count (threads), from the "
-          f"{'outer' if outer is not None else 'pruned'} list's row reach as the engine "
-          f"takes it (the pruned list's own); one list per chunk before stop 60")  # fmt: skip
+    print(
+        f"{n} clusters; scratch in lists' worth per chunk count (threads), from the "
+        f"{'outer' if outer is not None else 'pruned'} list's row reach as the engine "
+        f"takes it (the pruned list's own); one list per chunk before stop 60"
+    )
     for chunks in (2, 4, 8, 16, 64):
         bounds = balanced_chunks(clusters.starts, chunks)
-        worth = [float((w[:, 1] - w[:, 0]).sum()) / n
-                 for w in (chunk_windows(reach, bounds), chunk_windows(own, bounds))]
+        worth = [
+            float((w[:, 1] - w[:, 0]).sum()) / n
+            for w in (chunk_windows(reach, bounds), chunk_windows(own, bounds))
+        ]
         print(f"{chunks:>3} chunks: {worth[0]:.2f} ({worth[1]:.2f})")
 
 

@@ -145,8 +145,9 @@ def cluster_grid(positions, box, density):
 
 
 @njit(cache=True)
-def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, counts=None,
-                  sure=0.0):  # fmt: skip
+def cluster_pairs(
+    box, ncx, ncy, first, centre, bounds, radius, relative=None, counts=None, sure=0.0
+):
     """For each cluster, the clusters (index >= its own; itself at zero shift only)
     whose bounding boxes come within ``radius``, with offset centre_i - centre_j -
     shift. Returns (starts, partners, offsets).
@@ -189,15 +190,19 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
         for dx in range(-reach_x, reach_x + 1):
             ux = (cx + dx) % ncx
             shift[0] = ((cx + dx) - ux) // ncx * box[0]
-            gx = max((cx + dx) * width_x - bounds[ci, 3], bounds[ci, 0] - (cx + dx + 1) * width_x,
-                     0.0)  # fmt: skip
+            gx = max(
+                (cx + dx) * width_x - bounds[ci, 3], bounds[ci, 0] - (cx + dx + 1) * width_x, 0.0
+            )
             if gx * gx >= r2max:
                 continue
             for dy in range(-reach_y, reach_y + 1):
                 uy = (cy + dy) % ncy
                 shift[1] = ((cy + dy) - uy) // ncy * box[1]
-                gy = max((cy + dy) * width_y - bounds[ci, 4],
-                         bounds[ci, 1] - (cy + dy + 1) * width_y, 0.0)  # fmt: skip
+                gy = max(
+                    (cy + dy) * width_y - bounds[ci, 4],
+                    bounds[ci, 1] - (cy + dy + 1) * width_y,
+                    0.0,
+                )
                 if gx * gx + gy * gy >= r2max:
                     continue
                 col = ux * ncy + uy
@@ -236,12 +241,27 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                             near_scratch = np.empty(2 * (end - begin), np.int64)
                         for j in range(end - begin):
                             cj = begin + j
-                            ex = max(max(bounds[cj, 0] + sx - bounds[ci, 3],
-                                         bounds[ci, 0] - bounds[cj, 3] - sx), 0.0)  # fmt: skip
-                            ey = max(max(bounds[cj, 1] + sy - bounds[ci, 4],
-                                         bounds[ci, 1] - bounds[cj, 4] - sy), 0.0)  # fmt: skip
-                            ez = max(max(bounds[cj, 2] + sz - bounds[ci, 5],
-                                         bounds[ci, 2] - bounds[cj, 5] - sz), 0.0)  # fmt: skip
+                            ex = max(
+                                max(
+                                    bounds[cj, 0] + sx - bounds[ci, 3],
+                                    bounds[ci, 0] - bounds[cj, 3] - sx,
+                                ),
+                                0.0,
+                            )
+                            ey = max(
+                                max(
+                                    bounds[cj, 1] + sy - bounds[ci, 4],
+                                    bounds[ci, 1] - bounds[cj, 4] - sy,
+                                ),
+                                0.0,
+                            )
+                            ez = max(
+                                max(
+                                    bounds[cj, 2] + sz - bounds[ci, 5],
+                                    bounds[ci, 2] - bounds[cj, 5] - sz,
+                                ),
+                                0.0,
+                            )
                             near_scratch[j] = ex * ex + ey * ey + ez * ez < r2max
                         for j in range(end - begin):
                             cj = begin + j
@@ -266,8 +286,13 @@ def cluster_pairs(box, ncx, ncy, first, centre, bounds, radius, relative=None, c
                                 for b in range(a + 1 if cj == ci else 0, counts[cj]):
                                     r2 = 0.0
                                     for d in range(3):
-                                        g = (relative[ci, d, a] - relative[cj, d, b] + centre[ci, d]
-                                             - centre[cj, d] - shift[d])  # fmt: skip
+                                        g = (
+                                            relative[ci, d, a]
+                                            - relative[cj, d, b]
+                                            + centre[ci, d]
+                                            - centre[cj, d]
+                                            - shift[d]
+                                        )
                                         r2 += g * g
                                     near = near or r2 < r2max
                             if not near:
@@ -344,8 +369,11 @@ def buffer_kernel(real, copy=True, scatter=True):
             most = max(most, starts[ci + 1] - starts[ci])
         size = M * most + PAD
         # padding until copied into (the loop-only variant reads them as they are)
-        bx, by, bz = (np.full(size, real(PAD_AT)), np.full(size, real(PAD_AT)),
-                      np.full(size, real(PAD_AT)))  # fmt: skip
+        bx, by, bz = (
+            np.full(size, real(PAD_AT)),
+            np.full(size, real(PAD_AT)),
+            np.full(size, real(PAD_AT)),
+        )
         gx, gy, gz = np.zeros(size, real), np.zeros(size, real), np.zeros(size, real)
         forces[:] = 0.0
         energy = 0.0
@@ -433,8 +461,9 @@ _FLAGS = ("contract", "reassoc", "nsz", "arcp")
 
 
 def _lanes(builder, a, b, lanes):
-    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)),
-                                                    lanes))  # fmt: skip
+    return builder.shuffle_vector(
+        a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)), lanes)
+    )
 
 
 def _index(n: int):
@@ -446,8 +475,9 @@ def _eight(x: float):
 
 
 @intrinsic
-def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, forces, near,
-                    radius2):  # fmt: skip
+def _simd_i_cluster(
+    typingctx, xi, xj, offsets, partners, start, end, ci, rc2, forces, near, radius2
+):
     """LJ between i-cluster ``ci`` and the j-clusters ``partners[start:end]`` (flat float32
     arrays: positions [x0..x3, y0..y3, z0..z3] per cluster, offsets 3 per pair); adds the
     i forces to ``forces[ci]``, subtracts the j forces from ``forces[cj]``; returns the
@@ -459,31 +489,37 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
     marking = not isinstance(near, types.NoneType)
 
     def codegen(context, builder, signature, args):
-        xi_p, xj_p, off_p, part_p = (array_data(context, builder, signature.args[n], args[n])
-                                     for n in range(4))  # fmt: skip
+        xi_p, xj_p, off_p, part_p = (
+            array_data(context, builder, signature.args[n], args[n]) for n in range(4)
+        )
         f_p = array_data(context, builder, signature.args[8], args[8])
         wide = signature.args[8].dtype == types.float64
         start, end, ci, rc2 = args[4:8]
         near_p = array_data(context, builder, signature.args[9], args[9]) if marking else None
         fl = _FLAGS
         base_i = builder.mul(ci, _index(12))
-        own = [load_vector(builder, xi_p, builder.add(base_i, _index(4 * d)), _V4)
-               for d in range(3)]  # fmt: skip
+        own = [
+            load_vector(builder, xi_p, builder.add(base_i, _index(4 * d)), _V4) for d in range(3)
+        ]
         # i atoms (0, 1) and (2, 3), each broadcast over four lanes
-        pairs_i = [[_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own]
-                   for h in range(2)]  # fmt: skip
+        pairs_i = [
+            [_lanes(builder, v, v, [2 * h] * 4 + [2 * h + 1] * 4) for v in own] for h in range(2)
+        ]
         # the squared cutoff per lane: -1 for the pairs a cluster with itself leaves out
         # (b <= a), so one compare masks both (no mask arithmetic, which AVX2 lacks)
         cut = splat(builder, rc2, _V8)
-        own_cuts = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), 8), keep), cut,
-                                   _eight(-1.0))
-                    for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])]  # fmt: skip
+        own_cuts = [
+            builder.select(ir.Constant(ir.VectorType(ir.IntType(1), 8), keep), cut, _eight(-1.0))
+            for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])
+        ]
         if marking:
             reach = splat(builder, args[10], _V8)
-            own_reach = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), 8), keep),
-                                        reach, _eight(-1.0))
-                         for keep in ([0, 1, 1, 1, 0, 0, 1, 1],
-                                      [0, 0, 0, 1, 0, 0, 0, 0])]  # fmt: skip
+            own_reach = [
+                builder.select(
+                    ir.Constant(ir.VectorType(ir.IntType(1), 8), keep), reach, _eight(-1.0)
+                )
+                for keep in ([0, 1, 1, 1, 0, 0, 1, 1], [0, 0, 0, 1, 0, 0, 0, 0])
+            ]
         sums = [cgutils.alloca_once_value(builder, _eight(0.0)) for _ in range(7)]
         with cgutils.for_range_slice(builder, start, end, _index(1)) as (k, _):
             cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
@@ -494,8 +530,13 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
             for d in range(3):
                 offset = builder.load(builder.gep(off_p, [builder.add(k3, _index(d))]))
                 four = load_vector(builder, xj_p, builder.add(base_j, _index(4 * d)), _V4)
-                shifted.append(builder.fsub(_lanes(builder, four, four, [0, 1, 2, 3] * 2),
-                                            splat(builder, offset, _V8), flags=fl))  # fmt: skip
+                shifted.append(
+                    builder.fsub(
+                        _lanes(builder, four, four, [0, 1, 2, 3] * 2),
+                        splat(builder, offset, _V8),
+                        flags=fl,
+                    )
+                )
             fj = [_eight(0.0)] * 3
             within = None
             for h in range(2):
@@ -510,22 +551,31 @@ def _simd_i_cluster(typingctx, xi, xj, offsets, partners, start, end, ci, rc2, f
                     within = close if within is None else builder.or_(within, close)
                 ir2 = builder.fdiv(_eight(1.0), builder.select(mask, r2, _eight(1.0)), flags=fl)
                 ir6 = builder.fmul(builder.fmul(ir2, ir2, flags=fl), ir2, flags=fl)
-                fr = builder.fmul(ir6, builder.fsub(builder.fmul(_eight(48.0), ir6, flags=fl),
-                                                    _eight(24.0), flags=fl), flags=fl)  # fmt: skip
+                fr = builder.fmul(
+                    ir6,
+                    builder.fsub(builder.fmul(_eight(48.0), ir6, flags=fl), _eight(24.0), flags=fl),
+                    flags=fl,
+                )
                 fr = builder.select(mask, builder.fmul(fr, ir2, flags=fl), _eight(0.0))
-                u = builder.fmul(builder.fmul(_eight(4.0), ir6, flags=fl),
-                                 builder.fsub(ir6, _eight(1.0), flags=fl), flags=fl)  # fmt: skip
+                u = builder.fmul(
+                    builder.fmul(_eight(4.0), ir6, flags=fl),
+                    builder.fsub(ir6, _eight(1.0), flags=fl),
+                    flags=fl,
+                )
                 energy = builder.load(sums[6])
-                builder.store(builder.fadd(energy, builder.select(mask, u, _eight(0.0)), flags=fl),
-                              sums[6])  # fmt: skip
+                builder.store(
+                    builder.fadd(energy, builder.select(mask, u, _eight(0.0)), flags=fl), sums[6]
+                )
                 for d in range(3):
                     g = builder.fmul(fr, dx[d], flags=fl)
-                    builder.store(builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl),
-                                  sums[3 * h + d])  # fmt: skip
+                    builder.store(
+                        builder.fadd(builder.load(sums[3 * h + d]), g, flags=fl), sums[3 * h + d]
+                    )
                     fj[d] = builder.fadd(fj[d], g, flags=fl)
             if marking:
-                anything = builder.icmp_unsigned("!=", builder.bitcast(within, ir.IntType(8)),
-                                                 ir.Constant(ir.IntType(8), 0))  # fmt: skip
+                anything = builder.icmp_unsigned(
+                    "!=", builder.bitcast(within, ir.IntType(8)), ir.Constant(ir.IntType(8), 0)
+                )
                 builder.store(builder.zext(anything, ir.IntType(8)), builder.gep(near_p, [k]))
             for d in range(3):
                 low = _lanes(builder, fj[d], fj[d], [0, 1, 2, 3])
@@ -565,8 +615,9 @@ def simd_forces(xi, xj, offsets, starts, partners, rc2, forces, near, radius2):
     forces[:] = 0.0
     energy = 0.0
     for ci in range(starts.shape[0] - 1):
-        energy += _simd_i_cluster(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, rc2,
-                                  forces, near, radius2)  # fmt: skip
+        energy += _simd_i_cluster(
+            xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, rc2, forces, near, radius2
+        )
     return energy
 
 
@@ -648,8 +699,9 @@ def build_times(state, neighbors, density, repeats: int = 5) -> None:
     t_grid, grid = median_time(lambda: cluster_grid(state.positions, state.box, density))
     ncx, ncy, first, atom, centre, bounds, relative = grid
     counts = (atom >= 0).reshape(-1, M).sum(axis=1)
-    t_boxes, boxes = median_time(lambda: cluster_pairs(state.box, ncx, ncy, first, centre,
-                                                       bounds, 2.8))  # fmt: skip
+    t_boxes, boxes = median_time(
+        lambda: cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.8)
+    )
     t_frame = median_time(lambda: neighbors.build(state))[0]
     line = (
         f"builds, median of {repeats}: the frame's list {1e3 * t_frame:.1f} ms; "
@@ -657,10 +709,13 @@ def build_times(state, neighbors, density, repeats: int = 5) -> None:
         f"({len(boxes[1])} pairs)"
     )
     frame = neighbors.frame
-    t_slots, slots = median_time(lambda: slot_cluster_pairs(frame.starts, frame.neighbors,
-                                                           frame.codes, M))  # fmt: skip
-    line += (f"; from the frame's list, clusters of {M} slots: {1e3 * t_slots:.1f} ms "
-             f"({len(slots[1])} pairs)")  # fmt: skip
+    t_slots, slots = median_time(
+        lambda: slot_cluster_pairs(frame.starts, frame.neighbors, frame.codes, M)
+    )
+    line += (
+        f"; from the frame's list, clusters of {M} slots: {1e3 * t_slots:.1f} ms "
+        f"({len(slots[1])} pairs)"
+    )
     for sure in (0.0, 1.0):
         t_atoms, kept = median_time(
             lambda sure=sure: cluster_pairs(
@@ -688,17 +743,20 @@ def main(argv=None) -> int:
     neighbors.update(state)
     reference = lj.energy_forces(state, neighbors, virial=False)
     density = state.n_atoms / np.prod(state.box)
-    ncx, ncy, first, atom, centre, bounds, relative = cluster_grid(state.positions, state.box,
-                                                                   density)  # fmt: skip
+    ncx, ncy, first, atom, centre, bounds, relative = cluster_grid(
+        state.positions, state.box, density
+    )
     starts, partners, offsets = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.8)
     n_clusters = centre.shape[0]
     real_atoms = atom >= 0
     counts = real_atoms.reshape(-1, M).sum(axis=1)  # fillers come last in a cluster
     evaluated = len(partners) * LANES
-    print(f"{state.n_atoms} atoms in {n_clusters} clusters of {M} ({real_atoms.mean():.1%} "
-          f"atoms, the rest fillers), {len(partners)} cluster pairs: {evaluated} atom pairs "
-          f"evaluated, {evaluated / neighbors.n_pairs:.2f} per pair of the frame's list "
-          f"({neighbors.n_pairs}); 1 thread, {args.repeats} interleaved repeats")  # fmt: skip
+    print(
+        f"{state.n_atoms} atoms in {n_clusters} clusters of {M} ({real_atoms.mean():.1%} "
+        f"atoms, the rest fillers), {len(partners)} cluster pairs: {evaluated} atom pairs "
+        f"evaluated, {evaluated / neighbors.n_pairs:.2f} per pair of the frame's list "
+        f"({neighbors.n_pairs}); 1 thread, {args.repeats} interleaved repeats"
+    )
 
     def per_atom(cluster_forces):
         forces = np.zeros((state.n_atoms, 3))
@@ -735,35 +793,67 @@ def main(argv=None) -> int:
     # the simd kernel (float32) on the list and on the pruned list, the flat one pruned
     # (the search with its atom check at every distance: no pair kept unchecked)
     kept = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.8, relative, counts, 0.0)
-    within = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.5, relative, counts,
-                           0.0)[1]  # fmt: skip
-    print(f"cluster pairs with an atom pair within 2.8: {len(kept[1])} "
-          f"({len(kept[1]) / len(partners):.1%}), within the cutoff 2.5: {len(within)} "
-          f"({len(within) / len(partners):.1%})")  # fmt: skip
+    within = cluster_pairs(state.box, ncx, ncy, first, centre, bounds, 2.5, relative, counts, 0.0)[
+        1
+    ]
+    print(
+        f"cluster pairs with an atom pair within 2.8: {len(kept[1])} "
+        f"({len(kept[1]) / len(partners):.1%}), within the cutoff 2.5: {len(within)} "
+        f"({len(within) / len(partners):.1%})"
+    )
     x = relative.astype(np.float32)
     as_i = x.copy()
     as_i[:, 2, :][~real_atoms.reshape(-1, M)] = FILLER
-    for label, lists, off in (("simd 2x4", (starts, partners), offsets),
-                              ("simd 2x4, pruned", kept[:2], kept[2])):  # fmt: skip
+    for label, lists, off in (
+        ("simd 2x4", (starts, partners), offsets),
+        ("simd 2x4, pruned", kept[:2], kept[2]),
+    ):
         forces = np.zeros(x.shape, np.float32)
-        arguments = (as_i.ravel(), x.ravel(), off.astype(np.float32).ravel(), lists[0], lists[1],
-                     np.float32(6.25), forces.reshape(-1), None, np.float32(0.0))  # fmt: skip
+        arguments = (
+            as_i.ravel(),
+            x.ravel(),
+            off.astype(np.float32).ravel(),
+            lists[0],
+            lists[1],
+            np.float32(6.25),
+            forces.reshape(-1),
+            None,
+            np.float32(0.0),
+        )
         name = f"{label} (float32)"
         timed[name] = lambda a=arguments: simd_forces(*a)
         timed[name]()
         gaps[name] = np.abs(per_atom(forces) - reference.forces).max() / scale
     # the same into a double force buffer (sums of float32 cluster-pair terms in double)
     wide = np.zeros(x.shape, np.float64)
-    arguments = (as_i.ravel(), x.ravel(), kept[2].astype(np.float32).ravel(), kept[0], kept[1],
-                 np.float32(6.25), wide.reshape(-1), None, np.float32(0.0))  # fmt: skip
+    arguments = (
+        as_i.ravel(),
+        x.ravel(),
+        kept[2].astype(np.float32).ravel(),
+        kept[0],
+        kept[1],
+        np.float32(6.25),
+        wide.reshape(-1),
+        None,
+        np.float32(0.0),
+    )
     timed["simd 2x4, pruned, double sums"] = lambda a=arguments: simd_forces(*a)
     timed["simd 2x4, pruned, double sums"]()
     gaps["simd 2x4, pruned, double sums"] = np.abs(per_atom(wide) - reference.forces).max() / scale
     # the prune from the kernel's own r^2 (a force call that also marks the near pairs)
     near = np.zeros(len(partners), np.uint8)
     forces = np.zeros(x.shape, np.float32)
-    arguments = (as_i.ravel(), x.ravel(), offsets.astype(np.float32).ravel(), starts, partners,
-                 np.float32(6.25), forces.reshape(-1), near, np.float32(2.8**2))  # fmt: skip
+    arguments = (
+        as_i.ravel(),
+        x.ravel(),
+        offsets.astype(np.float32).ravel(),
+        starts,
+        partners,
+        np.float32(6.25),
+        forces.reshape(-1),
+        near,
+        np.float32(2.8**2),
+    )
     timed["simd 2x4, marking (float32)"] = lambda a=arguments: simd_forces(*a)
     timed["simd 2x4, marking (float32)"]()
     gaps["simd 2x4, marking (float32)"] = np.abs(per_atom(forces) - reference.forces).max() / scale
@@ -779,9 +869,11 @@ def main(argv=None) -> int:
         return set(zip(owners.tolist(), lists[1].tolist(), strict=True))
 
     differ = len(listed(marked) ^ listed(kept))
-    print(f"the kernel's marks keep {len(marked[1])} cluster pairs ({differ} differ from the "
-          f"double-precision atom check, at the float32 edge of 2.8); compacting them "
-          f"{1e3 * compaction:.1f} ms")  # fmt: skip
+    print(
+        f"the kernel's marks keep {len(marked[1])} cluster pairs ({differ} differ from the "
+        f"double-precision atom check, at the float32 edge of 2.8); compacting them "
+        f"{1e3 * compaction:.1f} ms"
+    )
     broadcast = np.ascontiguousarray(np.repeat(as_i, M, axis=2)).ravel()
     replicated = np.ascontiguousarray(np.tile(x, (1, 1, M))).ravel()
     fi, fj = np.zeros(broadcast.size, np.float32), np.zeros(broadcast.size, np.float32)
@@ -789,8 +881,9 @@ def main(argv=None) -> int:
     flat = flat_kernel(np.float32)
     timed["flat 4x4, pruned (float32)"] = lambda a=arguments: flat(*a)
     timed["flat 4x4, pruned (float32)"]()
-    gaps["flat 4x4, pruned (float32)"] = (np.abs(per_atom(flat_forces(fi, fj)) - reference.forces)
-                                          .max() / scale)  # fmt: skip
+    gaps["flat 4x4, pruned (float32)"] = (
+        np.abs(per_atom(flat_forces(fi, fj)) - reference.forces).max() / scale
+    )
     if max(gaps[name] for name in gaps if "only" not in name) > 1e-4:
         print(f"cluster forces differ from the frame's: {gaps}", file=sys.stderr)
         return 1

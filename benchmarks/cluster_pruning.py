@@ -49,10 +49,12 @@ def simulation(cells: int, outer: float, every: int = 1, skin: float = SKIN) -> 
     """The mixed melt with the cluster list of ``outer`` skin; ``every`` > 1: the list
     rebuilt every that many steps with no check, at ``skin``, no outer list."""
     start = maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=1)
-    sim = md.Simulation(start, [LennardJones(cutoff=CUTOFF)], VelocityVerlet(DT),
-                        precision="mixed", skin=skin)  # fmt: skip
-    sim.forcefield.neighbor_list = NeighborList(CUTOFF, skin, clusters=True, outer_skin=outer,
-                                                every=every, check=every == 1)  # fmt: skip
+    sim = md.Simulation(
+        start, [LennardJones(cutoff=CUTOFF)], VelocityVerlet(DT), precision="mixed", skin=skin
+    )
+    sim.forcefield.neighbor_list = NeighborList(
+        CUTOFF, skin, clusters=True, outer_skin=outer, every=every, check=every == 1
+    )
     sim.forcefield.invalidate()
     return sim
 
@@ -61,17 +63,31 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
     parser.add_argument("--threads", type=int, default=1, help="threads (1)")
-    parser.add_argument("--outer", default="0.3,0.9,1.2,1.5",
-                        help="outer skins, the first the reference (0.3,0.9,1.2,1.5)")
+    parser.add_argument(
+        "--outer",
+        default="0.3,0.9,1.2,1.5",
+        help="outer skins, the first the reference (0.3,0.9,1.2,1.5)",
+    )
     parser.add_argument("--steps", type=int, default=200, help="steps per repeat (200)")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats (3)")
     parser.add_argument("--warm", type=int, default=300, help="steps before timing (300)")
-    parser.add_argument("--sections", action="store_true",
-                        help="also where a step goes: force, searches, prunes, integrator")
-    parser.add_argument("--every", type=int, default=0,
-                        help="also a row with the list rebuilt every N steps, no check")
-    parser.add_argument("--every-skin", type=float, default=0.332,
-                        help="that row's skin (0.332: GROMACS's rlist 2.832 for nstlist 20)")
+    parser.add_argument(
+        "--sections",
+        action="store_true",
+        help="also where a step goes: force, searches, prunes, integrator",
+    )
+    parser.add_argument(
+        "--every",
+        type=int,
+        default=0,
+        help="also a row with the list rebuilt every N steps, no check",
+    )
+    parser.add_argument(
+        "--every-skin",
+        type=float,
+        default=0.332,
+        help="that row's skin (0.332: GROMACS's rlist 2.832 for nstlist 20)",
+    )
     args = parser.parse_args(argv)
     try:
         outers = [float(x) for x in args.outer.split(",")]
@@ -80,19 +96,24 @@ def main(argv=None) -> None:
     if any(not outer >= 0 for outer in outers):
         parser.error(f"--outer skins must be >= 0, got {args.outer!r}")
     if args.every < 0 or (args.every and not args.every_skin > 0):
-        parser.error(f"--every must be >= 1 (0: no such row) and --every-skin > 0, got "
-                     f"{args.every} and {args.every_skin}")
+        parser.error(
+            f"--every must be >= 1 (0: no such row) and --every-skin > 0, got "
+            f"{args.every} and {args.every_skin}"
+        )
     for name in ("cells", "threads", "steps", "repeats"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     set_threads(args.threads)
     print(machine_line())
-    print(f"{4 * args.cells**3} atoms, {args.threads} thread(s), mixed precision, skin {SKIN}; "
-          f"{args.repeats} repeats of {args.steps} steps after {args.warm}")  # fmt: skip
+    print(
+        f"{4 * args.cells**3} atoms, {args.threads} thread(s), mixed precision, skin {SKIN}; "
+        f"{args.repeats} repeats of {args.steps} steps after {args.warm}"
+    )
     sims = {f"{outer:g}": simulation(args.cells, outer) for outer in outers}
     if args.every:
-        sims[f"every {args.every}"] = simulation(args.cells, args.every_skin, args.every,
-                                                 args.every_skin)  # fmt: skip
+        sims[f"every {args.every}"] = simulation(
+            args.cells, args.every_skin, args.every, args.every_skin
+        )
     for sim in sims.values():
         sim.run(args.warm)
     rows = list(sims)
@@ -112,8 +133,10 @@ def main(argv=None) -> None:
             after = _seconds(sim, calls)
             split[outer].append({k: (after[k] - before[k]) / args.steps for k in after})
     reference = times[rows[0]]
-    print(f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
-          f"{'outer pairs':>11} {'ratio':>6}")  # fmt: skip
+    print(
+        f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
+        f"{'outer pairs':>11} {'ratio':>6}"
+    )
     for outer in rows:
         nl = sims[outer].forcefield.neighbor_list
         ratio = statistics.median(t / r for t, r in zip(times[outer], reference, strict=True))
@@ -121,13 +144,17 @@ def main(argv=None) -> None:
         prunes = statistics.median(c[1] for c in counts[outer])
         pairs = nl.clusters.n_pairs if nl.clusters is not None else "-"
         outer_pairs = nl.outer_clusters.n_pairs if nl.outer_clusters is not None else "-"
-        print(f"{outer:>10} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
-              f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}")  # fmt: skip
+        print(
+            f"{outer:>10} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
+            f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}"
+        )
     if calls is None:
         return
-    print("where a step goes, ms per step (median over the repeats): the force call; the list:"
-          " searches (search_pairs), prunes (prune_pairs, a search's own included), the rest"
-          " (grid, relative positions, the displacement check); the integrator")
+    print(
+        "where a step goes, ms per step (median over the repeats): the force call; the list:"
+        " searches (search_pairs), prunes (prune_pairs, a search's own included), the rest"
+        " (grid, relative positions, the displacement check); the integrator"
+    )
     names = ("force", "search", "prune", "list rest", "integrator")
     print(f"{'outer skin':>10} " + " ".join(f"{name:>10}" for name in names))
     for outer in rows:
@@ -158,9 +185,12 @@ def _timed_calls() -> dict:
 def _seconds(sim: md.Simulation, calls: dict | None) -> dict:
     """The run's seconds so far: force call, list, integrator and, if timed, the
     searches and prunes (all the runs' together: taken as differences around one)."""
-    return {"force": sim.forcefield.timings["force"],
-             "neighbor": sim.forcefield.timings["neighbor"],
-             "integrate": sim.timings["integrate"], **(calls or {})}  # fmt: skip
+    return {
+        "force": sim.forcefield.timings["force"],
+        "neighbor": sim.forcefield.timings["neighbor"],
+        "integrate": sim.timings["integrate"],
+        **(calls or {}),
+    }
 
 
 if __name__ == "__main__":

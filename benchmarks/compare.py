@@ -71,8 +71,16 @@ from lj_melt import find_libmpi, print_breakdown
 
 WORKER = Path(__file__).with_name("_compare_worker.py")
 VECTOR_CHECK = Path(__file__).with_name("_vector_check.py")
-PEERS = ("lammps", "lammps-opt", "lammps-omp", "openmm", "asap3", "ase", "gromacs",
-         "gromacs-double")  # fmt: skip
+PEERS = (
+    "lammps",
+    "lammps-opt",
+    "lammps-omp",
+    "openmm",
+    "asap3",
+    "ase",
+    "gromacs",
+    "gromacs-double",
+)
 #: GROMACS peers are binaries, not modules: peer name -> precision variant.
 GROMACS_PEERS = {"gromacs": "mixed", "gromacs-double": "double"}
 #: The modules each peer needs, and how to get them.
@@ -366,8 +374,7 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
         jobs += [Job("ours", t, cells, steps, "mixed") for t in args.threads]
     if args.gromacs_rule:  # ours with GROMACS's list rule: every 20 steps, no check
         for variant in ("", "mixed") if args.mixed else ("",):
-            jobs += [Job("ours", t, cells, steps, variant, neigh="every20")
-                     for t in args.threads]  # fmt: skip
+            jobs += [Job("ours", t, cells, steps, variant, neigh="every20") for t in args.threads]
     serial = 1 in args.threads
     if "lammps" in peers and serial:
         jobs.append(Job("lammps", 1, cells, steps, "plain"))
@@ -391,14 +398,20 @@ def comparison_jobs(args, peers: set[str]) -> list[Job]:
     return jobs
 
 
-def ratio_to_ours(item: Measured, measured: Sequence[Measured],
-                  variant: str = "") -> float | None:  # fmt: skip
+def ratio_to_ours(item: Measured, measured: Sequence[Measured], variant: str = "") -> float | None:
     """Ours (in double, or the ``variant`` "mixed") at the same thread count and atom count
     over this peer."""
     if item.job.engine == "ours":
         return None
-    ours = find(measured, engine="ours", threads=item.job.threads, n_atoms=item.n_atoms,
-                variant=variant, h5md_every=0, neigh="check")  # fmt: skip
+    ours = find(
+        measured,
+        engine="ours",
+        threads=item.job.threads,
+        n_atoms=item.n_atoms,
+        variant=variant,
+        h5md_every=0,
+        neigh="check",
+    )
     return None if ours is None else ours.median / item.median
 
 
@@ -469,11 +482,21 @@ def print_repeat_ratios(measured: Sequence[Measured]) -> None:
     for item in measured:
         if item.job.engine == "ours" or len(item.rates) < 2:
             continue
-        for variant, neigh in (("", "check"), ("mixed", "check"), ("", "every20"),
-                               ("mixed", "every20")):  # fmt: skip
-            ours = find(measured, engine="ours", threads=item.job.threads,
-                        n_atoms=item.n_atoms, variant=variant, h5md_every=0,
-                        neigh=neigh)  # fmt: skip
+        for variant, neigh in (
+            ("", "check"),
+            ("mixed", "check"),
+            ("", "every20"),
+            ("mixed", "every20"),
+        ):
+            ours = find(
+                measured,
+                engine="ours",
+                threads=item.job.threads,
+                n_atoms=item.n_atoms,
+                variant=variant,
+                h5md_every=0,
+                neigh=neigh,
+            )
             if ours is None:
                 continue
             ratios = repeat_ratios(item, ours)
@@ -969,9 +992,12 @@ def gromacs_probe(binary: str) -> dict:
     """``gmx --version``: version, precision and SIMD level; raise RuntimeError if it fails."""
     try:
         done = subprocess.run(
-            [binary, "--version"], capture_output=True, text=True, timeout=120,
+            [binary, "--version"],
+            capture_output=True,
+            text=True,
+            timeout=120,
             env=dict(os.environ, GMX_MAXBACKUP="-1"),
-        )  # fmt: skip
+        )
     except (OSError, subprocess.SubprocessError) as error:
         raise RuntimeError(f"{binary} --version: {error}") from error
     info = build_info(done.stdout + done.stderr)
@@ -1176,9 +1202,12 @@ def vector_line() -> str:
     in a child process with an empty numba cache: cached kernels keep no assembly)."""
     try:
         done = subprocess.run(
-            [sys.executable, str(VECTOR_CHECK)], capture_output=True, text=True, timeout=600,
+            [sys.executable, str(VECTOR_CHECK)],
+            capture_output=True,
+            text=True,
+            timeout=600,
             check=True,
-        )  # fmt: skip
+        )
         kernels = json.loads(done.stdout.strip().splitlines()[-1])
     except (OSError, subprocess.SubprocessError, ValueError, IndexError) as error:
         return f"vectorised: not checked ({type(error).__name__})"

@@ -74,8 +74,14 @@ def main() -> None:
     start = time.perf_counter()
 
     def checkpoint(sim) -> None:
-        write_checkpoint(saved, sim.state, sim.integrator, sim.forcefield,
-                         n_frames=writer.n_frames, last_frame_step=sim.state.step)  # fmt: skip
+        write_checkpoint(
+            saved,
+            sim.state,
+            sim.integrator,
+            sim.forcefield,
+            n_frames=writer.n_frames,
+            last_frame_step=sim.state.step,
+        )
         samples.append((sim.state.step, time.perf_counter() - start, rss_mib()))
 
     with H5MDWriter(trajectory, state, units="lj", velocities=True, overwrite=True) as writer:
@@ -108,10 +114,14 @@ def main() -> None:
     growth = steps_rss[-1] - after_warmup if len(steps_rss) else float("nan")
 
     print(f"\n{n_atoms} atoms, {args.steps} steps of dt {args.dt} (velocity Verlet, LJ 2.5 shift)")
-    print(f"wall {wall:.1f} s, {args.steps / wall:,.0f} steps/s, "
-          f"{n_atoms * args.steps / wall:,.0f} atom-steps/s")  # fmt: skip
-    print(f"frames {traj.n_frames}, checkpoints written {len(samples)}, last at step "
-          f"{last.state.step}; file {trajectory.stat().st_size / 2**20:.1f} MiB")  # fmt: skip
+    print(
+        f"wall {wall:.1f} s, {args.steps / wall:,.0f} steps/s, "
+        f"{n_atoms * args.steps / wall:,.0f} atom-steps/s"
+    )
+    print(
+        f"frames {traj.n_frames}, checkpoints written {len(samples)}, last at step "
+        f"{last.state.step}; file {trajectory.stat().st_size / 2**20:.1f} MiB"
+    )
     print(
         f"RSS: first sample {steps_rss[0]:.1f} MiB, after 10 % {after_warmup:.1f} MiB, "
         f"end {steps_rss[-1]:.1f} MiB, max {steps_rss.max():.1f} MiB; growth after warm-up "

@@ -86,8 +86,9 @@ def replica(gather: bool, arithmetic: bool, row_sum: bool, scatter: bool, real=n
             m = partners.shape[0]
             if gather:
                 if shifted[p]:
-                    _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]],
-                                     gx, gy, gz)  # fmt: skip
+                    _gather_partners(
+                        frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz
+                    )
                 else:
                     _gather_unshifted(frame, partners, gx, gy, gz)
             padded = (m + (lanes - 1)) & ~(lanes - 1) if m > 0 else 0
@@ -149,8 +150,9 @@ class EveryRowShifted:
 
     def __init__(self, neighbors: md.NeighborList) -> None:
         self.list_radius = neighbors.list_radius
-        self.frame = dataclasses.replace(neighbors.frame,
-                                         shifted=np.ones_like(neighbors.frame.shifted))  # fmt: skip
+        self.frame = dataclasses.replace(
+            neighbors.frame, shifted=np.ones_like(neighbors.frame.shifted)
+        )
 
 
 VARIANTS = {
@@ -186,8 +188,19 @@ def main(argv=None) -> None:
     reference = call(neighbors)
     slot_positions = state.positions[frame.order] + frame.images * state.box
     buffer = np.zeros_like(slot_positions)
-    inputs = (slot_positions, frame.shifts, frame.starts, frame.neighbors, frame.codes,
-              frame.shifted, buffer, 6.25, 4.0, 4.0, 2.51)  # fmt: skip
+    inputs = (
+        slot_positions,
+        frame.shifts,
+        frame.starts,
+        frame.neighbors,
+        frame.codes,
+        frame.shifted,
+        buffer,
+        6.25,
+        4.0,
+        4.0,
+        2.51,
+    )
     loops = {name: replica(*parts) for name, parts in VARIANTS.items()}
     variant_inputs = {}
     energy = loops["replica (all parts)"](*inputs)
@@ -196,15 +209,25 @@ def main(argv=None) -> None:
     same = energy == reference.energy and np.array_equal(forces, reference.forces)
     apart = float(np.max(np.abs(forces - reference.forces)) / np.max(np.abs(reference.forces)))
     if args.threads > 1 or not same:
-        print(f"replica against the frame: {'same bits' if same else 'DIFFERENT'} "
-              f"({args.threads} thread(s): the replica runs one chunk); energy "
-              f"{energy - reference.energy:+.3g} apart, forces {apart:.2g} of the largest")
+        print(
+            f"replica against the frame: {'same bits' if same else 'DIFFERENT'} "
+            f"({args.threads} thread(s): the replica runs one chunk); energy "
+            f"{energy - reference.energy:+.3g} apart, forces {apart:.2g} of the largest"
+        )
     # The float32 replicas (a float32 slot frame's loop): same list, float32 inputs.
-    single = (slot_positions.astype(F32), frame.shifts.astype(F32), frame.starts,
-              frame.neighbors, frame.codes, frame.shifted)  # fmt: skip
+    single = (
+        slot_positions.astype(F32),
+        frame.shifts.astype(F32),
+        frame.starts,
+        frame.neighbors,
+        frame.codes,
+        frame.shifted,
+    )
     constants = (F32(6.25), F32(4.0), F32(4.0), F32(2.51))
-    for name, wide in (("float32 replica, float32 buffer", False),
-                       ("float32 replica, double buffer", True)):  # fmt: skip
+    for name, wide in (
+        ("float32 replica, float32 buffer", False),
+        ("float32 replica, double buffer", True),
+    ):
         out = np.zeros(buffer.shape, np.float64 if wide else F32)
         loop32 = replica(True, True, True, True, real=F32)
         loops[name] = loop32
@@ -213,14 +236,18 @@ def main(argv=None) -> None:
         forces32 = np.empty(buffer.shape)
         forces32[frame.order] = out
         gap = np.abs(forces32 - reference.forces).max() / np.abs(reference.forces).max()
-        print(f"{name}: energy {energy32:.8g} (double {reference.energy:.8g}), max |F32 - F| "
-              f"/ max |F| = {gap:.1e}")  # fmt: skip
+        print(
+            f"{name}: energy {energy32:.8g} (double {reference.energy:.8g}), max |F32 - F| "
+            f"/ max |F| = {gap:.1e}"
+        )
         variant_inputs[name] = inputs32
     for name, loop in loops.items():
         loop(*variant_inputs.get(name, inputs))  # compile
     call(every_row)
-    timed = {"frame LJ": lambda: call(neighbors),
-             "frame LJ, every row shifted": lambda: call(every_row)}  # fmt: skip
+    timed = {
+        "frame LJ": lambda: call(neighbors),
+        "frame LJ, every row shifted": lambda: call(every_row),
+    }
     for name, loop in loops.items():
         arguments = variant_inputs.get(name, inputs)
         timed[name] = lambda loop=loop, arguments=arguments: loop(*arguments)
@@ -231,9 +258,11 @@ def main(argv=None) -> None:
             run()
             times[name].append(time.perf_counter() - start)
     pairs = neighbors.n_pairs
-    print(f"{state.n_atoms} atoms, {pairs} listed pairs, {frame.shifted.mean():.0%} of the rows "
-          f"marked shifted; {args.repeats} interleaved repeats; the frame on {args.threads} "
-          f"thread(s), the replica on 1; replica same bits as the frame: {same}")  # fmt: skip
+    print(
+        f"{state.n_atoms} atoms, {pairs} listed pairs, {frame.shifted.mean():.0%} of the rows "
+        f"marked shifted; {args.repeats} interleaved repeats; the frame on {args.threads} "
+        f"thread(s), the replica on 1; replica same bits as the frame: {same}"
+    )
     base = times["replica (all parts)"]
     print(f"{'':30s}{'ms':>8}{'ns/pair':>9}{'/ replica':>11}")
     for name, values in times.items():

@@ -58,25 +58,39 @@ print(json.dumps({"kept": kept, "step": times[len(times) // 2],
 def measure(mode: str, args) -> dict:
     environment = {**os.environ, "LEAPMD_KEEP_FREED_MEMORY": "1"}
     out = subprocess.run(
-        [sys.executable, "-c", _CHILD, mode, str(args.cells), args.integrator, str(args.steps),
-         str(args.threads)],
-        capture_output=True, text=True, check=True, env=environment,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-c",
+            _CHILD,
+            mode,
+            str(args.cells),
+            args.integrator,
+            str(args.steps),
+            str(args.threads),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=environment,
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20: 32000)")
-    parser.add_argument("--integrator", choices=("implicit_euler", "verlet"),
-                        default="implicit_euler")  # fmt: skip
+    parser.add_argument(
+        "--integrator", choices=("implicit_euler", "verlet"), default="implicit_euler"
+    )
     parser.add_argument("--steps", type=int, default=15, help="timed steps per process")
     parser.add_argument("--repeats", type=int, default=5, help="processes per setting")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     print(machine_line())
-    print(f"{4 * args.cells**3} atoms, {args.integrator}, {args.threads} thread(s), "
-          f"{args.steps} steps x {args.repeats} processes per setting")  # fmt: skip
+    print(
+        f"{4 * args.cells**3} atoms, {args.integrator}, {args.threads} thread(s), "
+        f"{args.steps} steps x {args.repeats} processes per setting"
+    )
     results: dict[str, list[dict]] = {"default": [], "kept": []}
     for _ in range(args.repeats):
         for mode in results:  # interleaved, so load on the machine hits both alike
@@ -84,11 +98,14 @@ def main() -> None:
     for mode, runs in results.items():
         steps = [1e3 * r["step"] for r in runs]
         faults = [r["faults"] for r in runs]
-        print(f"{mode:>8}: step {statistics.median(steps):6.1f} ms "
-              f"(processes {' '.join(f'{s:.1f}' for s in steps)}), "
-              f"page faults per step {statistics.median(faults):.0f}")  # fmt: skip
-    ratio = [d["step"] / k["step"] for d, k in zip(results["default"], results["kept"],
-                                                    strict=True)]  # fmt: skip
+        print(
+            f"{mode:>8}: step {statistics.median(steps):6.1f} ms "
+            f"(processes {' '.join(f'{s:.1f}' for s in steps)}), "
+            f"page faults per step {statistics.median(faults):.0f}"
+        )
+    ratio = [
+        d["step"] / k["step"] for d, k in zip(results["default"], results["kept"], strict=True)
+    ]
     print(
         f"default / kept, per repeat pair: {' '.join(f'{r:.2f}' for r in ratio)} "
         f"(median {statistics.median(ratio):.2f})"

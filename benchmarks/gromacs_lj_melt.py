@@ -126,8 +126,9 @@ AR  {n_atoms}
 """
 
 
-def mdp_text(steps: int, rlist: float | None = None, nstlist: int = NSTLIST,
-             modifier: str = "None") -> str:  # fmt: skip
+def mdp_text(
+    steps: int, rlist: float | None = None, nstlist: int = NSTLIST, modifier: str = "None"
+) -> str:
     """The .mdp of a run doing ``steps`` force evaluations and updates (``nsteps = steps -
     1``: GROMACS's loop also does step ``nsteps``): NVE leap-frog, truncated LJ, no
     charges; ``rlist`` [sigma] fixes the list radius (no Verlet buffer estimate), None lets
@@ -274,10 +275,13 @@ def parse_md_log(text: str) -> dict:
     if changed:
         nstlist, rlist = int(changed.group(1)), float(changed.group(2))
     outer, inner = (
-        re.search(rf"{which} list: updated every\s+(\d+) steps, buffer ([\d.]+) nm, "
-                  r"rlist ([\d.]+) nm", text)
+        re.search(
+            rf"{which} list: updated every\s+(\d+) steps, buffer ([\d.]+) nm, "
+            r"rlist ([\d.]+) nm",
+            text,
+        )
         for which in ("outer", "inner")
-    )  # fmt: skip
+    )
     if outer:
         nstlist, rlist = int(outer.group(1)), float(outer.group(3))
     single = re.search(

@@ -64,12 +64,15 @@ def compare_step_cost(make_system, dt: float, n_steps: int, repeats: int) -> dic
         ie.run(1)
         before = dict(integrator.statistics)
         ie_times.append(_time_steps(ie, n_steps))
-        newton.append((integrator.statistics["newton_iterations"] - before["newton_iterations"])
-                      / n_steps)  # fmt: skip
-        linear.append((integrator.statistics["linear_iterations"] - before["linear_iterations"])
-                      / n_steps)  # fmt: skip
-        hessians.append((integrator.statistics["hessian_evaluations"]
-                         - before["hessian_evaluations"]) / n_steps)  # fmt: skip
+        newton.append(
+            (integrator.statistics["newton_iterations"] - before["newton_iterations"]) / n_steps
+        )
+        linear.append(
+            (integrator.statistics["linear_iterations"] - before["linear_iterations"]) / n_steps
+        )
+        hessians.append(
+            (integrator.statistics["hessian_evaluations"] - before["hessian_evaluations"]) / n_steps
+        )
     vv_step, ie_step = statistics.median(vv_times), statistics.median(ie_times)
     return {
         "n_atoms": state.n_atoms,
@@ -165,8 +168,14 @@ def time_to_solution(make, span: float) -> list[tuple[str, float, float, str]]:
             rows.append((f"implicit Euler x{factor}", dt_ie, math.nan, f"failed: {error}"))
             continue
         stats = integrator.statistics
-        rows.append((f"implicit Euler x{factor}", dt_ie, time.perf_counter() - start,
-                     f"Newton/step {stats['newton_iterations'] / stats['steps']:.2f}"))  # fmt: skip
+        rows.append(
+            (
+                f"implicit Euler x{factor}",
+                dt_ie,
+                time.perf_counter() - start,
+                f"Newton/step {stats['newton_iterations'] / stats['steps']:.2f}",
+            )
+        )
     rows.append(_bdf(make, span))
     return rows
 
@@ -227,13 +236,17 @@ def main(argv=None) -> None:
     header += f"{'Newton/step':>13}{'linear/step':>13}{'Hessians/step':>15}"
     rows = []
     for cells in (10, 15, 20) if args.scaling else (args.cells,):
-        rows.append(("LJ melt dt 0.005", compare_step_cost(lj_melt(cells), 0.005, args.steps,
-                                                           args.repeats)))  # fmt: skip
+        rows.append(
+            ("LJ melt dt 0.005", compare_step_cost(lj_melt(cells), 0.005, args.steps, args.repeats))
+        )
     if not args.skip_polymer:
         n_beads = 4 * args.cells**3
-        rows.append(("bead-spring k=2000 dt 0.005",
-                     compare_step_cost(stiff_bead_spring(n_beads), 0.005, args.steps,
-                                       args.repeats)))  # fmt: skip
+        rows.append(
+            (
+                "bead-spring k=2000 dt 0.005",
+                compare_step_cost(stiff_bead_spring(n_beads), 0.005, args.steps, args.repeats),
+            )
+        )
     print(header)
     for name, r in rows:
         line = f"{name:<28}{r['n_atoms']:>8}{r['vv_step_ms']:>12.2f}{r['ie_step_ms']:>12.2f}"

@@ -42,8 +42,9 @@ VELOCITIES = {"gaussian": " dist gaussian", "uniform": ""}
 _SECTIONS = ("Pair", "Neigh", "Comm", "Output", "Modify", "Other")
 
 
-def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0,
-             velocities: str = "gaussian") -> list[str]:  # fmt: skip
+def commands(
+    cells, steps: int, neigh: str, seed: int, balance_every: int = 0, velocities: str = "gaussian"
+) -> list[str]:
     """Return the LAMMPS input of the LJ melt workload, one command per item.
 
     ``cells``: fcc cells along each axis, one number or (nx, ny, nz). ``velocities``: the
@@ -53,8 +54,11 @@ def commands(cells, steps: int, neigh: str, seed: int, balance_every: int = 0,
     ``[run] balance_every`` does).
     """
     nx, ny, nz = (cells, cells, cells) if isinstance(cells, int) else cells
-    balance = ([f"fix 2 all balance {balance_every} 1.02 shift xyz 10 1.02 weight time 1.0"]
-               if balance_every else [])  # fmt: skip
+    balance = (
+        [f"fix 2 all balance {balance_every} 1.02 shift xyz 10 1.02 weight time 1.0"]
+        if balance_every
+        else []
+    )
     return [
         "units lj",
         "atom_style atomic",
@@ -134,8 +138,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=100, help="time steps (100)")
     parser.add_argument("--neigh", choices=sorted(NEIGH_MODIFY), default="check")
     parser.add_argument("--seed", type=int, default=87287, help="velocity seed (87287)")
-    parser.add_argument("--velocities", choices=sorted(VELOCITIES), default="gaussian",
-                        help="initial velocities: gaussian (ours) or uniform (in.lj)")  # fmt: skip
+    parser.add_argument(
+        "--velocities",
+        choices=sorted(VELOCITIES),
+        default="gaussian",
+        help="initial velocities: gaussian (ours) or uniform (in.lj)",
+    )
     args = parser.parse_args(argv)
     print(json.dumps(run(args.cells, args.steps, args.neigh, args.seed, args.velocities)))
     return 0

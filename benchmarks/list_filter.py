@@ -46,10 +46,14 @@ def main(argv=None) -> None:
     state = md.State(positions=lattice.positions, box=lattice.box, pbc=False)
     n = state.n_atoms
     n_owned = int(args.owned * n)
-    cases = {"lattice ids": np.arange(n, dtype=np.int64),
-             "random ids": np.random.default_rng(0).permutation(n).astype(np.int64)}  # fmt: skip
-    print(f"{n} atoms (open block {cells}), {n_owned} owned, 1 thread, "
-          f"median of {args.repeats} builds")  # fmt: skip
+    cases = {
+        "lattice ids": np.arange(n, dtype=np.int64),
+        "random ids": np.random.default_rng(0).permutation(n).astype(np.int64),
+    }
+    print(
+        f"{n} atoms (open block {cells}), {n_owned} owned, 1 thread, "
+        f"median of {args.repeats} builds"
+    )
     lists = {}
     for label, ids in cases.items():
         for keep in (False, True):
@@ -67,8 +71,9 @@ def main(argv=None) -> None:
             runs[key].append(time.perf_counter() - start)
     for label in cases:
         plain, kept = (statistics.median(runs[label, keep]) for keep in (False, True))
-        share = statistics.median(k / p for k, p in zip(runs[label, True], runs[label, False],
-                                                        strict=True))  # fmt: skip
+        share = statistics.median(
+            k / p for k, p in zip(runs[label, True], runs[label, False], strict=True)
+        )
         print(
             f"{label:12s} build {plain:.3f} s ({lists[label, False].n_pairs} pairs), with the "
             f"filter {kept:.3f} s ({lists[label, True].n_pairs} pairs): the filter "

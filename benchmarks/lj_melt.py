@@ -137,8 +137,15 @@ def thread_use(before: dict, after: dict) -> dict:
     voluntary and involuntary context switches. A waiting pool thread that spins shows
     as CPU time near the wall time; one that sleeps, as voluntary switches."""
     main = os.getpid()
-    use = {"main_cpu": 0.0, "other_cpu": 0.0, "main_voluntary": 0, "main_involuntary": 0,
-           "other_voluntary": 0, "other_involuntary": 0, "other_threads": 0}  # fmt: skip
+    use = {
+        "main_cpu": 0.0,
+        "other_cpu": 0.0,
+        "main_voluntary": 0,
+        "main_involuntary": 0,
+        "other_voluntary": 0,
+        "other_involuntary": 0,
+        "other_threads": 0,
+    }
     for tid, (cpu, voluntary, involuntary) in after.items():
         cpu0, voluntary0, involuntary0 = before.get(tid, (0.0, 0, 0))
         who = "main" if tid == main else "other"

@@ -61,8 +61,10 @@ def force_calls(cells: int, repeats: int) -> dict:
     state.positions += np.random.default_rng(0).normal(scale=0.05, size=state.positions.shape)
     fields = {p: ForceField([LennardJones(cutoff=2.5)], precision=p) for p in PRECISIONS}
     results = {p: f.compute(state, virial=False) for p, f in fields.items()}  # warm-up
-    error = np.abs(results["mixed"].forces - results["double"].forces).max() / np.abs(
-        results["double"].forces).max()  # fmt: skip
+    error = (
+        np.abs(results["mixed"].forces - results["double"].forces).max()
+        / np.abs(results["double"].forces).max()
+    )
     # each precision over its own list: the slot frame for double, the cluster pairs that
     # ForceField(precision="mixed") builds where the cell allows
     lists = {p: f.neighbor_list for p, f in fields.items()}
@@ -71,19 +73,27 @@ def force_calls(cells: int, repeats: int) -> dict:
     for _ in range(repeats):
         for precision in PRECISIONS:
             start = time.perf_counter()
-            potentials[precision].energy_forces(state, lists[precision], virial=False,
-                                                precision=precision)  # fmt: skip
+            potentials[precision].energy_forces(
+                state, lists[precision], virial=False, precision=precision
+            )
             times[precision].append(time.perf_counter() - start)
     ratios = [m / d for m, d in zip(times["mixed"], times["double"], strict=True)]
-    return {"double": statistics.median(times["double"]),
-            "mixed": statistics.median(times["mixed"]),
-            "ratio": statistics.median(ratios), "error": error}  # fmt: skip
+    return {
+        "double": statistics.median(times["double"]),
+        "mixed": statistics.median(times["mixed"]),
+        "ratio": statistics.median(ratios),
+        "error": error,
+    }
 
 
 def md_rates(cells: int, steps: int, repeats: int) -> dict:
     """Median atom-steps per second of the MD loop in each precision (interleaved)."""
-    sims = {p: md.Simulation(melt(cells, 1.0), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
-                             precision=p) for p in PRECISIONS}  # fmt: skip
+    sims = {
+        p: md.Simulation(
+            melt(cells, 1.0), [LennardJones(cutoff=2.5)], VelocityVerlet(DT), precision=p
+        )
+        for p in PRECISIONS
+    }
     for sim in sims.values():
         sim.run(10)  # warm-up
     rates = {p: [] for p in PRECISIONS}
@@ -93,8 +103,11 @@ def md_rates(cells: int, steps: int, repeats: int) -> dict:
             sim.run(steps)
             rates[precision].append(sim.state.n_atoms * steps / (time.perf_counter() - start))
     ratios = [m / d for m, d in zip(rates["mixed"], rates["double"], strict=True)]
-    return {"double": statistics.median(rates["double"]),
-            "mixed": statistics.median(rates["mixed"]), "ratio": statistics.median(ratios)}
+    return {
+        "double": statistics.median(rates["double"]),
+        "mixed": statistics.median(rates["mixed"]),
+        "ratio": statistics.median(ratios),
+    }
 
 
 def liquid(cells: int, seed: int = 3) -> md.State:
@@ -102,8 +115,9 @@ def liquid(cells: int, seed: int = 3) -> md.State:
     drift runs' start: on one thread, so that the start (and so the drifts) is the same
     for any --threads (the force sums' order follows the chunk count)."""
     threads = get_threads()
-    sim = md.Simulation(melt(cells, 3.0, seed=seed), [LennardJones(cutoff=2.5)],
-                        VelocityVerlet(DT), threads=1)  # fmt: skip
+    sim = md.Simulation(
+        melt(cells, 3.0, seed=seed), [LennardJones(cutoff=2.5)], VelocityVerlet(DT), threads=1
+    )
     try:
         sim.run(2000)
     finally:
@@ -117,9 +131,14 @@ def drift(start: md.State, steps: int, precision: str, every: int = 1) -> tuple[
     """(end-point, |fit slope|) drift of the total energy per atom per tau over ``steps``
     NVE steps from ``start``; ``every`` > 1: the list rebuilt every that many steps with
     no check (GROMACS's nstlist), not exact."""
-    sim = md.Simulation(start.copy(), [LennardJones(cutoff=2.5)], VelocityVerlet(DT),
-                        precision=precision, neighbor_every=every,
-                        neighbor_check=every == 1)  # fmt: skip
+    sim = md.Simulation(
+        start.copy(),
+        [LennardJones(cutoff=2.5)],
+        VelocityVerlet(DT),
+        precision=precision,
+        neighbor_every=every,
+        neighbor_check=every == 1,
+    )
     every = max(steps // 50, 1)
     times, energies = [0.0], [sim.thermo()["total_energy"]]
     for _ in range(steps // every):
@@ -127,8 +146,10 @@ def drift(start: md.State, steps: int, precision: str, every: int = 1) -> tuple[
         times.append(sim.state.time)
         energies.append(sim.thermo()["total_energy"])
     n = sim.state.n_atoms
-    return ((energies[-1] - energies[0]) / times[-1] / n,
-            abs(np.polyfit(times, energies, 1)[0]) / n)  # fmt: skip
+    return (
+        (energies[-1] - energies[0]) / times[-1] / n,
+        abs(np.polyfit(times, energies, 1)[0]) / n,
+    )
 
 
 def gromacs_drifts(start: md.State, steps: int, binaries: dict) -> dict:
@@ -141,8 +162,9 @@ def gromacs_drifts(start: md.State, steps: int, binaries: dict) -> dict:
         if binary is None:
             print(f"note: no GROMACS {variant}-precision binary; skipped")
             continue
-        result = gmx.run(binary, start, steps, 1, rlist=gmx.FIXED_RLIST, nstlist=10,
-                         modifier="Potential-shift")  # fmt: skip
+        result = gmx.run(
+            binary, start, steps, 1, rlist=gmx.FIXED_RLIST, nstlist=10, modifier="Potential-shift"
+        )
         drift_ps = result["conserved_drift"]  # kJ/mol/ps per atom; epsilon = 1 kJ/mol
         label = f"GROMACS {result.get('version', '?')} {variant} ({result.get('simd', '?')})"
         found[label] = None if drift_ps is None else drift_ps * gmx.TAU
@@ -157,13 +179,16 @@ def _compared(ours: list[float], theirs: list[float], name: str) -> str:
     below = sum(o < t for o, t in zip(ours, theirs, strict=True))
     tail = sum(math.comb(n, k) for k in range(min(below, n - below) + 1)) / 2**n
     draws = np.random.default_rng(0).integers(0, n, size=(10_000, n))
-    ratios = (np.median(np.asarray(ours)[draws], axis=1)
-              / np.maximum(np.median(np.asarray(theirs)[draws], axis=1), 1e-300))  # fmt: skip
+    ratios = np.median(np.asarray(ours)[draws], axis=1) / np.maximum(
+        np.median(np.asarray(theirs)[draws], axis=1), 1e-300
+    )
     low, high = np.percentile(ratios, [5, 95])
-    return (f"ours mixed below {name} in {below} of {n} liquids (sign test p = "
-            f"{min(1.0, 2 * tail):.2g}); ratio of the medians "
-            f"{statistics.median(ours) / max(statistics.median(theirs), 1e-300):.2f}, "
-            f"bootstrap 90 % interval {low:.2f}-{high:.2f}")
+    return (
+        f"ours mixed below {name} in {below} of {n} liquids (sign test p = "
+        f"{min(1.0, 2 * tail):.2g}); ratio of the medians "
+        f"{statistics.median(ours) / max(statistics.median(theirs), 1e-300):.2f}, "
+        f"bootstrap 90 % interval {low:.2f}-{high:.2f}"
+    )
 
 
 def main(argv=None) -> None:
@@ -177,13 +202,21 @@ def main(argv=None) -> None:
     parser.add_argument("--gromacs", action="store_true", help="GROMACS's drift beside ours")
     parser.add_argument("--gmx", default=None, help="GROMACS mixed binary (default $GMX, gmx)")
     parser.add_argument("--gmx-d", default=None, help="GROMACS double binary (default gmx_d)")
-    parser.add_argument("--seeds", type=int, default=1,
-                        help="drift runs from this many liquids (velocity seeds 3, 4, ...), "
-                             "with the medians of the drifts and of their ratios (1)")
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="drift runs from this many liquids (velocity seeds 3, 4, ...), "
+        "with the medians of the drifts and of their ratios (1)",
+    )
     parser.add_argument("--drift-only", action="store_true", help="skip the timings")
-    parser.add_argument("--every", type=int, default=1,
-                        help="also ours mixed with the list rebuilt every N steps and no check"
-                             " (GROMACS's rule: its drift runs use nstlist 10, rlist 2.8)")
+    parser.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        help="also ours mixed with the list rebuilt every N steps and no check"
+        " (GROMACS's rule: its drift runs use nstlist 10, rlist 2.8)",
+    )
     args = parser.parse_args(argv)
     if args.seeds < 1:
         parser.error(f"--seeds must be at least 1, got {args.seeds}")
@@ -195,16 +228,24 @@ def main(argv=None) -> None:
         set_threads(threads)
         calls = force_calls(args.cells, args.repeats)
         rates = md_rates(args.cells, args.steps, max(args.repeats // 3, 3))
-        print(f"\n{n_atoms} atoms, {threads} thread(s), medians of {args.repeats} interleaved "
-              "repeats:")  # fmt: skip
-        print(f"  force call   double {1e3 * calls['double']:.2f} ms, mixed "
-              f"{1e3 * calls['mixed']:.2f} ms: mixed/double {calls['ratio']:.3f}")
-        print(f"  MD loop      double {rates['double'] / 1e6:.2f} M atom-steps/s, mixed "
-              f"{rates['mixed'] / 1e6:.2f} M: mixed/double {rates['ratio']:.3f}")
+        print(
+            f"\n{n_atoms} atoms, {threads} thread(s), medians of {args.repeats} interleaved "
+            "repeats:"
+        )
+        print(
+            f"  force call   double {1e3 * calls['double']:.2f} ms, mixed "
+            f"{1e3 * calls['mixed']:.2f} ms: mixed/double {calls['ratio']:.3f}"
+        )
+        print(
+            f"  MD loop      double {rates['double'] / 1e6:.2f} M atom-steps/s, mixed "
+            f"{rates['mixed'] / 1e6:.2f} M: mixed/double {rates['ratio']:.3f}"
+        )
         print(f"  max |F_mixed - F_double| / max |F|: {calls['error']:.1e}")
-    print(f"\nNVE drift, {4 * args.drift_cells**3} atoms of liquid, {args.drift_steps} "
-          f"steps of dt {DT} (total energy per atom per tau: last minus first; |slope| of a "
-          "line fit):")  # fmt: skip
+    print(
+        f"\nNVE drift, {4 * args.drift_cells**3} atoms of liquid, {args.drift_steps} "
+        f"steps of dt {DT} (total energy per atom per tau: last minus first; |slope| of a "
+        "line fit):"
+    )
     table = {}  # engine -> end-point drift per seed
     lazy = f"ours mixed (every {args.every}, no check)"
     for seed in range(3, 3 + args.seeds):
@@ -220,32 +261,44 @@ def main(argv=None) -> None:
             table.setdefault(lazy, []).append(ends)
             print(f"  {lazy} {ends:+.2e}   fit {fit:.2e}")
         if args.gromacs:
-            found = gromacs_drifts(start, args.drift_steps,
-                                   {"mixed": args.gmx, "double": args.gmx_d})  # fmt: skip
+            found = gromacs_drifts(
+                start, args.drift_steps, {"mixed": args.gmx, "double": args.gmx_d}
+            )
             for label, value in found.items():
-                print(f"  {label}: " + ("no drift line in md.log" if value is None
-                                         else f"{value:+.2e}"))  # fmt: skip
+                print(
+                    f"  {label}: "
+                    + ("no drift line in md.log" if value is None else f"{value:+.2e}")
+                )
                 table.setdefault(label, []).append(math.nan if value is None else value)
     magnitudes = {name: [abs(x) for x in values] for name, values in table.items()}
     mixed, double = magnitudes["ours mixed"], magnitudes["ours double"]
     ratios = [m / max(d, 1e-300) for m, d in zip(mixed, double, strict=True)]
     if args.seeds > 1:
-        print(f" medians over {args.seeds} liquids of |drift|: " + ", ".join(
-            f"{name} {statistics.median(values):.2e}" for name, values in magnitudes.items()))
-    print(f"  |mixed| / |double| (last minus first) {statistics.median(ratios):.2f}"
-          + (" (median over the liquids)" if args.seeds > 1 else "") + " (target: within 10)")
+        print(
+            f" medians over {args.seeds} liquids of |drift|: "
+            + ", ".join(
+                f"{name} {statistics.median(values):.2e}" for name, values in magnitudes.items()
+            )
+        )
+    print(
+        f"  |mixed| / |double| (last minus first) {statistics.median(ratios):.2f}"
+        + (" (median over the liquids)" if args.seeds > 1 else "")
+        + " (target: within 10)"
+    )
     for name, values in magnitudes.items():
         if "GROMACS" in name and " mixed " in name and not any(map(math.isnan, values)):
             for ours_name in ("ours mixed", lazy) if lazy in magnitudes else ("ours mixed",):
                 ours = magnitudes[ours_name]
-                against = statistics.median(m / max(g, 1e-300)
-                                            for m, g in zip(ours, values, strict=True))
-                print(f"  |{ours_name}| / |{name}| {against:.2f}"
-                      + (" (median over the liquids)" if args.seeds > 1 else "")
-                      + " (target: at most 1)")
+                against = statistics.median(
+                    m / max(g, 1e-300) for m, g in zip(ours, values, strict=True)
+                )
+                print(
+                    f"  |{ours_name}| / |{name}| {against:.2f}"
+                    + (" (median over the liquids)" if args.seeds > 1 else "")
+                    + " (target: at most 1)"
+                )
                 if args.seeds > 1:
-                    print("  " + _compared(ours, values, name).replace(
-                        "ours mixed", ours_name, 1))
+                    print("  " + _compared(ours, values, name).replace("ours mixed", ours_name, 1))
 
 
 if __name__ == "__main__":

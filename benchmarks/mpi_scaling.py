@@ -123,10 +123,22 @@ def launch(job: Job | None, payload: dict, timeout: float, bind: bool = False) -
     one per thread: ``mpiexec -bind-to core:T``); return rank 0's JSON line."""
     ranks = payload.pop("ranks", 1)
     binding = ["-bind-to", f"core:{int(payload.get('threads', 1))}"] if bind else []
-    command = ["mpiexec", *binding, "-n", str(ranks), sys.executable, str(WORKER),
-               json.dumps(payload)]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout,
-                          env=environment(int(payload.get("threads", 1))))  # fmt: skip
+    command = [
+        "mpiexec",
+        *binding,
+        "-n",
+        str(ranks),
+        sys.executable,
+        str(WORKER),
+        json.dumps(payload),
+    ]
+    done = subprocess.run(
+        command,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=environment(int(payload.get("threads", 1))),
+    )
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     if done.returncode != 0 or not lines:
         what = "probe" if job is None else f"{job.engine} {job.ranks}x{job.threads} {job.cells}"
@@ -157,18 +169,27 @@ def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     weak_steps = SIZES[quick][0][2]
     weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
     jobs += [Job(engine, weak, weak_steps, 2, 1) for engine in engines]
-    jobs += [Job(engine, TINY_CELLS, TINY_STEPS[quick], ranks, 1)
-             for ranks in (1, 2) for engine in engines]  # fmt: skip
+    jobs += [
+        Job(engine, TINY_CELLS, TINY_STEPS[quick], ranks, 1)
+        for ranks in (1, 2)
+        for engine in engines
+    ]
     return jobs
 
 
-def measure(jobs: list[Job], repeats: int, timeout: float, bind: bool = False,
-            velocities: str = "gaussian") -> dict[Job, Measured]:  # fmt: skip
+def measure(
+    jobs: list[Job], repeats: int, timeout: float, bind: bool = False, velocities: str = "gaussian"
+) -> dict[Job, Measured]:
     measured = {job: Measured(job) for job in jobs}
     for repeat in range(repeats):
         for job in jobs:
-            payload = {"engine": job.engine, "cells": list(job.cells), "steps": job.steps,
-                       "threads": job.threads, "ranks": job.ranks}  # fmt: skip
+            payload = {
+                "engine": job.engine,
+                "cells": list(job.cells),
+                "steps": job.steps,
+                "threads": job.threads,
+                "ranks": job.ranks,
+            }
             if job.balance_every:
                 payload.update(balance_every=job.balance_every, balance_threshold=BALANCE_THRESHOLD)
             if job.engine == "lammps":
@@ -176,10 +197,13 @@ def measure(jobs: list[Job], repeats: int, timeout: float, bind: bool = False,
             result = launch(job, payload, timeout, bind)
             measured[job].runs.append(result)
             balanced = f", balanced ({result['balances']} moves)" if job.balance_every else ""
-            print(f"  [{repeat + 1}/{repeats}] {job.engine:<6}{balanced} {job.ranks} rank(s) x "
-                  f"{job.threads} thread(s), {job.n_atoms} atoms: "
-                  f"{job.n_atoms * result['n_steps'] / result['loop_time'] / 1e6:.2f} M "
-                  f"atom-steps/s, comm {100 * result['comm_share']:.1f} %", flush=True)  # fmt: skip
+            print(
+                f"  [{repeat + 1}/{repeats}] {job.engine:<6}{balanced} {job.ranks} rank(s) x "
+                f"{job.threads} thread(s), {job.n_atoms} atoms: "
+                f"{job.n_atoms * result['n_steps'] / result['loop_time'] / 1e6:.2f} M "
+                f"atom-steps/s, comm {100 * result['comm_share']:.1f} %",
+                flush=True,
+            )
     return measured
 
 
@@ -224,26 +248,39 @@ def find(measured: dict[Job, Measured], **match) -> Measured | None:
 
 def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
     figures: dict = {}
-    print("\n(a) Strong scaling: median M atom-steps/s (min-max); speed-up over the same "
-          "engine's 1 x 1; ours/LAMMPS at the same ranks and threads")  # fmt: skip
+    print(
+        "\n(a) Strong scaling: median M atom-steps/s (min-max); speed-up over the same "
+        "engine's 1 x 1; ours/LAMMPS at the same ranks and threads"
+    )
     for label, cells, _ in SIZES[quick]:
         rows = []
-        base = {e: find(measured, engine=e, cells=cells, ranks=1, threads=1)
-                for e in ("ours", "lammps")}  # fmt: skip
+        base = {
+            e: find(measured, engine=e, cells=cells, ranks=1, threads=1) for e in ("ours", "lammps")
+        }
         for ranks, threads in LAYOUTS:
             ours = find(measured, engine="ours", cells=cells, ranks=ranks, threads=threads)
             peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
-            row = [f"{label}", f"{ranks} x {threads}", cell(ours.median() / 1e6), spread(ours),
-                   cell(ours.median() / base["ours"].median())]  # fmt: skip
+            row = [
+                f"{label}",
+                f"{ranks} x {threads}",
+                cell(ours.median() / 1e6),
+                spread(ours),
+                cell(ours.median() / base["ours"].median()),
+            ]
             if lammps:
-                row += [cell(peer.median() / 1e6), spread(peer),
-                        cell(peer.median() / base["lammps"].median()),
-                        cell(ours.median() / peer.median())]  # fmt: skip
+                row += [
+                    cell(peer.median() / 1e6),
+                    spread(peer),
+                    cell(peer.median() / base["lammps"].median()),
+                    cell(ours.median() / peer.median()),
+                ]
             rows.append(row)
             figures[f"{label} {ranks}x{threads}"] = {
-                "ours": ours.median(), "lammps": peer.median() if peer else None,
-                "ours_comm": ours.comm_share(), "lammps_comm": peer.comm_share() if peer else None,
-            }  # fmt: skip
+                "ours": ours.median(),
+                "lammps": peer.median() if peer else None,
+                "ours_comm": ours.comm_share(),
+                "lammps_comm": peer.comm_share() if peer else None,
+            }
         headers = ["atoms", "ranks x threads", "ours", "min-max", "speed-up"]
         if lammps:
             headers += ["LAMMPS", "min-max", "speed-up", "ours/LAMMPS"]
@@ -252,22 +289,29 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
         two_threads = find(measured, engine="ours", cells=cells, ranks=1, threads=2).median()
         ratio = two_ranks / two_threads
         figures[f"{label} ranks/threads"] = ratio
-        print(f"  ours, 2 ranks x 1 thread / 1 rank x 2 threads at {label} atoms: {ratio:.2f} "
-              f"(target >= {TARGET_RANKS_OVER_THREADS} on the 2M melt)")  # fmt: skip
-        balanced = [item for job, item in measured.items()
-                    if job.balance_every and job.cells == cells]  # fmt: skip
+        print(
+            f"  ours, 2 ranks x 1 thread / 1 rank x 2 threads at {label} atoms: {ratio:.2f} "
+            f"(target >= {TARGET_RANKS_OVER_THREADS} on the 2M melt)"
+        )
+        balanced = [
+            item for job, item in measured.items() if job.balance_every and job.cells == cells
+        ]
         if balanced:
             item = balanced[0]
             ratio = item.median() / two_threads
             figures[f"{label} balanced 2x1"] = {
-                "ours": item.median(), "ours_comm": item.comm_share(),
-                "ours_comm_min": item.comm_share("comm_share_min"), "over_1x2": ratio,
-            }  # fmt: skip
-            print(f"  ours balanced (every {item.job.balance_every} steps), 2 x 1: "
-                  f"{item.median() / 1e6:.2f} M atom-steps/s ({spread(item)}), comm "
-                  f"{100 * item.comm_share():.1f} % (least rank "
-                  f"{100 * item.comm_share('comm_share_min'):.1f} %), / 1 x 2: "
-                  f"{ratio:.2f}")  # fmt: skip
+                "ours": item.median(),
+                "ours_comm": item.comm_share(),
+                "ours_comm_min": item.comm_share("comm_share_min"),
+                "over_1x2": ratio,
+            }
+            print(
+                f"  ours balanced (every {item.job.balance_every} steps), 2 x 1: "
+                f"{item.median() / 1e6:.2f} M atom-steps/s ({spread(item)}), comm "
+                f"{100 * item.comm_share():.1f} % (least rank "
+                f"{100 * item.comm_share('comm_share_min'):.1f} %), / 1 x 2: "
+                f"{ratio:.2f}"
+            )
 
     print("\n(b) Share of the loop spent communicating (median over repeats, mean over ranks)")
     rows = []
@@ -276,14 +320,23 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             ours = find(measured, engine="ours", cells=cells, ranks=ranks, threads=threads)
             peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
             split = statistics.median(r["sections"]["comm"] for r in ours.runs)
-            row = [label, f"{ranks} x {threads}", f"{100 * ours.comm_share():.1f} %",
-                   f"{split:.3f}", f"{100 * ours.comm_share('comm_share_min'):.1f} %",
-                   build_count(ours), busy_spread(ours) if ranks > 1 else "-"]  # fmt: skip
+            row = [
+                label,
+                f"{ranks} x {threads}",
+                f"{100 * ours.comm_share():.1f} %",
+                f"{split:.3f}",
+                f"{100 * ours.comm_share('comm_share_min'):.1f} %",
+                build_count(ours),
+                busy_spread(ours) if ranks > 1 else "-",
+            ]
             if lammps:
-                row += [f"{100 * peer.comm_share():.1f} %",
-                        f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}",
-                        f"{100 * peer.comm_share('comm_share_min'):.1f} %",
-                        build_count(peer), busy_spread(peer) if ranks > 1 else "-"]  # fmt: skip
+                row += [
+                    f"{100 * peer.comm_share():.1f} %",
+                    f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}",
+                    f"{100 * peer.comm_share('comm_share_min'):.1f} %",
+                    build_count(peer),
+                    busy_spread(peer) if ranks > 1 else "-",
+                ]
             rows.append(row)
     headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank", "builds", "busy"]
     if lammps:
@@ -293,31 +346,43 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
     peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
     if peer is not None:
         runs = [("ours", find(measured, engine="ours", cells=cells, ranks=2, threads=1))]
-        runs += [(f"ours balanced (every {job.balance_every})", item)
-                 for job, item in measured.items() if job.balance_every and job.cells == cells]
+        runs += [
+            (f"ours balanced (every {job.balance_every})", item)
+            for job, item in measured.items()
+            if job.balance_every and job.cells == cells
+        ]
         for name, item in runs:
             verdict = "met" if item.comm_share() <= peer.comm_share() else "not met"
-            print(f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
-                  f"LAMMPS's: {100 * item.comm_share():.1f} % against "
-                  f"{100 * peer.comm_share():.1f} % ({verdict})")  # fmt: skip
+            print(
+                f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
+                f"LAMMPS's: {100 * item.comm_share():.1f} % against "
+                f"{100 * peer.comm_share():.1f} % ({verdict})"
+            )
             # the repeats go round-robin: run i of each engine is of the same round
             rounds = list(zip(item.runs, peer.runs, strict=False))
             lower = sum(a["comm_share"] <= b["comm_share"] for a, b in rounds)
-            pairs = ", ".join(f"{100 * a['comm_share']:.1f}/{100 * b['comm_share']:.1f}"
-                              for a, b in rounds)  # fmt: skip
-            print(f"    per round ({name}/LAMMPS, %): {pairs}; {name} no larger in {lower} "
-                  f"of {len(rounds)}")  # fmt: skip
-    print("  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
-          "ghost search; busy: the busiest rank's force and neighbour time over the least "
-          "busy one's, the imbalance the other rank's comm section waits out; one rank: "
-          "ours has no comm section, periodic images are in its neighbour list; "
-          "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
-          "communicated least, mostly its own messages and work, since the other waited "
-          "for it: on a machine whose cores run at different speeds the mean is mostly "
-          "waits)")  # fmt: skip
+            pairs = ", ".join(
+                f"{100 * a['comm_share']:.1f}/{100 * b['comm_share']:.1f}" for a, b in rounds
+            )
+            print(
+                f"    per round ({name}/LAMMPS, %): {pairs}; {name} no larger in {lower} "
+                f"of {len(rounds)}"
+            )
+    print(
+        "  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
+        "ghost search; busy: the busiest rank's force and neighbour time over the least "
+        "busy one's, the imbalance the other rank's comm section waits out; one rank: "
+        "ours has no comm section, periodic images are in its neighbour list; "
+        "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
+        "communicated least, mostly its own messages and work, since the other waited "
+        "for it: on a machine whose cores run at different speeds the mean is mostly "
+        "waits)"
+    )
 
-    print(f"\n(c) Weak scaling: {4 * WEAK_CELLS**3} atoms per rank; efficiency = rate per rank "
-          "on 2 ranks / rate on 1")  # fmt: skip
+    print(
+        f"\n(c) Weak scaling: {4 * WEAK_CELLS**3} atoms per rank; efficiency = rate per rank "
+        "on 2 ranks / rate on 1"
+    )
     rows = []
     one = (WEAK_CELLS,) * 3
     two = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
@@ -326,8 +391,15 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
         double = find(measured, engine=engine, cells=two, ranks=2, threads=1)
         efficiency = double.median() / 2 / single.median()
         figures[f"weak {engine}"] = efficiency
-        rows.append([engine, cell(single.median() / 1e6), cell(double.median() / 1e6),
-                     f"{efficiency:.2f}", f"{100 * double.comm_share():.1f} %"])  # fmt: skip
+        rows.append(
+            [
+                engine,
+                cell(single.median() / 1e6),
+                cell(double.median() / 1e6),
+                f"{efficiency:.2f}",
+                f"{100 * double.comm_share():.1f} %",
+            ]
+        )
     print_table(["engine", "1 rank", "2 ranks", "efficiency", "comm at 2"], rows)
     return figures
 
@@ -339,8 +411,10 @@ def print_pingpong() -> dict | None:
     except (RuntimeError, subprocess.TimeoutExpired) as error:
         print(f"\n(d) ping-pong failed: {str(error)[:300]}")
         return None
-    print("\n(d) Messages between 2 ranks on this machine (mpi4py ping-pong, half the round "
-          "trip, median)")  # fmt: skip
+    print(
+        "\n(d) Messages between 2 ranks on this machine (mpi4py ping-pong, half the round "
+        "trip, median)"
+    )
     rows = []
     for size, seconds in zip(found["sizes"], found["seconds"], strict=True):
         rows.append([f"{size} B", f"{seconds * 1e6:.1f} us", f"{size / seconds / 1e9:.2f} GB/s"])
@@ -428,8 +502,9 @@ class StepModel:
         grid = melt_grid(cells, ranks)
         return ghosts_per_atom(melt_box(cells), grid, self.images), grid
 
-    def step(self, cells, ranks: int, latency: float, bandwidth: float,
-             fixed: bool = True) -> float:  # fmt: skip
+    def step(
+        self, cells, ranks: int, latency: float, bandwidth: float, fixed: bool = True
+    ) -> float:
         """T_P for the melt on ``cells`` (without t if not ``fixed``)."""
         n_atoms = 4 * math.prod(cells)
         if ranks == 1:
@@ -441,8 +516,7 @@ class StepModel:
         messages = 4 * cut * latency + 2 * 24 * ghosts * n / bandwidth
         reductions = 3 * math.log2(ranks) * latency
         rebuilds = self.builds * self.rebuild * n * (1 + ghosts)
-        return (work + messages + reductions + rebuilds
-                + (self.decomposed_fixed if fixed else 0.0))  # fmt: skip
+        return work + messages + reductions + rebuilds + (self.decomposed_fixed if fixed else 0.0)
 
     def efficiency(self, cells, ranks: int, latency: float, bandwidth: float) -> float:
         """T_1 over P T_P."""
@@ -459,16 +533,20 @@ def busy_seconds(item: Measured) -> float:
     """The median over the repeats of a rank's own work a step (:data:`BUSY`'s sections,
     mean over the ranks) [s]."""
     keys = BUSY[item.job.engine]
-    return statistics.median(sum(r["sections"].get(k, 0.0) for k in keys) / r["n_steps"]
-                             for r in item.runs)  # fmt: skip
+    return statistics.median(
+        sum(r["sections"].get(k, 0.0) for k in keys) / r["n_steps"] for r in item.runs
+    )
 
 
-def calibrate(engine: str, measured: dict[Job, Measured], quick: bool,
-              here: tuple[float, float]) -> StepModel | None:  # fmt: skip
+def calibrate(
+    engine: str, measured: dict[Job, Measured], quick: bool, here: tuple[float, float]
+) -> StepModel | None:
     """:class:`StepModel` of ``engine`` from its runs here (None if some are missing)."""
     middle, large = SIZES[quick][0][1], SIZES[quick][-1][1]
-    ones = [find(measured, engine=engine, cells=c, ranks=1, threads=1)
-            for c in (TINY_CELLS, middle, large)]  # fmt: skip
+    ones = [
+        find(measured, engine=engine, cells=c, ranks=1, threads=1)
+        for c in (TINY_CELLS, middle, large)
+    ]
     tiny = find(measured, engine=engine, cells=TINY_CELLS, ranks=2, threads=1)
     two = find(measured, engine=engine, cells=middle, ranks=2, threads=1)
     big = find(measured, engine=engine, cells=large, ranks=2, threads=1)
@@ -483,11 +561,14 @@ def calibrate(engine: str, measured: dict[Job, Measured], quick: bool,
     if engine == "ours":
         model.builds = statistics.median(r["n_builds"] / r["n_steps"] for r in big.runs)
         model.rebuild = statistics.median(
-            r["sections"]["rebuild_comm"] / max(r["n_builds"], 1)
-            / (sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"])) for r in big.runs
-        )  # fmt: skip
-    model.decomposed_fixed = max(step_seconds(tiny) - model.step(TINY_CELLS, 2, *here,
-                                                                 fixed=False), 0.0)  # fmt: skip
+            r["sections"]["rebuild_comm"]
+            / max(r["n_builds"], 1)
+            / (sum(sum(x) for x in r["local_atoms"]) / len(r["local_atoms"]))
+            for r in big.runs
+        )
+    model.decomposed_fixed = max(
+        step_seconds(tiny) - model.step(TINY_CELLS, 2, *here, fixed=False), 0.0
+    )
     return model
 
 
@@ -506,20 +587,28 @@ def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | Non
         return {}
     cells = SIZES[quick][-1][1]
     n_atoms = 4 * math.prod(cells)
-    print(f"\n(e) Model of the parallel efficiency at {n_atoms} atoms from each engine's runs "
-          "here (see benchmarks/README.md)")  # fmt: skip
-    print("  T_1 = c(N) N;  T_P = c(n) n (1 + h g) + 4 k alpha + 48 B g n / beta "
-          "+ 3 log2(P) alpha + b gamma n (1 + g) + t")  # fmt: skip
-    print(f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
-          f"between nodes {INFINIBAND[0] * 1e6:.1f} us + {INFINIBAND[1] / 1e9:.0f} GB/s "
-          "(typical InfiniBand, assumed)")  # fmt: skip
+    print(
+        f"\n(e) Model of the parallel efficiency at {n_atoms} atoms from each engine's runs "
+        "here (see benchmarks/README.md)"
+    )
+    print(
+        "  T_1 = c(N) N;  T_P = c(n) n (1 + h g) + 4 k alpha + 48 B g n / beta "
+        "+ 3 log2(P) alpha + b gamma n (1 + g) + t"
+    )
+    print(
+        f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
+        f"between nodes {INFINIBAND[0] * 1e6:.1f} us + {INFINIBAND[1] / 1e9:.0f} GB/s "
+        "(typical InfiniBand, assumed)"
+    )
     figures: dict = {}
     weak = (2 * WEAK_CELLS, WEAK_CELLS, WEAK_CELLS)
     for model in models:
         costs = ", ".join(f"{c * 1e9:.0f} ns at {n}" for n, c in sorted(model.per_atom.items()))
-        print(f"  {model.name}: c {costs} atoms; h = {model.ghost_cost:.2f}, t = "
-              f"{model.decomposed_fixed * 1e6:.0f} us, b = {model.builds:.2f}, gamma = "
-              f"{model.rebuild * 1e9:.0f} ns")  # fmt: skip
+        print(
+            f"  {model.name}: c {costs} atoms; h = {model.ghost_cost:.2f}, t = "
+            f"{model.decomposed_fixed * 1e6:.0f} us, b = {model.builds:.2f}, gamma = "
+            f"{model.rebuild * 1e9:.0f} ns"
+        )
         parameters = vars(model).copy()
         parameters["per_atom"] = {str(k): v for k, v in model.per_atom.items()}
         figures[f"{model.name} parameters"] = parameters
@@ -530,8 +619,10 @@ def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | Non
                 continue
             predicted, actual = model.step(check_cells, 2, *here), step_seconds(item)
             figures[f"{model.name} check {label}"] = [predicted, actual]
-            checks.append(f"{item.job.n_atoms} atoms on 2 ranks {predicted * 1e3:.2f} ms a "
-                          f"step, measured {actual * 1e3:.2f}")  # fmt: skip
+            checks.append(
+                f"{item.job.n_atoms} atoms on 2 ranks {predicted * 1e3:.2f} ms a "
+                f"step, measured {actual * 1e3:.2f}"
+            )
         print(f"    checks (not fitted): {'; '.join(checks)}")
     rows = []
     for ranks in (2, 64, 1024):
@@ -551,29 +642,44 @@ def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | Non
     for model in models:
         headers += [f"{model.name} g", "E here", "E InfiniBand", "E measured"]
     print_table(headers, rows)
-    print("  (g: ghosts per owned atom, LAMMPS's with the periodic images of uncut axes; "
-          "E: T_1 / (P T_P), measured: the 2-rank rate over twice the 1-rank rate; load "
-          "balance perfect but for the waits in t)")  # fmt: skip
+    print(
+        "  (g: ghosts per owned atom, LAMMPS's with the periodic images of uncut axes; "
+        "E: T_1 / (P T_P), measured: the 2-rank rate over twice the 1-rank rate; load "
+        "balance perfect but for the waits in t)"
+    )
     return figures
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="32000 and 256000 atoms, few steps, 1 repeat (a smoke run)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="32000 and 256000 atoms, few steps, 1 repeat (a smoke run)",
+    )
     parser.add_argument("--repeats", type=int, default=None, help="repeats (3; --quick 1)")
     parser.add_argument("--no-lammps", action="store_true", help="our engine only")
     parser.add_argument("--timeout", type=float, default=600, help="seconds per launch (600)")
     parser.add_argument("--json", help="write the medians to this file")
-    parser.add_argument("--bind", action="store_true",
-                        help="each rank on cores of its own, one per thread "
-                             "(mpiexec -bind-to core:T)")
-    parser.add_argument("--lammps-velocities", choices=("gaussian", "uniform"),
-                        default="gaussian",
-                        help="LAMMPS's initial velocities: gaussian (default; ours are "
-                             "Maxwell-Boltzmann) or uniform (its bench/in.lj)")
-    parser.add_argument("--balance-every", type=int, default=0, metavar="N",
-                        help="also ours on 2 ranks with load balancing every N steps")
+    parser.add_argument(
+        "--bind",
+        action="store_true",
+        help="each rank on cores of its own, one per thread (mpiexec -bind-to core:T)",
+    )
+    parser.add_argument(
+        "--lammps-velocities",
+        choices=("gaussian", "uniform"),
+        default="gaussian",
+        help="LAMMPS's initial velocities: gaussian (default; ours are "
+        "Maxwell-Boltzmann) or uniform (its bench/in.lj)",
+    )
+    parser.add_argument(
+        "--balance-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also ours on 2 ranks with load balancing every N steps",
+    )
     args = parser.parse_args(argv)
     repeats = args.repeats or (1 if args.quick else 3)
     print(machine_line())

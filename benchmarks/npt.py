@@ -31,8 +31,10 @@ def make_integrator(kind: str):
     if kind == "nvt":
         return NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5)
     if kind == "mtk":
-        return pressure_control(NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5),
-                                Barostat("mtk", PRESSURE, tau=1.0))  # fmt: skip
+        return pressure_control(
+            NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5),
+            Barostat("mtk", PRESSURE, tau=1.0),
+        )
     return pressure_control(
         Langevin(DT, temperature=TEMPERATURE, friction=1.0, seed=2),
         Barostat("c_rescale", PRESSURE, tau=0.5, compressibility=0.1, every=10, seed=3),
@@ -41,8 +43,9 @@ def make_integrator(kind: str):
 
 def time_run(kind: str, cells: int, steps: int, threads: int) -> dict:
     state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.7), TEMPERATURE, seed=1)
-    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], make_integrator(kind), skin=0.3,
-                        threads=threads)  # fmt: skip
+    sim = md.Simulation(
+        state, [LennardJones(cutoff=2.5)], make_integrator(kind), skin=0.3, threads=threads
+    )
     sim.run(50)  # compilation, first list, the melt's first steps
     builds = sim.forcefield.neighbor_list.n_builds
     before = sim.timing_summary()
@@ -72,16 +75,20 @@ def main(argv=None) -> int:
         for kind in kinds:
             runs[kind].append(time_run(kind, args.cells, args.steps, args.threads))
     n_atoms = runs["nvt"][0]["n_atoms"]
-    print(f"LJ liquid, {n_atoms} atoms, T* {TEMPERATURE}, P* {PRESSURE}, {args.steps} steps, "
-          f"median of {args.repeats}")  # fmt: skip
+    print(
+        f"LJ liquid, {n_atoms} atoms, T* {TEMPERATURE}, P* {PRESSURE}, {args.steps} steps, "
+        f"median of {args.repeats}"
+    )
     print(f"{'run':<10}{'ms/step':>9}{'force':>8}{'neigh':>8}{'builds':>8}{'vs NVT':>8}")
     nvt = statistics.median(r["ms_per_step"] for r in runs["nvt"])
     for kind in kinds:
         median = sorted(runs[kind], key=lambda r: r["ms_per_step"])[len(runs[kind]) // 2]
         split = median["split"]
-        print(f"{kind:<10}{median['ms_per_step']:>9.3f}{split['force']:>8.3f}"
-              f"{split['neighbor']:>8.3f}{median['builds']:>8d}"
-              f"{median['ms_per_step'] / nvt:>8.2f}")  # fmt: skip
+        print(
+            f"{kind:<10}{median['ms_per_step']:>9.3f}{split['force']:>8.3f}"
+            f"{split['neighbor']:>8.3f}{median['builds']:>8d}"
+            f"{median['ms_per_step'] / nvt:>8.2f}"
+        )
     return 0
 
 

@@ -91,8 +91,7 @@ def styles(folder: Path) -> dict:
         "soft": Soft(a=1.0, cutoff=cutoff),
         "table linear": Table(path, "LJ", "linear"),
         "table spline": Table(path, "LJ", "spline"),
-        "user (Gaussian core)": PairPotential(gaussian_core, epsilon=1.0, sigma=1.0,
-                                              cutoff=cutoff),  # fmt: skip
+        "user (Gaussian core)": PairPotential(gaussian_core, epsilon=1.0, sigma=1.0, cutoff=cutoff),
     }
 
 
@@ -114,8 +113,12 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=15, help="interleaved repeats (15)")
     parser.add_argument("--threads", type=int, default=1, help="threads (1)")
     parser.add_argument("--only", default=None, help="comma-separated styles (default all)")
-    parser.add_argument("--reference", type=Path, default=None,
-                        help="another source tree whose LJ gets a row (e.g. main's)")  # fmt: skip
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="another source tree whose LJ gets a row (e.g. main's)",
+    )
     args = parser.parse_args(argv)
     print(machine_line())
     set_threads(args.threads)
@@ -144,17 +147,23 @@ def main(argv=None) -> None:
     # for seconds at a time (here 6.6 and 9.6 ms for the same LJ call), and the ratios
     # differ between the two (Morse/LJ 1.58 fast, 1.50 slow), so both are printed.
     fastest = sorted(range(len(lj)), key=lj.__getitem__)[: max(1, len(lj) // 4)]
-    print(f"{state.n_atoms} atoms, {pairs} listed pairs (cutoff 2.5 + skin 0.3), "
-          f"{args.repeats} interleaved repeats, {args.threads} thread(s)")  # fmt: skip
+    print(
+        f"{state.n_atoms} atoms, {pairs} listed pairs (cutoff 2.5 + skin 0.3), "
+        f"{args.repeats} interleaved repeats, {args.threads} thread(s)"
+    )
     print(f"{'style':<22}{'ms':>9}{'min-max':>18}{'ns/pair':>10}{'/ LJ':>8}{'/ LJ fast':>11}")
     for name, values in times.items():
         median = statistics.median(values)
         ratio = statistics.median(t / reference for t, reference in zip(values, lj, strict=True))
         fast = statistics.median(values[k] / lj[k] for k in fastest)
-        print(f"{name:<22}{1e3 * median:>9.2f}{1e3 * min(values):>9.2f}-{1e3 * max(values):<8.2f}"
-              f"{1e9 * median / pairs:>10.2f}{ratio:>8.2f}{fast:>11.2f}")  # fmt: skip
-    print("/ LJ: median of per-repeat ratios; / LJ fast: the same over the quarter of the "
-          "repeats in which LJ ran fastest")
+        print(
+            f"{name:<22}{1e3 * median:>9.2f}{1e3 * min(values):>9.2f}-{1e3 * max(values):<8.2f}"
+            f"{1e9 * median / pairs:>10.2f}{ratio:>8.2f}{fast:>11.2f}"
+        )
+    print(
+        "/ LJ: median of per-repeat ratios; / LJ fast: the same over the quarter of the "
+        "repeats in which LJ ran fastest"
+    )
 
 
 if __name__ == "__main__":

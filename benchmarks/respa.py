@@ -75,8 +75,10 @@ def main(argv=None) -> int:
     start, potentials = melt(args.chains, args.k)
     period = 2 * np.pi * np.sqrt(0.5 / args.k)
     print(f"polymer melt: {start.n_atoms} beads, bond period {period:.4f} tau, run {args.time} tau")
-    print(f"{'integrator':<28}{'max|dE|/N':>12}{'wall s':>9}{'vs VV(h)':>10}"
-          f"{'vs VV at equal error':>22}")  # fmt: skip
+    print(
+        f"{'integrator':<28}{'max|dE|/N':>12}{'wall s':>9}{'vs VV(h)':>10}"
+        f"{'vs VV at equal error':>22}"
+    )
     baseline = {}
     steps = [float(h) for h in args.steps.split(",")]
     for h in steps:
@@ -91,8 +93,11 @@ def main(argv=None) -> int:
             error, wall = measure(RESPA(dt, inner_steps=n), start, potentials, args.time)
             ref_error, ref_wall = baseline[h]
             label = f"respa dt={dt:g} n={n} (h={h})"
-            print(f"{label:<28}{error:>12.3e}{wall:>9.2f}{ref_wall / wall:>9.2f}x"
-                  f"{equal_error_wall(baseline, error) / wall:>21.2f}x", flush=True)  # fmt: skip
+            print(
+                f"{label:<28}{error:>12.3e}{wall:>9.2f}{ref_wall / wall:>9.2f}x"
+                f"{equal_error_wall(baseline, error) / wall:>21.2f}x",
+                flush=True,
+            )
     return 0
 
 

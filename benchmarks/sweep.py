@@ -83,10 +83,22 @@ def time_serial(plan: sw.SweepPlan, folder: Path) -> float:
     start = time.perf_counter()
     for config, output in configs:
         subprocess.run(
-            [sys.executable, "-m", "md.cli", "run", str(config), "--output", str(output),
-             "--threads", "1", "--no-progress", "--quiet"],
-            check=True, stdout=subprocess.DEVNULL,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "md.cli",
+                "run",
+                str(config),
+                "--output",
+                str(output),
+                "--threads",
+                "1",
+                "--no-progress",
+                "--quiet",
+            ],
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
     return time.perf_counter() - start
 
 

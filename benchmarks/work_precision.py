@@ -43,10 +43,16 @@ from potentials import LennardJones
 
 #: SciMLBenchmarks' per-step costs relative to VelocityVerlet (their page, hard-coded there).
 THEIR_COSTS = {
-    "VelocityVerlet": 1.00, "VerletLeapfrog": 1.05, "PseudoVerletLeapfrog": 0.98,
-    "McAte2": 1.02, "CalvoSanz4": 2.38, "McAte5": 2.92, "Yoshida6": 3.74,
-    "KahanLi8": 8.44, "SofSpa10": 15.76,
-}  # fmt: skip
+    "VelocityVerlet": 1.00,
+    "VerletLeapfrog": 1.05,
+    "PseudoVerletLeapfrog": 0.98,
+    "McAte2": 1.02,
+    "CalvoSanz4": 2.38,
+    "McAte5": 2.92,
+    "Yoshida6": 3.74,
+    "KahanLi8": 8.44,
+    "SofSpa10": 15.76,
+}
 #: Ours that correspond to theirs.
 PEERS = {"verlet": "VelocityVerlet", "leapfrog": "VerletLeapfrog", "yoshida6": "Yoshida6"}
 
@@ -88,18 +94,29 @@ def run(name: str, dt: float, final_time: float, cutoff_mode: str, samples: int 
     except md.SimulationError as error:  # past the stability limit: a point with no error
         print(f"  {name} at dt = {dt:.3g}: {error}", file=sys.stderr)
         nan = math.nan
-        return {"integrator": name, "dt": dt, "steps": n_steps, "force_evaluations": nan,
-                "wall": nan, "max_energy_error": nan, "final_energy_error": nan,
-                "wall_per_step": nan}  # fmt: skip
+        return {
+            "integrator": name,
+            "dt": dt,
+            "steps": n_steps,
+            "force_evaluations": nan,
+            "wall": nan,
+            "max_energy_error": nan,
+            "final_energy_error": nan,
+            "wall_per_step": nan,
+        }
     wall = time.perf_counter() - start - sample_wall[0]
     energies.append(sim.thermo()["total_energy"])
     e = (np.array(energies) - energies[0]) / state.n_atoms
     return {
-        "integrator": name, "dt": dt, "steps": n_steps,
-        "force_evaluations": sim.forcefield.n_evaluations - before, "wall": wall,
-        "max_energy_error": float(np.max(np.abs(e))), "final_energy_error": float(abs(e[-1])),
+        "integrator": name,
+        "dt": dt,
+        "steps": n_steps,
+        "force_evaluations": sim.forcefield.n_evaluations - before,
+        "wall": wall,
+        "max_energy_error": float(np.max(np.abs(e))),
+        "final_energy_error": float(abs(e[-1])),
         "wall_per_step": wall / n_steps,
-    }  # fmt: skip
+    }
 
 
 def main(argv=None) -> int:
@@ -120,8 +137,10 @@ def main(argv=None) -> int:
         f"R = 3.5 sigma ({args.cutoff_mode}), t = {args.time:g}, dt = tau x force calls per step"
     )
     rows = []
-    header = (f"{'integrator':<16}{'tau':>8}{'dt':>10}{'steps':>8}{'f calls':>9}{'wall s':>9}"
-              f"{'max|dE|/N':>12}{'|dE(t)|/N':>12}")  # fmt: skip
+    header = (
+        f"{'integrator':<16}{'tau':>8}{'dt':>10}{'steps':>8}{'f calls':>9}{'wall s':>9}"
+        f"{'max|dE|/N':>12}{'|dE(t)|/N':>12}"
+    )
     print(header)
     for tau in taus:
         for name in names:
@@ -165,8 +184,13 @@ def _plot(rows, names, path) -> None:
     for k, name in enumerate(names):
         mine = sorted((r for r in rows if r["integrator"] == name), key=lambda r: r["dt"])
         for ax, work in zip(axes, ("wall", "force_evaluations"), strict=True):
-            ax.loglog([r[work] for r in mine], [r["max_energy_error"] for r in mine], "o-",
-                      color=f"C{k % 10}", label=name)  # fmt: skip
+            ax.loglog(
+                [r[work] for r in mine],
+                [r["max_energy_error"] for r in mine],
+                "o-",
+                color=f"C{k % 10}",
+                label=name,
+            )
     axes[0].set_xlabel("wall time [s]")
     axes[1].set_xlabel("force evaluations")
     for ax in axes:

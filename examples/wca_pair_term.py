@@ -34,8 +34,9 @@ def wca_curvature(r2, epsilon, sigma):
 
 def make_potential(epsilon: float = 1.0, sigma: float = 1.0) -> PairPotential:
     """WCA as a pair potential: truncated (no shift) at 2^(1/6) sigma."""
-    return PairPotential(wca, epsilon=epsilon, sigma=sigma, cutoff=2 ** (1 / 6) * sigma,
-                         cutoff_mode="none")  # fmt: skip
+    return PairPotential(
+        wca, epsilon=epsilon, sigma=sigma, cutoff=2 ** (1 / 6) * sigma, cutoff_mode="none"
+    )
 
 
 def main() -> None:
@@ -45,13 +46,17 @@ def main() -> None:
     sim.run(500)
     thermo = sim.thermo()
     drift = (thermo["total_energy"] - start) / state.n_atoms
-    print(f"WCA fluid, {state.n_atoms} atoms, 500 steps of velocity Verlet: "
-          f"T = {thermo['temperature']:.3f}, P = {thermo['pressure']:.3f}, "
-          f"energy drift {drift:+.2e} per atom")  # fmt: skip
+    print(
+        f"WCA fluid, {state.n_atoms} atoms, 500 steps of velocity Verlet: "
+        f"T = {thermo['temperature']:.3f}, P = {thermo['pressure']:.3f}, "
+        f"energy drift {drift:+.2e} per atom"
+    )
     implicit = md.Simulation(state, [make_potential()], ImplicitEuler(0.004))
     implicit.run(20)
-    print(f"20 implicit Euler steps (Newton, with the term's curvature): "
-          f"T = {implicit.thermo()['temperature']:.3f}")  # fmt: skip
+    print(
+        f"20 implicit Euler steps (Newton, with the term's curvature): "
+        f"T = {implicit.thermo()['temperature']:.3f}"
+    )
 
 
 if __name__ == "__main__":

@@ -81,7 +81,6 @@ INTEGRATORS = {
 }
 
 
-
 def integrator_class(name: str) -> type:
     """The integrator class a config's ``type = name`` names: a built-in
     (``INTEGRATORS``, which win over plug-ins of the same name), a plug-in under the

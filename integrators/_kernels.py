@@ -24,8 +24,9 @@ def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
     if chunks == 1:
         _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
     else:
-        _kick_drift_threaded(positions, velocities, forces, inverse_masses, kick_dt, drift_dt,
-                             chunks)  # fmt: skip
+        _kick_drift_threaded(
+            positions, velocities, forces, inverse_masses, kick_dt, drift_dt, chunks
+        )
 
 
 def kick(velocities, forces, inverse_masses, kick_dt) -> None:
@@ -58,13 +59,13 @@ def _kick(velocities, forces, inverse_masses, kick_dt):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _kick_drift_threaded(positions, velocities, forces, inverse_masses, kick_dt, drift_dt,
-                         chunks):  # fmt: skip
+def _kick_drift_threaded(positions, velocities, forces, inverse_masses, kick_dt, drift_dt, chunks):
     n = positions.shape[0]
     for c in prange(chunks):
         a, b = c * n // chunks, (c + 1) * n // chunks
-        _kick_drift(positions[a:b], velocities[a:b], forces[a:b], inverse_masses[a:b], kick_dt,
-                    drift_dt)  # fmt: skip
+        _kick_drift(
+            positions[a:b], velocities[a:b], forces[a:b], inverse_masses[a:b], kick_dt, drift_dt
+        )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -96,5 +97,11 @@ def _linear_flow(x, y, y_scale, e, p):
         x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
         y0, y1, y2 = s * y[i, 0], s * y[i, 1], s * y[i, 2]
         for a in range(3):
-            x[i, a] = (e[a, 0] * x0 + e[a, 1] * x1 + e[a, 2] * x2
-                       + p[a, 0] * y0 + p[a, 1] * y1 + p[a, 2] * y2)  # fmt: skip
+            x[i, a] = (
+                e[a, 0] * x0
+                + e[a, 1] * x1
+                + e[a, 2] * x2
+                + p[a, 0] * y0
+                + p[a, 1] * y1
+                + p[a, 2] * y2
+            )

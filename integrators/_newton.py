@@ -98,8 +98,9 @@ def check_solver_options(tol: float, max_iter: int, linear_solver: str) -> tuple
     return tol, int(max_iter), linear_solver
 
 
-def not_converged(step: int, residual: float, name: str, max_iter: int,
-                  tol: float) -> ConvergenceError:  # fmt: skip
+def not_converged(
+    step: int, residual: float, name: str, max_iter: int, tol: float
+) -> ConvergenceError:
     """The error of a Newton solve that used its ``max_iter`` iterations."""
     return ConvergenceError(
         step,
@@ -223,17 +224,32 @@ class IncrementalSolver(NewtonOptions):
         accelerations = np.empty_like(forces0)
         predicted = np.empty_like(forces0)
         largest_acceleration, largest_target = _in_chunks(
-            _start_terms, _start_terms_threaded, velocities.ravel(), forces0,
-            inverse_masses, h, h2, target, accelerations, predicted,
-        )  # fmt: skip
+            _start_terms,
+            _start_terms_threaded,
+            velocities.ravel(),
+            forces0,
+            inverse_masses,
+            h,
+            h2,
+            target,
+            accelerations,
+            predicted,
+        )
         history = [a for a in self.history if a.shape == accelerations.shape]
         if history:
             # The acceleration at x0 + dx, extrapolated from this and the last steps'
             # (Lagrange, in steps): the prediction's error falls from O(h^3) to
             # O(h^(3 + len(history))), a Newton iteration in about one step of ten.
             weights = extrapolation_weights(len(history), reach)
-            _extrapolate(target, h2, weights, accelerations, history[-1],
-                         history[0] if len(history) > 1 else history[-1], predicted)  # fmt: skip
+            _extrapolate(
+                target,
+                h2,
+                weights,
+                accelerations,
+                history[-1],
+                history[0] if len(history) > 1 else history[-1],
+                predicted,
+            )
         scale = max(largest_acceleration, largest_target / h2)
         if not (np.isfinite(scale) and scale > 0.0):
             scale = 1.0
@@ -245,9 +261,16 @@ class IncrementalSolver(NewtonOptions):
             result = forcefield.compute(state, virial=False)
             grad = np.empty_like(dx)
             kinetic, largest = _in_chunks(
-                _incremental_terms, _incremental_terms_threaded, dx, target, masses,
-                inverse_masses, result.forces.ravel(), h2, grad,
-            )  # fmt: skip
+                _incremental_terms,
+                _incremental_terms_threaded,
+                dx,
+                target,
+                masses,
+                inverse_masses,
+                result.forces.ravel(),
+                h2,
+                grad,
+            )
             phi = kinetic + h2 * result.energy
             residual = largest / (h2 * scale)
             # Round-off level of Phi: below it a change in Phi says nothing.
@@ -284,9 +307,17 @@ class IncrementalSolver(NewtonOptions):
                 hessian = None
             previous = residual
             direction, hessian = self._direction(
-                state, forcefield, h2, masses, grad, residual, use_newton, globalise, hessian,
+                state,
+                forcefield,
+                h2,
+                masses,
+                grad,
+                residual,
+                use_newton,
+                globalise,
+                hessian,
                 preconditioners,
-            )  # fmt: skip
+            )
             accepted = self._line_search(evaluate, dx, direction, phi, grad, noise)
             # A shortened step means the local model is poor: the next direction
             # comes from the definite Hessian if the exact one may be indefinite.
@@ -323,9 +354,18 @@ class IncrementalSolver(NewtonOptions):
         return held[1], held[2]
 
     def _direction(
-        self, state, forcefield, h2, masses, grad, residual, use_newton, globalise, exact,
+        self,
+        state,
+        forcefield,
+        h2,
+        masses,
+        grad,
+        residual,
+        use_newton,
+        globalise,
+        exact,
         preconditioners,
-    ):  # fmt: skip
+    ):
         """Return a descent direction of Phi and the Hessian operator to use again (or None).
 
         Newton's direction (exact, clamped or shifted Hessian) or -M^-1 grad.
@@ -454,15 +494,25 @@ def _truncated_cg(product, preconditioner, rhs, eta):
     residual = np.empty_like(rhs)
     z = np.empty_like(rhs)
     search = np.empty_like(rhs)
-    squared, rz = _in_chunks(_cg_start, _cg_start_threaded, rhs, preconditioner, solution,
-                             residual, z, search)  # fmt: skip
+    squared, rz = _in_chunks(
+        _cg_start, _cg_start_threaded, rhs, preconditioner, solution, residual, z, search
+    )
     target = eta * np.sqrt(squared)
     for iteration in range(1, min(_MAX_CG_ITERATIONS, len(rhs)) + 1):
         applied, curvature = product(search)
         if not curvature > 0.0:
             return (z if iteration == 1 else solution), iteration, False
-        squared, rz_new = _in_chunks(_cg_update, _cg_update_threaded, rz / curvature, search,
-                                     applied, preconditioner, solution, residual, z)  # fmt: skip
+        squared, rz_new = _in_chunks(
+            _cg_update,
+            _cg_update_threaded,
+            rz / curvature,
+            search,
+            applied,
+            preconditioner,
+            solution,
+            residual,
+            z,
+        )
         if np.sqrt(squared) <= target:
             return solution, iteration, True
         _cg_direction(z, rz_new / rz, search)
@@ -673,16 +723,24 @@ def _largest(values):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _start_terms_threaded(velocities, forces, inverse_masses, h, h2, target, accelerations,
-                          predicted, chunks):  # fmt: skip
+def _start_terms_threaded(
+    velocities, forces, inverse_masses, h, h2, target, accelerations, predicted, chunks
+):
     """``_start_terms`` in chunks on numba's threads."""
     n = velocities.shape[0]
     parts = np.empty((2, chunks))
     for c in prange(chunks):
         a, b = _bounds(c, chunks, n)
-        acceleration, step = _start_terms(velocities[a:b], forces[a:b], inverse_masses[a:b],
-                                          h, h2, target[a:b], accelerations[a:b],
-                                          predicted[a:b])  # fmt: skip
+        acceleration, step = _start_terms(
+            velocities[a:b],
+            forces[a:b],
+            inverse_masses[a:b],
+            h,
+            h2,
+            target[a:b],
+            accelerations[a:b],
+            predicted[a:b],
+        )
         parts[0, c] = acceleration
         parts[1, c] = step
     return _largest(parts[0]), _largest(parts[1])
@@ -695,9 +753,9 @@ def _incremental_terms_threaded(dx, target, masses, inverse_masses, forces, h2, 
     parts = np.empty((2, chunks))
     for c in prange(chunks):
         a, b = _bounds(c, chunks, n)
-        kinetic, largest = _incremental_terms(dx[a:b], target[a:b], masses[a:b],
-                                              inverse_masses[a:b], forces[a:b], h2,
-                                              grad[a:b])  # fmt: skip
+        kinetic, largest = _incremental_terms(
+            dx[a:b], target[a:b], masses[a:b], inverse_masses[a:b], forces[a:b], h2, grad[a:b]
+        )
         parts[0, c] = kinetic
         parts[1, c] = largest
     return parts[0].sum(), _largest(parts[1])
@@ -721,8 +779,9 @@ def _cg_start_threaded(rhs, preconditioner, solution, residual, z, search, chunk
     parts = np.empty((2, chunks))
     for c in prange(chunks):
         a, b = _bounds(c, chunks, n)
-        squared, rz = _cg_start(rhs[a:b], preconditioner[a:b], solution[a:b], residual[a:b],
-                                z[a:b], search[a:b])  # fmt: skip
+        squared, rz = _cg_start(
+            rhs[a:b], preconditioner[a:b], solution[a:b], residual[a:b], z[a:b], search[a:b]
+        )
         parts[0, c] = squared
         parts[1, c] = rz
     return parts[0].sum(), parts[1].sum()
@@ -735,8 +794,15 @@ def _cg_update_threaded(step, search, applied, preconditioner, solution, residua
     parts = np.empty((2, chunks))
     for c in prange(chunks):
         a, b = _bounds(c, chunks, n)
-        squared, rz = _cg_update(step, search[a:b], applied[a:b], preconditioner[a:b],
-                                 solution[a:b], residual[a:b], z[a:b])  # fmt: skip
+        squared, rz = _cg_update(
+            step,
+            search[a:b],
+            applied[a:b],
+            preconditioner[a:b],
+            solution[a:b],
+            residual[a:b],
+            z[a:b],
+        )
         parts[0, c] = squared
         parts[1, c] = rz
     return parts[0].sum(), parts[1].sum()

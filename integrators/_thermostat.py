@@ -35,16 +35,36 @@ from md.parallel import global_sum
 from md.schema import REQUIRED, Key
 
 # The keys the thermostats share (each class lists its own in CONFIG_KEYS).
-TEMPERATURE = Key("temperature", "number", REQUIRED, unit="temperature", minimum=0.0,
-                  doc="The target temperature.")  # fmt: skip
-TAU = Key("tau", "number", REQUIRED, unit="time", positive=True,
-          doc="The coupling time; about 100 `dt` is usual.")  # fmt: skip
-SEED = Key("seed", "integer or list of integers", None,
-           doc="The random stream, for repeatable runs.",
-           default_doc="derived from the top-level `seed` (none there: fresh entropy)")  # fmt: skip
-FIX_COM = Key("fix_com", "boolean", True,
-              doc="Keep the total momentum (3 fewer degrees of freedom); false for systems in "
-                  "an external field.")  # fmt: skip
+TEMPERATURE = Key(
+    "temperature",
+    "number",
+    REQUIRED,
+    unit="temperature",
+    minimum=0.0,
+    doc="The target temperature.",
+)
+TAU = Key(
+    "tau",
+    "number",
+    REQUIRED,
+    unit="time",
+    positive=True,
+    doc="The coupling time; about 100 `dt` is usual.",
+)
+SEED = Key(
+    "seed",
+    "integer or list of integers",
+    None,
+    doc="The random stream, for repeatable runs.",
+    default_doc="derived from the top-level `seed` (none there: fresh entropy)",
+)
+FIX_COM = Key(
+    "fix_com",
+    "boolean",
+    True,
+    doc="Keep the total momentum (3 fewer degrees of freedom); false for systems in "
+    "an external field.",
+)
 
 
 def check_temperature(temperature: float, positive: bool = False) -> float:
@@ -163,8 +183,9 @@ class Thermostat(IntegratorBase):
             if isinstance(current, np.ndarray):
                 value = np.array(value, dtype=current.dtype)
                 if value.shape != current.shape:
-                    raise ValueError(f"saved {name} has shape {value.shape}, "
-                                     f"expected {current.shape}")  # fmt: skip
+                    raise ValueError(
+                        f"saved {name} has shape {value.shape}, expected {current.shape}"
+                    )
             setattr(self, name, value)
         if self.rng is not None:
             self.rng.bit_generator.state = copy.deepcopy(saved["rng"])
@@ -181,8 +202,14 @@ class Thermostat(IntegratorBase):
         self.end_step(state)
 
     def _describe(self, kind: str, **params) -> dict:
-        described = {"type": kind, "dt": self.dt, "temperature": self.temperature, "kB": self.kB,
-                     **params, "fix_com": self.fix_com}  # fmt: skip
+        described = {
+            "type": kind,
+            "dt": self.dt,
+            "temperature": self.temperature,
+            "kB": self.kB,
+            **params,
+            "fix_com": self.fix_com,
+        }
         if self.constraints is not None:
             described["constraints"] = self.constraints.describe()
         return described

@@ -69,39 +69,75 @@ BAROSTATS = {"c_rescale": True, "mtk": True, "berendsen": False}
 COUPLINGS = ("isotropic", "anisotropic", "triclinic")
 
 _PRESSURE = Key("pressure", "number", REQUIRED, unit="pressure", doc="The target pressure P0.")
-_COUPLE = Key("couple", "string", "isotropic", choices=COUPLINGS,
-              doc="One scale factor (`isotropic`), one per edge on its diagonal pressure "
-                  "(`anisotropic`), or also the tilts towards zero shear stress (`triclinic`).")
+_COUPLE = Key(
+    "couple",
+    "string",
+    "isotropic",
+    choices=COUPLINGS,
+    doc="One scale factor (`isotropic`), one per edge on its diagonal pressure "
+    "(`anisotropic`), or also the tilts towards zero shear stress (`triclinic`).",
+)
 #: The keys of a ``[barostat]`` table, per type (the config reads them in this order).
 BAROSTAT_KEYS = {
     "c_rescale": (
         _PRESSURE,
-        Key("tau", "number", REQUIRED, unit="time", positive=True,
-            doc="The coupling time: how fast the volume relaxes."),
+        Key(
+            "tau",
+            "number",
+            REQUIRED,
+            unit="time",
+            positive=True,
+            doc="The coupling time: how fast the volume relaxes.",
+        ),
         _COUPLE,
-        Key("compressibility", "number", Varies(lj=0.1, metal=4.5e-5), unit="1/pressure",
+        Key(
+            "compressibility",
+            "number",
+            Varies(lj=0.1, metal=4.5e-5),
+            unit="1/pressure",
             positive=True,
             doc="The isothermal compressibility beta of the coupling; with `tau` it sets only "
-                "how fast the volume relaxes (an LJ liquid's order of magnitude in lj units, "
-                "GROMACS's default in metal units)."),
-        Key("every", "integer", 10, unit="steps", minimum=1,
-            doc="Steps between barostat moves (each move spans `every` steps)."),
-        Key("seed", "integer", None, minimum=0, maximum=MAX_SEED,
+            "how fast the volume relaxes (an LJ liquid's order of magnitude in lj units, "
+            "GROMACS's default in metal units).",
+        ),
+        Key(
+            "every",
+            "integer",
+            10,
+            unit="steps",
+            minimum=1,
+            doc="Steps between barostat moves (each move spans `every` steps).",
+        ),
+        Key(
+            "seed",
+            "integer",
+            None,
+            minimum=0,
+            maximum=MAX_SEED,
             doc="The random stream of the cell moves.",
-            default_doc="derived from the top-level `seed`"),
+            default_doc="derived from the top-level `seed`",
+        ),
     ),
     "mtk": (
         _PRESSURE,
-        Key("tau", "number", REQUIRED, unit="time", positive=True,
-            doc="The period of the barostat's oscillation."),
+        Key(
+            "tau",
+            "number",
+            REQUIRED,
+            unit="time",
+            positive=True,
+            doc="The period of the barostat's oscillation.",
+        ),
         _COUPLE,
     ),
-}  # fmt: skip
+}
 BAROSTAT_KEYS["berendsen"] = (
     *BAROSTAT_KEYS["c_rescale"][:-1],
-    replace(BAROSTAT_KEYS["c_rescale"][-1], doc="Accepted and kept; Berendsen's moves draw no "
-            "random numbers."),
-)  # fmt: skip
+    replace(
+        BAROSTAT_KEYS["c_rescale"][-1],
+        doc="Accepted and kept; Berendsen's moves draw no random numbers.",
+    ),
+)
 
 
 class Barostat:
@@ -125,8 +161,16 @@ class Barostat:
         Random stream of ``c_rescale``.
     """
 
-    def __init__(self, kind: str, pressure: float, tau: float, compressibility: float | None = None,
-                 couple: str = "isotropic", every: int = 10, seed=None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        kind: str,
+        pressure: float,
+        tau: float,
+        compressibility: float | None = None,
+        couple: str = "isotropic",
+        every: int = 10,
+        seed=None,
+    ) -> None:
         if kind not in BAROSTATS:
             raise ValueError(f"unknown barostat {kind!r}; known: {', '.join(BAROSTATS)}")
         if couple not in COUPLINGS:
@@ -231,11 +275,21 @@ class Barostat:
 
     def describe(self) -> dict:
         if self.kind == "mtk":
-            return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
-                    "couple": self.couple}  # fmt: skip
-        return {"type": self.kind, "pressure": self.pressure, "tau": self.tau,
-                "compressibility": self.compressibility, "couple": self.couple,
-                "every": self.every, "seed": self.seed}  # fmt: skip
+            return {
+                "type": self.kind,
+                "pressure": self.pressure,
+                "tau": self.tau,
+                "couple": self.couple,
+            }
+        return {
+            "type": self.kind,
+            "pressure": self.pressure,
+            "tau": self.tau,
+            "compressibility": self.compressibility,
+            "couple": self.couple,
+            "every": self.every,
+            "seed": self.seed,
+        }
 
 
 def pressure_control(integrator, barostat: Barostat):

@@ -202,8 +202,9 @@ def sdirk2_displacement(solver, state, forcefield, dt: float, name: str):
     back = rest * stage_velocities  # x^ - x0
     v_hat = v0 + rest * stage_accelerations
     try:
-        displacement = solver.solve(state, forcefield, h, name, reach=1.0,
-                                    velocities=back / h + v_hat)  # fmt: skip
+        displacement = solver.solve(
+            state, forcefield, h, name, reach=1.0, velocities=back / h + v_hat
+        )
     except BaseException:
         solver.history = history  # the step was not taken
         raise

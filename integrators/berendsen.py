@@ -70,10 +70,12 @@ class Berendsen(Thermostat):
 
     canonical = False
     CONFIG_KEYS = (
-        DT, TEMPERATURE,
+        DT,
+        TEMPERATURE,
         replace(TAU, doc="The coupling time (`tau` = `dt` rescales to the target at once)."),
-        CONSTRAINTS, FIX_COM,
-    )  # fmt: skip
+        CONSTRAINTS,
+        FIX_COM,
+    )
 
     def __init__(
         self,

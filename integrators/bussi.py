@@ -63,10 +63,13 @@ class Bussi(Thermostat):
 
     stochastic = True
     CONFIG_KEYS = (
-        DT, TEMPERATURE,
+        DT,
+        TEMPERATURE,
         replace(TAU, doc="The relaxation time of the kinetic energy; about 100 `dt` is usual."),
-        SEED, CONSTRAINTS, FIX_COM,
-    )  # fmt: skip
+        SEED,
+        CONSTRAINTS,
+        FIX_COM,
+    )
 
     def __init__(
         self,

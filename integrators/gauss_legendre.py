@@ -86,8 +86,10 @@ class StageSolver(NewtonOptions):
         dt2 = dt * dt
         accelerations0 = forcefield.compute(state, virial=False).forces.ravel() * inverse_masses
         velocities0 = state.velocities.ravel().copy()
-        scale = max(float(np.max(np.abs(accelerations0), initial=0.0)),
-                    float(np.max(np.abs(velocities0), initial=0.0)) / dt)  # fmt: skip
+        scale = max(
+            float(np.max(np.abs(accelerations0), initial=0.0)),
+            float(np.max(np.abs(velocities0), initial=0.0)) / dt,
+        )
         if not (np.isfinite(scale) and scale > 0.0):
             scale = 1.0
         base = np.outer(dt * NODES, velocities0)  # (2, 3N): D_i without forces
@@ -126,8 +128,17 @@ class StageSolver(NewtonOptions):
         while residual > self.tol and iterations < self.max_iter:
             iterations += 1
             stats["newton_iterations"] += 1
-            direction = self._direction(state, forcefield, x0, displacements, residual_vector,
-                                        masses, dt2, residual, use_newton)  # fmt: skip
+            direction = self._direction(
+                state,
+                forcefield,
+                x0,
+                displacements,
+                residual_vector,
+                masses,
+                dt2,
+                residual,
+                use_newton,
+            )
             alpha = 1.0
             for _ in range(_MAX_BACKTRACKS):
                 trial = displacements + alpha * direction
@@ -160,8 +171,18 @@ class StageSolver(NewtonOptions):
         self.history = (history + [accelerations0])[-PREDICTOR_HISTORY:]
         return stage_accelerations
 
-    def _direction(self, state, forcefield, x0, displacements, residual_vector, masses, dt2,
-                   residual, use_newton):  # fmt: skip
+    def _direction(
+        self,
+        state,
+        forcefield,
+        x0,
+        displacements,
+        residual_vector,
+        masses,
+        dt2,
+        residual,
+        use_newton,
+    ):
         """Solve (M delta_ij + dt^2 (A^2)_ij H_j) p_j = -M R_i for the Newton step p."""
         stats = self.statistics
         rhs = -(residual_vector * masses).ravel()

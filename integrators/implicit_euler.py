@@ -36,15 +36,24 @@ class ImplicitBase(IntegratorBase):
     _label = ""
     CONFIG_KEYS = (
         DT,
-        Key("tol", "number", 1e-8,
+        Key(
+            "tol",
+            "number",
+            1e-8,
             doc="Newton's convergence threshold on the relative residual (an acceleration "
-                "error relative to the largest of the step's accelerations and velocities / "
-                "`dt`), at least 4 x the double epsilon (8.9e-16) and below 1."),
+            "error relative to the largest of the step's accelerations and velocities / "
+            "`dt`), at least 4 x the double epsilon (8.9e-16) and below 1.",
+        ),
         Key("max_iter", "integer", 50, doc="Most Newton iterations per step."),
-        Key("linear_solver", "string", "auto", choices=LINEAR_SOLVERS,
+        Key(
+            "linear_solver",
+            "string",
+            "auto",
+            choices=LINEAR_SOLVERS,
             doc='Sparse LU (`"direct"`) or conjugate gradients (`"cg"`); `"auto"` factorises '
-                "small bonded systems (below 3000 unknowns) and uses CG for the rest."),
-    )  # fmt: skip
+            "small bonded systems (below 3000 unknowns) and uses CG for the rest.",
+        ),
+    )
 
     def __init__(
         self, dt: float, tol: float = 1e-8, max_iter: int = 50, linear_solver: str = "auto"

@@ -93,13 +93,19 @@ class Langevin(Thermostat):
     CONFIG_KEYS = (
         DT,
         TEMPERATURE,
-        Key("friction", "number", REQUIRED, unit="1/time", minimum=0.0,
+        Key(
+            "friction",
+            "number",
+            REQUIRED,
+            unit="1/time",
+            minimum=0.0,
             doc="The friction coefficient gamma: 0 is velocity Verlet, about 1/(100 dt) "
-                "disturbs the dynamics little, 1/dt or more is overdamped."),
+            "disturbs the dynamics little, 1/dt or more is overdamped.",
+        ),
         SEED,
         CONSTRAINTS,
         FIX_COM,
-    )  # fmt: skip
+    )
 
     def __init__(
         self,

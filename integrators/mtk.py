@@ -185,9 +185,17 @@ class MartynaTobiasKlein(IntegratorBase):
 
     def _barostat_chain(self, n_dof: int, duration: float) -> None:
         free = self.free_components()
-        scale = chain_half_step(self.xi, self.v_xi, self._chain_masses(),
-                                self.cell_kinetic_energy(n_dof), float(len(free)), self.kT,
-                                duration, YOSHIDA_WEIGHTS, self.chain.n_substeps)  # fmt: skip
+        scale = chain_half_step(
+            self.xi,
+            self.v_xi,
+            self._chain_masses(),
+            self.cell_kinetic_energy(n_dof),
+            float(len(free)),
+            self.kT,
+            duration,
+            YOSHIDA_WEIGHTS,
+            self.chain.n_substeps,
+        )
         self.omega *= scale
 
     def _kick_cell(self, state, virial, n_dof: int, duration: float) -> None:
@@ -216,8 +224,9 @@ class MartynaTobiasKlein(IntegratorBase):
     def _drift(self, state, duration: float) -> None:
         """r <- exp(Omega t) r + t phi(Omega t) v; the cell h <- exp(Omega t) h."""
         e, phi = exp_and_phi(self.omega * duration)
-        _linear_flow(state.positions, state.velocities, self._ones(state.n_atoms), e,
-                     duration * phi)  # fmt: skip
+        _linear_flow(
+            state.positions, state.velocities, self._ones(state.n_atoms), e, duration * phi
+        )
         cell = state.cell @ e.T  # State.cell holds the cell vectors as rows: h^T
         state.box = np.diag(cell).copy()
         state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)

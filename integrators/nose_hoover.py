@@ -78,13 +78,21 @@ class NoseHooverChain(Thermostat):
         DT,
         TEMPERATURE,
         replace(TAU, doc="The period of the thermostat's oscillation; about 100 `dt` is usual."),
-        Key("chain_length", "integer", 3,
-            doc="Chained thermostat variables, >= 1 (1: plain Nose-Hoover)."),
-        Key("n_substeps", "integer", 1,
-            doc="Substeps of each chain half step, >= 1 (more for a very short `tau`)."),
+        Key(
+            "chain_length",
+            "integer",
+            3,
+            doc="Chained thermostat variables, >= 1 (1: plain Nose-Hoover).",
+        ),
+        Key(
+            "n_substeps",
+            "integer",
+            1,
+            doc="Substeps of each chain half step, >= 1 (more for a very short `tau`).",
+        ),
         CONSTRAINTS,
         FIX_COM,
-    )  # fmt: skip
+    )
 
     def __init__(
         self,
@@ -97,8 +105,9 @@ class NoseHooverChain(Thermostat):
         constraints=None,
         fix_com: bool = True,
     ) -> None:
-        super().__init__(dt, check_temperature(temperature, positive=True), kB, constraints,
-                         fix_com)  # fmt: skip
+        super().__init__(
+            dt, check_temperature(temperature, positive=True), kB, constraints, fix_com
+        )
         self.tau = positive(tau, "tau")
         for name, value in (("chain_length", chain_length), ("n_substeps", n_substeps)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
@@ -134,8 +143,17 @@ class NoseHooverChain(Thermostat):
         """
         self._n_dof = n_dof
         kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
-        scale = chain_half_step(self.xi, self.v_xi, self.masses(n_dof), kinetic, float(n_dof),
-                                self.kT, duration, YOSHIDA_WEIGHTS, self.n_substeps)  # fmt: skip
+        scale = chain_half_step(
+            self.xi,
+            self.v_xi,
+            self.masses(n_dof),
+            kinetic,
+            float(n_dof),
+            self.kT,
+            duration,
+            YOSHIDA_WEIGHTS,
+            self.n_substeps,
+        )
         state.velocities *= scale
 
     def reservoir_energy(self) -> float:
@@ -163,8 +181,12 @@ class NoseHooverChain(Thermostat):
         self._n_dof = saved.get("n_dof")
 
     def describe(self) -> dict:
-        return self._describe("nose_hoover_chain", tau=self.tau, chain_length=self.chain_length,
-                              n_substeps=self.n_substeps)  # fmt: skip
+        return self._describe(
+            "nose_hoover_chain",
+            tau=self.tau,
+            chain_length=self.chain_length,
+            n_substeps=self.n_substeps,
+        )
 
 
 # ------------------------------------------------------------------- kernels

@@ -64,22 +64,43 @@ class BondConstraints:
 
     #: The keys of an ``[integrator.constraints]`` table (see :meth:`from_config`).
     CONFIG_KEYS = (
-        Key("bonds", 'list or "system"', None,
+        Key(
+            "bonds",
+            'list or "system"',
+            None,
             doc='The constrained atom pairs, a list of `[i, j]`, or `"system"`: the bonds '
-                "`[system]` made (a polymer) or read (a structure file). Give this or "
-                "`bonds_file`."),
-        Key("bonds_file", "path", None,
+            "`[system]` made (a polymer) or read (a structure file). Give this or "
+            "`bonds_file`.",
+        ),
+        Key(
+            "bonds_file",
+            "path",
+            None,
             doc="A text file of two integer columns (atom indices; `#` comments), relative to "
-                "the config. Give this or `bonds`."),
-        Key("lengths", "number or list", None, unit="length",
+            "the config. Give this or `bonds`.",
+        ),
+        Key(
+            "lengths",
+            "number or list",
+            None,
+            unit="length",
             doc="The bond lengths, one for all or one per bond.",
-            default_doc="each bond's starting length"),
-        Key("tol", "number", 1e-8,
+            default_doc="each bond's starting length",
+        ),
+        Key(
+            "tol",
+            "number",
+            1e-8,
             doc="Relative tolerance of SHAKE (bond lengths) and RATTLE (bond-length rates), "
-                "in (0, 1)."),
-        Key("max_iter", "integer", 1000,
-            doc="Sweeps over all bonds before the step fails with a constraint error."),
-    )  # fmt: skip
+            "in (0, 1).",
+        ),
+        Key(
+            "max_iter",
+            "integer",
+            1000,
+            doc="Sweeps over all bonds before the step fails with a constraint error.",
+        ),
+    )
 
     def __init__(
         self,
@@ -105,8 +126,10 @@ class BondConstraints:
         if lengths is not None:
             values = np.asarray(lengths, dtype=np.float64)
             if values.ndim > 1 or (values.ndim == 1 and len(values) != self.n_constraints):
-                raise ValueError(f"lengths must be one number or one per constraint "
-                                 f"({self.n_constraints}), got {lengths!r}")  # fmt: skip
+                raise ValueError(
+                    f"lengths must be one number or one per constraint "
+                    f"({self.n_constraints}), got {lengths!r}"
+                )
             values = np.broadcast_to(values, (self.n_constraints,))
             if not np.all(np.isfinite(values) & (values > 0)):
                 raise ValueError(f"lengths must be finite and > 0, got {lengths!r}")
@@ -131,8 +154,9 @@ class BondConstraints:
         params = dict(params)
         check_names(params, cls.CONFIG_KEYS)
         if ("bonds" in params) == ("bonds_file" in params):
-            raise ValueError("give exactly one of 'bonds' (a list of [i, j], or \"system\") "
-                             "and 'bonds_file'")  # fmt: skip
+            raise ValueError(
+                "give exactly one of 'bonds' (a list of [i, j], or \"system\") and 'bonds_file'"
+            )
         if "bonds_file" in params:
             bonds = read_bonds_file(params.pop("bonds_file"))
         else:
@@ -263,9 +287,19 @@ class BondConstraints:
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         tilt = periodic_tilt(state.tilt, state.pbc)
         iterations, residual, worst = _shake(
-            state.positions, state.velocities, reference, self.bonds, self._d2, inverse_masses,
-            lengths, inverse, tilt, 1.0 / dt if move_velocities else 0.0, self.tol, self.max_iter,
-        )  # fmt: skip
+            state.positions,
+            state.velocities,
+            reference,
+            self.bonds,
+            self._d2,
+            inverse_masses,
+            lengths,
+            inverse,
+            tilt,
+            1.0 / dt if move_velocities else 0.0,
+            self.tol,
+            self.max_iter,
+        )
         self.statistics["shake_iterations"] += iterations
         if iterations > self.max_iter or not np.isfinite(residual):
             self._fail(step, "positions", residual, worst)
@@ -287,9 +321,18 @@ class BondConstraints:
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         tilt = periodic_tilt(state.tilt, state.pbc)
         iterations, residual, worst = _rattle(
-            state.positions, state.velocities, self.bonds, self._d2, inverse_masses,
-            lengths, inverse, tilt, dt, self.tol, self.max_iter,
-        )  # fmt: skip
+            state.positions,
+            state.velocities,
+            self.bonds,
+            self._d2,
+            inverse_masses,
+            lengths,
+            inverse,
+            tilt,
+            dt,
+            self.tol,
+            self.max_iter,
+        )
         self.statistics["rattle_iterations"] += iterations
         if iterations > self.max_iter or not np.isfinite(residual):
             self._fail(step, "velocities", residual, worst)
@@ -327,8 +370,9 @@ class BondConstraints:
         inverse_masses = 1.0 / state.masses
         n_bonds = self.n_constraints
         rows = np.repeat(np.arange(n_bonds), 6)
-        columns = np.concatenate([3 * i[:, None] + np.arange(3), 3 * j[:, None] + np.arange(3)],
-                                 axis=1).ravel()  # fmt: skip
+        columns = np.concatenate(
+            [3 * i[:, None] + np.arange(3), 3 * j[:, None] + np.arange(3)], axis=1
+        ).ravel()
         values = np.concatenate([vectors, -vectors], axis=1).ravel()
         jacobian = scipy.sparse.csr_matrix((values, (rows, columns)), shape=(n_bonds, 3 * n))
         inverse_mass_diagonal = scipy.sparse.diags(np.repeat(inverse_masses, 3))
@@ -382,8 +426,9 @@ def constrained_thermo_terms(constraints, n_dof: int, state, result) -> dict:
 
 #: Rigid bonds, a key of the integrators that take them: the ``[integrator.constraints]``
 #: table, whose keys are :attr:`BondConstraints.CONFIG_KEYS`.
-CONSTRAINTS = Key("constraints", "table", None,
-                  doc="Rigid bonds: the `[integrator.constraints]` table (below).")  # fmt: skip
+CONSTRAINTS = Key(
+    "constraints", "table", None, doc="Rigid bonds: the `[integrator.constraints]` table (below)."
+)
 
 
 class Rattle(IntegratorBase):
@@ -419,9 +464,13 @@ class Rattle(IntegratorBase):
 
     CONFIG_KEYS = (
         DT,
-        Key("constraints", "table", REQUIRED,
-            doc="The rigid bonds: the `[integrator.constraints]` table (below)."),
-    )  # fmt: skip
+        Key(
+            "constraints",
+            "table",
+            REQUIRED,
+            doc="The rigid bonds: the `[integrator.constraints]` table (below).",
+        ),
+    )
 
     order = 2
 
@@ -474,8 +523,20 @@ class Rattle(IntegratorBase):
 
 
 @njit(cache=True, error_model="numpy")
-def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths, inverse, tilt,
-           inverse_dt, tol, max_iter):  # fmt: skip
+def _shake(
+    positions,
+    velocities,
+    reference,
+    bonds,
+    d2,
+    inverse_masses,
+    lengths,
+    inverse,
+    tilt,
+    inverse_dt,
+    tol,
+    max_iter,
+):
     """SHAKE sweeps until every |r^2 - d^2| / (2 d^2) <= tol; positions (and
     velocities, scaled by inverse_dt, 0 for none) written in place.
 
@@ -525,8 +586,9 @@ def _shake(positions, velocities, reference, bonds, d2, inverse_masses, lengths,
 
 
 @njit(cache=True, error_model="numpy")
-def _rattle(positions, velocities, bonds, d2, inverse_masses, lengths, inverse, tilt, dt, tol,
-            max_iter):  # fmt: skip
+def _rattle(
+    positions, velocities, bonds, d2, inverse_masses, lengths, inverse, tilt, dt, tol, max_iter
+):
     """RATTLE sweeps until every |r . v_ij| dt / d^2 <= tol; velocities written in place.
 
     Returns (sweeps, largest residual of the last sweep, its bond);

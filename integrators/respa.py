@@ -55,12 +55,20 @@ class RESPA(IntegratorBase):
     splits_forces = True
     CONFIG_KEYS = (
         replace(DT, doc="The outer time step: the slow forces' step."),
-        Key("inner_steps", "integer", 2,
-            doc="Fast substeps per outer step, >= 1 (1: velocity Verlet)."),
-        Key("fast", '"bonded" or list of integers', "bonded",
+        Key(
+            "inner_steps",
+            "integer",
+            2,
+            doc="Fast substeps per outer step, >= 1 (1: velocity Verlet).",
+        ),
+        Key(
+            "fast",
+            '"bonded" or list of integers',
+            "bonded",
             doc='Which potentials are fast: `"bonded"` (those without a cutoff: springs, FENE '
-                "bonds, angles) or their indices in `[[potentials]]`."),
-    )  # fmt: skip
+            "bonds, angles) or their indices in `[[potentials]]`.",
+        ),
+    )
 
     def __init__(self, dt: float, inner_steps: int = 2, fast: str | Sequence[int] = "bonded"):
         self.dt = check_dt(dt)

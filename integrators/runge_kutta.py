@@ -222,14 +222,29 @@ class RKF45(IntegratorBase):
     distributed = True
     CONFIG_KEYS = (
         replace(DT, doc="The output time step (the substeps are the error control's)."),
-        Key("tol", "number", 1e-8,
+        Key(
+            "tol",
+            "number",
+            1e-8,
             doc="Absolute local error tolerance per substep (max norm over positions and "
-                "velocities)."),
-        Key("dt_min", "number", None, unit="time", positive=True,
-            doc="The smallest substep the control may ask for.", default_doc="1e-12 `dt`"),
-        Key("max_substeps", "integer", 100000,
-            doc="Most substeps (accepted and rejected) within one output step."),
-    )  # fmt: skip
+            "velocities).",
+        ),
+        Key(
+            "dt_min",
+            "number",
+            None,
+            unit="time",
+            positive=True,
+            doc="The smallest substep the control may ask for.",
+            default_doc="1e-12 `dt`",
+        ),
+        Key(
+            "max_substeps",
+            "integer",
+            100000,
+            doc="Most substeps (accepted and rejected) within one output step.",
+        ),
+    )
 
     def __init__(
         self,

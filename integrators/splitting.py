@@ -112,7 +112,7 @@ METHODS = {
                 0.5 * (1.0 - 2.0 * _LAMBDA),
                 _XI,
             ],
-        ),  # fmt: skip
+        ),
         4,
         "I. P. Omelyan, I. M. Mryglod, R. Folk, Comput. Phys. Commun. 146, 188 (2002)",
     ),
@@ -134,7 +134,7 @@ METHODS = {
                 _BM_B[0],
                 _BM_A[0],
             ],
-        ),  # fmt: skip
+        ),
         4,
         "S. Blanes, P. C. Moan, J. Comput. Appl. Math. 142, 313 (2002), PRK method S6",
     ),
@@ -156,7 +156,7 @@ METHODS = {
                 _BM_RKN_A[0],
                 _BM_RKN_B[0],
             ],
-        ),  # fmt: skip
+        ),
         4,
         "S. Blanes, P. C. Moan, J. Comput. Appl. Math. 142, 313 (2002), RKN method SRKN6b",
     ),

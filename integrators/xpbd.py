@@ -113,16 +113,32 @@ class XPBD(IntegratorBase):
     splits_forces = True
     CONFIG_KEYS = (
         DT,
-        Key("iterations", "integer", 50, minimum=1,
+        Key(
+            "iterations",
+            "integer",
+            50,
+            minimum=1,
             doc="Most Gauss-Seidel sweeps over the bonds per step; a step that uses them all "
-                "without reaching `tol` is counted (`unconverged_steps`), not refused."),
-        Key("tol", "number", 1e-8, positive=True,
+            "without reaching `tol` is counted (`unconverged_steps`), not refused.",
+        ),
+        Key(
+            "tol",
+            "number",
+            1e-8,
+            positive=True,
             doc="The sweeps stop once every bond's residual, relative to the step's largest "
-                "acceleration term (as the implicit solvers' `tol`), is below it."),
-        Key("compliance", "number", None, unit="length^2/energy", positive=True,
+            "acceleration term (as the implicit solvers' `tol`), is below it.",
+        ),
+        Key(
+            "compliance",
+            "number",
+            None,
+            unit="length^2/energy",
+            positive=True,
             doc="Every harmonic bond's compliance, in place of 1/`k` (positive and finite).",
-            default_doc="1/`k` of each bond"),
-    )  # fmt: skip
+            default_doc="1/`k` of each bond",
+        ),
+    )
 
     def __init__(
         self, dt: float, iterations: int = 50, tol: float = 1e-8, compliance: float | None = None
@@ -159,9 +175,10 @@ class XPBD(IntegratorBase):
         """
         potentials = forcefield.potentials
         bonded = tuple(
-            i for i, p in enumerate(potentials)
+            i
+            for i, p in enumerate(potentials)
             if isinstance(p, SupportsBondLaw) and len(p.bond_law().bonds)
-        )  # fmt: skip
+        )
         if not bonded:
             kinds = ", ".join(p.describe().get("type", type(p).__name__) for p in potentials)
             raise ValueError(
@@ -177,11 +194,14 @@ class XPBD(IntegratorBase):
         if self._laws is None or self._laws[0] != key:
             laws = [forcefield.potentials[i].bond_law() for i in bonded]
             forms = np.concatenate([np.full(len(w.bonds), _FORMS[w.form], np.int64) for w in laws])
-            stiffness = np.concatenate([
-                np.full(len(w.bonds), 1.0 / self.compliance)
-                if (w.form == "harmonic" and self.compliance is not None) else w.k
-                for w in laws
-            ]).astype(np.float64)  # fmt: skip
+            stiffness = np.concatenate(
+                [
+                    np.full(len(w.bonds), 1.0 / self.compliance)
+                    if (w.form == "harmonic" and self.compliance is not None)
+                    else w.k
+                    for w in laws
+                ]
+            ).astype(np.float64)
             bonds = np.ascontiguousarray(np.concatenate([w.bonds for w in laws]), dtype=np.int64)
             lengths = np.concatenate([w.length for w in laws]).astype(np.float64)
             self._laws = (key, forms, bonds, stiffness, lengths)
@@ -212,10 +232,21 @@ class XPBD(IntegratorBase):
         box_lengths, inverse = periodic_lengths(state.box, state.pbc)
         multipliers = np.zeros(len(bonds))
         sweeps, largest, overstretched = _xpbd_sweeps(
-            state.positions, displacement, inverse_masses, box_lengths, inverse,
-            periodic_tilt(state.tilt, state.pbc), bonds, forms, stiffness, lengths,
-            dt * dt, multipliers, self.iterations, self.tol * dt * dt * scale,
-        )  # fmt: skip
+            state.positions,
+            displacement,
+            inverse_masses,
+            box_lengths,
+            inverse,
+            periodic_tilt(state.tilt, state.pbc),
+            bonds,
+            forms,
+            stiffness,
+            lengths,
+            dt * dt,
+            multipliers,
+            self.iterations,
+            self.tol * dt * dt * scale,
+        )
         if not np.all(np.isfinite(state.positions)):
             state.positions[:] = start
             raise NonFiniteError(
@@ -249,8 +280,22 @@ class XPBD(IntegratorBase):
 
 
 @njit(cache=True, error_model="numpy")
-def _xpbd_sweeps(positions, displacement, inverse_masses, lengths, inverse, tilt, bonds, forms,
-                 stiffness, rest, dt2, multipliers, max_sweeps, tolerance):  # fmt: skip
+def _xpbd_sweeps(
+    positions,
+    displacement,
+    inverse_masses,
+    lengths,
+    inverse,
+    tilt,
+    bonds,
+    forms,
+    stiffness,
+    rest,
+    dt2,
+    multipliers,
+    max_sweeps,
+    tolerance,
+):
     """Gauss-Seidel sweeps over the bonds; return (sweeps, largest residual, overstretched).
 
     positions, displacement: (N, 3), moved in place by the same amounts;

@@ -72,8 +72,9 @@ def finite_array(value, name: str, what: str = "type"):
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number or a list of numbers, got {value!r}") from None
     if array.ndim > 1 or array.size == 0 or not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} must be a finite number or a list with one per {what}, "
-                         f"got {value!r}")  # fmt: skip
+        raise ValueError(
+            f"{name} must be a finite number or a list with one per {what}, got {value!r}"
+        )
     return array
 
 
@@ -173,8 +174,10 @@ def angle_array(angles, name: str = "angles") -> NDArray[np.int64]:
     if array.size == 0:
         array = array.reshape(0, 3)
     if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (A, 3): triples (i, j, k), j the vertex; "
-                         f"got shape {array.shape}")  # fmt: skip
+        raise ValueError(
+            f"{name} must have shape (A, 3): triples (i, j, k), j the vertex; "
+            f"got shape {array.shape}"
+        )
     if array.size and not _integral(array):
         raise ValueError(f"{name} must be integer atom indices")
     array = np.array(array, dtype=np.int64, order="C", copy=True)

@@ -188,8 +188,9 @@ def splat(builder, value, vector: ir.VectorType):
 
 def shuffle(builder, a, b, lanes):
     """The lanes of ``a`` then ``b`` (numbered on) that ``lanes`` lists, as one vector."""
-    return builder.shuffle_vector(a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)),
-                                                    lanes))  # fmt: skip
+    return builder.shuffle_vector(
+        a, b, ir.Constant(ir.VectorType(ir.IntType(32), len(lanes)), lanes)
+    )
 
 
 _V4 = ir.VectorType(ir.FloatType(), 4)
@@ -201,8 +202,9 @@ def cluster_own_lanes(lanes: int = 8) -> list[list[int]]:
     (j atom after i atom): lane l of vector h pairs i atom (lanes // 4) h + l // 4 with j
     atom l % 4."""
     rows = lanes // 4
-    return [[int(lane % 4 > rows * h + lane // 4) for lane in range(lanes)]
-            for h in range(4 // rows)]  # fmt: skip
+    return [
+        [int(lane % 4 > rows * h + lane // 4) for lane in range(lanes)] for h in range(4 // rows)
+    ]
 
 
 def cluster_i_halves(builder, xi, base, lanes: int = 8):
@@ -210,12 +212,17 @@ def cluster_i_halves(builder, xi, base, lanes: int = 8):
     vector of the cluster pair: ``xi`` points at float32 [x0..x3, y0..y3, z0..z3] from
     ``base``; with 8 lanes vector h holds atom 2h in lanes 0-3 and atom 2h + 1 in lanes
     4-7, with 16 one vector holds atom a in lanes 4a to 4a + 3."""
-    own = [load_vector(builder, xi, builder.add(base, ir.Constant(_I64, 4 * d)), _V4)
-           for d in range(3)]  # fmt: skip
+    own = [
+        load_vector(builder, xi, builder.add(base, ir.Constant(_I64, 4 * d)), _V4) for d in range(3)
+    ]
     rows = lanes // 4
-    return [[shuffle(builder, v, v, [a for a in range(rows * h, rows * h + rows)
-                                     for _ in range(4)]) for v in own]
-            for h in range(4 // rows)]  # fmt: skip
+    return [
+        [
+            shuffle(builder, v, v, [a for a in range(rows * h, rows * h + rows) for _ in range(4)])
+            for v in own
+        ]
+        for h in range(4 // rows)
+    ]
 
 
 def cluster_j_shifted(builder, xj, base, offsets, pair, flags=(), lanes: int = 8):
@@ -224,8 +231,10 @@ def cluster_j_shifted(builder, xj, base, offsets, pair, flags=(), lanes: int = 8
     atoms ``lanes / 4`` times (``xj`` laid out as in :func:`cluster_i_halves`, from
     ``base``)."""
     first = builder.mul(pair, ir.Constant(_I64, 3))
-    offset = [builder.load(builder.gep(offsets, [builder.add(first, ir.Constant(_I64, d))]))
-              for d in range(3)]  # fmt: skip
+    offset = [
+        builder.load(builder.gep(offsets, [builder.add(first, ir.Constant(_I64, d))]))
+        for d in range(3)
+    ]
     return offset, cluster_j_less(builder, xj, base, offset, flags, lanes)
 
 
@@ -249,8 +258,7 @@ def squared_distances(builder, half, shifted, flags=()):
     separation = [builder.fsub(half[d], shifted[d], flags=flags) for d in range(3)]
     r2 = builder.fmul(separation[0], separation[0], flags=flags)
     for d in (1, 2):
-        r2 = builder.fadd(r2, builder.fmul(separation[d], separation[d], flags=flags),
-                          flags=flags)  # fmt: skip
+        r2 = builder.fadd(r2, builder.fmul(separation[d], separation[d], flags=flags), flags=flags)
     return separation, r2
 
 
@@ -355,9 +363,12 @@ def move_within(typingctx, array, to, start, count):
         data = array_data(context, builder, signature.args[0], args[0])
         itemsize = context.get_abi_sizeof(context.get_data_type(signature.args[0].dtype))
         cgutils.raw_memmove(
-            builder, builder.gep(data, [args[1]]), builder.gep(data, [args[2]]), args[3],
+            builder,
+            builder.gep(data, [args[1]]),
+            builder.gep(data, [args[2]]),
+            args[3],
             itemsize,
-        )  # fmt: skip
+        )
         return context.get_dummy_value()
 
     return sig, codegen
@@ -403,12 +414,16 @@ def _rows4_types(rows, partners, columns) -> bool:
     C-contiguous int32 or uint32, and ``columns`` C-contiguous of the rows' type (raw
     pointer reads)."""
     return (
-        isinstance(rows, types.Array) and rows.ndim == 2 and rows.layout == "C"
+        isinstance(rows, types.Array)
+        and rows.ndim == 2
+        and rows.layout == "C"
         and rows.dtype in (types.float64, types.float32)
-        and isinstance(partners, types.Array) and partners.ndim == 1
-        and partners.layout == "C" and partners.dtype in (types.int32, types.uint32)
+        and isinstance(partners, types.Array)
+        and partners.ndim == 1
+        and partners.layout == "C"
+        and partners.dtype in (types.int32, types.uint32)
         and all(is_vector_array(c, rows.dtype) for c in columns)
-    )  # fmt: skip
+    )
 
 
 def _vectors(context, array_type) -> tuple[ir.VectorType, ir.VectorType]:
@@ -435,8 +450,9 @@ def _gather_codegen(shifted: bool):
                 code = builder.load(builder.gep(codes, [builder.add(k, ir.Constant(_I64, n))]))
                 row = builder.mul(builder.zext(code, _I64), ir.Constant(_I64, 3))
                 xy = builder.fadd(xy, load_vector(builder, table, row, two))
-                z = builder.fadd(z, builder.load(builder.gep(
-                    table, [builder.add(row, ir.Constant(_I64, 2))])))  # fmt: skip
+                z = builder.fadd(
+                    z, builder.load(builder.gep(table, [builder.add(row, ir.Constant(_I64, 2))]))
+                )
             pairs.append(xy)
             zs.append(z)
         low = shuffle(builder, pairs[0], pairs[2], [0, 1, 2, 3])  # x0 y0 x2 y2
@@ -473,10 +489,15 @@ def gather_shifted_rows4(typingctx, rows, partners, shifts, codes, k, gx, gy, gz
     """:func:`gather_rows4` with each partner's image shift added: ``rows[q] +
     shifts[codes[n]]`` (``shifts`` a C-contiguous (S, 3) table of the rows' type, ``codes`` uint8
     from index 0 as ``partners``)."""
-    if not (_rows4_types(rows, partners, (gx, gy, gz))
-            and _rows4_types(shifts, partners, ()) and shifts.dtype == rows.dtype
-            and isinstance(codes, types.Array) and codes.ndim == 1 and codes.layout == "C"
-            and codes.dtype == types.uint8):  # fmt: skip
+    if not (
+        _rows4_types(rows, partners, (gx, gy, gz))
+        and _rows4_types(shifts, partners, ())
+        and shifts.dtype == rows.dtype
+        and isinstance(codes, types.Array)
+        and codes.ndim == 1
+        and codes.layout == "C"
+        and codes.dtype == types.uint8
+    ):
         return None
     sig = types.void(rows, partners, shifts, codes, types.int64, gx, gy, gz)
     return sig, _gather_codegen(True)

@@ -115,12 +115,18 @@ def build_simulation(config: Config, checkpoint, saved_path: Path, threads, rank
     set_run_threads(config, threads, ranks)
     try:
         if ranks is None:
-            sim = Simulation(state, potentials, integrator, skin=config.run.skin,
-                             units=config.units, max_displacement=guard,
-                             precision=config.run.precision,
-                             outer_skin=config.run.outer_skin,
-                             neighbor_every=config.run.neighbor_every,
-                             neighbor_check=config.run.neighbor_check)  # fmt: skip
+            sim = Simulation(
+                state,
+                potentials,
+                integrator,
+                skin=config.run.skin,
+                units=config.units,
+                max_displacement=guard,
+                precision=config.run.precision,
+                outer_skin=config.run.outer_skin,
+                neighbor_every=config.run.neighbor_every,
+                neighbor_check=config.run.neighbor_check,
+            )
         else:
             if (config.run.neighbor_every, config.run.neighbor_check) != (1, True):
                 raise ValueError(
@@ -129,28 +135,43 @@ def build_simulation(config: Config, checkpoint, saved_path: Path, threads, rank
                     "(without mpiexec), or leave them at 1 and true"
                 )
             sim = DistributedSimulation(
-                state, potentials, integrator, skin=config.run.skin, units=config.units,
-                max_displacement=guard, ranks=ranks, decomposition=config.run.decomposition,
-                precision=config.run.precision, balance_every=config.run.balance_every,
+                state,
+                potentials,
+                integrator,
+                skin=config.run.skin,
+                units=config.units,
+                max_displacement=guard,
+                ranks=ranks,
+                decomposition=config.run.decomposition,
+                precision=config.run.precision,
+                balance_every=config.run.balance_every,
                 balance_threshold=config.run.balance_threshold,
-            )  # fmt: skip
+            )
     except ValueError as error:
-        where = f"{config.source}: [run] decomposition" if "decomposition" in str(error) else (
-            config.source)  # fmt: skip
+        where = (
+            f"{config.source}: [run] decomposition"
+            if "decomposition" in str(error)
+            else (config.source)
+        )
         raise ConfigError(f"{where}: {error}") from None
     if isinstance(integrator, ForceSplit):  # RESPA: both kinds of potential must be there
         try:
             integrator.split(sim.forcefield)
         except ValueError as error:
-            raise ConfigError(f"{config.source}: [integrator] ({integrator.describe()['type']}): "
-                              f"{error}") from None  # fmt: skip
+            raise ConfigError(
+                f"{config.source}: [integrator] ({integrator.describe()['type']}): {error}"
+            ) from None
     if checkpoint is not None:
         if ranks is None:
             restore(checkpoint, integrator, sim.forcefield)
         else:  # the integrator's whole-system state, then the ranks' parts and lists
             restore(checkpoint, integrator)
-            sim.resume(checkpoint.state, checkpoint.neighbor_reference, checkpoint.neighbor_cell,
-                       checkpoint.decomposition)  # fmt: skip
+            sim.resume(
+                checkpoint.state,
+                checkpoint.neighbor_reference,
+                checkpoint.neighbor_cell,
+                checkpoint.decomposition,
+            )
         if checkpoint.n_frames:  # else frame 0 was never kept: write it again
             sim.skip_initial_observation()
     try:

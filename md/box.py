@@ -58,9 +58,13 @@ def perpendicular_widths(box, tilt=None) -> NDArray[np.float64]:
     h = cell_matrix(np.where(box > 0.0, box, 1.0), tilt)
     volume = abs(np.linalg.det(h))
     a, b, c = h
-    return np.array([volume / np.linalg.norm(np.cross(b, c)),
-                     volume / np.linalg.norm(np.cross(c, a)),
-                     volume / np.linalg.norm(np.cross(a, b))])  # fmt: skip
+    return np.array(
+        [
+            volume / np.linalg.norm(np.cross(b, c)),
+            volume / np.linalg.norm(np.cross(c, a)),
+            volume / np.linalg.norm(np.cross(a, b)),
+        ]
+    )
 
 
 def periodic_lengths(box: NDArray[np.float64], pbc: NDArray[np.bool_]):
@@ -304,5 +308,7 @@ def separation(positions, i, j, lengths, inverse, tilt):
         positions[i, 0] - positions[j, 0],
         positions[i, 1] - positions[j, 1],
         positions[i, 2] - positions[j, 2],
-        lengths, inverse, tilt,
-    )  # fmt: skip
+        lengths,
+        inverse,
+        tilt,
+    )

@@ -427,8 +427,9 @@ def _engine_frame(cell, pbc) -> tuple[NDArray[np.float64], NDArray[np.float64], 
             raise ValueError(f"atoms are periodic along {axis} but the cell has no length there")
         rest = h[k] - rotation[:, filled] @ (rotation[:, filled].T @ h[k])
         if np.linalg.norm(rest) <= tolerance:
-            raise ValueError(f"{what}: the periodic cell vectors are linearly dependent: "
-                             f"{h.tolist()}")  # fmt: skip
+            raise ValueError(
+                f"{what}: the periodic cell vectors are linearly dependent: {h.tolist()}"
+            )
         rotation[:, k] = rest / np.linalg.norm(rest)
         filled.append(int(k))
     for k in np.flatnonzero(~pbc):  # the coordinate axis itself where it is free, else another
@@ -540,11 +541,22 @@ def _image_shifts(replicas, cell) -> NDArray[np.float64]:
 def _rotate_voigt(stresses, rotation) -> NDArray[np.float64]:
     """Rotate (N, 6) Voigt stresses (xx, yy, zz, yz, xz, xy) by Q: Q s Q^T for each."""
     xx, yy, zz, yz, xz, xy = stresses.T
-    full = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
-                     np.stack([xz, yz, zz], -1)], axis=-2)  # fmt: skip
+    full = np.stack(
+        [np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)],
+        axis=-2,
+    )
     turned = rotation @ full @ rotation.T
-    return np.stack([turned[:, 0, 0], turned[:, 1, 1], turned[:, 2, 2], turned[:, 1, 2],
-                     turned[:, 0, 2], turned[:, 0, 1]], axis=-1)  # fmt: skip
+    return np.stack(
+        [
+            turned[:, 0, 0],
+            turned[:, 1, 1],
+            turned[:, 2, 2],
+            turned[:, 1, 2],
+            turned[:, 0, 2],
+            turned[:, 0, 1],
+        ],
+        axis=-1,
+    )
 
 
 __all__ = ["MDCalculator"]

@@ -252,8 +252,11 @@ def read_checkpoint(path) -> Checkpoint:
         saved = meta["integrator_state"]
         layout = meta.get("decomposition")
         if layout is not None:
-            layout = {**layout, "owners": arrays.get("domain_owners"),
-                      "slots": arrays.get("domain_slots")}  # fmt: skip
+            layout = {
+                **layout,
+                "owners": arrays.get("domain_owners"),
+                "slots": arrays.get("domain_slots"),
+            }
             if layout["owners"] is None or layout["owners"].shape != (state.n_atoms,):
                 raise ValueError("the decomposition's owners do not match the atom count")
             if layout["slots"] is not None and layout["slots"].shape != (state.n_atoms,):
@@ -277,9 +280,11 @@ def read_checkpoint(path) -> Checkpoint:
             decomposition=layout,
             precision=str(meta.get("precision", "double")),
             neighbor_pruned=pruned,
-            neighbor_step=(int(arrays["neighbor_step"])
-                           if "neighbor_step" in arrays and reference is not None
-                           else None),  # fmt: skip
+            neighbor_step=(
+                int(arrays["neighbor_step"])
+                if "neighbor_step" in arrays and reference is not None
+                else None
+            ),
         )
     except (KeyError, ValueError, TypeError, IndexError, json.JSONDecodeError) as error:
         raise CheckpointError(
@@ -311,7 +316,7 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
     if precision != checkpoint.precision:
         raise CheckpointError(
             f"{checkpoint.path}: written by a run in {checkpoint.precision} precision, "
-            f"not {precision}; resume with precision = \"{checkpoint.precision}\""
+            f'not {precision}; resume with precision = "{checkpoint.precision}"'
         )
     if _plain(integrator.describe()) != checkpoint.integrator:
         raise CheckpointError(
@@ -334,9 +339,14 @@ def restore(checkpoint: Checkpoint, integrator, forcefield=None) -> None:
     nl = None if forcefield is None else forcefield.neighbor_list
     if nl is not None and checkpoint.neighbor_reference is not None:
         box, tilt = checkpoint.neighbor_cell or (None, None)
-        nl.rebuild_at(checkpoint.state, checkpoint.neighbor_reference, box, tilt,
-                      pruned=checkpoint.neighbor_pruned,
-                      step=checkpoint.neighbor_step)  # fmt: skip
+        nl.rebuild_at(
+            checkpoint.state,
+            checkpoint.neighbor_reference,
+            box,
+            tilt,
+            pruned=checkpoint.neighbor_pruned,
+            step=checkpoint.neighbor_step,
+        )
         # The result cache may hold forces from the built configuration; drop it.
         forcefield.invalidate()
 
@@ -377,13 +387,18 @@ def physics_fingerprint(config) -> dict:
             **({"barostat": {"kind": barostat.type, **barostat.values}} if barostat else {}),
             # precision only when mixed, as the barostat: older checkpoints still resume
             # the list's rule only when not the exact default, as precision
-            "run": {"skin": config.run.skin,
-                    **({"precision": config.run.precision}
-                       if config.run.precision != "double" else {}),
-                    **({"neighbor_every": config.run.neighbor_every,
-                        "neighbor_check": config.run.neighbor_check}
-                       if (config.run.neighbor_every, config.run.neighbor_check) != (1, True)
-                       else {})},  # fmt: skip
+            "run": {
+                "skin": config.run.skin,
+                **({"precision": config.run.precision} if config.run.precision != "double" else {}),
+                **(
+                    {
+                        "neighbor_every": config.run.neighbor_every,
+                        "neighbor_check": config.run.neighbor_check,
+                    }
+                    if (config.run.neighbor_every, config.run.neighbor_check) != (1, True)
+                    else {}
+                ),
+            },
             "output": {
                 "velocities": config.output.velocities,
                 "forces": config.output.forces,
@@ -512,8 +527,15 @@ class Checkpointer:
 
     uses_virial = False  # saves the state; its steps need no virial
 
-    def __init__(self, path: Path, writer, fingerprint: dict, run_id: str, config: str,
-                 start: dict | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        path: Path,
+        writer,
+        fingerprint: dict,
+        run_id: str,
+        config: str,
+        start: dict | None = None,
+    ) -> None:
         self.path = Path(path)
         self.writer = writer
         self.fingerprint = fingerprint
@@ -547,8 +569,11 @@ class Checkpointer:
             )
         except OSError as error:
             what = "disk full" if disk_full(error) else (error.strerror or str(error))
-            previous = "the one written before" if self.last_step is None else (
-                f"the one of step {self.last_step}")  # fmt: skip
+            previous = (
+                "the one written before"
+                if self.last_step is None
+                else (f"the one of step {self.last_step}")
+            )
             raise OSError(
                 error.errno,
                 f"{what}: cannot write the checkpoint {self.path} at step {sim.state.step}; "

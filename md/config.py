@@ -17,6 +17,10 @@ Every problem is reported as a :class:`ConfigError` naming the file, the key
 and the offending value. Times, rates and pressures are converted from the
 config's unit system (``lj`` or ``metal``, where times are in fs and pressures
 in bar) into engine units here, by the unit their key declares.
+
+A note on its length (about 1100 lines, over the 800 where a module is split): most
+of it is the sections' key declarations, a few lines each as the formatter writes them,
+kept beside the reader that walks them.
 """
 
 from __future__ import annotations
@@ -56,8 +60,14 @@ class _Table:
     relative ``path`` keys are relative to.
     """
 
-    def __init__(self, data: Any, where: str, source: str, base: Path = Path("."),
-                 units: UnitSystem | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        data: Any,
+        where: str,
+        source: str,
+        base: Path = Path("."),
+        units: UnitSystem | None = None,
+    ) -> None:
         if not isinstance(data, dict):
             raise ConfigError(f"{source}: [{where}] must be a table, got {type(data).__name__}")
         self.data = dict(data)
@@ -113,8 +123,9 @@ class _Table:
             return value
         return self.units.from_config(key.unit, value)
 
-    def plugin(self, kind: str, keys: tuple[Key, ...], others: set[str],
-               fill_defaults: bool = False) -> dict:  # fmt: skip
+    def plugin(
+        self, kind: str, keys: tuple[Key, ...], others: set[str], fill_defaults: bool = False
+    ) -> dict:
         """The values of a plug-in table of type ``kind`` declaring ``keys``.
 
         A key the type does not declare is refused, said to belong to another
@@ -188,116 +199,239 @@ class SystemConfig:
     fixed value (``unset``), as they always have: checkpoints compare them.
     """
 
-    lattice: str | None = key(None, "string", choices=("sc", "bcc", "fcc"), when=("lattice",),
-        doc="A cubic lattice filling the box; needs `cells` and one of `density` and "
-            "`lattice_constant`.")  # fmt: skip
-    polymer: str | None = key(None, "string", choices=("melt", "chain"), when=_POLYMER,
-        doc="Bead-spring chains: `melt` (chains at a density, periodic) or `chain` (one chain, "
-            "open); see the polymers guide.")  # fmt: skip
-    chains: int = key(REQUIRED, "integer", unset=1, minimum=1, when=("melt",),
-                      doc="The number of chains.")  # fmt: skip
-    chain_length: int = key(REQUIRED, "integer", unset=2, minimum=2, when=_POLYMER,
-                            doc="Beads per chain.")  # fmt: skip
-    bond_length: float = key(0.97, "number", unit="length", positive=True, when=_POLYMER,
-        doc="The bead spacing the builder places (0.97: Kremer-Grest's mean bond).")  # fmt: skip
-    straight: bool = key(False, "boolean", when=("chain",),
-                         doc="Build the chain straight instead of as a random walk.")  # fmt: skip
-    cells: tuple[int, int, int] = key(REQUIRED, "integer or list of three", unset=(1, 1, 1),
-        when=("lattice",), doc="Unit cells along x, y and z (one number: all three).")  # fmt: skip
-    density: float | None = key(Varies(lattice=None, melt=REQUIRED), "number", unset=None,
-        unit="number density", positive=True, when=("lattice", "melt"),
-        doc="Atoms (beads) per volume. A lattice needs this or `lattice_constant`.")  # fmt: skip
-    lattice_constant: float | None = key(None, "number", unit="length", positive=True,
-        when=("lattice",), doc="The cubic cell's edge; instead of `density`.")  # fmt: skip
-    shear: tuple[float, float, float] | None = key(None, "number or list of three",
+    lattice: str | None = key(
+        None,
+        "string",
+        choices=("sc", "bcc", "fcc"),
         when=("lattice",),
-        doc="Tilt factors (xy, xz, yz) of a lattice in a sheared cell (HOOMD-blue's).")  # fmt: skip
-    structure: Path | None = key(None, "path", when=("structure",),
+        doc="A cubic lattice filling the box; needs `cells` and one of `density` and "
+        "`lattice_constant`.",
+    )
+    polymer: str | None = key(
+        None,
+        "string",
+        choices=("melt", "chain"),
+        when=_POLYMER,
+        doc="Bead-spring chains: `melt` (chains at a density, periodic) or `chain` (one chain, "
+        "open); see the polymers guide.",
+    )
+    chains: int = key(
+        REQUIRED, "integer", unset=1, minimum=1, when=("melt",), doc="The number of chains."
+    )
+    chain_length: int = key(
+        REQUIRED, "integer", unset=2, minimum=2, when=_POLYMER, doc="Beads per chain."
+    )
+    bond_length: float = key(
+        0.97,
+        "number",
+        unit="length",
+        positive=True,
+        when=_POLYMER,
+        doc="The bead spacing the builder places (0.97: Kremer-Grest's mean bond).",
+    )
+    straight: bool = key(
+        False,
+        "boolean",
+        when=("chain",),
+        doc="Build the chain straight instead of as a random walk.",
+    )
+    cells: tuple[int, int, int] = key(
+        REQUIRED,
+        "integer or list of three",
+        unset=(1, 1, 1),
+        when=("lattice",),
+        doc="Unit cells along x, y and z (one number: all three).",
+    )
+    density: float | None = key(
+        Varies(lattice=None, melt=REQUIRED),
+        "number",
+        unset=None,
+        unit="number density",
+        positive=True,
+        when=("lattice", "melt"),
+        doc="Atoms (beads) per volume. A lattice needs this or `lattice_constant`.",
+    )
+    lattice_constant: float | None = key(
+        None,
+        "number",
+        unit="length",
+        positive=True,
+        when=("lattice",),
+        doc="The cubic cell's edge; instead of `density`.",
+    )
+    shear: tuple[float, float, float] | None = key(
+        None,
+        "number or list of three",
+        when=("lattice",),
+        doc="Tilt factors (xy, xz, yz) of a lattice in a sheared cell (HOOMD-blue's).",
+    )
+    structure: Path | None = key(
+        None,
+        "path",
+        when=("structure",),
         doc="A structure file (anything ase.io reads, LAMMPS data, GSD, H5MD), relative to "
-            "the config; its bonds and angles come along.")  # fmt: skip
-    format: str | None = key(None, "string", when=("structure",),
+        "the config; its bonds and angles come along.",
+    )
+    format: str | None = key(
+        None,
+        "string",
+        when=("structure",),
         doc="The ase.io format of the structure file.",
-        default_doc="guessed from the name")  # fmt: skip
-    mass: float | dict[str, float] | None = key(None, "number or table", unit="mass",
+        default_doc="guessed from the name",
+    )
+    mass: float | dict[str, float] | None = key(
+        None,
+        "number or table",
+        unit="mass",
         doc="Atom mass, > 0; for a structure file also per type name (`{Ar = 39.95}`).",
-        default_doc="1; a structure file's own, else ASE's table")  # fmt: skip
-    type_name: str = key(Varies(lattice="A", melt="M", chain="M"), "string", unset="A",
-        when=("lattice", *_POLYMER), doc="The atoms' type name.")  # fmt: skip
-    pbc: tuple[bool, bool, bool] | None = key(None, "boolean or list of three",
+        default_doc="1; a structure file's own, else ASE's table",
+    )
+    type_name: str = key(
+        Varies(lattice="A", melt="M", chain="M"),
+        "string",
+        unset="A",
+        when=("lattice", *_POLYMER),
+        doc="The atoms' type name.",
+    )
+    pbc: tuple[bool, bool, bool] | None = key(
+        None,
+        "boolean or list of three",
         doc="Periodic along x, y and z (one value: all three).",
-        default_doc='true; false for `polymer = "chain"`; a structure file\'s own')  # fmt: skip
-    temperature: float | None = key(None, "number", unit="temperature", minimum=0.0,
-        doc="Draw Maxwell-Boltzmann velocities at exactly this temperature (zero total "
-            "momentum).", default_doc="zero velocities, or a structure file's own")  # fmt: skip
+        default_doc='true; false for `polymer = "chain"`; a structure file\'s own',
+    )
+    temperature: float | None = key(
+        None,
+        "number",
+        unit="temperature",
+        minimum=0.0,
+        doc="Draw Maxwell-Boltzmann velocities at exactly this temperature (zero total momentum).",
+        default_doc="zero velocities, or a structure file's own",
+    )
 
 
 @dataclass(frozen=True)
 class RunConfig:
     """``[run]``: how long, and how the engine runs it (all optional)."""
 
-    steps: int = key(1000, "integer", unit="steps", minimum=0,
-                     doc="Time steps to run (`md run --steps` overrides it).")  # fmt: skip
-    skin: float = key(0.3, "number", unit="length", minimum=0.0,
-        doc="Neighbour-list skin: the list is rebuilt when an atom moved more than half of "
-            "it.")  # fmt: skip
-    outer_skin: float | None = key(None, "number", unit="length", minimum=0.0,
+    steps: int = key(
+        1000,
+        "integer",
+        unit="steps",
+        minimum=0,
+        doc="Time steps to run (`md run --steps` overrides it).",
+    )
+    skin: float = key(
+        0.3,
+        "number",
+        unit="length",
+        minimum=0.0,
+        doc="Neighbour-list skin: the list is rebuilt when an atom moved more than half of it.",
+    )
+    outer_skin: float | None = key(
+        None,
+        "number",
+        unit="length",
+        minimum=0.0,
         doc="The cluster list's outer skin (mixed precision on one process): the search "
-            "lists the pairs within cutoff + `outer_skin`, and the list the kernels read is "
-            "that one pruned to cutoff + `skin`, again whenever an atom moved more than half "
-            "the skin, until one moved more than half of `outer_skin - skin` since the "
-            "search (as GROMACS's dynamic pruning). At most `skin`: no outer list, a search "
-            "whenever the skin says. Not physics: the kernels sum the same pairs.",
-        default_doc="5 x `skin`")  # fmt: skip
-    neighbor_every: int = key(1, "integer", unit="steps", minimum=1,
+        "lists the pairs within cutoff + `outer_skin`, and the list the kernels read is "
+        "that one pruned to cutoff + `skin`, again whenever an atom moved more than half "
+        "the skin, until one moved more than half of `outer_skin - skin` since the "
+        "search (as GROMACS's dynamic pruning). At most `skin`: no outer list, a search "
+        "whenever the skin says. Not physics: the kernels sum the same pairs.",
+        default_doc="5 x `skin`",
+    )
+    neighbor_every: int = key(
+        1,
+        "integer",
+        unit="steps",
+        minimum=1,
         doc="Look at the neighbour list only every this many steps (LAMMPS's `neigh_modify "
-            "every`, GROMACS's `nstlist`); between looks it is kept whatever the atoms do. "
-            "Above 1 a pair can come within the cutoff unseen until the next look, and the "
-            "energy drifts: the default, 1, misses none. One process only.")  # fmt: skip
-    neighbor_check: bool = key(True, "boolean",
+        "every`, GROMACS's `nstlist`); between looks it is kept whatever the atoms do. "
+        "Above 1 a pair can come within the cutoff unseen until the next look, and the "
+        "energy drifts: the default, 1, misses none. One process only.",
+    )
+    neighbor_check: bool = key(
+        True,
+        "boolean",
         doc="At a look, rebuild only if an atom moved more than half the skin since the last "
-            "build (LAMMPS's `check yes`); false: rebuild at every look (`check no`, as "
-            "GROMACS does every `nstlist` steps), which misses pairs too. One process "
-            "only.")  # fmt: skip
-    thermo_every: int = key(100, "integer", unit="steps", minimum=1,
-                            doc="Steps between lines of the thermo table.")  # fmt: skip
-    threads: int | None = key(None, "integer", minimum=1,
+        "build (LAMMPS's `check yes`); false: rebuild at every look (`check no`, as "
+        "GROMACS does every `nstlist` steps), which misses pairs too. One process "
+        "only.",
+    )
+    thermo_every: int = key(
+        100, "integer", unit="steps", minimum=1, doc="Steps between lines of the thermo table."
+    )
+    threads: int | None = key(
+        None,
+        "integer",
+        minimum=1,
         doc="Kernel threads (`md run --threads` overrides it); not physics.",
-        default_doc="every core")  # fmt: skip
-    decomposition: tuple[int, int, int] | None = key(None, "integer or list of three",
+        default_doc="every core",
+    )
+    decomposition: tuple[int, int, int] | None = key(
+        None,
+        "integer or list of three",
         doc="Bricks along a, b and c when the run is shared by MPI ranks (`mpiexec -n P md "
-            "run`; their product is P, see the MPI guide); not physics.",
-        default_doc="chosen from P and the cell")  # fmt: skip
-    balance_every: int = key(0, "integer", unit="steps", minimum=0,
+        "run`; their product is P, see the MPI guide); not physics.",
+        default_doc="chosen from P and the cell",
+    )
+    balance_every: int = key(
+        0,
+        "integer",
+        unit="steps",
+        minimum=0,
         doc="Under MPI, dynamic load balancing: steps between checks of the ranks' busy "
-            "time (wall time less time spent communicating); where the busiest rank's "
-            "exceeds the mean by more than `balance_threshold`, the planes between bricks "
-            "move towards an even share at the next migration (as LAMMPS's `fix balance "
-            "... shift`). 0: never. A balanced run's trajectory depends on the ranks' "
-            "timings, so it is not repeatable bit for bit; not physics.",
-        default_doc="0 (never)")  # fmt: skip
-    balance_threshold: float = key(1.05, "number", minimum=1.0,
+        "time (wall time less time spent communicating); where the busiest rank's "
+        "exceeds the mean by more than `balance_threshold`, the planes between bricks "
+        "move towards an even share at the next migration (as LAMMPS's `fix balance "
+        "... shift`). 0: never. A balanced run's trajectory depends on the ranks' "
+        "timings, so it is not repeatable bit for bit; not physics.",
+        default_doc="0 (never)",
+    )
+    balance_threshold: float = key(
+        1.05,
+        "number",
+        minimum=1.0,
         doc="The imbalance (busiest rank's busy time over the mean) at which "
-            "`balance_every`'s checks move the planes.")  # fmt: skip
-    precision: str = key("double", "string", choices=("double", "mixed"),
+        "`balance_every`'s checks move the planes.",
+    )
+    precision: str = key(
+        "double",
+        "string",
+        choices=("double", "mixed"),
         doc="`mixed`: the pair potentials' pair terms in float32 (r^2 rounded from double; "
-            "forces within about 3e-7 of the largest), every sum, the positions and the "
-            "integrator in double; bonds and angles stay double. A checkpoint keeps it: "
-            "a resume must ask for the same.")  # fmt: skip
+        "forces within about 3e-7 of the largest), every sum, the positions and the "
+        "integrator in double; bonds and angles stay double. A checkpoint keeps it: "
+        "a resume must ask for the same.",
+    )
 
 
 @dataclass(frozen=True)
 class OutputConfig:
     """``[output]``: the trajectory and checkpoints (all optional)."""
 
-    path: Path = key(Path("trajectory.h5"), "output path",
+    path: Path = key(
+        Path("trajectory.h5"),
+        "output path",
         doc="The H5MD trajectory, relative to the working directory; never overwritten "
-            "without `--overwrite` (`md run --output` overrides it).")  # fmt: skip
-    every: int = key(100, "integer", unit="steps", minimum=1,
-                     doc="Steps between frames (positions, box, observables).")  # fmt: skip
+        "without `--overwrite` (`md run --output` overrides it).",
+    )
+    every: int = key(
+        100,
+        "integer",
+        unit="steps",
+        minimum=1,
+        doc="Steps between frames (positions, box, observables).",
+    )
     velocities: bool = key(False, "boolean", doc="Store velocities in every frame.")
     forces: bool = key(False, "boolean", doc="Store forces in every frame.")
-    checkpoint_every: int = key(1000, "integer", unit="steps", minimum=0,
-        doc="Steps between checkpoints (0: only at the end and on signals).")  # fmt: skip
+    checkpoint_every: int = key(
+        1000,
+        "integer",
+        unit="steps",
+        minimum=0,
+        doc="Steps between checkpoints (0: only at the end and on signals).",
+    )
 
 
 @dataclass(frozen=True)
@@ -308,28 +442,52 @@ class MinimizeConfig:
     in engine units, which are the config's in both unit systems.
     """
 
-    fmax: float = key(1e-2, "number", unit="force", positive=True,
-                      doc="Converged when the largest force is below this.")  # fmt: skip
+    fmax: float = key(
+        1e-2,
+        "number",
+        unit="force",
+        positive=True,
+        doc="Converged when the largest force is below this.",
+    )
     max_steps: int = key(10_000, "integer", minimum=1, doc="Most FIRE steps.")
-    max_force: float | None = key(None, "number", unit="force", positive=True,
+    max_force: float | None = key(
+        None,
+        "number",
+        unit="force",
+        positive=True,
         doc="Cap on the forces of a push-off before FIRE (overlapping starts).",
-        default_doc="no cap")  # fmt: skip
-    max_step: float = key(0.1, "number", unit="length", positive=True,
-                          doc="Largest move of an atom in one step.")  # fmt: skip
-    report_every: int = key(100, "integer", unit="steps", minimum=1,
-                            doc="Steps between progress reports.")  # fmt: skip
+        default_doc="no cap",
+    )
+    max_step: float = key(
+        0.1, "number", unit="length", positive=True, doc="Largest move of an atom in one step."
+    )
+    report_every: int = key(
+        100, "integer", unit="steps", minimum=1, doc="Steps between progress reports."
+    )
 
 
 #: The top level's own keys (the rest are the sections).
 TOP_KEYS = (
-    Key("units", "string", None, choices=tuple(UNIT_SYSTEMS),
+    Key(
+        "units",
+        "string",
+        None,
+        choices=tuple(UNIT_SYSTEMS),
         doc='`"lj"`: reduced (epsilon = sigma = m = kB = 1, time in tau); `"metal"`: eV, '
-            "Angstrom, amu, K, with times in fs and pressures in bar.",
-        default_doc='`"metal"` with a structure file, else `"lj"`'),
-    Key("seed", "integer", None, minimum=0, maximum=MAX_SEED,
+        "Angstrom, amu, K, with times in fs and pressures in bar.",
+        default_doc='`"metal"` with a structure file, else `"lj"`',
+    ),
+    Key(
+        "seed",
+        "integer",
+        None,
+        minimum=0,
+        maximum=MAX_SEED,
         doc="Seeds the initial velocities and, for a thermostat or barostat without its own "
-            "`seed`, their random streams.", default_doc="fresh entropy"),
-)  # fmt: skip
+        "`seed`, their random streams.",
+        default_doc="fresh entropy",
+    ),
+)
 
 
 # ------------------------------------------------------------------ plug-in sections
@@ -391,44 +549,71 @@ def sections() -> tuple[Section, ...]:
     """Every section a config may hold, with its keys, in the reference's order."""
     return (
         Section("", "Top level", "Scalars before the first table.", TOP_KEYS),
-        Section("system", "[system]",
-                "What to simulate. Exactly one of `lattice`, `polymer` and `structure`; each "
-                "other key applies to the kinds of system its row names.",
-                section_keys(SystemConfig)),
-        Section("potentials", "[[potentials]]",
-                "One table per potential, summed; `type` names it: a style below, or a "
-                "plug-in (an entry-point name or `module:attribute`; see the Plug-ins page).",
-                types={n: c.CONFIG_KEYS for n, c in POTENTIALS.items()},
-                summaries={n: _summary(c) for n, c in POTENTIALS.items()}),
-        Section("integrator", "[integrator]",
-                "How the system moves; `type` names the integrator or thermostat (or a "
-                "plug-in, as for `[[potentials]]`).",
-                types={n: c.CONFIG_KEYS for n, c in INTEGRATORS.items()},
-                summaries={n: _summary(c) for n, c in INTEGRATORS.items()}),
-        Section("integrator.constraints", "[integrator.constraints]",
-                "Rigid bonds, for the integrators whose keys list `constraints`.",
-                BondConstraints.CONFIG_KEYS),
-        Section("barostat", "[barostat]",
-                "Constant pressure, with a thermostat as `[integrator]`; `type` names it.",
-                types=dict(BAROSTAT_KEYS), summaries=dict(_BAROSTAT_SUMMARIES)),
-        Section("minimize", "[minimize]",
-                "FIRE 2.0 before the dynamics, on a fresh run (optional).",
-                section_keys(MinimizeConfig)),
-        Section("run", "[run]", "How long, and how the engine runs it (optional).",
-                section_keys(RunConfig)),
-        Section("output", "[output]", "The trajectory and checkpoints (optional).",
-                section_keys(OutputConfig)),
-    )  # fmt: skip
+        Section(
+            "system",
+            "[system]",
+            "What to simulate. Exactly one of `lattice`, `polymer` and `structure`; each "
+            "other key applies to the kinds of system its row names.",
+            section_keys(SystemConfig),
+        ),
+        Section(
+            "potentials",
+            "[[potentials]]",
+            "One table per potential, summed; `type` names it: a style below, or a "
+            "plug-in (an entry-point name or `module:attribute`; see the Plug-ins page).",
+            types={n: c.CONFIG_KEYS for n, c in POTENTIALS.items()},
+            summaries={n: _summary(c) for n, c in POTENTIALS.items()},
+        ),
+        Section(
+            "integrator",
+            "[integrator]",
+            "How the system moves; `type` names the integrator or thermostat (or a "
+            "plug-in, as for `[[potentials]]`).",
+            types={n: c.CONFIG_KEYS for n, c in INTEGRATORS.items()},
+            summaries={n: _summary(c) for n, c in INTEGRATORS.items()},
+        ),
+        Section(
+            "integrator.constraints",
+            "[integrator.constraints]",
+            "Rigid bonds, for the integrators whose keys list `constraints`.",
+            BondConstraints.CONFIG_KEYS,
+        ),
+        Section(
+            "barostat",
+            "[barostat]",
+            "Constant pressure, with a thermostat as `[integrator]`; `type` names it.",
+            types=dict(BAROSTAT_KEYS),
+            summaries=dict(_BAROSTAT_SUMMARIES),
+        ),
+        Section(
+            "minimize",
+            "[minimize]",
+            "FIRE 2.0 before the dynamics, on a fresh run (optional).",
+            section_keys(MinimizeConfig),
+        ),
+        Section(
+            "run",
+            "[run]",
+            "How long, and how the engine runs it (optional).",
+            section_keys(RunConfig),
+        ),
+        Section(
+            "output",
+            "[output]",
+            "The trajectory and checkpoints (optional).",
+            section_keys(OutputConfig),
+        ),
+    )
 
 
 _BAROSTAT_SUMMARIES = {
     "c_rescale": "Stochastic cell rescaling (Bernetti and Bussi): samples the "
-                 "isothermal-isobaric ensemble with any canonical thermostat.",
+    "isothermal-isobaric ensemble with any canonical thermostat.",
     "mtk": "Martyna-Tobias-Klein: cell and particles integrated together, with "
-           "`[integrator] type = \"nose_hoover_chain\"`.",
+    '`[integrator] type = "nose_hoover_chain"`.',
     "berendsen": "Berendsen's weak coupling: relaxes the volume, for equilibration only "
-                 "(it does not sample the isothermal-isobaric ensemble).",
-}  # fmt: skip
+    "(it does not sample the isothermal-isobaric ensemble).",
+}
 
 
 @dataclass(frozen=True)
@@ -504,8 +689,9 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     table = _Table(top.take("run", {}), "run", source, base, units)
     run = RunConfig(**table.fields(RunConfig))
     if run.decomposition is not None and min(run.decomposition) < 1:
-        raise table.error("decomposition",
-                          f"must be positive integers, got {list(run.decomposition)}")  # fmt: skip
+        raise table.error(
+            "decomposition", f"must be positive integers, got {list(run.decomposition)}"
+        )
     table.finish()
     table = _Table(top.take("output", {}), "output", source, base, units)
     output = OutputConfig(**table.fields(OutputConfig))
@@ -603,10 +789,14 @@ def _parse_integrator(table: _Table, seed: int | None) -> PluginEntry:
     every_key = {k.name for c in INTEGRATORS.values() for k in c.CONFIG_KEYS}
     values = table.plugin(kind, cls.CONFIG_KEYS, every_key)
     if "constraints" in values:  # only the keys given, as for the integrator's own
-        constraints = _Table(values["constraints"], "integrator.constraints", table.source,
-                             table.base, table.units)  # fmt: skip
-        values["constraints"] = {k.name: constraints.read(k) for k in BondConstraints.CONFIG_KEYS
-                                 if k.name in constraints.data}  # fmt: skip
+        constraints = _Table(
+            values["constraints"], "integrator.constraints", table.source, table.base, table.units
+        )
+        values["constraints"] = {
+            k.name: constraints.read(k)
+            for k in BondConstraints.CONFIG_KEYS
+            if k.name in constraints.data
+        }
         constraints.finish()
     if cls.thermostat:
         values["kB"] = table.units.kB
@@ -643,12 +833,17 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
                 "type = 'nose_hoover_chain' (or use type = 'c_rescale' with any thermostat)",
             )
         if "constraints" in integrator:
-            raise table.error("type", "the mtk barostat does not keep [integrator.constraints]; "
-                              "use type = 'c_rescale'")  # fmt: skip
+            raise table.error(
+                "type",
+                "the mtk barostat does not keep [integrator.constraints]; use type = 'c_rescale'",
+            )
         for name in key_names(BAROSTAT_KEYS["c_rescale"]):
             if name in table.data and name not in own:
-                raise table.error(name, "does not apply to the mtk barostat (it moves the "
-                                  "cell every step, deterministically)")  # fmt: skip
+                raise table.error(
+                    name,
+                    "does not apply to the mtk barostat (it moves the "
+                    "cell every step, deterministically)",
+                )
     every_key = {k.name for keys in BAROSTAT_KEYS.values() for k in keys}
     values = table.plugin(kind, BAROSTAT_KEYS[kind], every_key, fill_defaults=True)
     if "seed" in own and values["seed"] is None and seed is not None:
@@ -677,8 +872,11 @@ def input_files(config: Config) -> list[Path]:
     tables = [(p.values, potential_class(p.type).CONFIG_KEYS) for p in config.potentials]
     tables.append((config.integrator.get("constraints") or {}, BondConstraints.CONFIG_KEYS))
     for values, keys in tables:
-        files += [Path(values[k.name]) for k in keys
-                  if k.kind == "path" and isinstance(values.get(k.name), str)]  # fmt: skip
+        files += [
+            Path(values[k.name])
+            for k in keys
+            if k.kind == "path" and isinstance(values.get(k.name), str)
+        ]
         files += [Path(entry["file"]) for entry in _pair_files(values)]
     return files
 
@@ -689,8 +887,9 @@ def _pair_files(values: Mapping) -> list[dict]:
     pairs = values.get("pairs")
     if not isinstance(pairs, list):  # none, or not tables: refused with the style's keys
         return []
-    return [entry for entry in pairs
-            if isinstance(entry, dict) and isinstance(entry.get("file"), str)]  # fmt: skip
+    return [
+        entry for entry in pairs if isinstance(entry, dict) and isinstance(entry.get("file"), str)
+    ]
 
 
 #: Where bonds = "system" finds its bonds.
@@ -702,8 +901,9 @@ _SYSTEM_ANGLES = (
 )
 
 
-def potential_from_config(entry: PluginEntry, type_names, source: str, index: int,
-                          system_bonds=None):  # fmt: skip
+def potential_from_config(
+    entry: PluginEntry, type_names, source: str, index: int, system_bonds=None
+):
     """Build a potential from its config table (type names resolved to indices).
 
     ``bonds = "system"`` takes the bonds of ``[system]`` (a polymer builder's
@@ -772,8 +972,9 @@ def integrator_from_config(entry: PluginEntry, source: str, system_bonds=None):
     except Exception as error:  # noqa: BLE001 (a plug-in's constructor may raise anything)
         if kind in INTEGRATORS:
             raise
-        raise ConfigError(f"{source}: [integrator] ({kind}): building it raised "
-                          f"{type(error).__name__}: {error}") from None  # fmt: skip
+        raise ConfigError(
+            f"{source}: [integrator] ({kind}): building it raised {type(error).__name__}: {error}"
+        ) from None
 
 
 def build_system(config: Config):
@@ -791,15 +992,20 @@ def build_system(config: Config):
     try:
         if system.polymer == "melt":
             state, bonds = polymer_melt(
-                system.chains, system.chain_length, density=system.density,
-                bond_length=system.bond_length, seed=config.seed,
-            )  # fmt: skip
+                system.chains,
+                system.chain_length,
+                density=system.density,
+                bond_length=system.bond_length,
+                seed=config.seed,
+            )
         elif system.polymer == "chain":
             state, bonds = single_chain(
-                system.chain_length, bond_length=system.bond_length,
-                straight=system.straight, seed=config.seed,
+                system.chain_length,
+                bond_length=system.bond_length,
+                straight=system.straight,
+                seed=config.seed,
                 pbc=system.pbc if system.pbc is not None else False,
-            )  # fmt: skip
+            )
         if system.polymer is not None:
             chains = system.chains if system.polymer == "melt" else 1
             topology = Topology.from_bonds(bonds)

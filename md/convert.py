@@ -301,8 +301,12 @@ class _MDAnalysisWriter(_Writer):
         # For metal runs those are the H5MD file's units; reduced (lj) values are
         # pre-scaled by the inverse of the writer's conversion, so they land unchanged.
         scale = reader.units.h5md
-        base = {"length": "Angstrom", "time": "ps", "velocity": "Angstrom/ps",
-                "force": "kJ/(mol*Angstrom)"}  # fmt: skip
+        base = {
+            "length": "Angstrom",
+            "time": "ps",
+            "velocity": "Angstrom/ps",
+            "force": "kJ/(mol*Angstrom)",
+        }
         self.factor = {}
         for quantity, unit in base.items():
             if reader.units.name != "lj":
@@ -456,16 +460,24 @@ class _LammpsDataWriter(_Writer):
         stand_ins = list(self._STAND_INS[: len(reader.type_names)])
         with open(self.path, "w") as handle:
             write_lammps_data(
-                handle, atoms, specorder=stand_ins, masses=True, velocities=False,
-                atom_style="full", units=self._ase_units, bonds=topology.n_bonds > 0,
-            )  # fmt: skip
+                handle,
+                atoms,
+                specorder=stand_ins,
+                masses=True,
+                velocities=False,
+                atom_style="full",
+                units=self._ase_units,
+                bonds=topology.n_bonds > 0,
+            )
         lines = self.path.read_text().splitlines(keepends=True)
         # Velocities written here: ASE's writer divides momenta by masses, which is not
         # always the velocity back to the last bit.
         factor = lammps_units(1.0, "velocity", "ASE", self._ase_units)
         lines.append("\nVelocities\n\n")
-        lines += [f"{i + 1:>6} {x:23.17g} {y:23.17g} {z:23.17g}\n"
-                  for i, (x, y, z) in enumerate((state.velocities * factor).tolist())]  # fmt: skip
+        lines += [
+            f"{i + 1:>6} {x:23.17g} {y:23.17g} {z:23.17g}\n"
+            for i, (x, y, z) in enumerate((state.velocities * factor).tolist())
+        ]
         units = "lj" if reader.units.name == "lj" else "metal"
         types = " ".join(f"{t + 1}={name}" for t, name in enumerate(reader.type_names))
         bond_types = " ".join(f"{t + 1}={n}" for t, n in enumerate(topology.bond_type_names))
@@ -503,9 +515,10 @@ class _LammpsDataWriter(_Writer):
 def _add_angles(lines: list[str], topology: Topology) -> None:
     """Add the angle counts to a data file's header and its ``Angles`` section at the end."""
     header = [
-        index for index, line in enumerate(lines)
+        index
+        for index, line in enumerate(lines)
         if line.split()[1:] in (["atom", "types"], ["bond", "types"])
-    ]  # fmt: skip
+    ]
     counts = [f"{topology.n_angles} angles\n", f"{len(topology.angle_type_names)} angle types\n"]
     lines[header[-1] + 1 : header[-1] + 1] = counts
     if lines[-1].strip():

@@ -24,8 +24,17 @@ class PairCollapseError(NonFiniteError):
     :class:`SimulationError` at the failing step.
     """
 
-    def __init__(self, style: str, i: int, j: int, type_names, distance: float,
-                 limit: float, step: int, reason: str) -> None:  # fmt: skip
+    def __init__(
+        self,
+        style: str,
+        i: int,
+        j: int,
+        type_names,
+        distance: float,
+        limit: float,
+        step: int,
+        reason: str,
+    ) -> None:
         self.i, self.j, self.distance, self.limit, self.step = i, j, distance, limit, step
         pair = "-".join(str(name) for name in type_names)
         super().__init__(

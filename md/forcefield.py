@@ -75,10 +75,16 @@ class ForceField:
         Simulation sets it for steps whose end an observer will see.
     """
 
-    def __init__(self, potentials: Sequence[Potential], skin: float = 0.3,
-                 precision: str = "double", outer_skin: float | None = None,
-                 neighbor_every: int = 1, neighbor_check: bool = True,
-                 cache: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        potentials: Sequence[Potential],
+        skin: float = 0.3,
+        precision: str = "double",
+        outer_skin: float | None = None,
+        neighbor_every: int = 1,
+        neighbor_check: bool = True,
+        cache: bool = True,
+    ) -> None:
         self.potentials = list(potentials)
         if not self.potentials:
             raise ValueError("a ForceField needs at least one potential")
@@ -86,9 +92,18 @@ class ForceField:
         cutoffs = [p.cutoff for p in self.potentials if p.cutoff is not None]
         # mixed precision: the cluster-pair layout, whose kernels compute in float32 lanes
         clusters = self.precision == "mixed"
-        self.neighbor_list = (NeighborList(max(cutoffs), skin, clusters, outer_skin=outer_skin,
-                                           every=neighbor_every, check=neighbor_check)
-                              if cutoffs else None)  # fmt: skip
+        self.neighbor_list = (
+            NeighborList(
+                max(cutoffs),
+                skin,
+                clusters,
+                outer_skin=outer_skin,
+                every=neighbor_every,
+                check=neighbor_check,
+            )
+            if cutoffs
+            else None
+        )
         self.timings = {"neighbor": 0.0, "force": 0.0}
         self.n_evaluations = 0
         self.virial_wanted = False
@@ -155,10 +170,15 @@ class ForceField:
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
         results = [
-            p.energy_forces(state, self.neighbor_list if p.cutoff is not None else None,
-                            per_atom, virial=virial, **self._options(p))
+            p.energy_forces(
+                state,
+                self.neighbor_list if p.cutoff is not None else None,
+                per_atom,
+                virial=virial,
+                **self._options(p),
+            )
             for p in potentials
-        ]  # fmt: skip
+        ]
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
         self.timings["neighbor"] += middle - start
         self.timings["force"] += time.perf_counter() - middle
@@ -179,8 +199,11 @@ class ForceField:
         not double and the potential lists it in its ``PRECISIONS`` (others, such as
         bonds, are not asked: they run double). A run's potentials may be objects this
         force field was not built with (a decomposed run's local bonded terms)."""
-        if (self.precision != "double" and isinstance(potential, SupportsPrecision)
-                and self.precision in potential.PRECISIONS):  # fmt: skip
+        if (
+            self.precision != "double"
+            and isinstance(potential, SupportsPrecision)
+            and self.precision in potential.PRECISIONS
+        ):
             return {"precision": self.precision}
         return {}
 
@@ -299,9 +322,12 @@ class ForceField:
         else:
             held_positions, held_types = positions.copy(), types.copy()
         return (
-            held_positions, np.array(state.box, dtype=np.float64),
-            np.array(state.tilt, dtype=np.float64), np.array(state.pbc, dtype=bool), held_types,
-        )  # fmt: skip
+            held_positions,
+            np.array(state.box, dtype=np.float64),
+            np.array(state.tilt, dtype=np.float64),
+            np.array(state.pbc, dtype=bool),
+            held_types,
+        )
 
     def _same_key(self, key: tuple, state: State) -> bool:
         positions, box, tilt, pbc, types = key
@@ -330,8 +356,11 @@ def _refuse_non_finite(total: ForceResult, potentials, results: list[ForceResult
         values = getattr(total, field)  # the ForceResult field named by the loop
         if values is None or np.all(np.isfinite(values)):
             continue
-        culprits = [potential for potential, result in zip(potentials, results, strict=True)
-                    if not np.all(np.isfinite(getattr(result, field)))]  # fmt: skip
+        culprits = [
+            potential
+            for potential, result in zip(potentials, results, strict=True)
+            if not np.all(np.isfinite(getattr(result, field)))
+        ]
         culprit = culprits[0] if culprits else potentials[0]
         if field == "forces":
             atom = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])

@@ -229,9 +229,7 @@ def minimize(
     1.12246
     """
     fire = FIRE(dt=dt, max_step=max_step, max_force=max_force)
-    return fire.run(
-        state, forcefield, fmax, max_steps, callback, report_every, between_steps, stop
-    )
+    return fire.run(state, forcefield, fmax, max_steps, callback, report_every, between_steps, stop)
 
 
 __all__ = ["FIRE", "MinimizeResult", "minimize"]

@@ -44,6 +44,7 @@ class Reductions(Protocol):
         """Element-wise maximum over the ranks."""
         ...
 
+
 _threads: int | None = None
 #: The reductions of a decomposed run (None: this process holds the whole system).
 _reductions: Reductions | None = None
@@ -197,8 +198,9 @@ def _same_values_threaded(a, b, chunks):
     n = a.shape[0]
     same = np.ones(chunks, dtype=np.bool_)
     for c in prange(chunks):
-        same[c] = _same_values(a[c * n // chunks : (c + 1) * n // chunks],
-                               b[c * n // chunks : (c + 1) * n // chunks])  # fmt: skip
+        same[c] = _same_values(
+            a[c * n // chunks : (c + 1) * n // chunks], b[c * n // chunks : (c + 1) * n // chunks]
+        )
     return same.all()
 
 

@@ -40,8 +40,9 @@ logger = logging.getLogger(__name__)
 _WARNED: set[tuple[str, tuple[str, ...]]] = set()
 
 
-def load(name: str, kind: str, builtins: Mapping[str, object],
-         check: Callable[[object], str | None]) -> object:  # fmt: skip
+def load(
+    name: str, kind: str, builtins: Mapping[str, object], check: Callable[[object], str | None]
+) -> object:
     """The object a config's ``type = name`` names, for registry ``kind``.
 
     ``builtins`` first, then ``module:attribute``, then the entry points of
@@ -84,15 +85,22 @@ def signature_problem(cls: type, given: Iterable[str], supplied: Iterable[str] =
     keywords = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     named = {n for n, p in parameters.items() if p.kind in keywords}
     refused = [n for n in (*given, *supplied) if n not in named and not takes_any]
-    required = [n for n, p in parameters.items() if n in named and p.default is p.empty
-                and n not in given and n not in supplied]  # fmt: skip
+    required = [
+        n
+        for n, p in parameters.items()
+        if n in named and p.default is p.empty and n not in given and n not in supplied
+    ]
     signature = f"{cls.__name__}{inspect.signature(cls)}"
     if refused:
-        return (f"its constructor {signature} does not take {', '.join(refused)}, which its "
-                "config keys (CONFIG_KEYS) pass")  # fmt: skip
+        return (
+            f"its constructor {signature} does not take {', '.join(refused)}, which its "
+            "config keys (CONFIG_KEYS) pass"
+        )
     if required:
-        return (f"its constructor {signature} requires {', '.join(required)}, which is not "
-                "among its config keys (CONFIG_KEYS)")  # fmt: skip
+        return (
+            f"its constructor {signature} requires {', '.join(required)}, which is not "
+            "among its config keys (CONFIG_KEYS)"
+        )
     return None
 
 
@@ -105,8 +113,10 @@ def _attribute(name: str) -> object:
     found = module
     for part in attribute.split("."):
         if not hasattr(found, part):
-            raise PluginError(f"plug-in {name!r}: module {module_name} ({_file(module)}) has no "
-                              f"attribute {attribute!r}")  # fmt: skip
+            raise PluginError(
+                f"plug-in {name!r}: module {module_name} ({_file(module)}) has no "
+                f"attribute {attribute!r}"
+            )
         found = getattr(found, part)
     return found
 
@@ -116,12 +126,15 @@ def _import(module_name: str, label: str):
         return importlib.import_module(module_name)  # the user's module, named in a config
     except ModuleNotFoundError as error:
         if error.name and module_name.startswith(error.name):
-            raise PluginError(f"{label}: no module named {error.name!r} (is it installed, or "
-                              "its folder on PYTHONPATH?)") from None  # fmt: skip
+            raise PluginError(
+                f"{label}: no module named {error.name!r} (is it installed, or "
+                "its folder on PYTHONPATH?)"
+            ) from None
         raise PluginError(f"{label}: importing {module_name} raised {error!r}") from None
     except Exception as error:  # noqa: BLE001 (the user's module may raise anything)
-        raise PluginError(f"{label}: importing {module_name} raised "
-                          f"{type(error).__name__}: {error}") from None  # fmt: skip
+        raise PluginError(
+            f"{label}: importing {module_name} raised {type(error).__name__}: {error}"
+        ) from None
 
 
 def _entry_point(name: str, kind: str, builtins: Mapping[str, object]) -> tuple[object, str]:
@@ -130,8 +143,12 @@ def _entry_point(name: str, kind: str, builtins: Mapping[str, object]) -> tuple[
     shadowed = tuple(sorted({p.name for p in points if p.name in builtins}))
     if shadowed and (group, shadowed) not in _WARNED:  # once per process
         _WARNED.add((group, shadowed))
-        logger.warning("entry point(s) %s of %s are shadowed by the built-ins of those names; "
-                       "name them by module:attribute", ", ".join(shadowed), group)  # fmt: skip
+        logger.warning(
+            "entry point(s) %s of %s are shadowed by the built-ins of those names; "
+            "name them by module:attribute",
+            ", ".join(shadowed),
+            group,
+        )
     matches = [p for p in points if p.name == name]
     if not matches:
         known = [*builtins, *(n for n in plugin_names(kind) if n not in builtins)]
@@ -141,9 +158,11 @@ def _entry_point(name: str, kind: str, builtins: Mapping[str, object]) -> tuple[
         )
     values = sorted({p.value for p in matches})
     if len(values) > 1:
-        raise PluginError(f"type {name!r}: several plug-ins registered under {group!r} "
-                          f"claim the name ({', '.join(values)}); name one by "
-                          "module:attribute")  # fmt: skip
+        raise PluginError(
+            f"type {name!r}: several plug-ins registered under {group!r} "
+            f"claim the name ({', '.join(values)}); name one by "
+            "module:attribute"
+        )
     point = matches[0]
     label = f"plug-in {name!r} (entry point {point.value} in {group})"
     _import(point.module, label)

@@ -108,10 +108,16 @@ class PreparedMinimize:
         previous = catch_stop_signals(stop.request, stop.pending) if handle_signals else {}
         try:
             result = minimize(
-                state, sim.forcefield, stage.fmax, stage.max_steps, max_force=stage.max_force,
-                max_step=stage.max_step, callback=callback, report_every=stage.report_every,
+                state,
+                sim.forcefield,
+                stage.fmax,
+                stage.max_steps,
+                max_force=stage.max_force,
+                max_step=stage.max_step,
+                callback=callback,
+                report_every=stage.report_every,
                 stop=stop,
-            )  # fmt: skip
+            )
         except NonFiniteError as error:
             return MinimizeSummary(FAILED, self.output, message=str(error))
         finally:
@@ -120,10 +126,14 @@ class PreparedMinimize:
             return MinimizeSummary(STOPPED, self.output, result, signal=stop.signal)
         try:
             with H5MDWriter(
-                self.output, state, units=self.config.units, overwrite=self.overwrite,
-                topology=run_topology(sim), in_memory=True,
+                self.output,
+                state,
+                units=self.config.units,
+                overwrite=self.overwrite,
+                topology=run_topology(sim),
+                in_memory=True,
                 parameters={"config": self.config.text, "minimize": result.describe()},
-            ) as writer:  # fmt: skip
+            ) as writer:
                 writer.write(state, thermo=sim.thermo())
         except OSError as error:
             return MinimizeSummary(OUTPUT_ERROR, self.output, result, message=str(error))
@@ -191,9 +201,15 @@ def prepare_minimize(
     state, potentials, integrator = build_components(config)
     set_run_threads(config, threads)
     try:
-        sim = Simulation(state, potentials, integrator, skin=config.run.skin, units=config.units,
-                         precision=config.run.precision,
-                         outer_skin=config.run.outer_skin)  # fmt: skip
+        sim = Simulation(
+            state,
+            potentials,
+            integrator,
+            skin=config.run.skin,
+            units=config.units,
+            precision=config.run.precision,
+            outer_skin=config.run.outer_skin,
+        )
     except ValueError as error:
         raise ConfigError(f"{config.source}: {error}") from None
     return PreparedMinimize(config, sim, output, overwrite, stage)

@@ -166,8 +166,16 @@ def _draw_matplotlib(reader, snapshot, path: Path, size: int, elevation, azimuth
         mine = reader.types == t
         if np.any(mine):
             r = snapshot.positions[mine]
-            ax.scatter(r[:, 0], r[:, 1], r[:, 2], s=area, c=colours[t], label=name,
-                       depthshade=True, edgecolors="none")  # fmt: skip
+            ax.scatter(
+                r[:, 0],
+                r[:, 1],
+                r[:, 2],
+                s=area,
+                c=colours[t],
+                label=name,
+                depthshade=True,
+                edgecolors="none",
+            )
     segments = bond_segments(reader, snapshot)
     if len(segments):
         ax.add_collection3d(Line3DCollection(segments, colors="0.3", linewidths=0.8))
@@ -213,16 +221,23 @@ def _draw_povray(reader, snapshot, path: Path, size: int, elevation, azimuth) ->
     with tempfile.TemporaryDirectory() as folder:
         scene = Path(folder) / "scene.pov"
         settings = {
-            "canvas_width": size, "bondatoms": bondatoms, "transparent": False,
-            "bondlinewidth": 0.15 * radius, "celllinewidth": 0.05 * radius,
-        }  # fmt: skip
+            "canvas_width": size,
+            "bondatoms": bondatoms,
+            "transparent": False,
+            "bondlinewidth": 0.15 * radius,
+            "celllinewidth": 0.05 * radius,
+        }
         palette = [to_rgb(f"C{t % 10}") for t in range(len(reader.type_names))]
         write(
-            scene, atoms, format="pov", radii=[0.6 * radius] * len(atoms),
+            scene,
+            atoms,
+            format="pov",
+            radii=[0.6 * radius] * len(atoms),
             rotation=f"{-elevation}x,{azimuth}y",
-            show_unit_cell=2, colors=[palette[t] for t in reader.types],
+            show_unit_cell=2,
+            colors=[palette[t] for t in reader.types],
             povray_settings=settings,
-        )  # fmt: skip
+        )
         # The .ini names the scene relative to its folder: render there.
         done = subprocess.run(
             ["povray", scene.with_suffix(".ini").name], cwd=folder, capture_output=True, text=True

@@ -252,8 +252,12 @@ class PreparedRun:
             return None
         if self.minimized is None or self.minimized.stopped:
             sim = self.sim
-            options = {"max_force": stage.max_force, "max_step": stage.max_step,
-                       "callback": callback, "report_every": stage.report_every}  # fmt: skip
+            options = {
+                "max_force": stage.max_force,
+                "max_step": stage.max_step,
+                "callback": callback,
+                "report_every": stage.report_every,
+            }
             if self.ranks is not None:
                 # Not ``stop``: a signal reaches one rank, and every rank must take the
                 # same steps; a decomposed run stops after the stage instead.
@@ -263,8 +267,9 @@ class PreparedRun:
                 # a list looked at every N steps only would not follow the minimiser,
                 # whose steps are not the state's
                 with neighbors.exactly() if neighbors is not None else contextlib.nullcontext():
-                    self.minimized = minimize(sim.state, sim.forcefield, stage.fmax,
-                                              stage.max_steps, stop=stop, **options)  # fmt: skip
+                    self.minimized = minimize(
+                        sim.state, sim.forcefield, stage.fmax, stage.max_steps, stop=stop, **options
+                    )
             sim.integrator.reset()  # history taken at the old positions is stale
         return self.minimized
 
@@ -314,9 +319,13 @@ class PreparedRun:
                     self.sim.request_stop(stop.signal)
                 elif stop.signal is not None:
                     return RunSummary(
-                        STOPPED, self.output, self.checkpoint_path, self.n_steps,
-                        message="while minimising", signal=stop.signal,
-                    )  # fmt: skip
+                        STOPPED,
+                        self.output,
+                        self.checkpoint_path,
+                        self.n_steps,
+                        message="while minimising",
+                        signal=stop.signal,
+                    )
             return self._execute(observers, handle_signals)
 
     @contextlib.contextmanager
@@ -347,11 +356,17 @@ class PreparedRun:
             summary.start = dict(self.checkpoint.extra.get("start") or {})
         writer = self._open_outputs(summary.start)  # None on the other ranks of a decomposed run
         saver = Checkpointer(
-            self.checkpoint_path, writer, self.fingerprint, self.run_id, self.config_file,
+            self.checkpoint_path,
+            writer,
+            self.fingerprint,
+            self.run_id,
+            self.config_file,
             start=summary.start,
-        )  # fmt: skip
-        sim.attach(writer if writer is not None else Elsewhere(config.output.forces),
-                   interval=config.output.every)  # fmt: skip
+        )
+        sim.attach(
+            writer if writer is not None else Elsewhere(config.output.forces),
+            interval=config.output.every,
+        )
         # After the writer, so a checkpoint counts the frame of its own step. With
         # checkpoint_every = 0 it only fires at the start of a fresh run (step 0).
         sim.attach(saver, interval=config.output.checkpoint_every or 2**62)
@@ -405,8 +420,10 @@ class PreparedRun:
                 logger.info(
                     "%d looks at the neighbour list (every %d steps%s) found an atom moved "
                     "more than skin/2 since the build: pairs may have been missed",
-                    summary.late_looks, neighbors.every, "" if neighbors.check else ", no check",
-                )  # fmt: skip
+                    summary.late_looks,
+                    neighbors.every,
+                    "" if neighbors.check else ", no check",
+                )
         if summary.status == COMPLETED and sim.stop_requested is not None:
             summary.status, summary.signal = STOPPED, sim.stop_requested
         if summary.status == COMPLETED:
@@ -449,10 +466,14 @@ class PreparedRun:
             # First a checkpoint of the start, then the trajectory: whenever a run is
             # killed, --resume finds a checkpoint (the file may not exist yet).
             write_checkpoint(
-                self.checkpoint_path, state, integrator, forcefield,
-                fingerprint=self.fingerprint, run_id=self.run_id,
+                self.checkpoint_path,
+                state,
+                integrator,
+                forcefield,
+                fingerprint=self.fingerprint,
+                run_id=self.run_id,
                 extra={"config_file": self.config_file, "start": start},
-            )  # fmt: skip
+            )
             try:
                 return self._new_trajectory(state, overwrite=self.overwrite)
             except BaseException:
@@ -460,23 +481,33 @@ class PreparedRun:
                 raise
         if self.output.exists():
             return H5MDWriter(
-                self.output, state, units=config.units, append=True,
+                self.output,
+                state,
+                units=config.units,
+                append=True,
                 keep_frames=self.checkpoint.n_frames,
-            )  # fmt: skip
+            )
         return self._new_trajectory(state, overwrite=True)
 
     def _new_trajectory(self, state: State, overwrite: bool) -> H5MDWriter:
         output = self.config.output
         return H5MDWriter(
-            self.output, state, units=self.config.units, velocities=output.velocities,
-            forces=output.forces, parameters=self.parameters, overwrite=overwrite,
+            self.output,
+            state,
+            units=self.config.units,
+            velocities=output.velocities,
+            forces=output.forces,
+            parameters=self.parameters,
+            overwrite=overwrite,
             topology=run_topology(self.sim),
             # A cell that may start to tilt needs (3, 3) edges from the first frame.
             triclinic=not state.is_orthorhombic
-            or (self.config.barostat is not None
-                and self.config.barostat.get("couple") == "triclinic"),  # fmt: skip
+            or (
+                self.config.barostat is not None
+                and self.config.barostat.get("couple") == "triclinic"
+            ),
             conserved=self.sim.integrator.thermostat,
-        )  # fmt: skip
+        )
 
 
 def prepare(
@@ -560,8 +591,9 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
     if steps is not None:
         try:
-            config = replace(config, run=replace(config.run, steps=count(steps, "--steps",
-                                                                         minimum=0)))  # fmt: skip
+            config = replace(
+                config, run=replace(config.run, steps=count(steps, "--steps", minimum=0))
+            )
         except ValueError as error:
             raise ConfigError(str(error)) from None
     if ranks is not None and config.seed is None:
@@ -616,8 +648,9 @@ def _seeded(config: Config, ranks) -> Config:
     seed = ranks.broadcast(int(np.random.SeedSequence().generate_state(1)[0]) >> 1)
     data = tomllib.loads(config.text)
     data["seed"] = seed
-    seeded = parse_config(data, source=config.source, text=config.text,
-                          base=Path(config.source).parent)  # fmt: skip
+    seeded = parse_config(
+        data, source=config.source, text=config.text, base=Path(config.source).parent
+    )
     return replace(seeded, run=replace(seeded.run, steps=config.run.steps))
 
 
@@ -668,10 +701,13 @@ def run_config(
     prepared = prepare(path_or_config, steps, output, overwrite, resume, threads)
     if prepared.complete:
         return prepared.sim, RunSummary(
-            COMPLETED, prepared.output, prepared.checkpoint_path, 0,
+            COMPLETED,
+            prepared.output,
+            prepared.checkpoint_path,
+            0,
             n_frames=prepared.checkpoint.n_frames,
             start=dict(prepared.checkpoint.extra.get("start") or {}),
-        )  # fmt: skip
+        )
     return prepared.sim, prepared.execute()
 
 

@@ -240,8 +240,9 @@ class Key:
 _UNSET = object()
 
 
-def key(default: Any = REQUIRED, kind: str = "number", *, unset: Any = _UNSET,
-        **declared: Any) -> Any:  # fmt: skip
+def key(
+    default: Any = REQUIRED, kind: str = "number", *, unset: Any = _UNSET, **declared: Any
+) -> Any:
     """A dataclass field that declares a config key (its name is the field's).
 
     ``default`` is the key's default (see :class:`Key`); ``unset`` is the

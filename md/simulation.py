@@ -125,9 +125,14 @@ class Simulation:
         if threads is not None:
             set_threads(threads)
         self.state = state
-        self.forcefield = ForceField(potentials, skin=skin, precision=precision,
-                                     outer_skin=outer_skin, neighbor_every=neighbor_every,
-                                     neighbor_check=neighbor_check)  # fmt: skip
+        self.forcefield = ForceField(
+            potentials,
+            skin=skin,
+            precision=precision,
+            outer_skin=outer_skin,
+            neighbor_every=neighbor_every,
+            neighbor_check=neighbor_check,
+        )
         self.forcefield.check(state)
         self.integrator = integrator
         self.units = get_units(units)
@@ -201,8 +206,11 @@ class Simulation:
             raise ValueError(f"n_steps must be a non-negative integer, got {n_steps!r}")
         state = self.state
         if state.step == 0 and not self._observed_start:
-            self._guarded(lambda: self.forcefield.compute(state), state.step,
-                          hint="the starting configuration cannot be evaluated")  # fmt: skip
+            self._guarded(
+                lambda: self.forcefield.compute(state),
+                state.step,
+                hint="the starting configuration cannot be evaluated",
+            )
             self._notify(all_observers=True)
             self._observed_start = True
         for _ in range(int(n_steps)):

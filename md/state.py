@@ -292,9 +292,12 @@ class State:
         box, tilt, rotation = restricted_cell(atoms.cell[:], "atoms.cell")
         rotated = not np.array_equal(rotation, np.eye(3))
         types, names = types_from_ase(
-            atoms.get_atomic_numbers(), atoms.get_tags(), types_from, type_names,
+            atoms.get_atomic_numbers(),
+            atoms.get_tags(),
+            types_from,
+            type_names,
             atoms.info.get("type_names"),
-        )  # fmt: skip
+        )
         masses = atoms.get_masses()
         momenta = atoms.get_momenta()
         with np.errstate(divide="ignore", invalid="ignore"):  # a zero mass: refused below

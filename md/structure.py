@@ -148,9 +148,17 @@ def _check_xyz_count(path: Path, format: str | None) -> None:
 def _lammps_header(path: Path) -> dict:
     """Box bounds, tilt, Masses comments and a leapmd title from a data file's text."""
     header = {
-        "lo": np.zeros(3), "hi": np.zeros(3), "tilt": None, "names": {}, "bond_names": {},
-        "angle_names": {}, "style": None, "columns": 0, "masses": False, "atoms": 0,
-    }  # fmt: skip
+        "lo": np.zeros(3),
+        "hi": np.zeros(3),
+        "tilt": None,
+        "names": {},
+        "bond_names": {},
+        "angle_names": {},
+        "style": None,
+        "columns": 0,
+        "masses": False,
+        "atoms": 0,
+    }
     axis = {"x": 0, "y": 1, "z": 2}
     with open(path, errors="replace") as handle:
         title = handle.readline()
@@ -231,8 +239,12 @@ def _read_lammps_data(path: Path, units: UnitSystem, mass=None) -> tuple[State, 
         )
     try:
         # Reduced (lj) values are taken as written: ASE's units to its own is the identity.
-        atoms = ase.io.read(path, format="lammps-data", atom_style=style,
-                            units="ASE" if units.name == "lj" else "metal")  # fmt: skip
+        atoms = ase.io.read(
+            path,
+            format="lammps-data",
+            atom_style=style,
+            units="ASE" if units.name == "lj" else "metal",
+        )
     except Exception as error:  # ASE raises many types for unreadable files
         hint = ""
         if isinstance(error, KeyError):  # ASE looks ids and types up in dicts

@@ -88,8 +88,9 @@ class UnitSystem:
         return value * factor if power == 1 else value / factor
 
 
-def _config_units(time: str, time_unit: float, pressure: tuple[str, str], to_engine: float,
-                  labels: dict[str, str]) -> dict[str, tuple[str, float, int]]:  # fmt: skip
+def _config_units(
+    time: str, time_unit: float, pressure: tuple[str, str], to_engine: float, labels: dict[str, str]
+) -> dict[str, tuple[str, float, int]]:
     """Config units of one system: times and pressures (and their inverses) converted,
     the rest as they are. ``pressure`` holds the labels of pressure and its inverse."""
     return {
@@ -118,12 +119,27 @@ LJ = UnitSystem(
         "volume": "sigma^3",
         "density": "m/sigma^3",
     },
-    config_units=_config_units("τ", 1.0, ("ε/σ³", "σ³/ε"), 1.0, {
-        "length": "σ", "energy": "ε", "temperature": "ε/kB", "mass": "m",
-        "number density": "1/σ³", "force": "ε/σ", "energy/length^2": "ε/σ²",
-        "length^2/energy": "σ²/ε", "energy/radian^2": "ε/rad²", "1/length": "1/σ",
-        "energy*length": "ε σ", "energy*length^6": "ε σ⁶", **_PLAIN_UNITS,
-    }),  # fmt: skip
+    config_units=_config_units(
+        "τ",
+        1.0,
+        ("ε/σ³", "σ³/ε"),
+        1.0,
+        {
+            "length": "σ",
+            "energy": "ε",
+            "temperature": "ε/kB",
+            "mass": "m",
+            "number density": "1/σ³",
+            "force": "ε/σ",
+            "energy/length^2": "ε/σ²",
+            "length^2/energy": "σ²/ε",
+            "energy/radian^2": "ε/rad²",
+            "1/length": "1/σ",
+            "energy*length": "ε σ",
+            "energy*length^6": "ε σ⁶",
+            **_PLAIN_UNITS,
+        },
+    ),
 )
 
 METAL = UnitSystem(
@@ -139,7 +155,7 @@ METAL = UnitSystem(
         "length": "A",
         "volume": "A^3",
         "density": "amu/A^3",
-    },  # fmt: skip
+    },
     h5md={
         "length": ("Angstrom", 1.0),
         "time": ("ps", 1.0 / ps),
@@ -152,12 +168,27 @@ METAL = UnitSystem(
         "volume": ("Angstrom3", 1.0),
         "density": ("amu Angstrom-3", 1.0),
     },
-    config_units=_config_units("fs", fs, ("bar", "1/bar"), 1.0 / eV_per_A3_in_bar, {
-        "length": "Å", "energy": "eV", "temperature": "K", "mass": "amu",
-        "number density": "1/Å³", "force": "eV/Å", "energy/length^2": "eV/Å²",
-        "length^2/energy": "Å²/eV", "energy/radian^2": "eV/rad²", "1/length": "1/Å",
-        "energy*length": "eV Å", "energy*length^6": "eV Å⁶", **_PLAIN_UNITS,
-    }),  # fmt: skip
+    config_units=_config_units(
+        "fs",
+        fs,
+        ("bar", "1/bar"),
+        1.0 / eV_per_A3_in_bar,
+        {
+            "length": "Å",
+            "energy": "eV",
+            "temperature": "K",
+            "mass": "amu",
+            "number density": "1/Å³",
+            "force": "eV/Å",
+            "energy/length^2": "eV/Å²",
+            "length^2/energy": "Å²/eV",
+            "energy/radian^2": "eV/rad²",
+            "1/length": "1/Å",
+            "energy*length": "eV Å",
+            "energy*length^6": "eV Å⁶",
+            **_PLAIN_UNITS,
+        },
+    ),
 )
 
 UNIT_SYSTEMS: dict[str, UnitSystem] = {"lj": LJ, "metal": METAL}

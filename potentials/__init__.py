@@ -84,8 +84,9 @@ def _potential_problem(found) -> str | None:
     """What keeps ``found`` from serving as a config's potential (None: nothing)."""
     if not isinstance(found, type):
         return f"is {type(found).__name__} {found!r}, not {_KIND}"
-    frame = next((c for c in (PairPotential, BondPotential, AnglePotential)
-                  if issubclass(found, c)), None)  # fmt: skip
+    frame = next(
+        (c for c in (PairPotential, BondPotential, AnglePotential) if issubclass(found, c)), None
+    )
     missing = [m for m in _MEMBERS if not hasattr(found, m)]  # a foreign class's protocol
     if frame is None and missing:
         return f"{found.__name__} is not {_KIND} (it lacks {', '.join(missing)})"

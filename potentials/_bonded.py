@@ -30,12 +30,14 @@ class ListedTuples:
     #: What one tuple is called in messages and descriptions.
     ITEM: str
 
-    def _setup_list(self, items: np.ndarray, item_types, params: dict[str, ArrayLike],
-                    nonnegative: bool = True) -> None:  # fmt: skip
+    def _setup_list(
+        self, items: np.ndarray, item_types, params: dict[str, ArrayLike], nonnegative: bool = True
+    ) -> None:
         """Hold ``items`` (checked already) with their types and per-type parameter tables
         (:func:`type_tables`: ``per_type`` and ``_tables``)."""
-        types, self.per_type, self._tables = type_tables(params, item_types, len(items),
-                                                         self.ITEM, nonnegative)  # fmt: skip
+        types, self.per_type, self._tables = type_tables(
+            params, item_types, len(items), self.ITEM, nonnegative
+        )
         self._set_list(items, types)
 
     def _set_list(self, items: np.ndarray, types: np.ndarray) -> None:
@@ -126,18 +128,30 @@ def bonded_keys(item: str, example: str, *parameters: Key) -> tuple[Key, ...]:
     ``<item>s_file``), their ``<item>_types``, and its ``parameters``."""
     members, file_key = f"{item}s", f"{item}s_file"
     return (
-        Key(members, 'list or "system"', None,
+        Key(
+            members,
+            'list or "system"',
+            None,
             doc=f'The {item}s, a list of `{example}` atom indices, or `"system"`: the {item}s '
-                f"`[system]` made (a polymer) or read (a structure file). Give this or "
-                f"`{file_key}`."),
-        Key(file_key, "path", None,
+            f"`[system]` made (a polymer) or read (a structure file). Give this or "
+            f"`{file_key}`.",
+        ),
+        Key(
+            file_key,
+            "path",
+            None,
             doc=f"A text file of {example.count(',') + 1} integer columns (`#` comments), "
-                f"relative to the config. Give this or `{members}`."),
+            f"relative to the config. Give this or `{members}`.",
+        ),
         *parameters,
-        Key(f"{item}_types", "list of integers", None,
+        Key(
+            f"{item}_types",
+            "list of integers",
+            None,
             doc=f"One type index per {item}, into per-type parameters given as lists.",
-            default_doc=f'all {item}s one type (`"system"`: the file\'s types)'),
-    )  # fmt: skip
+            default_doc=f'all {item}s one type (`"system"`: the file\'s types)',
+        ),
+    )
 
 
 def config_values(
@@ -156,8 +170,7 @@ def config_values(
     check_names(params, keys)
     names = [k.name for k in keys if k.name not in (members, file_key, types_key)]
     if (members in params) == (file_key in params):
-        raise ValueError(f"give exactly one of '{members}' (a list of {example}) and "
-                         f"'{file_key}'")  # fmt: skip
+        raise ValueError(f"give exactly one of '{members}' (a list of {example}) and '{file_key}'")
     if file_key in params:
         params[members] = read_file(params.pop(file_key))
     for name in names:

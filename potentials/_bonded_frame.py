@@ -56,10 +56,15 @@ _TEMPLATE = Path(__file__).with_name("_bonded_kernels.py")
 #: when this module is imported: the code this process runs (see ``_pair_codegen._SOURCES``).
 _SOURCES = {
     path: path.read_bytes()
-    for path in (_TEMPLATE, Path(__file__),
-                 *(Path(importlib.util.find_spec(name).origin)
-                   for name in ("potentials._kernels", "md.box", "md._simd")))
-}  # fmt: skip
+    for path in (
+        _TEMPLATE,
+        Path(__file__),
+        *(
+            Path(importlib.util.find_spec(name).origin)
+            for name in ("potentials._kernels", "md.box", "md._simd")
+        ),
+    )
+}
 
 #: Per kind and variable: the argument's name, what energy returns, what curvature returns.
 _FORMS = {
@@ -108,19 +113,23 @@ class BondedTerm:
         self.variable = self.variable or next(v for k, v in _FORMS if k == self.KIND)
         if (self.KIND, self.variable) not in _FORMS:
             known = ", ".join(repr(v) for k, v in _FORMS if k == self.KIND)
-            raise ValueError(f"{self.KIND} term variable must be one of {known}, got "
-                             f"{self.variable!r}")  # fmt: skip
+            raise ValueError(
+                f"{self.KIND} term variable must be one of {known}, got {self.variable!r}"
+            )
         names = list(inspect.signature(self.energy).parameters)
         self.name = self.name or self.energy.__name__
         if not names:
-            raise TypeError(f"{self.KIND} term {self.name} must take "
-                            f"{self._form[0]} as its first argument")  # fmt: skip
+            raise TypeError(
+                f"{self.KIND} term {self.name} must take {self._form[0]} as its first argument"
+            )
         self.parameters = tuple(names[1:])
         if self.curvature is not None:
             theirs = tuple(list(inspect.signature(self.curvature).parameters)[1:])
             if theirs != self.parameters:
-                raise TypeError(f"{self.KIND} term {self.name}: curvature takes {theirs}, "
-                                f"energy {self.parameters}")  # fmt: skip
+                raise TypeError(
+                    f"{self.KIND} term {self.name}: curvature takes {theirs}, "
+                    f"energy {self.parameters}"
+                )
 
     @property
     def _form(self) -> tuple:
@@ -159,10 +168,16 @@ class BondedTerm:
                 returned = function(np.float64(x), *(np.float64(p) for p in params))
         except (OverflowError, ZeroDivisionError, ValueError):  # inf, NaN when compiled
             return (math.nan,) * len(names)
-        if not (isinstance(returned, tuple) and len(returned) == len(names)
-                and all(map(is_number, returned))):  # fmt: skip
-            got = (f"{len(returned)} values ({', '.join(map(shown, returned))})"
-                   if isinstance(returned, tuple) else shown(returned))  # fmt: skip
+        if not (
+            isinstance(returned, tuple)
+            and len(returned) == len(names)
+            and all(map(is_number, returned))
+        ):
+            got = (
+                f"{len(returned)} values ({', '.join(map(shown, returned))})"
+                if isinstance(returned, tuple)
+                else shown(returned)
+            )
             count = {2: "two", 3: "three"}[len(names)]
             raise TypeError(
                 f"{self.KIND} term {self.name}: {function.__name__}({self.signature()}) must "
@@ -319,8 +334,9 @@ def _adapters(term: BondedTerm) -> dict:
     """The names the template expects, for ``term`` (see its docstring)."""
     p = ", ".join(f"p[{i}]" for i in range(len(term.parameters)))
     column = "".join(f"table[{i}, t], " for i in range(len(term.parameters)))
-    source = (f"def _params(table, t):\n    return ({column})\n"
-              + _ADAPTERS[term.variable].replace("P)", f"{p})" if p else ")"))  # fmt: skip
+    source = f"def _params(table, t):\n    return ({column})\n" + _ADAPTERS[term.variable].replace(
+        "P)", f"{p})" if p else ")"
+    )
     options = {"inline": "always", "error_model": "numpy"}
     namespace = {"np": np, "SMALL": SMALL}
     for role in ("energy", "curvature"):
@@ -331,8 +347,7 @@ def _adapters(term: BondedTerm) -> dict:
     names = ["_params", f"_{term.KIND}"]
     adapters = {name: njit(**options)(namespace[name]) for name in names}
     curvature = f"_{term.KIND}_curvature"
-    adapters[curvature] = (None if term.curvature is None
-                           else njit(**options)(namespace[curvature]))  # fmt: skip
+    adapters[curvature] = None if term.curvature is None else njit(**options)(namespace[curvature])
     return adapters
 
 
@@ -407,11 +422,15 @@ class _TermPotential(ListedTuples):
         if "term" in signature or not item:
             return  # the frame's own classes, built from a term
         parameters = tuple(
-            Key(name, "number or list", REQUIRED if p.default is p.empty else p.default,
-                doc=f"A parameter of {cls.__name__}: one for all {item}s, or one per {item} type.")
+            Key(
+                name,
+                "number or list",
+                REQUIRED if p.default is p.empty else p.default,
+                doc=f"A parameter of {cls.__name__}: one for all {item}s, or one per {item} type.",
+            )
             for name, p in signature.items()
             if name not in own and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
-        )  # fmt: skip
+        )
         cls.CONFIG_KEYS = bonded_keys(item, cls.EXAMPLE, *parameters)
         cls._derived_keys = True
 
@@ -421,35 +440,42 @@ class _TermPotential(ListedTuples):
         or ``<item>s_file``, a text file of them), optional ``<item>_types`` and the
         parameters, each a number or a list per type. ``type_names`` is unused: bonds and
         angles name atoms, not types."""
-        return cls(**config_values(params, cls.CONFIG_KEYS, cls.ITEM, cls._read_file,
-                                   cls.EXAMPLE))  # fmt: skip
+        return cls(**config_values(params, cls.CONFIG_KEYS, cls.ITEM, cls._read_file, cls.EXAMPLE))
 
     @staticmethod
     def _read_file(path) -> np.ndarray:
         raise NotImplementedError
 
-    def _setup_term(self, term: BondedTerm, items: np.ndarray, item_types,
-                    values: Mapping[str, ArrayLike]) -> None:  # fmt: skip
+    def _setup_term(
+        self, term: BondedTerm, items: np.ndarray, item_types, values: Mapping[str, ArrayLike]
+    ) -> None:
         if not isinstance(term, BondedTerm) or term.KIND != self.ITEM:
             raise TypeError(f"expected a {self.ITEM} term ({self.ITEM}_term), got {term!r}")
         given, wanted = set(values), set(term.parameters)
         if given != wanted:
             missing = ", ".join(sorted(wanted - given)) or "none"
             unknown = ", ".join(sorted(given - wanted)) or "none"
-            raise TypeError(f"{self.ITEM} term {term.name} takes the parameters "
-                            f"({', '.join(term.parameters)}); missing: {missing}; "
-                            f"unknown: {unknown}")  # fmt: skip
+            raise TypeError(
+                f"{self.ITEM} term {term.name} takes the parameters "
+                f"({', '.join(term.parameters)}); missing: {missing}; "
+                f"unknown: {unknown}"
+            )
         ordered = {name: values[name] for name in term.parameters}
         self._setup_list(items, item_types, ordered, nonnegative=self.NONNEGATIVE)
         self.term = term
         n_types = len(self._tables[0]) if self._tables else int(self._types.max(initial=0)) + 1
-        self._table = (np.array(self._tables) if self._tables
-                       else np.zeros((0, n_types)))  # fmt: skip
+        self._table = np.array(self._tables) if self._tables else np.zeros((0, n_types))
         term.check(self._tables)
         self._kernels = None
 
-    def _user_setup(self, term: BondedTerm, to_array: Callable, items, item_types,
-                    values: Mapping[str, ArrayLike]) -> None:  # fmt: skip
+    def _user_setup(
+        self,
+        term: BondedTerm,
+        to_array: Callable,
+        items,
+        item_types,
+        values: Mapping[str, ArrayLike],
+    ) -> None:
         """:meth:`_setup_term` for a user's term: messages name the term, and the style
         (the type name in topology) is the term's name unless a subclass names one."""
         try:
@@ -468,8 +494,15 @@ class _TermPotential(ListedTuples):
     def _geometry(self, state) -> tuple:
         self._check_indices(state.n_atoms)
         lengths, inverse = periodic_lengths(state.box, state.pbc)
-        return (state.positions, lengths, inverse, periodic_tilt(state.tilt, state.pbc),
-                self._items, self._types, self._table)  # fmt: skip
+        return (
+            state.positions,
+            lengths,
+            inverse,
+            periodic_tilt(state.tilt, state.pbc),
+            self._items,
+            self._types,
+            self._table,
+        )
 
     @_compiling_the_term
     def energy_forces(
@@ -549,8 +582,13 @@ class BondPotential(_TermPotential):
     bond_style = "bond_term"
     _read_file = staticmethod(read_bonds_file)
 
-    def __init__(self, term: BondTerm, bonds: ArrayLike, bond_types: ArrayLike | None = None,
-                 **values: float | ArrayLike) -> None:  # fmt: skip
+    def __init__(
+        self,
+        term: BondTerm,
+        bonds: ArrayLike,
+        bond_types: ArrayLike | None = None,
+        **values: float | ArrayLike,
+    ) -> None:
         self._user_setup(term, bond_array, bonds, bond_types, values)
 
     @property
@@ -605,9 +643,14 @@ class BondPotential(_TermPotential):
             self._raise_bad(state, bad)
         bonds = self.bonds.astype(np.int64)
         return PairHessian(
-            state.n_atoms, bonds[:, 0].copy(), bonds[:, 1].copy(), transverse, radial, unit,
+            state.n_atoms,
+            bonds[:, 0].copy(),
+            bonds[:, 1].copy(),
+            transverse,
+            radial,
+            unit,
             unique=False,
-        )  # fmt: skip
+        )
 
     def bond_lengths(self, state) -> NDArray[np.float64]:
         """Return the (B,) bond lengths in ``state`` (minimum image) [length]."""
@@ -659,8 +702,13 @@ class AnglePotential(_TermPotential):
     def _read_file(path) -> np.ndarray:
         return read_index_file(path, 3, "angles_file")
 
-    def __init__(self, term: AngleTerm, angles: ArrayLike, angle_types: ArrayLike | None = None,
-                 **values: float | ArrayLike) -> None:  # fmt: skip
+    def __init__(
+        self,
+        term: AngleTerm,
+        angles: ArrayLike,
+        angle_types: ArrayLike | None = None,
+        **values: float | ArrayLike,
+    ) -> None:
         self._user_setup(term, angle_array, angles, angle_types, values)
 
     @property
@@ -749,10 +797,12 @@ def angle_values(state, angles: ArrayLike) -> NDArray[np.float64]:
     """
     angles = angle_array(angles)
     positions = state.positions
-    a = minimum_image(positions[angles[:, 0]] - positions[angles[:, 1]], state.box, state.pbc,
-                      state.tilt)  # fmt: skip
-    b = minimum_image(positions[angles[:, 2]] - positions[angles[:, 1]], state.box, state.pbc,
-                      state.tilt)  # fmt: skip
+    a = minimum_image(
+        positions[angles[:, 0]] - positions[angles[:, 1]], state.box, state.pbc, state.tilt
+    )
+    b = minimum_image(
+        positions[angles[:, 2]] - positions[angles[:, 1]], state.box, state.pbc, state.tilt
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         c = np.einsum("ij,ij->i", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))

@@ -32,8 +32,9 @@ from potentials._kernels import _add_half_pair_virial
 
 
 @njit(cache=True, error_model="numpy")
-def bond_forces(positions, lengths, inverse, tilt, bonds, bond_types, table,
-                forces, virial, energies, virials):  # fmt: skip
+def bond_forces(
+    positions, lengths, inverse, tilt, bonds, bond_types, table, forces, virial, energies, virials
+):
     """Add bond forces to ``forces`` (zeroed by caller); return (energy, bad).
 
     bonds: (B, 2) atom indices, bond_types: (B,) columns of ``table``. Writes
@@ -95,8 +96,9 @@ def _first_non_finite(positions, lengths, inverse, tilt, bonds, bond_types, tabl
 
 
 @njit(cache=True, error_model="numpy")
-def bond_curvatures(positions, lengths, inverse, tilt, bonds, bond_types, table,
-                    transverse, radial, unit):  # fmt: skip
+def bond_curvatures(
+    positions, lengths, inverse, tilt, bonds, bond_types, table, transverse, radial, unit
+):
     """Write each bond's Hessian eigenvalues u'/r, u'' and unit vector; return the first bad bond.
 
     transverse, radial: (B,); unit: (B, 3), along x_i - x_j (minimum image),
@@ -130,8 +132,9 @@ def bond_curvatures(positions, lengths, inverse, tilt, bonds, bond_types, table,
 
 
 @njit(cache=True, error_model="numpy")
-def angle_forces(positions, lengths, inverse, tilt, angles, angle_types, table,
-                 forces, virial, energies, virials):  # fmt: skip
+def angle_forces(
+    positions, lengths, inverse, tilt, angles, angle_types, table, forces, virial, energies, virials
+):
     """Add angle forces to ``forces`` (zeroed by caller); return (energy, bad).
 
     angles: (A, 3) atom indices (i, j, k), j the vertex; angle_types: (A,)
@@ -252,10 +255,12 @@ def angle_hessian_blocks(positions, lengths, inverse, tilt, angles, angle_types,
         for x in range(3):
             for y in range(3):
                 delta = 1.0 if x == y else 0.0
-                haa[x, y] = (-(ea[x] * g[y] + g[x] * ea[y]) / ra
-                             - c * (delta - ea[x] * ea[y]) / (ra * ra))  # fmt: skip
-                hbb[x, y] = (-(eb[x] * g[6 + y] + g[6 + x] * eb[y]) / rb
-                             - c * (delta - eb[x] * eb[y]) / (rb * rb))  # fmt: skip
+                haa[x, y] = -(ea[x] * g[y] + g[x] * ea[y]) / ra - c * (delta - ea[x] * ea[y]) / (
+                    ra * ra
+                )
+                hbb[x, y] = -(eb[x] * g[6 + y] + g[6 + x] * eb[y]) / rb - c * (
+                    delta - eb[x] * eb[y]
+                ) / (rb * rb)
                 hab[x, y] = (delta - eb[x] * eb[y]) / (ra * rb) - ea[x] * g[6 + y] / ra
         for x in range(3):
             for y in range(3):

@@ -198,13 +198,14 @@ def _j_sums_16(builder, fj, fl):
     low = shuffle(builder, x, y, [*range(0, 8), *range(16, 24)])  # i atoms 0, 1 of x, y
     high = shuffle(builder, x, y, [*range(8, 16), *range(24, 32)])  # i atoms 2, 3
     xy = builder.fadd(low, high, flags=fl)  # [x (0+2), x (1+3), y (0+2), y (1+3)]
-    z8 = builder.fadd(shuffle(builder, z, z, list(range(8))),
-                      shuffle(builder, z, z, list(range(8, 16))), flags=fl)  # fmt: skip
+    z8 = builder.fadd(
+        shuffle(builder, z, z, list(range(8))), shuffle(builder, z, z, list(range(8, 16))), flags=fl
+    )
     z16 = shuffle(builder, z8, z8, [*range(8), *range(8)])
-    first = shuffle(builder, xy, z16, [*range(0, 4), *range(8, 12), *range(16, 20),
-                                       *range(16, 20)])  # fmt: skip
-    second = shuffle(builder, xy, z16, [*range(4, 8), *range(12, 16), *range(20, 24),
-                                        *range(20, 24)])  # fmt: skip
+    first = shuffle(builder, xy, z16, [*range(0, 4), *range(8, 12), *range(16, 20), *range(16, 20)])
+    second = shuffle(
+        builder, xy, z16, [*range(4, 8), *range(12, 16), *range(20, 24), *range(20, 24)]
+    )
     sums = builder.fadd(first, second, flags=fl)  # [x, y, z, z] of j atoms 0-3
     xy8 = builder.fpext(shuffle(builder, sums, sums, list(range(8))), _D8)
     z4 = builder.fpext(shuffle(builder, sums, sums, list(range(8, 12))), _D4)
@@ -219,10 +220,18 @@ def _i_sums_16(builder, sums, fl):
     x, y, z, e = sums
     rounds = []
     for first, second in ((x, y), (z, e)):  # j atoms 0 + 2, 1 + 3, of two sums beside
-        low = shuffle(builder, first, second, [4 * a + b + 16 * (w // 2) for a in range(4)
-                                               for w, b in enumerate((0, 1, 0, 1))])  # fmt: skip
-        high = shuffle(builder, first, second, [4 * a + b + 16 * (w // 2) for a in range(4)
-                                                for w, b in enumerate((2, 3, 2, 3))])  # fmt: skip
+        low = shuffle(
+            builder,
+            first,
+            second,
+            [4 * a + b + 16 * (w // 2) for a in range(4) for w, b in enumerate((0, 1, 0, 1))],
+        )
+        high = shuffle(
+            builder,
+            first,
+            second,
+            [4 * a + b + 16 * (w // 2) for a in range(4) for w, b in enumerate((2, 3, 2, 3))],
+        )
         rounds.append(builder.fadd(low, high, flags=fl))  # [q0 (a): x, x, y, y, ...]
     # sum k (x, y, z, energy) of atom a: lanes 4 a + 2 (k % 2) and + 1 of rounds[k // 2]
     lanes = [16 * (k // 2) + 4 * a + 2 * (k % 2) for k in range(4) for a in range(4)]
@@ -234,8 +243,11 @@ def _i_sums_16(builder, sums, fl):
 def _four_sum(builder, values, first: int, fl):
     """The sum of ``values``' lanes ``first`` to ``first + 3`` (a scalar), pairwise."""
     parts = [builder.extract_element(values, ir.Constant(_I32, first + j)) for j in range(4)]
-    return builder.fadd(builder.fadd(parts[0], parts[1], flags=fl),
-                        builder.fadd(parts[2], parts[3], flags=fl), flags=fl)  # fmt: skip
+    return builder.fadd(
+        builder.fadd(parts[0], parts[1], flags=fl),
+        builder.fadd(parts[2], parts[3], flags=fl),
+        flags=fl,
+    )
 
 
 def cluster_row(pair, rows, lanes: int | None = None):
@@ -278,30 +290,84 @@ def cluster_row(pair, rows, lanes: int | None = None):
         raise ValueError(f"cluster rows have 8 or 16 lanes, not {lanes}")
 
     @intrinsic
-    def row(typingctx, xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-            table, mode, data, cut2, forces, j_sums, j_counts, window, virial):  # fmt: skip
+    def row(
+        typingctx,
+        xi,
+        xj,
+        offsets,
+        partners,
+        start,
+        end,
+        ci,
+        slot_types,
+        n_types,
+        table,
+        mode,
+        data,
+        cut2,
+        forces,
+        j_sums,
+        j_counts,
+        window,
+        virial,
+    ):
         real = table.dtype
         mode_type = getattr(mode, "literal_type", mode)  # numba: a Literal type, or a plain one
         pair_sig = typingctx.resolve_function_type(
             numba.typeof(pair), (real, types.int64, table, mode_type, data), {}
         )
-        sig = types.float64(xi, xj, offsets, partners, start, end, ci, slot_types, n_types,
-                            table, mode, data, cut2, forces, j_sums, j_counts, window,
-                            virial)  # fmt: skip
+        sig = types.float64(
+            xi,
+            xj,
+            offsets,
+            partners,
+            start,
+            end,
+            ci,
+            slot_types,
+            n_types,
+            table,
+            mode,
+            data,
+            cut2,
+            forces,
+            j_sums,
+            j_counts,
+            window,
+            virial,
+        )
         single = isinstance(slot_types, types.NoneType)
         with_virial = not isinstance(virial, types.NoneType)
 
         def codegen(context, builder, signature, args):
             fl = _FLAGS
-            (xi_v, xj_v, off_v, part_v, start_v, end_v, ci_v, types_v, ntypes_v, table_v,
-             mode_v, data_v, cut_v, forces_v, js_v, jc_v, window_v, virial_v) = args  # fmt: skip
+            (
+                xi_v,
+                xj_v,
+                off_v,
+                part_v,
+                start_v,
+                end_v,
+                ci_v,
+                types_v,
+                ntypes_v,
+                table_v,
+                mode_v,
+                data_v,
+                cut_v,
+                forces_v,
+                js_v,
+                jc_v,
+                window_v,
+                virial_v,
+            ) = args
             arg = signature.args
-            xi_p, xj_p, off_p, part_p = (array_data(context, builder, arg[n], args[n])
-                                         for n in range(4))  # fmt: skip
+            xi_p, xj_p, off_p, part_p = (
+                array_data(context, builder, arg[n], args[n]) for n in range(4)
+            )
             # the window's arrays, addressed by cluster: their pointers moved back by the
             # window's first cluster (once per row; before the allocation, never read there)
-            shift = builder.neg(builder.sext(window_v, _I64) if window_v.type != _I64
-                                else window_v)  # fmt: skip
+            shift = builder.neg(builder.sext(window_v, _I64) if window_v.type != _I64 else window_v)
             f_p = array_data(context, builder, arg[13], forces_v)
             f_p = builder.gep(f_p, [builder.mul(shift, _index(12))])
             js_p = array_data(context, builder, arg[14], js_v)
@@ -314,8 +380,9 @@ def cluster_row(pair, rows, lanes: int | None = None):
             # not from numba's subroutine cache: it keys by code object, which is the same
             # for every term's copy of the template (CPython's code equality ignores the
             # file), so a second term would get the first one's compiled _pair
-            cres = context.compile_subroutine(builder, pair.py_func, pair_sig,
-                                              flags=_subroutine_flags(), caching=False)  # fmt: skip
+            cres = context.compile_subroutine(
+                builder, pair.py_func, pair_sig, flags=_subroutine_flags(), caching=False
+            )
             pair_real = context.get_value_type(pair_sig.return_type.dtype)
             table_real = context.get_value_type(real)
             base_i = builder.mul(ci_v, _index(3 * 4))
@@ -324,9 +391,14 @@ def cluster_row(pair, rows, lanes: int | None = None):
             per_pass = lanes // 4  # i atoms per vector
             pairs_i = cluster_i_halves(builder, xi_p, base_i, lanes)
             cut = splat(builder, cut_v, vector)
-            own_cuts = [builder.select(ir.Constant(ir.VectorType(ir.IntType(1), lanes), keep),
-                                       cut, _filled(-1.0, lanes))
-                        for keep in cluster_own_lanes(lanes)]  # fmt: skip
+            own_cuts = [
+                builder.select(
+                    ir.Constant(ir.VectorType(ir.IntType(1), lanes), keep),
+                    cut,
+                    _filled(-1.0, lanes),
+                )
+                for keep in cluster_own_lanes(lanes)
+            ]
             if lanes == 16:  # the SLP vectoriser's widest vectors: zmm (LLVM's X86 default
                 # for Intel's AVX-512 CPUs is 256 bits, which splits the term in two)
                 set.add(builder.function.attributes, '"prefer-vector-width"="512"')
@@ -341,10 +413,13 @@ def cluster_row(pair, rows, lanes: int | None = None):
                     t = builder.sext(builder.load(builder.gep(types_p, [slot])), _I64)
                     type_rows.append(builder.mul(t, n_types_v))
             fma = cgutils.get_or_insert_function(
-                builder.module, ir.FunctionType(vector, [vector] * 3), f"llvm.fma.v{lanes}f32")
+                builder.module, ir.FunctionType(vector, [vector] * 3), f"llvm.fma.v{lanes}f32"
+            )
             # per vector of the pair: x, y, z of the i forces; then the energy
-            sums = [cgutils.alloca_once_value(builder, _filled(0.0, lanes))
-                    for _ in range(3 * passes + 1)]  # fmt: skip
+            sums = [
+                cgutils.alloca_once_value(builder, _filled(0.0, lanes))
+                for _ in range(3 * passes + 1)
+            ]
 
             # the double sums. 8 lanes: in 4-lane quarters (lanes 4q to 4q + 3: one i
             # atom's); an 8-double vector is a zmm register on an AVX-512 CPU, whose use in
@@ -353,20 +428,37 @@ def cluster_row(pair, rows, lanes: int | None = None):
             # i atoms in one 8-double vector, z and the energy in another (0.89 of the
             # kernel's time with the quarters).
             if lanes == 8:
-                wide = [[cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
-                         for _ in range(per_pass)] for _ in sums]  # fmt: skip
+                wide = [
+                    [
+                        cgutils.alloca_once_value(builder, ir.Constant(_D4, [0.0] * 4))
+                        for _ in range(per_pass)
+                    ]
+                    for _ in sums
+                ]
             else:
-                wide16 = [cgutils.alloca_once_value(builder, ir.Constant(_D8, [0.0] * 8))
-                          for _ in range(2)]  # fmt: skip
+                wide16 = [
+                    cgutils.alloca_once_value(builder, ir.Constant(_D8, [0.0] * 8))
+                    for _ in range(2)
+                ]
 
             # the virial's offset part: per offset axis, per vector of the j sums (x and y
             # in one at 16 lanes), offset (x) those sums lane by lane, summed in the
             # vir_p slots after the row (per pair through memory it took 2.8 times as long
             # as the kernel without the virial)
             shapes = [(8, 0), (4, 8)] if lanes == 16 else [(4, 0), (4, 4), (4, 8)]
-            moments = [[cgutils.alloca_once_value(builder, ir.Constant(
-                ir.VectorType(_F64, count), [0.0] * count)) for count, _ in shapes]
-                for _ in range(3)] if with_virial else None  # fmt: skip
+            moments = (
+                [
+                    [
+                        cgutils.alloca_once_value(
+                            builder, ir.Constant(ir.VectorType(_F64, count), [0.0] * count)
+                        )
+                        for count, _ in shapes
+                    ]
+                    for _ in range(3)
+                ]
+                if with_virial
+                else None
+            )
 
             def flush():
                 """Add the float32 i-force and energy lanes to their double lanes, zero them."""
@@ -396,8 +488,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
                 for d in range(3):  # j atom b's force: the sum of lanes b, b + 4
                     low = shuffle(builder, fj[d], fj[d], list(range(4)))
                     high = shuffle(builder, fj[d], fj[d], list(range(4, 8)))
-                    parts.append((builder.fpext(builder.fadd(low, high, flags=fl), _D4),
-                                  4 * d))  # fmt: skip
+                    parts.append((builder.fpext(builder.fadd(low, high, flags=fl), _D4), 4 * d))
                 return parts
 
             def flush_j(base_j, base_s):
@@ -427,8 +518,10 @@ def cluster_row(pair, rows, lanes: int | None = None):
                 for h in range(passes):
                     *dx, safe = separations[h]
                     if not single:
-                        columns = [builder.add(type_rows[per_pass * h + lane // 4],
-                                               tj[lane % 4]) for lane in range(lanes)]
+                        columns = [
+                            builder.add(type_rows[per_pass * h + lane // 4], tj[lane % 4])
+                            for lane in range(lanes)
+                        ]
                     u = fr = ir.Constant(vector, ir.Undefined)
                     for lane in range(lanes):
                         where = ir.Constant(_I32, lane)
@@ -436,9 +529,11 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         if table_real != _F32:
                             x = builder.fpext(x, table_real)
                         values = context.call_internal(
-                            builder, cres.fndesc, pair_sig,
+                            builder,
+                            cres.fndesc,
+                            pair_sig,
                             [x, columns[lane], table_v, mode_c, data_v],
-                        )  # fmt: skip
+                        )
                         parts = [builder.extract_value(values, n) for n in range(2)]
                         if pair_real != _F32:
                             parts = [builder.fptrunc(p, _F32) for p in parts]
@@ -453,8 +548,11 @@ def cluster_row(pair, rows, lanes: int | None = None):
                 if with_virial:  # offset (x) the force on the i cluster from this pair,
                     for fr, dx in terms:  # in double lanes, summed after the row
                         for d in range(3):
-                            fj[d] = (builder.fmul(fr, dx[d], flags=fl) if fj[d] is None
-                                     else builder.call(fma, [fr, dx[d], fj[d]]))  # fmt: skip
+                            fj[d] = (
+                                builder.fmul(fr, dx[d], flags=fl)
+                                if fj[d] is None
+                                else builder.call(fma, [fr, dx[d], fj[d]])
+                            )
                     parts = j_parts(fj)
                     for d in range(3):
                         o = builder.fpext(offset[d], _F64)
@@ -501,7 +599,7 @@ def cluster_row(pair, rows, lanes: int | None = None):
 
             def evaluate(values):
                 cj, base_j, offset = values[0], values[1], values[2:5]
-                separations = [values[5 + 4 * h:9 + 4 * h] for h in range(passes)]
+                separations = [values[5 + 4 * h : 9 + 4 * h] for h in range(passes)]
                 pair_at(cj, base_j, offset, separations)
 
             # the row's first pair, the cluster with itself, on its own; then the others in
@@ -518,20 +616,21 @@ def cluster_row(pair, rows, lanes: int | None = None):
             with builder.if_then(builder.icmp_signed("<", start_v, end_v)):
                 end_less = builder.sub(end_v, _index(1))
                 second = builder.add(start_v, _index(1))
-                second_or_last = builder.select(builder.icmp_signed("<", second, end_v),
-                                                second, end_less)  # fmt: skip
+                second_or_last = builder.select(
+                    builder.icmp_signed("<", second, end_v), second, end_less
+                )
                 evaluate(look(start_v, own=True))
                 ahead = [cgutils.alloca_once_value(builder, v) for v in look(second_or_last)]
                 with cgutils.for_range_slice(builder, start_v, end_v, step) as (group, _):
                     last = builder.add(group, _index(_FLUSH))
                     last = builder.select(builder.icmp_signed("<", last, end_v), last, end_v)
-                    begin = builder.select(builder.icmp_signed("==", group, start_v), second,
-                                           group)  # fmt: skip
+                    begin = builder.select(builder.icmp_signed("==", group, start_v), second, group)
                     with cgutils.for_range_slice(builder, begin, last, _index(1)) as (k, _):
                         current = [builder.load(slot) for slot in ahead]
                         following = builder.add(k, _index(1))
-                        following = builder.select(builder.icmp_signed("<", following, end_v),
-                                                   following, end_less)  # fmt: skip
+                        following = builder.select(
+                            builder.icmp_signed("<", following, end_v), following, end_less
+                        )
                         for slot, value in zip(ahead, look(following), strict=True):
                             builder.store(value, slot)
                         evaluate(current)
@@ -543,11 +642,11 @@ def cluster_row(pair, rows, lanes: int | None = None):
                     with cgutils.for_range_slice(builder, start_v, end_v, _index(1)) as (k, _):
                         cj = builder.sext(builder.load(builder.gep(part_p, [k])), _I64)
                         count_p = builder.gep(jc_p, [cj])
-                        full = builder.icmp_signed(">=", builder.load(count_p),
-                                                   ir.Constant(_I32, _J_FLUSH))  # fmt: skip
+                        full = builder.icmp_signed(
+                            ">=", builder.load(count_p), ir.Constant(_I32, _J_FLUSH)
+                        )
                         with builder.if_then(full):
-                            flush_j(builder.mul(cj, _index(12)),
-                                    builder.mul(cj, _index(J_STRIDE)))  # fmt: skip
+                            flush_j(builder.mul(cj, _index(12)), builder.mul(cj, _index(J_STRIDE)))
                             builder.store(ir.Constant(_I32, 0), count_p)
             # the i cluster's own j lanes: no later row adds to them (a row's partners are
             # its cluster and later ones), so they are folded into its forces here, in
@@ -574,8 +673,9 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         for q in range(per_pass):
                             quarter = builder.load(wide[3 * h + d][q])
                             atom_sum = _four_sum(builder, quarter, 0, fl)
-                            total = builder.insert_element(total, atom_sum,
-                                                           ir.Constant(_I32, per_pass * h + q))
+                            total = builder.insert_element(
+                                total, atom_sum, ir.Constant(_I32, per_pass * h + q)
+                            )
                     index = builder.add(base_i, _index(4 * d))
                     old = load_vector(builder, f_p, index, _D4)
                     store_vector(builder, builder.fadd(old, total, flags=fl), f_p, index)
@@ -592,8 +692,9 @@ def cluster_row(pair, rows, lanes: int | None = None):
                         for lane in range(0, count, 4):
                             total = _four_sum(builder, values, lane, fl)
                             target = builder.gep(vir_p, [_index(3 * d + (first + lane) // 4)])
-                            builder.store(builder.fadd(builder.load(target), total, flags=fl),
-                                          target)  # fmt: skip
+                            builder.store(
+                                builder.fadd(builder.load(target), total, flags=fl), target
+                            )
             return energy
 
         return sig, codegen

@@ -55,8 +55,7 @@ def template_copy(folder_name: str, stem: str, text: bytes) -> Path:
             logger.warning("cannot write %s (%s); using a temporary folder", path, error)
             continue
         return path
-    raise OSError(f"no folder to write the {folder_name} kernels to ({folders[0]} is not "
-                  "writable)")  # fmt: skip
+    raise OSError(f"no folder to write the {folder_name} kernels to ({folders[0]} is not writable)")
 
 
 @functools.cache

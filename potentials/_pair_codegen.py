@@ -73,9 +73,11 @@ _FRAME_SOURCES = (
     Path(__file__),
     Path(__file__).with_name("pair_math.py"),
     Path(__file__).with_name("_cluster_ir.py"),
-    *(Path(importlib.util.find_spec(name).origin)
-      for name in ("potentials._kernels", "md.box", "md._simd")),
-)  # fmt: skip
+    *(
+        Path(importlib.util.find_spec(name).origin)
+        for name in ("potentials._kernels", "md.box", "md._simd")
+    ),
+)
 #: Those files as they were when this module was imported: the code this process runs
 #: (the modules they define are loaded by then). Each term's fingerprint hashes them and
 #: its copy of the template is written from them, never from the files as they are later:
@@ -85,17 +87,25 @@ _FRAME_SOURCES = (
 _SOURCES = {path: path.read_bytes() for path in _FRAME_SOURCES}
 #: The template's entry points (what the frame calls) and the arguments of theirs that
 #: select a compiled variant: the cutoff mode, the virial flag, one atom type or several.
-_ENTRIES = ("atom_forces", "atom_curvatures", "frame_forces", "frame_forces_threaded",
-            "frame_curvatures", "frame_curvatures_threaded", "cluster_forces",
-            "cluster_forces_threaded")  # fmt: skip
+_ENTRIES = (
+    "atom_forces",
+    "atom_curvatures",
+    "frame_forces",
+    "frame_forces_threaded",
+    "frame_curvatures",
+    "frame_curvatures_threaded",
+    "cluster_forces",
+    "cluster_forces_threaded",
+)
 _FLAGS = {"mode": (0, 1, 2), "with_virial": (False, True), "single": (False, True)}
 logger = logging.getLogger(__name__)
 
 _LOADED: dict[tuple[str, str, int | None], ModuleType] = {}
 
 
-def kernels_for(term: PairTerm, precision: str = "double",
-                cluster_lanes: int | None = None) -> ModuleType:  # fmt: skip
+def kernels_for(
+    term: PairTerm, precision: str = "double", cluster_lanes: int | None = None
+) -> ModuleType:
     """The frame's kernels with ``term`` inlined: ``_pair_kernels`` run as a module of its own.
 
     ``precision="mixed"`` gives a second copy whose term computes in float32
@@ -168,8 +178,11 @@ def _variant_source() -> str:
     rounded differently (see the template's note above its atom-order kernels).
     """
     tree = ast.parse(_SOURCES[_TEMPLATE].decode())
-    arguments = {node.name: [arg.arg for arg in node.args.args] for node in tree.body
-                 if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES}  # fmt: skip
+    arguments = {
+        node.name: [arg.arg for arg in node.args.args]
+        for node in tree.body
+        if isinstance(node, ast.FunctionDef) and node.name in _ENTRIES
+    }
     lines = ["", "", "# Variants, appended by potentials._pair_codegen._variant_source."]
     for entry in _ENTRIES:
         names = arguments[entry]
@@ -178,9 +191,13 @@ def _variant_source() -> str:
             fixed = dict(zip(flags, values, strict=True))
             passed = ", ".join(repr(fixed[name]) if name in fixed else name for name in names)
             parallel = ", parallel=True" if entry.endswith("_threaded") else ""
-            lines += ["", "", f'@njit(cache=True{parallel}, error_model="numpy")',
-                      f"def {variant_name(entry, fixed)}({', '.join(names)}):",
-                      f"    return {entry}({passed})"]  # fmt: skip
+            lines += [
+                "",
+                "",
+                f'@njit(cache=True{parallel}, error_model="numpy")',
+                f"def {variant_name(entry, fixed)}({', '.join(names)}):",
+                f"    return {entry}({passed})",
+            ]
     return "\n".join(lines) + "\n"
 
 
@@ -274,15 +291,22 @@ def float32_version(function: Callable) -> Callable | None:
         return None
     definition = tree.body[0]
     definition.decorator_list = []
-    floats = {name for name, value in function.__globals__.items()
-              if isinstance(value, float | np.floating)}  # fmt: skip
+    floats = {
+        name
+        for name, value in function.__globals__.items()
+        if isinstance(value, float | np.floating)
+    }
     tree = ast.fix_missing_locations(_Float32Constants(floats).visit(tree))
     code = compile(tree, f"<float32 {function.__qualname__}>", "exec")
     namespace = dict(function.__globals__)
     if function.__closure__:
-        namespace.update(zip(function.__code__.co_freevars,
-                             (cell.cell_contents for cell in function.__closure__),
-                             strict=True))  # fmt: skip
+        namespace.update(
+            zip(
+                function.__code__.co_freevars,
+                (cell.cell_contents for cell in function.__closure__),
+                strict=True,
+            )
+        )
     namespace["_float32_"] = np.float32
     exec(code, namespace)  # noqa: S102
     made = namespace[definition.name]

@@ -16,7 +16,7 @@ own with the term's functions inlined into its vectorised loops; numba caches
 each term's kernels apart, keyed by a hash of the term's source (that module's
 docstring says where the generated code goes and how to see and clear it).
 
-At about 900 lines this module is over the house's 800: nearly all of it is the one
+At about 1100 lines this module is over the house's 800: nearly all of it is the one
 class :class:`PairPotential` (tables, checks, the kernel calls of each path), whose
 methods share its buffers and tables; the public term API is ``potentials.pair_terms``
 and the code generator ``potentials._pair_codegen``.
@@ -222,8 +222,11 @@ class PairPotential:
         for name in names:
             what = "a number or one number per type" if name in per_type else "a number"
             try:  # strings ("1.0") and bools numpy would take as numbers are refused
-                array = (np.asarray(values[name], dtype=np.float64)
-                         if all_numbers(values[name]) else np.empty(0))  # fmt: skip
+                array = (
+                    np.asarray(values[name], dtype=np.float64)
+                    if all_numbers(values[name])
+                    else np.empty(0)
+                )
             except (TypeError, ValueError):
                 array = np.empty(0)  # not numbers: refused below
             if array.ndim > 1 or array.size == 0 or (array.ndim == 1 and name not in per_type):
@@ -370,8 +373,10 @@ class PairPotential:
                 with np.errstate(all="ignore"):
                     u, fr = self.term.energy_at(r * r, coefficients, self.data)
                 if not (abs(u) <= HEADROOM and abs(fr) * r <= HEADROOM):
-                    problem = (f"at r = {r:g} ({where}) the pair term gives u = {u:g} and "
-                               f"-u'(r) = {fr * r:g}")  # fmt: skip
+                    problem = (
+                        f"at r = {r:g} ({where}) the pair term gives u = {u:g} and "
+                        f"-u'(r) = {fr * r:g}"
+                    )
                     break
             if not (problem or math.isfinite(column[SHIFT])):
                 problem = f"the energy at the cutoff is {column[SHIFT]:g}"
@@ -384,8 +389,9 @@ class PairPotential:
         nonzero = [name for name in given if given[name] != 0.0]
         extreme = max(nonzero, key=lambda name: abs(math.log10(abs(given[name]))), default=None)
         magnitude = 0.0 if extreme is None else abs(given[extreme])
-        if extreme is not None and (not 1.0 / HEADROOM <= magnitude <= HEADROOM
-                                    or not np.all(np.isfinite(settings))):  # fmt: skip
+        if extreme is not None and (
+            not 1.0 / HEADROOM <= magnitude <= HEADROOM or not np.all(np.isfinite(settings))
+        ):
             raise ValueError(
                 f"{prefix}{extreme} = {given[extreme]:g} (type pair ({ti}, {tj}); {shown}) is "
                 f"beyond what double precision can compute with: {problem}; the pair's energy "
@@ -400,8 +406,13 @@ class PairPotential:
     def pair_energy(self, r: float, ti: int = 0, tj: int = 0) -> float:
         """Return the pair energy u(r) with the cutoff treatment applied [energy]."""
         positions = np.array([[0.0, 0.0, 0.0], [float(r), 0.0, 0.0]])
-        state = State(positions=positions, box=[1.0, 1.0, 1.0], pbc=False,
-                      types=np.array([ti, tj]), type_names=None)  # fmt: skip
+        state = State(
+            positions=positions,
+            box=[1.0, 1.0, 1.0],
+            pbc=False,
+            types=np.array([ti, tj]),
+            type_names=None,
+        )
         return self.energy_forces(state, None).energy
 
     # ------------------------------------------------------------ compute
@@ -420,9 +431,13 @@ class PairPotential:
 
     @_compiling_the_term
     def energy_forces(
-        self, state, neighbors, per_atom: bool = False, virial: bool = True,
+        self,
+        state,
+        neighbors,
+        per_atom: bool = False,
+        virial: bool = True,
         precision: str = "double",
-    ) -> ForceResult:  # fmt: skip
+    ) -> ForceResult:
         """Return energy, forces, virial (and per-atom energies and virials) for ``state``.
 
         ``neighbors`` is a NeighborList with a radius >= ``cutoff``, or None
@@ -454,12 +469,12 @@ class PairPotential:
         frame = None if neighbors is None or per_atom or clusters is not None else neighbors.frame
         if clusters is not None:
             self._check_radius(neighbors)
-            result = self._cluster_energy_forces(kernels, state, clusters, n_types, table, mode,
-                                                 virial)  # fmt: skip
+            result = self._cluster_energy_forces(
+                kernels, state, clusters, n_types, table, mode, virial
+            )
         elif frame is not None:
             self._check_radius(neighbors)
-            result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode,
-                                               virial)  # fmt: skip
+            result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode, virial)
         else:
             geometry = self._geometry(state, neighbors)
             forces = np.zeros((n, 3))
@@ -480,8 +495,7 @@ class PairPotential:
             self._explain_non_finite(state, neighbors)
         return result
 
-    def _cluster_energy_forces(self, kernels, state, clusters, n_types, table, mode,
-                               virial: bool):  # fmt: skip
+    def _cluster_energy_forces(self, kernels, state, clusters, n_types, table, mode, virial: bool):
         """Mixed precision over a cluster-pair list (``md.neighbors.ClusterFrame``): the
         relative positions in float32, the cluster kernel per chunk (on the threads when
         there are several), the chunks' forces summed into atom order, and the virial
@@ -495,8 +509,12 @@ class PairPotential:
         # several chunks get a sixteenth more than they ask
         need = clusters.window_clusters
         scratch = getattr(self, "_cluster_scratch", None)
-        if (scratch is None or scratch[0].shape[0] != 12 * n_clusters
-                or len(scratch[6]) != chunks or len(scratch[5]) < need):  # fmt: skip
+        if (
+            scratch is None
+            or scratch[0].shape[0] != 12 * n_clusters
+            or len(scratch[6]) != chunks
+            or len(scratch[5]) < need
+        ):
             room = need + need // 16 if chunks > 1 else need
             scratch = (
                 np.empty(12 * n_clusters, np.float32),
@@ -516,8 +534,13 @@ class PairPotential:
             _slot_types(state.types, atom, slot_types)
         entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
         clusters.relative_positions(state.positions, xi, xj)
-        lists = (clusters.starts, clusters.partners, clusters.offsets.reshape(-1),
-                 clusters.bounds, clusters.windows)  # fmt: skip
+        lists = (
+            clusters.starts,
+            clusters.partners,
+            clusters.offsets.reshape(-1),
+            clusters.bounds,
+            clusters.windows,
+        )
         # as the slot frame's first call: both virial variants run once (they compile or
         # load before a run's loop), the one asked for last
         ran = (entry, mode, single)
@@ -526,11 +549,28 @@ class PairPotential:
         forces = np.empty((n, 3))
         with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
             for with_virial in variants:
-                kernel = variant(kernels, entry, mode=int(mode), with_virial=with_virial,
-                                  single=single)  # fmt: skip
-                kernel(xi, xj, lists, slot_types, n_types, table, int(mode), self.data,
-                       with_virial, single, buffers, j_sums, j_counts, atom, forces,
-                       energies, virials)  # fmt: skip
+                kernel = variant(
+                    kernels, entry, mode=int(mode), with_virial=with_virial, single=single
+                )
+                kernel(
+                    xi,
+                    xj,
+                    lists,
+                    slot_types,
+                    n_types,
+                    table,
+                    int(mode),
+                    self.data,
+                    with_virial,
+                    single,
+                    buffers,
+                    j_sums,
+                    j_counts,
+                    atom,
+                    forces,
+                    energies,
+                    virials,
+                )
         if chunks > 1:  # one chunk writes the forces in atom order itself
             cluster_atom_forces(buffers, atom, clusters.windows, forces)
         total = None
@@ -560,9 +600,23 @@ class PairPotential:
         forces = np.empty((n, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         entry = "frame_forces_threaded" if chunks > 1 else "frame_forces"
-        arguments = (state.positions, state.types, _slots(frame), n_types, table, int(mode),
-                     self.data, bool(virial), n_types == 1, slot_positions, slot_types, buffers,
-                     energies, virials, forces)  # fmt: skip
+        arguments = (
+            state.positions,
+            state.types,
+            _slots(frame),
+            n_types,
+            table,
+            int(mode),
+            self.data,
+            bool(virial),
+            n_types == 1,
+            slot_positions,
+            slot_types,
+            buffers,
+            energies,
+            virials,
+            forces,
+        )
         # A run asks for forces with the virial (thermo steps) and without (the rest): this
         # object's first call for a kernel runs both variants (one force evaluation more,
         # once), so both compile (or load) before a run's loop starts rather than one in
@@ -571,8 +625,9 @@ class PairPotential:
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
         for with_virial in variants:
-            kernel = variant(kernels, entry, mode=int(mode), with_virial=with_virial,
-                              single=n_types == 1)  # fmt: skip
+            kernel = variant(
+                kernels, entry, mode=int(mode), with_virial=with_virial, single=n_types == 1
+            )
             kernel(*arguments)
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
@@ -648,9 +703,13 @@ class PairPotential:
             geometry, n_types, table, mode, self.data, pair_i, pair_j, transverse, radial, unit
         )
         return PairHessian(
-            n, pair_i[:n_pairs], pair_j[:n_pairs], transverse[:n_pairs], radial[:n_pairs],
+            n,
+            pair_i[:n_pairs],
+            pair_j[:n_pairs],
+            transverse[:n_pairs],
+            radial[:n_pairs],
             unit[:n_pairs],
-        )  # fmt: skip
+        )
 
     def _frame_hessian(self, kernels, state, frame, n_types, table, mode) -> PairHessian:
         """``hessian_operator`` over a slot-frame list, in one threaded pass: each chunk
@@ -670,16 +729,31 @@ class PairPotential:
         if held is None or held[0].shape[0] < room or not _unshared(held):
             size = int(room * 1.05) + 1024
             held = (
-                np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int32), np.empty(size),
-                np.empty(size), np.empty((size, 3)),
-            )  # fmt: skip
+                np.empty(size, dtype=np.int32),
+                np.empty(size, dtype=np.int32),
+                np.empty(size),
+                np.empty(size),
+                np.empty((size, 3)),
+            )
             self._hessian_buffers = held
         written = np.zeros(chunks, dtype=np.int64)
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         entry = "frame_curvatures_threaded" if chunks > 1 else "frame_curvatures"
         write = variant(kernels, entry, mode=int(mode), single=n_types == 1)
-        write(state.positions, state.types, _slots(frame), n_types, table, int(mode), self.data,
-              n_types == 1, slot_positions, slot_types, held, written)  # fmt: skip
+        write(
+            state.positions,
+            state.types,
+            _slots(frame),
+            n_types,
+            table,
+            int(mode),
+            self.data,
+            n_types == 1,
+            slot_positions,
+            slot_types,
+            held,
+            written,
+        )
         first = frame.starts[frame.bounds[:-1]]
         return PairHessian(n, *held, pieces=np.column_stack((first, first + written)))
 
@@ -783,8 +857,13 @@ class PairPotential:
         bad = (magnitude > info.max) | ((magnitude < info.tiny) & (magnitude > 0.0))
         if np.any(bad):
             row, column = (int(i[0]) for i in np.nonzero(bad))
-            names = ("cutoff^2", "r_on^2", "the energy at the cutoff", "the switch's scale",
-                     *self.term.parameters)  # fmt: skip
+            names = (
+                "cutoff^2",
+                "r_on^2",
+                "the energy at the cutoff",
+                "the switch's scale",
+                *self.term.parameters,
+            )
             raise ValueError(
                 f"{self.style or self.term.name}: {names[row]} = {table[row, column]:g} (type-pair "
                 f"column {column}) is outside {np.dtype(dtype).name}'s range "
@@ -826,16 +905,26 @@ def collapse_error(potential: PairPotential, state, neighbors, limit2: np.ndarra
     a, b = int(i[worst]), int(j[worst])
     names = state.type_names
     return PairCollapseError(
-        potential.style or potential.term.name, a, b,
-        (names[state.types[a]], names[state.types[b]]), float(np.sqrt(r2[worst])),
-        float(np.sqrt(limit2[columns[worst]])), state.step, reason,
-    )  # fmt: skip
+        potential.style or potential.term.name,
+        a,
+        b,
+        (names[state.types[a]], names[state.types[b]]),
+        float(np.sqrt(r2[worst])),
+        float(np.sqrt(limit2[columns[worst]])),
+        state.step,
+        reason,
+    )
 
 
-def pair_config_keys(*parameters: Key, cutoff: float | None = 2.5, cutoff_mode: str = "shift",
-                     mixing: tuple[str, ...] = (), mixing_doc: str = "",
-                     pair_keys: tuple[str, ...] | None = None,
-                     cutoff_doc: str = "") -> tuple[Key, ...]:  # fmt: skip
+def pair_config_keys(
+    *parameters: Key,
+    cutoff: float | None = 2.5,
+    cutoff_mode: str = "shift",
+    mixing: tuple[str, ...] = (),
+    mixing_doc: str = "",
+    pair_keys: tuple[str, ...] | None = None,
+    cutoff_doc: str = "",
+) -> tuple[Key, ...]:
     """A pair style's ``CONFIG_KEYS``: its own ``parameters``, then the keys the frame takes
     with the style's defaults: ``cutoff``, ``cutoff_mode``, ``r_on``, ``mixing`` (styles
     that mix: the rules, the first the default) and ``pairs``, whose tables take
@@ -845,21 +934,40 @@ def pair_config_keys(*parameters: Key, cutoff: float | None = 2.5, cutoff_mode: 
     names = ", ".join(f"`{name}`" for name in pair_keys or key_names(parameters))
     return (
         *parameters,
-        Key("cutoff", "number", cutoff, unit="length",
+        Key(
+            "cutoff",
+            "number",
+            cutoff,
+            unit="length",
             doc="The pair cutoff, for every pair not given its own in `pairs`.",
-            default_doc=cutoff_doc),
-        Key("cutoff_mode", "string", cutoff_mode, choices=tuple(CUTOFF_MODES),
+            default_doc=cutoff_doc,
+        ),
+        Key(
+            "cutoff_mode",
+            "string",
+            cutoff_mode,
+            choices=tuple(CUTOFF_MODES),
             doc='`"none"`: truncated; `"shift"`: energy continuous at the cutoff (LAMMPS\'s '
-                '`pair_modify shift yes`); `"smooth"`: energy and force switched off between '
-                "`r_on` and the cutoff."),
-        Key("r_on", "number", None, unit="length",
+            '`pair_modify shift yes`); `"smooth"`: energy and force switched off between '
+            "`r_on` and the cutoff.",
+        ),
+        Key(
+            "r_on",
+            "number",
+            None,
+            unit="length",
             doc='Where switching starts with `cutoff_mode = "smooth"`.',
-            default_doc="0.66 `cutoff` per pair"),
+            default_doc="0.66 `cutoff` per pair",
+        ),
         *mixed,
-        Key("pairs", "list of tables", None,
+        Key(
+            "pairs",
+            "list of tables",
+            None,
             doc="Single type pairs given their own values: `[[potentials.pairs]]` tables with "
-                f"`types = [a, b]` and any of {names}, `cutoff`, `r_on`."),
-    )  # fmt: skip
+            f"`types = [a, b]` and any of {names}, `cutoff`, `r_on`.",
+        ),
+    )
 
 
 def _derived_config_keys(cls) -> tuple[Key, ...]:
@@ -871,8 +979,12 @@ def _derived_config_keys(cls) -> tuple[Key, ...]:
         signature = {}
     names = cls.PARAMETERS
     if names is None:
-        names = tuple(n for n, p in signature.items() if n not in (*_RESERVED, "self", "term",
-                      "data") and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))  # fmt: skip
+        names = tuple(
+            n
+            for n, p in signature.items()
+            if n not in (*_RESERVED, "self", "term", "data")
+            and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+        )
 
     def default(name: str, otherwise=REQUIRED):
         parameter = signature.get(name)
@@ -882,14 +994,21 @@ def _derived_config_keys(cls) -> tuple[Key, ...]:
 
     per_type = {name for rules in cls.MIXING.values() for name in rules}
     parameters = tuple(
-        Key(name, "number, list or table" if name in per_type else "number", default(name),
+        Key(
+            name,
+            "number, list or table" if name in per_type else "number",
+            default(name),
             doc=f"A parameter of {cls.__name__}"
-                + (" (one number, or per type, mixed by `mixing`)." if name in per_type else "."))
+            + (" (one number, or per type, mixed by `mixing`)." if name in per_type else "."),
+        )
         for name in names
-    )  # fmt: skip
-    return pair_config_keys(*parameters, cutoff=default("cutoff"),
-                            cutoff_mode=default("cutoff_mode", "shift"),
-                            mixing=tuple(cls.MIXING))  # fmt: skip
+    )
+    return pair_config_keys(
+        *parameters,
+        cutoff=default("cutoff"),
+        cutoff_mode=default("cutoff_mode", "shift"),
+        mixing=tuple(cls.MIXING),
+    )
 
 
 def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: set[str]) -> dict:
@@ -905,8 +1024,11 @@ def config_pairs(entries, type_names: Sequence[str], keys: set[str], numbers: se
             raise ValueError(f"pairs[{number}] must be a table with 'types = [a, b]'")
         entry = dict(entry)
         types = entry.pop("types")
-        if (not isinstance(types, list) or len(types) != 2
-                or any(not isinstance(n, str) or n not in index for n in types)):  # fmt: skip
+        if (
+            not isinstance(types, list)
+            or len(types) != 2
+            or any(not isinstance(n, str) or n not in index for n in types)
+        ):
             raise ValueError(
                 f"pairs[{number}].types must name two of the types {list(type_names)}, "
                 f"got {types!r}"
@@ -927,9 +1049,17 @@ def _number(key: str, value) -> None:
 
 def _slots(frame) -> tuple:
     return (
-        frame.order, frame.images, frame.lengths, frame.shifts, frame.starts, frame.neighbors,
-        frame.codes, frame.bounds, frame.tilt, frame.shifted,
-    )  # fmt: skip
+        frame.order,
+        frame.images,
+        frame.lengths,
+        frame.shifts,
+        frame.starts,
+        frame.neighbors,
+        frame.codes,
+        frame.bounds,
+        frame.tilt,
+        frame.shifted,
+    )
 
 
 def _unshared(buffers) -> bool:

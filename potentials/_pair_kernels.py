@@ -41,6 +41,11 @@ flags (``potentials._pair_codegen._variant_source``), into which the entry point
 inlined with the flags as constants, and ``PairPotential`` calls those, so only
 the combinations a run uses are compiled (see the note above the atom-order
 kernels on why they are inlined).
+
+A note on its length (about 1000 lines, over the 800 where a module is split): its
+kernels take their arrays as arguments, and the formatter writes a long argument list a
+line per argument (about 230 of its lines); the file is one template, copied per pair
+term, so it stays whole.
 """
 
 from __future__ import annotations
@@ -124,8 +129,16 @@ def _terms(r2, p, rc2, shift, ro2, inv_den, mode, data):
 @njit(cache=True, inline="always", error_model="numpy")
 def _pair(r2, k, table, mode, data):
     """``_terms`` for type-pair column ``k`` of ``table``."""
-    return _terms(r2, _column(table, k), table[RC2, k], table[SHIFT, k], table[RO2, k],
-                  table[INV_DEN, k], mode, data)  # fmt: skip
+    return _terms(
+        r2,
+        _column(table, k),
+        table[RC2, k],
+        table[SHIFT, k],
+        table[RO2, k],
+        table[INV_DEN, k],
+        mode,
+        data,
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -193,14 +206,12 @@ def _gather_row(p, frame, frame_types, slots, n_types, table, single, far, gx, g
     partners = neighbors[starts[p] : starts[p + 1]]
     m = partners.shape[0]
     if shifted[p]:
-        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy,
-                         gz)  # fmt: skip
+        _gather_partners(frame, shifts, partners, codes[starts[p] : starts[p + 1]], gx, gy, gz)
     else:  # no partner across the cell's edge: no codes, no shifts to read
         _gather_unshifted(frame, partners, gx, gy, gz)
     if not single:
         _gather_pair_columns(frame_types, partners, frame_types[p] * n_types, table, params)
-    padded = _pad_row(m, frame[p, 0], frame[p, 1], frame[p, 2], far, single, gx, gy, gz,
-                      params)  # fmt: skip
+    padded = _pad_row(m, frame[p, 0], frame[p, 1], frame[p, 2], far, single, gx, gy, gz, params)
     return partners, m, padded
 
 
@@ -238,8 +249,9 @@ def atom_forces(geometry, n_types, table, mode, data, forces, virial, energies, 
     mixed-precision copy) computes the pair terms in float32 from r^2 taken in
     double; the forces and every sum stay double.
     """
-    return _atom_forces_loop(geometry, n_types, table, mode, data,
-                             (forces, virial, energies, virials))  # fmt: skip
+    return _atom_forces_loop(
+        geometry, n_types, table, mode, data, (forces, virial, energies, virials)
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -304,14 +316,14 @@ def _atom_forces_loop(geometry, n_types, table, mode, data, out):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transverse, radial,
-                     unit):  # fmt: skip
+def atom_curvatures(geometry, n_types, table, mode, data, pair_i, pair_j, transverse, radial, unit):
     """Write the Hessian block of every pair inside its cutoff; return how many.
 
     Arguments as in ``atom_forces``; outputs as in ``_atom_curvatures_loop``.
     """
-    return _atom_curvatures_loop(geometry, n_types, table, mode, data,
-                                 (pair_i, pair_j, transverse, radial, unit))  # fmt: skip
+    return _atom_curvatures_loop(
+        geometry, n_types, table, mode, data, (pair_i, pair_j, transverse, radial, unit)
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -336,9 +348,14 @@ def _atom_curvatures_loop(geometry, n_types, table, mode, data, out):
             # Written branch-free: every listed pair goes to slot n_pairs, which
             # only advances for pairs inside the cutoff (a third lie in the skin).
             inside, t, r, inv_r = _curvature_terms(
-                r2, _column(table, k), table[RC2, k], table[RO2, k], table[INV_DEN, k], mode,
+                r2,
+                _column(table, k),
+                table[RC2, k],
+                table[RO2, k],
+                table[INV_DEN, k],
+                mode,
                 data,
-            )  # fmt: skip
+            )
             pair_i[n_pairs] = i
             pair_j[n_pairs] = j
             transverse[n_pairs] = t
@@ -353,9 +370,22 @@ def _atom_curvatures_loop(geometry, n_types, table, mode, data, out):
 # ---------------------------------------------------------------- slot frame
 @njit(cache=True, inline="always", error_model="numpy")
 def frame_forces(
-    positions, types, slots, n_types, table, mode, data, with_virial, single,
-    frame, frame_types, buffers, energies, virials, forces,
-):  # fmt: skip
+    positions,
+    types,
+    slots,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    frame,
+    frame_types,
+    buffers,
+    energies,
+    virials,
+    forces,
+):
     """Pair forces over a slot-frame list (``md.neighbors.SlotFrame``), chunk by chunk.
 
     ``slots`` is (order, images, lengths, shifts, starts, neighbors, codes,
@@ -379,18 +409,42 @@ def frame_forces(
         )
     for chunk in range(n_chunks):
         _frame_chunk(
-            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
-            buffers, energies, virials,
-        )  # fmt: skip
+            chunk,
+            frame,
+            frame_types,
+            slots,
+            n_types,
+            table,
+            mode,
+            data,
+            with_virial,
+            single,
+            buffers,
+            energies,
+            virials,
+        )
     for chunk in range(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
 
 
 @njit(cache=True, parallel=True, inline="always", error_model="numpy")
 def frame_forces_threaded(
-    positions, types, slots, n_types, table, mode, data, with_virial, single,
-    frame, frame_types, buffers, energies, virials, forces,
-):  # fmt: skip
+    positions,
+    types,
+    slots,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    frame,
+    frame_types,
+    buffers,
+    energies,
+    virials,
+    forces,
+):
     """``frame_forces`` with one chunk per thread (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
@@ -400,9 +454,20 @@ def frame_forces_threaded(
         )
     for chunk in prange(n_chunks):
         _frame_chunk(
-            chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
-            buffers, energies, virials,
-        )  # fmt: skip
+            chunk,
+            frame,
+            frame_types,
+            slots,
+            n_types,
+            table,
+            mode,
+            data,
+            with_virial,
+            single,
+            buffers,
+            energies,
+            virials,
+        )
     for chunk in prange(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
 
@@ -414,9 +479,25 @@ _cluster_row = cluster_row(_pair, lambda: TERM + N_TERM)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, with_virial,
-                   single, buffers, j_sums, j_counts, atom, forces, energies,
-                   virials):  # fmt: skip
+def cluster_forces(
+    xi,
+    xj,
+    clusters,
+    slot_types,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    buffers,
+    j_sums,
+    j_counts,
+    atom,
+    forces,
+    energies,
+    virials,
+):
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
     ``clusters`` is (starts, partners, offsets, bounds, windows): each i cluster's
@@ -439,26 +520,93 @@ def cluster_forces(xi, xj, clusters, slot_types, n_types, table, mode, data, wit
     precision only.
     """
     for chunk in range(clusters[3].shape[0] - 1):
-        _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
-                       virials)  # fmt: skip
+        _cluster_chunk(
+            chunk,
+            xi,
+            xj,
+            clusters,
+            slot_types,
+            n_types,
+            table,
+            mode,
+            data,
+            with_virial,
+            single,
+            buffers,
+            j_sums,
+            j_counts,
+            atom,
+            forces,
+            energies,
+            virials,
+        )
 
 
 @njit(cache=True, parallel=True, inline="always", error_model="numpy")
-def cluster_forces_threaded(xi, xj, clusters, slot_types, n_types, table, mode, data,
-                            with_virial, single, buffers, j_sums, j_counts, atom, forces,
-                            energies, virials):  # fmt: skip
+def cluster_forces_threaded(
+    xi,
+    xj,
+    clusters,
+    slot_types,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    buffers,
+    j_sums,
+    j_counts,
+    atom,
+    forces,
+    energies,
+    virials,
+):
     """``cluster_forces`` with the chunks on numba's threads (same arguments, same result)."""
     for chunk in prange(clusters[3].shape[0] - 1):
-        _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                       with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
-                       virials)  # fmt: skip
+        _cluster_chunk(
+            chunk,
+            xi,
+            xj,
+            clusters,
+            slot_types,
+            n_types,
+            table,
+            mode,
+            data,
+            with_virial,
+            single,
+            buffers,
+            j_sums,
+            j_counts,
+            atom,
+            forces,
+            energies,
+            virials,
+        )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, data,
-                   with_virial, single, buffers, j_sums, j_counts, atom, forces, energies,
-                   virials):  # fmt: skip
+def _cluster_chunk(
+    chunk,
+    xi,
+    xj,
+    clusters,
+    slot_types,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    buffers,
+    j_sums,
+    j_counts,
+    atom,
+    forces,
+    energies,
+    virials,
+):
     starts, partners, offsets, bounds, windows = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
@@ -477,21 +625,89 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
     for ci in range(bounds[chunk], bounds[chunk + 1]):
         first, last = starts[ci], starts[ci + 1]
         if single and with_virial:
-            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, lanes, counts, low,
-                                   virials[chunk])  # fmt: skip
+            energy += _cluster_row(
+                xi,
+                xj,
+                offsets,
+                partners,
+                first,
+                last,
+                ci,
+                None,
+                n_types,
+                table,
+                mode,
+                data,
+                cut2,
+                out,
+                lanes,
+                counts,
+                low,
+                virials[chunk],
+            )
         elif single:
-            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, None, n_types,
-                                   table, mode, data, cut2, out, lanes, counts, low,
-                                   None)  # fmt: skip
+            energy += _cluster_row(
+                xi,
+                xj,
+                offsets,
+                partners,
+                first,
+                last,
+                ci,
+                None,
+                n_types,
+                table,
+                mode,
+                data,
+                cut2,
+                out,
+                lanes,
+                counts,
+                low,
+                None,
+            )
         elif with_virial:
-            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out, lanes, counts, low,
-                                   virials[chunk])  # fmt: skip
+            energy += _cluster_row(
+                xi,
+                xj,
+                offsets,
+                partners,
+                first,
+                last,
+                ci,
+                slot_types,
+                n_types,
+                table,
+                mode,
+                data,
+                cut2,
+                out,
+                lanes,
+                counts,
+                low,
+                virials[chunk],
+            )
         else:
-            energy += _cluster_row(xi, xj, offsets, partners, first, last, ci, slot_types,
-                                   n_types, table, mode, data, cut2, out, lanes, counts, low,
-                                   None)  # fmt: skip
+            energy += _cluster_row(
+                xi,
+                xj,
+                offsets,
+                partners,
+                first,
+                last,
+                ci,
+                slot_types,
+                n_types,
+                table,
+                mode,
+                data,
+                cut2,
+                out,
+                lanes,
+                counts,
+                low,
+                None,
+            )
         if whole:  # cluster ci's forces are final: into atom order (no pass over them after)
             _cluster_slot_forces(out, atom, ci, forces)
     # rows fold their own clusters' lanes; those of the window's clusters after them, here
@@ -501,9 +717,20 @@ def _cluster_chunk(chunk, xi, xj, clusters, slot_types, n_types, table, mode, da
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
 def _frame_chunk(
-    chunk, frame, frame_types, slots, n_types, table, mode, data, with_virial, single,
-    buffers, energies, virials,
-):  # fmt: skip
+    chunk,
+    frame,
+    frame_types,
+    slots,
+    n_types,
+    table,
+    mode,
+    data,
+    with_virial,
+    single,
+    buffers,
+    energies,
+    virials,
+):
     """The pairs of one chunk of ``frame_forces``, into ``buffers[chunk]``.
 
     The cutoff mode, the virial flag and the single-type flag are literal
@@ -573,8 +800,9 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
-                                          far, gx, gy, gz, params)  # fmt: skip
+        partners, m, padded = _gather_row(
+            p, frame, frame_types, slots, n_types, table, single, far, gx, gy, gz, params
+        )
         fxi = 0.0
         fyi = 0.0
         fzi = 0.0
@@ -626,8 +854,9 @@ def _frame_chunk_loop(args, mode, with_virial, single, out):
 
 # ------------------------------------------------------- curvatures in the slot frame
 @njit(cache=True, inline="always", error_model="numpy")
-def frame_curvatures(positions, types, slots, n_types, table, mode, data, single, frame,
-                      frame_types, out, written):  # fmt: skip
+def frame_curvatures(
+    positions, types, slots, n_types, table, mode, data, single, frame, frame_types, out, written
+):
     """Gather the slot frame, then write the pair blocks of every pair inside its cutoff,
     chunk by chunk.
 
@@ -645,13 +874,15 @@ def frame_curvatures(positions, types, slots, n_types, table, mode, data, single
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
     for chunk in range(n_chunks):
-        written[chunk] = _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                table, mode, data, single, out)  # fmt: skip
+        written[chunk] = _frame_curvature_chunk(
+            chunk, frame, frame_types, slots, n_types, table, mode, data, single, out
+        )
 
 
 @njit(cache=True, parallel=True, inline="always", error_model="numpy")
-def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, data, single,
-                               frame, frame_types, out, written):  # fmt: skip
+def frame_curvatures_threaded(
+    positions, types, slots, n_types, table, mode, data, single, frame, frame_types, out, written
+):
     """``frame_curvatures`` with one chunk per thread (same arguments, same result)."""
     order, images, lengths, tilt = slots[0], slots[1], slots[2], slots[8]
     n_chunks = slots[7].shape[0] - 1
@@ -660,13 +891,15 @@ def frame_curvatures_threaded(positions, types, slots, n_types, table, mode, dat
             chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
         )
     for chunk in prange(n_chunks):
-        written[chunk] = _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types,
-                                                table, mode, data, single, out)  # fmt: skip
+        written[chunk] = _frame_curvature_chunk(
+            chunk, frame, frame_types, slots, n_types, table, mode, data, single, out
+        )
 
 
 @njit(cache=True, fastmath=_VECTOR_MATH, error_model="numpy")
-def _frame_curvature_chunk(chunk, frame, frame_types, slots, n_types, table, mode, data,
-                           single, out):  # fmt: skip
+def _frame_curvature_chunk(
+    chunk, frame, frame_types, slots, n_types, table, mode, data, single, out
+):
     """One chunk of ``frame_curvatures``, with the loop compiled per mode and type count
     (literal arguments, as in ``_frame_chunk``); returns the number of the chunk's pairs
     inside."""
@@ -706,8 +939,9 @@ def _frame_curvature_loop(args, mode, single, out):
         xi = frame[p, 0]
         yi = frame[p, 1]
         zi = frame[p, 2]
-        partners, m, padded = _gather_row(p, frame, frame_types, slots, n_types, table, single,
-                                          far, gx, gy, gz, params)  # fmt: skip
+        partners, m, padded = _gather_row(
+            p, frame, frame_types, slots, n_types, table, single, far, gx, gy, gz, params
+        )
         for k in range(padded):
             dx = xi - gx[k]
             dy = yi - gy[k]
@@ -717,9 +951,14 @@ def _frame_curvature_loop(args, mode, single, out):
                 inside, t, r, inv_r = _curvature_terms(r2, p0, rc2, ro2, inv_den, mode, data)
             else:
                 inside, t, r, inv_r = _curvature_terms(
-                    r2, _column(params, k), params[RC2, k], params[RO2, k], params[INV_DEN, k],
-                    mode, data,
-                )  # fmt: skip
+                    r2,
+                    _column(params, k),
+                    params[RC2, k],
+                    params[RO2, k],
+                    params[INV_DEN, k],
+                    mode,
+                    data,
+                )
             flags[k] = inside
             st[k] = t
             sr[k] = r

@@ -115,13 +115,24 @@ class HarmonicAngles(_AngleStyle):
     angle_style = "angle_harmonic"
     #: The keys of its config table (see :meth:`from_config`).
     CONFIG_KEYS = bonded_keys(
-        "angle", "[i, j, k]",
-        Key("k", "number or list", REQUIRED, unit="energy/radian^2",
+        "angle",
+        "[i, j, k]",
+        Key(
+            "k",
+            "number or list",
+            REQUIRED,
+            unit="energy/radian^2",
             doc="K of K (theta - theta0)^2 (no factor 1/2, as in LAMMPS), >= 0: one for all "
-                "angles, or one per angle type."),
-        Key("theta0", "number or list", REQUIRED, unit="degrees",
-            doc="The rest angle, 0 to 180: one, or one per angle type."),
-    )  # fmt: skip
+            "angles, or one per angle type.",
+        ),
+        Key(
+            "theta0",
+            "number or list",
+            REQUIRED,
+            unit="degrees",
+            doc="The rest angle, 0 to 180: one, or one per angle type.",
+        ),
+    )
 
     def __init__(
         self,
@@ -177,10 +188,16 @@ class CosineAngles(_AngleStyle):
     angle_style = "angle_cosine"
     #: The keys of its config table (see :meth:`from_config`).
     CONFIG_KEYS = bonded_keys(
-        "angle", "[i, j, k]",
-        Key("k", "number or list", REQUIRED, unit="energy",
-            doc="K of K (1 + cos theta), >= 0: one for all angles, or one per angle type."),
-    )  # fmt: skip
+        "angle",
+        "[i, j, k]",
+        Key(
+            "k",
+            "number or list",
+            REQUIRED,
+            unit="energy",
+            doc="K of K (1 + cos theta), >= 0: one for all angles, or one per angle type.",
+        ),
+    )
 
     def __init__(
         self,

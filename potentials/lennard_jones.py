@@ -88,15 +88,25 @@ class LennardJones(PairPotential):
     }
     LIMITS = {"epsilon": "nonnegative", "sigma": "positive"}
     CONFIG_KEYS = pair_config_keys(
-        Key("epsilon", "number, list or table", 1.0, unit="energy",
+        Key(
+            "epsilon",
+            "number, list or table",
+            1.0,
+            unit="energy",
             doc="The well depth: one number, or per type (`{Ar = 0.0104, Kr = 0.014}`, "
-                "covering every type), mixed by `mixing`."),
-        Key("sigma", "number, list or table", 1.0, unit="length",
-            doc="The size, given as `epsilon` is."),
+            "covering every type), mixed by `mixing`.",
+        ),
+        Key(
+            "sigma",
+            "number, list or table",
+            1.0,
+            unit="length",
+            doc="The size, given as `epsilon` is.",
+        ),
         mixing=MIXING_RULES,
         mixing_doc="The rule for unlike pairs of per-type values: epsilon geometric; sigma "
-                   "arithmetic (`lorentz-berthelot`) or geometric.",
-    )  # fmt: skip
+        "arithmetic (`lorentz-berthelot`) or geometric.",
+    )
 
     def __init__(
         self,
@@ -108,8 +118,9 @@ class LennardJones(PairPotential):
         pairs: Mapping[tuple[int, int], Mapping[str, float]] | None = None,
         mixing: str = "lorentz-berthelot",
     ) -> None:
-        super().__init__(LJ_TERM, cutoff, cutoff_mode, r_on, pairs, mixing,
-                         epsilon=epsilon, sigma=sigma)  # fmt: skip
+        super().__init__(
+            LJ_TERM, cutoff, cutoff_mode, r_on, pairs, mixing, epsilon=epsilon, sigma=sigma
+        )
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, float]:
         """(c6, c12) = (4 eps sigma^6, 4 eps sigma^12)."""

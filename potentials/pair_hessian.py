@@ -64,9 +64,16 @@ class PairHessian:
     """
 
     def __init__(
-        self, n_atoms: int, pair_i, pair_j, transverse, radial, unit, unique: bool = True,
+        self,
+        n_atoms: int,
+        pair_i,
+        pair_j,
+        transverse,
+        radial,
+        unit,
+        unique: bool = True,
         pieces=None,
-    ) -> None:  # fmt: skip
+    ) -> None:
         self.n_atoms = int(n_atoms)
         self.unique = unique
         self.shape = (3 * self.n_atoms, 3 * self.n_atoms)
@@ -82,8 +89,13 @@ class PairHessian:
             pieces = np.column_stack((bounds[:-1], bounds[1:]))
         pieces = np.array(pieces, dtype=np.int64).reshape(-1, 2)
         starts, stops = pieces[:, 0], pieces[:, 1]
-        if (len(pieces) == 0 or starts[0] < 0 or stops[-1] > length or np.any(stops < starts)
-                or np.any(starts[1:] < stops[:-1])):  # fmt: skip
+        if (
+            len(pieces) == 0
+            or starts[0] < 0
+            or stops[-1] > length
+            or np.any(stops < starts)
+            or np.any(starts[1:] < stops[:-1])
+        ):
             raise ValueError(
                 f"pieces must be ordered, non-overlapping [start, stop) runs within the "
                 f"{length} stored pairs, got {pieces.tolist()}"
@@ -167,8 +179,7 @@ class PairHessian:
     def min_eigenvalue(self) -> float:
         """Return the smallest eigenvalue of any pair block (0 without pairs) [energy/length^2]."""
         pieces = [self._piece(k) for k in range(self.n_chunks)]
-        return min((float(min(p[2].min(), p[3].min())) for p in pieces if len(p[0])),
-                   default=0.0)  # fmt: skip
+        return min((float(min(p[2].min(), p[3].min())) for p in pieces if len(p[0])), default=0.0)
 
     def clamped(self, floor) -> PairHessian:
         """Return the Hessian with every pair block's eigenvalues raised to at least ``floor``.
@@ -178,10 +189,14 @@ class PairHessian:
         semidefinite blocks.
         """
         return PairHessian(
-            self.n_atoms, self.pair_i, self.pair_j,
-            np.maximum(self.transverse, floor), np.maximum(self.radial, floor), self.unit,
+            self.n_atoms,
+            self.pair_i,
+            self.pair_j,
+            np.maximum(self.transverse, floor),
+            np.maximum(self.radial, floor),
+            self.unit,
             self.unique,
-        )  # fmt: skip
+        )
 
     def negative_pairs(self) -> NDArray[np.bool_]:
         """Return the (P,) mask of pairs with a negative eigenvalue."""
@@ -227,9 +242,18 @@ class PairHessian:
         indices = np.empty(nnz, dtype=index_type)
         data = np.empty(nnz)
         _pair_blocks_to_csr(
-            self.pair_i, self.pair_j, self.transverse, self.radial, self.unit,
-            self.diagonal_blocks, block_starts, _SYMMETRIC, indptr, indices, data,
-        )  # fmt: skip
+            self.pair_i,
+            self.pair_j,
+            self.transverse,
+            self.radial,
+            self.unit,
+            self.diagonal_blocks,
+            block_starts,
+            _SYMMETRIC,
+            indptr,
+            indices,
+            data,
+        )
         matrix = sp.csr_matrix((data, indices, indptr), shape=self.shape)
         matrix.has_sorted_indices = True
         if not self.unique:
@@ -446,8 +470,7 @@ def _pair_matvec(pair_i, pair_j, transverse, radial, unit, x, out):
 
 
 @njit(cache=True, parallel=True)
-def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, pieces, buffers,
-                              diagonal):  # fmt: skip
+def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, pieces, buffers, diagonal):
     """``_diagonal_blocks`` on numba's threads: the pairs of piece c (``pieces[c]``, a
     [start, stop) run) into ``buffers[c]`` (C, N, 6), then the buffers summed in chunk
     order into ``diagonal`` (zeroed)."""
@@ -456,8 +479,14 @@ def _diagonal_blocks_threaded(pair_i, pair_j, transverse, radial, unit, pieces, 
     for c in prange(n_chunks):
         buffers[c, :, :] = 0.0
         first, last = pieces[c, 0], pieces[c, 1]
-        _diagonal_blocks(pair_i[first:last], pair_j[first:last], transverse[first:last],
-                         radial[first:last], unit[first:last], buffers[c])  # fmt: skip
+        _diagonal_blocks(
+            pair_i[first:last],
+            pair_j[first:last],
+            transverse[first:last],
+            radial[first:last],
+            unit[first:last],
+            buffers[c],
+        )
     for c in prange(n_chunks):
         for i in range(c * n // n_chunks, (c + 1) * n // n_chunks):
             for k in range(diagonal.shape[1]):
@@ -476,8 +505,15 @@ def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, pieces, x, b
     for c in prange(n_chunks):
         buffers[c, :] = 0.0
         first, last = pieces[c, 0], pieces[c, 1]
-        _pair_matvec(pair_i[first:last], pair_j[first:last], transverse[first:last],
-                     radial[first:last], unit[first:last], x, buffers[c])  # fmt: skip
+        _pair_matvec(
+            pair_i[first:last],
+            pair_j[first:last],
+            transverse[first:last],
+            radial[first:last],
+            unit[first:last],
+            x,
+            buffers[c],
+        )
     for c in prange(n_chunks):
         for k in range(c * size // n_chunks, (c + 1) * size // n_chunks):
             total = buffers[0, k]
@@ -488,9 +524,18 @@ def _pair_matvec_threaded(pair_i, pair_j, transverse, radial, unit, pieces, x, b
 
 @njit(cache=True)
 def _pair_blocks_to_csr(
-    pair_i, pair_j, transverse, radial, unit, diagonal, block_starts, symmetric,
-    indptr, indices, data,
-):  # fmt: skip
+    pair_i,
+    pair_j,
+    transverse,
+    radial,
+    unit,
+    diagonal,
+    block_starts,
+    symmetric,
+    indptr,
+    indices,
+    data,
+):
     """Expand pair blocks into CSR arrays, block columns sorted within each row.
 
     ``block_starts`` (N + 1,) offsets each atom's blocks: its diagonal block

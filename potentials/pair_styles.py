@@ -73,11 +73,18 @@ class Morse(PairPotential):
         Key("d0", "number", 1.0, unit="energy", doc="The well depth D0, >= 0."),
         Key("alpha", "number", 1.0, unit="1/length", doc="The well's width alpha, > 0."),
         Key("r0", "number", 1.0, unit="length", doc="The distance of the minimum, >= 0."),
-    )  # fmt: skip
+    )
 
-    def __init__(self, d0: float = 1.0, alpha: float = 1.0, r0: float = 1.0,
-                 cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
-                 pairs: Pairs = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        d0: float = 1.0,
+        alpha: float = 1.0,
+        r0: float = 1.0,
+        cutoff: float = 2.5,
+        cutoff_mode: str = "shift",
+        r_on: float | None = None,
+        pairs: Pairs = None,
+    ) -> None:
         super().__init__(MORSE, cutoff, cutoff_mode, r_on, pairs, d0=d0, alpha=alpha, r0=r0)
 
 
@@ -122,34 +129,69 @@ class Mie(PairPotential):
     style = "mie"
     PARAMETERS = ("epsilon", "sigma", "n", "m")
     MIXING = {
-        "lorentz-berthelot": {"epsilon": "geometric", "sigma": "arithmetic", "n": "arithmetic",
-                              "m": "arithmetic"},
-        "geometric": {"epsilon": "geometric", "sigma": "geometric", "n": "geometric",
-                      "m": "geometric"},
-    }  # fmt: skip
+        "lorentz-berthelot": {
+            "epsilon": "geometric",
+            "sigma": "arithmetic",
+            "n": "arithmetic",
+            "m": "arithmetic",
+        },
+        "geometric": {
+            "epsilon": "geometric",
+            "sigma": "geometric",
+            "n": "geometric",
+            "m": "geometric",
+        },
+    }
     LIMITS = {"epsilon": "nonnegative", "sigma": "positive", "n": "positive", "m": "positive"}
     CONFIG_KEYS = pair_config_keys(
-        Key("epsilon", "number, list or table", 1.0, unit="energy",
+        Key(
+            "epsilon",
+            "number, list or table",
+            1.0,
+            unit="energy",
             doc="The well depth, >= 0: one number, or per type (`{A = 1.0, B = 0.6}`, "
-                "covering every type), mixed by `mixing`."),
-        Key("sigma", "number, list or table", 1.0, unit="length",
-            doc="The size, > 0, given as `epsilon` is."),
-        Key("n", "number, list or table", 12.0,
+            "covering every type), mixed by `mixing`.",
+        ),
+        Key(
+            "sigma",
+            "number, list or table",
+            1.0,
+            unit="length",
+            doc="The size, > 0, given as `epsilon` is.",
+        ),
+        Key(
+            "n",
+            "number, list or table",
+            12.0,
             doc="The repulsive exponent (LAMMPS's gamma_R), larger than `m`; given as "
-                "`epsilon` is."),
-        Key("m", "number, list or table", 6.0,
-            doc="The attractive exponent (LAMMPS's gamma_A), > 0; given as `epsilon` is."),
+            "`epsilon` is.",
+        ),
+        Key(
+            "m",
+            "number, list or table",
+            6.0,
+            doc="The attractive exponent (LAMMPS's gamma_A), > 0; given as `epsilon` is.",
+        ),
         mixing=tuple(MIXING),
         mixing_doc="The rule for unlike pairs of per-type values: epsilon geometric; sigma, n "
-                   "and m arithmetic (`lorentz-berthelot`) or geometric.",
-    )  # fmt: skip
+        "and m arithmetic (`lorentz-berthelot`) or geometric.",
+    )
 
-    def __init__(self, epsilon: float | Sequence[float] = 1.0, sigma: float | Sequence[float] = 1.0,
-                 n: float | Sequence[float] = 12.0, m: float | Sequence[float] = 6.0,
-                 cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
-                 pairs: Pairs = None, mixing: str = "lorentz-berthelot") -> None:  # fmt: skip
-        super().__init__(MIE, cutoff, cutoff_mode, r_on, pairs, mixing, epsilon=epsilon,
-                         sigma=sigma, n=n, m=m)  # fmt: skip
+    def __init__(
+        self,
+        epsilon: float | Sequence[float] = 1.0,
+        sigma: float | Sequence[float] = 1.0,
+        n: float | Sequence[float] = 12.0,
+        m: float | Sequence[float] = 6.0,
+        cutoff: float = 2.5,
+        cutoff_mode: str = "shift",
+        r_on: float | None = None,
+        pairs: Pairs = None,
+        mixing: str = "lorentz-berthelot",
+    ) -> None:
+        super().__init__(
+            MIE, cutoff, cutoff_mode, r_on, pairs, mixing, epsilon=epsilon, sigma=sigma, n=n, m=m
+        )
 
     def check_pair(self, values, ti: int, tj: int) -> None:
         if not values["n"] > values["m"]:
@@ -213,11 +255,18 @@ class Buckingham(PairPotential):
         Key("a", "number", 1.0, unit="energy", doc="The repulsion's prefactor A, >= 0."),
         Key("rho", "number", 1.0, unit="length", doc="The repulsion's range rho, > 0."),
         Key("c", "number", 0.0, unit="energy*length^6", doc="The dispersion coefficient C, >= 0."),
-    )  # fmt: skip
+    )
 
-    def __init__(self, a: float = 1.0, rho: float = 1.0, c: float = 0.0, cutoff: float = 2.5,
-                 cutoff_mode: str = "shift", r_on: float | None = None,
-                 pairs: Pairs = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        a: float = 1.0,
+        rho: float = 1.0,
+        c: float = 0.0,
+        cutoff: float = 2.5,
+        cutoff_mode: str = "shift",
+        r_on: float | None = None,
+        pairs: Pairs = None,
+    ) -> None:
         super().__init__(BUCKINGHAM, cutoff, cutoff_mode, r_on, pairs, a=a, rho=rho, c=c)
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, ...]:
@@ -254,11 +303,14 @@ class Buckingham(PairPotential):
     def _explain_non_finite(self, state, neighbors) -> None:
         table = self._cached_tables(max(state.n_types, self.n_types_fixed or 1))
         error = collapse_error(
-            self, state, neighbors, table[-1],
+            self,
+            state,
+            neighbors,
+            table[-1],
             "the Buckingham barrier, inside which the energy falls to minus infinity (the atoms "
             "would collapse onto each other); use a smaller time step, a gentler start, or a "
             "potential with a repulsive core",
-        )  # fmt: skip
+        )
         if error is not None:
             raise error
 
@@ -298,17 +350,29 @@ class Yukawa(PairPotential):
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"kappa": "nonnegative"}
     CONFIG_KEYS = pair_config_keys(
-        Key("a", "number, list or table", 1.0, unit="energy*length",
+        Key(
+            "a",
+            "number, list or table",
+            1.0,
+            unit="energy*length",
             doc="The prefactor A: one number, or per type (`{A = 1.0, B = 2.0}`, covering "
-                "every type), unlike pairs sqrt(A_i A_j)."),
+            "every type), unlike pairs sqrt(A_i A_j).",
+        ),
         Key("kappa", "number", 1.0, unit="1/length", doc="The screening constant kappa, >= 0."),
         mixing=tuple(MIXING),
         mixing_doc="The rule for unlike pairs of per-type `a`: geometric, as LAMMPS mixes it.",
-    )  # fmt: skip
+    )
 
-    def __init__(self, a: float | Sequence[float] = 1.0, kappa: float = 1.0,
-                 cutoff: float = 2.5, cutoff_mode: str = "shift", r_on: float | None = None,
-                 pairs: Pairs = None, mixing: str = "geometric") -> None:  # fmt: skip
+    def __init__(
+        self,
+        a: float | Sequence[float] = 1.0,
+        kappa: float = 1.0,
+        cutoff: float = 2.5,
+        cutoff_mode: str = "shift",
+        r_on: float | None = None,
+        pairs: Pairs = None,
+        mixing: str = "geometric",
+    ) -> None:
         super().__init__(YUKAWA, cutoff, cutoff_mode, r_on, pairs, mixing, a=a, kappa=kappa)
 
 
@@ -352,16 +416,29 @@ class Soft(PairPotential):
     MIXING = {"geometric": {"a": "geometric"}}
     LIMITS = {"a": "nonnegative"}
     CONFIG_KEYS = pair_config_keys(
-        Key("a", "number, list or table", 1.0, unit="energy",
+        Key(
+            "a",
+            "number, list or table",
+            1.0,
+            unit="energy",
             doc="The height A (u(0) = 2A), >= 0: one number, or per type (`{A = 1.0, B = 2.0}`, "
-                "covering every type), unlike pairs sqrt(A_i A_j)."),
-        cutoff=1.0, cutoff_mode="none", mixing=tuple(MIXING),
+            "covering every type), unlike pairs sqrt(A_i A_j).",
+        ),
+        cutoff=1.0,
+        cutoff_mode="none",
+        mixing=tuple(MIXING),
         mixing_doc="The rule for unlike pairs of per-type `a`: geometric, as LAMMPS mixes it.",
-    )  # fmt: skip
+    )
 
-    def __init__(self, a: float | Sequence[float] = 1.0, cutoff: float = 1.0,
-                 cutoff_mode: str = "none", r_on: float | None = None, pairs: Pairs = None,
-                 mixing: str = "geometric") -> None:  # fmt: skip
+    def __init__(
+        self,
+        a: float | Sequence[float] = 1.0,
+        cutoff: float = 1.0,
+        cutoff_mode: str = "none",
+        r_on: float | None = None,
+        pairs: Pairs = None,
+        mixing: str = "geometric",
+    ) -> None:
         super().__init__(SOFT, cutoff, cutoff_mode, r_on, pairs, mixing, a=a)
 
     def coefficients(self, values, ti: int, tj: int) -> tuple[float, ...]:

@@ -109,10 +109,16 @@ class PairTerm:
             return (math.inf,) * len(names)
         except ValueError:  # a domain error of math's (cos(inf)): NaN when compiled
             return (math.nan,) * len(names)
-        if not (isinstance(returned, tuple) and len(returned) == len(names)
-                and all(map(is_number, returned))):  # fmt: skip
-            got = (f"{len(returned)} values ({', '.join(map(shown, returned))})"
-                   if isinstance(returned, tuple) else shown(returned))  # fmt: skip
+        if not (
+            isinstance(returned, tuple)
+            and len(returned) == len(names)
+            and all(map(is_number, returned))
+        ):
+            got = (
+                f"{len(returned)} values ({', '.join(map(shown, returned))})"
+                if isinstance(returned, tuple)
+                else shown(returned)
+            )
             signature = ", ".join(("r2", *(("data",) if self.uses_data else ()), *self.parameters))
             count = {2: "two", 3: "three"}[len(names)]
             raise TypeError(
@@ -165,4 +171,3 @@ def pair_term(energy: Callable | None = None, *, name: str = "", uses_data: bool
         return PairTerm(function, name=name, uses_data=uses_data)
 
     return wrap if energy is None else wrap(energy)
-

@@ -106,12 +106,23 @@ class HarmonicBonds(_LawBonds):
     bond_style = "spring"
     #: The keys of its config table (see :meth:`from_config`).
     CONFIG_KEYS = bonded_keys(
-        "bond", "[i, j]",
-        Key("k", "number or list", REQUIRED, unit="energy/length^2",
-            doc="The spring constant, >= 0: one for all bonds, or one per bond type."),
-        Key("r0", "number or list", REQUIRED, unit="length",
-            doc="The rest length, >= 0: one, or one per bond type."),
-    )  # fmt: skip
+        "bond",
+        "[i, j]",
+        Key(
+            "k",
+            "number or list",
+            REQUIRED,
+            unit="energy/length^2",
+            doc="The spring constant, >= 0: one for all bonds, or one per bond type.",
+        ),
+        Key(
+            "r0",
+            "number or list",
+            REQUIRED,
+            unit="length",
+            doc="The rest length, >= 0: one, or one per bond type.",
+        ),
+    )
 
     def __init__(
         self,
@@ -179,12 +190,23 @@ class FENEBonds(_LawBonds):
     bond_style = "fene"
     #: The keys of its config table (see :meth:`from_config`).
     CONFIG_KEYS = bonded_keys(
-        "bond", "[i, j]",
-        Key("k", "number or list", 30.0, unit="energy/length^2",
-            doc="The spring constant, >= 0: one for all bonds, or one per bond type."),
-        Key("r_max", "number or list", 1.5, unit="length",
-            doc="The maximum extension, > 0: one, or one per bond type."),
-    )  # fmt: skip
+        "bond",
+        "[i, j]",
+        Key(
+            "k",
+            "number or list",
+            30.0,
+            unit="energy/length^2",
+            doc="The spring constant, >= 0: one for all bonds, or one per bond type.",
+        ),
+        Key(
+            "r_max",
+            "number or list",
+            1.5,
+            unit="length",
+            doc="The maximum extension, > 0: one, or one per bond type.",
+        ),
+    )
 
     def __init__(
         self,

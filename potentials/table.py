@@ -120,8 +120,17 @@ def read_table(path, keyword: str) -> TableSection:
             )
     if not low > 0:
         raise ValueError(f"{path}:{content[position + 1][0]}: the first distance must be > 0")
-    return TableSection(path, keyword, r, values[:, 1].copy(), values[:, 2].copy(), spacing,
-                        float(low), float(high), slopes)  # fmt: skip
+    return TableSection(
+        path,
+        keyword,
+        r,
+        values[:, 1].copy(),
+        values[:, 2].copy(),
+        spacing,
+        float(low),
+        float(high),
+        slopes,
+    )
 
 
 def _parameters(path, number, words):
@@ -203,14 +212,20 @@ def build_table(section: TableSection, points: int, cutoff: float, interpolation
     inner = section.r_low if section.spacing else float(section.r[0])
     innersq = inner * inner
     delta = (cutoff * cutoff - innersq) / (n - 1)
-    match = (interpolation == "linear" and len(section.r) == n and section.spacing == "RSQ"
-             and section.r_high == cutoff)  # fmt: skip
+    match = (
+        interpolation == "linear"
+        and len(section.r) == n
+        and section.spacing == "RSQ"
+        and section.r_high == cutoff
+    )
     if not match:
         r_file, e_file, f_file = section.r, section.energy, section.force
         e2_file = _spline(r_file, e_file, -f_file[0], -f_file[-1])
         if section.slopes is None:
-            slopes = ((f_file[1] - f_file[0]) / (r_file[1] - r_file[0]),
-                      (f_file[-1] - f_file[-2]) / (r_file[-1] - r_file[-2]))  # fmt: skip
+            slopes = (
+                (f_file[1] - f_file[0]) / (r_file[1] - r_file[0]),
+                (f_file[-1] - f_file[-2]) / (r_file[-1] - r_file[-2]),
+            )
         else:
             slopes = section.slopes
         f2_file = _spline(r_file, f_file, *slopes)
@@ -239,15 +254,19 @@ def build_table(section: TableSection, points: int, cutoff: float, interpolation
         low = (section.slopes[0] / math.sqrt(innersq) - f[0] / innersq) / (2.0 * math.sqrt(innersq))
     else:
         rsq2 = innersq + secant * delta
-        low = (_splint(r_file, f_file, f2_file, math.sqrt(rsq2)) / math.sqrt(rsq2)
-               - f[0] / math.sqrt(innersq)) / (secant * delta)  # fmt: skip
+        low = (
+            _splint(r_file, f_file, f2_file, math.sqrt(rsq2)) / math.sqrt(rsq2)
+            - f[0] / math.sqrt(innersq)
+        ) / (secant * delta)
     if section.slopes is not None and cutoff == section.r[-1]:
         high = (section.slopes[1] / cutoff - f[-1] / (cutoff * cutoff)) / (2.0 * cutoff)
     else:
         rsq2 = cutoff * cutoff
         rsq1 = rsq2 - secant * delta
-        high = (f[-1] / math.sqrt(rsq2) - _splint(r_file, f_file, f2_file, math.sqrt(rsq1))
-                / math.sqrt(rsq1)) / (secant * delta)  # fmt: skip
+        high = (
+            f[-1] / math.sqrt(rsq2)
+            - _splint(r_file, f_file, f2_file, math.sqrt(rsq1)) / math.sqrt(rsq1)
+        ) / (secant * delta)
     f /= np.sqrt(rsq)
     out[FORCE2] = _spline(rsq, f, low, high)
     return out, innersq, delta
@@ -317,11 +336,13 @@ def table_spline_curvature(r2, data, offset, n, innersq, invdelta, deltasq6):
 
 
 TERMS = {
-    "linear": PairTerm(table_linear_energy, table_linear_curvature, name="table_linear",
-                       uses_data=True),
-    "spline": PairTerm(table_spline_energy, table_spline_curvature, name="table_spline",
-                       uses_data=True),
-}  # fmt: skip
+    "linear": PairTerm(
+        table_linear_energy, table_linear_curvature, name="table_linear", uses_data=True
+    ),
+    "spline": PairTerm(
+        table_spline_energy, table_spline_curvature, name="table_spline", uses_data=True
+    ),
+}
 
 
 class Table(PairPotential):
@@ -354,29 +375,54 @@ class Table(PairPotential):
     PARAMETERS = ()
     PAIR_KEYS = {"file", "keyword", "cutoff", "r_on"}
     CONFIG_KEYS = pair_config_keys(
-        Key("file", "path", REQUIRED,
-            doc="A LAMMPS `pair_style table` file, relative to the config."),
+        Key(
+            "file",
+            "path",
+            REQUIRED,
+            doc="A LAMMPS `pair_style table` file, relative to the config.",
+        ),
         Key("keyword", "string", REQUIRED, doc="The section of the file to read."),
-        Key("interpolation", "string", "linear", choices=INTERPOLATIONS,
-            doc="`linear` or `spline`, as LAMMPS's `pair_style table` interpolates."),
-        Key("points", "integer", None, minimum=2, maximum=MAX_POINTS,
+        Key(
+            "interpolation",
+            "string",
+            "linear",
+            choices=INTERPOLATIONS,
+            doc="`linear` or `spline`, as LAMMPS's `pair_style table` interpolates.",
+        ),
+        Key(
+            "points",
+            "integer",
+            None,
+            minimum=2,
+            maximum=MAX_POINTS,
             doc="The table length LAMMPS's `pair_style table` calls N: the section is "
-                f"interpolated onto that many points first (at most {MAX_POINTS}).",
-            default_doc="the section's own N"),
-        cutoff=None, cutoff_mode="none", pair_keys=("file", "keyword"),
+            f"interpolated onto that many points first (at most {MAX_POINTS}).",
+            default_doc="the section's own N",
+        ),
+        cutoff=None,
+        cutoff_mode="none",
+        pair_keys=("file", "keyword"),
         cutoff_doc="the section's last distance",
-    )  # fmt: skip
+    )
 
-    def __init__(self, file, keyword: str, interpolation: str = "linear",
-                 points: int | None = None, cutoff: float | None = None,
-                 cutoff_mode: str = "none", r_on: float | None = None,
-                 pairs: Mapping | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        file,
+        keyword: str,
+        interpolation: str = "linear",
+        points: int | None = None,
+        cutoff: float | None = None,
+        cutoff_mode: str = "none",
+        r_on: float | None = None,
+        pairs: Mapping | None = None,
+    ) -> None:
         if interpolation not in INTERPOLATIONS:
             raise ValueError(
                 f"interpolation must be one of {', '.join(INTERPOLATIONS)}, got {interpolation!r}"
             )
-        if points is not None and (isinstance(points, bool) or not isinstance(points, int)
-                                   or not 2 <= points <= MAX_POINTS):  # fmt: skip
+        if points is not None and (
+            isinstance(points, bool) or not isinstance(points, int) or not 2 <= points <= MAX_POINTS
+        ):
             raise ValueError(
                 f"points must be an integer from 2 to {MAX_POINTS} (each point takes 40 bytes "
                 f"and is built in Python), got {points!r}"
@@ -398,11 +444,18 @@ class Table(PairPotential):
         default = self._build(None, file, keyword, cutoff, built, chunks)
         numeric = {}
         for key, entry in self.table_pairs.items():
-            own = self._build(key, entry.get("file", file), entry.get("keyword", keyword),
-                              entry.get("cutoff", cutoff), built, chunks)  # fmt: skip
+            own = self._build(
+                key,
+                entry.get("file", file),
+                entry.get("keyword", keyword),
+                entry.get("cutoff", cutoff),
+                built,
+                chunks,
+            )
             numeric[key] = {"cutoff": own, **{k: entry[k] for k in ("r_on",) if k in entry}}
-        super().__init__(TERMS[interpolation], default, cutoff_mode, r_on, numeric,
-                         data=np.concatenate(chunks))  # fmt: skip
+        super().__init__(
+            TERMS[interpolation], default, cutoff_mode, r_on, numeric, data=np.concatenate(chunks)
+        )
 
     def _build(self, key, file, keyword, cutoff, built: dict, chunks: list) -> float:
         """Read and build the table of pair ``key`` (None: the default) into ``chunks``
@@ -422,8 +475,9 @@ class Table(PairPotential):
         if ident not in built:
             points = self.points or len(section.r)
             try:
-                arrays, innersq, delta = build_table(section, points, float(cutoff),
-                                                     self.interpolation)  # fmt: skip
+                arrays, innersq, delta = build_table(
+                    section, points, float(cutoff), self.interpolation
+                )
             except MemoryError:
                 raise ValueError(
                     f"{where}: points = {points} is too many to hold in memory "
@@ -433,8 +487,7 @@ class Table(PairPotential):
                 raise ValueError(f"{where}: the built table is not finite")
             offset = sum(len(c) for c in chunks)
             chunks.append(arrays.ravel())
-            built[ident] = (float(offset), float(points), innersq, 1.0 / delta,
-                            delta * delta / 6.0)  # fmt: skip
+            built[ident] = (float(offset), float(points), innersq, 1.0 / delta, delta * delta / 6.0)
         self._parameters[key] = built[ident]
         return float(cutoff)
 
@@ -446,8 +499,9 @@ class Table(PairPotential):
 
     def _explain_non_finite(self, state, neighbors) -> None:
         table = self._cached_tables(max(state.n_types, self.n_types_fixed or 1))
-        error = collapse_error(self, state, neighbors, table[TERM + INNERSQ],
-                               "below the table's first distance")  # fmt: skip
+        error = collapse_error(
+            self, state, neighbors, table[TERM + INNERSQ], "below the table's first distance"
+        )
         if error is not None:
             raise error
 
@@ -470,6 +524,7 @@ class Table(PairPotential):
         for key in ("file", "keyword"):
             if not isinstance(params.get(key), str):
                 raise ValueError(f"{key}: expected a string, got {params.get(key)!r}")
-        pairs = config_pairs(params.pop("pairs", None), type_names, cls.PAIR_KEYS,
-                             numbers={"cutoff", "r_on"})  # fmt: skip
+        pairs = config_pairs(
+            params.pop("pairs", None), type_names, cls.PAIR_KEYS, numbers={"cutoff", "r_on"}
+        )
         return cls(**params, pairs=pairs)

@@ -57,8 +57,9 @@ class TermCheck:
     errors: dict[str, float]
 
 
-def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1e-6,
-               data=None) -> TermCheck:  # fmt: skip
+def check_term(
+    term, params, r_range, *, points: int = 201, tolerance: float = 1e-6, data=None
+) -> TermCheck:
     """Check a term's hand-written derivatives against finite differences of its energy.
 
     Evaluates the term in Python at ``points`` distances spread evenly over
@@ -119,8 +120,10 @@ def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1
     True
     """
     if not isinstance(term, PairTerm | BondedTerm):
-        raise TypeError(f"check_term expects a PairTerm, BondTerm or AngleTerm (see "
-                        f"potentials.pair_term, bond_term, angle_term), got {term!r}")  # fmt: skip
+        raise TypeError(
+            f"check_term expects a PairTerm, BondTerm or AngleTerm (see "
+            f"potentials.pair_term, bond_term, angle_term), got {term!r}"
+        )
     kind = "pair" if isinstance(term, PairTerm) else term.KIND
     values = _parameter_values(term, params, kind)
     try:
@@ -129,8 +132,10 @@ def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1
         raise ValueError(f"r_range must be two values (first, last), got {r_range!r}") from None
     if isinstance(term, AngleTerm):
         if not 0.0 <= first < last <= math.pi:
-            raise ValueError(f"r_range of an angle term must be two angles in radians "
-                             f"0 <= first < last <= pi, got {r_range!r}")  # fmt: skip
+            raise ValueError(
+                f"r_range of an angle term must be two angles in radians "
+                f"0 <= first < last <= pi, got {r_range!r}"
+            )
     elif not 0.0 < first < last < math.inf:
         raise ValueError(f"r_range must be two distances 0 < first < last, got {r_range!r}")
     if isinstance(points, bool) or not isinstance(points, int) or points < 3:
@@ -148,19 +153,31 @@ def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1
     def finite(quantity: str, array: np.ndarray) -> np.ndarray:
         bad = np.flatnonzero(~np.isfinite(array))
         if bad.size:
-            raise ValueError(f"{name}: {quantity} is {array[bad[0]]:g} at r = {r[bad[0]]:.6g} "
-                             f"(in r_range {r_range!r}): check it where it is finite")  # fmt: skip
+            raise ValueError(
+                f"{name}: {quantity} is {array[bad[0]]:g} at r = {r[bad[0]]:.6g} "
+                f"(in r_range {r_range!r}): check it where it is finite"
+            )
         return array
 
-    u, f_over_r = (finite(q, a) for q, a in zip(
-        ("u", "f_over_r"), np.array([energy(x * x) for x in r]).T, strict=True))  # fmt: skip
+    u, f_over_r = (
+        finite(q, a)
+        for q, a in zip(("u", "f_over_r"), np.array([energy(x * x) for x in r]).T, strict=True)
+    )
     h = step * r
-    du_dr = np.array([energy((x + d) ** 2)[0] - energy((x - d) ** 2)[0]
-                      for x, d in zip(r, h, strict=True)]) / (2.0 * h)  # fmt: skip
+    du_dr = np.array(
+        [energy((x + d) ** 2)[0] - energy((x - d) ** 2)[0] for x, d in zip(r, h, strict=True)]
+    ) / (2.0 * h)
     errors = {}
-    errors["f_over_r"] = _compare(name, "f_over_r", "-du/dr / r from its energy's differences", r,
-                                  f_over_r * r, -finite("du/dr", du_dr), scale=r,
-                                  tolerance=tolerance)  # fmt: skip
+    errors["f_over_r"] = _compare(
+        name,
+        "f_over_r",
+        "-du/dr / r from its energy's differences",
+        r,
+        f_over_r * r,
+        -finite("du/dr", du_dr),
+        scale=r,
+        tolerance=tolerance,
+    )
     if term.curvature is not None:
 
         def curvature(r2: float) -> tuple[float, float, float]:
@@ -169,15 +186,19 @@ def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1
 
         s = r * r
         returned = np.array([curvature(x) for x in s]).T
-        u_c, du_ds, d2u_ds2 = (finite(q, a) for q, a in zip(
-            ("curvature's u", "du_ds", "d2u_ds2"), returned, strict=True))  # fmt: skip
+        u_c, du_ds, d2u_ds2 = (
+            finite(q, a)
+            for q, a in zip(("curvature's u", "du_ds", "d2u_ds2"), returned, strict=True)
+        )
         hs = step * s
         above = np.array([curvature(x + d) for x, d in zip(s, hs, strict=True)]).T
         below = np.array([curvature(x - d) for x, d in zip(s, hs, strict=True)]).T
-        du_ds_fd = np.array([energy(x + d)[0] - energy(x - d)[0]
-                             for x, d in zip(s, hs, strict=True)]) / (2.0 * hs)  # fmt: skip
-        errors["curvature u"] = _compare(name, "curvature's u", "its energy's u", r, u_c, u,
-                                         tolerance=tolerance)  # fmt: skip
+        du_ds_fd = np.array(
+            [energy(x + d)[0] - energy(x - d)[0] for x, d in zip(s, hs, strict=True)]
+        ) / (2.0 * hs)
+        errors["curvature u"] = _compare(
+            name, "curvature's u", "its energy's u", r, u_c, u, tolerance=tolerance
+        )
         errors["du_ds"] = _compare(
             name,
             "du_ds",
@@ -188,8 +209,15 @@ def check_term(term, params, r_range, *, points: int = 201, tolerance: float = 1
             tolerance=tolerance,
         )
         d2 = finite("d2u/ds2", (above[1] - below[1]) / (2.0 * hs))
-        errors["d2u_ds2"] = _compare(name, "d2u_ds2", "the differences of its du_ds in s = r^2",
-                                     r, d2u_ds2, d2, tolerance=tolerance)  # fmt: skip
+        errors["d2u_ds2"] = _compare(
+            name,
+            "d2u_ds2",
+            "the differences of its du_ds in s = r^2",
+            r,
+            d2u_ds2,
+            d2,
+            tolerance=tolerance,
+        )
     return TermCheck(term.name, (first, last), points, errors)
 
 
@@ -215,12 +243,15 @@ def _check_bonded(term: BondedTerm, values, r_range, points: int, tolerance: flo
     def finite(quantity: str, array: np.ndarray) -> np.ndarray:
         bad = np.flatnonzero(~np.isfinite(array))
         if bad.size:
-            raise ValueError(f"{name}: {quantity} is {array[bad[0]]:g} at {_at(term, y[bad[0]])} "
-                             f"(in r_range {r_range!r}): check it where it is finite")  # fmt: skip
+            raise ValueError(
+                f"{name}: {quantity} is {array[bad[0]]:g} at {_at(term, y[bad[0]])} "
+                f"(in r_range {r_range!r}): check it where it is finite"
+            )
         return array
 
-    u, d1 = (finite(q, a) for q, a in zip(("u", first_name), evaluate(term.energy_at, x),
-                                           strict=True))  # fmt: skip
+    u, d1 = (
+        finite(q, a) for q, a in zip(("u", first_name), evaluate(term.energy_at, x), strict=True)
+    )
     spacing = above - below
     du_fd = finite(
         "the difference of u",
@@ -229,13 +260,27 @@ def _check_bonded(term: BondedTerm, values, r_range, points: int, tolerance: flo
     )
     along = "theta" if term.KIND == "angle" else "r"
     shown_as = {"r2": f"{first_name} * r", "cos": f"{first_name} * -sin(theta)"}
-    errors = {first_name: _compare(name, shown_as.get(term.variable, first_name),
-                                   f"the differences of its u in {along}", y, d1 * factor, du_fd,
-                                   tolerance=tolerance, where=lambda v: _at(term, v))}  # fmt: skip
+    errors = {
+        first_name: _compare(
+            name,
+            shown_as.get(term.variable, first_name),
+            f"the differences of its u in {along}",
+            y,
+            d1 * factor,
+            du_fd,
+            tolerance=tolerance,
+            where=lambda v: _at(term, v),
+        )
+    }
     if term.curvature is not None:
-        u_c, d1_c, d2 = (finite(q, a) for q, a in zip(
-            ("curvature's u", first_name, second_name), evaluate(term.curvature_at, x),
-            strict=True))  # fmt: skip
+        u_c, d1_c, d2 = (
+            finite(q, a)
+            for q, a in zip(
+                ("curvature's u", first_name, second_name),
+                evaluate(term.curvature_at, x),
+                strict=True,
+            )
+        )
         errors["curvature u"] = _compare(
             name,
             "curvature's u",
@@ -252,11 +297,16 @@ def _check_bonded(term: BondedTerm, values, r_range, points: int, tolerance: flo
         down = first(below, evaluate(term.curvature_at, to_x(below))[1])
         given = d2 * (factor if term.variable == "cos" else 1.0)
         errors[second_name] = _compare(
-            name, f"{second_name} * -sin(theta)" if term.variable == "cos" else second_name,
+            name,
+            f"{second_name} * -sin(theta)" if term.variable == "cos" else second_name,
             f"the differences of its {'du_dr_over_r * r' if term.variable == 'r2' else first_name}"
-            f" in {along}", y, given, finite("the difference", (up - down) / spacing),
-            tolerance=tolerance, where=lambda v: _at(term, v),
-        )  # fmt: skip
+            f" in {along}",
+            y,
+            given,
+            finite("the difference", (up - down) / spacing),
+            tolerance=tolerance,
+            where=lambda v: _at(term, v),
+        )
     return TermCheck(term.name, r_range, points, errors)
 
 
@@ -271,27 +321,43 @@ def _parameter_values(term, params, kind: str) -> tuple[float, ...]:
         missing = [n for n in names if n not in params]
         extra = [n for n in params if n not in names]
         if missing or extra:
-            raise ValueError(f"{kind} term {term.name} takes parameters {list(names)}; params "
-                             f"lack {missing}, have unknown {extra}")  # fmt: skip
+            raise ValueError(
+                f"{kind} term {term.name} takes parameters {list(names)}; params "
+                f"lack {missing}, have unknown {extra}"
+            )
         values = [params[n] for n in names]
     elif isinstance(params, str) or not isinstance(params, Sequence | np.ndarray):
-        raise ValueError(f"params must be a mapping by name or a sequence of "
-                         f"{len(names)} numbers, got {params!r}")  # fmt: skip
+        raise ValueError(
+            f"params must be a mapping by name or a sequence of "
+            f"{len(names)} numbers, got {params!r}"
+        )
     else:
         values = list(params)
         if len(values) != len(names):
-            raise ValueError(f"{kind} term {term.name} takes {len(names)} parameters "
-                             f"{list(names)}, got {len(values)}: {values!r}")  # fmt: skip
+            raise ValueError(
+                f"{kind} term {term.name} takes {len(names)} parameters "
+                f"{list(names)}, got {len(values)}: {values!r}"
+            )
     for n, v in zip(names, values, strict=True):
         if not is_number(v) or not math.isfinite(float(v)):
-            raise ValueError(f"{kind} term {term.name}: parameter {n} must be a finite number, "
-                             f"got {v!r}")  # fmt: skip
+            raise ValueError(
+                f"{kind} term {term.name}: parameter {n} must be a finite number, got {v!r}"
+            )
     return tuple(float(v) for v in values)
 
 
-def _compare(name: str, quantity: str, against: str, r: np.ndarray, given: np.ndarray,
-             expected: np.ndarray, *, tolerance: float, scale=None,
-             where=None) -> float:  # fmt: skip
+def _compare(
+    name: str,
+    quantity: str,
+    against: str,
+    r: np.ndarray,
+    given: np.ndarray,
+    expected: np.ndarray,
+    *,
+    tolerance: float,
+    scale=None,
+    where=None,
+) -> float:
     """The largest |given - expected| relative to the largest |expected| (or |given|);
     ValueError naming where it is worst if beyond ``tolerance``. ``scale`` divides both
     values shown (f_over_r is compared times r, shown as itself); ``where`` says where a

@@ -121,8 +121,11 @@ def _array_of_tables(value) -> bool:
 def to_toml(data: dict) -> str:
     """TOML for a config dict: top-level values, then tables and arrays of tables (their
     own nested values inline)."""
-    lines = [f"{toml_key(k)} = {toml_value(v)}" for k, v in data.items()
-             if not isinstance(v, dict) and not _array_of_tables(v)]  # fmt: skip
+    lines = [
+        f"{toml_key(k)} = {toml_value(v)}"
+        for k, v in data.items()
+        if not isinstance(v, dict) and not _array_of_tables(v)
+    ]
     for key, value in data.items():
         if isinstance(value, dict):
             lines.append(f"[{toml_key(key)}]")

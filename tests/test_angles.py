@@ -131,12 +131,13 @@ def test_force_on_an_end_is_the_torque_over_the_arm():
 @pytest.mark.parametrize(
     "potential",
     [
-        HarmonicAngles(chain_angles(3, 6), k=[2.0, 0.7], theta0=[180.0, 100.0],
-                       angle_types=np.arange(12) % 2),
+        HarmonicAngles(
+            chain_angles(3, 6), k=[2.0, 0.7], theta0=[180.0, 100.0], angle_types=np.arange(12) % 2
+        ),
         CosineAngles(chain_angles(3, 6), k=[1.5, 4.0], angle_types=np.arange(12) % 2),
     ],
     ids=["harmonic", "cosine"],
-)  # fmt: skip
+)
 def test_forces_and_hessian_match_finite_differences_in_a_tilted_cell(potential, rng):
     state, _, _ = _tilted_chains(rng)
     result = potential.energy_forces(state)
@@ -292,8 +293,9 @@ def test_check_refuses_atoms_that_do_not_exist():
 def test_registry_and_describe():
     assert POTENTIALS["angle_harmonic"] is HarmonicAngles
     assert POTENTIALS["angle_cosine"] is CosineAngles
-    described = HarmonicAngles([[0, 1, 2], [1, 2, 3]], k=[1.0, 2.0], theta0=[180.0, 90.0],
-                               angle_types=[1, 0]).describe()  # fmt: skip
+    described = HarmonicAngles(
+        [[0, 1, 2], [1, 2, 3]], k=[1.0, 2.0], theta0=[180.0, 90.0], angle_types=[1, 0]
+    ).describe()
     assert json.loads(json.dumps(described)) == described
     assert described["type"] == "angle_harmonic" and described["theta0"] == [180.0, 90.0]
     assert described["n_angles"] == 2 and described["n_angle_types"] == 2
@@ -406,10 +408,13 @@ def test_chain_angles_are_consecutive_triples():
 
 def test_forcefield_topology_names_angles_by_style():
     bonds = [[0, 1], [1, 2], [2, 3]]
-    forcefield = md.ForceField([
-        FENEBonds(bonds), CosineAngles([[0, 1, 2], [1, 2, 3]], k=2.0),
-        HarmonicAngles([[0, 1, 2]], k=1.0, theta0=[90.0, 120.0], angle_types=[1]),
-    ])  # fmt: skip
+    forcefield = md.ForceField(
+        [
+            FENEBonds(bonds),
+            CosineAngles([[0, 1, 2], [1, 2, 3]], k=2.0),
+            HarmonicAngles([[0, 1, 2]], k=1.0, theta0=[90.0, 120.0], angle_types=[1]),
+        ]
+    )
     topology = forcefield.topology()
     assert topology.bond_type_names == ("fene",)
     assert topology.angle_type_names == ("angle_cosine", "angle_harmonic.0", "angle_harmonic.1")
@@ -579,9 +584,13 @@ def _mean_cosine(tmp_path, config, steps):
     angles = traj.topology.angles
     assert len(angles) == 20 * 8  # every consecutive triple of the 20 chains of 10
     start = int(np.searchsorted(traj.times, 5.0))  # the random-walk start relaxes in a few tau
-    cosines = np.cos(np.radians(np.array(
-        [angle_values(traj.state(frame), angles) for frame in range(start, traj.n_frames)]
-    )))  # fmt: skip
+    cosines = np.cos(
+        np.radians(
+            np.array(
+                [angle_values(traj.state(frame), angles) for frame in range(start, traj.n_frames)]
+            )
+        )
+    )
     result = block_average(cosines.mean(axis=1), n_blocks=8)
     return result, traj.parameters["potentials"], traj.observables["temperature"][start:].mean()
 
@@ -623,8 +632,12 @@ def test_harmonic_angles_give_the_boltzmann_mean_angle(tmp_path):
     )
     result, potentials, temperature = _mean_cosine(tmp_path, config, 12000)
     assert potentials[-1] | {"angles_sha256": ""} == {
-        "type": "angle_harmonic", "k": 2.5, "theta0": 180.0, "n_angles": 160, "angles_sha256": "",
-    }  # fmt: skip
+        "type": "angle_harmonic",
+        "k": 2.5,
+        "theta0": 180.0,
+        "n_angles": 160,
+        "angles_sha256": "",
+    }
     assert temperature == pytest.approx(1.0, abs=0.05)
 
     def weight(theta):

@@ -41,12 +41,24 @@ BASE = {
 EXTREMES = [2**53 + 1, 2**63, 2**64, 10**23, -(10**23), 1e300, -1e300, 5e-324, 1e-300, 1e308]
 #: Every numeric key of a config (the fuzzing below also reaches the rest).
 NUMERIC_KEYS = [
-    ("", "seed"), ("system", "cells"), ("system", "density"), ("system", "temperature"),
-    ("system", "mass"), ("system", "lattice_constant"), ("potentials.0", "cutoff"),
-    ("potentials.0", "epsilon"), ("potentials.0", "sigma"), ("potentials.0", "r_on"),
-    ("integrator", "dt"), ("run", "steps"), ("run", "skin"), ("run", "thermo_every"),
-    ("run", "threads"), ("output", "every"), ("output", "checkpoint_every"),
-]  # fmt: skip
+    ("", "seed"),
+    ("system", "cells"),
+    ("system", "density"),
+    ("system", "temperature"),
+    ("system", "mass"),
+    ("system", "lattice_constant"),
+    ("potentials.0", "cutoff"),
+    ("potentials.0", "epsilon"),
+    ("potentials.0", "sigma"),
+    ("potentials.0", "r_on"),
+    ("integrator", "dt"),
+    ("run", "steps"),
+    ("run", "skin"),
+    ("run", "thermo_every"),
+    ("run", "threads"),
+    ("output", "every"),
+    ("output", "checkpoint_every"),
+]
 
 SCALARS = st.one_of(
     st.integers(-3, 5),
@@ -65,23 +77,40 @@ VALUES = st.one_of(
 )
 KEYS = {
     "": ["units", "seed", "bogus"],
-    "system": ["lattice", "cells", "density", "lattice_constant", "temperature", "mass", "pbc",
-               "type_name", "structure", "polymer"],
+    "system": [
+        "lattice",
+        "cells",
+        "density",
+        "lattice_constant",
+        "temperature",
+        "mass",
+        "pbc",
+        "type_name",
+        "structure",
+        "polymer",
+    ],
     "potentials.0": ["type", "cutoff", "epsilon", "sigma", "cutoff_mode", "r_on", "bonds"],
     "integrator": ["type", "dt", "tol", "temperature", "friction", "tau", "seed"],
     "run": ["steps", "skin", "thermo_every"],
     "output": ["path", "every", "velocities", "forces", "checkpoint_every"],
-}  # fmt: skip
+}
 
 
 @st.composite
 def configs(draw):
-    data = {k: (dict(v) if isinstance(v, dict) else [dict(e) for e in v] if isinstance(v, list)
-                else v) for k, v in BASE.items()}  # fmt: skip
+    data = {
+        k: (dict(v) if isinstance(v, dict) else [dict(e) for e in v] if isinstance(v, list) else v)
+        for k, v in BASE.items()
+    }
     for _ in range(draw(st.integers(1, 3))):
         where = draw(st.sampled_from(sorted(KEYS)))
-        table = data if where == "" else data["potentials"][0] if where == "potentials.0" else (
-            data.setdefault(where, {}))  # fmt: skip
+        table = (
+            data
+            if where == ""
+            else data["potentials"][0]
+            if where == "potentials.0"
+            else (data.setdefault(where, {}))
+        )
         if not isinstance(table, dict):
             continue
         key = draw(st.sampled_from(KEYS[where]))
@@ -142,8 +171,13 @@ def test_extreme_magnitudes_of_every_numeric_key(workspace, where_key):
     where, key = where_key
     for value, smooth in itertools.product(EXTREMES, (False, True)):
         data = copy.deepcopy(BASE)
-        table = data if where == "" else data["potentials"][0] if where == "potentials.0" else (
-            data[where])  # fmt: skip
+        table = (
+            data
+            if where == ""
+            else data["potentials"][0]
+            if where == "potentials.0"
+            else (data[where])
+        )
         table[key] = value
         if smooth:
             data["potentials"][0]["cutoff_mode"] = "smooth"
@@ -269,9 +303,10 @@ def test_bad_structures(workspace, name):
         from md.trajectory import read_trajectory
 
         traj = read_trajectory(workspace / "s.h5")
-        assert np.allclose(traj.positions[0], np.array(
-            [[float(x) for x in line.split()[1:]] for line in text.splitlines()[2:]]
-        ))  # fmt: skip
+        assert np.allclose(
+            traj.positions[0],
+            np.array([[float(x) for x in line.split()[1:]] for line in text.splitlines()[2:]]),
+        )
 
 
 # ------------------------------------------------------------ broken HDF5 files
@@ -308,9 +343,15 @@ def _corruptions(good: Path, target: Path):
 
 @pytest.mark.parametrize(
     "case",
-    ["truncated_half", "truncated_header", "random_bytes_flipped", "superblock_zeroed",
-     "foreign_hdf5", "h5md_without_data"],
-)  # fmt: skip
+    [
+        "truncated_half",
+        "truncated_header",
+        "random_bytes_flipped",
+        "superblock_zeroed",
+        "foreign_hdf5",
+        "h5md_without_data",
+    ],
+)
 def test_broken_trajectories_to_info_and_resume(good_run, tmp_path, case):
     shutil.copy(good_run / "run.toml", tmp_path / "run.toml")
     shutil.copy(checkpoint_path(good_run / "out.h5"), checkpoint_path(tmp_path / "out.h5"))
@@ -371,10 +412,20 @@ def test_disk_full_keeps_the_frames_written(tmp_path):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
 
-    command = [sys.executable, "-m", "md.cli", "run", str(config), "--no-progress", "-q",
-               "--steps", "100000"]  # fmt: skip
-    result = subprocess.run(command, cwd=tmp_path, preexec_fn=limit, capture_output=True,
-                            text=True, timeout=300)  # fmt: skip
+    command = [
+        sys.executable,
+        "-m",
+        "md.cli",
+        "run",
+        str(config),
+        "--no-progress",
+        "-q",
+        "--steps",
+        "100000",
+    ]
+    result = subprocess.run(
+        command, cwd=tmp_path, preexec_fn=limit, capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr and "cannot write" in result.stderr
     from md.trajectory import open_trajectory, read_trajectory

@@ -182,8 +182,9 @@ def test_md_run_with_a_barostat_stores_volume_and_resumes_bit_for_bit(tmp_path):
         (LANGEVIN, 'type = "c_rescale"\ntau = 1.0', "missing required key [barostat] pressure"),
     ],
 )
-def test_bad_barostat_input_exits_2_and_writes_nothing(tmp_path, capsys, integrator, barostat,
-                                                       message):  # fmt: skip
+def test_bad_barostat_input_exits_2_and_writes_nothing(
+    tmp_path, capsys, integrator, barostat, message
+):
     (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=integrator, barostat=barostat))
     assert main(["run", "npt.toml", "--no-progress", "-q"]) == 2
     assert message in capsys.readouterr().err
@@ -206,17 +207,18 @@ def test_metal_pressure_in_bar_and_a_sweep_over_pressure(tmp_path):
     from md.sweeps.plan import plan_sweep
     from md.units import eV_per_A3_in_bar
 
-    metal = CONFIG.replace('units = "lj"', 'units = "metal"').replace(
-        "density = 0.8", 'lattice_constant = 5.26\nmass = 39.948\ntype_name = "Ar"'
-    ).replace("temperature = 1.0\n[[", "temperature = 100.0\n[[").replace(
-        "cutoff = 2.5", "epsilon = 0.0104\nsigma = 3.4\ncutoff = 8.0"
-    )  # fmt: skip
+    metal = (
+        CONFIG.replace('units = "lj"', 'units = "metal"')
+        .replace("density = 0.8", 'lattice_constant = 5.26\nmass = 39.948\ntype_name = "Ar"')
+        .replace("temperature = 1.0\n[[", "temperature = 100.0\n[[")
+        .replace("cutoff = 2.5", "epsilon = 0.0104\nsigma = 3.4\ncutoff = 8.0")
+    )
     metal = metal.format(
-        integrator=LANGEVIN.replace("temperature = 1.0", "temperature = 100.0").replace(
-            "friction = 1.0", "friction = 0.01"
-        ).replace("dt = 0.005", "dt = 5.0"),
+        integrator=LANGEVIN.replace("temperature = 1.0", "temperature = 100.0")
+        .replace("friction = 1.0", "friction = 0.01")
+        .replace("dt = 0.005", "dt = 5.0"),
         barostat='type = "c_rescale"\npressure = 1.0\ntau = 1000.0',
-    )  # fmt: skip
+    )
     (tmp_path / "metal.toml").write_text(metal)
     config = load_config(tmp_path / "metal.toml")
     assert config.barostat.get("pressure") == pytest.approx(1.0 / eV_per_A3_in_bar)  # 1 bar
@@ -232,17 +234,20 @@ def _npt_series(couple, shear=None, temperature=1.5, pressure=2.0, density=0.75,
     md.maxwell_boltzmann(state, temperature, seed=1)
     integrator = PressureCoupled(
         Langevin(0.005, temperature=temperature, friction=1.0, seed=2),
-        Barostat("c_rescale", pressure, tau=0.5, compressibility=0.1, couple=couple, every=10,
-                 seed=3),
-    )  # fmt: skip
+        Barostat(
+            "c_rescale", pressure, tau=0.5, compressibility=0.1, couple=couple, every=10, seed=3
+        ),
+    )
     sim = md.Simulation(state, [LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5)], integrator)
     rows = []
 
     def record(s):
         thermo = s.thermo()
-        rows.append([s.state.n_atoms / s.state.volume]
-                    + [thermo[k] for k in ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")]
-                    + [*s.state.tilt, *s.state.box])  # fmt: skip
+        rows.append(
+            [s.state.n_atoms / s.state.volume]
+            + [thermo[k] for k in ("pxx", "pyy", "pzz", "pxy", "pxz", "pyz")]
+            + [*s.state.tilt, *s.state.box]
+        )
 
     sim.attach(record, 10)
     sim.run(steps)
@@ -333,16 +338,21 @@ every = 50
 GUARD_CASES = {
     # Each of these stopped at step 10 ("atom ... moved 0.6-0.85 in one step, more than the
     # skin") before the guard measured motion relative to the moving cell.
-    "pressure 30": dict(cells=5, density=0.8442, temperature=1.0, pressure=30.0,
-                        compressibility=0.1),
-    "cavitation": dict(cells=6, density=0.75, temperature=0.9, pressure=-2.0,
-                       compressibility=1.0),
-    "dilute gas": dict(cells=4, density=0.05, temperature=1.0, pressure=2.0,
-                       compressibility=1.0),
-    "sheared by 0.5": dict(cells=5, density=0.8442, temperature=0.5, pressure=0.0,
-                           compressibility=0.1, couple="triclinic",
-                           shear="shear = [0.5, 0.0, 0.0]"),
-}  # fmt: skip
+    "pressure 30": dict(
+        cells=5, density=0.8442, temperature=1.0, pressure=30.0, compressibility=0.1
+    ),
+    "cavitation": dict(cells=6, density=0.75, temperature=0.9, pressure=-2.0, compressibility=1.0),
+    "dilute gas": dict(cells=4, density=0.05, temperature=1.0, pressure=2.0, compressibility=1.0),
+    "sheared by 0.5": dict(
+        cells=5,
+        density=0.8442,
+        temperature=0.5,
+        pressure=0.0,
+        compressibility=0.1,
+        couple="triclinic",
+        shear="shear = [0.5, 0.0, 0.0]",
+    ),
+}
 
 
 def _guard_config(tmp_path, **values):
@@ -397,8 +407,7 @@ def test_the_displacement_guard_sees_through_a_tilt_flip():
     new_box = np.diag(cell).copy()
     new_tilt = reduced_tilt(new_box, cell[[1, 2, 2], [0, 0, 1]], pbc)
     assert new_tilt[0] < 0  # flipped
-    np.testing.assert_allclose(cell_deformation(box, tilt, new_box, new_tilt, pbc), mu,
-                               atol=1e-14)  # fmt: skip
+    np.testing.assert_allclose(cell_deformation(box, tilt, new_box, new_tilt, pbc), mu, atol=1e-14)
 
 
 def _manual_npt_snippet(root) -> str:
@@ -426,9 +435,11 @@ def test_the_documented_npt_snippet_runs_the_32000_atom_melt(tmp_path):
     (tmp_path / "npt.toml").write_text(head + snippet.strip() + "\n\n" + tail)
     done = subprocess.run(
         [sys.executable, "-m", "md.cli", "run", "npt.toml", "--no-progress", "-q"],
-        cwd=tmp_path, capture_output=True, text=True, env={**__import__("os").environ,
-        "PYTHONPATH": str(root)},
-    )  # fmt: skip
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, "PYTHONPATH": str(root)},
+    )
     assert done.returncode == 0, done.stderr
     traj = read_trajectory(tmp_path / "lj_melt.h5")
     assert traj.steps[-1] == 1000
@@ -439,8 +450,7 @@ def test_the_documented_npt_snippet_runs_the_32000_atom_melt(tmp_path):
 # ------------------------------------------------------- overshoot and open axes (issue 33)
 @pytest.mark.parametrize("couple", ["isotropic", "anisotropic"])
 @pytest.mark.parametrize("barostat", ["pressure = 1.0\ntau = 0.001", "pressure = 500.0\ntau = 1.0"])
-def test_a_berendsen_move_that_overshoots_fails_with_a_message(tmp_path, capsys, couple,
-                                                                barostat):  # fmt: skip
+def test_a_berendsen_move_that_overshoots_fails_with_a_message(tmp_path, capsys, couple, barostat):
     """1 - beta dt (P0 - P) / tau < 0: was a TypeError (the complex cube root) when isotropic."""
     barostat = f'type = "berendsen"\n{barostat}\ncouple = "{couple}"'
     (tmp_path / "npt.toml").write_text(CONFIG.format(integrator=LANGEVIN, barostat=barostat))
@@ -467,12 +477,19 @@ OPEN_SYSTEM = CONFIG.replace("temperature = 1.0\n[[", "temperature = 1.0\npbc = 
         ("false", C_RESCALE, "the c_rescale barostat needs periodic axes"),
         ("false", C_RESCALE.replace("c_rescale", "berendsen"), "the berendsen barostat needs"),
         ("false", C_RESCALE + '\ncouple = "anisotropic"', "periodic along none"),
-        ("[true, true, false]", C_RESCALE, "isotropic coupling scales all three edges, but "
-         "the system is open along z"),
-        ("[true, true, false]", MTK, "[barostat]: the mtk barostat needs a box periodic along "
-         "x, y and z; the system is open along z"),
+        (
+            "[true, true, false]",
+            C_RESCALE,
+            "isotropic coupling scales all three edges, but the system is open along z",
+        ),
+        (
+            "[true, true, false]",
+            MTK,
+            "[barostat]: the mtk barostat needs a box periodic along "
+            "x, y and z; the system is open along z",
+        ),
     ],
-)  # fmt: skip
+)
 def test_a_barostat_refuses_what_it_cannot_scale(tmp_path, capsys, pbc, barostat, message):
     integrator = NHC if "mtk" in barostat else LANGEVIN
     config = OPEN_SYSTEM.replace("{pbc}", pbc).format(integrator=integrator, barostat=barostat)

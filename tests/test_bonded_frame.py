@@ -170,13 +170,17 @@ def test_built_in_styles_equal_the_same_formula_written_as_a_user_term():
     state.positions[:] += np.random.default_rng(3).normal(scale=0.05, size=state.positions.shape)
     angles = chain_angles(3, 6)
     pairs = [
-        (HarmonicBonds(bonds, k=[80.0, 40.0], r0=[0.9, 1.0], bond_types=np.arange(15) % 2),
-         BondPotential(my_harmonic, bonds, np.arange(15) % 2, k=[80.0, 40.0], r0=[0.9, 1.0])),
+        (
+            HarmonicBonds(bonds, k=[80.0, 40.0], r0=[0.9, 1.0], bond_types=np.arange(15) % 2),
+            BondPotential(my_harmonic, bonds, np.arange(15) % 2, k=[80.0, 40.0], r0=[0.9, 1.0]),
+        ),
         (FENEBonds(bonds), BondPotential(my_fene, bonds, k=30.0, r_max=1.5)),
-        (HarmonicAngles(angles, k=4.0, theta0=120.0),
-         AnglePotential(my_harmonic_angle, angles, k=4.0, theta0=math.radians(120.0))),
+        (
+            HarmonicAngles(angles, k=4.0, theta0=120.0),
+            AnglePotential(my_harmonic_angle, angles, k=4.0, theta0=math.radians(120.0)),
+        ),
         (CosineAngles(angles, k=1.5), AnglePotential(my_cosine, angles, k=1.5)),
-    ]  # fmt: skip
+    ]
     for built_in, user in pairs:
         ours, theirs = (
             built_in.energy_forces(state, per_atom=True),
@@ -187,8 +191,9 @@ def test_built_in_styles_equal_the_same_formula_written_as_a_user_term():
         np.testing.assert_allclose(ours.virial, theirs.virial, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(ours.energies, theirs.energies, rtol=1e-9, atol=1e-12)
     for built_in, user in (pairs[0], pairs[2]):
-        np.testing.assert_allclose(built_in.hessian(state).toarray(), user.hessian(state).toarray(),
-                                   rtol=1e-9, atol=1e-8)  # fmt: skip
+        np.testing.assert_allclose(
+            built_in.hessian(state).toarray(), user.hessian(state).toarray(), rtol=1e-9, atol=1e-8
+        )
 
 
 def test_a_user_bond_potential_describes_itself_and_offers_no_bond_law(chains):
@@ -351,8 +356,13 @@ def test_the_bonded_frame_runs_under_disable_jit_as_compiled():
         root = str(Path(__file__).resolve().parents[1])
         paths = os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))
         env = {**os.environ, "NUMBA_DISABLE_JIT": disable, "PYTHONPATH": paths}
-        done = subprocess.run([sys.executable, "-c", _DISABLE_JIT_RUN], env=env,
-                              capture_output=True, text=True, timeout=600)  # fmt: skip
+        done = subprocess.run(
+            [sys.executable, "-c", _DISABLE_JIT_RUN],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert done.returncode == 0, done.stderr
         return json.loads(done.stdout.strip().splitlines()[-1])
 

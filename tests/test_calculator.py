@@ -112,9 +112,15 @@ def _any_pbc_geometries() -> dict:
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
     rotation = q * np.sign(np.diag(r))
     cases = {}
-    for pbc in [(False, False, False), (True, False, False), (False, True, False),
-                (False, False, True), (True, True, False), (True, False, True),
-                (False, True, True)]:  # fmt: skip
+    for pbc in [
+        (False, False, False),
+        (True, False, False),
+        (False, True, False),
+        (False, False, True),
+        (True, True, False),
+        (True, False, True),
+        (False, True, True),
+    ]:
         for narrow in (False, True):  # narrow: 5.26 A periodic edges, replicated inside
             atoms = argon(cells=(1, 2, 3) if narrow else 3, rattle=0.08, seed=len(cases))
             cell = atoms.cell.array.copy()
@@ -380,9 +386,12 @@ def test_cell_relaxation_reaches_the_lattice_constant(mode, driver):
     from ase.optimize import BFGS, FIRE
 
     best = minimize_scalar(
-        _fcc_lattice_energy, args=(mode,), bounds=(5.0, 5.6), method="bounded",
+        _fcc_lattice_energy,
+        args=(mode,),
+        bounds=(5.0, 5.6),
+        method="bounded",
         options={"xatol": 1e-12},
-    )  # fmt: skip
+    )
     atoms = argon(cells=1, a=5.35, rattle=0.05, seed=9)
     # Sheared and strained: all six strain components relax.
     deformation = np.array([[1.0, 0.03, -0.02], [0.0, 0.98, 0.04], [0.0, 0.0, 1.02]])
@@ -521,8 +530,7 @@ def test_mixed_precision_forces_equal_double_ones_to_float32_round_off():
     round-off of double's, and not equal to them (the float32 path really ran)."""
     atoms = argon(cells=4, rattle=0.1)
     atoms.calc = ours()
-    forces, energy, stress = (atoms.get_forces(), atoms.get_potential_energy(),
-                              atoms.get_stress())  # fmt: skip
+    forces, energy, stress = (atoms.get_forces(), atoms.get_potential_energy(), atoms.get_stress())
     mixed = atoms.copy()
     mixed.calc = ours(precision="mixed")
     scale = np.abs(forces).max()

@@ -173,8 +173,11 @@ def test_a_wrong_bonded_derivative_is_caught_and_named():
 
     assert check_term(cosine, [3.0], (0.1, 3.0)).errors["du_dc"] < 1e-8
     cosine.with_curvature(bad_curvature)
-    with pytest.raises(ValueError, match=r"angle term my_cosine: d2u_dc2 \* -sin\(theta\) "
-                                         r"disagrees .* worst at theta = "):  # fmt: skip
+    with pytest.raises(
+        ValueError,
+        match=r"angle term my_cosine: d2u_dc2 \* -sin\(theta\) "
+        r"disagrees .* worst at theta = ",
+    ):
         check_term(cosine, [3.0], (0.1, 3.0))
     with pytest.raises(ValueError, match="two angles in radians"):
         check_term(cosine, [3.0], (0.0, 4.0))

@@ -108,8 +108,9 @@ def test_integrator_state_is_what_makes_the_continuation_exact(tmp_path):
 
     reference = new_sim(maxwell_boltzmann(lattice("fcc", 3, density=0.8442), 1.2, seed=3))
     reference.run(20)
-    path = write_checkpoint(tmp_path / "c.ckpt", reference.state, reference.integrator,
-                            reference.forcefield)  # fmt: skip
+    path = write_checkpoint(
+        tmp_path / "c.ckpt", reference.state, reference.integrator, reference.forcefield
+    )
     reference.run(20)
     saved = read_checkpoint(path)
     results = {}
@@ -292,7 +293,6 @@ def test_a_list_kept_through_cell_changes_is_restored_as_it_was(tmp_path):
     again = ForceField([LennardJones(cutoff=2.5)], skin=0.4)
     restore(checkpoint, VelocityVerlet(0.005), again)
     other = again.neighbor_list
-    for name in ("order", "images", "slot_starts", "slot_neighbors", "codes", "shifts",
-                 "lengths"):  # fmt: skip
+    for name in ("order", "images", "slot_starts", "slot_neighbors", "codes", "shifts", "lengths"):
         np.testing.assert_array_equal(getattr(other, name), getattr(nl, name))
     assert again.compute(checkpoint.state).energy == ff.compute(state).energy

@@ -363,9 +363,13 @@ def test_md_run_memory_does_not_grow_with_the_number_of_thermo_rows(tmp_path):
     (tmp_path / "run.toml").write_text(config)
     root = Path(__file__).resolve().parents[1]
     done = subprocess.run(
-        [sys.executable, "-c", _GROWTH], cwd=tmp_path, capture_output=True, text=True,
-        env={**os.environ, "PYTHONPATH": str(root)}, timeout=600,
-    )  # fmt: skip
+        [sys.executable, "-c", _GROWTH],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.count("\n") > 500  # the thermo table printed every step
     grown = {int(k): v for k, v in json.loads(done.stdout.strip().splitlines()[-1]).items()}

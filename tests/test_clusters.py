@@ -129,8 +129,9 @@ def candidates(state, radius, chunks, room=256):
     xi = np.empty(3 * len(atom), np.float32)
     xj = np.empty(3 * len(atom), np.float32)
     cluster_positions(state.positions, atom, origin, xi, xj)
-    return search_pairs(state.box, ncx, ncy, first, lower, upper, radius, chunks, room, xi, xj,
-                        np.float32(1e30))  # fmt: skip
+    return search_pairs(
+        state.box, ncx, ncy, first, lower, upper, radius, chunks, room, xi, xj, np.float32(1e30)
+    )
 
 
 def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fcc_lattice):
@@ -150,13 +151,21 @@ def test_the_list_keeps_exactly_the_candidates_with_an_atom_pair_within_reach(fc
     def closest(ci, cj, offset):
         d = rel_i[ci][:, None, :] - rel_j[cj][None, :, :] + offset.astype(float)
         r2 = np.einsum("abk,abk->ab", d, d)
-        return np.sqrt(np.triu(r2, k=1)[np.triu_indices(4, 1)].min() if ci == cj and not
-                       offset.any() else r2.min())  # fmt: skip
+        return np.sqrt(
+            np.triu(r2, k=1)[np.triu_indices(4, 1)].min()
+            if ci == cj and not offset.any()
+            else r2.min()
+        )
 
-    kept = {(ci, int(cj), tuple(o)) for ci in range(clusters.n_clusters)
-            for cj, o in zip(clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]],
-                             clusters.offsets[clusters.starts[ci]:clusters.starts[ci + 1]],
-                             strict=True)}  # fmt: skip
+    kept = {
+        (ci, int(cj), tuple(o))
+        for ci in range(clusters.n_clusters)
+        for cj, o in zip(
+            clusters.partners[clusters.starts[ci] : clusters.starts[ci + 1]],
+            clusters.offsets[clusters.starts[ci] : clusters.starts[ci + 1]],
+            strict=True,
+        )
+    }
     for ci in range(len(starts) - 1):
         for k in range(starts[ci], starts[ci + 1]):
             key = (ci, int(partners[k]), tuple(offsets[k]))
@@ -185,10 +194,17 @@ def closest_distances(state, clusters, rows=None):
 
 
 def rows_of(clusters):
-    return [[(int(j), tuple(o.tolist())) for j, o in
-             zip(clusters.partners[clusters.starts[c]:clusters.starts[c + 1]],
-                 clusters.offsets[clusters.starts[c]:clusters.starts[c + 1]], strict=True)]
-            for c in range(clusters.n_clusters)]  # fmt: skip
+    return [
+        [
+            (int(j), tuple(o.tolist()))
+            for j, o in zip(
+                clusters.partners[clusters.starts[c] : clusters.starts[c + 1]],
+                clusters.offsets[clusters.starts[c] : clusters.starts[c + 1]],
+                strict=True,
+            )
+        ]
+        for c in range(clusters.n_clusters)
+    ]
 
 
 def moved_by(state, rng, largest):
@@ -202,8 +218,7 @@ def moved_by(state, rng, largest):
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_a_prune_keeps_exactly_the_outer_pairs_within_the_list_radius(threads, fcc_lattice,
-                                                                      rng):  # fmt: skip
+def test_a_prune_keeps_exactly_the_outer_pairs_within_the_list_radius(threads, fcc_lattice, rng):
     """GROMACS's dynamic pruning: the search lists the pairs within cutoff + outer_skin;
     once an atom has moved past skin / 2, the list the kernels read becomes the outer
     pairs with an atom pair within cutoff + skin at the new positions, each row in its
@@ -226,18 +241,26 @@ def test_a_prune_keeps_exactly_the_outer_pairs_within_the_list_radius(threads, f
         set_threads(before)
     distances = closest_distances(moved, outer)
     radius = nl.list_radius
-    expected = [[pair for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row,
-                                         strict=True)
-                 if k == outer.starts[c] or distances[k] < radius + 1e-4]
-                for c, row in enumerate(rows_of(outer))]  # fmt: skip
+    expected = [
+        [
+            pair
+            for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row, strict=True)
+            if k == outer.starts[c] or distances[k] < radius + 1e-4
+        ]
+        for c, row in enumerate(rows_of(outer))
+    ]
     kept = rows_of(nl.clusters)
-    uncertain = {(c, pair) for c, row in enumerate(rows_of(outer))
-                 for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row, strict=True)
-                 if abs(distances[k] - radius) <= 1e-4}  # fmt: skip
+    uncertain = {
+        (c, pair)
+        for c, row in enumerate(rows_of(outer))
+        for k, pair in zip(range(outer.starts[c], outer.starts[c + 1]), row, strict=True)
+        if abs(distances[k] - radius) <= 1e-4
+    }
     for c in range(outer.n_clusters):
         assert kept[c][0] == (c, (0.0, 0.0, 0.0))
         assert [p for p in kept[c] if (c, p) not in uncertain] == [
-            p for p in expected[c] if (c, p) not in uncertain]
+            p for p in expected[c] if (c, p) not in uncertain
+        ]
     assert_covers(moved, nl.clusters, radius)  # every pair within reach, once
 
 
@@ -264,8 +287,14 @@ def test_the_verdict_prunes_then_searches(fcc_lattice):
     state = fcc_lattice(cells=6, perturbation=0.05)
     nl = NeighborList(2.5, 0.3, clusters=True, outer_skin=1.1)  # prune past 0.15, search 0.4
     nl.update(state)
-    for distance, builds, prunes in [(0.14, 1, 0), (0.16, 1, 1), (0.30, 1, 1), (0.32, 1, 2),
-                                     (0.41, 1, 2), (0.48, 2, 2)]:  # fmt: skip
+    for distance, builds, prunes in [
+        (0.14, 1, 0),
+        (0.16, 1, 1),
+        (0.30, 1, 1),
+        (0.32, 1, 2),
+        (0.41, 1, 2),
+        (0.48, 2, 2),
+    ]:
         moved = state.copy()
         moved.positions[7, 0] += distance
         nl.update(moved)
@@ -286,7 +315,6 @@ def test_a_box_too_small_for_the_outer_list_searches_at_the_list_radius(fcc_latt
     assert_covers(state, nl.clusters, nl.list_radius)
 
 
-
 @pytest.mark.parametrize(("cells", "outer"), [(5, False), (6, True)])
 def test_no_outer_list_where_it_needs_many_narrower_columns(cells, outer, fcc_lattice):
     """A box just over twice the outer radius (500 atoms, edge 8.40 against 2 x 4.0) would
@@ -300,6 +328,7 @@ def test_no_outer_list_where_it_needs_many_narrower_columns(cells, outer, fcc_la
     assert (nl.outer_clusters is not None) == outer
     assert nl.clusters is not None and (nl.pruned_positions is not None) == outer
     assert_covers(state, nl.clusters, nl.list_radius)
+
 
 def test_rebuild_at_a_checkpoints_positions_gives_the_same_pruned_list(fcc_lattice, rng):
     state = fcc_lattice(cells=6, perturbation=0.1)
@@ -323,8 +352,11 @@ def test_a_bad_outer_skin_is_refused(outer):
 
 @pytest.mark.parametrize("cell", ["small", "tilted", "open axis", "decomposed rank"])
 def test_cells_the_cluster_search_does_not_serve_get_the_slot_frame(cell, fcc_lattice):
-    state = fcc_lattice(cells=3 if cell == "small" else 6, perturbation=0.05,
-                        pbc=(True, True, False) if cell == "open axis" else True)  # fmt: skip
+    state = fcc_lattice(
+        cells=3 if cell == "small" else 6,
+        perturbation=0.05,
+        pbc=(True, True, False) if cell == "open axis" else True,
+    )
     if cell == "tilted":
         state.tilt = np.array([0.5, 0.0, 0.0])
     nl = NeighborList(2.5, 0.3, clusters=True)
@@ -373,8 +405,12 @@ POTENTIALS = {
     "lj-none": lambda: LennardJones(cutoff=2.5, cutoff_mode="none"),
     "lj-shift": lambda: LennardJones(cutoff=2.5),
     "lj-smooth": lambda: LennardJones(cutoff=2.5, cutoff_mode="smooth"),
-    "lj-two-types": lambda: LennardJones(epsilon=[1.0, 0.7], sigma=[1.0, 0.9], cutoff=2.5,
-                                         pairs={(0, 1): {"epsilon": 0.5, "cutoff": 2.1}}),
+    "lj-two-types": lambda: LennardJones(
+        epsilon=[1.0, 0.7],
+        sigma=[1.0, 0.9],
+        cutoff=2.5,
+        pairs={(0, 1): {"epsilon": 0.5, "cutoff": 2.1}},
+    ),
     "morse (double term)": lambda: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.5),
 }
 #: each other case compiles its own kernels (~17 s); two threads run in the default suite
@@ -383,14 +419,17 @@ DEFAULT = {("lj-shift", 1)}
 
 
 def _kernel_cases():
-    return [pytest.param(name, threads,
-                         marks=() if (name, threads) in DEFAULT else pytest.mark.slow)
-            for name in POTENTIALS for threads in (1, 2)]  # fmt: skip
+    return [
+        pytest.param(name, threads, marks=() if (name, threads) in DEFAULT else pytest.mark.slow)
+        for name in POTENTIALS
+        for threads in (1, 2)
+    ]
 
 
 @pytest.mark.parametrize(("name", "threads"), _kernel_cases())
-def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(name, threads, fcc_lattice,
-                                                                     rng):  # fmt: skip
+def test_cluster_kernels_equal_the_double_frame_to_float32_round_off(
+    name, threads, fcc_lattice, rng
+):
     state = fcc_lattice(cells=8, perturbation=0.08, n_types=2 if "two" in name else 1)
     state.positions += rng.integers(-3, 4, size=state.positions.shape) * state.box
     potential = POTENTIALS[name]()
@@ -471,8 +510,9 @@ def test_a_mixed_melt_runs_on_the_cluster_list(fcc_lattice):
     runs = {}
     for precision in ("double", "mixed"):
         state = md.build.maxwell_boltzmann(md.lattice("fcc", 6, density=0.8442), 1.0, seed=5)
-        sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
-                            precision=precision)  # fmt: skip
+        sim = md.Simulation(
+            state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision=precision
+        )
         sim.run(50)
         runs[precision] = sim
     assert runs["mixed"].forcefield.neighbor_list.clusters is not None
@@ -508,8 +548,10 @@ def test_two_terms_in_one_process_each_run_their_own_pair_function(fcc_lattice):
     before = get_threads()
     try:
         set_threads(1)
-        for potential in (LennardJones(cutoff=2.5),
-                          PairPotential(gaussian_bump, height=1.0, width=0.8, cutoff=2.5)):
+        for potential in (
+            LennardJones(cutoff=2.5),
+            PairPotential(gaussian_bump, height=1.0, width=0.8, cutoff=2.5),
+        ):
             double = ForceField([potential]).compute(state)
             field = ForceField([potential], precision="mixed")
             mixed = field.compute(state)
@@ -529,18 +571,34 @@ def _row_kernel(term_module, lanes):
     from potentials._cluster_ir import cluster_row
     from potentials._kernels import cluster_j_remainders
 
-    row = cluster_row(term_module._pair, lambda: term_module.TERM + term_module.N_TERM,
-                      lanes=lanes)  # fmt: skip
+    row = cluster_row(term_module._pair, lambda: term_module.TERM + term_module.N_TERM, lanes=lanes)
 
     @njit(error_model="numpy")
-    def run(xi, xj, starts, partners, offsets, table, mode, data, cut2, out, j_sums,
-            j_counts):  # fmt: skip
+    def run(xi, xj, starts, partners, offsets, table, mode, data, cut2, out, j_sums, j_counts):
         out[:] = 0.0
         energy = 0.0
         most = 0
         for ci in range(len(starts) - 1):
-            energy += row(xi, xj, offsets, partners, starts[ci], starts[ci + 1], ci, None, 1,
-                          table, mode, data, cut2, out, j_sums, j_counts, 0, None)  # fmt: skip
+            energy += row(
+                xi,
+                xj,
+                offsets,
+                partners,
+                starts[ci],
+                starts[ci + 1],
+                ci,
+                None,
+                1,
+                table,
+                mode,
+                data,
+                cut2,
+                out,
+                j_sums,
+                j_counts,
+                0,
+                None,
+            )
             most = max(most, j_counts.max())
         cluster_j_remainders(j_sums, j_counts, out, 0)
         return energy, most
@@ -571,8 +629,19 @@ def _row_forces(state, potential, lanes):
     j_sums = np.zeros(J_STRIDE * clusters.n_clusters, np.float32)
     j_counts = np.zeros(clusters.n_clusters, np.int32)
     energy, most = _row_kernel(module, lanes)(
-        xi, xj, clusters.starts, clusters.partners, clusters.offsets.reshape(-1), table, mode,
-        potential.data, cut2, out, j_sums, j_counts)  # fmt: skip
+        xi,
+        xj,
+        clusters.starts,
+        clusters.partners,
+        clusters.offsets.reshape(-1),
+        table,
+        mode,
+        potential.data,
+        cut2,
+        out,
+        j_sums,
+        j_counts,
+    )
     forces = np.zeros((state.n_atoms, 3))
     slots = out.reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
     real = clusters.atom >= 0
@@ -637,12 +706,12 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     clusters.relative_positions(state.positions, *serial)
     for runs in (2, 3, 7):
         threaded = [np.full(size, np.nan, np.float32) for _ in range(2)]
-        cluster_positions_threaded(state.positions, clusters.atom, clusters.origin, *threaded,
-                                   runs)  # fmt: skip
+        cluster_positions_threaded(state.positions, clusters.atom, clusters.origin, *threaded, runs)
         for a, b in zip(serial, threaded, strict=True):
             assert np.array_equal(a, b)
-    windows = chunk_windows(row_reach(clusters.starts, clusters.partners),
-                            balanced_chunks(clusters.starts, 3))  # fmt: skip
+    windows = chunk_windows(
+        row_reach(clusters.starts, clusters.partners), balanced_chunks(clusters.starts, 3)
+    )
     buffers = rng.normal(size=12 * (windows[-1, 2] + windows[-1, 1] - windows[-1, 0]))
     expected = np.zeros((state.n_atoms, 3))
     _cluster_atom_forces(buffers, clusters.atom, windows, expected)
@@ -675,7 +744,8 @@ def test_the_threaded_grid_gives_the_serial_arrays(fcc_lattice, rng):
 
 
 def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_that(
-        fcc_lattice, rng):  # fmt: skip
+    fcc_lattice, rng
+):
     """Every row's partners are its i cluster and clusters after it, and a chunk's rows
     reach only a layer of columns past its own clusters (the first chunk's: the far
     side of the periodic box too), so each chunk's forces and j lanes take room for
@@ -704,7 +774,7 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
     exact = chunk_windows(reach, clusters.bounds)
     assert np.all(clusters.windows[:, 1] >= exact[:, 1]) and clusters.windows[-1, 1] == n
     for ci in range(n):
-        row = clusters.partners[clusters.starts[ci]:clusters.starts[ci + 1]]
+        row = clusters.partners[clusters.starts[ci] : clusters.starts[ci + 1]]
         assert row[0] == ci and np.all(row >= ci)
     real = clusters.atom >= 0
     for chunks in (2, 3, 5, 8):
@@ -714,7 +784,7 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
         sizes = windows[:, 1] - windows[:, 0]
         assert np.array_equal(windows[:, 2], np.concatenate([[0], np.cumsum(sizes)[:-1]]))
         for c in range(chunks):  # each window ends past the last cluster its rows reach
-            reached = clusters.partners[clusters.starts[bounds[c]]:clusters.starts[bounds[c + 1]]]
+            reached = clusters.partners[clusters.starts[bounds[c]] : clusters.starts[bounds[c + 1]]]
             assert windows[c, 1] == max(bounds[c + 1], reached.max(initial=-1) + 1)
         total = int(sizes.sum())
         assert total < {2: 0.85, 3: 0.75, 5: 0.65, 8: 0.55}[chunks] * chunks * n, total / n
@@ -806,18 +876,25 @@ assert 1e-3 * eps < error < 200 * eps, error
 assert abs(mixed.energy - double.energy) < 20 * eps * abs(double.energy)
 print("ok")
 """
-    env = dict(os.environ, NUMBA_CPU_NAME="haswell", NUMBA_CPU_FEATURES=_AVX2_ONLY,
-               NUMBA_CACHE_DIR=str(tmp_path / "numba"), XDG_CACHE_HOME=str(tmp_path))  # fmt: skip
-    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                          text=True, timeout=900)  # fmt: skip
+    env = dict(
+        os.environ,
+        NUMBA_CPU_NAME="haswell",
+        NUMBA_CPU_FEATURES=_AVX2_ONLY,
+        NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+        XDG_CACHE_HOME=str(tmp_path),
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
+    )
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
 
 
 def test_the_wide_flag_follows_the_compiled_features():
     """``ZMM`` (16-lane cluster rows) is set exactly where numba compiles for AVX-512F."""
     features = md._simd._compiled_features()
-    assert md._simd.ZMM == (md._simd.PERMUTE and "+avx512f" in features
-                            and "-evex512" not in features)  # fmt: skip
+    assert md._simd.ZMM == (
+        md._simd.PERMUTE and "+avx512f" in features and "-evex512" not in features
+    )
 
 
 def test_a_kernel_module_of_either_width_and_no_other():

@@ -63,8 +63,9 @@ def test_quick_run_prints_a_row_for_ours(tmp_path):
 @pytest.mark.slow
 def test_mixed_adds_our_mixed_precision_row_on_the_same_melt(tmp_path):
     report = tmp_path / "report.json"
-    done = run_compare("--quick", "--peers", "none", "--mixed", "--no-scaling", "--json",
-                       str(report))  # fmt: skip
+    done = run_compare(
+        "--quick", "--peers", "none", "--mixed", "--no-scaling", "--json", str(report)
+    )
     assert done.returncode == 0, done.stderr
     assert "mixed/peer" in done.stdout, done.stdout
     rows = [line.split() for line in done.stdout.splitlines() if line.startswith("leapmd mixed ")]
@@ -108,15 +109,27 @@ def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
     runs = {
         "compare.py": ["--quick", "--peers", "none"],
         "lj_melt.py": ["--cells", "5", "--steps", "5", "--repeats", "1", "--no-lammps"],
-        "implicit.py": ["--cells", "5", "--steps", "1", "--repeats", "1", "--skip-polymer",
-                        "--chain-span", "0.02"],
+        "implicit.py": [
+            "--cells",
+            "5",
+            "--steps",
+            "1",
+            "--repeats",
+            "1",
+            "--skip-polymer",
+            "--chain-span",
+            "0.02",
+        ],
         "npt.py": ["--cells", "5", "--steps", "5", "--repeats", "1"],
-    }  # fmt: skip
+    }
     for script, args in runs.items():
         done = subprocess.run(
             [sys.executable, str(bench / script), *args],
-            capture_output=True, text=True, timeout=300, cwd=bench.parent,
-        )  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=bench.parent,
+        )
         assert done.returncode == 0, (script, done.stderr)
         header = done.stdout.splitlines()[:4]
         machine = [line for line in header if line.startswith("machine: ")]
@@ -129,10 +142,23 @@ def test_every_benchmark_names_the_machine_and_the_threads_of_its_rows():
         assert "thread" in done.stdout, script
     # lj_melt.py labels its rows with their thread count, and runs LAMMPS only at 1 thread.
     done = subprocess.run(
-        [sys.executable, str(bench / "lj_melt.py"), "--cells", "5", "--steps", "5",
-         "--repeats", "1", "--threads", "2"],
-        capture_output=True, text=True, timeout=300, cwd=bench.parent,
-    )  # fmt: skip
+        [
+            sys.executable,
+            str(bench / "lj_melt.py"),
+            "--cells",
+            "5",
+            "--steps",
+            "5",
+            "--repeats",
+            "1",
+            "--threads",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=bench.parent,
+    )
     assert done.returncode == 0, done.stderr
     assert "leapmd (2 thread(s))" in done.stdout and "LAMMPS not run" in done.stdout
 
@@ -302,9 +328,11 @@ def _gro_fields(text: str, decimals: int):
     width = points[1] - points[0]
     assert width == decimals + 5
     rows = np.array(
-        [[float(line[20 + k * width : 20 + (k + 1) * width]) for k in range(6)]
-         for line in lines[2 : 2 + n]]
-    )  # fmt: skip
+        [
+            [float(line[20 + k * width : 20 + (k + 1) * width]) for k in range(6)]
+            for line in lines[2 : 2 + n]
+        ]
+    )
     box = np.array([float(v) for v in lines[2 + n].split()])
     return n, rows[:, :3], rows[:, 3:], box, lines[2 : 2 + n]
 
@@ -317,8 +345,9 @@ def test_gro_file_is_the_melt_at_its_density():
     state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=87287)
     sigma, tau = gmx.SIGMA, gmx.TAU
     assert math.isclose(tau, 0.34 * math.sqrt(40.0))  # ps, for 1 kJ/mol and 40 amu
-    text = gmx.gro_text(state.positions * sigma, state.velocities * (sigma / tau),
-                        state.box * sigma)  # fmt: skip
+    text = gmx.gro_text(
+        state.positions * sigma, state.velocities * (sigma / tau), state.box * sigma
+    )
     n, positions, velocities, box, lines = _gro_fields(text, gmx.GRO_DECIMALS)
     assert n == 4 * cells**3 == len(positions)
     # The box: cells fcc cells of edge (4 / 0.8442)^(1/3) sigma, in nm; the density is ours.
@@ -389,8 +418,16 @@ def test_mdp_is_nve_truncated_lj_without_charges_work():
 def test_gromacs_peer_without_binary_is_skipped_with_a_note(tmp_path):
     """No gmx anywhere: the harness says how to get one and runs the rest."""
     missing = str(tmp_path / "no-gmx")
-    done = run_compare("--quick", "--peers", "gromacs,gromacs-double", "--gmx", missing,
-                       "--gmx-d", missing, "--no-vector-check")  # fmt: skip
+    done = run_compare(
+        "--quick",
+        "--peers",
+        "gromacs,gromacs-double",
+        "--gmx",
+        missing,
+        "--gmx-d",
+        missing,
+        "--no-vector-check",
+    )
     assert done.returncode == 0, done.stderr
     assert "gromacs skipped" in done.stdout and "gromacs-double skipped" in done.stdout
     assert "apt-get install gromacs" in done.stdout
@@ -413,8 +450,17 @@ def test_gromacs_peers_run_the_same_melt(tmp_path):
     (GROMACS mixed to its single-precision sum), their rates are finite and their list
     radius reaches the cutoff."""
     report = tmp_path / "report.json"
-    done = run_compare("--quick", "--peers", "gromacs,gromacs-double", "--threads", "1",
-                       "--no-scaling", "--no-vector-check", "--json", str(report))  # fmt: skip
+    done = run_compare(
+        "--quick",
+        "--peers",
+        "gromacs,gromacs-double",
+        "--threads",
+        "1",
+        "--no-scaling",
+        "--no-vector-check",
+        "--json",
+        str(report),
+    )
     assert done.returncode == 0, done.stderr
     assert "same system" in done.stdout and "WARNING" not in done.stdout, done.stdout
     data = json.loads(report.read_text())
@@ -433,12 +479,19 @@ MIXED = SCRIPT.parent / "mixed_precision.py"
 def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
     """benchmarks/mixed_precision.py --drift-only --seeds 2: one block per liquid, each with
     both precisions' drifts, then the medians (no timing, no GROMACS); --seeds 0 exits 2."""
-    def run(*args):
-        return subprocess.run([sys.executable, str(MIXED), *args], capture_output=True,
-                              text=True, timeout=300, cwd=MIXED.parents[1])  # fmt: skip
 
-    done = run("--drift-only", "--seeds", "2", "--drift-cells", "3", "--drift-steps", "20",
-               "--every", "10")  # fmt: skip
+    def run(*args):
+        return subprocess.run(
+            [sys.executable, str(MIXED), *args],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=MIXED.parents[1],
+        )
+
+    done = run(
+        "--drift-only", "--seeds", "2", "--drift-cells", "3", "--drift-steps", "20", "--every", "10"
+    )
     assert done.returncode == 0, done.stderr
     out = done.stdout
     assert out.count("liquid of seed") == 2 and out.count("\n  ours mixed  ") == 2, out
@@ -458,15 +511,25 @@ PRUNING = SCRIPT.parent / "cluster_pruning.py"
 def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones():
     """benchmarks/cluster_pruning.py: the list without an outer one never prunes, the one
     with it prunes and lists more outer pairs than inner ones; bad --outer exits 2."""
-    def run(*args):
-        return subprocess.run([sys.executable, str(PRUNING), *args], capture_output=True,
-                              text=True, timeout=300, cwd=PRUNING.parents[1])  # fmt: skip
 
-    done = run("--cells", "6", "--outer", "0.3,1.2", "--steps", "40", "--repeats", "1",
-               "--warm", "20")  # fmt: skip
+    def run(*args):
+        return subprocess.run(
+            [sys.executable, str(PRUNING), *args],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=PRUNING.parents[1],
+        )
+
+    done = run(
+        "--cells", "6", "--outer", "0.3,1.2", "--steps", "40", "--repeats", "1", "--warm", "20"
+    )
     assert done.returncode == 0, done.stderr
-    rows = {line.split()[0]: line.split() for line in done.stdout.splitlines()
-            if line.split() and line.split()[0] in ("0.3", "1.2")}  # fmt: skip
+    rows = {
+        line.split()[0]: line.split()
+        for line in done.stdout.splitlines()
+        if line.split() and line.split()[0] in ("0.3", "1.2")
+    }
     # outer skin, ms/step, searches, prunes, pairs, outer pairs, ratio
     assert rows["0.3"][3] == "0" and rows["0.3"][5] == "-", done.stdout
     assert int(rows["1.2"][3]) > 0 and int(rows["1.2"][5]) > int(rows["1.2"][4]), done.stdout
@@ -476,23 +539,50 @@ def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones(
         assert refused.returncode == 2 and "--outer" in refused.stderr, refused.stderr
     # --sections: where a step goes; the searches and prunes are timed, and the parts add
     # up to no more than the step
-    split = run("--cells", "6", "--outer", "1.2", "--steps", "40", "--repeats", "1",
-                "--warm", "20", "--sections")  # fmt: skip
+    split = run(
+        "--cells",
+        "6",
+        "--outer",
+        "1.2",
+        "--steps",
+        "40",
+        "--repeats",
+        "1",
+        "--warm",
+        "20",
+        "--sections",
+    )
     assert split.returncode == 0, split.stderr
     lines = split.stdout.splitlines()
-    header = next(i for i, line in enumerate(lines) if line.split()[:2] == ["outer", "skin"]
-                  and "force" in line)  # fmt: skip
+    header = next(
+        i
+        for i, line in enumerate(lines)
+        if line.split()[:2] == ["outer", "skin"] and "force" in line
+    )
     step = float(next(line.split()[1] for line in lines if line.split()[:1] == ["1.2"]))
     parts = [float(x) for x in lines[header + 1].split()[1:]]
     assert lines[header + 1].split()[0] == "1.2" and len(parts) == 5, lines
     assert all(x >= 0 for x in parts) and parts[0] > 0 and parts[1] > 0, parts
     assert sum(parts) <= 1.05 * step, (parts, step)
     # --every: a row with GROMACS's rule (every N steps, no check): no prunes, no outer list
-    lazy = run("--cells", "6", "--outer", "1.2", "--steps", "40", "--repeats", "1",
-               "--warm", "20", "--every", "10")  # fmt: skip
+    lazy = run(
+        "--cells",
+        "6",
+        "--outer",
+        "1.2",
+        "--steps",
+        "40",
+        "--repeats",
+        "1",
+        "--warm",
+        "20",
+        "--every",
+        "10",
+    )
     assert lazy.returncode == 0, lazy.stderr
-    row = next(line.split() for line in lazy.stdout.splitlines()
-               if line.split()[:2] == ["every", "10"])  # fmt: skip
+    row = next(
+        line.split() for line in lazy.stdout.splitlines() if line.split()[:2] == ["every", "10"]
+    )
     # every, 10, ms/step, searches, prunes, pairs, outer pairs, ratio
     assert row[4] == "0" and row[6] == "-" and float(row[3]) >= 3, lazy.stdout
     refused = run("--every", "-2")
@@ -524,8 +614,13 @@ def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     script = SCRIPT.parent / "cluster_kernel.py"
 
     def run(*args):
-        return subprocess.run([sys.executable, str(script), *args], capture_output=True,
-                              text=True, timeout=600, cwd=SCRIPT.parents[1])  # fmt: skip
+        return subprocess.run(
+            [sys.executable, str(script), *args],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            cwd=SCRIPT.parents[1],
+        )
 
     done = run("--cells", "6", "--calls", "3")
     assert done.returncode == 0, done.stderr
@@ -565,17 +660,33 @@ def test_cluster_kernel_bench_compares_the_row_widths_in_one_process():
     """``--lanes 8,16``: the cluster kernel at both widths, alternated, each the same sum of pair
     terms (energies to float32 round-off of each other), with the per-block ratios."""
     script = SCRIPT.parent / "cluster_kernel.py"
-    done = subprocess.run([sys.executable, str(script), "--cells", "6", "--calls", "2",
-                           "--blocks", "2", "--lanes", "8,16"], capture_output=True, text=True,
-                          timeout=600, cwd=SCRIPT.parents[1])  # fmt: skip
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--cells",
+            "6",
+            "--calls",
+            "2",
+            "--blocks",
+            "2",
+            "--lanes",
+            "8,16",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=SCRIPT.parents[1],
+    )
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].startswith("machine: ")
     assert "the cluster kernel alone, 2 alternating" in lines[1], lines
     rows = {int(line.split()[0]): line for line in lines[2:]}
     assert set(rows) == {8, 16}, lines
-    energies = {lanes: float(line.split("energy ")[1].split(";")[0]) for lanes, line in
-                rows.items()}  # fmt: skip
+    energies = {
+        lanes: float(line.split("energy ")[1].split(";")[0]) for lanes, line in rows.items()
+    }
     assert abs(energies[16] - energies[8]) < 1e-5 * abs(energies[8]), energies
     assert "median 1.000" in rows[8] and float(rows[16].split("median ")[1].split()[0]) > 0
 
@@ -585,8 +696,10 @@ def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
 
     def measured(engine, variant, threads, loop_times, simd=None):
         job = compare.Job(engine=engine, threads=threads, cells=20, steps=100, variant=variant)
-        runs = [{"n_atoms": 32000, "loop_time": t, **({"simd": simd} if simd else {})}
-                for t in loop_times]  # fmt: skip
+        runs = [
+            {"n_atoms": 32000, "loop_time": t, **({"simd": simd} if simd else {})}
+            for t in loop_times
+        ]
         return compare.Measured(job, runs)
 
     # rounds 1-3: ours double 1.0, 2.0, 1.0 s; GROMACS double 2.0, 2.0, 4.0 s: ratios 2, 1, 4
@@ -598,12 +711,16 @@ def test_per_repeat_ratios_pair_the_rounds_and_take_their_median(capsys):
     compare.print_repeat_ratios([ours, mixed, peer, other_threads])
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("ours / peer per repeat")
-    assert any("leapmd / GROMACS double (AVX_512), 1t 32k: median 2.00 (2.00, 1.00, 4.00)"
-               in line for line in lines), lines  # fmt: skip
+    assert any(
+        "leapmd / GROMACS double (AVX_512), 1t 32k: median 2.00 (2.00, 1.00, 4.00)" in line
+        for line in lines
+    ), lines
     # the median of the per-round ratios: 4, 0.5, 1 -> 1, where the ratio of the medians
     # (0.8 M / 1.6 M atom-steps/s) would say 0.5
-    assert any("leapmd mixed / GROMACS double (AVX_512), 1t 32k: median 1.00 (4.00, 0.50, "
-               "1.00)" in line for line in lines), lines  # fmt: skip
+    assert any(
+        "leapmd mixed / GROMACS double (AVX_512), 1t 32k: median 1.00 (4.00, 0.50, 1.00)" in line
+        for line in lines
+    ), lines
     # no row of ours at 2 threads: the 2-thread peer gets no line
     assert not any(" 2t " in line for line in lines), lines
 
@@ -654,9 +771,13 @@ def test_the_warm_up_leaves_no_kernel_to_load_in_a_two_thread_timed_loop(warm_up
     timed loop's first step (24 ms of a 250 ms run). The worker's second warm-up takes
     them; without it (``small``) the loop still loads them, which shows the check can
     see such a load."""
-    done = subprocess.run([sys.executable, "-c", _LOADS_IN_THE_LOOP, str(SCRIPT.parent),
-                           warm_ups], capture_output=True, text=True, timeout=300,
-                          cwd=SCRIPT.parents[1])  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", _LOADS_IN_THE_LOOP, str(SCRIPT.parent), warm_ups],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=SCRIPT.parents[1],
+    )
     assert done.returncode == 0, done.stderr
     found = json.loads(done.stdout)
     if found is None:
@@ -691,8 +812,9 @@ def test_the_gromacs_rule_adds_our_rows_with_its_list_and_the_ratios_keep_the_ex
         job = compare.Job("ours", 1, 20, 100, variant, neigh=neigh)
         return compare.Measured(job, [{"n_atoms": 32000, "loop_time": loop_time}])
 
-    peer = compare.Measured(compare.Job("gromacs", 1, 20, 100, "mixed"),
-                            [{"n_atoms": 32000, "loop_time": 1.0}])  # fmt: skip
+    peer = compare.Measured(
+        compare.Job("gromacs", 1, 20, 100, "mixed"), [{"n_atoms": 32000, "loop_time": 1.0}]
+    )
     rows = [measured("mixed", "every20", 0.5), measured("mixed", "check", 2.0), peer]
     assert compare.ratio_to_ours(peer, rows, "mixed") == 0.5  # the exact row's, not 2.0
 
@@ -709,8 +831,12 @@ def _scaling_runs(module, model, here, cells, ranks: int, steps: int = 100) -> o
     run = {
         "n_steps": steps,
         "loop_time": model.step(cells, ranks, *here) * steps,
-        "sections": {"force": own * steps, "neighbor": 0.0, "integrate": 0.0,
-                     "rebuild_comm": model.rebuild * builds * n * (1 + ghosts)},  # fmt: skip
+        "sections": {
+            "force": own * steps,
+            "neighbor": 0.0,
+            "integrate": 0.0,
+            "rebuild_comm": model.rebuild * builds * n * (1 + ghosts),
+        },
         "n_builds": builds,
         "local_atoms": [[n, ghosts * n]] * ranks,
     }
@@ -725,10 +851,15 @@ def test_the_mpi_scaling_model_gives_back_the_costs_its_runs_were_made_with():
     periodic images of the uncut ones)."""
     module = _benchmark_module("mpi_scaling")
     here = (3.5e-6, 3.2e9)
-    truth = module.StepModel("ours", images=False,
-                             per_atom={1152: 2.2e-7, 32000: 2.0e-7, 2048000: 2.25e-7},
-                             ghost_cost=0.7, decomposed_fixed=4e-4, rebuild=2.5e-8,
-                             builds=0.2)  # fmt: skip
+    truth = module.StepModel(
+        "ours",
+        images=False,
+        per_atom={1152: 2.2e-7, 32000: 2.0e-7, 2048000: 2.25e-7},
+        ghost_cost=0.7,
+        decomposed_fixed=4e-4,
+        rebuild=2.5e-8,
+        builds=0.2,
+    )
     cells = [module.TINY_CELLS, *(c for _, c, _ in module.SIZES[False])]
     measured = {}
     for size in cells:
@@ -748,7 +879,9 @@ def test_the_mpi_scaling_model_gives_back_the_costs_its_runs_were_made_with():
     box = module.melt_box((80, 80, 80))
     lx = box[0] / 2
     assert module.ghosts_per_atom(box, (2, 1, 1), images=False) == pytest.approx(
-        2 * module.SHELL / lx, rel=1e-12)
+        2 * module.SHELL / lx, rel=1e-12
+    )
     shells = (lx + 2 * module.SHELL) * (box[1] + 2 * module.SHELL) ** 2
     assert module.ghosts_per_atom(box, (2, 1, 1)) == pytest.approx(
-        shells / (lx * box[1] ** 2) - 1, rel=1e-12)
+        shells / (lx * box[1] ** 2) - 1, rel=1e-12
+    )

@@ -78,9 +78,13 @@ def test_sections_are_frozen_records_in_engine_units():
     barostat = config.barostat
     to_engine = 1.0 / units.eV_per_A3_in_bar
     assert barostat.values == {
-        "pressure": 1.0 * to_engine, "tau": 500.0 * units.fs, "couple": "isotropic",
-        "compressibility": 4.5e-5 / to_engine, "every": 10, "seed": [11, 2],
-    }  # fmt: skip
+        "pressure": 1.0 * to_engine,
+        "tau": 500.0 * units.fs,
+        "couple": "isotropic",
+        "compressibility": 4.5e-5 / to_engine,
+        "every": 10,
+        "seed": [11, 2],
+    }
     reduced = tomllib.loads(NPT)
     del reduced["units"]  # lj: the default is another, and nothing is converted
     assert parse_config(reduced).barostat.get("compressibility") == 0.1
@@ -99,8 +103,9 @@ def test_fingerprints_of_configs_written_before_the_records_are_unchanged(tmp_pa
         Path(name).write_text(text)
     assert len(stored["configs"]) >= 7
     for name, case in stored["configs"].items():
-        config = parse_config(tomllib.loads(case["toml"]), source=f"{name}.toml",
-                              text=case["toml"], base=".")  # fmt: skip
+        config = parse_config(
+            tomllib.loads(case["toml"]), source=f"{name}.toml", text=case["toml"], base="."
+        )
         assert fingerprint_changes(case["fingerprint"], physics_fingerprint(config)) == [], name
         changed = dataclasses.replace(config, run=dataclasses.replace(config.run, skin=0.25))
         assert fingerprint_changes(case["fingerprint"], physics_fingerprint(changed)) == [
@@ -110,8 +115,11 @@ def test_fingerprints_of_configs_written_before_the_records_are_unchanged(tmp_pa
 
 def test_input_files_are_the_paths_keys_name(tmp_path):
     (tmp_path / "b.txt").write_text("0 1\n")
-    text = NPT.replace('[integrator]\ntype = "langevin"', '[[potentials]]\ntype = "spring"\n'
-                       'bonds_file = "b.txt"\nk = 1\nr0 = 1\n[integrator]\ntype = "langevin"')
+    text = NPT.replace(
+        '[integrator]\ntype = "langevin"',
+        '[[potentials]]\ntype = "spring"\n'
+        'bonds_file = "b.txt"\nk = 1\nr0 = 1\n[integrator]\ntype = "langevin"',
+    )
     data = tomllib.loads(text)
     data["integrator"]["constraints"] = {"bonds_file": str(tmp_path / "b.txt")}
     config = parse_config(data, source="run.toml", base=tmp_path)
@@ -122,26 +130,48 @@ def test_input_files_are_the_paths_keys_name(tmp_path):
 @pytest.mark.parametrize(
     ("section", "values", "message"),
     [
-        ("integrator", {"type": "bussi", "tau": 100.0, "friction": 1.0},
-         "run.toml: [integrator] friction: does not apply to type = 'bussi', which takes dt, "
-         "temperature, tau, seed, constraints, fix_com"),
-        ("integrator", {"friction": None}, "run.toml: missing required key [integrator] "
-         "friction (type = 'langevin' needs it)"),
+        (
+            "integrator",
+            {"type": "bussi", "tau": 100.0, "friction": 1.0},
+            "run.toml: [integrator] friction: does not apply to type = 'bussi', which takes dt, "
+            "temperature, tau, seed, constraints, fix_com",
+        ),
+        (
+            "integrator",
+            {"friction": None},
+            "run.toml: missing required key [integrator] friction (type = 'langevin' needs it)",
+        ),
         ("integrator", {"kB": 2.0}, "run.toml: [integrator] (langevin): unknown key(s): kB"),
-        ("integrator", {"type": "verlet", "friction": None, "temperature": None},
-         "run.toml: [integrator] (verlet) does not apply constraints; use one of rattle"),
+        (
+            "integrator",
+            {"type": "verlet", "friction": None, "temperature": None},
+            "run.toml: [integrator] (verlet) does not apply constraints; use one of rattle",
+        ),
         ("barostat", {"every": 0}, "run.toml: [barostat] every: must be >= 1, got 0"),
-        ("system", {"chains": 4}, 'run.toml: [system] chains: does not apply to a lattice '
-         '(only to polymer = "melt")'),
-        ("system", {"straight": True, "chains": 4}, "[system] chains, straight: does not apply "
-         'to a lattice (only to polymer = "chain" or polymer = "melt")'),
+        (
+            "system",
+            {"chains": 4},
+            'run.toml: [system] chains: does not apply to a lattice (only to polymer = "melt")',
+        ),
+        (
+            "system",
+            {"straight": True, "chains": 4},
+            "[system] chains, straight: does not apply "
+            'to a lattice (only to polymer = "chain" or polymer = "melt")',
+        ),
         ("run", {"ranks": 4}, "run.toml: unknown key(s) in [run]: ranks"),
-        ("run", {"decomposition": [2, 0, 1]},
-         "run.toml: [run] decomposition: must be positive integers, got [2, 0, 1]"),
-        ("run", {"decomposition": [2, 1]},
-         "run.toml: [run] decomposition: expected int or a list of three, got [2, 1]"),
+        (
+            "run",
+            {"decomposition": [2, 0, 1]},
+            "run.toml: [run] decomposition: must be positive integers, got [2, 0, 1]",
+        ),
+        (
+            "run",
+            {"decomposition": [2, 1]},
+            "run.toml: [run] decomposition: expected int or a list of three, got [2, 1]",
+        ),
     ],
-)  # fmt: skip
+)
 def test_a_key_in_the_wrong_place_is_refused_naming_it(section, values, message):
     data = tomllib.loads(NPT)
     table = data.setdefault(section, {})

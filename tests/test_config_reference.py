@@ -65,8 +65,11 @@ def documented(page: str) -> dict[tuple[str, str | None], dict[str, tuple[str, s
     for line in page.splitlines():
         if line.startswith("## "):
             title = line[3:].strip().strip("`")
-            section = "" if title == "Top level" else (
-                title.strip("[]") if title.startswith("[") else None)  # fmt: skip
+            section = (
+                ""
+                if title == "Top level"
+                else (title.strip("[]") if title.startswith("[") else None)
+            )
             types = [None]
         elif line.startswith("### ") and section is not None:
             types = re.findall(r'"(\w+)"', line)
@@ -74,8 +77,11 @@ def documented(page: str) -> dict[tuple[str, str | None], dict[str, tuple[str, s
             cells = [c.strip() for c in row.group(2).split(" | ")]
             if section == "system":
                 applies, cells = cells[0], cells[1:]
-                kinds = list(SYSTEMS) if applies == "all" else [
-                    LABELS[label] for label in re.split(r", (?=a |polymer)", applies)]  # fmt: skip
+                kinds = (
+                    list(SYSTEMS)
+                    if applies == "all"
+                    else [LABELS[label] for label in re.split(r", (?=a |polymer)", applies)]
+                )
             else:
                 kinds = types
             for kind in kinds:
@@ -90,13 +96,25 @@ def sample(cells: tuple[str, str, str]) -> object:
     if kind == "string" and choices:
         return choices.group(1)
     values = {
-        "number": 1.0, "integer": 2, "string": "x", "boolean": True, "path": "bonds.txt",
-        "output path": "out.h5", "table": {}, "number or list": 1.0, "number or table": 1.0,
-        "number, list or table": 1.0, 'list or "system"': "system", "list of integers": [0],
-        "list of tables": [], "integer or list of integers": 3, '"bonded" or list of integers':
-        "bonded", "integer or list of three": 2, "number or list of three": 0.0,
+        "number": 1.0,
+        "integer": 2,
+        "string": "x",
+        "boolean": True,
+        "path": "bonds.txt",
+        "output path": "out.h5",
+        "table": {},
+        "number or list": 1.0,
+        "number or table": 1.0,
+        "number, list or table": 1.0,
+        'list or "system"': "system",
+        "list of integers": [0],
+        "list of tables": [],
+        "integer or list of integers": 3,
+        '"bonded" or list of integers': "bonded",
+        "integer or list of three": 2,
+        "number or list of three": 0.0,
         "boolean or list of three": True,
-    }  # fmt: skip
+    }
     return values[kind]
 
 
@@ -106,8 +124,11 @@ def base_config(section: str, kind: str | None, keys: dict) -> dict:
     its required keys (from the page), with ``keys`` as the section's table."""
 
     def required(of) -> dict:
-        return {name: sample(cells) for name, cells in PAGE_KEYS.get(of, {}).items()
-                if cells[1] == "required"}  # fmt: skip
+        return {
+            name: sample(cells)
+            for name, cells in PAGE_KEYS.get(of, {}).items()
+            if cells[1] == "required"
+        }
 
     config = {
         "units": "lj",
@@ -119,8 +140,10 @@ def base_config(section: str, kind: str | None, keys: dict) -> dict:
     if section == "":
         config.update(table)
     elif section == "system":
-        config["system"] = {**SYSTEMS[kind], **{k: v for k, v in table.items()
-                                                if k not in SYSTEMS[kind]}}  # fmt: skip
+        config["system"] = {
+            **SYSTEMS[kind],
+            **{k: v for k, v in table.items() if k not in SYSTEMS[kind]},
+        }
     elif section == "potentials":
         config["potentials"] = [{"type": kind, **required(("potentials", kind)), **table}]
     elif section == "integrator":
@@ -128,8 +151,12 @@ def base_config(section: str, kind: str | None, keys: dict) -> dict:
     elif section == "integrator.constraints":
         config["integrator"] = {"type": "rattle", "dt": 0.005, "constraints": table}
     elif section == "barostat":
-        config["integrator"] = {"type": "nose_hoover_chain", "dt": 0.005, "temperature": 1.0,
-                                "tau": 0.5}  # fmt: skip
+        config["integrator"] = {
+            "type": "nose_hoover_chain",
+            "dt": 0.005,
+            "temperature": 1.0,
+            "tau": 0.5,
+        }
         config["barostat"] = {"type": kind, **required(("barostat", kind)), **table}
     else:
         config[section] = table
@@ -162,9 +189,10 @@ def mismatches(page: str) -> list[str]:
             value = sample(cells) if cells else 1.0
             if accepted(section, kind, name, value) != listed:
                 where = f"[{section}]" + (f" ({kind})" if kind else "")
-                problems.append(f"{where} {name}: "
-                                + ("documented but refused" if listed else
-                                   "accepted but not documented"))  # fmt: skip
+                problems.append(
+                    f"{where} {name}: "
+                    + ("documented but refused" if listed else "accepted but not documented")
+                )
     return problems
 
 
@@ -196,8 +224,11 @@ PAGE = reference.render()
 PAGE_KEYS = documented(PAGE)
 SECTION_NAMES = {s.name for s in sections() if s.name and "." not in s.name}
 CONSTRUCTOR_KEYS = _constructor_keys()
-DECLARED_KEYS = {k.name for s in sections()
-                 for k in (*s.keys, *(k for keys in (s.types or {}).values() for k in keys))}
+DECLARED_KEYS = {
+    k.name
+    for s in sections()
+    for k in (*s.keys, *(k for keys in (s.types or {}).values() for k in keys))
+}
 EXAMPLE_KEYS = _example_keys()
 FOLDER = None  # set by the fixture: where s.xyz and bonds.txt exist
 
@@ -219,8 +250,11 @@ def folder(tmp_path):
 def test_the_page_lists_every_section_and_plug_in_type():
     kinds = {kind for (section, kind) in PAGE_KEYS if section == "system"}
     assert kinds == set(SYSTEMS)
-    for section, registry in (("potentials", POTENTIALS), ("integrator", INTEGRATORS),
-                              ("barostat", BAROSTAT_KEYS)):  # fmt: skip
+    for section, registry in (
+        ("potentials", POTENTIALS),
+        ("integrator", INTEGRATORS),
+        ("barostat", BAROSTAT_KEYS),
+    ):
         assert {kind for (s, kind) in PAGE_KEYS if s == section} == set(registry)
     for name in ("", "integrator.constraints", "minimize", "run", "output"):
         assert (name, None) in PAGE_KEYS
@@ -246,14 +280,15 @@ def test_the_check_fails_on_a_page_with_a_key_too_many():
 
 
 def test_a_made_up_key_is_refused_everywhere():
-    for (section, kind) in PAGE_KEYS:
+    for section, kind in PAGE_KEYS:
         assert not accepted(section, kind, MADE_UP, 1.0), (section, kind)
 
 
 # ------------------------------------------------------------------ declarations
 def _parameters(cls, leave_out=("self",)):
-    return {n: p for n, p in inspect.signature(cls.__init__).parameters.items()
-            if n not in leave_out}  # fmt: skip
+    return {
+        n: p for n, p in inspect.signature(cls.__init__).parameters.items() if n not in leave_out
+    }
 
 
 def _same_default(key: Key, parameter: inspect.Parameter) -> bool:
@@ -300,8 +335,11 @@ def test_barostat_and_constraint_keys_match_their_constructors():
 
 
 def test_every_declared_unit_and_kind_is_known():
-    every = [k for s in sections() for k in (*s.keys, *(k for keys in (s.types or {}).values()
-                                                           for k in keys))]  # fmt: skip
+    every = [
+        k
+        for s in sections()
+        for k in (*s.keys, *(k for keys in (s.types or {}).values() for k in keys))
+    ]
     assert len(every) > 80
     for key in every:
         assert key.kind in KINDS

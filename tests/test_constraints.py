@@ -31,8 +31,9 @@ def melt():
     state, bonds = polymer_melt(10, 8, density=0.7, bond_length=1.0, seed=3)
     md.maxwell_boltzmann(state, 1.0, seed=2)
     constraints = BondConstraints(bonds, lengths=1.0, tol=1e-10)
-    sim = md.Simulation(state, _wca(), Langevin(0.002, 1.0, friction=5.0, seed=1,
-                                                constraints=constraints))  # fmt: skip
+    sim = md.Simulation(
+        state, _wca(), Langevin(0.002, 1.0, friction=5.0, seed=1, constraints=constraints)
+    )
     sim.run(1000)
     state.step, state.time = 0, 0.0
     return state, bonds
@@ -137,8 +138,7 @@ def test_rigid_dimer_gas_pressure_is_the_molecular_ideal_gas(rng):
     md.maxwell_boltzmann(state, 1.0, seed=rng)
     bonds = np.arange(2 * n_molecules).reshape(-1, 2)
     quiet = [LennardJones(epsilon=0.0, cutoff=1.0)]
-    sim = md.Simulation(state, quiet, Langevin(0.005, 1.0, friction=1.0, seed=1,
-                                               constraints=bonds))  # fmt: skip
+    sim = md.Simulation(state, quiet, Langevin(0.005, 1.0, friction=1.0, seed=1, constraints=bonds))
     for _ in range(3):
         sim.run(50)
         momenta = (masses[:, None] * state.velocities).reshape(n_molecules, 2, 3).sum(axis=1)
@@ -154,8 +154,9 @@ def test_temperature_counts_one_degree_of_freedom_less_per_bond(melt):
     """Langevin with rigid bonds equilibrates at the target only if the temperature
     uses 3N - 3 - B degrees of freedom (3N - 3 would read 100 B / (3N - 3) % low)."""
     state, bonds = melt
-    integrator = Langevin(0.004, 1.0, friction=5.0, seed=4,
-                          constraints=BondConstraints(bonds, lengths=1.0))  # fmt: skip
+    integrator = Langevin(
+        0.004, 1.0, friction=5.0, seed=4, constraints=BondConstraints(bonds, lengths=1.0)
+    )
     sim = md.Simulation(state.copy(), _wca(), integrator)
     log = ThermoLog()
     sim.attach(log, interval=4)
@@ -173,10 +174,12 @@ def test_temperature_counts_one_degree_of_freedom_less_per_bond(melt):
 
 @pytest.mark.parametrize(
     "make",
-    [lambda c: Rattle(0.004, c), lambda c: Langevin(0.004, 1.0, friction=1.0, seed=2,
-                                                    constraints=c)],
+    [
+        lambda c: Rattle(0.004, c),
+        lambda c: Langevin(0.004, 1.0, friction=1.0, seed=2, constraints=c),
+    ],
     ids=["rattle", "langevin"],
-)  # fmt: skip
+)
 def test_saved_state_resumes_exactly_with_starting_lengths(melt, make):
     """Lengths taken from the first state travel in get_state(): a run resumed from a
     later state (whose bonds are only within tol = 1e-8 of them) continues the same
@@ -214,8 +217,11 @@ def test_failure_names_the_step_and_the_bond(melt):
     state, bonds = melt
     constraints = BondConstraints(bonds, lengths=1.0, tol=1e-12, max_iter=2)
     sim = md.Simulation(state.copy(), _wca(), Rattle(0.004, constraints))
-    with pytest.raises(ConstraintError, match=r"step 1: SHAKE .* did not converge in 2 "
-                       r"iterations: bond \d+ \(atoms \d+-\d+\)") as caught:  # fmt: skip
+    with pytest.raises(
+        ConstraintError,
+        match=r"step 1: SHAKE .* did not converge in 2 "
+        r"iterations: bond \d+ \(atoms \d+-\d+\)",
+    ) as caught:
         sim.run(5)
     assert caught.value.step == 1 and caught.value.residual > 1e-12
     # A step so long that a bond turns past 90 degrees cannot be corrected at all.
@@ -281,8 +287,7 @@ every = 100
 """
 
 
-def _write(tmp_path, kind="langevin", extra="temperature = 1.0\nfriction = 2.0",
-           constraints=""):  # fmt: skip
+def _write(tmp_path, kind="langevin", extra="temperature = 1.0\nfriction = 2.0", constraints=""):
     path = tmp_path / "rigid.toml"
     path.write_text(RIGID.format(kind=kind, extra=extra, constraints=constraints))
     return path
@@ -296,8 +301,10 @@ def test_config_builds_rigid_bonds_from_the_polymer(tmp_path):
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     assert isinstance(integrator, Langevin)
     assert integrator.constraints.n_constraints == 36 and integrator.constraints.tol == 1e-9
-    assert main(["run", str(_write(tmp_path)), "--no-progress", "-q",
-                 "-o", str(tmp_path / "out.h5")]) == 0  # fmt: skip
+    assert (
+        main(["run", str(_write(tmp_path)), "--no-progress", "-q", "-o", str(tmp_path / "out.h5")])
+        == 0
+    )
     traj = md.trajectory.read_trajectory(tmp_path / "out.h5")
     lengths = np.linalg.norm(np.diff(traj.positions[-1][:10], axis=0), axis=1)
     np.testing.assert_allclose(lengths, 1.0, rtol=2e-9)

@@ -37,9 +37,17 @@ from potentials import HarmonicBonds, LennardJones
 #: TRR, NetCDF, LAMMPS dump and data), as GSD stores it; the ASE text formats keep
 #: about 10 significant digits and ASE trajectories double precision.
 TOLERANCE = {
-    "xtc": 5e-4, "trr": 1e-6, "dcd": 1e-6, "nc": 1e-6, "gsd": 1e-6, "lammpstrj": 1e-6,
-    "data": 1e-6, "xyz": 1e-9, "extxyz": 1e-8, "traj": 1e-14,
-}  # fmt: skip
+    "xtc": 5e-4,
+    "trr": 1e-6,
+    "dcd": 1e-6,
+    "nc": 1e-6,
+    "gsd": 1e-6,
+    "lammpstrj": 1e-6,
+    "data": 1e-6,
+    "xyz": 1e-9,
+    "extxyz": 1e-8,
+    "traj": 1e-14,
+}
 
 FENE = '[[potentials]]\ntype = "fene"\nbonds = "system"\nk = 30.0\nr_max = 1.5\n'
 QUIET = ("-q", "--no-progress")
@@ -72,11 +80,13 @@ def mixture(tmp_path_factory):
     bonds = np.array([[0, 1], [0, 2], [4, 5], [4, 6], [8, 9]])  # nearest neighbours
     springs = HarmonicBonds(bonds, k=[0.5, 1.0], r0=[3.7, 3.8], bond_types=[0, 1, 0, 1, 1])
     lj = LennardJones(epsilon=0.0104, sigma=3.4, cutoff=7.0)
-    sim = md.Simulation(state, [lj, springs], VelocityVerlet(dt=0.5 * md.units.fs), skin=0.5,
-                        units="metal")  # fmt: skip
+    sim = md.Simulation(
+        state, [lj, springs], VelocityVerlet(dt=0.5 * md.units.fs), skin=0.5, units="metal"
+    )
     path = folder / "mixture.h5"
-    with H5MDWriter(path, state, units="metal", velocities=True, forces=True,
-                    topology=sim.forcefield.topology()) as writer:  # fmt: skip
+    with H5MDWriter(
+        path, state, units="metal", velocities=True, forces=True, topology=sim.forcefield.topology()
+    ) as writer:
         sim.attach(writer, interval=10)
         sim.run(40)
     return path
@@ -127,8 +137,8 @@ def test_two_bond_types_and_constraints_reach_the_file(mixture, tmp_path):
     rigid = (
         POLYMER.replace(FENE, "")
         .replace('type = "verlet"', 'type = "rattle"')
-        .replace("dt = 0.002", "dt = 0.002\n[integrator.constraints]\nbonds = \"system\"")
-    )  # fmt: skip
+        .replace("dt = 0.002", 'dt = 0.002\n[integrator.constraints]\nbonds = "system"')
+    )
     (tmp_path / "rigid.toml").write_text(rigid)
     assert (
         main(["run", "rigid.toml", "-o", "rigid.h5", "--steps", "10", "-q", "--no-progress"]) == 0
@@ -277,9 +287,10 @@ def test_unwrap_writes_continuous_positions_and_no_images(polymer, tmp_path):
     with gsd.hoomd.open(str(tmp_path / "w.gsd")) as frames:
         last = frames[-1]
         unwrapped = (
-            last.particles.position + 0.5 * last.configuration.box[:3]
+            last.particles.position
+            + 0.5 * last.configuration.box[:3]
             + last.particles.image * last.configuration.box[:3]
-        )  # fmt: skip
+        )
     assert np.allclose(unwrapped, traj.positions[-1], atol=1e-5)
 
 
@@ -581,8 +592,11 @@ def test_lammps_data_from_a_reduced_run_states_its_values_exactly(tmp_path):
     """Masses, positions and velocities as stored (issue 33 item 18: a round trip of the
     units through ASE's metal wrote a mass of 1 as 0.99999999974)."""
     config = tmp_path / "run.toml"
-    config.write_text(POLYMER.replace("temperature = 1.0", "temperature = 1.0\nmass = 1.7")
-                      .replace("polymer.h5", "heavy.h5"))  # fmt: skip
+    config.write_text(
+        POLYMER.replace("temperature = 1.0", "temperature = 1.0\nmass = 1.7").replace(
+            "polymer.h5", "heavy.h5"
+        )
+    )
     md.run_config(config, output=tmp_path / "heavy.h5")
     assert main(["convert", "heavy.h5", "heavy.data", "--stop", "1"]) == 0  # frame 0: wrapped
     lines = (tmp_path / "heavy.data").read_text().splitlines()

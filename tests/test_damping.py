@@ -44,10 +44,11 @@ def test_amplification_factors_are_the_known_closed_forms(z):
     w2 = z * z
     maps = {
         "implicit_euler": np.linalg.inv([[1.0, -1.0], [w2, 1.0]]),
-        "implicit_midpoint": np.linalg.solve([[1.0, -0.5], [0.5 * w2, 1.0]],
-                                             [[1.0, 0.5], [-0.5 * w2, 1.0]]),
+        "implicit_midpoint": np.linalg.solve(
+            [[1.0, -0.5], [0.5 * w2, 1.0]], [[1.0, 0.5], [-0.5 * w2, 1.0]]
+        ),
         "verlet": np.array([[1.0 - 0.5 * w2, 1.0], [-w2 * (1.0 - 0.25 * w2), 1.0 - 0.5 * w2]]),
-    }  # fmt: skip
+    }
     for name, step_map in maps.items():
         eigenvalues = np.linalg.eigvals(step_map)
         roots = INTEGRATORS[name].amplification(z)
@@ -161,16 +162,28 @@ def test_cli_damping_writes_csv_figure_and_table(tmp_path, config, capsys):
     from md.cli import main
 
     out = tmp_path / "out"
-    argv = ["integrators", str(config), "--damping", "--integrators", "implicit_euler,bdf2",
-            "--omega-dt", "0.1,10", "--out", str(out)]  # fmt: skip
+    argv = [
+        "integrators",
+        str(config),
+        "--damping",
+        "--integrators",
+        "implicit_euler,bdf2",
+        "--omega-dt",
+        "0.1,10",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "implicit_euler" in printed and "damping.csv" in printed
     with open(out / "damping.csv", newline="") as handle:
         table = list(csv.DictReader(handle))
     assert [(r["integrator"], float(r["omega_dt"])) for r in table] == [
-        ("implicit_euler", 0.1), ("implicit_euler", 10.0), ("bdf2", 0.1), ("bdf2", 10.0)
-    ]  # fmt: skip
+        ("implicit_euler", 0.1),
+        ("implicit_euler", 10.0),
+        ("bdf2", 0.1),
+        ("bdf2", 10.0),
+    ]
     assert float(table[1]["measured"]) == pytest.approx(1 / math.sqrt(101), rel=1e-9)
     assert (out / "damping.png").stat().st_size > 10_000
     # Existing files: refused without --overwrite, untouched.
@@ -190,8 +203,7 @@ def test_cli_damping_writes_csv_figure_and_table(tmp_path, config, capsys):
         (["--omega-dt", "a,b"], "MIN:MAX:N"),
     ],
 )
-def test_cli_damping_bad_input_exits_2_and_writes_nothing(tmp_path, config, capsys, extra,
-                                                          message):  # fmt: skip
+def test_cli_damping_bad_input_exits_2_and_writes_nothing(tmp_path, config, capsys, extra, message):
     from md.cli import main
 
     out = tmp_path / "out"

@@ -74,16 +74,24 @@ def test_every_intrinsic_has_a_python_twin():
             if isinstance(value, intrinsic_type):
                 found.append(attribute)
                 assert callable(getattr(value, "python_twin", None)), f"{name}.{attribute}"
-    assert {"trailing_zeros", "float_bits", "_near_bits", "_copy_block", "_near_pair",
-            "_keep_near", "_keep_window"} <= set(found)  # fmt: skip
+    assert {
+        "trailing_zeros",
+        "float_bits",
+        "_near_bits",
+        "_copy_block",
+        "_near_pair",
+        "_keep_near",
+        "_keep_window",
+    } <= set(found)
 
 
 @njit
 def _near_pairs(xi, xj, starts, partners, offsets, reach2, near):
     for ci in range(starts.shape[0] - 1):
         for k in range(starts[ci] + 1, starts[ci + 1]):  # not the cluster with itself
-            near[k] = _near_pair(xi, xj, ci, partners[k], offsets[k, 0], offsets[k, 1],
-                                 offsets[k, 2], reach2)  # fmt: skip
+            near[k] = _near_pair(
+                xi, xj, ci, partners[k], offsets[k, 0], offsets[k, 1], offsets[k, 2], reach2
+            )
 
 
 def _cluster_list(fcc_lattice):
@@ -95,8 +103,9 @@ def _cluster_list(fcc_lattice):
     xi = np.empty(3 * len(atom), np.float32)
     xj = np.empty(3 * len(atom), np.float32)
     cluster_positions(state.positions, atom, origin, xi, xj)
-    starts, partners, offsets = search_pairs(state.box, ncx, ncy, first, lower, upper, 2.8, 1,
-                                             256, xi, xj, np.float32(2.8**2))  # fmt: skip
+    starts, partners, offsets = search_pairs(
+        state.box, ncx, ncy, first, lower, upper, 2.8, 1, 256, xi, xj, np.float32(2.8**2)
+    )
     return state, atom, xi, xj, (lower, upper), starts, partners, offsets
 
 
@@ -112,8 +121,9 @@ def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_latti
     checked = 0
     for ci in range(len(starts) - 1):
         for k in range(starts[ci] + 1, starts[ci + 1]):
-            twin = _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k],
-                                          np.float32(reach**2))  # fmt: skip
+            twin = _near_pair.python_twin(
+                xi, xj, ci, partners[k], *offsets[k], np.float32(reach**2)
+            )
             assert twin == bool(compiled[k]), k
             mine = atom[4 * ci : 4 * ci + 4]
             theirs = atom[4 * partners[k] : 4 * partners[k] + 4]
@@ -132,8 +142,19 @@ def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_latti
 def _keep_rows(xi, xj, starts, partners, offsets, reach2, kept_partners, kept_offsets, ends):
     k = 0
     for ci in range(starts.shape[0] - 1):
-        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2,
-                       kept_partners, kept_offsets, k)  # fmt: skip
+        k = _keep_near(
+            xi,
+            xj,
+            partners,
+            offsets,
+            starts[ci],
+            starts[ci + 1],
+            ci,
+            reach2,
+            kept_partners,
+            kept_offsets,
+            k,
+        )
         ends[ci] = k
 
 
@@ -151,8 +172,9 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
     expected_partners, expected_offsets, expected_ends = [], [], []
     for ci in range(len(starts) - 1):
         for k in range(starts[ci], starts[ci + 1]):
-            if k == starts[ci] or _near_pair.python_twin(xi, xj, ci, partners[k], *offsets[k],
-                                                         reach2):  # fmt: skip
+            if k == starts[ci] or _near_pair.python_twin(
+                xi, xj, ci, partners[k], *offsets[k], reach2
+            ):
                 expected_partners.append(partners[k])
                 expected_offsets.append(offsets[k])
         expected_ends.append(len(expected_partners))
@@ -173,8 +195,9 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
             source_p, source_o = partners, offsets
         k = 0
         for ci in range(len(starts) - 1):
-            k = _keep_near.python_twin(xi, xj, source_p, source_o, starts[ci], starts[ci + 1],
-                                       ci, reach2, tp, to, k)  # fmt: skip
+            k = _keep_near.python_twin(
+                xi, xj, source_p, source_o, starts[ci], starts[ci + 1], ci, reach2, tp, to, k
+            )
             twin_ends[ci] = k
         assert np.array_equal(ends, expected_ends) and np.array_equal(twin_ends, expected_ends)
         assert np.array_equal(kp[:kept], expected_partners)
@@ -186,9 +209,23 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
 def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, ends):
     k = 0
     for w in range(rows.shape[0]):
-        k = _keep_window(xi, xj, rows[w], spans[w, 0], spans[w, 1], shifts[w, 0], shifts[w, 1],
-                         shifts[w, 2], centres[0], centres[1], centres[2], reach2, partners,
-                         offsets, k)  # fmt: skip
+        k = _keep_window(
+            xi,
+            xj,
+            rows[w],
+            spans[w, 0],
+            spans[w, 1],
+            shifts[w, 0],
+            shifts[w, 1],
+            shifts[w, 2],
+            centres[0],
+            centres[1],
+            centres[2],
+            reach2,
+            partners,
+            offsets,
+            k,
+        )
         ends[w] = k
 
 
@@ -218,14 +255,25 @@ def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
             o = (shifts[w] - centres[:, j]).astype(np.float32)
             if _near_pair.python_twin(xi, xj, rows[w], j, *o, reach2):
                 kept.append((j, o))
-        k = _keep_window.python_twin(xi, xj, rows[w], spans[w, 0], spans[w, 1], *shifts[w],
-                                     *centres, reach2, twin_partners, twin_offsets, k)  # fmt: skip
+        k = _keep_window.python_twin(
+            xi,
+            xj,
+            rows[w],
+            spans[w, 0],
+            spans[w, 1],
+            *shifts[w],
+            *centres,
+            reach2,
+            twin_partners,
+            twin_offsets,
+            k,
+        )
         assert ends[w] == k == len(kept), w
     assert 0 < len(kept) < room - 1
     assert np.array_equal(partners[: len(kept)], [j for j, _ in kept])
     assert np.array_equal(offsets[: len(kept)], np.array([o for _, o in kept]))
-    assert np.array_equal(twin_partners[: k], partners[: k])
-    assert np.array_equal(twin_offsets[: k], offsets[: k])
+    assert np.array_equal(twin_partners[:k], partners[:k])
+    assert np.array_equal(twin_offsets[:k], offsets[:k])
 
 
 @njit
@@ -291,8 +339,7 @@ def _rows4(rows, partners, columns, forces):
 @njit
 def _shifted_rows4(rows, partners, shifts, codes, columns):
     for k in range(0, partners.shape[0], 4):
-        gather_shifted_rows4(rows, partners, shifts, codes, k, columns[0], columns[1],
-                             columns[2])  # fmt: skip
+        gather_shifted_rows4(rows, partners, shifts, codes, k, columns[0], columns[1], columns[2])
 
 
 def _rows4_twin(rows, partners, columns, forces):
@@ -301,16 +348,16 @@ def _rows4_twin(rows, partners, columns, forces):
         scatter_sub_rows4.python_twin(rows, partners, k, forces[0], forces[1], forces[2])
 
 
-@pytest.mark.parametrize(("dtype", "real"), [(np.int32, np.float64), (np.uint32, np.float64),
-                                           (np.int32, np.float32)])  # fmt: skip
+@pytest.mark.parametrize(
+    ("dtype", "real"), [(np.int32, np.float64), (np.uint32, np.float64), (np.int32, np.float32)]
+)
 def test_row_gather_and_scatter_twins_equal_their_intrinsics(rng, dtype, real):
     """Four partners' rows gathered into columns (with image shifts added, and without)
     and forces subtracted from them: the intrinsics (16-byte loads, transposes in
     registers) give the twin's bits, which are plain indexing's, at any partner (first
     and last rows included)."""
     rows = rng.normal(size=(41, 3)).astype(real)
-    partners = np.concatenate([[0, 40, 17, 3],
-                               rng.permutation(41)[:12]]).astype(dtype)  # fmt: skip
+    partners = np.concatenate([[0, 40, 17, 3], rng.permutation(41)[:12]]).astype(dtype)
     forces = rng.normal(size=(3, 16)).astype(real)
     compiled, twin = (rows.copy(), np.zeros((3, 16), real)), (rows.copy(), np.zeros((3, 16), real))
     _rows4(compiled[0], partners, compiled[1], forces)
@@ -434,9 +481,12 @@ def _engine(script: str = _RUN, **env) -> dict:
     paths = [str(ROOT), os.environ.get("PYTHONPATH")]
     environment["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
     done = subprocess.run(
-        [sys.executable, "-c", script], env=environment, capture_output=True, text=True,
+        [sys.executable, "-c", script],
+        env=environment,
+        capture_output=True,
+        text=True,
         timeout=900,
-    )  # fmt: skip
+    )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -511,10 +561,12 @@ print(json.dumps(results))
 
 @pytest.mark.slow  # the frame's loops in plain Python: 25 s on a cold cache
 def test_pair_frame_under_disable_jit_matches_the_compiled_run(tmp_path):
-    compiled = _engine(_FRAME_RUN.replace("pair.table", str(tmp_path / "a.table")),
-                       NUMBA_DISABLE_JIT="0")  # fmt: skip
-    python = _engine(_FRAME_RUN.replace("pair.table", str(tmp_path / "b.table")),
-                     NUMBA_DISABLE_JIT="1")  # fmt: skip
+    compiled = _engine(
+        _FRAME_RUN.replace("pair.table", str(tmp_path / "a.table")), NUMBA_DISABLE_JIT="0"
+    )
+    python = _engine(
+        _FRAME_RUN.replace("pair.table", str(tmp_path / "b.table")), NUMBA_DISABLE_JIT="1"
+    )
     for name, reference in compiled.items():
         ours = python[name]
         assert ours["frame"] and reference["frame"], name  # the slot-frame path ran
@@ -522,5 +574,6 @@ def test_pair_frame_under_disable_jit_matches_the_compiled_run(tmp_path):
         for key in ("forces", "virial", "energies", "hessian"):
             if reference[key] is not None:
                 scale = np.abs(reference[key]).max()
-                np.testing.assert_allclose(ours[key], reference[key], rtol=0,
-                                           atol=1e-11 * scale, err_msg=f"{name} {key}")  # fmt: skip
+                np.testing.assert_allclose(
+                    ours[key], reference[key], rtol=0, atol=1e-11 * scale, err_msg=f"{name} {key}"
+                )

@@ -115,13 +115,20 @@ def _probe_lines():
 
 def test_no_capability_probes_but_the_listed_optional_attributes():
     found = list(_probe_lines())
-    problems = [f"{path}:{number}: {line.strip()}" for path, number, line in found
-                if not any(piece in line for piece in ALLOWED.get(path, {}))]  # fmt: skip
+    problems = [
+        f"{path}:{number}: {line.strip()}"
+        for path, number, line in found
+        if not any(piece in line for piece in ALLOWED.get(path, {}))
+    ]
     assert not problems, "capability probes (use a declared protocol or flag):\n" + "\n".join(
         problems
     )
-    stale = [(path, piece) for path, pieces in ALLOWED.items() for piece in pieces
-             if not any(p == path and piece in line for p, _, line in found)]  # fmt: skip
+    stale = [
+        (path, piece)
+        for path, pieces in ALLOWED.items()
+        for piece in pieces
+        if not any(p == path and piece in line for p, _, line in found)
+    ]
     assert not stale, f"listed but gone (remove them from ALLOWED): {stale}"
 
 
@@ -134,8 +141,17 @@ def test_the_checker_flags_a_probe():
 
 def test_the_package_has_one_module_a_job_each_under_800_lines():
     modules = {path.stem: len(path.read_text().splitlines()) for path in PACKAGE.glob("*.py")}
-    assert set(modules) == {"__init__", "_domain_kernels", "grid", "ranks", "migration",
-                            "halo", "forcefield", "views", "simulation"}  # fmt: skip
+    assert set(modules) == {
+        "__init__",
+        "_domain_kernels",
+        "grid",
+        "ranks",
+        "migration",
+        "halo",
+        "forcefield",
+        "views",
+        "simulation",
+    }
     assert max(modules.values()) < 800, modules
     assert not (ROOT / "md" / "distributed.py").exists()
     assert not (ROOT / "md" / "domain.py").exists()
@@ -247,9 +263,13 @@ def test_a_decomposed_runs_checkpoint_records_its_precision(tmp_path):
     """Rank 0 writes the checkpoint through its view of the force field: the view carries
     the run's precision (it was written as "double" for a mixed run, and then a mixed
     resume on one process was refused)."""
-    state = State(positions=np.zeros((2, 3)) + [[0.0, 0, 0], [1.0, 0, 0]],
-                  velocities=np.zeros((2, 3)), masses=np.ones(2), box=np.full(3, 5.0),
-                  pbc=np.ones(3, dtype=bool))  # fmt: skip
+    state = State(
+        positions=np.zeros((2, 3)) + [[0.0, 0, 0], [1.0, 0, 0]],
+        velocities=np.zeros((2, 3)),
+        masses=np.ones(2),
+        box=np.full(3, 5.0),
+        pbc=np.ones(3, dtype=bool),
+    )
     local = SimpleNamespace(precision="mixed", reference_cell=None, n_builds=1)
     layout = {"grid": [2, 1, 1], "owners": np.array([0, 1]), "slots": np.array([0, 0])}
     view = ForceFieldView(local, None, None, np.full((2, 3), np.nan), layout)

@@ -149,4 +149,3 @@ def test_commands_shown_parse_with_the_md_parser(page, line, command):
         build_parser().parse_args(shlex.split(command)[1:])
     except SystemExit as exit:
         pytest.fail(f"{page_id(page)}:{line}: `{command}` does not parse (exit {exit.code})")
-

@@ -80,8 +80,7 @@ def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape, even):
         if p == 1:
             continue
         for coordinate in range(p):
-            up, down, lost = leaving_along(positions, BOX, TILT, PBC, grid, cuts, axis,
-                                           coordinate)  # fmt: skip
+            up, down, lost = leaving_along(positions, BOX, TILT, PBC, grid, cuts, axis, coordinate)
             delta = (bricks[:, axis] - coordinate) % p
             np.testing.assert_array_equal(up, np.flatnonzero(delta == 1))
             np.testing.assert_array_equal(down, np.flatnonzero((delta == p - 1) & (delta != 1)))
@@ -91,11 +90,19 @@ def test_leaving_along_splits_the_atoms_as_their_bricks_say(shape, even):
 
 @pytest.mark.parametrize(
     ("n", "n_leaving", "m"),
-    [(3000, 300, 400), (3000, 400, 300), (3000, 300, 300), (3000, 0, 50), (3000, 50, 0),
-     (50, 50, 7), (50, 50, 0), (0, 0, 9), (10, 3, 0)],
-)  # fmt: skip
-def test_the_refill_plan_keeps_every_staying_and_arriving_atom_once_and_moves_few(n, n_leaving,
-                                                                                  m):  # fmt: skip
+    [
+        (3000, 300, 400),
+        (3000, 400, 300),
+        (3000, 300, 300),
+        (3000, 0, 50),
+        (3000, 50, 0),
+        (50, 50, 7),
+        (50, 50, 0),
+        (0, 0, 9),
+        (10, 3, 0),
+    ],
+)
+def test_the_refill_plan_keeps_every_staying_and_arriving_atom_once_and_moves_few(n, n_leaving, m):
     rng = np.random.default_rng(n + 7 * n_leaving + m)
     ids = rng.permutation(100_000)[:n].astype(np.int64)
     arriving = np.setdiff1d(np.arange(100_000, 101_000), ids)[:m]
@@ -136,8 +143,9 @@ def test_near_faces_and_the_sweep_rows_round_trip():
         below, above = near_faces(home, n, column, 0.2, 0.7)
         np.testing.assert_array_equal(below, np.flatnonzero(home[:, column] < 0.2))
         np.testing.assert_array_equal(above, np.flatnonzero(home[:, column] >= 0.7))
-    send = np.concatenate([np.sort(rng.choice(n, 50, replace=False)),
-                           n + np.sort(rng.choice(m, 20, replace=False))])  # fmt: skip
+    send = np.concatenate(
+        [np.sort(rng.choice(n, 50, replace=False)), n + np.sort(rng.choice(m, 20, replace=False))]
+    )
     rows = np.empty((len(send), 8))
     table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
     np.testing.assert_array_equal(rows[:, :3], positions[send])
@@ -217,18 +225,33 @@ def test_local_periodic_axes_are_the_uncut_ones_whose_vector_stays_off_cut_axes(
     assert local_periodic_axes((2, 2, 2), pbc, np.zeros(3)).tolist() == [False] * 3
     # yz couples two uncut axes: both stay periodic, tilted
     assert local_periodic_axes((2, 1, 1), pbc, np.array([0.0, 0.0, 0.3])).tolist() == [
-        False, True, True]  # fmt: skip
+        False,
+        True,
+        True,
+    ]
     # xy leans b along cut x; xz leans c along it
     assert local_periodic_axes((2, 1, 1), pbc, np.array([0.3, 0.0, 0.0])).tolist() == [
-        False, False, True]  # fmt: skip
+        False,
+        False,
+        True,
+    ]
     assert local_periodic_axes((2, 1, 1), pbc, np.array([0.0, 0.2, 0.0])).tolist() == [
-        False, True, False]  # fmt: skip
+        False,
+        True,
+        False,
+    ]
     # yz with y cut: c leans along y
     assert local_periodic_axes((1, 2, 1), pbc, np.array([0.0, 0.0, 0.3])).tolist() == [
-        True, False, False]  # fmt: skip
+        True,
+        False,
+        False,
+    ]
     # an open axis is never periodic
     assert local_periodic_axes((2, 1, 1), np.array([True, False, True]), np.zeros(3)).tolist() == [
-        False, False, True]  # fmt: skip
+        False,
+        False,
+        True,
+    ]
 
 
 @pytest.mark.parametrize("pbc", [(True, True, True), (True, False, True)])
@@ -257,8 +280,9 @@ def test_home_layout_puts_each_atom_at_the_image_nearest_the_brick(pbc):
     positions = (inside + images) @ cell
     home, out = np.empty((n, 3)), np.empty((n, 3))
     scratch = np.empty((n, 3), dtype=np.int64)
-    imaged, rows, strayed = home_layout(positions, box, tilt, pbc, cell, center, bounds,
-                                        widths, home, out, scratch)  # fmt: skip
+    imaged, rows, strayed = home_layout(
+        positions, box, tilt, pbc, cell, center, bounds, widths, home, out, scratch
+    )
     fractions = np.empty((n, 3))
     fractional_coordinates(positions, box, tilt, pbc, fractions)
     found = np.where(pbc, np.floor(fractions - center + 0.5), 0.0).astype(np.int64)
@@ -266,8 +290,9 @@ def test_home_layout_puts_each_atom_at_the_image_nearest_the_brick(pbc):
     expected = np.flatnonzero(np.any(images != 0, axis=1))
     assert np.array_equal(imaged, expected) and np.array_equal(rows, images[expected])
     np.testing.assert_array_equal(home, fractions - found)
-    reference = positions - (images[:, :1] * cell[0] + images[:, 1:2] * cell[1]
-                             + images[:, 2:] * cell[2])  # fmt: skip
+    reference = positions - (
+        images[:, :1] * cell[0] + images[:, 1:2] * cell[1] + images[:, 2:] * cell[2]
+    )
     assert np.array_equal(out[imaged], reference[imaged])
     others = np.setdiff1d(np.arange(n), imaged)
     assert np.array_equal(out[others], positions[others])
@@ -318,11 +343,18 @@ def atoms(ids, x_low, x_high, seed):
     per-atom column following the id (so that every row can be checked)."""
     rng = np.random.default_rng(seed)
     ids = np.asarray(ids, dtype=np.int64)
-    positions = np.column_stack([rng.uniform(x_low, x_high, len(ids)),
-                                 rng.uniform(0, 10, (len(ids), 2))])  # fmt: skip
-    state = State(positions=positions, velocities=np.outer(ids, [1.0, 2.0, 3.0]),
-                  masses=1.0 + ids, box=np.full(3, 10.0), pbc=np.ones(3, bool),
-                  types=ids % 2, type_names=("A", "B"))  # fmt: skip
+    positions = np.column_stack(
+        [rng.uniform(x_low, x_high, len(ids)), rng.uniform(0, 10, (len(ids), 2))]
+    )
+    state = State(
+        positions=positions,
+        velocities=np.outer(ids, [1.0, 2.0, 3.0]),
+        masses=1.0 + ids,
+        box=np.full(3, 10.0),
+        pbc=np.ones(3, bool),
+        types=ids % 2,
+        type_names=("A", "B"),
+    )
     state.ids = ids
     return state, {"extra": ids * 0.5}
 
@@ -337,8 +369,17 @@ def test_migration_keeps_every_atom_once_in_place_and_grows_past_its_room():
     state, carried = atoms(range(200), 0.0, 5.0, 1)
     state.positions[:30, 0] += 5.0  # 30 atoms now in the other brick: they leave
     newcomers, extra = atoms(range(1000, 1040), 0.5, 4.5, 2)
-    arriving = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
-                        newcomers.types, newcomers.ids, extra["extra"]], np.arange(40))  # fmt: skip
+    arriving = _packed(
+        [
+            newcomers.positions,
+            newcomers.velocities,
+            newcomers.masses,
+            newcomers.types,
+            newcomers.ids,
+            extra["extra"],
+        ],
+        np.arange(40),
+    )
     nothing = np.empty((0, arriving.shape[1]))
     ranks = Loopback([arriving, nothing] * 3)
     domain = Domain(ranks, Grid((2, 1, 1)))
@@ -361,18 +402,34 @@ def test_migration_keeps_every_atom_once_in_place_and_grows_past_its_room():
     state.positions[:5, 0] += 5.0
     gone = state.ids[:5].tolist()
     newcomers, extra = atoms(range(2000, 2020), 0.5, 4.5, 3)
-    ranks.answers[0] = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
-                                newcomers.types, newcomers.ids, extra["extra"]],
-                               np.arange(20))  # fmt: skip
+    ranks.answers[0] = _packed(
+        [
+            newcomers.positions,
+            newcomers.velocities,
+            newcomers.masses,
+            newcomers.types,
+            newcomers.ids,
+            extra["extra"],
+        ],
+        np.arange(20),
+    )
     expected = sorted(set(state.ids.tolist()) - set(gone)) + list(range(2000, 2020))
     carried = domain.migrate(state, carried)
     check(state, carried, expected)
     assert np.shares_memory(state.positions, before)  # in place: 225 rows of 241 kept
     # 300 arrivals: past the eighth of room kept, the arrays grow and keep every atom
     newcomers, extra = atoms(range(5000, 5300), 0.5, 4.5, 4)
-    ranks.answers[0] = _packed([newcomers.positions, newcomers.velocities, newcomers.masses,
-                                newcomers.types, newcomers.ids, extra["extra"]],
-                               np.arange(300))  # fmt: skip
+    ranks.answers[0] = _packed(
+        [
+            newcomers.positions,
+            newcomers.velocities,
+            newcomers.masses,
+            newcomers.types,
+            newcomers.ids,
+            extra["extra"],
+        ],
+        np.arange(300),
+    )
     expected = state.ids.tolist() + list(range(5000, 5300))
     carried = domain.migrate(state, carried)
     check(state, carried, expected)
@@ -398,8 +455,15 @@ def test_spent_carried_arrays_move_in_their_own_memory_where_it_has_room():
     kept = forces_of(state.ids)  # not spent
     carried.update(spent=local[:200], tight=tight, kept=kept)
     newcomers, extra = atoms(range(1000, 1040), 0.5, 4.5, 8)
-    arrays = [newcomers.positions, newcomers.velocities, newcomers.masses, newcomers.types,
-              newcomers.ids, extra["extra"], *[forces_of(newcomers.ids)] * 3]  # fmt: skip
+    arrays = [
+        newcomers.positions,
+        newcomers.velocities,
+        newcomers.masses,
+        newcomers.types,
+        newcomers.ids,
+        extra["extra"],
+        *[forces_of(newcomers.ids)] * 3,
+    ]
     ranks = Loopback([_packed(arrays, np.arange(40)), np.empty((0, 19))])
     domain = Domain(ranks, Grid((2, 1, 1)))
     domain.reserve(state, {})
@@ -447,8 +511,13 @@ def test_each_build_keeps_its_positions_in_the_memory_of_the_last_builds():
     rng = np.random.default_rng(9)
     state.velocities = rng.normal(0.0, 1.0, state.positions.shape)
     state.ids = np.arange(state.n_atoms)
-    ff = DistributedForceField([LennardJones(1.0, 1.0, 2.5)], skin=0.3, ranks=OneRank(),
-                               grid=Grid((1, 1, 1)), bond_reach=0.0)  # fmt: skip
+    ff = DistributedForceField(
+        [LennardJones(1.0, 1.0, 2.5)],
+        skin=0.3,
+        ranks=OneRank(),
+        grid=Grid((1, 1, 1)),
+        bond_reach=0.0,
+    )
     forces = ff.compute(state).forces
     first = ff.reference
     np.testing.assert_array_equal(first, state.positions)
@@ -505,8 +574,9 @@ def test_balanced_cuts_share_the_modelled_work_evenly():
         if np.all(np.abs(targets - cuts[inner]) < halves):
             unclipped += 1
             full = balanced_cuts(cuts, costs, minimum=0.01, damping=1.0)
-            np.testing.assert_allclose(np.diff(np.interp(full, cuts, edges)), edges[-1] / p,
-                                       rtol=1e-10)  # fmt: skip
+            np.testing.assert_allclose(
+                np.diff(np.interp(full, cuts, edges)), edges[-1] / p, rtol=1e-10
+            )
     assert unclipped >= 2  # the even share itself was checked
     even = balanced_cuts([0.0, 0.25, 0.5, 0.75, 1.0], [2.0, 2.0, 2.0, 2.0], minimum=0.1)
     np.testing.assert_allclose(even, [0.0, 0.25, 0.5, 0.75, 1.0], atol=1e-15)
@@ -590,8 +660,14 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     ranks = Neighbour([np.empty((0, 8))] * 4)
     ranks.clock = Clock()
     calls = []
-    for name in ("home_layout", "near_faces", "table_rows", "pack_rows", "home_positions",
-                 "shift_rows"):  # fmt: skip
+    for name in (
+        "home_layout",
+        "near_faces",
+        "table_rows",
+        "pack_rows",
+        "home_positions",
+        "shift_rows",
+    ):
         kernel = getattr(halo, name)
 
         def recorded(*args, _kernel=kernel, _name=name):
@@ -605,9 +681,13 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     domain.build(state, 0.5)
     domain.update(state)  # every owned row copied (home_positions)
     domain.update(state, copied=True)  # the rows were copied by the caller (shift_rows)
-    on_clock = {name: {inside for called, inside in calls if called == name}
-                for name, _ in calls}  # fmt: skip
-    assert on_clock == {"home_layout": {False}, "near_faces": {True}, "table_rows": {True},
-                        "pack_rows": {True}, "home_positions": {False},
-                        "shift_rows": {False}}  # fmt: skip
+    on_clock = {name: {inside for called, inside in calls if called == name} for name, _ in calls}
+    assert on_clock == {
+        "home_layout": {False},
+        "near_faces": {True},
+        "table_rows": {True},
+        "pack_rows": {True},
+        "home_positions": {False},
+        "shift_rows": {False},
+    }
     assert ranks.clock.depth == 0 and len(ranks.sent) == 2 + 4  # 2 sweeps' rows, 2 x 2 steps

@@ -39,7 +39,6 @@ def test_force_cache_follows_positions_box_and_types(random_gas):
     assert forcefield.n_evaluations == 4
 
 
-
 def test_a_force_field_without_cache_evaluates_every_call_and_copies_nothing(random_gas):
     """cache=False (a decomposed run's local force field, whose caller keeps the results):
     each call evaluates, subsets too, the results equal the cached field's, and no call
@@ -66,13 +65,20 @@ def test_a_force_field_without_cache_evaluates_every_call_and_copies_nothing(ran
             snapshot = tracemalloc.take_snapshot()
         finally:
             tracemalloc.stop()
-        return max((stat.size for stat in snapshot.statistics("lineno")
-                    if "forcefield.py" in stat.traceback[0].filename), default=0)  # fmt: skip
+        return max(
+            (
+                stat.size
+                for stat in snapshot.statistics("lineno")
+                if "forcefield.py" in stat.traceback[0].filename
+            ),
+            default=0,
+        )
 
     state.positions[0, 0] += 1e-3
     fresh = md.ForceField([lj])
     assert largest_allocation(fresh) >= state.positions.nbytes  # its key: a copy
     assert largest_allocation(plain) < state.positions.nbytes / 8
+
 
 def test_force_field_sums_its_potentials(random_gas):
     state = random_gas(60, 7.0, n_types=2)

@@ -78,8 +78,10 @@ def two_type_structure(folder: Path) -> None:
     """The 64-atom Ar/Kr simple-cubic structure TWO_TYPES reads (lj units, spacing 1.2)."""
     grid = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3) * 1.2
     lines = ["64", 'Lattice="4.8 0 0 0 4.8 0 0 0 4.8" Properties=species:S:1:pos:R:3 pbc="T T T"']
-    lines += [f"{'Ar' if i % 2 else 'Kr'} {x:.3f} {y:.3f} {z:.3f}" for i, (x, y, z) in
-              enumerate(grid + 0.3)]  # fmt: skip
+    lines += [
+        f"{'Ar' if i % 2 else 'Kr'} {x:.3f} {y:.3f} {z:.3f}"
+        for i, (x, y, z) in enumerate(grid + 0.3)
+    ]
     (folder / "two.xyz").write_text("\n".join(lines) + "\n")
 
 
@@ -93,17 +95,38 @@ SCALARS = st.one_of(
     st.sampled_from([0.0, -0.0, 0.5, 1.0, 2.5, 1e-12]),
     st.booleans(),
     st.text(max_size=6),
-    st.sampled_from(["", "fcc", "lj", "Ar", "Kr", "none", "smooth", "verlet", "out.h5",
-                     "sub/x.h5", ".", "/", "two.xyz", "missing.xyz"]),
-)  # fmt: skip
+    st.sampled_from(
+        [
+            "",
+            "fcc",
+            "lj",
+            "Ar",
+            "Kr",
+            "none",
+            "smooth",
+            "verlet",
+            "out.h5",
+            "sub/x.h5",
+            ".",
+            "/",
+            "two.xyz",
+            "missing.xyz",
+        ]
+    ),
+)
 VALUES = st.one_of(
     SCALARS,
     st.lists(SCALARS, max_size=4),
     st.dictionaries(st.sampled_from(["Ar", "Kr", "A", "", "types"]), SCALARS, max_size=2),
-    st.lists(st.dictionaries(st.sampled_from(["types", "d0", "cutoff", "x"]),
-                             st.one_of(SCALARS, st.lists(SCALARS, max_size=3)), max_size=3),
-             max_size=2),
-)  # fmt: skip
+    st.lists(
+        st.dictionaries(
+            st.sampled_from(["types", "d0", "cutoff", "x"]),
+            st.one_of(SCALARS, st.lists(SCALARS, max_size=3)),
+            max_size=3,
+        ),
+        max_size=2,
+    ),
+)
 
 
 @functools.cache
@@ -127,8 +150,10 @@ def every_type() -> dict:
     from integrators import INTEGRATORS
     from potentials import POTENTIALS
 
-    return {"potentials": sorted(POTENTIALS) + ["nope"],
-            "integrator": sorted(INTEGRATORS) + ["nope"]}  # fmt: skip
+    return {
+        "potentials": sorted(POTENTIALS) + ["nope"],
+        "integrator": sorted(INTEGRATORS) + ["nope"],
+    }
 
 
 def _places(data, prefix=()):
@@ -174,8 +199,11 @@ def mutated_configs(draw, types=None):
             elif isinstance(parent[key], (int, float)) and not isinstance(parent[key], bool):
                 factor = draw(st.sampled_from([-1, 0, 1e-9, 1e9, 1e300, 0.999999, 1.000001]))
                 scaled = parent[key] * factor
-                parent[key] = int(scaled) if isinstance(parent[key], int) and \
-                    math.isfinite(scaled) else scaled  # fmt: skip
+                parent[key] = (
+                    int(scaled)
+                    if isinstance(parent[key], int) and math.isfinite(scaled)
+                    else scaled
+                )
         elif op == "add":
             table = _at(data, draw(st.sampled_from(list(_tables(data)))))
             name = draw(
@@ -209,8 +237,26 @@ def garbled_texts(draw):
             lines[i] = lines[i][: draw(st.integers(0, max(len(lines[i]) - 1, 0)))]
         elif op == "junk":
             at = draw(st.integers(0, len(lines[i])))
-            junk = draw(st.sampled_from(["=", "[", "]", '"', "#", "\\", "\x00", "é", "{", ",",
-                                         "nan", "1e999", "-", "[[x]]"]))  # fmt: skip
+            junk = draw(
+                st.sampled_from(
+                    [
+                        "=",
+                        "[",
+                        "]",
+                        '"',
+                        "#",
+                        "\\",
+                        "\x00",
+                        "é",
+                        "{",
+                        ",",
+                        "nan",
+                        "1e999",
+                        "-",
+                        "[[x]]",
+                    ]
+                )
+            )
             lines[i] = lines[i][:at] + junk + lines[i][at:]
         else:
             j = draw(st.integers(0, len(lines) - 1))
@@ -322,16 +368,22 @@ def check_config_text(text: str, base: str, extra: tuple[str, ...] = ()) -> str:
         (folder / "run.toml").write_text(text, errors="surrogateescape")
         before = files_in(folder)
         with inside(folder):
-            code, out, err = run_md(["run", "run.toml", "--no-progress", "-q", "--steps", "4",
-                                     *extra])  # fmt: skip
+            code, out, err = run_md(
+                ["run", "run.toml", "--no-progress", "-q", "--steps", "4", *extra]
+            )
         judge_run(folder, before, code, out, err)
         if code == 2:  # names the config, the option, or the output file it is about
             assert re.search(r"run\.toml|--|\.h5|\.ckpt", err), err
         return f"exit {code}"
 
 
-FUZZ = settings(max_examples=60, deadline=None, derandomize=True, database=None,
-                suppress_health_check=[HealthCheck.too_slow])  # fmt: skip
+FUZZ = settings(
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
 
 
 def test_the_base_configs_run():
@@ -341,8 +393,17 @@ def test_the_base_configs_run():
 
 
 #: Options of ``md run`` drawn with a mutated config.
-FLAGS = st.sampled_from([(), (), ("--resume",), ("--overwrite",), ("--threads", "1"),
-                         ("-o", "other.h5"), ("-o", "existing.h5", "--overwrite")])  # fmt: skip
+FLAGS = st.sampled_from(
+    [
+        (),
+        (),
+        ("--resume",),
+        ("--overwrite",),
+        ("--threads", "1"),
+        ("-o", "other.h5"),
+        ("-o", "existing.h5", "--overwrite"),
+    ]
+)
 
 
 @FUZZ
@@ -354,9 +415,16 @@ def test_mutated_configs_run_or_exit_2(case, flags):
 
 @pytest.mark.parametrize(
     "pairs",
-    ["1", "2.5", "true", '"Ar"', '[{types = [["Ar"], "Kr"], d0 = 0.05}]',
-     '[{types = [{a = 1}, "Kr"]}]', '[{types = [1, 2]}]'],
-)  # fmt: skip
+    [
+        "1",
+        "2.5",
+        "true",
+        '"Ar"',
+        '[{types = [["Ar"], "Kr"], d0 = 0.05}]',
+        '[{types = [{a = 1}, "Kr"]}]',
+        "[{types = [1, 2]}]",
+    ],
+)
 def test_pairs_of_the_wrong_kind_exit_2_naming_pairs(pairs):
     """Finding (benchmarks/fuzz_long.py): ``pairs = 1`` in a pair style's table, or a type
     in ``types`` that is a list, ended ``md run`` in a traceback ("'int' object is not
@@ -427,11 +495,26 @@ def _extxyz(path: Path) -> None:
 
 def _lammps_data(path: Path) -> None:
     """A LAMMPS data file of atom style bond (Masses, Atoms, Velocities, Bonds)."""
-    lines = ["LAMMPS data file", "", "12 atoms", "2 bonds", "1 atom types", "1 bond types", "",
-             f"0.0 {BOX} xlo xhi", f"0.0 {BOX} ylo yhi", f"0.0 {BOX} zlo zhi", "",
-             "Masses", "", "1 39.948 # Ar", "", "Atoms # bond", ""]  # fmt: skip
-    lines += [f"{i + 1} {i // 6 + 1} 1 {x:.6f} {y:.6f} {z:.6f}" for i, (x, y, z) in
-              enumerate(GAS)]  # fmt: skip
+    lines = [
+        "LAMMPS data file",
+        "",
+        "12 atoms",
+        "2 bonds",
+        "1 atom types",
+        "1 bond types",
+        "",
+        f"0.0 {BOX} xlo xhi",
+        f"0.0 {BOX} ylo yhi",
+        f"0.0 {BOX} zlo zhi",
+        "",
+        "Masses",
+        "",
+        "1 39.948 # Ar",
+        "",
+        "Atoms # bond",
+        "",
+    ]
+    lines += [f"{i + 1} {i // 6 + 1} 1 {x:.6f} {y:.6f} {z:.6f}" for i, (x, y, z) in enumerate(GAS)]
     lines += ["", "Velocities", ""]
     lines += [f"{i + 1} {u:.6f} {v:.6f} {w:.6f}" for i, (u, v, w) in enumerate(GAS_VELOCITIES)]
     lines += ["", "Bonds", "", "1 1 1 2", "2 1 3 4", ""]
@@ -467,8 +550,14 @@ def _h5md_ours(path: Path) -> None:
     import md
     from md.trajectory import H5MDWriter
 
-    state = md.State(positions=GAS, velocities=GAS_VELOCITIES, masses=39.948, box=[BOX] * 3,
-                     pbc=True, type_names=("Ar",))  # fmt: skip
+    state = md.State(
+        positions=GAS,
+        velocities=GAS_VELOCITIES,
+        masses=39.948,
+        box=[BOX] * 3,
+        pbc=True,
+        type_names=("Ar",),
+    )
     with H5MDWriter(path, state, units="metal", velocities=True) as writer:
         writer.write(state)
 
@@ -486,10 +575,10 @@ def _h5md_mdanalysis(path: Path) -> None:
         universe.atoms.positions = GAS
         universe.atoms.velocities = GAS_VELOCITIES
         universe.dimensions = [BOX, BOX, BOX, 90, 90, 90]
-        universe.trajectory.units = {"time": "ps", "length": "Angstrom",
-                                     "velocity": "Angstrom/ps"}  # fmt: skip
-        with mda.coordinates.H5MD.H5MDWriter(str(path), 12, velocities=True,
-                                             convert_units=False) as writer:  # fmt: skip
+        universe.trajectory.units = {"time": "ps", "length": "Angstrom", "velocity": "Angstrom/ps"}
+        with mda.coordinates.H5MD.H5MDWriter(
+            str(path), 12, velocities=True, convert_units=False
+        ) as writer:
             writer.write(universe)
 
 
@@ -517,16 +606,28 @@ def _structure_bytes(kind: str, folder: Path) -> bytes:
     path = folder / f"w.{SUFFIX[kind]}"
     if kind == "xyz":
         return _plain_xyz()
-    {"extxyz": _extxyz, "lammps": _lammps_data, "h5md_ours": _h5md_ours,
-     "h5md_mdanalysis": _h5md_mdanalysis, "h5md_by_hand": _h5md_by_hand,
-     "gsd": lambda p: _write_gsd(p, _gsd_frame())}[kind](path)  # fmt: skip
+    {
+        "extxyz": _extxyz,
+        "lammps": _lammps_data,
+        "h5md_ours": _h5md_ours,
+        "h5md_mdanalysis": _h5md_mdanalysis,
+        "h5md_by_hand": _h5md_by_hand,
+        "gsd": lambda p: _write_gsd(p, _gsd_frame()),
+    }[kind](path)
     data = path.read_bytes()
     path.unlink()
     return data
 
 
-SUFFIX = {"xyz": "xyz", "extxyz": "extxyz", "lammps": "data", "gsd": "gsd", "h5md_ours": "h5",
-          "h5md_mdanalysis": "h5md", "h5md_by_hand": "h5"}  # fmt: skip
+SUFFIX = {
+    "xyz": "xyz",
+    "extxyz": "extxyz",
+    "lammps": "data",
+    "gsd": "gsd",
+    "h5md_ours": "h5",
+    "h5md_mdanalysis": "h5md",
+    "h5md_by_hand": "h5",
+}
 TEXT_KINDS = ("xyz", "extxyz", "lammps")
 BINARY_KINDS = ("gsd", "h5md_ours", "h5md_mdanalysis", "h5md_by_hand")
 _VALID: dict[str, bytes] = {}
@@ -540,9 +641,31 @@ def valid_structure(kind: str) -> bytes:
     return _VALID[kind]
 
 
-TOKENS = st.sampled_from(["nan", "NaN", "inf", "-inf", "1e400", "1e300", "-1e300", "x", "", "-1",
-                          "0", "3.5.6", "999999999999", "1e-320", "2", "#", "Ar", "Atoms",
-                          "1 2", "\x00", "é"])  # fmt: skip
+TOKENS = st.sampled_from(
+    [
+        "nan",
+        "NaN",
+        "inf",
+        "-inf",
+        "1e400",
+        "1e300",
+        "-1e300",
+        "x",
+        "",
+        "-1",
+        "0",
+        "3.5.6",
+        "999999999999",
+        "1e-320",
+        "2",
+        "#",
+        "Ar",
+        "Atoms",
+        "1 2",
+        "\x00",
+        "é",
+    ]
+)
 
 
 @st.composite
@@ -550,8 +673,21 @@ def mutated_text(draw, data: bytes) -> bytes:
     lines = data.decode().split("\n")
     for _ in range(draw(st.integers(1, 3))):
         i = draw(st.integers(0, len(lines) - 1))
-        op = draw(st.sampled_from(["token", "token", "drop_column", "add_column", "delete",
-                                   "double", "count", "truncate", "swap"]))  # fmt: skip
+        op = draw(
+            st.sampled_from(
+                [
+                    "token",
+                    "token",
+                    "drop_column",
+                    "add_column",
+                    "delete",
+                    "double",
+                    "count",
+                    "truncate",
+                    "swap",
+                ]
+            )
+        )
         words = lines[i].split(" ")
         if op == "token":
             j = draw(st.integers(0, len(words) - 1))
@@ -567,8 +703,9 @@ def mutated_text(draw, data: bytes) -> bytes:
             lines.insert(i, lines[i])
         elif op == "count":  # the first number of the file: the xyz count, else "N atoms"
             k = next((n for n, line in enumerate(lines) if re.match(r"^\d+( atoms)?$", line)), 0)
-            lines[k] = re.sub(r"^\d+", str(draw(st.sampled_from([0, 1, 11, 13, 24, 10**9,
-                                                                  -5]))), lines[k])  # fmt: skip
+            lines[k] = re.sub(
+                r"^\d+", str(draw(st.sampled_from([0, 1, 11, 13, 24, 10**9, -5]))), lines[k]
+            )
         elif op == "truncate":
             text = "\n".join(lines)
             return text[: draw(st.integers(0, len(text)))].encode(errors="surrogateescape")
@@ -602,11 +739,13 @@ def damage_h5(path: Path, how: str, pick: int) -> None:
 
     with h5py.File(path, "r+") as f:
         names = []
-        f.visititems(lambda name, item: names.append(name) if isinstance(item, h5py.Dataset)
-                     else None)  # fmt: skip
+        f.visititems(
+            lambda name, item: names.append(name) if isinstance(item, h5py.Dataset) else None
+        )
         groups = []
-        f.visititems(lambda name, item: groups.append(name) if isinstance(item, h5py.Group)
-                     else None)  # fmt: skip
+        f.visititems(
+            lambda name, item: groups.append(name) if isinstance(item, h5py.Group) else None
+        )
         name = names[pick % len(names)]
         old = f[name][()]
         if how == "attribute":
@@ -625,17 +764,35 @@ def damage_h5(path: Path, how: str, pick: int) -> None:
         elif how == "strings":
             f[name] = np.array([b"x"] * max(1, np.size(old)))
         elif how == "negative":
-            f[name] = -np.abs(np.asarray(old, dtype=float)) if np.asarray(old).dtype.kind in \
-                "iuf" else old  # fmt: skip
+            f[name] = (
+                -np.abs(np.asarray(old, dtype=float))
+                if np.asarray(old).dtype.kind in "iuf"
+                else old
+            )
         else:
             f[name] = np.zeros((0,) + np.shape(old)[1:])
 
 
 #: Damage a GSD frame before writing it (the gsd package writes what it is given).
-GSD_DAMAGE = st.sampled_from(["typeid_out_of_range", "nan_position", "zero_mass", "zero_box",
-                              "negative_box", "nan_box", "bond_to_missing_atom", "no_types",
-                              "huge_image", "nan_velocity", "two_dimensions", "tilt",
-                              "no_particles", "bond_type_out_of_range", "angle_bad"])  # fmt: skip
+GSD_DAMAGE = st.sampled_from(
+    [
+        "typeid_out_of_range",
+        "nan_position",
+        "zero_mass",
+        "zero_box",
+        "negative_box",
+        "nan_box",
+        "bond_to_missing_atom",
+        "no_types",
+        "huge_image",
+        "nan_velocity",
+        "two_dimensions",
+        "tilt",
+        "no_particles",
+        "bond_type_out_of_range",
+        "angle_bad",
+    ]
+)
 
 
 def damaged_gsd_frame(how: str):
@@ -879,8 +1036,17 @@ PAIR_KEYS = st.one_of(
 )
 
 
-ARGUMENT_NAMES = ["cutoff", "epsilon", "sigma", "cutoff_mode", "r_on", "mixing", "pairs", "data",
-                  "other"]  # fmt: skip
+ARGUMENT_NAMES = [
+    "cutoff",
+    "epsilon",
+    "sigma",
+    "cutoff_mode",
+    "r_on",
+    "mixing",
+    "pairs",
+    "data",
+    "other",
+]
 
 
 @st.composite
@@ -893,20 +1059,25 @@ def pair_potential_arguments(draw):
         if draw(st.integers(0, 5)) == 0:
             arguments.pop(name, None)
         elif name == "cutoff_mode":
-            arguments[name] = draw(st.one_of(st.sampled_from(["none", "shift", "smooth", "x"]),
-                                             PARAMETER_VALUES))  # fmt: skip
+            arguments[name] = draw(
+                st.one_of(st.sampled_from(["none", "shift", "smooth", "x"]), PARAMETER_VALUES)
+            )
         elif name == "mixing":
-            arguments[name] = draw(st.one_of(st.sampled_from(["geometric", "lorentz-berthelot"]),
-                                             PARAMETER_VALUES))  # fmt: skip
+            arguments[name] = draw(
+                st.one_of(st.sampled_from(["geometric", "lorentz-berthelot"]), PARAMETER_VALUES)
+            )
         elif name == "pairs":
             entries = st.dictionaries(
-                st.sampled_from(["epsilon", "sigma", "cutoff", "r_on", "x"]), PARAMETER_VALUES,
-                max_size=3,
-            )  # fmt: skip
-            arguments[name] = draw(st.one_of(
-                st.dictionaries(PAIR_KEYS, st.one_of(entries, PARAMETER_VALUES), max_size=3),
+                st.sampled_from(["epsilon", "sigma", "cutoff", "r_on", "x"]),
                 PARAMETER_VALUES,
-            ))  # fmt: skip
+                max_size=3,
+            )
+            arguments[name] = draw(
+                st.one_of(
+                    st.dictionaries(PAIR_KEYS, st.one_of(entries, PARAMETER_VALUES), max_size=3),
+                    PARAMETER_VALUES,
+                )
+            )
         else:
             arguments[name] = draw(PARAMETER_VALUES)
     return arguments
@@ -979,8 +1150,11 @@ def test_a_term_returning_other_than_two_numbers_is_refused_naming_it(energy):
     from potentials import PairPotential, pair_term
 
     term = pair_term(energy)
-    with pytest.raises(TypeError, match=rf"pair term {energy.__name__}: .* must return a tuple "
-                                        "of two numbers"):  # fmt: skip
+    with pytest.raises(
+        TypeError,
+        match=rf"pair term {energy.__name__}: .* must return a tuple "
+        "of two numbers",
+    ):
         PairPotential(term, cutoff=2.0, epsilon=1.0)
 
 
@@ -1025,8 +1199,9 @@ def test_every_dataset_of_our_h5md_damaged_is_refused_naming_the_file(how):
         path.write_bytes(valid_structure("h5md_ours"))
         datasets = []
         with h5py.File(path, "r") as f:
-            f.visititems(lambda n, item: datasets.append(n) if isinstance(item, h5py.Dataset)
-                         else None)  # fmt: skip
+            f.visititems(
+                lambda n, item: datasets.append(n) if isinstance(item, h5py.Dataset) else None
+            )
     assert len(datasets) > 10
     for pick in range(len(datasets)):
         check_structure("h5md_ours", ("h5", how, pick), run=False)
@@ -1060,8 +1235,12 @@ def test_fuzzed_cases_in_a_real_md_process(case, tmp_path):
     env = {**os.environ, "PYTHONPATH": path}
     done = subprocess.run(
         [sys.executable, "-m", "md.cli", "run", "run.toml", "--no-progress", "-q"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     judge_run(tmp_path, before, done.returncode, done.stdout, done.stderr)
     assert done.returncode == expected, done.stderr
 
@@ -1081,8 +1260,18 @@ def test_soak_script_smoke(tmp_path, capsys):
     """benchmarks/soak.py on 32 atoms, 600 steps and one SIGTERM/resume cycle: it passes,
     and it fails when the resumed run is made to differ."""
     soak = _script("soak.py")
-    argv = ["--steps", "600", "--atoms", "32", "--checkpoint-every", "50", "--cycles", "1",
-            "--workdir", str(tmp_path / "a")]  # fmt: skip
+    argv = [
+        "--steps",
+        "600",
+        "--atoms",
+        "32",
+        "--checkpoint-every",
+        "50",
+        "--cycles",
+        "1",
+        "--workdir",
+        str(tmp_path / "a"),
+    ]
     assert soak.main(argv) == 0, capsys.readouterr().out
     out = capsys.readouterr().out
     assert "1 SIGTERM/resume cycles" in out and "soak: OK" in out
@@ -1102,8 +1291,9 @@ def test_soak_script_smoke(tmp_path, capsys):
 def test_fuzz_long_script_smoke(capsys):
     """benchmarks/fuzz_long.py runs its targets for a budget and reports no finding."""
     fuzz_long = _script("fuzz_long.py")
-    code = fuzz_long.main(["--seconds", "1", "--targets", "toml,pair", "--batch", "3",
-                           "--seed", "5"])  # fmt: skip
+    code = fuzz_long.main(
+        ["--seconds", "1", "--targets", "toml,pair", "--batch", "3", "--seed", "5"]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "0 distinct finding(s)" in out
@@ -1132,7 +1322,11 @@ def test_a_byte_flipped_h5md_file_is_refused_in_bounded_time():
             "except ValueError:\n    pass\n"
         )
         try:
-            subprocess.run([sys.executable, "-c", code, str(path)], timeout=20, check=True,
-                           env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+            subprocess.run(
+                [sys.executable, "-c", code, str(path)],
+                timeout=20,
+                check=True,
+                env={**os.environ, "PYTHONPATH": str(ROOT)},
+            )
         except subprocess.TimeoutExpired:
             pytest.fail("read_structure did not return in 20 s")

@@ -90,12 +90,20 @@ def test_lj_hessian_matches_force_differences(name, pbc, random_gas, rng):
 
 @pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
 @pytest.mark.parametrize("n_types", [1, 2])
-@pytest.mark.parametrize(("mode", "threads"), [
-    # each threaded variant compiles apart: the shifted ones run by default, the rest -m slow
-    pytest.param(mode, threads, id=f"{mode}-{threads}",
-                 marks=pytest.mark.slow if threads == 2 and mode != "shift" else ())
-    for mode in ("none", "shift", "smooth") for threads in (1, 2)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("mode", "threads"),
+    [
+        # each threaded variant compiles apart: the shifted ones run by default, the rest -m slow
+        pytest.param(
+            mode,
+            threads,
+            id=f"{mode}-{threads}",
+            marks=pytest.mark.slow if threads == 2 and mode != "shift" else (),
+        )
+        for mode in ("none", "shift", "smooth")
+        for threads in (1, 2)
+    ],
+)
 def test_lj_hessian_neighbor_list_equals_all_pairs(mode, n_types, cell, threads, fcc_lattice):
     """The slot-frame curvature kernel (chunks counted, then written, on one thread or two)
     assembles the all-pairs minimum-image Hessian, in any cell, with one type or two."""

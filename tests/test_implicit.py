@@ -146,13 +146,21 @@ def lj_liquid(cells=4, temperature=1.0, seed=3):
 def test_options_are_validated_and_described():
     integrator = ImplicitEuler(dt=0.01, tol=1e-9, max_iter=7, linear_solver="cg")
     assert integrator.describe() == {
-        "type": "implicit_euler", "dt": 0.01, "tol": 1e-9, "max_iter": 7,
-    }  # fmt: skip
+        "type": "implicit_euler",
+        "dt": 0.01,
+        "tol": 1e-9,
+        "max_iter": 7,
+    }
     assert ImplicitMidpoint(dt=0.02).describe()["type"] == "implicit_midpoint"
     assert set(integrator.statistics) == {
-        "steps", "newton_iterations", "linear_iterations", "line_search_backtracks", "fallbacks",
-        "projections", "hessian_evaluations",
-    }  # fmt: skip
+        "steps",
+        "newton_iterations",
+        "linear_iterations",
+        "line_search_backtracks",
+        "fallbacks",
+        "projections",
+        "hessian_evaluations",
+    }
     for bad in (
         {"dt": 0.0},
         {"dt": 0.01, "tol": 0.0},
@@ -441,23 +449,77 @@ def test_solver_vector_passes_in_chunks_equal_the_serial_ones(chunks):
         return value_s, value_t
 
     # incremental terms: kinetic sum to round-off, the largest |M^-1 grad| exactly
-    s, t = same(run(newton._incremental_terms, newton._incremental_terms_threaded,
-                    vectors[0], vectors[1], masses, 1.0 / masses, vectors[2], 0.3,
-                    np.empty(n), mutable=(6,)))  # fmt: skip
+    s, t = same(
+        run(
+            newton._incremental_terms,
+            newton._incremental_terms_threaded,
+            vectors[0],
+            vectors[1],
+            masses,
+            1.0 / masses,
+            vectors[2],
+            0.3,
+            np.empty(n),
+            mutable=(6,),
+        )
+    )
     assert t[0] == pytest.approx(s[0], rel=1e-13) and t[1] == s[1]
-    s, t = same(run(newton._start_terms, newton._start_terms_threaded, vectors[0], vectors[1],
-                    1.0 / masses, 0.1, 0.01, np.empty(n), np.empty(n), np.empty(n),
-                    mutable=(5, 6, 7)))  # fmt: skip
+    s, t = same(
+        run(
+            newton._start_terms,
+            newton._start_terms_threaded,
+            vectors[0],
+            vectors[1],
+            1.0 / masses,
+            0.1,
+            0.01,
+            np.empty(n),
+            np.empty(n),
+            np.empty(n),
+            mutable=(5, 6, 7),
+        )
+    )
     assert t == s
-    s, t = same(run(newton._cg_start, newton._cg_start_threaded, vectors[0], masses,
-                    np.empty(n), np.empty(n), np.empty(n), np.empty(n),
-                    mutable=(2, 3, 4, 5)))  # fmt: skip
+    s, t = same(
+        run(
+            newton._cg_start,
+            newton._cg_start_threaded,
+            vectors[0],
+            masses,
+            np.empty(n),
+            np.empty(n),
+            np.empty(n),
+            np.empty(n),
+            mutable=(2, 3, 4, 5),
+        )
+    )
     np.testing.assert_allclose(t, s, rtol=1e-13)
-    s, t = same(run(newton._cg_update, newton._cg_update_threaded, 0.7, vectors[0], vectors[1],
-                    masses, vectors[2], vectors[3], np.empty(n), mutable=(4, 5, 6)))  # fmt: skip
+    s, t = same(
+        run(
+            newton._cg_update,
+            newton._cg_update_threaded,
+            0.7,
+            vectors[0],
+            vectors[1],
+            masses,
+            vectors[2],
+            vectors[3],
+            np.empty(n),
+            mutable=(4, 5, 6),
+        )
+    )
     np.testing.assert_allclose(t, s, rtol=1e-13)
-    s, t = same(run(newton._add_scaled, newton._add_scaled_threaded, masses, vectors[0], 0.2,
-                    vectors[1], mutable=(3,)))  # fmt: skip
+    s, t = same(
+        run(
+            newton._add_scaled,
+            newton._add_scaled_threaded,
+            masses,
+            vectors[0],
+            0.2,
+            vectors[1],
+            mutable=(3,),
+        )
+    )
     np.testing.assert_array_equal(t[0], s[0])
     assert t[1] == pytest.approx(s[1], rel=1e-13)
     # The serial pass's own sum: the product it returns dotted with x.

@@ -47,21 +47,33 @@ def test_registry_options_and_descriptions():
     assert INTEGRATORS["bdf2"] is BDF2
     assert INTEGRATORS["gauss_legendre4"] is GaussLegendre4
     assert INTEGRATORS["xpbd"] is XPBD
-    for cls, name in ((Trapezoidal, "trapezoidal"), (BDF2, "bdf2"),
-                      (GaussLegendre4, "gauss_legendre4")):  # fmt: skip
+    for cls, name in (
+        (Trapezoidal, "trapezoidal"),
+        (BDF2, "bdf2"),
+        (GaussLegendre4, "gauss_legendre4"),
+    ):
         integrator = cls(dt=0.01, tol=1e-9, max_iter=7, linear_solver="cg")
         assert integrator.describe() == {"type": name, "dt": 0.01, "tol": 1e-9, "max_iter": 7}
         assert integrator.order == (4 if cls is GaussLegendre4 else 2)
-        for bad in ({"dt": 0.0}, {"dt": 0.01, "tol": -1.0}, {"dt": 0.01, "max_iter": 0},
-                    {"dt": 0.01, "linear_solver": "lu"}):  # fmt: skip
+        for bad in (
+            {"dt": 0.0},
+            {"dt": 0.01, "tol": -1.0},
+            {"dt": 0.01, "max_iter": 0},
+            {"dt": 0.01, "linear_solver": "lu"},
+        ):
             with pytest.raises(ValueError):
                 cls(**bad)
     xpbd = XPBD(dt=0.05, iterations=7, tol=1e-6)
     assert xpbd.describe() == {"type": "xpbd", "dt": 0.05, "iterations": 7, "tol": 1e-6}
     assert XPBD(0.05, compliance=1e-4).describe()["compliance"] == 1e-4
     assert xpbd.order == 1 and xpbd.splits_forces
-    for bad in ({"iterations": 0}, {"tol": 0.0}, {"compliance": 0.0}, {"compliance": -1.0},
-                {"compliance": float("inf")}):  # fmt: skip
+    for bad in (
+        {"iterations": 0},
+        {"tol": 0.0},
+        {"compliance": 0.0},
+        {"compliance": -1.0},
+        {"compliance": float("inf")},
+    ):
         with pytest.raises(ValueError):
             XPBD(0.05, **bad)
 
@@ -86,8 +98,19 @@ def test_md_integrators_measures_the_implicit_orders_from_three_points_or_more(t
 
     names = ["implicit_euler", "implicit_midpoint", "bdf2", "trapezoidal", "gauss_legendre4"]
     out = tmp_path / "study"
-    assert main(["integrators", str(ROOT / "examples" / "integrators_lj.toml"),
-                 "--integrators", ",".join(names), "--out", str(out)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "integrators",
+                str(ROOT / "examples" / "integrators_lj.toml"),
+                "--integrators",
+                ",".join(names),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     with open(out / "integrators.csv", newline="") as handle:
         rows = {row["integrator"]: row for row in csv.DictReader(handle)}
@@ -122,10 +145,12 @@ def test_global_order_on_a_lennard_jones_cluster(cls, order):
     start = _lj_cluster()
     reference = _final_positions(Yoshida6(0.01 / 16), start)
     steps = np.array([0.01, 0.005, 0.0025])
-    errors = np.array([
-        np.sqrt(np.mean((_final_positions(cls(dt, tol=1e-13), start) - reference) ** 2))
-        for dt in steps
-    ])  # fmt: skip
+    errors = np.array(
+        [
+            np.sqrt(np.mean((_final_positions(cls(dt, tol=1e-13), start) - reference) ** 2))
+            for dt in steps
+        ]
+    )
     slopes = np.diff(np.log(errors)) / np.diff(np.log(steps))
     assert np.all(np.abs(slopes - order) < 0.15), (slopes, errors)
 
@@ -159,8 +184,11 @@ def test_bdf2_sdirk2_start_beats_an_implicit_euler_start():
             t = state.time
             exact_x = x0 * np.cos(t) + v0 * np.sin(t)
             exact_v = -x0 * np.sin(t) + v0 * np.cos(t)
-            errors.append(np.sqrt(np.sum((state.positions - exact_x) ** 2
-                                         + (state.velocities - exact_v) ** 2)))  # fmt: skip
+            errors.append(
+                np.sqrt(
+                    np.sum((state.positions - exact_x) ** 2 + (state.velocities - exact_v) ** 2)
+                )
+            )
         assert errors[0] < 0.5 * errors[1], (dt, errors)
 
 
@@ -253,8 +281,9 @@ def test_newton_methods_report_implicit_eulers_telemetry_and_agree_across_linear
         assert stats["hessian_evaluations"] >= 1 and stats["linear_iterations"] >= 1, stats
         runs[linear_solver] = (state, stats)
     assert runs["cg"][1]["linear_iterations"] > runs["direct"][1]["linear_iterations"]
-    np.testing.assert_allclose(runs["cg"][0].positions, runs["direct"][0].positions,
-                               rtol=0, atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        runs["cg"][0].positions, runs["direct"][0].positions, rtol=0, atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("cls", NEW)
@@ -343,15 +372,19 @@ def _linear_chain(n_beads=16, k=57150.0):
     rng = np.random.default_rng(2)
     positions = np.zeros((n_beads, 3))
     positions[:, 0] = 0.05 * np.arange(n_beads)
-    state = md.State(positions=positions + rng.normal(scale=0.01, size=positions.shape),
-                     velocities=rng.normal(scale=0.3, size=positions.shape), box=[50.0] * 3,
-                     pbc=False)  # fmt: skip
+    state = md.State(
+        positions=positions + rng.normal(scale=0.01, size=positions.shape),
+        velocities=rng.normal(scale=0.3, size=positions.shape),
+        box=[50.0] * 3,
+        pbc=False,
+    )
     bonds = np.column_stack([np.arange(n_beads - 1), np.arange(1, n_beads)])
     return state, [HarmonicBonds(bonds, k=k, r0=0.0)]
 
 
-@pytest.mark.parametrize("cls", [ImplicitMidpoint, Trapezoidal, GaussLegendre4, ImplicitEuler,
-                                 BDF2, XPBD])  # fmt: skip
+@pytest.mark.parametrize(
+    "cls", [ImplicitMidpoint, Trapezoidal, GaussLegendre4, ImplicitEuler, BDF2, XPBD]
+)
 def test_every_implicit_method_stable_on_a_linear_stiff_chain_at_100x_verlet(cls):
     """Linear stiff forces, where A-stability is the whole story: at 100 x Verlet's limit
     the non-damping methods keep the energy (to 1e-9), the damping ones lose it."""
@@ -461,8 +494,9 @@ def test_xpbd_takes_pair_forces_explicitly_and_keeps_momentum():
     pair = md.ForceField([lj]).compute(expected).forces / expected.masses[:, None]
     assert np.abs(pair).max() > 0.1
     solver = IncrementalSolver(1e-13, 50, "direct", new_statistics())
-    displacement = solver.solve(expected, md.ForceField([springs]), dt, "check",
-                                velocities=expected.velocities + dt * pair)  # fmt: skip
+    displacement = solver.solve(
+        expected, md.ForceField([springs]), dt, "check", velocities=expected.velocities + dt * pair
+    )
     md.Simulation(state, [lj, springs], XPBD(dt, iterations=5000, tol=1e-14)).run(1)
     np.testing.assert_allclose(state.positions, expected.positions, rtol=0, atol=1e-12)
     np.testing.assert_allclose(state.velocities, displacement / dt, rtol=0, atol=1e-9)
@@ -498,8 +532,22 @@ def test_xpbd_kernel_runs_as_python():
     for kernel in (_xpbd_sweeps, _xpbd_sweeps.py_func):
         moved, displacement = positions.copy(), np.zeros_like(positions)
         multipliers = np.zeros(n - 1)
-        out = kernel(moved, displacement, np.ones(n), lengths, inverse, np.zeros(3), bonds, forms,
-                     stiffness, rest, 0.01**2, multipliers, 40, 1e-12)  # fmt: skip
+        out = kernel(
+            moved,
+            displacement,
+            np.ones(n),
+            lengths,
+            inverse,
+            np.zeros(3),
+            bonds,
+            forms,
+            stiffness,
+            rest,
+            0.01**2,
+            multipliers,
+            40,
+            1e-12,
+        )
         results.append((out, moved, displacement, multipliers))
     (compiled, *arrays), (python, *python_arrays) = results
     assert compiled[0] == python[0] and compiled[2] == python[2] == 0
@@ -577,10 +625,15 @@ def _run(*args) -> int:
     return main(["run", *map(str, args), "--no-progress", "-q"])
 
 
-@pytest.mark.parametrize("integrator", ['type = "xpbd"\ndt = 0.02\niterations = 10',
-                                        'type = "bdf2"\ndt = 0.02\ntol = 1e-8',
-                                        'type = "gauss_legendre4"\ndt = 0.02\ntol = 1e-8',
-                                        'type = "trapezoidal"\ndt = 0.02\ntol = 1e-8'])  # fmt: skip
+@pytest.mark.parametrize(
+    "integrator",
+    [
+        'type = "xpbd"\ndt = 0.02\niterations = 10',
+        'type = "bdf2"\ndt = 0.02\ntol = 1e-8',
+        'type = "gauss_legendre4"\ndt = 0.02\ntol = 1e-8',
+        'type = "trapezoidal"\ndt = 0.02\ntol = 1e-8',
+    ],
+)
 def test_resume_on_a_bonded_chain_is_bitwise_identical(tmp_path, monkeypatch, integrator):
     """Stop at 20, resume to 40, lose the tail after the step-20 checkpoint, resume to 60:
     the same trajectory, bit for bit, as the run in one go (BDF2's last displacement and
@@ -618,13 +671,15 @@ def _digests(folder: Path) -> dict:
         ('type = "xpbd"\ndt = 0.02', "lj only", "xpbd found no bonds"),
     ],
 )
-def test_bad_xpbd_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, integrator,
-                                                    potentials, message):  # fmt: skip
+def test_bad_xpbd_input_exits_2_and_writes_nothing(
+    tmp_path, monkeypatch, capsys, integrator, potentials, message
+):
     monkeypatch.chdir(tmp_path)
     text = XPBD_CONFIG.format(integrator=integrator)
     if potentials == "lj only":
-        text = text.replace('[[potentials]]\ntype = "spring"\nbonds = "system"\n'
-                            "k = 5000.0\nr0 = 1.2\n", "")  # fmt: skip
+        text = text.replace(
+            '[[potentials]]\ntype = "spring"\nbonds = "system"\nk = 5000.0\nr0 = 1.2\n', ""
+        )
     (tmp_path / "run.toml").write_text(text)
     before = _digests(tmp_path)
     assert _run("run.toml") == 2
@@ -633,8 +688,7 @@ def test_bad_xpbd_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys
     assert _digests(tmp_path) == before  # nothing written
 
 
-def test_bdf2_resumed_from_another_integrators_checkpoint_is_refused(tmp_path, monkeypatch,
-                                                                      capsys):  # fmt: skip
+def test_bdf2_resumed_from_another_integrators_checkpoint_is_refused(tmp_path, monkeypatch, capsys):
     """From the CLI (exit 2, nothing touched), from Python (CheckpointError), and by BDF2's
     own set_state (a ValueError naming the missing history)."""
     monkeypatch.chdir(tmp_path)

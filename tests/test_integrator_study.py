@@ -68,8 +68,18 @@ def test_cli_writes_table_csv_and_plots(tmp_path, capsys):
     config = tmp_path / "study.toml"
     config.write_text(CONFIG)
     out = tmp_path / "study"
-    args = ["integrators", str(config), "--integrators", "verlet", "--time", "0.2",
-            "--dt-range", "0.001:0.004:3", "--out", str(out)]  # fmt: skip
+    args = [
+        "integrators",
+        str(config),
+        "--integrators",
+        "verlet",
+        "--time",
+        "0.2",
+        "--dt-range",
+        "0.001:0.004:3",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "order" in text and "verlet" in text
@@ -163,8 +173,10 @@ def test_every_integrator_shows_its_order_within_0_15(every_order):
             assert report.fit_points >= 3
             continue
         assert report.order == pytest.approx(report.expected_order, abs=0.15), (
-            report.name, report.order, [(r.dt, r.error) for r in report.runs],
-        )  # fmt: skip
+            report.name,
+            report.order,
+            [(r.dt, r.error) for r in report.runs],
+        )
         assert report.fit_points >= 3, report.name
 
 

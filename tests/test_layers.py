@@ -506,9 +506,10 @@ def unnamed_modules(text: str, layers: dict[int, list[str]]) -> list[str]:
         entry
         for entries in layers.values()
         for entry in entries
-        if not any(re.search(rf"(?<![\w/.]){re.escape(s)}(?![\w])", text)
-                   for s in _doc_spellings(entry))
-    ]  # fmt: skip
+        if not any(
+            re.search(rf"(?<![\w/.]){re.escape(s)}(?![\w])", text) for s in _doc_spellings(entry)
+        )
+    ]
 
 
 def test_architecture_names_every_module_of_the_layer_table():

@@ -33,9 +33,13 @@ print(json.dumps({"kept": kept, "faults": faults,
 def _touch(**environment) -> dict:
     env = {**os.environ, **environment}
     out = subprocess.run(
-        [sys.executable, "-c", _TOUCH], capture_output=True, text=True, env=env, timeout=120,
+        [sys.executable, "-c", _TOUCH],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
         check=True,
-    )  # fmt: skip
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 

@@ -90,8 +90,10 @@ def test_a_bare_ase_reader_error_is_named_with_the_file_and_what_failed(tmp_path
     with pytest.raises(ValueError) as raised:
         read_structure("b.data", units="lj")
     message = str(raised.value)
-    assert message.startswith("cannot read b.data as a LAMMPS data file with atom_style full: "
-                              "ASE's reader failed (KeyError 64)")  # fmt: skip
+    assert message.startswith(
+        "cannot read b.data as a LAMMPS data file with atom_style full: "
+        "ASE's reader failed (KeyError 64)"
+    )
     assert "an atom id in Bonds, Angles or Velocities missing from Atoms" in message
 
 
@@ -107,13 +109,22 @@ def test_a_data_file_without_masses_takes_the_configs_mass(tmp_path, capsys, mas
 
 @pytest.mark.parametrize(
     ("mass", "message"),
-    [(None, "plain.data: no Masses section; add one (masses per atom type) or give the masses "
-            "([system] mass)"),
-     ('{"Ar" = 3.0}', "plain.data: no Masses section, and the masses given name no mass for "
-                      "type(s) 1 (the file's types: 1)")],
-)  # fmt: skip
-def test_a_data_file_without_masses_and_no_mass_for_a_type_is_refused(tmp_path, capsys, mass,
-                                                                      message):  # fmt: skip
+    [
+        (
+            None,
+            "plain.data: no Masses section; add one (masses per atom type) or give the masses "
+            "([system] mass)",
+        ),
+        (
+            '{"Ar" = 3.0}',
+            "plain.data: no Masses section, and the masses given name no mass for "
+            "type(s) 1 (the file's types: 1)",
+        ),
+    ],
+)
+def test_a_data_file_without_masses_and_no_mass_for_a_type_is_refused(
+    tmp_path, capsys, mass, message
+):
     (tmp_path / "plain.data").write_text(DATA.format(masses="", partner=2))
     system = 'structure = "plain.data"' + (f"\nmass = {mass}" if mass else "")
     code, err = _run(capsys, system)
@@ -125,19 +136,29 @@ def test_a_data_file_without_masses_and_no_mass_for_a_type_is_refused(tmp_path, 
 @pytest.mark.parametrize(
     ("integrator", "message"),
     [
-        ('type = "langevin"\ndt = 0.005\ntemperature = 1.0',
-         "missing required key [integrator] friction (type = 'langevin' needs it)"),
-        ('type = "bussi"\ndt = 0.005\ntemperature = 1.0',
-         "missing required key [integrator] tau (type = 'bussi' needs it)"),
-        ('type = "nose_hoover_chain"\ndt = 0.005\ntemperature = 1.0',
-         "missing required key [integrator] tau (type = 'nose_hoover_chain' needs it)"),
-        ('type = "berendsen"\ndt = 0.005\ntemperature = 1.0',
-         "missing required key [integrator] tau (type = 'berendsen' needs it)"),
-        ('type = "bussi"\ndt = 0.005\ntemperature = 1.0\ntau = 0.5\nfriction = 1.0',
-         "[integrator] friction: does not apply to type = 'bussi', which takes dt, "
-         "temperature, tau"),
+        (
+            'type = "langevin"\ndt = 0.005\ntemperature = 1.0',
+            "missing required key [integrator] friction (type = 'langevin' needs it)",
+        ),
+        (
+            'type = "bussi"\ndt = 0.005\ntemperature = 1.0',
+            "missing required key [integrator] tau (type = 'bussi' needs it)",
+        ),
+        (
+            'type = "nose_hoover_chain"\ndt = 0.005\ntemperature = 1.0',
+            "missing required key [integrator] tau (type = 'nose_hoover_chain' needs it)",
+        ),
+        (
+            'type = "berendsen"\ndt = 0.005\ntemperature = 1.0',
+            "missing required key [integrator] tau (type = 'berendsen' needs it)",
+        ),
+        (
+            'type = "bussi"\ndt = 0.005\ntemperature = 1.0\ntau = 0.5\nfriction = 1.0',
+            "[integrator] friction: does not apply to type = 'bussi', which takes dt, "
+            "temperature, tau",
+        ),
     ],
-)  # fmt: skip
+)
 def test_a_missing_or_foreign_thermostat_key_is_named(tmp_path, capsys, integrator, message):
     """Was Python's "Langevin.__init__() missing 1 required positional argument: 'friction'"."""
     system = 'lattice = "fcc"\ncells = 3\ndensity = 0.8442\ntemperature = 1.0'

@@ -52,20 +52,23 @@ def _table(tmp_path):
     r = np.linspace(0.5, 2.6, 500)
     e = 4 * (r**-12 - r**-6)
     f = 4 * (12 * r**-13 - 6 * r**-7)
-    path.write_text("T\nN 500 R 0.5 2.6\n\n" + "".join(
-        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(500)))  # fmt: skip
+    path.write_text(
+        "T\nN 500 R 0.5 2.6\n\n"
+        + "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(500))
+    )
     return Table(path, "T", "linear", cutoff=2.5)
 
 
 CASES = {
     "lj-shift": lambda tmp: LennardJones(cutoff=2.5),
     "lj-smooth": lambda tmp: LennardJones(cutoff=2.5, cutoff_mode="smooth"),
-    "lj-two-types": lambda tmp: LennardJones(epsilon=[1.0, 0.7], sigma=[1.0, 0.9], cutoff=2.5,
-                                             mixing="lorentz-berthelot"),
+    "lj-two-types": lambda tmp: LennardJones(
+        epsilon=[1.0, 0.7], sigma=[1.0, 0.9], cutoff=2.5, mixing="lorentz-berthelot"
+    ),
     "morse": lambda tmp: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.5),
     "table": _table,
     "user-term": lambda tmp: PairPotential(gaussian_bump, height=1.0, width=0.8, cutoff=2.5),
-}  # fmt: skip
+}
 
 
 def _relative_error(mixed, double):
@@ -82,15 +85,20 @@ DEFAULT = {("lj-shift", "tilted", 1), ("lj-shift", "orthorhombic", 1)}
 
 
 def _cases():
-    return [pytest.param(case, cell, threads,
-                         marks=() if (case, cell, threads) in DEFAULT else pytest.mark.slow)
-            for case in sorted(CASES) for cell in ("orthorhombic", "tilted")
-            for threads in (1, 2)]  # fmt: skip
+    return [
+        pytest.param(
+            case, cell, threads, marks=() if (case, cell, threads) in DEFAULT else pytest.mark.slow
+        )
+        for case in sorted(CASES)
+        for cell in ("orthorhombic", "tilted")
+        for threads in (1, 2)
+    ]
 
 
 @pytest.mark.parametrize(("case", "cell", "threads"), _cases())
-def test_mixed_forces_equal_double_ones_to_float32_round_off(case, cell, threads, fcc_lattice,
-                                                             tmp_path):  # fmt: skip
+def test_mixed_forces_equal_double_ones_to_float32_round_off(
+    case, cell, threads, fcc_lattice, tmp_path
+):
     state = fcc_lattice(cells=8, perturbation=0.05, n_types=2 if "two" in case else 1)
     if cell == "tilted":
         state.tilt = np.array([0.2, -0.15, 0.1]) * state.box[[0, 0, 1]]
@@ -158,8 +166,7 @@ def test_separations_keep_float32_accuracy_far_from_the_origin(fcc_lattice):
     assert _relative_error(mixed.forces, double.forces) < 200 * EPS32
     coarse = far.copy()  # control: coordinates rounded to float32 first
     coarse.positions = far.positions.astype(np.float32).astype(np.float64)
-    assert _relative_error(ForceField([potential]).compute(coarse).forces,
-                           double.forces) > 1e-3  # fmt: skip
+    assert _relative_error(ForceField([potential]).compute(coarse).forces, double.forces) > 1e-3
 
 
 def test_mixed_run_conserves_energy_over_ten_thousand_steps(fcc_lattice):
@@ -168,8 +175,9 @@ def test_mixed_run_conserves_energy_over_ten_thousand_steps(fcc_lattice):
     drifts = {}
     for precision in ("double", "mixed"):
         state = md.build.maxwell_boltzmann(md.lattice("fcc", 5, density=0.8442), 0.8, seed=3)
-        sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
-                            precision=precision)  # fmt: skip
+        sim = md.Simulation(
+            state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision=precision
+        )
         energies = []
         for _ in range(20):
             sim.run(500)
@@ -185,8 +193,9 @@ def test_mixed_run_conserves_energy_over_ten_thousand_steps(fcc_lattice):
 
 def _lj_simulation(precision, steps=0):
     state = md.build.maxwell_boltzmann(md.lattice("fcc", 6, density=0.8442), 1.0, seed=7)
-    sim = md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
-                        precision=precision)  # fmt: skip
+    sim = md.Simulation(
+        state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision=precision
+    )
     sim.run(steps)
     return sim
 
@@ -194,8 +203,7 @@ def _lj_simulation(precision, steps=0):
 def test_checkpoint_resumes_bit_for_bit_in_mixed_precision(tmp_path):
     whole = _lj_simulation("mixed", 60)
     first = _lj_simulation("mixed", 25)
-    path = write_checkpoint(tmp_path / "at25.ckpt", first.state, first.integrator,
-                            first.forcefield)  # fmt: skip
+    path = write_checkpoint(tmp_path / "at25.ckpt", first.state, first.integrator, first.forcefield)
     saved = read_checkpoint(path)
     assert saved.precision == "mixed"
     # the cluster list was pruned since its search: the pairs the kernels sum depend on
@@ -204,9 +212,13 @@ def test_checkpoint_resumes_bit_for_bit_in_mixed_precision(tmp_path):
     assert not np.array_equal(saved.neighbor_pruned, saved.neighbor_reference)
 
     def resumed(checkpoint):
-        return resumed_run(checkpoint, lambda state: md.Simulation(
-            state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision="mixed"),
-            35)  # fmt: skip
+        return resumed_run(
+            checkpoint,
+            lambda state: md.Simulation(
+                state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), precision="mixed"
+            ),
+            35,
+        )
 
     assert_same_end(resumed(saved), whole)
     # the control: the list pruned at the search's positions instead sums other pairs
@@ -214,11 +226,11 @@ def test_checkpoint_resumes_bit_for_bit_in_mixed_precision(tmp_path):
     unpruned.neighbor_pruned = None
     assert not np.array_equal(resumed(unpruned).state.positions, whole.state.positions)
     # the control: the double run is another trajectory (so the test can tell them apart)
-    assert not np.array_equal(_lj_simulation("double", 60).state.positions,
-                              whole.state.positions)  # fmt: skip
-    double = md.Simulation(read_checkpoint(path).state, [LennardJones(cutoff=2.5)],
-                           VelocityVerlet(dt=0.005))  # fmt: skip
-    with pytest.raises(CheckpointError, match="mixed precision.*precision = \"mixed\""):
+    assert not np.array_equal(_lj_simulation("double", 60).state.positions, whole.state.positions)
+    double = md.Simulation(
+        read_checkpoint(path).state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005)
+    )
+    with pytest.raises(CheckpointError, match='mixed precision.*precision = "mixed"'):
         restore(saved, double.integrator, double.forcefield)
 
 
@@ -231,9 +243,11 @@ def test_md_run_in_mixed_precision_resumes_bit_for_bit_and_refuses_a_change(
 ):
     monkeypatch.chdir(tmp_path)
     config = tmp_path / "run.toml"
-    text = lj_config_text(cells=6, run="steps = 40\nthermo_every = 10\nprecision = \"mixed\"",
-                          output='path = "out.h5"\nevery = 10\nvelocities = true\n'
-                                 "checkpoint_every = 20")  # fmt: skip
+    text = lj_config_text(
+        cells=6,
+        run='steps = 40\nthermo_every = 10\nprecision = "mixed"',
+        output='path = "out.h5"\nevery = 10\nvelocities = true\ncheckpoint_every = 20',
+    )
     config.write_text(text)
     assert _run(config, "-o", "full.h5") == 0
     assert _run(config, "-o", "cut.h5", "--steps", "20") == 0
@@ -327,16 +341,20 @@ def _run_counting(tmp_path, capsys, name: str, run: str) -> tuple[str, int, int]
     assert main(["run", str(config), "--no-progress", "-o", f"{name}.h5"]) == 0
     out = capsys.readouterr().out
     prunes = out.split("Cluster list prunes: ")  # printed when there were any
-    return (out, int(prunes[1].split()[0]) if len(prunes) > 1 else 0,
-            int(out.split("Neighbour list builds: ")[1].split()[0]))  # fmt: skip
+    return (
+        out,
+        int(prunes[1].split()[0]) if len(prunes) > 1 else 0,
+        int(out.split("Neighbour list builds: ")[1].split()[0]),
+    )
 
 
 def test_md_run_reports_the_cluster_lists_prunes(tmp_path, monkeypatch, capsys):
     """A mixed run on the cluster list prunes between searches and `md run` says how often
     (a double run has no cluster list and prints no such line)."""
     monkeypatch.chdir(tmp_path)
-    out, prunes, builds = _run_counting(tmp_path, capsys, "mixed",
-                                        'steps = 60\nprecision = "mixed"')  # fmt: skip
+    out, prunes, builds = _run_counting(
+        tmp_path, capsys, "mixed", 'steps = 60\nprecision = "mixed"'
+    )
     assert prunes >= 2 and builds >= 1, out
     out, _, _ = _run_counting(tmp_path, capsys, "double", 'steps = 60\nprecision = "double"')
     assert "Cluster list prunes" not in out and "Neighbour list builds" in out, out
@@ -347,14 +365,21 @@ def test_the_outer_skin_is_a_run_key(tmp_path, monkeypatch, capsys):
     (no prunes, a search whenever the skin says: more of them than with the default's); a
     negative one is refused, naming the key, before anything is written."""
     monkeypatch.chdir(tmp_path)
-    counts = {name: _run_counting(tmp_path, capsys, name,
-                                  f'steps = 60\nprecision = "mixed"\n{extra}')[1:]
-              for name, extra in (("default", ""), ("none", "outer_skin = 0.3"))}  # fmt: skip
+    counts = {
+        name: _run_counting(tmp_path, capsys, name, f'steps = 60\nprecision = "mixed"\n{extra}')[1:]
+        for name, extra in (("default", ""), ("none", "outer_skin = 0.3"))
+    }
     assert counts["none"][0] == 0 and counts["default"][0] >= 2, counts
     assert counts["none"][1] > counts["default"][1], counts
     bad = tmp_path / "bad.toml"
-    bad.write_text(lj_config_text(cells=6, temperature=2.0, output=None,
-                                  run='steps = 10\nprecision = "mixed"\nouter_skin = -1.0'))
+    bad.write_text(
+        lj_config_text(
+            cells=6,
+            temperature=2.0,
+            output=None,
+            run='steps = 10\nprecision = "mixed"\nouter_skin = -1.0',
+        )
+    )
     capsys.readouterr()
     assert main(["run", str(bad), "--no-progress", "-o", "bad.h5"]) != 0
     assert "outer_skin" in capsys.readouterr().err

@@ -59,26 +59,36 @@ velocities = true
 """
 
 
-def write_config(folder: Path, name: str = "melt.toml", integrator: str = "verlet",
-                 extra: str = "", steps: int = 500, run_extra: str = "") -> Path:  # fmt: skip
+def write_config(
+    folder: Path,
+    name: str = "melt.toml",
+    integrator: str = "verlet",
+    extra: str = "",
+    steps: int = 500,
+    run_extra: str = "",
+) -> Path:
     path = folder / name
-    path.write_text(MELT.format(integrator=integrator, extra=extra, steps=steps,
-                                run_extra=run_extra))  # fmt: skip
+    path.write_text(
+        MELT.format(integrator=integrator, extra=extra, steps=steps, run_extra=run_extra)
+    )
     return path
 
 
 def launch(n_ranks: int, *args: str, cwd: Path, timeout: float = 240):
     """Run ``python -m md.cli ARGS`` (or ``python ARGS`` when the first is a script) on
     ``n_ranks`` MPI ranks with this checkout first on the path."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get(
-        "PYTHONPATH", "")])}  # fmt: skip
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
     # MPICH's ranks poll while they wait; on a machine with fewer cores than ranks they
     # would take the cores from the rank they wait for: yield instead.
     env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")
     command = ["mpiexec", "-n", str(n_ranks), sys.executable]
     command += list(args) if args[0].endswith(".py") else ["-m", "md.cli", *args]
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=timeout)  # fmt: skip
+    return subprocess.run(
+        command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def unwrapped(path: Path, frame: int = -1) -> np.ndarray:
@@ -117,8 +127,9 @@ def launch_script(tmp_path: Path, name: str, source: str, n_ranks: int, timeout:
 
 def gap_to(positions: np.ndarray, alone) -> float:
     """|x - x_serial| / |x_serial| against a one-process Simulation ``alone``."""
-    return float(np.linalg.norm(positions - alone.state.positions)
-                 / np.linalg.norm(alone.state.positions))  # fmt: skip
+    return float(
+        np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(alone.state.positions)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -137,24 +148,26 @@ def serial(tmp_path_factory):
 def test_lj_melt_over_ranks_follows_the_serial_run(serial, tmp_path, n_ranks):
     config = write_config(tmp_path)
     out = tmp_path / "out.h5"
-    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
-                  cwd=tmp_path)  # fmt: skip
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
     assert done.returncode == 0, done.stderr + done.stdout
     # rank 0 alone speaks for the run
     assert done.stdout.count("md run: 384 atoms over") == 1, done.stdout
     assert done.stdout.count("Wrote 6 frames") == 1
     with h5py.File(serial, "r") as a, h5py.File(out, "r") as b:
         for name in ("position/step", "species", "mass"):
-            np.testing.assert_array_equal(a[f"particles/trajectory/{name}"][()],
-                                          b[f"particles/trajectory/{name}"][()])  # fmt: skip
+            np.testing.assert_array_equal(
+                a[f"particles/trajectory/{name}"][()], b[f"particles/trajectory/{name}"][()]
+            )
         # frame 0, before any force: the same atoms in the same order, bit for bit
         for name in ("position/value", "velocity/value", "image/value"):
-            np.testing.assert_array_equal(a[f"particles/trajectory/{name}"][0],
-                                          b[f"particles/trajectory/{name}"][0])  # fmt: skip
+            np.testing.assert_array_equal(
+                a[f"particles/trajectory/{name}"][0], b[f"particles/trajectory/{name}"][0]
+            )
         assert b["parameters"].attrs["mpi_ranks"] == n_ranks
         for name in ("potential_energy", "total_energy", "pressure"):
-            np.testing.assert_allclose(b[f"observables/{name}/value"][()],
-                                       a[f"observables/{name}/value"][()], rtol=1e-9)  # fmt: skip
+            np.testing.assert_allclose(
+                b[f"observables/{name}/value"][()], a[f"observables/{name}/value"][()], rtol=1e-9
+            )
     # After 500 steps of a chaotic liquid only the order of the force sums differs:
     # round-off, amplified by the dynamics, stays below 1e-10 of the positions.
     reference, positions = unwrapped(serial), unwrapped(out)
@@ -217,7 +230,8 @@ def test_run_config_under_mpiexec_gathers_one_file(serial, tmp_path):
     assert all(line[0] == "2" and line[2:] == ["2", "1", "1"] for line in lines)
     assert sum(owned) == 384 and min(owned) > 0  # each rank holds its brick's atoms
     relative = np.linalg.norm(unwrapped(out) - unwrapped(serial)) / np.linalg.norm(
-        unwrapped(serial))  # fmt: skip
+        unwrapped(serial)
+    )
     assert relative < 1e-10
 
 
@@ -281,11 +295,19 @@ PROBE = (
 def test_one_process_imports_no_mpi(tmp_path):
     """Without a launcher a run is the serial engine and never loads mpi4py."""
     config = write_config(tmp_path)
-    env = {k: v for k, v in os.environ.items() if k not in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE",
-                                                            "SLURM_STEP_NUM_TASKS")}  # fmt: skip
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "SLURM_STEP_NUM_TASKS")
+    }
     env["PYTHONPATH"] = str(ROOT)
-    done = subprocess.run([sys.executable, "-c", PROBE, str(config), str(tmp_path / "a.h5"), "20"],
-                          env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE, str(config), str(tmp_path / "a.h5"), "20"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert done.returncode == 0, done.stderr
     assert "serial 384" in done.stdout
 
@@ -313,8 +335,13 @@ def test_launched_without_mpi4py_is_refused(tmp_path):
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PMI_SIZE": "2", "PMI_RANK": "0"}
     out = tmp_path / "x.h5"
-    done = subprocess.run([sys.executable, "-c", code, "run", str(config), "--output", str(out)],
-                          env=env, capture_output=True, text=True, timeout=240)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", code, "run", str(config), "--output", str(out)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert done.returncode == 2, done.stderr
     assert "mpi4py is not installed" in done.stderr
     assert not out.exists()
@@ -323,8 +350,7 @@ def test_launched_without_mpi4py_is_refused(tmp_path):
 # ------------------------------------------------------------------ refusals
 def _refused(tmp_path, n_ranks: int, config: Path) -> str:
     out = tmp_path / "refused.h5"
-    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
-                  cwd=tmp_path)  # fmt: skip
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
     assert done.returncode == 2, done.stderr + done.stdout
     assert not out.exists() and not Path(str(out) + ".ckpt").exists()
     assert done.stderr.count("md: error:") == 1, done.stderr  # rank 0 alone reports
@@ -437,8 +463,7 @@ def _serial_and_ranks(tmp_path, text: str, n_ranks: int) -> tuple[Path, Path, st
     _, summary = md.run_config(config, output=tmp_path / "serial.h5")
     assert summary.status == "completed", summary.message
     out = tmp_path / "ranks.h5"
-    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress",
-                  cwd=tmp_path)  # fmt: skip
+    done = launch(n_ranks, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
     assert done.returncode == 0, done.stderr + done.stdout
     return tmp_path / "serial.h5", out, done.stdout
 
@@ -468,8 +493,9 @@ def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
     # the minimiser took the same path (its step count is printed)
     with h5py.File(serial_out, "r") as a, h5py.File(out, "r") as b:
         for name in ("fene", "angle_cosine"):
-            np.testing.assert_array_equal(a[f"connectivity/{name}"][()],
-                                          b[f"connectivity/{name}"][()])  # fmt: skip
+            np.testing.assert_array_equal(
+                a[f"connectivity/{name}"][()], b[f"connectivity/{name}"][()]
+            )
     reference, positions = unwrapped(serial_out), unwrapped(out)
     assert np.linalg.norm(positions - reference) / np.linalg.norm(reference) < 1e-10
     np.testing.assert_allclose(unwrapped(out, 0), unwrapped(serial_out, 0), rtol=0, atol=1e-9)
@@ -488,10 +514,15 @@ def test_polymer_melt_over_ranks_follows_the_serial_run(tmp_path):
 def test_npt_volume_follows_the_serial_run(tmp_path, couple):
     """c_rescale barostat with Langevin, 200 steps: the bricks follow the cell."""
     text = MELT.format(
-        integrator="langevin", extra="temperature = 1.0\nfriction = 1.0", steps=200,
+        integrator="langevin",
+        extra="temperature = 1.0\nfriction = 1.0",
+        steps=200,
         run_extra="",
-    ).replace("[run]", '[barostat]\ntype = "c_rescale"\npressure = 1.0\ntau = 1.0\n'
-                       f'compressibility = 0.1\ncouple = "{couple}"\n[run]')  # fmt: skip
+    ).replace(
+        "[run]",
+        '[barostat]\ntype = "c_rescale"\npressure = 1.0\ntau = 1.0\n'
+        f'compressibility = 0.1\ncouple = "{couple}"\n[run]',
+    )
     serial_out, out, _ = _serial_and_ranks(tmp_path, text, 2)
     with h5py.File(serial_out, "r") as a, h5py.File(out, "r") as b:
         volume = a["observables/volume/value"][()]
@@ -511,8 +542,17 @@ def test_checkpoint_resumes_on_another_rank_count(serial, tmp_path):
     2 ranks again (bit for bit with an uninterrupted 2-rank run) and on one process."""
     config = write_config(tmp_path)
     first = tmp_path / "first.h5"
-    done = launch(2, "run", str(config), "--output", str(first), "--steps", "250",
-                  "--no-progress", cwd=tmp_path)  # fmt: skip
+    done = launch(
+        2,
+        "run",
+        str(config),
+        "--output",
+        str(first),
+        "--steps",
+        "250",
+        "--no-progress",
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     copies = {}
     for name in ("two", "three", "one"):
@@ -520,8 +560,16 @@ def test_checkpoint_resumes_on_another_rank_count(serial, tmp_path):
         shutil.copy(first, copies[name])
         shutil.copy(str(first) + ".ckpt", str(copies[name]) + ".ckpt")
     for name, n_ranks in (("two", 2), ("three", 3)):
-        done = launch(n_ranks, "run", str(config), "--output", str(copies[name]), "--resume",
-                      "--no-progress", cwd=tmp_path)  # fmt: skip
+        done = launch(
+            n_ranks,
+            "run",
+            str(config),
+            "--output",
+            str(copies[name]),
+            "--resume",
+            "--no-progress",
+            cwd=tmp_path,
+        )
         assert done.returncode == 0, done.stderr
     _, summary = md.run_config(config, output=copies["one"], resume=True)
     assert summary.status == "completed"
@@ -532,8 +580,7 @@ def test_checkpoint_resumes_on_another_rank_count(serial, tmp_path):
     reference = unwrapped(serial)
     for name in ("three", "one"):
         with h5py.File(copies[name], "r") as f:
-            assert list(f["particles/trajectory/position/step"][()]) == [0, 100, 200, 300, 400,
-                                                                         500]  # fmt: skip
+            assert list(f["particles/trajectory/position/step"][()]) == [0, 100, 200, 300, 400, 500]
         relative = np.linalg.norm(unwrapped(copies[name]) - reference) / np.linalg.norm(reference)
         assert relative < 1e-10
 
@@ -547,9 +594,21 @@ def test_a_blow_up_stops_every_rank_with_the_serial_message(tmp_path):
     out = tmp_path / "blow.h5"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     serial_run = subprocess.run(
-        [sys.executable, "-m", "md.cli", "run", str(config), "--output", str(tmp_path / "s.h5"),
-         "--no-progress"], env=env, capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "md.cli",
+            "run",
+            str(config),
+            "--output",
+            str(tmp_path / "s.h5"),
+            "--no-progress",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert serial_run.returncode == 1
     done = launch(3, "run", str(config), "--output", str(out), "--no-progress", cwd=tmp_path)
     assert done.returncode == 1, done.stderr
@@ -580,7 +639,8 @@ def test_tilted_cell_over_ranks_follows_the_serial_run(tmp_path, shear, n_ranks,
     step 500; a missed or doubled pair would show at once.
     """
     text = MELT.format(integrator="verlet", extra="", steps=500, run_extra="").replace(
-        "temperature = 3.0", f"temperature = 3.0\nshear = {list(shear)}")  # fmt: skip
+        "temperature = 3.0", f"temperature = 3.0\nshear = {list(shear)}"
+    )
     serial_out, out, stdout = _serial_and_ranks(tmp_path, text, n_ranks)
     assert f"bricks {bricks}" in stdout
     gaps = [relative_gap(out, serial_out, frame) for frame in range(6)]
@@ -644,14 +704,28 @@ def test_a_rank_killed_ends_the_run_and_the_checkpoint_resumes_it(tmp_path):
     last checkpoint resumes to the same bits as an uninterrupted run on the same ranks."""
     text = MELT.format(integrator="verlet", extra="", steps=3000, run_extra="")
     config = tmp_path / "long.toml"
-    config.write_text(text.replace("velocities = true",
-                                   "velocities = true\ncheckpoint_every = 100"))  # fmt: skip
+    config.write_text(
+        text.replace("velocities = true", "velocities = true\ncheckpoint_every = 100")
+    )
     out = tmp_path / "killed.h5"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1"}
-    command = ["mpiexec", "-n", "2", sys.executable, "-m", "md.cli", "run", str(config),
-               "--output", str(out), "--no-progress", "-q"]  # fmt: skip
-    launcher = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)  # fmt: skip
+    command = [
+        "mpiexec",
+        "-n",
+        "2",
+        sys.executable,
+        "-m",
+        "md.cli",
+        "run",
+        str(config),
+        "--output",
+        str(out),
+        "--no-progress",
+        "-q",
+    ]
+    launcher = subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         deadline = time.monotonic() + 200
         while time.monotonic() < deadline and not (
@@ -676,8 +750,9 @@ def test_a_rank_killed_ends_the_run_and_the_checkpoint_resumes_it(tmp_path):
             launcher.kill()
     saved = read_checkpoint(str(out) + ".ckpt")
     assert 0 < saved.state.step < 3000
-    done = launch(2, "run", str(config), "--output", str(out), "--resume", "--no-progress",
-                  cwd=tmp_path)  # fmt: skip
+    done = launch(
+        2, "run", str(config), "--output", str(out), "--resume", "--no-progress", cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr
     whole = tmp_path / "whole.h5"
     done = launch(2, "run", str(config), "--output", str(whole), "--no-progress", cwd=tmp_path)
@@ -747,8 +822,11 @@ def _faulty_runs(tmp_path: Path, fault: str, rank: int):
     """The faulty run on one process and on 2 ranks (the fault on ``rank``): (serial, ranks)
     results, each with its output path."""
     config = write_config(tmp_path, steps=40)
-    config.write_text(config.read_text().replace(
-        '"melt.h5"\nevery = 100', '"melt.h5"\nevery = 5\ncheckpoint_every = 10'))  # fmt: skip
+    config.write_text(
+        config.read_text().replace(
+            '"melt.h5"\nevery = 100', '"melt.h5"\nevery = 5\ncheckpoint_every = 10'
+        )
+    )
     script = tmp_path / "faulty.py"
     script.write_text(FAULTY_RUN)
     results = []
@@ -757,16 +835,25 @@ def _faulty_runs(tmp_path: Path, fault: str, rank: int):
         folder.mkdir()
         out = folder / "melt.h5"
         args = [str(script), "run", str(config), "--output", str(out), "--no-progress"]
-        env = {**os.environ, "FAULT": fault, "FAULT_RANK": str(rank if n_ranks > 1 else 0),
-               "PYTHONPATH": str(ROOT), "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1"}  # fmt: skip
+        env = {
+            **os.environ,
+            "FAULT": fault,
+            "FAULT_RANK": str(rank if n_ranks > 1 else 0),
+            "PYTHONPATH": str(ROOT),
+            "MPIR_CVAR_ENABLE_HEAVY_YIELD": "1",
+        }
         command = [sys.executable, *args]
         if n_ranks > 1:
             command = ["mpiexec", "-n", str(n_ranks), *command]
-        done = subprocess.run(command, cwd=folder, env=env, capture_output=True, text=True,
-                              timeout=240)  # fmt: skip
+        done = subprocess.run(
+            command, cwd=folder, env=env, capture_output=True, text=True, timeout=240
+        )
         codes = [int((folder / f"exit{r}.txt").read_text()) for r in range(n_ranks)]
-        errors = [line.replace(str(out), "OUT") for line in done.stderr.splitlines()
-                  if line.startswith("md: error:")]  # fmt: skip
+        errors = [
+            line.replace(str(out), "OUT")
+            for line in done.stderr.splitlines()
+            if line.startswith("md: error:")
+        ]
         results.append((done, codes, errors, out))
     return results
 
@@ -777,7 +864,8 @@ def test_one_rank_with_a_non_finite_energy_stops_every_rank_as_a_serial_run(tmp_
     """Two atoms on top of each other in rank 1's brick at step 11: both ranks stop with
     the serial run's message and exit code (1), and the step-10 checkpoint is intact."""
     (serial, serial_codes, expected, _), (done, codes, errors, out) = _faulty_runs(
-        tmp_path, "overlap", rank=1)  # fmt: skip
+        tmp_path, "overlap", rank=1
+    )
     assert serial.returncode == 1 and serial_codes == [1], serial.stderr[-2000:]
     assert len(expected) == 1 and "step 11: potential energy is" in expected[0], expected
     assert done.returncode == 1, done.stderr[-2000:]
@@ -797,7 +885,8 @@ def test_a_full_disk_on_rank_0_stops_every_rank_with_exit_2(tmp_path):
     every rank stops, exit 2 as in serial, "disk full" in the message, and the frames and
     the checkpoint written before are intact."""
     (serial, serial_codes, expected, _), (done, codes, errors, out) = _faulty_runs(
-        tmp_path, "disk", rank=0)  # fmt: skip
+        tmp_path, "disk", rank=0
+    )
     assert serial.returncode == 2 and serial_codes == [2], serial.stderr[-2000:]
     assert done.returncode == 2, done.stderr[-2000:]
     assert codes == [2, 2]
@@ -851,8 +940,9 @@ SLOW_RANK = (
 
 @needs_mpi
 def test_load_balancing_shrinks_a_slow_ranks_brick_and_keeps_the_trajectory(tmp_path):
-    done, words, slow_rank, positions = launch_script(tmp_path, "slow_rank", SLOW_RANK, 2,
-                                                      timeout=180)  # fmt: skip
+    done, words, slow_rank, positions = launch_script(
+        tmp_path, "slow_rank", SLOW_RANK, 2, timeout=180
+    )
     assert words[0] == "owned" and words[3] == "balances", done.stdout
     owned = [int(words[1]), int(words[2])]
     cut, saved = float(words[6]), float(words[8])
@@ -874,12 +964,14 @@ def test_a_balanced_run_checkpoints_its_cuts_and_resumes(serial, tmp_path):
     takes them back, and the run agrees with the serial one."""
     config = write_config(tmp_path, run_extra="balance_every = 20\nbalance_threshold = 1.0")
     out = tmp_path / "out.h5"
-    done = launch(2, "run", str(config), "--output", str(out), "--steps", "250",
-                  "--no-progress", cwd=tmp_path)  # fmt: skip
+    done = launch(
+        2, "run", str(config), "--output", str(out), "--steps", "250", "--no-progress", cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr + done.stdout
     cuts = read_checkpoint(str(out) + ".ckpt").decomposition["cuts"]
     assert cuts[0][1] != 0.5 and cuts[1] == [0.0, 1.0], cuts
-    done = launch(2, "run", str(config), "--output", str(out), "--resume", "--no-progress",
-                  cwd=tmp_path)  # fmt: skip
+    done = launch(
+        2, "run", str(config), "--output", str(out), "--resume", "--no-progress", cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr + done.stdout
     assert relative_gap(out, serial) < 1e-10

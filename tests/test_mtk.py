@@ -26,8 +26,17 @@ from md.trajectory import read_trajectory
 from potentials import LennardJones
 
 
-def _mtk_sim(couple="isotropic", dt=0.004, cells=4, density=0.7, temperature=1.5, pressure=2.0,
-             shear=None, tau_p=1.0, seed=1):  # fmt: skip
+def _mtk_sim(
+    couple="isotropic",
+    dt=0.004,
+    cells=4,
+    density=0.7,
+    temperature=1.5,
+    pressure=2.0,
+    shear=None,
+    tau_p=1.0,
+    seed=1,
+):
     state = md.lattice("fcc", cells, density=density, shear=shear)
     md.maxwell_boltzmann(state, temperature, seed=seed)
     integrator = pressure_control(
@@ -74,8 +83,10 @@ def test_extended_energy_is_conserved_to_second_order_in_dt(couple):
         assert np.max(np.abs(total)) > 100 * np.max(np.abs(conserved))
         excursions.append(np.max(np.abs(conserved)))
     n_atoms = sim.state.n_atoms
-    print(f"{couple}: largest excursion per atom {excursions[0] / n_atoms:.2e} at dt 0.004, "
-          f"ratio {excursions[0] / excursions[1]:.2f}")  # fmt: skip
+    print(
+        f"{couple}: largest excursion per atom {excursions[0] / n_atoms:.2e} at dt 0.004, "
+        f"ratio {excursions[0] / excursions[1]:.2f}"
+    )
     assert excursions[0] / n_atoms < 2e-3
     assert 3.0 < excursions[0] / excursions[1] < 5.5
 
@@ -105,16 +116,21 @@ def _liquid_series(integrator, steps=6000, every=10):
     sim = md.Simulation(state, [LennardJones(cutoff=2.5)], integrator)
     sim.run(1000)
     rows = []
-    sim.attach(lambda s: rows.append([s.thermo()[k] for k in ("density", "pressure",
-                                                               "temperature")]), every)  # fmt: skip
+    sim.attach(
+        lambda s: rows.append([s.thermo()[k] for k in ("density", "pressure", "temperature")]),
+        every,
+    )
     sim.run(steps)
     return np.array(rows)
 
 
 @pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_mtk_gives_the_density_of_stochastic_cell_rescaling():
-    mtk = _liquid_series(pressure_control(NoseHooverChain(0.005, temperature=1.5, tau=0.5),
-                                          Barostat("mtk", 2.0, tau=1.0)))  # fmt: skip
+    mtk = _liquid_series(
+        pressure_control(
+            NoseHooverChain(0.005, temperature=1.5, tau=0.5), Barostat("mtk", 2.0, tau=1.0)
+        )
+    )
     c_rescale = _liquid_series(
         PressureCoupled(
             Langevin(0.005, temperature=1.5, friction=1.0, seed=12),
@@ -153,8 +169,16 @@ def test_anisotropic_mtk_brings_each_diagonal_pressure_to_the_target():
 
 def test_triclinic_mtk_relaxes_a_sheared_crystal_to_zero_shear_stress():
     """An fcc crystal sheared by xy = 0.15 Ly: P_xy and the tilt go to zero on average."""
-    sim = _mtk_sim("triclinic", dt=0.005, cells=4, density=1.0, temperature=0.2, pressure=1.0,
-                   shear=(0.15, 0.0, 0.0), tau_p=1.0)  # fmt: skip
+    sim = _mtk_sim(
+        "triclinic",
+        dt=0.005,
+        cells=4,
+        density=1.0,
+        temperature=0.2,
+        pressure=1.0,
+        shear=(0.15, 0.0, 0.0),
+        tau_p=1.0,
+    )
     assert abs(sim.thermo()["pxy"]) > 0.5  # the shear stress the barostat must remove
     sim.run(1000)
     rows = []
@@ -239,8 +263,9 @@ def test_md_run_with_mtk_stores_the_conserved_energy_and_resumes_bit_for_bit(
     assert np.ptp(whole.observables["volume"]) > 0
     assert np.array_equal(whole.positions, part.positions)
     assert np.array_equal(whole.cells(), part.cells())
-    assert np.array_equal(whole.observables["conserved_energy"],
-                          part.observables["conserved_energy"])  # fmt: skip
+    assert np.array_equal(
+        whole.observables["conserved_energy"], part.observables["conserved_energy"]
+    )
     result = thermo("whole.h5")
     assert result.drift_of == "conserved_energy"
     total = whole.observables["total_energy"]

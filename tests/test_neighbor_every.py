@@ -23,9 +23,14 @@ def _melt(precision="double", every=1, check=True, cells=6, seed=3, state=None):
     """The LJ melt's simulation with the list rule (``state``: start from it)."""
     if state is None:
         state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 1.5, seed=seed)
-    return md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005),
-                         precision=precision, neighbor_every=every,
-                         neighbor_check=check)  # fmt: skip
+    return md.Simulation(
+        state,
+        [LennardJones(cutoff=2.5)],
+        VelocityVerlet(dt=0.005),
+        precision=precision,
+        neighbor_every=every,
+        neighbor_check=check,
+    )
 
 
 def _build_steps(sim, steps):
@@ -86,8 +91,13 @@ def test_a_pair_that_comes_within_the_cutoff_between_looks_is_missed_until_the_n
     state.velocities[:] = [[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]]
 
     def run(every, check):
-        sim = md.Simulation(state.copy(), [LennardJones(cutoff=2.5)], VelocityVerlet(0.005),
-                            neighbor_every=every, neighbor_check=check)  # fmt: skip
+        sim = md.Simulation(
+            state.copy(),
+            [LennardJones(cutoff=2.5)],
+            VelocityVerlet(0.005),
+            neighbor_every=every,
+            neighbor_check=check,
+        )
         forces = []
         for _ in range(60):
             sim.run(1)
@@ -104,8 +114,9 @@ def test_a_pair_that_comes_within_the_cutoff_between_looks_is_missed_until_the_n
     assert later and all(lazy[k][1] != 0.0 for k in later), lazy[48:]
 
 
-@pytest.mark.parametrize(("precision", "at"), [("double", 17), ("mixed", 17), ("double", 21),
-                                               ("mixed", 21)])  # fmt: skip
+@pytest.mark.parametrize(
+    ("precision", "at"), [("double", 17), ("mixed", 17), ("double", 21), ("mixed", 21)]
+)
 def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision, at):
     """The checkpoint keeps the step of the last build, from which ``every`` counts: a
     resume rebuilds on the same steps, so the trajectory is the same bits, also from step
@@ -116,14 +127,14 @@ def test_a_checkpoint_resumes_an_every_n_list_bit_for_bit(tmp_path, precision, a
     whole.run(40)
     first = _melt(precision, every=7, check=False)
     first.run(at)
-    path = write_checkpoint(tmp_path / "ckpt.npz", first.state, first.integrator,
-                            first.forcefield)  # fmt: skip
+    path = write_checkpoint(tmp_path / "ckpt.npz", first.state, first.integrator, first.forcefield)
     saved = read_checkpoint(path)
     assert saved.neighbor_step == first.forcefield.neighbor_list.built_step == 14
 
     def resumed(checkpoint):
-        return resumed_run(checkpoint, lambda state: _melt(precision, every=7, check=False,
-                                                           state=state), 40 - at)  # fmt: skip
+        return resumed_run(
+            checkpoint, lambda state: _melt(precision, every=7, check=False, state=state), 40 - at
+        )
 
     assert_same_end(resumed(saved), whole)
     older = read_checkpoint(path)
@@ -135,19 +146,20 @@ def _run(*args) -> int:
     return main(["run", *map(str, args), "--no-progress", "-q"])
 
 
-def test_md_run_takes_the_keys_and_a_minimize_stage_still_follows_every_move(
-    tmp_path, monkeypatch
-):
+def test_md_run_takes_the_keys_and_a_minimize_stage_still_follows_every_move(tmp_path, monkeypatch):
     """``[run] neighbor_every``/``neighbor_check`` reach the run (builds every 10 steps);
     a ``[minimize]`` stage before it looks at the list at every evaluation (its steps are
     not the state's), and the run's fingerprint holds the rule."""
     monkeypatch.chdir(tmp_path)
     config = tmp_path / "run.toml"
-    config.write_text(lj_config_text(
-        cells=6, run="steps = 30\nthermo_every = 10\nneighbor_every = 10\n"
-                     "neighbor_check = false",
-        output='path = "out.h5"\nevery = 10\ncheckpoint_every = 10')
-        + "\n[minimize]\nfmax = 5.0\nmax_steps = 200\n")  # fmt: skip
+    config.write_text(
+        lj_config_text(
+            cells=6,
+            run="steps = 30\nthermo_every = 10\nneighbor_every = 10\nneighbor_check = false",
+            output='path = "out.h5"\nevery = 10\ncheckpoint_every = 10',
+        )
+        + "\n[minimize]\nfmax = 5.0\nmax_steps = 200\n"
+    )
     assert _run(config) == 0
     assert read_trajectory("out.h5").positions.shape[0] == 4
     saved = read_checkpoint(tmp_path / "out.h5.ckpt")
@@ -177,8 +189,10 @@ def test_bad_check_is_refused_and_bad_keys_name_themselves(tmp_path, monkeypatch
         NeighborList(2.5, 0.3, check="no")
     monkeypatch.chdir(tmp_path)
     config = tmp_path / "run.toml"
-    for bad, name in (("neighbor_every = 0", "neighbor_every"),
-                      ('neighbor_check = "no"', "neighbor_check")):  # fmt: skip
+    for bad, name in (
+        ("neighbor_every = 0", "neighbor_every"),
+        ('neighbor_check = "no"', "neighbor_check"),
+    ):
         config.write_text(lj_config_text(run=f"steps = 10\n{bad}"))
         capsys.readouterr()
         assert _run(config) == 2

@@ -144,15 +144,13 @@ def test_keep_lists_exactly_the_near_candidates_at_every_word_edge(n, rng):
     arrays, r2_max, wanted = _candidates(n, rng, first)
     masks = np.empty(8, dtype=np.uint64)
     out = np.full(3 + n, 7, dtype=np.uint32)
-    found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks,
-                  1, 2, 3 + n, out)  # fmt: skip
+    found = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks, 1, 2, 3 + n, out)
     assert found == len(wanted)
     assert np.array_equal(out[3 : 3 + found], wanted)
     assert np.all(out[:3] == 7) and np.all(out[3 + found :] == 7)
     # No room: counted, nothing written.
     out[:] = 7
-    full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks,
-                 1, 2, 1 + found, out)  # fmt: skip
+    full = _keep(0.0, 0.0, 0.0, r2_max, *arrays, first, first + n, masks, 1, 2, 1 + found, out)
     assert full == found
     assert np.all(out == 7)
 
@@ -187,8 +185,7 @@ def test_near_pack_writes_the_kept_candidates_in_order_on_every_path(path, valid
 
     @njit
     def call(x, y, z, packed, start, valid, out, at):
-        return pack(0.0, 0.0, 0.0, 0.64, x, y, z, packed, start, valid,
-                    PERMUTATIONS, out, at)  # fmt: skip
+        return pack(0.0, 0.0, 0.0, 0.64, x, y, z, packed, start, valid, PERMUTATIONS, out, at)
 
     first = 5
     arrays, _, wanted = _candidates(valid, rng, first)
@@ -469,15 +466,18 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     tilt = np.array([1.5, -2.0, 0.5]) if shape == "sheared" else np.zeros(3)
     origin = np.array([positions[:, 0].min(), 0.0, 0.0]) if shape == "open" else np.zeros(3)
     n_cells = np.array([6, 7, 8])
-    width = np.array([(positions[:, 0].max() - origin[0]) / 6 if shape == "open" else 10 / 6,
-                      10 / 7, 10 / 8])  # fmt: skip
+    width = np.array(
+        [(positions[:, 0].max() - origin[0]) / 6 if shape == "open" else 10 / 6, 10 / 7, 10 / 8]
+    )
 
     def binned(threaded):
         out = (
-            np.empty(n, dtype=np.int64), np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64),
-            np.empty(n, dtype=np.int64), np.zeros((3, n + GATHER_BLOCK)),
+            np.empty(n, dtype=np.int64),
+            np.empty(int(np.prod(n_cells)) + 1, dtype=np.int64),
+            np.empty(n, dtype=np.int64),
+            np.zeros((3, n + GATHER_BLOCK)),
             np.empty((n, 3), dtype=np.int32),
-        )  # fmt: skip
+        )
         arguments = (positions, origin, width, n_cells, pbc, box, tilt, *out)
         if threaded:
             _bin_atoms_threaded(*arguments, chunks)
@@ -495,8 +495,7 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     slot_cell = np.full(n, -1, dtype=np.int64)
     layout = _slot_layout(serial[3], cell_starts, n_cells, slot_cell)
     threaded_cells = np.full(n, -1, dtype=np.int64)
-    layout_threaded = _slot_layout_threaded(serial[3], cell_starts, n_cells, threaded_cells,
-                                            chunks)  # fmt: skip
+    layout_threaded = _slot_layout_threaded(serial[3], cell_starts, n_cells, threaded_cells, chunks)
     assert np.array_equal(slot_cell, cell_of[order]) and np.array_equal(threaded_cells, slot_cell)
     (px, py, pz, slot, plane_starts), tags, most = layout
     for a, b in zip(layout[0], layout_threaded[0], strict=True):
@@ -504,9 +503,12 @@ def test_threaded_binning_and_plane_order_equal_the_serial_ones(chunks, shape, r
     assert np.array_equal(tags, layout_threaded[1]) and most == layout_threaded[2]
     # the (z, x, y) order: each cell's slots, in slot order, where that cell's turn comes
     nx, ny, nz = n_cells
-    expected = [np.arange(cell_starts[(kx * ny + ky) * nz + kz],
-                          cell_starts[(kx * ny + ky) * nz + kz + 1])
-                for kz in range(nz) for kx in range(nx) for ky in range(ny)]  # fmt: skip
+    expected = [
+        np.arange(cell_starts[(kx * ny + ky) * nz + kz], cell_starts[(kx * ny + ky) * nz + kz + 1])
+        for kz in range(nz)
+        for kx in range(nx)
+        for ky in range(ny)
+    ]
     assert np.array_equal(slot[:n], np.concatenate(expected))
     assert np.array_equal(np.diff(plane_starts), [len(e) for e in expected])
     assert np.array_equal(px[:n], serial[3][0, slot[:n]])
@@ -547,9 +549,22 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
 
     def build(chunks, size):
         neighbors, codes = np.full(size, -1, dtype=np.int32), np.full(size, 255, dtype=np.uint8)
-        out = _cell_list(state.positions, origin, width, n_cells, reach, state.pbc, state.box,
-                         nl.tilt, r2, chunks, neighbors, codes, np.empty(0, dtype=np.int64),
-                         0)  # fmt: skip
+        out = _cell_list(
+            state.positions,
+            origin,
+            width,
+            n_cells,
+            reach,
+            state.pbc,
+            state.box,
+            nl.tilt,
+            r2,
+            chunks,
+            neighbors,
+            codes,
+            np.empty(0, dtype=np.int64),
+            0,
+        )
         return out, neighbors, codes
 
     (order, images, starts, bounds, count, shifted), neighbors, codes = build(1, 3 * nl.n_pairs)
@@ -688,10 +703,15 @@ for pbc, tilt in ((True, None), (False, None), (True, [0.4, -0.3, 0.2])):
     assert got == expected, (len(got), len(expected))
 print("ok")
 """
-    env = dict(os.environ, NUMBA_CPU_NAME="sandybridge", NUMBA_CPU_FEATURES=_NO_AVX2,
-               NUMBA_CACHE_DIR=str(tmp_path / "numba"))  # fmt: skip
-    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                          text=True, timeout=900)  # fmt: skip
+    env = dict(
+        os.environ,
+        NUMBA_CPU_NAME="sandybridge",
+        NUMBA_CPU_FEATURES=_NO_AVX2,
+        NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
+    )
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
 
 
@@ -704,8 +724,9 @@ def _designates(a, b):
 @pytest.mark.parametrize("owners", ["slab", "scattered"])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("shape", ["open", "periodic"])
-def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(shape, threads, owners,
-                                                                      fcc_lattice):  # fmt: skip
+def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(
+    shape, threads, owners, fcc_lattice
+):
     """A rank's list (NeighborList.keep_owned): of every pair within the list radius, those
     whose designated atom is owned (the smaller id if the ids' sum is even, else the
     larger), after the cell search (which filters the rows beside ghosts as it finds them)
@@ -739,8 +760,10 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(shape
     origin, width, n_cells, reach = mine._grid(state)
     cell = np.floor((state.positions[mine.order] - origin) / width).astype(np.int64)
     cell = np.where(state.pbc, cell % n_cells, np.clip(cell, 0, n_cells - 1))
-    in_cell = np.bincount((cell[:, 0] * n_cells[1] + cell[:, 1]) * n_cells[2] + cell[:, 2],
-                          minlength=int(np.prod(n_cells)))  # fmt: skip
+    in_cell = np.bincount(
+        (cell[:, 0] * n_cells[1] + cell[:, 1]) * n_cells[2] + cell[:, 2],
+        minlength=int(np.prod(n_cells)),
+    )
     cell_starts = np.concatenate([[0], np.cumsum(in_cell)])
     mixed = _slot_owners(mine.order, ids, n_owned, cell_starts, n_cells, reach, state.pbc)[2]
     assert mixed.any() and (owners == "scattered") == mixed.all()
@@ -754,8 +777,7 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(shape
         assert np.array_equal(whole.order, mine.order)
 
         def slot_pairs(listed):
-            rows = np.repeat(np.arange(len(listed.slot_starts) - 1),
-                             np.diff(listed.slot_starts))  # fmt: skip
+            rows = np.repeat(np.arange(len(listed.slot_starts) - 1), np.diff(listed.slot_starts))
             return rows, listed.slot_neighbors.astype(np.int64), listed.codes.astype(np.int64)
 
         p, q, code = slot_pairs(whole)

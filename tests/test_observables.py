@@ -57,8 +57,9 @@ def test_the_file_stores_them_and_appends_to_older_files(liquid, tmp_path):
     assert traj.n_frames == 2 and "volume" not in traj.observables
 
 
-def test_md_run_table_and_analyze_report_volume_and_density(tmp_path, monkeypatch, capsys,
-                                                           lj_config):  # fmt: skip
+def test_md_run_table_and_analyze_report_volume_and_density(
+    tmp_path, monkeypatch, capsys, lj_config
+):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "run.toml").write_text(lj_config())
     assert main(["run", "run.toml", "--no-progress"]) == 0

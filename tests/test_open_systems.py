@@ -128,8 +128,9 @@ def test_lammps_data_and_dump_boxes_enclose_the_atoms(runs, name):
 
 def test_enclosing_cell_keeps_a_stored_edge_that_holds_the_atoms():
     positions = np.array([[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
-    origin, lengths, tilt = enclosing_cell(positions, [10.0, 10.0, 10.0], [True, False, False],
-                                           [1.0, 2.0, 0.0])  # fmt: skip
+    origin, lengths, tilt = enclosing_cell(
+        positions, [10.0, 10.0, 10.0], [True, False, False], [1.0, 2.0, 0.0]
+    )
     assert origin.tolist() == [0.0, 0.0, 0.0] and lengths.tolist() == [10.0, 10.0, 10.0]
     assert tilt.tolist() == [0.0, 0.0, 0.0]  # tilts with an open axis are dropped
     origin, lengths, _ = enclosing_cell(positions, [10.0, 0.0, 4.0], [True, False, False])

@@ -26,9 +26,13 @@ QUIET = ["-q", "--no-progress"]
 
 def _md(args, cwd: Path, timeout: float = 900, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "md.cli", *args], cwd=cwd, capture_output=True, text=True,
-        timeout=timeout, **kwargs,
-    )  # fmt: skip
+        [sys.executable, "-m", "md.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **kwargs,
+    )
 
 
 @pytest.fixture
@@ -43,8 +47,9 @@ def small_disk(tmp_path):
             pytest.skip("mounting a small tmpfs needs root")
         done = subprocess.run(
             ["mount", "-t", "tmpfs", "-o", f"size={kb}k", "tmpfs", str(folder)],
-            capture_output=True, text=True,
-        )  # fmt: skip
+            capture_output=True,
+            text=True,
+        )
         if done.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
         mounted.append(folder)
@@ -119,9 +124,12 @@ def test_a_frame_hdf5_cannot_write_is_reported_without_crashing(tmp_path, small_
     """)
     )
     done = subprocess.run(
-        [sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=300,
         env={**os.environ, "PYTHONPATH": str(Path(md.__file__).resolve().parents[1])},
-    )  # fmt: skip
+    )
     assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
     assert "refused: [Errno 28] disk full: cannot write frame" in done.stdout, done.stdout
     kept, read = (int(n) for n in done.stdout.split("kept ")[1].split(" read "))
@@ -240,8 +248,11 @@ def test_sigterm_while_minimising_says_so_and_writes_nothing(tmp_path, command):
     extra = ["--no-progress"] if command == "run" else []
     process = subprocess.Popen(
         [sys.executable, "-m", "md.cli", command, str(config), *extra],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         for line in process.stdout:  # wait until FIRE is under way
             if "energy" in line and "max force" in line:
@@ -344,8 +355,11 @@ def test_no_command_replaces_the_output_of_a_running_run(
     link.symlink_to(live)
     run = subprocess.Popen(
         [sys.executable, "-m", "md.cli", "run", str(config), *QUIET],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + 600
         while not (tmp_path / "live.h5.ckpt").exists() or not live.exists():
@@ -493,9 +507,12 @@ def long_trajectory(tmp_path_factory):
     rng = np.random.default_rng(3)
     n = 2000
     state = State(
-        positions=20 * rng.random((n, 3)), velocities=np.zeros((n, 3)), masses=np.ones(n),
-        box=np.full(3, 20.0), pbc=np.ones(3, bool),
-    )  # fmt: skip
+        positions=20 * rng.random((n, 3)),
+        velocities=np.zeros((n, 3)),
+        masses=np.ones(n),
+        box=np.full(3, 20.0),
+        pbc=np.ones(3, bool),
+    )
     with H5MDWriter(path, state) as writer:
         for step in range(300):
             state.step = step
@@ -508,8 +525,11 @@ def _convert_until_its_temporary_appears(trajectory: Path, out: Path) -> subproc
 
     process = subprocess.Popen(
         [sys.executable, "-m", "md.cli", "convert", str(trajectory), str(out), "--no-progress"],
-        cwd=out.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        cwd=out.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 300
     while not list(out.parent.glob(f".{out.name}.*.tmp")):
         assert process.poll() is None and time.monotonic() < deadline, process.communicate()

@@ -96,8 +96,10 @@ def test_definite_makes_the_newton_matrix_positive_and_keeps_safe_pairs(random_g
             safe = np.minimum(before.transverse, before.radial) > -bound
             assert not np.any(changed & safe)
         if h2 == 1e-4:
-            assert not any(np.any(b.transverse != a.transverse) for b, a in
-                           zip(operator.terms, fixed.terms, strict=True))  # fmt: skip
+            assert not any(
+                np.any(b.transverse != a.transverse)
+                for b, a in zip(operator.terms, fixed.terms, strict=True)
+            )
 
 
 def test_pieces_skip_the_entries_between_them(rng):
@@ -128,12 +130,15 @@ def test_pieces_skip_the_entries_between_them(rng):
         np.testing.assert_array_equal(getattr(gapped, name), getattr(compact, name))
     x = rng.normal(size=3 * n_atoms)
     np.testing.assert_allclose(gapped.matvec(x), compact.tocsr() @ x, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(gapped.diagonal(), compact.tocsr().diagonal(), rtol=1e-12,
-                               atol=1e-12)  # fmt: skip
-    np.testing.assert_allclose(gapped.diagonal_blocks, compact.diagonal_blocks, rtol=1e-12,
-                               atol=1e-12)  # fmt: skip
-    np.testing.assert_allclose(gapped.tocsr().toarray(), compact.tocsr().toarray(), rtol=1e-12,
-                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        gapped.diagonal(), compact.tocsr().diagonal(), rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        gapped.diagonal_blocks, compact.diagonal_blocks, rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        gapped.tocsr().toarray(), compact.tocsr().toarray(), rtol=1e-12, atol=1e-12
+    )
     assert gapped.nnz == compact.nnz
     assert gapped.min_eigenvalue() == compact.min_eigenvalue()
     np.testing.assert_array_equal(gapped.negative_pairs(), compact.negative_pairs())
@@ -147,9 +152,14 @@ def test_pieces_skip_the_entries_between_them(rng):
 
 def test_duplicate_pairs_are_summed_in_the_matrix():
     hessian = PairHessian(
-        2, np.array([0, 0]), np.array([1, 1]), np.array([1.0, 2.0]), np.array([3.0, 4.0]),
-        np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), unique=False,
-    )  # fmt: skip
+        2,
+        np.array([0, 0]),
+        np.array([1, 1]),
+        np.array([1.0, 2.0]),
+        np.array([3.0, 4.0]),
+        np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+        unique=False,
+    )
     dense = hessian.tocsr().toarray()
     np.testing.assert_allclose(np.diag(dense), [7.0, 3.0, 3.0, 7.0, 3.0, 3.0])
     np.testing.assert_allclose(dense[0, 3], -7.0)
@@ -181,12 +191,13 @@ def test_threaded_hessian_equals_the_serial_one(fcc_lattice, rng, mode):
     np.testing.assert_array_equal(two.pair_i, one.pair_i)  # same pairs, same order
     np.testing.assert_array_equal(two.transverse, one.transverse)
     scale = np.abs(one.diagonal_blocks).max()
-    np.testing.assert_allclose(two.diagonal_blocks, one.diagonal_blocks, rtol=0,
-                               atol=1e-12 * scale)  # fmt: skip
-    np.testing.assert_allclose(two.product, one.product, rtol=0,
-                               atol=1e-12 * np.abs(one.product).max())  # fmt: skip
-    np.testing.assert_allclose(two.product, one.tocsr() @ x, rtol=0,
-                               atol=1e-11 * np.abs(one.product).max())  # fmt: skip
+    np.testing.assert_allclose(two.diagonal_blocks, one.diagonal_blocks, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(
+        two.product, one.product, rtol=0, atol=1e-12 * np.abs(one.product).max()
+    )
+    np.testing.assert_allclose(
+        two.product, one.tocsr() @ x, rtol=0, atol=1e-11 * np.abs(one.product).max()
+    )
 
 
 @pytest.mark.parametrize("chunks", [2, 3, 5])
@@ -220,8 +231,7 @@ def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunk
         np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
     x = np.random.default_rng(3).normal(size=3 * state.n_atoms)
     product = one.matvec(x)
-    np.testing.assert_allclose(many.matvec(x), product, rtol=0,
-                               atol=1e-12 * np.abs(product).max())  # fmt: skip
+    np.testing.assert_allclose(many.matvec(x), product, rtol=0, atol=1e-12 * np.abs(product).max())
     diagonal = many.diagonal()
     np.testing.assert_allclose(diagonal, many.diagonal_blocks[:, :3].ravel(), rtol=1e-13)
     np.testing.assert_allclose(diagonal, one.tocsr().diagonal(), rtol=1e-12, atol=1e-12)

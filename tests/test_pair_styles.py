@@ -52,8 +52,10 @@ DEFAULT_STYLES = {"morse", "table", "buckingham"}
 
 def styles(names):
     """``names`` as parameters, those outside DEFAULT_STYLES marked slow."""
-    return [pytest.param(name, marks=() if name in DEFAULT_STYLES else pytest.mark.slow)
-            for name in names]  # fmt: skip
+    return [
+        pytest.param(name, marks=() if name in DEFAULT_STYLES else pytest.mark.slow)
+        for name in names
+    ]
 
 
 def _example():
@@ -65,8 +67,9 @@ def _example():
 
 def _dimer(potential, r, ti=0, tj=0):
     """(energy, force on atom 1 along +x) of two atoms r apart."""
-    state = md.State(positions=[[0.0, 0.0, 0.0], [r, 0.0, 0.0]], box=50.0, pbc=False,
-                     types=[ti, tj])  # fmt: skip
+    state = md.State(
+        positions=[[0.0, 0.0, 0.0], [r, 0.0, 0.0]], box=50.0, pbc=False, types=[ti, tj]
+    )
     result = potential.energy_forces(state, None)
     return result.energy, result.forces[1, 0]
 
@@ -82,16 +85,24 @@ def _mie(r, eps, sigma, n, m):
 
 
 FORMULAS = {
-    "morse": (Morse(d0=0.9, alpha=1.7, r0=1.3, cutoff=4.0, cutoff_mode="none"),
-              lambda r: _morse(r, 0.9, 1.7, 1.3)),
-    "mie": (Mie(epsilon=1.2, sigma=1.1, n=14.0, m=7.5, cutoff=4.0, cutoff_mode="none"),
-            lambda r: _mie(r, 1.2, 1.1, 14.0, 7.5)),
-    "buckingham": (Buckingham(a=900.0, rho=0.2, c=2.0, cutoff=4.0, cutoff_mode="none"),
-                   lambda r: 900.0 * np.exp(-r / 0.2) - 2.0 / r**6),
-    "yukawa": (Yukawa(a=2.5, kappa=0.8, cutoff=4.0, cutoff_mode="none"),
-               lambda r: 2.5 * np.exp(-0.8 * r) / r),
+    "morse": (
+        Morse(d0=0.9, alpha=1.7, r0=1.3, cutoff=4.0, cutoff_mode="none"),
+        lambda r: _morse(r, 0.9, 1.7, 1.3),
+    ),
+    "mie": (
+        Mie(epsilon=1.2, sigma=1.1, n=14.0, m=7.5, cutoff=4.0, cutoff_mode="none"),
+        lambda r: _mie(r, 1.2, 1.1, 14.0, 7.5),
+    ),
+    "buckingham": (
+        Buckingham(a=900.0, rho=0.2, c=2.0, cutoff=4.0, cutoff_mode="none"),
+        lambda r: 900.0 * np.exp(-r / 0.2) - 2.0 / r**6,
+    ),
+    "yukawa": (
+        Yukawa(a=2.5, kappa=0.8, cutoff=4.0, cutoff_mode="none"),
+        lambda r: 2.5 * np.exp(-0.8 * r) / r,
+    ),
     "soft": (Soft(a=3.0, cutoff=4.0), lambda r: 3.0 * (1 + np.cos(np.pi * r / 4.0))),
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("style", list(FORMULAS))
@@ -143,13 +154,14 @@ def _numerical_hessian(potential, state):
 
 HESSIAN_CASES = {
     "morse": lambda mode: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.0, cutoff_mode=mode),
-    "mie": lambda mode: Mie(epsilon=[1.0, 0.5], sigma=[1.0, 1.1], n=13.0, m=6.5, cutoff=2.0,
-                            cutoff_mode=mode),
+    "mie": lambda mode: Mie(
+        epsilon=[1.0, 0.5], sigma=[1.0, 1.1], n=13.0, m=6.5, cutoff=2.0, cutoff_mode=mode
+    ),
     "buckingham": lambda mode: Buckingham(a=2000.0, rho=0.15, c=1.0, cutoff=2.0, cutoff_mode=mode),
     "yukawa": lambda mode: Yukawa(a=[1.0, 2.0], kappa=1.3, cutoff=2.0, cutoff_mode=mode),
     "soft": lambda mode: Soft(a=[1.0, 2.0], cutoff=1.5, cutoff_mode=mode),
     "wca": lambda mode: _example().make_potential(),
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("mode", ["none", "smooth"])
@@ -179,8 +191,10 @@ def test_spline_table_hessian_is_the_jacobian_of_its_forces(tmp_path, random_gas
     r = np.linspace(0.5, 2.2, 400)
     e = np.exp(-3 * (r - 1.0)) - 2 * np.exp(-1.5 * (r - 1.0))
     f = 3 * (np.exp(-3 * (r - 1.0)) - np.exp(-1.5 * (r - 1.0)))
-    path.write_text("T\nN 400 R 0.5 2.2\n\n" + "".join(
-        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(400)))  # fmt: skip
+    path.write_text(
+        "T\nN 400 R 0.5 2.2\n\n"
+        + "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(400))
+    )
     potential = Table(path, "T", "spline", cutoff=2.0)
     state = random_gas(12, 3.2, min_distance=0.85)
     exact = potential.hessian(state, None).toarray()
@@ -190,21 +204,32 @@ def test_spline_table_hessian_is_the_jacobian_of_its_forces(tmp_path, random_gas
 
 # --------------------------------------------------------- frame vs atom order
 @pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
-@pytest.mark.parametrize(("style", "threads"), [
-    # each term and threaded variant compiles apart: Morse on one thread runs by default
-    # (LJ's threaded slot-frame kernels: tests/test_parallel.py), the rest with -m slow
-    pytest.param(*case, marks=() if case == ("morse", 1) else pytest.mark.slow)
-    for case in [("morse", 1), ("morse", 2), ("yukawa", 1), ("yukawa", 2), ("wca", 1), ("wca", 2)]
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("style", "threads"),
+    [
+        # each term and threaded variant compiles apart: Morse on one thread runs by default
+        # (LJ's threaded slot-frame kernels: tests/test_parallel.py), the rest with -m slow
+        pytest.param(*case, marks=() if case == ("morse", 1) else pytest.mark.slow)
+        for case in [
+            ("morse", 1),
+            ("morse", 2),
+            ("yukawa", 1),
+            ("yukawa", 2),
+            ("wca", 1),
+            ("wca", 2),
+        ]
+    ],
+)
 def test_slot_frame_kernels_equal_the_atom_order_kernels(style, cell, threads, fcc_lattice):
     """The threaded slot-frame kernels (forces, virial, Hessian blocks) give the atom-order
     kernels' results to round-off in every cell shape, with one chunk or two."""
     builders = {
-        "morse": lambda: Morse(d0=1.0, alpha=2.0, r0=1.1, cutoff=2.2,
-                               pairs={(0, 1): {"d0": 0.5, "cutoff": 1.9}}),
+        "morse": lambda: Morse(
+            d0=1.0, alpha=2.0, r0=1.1, cutoff=2.2, pairs={(0, 1): {"d0": 0.5, "cutoff": 1.9}}
+        ),
         "yukawa": lambda: Yukawa(a=[1.0, 2.0], kappa=1.1, cutoff=2.2, cutoff_mode="smooth"),
         "wca": lambda: _example().make_potential(),
-    }  # fmt: skip
+    }
     state = fcc_lattice(cells=8, perturbation=0.07, n_types=1 if style == "wca" else 2)
     if cell == "tilted":
         state.tilt = np.array([0.2, -0.15, 0.1]) * state.box[[0, 0, 1]]
@@ -222,10 +247,12 @@ def test_slot_frame_kernels_equal_the_atom_order_kernels(style, cell, threads, f
         set_threads(before)
     reference = potential.energy_forces(state, forcefield.neighbor_list, per_atom=True)
     assert fast.energy == pytest.approx(reference.energy, rel=1e-12)
-    np.testing.assert_allclose(fast.forces, reference.forces, rtol=0,
-                               atol=1e-11 * np.abs(reference.forces).max())  # fmt: skip
-    np.testing.assert_allclose(fast.virial, reference.virial, rtol=0,
-                               atol=1e-11 * np.abs(reference.virial).max())  # fmt: skip
+    np.testing.assert_allclose(
+        fast.forces, reference.forces, rtol=0, atol=1e-11 * np.abs(reference.forces).max()
+    )
+    np.testing.assert_allclose(
+        fast.virial, reference.virial, rtol=0, atol=1e-11 * np.abs(reference.virial).max()
+    )
     exact = potential.hessian(state, None)
     assert abs(blocks - exact).max() <= 1e-11 * abs(exact).max()
 
@@ -244,8 +271,9 @@ def test_user_term_forces_are_minus_the_gradient_of_its_energy(random_gas):
             up = potential.energy_forces(moved, None).energy
             moved.positions[i, axis] -= 2 * STEP
             down = potential.energy_forces(moved, None).energy
-            assert result.forces[i, axis] == pytest.approx(-(up - down) / (2 * STEP),
-                                                           rel=1e-6, abs=1e-6)  # fmt: skip
+            assert result.forces[i, axis] == pytest.approx(
+                -(up - down) / (2 * STEP), rel=1e-6, abs=1e-6
+            )
 
 
 def test_wca_term_equals_shifted_lennard_jones_below_its_cutoff(random_gas):
@@ -271,8 +299,9 @@ def test_user_term_through_the_ase_calculator():
     assert atoms.get_potential_energy() == pytest.approx(result.energy, rel=1e-12)
     assert np.abs(atoms.get_forces()).max() > 0
     stress = atoms.get_stress(voigt=False)
-    np.testing.assert_allclose(np.trace(stress) / 3, -np.trace(result.virial) / 3 / state.volume,
-                               rtol=1e-10)  # fmt: skip
+    np.testing.assert_allclose(
+        np.trace(stress) / 3, -np.trace(result.virial) / 3 / state.volume, rtol=1e-10
+    )
 
 
 def test_a_term_without_curvature_is_refused_by_implicit_euler():
@@ -292,8 +321,11 @@ def test_a_term_without_curvature_is_refused_by_implicit_euler():
 def test_implicit_euler_runs_on_the_frame(name):  # Morse's Hessian kernels compile: -m slow
     """Newton with the frame's Hessian converges, and the dynamics dissipates energy as
     implicit Euler must (never gains it)."""
-    potential = (Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=2.3) if name == "morse"
-                 else _example().make_potential())  # fmt: skip
+    potential = (
+        Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=2.3)
+        if name == "morse"
+        else _example().make_potential()
+    )
     density = 0.9 if name == "wca" else 0.75
     state = md.maxwell_boltzmann(md.lattice("fcc", 4, density=density), 0.4, seed=5)
     integrator = ImplicitEuler(0.01)
@@ -323,8 +355,12 @@ def test_pair_term_checks_its_signature():
 def test_buckingham_collapse_names_the_pair_and_the_step():
     buck = Buckingham(a=1000.0, rho=0.2, c=5.0, cutoff=3.0)
     barrier = buck.barrier(1000.0, 0.2, 5.0)
-    state = md.State(positions=[[1, 1, 1], [1 + 0.9 * barrier, 1, 1], [4, 4, 4]],
-                     box=10.0, pbc=False, type_names=("O",))  # fmt: skip
+    state = md.State(
+        positions=[[1, 1, 1], [1 + 0.9 * barrier, 1, 1], [4, 4, 4]],
+        box=10.0,
+        pbc=False,
+        type_names=("O",),
+    )
     state.step = 17
     with pytest.raises(PairCollapseError, match=r"atoms 0 and 1 \(types O-O\).*step 17"):
         buck.energy_forces(state, None)
@@ -332,8 +368,12 @@ def test_buckingham_collapse_names_the_pair_and_the_step():
     energy, force = buck.energy_forces(state, None).energy, buck.energy_forces(state, None).forces
     assert math.isfinite(energy) and force[1, 0] > 0
     # In a run it stops the simulation at the step it happened.
-    state = md.State(positions=[[1, 1, 1], [1 + 1.3 * barrier, 1, 1]], box=10.0, pbc=False,
-                     velocities=[[3.0, 0, 0], [-3.0, 0, 0]])  # fmt: skip
+    state = md.State(
+        positions=[[1, 1, 1], [1 + 1.3 * barrier, 1, 1]],
+        box=10.0,
+        pbc=False,
+        velocities=[[3.0, 0, 0], [-3.0, 0, 0]],
+    )
     with pytest.raises(SimulationError, match="atoms 0 and 1"):
         md.Simulation(state, [buck], VelocityVerlet(0.002)).run(200)
 
@@ -374,11 +414,14 @@ TABLE = "T\nN 4 R 0.5 2.0\n\n1 0.5 3.0 10.0\n2 1.0 0.0 1.0\n3 1.5 -0.5 0.2\n4 2.
         (TABLE.replace("N 4", "N 5"), "T", ":7: section T ends after 4 of its N = 5 points"),
         (TABLE.replace("3 1.5 -0.5 0.2", "3 1.5 -0.5"), "T", ":6: expected 'index r energy force'"),
         (TABLE.replace("3 1.5 -0.5 0.2", "3 1.5 x 0.2"), "T", ":6: not numbers"),
-        (TABLE.replace("N 4 R 0.5 2.0", "N 4").replace("3 1.5", "3 0.9"), "T",
-         ":6: distances must increase"),
+        (
+            TABLE.replace("N 4 R 0.5 2.0", "N 4").replace("3 1.5", "3 0.9"),
+            "T",
+            ":6: distances must increase",
+        ),
         (TABLE.replace("R 0.5 2.0", "BITMAP 0.5 2.0"), "T", "BITMAP tables are not supported"),
     ],
-)  # fmt: skip
+)
 def test_bad_table_files_name_the_file_and_line(text, keyword, message, tmp_path):
     path = tmp_path / "bad.table"
     path.write_text(text)
@@ -405,8 +448,10 @@ def test_table_interpolates_a_smooth_function_closely(tmp_path):
     r = np.linspace(0.7, 2.5, n)
     e = _morse(r, 1.0, 2.0, 1.2)
     f = 2 * 2.0 * (np.exp(-4.0 * (r - 1.2)) - np.exp(-2.0 * (r - 1.2)))
-    path.write_text("M\nN 2000 R 0.7 2.5\n\n" + "".join(
-        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(n)))  # fmt: skip
+    path.write_text(
+        "M\nN 2000 R 0.7 2.5\n\n"
+        + "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(n))
+    )
     morse = Morse(d0=1.0, alpha=2.0, r0=1.2, cutoff=2.5, cutoff_mode="none")
     for interpolation, tolerance in (("linear", 1e-4), ("spline", 1e-8)):
         table = Table(path, "M", interpolation)
@@ -449,13 +494,22 @@ def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(t
     """A user's term defined in a script: two processes compiling it at once both finish
     and leave one complete copy of the frame's kernels (no temporaries); a third process
     loads the compiled kernels from numba's cache, compiling none."""
-    env = {"XDG_CACHE_HOME": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin",
-           "PYTHONPATH": str(ROOT)}  # fmt: skip
+    env = {
+        "XDG_CACHE_HOME": str(tmp_path / "cache"),
+        "PATH": "/usr/bin:/bin",
+        "PYTHONPATH": str(ROOT),
+    }
 
     def start():
         command = [sys.executable, "-c", _CACHE_CHILD]
-        return subprocess.Popen(command, env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+        return subprocess.Popen(
+            command,
+            env=env,
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
 
     def report(process):
         out, err = process.communicate(timeout=1800)
@@ -468,8 +522,11 @@ def test_frame_kernels_compile_once_and_load_from_the_cache_in_later_processes(t
     assert first["frame"] and first["energy"] > 0  # the slot-frame path, overlapping walls
     assert first["file"] == second["file"] == third["file"]
     # Python's own bytecode cache of the copy may sit beside it; nothing else may
-    copies = [path for path in (tmp_path / "cache/leapmd/numba/pair_terms").iterdir()
-              if path.name != "__pycache__"]  # fmt: skip
+    copies = [
+        path
+        for path in (tmp_path / "cache/leapmd/numba/pair_terms").iterdir()
+        if path.name != "__pycache__"
+    ]
     assert [path.name for path in copies] == [Path(first["file"]).name]
     template = (ROOT / "potentials/_pair_kernels.py").read_bytes()
     assert Path(first["file"]).read_bytes().startswith(template)  # and the variants after it
@@ -517,9 +574,14 @@ def test_vector_exp_is_within_its_stated_error_bound():
             out[i] = exp(x[i])
 
     rng = np.random.default_rng(4)
-    x = np.concatenate([np.linspace(-707.0, 709.0, 500_001), rng.uniform(-60.0, 5.0, 500_000),
-                        np.linspace(709.0, 709.7827, 10_001),  # 2^k with k = 1024 from 709.44
-                        np.arange(-40, 41) * math.log(2.0)])  # fmt: skip
+    x = np.concatenate(
+        [
+            np.linspace(-707.0, 709.0, 500_001),
+            rng.uniform(-60.0, 5.0, 500_000),
+            np.linspace(709.0, 709.7827, 10_001),  # 2^k with k = 1024 from 709.44
+            np.arange(-40, 41) * math.log(2.0),
+        ]
+    )
     out = np.empty_like(x)
     evaluate(x, out)
     relative = np.abs(out / np.exp(x) - 1.0)
@@ -547,9 +609,14 @@ def test_vector_sin_and_cos_are_within_their_stated_error_bound():
             c[i] = cos(x[i])
 
     rng = np.random.default_rng(5)
-    x = np.concatenate([np.linspace(-1e5, 1e5, 400_001), rng.uniform(-8.0, 8.0, 400_000),
-                        np.arange(-200, 201) * (0.5 * math.pi),
-                        np.arange(-64, 65) * 0.25])  # fmt: skip
+    x = np.concatenate(
+        [
+            np.linspace(-1e5, 1e5, 400_001),
+            rng.uniform(-8.0, 8.0, 400_000),
+            np.arange(-200, 201) * (0.5 * math.pi),
+            np.arange(-64, 65) * 0.25,
+        ]
+    )
     s, c = np.empty_like(x), np.empty_like(x)
     evaluate(x, s, c)
     assert np.abs(s - np.sin(x)).max() <= 4e-16
@@ -579,9 +646,15 @@ def test_vector_log_is_within_its_stated_error_bound():
 
     rng = np.random.default_rng(5)
     powers = 2.0 ** np.arange(-1074, 1024)  # subnormals to the largest power of two
-    x = np.concatenate([10.0 ** rng.uniform(-307.0, 308.0, 400_000),
-                        rng.uniform(0.5, 2.0, 300_000), 1.0 + rng.uniform(-1e-8, 1e-8, 100_000),
-                        rng.uniform(1e-320, 2e-308, 10_000), powers])  # fmt: skip
+    x = np.concatenate(
+        [
+            10.0 ** rng.uniform(-307.0, 308.0, 400_000),
+            rng.uniform(0.5, 2.0, 300_000),
+            1.0 + rng.uniform(-1e-8, 1e-8, 100_000),
+            rng.uniform(1e-320, 2e-308, 10_000),
+            powers,
+        ]
+    )
     out = np.empty_like(x)
     evaluate(x, out)
     exact = np.log(x)
@@ -608,8 +681,13 @@ def test_reciprocal_is_ieee_division_in_a_fast_math_loop():
             out[i] = y[i] * reciprocal(x[i])  # LLVM may not fold this into y / x
 
     rng = np.random.default_rng(6)
-    x = np.concatenate([10.0 ** rng.uniform(-300.0, 300.0, 100_000), rng.uniform(0.5, 3.0, 100_000),
-                        np.array([0.0, -0.0, np.inf, -np.inf, np.nan])])  # fmt: skip
+    x = np.concatenate(
+        [
+            10.0 ** rng.uniform(-300.0, 300.0, 100_000),
+            rng.uniform(0.5, 3.0, 100_000),
+            np.array([0.0, -0.0, np.inf, -np.inf, np.nan]),
+        ]
+    )
     ones = np.ones_like(x)
     out = np.empty_like(x)
     evaluate(x, ones, out)
@@ -635,8 +713,10 @@ def _table_file(folder: Path) -> None:
     r = np.linspace(0.6, 2.3, 300)
     e = np.exp(-6.0 * (r - 1.1)) - 2.0 * np.exp(-3.0 * (r - 1.1))
     f = 6.0 * (np.exp(-6.0 * (r - 1.1)) - np.exp(-3.0 * (r - 1.1)))
-    (folder / "pair.table").write_text("# a Morse table\n\nT\nN 300 R 0.6 2.3\n\n" + "".join(
-        f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(300)))  # fmt: skip
+    (folder / "pair.table").write_text(
+        "# a Morse table\n\nT\nN 300 R 0.6 2.3\n\n"
+        + "".join(f"{k + 1} {r[k]:.17g} {e[k]:.17g} {f[k]:.17g}\n" for k in range(300))
+    )
 
 
 @pytest.mark.parametrize("style", styles(GOOD))
@@ -657,24 +737,35 @@ BAD = {
     "unknown key": ('type = "morse"\nd0 = 1.0\nalpha = 3.0\nr0 = 1.1\nepsilon = 1.0', "epsilon"),
     "mie n <= m": ('type = "mie"\nn = 6.0\nm = 8.0', "must be larger than m"),
     "rho <= 0": ('type = "buckingham"\na = 1.0\nrho = 0.0\nc = 1.0', "rho"),
-    "unknown pair key": ('type = "yukawa"\na = 1.0\n[[potentials.pairs]]\ntypes = ["A", "A"]\n'
-                         'b = 2.0', "pairs\\[0\\]: unknown key"),
+    "unknown pair key": (
+        'type = "yukawa"\na = 1.0\n[[potentials.pairs]]\ntypes = ["A", "A"]\nb = 2.0',
+        "pairs\\[0\\]: unknown key",
+    ),
     "table missing": ('type = "table"\nfile = "none.table"\nkeyword = "T"', "none.table not found"),
     "table keyword": ('type = "table"\nfile = "pair.table"\nkeyword = "X"', "no section named"),
-    "table too short": ('type = "table"\nfile = "pair.table"\nkeyword = "T"\ncutoff = 3.0',
-                        "cutoff 3 must lie"),
-    "table malformed": ('type = "table"\nfile = "broken.table"\nkeyword = "T"',
-                        "broken.table:4: not numbers"),
-    "table unsorted": ('type = "table"\nfile = "unsorted.table"\nkeyword = "T"',
-                       "unsorted.table:5: distances must increase"),
-    "interpolation": ('type = "table"\nfile = "pair.table"\nkeyword = "T"\ninterpolation = "cubic"',
-                      "interpolation: must be one of 'linear', 'spline', got 'cubic'"),
-}  # fmt: skip
+    "table too short": (
+        'type = "table"\nfile = "pair.table"\nkeyword = "T"\ncutoff = 3.0',
+        "cutoff 3 must lie",
+    ),
+    "table malformed": (
+        'type = "table"\nfile = "broken.table"\nkeyword = "T"',
+        "broken.table:4: not numbers",
+    ),
+    "table unsorted": (
+        'type = "table"\nfile = "unsorted.table"\nkeyword = "T"',
+        "unsorted.table:5: distances must increase",
+    ),
+    "interpolation": (
+        'type = "table"\nfile = "pair.table"\nkeyword = "T"\ninterpolation = "cubic"',
+        "interpolation: must be one of 'linear', 'spline', got 'cubic'",
+    ),
+}
 
 
 @pytest.mark.parametrize("case", list(BAD))
-def test_md_run_refuses_bad_pair_input_with_exit_2_writing_nothing(case, tmp_path, monkeypatch,
-                                                                   capsys):  # fmt: skip
+def test_md_run_refuses_bad_pair_input_with_exit_2_writing_nothing(
+    case, tmp_path, monkeypatch, capsys
+):
     from md.cli import main
 
     monkeypatch.chdir(tmp_path)

@@ -68,12 +68,20 @@ POTENTIALS = {
 }
 
 
-@pytest.mark.parametrize(("params", "n_chunks"), [
-    # each chunked (threaded) variant compiles apart: the shifted one runs by default
-    pytest.param(params, n_chunks, id=f"{name}-{n_chunks}",
-                 marks=pytest.mark.slow if n_chunks == 3 and name != "shifted" else ())
-    for name, params in POTENTIALS.items() for n_chunks in (1, 3)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("params", "n_chunks"),
+    [
+        # each chunked (threaded) variant compiles apart: the shifted one runs by default
+        pytest.param(
+            params,
+            n_chunks,
+            id=f"{name}-{n_chunks}",
+            marks=pytest.mark.slow if n_chunks == 3 and name != "shifted" else (),
+        )
+        for name, params in POTENTIALS.items()
+        for n_chunks in (1, 3)
+    ],
+)
 def test_slot_frame_kernel_equals_atom_order_kernel(params, n_chunks, chunks):
     chunks(n_chunks)
     n_types = len(params["sigma"]) if "sigma" in params else 1

@@ -27,8 +27,12 @@ def test_every_integrator_has_its_own_colour_and_marker():
     assert style["bdf2"]["family"] == style["xpbd"]["family"] == "implicit"
     assert style["someone_elses"]["family"] == "other"
     # The pairs that shared a colour in a 10-colour cycle are told apart.
-    for a, b in (("verlet", "rk4"), ("leapfrog", "rkf45"), ("explicit_euler", "implicit_euler"),
-                 ("symplectic_euler", "implicit_midpoint")):  # fmt: skip
+    for a, b in (
+        ("verlet", "rk4"),
+        ("leapfrog", "rkf45"),
+        ("explicit_euler", "implicit_euler"),
+        ("symplectic_euler", "implicit_midpoint"),
+    ):
         assert style[a]["color"] != style[b]["color"]
 
 

@@ -70,17 +70,26 @@ thermo_every = 10
 path = "out.h5"
 every = 10
 """
-BY_PATH = {"pair": "user_pair:Gauss", "bond": "user_bond:AnharmonicBonds",
-           "integrator": "user_integrator:PositionVerlet"}  # fmt: skip
-BY_ENTRY_POINT = {"pair": "demo_gauss", "bond": "demo_anharmonic",
-                  "integrator": "demo_position_verlet"}  # fmt: skip
+BY_PATH = {
+    "pair": "user_pair:Gauss",
+    "bond": "user_bond:AnharmonicBonds",
+    "integrator": "user_integrator:PositionVerlet",
+}
+BY_ENTRY_POINT = {
+    "pair": "demo_gauss",
+    "bond": "demo_anharmonic",
+    "integrator": "demo_position_verlet",
+}
 
 
 def _user_modules(folder: Path) -> Path:
     """The plug-ins as three loose files in ``folder``, outside the repository."""
     folder.mkdir(exist_ok=True)
-    for source, name in (("pairs", "user_pair"), ("bonds", "user_bond"),
-                         ("integrators", "user_integrator")):  # fmt: skip
+    for source, name in (
+        ("pairs", "user_pair"),
+        ("bonds", "user_bond"),
+        ("integrators", "user_integrator"),
+    ):
         shutil.copy(SOURCES / f"{source}.py", folder / f"{name}.py")
     return folder
 
@@ -107,8 +116,12 @@ def _md_run(folder: Path, config: str, path: Path) -> subprocess.CompletedProces
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(path), str(ROOT)]))
     return subprocess.run(
         [sys.executable, "-m", "md.cli", "run", config, "--no-progress", "-q"],
-        cwd=folder, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        cwd=folder,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 def _check_run(output: Path, result: subprocess.CompletedProcess) -> None:
@@ -166,8 +179,15 @@ def plugin_path(tmp_path, monkeypatch):
     before = set(sys.modules)
     yield tmp_path
     for name in set(sys.modules) - before:
-        if name.split(".")[0] in ("user_pair", "user_bond", "user_integrator", "broken_plugin",
-                                  "wrong_signature", "raising_plugin", "leapmd_demo_plugin"):
+        if name.split(".")[0] in (
+            "user_pair",
+            "user_bond",
+            "user_integrator",
+            "broken_plugin",
+            "wrong_signature",
+            "raising_plugin",
+            "leapmd_demo_plugin",
+        ):
             del sys.modules[name]
 
 
@@ -187,8 +207,14 @@ def test_config_keys_of_a_style_that_declares_none_follow_from_its_constructor(p
     assert list(keys) == ["a", "width", "cutoff", "cutoff_mode", "r_on", "pairs"]
     assert (keys["a"].kind, keys["a"].default, keys["cutoff"].default) == ("number", 1.0, 3.0)
     bond_keys = {k.name: k.default for k in AnharmonicBonds.CONFIG_KEYS}
-    assert bond_keys == {"bonds": None, "bonds_file": None, "k": 10.0, "r0": 1.0, "c": 0.0,
-                         "bond_types": None}  # fmt: skip
+    assert bond_keys == {
+        "bonds": None,
+        "bonds_file": None,
+        "k": 10.0,
+        "r0": 1.0,
+        "c": 0.0,
+        "bond_types": None,
+    }
 
 
 def test_a_plug_in_resolves_by_path_and_by_entry_point_to_one_class(plugin_path):
@@ -201,8 +227,10 @@ def test_a_builtin_name_wins_over_an_entry_point_of_that_name(plugin_path, caplo
     info = next((plugin_path / "site").glob("*.dist-info"))
     text = (info / "entry_points.txt").read_text()
     (info / "entry_points.txt").write_text(
-        text.replace("demo_anharmonic =", "spring = leapmd_demo_plugin.bonds:AnharmonicBonds\n"
-                     "demo_anharmonic =")  # fmt: skip
+        text.replace(
+            "demo_anharmonic =",
+            "spring = leapmd_demo_plugin.bonds:AnharmonicBonds\ndemo_anharmonic =",
+        )
     )
     assert potentials.potential_class("spring") is potentials.HarmonicBonds
     potentials.potential_class("demo_anharmonic")  # a search of the entry points warns
@@ -222,29 +250,53 @@ def test_a_plug_in_config_is_validated_like_a_builtin(plugin_path):
 
 
 BAD = [
-    ("pair", "no_such_module:Gauss", "[potentials.0] type: plug-in 'no_such_module:Gauss': "
-     "no module named 'no_such_module'"),
-    ("pair", "user_pair:Gaussian", "[potentials.0] type: plug-in 'user_pair:Gaussian': module "
-     "user_pair"),
+    (
+        "pair",
+        "no_such_module:Gauss",
+        "[potentials.0] type: plug-in 'no_such_module:Gauss': no module named 'no_such_module'",
+    ),
+    (
+        "pair",
+        "user_pair:Gaussian",
+        "[potentials.0] type: plug-in 'user_pair:Gaussian': module user_pair",
+    ),
     ("pair", "gaussian", "[potentials.0] type: must be one of 'lj'"),
-    ("pair", "broken_plugin:Gauss", "[potentials.0] type: plug-in 'broken_plugin:Gauss': "
-     "importing broken_plugin raised RuntimeError: the plug-in broke"),
-    ("pair", "user_pair:gauss_energy", "[potentials.0] type: plug-in 'user_pair:gauss_energy': "
-     "is function"),
+    (
+        "pair",
+        "broken_plugin:Gauss",
+        "[potentials.0] type: plug-in 'broken_plugin:Gauss': "
+        "importing broken_plugin raised RuntimeError: the plug-in broke",
+    ),
+    (
+        "pair",
+        "user_pair:gauss_energy",
+        "[potentials.0] type: plug-in 'user_pair:gauss_energy': is function",
+    ),
     ("pair", "user_pair:GAUSS", "not a potential class"),
-    ("pair", "wrong_signature:Gauss", "[potentials.0] type: plug-in 'wrong_signature:Gauss': "
-     "its constructor Gauss(a=1.0, w=1.0"),
+    (
+        "pair",
+        "wrong_signature:Gauss",
+        "[potentials.0] type: plug-in 'wrong_signature:Gauss': its constructor Gauss(a=1.0, w=1.0",
+    ),
     ("bond", "user_pair:Gauss", "does not apply to type = 'user_pair:Gauss'"),
-    ("integrator", "user_bond:AnharmonicBonds", "[integrator] type: plug-in "
-     "'user_bond:AnharmonicBonds': AnharmonicBonds is not an integrator"),
-    ("integrator", "raising_plugin:Stuck", "[integrator] (raising_plugin:Stuck): building it "
-     "raised KeyError: 'no such table'"),
+    (
+        "integrator",
+        "user_bond:AnharmonicBonds",
+        "[integrator] type: plug-in "
+        "'user_bond:AnharmonicBonds': AnharmonicBonds is not an integrator",
+    ),
+    (
+        "integrator",
+        "raising_plugin:Stuck",
+        "[integrator] (raising_plugin:Stuck): building it raised KeyError: 'no such table'",
+    ),
 ]
 
 
 @pytest.mark.parametrize(("section", "name", "message"), BAD, ids=[b[1] for b in BAD])
-def test_a_bad_plug_in_exits_2_naming_it_and_writes_nothing(plugin_path, monkeypatch, capsys,
-                                                           section, name, message):  # fmt: skip
+def test_a_bad_plug_in_exits_2_naming_it_and_writes_nothing(
+    plugin_path, monkeypatch, capsys, section, name, message
+):
     monkeypatch.chdir(plugin_path)
     types = dict(BY_PATH, **{section: name})
     (plugin_path / "config.toml").write_text(CONFIG.format(**types, pair_extra=""))
@@ -303,8 +355,13 @@ def test_the_ase_calculator_takes_a_plug_in_table_as_a_config_does(plugin_path):
 
     from md.calculator import MDCalculator
 
-    table = {"type": "user_pair:Gauss", "a": 2.0, "width": 0.8, "cutoff": 3.0,
-             "cutoff_mode": "none"}  # fmt: skip
+    table = {
+        "type": "user_pair:Gauss",
+        "a": 2.0,
+        "width": 0.8,
+        "cutoff": 3.0,
+        "cutoff_mode": "none",
+    }
     atoms = Atoms("Ar2", positions=[[0.0, 0.0, 0.0], [0.9, 0.0, 0.0]])
     atoms.calc = MDCalculator(potentials=[table])
     assert atoms.get_potential_energy() == pytest.approx(2.0 * math.exp(-((0.9 / 0.8) ** 2)))

@@ -130,7 +130,7 @@ FACTORIES = {
                 cutoff_mode=mode,
                 pairs={**PAIRS, (0, 1): {"cutoff": 2.1, "d0": 1.3}},
             )
-        ),  # fmt: skip
+        ),
         "kinks": _lj_kinks,
     },
     "mie": {
@@ -144,7 +144,7 @@ FACTORIES = {
                 cutoff_mode=mode,
                 pairs=PAIRS,
             )
-        ),  # fmt: skip
+        ),
         "kinks": _lj_kinks,
     },
     "buckingham": {
@@ -157,13 +157,13 @@ FACTORIES = {
                 cutoff_mode=mode,
                 pairs={**PAIRS, (1, 1): {"cutoff": 2.45, "c": 1.5}},
             )
-        ),  # fmt: skip
+        ),
         "kinks": _lj_kinks,
     },
     "yukawa": {
         "variants": _pair_variants(
             lambda mode: Yukawa(a=[2.0, 1.0], kappa=1.5, cutoff=2.4, cutoff_mode=mode, pairs=PAIRS)
-        ),  # fmt: skip
+        ),
         "kinks": _lj_kinks,
     },
     "soft": {
@@ -171,7 +171,7 @@ FACTORIES = {
             lambda mode: Soft(
                 a=[1.0, 3.0], cutoff=1.3, cutoff_mode=mode, pairs={(0, 1): {"cutoff": 1.1}}
             )
-        ),  # fmt: skip
+        ),
         "kinks": _lj_kinks,
     },
     "table": {
@@ -186,7 +186,7 @@ FACTORIES = {
             "spline-shift": lambda: Table(
                 contract_table_file(), "SQUARED", "spline", cutoff=2.45, cutoff_mode="shift"
             ),
-        },  # fmt: skip
+        },
         "kinks": _lj_kinks,
     },
     "lj": {
@@ -219,7 +219,7 @@ FACTORIES = {
                 k=[1.0, 3.0, 0.5],
                 theta0=[180.0, 75.0, 0.0],
                 angle_types=_angle_types(3),
-            ),  # fmt: skip
+            ),
         },
         "kinks": _no_kinks,  # random triples are never within 0.06 degrees of 0 or 180
     },
@@ -245,8 +245,9 @@ def _contract_cases():
         # cache: their contracts run with -m slow.
         slow = name in ("mie", "buckingham", "yukawa", "soft")
         for variant in spec["variants"]:
-            yield pytest.param((name, variant), id=f"{name}-{variant}",
-                               marks=pytest.mark.slow if slow else ())  # fmt: skip
+            yield pytest.param(
+                (name, variant), id=f"{name}-{variant}", marks=pytest.mark.slow if slow else ()
+            )
 
 
 CONTRACT_CASES = list(_contract_cases())
@@ -782,11 +783,21 @@ def test_lj_equals_lj_written_out_in_numpy(mode, cell, fcc_lattice):
     elif cell == "slab":
         state.pbc = np.array([True, True, False])
     epsilon, sigma = [1.0, 0.4, 2.0], [1.0, 1.3, 0.9]
-    lj = LennardJones(epsilon=epsilon, sigma=sigma, cutoff=2.6, cutoff_mode=mode, r_on=2.0,
-                      pairs={(0, 2): {"epsilon": 0.1, "cutoff": 2.2, "r_on": 1.7},
-                             (1, 1): {"cutoff": 2.8}})  # fmt: skip
-    table = [[(np.sqrt(epsilon[a] * epsilon[b]), 0.5 * (sigma[a] + sigma[b]), 2.6, 2.0)
-              for b in range(3)] for a in range(3)]  # fmt: skip
+    lj = LennardJones(
+        epsilon=epsilon,
+        sigma=sigma,
+        cutoff=2.6,
+        cutoff_mode=mode,
+        r_on=2.0,
+        pairs={(0, 2): {"epsilon": 0.1, "cutoff": 2.2, "r_on": 1.7}, (1, 1): {"cutoff": 2.8}},
+    )
+    table = [
+        [
+            (np.sqrt(epsilon[a] * epsilon[b]), 0.5 * (sigma[a] + sigma[b]), 2.6, 2.0)
+            for b in range(3)
+        ]
+        for a in range(3)
+    ]
     table[0][2] = table[2][0] = (0.1, table[0][2][1], 2.2, 1.7)
     table[1][1] = (*table[1][1][:2], 2.8, 2.0)
     energy, forces, virial, energies, virials, hessian = _numpy_lj(state, table, mode)
@@ -909,23 +920,37 @@ FRAME_CASES = {
     "one-type-none": dict(cutoff=2.5, cutoff_mode="none"),
     "one-type-smooth": dict(cutoff=2.5, cutoff_mode="smooth", r_on=2.1),
     "three-types-shift": dict(
-        epsilon=[1.0, 0.4, 2.0], sigma=[1.0, 1.3, 0.9], cutoff=2.6, cutoff_mode="shift",
+        epsilon=[1.0, 0.4, 2.0],
+        sigma=[1.0, 1.3, 0.9],
+        cutoff=2.6,
+        cutoff_mode="shift",
         pairs={(0, 2): {"epsilon": 0.1, "cutoff": 2.0}, (2, 2): {"cutoff": 3.1}},
     ),
     "three-types-smooth": dict(
-        epsilon=[1.0, 0.4, 2.0], sigma=[1.0, 1.3, 0.9], cutoff=2.6, cutoff_mode="smooth",
+        epsilon=[1.0, 0.4, 2.0],
+        sigma=[1.0, 1.3, 0.9],
+        cutoff=2.6,
+        cutoff_mode="smooth",
         r_on=2.0,
     ),
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("cell", ["orthorhombic", "tilted", "slab"])
-@pytest.mark.parametrize(("params", "threads"), [
-    # each threaded variant compiles apart: one type shifted runs by default, the rest -m slow
-    pytest.param(params, threads, id=f"{name}-{threads}",
-                 marks=pytest.mark.slow if threads == 2 and name != "one-type-shift" else ())
-    for name, params in FRAME_CASES.items() for threads in (1, 2)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("params", "threads"),
+    [
+        # each threaded variant compiles apart: one type shifted runs by default, the rest -m slow
+        pytest.param(
+            params,
+            threads,
+            id=f"{name}-{threads}",
+            marks=pytest.mark.slow if threads == 2 and name != "one-type-shift" else (),
+        )
+        for name, params in FRAME_CASES.items()
+        for threads in (1, 2)
+    ],
+)
 def test_vectorised_frame_kernel_equals_the_per_atom_kernel(params, cell, threads, fcc_lattice):
     """The slot-frame kernel (gathered partners, a vectorised pair loop, scattered forces,
     reordered sums) gives the energy, forces and virial of the per-atom-index kernel to
@@ -951,10 +976,12 @@ def test_vectorised_frame_kernel_equals_the_per_atom_kernel(params, cell, thread
         set_threads(before)
     reference = lj.energy_forces(state, ff.neighbor_list, per_atom=True)
     assert fast.energy == pytest.approx(reference.energy, rel=1e-12)
-    np.testing.assert_allclose(fast.forces, reference.forces, rtol=0,
-                               atol=1e-11 * np.abs(reference.forces).max())  # fmt: skip
-    np.testing.assert_allclose(fast.virial, reference.virial, rtol=0,
-                               atol=1e-11 * np.abs(reference.virial).max())  # fmt: skip
+    np.testing.assert_allclose(
+        fast.forces, reference.forces, rtol=0, atol=1e-11 * np.abs(reference.forces).max()
+    )
+    np.testing.assert_allclose(
+        fast.virial, reference.virial, rtol=0, atol=1e-11 * np.abs(reference.virial).max()
+    )
     assert again.energy == fast.energy
     assert np.array_equal(again.forces, fast.forces) and np.array_equal(again.virial, fast.virial)
     ff.invalidate()

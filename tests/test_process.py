@@ -90,9 +90,13 @@ def _environment() -> dict[str, str]:
 def _recorded(code: str, cwd: Path) -> dict:
     (cwd / "run.toml").write_text(lj_config_text(run="steps = 5"))
     done = subprocess.run(
-        [sys.executable, "-c", _RECORDING + code], cwd=cwd, env=_environment(),
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        [sys.executable, "-c", _RECORDING + code],
+        cwd=cwd,
+        env=_environment(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
 

@@ -147,8 +147,12 @@ def test_pressure_coupling_passes_on_only_the_hooks_its_thermostat_has():
         constrained, Barostat("c_rescale", pressure=1.0, tau=1.0, compressibility=1.0)
     )
     assert constraints_of(coupled) is bonds
-    assert coupled.statistics == {"steps": 0, "shake_iterations": 0, "rattle_iterations": 0,
-                                  "barostat_moves": 0}  # fmt: skip
+    assert coupled.statistics == {
+        "steps": 0,
+        "shake_iterations": 0,
+        "rattle_iterations": 0,
+        "barostat_moves": 0,
+    }
 
     class PlainThermostat(_BathVerlet):
         thermostat = True

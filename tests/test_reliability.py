@@ -84,10 +84,23 @@ def test_a_second_run_on_the_same_output_is_refused_and_touches_nothing(long_con
     # The winner, killed outright, resumes from its own checkpoint: same run id.
     assert (tmp_path / "out.h5.lock").exists()  # a killed holder leaves the file, unlocked
     resumed = subprocess.run(
-        [sys.executable, "-m", "md.cli", "run", str(long_config), "--resume", "--steps", "60",
-         "--no-progress", "-q"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "md.cli",
+            "run",
+            str(long_config),
+            "--resume",
+            "--steps",
+            "60",
+            "--no-progress",
+            "-q",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert resumed.returncode == 0, resumed.stderr
 
 
@@ -237,11 +250,26 @@ def test_sweep_to_something_that_is_not_a_scheduler_exits_2_in_time(tmp_path, an
     started = time.monotonic()
     try:
         done = subprocess.run(
-            [sys.executable, "-m", "md.cli", "sweep", str(config), "--vary", "seed=1,2",
-             "--scheduler", f"tcp://127.0.0.1:{port}", "--timeout", "3", "--no-progress",
-             "--out", str(tmp_path / "out")],
-            capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "md.cli",
+                "sweep",
+                str(config),
+                "--vary",
+                "seed=1,2",
+                "--scheduler",
+                f"tcp://127.0.0.1:{port}",
+                "--timeout",
+                "3",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "out"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     finally:
         server.close()
         for connection in held:
@@ -261,8 +289,20 @@ def test_a_huge_sweep_is_counted_and_refused_at_once(tmp_path, capsys):
     assert code == 2 and time.monotonic() - started < 10
     err = capsys.readouterr().err
     assert "100000000 values" in err and "--max-runs" in err, err
-    code = main(["sweep", str(config), "--vary", "system.temperature=1,2,3", "--replicas", "5",
-                 "--max-runs", "10", "--out", str(tmp_path / "o")])  # fmt: skip
+    code = main(
+        [
+            "sweep",
+            str(config),
+            "--vary",
+            "system.temperature=1,2,3",
+            "--replicas",
+            "5",
+            "--max-runs",
+            "10",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert code == 2 and "15 runs" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
@@ -301,10 +341,14 @@ def test_ctrl_c_while_md_starts_prints_no_traceback(tmp_path, delay):
     # background (`pytest &` from a script) has SIGINT ignored, which its children
     # inherit, so the interpreter would never see this signal before md's own handler.
     process = subprocess.Popen(
-        [*_md_command(), "run", str(config), "-q", "--no-progress"], cwd=tmp_path,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        [*_md_command(), "run", str(config), "-q", "--no-progress"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )  # fmt: skip
+    )
     time.sleep(delay)
     process.send_signal(signal.SIGINT)
     # a signal swallowed while numba compiles is honoured once the build is done: with a
@@ -368,9 +412,12 @@ def test_md_info_into_a_closed_pipe_ends_quietly(finished):
     read_end, write_end = os.pipe()
     os.close(read_end)  # the reader (say, head) is already gone
     done = subprocess.run(
-        [sys.executable, "-m", "md.cli", "info", str(output)], stdout=write_end,
-        stderr=subprocess.PIPE, text=True, timeout=120,
-    )  # fmt: skip
+        [sys.executable, "-m", "md.cli", "info", str(output)],
+        stdout=write_end,
+        stderr=subprocess.PIPE,
+        text=True,
+        timeout=120,
+    )
     os.close(write_end)
     assert "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
     assert done.returncode == 141
@@ -411,10 +458,25 @@ def test_ctrl_c_during_a_sweep_prints_no_traceback(tmp_path):
     config = tmp_path / "base.toml"
     config.write_text(lj_config_text(run="steps = 1000000", output='path = "x.h5"\nevery = 1000'))
     process = subprocess.Popen(
-        [sys.executable, "-m", "md.cli", "sweep", str(config), "--vary", "seed=1,2",
-         "--workers", "1", "--no-progress", "--out", str(tmp_path / "out")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "md.cli",
+            "sweep",
+            str(config),
+            "--vary",
+            "seed=1,2",
+            "--workers",
+            "1",
+            "--no-progress",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         _wait_for(lambda: any((tmp_path / "out" / "logs").glob("*")) or process.poll() is not None)
         time.sleep(2.0)  # a run under way on the worker

@@ -57,9 +57,11 @@ BEYOND = {
     "buckingham a": ('type = "buckingham"\na = 1e308\ncutoff = 2.5', "a = 1e+308"),
     "morse d0": ('type = "morse"\nd0 = 1e308\ncutoff = 2.5', "d0 = 1e+308"),
     "soft cutoff": ('type = "soft"\ncutoff = 1e308', "cutoff = 1e+308"),
-    "table points": ('type = "table"\nfile = "pair.table"\nkeyword = "T"\npoints = 1000000000000',
-                     "points: must be at most 1000000, got 1000000000000"),
-}  # fmt: skip
+    "table points": (
+        'type = "table"\nfile = "pair.table"\nkeyword = "T"\npoints = 1000000000000',
+        "points: must be at most 1000000, got 1000000000000",
+    ),
+}
 
 
 @pytest.mark.parametrize("case", list(BEYOND))
@@ -121,10 +123,13 @@ class _Broken:
         return ForceResult(energy=-1.5, forces=forces, virial=total)
 
 
-@pytest.mark.parametrize(("what", "message"), [
-    ("force", r"the force on atom 2 is \[0.0, nan, 0.0\].*potential energy \(-1.5\) is finite"),
-    ("virial", r"the virial is \[\[inf, .*potential energy \(-1.5\) is finite"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("what", "message"),
+    [
+        ("force", r"the force on atom 2 is \[0.0, nan, 0.0\].*potential energy \(-1.5\) is finite"),
+        ("virial", r"the virial is \[\[inf, .*potential energy \(-1.5\) is finite"),
+    ],
+)
 def test_forcefield_refuses_non_finite_forces_and_virial(what, message):
     """Before: compute returned them, and only the energy was checked."""
     state = md.lattice("fcc", 2, density=0.8)
@@ -178,12 +183,21 @@ def calls_python(r2, epsilon):
     return _plain_helper(epsilon) / r2, 2.0 * epsilon / (r2 * r2)
 
 
-@pytest.mark.parametrize(("term", "message"), [
-    (returns_one, "pair term returns_one: returns_one(r2, epsilon) must return a tuple of two "
-                  "numbers (u, f_over_r), got 0.25"),
-    (returns_three, "pair term returns_three: returns_three(r2, epsilon) must return a tuple of "
-                    "two numbers (u, f_over_r), got 3 values (0.25, 0.0625, 0.0)"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("term", "message"),
+    [
+        (
+            returns_one,
+            "pair term returns_one: returns_one(r2, epsilon) must return a tuple of two "
+            "numbers (u, f_over_r), got 0.25",
+        ),
+        (
+            returns_three,
+            "pair term returns_three: returns_three(r2, epsilon) must return a tuple of "
+            "two numbers (u, f_over_r), got 3 values (0.25, 0.0625, 0.0)",
+        ),
+    ],
+)
 def test_a_term_returning_the_wrong_count_is_named(term, message):
     """Before: a bare unpacking error (too many values / cannot unpack a float)."""
     with pytest.raises(TypeError) as caught:
@@ -238,14 +252,17 @@ IMPLICIT = ["implicit_euler", "implicit_midpoint", "trapezoidal", "bdf2", "gauss
 
 
 @pytest.mark.parametrize("name", IMPLICIT)
-@pytest.mark.parametrize(("tol", "message"), [
-    (1.0, "tol must be below 1, got 1.0"),
-    (5.0, "tol must be below 1, got 5.0"),
-    (1e-17, "tol must be at least 8.88e-16, got 1e-17"),
-    (5e-324, "tol must be at least 8.88e-16, got 5e-324"),
-    (True, "tol must be a number, got True"),
-    ("1e-8", "tol must be a number, got '1e-8'"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("tol", "message"),
+    [
+        (1.0, "tol must be below 1, got 1.0"),
+        (5.0, "tol must be below 1, got 5.0"),
+        (1e-17, "tol must be at least 8.88e-16, got 1e-17"),
+        (5e-324, "tol must be at least 8.88e-16, got 5e-324"),
+        (True, "tol must be a number, got True"),
+        ("1e-8", "tol must be a number, got '1e-8'"),
+    ],
+)
 def test_implicit_tol_out_of_reach_is_refused_by_the_constructor(name, tol, message):
     """Before: only the sign was checked (and True, "1e-8" were taken as numbers)."""
     with pytest.raises(ValueError, match=re.escape(message)):
@@ -257,10 +274,13 @@ def test_reachable_tols_are_accepted():
         assert INTEGRATORS["implicit_euler"](dt=0.01, tol=tol).tol == tol
 
 
-@pytest.mark.parametrize(("tol", "message"), [
-    ("1.0", "tol must be below 1, got 1.0"),
-    ("1e-20", "tol must be at least 8.88e-16, got 1e-20"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("tol", "message"),
+    [
+        ("1.0", "tol must be below 1, got 1.0"),
+        ("1e-20", "tol must be at least 8.88e-16, got 1e-20"),
+    ],
+)
 def test_md_run_refuses_implicit_tol_out_of_reach(tol, message, tmp_path, monkeypatch, capsys):
     integrator = f'type = "implicit_euler"\ndt = 0.002\ntol = {tol}'
     error = _refused(tmp_path, monkeypatch, capsys, 'type = "lj"\ncutoff = 2.5', integrator)

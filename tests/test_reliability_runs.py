@@ -35,8 +35,10 @@ def _md_words(command: str) -> list[str]:
 
 
 def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get(
-        "PYTHONPATH", "")])}  # fmt: skip
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
 
 
 def _frames(path: Path) -> int:
@@ -62,14 +64,31 @@ def test_the_hint_after_sigterm_repeats_the_output_and_the_resume_continues(tmp_
     """Before: ``-o PATH`` was dropped from the hint, which then failed with "no
     checkpoint found" (the config names another output)."""
     config = tmp_path / "run.toml"
-    config.write_text(lj_config_text(
-        run="steps = 40\nthermo_every = 1000000",
-        output='path = "named.h5"\nevery = 50\ncheckpoint_every = 1000000'))  # fmt: skip
+    config.write_text(
+        lj_config_text(
+            run="steps = 40\nthermo_every = 1000000",
+            output='path = "named.h5"\nevery = 50\ncheckpoint_every = 1000000',
+        )
+    )
     first = subprocess.Popen(
-        [sys.executable, "-m", "md.cli", "run", str(config), "-o", "chosen.h5", "--steps",
-         "50000000", *QUIET],
-        cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "md.cli",
+            "run",
+            str(config),
+            "-o",
+            "chosen.h5",
+            "--steps",
+            "50000000",
+            *QUIET,
+        ],
+        cwd=tmp_path,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         _wait_for_frames(tmp_path / "chosen.h5", 2, first)
         first.send_signal(signal.SIGTERM)
@@ -83,8 +102,14 @@ def test_the_hint_after_sigterm_repeats_the_output_and_the_resume_continues(tmp_
     assert not (tmp_path / "named.h5").exists()
     stopped_at = md.checkpoint.read_checkpoint(tmp_path / "chosen.h5.ckpt").state.step
     # The hint, run as printed, resumes this run (and is stopped again in turn).
-    again = subprocess.Popen(_md_words(hint), cwd=tmp_path, env=_env(),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    again = subprocess.Popen(
+        _md_words(hint),
+        cwd=tmp_path,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         line = again.stdout.readline()
         assert f"resuming at step {stopped_at}" in line, (line, again.stderr.read())
@@ -108,8 +133,11 @@ def small_disk(tmp_path):
         folder.mkdir()
         if shutil.which("mount") is None or not hasattr(os, "geteuid") or os.geteuid() != 0:
             pytest.skip("mounting a small tmpfs needs root")
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={kb}k", "tmpfs",
-                               str(folder)], capture_output=True, text=True)  # fmt: skip
+        done = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={kb}k", "tmpfs", str(folder)],
+            capture_output=True,
+            text=True,
+        )
         if done.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
         mounted.append(folder)
@@ -125,8 +153,12 @@ def test_the_hint_after_a_full_disk_repeats_the_output_and_resumes(
 ):
     disk = small_disk(4096)
     config = tmp_path / "run.toml"
-    config.write_text(lj_config_text(run="steps = 20", output='path = "named.h5"\nevery = 10\n'
-                                     "velocities = true\ncheckpoint_every = 10"))  # fmt: skip
+    config.write_text(
+        lj_config_text(
+            run="steps = 20",
+            output='path = "named.h5"\nevery = 10\nvelocities = true\ncheckpoint_every = 10',
+        )
+    )
     monkeypatch.chdir(tmp_path)
     free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
     (disk / "filler").write_bytes(b"\0" * (free - 400_000))
@@ -150,8 +182,11 @@ def test_a_checkpoint_that_cannot_be_written_says_so(tmp_path, small_disk):
     from md.checkpoint import Checkpointer
 
     disk = small_disk(64)
-    sim = md.Simulation(md.maxwell_boltzmann(md.lattice("fcc", 4, density=0.8442), 1.0, seed=1),
-                        [LennardJones(cutoff=2.5)], VelocityVerlet(0.005))  # fmt: skip
+    sim = md.Simulation(
+        md.maxwell_boltzmann(md.lattice("fcc", 4, density=0.8442), 1.0, seed=1),
+        [LennardJones(cutoff=2.5)],
+        VelocityVerlet(0.005),
+    )
 
     class Frames:
         n_frames, last_step = 3, 20
@@ -170,8 +205,13 @@ def test_a_checkpoint_that_cannot_be_written_says_so(tmp_path, small_disk):
 # --------------------------------------------- item 4: pairs lost between looks are said
 def _melt(every: int, check: bool) -> md.Simulation:
     state = md.maxwell_boltzmann(md.lattice("fcc", 4, density=0.8442), 1.5, seed=4)
-    return md.Simulation(state, [LennardJones(cutoff=2.5)], VelocityVerlet(0.005),
-                         neighbor_every=every, neighbor_check=check)  # fmt: skip
+    return md.Simulation(
+        state,
+        [LennardJones(cutoff=2.5)],
+        VelocityVerlet(0.005),
+        neighbor_every=every,
+        neighbor_check=check,
+    )
 
 
 @pytest.mark.parametrize("check", [False, True])
@@ -192,8 +232,11 @@ def test_looks_that_find_atoms_past_half_the_skin_are_counted_and_warned_once(ca
                 expected += moved > 0.5 * nl.skin
             late = nl.n_late_looks
     assert late == expected and late >= 3, (late, expected)
-    warnings = [r for r in caplog.records if "pairs within the cutoff may have been missed"
-                in r.getMessage()]  # fmt: skip
+    warnings = [
+        r
+        for r in caplog.records
+        if "pairs within the cutoff may have been missed" in r.getMessage()
+    ]
     assert len(warnings) == 1, caplog.text
     exact = _melt(1, True)
     exact.run(200)
@@ -202,11 +245,19 @@ def test_looks_that_find_atoms_past_half_the_skin_are_counted_and_warned_once(ca
 
 def test_md_run_reports_late_looks_in_its_summary_and_warns(tmp_path, monkeypatch):
     config = tmp_path / "run.toml"
-    config.write_text(lj_config_text(cells=4, temperature=1.5, run="steps = 200\n"
-                                     "neighbor_every = 50\nneighbor_check = false"))  # fmt: skip
-    done = subprocess.run([sys.executable, "-m", "md.cli", "run", str(config), *QUIET],
-                          cwd=tmp_path, env=_env(), capture_output=True, text=True,
-                          timeout=300)  # fmt: skip
+    config.write_text(
+        lj_config_text(
+            cells=4, temperature=1.5, run="steps = 200\nneighbor_every = 50\nneighbor_check = false"
+        )
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "md.cli", "run", str(config), *QUIET],
+        cwd=tmp_path,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     count = int(done.stdout.split("Late looks: ")[1].split()[0])
     assert count >= 2, done.stdout
@@ -274,8 +325,7 @@ def test_md_info_shows_the_ranks_and_grid_a_file_records(tmp_path, capsys):
 
     state = md.lattice("fcc", 2, density=0.8)
     path = tmp_path / "ranks.h5"
-    with H5MDWriter(path, state, parameters={"mpi_ranks": 4,
-                                             "decomposition": [2, 2, 1]}) as writer:  # fmt: skip
+    with H5MDWriter(path, state, parameters={"mpi_ranks": 4, "decomposition": [2, 2, 1]}) as writer:
         writer.write(state)
     assert main(["info", str(path)]) == 0
     assert "mpi ranks    4 (bricks 2 x 2 x 1)" in capsys.readouterr().out
@@ -291,8 +341,11 @@ def test_the_mpi_guide_lists_every_refused_integrator_and_xpbd_is_not_called_rat
     from integrators.xpbd import XPBD
     from md.distributed import refuse_undistributable
 
-    refused = sorted(name for name, cls in integrators.INTEGRATORS.items()
-                     if not getattr(cls, "distributed", False))  # fmt: skip
+    refused = sorted(
+        name
+        for name, cls in integrators.INTEGRATORS.items()
+        if not getattr(cls, "distributed", False)
+    )
     assert {"bdf2", "trapezoidal", "gauss_legendre4", "xpbd", "rattle"} <= set(refused)
     guide = (ROOT / "docs/guide/mpi.md").read_text()
     paragraph = guide.split("Refused under several ranks")[1].split("\n\n")[0]
@@ -354,15 +407,25 @@ def test_the_hint_under_mpiexec_names_the_ranks_and_resumes(tmp_path, small_disk
     output = disk / "out.h5"
     full = subprocess.run(
         [*_mpi_words(2), "run", str(config), "-o", str(output), "--steps", "400", *QUIET],
-        cwd=tmp_path, env=_mpi_env(), capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=tmp_path,
+        env=_mpi_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert full.returncode == 2, full.stderr + full.stdout
     assert "disk full" in full.stderr, full.stderr
     hint = full.stderr.split("continue with: ")[1].strip()
     assert hint.startswith("mpiexec -n 2 md run ") and f"--output {output}" in hint, hint
     (disk / "filler").unlink()
-    again = subprocess.run(_md_words(hint) + QUIET, cwd=tmp_path, env=_mpi_env(),
-                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    again = subprocess.run(
+        _md_words(hint) + QUIET,
+        cwd=tmp_path,
+        env=_mpi_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert again.returncode == 0, again.stderr + again.stdout
     assert "resuming at step" in again.stdout
     from md.trajectory import read_trajectory
@@ -393,12 +456,18 @@ def test_rkf45_on_two_ranks_takes_the_serial_substeps(tmp_path):
     )
     done = subprocess.run(
         ["mpiexec", "-n", "2", sys.executable, str(script), str(config), "ranks.h5"],
-        cwd=tmp_path, env=_mpi_env(), capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=tmp_path,
+        env=_mpi_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr + done.stdout
     words = done.stdout.split("statistics")[1].split()
-    assert [int(words[0]), int(words[1])] == [serial.statistics["accepted"],
-                                              serial.statistics["rejected"]]  # fmt: skip
+    assert [int(words[0]), int(words[1])] == [
+        serial.statistics["accepted"],
+        serial.statistics["rejected"],
+    ]
     from md.trajectory import read_trajectory
 
     a, b = read_trajectory(tmp_path / "serial.h5"), read_trajectory(tmp_path / "ranks.h5")
@@ -434,5 +503,11 @@ def _sigterm_while_building(tmp_path, config, command: str, builder: str):
         "from md.cli import main\n"
         f"sys.exit(main(['{command}', sys.argv[1]]))\n"
     )
-    return subprocess.run([sys.executable, str(script), str(config)], cwd=tmp_path, env=_env(),
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, str(script), str(config)],
+        cwd=tmp_path,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )

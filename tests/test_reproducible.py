@@ -87,11 +87,15 @@ np.savez(f"{folder}/{'warm' if resume else 'cold'}.npz", **ends)
 def _cold_and_warm(tmp_path, child: str):
     """Run ``child`` in a cache folder of its own: the first run compiles every kernel,
     the second ("resume") loads them; returns both runs' ends."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"),
-               XDG_CACHE_HOME=str(tmp_path))  # fmt: skip
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"), XDG_CACHE_HOME=str(tmp_path))
     for mode in ("cold", "resume"):
-        done = subprocess.run([sys.executable, "-c", child, str(tmp_path), mode], env=env,
-                              capture_output=True, text=True, timeout=900)  # fmt: skip
+        done = subprocess.run(
+            [sys.executable, "-c", child, str(tmp_path), mode],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         assert done.returncode == 0, done.stderr[-3000:]
     return np.load(tmp_path / "cold.npz"), np.load(tmp_path / "warm.npz")
 
@@ -112,8 +116,12 @@ def test_mixed_runs_equal_cold_and_warm_and_resume_at_every_checkpoint(tmp_path)
 
 
 def _relative_energy_error(state) -> float:
-    energies = {precision: md.ForceField([LennardJones(cutoff=2.5)], precision=precision)
-                .compute(state).energy for precision in ("double", "mixed")}  # fmt: skip
+    energies = {
+        precision: md.ForceField([LennardJones(cutoff=2.5)], precision=precision)
+        .compute(state)
+        .energy
+        for precision in ("double", "mixed")
+    }
     return abs(energies["mixed"] - energies["double"]) / abs(energies["double"])
 
 
@@ -123,8 +131,7 @@ def test_mixed_energy_error_averages_out_on_a_liquid_not_on_a_lattice(fcc_lattic
     shell rounds the same way, so the sum keeps float32's own precision (~1e-7): what
     docs/guide/performance.md says."""
     lattice = _relative_energy_error(fcc_lattice(cells=6))
-    disordered = [_relative_energy_error(fcc_lattice(cells=6, perturbation=0.05))
-                  for _ in range(3)]  # fmt: skip
+    disordered = [_relative_energy_error(fcc_lattice(cells=6, perturbation=0.05)) for _ in range(3)]
     assert 0.1 * EPS32 < lattice < 3 * EPS32, lattice
     assert max(disordered) < 0.1 * EPS32, disordered
     assert lattice > 10 * np.median(disordered), (lattice, disordered)

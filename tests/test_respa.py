@@ -59,8 +59,9 @@ def test_second_order_in_the_outer_step():
 
     reference = final(Yoshida6(0.4 / 4096))
     dts = 0.4 / np.array([80, 160, 320])  # local slopes 2.02, 2.005 here (2.38 at 0.4/20)
-    errors = [np.sqrt(np.mean(np.sum((final(RESPA(dt, 4)) - reference) ** 2, axis=1)))
-              for dt in dts]  # fmt: skip
+    errors = [
+        np.sqrt(np.mean(np.sum((final(RESPA(dt, 4)) - reference) ** 2, axis=1))) for dt in dts
+    ]
     assert np.polyfit(np.log(dts), np.log(errors), 1)[0] == pytest.approx(2.0, abs=0.15)
 
 
@@ -168,6 +169,5 @@ def test_bad_integrator_input_exits_2_and_writes_nothing(
 
 def test_respa_runs_from_a_config(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "run.toml").write_text(RUN.format(kind="respa", extra="inner_steps = 4",
-                                                  fene=FENE))  # fmt: skip
+    (tmp_path / "run.toml").write_text(RUN.format(kind="respa", extra="inner_steps = 4", fene=FENE))
     assert main(["run", "run.toml", "--no-progress", "-q"]) == 0

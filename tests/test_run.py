@@ -84,9 +84,10 @@ def _drift_lines(out: str) -> list[str]:
     return [line for line in out.splitlines() if "drift" in line]
 
 
-@pytest.mark.parametrize("integrator", ['type = "verlet"\ndt = 0.005',
-                                        'type = "bussi"\ndt = 0.005\ntemperature = 1.0\n'
-                                        "tau = 0.1"])  # fmt: skip
+@pytest.mark.parametrize(
+    "integrator",
+    ['type = "verlet"\ndt = 0.005', 'type = "bussi"\ndt = 0.005\ntemperature = 1.0\ntau = 0.1'],
+)
 def test_a_resumed_run_reports_the_drift_of_the_whole_run(tmp_path, capsys, integrator):
     """Was the drift of the resumed part only: the checkpoint now keeps step 0's energies."""
     text = lj_config_text(integrator=integrator, run="steps = 40\nthermo_every = 10")

@@ -100,8 +100,12 @@ def _step_map(integrator, state0):
     n = state0.n_atoms
 
     def advance(z):
-        state = md.State(positions=z[: 3 * n].reshape(n, 3), velocities=z[3 * n :].reshape(n, 3),
-                         box=state0.box, pbc=False)  # fmt: skip
+        state = md.State(
+            positions=z[: 3 * n].reshape(n, 3),
+            velocities=z[3 * n :].reshape(n, 3),
+            box=state0.box,
+            pbc=False,
+        )
         forcefield = md.ForceField([LennardJones(cutoff=8.0)])
         integrator.step(state, forcefield)
         return np.concatenate([state.positions.ravel(), state.velocities.ravel()])
@@ -129,8 +133,9 @@ def _symplectic_defect(jacobian):
 def _small_cluster():
     state = md.State(
         positions=[[0, 0, 0], [1.12, 0, 0], [0.5, 1.0, 0.1], [0.4, 0.3, 1.05]],
-        box=20.0, pbc=False,
-    )  # fmt: skip
+        box=20.0,
+        pbc=False,
+    )
     return md.maxwell_boltzmann(state, 0.5, seed=2)
 
 

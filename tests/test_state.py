@@ -344,7 +344,7 @@ def test_one_atom_starts_at_the_temperature_asked_for(tmp_path, capsys, seed):
         'temperature = 1.0\npbc = false\n[[potentials]]\ntype = "lj"\ncutoff = 2.5\n'
         '[integrator]\ntype = "verlet"\ndt = 0.005\n[run]\nsteps = 2\nthermo_every = 1\n'
         f'[output]\npath = "{tmp_path / "one.h5"}"\n'
-    )  # fmt: skip
+    )
     assert main(["run", str(tmp_path / "one.toml"), "--no-progress"]) == 0
     first = capsys.readouterr().out.splitlines()[2].split()  # the step-0 row
     assert first[0] == "0" and float(first[2]) == pytest.approx(1.0, rel=1e-5)

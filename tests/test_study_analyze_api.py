@@ -99,8 +99,9 @@ def read_rows(path):
 @pytest.mark.slow  # 9-18 s; keeps the cold default suite within 10 minutes on 2 cores
 def test_prepare_study_writes_nothing_and_run_gives_what_the_cli_gives(study_config, tmp_path):
     out = tmp_path / "python"
-    study = prepare_study(study_config, integrators="verlet", dts="0.001:0.004:3", span=0.2,
-                          out=out)  # fmt: skip
+    study = prepare_study(
+        study_config, integrators="verlet", dts="0.001:0.004:3", span=0.2, out=out
+    )
     assert not out.exists()  # prepared, equilibrated, nothing written
     assert study.names == ["verlet"] and study.thermostat_names == []
     assert study.dts == pytest.approx([0.001, 0.002, 0.004]) and study.span == 0.2
@@ -112,8 +113,23 @@ def test_prepare_study_writes_nothing_and_run_gives_what_the_cli_gives(study_con
     assert all(path.parent == out and path.exists() for path in results.files.values())
 
     cli = tmp_path / "cli"
-    assert main(["integrators", str(study_config), "--integrators", "verlet", "--time", "0.2",
-                 "--dt-range", "0.001:0.004:3", "--out", str(cli)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "integrators",
+                str(study_config),
+                "--integrators",
+                "verlet",
+                "--time",
+                "0.2",
+                "--dt-range",
+                "0.001:0.004:3",
+                "--out",
+                str(cli),
+            ]
+        )
+        == 0
+    )
     python_rows, cli_rows = read_rows(out / "integrators.csv"), read_rows(cli / "integrators.csv")
     measured = [c for c in CSV_COLUMNS if c not in ("wall_per_time",)]
     assert [{c: r[c] for c in measured} for r in python_rows] == [
@@ -123,8 +139,13 @@ def test_prepare_study_writes_nothing_and_run_gives_what_the_cli_gives(study_con
 
 def test_prepare_study_takes_a_parsed_config_and_sequences(study_config, tmp_path):
     config = load_config(study_config)
-    study = prepare_study(config, integrators=["verlet", "leapfrog"], dts=[0.002, 0.004],
-                          equilibrate=0, out=tmp_path / "o")  # fmt: skip
+    study = prepare_study(
+        config,
+        integrators=["verlet", "leapfrog"],
+        dts=[0.002, 0.004],
+        equilibrate=0,
+        out=tmp_path / "o",
+    )
     assert study.names == ["verlet", "leapfrog"] and study.dts == [0.002, 0.004]
     assert study.measure_dt is None  # an explicit ladder: drift measured mid-ladder
     # no equilibration: the start is the config's system exactly
@@ -135,25 +156,32 @@ def test_prepare_study_takes_a_parsed_config_and_sequences(study_config, tmp_pat
 
 
 def test_thermostats_are_built_as_md_run_builds_them(study_config, tmp_path):
-    study = prepare_study(study_config, integrators="langevin,bussi", tau=0.1, sample_time=1.0,
-                          equilibrate=0, out=tmp_path / "o")  # fmt: skip
+    study = prepare_study(
+        study_config,
+        integrators="langevin,bussi",
+        tau=0.1,
+        sample_time=1.0,
+        equilibrate=0,
+        out=tmp_path / "o",
+    )
     assert study.names == [] and study.thermostat_names == ["langevin", "bussi"]
     assert study.setup.temperature == 1.2 and study.setup.tau == pytest.approx(0.1)
     assert (study.setup.n_equilibrate, study.setup.n_sample) == (200, 200)
     for name, coupling in (("langevin", "friction = 10.0"), ("bussi", "tau = 0.1")):
         config = tmp_path / f"{name}.toml"
-        config.write_text(STUDY.replace('type = "verlet"', f'type = "{name}"\ntemperature = 1.2\n'
-                                        f"{coupling}"))  # fmt: skip
+        config.write_text(
+            STUDY.replace('type = "verlet"', f'type = "{name}"\ntemperature = 1.2\n{coupling}')
+        )
         _, _, integrator = build_components(load_config(config))
         assert study.thermostat(name).describe() == integrator.describe(), name
     assert study.thermostat("langevin") is not study.thermostat("langevin")  # fresh each time
 
 
-def test_a_study_that_fails_to_write_leaves_none_of_its_files(study_config, tmp_path,
-                                                              monkeypatch):  # fmt: skip
+def test_a_study_that_fails_to_write_leaves_none_of_its_files(study_config, tmp_path, monkeypatch):
     out = tmp_path / "o"
-    study = prepare_study(study_config, integrators="verlet", dts="0.002,0.004", span=0.05,
-                          equilibrate=0, out=out)  # fmt: skip
+    study = prepare_study(
+        study_config, integrators="verlet", dts="0.002,0.004", span=0.05, equilibrate=0, out=out
+    )
 
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
@@ -166,8 +194,9 @@ def test_a_study_that_fails_to_write_leaves_none_of_its_files(study_config, tmp_
 
 def test_respa_without_bonds_is_refused_with_a_message(study_config, tmp_path, capsys):
     out = tmp_path / "o"
-    assert main(["integrators", str(study_config), "--integrators", "respa",
-                 "--out", str(out)]) == 2  # fmt: skip
+    assert (
+        main(["integrators", str(study_config), "--integrators", "respa", "--out", str(out)]) == 2
+    )
     err = capsys.readouterr().err
     assert "--integrators respa" in err and "no fast potential" in err and "bonds" in err
     assert "Traceback" not in err and not out.exists()
@@ -180,8 +209,23 @@ def test_respa_without_bonds_is_refused_with_a_message(study_config, tmp_path, c
 def test_a_failed_reference_run_is_reported_not_raised(study_config, tmp_path, capsys):
     out = tmp_path / "o"
     # dt 1 and 2 tau: the reference runs at 0.125 and 0.0625 tau blow the liquid up
-    assert main(["integrators", str(study_config), "--integrators", "verlet", "--time", "5",
-                 "--dt-range", "1,2", "--out", str(out)]) == 1  # fmt: skip
+    assert (
+        main(
+            [
+                "integrators",
+                str(study_config),
+                "--integrators",
+                "verlet",
+                "--time",
+                "5",
+                "--dt-range",
+                "1,2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "the reference run at dt = 0.125 failed" in err and "--dt-range" in err
     assert "Traceback" not in err and not out.exists()
@@ -190,11 +234,23 @@ def test_a_failed_reference_run_is_reported_not_raised(study_config, tmp_path, c
 def test_an_endless_study_span_is_refused_in_a_real_process(study_config, tmp_path):
     out = tmp_path / "o"
     done = subprocess.run(
-        [sys.executable, "-m", "md.cli", "integrators", str(study_config), "--time", "1e300",
-         "--out", str(out)],
-        capture_output=True, text=True, timeout=600, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "md.cli",
+            "integrators",
+            str(study_config),
+            "--time",
+            "1e300",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )  # fmt: skip
+    )
     assert done.returncode == 2, done.stderr
     assert "1e+300" in done.stderr and "reasonable time" in done.stderr
     assert "Traceback" not in done.stderr and not out.exists()
@@ -226,11 +282,11 @@ def test_a_default_study_fits_the_step_budget(study_config, tmp_path):
         prepare_study(study_config, out=tmp_path / "o", max_steps=10_000)
 
 
-def test_integrators_out_on_a_read_only_filesystem_exits_2(study_config, read_only_folder,
-                                                           capsys):  # fmt: skip
+def test_integrators_out_on_a_read_only_filesystem_exits_2(study_config, read_only_folder, capsys):
     out = read_only_folder / "study"
-    assert main(["integrators", str(study_config), "--integrators", "verlet",
-                 "--out", str(out)]) == 2  # fmt: skip
+    assert (
+        main(["integrators", str(study_config), "--integrators", "verlet", "--out", str(out)]) == 2
+    )
     err = capsys.readouterr().err
     assert str(read_only_folder) in err and "Traceback" not in err
     assert ("read-only" in err) == (os.geteuid() == 0)
@@ -242,10 +298,13 @@ def trajectory(tmp_path_factory):
     """108-atom LJ liquid, 21 frames 0.025 tau apart, with velocities."""
     folder = tmp_path_factory.mktemp("run")
     config = folder / "liquid.toml"
-    config.write_text(lj_config_text(
-        seed=11, run="steps = 100\nthermo_every = 1000",
-        output='path = "liquid.h5"\nevery = 5\nvelocities = true',
-    ))  # fmt: skip
+    config.write_text(
+        lj_config_text(
+            seed=11,
+            run="steps = 100\nthermo_every = 1000",
+            output='path = "liquid.h5"\nevery = 5\nvelocities = true',
+        )
+    )
     output = folder / "liquid.h5"
     assert main(["run", str(config), "-o", str(output), "--no-progress", "--quiet"]) == 0
     return output
@@ -264,8 +323,22 @@ def test_analyze_from_python_writes_what_the_cli_writes(trajectory, tmp_path, ca
     assert summary["frames"]["n_selected"] == 21
 
     cli = tmp_path / "cli"
-    assert main(["analyze", str(trajectory), "--thermo", "--msd", "--blocks", "2",
-                 "--out", str(cli), "--no-progress"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "analyze",
+                str(trajectory),
+                "--thermo",
+                "--msd",
+                "--blocks",
+                "2",
+                "--out",
+                str(cli),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "D (MSD" in capsys.readouterr().out
     for name in ("thermo.csv", "msd.csv", "summary.json"):
         assert (cli / name).read_bytes() == (done.out / name).read_bytes(), name
@@ -288,15 +361,18 @@ def test_prepare_analysis_checks_everything_and_writes_nothing(trajectory, tmp_p
     assert not out.exists()
 
 
-def test_analysis_that_fails_to_write_leaves_none_of_its_files(trajectory, tmp_path,
-                                                               monkeypatch, capsys):  # fmt: skip
+def test_analysis_that_fails_to_write_leaves_none_of_its_files(
+    trajectory, tmp_path, monkeypatch, capsys
+):
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setitem(md.analysis.output.WRITERS, "msd", disk_full)
     out = tmp_path / "o"
-    assert main(["analyze", str(trajectory), "--thermo", "--msd", "--out", str(out),
-                 "--no-progress"]) == 2  # fmt: skip
+    assert (
+        main(["analyze", str(trajectory), "--thermo", "--msd", "--out", str(out), "--no-progress"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "cannot write the analysis files" in err and "No space left" in err
     assert "Traceback" not in err and list(out.iterdir()) == []  # thermo's files removed

@@ -86,9 +86,18 @@ def run_serially(config_text: str, folder: Path, name: str, *options: str) -> Pa
     before = parallel.get_threads()
     try:
         code = main(
-            ["run", str(config), "--output", str(output), "--threads", "1", "--no-progress", "-q",
-             *options]
-        )  # fmt: skip
+            [
+                "run",
+                str(config),
+                "--output",
+                str(output),
+                "--threads",
+                "1",
+                "--no-progress",
+                "-q",
+                *options,
+            ]
+        )
     finally:
         parallel.set_threads(before)
     assert code == 0
@@ -165,8 +174,13 @@ def test_parse_vary_reads_toml_values_lists_ranges_and_plain_strings():
     assert parse_vary('system.lattice=fcc,"bcc"') == ("system.lattice", ["fcc", "bcc"])
     key, values = parse_vary("seed=1,2")
     assert values == [1, 2] and all(isinstance(v, int) for v in values)
-    for bad, word in (("temperature", "KEY="), ("a.b=", "KEY="), ("a..b=1", "dotted"),
-                      ("a=1,1.0", "twice"), ("a=1,,2", "empty")):  # fmt: skip
+    for bad, word in (
+        ("temperature", "KEY="),
+        ("a.b=", "KEY="),
+        ("a..b=1", "dotted"),
+        ("a=1,1.0", "twice"),
+        ("a=1,,2", "empty"),
+    ):
         with pytest.raises(SweepError, match=word):
             parse_vary(bad)
 
@@ -200,8 +214,9 @@ def test_plan_is_the_cartesian_product_times_replicas_with_derived_seeds(tmp_pat
 
 
 def test_varied_seed_and_thermostat_seed(tmp_path):
-    text = BASE.replace('type = "verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0'
-                        "\nseed = 11")  # fmt: skip
+    text = BASE.replace(
+        'type = "verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0\nseed = 11'
+    )
     base = write_base(tmp_path, text)
     plan = plan_sweep(base, {"seed": [3, 4]}, replicas=2, out=tmp_path / "out")
     data = [tomllib.loads(run.config_text) for run in plan.runs]
@@ -243,8 +258,15 @@ def test_points_average_replicas_with_their_standard_error():
     values = {1.0: [2.0, 2.5, 3.5], 2.0: [7.0]}
     for t, ps in values.items():
         for replica, p in enumerate(ps):
-            rows.append({"system.temperature": t, "replica": replica, "status": "done",
-                         "pressure": p, "pressure_err": 0.1 * (replica + 1)})  # fmt: skip
+            rows.append(
+                {
+                    "system.temperature": t,
+                    "replica": replica,
+                    "status": "done",
+                    "pressure": p,
+                    "pressure_err": 0.1 * (replica + 1),
+                }
+            )
     table = SweepTable(keys=["system.temperature"], rows=rows)
     first, second = table.points("P")
     assert first["mean"] == pytest.approx(np.mean(values[1.0]))
@@ -324,8 +346,16 @@ def test_second_invocation_skips_complete_runs_and_finishes_the_rest(
 def test_a_changed_config_does_not_reuse_or_replace_outputs(first_sweep, tmp_path, capsys):
     _, out = first_sweep
     changed = write_base(tmp_path, BASE.replace("steps = 200", "steps = 100"))
-    argv = ["sweep", str(changed), "--vary", "system.temperature=1.0,1.5", "--replicas", "2",
-            "--out", str(out)]  # fmt: skip
+    argv = [
+        "sweep",
+        str(changed),
+        "--vary",
+        "system.temperature=1.0,1.5",
+        "--replicas",
+        "2",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "different config" in err and len(err.strip().splitlines()) == 1
@@ -335,8 +365,19 @@ def test_a_failing_run_is_reported_and_the_rest_complete(
     base_config, serial, cluster, tmp_path, capsys
 ):
     out = tmp_path / "out"
-    argv = ["sweep", str(base_config), "--vary", "integrator.dt=0.005,0.5", "--out", str(out),
-            "--scheduler", cluster.scheduler.address, "--no-progress", "--plot", "T"]  # fmt: skip
+    argv = [
+        "sweep",
+        str(base_config),
+        "--vary",
+        "integrator.dt=0.005,0.5",
+        "--out",
+        str(out),
+        "--scheduler",
+        cluster.scheduler.address,
+        "--no-progress",
+        "--plot",
+        "T",
+    ]
     assert main(argv) == 1
     captured = capsys.readouterr()
     assert "run dt=0.5_r0 failed: md run exit 1: step 1: atom" in captured.err

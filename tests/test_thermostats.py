@@ -259,8 +259,14 @@ def test_mean_potential_energy_agrees_with_ase_langevin():
     atoms.set_masses(np.ones(len(atoms)))
     atoms.set_constraint(FixCom())
     atoms.calc = MDCalculator([LennardJones(cutoff=2.5, cutoff_mode="shift")])
-    dyn = AseLangevin(atoms, timestep=DT, temperature_K=temperature / units.kB, friction=2.0,
-                      fixcm=False, rng=np.random.default_rng(2))  # fmt: skip
+    dyn = AseLangevin(
+        atoms,
+        timestep=DT,
+        temperature_K=temperature / units.kB,
+        friction=2.0,
+        fixcm=False,
+        rng=np.random.default_rng(2),
+    )
     dyn.run(1000)
     reference = []
     dyn.attach(lambda: reference.append(atoms.get_potential_energy() / len(atoms)), interval=1)
@@ -273,8 +279,9 @@ def test_mean_potential_energy_agrees_with_ase_langevin():
         "nose_hoover_chain": NoseHooverChain(DT, temperature, tau=0.1),
     }
     for name, integrator in ours.items():
-        sim = md.Simulation(start.copy(), [LennardJones(cutoff=2.5, cutoff_mode="shift")],
-                            integrator)  # fmt: skip
+        sim = md.Simulation(
+            start.copy(), [LennardJones(cutoff=2.5, cutoff_mode="shift")], integrator
+        )
         sim.run(2000)
         log = ThermoLog()
         sim.attach(log, interval=1)
@@ -532,8 +539,18 @@ def test_cli_study_reports_thermostats(tmp_path, capsys):
     config.write_text(STUDY)
     out = tmp_path / "study"
     names = "langevin,bussi,nhc,berendsen"
-    args = ["integrators", str(config), "--integrators", names, "--tau", "0.1",
-            "--sample-time", "8", "--out", str(out)]  # fmt: skip
+    args = [
+        "integrators",
+        str(config),
+        "--integrators",
+        names,
+        "--tau",
+        "0.1",
+        "--sample-time",
+        "8",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "T_mean" in text and "tau_PE" in text
@@ -555,7 +572,9 @@ def test_cli_study_reports_thermostats(tmp_path, capsys):
 def test_cli_study_needs_a_temperature_for_thermostats(tmp_path, capsys):
     config = tmp_path / "study.toml"
     config.write_text(STUDY.replace("temperature = 1.2\n", ""))
-    assert main(["integrators", str(config), "--integrators", "bussi",
-                 "--out", str(tmp_path / "o")]) == 2  # fmt: skip
+    assert (
+        main(["integrators", str(config), "--integrators", "bussi", "--out", str(tmp_path / "o")])
+        == 2
+    )
     assert "target temperature" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()

@@ -279,8 +279,14 @@ def test_outputs_get_the_usual_permissions(tmp_path):
             writer.write(state)
         forcefield = ForceField([LennardJones(cutoff=1.5)])
         forcefield.compute(state)
-        write_checkpoint(tmp_path / "t.ckpt", state, VelocityVerlet(0.005), forcefield,
-                         n_frames=1, last_frame_step=0)  # fmt: skip
+        write_checkpoint(
+            tmp_path / "t.ckpt",
+            state,
+            VelocityVerlet(0.005),
+            forcefield,
+            n_frames=1,
+            last_frame_step=0,
+        )
     finally:
         os.umask(umask)
     for name in ("t.h5", "t.ckpt"):
@@ -306,12 +312,18 @@ def polymer_file(tmp_path_factory):
     return folder / "polymer.h5"
 
 
-@pytest.mark.parametrize(("pair", "what"), [((3, 999), "names an atom outside 0..31"),
-                                            ((5, 5), "names one atom twice"),
-                                            ((4, 40, 6), "names an atom outside 0..31"),
-                                            ((7, 8, 7), "names one atom twice")])  # fmt: skip
-def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_path, monkeypatch,
-                                                           capsys, pair, what):  # fmt: skip
+@pytest.mark.parametrize(
+    ("pair", "what"),
+    [
+        ((3, 999), "names an atom outside 0..31"),
+        ((5, 5), "names one atom twice"),
+        ((4, 40, 6), "names an atom outside 0..31"),
+        ((7, 8, 7), "names one atom twice"),
+    ],
+)
+def test_a_damaged_bond_is_named_on_opening_by_every_reader(
+    polymer_file, tmp_path, monkeypatch, capsys, pair, what
+):
     """md info, md analyze and conversion to GSD accepted an out-of-range bond (the GSD got
     it), LAMMPS data, render and the API failed with a raw IndexError. Angles alike."""
     import shutil
@@ -328,9 +340,13 @@ def test_a_damaged_bond_is_named_on_opening_by_every_reader(polymer_file, tmp_pa
             f["connectivity"].create_dataset("bend", data=[[0, 1, 2], [1, 2, 3], [2, 3, 4], pair])
     name, kind = ("fene", "bond") if len(pair) == 2 else ("bend", "angle")
     message = f"bad.h5: /connectivity/{name}: {kind} 3 {pair} {what}"
-    for command in (["info", "bad.h5"], ["analyze", "bad.h5", "--no-progress"],
-                    ["convert", "bad.h5", "bad.gsd"], ["convert", "bad.h5", "bad.data"],
-                    ["render", "bad.h5", "-o", "bad.png"]):  # fmt: skip
+    for command in (
+        ["info", "bad.h5"],
+        ["analyze", "bad.h5", "--no-progress"],
+        ["convert", "bad.h5", "bad.gsd"],
+        ["convert", "bad.h5", "bad.data"],
+        ["render", "bad.h5", "-o", "bad.png"],
+    ):
         assert main(command) == 2, command
         assert message in capsys.readouterr().err, command
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]  # nothing written

@@ -230,8 +230,12 @@ def _deformed(state, rng, strain, jitter):
     m = np.eye(3) + strain * np.tril(rng.uniform(-1.0, 1.0, (3, 3)))
     cell = state.cell @ m
     positions = state.positions @ m + rng.normal(0.0, jitter, state.positions.shape)
-    return md.State(positions=positions, box=np.diag(cell).copy(),
-                    tilt=cell[[1, 2, 2], [0, 0, 1]], velocities=state.velocities)  # fmt: skip
+    return md.State(
+        positions=positions,
+        box=np.diag(cell).copy(),
+        tilt=cell[[1, 2, 2], [0, 0, 1]],
+        velocities=state.velocities,
+    )
 
 
 @settings(max_examples=30, deadline=None, database=None)
@@ -358,8 +362,10 @@ def test_lj_and_bond_forces_are_minus_the_energy_gradient_in_a_sheared_cell():
     # Place each bond's partner across the cell from it: the bond spans the tilted boundary.
     for i, j in bonds:
         state.positions[j] = state.positions[i] + np.array([0.3, -0.6, 0.5]) + state.cell[2]
-    potentials = [LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5, cutoff_mode="smooth"),
-                  HarmonicBonds(bonds=bonds, k=30.0, r0=0.9)]  # fmt: skip
+    potentials = [
+        LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5, cutoff_mode="smooth"),
+        HarmonicBonds(bonds=bonds, k=30.0, r0=0.9),
+    ]
     all_pairs = sum((p.energy_forces(state, None).forces for p in potentials), np.zeros((n, 3)))
     for forces in (ForceField(potentials).compute(state).forces, all_pairs):
         np.testing.assert_allclose(forces.sum(axis=0), 0.0, atol=1e-9)  # Newton's third law
@@ -369,8 +375,10 @@ def test_lj_and_bond_forces_are_minus_the_energy_gradient_in_a_sheared_cell():
                 plus, minus = state.copy(), state.copy()
                 plus.positions[atom, axis] += h
                 minus.positions[atom, axis] -= h
-                slope = (ForceField(potentials).compute(plus).energy
-                         - ForceField(potentials).compute(minus).energy) / (2 * h)  # fmt: skip
+                slope = (
+                    ForceField(potentials).compute(plus).energy
+                    - ForceField(potentials).compute(minus).energy
+                ) / (2 * h)
                 assert -slope == pytest.approx(forces[atom, axis], rel=1e-5, abs=1e-6)
 
 
@@ -410,8 +418,9 @@ def test_constraints_across_a_tilted_boundary_hold_their_length():
             start + direction / np.linalg.norm(direction) + cell_matrix(box, tilt)[2],
         ]
         pairs.append([2 * k, 2 * k + 1])
-    state = md.State(positions=np.array(positions), box=box, tilt=tilt,
-                     velocities=rng.normal(0, 0.5, (40, 3)))  # fmt: skip
+    state = md.State(
+        positions=np.array(positions), box=box, tilt=tilt, velocities=rng.normal(0, 0.5, (40, 3))
+    )
     constraints = BondConstraints(np.array(pairs), lengths=1.0)
     integrator = Rattle(0.002, constraints)
     ff = ForceField([LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.0)])

@@ -141,9 +141,13 @@ def _tilted_mixture() -> md.State:
 def _our_lj(mode: str) -> LennardJones:
     unlike = UNLIKE if mode == "smooth" else {**UNLIKE, "cutoff": UNLIKE_CUTOFF}
     return LennardJones(
-        epsilon=EPSILON, sigma=SIGMA, cutoff=CUTOFF, cutoff_mode=mode,
-        r_on=R_ON if mode == "smooth" else None, pairs={(0, 1): unlike},
-    )  # fmt: skip
+        epsilon=EPSILON,
+        sigma=SIGMA,
+        cutoff=CUTOFF,
+        cutoff_mode=mode,
+        r_on=R_ON if mode == "smooth" else None,
+        pairs={(0, 1): unlike},
+    )
 
 
 def _lammps_snapshot(state: md.State, mode: str) -> dict[str, np.ndarray | float]:
@@ -155,20 +159,34 @@ def _lammps_snapshot(state: md.State, mode: str) -> dict[str, np.ndarray | float
         pytest.skip(f"this LAMMPS lacks pair style {style.split()[0]}")
     (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()  # repr: every digit
     unlike = f"pair_coeff 1 2 {UNLIKE['epsilon']!r} {UNLIKE['sigma']!r}"
-    lmp.commands_list([
-        "units lj", f"atom_style {atom_style}", "boundary p p p", "atom_modify map array",
-        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
-        "create_box 3 cell", *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
-        f"pair_style {style}", "pair_modify mix arithmetic", *modify,
-        *(f"pair_coeff {t + 1} {t + 1} {e!r} {s!r}"
-          for t, (e, s) in enumerate(zip(EPSILON, SIGMA, strict=True))),
-        unlike + (f" {UNLIKE_CUTOFF!r}" if mode != "smooth" else ""),
-        "neighbor 0.3 bin",
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "units lj",
+            f"atom_style {atom_style}",
+            "boundary p p p",
+            "atom_modify map array",
+            f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+            "create_box 3 cell",
+            *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
+            f"pair_style {style}",
+            "pair_modify mix arithmetic",
+            *modify,
+            *(
+                f"pair_coeff {t + 1} {t + 1} {e!r} {s!r}"
+                for t, (e, s) in enumerate(zip(EPSILON, SIGMA, strict=True))
+            ),
+            unlike + (f" {UNLIKE_CUTOFF!r}" if mode != "smooth" else ""),
+            "neighbor 0.3 bin",
+        ]
+    )
     n = state.n_atoms
-    created = lmp.create_atoms(n, list(range(1, n + 1)), (state.types + 1).tolist(),
-                               state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
-                               state.velocities.ravel().tolist())  # fmt: skip
+    created = lmp.create_atoms(
+        n,
+        list(range(1, n + 1)),
+        (state.types + 1).tolist(),
+        state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
+        state.velocities.ravel().tolist(),
+    )
     assert created == n
     return _run_zero(lmp, n)
 
@@ -185,10 +203,14 @@ def _run_zero(lmp, n: int) -> dict[str, np.ndarray | float]:
         LMP_TYPE_VECTOR,
     )
 
-    lmp.commands_list([
-        "compute virial all pressure NULL virial", "compute pe_atom all pe/atom",
-        "compute stress_atom all stress/atom NULL virial", "run 0",
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "compute virial all pressure NULL virial",
+            "compute pe_atom all pe/atom",
+            "compute stress_atom all stress/atom NULL virial",
+            "run 0",
+        ]
+    )
     order = np.argsort(lmp.numpy.extract_atom("id")[:n])
 
     def per_atom(name, kind):
@@ -251,15 +273,18 @@ def test_tilted_lj_per_atom_energies_and_virials_equal_lammps(mode):
 #: Our angle potential and LAMMPS's angle_style, with two angle types each.
 ANGLE_PEERS = {
     "harmonic": (
-        lambda angles, types: HarmonicAngles(angles, k=[2.5, 0.8], theta0=[180.0, 104.5],
-                                             angle_types=types),
-        "harmonic", ["1 2.5 180.0", "2 0.8 104.5"],
+        lambda angles, types: HarmonicAngles(
+            angles, k=[2.5, 0.8], theta0=[180.0, 104.5], angle_types=types
+        ),
+        "harmonic",
+        ["1 2.5 180.0", "2 0.8 104.5"],
     ),
     "cosine": (
         lambda angles, types: CosineAngles(angles, k=[1.7, 4.0], angle_types=types),
-        "cosine", ["1 1.7", "2 4.0"],
+        "cosine",
+        ["1 1.7", "2 4.0"],
     ),
-}  # fmt: skip
+}
 
 
 def _chains_in_tilted_cell() -> tuple[md.State, np.ndarray, np.ndarray]:
@@ -291,20 +316,35 @@ def _lammps_angles(state: md.State, angles, types, style: str, coeffs) -> dict:
     """LAMMPS's results for the angles alone (pair_style zero) on ``state``."""
     lmp = _start_lammps()  # skips without LAMMPS
     (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()
-    lmp.commands_list([
-        "units lj", "atom_style angle", "boundary p p p", "atom_modify map array",
-        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
-        "create_box 1 cell angle/types 2 extra/angle/per/atom 4 extra/special/per/atom 8",
-        "mass 1 1.0", "pair_style zero 2.0", "pair_coeff * *",
-        f"angle_style {style}", *(f"angle_coeff {c}" for c in coeffs),
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "units lj",
+            "atom_style angle",
+            "boundary p p p",
+            "atom_modify map array",
+            f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+            "create_box 1 cell angle/types 2 extra/angle/per/atom 4 extra/special/per/atom 8",
+            "mass 1 1.0",
+            "pair_style zero 2.0",
+            "pair_coeff * *",
+            f"angle_style {style}",
+            *(f"angle_coeff {c}" for c in coeffs),
+        ]
+    )
     n = state.n_atoms
-    lmp.create_atoms(n, list(range(1, n + 1)), [1] * n, state.positions.ravel().tolist(),
-                     state.velocities.ravel().tolist())  # fmt: skip
-    lmp.commands_list([
-        f"create_bonds single/angle {t + 1} {i + 1} {j + 1} {k + 1} special no"
-        for (i, j, k), t in zip(angles.tolist(), types.tolist(), strict=True)
-    ])  # fmt: skip
+    lmp.create_atoms(
+        n,
+        list(range(1, n + 1)),
+        [1] * n,
+        state.positions.ravel().tolist(),
+        state.velocities.ravel().tolist(),
+    )
+    lmp.commands_list(
+        [
+            f"create_bonds single/angle {t + 1} {i + 1} {j + 1} {k + 1} special no"
+            for (i, j, k), t in zip(angles.tolist(), types.tolist(), strict=True)
+        ]
+    )
     assert lmp.get_natoms() == n and lmp.extract_global("nangles") == len(angles)
     return _run_zero(lmp, n)
 
@@ -341,11 +381,19 @@ def test_lammps_reads_the_angles_of_our_data_files(tmp_path):
         writer.write(state)
     convert(out, data)
     lmp = _start_lammps()  # skips without LAMMPS
-    lmp.commands_list([
-        "units lj", "atom_style full", "atom_modify map array", "angle_style cosine",
-        f"read_data {data}", "angle_coeff 1 1.7", "angle_coeff 2 4.0",
-        "pair_style zero 2.0", "pair_coeff * *",
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "units lj",
+            "atom_style full",
+            "atom_modify map array",
+            "angle_style cosine",
+            f"read_data {data}",
+            "angle_coeff 1 1.7",
+            "angle_coeff 2 4.0",
+            "pair_style zero 2.0",
+            "pair_coeff * *",
+        ]
+    )
     assert lmp.extract_global("nangles") == len(angles)
     theirs = _run_zero(lmp, state.n_atoms)
     ours = potential.energy_forces(state)
@@ -362,16 +410,27 @@ def _lammps_run(state: md.State, pair_lines, atom_style="atomic") -> dict:
         lmp.close()
         pytest.skip(f"this LAMMPS lacks pair style {name}")
     (lx, ly, lz), (xy, xz, yz) = state.box.tolist(), state.tilt.tolist()  # repr: every digit
-    lmp.commands_list([
-        "units lj", f"atom_style {atom_style}", "boundary p p p", "atom_modify map array",
-        f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
-        "create_box 3 cell", *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
-        *pair_lines, "neighbor 0.3 bin",
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "units lj",
+            f"atom_style {atom_style}",
+            "boundary p p p",
+            "atom_modify map array",
+            f"region cell prism 0 {lx!r} 0 {ly!r} 0 {lz!r} {xy!r} {xz!r} {yz!r}",
+            "create_box 3 cell",
+            *(f"mass {t + 1} {m!r}" for t, m in enumerate(MASSES)),
+            *pair_lines,
+            "neighbor 0.3 bin",
+        ]
+    )
     n = state.n_atoms
-    created = lmp.create_atoms(n, list(range(1, n + 1)), (state.types + 1).tolist(),
-                               state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
-                               state.velocities.ravel().tolist())  # fmt: skip
+    created = lmp.create_atoms(
+        n,
+        list(range(1, n + 1)),
+        (state.types + 1).tolist(),
+        state.positions.ravel().tolist(),  # unwrapped: LAMMPS remaps
+        state.velocities.ravel().tolist(),
+    )
     assert created == n
     return _run_zero(lmp, n)
 
@@ -383,41 +442,88 @@ STYLE_CUTOFF = 2.5
 #: style mixes (each code by its own rule) or take the values given for all pairs.
 PAIR_STYLES = {
     "morse": (
-        lambda mode: Morse(d0=1.0, alpha=3.0, r0=1.1, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
-                           pairs={(0, 1): {"d0": 0.7, "alpha": 2.5, "r0": 1.2, "cutoff": 2.2}}),
-        [f"pair_style morse {STYLE_CUTOFF}", "pair_coeff * * 1.0 3.0 1.1",
-         "pair_coeff 1 2 0.7 2.5 1.2 2.2"],
+        lambda mode: Morse(
+            d0=1.0,
+            alpha=3.0,
+            r0=1.1,
+            cutoff=STYLE_CUTOFF,
+            cutoff_mode=mode,
+            pairs={(0, 1): {"d0": 0.7, "alpha": 2.5, "r0": 1.2, "cutoff": 2.2}},
+        ),
+        [
+            f"pair_style morse {STYLE_CUTOFF}",
+            "pair_coeff * * 1.0 3.0 1.1",
+            "pair_coeff 1 2 0.7 2.5 1.2 2.2",
+        ],
     ),
     "mie": (
-        lambda mode: Mie(epsilon=EPSILON, sigma=SIGMA, n=[12.0, 14.0, 13.0], m=[6.0, 7.0, 6.5],
-                         cutoff=STYLE_CUTOFF, cutoff_mode=mode,
-                         pairs={(0, 1): {"epsilon": 0.8, "sigma": 1.2, "n": 15.0, "m": 5.5,
-                                         "cutoff": 2.2}}),
-        [f"pair_style mie/cut {STYLE_CUTOFF}", "pair_modify mix arithmetic",
-         "pair_coeff 1 1 1.0 1.0 12.0 6.0", "pair_coeff 2 2 0.6 1.15 14.0 7.0",
-         "pair_coeff 3 3 1.3 0.9 13.0 6.5", "pair_coeff 1 2 0.8 1.2 15.0 5.5 2.2"],
+        lambda mode: Mie(
+            epsilon=EPSILON,
+            sigma=SIGMA,
+            n=[12.0, 14.0, 13.0],
+            m=[6.0, 7.0, 6.5],
+            cutoff=STYLE_CUTOFF,
+            cutoff_mode=mode,
+            pairs={(0, 1): {"epsilon": 0.8, "sigma": 1.2, "n": 15.0, "m": 5.5, "cutoff": 2.2}},
+        ),
+        [
+            f"pair_style mie/cut {STYLE_CUTOFF}",
+            "pair_modify mix arithmetic",
+            "pair_coeff 1 1 1.0 1.0 12.0 6.0",
+            "pair_coeff 2 2 0.6 1.15 14.0 7.0",
+            "pair_coeff 3 3 1.3 0.9 13.0 6.5",
+            "pair_coeff 1 2 0.8 1.2 15.0 5.5 2.2",
+        ],
     ),
     "buckingham": (
-        lambda mode: Buckingham(a=2000.0, rho=0.15, c=1.0, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
-                                pairs={(0, 1): {"a": 1500.0, "rho": 0.16, "c": 1.4,
-                                                "cutoff": 2.2}}),
-        [f"pair_style buck {STYLE_CUTOFF}", "pair_coeff * * 2000.0 0.15 1.0",
-         "pair_coeff 1 2 1500.0 0.16 1.4 2.2"],
+        lambda mode: Buckingham(
+            a=2000.0,
+            rho=0.15,
+            c=1.0,
+            cutoff=STYLE_CUTOFF,
+            cutoff_mode=mode,
+            pairs={(0, 1): {"a": 1500.0, "rho": 0.16, "c": 1.4, "cutoff": 2.2}},
+        ),
+        [
+            f"pair_style buck {STYLE_CUTOFF}",
+            "pair_coeff * * 2000.0 0.15 1.0",
+            "pair_coeff 1 2 1500.0 0.16 1.4 2.2",
+        ],
     ),
     "yukawa": (
-        lambda mode: Yukawa(a=[1.0, 2.0, 0.5], kappa=1.2, cutoff=STYLE_CUTOFF, cutoff_mode=mode,
-                            pairs={(0, 1): {"a": 3.0, "cutoff": 2.2}}),
-        [f"pair_style yukawa 1.2 {STYLE_CUTOFF}", "pair_modify mix geometric",
-         "pair_coeff 1 1 1.0", "pair_coeff 2 2 2.0", "pair_coeff 3 3 0.5",
-         "pair_coeff 1 2 3.0 2.2"],
+        lambda mode: Yukawa(
+            a=[1.0, 2.0, 0.5],
+            kappa=1.2,
+            cutoff=STYLE_CUTOFF,
+            cutoff_mode=mode,
+            pairs={(0, 1): {"a": 3.0, "cutoff": 2.2}},
+        ),
+        [
+            f"pair_style yukawa 1.2 {STYLE_CUTOFF}",
+            "pair_modify mix geometric",
+            "pair_coeff 1 1 1.0",
+            "pair_coeff 2 2 2.0",
+            "pair_coeff 3 3 0.5",
+            "pair_coeff 1 2 3.0 2.2",
+        ],
     ),
     "soft": (
-        lambda mode: Soft(a=[1.0, 2.0, 3.0], cutoff=1.2, cutoff_mode=mode,
-                          pairs={(0, 1): {"a": 5.0, "cutoff": 1.1}}),
-        ["pair_style soft 1.2", "pair_modify mix geometric", "pair_coeff 1 1 1.0",
-         "pair_coeff 2 2 2.0", "pair_coeff 3 3 3.0", "pair_coeff 1 2 5.0 1.1"],
+        lambda mode: Soft(
+            a=[1.0, 2.0, 3.0],
+            cutoff=1.2,
+            cutoff_mode=mode,
+            pairs={(0, 1): {"a": 5.0, "cutoff": 1.1}},
+        ),
+        [
+            "pair_style soft 1.2",
+            "pair_modify mix geometric",
+            "pair_coeff 1 1 1.0",
+            "pair_coeff 2 2 2.0",
+            "pair_coeff 3 3 3.0",
+            "pair_coeff 1 2 5.0 1.1",
+        ],
     ),
-}  # fmt: skip
+}
 
 
 def _check_against(ours_fast, ours_per_atom, theirs, state) -> None:
@@ -432,14 +538,23 @@ def _check_against(ours_fast, ours_per_atom, theirs, state) -> None:
     _assert_close(ours_per_atom.virials[:, LAMMPS_VOIGT], -theirs["stresses"], 1e-10)
 
 
-@pytest.mark.parametrize(("style", "shift"), [
-    # each (style, shift) compiles a term's kernels: Morse plain and Buckingham shifted run
-    # by default, the rest with -m slow
-    pytest.param(name, shift, id=f"{name}-{'shifted' if shift else 'plain'}",
-                 marks=() if (name, shift) in (("morse", False), ("buckingham", True))
-                 else pytest.mark.slow)
-    for name in PAIR_STYLES for shift in (False, True)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("style", "shift"),
+    [
+        # each (style, shift) compiles a term's kernels: Morse plain and Buckingham shifted run
+        # by default, the rest with -m slow
+        pytest.param(
+            name,
+            shift,
+            id=f"{name}-{'shifted' if shift else 'plain'}",
+            marks=()
+            if (name, shift) in (("morse", False), ("buckingham", True))
+            else pytest.mark.slow,
+        )
+        for name in PAIR_STYLES
+        for shift in (False, True)
+    ],
+)
 def test_tilted_pair_style_equals_lammps(style, shift):
     """Energy, forces, W/V, the full P tensor (threaded cell-list kernel) and per-atom
     energies and virials (atom-order kernel) of each pair style on the three-type tilted
@@ -457,8 +572,11 @@ def test_tilted_pair_style_equals_lammps(style, shift):
 def _write_table(path: Path) -> None:
     """A LAMMPS table file with three sections: R, RSQ (with FPRIME) and the file's own r."""
     rows = ["# tabulated Morse-like and soft-core pairs", ""]
-    for keyword, spacing, n in (("WELL", "R 0.6 2.5", 800), ("CORE", "RSQ 0.6 2.2", 800),
-                                ("OWN", "", 500)):  # fmt: skip
+    for keyword, spacing, n in (
+        ("WELL", "R 0.6 2.5", 800),
+        ("CORE", "RSQ 0.6 2.2", 800),
+        ("OWN", "", 500),
+    ):
         if spacing.startswith("RSQ"):
             r = np.sqrt(0.36 + (2.2**2 - 0.36) * np.arange(n) / (n - 1))
         else:
@@ -474,10 +592,13 @@ def _write_table(path: Path) -> None:
 
 
 @pytest.mark.parametrize("points", [800, 1200])
-@pytest.mark.parametrize("interpolation", [
-    pytest.param("linear", marks=pytest.mark.slow),  # its kernels compile apart: -m slow
-    "spline",
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "interpolation",
+    [
+        pytest.param("linear", marks=pytest.mark.slow),  # its kernels compile apart: -m slow
+        "spline",
+    ],
+)
 def test_tilted_table_equals_lammps(interpolation, points, tmp_path):
     """pair_style table on the same file (R, RSQ with FPRIME, and the file's own r; one
     explicit unlike pair with its own section and cutoff): the same interpolation, so the
@@ -487,9 +608,14 @@ def test_tilted_table_equals_lammps(interpolation, points, tmp_path):
     path = tmp_path / "pairs.table"
     _write_table(path)
     state = _tilted_mixture()
-    ours = Table(path, "WELL", interpolation, points=points, cutoff=2.4,
-                 pairs={(0, 1): {"keyword": "CORE", "cutoff": 2.2},
-                        (2, 2): {"keyword": "OWN"}})  # fmt: skip
+    ours = Table(
+        path,
+        "WELL",
+        interpolation,
+        points=points,
+        cutoff=2.4,
+        pairs={(0, 1): {"keyword": "CORE", "cutoff": 2.2}, (2, 2): {"keyword": "OWN"}},
+    )
     lines = [
         f"pair_style table {interpolation} {points}",
         f"pair_coeff * * {path} WELL 2.4",
@@ -524,7 +650,7 @@ def _our_integrators() -> dict:
         "mtk": pressure_control(
             NoseHooverChain(DT, temperature=TEMPERATURE, tau=0.5),
             Barostat("mtk", PRESSURE, tau=1.0),
-        ),  # fmt: skip
+        ),
     }
 
 
@@ -551,20 +677,37 @@ def _lammps_series(state: md.State) -> np.ndarray:
     """The same from LAMMPS's fix npt, started from the same positions and velocities."""
     lmp = _start_lammps()
     lx, ly, lz = state.box.tolist()
-    lmp.commands_list([
-        "units lj", "atom_style atomic", "atom_modify map array",
-        f"region cell block 0 {lx!r} 0 {ly!r} 0 {lz!r}", "create_box 1 cell", "mass 1 1.0",
-        "pair_style lj/cut 2.5", "pair_modify shift yes tail no", "pair_coeff 1 1 1.0 1.0",
-        "neighbor 0.3 bin", "neigh_modify every 1 delay 0 check yes",
-    ])  # fmt: skip
+    lmp.commands_list(
+        [
+            "units lj",
+            "atom_style atomic",
+            "atom_modify map array",
+            f"region cell block 0 {lx!r} 0 {ly!r} 0 {lz!r}",
+            "create_box 1 cell",
+            "mass 1 1.0",
+            "pair_style lj/cut 2.5",
+            "pair_modify shift yes tail no",
+            "pair_coeff 1 1 1.0 1.0",
+            "neighbor 0.3 bin",
+            "neigh_modify every 1 delay 0 check yes",
+        ]
+    )
     n = state.n_atoms
-    lmp.create_atoms(n, list(range(1, n + 1)), [1] * n, state.positions.ravel().tolist(),
-                     state.velocities.ravel().tolist())  # fmt: skip
-    lmp.commands_list([
-        f"fix npt all npt temp {TEMPERATURE} {TEMPERATURE} 0.5 iso {PRESSURE} {PRESSURE} 1.0",
-        f"timestep {DT}", "thermo_modify norm yes",  # pe per atom
-        f"run {EQUILIBRATION}",
-    ])  # fmt: skip
+    lmp.create_atoms(
+        n,
+        list(range(1, n + 1)),
+        [1] * n,
+        state.positions.ravel().tolist(),
+        state.velocities.ravel().tolist(),
+    )
+    lmp.commands_list(
+        [
+            f"fix npt all npt temp {TEMPERATURE} {TEMPERATURE} 0.5 iso {PRESSURE} {PRESSURE} 1.0",
+            f"timestep {DT}",
+            "thermo_modify norm yes",  # pe per atom
+            f"run {EQUILIBRATION}",
+        ]
+    )
     rows = []
     for _ in range(PRODUCTION // EVERY):
         lmp.command(f"run {EVERY} pre no post no")
@@ -584,8 +727,10 @@ def test_npt_lj_liquid_density_and_energy_match_lammps_fix_npt():
         for column, name in enumerate(("density", "potential energy per atom")):
             mine = block_average(ours[:, column], BLOCKS)
             peer = block_average(theirs[:, column], BLOCKS)
-            print(f"\n{name}: ours ({label}) {mine.mean:.5f} +- {mine.sem:.5f}, "
-                  f"LAMMPS fix npt {peer.mean:.5f} +- {peer.sem:.5f}")  # fmt: skip
+            print(
+                f"\n{name}: ours ({label}) {mine.mean:.5f} +- {mine.sem:.5f}, "
+                f"LAMMPS fix npt {peer.mean:.5f} +- {peer.sem:.5f}"
+            )
             assert abs(mine.mean - peer.mean) < 4.0 * np.hypot(mine.sem, peer.sem), label
             assert mine.mean == pytest.approx(peer.mean, rel=0.02), label
 

@@ -152,8 +152,12 @@ class PreparedAnalysis:
             write_summary(summary, out / "summary.json")
             if self.snapshot:
                 written.append(out / "snapshot.png")
-                render(self.info.path, out / "snapshot.png", frame=int(self.info.frames[-1]),
-                       overwrite=True)  # fmt: skip
+                render(
+                    self.info.path,
+                    out / "snapshot.png",
+                    frame=int(self.info.frames[-1]),
+                    overwrite=True,
+                )
 
 
 def prepare_analysis(

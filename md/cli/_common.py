@@ -71,7 +71,9 @@ def built_unless_stopped(
             if not received:
                 received.append("SIGINT")
         if received:  # raised, or swallowed on its way (a compiling kernel's callback)
-            print(f"md {command}: {received[0]} received before {stage} started; nothing "
-                  "was written", file=sys.stderr)  # fmt: skip
+            print(
+                f"md {command}: {received[0]} received before {stage} started; nothing was written",
+                file=sys.stderr,
+            )
             return None, exit_for_signal(received[0])
     return result, None

@@ -87,12 +87,21 @@ def main(args) -> int:
     explicit = [name for name in ANALYSES if getattr(args, name)]  # argparse's flag per name
     try:
         prepared = prepare_analysis(
-            args.trajectory, None if args.all or not explicit else explicit, required=explicit,
-            start=args.start, stop=args.stop, step=args.step, rdf_bins=args.rdf_bins,
+            args.trajectory,
+            None if args.all or not explicit else explicit,
+            required=explicit,
+            start=args.start,
+            stop=args.stop,
+            step=args.step,
+            rdf_bins=args.rdf_bins,
             rdf_range=_parse_range(args.rdf_range, "--rdf-range", allow_single=True),
-            window=_parse_range(args.fit, "--fit", allow_single=False), select=args.select,
-            n_blocks=args.blocks, out=args.out, overwrite=args.overwrite, snapshot=args.all,
-        )  # fmt: skip
+            window=_parse_range(args.fit, "--fit", allow_single=False),
+            select=args.select,
+            n_blocks=args.blocks,
+            out=args.out,
+            overwrite=args.overwrite,
+            snapshot=args.all,
+        )
     except (TrajectoryError, AnalysisError) as error:
         fail(str(error))
         return EXIT_BAD_INPUT
@@ -144,10 +153,10 @@ def _print_table(results: dict, labels: dict) -> None:
             quantity = THERMO_LABELS.get(name, (name, "energy"))[1]
             rows.append((f"<{name}>", average.mean, average.sem, labels[quantity]))
         which = "conserved-energy" if t.drift_of == "conserved_energy" else "energy"
-        rows.append((f"{which} drift per atom", t.energy_drift, t.energy_drift_err,
-                     labels["drift"]))  # fmt: skip
-        rows.append((f"{which} fluctuation per atom", t.energy_fluctuation, None,
-                     labels["energy"]))  # fmt: skip
+        rows.append(
+            (f"{which} drift per atom", t.energy_drift, t.energy_drift_err, labels["drift"])
+        )
+        rows.append((f"{which} fluctuation per atom", t.energy_fluctuation, None, labels["energy"]))
         if math.isfinite(t.compressibility):  # the volume fluctuated: an NPT run
             unit = f"{labels['volume']}/{labels['energy']}"
             rows.append(("isothermal compressibility", t.compressibility, None, unit))

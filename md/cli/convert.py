@@ -65,10 +65,16 @@ def _convert(args) -> int:
         )
         with bar:
             count = convert(
-                args.trajectory, args.output, format=args.format, start=args.start,
-                stop=args.stop, step=args.step, unwrap=args.unwrap, overwrite=args.overwrite,
+                args.trajectory,
+                args.output,
+                format=args.format,
+                start=args.start,
+                stop=args.stop,
+                step=args.step,
+                unwrap=args.unwrap,
+                overwrite=args.overwrite,
                 progress=lambda done: bar.update(done - bar.n),
-            )  # fmt: skip
+            )
     except (TrajectoryError, ValueError, IndexError, FileExistsError, OSError) as error:
         fail(str(error))
         return EXIT_BAD_INPUT

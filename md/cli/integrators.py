@@ -83,10 +83,17 @@ def main(args) -> int:
         return _damping(args)
     try:
         study = prepare_study(
-            args.config, integrators=args.integrators, dts=args.dt_range, span=args.time,
-            equilibrate=args.equilibrate, temperature=args.temperature, tau=args.tau,
-            sample_time=args.sample_time, out=args.out, overwrite=args.overwrite,
-        )  # fmt: skip
+            args.config,
+            integrators=args.integrators,
+            dts=args.dt_range,
+            span=args.time,
+            equilibrate=args.equilibrate,
+            temperature=args.temperature,
+            tau=args.tau,
+            sample_time=args.sample_time,
+            out=args.out,
+            overwrite=args.overwrite,
+        )
     except ConfigError as error:
         fail(str(error))
         return EXIT_BAD_INPUT
@@ -128,8 +135,9 @@ def main(args) -> int:
 def _damping(args) -> int:
     """``md integrators CONFIG --damping``: the damping measurement and its table."""
     try:
-        study = prepare_damping(args.config, args.integrators, args.omega_dt, args.out,
-                                args.overwrite)  # fmt: skip
+        study = prepare_damping(
+            args.config, args.integrators, args.omega_dt, args.out, args.overwrite
+        )
     except ConfigError as error:
         fail(str(error))
         return EXIT_BAD_INPUT
@@ -142,10 +150,16 @@ def _damping(args) -> int:
     except OSError as error:
         fail(f"cannot write the damping files in {study.files['csv'].parent}: {error}")
         return EXIT_BAD_INPUT
-    shown = [z for z in (0.01, 0.1, 1.0, 10.0, 100.0)
-             if any(abs(r.omega_dt - z) < 1e-9 * z for r in rows)]  # fmt: skip
-    print(f"{'integrator':<18}" + "".join(f"{f'|rho| @ {z:g}':>15}" for z in shown)
-          + f"{'max |d - d_th| / d_th':>24}")  # fmt: skip
+    shown = [
+        z
+        for z in (0.01, 0.1, 1.0, 10.0, 100.0)
+        if any(abs(r.omega_dt - z) < 1e-9 * z for r in rows)
+    ]
+    print(
+        f"{'integrator':<18}"
+        + "".join(f"{f'|rho| @ {z:g}':>15}" for z in shown)
+        + f"{'max |d - d_th| / d_th':>24}"
+    )
     for name in study.names:
         mine = [r for r in rows if r.integrator == name]
         cells = []

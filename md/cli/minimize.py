@@ -60,10 +60,19 @@ def main(args) -> int:
     # Building (and compiling) comes before FIRE's own stop handler: a signal there
     # stops the command with a line, as one while minimising does.
     try:
-        prepared, stopped = built_unless_stopped(lambda: prepare_minimize(
-            args.config, output=args.output, overwrite=args.overwrite, fmax=args.fmax,
-            max_steps=args.max_steps, max_force=args.max_force, threads=args.threads,
-        ), "minimize", "minimising")  # fmt: skip
+        prepared, stopped = built_unless_stopped(
+            lambda: prepare_minimize(
+                args.config,
+                output=args.output,
+                overwrite=args.overwrite,
+                fmax=args.fmax,
+                max_steps=args.max_steps,
+                max_force=args.max_force,
+                threads=args.threads,
+            ),
+            "minimize",
+            "minimising",
+        )
     except ConfigError as error:
         fail(str(error))
         return EXIT_BAD_INPUT

@@ -40,9 +40,13 @@ def main(args) -> int:
 def _render(args) -> int:
     try:
         path = render(
-            args.trajectory, args.output, frame=args.frame, engine=args.engine,
-            size=args.size, overwrite=args.overwrite,
-        )  # fmt: skip
+            args.trajectory,
+            args.output,
+            frame=args.frame,
+            engine=args.engine,
+            size=args.size,
+            overwrite=args.overwrite,
+        )
     except (TrajectoryError, ValueError, IndexError, FileExistsError, OSError) as error:
         fail(str(error))
         return EXIT_BAD_INPUT

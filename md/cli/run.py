@@ -66,8 +66,11 @@ def main(args) -> int:
     """
     if launch_rank() == 0:
         return _main(args)
-    with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink), \
-            contextlib.redirect_stderr(sink):  # fmt: skip
+    with (
+        open(os.devnull, "w") as sink,
+        contextlib.redirect_stdout(sink),
+        contextlib.redirect_stderr(sink),
+    ):
         return _main(args)
 
 
@@ -76,10 +79,18 @@ def _main(args) -> int:
     # compiling) comes before the run's own stop handler: a signal there stops the command
     # with a line, as one during the run does.
     try:
-        run, stopped = built_unless_stopped(lambda: prepare(
-            args.config, steps=args.steps, output=args.output, overwrite=args.overwrite,
-            resume=args.resume, threads=args.threads,
-        ), "run", "the run")  # fmt: skip
+        run, stopped = built_unless_stopped(
+            lambda: prepare(
+                args.config,
+                steps=args.steps,
+                output=args.output,
+                overwrite=args.overwrite,
+                resume=args.resume,
+                threads=args.threads,
+            ),
+            "run",
+            "the run",
+        )
     except (ConfigError, CheckpointError, TrajectoryError) as error:
         fail(str(error))
         return EXIT_BAD_INPUT
@@ -256,7 +267,7 @@ def _again(args, run, resume: bool) -> str:
 
 
 def _ranks(run) -> str:
-    """", over P MPI ranks (bricks a x b x c)" for a decomposed run."""
+    """ ", over P MPI ranks (bricks a x b x c)" for a decomposed run."""
     if run.ranks is None:
         return ""
     shape = " x ".join(str(p) for p in run.parameters["decomposition"])
@@ -287,17 +298,23 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
         if nl.exact:
             rule = "rebuilt when an atom moved > skin/2"
         else:
-            rule = (f"looked at every {nl.every} steps, "
-                    + ("rebuilt there if an atom moved > skin/2" if nl.check else "rebuilt there")
-                    + "; not exact: pairs can be missed between looks")  # fmt: skip
+            rule = (
+                f"looked at every {nl.every} steps, "
+                + ("rebuilt there if an atom moved > skin/2" if nl.check else "rebuilt there")
+                + "; not exact: pairs can be missed between looks"
+            )
         print(f"Neighbour list builds: {nl.n_builds} ({rule})")
         if not nl.exact:
-            print(f"Late looks: {summary.late_looks} (looks at which an atom had moved > "
-                  "skin/2 since the build: pairs within the cutoff may have been missed "
-                  "before them)")  # fmt: skip
+            print(
+                f"Late looks: {summary.late_looks} (looks at which an atom had moved > "
+                "skin/2 since the build: pairs within the cutoff may have been missed "
+                "before them)"
+            )
         if nl.n_prunes:
-            print(f"Cluster list prunes: {nl.n_prunes} (the outer list pruned again when an "
-                  "atom moved > skin/2, searched again past (outer_skin - skin)/2)")
+            print(
+                f"Cluster list prunes: {nl.n_prunes} (the outer list pruned again when an "
+                "atom moved > skin/2, searched again past (outer_skin - skin)/2)"
+            )
     per_step = ", ".join(
         f"{name.replace('_', ' ')} {value:.3g}" for name, value in summary.per_step().items()
     )

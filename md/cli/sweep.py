@@ -99,10 +99,16 @@ def main(args) -> int:
     """Body of ``md sweep``; returns the exit code."""
     try:
         vary, plot = sw.check_options(
-            args.vary, args.replicas, max_runs=args.max_runs, discard=args.discard,
-            n_blocks=args.blocks, workers=args.workers, scheduler=args.scheduler,
-            diffusion=args.diffusion, plot=args.plot,
-        )  # fmt: skip
+            args.vary,
+            args.replicas,
+            max_runs=args.max_runs,
+            discard=args.discard,
+            n_blocks=args.blocks,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            diffusion=args.diffusion,
+            plot=args.plot,
+        )
         n_runs = sw.count_runs(vary, args.replicas)
         print(f"md sweep: planning and validating {n_runs} run(s) ...", flush=True)
         plan = sw.plan_sweep(args.config, vary, args.replicas, args.out, max_runs=args.max_runs)
@@ -132,9 +138,14 @@ def main(args) -> int:
             else:
                 print(f"md sweep: running on the Dask scheduler at {args.scheduler}")
             table = sw.run_sweep(
-                plan, client, overwrite=args.overwrite, diffusion=args.diffusion,
-                discard=args.discard, n_blocks=args.blocks, progress=printer,
-            )  # fmt: skip
+                plan,
+                client,
+                overwrite=args.overwrite,
+                diffusion=args.diffusion,
+                discard=args.discard,
+                n_blocks=args.blocks,
+                progress=printer,
+            )
     except sw.SweepError as error:
         printer.close()
         fail(str(error))
@@ -262,8 +273,9 @@ def print_table(table) -> None:
         print(cells)
     units = ", ".join(f"{name} [{unit}]" for _, name, unit in columns)
     print(f"({units}; +- block standard errors of each run)")
-    if table.keys and len(table.rows) > len({tuple(map(str, (r[k] for k in table.keys)))
-                                             for r in table.rows}):  # fmt: skip
+    if table.keys and len(table.rows) > len(
+        {tuple(map(str, (r[k] for k in table.keys))) for r in table.rows}
+    ):
         print("Per point, mean over replicas +- standard error over replicas:")
         keys = "".join(f"{short[k]:>{w}}" for k, w in zip(table.keys, key_widths, strict=True))
         print(keys + f"{'n':>5}{'':>9}" + "".join(f"{name:>{_WIDTH}}" for _, name, _ in columns))

@@ -343,8 +343,11 @@ def moved_since(positions, reference, mapping, previous, before, copy):
             x = positions[i, a]
             if copying:
                 copy[i, a] = x
-            mapped = (reference[i, 0] * mapping[0, a] + reference[i, 1] * mapping[1, a]
-                      + reference[i, 2] * mapping[2, a])  # fmt: skip
+            mapped = (
+                reference[i, 0] * mapping[0, a]
+                + reference[i, 1] * mapping[1, a]
+                + reference[i, 2] * mapping[2, a]
+            )
             d = x - mapped
             s = x - previous[i, a]
             d2 += d * d
@@ -389,8 +392,9 @@ def anchored_items(owned_ids, starts, order):
 
 
 @njit(cache=True, error_model="numpy")
-def nearest_copies(anchors, partners, sorted_ids, by_id, positions, lengths, inverse, tilt,
-                   found, distances):  # fmt: skip
+def nearest_copies(
+    anchors, partners, sorted_ids, by_id, positions, lengths, inverse, tilt, found, distances
+):
     """For each item k, the local copy of atom id ``partners[k]`` nearest to local atom
     ``anchors[k]`` (-1 and inf if it has none): ``sorted_ids`` are the local atoms' ids in
     increasing order, ``by_id`` the local index of each. Distances are minimum images

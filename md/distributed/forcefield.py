@@ -160,9 +160,17 @@ class DistributedForceField:
         checks moved the planes.
     """
 
-    def __init__(self, potentials, skin: float, ranks, grid: Grid, bond_reach: float,
-                 precision: str = "double", balance_every: int = 0,
-                 balance_threshold: float = 1.05) -> None:  # fmt: skip
+    def __init__(
+        self,
+        potentials,
+        skin: float,
+        ranks,
+        grid: Grid,
+        bond_reach: float,
+        precision: str = "double",
+        balance_every: int = 0,
+        balance_threshold: float = 1.05,
+    ) -> None:
         self.potentials = list(potentials)
         self.ranks = ranks
         self.skin = float(skin)
@@ -196,8 +204,10 @@ class DistributedForceField:
         self._cache: dict = {}
         self._exchanged: tuple | None = None
         if balance_every < 0 or not balance_threshold >= 1.0:
-            raise ValueError(f"balance_every must be >= 0 and balance_threshold >= 1, got "
-                             f"{balance_every} and {balance_threshold}")  # fmt: skip
+            raise ValueError(
+                f"balance_every must be >= 0 and balance_threshold >= 1, got "
+                f"{balance_every} and {balance_threshold}"
+            )
         self.balance_every = int(balance_every)
         self.balance_threshold = float(balance_threshold)
         self.imbalance = 1.0
@@ -243,8 +253,9 @@ class DistributedForceField:
         which = tuple(int(i) for i in which)
         for i in which:
             if not 0 <= i < len(self.potentials):
-                raise IndexError(f"potential index {i} out of range "
-                                 f"(0..{len(self.potentials) - 1})")  # fmt: skip
+                raise IndexError(
+                    f"potential index {i} out of range (0..{len(self.potentials) - 1})"
+                )
         return self._result(state, which, False, virial)
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
@@ -257,8 +268,7 @@ class DistributedForceField:
             )
         # A rank that can use its result does not compare its exchanged positions (a full
         # pass over them each step): "not exchanged" is always safe, it only sends again.
-        exchanged = (not usable and self._exchanged is not None
-                     and _same(self._exchanged, state))  # fmt: skip
+        exchanged = not usable and self._exchanged is not None and _same(self._exchanged, state)
         # Decided together: a rank that owns no atoms sees its (no) positions unchanged
         # while the others' moved, and must still evaluate and exchange with them.
         usable, exchanged = self._all_ranks(usable, exchanged)
@@ -278,8 +288,9 @@ class DistributedForceField:
         failing = self.ranks.max(np.array([0.0 if flag else 1.0 for flag in flags]))
         return tuple(bool(value == 0.0) for value in failing)
 
-    def _evaluate(self, state: State, which, per_atom: bool, virial: bool,
-                  exchanged: bool = False) -> ForceResult:  # fmt: skip
+    def _evaluate(
+        self, state: State, which, per_atom: bool, virial: bool, exchanged: bool = False
+    ) -> ForceResult:
         """Exchange, compute, share: one reduction carries the energy and virial, whether a
         rank failed or found its list outrun (then every rank rebuilds and evaluates again),
         and what the next step start needs (the look-ahead, a stop request)."""
@@ -339,8 +350,9 @@ class DistributedForceField:
         ids = self.domain.local_ids
         if isinstance(error, BondStretchError):
             bond = self._global_item(2, error.bond)
-            return BondStretchError(bond, int(ids[error.i]), int(ids[error.j]), error.length,
-                                    error.r_max)  # fmt: skip
+            return BondStretchError(
+                bond, int(ids[error.i]), int(ids[error.j]), error.length, error.r_max
+            )
         if isinstance(error, AngleCollapseError):
             angle = self._global_item(3, error.angle)
             return AngleCollapseError(angle, tuple(int(ids[a]) for a in error.atoms))
@@ -374,16 +386,21 @@ class DistributedForceField:
             before = self.step_before if begin is not None else _NONE
             # the same pass writes the owned positions into the local system (not a message)
             owned = self.domain.owned_rows(state)
-            moved2, step2, coming2 = moved_since(state.positions, self.reference,
-                                                 _IDENTITY if mapping is None else mapping,
-                                                 state.positions if begin is None else begin,
-                                                 before, owned)  # fmt: skip
+            moved2, step2, coming2 = moved_since(
+                state.positions,
+                self.reference,
+                _IDENTITY if mapping is None else mapping,
+                state.positions if begin is None else begin,
+                before,
+                owned,
+            )
             copied = len(owned) > 0
         # the list's check and the owned rows of its local system; the ghosts' messages on
         # the ranks' clock
         self.domain.update(state, copied)
-        self.timings["neighbor"] += (time.perf_counter() - start
-                                     - (self.ranks.clock.seconds - communicated))  # fmt: skip
+        self.timings["neighbor"] += (
+            time.perf_counter() - start - (self.ranks.clock.seconds - communicated)
+        )
         self._exchanged = _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
@@ -391,17 +408,23 @@ class DistributedForceField:
         covered = moved <= allowed and self.domain.layout_holds(state)
         return covered, _ratio(coming, allowed), finite
 
-    def coming_positions(self, state: State, dt: float,
-                         out: NDArray | None = None) -> NDArray[np.float64]:  # fmt: skip
+    def coming_positions(
+        self, state: State, dt: float, out: NDArray | None = None
+    ) -> NDArray[np.float64]:
         """Where the owned atoms are expected after a step of ``dt``: r + dt v + dt^2 a / 2
         (velocity Verlet's move) with the forces at hand, r + dt v without (in ``out``,
         else a new array)."""
         forces = self.cached_forces(state)
         if out is None:
             out = np.empty_like(state.positions)
-        predicted_positions(state.positions, state.velocities,
-                            _NONE if forces is None else forces, state.masses, float(dt),
-                            out)  # fmt: skip
+        predicted_positions(
+            state.positions,
+            state.velocities,
+            _NONE if forces is None else forces,
+            state.masses,
+            float(dt),
+            out,
+        )
         return out
 
     def cached_forces(self, state: State) -> NDArray[np.float64] | None:
@@ -429,8 +452,9 @@ class DistributedForceField:
             return None, 0.5 * self.skin
         box0, tilt0 = self.reference_cell
         before = cell_matrix(np.where(state.pbc, box0, 1.0), periodic_tilt(tilt0, state.pbc))
-        after = cell_matrix(np.where(state.pbc, state.box, 1.0),
-                            periodic_tilt(state.tilt, state.pbc))  # fmt: skip
+        after = cell_matrix(
+            np.where(state.pbc, state.box, 1.0), periodic_tilt(state.tilt, state.pbc)
+        )
         mapping = np.linalg.solve(before, after)
         smallest = float(np.linalg.svd(mapping, compute_uv=False).min())
         return mapping, 0.5 * (smallest * (cutoff + self.skin) - cutoff)
@@ -440,8 +464,9 @@ class DistributedForceField:
         forces into, now rather than inside the run (see :meth:`Domain.reserve`)."""
         self.domain.reserve(state, {("cached", None): state.positions})
 
-    def rebuild(self, state: State, migrate: bool, carried: dict | None = None,
-                dt: float | None = None) -> dict:  # fmt: skip
+    def rebuild(
+        self, state: State, migrate: bool, carried: dict | None = None, dt: float | None = None
+    ) -> dict:
         """Rebuild the ghosts and the local list at ``state``; with ``migrate``, first move
         atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
         bricks. Collective. Returns the carried arrays, migrated.
@@ -460,8 +485,9 @@ class DistributedForceField:
         if migrate:
             # Results of the current positions travel with their atoms; older ones (a
             # minimiser migrates after moving the atoms, before evaluating) are dropped.
-            self._cache = {which: held for which, held in self._cache.items()
-                           if _same(held[0], state)}  # fmt: skip
+            self._cache = {
+                which: held for which, held in self._cache.items() if _same(held[0], state)
+            }
             cached = {("cached", which): held[1].forces for which, held in self._cache.items()}
             if self.balance_every:
                 self._balance(state)
@@ -498,8 +524,9 @@ class DistributedForceField:
                 nl.build(self.domain.local_state)
         except (NonFiniteError, ValueError) as caught:  # shared with every rank below
             error = caught
-        longest, failed = global_max(np.array([longest, error is not None], dtype=np.float64),
-                                     self.ranks)  # fmt: skip
+        longest, failed = global_max(
+            np.array([longest, error is not None], dtype=np.float64), self.ranks
+        )
         if failed:
             agree(self.ranks, error)
         if self._bonded:
@@ -558,9 +585,13 @@ class DistributedForceField:
             grid = grid.with_cuts(axis, planes)
         self.domain.set_grid(grid)
         self.balances += 1
-        logger.info("step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s", state.step,
-                    np.round(busy, 4).tolist(), self.imbalance,
-                    [np.round(c, 4).tolist() for c in grid.cuts])  # fmt: skip
+        logger.info(
+            "step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s",
+            state.step,
+            np.round(busy, 4).tolist(),
+            self.imbalance,
+            [np.round(c, 4).tolist() for c in grid.cuts],
+        )
 
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
@@ -587,8 +618,18 @@ class DistributedForceField:
                 found = np.empty(len(items), dtype=np.int64)
                 distances = np.empty(len(items))
                 partners = np.ascontiguousarray(items[:, column])
-                nearest_copies(anchors, partners, sorted_ids, by_id, positions, lengths, inverse,
-                               tilt, found, distances)  # fmt: skip
+                nearest_copies(
+                    anchors,
+                    partners,
+                    sorted_ids,
+                    by_id,
+                    positions,
+                    lengths,
+                    inverse,
+                    tilt,
+                    found,
+                    distances,
+                )
                 if len(found) and found.min() < 0:
                     raise DecompositionError(
                         "a bonded atom has no copy on its partner's rank: a bond is longer "

@@ -63,8 +63,10 @@ class Grid:
         for axis, (p, planes) in enumerate(zip(shape, cuts, strict=True)):
             steps = np.diff(planes)
             if len(planes) != p + 1 or planes[0] != 0.0 or planes[-1] != 1.0 or np.any(steps <= 0):
-                raise ValueError(f"the cuts along {'xyz'[axis]} must be {p + 1} increasing "
-                                 f"fractions from 0 to 1, got {list(planes)}")  # fmt: skip
+                raise ValueError(
+                    f"the cuts along {'xyz'[axis]} must be {p + 1} increasing "
+                    f"fractions from 0 to 1, got {list(planes)}"
+                )
         object.__setattr__(self, "cuts", cuts)
 
     @property
@@ -89,8 +91,9 @@ class Grid:
     def bounds(self, rank: int) -> NDArray[np.float64]:
         """(2, 3): the brick's lower and upper fractional coordinates."""
         c = self.coordinates(rank)
-        return np.array([[self.cuts[a][c[a]] for a in range(3)],
-                         [self.cuts[a][c[a] + 1] for a in range(3)]])  # fmt: skip
+        return np.array(
+            [[self.cuts[a][c[a]] for a in range(3)], [self.cuts[a][c[a] + 1] for a in range(3)]]
+        )
 
     def cut_table(self) -> NDArray[np.float64]:
         """(3, max p + 1) array of the cuts, each row padded with 1.0 (for the kernels)."""
@@ -181,8 +184,9 @@ def check_grid(shape, box, tilt, pbc, reach: float, what: str = "cutoff + skin")
     )
 
 
-def choose_grid(n_ranks: int, box, tilt, pbc, reach: float,
-                what: str = "cutoff + skin") -> tuple[int, int, int]:  # fmt: skip
+def choose_grid(
+    n_ranks: int, box, tilt, pbc, reach: float, what: str = "cutoff + skin"
+) -> tuple[int, int, int]:
     """The grid of ``n_ranks`` bricks with the least brick surface that fits the cell.
 
     Only periodic axes are cut, and every brick is at least ``reach`` wide

@@ -116,8 +116,9 @@ class Domain:
     def fractions(self, state: State) -> NDArray[np.float64]:
         """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
         out = np.empty((state.n_atoms, 3))
-        fractional_coordinates(state.positions, state.box, periodic_tilt(state.tilt, state.pbc),
-                               state.pbc, out)  # fmt: skip
+        fractional_coordinates(
+            state.positions, state.box, periodic_tilt(state.tilt, state.pbc), state.pbc, out
+        )
         return out
 
     def owner_of(self, state: State) -> NDArray[np.int64]:
@@ -171,16 +172,26 @@ class Domain:
         positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
         home = self._buffer(n, 3, "home")
         self.imaged, self.images, strayed = home_layout(
-            state.positions, box, tilt, pbc, cell, self.center, self.bounds, widths, home,
-            positions[:n], self._buffer(n, 3, "images", np.int64),
-        )  # fmt: skip
+            state.positions,
+            box,
+            tilt,
+            pbc,
+            cell,
+            self.center,
+            self.bounds,
+            widths,
+            home,
+            positions[:n],
+            self._buffer(n, 3, "images", np.int64),
+        )
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
             self._find_ghosts(state, reach, strayed, positions, home, n)
 
-    def _find_ghosts(self, state: State, reach: float, strayed: float, positions, home,
-                     n: int) -> None:  # fmt: skip
+    def _find_ghosts(
+        self, state: State, reach: float, strayed: float, positions, home, n: int
+    ) -> None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
         atoms' layout (``positions``' first ``n`` rows, their fractions ``home``)."""
         box, pbc = state.box, state.pbc
@@ -232,8 +243,9 @@ class Domain:
                     rows = self.ranks.exchange_rows(rows, dest, source, tag)
                 if count + len(rows) > len(positions):
                     size = count + len(rows) + len(positions) // 2
-                    positions, ids, types = (_grown(a, count, size) for a in (positions, ids,
-                                                                               types))  # fmt: skip
+                    positions, ids, types = (
+                        _grown(a, count, size) for a in (positions, ids, types)
+                    )
                     for name, grown in (("positions", positions), ("ids", ids), ("types", types)):
                         self._local[name][self._parity] = grown  # kept for the next builds
                     old = ghost_fractions
@@ -248,8 +260,9 @@ class Domain:
         self.local_ids = ids[:count]
         self.local_pbc = local_pbc
         self._built_tilt = state.tilt.tobytes()
-        self.local_state = State.adopting(positions[:count], types[:count], box, local_pbc,
-                                          state.type_names)  # fmt: skip
+        self.local_state = State.adopting(
+            positions[:count], types[:count], box, local_pbc, state.type_names
+        )
         # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
         # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
         self.local_state.tilt = periodic_tilt(tilt, local_pbc)

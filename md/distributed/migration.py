@@ -30,8 +30,9 @@ class RowStore:
     def __init__(self) -> None:
         self._stores: dict[object, NDArray] = {}
 
-    def refilled(self, key, values: NDArray, n: int, size: int, incoming: NDArray,
-                 plan, spent: bool = False) -> NDArray:  # fmt: skip
+    def refilled(
+        self, key, values: NDArray, n: int, size: int, incoming: NDArray, plan, spent: bool = False
+    ) -> NDArray:
         """``values`` (n rows) after a sweep's :func:`refill_plan`: ``size`` rows of
         the array kept under ``key``, changed in place where ``values`` already is its
         first rows (the usual case), else copied into it first; if ``values`` is
@@ -42,8 +43,13 @@ class RowStore:
             store = self.store(key, values, n, size)
         width = math.prod(values.shape[1:])
         sources, targets, arrivals = plan
-        refill_rows(store.reshape(len(store), width), sources, targets,
-                    np.ascontiguousarray(incoming).reshape(-1, width), arrivals)  # fmt: skip
+        refill_rows(
+            store.reshape(len(store), width),
+            sources,
+            targets,
+            np.ascontiguousarray(incoming).reshape(-1, width),
+            arrivals,
+        )
         return store[:size]
 
     def store(self, key, values: NDArray, n: int, size: int) -> NDArray:
@@ -52,9 +58,12 @@ class RowStore:
         beginning, else a copy (into a larger array when it needs room; the room is an
         eighth more, so that a rank's count can grow for several migrations)."""
         store = self._stores.get(key)
-        fits = (store is not None and store.dtype == values.dtype
-                and store.shape[1:] == values.shape[1:]
-                and store.shape[0] >= max(n, size))  # fmt: skip
+        fits = (
+            store is not None
+            and store.dtype == values.dtype
+            and store.shape[1:] == values.shape[1:]
+            and store.shape[0] >= max(n, size)
+        )
         if fits and n and values.ctypes.data == store.ctypes.data and values.base is store:
             return store  # values are its first rows: changed in place
         if not fits:
@@ -116,14 +125,21 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     for axis in range(3):
         if grid.shape[axis] == 1:
             continue
-        ups, downs, far = leaving_along(arrays[0], state.box, tilt, state.pbc, domain.shape,
-                                        domain.cuts, axis, domain.coordinates[axis])  # fmt: skip
+        ups, downs, far = leaving_along(
+            arrays[0],
+            state.box,
+            tilt,
+            state.pbc,
+            domain.shape,
+            domain.cuts,
+            axis,
+            domain.coordinates[axis],
+        )
         lost += far
         upper = grid.neighbor(rank, axis, 1)
         lower = grid.neighbor(rank, axis, -1)
         from_lower = ranks.exchange_rows(_packed(arrays, ups), upper, lower, 2 * axis)
-        from_upper = ranks.exchange_rows(_packed(arrays, downs), lower, upper,
-                                         2 * axis + 1)  # fmt: skip
+        from_upper = ranks.exchange_rows(_packed(arrays, downs), lower, upper, 2 * axis + 1)
         if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
             continue
         incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
@@ -131,9 +147,10 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         m = len(incoming[0])
         plan = refill_plan(leaving, n, m)
         size = n - len(leaving) + m
-        arrays = [domain.rows.refilled(key, a, n, size, b, plan,
-                                       key[0] == "carried" and key[1] in spent)
-                  for key, a, b in zip(keys, arrays, incoming, strict=True)]  # fmt: skip
+        arrays = [
+            domain.rows.refilled(key, a, n, size, b, plan, key[0] == "carried" and key[1] in spent)
+            for key, a, b in zip(keys, arrays, incoming, strict=True)
+        ]
         n = size
     state.positions, state.velocities, state.masses, state.types, state.ids = arrays[:5]
     carried = dict(zip(names, arrays[5:], strict=True))
@@ -149,10 +166,16 @@ def _room_of(values: NDArray, size: int) -> NDArray | None:
     """The C-contiguous array whose first rows ``values`` are (itself, or the array it is
     a view of), if that has at least ``size`` rows; else None."""
     root = values if values.base is None else values.base
-    if (not isinstance(root, np.ndarray) or root.base is not None
-            or not root.flags.c_contiguous or not values.flags.c_contiguous
-            or root.dtype != values.dtype or root.shape[1:] != values.shape[1:]
-            or root.ctypes.data != values.ctypes.data or root.shape[0] < size):  # fmt: skip
+    if (
+        not isinstance(root, np.ndarray)
+        or root.base is not None
+        or not root.flags.c_contiguous
+        or not values.flags.c_contiguous
+        or root.dtype != values.dtype
+        or root.shape[1:] != values.shape[1:]
+        or root.ctypes.data != values.ctypes.data
+        or root.shape[0] < size
+    ):
         return None
     return root
 

@@ -62,16 +62,34 @@ class DistributedSimulation(Simulation):
         the largest decomposition that fits).
     """
 
-    def __init__(self, state: State, potentials, integrator, skin: float = 0.3, units="lj",
-                 max_displacement: float | None = None, threads: int | None = None, ranks=None,
-                 decomposition=None, precision: str = "double", balance_every: int = 0,
-                 balance_threshold: float = 1.05) -> None:  # fmt: skip
+    def __init__(
+        self,
+        state: State,
+        potentials,
+        integrator,
+        skin: float = 0.3,
+        units="lj",
+        max_displacement: float | None = None,
+        threads: int | None = None,
+        ranks=None,
+        decomposition=None,
+        precision: str = "double",
+        balance_every: int = 0,
+        balance_threshold: float = 1.05,
+    ) -> None:
         ranks = ranks if ranks is not None else mpi_ranks()
         if ranks is None:
             raise ValueError("a DistributedSimulation needs several MPI ranks (run under mpiexec)")
-        super().__init__(state, potentials, integrator, skin=skin, units=units,
-                         max_displacement=max_displacement, threads=threads,
-                         precision=precision)  # fmt: skip
+        super().__init__(
+            state,
+            potentials,
+            integrator,
+            skin=skin,
+            units=units,
+            max_displacement=max_displacement,
+            threads=threads,
+            precision=precision,
+        )
         refuse_undistributable(integrator, self.forcefield.potentials)
         self.ranks = ranks
         whole = self.forcefield
@@ -85,12 +103,21 @@ class DistributedSimulation(Simulation):
         else:
             shape = tuple(int(p) for p in decomposition)
             if math.prod(shape) != ranks.n_ranks:
-                raise ValueError(f"decomposition {list(shape)} has {math.prod(shape)} bricks "
-                                 f"for {ranks.n_ranks} ranks")  # fmt: skip
+                raise ValueError(
+                    f"decomposition {list(shape)} has {math.prod(shape)} bricks "
+                    f"for {ranks.n_ranks} ranks"
+                )
             check_grid(shape, state.box, state.tilt, state.pbc, reach, what)
-        self.forcefield = DistributedForceField(whole.potentials, skin, ranks, Grid(shape), arm,
-                                                precision=precision, balance_every=balance_every,
-                                                balance_threshold=balance_threshold)  # fmt: skip
+        self.forcefield = DistributedForceField(
+            whole.potentials,
+            skin,
+            ranks,
+            Grid(shape),
+            arm,
+            precision=precision,
+            balance_every=balance_every,
+            balance_threshold=balance_threshold,
+        )
         self._masses = state.masses.copy() if ranks.rank == 0 else None
         self._types = state.types.copy() if ranks.rank == 0 else None
         self.state = self._part(state, self.forcefield.domain.owner_of(state))
@@ -114,11 +141,18 @@ class DistributedSimulation(Simulation):
         if slots is not None:
             mine = mine[np.argsort(np.asarray(slots)[mine], kind="stable")]
         return State(
-            positions=state.positions[mine], velocities=state.velocities[mine],
-            masses=state.masses[mine], box=state.box, pbc=state.pbc, types=state.types[mine],
-            type_names=state.type_names, step=state.step, time=state.time, tilt=state.tilt,
+            positions=state.positions[mine],
+            velocities=state.velocities[mine],
+            masses=state.masses[mine],
+            box=state.box,
+            pbc=state.pbc,
+            types=state.types[mine],
+            type_names=state.type_names,
+            step=state.step,
+            time=state.time,
+            tilt=state.tilt,
             ids=mine,
-        )  # fmt: skip
+        )
 
     def attach(self, observer, interval: int = 1) -> None:
         """As :meth:`Simulation.attach`; the observer runs on rank 0 with the whole system."""
@@ -143,8 +177,14 @@ class DistributedSimulation(Simulation):
         """:func:`md.minimize.minimize` of the whole system (collective); atoms migrate
         between its steps as in a run. Returns its MinimizeResult."""
         with using_reductions(self.ranks):
-            return minimize(self.state, self.forcefield, fmax, max_steps,
-                            between_steps=self.redistribute, **options)  # fmt: skip
+            return minimize(
+                self.state,
+                self.forcefield,
+                fmax,
+                max_steps,
+                between_steps=self.redistribute,
+                **options,
+            )
 
     # -------------------------------------------------------------- the loop
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -249,10 +289,17 @@ class DistributedSimulation(Simulation):
         whole = np.empty_like(rows)
         whole[rows[:, 0].astype(np.int64)] = rows
         gathered = State(
-            positions=whole[:, 1:4], velocities=whole[:, 4:7], masses=self._masses, box=state.box,
-            pbc=state.pbc, types=self._types, type_names=state.type_names, step=state.step,
-            time=state.time, tilt=state.tilt,
-        )  # fmt: skip
+            positions=whole[:, 1:4],
+            velocities=whole[:, 4:7],
+            masses=self._masses,
+            box=state.box,
+            pbc=state.pbc,
+            types=self._types,
+            type_names=state.type_names,
+            step=state.step,
+            time=state.time,
+            tilt=state.tilt,
+        )
         start = 11  # after id, positions, velocities, build positions and rank
         gathered_forces = None
         if forces:
@@ -293,8 +340,9 @@ class DistributedSimulation(Simulation):
         row = self.thermo() if thermo else None
         if self.rank != 0:
             return None
-        return GlobalView(state=self.state, row=row, integrator=self.integrator,
-                          forcefield=None, units=self.units)  # fmt: skip
+        return GlobalView(
+            state=self.state, row=row, integrator=self.integrator, forcefield=None, units=self.units
+        )
 
     def resume(self, state: State, reference, reference_cell=None, layout=None) -> None:
         """Continue from a checkpoint: ``state`` is its whole system, ``reference`` the
@@ -322,8 +370,11 @@ class DistributedSimulation(Simulation):
                 at_build.tilt = np.array(tilt, dtype=np.float64)
         if same and layout.get("cuts") is not None:  # planes moved by load balancing
             forcefield.domain.set_grid(Grid(self.grid.shape, layout["cuts"]))
-        owners = (np.asarray(layout["owners"], dtype=np.int64) if same
-                  else forcefield.domain.owner_of(at_build))  # fmt: skip
+        owners = (
+            np.asarray(layout["owners"], dtype=np.int64)
+            if same
+            else forcefield.domain.owner_of(at_build)
+        )
         slots = layout.get("slots") if same else None  # (checkpoints before it: by id)
         self.state = self._part(state, owners, slots)
         part_at_build = self._part(at_build, owners, slots)

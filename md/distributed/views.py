@@ -71,8 +71,7 @@ class Gathered:
         self.uses_virial = observer.uses_virial if isinstance(observer, VirialUse) else True
         #: False for an observer that reads only the step, time and thermo (a thermo
         #: table, a progress bar): it gets them without the atoms being gathered.
-        self.whole_system = (observer.whole_system if isinstance(observer, WholeSystemUse)
-                             else True)  # fmt: skip
+        self.whole_system = observer.whole_system if isinstance(observer, WholeSystemUse) else True
 
     def __call__(self, sim: DistributedSimulation) -> None:
         if self.whole_system:
@@ -150,8 +149,9 @@ class ForceFieldView:
         self._forces = forces
         self._energy = None if row is None else row["potential_energy"]
         complete = reference is not None and not np.isnan(reference).any()
-        self.neighbor_list = ListView(reference if complete else None,
-                                       forcefield.reference_cell, forcefield.n_builds)  # fmt: skip
+        self.neighbor_list = ListView(
+            reference if complete else None, forcefield.reference_cell, forcefield.n_builds
+        )
         self.decomposition = layout
         self.precision = forcefield.precision  # what a checkpoint of the run records
 

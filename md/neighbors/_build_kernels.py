@@ -37,9 +37,19 @@ def _grid_cell(g, origin, inverse_width, n):
 
 @njit(cache=True, error_model="numpy")
 def _bin_atoms(
-    positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of, cell_starts, order,
-    sorted_wrapped, images,
-):  # fmt: skip
+    positions,
+    origin,
+    cell_width,
+    n_cells,
+    periodic,
+    box,
+    tilt,
+    cell_of,
+    cell_starts,
+    order,
+    sorted_wrapped,
+    images,
+):
     """Counting sort of atoms by cell (cells of the restricted triclinic cell).
 
     Atoms are binned by their sheared-back coordinates g (``md.box.fractional``:
@@ -64,17 +74,41 @@ def _bin_atoms(
     counts = np.zeros((1, total), dtype=np.int64)
     moved = np.empty((n, 3))  # wrapped positions, by atom
     wraps = np.empty((n, 3), dtype=np.int32)
-    _bin_pass(0, n, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-              moved, wraps, counts[0])  # fmt: skip
+    _bin_pass(
+        0,
+        n,
+        positions,
+        origin,
+        cell_width,
+        n_cells,
+        periodic,
+        box,
+        tilt,
+        cell_of,
+        moved,
+        wraps,
+        counts[0],
+    )
     _cell_offsets(counts, cell_starts)
     _scatter_pass(0, n, cell_of, moved, wraps, counts[0], order, sorted_wrapped, images)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _bin_atoms_threaded(
-    positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of, cell_starts, order,
-    sorted_wrapped, images, chunks,
-):  # fmt: skip
+    positions,
+    origin,
+    cell_width,
+    n_cells,
+    periodic,
+    box,
+    tilt,
+    cell_of,
+    cell_starts,
+    order,
+    sorted_wrapped,
+    images,
+    chunks,
+):
     """``_bin_atoms`` with its two passes over atoms in ``chunks`` chunks on numba's
     threads; each chunk's atoms take their places in a cell after the earlier
     chunks', so the result is the serial one."""
@@ -84,17 +118,52 @@ def _bin_atoms_threaded(
     moved = np.empty((n, 3))
     wraps = np.empty((n, 3), dtype=np.int32)
     for c in prange(chunks):
-        _bin_pass(c * n // chunks, (c + 1) * n // chunks, positions, origin, cell_width,
-                  n_cells, periodic, box, tilt, cell_of, moved, wraps, counts[c])  # fmt: skip
+        _bin_pass(
+            c * n // chunks,
+            (c + 1) * n // chunks,
+            positions,
+            origin,
+            cell_width,
+            n_cells,
+            periodic,
+            box,
+            tilt,
+            cell_of,
+            moved,
+            wraps,
+            counts[c],
+        )
     _cell_offsets(counts, cell_starts)
     for c in prange(chunks):
-        _scatter_pass(c * n // chunks, (c + 1) * n // chunks, cell_of, moved, wraps, counts[c],
-                      order, sorted_wrapped, images)  # fmt: skip
+        _scatter_pass(
+            c * n // chunks,
+            (c + 1) * n // chunks,
+            cell_of,
+            moved,
+            wraps,
+            counts[c],
+            order,
+            sorted_wrapped,
+            images,
+        )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _bin_pass(first, last, positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-              moved, wraps, counts):  # fmt: skip
+def _bin_pass(
+    first,
+    last,
+    positions,
+    origin,
+    cell_width,
+    n_cells,
+    periodic,
+    box,
+    tilt,
+    cell_of,
+    moved,
+    wraps,
+    counts,
+):
     """Atoms first..last-1: cell, wrapped position and wraps; ``counts`` per cell."""
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
@@ -169,9 +238,21 @@ def _scatter_pass(first, last, cell_of, moved, wraps, fill, order, sorted_wrappe
 
 @njit(cache=True, error_model="numpy")
 def _cell_list(
-    positions, origin, cell_width, n_cells, reach, periodic, box, tilt, r2_max, chunks,
-    neighbors, codes, ids, n_owned,
-):  # fmt: skip
+    positions,
+    origin,
+    cell_width,
+    n_cells,
+    reach,
+    periodic,
+    box,
+    tilt,
+    r2_max,
+    chunks,
+    neighbors,
+    codes,
+    ids,
+    n_owned,
+):
     """The cell search's whole build in one compiled call: bin, search, join.
 
     Returns (order, images, starts, bounds, count, shifted): the slots
@@ -204,11 +285,36 @@ def _cell_list(
     wrapped[:, n:] = 0.0
     images = np.empty((n, 3), dtype=np.int32)
     if chunks > 1:
-        _bin_atoms_threaded(positions, origin, cell_width, n_cells, periodic, box, tilt,
-                            cell_of, cell_starts, order, wrapped, images, chunks)  # fmt: skip
+        _bin_atoms_threaded(
+            positions,
+            origin,
+            cell_width,
+            n_cells,
+            periodic,
+            box,
+            tilt,
+            cell_of,
+            cell_starts,
+            order,
+            wrapped,
+            images,
+            chunks,
+        )
     else:
-        _bin_atoms(positions, origin, cell_width, n_cells, periodic, box, tilt, cell_of,
-                   cell_starts, order, wrapped, images)  # fmt: skip
+        _bin_atoms(
+            positions,
+            origin,
+            cell_width,
+            n_cells,
+            periodic,
+            box,
+            tilt,
+            cell_of,
+            cell_starts,
+            order,
+            wrapped,
+            images,
+        )
     slot_cell = cell_of  # reused: the cell of each slot, in slot order
     if chunks > 1:
         layout = _slot_layout_threaded(wrapped, cell_starts, n_cells, slot_cell, chunks)
@@ -222,13 +328,45 @@ def _cell_list(
     capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
     owners = _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic)
     if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
-        _frame_pairs_threaded(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-                              cell_starts, layout, bounds, capacity, starts, neighbors, codes,
-                              counts, owners)  # fmt: skip
+        _frame_pairs_threaded(
+            wrapped,
+            slot_cell,
+            r2_max,
+            n_cells,
+            reach,
+            periodic,
+            box,
+            tilt,
+            cell_starts,
+            layout,
+            bounds,
+            capacity,
+            starts,
+            neighbors,
+            codes,
+            counts,
+            owners,
+        )
     else:
-        _frame_pairs(wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-                     cell_starts, layout, bounds, capacity, starts, neighbors, codes,
-                     counts, owners)  # fmt: skip
+        _frame_pairs(
+            wrapped,
+            slot_cell,
+            r2_max,
+            n_cells,
+            reach,
+            periodic,
+            box,
+            tilt,
+            cell_starts,
+            layout,
+            bounds,
+            capacity,
+            starts,
+            neighbors,
+            codes,
+            counts,
+            owners,
+        )
     most = counts.max()
     if most > capacity:
         return order, images, starts, bounds, -most, np.empty(0, dtype=np.bool_)
@@ -247,8 +385,9 @@ def _join_chunks(bounds, capacity, counts, starts, neighbors, codes):
     offsets, moves = _join_plan(capacity, counts)
     for chunk in prange(counts.shape[0]):
         block = np.empty(_UNPACK_BLOCK, dtype=np.uint32)
-        _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes,
-                      block)  # fmt: skip
+        _unpack_chunk(
+            chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes, block
+        )
     return _join_rest(capacity, counts, offsets, moves, neighbors, codes)
 
 
@@ -274,8 +413,7 @@ def _join_plan(capacity, counts):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes,
-                  block):  # fmt: skip
+def _unpack_chunk(chunk, bounds, capacity, counts, offsets, moves, starts, neighbors, codes, block):
     """Chunk ``chunk``'s packed pairs as slots and codes: at their place in the joined list
     if ``moves[chunk]``, else where they are; its row ends made absolute.
 

@@ -95,9 +95,16 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start):
     if not _candidate_types(tx, ty, tz, packed):
         return None
     sig = types.uint64(
-        types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
+        types.float64,
+        types.float64,
+        types.float64,
+        types.float64,
+        tx,
+        ty,
+        tz,
+        packed,
         types.intp,
-    )  # fmt: skip
+    )
 
     def codegen(context, builder, signature, args):
         i64 = ir.IntType(64)
@@ -126,9 +133,20 @@ def _permute_packer(blocks: int, whole: bool):
         if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(out, types.uint32)):
             return None
         sig = types.int64(
-            types.float64, types.float64, types.float64, types.float64, tx, ty, tz, packed,
-            types.intp, types.intp, table, out, types.intp,
-        )  # fmt: skip
+            types.float64,
+            types.float64,
+            types.float64,
+            types.float64,
+            tx,
+            ty,
+            tz,
+            packed,
+            types.intp,
+            types.intp,
+            table,
+            out,
+            types.intp,
+        )
         return sig, codegen
 
     def codegen(context, builder, signature, args):
@@ -178,8 +196,9 @@ def _near_pack_blocks(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, tabl
     tests only the blocks it has."""
     done = 0
     while done < valid:
-        at = _near_pack_permute_block(xi, yi, zi, r2_max, tx, ty, tz, packed, start + done,
-                                      valid - done, table, out, at)  # fmt: skip
+        at = _near_pack_permute_block(
+            xi, yi, zi, r2_max, tx, ty, tz, packed, start + done, valid - done, table, out, at
+        )
         done += 8
     return at
 
@@ -210,8 +229,7 @@ _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, count, capacity,
-          out):  # fmt: skip
+def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, count, capacity, out):
     """List the candidates first..last-1 closer than sqrt(r2_max), packed, at
     ``out[base + count:]``; return how many: the exact path near the end of a
     chunk's region.

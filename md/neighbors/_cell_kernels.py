@@ -80,6 +80,10 @@ gather, the owned-pair filter) and ``_brute_force_pairs``; the candidate test's 
 (``_near_bits``, the ``_near_pack`` family, ``_keep``) is in ``_candidates``; the build
 around the search (``_cell_list``, binning, joining the chunks, ``_balanced_bounds``, the
 shift table, the atom-space list and the rebuild check) in ``_build_kernels``.
+
+A note on its length (about 1000 lines, over the 800 where a module is split): its
+kernels take their arrays as arguments, and the formatter writes a long argument list a
+line per argument (about 250 of its lines); they are one search and stay together.
 """
 
 from __future__ import annotations
@@ -139,9 +143,13 @@ def _brute_force_pairs(positions, lengths, inverse, tilt, r2_max, starts, neighb
         zi = positions[i, 2]
         for j in range(i + 1, n):
             dx, dy, dz = min_image(
-                xi - positions[j, 0], yi - positions[j, 1], zi - positions[j, 2],
-                lengths, inverse, tilt,
-            )  # fmt: skip
+                xi - positions[j, 0],
+                yi - positions[j, 1],
+                zi - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
             if dx * dx + dy * dy + dz * dz < r2_max:
                 if count < capacity:
                     neighbors[count] = j
@@ -170,9 +178,24 @@ def _neighbor_cell(c, offset, n, periodic):
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
-    bounds, capacity, starts, neighbors, codes, counts, owners,
-):  # fmt: skip
+    wrapped,
+    slot_cell,
+    r2_max,
+    n_cells,
+    reach,
+    periodic,
+    box,
+    tilt,
+    cell_starts,
+    layout,
+    bounds,
+    capacity,
+    starts,
+    neighbors,
+    codes,
+    counts,
+    owners,
+):
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
     The serial driver; ``_frame_pairs_threaded`` runs the chunks on
@@ -207,32 +230,99 @@ def _frame_pairs(
     planes, tags, most = layout
     for chunk in range(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
+            chunk,
+            wrapped,
+            slot_cell,
+            r2_max,
+            n_cells,
+            reach,
+            periodic,
+            box,
+            tilt,
+            cell_starts,
+            planes,
+            tags,
+            bounds,
+            capacity,
+            most,
+            starts,
+            neighbors,
+            codes,
+            counts,
             owners,
-        )  # fmt: skip
+        )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _frame_pairs_threaded(
-    wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts, layout,
-    bounds, capacity, starts, neighbors, codes, counts, owners,
-):  # fmt: skip
+    wrapped,
+    slot_cell,
+    r2_max,
+    n_cells,
+    reach,
+    periodic,
+    box,
+    tilt,
+    cell_starts,
+    layout,
+    bounds,
+    capacity,
+    starts,
+    neighbors,
+    codes,
+    counts,
+    owners,
+):
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     planes, tags, most = layout
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt,
-            cell_starts, planes, tags, bounds, capacity, most, starts, neighbors, codes, counts,
+            chunk,
+            wrapped,
+            slot_cell,
+            r2_max,
+            n_cells,
+            reach,
+            periodic,
+            box,
+            tilt,
+            cell_starts,
+            planes,
+            tags,
+            bounds,
+            capacity,
+            most,
+            starts,
+            neighbors,
+            codes,
+            counts,
             owners,
-        )  # fmt: skip
+        )
 
 
 @njit(cache=True, error_model="numpy")
 def _frame_pairs_chunk(
-    chunk, wrapped, slot_cell, r2_max, n_cells, reach, periodic, box, tilt, cell_starts,
-    planes, tags, bounds, capacity, most, starts, neighbors, codes, counts, owners,
-):  # fmt: skip
+    chunk,
+    wrapped,
+    slot_cell,
+    r2_max,
+    n_cells,
+    reach,
+    periodic,
+    box,
+    tilt,
+    cell_starts,
+    planes,
+    tags,
+    bounds,
+    capacity,
+    most,
+    starts,
+    neighbors,
+    codes,
+    counts,
+    owners,
+):
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
     The slots of one (x, y) column of cells are consecutive and in z order.
@@ -274,8 +364,13 @@ def _frame_pairs_chunk(
     z_start = np.empty(n_z + 1, dtype=np.int64)  # candidates of z cell zc - ghost
     masks = np.empty(size // 64 + 1, dtype=np.uint64)
     own_size = reach * most_cell + 64
-    own = (np.empty(own_size), np.empty(own_size), np.empty(own_size),
-           np.empty(own_size, dtype=np.uint32), np.empty(reach + 1, dtype=np.int64))  # fmt: skip
+    own = (
+        np.empty(own_size),
+        np.empty(own_size),
+        np.empty(own_size),
+        np.empty(own_size, dtype=np.uint32),
+        np.empty(reach + 1, dtype=np.int64),
+    )
     runs = np.empty((4, 2 * reach + 2), dtype=np.int64)
     run_shifts = np.empty((2, 2 * reach + 2))
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
@@ -287,9 +382,23 @@ def _frame_pairs_chunk(
         column = slot_cell[p] // nz
         stop = min(cell_starts[column * nz + nz], end)
         _gather_column(
-            column, n_cells, reach, ghost, periodic, box, tilt, planes, runs, run_shifts, cx,
-            cy, cz, c_packed, z_start, own,
-        )  # fmt: skip
+            column,
+            n_cells,
+            reach,
+            ghost,
+            periodic,
+            box,
+            tilt,
+            planes,
+            runs,
+            run_shifts,
+            cx,
+            cy,
+            cz,
+            c_packed,
+            z_start,
+            own,
+        )
         mixed = column_mixed[column] if filtering else False
         for i in range(p, stop):
             row_begin = count
@@ -307,23 +416,73 @@ def _frame_pairs_chunk(
                 at = base + count
                 w = first
                 while w + 64 <= last:
-                    at = _near_pack_whole(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed,
-                                          w, 64, PERMUTATIONS, packed_list, at)  # fmt: skip
+                    at = _near_pack_whole(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        cx,
+                        cy,
+                        cz,
+                        c_packed,
+                        w,
+                        64,
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
                     w += 64
                 if w < last:
-                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, cx, cy, cz, c_packed, w,
-                                    last - w, PERMUTATIONS, packed_list, at)  # fmt: skip
+                    at = _near_pack(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        cx,
+                        cy,
+                        cz,
+                        c_packed,
+                        w,
+                        last - w,
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
                 w = i + 1
                 while w < own_last:  # a crowded column may hold more than a word
-                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, xs, ys, zs, tags, w,
-                                    min(64, own_last - w), PERMUTATIONS, packed_list,
-                                    at)  # fmt: skip
+                    at = _near_pack(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        xs,
+                        ys,
+                        zs,
+                        tags,
+                        w,
+                        min(64, own_last - w),
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
                     w += 64
                 w = 0
                 while w < ghost_last:
-                    at = _near_pack(xs[i], ys[i], zs[i], r2_max, own[0], own[1], own[2],
-                                    own[3], w, min(64, ghost_last - w), PERMUTATIONS,
-                                    packed_list, at)  # fmt: skip
+                    at = _near_pack(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        own[0],
+                        own[1],
+                        own[2],
+                        own[3],
+                        w,
+                        min(64, ghost_last - w),
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
                     w += 64
                 count = at - base
             else:
@@ -334,12 +493,31 @@ def _frame_pairs_chunk(
                         tx, ty, tz, tp, a, b = xs, ys, zs, tags, i + 1, own_last
                     else:
                         tx, ty, tz, tp, a, b = own[0], own[1], own[2], own[3], 0, ghost_last
-                    count += _keep(xs[i], ys[i], zs[i], r2_max, tx, ty, tz, tp, a, b, masks,
-                                   base, count, capacity, packed_list)  # fmt: skip
+                    count += _keep(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        tx,
+                        ty,
+                        tz,
+                        tp,
+                        a,
+                        b,
+                        masks,
+                        base,
+                        count,
+                        capacity,
+                        packed_list,
+                    )
             # (past the capacity nothing was written: the count stays an upper bound)
             if (mixed or (filtering and not slot_owned[i])) and count <= capacity:
-                count = _keep_owned_row(packed_list, base + row_begin, base + count,
-                                        slot_owned, slot_ids, i) - base  # fmt: skip
+                count = (
+                    _keep_owned_row(
+                        packed_list, base + row_begin, base + count, slot_owned, slot_ids, i
+                    )
+                    - base
+                )
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
@@ -371,8 +549,9 @@ def _slot_layout(wrapped, cell_starts, n_cells, slot_cell):
     ``_slot_layout_threaded`` fills the (x, y) columns on numba's threads.
     """
     planes, tags, most = _layout_arrays(wrapped.shape[1], cell_starts, n_cells)
-    _fill_columns(0, n_cells[0] * n_cells[1], wrapped, cell_starts, n_cells, planes, tags,
-                  slot_cell)  # fmt: skip
+    _fill_columns(
+        0, n_cells[0] * n_cells[1], wrapped, cell_starts, n_cells, planes, tags, slot_cell
+    )
     return planes, tags, most
 
 
@@ -383,8 +562,16 @@ def _slot_layout_threaded(wrapped, cell_starts, n_cells, slot_cell, chunks):
     planes, tags, most = _layout_arrays(wrapped.shape[1], cell_starts, n_cells)
     n_columns = n_cells[0] * n_cells[1]
     for c in prange(chunks):
-        _fill_columns(c * n_columns // chunks, (c + 1) * n_columns // chunks, wrapped,
-                      cell_starts, n_cells, planes, tags, slot_cell)  # fmt: skip
+        _fill_columns(
+            c * n_columns // chunks,
+            (c + 1) * n_columns // chunks,
+            wrapped,
+            cell_starts,
+            n_cells,
+            planes,
+            tags,
+            slot_cell,
+        )
     return planes, tags, most
 
 
@@ -455,8 +642,24 @@ def _fill_columns(first, last, wrapped, cell_starts, n_cells, planes, tags, slot
 
 
 @njit(cache=True, error_model="numpy")
-def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, runs,
-                   run_shifts, cx, cy, cz, c_packed, z_start, own):  # fmt: skip
+def _gather_column(
+    column,
+    n_cells,
+    reach,
+    ghost,
+    periodic,
+    box,
+    tilt,
+    planes,
+    runs,
+    run_shifts,
+    cx,
+    cy,
+    cz,
+    c_packed,
+    z_start,
+    own,
+):
     """Copy the candidates of one (x, y) column for ``_frame_pairs_chunk``.
 
     Per z cell (cell zc - ghost from ``z_start[zc]``), the column's forward
@@ -511,18 +714,45 @@ def _gather_column(column, n_cells, reach, ghost, periodic, box, tilt, planes, r
             first_y = run_first[r]
             row = (layer + run_x[r]) * ny
             m = _gather_run(
-                plane_starts[row + first_y], plane_starts[row + run_last[r] + 1],
-                shift_x[r] + wz * xz, shift_y[r] + wz * yz, wz * box[2], code_xy[r] + wz,
-                px, py, pz, p_slot, cx, cy, cz, c_packed, m,
-            )  # fmt: skip
+                plane_starts[row + first_y],
+                plane_starts[row + run_last[r] + 1],
+                shift_x[r] + wz * xz,
+                shift_y[r] + wz * yz,
+                wz * box[2],
+                code_xy[r] + wz,
+                px,
+                py,
+                pz,
+                p_slot,
+                cx,
+                cy,
+                cz,
+                c_packed,
+                m,
+            )
     z_start[nz + 2 * ghost] = m
     ox_, oy_, oz_, o_packed, o_start = own
     m = 0
     for k in range(ghost):  # the own column's bottom cells, one cell vector c up
         o_start[k] = m
         cell = (k * nx + kx0) * ny + ky0
-        m = _gather_run(plane_starts[cell], plane_starts[cell + 1], xz, yz, box[2], 9 + 3 + 2,
-                        px, py, pz, p_slot, ox_, oy_, oz_, o_packed, m)  # fmt: skip
+        m = _gather_run(
+            plane_starts[cell],
+            plane_starts[cell + 1],
+            xz,
+            yz,
+            box[2],
+            9 + 3 + 2,
+            px,
+            py,
+            pz,
+            p_slot,
+            ox_,
+            oy_,
+            oz_,
+            o_packed,
+            m,
+        )
     o_start[ghost] = m
 
 
@@ -540,8 +770,9 @@ def _gather_run(first, last, sx, sy, sz, code, xs, ys, zs, slots, cx, cy, cz, c_
     tag = np.uint32(code) << _CODE_SHIFT
     done = 0
     while True:
-        _copy_block(xs, ys, zs, slots, first + done, sx, sy, sz, tag, cx, cy, cz, c_packed,
-                    m + done)  # fmt: skip
+        _copy_block(
+            xs, ys, zs, slots, first + done, sx, sy, sz, tag, cx, cy, cz, c_packed, m + done
+        )
         done += GATHER_BLOCK
         if done >= last - first:
             return m + last - first
@@ -574,24 +805,41 @@ def _copy_block(typingctx, xs, ys, zs, slots, first, sx, sy, sz, tag, cx, cy, cz
     ):
         return None
     sig = types.void(
-        xs, ys, zs, slots, types.intp, types.float64, types.float64, types.float64,
-        types.uint32, cx, cy, cz, c_packed, types.intp,
-    )  # fmt: skip
+        xs,
+        ys,
+        zs,
+        slots,
+        types.intp,
+        types.float64,
+        types.float64,
+        types.float64,
+        types.uint32,
+        cx,
+        cy,
+        cz,
+        c_packed,
+        types.intp,
+    )
 
     def codegen(context, builder, signature, args):
         width = GATHER_BLOCK
         vector = ir.VectorType(ir.DoubleType(), width)
         words = ir.VectorType(ir.IntType(32), width)
-        data = [array_data(context, builder, signature.args[k], args[k]) for k in range(14)
-                if k not in (4, 5, 6, 7, 8, 13)]  # fmt: skip
+        data = [
+            array_data(context, builder, signature.args[k], args[k])
+            for k in range(14)
+            if k not in (4, 5, 6, 7, 8, 13)
+        ]
         sources, targets = data[:4], data[4:]
         first, m = args[4], args[13]
         for source, target, shift in zip(sources[:3], targets[:3], args[5:8], strict=True):
-            moved = builder.fadd(load_vector(builder, source, first, vector),
-                                 splat(builder, shift, vector))  # fmt: skip
+            moved = builder.fadd(
+                load_vector(builder, source, first, vector), splat(builder, shift, vector)
+            )
             store_vector(builder, moved, target, m)
-        tagged = builder.or_(load_vector(builder, sources[3], first, words),
-                             splat(builder, args[8], words))  # fmt: skip
+        tagged = builder.or_(
+            load_vector(builder, sources[3], first, words), splat(builder, args[8], words)
+        )
         store_vector(builder, tagged, targets[3], m)
         return context.get_dummy_value()
 
@@ -635,8 +883,11 @@ def _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic):
     column, whether a ghost lies in it or in a column within ``reach`` along x or
     y (its rows' partners may then be ghosts). Empty ``ids``: three empty arrays."""
     if ids.shape[0] == 0:
-        return (np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64),
-                np.empty(0, dtype=np.bool_))  # fmt: skip
+        return (
+            np.empty(0, dtype=np.uint8),
+            np.empty(0, dtype=np.int64),
+            np.empty(0, dtype=np.bool_),
+        )
     n = order.shape[0]
     slot_owned = np.empty(n, dtype=np.uint8)
     slot_ids = np.empty(n, dtype=np.int64)

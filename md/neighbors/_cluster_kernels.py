@@ -18,6 +18,11 @@ once.
 
 Only fully periodic, orthorhombic cells wide enough that no cluster meets
 another one's image twice (the caller checks): the slot frame serves the rest.
+
+A note on its length (about 900 lines, over the 800 where a module is split): its
+kernels take their arrays as arguments, and the formatter writes a long argument list a
+line per argument (about 140 of its lines); they are one grid and its search, and stay
+together.
 """
 
 from __future__ import annotations
@@ -85,8 +90,9 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
     wrapped = np.empty((n, 3))
     column = np.empty(n, np.int64)
     for t in prange(chunks):
-        _wrap_atoms(positions, box, ncx, ncy, wrapped, column, t * n // chunks,
-                    (t + 1) * n // chunks)  # fmt: skip
+        _wrap_atoms(
+            positions, box, ncx, ncy, wrapped, column, t * n // chunks, (t + 1) * n // chunks
+        )
     counts, order, first = _column_order(column, ncx * ncy)
     atom = np.full(first[-1] * CLUSTER, -1, np.int64)
     heights = np.empty(n)
@@ -147,8 +153,11 @@ def _column_atoms(wrapped, counts, order, first, heights, atom, c):
 @njit(cache=True, inline="always", error_model="numpy")
 def _grid_boxes(n_clusters):
     """The slots' origins (zeroed) and the clusters' lower and upper corners."""
-    return (np.zeros((n_clusters * CLUSTER, 3)), np.empty((n_clusters, 3)),
-            np.empty((n_clusters, 3)))  # fmt: skip
+    return (
+        np.zeros((n_clusters * CLUSTER, 3)),
+        np.empty((n_clusters, 3)),
+        np.empty((n_clusters, 3)),
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -172,8 +181,7 @@ def _cluster_box(positions, wrapped, atom, origin, lower, upper, cl):
 
 
 @njit(cache=True, error_model="numpy")
-def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj,
-                 reach2):  # fmt: skip
+def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2):
     """The cluster pairs of a list of radius ``radius``.
 
     The candidates: for each i cluster, the clusters j >= i of the columns whose
@@ -222,12 +230,42 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     counts = np.zeros(n_clusters, np.int64)
     used = np.zeros(chunks, np.int64)
     if chunks == 1:
-        used[0] = _search_columns(box, ncx, ncy, first, lower, upper, radius, 0, n_columns,
-                                  counts, part_partners[0], part_offsets[0], xi, xj,
-                                  reach2)  # fmt: skip
+        used[0] = _search_columns(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            radius,
+            0,
+            n_columns,
+            counts,
+            part_partners[0],
+            part_offsets[0],
+            xi,
+            xj,
+            reach2,
+        )
     else:
-        _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
-                       part_partners, part_offsets, used, xi, xj, reach2)  # fmt: skip
+        _search_chunks(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            radius,
+            column_bounds,
+            room,
+            counts,
+            part_partners,
+            part_offsets,
+            used,
+            xi,
+            xj,
+            reach2,
+        )
     if used.min() < 0:
         return None
     starts = np.zeros(n_clusters + 1, np.int64)
@@ -237,24 +275,54 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
         return starts, part_partners[0, : used[0]], part_offsets[0, : used[0]]
     partners = np.empty(starts[n_clusters], np.int32)
     offsets = np.empty((starts[n_clusters], 3), np.float32)
-    _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets, partners,
-                 offsets)  # fmt: skip
+    _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets, partners, offsets)
     return starts, partners, offsets
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _search_chunks(box, ncx, ncy, first, lower, upper, radius, column_bounds, room, counts,
-                   part_partners, part_offsets, used, xi, xj, reach2):  # fmt: skip
+def _search_chunks(
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    radius,
+    column_bounds,
+    room,
+    counts,
+    part_partners,
+    part_offsets,
+    used,
+    xi,
+    xj,
+    reach2,
+):
     """:func:`_search_columns` for each chunk of columns, on the threads."""
     for t in prange(column_bounds.shape[0] - 1):
-        used[t] = _search_columns(box, ncx, ncy, first, lower, upper, radius, column_bounds[t],
-                                  column_bounds[t + 1], counts, part_partners[t, : room[t]],
-                                  part_offsets[t, : room[t]], xi, xj, reach2)  # fmt: skip
+        used[t] = _search_columns(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            radius,
+            column_bounds[t],
+            column_bounds[t + 1],
+            counts,
+            part_partners[t, : room[t]],
+            part_offsets[t, : room[t]],
+            xi,
+            xj,
+            reach2,
+        )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _join_chunks(starts, first, column_bounds, used, part_partners, part_offsets, partners,
-                 offsets):  # fmt: skip
+def _join_chunks(
+    starts, first, column_bounds, used, part_partners, part_offsets, partners, offsets
+):
     """Copy each chunk's rows to their place in the whole list, on the threads."""
     for t in prange(column_bounds.shape[0] - 1):
         begin = starts[first[column_bounds[t]]]
@@ -276,8 +344,9 @@ def _periodic_column(index, count, length):
 
 
 @njit(cache=True, error_model="numpy")
-def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners,
-                    offsets, xi, xj, reach2):  # fmt: skip
+def _search_columns(
+    box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners, offsets, xi, xj, reach2
+):
     """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
     each row's length into ``counts[ci]``, the rows one after another into ``partners``
     and ``offsets`` from their start. Returns the pairs written, or minus the pairs found
@@ -387,8 +456,11 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
             k += 1
             for w in range(windows[row]):
                 slot = window_slot[row, w]
-                sx, sy, sz = ox - slot_shift[slot, 0], oy - slot_shift[slot, 1], oz - slot_shift[
-                    slot, 2]  # fmt: skip
+                sx, sy, sz = (
+                    ox - slot_shift[slot, 0],
+                    oy - slot_shift[slot, 1],
+                    oz - slot_shift[slot, 2],
+                )
                 lo, hi = window_begin[row, w], window_end[row, w]
                 if xi is None:
                     for j in range(hi - lo):  # no dependence between j: vectorised
@@ -400,8 +472,23 @@ def _search_columns(box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, 
                     continue
                 # each candidate written, and kept (the next one written after it) only
                 # where an atom pair is within reach: no branch, no second pass
-                k = _keep_window(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2,
-                                 partners, offsets, k)  # fmt: skip
+                k = _keep_window(
+                    xi,
+                    xj,
+                    ci,
+                    lo,
+                    hi,
+                    sx,
+                    sy,
+                    sz,
+                    all_x,
+                    all_y,
+                    all_z,
+                    reach2,
+                    partners,
+                    offsets,
+                    k,
+                )
             counts[ci] = k - row_start
     return k
 
@@ -538,22 +625,21 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
 
     def codegen(context, builder, signature, args):
         xi_p, xj_p = (array_data(context, builder, signature.args[n], args[n]) for n in range(2))
-        ci, cj = (context.cast(builder, args[n], signature.args[n], types.int64)
-                  for n in (2, 3))  # fmt: skip
+        ci, cj = (context.cast(builder, args[n], signature.args[n], types.int64) for n in (2, 3))
         ox, oy, oz, reach2 = args[4:]
         size = ir.Constant(_I64, 3 * CLUSTER)
         halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size), _LANES)
         reach = splat(builder, reach2, _VECTOR)
-        shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), (ox, oy, oz),
-                                 lanes=_LANES)  # fmt: skip
+        shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), (ox, oy, oz), lanes=_LANES)
         return _any_near(builder, halves, shifted, reach)
 
     return sig, codegen
 
 
 @njit(cache=True, error_model="numpy")
-def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
-                kept_partners, kept_offsets):  # fmt: skip
+def prune_pairs(
+    starts, partners, offsets, bounds, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
+):
     """Keep the pairs of the cluster list (``starts``, ``partners``, ``offsets``) that
     have an atom pair closer than sqrt(``reach2``) at the relative positions ``xi``/``xj``
     (GROMACS's dynamic pruning of an outer list to an inner one), each row in its
@@ -572,11 +658,32 @@ def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
     n_clusters = starts.shape[0] - 1
     chunks = bounds.shape[0] - 1
     if chunks == 1:
-        _prune_rows(starts, partners, offsets, 0, n_clusters, xi, xj, reach2,
-                    kept_starts, kept_partners, kept_offsets)  # fmt: skip
+        _prune_rows(
+            starts,
+            partners,
+            offsets,
+            0,
+            n_clusters,
+            xi,
+            xj,
+            reach2,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
     else:
-        _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
-                      kept_partners, kept_offsets)  # fmt: skip
+        _prune_chunks(
+            starts,
+            partners,
+            offsets,
+            bounds,
+            xi,
+            xj,
+            reach2,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
     kept_starts[0] = 0
     for ci in range(n_clusters):  # the counts, into row offsets
         kept_starts[ci + 1] += kept_starts[ci]
@@ -590,17 +697,30 @@ def prune_pairs(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _prune_chunks(starts, partners, offsets, bounds, xi, xj, reach2, kept_starts,
-                  kept_partners, kept_offsets):  # fmt: skip
+def _prune_chunks(
+    starts, partners, offsets, bounds, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
+):
     """:func:`_prune_rows` for each chunk of i clusters, on the threads."""
     for t in prange(bounds.shape[0] - 1):
-        _prune_rows(starts, partners, offsets, bounds[t], bounds[t + 1], xi, xj, reach2,
-                    kept_starts, kept_partners, kept_offsets)  # fmt: skip
+        _prune_rows(
+            starts,
+            partners,
+            offsets,
+            bounds[t],
+            bounds[t + 1],
+            xi,
+            xj,
+            reach2,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
 
 
 @njit(cache=True, error_model="numpy")
-def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts,
-                kept_partners, kept_offsets):  # fmt: skip
+def _prune_rows(
+    starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
+):
     """Check and compact the rows of i clusters ``c0`` to ``c1``, the kept pairs written
     one after another from ``starts[c0]`` (every pair is written, a dropped one where the
     next kept one overwrites it: no branch; never past the chunk's own rows), each row's
@@ -608,13 +728,25 @@ def _prune_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts,
     k = starts[c0]
     for ci in range(c0, c1):
         row = k
-        k = _keep_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2,
-                       kept_partners, kept_offsets, k)  # fmt: skip
+        k = _keep_near(
+            xi,
+            xj,
+            partners,
+            offsets,
+            starts[ci],
+            starts[ci + 1],
+            ci,
+            reach2,
+            kept_partners,
+            kept_offsets,
+            k,
+        )
         kept_starts[ci + 1] = k - row
 
 
-def _keep_window_twin(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners,
-                      offsets, k):  # fmt: skip
+def _keep_window_twin(
+    xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
+):
     """:func:`_keep_window` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     for j in range(lo, hi):
         o = (np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), np.float32(sz - all_z[j]))
@@ -626,8 +758,9 @@ def _keep_window_twin(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach
 
 @python_twin(_keep_window_twin)
 @intrinsic
-def _keep_window(typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2,
-                 partners, offsets, k):  # fmt: skip
+def _keep_window(
+    typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
+):
     """The search's candidates ``lo`` to ``hi`` (j clusters of one window) of i cluster
     ``ci``: each written to ``partners``/``offsets`` from ``k`` on, its offset ``s -
     all[j]`` (double, then float32, per axis), and kept (the next one written after it)
@@ -636,19 +769,23 @@ def _keep_window(typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z,
     per window (numba's loop reloaded them for every candidate: its float32 stores might
     be the positions, as far as LLVM knows)."""
     if partners.dtype != types.int32 or offsets.dtype != types.float32:
-        raise TypeError(f"_keep_window: int32 partners and float32 offsets, got {partners} "
-                        f"and {offsets}")  # fmt: skip
-    sig = types.int64(xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners,
-                      offsets, k)  # fmt: skip
+        raise TypeError(
+            f"_keep_window: int32 partners and float32 offsets, got {partners} and {offsets}"
+        )
+    sig = types.int64(
+        xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
+    )
 
     def codegen(context, builder, signature, args):
         arg = signature.args
         xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
-        ci_v, lo_v, hi_v, k_v = (context.cast(builder, args[n], arg[n], types.int64)
-                                 for n in (2, 3, 4, 14))  # fmt: skip
+        ci_v, lo_v, hi_v, k_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (2, 3, 4, 14)
+        )
         shift = [context.cast(builder, args[n], arg[n], types.float64) for n in (5, 6, 7)]
-        centres = [(arg[n], context.make_array(arg[n])(context, builder, args[n]))
-                   for n in (8, 9, 10)]  # fmt: skip
+        centres = [
+            (arg[n], context.make_array(arg[n])(context, builder, args[n])) for n in (8, 9, 10)
+        ]
         reach2 = args[11]
         part_type, off_type = arg[12], arg[13]
         part_a = context.make_array(part_type)(context, builder, args[12])
@@ -663,8 +800,9 @@ def _keep_window(typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z,
             for d, (centre_type, centre) in enumerate(centres):
                 at = cgutils.get_item_pointer(context, builder, centre_type, centre, [j])
                 value = builder.fptrunc(builder.fsub(shift[d], builder.load(at)), _F32)
-                slot = cgutils.get_item_pointer(context, builder, off_type, off_a,
-                                                [to, ir.Constant(_I64, d)])  # fmt: skip
+                slot = cgutils.get_item_pointer(
+                    context, builder, off_type, off_a, [to, ir.Constant(_I64, d)]
+                )
                 builder.store(value, slot)
                 offset.append(value)
             slot = cgutils.get_item_pointer(context, builder, part_type, part_a, [to])
@@ -677,8 +815,9 @@ def _keep_window(typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z,
     return sig, codegen
 
 
-def _keep_near_twin(xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
-                    kept_offsets, k):  # fmt: skip
+def _keep_near_twin(
+    xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
+):
     """:func:`_keep_near` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     if start == end:
         return k
@@ -695,8 +834,9 @@ def _keep_near_twin(xi, xj, partners, offsets, start, end, ci, reach2, kept_part
 
 @python_twin(_keep_near_twin)
 @intrinsic
-def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
-               kept_offsets, k):  # fmt: skip
+def _keep_near(
+    typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
+):
     """Copy i cluster ``ci``'s pairs ``start`` to ``end`` that have an atom pair within
     reach (:func:`_near_pair`'s check; the first, the cluster with itself, always) to
     ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same arrays, ``k``
@@ -708,18 +848,23 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
     loaded once per row: numba's loop reloaded and re-shuffled them for every pair (the
     float32 offsets it stores might be the float32 positions, as far as LLVM knows)."""
     if partners.dtype != kept_partners.dtype or offsets.dtype != kept_offsets.dtype:
-        raise TypeError(f"_keep_near: the kept arrays as the list's, got {kept_partners} for "
-                        f"{partners} and {kept_offsets} for {offsets}")  # fmt: skip
-    sig = types.int64(xi, xj, partners, offsets, start, end, ci, reach2, kept_partners,
-                      kept_offsets, k)  # fmt: skip
+        raise TypeError(
+            f"_keep_near: the kept arrays as the list's, got {kept_partners} for "
+            f"{partners} and {kept_offsets} for {offsets}"
+        )
+    sig = types.int64(
+        xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
+    )
 
     def codegen(context, builder, signature, args):
         arg = signature.args
         xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
-        arrays = {n: (arg[n], context.make_array(arg[n])(context, builder, args[n]))
-                  for n in (2, 3, 8, 9)}  # fmt: skip
-        start_v, end_v, ci_v, k_v = (context.cast(builder, args[n], arg[n], types.int64)
-                                     for n in (4, 5, 6, 10))  # fmt: skip
+        arrays = {
+            n: (arg[n], context.make_array(arg[n])(context, builder, args[n])) for n in (2, 3, 8, 9)
+        }
+        start_v, end_v, ci_v, k_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (4, 5, 6, 10)
+        )
         reach2 = args[7]
         result = cgutils.alloca_once_value(builder, k_v)
 
@@ -747,8 +892,7 @@ def _keep_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kep
                 to = builder.load(result)
                 offset = copy(q, to)
                 cj = builder.sext(builder.load(at(2, q)), _I64)
-                shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), offset,
-                                         lanes=_LANES)  # fmt: skip
+                shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), offset, lanes=_LANES)
                 near = _any_near(builder, halves, shifted, reach)
                 builder.store(builder.add(to, builder.zext(near, _I64)), result)
         return builder.load(result)

@@ -1,6 +1,6 @@
 """Verlet neighbour lists built from cell lists.
 
-A note on its length (about 1000 lines, over the 800 where a module is split): nearly
+A note on its length (about 1100 lines, over the 800 where a module is split): nearly
 all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
 brute-force, cell and cluster builds and the prune share its buffers and reference
 positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
@@ -189,8 +189,9 @@ class ClusterFrame:
         """Cluster pairs listed."""
         return int(self.starts[-1])
 
-    def relative_positions(self, positions: NDArray[np.float64], xi: NDArray[np.float32],
-                           xj: NDArray[np.float32]) -> None:  # fmt: skip
+    def relative_positions(
+        self, positions: NDArray[np.float64], xi: NDArray[np.float32], xj: NDArray[np.float32]
+    ) -> None:
         """Write the slots' positions relative to their origins into ``xi`` and ``xj``
         (float32, 12 per cluster: x0..x3, y0..y3, z0..z3), in the i and the j role (they
         differ in where the fillers sit: far apart, never within reach of anything), on the
@@ -212,8 +213,9 @@ def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.floa
     return _max_displacement2(positions, reference)
 
 
-def largest_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64],
-                          chunks: int) -> float:  # fmt: skip
+def largest_displacement2(
+    positions: NDArray[np.float64], reference: NDArray[np.float64], chunks: int
+) -> float:
     """As :func:`max_displacement2`, in ``chunks`` chunks on the threads when ``chunks`` > 1
     (the list's own rebuild test; :mod:`md.distributed` asks it for a rank's atoms)."""
     return _largest_displacement2(positions, reference, chunks)
@@ -343,9 +345,15 @@ class NeighborList:
     False
     """
 
-    def __init__(self, cutoff: float, skin: float = 0.3, clusters: bool = False,
-                 outer_skin: float | None = None, every: int = 1,
-                 check: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cutoff: float,
+        skin: float = 0.3,
+        clusters: bool = False,
+        outer_skin: float | None = None,
+        every: int = 1,
+        check: bool = True,
+    ) -> None:
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError(f"neighbour list cutoff must be positive and finite, got {cutoff}")
         if not (np.isfinite(skin) and skin >= 0):
@@ -419,8 +427,9 @@ class NeighborList:
         none (:mod:`md.distributed` sends the ghosts' forces back to their
         owners). None lists every pair again.
         """
-        self._owned = None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64),
-                                                int(n_owned))  # fmt: skip
+        self._owned = (
+            None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64), int(n_owned))
+        )
 
     @property
     def list_radius(self) -> float:
@@ -467,9 +476,17 @@ class NeighborList:
         if self.order is None:
             return None
         return SlotFrame(
-            self.order, self.images, self.lengths, self.shifts, self.slot_starts,
-            self.slot_neighbors, self.codes, self.bounds, self.tilt, self.shifted_rows,
-        )  # fmt: skip
+            self.order,
+            self.images,
+            self.lengths,
+            self.shifts,
+            self.slot_starts,
+            self.slot_neighbors,
+            self.codes,
+            self.bounds,
+            self.tilt,
+            self.shifted_rows,
+        )
 
     @property
     def reference_positions(self) -> NDArray[np.float64] | None:
@@ -483,8 +500,15 @@ class NeighborList:
             return None
         return self._box.copy(), self._tilt.copy()
 
-    def rebuild_at(self, state: State, positions: NDArray[np.float64], box=None,
-                   tilt=None, pruned=None, step=None) -> None:  # fmt: skip
+    def rebuild_at(
+        self,
+        state: State,
+        positions: NDArray[np.float64],
+        box=None,
+        tilt=None,
+        pruned=None,
+        step=None,
+    ) -> None:
         """Build the list as it was built at ``positions`` (a checkpoint's), for ``state``.
 
         ``box`` and ``tilt`` are the cell of that build (default: ``state``'s);
@@ -508,8 +532,9 @@ class NeighborList:
         if pruned is not None and self._outer is not None:
             pruned = np.asarray(pruned, dtype=np.float64)
             if pruned.shape != state.positions.shape:
-                raise ValueError(f"pruned positions have shape {pruned.shape}, the state "
-                                 f"{state.positions.shape}")  # fmt: skip
+                raise ValueError(
+                    f"pruned positions have shape {pruned.shape}, the state {state.positions.shape}"
+                )
             self._prune(pruned)
         if not self.exact:
             self._resumed_at = (int(state.step), state.positions.copy())
@@ -697,9 +722,13 @@ class NeighborList:
             "since the build at step %d, more than skin/2 = %.4g, so pairs within the "
             "cutoff may have been missed meanwhile (the energy drifts); a larger skin or a "
             "smaller neighbor_every avoids it (further such looks are only counted)",
-            self.every, "" if self.check else " without the check", int(state.step),
-            math.sqrt(moved2), self._built_step, 0.5 * self.skin,
-        )  # fmt: skip
+            self.every,
+            "" if self.check else " without the check",
+            int(state.step),
+            math.sqrt(moved2),
+            self._built_step,
+            0.5 * self.skin,
+        )
 
     def build(self, state: State) -> None:
         """Build the list from scratch for ``state``."""
@@ -766,8 +795,14 @@ class NeighborList:
         then skips some thirty small numpy calls, each slow in a run, where the
         pair kernels have evicted the interpreter's data from the caches.
         """
-        key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes(), state.n_atoms,
-               self.cutoff, self.skin)  # fmt: skip
+        key = (
+            state.box.tobytes(),
+            state.tilt.tobytes(),
+            state.pbc.tobytes(),
+            state.n_atoms,
+            self.cutoff,
+            self.skin,
+        )
         if self._cell_memo is not None and self._cell_memo[0] == key:
             return self._cell_memo[1]
         self.check_box(state.box, state.pbc, state.tilt)
@@ -820,8 +855,20 @@ class NeighborList:
         cluster_positions(state.positions, atom, origin, xi, xj)
         reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
         while True:
-            found = search_pairs(state.box, ncx, ncy, first, lower, upper, radius, chunks,
-                                 self._cluster_room, xi, xj, reach2)  # fmt: skip
+            found = search_pairs(
+                state.box,
+                ncx,
+                ncy,
+                first,
+                lower,
+                upper,
+                radius,
+                chunks,
+                self._cluster_room,
+                xi,
+                xj,
+                reach2,
+            )
             if found is not None:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
@@ -846,22 +893,39 @@ class NeighborList:
         # (copy them to keep them longer).
         if self._prune_buffers is None:
             self._prune_buffers = (
-                np.empty(n + 1, np.int64), np.empty(size, np.int32),
+                np.empty(n + 1, np.int64),
+                np.empty(size, np.int32),
                 np.empty((size, 3), np.float32),
                 *(relative or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))),
-            )  # fmt: skip
+            )
         starts, partners, offsets, xi, xj = self._prune_buffers
         if relative is not None:
             xi, xj = relative
         else:
             outer.relative_positions(positions, xi, xj)
         reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
-        kept = prune_pairs(outer.starts, outer.partners, outer.offsets, outer.bounds,
-                           xi, xj, reach2, starts, partners, offsets)  # fmt: skip
+        kept = prune_pairs(
+            outer.starts,
+            outer.partners,
+            outer.offsets,
+            outer.bounds,
+            xi,
+            xj,
+            reach2,
+            starts,
+            partners,
+            offsets,
+        )
         chunks = len(outer.bounds) - 1
-        self._clusters = ClusterFrame(outer.atom, outer.origin, starts, partners[:kept],
-                                      offsets[:kept], chunks,
-                                      reach=outer.reach if chunks > 1 else None)  # fmt: skip
+        self._clusters = ClusterFrame(
+            outer.atom,
+            outer.origin,
+            starts,
+            partners[:kept],
+            offsets[:kept],
+            chunks,
+            reach=outer.reach if chunks > 1 else None,
+        )
         if self._pruned_at is None or self._pruned_at.shape != positions.shape:
             self._pruned_at = np.empty_like(positions)
         self._pruned_at[:] = positions
@@ -880,8 +944,9 @@ class NeighborList:
             return
         self._slots_pending = False
         at = self._reference if self._pruned_at is None else self._pruned_at
-        at_build = State(positions=at.copy(), box=self._box.copy(),
-                         pbc=self._pbc.copy(), tilt=self._tilt.copy())  # fmt: skip
+        at_build = State(
+            positions=at.copy(), box=self._box.copy(), pbc=self._pbc.copy(), tilt=self._tilt.copy()
+        )
         lengths, tilt = self.lengths, self.tilt  # the cell followed since, if any
         _, _, grid, _, _ = self._cell_data(at_build)
         self._build_cells(at_build, grid, chunk_count(at_build.n_atoms, _MIN_CHUNK_ATOMS))
@@ -918,9 +983,21 @@ class NeighborList:
         r2_max = _square(self.list_radius)
         while True:
             order, images, starts, bounds, count, shifted = _cell_list(
-                state.positions, origin, width, n_cells, reach, state.pbc, state.box, self.tilt,
-                r2_max, chunks, self._neighbor_buffer, self._code_buffer, ids, n_owned,
-            )  # fmt: skip
+                state.positions,
+                origin,
+                width,
+                n_cells,
+                reach,
+                state.pbc,
+                state.box,
+                self.tilt,
+                r2_max,
+                chunks,
+                self._neighbor_buffer,
+                self._code_buffer,
+                ids,
+                n_owned,
+            )
             if count >= 0:
                 break
             size = _grown(-count * chunks)
@@ -949,8 +1026,9 @@ class NeighborList:
         cell search applies it as it searches)."""
         ids, n_owned = self._owned_ids(len(self.slot_starts) - 1)
         order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
-        count = _keep_owned_pairs(order, self.slot_starts, self.slot_neighbors, self.codes, ids,
-                                  n_owned)  # fmt: skip
+        count = _keep_owned_pairs(
+            order, self.slot_starts, self.slot_neighbors, self.codes, ids, n_owned
+        )
         self.slot_neighbors = self.slot_neighbors[:count]
         self.codes = self.codes[:count] if len(self.codes) else self.codes
         self.bounds = _balanced_bounds(self.slot_starts, chunks)

@@ -127,8 +127,9 @@ def bond_oscillator(omega: float, mass: float = 1.0, amplitude: float = 0.1):
     """
     k = 0.5 * mass * omega * omega
     half = 0.5 * amplitude
-    state = State(positions=[[half, 0.0, 0.0], [-half, 0.0, 0.0]], masses=mass,
-                  box=[1.0e3] * 3, pbc=False)  # fmt: skip
+    state = State(
+        positions=[[half, 0.0, 0.0], [-half, 0.0, 0.0]], masses=mass, box=[1.0e3] * 3, pbc=False
+    )
     return state, [HarmonicBonds([[0, 1]], k=k, r0=0.0)]
 
 
@@ -296,8 +297,11 @@ def plot_damping(rows: Sequence[DampingRow], theories: dict, path, time_label: s
             z = dense[stable]
             # Curves that coincide (implicit midpoint and the trapezoidal rule) are told
             # apart by dash offsets.
-            line = {"color": s["color"], "lw": 1.0,
-                    "ls": (k % 4, (5, 3)) if s["linestyle"] == ":" else s["linestyle"]}  # fmt: skip
+            line = {
+                "color": s["color"],
+                "lw": 1.0,
+                "ls": (k % 4, (5, 3)) if s["linestyle"] == ":" else s["linestyle"],
+            }
             left.plot(z, modulus[stable], **line)
             right.plot(z, phase[stable] / z, **line)
             damps = 1.0 - modulus[stable] > _NO_DAMPING
@@ -310,8 +314,14 @@ def plot_damping(rows: Sequence[DampingRow], theories: dict, path, time_label: s
         z = np.array([r.omega_dt for r in mine])
         modulus = np.array([r.measured for r in mine])
         phase = np.array([r.phase_measured for r in mine])
-        marker = {"marker": s["marker"], "color": s["color"], "ls": "none", "ms": 5,
-                  "mfc": "none", "mew": 1.1}  # fmt: skip
+        marker = {
+            "marker": s["marker"],
+            "color": s["color"],
+            "ls": "none",
+            "ms": 5,
+            "mfc": "none",
+            "mew": 1.1,
+        }
         left.plot(z, modulus, label=name, **marker)
         damping = 1.0 - modulus
         shown = damping > _NO_DAMPING
@@ -322,24 +332,31 @@ def plot_damping(rows: Sequence[DampingRow], theories: dict, path, time_label: s
     middle.set_ylabel("numerical damping per step 1 - |rho|")
     middle.set_yscale("log")
     if undamped:
-        middle.text(0.03, 0.03, "no damping (|rho| = 1; measured within 1e-11):\n"
-                    + ", ".join(undamped), transform=middle.transAxes, fontsize="x-small",
-                    va="bottom")  # fmt: skip
+        middle.text(
+            0.03,
+            0.03,
+            "no damping (|rho| = 1; measured within 1e-11):\n" + ", ".join(undamped),
+            transform=middle.transAxes,
+            fontsize="x-small",
+            va="bottom",
+        )
     right.set_ylabel("phase per step / (omega dt)  (1: exact)")
     right.set_yscale("log")
     for ax in (left, middle, right):
         ax.set_xscale("log")
         ax.set_xlabel("omega dt")
         ax.grid(True, which="both", alpha=0.3)
-    for ax, title in ((left, "amplitude kept per step"), (middle, "damping per step"),
-                      (right, "phase")):  # fmt: skip
+    for ax, title in (
+        (left, "amplitude kept per step"),
+        (middle, "damping per step"),
+        (right, "phase"),
+    ):
         ax.set_title(title, fontsize="medium")
     fig.suptitle(
         "Numerical damping on a harmonic bond: measured (points) on theory (lines)"
         + (f"; dt {time_label}" if time_label else "")
     )
-    legend_outside(fig, right, left.get_legend_handles_labels(),
-                   title="integrator (lines: theory)")  # fmt: skip
+    legend_outside(fig, right, left.get_legend_handles_labels(), title="integrator (lines: theory)")
     fig.tight_layout()
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
@@ -356,8 +373,9 @@ def default_integrators() -> list[str]:
         if cls in seen or not isinstance(cls, type):
             continue
         seen.add(cls)
-        if name == "verlet" or (isinstance(cls, SupportsAmplification)
-                                and "tol" in _parameters(cls)):  # fmt: skip
+        if name == "verlet" or (
+            isinstance(cls, SupportsAmplification) and "tol" in _parameters(cls)
+        ):
             names.append(name)
     return names
 
@@ -406,8 +424,12 @@ class DampingStudy:
         If writing fails, the files of this call are removed before the error
         is raised.
         """
-        rows = measure_damping({name: self.factory(name) for name in self.names},
-                               self.omega_dts, dt=self.dt, progress=progress)  # fmt: skip
+        rows = measure_damping(
+            {name: self.factory(name) for name in self.names},
+            self.omega_dts,
+            dt=self.dt,
+            progress=progress,
+        )
         written = []
         try:
             for kind, path in self.files.items():
@@ -484,10 +506,18 @@ def _damping_names(integrators) -> list[str]:
     names = [n.strip() for n in names if n.strip()]
     unknown = [n for n in names if n not in INTEGRATORS]
     if unknown or not names:
-        raise ConfigError(f"--integrators: unknown {', '.join(unknown) or '(none given)'}; "
-                          f"known: {', '.join(INTEGRATORS)}")  # fmt: skip
-    unsuited = [n for n in names if INTEGRATORS[n].thermostat or INTEGRATORS[n].stochastic
-                or INTEGRATORS[n].adaptive or INTEGRATORS[n].requires_constraints]  # fmt: skip
+        raise ConfigError(
+            f"--integrators: unknown {', '.join(unknown) or '(none given)'}; "
+            f"known: {', '.join(INTEGRATORS)}"
+        )
+    unsuited = [
+        n
+        for n in names
+        if INTEGRATORS[n].thermostat
+        or INTEGRATORS[n].stochastic
+        or INTEGRATORS[n].adaptive
+        or INTEGRATORS[n].requires_constraints
+    ]
     if unsuited:
         raise ConfigError(
             f"--damping measures deterministic fixed-step integrators on a bond; not "

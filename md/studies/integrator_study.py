@@ -283,17 +283,35 @@ def compare_integrators(
             for tol in tolerances:
                 say(f"{name}: dt = {dt:g}, tol = {tol:g}")
                 at_tol = functools.partial(factory, tol=tol)
-                record = _run(*args, at_tol, dt, span, skin, units, samples, reference_positions,
-                              stability_tolerance)  # fmt: skip
+                record = _run(
+                    *args,
+                    at_tol,
+                    dt,
+                    span,
+                    skin,
+                    units,
+                    samples,
+                    reference_positions,
+                    stability_tolerance,
+                )
                 record.tol = tol
                 runs.append(record)
         else:
             for dt in dts:
                 say(f"{name}: dt = {dt:g}")
                 runs.append(
-                    _run(*args, factory, dt, span, skin, units, samples, reference_positions,
-                         stability_tolerance)
-                )  # fmt: skip
+                    _run(
+                        *args,
+                        factory,
+                        dt,
+                        span,
+                        skin,
+                        units,
+                        samples,
+                        reference_positions,
+                        stability_tolerance,
+                    )
+                )
             dt = dts[-1]
             doublings = 0
             while runs[-1].stable and doublings < max_doublings:
@@ -303,9 +321,18 @@ def compare_integrators(
                     break
                 say(f"{name}: stability scan dt = {dt:g}")
                 runs.append(
-                    _run(*args, factory, dt, span, skin, units, samples, reference_positions,
-                         stability_tolerance)
-                )  # fmt: skip
+                    _run(
+                        *args,
+                        factory,
+                        dt,
+                        span,
+                        skin,
+                        units,
+                        samples,
+                        reference_positions,
+                        stability_tolerance,
+                    )
+                )
         measured_at = span / 10 if adaptive else (measure_dt or dts[len(dts) // 2])
         report = _report(name, runs, dts, span, measured_at)
         report.floor = floor
@@ -389,8 +416,11 @@ def fit_order(steps, errors, floor: float = 0.0, slope_tolerance: float = 0.15):
             f"floor {floor:.2e}"
         )
     if len(above) < MIN_FIT_POINTS:
-        notes.insert(0, f"no order: only {len(above)} point(s) above the reference's error "
-                        f"floor (an order needs {MIN_FIT_POINTS})")  # fmt: skip
+        notes.insert(
+            0,
+            f"no order: only {len(above)} point(s) above the reference's error "
+            f"floor (an order needs {MIN_FIT_POINTS})",
+        )
         return math.nan, [], "; ".join(notes)
     x = np.log([steps[k] for k in above])
     y = np.log([errors[k] for k in above])
@@ -416,16 +446,25 @@ def fit_order(steps, errors, floor: float = 0.0, slope_tolerance: float = 0.15):
             reason = f"round-off or solver-tolerance floor reached at dt = {where:.3g}; "
         else:
             reason = ""
-        notes.insert(0, f"no order: {reason}no {MIN_FIT_POINTS} successive points agree on a "
-                        f"slope within {slope_tolerance:g} (local slopes {slopes})")  # fmt: skip
+        notes.insert(
+            0,
+            f"no order: {reason}no {MIN_FIT_POINTS} successive points agree on a "
+            f"slope within {slope_tolerance:g} (local slopes {slopes})",
+        )
         return math.nan, [], "; ".join(notes)
     i, j, slope = best
     if i:
-        kind = "an error floor (round-off or solver tolerance)" if local[i - 1] < slope else (
-            "depart from the trend")  # fmt: skip
+        kind = (
+            "an error floor (round-off or solver tolerance)"
+            if local[i - 1] < slope
+            else ("depart from the trend")
+        )
         what = f"reach {kind}" if kind.startswith("an") else kind
-        notes.insert(0, f"the finest {i} point(s) (dt <= {steps[above[i - 1]]:.3g}) {what} "
-                        f"(local slope {local[i - 1]:.3g}): left out")  # fmt: skip
+        notes.insert(
+            0,
+            f"the finest {i} point(s) (dt <= {steps[above[i - 1]]:.3g}) {what} "
+            f"(local slope {local[i - 1]:.3g}): left out",
+        )
     if j < len(above) - 1:
         notes.append(
             f"{len(above) - 1 - j} coarser point(s) (dt >= {steps[above[j + 1]]:.3g}) beyond "
@@ -447,8 +486,18 @@ def _fit_order(steps, runs, floor, slope_tolerance):
     return slope, (steps[used[0]], steps[used[-1]]), len(used), note
 
 
-def _run(make_state, potentials_factory, factory, dt, span, skin, units, samples,
-         reference_positions=None, stability_tolerance=0.5) -> RunRecord:  # fmt: skip
+def _run(
+    make_state,
+    potentials_factory,
+    factory,
+    dt,
+    span,
+    skin,
+    units,
+    samples,
+    reference_positions=None,
+    stability_tolerance=0.5,
+) -> RunRecord:
     n_steps = max(1, round(span / dt))
     dt = span / n_steps
     state = make_state()
@@ -509,8 +558,9 @@ def _report(name, runs, dts, span, measure_dt) -> IntegratorReport:
     dt_max_stable = max((r.dt for r in stable), default=math.nan)
     order = math.nan  # fitted by compare_integrators
     # Energy behaviour and cost at measure_dt, or the largest stable dt below it.
-    base = max((r for r in stable if r.dt <= measure_dt * 1.0000001), key=lambda r: r.dt,
-               default=None)  # fmt: skip
+    base = max(
+        (r for r in stable if r.dt <= measure_dt * 1.0000001), key=lambda r: r.dt, default=None
+    )
     drift = fluctuation = evals = wall = math.nan
     reference_dt = math.nan
     if base is not None:
@@ -545,15 +595,19 @@ def write_work_precision_csv(reports: Sequence[IntegratorReport], path) -> None:
     """Write one row per run with :data:`WORK_PRECISION_COLUMNS` (the work-precision data)."""
     rows = (
         {
-            "integrator": report.name, "dt": run.dt, "tol": run.tol,
-            "stable": run.stable, "position_error": run.error,
+            "integrator": report.name,
+            "dt": run.dt,
+            "tol": run.tol,
+            "stable": run.stable,
+            "position_error": run.error,
             "max_energy_error": run.max_energy_error,
             "force_evaluations": run.evaluations if run.stable else math.nan,
-            "wall": run.wall if run.stable else math.nan, "in_order_fit": run.in_fit,
+            "wall": run.wall if run.stable else math.nan,
+            "in_order_fit": run.in_fit,
         }
         for report in reports
         for run in report.runs
-    )  # fmt: skip
+    )
     write_csv_rows(path, WORK_PRECISION_COLUMNS, rows)
 
 
@@ -581,14 +635,26 @@ def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str 
         xs += dts
         ys += errors
         order = f"{report.order:.2f}" if math.isfinite(report.order) else "none"
-        ax.loglog(dts, errors, ls=s["linestyle"], color=s["color"], lw=0.9,
-                  label=f"{name} (order {order}, {report.fit_points} pts)")  # fmt: skip
+        ax.loglog(
+            dts,
+            errors,
+            ls=s["linestyle"],
+            color=s["color"],
+            lw=0.9,
+            label=f"{name} (order {order}, {report.fit_points} pts)",
+        )
         for fitted in (True, False):
             chosen = [(d, e) for d, e, u in points if u == fitted]
             if chosen:
-                ax.loglog(*zip(*chosen, strict=True), ls="none", marker=s["marker"],
-                          color=s["color"], mfc=s["color"] if fitted else "white", ms=5,
-                          mew=1.0)  # fmt: skip
+                ax.loglog(
+                    *zip(*chosen, strict=True),
+                    ls="none",
+                    marker=s["marker"],
+                    color=s["color"],
+                    mfc=s["color"] if fitted else "white",
+                    ms=5,
+                    mew=1.0,
+                )
     expected = [r.expected_order for r in shown if math.isfinite(r.expected_order)]
     reference_slopes(ax, xs, ys, expected or [1, 2, 4])
     floors = [r.floor for r in reports if math.isfinite(r.floor)]
@@ -596,9 +662,11 @@ def plot_error_vs_dt(reports: Sequence[IntegratorReport], path, time_label: str 
         ax.axhline(floors[0], color="k", ls=":", lw=0.8, label="reference error floor (x10)")
     ax.set_xlabel(f"time step dt {time_label}".strip())
     ax.set_ylabel("RMS position error at the final time")
-    ax.set_title("Global error against a Richardson-checked reference\n"
-                 "(filled: fitted for the order; hollow: left out; grey: reference slopes)",
-                 fontsize="medium")  # fmt: skip
+    ax.set_title(
+        "Global error against a Richardson-checked reference\n"
+        "(filled: fitted for the order; hollow: left out; grey: reference slopes)",
+        fontsize="medium",
+    )
     legend_outside(fig, ax)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -618,8 +686,10 @@ def plot_work_precision(reports: Sequence[IntegratorReport], path, labels=None) 
     labels = labels or {}
     plt = pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(12.5, 8.5))
-    measures = (("max_energy_error", "max |E(t) - E(0)| per atom"),
-                ("error", "RMS position error at the final time"))  # fmt: skip
+    measures = (
+        ("max_energy_error", "max |E(t) - E(0)| per atom"),
+        ("error", "RMS position error at the final time"),
+    )
     works = (("wall", "wall time [s]"), ("evaluations", "force evaluations"))
     names = grouped([r.name for r in reports])
     by_name = {r.name: r for r in reports}
@@ -638,8 +708,16 @@ def plot_work_precision(reports: Sequence[IntegratorReport], path, labels=None) 
                 x, y = zip(*pairs, strict=True)
                 drawn[row, column][0].extend(x)
                 drawn[row, column][1].extend(y)
-                axes[row, column].loglog(x, y, ls=s["linestyle"], marker=s["marker"], ms=4,
-                                         color=s["color"], lw=0.9, label=name)  # fmt: skip
+                axes[row, column].loglog(
+                    x,
+                    y,
+                    ls=s["linestyle"],
+                    marker=s["marker"],
+                    ms=4,
+                    color=s["color"],
+                    lw=0.9,
+                    label=name,
+                )
     for row, (_, measure_label) in enumerate(measures):
         for column, (_, work_label) in enumerate(works):
             ax = axes[row, column]

@@ -62,8 +62,7 @@ def styles(names) -> dict[str, dict]:
         else:
             family = "other"
             marker, colour = next(spare)
-        out[name] = {"family": family, "color": colour, "marker": marker,
-                     "linestyle": line[family]}  # fmt: skip
+        out[name] = {"family": family, "color": colour, "marker": marker, "linestyle": line[family]}
     return out
 
 
@@ -81,9 +80,16 @@ def legend_outside(fig, ax, handles_labels=None, title: str | None = None) -> No
     """
     handles, labels = handles_labels or ax.get_legend_handles_labels()
     if handles:
-        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.02, 1.0),
-                  fontsize="x-small", title=title, title_fontsize="x-small",
-                  frameon=False)  # fmt: skip
+        ax.legend(
+            handles,
+            labels,
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+            fontsize="x-small",
+            title=title,
+            title_fontsize="x-small",
+            frameon=False,
+        )
 
 
 def reference_slopes(ax, xs, ys, orders, sign: int = 1) -> None:
@@ -116,8 +122,15 @@ def reference_slopes(ax, xs, ys, orders, sign: int = 1) -> None:
             label_at = (x0, y0)
         ax.loglog([x0, x1], [y0, y1], color="0.45", ls=(0, (4, 3)), lw=1.0, zorder=0)
         side = "left" if sign > 0 else "right"
-        ax.annotate(f"order {p:g}", label_at, fontsize="x-small", color="0.3",
-                    xytext=(2, 2), textcoords="offset points", ha=side)  # fmt: skip
+        ax.annotate(
+            f"order {p:g}",
+            label_at,
+            fontsize="x-small",
+            color="0.3",
+            xytext=(2, 2),
+            textcoords="offset points",
+            ha=side,
+        )
     ax.set_ylim(bottom=bottom / 2)
 
 

@@ -169,21 +169,33 @@ class Study:
         reports: list[IntegratorReport] = []
         if self.names:
             reports = compare_integrators(
-                make_state=self.state.copy, potentials_factory=self.potentials,
-                integrators={name: INTEGRATORS[name] for name in self.names}, dts=self.dts,
-                span=self.span, skin=skin, units=units, reference=INTEGRATORS[self.reference],
-                measure_dt=self.measure_dt, progress=progress,
-            )  # fmt: skip
+                make_state=self.state.copy,
+                potentials_factory=self.potentials,
+                integrators={name: INTEGRATORS[name] for name in self.names},
+                dts=self.dts,
+                span=self.span,
+                skin=skin,
+                units=units,
+                reference=INTEGRATORS[self.reference],
+                measure_dt=self.measure_dt,
+                progress=progress,
+            )
         thermostat_reports: list[ThermostatReport] = []
         if self.thermostat_names:
             setup = self.setup
             thermostat_reports = compare_thermostats(
-                make_state=self.state.copy, potentials_factory=self.potentials,
-                thermostats={n: functools.partial(self.thermostat, n)
-                             for n in self.thermostat_names},
-                target_temperature=setup.temperature, n_equilibrate=setup.n_equilibrate,
-                n_sample=setup.n_sample, skin=skin, units=units, progress=progress,
-            )  # fmt: skip
+                make_state=self.state.copy,
+                potentials_factory=self.potentials,
+                thermostats={
+                    n: functools.partial(self.thermostat, n) for n in self.thermostat_names
+                },
+                target_temperature=setup.temperature,
+                n_equilibrate=setup.n_equilibrate,
+                n_sample=setup.n_sample,
+                skin=skin,
+                units=units,
+                progress=progress,
+            )
         self.write(reports, thermostat_reports)
         return StudyResults(reports, thermostat_reports, dict(self.files))
 
@@ -194,24 +206,29 @@ class Study:
         fails, the files this call wrote are removed before the error is raised.
         """
         units, files = self.config.units, self.files
-        labels = {name: f"[{units.labels[name]}]" for name in ("time", "energy", "length",
-                                                                "temperature")}  # fmt: skip
+        labels = {
+            name: f"[{units.labels[name]}]" for name in ("time", "energy", "length", "temperature")
+        }
         writers = []
         if reports:
             writers += [
                 (files["csv"], lambda path: write_csv(reports, path)),
                 (files["work_csv"], lambda path: write_work_precision_csv(reports, path)),
-                (files["error"], lambda path: plot_error_vs_dt(
-                    reports, path, f"[{units.config_time_label}]")),
+                (
+                    files["error"],
+                    lambda path: plot_error_vs_dt(reports, path, f"[{units.config_time_label}]"),
+                ),
                 (files["energy"], lambda path: plot_energy_vs_time(reports, path, labels)),
                 (files["work"], lambda path: plot_work_precision(reports, path, labels)),
-            ]  # fmt: skip
+            ]
         if thermostat_reports:
             writers += [
                 (files["thermostats"], lambda path: write_thermostat_csv(thermostat_reports, path)),
-                (files["thermostats_plot"],
-                 lambda path: plot_thermostats(thermostat_reports, path, labels)),
-            ]  # fmt: skip
+                (
+                    files["thermostats_plot"],
+                    lambda path: plot_thermostats(thermostat_reports, path, labels),
+                ),
+            ]
         with removed_on_error() as written:
             self.out.mkdir(parents=True, exist_ok=True)
             for path, write in writers:
@@ -302,8 +319,9 @@ def prepare_study(
     # Thermostats are measured apart: sampling at a temperature, not order in dt.
     thermostat_names = [n for n in names if INTEGRATORS[n].thermostat]
     names = [n for n in names if n not in thermostat_names]
-    setup = _thermostat_setup(config, thermostat_names, integrators is not None, temperature,
-                              tau, sample_time)  # fmt: skip
+    setup = _thermostat_setup(
+        config, thermostat_names, integrators is not None, temperature, tau, sample_time
+    )
     if setup is None:
         thermostat_names = []  # no target temperature known: the NVE family only
     out = Path(out) if out is not None else Path(f"integrators-{source.stem}")
@@ -322,8 +340,20 @@ def prepare_study(
     _check_length(names, thermostat_names, ladder, run_span, setup, equilibrate, max_steps, units)
 
     state, bonds = build_system(config)
-    study = Study(config, state, bonds, names, thermostat_names, ladder, run_span, measure_dt,
-                  setup, out, files, overwrite)  # fmt: skip
+    study = Study(
+        config,
+        state,
+        bonds,
+        names,
+        thermostat_names,
+        ladder,
+        run_span,
+        measure_dt,
+        setup,
+        out,
+        files,
+        overwrite,
+    )
     forcefield = ForceField(study.potentials(), skin=config.run.skin)
     for name in names:  # RESPA: both kinds of potential must be there
         if issubclass(INTEGRATORS[name], ForceSplit):
@@ -338,8 +368,13 @@ def prepare_study(
         study.thermostat(name)
     if equilibrate:
         try:
-            Simulation(state, study.potentials(), VelocityVerlet(config.integrator.dt),
-                       skin=config.run.skin, units=units).run(equilibrate)  # fmt: skip
+            Simulation(
+                state,
+                study.potentials(),
+                VelocityVerlet(config.integrator.dt),
+                skin=config.run.skin,
+                units=units,
+            ).run(equilibrate)
         except (SimulationError, ValueError) as error:
             raise ConfigError(f"{config.source}: equilibration failed: {error}") from None
         state.step, state.time = 0, 0.0
@@ -461,8 +496,12 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
 def _build_thermostat(config, name: str, setup: ThermostatSetup, bonds):
     """Thermostat ``name`` at the study's target and coupling, built as ``md run`` builds one."""
     cls = INTEGRATORS[name]
-    values = {"dt": config.integrator.dt, "temperature": setup.temperature,
-              "kB": config.units.kB, **cls.coupling(setup.tau)}  # fmt: skip
+    values = {
+        "dt": config.integrator.dt,
+        "temperature": setup.temperature,
+        "kB": config.units.kB,
+        **cls.coupling(setup.tau),
+    }
     if cls.stochastic:
         values["seed"] = [0 if config.seed is None else config.seed, 1]
     if "constraints" in config.integrator:
@@ -470,8 +509,9 @@ def _build_thermostat(config, name: str, setup: ThermostatSetup, bonds):
     return integrator_from_config(PluginEntry(name, values), config.source, bonds)
 
 
-def _check_length(study_names, thermostat_names, dts, span, setup, equilibrate, max_steps,
-                  units) -> None:  # fmt: skip
+def _check_length(
+    study_names, thermostat_names, dts, span, setup, equilibrate, max_steps, units
+) -> None:
     """Raise ConfigError if the study's runs add up to more than ``max_steps`` steps."""
 
     def steps(dt: float) -> float:

@@ -173,8 +173,14 @@ def compare_thermostats(
             report.message = str(error)
             reports.append(report)
             continue
-        _measure(report, rows, sim, wall, sim.forcefield.n_evaluations - evaluations_before,
-                 integrator.dt * int(n_sample))  # fmt: skip
+        _measure(
+            report,
+            rows,
+            sim,
+            wall,
+            sim.forcefield.n_evaluations - evaluations_before,
+            integrator.dt * int(n_sample),
+        )
         reports.append(report)
     return reports
 
@@ -220,8 +226,9 @@ def plot_thermostats(reports: Sequence[ThermostatReport], path, labels=None) -> 
         x = report.potentials - report.potentials.mean()
         n = len(x)
         lags = min(n - 1, max(10, n // 4))
-        acf = [1.0] + [float(np.dot(x[:-k], x[k:]) / np.dot(x, x) * n / (n - k))
-                       for k in range(1, lags)]  # fmt: skip
+        acf = [1.0] + [
+            float(np.dot(x[:-k], x[k:]) / np.dot(x, x) * n / (n - k)) for k in range(1, lags)
+        ]
         interval = (report.times[-1] - report.times[0]) / (n - 1)
         label = f"{report.name} (tau {report.potential_autocorrelation_time:.3g})"
         right.plot(np.arange(lags) * interval, acf, label=label)

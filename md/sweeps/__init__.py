@@ -148,8 +148,9 @@ def check_options(
     if isinstance(vary, str):
         vary = [vary]
     if not isinstance(vary, Mapping):
-        vary = [parse_vary(v, max_values=max_runs) if isinstance(v, str) else tuple(v)
-                for v in vary]  # fmt: skip
+        vary = [
+            parse_vary(v, max_values=max_runs) if isinstance(v, str) else tuple(v) for v in vary
+        ]
     whole(replicas, "--replicas")
     try:
         in_range = math.isfinite(discard) and 0.0 <= discard < 1.0
@@ -237,15 +238,28 @@ def sweep(
     SweepTable
         One row per run; also written to ``OUT/sweep.csv``.
     """
-    vary, _ = check_options(vary, replicas, max_runs=max_runs, discard=discard, n_blocks=n_blocks,
-                            workers=workers, scheduler=scheduler, diffusion=diffusion)  # fmt: skip
+    vary, _ = check_options(
+        vary,
+        replicas,
+        max_runs=max_runs,
+        discard=discard,
+        n_blocks=n_blocks,
+        workers=workers,
+        scheduler=scheduler,
+        diffusion=diffusion,
+    )
     plan = plan_sweep(config, vary, replicas, out, max_runs=max_runs)
     check_outputs(plan, overwrite)
     with connect(client, scheduler, workers, timeout=timeout) as dask_client:
         return run_sweep(
-            plan, dask_client, overwrite=overwrite, diffusion=diffusion, discard=discard,
-            n_blocks=n_blocks, progress=progress,
-        )  # fmt: skip
+            plan,
+            dask_client,
+            overwrite=overwrite,
+            diffusion=diffusion,
+            discard=discard,
+            n_blocks=n_blocks,
+            progress=progress,
+        )
 
 
 __all__ = [

@@ -44,8 +44,15 @@ def summarize(path, discard: float = 0.0, diffusion: bool = False, n_blocks: int
     result = analysis.thermo(path, start=start, n_blocks=n_blocks)
     n = result.n_atoms
     row: dict[str, Any] = {"units": result.units, "n_atoms": n, "n_frames": len(result.times)}
-    names = ("temperature", "pressure", "density", "volume", "potential_energy", "kinetic_energy",
-             "total_energy")  # fmt: skip
+    names = (
+        "temperature",
+        "pressure",
+        "density",
+        "volume",
+        "potential_energy",
+        "kinetic_energy",
+        "total_energy",
+    )
     for name in names:
         column = name if name in RESULTS else f"{name}_per_atom"
         scale = 1.0 / n if column.endswith("_per_atom") else 1.0

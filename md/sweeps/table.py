@@ -111,8 +111,15 @@ class SweepTable:
                 err = _number(own.get(f"{column}_err"))
             else:
                 err = math.nan
-            points.append({**{k: group[0][k] for k in self.keys}, "mean": mean, "err": err,
-                           "n": len(values), "runs": len(group)})  # fmt: skip
+            points.append(
+                {
+                    **{k: group[0][k] for k in self.keys},
+                    "mean": mean,
+                    "err": err,
+                    "n": len(values),
+                    "runs": len(group),
+                }
+            )
         return points
 
     def to_csv(self, path) -> Path:
@@ -156,8 +163,14 @@ class SweepTable:
             label = ", ".join(
                 f"{k} = {format_value(v)}" for k, v in zip(others, other, strict=True)
             )
-            ax.errorbar(xs, [p["mean"] for p in points], yerr=[p["err"] for p in points],
-                        marker="o", capsize=3, label=label or None)  # fmt: skip
+            ax.errorbar(
+                xs,
+                [p["mean"] for p in points],
+                yerr=[p["err"] for p in points],
+                marker="o",
+                capsize=3,
+                label=label or None,
+            )
         if not numeric:
             ax.set_xticks(range(len(x_values)), [format_value(v) for v in x_values])
         labels = unit_labels(self.units or "lj")

@@ -88,26 +88,52 @@ def _run_child(spec: dict, config: Path, partial: Path, lock, options: dict) -> 
     code = None
     for mode in modes:
         command = [
-            sys.executable, "-m", "md.cli.sweep_child", str(os.getpid()), "run", str(config),
-            "--output", str(output), "--threads", "1", "--no-progress", "--quiet", mode,
-        ]  # fmt: skip
+            sys.executable,
+            "-m",
+            "md.cli.sweep_child",
+            str(os.getpid()),
+            "run",
+            str(config),
+            "--output",
+            str(output),
+            "--threads",
+            "1",
+            "--no-progress",
+            "--quiet",
+            mode,
+        ]
         with open(log_path, "a") as log:
-            log.write(f"# {time.strftime('%Y-%m-%d %H:%M:%S')} on {_worker_address()}: md run "
-                      f"{config.name} {mode}\n")  # fmt: skip
+            log.write(
+                f"# {time.strftime('%Y-%m-%d %H:%M:%S')} on {_worker_address()}: md run "
+                f"{config.name} {mode}\n"
+            )
             log.flush()
             child = subprocess.Popen(
-                command, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=out,
-                pass_fds=(lock.fileno(),), stdin=subprocess.DEVNULL,
-            )  # fmt: skip
-            _emit(options["topic"], {
-                "event": "start", "label": label, "worker": _worker_address(),
-                "pid": os.getpid(), "child": child.pid, "time": time.time(),
-                "again": mode != modes[0],  # a refused resume started afresh: no retry
-            })  # fmt: skip
+                command,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+                cwd=out,
+                pass_fds=(lock.fileno(),),
+                stdin=subprocess.DEVNULL,
+            )
+            _emit(
+                options["topic"],
+                {
+                    "event": "start",
+                    "label": label,
+                    "worker": _worker_address(),
+                    "pid": os.getpid(),
+                    "child": child.pid,
+                    "time": time.time(),
+                    "again": mode != modes[0],  # a refused resume started afresh: no retry
+                },
+            )
             code = child.wait()
         if code == 0:
-            verdict = output_verdict(output, spec["config_text"], spec["n_frames"],
-                                     spec["last_step"])  # fmt: skip
+            verdict = output_verdict(
+                output, spec["config_text"], spec["n_frames"], spec["last_step"]
+            )
             if verdict == "complete":
                 move_into_place(output, out / f"{label}.h5")
                 return "done", ""

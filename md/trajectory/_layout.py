@@ -18,9 +18,21 @@ H5MD_VERSION = (1, 1)
 
 
 OBSERVABLES = (
-    "potential_energy", "kinetic_energy", "total_energy", "temperature", "pressure",
-    "volume", "density", "pxx", "pyy", "pzz", "pxy", "pxz", "pyz", "conserved_energy",
-)  # fmt: skip
+    "potential_energy",
+    "kinetic_energy",
+    "total_energy",
+    "temperature",
+    "pressure",
+    "volume",
+    "density",
+    "pxx",
+    "pyy",
+    "pzz",
+    "pxy",
+    "pxz",
+    "pyz",
+    "conserved_energy",
+)
 
 
 _OBSERVABLE_UNITS = {
@@ -69,8 +81,9 @@ def _check_members(f: h5py.File, name: str, listed, n_atoms: int) -> None:
     bad = np.flatnonzero(outside | repeated)
     if bad.size:
         first = int(bad[0])
-        what = (f"names an atom outside 0..{n_atoms - 1}" if outside[first]
-                else "names one atom twice")  # fmt: skip
+        what = (
+            f"names an atom outside 0..{n_atoms - 1}" if outside[first] else "names one atom twice"
+        )
         raise TrajectoryError(
             f"{f.filename}: /connectivity/{name}: {kind} {first} "
             f"{tuple(listed[first].tolist())} {what} ({bad.size} such {kind}(s)); the file's "
@@ -110,8 +123,12 @@ def split_edges(
 def _complete_frames(f: h5py.File) -> int:
     """Frames that every per-frame dataset of the file holds."""
     group = f["particles/trajectory"]
-    lengths = [len(group["position/step"]), len(group["position/time"]),
-               len(group["position/value"]), len(group["box/edges/value"])]  # fmt: skip
+    lengths = [
+        len(group["position/step"]),
+        len(group["position/time"]),
+        len(group["position/value"]),
+        len(group["box/edges/value"]),
+    ]
     for name in ("image", "velocity", "force"):
         if name in group:
             lengths.append(len(group[f"{name}/value"]))

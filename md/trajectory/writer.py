@@ -231,9 +231,10 @@ class H5MDWriter:
             self._file.flush()
         except (KeyError, ValueError, TypeError, OSError, RuntimeError) as error:
             failure = (
-                error if isinstance(error, TrajectoryError)
+                error
+                if isinstance(error, TrajectoryError)
                 else TrajectoryError(f"{path}: not a trajectory written by leapmd ({error})")
-            )  # fmt: skip
+            )
         else:
             return
         self._abandon()  # outside the except block: no traceback holds HDF5 objects

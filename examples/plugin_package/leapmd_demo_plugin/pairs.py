@@ -24,8 +24,7 @@ class Gauss(PairPotential):
     PARAMETERS = ("a", "width")
     LIMITS = {"width": "positive"}
 
-    def __init__(self, a=1.0, width=1.0, cutoff=3.0, cutoff_mode="shift", r_on=None,
-                 pairs=None):
+    def __init__(self, a=1.0, width=1.0, cutoff=3.0, cutoff_mode="shift", r_on=None, pairs=None):
         super().__init__(GAUSS, cutoff, cutoff_mode, r_on, pairs, a=a, width=width)
 
     def coefficients(self, values, ti, tj):
