@@ -9,7 +9,7 @@ each repeat. Prints per outer skin the median time per step, the searches and pr
 per repeat, the outer and inner list sizes in cluster pairs, and the median of the
 per-repeat ratios to the first outer skin given. Compilation is excluded (the warm-up).
 ``--sections`` also prints where a step goes per outer skin: the force call, the list
-(its searches and prunes, each call timed: ``md.neighbors``' ``search_pairs`` and
+(its searches and prunes, each call timed: ``md.neighbors.lists``' ``search_pairs`` and
 ``prune_pairs`` wrapped in timers, the rest of a search's build and the per-step
 displacement check) and the integrator, in ms per step. ``--every N`` adds a row with
 GROMACS's list rule (``neighbor_every=N``, no check, no outer list, skin ``--every-skin``,
@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, fr
 from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
-import md.neighbors  # noqa: E402
+import md.neighbors.lists  # noqa: E402
 from integrators import VelocityVerlet  # noqa: E402
 from md.build import maxwell_boltzmann  # noqa: E402
 from md.neighbors import NeighborList  # noqa: E402
@@ -166,10 +166,10 @@ def main(argv=None) -> None:
 
 
 def _timed_calls() -> dict:
-    """Wrap ``md.neighbors``' search and prune kernels in timers (seconds in total)."""
+    """Wrap ``md.neighbors.lists``' search and prune kernels in timers (seconds in total)."""
     totals = {"search": 0.0, "prune": 0.0}
     for key, name in (("search", "search_pairs"), ("prune", "prune_pairs")):
-        kernel = getattr(md.neighbors, name)
+        kernel = getattr(md.neighbors.lists, name)
 
         def timed(*args, _kernel=kernel, _key=key):
             start = time.perf_counter()
@@ -178,7 +178,7 @@ def _timed_calls() -> dict:
             finally:
                 totals[_key] += time.perf_counter() - start
 
-        setattr(md.neighbors, name, timed)
+        setattr(md.neighbors.lists, name, timed)
     return totals
 
 

@@ -207,7 +207,8 @@ def test_hessian_of_a_list_in_chunks_equals_the_one_chunk_one(fcc_lattice, chunk
     chunks, the operator holds the same pairs, in the same order, as over a one-chunk
     list, one piece per chunk; its products and Jacobi diagonal (summed on its own, three
     entries per atom) equal the diagonal blocks' and the matrix's."""
-    from md.neighbors import NeighborList, _balanced_bounds
+    from md.neighbors import NeighborList
+    from md.neighbors._build_kernels import _balanced_bounds
     from md.parallel import get_threads, set_threads
 
     state = fcc_lattice(cells=9, perturbation=0.08)
