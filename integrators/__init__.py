@@ -98,6 +98,7 @@ def _integrator_problem(found) -> str | None:
     if not (isinstance(found, type) and issubclass(found, IntegratorBase)):
         what = found.__name__ if isinstance(found, type) else f"{type(found).__name__} {found!r}"
         return f"{what} is not an integrator: subclass integrators.base.IntegratorBase"
+    # a plug-in class (foreign): the methods the loop calls
     missing = [m for m in ("step", "describe") if not callable(getattr(found, m, None))]
     if missing:
         return f"{found.__name__} does not define {' and '.join(missing)}()"

@@ -111,7 +111,7 @@ def _attribute(name: str) -> object:
         raise PluginError(f"plug-in {name!r}: expected 'module:attribute' (mypkg.pairs:Gauss)")
     module = _import(module_name, f"plug-in {name!r}")
     found = module
-    for part in attribute.split("."):
+    for part in attribute.split("."):  # the path a user wrote, in a foreign module
         if not hasattr(found, part):
             raise PluginError(
                 f"plug-in {name!r}: module {module_name} ({_file(module)}) has no "
@@ -175,7 +175,7 @@ def _entry_point(name: str, kind: str, builtins: Mapping[str, object]) -> tuple[
 
 
 def _file(module) -> str:
-    return getattr(module, "__file__", None) or "built in"
+    return getattr(module, "__file__", None) or "built in"  # built-in modules have none
 
 
 __all__ = ["GROUPS", "load", "plugin_names", "signature_problem"]

@@ -8,7 +8,7 @@ from numba import njit, prange
 from md._simd import gather_rows4, gather_shifted_rows4, scatter_sub_rows4
 from md.parallel import chunk_count
 
-#: Atoms per cluster of the cluster-pair list (md._cluster_kernels.CLUSTER).
+#: Atoms per cluster of the cluster-pair list (md.neighbors._cluster_kernels.CLUSTER).
 CLUSTER = 4
 
 
@@ -105,7 +105,7 @@ def _gather_partners(frame, shifts, partners, partner_codes, gx, gy, gz):
 @njit(cache=True, error_model="numpy")
 def _gather_unshifted(frame, partners, gx, gy, gz):
     """``_gather_partners`` for a row whose partners all have code 13 (``UNSHIFTED_CODE``
-    of ``md._cell_kernels``, no image shift):
+    of ``md.neighbors._cell_kernels``, no image shift):
     their codes and the shift table are not read (LJ's force call -5 % at 32000 atoms).
     Four partners at a time are loaded and transposed in vector registers
     (``md._simd.gather_rows4``), the rest one by one."""
@@ -179,7 +179,7 @@ def cluster_atom_forces(buffers, atom, windows, forces) -> None:
 @njit(cache=True, error_model="numpy")
 def _cluster_atom_forces(buffers, atom, windows, forces):
     """Sum the chunks' cluster-ordered forces, in chunk order, into ``forces`` (N, 3) in
-    atom order. ``windows`` (chunks, 3; ``md._cluster_kernels.chunk_windows``): chunk c
+    atom order. ``windows`` (chunks, 3; ``md.neighbors._cluster_kernels.chunk_windows``): chunk c
     wrote clusters ``windows[c, 0]`` (its first i cluster: a row's partners are its i
     cluster and clusters after it) to ``windows[c, 1]``, 12 values each, into
     ``buffers`` from 12 * ``windows[c, 2]`` on; nothing of a chunk outside its window
