@@ -68,7 +68,7 @@ flushed the caches. In order:
    the pair kernels.
 
 When a periodic axis has room for fewer than 5 half-radius cells,
-``_build_kernels._small_box_list`` builds the same slot frame by an O(N^2)
+``_small_box_kernels._small_box_list`` builds the same slot frame by an O(N^2)
 search over the periodic images instead; ``_brute_force_pairs`` (over atom
 indices, minimum image) where that does not serve (a periodic width under the
 list radius, a rank's owned pairs). It is also the reference the cell search

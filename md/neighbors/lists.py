@@ -1,11 +1,12 @@
 """Verlet neighbour lists built from cell lists.
 
-A note on its length (about 1100 lines, over the 800 where a module is split): nearly
+A note on its length (about 1150 lines, over the 800 where a module is split): nearly
 all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
 brute-force, cell and cluster builds and the prune share its buffers and reference
 positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
 kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
+``_small_box_kernels``: the build of a box too narrow for the cells;
 ``_cluster_kernels``: the cluster-pair list).
 """
 
@@ -33,12 +34,10 @@ from md.neighbors._build_kernels import (
     _atom_space_list,
     _balanced_bounds,
     _cell_list,
-    _drop_repeats,
     _largest_coordinates,
     _largest_displacement2,
     _max_displacement2,
     _shift_table,
-    _small_box_list,
 )
 from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
 from md.neighbors._cluster_kernels import (
@@ -52,6 +51,7 @@ from md.neighbors._cluster_kernels import (
     row_reach,
     search_pairs,
 )
+from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
 from md.parallel import chunk_count
 from md.state import State
 
@@ -256,7 +256,7 @@ class NeighborList:
     When a periodic axis has room for fewer than five cells (a box under 2.5 list
     radii wide: the LJ liquid below about 500 atoms), an O(N^2) search over the
     periodic images builds the same slot frame instead (slots in atom order, wrapped
-    into the cell; ``md.neighbors._build_kernels._small_box_list``), so small boxes
+    into the cell; ``md.neighbors._small_box_kernels``), so small boxes
     run the pair kernels' fast path too. In a cell narrower than twice the list
     radius a pair may have two images within reach: the slot list then holds each
     (:attr:`n_pairs` counts them; at most one is within the cutoff), the list over
