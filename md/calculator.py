@@ -291,9 +291,9 @@ class MDCalculator(Calculator):
             state is not None
             and n == self._n_atoms
             and not {"numbers", "tags"} & set(system_changes)
-            and np.array_equal(atoms.cell.array, self._cell)
-            and np.array_equal(atoms.pbc, state.pbc)
-        ):  # only positions may have changed
+            and _same_bytes(atoms.cell.array, self._cell)
+            and _same_bytes(np.asarray(atoms.pbc, dtype=bool), state.pbc)
+        ):  # only positions may have changed (equal values in other bits: the full path)
             positions = self._supercell_positions(atoms)
             if self._order is None:
                 state.positions[:] = positions
