@@ -187,7 +187,7 @@ class ForceField:
         # finite forces that overflows (beyond 1e308) passes there. numpy's own sum, not a
         # BLAS dot: OpenBLAS's threads (np.vdot) spin after the call and took the cores
         # from numba's threaded kernels (the 32000-atom melt on 2 threads 5.5x slower).
-        check = total.energy + np.sum(total.forces)
+        check = total.energy + np.add.reduce(total.forces, axis=None)
         if total.virial is not None:
             check += np.sum(total.virial)
         if not math.isfinite(check):
@@ -311,40 +311,49 @@ class ForceField:
 
     @staticmethod
     def _key_of(state: State, old: tuple | None = None) -> tuple:
-        """The inputs a result depends on, copied; into ``old``'s arrays where they fit
-        (no fresh allocation per evaluation: at 10^6 atoms its page faults cost more
-        than the copy)."""
+        """The inputs a result depends on, copied: positions, the cell's bytes (box, tilt
+        and pbc) and types; positions and types into ``old``'s arrays where they fit (no
+        fresh allocation per evaluation: at 10^6 atoms its page faults cost more than the
+        copy)."""
         positions, types = state.positions, state.types
-        if old is not None and old[0].shape == positions.shape and old[4].shape == types.shape:
+        if old is not None and old[0].shape == positions.shape and old[2].shape == types.shape:
             copy_into(old[0], np.ascontiguousarray(positions, dtype=old[0].dtype))
-            np.copyto(old[4], types)
-            held_positions, held_types = old[0], old[4]
+            np.copyto(old[2], types)
+            held_positions, held_types = old[0], old[2]
         else:
             held_positions, held_types = positions.copy(), types.copy()
-        return (
-            held_positions,
-            np.array(state.box, dtype=np.float64),
-            np.array(state.tilt, dtype=np.float64),
-            np.array(state.pbc, dtype=bool),
-            held_types,
-        )
+        return (held_positions, _cell_bytes(state), held_types)
 
     def _same_key(self, key: tuple, state: State) -> bool:
-        positions, box, tilt, pbc, types = key
+        positions, cell, types = key
         # The cell compared by its bytes: the same bits give the same result, and a
         # comparison of three-value arrays costs ~5 us in np.array_equal (three a step).
+        # Positions first: after a step they differ, at the first value compared.
         return (
             positions.shape == state.positions.shape
             and types.shape == state.types.shape
-            and box.tobytes() == np.asarray(state.box, dtype=np.float64).tobytes()
-            and tilt.tobytes() == np.asarray(state.tilt, dtype=np.float64).tobytes()
-            and pbc.tobytes() == np.asarray(state.pbc, dtype=bool).tobytes()
             and same_values(positions, state.positions)
+            and cell == _cell_bytes(state)
             and same_values(types, state.types)
         )
 
     def _matches(self, state: State) -> bool:
         return self._same_key(self._key, state)
+
+
+def _cell_bytes(state: State) -> bytes:
+    """The bytes of ``state``'s box, tilt and pbc: one comparison of a result's cell. Taken
+    as the arrays hold them (a State's are float64, float64 and bool; another dtype only
+    makes a cell look changed, and the result is computed again); values that are not
+    arrays are converted first."""
+    box, tilt, pbc = state.box, state.tilt, state.pbc
+    if type(box) is np.ndarray and type(tilt) is np.ndarray and type(pbc) is np.ndarray:
+        return box.tobytes() + tilt.tobytes() + pbc.tobytes()
+    return (
+        np.asarray(box, dtype=np.float64).tobytes()
+        + np.asarray(tilt, dtype=np.float64).tobytes()
+        + np.asarray(pbc, dtype=bool).tobytes()
+    )
 
 
 def _refuse_non_finite(total: ForceResult, potentials, results: list[ForceResult]) -> None:

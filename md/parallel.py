@@ -153,8 +153,10 @@ def _chunks(n: int) -> int:
 def same_values(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two arrays of one shape are equal (NaN equals nothing), in chunks on the
     kernels' threads, each stopping at its first difference; no temporary array."""
-    a, b = np.ravel(a), np.ravel(b)
-    chunks = _chunks(len(a))
+    a, b = a.reshape(-1), b.reshape(-1)
+    n = a.shape[0]
+    # one chunk below two chunks' worth, on any number of threads (no thread count asked)
+    chunks = 1 if n < 2 * _MIN_CHUNK_VALUES else _chunks(n)
     if chunks == 1:
         return bool(_same_values(a, b))
     return bool(_same_values_threaded(a, b, chunks))

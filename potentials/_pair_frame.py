@@ -195,6 +195,7 @@ class PairPotential:
             raise TypeError(f"expected a PairTerm (see potentials.pair_term), got {term!r}")
         self.term = term
         self._run_variants: set = set()  # the slot-frame kernels this object has run
+        self._frame_kernels: dict = {}  # the slot-frame variants found, by kernels and flags
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -624,10 +625,14 @@ class PairPotential:
         ran = (entry, mode, n_types == 1, table.dtype.str)
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
+        found = self._frame_kernels
         for with_virial in variants:
-            kernel = variant(
-                kernels, entry, mode=int(mode), with_virial=with_virial, single=n_types == 1
-            )
+            key = (kernels.__name__, *ran, with_virial)  # variant(): a microsecond a call
+            kernel = found.get(key)
+            if kernel is None:
+                kernel = found[key] = variant(
+                    kernels, entry, mode=int(mode), with_virial=with_virial, single=n_types == 1
+                )
             kernel(*arguments)
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),

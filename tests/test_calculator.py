@@ -544,3 +544,35 @@ def test_mixed_precision_forces_equal_double_ones_to_float32_round_off():
 def test_an_unknown_precision_is_refused_naming_it():
     with pytest.raises(ValueError, match="half"):
         ours(precision="half")
+
+
+def test_an_evaluation_copies_the_atoms_once_and_keeps_an_equal_copy(monkeypatch):
+    """ASE's get_property copies the atoms before calculate; calculate keeps that copy
+    rather than make a second (ASE's Calculator.calculate would), and copies the atoms
+    itself when it is called directly on atoms that differ from the copy it holds."""
+    atoms = argon(cells=3)
+    atoms.calc = ours()
+    atoms.get_forces()
+    copies = []
+    original = ase.Atoms.copy
+
+    def counted(self):
+        copies.append(self)
+        return original(self)
+
+    monkeypatch.setattr(ase.Atoms, "copy", counted)
+    atoms.positions += 0.01
+    forces = atoms.get_forces()
+    assert len(copies) == 1
+    assert atoms.calc.atoms is not atoms
+    assert np.array_equal(atoms.calc.atoms.positions, atoms.positions)
+    fresh = atoms.copy()
+    fresh.calc = ours()
+    np.testing.assert_allclose(forces, fresh.get_forces(), rtol=0, atol=1e-12)
+    # a direct call after the atoms changed behind a check_state: a copy of the new atoms
+    atoms.calc.check_state(atoms)
+    atoms.positions += 0.01
+    copies.clear()
+    atoms.calc.calculate(atoms, ["energy", "forces"])
+    assert len(copies) == 1
+    assert np.array_equal(atoms.calc.atoms.positions, atoms.positions)

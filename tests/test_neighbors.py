@@ -1,5 +1,7 @@
 """The Verlet/cell neighbour list against an independent O(N^2) minimum-image search."""
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -674,6 +676,8 @@ def test_cell_search_compiled_without_avx2_matches_brute_force(tmp_path):
     import sys
 
     script = """
+import itertools
+
 import numpy as np
 import md._simd
 from md.neighbors import NeighborList
@@ -812,3 +816,101 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(
         listed.keep_owned(ids[:10], 5)
         with pytest.raises(ValueError, match=f"10 ids for {atoms.n_atoms} atoms"):
             listed.build(atoms)
+
+
+# ------------------------------------------------------------ boxes under five cells
+
+
+def images_within(state, radius):
+    """Every (i, j, separation) with i < j and an image of j within ``radius`` of i: all
+    shifts of -2 .. 2 cell vectors from the minimum image, so none is missed."""
+    h = md.box.cell_matrix(np.where(state.pbc, state.box, 0.0), state.tilt)
+    inverse = np.linalg.inv(md.box.cell_matrix(np.where(state.pbc, state.box, 1.0), state.tilt))
+    shifts = (
+        np.array(list(itertools.product(*[range(-2, 3) if p else range(1) for p in state.pbc]))) @ h
+    )
+    found = set()
+    for i in range(state.n_atoms):
+        d = state.positions[i] - state.positions[i + 1 :]
+        d -= np.where(state.pbc, np.rint(d @ inverse), 0.0) @ h
+        for shift in shifts:
+            e = d - shift
+            for k in np.flatnonzero(np.einsum("ij,ij->i", e, e) < radius * radius):
+                found.add((i, i + 1 + int(k), tuple(np.round(e[k], 8))))
+    return found
+
+
+def listed_images(nl, state):
+    """The slot list's entries as (i, j, separation), i < j, from its frame."""
+    frame, at = nl.frame, nl.frame_positions(state.positions)
+    entries = []
+    for p in range(state.n_atoms):
+        for k in range(frame.starts[p], frame.starts[p + 1]):
+            q = frame.neighbors[k]
+            d = at[p] - at[q] - frame.shifts[frame.codes[k]]
+            i, j = int(frame.order[p]), int(frame.order[q])
+            if i > j:
+                i, j, d = j, i, -d
+            entries.append((i, j, tuple(np.round(d, 8))))
+    return entries
+
+
+# (fcc cells, cutoff, skin, tilt, pbc): boxes with room for fewer than five half-radius cells
+SMALL_BOXES = {
+    "108-atoms-under-2-radii": (3, 2.5, 0.3, None, None),
+    "256-atoms-2.4-radii": (4, 2.5, 0.3, None, None),
+    "skin-near-the-edge": (3, 2.5, 1.5, None, None),
+    "narrow-mixed-pbc": (2, 1.6, 0.3, None, (True, False, True)),
+    "one-narrow-axis": ((6, 6, 2), 1.6, 0.3, None, None),
+    "triclinic": (4, 2.4, 0.3, (0.8, -0.5, 0.6), None),
+    "triclinic-mixed-pbc": (4, 2.4, 0.3, (0.8, 0.0, 0.0), (True, True, False)),
+}
+
+
+@pytest.mark.parametrize("case", SMALL_BOXES.values(), ids=SMALL_BOXES.keys())
+def test_small_box_slot_list_holds_every_image_within_reach(case, rng):
+    """A box under five half-radius cells along an axis gets the slot frame by an O(N^2)
+    search over images (``_small_box_list``): every image of every pair within the list
+    radius once, wherever the atoms lie (unwrapped by up to two box lengths); a pair with
+    two such images (a box under twice the list radius) twice in the frame, once in the
+    list over atom indices."""
+    cells, cutoff, skin, tilt, pbc = case
+    state = md.lattice("fcc", cells, density=0.8442, pbc=True if pbc is None else list(pbc))
+    if tilt is not None:
+        state.tilt = np.array(tilt)
+    state.positions += rng.normal(scale=0.2, size=state.positions.shape)
+    state.positions += rng.integers(-2, 3, size=state.positions.shape) * state.box * state.pbc
+    nl = NeighborList(cutoff, skin)
+    nl.update(state)
+    assert not nl.used_cells and nl.order is not None
+    entries = listed_images(nl, state)
+    assert len(set(entries)) == len(entries)
+    assert set(entries) == images_within(state, nl.list_radius)
+    pairs = {(i, j) for i, j, _ in entries}
+    assert (len(pairs) < len(entries)) == (np.min(state.box[state.pbc]) < 2 * nl.list_radius)
+    rows = np.repeat(np.arange(state.n_atoms), np.diff(nl.starts))
+    low, high = np.minimum(rows, nl.neighbors), np.maximum(rows, nl.neighbors)
+    atom_pairs = set(zip(low.tolist(), high.tolist(), strict=True))
+    assert len(atom_pairs) == len(nl.neighbors) and atom_pairs == pairs
+    if tilt is None:
+        assert_list_is_exact(nl, state)
+
+
+@pytest.mark.parametrize("cells", [3, 4])
+def test_small_box_forces_equal_the_minimum_image_ones(cells, rng):
+    """LJ over the small-box slot frame (no minimum image, an entry per image) gives the
+    energy, forces and virial of the kernel over atom indices with the minimum image."""
+    from potentials import LennardJones
+
+    state = md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 1.5, seed=3)
+    state.positions += rng.normal(scale=0.1, size=state.positions.shape)
+    lj = LennardJones(epsilon=1.0, sigma=1.0, cutoff=2.5, cutoff_mode="shift")
+    nl = NeighborList(2.5, 0.3)
+    nl.update(state)
+    assert nl.frame is not None
+    framed = lj.energy_forces(state, nl)
+    by_atom = lj.energy_forces(state, nl, per_atom=True)  # the atom list, minimum image
+    assert framed.energy == pytest.approx(by_atom.energy, rel=1e-12)
+    np.testing.assert_allclose(framed.forces, by_atom.forces, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(framed.virial, by_atom.virial, rtol=1e-12, atol=1e-11)
+    assert by_atom.energies.sum() == pytest.approx(by_atom.energy, rel=1e-12)

@@ -1,7 +1,8 @@
 """Neighbour lists and their kernels: :mod:`md.neighbors.lists` (:class:`NeighborList`,
 :class:`SlotFrame`, :class:`ClusterFrame`, the displacement checks) and the private kernel
 modules it calls (``_cell_kernels``, ``_candidates``, ``_build_kernels``,
-``_cluster_kernels``). The public names are importable from ``md.neighbors``."""
+``_small_box_kernels``, ``_cluster_kernels``). The public names are importable from
+``md.neighbors``."""
 
 from md.neighbors.lists import (
     ClusterFrame,

@@ -1,8 +1,9 @@
 """A cell-list build around the search (see ``_cell_kernels``' docstring): ``_cell_list``,
 the one compiled call of a build; the counting sort by cell (``_bin_atoms``); joining the
 search's chunks (``_join_chunks``); the pair kernels' chunk bounds (``_balanced_bounds``);
-the image-shift table; the list over atom indices (``_atom_space_list``); and the rebuild
-check (``_largest_displacement2``, ``_largest_coordinates``).
+the image-shift table; the list over atom indices (``_atom_space_list``); the rebuild
+check (``_largest_displacement2``, ``_largest_coordinates``). The slot frame of a box too
+narrow for the cells is ``_small_box_kernels``'.
 """
 
 from __future__ import annotations

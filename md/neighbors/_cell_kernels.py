@@ -67,9 +67,12 @@ flushed the caches. In order:
 3. ``_balanced_bounds`` splits the rows into chunks of equal pair counts for
    the pair kernels.
 
-``_brute_force_pairs`` (over atom indices, minimum image) replaces all of
-this when a periodic axis has room for fewer than 5 half-radius cells; it is
-also the reference the cell search is tested against. ``_atom_space_list``
+When a periodic axis has room for fewer than 5 half-radius cells,
+``_small_box_kernels._small_box_list`` builds the same slot frame by an O(N^2)
+search over the periodic images instead; ``_brute_force_pairs`` (over atom
+indices, minimum image) where that does not serve (a periodic width under the
+list radius, a rank's owned pairs). It is also the reference the cell search
+is tested against. ``_atom_space_list``
 translates a slot list into one over atom indices for potentials that read
 ``neighbors.starts``/``neighbors.neighbors``.
 

@@ -1,11 +1,12 @@
 """Verlet neighbour lists built from cell lists.
 
-A note on its length (about 1100 lines, over the 800 where a module is split): nearly
+A note on its length (about 1150 lines, over the 800 where a module is split): nearly
 all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
 brute-force, cell and cluster builds and the prune share its buffers and reference
 positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
 kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
+``_small_box_kernels``: the build of a box too narrow for the cells;
 ``_cluster_kernels``: the cluster-pair list).
 """
 
@@ -50,6 +51,7 @@ from md.neighbors._cluster_kernels import (
     row_reach,
     search_pairs,
 )
+from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
 from md.parallel import chunk_count
 from md.state import State
 
@@ -251,9 +253,16 @@ class NeighborList:
     The search runs on :func:`md.parallel.get_threads` threads (one chunk of
     slots each) and gives the same list on any number of threads.
 
-    When a periodic axis has room for fewer than five cells, the O(N^2)
-    search is used instead; its list is over atom indices (``order`` is
-    None) and kernels apply the minimum image per pair.
+    When a periodic axis has room for fewer than five cells (a box under 2.5 list
+    radii wide: the LJ liquid below about 500 atoms), an O(N^2) search over the
+    periodic images builds the same slot frame instead (slots in atom order, wrapped
+    into the cell; ``md.neighbors._small_box_kernels``), so small boxes
+    run the pair kernels' fast path too. In a cell narrower than twice the list
+    radius a pair may have two images within reach: the slot list then holds each
+    (:attr:`n_pairs` counts them; at most one is within the cutoff), the list over
+    atom indices each pair once. Where that search does not serve (a periodic width
+    under the list radius, or :meth:`keep_owned`), the O(N^2) search over atom
+    indices is used: ``order`` is None and kernels apply the minimum image per pair.
 
     Parameters
     ----------
@@ -305,10 +314,10 @@ class NeighborList:
     neighbors : ndarray of int32, shape (P,)
         ``neighbors[starts[i]:starts[i + 1]]`` are the partners of atom i;
         every pair within ``cutoff + skin`` appears exactly once, under
-        either of its atoms (the O(N^2) search puts it under the lower
+        either of its atoms (the O(N^2) searches put it under the lower
         index). Derived from the slot list on first use after a build.
     order : ndarray of int64, shape (N,), or None
-        Atom in each slot (None after an O(N^2) build).
+        Atom in each slot (None after an O(N^2) build over atom indices).
     images : ndarray of int32, shape (N, 3)
         Per slot, the box lengths the build added to the atom's position to
         wrap it (zero along open axes).
@@ -404,6 +413,8 @@ class NeighborList:
         self._neighbor_buffer = np.zeros(1024, dtype=np.int32)
         self._code_buffer = np.zeros(1024, dtype=np.uint8)
         self._atom_list: tuple[NDArray[np.int64], NDArray[np.int32]] | None = None
+        self._repeats = False  # a pair listed once per image (a cell under 2 list radii)
+        self._small_memo = None  # (cell key, verdict) of _small_box_serves
         self._reference: NDArray[np.float64] | None = None
         self._box: NDArray[np.float64] | None = None
         self._tilt: NDArray[np.float64] | None = None
@@ -471,7 +482,8 @@ class NeighborList:
 
     @property
     def frame(self) -> SlotFrame | None:
-        """The slot frame of the last build (None after an O(N^2) build: use ``starts``)."""
+        """The slot frame of the last build (None after an O(N^2) build over atom indices:
+        use ``starts``)."""
         self._slot_list()
         if self.order is None:
             return None
@@ -749,6 +761,7 @@ class NeighborList:
             )
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
+        self._repeats = False
         self._prune_buffers = None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
@@ -762,6 +775,9 @@ class NeighborList:
             self._build_clusters(state, columns, chunks)
             self.shifts = shifts
             self._slots_pending = True
+        elif grid is None and self._small_box_serves(state):
+            self._build_small_box(state, chunks)
+            self.shifts = shifts
         elif grid is None:
             self._build_brute_force(state)
             self.bounds = _balanced_bounds(self.slot_starts, chunks)
@@ -977,6 +993,45 @@ class NeighborList:
         self.codes = np.zeros(0, dtype=np.uint8)
         self.shifts = np.zeros((27, 3))
 
+    def _small_box_serves(self, state: State) -> bool:
+        """Whether the slot-frame O(N^2) search (``_small_box_list``) builds the list of a
+        cell the cell search cannot: every periodic perpendicular width longer than the
+        list radius (so shifts of one cell vector find every image within reach) and a
+        list of every pair (no :meth:`keep_owned`). Kept for the next build in the same cell."""
+        if self._owned is not None or state.n_atoms < 2:
+            return False
+        key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+        if self._small_memo is None or self._small_memo[0] != key:
+            widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+            self._small_memo = (key, bool(np.all(widths[state.pbc] > self.list_radius)))
+        return self._small_memo[1]
+
+    def _build_small_box(self, state: State, chunks: int) -> None:
+        r2_max = _square(self.list_radius)
+        while True:
+            order, images, starts, bounds, count, shifted, repeats = _small_box_list(
+                state.positions,
+                state.pbc,
+                state.box,
+                self.tilt,
+                r2_max,
+                chunks,
+                self._neighbor_buffer,
+                self._code_buffer,
+            )
+            if count >= 0:
+                break
+            self._neighbor_buffer = np.empty(_grown(-count), dtype=np.int32)
+            self._code_buffer = np.empty(_grown(-count), dtype=np.uint8)
+        self.order = order
+        self.images = images
+        self.slot_starts = starts
+        self.slot_neighbors = self._neighbor_buffer[:count]
+        self.codes = self._code_buffer[:count]
+        self.shifted_rows = shifted
+        self.bounds = bounds
+        self._repeats = bool(repeats)
+
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         origin, width, n_cells, reach = grid
         ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
@@ -1050,6 +1105,8 @@ class NeighborList:
             starts = np.empty(n + 1, dtype=np.int64)
             neighbors = np.empty(self.n_pairs, dtype=np.int32)
             _atom_space_list(self.order, self.slot_starts, self.slot_neighbors, starts, neighbors)
+            if self._repeats:  # once per pair: the minimum image finds the nearest
+                neighbors = neighbors[: _drop_repeats(starts, neighbors)]
             self._atom_list = (starts, neighbors)
         return self._atom_list
 
