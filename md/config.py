@@ -37,6 +37,7 @@ from typing import Any
 from integrators import INTEGRATORS, NoseHooverChain, integrator_class
 from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
+from integrators.rigid import ROTATIONS
 from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError, PluginError
@@ -466,6 +467,28 @@ class MinimizeConfig:
     )
 
 
+@dataclass(frozen=True)
+class RigidConfig:
+    """``[rigid]``: rigid bodies (see :mod:`md.rigid` and :mod:`integrators.rigid`)."""
+
+    bodies: str = key(
+        "molecules",
+        "string",
+        choices=("molecules",),
+        doc="Which atoms make a body: `'molecules'`, one body per molecule id of a LAMMPS "
+        "data file's molecule column (as `fix rigid ... molecule`), else per bonded cluster "
+        "of the topology; atoms of molecule id 0 stay free.",
+    )
+    rotation: str = key(
+        "no_squish",
+        "string",
+        choices=tuple(ROTATIONS),
+        doc="The rotational integrator, while `[integrator]` (velocity Verlet) moves the "
+        "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
+        "quaternions or RK4 on quaternions.",
+    )
+
+
 #: The top level's own keys (the rest are the sections).
 TOP_KEYS = (
     Key(
@@ -579,6 +602,12 @@ def sections() -> tuple[Section, ...]:
             BondConstraints.CONFIG_KEYS,
         ),
         Section(
+            "rigid",
+            "[rigid]",
+            "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity Verlet.",
+            section_keys(RigidConfig),
+        ),
+        Section(
             "barostat",
             "[barostat]",
             "Constant pressure, with a thermostat as `[integrator]`; `type` names it.",
@@ -631,6 +660,7 @@ class Config:
     output: OutputConfig
     minimize: MinimizeConfig | None = None
     barostat: PluginEntry | None = None
+    rigid: RigidConfig | None = None
 
 
 def load_config(path) -> Config:
@@ -700,6 +730,12 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     if "barostat" in top.data:
         table = _Table(top.take("barostat"), "barostat", source, base, units)
         barostat = _parse_barostat(table, seed, integrator)
+    rigid = None
+    if "rigid" in top.data:
+        table = _Table(top.take("rigid"), "rigid", source, base, units)
+        rigid = _parse_rigid(table, integrator, barostat)
+        if "minimize" in top.data:
+            raise table.error("bodies", "a [minimize] stage does not keep rigid bodies (yet)")
     minimize = None
     if "minimize" in top.data:
         table = _Table(top.take("minimize"), "minimize", source, base, units)
@@ -717,6 +753,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         output=output,
         minimize=minimize,
         barostat=barostat,
+        rigid=rigid,
     )
 
 
@@ -854,6 +891,21 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
             "isothermal-isobaric ensemble: use it to equilibrate, then c_rescale"
         )
     return PluginEntry(kind, values)
+
+
+def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfig:
+    """``[rigid]``: refused with what it cannot be combined with (yet)."""
+    result = RigidConfig(**table.fields(RigidConfig))
+    table.finish()
+    if integrator.type not in ("verlet", "velocity_verlet"):
+        raise table.error(
+            "rotation",
+            f"rigid bodies move by velocity Verlet for now: set [integrator] type = "
+            f"'velocity_verlet' (got {integrator.type!r}; thermostats on bodies are not there)",
+        )
+    if barostat is not None:
+        raise table.error("rotation", "rigid bodies cannot be run with a [barostat] (yet)")
+    return result
 
 
 def _parse_minimize(table: _Table, integrator: PluginEntry) -> MinimizeConfig:
@@ -1071,6 +1123,7 @@ __all__ = [
     "MinimizeConfig",
     "OutputConfig",
     "PluginEntry",
+    "RigidConfig",
     "RunConfig",
     "Section",
     "SystemConfig",
