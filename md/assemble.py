@@ -19,7 +19,7 @@ from md.config import Config, build_system, integrator_from_config, potential_fr
 from md.distributed import DistributedSimulation, ranks_per_node
 from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.parallel import max_threads, set_threads
-from md.rigid_setup import rigid_integrator
+from md.rigid_setup import rigid_components
 from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
@@ -60,7 +60,9 @@ def build_components(config: Config, state: State | None = None):
             raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
     if config.rigid is not None:  # velocity Verlet over bodies (md.rigid_setup)
-        integrator = rigid_integrator(config, integrator, state, bonds, fresh)
+        integrator, potentials = rigid_components(
+            config, integrator, state, bonds, potentials, fresh
+        )
     if config.barostat is not None:
         try:
             barostat = Barostat(config.barostat.type, **config.barostat.values)

@@ -487,6 +487,13 @@ class RigidConfig:
         "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
         "quaternions or RK4 on quaternions.",
     )
+    exclude: bool = key(
+        True,
+        "boolean",
+        doc="Leave the pairs inside one body out of the pair potentials (they move no "
+        "body; false keeps their constant energy, as LAMMPS does without "
+        "`neigh_modify exclude`).",
+    )
 
 
 #: The top level's own keys (the rest are the sections).

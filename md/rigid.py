@@ -287,6 +287,18 @@ class RigidBodies:
         np.add.at(torque, self.owner, np.cross(self.offsets(), f))
         return total, torque
 
+    def intra_pairs(self, n_atoms: int) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
+        """Every pair of atoms inside one body as a half list in CSR form ``(starts,
+        partners)``: ``partners[starts[i]:starts[i+1]]`` are the ``j > i`` of i's body."""
+        rows = [[] for _ in range(n_atoms)]
+        for b in range(self.n_bodies):
+            atoms = np.sort(self.members[self.starts[b] : self.starts[b + 1]])
+            for k, i in enumerate(atoms[:-1]):
+                rows[int(i)] = atoms[k + 1 :].tolist()
+        starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64)
+        partners = np.array([j for r in rows for j in r], dtype=np.int32)
+        return starts, partners
+
     # ------------------------------------------------------------------ thermodynamics
     def n_dof(self, remove_momentum: bool = True) -> int:
         """Degrees of freedom: 3 per free atom, 6 per body (5 per linear body), less 3 for
@@ -315,16 +327,17 @@ class RigidBodies:
         return -np.einsum("mi,mj->ij", d, forces[self.members]) - np.einsum("m,mi,mj->ij", m, u, u)
 
     # ------------------------------------------------------------------ checkpoints
+    #: What a checkpoint keeps: the moving variables, and the constants the start made
+    #: (computed again from a resumed state they could differ in the last bit).
+    SAVED = ("centres", "momenta", "quaternions", "angular_momenta", "moments", "body_positions")
+
     def get_state(self) -> dict:
-        return {
-            "centres": self.centres.copy(),
-            "momenta": self.momenta.copy(),
-            "quaternions": self.quaternions.copy(),
-            "angular_momenta": self.angular_momenta.copy(),
-        }
+        """The bodies' variables and constants, for a checkpoint."""
+        return {name: getattr(self, name).copy() for name in self.SAVED}
 
     def set_state(self, saved: dict) -> None:
-        for name in ("centres", "momenta", "quaternions", "angular_momenta"):
+        """Take back :meth:`get_state`'s arrays (ValueError if they do not fit)."""
+        for name in self.SAVED:
             value = np.asarray(saved[name], dtype=np.float64)
             target = getattr(self, name)
             if value.shape != target.shape:
@@ -332,6 +345,9 @@ class RigidBodies:
                     f"saved {name} have shape {value.shape}, the bodies {target.shape}"
                 )
             target[:] = value
+        with np.errstate(divide="ignore"):
+            self.inverse_moments = np.where(self.moments > 0, 1.0 / self.moments, 0.0)
+        self.linear = self.moments[:, 0] == 0.0
 
 
 __all__ = [

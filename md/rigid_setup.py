@@ -3,10 +3,11 @@
 :func:`body_ids` finds the molecule id of every atom: a LAMMPS data file's
 molecule column (atom styles ``full``, ``molecular``, ``bond``, ``angle``), as
 LAMMPS's ``fix rigid ... molecule`` takes it, else the bonded clusters of the
-system's topology. :func:`rigid_integrator` builds the
+system's topology. :func:`rigid_components` builds the
 :class:`md.rigid.RigidBodies` and wraps the config's velocity Verlet into
-:class:`integrators.rigid.RigidNVE`. Both raise :class:`md.errors.ConfigError`
-naming the file and key, before anything is written.
+:class:`integrators.rigid.RigidNVE`, and leaves the pairs inside bodies out of the
+pair potentials (:class:`potentials.rigid_exclusion.IntraBodyExclusion`). Both raise
+:class:`md.errors.ConfigError` naming the file and key, before anything is written.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from md.rigid import RigidBodies, molecules_from_bonds
 from md.state import State
 from md.structure import structure_kind
 from md.topology import Topology
+from potentials import PairPotential
+from potentials.rigid_exclusion import IntraBodyExclusion
 
 #: LAMMPS atom styles whose second column is the molecule id.
 _MOLECULE_STYLES = ("full", "molecular", "bond", "angle")
@@ -73,21 +76,27 @@ def body_ids(config: Config, state: State, topology: Topology | None) -> np.ndar
     return molecules_from_bonds(bonds, state.n_atoms)
 
 
-def rigid_integrator(
-    config: Config, integrator, state: State, topology: Topology | None, fresh: bool
-) -> RigidNVE:
-    """The config's velocity Verlet made :class:`RigidNVE` over its bodies; on a fresh run
-    (``fresh``) the constituents are placed rigidly at once, so step 0 is reported there
-    (a resumed state is already placed; its bodies come from the checkpoint)."""
+def rigid_components(
+    config: Config, integrator, state: State, topology: Topology | None, potentials, fresh: bool
+):
+    """Return ``(integrator, potentials)``: the config's velocity Verlet made
+    :class:`RigidNVE` over its bodies, and the potentials with the pairs inside bodies
+    left out (``[rigid] exclude``). On a fresh run (``fresh``) the constituents are placed
+    rigidly at once, so step 0 is reported there (a resumed state is already placed; its
+    bodies come from the checkpoint)."""
     ids = body_ids(config, state, topology)
     try:
         bodies = RigidBodies.from_molecules(state, ids)
     except ValueError as error:
         raise ConfigError(f"{config.source}: [rigid] bodies: {error}") from None
     rigid = RigidNVE(integrator.dt, bodies, config.rigid.rotation)
+    potentials = list(potentials)
+    pairs = [p for p in potentials if isinstance(p, PairPotential)]
+    if config.rigid.exclude and pairs:
+        potentials.append(IntraBodyExclusion(pairs, *bodies.intra_pairs(state.n_atoms)))
     if fresh:
         bodies.place(state)
-    return rigid
+    return rigid, potentials
 
 
-__all__ = ["body_ids", "lammps_molecule_ids", "rigid_integrator"]
+__all__ = ["body_ids", "lammps_molecule_ids", "rigid_components"]

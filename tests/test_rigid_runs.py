@@ -1,0 +1,231 @@
+"""Rigid bodies through ``md run`` (issue 68): configs, refusals, checkpoints, exclusions."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from test_rigid import TRIMER, TRIMER_MASSES, _random_rotation, _state
+
+from md.assemble import build_simulation
+from md.checkpoint import checkpoint_path, read_checkpoint
+from md.cli import main
+from md.config import load_config
+from md.errors import ConfigError
+from md.forcefield import ForceField
+from md.rigid import RigidBodies
+from md.trajectory import read_trajectory
+from potentials.lennard_jones import LennardJones
+from potentials.rigid_exclusion import IntraBodyExclusion
+
+CONFIG = """units = "lj"
+seed = 11
+[system]
+polymer = "melt"
+chains = 12
+chain_length = 3
+density = 0.05
+bond_length = 1.0
+temperature = 1.0
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+[integrator]
+type = "velocity_verlet"
+dt = 0.002
+[rigid]
+rotation = "ROTATION"
+[run]
+steps = 60
+thermo_every = 10
+[output]
+path = "out.h5"
+every = 10
+velocities = true
+checkpoint_every = 20
+"""
+
+
+@pytest.fixture(autouse=True)
+def in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+
+
+def run(*args) -> int:
+    return main(["run", *map(str, args), "--no-progress", "-q"])
+
+
+@pytest.mark.parametrize("rotation", ["no_squish", "richardson"])
+def test_resume_is_bitwise_identical(tmp_path, rotation):
+    """Stop at 20, resume to 40, lose everything after step 20, resume to 60."""
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", rotation))
+    assert run(config, "-o", "full.h5") == 0
+    assert run(config, "-o", "cut.h5", "--steps", "20") == 0
+    shutil.copy(checkpoint_path("cut.h5"), "at_20.ckpt")
+    assert run(config, "-o", "cut.h5", "--steps", "40", "--resume") == 0
+    shutil.copy("at_20.ckpt", checkpoint_path("cut.h5"))
+    assert run(config, "-o", "cut.h5", "--resume") == 0
+    a, b = read_trajectory("full.h5"), read_trajectory("cut.h5")
+    assert list(b.steps) == [0, 10, 20, 30, 40, 50, 60]
+    assert np.array_equal(a.positions, b.positions)
+    assert np.array_equal(a.velocities, b.velocities)
+    full = read_checkpoint(checkpoint_path("full.h5"))
+    cut = read_checkpoint(checkpoint_path("cut.h5"))
+    for name, value in full.integrator_state.items():
+        assert np.array_equal(value, cut.integrator_state[name]), name
+    assert full.integrator_state["quaternions"].shape == (12, 4)
+    # The bodies held their shape: every constituent pair keeps its distance.
+    for frame in (0, -1):
+        x = a.positions[frame].reshape(12, 3, 3)
+        d = np.linalg.norm(x[:, [0, 0, 1]] - x[:, [1, 2, 2]], axis=-1)
+        x0 = a.positions[0].reshape(12, 3, 3)
+        assert np.allclose(d, np.linalg.norm(x0[:, [0, 0, 1]] - x0[:, [1, 2, 2]], axis=-1))
+
+
+def test_thermo_has_both_temperatures(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", "dlm").replace("steps = 60", "steps = 10"))
+    assert main(["run", str(config), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "TempTrans" in out and "TempRot" in out
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            ('type = "velocity_verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0'),
+            "velocity Verlet",
+        ),
+        (('rotation = "ROTATION"', 'rotation = "euler"'), "rotation"),
+        (("chains = 12", "chains = 12\nmass = 0.0"), "mass"),
+    ],
+)
+def test_bad_rigid_input_exits_2_and_writes_nothing(tmp_path, capsys, change, message):
+    config = tmp_path / "bad.toml"
+    config.write_text(CONFIG.replace(*change).replace("ROTATION", "no_squish"))
+    assert run(config) == 2
+    err = capsys.readouterr().err
+    assert "md: error:" in err and message in err and "bad.toml" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
+
+
+def _data_file(path, molecules, positions):
+    """A LAMMPS data file (atom_style full) of unit-mass atoms with these molecule ids."""
+    lines = ["LAMMPS data file", "", f"{len(molecules)} atoms", "1 atom types", ""]
+    lines += ["0 10 xlo xhi", "0 10 ylo yhi", "0 10 zlo zhi", "", "Masses", "", "1 1.0", ""]
+    lines += ["Atoms # full", ""]
+    # written in reverse id order: the ids, not the lines, give the atoms' order
+    for i in reversed(range(len(molecules))):
+        x, y, z = positions[i]
+        lines.append(f"{i + 1} {molecules[i]} 1 0.0 {x} {y} {z}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+DATA_CONFIG = """units = "lj"
+[system]
+structure = "bodies.data"
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+[integrator]
+type = "velocity_verlet"
+dt = 0.002
+[rigid]
+bodies = "molecules"
+[run]
+steps = 10
+[output]
+path = "out.h5"
+"""
+BODY_POSITIONS = [[1, 1, 1], [2, 1, 1], [1, 2, 1], [5, 5, 5], [6, 5, 5], [5.5, 6, 5], [8, 8, 8]]
+
+
+def test_bodies_from_a_data_files_molecule_column(tmp_path):
+    _data_file(tmp_path / "bodies.data", [1, 1, 1, 2, 2, 2, 0], BODY_POSITIONS)
+    (tmp_path / "run.toml").write_text(DATA_CONFIG)
+    sim = build_simulation(load_config(tmp_path / "run.toml"), None, tmp_path / "x", None)
+    bodies = sim.integrator.bodies
+    assert bodies.n_bodies == 2 and bodies.free.tolist() == [6]
+    assert bodies.members.tolist() == [0, 1, 2, 3, 4, 5]
+    assert bodies.n_dof() == 6 + 6 + 3 - 3
+    assert sim.integrator.describe()["rotation"] == "no_squish"
+
+
+@pytest.mark.parametrize(
+    ("molecules", "message"),
+    [([1, 1, 1, 2, 2, 2, 3], "single atom"), ([1, 1, 1, 1, 1, 1, 0], "half the box")],
+)
+def test_bad_bodies_in_a_data_file_exit_2(tmp_path, capsys, molecules, message):
+    _data_file(tmp_path / "bodies.data", molecules, BODY_POSITIONS)
+    (tmp_path / "run.toml").write_text(DATA_CONFIG)
+    assert run(tmp_path / "run.toml") == 2
+    err = capsys.readouterr().err
+    assert "md: error:" in err and "[rigid] bodies" in err and message in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bodies.data", "run.toml"]
+
+
+def test_refused_under_mpi(tmp_path):
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", "no_squish"))
+    with pytest.raises(ConfigError, match="MPI"):
+        build_simulation(load_config(config), None, tmp_path / "x", None, ranks=object())
+
+
+def test_intra_body_pairs_are_left_out(rng):
+    """With the exclusion the energy is the inter-body pairs' alone; forces and torques on
+    the bodies are unchanged (intra-body forces cancel on a rigid body)."""
+    a, b = _random_rotation(rng), _random_rotation(rng)
+    positions = np.concatenate([TRIMER @ a.T + 5.0, TRIMER @ b.T + [6.3, 5.4, 5.9]])
+    state = _state(positions, np.tile(TRIMER_MASSES, 2), box=12.0)
+    bodies = RigidBodies.from_molecules(state, [1, 1, 1, 2, 2, 2])
+    lj = LennardJones(cutoff=3.0)
+    exclusion = IntraBodyExclusion([lj], *bodies.intra_pairs(6))
+    full = ForceField([LennardJones(cutoff=3.0)]).compute(state)
+    inter = ForceField([LennardJones(cutoff=3.0), exclusion]).compute(state)
+    expected = sum(
+        lj.pair_energy(float(np.linalg.norm(positions[i] - positions[j])))
+        for i in range(3)
+        for j in range(3, 6)
+    )
+    assert inter.energy == pytest.approx(expected, rel=1e-12)
+    assert abs(full.energy - inter.energy) > 1.0  # the intra pairs were there to remove
+    for result in (full, inter):
+        force, torque = bodies.force_torque(result.forces)
+        ref_force, ref_torque = bodies.force_torque(inter.forces)
+        assert np.allclose(force, ref_force, atol=1e-10)
+        assert np.allclose(torque, ref_torque, atol=1e-10)
+    assert bodies.virial_correction(state, full.forces) + full.virial == pytest.approx(
+        bodies.virial_correction(state, inter.forces) + inter.virial, abs=1e-10
+    )
+
+
+def test_pressure_is_the_rigid_body_virial(rng):
+    """At rest, 3 P V = -dU/d(ln lambda) with the centres (and box) scaled by lambda and
+    the bodies kept rigid, by central differences; the atomic virial alone fails it."""
+    from test_rigid import _trimer_gas
+
+    from integrators.rigid import RigidNVE
+    from md.simulation import Simulation
+
+    state, ids = _trimer_gas(rng)
+    state.velocities[:] = 0.0
+    bodies = RigidBodies.from_molecules(state, ids)
+    bodies.place(state)
+    sim = Simulation(state, [LennardJones(cutoff=2.0)], RigidNVE(0.001, bodies))
+    row = sim.thermo()
+
+    def energy(scale):
+        scaled = state.copy()
+        scaled.box = state.box * scale
+        shift = (scale - 1.0) * bodies.centres
+        scaled.positions[bodies.members] += shift[bodies.owner]
+        return ForceField([LennardJones(cutoff=2.0)]).compute(scaled).energy
+
+    h = 1e-6
+    derivative = (energy(1 + h) - energy(1 - h)) / (2 * h)
+    assert 3 * row["pressure"] * row["volume"] == pytest.approx(-derivative, rel=1e-6)
+    atomic = np.trace(ForceField([LennardJones(cutoff=2.0)]).compute(state).virial)
+    assert atomic != pytest.approx(-derivative, rel=1e-3)
