@@ -155,6 +155,8 @@ class RigidNVE(IntegratorBase):
     """
 
     order = 2
+    #: Whether the total momentum is conserved (then 3 fewer degrees of freedom).
+    conserves_momentum = True
 
     def __init__(self, dt: float, bodies: RigidBodies, rotation: str = "no_squish") -> None:
         self.dt = check_dt(dt)
@@ -193,7 +195,7 @@ class RigidNVE(IntegratorBase):
         rotational temperatures (in kB = 1 units of energy per degree of freedom, scaled
         by the Simulation)."""
         bodies = self.bodies
-        terms = {"n_dof": bodies.n_dof()}
+        terms = {"n_dof": bodies.n_dof(self.conserves_momentum)}
         if result.virial is not None:
             terms["virial"] = bodies.virial_correction(state, result.forces)
         translational, rotational = bodies.kinetic_energies(state)
@@ -215,4 +217,120 @@ class RigidNVE(IntegratorBase):
         return {"type": "rigid_nve", "dt": self.dt, "rotation": self.rotation}
 
 
-__all__ = ["ROTATION", "ROTATIONS", "ROTATION_ORDERS", "RigidNVE", "quaternion_product"]
+class RigidLangevin(RigidNVE):
+    """Langevin dynamics of bodies and free atoms, BAOAB: half kick, half drift (centres,
+    free atoms and ``rotation`` over dt/2), Ornstein-Uhlenbeck on every momentum, half
+    drift, half kick.
+
+    The O step draws the free atoms' and the centres' momenta toward the Maxwell
+    distribution at ``kT`` with rate ``friction`` [1/time], and each body's angular
+    momentum in its principal frame with rate ``rotational_friction`` (default
+    ``friction``), component k with variance I_k kT (none along a linear body's axis):
+    exact for its part, so both temperatures relax to the target. The noise of step n
+    comes from ``(seed, n)`` alone, so a resumed run draws the same.
+
+    References
+    ----------
+    B. Leimkuhler, C. Matthews, Appl. Math. Res. Express 2013, 34 (BAOAB).
+    R. L. Davidchack, T. E. Ouldridge, M. V. Tretyakov, J. Chem. Phys. 142, 144114 (2015)
+    (Langevin thermostats for rigid bodies).
+    """
+
+    conserves_momentum = False
+    stochastic = True
+
+    def __init__(
+        self,
+        dt: float,
+        bodies: RigidBodies,
+        rotation: str = "no_squish",
+        kT: float = 1.0,
+        friction: float = 1.0,
+        rotational_friction: float | None = None,
+        seed=None,
+    ) -> None:
+        super().__init__(dt, bodies, rotation)
+        self.kT = float(kT)
+        self.friction = float(friction)
+        self.rotational_friction = (
+            self.friction if rotational_friction is None else float(rotational_friction)
+        )
+        if not (self.kT >= 0 and self.friction >= 0 and self.rotational_friction >= 0):
+            raise ValueError("kT and the frictions must be >= 0")
+        # The seed's entropy as 32-bit words (fresh entropy without a seed), kept for resumes.
+        words = []
+        for value in np.atleast_1d(np.random.SeedSequence(seed).entropy).tolist():
+            value = int(value)
+            words += [
+                (value >> (32 * k)) & 0xFFFFFFFF
+                for k in range(max(1, -(-value.bit_length() // 32)))
+            ]
+        self.entropy = np.array(words, dtype=np.int64)
+
+    def _drift(self, state, span: float) -> None:
+        bodies = self.bodies
+        free = bodies.free
+        state.positions[free] += span * state.velocities[free]
+        bodies.centres += span * bodies.momenta / bodies.masses[:, None]
+        bodies.quaternions[:] = self._turn(
+            bodies.quaternions, bodies.angular_momenta, bodies.inverse_moments, span
+        )
+
+    def _thermalise(self, state) -> None:
+        bodies = self.bodies
+        rng = np.random.default_rng([*self.entropy.tolist(), state.step + 1])
+        c = np.exp(-self.friction * self.dt)
+        free = bodies.free
+        sigma = np.sqrt((1 - c * c) * self.kT / state.masses[free])[:, None]
+        state.velocities[free] = c * state.velocities[free] + sigma * rng.standard_normal(
+            (len(free), 3)
+        )
+        sigma = np.sqrt((1 - c * c) * self.kT * bodies.masses)[:, None]
+        bodies.momenta[:] = c * bodies.momenta + sigma * rng.standard_normal((bodies.n_bodies, 3))
+        c = np.exp(-self.rotational_friction * self.dt)
+        a = bodies.matrices()
+        body = np.einsum("bji,bj->bi", a, bodies.angular_momenta)
+        sigma = np.sqrt((1 - c * c) * self.kT * bodies.moments)  # 0 along a linear axis
+        body = np.where(bodies.moments > 0, c * body, 0.0)
+        body += sigma * rng.standard_normal((bodies.n_bodies, 3))
+        bodies.angular_momenta[:] = np.einsum("bij,bj->bi", a, body)
+
+    def step(self, state, forcefield) -> None:
+        half = 0.5 * self.dt
+        self._kick(state, forcefield.compute(state, virial=False).forces, half)
+        self._drift(state, half)
+        self._thermalise(state)
+        self._drift(state, half)
+        self.bodies.place(state)
+        self._kick(state, forcefield.compute(state, virial=False).forces, half)
+        self.bodies.place(state)
+        self.end_step(state)
+
+    def get_state(self) -> dict:
+        saved = super().get_state()
+        saved["entropy"] = self.entropy.copy()
+        return saved
+
+    def set_state(self, saved: dict) -> None:
+        super().set_state(saved)
+        self.entropy = np.asarray(saved["entropy"], dtype=np.int64).copy()
+
+    def describe(self) -> dict:
+        return {
+            "type": "rigid_langevin",
+            "dt": self.dt,
+            "rotation": self.rotation,
+            "kT": self.kT,
+            "friction": self.friction,
+            "rotational_friction": self.rotational_friction,
+        }
+
+
+__all__ = [
+    "ROTATION",
+    "ROTATIONS",
+    "ROTATION_ORDERS",
+    "RigidLangevin",
+    "RigidNVE",
+    "quaternion_product",
+]

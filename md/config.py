@@ -483,7 +483,8 @@ class RigidConfig:
         "no_squish",
         "string",
         choices=tuple(ROTATIONS),
-        doc="The rotational integrator, while `[integrator]` (velocity Verlet) moves the "
+        doc="The rotational integrator, while `[integrator]` (velocity Verlet, or Langevin "
+        "on every momentum) moves the "
         "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
         "quaternions or RK4 on quaternions.",
     )
@@ -611,7 +612,8 @@ def sections() -> tuple[Section, ...]:
         Section(
             "rigid",
             "[rigid]",
-            "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity Verlet.",
+            "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity "
+            "Verlet or Langevin.",
             section_keys(RigidConfig),
         ),
         Section(
@@ -904,12 +906,14 @@ def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfi
     """``[rigid]``: refused with what it cannot be combined with (yet)."""
     result = RigidConfig(**table.fields(RigidConfig))
     table.finish()
-    if integrator.type not in ("verlet", "velocity_verlet"):
+    if integrator.type not in ("verlet", "velocity_verlet", "langevin"):
         raise table.error(
             "rotation",
-            f"rigid bodies move by velocity Verlet for now: set [integrator] type = "
-            f"'velocity_verlet' (got {integrator.type!r}; thermostats on bodies are not there)",
+            f"rigid bodies move by velocity Verlet or Langevin for now: set [integrator] "
+            f"type = 'velocity_verlet' or 'langevin' (got {integrator.type!r})",
         )
+    if "constraints" in integrator.values:
+        raise table.error("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
     if barostat is not None:
         raise table.error("rotation", "rigid bodies cannot be run with a [barostat] (yet)")
     return result

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators.rigid import RigidNVE
+from integrators import Langevin
+from integrators.rigid import RigidLangevin, RigidNVE
 from md.config import Config
 from md.errors import ConfigError
 from md.rigid import RigidBodies, molecules_from_bonds
@@ -80,8 +81,9 @@ def rigid_components(
     config: Config, integrator, state: State, topology: Topology | None, potentials, fresh: bool
 ):
     """Return ``(integrator, potentials)``: the config's velocity Verlet made
-    :class:`RigidNVE` over its bodies, and the potentials with the pairs inside bodies
-    left out (``[rigid] exclude``). On a fresh run (``fresh``) the constituents are placed
+    :class:`RigidNVE` over its bodies (its Langevin :class:`RigidLangevin`), and the
+    potentials with the pairs inside bodies left out (``[rigid] exclude``). On a fresh
+    run (``fresh``) the constituents are placed
     rigidly at once, so step 0 is reported there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
     ids = body_ids(config, state, topology)
@@ -89,7 +91,18 @@ def rigid_components(
         bodies = RigidBodies.from_molecules(state, ids)
     except ValueError as error:
         raise ConfigError(f"{config.source}: [rigid] bodies: {error}") from None
-    rigid = RigidNVE(integrator.dt, bodies, config.rigid.rotation)
+    rotation = config.rigid.rotation
+    if isinstance(integrator, Langevin):  # its bath on the bodies' momenta
+        rigid = RigidLangevin(
+            integrator.dt,
+            bodies,
+            rotation,
+            kT=integrator.kT,
+            friction=integrator.friction,
+            seed=integrator.seed,
+        )
+    else:
+        rigid = RigidNVE(integrator.dt, bodies, rotation)
     potentials = list(potentials)
     pairs = [p for p in potentials if isinstance(p, PairPotential)]
     if config.rigid.exclude and pairs:

@@ -84,6 +84,20 @@ def test_resume_is_bitwise_identical(tmp_path, rotation):
         assert np.allclose(d, np.linalg.norm(x0[:, [0, 0, 1]] - x0[:, [1, 2, 2]], axis=-1))
 
 
+def test_langevin_config_runs_bodies_and_resumes(tmp_path):
+    text = CONFIG.replace("ROTATION", "no_squish").replace(
+        'type = "velocity_verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0'
+    )
+    config = tmp_path / "run.toml"
+    config.write_text(text)
+    assert run(config, "-o", "full.h5") == 0
+    assert run(config, "-o", "cut.h5", "--steps", "20") == 0
+    assert run(config, "-o", "cut.h5", "--resume") == 0
+    a, b = read_trajectory("full.h5"), read_trajectory("cut.h5")
+    assert np.array_equal(a.positions, b.positions)
+    assert read_checkpoint(checkpoint_path("full.h5")).integrator["type"] == "rigid_langevin"
+
+
 def test_thermo_has_both_temperatures(tmp_path, capsys):
     config = tmp_path / "run.toml"
     config.write_text(CONFIG.replace("ROTATION", "dlm").replace("steps = 60", "steps = 10"))
@@ -96,8 +110,8 @@ def test_thermo_has_both_temperatures(tmp_path, capsys):
     ("change", "message"),
     [
         (
-            ('type = "velocity_verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0'),
-            "velocity Verlet",
+            ('type = "velocity_verlet"', 'type = "bussi"\ntemperature = 1.0\ntau = 1.0'),
+            "velocity Verlet or Langevin",
         ),
         (('rotation = "ROTATION"', 'rotation = "euler"'), "rotation"),
         (("chains = 12", "chains = 12\nmass = 0.0"), "mass"),
