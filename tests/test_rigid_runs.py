@@ -15,7 +15,7 @@ from md.config import load_config
 from md.errors import ConfigError
 from md.forcefield import ForceField
 from md.rigid import RigidBodies
-from md.trajectory import read_trajectory
+from md.trajectory import open_trajectory, read_trajectory
 from potentials.lennard_jones import LennardJones
 from potentials.rigid_exclusion import IntraBodyExclusion
 
@@ -76,6 +76,12 @@ def test_resume_is_bitwise_identical(tmp_path, rotation):
     for name, value in full.integrator_state.items():
         assert np.array_equal(value, cut.integrator_state[name]), name
     assert full.integrator_state["quaternions"].shape == (12, 4)
+    # MDAnalysis sees the constituents as atoms, where our reader puts them.
+    universe = open_trajectory("full.h5")  # an MDAnalysis Universe
+    assert universe.atoms.n_atoms == 36 and len(universe.trajectory) == 7
+    universe.trajectory[-1]
+    wrapped = a.positions[-1] - np.floor(a.positions[-1] / a.boxes[-1]) * a.boxes[-1]
+    assert np.allclose(universe.atoms.positions, wrapped, atol=2e-5 * a.boxes[-1].max())
     # The bodies held their shape: every constituent pair keeps its distance.
     for frame in (0, -1):
         x = a.positions[frame].reshape(12, 3, 3)
