@@ -486,6 +486,7 @@ class PreparedRun:
                 units=config.units,
                 append=True,
                 keep_frames=self.checkpoint.n_frames,
+                bodies=getattr(self.sim.integrator, "bodies", None),  # rigid bodies' frames
             )
         return self._new_trajectory(state, overwrite=True)
 
@@ -507,6 +508,7 @@ class PreparedRun:
                 and self.config.barostat.get("couple") == "triclinic"
             ),
             conserved=self.sim.integrator.thermostat,
+            bodies=getattr(self.sim.integrator, "bodies", None),  # rigid bodies' frames
         )
 
 

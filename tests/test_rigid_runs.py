@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 
+import h5py
 import numpy as np
 import pytest
 from test_rigid import TRIMER, TRIMER_MASSES, _random_rotation, _state
@@ -76,6 +77,20 @@ def test_resume_is_bitwise_identical(tmp_path, rotation):
     for name, value in full.integrator_state.items():
         assert np.array_equal(value, cut.integrator_state[name]), name
     assert full.integrator_state["quaternions"].shape == (12, 4)
+    # Body centres and quaternions beside the atoms, resumed frames included.
+    with h5py.File("full.h5", "r") as full_file, h5py.File("cut.h5", "r") as cut_file:
+        centres = full_file["rigid/centre/value"][()]
+        quaternions = full_file["rigid/orientation/value"][()]
+        assert centres.shape == (7, 12, 3) and quaternions.shape == (7, 12, 4)
+        assert np.array_equal(centres, cut_file["rigid/centre/value"][()])
+        assert np.array_equal(quaternions, cut_file["rigid/orientation/value"][()])
+        assert list(full_file["rigid/centre/step"][()]) == list(a.steps)
+    assert np.allclose(np.linalg.norm(quaternions, axis=-1), 1.0, atol=1e-14)
+    masses = a.masses.reshape(12, 3)
+    x = a.positions.reshape(7, 12, 3, 3)
+    assert np.allclose(
+        (masses[None, :, :, None] * x).sum(2) / masses.sum(1)[None, :, None], centres
+    )
     # MDAnalysis sees the constituents as atoms, where our reader puts them.
     universe = open_trajectory("full.h5")  # an MDAnalysis Universe
     assert universe.atoms.n_atoms == 36 and len(universe.trajectory) == 7
