@@ -256,3 +256,35 @@ def test_langevin_on_bodies_reaches_both_temperatures(rng):
         error = blocks.std(ddof=1) / np.sqrt(len(blocks))
         assert abs(blocks.mean() - target) < 4 * error + 0.01, (name, blocks.mean(), error)
         assert error < 0.05 * target  # a test that can tell
+
+
+def test_springs_join_bodies_to_each_other_and_to_free_atoms(rng):
+    """Harmonic springs from a constituent of one trimer to one of another, and from a
+    constituent to a free atom: NVE conserves energy to second order, and the bodies
+    turn (the springs pull off their centres, so they exert torques)."""
+    from potentials.springs import HarmonicBonds
+
+    a, b = _random_rotation(rng), _random_rotation(rng)
+    positions = np.concatenate(
+        [TRIMER @ a.T + 4.0, TRIMER @ b.T + [6.0, 4.2, 4.1], [[4.2, 6.0, 4.0]]]
+    )
+    masses = np.concatenate([TRIMER_MASSES, TRIMER_MASSES, [1.0]])
+    state0 = _state(positions, masses, box=20.0)
+    state0.velocities[:] = rng.normal(scale=0.3, size=(7, 3))
+    springs = [[2, 3], [0, 6]]
+    errors = []
+    for dt in (0.004, 0.002):
+        state = state0.copy()
+        bodies = RigidBodies.from_molecules(state, [1, 1, 1, 2, 2, 2, 0])
+        bodies.place(state)
+        start = bodies.angular_momenta.copy()
+        sim = Simulation(state, [HarmonicBonds(springs, k=20.0, r0=1.5)], RigidNVE(dt, bodies))
+        e0 = sim.thermo()["total_energy"]
+        energies = []
+        for _ in range(int(round(1.0 / dt))):
+            sim.run(1)
+            energies.append(sim.thermo()["total_energy"])
+        errors.append(np.max(np.abs(np.array(energies) - e0)))
+        assert not np.allclose(bodies.angular_momenta, start, atol=1e-2)
+    order = np.log2(errors[0] / errors[1])
+    assert 1.7 < order < 2.3, (errors, order)
