@@ -264,3 +264,13 @@ def test_pressure_is_the_rigid_body_virial(rng):
     assert 3 * row["pressure"] * row["volume"] == pytest.approx(-derivative, rel=1e-6)
     atomic = np.trace(ForceField([LennardJones(cutoff=2.0)]).compute(state).virial)
     assert atomic != pytest.approx(-derivative, rel=1e-3)
+
+
+@pytest.mark.parametrize("command", ["minimize", "integrators"])
+def test_other_commands_refuse_rigid_bodies(tmp_path, capsys, command):
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", "no_squish"))
+    assert main([command, str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "[rigid]" in err and "md: error:" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]

@@ -309,6 +309,11 @@ def prepare_study(
         config = load_config(config)
     else:
         source = Path(config.source)
+    if config.rigid is not None:  # its integrators would move the constituents apart
+        raise ConfigError(
+            f"{config.source}: [rigid]: md integrators does not measure rigid bodies (yet); "
+            "their rotational family is compared in tests/test_rigid.py"
+        )
     units = config.units
     t = units.config_time
     config_dt = config.integrator.dt / t
