@@ -217,46 +217,19 @@ class RigidNVE(IntegratorBase):
         return {"type": "rigid_nve", "dt": self.dt, "rotation": self.rotation}
 
 
-class RigidLangevin(RigidNVE):
-    """Langevin dynamics of bodies and free atoms, BAOAB: half kick, half drift (centres,
-    free atoms and ``rotation`` over dt/2), Ornstein-Uhlenbeck on every momentum, half
-    drift, half kick.
+class _RigidBath(RigidNVE):
+    """What the heat baths on bodies share: the BAOAB step (half kick, half drift of the
+    centres, free atoms and ``rotation`` over dt/2, the bath's O step, half drift, half
+    kick), the random stream of step n drawn from ``(seed, n)`` alone (so a resumed run
+    draws the same), and its saved entropy."""
 
-    The O step draws the free atoms' and the centres' momenta toward the Maxwell
-    distribution at ``kT`` with rate ``friction`` [1/time], and each body's angular
-    momentum in its principal frame with rate ``rotational_friction`` (default
-    ``friction``), component k with variance I_k kT (none along a linear body's axis):
-    exact for its part, so both temperatures relax to the target. The noise of step n
-    comes from ``(seed, n)`` alone, so a resumed run draws the same.
-
-    References
-    ----------
-    B. Leimkuhler, C. Matthews, Appl. Math. Res. Express 2013, 34 (BAOAB).
-    R. L. Davidchack, T. E. Ouldridge, M. V. Tretyakov, J. Chem. Phys. 142, 144114 (2015)
-    (Langevin thermostats for rigid bodies).
-    """
-
-    conserves_momentum = False
     stochastic = True
 
-    def __init__(
-        self,
-        dt: float,
-        bodies: RigidBodies,
-        rotation: str = "no_squish",
-        kT: float = 1.0,
-        friction: float = 1.0,
-        rotational_friction: float | None = None,
-        seed=None,
-    ) -> None:
+    def __init__(self, dt: float, bodies: RigidBodies, rotation: str, kT: float, seed) -> None:
         super().__init__(dt, bodies, rotation)
         self.kT = float(kT)
-        self.friction = float(friction)
-        self.rotational_friction = (
-            self.friction if rotational_friction is None else float(rotational_friction)
-        )
-        if not (self.kT >= 0 and self.friction >= 0 and self.rotational_friction >= 0):
-            raise ValueError("kT and the frictions must be >= 0")
+        if not self.kT >= 0:
+            raise ValueError(f"kT must be >= 0, got {kT!r}")
         # The seed's entropy as 32-bit words (fresh entropy without a seed), kept for resumes.
         words = []
         for value in np.atleast_1d(np.random.SeedSequence(seed).entropy).tolist():
@@ -266,6 +239,9 @@ class RigidLangevin(RigidNVE):
                 for k in range(max(1, -(-value.bit_length() // 32)))
             ]
         self.entropy = np.array(words, dtype=np.int64)
+
+    def _random(self, state) -> np.random.Generator:
+        return np.random.default_rng([*self.entropy.tolist(), state.step + 1])
 
     def _drift(self, state, span: float) -> None:
         bodies = self.bodies
@@ -277,23 +253,7 @@ class RigidLangevin(RigidNVE):
         )
 
     def _thermalise(self, state) -> None:
-        bodies = self.bodies
-        rng = np.random.default_rng([*self.entropy.tolist(), state.step + 1])
-        c = np.exp(-self.friction * self.dt)
-        free = bodies.free
-        sigma = np.sqrt((1 - c * c) * self.kT / state.masses[free])[:, None]
-        state.velocities[free] = c * state.velocities[free] + sigma * rng.standard_normal(
-            (len(free), 3)
-        )
-        sigma = np.sqrt((1 - c * c) * self.kT * bodies.masses)[:, None]
-        bodies.momenta[:] = c * bodies.momenta + sigma * rng.standard_normal((bodies.n_bodies, 3))
-        c = np.exp(-self.rotational_friction * self.dt)
-        a = bodies.matrices()
-        body = np.einsum("bji,bj->bi", a, bodies.angular_momenta)
-        sigma = np.sqrt((1 - c * c) * self.kT * bodies.moments)  # 0 along a linear axis
-        body = np.where(bodies.moments > 0, c * body, 0.0)
-        body += sigma * rng.standard_normal((bodies.n_bodies, 3))
-        bodies.angular_momenta[:] = np.einsum("bij,bj->bi", a, body)
+        raise NotImplementedError
 
     def step(self, state, forcefield) -> None:
         half = 0.5 * self.dt
@@ -315,6 +275,65 @@ class RigidLangevin(RigidNVE):
         super().set_state(saved)
         self.entropy = np.asarray(saved["entropy"], dtype=np.int64).copy()
 
+
+class RigidLangevin(_RigidBath):
+    """Langevin dynamics of bodies and free atoms, BAOAB: half kick, half drift (centres,
+    free atoms and ``rotation`` over dt/2), Ornstein-Uhlenbeck on every momentum, half
+    drift, half kick.
+
+    The O step draws the free atoms' and the centres' momenta toward the Maxwell
+    distribution at ``kT`` with rate ``friction`` [1/time], and each body's angular
+    momentum in its principal frame with rate ``rotational_friction`` (default
+    ``friction``), component k with variance I_k kT (none along a linear body's axis):
+    exact for its part, so both temperatures relax to the target. The noise of step n
+    comes from ``(seed, n)`` alone, so a resumed run draws the same.
+
+    References
+    ----------
+    B. Leimkuhler, C. Matthews, Appl. Math. Res. Express 2013, 34 (BAOAB).
+    R. L. Davidchack, T. E. Ouldridge, M. V. Tretyakov, J. Chem. Phys. 142, 144114 (2015)
+    (Langevin thermostats for rigid bodies).
+    """
+
+    conserves_momentum = False
+
+    def __init__(
+        self,
+        dt: float,
+        bodies: RigidBodies,
+        rotation: str = "no_squish",
+        kT: float = 1.0,
+        friction: float = 1.0,
+        rotational_friction: float | None = None,
+        seed=None,
+    ) -> None:
+        super().__init__(dt, bodies, rotation, kT, seed)
+        self.friction = float(friction)
+        self.rotational_friction = (
+            self.friction if rotational_friction is None else float(rotational_friction)
+        )
+        if not (self.friction >= 0 and self.rotational_friction >= 0):
+            raise ValueError("the frictions must be >= 0")
+
+    def _thermalise(self, state) -> None:
+        bodies = self.bodies
+        rng = self._random(state)
+        c = np.exp(-self.friction * self.dt)
+        free = bodies.free
+        sigma = np.sqrt((1 - c * c) * self.kT / state.masses[free])[:, None]
+        state.velocities[free] = c * state.velocities[free] + sigma * rng.standard_normal(
+            (len(free), 3)
+        )
+        sigma = np.sqrt((1 - c * c) * self.kT * bodies.masses)[:, None]
+        bodies.momenta[:] = c * bodies.momenta + sigma * rng.standard_normal((bodies.n_bodies, 3))
+        c = np.exp(-self.rotational_friction * self.dt)
+        a = bodies.matrices()
+        body = np.einsum("bji,bj->bi", a, bodies.angular_momenta)
+        sigma = np.sqrt((1 - c * c) * self.kT * bodies.moments)  # 0 along a linear axis
+        body = np.where(bodies.moments > 0, c * body, 0.0)
+        body += sigma * rng.standard_normal((bodies.n_bodies, 3))
+        bodies.angular_momenta[:] = np.einsum("bij,bj->bi", a, body)
+
     def describe(self) -> dict:
         return {
             "type": "rigid_langevin",
@@ -326,10 +345,69 @@ class RigidLangevin(RigidNVE):
         }
 
 
+class RigidBussi(_RigidBath):
+    """Bussi-Donadio-Parrinello stochastic velocity rescaling of bodies and free atoms:
+    the BAOAB step with an O that scales every momentum (free atoms', centres', angular)
+    by one factor, drawn so that the kinetic energy follows the canonical distribution
+    with relaxation time ``tau`` [time] (the rotational kinetic energy is quadratic in the
+    angular momentum at fixed orientation, so it scales with the rest). A zero total
+    momentum stays zero, so 3 degrees of freedom are removed.
+
+    References
+    ----------
+    G. Bussi, D. Donadio, M. Parrinello, J. Chem. Phys. 126, 014101 (2007).
+    """
+
+    conserves_momentum = True
+
+    def __init__(
+        self,
+        dt: float,
+        bodies: RigidBodies,
+        rotation: str = "no_squish",
+        kT: float = 1.0,
+        tau: float = 1.0,
+        seed=None,
+    ) -> None:
+        super().__init__(dt, bodies, rotation, kT, seed)
+        self.tau = float(tau)
+        if not self.tau > 0:
+            raise ValueError(f"tau must be > 0, got {tau!r}")
+
+    def _thermalise(self, state) -> None:
+        bodies = self.bodies
+        kinetic = sum(bodies.kinetic_energies(state))
+        n_dof = bodies.n_dof(self.conserves_momentum)
+        if kinetic <= 0 or n_dof < 1:
+            return  # nothing moves: no factor scales it up
+        rng = self._random(state)
+        c = np.exp(-self.dt / self.tau)
+        target = 0.5 * n_dof * self.kT
+        r1 = rng.standard_normal()
+        rest = 2.0 * rng.standard_gamma(0.5 * (n_dof - 1)) if n_dof > 1 else 0.0
+        ratio = target / (n_dof * kinetic)
+        alpha2 = c + (1 - c) * ratio * (r1 * r1 + rest) + 2 * r1 * np.sqrt(c * (1 - c) * ratio)
+        sign = np.sign(r1 + np.sqrt(c / ((1 - c) * ratio))) if c < 1 else 1.0
+        alpha = sign * np.sqrt(max(alpha2, 0.0))
+        state.velocities[bodies.free] *= alpha
+        bodies.momenta *= alpha
+        bodies.angular_momenta *= alpha
+
+    def describe(self) -> dict:
+        return {
+            "type": "rigid_bussi",
+            "dt": self.dt,
+            "rotation": self.rotation,
+            "kT": self.kT,
+            "tau": self.tau,
+        }
+
+
 __all__ = [
     "ROTATION",
     "ROTATIONS",
     "ROTATION_ORDERS",
+    "RigidBussi",
     "RigidLangevin",
     "RigidNVE",
     "quaternion_product",

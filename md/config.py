@@ -484,7 +484,7 @@ class RigidConfig:
         "string",
         choices=tuple(ROTATIONS),
         doc="The rotational integrator, while `[integrator]` (velocity Verlet, or Langevin "
-        "on every momentum) moves the "
+        "or Bussi on every momentum) moves the "
         "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
         "quaternions or RK4 on quaternions.",
     )
@@ -613,7 +613,7 @@ def sections() -> tuple[Section, ...]:
             "rigid",
             "[rigid]",
             "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity "
-            "Verlet or Langevin.",
+            "Verlet, Langevin or Bussi.",
             section_keys(RigidConfig),
         ),
         Section(
@@ -906,11 +906,12 @@ def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfi
     """``[rigid]``: refused with what it cannot be combined with (yet)."""
     result = RigidConfig(**table.fields(RigidConfig))
     table.finish()
-    if integrator.type not in ("verlet", "velocity_verlet", "langevin"):
+    if integrator.type not in ("verlet", "velocity_verlet", "langevin", "bussi"):
         raise table.error(
             "rotation",
-            f"rigid bodies move by velocity Verlet or Langevin for now: set [integrator] "
-            f"type = 'velocity_verlet' or 'langevin' (got {integrator.type!r})",
+            f"rigid bodies move by velocity Verlet, Langevin or Bussi for now: set "
+            f"[integrator] type = 'velocity_verlet', 'langevin' or 'bussi' (got "
+            f"{integrator.type!r})",
         )
     if "constraints" in integrator.values:
         raise table.error("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")

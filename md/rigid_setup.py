@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators import Langevin
-from integrators.rigid import RigidLangevin, RigidNVE
+from integrators import Bussi, Langevin
+from integrators.rigid import RigidBussi, RigidLangevin, RigidNVE
 from md.config import Config
 from md.errors import ConfigError
 from md.rigid import RigidBodies, molecules_from_bonds
@@ -81,9 +81,9 @@ def rigid_components(
     config: Config, integrator, state: State, topology: Topology | None, potentials, fresh: bool
 ):
     """Return ``(integrator, potentials)``: the config's velocity Verlet made
-    :class:`RigidNVE` over its bodies (its Langevin :class:`RigidLangevin`), and the
-    potentials with the pairs inside bodies left out (``[rigid] exclude``). On a fresh
-    run (``fresh``) the constituents are placed
+    :class:`RigidNVE` over its bodies (Langevin :class:`RigidLangevin`, Bussi
+    :class:`RigidBussi`), and the potentials with the pairs inside bodies left out
+    (``[rigid] exclude``). On a fresh run (``fresh``) the constituents are placed
     rigidly at once, so step 0 is reported there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
     ids = body_ids(config, state, topology)
@@ -99,6 +99,15 @@ def rigid_components(
             rotation,
             kT=integrator.kT,
             friction=integrator.friction,
+            seed=integrator.seed,
+        )
+    elif isinstance(integrator, Bussi):  # its rescaling on every momentum
+        rigid = RigidBussi(
+            integrator.dt,
+            bodies,
+            rotation,
+            kT=integrator.kT,
+            tau=integrator.tau,
             seed=integrator.seed,
         )
     else:

@@ -131,8 +131,11 @@ def test_thermo_has_both_temperatures(tmp_path, capsys):
     ("change", "message"),
     [
         (
-            ('type = "velocity_verlet"', 'type = "bussi"\ntemperature = 1.0\ntau = 1.0'),
-            "velocity Verlet or Langevin",
+            (
+                'type = "velocity_verlet"',
+                'type = "nose_hoover_chain"\ntemperature = 1.0\ntau = 1.0',
+            ),
+            "velocity Verlet, Langevin or Bussi",
         ),
         (('rotation = "ROTATION"', 'rotation = "euler"'), "rotation"),
         (("chains = 12", "chains = 12\nmass = 0.0"), "mass"),
