@@ -112,13 +112,20 @@ def rigid_components(
         )
     else:
         rigid = RigidNVE(integrator.dt, bodies, rotation)
-    potentials = list(potentials)
-    pairs = [p for p in potentials if isinstance(p, PairPotential)]
-    if config.rigid.exclude and pairs:
-        potentials.append(IntraBodyExclusion(pairs, *bodies.intra_pairs(state.n_atoms)))
+    potentials = without_intra_pairs(config, potentials, bodies, state.n_atoms)
     if fresh:
         bodies.place(state)
     return rigid, potentials
 
 
-__all__ = ["body_ids", "lammps_molecule_ids", "rigid_components"]
+def without_intra_pairs(config: Config, potentials, bodies: RigidBodies, n_atoms: int) -> list:
+    """``potentials`` and, with ``[rigid] exclude``, an :class:`IntraBodyExclusion` of their
+    pair potentials over the pairs inside ``bodies``."""
+    potentials = list(potentials)
+    pairs = [p for p in potentials if isinstance(p, PairPotential)]
+    if config.rigid.exclude and pairs:
+        potentials.append(IntraBodyExclusion(pairs, *bodies.intra_pairs(n_atoms)))
+    return potentials
+
+
+__all__ = ["body_ids", "lammps_molecule_ids", "rigid_components", "without_intra_pairs"]

@@ -269,11 +269,33 @@ def test_pressure_is_the_rigid_body_virial(rng):
     assert atomic != pytest.approx(-derivative, rel=1e-3)
 
 
-@pytest.mark.parametrize("command", ["minimize", "integrators"])
+@pytest.mark.parametrize(
+    "command", [["minimize"], ["integrators", "--integrators", "no_squish,verlet"]]
+)
 def test_other_commands_refuse_rigid_bodies(tmp_path, capsys, command):
     config = tmp_path / "run.toml"
     config.write_text(CONFIG.replace("ROTATION", "no_squish"))
-    assert main([command, str(config)]) == 2
+    assert main([command[0], str(config), *command[1:]]) == 2
     err = capsys.readouterr().err
     assert "[rigid]" in err and "md: error:" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+def test_md_integrators_measures_the_rotational_family(tmp_path, capsys):
+    """On a [rigid] config md integrators compares the four rotational methods: in a force
+    field each is second order (the kicks around the rotation are)."""
+    import csv
+
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", "no_squish"))
+    argv = ["integrators", str(config), "--dt-range", "0.001,0.002,0.004", "--time", "0.04"]
+    assert main([*argv, "--equilibrate", "10", "--out", str(tmp_path / "study")]) == 0
+    out = capsys.readouterr().out
+    for name in ("no_squish", "dlm", "richardson", "rk4"):
+        assert name in out
+    with open(tmp_path / "study" / "integrators.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    orders = {row["integrator"]: float(row["order"]) for row in rows}
+    assert set(orders) == {"no_squish", "dlm", "richardson", "rk4"}
+    for name, order in orders.items():
+        assert order == pytest.approx(2.0, abs=0.25), (name, order)
