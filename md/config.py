@@ -34,6 +34,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from integrators import INTEGRATORS, NoseHooverChain, integrator_class
 from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
@@ -42,6 +44,7 @@ from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError, PluginError
 from md.polymers import chain_angles, polymer_melt, single_chain
+from md.rigid import bodies_on_sites
 from md.schema import REQUIRED, Key, Varies, key, key_names, section_keys
 from md.structure import read_structure
 from md.topology import Topology
@@ -474,10 +477,31 @@ class RigidConfig:
     bodies: str = key(
         "molecules",
         "string",
-        choices=("molecules",),
+        choices=("molecules", "template"),
         doc="Which atoms make a body: `'molecules'`, one body per molecule id of a LAMMPS "
         "data file's molecule column (as `fix rigid ... molecule`), else per bonded cluster "
-        "of the topology; atoms of molecule id 0 stay free.",
+        "of the topology; atoms of molecule id 0 stay free. `'template'`: a copy of `template` "
+        "on every atom of the system (a lattice's sites, as HOOMD-blue's body types).",
+    )
+    template: tuple | None = key(
+        None,
+        "list of positions",
+        doc="With `bodies = 'template'`: the constituents' positions [[x, y, z], ...] "
+        "(two or more, any origin: centred on each site by their centre of mass).",
+        default_doc="none",
+    )
+    template_masses: float | tuple | None = key(
+        None,
+        "number or list",
+        doc="The constituents' masses: one for all, or one per template position.",
+        default_doc="the site's mass",
+    )
+    orientation: str = key(
+        "random",
+        "string",
+        choices=("random", "aligned"),
+        doc="With a template: each copy turned at random (from the top-level seed), or all "
+        "aligned with the template's axes.",
     )
     rotation: str = key(
         "no_squish",
@@ -906,6 +930,32 @@ def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfi
     """``[rigid]``: refused with what it cannot be combined with (yet)."""
     result = RigidConfig(**table.fields(RigidConfig))
     table.finish()
+    if (result.bodies == "template") != (result.template is not None):
+        raise table.error(
+            "template",
+            "give a template exactly when bodies = 'template' (the constituents' positions)",
+        )
+    if result.template is not None:
+        try:
+            positions = [[float(x) for x in row] for row in result.template]
+            masses = result.template_masses
+            masses = None if masses is None else np.asarray(masses, dtype=float)
+        except (TypeError, ValueError):
+            raise table.error(
+                "template", f"must be a list of [x, y, z] numbers, got {result.template!r}"
+            ) from None
+        if len(positions) < 2 or any(len(row) != 3 for row in positions):
+            raise table.error(
+                "template", f"needs two or more [x, y, z] positions, got {result.template!r}"
+            )
+        if masses is not None and masses.ndim == 1 and len(masses) != len(positions):
+            raise table.error(
+                "template_masses",
+                f"{len(masses)} masses for {len(positions)} template positions",
+            )
+        result = replace(result, template=tuple(map(tuple, positions)))
+    elif result.template_masses is not None:
+        raise table.error("template_masses", "applies only with bodies = 'template'")
     if integrator.type not in ("verlet", "velocity_verlet", "langevin", "bussi"):
         raise table.error(
             "rotation",
@@ -1116,6 +1166,19 @@ def build_system(config: Config):
             if system.pbc is not None:
                 state.pbc[:] = system.pbc
             state.validate()
+        rigid = config.rigid
+        if rigid is not None and rigid.template is not None:  # a body on every site
+            if topology is not None:
+                raise ValueError(
+                    "[rigid] template: the system has bonds; a template replaces its atoms "
+                    "by bodies, so start from a lattice or a structure without bonds"
+                )
+            seed = None if config.seed is None else [config.seed, 3]  # its own stream
+            random = None if rigid.orientation == "aligned" else np.random.default_rng(seed)
+            try:
+                state = bodies_on_sites(state, rigid.template, rigid.template_masses, random)
+            except ValueError as error:
+                raise ConfigError(f"{config.source}: [rigid] {error}") from None
         if system.temperature is not None:
             maxwell_boltzmann(state, system.temperature, seed=config.seed, kB=config.units.kB)
     except ConfigError:

@@ -94,6 +94,55 @@ def matrix_quaternions(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.array(out).reshape(-1, 4)
 
 
+def bodies_on_sites(
+    state: State, template: ArrayLike, masses: ArrayLike | None = None, random=None
+) -> State:
+    """A State with a copy of ``template`` (K constituent positions, (K, 3) [length]) centred
+    on every atom of ``state`` (the sites), turned at random by ``random`` (a seed or a
+    numpy Generator; None keeps every copy aligned with the template's axes).
+
+    Each constituent takes its site's type, and ``masses`` (one value or K; default: its
+    site's mass); the copies are in site order, K atoms each (molecule ids
+    ``repeat(1..n_sites, K)``); velocities are zero. Raises ValueError for fewer than two
+    constituents or non-positive masses.
+    """
+    template = np.asarray(template, dtype=np.float64)
+    if template.ndim != 2 or template.shape[1] != 3 or len(template) < 2:
+        raise ValueError(
+            f"template: needs two or more positions [x, y, z], got shape {template.shape}"
+        )
+    if not np.all(np.isfinite(template)):
+        raise ValueError("template: positions must be finite")
+    k = len(template)
+    if masses is None:
+        per_atom = np.repeat(state.masses, k)
+    else:
+        given = np.broadcast_to(np.asarray(masses, dtype=np.float64), (k,))
+        if not np.all(given > 0):
+            raise ValueError(f"template_masses must be positive, got {given.tolist()}")
+        per_atom = np.tile(given, state.n_atoms)
+    weights = per_atom[:k]
+    offsets = template - (weights[:, None] * template).sum(0) / weights.sum()
+    n = state.n_atoms
+    if random is None:
+        turns = np.tile(np.eye(3), (n, 1, 1))
+    else:
+        rng = random if isinstance(random, np.random.Generator) else np.random.default_rng(random)
+        q = rng.standard_normal((n, 4))
+        turns = quaternion_matrices(q / np.linalg.norm(q, axis=1, keepdims=True))
+    positions = state.positions[:, None, :] + np.einsum("nij,kj->nki", turns, offsets)
+    return State(
+        positions=positions.reshape(n * k, 3),
+        velocities=np.zeros((n * k, 3)),
+        masses=per_atom,
+        box=state.box.copy(),
+        pbc=state.pbc.copy(),
+        types=np.repeat(state.types, k),
+        type_names=state.type_names,
+        tilt=state.tilt.copy(),
+    )
+
+
 class RigidBodies:
     """Rigid bodies made of a State's atoms, and the free atoms beside them.
 
@@ -354,6 +403,7 @@ __all__ = [
     "LINEAR_TOLERANCE",
     "OVERLAP_TOLERANCE",
     "RigidBodies",
+    "bodies_on_sites",
     "matrix_quaternions",
     "molecules_from_bonds",
     "quaternion_matrices",

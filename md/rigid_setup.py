@@ -56,7 +56,11 @@ def lammps_molecule_ids(path) -> np.ndarray | None:
 
 
 def body_ids(config: Config, state: State, topology: Topology | None) -> np.ndarray:
-    """Molecule ids of the atoms for ``[rigid] bodies = "molecules"``."""
+    """Molecule ids of the atoms: ``[rigid] bodies = "template"``'s copies in order, else
+    the molecules (``bodies = "molecules"``)."""
+    if config.rigid.template is not None:  # md.rigid.bodies_on_sites: K atoms per site
+        size = len(config.rigid.template)
+        return np.repeat(np.arange(1, state.n_atoms // size + 1), size)
     structure = config.system.structure
     if structure is not None and structure_kind(structure, config.system.format) == ("lammps-data"):
         try:

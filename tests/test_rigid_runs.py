@@ -299,3 +299,84 @@ def test_md_integrators_measures_the_rotational_family(tmp_path, capsys):
     assert set(orders) == {"no_squish", "dlm", "richardson", "rk4"}
     for name, order in orders.items():
         assert order == pytest.approx(2.0, abs=0.25), (name, order)
+
+
+TEMPLATE_CONFIG = """units = "lj"
+seed = 4
+[system]
+lattice = "sc"
+cells = 3
+lattice_constant = 2.5
+temperature = 1.0
+[[potentials]]
+type = "lj"
+cutoff = 2.5
+[integrator]
+type = "velocity_verlet"
+dt = 0.002
+[rigid]
+bodies = "template"
+template = [[0, 0, 0], [1, 0, 0], [0.3, 0.8, 0]]
+template_masses = [1, 2, 3]
+[run]
+steps = 20
+[output]
+path = "out.h5"
+"""
+
+
+def test_a_template_on_every_lattice_site(tmp_path):
+    """27 trimers, one per simple-cubic site, each its centre on the site, turned at
+    random, the template's shape kept; velocities canonical for the bodies."""
+    (tmp_path / "run.toml").write_text(TEMPLATE_CONFIG)
+    sim = build_simulation(load_config(tmp_path / "run.toml"), None, tmp_path / "x", None)
+    bodies = sim.integrator.bodies
+    assert bodies.n_bodies == 27 and len(bodies.free) == 0
+    sites = np.indices((3, 3, 3)).reshape(3, -1).T * 2.5  # the sc builder's sites
+    gaps = bodies.centres[:, None, :] - sites[None, :, :]
+    gaps -= 7.5 * np.rint(gaps / 7.5)  # minimum image in the 7.5 box
+    nearest = np.linalg.norm(gaps, axis=-1).min(axis=1)
+    assert np.all(nearest < 1e-12)
+    assert len({int(i) for i in np.linalg.norm(gaps, axis=-1).argmin(axis=1)}) == 27
+    x = sim.state.positions.reshape(27, 3, 3)
+    d = np.linalg.norm(x[:, [0, 0, 1]] - x[:, [1, 2, 2]], axis=-1)
+    assert np.allclose(d, np.linalg.norm(TRIMER[[0, 0, 1]] - TRIMER[[1, 2, 2]], axis=-1))
+    assert np.allclose(sim.state.masses, np.tile(TRIMER_MASSES, 27))
+    assert np.std(bodies.quaternions[:, 0]) > 0.1  # turned, not aligned
+    row = sim.thermo()
+    assert 0.6 < row["translational_temperature"] < 1.4
+    assert 0.6 < row["rotational_temperature"] < 1.4
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            ("template = [[0, 0, 0], [1, 0, 0], [0.3, 0.8, 0]]", "template = [[0, 0, 0]]"),
+            "two or more",
+        ),
+        (('bodies = "template"', 'bodies = "molecules"'), "exactly when"),
+        (("template_masses = [1, 2, 3]", "template_masses = [1, 2]"), "2 masses for 3"),
+        (("template_masses = [1, 2, 3]", "template_masses = [1, 0, 3]"), "positive"),
+    ],
+)
+def test_bad_templates_exit_2(tmp_path, capsys, change, message):
+    (tmp_path / "run.toml").write_text(TEMPLATE_CONFIG.replace(*change))
+    assert run(tmp_path / "run.toml") == 2
+    err = capsys.readouterr().err
+    assert "md: error:" in err and "[rigid]" in err and message in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+def test_a_template_run_resumes_bitwise(tmp_path):
+    text = TEMPLATE_CONFIG.replace(
+        'path = "out.h5"', 'path = "out.h5"\nevery = 5\nvelocities = true'
+    )
+    (tmp_path / "run.toml").write_text(text)
+    assert run(tmp_path / "run.toml", "-o", "full.h5") == 0
+    assert run(tmp_path / "run.toml", "-o", "cut.h5", "--steps", "10") == 0
+    assert run(tmp_path / "run.toml", "-o", "cut.h5", "--resume") == 0
+    a, b = read_trajectory("full.h5"), read_trajectory("cut.h5")
+    assert list(b.steps) == [0, 5, 10, 15, 20]
+    assert np.array_equal(a.positions, b.positions)
+    assert np.array_equal(a.velocities, b.velocities)
