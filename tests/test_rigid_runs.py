@@ -16,6 +16,7 @@ from md.config import load_config
 from md.errors import ConfigError
 from md.forcefield import ForceField
 from md.rigid import RigidBodies
+from md.rigid_setup import lammps_molecule_ids
 from md.trajectory import open_trajectory, read_trajectory
 from potentials.lennard_jones import LennardJones
 from potentials.rigid_exclusion import IntraBodyExclusion
@@ -380,3 +381,13 @@ def test_a_template_run_resumes_bitwise(tmp_path):
     assert list(b.steps) == [0, 5, 10, 15, 20]
     assert np.array_equal(a.positions, b.positions)
     assert np.array_equal(a.velocities, b.velocities)
+
+
+def test_convert_writes_the_bodies_as_molecules(tmp_path):
+    """md convert of a template run (no bonds) to LAMMPS data: the molecule column holds
+    the bodies, as fix rigid ... molecule needs, and our reader takes them back."""
+    (tmp_path / "run.toml").write_text(TEMPLATE_CONFIG)
+    assert run(tmp_path / "run.toml") == 0
+    assert main(["convert", "out.h5", "out.data", "--no-progress"]) == 0
+    found = lammps_molecule_ids(tmp_path / "out.data")
+    assert found.tolist() == np.repeat(np.arange(1, 28), 3).tolist()

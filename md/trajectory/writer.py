@@ -84,7 +84,8 @@ class H5MDWriter:
     bodies : md.rigid.RigidBodies, optional
         Rigid bodies whose ``centres`` (unwrapped [length]) and ``quaternions``
         (w, x, y, z) are stored with every frame, under ``rigid/centre`` and
-        ``rigid/orientation`` (step and time linked as for the particles); an
+        ``rigid/orientation`` (step and time linked as for the particles), and
+        each atom's body (1, 2, ...; 0 for a free atom) in ``rigid/molecule``; an
         appending writer keeps writing them where the file has them.
 
     Raises
@@ -306,6 +307,8 @@ class H5MDWriter:
             self._values["body_centre"] = element["value"]
             element = self._element(rigid, "orientation", (n_bodies, 4), np.float64, None)
             self._values["body_orientation"] = element["value"]
+            # The molecule id of every atom (its body's number from 1; 0: a free atom).
+            rigid.create_dataset("molecule", data=self._bodies.body_of + 1)
 
         params = f.create_group("parameters")
         params.attrs["units"] = self.units.name
