@@ -13,7 +13,7 @@ force and torque. The integrators that move bodies are in
 Conventions: a quaternion ``q = (w, x, y, z)`` rotates the body frame into the
 space frame, ``r_space = A(q) d_body``; the principal axes are ordered by
 increasing moment and made right-handed. A linear body has its first moment
-zero (below ``1e-10`` of the largest), the angular momentum along its axis zero
+zero (below ``1e-7`` of the largest, as LAMMPS takes it), the angular momentum along its axis zero
 and five degrees of freedom.
 
 References
@@ -31,8 +31,9 @@ from numpy.typing import ArrayLike, NDArray
 from md.box import minimum_image, perpendicular_widths
 from md.state import State
 
-#: A moment below this fraction of the body's largest is zero (a linear body).
-LINEAR_TOLERANCE = 1e-10
+#: A moment below this fraction of the body's largest is zero (a linear body), as in
+#: LAMMPS's fix rigid.
+LINEAR_TOLERANCE = 1e-7
 #: Constituents of one body closer than this fraction of its extent overlap.
 OVERLAP_TOLERANCE = 1e-6
 
@@ -71,27 +72,38 @@ def quaternion_matrices(quaternions: NDArray[np.float64]) -> NDArray[np.float64]
 
 def matrix_quaternions(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
     """Unit quaternions (B, 4), ``w >= 0``, of proper rotation matrices (B, 3, 3)."""
-    out = []
-    for a in np.asarray(matrices, dtype=np.float64).reshape(-1, 3, 3):
-        # Shepperd's choice: the largest of the four squared components first.
-        diagonal = np.array([np.trace(a), a[0, 0], a[1, 1], a[2, 2]])
-        k = int(np.argmax(diagonal))
-        if k == 0:
-            w = 0.5 * np.sqrt(1.0 + diagonal[0])
-            q = [w, (a[2, 1] - a[1, 2]) / (4 * w), (a[0, 2] - a[2, 0]) / (4 * w)]
-            q.append((a[1, 0] - a[0, 1]) / (4 * w))
-        else:
-            i, j, m = k - 1, k % 3, (k + 1) % 3
-            v = np.zeros(3)
-            v[i] = 0.5 * np.sqrt(max(1.0 + 2 * a[i, i] - np.trace(a), 0.0))
-            v[j] = (a[j, i] + a[i, j]) / (4 * v[i])
-            v[m] = (a[m, i] + a[i, m]) / (4 * v[i])
-            w = (a[m, j] - a[j, m]) / (4 * v[i])
-            q = [w, *v]
-        q = np.array(q)
-        q /= np.linalg.norm(q)
-        out.append(q if q[0] >= 0 else -q)
-    return np.array(out).reshape(-1, 4)
+    a = np.asarray(matrices, dtype=np.float64).reshape(-1, 3, 3)
+    trace = np.trace(a, axis1=1, axis2=2)
+    # Shepperd's choice per matrix: the largest of the four squared components first.
+    diagonal = np.stack([trace, a[:, 0, 0], a[:, 1, 1], a[:, 2, 2]], axis=1)
+    choice = np.argmax(diagonal, axis=1)
+    q = np.zeros((len(a), 4))
+    rows = choice == 0
+    if np.any(rows):
+        m = a[rows]
+        w = 0.5 * np.sqrt(1.0 + trace[rows])
+        q[rows] = np.stack(
+            [
+                w,
+                (m[:, 2, 1] - m[:, 1, 2]) / (4 * w),
+                (m[:, 0, 2] - m[:, 2, 0]) / (4 * w),
+                (m[:, 1, 0] - m[:, 0, 1]) / (4 * w),
+            ],
+            axis=1,
+        )
+    for k in (1, 2, 3):
+        rows = choice == k
+        if not np.any(rows):
+            continue
+        m = a[rows]
+        i, j, n = k - 1, k % 3, (k + 1) % 3
+        v = 0.5 * np.sqrt(np.maximum(1.0 + 2 * m[:, i, i] - trace[rows], 0.0))
+        q[rows, 1 + i] = v
+        q[rows, 1 + j] = (m[:, j, i] + m[:, i, j]) / (4 * v)
+        q[rows, 1 + n] = (m[:, n, i] + m[:, i, n]) / (4 * v)
+        q[rows, 0] = (m[:, n, j] - m[:, j, n]) / (4 * v)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(q[:, :1] >= 0, q, -q)
 
 
 def bodies_on_sites(

@@ -39,10 +39,12 @@ TRIMER_MASSES = np.array([1.0, 2.0, 3.0])
 
 
 def test_quaternions_and_matrices_round_trip(rng):
-    for _ in range(20):
-        a = _random_rotation(rng)
-        q = matrix_quaternions(a[None])
-        assert np.allclose(quaternion_matrices(q)[0], a, atol=1e-14)
+    # Half turns about each axis take the branches where w is not the largest component.
+    flips = [np.diag(d) for d in ([1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]
+    matrices = np.array([*(_random_rotation(rng) for _ in range(40)), *flips])
+    q = matrix_quaternions(matrices)
+    assert np.allclose(quaternion_matrices(q), matrices, atol=1e-14)
+    assert np.allclose(np.linalg.norm(q, axis=1), 1.0) and np.all(q[:, 0] >= 0)
 
 
 def test_body_data_of_a_trimer(rng):
