@@ -37,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from integrators.base import IntegratorBase, check_dt
+from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
 from md.rigid import RigidBodies, matrix_quaternions, quaternion_matrices
 from md.schema import Key
 
@@ -403,6 +404,105 @@ class RigidBussi(_RigidBath):
         }
 
 
+class RigidNoseHoover(RigidNVE):
+    """Nose-Hoover chains on bodies and free atoms: the chain's half step (Martyna,
+    Tuckerman, Tobias and Klein's, with the Suzuki-Yoshida composition of
+    :func:`integrators.nose_hoover.chain_half_step`) scales every momentum (free atoms',
+    centres', angular) by one factor before and after the NVE step, driven by the total
+    kinetic energy over the bodies' degrees of freedom. ``thermo_terms`` adds the chain's
+    energy, so ``conserved_energy`` measures the integration error. The masses are
+    Q_1 = n_dof kT tau^2 and Q_j = kT tau^2.
+
+    References
+    ----------
+    G. J. Martyna, M. E. Tuckerman, D. J. Tobias, M. L. Klein, Mol. Phys. 87, 1117 (1996);
+    H. Kamberaj, R. J. Low, M. P. Neal, J. Chem. Phys. 122, 224114 (2005) (LAMMPS's
+    fix rigid/nvt).
+    """
+
+    thermostat = True  # a heat bath with an energy: the trajectory keeps conserved_energy
+
+    def __init__(
+        self,
+        dt: float,
+        bodies: RigidBodies,
+        rotation: str = "no_squish",
+        kT: float = 1.0,
+        tau: float = 1.0,
+        chain_length: int = 3,
+        n_substeps: int = 1,
+    ) -> None:
+        super().__init__(dt, bodies, rotation)
+        self.kT, self.tau = float(kT), float(tau)
+        if not (self.kT > 0 and self.tau > 0):
+            raise ValueError("kT and tau must be > 0")
+        self.chain_length, self.n_substeps = int(chain_length), int(n_substeps)
+        self.xi = np.zeros(self.chain_length)
+        self.v_xi = np.zeros(self.chain_length)
+
+    def _masses(self, n_dof: int) -> np.ndarray:
+        q = np.full(self.chain_length, self.kT * self.tau**2)
+        q[0] *= n_dof
+        return q
+
+    def _chain(self, state, duration: float) -> None:
+        bodies = self.bodies
+        n_dof = bodies.n_dof(self.conserves_momentum)
+        kinetic = sum(bodies.kinetic_energies(state))
+        scale = chain_half_step(
+            self.xi,
+            self.v_xi,
+            self._masses(n_dof),
+            kinetic,
+            float(n_dof),
+            self.kT,
+            duration,
+            YOSHIDA_WEIGHTS,
+            self.n_substeps,
+        )
+        state.velocities[bodies.free] *= scale
+        bodies.momenta *= scale
+        bodies.angular_momenta *= scale
+
+    def step(self, state, forcefield) -> None:
+        self._chain(state, 0.5 * self.dt)
+        super().step(state, forcefield)
+        self._chain(state, 0.5 * self.dt)
+        self.bodies.place(state)
+
+    def thermo_terms(self, state, result) -> dict:
+        terms = super().thermo_terms(state, result)
+        n_dof = terms["n_dof"]
+        q = self._masses(n_dof)
+        terms["reservoir_energy"] = float(
+            0.5 * np.dot(q, self.v_xi**2)
+            + n_dof * self.kT * self.xi[0]
+            + self.kT * self.xi[1:].sum()
+        )
+        return terms
+
+    def get_state(self) -> dict:
+        saved = super().get_state()
+        saved["xi"], saved["v_xi"] = self.xi.copy(), self.v_xi.copy()
+        return saved
+
+    def set_state(self, saved: dict) -> None:
+        super().set_state(saved)
+        self.xi[:] = np.asarray(saved["xi"], dtype=np.float64)
+        self.v_xi[:] = np.asarray(saved["v_xi"], dtype=np.float64)
+
+    def describe(self) -> dict:
+        return {
+            "type": "rigid_nose_hoover_chain",
+            "dt": self.dt,
+            "rotation": self.rotation,
+            "kT": self.kT,
+            "tau": self.tau,
+            "chain_length": self.chain_length,
+            "n_substeps": self.n_substeps,
+        }
+
+
 __all__ = [
     "ROTATION",
     "ROTATIONS",
@@ -410,5 +510,6 @@ __all__ = [
     "RigidBussi",
     "RigidLangevin",
     "RigidNVE",
+    "RigidNoseHoover",
     "quaternion_product",
 ]

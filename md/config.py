@@ -508,7 +508,7 @@ class RigidConfig:
         "string",
         choices=tuple(ROTATIONS),
         doc="The rotational integrator, while `[integrator]` (velocity Verlet, or Langevin "
-        "or Bussi on every momentum) moves the "
+        "Bussi or Nose-Hoover chains on every momentum) moves the "
         "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
         "quaternions or RK4 on quaternions.",
     )
@@ -637,7 +637,7 @@ def sections() -> tuple[Section, ...]:
             "rigid",
             "[rigid]",
             "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity "
-            "Verlet, Langevin or Bussi.",
+            "Verlet, Langevin, Bussi or Nose-Hoover chains.",
             section_keys(RigidConfig),
         ),
         Section(
@@ -956,13 +956,16 @@ def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfi
         result = replace(result, template=tuple(map(tuple, positions)))
     elif result.template_masses is not None:
         raise table.error("template_masses", "applies only with bodies = 'template'")
-    if integrator.type not in ("verlet", "velocity_verlet", "langevin", "bussi"):
+    takers = ("verlet", "velocity_verlet", "langevin", "bussi", "nose_hoover_chain", "nhc")
+    if integrator.type not in takers:
         raise table.error(
             "rotation",
-            f"rigid bodies move by velocity Verlet, Langevin or Bussi for now: set "
-            f"[integrator] type = 'velocity_verlet', 'langevin' or 'bussi' (got "
-            f"{integrator.type!r})",
+            f"rigid bodies move by velocity Verlet, Langevin, Bussi or Nose-Hoover chains "
+            f"for now: set [integrator] type = 'velocity_verlet', 'langevin', 'bussi' or "
+            f"'nose_hoover_chain' (got {integrator.type!r})",
         )
+    if integrator.values.get("fix_com") is False:
+        raise table.error("bodies", "[integrator] fix_com = false does not apply to bodies")
     if "constraints" in integrator.values:
         raise table.error("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
     if barostat is not None:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from integrators import Bussi, Langevin
-from integrators.rigid import RigidBussi, RigidLangevin, RigidNVE
+from integrators import Bussi, Langevin, NoseHooverChain
+from integrators.rigid import RigidBussi, RigidLangevin, RigidNoseHoover, RigidNVE
 from md.config import Config
 from md.errors import ConfigError
 from md.rigid import RigidBodies, molecules_from_bonds
@@ -86,9 +86,10 @@ def rigid_components(
 ):
     """Return ``(integrator, potentials)``: the config's velocity Verlet made
     :class:`RigidNVE` over its bodies (Langevin :class:`RigidLangevin`, Bussi
-    :class:`RigidBussi`), and the potentials with the pairs inside bodies left out
-    (``[rigid] exclude``). On a fresh run (``fresh``) the constituents are placed
-    rigidly at once, so step 0 is reported there (a resumed state is already placed; its
+    :class:`RigidBussi`, Nose-Hoover chains :class:`RigidNoseHoover`), and the
+    potentials with the pairs inside bodies left out (``[rigid] exclude``). On a fresh
+    run (``fresh``) the constituents are placed rigidly at once, so step 0 is reported
+    there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
     ids = body_ids(config, state, topology)
     try:
@@ -113,6 +114,16 @@ def rigid_components(
             kT=integrator.kT,
             tau=integrator.tau,
             seed=integrator.seed,
+        )
+    elif isinstance(integrator, NoseHooverChain):  # its chain on every momentum
+        rigid = RigidNoseHoover(
+            integrator.dt,
+            bodies,
+            rotation,
+            kT=integrator.kT,
+            tau=integrator.tau,
+            chain_length=integrator.chain_length,
+            n_substeps=integrator.n_substeps,
         )
     else:
         rigid = RigidNVE(integrator.dt, bodies, rotation)

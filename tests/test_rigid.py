@@ -298,3 +298,36 @@ def test_springs_join_bodies_to_each_other_and_to_free_atoms(rng):
         assert not np.allclose(bodies.angular_momenta, start, atol=1e-2)
     order = np.log2(errors[0] / errors[1])
     assert 1.7 < order < 2.3, (errors, order)
+
+
+def test_nose_hoover_chains_on_bodies(rng):
+    """27 LJ trimers under Nose-Hoover chains at T = 1.5 from T ~ 0.5: the temperature's
+    mean over the second half is the target within 5 %, and the conserved energy (with
+    the chain's) departs from its start only by the integration error, of second order."""
+    from integrators.rigid import RigidNoseHoover
+
+    start, ids = _trimer_gas(rng, n_side=3, spacing=2.4)
+    start.velocities -= np.average(start.velocities, axis=0, weights=start.masses)
+    target = 1.5
+    runs = {}
+    for dt, steps in ((0.004, 1200), (0.002, 400)):
+        state = start.copy()
+        bodies = RigidBodies.from_molecules(state, ids)
+        bodies.place(state)
+        integrator = RigidNoseHoover(dt, bodies, "no_squish", kT=target, tau=0.1)
+        sim = Simulation(state, [LennardJones(cutoff=2.0)], integrator)
+        rows = [sim.thermo()]
+        for _ in range(steps):
+            sim.run(1)
+            rows.append(sim.thermo())
+        runs[dt] = rows
+    temperatures = np.array([r["temperature"] for r in runs[0.004][600:]])
+    assert abs(temperatures.mean() - target) < 0.05 * target, temperatures.mean()
+    errors = []
+    for dt, rows in runs.items():  # over the first 0.8 time units, while the bath heats
+        conserved = np.array([r["conserved_energy"] for r in rows[: int(round(0.8 / dt)) + 1]])
+        errors.append(np.max(np.abs(conserved - conserved[0])))
+    heat = runs[0.002][-1]["total_energy"] - runs[0.002][0]["total_energy"]
+    assert heat > 10.0 * errors[0]  # the bath did work, far more than the error
+    order = np.log2(errors[0] / errors[1])
+    assert 1.7 < order < 2.3, (errors, order)

@@ -106,10 +106,17 @@ def test_resume_is_bitwise_identical(tmp_path, rotation):
         assert np.allclose(d, np.linalg.norm(x0[:, [0, 0, 1]] - x0[:, [1, 2, 2]], axis=-1))
 
 
-def test_langevin_config_runs_bodies_and_resumes(tmp_path):
-    text = CONFIG.replace("ROTATION", "no_squish").replace(
-        'type = "velocity_verlet"', 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0'
-    )
+BATHS = {
+    "rigid_langevin": 'type = "langevin"\ntemperature = 1.0\nfriction = 1.0',
+    "rigid_bussi": 'type = "bussi"\ntemperature = 1.0\ntau = 0.2',
+    "rigid_nose_hoover_chain": 'type = "nose_hoover_chain"\ntemperature = 1.0\ntau = 0.2',
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BATHS))
+def test_thermostat_configs_run_bodies_and_resume(tmp_path, kind):
+    text = CONFIG.replace("ROTATION", "no_squish")
+    text = text.replace('type = "velocity_verlet"', BATHS[kind])
     config = tmp_path / "run.toml"
     config.write_text(text)
     assert run(config, "-o", "full.h5") == 0
@@ -117,7 +124,10 @@ def test_langevin_config_runs_bodies_and_resumes(tmp_path):
     assert run(config, "-o", "cut.h5", "--resume") == 0
     a, b = read_trajectory("full.h5"), read_trajectory("cut.h5")
     assert np.array_equal(a.positions, b.positions)
-    assert read_checkpoint(checkpoint_path("full.h5")).integrator["type"] == "rigid_langevin"
+    assert np.array_equal(a.velocities, b.velocities)
+    assert read_checkpoint(checkpoint_path("full.h5")).integrator["type"] == kind
+    if kind == "rigid_nose_hoover_chain":  # the chain's energy in the conserved one
+        assert np.all(np.isfinite(a.observables["conserved_energy"]))
 
 
 def test_thermo_has_both_temperatures(tmp_path, capsys):
@@ -134,9 +144,9 @@ def test_thermo_has_both_temperatures(tmp_path, capsys):
         (
             (
                 'type = "velocity_verlet"',
-                'type = "nose_hoover_chain"\ntemperature = 1.0\ntau = 1.0',
+                'type = "berendsen"\ntemperature = 1.0\ntau = 1.0',
             ),
-            "velocity Verlet, Langevin or Bussi",
+            "velocity Verlet, Langevin, Bussi or Nose-Hoover chains",
         ),
         (('rotation = "ROTATION"', 'rotation = "euler"'), "rotation"),
         (("chains = 12", "chains = 12\nmass = 0.0"), "mass"),
