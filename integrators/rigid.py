@@ -34,12 +34,14 @@ H. Kamberaj, R. J. Low, M. P. Neal, J. Chem. Phys. 122, 224114 (2005).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 
 from integrators.base import IntegratorBase, check_dt
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
 from md.rigid import RigidBodies, matrix_quaternions, quaternion_matrices
-from md.schema import Key
+from md.schema import Key, key
 
 
 def quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -132,6 +134,109 @@ ROTATION = Key(
     doc="The rotational integrator: NO_SQUISH (LAMMPS fix rigid/nve), the DLM splitting, "
     "Richardson-iterated quaternions (LAMMPS fix rigid) or RK4 on quaternions.",
 )
+
+
+@dataclass(frozen=True)
+class RigidConfig:
+    """``[rigid]``: rigid bodies, the keys :mod:`md.config` reads (see :mod:`md.rigid`)."""
+
+    bodies: str = key(
+        "molecules",
+        "string",
+        choices=("molecules", "template"),
+        doc="Which atoms make a body: `'molecules'`, one body per molecule id of a LAMMPS "
+        "data file's molecule column (as `fix rigid ... molecule`), else per bonded cluster "
+        "of the topology; atoms of molecule id 0 stay free. `'template'`: a copy of `template` "
+        "on every atom of the system (a lattice's sites, as HOOMD-blue's body types).",
+    )
+    template: tuple | None = key(
+        None,
+        "list of positions",
+        doc="With `bodies = 'template'`: the constituents' positions [[x, y, z], ...] "
+        "(two or more, any origin: centred on each site by their centre of mass).",
+        default_doc="none",
+    )
+    template_masses: float | tuple | None = key(
+        None,
+        "number or list",
+        doc="The constituents' masses: one for all, or one per template position.",
+        default_doc="the site's mass",
+    )
+    orientation: str = key(
+        "random",
+        "string",
+        choices=("random", "aligned"),
+        doc="With a template: each copy turned at random (from the top-level seed), or all "
+        "aligned with the template's axes.",
+    )
+    rotation: str = key(
+        "no_squish",
+        "string",
+        choices=tuple(ROTATIONS),
+        doc="The rotational integrator, while `[integrator]` (velocity Verlet, or Langevin "
+        "Bussi or Nose-Hoover chains on every momentum) moves the "
+        "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
+        "quaternions or RK4 on quaternions.",
+    )
+    exclude: bool = key(
+        True,
+        "boolean",
+        doc="Leave the pairs inside one body out of the pair potentials (they move no "
+        "body; false keeps their constant energy, as LAMMPS does without "
+        "`neigh_modify exclude`).",
+    )
+
+
+#: The ``[integrator]`` types that move bodies (each has its class here).
+RIGID_TAKERS = ("verlet", "velocity_verlet", "langevin", "bussi", "nose_hoover_chain", "nhc")
+
+
+def checked_rigid(
+    record: RigidConfig, integrator_type: str, integrator_values, barostat: bool
+) -> RigidConfig:
+    """``record`` with its template as a tuple of (x, y, z); ValueError ``(key, message)``
+    for a template that does not fit ``bodies`` or its masses, and for what bodies cannot
+    be combined with (yet): another integrator, rigid bonds, ``fix_com = false``, a
+    barostat."""
+    if (record.bodies == "template") != (record.template is not None):
+        raise ValueError(
+            "template",
+            "give a template exactly when bodies = 'template' (the constituents' positions)",
+        )
+    if record.template is not None:
+        try:
+            positions = [[float(x) for x in row] for row in record.template]
+            masses = record.template_masses
+            masses = None if masses is None else np.asarray(masses, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(
+                "template", f"must be a list of [x, y, z] numbers, got {record.template!r}"
+            ) from None
+        if len(positions) < 2 or any(len(row) != 3 for row in positions):
+            raise ValueError(
+                "template", f"needs two or more [x, y, z] positions, got {record.template!r}"
+            )
+        if masses is not None and masses.ndim == 1 and len(masses) != len(positions):
+            raise ValueError(
+                "template_masses", f"{len(masses)} masses for {len(positions)} template positions"
+            )
+        record = replace(record, template=tuple(map(tuple, positions)))
+    elif record.template_masses is not None:
+        raise ValueError("template_masses", "applies only with bodies = 'template'")
+    if integrator_type not in RIGID_TAKERS:
+        raise ValueError(
+            "rotation",
+            "rigid bodies move by velocity Verlet, Langevin, Bussi or Nose-Hoover chains for "
+            "now: set [integrator] type = 'velocity_verlet', 'langevin', 'bussi' or "
+            f"'nose_hoover_chain' (got {integrator_type!r})",
+        )
+    if integrator_values.get("fix_com") is False:
+        raise ValueError("bodies", "[integrator] fix_com = false does not apply to bodies")
+    if "constraints" in integrator_values:
+        raise ValueError("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
+    if barostat:
+        raise ValueError("rotation", "rigid bodies cannot be run with a [barostat] (yet)")
+    return record
 
 
 class RigidNVE(IntegratorBase):
@@ -504,12 +609,15 @@ class RigidNoseHoover(RigidNVE):
 
 
 __all__ = [
+    "RIGID_TAKERS",
     "ROTATION",
     "ROTATIONS",
     "ROTATION_ORDERS",
     "RigidBussi",
+    "RigidConfig",
     "RigidLangevin",
     "RigidNVE",
     "RigidNoseHoover",
+    "checked_rigid",
     "quaternion_product",
 ]

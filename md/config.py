@@ -34,12 +34,10 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
-
 from integrators import INTEGRATORS, NoseHooverChain, integrator_class
 from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
-from integrators.rigid import ROTATIONS
+from integrators.rigid import RigidConfig, checked_rigid
 from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError, PluginError
@@ -470,57 +468,6 @@ class MinimizeConfig:
     )
 
 
-@dataclass(frozen=True)
-class RigidConfig:
-    """``[rigid]``: rigid bodies (see :mod:`md.rigid` and :mod:`integrators.rigid`)."""
-
-    bodies: str = key(
-        "molecules",
-        "string",
-        choices=("molecules", "template"),
-        doc="Which atoms make a body: `'molecules'`, one body per molecule id of a LAMMPS "
-        "data file's molecule column (as `fix rigid ... molecule`), else per bonded cluster "
-        "of the topology; atoms of molecule id 0 stay free. `'template'`: a copy of `template` "
-        "on every atom of the system (a lattice's sites, as HOOMD-blue's body types).",
-    )
-    template: tuple | None = key(
-        None,
-        "list of positions",
-        doc="With `bodies = 'template'`: the constituents' positions [[x, y, z], ...] "
-        "(two or more, any origin: centred on each site by their centre of mass).",
-        default_doc="none",
-    )
-    template_masses: float | tuple | None = key(
-        None,
-        "number or list",
-        doc="The constituents' masses: one for all, or one per template position.",
-        default_doc="the site's mass",
-    )
-    orientation: str = key(
-        "random",
-        "string",
-        choices=("random", "aligned"),
-        doc="With a template: each copy turned at random (from the top-level seed), or all "
-        "aligned with the template's axes.",
-    )
-    rotation: str = key(
-        "no_squish",
-        "string",
-        choices=tuple(ROTATIONS),
-        doc="The rotational integrator, while `[integrator]` (velocity Verlet, or Langevin "
-        "Bussi or Nose-Hoover chains on every momentum) moves the "
-        "centres and free atoms: NO_SQUISH, the DLM splitting, Richardson-iterated "
-        "quaternions or RK4 on quaternions.",
-    )
-    exclude: bool = key(
-        True,
-        "boolean",
-        doc="Leave the pairs inside one body out of the pair potentials (they move no "
-        "body; false keeps their constant energy, as LAMMPS does without "
-        "`neigh_modify exclude`).",
-    )
-
-
 #: The top level's own keys (the rest are the sections).
 TOP_KEYS = (
     Key(
@@ -927,50 +874,13 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
 
 
 def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfig:
-    """``[rigid]``: refused with what it cannot be combined with (yet)."""
+    """``[rigid]``: its keys, refused with what it cannot be combined with (yet)."""
     result = RigidConfig(**table.fields(RigidConfig))
     table.finish()
-    if (result.bodies == "template") != (result.template is not None):
-        raise table.error(
-            "template",
-            "give a template exactly when bodies = 'template' (the constituents' positions)",
-        )
-    if result.template is not None:
-        try:
-            positions = [[float(x) for x in row] for row in result.template]
-            masses = result.template_masses
-            masses = None if masses is None else np.asarray(masses, dtype=float)
-        except (TypeError, ValueError):
-            raise table.error(
-                "template", f"must be a list of [x, y, z] numbers, got {result.template!r}"
-            ) from None
-        if len(positions) < 2 or any(len(row) != 3 for row in positions):
-            raise table.error(
-                "template", f"needs two or more [x, y, z] positions, got {result.template!r}"
-            )
-        if masses is not None and masses.ndim == 1 and len(masses) != len(positions):
-            raise table.error(
-                "template_masses",
-                f"{len(masses)} masses for {len(positions)} template positions",
-            )
-        result = replace(result, template=tuple(map(tuple, positions)))
-    elif result.template_masses is not None:
-        raise table.error("template_masses", "applies only with bodies = 'template'")
-    takers = ("verlet", "velocity_verlet", "langevin", "bussi", "nose_hoover_chain", "nhc")
-    if integrator.type not in takers:
-        raise table.error(
-            "rotation",
-            f"rigid bodies move by velocity Verlet, Langevin, Bussi or Nose-Hoover chains "
-            f"for now: set [integrator] type = 'velocity_verlet', 'langevin', 'bussi' or "
-            f"'nose_hoover_chain' (got {integrator.type!r})",
-        )
-    if integrator.values.get("fix_com") is False:
-        raise table.error("bodies", "[integrator] fix_com = false does not apply to bodies")
-    if "constraints" in integrator.values:
-        raise table.error("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
-    if barostat is not None:
-        raise table.error("rotation", "rigid bodies cannot be run with a [barostat] (yet)")
-    return result
+    try:
+        return checked_rigid(result, integrator.type, integrator.values, barostat is not None)
+    except ValueError as error:  # (key, message)
+        raise table.error(*error.args) from None
 
 
 def _parse_minimize(table: _Table, integrator: PluginEntry) -> MinimizeConfig:
@@ -1177,9 +1087,8 @@ def build_system(config: Config):
                     "by bodies, so start from a lattice or a structure without bonds"
                 )
             seed = None if config.seed is None else [config.seed, 3]  # its own stream
-            random = None if rigid.orientation == "aligned" else np.random.default_rng(seed)
             try:
-                state = bodies_on_sites(state, rigid.template, rigid.template_masses, random)
+                state = bodies_on_sites(state, rigid, seed)
             except ValueError as error:
                 raise ConfigError(f"{config.source}: [rigid] {error}") from None
         if system.temperature is not None:

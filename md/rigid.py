@@ -106,19 +106,19 @@ def matrix_quaternions(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.where(q[:, :1] >= 0, q, -q)
 
 
-def bodies_on_sites(
-    state: State, template: ArrayLike, masses: ArrayLike | None = None, random=None
-) -> State:
-    """A State with a copy of ``template`` (K constituent positions, (K, 3) [length]) centred
-    on every atom of ``state`` (the sites), turned at random by ``random`` (a seed or a
-    numpy Generator; None keeps every copy aligned with the template's axes).
+def bodies_on_sites(state: State, rigid, seed=None) -> State:
+    """A State with a copy of ``rigid.template`` (K constituent positions, (K, 3)
+    [length]) centred on every atom of ``state`` (the sites), turned at random from
+    ``seed`` (``rigid.orientation = "random"``) or all aligned with the template's axes
+    (``"aligned"``); ``rigid`` is the config's ``[rigid]`` record.
 
-    Each constituent takes its site's type, and ``masses`` (one value or K; default: its
-    site's mass); the copies are in site order, K atoms each (molecule ids
+    Each constituent takes its site's type, and ``rigid.template_masses`` (one value or K;
+    default: its site's mass); the copies are in site order, K atoms each (molecule ids
     ``repeat(1..n_sites, K)``); velocities are zero. Raises ValueError for fewer than two
     constituents or non-positive masses.
     """
-    template = np.asarray(template, dtype=np.float64)
+    template = np.asarray(rigid.template, dtype=np.float64)
+    masses = rigid.template_masses
     if template.ndim != 2 or template.shape[1] != 3 or len(template) < 2:
         raise ValueError(
             f"template: needs two or more positions [x, y, z], got shape {template.shape}"
@@ -136,11 +136,10 @@ def bodies_on_sites(
     weights = per_atom[:k]
     offsets = template - (weights[:, None] * template).sum(0) / weights.sum()
     n = state.n_atoms
-    if random is None:
+    if rigid.orientation == "aligned":
         turns = np.tile(np.eye(3), (n, 1, 1))
     else:
-        rng = random if isinstance(random, np.random.Generator) else np.random.default_rng(random)
-        q = rng.standard_normal((n, 4))
+        q = np.random.default_rng(seed).standard_normal((n, 4))
         turns = quaternion_matrices(q / np.linalg.norm(q, axis=1, keepdims=True))
     positions = state.positions[:, None, :] + np.einsum("nij,kj->nki", turns, offsets)
     return State(
