@@ -132,6 +132,16 @@ class ThermoTerms(Protocol):
 
 
 @runtime_checkable
+class ScalesCell(Protocol):
+    """Optional hook: how a barostat's isotropic move by ``mu`` applies to the integrator's
+    particles, where scaling every position would be wrong (rigid bodies: their centres
+    move, their shapes do not). ``scale_cell(state, mu, velocities)`` scales the box and
+    the positions, and with ``velocities`` the momenta by 1 / mu."""
+
+    def scale_cell(self, state: State, mu: float, velocities: bool) -> None: ...
+
+
+@runtime_checkable
 class Statistics(Protocol):
     """Optional hook: cumulative counters (``steps``, solver iterations, ...) as a dict."""
 
@@ -287,6 +297,7 @@ __all__ = [
     "Integrator",
     "IntegratorBase",
     "Restartable",
+    "ScalesCell",
     "Statistics",
     "SupportsAmplification",
     "ThermoTerms",

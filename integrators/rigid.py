@@ -192,12 +192,13 @@ RIGID_TAKERS = ("verlet", "velocity_verlet", "langevin", "bussi", "nose_hoover_c
 
 
 def checked_rigid(
-    record: RigidConfig, integrator_type: str, integrator_values, barostat: bool
+    record: RigidConfig, integrator_type: str, integrator_values, barostat=None
 ) -> RigidConfig:
     """``record`` with its template as a tuple of (x, y, z); ValueError ``(key, message)``
     for a template that does not fit ``bodies`` or its masses, and for what bodies cannot
     be combined with (yet): another integrator, rigid bonds, ``fix_com = false``, a
-    barostat."""
+    barostat (``barostat``: its config entry, with ``type`` and ``values``) other than
+    an isotropic c_rescale or Berendsen one."""
     if (record.bodies == "template") != (record.template is not None):
         raise ValueError(
             "template",
@@ -234,8 +235,16 @@ def checked_rigid(
         raise ValueError("bodies", "[integrator] fix_com = false does not apply to bodies")
     if "constraints" in integrator_values:
         raise ValueError("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
-    if barostat:
-        raise ValueError("rotation", "rigid bodies cannot be run with a [barostat] (yet)")
+    if barostat is not None and (
+        barostat.type not in ("c_rescale", "berendsen")
+        or barostat.values.get("couple", "isotropic") != "isotropic"
+    ):
+        raise ValueError(
+            "rotation",
+            "rigid bodies take an isotropic c_rescale or berendsen [barostat] (it scales "
+            f"their centres); not {barostat.type} with couple = "
+            f"{barostat.values.get('couple', 'isotropic')!r} (yet)",
+        )
     return record
 
 
@@ -295,6 +304,21 @@ class RigidNVE(IntegratorBase):
         bodies.place(state)
         self.end_step(state)
 
+    def scale_cell(self, state, mu: float, velocities: bool) -> None:
+        """A barostat's isotropic move: box, free atoms and body centres scaled by ``mu``
+        (the bodies keep their shapes), with ``velocities`` the free atoms' velocities and
+        the centres' momenta by 1 / ``mu`` (see :class:`integrators.base.ScalesCell`)."""
+        bodies = self.bodies
+        free = bodies.free
+        state.box = state.box * mu
+        state.tilt = state.tilt * mu
+        state.positions[free] *= mu
+        bodies.centres *= mu
+        if velocities:
+            state.velocities[free] /= mu
+            bodies.momenta /= mu
+        bodies.place(state)
+
     def thermo_terms(self, state, result) -> dict:
         """Degrees of freedom of bodies and free atoms, the rigid-body virial (see
         :meth:`md.rigid.RigidBodies.virial_correction`), and the translational and
@@ -330,10 +354,12 @@ class _RigidBath(RigidNVE):
     draws the same), and its saved entropy."""
 
     stochastic = True
+    thermostat = True
 
     def __init__(self, dt: float, bodies: RigidBodies, rotation: str, kT: float, seed) -> None:
         super().__init__(dt, bodies, rotation)
         self.kT = float(kT)
+        self.reservoir = 0.0  # the heat the bath took out [energy]
         if not self.kT >= 0:
             raise ValueError(f"kT must be >= 0, got {kT!r}")
         # The seed's entropy as 32-bit words (fresh entropy without a seed), kept for resumes.
@@ -365,21 +391,31 @@ class _RigidBath(RigidNVE):
         half = 0.5 * self.dt
         self._kick(state, forcefield.compute(state, virial=False).forces, half)
         self._drift(state, half)
+        before = sum(self.bodies.kinetic_energies(state))
         self._thermalise(state)
+        self.reservoir -= sum(self.bodies.kinetic_energies(state)) - before
         self._drift(state, half)
         self.bodies.place(state)
         self._kick(state, forcefield.compute(state, virial=False).forces, half)
         self.bodies.place(state)
         self.end_step(state)
 
+    def thermo_terms(self, state, result) -> dict:
+        """:class:`RigidNVE`'s, and the heat the bath took out as ``reservoir_energy``."""
+        terms = super().thermo_terms(state, result)
+        terms["reservoir_energy"] = self.reservoir
+        return terms
+
     def get_state(self) -> dict:
         saved = super().get_state()
         saved["entropy"] = self.entropy.copy()
+        saved["reservoir"] = np.array([self.reservoir])
         return saved
 
     def set_state(self, saved: dict) -> None:
         super().set_state(saved)
         self.entropy = np.asarray(saved["entropy"], dtype=np.int64).copy()
+        self.reservoir = float(np.asarray(saved["reservoir"]).reshape(-1)[0])
 
 
 class RigidLangevin(_RigidBath):

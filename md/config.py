@@ -878,7 +878,7 @@ def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfi
     result = RigidConfig(**table.fields(RigidConfig))
     table.finish()
     try:
-        return checked_rigid(result, integrator.type, integrator.values, barostat is not None)
+        return checked_rigid(result, integrator.type, integrator.values, barostat)
     except ValueError as error:  # (key, message)
         raise table.error(*error.args) from None
 
