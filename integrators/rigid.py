@@ -1,5 +1,13 @@
-"""Rigid bodies in NVE: velocity Verlet for centres and free atoms, a rotational method for
-orientations.
+"""Rigid bodies: velocity Verlet for centres and free atoms, a rotational method for
+orientations, and heat baths and a barostat hook for them.
+
+The integrators here take a :class:`md.rigid.RigidBodies` and are built by
+:mod:`md.rigid_setup` from a config's ``[rigid]`` table (:class:`RigidConfig`, checked
+by :func:`checked_rigid`), not from the ``INTEGRATORS`` registry: :class:`RigidNVE`
+(``[integrator]`` velocity Verlet), :class:`RigidLangevin`, :class:`RigidBussi` and
+:class:`RigidNoseHoover` (Langevin, Bussi and Nose-Hoover chains on every momentum);
+``RigidNVE.scale_cell`` is how an isotropic barostat moves bodies
+(:class:`integrators.base.ScalesCell`).
 
 :class:`RigidNVE` kicks each body's momentum and angular momentum (space frame) by
 half a step of force and torque, drifts the centres and free atoms, turns the
