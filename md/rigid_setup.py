@@ -91,6 +91,13 @@ def rigid_components(
     run (``fresh``) the constituents are placed rigidly at once, so step 0 is reported
     there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
+    # The GPU path (a [run] device key, from another branch) does not move bodies yet.
+    device = getattr(config.run, "device", None)
+    if device not in (None, "cpu"):
+        raise ConfigError(
+            f"{config.source}: [rigid]: rigid bodies run on the CPU only (yet); set [run] "
+            f"device = 'cpu' (got {device!r})"
+        )
     ids = body_ids(config, state, topology)
     try:
         bodies = RigidBodies.from_molecules(state, ids)

@@ -488,3 +488,23 @@ def test_other_barostats_are_refused_with_bodies(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "[rigid]" in err and "isotropic c_rescale or berendsen" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+def test_refused_on_another_device(tmp_path):
+    """A [run] device other than the CPU (the GPU path's key, where it exists) is refused."""
+    import dataclasses
+
+    config = tmp_path / "run.toml"
+    config.write_text(CONFIG.replace("ROTATION", "no_squish"))
+    loaded = load_config(config)
+
+    @dataclasses.dataclass(frozen=True)
+    class RunWithDevice:
+        device: str = "cuda"
+
+        def __getattr__(self, name):  # the rest of [run] as loaded
+            return getattr(loaded.run, name)
+
+    on_gpu = dataclasses.replace(loaded, run=RunWithDevice())
+    with pytest.raises(ConfigError, match="CPU only"):
+        build_simulation(on_gpu, None, tmp_path / "x", None)
