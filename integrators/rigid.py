@@ -48,6 +48,7 @@ import numpy as np
 
 from integrators.base import IntegratorBase, check_dt
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
+from md.box import reduced_tilt
 from md.rigid import RigidBodies, matrix_quaternions, quaternion_matrices
 from md.schema import Key, key
 
@@ -206,7 +207,7 @@ def checked_rigid(
     for a template that does not fit ``bodies`` or its masses, and for what bodies cannot
     be combined with (yet): another integrator, rigid bonds, ``fix_com = false``, a
     barostat (``barostat``: its config entry, with ``type`` and ``values``) other than
-    an isotropic c_rescale or Berendsen one."""
+    c_rescale or Berendsen (MTK)."""
     if (record.bodies == "template") != (record.template is not None):
         raise ValueError(
             "template",
@@ -243,15 +244,11 @@ def checked_rigid(
         raise ValueError("bodies", "[integrator] fix_com = false does not apply to bodies")
     if "constraints" in integrator_values:
         raise ValueError("bodies", "rigid bodies and [integrator.constraints] do not mix (yet)")
-    if barostat is not None and (
-        barostat.type not in ("c_rescale", "berendsen")
-        or barostat.values.get("couple", "isotropic") != "isotropic"
-    ):
+    if barostat is not None and barostat.type not in ("c_rescale", "berendsen"):
         raise ValueError(
             "rotation",
-            "rigid bodies take an isotropic c_rescale or berendsen [barostat] (it scales "
-            f"their centres); not {barostat.type} with couple = "
-            f"{barostat.values.get('couple', 'isotropic')!r} (yet)",
+            "rigid bodies take a c_rescale or berendsen [barostat] (it moves their centres); "
+            f"not {barostat.type} (yet)",
         )
     return record
 
@@ -312,19 +309,32 @@ class RigidNVE(IntegratorBase):
         bodies.place(state)
         self.end_step(state)
 
-    def scale_cell(self, state, mu: float, velocities: bool) -> None:
-        """A barostat's isotropic move: box, free atoms and body centres scaled by ``mu``
-        (the bodies keep their shapes), with ``velocities`` the free atoms' velocities and
-        the centres' momenta by 1 / ``mu`` (see :class:`integrators.base.ScalesCell`)."""
+    def scale_cell(self, state, mu, velocities: bool) -> None:
+        """A barostat's move: the cell, free atoms and body centres by ``mu`` (a scale
+        factor, or a (3, 3) deformation r -> r mu), the bodies keeping their shapes and
+        orientations; with ``velocities`` the free atoms' velocities and the centres'
+        momenta by its inverse (see :class:`integrators.base.ScalesCell`)."""
         bodies = self.bodies
         free = bodies.free
-        state.box = state.box * mu
-        state.tilt = state.tilt * mu
-        state.positions[free] *= mu
-        bodies.centres *= mu
-        if velocities:
-            state.velocities[free] /= mu
-            bodies.momenta /= mu
+        if np.ndim(mu) == 0:
+            state.box = state.box * mu
+            state.tilt = state.tilt * mu
+            state.positions[free] *= mu
+            bodies.centres *= mu
+            if velocities:
+                state.velocities[free] /= mu
+                bodies.momenta /= mu
+        else:
+            mu = np.asarray(mu, dtype=np.float64)
+            cell = state.cell @ mu
+            state.box = np.diag(cell).copy()
+            state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)
+            state.positions[free] = state.positions[free] @ mu
+            bodies.centres[:] = bodies.centres @ mu
+            if velocities:
+                inverse = np.linalg.inv(mu).T
+                state.velocities[free] = state.velocities[free] @ inverse
+                bodies.momenta[:] = bodies.momenta @ inverse
         bodies.place(state)
 
     def thermo_terms(self, state, result) -> dict:
