@@ -662,6 +662,15 @@ class RigidNoseHoover(RigidNVE):
         }
 
 
+def bodies_of(integrator) -> RigidBodies | None:
+    """The rigid bodies an integrator moves (also under a barostat's ``inner``), or None."""
+    while not isinstance(integrator, RigidNVE):
+        integrator = getattr(integrator, "inner", None)
+        if integrator is None:
+            return None
+    return integrator.bodies
+
+
 __all__ = [
     "RIGID_TAKERS",
     "ROTATION",
@@ -672,6 +681,7 @@ __all__ = [
     "RigidLangevin",
     "RigidNVE",
     "RigidNoseHoover",
+    "bodies_of",
     "checked_rigid",
     "quaternion_product",
 ]

@@ -535,3 +535,15 @@ def test_refused_on_another_device(tmp_path):
     on_gpu = dataclasses.replace(loaded, run=RunWithDevice())
     with pytest.raises(ConfigError, match="CPU only"):
         build_simulation(on_gpu, None, tmp_path / "x", None)
+
+
+def test_an_npt_run_keeps_the_bodies_in_its_trajectory(tmp_path):
+    """Under a barostat (the integrator wrapped) the H5MD file still gets the bodies."""
+    text = NPT_CONFIG.replace("steps = 20", "steps = 20\n").replace(
+        'path = "out.h5"', 'path = "out.h5"\nevery = 10'
+    )
+    (tmp_path / "run.toml").write_text(text)
+    assert run(tmp_path / "run.toml") == 0
+    with h5py.File("out.h5", "r") as f:
+        assert f["rigid/centre/value"].shape == (3, 64, 3)
+        assert f["rigid/molecule"][()].max() == 64
