@@ -53,6 +53,7 @@ from integrators.base import (
     Integrator,
     IntegratorBase,
     Restartable,
+    ScalesCell,
     Statistics,
     constraints_of,
 )
@@ -369,11 +370,14 @@ class PressureCoupled(IntegratorBase):
             mu = barostat.scale_factor(p_now, volume, self.kT, interval)
             if not (math.isfinite(mu) and mu > 0):
                 raise SimulationError(state.step, barostat.overshoot(f"scale factor is {mu:.4g}"))
-            state.positions *= mu
-            state.box = state.box * mu
-            state.tilt = state.tilt * mu
-            if barostat.kind == "c_rescale":
-                state.velocities /= mu
+            if isinstance(self.inner, ScalesCell):  # rigid bodies: centres move, not shapes
+                self.inner.scale_cell(state, mu, barostat.kind == "c_rescale")
+            else:
+                state.positions *= mu
+                state.box = state.box * mu
+                state.tilt = state.tilt * mu
+                if barostat.kind == "c_rescale":
+                    state.velocities /= mu
         else:
             kinetic_part = global_sum(kinetic_tensor(state.velocities, state.masses))
             tensor = (kinetic_part + virial) / volume
@@ -383,12 +387,15 @@ class PressureCoupled(IntegratorBase):
                 raise SimulationError(
                     state.step, barostat.overshoot(f"scale factors of the edges are {scales}")
                 )
-            cell = state.cell @ mu
-            state.positions[:] = state.positions @ mu
-            state.box = np.diag(cell).copy()
-            state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)
-            if barostat.kind == "c_rescale":
-                state.velocities[:] = state.velocities @ np.linalg.inv(mu).T
+            if isinstance(self.inner, ScalesCell):  # rigid bodies: centres move, not shapes
+                self.inner.scale_cell(state, mu, barostat.kind == "c_rescale")
+            else:
+                cell = state.cell @ mu
+                state.positions[:] = state.positions @ mu
+                state.box = np.diag(cell).copy()
+                state.tilt = reduced_tilt(state.box, cell[[1, 2, 2], [0, 0, 1]], state.pbc)
+                if barostat.kind == "c_rescale":
+                    state.velocities[:] = state.velocities @ np.linalg.inv(mu).T
         try:
             energy = forcefield.compute(state, virial=False).energy
         except ValueError as error:  # the box shrank below what the cutoff allows

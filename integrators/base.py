@@ -132,6 +132,17 @@ class ThermoTerms(Protocol):
 
 
 @runtime_checkable
+class ScalesCell(Protocol):
+    """Optional hook: how a barostat's move applies to the integrator's particles, where
+    moving every position would be wrong (rigid bodies: their centres move, their shapes
+    do not). ``scale_cell(state, mu, velocities)`` moves the cell and the positions by
+    ``mu`` (a scale factor, or a (3, 3) deformation r -> r mu), and with ``velocities``
+    the momenta by its inverse (v -> v mu^-T)."""
+
+    def scale_cell(self, state: State, mu, velocities: bool) -> None: ...
+
+
+@runtime_checkable
 class Statistics(Protocol):
     """Optional hook: cumulative counters (``steps``, solver iterations, ...) as a dict."""
 
@@ -287,6 +298,7 @@ __all__ = [
     "Integrator",
     "IntegratorBase",
     "Restartable",
+    "ScalesCell",
     "Statistics",
     "SupportsAmplification",
     "ThermoTerms",

@@ -19,6 +19,7 @@ from md.config import Config, build_system, integrator_from_config, potential_fr
 from md.distributed import DistributedSimulation, ranks_per_node
 from md.errors import ConfigError, ConvergenceError, NonFiniteError
 from md.parallel import max_threads, set_threads
+from md.rigid_setup import rigid_components
 from md.simulation import Simulation
 from md.state import State
 from md.topology import Topology
@@ -40,6 +41,7 @@ def build_components(config: Config, state: State | None = None):
     any, are bound to it, moving it onto the bond lengths. Raises
     ConfigError naming the file and section for anything that cannot be built.
     """
+    fresh = state is None
     built, bonds = build_system(config)
     if state is not None and state.n_atoms != built.n_atoms:
         raise ConfigError(
@@ -57,6 +59,10 @@ def build_components(config: Config, state: State | None = None):
             kind = config.potentials[index].type
             raise ConfigError(f"{config.source}: [potentials.{index}] ({kind}): {error}") from None
     integrator = integrator_from_config(config.integrator, config.source, bonds)
+    if config.rigid is not None:  # velocity Verlet over bodies (md.rigid_setup)
+        integrator, potentials = rigid_components(
+            config, integrator, state, bonds, potentials, fresh
+        )
     if config.barostat is not None:
         try:
             barostat = Barostat(config.barostat.type, **config.barostat.values)
@@ -98,6 +104,11 @@ def build_simulation(config: Config, checkpoint, saved_path: Path, threads, rank
             f"{config.source}: [run] decomposition {list(shape)} has {math.prod(shape)} bricks, "
             f"but this run is one process: start it under MPI (mpiexec -n {math.prod(shape)} "
             "md run ...), or drop the key"
+        )
+    if ranks is not None and config.rigid is not None:
+        raise ConfigError(
+            f"{config.source}: [rigid]: rigid bodies do not run decomposed over MPI ranks "
+            "(yet); run this config in one process, without mpiexec"
         )
     if checkpoint is not None:
         try:

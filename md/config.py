@@ -37,10 +37,12 @@ from typing import Any
 from integrators import INTEGRATORS, NoseHooverChain, integrator_class
 from integrators.barostats import BAROSTAT_KEYS
 from integrators.rattle import BondConstraints
+from integrators.rigid import RigidConfig, checked_rigid
 from md._checks import MAX_SEED
 from md.build import lattice, maxwell_boltzmann
 from md.errors import ConfigError, PluginError
 from md.polymers import chain_angles, polymer_melt, single_chain
+from md.rigid import bodies_on_sites
 from md.schema import REQUIRED, Key, Varies, key, key_names, section_keys
 from md.structure import read_structure
 from md.topology import Topology
@@ -579,6 +581,13 @@ def sections() -> tuple[Section, ...]:
             BondConstraints.CONFIG_KEYS,
         ),
         Section(
+            "rigid",
+            "[rigid]",
+            "Rigid bodies moved as wholes (optional); `[integrator]` must be velocity "
+            "Verlet, Langevin, Bussi or Nose-Hoover chains.",
+            section_keys(RigidConfig),
+        ),
+        Section(
             "barostat",
             "[barostat]",
             "Constant pressure, with a thermostat as `[integrator]`; `type` names it.",
@@ -631,6 +640,7 @@ class Config:
     output: OutputConfig
     minimize: MinimizeConfig | None = None
     barostat: PluginEntry | None = None
+    rigid: RigidConfig | None = None
 
 
 def load_config(path) -> Config:
@@ -700,6 +710,12 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
     if "barostat" in top.data:
         table = _Table(top.take("barostat"), "barostat", source, base, units)
         barostat = _parse_barostat(table, seed, integrator)
+    rigid = None
+    if "rigid" in top.data:
+        table = _Table(top.take("rigid"), "rigid", source, base, units)
+        rigid = _parse_rigid(table, integrator, barostat)
+        if "minimize" in top.data:
+            raise table.error("bodies", "a [minimize] stage does not keep rigid bodies (yet)")
     minimize = None
     if "minimize" in top.data:
         table = _Table(top.take("minimize"), "minimize", source, base, units)
@@ -717,6 +733,7 @@ def parse_config(data: dict, source: str = "<config>", text: str = "", base=".")
         output=output,
         minimize=minimize,
         barostat=barostat,
+        rigid=rigid,
     )
 
 
@@ -854,6 +871,16 @@ def _parse_barostat(table: _Table, seed: int | None, integrator: PluginEntry) ->
             "isothermal-isobaric ensemble: use it to equilibrate, then c_rescale"
         )
     return PluginEntry(kind, values)
+
+
+def _parse_rigid(table: _Table, integrator: PluginEntry, barostat) -> RigidConfig:
+    """``[rigid]``: its keys, refused with what it cannot be combined with (yet)."""
+    result = RigidConfig(**table.fields(RigidConfig))
+    table.finish()
+    try:
+        return checked_rigid(result, integrator.type, integrator.values, barostat)
+    except ValueError as error:  # (key, message)
+        raise table.error(*error.args) from None
 
 
 def _parse_minimize(table: _Table, integrator: PluginEntry) -> MinimizeConfig:
@@ -1052,6 +1079,18 @@ def build_system(config: Config):
             if system.pbc is not None:
                 state.pbc[:] = system.pbc
             state.validate()
+        rigid = config.rigid
+        if rigid is not None and rigid.template is not None:  # a body on every site
+            if topology is not None:
+                raise ValueError(
+                    "[rigid] template: the system has bonds; a template replaces its atoms "
+                    "by bodies, so start from a lattice or a structure without bonds"
+                )
+            seed = None if config.seed is None else [config.seed, 3]  # its own stream
+            try:
+                state = bodies_on_sites(state, rigid, seed)
+            except ValueError as error:
+                raise ConfigError(f"{config.source}: [rigid] {error}") from None
         if system.temperature is not None:
             maxwell_boltzmann(state, system.temperature, seed=config.seed, kB=config.units.kB)
     except ConfigError:
@@ -1071,6 +1110,7 @@ __all__ = [
     "MinimizeConfig",
     "OutputConfig",
     "PluginEntry",
+    "RigidConfig",
     "RunConfig",
     "Section",
     "SystemConfig",

@@ -225,6 +225,14 @@ def _units_note(reader: TrajectoryReader, convention: str) -> str:
     return f"leapmd {__version__}: {convention}"
 
 
+def _molecule_ids(reader: TrajectoryReader) -> np.ndarray:
+    """The rigid bodies of a run that had them (what ``fix rigid ... molecule`` takes; 0 for
+    free atoms), else the bonded clusters."""
+    if reader.molecule_ids is not None:
+        return np.asarray(reader.molecule_ids, dtype=np.int64)
+    return molecules(reader.topology, reader.n_atoms)
+
+
 def molecules(topology: Topology, n_atoms: int) -> np.ndarray:
     """Return a molecule number (1, 2, ...) per atom: the connected components of the bonds."""
     parent = np.arange(n_atoms)
@@ -456,7 +464,7 @@ class _LammpsDataWriter(_Writer):
         for (i, j), t in zip(topology.bonds.tolist(), topology.bond_types.tolist(), strict=True):
             partners[i].append(f"{j}({t + 1})")
         atoms.arrays["bonds"] = np.array([",".join(p) or "_" for p in partners], dtype=object)
-        atoms.arrays["mol-id"] = molecules(topology, reader.n_atoms)
+        atoms.arrays["mol-id"] = _molecule_ids(reader)
         stand_ins = list(self._STAND_INS[: len(reader.type_names)])
         with open(self.path, "w") as handle:
             write_lammps_data(
@@ -546,7 +554,7 @@ class _LammpsDumpWriter(_Writer):
     ) -> None:
         self.reader, self.unwrap = reader, unwrap
         self.handle = open(path, "w")  # noqa: SIM115 (closed in close())
-        self.molecules = molecules(reader.topology, reader.n_atoms)
+        self.molecules = _molecule_ids(reader)
         self.ids = np.arange(1, reader.n_atoms + 1)
         metal = reader.units.name != "lj"
         self.velocity_factor = reader.units.h5md["velocity"][1] if metal else 1.0

@@ -175,6 +175,11 @@ def prepare_minimize(
     """
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
     config_file = str(path_or_config) if not isinstance(path_or_config, Config) else config.source
+    if config.rigid is not None:  # FIRE moves atoms one by one
+        raise ConfigError(
+            f"{config.source}: [rigid]: md minimize does not keep rigid bodies (yet); drop the "
+            "[rigid] table to minimise the atoms, or start from a relaxed structure"
+        )
     overrides = {}
     try:
         if fmax is not None:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from integrators.base import Statistics
+from integrators.rigid import bodies_of
 from md._checks import count
 from md._files import exclusive_claim, remove_stale_temporaries
 from md.assemble import build_components as build_components  # moved; importable from here
@@ -486,6 +487,7 @@ class PreparedRun:
                 units=config.units,
                 append=True,
                 keep_frames=self.checkpoint.n_frames,
+                bodies=bodies_of(self.sim.integrator),  # rigid bodies' frames, if any
             )
         return self._new_trajectory(state, overwrite=True)
 
@@ -507,6 +509,7 @@ class PreparedRun:
                 and self.config.barostat.get("couple") == "triclinic"
             ),
             conserved=self.sim.integrator.thermostat,
+            bodies=bodies_of(self.sim.integrator),  # rigid bodies' frames, if any
         )
 
 

@@ -159,6 +159,7 @@ KINDS = {
     "number or table": None,  # one value, or {type name = value}
     'list or "system"': None,  # index lists, or the [system]'s own
     "list of integers": None,
+    "list of positions": None,  # [[x, y, z], ...]: a rigid body's template
     "list of tables": None,
     "integer or list of integers": None,  # a seed or a seed sequence
     '"bonded" or list of integers': None,

@@ -303,7 +303,9 @@ class Simulation:
         [mass/length^3]; also ``step`` and ``time``. With a
         thermostat, also ``conserved_energy`` (total plus the heat bath's
         energy); with rigid bonds, the temperature counts one degree of
-        freedom fewer per bond and the pressure includes the constraint virial.
+        freedom fewer per bond and the pressure includes the constraint virial; with
+        rigid bodies, their degrees of freedom and virial, and the
+        ``translational_temperature`` and ``rotational_temperature``.
         """
         state = self.state
         result = self.forcefield.compute(state)
@@ -338,6 +340,8 @@ class Simulation:
         }
         if "reservoir_energy" in terms:
             row["conserved_energy"] = row["total_energy"] + terms["reservoir_energy"]
+        for name, (energy, n) in terms.get("kinetic_split", {}).items():  # rigid bodies
+            row[f"{name}_temperature"] = 2.0 * energy / (n * self.units.kB) if n > 0 else 0.0
         return row
 
     def timing_summary(self) -> dict[str, float]:

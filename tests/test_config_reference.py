@@ -108,6 +108,7 @@ def sample(cells: tuple[str, str, str]) -> object:
         "number, list or table": 1.0,
         'list or "system"': "system",
         "list of integers": [0],
+        "list of positions": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
         "list of tables": [],
         "integer or list of integers": 3,
         '"bonded" or list of integers': "bonded",

@@ -55,6 +55,7 @@ LAYERS = {
         "md.interrupts",
         "md._files",
         "md.topology",
+        "md.rigid",
     ],
     1: ["potentials.*", "integrators.*"],
     2: [
@@ -80,6 +81,7 @@ LAYERS = {
         "md.checkpoint",
         "md.structure",
         "md.config",
+        "md.rigid_setup",
         "md.assemble",
         "md.guards",
         "md.relax",

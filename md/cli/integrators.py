@@ -16,8 +16,10 @@ import math
 from pathlib import Path
 
 from md.cli._common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, fail
+from md.config import load_config
 from md.errors import ConfigError, SimulationError
 from md.studies import prepare_damping, prepare_study
+from md.studies.rigid_study import prepare_rigid_study
 
 
 def add_parser(subparsers) -> None:
@@ -82,18 +84,30 @@ def main(args) -> int:
     if args.damping:
         return _damping(args)
     try:
-        study = prepare_study(
-            args.config,
-            integrators=args.integrators,
-            dts=args.dt_range,
-            span=args.time,
-            equilibrate=args.equilibrate,
-            temperature=args.temperature,
-            tau=args.tau,
-            sample_time=args.sample_time,
-            out=args.out,
-            overwrite=args.overwrite,
-        )
+        config = load_config(args.config)
+        if config.rigid is not None:  # the rotational family of RigidNVE
+            study = prepare_rigid_study(
+                config,
+                integrators=args.integrators,
+                dts=args.dt_range,
+                span=args.time,
+                equilibrate=args.equilibrate,
+                out=args.out,
+                overwrite=args.overwrite,
+            )
+        else:
+            study = prepare_study(
+                config,
+                integrators=args.integrators,
+                dts=args.dt_range,
+                span=args.time,
+                equilibrate=args.equilibrate,
+                temperature=args.temperature,
+                tau=args.tau,
+                sample_time=args.sample_time,
+                out=args.out,
+                overwrite=args.overwrite,
+            )
     except ConfigError as error:
         fail(str(error))
         return EXIT_BAD_INPUT

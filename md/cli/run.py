@@ -226,13 +226,16 @@ class _ThermoTable:
             return
         row = sim.thermo()
         conserved = ("conserved_energy",) if "conserved_energy" in row else ()  # thermostats
+        split = ("translational_temperature", "rotational_temperature")  # rigid bodies
+        split = split if split[0] in row else ()
         if not self._printed_header:
             headers = self.headers + (("Conserved",) if conserved else ())
+            headers += ("TempTrans", "TempRot") if split else ()
             self._write("".join(f"{h:>14}" for h in headers))
             self._printed_header = True
         time_value = row["time"] / self.units.config_time
         cells = [f"{row['step']:>14d}", f"{time_value:>14.6g}"]
-        cells += [f"{row[c]:>14.6g}" for c in self.columns[2:] + conserved]
+        cells += [f"{row[c]:>14.6g}" for c in self.columns[2:] + conserved + split]
         self._write("".join(cells))
 
     def _write(self, line: str) -> None:

@@ -309,13 +309,18 @@ def prepare_study(
         config = load_config(config)
     else:
         source = Path(config.source)
+    if config.rigid is not None:  # its integrators would move the constituents apart
+        raise ConfigError(
+            f"{config.source}: [rigid]: this study moves atoms one by one; the rotational "
+            "family of rigid bodies is md.studies.rigid_study.prepare_rigid_study's"
+        )
     units = config.units
     t = units.config_time
     config_dt = config.integrator.dt / t
-    ladder = [dt * t for dt in _parse_dts(dts, config_dt)]
-    run_span = (100 * config_dt if span is None else _positive_option(span, "--time")) * t
+    ladder = [dt * t for dt in parse_dts(dts, config_dt)]
+    run_span = (100 * config_dt if span is None else positive_option(span, "--time")) * t
     names = _integrator_names(integrators, INTEGRATORS)
-    equilibrate = _count_option(equilibrate, "--equilibrate")
+    equilibrate = count_option(equilibrate, "--equilibrate")
     # Thermostats are measured apart: sampling at a temperature, not order in dt.
     thermostat_names = [n for n in names if INTEGRATORS[n].thermostat]
     names = [n for n in names if n not in thermostat_names]
@@ -381,21 +386,21 @@ def prepare_study(
     return study
 
 
-def _positive_option(value, option: str) -> float:
+def positive_option(value, option: str) -> float:
     try:
         return positive(value, option)
     except (TypeError, ValueError) as error:
         raise ConfigError(str(error)) from None
 
 
-def _count_option(value, option: str) -> int:
+def count_option(value, option: str) -> int:
     try:
         return count(value, option, minimum=0)
     except (TypeError, ValueError) as error:
         raise ConfigError(str(error)) from None
 
 
-def _parse_dts(text, dt: float) -> list[float]:
+def parse_dts(text, dt: float) -> list[float]:
     """The dt ladder [config time] from MIN:MAX:N, a comma list, or numbers."""
     if text is None:
         return [dt / 32, dt / 16, dt / 8, dt / 4, dt / 2, dt]
@@ -470,9 +475,9 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
                 "--temperature, or give [integrator] temperature or [system] temperature"
             )
         return None
-    temperature = _positive_option(temperature, "--temperature")
+    temperature = positive_option(temperature, "--temperature")
     if tau is not None:
-        tau = _positive_option(tau, "--tau") * t
+        tau = positive_option(tau, "--tau") * t
     elif "tau" in entry:
         tau = entry.get("tau")
     elif entry.get("friction"):
@@ -480,7 +485,7 @@ def _thermostat_setup(config, names, named: bool, temperature, tau, sample_time)
     else:
         tau = 100 * dt
     if sample_time is not None:
-        sample_time = _positive_option(sample_time, "--sample-time") * t
+        sample_time = positive_option(sample_time, "--sample-time") * t
     else:
         sample_time = 4000 * dt
     # Capped before rounding (an infinite quotient has no int); the step budget refuses them.

@@ -272,6 +272,8 @@ class TrajectoryReader:
             boundary = [attr_text(b) for b in group["box"].attrs["boundary"]]
             self.pbc = np.array([b == "periodic" for b in boundary])
             self.topology = _read_topology(f)
+            # Rigid bodies' molecule ids (1, 2, ...; 0 free), where the run had bodies.
+            self.molecule_ids = f["rigid/molecule"][()] if "rigid/molecule" in f else None
             self._datasets = {
                 "step": group["position/step"],
                 "time": group["position/time"],

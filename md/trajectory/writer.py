@@ -81,6 +81,12 @@ class H5MDWriter:
         the complete file or nothing, also on a full disk. For small files
         written in one go, such as a minimised structure; leaving the ``with``
         block by an exception writes nothing.
+    bodies : md.rigid.RigidBodies, optional
+        Rigid bodies whose ``centres`` (unwrapped [length]) and ``quaternions``
+        (w, x, y, z) are stored with every frame, under ``rigid/centre`` and
+        ``rigid/orientation`` (step and time linked as for the particles), and
+        each atom's body (1, 2, ...; 0 for a free atom) in ``rigid/molecule``; an
+        appending writer keeps writing them where the file has them.
 
     Raises
     ------
@@ -119,8 +125,10 @@ class H5MDWriter:
         triclinic: bool | None = None,
         conserved: bool = False,
         in_memory: bool = False,
+        bodies=None,
     ) -> None:
         self.path = Path(path)
+        self._bodies = bodies
         self.store_conserved = bool(conserved)
         self.triclinic = not state.is_orthorhombic if triclinic is None else bool(triclinic)
         if topology is not None:
@@ -195,6 +203,9 @@ class H5MDWriter:
             self._values["force"] = group["force/value"]
         self._values["edges"] = group["box/edges/value"]
         self.triclinic = self._values["edges"].ndim == 3
+        if "rigid" in f:
+            self._values["body_centre"] = f["rigid/centre/value"]
+            self._values["body_orientation"] = f["rigid/orientation/value"]
         for name in OBSERVABLES:
             if name in f["observables"]:  # older files hold fewer observables
                 self._values[name] = f["observables"][name]["value"]
@@ -288,6 +299,16 @@ class H5MDWriter:
                 continue
             element = self._element(observables, name, (), np.float64, _OBSERVABLE_UNITS[name])
             self._values[name] = element["value"]
+
+        if self._bodies is not None:  # rigid bodies: centres and quaternions per frame
+            rigid = f.create_group("rigid")
+            n_bodies = len(self._bodies.centres)
+            element = self._element(rigid, "centre", (n_bodies, 3), np.float64, "length")
+            self._values["body_centre"] = element["value"]
+            element = self._element(rigid, "orientation", (n_bodies, 4), np.float64, None)
+            self._values["body_orientation"] = element["value"]
+            # The molecule id of every atom (its body's number from 1; 0: a free atom).
+            rigid.create_dataset("molecule", data=self._bodies.body_of + 1)
 
         params = f.create_group("parameters")
         params.attrs["units"] = self.units.name
@@ -383,6 +404,10 @@ class H5MDWriter:
             self._values["velocity"][frame] = state.velocities * self._factor("velocity")
         if self.store_forces:
             self._values["force"][frame] = np.asarray(forces) * self._factor("force")
+        if self._bodies is not None and "body_centre" in self._values:
+            centres = self._bodies.centres  # unwrapped, as the integrator moves them
+            self._values["body_centre"][frame] = centres * self._factor("length")
+            self._values["body_orientation"][frame] = self._bodies.quaternions
         for name in OBSERVABLES:
             if name in self._values:
                 value = np.nan if thermo is None else thermo.get(name, np.nan)
