@@ -143,6 +143,14 @@ class ScalesCell(Protocol):
 
 
 @runtime_checkable
+class Wraps(Protocol):
+    """Optional hook: an integrator that moves the particles through another one, its
+    ``inner`` (a barostat around the integrator that steps the particles)."""
+
+    inner: Integrator
+
+
+@runtime_checkable
 class Statistics(Protocol):
     """Optional hook: cumulative counters (``steps``, solver iterations, ...) as a dict."""
 
@@ -302,6 +310,7 @@ __all__ = [
     "Statistics",
     "SupportsAmplification",
     "ThermoTerms",
+    "Wraps",
     "amplification_roots",
     "check_dt",
     "constraints_of",

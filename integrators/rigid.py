@@ -46,7 +46,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from integrators.base import IntegratorBase, check_dt
+from integrators.base import IntegratorBase, Wraps, check_dt
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
 from md.box import reduced_tilt
 from md.rigid import RigidBodies, matrix_quaternions, quaternion_matrices
@@ -665,9 +665,9 @@ class RigidNoseHoover(RigidNVE):
 def bodies_of(integrator) -> RigidBodies | None:
     """The rigid bodies an integrator moves (also under a barostat's ``inner``), or None."""
     while not isinstance(integrator, RigidNVE):
-        integrator = getattr(integrator, "inner", None)
-        if integrator is None:
+        if not isinstance(integrator, Wraps):
             return None
+        integrator = integrator.inner
     return integrator.bodies
 
 

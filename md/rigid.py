@@ -393,13 +393,13 @@ class RigidBodies:
 
     def get_state(self) -> dict:
         """The bodies' variables and constants, for a checkpoint."""
-        return {name: getattr(self, name).copy() for name in self.SAVED}
+        return {name: getattr(self, name).copy() for name in self.SAVED}  # its own fields
 
     def set_state(self, saved: dict) -> None:
         """Take back :meth:`get_state`'s arrays (ValueError if they do not fit)."""
         for name in self.SAVED:
             value = np.asarray(saved[name], dtype=np.float64)
-            target = getattr(self, name)
+            target = getattr(self, name)  # its own field of that name
             if value.shape != target.shape:
                 raise ValueError(
                     f"saved {name} have shape {value.shape}, the bodies {target.shape}"

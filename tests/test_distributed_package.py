@@ -44,6 +44,10 @@ ALLOWED = {
         "getattr(total, field)": "ForceResult fields named by the loop",
         "getattr(result, field)": "ForceResult fields named by the loop",
     },
+    "md/rigid.py": {
+        "getattr(self, name).copy() for name in self.SAVED": "its own fields, by name",
+        "target = getattr(self, name)": "its own fields, by name",
+    },
     "md/studies/damping.py": {"getattr(self, name) for name in DAMPING_COLUMNS": "its own fields"},
     "md/studies/integrator_study.py": {
         "getattr(r, work), getattr(r, measure)": "a run record's fields, by name",
