@@ -1,0 +1,349 @@
+"""The device kernels (numba-cuda): neighbour search, pair forces, integrator passes, sums.
+
+Importing this module imports ``numba.cuda`` (the simulator where ``NUMBA_ENABLE_CUDASIM=1``
+was set before); ``md.cuda`` loads it only for a run that asks for the device.
+
+Layout: per-atom arrays are (N, 3) or (N,) in the device state's order; the neighbour list
+is a full list stored column by column, ``neighbors[k, i]`` the k-th partner of atom i, so
+that the threads of a warp (consecutive i) read consecutive words. One thread per atom in
+every per-atom kernel; the force kernel writes only its own atom's row (no atomics). The
+physics (the pair term with the frame's cutoff treatment, the minimum image) is the CPU
+path's own functions compiled as device functions (``potentials.device_terms.retarget``).
+
+Each kernel here has a CPU twin that ``tests/test_gpu.py`` compares it with: the search with
+the O(N^2) reference, the forces with ``PairPotential.energy_forces``, the passes with
+``integrators._kernels`` through the integrators' steps, the sums with numpy's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import cuda
+
+from md.box import min_image
+from potentials.device_terms import retarget
+
+#: Threads per block of the per-atom kernels.
+BLOCK = 128
+#: Threads of the one block that sums the observables (a power of two).
+SUM_THREADS = 64
+#: Columns of the per-atom observables: energy, the virial (xx, yy, zz, yz, xz, xy), and
+#: the kinetic energy (filled by the sum kernel).
+N_OBSERVABLES = 8
+
+
+def device_function(function):
+    """A numba function (and what it calls) as a CUDA device function."""
+    return retarget(function, lambda plain: cuda.jit(device=True, inline="always")(plain))
+
+
+_min_image = device_function(min_image)
+
+
+def launch(n: int) -> tuple[int, int]:
+    """(blocks, threads per block) for one thread per item of ``n``: BLOCK threads, fewer
+    (whole warps) for a system smaller than a block."""
+    threads = min(BLOCK, max(32, (n + 31) // 32 * 32))
+    return max(1, (n + threads - 1) // threads), threads
+
+
+# ---------------------------------------------------------------- neighbour search
+@cuda.jit
+def _moved(positions, reference, limit2, flag):
+    """Set ``flag[0] = 1`` if an atom moved farther than sqrt(limit2) since the build (the
+    same value from every thread that sees it: no atomics needed)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        dx = positions[i, 0] - reference[i, 0]
+        dy = positions[i, 1] - reference[i, 1]
+        dz = positions[i, 2] - reference[i, 2]
+        if not dx * dx + dy * dy + dz * dz <= limit2:  # NaN moves count as moved
+            flag[0] = 1
+
+
+@cuda.jit
+def _cell_of(positions, lengths, n_cells, cells, counts):
+    """Each atom's cell (row-major over n_cells) in ``cells``; ``counts`` per cell (atomic
+    increments: this is the counting sort's histogram, not the force kernel)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        code = 0
+        for a in range(3):
+            s = positions[i, a] / lengths[a]
+            s -= math.floor(s)
+            c = int(s * n_cells[a])
+            if c >= n_cells[a]:
+                c = n_cells[a] - 1
+            code = code * n_cells[a] + c
+        cells[i] = code
+        cuda.atomic.add(counts, code, 1)
+
+
+@cuda.jit
+def _cell_starts(counts, starts, cursors):
+    """Exclusive prefix sum of ``counts`` into ``starts`` (one thread: the cell count is a
+    few per cent of the atoms'); ``cursors`` zeroed for the scatter."""
+    if cuda.grid(1) == 0:
+        total = 0
+        for c in range(counts.shape[0]):
+            starts[c] = total
+            total += counts[c]
+            cursors[c] = 0
+        starts[counts.shape[0]] = total
+
+
+@cuda.jit
+def _scatter(cells, starts, cursors, order):
+    """The atoms by cell: ``order[starts[c]:starts[c + 1]]`` are cell c's (in any order)."""
+    i = cuda.grid(1)
+    if i < cells.shape[0]:
+        c = cells[i]
+        order[starts[c] + cuda.atomic.add(cursors, c, 1)] = i
+
+
+@cuda.jit
+def _sort_cells(starts, order):
+    """Each cell's atoms in index order (insertion sort, one thread per cell): the scatter's
+    atomic order varies from run to run, the lists and sums then do not."""
+    c = cuda.grid(1)
+    if c < starts.shape[0] - 1:
+        for a in range(starts[c] + 1, starts[c + 1]):
+            atom = order[a]
+            b = a - 1
+            while b >= starts[c] and order[b] > atom:
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = atom
+
+
+@cuda.jit
+def _search_cells(
+    positions, lengths, inverse, tilt, n_cells, cells, starts, order, radius2, neighbors, counts
+):
+    """Atom i's partners within sqrt(radius2) from the 27 cells around its own (at least
+    three cells along each axis: no cell is visited twice), in cell then index order.
+    ``counts[i]`` is the number found, also past the list's room (the host then regrows)."""
+    i = cuda.grid(1)
+    if i >= positions.shape[0]:
+        return
+    room = neighbors.shape[0]
+    code = cells[i]
+    cz = code % n_cells[2]
+    cy = (code // n_cells[2]) % n_cells[1]
+    cx = code // (n_cells[2] * n_cells[1])
+    m = 0
+    for ox in range(-1, 2):
+        x = (cx + ox) % n_cells[0]
+        for oy in range(-1, 2):
+            y = (cy + oy) % n_cells[1]
+            for oz in range(-1, 2):
+                c = (x * n_cells[1] + y) * n_cells[2] + (cz + oz) % n_cells[2]
+                for a in range(starts[c], starts[c + 1]):
+                    j = order[a]
+                    if j == i:
+                        continue
+                    dx, dy, dz = _min_image(
+                        positions[i, 0] - positions[j, 0],
+                        positions[i, 1] - positions[j, 1],
+                        positions[i, 2] - positions[j, 2],
+                        lengths,
+                        inverse,
+                        tilt,
+                    )
+                    if dx * dx + dy * dy + dz * dz < radius2:
+                        if m < room:
+                            neighbors[m, i] = j
+                        m += 1
+    counts[i] = m
+
+
+@cuda.jit
+def _search_all(positions, lengths, inverse, tilt, radius2, neighbors, counts):
+    """Atom i's partners within sqrt(radius2) among all atoms, in index order (small or open
+    cells, tilted cells: the O(N^2) search, also the reference of the cell search)."""
+    i = cuda.grid(1)
+    if i >= positions.shape[0]:
+        return
+    room = neighbors.shape[0]
+    m = 0
+    for j in range(positions.shape[0]):
+        if j == i:
+            continue
+        dx, dy, dz = _min_image(
+            positions[i, 0] - positions[j, 0],
+            positions[i, 1] - positions[j, 1],
+            positions[i, 2] - positions[j, 2],
+            lengths,
+            inverse,
+            tilt,
+        )
+        if dx * dx + dy * dy + dz * dz < radius2:
+            if m < room:
+                neighbors[m, i] = j
+            m += 1
+    counts[i] = m
+
+
+@cuda.jit
+def _remember(positions, reference, counts, room, flag):
+    """Copy the positions the list was built at; ``flag[0] = 1`` if a row overflowed."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        for a in range(3):
+            reference[i, a] = positions[i, a]
+        if counts[i] > room:
+            flag[0] = 1
+
+
+# ---------------------------------------------------------------- pair forces
+def pair_kernel(pair, real):
+    """The force kernel of one pair potential: ``pair(r2, k, table, mode, data)`` is the
+    frame's function (``potentials.device_terms.pair_function``), ``real`` the type r^2 is
+    rounded to before it (float32 in mixed precision; the forces and sums stay double).
+
+    One thread per atom over the full list: row i's force, half of each pair's energy and
+    virial to atom i; ``accumulate`` adds to what an earlier potential's kernel wrote.
+    """
+    device_pair = device_function(pair)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        types,
+        n_types,
+        neighbors,
+        counts,
+        lengths,
+        inverse,
+        tilt,
+        table,
+        mode,
+        data,
+        accumulate,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        xi = positions[i, 0]
+        yi = positions[i, 1]
+        zi = positions[i, 2]
+        row = types[i] * n_types
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for k in range(counts[i]):
+            j = neighbors[k, i]
+            dx, dy, dz = _min_image(
+                xi - positions[j, 0],
+                yi - positions[j, 1],
+                zi - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            r2 = real(dx * dx + dy * dy + dz * dz)
+            u, fr = device_pair(r2, row + types[j], table, mode, data)
+            ex = fr * dx
+            ey = fr * dy
+            ez = fr * dz
+            fx += ex
+            fy += ey
+            fz += ez
+            u_sum += u
+            wxx += ex * dx
+            wyy += ey * dy
+            wzz += ez * dz
+            wyz += ez * dy
+            wxz += ez * dx
+            wxy += ey * dx
+        if accumulate:
+            forces[i, 0] += fx
+            forces[i, 1] += fy
+            forces[i, 2] += fz
+            observables[i, 0] += 0.5 * u_sum
+            observables[i, 1] += 0.5 * wxx
+            observables[i, 2] += 0.5 * wyy
+            observables[i, 3] += 0.5 * wzz
+            observables[i, 4] += 0.5 * wyz
+            observables[i, 5] += 0.5 * wxz
+            observables[i, 6] += 0.5 * wxy
+        else:
+            forces[i, 0] = fx
+            forces[i, 1] = fy
+            forces[i, 2] = fz
+            observables[i, 0] = 0.5 * u_sum
+            observables[i, 1] = 0.5 * wxx
+            observables[i, 2] = 0.5 * wyy
+            observables[i, 3] = 0.5 * wzz
+            observables[i, 4] = 0.5 * wyz
+            observables[i, 5] = 0.5 * wxz
+            observables[i, 6] = 0.5 * wxy
+
+    return kernel
+
+
+# ---------------------------------------------------------------- integrator passes
+@cuda.jit
+def _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt):
+    """v += kick_dt f/m, then x += drift_dt v (``integrators._kernels.kick_drift``'s twin)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        scale = kick_dt * inverse_masses[i]
+        for a in range(3):
+            v = velocities[i, a] + scale * forces[i, a]
+            velocities[i, a] = v
+            positions[i, a] += drift_dt * v
+
+
+@cuda.jit
+def _kick(velocities, forces, inverse_masses, kick_dt):
+    """v += kick_dt f/m (``integrators._kernels.kick``'s twin)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        scale = kick_dt * inverse_masses[i]
+        for a in range(3):
+            velocities[i, a] += scale * forces[i, a]
+
+
+@cuda.jit
+def _synchronise(velocities, half_velocities, forces, inverse_masses, half_dt):
+    """v = v_half + half_dt f/m (the leapfrog's on-step velocities)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        scale = half_dt * inverse_masses[i]
+        for a in range(3):
+            velocities[i, a] = half_velocities[i, a] + scale * forces[i, a]
+
+
+# ---------------------------------------------------------------- sums
+@cuda.jit
+def _sum_observables(observables, velocities, masses, totals):
+    """``totals[c]`` = the sum over atoms of observable column c, the kinetic energy (column
+    7) computed here; one block of SUM_THREADS threads, each a strided share, then a tree:
+    the same order on every run."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, N_OBSERVABLES), dtype=np.float64)
+    for c in range(N_OBSERVABLES):
+        shared[t, c] = 0.0
+    for i in range(t, observables.shape[0], SUM_THREADS):
+        for c in range(N_OBSERVABLES - 1):
+            shared[t, c] += observables[i, c]
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t, N_OBSERVABLES - 1] += 0.5 * masses[i] * v2
+    cuda.syncthreads()
+    width = SUM_THREADS // 2
+    while width > 0:
+        if t < width:
+            for c in range(N_OBSERVABLES):
+                shared[t, c] += shared[t + width, c]
+        cuda.syncthreads()
+        width //= 2
+    if t == 0:
+        for c in range(N_OBSERVABLES):
+            totals[c] = shared[0, c]
+
+
+__all__ = ["BLOCK", "N_OBSERVABLES", "device_function", "launch", "pair_kernel"]

@@ -1,0 +1,274 @@
+"""The device state and one time step on it: what ``Simulation(device="cuda")`` runs.
+
+:class:`DeviceEngine` holds positions, velocities, forces, masses, types and the
+neighbour list on the GPU for a whole :meth:`Simulation.run <md.simulation.Simulation.run>`
+call: :meth:`start` uploads the host State (which a minimisation, a restored checkpoint or
+the user may have changed between runs), :meth:`step` advances one step with nothing
+crossing to the host but the list's rebuild flag (four bytes), :meth:`pull` copies
+positions and velocities back for the observers (output, thermo, checkpoints), and
+:meth:`result` gives the forces, energy and virial summed on the device.
+
+Importing this module imports ``numba.cuda``; ``md.cuda.device_engine`` does so only for a
+run that asks for the device.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numba import cuda
+
+from md.box import periodic_lengths, periodic_tilt
+from md.cuda._kernels import (
+    N_OBSERVABLES,
+    SUM_THREADS,
+    _cell_of,
+    _cell_starts,
+    _kick,
+    _kick_drift,
+    _moved,
+    _remember,
+    _scatter,
+    _search_all,
+    _search_cells,
+    _sort_cells,
+    _sum_observables,
+    _synchronise,
+    launch,
+    pair_kernel,
+)
+from md.errors import NonFiniteError
+from potentials.base import ForceResult
+from potentials.device_terms import pair_function
+
+logger = logging.getLogger(__name__)
+
+#: Partners of room per atom in a first list (regrown to the largest row when one overflows).
+FIRST_ROOM = 64
+
+
+class DeviceEngine:
+    """A force field's pair potentials and an integrator's step on the GPU.
+
+    Parameters
+    ----------
+    state : State
+        The system (its shape, types and box are fixed for the engine's life).
+    forcefield : ForceField
+        Its pair potentials, precision, cutoff and skin (checked by ``md.cuda.refusal``).
+    integrator : VelocityVerlet or Leapfrog
+        The step to run (its ``dt``; a leapfrog's half-step velocities are kept on the
+        device and handed back with :meth:`pull` through its ``set_state``).
+
+    Attributes
+    ----------
+    n_builds : int
+        Neighbour-list builds on the device.
+    """
+
+    def __init__(self, state, forcefield, integrator) -> None:
+        self.forcefield = forcefield
+        self.integrator = integrator
+        self.kind = type(integrator).__name__
+        nl = forcefield.neighbor_list
+        self.radius = nl.cutoff + nl.skin
+        self.half_skin = 0.5 * nl.skin
+        n_types = max(state.n_types, 1)
+        self.n_types = n_types
+        self.pairs = [
+            pair_function(p, n_types, forcefield.precision) for p in forcefield.potentials
+        ]
+        self.kernels = None  # compiled on the first start
+        self.active = False
+        self.n_builds = 0
+        self.room = FIRST_ROOM
+        self.arrays: dict = {}
+
+    # ------------------------------------------------------------ the run's life
+    def start(self, state) -> None:
+        """Upload ``state`` and compute its forces on the device (start of a run)."""
+        if self.kernels is None:
+            self.kernels = [pair_kernel(pair, real) for pair, _, _, _, real in self.pairs]
+        n = state.n_atoms
+        lengths, inverse = periodic_lengths(state.box, state.pbc)
+        tilt = periodic_tilt(state.tilt, state.pbc)
+        types = np.zeros(n, np.int32) if state.types is None else state.types.astype(np.int32)
+        a = {
+            "positions": cuda.to_device(np.ascontiguousarray(state.positions)),
+            "velocities": cuda.to_device(np.ascontiguousarray(state.velocities)),
+            "forces": cuda.device_array((n, 3)),
+            "inverse_masses": cuda.to_device(1.0 / state.masses),
+            "masses": cuda.to_device(np.ascontiguousarray(state.masses)),
+            "types": cuda.to_device(types),
+            "lengths": cuda.to_device(lengths),
+            "inverse": cuda.to_device(inverse),
+            "tilt": cuda.to_device(tilt),
+            "reference": cuda.device_array((n, 3)),
+            "counts": cuda.device_array(n, np.int32),
+            "neighbors": cuda.device_array((self.room, n), np.int32),
+            "flag": cuda.to_device(np.zeros(1, np.int32)),
+            "observables": cuda.device_array((n, N_OBSERVABLES)),
+            "totals": cuda.device_array(N_OBSERVABLES),
+            "tables": [cuda.to_device(table) for _, table, _, _, _ in self.pairs],
+            "data": [cuda.to_device(data) for _, _, _, data, _ in self.pairs],
+        }
+        self.n_atoms = n
+        self.use_cells, self.n_cells = _cell_grid(state, self.radius)
+        if self.use_cells:
+            n_cells = int(np.prod(self.n_cells))
+            a["n_cells"] = cuda.to_device(np.asarray(self.n_cells, np.int64))
+            a["box"] = cuda.to_device(np.ascontiguousarray(state.box, np.float64))
+            a["cells"] = cuda.device_array(n, np.int32)
+            a["cell_counts"] = cuda.device_array(n_cells, np.int32)
+            a["cell_starts"] = cuda.device_array(n_cells + 1, np.int32)
+            a["cursors"] = cuda.device_array(n_cells, np.int32)
+            a["order"] = cuda.device_array(n, np.int32)
+        if self.kind == "Leapfrog":
+            saved = self.integrator.get_state()["half_velocities"]
+            half = state.velocities if saved is None else saved
+            a["half"] = cuda.to_device(np.ascontiguousarray(half))
+            self.restarting = saved is None
+        self.arrays = a
+        self.active = True
+        self._build()
+        self._forces()
+
+    def finish(self, state) -> None:
+        """Copy the state back (end of a run); later calls compute on the CPU again."""
+        if self.active:
+            self.pull(state)
+        self.active = False
+        self.arrays = {}
+
+    def pull(self, state) -> None:
+        """Copy positions and velocities (and a leapfrog's half-step velocities) into
+        ``state``'s arrays; NonFiniteError if they are no longer finite."""
+        a = self.arrays
+        a["positions"].copy_to_host(state.positions)
+        a["velocities"].copy_to_host(state.velocities)
+        if self.kind == "Leapfrog" and not self.restarting:
+            saved = self.integrator.get_state()
+            self.integrator.set_state(
+                {"half_velocities": a["half"].copy_to_host(), "statistics": saved["statistics"]}
+            )
+        if not (np.all(np.isfinite(state.positions)) and np.all(np.isfinite(state.velocities))):
+            raise NonFiniteError("positions or velocities became NaN or infinite on the device")
+
+    # ------------------------------------------------------------ one step
+    def step(self, state) -> None:
+        """One step of the integrator on the device; advances ``state.step`` and ``time``."""
+        a, dt = self.arrays, self.integrator.dt
+        grid = launch(self.n_atoms)
+        args = (a["positions"], a["velocities"], a["forces"], a["inverse_masses"])
+        if self.kind == "Leapfrog":
+            kick_dt = 0.5 * dt if self.restarting else dt
+            half = a["half"]
+            _kick_drift[grid](a["positions"], half, a["forces"], a["inverse_masses"], kick_dt, dt)
+            self._update()
+            self._forces()
+            _synchronise[grid](a["velocities"], half, a["forces"], a["inverse_masses"], 0.5 * dt)
+            if self.restarting:
+                self.integrator.statistics["restarts"] += 1
+            self.restarting = False
+            self.integrator.statistics["steps"] += 1
+        else:
+            _kick_drift[grid](*args, 0.5 * dt, dt)
+            self._update()
+            self._forces()
+            _kick[grid](a["velocities"], a["forces"], a["inverse_masses"], 0.5 * dt)
+        self.integrator.end_step(state)
+
+    def result(self) -> ForceResult:
+        """Energy, forces and virial of the device's configuration (summed on the device)."""
+        totals = self._totals()
+        xx, yy, zz, yz, xz, xy = totals[1:7]
+        virial = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        return ForceResult(
+            energy=float(totals[0]), forces=self.arrays["forces"].copy_to_host(), virial=virial
+        )
+
+    def kinetic_energy(self) -> float:
+        return float(self._totals()[7])
+
+    # ------------------------------------------------------------ helpers
+    def _totals(self) -> np.ndarray:
+        a = self.arrays
+        _sum_observables[1, SUM_THREADS](
+            a["observables"], a["velocities"], a["masses"], a["totals"]
+        )
+        return a["totals"].copy_to_host()
+
+    def _update(self) -> None:
+        """Rebuild the list if an atom moved more than half the skin (decided on the device:
+        only the flag crosses)."""
+        a = self.arrays
+        flag = a["flag"]
+        _moved[launch(self.n_atoms)](a["positions"], a["reference"], self.half_skin**2, flag)
+        if flag.copy_to_host()[0]:
+            self._build()
+
+    def _build(self) -> None:
+        a = self.arrays
+        n, grid = self.n_atoms, launch(self.n_atoms)
+        while True:
+            a["flag"].copy_to_device(np.zeros(1, np.int32))
+            geometry = (a["positions"], a["lengths"], a["inverse"], a["tilt"])
+            if self.use_cells:
+                counts = a["cell_counts"]
+                counts.copy_to_device(np.zeros(counts.shape[0], np.int32))
+                _cell_of[grid](a["positions"], a["box"], a["n_cells"], a["cells"], counts)
+                _cell_starts[1, 1](counts, a["cell_starts"], a["cursors"])
+                _scatter[grid](a["cells"], a["cell_starts"], a["cursors"], a["order"])
+                _sort_cells[launch(counts.shape[0])](a["cell_starts"], a["order"])
+                _search_cells[grid](
+                    *geometry,
+                    a["n_cells"],
+                    a["cells"],
+                    a["cell_starts"],
+                    a["order"],
+                    self.radius**2,
+                    a["neighbors"],
+                    a["counts"],
+                )
+            else:
+                _search_all[grid](*geometry, self.radius**2, a["neighbors"], a["counts"])
+            _remember[grid](a["positions"], a["reference"], a["counts"], self.room, a["flag"])
+            self.n_builds += 1
+            if not a["flag"].copy_to_host()[0]:
+                return
+            self.room = int(a["counts"].copy_to_host().max()) + 8
+            logger.debug("device neighbour list: room regrown to %d partners", self.room)
+            a["neighbors"] = cuda.device_array((self.room, n), np.int32)
+
+    def _forces(self) -> None:
+        a = self.arrays
+        grid = launch(self.n_atoms)
+        for index, (kernel, (_, _, mode, _, _)) in enumerate(
+            zip(self.kernels, self.pairs, strict=True)
+        ):
+            kernel[grid](
+                a["positions"],
+                a["types"],
+                self.n_types,
+                a["neighbors"],
+                a["counts"],
+                a["lengths"],
+                a["inverse"],
+                a["tilt"],
+                a["tables"][index],
+                mode,
+                a["data"][index],
+                index > 0,
+                a["forces"],
+                a["observables"],
+            )
+
+
+def _cell_grid(state, radius: float) -> tuple[bool, tuple[int, int, int]]:
+    """Whether the cell search serves (an orthorhombic cell, periodic along every axis, at
+    least three cells of ``radius`` along each), and the cells along each axis."""
+    if not (np.all(state.pbc) and np.all(state.tilt == 0.0)):
+        return False, (1, 1, 1)
+    n_cells = tuple(int(length // radius) for length in state.box)
+    return min(n_cells) >= 3, n_cells

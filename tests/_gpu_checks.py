@@ -1,0 +1,203 @@
+"""The GPU path against the CPU path, run as a script: ``python3 tests/_gpu_checks.py OUT``.
+
+``tests/test_gpu.py`` runs it in a subprocess, on numba's CUDA simulator
+(``NUMBA_ENABLE_CUDASIM=1``, which numba reads when ``numba.cuda`` is first imported, so
+not in the test process) and, for the tests marked ``cuda``, on a real GPU; it writes the
+measured differences as JSON to OUT for the tests to judge. Systems are tiny (the
+simulator runs each GPU thread as a Python thread).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import sys
+from pathlib import Path
+
+
+def _states():
+    """Two small periodic LJ systems: 108 atoms in 3 x 3 x 3 cells (the cell search), and
+    32 atoms (perturbed) of two types (the O(N^2) search)."""
+    import numpy as np
+
+    from md.build import lattice, maxwell_boltzmann
+
+    cells = maxwell_boltzmann(lattice("fcc", 3, density=0.5), 1.0, seed=3)
+    small = maxwell_boltzmann(lattice("fcc", 2, density=0.9), 1.5, seed=4)
+    rng = np.random.default_rng(5)
+    small.positions += rng.normal(0.0, 0.05, small.positions.shape)
+    small.types = (np.arange(small.n_atoms) % 2).astype(np.int32)
+    small.type_names = ["A", "B"]
+    return cells, small
+
+
+def _relative(a, b) -> float:
+    import numpy as np
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+def check_lists(results: dict) -> None:
+    """The device list against the O(N^2) pairs within the list radius, both searches."""
+    import numpy as np
+
+    from md.cuda.engine import DeviceEngine
+    from md.forcefield import ForceField
+    from potentials import LennardJones
+
+    for name, state, cutoff in zip(("cells", "all_pairs"), _states(), (1.7, 1.3), strict=True):
+        forcefield = ForceField([LennardJones(cutoff=cutoff)], skin=0.3)
+        engine = DeviceEngine(state, forcefield, None)
+        engine.start(state)
+        counts = engine.arrays["counts"].copy_to_host()
+        neighbors = engine.arrays["neighbors"].copy_to_host()
+        found = {(i, int(neighbors[k, i])) for i in range(state.n_atoms) for k in range(counts[i])}
+        d = state.positions[:, None, :] - state.positions[None, :, :]
+        d -= state.box * np.rint(d / state.box)
+        r2 = np.sum(d * d, axis=2)
+        n = state.n_atoms
+        radius2 = (cutoff + 0.3) ** 2
+        expected = {(i, j) for i in range(n) for j in range(n) if i != j and r2[i, j] < radius2}
+        results[f"list_{name}_used_cells"] = bool(engine.use_cells)
+        results[f"list_{name}_missing"] = len(expected - found)
+        results[f"list_{name}_extra"] = len(found - expected)
+        results[f"list_{name}_pairs"] = len(expected)
+
+
+def check_forces(results: dict) -> None:
+    """Device forces, energy and virial against the CPU path's, every cutoff mode, two
+    terms, two types, double and mixed precision."""
+    from md.cuda.engine import DeviceEngine
+    from md.forcefield import ForceField
+    from potentials import LennardJones, Morse
+
+    _, small = _states()
+    cases = {
+        "lj_shift": lambda: [LennardJones(cutoff=1.3)],
+        "lj_smooth_2types": lambda: [
+            LennardJones(
+                cutoff=1.3,
+                cutoff_mode="smooth",
+                pairs={(0, 1): {"epsilon": 0.5, "sigma": 0.9}},
+            )
+        ],
+        "morse_none_plus_lj": lambda: [
+            Morse(d0=0.3, alpha=2.0, r0=1.0, cutoff=1.25, cutoff_mode="none"),
+            LennardJones(cutoff=1.1),
+        ],
+    }
+    for precision in ("double", "mixed"):
+        for name, potentials in cases.items():
+            forcefield = ForceField(potentials(), skin=0.3, precision=precision)
+            cpu = forcefield.compute(small)
+            engine = DeviceEngine(small, ForceField(potentials(), 0.3, precision), None)
+            engine.start(small)
+            gpu = engine.result()
+            key = f"forces_{precision}_{name}"
+            results[key + "_force"] = _relative(gpu.forces, cpu.forces)
+            results[key + "_energy"] = abs(gpu.energy - cpu.energy) / abs(cpu.energy)
+            results[key + "_virial"] = _relative(gpu.virial, cpu.virial)
+
+
+def check_runs(results: dict) -> None:
+    """Velocity Verlet and leapfrog runs, and their thermo, against the CPU's."""
+    from integrators import Leapfrog, VelocityVerlet
+    from md.simulation import Simulation
+    from potentials import LennardJones
+
+    for name, integrator, index, steps in (
+        ("verlet", VelocityVerlet, 0, 100),
+        ("leapfrog", Leapfrog, 1, 60),
+    ):
+        states = [_states()[index] for _ in range(2)]
+        cutoff = (1.7, 1.3)[index]
+        runs = [
+            Simulation(s, [LennardJones(cutoff=cutoff)], integrator(dt=0.005), device=device)
+            for s, device in zip(states, ("cpu", "cuda"), strict=True)
+        ]
+        seen = []
+        runs[1].attach(lambda sim, seen=seen: seen.append(sim.thermo()), interval=20)
+        for sim in runs:
+            sim.run(steps // 2)
+            sim.run(steps - steps // 2)  # two runs: the device state is uploaded again
+        cpu, gpu = states
+        results[f"run_{name}_positions"] = _relative(gpu.positions, cpu.positions)
+        results[f"run_{name}_velocities"] = _relative(gpu.velocities, cpu.velocities)
+        results[f"run_{name}_steps"] = [gpu.step, cpu.step, gpu.time == cpu.time]
+        thermo_cpu, thermo_gpu = runs[0].thermo(), seen[-1]
+        results[f"run_{name}_thermo"] = max(
+            abs(thermo_gpu[k] - thermo_cpu[k]) / abs(thermo_cpu[k])
+            for k in ("potential_energy", "kinetic_energy", "pressure")
+        )
+        results[f"run_{name}_thermo_step"] = int(thermo_gpu["step"])
+        results[f"run_{name}_builds"] = runs[1]._engine.n_builds
+
+
+def check_checkpoint(results: dict, folder: Path) -> None:
+    """``md run --device cuda`` (on the simulator where the environment asks for it) for 30
+    steps, resumed on the CPU to 60, against 60 on the
+    CPU; a leapfrog run, so the half-step velocities go through the checkpoint."""
+    import h5py
+    import numpy as np
+
+    from md.cli import main
+
+    text = "\n".join(
+        [
+            'units = "lj"',
+            "seed = 2",
+            "[system]",
+            'lattice = "fcc"\ncells = 2\ndensity = 0.9\ntemperature = 1.2',
+            "[[potentials]]",
+            'type = "lj"\ncutoff = 1.3',
+            "[integrator]",
+            'type = "leapfrog"\ndt = 0.005',
+            "[run]",
+            "steps = 60\nthermo_every = 10\nskin = 0.3",
+            "[output]",
+            "every = 10\nvelocities = true\ncheckpoint_every = 10",
+        ]
+    )
+    config = folder / "run.toml"
+    config.write_text(text + "\n")
+    command = ["run", str(config), "-q", "--no-progress", "-o"]
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        codes = [main([*command, str(folder / "gpu.h5"), "--steps", "30", "--device", "cuda"])]
+    results["checkpoint_said_gpu"] = "on the GPU" in printed.getvalue()
+    codes += [
+        main([*command, str(folder / "gpu.h5"), "--resume", "--device", "cpu"]),
+        main([*command, str(folder / "cpu.h5")]),
+    ]
+    results["checkpoint_codes"] = codes
+    with h5py.File(folder / "gpu.h5") as gpu, h5py.File(folder / "cpu.h5") as cpu:
+        particles = "particles/trajectory"
+        results["checkpoint_frames"] = [
+            len(gpu[f"{particles}/position/step"]),
+            len(cpu[f"{particles}/position/step"]),
+        ]
+        results["checkpoint_positions"] = _relative(
+            gpu[f"{particles}/position/value"][...], cpu[f"{particles}/position/value"][...]
+        )
+        results["checkpoint_velocities"] = _relative(
+            gpu[f"{particles}/velocity/value"][...], cpu[f"{particles}/velocity/value"][...]
+        )
+        energies = [f["observables/potential_energy/value"][...] for f in (gpu, cpu)]
+        results["checkpoint_energy"] = float(np.max(np.abs(energies[0] - energies[1])))
+
+
+def main(argv: list[str]) -> int:
+    out = Path(argv[0])
+    results: dict = {}
+    check_lists(results)
+    check_forces(results)
+    check_runs(results)
+    check_checkpoint(results, out.parent)
+    out.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
