@@ -9,47 +9,65 @@ written once. :func:`retarget` rebuilds a function with every compiled function 
 the way down; :func:`pair_function` gives a pair potential's entry point with what it
 reads (the table, the cutoff mode, the data array).
 
-What is followed: functions reached as globals (``pair`` -> ``_terms`` -> the term's
-``_pair_energy`` adapter -> the term). A helper reached as a module attribute
-(``pair_math.exp``) is left to the target compiler as it is.
+What is followed: functions reached as globals or closures (``pair`` -> ``_terms`` -> the
+term's ``_pair_energy`` adapter -> the term -> ``pair_math.exp``), numba's and plain
+Python ones alike (a plain one, such as ``pair_math``'s CPU overloads, by its Python body).
+A helper reached as a module attribute (``module.helper``) is left to the target compiler.
 """
 
 from __future__ import annotations
 
+import dis
+import functools
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
 from potentials._pair_codegen import kernels_for
 from potentials._pair_frame import CUTOFF_MODES, PairPotential
 
-__all__ = ["pair_function", "retarget"]
+__all__ = ["compilable", "pair_function", "retarget"]
 
 
-def retarget(function: Callable, compile: Callable, _done: dict | None = None) -> Callable:
+def compilable(potential) -> bool:
+    """Whether :func:`pair_function` serves ``potential`` (a pair potential of the frame)."""
+    return isinstance(potential, PairPotential)
+
+
+def retarget(
+    function: Callable,
+    compile: Callable,
+    substitutes: Mapping[str, object] | None = None,
+    _done: dict | None = None,
+) -> Callable:
     """``compile`` applied to ``function``'s plain Python source, its callees retargeted too.
 
     ``function`` is a numba dispatcher or a plain function; every global it reads that is a
     dispatcher (has ``py_func``) is replaced, in a copy of its globals, by that callee
-    retargeted. Returns ``compile(copy)``. Each callee is compiled once per call tree.
+    retargeted. ``substitutes`` maps numpy function names to what the target offers instead
+    (the CUDA target has no ``np.rint``: libdevice's ``rint``, the same rounding): a global
+    bound to numpy is then read through a copy of the module with those names replaced.
+    Returns ``compile(copy)``. Each callee is compiled once per call tree.
     """
     done = {} if _done is None else _done
     plain = getattr(function, "py_func", function)
     if plain in done:
         return done[plain]
     namespace = dict(plain.__globals__)
-    for name in plain.__code__.co_names:
+    for name in _global_names(plain.__code__):
         value = namespace.get(name)
-        if value is not None and hasattr(value, "py_func") and not isinstance(value, type):
-            namespace[name] = retarget(value, compile, done)
+        if value is np and substitutes:
+            namespace[name] = _numpy_with(tuple(sorted(substitutes.items())))
+        elif _callee(value):
+            namespace[name] = retarget(value, compile, substitutes, done)
     closure = plain.__closure__
     if closure:
         cells = []
         for cell in closure:
             value = cell.cell_contents
-            if hasattr(value, "py_func") and not isinstance(value, type):
-                value = retarget(value, compile, done)
+            if _callee(value):
+                value = retarget(value, compile, substitutes, done)
             cells.append(types.CellType(value))
         closure = tuple(cells)
     copy = types.FunctionType(
@@ -58,6 +76,36 @@ def retarget(function: Callable, compile: Callable, _done: dict | None = None) -
     copy.__qualname__ = plain.__qualname__
     done[plain] = compiled = compile(copy)
     return compiled
+
+
+def _global_names(code) -> set[str]:
+    """The names ``code`` reads as globals (``co_names`` also holds attribute names), in
+    nested code objects (comprehensions) too."""
+    names = {i.argval for i in dis.get_instructions(code) if i.opname == "LOAD_GLOBAL"}
+    for constant in code.co_consts:
+        if isinstance(constant, types.CodeType):
+            names |= _global_names(constant)
+    return names
+
+
+def _callee(value) -> bool:
+    """Whether ``retarget`` follows ``value``: a numba dispatcher, or a plain function of
+    ours (``pair_math.exp``, whose compiled form is a CPU overload: on another target its
+    Python body, ``math.exp``, is compiled instead)."""
+    if hasattr(value, "py_func") and not isinstance(value, type):
+        return True
+    return isinstance(value, types.FunctionType) and not value.__module__.startswith(
+        ("numba", "numpy", "math")
+    )
+
+
+@functools.cache
+def _numpy_with(substitutes: tuple) -> types.ModuleType:
+    """A copy of the numpy module with ``substitutes`` ((name, value) pairs) set in it."""
+    module = types.ModuleType("numpy")
+    module.__dict__.update(np.__dict__)
+    module.__dict__.update(dict(substitutes))
+    return module
 
 
 def pair_function(potential: PairPotential, n_types: int, precision: str = "double"):

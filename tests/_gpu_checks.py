@@ -1,4 +1,5 @@
-"""The GPU path against the CPU path, run as a script: ``python3 tests/_gpu_checks.py OUT``.
+"""The GPU path against the CPU path, run as a script: ``python3 tests/_gpu_checks.py OUT``
+(``OUT --ptx``: every kernel compiled for the GPU target instead, without a GPU).
 
 ``tests/test_gpu.py`` runs it in a subprocess, on numba's CUDA simulator
 (``NUMBA_ENABLE_CUDASIM=1``, which numba reads when ``numba.cuda`` is first imported, so
@@ -13,6 +14,7 @@ import contextlib
 import io
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 
@@ -188,9 +190,86 @@ def check_checkpoint(results: dict, folder: Path) -> None:
         results["checkpoint_energy"] = float(np.max(np.abs(energies[0] - energies[1])))
 
 
+def check_ptx(results: dict) -> None:
+    """Every kernel compiled to PTX for the H100/H200 (sm_90) without a GPU, as the CUDA
+    target types it (the simulator runs the Python and misses what that target lacks,
+    such as ``np.rint``): the generic kernels, and the force kernel of every built-in pair
+    style in double and mixed precision. Needs NVVM (``numba-cuda[cu12]``)."""
+    import numba
+    import numpy as np
+    from numba import cuda
+
+    from md.cuda import _kernels as kernels
+    from potentials import Buckingham, LennardJones, Mie, Morse, Soft, Table, Yukawa
+    from potentials.device_terms import pair_function
+
+    try:
+        from numba.cuda.cudadrv.nvvm import NVVM
+
+        NVVM()
+    except Exception as error:  # noqa: BLE001 (no NVVM: nothing to compile with)
+        results["ptx_nvvm"] = str(error)[:200]
+        return
+    results["ptx_nvvm"] = True
+    f2, f1 = np.zeros((4, 3)), np.zeros(4)
+    i1, i2, l1 = np.zeros(4, np.int32), np.zeros((4, 4), np.int32), np.zeros(3, np.int64)
+    observables = np.zeros((4, kernels.N_OBSERVABLES))
+    generic = {
+        "_moved": (f2, f2, 1.0, i1),
+        "_cell_of": (f2, f1, l1, i1, i1),
+        "_cell_starts": (i1, i1, i1),
+        "_scatter": (i1, i1, i1, i1),
+        "_sort_cells": (i1, i1),
+        "_search_cells": (f2, f1, f1, f1, l1, i1, i1, i1, 1.0, i2, i1),
+        "_search_all": (f2, f1, f1, f1, 1.0, i2, i1),
+        "_remember": (f2, f2, i1, 4, i1),
+        "_kick_drift": (f2, f2, f2, f1, 1.0, 1.0),
+        "_kick": (f2, f2, f1, 1.0),
+        "_synchronise": (f2, f2, f2, f1, 1.0),
+        "_sum_observables": (observables, f2, f1, np.zeros(kernels.N_OBSERVABLES)),
+    }
+    compiled, failed = [], {}
+
+    def compile_ptx(name, kernel, arguments):
+        signature = tuple(numba.typeof(a) for a in arguments)
+        try:
+            cuda.compile_ptx(kernel.py_func, signature, cc=(9, 0))
+            compiled.append(name)
+        except Exception as error:  # noqa: BLE001 (recorded for the test to show)
+            failed[name] = f"{type(error).__name__}: {str(error)[:300]}"
+
+    for name, arguments in generic.items():
+        compile_ptx(name, getattr(kernels, name), arguments)
+    r = np.linspace(0.8, 2.6, 50)
+    styles = {
+        "lj": LennardJones(cutoff=2.5),
+        "morse": Morse(cutoff=2.5),
+        "mie": Mie(cutoff=2.5),
+        "buckingham": Buckingham(a=1000.0, rho=0.2, c=1.0, cutoff=2.5),
+        "yukawa": Yukawa(cutoff=2.5),
+        "soft": Soft(cutoff=1.0),
+    }
+    with tempfile.TemporaryDirectory() as folder:  # a LAMMPS table of r^-12
+        path = Path(folder) / "wall.table"
+        rows = [f"{i + 1} {x:.17g} {x**-12:.17g} {12 * x**-13:.17g}" for i, x in enumerate(r)]
+        path.write_text(f"WALL\nN {len(r)} R 0.8 2.6\n\n" + "\n".join(rows) + "\n")
+        styles["table"] = Table(path, "WALL", cutoff=2.5)
+    for precision in ("double", "mixed"):
+        for name, potential in styles.items():
+            pair, table, mode, data, real = pair_function(potential, 1, precision)
+            arguments = (f2, i1, 1, i2, i1, f1, f1, f1, table, mode, data, True, f2, observables)
+            compile_ptx(f"pair_{name}_{precision}", kernels.pair_kernel(pair, real), arguments)
+    results["ptx_compiled"] = compiled
+    results["ptx_failed"] = failed
+
+
 def main(argv: list[str]) -> int:
     out = Path(argv[0])
     results: dict = {}
+    if argv[1:] == ["--ptx"]:
+        check_ptx(results)
+        out.write_text(json.dumps(results, indent=1))
+        return 0
     check_lists(results)
     check_forces(results)
     check_runs(results)

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 HAVE_NUMBA_CUDA = importlib.util.find_spec("numba_cuda") is not None
 
 
-def _checks(tmp_path_factory, simulator: bool) -> dict:
+def _checks(tmp_path_factory, simulator: bool, *options: str) -> dict:
     folder = tmp_path_factory.mktemp("gpu_sim" if simulator else "gpu")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     env.pop("NUMBA_ENABLE_CUDASIM", None)
@@ -40,7 +40,7 @@ def _checks(tmp_path_factory, simulator: bool) -> dict:
         env["NUMBA_ENABLE_CUDASIM"] = "1"
     out = folder / "results.json"
     done = subprocess.run(
-        [sys.executable, str(ROOT / "tests" / "_gpu_checks.py"), str(out)],
+        [sys.executable, str(ROOT / "tests" / "_gpu_checks.py"), str(out), *options],
         env=env,
         cwd=folder,
         capture_output=True,
@@ -108,6 +108,18 @@ def test_device_kernels_and_runs_match_the_cpu_on_the_simulator(simulated):
 @pytest.mark.cuda
 def test_device_kernels_and_runs_match_the_cpu_on_a_gpu(on_gpu):
     _judge(on_gpu)
+
+
+@pytest.mark.skipif(not HAVE_NUMBA_CUDA, reason="numba-cuda not installed")
+def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
+    """The kernels typed and compiled by the CUDA target itself (PTX for sm_90), which the
+    simulator does not do: it runs the Python (an ``np.rint`` the target lacks passed
+    there). Needs NVVM, which ``numba-cuda[cu12]`` brings; skipped without it."""
+    results = _checks(tmp_path_factory, False, "--ptx")
+    if results["ptx_nvvm"] is not True:
+        pytest.skip(f"no NVVM to compile with: {results['ptx_nvvm']}")
+    assert results["ptx_failed"] == {}
+    assert len(results["ptx_compiled"]) == 12 + 2 * 7  # the generic kernels, 7 pair styles
 
 
 # ------------------------------------------------------------------ refusals

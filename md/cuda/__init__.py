@@ -28,11 +28,14 @@ from __future__ import annotations
 import importlib.util
 import os
 
-from integrators import Leapfrog, VelocityVerlet
+# Submodules, not the packages: ``import integrators`` (or potentials) imports md, which
+# imports this module while the package is still loading.
 from integrators.barostats import PressureCoupled
+from integrators.leapfrog import Leapfrog
 from integrators.mtk import MartynaTobiasKlein
+from integrators.velocity_verlet import VelocityVerlet
 from md.errors import DeviceError
-from potentials import PairPotential
+from potentials.device_terms import compilable
 
 #: The devices a run may ask for.
 DEVICES = ("cpu", "cuda")
@@ -110,7 +113,7 @@ def refusal(state, forcefield, integrator, **options) -> str | None:
             'barostats, thermostats or RESPA: use one of those, or device = "cpu"'
         )
     for potential in forcefield.potentials:
-        if not isinstance(potential, PairPotential):
+        if not compilable(potential):
             return (
                 f"the potential {type(potential).__name__} does not run on the device yet; "
                 "it runs the pair potentials of the pair-kernel frame (lj, morse, mie, "

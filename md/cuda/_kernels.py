@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import cuda
+from numba.cuda import libdevice
 
 from md.box import min_image
 from potentials.device_terms import retarget
@@ -34,9 +36,17 @@ SUM_THREADS = 64
 N_OBSERVABLES = 8
 
 
+#: numpy functions the CUDA target lacks, and what the device functions call instead
+#: (libdevice's rint rounds half to even, as np.rint). The simulator runs the Python as it
+#: is, numpy included (its libdevice functions are stubs).
+_SUBSTITUTES = {} if numba.config.ENABLE_CUDASIM else {"rint": libdevice.rint}
+
+
 def device_function(function):
     """A numba function (and what it calls) as a CUDA device function."""
-    return retarget(function, lambda plain: cuda.jit(device=True, inline="always")(plain))
+    return retarget(
+        function, lambda plain: cuda.jit(device=True, inline="always")(plain), _SUBSTITUTES
+    )
 
 
 _min_image = device_function(min_image)

@@ -84,6 +84,7 @@ class DeviceEngine:
         self.n_builds = 0
         self.room = FIRST_ROOM
         self.arrays: dict = {}
+        self.events: list | None = None  # (name, CUDA event) while timed_step runs
 
     # ------------------------------------------------------------ the run's life
     def start(self, state) -> None:
@@ -161,23 +162,54 @@ class DeviceEngine:
         a, dt = self.arrays, self.integrator.dt
         grid = launch(self.n_atoms)
         args = (a["positions"], a["velocities"], a["forces"], a["inverse_masses"])
+        mark = self._mark
+        mark("start")
         if self.kind == "Leapfrog":
             kick_dt = 0.5 * dt if self.restarting else dt
             half = a["half"]
             _kick_drift[grid](a["positions"], half, a["forces"], a["inverse_masses"], kick_dt, dt)
+            mark("integrate")
             self._update()
+            mark("neighbors")
             self._forces()
+            mark("forces")
             _synchronise[grid](a["velocities"], half, a["forces"], a["inverse_masses"], 0.5 * dt)
+            mark("integrate")
             if self.restarting:
                 self.integrator.statistics["restarts"] += 1
             self.restarting = False
             self.integrator.statistics["steps"] += 1
         else:
             _kick_drift[grid](*args, 0.5 * dt, dt)
+            mark("integrate")
             self._update()
+            mark("neighbors")
             self._forces()
+            mark("forces")
             _kick[grid](a["velocities"], a["forces"], a["inverse_masses"], 0.5 * dt)
+            mark("integrate")
         self.integrator.end_step(state)
+
+    def timed_step(self, state) -> dict[str, float]:
+        """:meth:`step`, timed by CUDA events between its kernels: milliseconds spent in
+        the integrator's passes, the list's check (and rebuild) and the force kernels."""
+        self.events = []
+        try:
+            self.step(state)
+        finally:
+            events, self.events = self.events, None
+        events[-1][1].synchronize()
+        split: dict[str, float] = {}
+        for (_, before), (name, after) in zip(events, events[1:], strict=False):
+            split[name] = split.get(name, 0.0) + before.elapsed_time(after)
+        return split
+
+    def _mark(self, name: str) -> None:
+        """Record a CUDA event after the kernels so far (only in :meth:`timed_step`)."""
+        if self.events is not None:
+            event = cuda.event()
+            event.record()
+            self.events.append((name, event))
 
     def result(self) -> ForceResult:
         """Energy, forces and virial of the device's configuration (summed on the device)."""
