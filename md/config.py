@@ -409,8 +409,9 @@ class RunConfig:
         "string",
         choices=("cpu", "cuda"),
         doc="`cuda`: the time step on an NVIDIA GPU (numba-cuda, `pip install "
-        "'leapmd[cuda]'`; `md run --device` overrides it): pair potentials of the pair "
-        "frame, velocity Verlet and leapfrog; anything else is refused before the run "
+        "'leapmd[cuda]'`; `md run --device` overrides it): the pair, bond and angle "
+        "potentials of the frames, velocity Verlet and leapfrog; anything else is refused "
+        "before the run "
         "writes anything. With `NUMBA_ENABLE_CUDASIM=1` it runs on numba's CUDA simulator. "
         "Not physics: a checkpoint of either device resumes on the other.",
     )

@@ -24,15 +24,26 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
+from potentials._bonded_frame import AnglePotential, BondPotential, _adapters
 from potentials._pair_codegen import kernels_for
 from potentials._pair_frame import CUTOFF_MODES, PairPotential
 
-__all__ = ["compilable", "pair_function", "retarget"]
+__all__ = ["bonded_function", "compilable", "kind_of", "pair_function", "retarget"]
+
+
+def kind_of(potential) -> str | None:
+    """``"pair"`` for a pair potential of the frame (:func:`pair_function` serves it),
+    ``"bond"`` or ``"angle"`` for one of the bonded frame (:func:`bonded_function`), else
+    None."""
+    for kind, frame in (("pair", PairPotential), ("bond", BondPotential)):
+        if isinstance(potential, frame):
+            return kind
+    return "angle" if isinstance(potential, AnglePotential) else None
 
 
 def compilable(potential) -> bool:
-    """Whether :func:`pair_function` serves ``potential`` (a pair potential of the frame)."""
-    return isinstance(potential, PairPotential)
+    """Whether this module gives ``potential``'s functions for another target."""
+    return kind_of(potential) is not None
 
 
 def retarget(
@@ -125,3 +136,32 @@ def pair_function(potential: PairPotential, n_types: int, precision: str = "doub
     table = np.ascontiguousarray(potential.tables(n_types).astype(real))
     data = np.ascontiguousarray(potential.data, dtype=np.float64)
     return kernels.pair, table, CUTOFF_MODES[potential.cutoff_mode], data, real
+
+
+def bonded_function(potential: BondPotential | AnglePotential):
+    """``(kind, term, params, items, item_types, table)`` of a bond or angle potential.
+
+    ``kind`` is ``"bond"`` or ``"angle"``; ``term`` the frame's adapter of its term
+    (``bond(r2, p) -> (u, u'(r) / r)`` or ``angle(c, p) -> (u, du/dc)``, the functions
+    its CPU loops inline) and ``params(table, t) -> p`` the parameters of type t, both
+    numba dispatchers to give :func:`retarget`; ``items`` the (B, 2) bonds or (A, 3)
+    angles (vertex in the middle), ``item_types`` their types, ``table`` the (P, T)
+    parameter table.
+    """
+    if not isinstance(potential, BondPotential | AnglePotential):
+        raise TypeError(f"expected a BondPotential or AnglePotential, got {potential!r}")
+    kind = "bond" if isinstance(potential, BondPotential) else "angle"
+    adapters = _adapters(potential.term)
+    items = potential.bonds if kind == "bond" else potential.angles
+    types_ = potential.bond_types if kind == "bond" else potential.angle_types
+    table = np.ascontiguousarray(potential.parameter_table, dtype=np.float64)
+    if table.shape[0] == 0:  # a term without parameters: one row the adapter ignores
+        table = np.zeros((1, max(table.shape[1], 1)))
+    return (
+        kind,
+        adapters[f"_{kind}"],
+        adapters["_params"],
+        np.ascontiguousarray(items, dtype=np.int64),
+        np.ascontiguousarray(types_, dtype=np.int64),
+        table,
+    )

@@ -137,6 +137,46 @@ def check_runs(results: dict) -> None:
         results[f"run_{name}_builds"] = runs[1]._engine.n_builds
 
 
+def check_polymer(results: dict) -> None:
+    """A bead-spring melt (WCA, FENE, harmonic and cosine angles): forces against the CPU
+    path's, and a 100-step velocity Verlet run."""
+    from integrators import VelocityVerlet
+    from md.build import maxwell_boltzmann
+    from md.cuda.engine import DeviceEngine
+    from md.forcefield import ForceField
+    from md.polymers import chain_angles, polymer_melt
+    from md.simulation import Simulation
+    from potentials import CosineAngles, FENEBonds, HarmonicAngles, LennardJones
+
+    def melt():
+        state, bonds = polymer_melt(6, 8, seed=1)
+        angles = chain_angles(6, 8)
+        potentials = [
+            LennardJones(cutoff=2 ** (1 / 6)),
+            FENEBonds(bonds, k=30.0, r_max=1.5),
+            HarmonicAngles(angles[::2], k=5.0, theta0=2.0),
+            CosineAngles(angles[1::2], k=2.0),
+        ]
+        return maxwell_boltzmann(state, 1.0, seed=2), potentials
+
+    state, potentials = melt()
+    cpu = ForceField(potentials, skin=0.3).compute(state)
+    engine = DeviceEngine(state, ForceField(melt()[1], skin=0.3), None)
+    engine.start(state)
+    gpu = engine.result()
+    results["polymer_force"] = _relative(gpu.forces, cpu.forces)
+    results["polymer_energy"] = abs(gpu.energy - cpu.energy) / abs(cpu.energy)
+    results["polymer_virial"] = _relative(gpu.virial, cpu.virial)
+    runs = []
+    for device in ("cpu", "cuda"):
+        state, potentials = melt()
+        sim = Simulation(state, potentials, VelocityVerlet(dt=0.005), device=device)
+        sim.run(100)
+        runs.append(state)
+    results["polymer_run_positions"] = _relative(runs[1].positions, runs[0].positions)
+    results["polymer_run_velocities"] = _relative(runs[1].velocities, runs[0].velocities)
+
+
 def check_checkpoint(results: dict, folder: Path) -> None:
     """``md run --device cuda`` (on the simulator where the environment asks for it) for 30
     steps, resumed on the CPU to 60, against 60 on the
@@ -193,15 +233,28 @@ def check_checkpoint(results: dict, folder: Path) -> None:
 def check_ptx(results: dict) -> None:
     """Every kernel compiled to PTX for the H100/H200 (sm_90) without a GPU, as the CUDA
     target types it (the simulator runs the Python and misses what that target lacks,
-    such as ``np.rint``): the generic kernels, and the force kernel of every built-in pair
-    style in double and mixed precision. Needs NVVM (``numba-cuda[cu12]``)."""
+    such as ``np.rint``): the generic kernels, the force kernel of every built-in pair
+    style in double and mixed precision and of every built-in bond and angle style. Needs
+    NVVM (``numba-cuda[cu12]``)."""
     import numba
     import numpy as np
     from numba import cuda
 
     from md.cuda import _kernels as kernels
-    from potentials import Buckingham, LennardJones, Mie, Morse, Soft, Table, Yukawa
-    from potentials.device_terms import pair_function
+    from potentials import (
+        Buckingham,
+        CosineAngles,
+        FENEBonds,
+        HarmonicAngles,
+        HarmonicBonds,
+        LennardJones,
+        Mie,
+        Morse,
+        Soft,
+        Table,
+        Yukawa,
+    )
+    from potentials.device_terms import bonded_function, pair_function
 
     try:
         from numba.cuda.cudadrv.nvvm import NVVM
@@ -259,6 +312,19 @@ def check_ptx(results: dict) -> None:
             pair, table, mode, data, real = pair_function(potential, 1, precision)
             arguments = (f2, i1, 1, i2, i1, f1, f1, f1, table, mode, data, True, f2, observables)
             compile_ptx(f"pair_{name}_{precision}", kernels.pair_kernel(pair, real), arguments)
+    bonds, angles = np.array([[0, 1], [1, 2]]), np.array([[0, 1, 2]])
+    bonded = {
+        "spring": HarmonicBonds(bonds, k=1.0, r0=1.0),
+        "fene": FENEBonds(bonds),
+        "angle_harmonic": HarmonicAngles(angles, k=1.0, theta0=2.0),
+        "angle_cosine": CosineAngles(angles, k=1.0),
+    }
+    for name, potential in bonded.items():
+        kind, term, params, items, item_types, table = bonded_function(potential)
+        factory = kernels.bond_kernel if kind == "bond" else kernels.angle_kernel
+        starts, entries = np.zeros(5, np.int64), np.zeros(4, np.int64)
+        arguments = (f2, f1, f1, f1, items, item_types, table, starts, entries, f2, observables)
+        compile_ptx(f"{kind}_{name}", factory(term, params), arguments)
     results["ptx_compiled"] = compiled
     results["ptx_failed"] = failed
 
@@ -273,6 +339,7 @@ def main(argv: list[str]) -> int:
     check_lists(results)
     check_forces(results)
     check_runs(results)
+    check_polymer(results)
     check_checkpoint(results, out.parent)
     out.write_text(json.dumps(results, indent=1))
     return 0

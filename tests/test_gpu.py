@@ -17,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import md.cuda
@@ -26,7 +27,7 @@ from md.cli import main
 from md.errors import ConfigError, DeviceError
 from md.run import run_config
 from md.simulation import Simulation
-from potentials import HarmonicBonds, LennardJones
+from potentials import ForceResult, HarmonicBonds, LennardJones
 
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_NUMBA_CUDA = importlib.util.find_spec("numba_cuda") is not None
@@ -93,6 +94,11 @@ def _judge(results: dict) -> None:
         assert results[f"run_{name}_thermo"] < 1e-10, name
         assert results[f"run_{name}_thermo_step"] == steps
         assert results[f"run_{name}_builds"] > 1  # the list was rebuilt on the device
+    assert results["polymer_force"] < 1e-12
+    assert results["polymer_energy"] < 1e-12
+    assert results["polymer_virial"] < 1e-12
+    assert results["polymer_run_positions"] < 1e-10
+    assert results["polymer_run_velocities"] < 1e-10
     assert results["checkpoint_codes"] == [0, 0, 0]  # md run --device cuda, then on the CPU
     assert results["checkpoint_said_gpu"]
     assert results["checkpoint_frames"] == [7, 7]
@@ -119,12 +125,29 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     if results["ptx_nvvm"] is not True:
         pytest.skip(f"no NVVM to compile with: {results['ptx_nvvm']}")
     assert results["ptx_failed"] == {}
-    assert len(results["ptx_compiled"]) == 12 + 2 * 7  # the generic kernels, 7 pair styles
+    # the generic kernels, 7 pair styles in two precisions, 2 bond and 2 angle styles
+    assert len(results["ptx_compiled"]) == 12 + 2 * 7 + 4
 
 
 # ------------------------------------------------------------------ refusals
 def _system():
     return maxwell_boltzmann(lattice("fcc", 2, density=0.9), 1.0, seed=1)
+
+
+class Tether:
+    """A potential of no frame (a harmonic pull of every atom to the origin)."""
+
+    cutoff = None
+
+    def check(self, state) -> None:
+        pass
+
+    def energy_forces(self, state, neighbors=None, per_atom=False, virial=True):
+        return ForceResult(
+            energy=0.5 * float(np.sum(state.positions**2)),
+            forces=-state.positions,
+            virial=np.zeros((3, 3)),
+        )
 
 
 @pytest.fixture
@@ -167,11 +190,12 @@ def test_no_gpu_without_the_simulator_is_refused(monkeypatch):
             {},
             "Langevin",
         ),
+        ([LennardJones(cutoff=1.3), Tether()], VelocityVerlet(dt=0.005), {}, "Tether"),
         (
-            [LennardJones(cutoff=1.3), HarmonicBonds(bonds=[(0, 1)], k=1.0, r0=1.0)],
+            [HarmonicBonds(bonds=[(0, 1)], k=1.0, r0=1.0), LennardJones(cutoff=1.3)],
             VelocityVerlet(dt=0.005),
             {},
-            "HarmonicBonds",
+            "needs a pair potential, listed first",
         ),
         ([LennardJones(cutoff=1.3)], VelocityVerlet(dt=0.005), {"neighbor_every": 5}, "every"),
     ],

@@ -12,12 +12,13 @@ runs its steps here. Modules:
     :class:`~md.cuda.engine.DeviceEngine`: the device state for a run, the step, the
     host copies at output intervals, the sums.
 ``md.cuda._kernels``
-    The kernels: the counting-sort cell list and the full neighbour list, the pair force
-    kernel compiled per potential from the pair frame's own term functions
+    The kernels: the counting-sort cell list and the full neighbour list, the pair, bond
+    and angle force kernels compiled per potential from the frames' own term functions
     (``potentials.device_terms``), the integrator passes, the observables' sums.
 
 What runs on the device: the pair potentials of the pair-kernel frame (every term, every
-cutoff mode, double and mixed precision), velocity Verlet and leapfrog, the thermo sums.
+cutoff mode, double and mixed precision), the bond and angle potentials of the bonded
+frame, velocity Verlet and leapfrog, the thermo sums.
 Anything else is refused by :func:`refusal` before a run writes anything. With
 ``NUMBA_ENABLE_CUDASIM=1`` in the environment before ``numba.cuda`` is first imported, the
 same code runs on numba's CUDA simulator (slowly: one Python thread per GPU thread).
@@ -35,7 +36,7 @@ from integrators.leapfrog import Leapfrog
 from integrators.mtk import MartynaTobiasKlein
 from integrators.velocity_verlet import VelocityVerlet
 from md.errors import DeviceError
-from potentials.device_terms import compilable
+from potentials.device_terms import compilable, kind_of
 
 #: The devices a run may ask for.
 DEVICES = ("cpu", "cuda")
@@ -117,9 +118,15 @@ def refusal(state, forcefield, integrator, **options) -> str | None:
             return (
                 f"the potential {type(potential).__name__} does not run on the device yet; "
                 "it runs the pair potentials of the pair-kernel frame (lj, morse, mie, "
-                'buckingham, yukawa, soft, table and pair-term plug-ins): use device = "cpu" '
-                "for this system"
+                "buckingham, yukawa, soft, table, pair-term plug-ins) and the bond and angle "
+                "potentials of the bonded frame (spring, fene, angle_harmonic, "
+                'angle_cosine, bond and angle terms): use device = "cpu" for this system'
             )
+    if forcefield.neighbor_list is None or kind_of(forcefield.potentials[0]) != "pair":
+        return (
+            "the device path needs a pair potential, listed first in [[potentials]] "
+            "(its kernel starts each step's forces)"
+        )
     if (options.get("neighbor_every", 1), options.get("neighbor_check", True)) != (1, True):
         return (
             "[run] neighbor_every and neighbor_check: the device looks at its neighbour "

@@ -36,10 +36,23 @@ SUM_THREADS = 64
 N_OBSERVABLES = 8
 
 
-#: numpy functions the CUDA target lacks, and what the device functions call instead
-#: (libdevice's rint rounds half to even, as np.rint). The simulator runs the Python as it
-#: is, numpy included (its libdevice functions are stubs).
-_SUBSTITUTES = {} if numba.config.ENABLE_CUDASIM else {"rint": libdevice.rint}
+#: numpy functions the CUDA target lacks on scalars (its ufunc table has none of these),
+#: and what the device functions call instead: math's, which it compiles to libdevice, and
+#: libdevice's rint (half to even, as np.rint). The simulator runs the Python as it is,
+#: numpy included (its libdevice functions are stubs).
+_MATH = ("sqrt", "exp", "expm1", "log", "log1p", "sin", "cos", "tan", "floor", "ceil")
+_SUBSTITUTES = (
+    {}
+    if numba.config.ENABLE_CUDASIM
+    else {
+        "rint": libdevice.rint,
+        "arccos": math.acos,
+        "arcsin": math.asin,
+        "arctan": math.atan,
+        "power": math.pow,
+        **{name: getattr(math, name) for name in _MATH},
+    }
+)
 
 
 def device_function(function):
@@ -295,6 +308,177 @@ def pair_kernel(pair, real):
     return kernel
 
 
+# ---------------------------------------------------------------- bonds and angles
+def bond_kernel(bond, params):
+    """The force kernel of one bond potential: ``bond(r2, p) -> (u, u'(r) / r)`` and
+    ``params(table, t)`` are the bonded frame's adapters of its term
+    (``potentials.device_terms.bonded_function``). One thread per atom over the atom's own
+    bonds (``starts``/``entries``: 2 b + the atom's end), adding its force, half of each
+    bond's energy and virial to its rows: each bond is evaluated by both its atoms, and
+    no thread writes another's row."""
+    device_bond = device_function(bond)
+    device_params = device_function(params)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        lengths,
+        inverse,
+        tilt,
+        bonds,
+        bond_types,
+        table,
+        starts,
+        entries,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for e in range(starts[i], starts[i + 1]):
+            b = entries[e] // 2
+            a0 = bonds[b, 0]
+            a1 = bonds[b, 1]
+            dx, dy, dz = _min_image(
+                positions[a0, 0] - positions[a1, 0],
+                positions[a0, 1] - positions[a1, 1],
+                positions[a0, 2] - positions[a1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            u, g = device_bond(dx * dx + dy * dy + dz * dz, device_params(table, bond_types[b]))
+            ex = -g * dx  # the force on the bond's first atom
+            ey = -g * dy
+            ez = -g * dz
+            if entries[e] % 2 == 0:
+                fx += ex
+                fy += ey
+                fz += ez
+            else:
+                fx -= ex
+                fy -= ey
+                fz -= ez
+            u_sum += u
+            wxx += ex * dx
+            wyy += ey * dy
+            wzz += ez * dz
+            wyz += ez * dy
+            wxz += ez * dx
+            wxy += ey * dx
+        _add_row(forces, observables, i, fx, fy, fz, 0.5, u_sum, wxx, wyy, wzz, wyz, wxz, wxy)
+
+    return kernel
+
+
+def angle_kernel(angle, params):
+    """The force kernel of one angle potential (``angle(c, p) -> (u, du/dc)``, c = cos
+    theta), as :func:`bond_kernel`: each atom evaluates its own angles (``entries``: 3 a +
+    its place, 1 the vertex) and adds its force and a third of each angle's energy and
+    virial (LAMMPS's split, as the CPU's per-atom values)."""
+    device_angle = device_function(angle)
+    device_params = device_function(params)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        lengths,
+        inverse,
+        tilt,
+        angles,
+        angle_types,
+        table,
+        starts,
+        entries,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for e in range(starts[i], starts[i + 1]):
+            a = entries[e] // 3
+            place = entries[e] % 3
+            p0 = angles[a, 0]
+            p1 = angles[a, 1]
+            p2 = angles[a, 2]
+            ax, ay, az = _min_image(
+                positions[p0, 0] - positions[p1, 0],
+                positions[p0, 1] - positions[p1, 1],
+                positions[p0, 2] - positions[p1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            bx, by, bz = _min_image(
+                positions[p2, 0] - positions[p1, 0],
+                positions[p2, 1] - positions[p1, 1],
+                positions[p2, 2] - positions[p1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            ra2 = ax * ax + ay * ay + az * az
+            rb2 = bx * bx + by * by + bz * bz
+            if not (ra2 > 0.0 and rb2 > 0.0):
+                continue  # no angle (the CPU loop leaves it out too, and reports it)
+            rab = math.sqrt(ra2) * math.sqrt(rb2)
+            c = (ax * bx + ay * by + az * bz) / rab
+            c = min(max(c, -1.0), 1.0)
+            u, d1 = device_angle(c, device_params(table, angle_types[a]))
+            a11 = d1 * c / ra2
+            a12 = -d1 / rab
+            a22 = d1 * c / rb2
+            fix = a11 * ax + a12 * bx
+            fiy = a11 * ay + a12 * by
+            fiz = a11 * az + a12 * bz
+            fkx = a22 * bx + a12 * ax
+            fky = a22 * by + a12 * ay
+            fkz = a22 * bz + a12 * az
+            if place == 0:
+                fx += fix
+                fy += fiy
+                fz += fiz
+            elif place == 2:
+                fx += fkx
+                fy += fky
+                fz += fkz
+            else:
+                fx -= fix + fkx
+                fy -= fiy + fky
+                fz -= fiz + fkz
+            u_sum += u
+            wxx += ax * fix + bx * fkx
+            wyy += ay * fiy + by * fky
+            wzz += az * fiz + bz * fkz
+            wyz += ay * fiz + by * fkz
+            wxz += ax * fiz + bx * fkz
+            wxy += ax * fiy + bx * fky
+        _add_row(forces, observables, i, fx, fy, fz, 1.0 / 3.0, u_sum, wxx, wyy, wzz, wyz, wxz, wxy)
+
+    return kernel
+
+
+@cuda.jit(device=True, inline="always")
+def _add_row(forces, observables, i, fx, fy, fz, share, u, wxx, wyy, wzz, wyz, wxz, wxy):
+    """Add a force to row i and ``share`` of an energy and a virial to its observables."""
+    forces[i, 0] += fx
+    forces[i, 1] += fy
+    forces[i, 2] += fz
+    observables[i, 0] += share * u
+    observables[i, 1] += share * wxx
+    observables[i, 2] += share * wyy
+    observables[i, 3] += share * wzz
+    observables[i, 4] += share * wyz
+    observables[i, 5] += share * wxz
+    observables[i, 6] += share * wxy
+
+
 # ---------------------------------------------------------------- integrator passes
 @cuda.jit
 def _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt):
@@ -356,4 +540,12 @@ def _sum_observables(observables, velocities, masses, totals):
             totals[c] = shared[0, c]
 
 
-__all__ = ["BLOCK", "N_OBSERVABLES", "device_function", "launch", "pair_kernel"]
+__all__ = [
+    "BLOCK",
+    "N_OBSERVABLES",
+    "angle_kernel",
+    "bond_kernel",
+    "device_function",
+    "launch",
+    "pair_kernel",
+]

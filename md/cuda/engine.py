@@ -35,12 +35,14 @@ from md.cuda._kernels import (
     _sort_cells,
     _sum_observables,
     _synchronise,
+    angle_kernel,
+    bond_kernel,
     launch,
     pair_kernel,
 )
 from md.errors import NonFiniteError
 from potentials.base import ForceResult
-from potentials.device_terms import pair_function
+from potentials.device_terms import bonded_function, kind_of, pair_function
 
 logger = logging.getLogger(__name__)
 
@@ -77,8 +79,11 @@ class DeviceEngine:
         n_types = max(state.n_types, 1)
         self.n_types = n_types
         self.pairs = [
-            pair_function(p, n_types, forcefield.precision) for p in forcefield.potentials
+            pair_function(p, n_types, forcefield.precision)
+            for p in forcefield.potentials
+            if kind_of(p) == "pair"
         ]
+        self.bonded = [bonded_function(p) for p in forcefield.potentials if kind_of(p) != "pair"]
         self.kernels = None  # compiled on the first start
         self.active = False
         self.n_builds = 0
@@ -91,6 +96,10 @@ class DeviceEngine:
         """Upload ``state`` and compute its forces on the device (start of a run)."""
         if self.kernels is None:
             self.kernels = [pair_kernel(pair, real) for pair, _, _, _, real in self.pairs]
+            self.bonded_kernels = [
+                (bond_kernel if kind == "bond" else angle_kernel)(term, params)
+                for kind, term, params, _, _, _ in self.bonded
+            ]
         n = state.n_atoms
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         tilt = periodic_tilt(state.tilt, state.pbc)
@@ -114,6 +123,10 @@ class DeviceEngine:
             "tables": [cuda.to_device(table) for _, table, _, _, _ in self.pairs],
             "data": [cuda.to_device(data) for _, _, _, data, _ in self.pairs],
         }
+        a["bonded"] = [
+            tuple(cuda.to_device(x) for x in (items, item_types, table, *_by_atom(items, n)))
+            for _, _, _, items, item_types, table in self.bonded
+        ]
         self.n_atoms = n
         self.use_cells, self.n_cells = _cell_grid(state, self.radius)
         if self.use_cells:
@@ -295,6 +308,20 @@ class DeviceEngine:
                 a["forces"],
                 a["observables"],
             )
+        geometry = (a["positions"], a["lengths"], a["inverse"], a["tilt"])
+        for kernel, arrays in zip(self.bonded_kernels, a["bonded"], strict=True):
+            kernel[grid](*geometry, *arrays, a["forces"], a["observables"])
+
+
+def _by_atom(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each atom's tuples (bonds or angles) as CSR ``(starts, entries)``: an entry is
+    ``width * t + place``, tuple t with the atom at ``place``, in tuple order per atom."""
+    atoms = items.reshape(-1)
+    codes = np.arange(atoms.shape[0], dtype=np.int64)  # = width * t + place, row-major
+    order = np.argsort(atoms, kind="stable")
+    starts = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(atoms, minlength=n), out=starts[1:])
+    return starts, np.ascontiguousarray(codes[order])
 
 
 def _cell_grid(state, radius: float) -> tuple[bool, tuple[int, int, int]]:
