@@ -15,6 +15,7 @@ import io
 import json
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 
@@ -104,14 +105,19 @@ def check_forces(results: dict) -> None:
 
 
 def check_runs(results: dict) -> None:
-    """Velocity Verlet and leapfrog runs, and their thermo, against the CPU's."""
-    from integrators import Leapfrog, VelocityVerlet
+    """Velocity Verlet, leapfrog and Langevin runs, and their thermo (the bath's energy
+    too), against the CPU's: Langevin's noise is keyed by seed, step and atom id on both."""
+    from integrators import Langevin, Leapfrog, VelocityVerlet
     from md.simulation import Simulation
     from potentials import LennardJones
 
+    def langevin(dt):
+        return Langevin(dt=dt, temperature=1.2, friction=2.0, seed=7)
+
     for name, integrator, index, steps in (
         ("verlet", VelocityVerlet, 0, 100),
-        ("leapfrog", Leapfrog, 1, 60),
+        ("leapfrog", Leapfrog, 1, 40),
+        ("langevin", langevin, 1, 40),
     ):
         states = [_states()[index] for _ in range(2)]
         cutoff = (1.7, 1.3)[index]
@@ -129,9 +135,13 @@ def check_runs(results: dict) -> None:
         results[f"run_{name}_velocities"] = _relative(gpu.velocities, cpu.velocities)
         results[f"run_{name}_steps"] = [gpu.step, cpu.step, gpu.time == cpu.time]
         thermo_cpu, thermo_gpu = runs[0].thermo(), seen[-1]
+        keys = ["potential_energy", "kinetic_energy", "pressure", "temperature"]
+        keys += ["conserved_energy"] if "conserved_energy" in thermo_cpu else []
         results[f"run_{name}_thermo"] = max(
-            abs(thermo_gpu[k] - thermo_cpu[k]) / abs(thermo_cpu[k])
-            for k in ("potential_energy", "kinetic_energy", "pressure")
+            abs(thermo_gpu[k] - thermo_cpu[k]) / abs(thermo_cpu[k]) for k in keys
+        )
+        results[f"run_{name}_statistics"] = getattr(runs[0].integrator, "statistics", 0) == (
+            getattr(runs[1].integrator, "statistics", 0)
         )
         results[f"run_{name}_thermo_step"] = int(thermo_gpu["step"])
         results[f"run_{name}_builds"] = runs[1]._engine.n_builds
@@ -240,6 +250,7 @@ def check_ptx(results: dict) -> None:
     import numpy as np
     from numba import cuda
 
+    from integrators.langevin import noise_of_atom
     from md.cuda import _kernels as kernels
     from potentials import (
         Buckingham,
@@ -280,6 +291,9 @@ def check_ptx(results: dict) -> None:
         "_kick": (f2, f2, f1, 1.0),
         "_synchronise": (f2, f2, f2, f1, 1.0),
         "_sum_observables": (observables, f2, f1, np.zeros(kernels.N_OBSERVABLES)),
+        "_drift": (f2, f2, 1.0),
+        "_relax": (f2, f2, 1.0, np.zeros(7), True),
+        "_langevin_sums": (f2, f2, f1, np.zeros(7), True),
     }
     compiled, failed = [], {}
 
@@ -312,6 +326,9 @@ def check_ptx(results: dict) -> None:
             pair, table, mode, data, real = pair_function(potential, 1, precision)
             arguments = (f2, i1, 1, i2, i1, f1, f1, f1, table, mode, data, True, f2, observables)
             compile_ptx(f"pair_{name}_{precision}", kernels.pair_kernel(pair, real), arguments)
+    word = np.uint64(1)
+    noise = kernels.noise_kernel(noise_of_atom)
+    compile_ptx("noise", noise, (word, word, word, np.zeros(4, np.int64), f1, f2))
     bonds, angles = np.array([[0, 1], [1, 2]]), np.array([[0, 1, 2]])
     bonded = {
         "spring": HarmonicBonds(bonds, k=1.0, r0=1.0),
@@ -330,6 +347,8 @@ def check_ptx(results: dict) -> None:
 
 
 def main(argv: list[str]) -> int:
+    # the simulator runs Philox's uint64 products as numpy scalars, which warn as they wrap
+    warnings.filterwarnings("ignore", "overflow encountered", RuntimeWarning)
     out = Path(argv[0])
     results: dict = {}
     if argv[1:] == ["--ptx"]:

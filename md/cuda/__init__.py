@@ -18,7 +18,8 @@ runs its steps here. Modules:
 
 What runs on the device: the pair potentials of the pair-kernel frame (every term, every
 cutoff mode, double and mixed precision), the bond and angle potentials of the bonded
-frame, velocity Verlet and leapfrog, the thermo sums.
+frame, velocity Verlet, leapfrog and Langevin (BAOAB, the CPU path's noise), the thermo
+sums.
 Anything else is refused by :func:`refusal` before a run writes anything. With
 ``NUMBA_ENABLE_CUDASIM=1`` in the environment before ``numba.cuda`` is first imported, the
 same code runs on numba's CUDA simulator (slowly: one Python thread per GPU thread).
@@ -32,6 +33,7 @@ import os
 # Submodules, not the packages: ``import integrators`` (or potentials) imports md, which
 # imports this module while the package is still loading.
 from integrators.barostats import PressureCoupled
+from integrators.langevin import Langevin
 from integrators.leapfrog import Leapfrog
 from integrators.mtk import MartynaTobiasKlein
 from integrators.velocity_verlet import VelocityVerlet
@@ -41,7 +43,7 @@ from potentials.device_terms import compilable, kind_of
 #: The devices a run may ask for.
 DEVICES = ("cpu", "cuda")
 #: The integrators whose step runs on the device.
-DEVICE_INTEGRATORS = (VelocityVerlet, Leapfrog)
+DEVICE_INTEGRATORS = (VelocityVerlet, Leapfrog, Langevin)
 INSTALL = "install it with: python3 -m pip install 'leapmd[cuda]' (numba-cuda[cu12])"
 
 __all__ = [
@@ -110,8 +112,8 @@ def refusal(state, forcefield, integrator, **options) -> str | None:
             what = name
         return (
             f"the integrator {what} does not run on the device yet; it runs "
-            f"{' and '.join(c.__name__ for c in DEVICE_INTEGRATORS)} without constraints, "
-            'barostats, thermostats or RESPA: use one of those, or device = "cpu"'
+            f"{', '.join(c.__name__ for c in DEVICE_INTEGRATORS)} without constraints, "
+            'barostats or RESPA: use one of those, or device = "cpu"'
         )
     for potential in forcefield.potentials:
         if not compilable(potential):

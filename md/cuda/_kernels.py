@@ -512,6 +512,79 @@ def _synchronise(velocities, half_velocities, forces, inverse_masses, half_dt):
             velocities[i, a] = half_velocities[i, a] + scale * forces[i, a]
 
 
+@cuda.jit
+def _drift(positions, velocities, dt):
+    """x += dt v (``integrators._kernels._drift``'s twin)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        for a in range(3):
+            positions[i, a] += dt * velocities[i, a]
+
+
+def noise_kernel(gaussians):
+    """The Langevin noise: ``gaussians(k0, k1, step, atom)`` is the CPU path's function of
+    one atom's three normal numbers (``integrators.langevin.noise_of_atom``), so atom
+    ``ids[i]`` gets the same noise at a step on either device; scaled by ``sigmas[i]``."""
+    device_gaussians = device_function(gaussians)
+
+    @cuda.jit
+    def kernel(k0, k1, step, ids, sigmas, noise):
+        i = cuda.grid(1)
+        if i < noise.shape[0]:
+            g0, g1, g2 = device_gaussians(k0, k1, step, numba.uint64(ids[i]))
+            s = sigmas[i]
+            noise[i, 0] = g0 * s
+            noise[i, 1] = g1 * s
+            noise[i, 2] = g2 * s
+
+    return kernel
+
+
+@cuda.jit
+def _relax(velocities, noise, c, sums, fix_com):
+    """v = c v + noise - (the noise's centre-of-mass velocity, ``sums[1:4] / sums[4]``,
+    where ``fix_com``): the O step of BAOAB (``integrators.langevin._relax``'s twin)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        for a in range(3):
+            drift = sums[1 + a] / sums[4] if fix_com else 0.0
+            velocities[i, a] = c * velocities[i, a] + noise[i, a] - drift
+
+
+@cuda.jit
+def _langevin_sums(velocities, noise, masses, sums, before):
+    """One block: ``sums[0]`` the kinetic energy (into ``sums[5]`` instead when not
+    ``before``), and, ``before``, ``sums[1:4]`` the noise's momentum and ``sums[4]`` the
+    mass; after the O step, ``sums[6] -= sums[5] - sums[0]`` (the bath's energy)."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, 5), dtype=np.float64)
+    for c in range(5):
+        shared[t, c] = 0.0
+    for i in range(t, velocities.shape[0], SUM_THREADS):
+        m = masses[i]
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t, 0] += 0.5 * m * v2
+        if before:
+            for a in range(3):
+                shared[t, 1 + a] += m * noise[i, a]
+            shared[t, 4] += m
+    cuda.syncthreads()
+    width = SUM_THREADS // 2
+    while width > 0:
+        if t < width:
+            for c in range(5):
+                shared[t, c] += shared[t + width, c]
+        cuda.syncthreads()
+        width //= 2
+    if t == 0:
+        if before:
+            for c in range(5):
+                sums[c] = shared[0, c]
+        else:
+            sums[5] = shared[0, 0]
+            sums[6] -= sums[5] - sums[0]
+
+
 # ---------------------------------------------------------------- sums
 @cuda.jit
 def _sum_observables(observables, velocities, masses, totals):
@@ -547,5 +620,6 @@ __all__ = [
     "bond_kernel",
     "device_function",
     "launch",
+    "noise_kernel",
     "pair_kernel",
 ]

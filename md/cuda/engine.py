@@ -15,19 +15,24 @@ run that asks for the device.
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from numba import cuda
 
+from integrators.langevin import noise_of_atom
 from md.box import periodic_lengths, periodic_tilt
 from md.cuda._kernels import (
     N_OBSERVABLES,
     SUM_THREADS,
     _cell_of,
     _cell_starts,
+    _drift,
     _kick,
     _kick_drift,
+    _langevin_sums,
     _moved,
+    _relax,
     _remember,
     _scatter,
     _search_all,
@@ -38,6 +43,7 @@ from md.cuda._kernels import (
     angle_kernel,
     bond_kernel,
     launch,
+    noise_kernel,
     pair_kernel,
 )
 from md.errors import NonFiniteError
@@ -96,6 +102,7 @@ class DeviceEngine:
         """Upload ``state`` and compute its forces on the device (start of a run)."""
         if self.kernels is None:
             self.kernels = [pair_kernel(pair, real) for pair, _, _, _, real in self.pairs]
+            self.noise_kernel = noise_kernel(noise_of_atom) if self.kind == "Langevin" else None
             self.bonded_kernels = [
                 (bond_kernel if kind == "bond" else angle_kernel)(term, params)
                 for kind, term, params, _, _, _ in self.bonded
@@ -138,6 +145,19 @@ class DeviceEngine:
             a["cell_starts"] = cuda.device_array(n_cells + 1, np.int32)
             a["cursors"] = cuda.device_array(n_cells, np.int32)
             a["order"] = cuda.device_array(n, np.int32)
+        if self.kind == "Langevin":
+            langevin = self.integrator
+            saved = langevin.get_state()
+            self.bath = (float(saved["reservoir"]), int(saved["steps"]), 0)
+            c = math.exp(-langevin.friction * langevin.dt)
+            sigmas = np.sqrt((1.0 - c * c) * langevin.kT / state.masses)
+            ids = np.arange(n, dtype=np.int64) if state.ids is None else state.ids
+            a["ids"] = cuda.to_device(np.ascontiguousarray(ids, dtype=np.int64))
+            a["sigmas"] = cuda.to_device(sigmas)
+            a["noise"] = cuda.device_array((n, 3))
+            a["sums"] = cuda.to_device(np.zeros(7))
+            self.relax = (c, bool(langevin.fix_com and n > 1))
+            self.key = tuple(np.uint64(word) for word in langevin.key)
         if self.kind == "Leapfrog":
             saved = self.integrator.get_state()["half_velocities"]
             half = state.velocities if saved is None else saved
@@ -161,6 +181,12 @@ class DeviceEngine:
         a = self.arrays
         a["positions"].copy_to_host(state.positions)
         a["velocities"].copy_to_host(state.velocities)
+        if self.kind == "Langevin":  # the bath's energy and the step count, as the CPU's
+            reservoir, steps, done = self.bath
+            saved = self.integrator.get_state()
+            saved["reservoir"] = reservoir + float(a["sums"].copy_to_host()[6])
+            saved["steps"] = steps + done
+            self.integrator.set_state(saved)
         if self.kind == "Leapfrog" and not self.restarting:
             saved = self.integrator.get_state()
             self.integrator.set_state(
@@ -192,6 +218,8 @@ class DeviceEngine:
                 self.integrator.statistics["restarts"] += 1
             self.restarting = False
             self.integrator.statistics["steps"] += 1
+        elif self.kind == "Langevin":
+            self._langevin_step(state, grid)
         else:
             _kick_drift[grid](*args, 0.5 * dt, dt)
             mark("integrate")
@@ -202,6 +230,30 @@ class DeviceEngine:
             _kick[grid](a["velocities"], a["forces"], a["inverse_masses"], 0.5 * dt)
             mark("integrate")
         self.integrator.end_step(state)
+
+    def _langevin_step(self, state, grid) -> None:
+        """BAOAB as ``integrators.langevin.Langevin.step``: the noise of counter (step,
+        atom id) under the integrator's key, the same numbers as the CPU path's."""
+        a, half = self.arrays, 0.5 * self.integrator.dt
+        mark = self._mark
+        velocities, noise, masses, sums = a["velocities"], a["noise"], a["masses"], a["sums"]
+        _kick[grid](velocities, a["forces"], a["inverse_masses"], half)  # B
+        _drift[grid](a["positions"], velocities, half)  # A
+        step = np.uint64(state.step + 1)
+        self.noise_kernel[grid](*self.key, step, a["ids"], a["sigmas"], noise)  # O
+        _langevin_sums[1, SUM_THREADS](velocities, noise, masses, sums, True)
+        _relax[grid](velocities, noise, self.relax[0], sums, self.relax[1])
+        _langevin_sums[1, SUM_THREADS](velocities, noise, masses, sums, False)
+        _drift[grid](a["positions"], velocities, half)  # A
+        mark("integrate")
+        self._update()
+        mark("neighbors")
+        self._forces()
+        mark("forces")
+        _kick[grid](velocities, a["forces"], a["inverse_masses"], half)  # B
+        mark("integrate")
+        reservoir, steps, done = self.bath
+        self.bath = (reservoir, steps, done + 1)
 
     def timed_step(self, state) -> dict[str, float]:
         """:meth:`step`, timed by CUDA events between its kernels: milliseconds spent in
