@@ -410,7 +410,8 @@ class RunConfig:
         choices=("cpu", "cuda"),
         doc="`cuda`: the time step on an NVIDIA GPU (numba-cuda, `pip install "
         "'leapmd[cuda]'`; `md run --device` overrides it): the pair, bond and angle "
-        "potentials of the frames, velocity Verlet and leapfrog; anything else is refused "
+        "potentials of the frames, velocity Verlet, leapfrog, Langevin and Bussi; anything "
+        "else is refused "
         "before the run "
         "writes anything. With `NUMBA_ENABLE_CUDASIM=1` it runs on numba's CUDA simulator. "
         "Not physics: a checkpoint of either device resumes on the other.",

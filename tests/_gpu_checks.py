@@ -105,19 +105,24 @@ def check_forces(results: dict) -> None:
 
 
 def check_runs(results: dict) -> None:
-    """Velocity Verlet, leapfrog and Langevin runs, and their thermo (the bath's energy
-    too), against the CPU's: Langevin's noise is keyed by seed, step and atom id on both."""
-    from integrators import Langevin, Leapfrog, VelocityVerlet
+    """Velocity Verlet, leapfrog, Langevin and Bussi runs, and their thermo (the bath's
+    energy too), against the CPU's: Langevin's noise is keyed by seed, step and atom id on
+    both, Bussi's drawn from the integrator's one stream on the host."""
+    from integrators import Bussi, Langevin, Leapfrog, VelocityVerlet
     from md.simulation import Simulation
     from potentials import LennardJones
 
     def langevin(dt):
         return Langevin(dt=dt, temperature=1.2, friction=2.0, seed=7)
 
+    def bussi(dt):
+        return Bussi(dt=dt, temperature=1.2, tau=0.05, seed=8)
+
     for name, integrator, index, steps in (
         ("verlet", VelocityVerlet, 0, 100),
         ("leapfrog", Leapfrog, 1, 40),
         ("langevin", langevin, 1, 40),
+        ("bussi", bussi, 1, 40),
     ):
         states = [_states()[index] for _ in range(2)]
         cutoff = (1.7, 1.3)[index]
@@ -294,6 +299,8 @@ def check_ptx(results: dict) -> None:
         "_drift": (f2, f2, 1.0),
         "_relax": (f2, f2, 1.0, np.zeros(7), True),
         "_langevin_sums": (f2, f2, f1, np.zeros(7), True),
+        "_kinetic_sum": (f2, f1, np.zeros(1)),
+        "_scale": (f2, 1.0),
     }
     compiled, failed = [], {}
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import md.cuda
-from integrators import Bussi, VelocityVerlet
+from integrators import NoseHooverChain, VelocityVerlet
 from md.build import lattice, maxwell_boltzmann
 from md.cli import main
 from md.errors import ConfigError, DeviceError
@@ -87,7 +87,7 @@ def _judge(results: dict) -> None:
     for key in forces:
         limit = 1e-12 if "_double_" in key else 3e-7  # mixed: float32 round-off
         assert results[key] < limit, (key, results[key])
-    for name, steps in (("verlet", 100), ("leapfrog", 40), ("langevin", 40)):
+    for name, steps in (("verlet", 100), ("leapfrog", 40), ("langevin", 40), ("bussi", 40)):
         assert results[f"run_{name}_steps"] == [steps, steps, True]
         assert results[f"run_{name}_positions"] < 1e-10, name
         assert results[f"run_{name}_velocities"] < 1e-10, name
@@ -128,7 +128,7 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     assert results["ptx_failed"] == {}
     # the generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
     # angle styles
-    assert len(results["ptx_compiled"]) == 15 + 2 * 7 + 1 + 4
+    assert len(results["ptx_compiled"]) == 17 + 2 * 7 + 1 + 4
 
 
 # ------------------------------------------------------------------ refusals
@@ -186,7 +186,12 @@ def test_no_gpu_without_the_simulator_is_refused(monkeypatch):
 @pytest.mark.parametrize(
     ("potentials", "integrator", "options", "named"),
     [
-        ([LennardJones(cutoff=1.3)], Bussi(dt=0.005, temperature=1.0, tau=0.1), {}, "Bussi"),
+        (
+            [LennardJones(cutoff=1.3)],
+            NoseHooverChain(dt=0.005, temperature=1.0, tau=0.1),
+            {},
+            "NoseHooverChain",
+        ),
         ([LennardJones(cutoff=1.3), Tether()], VelocityVerlet(dt=0.005), {}, "Tether"),
         (
             [HarmonicBonds(bonds=[(0, 1)], k=1.0, r0=1.0), LennardJones(cutoff=1.3)],

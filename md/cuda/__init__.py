@@ -18,8 +18,8 @@ runs its steps here. Modules:
 
 What runs on the device: the pair potentials of the pair-kernel frame (every term, every
 cutoff mode, double and mixed precision), the bond and angle potentials of the bonded
-frame, velocity Verlet, leapfrog and Langevin (BAOAB, the CPU path's noise), the thermo
-sums.
+frame, velocity Verlet, leapfrog, Langevin (BAOAB, the CPU path's noise) and Bussi (its
+stream on the host: eight bytes a half step), the thermo sums.
 Anything else is refused by :func:`refusal` before a run writes anything. With
 ``NUMBA_ENABLE_CUDASIM=1`` in the environment before ``numba.cuda`` is first imported, the
 same code runs on numba's CUDA simulator (slowly: one Python thread per GPU thread).
@@ -33,6 +33,7 @@ import os
 # Submodules, not the packages: ``import integrators`` (or potentials) imports md, which
 # imports this module while the package is still loading.
 from integrators.barostats import PressureCoupled
+from integrators.bussi import Bussi
 from integrators.langevin import Langevin
 from integrators.leapfrog import Leapfrog
 from integrators.mtk import MartynaTobiasKlein
@@ -43,7 +44,7 @@ from potentials.device_terms import compilable, kind_of
 #: The devices a run may ask for.
 DEVICES = ("cpu", "cuda")
 #: The integrators whose step runs on the device.
-DEVICE_INTEGRATORS = (VelocityVerlet, Leapfrog, Langevin)
+DEVICE_INTEGRATORS = (VelocityVerlet, Leapfrog, Langevin, Bussi)
 INSTALL = "install it with: python3 -m pip install 'leapmd[cuda]' (numba-cuda[cu12])"
 
 __all__ = [

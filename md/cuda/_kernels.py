@@ -585,6 +585,35 @@ def _langevin_sums(velocities, noise, masses, sums, before):
             sums[6] -= sums[5] - sums[0]
 
 
+@cuda.jit
+def _kinetic_sum(velocities, masses, out):
+    """One block: ``out[0]`` = the kinetic energy (Bussi's rescaling reads it)."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array(SUM_THREADS, dtype=np.float64)
+    shared[t] = 0.0
+    for i in range(t, velocities.shape[0], SUM_THREADS):
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t] += 0.5 * masses[i] * v2
+    cuda.syncthreads()
+    width = SUM_THREADS // 2
+    while width > 0:
+        if t < width:
+            shared[t] += shared[t + width]
+        cuda.syncthreads()
+        width //= 2
+    if t == 0:
+        out[0] = shared[0]
+
+
+@cuda.jit
+def _scale(velocities, alpha):
+    """v *= alpha."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        for a in range(3):
+            velocities[i, a] *= alpha
+
+
 # ---------------------------------------------------------------- sums
 @cuda.jit
 def _sum_observables(observables, velocities, masses, totals):

@@ -30,10 +30,12 @@ from md.cuda._kernels import (
     _drift,
     _kick,
     _kick_drift,
+    _kinetic_sum,
     _langevin_sums,
     _moved,
     _relax,
     _remember,
+    _scale,
     _scatter,
     _search_all,
     _search_cells,
@@ -145,10 +147,12 @@ class DeviceEngine:
             a["cell_starts"] = cuda.device_array(n_cells + 1, np.int32)
             a["cursors"] = cuda.device_array(n_cells, np.int32)
             a["order"] = cuda.device_array(n, np.int32)
+        if self.kind in ("Langevin", "Bussi"):
+            saved = self.integrator.get_state()
+            self.bath = (float(saved["reservoir"]), int(saved["steps"]), 0)
+            a["kinetic"] = cuda.device_array(1)
         if self.kind == "Langevin":
             langevin = self.integrator
-            saved = langevin.get_state()
-            self.bath = (float(saved["reservoir"]), int(saved["steps"]), 0)
             c = math.exp(-langevin.friction * langevin.dt)
             sigmas = np.sqrt((1.0 - c * c) * langevin.kT / state.masses)
             ids = np.arange(n, dtype=np.int64) if state.ids is None else state.ids
@@ -181,10 +185,11 @@ class DeviceEngine:
         a = self.arrays
         a["positions"].copy_to_host(state.positions)
         a["velocities"].copy_to_host(state.velocities)
-        if self.kind == "Langevin":  # the bath's energy and the step count, as the CPU's
+        if self.kind in ("Langevin", "Bussi"):  # the bath's energy and steps, as the CPU's
             reservoir, steps, done = self.bath
             saved = self.integrator.get_state()
-            saved["reservoir"] = reservoir + float(a["sums"].copy_to_host()[6])
+            if self.kind == "Langevin":  # Bussi's is kept on the host (rescale_factor)
+                saved["reservoir"] = reservoir + float(a["sums"].copy_to_host()[6])
             saved["steps"] = steps + done
             self.integrator.set_state(saved)
         if self.kind == "Leapfrog" and not self.restarting:
@@ -221,6 +226,8 @@ class DeviceEngine:
         elif self.kind == "Langevin":
             self._langevin_step(state, grid)
         else:
+            if self.kind == "Bussi":
+                self._bussi_rescale(grid)
             _kick_drift[grid](*args, 0.5 * dt, dt)
             mark("integrate")
             self._update()
@@ -228,8 +235,24 @@ class DeviceEngine:
             self._forces()
             mark("forces")
             _kick[grid](a["velocities"], a["forces"], a["inverse_masses"], 0.5 * dt)
+            if self.kind == "Bussi":
+                self._bussi_rescale(grid)
+                reservoir, steps, done = self.bath
+                self.bath = (reservoir, steps, done + 1)
             mark("integrate")
         self.integrator.end_step(state)
+
+    def _bussi_rescale(self, grid) -> None:
+        """Bussi's half-step rescaling: the kinetic energy summed on the device (eight
+        bytes to the host), the factor from the integrator's own stream
+        (``Bussi.rescale_factor``, as its CPU step), the velocities scaled on the device."""
+        a, bussi = self.arrays, self.integrator
+        _kinetic_sum[1, SUM_THREADS](a["velocities"], a["masses"], a["kinetic"])
+        kinetic = float(a["kinetic"].copy_to_host()[0])
+        c = math.exp(-0.5 * bussi.dt / bussi.tau)
+        alpha = bussi.rescale_factor(kinetic, bussi.degrees_of_freedom(self.n_atoms), c)
+        if alpha != 1.0:
+            _scale[grid](a["velocities"], alpha)
 
     def _langevin_step(self, state, grid) -> None:
         """BAOAB as ``integrators.langevin.Langevin.step``: the noise of counter (step,
