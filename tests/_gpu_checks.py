@@ -20,13 +20,17 @@ from pathlib import Path
 
 
 def _states():
-    """Two small periodic LJ systems: 108 atoms in 3 x 3 x 3 cells (the cell search), and
+    """Two small periodic LJ systems: 108 atoms in 3 x 3 x 3 cells (the cell search; in
+    shuffled order, which the device's sort by cell changes), and
     32 atoms (perturbed) of two types (the O(N^2) search)."""
     import numpy as np
 
     from md.build import lattice, maxwell_boltzmann
 
     cells = maxwell_boltzmann(lattice("fcc", 3, density=0.5), 1.0, seed=3)
+    shuffled = np.random.default_rng(6).permutation(cells.n_atoms)  # far from cell order
+    cells.positions[:] = cells.positions[shuffled]
+    cells.velocities[:] = cells.velocities[shuffled]
     small = maxwell_boltzmann(lattice("fcc", 2, density=0.9), 1.5, seed=4)
     rng = np.random.default_rng(5)
     small.positions += rng.normal(0.0, 0.05, small.positions.shape)
@@ -56,7 +60,13 @@ def check_lists(results: dict) -> None:
         engine.start(state)
         counts = engine.arrays["counts"].copy_to_host()
         neighbors = engine.arrays["neighbors"].copy_to_host()
-        found = {(i, int(neighbors[k, i])) for i in range(state.n_atoms) for k in range(counts[i])}
+        user = engine.perm  # device row d holds atom user[d] (sorted by cell at the build)
+        results[f"list_{name}_sorted"] = bool(np.any(user != np.arange(state.n_atoms)))
+        found = {
+            (int(user[i]), int(user[neighbors[k, i]]))
+            for i in range(state.n_atoms)
+            for k in range(counts[i])
+        }
         d = state.positions[:, None, :] - state.positions[None, :, :]
         d -= state.box * np.rint(d / state.box)
         r2 = np.sum(d * d, axis=2)
@@ -301,6 +311,8 @@ def check_ptx(results: dict) -> None:
         "_langevin_sums": (f2, f2, f1, np.zeros(7), True),
         "_kinetic_sum": (f2, f1, np.zeros(1)),
         "_scale": (f2, 1.0),
+        "_gather": (i1, i1, i1),
+        "_gather_rows": (f2, i1, f2),
     }
     compiled, failed = [], {}
 

@@ -82,6 +82,8 @@ def _judge(results: dict) -> None:
         assert results[f"list_{name}_missing"] == 0, name
         assert results[f"list_{name}_extra"] == 0, name
     assert results["list_cells_used_cells"] and not results["list_all_pairs_used_cells"]
+    # the atoms were sorted by cell on the device, and every result is in the user's order
+    assert results["list_cells_sorted"] and results["list_all_pairs_sorted"]
     forces = [k for k in results if k.startswith("forces_")]
     assert len(forces) == 18
     for key in forces:
@@ -128,7 +130,7 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     assert results["ptx_failed"] == {}
     # the generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
     # angle styles
-    assert len(results["ptx_compiled"]) == 17 + 2 * 7 + 1 + 4
+    assert len(results["ptx_compiled"]) == 19 + 2 * 7 + 1 + 4
 
 
 # ------------------------------------------------------------------ refusals

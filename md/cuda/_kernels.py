@@ -210,6 +210,23 @@ def _search_all(positions, lengths, inverse, tilt, radius2, neighbors, counts):
 
 
 @cuda.jit
+def _gather(source, order, out):
+    """out[k] = source[order[k]] (a sort's gather of a per-atom vector)."""
+    k = cuda.grid(1)
+    if k < out.shape[0]:
+        out[k] = source[order[k]]
+
+
+@cuda.jit
+def _gather_rows(source, order, out):
+    """out[k, :] = source[order[k], :] (a sort's gather of per-atom rows)."""
+    k = cuda.grid(1)
+    if k < out.shape[0]:
+        for a in range(out.shape[1]):
+            out[k, a] = source[order[k], a]
+
+
+@cuda.jit
 def _remember(positions, reference, counts, room, flag):
     """Copy the positions the list was built at; ``flag[0] = 1`` if a row overflowed."""
     i = cuda.grid(1)

@@ -28,6 +28,8 @@ from md.cuda._kernels import (
     _cell_of,
     _cell_starts,
     _drift,
+    _gather,
+    _gather_rows,
     _kick,
     _kick_drift,
     _kinetic_sum,
@@ -56,6 +58,11 @@ logger = logging.getLogger(__name__)
 
 #: Partners of room per atom in a first list (regrown to the largest row when one overflows).
 FIRST_ROOM = 64
+#: Builds of the list between sorts of the atoms by cell (and one at the first build).
+SORT_EVERY = 10
+#: The per-atom arrays a sort moves (forces and observables are computed after it).
+_PER_ATOM = ("positions", "velocities", "inverse_masses", "masses", "types", "ids", "sigmas")
+_PER_ATOM += ("half",)
 
 
 class DeviceEngine:
@@ -137,8 +144,10 @@ class DeviceEngine:
             for _, _, _, items, item_types, table in self.bonded
         ]
         self.n_atoms = n
-        self.use_cells, self.n_cells = _cell_grid(state, self.radius)
-        if self.use_cells:
+        self.perm = np.arange(n)  # device row d holds the user's atom perm[d]
+        self.n_cells = _cell_grid(state, self.radius)
+        self.use_cells = self.n_cells is not None and min(self.n_cells) >= 3
+        if self.n_cells is not None:  # cells for the search, or only for sorting
             n_cells = int(np.prod(self.n_cells))
             a["n_cells"] = cuda.to_device(np.asarray(self.n_cells, np.int64))
             a["box"] = cuda.to_device(np.ascontiguousarray(state.box, np.float64))
@@ -169,6 +178,7 @@ class DeviceEngine:
             self.restarting = saved is None
         self.arrays = a
         self.active = True
+        self.n_sorts = 0
         self._build()
         self._forces()
 
@@ -183,8 +193,8 @@ class DeviceEngine:
         """Copy positions and velocities (and a leapfrog's half-step velocities) into
         ``state``'s arrays; NonFiniteError if they are no longer finite."""
         a = self.arrays
-        a["positions"].copy_to_host(state.positions)
-        a["velocities"].copy_to_host(state.velocities)
+        state.positions[self.perm] = a["positions"].copy_to_host()
+        state.velocities[self.perm] = a["velocities"].copy_to_host()
         if self.kind in ("Langevin", "Bussi"):  # the bath's energy and steps, as the CPU's
             reservoir, steps, done = self.bath
             saved = self.integrator.get_state()
@@ -194,9 +204,9 @@ class DeviceEngine:
             self.integrator.set_state(saved)
         if self.kind == "Leapfrog" and not self.restarting:
             saved = self.integrator.get_state()
-            self.integrator.set_state(
-                {"half_velocities": a["half"].copy_to_host(), "statistics": saved["statistics"]}
-            )
+            half = np.empty((self.n_atoms, 3))
+            half[self.perm] = a["half"].copy_to_host()
+            self.integrator.set_state({"half_velocities": half, "statistics": saved["statistics"]})
         if not (np.all(np.isfinite(state.positions)) and np.all(np.isfinite(state.velocities))):
             raise NonFiniteError("positions or velocities became NaN or infinite on the device")
 
@@ -304,9 +314,9 @@ class DeviceEngine:
         totals = self._totals()
         xx, yy, zz, yz, xz, xy = totals[1:7]
         virial = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-        return ForceResult(
-            energy=float(totals[0]), forces=self.arrays["forces"].copy_to_host(), virial=virial
-        )
+        forces = np.empty((self.n_atoms, 3))
+        forces[self.perm] = self.arrays["forces"].copy_to_host()
+        return ForceResult(energy=float(totals[0]), forces=forces, virial=virial)
 
     def kinetic_energy(self) -> float:
         return float(self._totals()[7])
@@ -328,19 +338,54 @@ class DeviceEngine:
         if flag.copy_to_host()[0]:
             self._build()
 
+    def _bin(self) -> None:
+        """The counting sort of the atoms by cell: ``order`` the device rows cell by cell."""
+        a = self.arrays
+        grid = launch(self.n_atoms)
+        counts = a["cell_counts"]
+        counts.copy_to_device(np.zeros(counts.shape[0], np.int32))
+        _cell_of[grid](a["positions"], a["box"], a["n_cells"], a["cells"], counts)
+        _cell_starts[1, 1](counts, a["cell_starts"], a["cursors"])
+        _scatter[grid](a["cells"], a["cell_starts"], a["cursors"], a["order"])
+        _sort_cells[launch(counts.shape[0])](a["cell_starts"], a["order"])
+
+    def _sort(self) -> None:
+        """Put the device's rows in cell order (atoms near in space near in memory, as
+        HOOMD-blue sorts them): every per-atom array gathered on the device, the bonds' and
+        angles' atom numbers and rows renumbered on the host. Invisible: :meth:`pull` and
+        :meth:`result` give the user's order (``perm``)."""
+        a = self.arrays
+        self._bin()
+        order = a["order"].copy_to_host().astype(np.int64)
+        grid = launch(self.n_atoms)
+        for name in _PER_ATOM:
+            if name in a:
+                moved = cuda.device_array_like(a[name])
+                gather = _gather_rows if len(a[name].shape) == 2 else _gather
+                gather[grid](a[name], a["order"], moved)
+                a[name] = moved
+        self.perm = self.perm[order]
+        row = np.empty(self.n_atoms, np.int64)
+        row[self.perm] = np.arange(self.n_atoms)  # the device row of each user atom
+        a["bonded"] = [
+            tuple(
+                cuda.to_device(x)
+                for x in (row[items], item_types, table, *_by_atom(row[items], self.n_atoms))
+            )
+            for _, _, _, items, item_types, table in self.bonded
+        ]
+        self.n_sorts += 1
+
     def _build(self) -> None:
         a = self.arrays
         n, grid = self.n_atoms, launch(self.n_atoms)
+        if self.n_cells is not None and self.n_builds % SORT_EVERY == 0:
+            self._sort()
         while True:
             a["flag"].copy_to_device(np.zeros(1, np.int32))
             geometry = (a["positions"], a["lengths"], a["inverse"], a["tilt"])
             if self.use_cells:
-                counts = a["cell_counts"]
-                counts.copy_to_device(np.zeros(counts.shape[0], np.int32))
-                _cell_of[grid](a["positions"], a["box"], a["n_cells"], a["cells"], counts)
-                _cell_starts[1, 1](counts, a["cell_starts"], a["cursors"])
-                _scatter[grid](a["cells"], a["cell_starts"], a["cursors"], a["order"])
-                _sort_cells[launch(counts.shape[0])](a["cell_starts"], a["order"])
+                self._bin()
                 _search_cells[grid](
                     *geometry,
                     a["n_cells"],
@@ -399,10 +444,10 @@ def _by_atom(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return starts, np.ascontiguousarray(codes[order])
 
 
-def _cell_grid(state, radius: float) -> tuple[bool, tuple[int, int, int]]:
-    """Whether the cell search serves (an orthorhombic cell, periodic along every axis, at
-    least three cells of ``radius`` along each), and the cells along each axis."""
+def _cell_grid(state, radius: float) -> tuple[int, int, int] | None:
+    """The cells of at least ``radius`` along each axis of an orthorhombic cell periodic
+    along every axis (the cell search serves where each has three or more; sorting by
+    cell, wherever there are any); None for other cells."""
     if not (np.all(state.pbc) and np.all(state.tilt == 0.0)):
-        return False, (1, 1, 1)
-    n_cells = tuple(int(length // radius) for length in state.box)
-    return min(n_cells) >= 3, n_cells
+        return None
+    return tuple(max(1, int(length // radius)) for length in state.box)
