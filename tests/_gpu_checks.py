@@ -15,6 +15,7 @@ import io
 import json
 import sys
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -129,7 +130,8 @@ def check_runs(results: dict) -> None:
         return Bussi(dt=dt, temperature=1.2, tau=0.05, seed=8)
 
     for name, integrator, index, steps in (
-        ("verlet", VelocityVerlet, 0, 100),
+        ("verlet", VelocityVerlet, 1, 100),
+        ("verlet_cells", VelocityVerlet, 0, 30),
         ("leapfrog", Leapfrog, 1, 40),
         ("langevin", langevin, 1, 40),
         ("bussi", bussi, 1, 40),
@@ -141,7 +143,7 @@ def check_runs(results: dict) -> None:
             for s, device in zip(states, ("cpu", "cuda"), strict=True)
         ]
         seen = []
-        runs[1].attach(lambda sim, seen=seen: seen.append(sim.thermo()), interval=20)
+        runs[1].attach(lambda sim, seen=seen: seen.append(sim.thermo()), interval=10)
         for sim in runs:
             sim.run(steps // 2)
             sim.run(steps - steps // 2)  # two runs: the device state is uploaded again
@@ -374,11 +376,14 @@ def main(argv: list[str]) -> int:
         check_ptx(results)
         out.write_text(json.dumps(results, indent=1))
         return 0
-    check_lists(results)
-    check_forces(results)
-    check_runs(results)
-    check_polymer(results)
+    seconds = results["seconds"] = {}
+    for check in (check_lists, check_forces, check_runs, check_polymer):
+        start = time.process_time()
+        check(results)
+        seconds[check.__name__] = time.process_time() - start
+    start = time.process_time()
     check_checkpoint(results, out.parent)
+    seconds["check_checkpoint"] = time.process_time() - start
     out.write_text(json.dumps(results, indent=1))
     return 0
 
