@@ -205,7 +205,8 @@ def check_polymer(results: dict) -> None:
 
 
 def check_checkpoint(results: dict, folder: Path) -> None:
-    """``md run --device cuda`` (on the simulator where the environment asks for it) for 30
+    """``md run --device cuda`` (on the simulator where the environment asks for it), after
+    a ``[minimize]`` stage on the CPU, for 30
     steps, resumed on the CPU to 60, against 60 on the
     CPU; a leapfrog run, so the half-step velocities go through the checkpoint."""
     import h5py
@@ -225,6 +226,8 @@ def check_checkpoint(results: dict, folder: Path) -> None:
             'type = "leapfrog"\ndt = 0.005',
             "[run]",
             "steps = 60\nthermo_every = 10\nskin = 0.3",
+            "[minimize]",  # on the CPU, before the dynamics go to the device
+            "fmax = 0.5",
             "[output]",
             "every = 10\nvelocities = true\ncheckpoint_every = 10",
         ]
