@@ -48,8 +48,10 @@ def _relative(a, b) -> float:
 
 
 def check_lists(results: dict) -> None:
-    """The device list against the O(N^2) pairs within the list radius, both searches."""
+    """The device list against the O(N^2) pairs within the list radius, both searches;
+    the sums over one block and over several."""
     import numpy as np
+    from numba import cuda
 
     from md.cuda.engine import DeviceEngine
     from md.forcefield import ForceField
@@ -78,6 +80,16 @@ def check_lists(results: dict) -> None:
         results[f"list_{name}_missing"] = len(expected - found)
         results[f"list_{name}_extra"] = len(found - expected)
         results[f"list_{name}_pairs"] = len(expected)
+        # the sums over three blocks of 64 threads (108 atoms take one by default): two
+        # blocks hold atoms; the totals as the CPU's
+        one = engine.result()
+        engine.sum_blocks = 3
+        engine.arrays["partial"] = cuda.device_array((3, 8))
+        three = engine.result()
+        cpu = forcefield.compute(state)
+        results[f"sums_{name}_blocks"] = max(
+            abs(x.energy - cpu.energy) / abs(cpu.energy) for x in (one, three)
+        )
 
 
 def check_forces(results: dict) -> None:
@@ -310,11 +322,13 @@ def check_ptx(results: dict) -> None:
         "_kick_drift": (f2, f2, f2, f1, 1.0, 1.0),
         "_kick": (f2, f2, f1, 1.0),
         "_synchronise": (f2, f2, f2, f1, 1.0),
-        "_sum_observables": (observables, f2, f1, np.zeros(kernels.N_OBSERVABLES)),
+        "_sum_observables": (observables, f2, f1, observables),
+        "_reduce_columns": (observables, 4, 8, np.zeros(8), 0),
+        "_bath": (np.zeros(7),),
         "_drift": (f2, f2, 1.0),
         "_relax": (f2, f2, 1.0, np.zeros(7), True),
-        "_langevin_sums": (f2, f2, f1, np.zeros(7), True),
-        "_kinetic_sum": (f2, f1, np.zeros(1)),
+        "_langevin_sums": (f2, f2, f1, observables, True),
+        "_kinetic_sum": (f2, f1, observables),
         "_scale": (f2, 1.0),
         "_gather": (i1, i1, i1),
         "_gather_rows": (f2, i1, f2),

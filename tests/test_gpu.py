@@ -86,6 +86,7 @@ def _judge(results: dict) -> None:
     assert results["list_cells_sorted"] and results["list_all_pairs_sorted"]
     forces = [k for k in results if k.startswith("forces_")]
     assert len(forces) == 18
+    assert results["sums_cells_blocks"] < 1e-12 and results["sums_all_pairs_blocks"] < 1e-12
     for key in forces:
         limit = 1e-12 if "_double_" in key else 3e-7  # mixed: float32 round-off
         assert results[key] < limit, (key, results[key])
@@ -131,7 +132,7 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     assert results["ptx_failed"] == {}
     # the generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
     # angle styles
-    assert len(results["ptx_compiled"]) == 19 + 2 * 7 + 1 + 4
+    assert len(results["ptx_compiled"]) == 21 + 2 * 7 + 1 + 4
 
 
 # ------------------------------------------------------------------ refusals

@@ -29,8 +29,9 @@ from potentials.device_terms import retarget
 
 #: Threads per block of the per-atom kernels.
 BLOCK = 128
-#: Threads of the one block that sums the observables (a power of two).
+#: Threads per block of the sums (a power of two), and the most blocks they take.
 SUM_THREADS = 64
+SUM_BLOCKS = 256
 #: Columns of the per-atom observables: energy, the virial (xx, yy, zz, yz, xz, xy), and
 #: the kinetic energy (filled by the sum kernel).
 N_OBSERVABLES = 8
@@ -569,15 +570,16 @@ def _relax(velocities, noise, c, sums, fix_com):
 
 
 @cuda.jit
-def _langevin_sums(velocities, noise, masses, sums, before):
-    """One block: ``sums[0]`` the kinetic energy (into ``sums[5]`` instead when not
-    ``before``), and, ``before``, ``sums[1:4]`` the noise's momentum and ``sums[4]`` the
-    mass; after the O step, ``sums[6] -= sums[5] - sums[0]`` (the bath's energy)."""
+def _langevin_sums(velocities, noise, masses, partial, before):
+    """Block b's share into ``partial[b]``: the kinetic energy (column 0) and, ``before``
+    the O step, the noise's momentum (1 to 3) and the mass (4); :func:`_reduce_columns`
+    adds the blocks' rows in a fixed order, :func:`_bath` books the O step's heat."""
     t = cuda.threadIdx.x
     shared = cuda.shared.array((SUM_THREADS, 5), dtype=np.float64)
     for c in range(5):
         shared[t, c] = 0.0
-    for i in range(t, velocities.shape[0], SUM_THREADS):
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
         m = masses[i]
         v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
         shared[t, 0] += 0.5 * m * v2
@@ -585,41 +587,33 @@ def _langevin_sums(velocities, noise, masses, sums, before):
             for a in range(3):
                 shared[t, 1 + a] += m * noise[i, a]
             shared[t, 4] += m
-    cuda.syncthreads()
-    width = SUM_THREADS // 2
-    while width > 0:
-        if t < width:
-            for c in range(5):
-                shared[t, c] += shared[t + width, c]
-        cuda.syncthreads()
-        width //= 2
+    _tree(shared, t, 5)
     if t == 0:
-        if before:
-            for c in range(5):
-                sums[c] = shared[0, c]
-        else:
-            sums[5] = shared[0, 0]
-            sums[6] -= sums[5] - sums[0]
+        for c in range(5):
+            partial[cuda.blockIdx.x, c] = shared[0, c]
 
 
 @cuda.jit
-def _kinetic_sum(velocities, masses, out):
-    """One block: ``out[0]`` = the kinetic energy (Bussi's rescaling reads it)."""
+def _bath(sums):
+    """After the O step: ``sums[6] -= sums[5] - sums[0]`` (the heat bath's energy gains
+    what the kinetic energy lost)."""
+    if cuda.grid(1) == 0:
+        sums[6] -= sums[5] - sums[0]
+
+
+@cuda.jit
+def _kinetic_sum(velocities, masses, partial):
+    """Block b's share of the kinetic energy into ``partial[b, 0]`` (Bussi's rescaling)."""
     t = cuda.threadIdx.x
-    shared = cuda.shared.array(SUM_THREADS, dtype=np.float64)
-    shared[t] = 0.0
-    for i in range(t, velocities.shape[0], SUM_THREADS):
+    shared = cuda.shared.array((SUM_THREADS, 1), dtype=np.float64)
+    shared[t, 0] = 0.0
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
         v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
-        shared[t] += 0.5 * masses[i] * v2
-    cuda.syncthreads()
-    width = SUM_THREADS // 2
-    while width > 0:
-        if t < width:
-            shared[t] += shared[t + width]
-        cuda.syncthreads()
-        width //= 2
+        shared[t, 0] += 0.5 * masses[i] * v2
+    _tree(shared, t, 1)
     if t == 0:
-        out[0] = shared[0]
+        partial[cuda.blockIdx.x, 0] = shared[0, 0]
 
 
 @cuda.jit
@@ -633,30 +627,50 @@ def _scale(velocities, alpha):
 
 # ---------------------------------------------------------------- sums
 @cuda.jit
-def _sum_observables(observables, velocities, masses, totals):
-    """``totals[c]`` = the sum over atoms of observable column c, the kinetic energy (column
-    7) computed here; one block of SUM_THREADS threads, each a strided share, then a tree:
-    the same order on every run."""
+def _sum_observables(observables, velocities, masses, partial):
+    """Block b's share of each observable column into ``partial[b]``, the kinetic energy
+    (column 7) computed here; each block of SUM_THREADS threads takes a strided share, then
+    a tree, and :func:`_reduce_columns` adds the blocks' rows: the same order on every run,
+    with no atomics."""
     t = cuda.threadIdx.x
     shared = cuda.shared.array((SUM_THREADS, N_OBSERVABLES), dtype=np.float64)
     for c in range(N_OBSERVABLES):
         shared[t, c] = 0.0
-    for i in range(t, observables.shape[0], SUM_THREADS):
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, observables.shape[0], SUM_THREADS * cuda.gridDim.x):
         for c in range(N_OBSERVABLES - 1):
             shared[t, c] += observables[i, c]
         v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
         shared[t, N_OBSERVABLES - 1] += 0.5 * masses[i] * v2
+    _tree(shared, t, N_OBSERVABLES)
+    if t == 0:
+        for c in range(N_OBSERVABLES):
+            partial[cuda.blockIdx.x, c] = shared[0, c]
+
+
+@cuda.jit(device=True, inline="always")
+def _tree(shared, t, n_columns):
+    """Sum the block's SUM_THREADS rows of ``shared`` into row 0, pairwise."""
     cuda.syncthreads()
     width = SUM_THREADS // 2
     while width > 0:
         if t < width:
-            for c in range(N_OBSERVABLES):
+            for c in range(n_columns):
                 shared[t, c] += shared[t + width, c]
         cuda.syncthreads()
         width //= 2
-    if t == 0:
-        for c in range(N_OBSERVABLES):
-            totals[c] = shared[0, c]
+
+
+@cuda.jit
+def _reduce_columns(partial, n_blocks, n_columns, out, offset):
+    """``out[offset + c]`` = the sum of ``partial[:n_blocks, c]``, one thread per column,
+    blocks in order (one block of at least ``n_columns`` threads)."""
+    c = cuda.threadIdx.x
+    if c < n_columns:
+        total = 0.0
+        for b in range(n_blocks):
+            total += partial[b, c]
+        out[offset + c] = total
 
 
 __all__ = [

@@ -24,7 +24,9 @@ from integrators.langevin import noise_of_atom
 from md.box import periodic_lengths, periodic_tilt
 from md.cuda._kernels import (
     N_OBSERVABLES,
+    SUM_BLOCKS,
     SUM_THREADS,
+    _bath,
     _cell_of,
     _cell_starts,
     _drift,
@@ -35,6 +37,7 @@ from md.cuda._kernels import (
     _kinetic_sum,
     _langevin_sums,
     _moved,
+    _reduce_columns,
     _relax,
     _remember,
     _scale,
@@ -144,6 +147,9 @@ class DeviceEngine:
             for _, _, _, items, item_types, table in self.bonded
         ]
         self.n_atoms = n
+        # blocks of the sums: a few thousand atoms each, at most SUM_BLOCKS
+        self.sum_blocks = min(SUM_BLOCKS, max(1, n // (16 * SUM_THREADS)))
+        a["partial"] = cuda.device_array((self.sum_blocks, N_OBSERVABLES))
         self.perm = np.arange(n)  # device row d holds the user's atom perm[d]
         self.n_cells = _cell_grid(state, self.radius)
         self.use_cells = self.n_cells is not None and min(self.n_cells) >= 3
@@ -257,7 +263,9 @@ class DeviceEngine:
         bytes to the host), the factor from the integrator's own stream
         (``Bussi.rescale_factor``, as its CPU step), the velocities scaled on the device."""
         a, bussi = self.arrays, self.integrator
-        _kinetic_sum[1, SUM_THREADS](a["velocities"], a["masses"], a["kinetic"])
+        blocks = self.sum_blocks
+        _kinetic_sum[blocks, SUM_THREADS](a["velocities"], a["masses"], a["partial"])
+        _reduce_columns[1, 32](a["partial"], blocks, 1, a["kinetic"], 0)
         kinetic = float(a["kinetic"].copy_to_host()[0])
         c = math.exp(-0.5 * bussi.dt / bussi.tau)
         alpha = bussi.rescale_factor(kinetic, bussi.degrees_of_freedom(self.n_atoms), c)
@@ -274,9 +282,13 @@ class DeviceEngine:
         _drift[grid](a["positions"], velocities, half)  # A
         step = np.uint64(state.step + 1)
         self.noise_kernel[grid](*self.key, step, a["ids"], a["sigmas"], noise)  # O
-        _langevin_sums[1, SUM_THREADS](velocities, noise, masses, sums, True)
+        blocks, partial = self.sum_blocks, a["partial"]
+        _langevin_sums[blocks, SUM_THREADS](velocities, noise, masses, partial, True)
+        _reduce_columns[1, 32](partial, blocks, 5, sums, 0)
         _relax[grid](velocities, noise, self.relax[0], sums, self.relax[1])
-        _langevin_sums[1, SUM_THREADS](velocities, noise, masses, sums, False)
+        _langevin_sums[blocks, SUM_THREADS](velocities, noise, masses, partial, False)
+        _reduce_columns[1, 32](partial, blocks, 1, sums, 5)
+        _bath[1, 1](sums)
         _drift[grid](a["positions"], velocities, half)  # A
         mark("integrate")
         self._update()
@@ -324,9 +336,11 @@ class DeviceEngine:
     # ------------------------------------------------------------ helpers
     def _totals(self) -> np.ndarray:
         a = self.arrays
-        _sum_observables[1, SUM_THREADS](
-            a["observables"], a["velocities"], a["masses"], a["totals"]
+        blocks = self.sum_blocks
+        _sum_observables[blocks, SUM_THREADS](
+            a["observables"], a["velocities"], a["masses"], a["partial"]
         )
+        _reduce_columns[1, 32](a["partial"], blocks, N_OBSERVABLES, a["totals"], 0)
         return a["totals"].copy_to_host()
 
     def _update(self) -> None:
