@@ -144,9 +144,9 @@ def check_runs(results: dict) -> None:
     for name, integrator, index, steps in (
         ("verlet", VelocityVerlet, 1, 100),
         ("verlet_cells", VelocityVerlet, 0, 30),
-        ("leapfrog", Leapfrog, 1, 40),
-        ("langevin", langevin, 1, 40),
-        ("bussi", bussi, 1, 40),
+        ("leapfrog", Leapfrog, 1, 30),
+        ("langevin", langevin, 1, 30),
+        ("bussi", bussi, 1, 30),
     ):
         states = [_states()[index] for _ in range(2)]
         cutoff = (1.7, 1.3)[index]

@@ -90,7 +90,7 @@ def _judge(results: dict) -> None:
     for key in forces:
         limit = 1e-12 if "_double_" in key else 3e-7  # mixed: float32 round-off
         assert results[key] < limit, (key, results[key])
-    runs = {"verlet": 100, "verlet_cells": 30, "leapfrog": 40, "langevin": 40, "bussi": 40}
+    runs = {"verlet": 100, "verlet_cells": 30, "leapfrog": 30, "langevin": 30, "bussi": 30}
     for name, steps in runs.items():
         assert results[f"run_{name}_steps"] == [steps, steps, True]
         assert results[f"run_{name}_positions"] < 1e-10, name
