@@ -82,6 +82,19 @@ def _uniform(word):
     return ((word >> _11) + np.uint64(1)) * _UNIT
 
 
+@njit(cache=True, inline="always")
+def atom_gaussians(k0, k1, s, atom):
+    """The three standard normal numbers of counter (s, atom) under the key (k0, k1), all
+    uint64: Box-Muller on Philox's four words. ``gaussian_noise``'s per atom, and the
+    GPU path's (``md.cuda`` compiles this function for the device)."""
+    zero = np.uint64(0)
+    w0, w1, w2, w3 = philox4x64(k0, k1, s, atom, zero, zero)
+    r = np.sqrt(-2.0 * np.log(_uniform(w0)))
+    angle = _TWO_PI * _uniform(w1)
+    g2 = np.sqrt(-2.0 * np.log(_uniform(w2))) * np.cos(_TWO_PI * _uniform(w3))
+    return r * np.cos(angle), r * np.sin(angle), g2
+
+
 @njit(cache=True)
 def gaussian_noise(key, step, ids, out):
     """Write three standard normal numbers per atom into ``out`` (N, 3): those of counter
@@ -89,11 +102,5 @@ def gaussian_noise(key, step, ids, out):
     k0 = np.uint64(key[0])
     k1 = np.uint64(key[1])
     s = np.uint64(step)
-    zero = np.uint64(0)
     for i in range(out.shape[0]):
-        w0, w1, w2, w3 = philox4x64(k0, k1, s, np.uint64(ids[i]), zero, zero)
-        r = np.sqrt(-2.0 * np.log(_uniform(w0)))
-        angle = _TWO_PI * _uniform(w1)
-        out[i, 0] = r * np.cos(angle)
-        out[i, 1] = r * np.sin(angle)
-        out[i, 2] = np.sqrt(-2.0 * np.log(_uniform(w2))) * np.cos(_TWO_PI * _uniform(w3))
+        out[i, 0], out[i, 1], out[i, 2] = atom_gaussians(k0, k1, s, np.uint64(ids[i]))

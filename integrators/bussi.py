@@ -97,8 +97,17 @@ class Bussi(Thermostat):
 
     def _rescale(self, state, n_dof: int, c: float) -> None:
         kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
+        alpha = self.rescale_factor(kinetic, n_dof, c)
+        if alpha != 1.0:
+            state.velocities *= alpha
+
+    def rescale_factor(self, kinetic: float, n_dof: int, c: float) -> float:
+        """The factor of one half-step's velocity rescaling at kinetic energy ``kinetic``,
+        drawn from the integrator's stream, the bath's energy updated (1.0, and nothing
+        drawn, for a system at rest). The GPU path (``md.cuda``) sums the kinetic energy on
+        the device and calls this, so its run follows the CPU's stream."""
         if kinetic <= 0.0 or n_dof <= 0:
-            return  # nothing to rescale: a system at rest stays at rest
+            return 1.0  # nothing to rescale: a system at rest stays at rest
         target = 0.5 * n_dof * self.kT
         # Exact update of K over the interval: K_new = (sqrt(c K) + s r)^2 + s^2 chi2(n - 1),
         # s^2 = (1 - c) K0 / n_dof; alpha keeps the sign of sqrt(c K) + s r.
@@ -108,8 +117,8 @@ class Bussi(Thermostat):
         root = math.sqrt(c * kinetic) + s * r
         new_kinetic = root * root + s * s * rest
         alpha = math.copysign(math.sqrt(new_kinetic / kinetic), root)
-        state.velocities *= alpha
         self.reservoir -= new_kinetic - kinetic
+        return alpha
 
     def describe(self) -> dict:
         return self._describe("bussi", tau=self.tau, seed=self.seed)

@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit
 
 from integrators._kernels import _drift, kick
-from integrators._noise import gaussian_noise, seed_key
+from integrators._noise import atom_gaussians, gaussian_noise, seed_key
 from integrators._thermostat import FIX_COM, SEED, TEMPERATURE, Thermostat
 from integrators.base import DT
 from integrators.rattle import CONSTRAINTS
@@ -245,4 +245,8 @@ def _relax(velocities, noise, c, drift):
         velocities[i, 2] = c * velocities[i, 2] + noise[i, 2] - drift[2]
 
 
-__all__ = ["Langevin"]
+#: The noise of one atom at one step (``integrators._noise.atom_gaussians``), public for the
+#: GPU path, which compiles the same function for the device.
+noise_of_atom = atom_gaussians
+
+__all__ = ["Langevin", "noise_of_atom"]

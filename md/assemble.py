@@ -17,7 +17,7 @@ from integrators.base import ForceSplit, constraints_of
 from md.checkpoint import restore
 from md.config import Config, build_system, integrator_from_config, potential_from_config
 from md.distributed import DistributedSimulation, ranks_per_node
-from md.errors import ConfigError, ConvergenceError, NonFiniteError
+from md.errors import ConfigError, ConvergenceError, DeviceError, NonFiniteError
 from md.parallel import max_threads, set_threads
 from md.rigid_setup import rigid_components
 from md.simulation import Simulation
@@ -137,8 +137,14 @@ def build_simulation(config: Config, checkpoint, saved_path: Path, threads, rank
                 outer_skin=config.run.outer_skin,
                 neighbor_every=config.run.neighbor_every,
                 neighbor_check=config.run.neighbor_check,
+                device=config.run.device,
             )
         else:
+            if config.run.device != "cpu":
+                raise DeviceError(
+                    f'[run] device = "{config.run.device}": a run over MPI ranks does not run '
+                    "on the device; run it as one process (without mpiexec)"
+                )
             if (config.run.neighbor_every, config.run.neighbor_check) != (1, True):
                 raise ValueError(
                     "[run] neighbor_every and neighbor_check: a run decomposed over MPI ranks "

@@ -406,6 +406,18 @@ class RunConfig:
         "integrator in double; bonds and angles stay double. A checkpoint keeps it: "
         "a resume must ask for the same.",
     )
+    device: str = key(
+        "cpu",
+        "string",
+        choices=("cpu", "cuda"),
+        doc="`cuda`: the time step on an NVIDIA GPU (numba-cuda, `pip install "
+        "'leapmd[cuda]'`; `md run --device` overrides it): the pair, bond and angle "
+        "potentials of the frames, velocity Verlet, leapfrog, Langevin and Bussi; anything "
+        "else is refused "
+        "before the run "
+        "writes anything. With `NUMBA_ENABLE_CUDASIM=1` it runs on numba's CUDA simulator. "
+        "Not physics: a checkpoint of either device resumes on the other.",
+    )
 
 
 @dataclass(frozen=True)

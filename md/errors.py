@@ -148,6 +148,11 @@ class ConfigError(ValueError):
     """An invalid configuration: the message names the file, key and value."""
 
 
+class DeviceError(ValueError):
+    """A run asks for a device (``[run] device = "cuda"``) that cannot run it: numba-cuda or
+    a GPU is missing, or something in the run is not ported to the device (named)."""
+
+
 class PluginError(ValueError):
     """A plug-in a config names cannot be used: not found, its import raised, or it is not
     a class of the kind its section needs or its constructor does not fit its keys (the
@@ -207,6 +212,7 @@ __all__ = [
     "ConstraintError",
     "ConvergenceError",
     "DecompositionError",
+    "DeviceError",
     "NonFiniteError",
     "OutputBusyError",
     "PairCollapseError",

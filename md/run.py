@@ -520,6 +520,7 @@ def prepare(
     overwrite: bool = False,
     resume: bool = False,
     threads: int | None = None,
+    device: str | None = None,
 ) -> PreparedRun:
     """Validate and build the run a config describes; write nothing.
 
@@ -539,7 +540,7 @@ def prepare(
         raise ConfigError(str(error)) from None
     inputs, error = None, None
     try:
-        inputs = _inputs(path_or_config, steps, output, overwrite, resume, ranks)
+        inputs = _inputs(path_or_config, steps, output, overwrite, resume, ranks, device)
     except INPUT_ERRORS as caught:
         if ranks is None:
             raise
@@ -587,7 +588,7 @@ def prepare(
     )
 
 
-def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks):
+def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks, device=None):
     """Read and check the config, the output paths and a checkpoint to resume (no
     collective calls: a decomposed run's ranks agree on the outcome afterwards)."""
     config = path_or_config if isinstance(path_or_config, Config) else load_config(path_or_config)
@@ -599,6 +600,10 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
             )
         except ValueError as error:
             raise ConfigError(str(error)) from None
+    if device is not None:
+        if device not in ("cpu", "cuda"):
+            raise ConfigError(f"--device must be cpu or cuda, got {device!r}")
+        config = replace(config, run=replace(config.run, device=device))
     if ranks is not None and config.seed is None:
         config = _seeded(config, ranks)
     where = "--output" if output is not None else f"{config.source}: [output] path"
@@ -623,8 +628,8 @@ def _inputs(path_or_config, steps, output, overwrite: bool, resume: bool, ranks)
             raise ConfigError(
                 f"--resume: {config_file} changed the physics since checkpoint "
                 f"{saved_path} was written ({'; '.join(changes)}); only [run] steps, "
-                "thermo_every, threads, decomposition, balance_every, balance_threshold and "
-                "[output] every/checkpoint_every may change"
+                "thermo_every, threads, device, decomposition, balance_every, "
+                "balance_threshold and [output] every/checkpoint_every may change"
             )
         if output.exists():
             _check_resumable(output, checkpoint)
@@ -669,6 +674,7 @@ def run_config(
     overwrite: bool = False,
     resume: bool = False,
     threads: int | None = None,
+    device: str | None = None,
 ) -> tuple[Simulation, RunSummary]:
     """Run a TOML config as ``md run`` does; return the Simulation and a summary.
 
@@ -687,6 +693,8 @@ def run_config(
         Continue from the output's checkpoint (bit for bit).
     threads : int, optional
         Kernel threads, overriding ``[run] threads`` (default: every core).
+    device : {"cpu", "cuda"}, optional
+        Where the time step runs, overriding ``[run] device`` (see :mod:`md.cuda`).
 
     Returns
     -------
@@ -701,7 +709,7 @@ def run_config(
     ConfigError, CheckpointError, TrajectoryError
         Before anything is written, for bad input.
     """
-    prepared = prepare(path_or_config, steps, output, overwrite, resume, threads)
+    prepared = prepare(path_or_config, steps, output, overwrite, resume, threads, device)
     if prepared.complete:
         return prepared.sim, RunSummary(
             COMPLETED,

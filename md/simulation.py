@@ -11,6 +11,7 @@ import numpy as np
 
 from integrators.base import ThermoTerms
 from md.box import cell_deformation
+from md.cuda import device_engine
 from md.errors import NonFiniteError, SimulationError
 from md.forcefield import ForceField
 from md.neighbors import max_displacement2
@@ -89,6 +90,11 @@ class Simulation:
         check yes/no``, GROMACS's ``nstlist``. The defaults, 1 and True, are exact;
         anything else can miss pairs between looks (the energy drifts): see
         :class:`md.neighbors.NeighborList`.
+    device : {"cpu", "cuda"}
+        ``"cuda"`` runs the steps on an NVIDIA GPU (:mod:`md.cuda`): the state stays on
+        the device during :meth:`run` and comes back for the observers only on the
+        steps they run. What is not ported (see :func:`md.cuda.refusal`) raises
+        :class:`md.errors.DeviceError` here. ``max_displacement`` is not checked there.
 
     Attributes
     ----------
@@ -121,6 +127,7 @@ class Simulation:
         outer_skin: float | None = None,
         neighbor_every: int = 1,
         neighbor_check: bool = True,
+        device: str = "cpu",
     ) -> None:
         if threads is not None:
             set_threads(threads)
@@ -135,6 +142,15 @@ class Simulation:
         )
         self.forcefield.check(state)
         self.integrator = integrator
+        self.device = device
+        self._engine = device_engine(
+            device,
+            state,
+            self.forcefield,
+            integrator,
+            neighbor_every=neighbor_every,
+            neighbor_check=neighbor_check,
+        )
         self.units = get_units(units)
         self.timings = {"integrate": 0.0, "output": 0.0}
         self._observers: list[tuple[Observer, int]] = []
@@ -204,6 +220,8 @@ class Simulation:
         """
         if isinstance(n_steps, bool) or not isinstance(n_steps, int | np.integer) or n_steps < 0:
             raise ValueError(f"n_steps must be a non-negative integer, got {n_steps!r}")
+        if self._engine is not None:
+            return self._run_on_device(int(n_steps))
         state = self.state
         if state.step == 0 and not self._observed_start:
             self._guarded(
@@ -234,6 +252,33 @@ class Simulation:
             if self._observers:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False
+
+    def _run_on_device(self, n_steps: int) -> None:
+        """:meth:`run` on the device: the state comes back only before observers run."""
+        state, engine = self.state, self._engine
+        start = time.perf_counter()
+        hint = "the starting configuration cannot be evaluated"
+        self._guarded(lambda: engine.start(state), state.step, hint=hint)
+        self.timings["integrate"] += time.perf_counter() - start
+        try:
+            if state.step == 0 and not self._observed_start:
+                self._guarded(lambda: engine.pull(state), state.step, hint=hint)
+                self._notify(all_observers=True)
+                self._observed_start = True
+            intervals = [interval for _, interval in self._observers]
+            for _ in range(n_steps):
+                if self._stopping():
+                    break
+                start = time.perf_counter()
+                engine.step(state)
+                if any(state.step % k == 0 for k in intervals):
+                    self._guarded(lambda: engine.pull(state), state.step)
+                    self.timings["integrate"] += time.perf_counter() - start
+                    self._notify(all_observers=False)
+                else:
+                    self.timings["integrate"] += time.perf_counter() - start
+        finally:
+            self._guarded(lambda: engine.finish(state), state.step)
 
     def _stopping(self) -> bool:
         """Whether :meth:`run` stops before the next step (a decomposed run also agrees on
@@ -308,7 +353,8 @@ class Simulation:
         ``translational_temperature`` and ``rotational_temperature``.
         """
         state = self.state
-        result = self.forcefield.compute(state)
+        engine = self._engine
+        result = engine.result() if engine and engine.active else self.forcefield.compute(state)
         # Sums over atoms go through global_sum: over every rank in a decomposed run.
         kinetic = global_sum(kinetic_energy(state.velocities, state.masses))
         # Thermostats and constrained integrators (integrators/_thermostat.py) give their

@@ -486,6 +486,11 @@ class _TermPotential(ListedTuples):
         if getattr(type(self), style) == f"{self.ITEM}_term":
             setattr(self, style, term.name)
 
+    @property
+    def parameter_table(self) -> np.ndarray:
+        """The loops' (P, T) parameter table: the term's parameters of type t in column t."""
+        return self._table
+
     def _loops(self) -> ModuleType:
         if self._kernels is None:
             self._kernels = kernels_for(self.term)

@@ -141,6 +141,11 @@ def _pair(r2, k, table, mode, data):
     )
 
 
+#: ``_pair`` under a public name, for other compiler targets: ``potentials.device_terms``
+#: compiles it (and the term it inlines) as a CUDA device function for ``md.cuda``.
+pair = _pair
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _curvature_terms(r2, p, rc2, ro2, inv_den, mode, data):
     """Return (inside, t, r, 1/|d|) of one pair at squared distance r2.

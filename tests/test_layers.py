@@ -61,6 +61,7 @@ LAYERS = {
     2: [
         "md.neighbors.*",
         "md.forcefield",
+        "md.cuda.*",
         "md.simulation",
         "md.observers",
         "md.build",
@@ -114,6 +115,7 @@ RUNTIME_IMPORTS = {"md.plugins": "imports the plug-in module a config's type nam
 LATE_PROJECT_IMPORTS = {
     ("md", "md.sweeps"): "md.sweep() loads the Dask machinery on first use",
     ("md_command", "md.cli"): "inside the try that turns a Ctrl-C while md loads into a line",
+    ("md.cuda", "md.cuda.engine"): "numba.cuda loads only for a run on the device",
 }
 
 

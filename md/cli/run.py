@@ -50,6 +50,12 @@ def add_parser(subparsers) -> None:
         help="threads for the force and neighbour kernels (overrides [run] threads; "
         "default: every core)",
     )
+    run.add_argument(
+        "--device",
+        choices=("cpu", "cuda"),
+        help="where the time step runs (overrides [run] device; cuda needs numba-cuda and "
+        "an NVIDIA GPU, or NUMBA_ENABLE_CUDASIM=1 for numba's simulator)",
+    )
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--quiet", "-q", action="store_true", help="no thermo table")
 
@@ -87,6 +93,7 @@ def _main(args) -> int:
                 overwrite=args.overwrite,
                 resume=args.resume,
                 threads=args.threads,
+                device=args.device,
             ),
             "run",
             "the run",
@@ -291,6 +298,7 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
         f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
         + (", mixed precision" if sim.forcefield.precision == "mixed" else "")
+        + (", on the GPU" if sim.device == "cuda" else "")
     )
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
     for name, seconds in [*timings.items(), ("other", other)]:

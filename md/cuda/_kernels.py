@@ -1,0 +1,685 @@
+"""The device kernels (numba-cuda): neighbour search, pair forces, integrator passes, sums.
+
+Importing this module imports ``numba.cuda`` (the simulator where ``NUMBA_ENABLE_CUDASIM=1``
+was set before); ``md.cuda`` loads it only for a run that asks for the device.
+
+Layout: per-atom arrays are (N, 3) or (N,) in the device state's order; the neighbour list
+is a full list stored column by column, ``neighbors[k, i]`` the k-th partner of atom i, so
+that the threads of a warp (consecutive i) read consecutive words. One thread per atom in
+every per-atom kernel; the force kernel writes only its own atom's row (no atomics). The
+physics (the pair term with the frame's cutoff treatment, the minimum image) is the CPU
+path's own functions compiled as device functions (``potentials.device_terms.retarget``).
+
+Each kernel here has a CPU twin that ``tests/test_gpu.py`` compares it with: the search with
+the O(N^2) reference, the forces with ``PairPotential.energy_forces``, the passes with
+``integrators._kernels`` through the integrators' steps, the sums with numpy's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import cuda
+from numba.cuda import libdevice
+
+from md.box import min_image
+from potentials.device_terms import retarget
+
+#: Threads per block of the per-atom kernels.
+BLOCK = 128
+#: Threads per block of the sums (a power of two), and the most blocks they take.
+SUM_THREADS = 64
+SUM_BLOCKS = 256
+#: Columns of the per-atom observables: energy, the virial (xx, yy, zz, yz, xz, xy), and
+#: the kinetic energy (filled by the sum kernel).
+N_OBSERVABLES = 8
+
+
+#: numpy functions the CUDA target lacks on scalars (its ufunc table has none of these),
+#: and what the device functions call instead: math's, which it compiles to libdevice, and
+#: libdevice's rint (half to even, as np.rint). The simulator runs the Python as it is,
+#: numpy included (its libdevice functions are stubs).
+_MATH = ("sqrt", "exp", "expm1", "log", "log1p", "sin", "cos", "tan", "floor", "ceil")
+_SUBSTITUTES = (
+    {}
+    if numba.config.ENABLE_CUDASIM
+    else {
+        "rint": libdevice.rint,
+        "arccos": math.acos,
+        "arcsin": math.asin,
+        "arctan": math.atan,
+        "power": math.pow,
+        **{name: getattr(math, name) for name in _MATH},
+    }
+)
+
+
+def device_function(function):
+    """A numba function (and what it calls) as a CUDA device function."""
+    return retarget(
+        function, lambda plain: cuda.jit(device=True, inline="always")(plain), _SUBSTITUTES
+    )
+
+
+_min_image = device_function(min_image)
+
+
+def launch(n: int) -> tuple[int, int]:
+    """(blocks, threads per block) for one thread per item of ``n``: BLOCK threads, fewer
+    (whole warps) for a system smaller than a block."""
+    threads = min(BLOCK, max(32, (n + 31) // 32 * 32))
+    return max(1, (n + threads - 1) // threads), threads
+
+
+# ---------------------------------------------------------------- neighbour search
+@cuda.jit
+def _moved(positions, reference, limit2, flag):
+    """Set ``flag[0] = 1`` if an atom moved farther than sqrt(limit2) since the build (the
+    same value from every thread that sees it: no atomics needed)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        dx = positions[i, 0] - reference[i, 0]
+        dy = positions[i, 1] - reference[i, 1]
+        dz = positions[i, 2] - reference[i, 2]
+        if not dx * dx + dy * dy + dz * dz <= limit2:  # NaN moves count as moved
+            flag[0] = 1
+
+
+@cuda.jit
+def _cell_of(positions, lengths, n_cells, cells, counts):
+    """Each atom's cell (row-major over n_cells) in ``cells``; ``counts`` per cell (atomic
+    increments: this is the counting sort's histogram, not the force kernel)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        code = 0
+        for a in range(3):
+            s = positions[i, a] / lengths[a]
+            s -= math.floor(s)
+            c = int(s * n_cells[a])
+            if c >= n_cells[a]:
+                c = n_cells[a] - 1
+            code = code * n_cells[a] + c
+        cells[i] = code
+        cuda.atomic.add(counts, code, 1)
+
+
+@cuda.jit
+def _cell_starts(counts, starts, cursors):
+    """Exclusive prefix sum of ``counts`` into ``starts`` (one thread: the cell count is a
+    few per cent of the atoms'); ``cursors`` zeroed for the scatter."""
+    if cuda.grid(1) == 0:
+        total = 0
+        for c in range(counts.shape[0]):
+            starts[c] = total
+            total += counts[c]
+            cursors[c] = 0
+        starts[counts.shape[0]] = total
+
+
+@cuda.jit
+def _scatter(cells, starts, cursors, order):
+    """The atoms by cell: ``order[starts[c]:starts[c + 1]]`` are cell c's (in any order)."""
+    i = cuda.grid(1)
+    if i < cells.shape[0]:
+        c = cells[i]
+        order[starts[c] + cuda.atomic.add(cursors, c, 1)] = i
+
+
+@cuda.jit
+def _sort_cells(starts, order):
+    """Each cell's atoms in index order (insertion sort, one thread per cell): the scatter's
+    atomic order varies from run to run, the lists and sums then do not."""
+    c = cuda.grid(1)
+    if c < starts.shape[0] - 1:
+        for a in range(starts[c] + 1, starts[c + 1]):
+            atom = order[a]
+            b = a - 1
+            while b >= starts[c] and order[b] > atom:
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = atom
+
+
+@cuda.jit
+def _search_cells(
+    positions, lengths, inverse, tilt, n_cells, cells, starts, order, radius2, neighbors, counts
+):
+    """Atom i's partners within sqrt(radius2) from the 27 cells around its own (at least
+    three cells along each axis: no cell is visited twice), in cell then index order.
+    ``counts[i]`` is the number found, also past the list's room (the host then regrows)."""
+    i = cuda.grid(1)
+    if i >= positions.shape[0]:
+        return
+    room = neighbors.shape[0]
+    code = cells[i]
+    cz = code % n_cells[2]
+    cy = (code // n_cells[2]) % n_cells[1]
+    cx = code // (n_cells[2] * n_cells[1])
+    m = 0
+    for ox in range(-1, 2):
+        x = (cx + ox) % n_cells[0]
+        for oy in range(-1, 2):
+            y = (cy + oy) % n_cells[1]
+            for oz in range(-1, 2):
+                c = (x * n_cells[1] + y) * n_cells[2] + (cz + oz) % n_cells[2]
+                for a in range(starts[c], starts[c + 1]):
+                    j = order[a]
+                    if j == i:
+                        continue
+                    dx, dy, dz = _min_image(
+                        positions[i, 0] - positions[j, 0],
+                        positions[i, 1] - positions[j, 1],
+                        positions[i, 2] - positions[j, 2],
+                        lengths,
+                        inverse,
+                        tilt,
+                    )
+                    if dx * dx + dy * dy + dz * dz < radius2:
+                        if m < room:
+                            neighbors[m, i] = j
+                        m += 1
+    counts[i] = m
+
+
+@cuda.jit
+def _search_all(positions, lengths, inverse, tilt, radius2, neighbors, counts):
+    """Atom i's partners within sqrt(radius2) among all atoms, in index order (small or open
+    cells, tilted cells: the O(N^2) search, also the reference of the cell search)."""
+    i = cuda.grid(1)
+    if i >= positions.shape[0]:
+        return
+    room = neighbors.shape[0]
+    m = 0
+    for j in range(positions.shape[0]):
+        if j == i:
+            continue
+        dx, dy, dz = _min_image(
+            positions[i, 0] - positions[j, 0],
+            positions[i, 1] - positions[j, 1],
+            positions[i, 2] - positions[j, 2],
+            lengths,
+            inverse,
+            tilt,
+        )
+        if dx * dx + dy * dy + dz * dz < radius2:
+            if m < room:
+                neighbors[m, i] = j
+            m += 1
+    counts[i] = m
+
+
+@cuda.jit
+def _gather(source, order, out):
+    """out[k] = source[order[k]] (a sort's gather of a per-atom vector)."""
+    k = cuda.grid(1)
+    if k < out.shape[0]:
+        out[k] = source[order[k]]
+
+
+@cuda.jit
+def _gather_rows(source, order, out):
+    """out[k, :] = source[order[k], :] (a sort's gather of per-atom rows)."""
+    k = cuda.grid(1)
+    if k < out.shape[0]:
+        for a in range(out.shape[1]):
+            out[k, a] = source[order[k], a]
+
+
+@cuda.jit
+def _remember(positions, reference, counts, room, flag):
+    """Copy the positions the list was built at; ``flag[0] = 1`` if a row overflowed."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        for a in range(3):
+            reference[i, a] = positions[i, a]
+        if counts[i] > room:
+            flag[0] = 1
+
+
+# ---------------------------------------------------------------- pair forces
+def pair_kernel(pair, real):
+    """The force kernel of one pair potential: ``pair(r2, k, table, mode, data)`` is the
+    frame's function (``potentials.device_terms.pair_function``), ``real`` the type r^2 is
+    rounded to before it (float32 in mixed precision; the forces and sums stay double).
+
+    One thread per atom over the full list: row i's force, half of each pair's energy and
+    virial to atom i; ``accumulate`` adds to what an earlier potential's kernel wrote.
+    """
+    device_pair = device_function(pair)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        types,
+        n_types,
+        neighbors,
+        counts,
+        lengths,
+        inverse,
+        tilt,
+        table,
+        mode,
+        data,
+        accumulate,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        xi = positions[i, 0]
+        yi = positions[i, 1]
+        zi = positions[i, 2]
+        row = types[i] * n_types
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for k in range(counts[i]):
+            j = neighbors[k, i]
+            dx, dy, dz = _min_image(
+                xi - positions[j, 0],
+                yi - positions[j, 1],
+                zi - positions[j, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            r2 = real(dx * dx + dy * dy + dz * dz)
+            u, fr = device_pair(r2, row + types[j], table, mode, data)
+            ex = fr * dx
+            ey = fr * dy
+            ez = fr * dz
+            fx += ex
+            fy += ey
+            fz += ez
+            u_sum += u
+            wxx += ex * dx
+            wyy += ey * dy
+            wzz += ez * dz
+            wyz += ez * dy
+            wxz += ez * dx
+            wxy += ey * dx
+        if accumulate:
+            forces[i, 0] += fx
+            forces[i, 1] += fy
+            forces[i, 2] += fz
+            observables[i, 0] += 0.5 * u_sum
+            observables[i, 1] += 0.5 * wxx
+            observables[i, 2] += 0.5 * wyy
+            observables[i, 3] += 0.5 * wzz
+            observables[i, 4] += 0.5 * wyz
+            observables[i, 5] += 0.5 * wxz
+            observables[i, 6] += 0.5 * wxy
+        else:
+            forces[i, 0] = fx
+            forces[i, 1] = fy
+            forces[i, 2] = fz
+            observables[i, 0] = 0.5 * u_sum
+            observables[i, 1] = 0.5 * wxx
+            observables[i, 2] = 0.5 * wyy
+            observables[i, 3] = 0.5 * wzz
+            observables[i, 4] = 0.5 * wyz
+            observables[i, 5] = 0.5 * wxz
+            observables[i, 6] = 0.5 * wxy
+
+    return kernel
+
+
+# ---------------------------------------------------------------- bonds and angles
+def bond_kernel(bond, params):
+    """The force kernel of one bond potential: ``bond(r2, p) -> (u, u'(r) / r)`` and
+    ``params(table, t)`` are the bonded frame's adapters of its term
+    (``potentials.device_terms.bonded_function``). One thread per atom over the atom's own
+    bonds (``starts``/``entries``: 2 b + the atom's end), adding its force, half of each
+    bond's energy and virial to its rows: each bond is evaluated by both its atoms, and
+    no thread writes another's row."""
+    device_bond = device_function(bond)
+    device_params = device_function(params)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        lengths,
+        inverse,
+        tilt,
+        bonds,
+        bond_types,
+        table,
+        starts,
+        entries,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for e in range(starts[i], starts[i + 1]):
+            b = entries[e] // 2
+            a0 = bonds[b, 0]
+            a1 = bonds[b, 1]
+            dx, dy, dz = _min_image(
+                positions[a0, 0] - positions[a1, 0],
+                positions[a0, 1] - positions[a1, 1],
+                positions[a0, 2] - positions[a1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            u, g = device_bond(dx * dx + dy * dy + dz * dz, device_params(table, bond_types[b]))
+            ex = -g * dx  # the force on the bond's first atom
+            ey = -g * dy
+            ez = -g * dz
+            if entries[e] % 2 == 0:
+                fx += ex
+                fy += ey
+                fz += ez
+            else:
+                fx -= ex
+                fy -= ey
+                fz -= ez
+            u_sum += u
+            wxx += ex * dx
+            wyy += ey * dy
+            wzz += ez * dz
+            wyz += ez * dy
+            wxz += ez * dx
+            wxy += ey * dx
+        _add_row(forces, observables, i, fx, fy, fz, 0.5, u_sum, wxx, wyy, wzz, wyz, wxz, wxy)
+
+    return kernel
+
+
+def angle_kernel(angle, params):
+    """The force kernel of one angle potential (``angle(c, p) -> (u, du/dc)``, c = cos
+    theta), as :func:`bond_kernel`: each atom evaluates its own angles (``entries``: 3 a +
+    its place, 1 the vertex) and adds its force and a third of each angle's energy and
+    virial (LAMMPS's split, as the CPU's per-atom values)."""
+    device_angle = device_function(angle)
+    device_params = device_function(params)
+
+    @cuda.jit
+    def kernel(
+        positions,
+        lengths,
+        inverse,
+        tilt,
+        angles,
+        angle_types,
+        table,
+        starts,
+        entries,
+        forces,
+        observables,
+    ):
+        i = cuda.grid(1)
+        if i >= positions.shape[0]:
+            return
+        fx = fy = fz = 0.0
+        u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
+        for e in range(starts[i], starts[i + 1]):
+            a = entries[e] // 3
+            place = entries[e] % 3
+            p0 = angles[a, 0]
+            p1 = angles[a, 1]
+            p2 = angles[a, 2]
+            ax, ay, az = _min_image(
+                positions[p0, 0] - positions[p1, 0],
+                positions[p0, 1] - positions[p1, 1],
+                positions[p0, 2] - positions[p1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            bx, by, bz = _min_image(
+                positions[p2, 0] - positions[p1, 0],
+                positions[p2, 1] - positions[p1, 1],
+                positions[p2, 2] - positions[p1, 2],
+                lengths,
+                inverse,
+                tilt,
+            )
+            ra2 = ax * ax + ay * ay + az * az
+            rb2 = bx * bx + by * by + bz * bz
+            if not (ra2 > 0.0 and rb2 > 0.0):
+                continue  # no angle (the CPU loop leaves it out too, and reports it)
+            rab = math.sqrt(ra2) * math.sqrt(rb2)
+            c = (ax * bx + ay * by + az * bz) / rab
+            c = min(max(c, -1.0), 1.0)
+            u, d1 = device_angle(c, device_params(table, angle_types[a]))
+            a11 = d1 * c / ra2
+            a12 = -d1 / rab
+            a22 = d1 * c / rb2
+            fix = a11 * ax + a12 * bx
+            fiy = a11 * ay + a12 * by
+            fiz = a11 * az + a12 * bz
+            fkx = a22 * bx + a12 * ax
+            fky = a22 * by + a12 * ay
+            fkz = a22 * bz + a12 * az
+            if place == 0:
+                fx += fix
+                fy += fiy
+                fz += fiz
+            elif place == 2:
+                fx += fkx
+                fy += fky
+                fz += fkz
+            else:
+                fx -= fix + fkx
+                fy -= fiy + fky
+                fz -= fiz + fkz
+            u_sum += u
+            wxx += ax * fix + bx * fkx
+            wyy += ay * fiy + by * fky
+            wzz += az * fiz + bz * fkz
+            wyz += ay * fiz + by * fkz
+            wxz += ax * fiz + bx * fkz
+            wxy += ax * fiy + bx * fky
+        _add_row(forces, observables, i, fx, fy, fz, 1.0 / 3.0, u_sum, wxx, wyy, wzz, wyz, wxz, wxy)
+
+    return kernel
+
+
+@cuda.jit(device=True, inline="always")
+def _add_row(forces, observables, i, fx, fy, fz, share, u, wxx, wyy, wzz, wyz, wxz, wxy):
+    """Add a force to row i and ``share`` of an energy and a virial to its observables."""
+    forces[i, 0] += fx
+    forces[i, 1] += fy
+    forces[i, 2] += fz
+    observables[i, 0] += share * u
+    observables[i, 1] += share * wxx
+    observables[i, 2] += share * wyy
+    observables[i, 3] += share * wzz
+    observables[i, 4] += share * wyz
+    observables[i, 5] += share * wxz
+    observables[i, 6] += share * wxy
+
+
+# ---------------------------------------------------------------- integrator passes
+@cuda.jit
+def _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt):
+    """v += kick_dt f/m, then x += drift_dt v (``integrators._kernels.kick_drift``'s twin)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        scale = kick_dt * inverse_masses[i]
+        for a in range(3):
+            v = velocities[i, a] + scale * forces[i, a]
+            velocities[i, a] = v
+            positions[i, a] += drift_dt * v
+
+
+@cuda.jit
+def _kick(velocities, forces, inverse_masses, kick_dt):
+    """v += kick_dt f/m (``integrators._kernels.kick``'s twin)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        scale = kick_dt * inverse_masses[i]
+        for a in range(3):
+            velocities[i, a] += scale * forces[i, a]
+
+
+@cuda.jit
+def _synchronise(velocities, half_velocities, forces, inverse_masses, half_dt):
+    """v = v_half + half_dt f/m (the leapfrog's on-step velocities)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        scale = half_dt * inverse_masses[i]
+        for a in range(3):
+            velocities[i, a] = half_velocities[i, a] + scale * forces[i, a]
+
+
+@cuda.jit
+def _drift(positions, velocities, dt):
+    """x += dt v (``integrators._kernels._drift``'s twin)."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        for a in range(3):
+            positions[i, a] += dt * velocities[i, a]
+
+
+def noise_kernel(gaussians):
+    """The Langevin noise: ``gaussians(k0, k1, step, atom)`` is the CPU path's function of
+    one atom's three normal numbers (``integrators.langevin.noise_of_atom``), so atom
+    ``ids[i]`` gets the same noise at a step on either device; scaled by ``sigmas[i]``."""
+    device_gaussians = device_function(gaussians)
+
+    @cuda.jit
+    def kernel(k0, k1, step, ids, sigmas, noise):
+        i = cuda.grid(1)
+        if i < noise.shape[0]:
+            g0, g1, g2 = device_gaussians(k0, k1, step, numba.uint64(ids[i]))
+            s = sigmas[i]
+            noise[i, 0] = g0 * s
+            noise[i, 1] = g1 * s
+            noise[i, 2] = g2 * s
+
+    return kernel
+
+
+@cuda.jit
+def _relax(velocities, noise, c, sums, fix_com):
+    """v = c v + noise - (the noise's centre-of-mass velocity, ``sums[1:4] / sums[4]``,
+    where ``fix_com``): the O step of BAOAB (``integrators.langevin._relax``'s twin)."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        for a in range(3):
+            drift = sums[1 + a] / sums[4] if fix_com else 0.0
+            velocities[i, a] = c * velocities[i, a] + noise[i, a] - drift
+
+
+@cuda.jit
+def _langevin_sums(velocities, noise, masses, partial, before):
+    """Block b's share into ``partial[b]``: the kinetic energy (column 0) and, ``before``
+    the O step, the noise's momentum (1 to 3) and the mass (4); :func:`_reduce_columns`
+    adds the blocks' rows in a fixed order, :func:`_bath` books the O step's heat."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, 5), dtype=np.float64)
+    for c in range(5):
+        shared[t, c] = 0.0
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
+        m = masses[i]
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t, 0] += 0.5 * m * v2
+        if before:
+            for a in range(3):
+                shared[t, 1 + a] += m * noise[i, a]
+            shared[t, 4] += m
+    _tree(shared, t, 5)
+    if t == 0:
+        for c in range(5):
+            partial[cuda.blockIdx.x, c] = shared[0, c]
+
+
+@cuda.jit
+def _bath(sums):
+    """After the O step: ``sums[6] -= sums[5] - sums[0]`` (the heat bath's energy gains
+    what the kinetic energy lost)."""
+    if cuda.grid(1) == 0:
+        sums[6] -= sums[5] - sums[0]
+
+
+@cuda.jit
+def _kinetic_sum(velocities, masses, partial):
+    """Block b's share of the kinetic energy into ``partial[b, 0]`` (Bussi's rescaling)."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, 1), dtype=np.float64)
+    shared[t, 0] = 0.0
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t, 0] += 0.5 * masses[i] * v2
+    _tree(shared, t, 1)
+    if t == 0:
+        partial[cuda.blockIdx.x, 0] = shared[0, 0]
+
+
+@cuda.jit
+def _scale(velocities, alpha):
+    """v *= alpha."""
+    i = cuda.grid(1)
+    if i < velocities.shape[0]:
+        for a in range(3):
+            velocities[i, a] *= alpha
+
+
+# ---------------------------------------------------------------- sums
+@cuda.jit
+def _sum_observables(observables, velocities, masses, partial):
+    """Block b's share of each observable column into ``partial[b]``, the kinetic energy
+    (column 7) computed here; each block of SUM_THREADS threads takes a strided share, then
+    a tree, and :func:`_reduce_columns` adds the blocks' rows: the same order on every run,
+    with no atomics."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, N_OBSERVABLES), dtype=np.float64)
+    for c in range(N_OBSERVABLES):
+        shared[t, c] = 0.0
+    start = cuda.blockIdx.x * SUM_THREADS + t
+    for i in range(start, observables.shape[0], SUM_THREADS * cuda.gridDim.x):
+        for c in range(N_OBSERVABLES - 1):
+            shared[t, c] += observables[i, c]
+        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+        shared[t, N_OBSERVABLES - 1] += 0.5 * masses[i] * v2
+    _tree(shared, t, N_OBSERVABLES)
+    if t == 0:
+        for c in range(N_OBSERVABLES):
+            partial[cuda.blockIdx.x, c] = shared[0, c]
+
+
+@cuda.jit(device=True, inline="always")
+def _tree(shared, t, n_columns):
+    """Sum the block's SUM_THREADS rows of ``shared`` into row 0, pairwise."""
+    cuda.syncthreads()
+    width = SUM_THREADS // 2
+    while width > 0:
+        if t < width:
+            for c in range(n_columns):
+                shared[t, c] += shared[t + width, c]
+        cuda.syncthreads()
+        width //= 2
+
+
+@cuda.jit
+def _reduce_columns(partial, n_blocks, n_columns, out, offset):
+    """``out[offset + c]`` = the sum of ``partial[:n_blocks, c]``, one thread per column,
+    blocks in order (one block of at least ``n_columns`` threads)."""
+    c = cuda.threadIdx.x
+    if c < n_columns:
+        total = 0.0
+        for b in range(n_blocks):
+            total += partial[b, c]
+        out[offset + c] = total
+
+
+__all__ = [
+    "BLOCK",
+    "N_OBSERVABLES",
+    "angle_kernel",
+    "bond_kernel",
+    "device_function",
+    "launch",
+    "noise_kernel",
+    "pair_kernel",
+]
