@@ -91,9 +91,9 @@ def rigid_components(
     run (``fresh``) the constituents are placed rigidly at once, so step 0 is reported
     there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
-    # The GPU path (a [run] device key, from another branch) does not move bodies yet.
-    device = getattr(config.run, "device", None)
-    if device not in (None, "cpu"):
+    # The GPU path (md.cuda) does not move bodies yet.
+    device = config.run.device
+    if device != "cpu":
         raise ConfigError(
             f"{config.source}: [rigid]: rigid bodies run on the CPU only (yet); set [run] "
             f"device = 'cpu' (got {device!r})"

@@ -16,6 +16,7 @@ import pytest
 import md
 from integrators import Langevin, VelocityVerlet
 from integrators.barostats import Barostat, PressureCoupled
+from md.checkpoint import read_checkpoint, restore, write_checkpoint
 from md.cli import main
 from md.trajectory import read_trajectory
 from potentials import HarmonicBonds, LennardJones
@@ -87,15 +88,22 @@ def test_conserved_quantity_includes_p0_v_and_the_barostat_work():
     assert sim.integrator.statistics["barostat_moves"] == 100
 
 
-def test_get_and_set_state_continue_bit_for_bit():
+def test_get_and_set_state_continue_bit_for_bit(tmp_path):
+    """Through a checkpoint (the integrator's state, and the neighbour list built where it
+    was, at the cell it had then: its wraps decide the last bits of the separations)."""
     a, b = _liquid_sim(), _liquid_sim()
     a.run(200)
     b.run(100)
-    saved, state = b.integrator.get_state(), b.state.copy()
+    write_checkpoint(tmp_path / "at100.ckpt", b.state, b.integrator, b.forcefield)
+    checkpoint = read_checkpoint(tmp_path / "at100.ckpt")
     c = _liquid_sim()
-    c.state.positions[:], c.state.velocities[:] = state.positions, state.velocities
-    c.state.box, c.state.step, c.state.time = state.box.copy(), state.step, state.time
-    c.integrator.set_state(saved)
+    c.state.positions[:], c.state.velocities[:] = (
+        checkpoint.state.positions,
+        checkpoint.state.velocities,
+    )
+    c.state.box, c.state.step = checkpoint.state.box.copy(), checkpoint.state.step
+    c.state.time = checkpoint.state.time
+    restore(checkpoint, c.integrator, c.forcefield)
     c.run(100)
     b.run(100)
     assert np.array_equal(b.state.positions, a.state.positions)
