@@ -62,7 +62,7 @@ def retarget(
     Returns ``compile(copy)``. Each callee is compiled once per call tree.
     """
     done = {} if _done is None else _done
-    plain = getattr(function, "py_func", function)
+    plain = getattr(function, "py_func", function)  # a numba dispatcher: its Python function
     if plain in done:
         return done[plain]
     namespace = dict(plain.__globals__)
@@ -103,7 +103,7 @@ def _callee(value) -> bool:
     """Whether ``retarget`` follows ``value``: a numba dispatcher, or a plain function of
     ours (``pair_math.exp``, whose compiled form is a CPU overload: on another target its
     Python body, ``math.exp``, is compiled instead)."""
-    if hasattr(value, "py_func") and not isinstance(value, type):
+    if hasattr(value, "py_func") and not isinstance(value, type):  # a dispatcher, any kind
         return True
     return isinstance(value, types.FunctionType) and not value.__module__.startswith(
         ("numba", "numpy", "math")

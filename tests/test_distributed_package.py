@@ -85,6 +85,11 @@ ALLOWED = {
         "getattr(kernels, variant_name(entry, flags))": "a generated kernel, by name",
         'getattr(function, "py_func", function)': "a numba dispatcher's Python function",
     },
+    "potentials/device_terms.py": {
+        'getattr(function, "py_func", function)': "a numba dispatcher's Python function",
+        'hasattr(value, "py_func")': "whether a value is a numba dispatcher (any kind)",
+    },
+    "md/cuda/_kernels.py": {"getattr(math, name) for name in _MATH": "math's functions, by name"},
     "potentials/_codegen.py": {
         'getattr(value, "py_func", value)': "a numba dispatcher's Python function",
     },

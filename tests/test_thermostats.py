@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 from scipy import stats
 
 import md
+from conftest import lj_config_text
 from integrators import (
     INTEGRATORS,
     Berendsen,

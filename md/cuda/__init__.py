@@ -35,6 +35,7 @@ import os
 # Submodules, not the packages: ``import integrators`` (or potentials) imports md, which
 # imports this module while the package is still loading.
 from integrators.barostats import PressureCoupled
+from integrators.base import constraints_of
 from integrators.bussi import Bussi
 from integrators.langevin import Langevin
 from integrators.leapfrog import Leapfrog
@@ -104,7 +105,7 @@ def refusal(state, forcefield, integrator, **options) -> str | None:
             "run on a machine with an NVIDIA GPU and its driver, or set "
             "NUMBA_ENABLE_CUDASIM=1 to run on numba's CUDA simulator (slow; for tests)"
         )
-    constraints = getattr(integrator, "constraints", None)
+    constraints = constraints_of(integrator)
     if not isinstance(integrator, DEVICE_INTEGRATORS) or constraints is not None:
         name = type(integrator).__name__
         if constraints is not None:

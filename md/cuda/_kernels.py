@@ -51,7 +51,7 @@ _SUBSTITUTES = (
         "arcsin": math.asin,
         "arctan": math.atan,
         "power": math.pow,
-        **{name: getattr(math, name) for name in _MATH},
+        **{name: getattr(math, name) for name in _MATH},  # math's functions, by name
     }
 )
 
