@@ -303,7 +303,14 @@ def check_ptx(results: dict) -> None:
         from numba.cuda.cudadrv.nvvm import NVVM
 
         NVVM()
-    except Exception as error:  # noqa: BLE001 (no NVVM: nothing to compile with)
+
+        def _probe(x):
+            x[0] = 1.0
+
+        # the whole tool chain, on a one-line kernel (plain numba-cuda can have NVVM and
+        # still lack NVRTC, which compiling needs too)
+        cuda.compile_ptx(_probe, (numba.float64[:],), cc=(9, 0))
+    except Exception as error:  # noqa: BLE001 (no CUDA compiler: nothing to compile with)
         results["ptx_nvvm"] = str(error)[:200]
         return
     results["ptx_nvvm"] = True

@@ -128,7 +128,7 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     there). Needs NVVM, which ``numba-cuda[cu12]`` brings; skipped without it."""
     results = _checks(tmp_path_factory, False, "--ptx")
     if results["ptx_nvvm"] is not True:
-        pytest.skip(f"no NVVM to compile with: {results['ptx_nvvm']}")
+        pytest.skip(f"no CUDA compiler (NVVM, NVRTC) to compile with: {results['ptx_nvvm']}")
     assert results["ptx_failed"] == {}
     # the generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
     # angle styles
