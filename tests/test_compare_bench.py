@@ -415,6 +415,7 @@ def test_mdp_is_nve_truncated_lj_without_charges_work():
     assert atomtype == ["AR", "40.0", "0.0", "A", "0.34", "1.0"]  # no charge
 
 
+@pytest.mark.slow  # a benchmark script run whole (kept out of the default run: its compile time)
 def test_gromacs_peer_without_binary_is_skipped_with_a_note(tmp_path):
     """No gmx anywhere: the harness says how to get one and runs the rest."""
     missing = str(tmp_path / "no-gmx")
@@ -476,6 +477,7 @@ def test_gromacs_peers_run_the_same_melt(tmp_path):
 MIXED = SCRIPT.parent / "mixed_precision.py"
 
 
+@pytest.mark.slow  # a benchmark script run whole (kept out of the default run: its compile time)
 def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
     """benchmarks/mixed_precision.py --drift-only --seeds 2: one block per liquid, each with
     both precisions' drifts, then the medians (no timing, no GROMACS); --seeds 0 exits 2."""
@@ -508,6 +510,7 @@ def test_mixed_precision_bench_drifts_over_seeds_and_refuses_no_seeds():
 PRUNING = SCRIPT.parent / "cluster_pruning.py"
 
 
+@pytest.mark.slow  # a benchmark script run whole (kept out of the default run: its compile time)
 def test_cluster_pruning_bench_prints_a_row_per_outer_skin_and_refuses_bad_ones():
     """benchmarks/cluster_pruning.py: the list without an outer one never prunes, the one
     with it prunes and lists more outer pairs than inner ones; bad --outer exits 2."""
@@ -607,6 +610,7 @@ def test_the_drift_comparison_counts_liquids_and_bounds_the_ratio():
     assert low <= 2.5 / 3.0 <= high, mixed
 
 
+@pytest.mark.slow  # a benchmark script run whole (kept out of the default run: its compile time)
 def test_cluster_kernel_bench_times_the_call_and_refuses_a_small_cell():
     """benchmarks/cluster_kernel.py on a small melt: the machine line, then the call's
     time per cluster pair (per listed pair with --precision double); a cell too small for
