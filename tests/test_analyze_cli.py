@@ -8,9 +8,9 @@ import json
 import h5py
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
 import md
+from conftest import lj_config_text
 from md.cli import main
 from md.trajectory import H5MDWriter
 

@@ -12,9 +12,9 @@ import time
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
 import md
+from conftest import lj_config_text
 from md.checkpoint import (
     CheckpointError,
     checkpoint_path,

@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
+from conftest import lj_config_text
 from md.cli import main
 from md.trajectory import open_trajectory, read_trajectory
 

@@ -19,9 +19,9 @@ import h5py
 import MDAnalysis as mda
 import numpy as np
 import pytest
-from conftest import POLYMER
 
 import md
+from conftest import POLYMER
 from integrators import VelocityVerlet
 from md.cli import main
 from md.convert import FORMATS, convert, molecules, output_format

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
+from conftest import lj_config_text
 from md.checkpoint import checkpoint_path, read_checkpoint
 from md.cli import main
 from md.errors import TrajectoryError

@@ -11,9 +11,9 @@ import math
 
 import numpy as np
 import pytest
-from conftest import Tether
 
 import md
+from conftest import Tether
 from integrators.base import ConvergenceError
 from integrators.explicit_euler import ExplicitEuler, SymplecticEuler
 from integrators.leapfrog import Leapfrog

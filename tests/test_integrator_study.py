@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
 import md
+from conftest import lj_config_text
 from integrators import INTEGRATORS, VelocityVerlet
 from md.cli import main
 from md.studies import CSV_COLUMNS, WORK_PRECISION_COLUMNS, compare_integrators

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import Tether
 from test_simulation import Recorder, lj_simulation
 
 import md
+from conftest import Tether
 from integrators import INTEGRATORS, VelocityVerlet
 from potentials import LennardJones
 

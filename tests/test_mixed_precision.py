@@ -16,9 +16,9 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import assert_same_end, lj_config_text, resumed_run
 
 import md
+from conftest import assert_same_end, lj_config_text, resumed_run
 from integrators import VelocityVerlet
 from md.checkpoint import (
     CheckpointError,

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import assert_same_end, lj_config_text, resumed_run
 
 import md
+from conftest import assert_same_end, lj_config_text, resumed_run
 from integrators import VelocityVerlet
 from md.checkpoint import read_checkpoint, write_checkpoint
 from md.cli import main

@@ -16,9 +16,9 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import lj_config_text
 
 import md
+from conftest import lj_config_text
 from md.cli import main
 
 QUIET = ["-q", "--no-progress"]

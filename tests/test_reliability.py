@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import lj_config_text
 
+from conftest import lj_config_text
 from md.cli import main
 
 

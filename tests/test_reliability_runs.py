@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 from test_mpi import needs_mpi
 
 import md
+from conftest import lj_config_text
 from integrators import VelocityVerlet
 from md.cli import main
 from potentials import LennardJones

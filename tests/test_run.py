@@ -5,9 +5,9 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
-from conftest import lj_config_text
 
 import md
+from conftest import lj_config_text
 from md.cli import main
 from md.run import FAILED, prepare
 

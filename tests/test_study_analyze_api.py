@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import lj_config_text
 from test_respa import FENE, RUN
 
 import md.analysis.output
 import md.studies.study
+from conftest import lj_config_text
 from md.analysis import AnalysisResults, MSDResult, ThermoResult, analyze, prepare_analysis
 from md.assemble import build_components
 from md.cli import main

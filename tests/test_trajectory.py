@@ -5,9 +5,9 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
-from conftest import POLYMER
 
 import md
+from conftest import POLYMER
 from integrators import VelocityVerlet
 from md import units
 from md.trajectory import H5MDWriter, TrajectoryError, open_trajectory, read_trajectory
