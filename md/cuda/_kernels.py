@@ -152,7 +152,6 @@ def _search_cells(
     i = cuda.grid(1)
     if i >= positions.shape[0]:
         return
-    room = neighbors.shape[0]
     code = cells[i]
     cz = code % n_cells[2]
     cy = (code // n_cells[2]) % n_cells[1]
@@ -165,22 +164,31 @@ def _search_cells(
             for oz in range(-1, 2):
                 c = (x * n_cells[1] + y) * n_cells[2] + (cz + oz) % n_cells[2]
                 for a in range(starts[c], starts[c + 1]):
-                    j = order[a]
-                    if j == i:
-                        continue
-                    dx, dy, dz = _min_image(
-                        positions[i, 0] - positions[j, 0],
-                        positions[i, 1] - positions[j, 1],
-                        positions[i, 2] - positions[j, 2],
-                        lengths,
-                        inverse,
-                        tilt,
+                    m = _listed(
+                        positions, lengths, inverse, tilt, radius2, neighbors, i, order[a], m
                     )
-                    if dx * dx + dy * dy + dz * dz < radius2:
-                        if m < room:
-                            neighbors[m, i] = j
-                        m += 1
     counts[i] = m
+
+
+@cuda.jit(device=True, inline="always")
+def _listed(positions, lengths, inverse, tilt, radius2, neighbors, i, j, m):
+    """Atom j as atom i's partner number ``m`` if within sqrt(radius2) (its own index
+    excluded; written only within the list's room): the count after it."""
+    if j == i:
+        return m
+    dx, dy, dz = _min_image(
+        positions[i, 0] - positions[j, 0],
+        positions[i, 1] - positions[j, 1],
+        positions[i, 2] - positions[j, 2],
+        lengths,
+        inverse,
+        tilt,
+    )
+    if dx * dx + dy * dy + dz * dz < radius2:
+        if m < neighbors.shape[0]:
+            neighbors[m, i] = j
+        m += 1
+    return m
 
 
 @cuda.jit
@@ -190,23 +198,9 @@ def _search_all(positions, lengths, inverse, tilt, radius2, neighbors, counts):
     i = cuda.grid(1)
     if i >= positions.shape[0]:
         return
-    room = neighbors.shape[0]
     m = 0
     for j in range(positions.shape[0]):
-        if j == i:
-            continue
-        dx, dy, dz = _min_image(
-            positions[i, 0] - positions[j, 0],
-            positions[i, 1] - positions[j, 1],
-            positions[i, 2] - positions[j, 2],
-            lengths,
-            inverse,
-            tilt,
-        )
-        if dx * dx + dy * dy + dz * dz < radius2:
-            if m < room:
-                neighbors[m, i] = j
-            m += 1
+        m = _listed(positions, lengths, inverse, tilt, radius2, neighbors, i, j, m)
     counts[i] = m
 
 
