@@ -25,6 +25,8 @@ LAMMPS ``fix rigid`` (bodystyle ``molecule``).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -104,6 +106,111 @@ def matrix_quaternions(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
         q[rows, 0] = (m[:, n, j] - m[:, j, n]) / (4 * v)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.where(q[:, :1] >= 0, q, -q)
+
+
+def _mass_centre_inertia(masses, positions):
+    """``(mass, centre (3,), inertia tensor (3, 3))`` of point masses (K,) at ``positions``
+    (K, 3), summed atom by atom in the order given, as LAMMPS's fix rigid sums them: the
+    centre ``sum(x m) / M``, then ``sum m (|d|^2 - d d)`` about it. The principal axes of a
+    body with two equal moments depend on the last bits of this tensor (see
+    :func:`principal_axes`), so the order of the sums is kept, not left to numpy."""
+    total, cx, cy, cz = 0.0, 0.0, 0.0, 0.0
+    rows = positions.tolist()
+    weights = masses.tolist()
+    for m, (x, y, z) in zip(weights, rows, strict=True):
+        cx += x * m
+        cy += y * m
+        cz += z * m
+        total += m
+    cx, cy, cz = cx / total, cy / total, cz / total
+    xx = yy = zz = yz = xz = xy = 0.0
+    for m, (x, y, z) in zip(weights, rows, strict=True):
+        dx, dy, dz = x - cx, y - cy, z - cz
+        xx += m * (dy * dy + dz * dz)
+        yy += m * (dx * dx + dz * dz)
+        zz += m * (dx * dx + dy * dy)
+        yz -= m * dy * dz
+        xz -= m * dx * dz
+        xy -= m * dx * dy
+    tensor = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return total, np.array([cx, cy, cz]), tensor
+
+
+def _jacobi_rotation(a: list, vectors: list, i: int, j: int) -> None:
+    """One Jacobi rotation in the (i, j) plane, i < j, of the symmetric 3 x 3 ``a`` (lists,
+    in place) that zeroes ``a[i][j]``; the same rotation applied to the rows of
+    ``vectors``. The tangent is the root of t^2 + 2 kappa t - 1 = 0 of smaller size,
+    kappa = (a_jj - a_ii) / (2 a_ij); t = 1 for equal diagonal entries."""
+    aij = a[i][j]
+    gap = a[j][j] - a[i][i]
+    t = 1.0
+    if gap != 0.0:
+        t = 0.0
+        if aij != 0.0:
+            kappa = gap / (2.0 * aij)
+            t = 1.0 / (math.sqrt(1.0 + kappa * kappa) + abs(kappa))
+            if kappa < 0.0:
+                t = -t
+    c = 1.0 / math.sqrt(1.0 + t * t)
+    s = c * t
+    a[i][i] -= t * aij
+    a[j][j] += t * aij
+    a[i][j] = a[j][i] = 0.0
+    w = 3 - i - j  # the third index
+    wi, wj = a[w][i], a[w][j]
+    a[w][i] = a[i][w] = c * wi - s * wj
+    a[w][j] = a[j][w] = s * wi + c * wj
+    row_i, row_j = vectors[i], vectors[j]
+    for k in range(3):
+        vi, vj = row_i[k], row_j[k]
+        row_i[k] = c * vi - s * vj
+        row_j[k] = s * vi + c * vj
+
+
+def principal_axes(tensor: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Principal moments (3,) and axes (3, 3, one a column) of an inertia tensor, chosen as
+    LAMMPS's fix rigid chooses them.
+
+    Where two moments are equal (a linear body, a symmetric top) any pair of axes in
+    their plane is principal, and NO_SQUISH's turns about them do not commute: to follow
+    LAMMPS's ``fix rigid/nve`` the axes must be its own. So this is the classical Jacobi
+    method as LAMMPS's ``MathEigen::jacobi3`` runs it (A. Jewett's ``jacobi_pd``):
+    each rotation zeroes the off-diagonal entry of largest size (the first of
+    (0, 1), (0, 2), (1, 2) on a tie), until that entry is zero or below the last bit of
+    both its diagonal entries (at most 150 rotations); the moments are then sorted
+    increasing by selection sort (equal ones keep that sort's order); a moment below
+    :data:`LINEAR_TOLERANCE` of the largest is set to zero; the third axis is turned
+    round if the three are left-handed. Written from the algorithm, in double precision
+    in the same order of operations, so its result is LAMMPS's to the last bit given the
+    same tensor (:func:`_mass_centre_inertia`).
+    """
+    a = np.array(tensor, dtype=np.float64).tolist()
+    vectors = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # rows: the axes
+    for _ in range(150):
+        i, j = 0, 1
+        if abs(a[0][2]) > abs(a[0][1]):
+            j = 2
+        if abs(a[1][2]) > abs(a[i][j]):
+            i, j = 1, 2
+        if a[i][i] + a[i][j] == a[i][i] and a[j][j] + a[i][j] == a[j][j]:
+            break  # below the last bit of both diagonal entries
+        if a[i][j] == 0.0:
+            break
+        _jacobi_rotation(a, vectors, i, j)
+    values = [a[0][0], a[1][1], a[2][2]]
+    for i in range(2):  # selection sort, increasing
+        low = i
+        for j in range(i + 1, 3):
+            if values[j] < values[low]:
+                low = j
+        values[i], values[low] = values[low], values[i]
+        vectors[i], vectors[low] = vectors[low], vectors[i]
+    largest = max(values)
+    moments = np.array([0.0 if v < LINEAR_TOLERANCE * largest else v for v in values])
+    axes = np.array(vectors).T
+    if np.dot(np.cross(axes[:, 0], axes[:, 1]), axes[:, 2]) < 0.0:
+        axes[:, 2] = -axes[:, 2]
+    return moments, axes
 
 
 def bodies_on_sites(state: State, rigid, seed=None) -> State:
@@ -276,19 +383,17 @@ class RigidBodies:
                     f"molecule {label}: atoms {int(atoms[i])} and {int(atoms[j])} overlap "
                     f"(distance {gaps[i, j]:g}); a rigid body's constituents must be apart"
                 )
-            total = float(m.sum())
-            centre = (m[:, None] * d).sum(axis=0) / total
-            d -= centre
-            tensor = np.einsum("i,ij,ik->jk", m, d, d)
-            inertia = np.trace(tensor) * np.eye(3) - tensor
-            values, axes = np.linalg.eigh(inertia)
-            if np.linalg.det(axes) < 0:
-                axes[:, 2] = -axes[:, 2]
-            values = np.where(values < LINEAR_TOLERANCE * values.max(), 0.0, values)
+            # The positions themselves where no image is crossed (to the last bit, as
+            # LAMMPS's image flags 0 give them), else unwrapped onto the first atom.
+            unwrapped = state.positions[atoms[0]] + d
+            same = np.all(np.abs(unwrapped - state.positions[atoms]) < 0.25 * widths, axis=1)
+            unwrapped[same] = state.positions[atoms][same]
+            total, centre, tensor = _mass_centre_inertia(m, unwrapped)
+            values, axes = principal_axes(tensor)
             masses[b] = total
             moments[b] = values
-            body_positions[starts[b] : starts[b + 1]] = d @ axes  # A^T d per row
-            centres[b] = state.positions[atoms[0]] + centre
+            body_positions[starts[b] : starts[b + 1]] = (unwrapped - centre) @ axes  # A^T d
+            centres[b] = centre
             quaternions[b] = matrix_quaternions(axes[None])[0]
         bodies = cls(members, starts, masses, moments, body_positions, body_of)
         bodies.centres[:] = centres
@@ -417,5 +522,6 @@ __all__ = [
     "bodies_on_sites",
     "matrix_quaternions",
     "molecules_from_bonds",
+    "principal_axes",
     "quaternion_matrices",
 ]
