@@ -151,6 +151,16 @@ class Wraps(Protocol):
 
 
 @runtime_checkable
+class GroupsPairs(Protocol):
+    """Optional hook: atoms whose pairs the neighbour list leaves out, ``pair_groups``
+    (N,) int64, each atom's group or -1, or None. Two atoms of one group >= 0 (a rigid
+    body) are never listed as a pair (LAMMPS's ``neigh_modify exclude molecule/intra``);
+    :class:`md.simulation.Simulation` hands them to its force field."""
+
+    pair_groups: NDArray[np.int64] | None
+
+
+@runtime_checkable
 class Statistics(Protocol):
     """Optional hook: cumulative counters (``steps``, solver iterations, ...) as a dict."""
 
@@ -290,6 +300,16 @@ def constraints_of(integrator) -> BondConstraints | None:
     return integrator.constraints if isinstance(integrator, Constrained) else None
 
 
+def pair_groups_of(integrator) -> NDArray[np.int64] | None:
+    """The integrator's :class:`GroupsPairs` groups (also under a barostat's ``inner``),
+    or None."""
+    while not isinstance(integrator, GroupsPairs):
+        if not isinstance(integrator, Wraps):
+            return None
+        integrator = integrator.inner
+    return integrator.pair_groups
+
+
 def check_dt(dt: float) -> float:
     """Return ``dt`` as a float, or raise ValueError if it is not finite and > 0."""
     return positive(dt, "dt")
@@ -303,6 +323,7 @@ __all__ = [
     "DeclaresOrder",
     "Distributable",
     "ForceSplit",
+    "GroupsPairs",
     "Integrator",
     "IntegratorBase",
     "Restartable",
@@ -314,4 +335,5 @@ __all__ = [
     "amplification_roots",
     "check_dt",
     "constraints_of",
+    "pair_groups_of",
 ]

@@ -45,6 +45,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from integrators.base import IntegratorBase, Wraps, check_dt
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
@@ -190,9 +191,10 @@ class RigidConfig:
     exclude: bool = key(
         True,
         "boolean",
-        doc="Leave the pairs inside one body out of the pair potentials (they move no "
-        "body; false keeps their constant energy, as LAMMPS does without "
-        "`neigh_modify exclude`).",
+        doc="Leave the pairs inside one body out of the neighbour list, as LAMMPS's "
+        "`neigh_modify exclude molecule/intra` does (they move no body; the potential "
+        "energy then holds the pairs between bodies and free atoms alone). false keeps "
+        "them and their constant energy, as LAMMPS does without `neigh_modify exclude`.",
     )
 
 
@@ -264,6 +266,12 @@ class RigidNVE(IntegratorBase):
         The bodies; their arrays are the integrator's state and move in place.
     rotation : str
         A name in :data:`ROTATIONS`.
+    exclude : bool
+        Leave the pairs inside each body out of the neighbour list (``pair_groups``:
+        each atom's body, -1 for a free atom, which :class:`md.simulation.Simulation`
+        hands to its force field; LAMMPS's ``neigh_modify exclude molecule/intra``).
+        Forces within a rigid body move nothing; left out, they are not computed, and
+        the potential energy holds only the pairs between bodies and free atoms.
 
     Examples
     --------
@@ -278,13 +286,22 @@ class RigidNVE(IntegratorBase):
     #: Whether the total momentum is conserved (then 3 fewer degrees of freedom).
     conserves_momentum = True
 
-    def __init__(self, dt: float, bodies: RigidBodies, rotation: str = "no_squish") -> None:
+    def __init__(
+        self, dt: float, bodies: RigidBodies, rotation: str = "no_squish", exclude: bool = True
+    ) -> None:
         self.dt = check_dt(dt)
         if rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {', '.join(ROTATIONS)}, got {rotation!r}")
         self.rotation = rotation
         self.bodies = bodies
+        self.exclude = bool(exclude)
         self._turn = ROTATIONS[rotation]
+
+    @property
+    def pair_groups(self) -> NDArray[np.int64] | None:
+        """Each atom's body (-1: free) when the pairs inside bodies are left out, else None
+        (the :class:`integrators.base.GroupsPairs` hook)."""
+        return self.bodies.body_of if self.exclude else None
 
     def _kick(self, state, forces, half: float) -> None:
         bodies = self.bodies
@@ -374,8 +391,10 @@ class _RigidBath(RigidNVE):
     stochastic = True
     thermostat = True
 
-    def __init__(self, dt: float, bodies: RigidBodies, rotation: str, kT: float, seed) -> None:
-        super().__init__(dt, bodies, rotation)
+    def __init__(
+        self, dt: float, bodies: RigidBodies, rotation: str, kT: float, seed, exclude: bool = True
+    ) -> None:
+        super().__init__(dt, bodies, rotation, exclude)
         self.kT = float(kT)
         self.reservoir = 0.0  # the heat the bath took out [energy]
         if not self.kT >= 0:
@@ -466,8 +485,9 @@ class RigidLangevin(_RigidBath):
         friction: float = 1.0,
         rotational_friction: float | None = None,
         seed=None,
+        exclude: bool = True,
     ) -> None:
-        super().__init__(dt, bodies, rotation, kT, seed)
+        super().__init__(dt, bodies, rotation, kT, seed, exclude)
         self.friction = float(friction)
         self.rotational_friction = (
             self.friction if rotational_friction is None else float(rotational_friction)
@@ -528,8 +548,9 @@ class RigidBussi(_RigidBath):
         kT: float = 1.0,
         tau: float = 1.0,
         seed=None,
+        exclude: bool = True,
     ) -> None:
-        super().__init__(dt, bodies, rotation, kT, seed)
+        super().__init__(dt, bodies, rotation, kT, seed, exclude)
         self.tau = float(tau)
         if not self.tau > 0:
             raise ValueError(f"tau must be > 0, got {tau!r}")
@@ -590,8 +611,9 @@ class RigidNoseHoover(RigidNVE):
         tau: float = 1.0,
         chain_length: int = 3,
         n_substeps: int = 1,
+        exclude: bool = True,
     ) -> None:
-        super().__init__(dt, bodies, rotation)
+        super().__init__(dt, bodies, rotation, exclude)
         self.kT, self.tau = float(kT), float(tau)
         if not (self.kT > 0 and self.tau > 0):
             raise ValueError("kT and tau must be > 0")

@@ -126,6 +126,15 @@ class ForceField:
         if self.neighbor_list is not None:
             self.neighbor_list.check_box(state.box, state.pbc, state.tilt)
 
+    def exclude_groups(self, groups) -> None:
+        """Leave out of the neighbour list every pair of two atoms in one group (``groups``
+        (N,), -1 for none; None: every pair again): see
+        :meth:`md.neighbors.NeighborList.exclude_groups`. Potentials without a cutoff
+        (bonds, angles) are not affected."""
+        if self.neighbor_list is not None:
+            self.neighbor_list.exclude_groups(groups)
+        self.invalidate()
+
     def invalidate(self) -> None:
         """Forget the cached results (after changing a potential's parameters)."""
         self._cached = None

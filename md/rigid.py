@@ -452,18 +452,6 @@ class RigidBodies:
         np.add.at(torque, self.owner, np.cross(self.offsets(), f))
         return total, torque
 
-    def intra_pairs(self, n_atoms: int) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
-        """Every pair of atoms inside one body as a half list in CSR form ``(starts,
-        partners)``: ``partners[starts[i]:starts[i+1]]`` are the ``j > i`` of i's body."""
-        rows = [[] for _ in range(n_atoms)]
-        for b in range(self.n_bodies):
-            atoms = np.sort(self.members[self.starts[b] : self.starts[b + 1]])
-            for k, i in enumerate(atoms[:-1]):
-                rows[int(i)] = atoms[k + 1 :].tolist()
-        starts = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64)
-        partners = np.array([j for r in rows for j in r], dtype=np.int32)
-        return starts, partners
-
     # ------------------------------------------------------------------ thermodynamics
     def n_dof(self, remove_momentum: bool = True) -> int:
         """Degrees of freedom: 3 per free atom, 6 per body (5 per linear body), less 3 for

@@ -5,8 +5,8 @@ molecule column (atom styles ``full``, ``molecular``, ``bond``, ``angle``), as
 LAMMPS's ``fix rigid ... molecule`` takes it, else the bonded clusters of the
 system's topology. :func:`rigid_components` builds the
 :class:`md.rigid.RigidBodies` and wraps the config's velocity Verlet into
-:class:`integrators.rigid.RigidNVE`, and leaves the pairs inside bodies out of the
-pair potentials (:class:`potentials.rigid_exclusion.IntraBodyExclusion`). Both raise
+:class:`integrators.rigid.RigidNVE`, which leaves the pairs inside bodies out of the
+neighbour list (``[rigid] exclude``; :meth:`md.neighbors.NeighborList.exclude_groups`). Both raise
 :class:`md.errors.ConfigError` naming the file and key, before anything is written.
 """
 
@@ -24,8 +24,6 @@ from md.rigid import RigidBodies, molecules_from_bonds
 from md.state import State
 from md.structure import structure_kind
 from md.topology import Topology
-from potentials import PairPotential
-from potentials.rigid_exclusion import IntraBodyExclusion
 
 #: LAMMPS atom styles whose second column is the molecule id.
 _MOLECULE_STYLES = ("full", "molecular", "bond", "angle")
@@ -86,8 +84,9 @@ def rigid_components(
 ):
     """Return ``(integrator, potentials)``: the config's velocity Verlet made
     :class:`RigidNVE` over its bodies (Langevin :class:`RigidLangevin`, Bussi
-    :class:`RigidBussi`, Nose-Hoover chains :class:`RigidNoseHoover`), and the
-    potentials with the pairs inside bodies left out (``[rigid] exclude``). On a fresh
+    :class:`RigidBussi`, Nose-Hoover chains :class:`RigidNoseHoover`), which with
+    ``[rigid] exclude`` leaves the pairs inside bodies out of the neighbour list, and the
+    potentials as they were. On a fresh
     run (``fresh``) the constituents are placed rigidly at once, so step 0 is reported
     there (a resumed state is already placed; its
     bodies come from the checkpoint)."""
@@ -104,6 +103,7 @@ def rigid_components(
     except ValueError as error:
         raise ConfigError(f"{config.source}: [rigid] bodies: {error}") from None
     rotation = config.rigid.rotation
+    exclude = config.rigid.exclude
     if isinstance(integrator, Langevin):  # its bath on the bodies' momenta
         rigid = RigidLangevin(
             integrator.dt,
@@ -112,6 +112,7 @@ def rigid_components(
             kT=integrator.kT,
             friction=integrator.friction,
             seed=integrator.seed,
+            exclude=exclude,
         )
     elif isinstance(integrator, Bussi):  # its rescaling on every momentum
         rigid = RigidBussi(
@@ -121,6 +122,7 @@ def rigid_components(
             kT=integrator.kT,
             tau=integrator.tau,
             seed=integrator.seed,
+            exclude=exclude,
         )
     elif isinstance(integrator, NoseHooverChain):  # its chain on every momentum
         rigid = RigidNoseHoover(
@@ -131,23 +133,13 @@ def rigid_components(
             tau=integrator.tau,
             chain_length=integrator.chain_length,
             n_substeps=integrator.n_substeps,
+            exclude=exclude,
         )
     else:
-        rigid = RigidNVE(integrator.dt, bodies, rotation)
-    potentials = without_intra_pairs(config, potentials, bodies, state.n_atoms)
+        rigid = RigidNVE(integrator.dt, bodies, rotation, exclude)
     if fresh:
         bodies.place(state)
     return rigid, potentials
 
 
-def without_intra_pairs(config: Config, potentials, bodies: RigidBodies, n_atoms: int) -> list:
-    """``potentials`` and, with ``[rigid] exclude``, an :class:`IntraBodyExclusion` of their
-    pair potentials over the pairs inside ``bodies``."""
-    potentials = list(potentials)
-    pairs = [p for p in potentials if isinstance(p, PairPotential)]
-    if config.rigid.exclude and pairs:
-        potentials.append(IntraBodyExclusion(pairs, *bodies.intra_pairs(n_atoms)))
-    return potentials
-
-
-__all__ = ["body_ids", "lammps_molecule_ids", "rigid_components", "without_intra_pairs"]
+__all__ = ["body_ids", "lammps_molecule_ids", "rigid_components"]

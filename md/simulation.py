@@ -9,7 +9,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from integrators.base import ThermoTerms
+from integrators.base import ThermoTerms, pair_groups_of
 from md.box import cell_deformation
 from md.cuda import device_engine
 from md.errors import NonFiniteError, SimulationError
@@ -141,6 +141,17 @@ class Simulation:
             neighbor_check=neighbor_check,
         )
         self.forcefield.check(state)
+        groups = pair_groups_of(integrator)  # rigid bodies: their inner pairs never listed
+        if groups is not None:
+            if groups.shape != (state.n_atoms,):
+                raise ValueError(
+                    f"the integrator's pair groups are {groups.shape[0]} for {state.n_atoms} atoms"
+                )
+            if device != "cpu":
+                raise ValueError(
+                    f"pair exclusions (rigid bodies) run on the CPU only, not {device!r}"
+                )
+            self.forcefield.exclude_groups(groups)
         self.integrator = integrator
         self.device = device
         self._engine = device_engine(

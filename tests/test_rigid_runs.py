@@ -1,4 +1,5 @@
-"""Rigid bodies through ``md run`` (issue 68): configs, refusals, checkpoints, exclusions."""
+"""Rigid bodies through ``md run`` (issue 68): configs, refusals, checkpoints (the
+exclusions: ``test_rigid_exclusions.py``)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import shutil
 import h5py
 import numpy as np
 import pytest
-from test_rigid import TRIMER, TRIMER_MASSES, _random_rotation, _state
+from test_rigid import TRIMER, TRIMER_MASSES
 
 from md.assemble import build_simulation
 from md.checkpoint import checkpoint_path, read_checkpoint
@@ -19,7 +20,6 @@ from md.rigid import RigidBodies
 from md.rigid_setup import lammps_molecule_ids
 from md.trajectory import open_trajectory, read_trajectory
 from potentials.lennard_jones import LennardJones
-from potentials.rigid_exclusion import IntraBodyExclusion
 
 CONFIG = """units = "lj"
 seed = 11
@@ -221,34 +221,6 @@ def test_refused_under_mpi(tmp_path):
     config.write_text(CONFIG.replace("ROTATION", "no_squish"))
     with pytest.raises(ConfigError, match="MPI"):
         build_simulation(load_config(config), None, tmp_path / "x", None, ranks=object())
-
-
-def test_intra_body_pairs_are_left_out(rng):
-    """With the exclusion the energy is the inter-body pairs' alone; forces and torques on
-    the bodies are unchanged (intra-body forces cancel on a rigid body)."""
-    a, b = _random_rotation(rng), _random_rotation(rng)
-    positions = np.concatenate([TRIMER @ a.T + 5.0, TRIMER @ b.T + [6.3, 5.4, 5.9]])
-    state = _state(positions, np.tile(TRIMER_MASSES, 2), box=12.0)
-    bodies = RigidBodies.from_molecules(state, [1, 1, 1, 2, 2, 2])
-    lj = LennardJones(cutoff=3.0)
-    exclusion = IntraBodyExclusion([lj], *bodies.intra_pairs(6))
-    full = ForceField([LennardJones(cutoff=3.0)]).compute(state)
-    inter = ForceField([LennardJones(cutoff=3.0), exclusion]).compute(state)
-    expected = sum(
-        lj.pair_energy(float(np.linalg.norm(positions[i] - positions[j])))
-        for i in range(3)
-        for j in range(3, 6)
-    )
-    assert inter.energy == pytest.approx(expected, rel=1e-12)
-    assert abs(full.energy - inter.energy) > 1.0  # the intra pairs were there to remove
-    for result in (full, inter):
-        force, torque = bodies.force_torque(result.forces)
-        ref_force, ref_torque = bodies.force_torque(inter.forces)
-        assert np.allclose(force, ref_force, atol=1e-10)
-        assert np.allclose(torque, ref_torque, atol=1e-10)
-    assert bodies.virial_correction(state, full.forces) + full.virial == pytest.approx(
-        bodies.virial_correction(state, inter.forces) + inter.virial, abs=1e-10
-    )
 
 
 def test_pressure_is_the_rigid_body_virial(rng):

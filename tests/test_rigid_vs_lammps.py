@@ -13,7 +13,8 @@ linear dimers too only because our principal axes are LAMMPS's (:func:`md.rigid.
 the dimer's two equal moments leave any pair of axes in their plane principal, NO_SQUISH's
 turns about them do not commute, and with numpy's ``eigh`` axes the dimers ended 3e-7 of
 the box apart (see ``test_other_axes_do_not_follow_lammps``). The pairs inside bodies are
-in both codes' pair sums (LAMMPS's default, no ``neigh_modify exclude``); they move no body.
+in both codes' pair sums here (LAMMPS's default, no ``neigh_modify exclude``; ours with
+``exclude=False``); they move no body. ``test_rigid_exclusions.py`` runs both without them.
 The pressures differ by design (about 0.5 % here): LAMMPS adds a virial of the
 constraint forces estimated from each step's change of velocities, ours is the
 rigid-body (molecular) virial of the forces about the centres; both have the
@@ -71,7 +72,9 @@ def _bodies(shape: str) -> State:
 PEERS = {"no_squish": "rigid/nve", "richardson": "rigid"}
 
 
-def _lammps(state: State, steps: int, size: int, style: str = "rigid/nve"):
+def _lammps(state: State, steps: int, size: int, style: str = "rigid/nve", exclude: bool = False):
+    """LAMMPS's run; with ``exclude`` the pairs inside each body left out of its neighbour
+    lists (``neigh_modify exclude group bi bi``, as ``exclude molecule/intra`` would)."""
     lmp = _start_lammps()  # skips without LAMMPS
     if not lmp.has_style("fix", style):
         lmp.close()
@@ -108,6 +111,7 @@ def _lammps(state: State, steps: int, size: int, style: str = "rigid/nve"):
     lmp.commands_list(
         [
             *groups,
+            *(f"neigh_modify exclude group b{b} b{b}" for b in range(n_bodies) if exclude),
             f"fix rigid all {style} group {n_bodies} {names}",
             f"timestep {DT!r}",
             "thermo_modify norm no",
@@ -133,12 +137,12 @@ def _lammps(state: State, steps: int, size: int, style: str = "rigid/nve"):
     return result
 
 
-def _ours(state: State, steps: int, size: int, rotation: str = "no_squish"):
+def _ours(state: State, steps: int, size: int, rotation: str = "no_squish", exclude: bool = False):
     state = state.copy()
     ids = np.repeat(np.arange(1, state.n_atoms // size + 1), size)
     bodies = RigidBodies.from_molecules(state, ids)
     bodies.place(state)
-    sim = Simulation(state, [LennardJones(cutoff=CUTOFF)], RigidNVE(DT, bodies, rotation))
+    sim = Simulation(state, [LennardJones(cutoff=CUTOFF)], RigidNVE(DT, bodies, rotation, exclude))
     series = []
     for done in range(0, steps + 1, EVERY):
         sim.run(EVERY if done else 0)

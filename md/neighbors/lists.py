@@ -7,7 +7,8 @@ positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the p
 kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
 ``_small_box_kernels``: the build of a box too narrow for the cells;
-``_cluster_kernels``: the cluster-pair list).
+``_cluster_kernels``: the cluster-pair list; ``_exclusion_kernels``: the pairs of one
+group left out, :meth:`NeighborList.exclude_groups`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from md.neighbors._cluster_kernels import (
     row_reach,
     search_pairs,
 )
+from md.neighbors._exclusion_kernels import _drop_grouped_pairs
 from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
 from md.parallel import chunk_count
 from md.state import State
@@ -424,6 +426,7 @@ class NeighborList:
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
         self._owned: tuple[NDArray[np.int64], int] | None = None
+        self._groups: NDArray[np.int64] | None = None  # see exclude_groups
 
     def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
         """From the next build on, list only the pairs this rank of a decomposed run evaluates.
@@ -441,6 +444,28 @@ class NeighborList:
         self._owned = (
             None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64), int(n_owned))
         )
+
+    def exclude_groups(self, groups: NDArray[np.int64] | None) -> None:
+        """From the next build on (the next :meth:`update` builds), leave out every pair of
+        two atoms in one group: ``groups`` (N,) has each atom's group, -1 for none (a
+        rigid body's index, -1 for a free atom), as LAMMPS's ``neigh_modify exclude
+        molecule/intra`` leaves out the pairs within a molecule. Each build drops them in
+        one pass over the list it built (``md.neighbors._exclusion_kernels``). The
+        cluster-pair layout holds whole 4 x 4 blocks of pairs, so a list with groups is
+        built in the slot frame instead (``clusters`` then stays None; mixed precision
+        runs its slot-frame kernels). None lists every pair again.
+        """
+        if groups is not None:
+            groups = np.ascontiguousarray(groups, dtype=np.int64)
+            if groups.ndim != 1:
+                raise ValueError(f"exclusion groups must be one per atom, got shape {groups.shape}")
+        self._groups = groups
+        self._reference = None  # build at the next update
+
+    @property
+    def excluded_groups(self) -> NDArray[np.int64] | None:
+        """:meth:`exclude_groups`'s groups (a copy), or None."""
+        return None if self._groups is None else self._groups.copy()
 
     @property
     def list_radius(self) -> float:
@@ -790,6 +815,8 @@ class NeighborList:
             self.shifts = shifts
         if self._owned is not None and grid is None:
             self._drop_unowned(chunks)
+        if self._groups is not None:
+            self._drop_grouped(chunks)
         self._reference = reference
         self._box = state.box.copy()
         self._tilt = state.tilt.copy()
@@ -834,7 +861,12 @@ class NeighborList:
 
     def _cluster_columns(self, state: State) -> tuple[int, int] | None:
         """(ncx, ncy) of a cluster build of ``state``, or None where the slot frame serves."""
-        if not self.clusters_wanted or self._owned is not None or numba_config.DISABLE_JIT:
+        if (
+            not self.clusters_wanted
+            or self._owned is not None
+            or self._groups is not None  # whole blocks of pairs: exclusions need the slot frame
+            or numba_config.DISABLE_JIT
+        ):
             return None
         box = state.box
         if not (np.all(state.pbc) and is_orthorhombic(state.tilt)) or np.any(
@@ -1083,6 +1115,21 @@ class NeighborList:
         order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
         count = _keep_owned_pairs(
             order, self.slot_starts, self.slot_neighbors, self.codes, ids, n_owned
+        )
+        self.slot_neighbors = self.slot_neighbors[:count]
+        self.codes = self.codes[:count] if len(self.codes) else self.codes
+        self.bounds = _balanced_bounds(self.slot_starts, chunks)
+
+    def _drop_grouped(self, chunks: int) -> None:
+        """Apply :meth:`exclude_groups` to the list just built."""
+        n = len(self.slot_starts) - 1
+        if self._groups.shape[0] != n:
+            raise ValueError(
+                f"exclude_groups was given {self._groups.shape[0]} groups for {n} atoms"
+            )
+        order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
+        count = _drop_grouped_pairs(
+            order, self.slot_starts, self.slot_neighbors, self.codes, self._groups
         )
         self.slot_neighbors = self.slot_neighbors[:count]
         self.codes = self.codes[:count] if len(self.codes) else self.codes

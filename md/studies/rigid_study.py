@@ -26,7 +26,7 @@ from md.assemble import build_potentials
 from md.config import Config, build_system, load_config
 from md.errors import ConfigError, SimulationError
 from md.rigid import RigidBodies
-from md.rigid_setup import body_ids, without_intra_pairs
+from md.rigid_setup import body_ids
 from md.simulation import Simulation
 from md.studies.integrator_study import compare_integrators
 from md.studies.study import (
@@ -54,7 +54,8 @@ class _Rotation:
 
     def __call__(self, dt: float) -> RigidNVE:
         state = self.study.state.copy()
-        return RigidNVE(dt, RigidBodies.from_molecules(state, self.study.ids), self.rotation)
+        bodies = RigidBodies.from_molecules(state, self.study.ids)
+        return RigidNVE(dt, bodies, self.rotation, self.study.config.rigid.exclude)
 
 
 @dataclass
@@ -69,10 +70,9 @@ class RigidStudy(Study):
         return REFERENCE
 
     def potentials(self) -> list:
-        """Fresh potentials, the pairs inside bodies left out as ``md run`` leaves them."""
-        potentials = build_potentials(self.config, self.state.type_names, self.bonds)
-        bodies = RigidBodies.from_molecules(self.state.copy(), self.ids)
-        return without_intra_pairs(self.config, potentials, bodies, self.state.n_atoms)
+        """Fresh potentials (the rotational methods leave the pairs inside bodies out of
+        the neighbour list as ``md run`` does: ``[rigid] exclude``)."""
+        return build_potentials(self.config, self.state.type_names, self.bonds)
 
     def run(self, progress: Callable[[str], None] | None = None) -> StudyResults:
         """Measure the rotational methods; write the files; return the results."""
@@ -171,7 +171,8 @@ def prepare_rigid_study(
     )
     if equilibrate:
         try:
-            integrator = RigidNVE(dt, RigidBodies.from_molecules(state, ids), REFERENCE)
+            bodies = RigidBodies.from_molecules(state, ids)
+            integrator = RigidNVE(dt, bodies, REFERENCE, config.rigid.exclude)
             sim = Simulation(state, study.potentials(), integrator, skin=config.run.skin)
             sim.run(equilibrate)
         except (SimulationError, ValueError) as error:
