@@ -47,89 +47,45 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from integrators._rigid_kernels import _axis_turns, _richardson, _rk4
 from integrators.base import IntegratorBase, Wraps, check_dt
 from integrators.nose_hoover import YOSHIDA_WEIGHTS, chain_half_step
 from md.box import reduced_tilt
-from md.rigid import RigidBodies, matrix_quaternions, quaternion_matrices
+from md.rigid import RigidBodies
 from md.schema import Key, key
 
-
-def quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton products p q of quaternion rows (B, 4)."""
-    pw, pv = p[:, :1], p[:, 1:]
-    qw, qv = q[:, :1], q[:, 1:]
-    w = pw * qw - np.sum(pv * qv, axis=1, keepdims=True)
-    return np.concatenate([w, pw * qv + qw * pv + np.cross(pv, qv)], axis=1)
-
-
-def _normalised(q: np.ndarray) -> np.ndarray:
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _space_omega(q, angular_momenta, inverse_moments):
-    a = quaternion_matrices(q)
-    body = np.einsum("bji,bj->bi", a, angular_momenta) * inverse_moments
-    return np.einsum("bij,bj->bi", a, body)
-
-
-def _quaternion_rate(q, angular_momenta, inverse_moments):
-    omega = _space_omega(q, angular_momenta, inverse_moments)
-    return 0.5 * quaternion_product(np.concatenate([np.zeros((len(q), 1)), omega], 1), q)
-
-
-def _axis_turns(q, angular_momenta, inverse_moments, dt, sequence, use_matrix=False):
-    """The free rotor split into turns about principal axes: ``sequence`` of
-    ``(axis, fraction of dt)``; on quaternions, or on rotation matrices."""
-    a = quaternion_matrices(q)
-    body = np.einsum("bji,bj->bi", a, angular_momenta)  # L in the body frame
-    for axis, fraction in sequence:
-        angle = fraction * dt * body[:, axis] * inverse_moments[:, axis]
-        c, s = np.cos(angle), np.sin(angle)
-        i, j = (axis + 1) % 3, (axis + 2) % 3
-        # The body frame turns by +angle about the axis; L in it by -angle.
-        li, lj = body[:, i].copy(), body[:, j].copy()
-        body[:, i] = c * li + s * lj
-        body[:, j] = -s * li + c * lj
-        if use_matrix:
-            ai, aj = a[:, :, i].copy(), a[:, :, j].copy()
-            a[:, :, i] = c[:, None] * ai + s[:, None] * aj
-            a[:, :, j] = -s[:, None] * ai + c[:, None] * aj
-        else:
-            turn = np.zeros((len(q), 4))
-            turn[:, 0] = np.cos(0.5 * angle)
-            turn[:, 1 + axis] = np.sin(0.5 * angle)
-            q = quaternion_product(q, turn)
-    return matrix_quaternions(a) if use_matrix else _normalised(q)
+#: NO_SQUISH's turns, (axis, fraction of dt): 3(dt/2) 2(dt/2) 1(dt) 2(dt/2) 3(dt/2).
+_NO_SQUISH = (np.array([2, 1, 0, 1, 2]), np.array([0.5, 0.5, 1.0, 0.5, 0.5]))
+#: DLM's: 1(dt/2) 2(dt/2) 3(dt) 2(dt/2) 1(dt/2).
+_DLM = (np.array([0, 1, 2, 1, 0]), np.array([0.5, 0.5, 1.0, 0.5, 0.5]))
 
 
 def no_squish(q, angular_momenta, inverse_moments, dt):
     """NO_SQUISH free-rotor step: 3(dt/2) 2(dt/2) 1(dt) 2(dt/2) 3(dt/2) on quaternions."""
-    sequence = ((2, 0.5), (1, 0.5), (0, 1.0), (1, 0.5), (2, 0.5))
-    return _axis_turns(q, angular_momenta, inverse_moments, dt, sequence)
+    out = np.empty((len(q), 4))
+    _axis_turns(q, angular_momenta, inverse_moments, float(dt), *_NO_SQUISH, False, out)
+    return out
 
 
 def dlm(q, angular_momenta, inverse_moments, dt):
     """DLM free-rotor step: 1(dt/2) 2(dt/2) 3(dt) 2(dt/2) 1(dt/2) on rotation matrices."""
-    sequence = ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5))
-    return _axis_turns(q, angular_momenta, inverse_moments, dt, sequence, use_matrix=True)
+    out = np.empty((len(q), 4))
+    _axis_turns(q, angular_momenta, inverse_moments, float(dt), *_DLM, True, out)
+    return out
 
 
 def richardson(q, angular_momenta, inverse_moments, dt):
     """Richardson-iterated quaternion step: 2 q(two half Euler steps) - q(one full step)."""
-    rate = _quaternion_rate(q, angular_momenta, inverse_moments)
-    full = _normalised(q + dt * rate)
-    half = _normalised(q + 0.5 * dt * rate)
-    half = _normalised(half + 0.5 * dt * _quaternion_rate(half, angular_momenta, inverse_moments))
-    return _normalised(2.0 * half - full)
+    out = np.empty((len(q), 4))
+    _richardson(q, angular_momenta, inverse_moments, float(dt), out)
+    return out
 
 
 def rk4(q, angular_momenta, inverse_moments, dt):
     """RK4 on dq/dt = 1/2 (0, omega(q)) q at fixed space-frame L, renormalised at the end."""
-    k1 = _quaternion_rate(q, angular_momenta, inverse_moments)
-    k2 = _quaternion_rate(q + 0.5 * dt * k1, angular_momenta, inverse_moments)
-    k3 = _quaternion_rate(q + 0.5 * dt * k2, angular_momenta, inverse_moments)
-    k4 = _quaternion_rate(q + dt * k3, angular_momenta, inverse_moments)
-    return _normalised(q + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4))
+    out = np.empty((len(q), 4))
+    _rk4(q, angular_momenta, inverse_moments, float(dt), out)
+    return out
 
 
 #: The rotational methods by config name, and their order on the free rotor.
@@ -705,5 +661,4 @@ __all__ = [
     "RigidNoseHoover",
     "bodies_of",
     "checked_rigid",
-    "quaternion_product",
 ]

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from md.box import minimum_image, perpendicular_widths
@@ -433,23 +434,30 @@ class RigidBodies:
         self.angular_momenta[:] = np.einsum("bij,bj->bi", a, body)
 
     def place(self, state: State) -> None:
-        """Write the constituents' positions and velocities (centre motion plus omega x d)."""
-        d = self.offsets()
-        owner = self.owner
-        state.positions[self.members] = self.centres[owner] + d
-        velocities = self.momenta / self.masses[:, None]
-        state.velocities[self.members] = velocities[owner] + np.cross(
-            self.angular_velocities()[owner], d
+        """Write the constituents' positions and velocities (centre motion plus omega x d),
+        in one compiled pass over the bodies (:func:`_place`)."""
+        _place(
+            self.members,
+            self.starts,
+            self.centres,
+            self.momenta,
+            self.masses,
+            self.quaternions,
+            self.angular_momenta,
+            self.inverse_moments,
+            self.body_positions,
+            state.positions,
+            state.velocities,
         )
 
     def force_torque(self, forces: NDArray[np.float64]):
         """Sum the forces on constituents into body forces and torques (space frame), (B, 3)
-        each, about the current centres."""
-        f = forces[self.members]
-        total = np.zeros((self.n_bodies, 3))
-        np.add.at(total, self.owner, f)
-        torque = np.zeros((self.n_bodies, 3))
-        np.add.at(torque, self.owner, np.cross(self.offsets(), f))
+        each, about the current centres (one compiled pass, :func:`_force_torque`)."""
+        total = np.empty((self.n_bodies, 3))
+        torque = np.empty((self.n_bodies, 3))
+        _force_torque(
+            self.members, self.starts, self.quaternions, self.body_positions, forces, total, torque
+        )
         return total, torque
 
     # ------------------------------------------------------------------ thermodynamics
@@ -503,6 +511,93 @@ class RigidBodies:
         self.linear = self.moments[:, 0] == 0.0
 
 
+@njit(cache=True)
+def rotation_entries(w, x, y, z):
+    """The nine entries of A(q), row by row, of a quaternion ``(w, x, y, z)`` as scalars (a
+    rotation for a unit quaternion, else |q|^2 times one), as :func:`quaternion_matrices`
+    computes them: for the compiled loops over bodies."""
+    return (
+        w * w + x * x - y * y - z * z,
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        w * w - x * x + y * y - z * z,
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        w * w - x * x - y * y + z * z,
+    )
+
+
+@njit(cache=True)
+def _place(
+    members,
+    starts,
+    centres,
+    momenta,
+    masses,
+    quaternions,
+    angular_momenta,
+    inverse_moments,
+    body_positions,
+    positions,
+    velocities,
+):
+    """Write ``positions`` and ``velocities`` (N, 3) of every constituent from its body:
+    x = R + A d, v = P / M + omega x (A d), omega = A I^-1 A^T L. Bodies b own
+    ``members[starts[b]:starts[b + 1]]`` (atom indices), whose body-frame positions are
+    the same rows of ``body_positions``."""
+    for b in range(masses.shape[0]):
+        q = quaternions[b]
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = rotation_entries(q[0], q[1], q[2], q[3])
+        l0, l1, l2 = angular_momenta[b, 0], angular_momenta[b, 1], angular_momenta[b, 2]
+        # omega in the body frame, A^T L / I, then in the space frame
+        u0 = (a00 * l0 + a10 * l1 + a20 * l2) * inverse_moments[b, 0]
+        u1 = (a01 * l0 + a11 * l1 + a21 * l2) * inverse_moments[b, 1]
+        u2 = (a02 * l0 + a12 * l1 + a22 * l2) * inverse_moments[b, 2]
+        o0 = a00 * u0 + a01 * u1 + a02 * u2
+        o1 = a10 * u0 + a11 * u1 + a12 * u2
+        o2 = a20 * u0 + a21 * u1 + a22 * u2
+        v0, v1, v2 = momenta[b, 0] / masses[b], momenta[b, 1] / masses[b], momenta[b, 2] / masses[b]
+        for m in range(starts[b], starts[b + 1]):
+            atom = members[m]
+            p0, p1, p2 = body_positions[m, 0], body_positions[m, 1], body_positions[m, 2]
+            d0 = a00 * p0 + a01 * p1 + a02 * p2
+            d1 = a10 * p0 + a11 * p1 + a12 * p2
+            d2 = a20 * p0 + a21 * p1 + a22 * p2
+            positions[atom, 0] = centres[b, 0] + d0
+            positions[atom, 1] = centres[b, 1] + d1
+            positions[atom, 2] = centres[b, 2] + d2
+            velocities[atom, 0] = v0 + (o1 * d2 - o2 * d1)
+            velocities[atom, 1] = v1 + (o2 * d0 - o0 * d2)
+            velocities[atom, 2] = v2 + (o0 * d1 - o1 * d0)
+
+
+@njit(cache=True)
+def _force_torque(members, starts, quaternions, body_positions, forces, total, torque):
+    """Write each body's force ``total`` (B, 3) and torque ``torque`` (B, 3) about its
+    centre: the sums over its constituents of f and (A d) x f, in member order."""
+    for b in range(starts.shape[0] - 1):
+        q = quaternions[b]
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = rotation_entries(q[0], q[1], q[2], q[3])
+        f0 = f1 = f2 = t0 = t1 = t2 = 0.0
+        for m in range(starts[b], starts[b + 1]):
+            atom = members[m]
+            p0, p1, p2 = body_positions[m, 0], body_positions[m, 1], body_positions[m, 2]
+            d0 = a00 * p0 + a01 * p1 + a02 * p2
+            d1 = a10 * p0 + a11 * p1 + a12 * p2
+            d2 = a20 * p0 + a21 * p1 + a22 * p2
+            g0, g1, g2 = forces[atom, 0], forces[atom, 1], forces[atom, 2]
+            f0 += g0
+            f1 += g1
+            f2 += g2
+            t0 += d1 * g2 - d2 * g1
+            t1 += d2 * g0 - d0 * g2
+            t2 += d0 * g1 - d1 * g0
+        total[b, 0], total[b, 1], total[b, 2] = f0, f1, f2
+        torque[b, 0], torque[b, 1], torque[b, 2] = t0, t1, t2
+
+
 __all__ = [
     "LINEAR_TOLERANCE",
     "OVERLAP_TOLERANCE",
@@ -512,4 +607,5 @@ __all__ = [
     "molecules_from_bonds",
     "principal_axes",
     "quaternion_matrices",
+    "rotation_entries",
 ]

@@ -331,3 +331,66 @@ def test_nose_hoover_chains_on_bodies(rng):
     assert heat > 10.0 * errors[0]  # the bath did work, far more than the error
     order = np.log2(errors[0] / errors[1])
     assert 1.7 < order < 2.3, (errors, order)
+
+
+def test_compiled_body_loops_match_their_definitions_and_python_twins(rng):
+    """The compiled passes over bodies (placing constituents, summing force and torque, the
+    four free-rotor steps) against numpy's definitions and their own Python twins (as
+    ``NUMBA_DISABLE_JIT`` runs them)."""
+    from integrators import _rigid_kernels as kernels
+    from md import rigid
+
+    parts = [TRIMER @ _random_rotation(rng).T + rng.uniform(2, 18, 3) for _ in range(6)]
+    positions = np.concatenate([*parts, [[1.0, 1.0, 1.0], [1.0, 19.0, 5.0]]])
+    state = _state(positions, np.concatenate([np.tile(TRIMER_MASSES, 6), [1.0, 1.0]]))
+    bodies = RigidBodies.from_molecules(state, [*np.repeat(np.arange(1, 7), 3), 0, 0])
+    bodies.angular_momenta[:] = rng.normal(size=(6, 3))
+    bodies.momenta[:] = rng.normal(size=(6, 3))
+    free_before = state.positions[-2:].copy()
+    bodies.place(state)
+    d = bodies.offsets()
+    assert np.allclose(
+        state.positions[bodies.members], bodies.centres[bodies.owner] + d, atol=1e-14
+    )
+    omega = bodies.angular_velocities()[bodies.owner]
+    velocity = (bodies.momenta / bodies.masses[:, None])[bodies.owner] + np.cross(omega, d)
+    assert np.allclose(state.velocities[bodies.members], velocity, atol=1e-14)
+    assert np.array_equal(state.positions[-2:], free_before)  # free atoms untouched
+    forces = rng.normal(size=(state.n_atoms, 3))
+    force, torque = bodies.force_torque(forces)
+    expected_force = np.zeros((6, 3))
+    np.add.at(expected_force, bodies.owner, forces[bodies.members])
+    expected_torque = np.zeros((6, 3))
+    np.add.at(expected_torque, bodies.owner, np.cross(d, forces[bodies.members]))
+    assert np.allclose(force, expected_force, atol=1e-14)
+    assert np.allclose(torque, expected_torque, atol=1e-14)
+    twin = np.empty((6, 3)), np.empty((6, 3))
+    rigid._force_torque.py_func(
+        bodies.members, bodies.starts, bodies.quaternions, bodies.body_positions, forces, *twin
+    )
+    assert np.allclose(twin[0], force, atol=1e-14) and np.allclose(twin[1], torque, atol=1e-14)
+    args = (bodies.quaternions, bodies.angular_momenta, bodies.inverse_moments, 0.05)
+    for name, kernel, extra in (
+        (
+            "no_squish",
+            kernels._axis_turns,
+            (np.array([2, 1, 0, 1, 2]), np.array([0.5, 0.5, 1, 0.5, 0.5]), False),
+        ),
+        (
+            "dlm",
+            kernels._axis_turns,
+            (np.array([0, 1, 2, 1, 0]), np.array([0.5, 0.5, 1, 0.5, 0.5]), True),
+        ),
+        ("richardson", kernels._richardson, ()),
+        ("rk4", kernels._rk4, ()),
+    ):
+        compiled = ROTATIONS[name](*args)
+        python = np.empty((6, 4))
+        kernel.py_func(*args, *extra, python)
+        assert np.allclose(python, compiled, atol=1e-14), name
+        assert np.allclose(np.linalg.norm(compiled, axis=1), 1.0, atol=1e-14)
+        # a step of the free rotor keeps the energy L I^-1 L to the method's order
+        after = np.einsum("bji,bj->bi", quaternion_matrices(compiled), bodies.angular_momenta)
+        before = np.einsum("bji,bj->bi", bodies.matrices(), bodies.angular_momenta)
+        energy = lambda body: np.sum(body**2 * bodies.inverse_moments, axis=1)  # noqa: E731
+        assert np.allclose(energy(after), energy(before), rtol=1e-3), name
