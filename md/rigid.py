@@ -12,7 +12,8 @@ force and torque. The integrators that move bodies are in
 
 Conventions: a quaternion ``q = (w, x, y, z)`` rotates the body frame into the
 space frame, ``r_space = A(q) d_body``; the principal axes are ordered by
-increasing moment and made right-handed. A linear body has its first moment
+increasing moment and made right-handed, and chosen as LAMMPS's fix rigid chooses
+them where moments are equal (:func:`principal_axes`). A linear body has its first moment
 zero (below ``1e-7`` of the largest, as LAMMPS takes it), the angular momentum along its axis zero
 and five degrees of freedom.
 
