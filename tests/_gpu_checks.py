@@ -1,5 +1,6 @@
 """The GPU path against the CPU path, run as a script: ``python3 tests/_gpu_checks.py OUT``
 (``OUT --ptx``: every kernel compiled for the GPU target instead, without a GPU; ``OUT
+--lower``: the same, only typed and lowered to LLVM IR, where NVVM is missing; ``OUT
 --more``: the checks of ``tests/test_gpu_more.py`` instead).
 
 ``tests/test_gpu.py`` runs it in a subprocess, on numba's CUDA simulator
@@ -419,12 +420,41 @@ def check_tuning(results: dict) -> None:
     results["launches_per_step"] = launches
 
 
-def check_ptx(results: dict) -> None:
+def _lowering():
+    """A stand-in for ``cuda.compile_ptx`` where NVVM is missing: the kernel typed and
+    lowered by the CUDA target to LLVM IR for sm_90 (``compile_cuda``), short of the NVVM
+    step. numba-cuda asks NVVM only for its data layout and IR version before that step,
+    so a stand-in gives NVVM's 64-bit layout (numba-cuda 0.30's internals: this is a test
+    helper, not library code). It catches what the simulator cannot (a numpy function the
+    target lacks, a type the target cannot lower), not what only NVVM would reject."""
+    import numba
+    from numba.cuda import compiler
+    from numba.cuda.cudadrv import nvvm
+
+    class StandIn:
+        data_layout = (
+            "e-p:64:64:64-i1:8:8-i8:8:8-i16:16:16-i32:32:32-i64:64:64-i128:128:128-f32:32:32"
+            "-f64:64:64-v16:16:16-v32:32:32-v64:64:64-v128:128:128-n16:32:64"
+        )
+
+        def get_ir_version(self):
+            return (2, 0, 3, 1)
+
+    nvvm.NVVM = StandIn
+
+    def lower(function, signature, cc=(9, 0)):
+        return compiler.compile_cuda(function, numba.types.void, signature, cc=cc)
+
+    return lower
+
+
+def check_ptx(results: dict, lower: bool = False) -> None:
     """Every kernel compiled to PTX for the H100/H200 (sm_90) without a GPU, as the CUDA
     target types it (the simulator runs the Python and misses what that target lacks,
     such as ``np.rint``): the generic kernels, the force kernel of every built-in pair
     style in double and mixed precision and of every built-in bond and angle style. Needs
-    NVVM (``numba-cuda[cu12]``)."""
+    NVVM (``numba-cuda[cu12]``); ``lower``: only typed and lowered to LLVM IR, without
+    NVVM (:func:`_lowering`)."""
     import numba
     import numpy as np
     from numba import cuda
@@ -446,6 +476,7 @@ def check_ptx(results: dict) -> None:
     )
     from potentials.device_terms import bonded_function, pair_function
 
+    compile_to = _lowering() if lower else cuda.compile_ptx
     try:
         from numba.cuda.cudadrv.nvvm import NVVM
 
@@ -456,7 +487,16 @@ def check_ptx(results: dict) -> None:
 
         # the whole tool chain, on a one-line kernel (plain numba-cuda can have NVVM and
         # still lack NVRTC, which compiling needs too)
-        cuda.compile_ptx(_probe, (numba.float64[:],), cc=(9, 0))
+        compile_to(_probe, (numba.float64[:],), cc=(9, 0))
+
+        def _rint(x):
+            x[0] = np.rint(x[0])
+
+        try:  # and a kernel the CUDA target rejects (no np.rint on scalars) is rejected
+            compile_to(_rint, (numba.float64[:],), cc=(9, 0))
+            results["ptx_rejects_rint"] = False
+        except Exception:  # noqa: BLE001
+            results["ptx_rejects_rint"] = True
     except Exception as error:  # noqa: BLE001 (no CUDA compiler: nothing to compile with)
         results["ptx_nvvm"] = str(error)[:200]
         return
@@ -488,7 +528,7 @@ def check_ptx(results: dict) -> None:
     def compile_ptx(name, kernel, arguments):
         signature = tuple(numba.typeof(a) for a in arguments)
         try:
-            cuda.compile_ptx(kernel.py_func, signature, cc=(9, 0))
+            compile_to(kernel.py_func, signature, cc=(9, 0))
             compiled.append(name)
         except Exception as error:  # noqa: BLE001 (recorded for the test to show)
             failed[name] = f"{type(error).__name__}: {str(error)[:300]}"
@@ -540,8 +580,8 @@ def main(argv: list[str]) -> int:
     warnings.filterwarnings("ignore", "overflow encountered", RuntimeWarning)
     out = Path(argv[0])
     results: dict = {}
-    if argv[1:] == ["--ptx"]:
-        check_ptx(results)
+    if argv[1:] in (["--ptx"], ["--lower"]):
+        check_ptx(results, lower=argv[1:] == ["--lower"])
         out.write_text(json.dumps(results, indent=1))
         return 0
     if argv[1:] == ["--more"]:  # tests/test_gpu_more.py's

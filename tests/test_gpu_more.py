@@ -85,6 +85,20 @@ def test_the_same_on_a_gpu(on_gpu):
     _judge_tuning(on_gpu)
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not HAVE_NUMBA_CUDA, reason="numba-cuda not installed")
+def test_every_kernel_is_typed_and_lowered_by_the_gpu_target(tmp_path_factory):
+    """Where NVVM or NVRTC is missing (and ``tests/test_gpu.py``'s compile for sm_90 is
+    skipped), every kernel still goes through the CUDA target's typing and lowering to
+    LLVM IR, which the simulator skips (it runs the Python); one that uses ``np.rint`` is
+    rejected there. Slow (half a minute of compiling): run with ``-m slow``."""
+    results = _checks(tmp_path_factory, False, "--lower")
+    assert results["ptx_nvvm"] is True, results["ptx_nvvm"]
+    assert results["ptx_rejects_rint"]
+    assert results["ptx_failed"] == {}
+    assert len(results["ptx_compiled"]) == 16 + 2 * 7 + 1 + 4
+
+
 @pytest.mark.skipif(not HAVE_NUMBA_CUDA, reason="numba-cuda not installed")
 def test_the_gpu_benchmark_runs_on_the_simulator(tmp_path):
     """``benchmarks/gpu.py`` at a tiny size under the simulator: every figure printed, no
