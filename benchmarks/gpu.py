@@ -4,9 +4,11 @@ Prints the GPU model, the driver and numba-cuda versions; then, per size (64000,
 2,048,000 and 16,384,000 atoms: fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma,
 skin 0.3, NVE velocity Verlet, dt 0.005) and precision (double, mixed): atom-steps/s and
 ns/day of the melt in argon units (tau = 2.156 ps), the median of repeats after a warm-up
-that compiles; the time of one step split by kernel (CUDA events: integrator passes, the
-list's check and rebuilds, the force kernels); the cost of one kernel launch from Python;
-and our CPU path on one thread on the same host (a few steps: it is slow at these sizes).
+that compiles; the time of one step split by kernel (CUDA events: the integrator's passes,
+with the list's displacement check fused into them; the wait for the rebuild flag and the
+rebuilds; the force kernels), the launches per step and the host's time per step; the cost
+of one kernel launch from Python; and our CPU path on one thread on the same host (a few
+steps: it is slow at these sizes).
 
     python3 benchmarks/gpu.py            # every size
     python3 benchmarks/gpu.py --quick    # 64000 and 2M atoms, then pytest -m cuda
@@ -118,10 +120,13 @@ def _rate(sim, steps: int, repeats: int) -> list[float]:
     return rates
 
 
-def _split(sim, steps: int) -> tuple[dict[str, float], float]:
+def _split(sim, steps: int) -> tuple[dict[str, float], float, float]:
     """Milliseconds per step by kernel group, over ``steps`` steps of the run's own engine
-    (its compiled kernels) timed by CUDA events, and the kernel launches per step (the
-    list's rebuilds among them)."""
+    (its compiled kernels) timed by CUDA events; the kernel launches per step (the list's
+    rebuilds among them); and the host's milliseconds per step of the untimed steps that
+    follow (each ends in the four-byte read of the rebuild flag, so the host waits for the
+    device there: where this exceeds the events' sum, the launches from Python bound the
+    step)."""
     engine = sim.device_engine
     engine.start(sim.state)
     total: dict[str, float] = {}
@@ -130,12 +135,18 @@ def _split(sim, steps: int) -> tuple[dict[str, float], float]:
         for name, ms in engine.timed_step(sim.state).items():
             total[name] = total.get(name, 0.0) + ms / steps
     launches = (engine.n_launches - before) / steps
+    start = time.perf_counter()
+    for _ in range(steps):
+        engine.step(sim.state)
+    host = 1e3 * (time.perf_counter() - start) / steps
     engine.finish(sim.state)
-    return total, launches
+    return total, launches, host
 
 
 def _launch_cost(cuda, launches: int) -> float:
-    """Microseconds per launch of an empty kernel from Python (one block of 32 threads)."""
+    """Microseconds per launch of an empty kernel from Python (one block of 32 threads;
+    a kernel of a dozen arguments costs more: the rows' launches column and the host's time
+    per step show the whole step's)."""
 
     @cuda.jit
     def empty(x):
@@ -159,12 +170,13 @@ def _gpu_row(n: int, cells: int, precision: str, args) -> float | None:
         sim.run(args.warmup)  # compiles (the first size only), builds the first list
         warmup = time.perf_counter() - start
         rate = statistics.median(_rate(sim, args.steps, args.repeats))
-        split, per_step = _split(sim, args.split_steps)
+        split, per_step, host = _split(sim, args.split_steps)
         del sim
     except Exception as error:  # noqa: BLE001 (one row's failure must not end the loan)
         print(f"{n:>11,} {precision:>9}  FAILED: {type(error).__name__}: {error}", flush=True)
         return None
     shown = ", ".join(f"{k} {v:.3f}" for k, v in split.items())
+    shown += f"; sum {sum(split.values()):.3f}, host {host:.3f}"
     ns_day = rate / n * DT * ARGON_TAU_PS / 1000.0 * 86400
     print(
         f"{n:>11,} {precision:>9} {rate:>13.3e} {ns_day:>8.1f} {warmup:>9.1f} "

@@ -397,6 +397,32 @@ def check_tuning(results: dict) -> None:
             worst, int(np.max(d_counts.copy_to_host())), int(np.max(cursors.copy_to_host()))
         )
     results["scan_error"] = worst
+    # runs that sort the rows at every build (every integrator's pass after a rebuild
+    # reads the sorted arrays), in double and, for velocity Verlet, mixed precision
+    for name, integrator, precision in (
+        ("verlet_mixed", VelocityVerlet, "mixed"),
+        ("leapfrog", Leapfrog, "double"),
+        ("bussi", lambda dt: Bussi(dt=dt, temperature=1.2, tau=0.05, seed=8), "double"),
+        ("langevin", lambda dt: Langevin(dt, temperature=1.2, friction=2.0, seed=7), "double"),
+    ):
+        states = [small.copy() for _ in range(2)]
+        runs = [  # a thin skin: a rebuild every few steps
+            Simulation(
+                s,
+                [LennardJones(cutoff=1.3)],
+                integrator(0.005),
+                skin=0.06,
+                precision=precision,
+                device=device,
+            )
+            for s, device in zip(states, ("cpu", "cuda"), strict=True)
+        ]
+        runs[1].device_engine.sort_every = 1
+        for sim in runs:
+            sim.run(12)
+        results[f"sorted_{name}_sorts"] = runs[1].device_engine.n_sorts
+        results[f"sorted_{name}_positions"] = _relative(states[1].positions, states[0].positions)
+        results[f"sorted_{name}_velocities"] = _relative(states[1].velocities, states[0].velocities)
     # launches of a step that does not rebuild the list, once the run is under way
     launches = {}
     for name, integrator in (

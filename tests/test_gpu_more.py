@@ -64,6 +64,11 @@ def _judge_tuning(results: dict) -> None:
     assert results["sort_cells_keep_order"]
     assert results["scan_error"] == 0
     assert results["launches_per_step"] == LAUNCHES
+    for name in ("verlet_mixed", "leapfrog", "bussi", "langevin"):
+        assert results[f"sorted_{name}_sorts"] > 2, name  # sorted again within the run
+        limit = 1e-6 if "mixed" in name else 1e-10  # mixed: float32 terms, 12 steps
+        assert results[f"sorted_{name}_positions"] < limit, name
+        assert results[f"sorted_{name}_velocities"] < limit, name
 
 
 def test_a_cpu_checkpoint_resumes_on_the_device_to_round_off(simulated):

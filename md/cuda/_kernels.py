@@ -33,8 +33,9 @@ from potentials.device_terms import retarget
 
 #: Threads per block of the per-atom kernels.
 BLOCK = 128
-#: Threads per block of the sums and of the passes fused with them (a power of two), and
-#: the most blocks they take (a grid-stride loop covers the atoms past them).
+#: The most threads per block of the sums and of the passes fused with them (a power of
+#: two: :func:`sum_threads` gives fewer to a small system), and the most blocks they take
+#: (a grid-stride loop covers the atoms past them).
 SUM_THREADS = 128
 SUM_BLOCKS = 1024
 #: The most threads of the one block that scans the cell counts (a power of two).
@@ -111,6 +112,14 @@ def _cell_of(positions, lengths, n_cells, rank, cells, counts):
         code = rank[code]
         cells[i] = code
         cuda.atomic.add(counts, code, 1)
+
+
+def sum_threads(n: int) -> int:
+    """Threads per block of the sums over ``n`` atoms: a power of two, 32 to SUM_THREADS."""
+    threads = 32
+    while threads < min(n, SUM_THREADS):
+        threads *= 2
+    return threads
 
 
 def scan_threads(n_cells: int) -> int:
@@ -537,7 +546,7 @@ def _add_row(forces, observables, i, fx, fy, fz, share, u, wxx, wyy, wzz, wyz, w
 # A step is a few launches (docs/guide/gpu.md counts them per integrator): each pass below
 # does what the CPU path does in two or three loops in a row (the kick, the drift, the
 # list's displacement check, a thermostat's sum), as one thread per atom, or, where a sum
-# over the atoms follows, a grid-stride loop of SUM_THREADS-thread blocks that ends in
+# over the atoms follows, a grid-stride loop of blocks of up to SUM_THREADS that ends in
 # :func:`_finish` (the sum in a fixed order, in the same launch).
 @cuda.jit
 def _kick_drift_check(
@@ -609,8 +618,8 @@ def _kick_scale_kinetic(
     shared = cuda.shared.array((SUM_THREADS, 1), dtype=numba.float64)
     last = cuda.shared.array(1, dtype=numba.int32)
     shared[t, 0] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, velocities.shape[0], cuda.blockDim.x * cuda.gridDim.x):
         scale = kick_dt * inverse_masses[i]
         v2 = 0.0
         for a in range(3):
@@ -644,8 +653,8 @@ def _noise_kernel(gaussians):
         last = cuda.shared.array(1, dtype=numba.int32)
         for c in range(5):
             shared[t, c] = 0.0
-        start = cuda.blockIdx.x * SUM_THREADS + t
-        for i in range(start, noise.shape[0], SUM_THREADS * cuda.gridDim.x):
+        start = cuda.blockIdx.x * cuda.blockDim.x + t
+        for i in range(start, noise.shape[0], cuda.blockDim.x * cuda.gridDim.x):
             g0, g1, g2 = device_gaussians(k0, k1, step, numba.uint64(ids[i]))
             s = sigmas[i]
             noise[i, 0] = g0 * s
@@ -672,8 +681,8 @@ def _relax_bath(velocities, noise, masses, c, fix_com, partial, counter, sums):
     shared = cuda.shared.array((SUM_THREADS, 1), dtype=numba.float64)
     last = cuda.shared.array(1, dtype=numba.int32)
     shared[t, 0] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, velocities.shape[0], cuda.blockDim.x * cuda.gridDim.x):
         v2 = 0.0
         for a in range(3):
             drift = sums[1 + a] / sums[4] if fix_com else 0.0
@@ -690,7 +699,7 @@ def _relax_bath(velocities, noise, masses, c, fix_com, partial, counter, sums):
 @cuda.jit
 def _sum_observables(observables, velocities, masses, partial, counter, totals):
     """Each observable column summed into ``totals``, the kinetic energy (column 7)
-    computed here: each block of SUM_THREADS threads takes a strided share, then a tree,
+    computed here: each block's threads take a strided share, then a tree,
     and :func:`_finish` adds the blocks' rows in order: the same order on every run, in
     one launch."""
     t = cuda.threadIdx.x
@@ -698,8 +707,8 @@ def _sum_observables(observables, velocities, masses, partial, counter, totals):
     last = cuda.shared.array(1, dtype=numba.int32)
     for c in range(N_OBSERVABLES):
         shared[t, c] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, observables.shape[0], SUM_THREADS * cuda.gridDim.x):
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, observables.shape[0], cuda.blockDim.x * cuda.gridDim.x):
         for c in range(N_OBSERVABLES - 1):
             shared[t, c] += observables[i, c]
         v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
@@ -709,9 +718,10 @@ def _sum_observables(observables, velocities, masses, partial, counter, totals):
 
 @cuda.jit(device=True, inline="always")
 def _tree(shared, t, n_columns):
-    """Sum the block's SUM_THREADS rows of ``shared`` into row 0, pairwise."""
+    """Sum the block's rows of ``shared`` (one a thread: a power of two, at most
+    SUM_THREADS) into row 0, pairwise."""
     cuda.syncthreads()
-    width = SUM_THREADS // 2
+    width = cuda.blockDim.x // 2
     while width > 0:
         if t < width:
             for c in range(n_columns):
@@ -729,6 +739,13 @@ def _finish(shared, t, n_columns, partial, counter, last, out, offset):
     ``out[offset:offset + n_columns]``, sets ``last[0]`` and resets the ticket. The order
     of every addition is fixed: the same sums on every run."""
     _tree(shared, t, n_columns)
+    if cuda.gridDim.x == 1:  # one block: its row 0 is the sum (as the pass below gives it)
+        if t == 0:
+            for c in range(n_columns):
+                out[offset + c] = shared[0, c]
+            last[0] = 1
+        cuda.syncthreads()
+        return
     if t == 0:
         for c in range(n_columns):
             partial[cuda.blockIdx.x, c] = shared[0, c]
@@ -739,7 +756,7 @@ def _finish(shared, t, n_columns, partial, counter, last, out, offset):
     if last[0]:
         for c in range(n_columns):
             shared[t, c] = 0.0
-        for b in range(t, cuda.gridDim.x, SUM_THREADS):
+        for b in range(t, cuda.gridDim.x, cuda.blockDim.x):
             for c in range(n_columns):
                 shared[t, c] += partial[b, c]
         _tree(shared, t, n_columns)
@@ -783,4 +800,5 @@ __all__ = [
     "noise_kernel",
     "pair_kernel",
     "scan_threads",
+    "sum_threads",
 ]

@@ -25,7 +25,6 @@ from md.box import periodic_lengths, periodic_tilt
 from md.cuda._kernels import (
     N_OBSERVABLES,
     SUM_BLOCKS,
-    SUM_THREADS,
     _cell_of,
     _cell_starts,
     _drift_check,
@@ -49,6 +48,7 @@ from md.cuda._kernels import (
     noise_kernel,
     pair_kernel,
     scan_threads,
+    sum_threads,
 )
 from md.errors import NonFiniteError
 from potentials.base import ForceResult
@@ -87,6 +87,8 @@ class DeviceEngine:
         Sorts of the device's rows along the cells' Morton curve (likewise).
     n_launches : int
         Kernel launches (likewise; a step's count is in docs/guide/gpu.md).
+    sort_every : int
+        Builds between sorts (:data:`SORT_EVERY`; the tests sort at every build).
     """
 
     def __init__(self, state, forcefield, integrator) -> None:
@@ -109,6 +111,7 @@ class DeviceEngine:
         self.n_builds = 0
         self.n_sorts = 0
         self.n_launches = 0
+        self.sort_every = SORT_EVERY
         self.room = FIRST_ROOM
         self.arrays: dict = {}
         self.events: list | None = None  # (name, CUDA event) while timed_step runs
@@ -155,7 +158,8 @@ class DeviceEngine:
         self.n_atoms = n
         # blocks of the sums (and the passes fused with them): a thread per atom, at most
         # SUM_BLOCKS blocks (then a few atoms a thread)
-        self.sum_blocks = min(SUM_BLOCKS, (n + SUM_THREADS - 1) // SUM_THREADS)
+        self.sum_threads = sum_threads(n)
+        self.sum_blocks = min(SUM_BLOCKS, (n + self.sum_threads - 1) // self.sum_threads)
         a["partial"] = cuda.device_array((self.sum_blocks, N_OBSERVABLES))
         self.perm = np.arange(n)  # device row d holds the user's atom perm[d]
         self.n_cells = _cell_grid(state, self.radius)
@@ -282,7 +286,7 @@ class DeviceEngine:
             mark("forces")
             velocities, inverse = a["velocities"], a["inverse_masses"]  # as now (a sort)
             if self.kind == "Bussi":  # the kick and the sum of the second rescaling, then it
-                sums = (self.sum_blocks, SUM_THREADS)
+                sums = (self.sum_blocks, self.sum_threads)
                 totals = (a["partial"], a["counter"], a["kinetic"])
                 physics = (velocities, a["forces"], inverse, a["masses"])
                 go(_kick_scale_kinetic, sums, *physics, 0.5 * dt, 1.0, *totals)
@@ -303,7 +307,7 @@ class DeviceEngine:
         step). The caller's next pass scales the velocities by it."""
         a, bussi = self.arrays, self.integrator
         if not self.kinetic_ready:
-            sums = (self.sum_blocks, SUM_THREADS)
+            sums = (self.sum_blocks, self.sum_threads)
             physics = (a["velocities"], a["velocities"], a["inverse_masses"], a["masses"])
             self._go(_kick_scale_kinetic, sums, *physics, 0.0, 1.0, *self._totals_of("kinetic"))
         self.kinetic_ready = False
@@ -325,7 +329,7 @@ class DeviceEngine:
         kick = (a["forces"], a["inverse_masses"], 1.0, half, half)
         go(_kick_drift_check, grid, a["positions"], velocities, *kick, *look, False)  # B, A
         step = np.uint64(state.step + 1)
-        sums, totals = (self.sum_blocks, SUM_THREADS), self._totals_of("sums")
+        sums, totals = (self.sum_blocks, self.sum_threads), self._totals_of("sums")
         # O: the noise and its momentum, the velocities relaxed, the bath's energy booked
         go(
             self.noise_kernel,
@@ -354,7 +358,8 @@ class DeviceEngine:
 
     def timed_step(self, state) -> dict[str, float]:
         """:meth:`step`, timed by CUDA events between its kernels: milliseconds spent in
-        the integrator's passes, the list's check (and rebuild) and the force kernels."""
+        the integrator's passes (the list's displacement check fused into them), the
+        read of the rebuild flag with any rebuild, and the force kernels."""
         self.events = []
         try:
             self.step(state)
@@ -393,7 +398,7 @@ class DeviceEngine:
     # ------------------------------------------------------------ helpers
     def _totals(self) -> np.ndarray:
         a = self.arrays
-        sums = (self.sum_blocks, SUM_THREADS)
+        sums = (self.sum_blocks, self.sum_threads)
         physics = (a["observables"], a["velocities"], a["masses"])
         self._go(_sum_observables, sums, *physics, *self._totals_of("totals"))
         return a["totals"].copy_to_host()
@@ -448,7 +453,7 @@ class DeviceEngine:
     def _build(self) -> None:
         a = self.arrays
         n, grid = self.n_atoms, launch(self.n_atoms)
-        if self.n_cells is not None and self.n_builds % SORT_EVERY == 0:
+        if self.n_cells is not None and self.n_builds % self.sort_every == 0:
             self._sort()
         while True:
             a["flag"].copy_to_device(np.zeros(1, np.int32))
