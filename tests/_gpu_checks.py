@@ -437,7 +437,7 @@ def check_tuning(results: dict) -> None:
         if name in ("bussi", "langevin"):  # their fused sums over several blocks
             engine.start = _over_blocks(engine)
         for sim in runs:
-            sim.run(12)
+            sim.run(8)
         results[f"sorted_{name}_sorts"] = runs[1].device_engine.n_sorts
         results[f"sorted_{name}_positions"] = _relative(states[1].positions, states[0].positions)
         results[f"sorted_{name}_velocities"] = _relative(states[1].velocities, states[0].velocities)
