@@ -350,6 +350,13 @@ class Simulation:
             "pressure coupling is far too strong; use a larger [barostat] tau",
         )
 
+    @property
+    def device_engine(self):
+        """The engine that runs the steps on the device (a
+        :class:`md.cuda.engine.DeviceEngine`: its list builds, sorts and launches), or None
+        for ``device="cpu"``."""
+        return self._engine
+
     def thermo(self) -> dict[str, float]:
         """Return potential, kinetic and total energy, temperature and pressure now.
 

@@ -1,5 +1,7 @@
 """The GPU path against the CPU path, run as a script: ``python3 tests/_gpu_checks.py OUT``
-(``OUT --ptx``: every kernel compiled for the GPU target instead, without a GPU).
+(``OUT --ptx``: every kernel compiled for the GPU target instead, without a GPU; ``OUT
+--lower``: the same, only typed and lowered to LLVM IR, where NVVM is missing; ``OUT
+--more``: the checks of ``tests/test_gpu_more.py`` instead).
 
 ``tests/test_gpu.py`` runs it in a subprocess, on numba's CUDA simulator
 (``NUMBA_ENABLE_CUDASIM=1``, which numba reads when ``numba.cuda`` is first imported, so
@@ -272,12 +274,231 @@ def check_checkpoint(results: dict, folder: Path) -> None:
         results["checkpoint_energy"] = float(np.max(np.abs(energies[0] - energies[1])))
 
 
-def check_ptx(results: dict) -> None:
+def _md_run(arguments: list[str]) -> tuple[int, str]:
+    """``md run`` with ``arguments``: its exit code and what it printed."""
+    from md.cli import main
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["run", *arguments, "-q", "--no-progress"])
+    return code, printed.getvalue()
+
+
+def _builds(printed: str) -> int:
+    """The neighbour-list builds a run's summary reports (the device's where it ran there)."""
+    import re
+
+    found = re.search(r"Neighbour list builds(?: on the device)?: (\d+)", printed)
+    return int(found.group(1)) if found else -1
+
+
+def check_resume_on_gpu(results: dict, folder: Path) -> None:
+    """A CPU run checkpointed at step 20, resumed with ``--device cuda`` to 40, against 40
+    steps on the CPU (leapfrog: its half-step velocities; Langevin: its noise and heat
+    bath); and the list builds a fresh device run's summary reports against the CPU's
+    over the same 20 steps (the same rule, the same trajectory: the same builds; a resumed
+    run differs, as the CPU's list comes back with the checkpoint and the device builds its
+    own at the start)."""
+    import h5py
+    import numpy as np
+
+    integrators = {
+        "leapfrog": 'type = "leapfrog"\ndt = 0.005',
+        "langevin": 'type = "langevin"\ndt = 0.005\ntemperature = 1.2\nfriction = 2.0',
+    }
+    for name, integrator in integrators.items():
+        text = "\n".join(
+            [
+                'units = "lj"\nseed = 3',
+                '[system]\nlattice = "fcc"\ncells = 2\ndensity = 0.9\ntemperature = 1.5',
+                '[[potentials]]\ntype = "lj"\ncutoff = 1.3',
+                f"[integrator]\n{integrator}",
+                "[run]\nsteps = 40\nthermo_every = 10\nskin = 0.2",
+                "[output]\nevery = 10\nvelocities = true\ncheckpoint_every = 10",
+            ]
+        )
+        config = folder / f"resume_{name}.toml"
+        config.write_text(text + "\n")
+        paths = {k: str(folder / f"resume_{name}_{k}.h5") for k in ("gpu", "whole", "fresh")}
+        code, first = _md_run([str(config), "-o", paths["gpu"], "--steps", "20"])
+        codes = [code]
+        code, on_gpu = _md_run([str(config), "-o", paths["gpu"], "--resume", "--device", "cuda"])
+        codes.append(code)
+        codes.append(_md_run([str(config), "-o", paths["whole"]])[0])
+        results[f"resume_{name}_codes"] = codes
+        results[f"resume_{name}_said_gpu"] = "on the GPU" in on_gpu
+        if name == "leapfrog":  # a fresh device run's summary
+            command = [str(config), "-o", paths["fresh"], "--steps", "20", "--device", "cuda"]
+            code, fresh = _md_run(command)
+            results["summary_code"] = code
+            results["summary_builds"] = [_builds(fresh), _builds(first)]
+            results["summary_lines"] = fresh.splitlines()[-12:]
+        with h5py.File(paths["gpu"]) as gpu, h5py.File(paths["whole"]) as whole:
+            particles = "particles/trajectory"
+            results[f"resume_{name}_frames"] = [
+                len(f[f"{particles}/position/step"]) for f in (gpu, whole)
+            ]
+            for element in ("position", "velocity"):
+                results[f"resume_{name}_{element}"] = _relative(
+                    gpu[f"{particles}/{element}/value"][...],
+                    whole[f"{particles}/{element}/value"][...],
+                )
+            worst = 0.0
+            for quantity in ("potential_energy", "kinetic_energy", "conserved_energy"):
+                path = f"observables/{quantity}/value"
+                if path in whole:
+                    a, b = gpu[path][...], whole[path][...]
+                    worst = max(worst, float(np.max(np.abs(a - b)) / np.max(np.abs(b))))
+            results[f"resume_{name}_energies"] = worst
+
+
+def _over_blocks(engine):
+    """``engine.start`` that then takes the sums over three blocks of 16 threads (two hold
+    atoms of a 32-atom system; the last to finish adds the rows)."""
+    from numba import cuda
+
+    start = engine.start
+
+    def started(state):
+        start(state)
+        engine.sum_threads, engine.sum_blocks = 16, 3
+        engine.arrays["partial"] = cuda.device_array((3, engine.arrays["partial"].shape[1]))
+
+    return started
+
+
+def check_tuning(results: dict) -> None:
+    """The device's sort along the cells' Morton curve, its scan of the cell counts, and
+    the launches per step."""
+    import numpy as np
+    from numba import cuda
+
+    from integrators import Bussi, Langevin, Leapfrog, VelocityVerlet
+    from md.cuda import _kernels as kernels
+    from md.cuda.engine import DeviceEngine
+    from md.forcefield import ForceField
+    from md.simulation import Simulation
+    from potentials import LennardJones
+
+    # the rows after the first build's sort: their cells' Morton codes (bits interleaved
+    # here, x highest of each triple) never decrease, and each cell's atoms keep their order
+    cells, small = _states()
+    engine = DeviceEngine(cells, ForceField([LennardJones(cutoff=1.7)], skin=0.3), None)
+    engine.start(cells)
+    n_cells = np.array(engine.n_cells)
+    s = cells.positions[engine.perm] / cells.box
+    xyz = np.minimum(((s - np.floor(s)) * n_cells).astype(np.int64), n_cells - 1)
+    codes = np.zeros(cells.n_atoms, np.int64)
+    for bit in range(4):
+        for place in range(3):
+            codes |= ((xyz[:, place] >> bit) & 1) << (3 * bit + 2 - place)
+    row_major = (xyz[:, 0] * n_cells[1] + xyz[:, 1]) * n_cells[2] + xyz[:, 2]
+    results["sort_grid"] = [int(c) for c in n_cells]
+    results["sort_morton_ordered"] = bool(np.all(np.diff(codes) >= 0))
+    results["sort_row_major_ordered"] = bool(np.all(np.diff(row_major) >= 0))
+    same_cell = np.diff(codes) == 0
+    results["sort_cells_keep_order"] = bool(np.all(np.diff(engine.perm)[same_cell] > 0))
+    # the scan: more cells than threads (runs of 47), and fewer
+    rng = np.random.default_rng(9)
+    worst = 0
+    for n, threads in ((3000, 64), (5, 32)):
+        counts = rng.integers(0, 9, n).astype(np.int32)
+        d_counts = cuda.to_device(counts)
+        starts, cursors = cuda.device_array(n + 1, np.int32), cuda.to_device(np.ones(n, np.int32))
+        kernels._cell_starts[1, threads](d_counts, starts, cursors)
+        expected = np.concatenate([[0], np.cumsum(counts)])
+        worst = max(worst, int(np.max(np.abs(starts.copy_to_host() - expected))))
+        worst = max(
+            worst, int(np.max(d_counts.copy_to_host())), int(np.max(cursors.copy_to_host()))
+        )
+    results["scan_error"] = worst
+    # runs that sort the rows at every build (every integrator's pass after a rebuild
+    # reads the sorted arrays), in double and, for velocity Verlet, mixed precision
+    for name, integrator, precision in (
+        ("verlet_mixed", VelocityVerlet, "mixed"),
+        ("leapfrog", Leapfrog, "double"),
+        ("bussi", lambda dt: Bussi(dt=dt, temperature=1.2, tau=0.05, seed=8), "double"),
+        ("langevin", lambda dt: Langevin(dt, temperature=1.2, friction=2.0, seed=7), "double"),
+    ):
+        states = [small.copy() for _ in range(2)]
+        runs = [  # a thin skin: a rebuild every few steps
+            Simulation(
+                s,
+                [LennardJones(cutoff=1.3)],
+                integrator(0.005),
+                skin=0.06,
+                precision=precision,
+                device=device,
+            )
+            for s, device in zip(states, ("cpu", "cuda"), strict=True)
+        ]
+        engine = runs[1].device_engine
+        engine.sort_every = 1
+        if name in ("bussi", "langevin"):  # their fused sums over several blocks
+            engine.start = _over_blocks(engine)
+        for sim in runs:
+            sim.run(8)
+        results[f"sorted_{name}_sorts"] = runs[1].device_engine.n_sorts
+        results[f"sorted_{name}_positions"] = _relative(states[1].positions, states[0].positions)
+        results[f"sorted_{name}_velocities"] = _relative(states[1].velocities, states[0].velocities)
+    # launches of a step that does not rebuild the list, once the run is under way
+    launches = {}
+    for name, integrator in (
+        ("verlet", VelocityVerlet(dt=0.002)),
+        ("leapfrog", Leapfrog(dt=0.002)),
+        ("bussi", Bussi(dt=0.002, temperature=1.2, tau=0.05, seed=8)),
+        ("langevin", Langevin(dt=0.002, temperature=1.2, friction=2.0, seed=7)),
+    ):
+        state = small.copy()
+        sim = Simulation(state, [LennardJones(cutoff=1.3)], integrator, device="cuda")
+        engine = sim.device_engine
+        engine.start(state)
+        counted = []
+        for _ in range(3):
+            before, builds = engine.n_launches, engine.n_builds
+            engine.step(state)
+            if engine.n_builds == builds:
+                counted.append(engine.n_launches - before)
+        engine.finish(state)
+        launches[name] = counted[-1] if counted else -1
+    results["launches_per_step"] = launches
+
+
+def _lowering():
+    """A stand-in for ``cuda.compile_ptx`` where NVVM is missing: the kernel typed and
+    lowered by the CUDA target to LLVM IR for sm_90 (``compile_cuda``), short of the NVVM
+    step. numba-cuda asks NVVM only for its data layout and IR version before that step,
+    so a stand-in gives NVVM's 64-bit layout (numba-cuda 0.30's internals: this is a test
+    helper, not library code). It catches what the simulator cannot (a numpy function the
+    target lacks, a type the target cannot lower), not what only NVVM would reject."""
+    import numba
+    from numba.cuda import compiler
+    from numba.cuda.cudadrv import nvvm
+
+    class StandIn:
+        data_layout = (
+            "e-p:64:64:64-i1:8:8-i8:8:8-i16:16:16-i32:32:32-i64:64:64-i128:128:128-f32:32:32"
+            "-f64:64:64-v16:16:16-v32:32:32-v64:64:64-v128:128:128-n16:32:64"
+        )
+
+        def get_ir_version(self):
+            return (2, 0, 3, 1)
+
+    nvvm.NVVM = StandIn
+
+    def lower(function, signature, cc=(9, 0)):
+        return compiler.compile_cuda(function, numba.types.void, signature, cc=cc)
+
+    return lower
+
+
+def check_ptx(results: dict, lower: bool = False) -> None:
     """Every kernel compiled to PTX for the H100/H200 (sm_90) without a GPU, as the CUDA
     target types it (the simulator runs the Python and misses what that target lacks,
     such as ``np.rint``): the generic kernels, the force kernel of every built-in pair
     style in double and mixed precision and of every built-in bond and angle style. Needs
-    NVVM (``numba-cuda[cu12]``)."""
+    NVVM (``numba-cuda[cu12]``); ``lower``: only typed and lowered to LLVM IR, without
+    NVVM (:func:`_lowering`)."""
     import numba
     import numpy as np
     from numba import cuda
@@ -299,6 +520,7 @@ def check_ptx(results: dict) -> None:
     )
     from potentials.device_terms import bonded_function, pair_function
 
+    compile_to = _lowering() if lower else cuda.compile_ptx
     try:
         from numba.cuda.cudadrv.nvvm import NVVM
 
@@ -309,7 +531,16 @@ def check_ptx(results: dict) -> None:
 
         # the whole tool chain, on a one-line kernel (plain numba-cuda can have NVVM and
         # still lack NVRTC, which compiling needs too)
-        cuda.compile_ptx(_probe, (numba.float64[:],), cc=(9, 0))
+        compile_to(_probe, (numba.float64[:],), cc=(9, 0))
+
+        def _rint(x):
+            x[0] = np.rint(x[0])
+
+        try:  # and a kernel the CUDA target rejects (no np.rint on scalars) is rejected
+            compile_to(_rint, (numba.float64[:],), cc=(9, 0))
+            results["ptx_rejects_rint"] = False
+        except Exception:  # noqa: BLE001
+            results["ptx_rejects_rint"] = True
     except Exception as error:  # noqa: BLE001 (no CUDA compiler: nothing to compile with)
         results["ptx_nvvm"] = str(error)[:200]
         return
@@ -317,35 +548,31 @@ def check_ptx(results: dict) -> None:
     f2, f1 = np.zeros((4, 3)), np.zeros(4)
     i1, i2, l1 = np.zeros(4, np.int32), np.zeros((4, 4), np.int32), np.zeros(3, np.int64)
     observables = np.zeros((4, kernels.N_OBSERVABLES))
+    f4, one = np.zeros((4, 4)), np.zeros(1, np.int32)
     generic = {
-        "_moved": (f2, f2, 1.0, i1),
-        "_cell_of": (f2, f1, l1, i1, i1),
+        "_cell_of": (f4, f1, l1, i1, i1, i1),
         "_cell_starts": (i1, i1, i1),
         "_scatter": (i1, i1, i1, i1),
         "_sort_cells": (i1, i1),
-        "_search_cells": (f2, f1, f1, f1, l1, i1, i1, i1, 1.0, i2, i1),
-        "_search_all": (f2, f1, f1, f1, 1.0, i2, i1),
-        "_remember": (f2, f2, i1, 4, i1),
-        "_kick_drift": (f2, f2, f2, f1, 1.0, 1.0),
+        "_search_cells": (f4, f1, f1, f1, l1, i1, i1, i1, 1.0, i2, i1),
+        "_search_all": (f4, f1, f1, f1, 1.0, i2, i1),
+        "_remember": (f4, f2, i1, 4, i1),
+        "_kick_drift_check": (f4, f2, f2, f1, 1.0, 1.0, 1.0, f2, 1.0, i1, True),
+        "_drift_check": (f4, f2, 1.0, f2, 1.0, i1),
         "_kick": (f2, f2, f1, 1.0),
         "_synchronise": (f2, f2, f2, f1, 1.0),
-        "_sum_observables": (observables, f2, f1, observables),
-        "_reduce_columns": (observables, 4, 8, np.zeros(8), 0),
-        "_bath": (np.zeros(7),),
-        "_drift": (f2, f2, 1.0),
-        "_relax": (f2, f2, 1.0, np.zeros(7), True),
-        "_langevin_sums": (f2, f2, f1, observables, True),
-        "_kinetic_sum": (f2, f1, observables),
-        "_scale": (f2, 1.0),
+        "_kick_scale_kinetic": (f2, f2, f1, f1, 1.0, 1.0, observables, one, np.zeros(1)),
+        "_relax_bath": (f2, f2, f1, 1.0, True, observables, one, np.zeros(7)),
+        "_sum_observables": (observables, f2, f1, observables, one, np.zeros(8)),
         "_gather": (i1, i1, i1),
-        "_gather_rows": (f2, i1, f2),
+        "_gather_rows": (f4, i1, f4),
     }
     compiled, failed = [], {}
 
     def compile_ptx(name, kernel, arguments):
         signature = tuple(numba.typeof(a) for a in arguments)
         try:
-            cuda.compile_ptx(kernel.py_func, signature, cc=(9, 0))
+            compile_to(kernel.py_func, signature, cc=(9, 0))
             compiled.append(name)
         except Exception as error:  # noqa: BLE001 (recorded for the test to show)
             failed[name] = f"{type(error).__name__}: {str(error)[:300]}"
@@ -369,11 +596,12 @@ def check_ptx(results: dict) -> None:
     for precision in ("double", "mixed"):
         for name, potential in styles.items():
             pair, table, mode, data, real = pair_function(potential, 1, precision)
-            arguments = (f2, i1, 1, i2, i1, f1, f1, f1, table, mode, data, True, f2, observables)
+            arguments = (f4, 1, i2, i1, f1, f1, f1, table, mode, data, True, f2, observables)
             compile_ptx(f"pair_{name}_{precision}", kernels.pair_kernel(pair, real), arguments)
     word = np.uint64(1)
     noise = kernels.noise_kernel(noise_of_atom)
-    compile_ptx("noise", noise, (word, word, word, np.zeros(4, np.int64), f1, f2))
+    noise_arguments = (word, word, word, np.zeros(4, np.int64), f1, f2, f2, f1, observables)
+    compile_ptx("noise", noise, (*noise_arguments, one, np.zeros(7)))
     bonds, angles = np.array([[0, 1], [1, 2]]), np.array([[0, 1, 2]])
     bonded = {
         "spring": HarmonicBonds(bonds, k=1.0, r0=1.0),
@@ -385,7 +613,7 @@ def check_ptx(results: dict) -> None:
         kind, term, params, items, item_types, table = bonded_function(potential)
         factory = kernels.bond_kernel if kind == "bond" else kernels.angle_kernel
         starts, entries = np.zeros(5, np.int64), np.zeros(4, np.int64)
-        arguments = (f2, f1, f1, f1, items, item_types, table, starts, entries, f2, observables)
+        arguments = (f4, f1, f1, f1, items, item_types, table, starts, entries, f2, observables)
         compile_ptx(f"{kind}_{name}", factory(term, params), arguments)
     results["ptx_compiled"] = compiled
     results["ptx_failed"] = failed
@@ -396,8 +624,18 @@ def main(argv: list[str]) -> int:
     warnings.filterwarnings("ignore", "overflow encountered", RuntimeWarning)
     out = Path(argv[0])
     results: dict = {}
-    if argv[1:] == ["--ptx"]:
-        check_ptx(results)
+    if argv[1:] in (["--ptx"], ["--lower"]):
+        check_ptx(results, lower=argv[1:] == ["--lower"])
+        out.write_text(json.dumps(results, indent=1))
+        return 0
+    if argv[1:] == ["--more"]:  # tests/test_gpu_more.py's
+        seconds = results["seconds"] = {}
+        start = time.process_time()
+        check_tuning(results)
+        seconds["check_tuning"] = time.process_time() - start
+        start = time.process_time()
+        check_resume_on_gpu(results, out.parent)
+        seconds["check_resume_on_gpu"] = time.process_time() - start
         out.write_text(json.dumps(results, indent=1))
         return 0
     seconds = results["seconds"] = {}

@@ -130,9 +130,9 @@ def test_every_kernel_compiles_for_the_gpu_target(tmp_path_factory):
     if results["ptx_nvvm"] is not True:
         pytest.skip(f"no CUDA compiler (NVVM, NVRTC) to compile with: {results['ptx_nvvm']}")
     assert results["ptx_failed"] == {}
-    # the generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
+    # the 16 generic kernels, 7 pair styles in two precisions, Langevin's noise, 2 bond and 2
     # angle styles
-    assert len(results["ptx_compiled"]) == 21 + 2 * 7 + 1 + 4
+    assert len(results["ptx_compiled"]) == 16 + 2 * 7 + 1 + 4
 
 
 # ------------------------------------------------------------------ refusals

@@ -294,18 +294,33 @@ def _print_summary(sim, summary, n_atoms: int) -> None:
     # checkpoint (one written before checkpoints kept them: from where it resumed).
     origin = int(summary.reference["step"])
     since = "" if origin == 0 else f" since step {origin}"
+    engine = sim.device_engine
     print(
         f"\nLoop time {wall:.3f} s for {n_steps} steps of {n_atoms} atoms: "
-        f"{atom_steps:,.0f} atom-steps/s on {get_threads()} thread(s)"
+        f"{atom_steps:,.0f} atom-steps/s "
+        + (f"on {get_threads()} thread(s)" if engine is None else "on the GPU")
         + (", mixed precision" if sim.forcefield.precision == "mixed" else "")
-        + (", on the GPU" if sim.device == "cuda" else "")
     )
+    sections = [*timings.items(), ("other", other)]
+    if engine is not None:  # the host sees the device's steps whole (its kernels run async)
+        sections = [("device", timings["integrate"]), ("output", timings["output"])]
+        sections.append(("other", other))
     print(f"{'Section':<10}{'time (s)':>12}{'%total':>9}")
-    for name, seconds in [*timings.items(), ("other", other)]:
+    for name, seconds in sections:
         share = 100 * seconds / wall if wall > 0 else 0.0
         print(f"{name:<10}{seconds:>12.4f}{share:>9.1f}")
     nl = sim.forcefield.neighbor_list
-    if nl is not None:
+    if engine is not None:
+        print(
+            "(device: the steps on the GPU, forces, list and integrator together; "
+            "benchmarks/gpu.py splits a step by kernel)"
+        )
+        print(
+            f"Neighbour list builds on the device: {engine.n_builds} (rebuilt when an atom "
+            f"moved > skin/2); sorts of the atoms along the cells' Morton curve: "
+            f"{engine.n_sorts}"
+        )
+    elif nl is not None:
         if nl.exact:
             rule = "rebuilt when an atom moved > skin/2"
         else:

@@ -19,8 +19,9 @@ runs its steps here. Modules:
 What runs on the device: the pair potentials of the pair-kernel frame (every term, every
 cutoff mode, double and mixed precision), the bond and angle potentials of the bonded
 frame, velocity Verlet, leapfrog, Langevin (BAOAB, the CPU path's noise) and Bussi (its
-stream on the host: eight bytes a half step), the thermo sums; the atoms are sorted by cell
-on the device for locality, invisibly (every result comes back in the user's order).
+stream on the host: eight bytes a half step), the thermo sums; the atoms are sorted on the
+device for locality, their cells in the order of a Morton curve, invisibly (every result
+comes back in the user's order). A step is three to six launches (docs/guide/gpu.md).
 
 Anything else is refused by :func:`refusal` before a run writes anything. With
 ``NUMBA_ENABLE_CUDASIM=1`` in the environment before ``numba.cuda`` is first imported, the

@@ -3,12 +3,15 @@
 Importing this module imports ``numba.cuda`` (the simulator where ``NUMBA_ENABLE_CUDASIM=1``
 was set before); ``md.cuda`` loads it only for a run that asks for the device.
 
-Layout: per-atom arrays are (N, 3) or (N,) in the device state's order; the neighbour list
-is a full list stored column by column, ``neighbors[k, i]`` the k-th partner of atom i, so
-that the threads of a warp (consecutive i) read consecutive words. One thread per atom in
-every per-atom kernel; the force kernel writes only its own atom's row (no atomics). The
-physics (the pair term with the frame's cutoff treatment, the minimum image) is the CPU
-path's own functions compiled as device functions (``potentials.device_terms.retarget``).
+Layout: per-atom arrays are (N, 3) or (N,) in the device state's order, but for the
+positions, (N, 4) with the atom's type in the fourth column (a 32-byte row: one sector of
+memory holds a neighbour's position and type, where (N, 3) rows and a separate type array
+touched two or three); the neighbour list is a full list stored column by column,
+``neighbors[k, i]`` the k-th partner of atom i, so that the threads of a warp (consecutive
+i) read consecutive words. One thread per atom in every per-atom kernel; the force kernel
+writes only its own atom's row (no atomics). The physics (the pair term with the frame's
+cutoff treatment, the minimum image) is the CPU path's own functions compiled as device
+functions (``potentials.device_terms.retarget``).
 
 Each kernel here has a CPU twin that ``tests/test_gpu.py`` compares it with: the search with
 the O(N^2) reference, the forces with ``PairPotential.energy_forces``, the passes with
@@ -17,6 +20,7 @@ the O(N^2) reference, the forces with ``PairPotential.energy_forces``, the passe
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -29,9 +33,13 @@ from potentials.device_terms import retarget
 
 #: Threads per block of the per-atom kernels.
 BLOCK = 128
-#: Threads per block of the sums (a power of two), and the most blocks they take.
-SUM_THREADS = 64
-SUM_BLOCKS = 256
+#: The most threads per block of the sums and of the passes fused with them (a power of
+#: two: :func:`sum_threads` gives fewer to a small system), and the most blocks they take
+#: (a grid-stride loop covers the atoms past them).
+SUM_THREADS = 128
+SUM_BLOCKS = 1024
+#: The most threads of the one block that scans the cell counts (a power of two).
+SCAN_THREADS = 1024
 #: Columns of the per-atom observables: energy, the virial (xx, yy, zz, yz, xz, xy), and
 #: the kinetic energy (filled by the sum kernel).
 N_OBSERVABLES = 8
@@ -74,23 +82,23 @@ def launch(n: int) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------- neighbour search
-@cuda.jit
-def _moved(positions, reference, limit2, flag):
-    """Set ``flag[0] = 1`` if an atom moved farther than sqrt(limit2) since the build (the
+@cuda.jit(device=True, inline="always")
+def _check_moved(positions, reference, limit2, flag, i):
+    """Set ``flag[0] = 1`` if atom i moved farther than sqrt(limit2) since the build (the
     same value from every thread that sees it: no atomics needed)."""
-    i = cuda.grid(1)
-    if i < positions.shape[0]:
-        dx = positions[i, 0] - reference[i, 0]
-        dy = positions[i, 1] - reference[i, 1]
-        dz = positions[i, 2] - reference[i, 2]
-        if not dx * dx + dy * dy + dz * dz <= limit2:  # NaN moves count as moved
-            flag[0] = 1
+    dx = positions[i, 0] - reference[i, 0]
+    dy = positions[i, 1] - reference[i, 1]
+    dz = positions[i, 2] - reference[i, 2]
+    if not dx * dx + dy * dy + dz * dz <= limit2:  # NaN moves count as moved
+        flag[0] = 1
 
 
 @cuda.jit
-def _cell_of(positions, lengths, n_cells, cells, counts):
-    """Each atom's cell (row-major over n_cells) in ``cells``; ``counts`` per cell (atomic
-    increments: this is the counting sort's histogram, not the force kernel)."""
+def _cell_of(positions, lengths, n_cells, rank, cells, counts):
+    """Each atom's cell, ``rank[c]`` of its row-major number c over n_cells, in ``cells``
+    (``rank`` the identity for the search, the cells' places along a space-filling curve
+    for a sort); ``counts`` per cell (atomic increments: this is the counting sort's
+    histogram, not the force kernel)."""
     i = cuda.grid(1)
     if i < positions.shape[0]:
         code = 0
@@ -101,21 +109,60 @@ def _cell_of(positions, lengths, n_cells, cells, counts):
             if c >= n_cells[a]:
                 c = n_cells[a] - 1
             code = code * n_cells[a] + c
+        code = rank[code]
         cells[i] = code
         cuda.atomic.add(counts, code, 1)
 
 
+def sum_threads(n: int) -> int:
+    """Threads per block of the sums over ``n`` atoms: a power of two, 32 to SUM_THREADS."""
+    threads = 32
+    while threads < min(n, SUM_THREADS):
+        threads *= 2
+    return threads
+
+
+def scan_threads(n_cells: int) -> int:
+    """Threads of :func:`_cell_starts`'s one block: a power of two, 32 to SCAN_THREADS."""
+    threads = 32
+    while threads < min(n_cells, SCAN_THREADS):
+        threads *= 2
+    return threads
+
+
 @cuda.jit
 def _cell_starts(counts, starts, cursors):
-    """Exclusive prefix sum of ``counts`` into ``starts`` (one thread: the cell count is a
-    few per cent of the atoms'); ``cursors`` zeroed for the scatter."""
-    if cuda.grid(1) == 0:
-        total = 0
-        for c in range(counts.shape[0]):
-            starts[c] = total
-            total += counts[c]
-            cursors[c] = 0
-        starts[counts.shape[0]] = total
+    """Exclusive prefix sum of ``counts`` into ``starts`` by one block: each thread sums a
+    run of consecutive cells, the block scans those sums (Hillis-Steele, in shared
+    memory), each thread writes its run's starts; ``cursors`` and ``counts`` zeroed for
+    the scatter and the next histogram."""
+    shared = cuda.shared.array(SCAN_THREADS, dtype=numba.int32)
+    t = cuda.threadIdx.x
+    threads = cuda.blockDim.x
+    n = counts.shape[0]
+    run = (n + threads - 1) // threads
+    first = min(t * run, n)
+    last = min(first + run, n)
+    own = 0
+    for c in range(first, last):
+        own += counts[c]
+    shared[t] = own
+    cuda.syncthreads()
+    width = 1
+    while width < threads:
+        before = shared[t - width] if t >= width else 0
+        cuda.syncthreads()
+        shared[t] += before
+        cuda.syncthreads()
+        width *= 2
+    total = shared[t] - own  # the cells before this thread's run
+    for c in range(first, last):
+        starts[c] = total
+        total += counts[c]
+        cursors[c] = 0
+        counts[c] = 0
+    if t == threads - 1:
+        starts[n] = shared[t]
 
 
 @cuda.jit
@@ -233,20 +280,22 @@ def _remember(positions, reference, counts, room, flag):
 
 
 # ---------------------------------------------------------------- pair forces
+@functools.cache
 def pair_kernel(pair, real):
     """The force kernel of one pair potential: ``pair(r2, k, table, mode, data)`` is the
     frame's function (``potentials.device_terms.pair_function``), ``real`` the type r^2 is
     rounded to before it (float32 in mixed precision; the forces and sums stay double).
 
     One thread per atom over the full list: row i's force, half of each pair's energy and
-    virial to atom i; ``accumulate`` adds to what an earlier potential's kernel wrote.
+    virial to atom i; ``accumulate`` adds to what an earlier potential's kernel wrote. The
+    atoms' types are read from the positions' fourth column. Compiled once per process
+    for each ``(pair, real)`` (the same term at another size or in another run reuses it).
     """
     device_pair = device_function(pair)
 
     @cuda.jit
     def kernel(
         positions,
-        types,
         n_types,
         neighbors,
         counts,
@@ -266,7 +315,7 @@ def pair_kernel(pair, real):
         xi = positions[i, 0]
         yi = positions[i, 1]
         zi = positions[i, 2]
-        row = types[i] * n_types
+        row = int(positions[i, 3]) * n_types
         fx = fy = fz = 0.0
         u_sum = wxx = wyy = wzz = wyz = wxz = wxy = 0.0
         for k in range(counts[i]):
@@ -280,7 +329,7 @@ def pair_kernel(pair, real):
                 tilt,
             )
             r2 = real(dx * dx + dy * dy + dz * dz)
-            u, fr = device_pair(r2, row + types[j], table, mode, data)
+            u, fr = device_pair(r2, row + int(positions[j, 3]), table, mode, data)
             ex = fr * dx
             ey = fr * dy
             ez = fr * dz
@@ -321,6 +370,7 @@ def pair_kernel(pair, real):
 
 
 # ---------------------------------------------------------------- bonds and angles
+@functools.cache
 def bond_kernel(bond, params):
     """The force kernel of one bond potential: ``bond(r2, p) -> (u, u'(r) / r)`` and
     ``params(table, t)`` are the bonded frame's adapters of its term
@@ -386,6 +436,7 @@ def bond_kernel(bond, params):
     return kernel
 
 
+@functools.cache
 def angle_kernel(angle, params):
     """The force kernel of one angle potential (``angle(c, p) -> (u, du/dc)``, c = cos
     theta), as :func:`bond_kernel`: each atom evaluates its own angles (``entries``: 3 a +
@@ -492,16 +543,48 @@ def _add_row(forces, observables, i, fx, fy, fz, share, u, wxx, wyy, wzz, wyz, w
 
 
 # ---------------------------------------------------------------- integrator passes
+# A step is a few launches (docs/guide/gpu.md counts them per integrator): each pass below
+# does what the CPU path does in two or three loops in a row (the kick, the drift, the
+# list's displacement check, a thermostat's sum), as one thread per atom, or, where a sum
+# over the atoms follows, a grid-stride loop of blocks of up to SUM_THREADS that ends in
+# :func:`_finish` (the sum in a fixed order, in the same launch).
 @cuda.jit
-def _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt):
-    """v += kick_dt f/m, then x += drift_dt v (``integrators._kernels.kick_drift``'s twin)."""
+def _kick_drift_check(
+    positions,
+    velocities,
+    forces,
+    inverse_masses,
+    alpha,
+    kick_dt,
+    drift_dt,
+    reference,
+    limit2,
+    flag,
+    check,
+):
+    """v = alpha v + kick_dt f/m, x += drift_dt v, then (``check``) ``flag[0] = 1`` if the
+    atom moved farther than sqrt(limit2) since the list's build: Bussi's rescaling
+    (alpha; 1 for the other integrators, which leaves v as it is), the CPU's
+    ``integrators._kernels.kick_drift`` and the list's look, in one pass."""
     i = cuda.grid(1)
-    if i < positions.shape[0]:
+    if i < velocities.shape[0]:
         scale = kick_dt * inverse_masses[i]
         for a in range(3):
-            v = velocities[i, a] + scale * forces[i, a]
+            v = alpha * velocities[i, a] + scale * forces[i, a]
             velocities[i, a] = v
             positions[i, a] += drift_dt * v
+        if check:
+            _check_moved(positions, reference, limit2, flag, i)
+
+
+@cuda.jit
+def _drift_check(positions, velocities, dt, reference, limit2, flag):
+    """x += dt v (``integrators._kernels._drift``'s twin), then the list's look."""
+    i = cuda.grid(1)
+    if i < positions.shape[0]:
+        for a in range(3):
+            positions[i, a] += dt * velocities[i, a]
+        _check_moved(positions, reference, limit2, flag, i)
 
 
 @cuda.jit
@@ -525,128 +608,120 @@ def _synchronise(velocities, half_velocities, forces, inverse_masses, half_dt):
 
 
 @cuda.jit
-def _drift(positions, velocities, dt):
-    """x += dt v (``integrators._kernels._drift``'s twin)."""
-    i = cuda.grid(1)
-    if i < positions.shape[0]:
+def _kick_scale_kinetic(
+    velocities, forces, inverse_masses, masses, kick_dt, alpha, partial, counter, out
+):
+    """v = alpha (v + kick_dt f/m), and the kinetic energy after it into ``out[0]``: the
+    end of a Bussi step (the kick with alpha 1; the rescaling with kick_dt 0 and the
+    forces' array unread), its sum for the next rescaling in the same launch."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, 1), dtype=numba.float64)
+    last = cuda.shared.array(1, dtype=numba.int32)
+    shared[t, 0] = 0.0
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, velocities.shape[0], cuda.blockDim.x * cuda.gridDim.x):
+        scale = kick_dt * inverse_masses[i]
+        v2 = 0.0
         for a in range(3):
-            positions[i, a] += dt * velocities[i, a]
+            v = velocities[i, a]
+            if kick_dt != 0.0:
+                v += scale * forces[i, a]
+            v *= alpha
+            velocities[i, a] = v
+            v2 += v * v
+        shared[t, 0] += 0.5 * masses[i] * v2
+    _finish(shared, t, 1, partial, counter, last, out, 0)
 
 
 def noise_kernel(gaussians):
-    """The Langevin noise: ``gaussians(k0, k1, step, atom)`` is the CPU path's function of
-    one atom's three normal numbers (``integrators.langevin.noise_of_atom``), so atom
-    ``ids[i]`` gets the same noise at a step on either device; scaled by ``sigmas[i]``."""
+    """The Langevin noise and the sums before BAOAB's O step, in one launch:
+    ``gaussians(k0, k1, step, atom)`` is the CPU path's function of one atom's three
+    normal numbers (``integrators.langevin.noise_of_atom``), so atom ``ids[i]`` gets the
+    same noise at a step on either device, scaled by ``sigmas[i]``; ``sums[0]`` the kinetic
+    energy, ``sums[1:4]`` the noise's momentum, ``sums[4]`` the mass (:func:`_finish`)."""
+    return _noise_kernel(gaussians)
+
+
+@functools.cache
+def _noise_kernel(gaussians):
     device_gaussians = device_function(gaussians)
 
     @cuda.jit
-    def kernel(k0, k1, step, ids, sigmas, noise):
-        i = cuda.grid(1)
-        if i < noise.shape[0]:
+    def kernel(k0, k1, step, ids, sigmas, noise, velocities, masses, partial, counter, sums):
+        t = cuda.threadIdx.x
+        shared = cuda.shared.array((SUM_THREADS, 5), dtype=numba.float64)
+        last = cuda.shared.array(1, dtype=numba.int32)
+        for c in range(5):
+            shared[t, c] = 0.0
+        start = cuda.blockIdx.x * cuda.blockDim.x + t
+        for i in range(start, noise.shape[0], cuda.blockDim.x * cuda.gridDim.x):
             g0, g1, g2 = device_gaussians(k0, k1, step, numba.uint64(ids[i]))
             s = sigmas[i]
             noise[i, 0] = g0 * s
             noise[i, 1] = g1 * s
             noise[i, 2] = g2 * s
+            m = masses[i]
+            v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+            shared[t, 0] += 0.5 * m * v2
+            for a in range(3):
+                shared[t, 1 + a] += m * noise[i, a]
+            shared[t, 4] += m
+        _finish(shared, t, 5, partial, counter, last, sums, 0)
 
     return kernel
 
 
 @cuda.jit
-def _relax(velocities, noise, c, sums, fix_com):
+def _relax_bath(velocities, noise, masses, c, fix_com, partial, counter, sums):
     """v = c v + noise - (the noise's centre-of-mass velocity, ``sums[1:4] / sums[4]``,
-    where ``fix_com``): the O step of BAOAB (``integrators.langevin._relax``'s twin)."""
-    i = cuda.grid(1)
-    if i < velocities.shape[0]:
+    where ``fix_com``): the O step of BAOAB (``integrators.langevin._relax``'s twin); then
+    the kinetic energy after it into ``sums[5]`` and the heat bath's energy ``sums[6]``
+    less what the kinetic energy gained, in the same launch."""
+    t = cuda.threadIdx.x
+    shared = cuda.shared.array((SUM_THREADS, 1), dtype=numba.float64)
+    last = cuda.shared.array(1, dtype=numba.int32)
+    shared[t, 0] = 0.0
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, velocities.shape[0], cuda.blockDim.x * cuda.gridDim.x):
+        v2 = 0.0
         for a in range(3):
             drift = sums[1 + a] / sums[4] if fix_com else 0.0
-            velocities[i, a] = c * velocities[i, a] + noise[i, a] - drift
-
-
-@cuda.jit
-def _langevin_sums(velocities, noise, masses, partial, before):
-    """Block b's share into ``partial[b]``: the kinetic energy (column 0) and, ``before``
-    the O step, the noise's momentum (1 to 3) and the mass (4); :func:`_reduce_columns`
-    adds the blocks' rows in a fixed order, :func:`_bath` books the O step's heat."""
-    t = cuda.threadIdx.x
-    shared = cuda.shared.array((SUM_THREADS, 5), dtype=np.float64)
-    for c in range(5):
-        shared[t, c] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
-        m = masses[i]
-        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
-        shared[t, 0] += 0.5 * m * v2
-        if before:
-            for a in range(3):
-                shared[t, 1 + a] += m * noise[i, a]
-            shared[t, 4] += m
-    _tree(shared, t, 5)
-    if t == 0:
-        for c in range(5):
-            partial[cuda.blockIdx.x, c] = shared[0, c]
-
-
-@cuda.jit
-def _bath(sums):
-    """After the O step: ``sums[6] -= sums[5] - sums[0]`` (the heat bath's energy gains
-    what the kinetic energy lost)."""
-    if cuda.grid(1) == 0:
-        sums[6] -= sums[5] - sums[0]
-
-
-@cuda.jit
-def _kinetic_sum(velocities, masses, partial):
-    """Block b's share of the kinetic energy into ``partial[b, 0]`` (Bussi's rescaling)."""
-    t = cuda.threadIdx.x
-    shared = cuda.shared.array((SUM_THREADS, 1), dtype=np.float64)
-    shared[t, 0] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, velocities.shape[0], SUM_THREADS * cuda.gridDim.x):
-        v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
+            v = c * velocities[i, a] + noise[i, a] - drift
+            velocities[i, a] = v
+            v2 += v * v
         shared[t, 0] += 0.5 * masses[i] * v2
-    _tree(shared, t, 1)
-    if t == 0:
-        partial[cuda.blockIdx.x, 0] = shared[0, 0]
-
-
-@cuda.jit
-def _scale(velocities, alpha):
-    """v *= alpha."""
-    i = cuda.grid(1)
-    if i < velocities.shape[0]:
-        for a in range(3):
-            velocities[i, a] *= alpha
+    _finish(shared, t, 1, partial, counter, last, sums, 5)
+    if t == 0 and last[0]:
+        sums[6] -= sums[5] - sums[0]
 
 
 # ---------------------------------------------------------------- sums
 @cuda.jit
-def _sum_observables(observables, velocities, masses, partial):
-    """Block b's share of each observable column into ``partial[b]``, the kinetic energy
-    (column 7) computed here; each block of SUM_THREADS threads takes a strided share, then
-    a tree, and :func:`_reduce_columns` adds the blocks' rows: the same order on every run,
-    with no atomics."""
+def _sum_observables(observables, velocities, masses, partial, counter, totals):
+    """Each observable column summed into ``totals``, the kinetic energy (column 7)
+    computed here: each block's threads take a strided share, then a tree,
+    and :func:`_finish` adds the blocks' rows in order: the same order on every run, in
+    one launch."""
     t = cuda.threadIdx.x
-    shared = cuda.shared.array((SUM_THREADS, N_OBSERVABLES), dtype=np.float64)
+    shared = cuda.shared.array((SUM_THREADS, N_OBSERVABLES), dtype=numba.float64)
+    last = cuda.shared.array(1, dtype=numba.int32)
     for c in range(N_OBSERVABLES):
         shared[t, c] = 0.0
-    start = cuda.blockIdx.x * SUM_THREADS + t
-    for i in range(start, observables.shape[0], SUM_THREADS * cuda.gridDim.x):
+    start = cuda.blockIdx.x * cuda.blockDim.x + t
+    for i in range(start, observables.shape[0], cuda.blockDim.x * cuda.gridDim.x):
         for c in range(N_OBSERVABLES - 1):
             shared[t, c] += observables[i, c]
         v2 = velocities[i, 0] ** 2 + velocities[i, 1] ** 2 + velocities[i, 2] ** 2
         shared[t, N_OBSERVABLES - 1] += 0.5 * masses[i] * v2
-    _tree(shared, t, N_OBSERVABLES)
-    if t == 0:
-        for c in range(N_OBSERVABLES):
-            partial[cuda.blockIdx.x, c] = shared[0, c]
+    _finish(shared, t, N_OBSERVABLES, partial, counter, last, totals, 0)
 
 
 @cuda.jit(device=True, inline="always")
 def _tree(shared, t, n_columns):
-    """Sum the block's SUM_THREADS rows of ``shared`` into row 0, pairwise."""
+    """Sum the block's rows of ``shared`` (one a thread: a power of two, at most
+    SUM_THREADS) into row 0, pairwise."""
     cuda.syncthreads()
-    width = SUM_THREADS // 2
+    width = cuda.blockDim.x // 2
     while width > 0:
         if t < width:
             for c in range(n_columns):
@@ -655,25 +730,75 @@ def _tree(shared, t, n_columns):
         width //= 2
 
 
-@cuda.jit
-def _reduce_columns(partial, n_blocks, n_columns, out, offset):
-    """``out[offset + c]`` = the sum of ``partial[:n_blocks, c]``, one thread per column,
-    blocks in order (one block of at least ``n_columns`` threads)."""
-    c = cuda.threadIdx.x
-    if c < n_columns:
-        total = 0.0
-        for b in range(n_blocks):
-            total += partial[b, c]
-        out[offset + c] = total
+@cuda.jit(device=True, inline="always")
+def _finish(shared, t, n_columns, partial, counter, last, out, offset):
+    """The end of a sum over the grid, with no second launch: the block's rows of
+    ``shared`` into row 0 (:func:`_tree`) and into ``partial[block]``; the block that
+    finishes last (``counter``, an atomic ticket after a memory fence, as CUDA's
+    threadFenceReduction sample) adds the blocks' rows in block order into
+    ``out[offset:offset + n_columns]``, sets ``last[0]`` and resets the ticket. The order
+    of every addition is fixed: the same sums on every run."""
+    _tree(shared, t, n_columns)
+    if cuda.gridDim.x == 1:  # one block: its row 0 is the sum (as the pass below gives it)
+        if t == 0:
+            for c in range(n_columns):
+                out[offset + c] = shared[0, c]
+            last[0] = 1
+        cuda.syncthreads()
+        return
+    if t == 0:
+        for c in range(n_columns):
+            partial[cuda.blockIdx.x, c] = shared[0, c]
+        cuda.threadfence()
+        ticket = cuda.atomic.add(counter, 0, 1)
+        last[0] = 1 if ticket == cuda.gridDim.x - 1 else 0
+    cuda.syncthreads()
+    if last[0]:
+        for c in range(n_columns):
+            shared[t, c] = 0.0
+        for b in range(t, cuda.gridDim.x, cuda.blockDim.x):
+            for c in range(n_columns):
+                shared[t, c] += partial[b, c]
+        _tree(shared, t, n_columns)
+        if t == 0:
+            for c in range(n_columns):
+                out[offset + c] = shared[0, c]
+            counter[0] = 0
+
+
+def curve_ranks(n_cells) -> np.ndarray:
+    """Each cell's place (row-major cell number -> rank) along a Morton (Z-order) curve
+    through an ``n_cells`` grid: the cells sorted by their coordinates' interleaved bits,
+    so that cells near along the order are near in space in all three directions (row-major
+    order keeps only the last axis's neighbours near). A grid that is not a power of two
+    along an axis skips the codes outside it. Atoms sorted by this rank of their cell lie
+    near their neighbours in memory (as HOOMD-blue's sort along a Hilbert curve)."""
+    nx, ny, nz = (int(c) for c in n_cells)
+    x, y, z = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    codes = np.zeros(nx * ny * nz, np.int64)
+    bits = max(int(c - 1).bit_length() for c in (nx, ny, nz))
+    for b in range(bits):
+        for place, axis in enumerate((x, y, z)):
+            codes |= ((axis.reshape(-1) >> b) & 1) << (3 * b + 2 - place)
+    order = np.argsort(codes, kind="stable")
+    ranks = np.empty(order.shape[0], np.int32)
+    ranks[order] = np.arange(order.shape[0], dtype=np.int32)
+    return ranks
 
 
 __all__ = [
     "BLOCK",
     "N_OBSERVABLES",
+    "SCAN_THREADS",
+    "SUM_BLOCKS",
+    "SUM_THREADS",
     "angle_kernel",
     "bond_kernel",
+    "curve_ranks",
     "device_function",
     "launch",
     "noise_kernel",
     "pair_kernel",
+    "scan_threads",
+    "sum_threads",
 ]

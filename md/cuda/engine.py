@@ -1,6 +1,6 @@
 """The device state and one time step on it: what ``Simulation(device="cuda")`` runs.
 
-:class:`DeviceEngine` holds positions, velocities, forces, masses, types and the
+:class:`DeviceEngine` holds positions (with the types), velocities, forces, masses and the
 neighbour list on the GPU for a whole :meth:`Simulation.run <md.simulation.Simulation.run>`
 call: :meth:`start` uploads the host State (which a minimisation, a restored checkpoint or
 the user may have changed between runs), :meth:`step` advances one step with nothing
@@ -25,22 +25,16 @@ from md.box import periodic_lengths, periodic_tilt
 from md.cuda._kernels import (
     N_OBSERVABLES,
     SUM_BLOCKS,
-    SUM_THREADS,
-    _bath,
     _cell_of,
     _cell_starts,
-    _drift,
+    _drift_check,
     _gather,
     _gather_rows,
     _kick,
-    _kick_drift,
-    _kinetic_sum,
-    _langevin_sums,
-    _moved,
-    _reduce_columns,
-    _relax,
+    _kick_drift_check,
+    _kick_scale_kinetic,
+    _relax_bath,
     _remember,
-    _scale,
     _scatter,
     _search_all,
     _search_cells,
@@ -49,9 +43,12 @@ from md.cuda._kernels import (
     _synchronise,
     angle_kernel,
     bond_kernel,
+    curve_ranks,
     launch,
     noise_kernel,
     pair_kernel,
+    scan_threads,
+    sum_threads,
 )
 from md.errors import NonFiniteError
 from potentials.base import ForceResult
@@ -61,11 +58,12 @@ logger = logging.getLogger(__name__)
 
 #: Partners of room per atom in a first list (regrown to the largest row when one overflows).
 FIRST_ROOM = 64
-#: Builds of the list between sorts of the atoms by cell (and one at the first build).
+#: Builds of the list between sorts of the atoms along the cells' Morton curve (and one at
+#: the first build).
 SORT_EVERY = 10
-#: The per-atom arrays a sort moves (forces and observables are computed after it).
-_PER_ATOM = ("positions", "velocities", "inverse_masses", "masses", "types", "ids", "sigmas")
-_PER_ATOM += ("half",)
+#: The per-atom arrays a sort moves (forces and observables are computed after it); the
+#: positions carry the types in their fourth column.
+_PER_ATOM = ("positions", "velocities", "inverse_masses", "masses", "ids", "sigmas", "half")
 
 
 class DeviceEngine:
@@ -84,7 +82,13 @@ class DeviceEngine:
     Attributes
     ----------
     n_builds : int
-        Neighbour-list builds on the device.
+        Neighbour-list builds on the device (over the engine's life: every run's).
+    n_sorts : int
+        Sorts of the device's rows along the cells' Morton curve (likewise).
+    n_launches : int
+        Kernel launches (likewise; a step's count is in docs/guide/gpu.md).
+    sort_every : int
+        Builds between sorts (:data:`SORT_EVERY`; the tests sort at every build).
     """
 
     def __init__(self, state, forcefield, integrator) -> None:
@@ -105,6 +109,9 @@ class DeviceEngine:
         self.kernels = None  # compiled on the first start
         self.active = False
         self.n_builds = 0
+        self.n_sorts = 0
+        self.n_launches = 0
+        self.sort_every = SORT_EVERY
         self.room = FIRST_ROOM
         self.arrays: dict = {}
         self.events: list | None = None  # (name, CUDA event) while timed_step runs
@@ -122,14 +129,15 @@ class DeviceEngine:
         n = state.n_atoms
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         tilt = periodic_tilt(state.tilt, state.pbc)
-        types = np.zeros(n, np.int32) if state.types is None else state.types.astype(np.int32)
+        packed = np.empty((n, 4))  # the types in the fourth column (exact as doubles)
+        packed[:, :3] = state.positions
+        packed[:, 3] = 0.0 if state.types is None else state.types
         a = {
-            "positions": cuda.to_device(np.ascontiguousarray(state.positions)),
+            "positions": cuda.to_device(packed),
             "velocities": cuda.to_device(np.ascontiguousarray(state.velocities)),
             "forces": cuda.device_array((n, 3)),
             "inverse_masses": cuda.to_device(1.0 / state.masses),
             "masses": cuda.to_device(np.ascontiguousarray(state.masses)),
-            "types": cuda.to_device(types),
             "lengths": cuda.to_device(lengths),
             "inverse": cuda.to_device(inverse),
             "tilt": cuda.to_device(tilt),
@@ -139,6 +147,7 @@ class DeviceEngine:
             "flag": cuda.to_device(np.zeros(1, np.int32)),
             "observables": cuda.device_array((n, N_OBSERVABLES)),
             "totals": cuda.device_array(N_OBSERVABLES),
+            "counter": cuda.to_device(np.zeros(1, np.int32)),  # the sums' ticket
             "tables": [cuda.to_device(table) for _, table, _, _, _ in self.pairs],
             "data": [cuda.to_device(data) for _, _, _, data, _ in self.pairs],
         }
@@ -147,8 +156,10 @@ class DeviceEngine:
             for _, _, _, items, item_types, table in self.bonded
         ]
         self.n_atoms = n
-        # blocks of the sums: a few thousand atoms each, at most SUM_BLOCKS
-        self.sum_blocks = min(SUM_BLOCKS, max(1, n // (16 * SUM_THREADS)))
+        # blocks of the sums (and the passes fused with them): a thread per atom, at most
+        # SUM_BLOCKS blocks (then a few atoms a thread)
+        self.sum_threads = sum_threads(n)
+        self.sum_blocks = min(SUM_BLOCKS, (n + self.sum_threads - 1) // self.sum_threads)
         a["partial"] = cuda.device_array((self.sum_blocks, N_OBSERVABLES))
         self.perm = np.arange(n)  # device row d holds the user's atom perm[d]
         self.n_cells = _cell_grid(state, self.radius)
@@ -158,7 +169,10 @@ class DeviceEngine:
             a["n_cells"] = cuda.to_device(np.asarray(self.n_cells, np.int64))
             a["box"] = cuda.to_device(np.ascontiguousarray(state.box, np.float64))
             a["cells"] = cuda.device_array(n, np.int32)
-            a["cell_counts"] = cuda.device_array(n_cells, np.int32)
+            a["cell_counts"] = cuda.to_device(np.zeros(n_cells, np.int32))  # kept zeroed
+            a["row_major"] = cuda.to_device(np.arange(n_cells, dtype=np.int32))
+            a["curve"] = cuda.to_device(curve_ranks(self.n_cells))
+            self.scan_threads = scan_threads(n_cells)
             a["cell_starts"] = cuda.device_array(n_cells + 1, np.int32)
             a["cursors"] = cuda.device_array(n_cells, np.int32)
             a["order"] = cuda.device_array(n, np.int32)
@@ -166,6 +180,7 @@ class DeviceEngine:
             saved = self.integrator.get_state()
             self.bath = (float(saved["reservoir"]), int(saved["steps"]), 0)
             a["kinetic"] = cuda.device_array(1)
+            self.kinetic_ready = False  # a Bussi step leaves the next rescaling's sum here
         if self.kind == "Langevin":
             langevin = self.integrator
             c = math.exp(-langevin.friction * langevin.dt)
@@ -184,7 +199,6 @@ class DeviceEngine:
             self.restarting = saved is None
         self.arrays = a
         self.active = True
-        self.n_sorts = 0
         self._build()
         self._forces()
 
@@ -199,7 +213,7 @@ class DeviceEngine:
         """Copy positions and velocities (and a leapfrog's half-step velocities) into
         ``state``'s arrays; NonFiniteError if they are no longer finite."""
         a = self.arrays
-        state.positions[self.perm] = a["positions"].copy_to_host()
+        state.positions[self.perm] = a["positions"].copy_to_host()[:, :3]
         state.velocities[self.perm] = a["velocities"].copy_to_host()
         if self.kind in ("Langevin", "Bussi"):  # the bath's energy and steps, as the CPU's
             reservoir, steps, done = self.bath
@@ -218,91 +232,134 @@ class DeviceEngine:
 
     # ------------------------------------------------------------ one step
     def step(self, state) -> None:
-        """One step of the integrator on the device; advances ``state.step`` and ``time``."""
+        """One step of the integrator on the device; advances ``state.step`` and ``time``.
+
+        Launches per step without a list rebuild (one pair potential, plus one per further
+        potential): velocity Verlet and leapfrog 3, Bussi 4, Langevin 6; the host reads
+        the rebuild flag (four bytes) and, for Bussi, two kinetic energies (eight bytes
+        each)."""
         a, dt = self.arrays, self.integrator.dt
         grid = launch(self.n_atoms)
-        args = (a["positions"], a["velocities"], a["forces"], a["inverse_masses"])
-        mark = self._mark
+        go, mark = self._go, self._mark
+        look = (a["reference"], self.half_skin**2, a["flag"])
         mark("start")
         if self.kind == "Leapfrog":
             kick_dt = 0.5 * dt if self.restarting else dt
-            half = a["half"]
-            _kick_drift[grid](a["positions"], half, a["forces"], a["inverse_masses"], kick_dt, dt)
+            half, forces, inverse = a["half"], a["forces"], a["inverse_masses"]
+            go(
+                _kick_drift_check,
+                grid,
+                a["positions"],
+                half,
+                forces,
+                inverse,
+                1.0,
+                kick_dt,
+                dt,
+                *look,
+                True,
+            )
             mark("integrate")
             self._update()
             mark("neighbors")
             self._forces()
             mark("forces")
-            _synchronise[grid](a["velocities"], half, a["forces"], a["inverse_masses"], 0.5 * dt)
+            # the rows as they are now (a rebuild may have sorted them into new arrays)
+            on_step = (a["velocities"], a["half"], a["forces"], a["inverse_masses"])
+            go(_synchronise, grid, *on_step, 0.5 * dt)
             mark("integrate")
             if self.restarting:
                 self.integrator.statistics["restarts"] += 1
             self.restarting = False
             self.integrator.statistics["steps"] += 1
         elif self.kind == "Langevin":
-            self._langevin_step(state, grid)
+            self._langevin_step(state, grid, look)
         else:
-            if self.kind == "Bussi":
-                self._bussi_rescale(grid)
-            _kick_drift[grid](*args, 0.5 * dt, dt)
+            velocities, inverse = a["velocities"], a["inverse_masses"]
+            alpha = self._bussi_factor() if self.kind == "Bussi" else 1.0
+            kick = (a["forces"], inverse, alpha, 0.5 * dt, dt)
+            go(_kick_drift_check, grid, a["positions"], velocities, *kick, *look, True)
             mark("integrate")
             self._update()
             mark("neighbors")
             self._forces()
             mark("forces")
-            _kick[grid](a["velocities"], a["forces"], a["inverse_masses"], 0.5 * dt)
-            if self.kind == "Bussi":
-                self._bussi_rescale(grid)
+            velocities, inverse = a["velocities"], a["inverse_masses"]  # as now (a sort)
+            if self.kind == "Bussi":  # the kick and the sum of the second rescaling, then it
+                sums = (self.sum_blocks, self.sum_threads)
+                totals = (a["partial"], a["counter"], a["kinetic"])
+                physics = (velocities, a["forces"], inverse, a["masses"])
+                go(_kick_scale_kinetic, sums, *physics, 0.5 * dt, 1.0, *totals)
+                self.kinetic_ready = True
+                go(_kick_scale_kinetic, sums, *physics, 0.0, self._bussi_factor(), *totals)
+                self.kinetic_ready = True  # the next step's first rescaling's sum
                 reservoir, steps, done = self.bath
                 self.bath = (reservoir, steps, done + 1)
+            else:
+                go(_kick, grid, velocities, a["forces"], inverse, 0.5 * dt)
             mark("integrate")
         self.integrator.end_step(state)
 
-    def _bussi_rescale(self, grid) -> None:
-        """Bussi's half-step rescaling: the kinetic energy summed on the device (eight
-        bytes to the host), the factor from the integrator's own stream
-        (``Bussi.rescale_factor``, as its CPU step), the velocities scaled on the device."""
+    def _bussi_factor(self) -> float:
+        """Bussi's half-step rescaling factor: the kinetic energy summed on the device
+        (eight bytes to the host; left by the pass before it, else summed here), the
+        factor from the integrator's own stream (``Bussi.rescale_factor``, as its CPU
+        step). The caller's next pass scales the velocities by it."""
         a, bussi = self.arrays, self.integrator
-        blocks = self.sum_blocks
-        _kinetic_sum[blocks, SUM_THREADS](a["velocities"], a["masses"], a["partial"])
-        _reduce_columns[1, 32](a["partial"], blocks, 1, a["kinetic"], 0)
+        if not self.kinetic_ready:
+            sums = (self.sum_blocks, self.sum_threads)
+            physics = (a["velocities"], a["velocities"], a["inverse_masses"], a["masses"])
+            self._go(_kick_scale_kinetic, sums, *physics, 0.0, 1.0, *self._totals_of("kinetic"))
+        self.kinetic_ready = False
         kinetic = float(a["kinetic"].copy_to_host()[0])
         c = math.exp(-0.5 * bussi.dt / bussi.tau)
-        alpha = bussi.rescale_factor(kinetic, bussi.degrees_of_freedom(self.n_atoms), c)
-        if alpha != 1.0:
-            _scale[grid](a["velocities"], alpha)
+        return bussi.rescale_factor(kinetic, bussi.degrees_of_freedom(self.n_atoms), c)
 
-    def _langevin_step(self, state, grid) -> None:
+    def _totals_of(self, name: str) -> tuple:
+        """The arguments a fused sum ends with: its blocks' rows, the ticket, the result."""
+        a = self.arrays
+        return a["partial"], a["counter"], a[name]
+
+    def _langevin_step(self, state, grid, look) -> None:
         """BAOAB as ``integrators.langevin.Langevin.step``: the noise of counter (step,
         atom id) under the integrator's key, the same numbers as the CPU path's."""
         a, half = self.arrays, 0.5 * self.integrator.dt
-        mark = self._mark
-        velocities, noise, masses, sums = a["velocities"], a["noise"], a["masses"], a["sums"]
-        _kick[grid](velocities, a["forces"], a["inverse_masses"], half)  # B
-        _drift[grid](a["positions"], velocities, half)  # A
+        go, mark = self._go, self._mark
+        velocities, noise, masses = a["velocities"], a["noise"], a["masses"]
+        kick = (a["forces"], a["inverse_masses"], 1.0, half, half)
+        go(_kick_drift_check, grid, a["positions"], velocities, *kick, *look, False)  # B, A
         step = np.uint64(state.step + 1)
-        self.noise_kernel[grid](*self.key, step, a["ids"], a["sigmas"], noise)  # O
-        blocks, partial = self.sum_blocks, a["partial"]
-        _langevin_sums[blocks, SUM_THREADS](velocities, noise, masses, partial, True)
-        _reduce_columns[1, 32](partial, blocks, 5, sums, 0)
-        _relax[grid](velocities, noise, self.relax[0], sums, self.relax[1])
-        _langevin_sums[blocks, SUM_THREADS](velocities, noise, masses, partial, False)
-        _reduce_columns[1, 32](partial, blocks, 1, sums, 5)
-        _bath[1, 1](sums)
-        _drift[grid](a["positions"], velocities, half)  # A
+        sums, totals = (self.sum_blocks, self.sum_threads), self._totals_of("sums")
+        # O: the noise and its momentum, the velocities relaxed, the bath's energy booked
+        go(
+            self.noise_kernel,
+            sums,
+            *self.key,
+            step,
+            a["ids"],
+            a["sigmas"],
+            noise,
+            velocities,
+            masses,
+            *totals,
+        )
+        go(_relax_bath, sums, velocities, noise, masses, *self.relax, *totals)
+        go(_drift_check, grid, a["positions"], velocities, half, *look)  # A
         mark("integrate")
         self._update()
         mark("neighbors")
         self._forces()
         mark("forces")
-        _kick[grid](velocities, a["forces"], a["inverse_masses"], half)  # B
+        kick = (a["velocities"], a["forces"], a["inverse_masses"])  # as now (a sort)
+        go(_kick, grid, *kick, half)  # B
         mark("integrate")
         reservoir, steps, done = self.bath
         self.bath = (reservoir, steps, done + 1)
 
     def timed_step(self, state) -> dict[str, float]:
         """:meth:`step`, timed by CUDA events between its kernels: milliseconds spent in
-        the integrator's passes, the list's check (and rebuild) and the force kernels."""
+        the integrator's passes (the list's displacement check fused into them), the
+        read of the rebuild flag with any rebuild, and the force kernels."""
         self.events = []
         try:
             self.step(state)
@@ -313,6 +370,11 @@ class DeviceEngine:
         for (_, before), (name, after) in zip(events, events[1:], strict=False):
             split[name] = split.get(name, 0.0) + before.elapsed_time(after)
         return split
+
+    def _go(self, kernel, grid, *arguments) -> None:
+        """Launch ``kernel`` over ``grid`` (counted in :attr:`n_launches`)."""
+        kernel[grid](*arguments)
+        self.n_launches += 1
 
     def _mark(self, name: str) -> None:
         """Record a CUDA event after the kernels so far (only in :meth:`timed_step`)."""
@@ -336,47 +398,44 @@ class DeviceEngine:
     # ------------------------------------------------------------ helpers
     def _totals(self) -> np.ndarray:
         a = self.arrays
-        blocks = self.sum_blocks
-        _sum_observables[blocks, SUM_THREADS](
-            a["observables"], a["velocities"], a["masses"], a["partial"]
-        )
-        _reduce_columns[1, 32](a["partial"], blocks, N_OBSERVABLES, a["totals"], 0)
+        sums = (self.sum_blocks, self.sum_threads)
+        physics = (a["observables"], a["velocities"], a["masses"])
+        self._go(_sum_observables, sums, *physics, *self._totals_of("totals"))
         return a["totals"].copy_to_host()
 
     def _update(self) -> None:
-        """Rebuild the list if an atom moved more than half the skin (decided on the device:
-        only the flag crosses)."""
-        a = self.arrays
-        flag = a["flag"]
-        _moved[launch(self.n_atoms)](a["positions"], a["reference"], self.half_skin**2, flag)
-        if flag.copy_to_host()[0]:
+        """Rebuild the list if an atom moved more than half the skin (decided on the device,
+        by the integrator's pass before: only the flag crosses)."""
+        if self.arrays["flag"].copy_to_host()[0]:
             self._build()
 
-    def _bin(self) -> None:
-        """The counting sort of the atoms by cell: ``order`` the device rows cell by cell."""
-        a = self.arrays
+    def _bin(self, rank: str = "row_major") -> None:
+        """The counting sort of the atoms by cell: ``order`` the device rows cell by cell,
+        the cells in row-major order (the search's) or along the Morton curve
+        (``rank="curve"``, a sort's); the counts are left zeroed for the next one."""
+        a, go = self.arrays, self._go
         grid = launch(self.n_atoms)
         counts = a["cell_counts"]
-        counts.copy_to_device(np.zeros(counts.shape[0], np.int32))
-        _cell_of[grid](a["positions"], a["box"], a["n_cells"], a["cells"], counts)
-        _cell_starts[1, 1](counts, a["cell_starts"], a["cursors"])
-        _scatter[grid](a["cells"], a["cell_starts"], a["cursors"], a["order"])
-        _sort_cells[launch(counts.shape[0])](a["cell_starts"], a["order"])
+        go(_cell_of, grid, a["positions"], a["box"], a["n_cells"], a[rank], a["cells"], counts)
+        go(_cell_starts, (1, self.scan_threads), counts, a["cell_starts"], a["cursors"])
+        go(_scatter, grid, a["cells"], a["cell_starts"], a["cursors"], a["order"])
+        go(_sort_cells, launch(counts.shape[0]), a["cell_starts"], a["order"])
 
     def _sort(self) -> None:
-        """Put the device's rows in cell order (atoms near in space near in memory, as
-        HOOMD-blue sorts them): every per-atom array gathered on the device, the bonds' and
-        angles' atom numbers and rows renumbered on the host. Invisible: :meth:`pull` and
-        :meth:`result` give the user's order (``perm``)."""
+        """Put the device's rows in the order of their cells along a Morton curve (atoms near
+        in space near in memory, as HOOMD-blue sorts them along a Hilbert curve), each
+        cell's atoms in their former order: every per-atom array gathered on the device,
+        the bonds' and angles' atom numbers and rows renumbered on the host. Invisible:
+        :meth:`pull` and :meth:`result` give the user's order (``perm``)."""
         a = self.arrays
-        self._bin()
+        self._bin("curve")
         order = a["order"].copy_to_host().astype(np.int64)
         grid = launch(self.n_atoms)
         for name in _PER_ATOM:
             if name in a:
                 moved = cuda.device_array_like(a[name])
                 gather = _gather_rows if len(a[name].shape) == 2 else _gather
-                gather[grid](a[name], a["order"], moved)
+                self._go(gather, grid, a[name], a["order"], moved)
                 a[name] = moved
         self.perm = self.perm[order]
         row = np.empty(self.n_atoms, np.int64)
@@ -389,18 +448,21 @@ class DeviceEngine:
             for _, _, _, items, item_types, table in self.bonded
         ]
         self.n_sorts += 1
+        self.kinetic_ready = False  # a sum over the rows in their new order, as a fresh one
 
     def _build(self) -> None:
         a = self.arrays
         n, grid = self.n_atoms, launch(self.n_atoms)
-        if self.n_cells is not None and self.n_builds % SORT_EVERY == 0:
+        if self.n_cells is not None and self.n_builds % self.sort_every == 0:
             self._sort()
         while True:
             a["flag"].copy_to_device(np.zeros(1, np.int32))
             geometry = (a["positions"], a["lengths"], a["inverse"], a["tilt"])
             if self.use_cells:
                 self._bin()
-                _search_cells[grid](
+                self._go(
+                    _search_cells,
+                    grid,
                     *geometry,
                     a["n_cells"],
                     a["cells"],
@@ -411,8 +473,10 @@ class DeviceEngine:
                     a["counts"],
                 )
             else:
-                _search_all[grid](*geometry, self.radius**2, a["neighbors"], a["counts"])
-            _remember[grid](a["positions"], a["reference"], a["counts"], self.room, a["flag"])
+                list_ = (a["neighbors"], a["counts"])
+                self._go(_search_all, grid, *geometry, self.radius**2, *list_)
+            remembered = (a["reference"], a["counts"], self.room, a["flag"])
+            self._go(_remember, grid, a["positions"], *remembered)
             self.n_builds += 1
             if not a["flag"].copy_to_host()[0]:
                 return
@@ -426,9 +490,10 @@ class DeviceEngine:
         for index, (kernel, (_, _, mode, _, _)) in enumerate(
             zip(self.kernels, self.pairs, strict=True)
         ):
-            kernel[grid](
+            self._go(
+                kernel,
+                grid,
                 a["positions"],
-                a["types"],
                 self.n_types,
                 a["neighbors"],
                 a["counts"],
@@ -444,7 +509,7 @@ class DeviceEngine:
             )
         geometry = (a["positions"], a["lengths"], a["inverse"], a["tilt"])
         for kernel, arrays in zip(self.bonded_kernels, a["bonded"], strict=True):
-            kernel[grid](*geometry, *arrays, a["forces"], a["observables"])
+            self._go(kernel, grid, *geometry, *arrays, a["forces"], a["observables"])
 
 
 def _by_atom(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
