@@ -235,13 +235,14 @@ class Simulation:
         # of which each attribute chain and call here would be a visible part.
         forcefield, integrator = self.forcefield, self.integrator
         intervals, timings = self._virial_intervals, self.timings
-        clock, elsewhere = time.perf_counter, self._timed_elsewhere
+        clock, comm = time.perf_counter, self._comm_seconds
         if not intervals:
             forcefield.virial_wanted = False
         for _ in range(int(n_steps)):
             if self._stopping():
                 break
-            before = elsewhere()
+            spent = forcefield.timings  # _timed_elsewhere, inline
+            before = spent["neighbor"] + spent["force"] + comm()
             start = clock()
             limit = self.max_displacement
             if limit is not None:
@@ -259,7 +260,9 @@ class Simulation:
                 raise SimulationError(upcoming, f"{error}; {hint}") from error
             if limit is not None:
                 self._check_displacement(limit)
-            timings["integrate"] += clock() - start - (elsewhere() - before)
+            elapsed = clock() - start
+            spent = forcefield.timings
+            timings["integrate"] += elapsed - (spent["neighbor"] + spent["force"] + comm() - before)
             if self._observers:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False

@@ -433,7 +433,6 @@ class PairPotential:
         if precision == "mixed":
             self._cached_tables(max(state.n_types, self.n_types_fixed or 1), np.float32)
 
-    @_compiling_the_term
     def energy_forces(
         self,
         state,
@@ -465,10 +464,24 @@ class PairPotential:
         if precision == "double" and not per_atom and neighbors is not None:
             call = self._frame_calls[bool(virial)]
             if call is not None and call[0] is neighbors.frame and self._same_call(call, state):
-                result = self._frame_result(*call[-1], virial)
+                # the kernel of the last call, compiled then: nothing to compile here
+                kernel, arguments, energies, virials, chunks = call[-1]
+                forces = np.empty((len(arguments[0]), 3))
+                kernel(*arguments, forces)
+                result = ForceResult(
+                    energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+                    forces=forces,
+                    virial=symmetric(virials.sum(axis=0)) if virial else None,
+                )
                 if not math.isfinite(result.energy):
                     self._explain_non_finite(state, neighbors)
                 return result
+        return self._energy_forces(state, neighbors, per_atom, virial, precision)
+
+    @_compiling_the_term
+    def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
+        """:meth:`energy_forces` where the last slot-frame call does not serve (see
+        ``_frame_calls``): the kernel found (compiled on its first call) and run."""
         kernels = self._loaded(check_precision_name(precision))
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
@@ -673,17 +686,6 @@ class PairPotential:
             and call[3] is state.type_names
             and call[4] is self.data
             and call[5] == self.cutoff_mode
-        )
-
-    def _frame_result(self, kernel, arguments, energies, virials, chunks, virial) -> ForceResult:
-        """Run a slot-frame call again (``_frame_calls``): the same kernel and arguments,
-        fresh forces."""
-        forces = np.empty((len(arguments[0]), 3))
-        kernel(*arguments, forces)
-        return ForceResult(
-            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
-            forces=forces,
-            virial=symmetric(virials.sum(axis=0)) if virial else None,
         )
 
     def _explain_non_finite(self, state, neighbors) -> None:

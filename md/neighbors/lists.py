@@ -491,7 +491,8 @@ class NeighborList:
     def frame(self) -> SlotFrame | None:
         """The slot frame of the last build (None after an O(N^2) build over atom indices:
         use ``starts``)."""
-        self._slot_list()
+        if self._slots_pending:
+            self._slot_list()
         memo = self._frame_memo
         if (
             memo is not None
