@@ -463,7 +463,13 @@ class PairPotential:
         """
         if precision == "double" and not per_atom and neighbors is not None:
             call = self._frame_calls[bool(virial)]
-            if call is not None and call[0] is neighbors.frame and self._same_call(call, state):
+            if call is not None and self._same_call(call, state):
+                frame = neighbors.frame
+                if call[0] is not frame:  # the list was built again since
+                    call = self._reslotted(call, neighbors, frame, bool(virial))
+            else:
+                call = None
+            if call is not None:
                 # the kernel of the last call, compiled then: nothing to compile here
                 kernel, arguments, energies, virials, chunks = call[-1]
                 forces = np.empty((len(arguments[0]), 3))
@@ -673,6 +679,20 @@ class PairPotential:
             forces=forces,
             virial=symmetric(virials.sum(axis=0)) if virial else None,
         )
+
+    def _reslotted(self, call: tuple, neighbors, frame, virial: bool) -> tuple | None:
+        """A slot-frame call of ``_frame_calls`` moved onto a new frame of the list (a
+        rebuild: new slots and pairs, the same atoms), kept for the next calls; None
+        where its kernel and scratch do not serve the frame (another chunk count, or no
+        slot frame)."""
+        kernel, arguments, energies, virials, chunks = call[-1]
+        if frame is None or frame.n_chunks != chunks:
+            return None
+        self._check_radius(neighbors)
+        arguments = (*arguments[:2], _slots(frame), *arguments[3:])
+        call = (frame, *call[1:-1], (kernel, arguments, energies, virials, chunks))
+        self._frame_calls[virial] = call
+        return call
 
     def _same_call(self, call: tuple, state) -> bool:
         """Whether a slot-frame call of ``_frame_calls`` (whose frame the caller has
