@@ -82,8 +82,8 @@ class Copying:
 @pytest.mark.parametrize(("name", "most"), [("verlet", 50), ("leapfrog", 60)])
 def test_a_step_of_a_small_box_makes_few_python_calls(name, most):
     """A step of the 108-atom melt, averaged over 100 steps (13 list builds among them),
-    made 73 Python calls (velocity Verlet; leapfrog 80) before issue 69's work and 34
-    (44) after: the pair kernel's call set up once per list, the force cache keyed by
+    made 73 Python calls (velocity Verlet; leapfrog 80) before issue 69's work and 29
+    (39) after: the pair kernel's call set up once per list, the force cache keyed by
     bytes, the list's check direct."""
     sim = md.Simulation(melt(3), [lj()], INTEGRATORS[name](), skin=SKIN)
     sim.run(20)
