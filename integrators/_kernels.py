@@ -20,7 +20,9 @@ def _chunks(n: int) -> int:
 def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt) -> None:
     """v += kick_dt f/m, then x += drift_dt v, on one thread per chunk of atoms (same bits
     on any number: each atom's update is its own)."""
-    chunks = _chunks(positions.shape[0])
+    n = positions.shape[0]
+    # (under two chunks' worth there is one chunk on any number of threads: not asked)
+    chunks = 1 if n < 2 * _MIN_CHUNK_ATOMS else _chunks(n)
     if chunks == 1:
         _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
     else:
@@ -31,7 +33,8 @@ def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
 
 def kick(velocities, forces, inverse_masses, kick_dt) -> None:
     """v += kick_dt f/m, on one thread per chunk of atoms."""
-    chunks = _chunks(velocities.shape[0])
+    n = velocities.shape[0]
+    chunks = 1 if n < 2 * _MIN_CHUNK_ATOMS else _chunks(n)
     if chunks == 1:
         _kick(velocities, forces, inverse_masses, kick_dt)
     else:

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
 from md.errors import NonFiniteError
 from md.neighbors import NeighborList
@@ -155,7 +156,7 @@ class ForceField:
             If a position, the energy, a force or the virial is NaN or infinite.
         """
         cached = self._cached
-        if cached is not None and self._matches(state):
+        if cached is not None and self._same_key(self._key, state):
             if (not per_atom or cached.energies is not None) and (
                 not virial or cached.virial is not None
             ):
@@ -173,33 +174,50 @@ class ForceField:
         it), timing the list and the kernels; NonFiniteError for non-finite input, energy, forces
         or virial."""
         start = time.perf_counter()
-        if self.neighbor_list is not None and any(p.cutoff is not None for p in potentials):
-            self.neighbor_list.update(state)
+        neighbor_list = self.neighbor_list
+        # (one potential, the common case, asked directly: no generator per evaluation)
+        listed = (
+            potentials[0].cutoff is not None
+            if len(potentials) == 1
+            else any(p.cutoff is not None for p in potentials)
+        )
+        if neighbor_list is not None and listed:
+            neighbor_list.update(state)
         elif not np.all(np.isfinite(state.positions)):
             raise NonFiniteError("particle positions are not finite")
         middle = time.perf_counter()
-        results = [
-            p.energy_forces(
-                state,
-                self.neighbor_list if p.cutoff is not None else None,
-                per_atom,
-                virial=virial,
-                **self._options(p),
-            )
-            for p in potentials
-        ]
+        if len(potentials) == 1 and self.precision == "double":
+            p = potentials[0]
+            results = [
+                p.energy_forces(
+                    state, neighbor_list if p.cutoff is not None else None, per_atom, virial=virial
+                )
+            ]
+        else:
+            results = [
+                p.energy_forces(
+                    state,
+                    neighbor_list if p.cutoff is not None else None,
+                    per_atom,
+                    virial=virial,
+                    **self._options(p),
+                )
+                for p in potentials
+            ]
         total = results[0] if len(results) == 1 else _sum_results(results, per_atom)
-        self.timings["neighbor"] += middle - start
-        self.timings["force"] += time.perf_counter() - middle
-        # One scalar for the three checks: a NaN or infinity anywhere in the forces or
-        # the virial makes their sum non-finite. Only then is each looked at: a sum of
-        # finite forces that overflows (beyond 1e308) passes there. numpy's own sum, not a
-        # BLAS dot: OpenBLAS's threads (np.vdot) spin after the call and took the cores
-        # from numba's threaded kernels (the 32000-atom melt on 2 threads 5.5x slower).
-        check = total.energy + np.add.reduce(total.forces, axis=None)
-        if total.virial is not None:
-            check += np.sum(total.virial)
-        if not math.isfinite(check):
+        timings = self.timings
+        timings["neighbor"] += middle - start
+        timings["force"] += time.perf_counter() - middle
+        # The energy, then every force and the virial: one compiled pass over the forces
+        # (no NaN or infinity among them), not numpy's sum (a microsecond a call at 108
+        # atoms, on every step). Not a BLAS dot: OpenBLAS's threads (np.vdot) spin after
+        # the call and took the cores from numba's threaded kernels (the 32000-atom melt
+        # on 2 threads 5.5x slower).
+        if not (
+            math.isfinite(total.energy)
+            and _all_finite(total.forces.reshape(-1))
+            and (total.virial is None or math.isfinite(np.sum(total.virial)))
+        ):
             _refuse_non_finite(total, potentials, results)
         return total
 
@@ -323,21 +341,42 @@ class ForceField:
         """The inputs a result depends on, copied: positions, the cell's bytes (box, tilt
         and pbc) and types; positions and types into ``old``'s arrays where they fit (no
         fresh allocation per evaluation: at 10^6 atoms its page faults cost more than the
-        copy)."""
+        copy). Up to ``_BYTES_KEY_VALUES`` coordinates, positions and types are held as
+        their bytes (with shape and dtype) instead: a small system's copy and comparison
+        then cost a fraction of a microsecond, not two."""
         positions, types = state.positions, state.types
-        if old is not None and old[0].shape == positions.shape and old[2].shape == types.shape:
+        if positions.size <= _BYTES_KEY_VALUES:
+            held = (positions.shape, positions.dtype, types.shape, types.dtype)
+            return (positions.tobytes(), _cell_bytes(state), types.tobytes(), held)
+        if (
+            old is not None
+            and old[3] is None
+            and old[0].shape == positions.shape
+            and old[2].shape == types.shape
+        ):
             copy_into(old[0], np.ascontiguousarray(positions, dtype=old[0].dtype))
             np.copyto(old[2], types)
             held_positions, held_types = old[0], old[2]
         else:
             held_positions, held_types = positions.copy(), types.copy()
-        return (held_positions, _cell_bytes(state), held_types)
+        return (held_positions, _cell_bytes(state), held_types, None)
 
     def _same_key(self, key: tuple, state: State) -> bool:
-        positions, cell, types = key
+        positions, cell, types, held = key
         # The cell compared by its bytes: the same bits give the same result, and a
         # comparison of three-value arrays costs ~5 us in np.array_equal (three a step).
         # Positions first: after a step they differ, at the first value compared.
+        if held is not None:  # a small system's bytes (see _key_of)
+            now = state.positions
+            return (
+                positions == now.tobytes()
+                and held[0] == now.shape
+                and held[1] == now.dtype
+                and cell == _cell_bytes(state)
+                and types == state.types.tobytes()
+                and held[2] == state.types.shape
+                and held[3] == state.types.dtype
+            )
         return (
             positions.shape == state.positions.shape
             and types.shape == state.types.shape
@@ -348,6 +387,12 @@ class ForceField:
 
     def _matches(self, state: State) -> bool:
         return self._same_key(self._key, state)
+
+
+#: Most coordinates (3 N) whose force cache holds positions as bytes (see
+#: ``ForceField._key_of``): beyond, copying them into bytes at every comparison costs more
+#: than the compiled comparison of held arrays (4000 atoms: 4.0 us against 2.6).
+_BYTES_KEY_VALUES = 3000
 
 
 def _cell_bytes(state: State) -> bytes:
@@ -417,3 +462,12 @@ def _sum_results(results: list[ForceResult], per_atom: bool) -> ForceResult:
             else None
         ),
     )
+
+
+@njit(cache=True)
+def _all_finite(values):
+    """Whether no value is NaN or infinite (one pass with no early exit: it vectorises)."""
+    finite = True
+    for i in range(values.shape[0]):
+        finite &= abs(values[i]) < np.inf
+    return finite

@@ -242,11 +242,19 @@ class Simulation:
             )
             self._notify(all_observers=True)
             self._observed_start = True
+        # The loop's per-step work in locals: a small box's step is tens of microseconds,
+        # of which each attribute chain and call here would be a visible part.
+        forcefield, integrator = self.forcefield, self.integrator
+        intervals, timings = self._virial_intervals, self.timings
+        clock, comm = time.perf_counter, self._comm_seconds
+        if not intervals:
+            forcefield.virial_wanted = False
         for _ in range(int(n_steps)):
             if self._stopping():
                 break
-            before = self._timed_elsewhere()
-            start = time.perf_counter()
+            spent = forcefield.timings  # _timed_elsewhere, inline
+            before = spent["neighbor"] + spent["force"] + comm()
+            start = clock()
             limit = self.max_displacement
             if limit is not None:
                 if self._previous.shape != state.positions.shape:
@@ -254,12 +262,18 @@ class Simulation:
                 np.copyto(self._previous, state.positions)
                 self._previous_cell = (state.box.tobytes(), state.tilt.tobytes())
             upcoming = state.step + 1
-            self.forcefield.virial_wanted = any(upcoming % k == 0 for k in self._virial_intervals)
-            self._guarded(lambda: self.integrator.step(state, self.forcefield), upcoming)
+            if intervals:
+                forcefield.virial_wanted = any(upcoming % k == 0 for k in intervals)
+            try:
+                integrator.step(state, forcefield)
+            except NonFiniteError as error:  # as _guarded, without a closure per step
+                hint = "the dynamics blew up (is dt too large?)"
+                raise SimulationError(upcoming, f"{error}; {hint}") from error
             if limit is not None:
                 self._check_displacement(limit)
-            elapsed = time.perf_counter() - start
-            self.timings["integrate"] += elapsed - (self._timed_elsewhere() - before)
+            elapsed = clock() - start
+            spent = forcefield.timings
+            timings["integrate"] += elapsed - (spent["neighbor"] + spent["force"] + comm() - before)
             if self._observers:
                 self._notify(all_observers=False)
         self.forcefield.virial_wanted = False

@@ -196,6 +196,9 @@ class PairPotential:
         self.term = term
         self._run_variants: set = set()  # the slot-frame kernels this object has run
         self._frame_kernels: dict = {}  # the slot-frame variants found, by kernels and flags
+        # The last double-precision slot-frame call without and with the virial: what it
+        # depends on and (kernel, arguments but the forces, chunks); see _frame_call
+        self._frame_calls: list = [None, None]
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -430,7 +433,6 @@ class PairPotential:
         if precision == "mixed":
             self._cached_tables(max(state.n_types, self.n_types_fixed or 1), np.float32)
 
-    @_compiling_the_term
     def energy_forces(
         self,
         state,
@@ -459,6 +461,33 @@ class PairPotential:
         separations and pair forces, eight pairs per vector, sums in double
         every few pairs; Newton's third law then holds to float32 round-off.
         """
+        if precision == "double" and not per_atom and neighbors is not None:
+            call = self._frame_calls[bool(virial)]
+            if call is not None and self._same_call(call, state):
+                frame = neighbors.frame
+                if call[0] is not frame:  # the list was built again since
+                    call = self._reslotted(call, neighbors, frame, bool(virial))
+            else:
+                call = None
+            if call is not None:
+                # the kernel of the last call, compiled then: nothing to compile here
+                kernel, arguments, energies, virials, chunks = call[-1]
+                forces = np.empty((len(arguments[0]), 3))
+                kernel(*arguments, forces)
+                result = ForceResult(
+                    energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+                    forces=forces,
+                    virial=symmetric(virials.sum(axis=0)) if virial else None,
+                )
+                if not math.isfinite(result.energy):
+                    self._explain_non_finite(state, neighbors)
+                return result
+        return self._energy_forces(state, neighbors, per_atom, virial, precision)
+
+    @_compiling_the_term
+    def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
+        """:meth:`energy_forces` where the last slot-frame call does not serve (see
+        ``_frame_calls``): the kernel found (compiled on its first call) and run."""
         kernels = self._loaded(check_precision_name(precision))
         n = state.n_atoms
         n_types = max(state.n_types, self.n_types_fixed or 1)
@@ -476,6 +505,16 @@ class PairPotential:
         elif frame is not None:
             self._check_radius(neighbors)
             result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode, virial)
+            if precision == "double":
+                self._frame_calls[bool(virial)] = (
+                    frame,
+                    state.positions,
+                    state.types,
+                    state.type_names,
+                    self.data,
+                    self.cutoff_mode,
+                    self._last_frame_call,
+                )
         else:
             geometry = self._geometry(state, neighbors)
             forces = np.zeros((n, 3))
@@ -634,10 +673,39 @@ class PairPotential:
                     kernels, entry, mode=int(mode), with_virial=with_virial, single=n_types == 1
                 )
             kernel(*arguments)
+        self._last_frame_call = (kernel, arguments[:-1], energies, virials, chunks)
         return ForceResult(
             energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
             forces=forces,
             virial=symmetric(virials.sum(axis=0)) if virial else None,
+        )
+
+    def _reslotted(self, call: tuple, neighbors, frame, virial: bool) -> tuple | None:
+        """A slot-frame call of ``_frame_calls`` moved onto a new frame of the list (a
+        rebuild: new slots and pairs, the same atoms), kept for the next calls; None
+        where its kernel and scratch do not serve the frame (another chunk count, or no
+        slot frame)."""
+        kernel, arguments, energies, virials, chunks = call[-1]
+        if frame is None or frame.n_chunks != chunks:
+            return None
+        self._check_radius(neighbors)
+        arguments = (*arguments[:2], _slots(frame), *arguments[3:])
+        call = (frame, *call[1:-1], (kernel, arguments, energies, virials, chunks))
+        self._frame_calls[virial] = call
+        return call
+
+    def _same_call(self, call: tuple, state) -> bool:
+        """Whether a slot-frame call of ``_frame_calls`` (whose frame the caller has
+        compared) serves ``state`` as it is: the same position and type arrays (their
+        values are read at the call), the same type names, and this object's data and
+        cutoff mode. Its kernel, scratch and arguments then stand: a step of a run pays
+        for its pair kernel, not for finding it again (about 4 us a call at 108 atoms)."""
+        return (
+            call[1] is state.positions
+            and call[2] is state.types
+            and call[3] is state.type_names
+            and call[4] is self.data
+            and call[5] == self.cutoff_mode
         )
 
     def _explain_non_finite(self, state, neighbors) -> None:

@@ -395,9 +395,16 @@ class NeighborList:
         self.n_prunes = 0
         self._prune_buffers = None  # see _prune
         self._slots_pending = False  # a cluster build: the slot list on first use
+        # (n_builds, n_prunes, n_followed, frame) of the last ``frame`` handed out: the
+        # same SlotFrame until one of the counters moves (a frozen dataclass costs about a
+        # microsecond to make, and a pair kernel asks for it at every evaluation)
+        self._frame_memo: tuple | None = None
+        self._pass_chunks = 1  # chunks of the displacement check (counted at each build)
         self._cluster_room = 64  # pairs of room per cluster in the search's buffers
         # Squared half skin; inf (never rebuild for motion) rather than an overflow.
         self._rebuild_distance2 = _square(0.5 * self.skin)
+        # Squared list radius, once: _square's errstate costs microseconds a build.
+        self._list_radius2 = _square(self.cutoff + self.skin)
         self.n_builds = 0
         self.n_late_looks = 0
         self.n_followed = 0
@@ -509,10 +516,19 @@ class NeighborList:
     def frame(self) -> SlotFrame | None:
         """The slot frame of the last build (None after an O(N^2) build over atom indices:
         use ``starts``)."""
-        self._slot_list()
+        if self._slots_pending:
+            self._slot_list()
+        memo = self._frame_memo
+        if (
+            memo is not None
+            and memo[0] == self.n_builds
+            and memo[1] == self.n_prunes
+            and memo[2] == self.n_followed
+        ):
+            return memo[3]
         if self.order is None:
             return None
-        return SlotFrame(
+        frame = SlotFrame(
             self.order,
             self.images,
             self.lengths,
@@ -524,6 +540,8 @@ class NeighborList:
             self.tilt,
             self.shifted_rows,
         )
+        self._frame_memo = (self.n_builds, self.n_prunes, self.n_followed, frame)
+        return frame
 
     @property
     def reference_positions(self) -> NDArray[np.float64] | None:
@@ -645,6 +663,27 @@ class NeighborList:
         is followed: ``lengths``, ``tilt`` and ``shifts`` become the new
         cell's, so slot positions and image shifts are those of the new cell.
         """
+        reference = self._reference
+        if (
+            self.every == 1
+            and self.check
+            and self._outer is None
+            and reference is not None
+            and reference.shape == state.positions.shape
+            and self.n_followed == self._followed_at_build
+            and (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes()) == self._cell_bytes
+        ):
+            # The exact list in the build's own cell, which it never left (every step of
+            # an NVE or NVT run): the half-skin rule alone, as _verdict applies it, with
+            # the chunks counted at the build (the largest displacement is the same on
+            # any number of them).
+            moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
+            if moved2 <= self._rebuild_distance2:
+                return False
+            if not math.isfinite(moved2):
+                raise NonFiniteError("particle positions are not finite")
+            self.build(state)
+            return True
         verdict = self._verdict(state)
         if verdict is True:
             self.build(state)
@@ -784,6 +823,7 @@ class NeighborList:
             raise NonFiniteError(
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
+        self._frame_memo = None  # a build that fails leaves no frame behind
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
         self._repeats = False
@@ -826,6 +866,7 @@ class NeighborList:
         self._followed_at_build = self.n_followed
         self._built_step = int(state.step)
         self._resumed_at = None
+        self._pass_chunks = chunk_count(n, _MIN_PASS_ATOMS)
         self.n_builds += 1
 
     def _cell_data(self, state: State):
@@ -934,6 +975,7 @@ class NeighborList:
         search's is) becomes the list the kernels read; the slot list is built again
         on demand, at these positions. ``relative``: the slots' relative positions
         (:meth:`ClusterFrame.relative_positions`) where the caller has them."""
+        self._frame_memo = None
         outer = self._outer
         n, size = outer.n_clusters, outer.n_pairs
         # One set of buffers per search (the relative positions: the search's own),
@@ -991,6 +1033,7 @@ class NeighborList:
         if not self._slots_pending:
             return
         self._slots_pending = False
+        self._frame_memo = None
         at = self._reference if self._pruned_at is None else self._pruned_at
         at_build = State(
             positions=at.copy(), box=self._box.copy(), pbc=self._pbc.copy(), tilt=self._tilt.copy()
@@ -1005,7 +1048,7 @@ class NeighborList:
         n = positions.shape[0]
         lengths, inverse = periodic_lengths(state.box, state.pbc)
         starts = np.zeros(n + 1, dtype=np.int64)
-        r2_max = _square(self.list_radius)
+        r2_max = self._list_radius2
         while True:
             count = _brute_force_pairs(
                 positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
@@ -1039,7 +1082,7 @@ class NeighborList:
         return self._small_memo[1]
 
     def _build_small_box(self, state: State, chunks: int) -> None:
-        r2_max = _square(self.list_radius)
+        r2_max = self._list_radius2
         while True:
             order, images, starts, bounds, count, shifted, repeats = _small_box_list(
                 state.positions,
@@ -1067,7 +1110,7 @@ class NeighborList:
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         origin, width, n_cells, reach = grid
         ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
-        r2_max = _square(self.list_radius)
+        r2_max = self._list_radius2
         while True:
             order, images, starts, bounds, count, shifted = _cell_list(
                 state.positions,
