@@ -22,13 +22,15 @@ from numpy.typing import NDArray
 from md.box import cell_matrix, periodic_tilt, perpendicular_widths
 from md.distributed._domain_kernels import (
     add_rows,
+    add_sweep,
     append_rows,
     brick_of,
     fractional_coordinates,
+    ghost_rows,
     home_layout,
     home_positions,
     near_faces,
-    pack_rows,
+    pack_sweep,
     shift_rows,
     table_rows,
 )
@@ -55,6 +57,52 @@ class _Swap:
     offset: int
     count: int
     tag: int
+
+
+class _Sweep:
+    """The swaps of one axis as one compiled pass and one set of persistent messages: their
+    send lists end to end (``index``, swap j's from ``starts[j]``), shifts, ghost rows
+    (``offsets``, ``counts``) and the fixed buffers the messages go from and into. The
+    swaps of a sweep send only atoms laid out before the sweep's own ghosts, so they
+    can be in flight together; their sums back are added swap after swap, as
+    :meth:`Domain.reverse` adds them one by one."""
+
+    def __init__(self, swaps: list[_Swap], rank: int, ranks, positions: NDArray) -> None:
+        self.axis = swaps[0].axis
+        self.to_self = swaps[0].dest == rank  # (one brick along the axis: both swaps)
+        lengths = [len(swap.send) for swap in swaps]
+        self.starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        self.index = (
+            np.concatenate([swap.send for swap in swaps]).astype(np.int64)
+            if swaps
+            else np.zeros(0, dtype=np.int64)
+        )
+        self.shifts = np.array([float(swap.shift) for swap in swaps])
+        self.offsets = np.array([swap.offset for swap in swaps], dtype=np.int64)
+        self.counts = np.array([swap.count for swap in swaps], dtype=np.int64)
+        total = int(self.starts[-1])
+        self.out = np.empty((total, 3))  # positions out, forces back in (aligned with index)
+        self.back = np.empty((int(self.counts.sum()), 3))  # the ghosts' forces out
+        self.forward = self.backward = None
+        if self.to_self:
+            return
+        ghost_starts = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
+        sends, receives, returns, returned = [], [], [], []
+        for j, swap in enumerate(swaps):
+            part = self.out[self.starts[j] : self.starts[j + 1]]
+            ghosts = positions[swap.offset : swap.offset + swap.count]
+            back = self.back[ghost_starts[j] : ghost_starts[j + 1]]
+            sends.append((part, swap.dest, swap.tag))
+            receives.append((ghosts, swap.source, swap.tag))
+            returns.append((back, swap.source, 16 + swap.tag))
+            returned.append((part, swap.dest, 16 + swap.tag))
+        self.forward = ranks.messages(sends, receives)
+        self.backward = ranks.messages(returns, returned)
+
+    def free(self) -> None:
+        for messages in (self.forward, self.backward):
+            if messages is not None:
+                messages.free()
 
 
 class Domain:
@@ -92,6 +140,7 @@ class Domain:
         self.margin = 0.0
         self.n_owned = 0
         self.swaps: list[_Swap] = []
+        self._sweeps: list[_Sweep] | None = None  # the swaps' messages, made at first use
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
@@ -255,6 +304,9 @@ class Domain:
                 swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
                 count += len(rows)
         self.swaps = swaps
+        for sweep in self._sweeps or ():
+            sweep.free()
+        self._sweeps = None
         self.n_owned = n
         self.reach, self.margin = reach, margin
         self.local_ids = ids[:count]
@@ -299,19 +351,45 @@ class Domain:
         else:
             home_positions(state.positions, self.imaged, self.images, cell, owned)
         with self.ranks.clock:
+            for sweep in self.sweeps():
+                pack_sweep(
+                    positions,
+                    sweep.index,
+                    sweep.starts,
+                    sweep.shifts,
+                    sweep.axis,
+                    cell,
+                    sweep.offsets,
+                    sweep.to_self,
+                    sweep.out,
+                )
+                if sweep.forward is not None:
+                    sweep.forward.run()
+
+    def sweeps(self) -> list[_Sweep]:
+        """The swaps grouped by axis, each group's persistent messages made once a build."""
+        if self._sweeps is None:
+            positions = self.local_state.positions
+            by_axis: dict[int, list[_Swap]] = {}
             for swap in self.swaps:
-                shift = swap.shift * cell[swap.axis]
-                target = positions[swap.offset : swap.offset + swap.count]
-                if swap.dest == self.rank:
-                    pack_rows(positions, swap.send, shift, target)
-                    continue
-                buffer = self._buffer(len(swap.send), 3)
-                pack_rows(positions, swap.send, shift, buffer)
-                self.ranks.exchange(buffer, swap.dest, target, swap.source, swap.tag)
+                by_axis.setdefault(swap.axis, []).append(swap)
+            self._sweeps = [
+                _Sweep(group, self.rank, self.ranks, positions) for group in by_axis.values()
+            ]
+        return self._sweeps
 
     def reverse(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
         along the reverse of the sweeps; return the owned rows (a view). Collective."""
+        if values.shape[1] == 3 and values.flags.c_contiguous:
+            for sweep in reversed(self.sweeps()):
+                if not sweep.to_self:
+                    ghost_rows(values, sweep.offsets, sweep.counts, sweep.back)
+                    sweep.backward.run()
+                add_sweep(
+                    values, sweep.index, sweep.starts, sweep.out, sweep.offsets, sweep.to_self
+                )
+            return values[: self.n_owned]
         for swap in reversed(self.swaps):
             part = values[swap.offset : swap.offset + swap.count]
             if swap.dest == self.rank:

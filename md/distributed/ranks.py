@@ -9,6 +9,7 @@ imported unless a launcher started more than one process (:func:`mpi_ranks`).
 
 from __future__ import annotations
 
+import atexit
 import math
 import os
 import time
@@ -178,6 +179,23 @@ class MPIRanks:
         with self.clock:
             self.comm.Sendrecv(send, dest, tag, receive, source, tag)
 
+    def messages(self, sends, receives) -> Messages:
+        """Persistent messages (MPI's Send_init and Recv_init): ``sends`` and ``receives``
+        lists of (buffer, rank, tag), the buffers kept as they are between
+        :meth:`Messages.run` calls (which send their contents and fill the receives)."""
+        from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+
+        requests = [self.comm.Recv_init(buffer, rank, tag) for buffer, rank, tag in receives]
+        requests += [self.comm.Send_init(buffer, rank, tag) for buffer, rank, tag in sends]
+        messages = Messages(requests, self.clock, MPI.Prequest.Startall, MPI.Request.Waitall)
+        if not _LIVE.registered:
+            # freed before mpi4py's own exit handler (registered earlier: it runs later)
+            # ends MPI, which warns of every persistent request still held
+            atexit.register(_free_live)
+            _LIVE.registered = True
+        _LIVE.held.add(messages)
+        return messages
+
     def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
         """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
         with self.clock:
@@ -215,6 +233,46 @@ class MPIRanks:
     def abort(self, code: int = 1) -> None:
         """End every rank at once (for an error one rank cannot share with the others)."""
         self.comm.Abort(code)
+
+
+class Messages:
+    """A set of persistent messages (:meth:`MPIRanks.messages`): :meth:`run` starts them all
+    and waits for them (timed on the ranks' clock); :meth:`free` releases them."""
+
+    def __init__(self, requests: list, clock: CommClock, start_all, wait_all) -> None:
+        self.requests = requests
+        self.clock = clock
+        self._start_all = start_all
+        self._wait_all = wait_all
+
+    def run(self) -> None:
+        if not self.requests:
+            return
+        with self.clock:
+            self._start_all(self.requests)
+            self._wait_all(self.requests)
+
+    def free(self) -> None:
+        for request in self.requests:
+            request.Free()
+        self.requests = []
+        _LIVE.held.discard(self)
+
+
+class _Live:
+    """The Messages not freed yet (freed at exit, before MPI ends), and whether that is
+    registered."""
+
+    held: set = set()
+    registered = False
+
+
+_LIVE = _Live
+
+
+def _free_live() -> None:
+    for messages in list(_LIVE.held):
+        messages.free()
 
 
 # ------------------------------------------------------------------ agreement
