@@ -35,7 +35,7 @@ from md.distributed._domain_kernels import (
     table_rows,
 )
 from md.distributed.grid import Grid, local_periodic_axes
-from md.distributed.migration import RowStore, migrate
+from md.distributed.migration import RowStore, check_lost, migrate
 from md.errors import DecompositionError
 from md.parallel import global_max
 from md.state import State
@@ -149,6 +149,9 @@ class Domain:
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
         self.rows = RowStore()  # the owned atoms' arrays, kept for migrations
+        #: Atoms the migrations since the last build lost (moved more than a brick), shared
+        #: in the next ghost search's reduction.
+        self.lost_atoms = 0
         self._local: dict[str, list] = {}
         self._parity = 0
 
@@ -183,11 +186,9 @@ class Domain:
         bricks hold them (:func:`md.distributed.migration.migrate`, which says what
         ``spent`` gives away). Collective.
 
-        Raises
-        ------
-        DecompositionError
-            On every rank, if an atom moved more than one brick along an axis
-            since the last migration.
+        An atom that moved more than one brick along an axis since the last migration
+        is counted in ``lost_atoms``: the :meth:`build` that follows every migration
+        raises for it on every rank (its reduction shares the count).
         """
         return migrate(self, state, carried, spent)
 
@@ -204,8 +205,9 @@ class Domain:
         Raises
         ------
         DecompositionError
-            On every rank, if owned atoms strayed so far that the ghost shell
-            would need atoms from beyond the face neighbours.
+            On every rank, if the migrations since the last build lost atoms (one moved
+            more than a brick along an axis), or owned atoms strayed so far that the
+            ghost shell would need atoms from beyond the face neighbours.
         """
         box, pbc = state.box, state.pbc
         tilt = periodic_tilt(state.tilt, pbc)
@@ -247,7 +249,10 @@ class Domain:
         tilt = periodic_tilt(state.tilt, pbc)
         cell = cell_matrix(box, tilt)
         widths = perpendicular_widths(box, tilt)
-        margin = global_max(strayed, self.ranks)
+        # one reduction: how far owned atoms strayed, and the migration's lost atoms
+        margin, lost = global_max(np.array([strayed, float(self.lost_atoms)]), self.ranks)
+        self.lost_atoms = 0
+        check_lost(lost)
         shell = reach + margin
         brick = widths * self.grid.thinnest()
         narrow = pbc & (brick < shell + margin)

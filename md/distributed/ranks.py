@@ -154,6 +154,7 @@ class MPIRanks:
         self.clock = CommClock()
         self._max = MPI.MAX
         self._double = MPI.DOUBLE
+        self._status = MPI.Status()
 
     def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         with self.clock:
@@ -199,11 +200,16 @@ class MPIRanks:
     def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
         """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
         with self.clock:
-            count = np.array([rows.shape[0]], dtype=np.int64)
-            incoming = np.empty(1, dtype=np.int64)
-            self.comm.Sendrecv(count, dest, tag, incoming, source, tag)
-            received = np.empty((int(incoming[0]), rows.shape[1]))
-            self.comm.Sendrecv(np.ascontiguousarray(rows), dest, tag, received, source, tag)
+            # one message each way: the arriving rows' count is read off the message
+            # (MPI's matched probe), not sent ahead of it
+            sending = self.comm.Isend(np.ascontiguousarray(rows, dtype=np.float64), dest, tag)
+            status = self._status
+            message = self.comm.Mprobe(source, tag, status)
+            width = rows.shape[1]
+            count = status.Get_count(self._double)
+            received = np.empty((count // width if width else 0, width))
+            message.Recv(received)
+            sending.Wait()
             return received
 
     def all_objects(self, value) -> list:
