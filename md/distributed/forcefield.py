@@ -504,7 +504,10 @@ class DistributedForceField:
         self.timings["neighbor"] += (
             time.perf_counter() - start - (self.ranks.clock.seconds - communicated)
         )
-        self._exchanged = _key(state, self._exchanged)
+        # Which positions the ghosts hold, for the agreement of calls outside a step (a
+        # call at the same positions that cannot use its held result skips the messages).
+        # A step's calls never ask (they evaluate, or take the held result): no copy there.
+        self._exchanged = None if self._in_step else _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
