@@ -213,3 +213,49 @@ def test_compiled_sweeps_equal_the_swap_by_swap_passes(to_self):
     gathered = np.empty((sum(counts), 3))
     ghost_rows(forces, offsets, np.array(counts, dtype=np.int64), gathered)
     np.testing.assert_array_equal(gathered, forces[n:])
+
+
+#: Velocity Verlet that, from step 10 on, nudges the atoms after its last force evaluation
+#: of a step: the steps before showed the ranks that the step-start call finds the atoms
+#: where the last evaluation left them, so the promise breaks.
+NUDGED = """\
+import sys
+sys.path.insert(0, sys.argv[2])
+from counted import simulation, system
+from integrators import VelocityVerlet
+from md.distributed import DistributedSimulation
+
+
+class Nudged(VelocityVerlet):
+    def step(self, state, forcefield):
+        super().step(state, forcefield)
+        if state.step >= 10:
+            state.positions[:, 0] += 1e-9
+
+
+sim = simulation(system(), DistributedSimulation)
+sim.integrator = Nudged(0.005)
+sim.run(30)
+print("no stop")
+"""
+
+
+@needs_mpi
+def test_an_integrator_that_breaks_the_steps_pattern_ends_every_rank_with_why(tmp_path):
+    """An integrator that starts moving atoms between its last evaluation of a step and the
+    next step's first call, after steps that did not, ends the run on every rank (no rank
+    left waiting for another) with a message that says so."""
+    (tmp_path / "counted.py").write_text(COUNTED)
+    script = tmp_path / "nudged.py"
+    script.write_text(NUDGED)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")
+    command = ["mpiexec", "-n", "2", sys.executable, str(script), "unused", str(tmp_path)]
+    done = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=180
+    )
+    assert done.returncode != 0 and "no stop" not in done.stdout
+    assert "moved atoms between its last force evaluation" in done.stderr, done.stderr

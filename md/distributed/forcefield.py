@@ -353,6 +353,14 @@ class DistributedForceField:
             "step_begins): ending every rank",
             state.step,
         )
+        held, chain = [logging.lastResort], logger
+        while chain is not None:  # the handlers of this logger and of those above it
+            held += chain.handlers
+            chain = chain.parent
+        for handler in held:
+            if handler is not None:
+                handler.flush()
+        time.sleep(0.5)  # (the launcher forwards the message before MPI ends the ranks)
         self.ranks.abort(3)
 
     def step_begins(self) -> None:
