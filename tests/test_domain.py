@@ -331,6 +331,9 @@ class Loopback:
         self.sent.append(np.array(rows))
         return self.answers.pop(0)
 
+    def exchange_many(self, exchanges):
+        return [self.exchange_rows(*exchange) for exchange in exchanges]
+
     def sum(self, values):
         return values
 

@@ -284,6 +284,7 @@ class Domain:
                 upper = np.concatenate([upper, ghost_upper + n])
             down = self.grid.neighbor(self.rank, axis, -1)
             up = self.grid.neighbor(self.rank, axis, 1)
+            sweep = []
             for send, shift, dest, source in (
                 (lower, 1 if c == 0 else 0, down, up),
                 (upper, -1 if c == p - 1 else 0, up, down),
@@ -292,9 +293,15 @@ class Domain:
                 table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
                 rows[:, :3] += shift * cell[axis]
                 rows[:, 3 + axis] += shift
-                tag = len(swaps)
-                if dest != self.rank:
-                    rows = self.ranks.exchange_rows(rows, dest, source, tag)
+                sweep.append((send, shift, dest, source, rows, len(swaps) + len(sweep)))
+            # both swaps' rows in flight together (each sends atoms laid out before them)
+            remote = [(rows, dest, source, tag) for _, _, dest, source, rows, tag in sweep]
+            if sweep[0][2] != self.rank:
+                arrived = self.ranks.exchange_many(remote)
+                sweep = [
+                    (*swap[:4], rows, swap[5]) for swap, rows in zip(sweep, arrived, strict=True)
+                ]
+            for send, shift, dest, source, rows, tag in sweep:
                 if count + len(rows) > len(positions):
                     size = count + len(rows) + len(positions) // 2
                     positions, ids, types = (

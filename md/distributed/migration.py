@@ -135,8 +135,12 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         lost += far
         upper = grid.neighbor(rank, axis, 1)
         lower = grid.neighbor(rank, axis, -1)
-        from_lower = ranks.exchange_rows(_packed(arrays, ups), upper, lower, 2 * axis)
-        from_upper = ranks.exchange_rows(_packed(arrays, downs), lower, upper, 2 * axis + 1)
+        from_lower, from_upper = ranks.exchange_many(
+            [
+                (_packed(arrays, ups), upper, lower, 2 * axis),
+                (_packed(arrays, downs), lower, upper, 2 * axis + 1),
+            ]
+        )
         if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
             continue
         incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)

@@ -199,18 +199,30 @@ class MPIRanks:
 
     def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
         """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
+        return self.exchange_many([(rows, dest, source, tag)])[0]
+
+    def exchange_many(self, exchanges) -> list[NDArray[np.float64]]:
+        """:meth:`exchange_rows` for each of ``exchanges`` ((rows, dest, source, tag)), all
+        in flight together: the rows received, in their order."""
         with self.clock:
             # one message each way: the arriving rows' count is read off the message
             # (MPI's matched probe), not sent ahead of it
-            sending = self.comm.Isend(np.ascontiguousarray(rows, dtype=np.float64), dest, tag)
+            sending = [
+                self.comm.Isend(np.ascontiguousarray(rows, dtype=np.float64), dest, tag)
+                for rows, dest, _, tag in exchanges
+            ]
             status = self._status
-            message = self.comm.Mprobe(source, tag, status)
-            width = rows.shape[1]
-            count = status.Get_count(self._double)
-            received = np.empty((count // width if width else 0, width))
-            message.Recv(received)
-            sending.Wait()
-            return received
+            out = []
+            for rows, _, source, tag in exchanges:
+                message = self.comm.Mprobe(source, tag, status)
+                width = rows.shape[1]
+                count = status.Get_count(self._double)
+                received = np.empty((count // width if width else 0, width))
+                message.Recv(received)
+                out.append(received)
+            for request in sending:
+                request.Wait()
+            return out
 
     def all_objects(self, value) -> list:
         """Every rank's ``value`` (picklable), in rank order."""
