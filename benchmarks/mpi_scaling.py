@@ -19,7 +19,7 @@ Prints the machine (CPU model, vector ISA, cores, load), then
 (c) weak scaling at 32000 atoms per rank (1 rank: 20^3 cells, 2 ranks:
     40 x 20 x 20 cells);
 (d) the latency and bandwidth of messages between two ranks here (a mpi4py
-    ping-pong);
+    ping-pong), and a decomposed step's messages alone, as before issue 69 and since;
 (e) the fixed cost of a decomposed step on 1, 2, 3 and 4 ranks: the per-step loop
     time of a tiny melt (1152 atoms) on P ranks less 1/P of its time on one rank
     (issue 69's figure; 3 and 4 ranks oversubscribe a 2-core machine, so theirs
@@ -448,6 +448,19 @@ def print_pingpong() -> dict | None:
         rows.append([f"{size} B", f"{seconds * 1e6:.1f} us", f"{size / seconds / 1e9:.2f} GB/s"])
     print_table(["message", "time", "rate"], rows)
     print(f"  all-gather of 16 doubles over 2 ranks: {found['allgather_16'] * 1e6:.1f} us")
+    try:
+        pattern = launch(None, {"engine": "pattern", "ranks": 2}, timeout=300)
+    except (RuntimeError, subprocess.TimeoutExpired) as error:
+        print(f"  step's messages: failed: {str(error)[:300]}")
+        return found
+    found["pattern"] = pattern
+    print(
+        f"  a step's messages alone ({pattern['rows']} rows a ghost message, no work between): "
+        f"before issue 69 (3 collectives, 4 Sendrecv) {pattern['before']['median'] * 1e6:.1f} "
+        f"us a step (best block {pattern['before']['best'] * 1e6:.1f}), since (1 collective, "
+        f"2 persistent rounds) {pattern['since']['median'] * 1e6:.1f} us (best "
+        f"{pattern['since']['best'] * 1e6:.1f})"
+    )
     return found
 
 
