@@ -465,12 +465,33 @@ def add_sweep(values, index, starts, rows, offsets, from_self):
                 values[i, a] += source[row, a]
 
 
+@njit(cache=True, error_model="numpy")
+def fold_gathered(gathered, n_summed, totals, worst):
+    """The one reduction of a force evaluation, from every rank's values (``gathered``, one
+    row a rank): ``totals`` = its first ``n_summed`` columns added in rank order (the bits
+    of :func:`md.distributed.ranks.in_rank_order`), ``worst`` = the others' largest over
+    the ranks (NaN if any is, as numpy's max)."""
+    for a in range(n_summed):
+        totals[a] = gathered[0, a]
+    for r in range(1, gathered.shape[0]):
+        for a in range(n_summed):
+            totals[a] += gathered[r, a]
+    for a in range(n_summed, gathered.shape[1]):
+        largest = gathered[0, a]
+        for r in range(1, gathered.shape[0]):
+            value = gathered[r, a]
+            if value != value or value > largest:
+                largest = value
+        worst[a - n_summed] = largest
+
+
 __all__ = [
     "add_rows",
     "add_sweep",
     "append_rows",
     "anchored_items",
     "brick_of",
+    "fold_gathered",
     "fractional_coordinates",
     "ghost_rows",
     "home_layout",

@@ -32,13 +32,14 @@ from md.box import (
 )
 from md.distributed._domain_kernels import (
     anchored_items,
+    fold_gathered,
     moved_since,
     nearest_copies,
     predicted_positions,
 )
 from md.distributed.grid import Grid, balanced_cuts
 from md.distributed.halo import Domain
-from md.distributed.ranks import agree, in_rank_order
+from md.distributed.ranks import agree
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
@@ -217,6 +218,7 @@ class DistributedForceField:
         #: The one reduction of an evaluation: error, energy, virial (9), list outrun,
         #: look-ahead, stop request, non-finite positions, the step's first calls' moves.
         self._values = np.zeros(16)
+        self._worst = np.zeros(5)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
                 f"balance_every must be >= 0 and balance_threshold >= 1, got "
@@ -421,7 +423,8 @@ class DistributedForceField:
             values[14] = not finite
             values[15] = self._moved_report
             gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
-            totals, worst = in_rank_order(gathered[:, :11]), gathered[:, 11:].max(axis=0)
+            totals, worst = np.empty(11), self._worst
+            fold_gathered(gathered, 11, totals, worst)
             self.timings["force"] += middle - start
             if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
                 self.steady = not worst[4]

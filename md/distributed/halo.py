@@ -144,6 +144,9 @@ class Domain:
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
+        self._local_periodic = False
+        self._cell_key: tuple | None = None  # the cell of the last update, and its matrix
+        self._cell = np.eye(3)
         self._built_tilt = b""
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
@@ -323,6 +326,8 @@ class Domain:
         self.reach, self.margin = reach, margin
         self.local_ids = ids[:count]
         self.local_pbc = local_pbc
+        self._local_periodic = bool(local_pbc.any())
+        self._cell_key = None  # (the local state is new: its cell is written at the update)
         self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(
             positions[:count], types[:count], box, local_pbc, state.type_names
@@ -334,7 +339,7 @@ class Domain:
     def layout_holds(self, state: State) -> bool:
         """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
         that tilts the cell towards a cut axis needs a build with explicit images)."""
-        if not self.local_pbc.any() or state.tilt.tobytes() == self._built_tilt:
+        if not self._local_periodic or state.tilt.tobytes() == self._built_tilt:
             return True  # (checked at every force call: the cheap answers first)
         tilt = periodic_tilt(state.tilt, state.pbc)
         return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
@@ -351,11 +356,14 @@ class Domain:
         if they were ``copied`` there already, see :meth:`owned_rows`) and send the ghosts'
         (collective). The sweeps (packing and messages) run on the ranks' clock, the owned
         rows' copy before them does not (as :meth:`build`'s layout)."""
-        tilt = periodic_tilt(state.tilt, state.pbc)
-        cell = cell_matrix(state.box, tilt)
-        if self.local_pbc.any():  # the cell the local system's own images follow
-            self.local_state.box[:] = state.box
-            self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
+        key = (state.box.tobytes(), state.tilt.tobytes())
+        if key != self._cell_key:  # (the cell changes under a barostat only)
+            tilt = periodic_tilt(state.tilt, state.pbc)
+            self._cell, self._cell_key = cell_matrix(state.box, tilt), key
+            if self._local_periodic:  # the cell the local system's own images follow
+                self.local_state.box[:] = state.box
+                self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
+        cell = self._cell
         positions = self.local_state.positions
         owned = positions[: self.n_owned]
         if copied:
