@@ -332,38 +332,25 @@ class DistributedForceField:
             return self._all_ranks(usable, exchanged)
         if not self.steady:
             return False, False
-        if not same and held is not None and self._cell_unchanged(held[0], state):
+        cell = held is not None and (state.box.tobytes(), state.tilt.tobytes()) == held[0][1:]
+        if not same and cell:  # (a cell that changed changed on every rank: all evaluate)
             if not _same_bits(held[0][0], state.positions):
                 self._broken_promise(state)
             usable = available  # (the same bits, NaN where they were: as the other ranks)
-        # (a cell that changed changed on every rank: all evaluate)
         return usable, False
-
-    @staticmethod
-    def _cell_unchanged(key: tuple, state: State) -> bool:
-        return key[1] == state.box.tobytes() and key[2] == state.tilt.tobytes()
 
     def _broken_promise(self, state: State) -> None:
         """The atoms moved between the last step's evaluation and this step's first call,
         where the steps before did not: the other ranks took their held results, so this
         one cannot evaluate with them. End every rank, saying why (no rank is left
         waiting)."""
-        logger.critical(
-            "step %d: the integrator moved atoms between its last force evaluation and the "
-            "next step's first call, which its earlier steps did not; a decomposed run "
-            "relies on that pattern holding (md.distributed.DistributedForceField."
+        self.ranks.abort(
+            3,
+            f"step {state.step}: the integrator moved atoms between its last force evaluation "
+            "and the next step's first call, which its earlier steps did not; a decomposed "
+            "run relies on that pattern holding (md.distributed.DistributedForceField."
             "step_begins): ending every rank",
-            state.step,
         )
-        held, chain = [logging.lastResort], logger
-        while chain is not None:  # the handlers of this logger and of those above it
-            held += chain.handlers
-            chain = chain.parent
-        for handler in held:
-            if handler is not None:
-                handler.flush()
-        time.sleep(0.5)  # (the launcher forwards the message before MPI ends the ranks)
-        self.ranks.abort(3)
 
     def step_begins(self) -> None:
         """A step of the run's loop starts on every rank (after :meth:`start_step`); the

@@ -10,6 +10,7 @@ imported unless a launcher started more than one process (:func:`mpi_ranks`).
 from __future__ import annotations
 
 import atexit
+import logging
 import math
 import os
 import time
@@ -27,6 +28,8 @@ from md.errors import (
     SimulationError,
     TrajectoryError,
 )
+
+logger = logging.getLogger(__name__)
 
 #: Environment variables in which launchers give the number of processes they started
 #: (MPICH's and Intel MPI's hydra, Slurm's srun with PMI, Open MPI).
@@ -248,8 +251,19 @@ class MPIRanks:
             self.comm.Gatherv(rows, [out, counts, displacements, self._double], root=0)
             return out
 
-    def abort(self, code: int = 1) -> None:
-        """End every rank at once (for an error one rank cannot share with the others)."""
+    def abort(self, code: int = 1, message: str | None = None) -> None:
+        """End every rank at once (for an error one rank cannot share with the others),
+        ``message`` logged first (critical) and given a moment to reach the launcher."""
+        if message is not None:
+            logger.critical("%s", message)
+            held, chain = [logging.lastResort], logger
+            while chain is not None:  # the handlers of this logger and of those above it
+                held += chain.handlers
+                chain = chain.parent
+            for handler in held:
+                if handler is not None:
+                    handler.flush()
+            time.sleep(0.5)  # (the launcher forwards it before MPI ends the ranks)
         self.comm.Abort(code)
 
 
