@@ -4,11 +4,12 @@ prints one JSON line.
     mpiexec -n 2 python benchmarks/_mpi_worker.py '{"engine": "ours", "cells": [20, 20, 20],
                                                     "steps": 100, "threads": 1}'
 
-Keys: ``engine`` (``ours``, ``lammps``, ``probe`` or ``pingpong``), ``cells`` (fcc cells along
-x, y and z), ``steps``, ``threads`` (per rank); optionally ``balance_every`` (dynamic load
-balancing: ours ``[run] balance_every``, LAMMPS ``fix balance ... weight time``; default 0,
-off), for ours ``balance_threshold``, for LAMMPS ``velocities`` (``gaussian``, the
-default, as our config draws them; ``uniform``, LAMMPS's bench/in.lj). The workload is
+Keys: ``engine`` (``ours``, ``lammps``, ``probe``, ``pingpong`` or ``pattern``),
+``cells`` (fcc cells along x, y and z), ``steps``, ``threads`` (per rank); optionally
+``balance_every`` (dynamic load balancing: ours ``[run] balance_every``, LAMMPS ``fix
+balance ... weight time``; default 0, off), for ours ``balance_threshold``, for LAMMPS
+``velocities`` (``gaussian``, the default, as our config draws them; ``uniform``,
+LAMMPS's bench/in.lj). The workload is
 ``examples/lj_melt.toml`` with its lattice replaced by ``cells`` (LAMMPS's bench/in.lj:
 fcc at reduced density 0.8442, T* 3.0, LJ cut at 2.5 sigma, skin 0.3, velocity Verlet /
 ``fix nve``, dt 0.005). Both engines time the loop alone: the system, the first neighbour list and
@@ -30,6 +31,7 @@ forces come before the clock.
   rows (average over the ranks).
 - ``probe``: whether LAMMPS loads here, was built with MPI, and sees the ranks.
 - ``pingpong``: message latency and bandwidth between ranks 0 and 1 (mpi4py).
+- ``pattern``: a decomposed step's messages alone, as they were before issue 69 and since.
 """
 
 from __future__ import annotations
@@ -251,7 +253,7 @@ def run_probe(job: dict) -> dict | None:
 
 def run_pingpong(job: dict) -> dict | None:
     """Half the round trip of a message between ranks 0 and 1 (median of repeats) for a
-    few sizes, and of an all-gather of 15 doubles (the reduction of each force evaluation)."""
+    few sizes, and of an all-gather of 16 doubles (the reduction of each force evaluation)."""
     import numpy as np
 
     comm = _comm()
@@ -273,19 +275,86 @@ def run_pingpong(job: dict) -> dict | None:
             times.append((time.perf_counter() - start) / 2)
         out["sizes"].append(size)
         out["seconds"].append(sorted(times[5:])[len(times[5:]) // 2])
-    values = np.zeros(15)
-    gathered = np.empty((comm.Get_size(), 15))
+    values = np.zeros(16)
+    gathered = np.empty((comm.Get_size(), 16))
     times = []
     for _ in range(205):
         comm.Barrier()
         start = time.perf_counter()
         comm.Allgather(values, gathered)
         times.append(time.perf_counter() - start)
-    out["allgather_15"] = sorted(times[5:])[100]
+    out["allgather_16"] = sorted(times[5:])[100]
     return out if rank == 0 else None
 
 
-RUNNERS = {"ours": run_ours, "lammps": run_lammps, "probe": run_probe, "pingpong": run_pingpong}
+def run_pattern(job: dict) -> dict | None:
+    """The messages of a decomposed step between ranks 0 and 1 with no work between them,
+    before issue 69 (two max reductions, two Sendrecv of ghost positions, an all-gather of
+    the evaluation's 16 values, two Sendrecv of forces back) and since (the positions as
+    two persistent message pairs started together, the all-gather, the forces back alike),
+    ``rows`` rows of 3 doubles a message; alternating blocks of 200 steps, the median and
+    the best block's time a step of each."""
+    import statistics
+
+    import numpy as np
+
+    comm = _comm()
+    from mpi4py import MPI
+
+    rank = comm.Get_rank()
+    other = 1 - rank if rank < 2 else rank
+    rows = int(job.get("rows", 250))
+    out_rows = [np.random.default_rng(rank).random((rows, 3)) for _ in range(4)]
+    in_rows = [np.empty((rows, 3)) for _ in range(4)]
+    values, gathered = np.zeros(16), np.empty((comm.Get_size(), 16))
+    flags, agreed = np.zeros(2), np.empty(2)
+    forward = [comm.Recv_init(in_rows[j], other, j) for j in range(2)]
+    forward += [comm.Send_init(out_rows[j], other, j) for j in range(2)]
+    backward = [comm.Recv_init(in_rows[2 + j], other, 16 + j) for j in range(2)]
+    backward += [comm.Send_init(out_rows[2 + j], other, 16 + j) for j in range(2)]
+
+    def before():
+        comm.Allreduce(flags, agreed, op=MPI.MAX)
+        comm.Allreduce(flags, agreed, op=MPI.MAX)
+        for j in range(2):
+            comm.Sendrecv(out_rows[j], other, j, in_rows[j], other, j)
+        comm.Allgather(values, gathered)
+        for j in range(2):
+            comm.Sendrecv(out_rows[2 + j], other, 16 + j, in_rows[2 + j], other, 16 + j)
+
+    def since():
+        MPI.Prequest.Startall(forward)
+        MPI.Request.Waitall(forward)
+        comm.Allgather(values, gathered)
+        MPI.Prequest.Startall(backward)
+        MPI.Request.Waitall(backward)
+
+    times: dict = {"before": [], "since": []}
+    for block in range(int(job.get("blocks", 30))):
+        order = (("before", before), ("since", since))
+        for name, pattern in order if block % 2 else order[::-1]:
+            comm.Barrier()
+            start = time.perf_counter()
+            for _ in range(200):
+                pattern()
+            times[name].append((time.perf_counter() - start) / 200)
+    for request in forward + backward:
+        request.Free()
+    if rank != 0:
+        return None
+    return {
+        name: {"median": statistics.median(found), "best": min(found)}
+        for name, found in times.items()
+    } | {"rows": rows}
+
+
+RUNNERS = {
+    "ours": run_ours,
+    "lammps": run_lammps,
+    "probe": run_probe,
+    "pingpong": run_pingpong,
+    "pattern": run_pattern,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,16 +11,22 @@ Prints the machine (CPU model, vector ISA, cores, load), then
     1 rank x 2 threads, each next to LAMMPS with the same ranks and threads
     (``mpiexec -n P`` of ``_mpi_worker.py``; LAMMPS's OPENMP package for its
     threads);
-(b) the share of the loop spent communicating: ours is the run summary's
-    "comm" section (halo exchange, reverse pass, migration and reductions),
-    LAMMPS's its "Comm" row, both averaged over the ranks;
+(b) the seconds a step spends communicating, at equal atoms per rank (the same
+    melt on the same ranks): ours is the run summary's "comm" section (halo
+    exchange, reverse pass, migration and reductions), LAMMPS's its "Comm" row,
+    both averaged over the ranks and divided by the steps (seconds, not a share
+    of the loop: a loop twice as fast doubles the share of equal seconds);
 (c) weak scaling at 32000 atoms per rank (1 rank: 20^3 cells, 2 ranks:
     40 x 20 x 20 cells);
 (d) the latency and bandwidth of messages between two ranks here (a mpi4py
-    ping-pong);
-(e) a model of each engine's parallel efficiency at 64 and 1024 ranks from these
-    figures and a tiny melt (1152 atoms, on 1 and 2 ranks: the fixed costs of a
-    step), checked on the runs it was not fitted to (see ``benchmarks/README.md``).
+    ping-pong), and a decomposed step's messages alone, as before issue 69 and since;
+(e) the fixed cost of a decomposed step on 1, 2, 3 and 4 ranks: the per-step loop
+    time of a tiny melt (1152 atoms) on P ranks less 1/P of its time on one rank
+    (issue 69's figure; 3 and 4 ranks oversubscribe a 2-core machine, so theirs
+    holds the contention too), ours next to LAMMPS's;
+(f) a model of each engine's parallel efficiency at 64 and 1024 ranks from these
+    figures and the tiny melt on 2 ranks (the fixed costs of a step), checked on
+    the runs it was not fitted to (see ``benchmarks/README.md``).
 
 ``--balance-every N`` adds, at each size, ours on 2 ranks x 1 thread with dynamic
 load balancing (``[run] balance_every = N``, threshold 1.02): its rate, comm share and
@@ -66,6 +72,10 @@ WEAK_CELLS = 20
 #: The smallest melt, for the model's fixed costs of a step: 1152 atoms, two bricks of cutoff
 #: + skin along x on 2 ranks (steps: the full run and --quick).
 TINY_CELLS, TINY_STEPS = (8, 6, 6), {False: 1000, True: 200}
+#: The ranks of the tiny melt's runs: the fixed cost of a decomposed step on each.
+TINY_RANKS = (1, 2, 3, 4)
+#: Issue 69's target for the fixed cost of a decomposed step on 2 ranks [s].
+TARGET_FIXED = 25e-6
 #: The imbalance (busiest rank's busy time over the mean) at which --balance-every moves planes.
 BALANCE_THRESHOLD = 1.02
 #: Issue 35's targets on a 2-core machine.
@@ -171,7 +181,7 @@ def jobs_for(quick: bool, lammps: bool, balance_every: int = 0) -> list[Job]:
     jobs += [Job(engine, weak, weak_steps, 2, 1) for engine in engines]
     jobs += [
         Job(engine, TINY_CELLS, TINY_STEPS[quick], ranks, 1)
-        for ranks in (1, 2)
+        for ranks in TINY_RANKS
         for engine in engines
     ]
     return jobs
@@ -225,6 +235,19 @@ def build_count(item: Measured) -> str:
     """The median list builds of the timed loops (the same workload: about the same count)."""
     counts = [r.get("n_builds") for r in item.runs]
     return "-" if not counts or None in counts else f"{statistics.median(counts):g}"
+
+
+def run_comm(run: dict, key: str = "comm_share") -> float:
+    """One run's communication seconds a step (``key``: the mean rank's share, or the least
+    communicating rank's, times the loop time)."""
+    return run.get(key, run["comm_share"]) * run["loop_time"] / run["n_steps"]
+
+
+def comm_per_step(item: Measured | None, key: str = "comm_share") -> float:
+    """The median over the repeats of the communication seconds a step (:func:`run_comm`)."""
+    if item is None or not item.runs:
+        return float("nan")
+    return statistics.median(run_comm(r, key) for r in item.runs)
 
 
 def cell(value: float, fmt: str = ".2f") -> str:
@@ -313,38 +336,48 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
                 f"{ratio:.2f}"
             )
 
-    print("\n(b) Share of the loop spent communicating (median over repeats, mean over ranks)")
+    print(
+        "\n(b) Seconds a step spends communicating at equal atoms per rank (median over "
+        "repeats, mean over ranks; share of the loop beside it)"
+    )
     rows = []
     for label, cells, _ in SIZES[quick]:
         for ranks, threads in LAYOUTS:
+            if ranks == 1:
+                continue  # (one rank: ours has no comm section, LAMMPS copies to itself)
             ours = find(measured, engine="ours", cells=cells, ranks=ranks, threads=threads)
             peer = find(measured, engine="lammps", cells=cells, ranks=ranks, threads=threads)
-            split = statistics.median(r["sections"]["comm"] for r in ours.runs)
             row = [
                 label,
                 f"{ranks} x {threads}",
+                f"{1e6 * comm_per_step(ours):.1f}",
+                f"{1e6 * comm_per_step(ours, 'comm_share_min'):.1f}",
                 f"{100 * ours.comm_share():.1f} %",
-                f"{split:.3f}",
-                f"{100 * ours.comm_share('comm_share_min'):.1f} %",
                 build_count(ours),
-                busy_spread(ours) if ranks > 1 else "-",
+                busy_spread(ours),
             ]
             if lammps:
                 row += [
+                    f"{1e6 * comm_per_step(peer):.1f}",
+                    f"{1e6 * comm_per_step(peer, 'comm_share_min'):.1f}",
                     f"{100 * peer.comm_share():.1f} %",
-                    f"{statistics.median(r['sections']['Comm'] for r in peer.runs):.3f}",
-                    f"{100 * peer.comm_share('comm_share_min'):.1f} %",
                     build_count(peer),
-                    busy_spread(peer) if ranks > 1 else "-",
+                    busy_spread(peer),
                 ]
             rows.append(row)
-    headers = ["atoms", "ranks x threads", "ours comm", "s", "least rank", "builds", "busy"]
+            figures[f"{label} {ranks}x{threads} comm seconds"] = {
+                "ours": comm_per_step(ours),
+                "lammps": comm_per_step(peer) if peer else None,
+            }
+    headers = ["atoms", "ranks x threads", "ours us/step", "least rank", "share", "builds"]
+    headers += ["busy"]
     if lammps:
-        headers += ["LAMMPS Comm", "s", "least rank", "builds", "busy"]
+        headers += ["LAMMPS us/step", "least rank", "share", "builds", "busy"]
     print_table(headers, rows)
-    label, cells, _ = SIZES[quick][-1]
-    peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
-    if peer is not None:
+    for label, cells, _ in SIZES[quick]:
+        peer = find(measured, engine="lammps", cells=cells, ranks=2, threads=1)
+        if peer is None:
+            continue
         runs = [("ours", find(measured, engine="ours", cells=cells, ranks=2, threads=1))]
         runs += [
             (f"ours balanced (every {job.balance_every})", item)
@@ -352,31 +385,26 @@ def report(measured: dict[Job, Measured], quick: bool, lammps: bool) -> dict:
             if job.balance_every and job.cells == cells
         ]
         for name, item in runs:
-            verdict = "met" if item.comm_share() <= peer.comm_share() else "not met"
+            mine, theirs = comm_per_step(item), comm_per_step(peer)
+            verdict = "met" if mine <= theirs else "not met"
             print(
-                f"  target: {name} comm share at 2 x 1 on the {label} melt no larger than "
-                f"LAMMPS's: {100 * item.comm_share():.1f} % against "
-                f"{100 * peer.comm_share():.1f} % ({verdict})"
+                f"  target: {name} comm seconds a step at 2 x 1 on the {label} melt no more "
+                f"than LAMMPS's: {1e6 * mine:.1f} us against {1e6 * theirs:.1f} us ({verdict})"
             )
             # the repeats go round-robin: run i of each engine is of the same round
             rounds = list(zip(item.runs, peer.runs, strict=False))
-            lower = sum(a["comm_share"] <= b["comm_share"] for a, b in rounds)
-            pairs = ", ".join(
-                f"{100 * a['comm_share']:.1f}/{100 * b['comm_share']:.1f}" for a, b in rounds
-            )
+            lower = sum(run_comm(a) <= run_comm(b) for a, b in rounds)
+            pairs = ", ".join(f"{1e6 * run_comm(a):.0f}/{1e6 * run_comm(b):.0f}" for a, b in rounds)
             print(
-                f"    per round ({name}/LAMMPS, %): {pairs}; {name} no larger in {lower} "
+                f"    per round ({name}/LAMMPS, us): {pairs}; {name} no more in {lower} "
                 f"of {len(rounds)}"
             )
     print(
         "  (builds: the neighbour-list builds in the timed loop, each with a migration and a "
         "ghost search; busy: the busiest rank's force and neighbour time over the least "
-        "busy one's, the imbalance the other rank's comm section waits out; one rank: "
-        "ours has no comm section, periodic images are in its neighbour list; "
-        "LAMMPS copies ghosts to itself. 'least rank': the share of the rank that "
-        "communicated least, mostly its own messages and work, since the other waited "
-        "for it: on a machine whose cores run at different speeds the mean is mostly "
-        "waits)"
+        "busy one's, the imbalance the other rank's comm section waits out. 'least rank': "
+        "the seconds of the rank that communicated least, mostly its own messages, since "
+        "the other waited for it: the mean holds the waits)"
     )
 
     print(
@@ -419,7 +447,20 @@ def print_pingpong() -> dict | None:
     for size, seconds in zip(found["sizes"], found["seconds"], strict=True):
         rows.append([f"{size} B", f"{seconds * 1e6:.1f} us", f"{size / seconds / 1e9:.2f} GB/s"])
     print_table(["message", "time", "rate"], rows)
-    print(f"  all-gather of 15 doubles over 2 ranks: {found['allgather_15'] * 1e6:.1f} us")
+    print(f"  all-gather of 16 doubles over 2 ranks: {found['allgather_16'] * 1e6:.1f} us")
+    try:
+        pattern = launch(None, {"engine": "pattern", "ranks": 2}, timeout=300)
+    except (RuntimeError, subprocess.TimeoutExpired) as error:
+        print(f"  step's messages: failed: {str(error)[:300]}")
+        return found
+    found["pattern"] = pattern
+    print(
+        f"  a step's messages alone ({pattern['rows']} rows a ghost message, no work between): "
+        f"before issue 69 (3 collectives, 4 Sendrecv) {pattern['before']['median'] * 1e6:.1f} "
+        f"us a step (best block {pattern['before']['best'] * 1e6:.1f}), since (1 collective, "
+        f"2 persistent rounds) {pattern['since']['median'] * 1e6:.1f} us (best "
+        f"{pattern['since']['best'] * 1e6:.1f})"
+    )
     return found
 
 
@@ -470,7 +511,7 @@ class StepModel:
     images of uncut axes):
 
         T_1 = c(N) N
-        T_P = c(n) n (1 + h g) + 4 k alpha + 2 x 24 B x g n / beta + 3 log2(P) alpha
+        T_P = c(n) n (1 + h g) + 4 k alpha + 2 x 24 B x g n / beta + r log2(P) alpha
               + b gamma n (1 + g) + t
 
     c(n): the same engine's cost per atom-step on one rank and thread, measured on the
@@ -478,9 +519,11 @@ class StepModel:
     their fixed costs of a step are in it); h: a ghost's share of the rank's own work
     (pairs, list, integration) against an owned atom's, from the busy time of the
     32000-atom melt on 2 ranks (on a VM whose vCPUs slow each other down, that is in it
-    too); k cut axes, each with 2 position and 2 force messages a step; three reductions
-    a step; b builds a step, each with a migration and a ghost search of gamma per local
-    atom (ours measured on 2 ranks; LAMMPS's are in its Comm, left to its other terms);
+    too); k cut axes, each with 2 position and 2 force messages a step; r reductions a
+    step (ours 1 since issue 69: the evaluation's, which carries the energy, virial and
+    every agreement; LAMMPS 1: its neighbour check's, thermo rows aside); b builds a
+    step, each with a migration and a ghost search of gamma per local atom (ours
+    measured on 2 ranks; LAMMPS's are in its Comm, left to its other terms);
     t: what a decomposed step costs besides (the calls' own time, their bookkeeping, a
     step's waits), from the 1152-atom melt on 2 ranks less the other terms.
     """
@@ -492,6 +535,7 @@ class StepModel:
     decomposed_fixed: float = 0.0
     rebuild: float = 0.0
     builds: float = 0.0
+    reductions: float = 1.0
 
     def cost(self, n: float) -> float:
         """c at the measured size nearest n atoms (by ratio)."""
@@ -514,7 +558,7 @@ class StepModel:
         cut = sum(p > 1 for p in grid)
         work = self.cost(n) * n * (1 + self.ghost_cost * ghosts)
         messages = 4 * cut * latency + 2 * 24 * ghosts * n / bandwidth
-        reductions = 3 * math.log2(ranks) * latency
+        reductions = self.reductions * math.log2(ranks) * latency
         rebuilds = self.builds * self.rebuild * n * (1 + ghosts)
         return work + messages + reductions + rebuilds + (self.decomposed_fixed if fixed else 0.0)
 
@@ -572,6 +616,46 @@ def calibrate(
     return model
 
 
+def print_fixed(measured: dict[Job, Measured], lammps: bool) -> dict:
+    """(e) The fixed cost of a decomposed step: the tiny melt's time a step on P ranks less
+    1/P of its time on one rank (median over the repeats of each), ours and LAMMPS's."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    print(
+        f"\n(e) Fixed cost of a decomposed step: the {4 * math.prod(TINY_CELLS)}-atom melt's "
+        "loop time a step on P ranks (1 thread each) less 1/P of its time on one rank, "
+        f"median over repeats; {cores} cores here, so P > {cores} is oversubscribed (its "
+        "figure holds the ranks' contention for the cores)"
+    )
+    figures: dict = {}
+    rows = []
+    engines = ("ours", "lammps") if lammps else ("ours",)
+    one = {e: find(measured, engine=e, cells=TINY_CELLS, ranks=1, threads=1) for e in engines}
+    for ranks in TINY_RANKS:
+        row = [str(ranks), "yes" if ranks > (cores or 1) else "no"]
+        for engine in engines:
+            item = find(measured, engine=engine, cells=TINY_CELLS, ranks=ranks, threads=1)
+            if item is None or not item.runs or one[engine] is None:
+                row += ["-", "-"]
+                continue
+            step = step_seconds(item)
+            fixed = step - step_seconds(one[engine]) / ranks
+            figures[f"{engine} {ranks}"] = {"step": step, "fixed": fixed}
+            row += [f"{step * 1e6:.1f}", f"{fixed * 1e6:.1f}" if ranks > 1 else "-"]
+        rows.append(row)
+    headers = ["ranks", "oversubscribed"]
+    for engine in engines:
+        headers += [f"{engine} us/step", "fixed us"]
+    print_table(headers, rows)
+    ours = figures.get("ours 2")
+    if ours is not None:
+        verdict = "met" if ours["fixed"] <= TARGET_FIXED else "not met"
+        print(
+            f"  target: ours fixed cost at 2 ranks <= {TARGET_FIXED * 1e6:.0f} us: "
+            f"{ours['fixed'] * 1e6:.1f} us ({verdict})"
+        )
+    return figures
+
+
 def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | None) -> dict:
     """(e) The model of each engine's efficiency at 64 and 1024 ranks for the larger melt
     (:class:`StepModel`, from its runs here), with this machine's messages and with
@@ -588,12 +672,12 @@ def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | Non
     cells = SIZES[quick][-1][1]
     n_atoms = 4 * math.prod(cells)
     print(
-        f"\n(e) Model of the parallel efficiency at {n_atoms} atoms from each engine's runs "
+        f"\n(f) Model of the parallel efficiency at {n_atoms} atoms from each engine's runs "
         "here (see benchmarks/README.md)"
     )
     print(
         "  T_1 = c(N) N;  T_P = c(n) n (1 + h g) + 4 k alpha + 48 B g n / beta "
-        "+ 3 log2(P) alpha + b gamma n (1 + g) + t"
+        "+ r log2(P) alpha + b gamma n (1 + g) + t"
     )
     print(
         f"  messages: here {here[0] * 1e6:.1f} us + {here[1] / 1e9:.1f} GB/s (measured); "
@@ -607,7 +691,7 @@ def print_model(measured: dict[Job, Measured], quick: bool, pingpong: dict | Non
         print(
             f"  {model.name}: c {costs} atoms; h = {model.ghost_cost:.2f}, t = "
             f"{model.decomposed_fixed * 1e6:.0f} us, b = {model.builds:.2f}, gamma = "
-            f"{model.rebuild * 1e9:.0f} ns"
+            f"{model.rebuild * 1e9:.0f} ns, r = {model.reductions:g}"
         )
         parameters = vars(model).copy()
         parameters["per_atom"] = {str(k): v for k, v in model.per_atom.items()}
@@ -697,6 +781,7 @@ def main(argv: list[str] | None = None) -> int:
     measured = measure(jobs, repeats, args.timeout, args.bind, args.lammps_velocities)
     figures = report(measured, args.quick, lammps)
     pingpong = print_pingpong()
+    figures["fixed"] = print_fixed(measured, lammps)
     if pingpong:
         figures["pingpong"] = pingpong
         figures["model"] = print_model(measured, args.quick, pingpong)

@@ -26,9 +26,14 @@ energy and virial are plain sums over the ranks.
 
 Per force evaluation: the owned positions are written into the local system
 (each at its image nearest the brick), ghost positions are sent along the
-sweeps (6 messages), the local forces are computed, the ghosts' forces are
-sent back (6 messages), and one reduction sums the energy and virial and
-tells every rank whether any failed. The list is rebuilt when the largest
+sweeps (persistent messages, a sweep's two in flight together, packed by one
+compiled pass), the local forces are computed, the ghosts' forces are sent
+back alike, and one reduction sums the energy and virial and tells every rank
+whether any failed, whether any list was outrun, and what the next step start
+needs. Inside a step of the loop that is the step's only reduction: the calls
+that take a held result are decided alike on every rank from what the steps
+before showed (``DistributedForceField.step_begins``); outside steps they
+agree by a reduction. The list is rebuilt when the largest
 move of any atom since the last build exceeds skin/2 (a global maximum; a
 cell deformation is allowed for as :class:`md.neighbors.NeighborList` does).
 Atoms migrate to the rank whose brick holds them at rebuilds taken between

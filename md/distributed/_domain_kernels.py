@@ -418,12 +418,82 @@ def nearest_copies(
         distances[k] = np.sqrt(best2)
 
 
+@njit(cache=True, error_model="numpy")
+def pack_sweep(positions, index, starts, shifts, axis, cell, offsets, to_self, out):
+    """One sweep's ghost positions: for its swap j, the rows ``index[starts[j]:starts[j + 1]]``
+    of ``positions`` shifted by ``shifts[j]`` cell vectors along ``axis``, written into
+    ``out``'s same rows (messages), or with ``to_self`` into ``positions`` from row
+    ``offsets[j]`` on (a single brick along the axis sends to itself). The values of
+    :func:`pack_rows` with ``shift = shifts[j] * cell[axis]``."""
+    for j in range(starts.shape[0] - 1):
+        s0 = shifts[j] * cell[axis, 0]
+        s1 = shifts[j] * cell[axis, 1]
+        s2 = shifts[j] * cell[axis, 2]
+        for k in range(starts[j], starts[j + 1]):
+            i = index[k]
+            row = offsets[j] + k - starts[j] if to_self else k
+            target = positions if to_self else out
+            target[row, 0] = positions[i, 0] + s0
+            target[row, 1] = positions[i, 1] + s1
+            target[row, 2] = positions[i, 2] + s2
+
+
+@njit(cache=True, error_model="numpy")
+def ghost_rows(values, offsets, counts, out):
+    """out = the rows ``offsets[j] .. offsets[j] + counts[j]`` of ``values``, j in order (the
+    ghosts' forces of a sweep, for their messages back)."""
+    row = 0
+    for j in range(offsets.shape[0]):
+        for k in range(offsets[j], offsets[j] + counts[j]):
+            for a in range(values.shape[1]):
+                out[row, a] = values[k, a]
+            row += 1
+
+
+@njit(cache=True, error_model="numpy")
+def add_sweep(values, index, starts, rows, offsets, from_self):
+    """The reverse of a sweep: for its swaps j in reverse order, ``values[index[k]] +=`` the
+    row of ``rows`` aligned with k (messages back), or with ``from_self`` the ghost row
+    ``offsets[j] + k - starts[j]`` of ``values`` itself; the sums of :func:`add_rows` in
+    the order swap after swap."""
+    for j in range(starts.shape[0] - 2, -1, -1):
+        for k in range(starts[j], starts[j + 1]):
+            i = index[k]
+            source = values if from_self else rows
+            row = offsets[j] + k - starts[j] if from_self else k
+            for a in range(values.shape[1]):
+                values[i, a] += source[row, a]
+
+
+@njit(cache=True, error_model="numpy")
+def fold_gathered(gathered, n_summed, totals, worst):
+    """The one reduction of a force evaluation, from every rank's values (``gathered``, one
+    row a rank): ``totals`` = its first ``n_summed`` columns added in rank order (the bits
+    of :func:`md.distributed.ranks.in_rank_order`), ``worst`` = the others' largest over
+    the ranks (NaN if any is, as numpy's max)."""
+    for a in range(n_summed):
+        totals[a] = gathered[0, a]
+    for r in range(1, gathered.shape[0]):
+        for a in range(n_summed):
+            totals[a] += gathered[r, a]
+    for a in range(n_summed, gathered.shape[1]):
+        largest = gathered[0, a]
+        for r in range(1, gathered.shape[0]):
+            value = gathered[r, a]
+            if value != value or value > largest:
+                largest = value
+        worst[a - n_summed] = largest
+
+
 __all__ = [
     "add_rows",
+    "add_sweep",
     "append_rows",
     "anchored_items",
     "brick_of",
+    "fold_gathered",
     "fractional_coordinates",
+    "ghost_rows",
     "home_layout",
     "home_positions",
     "leaving_along",
@@ -431,6 +501,7 @@ __all__ = [
     "near_faces",
     "nearest_copies",
     "pack_rows",
+    "pack_sweep",
     "predicted_positions",
     "refill_plan",
     "refill_rows",

@@ -32,13 +32,14 @@ from md.box import (
 )
 from md.distributed._domain_kernels import (
     anchored_items,
+    fold_gathered,
     moved_since,
     nearest_copies,
     predicted_positions,
 )
 from md.distributed.grid import Grid, balanced_cuts
 from md.distributed.halo import Domain
-from md.distributed.ranks import agree, in_rank_order
+from md.distributed.ranks import agree
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
@@ -203,6 +204,21 @@ class DistributedForceField:
         self._cell_bytes: tuple = ()
         self._cache: dict = {}
         self._exchanged: tuple | None = None
+        # The loop's steps (see step_begins): whether a call is inside one, the cache keys
+        # called in it so far, whether a step's first call finds the atoms where the last
+        # step's evaluation left them on every rank (None: not known yet), and this
+        # rank's observation of that, shared at the next reduction.
+        self._in_step = False
+        self._called: set = set()
+        self.steady: bool | None = None
+        self._steady_keys: frozenset = frozenset()
+        self._evaluated_in_step: set = set()  # keys whose last evaluation was in a step
+        self._reported: set = set()  # keys observed since the last reduction
+        self._moved_report = -1.0  # -1: nothing observed since the last reduction
+        #: The one reduction of an evaluation: error, energy, virial (9), list outrun,
+        #: look-ahead, stop request, non-finite positions, the step's first calls' moves.
+        self._values = np.zeros(16)
+        self._worst = np.zeros(5)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
                 f"balance_every must be >= 0 and balance_threshold >= 1, got "
@@ -232,6 +248,7 @@ class DistributedForceField:
         """Forget cached results (and which positions the ghosts hold)."""
         self._cache.clear()
         self._exchanged = None
+        self.steps_end(forget=True)
 
     def topology(self, extra=()) -> Topology:
         """The whole system's bonds and angles (as :meth:`ForceField.topology`)."""
@@ -260,28 +277,101 @@ class DistributedForceField:
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
-        usable = False
-        if held is not None and _same(held[0], state):
-            result = held[1]
-            usable = (not per_atom or result.energies is not None) and (
-                not virial or result.virial is not None
-            )
-        # A rank that can use its result does not compare its exchanged positions (a full
-        # pass over them each step): "not exchanged" is always safe, it only sends again.
-        exchanged = not usable and self._exchanged is not None and _same(self._exchanged, state)
-        # Decided together: a rank that owns no atoms sees its (no) positions unchanged
-        # while the others' moved, and must still evaluate and exchange with them.
-        usable, exchanged = self._all_ranks(usable, exchanged)
+        same = held is not None and _same(held[0], state)
+        available = held is not None and (
+            (not per_atom or held[1].energies is not None)
+            and (not virial or held[1].virial is not None)
+        )
+        usable = same and available
+        if self._in_step:
+            decided = self._in_step_decision(state, which, held, same, available)
+        else:
+            # A rank that can use its result does not compare its exchanged positions (a
+            # full pass over them each step): "not exchanged" is always safe, it only sends
+            # again. Decided together: a rank that owns no atoms sees its (no) positions
+            # unchanged while the others' moved, and must still evaluate and exchange.
+            exchanged = not usable and self._exchanged is not None and _same(self._exchanged, state)
+            decided = self._all_ranks(usable, exchanged)
+        usable, exchanged = decided
         if usable:
             return held[1]
         virial = virial or self.virial_wanted
         result = self._evaluate(state, which, per_atom, virial, exchanged)
+        if self._in_step:
+            self._evaluated_in_step.add(which)
+        else:
+            self._evaluated_in_step.discard(which)
         if which is None:
             self.n_evaluations += 1
         else:
             self.n_subset_evaluations += 1
         self._cache[which] = (_key(state, held[0] if held else None), result)
         return result
+
+    def _in_step_decision(self, state: State, which, held, same: bool, available: bool):
+        """(use the cached result, positions exchanged already) for a call inside a step of
+        the loop, decided on every rank alike without a message.
+
+        Every rank makes the same calls, so what no rank's positions decide is the same
+        on all: the first call of a step for a cache key uses the result held when the
+        ranks last found the atoms where the step before's evaluation for that key left
+        them (``steady``: velocity Verlet's step-start call); every other call evaluates.
+        Until that is known (and for keys it was not seen for), the first calls agree as
+        calls outside a step do; each first call's observation (moved since an
+        evaluation in the last step, or not) is shared at the next reduction."""
+        first = which not in self._called
+        self._called.add(which)
+        if not first:
+            return False, False
+        usable = same and available
+        if which in self._evaluated_in_step:  # (the same keys on every rank)
+            self._moved_report = max(self._moved_report, 0.0 if same else 1.0)
+            self._reported.add(which)
+        if self.steady is None or which not in self._steady_keys:
+            exchanged = not usable and self._exchanged is not None and _same(self._exchanged, state)
+            return self._all_ranks(usable, exchanged)
+        if not self.steady:
+            return False, False
+        cell = held is not None and (state.box.tobytes(), state.tilt.tobytes()) == held[0][1:]
+        if not same and cell:  # (a cell that changed changed on every rank: all evaluate)
+            if not _same_bits(held[0][0], state.positions):
+                self._broken_promise(state)
+            usable = available  # (the same bits, NaN where they were: as the other ranks)
+        return usable, False
+
+    def _broken_promise(self, state: State) -> None:
+        """The atoms moved between the last step's evaluation and this step's first call,
+        where the steps before did not: the other ranks took their held results, so this
+        one cannot evaluate with them. End every rank, saying why (no rank is left
+        waiting)."""
+        self.ranks.abort(
+            3,
+            f"step {state.step}: the integrator moved atoms between its last force evaluation "
+            "and the next step's first call, which its earlier steps did not; a decomposed "
+            "run relies on that pattern holding (md.distributed.DistributedForceField."
+            "step_begins): ending every rank",
+        )
+
+    def step_begins(self) -> None:
+        """A step of the run's loop starts on every rank (after :meth:`start_step`); the
+        calls until :meth:`steps_end` are the integrator's, made alike on every rank, and
+        decided without a message of their own (see :meth:`_in_step_decision`): the step's
+        only reduction is its evaluation's."""
+        self._in_step = True
+        self._called.clear()
+
+    def steps_end(self, forget: bool = False) -> None:
+        """The calls from now on are outside a step (thermo rows, observers, a minimiser):
+        their use of held results is agreed by a reduction. ``forget``: what the steps
+        showed (``steady``) is observed again (a run's start: its state may have been
+        changed between runs)."""
+        self._in_step = False
+        if forget:
+            self.steady = None
+            self._steady_keys = frozenset()
+            self._evaluated_in_step.clear()
+            self._reported.clear()
+            self._moved_report = -1.0
 
     def _all_ranks(self, *flags: bool) -> tuple[bool, ...]:
         """Whether each of ``flags`` holds on every rank (one reduction; collective)."""
@@ -307,16 +397,27 @@ class DistributedForceField:
             except Exception as caught:  # shared with every rank below
                 error = self._global_error(caught)
             middle = time.perf_counter()
-            values = np.zeros(15)
+            values = self._values
+            values[:] = 0.0
             values[0] = error is not None
             if result is not None:
                 values[1] = result.energy
                 if virial and result.virial is not None:
                     values[2:11] = np.asarray(result.virial).ravel()
-            values[11:15] = (not covered, ahead, self.stop_code, not finite)
+            values[11] = not covered
+            values[12] = ahead
+            values[13] = self.stop_code
+            values[14] = not finite
+            values[15] = self._moved_report
             gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
-            totals, worst = in_rank_order(gathered[:, :11]), gathered[:, 11:].max(axis=0)
+            totals, worst = np.empty(11), self._worst
+            fold_gathered(gathered, 11, totals, worst)
             self.timings["force"] += middle - start
+            if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
+                self.steady = not worst[4]
+                self._steady_keys = frozenset(self._reported)
+                self._moved_report = -1.0
+                self._reported.clear()
             if worst[3]:
                 raise NonFiniteError("particle positions are not finite")
             self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
@@ -401,7 +502,10 @@ class DistributedForceField:
         self.timings["neighbor"] += (
             time.perf_counter() - start - (self.ranks.clock.seconds - communicated)
         )
-        self._exchanged = _key(state, self._exchanged)
+        # Which positions the ghosts hold, for the agreement of calls outside a step (a
+        # call at the same positions that cannot use its held result skips the messages).
+        # A step's calls never ask (they evaluate, or take the held result): no copy there.
+        self._exchanged = None if self._in_step else _key(state, self._exchanged)
         moved, step_move = math.sqrt(moved2), math.sqrt(step2)
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
@@ -673,6 +777,13 @@ def _key(state: State, old: tuple | None = None) -> tuple:
     else:
         positions = state.positions.copy()
     return positions, state.box.tobytes(), state.tilt.tobytes()
+
+
+def _same_bits(positions: NDArray[np.float64], now: NDArray[np.float64]) -> bool:
+    """Whether two arrays of positions hold the same bits (NaN included)."""
+    return positions.shape == now.shape and same_values(
+        positions.view(np.int64), now.view(np.int64)
+    )
 
 
 def _same(key: tuple, state: State) -> bool:

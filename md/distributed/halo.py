@@ -22,18 +22,20 @@ from numpy.typing import NDArray
 from md.box import cell_matrix, periodic_tilt, perpendicular_widths
 from md.distributed._domain_kernels import (
     add_rows,
+    add_sweep,
     append_rows,
     brick_of,
     fractional_coordinates,
+    ghost_rows,
     home_layout,
     home_positions,
     near_faces,
-    pack_rows,
+    pack_sweep,
     shift_rows,
     table_rows,
 )
 from md.distributed.grid import Grid, local_periodic_axes
-from md.distributed.migration import RowStore, migrate
+from md.distributed.migration import RowStore, check_lost, migrate
 from md.errors import DecompositionError
 from md.parallel import global_max
 from md.state import State
@@ -55,6 +57,52 @@ class _Swap:
     offset: int
     count: int
     tag: int
+
+
+class _Sweep:
+    """The swaps of one axis as one compiled pass and one set of persistent messages: their
+    send lists end to end (``index``, swap j's from ``starts[j]``), shifts, ghost rows
+    (``offsets``, ``counts``) and the fixed buffers the messages go from and into. The
+    swaps of a sweep send only atoms laid out before the sweep's own ghosts, so they
+    can be in flight together; their sums back are added swap after swap, as
+    :meth:`Domain.reverse` adds them one by one."""
+
+    def __init__(self, swaps: list[_Swap], rank: int, ranks, positions: NDArray) -> None:
+        self.axis = swaps[0].axis
+        self.to_self = swaps[0].dest == rank  # (one brick along the axis: both swaps)
+        lengths = [len(swap.send) for swap in swaps]
+        self.starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        self.index = (
+            np.concatenate([swap.send for swap in swaps]).astype(np.int64)
+            if swaps
+            else np.zeros(0, dtype=np.int64)
+        )
+        self.shifts = np.array([float(swap.shift) for swap in swaps])
+        self.offsets = np.array([swap.offset for swap in swaps], dtype=np.int64)
+        self.counts = np.array([swap.count for swap in swaps], dtype=np.int64)
+        total = int(self.starts[-1])
+        self.out = np.empty((total, 3))  # positions out, forces back in (aligned with index)
+        self.back = np.empty((int(self.counts.sum()), 3))  # the ghosts' forces out
+        self.forward = self.backward = None
+        if self.to_self:
+            return
+        ghost_starts = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
+        sends, receives, returns, returned = [], [], [], []
+        for j, swap in enumerate(swaps):
+            part = self.out[self.starts[j] : self.starts[j + 1]]
+            ghosts = positions[swap.offset : swap.offset + swap.count]
+            back = self.back[ghost_starts[j] : ghost_starts[j + 1]]
+            sends.append((part, swap.dest, swap.tag))
+            receives.append((ghosts, swap.source, swap.tag))
+            returns.append((back, swap.source, 16 + swap.tag))
+            returned.append((part, swap.dest, 16 + swap.tag))
+        self.forward = ranks.messages(sends, receives)
+        self.backward = ranks.messages(returns, returned)
+
+    def free(self) -> None:
+        for messages in (self.forward, self.backward):
+            if messages is not None:
+                messages.free()
 
 
 class Domain:
@@ -92,14 +140,21 @@ class Domain:
         self.margin = 0.0
         self.n_owned = 0
         self.swaps: list[_Swap] = []
+        self._sweeps: list[_Sweep] | None = None  # the swaps' messages, made at first use
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
+        self._local_periodic = False
+        self._cell_key: tuple | None = None  # the cell of the last update, and its matrix
+        self._cell = np.eye(3)
         self._built_tilt = b""
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
         self.rows = RowStore()  # the owned atoms' arrays, kept for migrations
+        #: Atoms the migrations since the last build lost (moved more than a brick), shared
+        #: in the next ghost search's reduction.
+        self.lost_atoms = 0
         self._local: dict[str, list] = {}
         self._parity = 0
 
@@ -134,11 +189,9 @@ class Domain:
         bricks hold them (:func:`md.distributed.migration.migrate`, which says what
         ``spent`` gives away). Collective.
 
-        Raises
-        ------
-        DecompositionError
-            On every rank, if an atom moved more than one brick along an axis
-            since the last migration.
+        An atom that moved more than one brick along an axis since the last migration
+        is counted in ``lost_atoms``: the :meth:`build` that follows every migration
+        raises for it on every rank (its reduction shares the count).
         """
         return migrate(self, state, carried, spent)
 
@@ -155,8 +208,9 @@ class Domain:
         Raises
         ------
         DecompositionError
-            On every rank, if owned atoms strayed so far that the ghost shell
-            would need atoms from beyond the face neighbours.
+            On every rank, if the migrations since the last build lost atoms (one moved
+            more than a brick along an axis), or owned atoms strayed so far that the
+            ghost shell would need atoms from beyond the face neighbours.
         """
         box, pbc = state.box, state.pbc
         tilt = periodic_tilt(state.tilt, pbc)
@@ -198,7 +252,10 @@ class Domain:
         tilt = periodic_tilt(state.tilt, pbc)
         cell = cell_matrix(box, tilt)
         widths = perpendicular_widths(box, tilt)
-        margin = global_max(strayed, self.ranks)
+        # one reduction: how far owned atoms strayed, and the migration's lost atoms
+        margin, lost = global_max(np.array([strayed, float(self.lost_atoms)]), self.ranks)
+        self.lost_atoms = 0
+        check_lost(lost)
         shell = reach + margin
         brick = widths * self.grid.thinnest()
         narrow = pbc & (brick < shell + margin)
@@ -230,6 +287,7 @@ class Domain:
                 upper = np.concatenate([upper, ghost_upper + n])
             down = self.grid.neighbor(self.rank, axis, -1)
             up = self.grid.neighbor(self.rank, axis, 1)
+            sweep = []
             for send, shift, dest, source in (
                 (lower, 1 if c == 0 else 0, down, up),
                 (upper, -1 if c == p - 1 else 0, up, down),
@@ -238,9 +296,15 @@ class Domain:
                 table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
                 rows[:, :3] += shift * cell[axis]
                 rows[:, 3 + axis] += shift
-                tag = len(swaps)
-                if dest != self.rank:
-                    rows = self.ranks.exchange_rows(rows, dest, source, tag)
+                sweep.append((send, shift, dest, source, rows, len(swaps) + len(sweep)))
+            # both swaps' rows in flight together (each sends atoms laid out before them)
+            remote = [(rows, dest, source, tag) for _, _, dest, source, rows, tag in sweep]
+            if sweep[0][2] != self.rank:
+                arrived = self.ranks.exchange_many(remote)
+                sweep = [
+                    (*swap[:4], rows, swap[5]) for swap, rows in zip(sweep, arrived, strict=True)
+                ]
+            for send, shift, dest, source, rows, tag in sweep:
                 if count + len(rows) > len(positions):
                     size = count + len(rows) + len(positions) // 2
                     positions, ids, types = (
@@ -255,10 +319,15 @@ class Domain:
                 swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
                 count += len(rows)
         self.swaps = swaps
+        for sweep in self._sweeps or ():
+            sweep.free()
+        self._sweeps = None
         self.n_owned = n
         self.reach, self.margin = reach, margin
         self.local_ids = ids[:count]
         self.local_pbc = local_pbc
+        self._local_periodic = bool(local_pbc.any())
+        self._cell_key = None  # (the local state is new: its cell is written at the update)
         self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(
             positions[:count], types[:count], box, local_pbc, state.type_names
@@ -270,7 +339,7 @@ class Domain:
     def layout_holds(self, state: State) -> bool:
         """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
         that tilts the cell towards a cut axis needs a build with explicit images)."""
-        if not self.local_pbc.any() or state.tilt.tobytes() == self._built_tilt:
+        if not self._local_periodic or state.tilt.tobytes() == self._built_tilt:
             return True  # (checked at every force call: the cheap answers first)
         tilt = periodic_tilt(state.tilt, state.pbc)
         return bool(np.all(local_periodic_axes(self.shape, state.pbc, tilt) | ~self.local_pbc))
@@ -287,11 +356,14 @@ class Domain:
         if they were ``copied`` there already, see :meth:`owned_rows`) and send the ghosts'
         (collective). The sweeps (packing and messages) run on the ranks' clock, the owned
         rows' copy before them does not (as :meth:`build`'s layout)."""
-        tilt = periodic_tilt(state.tilt, state.pbc)
-        cell = cell_matrix(state.box, tilt)
-        if self.local_pbc.any():  # the cell the local system's own images follow
-            self.local_state.box[:] = state.box
-            self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
+        key = (state.box.tobytes(), state.tilt.tobytes())
+        if key != self._cell_key:  # (the cell changes under a barostat only)
+            tilt = periodic_tilt(state.tilt, state.pbc)
+            self._cell, self._cell_key = cell_matrix(state.box, tilt), key
+            if self._local_periodic:  # the cell the local system's own images follow
+                self.local_state.box[:] = state.box
+                self.local_state.tilt[:] = periodic_tilt(tilt, self.local_pbc)
+        cell = self._cell
         positions = self.local_state.positions
         owned = positions[: self.n_owned]
         if copied:
@@ -299,19 +371,45 @@ class Domain:
         else:
             home_positions(state.positions, self.imaged, self.images, cell, owned)
         with self.ranks.clock:
+            for sweep in self.sweeps():
+                pack_sweep(
+                    positions,
+                    sweep.index,
+                    sweep.starts,
+                    sweep.shifts,
+                    sweep.axis,
+                    cell,
+                    sweep.offsets,
+                    sweep.to_self,
+                    sweep.out,
+                )
+                if sweep.forward is not None:
+                    sweep.forward.run()
+
+    def sweeps(self) -> list[_Sweep]:
+        """The swaps grouped by axis, each group's persistent messages made once a build."""
+        if self._sweeps is None:
+            positions = self.local_state.positions
+            by_axis: dict[int, list[_Swap]] = {}
             for swap in self.swaps:
-                shift = swap.shift * cell[swap.axis]
-                target = positions[swap.offset : swap.offset + swap.count]
-                if swap.dest == self.rank:
-                    pack_rows(positions, swap.send, shift, target)
-                    continue
-                buffer = self._buffer(len(swap.send), 3)
-                pack_rows(positions, swap.send, shift, buffer)
-                self.ranks.exchange(buffer, swap.dest, target, swap.source, swap.tag)
+                by_axis.setdefault(swap.axis, []).append(swap)
+            self._sweeps = [
+                _Sweep(group, self.rank, self.ranks, positions) for group in by_axis.values()
+            ]
+        return self._sweeps
 
     def reverse(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
         along the reverse of the sweeps; return the owned rows (a view). Collective."""
+        if values.shape[1] == 3 and values.flags.c_contiguous:
+            for sweep in reversed(self.sweeps()):
+                if not sweep.to_self:
+                    ghost_rows(values, sweep.offsets, sweep.counts, sweep.back)
+                    sweep.backward.run()
+                add_sweep(
+                    values, sweep.index, sweep.starts, sweep.out, sweep.offsets, sweep.to_self
+                )
+            return values[: self.n_owned]
         for swap in reversed(self.swaps):
             part = values[swap.offset : swap.offset + swap.count]
             if swap.dest == self.rank:

@@ -19,7 +19,6 @@ from numpy.typing import NDArray
 from md.box import periodic_tilt
 from md.distributed._domain_kernels import leaving_along, refill_plan, refill_rows
 from md.errors import DecompositionError
-from md.parallel import global_sum
 from md.state import State
 
 
@@ -106,11 +105,9 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     global_view`), not sorted by id: a sorted merge rewrote every row of every array (a
     10^6-atom rank: 30 ms of a 50 ms migration on the Emerald Rapids VM).
 
-    Raises
-    ------
-    DecompositionError
-        On every rank, if an atom moved more than one brick along an axis
-        since the last migration.
+    The atoms that moved more than a brick along an axis since the last migration are
+    added to ``domain.lost_atoms``; the ghost search that follows shares them and raises
+    (:func:`check_lost`) on every rank.
     """
     names = list(carried)
     # The state's per-atom arrays, then the carried ones: only the atoms that leave
@@ -138,8 +135,12 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         lost += far
         upper = grid.neighbor(rank, axis, 1)
         lower = grid.neighbor(rank, axis, -1)
-        from_lower = ranks.exchange_rows(_packed(arrays, ups), upper, lower, 2 * axis)
-        from_upper = ranks.exchange_rows(_packed(arrays, downs), lower, upper, 2 * axis + 1)
+        from_lower, from_upper = ranks.exchange_many(
+            [
+                (_packed(arrays, ups), upper, lower, 2 * axis),
+                (_packed(arrays, downs), lower, upper, 2 * axis + 1),
+            ]
+        )
         if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
             continue
         incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
@@ -154,12 +155,26 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         n = size
     state.positions, state.velocities, state.masses, state.types, state.ids = arrays[:5]
     carried = dict(zip(names, arrays[5:], strict=True))
-    if global_sum(lost, ranks):
+    # (shared in the ghost search's reduction, which follows every migration: see
+    # check_lost)
+    domain.lost_atoms += lost
+    return carried
+
+
+def check_lost(lost: float) -> None:
+    """Raise the migration's error if ``lost`` (the atoms that moved more than a brick, over
+    every rank) is not 0: called by every rank alike after the reduction that shares it.
+
+    Raises
+    ------
+    DecompositionError
+        If an atom moved more than one brick along an axis since the last migration.
+    """
+    if lost:
         raise DecompositionError(
             "an atom moved more than a brick between two neighbour-list builds; the "
             "dynamics is blowing up (time step too large?)"
         )
-    return carried
 
 
 def _room_of(values: NDArray, size: int) -> NDArray | None:

@@ -9,6 +9,8 @@ imported unless a launcher started more than one process (:func:`mpi_ranks`).
 
 from __future__ import annotations
 
+import atexit
+import logging
 import math
 import os
 import time
@@ -26,6 +28,8 @@ from md.errors import (
     SimulationError,
     TrajectoryError,
 )
+
+logger = logging.getLogger(__name__)
 
 #: Environment variables in which launchers give the number of processes they started
 #: (MPICH's and Intel MPI's hydra, Slurm's srun with PMI, Open MPI).
@@ -153,6 +157,7 @@ class MPIRanks:
         self.clock = CommClock()
         self._max = MPI.MAX
         self._double = MPI.DOUBLE
+        self._status = MPI.Status()
 
     def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         with self.clock:
@@ -178,15 +183,49 @@ class MPIRanks:
         with self.clock:
             self.comm.Sendrecv(send, dest, tag, receive, source, tag)
 
+    def messages(self, sends, receives) -> Messages:
+        """Persistent messages (MPI's Send_init and Recv_init): ``sends`` and ``receives``
+        lists of (buffer, rank, tag), the buffers kept as they are between
+        :meth:`Messages.run` calls (which send their contents and fill the receives)."""
+        from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+
+        requests = [self.comm.Recv_init(buffer, rank, tag) for buffer, rank, tag in receives]
+        requests += [self.comm.Send_init(buffer, rank, tag) for buffer, rank, tag in sends]
+        messages = Messages(requests, self.clock, MPI.Prequest.Startall, MPI.Request.Waitall)
+        if not _LIVE.registered:
+            # freed before mpi4py's own exit handler (registered earlier: it runs later)
+            # ends MPI, which warns of every persistent request still held
+            atexit.register(_free_live)
+            _LIVE.registered = True
+        _LIVE.held.add(messages)
+        return messages
+
     def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
         """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
+        return self.exchange_many([(rows, dest, source, tag)])[0]
+
+    def exchange_many(self, exchanges) -> list[NDArray[np.float64]]:
+        """:meth:`exchange_rows` for each of ``exchanges`` ((rows, dest, source, tag)), all
+        in flight together: the rows received, in their order."""
         with self.clock:
-            count = np.array([rows.shape[0]], dtype=np.int64)
-            incoming = np.empty(1, dtype=np.int64)
-            self.comm.Sendrecv(count, dest, tag, incoming, source, tag)
-            received = np.empty((int(incoming[0]), rows.shape[1]))
-            self.comm.Sendrecv(np.ascontiguousarray(rows), dest, tag, received, source, tag)
-            return received
+            # one message each way: the arriving rows' count is read off the message
+            # (MPI's matched probe), not sent ahead of it
+            sending = [
+                self.comm.Isend(np.ascontiguousarray(rows, dtype=np.float64), dest, tag)
+                for rows, dest, _, tag in exchanges
+            ]
+            status = self._status
+            out = []
+            for rows, _, source, tag in exchanges:
+                message = self.comm.Mprobe(source, tag, status)
+                width = rows.shape[1]
+                count = status.Get_count(self._double)
+                received = np.empty((count // width if width else 0, width))
+                message.Recv(received)
+                out.append(received)
+            for request in sending:
+                request.Wait()
+            return out
 
     def all_objects(self, value) -> list:
         """Every rank's ``value`` (picklable), in rank order."""
@@ -212,9 +251,60 @@ class MPIRanks:
             self.comm.Gatherv(rows, [out, counts, displacements, self._double], root=0)
             return out
 
-    def abort(self, code: int = 1) -> None:
-        """End every rank at once (for an error one rank cannot share with the others)."""
+    def abort(self, code: int = 1, message: str | None = None) -> None:
+        """End every rank at once (for an error one rank cannot share with the others),
+        ``message`` logged first (critical) and given a moment to reach the launcher."""
+        if message is not None:
+            logger.critical("%s", message)
+            held, chain = [logging.lastResort], logger
+            while chain is not None:  # the handlers of this logger and of those above it
+                held += chain.handlers
+                chain = chain.parent
+            for handler in held:
+                if handler is not None:
+                    handler.flush()
+            time.sleep(0.5)  # (the launcher forwards it before MPI ends the ranks)
         self.comm.Abort(code)
+
+
+class Messages:
+    """A set of persistent messages (:meth:`MPIRanks.messages`): :meth:`run` starts them all
+    and waits for them (timed on the ranks' clock); :meth:`free` releases them."""
+
+    def __init__(self, requests: list, clock: CommClock, start_all, wait_all) -> None:
+        self.requests = requests
+        self.clock = clock
+        self._start_all = start_all
+        self._wait_all = wait_all
+
+    def run(self) -> None:
+        if not self.requests:
+            return
+        with self.clock:
+            self._start_all(self.requests)
+            self._wait_all(self.requests)
+
+    def free(self) -> None:
+        for request in self.requests:
+            request.Free()
+        self.requests = []
+        _LIVE.held.discard(self)
+
+
+class _Live:
+    """The Messages not freed yet (freed at exit, before MPI ends), and whether that is
+    registered."""
+
+    held: set = set()
+    registered = False
+
+
+_LIVE = _Live
+
+
+def _free_live() -> None:
+    for messages in list(_LIVE.held):
+        messages.free()
 
 
 # ------------------------------------------------------------------ agreement

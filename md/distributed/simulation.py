@@ -161,21 +161,28 @@ class DistributedSimulation(Simulation):
     def observe(self, observer) -> None:
         """Call ``observer`` now as an attached one would be (rank 0, whole system;
         collective)."""
+        self.forcefield.steps_end()
         Gathered(observer)(self)
 
     def run(self, n_steps: int) -> None:
         """As :meth:`Simulation.run`, on every rank together."""
-        with using_reductions(self.ranks):
-            super().run(n_steps)
+        self.forcefield.steps_end(forget=True)  # (the state may have changed since)
+        try:
+            with using_reductions(self.ranks):
+                super().run(n_steps)
+        finally:
+            self.forcefield.steps_end()
 
     def thermo(self) -> dict[str, float]:
         """As :meth:`Simulation.thermo`, over the whole system (collective)."""
+        self.forcefield.steps_end()  # (an observer's row, after a step: its calls agree)
         with using_reductions(self.ranks):
             return super().thermo()
 
     def minimize(self, fmax: float, max_steps: int = 10_000, **options):
         """:func:`md.minimize.minimize` of the whole system (collective); atoms migrate
         between its steps as in a run. Returns its MinimizeResult."""
+        self.forcefield.steps_end()
         with using_reductions(self.ranks):
             return minimize(
                 self.state,
@@ -207,6 +214,7 @@ class DistributedSimulation(Simulation):
             dt = self.integrator.dt  # (every integrator has one: the Integrator protocol)
             self._guarded(lambda: self._migrate(dt=dt), self.state.step)
         forcefield.start_step(self.state.positions, migrating)
+        forcefield.step_begins()  # the integrator's calls, decided alike on every rank
         return False
 
     def _migrate(self, carried: dict | None = None, dt: float | None = None) -> dict:
@@ -234,6 +242,12 @@ class DistributedSimulation(Simulation):
             velocities = self._migrate({key: velocities})[key]
         forcefield.start_step(self.state.positions, migrating)
         return velocities
+
+    def _notify(self, all_observers: bool) -> None:
+        """As :meth:`Simulation._notify`; the observers' calls come after a step, so the
+        use of held results is agreed among the ranks again."""
+        self.forcefield.steps_end()
+        super()._notify(all_observers)
 
     def _check_displacement(self, limit: float) -> None:
         """The blow-up guard, over every rank: all stop if any atom moved too far."""
@@ -264,6 +278,7 @@ class DistributedSimulation(Simulation):
         """The whole system gathered on rank 0, in its atom order (collective): a
         :class:`GlobalView` there, None on the other ranks."""
         state = self.state
+        self.forcefield.steps_end()
         row = self.thermo() if thermo else None
         columns = [state.ids[:, None].astype(np.float64), state.positions, state.velocities]
         reference = self.forcefield.reference
