@@ -15,6 +15,7 @@ from numba import njit
 
 from md.neighbors import NeighborList
 from md.neighbors._cluster_kernels import (
+    _column_chunks,
     _keep_window,
     _keep_window_both,
     _near_pair,
@@ -289,3 +290,20 @@ def test_prunes_and_a_resize_after_the_searchs_own_prune_keep_every_pair(fcc_lat
     nl.update(bigger)
     assert nl.n_builds == 2 and nl.outer_clusters is not None
     assert set(_listed(bigger, nl.clusters)) == _within(bigger, INNER)
+
+
+@pytest.mark.parametrize("chunks", [2, 3])
+def test_the_search_splits_its_columns_into_chunks_of_about_equal_work(chunks, fcc_lattice):
+    """Each pair of columns is searched from the lower one's side, so the columns at the
+    low end in x search the far side's too, across the boundary: the chunks are cut by
+    that work (the candidates each chunk's columns check), not by their cluster counts."""
+    state = fcc_lattice(cells=8, perturbation=0.1)
+    grid, _, _, _ = _grid(state, OUTER)
+    ncx, ncy, first, lower, upper = grid
+    starts = search_pairs(
+        state.box, ncx, ncy, first, lower, upper, OUTER, 1, 256, None, None, _reach2(OUTER)
+    )[0]
+    bounds = _column_chunks(state.box, ncx, ncy, first, OUTER, chunks)
+    assert bounds[0] == 0 and bounds[-1] == ncx * ncy and np.all(np.diff(bounds) > 0)
+    shares = np.diff(starts[first[bounds]]) / starts[-1]
+    assert shares.max() < 1.12 / chunks, shares
