@@ -180,8 +180,9 @@ def _cluster_box(positions, wrapped, atom, origin, lower, upper, cl):
             origin[s, d] = centre + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
 
 
-@njit(cache=True, error_model="numpy")
-def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2):
+def search_pairs(
+    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2=None
+):
     """The cluster pairs of a list of radius ``radius``.
 
     The candidates: for each i cluster, the clusters j >= i of the columns whose
@@ -201,10 +202,17 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     is kept (0.78 of the time of writing a row and then checking and compacting it, at
     radius 4.0 on the 32000-atom melt, one thread), a window of candidates at a time in
     IR (:func:`_keep_window`: the i cluster loaded once per window, 0.93 of the search's
-    time with numba's loop over them); with None for both, every candidate.
+    time with numba's loop over them); with None for both, every candidate. With
+    ``inner2`` (float32, at most ``reach2``) the kept pairs pruned to those closer than
+    sqrt(``inner2``) too, from the same squared distances (:func:`_keep_window_both`): the
+    list :func:`prune_pairs` would make of it, pair for pair, with no pass of its own
+    (0.93 of the CPU time of the search and that prune on the 32000-atom melt at radius
+    4.0 and 2.8, one thread); then returned after the kept pairs, as (starts, partners,
+    offsets) too.
 
-    The columns are searched in ``chunks`` runs of about equal cluster counts on the
-    threads, each into its own buffers, then copied together. Per column of i clusters,
+    The columns are searched in ``chunks`` runs of about equal work
+    (:func:`_column_chunks`) on the threads, each into its own buffers, then copied
+    together. Per column of i clusters,
     each neighbouring column (and periodic image in z) is swept once: along both
     columns the clusters' boxes rise in z, so the window of j clusters an i cluster can
     reach only moves up as i does (two cursors, no search; an i cluster out of a
@@ -212,15 +220,33 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     on). The windows are kept per i cluster and column, then each i cluster's windows
     are written out.
     """
-    n_columns = ncx * ncy
+    found = _search_lists(
+        box,
+        ncx,
+        ncy,
+        first,
+        lower,
+        upper,
+        radius,
+        chunks,
+        per_cluster,
+        xi,
+        xj,
+        reach2,
+        np.float32(-1.0 if inner2 is None else inner2),
+    )
+    if found is None or inner2 is not None:
+        return found
+    return found[:3]
+
+
+@njit(cache=True, error_model="numpy")
+def _search_lists(
+    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2
+):
+    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0)."""
     n_clusters = lower.shape[0]
-    column_bounds = np.zeros(chunks + 1, np.int64)
-    c = 0
-    for t in range(1, chunks):
-        while c < n_columns and first[c] < t * n_clusters // chunks:
-            c += 1
-        column_bounds[t] = c
-    column_bounds[chunks] = n_columns
+    column_bounds = _column_chunks(box, ncx, ncy, first, radius, chunks)
     room = np.zeros(chunks, np.int64)
     for t in range(chunks):
         room[t] = per_cluster * (first[column_bounds[t + 1]] - first[column_bounds[t]]) + 64
@@ -229,7 +255,83 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
     part_offsets = np.empty((chunks, most, 3), np.float32)
     counts = np.zeros(n_clusters, np.int64)
     used = np.zeros(chunks, np.int64)
-    if chunks == 1:
+    parts = (part_partners, part_offsets, counts, used)
+    # the pruned rows: never longer than the kept ones (none written with inner2 < 0)
+    room_inner = most if inner2 > 0.0 else 0
+    inner = (
+        np.empty((chunks, room_inner), np.int32),
+        np.empty((chunks, room_inner, 3), np.float32),
+        np.zeros(n_clusters, np.int64),
+        inner2,
+    )
+    _search_parts(
+        box,
+        ncx,
+        ncy,
+        first,
+        lower,
+        upper,
+        radius,
+        column_bounds,
+        room,
+        parts,
+        xi,
+        xj,
+        reach2,
+        inner,
+    )
+    if used.min() < 0:
+        return None
+    listed = _joined(counts, first, column_bounds, used, part_partners, part_offsets)
+    inner_partners, inner_offsets, inner_counts, _ = inner
+    inner_used = np.zeros(chunks, np.int64)
+    for t in range(chunks):
+        for ci in range(first[column_bounds[t]], first[column_bounds[t + 1]]):
+            inner_used[t] += inner_counts[ci]
+    pruned = _joined(inner_counts, first, column_bounds, inner_used, inner_partners, inner_offsets)
+    return listed + pruned
+
+
+@njit(cache=True, error_model="numpy")
+def _column_chunks(box, ncx, ncy, first, radius, chunks):
+    """The columns' split into ``chunks`` runs (chunks + 1 bounds) of about equal work: a
+    column's, its clusters times those of the neighbouring columns it searches (each pair
+    of columns from the lower one's side, so a column at the low end in x also searches
+    the far side's, across the boundary, and one at the high end almost none: equal
+    cluster counts gave the first of two chunks 0.59 of the work on the 32000-atom melt)."""
+    n_columns = ncx * ncy
+    reach_x = int(np.ceil(radius / (box[0] / ncx)))
+    reach_y = int(np.ceil(radius / (box[1] / ncy)))
+    work = np.zeros(n_columns + 1)
+    for c in range(n_columns):
+        f0, f1 = first[c], first[c + 1]
+        searched = 0
+        for dx in range(-reach_x, reach_x + 1):
+            ux = (c // ncy + dx) % ncx
+            for dy in range(-reach_y, reach_y + 1):
+                col = ux * ncy + (c % ncy + dy) % ncy
+                if first[col + 1] > f0:  # as the search skips a column before c's
+                    searched += first[col + 1] - first[col]
+        work[c + 1] = work[c] + (f1 - f0) * searched
+    bounds = np.zeros(chunks + 1, np.int64)
+    c = 0
+    for t in range(1, chunks):
+        while c < n_columns and work[c] < t * work[n_columns] / chunks:
+            c += 1
+        bounds[t] = c
+    bounds[chunks] = n_columns
+    return bounds
+
+
+@njit(cache=True, error_model="numpy")
+def _search_parts(
+    box, ncx, ncy, first, lower, upper, radius, column_bounds, room, parts, xi, xj, reach2, inner
+):
+    """The search of :func:`search_pairs` into ``parts`` (the chunks' partners and
+    offsets, the rows' counts, the pairs each chunk used), on the threads for more than
+    one chunk."""
+    part_partners, part_offsets, counts, used = parts
+    if column_bounds.shape[0] == 2:
         used[0] = _search_columns(
             box,
             ncx,
@@ -239,13 +341,14 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
             upper,
             radius,
             0,
-            n_columns,
+            column_bounds[1],
             counts,
             part_partners[0],
             part_offsets[0],
             xi,
             xj,
             reach2,
+            _chunk_part(inner, 0),
         )
     else:
         _search_chunks(
@@ -265,9 +368,23 @@ def search_pairs(box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster
             xi,
             xj,
             reach2,
+            inner,
         )
-    if used.min() < 0:
-        return None
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _chunk_part(inner, t):
+    """Chunk t's share of the pruned rows' buffers."""
+    return inner[0][t], inner[1][t], inner[2], inner[3]
+
+
+@njit(cache=True, error_model="numpy")
+def _joined(counts, first, column_bounds, used, part_partners, part_offsets):
+    """(starts, partners, offsets) of the rows of ``counts`` pairs each, written per chunk
+    into ``part_partners``/``part_offsets`` (``used`` pairs each): one chunk's as they
+    are, more copied together."""
+    n_clusters = counts.shape[0]
+    chunks = used.shape[0]
     starts = np.zeros(n_clusters + 1, np.int64)
     for ci in range(n_clusters):
         starts[ci + 1] = starts[ci] + counts[ci]
@@ -297,6 +414,7 @@ def _search_chunks(
     xi,
     xj,
     reach2,
+    inner,
 ):
     """:func:`_search_columns` for each chunk of columns, on the threads."""
     for t in prange(column_bounds.shape[0] - 1):
@@ -316,6 +434,7 @@ def _search_chunks(
             xi,
             xj,
             reach2,
+            _chunk_part(inner, t),
         )
 
 
@@ -345,12 +464,29 @@ def _periodic_column(index, count, length):
 
 @njit(cache=True, error_model="numpy")
 def _search_columns(
-    box, ncx, ncy, first, lower, upper, radius, c0, c1, counts, partners, offsets, xi, xj, reach2
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    radius,
+    c0,
+    c1,
+    counts,
+    partners,
+    offsets,
+    xi,
+    xj,
+    reach2,
+    inner,
 ):
     """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
     each row's length into ``counts[ci]``, the rows one after another into ``partners``
     and ``offsets`` from their start. Returns the pairs written, or minus the pairs found
     so far where the buffers ran out (the caller grows them and searches again).
+    ``inner``: (partners, offsets, counts, inner2), the pruned rows' buffers from their
+    start (as long as ``partners``) and their lengths, written where ``inner2`` > 0.
     """
     width_x, width_y = box[0] / ncx, box[1] / ncy
     reach_x = int(np.ceil(radius / width_x))
@@ -373,9 +509,13 @@ def _search_columns(
     all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # of every cluster (the partners)
     all_y = 0.5 * (lower[:, 1] + upper[:, 1])
     all_z = 0.5 * (lower[:, 2] + upper[:, 2])
+    bottom = lower[:, 2].copy()  # the clusters' z bounds, each contiguous for the cursors
+    top = upper[:, 2].copy()
     r2max = radius * radius
     capacity = partners.shape[0]
     k = 0
+    k_inner = 0  # the pruned rows' end
+    pruned = inner[3] > 0.0
     for c in range(c0, c1):
         f0, f1 = first[c], first[c + 1]
         if f1 == f0:
@@ -385,9 +525,9 @@ def _search_columns(
         # the images below and above reach only the column's lowest (highest) clusters:
         # those the sweeps at dz = -1 (+1) take
         below_end, above_begin = f0, f1
-        while below_end < f1 and lower[below_end, 2] < radius:
+        while below_end < f1 and bottom[below_end] < radius:
             below_end += 1
-        while above_begin > f0 and upper[above_begin - 1, 2] + radius >= box[2]:
+        while above_begin > f0 and top[above_begin - 1] + radius >= box[2]:
             above_begin -= 1
         m = 0
         for dx in range(-reach_x, reach_x + 1):
@@ -413,24 +553,22 @@ def _search_columns(
                     highest = below_end if dz == -1 else f1
                     begin = g0
                     end = g0
-                    last = g1 - 1
                     for ci in range(lowest, highest):
                         gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
                         gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
                         if gx * gx + gy * gy >= r2max:
                             continue  # out of reach in xy: the cursors catch up later
-                        low = lower[ci, 2] - radius - sz
-                        high = upper[ci, 2] + radius - sz
-                        # the cursors move a cluster or two per i cluster: two steps without
-                        # a branch, then a loop that is seldom entered
-                        for _ in range(2):
-                            begin += (begin < g1) & (upper[min(begin, last), 2] < low)
-                        while begin < g1 and upper[begin, 2] < low:
+                        low = bottom[ci] - radius - sz
+                        high = top[ci] + radius - sz
+                        # the cursors move a cluster or two per i cluster (plain loops on
+                        # contiguous bounds: 0.74 of the sweep's time with two steps without
+                        # a branch each on the (clusters, 3) arrays, then such a loop, on a
+                        # rattled 32000-atom lattice; a z index instead of the cursors and
+                        # more steps without a branch took longer)
+                        while begin < g1 and top[begin] < low:
                             begin += 1
                         end = max(end, begin)
-                        for _ in range(2):
-                            end += (end < g1) & (lower[min(end, last), 2] <= high)
-                        while end < g1 and lower[end, 2] <= high:
+                        while end < g1 and bottom[end] <= high:
                             end += 1
                         first_j = max(begin, ci)
                         # itself: first in its row; its image at -shift: listed at +shift
@@ -450,10 +588,15 @@ def _search_columns(
             if k + total > capacity:
                 return -(k + total)
             row_start = k
+            inner_start = k_inner
             ox, oy, oz = centre_x[ci - a], centre_y[ci - a], centre_z[ci - a]
             partners[k] = ci  # the cluster with itself first (the kernels rely on it)
             offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
             k += 1
+            if pruned:
+                inner[0][k_inner] = ci
+                inner[1][k_inner, 0] = inner[1][k_inner, 1] = inner[1][k_inner, 2] = 0.0
+                k_inner += 1
             for w in range(windows[row]):
                 slot = window_slot[row, w]
                 sx, sy, sz = (
@@ -472,6 +615,29 @@ def _search_columns(
                     continue
                 # each candidate written, and kept (the next one written after it) only
                 # where an atom pair is within reach: no branch, no second pass
+                if pruned:
+                    k, k_inner = _keep_window_both(
+                        xi,
+                        xj,
+                        ci,
+                        lo,
+                        hi,
+                        sx,
+                        sy,
+                        sz,
+                        all_x,
+                        all_y,
+                        all_z,
+                        reach2,
+                        inner[3],
+                        partners,
+                        offsets,
+                        k,
+                        inner[0],
+                        inner[1],
+                        k_inner,
+                    )
+                    continue
                 k = _keep_window(
                     xi,
                     xj,
@@ -490,6 +656,8 @@ def _search_columns(
                     k,
                 )
             counts[ci] = k - row_start
+            if pruned:
+                inner[2][ci] = k_inner - inner_start
     return k
 
 
@@ -599,6 +767,25 @@ def _any_near(builder, halves, shifted, reach):
         within = close if within is None else builder.or_(within, close)
     bits = ir.IntType(_LANES)
     return builder.icmp_unsigned("!=", builder.bitcast(within, bits), ir.Constant(bits, 0))
+
+
+def _near_both(builder, halves, shifted, reach, inner):
+    """Two i1: whether any atom pair of the cluster pair is closer than sqrt of ``reach``,
+    and whether any is closer than sqrt of ``inner`` (vectors of the squared reaches),
+    from one set of squared distances (:func:`_any_near`'s check at two radii)."""
+    within = close = None
+    for half in halves:
+        _, r2 = squared_distances(builder, half, shifted)
+        a = builder.fcmp_ordered("<", r2, reach)
+        b = builder.fcmp_ordered("<", r2, inner)
+        within = a if within is None else builder.or_(within, a)
+        close = b if close is None else builder.or_(close, b)
+    bits = ir.IntType(_LANES)
+    zero = ir.Constant(bits, 0)
+    return (
+        builder.icmp_unsigned("!=", builder.bitcast(within, bits), zero),
+        builder.icmp_unsigned("!=", builder.bitcast(close, bits), zero),
+    )
 
 
 def _near_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
@@ -811,6 +998,125 @@ def _keep_window(
             near = _any_near(builder, halves, shifted, reach)
             builder.store(builder.add(to, builder.zext(near, _I64)), result)
         return builder.load(result)
+
+    return sig, codegen
+
+
+def _keep_window_both_twin(
+    xi,
+    xj,
+    ci,
+    lo,
+    hi,
+    sx,
+    sy,
+    sz,
+    all_x,
+    all_y,
+    all_z,
+    reach2,
+    inner2,
+    partners,
+    offsets,
+    k,
+    inner_partners,
+    inner_offsets,
+    m,
+):
+    """:func:`_keep_window_both` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    for j in range(lo, hi):
+        o = (np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), np.float32(sz - all_z[j]))
+        partners[k] = inner_partners[m] = j
+        offsets[k, 0], offsets[k, 1], offsets[k, 2] = o
+        inner_offsets[m, 0], inner_offsets[m, 1], inner_offsets[m, 2] = o
+        k += _near_pair_twin(xi, xj, ci, j, *o, reach2)
+        m += _near_pair_twin(xi, xj, ci, j, *o, inner2)
+    return k, m
+
+
+@python_twin(_keep_window_both_twin)
+@intrinsic
+def _keep_window_both(
+    typingctx,
+    xi,
+    xj,
+    ci,
+    lo,
+    hi,
+    sx,
+    sy,
+    sz,
+    all_x,
+    all_y,
+    all_z,
+    reach2,
+    inner2,
+    partners,
+    offsets,
+    k,
+    inner_partners,
+    inner_offsets,
+    m,
+):
+    """:func:`_keep_window` writing two lists at once: each candidate also written to
+    ``inner_partners``/``inner_offsets`` from ``m`` on, and kept there where an atom pair
+    is closer than sqrt(``inner2``) (no farther than ``reach2``: the inner list is the
+    outer one pruned, as :func:`prune_pairs` would prune it, from the same squared
+    distances). Returns (the outer end, the inner end). The search's own prune, with no
+    second pass over the outer list."""
+    for a, b in ((partners, inner_partners), (offsets, inner_offsets)):
+        if a != b:
+            raise TypeError(f"_keep_window_both: the inner list's arrays as the outer's, {a}")
+    if partners.dtype != types.int32 or offsets.dtype != types.float32:
+        raise TypeError(
+            f"_keep_window_both: int32 partners and float32 offsets, got {partners} and {offsets}"
+        )
+    arguments = (xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, inner2)
+    arguments += (partners, offsets, k, inner_partners, inner_offsets, m)
+    sig = types.UniTuple(types.int64, 2)(*arguments)
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
+        ci_v, lo_v, hi_v, k_v, m_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (2, 3, 4, 15, 18)
+        )
+        shift = [context.cast(builder, args[n], arg[n], types.float64) for n in (5, 6, 7)]
+        centres = [
+            (arg[n], context.make_array(arg[n])(context, builder, args[n])) for n in (8, 9, 10)
+        ]
+        outputs = [
+            (
+                (arg[p], context.make_array(arg[p])(context, builder, args[p])),
+                (arg[p + 1], context.make_array(arg[p + 1])(context, builder, args[p + 1])),
+            )
+            for p in (13, 16)
+        ]
+        ends = [cgutils.alloca_once_value(builder, v) for v in (k_v, m_v)]
+        size = ir.Constant(_I64, 3 * CLUSTER)
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci_v, size), _LANES)
+        reach = splat(builder, args[11], _VECTOR)
+        inner = splat(builder, args[12], _VECTOR)
+        with cgutils.for_range_slice(builder, lo_v, hi_v, ir.Constant(_I64, 1)) as (j, _):
+            places = [builder.load(end) for end in ends]
+            offset = []
+            for d, (centre_type, centre) in enumerate(centres):
+                at = cgutils.get_item_pointer(context, builder, centre_type, centre, [j])
+                offset.append(builder.fptrunc(builder.fsub(shift[d], builder.load(at)), _F32))
+            for ((part_type, part_a), (off_type, off_a)), to in zip(outputs, places, strict=True):
+                for d in range(3):
+                    slot = cgutils.get_item_pointer(
+                        context, builder, off_type, off_a, [to, ir.Constant(_I64, d)]
+                    )
+                    builder.store(offset[d], slot)
+                slot = cgutils.get_item_pointer(context, builder, part_type, part_a, [to])
+                builder.store(builder.trunc(j, ir.IntType(32)), slot)
+            shifted = cluster_j_less(builder, xj_p, builder.mul(j, size), offset, lanes=_LANES)
+            near = _near_both(builder, halves, shifted, reach, inner)
+            for end, to, kept in zip(ends, places, near, strict=True):
+                builder.store(builder.add(to, builder.zext(kept, _I64)), end)
+        values = [builder.load(end) for end in ends]
+        return context.make_tuple(builder, signature.return_type, values)
 
     return sig, codegen
 

@@ -394,6 +394,7 @@ class NeighborList:
         self._prune_distance2 = _square(0.5 * (self.outer_skin - self.skin))
         self.n_prunes = 0
         self._prune_buffers = None  # see _prune
+        self._prune_relative = None  # the search's relative positions, for its prunes
         self._slots_pending = False  # a cluster build: the slot list on first use
         # (n_builds, n_prunes, n_followed, frame) of the last ``frame`` handed out: the
         # same SlotFrame until one of the counters moves (a frozen dataclass costs about a
@@ -827,7 +828,7 @@ class NeighborList:
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
         self._repeats = False
-        self._prune_buffers = None
+        self._prune_buffers = self._prune_relative = None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
@@ -943,6 +944,8 @@ class NeighborList:
         xj = np.empty(3 * len(atom), np.float32)
         cluster_positions(state.positions, atom, origin, xi, xj)
         reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
+        # an outer list: pruned to the list radius in the same pass (the search's own prune)
+        inner2 = self._prune_reach2() if radius > self.list_radius else None
         while True:
             found = search_pairs(
                 state.box,
@@ -957,24 +960,38 @@ class NeighborList:
                 xi,
                 xj,
                 reach2,
+                inner2,
             )
             if found is not None:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
-        starts, partners, offsets = found
-        frame = ClusterFrame(atom, origin, starts, partners, offsets, chunks)
-        if radius > self.list_radius:
-            self._outer = frame
-            self._prune(state.positions, relative=(xi, xj))
-        else:
+        frame = ClusterFrame(atom, origin, *found[:3], chunks)
+        if inner2 is None:
             self._clusters, self._pruned_at = frame, None
+            return
+        self._outer = frame
+        self._clusters = ClusterFrame(
+            atom, origin, *found[3:], chunks, reach=frame.reach if chunks > 1 else None
+        )
+        self._prune_relative = (xi, xj)  # the prunes' to write over (see _prune)
+        self._keep_pruned_at(state.positions)
 
-    def _prune(self, positions: NDArray[np.float64], relative=None) -> None:
+    def _keep_pruned_at(self, positions: NDArray[np.float64]) -> None:
+        if self._pruned_at is None or self._pruned_at.shape != positions.shape:
+            self._pruned_at = np.empty_like(positions)
+        self._pruned_at[:] = positions
+
+    def _prune_reach2(self) -> np.float32:
+        """The squared list radius of the prune's float32 check, widened by 1e-5 (as the
+        search's) so that rounding can only keep a pair more, never drop one."""
+        return np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
+
+    def _prune(self, positions: NDArray[np.float64]) -> None:
         """The outer cluster list pruned to the pairs with an atom pair within the list
         radius at ``positions`` (checked in float32, the radius widened by 1e-5 as the
         search's is) becomes the list the kernels read; the slot list is built again
-        on demand, at these positions. ``relative``: the slots' relative positions
-        (:meth:`ClusterFrame.relative_positions`) where the caller has them."""
+        on demand, at these positions. (The search prunes its own list as it writes it:
+        ``search_pairs`` with ``inner2``.)"""
         self._frame_memo = None
         outer = self._outer
         n, size = outer.n_clusters, outer.n_pairs
@@ -986,14 +1003,14 @@ class NeighborList:
                 np.empty(n + 1, np.int64),
                 np.empty(size, np.int32),
                 np.empty((size, 3), np.float32),
-                *(relative or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))),
+                *(
+                    self._prune_relative
+                    or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
+                ),
             )
         starts, partners, offsets, xi, xj = self._prune_buffers
-        if relative is not None:
-            xi, xj = relative
-        else:
-            outer.relative_positions(positions, xi, xj)
-        reach2 = np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
+        outer.relative_positions(positions, xi, xj)
+        reach2 = self._prune_reach2()
         kept = prune_pairs(
             outer.starts,
             outer.partners,
@@ -1016,9 +1033,7 @@ class NeighborList:
             chunks,
             reach=outer.reach if chunks > 1 else None,
         )
-        if self._pruned_at is None or self._pruned_at.shape != positions.shape:
-            self._pruned_at = np.empty_like(positions)
-        self._pruned_at[:] = positions
+        self._keep_pruned_at(positions)
         if self._reference is not None:  # a prune between searches (not the search's own)
             self.n_prunes += 1
             self.order, self._atom_list = None, None
