@@ -357,7 +357,12 @@ class ForceField:
         positions, types = state.positions, state.types
         if positions.size <= _BYTES_KEY_VALUES:
             held = (positions.shape, positions.dtype, types.shape, types.dtype)
-            return (positions.tobytes(), _cell_bytes(state), types.tobytes(), held)
+            box, tilt, pbc = state.box, state.tilt, state.pbc
+            if type(box) is np.ndarray and type(tilt) is np.ndarray and type(pbc) is np.ndarray:
+                cell = box.tobytes() + tilt.tobytes() + pbc.tobytes()  # _cell_bytes, inline
+            else:
+                cell = _cell_bytes(state)
+            return (positions.tobytes(), cell, types.tobytes(), held)
         if (
             old is not None
             and old[3] is None
