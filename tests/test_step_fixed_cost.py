@@ -20,6 +20,8 @@ import md
 from integrators import VelocityVerlet
 from integrators._kernels import kick, kick_drift
 from integrators.base import IntegratorBase
+from md.errors import NonFiniteError
+from md.neighbors import NeighborList
 from potentials import LennardJones
 
 DT = 0.005
@@ -155,3 +157,22 @@ def test_a_subclass_is_still_asked_to_stop_and_for_its_communication():
     assert sim.state.step == 5 and sim.asked == 6
     assert sim.comm >= 10
     assert sim.timings["integrate"] < 0  # each step's 1000 s counted elsewhere
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_a_build_refuses_an_atom_billions_of_box_lengths_away(axis):
+    """The build's bound on how far a coordinate may lie from a periodic box (2e9 box
+    lengths, compared axis by axis without a generator now): beyond it NonFiniteError,
+    ten lengths away the same list as the atom wrapped back."""
+    state = melt(3)
+    nl = NeighborList(cutoff=2.5, skin=SKIN)
+    far = state.copy()
+    far.positions[4, axis] += 3e9 * state.box[axis]
+    with pytest.raises(NonFiniteError, match="box lengths from the box"):
+        nl.build(far)
+    near = state.copy()
+    near.positions[4, axis] += 10 * state.box[axis]
+    nl.build(near)
+    wrapped = NeighborList(cutoff=2.5, skin=SKIN)
+    wrapped.build(state)
+    assert np.array_equal(nl.pairs(), wrapped.pairs())
