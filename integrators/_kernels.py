@@ -12,6 +12,9 @@ from md.parallel import chunk_count
 #: its integrator with the passes split, 44-46 ms with them whole (the earlier 50000).
 _MIN_CHUNK_ATOMS = 16_000
 
+#: Fewest atoms that ``kick_drift`` and ``kick`` split into chunks (below: one pass).
+SERIAL_ATOMS = 2 * _MIN_CHUNK_ATOMS
+
 
 def _chunks(n: int) -> int:
     return chunk_count(n, _MIN_CHUNK_ATOMS)
@@ -22,7 +25,7 @@ def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
     on any number: each atom's update is its own)."""
     n = positions.shape[0]
     # (under two chunks' worth there is one chunk on any number of threads: not asked)
-    chunks = 1 if n < 2 * _MIN_CHUNK_ATOMS else _chunks(n)
+    chunks = 1 if n < SERIAL_ATOMS else _chunks(n)
     if chunks == 1:
         _kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
     else:
@@ -34,7 +37,7 @@ def kick_drift(positions, velocities, forces, inverse_masses, kick_dt, drift_dt)
 def kick(velocities, forces, inverse_masses, kick_dt) -> None:
     """v += kick_dt f/m, on one thread per chunk of atoms."""
     n = velocities.shape[0]
-    chunks = 1 if n < 2 * _MIN_CHUNK_ATOMS else _chunks(n)
+    chunks = 1 if n < SERIAL_ATOMS else _chunks(n)
     if chunks == 1:
         _kick(velocities, forces, inverse_masses, kick_dt)
     else:
@@ -57,6 +60,30 @@ def _kick(velocities, forces, inverse_masses, kick_dt):
     """v += kick_dt f/m."""
     for i in range(velocities.shape[0]):
         scale = kick_dt * inverse_masses[i]
+        for a in range(3):
+            velocities[i, a] += scale * forces[i, a]
+
+
+@njit(cache=True, error_model="numpy")
+def kick_drift_by_mass(positions, velocities, forces, masses, kick_dt, drift_dt):
+    """v += kick_dt f/m, then x += drift_dt v, in one pass on this thread, as
+    ``_kick_drift`` but with the masses themselves: 1/m is taken here, atom by atom (the
+    same bits as numpy's ``1.0 / masses``: one correctly rounded division each), so a
+    small system's step makes no array of inverse masses."""
+    for i in range(positions.shape[0]):
+        scale = kick_dt * (1.0 / masses[i])
+        for a in range(3):
+            v = velocities[i, a] + scale * forces[i, a]
+            velocities[i, a] = v
+            positions[i, a] += drift_dt * v
+
+
+@njit(cache=True, error_model="numpy")
+def kick_by_mass(velocities, forces, masses, kick_dt):
+    """v += kick_dt f/m in one pass on this thread, with the masses themselves (see
+    ``kick_drift_by_mass``)."""
+    for i in range(velocities.shape[0]):
+        scale = kick_dt * (1.0 / masses[i])
         for a in range(3):
             velocities[i, a] += scale * forces[i, a]
 

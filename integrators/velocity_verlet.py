@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
-from integrators._kernels import kick, kick_drift
+from integrators._kernels import (
+    SERIAL_ATOMS,
+    kick,
+    kick_by_mass,
+    kick_drift,
+    kick_drift_by_mass,
+)
 from integrators.base import IntegratorBase, amplification_roots, check_dt
 
 
@@ -36,8 +42,17 @@ class VelocityVerlet(IntegratorBase):
 
     def step(self, state, forcefield) -> None:
         forces = forcefield.compute(state, virial=False).forces
-        inverse_masses = 1.0 / state.masses
         half = 0.5 * self.dt
+        masses = state.masses
+        if masses.shape[0] < SERIAL_ATOMS:
+            # One pass each, called directly, 1/m taken inside (the same bits): a small
+            # box's step makes no array of inverse masses and two calls fewer.
+            kick_drift_by_mass(state.positions, state.velocities, forces, masses, half, self.dt)
+            forces = forcefield.compute(state, virial=False).forces
+            kick_by_mass(state.velocities, forces, masses, half)
+            self.end_step(state)
+            return
+        inverse_masses = 1.0 / masses
         kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)

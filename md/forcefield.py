@@ -156,9 +156,19 @@ class ForceField:
             If a position, the energy, a force or the virial is NaN or infinite.
         """
         cached = self._cached
-        if cached is not None and self._same_key(self._key, state):
-            if (not per_atom or cached.energies is not None) and (
-                not virial or cached.virial is not None
+        key = self._key
+        fresh = None  # a small system's key of ``state`` as it is now, once made
+        if cached is not None:
+            if key[3] is not None and state.positions.size <= _BYTES_KEY_VALUES:
+                # bytes against bytes (see _key_of): the key made for the comparison is
+                # the one a fresh evaluation keeps (the evaluation changes none of it)
+                fresh = self._key_of(state)
+                same = fresh == key
+            else:
+                same = self._same_key(key, state)
+            if same and (
+                (not per_atom or cached.energies is not None)
+                and (not virial or cached.virial is not None)
             ):
                 return cached
         virial = virial or self.virial_wanted  # a fresh evaluation includes it if wanted
@@ -166,7 +176,7 @@ class ForceField:
         self.n_evaluations += 1
         if self.cache:
             self._cached = total
-            self._key = self._key_of(state, self._key)
+            self._key = fresh if fresh is not None else self._key_of(state, key)
         return total
 
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
@@ -347,7 +357,12 @@ class ForceField:
         positions, types = state.positions, state.types
         if positions.size <= _BYTES_KEY_VALUES:
             held = (positions.shape, positions.dtype, types.shape, types.dtype)
-            return (positions.tobytes(), _cell_bytes(state), types.tobytes(), held)
+            box, tilt, pbc = state.box, state.tilt, state.pbc
+            if type(box) is np.ndarray and type(tilt) is np.ndarray and type(pbc) is np.ndarray:
+                cell = box.tobytes() + tilt.tobytes() + pbc.tobytes()  # _cell_bytes, inline
+            else:
+                cell = _cell_bytes(state)
+            return (positions.tobytes(), cell, types.tobytes(), held)
         if (
             old is not None
             and old[3] is None

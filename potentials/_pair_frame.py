@@ -197,7 +197,11 @@ class PairPotential:
         self._run_variants: set = set()  # the slot-frame kernels this object has run
         self._frame_kernels: dict = {}  # the slot-frame variants found, by kernels and flags
         # The last double-precision slot-frame call without and with the virial: what it
-        # depends on and (kernel, arguments but the forces, chunks); see _frame_call
+        # depends on and (kernel, arguments but the forces, chunks). One serves a call
+        # while the State's position and type arrays, its type names, this object's data
+        # and cutoff mode are the same objects (the values are read at the call): a step
+        # of a run then pays for its pair kernel, not for finding it again (about 4 us a
+        # call at 108 atoms); see energy_forces
         self._frame_calls: list = [None, None]
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
@@ -463,7 +467,14 @@ class PairPotential:
         """
         if precision == "double" and not per_atom and neighbors is not None:
             call = self._frame_calls[bool(virial)]
-            if call is not None and self._same_call(call, state):
+            if (  # _same_call, inline (a call fewer per step)
+                call is not None
+                and call[1] is state.positions
+                and call[2] is state.types
+                and call[3] is state.type_names
+                and call[4] is self.data
+                and call[5] == self.cutoff_mode
+            ):
                 frame = neighbors.frame
                 if call[0] is not frame:  # the list was built again since
                     call = self._reslotted(call, neighbors, frame, bool(virial))
@@ -693,20 +704,6 @@ class PairPotential:
         call = (frame, *call[1:-1], (kernel, arguments, energies, virials, chunks))
         self._frame_calls[virial] = call
         return call
-
-    def _same_call(self, call: tuple, state) -> bool:
-        """Whether a slot-frame call of ``_frame_calls`` (whose frame the caller has
-        compared) serves ``state`` as it is: the same position and type arrays (their
-        values are read at the call), the same type names, and this object's data and
-        cutoff mode. Its kernel, scratch and arguments then stand: a step of a run pays
-        for its pair kernel, not for finding it again (about 4 us a call at 108 atoms)."""
-        return (
-            call[1] is state.positions
-            and call[2] is state.types
-            and call[3] is state.type_names
-            and call[4] is self.data
-            and call[5] == self.cutoff_mode
-        )
 
     def _explain_non_finite(self, state, neighbors) -> None:
         """Called when the energy is not finite; a style whose term has a forbidden inner

@@ -820,7 +820,7 @@ class NeighborList:
         if not all(map(math.isfinite, largest)):
             raise NonFiniteError("particle positions are not finite")
         lengths, tilt, grid, shifts, limits = self._cell_data(state)
-        if any(x > limit for x, limit in zip(largest, limits, strict=True)):
+        if largest[0] > limits[0] or largest[1] > limits[1] or largest[2] > limits[2]:
             raise NonFiniteError(
                 f"particle positions lie more than {_MAX_IMAGES:g} box lengths from the box"
             )
