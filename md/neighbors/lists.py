@@ -525,8 +525,9 @@ class NeighborList:
             and memo[0] == self.n_builds
             and memo[1] == self.n_prunes
             and memo[2] == self.n_followed
+            and memo[3] is self.bounds  # the chunks may be set again between builds
         ):
-            return memo[3]
+            return memo[4]
         if self.order is None:
             return None
         frame = SlotFrame(
@@ -541,7 +542,7 @@ class NeighborList:
             self.tilt,
             self.shifted_rows,
         )
-        self._frame_memo = (self.n_builds, self.n_prunes, self.n_followed, frame)
+        self._frame_memo = (self.n_builds, self.n_prunes, self.n_followed, self.bounds, frame)
         return frame
 
     @property
