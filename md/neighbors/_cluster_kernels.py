@@ -45,6 +45,9 @@ from md._simd import (
 
 #: Atoms per cluster (the kernels' i and j clusters alike).
 CLUSTER = 4
+#: The most atoms in one slab of a column that the grid's insertion sort takes (more: a
+#: merge sort of the column).
+_CROWDED_SLAB = 32
 #: A filler's z relative to its cluster's origin: ``-FILLER`` in the j role, ``+FILLER``
 #: in the i role (so two fillers never meet), spread 10 apart in x within a cluster. Not
 #: farther: float32's 1/r^12 underflows into slow denormals past r ~ 1400, and the
@@ -85,19 +88,25 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
     count and stable scatter of the atoms into columns serial (at 2 threads 0.60-0.69 of
     the time on one, 32000 atoms; at 1 thread the time of the serial loops it
     replaced, 864 atoms to 32000).
+
+    The scatter sorts by column and by a slab in z (about one atom per column and slab),
+    so that each column's z sort, an insertion sort, has only the atoms within a slab to
+    order: the same order as a stable sort of the column's atoms by z.
     """
     n = positions.shape[0]
+    n_columns = ncx * ncy
+    slabs = max(1, n // n_columns)
     wrapped = np.empty((n, 3))
-    column = np.empty(n, np.int64)
+    key = np.empty(n, np.int64)
     for t in prange(chunks):
         _wrap_atoms(
-            positions, box, ncx, ncy, wrapped, column, t * n // chunks, (t + 1) * n // chunks
+            positions, box, ncx, ncy, slabs, wrapped, key, t * n // chunks, (t + 1) * n // chunks
         )
-    counts, order, first = _column_order(column, ncx * ncy)
+    counts, order, first = _column_order(key, n_columns, slabs)
     atom = np.full(first[-1] * CLUSTER, -1, np.int64)
     heights = np.empty(n)
-    for c in prange(ncx * ncy):
-        _column_atoms(wrapped, counts, order, first, heights, atom, c)
+    for c in prange(n_columns):
+        _column_atoms(wrapped, counts, order, first, heights, atom, c, slabs)
     origin, lower, upper = _grid_boxes(first[-1])
     for cl in prange(first[-1]):
         _cluster_box(positions, wrapped, atom, origin, lower, upper, cl)
@@ -105,8 +114,9 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _wrap_atoms(positions, box, ncx, ncy, wrapped, column, begin, end):
-    """Atoms ``begin`` to ``end`` wrapped into the box, and their columns."""
+def _wrap_atoms(positions, box, ncx, ncy, slabs, wrapped, key, begin, end):
+    """Atoms ``begin`` to ``end`` wrapped into the box, and their keys: column times
+    ``slabs`` plus the slab in z."""
     for i in range(begin, end):
         for d in range(3):
             wrapped[i, d] = positions[i, d] - np.floor(positions[i, d] / box[d]) * box[d]
@@ -114,40 +124,61 @@ def _wrap_atoms(positions, box, ncx, ncy, wrapped, column, begin, end):
                 wrapped[i, d] -= box[d]
         cx = min(int(wrapped[i, 0] * ncx / box[0]), ncx - 1)
         cy = min(int(wrapped[i, 1] * ncy / box[1]), ncy - 1)
-        column[i] = cx * ncy + cy
+        cz = min(int(wrapped[i, 2] * slabs / box[2]), slabs - 1)
+        key[i] = (cx * ncy + cy) * slabs + cz
 
 
 @njit(cache=True, error_model="numpy")
-def _column_order(column, n_columns):
-    """(counts, order, first): the atoms' offsets per column (n_columns + 1), the atoms
-    grouped by column in atom order (a stable counting sort), and each column's first
+def _column_order(key, n_columns, slabs):
+    """(counts, order, first): the atoms' offsets per key (n_columns * slabs + 1), the
+    atoms grouped by key in atom order (a stable counting sort), and each column's first
     cluster (n_columns + 1)."""
-    n = column.shape[0]
-    counts = np.zeros(n_columns + 1, np.int64)
+    n = key.shape[0]
+    n_keys = n_columns * slabs
+    counts = np.zeros(n_keys + 1, np.int64)
     for i in range(n):
-        counts[column[i] + 1] += 1
-    for c in range(n_columns):
+        counts[key[i] + 1] += 1
+    for c in range(n_keys):
         counts[c + 1] += counts[c]
     fill = counts[:-1].copy()
     order = np.empty(n, np.int64)
     for i in range(n):
-        order[fill[column[i]]] = i
-        fill[column[i]] += 1
+        order[fill[key[i]]] = i
+        fill[key[i]] += 1
     first = np.zeros(n_columns + 1, np.int64)
     for c in range(n_columns):
-        first[c + 1] = first[c] + (counts[c + 1] - counts[c] + CLUSTER - 1) // CLUSTER
+        in_column = counts[(c + 1) * slabs] - counts[c * slabs]
+        first[c + 1] = first[c] + (in_column + CLUSTER - 1) // CLUSTER
     return counts, order, first
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _column_atoms(wrapped, counts, order, first, heights, atom, c):
-    """Column c's atoms sorted by z into its clusters' slots."""
-    a, b = counts[c], counts[c + 1]
+def _column_atoms(wrapped, counts, order, first, heights, atom, c, slabs):
+    """Column c's atoms sorted by z into its clusters' slots: by slab already, then an
+    insertion sort (stable: equal z keep their order, which is the atoms'); a merge sort
+    where a slab holds many atoms (a film, a droplet), which would make that quadratic."""
+    a, b = counts[c * slabs], counts[(c + 1) * slabs]
+    base = first[c] * CLUSTER - a
+    crowded = 0
+    for z in range(c * slabs, (c + 1) * slabs):
+        crowded = max(crowded, counts[z + 1] - counts[z])
+    if crowded > _CROWDED_SLAB:
+        for m in range(a, b):
+            heights[m] = wrapped[order[m], 2]
+        by_z = np.argsort(heights[a:b], kind="mergesort")  # stable: as the insertion sort
+        for m in range(b - a):
+            atom[base + a + m] = order[a + by_z[m]]
+        return
     for m in range(a, b):
-        heights[m] = wrapped[order[m], 2]
-    by_z = np.argsort(heights[a:b], kind="mergesort")  # stable: equal z keep atom order
-    for m in range(b - a):
-        atom[first[c] * CLUSTER + m] = order[a + by_z[m]]
+        i = order[m]
+        z = wrapped[i, 2]
+        p = m
+        while p > a and heights[p - 1] > z:
+            heights[p] = heights[p - 1]
+            atom[base + p] = atom[base + p - 1]
+            p -= 1
+        heights[p] = z
+        atom[base + p] = i
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -181,44 +212,55 @@ def _cluster_box(positions, wrapped, atom, origin, lower, upper, cl):
 
 
 def search_pairs(
-    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2=None
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    radius,
+    chunks,
+    per_cluster,
+    xi,
+    xj,
+    reach2,
+    inner2=None,
+    with_reach=False,
 ):
     """The cluster pairs of a list of radius ``radius``.
 
-    The candidates: for each i cluster, the clusters j >= i of the columns whose
-    rectangle its bounding box comes within ``radius`` of (in xy, images included)
-    and whose bounding box overlaps its own, widened by ``radius``, in z (a box-to-box
-    test on top of that cost more time than it saved). Each pair once (a cluster with
-    an image of itself at one of the two opposite shifts; the box must be wider than
-    twice the cutoff, so that an atom pair lies within it at one image at most), each
-    row starting with the cluster itself at
-    zero shift, with its offset, centre_i - centre_j - image shift, in float32.
-    Returns (starts, partners int32, offsets (pairs, 3) float32) grouped by i
-    cluster, or None where ``per_cluster`` pairs of room per cluster did not suffice
-    (search again with more). With the relative positions ``xi``/``xj`` (float32, see
-    :func:`cluster_positions`) only the pairs with an atom pair closer than
-    sqrt(``reach2``) are kept: each candidate is checked (:func:`_near_pair`'s check, its
-    offset in registers) as it is written, and the next one written after it only if it
-    is kept (0.78 of the time of writing a row and then checking and compacting it, at
-    radius 4.0 on the 32000-atom melt, one thread), a window of candidates at a time in
-    IR (:func:`_keep_window`: the i cluster loaded once per window, 0.93 of the search's
-    time with numba's loop over them); with None for both, every candidate. With
-    ``inner2`` (float32, at most ``reach2``) the kept pairs pruned to those closer than
-    sqrt(``inner2``) too, from the same squared distances (:func:`_keep_window_both`): the
-    list :func:`prune_pairs` would make of it, pair for pair, with no pass of its own
-    (0.93 of the CPU time of the search and that prune on the 32000-atom melt at radius
-    4.0 and 2.8, one thread); then returned after the kept pairs, as (starts, partners,
-    offsets) too.
+    The candidates, found with bounding boxes as GROMACS's pair search finds them: for
+    each i cluster, the clusters j >= i of the neighbouring columns (images included)
+    whose xy box (its clusters' boxes together) comes within ``radius`` of the i
+    column's, then of the i cluster's own box in xy, and whose clusters' boxes overlap
+    the i cluster's, widened by ``radius``, in z (a full box-to-box test per candidate on
+    top of that cost more time than it saved: 1.35 of the search's time). Each pair once
+    (a cluster with an image of itself at one of the two opposite shifts; the box must be
+    wider than twice the cutoff, so that an atom pair lies within it at one image at
+    most), each row starting with the cluster itself at zero shift, with its offset,
+    centre_i - centre_j - image shift, in float32. Returns (starts, partners int32,
+    offsets (pairs, 3) float32) grouped by i cluster, or None where ``per_cluster`` pairs
+    of room per cluster did not suffice (search again with more). With the relative
+    positions ``xi``/``xj`` (float32, see :func:`cluster_positions`) only the pairs with
+    an atom pair closer than sqrt(``reach2``) are kept: each candidate is checked
+    (:func:`_near_pair`'s check, its offset in registers) as it is written, and the next
+    one written after it only if it is kept (0.78 of the time of writing a row and then
+    checking and compacting it, at radius 4.0 on the 32000-atom melt, one thread), a
+    window of candidates at a time in IR (:func:`_keep_window`: the i cluster loaded once
+    per window, 0.93 of the search's time with numba's loop over them); with None for
+    both, every candidate. With ``inner2`` (float32, at most ``reach2``) the kept pairs
+    pruned to those closer than sqrt(``inner2``) too, from the same squared distances
+    (:func:`_keep_window_both`): the list :func:`prune_pairs` would make of it, pair for
+    pair, with no pass of its own (0.93 of the CPU time of the search and that prune on
+    the 32000-atom melt at radius 4.0 and 2.8, one thread); then returned after the kept
+    pairs, as (starts, partners, offsets) too. With ``with_reach``, last also per i
+    cluster a bound on one past its row's last partner (as :func:`row_reach`, from the
+    search's windows: no pass over the pairs), which holds for the pruned rows too.
 
     The columns are searched in ``chunks`` runs of about equal work
     (:func:`_column_chunks`) on the threads, each into its own buffers, then copied
-    together. Per column of i clusters,
-    each neighbouring column (and periodic image in z) is swept once: along both
-    columns the clusters' boxes rise in z, so the window of j clusters an i cluster can
-    reach only moves up as i does (two cursors, no search; an i cluster out of a
-    column's reach in xy leaves the cursors where they are, and the next one moves them
-    on). The windows are kept per i cluster and column, then each i cluster's windows
-    are written out.
+    together; each i cluster's row is written as its windows are found
+    (:func:`_search_columns`).
     """
     found = _search_lists(
         box,
@@ -235,9 +277,10 @@ def search_pairs(
         reach2,
         np.float32(-1.0 if inner2 is None else inner2),
     )
-    if found is None or inner2 is not None:
-        return found
-    return found[:3]
+    if found is None:
+        return None
+    lists = found[:-1] if inner2 is not None else found[:3]
+    return lists + found[-1:] if with_reach else lists
 
 
 @njit(cache=True, error_model="numpy")
@@ -254,8 +297,9 @@ def _search_lists(
     part_partners = np.empty((chunks, most), np.int32)
     part_offsets = np.empty((chunks, most, 3), np.float32)
     counts = np.zeros(n_clusters, np.int64)
+    reach = np.empty(n_clusters, np.int64)
     used = np.zeros(chunks, np.int64)
-    parts = (part_partners, part_offsets, counts, used)
+    parts = (part_partners, part_offsets, counts, reach, used)
     # the pruned rows: never longer than the kept ones (none written with inner2 < 0)
     room_inner = most if inner2 > 0.0 else 0
     inner = (
@@ -271,6 +315,7 @@ def _search_lists(
         first,
         lower,
         upper,
+        _column_extents(first, lower, upper),
         radius,
         column_bounds,
         room,
@@ -289,7 +334,7 @@ def _search_lists(
         for ci in range(first[column_bounds[t]], first[column_bounds[t + 1]]):
             inner_used[t] += inner_counts[ci]
     pruned = _joined(inner_counts, first, column_bounds, inner_used, inner_partners, inner_offsets)
-    return listed + pruned
+    return listed + pruned + (reach,)
 
 
 @njit(cache=True, error_model="numpy")
@@ -325,12 +370,26 @@ def _column_chunks(box, ncx, ncy, first, radius, chunks):
 
 @njit(cache=True, error_model="numpy")
 def _search_parts(
-    box, ncx, ncy, first, lower, upper, radius, column_bounds, room, parts, xi, xj, reach2, inner
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    extents,
+    radius,
+    column_bounds,
+    room,
+    parts,
+    xi,
+    xj,
+    reach2,
+    inner,
 ):
     """The search of :func:`search_pairs` into ``parts`` (the chunks' partners and
-    offsets, the rows' counts, the pairs each chunk used), on the threads for more than
-    one chunk."""
-    part_partners, part_offsets, counts, used = parts
+    offsets, the rows' counts and reach, the pairs each chunk used), on the threads for
+    more than one chunk."""
+    part_partners, part_offsets, counts, reach, used = parts
     if column_bounds.shape[0] == 2:
         used[0] = _search_columns(
             box,
@@ -339,10 +398,12 @@ def _search_parts(
             first,
             lower,
             upper,
+            extents,
             radius,
             0,
             column_bounds[1],
             counts,
+            reach,
             part_partners[0],
             part_offsets[0],
             xi,
@@ -358,10 +419,12 @@ def _search_parts(
             first,
             lower,
             upper,
+            extents,
             radius,
             column_bounds,
             room,
             counts,
+            reach,
             part_partners,
             part_offsets,
             used,
@@ -404,10 +467,12 @@ def _search_chunks(
     first,
     lower,
     upper,
+    extents,
     radius,
     column_bounds,
     room,
     counts,
+    reach,
     part_partners,
     part_offsets,
     used,
@@ -425,10 +490,12 @@ def _search_chunks(
             first,
             lower,
             upper,
+            extents,
             radius,
             column_bounds[t],
             column_bounds[t + 1],
             counts,
+            reach,
             part_partners[t, : room[t]],
             part_offsets[t, : room[t]],
             xi,
@@ -463,6 +530,24 @@ def _periodic_column(index, count, length):
 
 
 @njit(cache=True, error_model="numpy")
+def _column_extents(first, lower, upper):
+    """Each column's xy extent (columns, 4: x0, x1, y0, y1), its clusters' boxes together
+    (empty: +inf, -inf)."""
+    n_columns = first.shape[0] - 1
+    extents = np.empty((n_columns, 4))
+    for c in range(n_columns):
+        x0 = y0 = np.inf
+        x1 = y1 = -np.inf
+        for cl in range(first[c], first[c + 1]):
+            x0 = min(x0, lower[cl, 0])
+            x1 = max(x1, upper[cl, 0])
+            y0 = min(y0, lower[cl, 1])
+            y1 = max(y1, upper[cl, 1])
+        extents[c, 0], extents[c, 1], extents[c, 2], extents[c, 3] = x0, x1, y0, y1
+    return extents
+
+
+@njit(cache=True, error_model="numpy")
 def _search_columns(
     box,
     ncx,
@@ -470,10 +555,12 @@ def _search_columns(
     first,
     lower,
     upper,
+    extents,
     radius,
     c0,
     c1,
     counts,
+    reach,
     partners,
     offsets,
     xi,
@@ -482,31 +569,34 @@ def _search_columns(
     inner,
 ):
     """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
-    each row's length into ``counts[ci]``, the rows one after another into ``partners``
-    and ``offsets`` from their start. Returns the pairs written, or minus the pairs found
-    so far where the buffers ran out (the caller grows them and searches again).
-    ``inner``: (partners, offsets, counts, inner2), the pruned rows' buffers from their
-    start (as long as ``partners``) and their lengths, written where ``inner2`` > 0.
+    each row's length into ``counts[ci]`` and one past its last partner into
+    ``reach[ci]``, the rows one after another into ``partners`` and ``offsets`` from
+    their start. Returns the pairs written, or minus the pairs needed so far where the
+    buffers ran out (the caller grows them and searches again). ``extents``: the columns'
+    xy boxes (:func:`_column_extents`). ``inner``: (partners, offsets, counts, inner2),
+    the pruned rows' buffers from their start (as long as ``partners``) and their lengths,
+    written where ``inner2`` > 0.
+
+    Per column of i clusters, first the neighbouring columns (and their images in x and
+    y) whose xy box comes within ``radius`` of this column's; then per i cluster, each of
+    those whose xy box comes within ``radius`` of the cluster's own, at each image in z
+    the cluster reaches: the window of j clusters whose z bounds overlap the cluster's
+    widened by ``radius``. Along both columns the clusters' boxes rise in z, so a window
+    only moves up as i does: two cursors per neighbouring column and image, kept from one
+    i cluster to the next (no search; an i cluster out of a column's reach in xy leaves
+    them where they are, and the next one moves them on).
     """
     width_x, width_y = box[0] / ncx, box[1] / ncy
     reach_x = int(np.ceil(radius / width_x))
     reach_y = int(np.ceil(radius / width_y))
-    n_slots = 3 * (2 * reach_x + 1) * (2 * reach_y + 1)
-    most = 0
-    for c in range(c0, c1):
-        most = max(most, first[c + 1] - first[c])
-    # per i cluster of the column, its non-empty windows: slot, first and end j cluster
-    window_slot = np.empty((most, n_slots), np.int64)
-    window_begin = np.empty((most, n_slots), np.int64)
-    window_end = np.empty((most, n_slots), np.int64)
-    windows = np.zeros(most, np.int64)
-    slot_shift = np.zeros((n_slots, 3))
-    a = first[c0]
-    b = first[c1]
-    centre_x = 0.5 * (lower[a:b, 0] + upper[a:b, 0])  # of this run's clusters, from a
-    centre_y = 0.5 * (lower[a:b, 1] + upper[a:b, 1])
-    centre_z = 0.5 * (lower[a:b, 2] + upper[a:b, 2])
-    all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # of every cluster (the partners)
+    n_near = (2 * reach_x + 1) * (2 * reach_y + 1)
+    # the neighbouring columns of the i column in reach: index, shift, xy box (shifted)
+    # and per image in z (-1, 0, +1) the window's cursors
+    near_column = np.empty(n_near, np.int64)
+    near_box = np.empty((n_near, 6))  # x0, x1, y0, y1, sx, sy
+    begins = np.empty((n_near, 3), np.int64)
+    ends = np.empty((n_near, 3), np.int64)
+    all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # the clusters' centres (the partners')
     all_y = 0.5 * (lower[:, 1] + upper[:, 1])
     all_z = 0.5 * (lower[:, 2] + upper[:, 2])
     bottom = lower[:, 2].copy()  # the clusters' z bounds, each contiguous for the cursors
@@ -521,75 +611,33 @@ def _search_columns(
         if f1 == f0:
             continue
         cx, cy = c // ncy, c % ncy
-        windows[: f1 - f0] = 0
-        # the images below and above reach only the column's lowest (highest) clusters:
-        # those the sweeps at dz = -1 (+1) take
-        below_end, above_begin = f0, f1
-        while below_end < f1 and bottom[below_end] < radius:
-            below_end += 1
-        while above_begin > f0 and top[above_begin - 1] + radius >= box[2]:
-            above_begin -= 1
-        m = 0
+        n = 0
         for dx in range(-reach_x, reach_x + 1):
             ux, sx = _periodic_column(cx + dx, ncx, box[0])
-            x0, x1 = (cx + dx) * width_x, (cx + dx + 1) * width_x  # in the i column's frame
             for dy in range(-reach_y, reach_y + 1):
                 uy, sy = _periodic_column(cy + dy, ncy, box[1])
                 col = ux * ncy + uy
                 g0, g1 = first[col], first[col + 1]
                 if g1 <= f0 or g1 == g0:
                     continue  # a column before c's (listed from its side) or an empty one
-                y0, y1 = (cy + dy) * width_y, (cy + dy + 1) * width_y
-                for dz in range(-1, 2):
-                    slot = 3 * m + dz + 1
-                    sz = dz * box[2]
-                    slot_shift[slot, 0] = sx
-                    slot_shift[slot, 1] = sy
-                    slot_shift[slot, 2] = sz
-                    # a cluster meets its own image at +shift and -shift: the pair once
-                    positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
-                    zero = sx == 0.0 and sy == 0.0 and dz == 0
-                    lowest = above_begin if dz == 1 else f0
-                    highest = below_end if dz == -1 else f1
-                    begin = g0
-                    end = g0
-                    for ci in range(lowest, highest):
-                        gx = max(x0 - upper[ci, 0], lower[ci, 0] - x1, 0.0)
-                        gy = max(y0 - upper[ci, 1], lower[ci, 1] - y1, 0.0)
-                        if gx * gx + gy * gy >= r2max:
-                            continue  # out of reach in xy: the cursors catch up later
-                        low = bottom[ci] - radius - sz
-                        high = top[ci] + radius - sz
-                        # the cursors move a cluster or two per i cluster (plain loops on
-                        # contiguous bounds: 0.74 of the sweep's time with two steps without
-                        # a branch each on the (clusters, 3) arrays, then such a loop, on a
-                        # rattled 32000-atom lattice; a z index instead of the cursors and
-                        # more steps without a branch took longer)
-                        while begin < g1 and top[begin] < low:
-                            begin += 1
-                        end = max(end, begin)
-                        while end < g1 and bottom[end] <= high:
-                            end += 1
-                        first_j = max(begin, ci)
-                        # itself: first in its row; its image at -shift: listed at +shift
-                        first_j += (first_j == ci) & ((not positive) | zero)
-                        row = ci - f0
-                        w = windows[row]  # written always, kept (counted) if not empty
-                        window_slot[row, w] = slot
-                        window_begin[row, w] = first_j
-                        window_end[row, w] = end
-                        windows[row] = w + (end > first_j)
-                m += 1
+                x0, x1 = extents[col, 0] + sx, extents[col, 1] + sx
+                y0, y1 = extents[col, 2] + sy, extents[col, 3] + sy
+                gx = max(x0 - extents[c, 1], extents[c, 0] - x1, 0.0)
+                gy = max(y0 - extents[c, 3], extents[c, 2] - y1, 0.0)
+                if gx * gx + gy * gy >= r2max:
+                    continue  # no cluster of c's comes within reach of this column
+                near_column[n] = col
+                near_box[n, 0], near_box[n, 1], near_box[n, 2] = x0, x1, y0
+                near_box[n, 3], near_box[n, 4], near_box[n, 5] = y1, sx, sy
+                for dz in range(3):
+                    begins[n, dz] = ends[n, dz] = g0
+                n += 1
         for ci in range(f0, f1):
-            row = ci - f0
-            total = 1
-            for w in range(windows[row]):
-                total += window_end[row, w] - window_begin[row, w]
-            if k + total > capacity:
-                return -(k + total)
             row_start = k
             inner_start = k_inner
-            ox, oy, oz = centre_x[ci - a], centre_y[ci - a], centre_z[ci - a]
+            if k + 1 > capacity:
+                return -(k + 1)
+            ox, oy, oz = all_x[ci], all_y[ci], all_z[ci]
             partners[k] = ci  # the cluster with itself first (the kernels rely on it)
             offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
             k += 1
@@ -597,65 +645,92 @@ def _search_columns(
                 inner[0][k_inner] = ci
                 inner[1][k_inner, 0] = inner[1][k_inner, 1] = inner[1][k_inner, 2] = 0.0
                 k_inner += 1
-            for w in range(windows[row]):
-                slot = window_slot[row, w]
-                sx, sy, sz = (
-                    ox - slot_shift[slot, 0],
-                    oy - slot_shift[slot, 1],
-                    oz - slot_shift[slot, 2],
-                )
-                lo, hi = window_begin[row, w], window_end[row, w]
-                if xi is None:
-                    for j in range(hi - lo):  # no dependence between j: vectorised
-                        partners[k + j] = lo + j
-                        offsets[k + j, 0] = sx - all_x[lo + j]
-                        offsets[k + j, 1] = sy - all_y[lo + j]
-                        offsets[k + j, 2] = sz - all_z[lo + j]
-                    k += hi - lo
-                    continue
-                # each candidate written, and kept (the next one written after it) only
-                # where an atom pair is within reach: no branch, no second pass
-                if pruned:
-                    k, k_inner = _keep_window_both(
-                        xi,
-                        xj,
-                        ci,
-                        lo,
-                        hi,
-                        sx,
-                        sy,
-                        sz,
-                        all_x,
-                        all_y,
-                        all_z,
-                        reach2,
-                        inner[3],
-                        partners,
-                        offsets,
-                        k,
-                        inner[0],
-                        inner[1],
-                        k_inner,
-                    )
-                    continue
-                k = _keep_window(
-                    xi,
-                    xj,
-                    ci,
-                    lo,
-                    hi,
-                    sx,
-                    sy,
-                    sz,
-                    all_x,
-                    all_y,
-                    all_z,
-                    reach2,
-                    partners,
-                    offsets,
-                    k,
-                )
+            furthest = ci + 1
+            # the images below and above reach only the column's lowest (highest) clusters
+            dz_first = -1 if bottom[ci] < radius else 0
+            dz_last = 1 if top[ci] + radius >= box[2] else 0
+            for w in range(n):
+                gx = max(near_box[w, 0] - upper[ci, 0], lower[ci, 0] - near_box[w, 1], 0.0)
+                gy = max(near_box[w, 2] - upper[ci, 1], lower[ci, 1] - near_box[w, 3], 0.0)
+                if gx * gx + gy * gy >= r2max:
+                    continue  # out of reach in xy: the cursors catch up later
+                g1 = first[near_column[w] + 1]
+                sx, sy = near_box[w, 4], near_box[w, 5]
+                for dz in range(dz_first, dz_last + 1):
+                    sz = dz * box[2]
+                    # a cluster meets its own image at +shift and -shift: the pair once
+                    positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
+                    zero = sx == 0.0 and sy == 0.0 and dz == 0
+                    low = bottom[ci] - radius - sz  # both rise with ci
+                    high = top[ci] + radius - sz
+                    begin = begins[w, dz + 1]
+                    while begin < g1 and top[begin] < low:
+                        begin += 1
+                    end = max(ends[w, dz + 1], begin)
+                    while end < g1 and bottom[end] <= high:
+                        end += 1
+                    begins[w, dz + 1], ends[w, dz + 1] = begin, end
+                    lo = max(begin, ci)
+                    # itself: first in its row; its image at -shift: listed at +shift
+                    lo += (lo == ci) & ((not positive) | zero)
+                    if end <= lo:
+                        continue
+                    if k + end - lo > capacity:
+                        return -(k + end - lo)
+                    furthest = max(furthest, end)
+                    px, py, pz = ox - sx, oy - sy, oz - sz
+                    if xi is None:
+                        for j in range(end - lo):  # no dependence between j: vectorised
+                            partners[k + j] = lo + j
+                            offsets[k + j, 0] = px - all_x[lo + j]
+                            offsets[k + j, 1] = py - all_y[lo + j]
+                            offsets[k + j, 2] = pz - all_z[lo + j]
+                        k += end - lo
+                    elif pruned:
+                        # each candidate written, and kept (the next one written after
+                        # it) only where an atom pair is within reach: no branch, no
+                        # second pass; the inner list from the same distances
+                        k, k_inner = _keep_window_both(
+                            xi,
+                            xj,
+                            ci,
+                            lo,
+                            end,
+                            px,
+                            py,
+                            pz,
+                            all_x,
+                            all_y,
+                            all_z,
+                            reach2,
+                            inner[3],
+                            partners,
+                            offsets,
+                            k,
+                            inner[0],
+                            inner[1],
+                            k_inner,
+                        )
+                    else:
+                        k = _keep_window(
+                            xi,
+                            xj,
+                            ci,
+                            lo,
+                            end,
+                            px,
+                            py,
+                            pz,
+                            all_x,
+                            all_y,
+                            all_z,
+                            reach2,
+                            partners,
+                            offsets,
+                            k,
+                        )
             counts[ci] = k - row_start
+            reach[ci] = furthest
             if pruned:
                 inner[2][ci] = k_inner - inner_start
     return k

@@ -962,18 +962,18 @@ class NeighborList:
                 xj,
                 reach2,
                 inner2,
+                with_reach=True,
             )
             if found is not None:
                 break
             self._cluster_room *= 2  # a dense or sparse system: rows longer than foreseen
-        frame = ClusterFrame(atom, origin, *found[:3], chunks)
+        reach = found[-1]  # the rows' reach from the search's windows: no pass over the pairs
+        frame = ClusterFrame(atom, origin, *found[:3], chunks, reach=reach)
         if inner2 is None:
             self._clusters, self._pruned_at = frame, None
             return
         self._outer = frame
-        self._clusters = ClusterFrame(
-            atom, origin, *found[3:], chunks, reach=frame.reach if chunks > 1 else None
-        )
+        self._clusters = ClusterFrame(atom, origin, *found[3:6], chunks, reach=reach)
         self._prune_relative = (xi, xj)  # the prunes' to write over (see _prune)
         self._keep_pruned_at(state.positions)
 
