@@ -5,7 +5,9 @@ double and one mixed-precision Simulation run ``--warm`` steps (the melt, and th
 kernels compiled), then each repeat times, per thread count, taking turns: the double
 list's build (the cell search: ``NeighborList.build``), the mixed list's build (the
 cluster grid, the cluster-pair search at the outer radius and its own prune, written
-in the same pass) and one prune of its outer list between searches. Wall time, and
+in the same pass), the cluster grid alone (the atoms sorted into columns, each by z,
+and cut into clusters with their boxes: part of the mixed build) and one prune of its
+outer list between searches. Wall time, and
 the calling thread's CPU time (steadier on a shared machine: it leaves out the time
 the process waited for a core; on one thread the whole call, on more the main thread's
 share only); per thread count, the medians and the median of the per-repeat ratios of
@@ -33,7 +35,7 @@ from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
 from integrators import VelocityVerlet  # noqa: E402
-from md.neighbors._cluster_kernels import prune_pairs  # noqa: E402
+from md.neighbors._cluster_kernels import cluster_grid, column_counts, prune_pairs  # noqa: E402
 from md.parallel import get_threads, set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 
@@ -87,6 +89,15 @@ def pruner(nl, positions):
     return prune
 
 
+def gridder(nl, state):
+    """The mixed build's cluster grid of ``state`` (its columns at the search's radius:
+    the outer list's where there is one), on as many chunks as threads."""
+    outer = nl.outer_clusters is not None
+    radius = nl.cutoff + nl.outer_skin if outer else nl.list_radius
+    ncx, ncy = column_counts(state.box, state.n_atoms, radius)
+    return lambda: cluster_grid(state.positions, state.box, ncx, ncy, get_threads())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
@@ -111,6 +122,8 @@ def main() -> int:
                 for name, sim in (("double", double), ("mixed", mixed)):
                     nl = lists[name]
                     times.setdefault((count, name), []).append(timed(partial(nl.build, sim.state)))
+                grid = gridder(lists["mixed"], mixed.state)
+                times.setdefault((count, "grid"), []).append(timed(grid))
                 prune = pruner(lists["mixed"], mixed.state.positions)
                 if prune is not None:
                     times.setdefault((count, "prune"), []).append(timed(prune))
@@ -125,6 +138,7 @@ def main() -> int:
     labels = {
         "double": "double: cell search",
         "mixed": "mixed: grid + search + prune",
+        "grid": "mixed: the grid alone",
         "prune": "mixed: a prune",
     }
     for count in threads:

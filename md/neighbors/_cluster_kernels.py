@@ -4,9 +4,11 @@ GROMACS's pair-search layout (its "nbnxm" grid), written here for numba: the
 box's xy plane is cut into columns about (4 / density)^(1/3) wide, each
 column's atoms sorted by z and cut into clusters of ``CLUSTER`` (4) atoms, the
 last one of a column padded with fillers. A cluster pair is listed when one of
-its atom pairs lies within the list radius (:func:`search_pairs`: a sweep of
-the neighbouring columns, then each candidate checked atom by atom); the pair
-kernels evaluate all 4 x 4 atom pairs of each listed cluster pair, in SIMD lanes.
+its atom pairs lies within the list radius (:func:`search_pairs`: per i cluster,
+the neighbouring columns whose xy bounding box comes within reach of the
+column's and the cluster's own, a window of j clusters in z in each, then each
+candidate checked atom by atom); the pair kernels evaluate all 4 x 4 atom pairs
+of each listed cluster pair, in SIMD lanes.
 
 A cluster's atoms are stored relative to an origin per slot (the cluster's
 centre plus the box lengths that wrapped the atom at the build), so float32
@@ -19,7 +21,7 @@ once.
 Only fully periodic, orthorhombic cells wide enough that no cluster meets
 another one's image twice (the caller checks): the slot frame serves the rest.
 
-A note on its length (about 900 lines, over the 800 where a module is split): its
+A note on its length (about 1300 lines, over the 800 where a module is split): its
 kernels take their arrays as arguments, and the formatter writes a long argument list a
 line per argument (about 140 of its lines); they are one grid and its search, and stay
 together.
