@@ -162,7 +162,8 @@ class ClusterFrame:
     @property
     def reach(self) -> NDArray[np.int64]:
         """Per i cluster, one past the last cluster its row reaches, or a bound on it
-        (found on first use: :func:`md.neighbors._cluster_kernels.row_reach`)."""
+        (the search's, from its windows; else found on first use:
+        :func:`md.neighbors._cluster_kernels.row_reach`)."""
         if self._reach is None:
             self._reach = row_reach(self.starts, self.partners)
         return self._reach
