@@ -116,6 +116,9 @@ def main() -> int:
     before = get_threads()
     times: dict[tuple[int, str], list[tuple[float, float]]] = {}
     try:
+        for count in threads:  # the grid's own call once per thread count, untimed
+            set_threads(count)
+            gridder(lists["mixed"], mixed.state)()
         for _ in range(args.repeats):
             for count in threads:
                 set_threads(count)
