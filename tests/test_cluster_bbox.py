@@ -68,8 +68,8 @@ def _assert_holds_every_pair(state, clusters, radius):
 
 
 def _film(rng):
-    """300 atoms in a slab 1.5 thick in a tall box: most of a column's atoms in one slab
-    of the grid's sort (its merge sort path)."""
+    """300 atoms in a film 1.5 thick in a tall box: each column's atoms in one or two of
+    the grid sort's slabs, and the box mostly empty in z."""
     box = np.array([11.0, 11.5, 30.0])
     positions = np.column_stack(
         [rng.uniform(0, box[0], 300), rng.uniform(0, box[1], 300), rng.uniform(14, 15.5, 300)]
@@ -217,12 +217,28 @@ def test_the_searchs_reach_bounds_each_rows_last_partner_in_both_lists(
             assert row.max() + 1 <= reach[ci]
 
 
-@pytest.mark.parametrize("name", ["gas, tall box", "film"])
+def _crowded(rng):
+    """200 atoms at random and 40 more at one height in one corner of the box: a slab of
+    the grid's sort with more atoms than its insertion sort takes (a merge sort)."""
+    box = np.array([12.0, 12.0, 12.0])
+    positions = np.vstack(
+        [
+            rng.uniform(0, 12.0, (200, 3)),
+            np.column_stack([rng.uniform(0.1, 0.5, (40, 2)), np.full(40, 5.0)]),
+        ]
+    )
+    return State(positions=positions[rng.permutation(240)], masses=np.ones(240), box=box, pbc=True)
+
+
+@pytest.mark.parametrize("name", ["gas, tall box", "film", "crowded slab"])
 def test_the_grid_sorts_each_column_by_z_stably(name, fcc_lattice, random_gas, rng):
-    """Each column's atoms rise in z, equal heights in atom order (a film: crowded slabs,
-    and copies of atoms at equal z), whichever sort the column took."""
-    state = _systems(fcc_lattice, random_gas, rng)[name]
-    state.positions[:20, 2] = state.positions[20:40, 2]  # equal heights in some columns
+    """Each column's atoms rise in z, equal heights in atom order (copies of atoms at
+    equal z; a slab of 40 atoms at one height), whichever sort the column took."""
+    if name == "crowded slab":
+        state = _crowded(rng)
+    else:
+        state = _systems(fcc_lattice, random_gas, rng)[name]
+        state.positions[:20, 2] = state.positions[20:40, 2]  # equal heights
     ncx, ncy = column_counts(state.box, state.n_atoms, OUTER)
     first, atom, _, _, _ = cluster_grid(state.positions, state.box, ncx, ncy)
     wrapped = state.positions % state.box
