@@ -694,7 +694,11 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     16000 slots a thread): the float32 relative positions and the chunks' sum into atom
     order equal the serial passes bit for bit, fillers included."""
     from md.neighbors._cluster_kernels import cluster_positions_threaded
-    from potentials._kernels import _cluster_atom_forces, _cluster_atom_forces_threaded
+    from potentials._kernels import (
+        _cluster_atom_forces,
+        _cluster_atom_forces_threaded,
+        cluster_sum_runs,
+    )
 
     state = fcc_lattice(cells=6, perturbation=0.1)
     field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
@@ -714,10 +718,12 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     )
     buffers = rng.normal(size=12 * (windows[-1, 2] + windows[-1, 1] - windows[-1, 0]))
     expected = np.zeros((state.n_atoms, 3))
-    _cluster_atom_forces(buffers, clusters.atom, windows, expected)
+    every = np.arange(clusters.n_clusters)
+    _cluster_atom_forces(buffers, clusters.atom, windows, every, expected)
     for runs in (2, 5):
         forces = np.zeros((state.n_atoms, 3))
-        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, forces, runs)
+        offsets = cluster_sum_runs(len(every), runs)
+        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, every, forces, offsets)
         assert np.array_equal(forces, expected)
 
 
@@ -796,7 +802,7 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
             buffers[12 * place : 12 * (place + end - first)] = values
             whole[c, 12 * first : 12 * end] = values
         forces = np.empty((state.n_atoms, 3))
-        _cluster_atom_forces(buffers, clusters.atom, windows, forces)
+        _cluster_atom_forces(buffers, clusters.atom, windows, np.arange(n), forces)
         slots = whole.sum(axis=0).reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
         summed = np.zeros((state.n_atoms, 3))
         summed[clusters.atom[real]] = slots[real]
