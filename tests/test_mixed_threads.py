@@ -166,6 +166,64 @@ def test_the_sum_passes_runs_hold_equal_work(fcc_lattice):
         for r in range(runs):
             run = shared[offsets[r] : offsets[r + 1]]
             chunk = np.searchsorted(windows[:, 0], run, side="right") - 1
-            reads = sum(int((cl < windows[: k + 1, 1]).sum()) for cl, k in zip(run, chunk))
+            reads = sum(
+                int((cl < windows[: k + 1, 1]).sum()) for cl, k in zip(run, chunk, strict=True)
+            )
             work.append(reads)
         assert max(work) - min(work) <= 2 * 2, work  # one cluster, two buffers
+
+
+@needs_two
+def test_a_prune_in_two_chunks_moves_the_second_on_the_threads_to_the_same_list(
+    threads, fcc_lattice
+):
+    """The prune of the melt's outer list in two chunks (the second chunk's kept pairs
+    moved down to their place on the threads, where that place and theirs do not overlap:
+    the prune keeps about half) gives the one-chunk prune's list bit for bit."""
+    from md.neighbors._cluster_kernels import balanced_chunks, prune_pairs
+
+    state = _melt(fcc_lattice)
+    threads(2)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    neighbors = field.neighbor_list
+    neighbors.update(state)
+    outer = neighbors.outer_clusters
+    assert outer is not None
+    xi = np.empty(12 * outer.n_clusters, np.float32)
+    xj = np.empty_like(xi)
+    outer.relative_positions(state.positions + 0.05, xi, xj)
+    reach2 = np.float32((neighbors.list_radius * (1.0 + 1e-5)) ** 2)
+    found = {}
+    for chunks in (1, 2):
+        bounds = balanced_chunks(outer.starts, chunks)
+        kept = (
+            np.full(outer.n_clusters + 1, -1, np.int64),
+            np.full(outer.n_pairs, -1, np.int32),
+            np.full((outer.n_pairs, 3), np.nan, np.float32),
+        )
+        count = prune_pairs(
+            outer.starts, outer.partners, outer.offsets, bounds, xi, xj, reach2, *kept
+        )
+        found[chunks] = (kept[0], kept[1][:count], kept[2][:count])
+        if chunks == 2:  # the second chunk's pairs and their new place apart: the threaded move
+            source, target = outer.starts[bounds[1]], kept[0][bounds[1]]
+            assert target + (count - target) <= source
+    assert 0.3 * outer.n_pairs < len(found[1][1]) < 0.7 * outer.n_pairs
+    for a, b in zip(found[1], found[2], strict=True):
+        assert np.array_equal(a, b)
+
+
+@needs_two
+@pytest.mark.parametrize("where", [0, -1])
+def test_the_force_check_finds_a_non_finite_force_in_either_chunk(where, threads):
+    """``md.parallel.all_finite`` (the force field's check of every force, in chunks on the
+    threads from 96000 values): a NaN or an infinity at either end is found."""
+    from md.parallel import all_finite
+
+    threads(2)
+    forces = np.ones((40000, 3))
+    assert all_finite(forces)
+    for bad in (np.nan, np.inf, -np.inf):
+        forces[where, 1] = bad
+        assert not all_finite(forces)
+        forces[where, 1] = 1.0

@@ -883,11 +883,31 @@ def prune_pairs(
         kept_starts[ci + 1] += kept_starts[ci]
     for t in range(1, chunks):
         source, target = starts[bounds[t]], kept_starts[bounds[t]]
-        for k in range(kept_starts[bounds[t + 1]] - target):
-            kept_partners[target + k] = kept_partners[source + k]
-            for d in range(3):
-                kept_offsets[target + k, d] = kept_offsets[source + k, d]
+        count = kept_starts[bounds[t + 1]] - target
+        if target + count <= source:  # apart (the prune keeps about half): on the threads
+            _move_pairs_threaded(kept_partners, kept_offsets, source, target, count, chunks)
+        else:
+            _move_pairs(kept_partners, kept_offsets, source, target, 0, count)
     return kept_starts[n_clusters]
+
+
+@njit(cache=True, error_model="numpy")
+def _move_pairs(partners, offsets, source, target, first, end):
+    """Pairs ``source + first`` to ``source + end`` moved down to ``target + first`` on
+    (``target`` < ``source``: in order, so a move never overwrites a pair not yet moved)."""
+    for k in range(first, end):
+        partners[target + k] = partners[source + k]
+        for d in range(3):
+            offsets[target + k, d] = offsets[source + k, d]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _move_pairs_threaded(partners, offsets, source, target, count, runs):
+    """:func:`_move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
+    ``runs`` runs on the threads (serial, the move of the second of two chunks' kept pairs
+    took 0.10 of the prune's CPU time on the 32000-atom melt: 147 of 1457 us)."""
+    for r in prange(runs):
+        _move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
