@@ -162,7 +162,6 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
         clusters.offsets.reshape(-1),
         clusters.bounds,
         clusters.windows,
-        clusters.final,
     )
     chunks = len(clusters.bounds) - 1
     room = clusters.window_clusters

@@ -162,65 +162,96 @@ def _slot_base(s):
 
 
 #: Fewest slots per thread worth a run of their own in the pass that sums the cluster
-#: kernels' chunks into atom order, which covers the shared clusters alone (about 3 ns a
-#: slot; the 32000-atom melt in two chunks shares about 7000 slots, 23 us of work on a
-#: Zen 5 core). It runs right after the kernel, whose threads are still awake.
-_MIN_PASS_SLOTS = 2000
+#: kernels' chunks into atom order (memory-bound; as the list's displacement check).
+_MIN_PASS_SLOTS = 16_000
 
 
-def cluster_atom_forces(buffers, atom, windows, shared, forces) -> None:
-    """:func:`_cluster_atom_forces` over the clusters ``shared``, in runs of them on the
-    threads where there are enough (the same bits on any number)."""
-    runs = chunk_count(CLUSTER * len(shared), _MIN_PASS_SLOTS)
+def cluster_atom_forces(buffers, atom, windows, forces) -> None:
+    """:func:`_cluster_atom_forces`, in runs of slots on the threads where there are
+    enough of them (the same bits on any number), each run the same work
+    (:func:`cluster_sum_runs`)."""
+    runs = chunk_count(len(atom), _MIN_PASS_SLOTS)
     if runs == 1:
-        _cluster_atom_forces(buffers, atom, windows, shared, forces)
+        _cluster_atom_forces(buffers, atom, windows, forces)
     else:
-        offsets = cluster_sum_runs(len(shared), runs)
-        _cluster_atom_forces_threaded(buffers, atom, windows, shared, forces, offsets)
-
-
-def cluster_sum_runs(n_shared: int, runs: int) -> np.ndarray:
-    """Where each of ``runs`` runs of :func:`cluster_atom_forces`'s threaded pass starts
-    in its list of ``n_shared`` clusters (runs + 1 offsets): equal counts. In two chunks
-    every shared cluster is one of the second chunk's, read from both buffers: equal
-    work (with more, a cluster reads the buffers of the chunks up to its own whose
-    windows hold it, so later chunks' clusters weigh a little more)."""
-    return np.array([r * n_shared // runs for r in range(runs + 1)], np.int64)
+        first = cluster_sum_runs(windows, len(atom) // CLUSTER, runs)
+        _cluster_atom_forces_threaded(buffers, atom, windows, forces, first)
 
 
 @njit(cache=True, error_model="numpy")
-def _cluster_atom_forces(buffers, atom, windows, clusters, forces):
-    """Sum the chunks' cluster-ordered forces of the clusters ``clusters`` (ascending), in
-    chunk order, into ``forces`` (N, 3) in atom order. ``windows`` (chunks, 3;
-    ``md.neighbors._cluster_kernels.chunk_windows``): chunk c wrote clusters
-    ``windows[c, 0]`` (its first i cluster: a row's partners are its i cluster and
-    clusters after it) to ``windows[c, 1]``, 12 values each, into ``buffers`` from 12 *
-    ``windows[c, 2]`` on; nothing of a chunk outside its window is read. The kernels
-    write the other clusters' forces themselves (``ClusterFrame.final``)."""
-    _summed_forces(buffers, atom, windows, clusters, forces)
+def cluster_sum_runs(windows, n_clusters, runs):
+    """Where each of ``runs`` runs of :func:`_cluster_atom_forces_threaded` starts, in
+    clusters (runs + 1, the last ``n_clusters``), so that the runs do equal work: a
+    cluster costs one unit for its atoms' writes into atom order and one for each
+    chunk whose window (``windows``) holds it, read for each value: its own chunk's and
+    those of earlier chunks whose rows reach it (the first chunk's window is the whole
+    list when its rows reach across the periodic boundary). In two chunks on the
+    32000-atom melt runs of equal slot counts took 46 and 71 us (their CPU time on one
+    thread: the second chunk's clusters read two buffers); weighted by the reads alone
+    62 and 55, so a write costs about a read. The count of windows holding a cluster
+    changes only at the windows' ends: the bounds are found segment by segment, with no
+    pass over the clusters."""
+    chunks = windows.shape[0]
+    # the segments between the windows' ends, and each one's cost a cluster (its atoms'
+    # writes, and a read for each window holding it)
+    edges = np.empty(2 * chunks + 2, np.int64)
+    for c in range(chunks):
+        edges[2 * c], edges[2 * c + 1] = windows[c, 0], windows[c, 1]
+    edges[2 * chunks], edges[2 * chunks + 1] = 0, n_clusters
+    edges = np.unique(edges)
+    held = np.ones(edges.shape[0] - 1, np.int64)
+    total = 0
+    for g in range(edges.shape[0] - 1):
+        for c in range(chunks):
+            if windows[c, 0] <= edges[g] and edges[g] < windows[c, 1]:
+                held[g] += 1
+        total += held[g] * (edges[g + 1] - edges[g])
+    first = np.empty(runs + 1, np.int64)
+    first[0], first[runs] = 0, n_clusters
+    g, done = 0, 0  # the segment, and the work of the segments before it
+    for r in range(1, runs):
+        target = r * total // runs
+        while g < held.shape[0] and done + held[g] * (edges[g + 1] - edges[g]) <= target:
+            done += held[g] * (edges[g + 1] - edges[g])
+            g += 1
+        if g == held.shape[0]:
+            first[r] = n_clusters
+        else:
+            first[r] = edges[g] + (target - done) // held[g]
+        first[r] = max(first[r], first[r - 1])
+    return first
+
+
+@njit(cache=True, error_model="numpy")
+def _cluster_atom_forces(buffers, atom, windows, forces):
+    """Sum the chunks' cluster-ordered forces, in chunk order, into ``forces`` (N, 3) in
+    atom order. ``windows`` (chunks, 3; ``md.neighbors._cluster_kernels.chunk_windows``): chunk c
+    wrote clusters ``windows[c, 0]`` (its first i cluster: a row's partners are its i
+    cluster and clusters after it) to ``windows[c, 1]``, 12 values each, into
+    ``buffers`` from 12 * ``windows[c, 2]`` on; nothing of a chunk outside its window
+    is read."""
+    _slot_forces(buffers, atom, windows, forces, 0, atom.shape[0])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _cluster_atom_forces_threaded(buffers, atom, windows, clusters, forces, offsets):
-    """:func:`_cluster_atom_forces` in runs of ``clusters`` on the threads, run r from
-    ``offsets[r]`` to ``offsets[r + 1]`` (:func:`cluster_sum_runs`; the same bits: each
+def _cluster_atom_forces_threaded(buffers, atom, windows, forces, first):
+    """:func:`_cluster_atom_forces` in runs of clusters on the threads, run r from cluster
+    ``first[r]`` to ``first[r + 1]`` (:func:`cluster_sum_runs`; the same bits: each
     atom's sum is its own, in chunk order)."""
-    for r in prange(offsets.shape[0] - 1):
-        _summed_forces(buffers, atom, windows, clusters[offsets[r] : offsets[r + 1]], forces)
+    for r in prange(first.shape[0] - 1):
+        _slot_forces(buffers, atom, windows, forces, CLUSTER * first[r], CLUSTER * first[r + 1])
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _summed_forces(buffers, atom, windows, clusters, forces):
-    """:func:`_cluster_atom_forces` for ``clusters`` (ascending): the slots of a cluster of
-    chunk k take those of chunks 0 to k whose windows reach it."""
+def _slot_forces(buffers, atom, windows, forces, first, end):
+    """:func:`_cluster_atom_forces` for slots ``first`` to ``end``: the slots of chunk k's
+    i clusters take those of chunks 0 to k whose windows reach them."""
     chunks = windows.shape[0]
-    k = 0
-    for q in range(clusters.shape[0]):
-        cluster = clusters[q]
-        while k + 1 < chunks and cluster >= windows[k + 1, 0]:
-            k += 1
-        for s in range(CLUSTER * cluster, CLUSTER * (cluster + 1)):
-            i, base = atom[s], _slot_base(s)
+    for k in range(chunks):
+        lo = max(first, windows[k, 0] * CLUSTER)
+        hi = min(end, (windows[k + 1, 0] if k + 1 < chunks else windows[k, 1]) * CLUSTER)
+        for s in range(lo, hi):
+            i, base, cluster = atom[s], _slot_base(s), s // CLUSTER
             if i < 0:
                 continue
             fx = fy = fz = 0.0
@@ -272,12 +303,11 @@ def cluster_j_remainders(j_sums, j_counts, forces, first):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _cluster_slot_forces(out, atom, cluster, low, forces):
-    """Cluster ``cluster``'s forces in ``out`` (12 per cluster from cluster ``low`` on) into
-    ``forces`` (N, 3), in atom order (``atom``: each slot's atom, -1 for a filler)."""
-    skip = 3 * CLUSTER * low
+def _cluster_slot_forces(out, atom, cluster, forces):
+    """Cluster ``cluster``'s forces in ``out`` (12 per cluster) into ``forces`` (N, 3), in
+    atom order (``atom``: each slot's atom, -1 for a filler)."""
     for s in range(CLUSTER * cluster, CLUSTER * (cluster + 1)):
-        i, base = atom[s], _slot_base(s) - skip
+        i, base = atom[s], _slot_base(s)
         if i >= 0:
             for d in range(3):
                 forces[i, d] = out[base + d * CLUSTER]

@@ -591,7 +591,6 @@ class PairPotential:
             clusters.offsets.reshape(-1),
             clusters.bounds,
             clusters.windows,
-            clusters.final,
         )
         # as the slot frame's first call: both virial variants run once (they compile or
         # load before a run's loop), the one asked for last
@@ -623,8 +622,8 @@ class PairPotential:
                     energies,
                     virials,
                 )
-        if chunks > 1:  # the clusters the chunks share (one chunk writes them all itself)
-            cluster_atom_forces(buffers, atom, clusters.windows, clusters.shared, forces)
+        if chunks > 1:  # one chunk writes the forces in atom order itself
+            cluster_atom_forces(buffers, atom, clusters.windows, forces)
         total = None
         if virial:
             w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)

@@ -505,12 +505,11 @@ def cluster_forces(
 ):
     """Pair forces over a cluster-pair list (``md.neighbors.ClusterFrame``), chunk by chunk.
 
-    ``clusters`` is (starts, partners, offsets, bounds, windows, final): each i
-    cluster's row of partners and their offsets (float32, 3 per pair, flat), the
-    i-cluster range of each chunk, each chunk's window (first, end, place;
-    ``md.neighbors._cluster_kernels.chunk_windows``): the clusters its rows reach, and
-    where their part of the scratch starts, and per cluster whether no earlier chunk's
-    rows list it (``ClusterFrame.final``). ``xi``/``xj`` the clusters' relative positions
+    ``clusters`` is (starts, partners, offsets, bounds, windows): each i cluster's
+    row of partners and their offsets (float32, 3 per pair, flat), the i-cluster range
+    of each chunk, and each chunk's window (first, end, place;
+    ``md.neighbors._cluster_kernels.chunk_windows``): the clusters its rows reach, and where
+    their part of the scratch starts. ``xi``/``xj`` the clusters' relative positions
     in the i and j roles (float32, 12 per cluster), ``slot_types`` each slot's type.
     Chunk c adds its window's forces into ``buffers`` (float64, 12 per cluster from
     12 * place on; zeroed here), its energy into ``energies[c]`` and, if
@@ -518,12 +517,12 @@ def cluster_forces(
     the relative positions' part is added by the caller). ``j_sums`` (float32, 48 per
     cluster) and ``j_counts`` (int32, one per cluster), at the same places, hold the
     chunk's j forces in float32 lanes and the pairs in them
-    (``potentials._cluster_ir``): zero on entry, and left zero. A cluster that only its
-    own chunk's rows list (``final``: with one chunk, every cluster) has its final
-    forces after its own row (no later row adds to them), written there into ``forces``
-    (N, 3) in atom order (``atom``: each slot's atom, -1 for a filler); the caller sums
-    the windows of the others into it (``potentials._kernels.cluster_atom_forces``).
-    The table is float32: mixed precision only.
+    (``potentials._cluster_ir``): zero on entry, and left zero. With one chunk each
+    cluster's forces are final after its own row (no later row adds to them) and are
+    written there into ``forces`` (N, 3) in atom order (``atom``: each slot's atom, -1
+    for a filler); with several the caller sums the windows into it
+    (``potentials._kernels.cluster_atom_forces``). The table is float32: mixed
+    precision only.
     """
     for chunk in range(clusters[3].shape[0] - 1):
         _cluster_chunk(
@@ -613,7 +612,7 @@ def _cluster_chunk(
     energies,
     virials,
 ):
-    starts, partners, offsets, bounds, windows, final = clusters
+    starts, partners, offsets, bounds, windows = clusters
     cut2 = REAL(0.0)
     for column in range(table.shape[1]):
         cut2 = max(cut2, REAL(table[RC2, column]))
@@ -625,6 +624,7 @@ def _cluster_chunk(
     out[:] = 0.0
     lanes = j_sums[J_STRIDE * place : J_STRIDE * (place + size)]
     counts = j_counts[place : place + size]
+    whole = bounds.shape[0] == 2  # one chunk
     virials[chunk, :] = 0.0
     energy = 0.0
     for ci in range(bounds[chunk], bounds[chunk + 1]):
@@ -713,8 +713,8 @@ def _cluster_chunk(
                 low,
                 None,
             )
-        if final[ci]:  # no other chunk adds to cluster ci: into atom order, no pass after
-            _cluster_slot_forces(out, atom, ci, low, forces)
+        if whole:  # cluster ci's forces are final: into atom order (no pass over them after)
+            _cluster_slot_forces(out, atom, ci, forces)
     # rows fold their own clusters' lanes; those of the window's clusters after them, here
     cluster_j_remainders(lanes, counts, out, bounds[chunk + 1] - low)
     energies[chunk] = energy

@@ -718,12 +718,11 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     )
     buffers = rng.normal(size=12 * (windows[-1, 2] + windows[-1, 1] - windows[-1, 0]))
     expected = np.zeros((state.n_atoms, 3))
-    every = np.arange(clusters.n_clusters)
-    _cluster_atom_forces(buffers, clusters.atom, windows, every, expected)
+    _cluster_atom_forces(buffers, clusters.atom, windows, expected)
     for runs in (2, 5):
         forces = np.zeros((state.n_atoms, 3))
-        offsets = cluster_sum_runs(len(every), runs)
-        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, every, forces, offsets)
+        first = cluster_sum_runs(windows, clusters.n_clusters, runs)
+        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, forces, first)
         assert np.array_equal(forces, expected)
 
 
@@ -802,7 +801,7 @@ def test_chunks_use_scratch_for_the_clusters_they_reach_and_the_sum_reads_only_t
             buffers[12 * place : 12 * (place + end - first)] = values
             whole[c, 12 * first : 12 * end] = values
         forces = np.empty((state.n_atoms, 3))
-        _cluster_atom_forces(buffers, clusters.atom, windows, np.arange(n), forces)
+        _cluster_atom_forces(buffers, clusters.atom, windows, forces)
         slots = whole.sum(axis=0).reshape(-1, 3, CLUSTER).transpose(0, 2, 1).reshape(-1, 3)
         summed = np.zeros((state.n_atoms, 3))
         summed[clusters.atom[real]] = slots[real]

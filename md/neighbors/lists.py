@@ -41,7 +41,6 @@ from md.neighbors._build_kernels import (
     _shift_table,
 )
 from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
-from md.neighbors._cluster_chunks import cluster_sharing
 from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
@@ -143,10 +142,7 @@ class ClusterFrame:
     part of the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
     (:func:`md.neighbors._cluster_kernels.chunk_windows`; ``window_clusters`` in all). A pruned
     list takes ``reach`` (per row, one past its last partner) from its outer list: a
-    bound that costs no pass over the pairs at each prune. ``final`` and ``shared`` say
-    which clusters a chunk's kernel writes into atom order itself (those no earlier
-    chunk's rows list) and which the chunks' buffers are summed for
-    (:mod:`md.neighbors._cluster_chunks`).
+    bound that costs no pass over the pairs at each prune.
 
     The list holds the cluster pairs that had an atom pair within the list radius
     at the build: the search's candidates (see :func:`md.neighbors._cluster_kernels.search_pairs`)
@@ -162,7 +158,6 @@ class ClusterFrame:
         self.bounds = balanced_chunks(starts, int(chunks))
         self._reach = reach
         self._windows = None
-        self._sharing = None
 
     @property
     def reach(self) -> NDArray[np.int64]:
@@ -182,26 +177,6 @@ class ClusterFrame:
             else:
                 self._windows = chunk_windows(self.reach, self.bounds)
         return self._windows
-
-    @property
-    def final(self) -> NDArray[np.uint8]:
-        """Per cluster, 1 where its own chunk's row leaves its forces final (no row of an
-        earlier chunk lists it), found on first use: with one chunk, every cluster."""
-        return self._shares()[0]
-
-    @property
-    def shared(self) -> NDArray[np.int64]:
-        """The clusters (ascending) that rows of an earlier chunk than their own list: their
-        forces are the sum of several chunks' buffers."""
-        return self._shares()[1]
-
-    def _shares(self) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
-        if self._sharing is None:
-            if len(self.bounds) == 2:
-                self._sharing = (np.ones(self.n_clusters, np.uint8), np.empty(0, np.int64))
-            else:
-                self._sharing = cluster_sharing(self.starts, self.partners, self.bounds)
-        return self._sharing
 
     @property
     def window_clusters(self) -> int:
