@@ -174,3 +174,48 @@ def test_the_force_check_finds_a_non_finite_force_in_either_chunk(where, threads
         forces[where, 1] = bad
         assert not all_finite(forces)
         forces[where, 1] = 1.0
+
+
+def test_a_mixed_call_over_the_same_list_runs_the_last_calls_kernel_again(fcc_lattice, monkeypatch):
+    """The second mixed call over the same cluster list (the same State arrays, moved in
+    place as an integrator moves them) runs the kernel prepared by the first, with no set-up
+    (``_energy_forces`` not entered: about 25 us of Python a call), and gives what a fresh
+    potential gives at the new positions, bit for bit; a new list (a prune) sets it up again;
+    with and without the virial apart."""
+    from potentials._pair_frame import PairPotential
+
+    entered = []
+    original = PairPotential._energy_forces
+
+    def counted(self, *args, **kwargs):
+        entered.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(PairPotential, "_energy_forces", counted)
+    state = _melt(fcc_lattice, cells=6)
+    field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
+    neighbors = field.neighbor_list
+    neighbors.update(state)
+    lj = LennardJones(cutoff=2.5)
+    for virial in (False, True):
+        lj.energy_forces(state, neighbors, virial=virial, precision="mixed")
+    before = len(entered)
+    state.positions += 0.01  # in place, within the list's skin: the same list
+    assert not neighbors.update(state) and neighbors.n_prunes == 0
+    for virial in (False, True):
+        again = lj.energy_forces(state, neighbors, virial=virial, precision="mixed")
+        fresh = LennardJones(cutoff=2.5).energy_forces(
+            state, neighbors, virial=virial, precision="mixed"
+        )
+        assert np.array_equal(again.forces, fresh.forces) and again.energy == fresh.energy
+        assert (again.virial is None) == (not virial)
+        if virial:
+            assert np.array_equal(again.virial, fresh.virial)
+    assert len(entered) == before + 2  # the two fresh potentials' calls only
+    state.positions[0] += 0.2  # past half the skin: a prune, a new list
+    neighbors.update(state)
+    assert neighbors.n_prunes == 1
+    pruned = lj.energy_forces(state, neighbors, virial=False, precision="mixed")
+    assert len(entered) == before + 3
+    double = ForceField([LennardJones(cutoff=2.5)]).compute(state)
+    assert _relative_error(pruned.forces, double.forces) < 200 * EPS32
