@@ -27,6 +27,7 @@ import contextlib
 import statistics
 import time
 
+import lj_melt  # the LAMMPS child (benchmarks/ on the path: run from mixed_precision.py)
 import numba
 import numpy as np
 
@@ -100,10 +101,13 @@ def _patched(phases: Phases, kept: dict):
         (md.neighbors.lists.NeighborList, "_prune", "prune, the rest"),
         (md.neighbors.lists, "prune_pairs", "prune kernel"),
         (potentials._pair_frame.PairPotential, "_cluster_energy_forces", "force call, the rest"),
+        (potentials._pair_frame.PairPotential, "_run_cluster_call", "force call, the rest"),
         (potentials._pair_frame, "cluster_atom_forces", "chunk sum into atom order"),
     ]
     saved = []
     for owner, name, phase in targets:
+        if name not in owner.__dict__:  # (before the mixed calls were kept)
+            continue
         original = owner.__dict__[name]
         saved.append((owner, name, original))
         setattr(owner, name, phases.timed(phase, original))
@@ -361,6 +365,9 @@ def profile(cells: int, threads: int, steps: int, warm: int, repeats: int, block
             for count, sim in sims.items():
                 set_threads(count)
                 numba.set_num_threads(1)
+                for potential in sim.forcefield.potentials:  # set up again, timed
+                    if hasattr(potential, "_cluster_calls"):
+                        potential._cluster_calls = [None, None]
                 with _patched(phases[count], kept):
                     phases[count].timed("Python and the rest", sim.run)(block)
         set_threads(threads)
@@ -437,8 +444,34 @@ def report(cells: int, threads: int, steps: int, warm: int, repeats: int) -> Non
         f"  {'all':34s}{1e3 * total_one / steps:9.3f}{'':7s}{1e3 * total_many / steps:10.3f}"
         f"{1e3 * on_threads:8.3f}"
     )
+    _peer(cells, steps, total_one / steps)
     print(
         f"  serial work {serial * steps / total_many:.1%} of the {threads}-chunk work; "
         f"chunking costs {total_many / total_one - 1:+.1%} work; bound on the {threads}-thread "
         f"speed-up {total_one / steps / on_threads:.2f}x (no wake-ups, no shared bandwidth)"
+    )
+
+
+def _peer(cells: int, steps: int, ours: float) -> None:
+    """LAMMPS's ``lj/cut`` on the same melt (one thread, the same list rule; a child
+    process, ``lammps_lj_melt.py``) beside the mixed step's one-chunk work ``ours``
+    [s per step]: its loop time is a wall time (its one thread may wait for a core on a
+    shared machine), ours CPU time, so the ratio leans towards ours only if LAMMPS waited."""
+    try:
+        found = lj_melt.run_lammps(cells, steps, "check", lj_melt.lammps_environment())
+    except (OSError, RuntimeError) as error:
+        print(f"  LAMMPS: not run ({error})")
+        return
+    per_step = found["loop_time"] / steps
+    sections = found.get("sections") or {}
+    shares = ", ".join(
+        f"{name} {100 * sections[name] / found['loop_time']:.0f} %"
+        for name in ("Pair", "Neigh", "Other")
+        if name in sections
+    )
+    print(
+        f"  LAMMPS {found.get('version', '?')} lj/cut, 1 thread, this melt: "
+        f"{1e3 * per_step:.3f} ms a step ({shares}; {found.get('n_builds')} builds, "
+        f"loop wall time); LAMMPS / ours mixed (1 chunk, CPU) "
+        f"{per_step / ours:.2f}"
     )
