@@ -21,6 +21,7 @@ from potentials.base import (
     Potential,
     SupportsHessian,
     SupportsHessianOperator,
+    SupportsPrecision,
     check_precision_name,
 )
 from potentials.pair_hessian import HessianSum
@@ -233,14 +234,16 @@ class ForceField:
         """What ``potential`` is asked for beyond the protocol: ``precision`` when it is
         not double and the potential lists it in its ``PRECISIONS`` (others, such as
         bonds, are not asked: they run double). A run's potentials may be objects this
-        force field was not built with (a decomposed run's local bonded terms).
-        ``SupportsPrecision``'s test is its attribute's, spelled out: ``isinstance`` with
-        a runtime-checkable protocol took 9.5 us a call (Python 3.11), every evaluation,
-        on the calling thread alone."""
+        force field was not built with (a decomposed run's local bonded terms). Whether a
+        class meets ``SupportsPrecision`` is asked once, of its first instance here:
+        ``isinstance`` with a runtime-checkable protocol took 9.5 us a call (Python 3.11),
+        at every evaluation, on the calling thread alone."""
         if self.precision == "double":
             return {}
-        precisions = getattr(potential, "PRECISIONS", _NOT_LISTED)
-        if precisions is not _NOT_LISTED and self.precision in precisions:
+        offers = _OFFERS_PRECISIONS.get(type(potential))
+        if offers is None:
+            offers = _OFFERS_PRECISIONS[type(potential)] = isinstance(potential, SupportsPrecision)
+        if offers and self.precision in potential.PRECISIONS:
             return {"precision": self.precision}
         return {}
 
@@ -408,8 +411,8 @@ class ForceField:
 #: ``ForceField._key_of``): beyond, copying them into bytes at every comparison costs more
 #: than the compiled comparison of held arrays (4000 atoms: 4.0 us against 2.6).
 _BYTES_KEY_VALUES = 3000
-#: ``ForceField._options``'s mark of a potential with no ``PRECISIONS``.
-_NOT_LISTED = object()
+#: Per potential class, whether it meets ``SupportsPrecision`` (``ForceField._options``).
+_OFFERS_PRECISIONS: dict[type, bool] = {}
 
 
 def _cell_bytes(state: State) -> bytes:
