@@ -23,6 +23,13 @@ Compilation is excluded (a warm-up call).
     python benchmarks/mixed_precision.py --threads 1 --repeats 31 --drift-steps 20000
     python benchmarks/mixed_precision.py --threads 1 --gromacs --gmx /path/to/avx512/gmx
     python benchmarks/mixed_precision.py --drift-only --gromacs --seeds 5   # drifts of 5 liquids
+    python benchmarks/mixed_precision.py --phases --threads 2 --steps 200   # the step's phases
+
+``--phases`` prints instead where the mixed step's work goes, phase by phase, with one
+chunk and with as many chunks as each ``--threads`` count above 1 (both run on one
+thread: CPU times, which other processes on a shared machine do not inflate as they do
+wall times), which phases are serial, each uneven phase's slowest chunk, and the bound
+that puts on the speed-up (``benchmarks/_phases.py``).
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
 
+import _phases  # noqa: E402
 from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
@@ -211,6 +219,11 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--drift-only", action="store_true", help="skip the timings")
     parser.add_argument(
+        "--phases",
+        action="store_true",
+        help="only the mixed step's phases: work with 1 and with T chunks, serial share",
+    )
+    parser.add_argument(
         "--every",
         type=int,
         default=1,
@@ -223,6 +236,11 @@ def main(argv=None) -> None:
     if args.every < 1:
         parser.error(f"--every must be at least 1, got {args.every}")
     print(machine_line())
+    if args.phases:
+        for threads in (int(t) for t in args.threads.split(",")):
+            if threads > 1:
+                _phases.report(args.cells, threads, args.steps, 20, max(args.repeats // 3, 3))
+        return
     n_atoms = 4 * args.cells**3
     for threads in () if args.drift_only else (int(t) for t in args.threads.split(",")):
         set_threads(threads)

@@ -162,6 +162,17 @@ def same_values(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(_same_values_threaded(a, b, chunks))
 
 
+def all_finite(values: np.ndarray) -> bool:
+    """Whether no value of a C-contiguous float array is NaN or infinite, in chunks on the
+    kernels' threads (the force field's check of every force, each evaluation)."""
+    values = values.reshape(-1)
+    n = values.shape[0]
+    chunks = 1 if n < 2 * _MIN_CHUNK_VALUES else _chunks(n)
+    if chunks == 1:
+        return bool(_all_finite(values))
+    return bool(_all_finite_threaded(values, chunks))
+
+
 def copy_into(destination: np.ndarray, source: np.ndarray) -> None:
     """``destination[...] = source`` for two C-contiguous arrays of one shape and dtype,
     in chunks on the kernels' threads."""
@@ -193,6 +204,24 @@ def _same_values(a, b):
         if a[i] != b[i]:
             return False
     return True
+
+
+@njit(cache=True)
+def _all_finite(values):
+    """Whether no value is NaN or infinite (one pass with no early exit: it vectorises)."""
+    finite = True
+    for i in range(values.shape[0]):
+        finite &= abs(values[i]) < np.inf
+    return finite
+
+
+@njit(cache=True, parallel=True)
+def _all_finite_threaded(values, chunks):
+    n = values.shape[0]
+    finite = np.ones(chunks, dtype=np.bool_)
+    for c in prange(chunks):
+        finite[c] = _all_finite(values[c * n // chunks : (c + 1) * n // chunks])
+    return finite.all()
 
 
 @njit(cache=True, parallel=True)

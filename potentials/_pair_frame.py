@@ -203,6 +203,11 @@ class PairPotential:
         # of a run then pays for its pair kernel, not for finding it again (about 4 us a
         # call at 108 atoms); see energy_forces
         self._frame_calls: list = [None, None]
+        # The same for the last mixed-precision call over a cluster-pair list, its list
+        # (a prune or a search makes a new one) one more object that must be the same: a
+        # step then pays for the kernels and not for setting them up again (about 25 us
+        # of Python a call at 32000 atoms, on the calling thread alone); see energy_forces
+        self._cluster_calls: list = [None, None]
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -493,6 +498,23 @@ class PairPotential:
                 if not math.isfinite(result.energy):
                     self._explain_non_finite(state, neighbors)
                 return result
+        if precision == "mixed" and not per_atom and neighbors is not None:
+            call = self._cluster_calls[bool(virial)]
+            if (
+                call is not None
+                and call[0] is getattr(neighbors, "clusters", None)
+                and call[1] is state.positions
+                and call[2] is state.types
+                and call[3] is state.type_names
+                and call[4] is self.data
+                and call[5] == self.cutoff_mode
+                and call[6] is neighbors
+            ):
+                # the kernel and arrays of the last call over this list: compiled then
+                result = self._run_cluster_call(call[-1], state, bool(virial))
+                if not math.isfinite(result.energy):
+                    self._explain_non_finite(state, neighbors)
+                return result
         return self._energy_forces(state, neighbors, per_atom, virial, precision)
 
     @_compiling_the_term
@@ -510,8 +532,18 @@ class PairPotential:
         frame = None if neighbors is None or per_atom or clusters is not None else neighbors.frame
         if clusters is not None:
             self._check_radius(neighbors)
-            result = self._cluster_energy_forces(
+            result, prepared = self._cluster_energy_forces(
                 kernels, state, clusters, n_types, table, mode, virial
+            )
+            self._cluster_calls[bool(virial)] = (
+                clusters,
+                state.positions,
+                state.types,
+                state.type_names,
+                self.data,
+                self.cutoff_mode,
+                neighbors,
+                prepared,
             )
         elif frame is not None:
             self._check_radius(neighbors)
@@ -550,9 +582,9 @@ class PairPotential:
         """Mixed precision over a cluster-pair list (``md.neighbors.ClusterFrame``): the
         relative positions in float32, the cluster kernel per chunk (on the threads when
         there are several), the chunks' forces summed into atom order, and the virial
-        from the kernel's offset part plus the positions' part."""
-        n = state.n_atoms
-        atom = clusters.atom
+        from the kernel's offset part plus the positions' part. Returns the result and
+        the call prepared (``_run_cluster_call``), which the next call over the same list
+        may run again."""
         n_clusters = clusters.n_clusters
         chunks = len(clusters.bounds) - 1
         # the chunks' forces and j lanes: room for each chunk's window (the clusters its
@@ -579,12 +611,8 @@ class PairPotential:
                 np.empty((chunks, 9)),
             )
             self._cluster_scratch = scratch
-        xi, xj, slot_types, buffers, j_sums, j_counts, energies, virials = scratch
         single = n_types == 1
-        if not single:
-            _slot_types(state.types, atom, slot_types)
         entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
-        clusters.relative_positions(state.positions, xi, xj)
         lists = (
             clusters.starts,
             clusters.partners,
@@ -597,31 +625,46 @@ class PairPotential:
         ran = (entry, mode, single)
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
-        forces = np.empty((n, 3))
         with slp_vectorising():  # the term's lanes (potentials._cluster_ir)
             for with_virial in variants:
                 kernel = variant(
                     kernels, entry, mode=int(mode), with_virial=with_virial, single=single
                 )
-                kernel(
-                    xi,
-                    xj,
-                    lists,
-                    slot_types,
-                    n_types,
-                    table,
-                    int(mode),
-                    self.data,
-                    with_virial,
-                    single,
-                    buffers,
-                    j_sums,
-                    j_counts,
-                    atom,
-                    forces,
-                    energies,
-                    virials,
-                )
+                prepared = (kernel, lists, scratch, clusters, n_types, table, int(mode), single)
+                result = self._run_cluster_call(prepared, state, with_virial)
+        return result, prepared
+
+    def _run_cluster_call(self, prepared, state, virial: bool) -> ForceResult:
+        """One call of the cluster kernel ``prepared`` by ``_cluster_energy_forces`` (the
+        kernel's variant for ``virial``, its arrays): the relative positions, the kernel,
+        the chunks' forces summed into atom order, the virial."""
+        kernel, lists, scratch, clusters, n_types, table, mode, single = prepared
+        xi, xj, slot_types, buffers, j_sums, j_counts, energies, virials = scratch
+        atom = clusters.atom
+        if not single:
+            _slot_types(state.types, atom, slot_types)
+        clusters.relative_positions(state.positions, xi, xj)
+        forces = np.empty((state.n_atoms, 3))
+        kernel(
+            xi,
+            xj,
+            lists,
+            slot_types,
+            n_types,
+            table,
+            mode,
+            self.data,
+            virial,
+            single,
+            buffers,
+            j_sums,
+            j_counts,
+            atom,
+            forces,
+            energies,
+            virials,
+        )
+        chunks = len(energies)
         if chunks > 1:  # one chunk writes the forces in atom order itself
             cluster_atom_forces(buffers, atom, clusters.windows, forces)
         total = None

@@ -144,7 +144,8 @@ class Potential(Protocol):
 class SupportsPrecision(Protocol):
     """Optional capability: the precisions ``energy_forces`` offers (a subset of
     :data:`PRECISIONS`); the ForceField passes ``precision=`` to a potential that lists
-    the one asked for, and to no other (those run double)."""
+    the one asked for, and to no other (those run double). A class attribute: the
+    ForceField asks whether a class has it once, of its first instance."""
 
     PRECISIONS: tuple[str, ...]
 

@@ -694,7 +694,11 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     16000 slots a thread): the float32 relative positions and the chunks' sum into atom
     order equal the serial passes bit for bit, fillers included."""
     from md.neighbors._cluster_kernels import cluster_positions_threaded
-    from potentials._kernels import _cluster_atom_forces, _cluster_atom_forces_threaded
+    from potentials._kernels import (
+        _cluster_atom_forces,
+        _cluster_atom_forces_threaded,
+        cluster_sum_runs,
+    )
 
     state = fcc_lattice(cells=6, perturbation=0.1)
     field = ForceField([LennardJones(cutoff=2.5)], precision="mixed")
@@ -717,7 +721,8 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     _cluster_atom_forces(buffers, clusters.atom, windows, expected)
     for runs in (2, 5):
         forces = np.zeros((state.n_atoms, 3))
-        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, forces, runs)
+        first = cluster_sum_runs(windows, clusters.n_clusters, runs)
+        _cluster_atom_forces_threaded(buffers, clusters.atom, windows, forces, first)
         assert np.array_equal(forces, expected)
 
 

@@ -803,9 +803,16 @@ def cluster_positions(positions, atom, origin, xi, xj):
 def cluster_positions_threaded(positions, atom, origin, xi, xj, chunks):
     """:func:`cluster_positions` in ``chunks`` runs of slots on the threads (the same
     values: each slot's are its own)."""
-    n = atom.shape[0]
+    # Each run whole clusters, its slots and values passed as slices, so that every index
+    # in the loop counts from zero: with a run's first slot as a bound instead, numba's
+    # handling of negative indices stayed in the loop, which then took 1.9x the serial
+    # form's CPU time (32000 atoms, two runs on one thread: 84 against 45 us).
+    n = atom.shape[0] // CLUSTER
     for c in prange(chunks):
-        _slot_positions(positions, atom, origin, xi, xj, c * n // chunks, (c + 1) * n // chunks)
+        a, b = CLUSTER * (c * n // chunks), CLUSTER * ((c + 1) * n // chunks)
+        _slot_positions(
+            positions, atom[a:b], origin[a:b], xi[3 * a : 3 * b], xj[3 * a : 3 * b], 0, b - a
+        )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -953,11 +960,31 @@ def prune_pairs(
         kept_starts[ci + 1] += kept_starts[ci]
     for t in range(1, chunks):
         source, target = starts[bounds[t]], kept_starts[bounds[t]]
-        for k in range(kept_starts[bounds[t + 1]] - target):
-            kept_partners[target + k] = kept_partners[source + k]
-            for d in range(3):
-                kept_offsets[target + k, d] = kept_offsets[source + k, d]
+        count = kept_starts[bounds[t + 1]] - target
+        if target + count <= source:  # apart (the prune keeps about half): on the threads
+            _move_pairs_threaded(kept_partners, kept_offsets, source, target, count, chunks)
+        else:
+            _move_pairs(kept_partners, kept_offsets, source, target, 0, count)
     return kept_starts[n_clusters]
+
+
+@njit(cache=True, error_model="numpy")
+def _move_pairs(partners, offsets, source, target, first, end):
+    """Pairs ``source + first`` to ``source + end`` moved down to ``target + first`` on
+    (``target`` < ``source``: in order, so a move never overwrites a pair not yet moved)."""
+    for k in range(first, end):
+        partners[target + k] = partners[source + k]
+        for d in range(3):
+            offsets[target + k, d] = offsets[source + k, d]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _move_pairs_threaded(partners, offsets, source, target, count, runs):
+    """:func:`_move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
+    ``runs`` runs on the threads (serial, the move of the second of two chunks' kept pairs
+    took 0.10 of the prune's CPU time on the 32000-atom melt: 147 of 1457 us)."""
+    for r in prange(runs):
+        _move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
