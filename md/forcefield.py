@@ -179,6 +179,48 @@ class ForceField:
             self._key = fresh if fresh is not None else self._key_of(state, key)
         return total
 
+    def verlet_step(self, state: State, kicks, kick_dt: float, drift_dt: float) -> int:
+        """Velocity Verlet's step in one compiled call where it can be: return 0, 1 or 2.
+
+        For one double-precision pair potential with a ``verlet_step`` method (the pair
+        frame's: :meth:`potentials.PairPotential.verlet_step`) over the exact list while it
+        holds, with no virial wanted: v += kick_dt kicks/m, x += drift_dt v, the forces,
+        v += kick_dt forces/m, and the forces cached as :meth:`compute` would (counted in
+        ``n_evaluations``, the call's time in ``timings["force"]``): 2. 1: only the drift
+        and first kick were done (an atom moved more than half the skin, or a value is
+        not finite): :meth:`compute` and the last kick are the caller's, as in a step
+        without this call. 0: nothing done (any other case). The same bits as the step
+        made of :meth:`compute` and the kicks.
+        """
+        potentials = self.potentials
+        neighbor_list = self.neighbor_list
+        if (
+            len(potentials) != 1
+            or self.virial_wanted
+            or neighbor_list is None
+            or self.precision != "double"
+        ):
+            return 0
+        step = getattr(potentials[0], "verlet_step", None)
+        if step is None or potentials[0].cutoff is None:
+            return 0
+        check = neighbor_list.exact_check(state)
+        if check is None:
+            return 0
+        start = time.perf_counter()
+        served = step(state, neighbor_list, kicks, kick_dt, drift_dt, check[0], check[1])
+        if served is None:
+            return 0
+        self.timings["force"] += time.perf_counter() - start
+        code, result = served
+        if code != 0:
+            return 1
+        self.n_evaluations += 1
+        if self.cache:
+            self._key = self._key_of(state, self._key)
+            self._cached = result
+        return 2
+
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
         """Sum ``potentials`` over the shared neighbour list (refreshed if one of them needs
         it), timing the list and the kernels; NonFiniteError for non-finite input, energy, forces

@@ -203,6 +203,9 @@ class PairPotential:
         # of a run then pays for its pair kernel, not for finding it again (about 4 us a
         # call at 108 atoms); see energy_forces
         self._frame_calls: list = [None, None]
+        # verlet_step's compiled step for the kept call without the virial: (that call,
+        # the kernel, its arguments after the positions and before the forces, energies)
+        self._verlet_call: tuple | None = None
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -494,6 +497,71 @@ class PairPotential:
                     self._explain_non_finite(state, neighbors)
                 return result
         return self._energy_forces(state, neighbors, per_atom, virial, precision)
+
+    def verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, reference, allowed2):
+        """A velocity Verlet step with this potential's forces in one compiled call, where
+        the last slot-frame call without the virial serves ``state`` (as in
+        :meth:`energy_forces`) on one chunk; None where it does not (nothing done).
+
+        v += kick_dt kicks/m and x += drift_dt v; then, if no atom is farther than
+        ``sqrt(allowed2)`` from ``reference`` (the list's half-skin rule, see
+        :meth:`md.neighbors.NeighborList.exact_check`), the forces over ``neighbors``
+        without the virial and v += kick_dt forces/m. Returns ``(code, result)``: code 0,
+        the step done, ``result`` its ForceResult; 1, only the drift done (an atom moved
+        too far, or a value is not finite: the caller refreshes the list, evaluates and
+        kicks as a step without this call would), ``result`` None. The same bits as the
+        separate kicks, list check and :meth:`energy_forces` (the template's
+        ``frame_verlet``).
+        """
+        call = self._frame_calls[0]
+        if (  # the conditions of energy_forces' kept call
+            call is None
+            or type(self).energy_forces is not PairPotential.energy_forces  # not overridden
+            or call[1] is not state.positions
+            or call[2] is not state.types
+            or call[3] is not state.type_names
+            or call[4] is not self.data
+            or call[5] != self.cutoff_mode
+        ):
+            return None
+        frame = neighbors.frame
+        if call[0] is not frame:  # the list was built again since
+            call = self._reslotted(call, neighbors, frame, False)
+            if call is None:
+                return None
+        fused = self._verlet_call
+        if fused is None or fused[0] is not call:
+            kernel, arguments, energies, virials, chunks = call[-1]
+            if chunks != 1:
+                return None
+            # (positions, types, slots, n_types, table, mode, data, with_virial, single,
+            # slot positions, slot types, buffers, energies, virials): all but the
+            # positions and the virial flag, in frame_verlet's order
+            tail = (*arguments[1:7], arguments[8], *arguments[9:])
+            flags = (arguments[5], arguments[8])  # the kernel's mode and single-type flag
+            step = self._frame_kernels.get(("verlet", *flags))
+            if step is None:
+                kernels = self._loaded("double")
+                step = variant(kernels, "frame_verlet", mode=flags[0], single=flags[1])
+                self._frame_kernels["verlet", *flags] = step
+            fused = self._verlet_call = (call, step, tail, energies)
+        _, step, tail, energies = fused
+        forces = np.empty((len(state.masses), 3))
+        code = step(
+            state.positions,
+            state.velocities,
+            state.masses,
+            kicks,
+            kick_dt,
+            drift_dt,
+            reference,
+            allowed2,
+            *tail,
+            forces,
+        )
+        if code != 0:
+            return 1, None
+        return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
     @_compiling_the_term
     def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
