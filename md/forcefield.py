@@ -179,36 +179,41 @@ class ForceField:
             self._key = fresh if fresh is not None else self._key_of(state, key)
         return total
 
-    def verlet_step(self, state: State, kicks, kick_dt: float, drift_dt: float) -> int:
+    def verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int:
         """Velocity Verlet's step in one compiled call where it can be: return 0, 1 or 2.
 
         For one double-precision pair potential with a ``verlet_step`` method (the pair
         frame's: :meth:`potentials.PairPotential.verlet_step`) over the exact list while it
-        holds, with no virial wanted: v += kick_dt kicks/m, x += drift_dt v, the forces,
-        v += kick_dt forces/m, and the forces cached as :meth:`compute` would (counted in
-        ``n_evaluations``, the call's time in ``timings["force"]``): 2. 1: only the drift
-        and first kick were done (an atom moved more than half the skin, or a value is
-        not finite): :meth:`compute` and the last kick are the caller's, as in a step
-        without this call. 0: nothing done (any other case). The same bits as the step
+        holds, with no virial wanted and the forces of ``state`` cached (the last step's):
+        v += kick_dt f/m with those forces, x += drift_dt v, the new forces, v += kick_dt
+        f/m, and the new forces cached as :meth:`compute` would (counted in
+        ``n_evaluations``, the call's time in ``timings["force"]``): 2. 1: only the first
+        kick and the drift were done (an atom moved more than half the skin, or a value
+        is not finite): :meth:`compute` and the last kick are the caller's, as in a step
+        without this call. 0: nothing done (any other case, a subclass that overrides
+        :meth:`compute` too): the caller makes the whole step. The same bits as the step
         made of :meth:`compute` and the kicks.
         """
         potentials = self.potentials
         neighbor_list = self.neighbor_list
+        cached, key = self._cached, self._key
         if (
-            len(potentials) != 1
+            cached is None
+            or len(potentials) != 1
             or self.virial_wanted
             or neighbor_list is None
             or self.precision != "double"
+            or type(self).compute is not ForceField.compute  # a subclass's compute is asked
         ):
             return 0
         step = getattr(potentials[0], "verlet_step", None)
         if step is None or potentials[0].cutoff is None:
             return 0
         check = neighbor_list.exact_check(state)
-        if check is None:
+        if check is None or not self._same_key(key, state):  # the cached forces are state's
             return 0
         start = time.perf_counter()
-        served = step(state, neighbor_list, kicks, kick_dt, drift_dt, check[0], check[1])
+        served = step(state, neighbor_list, cached.forces, kick_dt, drift_dt, check[0], check[1])
         if served is None:
             return 0
         self.timings["force"] += time.perf_counter() - start
@@ -216,9 +221,11 @@ class ForceField:
         if code != 0:
             return 1
         self.n_evaluations += 1
-        if self.cache:
-            self._key = self._key_of(state, self._key)
-            self._cached = result
+        if key[3] is not None:  # bytes: only the positions moved since the key matched
+            self._key = (state.positions.tobytes(), *key[1:])
+        else:
+            self._key = self._key_of(state, key)
+        self._cached = result
         return 2
 
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:

@@ -516,7 +516,6 @@ class PairPotential:
         call = self._frame_calls[0]
         if (  # the conditions of energy_forces' kept call
             call is None
-            or type(self).energy_forces is not PairPotential.energy_forces  # not overridden
             or call[1] is not state.positions
             or call[2] is not state.types
             or call[3] is not state.type_names
@@ -532,8 +531,8 @@ class PairPotential:
         fused = self._verlet_call
         if fused is None or fused[0] is not call:
             kernel, arguments, energies, virials, chunks = call[-1]
-            if chunks != 1:
-                return None
+            if chunks != 1 or type(self).energy_forces is not PairPotential.energy_forces:
+                return None  # (a subclass's own energy_forces is asked)
             # (positions, types, slots, n_types, table, mode, data, with_virial, single,
             # slot positions, slot types, buffers, energies, virials): all but the
             # positions and the virial flag, in frame_verlet's order
