@@ -187,12 +187,14 @@ class ForceField:
         holds, with no virial wanted and the forces of ``state`` cached (the last step's):
         v += kick_dt f/m with those forces, x += drift_dt v, the new forces, v += kick_dt
         f/m, and the new forces cached as :meth:`compute` would (counted in
-        ``n_evaluations``, the call's time in ``timings["force"]``): 2. 1: only the first
-        kick and the drift were done (an atom moved more than half the skin, or a value
-        is not finite): :meth:`compute` and the last kick are the caller's, as in a step
-        without this call. 0: nothing done (any other case, a subclass that overrides
-        :meth:`compute` too): the caller makes the whole step. The same bits as the step
-        made of :meth:`compute` and the kicks.
+        ``n_evaluations``, the calls' time in ``timings["force"]``): 2. When an atom moved
+        more than half the skin, the list is rebuilt after the drift (its time in
+        ``timings["neighbor"]``) and the forces and the last kick are a second compiled
+        call: 2 too. 1: only the first kick and the drift were done (a value is not
+        finite, or the rebuilt list is not one this call serves): :meth:`compute` and the
+        last kick are the caller's, as in a step without this call. 0: nothing done (any
+        other case, a subclass that overrides :meth:`compute` too): the caller makes the
+        whole step. The same bits as the step made of :meth:`compute` and the kicks.
         """
         potentials = self.potentials
         neighbor_list = self.neighbor_list
@@ -212,14 +214,26 @@ class ForceField:
         check = neighbor_list.exact_check(state)
         if check is None or not self._same_key(key, state):  # the cached forces are state's
             return 0
-        start = time.perf_counter()
-        served = step(state, neighbor_list, cached.forces, kick_dt, drift_dt, check[0], check[1])
+        timings, clock = self.timings, time.perf_counter
+        start = clock()
+        served = step(state, neighbor_list, cached.forces, kick_dt, drift_dt, *check)
         if served is None:
             return 0
-        self.timings["force"] += time.perf_counter() - start
         code, result = served
+        if code == 1:  # kicked and drifted, and an atom moved too far: the list's build
+            middle = clock()
+            timings["force"] += middle - start
+            if not neighbor_list.update(state):
+                return 1  # (not the list's verdict: compute and the last kick decide)
+            start = clock()
+            timings["neighbor"] += start - middle
+            served = step(state, neighbor_list, None, kick_dt, drift_dt, None, 0.0)
+            if served is None:
+                return 1
+            code, result = served
+        timings["force"] += clock() - start
         if code != 0:
-            return 1
+            return 1  # a value not finite: compute says what
         self.n_evaluations += 1
         if key[3] is not None:  # bytes: only the positions moved since the key matched
             self._key = (state.positions.tobytes(), *key[1:])

@@ -488,28 +488,22 @@ def frame_verlet(
     drift_dt,
     reference,
     allowed2,
-    types,
-    slots,
-    n_types,
-    table,
+    first_half,
+    call,
     mode,
-    data,
     single,
-    frame,
-    frame_types,
-    buffers,
-    energies,
-    virials,
     forces,
 ):
     """A velocity Verlet step over a slot-frame list that holds, in one call: return 0,
-    1 or 2.
+    1 or 2 (``first_half`` False: from the forces on, after the list was rebuilt;
+    ``kicks`` and ``reference`` are then not read).
 
     v += kick_dt kicks/m, x += drift_dt v (``kicks``: the forces at the step's start);
     then, if every atom is still within ``allowed2`` (squared) of ``reference`` (the
     list's half-skin rule), ``frame_forces`` on one chunk without the virial into
-    ``forces`` and ``energies[0]``, and if that energy and every force are finite,
-    v += kick_dt forces/m: 0. Returned early: 1 after the drift when an atom moved
+    ``forces`` and ``call.energies[0]`` (``call``: a ``potentials._frame_call.FrameCall``,
+    the other arguments of ``frame_forces``), and if that energy and every force are
+    finite, v += kick_dt forces/m: 0. Returned early: 1 after the drift when an atom moved
     farther or a coordinate is not finite (the caller refreshes the list and goes on
     with the force evaluation), 2 after the forces when a value is not finite (the
     velocities not kicked: the caller evaluates again, which says what). The arithmetic
@@ -518,35 +512,37 @@ def frame_verlet(
     either): the same bits as those separate calls.
     """
     n = positions.shape[0]
-    for i in range(n):
-        scale = kick_dt * (1.0 / masses[i])
-        for a in range(3):
-            v = velocities[i, a] + scale * kicks[i, a]
-            velocities[i, a] = v
-            positions[i, a] += drift_dt * v
-    held = True
-    for i in range(n):
-        dx = positions[i, 0] - reference[i, 0]
-        dy = positions[i, 1] - reference[i, 1]
-        dz = positions[i, 2] - reference[i, 2]
-        held &= dx * dx + dy * dy + dz * dz <= allowed2  # False for NaN too
-    if not held:
-        return 1
+    if first_half:
+        for i in range(n):
+            scale = kick_dt * (1.0 / masses[i])
+            for a in range(3):
+                v = velocities[i, a] + scale * kicks[i, a]
+                velocities[i, a] = v
+                positions[i, a] += drift_dt * v
+        held = True
+        for i in range(n):
+            dx = positions[i, 0] - reference[i, 0]
+            dy = positions[i, 1] - reference[i, 1]
+            dz = positions[i, 2] - reference[i, 2]
+            held &= dx * dx + dy * dy + dz * dz <= allowed2  # False for NaN too
+        if not held:
+            return 1
+    energies = call.energies
     frame_forces(
         positions,
-        types,
-        slots,
-        n_types,
-        table,
+        call.types,
+        call.slots,
+        call.n_types,
+        call.table,
         mode,
-        data,
+        call.data,
         False,
         single,
-        frame,
-        frame_types,
-        buffers,
+        call.frame,
+        call.frame_types,
+        call.buffers,
         energies,
-        virials,
+        call.virials,
         forces,
     )
     finite = abs(energies[0]) < np.inf
