@@ -88,21 +88,32 @@ def time_lammps(lmp, steps: int) -> float:
     return (clock() - start) / steps
 
 
-def engines_table(cell_counts: list[int], repeats: int, use_lammps: bool) -> dict:
-    """Per size: our and LAMMPS's seconds per step, one block each per repeat, interleaved."""
+def engines_table(
+    cell_counts: list[int], repeats: int, use_lammps: bool, unfused: bool = False
+) -> dict:
+    """Per size: our and LAMMPS's seconds per step, one block each per repeat, interleaved
+    (``unfused``: also ours with velocity Verlet's fused step turned off, under
+    ``"unfused"``)."""
     systems = {}
     for cells in cell_counts:
         sim = _our_simulation(cells)
         sim.run(20)  # compiles or loads the kernels; the first list and forces
         lmp = lammps_instance(cells) if use_lammps else None
-        systems[cells] = (sim, lmp, per_block_steps(sim.state.n_atoms))
-    times = {cells: {"ours": [], "lammps": []} for cells in cell_counts}
+        plain = None
+        if unfused:
+            plain = _our_simulation(cells)
+            plain.forcefield.verlet_step = lambda *args: 0  # "nothing done": the general path
+            plain.run(20)
+        systems[cells] = (sim, lmp, per_block_steps(sim.state.n_atoms), plain)
+    times = {cells: {"ours": [], "lammps": [], "unfused": []} for cells in cell_counts}
     for _ in range(repeats):
-        for cells, (sim, lmp, steps) in systems.items():
+        for cells, (sim, lmp, steps, plain) in systems.items():
             times[cells]["ours"].append(time_ours(sim, steps))
             if lmp is not None:
                 times[cells]["lammps"].append(time_lammps(lmp, steps))
-    for _, lmp, _ in systems.values():
+            if plain is not None:
+                times[cells]["unfused"].append(time_ours(plain, steps))
+    for _, lmp, _, _ in systems.values():
         if lmp is not None:
             lmp.close()
     return {systems[c][0].state.n_atoms: times[c] for c in cell_counts}
@@ -125,6 +136,27 @@ def print_engines(table: dict) -> None:
             line += f" {'-':>16} {'-':>12}"
         line += f" {n / statistics.median(ours) / 1e6:>20.2f}"
         print(line)
+    if any(times["unfused"] for times in table.values()):
+        print(
+            "\nvelocity Verlet's fused step (ForceField.verlet_step) against the same run with "
+            "it off, interleaved: us per step, median (least); ratio: median of fused/unfused"
+        )
+        for n, times in table.items():
+            ours, plain = times["ours"], times["unfused"]
+            ratio = statistics.median(a / b for a, b in zip(ours, plain, strict=True))
+            print(
+                f"{n:>6} {1e6 * statistics.median(ours):>8.1f} ({1e6 * min(ours):6.1f})"
+                f" {1e6 * statistics.median(plain):>8.1f} ({1e6 * min(plain):6.1f}) {ratio:>7.3f}"
+            )
+        if 500 in table and 4000 in table:
+            fits = []
+            for key in ("ours", "unfused"):
+                t500, t4000 = (statistics.median(table[n][key]) for n in (500, 4000))
+                fits.append(t500 - 500 * (t4000 - t500) / 3500)
+            print(
+                f"a through the medians, fused {1e6 * fits[0]:.1f} us, "
+                f"unfused {1e6 * fits[1]:.1f} us"
+            )
     if 500 in table and 4000 in table:
         for label, pick in (("medians", statistics.median), ("minima", min)):
             t500, t4000 = pick(table[500]["ours"]), pick(table[4000]["ours"])
@@ -252,6 +284,11 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7, help="blocks per engine and size (7)")
     parser.add_argument("--no-lammps", action="store_true", help="ours only")
     parser.add_argument("--no-ase", action="store_true", help="leave out the ASE calculator")
+    parser.add_argument(
+        "--unfused",
+        action="store_true",
+        help="also time ours with velocity Verlet's fused step off, in the same blocks",
+    )
     parser.add_argument("--ase-cells", default="2,3,4,5", help="argon fcc cells (2,3,4,5)")
     parser.add_argument("--ase-evals", type=int, default=200, help="calls per size (200)")
     parser.add_argument(
@@ -272,7 +309,7 @@ def main(argv=None) -> int:
         f"ratios of one run; clock: {args.clock}"
     )
     cells = [int(c) for c in args.cells.split(",")]
-    print_engines(engines_table(cells, args.repeats, not args.no_lammps))
+    print_engines(engines_table(cells, args.repeats, not args.no_lammps, args.unfused))
     if not args.no_ase:
         ase_table([int(c) for c in args.ase_cells.split(",")], args.ase_evals)
     return 0
