@@ -3,13 +3,14 @@ the ASE calculator's call with less Python around its force field.
 
 While the exact list holds, a velocity Verlet step of one pair potential is one compiled
 call (``ForceField.verlet_step``: the kicks, the drift, the list's half-skin check and the
-pair forces, the template's ``frame_verlet``); steps where the list is rebuilt, an
-observer wants the virial or a value is not finite take the general path. What is tested:
-that the fused call is what runs (the separate kick and force kernels are called only on
-the other steps), that it gives the general path's numbers to the bit (trajectories, list
-builds, the force cache, errors), and that the calculator's shorter call gives a fresh
-calculator's results. No timings: those are ``benchmarks/small_boxes.py``'s.
-"""
+pair forces, the template's ``frame_verlet``, the frame's arrays in one StructRef); a step
+whose check asks for a rebuild builds the list after the drift and runs its second half as
+a second such call; an observer's virial step or a value that is not finite take the
+general path. What is tested: that the fused calls are what run (the separate kick, drift
+and force kernels are not called), that they give the general path's numbers to the bit
+(trajectories, list builds, the force cache, errors), and that the calculator's shorter
+call gives a fresh calculator's results. No timings: those are
+``benchmarks/small_boxes.py``'s."""
 
 from __future__ import annotations
 
