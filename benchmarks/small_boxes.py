@@ -88,21 +88,32 @@ def time_lammps(lmp, steps: int) -> float:
     return (clock() - start) / steps
 
 
-def engines_table(cell_counts: list[int], repeats: int, use_lammps: bool) -> dict:
-    """Per size: our and LAMMPS's seconds per step, one block each per repeat, interleaved."""
+def engines_table(
+    cell_counts: list[int], repeats: int, use_lammps: bool, unfused: bool = False
+) -> dict:
+    """Per size: our and LAMMPS's seconds per step, one block each per repeat, interleaved
+    (``unfused``: also ours with velocity Verlet's fused step turned off, under
+    ``"unfused"``)."""
     systems = {}
     for cells in cell_counts:
         sim = _our_simulation(cells)
         sim.run(20)  # compiles or loads the kernels; the first list and forces
         lmp = lammps_instance(cells) if use_lammps else None
-        systems[cells] = (sim, lmp, per_block_steps(sim.state.n_atoms))
-    times = {cells: {"ours": [], "lammps": []} for cells in cell_counts}
+        plain = None
+        if unfused:
+            plain = _our_simulation(cells)
+            plain.forcefield.verlet_step = lambda *args: 0  # "nothing done": the general path
+            plain.run(20)
+        systems[cells] = (sim, lmp, per_block_steps(sim.state.n_atoms), plain)
+    times = {cells: {"ours": [], "lammps": [], "unfused": []} for cells in cell_counts}
     for _ in range(repeats):
-        for cells, (sim, lmp, steps) in systems.items():
+        for cells, (sim, lmp, steps, plain) in systems.items():
             times[cells]["ours"].append(time_ours(sim, steps))
             if lmp is not None:
                 times[cells]["lammps"].append(time_lammps(lmp, steps))
-    for _, lmp, _ in systems.values():
+            if plain is not None:
+                times[cells]["unfused"].append(time_ours(plain, steps))
+    for _, lmp, _, _ in systems.values():
         if lmp is not None:
             lmp.close()
     return {systems[c][0].state.n_atoms: times[c] for c in cell_counts}
@@ -125,6 +136,27 @@ def print_engines(table: dict) -> None:
             line += f" {'-':>16} {'-':>12}"
         line += f" {n / statistics.median(ours) / 1e6:>20.2f}"
         print(line)
+    if any(times["unfused"] for times in table.values()):
+        print(
+            "\nvelocity Verlet's fused step (ForceField.verlet_step) against the same run with "
+            "it off, interleaved: us per step, median (least); ratio: median of fused/unfused"
+        )
+        for n, times in table.items():
+            ours, plain = times["ours"], times["unfused"]
+            ratio = statistics.median(a / b for a, b in zip(ours, plain, strict=True))
+            print(
+                f"{n:>6} {1e6 * statistics.median(ours):>8.1f} ({1e6 * min(ours):6.1f})"
+                f" {1e6 * statistics.median(plain):>8.1f} ({1e6 * min(plain):6.1f}) {ratio:>7.3f}"
+            )
+        if 500 in table and 4000 in table:
+            fits = []
+            for key in ("ours", "unfused"):
+                t500, t4000 = (statistics.median(table[n][key]) for n in (500, 4000))
+                fits.append(t500 - 500 * (t4000 - t500) / 3500)
+            print(
+                f"a through the medians, fused {1e6 * fits[0]:.1f} us, "
+                f"unfused {1e6 * fits[1]:.1f} us"
+            )
     if 500 in table and 4000 in table:
         for label, pick in (("medians", statistics.median), ("minima", min)):
             t500, t4000 = pick(table[500]["ours"]), pick(table[4000]["ours"])
@@ -158,7 +190,13 @@ def ase_table(cell_counts: list[int], evaluations: int) -> None:
         "every atom moved [us]: median (least)"
     )
     print(
+        "(adapter: the difference of the medians; alone: the calls timed with the force "
+        "field's compute replaced by a stored result, the adapter's own cost without the "
+        "load's noise in the two long calls)"
+    )
+    print(
         f"{'atoms':>6} {'engine atoms':>13} {'MDCalculator':>16} {'ForceField':>16} {'adapter':>8}"
+        f" {'alone':>15}"
     )
     rng = np.random.default_rng(7)
     for cells in cell_counts:
@@ -186,10 +224,58 @@ def ase_table(cell_counts: list[int], evaluations: int) -> None:
             forcefield.compute(state, virial=False)
             engine_times.append(clock() - begin)
         c, e = statistics.median(calc_times), statistics.median(engine_times)
+        alone = adapter_alone(atoms, start, rng, evaluations)
         print(
             f"{len(atoms):>6} {state.n_atoms:>13} {1e6 * c:>8.1f} ({1e6 * min(calc_times):6.1f})"
             f" {1e6 * e:>8.1f} ({1e6 * min(engine_times):6.1f}) {1e6 * (c - e):>8.1f}"
+            f" {1e6 * statistics.median(alone):>7.2f} ({1e6 * min(alone):5.2f})"
         )
+
+
+def adapter_alone(atoms, start, rng, evaluations: int) -> list[float]:
+    """Seconds per energy + forces pair of calls on ``atoms`` (moved from ``start`` each
+    time, untimed, as in the table's loop) with its calculator's ``forcefield.compute``
+    replaced by a result it returned: what the calculator costs around the engine (ASE's
+    get_property, the comparisons, the State's update, the results)."""
+    forcefield = atoms.calc.forcefield
+    original, kept = forcefield.compute, []
+
+    def kept_result(state, per_atom=False, virial=True):
+        return kept[0]
+
+    kept.append(original(_recorded_state(atoms), virial=False))
+    forcefield.compute = kept_result
+    moves = [start + rng.uniform(-0.01, 0.01, size=start.shape) for _ in range(50)]
+    times = []
+    try:
+        for i in range(evaluations):
+            atoms.positions = moves[i % len(moves)]
+            begin = clock()
+            atoms.get_potential_energy()
+            atoms.get_forces()
+            times.append(clock() - begin)
+    finally:
+        del forcefield.compute  # the class's method again
+    return times
+
+
+def _recorded_state(atoms):
+    """The State the calculator hands its force field (caught from one compute call)."""
+    forcefield = atoms.calc.forcefield
+    seen = []
+    original = forcefield.compute
+
+    def recording(state, per_atom=False, virial=True):
+        seen.append(state)
+        return original(state, per_atom, virial)
+
+    forcefield.compute = recording
+    try:
+        atoms.positions = atoms.positions + 1e-6  # a change: the calculator evaluates
+        atoms.get_forces()
+    finally:
+        del forcefield.compute
+    return seen[0]
 
 
 def main(argv=None) -> int:
@@ -198,6 +284,11 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7, help="blocks per engine and size (7)")
     parser.add_argument("--no-lammps", action="store_true", help="ours only")
     parser.add_argument("--no-ase", action="store_true", help="leave out the ASE calculator")
+    parser.add_argument(
+        "--unfused",
+        action="store_true",
+        help="also time ours with velocity Verlet's fused step off, in the same blocks",
+    )
     parser.add_argument("--ase-cells", default="2,3,4,5", help="argon fcc cells (2,3,4,5)")
     parser.add_argument("--ase-evals", type=int, default=200, help="calls per size (200)")
     parser.add_argument(
@@ -218,7 +309,7 @@ def main(argv=None) -> int:
         f"ratios of one run; clock: {args.clock}"
     )
     cells = [int(c) for c in args.cells.split(",")]
-    print_engines(engines_table(cells, args.repeats, not args.no_lammps))
+    print_engines(engines_table(cells, args.repeats, not args.no_lammps, args.unfused))
     if not args.no_ase:
         ase_table([int(c) for c in args.ase_cells.split(",")], args.ase_evals)
     return 0

@@ -178,6 +178,69 @@ class ForceField:
             self._key = fresh if fresh is not None else self._key_of(state, key)
         return total
 
+    def verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int:
+        """Velocity Verlet's step in one compiled call where it can be: return 0, 1 or 2.
+
+        For one double-precision pair potential with a ``verlet_step`` method (the pair
+        frame's: :meth:`potentials.PairPotential.verlet_step`) over the exact list while it
+        holds, with no virial wanted and the forces of ``state`` cached (the last step's):
+        v += kick_dt f/m with those forces, x += drift_dt v, the new forces, v += kick_dt
+        f/m, and the new forces cached as :meth:`compute` would (counted in
+        ``n_evaluations``, the calls' time in ``timings["force"]``): 2. When an atom moved
+        more than half the skin, the list is rebuilt after the drift (its time in
+        ``timings["neighbor"]``) and the forces and the last kick are a second compiled
+        call: 2 too. 1: only the first kick and the drift were done (a value is not
+        finite, or the rebuilt list is not one this call serves): :meth:`compute` and the
+        last kick are the caller's, as in a step without this call. 0: nothing done (any
+        other case, a subclass that overrides :meth:`compute` too): the caller makes the
+        whole step. The same bits as the step made of :meth:`compute` and the kicks.
+        """
+        potentials = self.potentials
+        neighbor_list = self.neighbor_list
+        cached, key = self._cached, self._key
+        if (
+            cached is None
+            or len(potentials) != 1
+            or self.virial_wanted
+            or neighbor_list is None
+            or self.precision != "double"
+            or type(self).compute is not ForceField.compute  # a subclass's compute is asked
+        ):
+            return 0
+        step = getattr(potentials[0], "verlet_step", None)
+        if step is None or potentials[0].cutoff is None:
+            return 0
+        check = neighbor_list.exact_check(state)
+        if check is None or not self._same_key(key, state):  # the cached forces are state's
+            return 0
+        timings, clock = self.timings, time.perf_counter
+        start = clock()
+        served = step(state, neighbor_list, cached.forces, kick_dt, drift_dt, *check)
+        if served is None:
+            return 0
+        code, result = served
+        if code == 1:  # kicked and drifted, and an atom moved too far: the list's build
+            middle = clock()
+            timings["force"] += middle - start
+            if not neighbor_list.update(state):
+                return 1  # (not the list's verdict: compute and the last kick decide)
+            start = clock()
+            timings["neighbor"] += start - middle
+            served = step(state, neighbor_list, None, kick_dt, drift_dt, None, 0.0)
+            if served is None:
+                return 1
+            code, result = served
+        timings["force"] += clock() - start
+        if code != 0:
+            return 1  # a value not finite: compute says what
+        self.n_evaluations += 1
+        if key[3] is not None:  # bytes: only the positions moved since the key matched
+            self._key = (state.positions.tobytes(), *key[1:])
+        else:
+            self._key = self._key_of(state, key)
+        self._cached = result
+        return 2
+
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
         """Sum ``potentials`` over the shared neighbour list (refreshed if one of them needs
         it), timing the list and the kernels; NonFiniteError for non-finite input, energy, forces

@@ -92,6 +92,7 @@ _ENTRIES = (
     "atom_curvatures",
     "frame_forces",
     "frame_forces_threaded",
+    "frame_verlet",
     "frame_curvatures",
     "frame_curvatures_threaded",
     "cluster_forces",

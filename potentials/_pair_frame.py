@@ -44,6 +44,7 @@ from md.schema import REQUIRED, Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
 from potentials._cluster_ir import slp_vectorising
+from potentials._frame_call import frame_call, set_slots
 from potentials._kernels import (
     J_STRIDE,
     _cluster_moments,
@@ -208,6 +209,11 @@ class PairPotential:
         # step then pays for the kernels and not for setting them up again (about 25 us
         # of Python a call at 32000 atoms, on the calling thread alone); see energy_forces
         self._cluster_calls: list = [None, None]
+        # verlet_step's compiled step for the kept call without the virial: (that call,
+        # the kernel, its arguments after the reference and its bound and before the
+        # forces: a FrameCall, the mode and single-type flag; energies; the call's
+        # arguments, to see whether a new call differs only by its list's slots)
+        self._verlet_call: tuple | None = None
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -516,6 +522,80 @@ class PairPotential:
                     self._explain_non_finite(state, neighbors)
                 return result
         return self._energy_forces(state, neighbors, per_atom, virial, precision)
+
+    def verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, reference, allowed2):
+        """A velocity Verlet step with this potential's forces in one compiled call, where
+        the last slot-frame call without the virial serves ``state`` (as in
+        :meth:`energy_forces`) on one chunk; None where it does not (nothing done).
+
+        v += kick_dt kicks/m and x += drift_dt v; then, if no atom is farther than
+        ``sqrt(allowed2)`` from ``reference`` (the list's half-skin rule, see
+        :meth:`md.neighbors.NeighborList.exact_check`), the forces over ``neighbors``
+        without the virial and v += kick_dt forces/m. ``kicks`` None: the step's second
+        half alone (the forces and the last kick, after a rebuild of the list).
+        Returns ``(code, result)``: code 0, the step done, ``result`` its ForceResult;
+        1, only the first kick and the drift done, an atom moved too far or a coordinate
+        is not finite (the caller refreshes the list, then evaluates and kicks); 2, the
+        forces or energy not finite, the last kick not done; ``result`` None. The same
+        bits as the separate kicks, list check and :meth:`energy_forces` (the template's
+        ``frame_verlet``).
+        """
+        call = self._frame_calls[0]
+        if (  # the conditions of energy_forces' kept call
+            call is None
+            or call[1] is not state.positions
+            or call[2] is not state.types
+            or call[3] is not state.type_names
+            or call[4] is not self.data
+            or call[5] != self.cutoff_mode
+        ):
+            return None
+        frame = neighbors.frame
+        if call[0] is not frame:  # the list was built again since
+            call = self._reslotted(call, neighbors, frame, False)
+            if call is None:
+                return None
+        fused = self._verlet_call
+        if fused is None or fused[0] is not call:
+            kernel, arguments, energies, virials, chunks = call[-1]
+            if chunks != 1 or type(self).energy_forces is not PairPotential.energy_forces:
+                return None  # (a subclass's own energy_forces is asked)
+            # (positions, types, slots, n_types, table, mode, data, with_virial, single,
+            # slot positions, slot types, buffers, energies, virials): the loop-invariant
+            # arrays in one FrameCall (unboxed as one pointer), then the mode and the
+            # single-type flag, in frame_verlet's order
+            if fused is not None and _only_slots_differ(fused[4], arguments):
+                set_slots(fused[2][0], arguments[2])  # the call moved onto a new list
+                step, tail = fused[1], fused[2]
+            else:
+                packed = frame_call(*arguments[1:5], arguments[6], *arguments[9:])
+                tail = (packed, arguments[5], arguments[8])
+                flags = (arguments[5], arguments[8])  # the kernel's mode and single-type flag
+                step = self._frame_kernels.get(("verlet", *flags))
+                if step is None:
+                    kernels = self._loaded("double")
+                    step = variant(kernels, "frame_verlet", mode=flags[0], single=flags[1])
+                    self._frame_kernels["verlet", *flags] = step
+            fused = self._verlet_call = (call, step, tail, energies, arguments)
+        _, step, tail, energies, _ = fused
+        forces = np.empty((len(state.masses), 3))
+        first_half = kicks is not None
+        code = step(
+            state.positions,
+            state.velocities,
+            state.masses,
+            kicks if first_half else forces,  # (not read without the first half)
+            kick_dt,
+            drift_dt,
+            reference if first_half else forces,
+            allowed2,
+            first_half,
+            *tail,
+            forces,
+        )
+        if code != 0:
+            return code, None
+        return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
     @_compiling_the_term
     def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
@@ -1172,6 +1252,20 @@ def _slots(frame) -> tuple:
         frame.bounds,
         frame.tilt,
         frame.shifted,
+    )
+
+
+def _only_slots_differ(old: tuple, new: tuple) -> bool:
+    """Whether two slot-frame calls' arguments (``_frame_energy_forces``' order) are the same
+    objects and values but for the slots (index 2): a call moved onto a rebuilt list."""
+    return (
+        len(old) == len(new)
+        and all(old[i] is new[i] for i in (0, 1, 4, 6, *range(9, len(new))))
+        and old[3] == new[3]
+        and old[5] == new[5]
+        and old[7] == new[7]
+        and old[8] == new[8]
+        and type(old[2]) is type(new[2])
     )
 
 

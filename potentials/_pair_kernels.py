@@ -30,9 +30,10 @@ Everything else (slot-frame gather, chunks and threads, scatter-sum, type-pair
 tables, cutoff modes, virial, per-atom values, curvature passes) is here, once
 for every term; the term is inlined into the vectorised pair loops.
 
-The eight entry points have public names (``atom_forces``, ``atom_curvatures``,
+The nine entry points have public names (``atom_forces``, ``atom_curvatures``,
 ``frame_forces``, ``frame_curvatures``, ``cluster_forces`` and the last three's
-``_threaded`` forms): they are this module's interface; the rest is private. The
+``_threaded`` forms, and ``frame_verlet``, a velocity Verlet step around
+``frame_forces``): they are this module's interface; the rest is private. The
 cluster entries (mixed precision over a cluster-pair list) reach the term through
 ``_cluster_row`` (``potentials._cluster_ir``), which calls ``_pair`` per vector lane. Their cutoff
 mode, virial flag and single-type flag are compile-time constants: each term's
@@ -475,6 +476,86 @@ def frame_forces_threaded(
         )
     for chunk in prange(n_chunks):
         _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def frame_verlet(
+    positions,
+    velocities,
+    masses,
+    kicks,
+    kick_dt,
+    drift_dt,
+    reference,
+    allowed2,
+    first_half,
+    call,
+    mode,
+    single,
+    forces,
+):
+    """A velocity Verlet step over a slot-frame list that holds, in one call: return 0,
+    1 or 2 (``first_half`` False: from the forces on, after the list was rebuilt;
+    ``kicks`` and ``reference`` are then not read).
+
+    v += kick_dt kicks/m, x += drift_dt v (``kicks``: the forces at the step's start);
+    then, if every atom is still within ``allowed2`` (squared) of ``reference`` (the
+    list's half-skin rule), ``frame_forces`` on one chunk without the virial into
+    ``forces`` and ``call.energies[0]`` (``call``: a ``potentials._frame_call.FrameCall``,
+    the other arguments of ``frame_forces``), and if that energy and every force are
+    finite, v += kick_dt forces/m: 0. Returned early: 1 after the drift when an atom moved
+    farther or a coordinate is not finite (the caller refreshes the list and goes on
+    with the force evaluation), 2 after the forces when a value is not finite (the
+    velocities not kicked: the caller evaluates again, which says what). The arithmetic
+    is that of ``integrators._kernels.kick_drift_by_mass`` and ``kick_by_mass`` and of
+    the list's displacement check, expression by expression (no fast-math flags in
+    either): the same bits as those separate calls.
+    """
+    n = positions.shape[0]
+    if first_half:
+        for i in range(n):
+            scale = kick_dt * (1.0 / masses[i])
+            for a in range(3):
+                v = velocities[i, a] + scale * kicks[i, a]
+                velocities[i, a] = v
+                positions[i, a] += drift_dt * v
+        held = True
+        for i in range(n):
+            dx = positions[i, 0] - reference[i, 0]
+            dy = positions[i, 1] - reference[i, 1]
+            dz = positions[i, 2] - reference[i, 2]
+            held &= dx * dx + dy * dy + dz * dz <= allowed2  # False for NaN too
+        if not held:
+            return 1
+    energies = call.energies
+    frame_forces(
+        positions,
+        call.types,
+        call.slots,
+        call.n_types,
+        call.table,
+        mode,
+        call.data,
+        False,
+        single,
+        call.frame,
+        call.frame_types,
+        call.buffers,
+        energies,
+        call.virials,
+        forces,
+    )
+    finite = abs(energies[0]) < np.inf
+    for i in range(n):
+        for a in range(3):
+            finite &= abs(forces[i, a]) < np.inf
+    if not finite:
+        return 2
+    for i in range(n):
+        scale = kick_dt * (1.0 / masses[i])
+        for a in range(3):
+            velocities[i, a] += scale * forces[i, a]
+    return 0
 
 
 # ---------------------------------------------------------------- cluster pairs

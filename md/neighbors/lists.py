@@ -658,6 +658,28 @@ class NeighborList:
         """
         return self._verdict(state) is True
 
+    def exact_check(self, state: State) -> tuple | None:
+        """``(reference, allowed2)`` when :meth:`update` of ``state`` would apply the half-skin
+        rule alone, in one pass (the exact list in its build's own cell, which it never
+        left, of a system checked on one chunk): the list holds while no atom is farther
+        than ``sqrt(allowed2)`` from its place in ``reference`` (N, 3), else it is to be
+        rebuilt. None otherwise (then only :meth:`update` decides). A fused step (velocity
+        Verlet's, ``PairPotential.verlet_step``) checks this itself and calls
+        :meth:`update` only when an atom moved farther."""
+        reference = self._reference
+        if (
+            self.every == 1
+            and self.check
+            and self._outer is None
+            and reference is not None
+            and self._pass_chunks == 1
+            and reference.shape == state.positions.shape
+            and self.n_followed == self._followed_at_build
+            and (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes()) == self._cell_bytes
+        ):
+            return reference, self._rebuild_distance2
+        return None
+
     def update(self, state: State) -> bool:
         """Rebuild the list if needed; return True if it was rebuilt.
 
