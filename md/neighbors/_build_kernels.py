@@ -21,7 +21,6 @@ from md.neighbors._cell_kernels import (
     _frame_pairs_threaded,
     _slot_layout,
     _slot_layout_threaded,
-    _slot_owners,
 )
 
 
@@ -251,8 +250,6 @@ def _cell_list(
     chunks,
     neighbors,
     codes,
-    ids,
-    n_owned,
 ):
     """The cell search's whole build in one compiled call: bin, search, join.
 
@@ -266,10 +263,8 @@ def _cell_list(
     one), each in its region of ``len(neighbors) // chunks`` entries of both
     buffers. When a chunk finds more pairs than that, nothing is joined and
     count is minus the largest chunk's count: grow both buffers to hold that
-    many per chunk and call again. With ``ids`` (N,) (a rank of a decomposed
-    run, ``NeighborList.keep_owned``: atoms below ``n_owned`` are its own) the
-    list keeps only the pairs whose designated atom is owned (``designates``), filtered
-    by the search (empty ``ids``: every pair).
+    many per chunk and call again. (A rank of a decomposed run builds its list with
+    ``_owned_kernels._owned_cell_list``.)
 
     One call rather than a dozen small numpy ones between the kernels: in a
     run, the pair kernels have evicted the interpreter's working set from the
@@ -327,7 +322,6 @@ def _cell_list(
     starts = np.zeros(n + 1, dtype=np.int64)
     counts = np.zeros(chunks, dtype=np.int64)
     capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
-    owners = _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic)
     if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
         _frame_pairs_threaded(
             wrapped,
@@ -346,7 +340,6 @@ def _cell_list(
             neighbors,
             codes,
             counts,
-            owners,
         )
     else:
         _frame_pairs(
@@ -366,7 +359,6 @@ def _cell_list(
             neighbors,
             codes,
             counts,
-            owners,
         )
     most = counts.max()
     if most > capacity:

@@ -40,7 +40,7 @@ from md.neighbors._build_kernels import (
     _max_displacement2,
     _shift_table,
 )
-from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
+from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs
 from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
@@ -53,6 +53,7 @@ from md.neighbors._cluster_kernels import (
     search_pairs,
 )
 from md.neighbors._exclusion_kernels import _drop_grouped_pairs
+from md.neighbors._owned_kernels import _owned_brute_force_pairs, _owned_cell_list
 from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
 from md.parallel import chunk_count
 from md.state import State
@@ -223,10 +224,6 @@ def largest_displacement2(
     """As :func:`max_displacement2`, in ``chunks`` chunks on the threads when ``chunks`` > 1
     (the list's own rebuild test; :mod:`md.distributed` asks it for a rank's atoms)."""
     return _largest_displacement2(positions, reference, chunks)
-
-
-#: ``_cell_list``'s ids when every pair is listed (no :meth:`NeighborList.keep_owned`).
-_NO_IDS = np.empty(0, dtype=np.int64)
 
 
 def _square(length: float) -> float:
@@ -434,6 +431,7 @@ class NeighborList:
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
         self._owned: tuple[NDArray[np.int64], int] | None = None
+        self._listed_rows = 0  # rows of the last build that may hold pairs (see build)
         self._groups: NDArray[np.int64] | None = None  # see exclude_groups
 
     def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
@@ -448,6 +446,15 @@ class NeighborList:
         whole system is listed on exactly one rank and pairs of two ghosts on
         none (:mod:`md.distributed` sends the ghosts' forces back to their
         owners). None lists every pair again.
+
+        The search applies the rule itself (``md.neighbors._owned_kernels``): only
+        the owned atoms have rows (slots ``0 .. n_owned - 1``, the owned atoms by
+        cell; the ghosts' slots follow, their rows empty), each with its owned
+        partners by the half rule and the ghosts around it that the rule gives it,
+        so no pair of two ghosts is a candidate, and :attr:`bounds` (the pair
+        kernels' chunks) ends at the last owned slot: a ghost costs the force call
+        its position and force, no row. The O(N^2) search of a small local system
+        lists the same pairs over atom indices, under their owned atoms.
         """
         self._owned = (
             None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64), int(n_owned))
@@ -836,6 +843,8 @@ class NeighborList:
         self.lengths = lengths
         self.tilt = tilt
         self.used_cells = grid is not None
+        # the rows that may hold pairs: a rank's owned atoms (keep_owned), else every atom
+        self._listed_rows = n if self._owned is None else self._owned_ids(n)[1]
         chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
         columns = self._cluster_columns(state) if grid is not None else None
         if columns is not None:
@@ -847,7 +856,7 @@ class NeighborList:
             self.shifts = shifts
         elif grid is None:
             self._build_brute_force(state)
-            self.bounds = _balanced_bounds(self.slot_starts, chunks)
+            self.bounds = _balanced_bounds(self.slot_starts[: self._listed_rows + 1], chunks)
         elif n > MAX_SLOTS:
             raise ValueError(
                 f"the cell search lists at most {MAX_SLOTS} atoms per process, got {n}"
@@ -855,8 +864,6 @@ class NeighborList:
         else:
             self._build_cells(state, grid, chunks)
             self.shifts = shifts
-        if self._owned is not None and grid is None:
-            self._drop_unowned(chunks)
         if self._groups is not None:
             self._drop_grouped(chunks)
         self._reference = reference
@@ -1066,9 +1073,22 @@ class NeighborList:
         starts = np.zeros(n + 1, dtype=np.int64)
         r2_max = self._list_radius2
         while True:
-            count = _brute_force_pairs(
-                positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
-            )
+            if self._owned is None:
+                count = _brute_force_pairs(
+                    positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
+                )
+            else:  # a rank's: the owned rows only
+                count = _owned_brute_force_pairs(
+                    positions,
+                    self._listed_rows,
+                    self._owned[0],
+                    lengths,
+                    inverse,
+                    self.tilt,
+                    r2_max,
+                    starts,
+                    self._neighbor_buffer,
+                )
             if count <= self._neighbor_buffer.shape[0]:
                 break
             # Both buffers grow together: the cell search fills them side by side, and
@@ -1125,25 +1145,41 @@ class NeighborList:
 
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         origin, width, n_cells, reach = grid
-        ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
         r2_max = self._list_radius2
         while True:
-            order, images, starts, bounds, count, shifted = _cell_list(
-                state.positions,
-                origin,
-                width,
-                n_cells,
-                reach,
-                state.pbc,
-                state.box,
-                self.tilt,
-                r2_max,
-                chunks,
-                self._neighbor_buffer,
-                self._code_buffer,
-                ids,
-                n_owned,
-            )
+            if self._owned is None:
+                found = _cell_list(
+                    state.positions,
+                    origin,
+                    width,
+                    n_cells,
+                    reach,
+                    state.pbc,
+                    state.box,
+                    self.tilt,
+                    r2_max,
+                    chunks,
+                    self._neighbor_buffer,
+                    self._code_buffer,
+                )
+            else:  # a rank's: owned rows only, no pair of two ghosts searched
+                found = _owned_cell_list(
+                    state.positions,
+                    self._listed_rows,
+                    self._owned[0],
+                    origin,
+                    width,
+                    n_cells,
+                    reach,
+                    state.pbc,
+                    state.box,
+                    self.tilt,
+                    r2_max,
+                    chunks,
+                    self._neighbor_buffer,
+                    self._code_buffer,
+                )
+            order, images, starts, bounds, count, shifted = found
             if count >= 0:
                 break
             size = _grown(-count * chunks)
@@ -1158,26 +1194,13 @@ class NeighborList:
         self.bounds = bounds
 
     def _owned_ids(self, n_atoms: int) -> tuple[NDArray[np.int64], int]:
-        """:meth:`keep_owned`'s ids and owned count, checked against ``n_atoms``
-        (empty ids, 0 without them: every pair is listed)."""
-        if self._owned is None:
-            return _NO_IDS, 0
+        """:meth:`keep_owned`'s ids and owned count, checked against ``n_atoms``."""
         ids, n_owned = self._owned
         if ids.shape[0] != n_atoms:
             raise ValueError(f"keep_owned was given {ids.shape[0]} ids for {n_atoms} atoms")
+        if not 0 <= n_owned <= n_atoms:
+            raise ValueError(f"keep_owned was given {n_owned} owned atoms of {n_atoms}")
         return ids, n_owned
-
-    def _drop_unowned(self, chunks: int) -> None:
-        """Apply :meth:`keep_owned`'s rule to the list the O(N^2) search just built (the
-        cell search applies it as it searches)."""
-        ids, n_owned = self._owned_ids(len(self.slot_starts) - 1)
-        order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
-        count = _keep_owned_pairs(
-            order, self.slot_starts, self.slot_neighbors, self.codes, ids, n_owned
-        )
-        self.slot_neighbors = self.slot_neighbors[:count]
-        self.codes = self.codes[:count] if len(self.codes) else self.codes
-        self.bounds = _balanced_bounds(self.slot_starts, chunks)
 
     def _drop_grouped(self, chunks: int) -> None:
         """Apply :meth:`exclude_groups` to the list just built."""
@@ -1192,7 +1215,7 @@ class NeighborList:
         )
         self.slot_neighbors = self.slot_neighbors[:count]
         self.codes = self.codes[:count] if len(self.codes) else self.codes
-        self.bounds = _balanced_bounds(self.slot_starts, chunks)
+        self.bounds = _balanced_bounds(self.slot_starts[: self._listed_rows + 1], chunks)
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""
