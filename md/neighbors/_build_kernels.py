@@ -487,6 +487,54 @@ def _shifted_rows(cell_starts, n_cells, reach, periodic):
 
 
 @njit(cache=True, error_model="numpy")
+def _cell_grid(positions, periodic, box, across, radius, reach, max_cells):
+    """(origin, width, n_cells, fits) of the cell grid of ``NeighborList._grid``.
+
+    Along a periodic axis the grid spans the cell (``box``, its perpendicular width
+    ``across``); along an open one the atoms (at least ``radius`` wide). ``n_cells``:
+    ``floor(width * reach / radius)`` cells per axis, at least one, no more than
+    ``max_cells`` in all (the busiest axis that can shrink halved until they fit: wider
+    cells are still correct); ``fits``: every periodic axis has 2 reach + 1 of them.
+    """
+    n = positions.shape[0]
+    origin = np.zeros(3)
+    extent = np.empty(3)
+    n_cells = np.empty(3, dtype=np.int64)
+    fewest = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        if periodic[a]:
+            extent[a] = box[a]
+            span = across[a]
+            fewest[a] = 2 * reach + 1
+        else:
+            low = np.inf
+            high = -np.inf
+            for i in range(n):
+                low = min(low, positions[i, a])
+                high = max(high, positions[i, a])
+            origin[a] = low
+            extent[a] = max(high - low, radius)
+            span = extent[a]
+            fewest[a] = 1
+        # clipped in floating point first: a cluster that flew apart can span more
+        # cells than an int64 holds
+        n_cells[a] = np.int64(min(max(np.floor(span * reach / radius), 1.0), float(max_cells)))
+    fits = True
+    for a in range(3):
+        if n_cells[a] < fewest[a]:
+            fits = False
+    while fits and float(n_cells[0]) * n_cells[1] * n_cells[2] > max_cells:
+        axis = -1  # the busiest axis that can shrink
+        for a in range(3):
+            if n_cells[a] > fewest[a] and (axis < 0 or n_cells[a] > n_cells[axis]):
+                axis = a
+        if axis < 0:
+            break
+        n_cells[axis] = max(n_cells[axis] // 2, fewest[axis])
+    return origin, extent / n_cells, n_cells, fits
+
+
+@njit(cache=True, error_model="numpy")
 def _balanced_bounds(starts, chunks):
     """Row ranges of ``chunks`` chunks holding about equal numbers of pairs.
 
