@@ -8,7 +8,8 @@ kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
 ``_small_box_kernels``: the build of a box too narrow for the cells;
 ``_cluster_kernels``: the cluster-pair list; ``_exclusion_kernels``: the pairs of one
-group left out, :meth:`NeighborList.exclude_groups`).
+group left out, :meth:`NeighborList.exclude_groups`; ``_owned_kernels``: the list of a
+rank of a decomposed run, :meth:`NeighborList.keep_owned`).
 """
 
 from __future__ import annotations
