@@ -429,7 +429,7 @@ class NeighborList:
         self._tilt: NDArray[np.float64] | None = None
         self._pbc: NDArray[np.bool_] | None = None
         self._cell_bytes: tuple[bytes, ...] = ()  # box, tilt and pbc at the build
-        self._cell_memo = None  # (key, cell data, periodic, [its grid]) of _cell_data
+        self._cell_memo = None  # (key, cell data, periodic, {atoms: grid}) of _cell_data
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
         self._owned: tuple[NDArray[np.int64], int] | None = None
@@ -885,7 +885,8 @@ class NeighborList:
         ``check_box``; ``limits``: the farthest a coordinate may lie from the origin
         along each axis (floats; inf along open axes).
 
-        Kept for the next build while the cell is unchanged: a build in a run then
+        Kept for the next build while the cell is unchanged (whatever the atom count, which
+        a decomposed rank's local system changes at every build): a build in a run then
         skips some thirty small numpy calls, each slow in a run, where the pair kernels
         have evicted the interpreter's data from the caches. Along an open axis the
         grid spans the atoms, so a cell with one (a rank of a decomposed run, open along
@@ -897,7 +898,6 @@ class NeighborList:
             state.box.tobytes(),
             state.tilt.tobytes(),
             state.pbc.tobytes(),
-            state.n_atoms,
             self.cutoff,
             self.skin,
         )
@@ -912,16 +912,17 @@ class NeighborList:
             )
             across = perpendicular_widths(state.box, tilt)
             shifts = _shift_table(state.box, state.pbc, tilt)
-            memo = (key, (lengths, tilt, across, shifts, limits), bool(np.all(state.pbc)), [])
+            memo = (key, (lengths, tilt, across, shifts, limits), bool(np.all(state.pbc)), {})
             self._cell_memo = memo
         lengths, tilt, across, shifts, limits = memo[1]
-        grids = memo[3]  # the periodic cell's grid, once
-        if not grids:
+        grids = memo[3]  # a periodic cell's grid per atom count (the most cells it may have)
+        grid = grids.get(state.n_atoms, False)
+        if grid is False:
             grid = self._grid(state, across)
             if memo[2]:
-                grids.append(grid)
-        else:
-            grid = grids[0]
+                if len(grids) > 8:  # (a rank's count changes at every build)
+                    grids.clear()
+                grids[state.n_atoms] = grid
         return lengths, tilt, grid, shifts, limits
 
     def _cluster_columns(self, state: State) -> tuple[int, int] | None:
