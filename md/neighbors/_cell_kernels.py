@@ -82,7 +82,7 @@ gather, the designated-atom rule) and ``_brute_force_pairs``; the candidate test
 around the search (``_cell_list``, binning, joining the chunks, ``_balanced_bounds``, the
 shift table, the atom-space list and the rebuild check) in ``_build_kernels``.
 
-A note on its length (about 1000 lines, over the 800 where a module is split): its
+A note on its length (about 850 lines, over the 800 where a module is split): its
 kernels take their arrays as arguments, and the formatter writes a long argument list a
 line per argument (about 250 of its lines); they are one search and stay together.
 """

@@ -1,6 +1,6 @@
 """Verlet neighbour lists built from cell lists.
 
-A note on its length (about 1150 lines, over the 800 where a module is split): nearly
+A note on its length (about 1300 lines, over the 800 where a module is split): nearly
 all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
 brute-force, cell and cluster builds and the prune share its buffers and reference
 positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
