@@ -344,7 +344,10 @@ def _owned_pairs_chunk(
     of the 25 columns around it, its own included (``_gather_around``). Row i (z cell cz)
     tests the owned ones as that search does (a half list), then the ghosts of z cells
     cz - reach to cz + reach, and keeps those whose pair designates atom i
-    (``_keep_designated``) while they are in the cache.
+    (``_keep_designated``) while they are in the cache. (As in ``_frame_pairs_chunk``,
+    ``ghost`` counts the image cells past each end of a periodic z axis and
+    ``ghost_last`` the own column's images above its top; the ghost atoms' candidates
+    are the ``g`` arrays.)
     """
     nz = n_cells[2]
     most_cell, most_column = most
