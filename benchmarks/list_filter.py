@@ -1,18 +1,16 @@
-"""Cost of a decomposed rank's pair filter (``NeighborList.keep_owned``) in a list build.
+"""Cost of a decomposed rank's list (``NeighborList.keep_owned``) against a whole list.
 
 A rank of an MPI run builds its list over its own atoms and the ghost copies
-of its neighbours' atoms and keeps each pair on one rank only: the cell search
-filters the rows beside ghosts as it finds them (``_keep_owned_row``; rows far
-from every ghost are not checked). This times full list builds of an
-open fcc block (48 x 60 x 60 cells, 691,200 atoms, cutoff 2.5 + skin 0.3, 1
-thread) with the first 85 % of the atoms "owned" and the rest "ghosts", with
-and without the filter, for ids in lattice order and for randomly permuted ids
-(the filter once compared ids first: a mispredicted branch per pair where ids
-follow no spatial order). Prints the median build time of each and the
-filter's share.
-
-    python benchmarks/list_filter.py
-    python benchmarks/list_filter.py --cells 24,30,30 --repeats 7
+of its neighbours' atoms and keeps each pair on one rank only: the search runs
+over the owned atoms' rows alone (owned partners by the half rule, ghosts all
+around, the designated-atom rule applied as it writes them:
+``md.neighbors._owned_kernels``), so the pairs of two ghosts are never searched.
+This times full list builds of an open fcc block (48 x 60 x 60 cells, 691,200
+atoms, cutoff 2.5 + skin 0.3, 1 thread) with the first 85 % of the atoms
+"owned" and the rest "ghosts", as a rank's list and as the list of every pair,
+for ids in lattice order and for randomly permuted ids (the designated-atom
+test depends on them). Prints the median build time of each and the rank's
+list's time over the whole list's.
 """
 
 from __future__ import annotations
@@ -75,8 +73,8 @@ def main(argv=None) -> None:
             k / p for k, p in zip(runs[label, True], runs[label, False], strict=True)
         )
         print(
-            f"{label:12s} build {plain:.3f} s ({lists[label, False].n_pairs} pairs), with the "
-            f"filter {kept:.3f} s ({lists[label, True].n_pairs} pairs): the filter "
+            f"{label:12s} whole list {plain:.3f} s ({lists[label, False].n_pairs} pairs), the "
+            f"rank's {kept:.3f} s ({lists[label, True].n_pairs} pairs): "
             f"{kept - plain:+.3f} s, {100 * (share - 1):+.0f} % (median of per-repeat ratios)"
         )
 

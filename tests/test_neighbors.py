@@ -564,8 +564,6 @@ def test_one_build_call_in_any_number_of_chunks_gives_the_same_list(shape, fcc_l
             chunks,
             neighbors,
             codes,
-            np.empty(0, dtype=np.int64),
-            0,
         )
         return out, neighbors, codes
 
@@ -733,13 +731,11 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(
 ):
     """A rank's list (NeighborList.keep_owned): of every pair within the list radius, those
     whose designated atom is owned (the smaller id if the ids' sum is even, else the
-    larger), after the cell search (which filters the rows beside ghosts as it finds them)
-    and the O(N^2) one alike (one or two chunks). Owned atoms as a rank holds them (a slab,
-    as the lattice orders them: columns of cells far from every ghost, which the search
-    does not filter, and columns beside them) or scattered (every row filtered). With ids
-    in the lattice's order (all the slab's ids below the others') the rank keeps about
-    half of the pairs across its faces, not all of them."""
-    from md.neighbors._cell_kernels import _slot_owners
+    larger), after the cell search (which searches the owned atoms' rows only) and the
+    O(N^2) one alike (one or two chunks). Owned atoms as a rank holds them (a slab, as the
+    lattice orders them) or scattered. With ids in the lattice's order (all the slab's ids
+    below the others') the rank keeps about half of the pairs across its faces, not all
+    of them."""
     from md.parallel import get_threads, set_threads
 
     state = fcc_lattice(cells=7, perturbation=0.1, pbc=shape != "open")
@@ -760,35 +756,20 @@ def test_keep_owned_lists_each_pair_under_the_owner_of_its_designated_atom(
     finally:
         set_threads(before)
     assert whole.used_cells and mine.used_cells
-    # the slab leaves columns with no ghost within reach (their rows are not filtered)
-    origin, width, n_cells, reach = mine._grid(state)
-    cell = np.floor((state.positions[mine.order] - origin) / width).astype(np.int64)
-    cell = np.where(state.pbc, cell % n_cells, np.clip(cell, 0, n_cells - 1))
-    in_cell = np.bincount(
-        (cell[:, 0] * n_cells[1] + cell[:, 1]) * n_cells[2] + cell[:, 2],
-        minlength=int(np.prod(n_cells)),
-    )
-    cell_starts = np.concatenate([[0], np.cumsum(in_cell)])
-    mixed = _slot_owners(mine.order, ids, n_owned, cell_starts, n_cells, reach, state.pbc)[2]
-    assert mixed.any() and (owners == "scattered") == mixed.all()
     pairs = whole.pairs()
     first, second = pairs[:, 0], pairs[:, 1]
     keep = np.where(_designates(ids[first], ids[second]), first < n_owned, second < n_owned)
     np.testing.assert_array_equal(mine.pairs(), pairs[keep])
     assert 0 < keep.sum() < len(pairs)
-    # in slot space, each kept pair keeps its image code (the filter moves rows as blocks)
-    if len(whole.codes):
-        assert np.array_equal(whole.order, mine.order)
-
-        def slot_pairs(listed):
-            rows = np.repeat(np.arange(len(listed.slot_starts) - 1), np.diff(listed.slot_starts))
-            return rows, listed.slot_neighbors.astype(np.int64), listed.codes.astype(np.int64)
-
-        p, q, code = slot_pairs(whole)
-        a, b = whole.order[p], whole.order[q]
-        rule = np.where(_designates(ids[a], ids[b]), a < n_owned, b < n_owned)
-        expected = np.stack([p[rule], q[rule], code[rule]], axis=1)
-        np.testing.assert_array_equal(np.stack(slot_pairs(mine), axis=1), expected)
+    # in slot space, each kept pair's image code gives its minimum-image separation
+    rows = np.repeat(np.arange(n), np.diff(mine.slot_starts))
+    q = mine.slot_neighbors.astype(np.int64)
+    frame = mine.frame_positions(state.positions)
+    shifts = mine.shifts[mine.codes] if len(mine.codes) else 0.0
+    separations = md.box.minimum_image(
+        state.positions[mine.order[rows]] - state.positions[mine.order[q]], state.box, state.pbc
+    )
+    np.testing.assert_allclose(frame[rows] - frame[q] - shifts, separations, atol=1e-9)
     # the O(N^2) search keeps the same pairs
     few = md.State(positions=rng.uniform(0.0, 4.0, (60, 3)), box=[4.0, 4.0, 4.0])
     alone = NeighborList(cutoff=1.5, skin=0.3)

@@ -17,7 +17,9 @@ finds those images as a single process does,
 :class:`md.forcefield.ForceField` (threaded kernels and all). Its neighbour
 list keeps only the pairs whose designated atom it owns (the lower id when the
 ids' sum is even, the higher when odd: :meth:`md.neighbors.NeighborList.keep_owned`,
-which splits the pairs across each face about evenly), so every pair
+which splits the pairs across each face about evenly; the search applies the rule
+itself, over the owned atoms' rows only, so a pair of two ghosts is never a candidate
+and the pair kernels walk no ghost row), so every pair
 is evaluated once in the whole run and pairs of two ghosts not at all; each
 bond (angle) is evaluated by the owner of its first atom (vertex), with its
 partners' nearest copies. The forces on ghosts then go back to their owners

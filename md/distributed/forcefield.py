@@ -3,13 +3,15 @@
 A rank evaluates its local system (owned atoms and ghosts, :mod:`md.distributed.halo`)
 with an ordinary :class:`md.forcefield.ForceField`. Its neighbour list keeps only
 the pairs whose designated atom it owns (the lower id when the ids' sum is even,
-the higher when odd: :meth:`md.neighbors.NeighborList.keep_owned`), so every pair
-is evaluated once in the whole run; each bond (angle) is evaluated by the owner
-of its first atom (vertex), with its partners' nearest copies. The ghosts' forces
-go back to their owners (newton on), and the energy and virial are sums over the
-ranks. The list is rebuilt when the largest move of any atom since the last build
-exceeds skin/2 (a global maximum); atoms migrate at rebuilds taken between steps,
-and the ghosts and list are laid out where the step is expected to take the atoms.
+the higher when odd: :meth:`md.neighbors.NeighborList.keep_owned`, searched over the
+owned atoms' rows only: no pair of two ghosts is a candidate, no ghost has a row for the
+pair kernels to walk), so every pair is evaluated once in the whole run; each bond
+(angle) is evaluated by the owner of its first atom (vertex), with its partners' nearest
+copies. The ghosts' forces go back to their owners (newton on), and the energy and
+virial are sums over the ranks. The list is rebuilt when the largest move of any atom
+since the last build exceeds skin/2 (a global maximum); atoms migrate at rebuilds taken
+between steps, and the ghosts and list are laid out where the step is expected to take
+the atoms.
 """
 
 from __future__ import annotations

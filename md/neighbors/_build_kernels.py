@@ -21,7 +21,6 @@ from md.neighbors._cell_kernels import (
     _frame_pairs_threaded,
     _slot_layout,
     _slot_layout_threaded,
-    _slot_owners,
 )
 
 
@@ -251,8 +250,6 @@ def _cell_list(
     chunks,
     neighbors,
     codes,
-    ids,
-    n_owned,
 ):
     """The cell search's whole build in one compiled call: bin, search, join.
 
@@ -266,10 +263,8 @@ def _cell_list(
     one), each in its region of ``len(neighbors) // chunks`` entries of both
     buffers. When a chunk finds more pairs than that, nothing is joined and
     count is minus the largest chunk's count: grow both buffers to hold that
-    many per chunk and call again. With ``ids`` (N,) (a rank of a decomposed
-    run, ``NeighborList.keep_owned``: atoms below ``n_owned`` are its own) the
-    list keeps only the pairs whose designated atom is owned (``designates``), filtered
-    by the search (empty ``ids``: every pair).
+    many per chunk and call again. (A rank of a decomposed run builds its list with
+    ``_owned_kernels._owned_cell_list``.)
 
     One call rather than a dozen small numpy ones between the kernels: in a
     run, the pair kernels have evicted the interpreter's working set from the
@@ -327,7 +322,6 @@ def _cell_list(
     starts = np.zeros(n + 1, dtype=np.int64)
     counts = np.zeros(chunks, dtype=np.int64)
     capacity = min(neighbors.shape[0], codes.shape[0]) // chunks
-    owners = _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic)
     if chunks > 1:  # one chunk stays off numba's thread pool: no wake-ups on a busy machine
         _frame_pairs_threaded(
             wrapped,
@@ -346,7 +340,6 @@ def _cell_list(
             neighbors,
             codes,
             counts,
-            owners,
         )
     else:
         _frame_pairs(
@@ -366,7 +359,6 @@ def _cell_list(
             neighbors,
             codes,
             counts,
-            owners,
         )
     most = counts.max()
     if most > capacity:
@@ -492,6 +484,54 @@ def _shifted_rows(cell_starts, n_cells, reach, periodic):
                     shifted[p] = flag
                 cell += 1
     return shifted
+
+
+@njit(cache=True, error_model="numpy")
+def _cell_grid(positions, periodic, box, across, radius, reach, max_cells):
+    """(origin, width, n_cells, fits) of the cell grid of ``NeighborList._grid``.
+
+    Along a periodic axis the grid spans the cell (``box``, its perpendicular width
+    ``across``); along an open one the atoms (at least ``radius`` wide). ``n_cells``:
+    ``floor(width * reach / radius)`` cells per axis, at least one, no more than
+    ``max_cells`` in all (the busiest axis that can shrink halved until they fit: wider
+    cells are still correct); ``fits``: every periodic axis has 2 reach + 1 of them.
+    """
+    n = positions.shape[0]
+    origin = np.zeros(3)
+    extent = np.empty(3)
+    n_cells = np.empty(3, dtype=np.int64)
+    fewest = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        if periodic[a]:
+            extent[a] = box[a]
+            span = across[a]
+            fewest[a] = 2 * reach + 1
+        else:
+            low = np.inf
+            high = -np.inf
+            for i in range(n):
+                low = min(low, positions[i, a])
+                high = max(high, positions[i, a])
+            origin[a] = low
+            extent[a] = max(high - low, radius)
+            span = extent[a]
+            fewest[a] = 1
+        # clipped in floating point first: a cluster that flew apart can span more
+        # cells than an int64 holds
+        n_cells[a] = np.int64(min(max(np.floor(span * reach / radius), 1.0), float(max_cells)))
+    fits = True
+    for a in range(3):
+        if n_cells[a] < fewest[a]:
+            fits = False
+    while fits and float(n_cells[0]) * n_cells[1] * n_cells[2] > max_cells:
+        axis = -1  # the busiest axis that can shrink
+        for a in range(3):
+            if n_cells[a] > fewest[a] and (axis < 0 or n_cells[a] > n_cells[axis]):
+                axis = a
+        if axis < 0:
+            break
+        n_cells[axis] = max(n_cells[axis] // 2, fewest[axis])
+    return origin, extent / n_cells, n_cells, fits
 
 
 @njit(cache=True, error_model="numpy")

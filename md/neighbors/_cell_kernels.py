@@ -55,10 +55,7 @@ flushed the caches. In order:
      hits' packed slot and code as it tests, by AVX2 lane permutes on x86
      with AVX2 (``_near_pack_blocks``), else by scanning a bit mask
      (``_near_pack_scan``: ``_near_bits``, then cttz); ``_keep`` counts
-     before it writes near the end of the chunk's region; for a rank of a
-     decomposed run, the rows beside ghosts then keep only the pairs whose
-     designated atom is owned (``designates``, ``_keep_owned_row``, per
-     column flags from ``_slot_owners``);
+     before it writes near the end of the chunk's region;
    - a single chunk is unpacked into slots and a one-byte image code per pair
      at its end; several are joined by ``_join_chunks``, on the threads: each
      chunk is unpacked straight to its place in the list where that overlaps
@@ -71,20 +68,21 @@ When a periodic axis has room for fewer than 5 half-radius cells,
 ``_small_box_kernels._small_box_list`` builds the same slot frame by an O(N^2)
 search over the periodic images instead; ``_brute_force_pairs`` (over atom
 indices, minimum image) where that does not serve (a periodic width under the
-list radius, a rank's owned pairs). It is also the reference the cell search
-is tested against. ``_atom_space_list``
+list radius). It is also the reference the cell search is tested against. A rank
+of a decomposed run searches only its owned atoms' rows (``_owned_kernels``, with
+this module's gather and ``designates``). ``_atom_space_list``
 translates a slot list into one over atom indices for potentials that read
 ``neighbors.starts``/``neighbors.neighbors``.
 
 Where the parts live
 --------------------
 This module holds the search (``_frame_pairs`` and what it calls, the slot layout, the
-gather, the owned-pair filter) and ``_brute_force_pairs``; the candidate test's LLVM IR
+gather, the designated-atom rule) and ``_brute_force_pairs``; the candidate test's LLVM IR
 (``_near_bits``, the ``_near_pack`` family, ``_keep``) is in ``_candidates``; the build
 around the search (``_cell_list``, binning, joining the chunks, ``_balanced_bounds``, the
 shift table, the atom-space list and the rebuild check) in ``_build_kernels``.
 
-A note on its length (about 1000 lines, over the 800 where a module is split): its
+A note on its length (about 850 lines, over the 800 where a module is split): its
 kernels take their arrays as arguments, and the formatter writes a long argument list a
 line per argument (about 250 of its lines); they are one search and stay together.
 """
@@ -197,7 +195,6 @@ def _frame_pairs(
     neighbors,
     codes,
     counts,
-    owners,
 ):
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
@@ -221,9 +218,7 @@ def _frame_pairs(
     unordered pair is listed once, under the slot whose cell sees the other
     through the own cell (then under the lower slot) or one of the
     lexicographically positive offsets (13 for reach 1, 62 for reach 2).
-    ``owners`` = (slot_owned, slot_ids, column_mixed) (``_slot_owners``) keeps
-    only the pairs a rank of a decomposed run evaluates, row by row as the
-    search writes them (empty arrays: every pair).
+    (A rank of a decomposed run searches its own rows instead: ``_owned_kernels``.)
     ``codes[k]`` names the image shift s
     of that neighbour cell, so the pair displacement is
     ``wrapped[:, p] - wrapped[:, q] - s`` with no minimum image (see
@@ -252,7 +247,6 @@ def _frame_pairs(
             neighbors,
             codes,
             counts,
-            owners,
         )
 
 
@@ -274,7 +268,6 @@ def _frame_pairs_threaded(
     neighbors,
     codes,
     counts,
-    owners,
 ):
     """``_frame_pairs`` with one chunk per thread (same arguments, same result)."""
     planes, tags, most = layout
@@ -299,7 +292,6 @@ def _frame_pairs_threaded(
             neighbors,
             codes,
             counts,
-            owners,
         )
 
 
@@ -324,7 +316,6 @@ def _frame_pairs_chunk(
     neighbors,
     codes,
     counts,
-    owners,
 ):
     """One chunk of ``_frame_pairs``: slots bounds[chunk] to bounds[chunk + 1].
 
@@ -345,13 +336,7 @@ def _frame_pairs_chunk(
     the cell along axes with wraps (wx, wy, wz) is seen shifted by
     wx a + wy b + wz c, named by code 9 (wx + 1) + 3 (wy + 1) + wz + 1. A
     candidate carries its slot and code packed in one uint32 (``MAX_SLOTS``).
-    With ``owners`` (a rank's list), a row found beside a ghost (a ghost's
-    own row, or one in a column with ghosts within ``reach`` columns) keeps
-    only its pairs whose designated atom (``designates``) is owned
-    (``_keep_owned_row``), while its hits are in the cache.
     """
-    slot_owned, slot_ids, column_mixed = owners
-    filtering = slot_owned.shape[0] > 0
     nz = n_cells[2]
     most_cell, most_column = most
     base = chunk * capacity
@@ -402,9 +387,7 @@ def _frame_pairs_chunk(
             z_start,
             own,
         )
-        mixed = column_mixed[column] if filtering else False
         for i in range(p, stop):
-            row_begin = count
             kz = slot_cell[i] - column * nz
             first = z_start[max(kz - reach + ghost, 0)]  # forward cells cz -/+ reach
             last = z_start[min(kz + reach + ghost, n_z - 1) + 1]
@@ -514,13 +497,6 @@ def _frame_pairs_chunk(
                         packed_list,
                     )
             # (past the capacity nothing was written: the count stays an upper bound)
-            if (mixed or (filtering and not slot_owned[i])) and count <= capacity:
-                count = (
-                    _keep_owned_row(
-                        packed_list, base + row_begin, base + count, slot_owned, slot_ids, i
-                    )
-                    - base
-                )
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
@@ -858,126 +834,3 @@ def designates(a, b):
     every pair across both faces of a 2 x 1 x 1 brick (4-6 % more pairs than the
     other rank, which then waited at every step)."""
     return (a < b) != (((a + b) & 1) == 1)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _keep_owned_row(out, first, last, slot_owned, slot_ids, i):
-    """Keep, in place, row i's packed pairs ``out[first:last]`` whose designated atom
-    (``designates``) is owned (``_keep_owned_pairs``'s rule); return the new end."""
-    own = slot_owned[i] != 0
-    own_id = slot_ids[i]
-    kept = first
-    for k in range(first, last):
-        value = out[k]
-        q = value & _SLOT_MASK
-        if own:
-            keep = slot_owned[q] != 0 or designates(own_id, slot_ids[q])
-        else:
-            keep = slot_owned[q] != 0 and designates(slot_ids[q], own_id)
-        out[kept] = value  # written always, counted when kept: no branch to mispredict
-        kept += keep
-    return kept
-
-
-@njit(cache=True, error_model="numpy")
-def _slot_owners(order, ids, n_owned, cell_starts, n_cells, reach, periodic):
-    """(slot_owned, slot_ids, column_mixed) for ``_frame_pairs``'s filter: per slot,
-    whether its atom is owned (index < ``n_owned``) and its global id; per (x, y)
-    column, whether a ghost lies in it or in a column within ``reach`` along x or
-    y (its rows' partners may then be ghosts). Empty ``ids``: three empty arrays."""
-    if ids.shape[0] == 0:
-        return (
-            np.empty(0, dtype=np.uint8),
-            np.empty(0, dtype=np.int64),
-            np.empty(0, dtype=np.bool_),
-        )
-    n = order.shape[0]
-    slot_owned = np.empty(n, dtype=np.uint8)
-    slot_ids = np.empty(n, dtype=np.int64)
-    for p in range(n):
-        a = order[p]
-        slot_owned[p] = a < n_owned
-        slot_ids[p] = ids[a]
-    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
-    has_ghost = np.zeros(nx * ny, dtype=np.bool_)
-    for column in range(nx * ny):
-        for p in range(cell_starts[column * nz], cell_starts[column * nz + nz]):
-            if slot_owned[p] == 0:
-                has_ghost[column] = True
-                break
-    column_mixed = np.zeros(nx * ny, dtype=np.bool_)
-    for column in range(nx * ny):
-        kx0 = column // ny
-        ky0 = column % ny
-        for ox in range(-reach, reach + 1):
-            kx, _ = _neighbor_cell(kx0, ox, nx, periodic[0])
-            if kx < 0:
-                continue
-            for oy in range(-reach, reach + 1):
-                ky, _ = _neighbor_cell(ky0, oy, ny, periodic[1])
-                if ky >= 0 and has_ghost[kx * ny + ky]:
-                    column_mixed[column] = True
-    return slot_owned, slot_ids, column_mixed
-
-
-@njit(cache=True, error_model="numpy")
-def _keep_owned_pairs(order, starts, neighbors, codes, ids, n_owned):
-    """Keep, in place, only the listed pairs whose designated atom (``designates``) is
-    owned; return the new pair count.
-
-    The pair filter of a rank in a decomposed run (``NeighborList.keep_owned``): atoms
-    ``0 .. n_owned - 1`` are the rank's own, the rest ghost copies of other ranks' atoms
-    (or periodic images), ``ids`` their global ids. Each pair of the whole system is then
-    kept on exactly one rank, and ghost-ghost pairs on none. ``order``: the atom in each
-    slot (empty for a list over atom indices); ``codes``: one per pair, or empty. The
-    kept pairs keep their order; ``starts`` is rewritten.
-    """
-    n = starts.shape[0] - 1
-    slot_ids = np.empty(n, dtype=np.int64)
-    slot_owned = np.empty(n, dtype=np.uint8)  # 0 or 1: summed below
-    for p in range(n):
-        a = order[p] if order.shape[0] > 0 else p
-        slot_ids[p] = ids[a]
-        slot_owned[p] = a < n_owned
-    with_codes = codes.shape[0] > 0
-    kept = 0
-    begin = starts[0]
-    # The test per pair is ordered so that its branches are predictable: an owned row
-    # keeps its owned partners (nearly all of them) without comparing ids, a ghost row
-    # drops its ghost partners likewise; the ids are compared only across the brick's
-    # face. (Comparing ids first, a coin toss per pair where the ids follow no spatial
-    # order, cost 0.19 s against 0.05 s on 26 million pairs.)
-    for p in range(n):
-        end = starts[p + 1]
-        own_id = slot_ids[p]
-        if slot_owned[p]:
-            ghosts = 0  # a read-only count first: most owned rows have no ghost partner,
-            for k in range(begin, end):  # and those move as one block (0.052 -> 0.031 s)
-                ghosts += 1 - slot_owned[neighbors[k]]
-            if ghosts == 0:
-                if kept != begin:
-                    for k in range(begin, end):
-                        neighbors[kept + k - begin] = neighbors[k]
-                    if with_codes:
-                        for k in range(begin, end):
-                            codes[kept + k - begin] = codes[k]
-                kept += end - begin
-            else:
-                for k in range(begin, end):
-                    q = neighbors[k]
-                    if slot_owned[q] or designates(own_id, slot_ids[q]):
-                        neighbors[kept] = q
-                        if with_codes:
-                            codes[kept] = codes[k]
-                        kept += 1
-        else:
-            for k in range(begin, end):
-                q = neighbors[k]
-                if slot_owned[q] and designates(slot_ids[q], own_id):
-                    neighbors[kept] = q
-                    if with_codes:
-                        codes[kept] = codes[k]
-                    kept += 1
-        begin = end
-        starts[p + 1] = kept
-    return kept

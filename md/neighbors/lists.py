@@ -1,6 +1,6 @@
 """Verlet neighbour lists built from cell lists.
 
-A note on its length (about 1150 lines, over the 800 where a module is split): nearly
+A note on its length (about 1300 lines, over the 800 where a module is split): nearly
 all of it is one class, :class:`NeighborList` (its state, the rebuild verdict, the
 brute-force, cell and cluster builds and the prune share its buffers and reference
 positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the pair
@@ -8,7 +8,8 @@ kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
 ``_small_box_kernels``: the build of a box too narrow for the cells;
 ``_cluster_kernels``: the cluster-pair list; ``_exclusion_kernels``: the pairs of one
-group left out, :meth:`NeighborList.exclude_groups`).
+group left out, :meth:`NeighborList.exclude_groups`; ``_owned_kernels``: the list of a
+rank of a decomposed run, :meth:`NeighborList.keep_owned`).
 """
 
 from __future__ import annotations
@@ -34,13 +35,14 @@ from md.errors import NonFiniteError
 from md.neighbors._build_kernels import (
     _atom_space_list,
     _balanced_bounds,
+    _cell_grid,
     _cell_list,
     _largest_coordinates,
     _largest_displacement2,
     _max_displacement2,
     _shift_table,
 )
-from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs, _keep_owned_pairs
+from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs
 from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
@@ -53,6 +55,7 @@ from md.neighbors._cluster_kernels import (
     search_pairs,
 )
 from md.neighbors._exclusion_kernels import _drop_grouped_pairs
+from md.neighbors._owned_kernels import _owned_brute_force_pairs, _owned_cell_list
 from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
 from md.parallel import chunk_count
 from md.state import State
@@ -224,10 +227,6 @@ def largest_displacement2(
     """As :func:`max_displacement2`, in ``chunks`` chunks on the threads when ``chunks`` > 1
     (the list's own rebuild test; :mod:`md.distributed` asks it for a rank's atoms)."""
     return _largest_displacement2(positions, reference, chunks)
-
-
-#: ``_cell_list``'s ids when every pair is listed (no :meth:`NeighborList.keep_owned`).
-_NO_IDS = np.empty(0, dtype=np.int64)
 
 
 def _square(length: float) -> float:
@@ -431,10 +430,11 @@ class NeighborList:
         self._tilt: NDArray[np.float64] | None = None
         self._pbc: NDArray[np.bool_] | None = None
         self._cell_bytes: tuple[bytes, ...] = ()  # box, tilt and pbc at the build
-        self._cell_memo = None  # (key, data) of _cell_data
+        self._cell_memo = None  # (key, cell data, periodic, {atoms: grid}) of _cell_data
         self._build_cell = None  # periodic lengths and tilt at the build
         self._followed_at_build = 0
         self._owned: tuple[NDArray[np.int64], int] | None = None
+        self._listed_rows = 0  # rows of the last build that may hold pairs (see build)
         self._groups: NDArray[np.int64] | None = None  # see exclude_groups
 
     def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
@@ -449,6 +449,15 @@ class NeighborList:
         whole system is listed on exactly one rank and pairs of two ghosts on
         none (:mod:`md.distributed` sends the ghosts' forces back to their
         owners). None lists every pair again.
+
+        The search applies the rule itself (``md.neighbors._owned_kernels``): only
+        the owned atoms have rows (slots ``0 .. n_owned - 1``, the owned atoms by
+        cell; the ghosts' slots follow, their rows empty), each with its owned
+        partners by the half rule and the ghosts around it that the rule gives it,
+        so no pair of two ghosts is a candidate, and :attr:`bounds` (the pair
+        kernels' chunks) ends at the last owned slot: a ghost costs the force call
+        its position and force, no row. The O(N^2) search of a small local system
+        lists the same pairs over atom indices, under their owned atoms.
         """
         self._owned = (
             None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64), int(n_owned))
@@ -859,6 +868,8 @@ class NeighborList:
         self.lengths = lengths
         self.tilt = tilt
         self.used_cells = grid is not None
+        # the rows that may hold pairs: a rank's owned atoms (keep_owned), else every atom
+        self._listed_rows = n if self._owned is None else self._owned_ids(n)[1]
         chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
         columns = self._cluster_columns(state) if grid is not None else None
         if columns is not None:
@@ -870,7 +881,7 @@ class NeighborList:
             self.shifts = shifts
         elif grid is None:
             self._build_brute_force(state)
-            self.bounds = _balanced_bounds(self.slot_starts, chunks)
+            self.bounds = _balanced_bounds(self.slot_starts[: self._listed_rows + 1], chunks)
         elif n > MAX_SLOTS:
             raise ValueError(
                 f"the cell search lists at most {MAX_SLOTS} atoms per process, got {n}"
@@ -878,8 +889,6 @@ class NeighborList:
         else:
             self._build_cells(state, grid, chunks)
             self.shifts = shifts
-        if self._owned is not None and grid is None:
-            self._drop_unowned(chunks)
         if self._groups is not None:
             self._drop_grouped(chunks)
         self._reference = reference
@@ -899,31 +908,45 @@ class NeighborList:
         ``check_box``; ``limits``: the farthest a coordinate may lie from the origin
         along each axis (floats; inf along open axes).
 
-        Kept for the next build while the cell is periodic along every axis
-        and unchanged (the grid then depends on nothing else): a build in a run
-        then skips some thirty small numpy calls, each slow in a run, where the
-        pair kernels have evicted the interpreter's data from the caches.
+        Kept for the next build while the cell is unchanged (whatever the atom count, which
+        a decomposed rank's local system changes at every build): a build in a run then
+        skips some thirty small numpy calls, each slow in a run, where the pair kernels
+        have evicted the interpreter's data from the caches. Along an open axis the
+        grid spans the atoms, so a cell with one (a rank of a decomposed run, open along
+        its cut axes) finds its grid again at each build, in one compiled call
+        (``_cell_grid``: the numpy of ``_grid`` took 21 of a 1080-atom rank's 144 us a
+        build).
         """
         key = (
             state.box.tobytes(),
             state.tilt.tobytes(),
             state.pbc.tobytes(),
-            state.n_atoms,
             self.cutoff,
             self.skin,
         )
-        if self._cell_memo is not None and self._cell_memo[0] == key:
-            return self._cell_memo[1]
-        self.check_box(state.box, state.pbc, state.tilt)
-        lengths, _ = periodic_lengths(state.box, state.pbc)
-        tilt = periodic_tilt(state.tilt, state.pbc)
-        limits = tuple(
-            _MAX_IMAGES * x if periodic else math.inf
-            for x, periodic in zip(lengths.tolist(), state.pbc.tolist(), strict=True)
-        )
-        data = (lengths, tilt, self._grid(state), _shift_table(state.box, state.pbc, tilt), limits)
-        self._cell_memo = (key, data) if np.all(state.pbc) else None
-        return data
+        memo = self._cell_memo
+        if memo is None or memo[0] != key:
+            self.check_box(state.box, state.pbc, state.tilt)
+            lengths, _ = periodic_lengths(state.box, state.pbc)
+            tilt = periodic_tilt(state.tilt, state.pbc)
+            limits = tuple(
+                _MAX_IMAGES * x if periodic else math.inf
+                for x, periodic in zip(lengths.tolist(), state.pbc.tolist(), strict=True)
+            )
+            across = perpendicular_widths(state.box, tilt)
+            shifts = _shift_table(state.box, state.pbc, tilt)
+            memo = (key, (lengths, tilt, across, shifts, limits), bool(np.all(state.pbc)), {})
+            self._cell_memo = memo
+        lengths, tilt, across, shifts, limits = memo[1]
+        grids = memo[3]  # a periodic cell's grid per atom count (the most cells it may have)
+        grid = grids.get(state.n_atoms, False)
+        if grid is False:
+            grid = self._grid(state, across)
+            if memo[2]:
+                if len(grids) > 8:  # (a rank's count changes at every build)
+                    grids.clear()
+                grids[state.n_atoms] = grid
+        return lengths, tilt, grid, shifts, limits
 
     def _cluster_columns(self, state: State) -> tuple[int, int] | None:
         """(ncx, ncy) of a cluster build of ``state``, or None where the slot frame serves."""
@@ -1089,9 +1112,22 @@ class NeighborList:
         starts = np.zeros(n + 1, dtype=np.int64)
         r2_max = self._list_radius2
         while True:
-            count = _brute_force_pairs(
-                positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
-            )
+            if self._owned is None:
+                count = _brute_force_pairs(
+                    positions, lengths, inverse, self.tilt, r2_max, starts, self._neighbor_buffer
+                )
+            else:  # a rank's: the owned rows only
+                count = _owned_brute_force_pairs(
+                    positions,
+                    self._listed_rows,
+                    self._owned[0],
+                    lengths,
+                    inverse,
+                    self.tilt,
+                    r2_max,
+                    starts,
+                    self._neighbor_buffer,
+                )
             if count <= self._neighbor_buffer.shape[0]:
                 break
             # Both buffers grow together: the cell search fills them side by side, and
@@ -1148,25 +1184,41 @@ class NeighborList:
 
     def _build_cells(self, state: State, grid, chunks: int) -> None:
         origin, width, n_cells, reach = grid
-        ids, n_owned = self._owned_ids(state.n_atoms)  # filtered by the search itself
         r2_max = self._list_radius2
         while True:
-            order, images, starts, bounds, count, shifted = _cell_list(
-                state.positions,
-                origin,
-                width,
-                n_cells,
-                reach,
-                state.pbc,
-                state.box,
-                self.tilt,
-                r2_max,
-                chunks,
-                self._neighbor_buffer,
-                self._code_buffer,
-                ids,
-                n_owned,
-            )
+            if self._owned is None:
+                found = _cell_list(
+                    state.positions,
+                    origin,
+                    width,
+                    n_cells,
+                    reach,
+                    state.pbc,
+                    state.box,
+                    self.tilt,
+                    r2_max,
+                    chunks,
+                    self._neighbor_buffer,
+                    self._code_buffer,
+                )
+            else:  # a rank's: owned rows only, no pair of two ghosts searched
+                found = _owned_cell_list(
+                    state.positions,
+                    self._listed_rows,
+                    self._owned[0],
+                    origin,
+                    width,
+                    n_cells,
+                    reach,
+                    state.pbc,
+                    state.box,
+                    self.tilt,
+                    r2_max,
+                    chunks,
+                    self._neighbor_buffer,
+                    self._code_buffer,
+                )
+            order, images, starts, bounds, count, shifted = found
             if count >= 0:
                 break
             size = _grown(-count * chunks)
@@ -1181,26 +1233,13 @@ class NeighborList:
         self.bounds = bounds
 
     def _owned_ids(self, n_atoms: int) -> tuple[NDArray[np.int64], int]:
-        """:meth:`keep_owned`'s ids and owned count, checked against ``n_atoms``
-        (empty ids, 0 without them: every pair is listed)."""
-        if self._owned is None:
-            return _NO_IDS, 0
+        """:meth:`keep_owned`'s ids and owned count, checked against ``n_atoms``."""
         ids, n_owned = self._owned
         if ids.shape[0] != n_atoms:
             raise ValueError(f"keep_owned was given {ids.shape[0]} ids for {n_atoms} atoms")
+        if not 0 <= n_owned <= n_atoms:
+            raise ValueError(f"keep_owned was given {n_owned} owned atoms of {n_atoms}")
         return ids, n_owned
-
-    def _drop_unowned(self, chunks: int) -> None:
-        """Apply :meth:`keep_owned`'s rule to the list the O(N^2) search just built (the
-        cell search applies it as it searches)."""
-        ids, n_owned = self._owned_ids(len(self.slot_starts) - 1)
-        order = self.order if self.order is not None else np.zeros(0, dtype=np.int64)
-        count = _keep_owned_pairs(
-            order, self.slot_starts, self.slot_neighbors, self.codes, ids, n_owned
-        )
-        self.slot_neighbors = self.slot_neighbors[:count]
-        self.codes = self.codes[:count] if len(self.codes) else self.codes
-        self.bounds = _balanced_bounds(self.slot_starts, chunks)
 
     def _drop_grouped(self, chunks: int) -> None:
         """Apply :meth:`exclude_groups` to the list just built."""
@@ -1215,7 +1254,7 @@ class NeighborList:
         )
         self.slot_neighbors = self.slot_neighbors[:count]
         self.codes = self.codes[:count] if len(self.codes) else self.codes
-        self.bounds = _balanced_bounds(self.slot_starts, chunks)
+        self.bounds = _balanced_bounds(self.slot_starts[: self._listed_rows + 1], chunks)
 
     def frame_positions(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of the slots, ``positions[order] + images @ h`` (numpy; for tests)."""
@@ -1246,43 +1285,32 @@ class NeighborList:
         pairs = np.stack([np.minimum(rows, cols), np.maximum(rows, cols)], axis=1)
         return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
-    def _grid(self, state: State):
+    def _grid(self, state: State, across=None):
         """Return (origin, width, n_cells, reach) of the cell grid, or None for O(N^2) search.
 
         Cells are the list radius / ``_REACH`` wide and every periodic axis
         needs 2 ``_REACH`` + 1 of them. Half-radius cells (reach 2), scanned
         in z columns, hold about 40% fewer candidates than radius-wide ones.
+        Cells are binned in sheared-back coordinates, where the cell is the box
+        of edges ``box``; their count along a periodic axis comes from the
+        perpendicular width (``across``, found from the cell if not given), so
+        each slab of cells is radius / reach thick; along an open axis the grid
+        spans the atoms (``_cell_grid``).
         """
-        n = state.n_atoms
-        if n < 2:
+        if state.n_atoms < 2:
             return None
-        radius = self.list_radius
-        origin = np.zeros(3)
-        # Cells are binned in sheared-back coordinates, where the cell is the
-        # box of edges ``box``; their count along an axis comes from the
-        # perpendicular width, so each slab of cells is radius / reach thick.
-        extent = state.box.astype(float).copy()
-        across = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
-        open_axes = ~state.pbc
-        if np.any(open_axes):
-            low = state.positions[:, open_axes].min(axis=0)
-            high = state.positions[:, open_axes].max(axis=0)
-            origin[open_axes] = low
-            extent[open_axes] = np.maximum(high - low, radius)
-        max_cells = _MAX_CELLS_PER_ATOM * n + 27
-        reach = _REACH
-        fewest = np.where(state.pbc, 2 * reach + 1, 1)
-        # Clip in floating point first: a cluster that flew apart can span more
-        # cells than an int64 holds.
-        across = np.where(state.pbc, across, extent)
-        n_cells = np.clip(np.floor(across * reach / radius), 1, max_cells).astype(np.int64)
-        if np.any(n_cells < fewest):
-            return None
-        while np.prod(n_cells) > max_cells and np.any(n_cells > fewest):
-            # Wider cells are still correct; shrink the busiest axis that can shrink.
-            axis = int(np.argmax(np.where(n_cells > fewest, n_cells, 0)))
-            n_cells[axis] = max(n_cells[axis] // 2, fewest[axis])
-        return origin, extent / n_cells, n_cells, reach
+        if across is None:
+            across = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+        origin, width, n_cells, fits = _cell_grid(
+            state.positions,
+            state.pbc,
+            state.box.astype(np.float64),
+            across,
+            self.list_radius,
+            _REACH,
+            _MAX_CELLS_PER_ATOM * state.n_atoms + 27,
+        )
+        return (origin, width, n_cells, _REACH) if fits else None
 
 
 def _grown(count: int) -> int:
