@@ -10,6 +10,11 @@ from integrators._kernels import (
     kick_drift_by_mass,
 )
 from integrators.base import IntegratorBase, amplification_roots, check_dt
+from potentials.base import FusesVerletStep
+
+#: Per force source class, whether it meets ``FusesVerletStep`` (asked once: a
+#: runtime-checkable protocol's ``isinstance`` costs microseconds a call).
+_FUSES: dict[type, bool] = {}
 
 
 class VelocityVerlet(IntegratorBase):
@@ -48,8 +53,10 @@ class VelocityVerlet(IntegratorBase):
             # list holds (md.ForceField.verlet_step: 2 done, 1 kicked and drifted, 0
             # nothing done); else one pass each, called directly, 1/m taken inside (the
             # same bits): a small box's step makes no array of inverse masses.
-            fused = getattr(forcefield, "verlet_step", None)
-            done = 0 if fused is None else fused(state, half, self.dt)
+            fuses = _FUSES.get(type(forcefield))
+            if fuses is None:
+                fuses = _FUSES[type(forcefield)] = isinstance(forcefield, FusesVerletStep)
+            done = forcefield.verlet_step(state, half, self.dt) if fuses else 0
             if done == 2:
                 self.end_step(state)
                 return

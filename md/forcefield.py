@@ -22,6 +22,7 @@ from potentials.base import (
     SupportsHessian,
     SupportsHessianOperator,
     SupportsPrecision,
+    SupportsVerletStep,
     check_precision_name,
 )
 from potentials.pair_hessian import HessianSum
@@ -207,9 +208,13 @@ class ForceField:
             or type(self).compute is not ForceField.compute  # a subclass's compute is asked
         ):
             return 0
-        step = getattr(potentials[0], "verlet_step", None)
-        if step is None or potentials[0].cutoff is None:
+        potential = potentials[0]
+        fuses = _STEPS_VERLET.get(type(potential))
+        if fuses is None:
+            fuses = _STEPS_VERLET[type(potential)] = isinstance(potential, SupportsVerletStep)
+        if not fuses or potential.cutoff is None:
             return 0
+        step = potential.verlet_step
         check = neighbor_list.exact_check(state)
         if check is None or not self._same_key(key, state):  # the cached forces are state's
             return 0
@@ -476,6 +481,8 @@ class ForceField:
 _BYTES_KEY_VALUES = 3000
 #: Per potential class, whether it meets ``SupportsPrecision`` (``ForceField._options``).
 _OFFERS_PRECISIONS: dict[type, bool] = {}
+#: Per potential class, whether it meets ``SupportsVerletStep`` (``ForceField.verlet_step``).
+_STEPS_VERLET: dict[type, bool] = {}
 
 
 def _cell_bytes(state: State) -> bytes:

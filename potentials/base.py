@@ -151,6 +151,24 @@ class SupportsPrecision(Protocol):
 
 
 @runtime_checkable
+class SupportsVerletStep(Protocol):
+    """Optional capability of a potential: a velocity Verlet step with its forces in one
+    compiled call while the list holds (:meth:`potentials.PairPotential.verlet_step`
+    says the contract); the ForceField asks whether a class has it once."""
+
+    def verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, reference, allowed2): ...
+
+
+@runtime_checkable
+class FusesVerletStep(Protocol):
+    """Optional capability of a force source: velocity Verlet's whole step in one call
+    where it can be (:meth:`md.ForceField.verlet_step`: 2 done, 1 kicked and drifted,
+    0 nothing done); velocity Verlet asks whether a class has it once."""
+
+    def verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int: ...
+
+
+@runtime_checkable
 class SupportsHessian(Protocol):
     """Optional capability: the (3N, 3N) second derivative of the energy."""
 
