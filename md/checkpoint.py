@@ -17,9 +17,10 @@ pickle) holding
 - the number of trajectory frames written up to the checkpoint, the step of
   the last one, and the run id stored in the trajectory, so that a resume
   discards frames written after the checkpoint and refuses a foreign file;
-- for a run decomposed over MPI ranks, its grid and each atom's owner at the
-  last build, so that a resume on the same grid rebuilds the same ghosts and
-  lists (:meth:`md.distributed.DistributedSimulation.resume`); any other rank
+- for a run decomposed over MPI ranks, its grid, each atom's owner at the
+  last build and its positions at the last two step starts, so that a resume on
+  the same grid rebuilds the same ghosts and lists and migrates atoms at the
+  same steps (:meth:`md.distributed.DistributedSimulation.resume`); any other rank
   count, or one process, resumes from the same file.
 - in ``extra``, the config file's name and the run's energies at step 0
   (``start``), from which a resumed run reports its drifts.
@@ -50,6 +51,11 @@ FORMAT = "leapmd-checkpoint"
 VERSION = 1
 #: Suffix appended to the trajectory path to name its checkpoint.
 SUFFIX = ".ckpt"
+#: A decomposed run's per-atom positions in its layout: the last two step starts, from
+#: which the next step's look-ahead measures (None where unknown).
+_LAYOUT_POSITIONS = ("step_start", "step_before")
+#: The layout's per-atom arrays, kept as arrays of their own (the rest is plain data).
+_LAYOUT_ARRAYS = ("owners", "slots", *_LAYOUT_POSITIONS)
 
 
 def checkpoint_path(trajectory) -> Path:
@@ -177,7 +183,10 @@ def write_checkpoint(
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
         if layout.get("slots") is not None:  # each atom's row on its rank
             arrays["domain_slots"] = np.asarray(layout["slots"], dtype=np.int64)
-        layout = {key: value for key, value in layout.items() if key not in ("owners", "slots")}
+        for key in _LAYOUT_POSITIONS:  # the last step starts, where known
+            if layout.get(key) is not None:
+                arrays[f"domain_{key}"] = np.asarray(layout[key], dtype=np.float64)
+        layout = {key: value for key, value in layout.items() if key not in _LAYOUT_ARRAYS}
     saved = integrator.get_state() if isinstance(integrator, Restartable) else None
     meta = {
         "format": FORMAT,
@@ -261,6 +270,10 @@ def read_checkpoint(path) -> Checkpoint:
                 raise ValueError("the decomposition's owners do not match the atom count")
             if layout["slots"] is not None and layout["slots"].shape != (state.n_atoms,):
                 raise ValueError("the decomposition's atom rows do not match the atom count")
+            for key in _LAYOUT_POSITIONS:  # (None in checkpoints written before they were kept)
+                layout[key] = arrays.get(f"domain_{key}")
+                if layout[key] is not None and layout[key].shape != state.positions.shape:
+                    raise ValueError(f"the decomposition's {key} does not match the atom count")
         return Checkpoint(
             path=path,
             state=state,

@@ -137,9 +137,7 @@ class DistributedSimulation(Simulation):
     def _part(self, state: State, owners: NDArray[np.int64], slots=None) -> State:
         """This rank's atoms of the whole system ``state`` (those ``owners`` gives it), in
         increasing id, or in the order of their ``slots`` (rows on the rank) if given."""
-        mine = np.flatnonzero(owners == self.ranks.rank)
-        if slots is not None:
-            mine = mine[np.argsort(np.asarray(slots)[mine], kind="stable")]
+        mine = self._mine(owners, slots)
         return State(
             positions=state.positions[mine],
             velocities=state.velocities[mine],
@@ -297,6 +295,12 @@ class DistributedSimulation(Simulation):
                 value = np.asarray(value, dtype=np.float64)
                 shapes.append((key, value.shape[1:]))
                 columns.append(value.reshape(state.n_atoms, -1))
+        # The last two step starts, from which the next steps' look-ahead measures (the
+        # step that follows a resume then decides to migrate as the uninterrupted one).
+        for kept in (self.forcefield.step_start, self.forcefield.step_before):
+            columns.append(
+                kept if kept.shape == state.positions.shape else np.full_like(columns[1], np.nan)
+            )
         rows = self.ranks.gather_rows(np.concatenate(columns, axis=1))
         if rows is None:
             return None
@@ -325,6 +329,7 @@ class DistributedSimulation(Simulation):
                 size = int(np.prod(shape))
                 saved[key] = whole[:, start : start + size].reshape((n, *shape)).copy()
                 start += size
+        starts = [whole[:, start : start + 3].copy(), whole[:, start + 3 : start + 6].copy()]
         # Each atom's row on its rank: the gathered rows come rank after rank, each rank's
         # in its own order (a resume on this grid restores it, for the same bits).
         ranks = rows[:, 10].astype(np.int64)
@@ -338,6 +343,9 @@ class DistributedSimulation(Simulation):
             "bond_reach": self.forcefield.bond_reach,
             "migrate_pending": self.forcefield.migrate_pending,
             "ahead": self.forcefield.ahead,
+            # None where unknown (a migration since, or no step yet): NaN rows, all or none
+            "step_start": None if np.isnan(starts[0]).any() else starts[0],
+            "step_before": None if np.isnan(starts[1]).any() else starts[1],
         }
         reference = whole[:, 7:10].copy()
         return GlobalView(
@@ -397,12 +405,32 @@ class DistributedSimulation(Simulation):
             forcefield.bond_reach = float(layout.get("bond_reach", forcefield.bond_reach))
         forcefield.invalidate()
         forcefield.rebuild(part_at_build, migrate=False)
-        forcefield.step_start = forcefield.step_before = _NONE  # (no step start known)
+        # The step starts the checkpoint kept (else none known): the look-ahead of the
+        # steps that follow, hence when atoms migrate, is that of the uninterrupted run.
+        forcefield.step_start, forcefield.step_before = (
+            _NONE if kept is None else self._part_rows(kept, owners, slots)
+            for kept in (
+                layout.get("step_start") if same else None,
+                layout.get("step_before") if same else None,
+            )
+        )
         self._localize_integrator()
         forcefield.refresh(self.state)
         # What the uninterrupted run's next step start would have seen.
         forcefield.migrate_pending = bool(layout.get("migrate_pending", False)) if same else False
         forcefield.ahead = float(layout.get("ahead", 0.0)) if same else 0.0
+
+    def _mine(self, owners: NDArray[np.int64], slots=None) -> NDArray[np.int64]:
+        """The ids of this rank's atoms (those ``owners`` gives it), in increasing id, or in
+        the order of their ``slots`` (rows on the rank) if given."""
+        mine = np.flatnonzero(owners == self.ranks.rank)
+        if slots is not None:
+            mine = mine[np.argsort(np.asarray(slots)[mine], kind="stable")]
+        return mine
+
+    def _part_rows(self, rows: NDArray, owners: NDArray[np.int64], slots=None) -> NDArray:
+        """This rank's rows of the whole-system per-atom ``rows``, in :meth:`_part`'s order."""
+        return np.ascontiguousarray(np.asarray(rows, dtype=np.float64)[self._mine(owners, slots)])
 
     def _localize_integrator(self) -> None:
         """Cut the integrator's whole-system per-atom state down to this rank's atoms."""
