@@ -218,9 +218,13 @@ class DistributedForceField:
         self._reported: set = set()  # keys observed since the last reduction
         self._moved_report = -1.0  # -1: nothing observed since the last reduction
         #: The one reduction of an evaluation: error, energy, virial (9), list outrun,
-        #: look-ahead, stop request, non-finite positions, the step's first calls' moves.
-        self._values = np.zeros(16)
-        self._worst = np.zeros(5)
+        #: look-ahead, stop request, non-finite positions, the step's first calls' moves,
+        #: and a step start's build's outcome (failed, longest bond: see rebuild).
+        self._values = np.zeros(18)
+        self._worst = np.zeros(7)
+        #: A step start's build whose outcome (longest bond, this rank's error) the step's
+        #: evaluation shares; None when none is waiting.
+        self._build_outcome: tuple[float, Exception | None] | None = None
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
                 f"balance_every must be >= 0 and balance_threshold >= 1, got "
@@ -368,6 +372,7 @@ class DistributedForceField:
         showed (``steady``) is observed again (a run's start: its state may have been
         changed between runs)."""
         self._in_step = False
+        self._settle_build()
         if forget:
             self.steady = None
             self._steady_keys = frozenset()
@@ -391,8 +396,11 @@ class DistributedForceField:
             exchanged = False  # a rebuild below lays the local system out anew
             start = time.perf_counter()
             error, result = None, None
+            outcome = self._build_outcome
             try:
-                if which is None:
+                if outcome is not None and outcome[1] is not None:
+                    pass  # this rank's list is not whole: the build's error is shared below
+                elif which is None:
                     result = self.local.compute(self.domain.local_state, per_atom, virial)
                 else:
                     result = self.local.compute_subset(self.domain.local_state, which, virial)
@@ -411,10 +419,16 @@ class DistributedForceField:
             values[13] = self.stop_code
             values[14] = not finite
             values[15] = self._moved_report
+            if outcome is not None:
+                values[16] = outcome[1] is not None
+                values[17] = outcome[0]
             gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
             totals, worst = np.empty(11), self._worst
             fold_gathered(gathered, 11, totals, worst)
             self.timings["force"] += middle - start
+            if outcome is not None:  # (every rank holds one: its builds are collective)
+                self._build_outcome = None
+                self._check_build(float(worst[6]), bool(worst[5]), outcome[1])
             if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
                 self.steady = not worst[4]
                 self._steady_keys = frozenset(self._reported)
@@ -619,6 +633,7 @@ class DistributedForceField:
         if dt is not None and state.velocities is not None:
             at = copy.copy(state)
             at.positions = self.coming_positions(state, dt, out=reference)
+        self._settle_build()
         reach = self.reach
         self.domain.build(at, reach)  # its ghost search on the ranks' clock
         error, longest = None, 0.0
@@ -628,20 +643,14 @@ class DistributedForceField:
             if nl is not None:
                 nl.keep_owned(self.domain.local_ids, self.domain.n_owned)
                 nl.build(self.domain.local_state)
-        except (NonFiniteError, ValueError) as caught:  # shared with every rank below
+        except (NonFiniteError, ValueError) as caught:  # shared with every rank
             error = caught
-        longest, failed = global_max(
-            np.array([longest, error is not None], dtype=np.float64), self.ranks
-        )
-        if failed:
-            agree(self.ranks, error)
-        if self._bonded:
-            if longest > reach:
-                raise DecompositionError(
-                    f"a bond is {longest:.4g} long, beyond the ghost shell ({reach:.4g}) of "
-                    "the last build; bonds must not stretch that fast"
-                )
-            self.bond_reach = longest
+        self._build_outcome = (longest, error)
+        if dt is None:
+            self._settle_build()
+        # else a step start's build (the loop's): the step's evaluation, which follows it on
+        # every rank, shares its outcome in its own reduction (a rank whose build failed
+        # evaluates nothing there); any other collective call before it settles it
         if at is state:
             copy_into(reference, state.positions)
         self.reference = reference
@@ -656,6 +665,34 @@ class DistributedForceField:
         elapsed = time.perf_counter() - start
         self.timings["neighbor"] += elapsed - (self.ranks.clock.seconds - communicated)
         return carried
+
+    def _settle_build(self) -> None:
+        """Share the outcome of a build still waiting for it (one reduction; collective:
+        every rank holds one or none alike), raising its error on every rank."""
+        outcome = self._build_outcome
+        if outcome is None:
+            return
+        self._build_outcome = None
+        longest, error = outcome
+        longest, failed = global_max(
+            np.array([longest, error is not None], dtype=np.float64), self.ranks
+        )
+        self._check_build(float(longest), bool(failed), error)
+
+    def _check_build(self, longest: float, failed: bool, error: Exception | None) -> None:
+        """After a build, with its outcome over every rank (the longest bond, whether a rank
+        failed; this rank's ``error``): raise on every rank alike, else keep the longest
+        bond for the next build's ghost shell."""
+        if failed:
+            agree(self.ranks, error)
+        if self._bonded:
+            reach = self.reach  # (the build's: bond_reach changes only here)
+            if longest > reach:
+                raise DecompositionError(
+                    f"a bond is {longest:.4g} long, beyond the ghost shell ({reach:.4g}) of "
+                    "the last build; bonds must not stretch that fast"
+                )
+            self.bond_reach = longest
 
     def _balance(self, state: State) -> None:
         """Move the planes between bricks towards an even share of the ranks' busy time,
