@@ -39,7 +39,7 @@ from md.distributed._domain_kernels import (
     nearest_copies,
     predicted_positions,
 )
-from md.distributed.grid import Grid, balanced_cuts
+from md.distributed.grid import Grid
 from md.distributed.halo import Domain
 from md.distributed.ranks import agree
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
@@ -222,9 +222,7 @@ class DistributedForceField:
         #: and a step start's build's outcome (failed, longest bond: see rebuild).
         self._values = np.zeros(18)
         self._worst = np.zeros(7)
-        #: A step start's build whose outcome (longest bond, this rank's error) the step's
-        #: evaluation shares; None when none is waiting.
-        self._build_outcome: tuple[float, Exception | None] | None = None
+        self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
                 f"balance_every must be >= 0 and balance_threshold >= 1, got "
@@ -340,7 +338,8 @@ class DistributedForceField:
             return False, False
         cell = held is not None and (state.box.tobytes(), state.tilt.tobytes()) == held[0][1:]
         if not same and cell:  # (a cell that changed changed on every rank: all evaluate)
-            if not _same_bits(held[0][0], state.positions):
+            now, then = state.positions, held[0][0]  # the same bits (NaN included)?
+            if now.shape != then.shape or not same_values(now.view(np.int64), then.view(np.int64)):
                 self._broken_promise(state)
             usable = available  # (the same bits, NaN where they were: as the other ranks)
         return usable, False
@@ -420,15 +419,12 @@ class DistributedForceField:
             values[14] = not finite
             values[15] = self._moved_report
             if outcome is not None:
-                values[16] = outcome[1] is not None
-                values[17] = outcome[0]
+                values[16:18] = (outcome[1] is not None, outcome[0])
             gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
             totals, worst = np.empty(11), self._worst
             fold_gathered(gathered, 11, totals, worst)
             self.timings["force"] += middle - start
-            if outcome is not None:  # (every rank holds one: its builds are collective)
-                self._build_outcome = None
-                self._check_build(float(worst[6]), bool(worst[5]), outcome[1])
+            self._settle_build(worst[6:4:-1])  # (a build's outcome waits on every rank or none)
             if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
                 self.steady = not worst[4]
                 self._steady_keys = frozenset(self._reported)
@@ -526,7 +522,9 @@ class DistributedForceField:
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
         covered = moved <= allowed and self.domain.layout_holds(state)
-        return covered, _ratio(coming, allowed), finite
+        # (the look-ahead ratio: inf when nothing may move but something does)
+        ratio = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
+        return covered, ratio, finite
 
     def coming_positions(
         self, state: State, dt: float, out: NDArray | None = None
@@ -591,12 +589,13 @@ class DistributedForceField:
         atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
         bricks. Collective. Returns the carried arrays, migrated.
 
-        With ``dt``, the time step about to be taken, the ghosts and the list are laid out
-        where that step is expected to take the atoms (:meth:`coming_positions`): a rebuild
-        taken at a step start then lasts as many steps as one taken after the step's move,
-        as a single process's is (a list built where the atoms are would lose a step's
-        worth of skin). Any build position is valid: the list is checked against it at
-        every evaluation.
+        With ``dt``, the time step about to be taken (a step start's build), the ghosts and
+        the list are laid out where that step is expected to take the atoms
+        (:meth:`coming_positions`), so that the list lasts as many steps as a single
+        process's (built where the atoms are, it would lose a step's worth of skin; any
+        build position is valid: the list is checked against it at every evaluation), and
+        the step's evaluation shares the build's outcome (a rank's failure, the longest
+        bond) in its reduction: a rank whose build failed evaluates nothing there.
 
         Its time goes to ``timings["neighbor"]``, less the migration's and the ghost
         search's (on the ranks' clock)."""
@@ -648,9 +647,6 @@ class DistributedForceField:
         self._build_outcome = (longest, error)
         if dt is None:
             self._settle_build()
-        # else a step start's build (the loop's): the step's evaluation, which follows it on
-        # every rank, shares its outcome in its own reduction (a rank whose build failed
-        # evaluates nothing there); any other collective call before it settles it
         if at is state:
             copy_into(reference, state.positions)
         self.reference = reference
@@ -666,23 +662,17 @@ class DistributedForceField:
         self.timings["neighbor"] += elapsed - (self.ranks.clock.seconds - communicated)
         return carried
 
-    def _settle_build(self) -> None:
-        """Share the outcome of a build still waiting for it (one reduction; collective:
-        every rank holds one or none alike), raising its error on every rank."""
-        outcome = self._build_outcome
+    def _settle_build(self, shared=None) -> None:
+        """Share a waiting build's outcome (its own reduction, unless ``shared``: the longest
+        bond and whether a rank failed, from an evaluation's) and raise its error on every
+        rank alike, else keep the longest bond. Collective: all ranks hold one or none."""
+        outcome, self._build_outcome = self._build_outcome, None
         if outcome is None:
             return
-        self._build_outcome = None
         longest, error = outcome
-        longest, failed = global_max(
-            np.array([longest, error is not None], dtype=np.float64), self.ranks
-        )
-        self._check_build(float(longest), bool(failed), error)
-
-    def _check_build(self, longest: float, failed: bool, error: Exception | None) -> None:
-        """After a build, with its outcome over every rank (the longest bond, whether a rank
-        failed; this rank's ``error``): raise on every rank alike, else keep the longest
-        bond for the next build's ghost shell."""
+        if shared is None:
+            shared = global_max(np.array([longest, error is not None], dtype=float), self.ranks)
+        longest, failed = float(shared[0]), bool(shared[1])
         if failed:
             agree(self.ranks, error)
         if self._bonded:
@@ -714,18 +704,9 @@ class DistributedForceField:
         self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
         if self.imbalance <= self.balance_threshold:
             return
-        grid = self.domain.grid
         widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
-        where = np.array([grid.coordinates(rank) for rank in range(self.ranks.n_ranks)])
         # a brick keeps room for the ghost shell and how far atoms stray before a build
-        room = self.reach + self.skin
-        for axis in range(3):
-            p = grid.shape[axis]
-            if p == 1 or p * room > widths[axis]:
-                continue
-            costs = np.bincount(where[:, axis], weights=busy, minlength=p)
-            planes = balanced_cuts(grid.cuts[axis], costs, room / widths[axis])
-            grid = grid.with_cuts(axis, planes)
+        grid = self.domain.grid.balanced(busy, widths, self.reach + self.skin)
         self.domain.set_grid(grid)
         self.balances += 1
         logger.info(
@@ -800,29 +781,11 @@ def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[n
     return into
 
 
-def _ratio(moved: float, allowed: float) -> float:
-    """moved / allowed, inf when nothing may move but something did."""
-    if allowed > 0:
-        return moved / allowed
-    return math.inf if moved > 0 else 0.0
-
-
 def _key(state: State, old: tuple | None = None) -> tuple:
     """What a result depends on: the owned positions (copied, into ``old``'s array when it
     fits) and the cell."""
-    if old is not None and old[0].shape == state.positions.shape:
-        copy_into(old[0], state.positions)
-        positions = old[0]
-    else:
-        positions = state.positions.copy()
+    positions = _copied(state.positions, _NONE if old is None else old[0])
     return positions, state.box.tobytes(), state.tilt.tobytes()
-
-
-def _same_bits(positions: NDArray[np.float64], now: NDArray[np.float64]) -> bool:
-    """Whether two arrays of positions hold the same bits (NaN included)."""
-    return positions.shape == now.shape and same_values(
-        positions.view(np.int64), now.view(np.int64)
-    )
 
 
 def _same(key: tuple, state: State) -> bool:
