@@ -39,7 +39,7 @@ from md.distributed._domain_kernels import (
     nearest_copies,
     predicted_positions,
 )
-from md.distributed.grid import Grid, balanced_cuts
+from md.distributed.grid import Grid
 from md.distributed.halo import Domain
 from md.distributed.ranks import agree
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
@@ -218,9 +218,11 @@ class DistributedForceField:
         self._reported: set = set()  # keys observed since the last reduction
         self._moved_report = -1.0  # -1: nothing observed since the last reduction
         #: The one reduction of an evaluation: error, energy, virial (9), list outrun,
-        #: look-ahead, stop request, non-finite positions, the step's first calls' moves.
-        self._values = np.zeros(16)
-        self._worst = np.zeros(5)
+        #: look-ahead, stop request, non-finite positions, the step's first calls' moves,
+        #: and a step start's build's outcome (failed, longest bond: see rebuild).
+        self._values = np.zeros(18)
+        self._worst = np.zeros(7)
+        self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
                 f"balance_every must be >= 0 and balance_threshold >= 1, got "
@@ -336,7 +338,8 @@ class DistributedForceField:
             return False, False
         cell = held is not None and (state.box.tobytes(), state.tilt.tobytes()) == held[0][1:]
         if not same and cell:  # (a cell that changed changed on every rank: all evaluate)
-            if not _same_bits(held[0][0], state.positions):
+            now, then = state.positions, held[0][0]  # the same bits (NaN included)?
+            if now.shape != then.shape or not same_values(now.view(np.int64), then.view(np.int64)):
                 self._broken_promise(state)
             usable = available  # (the same bits, NaN where they were: as the other ranks)
         return usable, False
@@ -368,6 +371,7 @@ class DistributedForceField:
         showed (``steady``) is observed again (a run's start: its state may have been
         changed between runs)."""
         self._in_step = False
+        self._settle_build()
         if forget:
             self.steady = None
             self._steady_keys = frozenset()
@@ -391,8 +395,11 @@ class DistributedForceField:
             exchanged = False  # a rebuild below lays the local system out anew
             start = time.perf_counter()
             error, result = None, None
+            outcome = self._build_outcome
             try:
-                if which is None:
+                if outcome is not None and outcome[1] is not None:
+                    pass  # this rank's list is not whole: the build's error is shared below
+                elif which is None:
                     result = self.local.compute(self.domain.local_state, per_atom, virial)
                 else:
                     result = self.local.compute_subset(self.domain.local_state, which, virial)
@@ -411,10 +418,13 @@ class DistributedForceField:
             values[13] = self.stop_code
             values[14] = not finite
             values[15] = self._moved_report
+            if outcome is not None:
+                values[16:18] = (outcome[1] is not None, outcome[0])
             gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
             totals, worst = np.empty(11), self._worst
             fold_gathered(gathered, 11, totals, worst)
             self.timings["force"] += middle - start
+            self._settle_build(worst[6:4:-1])  # (a build's outcome waits on every rank or none)
             if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
                 self.steady = not worst[4]
                 self._steady_keys = frozenset(self._reported)
@@ -512,7 +522,9 @@ class DistributedForceField:
         finite = math.isfinite(moved2)
         coming = math.sqrt(coming2) + LOOKAHEAD * step_move
         covered = moved <= allowed and self.domain.layout_holds(state)
-        return covered, _ratio(coming, allowed), finite
+        # (the look-ahead ratio: inf when nothing may move but something does)
+        ratio = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
+        return covered, ratio, finite
 
     def coming_positions(
         self, state: State, dt: float, out: NDArray | None = None
@@ -577,12 +589,13 @@ class DistributedForceField:
         atoms (with ``carried`` per-atom arrays and the cached forces) to the ranks of their
         bricks. Collective. Returns the carried arrays, migrated.
 
-        With ``dt``, the time step about to be taken, the ghosts and the list are laid out
-        where that step is expected to take the atoms (:meth:`coming_positions`): a rebuild
-        taken at a step start then lasts as many steps as one taken after the step's move,
-        as a single process's is (a list built where the atoms are would lose a step's
-        worth of skin). Any build position is valid: the list is checked against it at
-        every evaluation.
+        With ``dt``, the time step about to be taken (a step start's build), the ghosts and
+        the list are laid out where that step is expected to take the atoms
+        (:meth:`coming_positions`), so that the list lasts as many steps as a single
+        process's (built where the atoms are, it would lose a step's worth of skin; any
+        build position is valid: the list is checked against it at every evaluation), and
+        the step's evaluation shares the build's outcome (a rank's failure, the longest
+        bond) in its reduction: a rank whose build failed evaluates nothing there.
 
         Its time goes to ``timings["neighbor"]``, less the migration's and the ghost
         search's (on the ranks' clock)."""
@@ -619,6 +632,7 @@ class DistributedForceField:
         if dt is not None and state.velocities is not None:
             at = copy.copy(state)
             at.positions = self.coming_positions(state, dt, out=reference)
+        self._settle_build()
         reach = self.reach
         self.domain.build(at, reach)  # its ghost search on the ranks' clock
         error, longest = None, 0.0
@@ -628,20 +642,11 @@ class DistributedForceField:
             if nl is not None:
                 nl.keep_owned(self.domain.local_ids, self.domain.n_owned)
                 nl.build(self.domain.local_state)
-        except (NonFiniteError, ValueError) as caught:  # shared with every rank below
+        except (NonFiniteError, ValueError) as caught:  # shared with every rank
             error = caught
-        longest, failed = global_max(
-            np.array([longest, error is not None], dtype=np.float64), self.ranks
-        )
-        if failed:
-            agree(self.ranks, error)
-        if self._bonded:
-            if longest > reach:
-                raise DecompositionError(
-                    f"a bond is {longest:.4g} long, beyond the ghost shell ({reach:.4g}) of "
-                    "the last build; bonds must not stretch that fast"
-                )
-            self.bond_reach = longest
+        self._build_outcome = (longest, error)
+        if dt is None:
+            self._settle_build()
         if at is state:
             copy_into(reference, state.positions)
         self.reference = reference
@@ -656,6 +661,28 @@ class DistributedForceField:
         elapsed = time.perf_counter() - start
         self.timings["neighbor"] += elapsed - (self.ranks.clock.seconds - communicated)
         return carried
+
+    def _settle_build(self, shared=None) -> None:
+        """Share a waiting build's outcome (its own reduction, unless ``shared``: the longest
+        bond and whether a rank failed, from an evaluation's) and raise its error on every
+        rank alike, else keep the longest bond. Collective: all ranks hold one or none."""
+        outcome, self._build_outcome = self._build_outcome, None
+        if outcome is None:
+            return
+        longest, error = outcome
+        if shared is None:
+            shared = global_max(np.array([longest, error is not None], dtype=float), self.ranks)
+        longest, failed = float(shared[0]), bool(shared[1])
+        if failed:
+            agree(self.ranks, error)
+        if self._bonded:
+            reach = self.reach  # (the build's: bond_reach changes only here)
+            if longest > reach:
+                raise DecompositionError(
+                    f"a bond is {longest:.4g} long, beyond the ghost shell ({reach:.4g}) of "
+                    "the last build; bonds must not stretch that fast"
+                )
+            self.bond_reach = longest
 
     def _balance(self, state: State) -> None:
         """Move the planes between bricks towards an even share of the ranks' busy time,
@@ -677,18 +704,9 @@ class DistributedForceField:
         self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
         if self.imbalance <= self.balance_threshold:
             return
-        grid = self.domain.grid
         widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
-        where = np.array([grid.coordinates(rank) for rank in range(self.ranks.n_ranks)])
         # a brick keeps room for the ghost shell and how far atoms stray before a build
-        room = self.reach + self.skin
-        for axis in range(3):
-            p = grid.shape[axis]
-            if p == 1 or p * room > widths[axis]:
-                continue
-            costs = np.bincount(where[:, axis], weights=busy, minlength=p)
-            planes = balanced_cuts(grid.cuts[axis], costs, room / widths[axis])
-            grid = grid.with_cuts(axis, planes)
+        grid = self.domain.grid.balanced(busy, widths, self.reach + self.skin)
         self.domain.set_grid(grid)
         self.balances += 1
         logger.info(
@@ -763,29 +781,11 @@ def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[n
     return into
 
 
-def _ratio(moved: float, allowed: float) -> float:
-    """moved / allowed, inf when nothing may move but something did."""
-    if allowed > 0:
-        return moved / allowed
-    return math.inf if moved > 0 else 0.0
-
-
 def _key(state: State, old: tuple | None = None) -> tuple:
     """What a result depends on: the owned positions (copied, into ``old``'s array when it
     fits) and the cell."""
-    if old is not None and old[0].shape == state.positions.shape:
-        copy_into(old[0], state.positions)
-        positions = old[0]
-    else:
-        positions = state.positions.copy()
+    positions = _copied(state.positions, _NONE if old is None else old[0])
     return positions, state.box.tobytes(), state.tilt.tobytes()
-
-
-def _same_bits(positions: NDArray[np.float64], now: NDArray[np.float64]) -> bool:
-    """Whether two arrays of positions hold the same bits (NaN included)."""
-    return positions.shape == now.shape and same_values(
-        positions.view(np.int64), now.view(np.int64)
-    )
 
 
 def _same(key: tuple, state: State) -> bool:

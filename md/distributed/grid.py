@@ -106,6 +106,20 @@ class Grid:
         """(3,): the thinnest brick along each axis, as a fraction of the cell."""
         return np.array([min(np.diff(planes)) for planes in self.cuts])
 
+    def balanced(self, busy, widths, room: float) -> Grid:
+        """This grid with its planes moved towards an even share of the ranks' ``busy``
+        seconds (:func:`balanced_cuts` along each cut axis), every brick at least ``room``
+        wide (the cell's perpendicular ``widths``) [length]."""
+        grid = self
+        where = np.array([self.coordinates(rank) for rank in range(self.n_ranks)])
+        for axis in range(3):
+            p = self.shape[axis]
+            if p == 1 or p * room > widths[axis]:
+                continue
+            costs = np.bincount(where[:, axis], weights=busy, minlength=p)
+            grid = grid.with_cuts(axis, balanced_cuts(grid.cuts[axis], costs, room / widths[axis]))
+        return grid
+
     def with_cuts(self, axis: int, planes) -> Grid:
         """This grid with the cuts along ``axis`` replaced by ``planes``."""
         cuts = list(self.cuts)

@@ -167,6 +167,12 @@ class Domain:
         self.bounds = grid.bounds(self.rank)
         self.center = self.bounds.mean(axis=0)
         self.cuts = grid.cut_table()
+        self.thinnest = grid.thinnest()
+        #: (the rank below, the rank above) along each axis: each build's and migration's
+        self.neighbors = tuple(
+            (grid.neighbor(self.rank, axis, -1), grid.neighbor(self.rank, axis, 1))
+            for axis in range(3)
+        )
 
     def fractions(self, state: State) -> NDArray[np.float64]:
         """(N, 3) coordinates of ``state``'s atoms along the cell vectors (unwrapped)."""
@@ -241,23 +247,22 @@ class Domain:
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
-            self._find_ghosts(state, reach, strayed, positions, home, n)
+            self._find_ghosts(state, reach, strayed, positions, home, n, (tilt, cell, widths))
 
     def _find_ghosts(
-        self, state: State, reach: float, strayed: float, positions, home, n: int
+        self, state: State, reach: float, strayed: float, positions, home, n: int, geometry
     ) -> None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
-        atoms' layout (``positions``' first ``n`` rows, their fractions ``home``)."""
+        atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
+        cell's ``geometry``: its periodic tilt, matrix and widths)."""
         box, pbc = state.box, state.pbc
-        tilt = periodic_tilt(state.tilt, pbc)
-        cell = cell_matrix(box, tilt)
-        widths = perpendicular_widths(box, tilt)
+        tilt, cell, widths = geometry
         # one reduction: how far owned atoms strayed, and the migration's lost atoms
         margin, lost = global_max(np.array([strayed, float(self.lost_atoms)]), self.ranks)
         self.lost_atoms = 0
         check_lost(lost)
         shell = reach + margin
-        brick = widths * self.grid.thinnest()
+        brick = widths * self.thinnest
         narrow = pbc & (brick < shell + margin)
         if np.any(narrow):
             axis = int(np.argmax(narrow))
@@ -285,8 +290,7 @@ class Domain:
                 ghost_lower, ghost_upper = near_faces(ghost_fractions, count - n, axis, *faces)
                 lower = np.concatenate([lower, ghost_lower + n])
                 upper = np.concatenate([upper, ghost_upper + n])
-            down = self.grid.neighbor(self.rank, axis, -1)
-            up = self.grid.neighbor(self.rank, axis, 1)
+            down, up = self.neighbors[axis]
             sweep = []
             for send, shift, dest, source in (
                 (lower, 1 if c == 0 else 0, down, up),

@@ -118,7 +118,7 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     n = state.n_atoms
     lost = 0
     tilt = periodic_tilt(state.tilt, state.pbc)
-    grid, ranks, rank = domain.grid, domain.ranks, domain.rank
+    grid, ranks = domain.grid, domain.ranks
     for axis in range(3):
         if grid.shape[axis] == 1:
             continue
@@ -133,8 +133,7 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
             domain.coordinates[axis],
         )
         lost += far
-        upper = grid.neighbor(rank, axis, 1)
-        lower = grid.neighbor(rank, axis, -1)
+        lower, upper = domain.neighbors[axis]
         from_lower, from_upper = ranks.exchange_many(
             [
                 (_packed(arrays, ups), upper, lower, 2 * axis),
