@@ -35,7 +35,7 @@ from md.neighbors._build_kernels import (
     _join_chunks,
     _scatter_pass,
 )
-from md.neighbors._candidates import _keep, _near_pack, _near_pack_whole
+from md.neighbors._candidates import _keep, _near_pack, _near_pack_range
 from md.neighbors._cell_kernels import (
     _CODE_SHIFT,
     _SLOT_MASK,
@@ -437,40 +437,21 @@ def _owned_pairs_chunk(
             if count + n_candidates + 8 <= capacity:
                 # room for every candidate and a block's spill: written as they are tested
                 at = base + count
-                w = first
-                while w + 64 <= last:
-                    at = _near_pack_whole(
-                        xs[i],
-                        ys[i],
-                        zs[i],
-                        r2_max,
-                        cx,
-                        cy,
-                        cz,
-                        c_packed,
-                        w,
-                        64,
-                        PERMUTATIONS,
-                        packed_list,
-                        at,
-                    )
-                    w += 64
-                if w < last:
-                    at = _near_pack(
-                        xs[i],
-                        ys[i],
-                        zs[i],
-                        r2_max,
-                        cx,
-                        cy,
-                        cz,
-                        c_packed,
-                        w,
-                        last - w,
-                        PERMUTATIONS,
-                        packed_list,
-                        at,
-                    )
+                at = _near_pack_range(
+                    xs[i],
+                    ys[i],
+                    zs[i],
+                    r2_max,
+                    cx,
+                    cy,
+                    cz,
+                    c_packed,
+                    first,
+                    last,
+                    PERMUTATIONS,
+                    packed_list,
+                    at,
+                )
                 w = i + 1
                 while w < own_last:
                     at = _near_pack(
@@ -508,40 +489,21 @@ def _owned_pairs_chunk(
                     )
                     w += 64
                 split = at - base
-                w = g_first
-                while w + 64 <= g_last:
-                    at = _near_pack_whole(
-                        xs[i],
-                        ys[i],
-                        zs[i],
-                        r2_max,
-                        gx,
-                        gy,
-                        gz,
-                        g_packed,
-                        w,
-                        64,
-                        PERMUTATIONS,
-                        packed_list,
-                        at,
-                    )
-                    w += 64
-                if w < g_last:
-                    at = _near_pack(
-                        xs[i],
-                        ys[i],
-                        zs[i],
-                        r2_max,
-                        gx,
-                        gy,
-                        gz,
-                        g_packed,
-                        w,
-                        g_last - w,
-                        PERMUTATIONS,
-                        packed_list,
-                        at,
-                    )
+                at = _near_pack_range(
+                    xs[i],
+                    ys[i],
+                    zs[i],
+                    r2_max,
+                    gx,
+                    gy,
+                    gz,
+                    g_packed,
+                    g_first,
+                    g_last,
+                    PERMUTATIONS,
+                    packed_list,
+                    at,
+                )
                 count = at - base
             else:
                 for r in range(4):  # forward cells, own column, its images, the ghosts
