@@ -179,7 +179,7 @@ def write_checkpoint(
             arrays["neighbor_step"] = np.array(nl.built_step, dtype=np.int64)
     # a decomposed run's grid and owners (its rank-0 view of the force field holds them)
     layout = forcefield.decomposition if isinstance(forcefield, Decomposed) else None
-    if layout is not None:
+    if layout is not None and layout.get("owners") is not None:
         arrays["domain_owners"] = np.asarray(layout["owners"], dtype=np.int64)
         if layout.get("slots") is not None:  # each atom's row on its rank
             arrays["domain_slots"] = np.asarray(layout["slots"], dtype=np.int64)
@@ -539,6 +539,9 @@ class Checkpointer:
     """
 
     uses_virial = False  # saves the state; its steps need no virial
+    #: A decomposed run gathers its layout (build positions, owners, step starts) for it
+    #: (:class:`md.distributed.views.LayoutUse`); trajectory frames go without.
+    store_layout = True
 
     def __init__(
         self,

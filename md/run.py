@@ -445,7 +445,7 @@ class PreparedRun:
         if self.ranks is None:
             sim = self.sim
             return self._create_outputs(sim.state, sim.integrator, sim.forcefield, start)
-        view = self.sim.global_view(thermo=False)
+        view = self.sim.global_view(thermo=False, layout=True)  # (a checkpoint's)
         error = writer = None
         if view is not None:
             try:

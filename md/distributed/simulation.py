@@ -272,18 +272,21 @@ class DistributedSimulation(Simulation):
         integrator = self.integrator
         return tuple(integrator.per_atom_state) if isinstance(integrator, Distributable) else ()
 
-    def global_view(self, forces: bool = False, thermo: bool = True) -> GlobalView | None:
+    def global_view(
+        self, forces: bool = False, thermo: bool = True, layout: bool = False
+    ) -> GlobalView | None:
         """The whole system gathered on rank 0, in its atom order (collective): a
-        :class:`GlobalView` there, None on the other ranks."""
+        :class:`GlobalView` there, None on the other ranks.
+
+        With ``layout`` (a checkpoint's gather: :class:`md.distributed.views.LayoutUse`)
+        each atom's row also carries what a resume needs beyond the state: its last list
+        build's position, its rank and its last two step starts (7 numbers more an atom);
+        without it (a trajectory frame) the view's ``forcefield`` has no build positions
+        and its ``decomposition`` no owners, slots or step starts."""
         state = self.state
         self.forcefield.steps_end()
         row = self.thermo() if thermo else None
         columns = [state.ids[:, None].astype(np.float64), state.positions, state.velocities]
-        reference = self.forcefield.reference
-        if reference is None or reference.shape != state.positions.shape:
-            reference = np.full_like(state.positions, np.nan)
-        columns.append(reference)
-        columns.append(np.full((state.n_atoms, 1), float(self.rank)))
         if forces:
             columns.append(self.forcefield.compute(state).forces)
         keys = self.per_atom_keys()
@@ -295,12 +298,17 @@ class DistributedSimulation(Simulation):
                 value = np.asarray(value, dtype=np.float64)
                 shapes.append((key, value.shape[1:]))
                 columns.append(value.reshape(state.n_atoms, -1))
-        # The last two step starts, from which the next steps' look-ahead measures (the
-        # step that follows a resume then decides to migrate as the uninterrupted one).
-        for kept in (self.forcefield.step_start, self.forcefield.step_before):
-            columns.append(
-                kept if kept.shape == state.positions.shape else np.full_like(columns[1], np.nan)
-            )
+        if layout:
+            missing = np.full_like(state.positions, np.nan)
+            reference = self.forcefield.reference
+            if reference is None or reference.shape != state.positions.shape:
+                reference = missing
+            # The build positions, the rank, and the last two step starts, from which the
+            # next steps' look-ahead measures (the step that follows a resume then decides
+            # to migrate as the uninterrupted one).
+            columns += [reference, np.full((state.n_atoms, 1), float(self.rank))]
+            for kept in (self.forcefield.step_start, self.forcefield.step_before):
+                columns.append(kept if kept.shape == state.positions.shape else missing)
         rows = self.ranks.gather_rows(np.concatenate(columns, axis=1))
         if rows is None:
             return None
@@ -319,40 +327,48 @@ class DistributedSimulation(Simulation):
             time=state.time,
             tilt=state.tilt,
         )
-        start = 11  # after id, positions, velocities, build positions and rank
+        start = 7  # after id, positions and velocities
         gathered_forces = None
         if forces:
-            gathered_forces, start = whole[:, 11:14].copy(), 14
+            gathered_forces, start = whole[:, 7:10].copy(), 10
         if saved is not None:
             saved = dict(saved)
             for key, shape in shapes:
                 size = int(np.prod(shape))
                 saved[key] = whole[:, start : start + size].reshape((n, *shape)).copy()
                 start += size
-        starts = [whole[:, start : start + 3].copy(), whole[:, start + 3 : start + 6].copy()]
-        # Each atom's row on its rank: the gathered rows come rank after rank, each rank's
-        # in its own order (a resume on this grid restores it, for the same bits).
-        ranks = rows[:, 10].astype(np.int64)
-        slots = np.empty(n, dtype=np.int64)
-        slots[rows[:, 0].astype(np.int64)] = np.arange(n) - np.searchsorted(ranks, ranks)
-        layout = {
+        decomposition = {
             "grid": list(self.grid.shape),
             "cuts": [list(planes) for planes in self.grid.cuts],
-            "owners": whole[:, 10].astype(np.int64),
-            "slots": slots,
             "bond_reach": self.forcefield.bond_reach,
             "migrate_pending": self.forcefield.migrate_pending,
             "ahead": self.forcefield.ahead,
-            # None where unknown (a migration since, or no step yet): NaN rows, all or none
-            "step_start": None if np.isnan(starts[0]).any() else starts[0],
-            "step_before": None if np.isnan(starts[1]).any() else starts[1],
         }
-        reference = whole[:, 7:10].copy()
+        reference = None
+        if layout:
+            reference = whole[:, start : start + 3].copy()
+            owners = whole[:, start + 3].astype(np.int64)
+            starts = [whole[:, start + 4 + 3 * k : start + 7 + 3 * k].copy() for k in (0, 1)]
+            # Each atom's row on its rank: the gathered rows come rank after rank, each
+            # rank's in its own order (a resume on this grid restores it, for the same bits).
+            ranks = rows[:, start + 3].astype(np.int64)
+            slots = np.empty(n, dtype=np.int64)
+            slots[rows[:, 0].astype(np.int64)] = np.arange(n) - np.searchsorted(ranks, ranks)
+            decomposition.update(
+                owners=owners,
+                slots=slots,
+                # None where unknown (a migration since, or no step yet): NaN rows, all or
+                # none
+                step_start=None if np.isnan(starts[0]).any() else starts[0],
+                step_before=None if np.isnan(starts[1]).any() else starts[1],
+            )
         return GlobalView(
             state=gathered,
             row=row,
             integrator=IntegratorView(self.integrator, saved),
-            forcefield=ForceFieldView(self.forcefield, gathered_forces, row, reference, layout),
+            forcefield=ForceFieldView(
+                self.forcefield, gathered_forces, row, reference, decomposition
+            ),
             units=self.units,
         )
 

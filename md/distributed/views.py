@@ -42,6 +42,16 @@ class ForcesUse(Protocol):
 
 
 @runtime_checkable
+class LayoutUse(Protocol):
+    """Optional hook of an observer: ``store_layout = True`` says it records where a resume
+    starts from (a checkpoint writer), so a decomposed run gathers with the atoms their
+    last build positions, ranks and step starts (``DistributedSimulation.global_view``'s
+    ``layout``); an observer without the attribute (a trajectory writer) is handed none."""
+
+    store_layout: bool
+
+
+@runtime_checkable
 class Decomposed(Protocol):
     """What a force field seen by rank 0's observers of a decomposed run has beyond a
     ForceField's: ``decomposition``, the layout a checkpoint records (the grid, its cut
@@ -72,11 +82,14 @@ class Gathered:
         #: False for an observer that reads only the step, time and thermo (a thermo
         #: table, a progress bar): it gets them without the atoms being gathered.
         self.whole_system = observer.whole_system if isinstance(observer, WholeSystemUse) else True
+        #: True for an observer that records the run's layout (a checkpoint writer).
+        self.layout = isinstance(observer, LayoutUse) and bool(observer.store_layout)
 
     def __call__(self, sim: DistributedSimulation) -> None:
         if self.whole_system:
             forces = isinstance(self.observer, ForcesUse) and bool(self.observer.store_forces)
-            view = sim.global_view(forces=forces, thermo=self.uses_virial)
+            extra = {"layout": True} if self.layout else {}  # (the layout's columns)
+            view = sim.global_view(forces=forces, thermo=self.uses_virial, **extra)
         else:
             view = sim.light_view(thermo=self.uses_virial)
         error = None
