@@ -1,6 +1,6 @@
 """The communication of a decomposed run's list builds (issue 69): a build taken at a step
-start shares its outcome in the step's own reduction, so it adds one collective (the ghost
-search's) to its step rather than two; a rank whose build fails still ends every rank
+start shares its outcome in the step's own reduction, so it adds no collective to its
+step (two before, then one: the ghost search's); a rank whose build fails still ends every rank
 with its error.
 
 The tests launch 2 real ranks with ``mpiexec`` (skipped without the ``[mpi]`` extra) on a
@@ -148,17 +148,19 @@ def _rows(done) -> list[dict]:
 @needs_mpi
 def test_a_step_start_build_adds_one_collective_and_the_run_follows_the_serial_one(tmp_path):
     """From one step start to the next, a span with a list build (the step's evaluation,
-    then the next start's migration, ghost search and list) makes two collective calls:
-    the evaluation's reduction, which also shares the build's outcome, and the ghost
-    search's; the build made a reduction of its own before (three). Spans without a
-    build make one. The trajectory still follows the serial engine's to 1e-10."""
+    then the next start's migration, ghost search and list) makes one collective call:
+    the evaluation's reduction, which also shares the build's outcome (and the ghost
+    search's lost atoms; its shell's margin is agreed without one, see
+    tests/test_mpi_build_path.py); the build made two reductions of its own before
+    (three), then one (two). Spans without a build make one. The trajectory still
+    follows the serial engine's to 1e-10."""
     (tmp_path / "counted.py").write_text(COUNTED)
     out = tmp_path / "positions.npy"
     done = _launch(tmp_path, "counted.py", str(out))
     assert done.returncode == 0, done.stderr + done.stdout
     found = _rows(done)[-1]
     assert found["n_builds"] >= 4, found  # (the melt rebuilds every few steps)
-    assert found["with_build"] == [2], found
+    assert found["with_build"] == [1], found
     assert found["without"] == [1], found
 
     sys.path.insert(0, str(tmp_path))

@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,6 +26,7 @@ needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (t
 #: The 384-atom melt on the ranks, and a proxy of a communicator that counts its calls.
 COMMON = """\
 import json, sys
+import numpy as np
 import md
 from integrators import VelocityVerlet
 from potentials import LennardJones
@@ -148,3 +150,95 @@ def test_a_frame_gathers_the_atoms_and_only_a_checkpoint_gathers_the_layout(tmp_
     for key in ("owners", "slots", "step_start", "step_before"):
         assert key in found["layout_keys"] and key not in found["frame_keys"], found
     assert found["step_start"] and found["reference"], found
+
+
+#: Collective calls and point-to-point sends of every rank between step starts, over the
+#: spans holding one list build (the step's evaluation, then the next start's migration,
+#: ghost search and list) and none; prints rank 0's JSON and saves the positions.
+SPANS = """\
+import json, sys
+sys.path.insert(0, sys.argv[2])
+import numpy as np
+from common import COLLECTIVES, Counted, simulation, system
+import md.distributed.forcefield
+from md.distributed import DistributedSimulation
+
+if len(sys.argv) > 3:  # a step start's agreed stray, in skins
+    md.distributed.forcefield.AGREED_STRAY = float(sys.argv[3])
+sim = simulation(system(), DistributedSimulation)
+sim.run(0)
+counted = Counted(sim.ranks.comm)
+sim.ranks.comm = counted
+forcefield = sim.forcefield
+starts = forcefield.start_step  # (called at every step's start, after its build)
+marks = []
+
+
+def start_step(*args):
+    marks.append((counted.total(COLLECTIVES), counted.total({"Isend"}), forcefield.n_builds))
+    starts(*args)
+
+
+forcefield.start_step = start_step
+sim.run(80)
+marks.append((counted.total(COLLECTIVES), counted.total({"Isend"}), forcefield.n_builds))
+spans = [tuple(b[k] - a[k] for k in range(3)) for a, b in zip(marks[2:], marks[3:])]
+view = sim.global_view()
+if sim.rank == 0:
+    np.save(sys.argv[1], view.state.positions)
+    print(json.dumps({
+        "with_build": sorted({(c, s) for c, s, builds in spans if builds == 1}),
+        "without": sorted({(c, s) for c, s, builds in spans if builds == 0}),
+        "n_builds": sum(builds for _, _, builds in spans),
+        "most": max(builds for _, _, builds in spans),
+    }))
+"""
+
+
+@needs_mpi
+def test_a_step_start_build_adds_no_collective_and_one_message_each_way(tmp_path):
+    """From one step start to the next, a span with a list build makes one collective call,
+    the step's evaluation's, as a span without one: the build's ghost search shares no
+    reduction of its own (it made one before: two in all), since its shell takes a
+    margin every rank agrees on. Its migration and ghost search send one message each
+    (two bricks along x: both neighbours are one rank; two each before: four sends). The
+    trajectory still follows the serial engine's to 1e-10."""
+    out = tmp_path / "positions.npy"
+    done = _launch(tmp_path, "spans.py", SPANS, str(out), str(tmp_path))
+    assert done.returncode == 0, done.stderr + done.stdout
+    found = _last_json(done)
+    assert found["n_builds"] >= 4, found  # (the melt rebuilds every few steps)
+    assert found["with_build"] == [[1, 2]], found
+    assert found["without"] == [[1, 0]], found
+    assert found["most"] == 1, found  # (no rank's atoms strayed past the agreed margin)
+    _follows_the_serial_run(tmp_path, out, 80)
+
+
+@needs_mpi
+def test_atoms_straying_past_the_agreed_margin_have_every_rank_build_again(tmp_path):
+    """With a step start's agreed stray made tiny (1e-6 skins), atoms laid out a step ahead
+    stray past it at most builds: the rank that sees it has every rank build again at
+    the step's evaluation (spans of two builds, the second with the ranks' reduction),
+    and the trajectory still follows the serial engine's to 1e-10."""
+    out = tmp_path / "positions.npy"
+    done = _launch(tmp_path, "spans.py", SPANS, str(out), str(tmp_path), "1e-6")
+    assert done.returncode == 0, done.stderr + done.stdout
+    found = _last_json(done)
+    assert found["most"] == 2, found
+    _follows_the_serial_run(tmp_path, out, 80)
+
+
+def _follows_the_serial_run(tmp_path: Path, out: Path, n_steps: int) -> None:
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import common
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("common", None)
+    from md.simulation import Simulation
+
+    alone = common.simulation(common.system(), Simulation)
+    alone.run(n_steps)
+    positions = np.load(out)
+    gap = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(positions)
+    assert gap < 1e-10

@@ -40,7 +40,7 @@ from md.distributed._domain_kernels import (
     predicted_positions,
 )
 from md.distributed.grid import Grid
-from md.distributed.halo import Domain
+from md.distributed.halo import AGREED_STRAY, Domain
 from md.distributed.ranks import agree
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
 from md.forcefield import ForceField
@@ -634,8 +634,9 @@ class DistributedForceField:
             at.positions = self.coming_positions(state, dt, out=reference)
         self._settle_build()
         reach = self.reach
-        self.domain.build(at, reach)  # its ghost search on the ranks' clock
-        error, longest = None, 0.0
+        # (a step start's build: atoms just migrated, laid out a step ahead; AGREED_STRAY)
+        agreed = AGREED_STRAY * self.skin if migrate and dt is not None and self.skin else None
+        error, longest = self.domain.build(at, reach, agreed), 0.0  # ghosts on the ranks' clock
         try:
             longest = self._localize_bonded()
             nl = self.local.neighbor_list
@@ -643,7 +644,7 @@ class DistributedForceField:
                 nl.keep_owned(self.domain.local_ids, self.domain.n_owned)
                 nl.build(self.domain.local_state)
         except (NonFiniteError, ValueError) as caught:  # shared with every rank
-            error = caught
+            error = caught if error is None else error
         self._build_outcome = (longest, error)
         if dt is None:
             self._settle_build()

@@ -35,12 +35,18 @@ from md.distributed._domain_kernels import (
     table_rows,
 )
 from md.distributed.grid import Grid, local_periodic_axes
-from md.distributed.migration import RowStore, check_lost, migrate
+from md.distributed.migration import RowStore, check_lost, lost_error, migrate
 from md.errors import DecompositionError
 from md.parallel import global_max
 from md.state import State
 
 _NO_ROWS = np.empty((0, 3))  # (never written: a copy into no rows)
+#: How far, in skins, a step start's build lets owned atoms stray from their bricks: the
+#: margin of its ghost shell, agreed without a reduction (:meth:`Domain.build`). Its atoms
+#: have just migrated into their bricks and are laid out a step ahead, so they stray by
+#: a step's move; a step moving atoms a quarter skin would rebuild the list every other
+#: step, and a rank whose atoms strayed further has every rank build again.
+AGREED_STRAY = 0.25
 
 
 @dataclass
@@ -155,6 +161,8 @@ class Domain:
         #: Atoms the migrations since the last build lost (moved more than a brick), shared
         #: in the next ghost search's reduction.
         self.lost_atoms = 0
+        #: Whether owned atoms strayed beyond the last build's agreed margin (see build).
+        self.outgrown = False
         self._local: dict[str, list] = {}
         self._parity = 0
 
@@ -202,9 +210,21 @@ class Domain:
         return migrate(self, state, carried, spent)
 
     # -------------------------------------------------------------------- ghosts
-    def build(self, state: State, reach: float) -> None:
+    def build(
+        self, state: State, reach: float, margin: float | None = None
+    ) -> DecompositionError | None:
         """Find the ghosts within ``reach`` of the brick (widened by as far as owned atoms
         have strayed from it) and lay out the local system. Collective.
+
+        How far the owned atoms strayed is shared in a reduction of the build's own, unless
+        the caller gives a ``margin`` every rank agrees on (the same on every rank; a step
+        start's build, just after a migration: see
+        :meth:`md.distributed.forcefield.DistributedForceField.rebuild`) and the bricks
+        are wide enough for it. The shell is then ``reach + margin`` and no rank waits for
+        another here but in the ghosts' messages; a rank whose atoms strayed further is
+        ``outgrown`` (:meth:`layout_holds` is False, so the next evaluation has every rank
+        build again, with the reduction), and the atoms its migrations lost are returned
+        as the error for the caller to share (else None) rather than raised.
 
         The ghost search (from the reduction of the strays on: the faces' atoms, their
         packing and messages) runs on the ranks' clock, the communication section; the
@@ -247,22 +267,42 @@ class Domain:
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
-            self._find_ghosts(state, reach, strayed, positions, home, n, (tilt, cell, widths))
+            return self._find_ghosts(
+                state, reach, strayed, positions, home, n, (tilt, cell, widths), margin
+            )
 
     def _find_ghosts(
-        self, state: State, reach: float, strayed: float, positions, home, n: int, geometry
-    ) -> None:
+        self,
+        state: State,
+        reach: float,
+        strayed: float,
+        positions,
+        home,
+        n: int,
+        geometry,
+        agreed: float | None,
+    ) -> DecompositionError | None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
         atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
-        cell's ``geometry``: its periodic tilt, matrix and widths)."""
+        cell's ``geometry``: its periodic tilt, matrix and widths; the ``agreed`` margin
+        or None). Returns the lost atoms' error where it is the caller's to share."""
         box, pbc = state.box, state.pbc
         tilt, cell, widths = geometry
-        # one reduction: how far owned atoms strayed, and the migration's lost atoms
-        margin, lost = global_max(np.array([strayed, float(self.lost_atoms)]), self.ranks)
-        self.lost_atoms = 0
-        check_lost(lost)
-        shell = reach + margin
         brick = widths * self.thinnest
+        if agreed is not None and np.any(pbc & (brick < reach + 2.0 * agreed)):
+            agreed = None  # (bricks too thin for it, on every rank alike: the reduction)
+        unshared = None
+        if agreed is None:
+            # one reduction: how far owned atoms strayed, and the migration's lost atoms
+            margin, lost = global_max(np.array([strayed, float(self.lost_atoms)]), self.ranks)
+            self.lost_atoms = 0
+            check_lost(lost)
+            self.outgrown = False
+        else:
+            margin = agreed
+            self.outgrown = strayed > agreed
+            unshared, self.lost_atoms = lost_error(self.lost_atoms), 0
+        shell = reach + margin
         narrow = pbc & (brick < shell + margin)
         if np.any(narrow):
             axis = int(np.argmax(narrow))
@@ -304,7 +344,10 @@ class Domain:
             # both swaps' rows in flight together (each sends atoms laid out before them)
             remote = [(rows, dest, source, tag) for _, _, dest, source, rows, tag in sweep]
             if sweep[0][2] != self.rank:
-                arrived = self.ranks.exchange_many(remote)
+                if down == up:  # two bricks along the axis: both swaps' rows in one message
+                    arrived = self._both_ways(sweep[0][4], sweep[1][4], down, sweep[0][5])
+                else:
+                    arrived = self.ranks.exchange_many(remote)
                 sweep = [
                     (*swap[:4], rows, swap[5]) for swap, rows in zip(sweep, arrived, strict=True)
                 ]
@@ -339,10 +382,29 @@ class Domain:
         # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
         # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
         self.local_state.tilt = periodic_tilt(tilt, local_pbc)
+        return unshared
+
+    def _both_ways(self, first: NDArray, second: NDArray, other: int, tag: int) -> list:
+        """Send a sweep's two swaps' rows to ``other``, the neighbour on both sides, as one
+        message (a row giving the first's count, then both), and return the two parts of
+        the one that arrives from it: the rows of its first swap and of its second, which
+        come to this rank's first and second (its lower face's atoms arrive across this
+        rank's upper face)."""
+        joined = np.empty((1 + len(first) + len(second), first.shape[1]))
+        joined[0] = 0.0
+        joined[0, 0] = len(first)
+        joined[1 : 1 + len(first)] = first
+        joined[1 + len(first) :] = second
+        arrived = self.ranks.exchange_rows(joined, other, other, tag)
+        split = 1 + int(arrived[0, 0])
+        return [arrived[1:split], arrived[split:]]
 
     def layout_holds(self, state: State) -> bool:
         """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
-        that tilts the cell towards a cut axis needs a build with explicit images)."""
+        that tilts the cell towards a cut axis needs a build with explicit images), and
+        its agreed margin held its owned atoms' strays (see :meth:`build`)."""
+        if self.outgrown:
+            return False  # (owned atoms strayed beyond the build's agreed margin)
         if not self._local_periodic or state.tilt.tobytes() == self._built_tilt:
             return True  # (checked at every force call: the cheap answers first)
         tilt = periodic_tilt(state.tilt, state.pbc)

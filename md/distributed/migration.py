@@ -134,12 +134,18 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         )
         lost += far
         lower, upper = domain.neighbors[axis]
-        from_lower, from_upper = ranks.exchange_many(
-            [
-                (_packed(arrays, ups), upper, lower, 2 * axis),
-                (_packed(arrays, downs), lower, upper, 2 * axis + 1),
-            ]
-        )
+        if grid.shape[axis] == 2:
+            # Two bricks along the axis: both neighbours are the one other rank, and every
+            # leaver is in ``ups`` (``downs`` stays empty), so one message each way.
+            (from_lower,) = ranks.exchange_many([(_packed(arrays, ups), upper, lower, 2 * axis)])
+            from_upper = from_lower[:0]
+        else:
+            from_lower, from_upper = ranks.exchange_many(
+                [
+                    (_packed(arrays, ups), upper, lower, 2 * axis),
+                    (_packed(arrays, downs), lower, upper, 2 * axis + 1),
+                ]
+            )
         if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
             continue
         incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
@@ -169,11 +175,20 @@ def check_lost(lost: float) -> None:
     DecompositionError
         If an atom moved more than one brick along an axis since the last migration.
     """
-    if lost:
-        raise DecompositionError(
-            "an atom moved more than a brick between two neighbour-list builds; the "
-            "dynamics is blowing up (time step too large?)"
-        )
+    error = lost_error(lost)
+    if error is not None:
+        raise error
+
+
+def lost_error(lost: float) -> DecompositionError | None:
+    """The error :func:`check_lost` raises for ``lost`` atoms (None for none), for a rank
+    that shares it later (a step start's build, in the step's reduction)."""
+    if not lost:
+        return None
+    return DecompositionError(
+        "an atom moved more than a brick between two neighbour-list builds; the "
+        "dynamics is blowing up (time step too large?)"
+    )
 
 
 def _room_of(values: NDArray, size: int) -> NDArray | None:
