@@ -242,3 +242,37 @@ def _follows_the_serial_run(tmp_path: Path, out: Path, n_steps: int) -> None:
     positions = np.load(out)
     gap = np.linalg.norm(positions - alone.state.positions) / np.linalg.norm(positions)
     assert gap < 1e-10
+
+
+def test_more_ranks_than_cores_tell_the_mpi_library_to_yield_and_others_do_not():
+    """Under a launcher that started more ranks on the node than there are cores, the
+    ``md`` command's entry sets the MPI libraries' yield variables before MPI starts
+    (the polling waits took the cores from the ranks they waited for); with a core per
+    rank, without a launcher, or where the user set the variable, nothing changes."""
+    from md.distributed.ranks import YIELD_VARIABLES, yield_when_oversubscribed
+
+    crowded = {"PMI_SIZE": "3", "MPI_LOCALNRANKS": "3"}
+    assert yield_when_oversubscribed(crowded, cores=2)
+    assert all(crowded[name] == value for name, value in YIELD_VARIABLES.items())
+    roomy = {"PMI_SIZE": "2", "MPI_LOCALNRANKS": "2"}
+    assert not yield_when_oversubscribed(roomy, cores=2) and set(roomy) == {
+        "PMI_SIZE",
+        "MPI_LOCALNRANKS",
+    }
+    alone: dict = {}
+    assert not yield_when_oversubscribed(alone, cores=1) and not alone
+    chosen = {"PMI_SIZE": "4", "MPI_LOCALNRANKS": "4", "MPIR_CVAR_ENABLE_HEAVY_YIELD": "0"}
+    assert yield_when_oversubscribed(chosen, cores=2)
+    assert chosen["MPIR_CVAR_ENABLE_HEAVY_YIELD"] == "0"  # (the user's choice kept)
+
+
+def test_the_md_command_sets_the_yield_before_mpi_starts(monkeypatch):
+    """``md.cli.main`` makes the setting at its entry (a process-wide one: ``import md``
+    leaves the environment as it was)."""
+    import md.cli
+
+    seen = []
+    monkeypatch.setattr(md.cli, "yield_when_oversubscribed", lambda: seen.append("yield"))
+    monkeypatch.setattr(md.cli, "_run_command", lambda argv: seen.append("command") or 0)
+    assert md.cli.main(["--version"]) == 0
+    assert seen == ["yield", "command"]

@@ -28,6 +28,7 @@ from md.cli import (
     validate,
 )
 from md.cli._common import EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, ArgumentParser
+from md.distributed.ranks import yield_when_oversubscribed
 from md.interrupts import take_pending, watching
 
 #: Subcommand modules, in the order ``md --help`` lists them.
@@ -62,11 +63,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     temporaries (:func:`md._memory.keep_freed_memory`; it cannot be undone), and
     SIGINT is watched while the command runs, so a Ctrl-C that a compiling
     kernel swallows still stops it (:func:`md.interrupts.watching`; the previous
-    handler is restored on return). The console script enters through
+    handler is restored on return). Under an MPI launcher that started more ranks on
+    the node than there are cores, the MPI library is told to yield the core while a
+    rank waits (:func:`md.distributed.ranks.yield_when_oversubscribed`, before MPI
+    starts). The console script enters through
     ``md_command.main``, which also turns a Ctrl-C while the libraries load into
     a line rather than a traceback.
     """
     keep_freed_memory()
+    yield_when_oversubscribed()  # (more ranks than cores here: MPI waits yield the core)
     with watching():
         return _run_command(argv)
 

@@ -38,14 +38,7 @@ SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "SLURM_STEP_NUM_TASKS")
 
 def launched_ranks() -> int:
     """How many processes the MPI launcher started this one among (1 without a launcher)."""
-    for name in SIZE_VARIABLES:
-        value = os.environ.get(name)
-        if value:
-            try:
-                return max(1, int(value))
-            except ValueError:
-                continue
-    return 1
+    return launched_ranks_in(os.environ)
 
 
 def in_rank_order(gathered: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -63,6 +56,55 @@ def ranks_per_node(ranks) -> int:
         if value.isdigit() and int(value) > 0:
             return int(value)
     return ranks.n_ranks
+
+
+#: What each MPI library reads to make a waiting rank give up its core, and the value
+#: (MPICH and Intel MPI: ``MPIR_CVAR_ENABLE_HEAVY_YIELD``, sched_yield in its progress
+#: loop; Open MPI: ``mpi_yield_when_idle``), read when MPI starts.
+YIELD_VARIABLES = {"MPIR_CVAR_ENABLE_HEAVY_YIELD": "1", "OMPI_MCA_mpi_yield_when_idle": "1"}
+
+
+def yield_when_oversubscribed(environ=None, cores: int | None = None) -> bool:
+    """Before MPI starts: if the launcher started more ranks on this node than this process
+    may use cores (``cores``, else its CPU affinity), tell the MPI library to yield the
+    core while a rank waits (:data:`YIELD_VARIABLES`, in ``environ``, else
+    ``os.environ``; a variable the user set is left as it is). Returns whether it did.
+
+    MPI libraries poll while a rank waits for a message, which is fastest when every
+    rank has a core of its own; with fewer cores the polling ranks hold them for a
+    scheduler time slice while the rank they wait for cannot run, and every exchange
+    of a step costs about that (the 1152-atom melt on 3 ranks on 2 cores: see
+    ``benchmarks/README.md``). A process-wide setting: the ``md`` command's entry
+    calls it (``md.cli.main``), never ``import md``.
+    """
+    environ = os.environ if environ is None else environ
+    if launched_ranks_in(environ) <= 1:
+        return False
+    local = 0
+    for name in ("MPI_LOCALNRANKS", "OMPI_COMM_WORLD_LOCAL_SIZE", "SLURM_NTASKS_PER_NODE"):
+        value = environ.get(name, "")
+        if value.isdigit() and int(value) > 0:
+            local = int(value)
+            break
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if not local or local <= (cores or 1):
+        return False
+    for name, value in YIELD_VARIABLES.items():
+        environ.setdefault(name, value)
+    return True
+
+
+def launched_ranks_in(environ) -> int:
+    """:func:`launched_ranks` as ``environ`` gives it."""
+    for name in SIZE_VARIABLES:
+        value = environ.get(name)
+        if value:
+            try:
+                return max(1, int(value))
+            except ValueError:
+                continue
+    return 1
 
 
 def launch_rank() -> int:
