@@ -118,7 +118,9 @@ if sim.rank == 0:
 """
 
 
-def _launch(tmp_path: Path, script: str, source: str, *arguments: str, timeout: float = 240):
+def _launch(
+    tmp_path: Path, script: str, source: str, *arguments: str, ranks: int = 2, timeout: float = 240
+):
     (tmp_path / "common.py").write_text(COMMON)
     (tmp_path / script).write_text(source)
     env = {
@@ -126,7 +128,7 @@ def _launch(tmp_path: Path, script: str, source: str, *arguments: str, timeout: 
         "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
     }
     env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")  # (oversubscribed cores: yield)
-    command = ["mpiexec", "-n", "2", sys.executable, str(tmp_path / script), *arguments]
+    command = ["mpiexec", "-n", str(ranks), sys.executable, str(tmp_path / script), *arguments]
     return subprocess.run(
         command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=timeout
     )
@@ -276,3 +278,47 @@ def test_the_md_command_sets_the_yield_before_mpi_starts(monkeypatch):
     monkeypatch.setattr(md.cli, "_run_command", lambda argv: seen.append("command") or 0)
     assert md.cli.main(["--version"]) == 0
     assert seen == ["yield", "command"]
+
+
+#: Four bricks along x (288 atoms): between two runs, rank 1 moves an atom it owns two
+#: bricks on and the next step start migrates, which loses it. Prints each rank's JSON.
+LOST = """\
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import md
+from common import simulation
+from md.distributed import DistributedSimulation
+
+lattice = md.lattice("fcc", (8, 3, 3), density=0.8442)
+velocities = np.random.default_rng(5).normal(0.0, 1.0, lattice.positions.shape)
+state = md.State(positions=lattice.positions, velocities=velocities, masses=1.0,
+                 box=lattice.box)
+sim = simulation(state, DistributedSimulation)
+sim.run(10)
+if sim.rank == 1:
+    sim.state.positions[0, 0] += 0.5 * sim.state.box[0]
+sim.forcefield.migrate_pending = True  # (the next step start migrates, on every rank)
+try:
+    sim.run(20)
+    print(json.dumps({"rank": sim.rank, "error": None}))
+except Exception as error:
+    print(json.dumps({"rank": sim.rank, "error": str(error), "kind": type(error).__name__,
+                      "step": sim.state.step}))
+"""
+
+
+@needs_mpi
+def test_an_atom_lost_by_a_step_start_migration_ends_every_rank_with_why(tmp_path):
+    """An atom that moved more than a brick between two builds is lost by the migration
+    (four bricks along x: it lands two away); the step start's build shares that in the
+    step's reduction, and every rank ends the run at the same step with the message."""
+    done = _launch(tmp_path, "lost.py", LOST, str(tmp_path), ranks=4)
+    rows = sorted(
+        (json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")),
+        key=lambda row: row["rank"],
+    )
+    assert [row["rank"] for row in rows] == [0, 1, 2, 3], done.stderr + done.stdout
+    for row in rows:
+        assert row["error"] is not None and "moved more than a brick" in row["error"], rows
+    assert len({row["step"] for row in rows}) == 1, rows
