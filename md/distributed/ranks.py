@@ -87,7 +87,10 @@ def yield_when_oversubscribed(environ=None, cores: int | None = None) -> bool:
             local = int(value)
             break
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # (os.sched_getaffinity exists on Linux only)
+            cores = os.cpu_count() or 1
     if not local or local <= (cores or 1):
         return False
     for name, value in YIELD_VARIABLES.items():
