@@ -57,6 +57,7 @@ PARALLEL = {
     "prune kernel",
     "search (whole build)",
     "kick + drift + check + positions",
+    "chunk sum + finite check + kick",
 }
 if FINITE == "all_finite":
     PARALLEL.add("finite check")
@@ -107,9 +108,7 @@ def _patched(phases: Phases, kept: dict):
         # the mixed step's fused passes (potentials._step_kernels; before: none)
         (potentials._pair_frame.PairPotential, "mixed_verlet_step", "force call, the rest"),
         (potentials._pair_frame, "kick_drift_slots", "kick + drift + check + positions"),
-        (potentials._pair_frame, "slot_forces_finite", "chunk sum into atom order"),
-        (potentials._pair_frame, "kick_by_mass", "kick"),
-        (potentials._pair_frame, "all_finite", "finite check"),
+        (potentials._pair_frame, "finish_step", "chunk sum + finite check + kick"),
     ]
     saved = []
     for owner, name, phase in targets:

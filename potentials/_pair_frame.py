@@ -40,7 +40,6 @@ import scipy.sparse as sp
 from md._checks import positive_scalar
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
-from md.parallel import all_finite
 from md.schema import REQUIRED, Key, check_names, key_names
 from md.state import State
 from potentials._bonded import symmetric
@@ -62,13 +61,7 @@ from potentials._pair_codegen import (
     kernels_for,
     variant,
 )
-from potentials._step_kernels import (
-    cluster_runs,
-    kick_by_mass,
-    kick_drift_slots,
-    pass_chunks,
-    slot_forces_finite,
-)
+from potentials._step_kernels import cluster_runs, finish_step, kick_drift_slots, pass_chunks
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 from potentials.pair_terms import HEADROOM, PairTerm, all_numbers
@@ -609,18 +602,18 @@ class PairPotential:
         return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
     def mixed_verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, held, allowed2, key):
-        """A mixed-precision velocity Verlet step over a cluster-pair list in two threaded
-        passes and the cluster kernel, where the last cluster call without the virial
+        """A mixed-precision velocity Verlet step over a cluster-pair list in two compiled
+        calls around the cluster kernel, where the last cluster call without the virial
         serves ``state`` (as in :meth:`energy_forces`); None where it does not (nothing
         done).
 
-        First one pass over the list's slots (``potentials._step_kernels``): v +=
-        kick_dt kicks/m, x += drift_dt v, x copied into ``key`` (N, 3: the force
-        field's cache), the float32 positions relative to the clusters' origins, and the
-        largest squared distance from ``held`` (N, 3: where the list was last built or
-        pruned). Then, if that is at most ``allowed2`` (the list's half-skin rule, see
-        :meth:`md.neighbors.NeighborList.cluster_check`), the cluster kernel, its chunks
-        summed into atom order with the finite check on the way, and v += kick_dt
+        First (``potentials._step_kernels``): v += kick_dt kicks/m, x += drift_dt v, x
+        copied into ``key`` (N, 3: the force field's cache) and the largest squared
+        distance from ``held`` (N, 3: where the list was last built or pruned), then,
+        if that is at most ``allowed2`` (the list's half-skin rule, see
+        :meth:`md.neighbors.NeighborList.cluster_check`), the float32 positions relative
+        to the clusters' origins. Then the cluster kernel, and the second call: its
+        chunks summed into atom order with the finite check on the way, and v += kick_dt
         forces/m. Returns ``(code, result)``: 0, the step done, ``result`` its
         ForceResult (no virial); 1, only the first kick and drift done (an atom moved
         too far, or a coordinate is not finite: the caller refreshes the list, then
@@ -663,11 +656,26 @@ class PairPotential:
         )
         if not moved2 <= allowed2:  # (NaN too: the list's update says what)
             return 1, None
-        result, finite = self._run_cluster_call(prepared, state, False, positioned=True)
-        if not (finite and math.isfinite(result.energy)):
+        forces = np.empty((state.n_atoms, 3))
+        self._cluster_kernel(prepared, state, False, forces)
+        windows, runs = clusters.windows, self._sum_runs
+        if runs is None or runs[0] is not windows:  # (found once per list)
+            runs = self._sum_runs = (windows, cluster_runs(windows, len(atom)))
+        energy = finish_step(
+            scratch[3],
+            atom,
+            windows,
+            forces,
+            runs[1],
+            scratch[6],
+            state.velocities,
+            state.masses,
+            kick_dt,
+            chunks,
+        )
+        if energy != energy:  # NaN: a force or the energy is not finite
             return 2, None
-        kick_by_mass(state.velocities, result.forces, state.masses, kick_dt, chunks)
-        return 0, result
+        return 0, ForceResult(energy=float(energy), forces=forces, virial=None)
 
     @_compiling_the_term
     def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
@@ -786,23 +794,38 @@ class PairPotential:
                 result = self._run_cluster_call(prepared, state, with_virial)
         return result, prepared
 
-    def _run_cluster_call(
-        self, prepared, state, virial: bool, positioned: bool = False
-    ) -> ForceResult | tuple[ForceResult, bool]:
+    def _run_cluster_call(self, prepared, state, virial: bool) -> ForceResult:
         """One call of the cluster kernel ``prepared`` by ``_cluster_energy_forces`` (the
         kernel's variant for ``virial``, its arrays): the relative positions, the kernel,
-        the chunks' forces summed into atom order, the virial. ``positioned``: the
-        relative positions are written already (:meth:`mixed_verlet_step`'s pass), and
-        the result comes with whether every force is finite, checked in the sum into
-        atom order where there is one."""
+        the chunks' forces summed into atom order, the virial."""
+        scratch, clusters = prepared[2], prepared[3]
+        xi, xj, energies, virials = scratch[0], scratch[1], scratch[6], scratch[7]
+        atom = clusters.atom
+        clusters.relative_positions(state.positions, xi, xj)
+        forces = np.empty((state.n_atoms, 3))
+        self._cluster_kernel(prepared, state, virial, forces)
+        chunks = len(energies)
+        if chunks > 1:  # one chunk writes the forces in atom order itself
+            cluster_atom_forces(scratch[3], atom, clusters.windows, forces)
+        total = None
+        if virial:
+            w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
+            total = 0.5 * (w + w.T)
+        return ForceResult(
+            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+            forces=forces,
+            virial=total,
+        )
+
+    def _cluster_kernel(self, prepared, state, virial: bool, forces) -> None:
+        """The cluster kernel of ``prepared`` over its relative positions, as written: the
+        chunks' forces into their buffers (one chunk: into ``forces``, in atom order),
+        their energies and virials into the scratch's."""
         kernel, lists, scratch, clusters, n_types, table, mode, single = prepared
         xi, xj, slot_types, buffers, j_sums, j_counts, energies, virials = scratch
         atom = clusters.atom
         if not single:
             _slot_types(state.types, atom, slot_types)
-        if not positioned:
-            clusters.relative_positions(state.positions, xi, xj)
-        forces = np.empty((state.n_atoms, 3))
         kernel(
             xi,
             xj,
@@ -822,29 +845,6 @@ class PairPotential:
             energies,
             virials,
         )
-        chunks = len(energies)
-        finite = None
-        if positioned:
-            if chunks > 1:  # the sum and the finite check in one pass
-                windows = clusters.windows
-                runs = self._sum_runs
-                if runs is None or runs[0] is not windows:  # (found once per list)
-                    runs = self._sum_runs = (windows, cluster_runs(windows, len(atom)))
-                finite = slot_forces_finite(buffers, atom, windows, forces, runs[1])
-            else:  # one chunk writes the forces in atom order itself
-                finite = all_finite(forces)
-        elif chunks > 1:  # one chunk writes the forces in atom order itself
-            cluster_atom_forces(buffers, atom, clusters.windows, forces)
-        total = None
-        if virial:
-            w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
-            total = 0.5 * (w + w.T)
-        result = ForceResult(
-            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
-            forces=forces,
-            virial=total,
-        )
-        return result if finite is None else (result, finite)
 
     def _frame_energy_forces(self, kernels, state, frame, n_types, table, mode, virial: bool):
         n = state.n_atoms

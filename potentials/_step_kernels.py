@@ -14,8 +14,8 @@ passes do not halve on two cores that share one memory bus, so
   threaded loops (a single loop over the slots, gathering every atom's arrays by slot,
   took 0.47 ms of work a step on the 32000-atom melt against 0.29 for the separate
   passes, this one 0.16);
-- :func:`slot_forces_finite`: the chunks' sum into atom order with the finite check of
-  each force on the way.
+- :func:`finish_step`: after the kernel, its chunks' sum into atom order with the finite
+  check of each force on the way, then (all finite) the last kick: one compiled call.
 
 Each value is computed with the arithmetic of the separate passes (the same bits:
 ``integrators._kernels``, ``md.neighbors``' displacement check and relative positions,
@@ -225,7 +225,7 @@ def _kick_drift_slots_threaded(
 
 
 def cluster_runs(windows, n_slots: int) -> np.ndarray:
-    """Where the runs of :func:`slot_forces_finite` start, in clusters (as
+    """Where the runs of :func:`finish_step`'s sum start, in clusters (as
     ``potentials._kernels.cluster_atom_forces`` splits its sum: one run per thread, each
     of at least ``_MIN_PASS_SLOTS`` slots, of equal work by ``cluster_sum_runs``)."""
     runs = chunk_count(n_slots, _MIN_PASS_SLOTS)
@@ -234,24 +234,79 @@ def cluster_runs(windows, n_slots: int) -> np.ndarray:
     return cluster_sum_runs(windows, n_slots // CLUSTER, runs)
 
 
-def slot_forces_finite(buffers, atom, windows, forces, first) -> bool:
-    """The chunks' cluster-ordered forces summed into ``forces`` (N, 3) in atom order, as
-    ``potentials._kernels.cluster_atom_forces`` sums them (runs ``first`` from its
-    ``cluster_sum_runs``; one run: on this thread); whether every force is finite."""
-    if first.shape[0] == 2:
-        return bool(_slot_forces_finite(buffers, atom, windows, forces, 0, atom.shape[0]))
-    return bool(_slot_forces_finite_threaded(buffers, atom, windows, forces, first))
+def finish_step(
+    buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt, chunks: int
+) -> float:
+    """After the cluster kernel: its chunks' cluster-ordered forces summed into
+    ``forces`` (N, 3) in atom order where it ran in several (``energies`` holds one
+    energy per chunk; ``first``: the sum's runs, :func:`cluster_runs`), as
+    ``potentials._kernels.cluster_atom_forces`` sums them, with the finite check of
+    each force on the way (one chunk wrote ``forces`` itself: they are checked); the
+    energy summed as numpy sums ``energies``; then, if the forces and the energy are
+    finite, v += kick_dt f/m (1/m taken atom by atom, as ``integrators._kernels``'
+    ``kick_by_mass``) in ``chunks`` chunks of atoms. One compiled call. Returns the
+    energy, or NaN where a force or the energy is not finite (then nothing is kicked)."""
+    if energies.shape[0] == 1:
+        return _finish_one_chunk(forces, energies, velocities, masses, kick_dt)
+    if chunks == 1 and first.shape[0] == 2:
+        return _finish_summed(
+            buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt
+        )
+    return _finish_summed_threaded(
+        buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt, chunks
+    )
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _energy(energies):
+    """The chunks' energies summed as numpy sums them (left to right from the first)."""
+    energy = energies[0]
+    for c in range(1, energies.shape[0]):
+        energy += energies[c]
+    return energy
+
+
+@njit(cache=True, error_model="numpy")
+def _finish_one_chunk(forces, energies, velocities, masses, kick_dt):
+    finite = True
+    for i in range(forces.shape[0]):
+        for a in range(3):
+            finite &= abs(forces[i, a]) < np.inf
+    energy = _energy(energies)
+    if not (finite and abs(energy) < np.inf):
+        return np.nan
+    _kick_by_mass(velocities, forces, masses, kick_dt)
+    return energy
+
+
+@njit(cache=True, error_model="numpy")
+def _finish_summed(buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt):
+    finite = _slot_forces_finite(buffers, atom, windows, forces, 0, CLUSTER * first[-1])
+    energy = _energy(energies)
+    if not (finite and abs(energy) < np.inf):
+        return np.nan
+    _kick_by_mass(velocities, forces, masses, kick_dt)
+    return energy
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _slot_forces_finite_threaded(buffers, atom, windows, forces, first):
+def _finish_summed_threaded(
+    buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt, chunks
+):
     runs = first.shape[0] - 1
     finite = np.ones(runs, np.bool_)
     for r in prange(runs):
         finite[r] = _slot_forces_finite(
             buffers, atom, windows, forces, CLUSTER * first[r], CLUSTER * first[r + 1]
         )
-    return finite.all()
+    energy = _energy(energies)
+    if not (finite.all() and abs(energy) < np.inf):
+        return np.nan
+    n = velocities.shape[0]
+    for c in prange(chunks):
+        a, b = c * n // chunks, (c + 1) * n // chunks
+        _kick_by_mass(velocities[a:b], forces[a:b], masses[a:b], kick_dt)
+    return energy
 
 
 @njit(cache=True, error_model="numpy")
@@ -279,27 +334,11 @@ def _slot_forces_finite(buffers, atom, windows, forces, first, end):
     return finite
 
 
-def kick_by_mass(velocities, forces, masses, kick_dt, chunks: int) -> None:
-    """v += kick_dt f/m, 1/m taken atom by atom (as ``integrators._kernels``'
-    ``kick_by_mass``: the same bits as a kick with numpy's ``1.0 / masses``), in
-    ``chunks`` chunks of atoms on the threads."""
-    if chunks == 1:
-        _kick_by_mass(velocities, forces, masses, kick_dt)
-    else:
-        _kick_by_mass_threaded(velocities, forces, masses, kick_dt, chunks)
-
-
 @njit(cache=True, error_model="numpy")
 def _kick_by_mass(velocities, forces, masses, kick_dt):
+    """v += kick_dt f/m, 1/m taken atom by atom (as ``integrators._kernels``'
+    ``kick_by_mass``: the same bits as a kick with numpy's ``1.0 / masses``)."""
     for i in range(velocities.shape[0]):
         scale = kick_dt * (1.0 / masses[i])
         for a in range(3):
             velocities[i, a] += scale * forces[i, a]
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _kick_by_mass_threaded(velocities, forces, masses, kick_dt, chunks):
-    n = velocities.shape[0]
-    for c in prange(chunks):
-        a, b = c * n // chunks, (c + 1) * n // chunks
-        _kick_by_mass(velocities[a:b], forces[a:b], masses[a:b], kick_dt)
