@@ -190,3 +190,20 @@ def test_a_subclass_with_its_own_energy_forces_is_asked_not_fused():
     sim = md.Simulation(melt(8), [Counted(cutoff=2.5)], VelocityVerlet(dt=DT), precision="mixed")
     sim.run(10)
     assert len(seen) >= 10
+
+
+def test_a_list_looked_at_every_few_steps_takes_the_general_path():
+    """``neighbor_every`` > 1 (not the exact list): the list's own look decides, so the
+    fused step is not made (``NeighborList.cluster_check`` says None)."""
+    sim = md.Simulation(
+        melt(8),
+        [LennardJones(cutoff=2.5)],
+        VelocityVerlet(dt=DT),
+        precision="mixed",
+        neighbor_every=2,
+    )
+    sim.run(3)
+    assert sim.forcefield.neighbor_list.cluster_check(sim.state) is None
+    counts = profiled(lambda: sim.run(10))
+    assert counts["kick_drift_slots"] == 0
+    assert counts["compute"] == 20  # the general path: the cached forces, then the new
