@@ -13,11 +13,12 @@ precision with the step made of the separate calls (the force field's ``verlet_s
 told to do nothing: the kicks, ``compute`` with its list check, cache copy and relative
 positions, the finite check), and double precision; then Debian's GROMACS (``gmx
 mdrun``, mixed precision, its own Verlet buffer, ``gromacs_lj_melt.py``) on the same
-melt in the same run. Blocks of ``--block`` steps take turns (fused, separate, double,
-GROMACS's run of as many steps), ``--repeats`` rounds, so that load from other processes
-falls on all of them alike; the figures are medians of the blocks' rates and of the
-per-round ratios. Wall time: on 2 cores shared with other work, two-thread blocks stall
-when another process takes a core, which the ratios within a round mostly cancel.
+melt in the same run. Blocks of ``--block`` steps take turns (fused, separate, double in
+an order that rotates from round to round, then GROMACS's run of as many steps),
+``--repeats`` rounds, so that load from other processes falls on all of them alike; the
+figures are medians of the blocks' rates and of the per-round ratios. Wall time: on 2
+cores shared with other work, two-thread blocks stall when another process takes a core,
+which the ratios within a round mostly cancel.
 """
 
 from __future__ import annotations
@@ -83,10 +84,13 @@ def main(argv=None) -> int:
     for count in threads:
         rates[count, "GROMACS"] = []
     start_state = melt(args.cells)
-    for _ in range(args.repeats):
+    for repeat in range(args.repeats):
         for count in threads:
             set_threads(count)
-            for kind in KINDS:
+            # the kinds in turn first: the first block after another process's run (or
+            # a thread count's change) finds colder caches
+            shift = repeat % len(KINDS)
+            for kind in KINDS[shift:] + KINDS[:shift]:
                 sim = sims[count, kind]
                 begin = time.perf_counter()
                 sim.run(args.block)
