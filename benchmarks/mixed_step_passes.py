@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/mixed_step_passes.py                      # 32000 atoms, 1 and 2 threads
     python benchmarks/mixed_step_passes.py --repeats 7 --no-gromacs
+    python benchmarks/mixed_step_passes.py --pairs --repeats 20 --block 20   # fused/separate
 
 The LJ melt of ``lj_melt.py`` (fcc at rho* 0.8442, T* 3, LJ truncated at 2.5, skin 0.3,
 velocity Verlet, dt 0.005). Per thread count three Simulations of one start: mixed
@@ -56,6 +57,33 @@ def simulation(cells: int, kind: str) -> md.Simulation:
     return sim
 
 
+def _pairs(cells: int, count: int, block: int, rounds: int) -> None:
+    """Fused against separate alone at ``count`` threads: ``rounds`` pairs of ``block``
+    steps, the pair's order alternating; medians of the per-pair ratios of wall time and
+    of the calling thread's CPU time (which other processes do not inflate)."""
+    set_threads(count)
+    sims = {kind: simulation(cells, kind) for kind in KINDS[:2]}
+    for sim in sims.values():
+        sim.run(20)  # compiles or loads the kernels
+    wall: dict[str, list[float]] = {kind: [] for kind in sims}
+    cpu: dict[str, list[float]] = {kind: [] for kind in sims}
+    for r in range(rounds):
+        for kind in KINDS[:2] if r % 2 == 0 else KINDS[1::-1]:
+            begin, used = time.perf_counter(), time.thread_time()
+            sims[kind].run(block)
+            wall[kind].append(time.perf_counter() - begin)
+            cpu[kind].append(time.thread_time() - used)
+    fused, separate = KINDS[:2]
+    ratio_wall = statistics.median(a / b for a, b in zip(wall[fused], wall[separate], strict=True))
+    ratio_cpu = statistics.median(a / b for a, b in zip(cpu[fused], cpu[separate], strict=True))
+    print(
+        f"{count} thread(s), {4 * cells**3} atoms, {rounds} pairs of {block} steps: ms a step "
+        f"fused {1e3 * statistics.median(wall[fused]) / block:.3f}, separate "
+        f"{1e3 * statistics.median(wall[separate]) / block:.3f}; time fused / separate: wall "
+        f"{ratio_wall:.3f}, calling thread's CPU {ratio_cpu:.3f}"
+    )
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cells", type=int, default=CELLS)
@@ -64,9 +92,19 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="rounds of blocks")
     parser.add_argument("--no-gromacs", action="store_true", help="leave GROMACS out")
     parser.add_argument("--gmx", default=None, help="the gmx binary (default: on the PATH)")
+    parser.add_argument(
+        "--pairs",
+        action="store_true",
+        help="only fused against separate, in pairs of blocks whose order alternates",
+    )
     args = parser.parse_args(argv)
     threads = [int(t) for t in args.threads.split(",") if int(t) <= max_threads()]
     md.keep_freed_memory()  # as `md run` sets a process up
+    if args.pairs:
+        print(machine_line())
+        for count in threads:
+            _pairs(args.cells, count, args.block, args.repeats)
+        return 0
     gmx = None if args.no_gromacs else gromacs_lj_melt.find_gmx("mixed", args.gmx)
     n_atoms = 4 * args.cells**3
     print(machine_line())
