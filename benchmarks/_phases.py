@@ -56,6 +56,8 @@ PARALLEL = {
     "chunk sum into atom order",
     "prune kernel",
     "search (whole build)",
+    "kick + drift + check + positions",
+    "chunk sum + finite check + kick",
 }
 if FINITE == "all_finite":
     PARALLEL.add("finite check")
@@ -103,6 +105,10 @@ def _patched(phases: Phases, kept: dict):
         (potentials._pair_frame.PairPotential, "_cluster_energy_forces", "force call, the rest"),
         (potentials._pair_frame.PairPotential, "_run_cluster_call", "force call, the rest"),
         (potentials._pair_frame, "cluster_atom_forces", "chunk sum into atom order"),
+        # the mixed step's fused passes (potentials._step_kernels; before: none)
+        (potentials._pair_frame.PairPotential, "mixed_verlet_step", "force call, the rest"),
+        (potentials._pair_frame, "kick_drift_slots", "kick + drift + check + positions"),
+        (potentials._pair_frame, "finish_step", "chunk sum + finite check + kick"),
     ]
     saved = []
     for owner, name, phase in targets:

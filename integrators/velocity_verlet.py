@@ -67,9 +67,20 @@ class VelocityVerlet(IntegratorBase):
             kick_by_mass(state.velocities, forces, masses, half)
             self.end_step(state)
             return
-        forces = forcefield.compute(state, virial=False).forces
+        # A force field whose step runs on the threads too (md.ForceField.verlet_step's
+        # mixed precision: its passes fused, threaded) makes it; ``threaded`` (passed by
+        # position, as every such method takes it) says that this step's passes would be.
+        fuses = _FUSES.get(type(forcefield))
+        if fuses is None:
+            fuses = _FUSES[type(forcefield)] = isinstance(forcefield, FusesVerletStep)
+        done = forcefield.verlet_step(state, half, self.dt, True) if fuses else 0
+        if done == 2:
+            self.end_step(state)
+            return
         inverse_masses = 1.0 / masses
-        kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
+        if done == 0:
+            forces = forcefield.compute(state, virial=False).forces
+            kick_drift(state.positions, state.velocities, forces, inverse_masses, half, self.dt)
         forces = forcefield.compute(state, virial=False).forces
         kick(state.velocities, forces, inverse_masses, half)
         self.end_step(state)

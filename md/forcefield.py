@@ -179,7 +179,9 @@ class ForceField:
             self._key = fresh if fresh is not None else self._key_of(state, key)
         return total
 
-    def verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int:
+    def verlet_step(
+        self, state: State, kick_dt: float, drift_dt: float, threaded: bool = False
+    ) -> int:
         """Velocity Verlet's step in one compiled call where it can be: return 0, 1 or 2.
 
         For one double-precision pair potential with a ``verlet_step`` method (the pair
@@ -195,6 +197,14 @@ class ForceField:
         last kick are the caller's, as in a step without this call. 0: nothing done (any
         other case, a subclass that overrides :meth:`compute` too): the caller makes the
         whole step. The same bits as the step made of :meth:`compute` and the kicks.
+
+        In mixed precision over the exact cluster-pair list, the same with the pair
+        potential's ``mixed_verlet_step`` (:meth:`potentials.PairPotential.mixed_verlet_step`:
+        two threaded passes over the atoms around the cluster kernel, the first also
+        writing this cache's copy of the positions), for a system of any size whose
+        cache holds arrays (over 1000 atoms). ``threaded``: the caller's own passes would
+        run on the threads (velocity Verlet's, from 32000 atoms): the double step, one
+        serial call, is then not made (0).
         """
         potentials = self.potentials
         neighbor_list = self.neighbor_list
@@ -204,9 +214,12 @@ class ForceField:
             or len(potentials) != 1
             or self.virial_wanted
             or neighbor_list is None
-            or self.precision != "double"
             or type(self).compute is not ForceField.compute  # a subclass's compute is asked
         ):
+            return 0
+        if self.precision == "mixed":
+            return self._mixed_verlet_step(state, kick_dt, drift_dt)
+        if self.precision != "double" or threaded:
             return 0
         potential = potentials[0]
         fuses = _STEPS_VERLET.get(type(potential))
@@ -244,6 +257,44 @@ class ForceField:
         else:
             self._key = self._key_of(state, key)
         self._cached = result
+        return 2
+
+    def _mixed_verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int:
+        """:meth:`verlet_step` in mixed precision (its conditions but the precision met)."""
+        key = self._key
+        potential = self.potentials[0]
+        step = _MIXED_STEPS.get(type(potential), False)
+        if step is False:
+            step = _MIXED_STEPS[type(potential)] = getattr(
+                type(potential), "mixed_verlet_step", None
+            )
+        if step is None or key[3] is not None or potential.cutoff is None:
+            return 0  # (a small system's key is bytes: nothing to write the positions into)
+        neighbor_list = self.neighbor_list
+        check = neighbor_list.cluster_check(state)
+        if check is None or not self._same_key(key, state):  # the cached forces are state's
+            return 0
+        clock = time.perf_counter
+        start = clock()
+        served = step(
+            potential,
+            state,
+            neighbor_list,
+            self._cached.forces,
+            kick_dt,
+            drift_dt,
+            *check,
+            key[0],
+        )
+        self.timings["force"] += clock() - start
+        if served is None:
+            return 0
+        code, result = served
+        if code != 0:  # kicked and drifted: the list's update, compute and the kick are the
+            self._cached = None  # caller's (compute says what is not finite); key[0] moved on
+            return 1
+        self.n_evaluations += 1
+        self._cached = result  # key[0] holds the positions now; cell and types are the same
         return 2
 
     def _evaluate(self, state: State, potentials, per_atom: bool, virial: bool) -> ForceResult:
@@ -483,6 +534,8 @@ _BYTES_KEY_VALUES = 3000
 _OFFERS_PRECISIONS: dict[type, bool] = {}
 #: Per potential class, whether it meets ``SupportsVerletStep`` (``ForceField.verlet_step``).
 _STEPS_VERLET: dict[type, bool] = {}
+#: Per potential class, its ``mixed_verlet_step`` or None (``ForceField._mixed_verlet_step``).
+_MIXED_STEPS: dict[type, object] = {}
 
 
 def _cell_bytes(state: State) -> bytes:

@@ -61,6 +61,7 @@ from potentials._pair_codegen import (
     kernels_for,
     variant,
 )
+from potentials._step_kernels import cluster_runs, finish_step, kick_drift_slots, pass_chunks
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 from potentials.pair_terms import HEADROOM, PairTerm, all_numbers
@@ -214,6 +215,9 @@ class PairPotential:
         # forces: a FrameCall, the mode and single-type flag; energies; the call's
         # arguments, to see whether a new call differs only by its list's slots)
         self._verlet_call: tuple | None = None
+        # (windows, runs) of mixed_verlet_step's sum into atom order: the runs of the
+        # cluster list whose chunks' windows these are
+        self._sum_runs: tuple | None = None
         label = self.style or term.name
         prefix = "" if self.style else f"pair term {term.name}: "  # a user's term is named
         if not isinstance(cutoff_mode, str) or cutoff_mode not in CUTOFF_MODES:
@@ -597,6 +601,82 @@ class PairPotential:
             return code, None
         return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
+    def mixed_verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, held, allowed2, key):
+        """A mixed-precision velocity Verlet step over a cluster-pair list in two compiled
+        calls around the cluster kernel, where the last cluster call without the virial
+        serves ``state`` (as in :meth:`energy_forces`); None where it does not (nothing
+        done).
+
+        First (``potentials._step_kernels``): v += kick_dt kicks/m, x += drift_dt v, x
+        copied into ``key`` (N, 3: the force field's cache) and the largest squared
+        distance from ``held`` (N, 3: where the list was last built or pruned), then,
+        if that is at most ``allowed2`` (the list's half-skin rule, see
+        :meth:`md.neighbors.NeighborList.cluster_check`), the float32 positions relative
+        to the clusters' origins. Then the cluster kernel, and the second call: its
+        chunks summed into atom order with the finite check on the way, and v += kick_dt
+        forces/m. Returns ``(code, result)``: 0, the step done, ``result`` its
+        ForceResult (no virial); 1, only the first kick and drift done (an atom moved
+        too far, or a coordinate is not finite: the caller refreshes the list, then
+        evaluates and kicks; ``key`` holds the new positions either way); 2, a force or
+        the energy not finite, the last kick not done; ``result`` None. The same bits
+        as the separate kicks, list check and :meth:`energy_forces`.
+        """
+        call = self._cluster_calls[0]
+        if (  # the conditions of energy_forces' kept cluster call
+            call is None
+            or call[0] is not getattr(neighbors, "clusters", None)
+            or call[1] is not state.positions
+            or call[2] is not state.types
+            or call[3] is not state.type_names
+            or call[4] is not self.data
+            or call[5] != self.cutoff_mode
+            or call[6] is not neighbors
+            or type(self).energy_forces is not PairPotential.energy_forces
+        ):
+            return None
+        prepared = call[-1]
+        clusters, scratch = prepared[3], prepared[2]
+        atom = clusters.atom
+        chunks = pass_chunks(state.n_atoms)
+        moved2 = kick_drift_slots(
+            state.positions,
+            state.velocities,
+            kicks,
+            state.masses,
+            kick_dt,
+            drift_dt,
+            held,
+            allowed2,
+            key,
+            atom,
+            clusters.origin,
+            scratch[0],
+            scratch[1],
+            chunks,
+        )
+        if not moved2 <= allowed2:  # (NaN too: the list's update says what)
+            return 1, None
+        forces = np.empty((state.n_atoms, 3))
+        self._cluster_kernel(prepared, state, False, forces)
+        windows, runs = clusters.windows, self._sum_runs
+        if runs is None or runs[0] is not windows:  # (found once per list)
+            runs = self._sum_runs = (windows, cluster_runs(windows, len(atom)))
+        energy = finish_step(
+            scratch[3],
+            atom,
+            windows,
+            forces,
+            runs[1],
+            scratch[6],
+            state.velocities,
+            state.masses,
+            kick_dt,
+            chunks,
+        )
+        if energy != energy:  # NaN: a force or the energy is not finite
+            return 2, None
+        return 0, ForceResult(energy=float(energy), forces=forces, virial=None)
+
     @_compiling_the_term
     def _energy_forces(self, state, neighbors, per_atom, virial, precision) -> ForceResult:
         """:meth:`energy_forces` where the last slot-frame call does not serve (see
@@ -718,13 +798,34 @@ class PairPotential:
         """One call of the cluster kernel ``prepared`` by ``_cluster_energy_forces`` (the
         kernel's variant for ``virial``, its arrays): the relative positions, the kernel,
         the chunks' forces summed into atom order, the virial."""
+        scratch, clusters = prepared[2], prepared[3]
+        xi, xj, energies, virials = scratch[0], scratch[1], scratch[6], scratch[7]
+        atom = clusters.atom
+        clusters.relative_positions(state.positions, xi, xj)
+        forces = np.empty((state.n_atoms, 3))
+        self._cluster_kernel(prepared, state, virial, forces)
+        chunks = len(energies)
+        if chunks > 1:  # one chunk writes the forces in atom order itself
+            cluster_atom_forces(scratch[3], atom, clusters.windows, forces)
+        total = None
+        if virial:
+            w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
+            total = 0.5 * (w + w.T)
+        return ForceResult(
+            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
+            forces=forces,
+            virial=total,
+        )
+
+    def _cluster_kernel(self, prepared, state, virial: bool, forces) -> None:
+        """The cluster kernel of ``prepared`` over its relative positions, as written: the
+        chunks' forces into their buffers (one chunk: into ``forces``, in atom order),
+        their energies and virials into the scratch's."""
         kernel, lists, scratch, clusters, n_types, table, mode, single = prepared
         xi, xj, slot_types, buffers, j_sums, j_counts, energies, virials = scratch
         atom = clusters.atom
         if not single:
             _slot_types(state.types, atom, slot_types)
-        clusters.relative_positions(state.positions, xi, xj)
-        forces = np.empty((state.n_atoms, 3))
         kernel(
             xi,
             xj,
@@ -743,18 +844,6 @@ class PairPotential:
             forces,
             energies,
             virials,
-        )
-        chunks = len(energies)
-        if chunks > 1:  # one chunk writes the forces in atom order itself
-            cluster_atom_forces(buffers, atom, clusters.windows, forces)
-        total = None
-        if virial:
-            w = virials.sum(axis=0).reshape(3, 3) + _cluster_moments(atom, xi, forces)
-            total = 0.5 * (w + w.T)
-        return ForceResult(
-            energy=float(energies.sum()) if chunks > 1 else float(energies[0]),
-            forces=forces,
-            virial=total,
         )
 
     def _frame_energy_forces(self, kernels, state, frame, n_types, table, mode, virial: bool):

@@ -163,9 +163,12 @@ class SupportsVerletStep(Protocol):
 class FusesVerletStep(Protocol):
     """Optional capability of a force source: velocity Verlet's whole step in one call
     where it can be (:meth:`md.ForceField.verlet_step`: 2 done, 1 kicked and drifted,
-    0 nothing done); velocity Verlet asks whether a class has it once."""
+    0 nothing done; ``threaded``: the caller's own passes would run on the threads);
+    velocity Verlet asks whether a class has it once."""
 
-    def verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int: ...
+    def verlet_step(
+        self, state: State, kick_dt: float, drift_dt: float, threaded: bool = False
+    ) -> int: ...
 
 
 @runtime_checkable

@@ -689,6 +689,28 @@ class NeighborList:
             return reference, self._rebuild_distance2
         return None
 
+    def cluster_check(self, state: State) -> tuple | None:
+        """``(held, allowed2)`` when :meth:`update` of ``state`` would keep the exact cluster
+        list, as it stands, for as long as no atom is farther than ``sqrt(allowed2)`` from
+        its place in ``held`` (N, 3: the positions of the last prune, or of the search
+        where the list is not pruned), and otherwise prune or search again: the exact
+        cluster list in its build's own cell, which it never left. None otherwise (then
+        only :meth:`update` decides). The mixed-precision fused step
+        (``PairPotential.mixed_verlet_step``) checks this in its pass over the atoms and
+        calls :meth:`update` only when an atom moved farther."""
+        reference = self._reference
+        if (
+            self._clusters is None
+            or not self.exact
+            or reference is None
+            or reference.shape != state.positions.shape
+            or self.n_followed != self._followed_at_build
+            or (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes()) != self._cell_bytes
+        ):
+            return None
+        held = reference if self._outer is None else self._pruned_at
+        return held, self._rebuild_distance2
+
     def update(self, state: State) -> bool:
         """Rebuild the list if needed; return True if it was rebuilt.
 
