@@ -34,6 +34,7 @@ from md.distributed._domain_kernels import (
     shift_rows,
     table_rows,
 )
+from md.distributed._mpi_kernels import halo_forward, halo_reverse
 from md.distributed.grid import Grid, local_periodic_axes
 from md.distributed.migration import RowStore, check_lost, migrate
 from md.errors import DecompositionError
@@ -105,6 +106,88 @@ class _Sweep:
                 messages.free()
 
 
+class _Plan:
+    """A build's swaps as the arrays of the compiled exchanges
+    (:func:`md.distributed._mpi_kernels.halo_forward` and ``halo_reverse``, which make the
+    MPI calls themselves): the sweeps (``axes``, ``to_self``, their swaps from
+    ``sweep_swaps[s]``), the swaps' send lists end to end (``index``, swap j's from
+    ``starts[j]``), shifts, ghost rows, peers and tags as the :class:`_Sweep` messages have
+    them, and the buffers the messages go from and into."""
+
+    def __init__(self, groups: list[list[_Swap]], rank: int, compiled) -> None:
+        swaps = [swap for group in groups for swap in group]
+        self.compiled = compiled
+        self.axes = np.array([group[0].axis for group in groups], dtype=np.int64)
+        self.to_self = np.array([group[0].dest == rank for group in groups], dtype=np.uint8)
+        self.sweep_swaps = np.concatenate([[0], np.cumsum([len(g) for g in groups])]).astype(
+            np.int64
+        )
+        self.starts = np.concatenate([[0], np.cumsum([len(w.send) for w in swaps])]).astype(
+            np.int64
+        )
+        self.index = (
+            np.concatenate([w.send for w in swaps]).astype(np.int64)
+            if swaps
+            else np.zeros(0, dtype=np.int64)
+        )
+        self.shifts = np.array([float(w.shift) for w in swaps])
+        self.offsets = np.array([w.offset for w in swaps], dtype=np.int64)
+        self.counts = np.array([w.count for w in swaps], dtype=np.int64)
+        self.dests = np.array([w.dest for w in swaps], dtype=np.int64)
+        self.sources = np.array([w.source for w in swaps], dtype=np.int64)
+        self.tags = np.array([w.tag for w in swaps], dtype=np.int64)
+        self.back_starts = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
+        self.out = np.empty((int(self.starts[-1]), 3))  # positions out, forces back in
+        self.back = np.empty((int(self.back_starts[-1]), 3))  # the ghosts' forces out
+        self.requests, self.statuses = compiled.requests(2 * max(len(g) for g in groups))
+
+    def forward(self, positions: NDArray[np.float64], cell: NDArray[np.float64]) -> None:
+        self.compiled.check(
+            halo_forward(
+                positions,
+                cell,
+                self.axes,
+                self.to_self,
+                self.sweep_swaps,
+                self.starts,
+                self.shifts,
+                self.offsets,
+                self.counts,
+                self.dests,
+                self.sources,
+                self.tags,
+                self.index,
+                self.out,
+                self.requests,
+                self.statuses,
+                self.compiled.calls,
+            )
+        )
+
+    def reverse(self, values: NDArray[np.float64]) -> None:
+        self.compiled.check(
+            halo_reverse(
+                values,
+                self.axes,
+                self.to_self,
+                self.sweep_swaps,
+                self.starts,
+                self.offsets,
+                self.counts,
+                self.dests,
+                self.sources,
+                self.tags,
+                self.index,
+                self.out,
+                self.back,
+                self.back_starts,
+                self.requests,
+                self.statuses,
+                self.compiled.calls,
+            )
+        )
+
+
 class Domain:
     """This rank's brick, its ghost shell and the messages that fill it.
 
@@ -141,6 +224,8 @@ class Domain:
         self.n_owned = 0
         self.swaps: list[_Swap] = []
         self._sweeps: list[_Sweep] | None = None  # the swaps' messages, made at first use
+        self._plan: _Plan | None = None  # or the compiled exchanges' arrays, of these swaps:
+        self._plan_swaps: list[_Swap] | None = None
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
@@ -375,6 +460,10 @@ class Domain:
         else:
             home_positions(state.positions, self.imaged, self.images, cell, owned)
         with self.ranks.clock:
+            plan = self.plan()
+            if plan is not None:  # (the messages from compiled code)
+                plan.forward(positions, cell)
+                return
             for sweep in self.sweeps():
                 pack_sweep(
                     positions,
@@ -389,6 +478,23 @@ class Domain:
                 )
                 if sweep.forward is not None:
                     sweep.forward.run()
+
+    def plan(self) -> _Plan | None:
+        """The compiled exchanges of the last build's swaps (made once a build), or None
+        where the ranks have no compiled MPI calls (:attr:`MPIRanks.compiled`) or no swap
+        goes to another rank (the sweeps to self stay :func:`pack_sweep`'s)."""
+        compiled = getattr(self.ranks, "compiled", None)
+        if compiled is None or not self.swaps:
+            return None
+        if self._plan_swaps is not self.swaps:  # (a build lays out a new list of swaps)
+            by_axis: dict[int, list[_Swap]] = {}
+            for swap in self.swaps:
+                by_axis.setdefault(swap.axis, []).append(swap)
+            groups = list(by_axis.values())
+            remote = any(group[0].dest != self.rank for group in groups)
+            self._plan = _Plan(groups, self.rank, compiled) if remote else None
+            self._plan_swaps = self.swaps
+        return self._plan
 
     def sweeps(self) -> list[_Sweep]:
         """The swaps grouped by axis, each group's persistent messages made once a build."""
@@ -406,6 +512,10 @@ class Domain:
         """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
         along the reverse of the sweeps; return the owned rows (a view). Collective."""
         if values.shape[1] == 3 and values.flags.c_contiguous:
+            plan = self.plan()
+            if plan is not None:
+                plan.reverse(values)
+                return values[: self.n_owned]
             for sweep in reversed(self.sweeps()):
                 if not sweep.to_self:
                     ghost_rows(values, sweep.offsets, sweep.counts, sweep.back)

@@ -10,6 +10,7 @@ imported unless a launcher started more than one process (:func:`mpi_ranks`).
 from __future__ import annotations
 
 import atexit
+import ctypes
 import logging
 import math
 import os
@@ -19,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._files import OutputBusyError
+from md.distributed._mpi_kernels import gather
 from md.errors import (
     CheckpointError,
     ConfigError,
@@ -148,9 +150,10 @@ class MPIRanks:
     as its "comm" section.
     """
 
-    def __init__(self, comm) -> None:
+    def __init__(self, comm, compiled: bool = True) -> None:
         from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
 
+        self._compiled_wanted = bool(compiled)
         self.comm = comm
         self.rank = comm.Get_rank()
         self.n_ranks = comm.Get_size()
@@ -158,6 +161,19 @@ class MPIRanks:
         self._max = MPI.MAX
         self._double = MPI.DOUBLE
         self._status = MPI.Status()
+
+    @property
+    def comm(self):
+        """The mpi4py communicator. Setting it also sets :attr:`compiled`: the compiled
+        kernels' calls into MPI over it (None for anything but an mpi4py intracommunicator,
+        or where ``compiled=False`` was asked: then the halo and reductions go through
+        mpi4py)."""
+        return self._comm
+
+    @comm.setter
+    def comm(self, comm) -> None:
+        self._comm = comm
+        self.compiled = compiled_mpi(comm) if self._compiled_wanted else None
 
     def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         with self.clock:
@@ -168,7 +184,10 @@ class MPIRanks:
         with self.clock:
             values = np.ascontiguousarray(values, dtype=np.float64).ravel()
             gathered = np.empty((self.n_ranks, values.size))
-            self.comm.Allgather(values, gathered)
+            if self.compiled is not None:
+                self.compiled.check(gather(values, gathered, self.compiled.calls))
+            else:
+                self.comm.Allgather(values, gathered)
             return gathered
 
     def max(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -265,6 +284,65 @@ class MPIRanks:
                     handler.flush()
             time.sleep(0.5)  # (the launcher forwards it before MPI ends the ranks)
         self.comm.Abort(code)
+
+
+class CompiledMPI:
+    """What the compiled kernels of :mod:`md.distributed._mpi_kernels` need to call MPI over
+    a communicator themselves: ``calls``, the tuple (communicator handle, MPI_DOUBLE's
+    handle, then the addresses of MPI_Isend, MPI_Irecv, MPI_Waitall and MPI_Allgather)
+    passed to them, and the sizes of an MPI_Request and an MPI_Status here (MPICH's
+    handles are C ints, Open MPI's pointers: the handles are int32 or int64 alike)."""
+
+    def __init__(self, calls: tuple, request_dtype, status_bytes: int) -> None:
+        self.calls = calls
+        self.request_dtype = request_dtype
+        self.status_bytes = status_bytes
+
+    def requests(self, n: int) -> tuple[NDArray, NDArray]:
+        """Room for ``n`` requests and their statuses, for one kernel's messages."""
+        n = max(n, 1)
+        return np.zeros(n, dtype=self.request_dtype), np.zeros(n * self.status_bytes, np.uint8)
+
+    @staticmethod
+    def check(code: int) -> None:
+        """Raise mpi4py's exception for a kernel's non-zero MPI error code."""
+        if code != 0:
+            from mpi4py import MPI  # (loaded already: a communicator exists)
+
+            raise MPI.Exception(int(code))
+
+
+def compiled_mpi(comm) -> CompiledMPI | None:
+    """The :class:`CompiledMPI` of an mpi4py intracommunicator ``comm`` (None for other
+    objects, or where the MPI library's functions cannot be found through mpi4py's)."""
+    from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+
+    if not isinstance(comm, MPI.Intracomm):
+        return None
+    try:
+        library = ctypes.CDLL(MPI.__file__)  # (its symbols include the MPI library's)
+        addresses = [
+            ctypes.cast(getattr(library, name), ctypes.c_void_p).value
+            for name in ("MPI_Isend", "MPI_Irecv", "MPI_Waitall", "MPI_Allgather")
+        ]
+    except (OSError, AttributeError):
+        return None
+    handles = []
+    for kind, value in ((MPI.Comm, comm), (MPI.Datatype, MPI.DOUBLE)):
+        size = MPI._sizeof(kind)
+        if size not in (4, 8):
+            return None
+        handle = MPI._handleof(value)
+        handles.append(
+            np.int32(ctypes.c_int32(handle).value)
+            if size == 4
+            else np.int64(ctypes.c_int64(handle).value)
+        )
+    request_dtype = {4: np.int32, 8: np.int64}.get(MPI._sizeof(MPI.Request))
+    if request_dtype is None:
+        return None
+    calls = (*handles, *(np.int64(address) for address in addresses))
+    return CompiledMPI(calls, request_dtype, MPI._sizeof(MPI.Status))
 
 
 class Messages:
