@@ -92,7 +92,7 @@ def halo_forward(
     and sent to ``dests[j]`` with tag ``tags[j]``, while ``counts[j]`` rows arrive from
     ``sources[j]`` into ``positions`` from row ``offsets[j]``. Returns 0, or the first MPI
     error code."""
-    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[2], mpi[3], mpi[4]
+    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[3], mpi[4], mpi[5]
     for s in range(axes.shape[0]):
         axis = axes[s]
         first, last = sweep_swaps[s], sweep_swaps[s + 1]
@@ -175,7 +175,7 @@ def halo_reverse(
     ``index[starts[j]:starts[j+1]]`` arrive from ``dests[j]`` into ``out``'s same rows, then
     added into ``values`` swap after swap from the sweep's last (a sweep ``to_self`` adds its
     own ghost rows). Returns 0, or the first MPI error code."""
-    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[2], mpi[3], mpi[4]
+    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[3], mpi[4], mpi[5]
     for s in range(axes.shape[0] - 1, -1, -1):
         first, last = sweep_swaps[s], sweep_swaps[s + 1]
         local = to_self[s] != 0
@@ -238,7 +238,7 @@ def halo_reverse(
 def gather(values, gathered, mpi):
     """Every rank's ``values`` (k,) into the rows of ``gathered`` (P, k), in rank order (MPI's
     all-gather). Returns 0, or the MPI error code."""
-    comm, double, allgather = mpi[0], mpi[1], mpi[5]
+    comm, double, allgather = mpi[0], mpi[1], mpi[6]
     k = np.int32(values.shape[0])
     return c_call(
         allgather,
@@ -254,3 +254,12 @@ def gather_fold(values, gathered, n_summed, totals, worst, mpi):
     if code == 0:
         fold_gathered(gathered, n_summed, totals, worst)
     return code
+
+
+@njit(cache=True, error_model="numpy")
+def maximum(values, out, mpi):
+    """``out`` = the largest of every rank's ``values`` (k,), element by element (MPI's
+    all-reduce with MPI_MAX: exact in any order). Returns 0, or the MPI error code."""
+    comm, double, largest, allreduce = mpi[0], mpi[1], mpi[2], mpi[7]
+    k = np.int32(values.shape[0])
+    return c_call(allreduce, (_address(values), _address(out), k, double, largest, comm))

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._files import OutputBusyError
-from md.distributed._mpi_kernels import gather
+from md.distributed._mpi_kernels import gather, maximum
 from md.errors import (
     CheckpointError,
     ConfigError,
@@ -194,7 +194,10 @@ class MPIRanks:
         with self.clock:
             values = np.ascontiguousarray(values, dtype=np.float64).ravel()
             out = np.empty_like(values)
-            self.comm.Allreduce(values, out, op=self._max)
+            if self.compiled is not None:
+                self.compiled.check(maximum(values, out, self.compiled.calls))
+            else:
+                self.comm.Allreduce(values, out, op=self._max)
             return out
 
     def exchange(self, send, dest: int, receive, source: int, tag: int) -> None:
@@ -288,8 +291,9 @@ class MPIRanks:
 
 class CompiledMPI:
     """What the compiled kernels of :mod:`md.distributed._mpi_kernels` need to call MPI over
-    a communicator themselves: ``calls``, the tuple (communicator handle, MPI_DOUBLE's
-    handle, then the addresses of MPI_Isend, MPI_Irecv, MPI_Waitall and MPI_Allgather)
+    a communicator themselves: ``calls``, the tuple (the handles of the communicator,
+    MPI_DOUBLE and MPI_MAX, then the addresses of MPI_Isend, MPI_Irecv, MPI_Waitall,
+    MPI_Allgather and MPI_Allreduce)
     passed to them, and the sizes of an MPI_Request and an MPI_Status here (MPICH's
     handles are C ints, Open MPI's pointers: the handles are int32 or int64 alike)."""
 
@@ -323,12 +327,12 @@ def compiled_mpi(comm) -> CompiledMPI | None:
         library = ctypes.CDLL(MPI.__file__)  # (its symbols include the MPI library's)
         addresses = [
             ctypes.cast(getattr(library, name), ctypes.c_void_p).value
-            for name in ("MPI_Isend", "MPI_Irecv", "MPI_Waitall", "MPI_Allgather")
+            for name in ("MPI_Isend", "MPI_Irecv", "MPI_Waitall", "MPI_Allgather", "MPI_Allreduce")
         ]
     except (OSError, AttributeError):
         return None
     handles = []
-    for kind, value in ((MPI.Comm, comm), (MPI.Datatype, MPI.DOUBLE)):
+    for kind, value in ((MPI.Comm, comm), (MPI.Datatype, MPI.DOUBLE), (MPI.Op, MPI.MAX)):
         size = MPI._sizeof(kind)
         if size not in (4, 8):
             return None
