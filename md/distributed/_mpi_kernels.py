@@ -8,8 +8,8 @@ code: numba caches these kernels on disk as any other (``cache=True``), and each
 launch loads them instead of compiling them cold. (numba-mpi's functions reference
 ctypes function pointers, which numba cannot cache: each process would compile them, a
 few seconds a launch.) :func:`c_call` is the one intrinsic: it calls a C function at an
-address with integer arguments, an int32 passed as a C ``int`` and an int64 as a
-``long`` or a pointer (the same registers in the x86-64 and AArch64 C conventions); its
+address with integer arguments, each of its own width (an int64 also carries a C
+``int`` argument, a handle of MPICH's: see :class:`md.distributed.ranks.CompiledMPI`); its
 Python twin calls through ctypes under ``NUMBA_DISABLE_JIT=1``.
 
 The arithmetic is that of :func:`md.distributed._domain_kernels.pack_sweep`,
@@ -67,6 +67,17 @@ def _address(array):
 
 
 @njit(cache=True, error_model="numpy")
+def _wait(n, requests, status, mpi):
+    """Wait for the first ``n`` requests (8-byte slots), one after another; 0 or the first
+    MPI error code."""
+    for r in range(n):
+        code = c_call(mpi[5], (_address(requests[r:]), _address(status)))
+        if code != 0:
+            return code
+    return 0
+
+
+@njit(cache=True, error_model="numpy")
 def halo_forward(
     positions,
     cell,
@@ -92,7 +103,7 @@ def halo_forward(
     and sent to ``dests[j]`` with tag ``tags[j]``, while ``counts[j]`` rows arrive from
     ``sources[j]`` into ``positions`` from row ``offsets[j]``. Returns 0, or the first MPI
     error code."""
-    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[3], mpi[4], mpi[5]
+    comm, double, isend, irecv = mpi[0], mpi[1], mpi[3], mpi[4]
     for s in range(axes.shape[0]):
         axis = axes[s]
         first, last = sweep_swaps[s], sweep_swaps[s + 1]
@@ -143,7 +154,7 @@ def halo_forward(
             if code != 0:
                 return code
             n += 1
-        code = c_call(waitall, (np.int32(n), _address(requests), _address(statuses)))
+        code = _wait(n, requests, statuses, mpi)
         if code != 0:
             return code
     return 0
@@ -175,7 +186,7 @@ def halo_reverse(
     ``index[starts[j]:starts[j+1]]`` arrive from ``dests[j]`` into ``out``'s same rows, then
     added into ``values`` swap after swap from the sweep's last (a sweep ``to_self`` adds its
     own ghost rows). Returns 0, or the first MPI error code."""
-    comm, double, isend, irecv, waitall = mpi[0], mpi[1], mpi[3], mpi[4], mpi[5]
+    comm, double, isend, irecv = mpi[0], mpi[1], mpi[3], mpi[4]
     for s in range(axes.shape[0] - 1, -1, -1):
         first, last = sweep_swaps[s], sweep_swaps[s + 1]
         local = to_self[s] != 0
@@ -220,7 +231,7 @@ def halo_reverse(
                 if code != 0:
                     return code
                 n += 1
-            code = c_call(waitall, (np.int32(n), _address(requests), _address(statuses)))
+            code = _wait(n, requests, statuses, mpi)
             if code != 0:
                 return code
         for j in range(last - 1, first - 1, -1):

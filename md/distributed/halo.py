@@ -37,6 +37,7 @@ from md.distributed._domain_kernels import (
 from md.distributed._mpi_kernels import halo_forward, halo_reverse
 from md.distributed.grid import Grid, local_periodic_axes
 from md.distributed.migration import RowStore, check_lost, migrate
+from md.distributed.ranks import MPIRanks
 from md.errors import DecompositionError
 from md.parallel import global_max
 from md.state import State
@@ -483,7 +484,7 @@ class Domain:
         """The compiled exchanges of the last build's swaps (made once a build), or None
         where the ranks have no compiled MPI calls (:attr:`MPIRanks.compiled`) or no swap
         goes to another rank (the sweeps to self stay :func:`pack_sweep`'s)."""
-        compiled = getattr(self.ranks, "compiled", None)
+        compiled = self.ranks.compiled if isinstance(self.ranks, MPIRanks) else None
         if compiled is None or not self.swaps:
             return None
         if self._plan_swaps is not self.swaps:  # (a build lays out a new list of swaps)

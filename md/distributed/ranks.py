@@ -292,20 +292,24 @@ class MPIRanks:
 class CompiledMPI:
     """What the compiled kernels of :mod:`md.distributed._mpi_kernels` need to call MPI over
     a communicator themselves: ``calls``, the tuple (the handles of the communicator,
-    MPI_DOUBLE and MPI_MAX, then the addresses of MPI_Isend, MPI_Irecv, MPI_Waitall,
-    MPI_Allgather and MPI_Allreduce)
-    passed to them, and the sizes of an MPI_Request and an MPI_Status here (MPICH's
-    handles are C ints, Open MPI's pointers: the handles are int32 or int64 alike)."""
+    MPI_DOUBLE and MPI_MAX, then the addresses of MPI_Isend, MPI_Irecv, MPI_Wait,
+    MPI_Allgather and MPI_Allreduce) passed to them, all int64.
 
-    def __init__(self, calls: tuple, request_dtype, status_bytes: int) -> None:
+    MPICH's handles are C ints, Open MPI's pointers: an int64 carries either (a C int
+    argument is the low half of its register or stack slot in the x86-64 and AArch64
+    calling conventions), and each request has an 8-byte slot of its own, where an
+    MPI_Request of either kind fits, waited for alone (MPI_Wait), so no size of an MPI
+    type is needed."""
+
+    #: Bytes kept for the MPI_Status a wait fills (MPICH's are 20, Open MPI's 24).
+    STATUS_BYTES = 64
+
+    def __init__(self, calls: tuple) -> None:
         self.calls = calls
-        self.request_dtype = request_dtype
-        self.status_bytes = status_bytes
 
     def requests(self, n: int) -> tuple[NDArray, NDArray]:
-        """Room for ``n`` requests and their statuses, for one kernel's messages."""
-        n = max(n, 1)
-        return np.zeros(n, dtype=self.request_dtype), np.zeros(n * self.status_bytes, np.uint8)
+        """Slots for ``n`` requests and a status, for one kernel's messages."""
+        return np.zeros(max(n, 1), dtype=np.int64), np.zeros(self.STATUS_BYTES, np.uint8)
 
     @staticmethod
     def check(code: int) -> None:
@@ -314,6 +318,10 @@ class CompiledMPI:
             from mpi4py import MPI  # (loaded already: a communicator exists)
 
             raise MPI.Exception(int(code))
+
+
+#: The MPI functions the compiled kernels call, in the order of ``CompiledMPI.calls``.
+COMPILED_CALLS = ("MPI_Isend", "MPI_Irecv", "MPI_Wait", "MPI_Allgather", "MPI_Allreduce")
 
 
 def compiled_mpi(comm) -> CompiledMPI | None:
@@ -325,28 +333,11 @@ def compiled_mpi(comm) -> CompiledMPI | None:
         return None
     try:
         library = ctypes.CDLL(MPI.__file__)  # (its symbols include the MPI library's)
-        addresses = [
-            ctypes.cast(getattr(library, name), ctypes.c_void_p).value
-            for name in ("MPI_Isend", "MPI_Irecv", "MPI_Waitall", "MPI_Allgather", "MPI_Allreduce")
-        ]
+        addresses = [ctypes.cast(library[name], ctypes.c_void_p).value for name in COMPILED_CALLS]
     except (OSError, AttributeError):
         return None
-    handles = []
-    for kind, value in ((MPI.Comm, comm), (MPI.Datatype, MPI.DOUBLE), (MPI.Op, MPI.MAX)):
-        size = MPI._sizeof(kind)
-        if size not in (4, 8):
-            return None
-        handle = MPI._handleof(value)
-        handles.append(
-            np.int32(ctypes.c_int32(handle).value)
-            if size == 4
-            else np.int64(ctypes.c_int64(handle).value)
-        )
-    request_dtype = {4: np.int32, 8: np.int64}.get(MPI._sizeof(MPI.Request))
-    if request_dtype is None:
-        return None
-    calls = (*handles, *(np.int64(address) for address in addresses))
-    return CompiledMPI(calls, request_dtype, MPI._sizeof(MPI.Status))
+    handles = [ctypes.c_int64(value.handle).value for value in (comm, MPI.DOUBLE, MPI.MAX)]
+    return CompiledMPI(tuple(np.int64(value) for value in (*handles, *addresses)))
 
 
 class Messages:
