@@ -20,7 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._files import OutputBusyError
-from md.distributed._mpi_kernels import gather, maximum
+from md.distributed._domain_kernels import fold_gathered
+from md.distributed._mpi_kernels import gather, gather_fold, maximum
 from md.errors import (
     CheckpointError,
     ConfigError,
@@ -56,6 +57,21 @@ def in_rank_order(gathered: NDArray[np.float64]) -> NDArray[np.float64]:
     for rank in range(1, gathered.shape[0]):
         total += gathered[rank]
     return total
+
+
+def gather_folded(ranks, values, n_summed: int, totals, worst) -> None:
+    """Every rank's ``values`` (k,) gathered, ``totals`` = their first ``n_summed`` added in
+    rank order and ``worst`` = the others' largest over the ranks
+    (:func:`md.distributed._domain_kernels.fold_gathered`): in one compiled call that
+    makes the all-gather itself where ``ranks`` has compiled MPI calls, else through
+    ``ranks.gather_values``. Collective; on the ranks' clock."""
+    compiled = ranks.compiled if isinstance(ranks, MPIRanks) else None
+    if compiled is None:
+        fold_gathered(ranks.gather_values(values), n_summed, totals, worst)
+        return
+    with ranks.clock:
+        gathered = np.empty((ranks.n_ranks, values.shape[0]))
+        compiled.check(gather_fold(values, gathered, n_summed, totals, worst, compiled.calls))
 
 
 def ranks_per_node(ranks) -> int:
