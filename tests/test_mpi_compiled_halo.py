@@ -209,7 +209,15 @@ def _launch(tmp_path: Path, name: str, source: str, n_ranks: int, *args: str) ->
 
 
 @needs_mpi
-@pytest.mark.parametrize("shape", [(2, 1, 1), (3, 1, 1), (2, 2, 1)])
+@pytest.mark.parametrize(
+    "shape",
+    [
+        # (2 ranks: every other MPI test runs the compiled exchanges there too)
+        pytest.param((2, 1, 1), marks=pytest.mark.slow),
+        (3, 1, 1),  # a rank's two face neighbours differ
+        (2, 2, 1),  # two sweeps to other ranks, the second sending the first's ghosts
+    ],
+)
 def test_compiled_exchanges_give_the_mpi4py_paths_ghosts_and_forces_to_the_bit(tmp_path, shape):
     """On 2 and 3 ranks in a row and 2 x 2 bricks, 40 steps with list builds between give
     every rank the same ghosts (positions of the whole local system), forces and energy
