@@ -147,38 +147,35 @@ from mpi4py import MPI
 from md.distributed import _mpi_kernels as kernels
 from md.distributed.ranks import compiled_mpi
 
-mpi = compiled_mpi(MPI.COMM_WORLD)
-requests, statuses = mpi.requests(4)
+calls = compiled_mpi(MPI.COMM_WORLD).calls
+slots = np.zeros(4 + kernels.STATUS_WORDS, dtype=np.int64)
 rng = np.random.default_rng(1)
 positions = np.zeros((9, 3))
 positions[:5] = rng.normal(size=(5, 3))
 cell = np.diag([4.0, 5.0, 6.0])
-# one sweep along b, to this rank: atoms 1, 3 shifted up one cell vector, 0 down one
-index, starts = np.array([1, 3, 0], dtype=np.int64), np.array([0, 2, 3], dtype=np.int64)
-shifts, offsets = np.array([1.0, -1.0]), np.array([5, 7], dtype=np.int64)
-counts, peers, tags = np.array([2, 1]), np.zeros(2, dtype=np.int64), np.array([0, 1])
-axes, to_self, sweep_swaps = np.array([1]), np.zeros(1, np.uint8), np.array([0, 2])
+# one sweep along b, to this rank through MPI: atoms 1, 3 shifted up a cell vector, 0 down
+index, shifts = np.array([1, 3, 0], dtype=np.int64), np.array([1.0, -1.0])
+sweeps = np.array([[1, 0, 0, 2]], dtype=np.int64)  # axis, to self, first and last swaps
+# start, end, offset, count, dest, source, tag, back
+table = np.array([[0, 2, 5, 2, 0, 0, 0, 0], [2, 3, 7, 1, 0, 0, 1, 2]], dtype=np.int64)
 out = np.zeros((3, 3))
-code = kernels.halo_forward(positions, cell, axes, to_self, sweep_swaps, starts, shifts,
-                            offsets, counts, peers, peers, tags, index, out, requests,
-                            statuses, mpi.calls)
+code = kernels.halo_forward(positions, cell, sweeps, table, shifts, index, out, slots, calls)
 expected = positions[[1, 3, 0]] + np.array([[0, 5.0, 0], [0, 5.0, 0], [0, -5.0, 0]])
 forward = code == 0 and bool(np.array_equal(positions[5:8], expected))
 values = rng.normal(size=(9, 3))
 sums = values.copy()
 for j in (1, 0):
-    for k in range(starts[j], starts[j + 1]):
-        sums[index[k]] += values[offsets[j] + k - starts[j]]
+    start, end, offset = table[j, :3]
+    for k in range(start, end):
+        sums[index[k]] += values[offset + k - start]
 back = np.zeros((3, 3))
-code = kernels.halo_reverse(values, axes, to_self, sweep_swaps, starts, offsets, counts,
-                            peers, peers, tags, index, out, back, np.array([0, 2, 3]),
-                            requests, statuses, mpi.calls)
+code = kernels.halo_reverse(values, sweeps, table, index, out, back, slots, calls)
 reverse = code == 0 and bool(np.array_equal(values[:5], sums[:5]))
 gathered = np.zeros((1, 4))
-code = kernels.gather(np.arange(4.0), gathered, mpi.calls)
+code = kernels.gather(np.arange(4.0), gathered, calls)
 gather = code == 0 and bool(np.array_equal(gathered[0], np.arange(4.0)))
 largest = np.zeros(3)
-code = kernels.maximum(np.array([2.0, -1.0, np.inf]), largest, mpi.calls)
+code = kernels.maximum(np.array([2.0, -1.0, np.inf]), largest, calls)
 gather = gather and code == 0 and largest.tolist() == [2.0, -1.0, np.inf]
 stats = {}
 for name in ("halo_forward", "halo_reverse", "gather", "maximum"):

@@ -110,81 +110,69 @@ class _Sweep:
 class _Plan:
     """A build's swaps as the arrays of the compiled exchanges
     (:func:`md.distributed._mpi_kernels.halo_forward` and ``halo_reverse``, which make the
-    MPI calls themselves): the sweeps (``axes``, ``to_self``, their swaps from
-    ``sweep_swaps[s]``), the swaps' send lists end to end (``index``, swap j's from
-    ``starts[j]``), shifts, ghost rows, peers and tags as the :class:`_Sweep` messages have
-    them, and the buffers the messages go from and into."""
+    MPI calls themselves): a row a sweep (its axis, whether it goes to this rank itself,
+    its swaps' rows) and a row a swap (its send list's rows in ``index``, ghost rows,
+    peers, tag and ghosts' rows in ``back``: the columns the kernels module names), the
+    shifts, and the buffers the messages go from and into. The peers and tags are the
+    :class:`_Sweep` messages'."""
 
     def __init__(self, groups: list[list[_Swap]], rank: int, compiled) -> None:
         swaps = [swap for group in groups for swap in group]
-        self.compiled = compiled
-        self.axes = np.array([group[0].axis for group in groups], dtype=np.int64)
-        self.to_self = np.array([group[0].dest == rank for group in groups], dtype=np.uint8)
-        self.sweep_swaps = np.concatenate([[0], np.cumsum([len(g) for g in groups])]).astype(
-            np.int64
-        )
-        self.starts = np.concatenate([[0], np.cumsum([len(w.send) for w in swaps])]).astype(
-            np.int64
-        )
+        self.calls = compiled.calls
+        self.check = compiled.check
+        lasts = np.cumsum([len(group) for group in groups])
+        self.sweeps = np.array(
+            [
+                (group[0].axis, group[0].dest == rank, last - len(group), last)
+                for group, last in zip(groups, lasts, strict=True)
+            ],
+            dtype=np.int64,
+        ).reshape(-1, 4)
+        ends = np.cumsum([len(swap.send) for swap in swaps])
+        backs = np.cumsum([swap.count for swap in swaps])
+        self.table = np.array(
+            [
+                (end - len(w.send), end, w.offset, w.count, w.dest, w.source, w.tag, b - w.count)
+                for w, end, b in zip(swaps, ends, backs, strict=True)
+            ],
+            dtype=np.int64,
+        ).reshape(-1, 8)
         self.index = (
             np.concatenate([w.send for w in swaps]).astype(np.int64)
             if swaps
             else np.zeros(0, dtype=np.int64)
         )
         self.shifts = np.array([float(w.shift) for w in swaps])
-        self.offsets = np.array([w.offset for w in swaps], dtype=np.int64)
-        self.counts = np.array([w.count for w in swaps], dtype=np.int64)
-        self.dests = np.array([w.dest for w in swaps], dtype=np.int64)
-        self.sources = np.array([w.source for w in swaps], dtype=np.int64)
-        self.tags = np.array([w.tag for w in swaps], dtype=np.int64)
-        self.back_starts = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
-        self.out = np.empty((int(self.starts[-1]), 3))  # positions out, forces back in
-        self.back = np.empty((int(self.back_starts[-1]), 3))  # the ghosts' forces out
-        self.requests, self.statuses = compiled.requests(2 * max(len(g) for g in groups))
+        self.out = np.empty((len(self.index), 3))  # positions out, forces back in
+        self.back = np.empty((int(backs[-1]) if swaps else 0, 3))  # the ghosts' forces out
+        self.slots = compiled.slots(2 * max(len(group) for group in groups))
 
     def forward(self, positions: NDArray[np.float64], cell: NDArray[np.float64]) -> None:
-        self.compiled.check(
+        self.check(
             halo_forward(
                 positions,
                 cell,
-                self.axes,
-                self.to_self,
-                self.sweep_swaps,
-                self.starts,
+                self.sweeps,
+                self.table,
                 self.shifts,
-                self.offsets,
-                self.counts,
-                self.dests,
-                self.sources,
-                self.tags,
                 self.index,
                 self.out,
-                self.requests,
-                self.statuses,
-                self.compiled.calls,
+                self.slots,
+                self.calls,
             )
         )
 
     def reverse(self, values: NDArray[np.float64]) -> None:
-        self.compiled.check(
+        self.check(
             halo_reverse(
                 values,
-                self.axes,
-                self.to_self,
-                self.sweep_swaps,
-                self.starts,
-                self.offsets,
-                self.counts,
-                self.dests,
-                self.sources,
-                self.tags,
+                self.sweeps,
+                self.table,
                 self.index,
                 self.out,
                 self.back,
-                self.back_starts,
-                self.requests,
-                self.statuses,
-                self.compiled.calls,
+                self.slots,
+                self.calls,
             )
         )
 

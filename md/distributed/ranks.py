@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from md._files import OutputBusyError
 from md.distributed._domain_kernels import fold_gathered
-from md.distributed._mpi_kernels import gather, gather_fold, maximum
+from md.distributed._mpi_kernels import STATUS_WORDS, gather, gather_fold, maximum
 from md.errors import (
     CheckpointError,
     ConfigError,
@@ -307,9 +307,10 @@ class MPIRanks:
 
 class CompiledMPI:
     """What the compiled kernels of :mod:`md.distributed._mpi_kernels` need to call MPI over
-    a communicator themselves: ``calls``, the tuple (the handles of the communicator,
+    a communicator themselves: ``calls``, an int64 array (the handles of the communicator,
     MPI_DOUBLE and MPI_MAX, then the addresses of MPI_Isend, MPI_Irecv, MPI_Wait,
-    MPI_Allgather and MPI_Allreduce) passed to them, all int64.
+    MPI_Allgather and MPI_Allreduce) passed to them (an array: a tuple of 8 integers cost
+    numba's dispatch 3-4 us a call to type).
 
     MPICH's handles are C ints, Open MPI's pointers: an int64 carries either (a C int
     argument is the low half of its register or stack slot in the x86-64 and AArch64
@@ -317,15 +318,13 @@ class CompiledMPI:
     MPI_Request of either kind fits, waited for alone (MPI_Wait), so no size of an MPI
     type is needed."""
 
-    #: Bytes kept for the MPI_Status a wait fills (MPICH's are 20, Open MPI's 24).
-    STATUS_BYTES = 64
-
-    def __init__(self, calls: tuple) -> None:
+    def __init__(self, calls: NDArray[np.int64]) -> None:
         self.calls = calls
 
-    def requests(self, n: int) -> tuple[NDArray, NDArray]:
+    @staticmethod
+    def slots(n: int) -> NDArray[np.int64]:
         """Slots for ``n`` requests and a status, for one kernel's messages."""
-        return np.zeros(max(n, 1), dtype=np.int64), np.zeros(self.STATUS_BYTES, np.uint8)
+        return np.zeros(n + STATUS_WORDS, dtype=np.int64)
 
     @staticmethod
     def check(code: int) -> None:
@@ -353,7 +352,7 @@ def compiled_mpi(comm) -> CompiledMPI | None:
     except (OSError, AttributeError):
         return None
     handles = [ctypes.c_int64(value.handle).value for value in (comm, MPI.DOUBLE, MPI.MAX)]
-    return CompiledMPI(tuple(np.int64(value) for value in (*handles, *addresses)))
+    return CompiledMPI(np.array([*handles, *addresses], dtype=np.int64))
 
 
 class Messages:
