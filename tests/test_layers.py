@@ -68,6 +68,7 @@ LAYERS = {
         "md.polymers",
         "md.minimize",
         "md.distributed._domain_kernels",
+        "md.distributed._mpi_kernels",
         "md.distributed.grid",
         "md.distributed.ranks",
         "md.distributed.migration",

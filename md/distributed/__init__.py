@@ -28,8 +28,9 @@ energy and virial are plain sums over the ranks.
 
 Per force evaluation: the owned positions are written into the local system
 (each at its image nearest the brick), ghost positions are sent along the
-sweeps (persistent messages, a sweep's two in flight together, packed by one
-compiled pass), the local forces are computed, the ghosts' forces are sent
+sweeps (a sweep's two in flight together; packed, sent and unpacked by one
+compiled call making the MPI calls itself, ``_mpi_kernels``, else persistent
+mpi4py messages), the local forces are computed, the ghosts' forces are sent
 back alike, and one reduction sums the energy and virial and tells every rank
 whether any failed, whether any list was outrun, and what the next step start
 needs. Inside a step of the loop that is the step's only reduction: the calls

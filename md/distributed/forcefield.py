@@ -34,14 +34,13 @@ from md.box import (
 )
 from md.distributed._domain_kernels import (
     anchored_items,
-    fold_gathered,
     moved_since,
     nearest_copies,
     predicted_positions,
 )
 from md.distributed.grid import Grid
 from md.distributed.halo import AGREED_STRAY, Domain
-from md.distributed.ranks import agree
+from md.distributed.ranks import agree, gather_folded
 from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
@@ -420,9 +419,8 @@ class DistributedForceField:
             values[15] = self._moved_report
             if outcome is not None:
                 values[16:18] = (outcome[1] is not None, outcome[0])
-            gathered = self.ranks.gather_values(values)  # timed on the ranks' clock
             totals, worst = np.empty(11), self._worst
-            fold_gathered(gathered, 11, totals, worst)
+            gather_folded(self.ranks, values, 11, totals, worst)  # on the ranks' clock
             self.timings["force"] += middle - start
             self._settle_build(worst[6:4:-1])  # (a build's outcome waits on every rank or none)
             if worst[4] >= 0.0:  # what the steps' first calls found, on every rank

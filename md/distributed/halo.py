@@ -34,8 +34,10 @@ from md.distributed._domain_kernels import (
     shift_rows,
     table_rows,
 )
+from md.distributed._mpi_kernels import halo_forward, halo_reverse
 from md.distributed.grid import Grid, local_periodic_axes
 from md.distributed.migration import RowStore, check_lost, lost_error, migrate
+from md.distributed.ranks import MPIRanks
 from md.errors import DecompositionError
 from md.parallel import global_max
 from md.state import State
@@ -111,6 +113,76 @@ class _Sweep:
                 messages.free()
 
 
+class _Plan:
+    """A build's swaps as the arrays of the compiled exchanges
+    (:func:`md.distributed._mpi_kernels.halo_forward` and ``halo_reverse``, which make the
+    MPI calls themselves): a row a sweep (its axis, whether it goes to this rank itself,
+    its swaps' rows) and a row a swap (its send list's rows in ``index``, ghost rows,
+    peers, tag and ghosts' rows in ``back``: the columns the kernels module names), the
+    shifts, and the buffers the messages go from and into. The peers and tags are the
+    :class:`_Sweep` messages'."""
+
+    def __init__(self, groups: list[list[_Swap]], rank: int, compiled) -> None:
+        swaps = [swap for group in groups for swap in group]
+        self.calls = compiled.calls
+        self.check = compiled.check
+        lasts = np.cumsum([len(group) for group in groups])
+        self.sweeps = np.array(
+            [
+                (group[0].axis, group[0].dest == rank, last - len(group), last)
+                for group, last in zip(groups, lasts, strict=True)
+            ],
+            dtype=np.int64,
+        ).reshape(-1, 4)
+        ends = np.cumsum([len(swap.send) for swap in swaps])
+        backs = np.cumsum([swap.count for swap in swaps])
+        self.table = np.array(
+            [
+                (end - len(w.send), end, w.offset, w.count, w.dest, w.source, w.tag, b - w.count)
+                for w, end, b in zip(swaps, ends, backs, strict=True)
+            ],
+            dtype=np.int64,
+        ).reshape(-1, 8)
+        self.index = (
+            np.concatenate([w.send for w in swaps]).astype(np.int64)
+            if swaps
+            else np.zeros(0, dtype=np.int64)
+        )
+        self.shifts = np.array([float(w.shift) for w in swaps])
+        self.out = np.empty((len(self.index), 3))  # positions out, forces back in
+        self.back = np.empty((int(backs[-1]) if swaps else 0, 3))  # the ghosts' forces out
+        self.slots = compiled.slots(2 * max(len(group) for group in groups))
+
+    def forward(self, positions: NDArray[np.float64], cell: NDArray[np.float64]) -> None:
+        self.check(
+            halo_forward(
+                positions,
+                cell,
+                self.sweeps,
+                self.table,
+                self.shifts,
+                self.index,
+                self.out,
+                self.slots,
+                self.calls,
+            )
+        )
+
+    def reverse(self, values: NDArray[np.float64]) -> None:
+        self.check(
+            halo_reverse(
+                values,
+                self.sweeps,
+                self.table,
+                self.index,
+                self.out,
+                self.back,
+                self.slots,
+                self.calls,
+            )
+        )
+
+
 class Domain:
     """This rank's brick, its ghost shell and the messages that fill it.
 
@@ -147,6 +219,8 @@ class Domain:
         self.n_owned = 0
         self.swaps: list[_Swap] = []
         self._sweeps: list[_Sweep] | None = None  # the swaps' messages, made at first use
+        self._plan: _Plan | None = None  # or the compiled exchanges' arrays, of these swaps:
+        self._plan_swaps: list[_Swap] | None = None
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
@@ -437,6 +511,10 @@ class Domain:
         else:
             home_positions(state.positions, self.imaged, self.images, cell, owned)
         with self.ranks.clock:
+            plan = self.plan()
+            if plan is not None:  # (the messages from compiled code)
+                plan.forward(positions, cell)
+                return
             for sweep in self.sweeps():
                 pack_sweep(
                     positions,
@@ -451,6 +529,23 @@ class Domain:
                 )
                 if sweep.forward is not None:
                     sweep.forward.run()
+
+    def plan(self) -> _Plan | None:
+        """The compiled exchanges of the last build's swaps (made once a build), or None
+        where the ranks have no compiled MPI calls (:attr:`MPIRanks.compiled`) or no swap
+        goes to another rank (the sweeps to self stay :func:`pack_sweep`'s)."""
+        compiled = self.ranks.compiled if isinstance(self.ranks, MPIRanks) else None
+        if compiled is None or not self.swaps:
+            return None
+        if self._plan_swaps is not self.swaps:  # (a build lays out a new list of swaps)
+            by_axis: dict[int, list[_Swap]] = {}
+            for swap in self.swaps:
+                by_axis.setdefault(swap.axis, []).append(swap)
+            groups = list(by_axis.values())
+            remote = any(group[0].dest != self.rank for group in groups)
+            self._plan = _Plan(groups, self.rank, compiled) if remote else None
+            self._plan_swaps = self.swaps
+        return self._plan
 
     def sweeps(self) -> list[_Sweep]:
         """The swaps grouped by axis, each group's persistent messages made once a build."""
@@ -468,6 +563,10 @@ class Domain:
         """Add the ghosts' rows of ``values`` (n_local, k; C order) into their owners' rows
         along the reverse of the sweeps; return the owned rows (a view). Collective."""
         if values.shape[1] == 3 and values.flags.c_contiguous:
+            plan = self.plan()
+            if plan is not None:
+                plan.reverse(values)
+                return values[: self.n_owned]
             for sweep in reversed(self.sweeps()):
                 if not sweep.to_self:
                     ghost_rows(values, sweep.offsets, sweep.counts, sweep.back)

@@ -10,6 +10,7 @@ imported unless a launcher started more than one process (:func:`mpi_ranks`).
 from __future__ import annotations
 
 import atexit
+import ctypes
 import logging
 import math
 import os
@@ -19,6 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md._files import OutputBusyError
+from md.distributed._domain_kernels import fold_gathered
+from md.distributed._mpi_kernels import STATUS_WORDS, gather, gather_fold, maximum
 from md.errors import (
     CheckpointError,
     ConfigError,
@@ -47,6 +50,21 @@ def in_rank_order(gathered: NDArray[np.float64]) -> NDArray[np.float64]:
     for rank in range(1, gathered.shape[0]):
         total += gathered[rank]
     return total
+
+
+def gather_folded(ranks, values, n_summed: int, totals, worst) -> None:
+    """Every rank's ``values`` (k,) gathered, ``totals`` = their first ``n_summed`` added in
+    rank order and ``worst`` = the others' largest over the ranks
+    (:func:`md.distributed._domain_kernels.fold_gathered`): in one compiled call that
+    makes the all-gather itself where ``ranks`` has compiled MPI calls, else through
+    ``ranks.gather_values``. Collective; on the ranks' clock."""
+    compiled = ranks.compiled if isinstance(ranks, MPIRanks) else None
+    if compiled is None:
+        fold_gathered(ranks.gather_values(values), n_summed, totals, worst)
+        return
+    with ranks.clock:
+        gathered = np.empty((ranks.n_ranks, values.shape[0]))
+        compiled.check(gather_fold(values, gathered, n_summed, totals, worst, compiled.calls))
 
 
 def ranks_per_node(ranks) -> int:
@@ -193,9 +211,10 @@ class MPIRanks:
     as its "comm" section.
     """
 
-    def __init__(self, comm) -> None:
+    def __init__(self, comm, compiled: bool = True) -> None:
         from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
 
+        self._compiled_wanted = bool(compiled)
         self.comm = comm
         self.rank = comm.Get_rank()
         self.n_ranks = comm.Get_size()
@@ -203,6 +222,19 @@ class MPIRanks:
         self._max = MPI.MAX
         self._double = MPI.DOUBLE
         self._status = MPI.Status()
+
+    @property
+    def comm(self):
+        """The mpi4py communicator. Setting it also sets :attr:`compiled`: the compiled
+        kernels' calls into MPI over it (None for anything but an mpi4py intracommunicator,
+        or where ``compiled=False`` was asked: then the halo and reductions go through
+        mpi4py)."""
+        return self._comm
+
+    @comm.setter
+    def comm(self, comm) -> None:
+        self._comm = comm
+        self.compiled = compiled_mpi(comm) if self._compiled_wanted else None
 
     def sum(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         with self.clock:
@@ -213,14 +245,20 @@ class MPIRanks:
         with self.clock:
             values = np.ascontiguousarray(values, dtype=np.float64).ravel()
             gathered = np.empty((self.n_ranks, values.size))
-            self.comm.Allgather(values, gathered)
+            if self.compiled is not None:
+                self.compiled.check(gather(values, gathered, self.compiled.calls))
+            else:
+                self.comm.Allgather(values, gathered)
             return gathered
 
     def max(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
         with self.clock:
             values = np.ascontiguousarray(values, dtype=np.float64).ravel()
             out = np.empty_like(values)
-            self.comm.Allreduce(values, out, op=self._max)
+            if self.compiled is not None:
+                self.compiled.check(maximum(values, out, self.compiled.calls))
+            else:
+                self.comm.Allreduce(values, out, op=self._max)
             return out
 
     def exchange(self, send, dest: int, receive, source: int, tag: int) -> None:
@@ -310,6 +348,56 @@ class MPIRanks:
                     handler.flush()
             time.sleep(0.5)  # (the launcher forwards it before MPI ends the ranks)
         self.comm.Abort(code)
+
+
+class CompiledMPI:
+    """What the compiled kernels of :mod:`md.distributed._mpi_kernels` need to call MPI over
+    a communicator themselves: ``calls``, an int64 array (the handles of the communicator,
+    MPI_DOUBLE and MPI_MAX, then the addresses of MPI_Isend, MPI_Irecv, MPI_Wait,
+    MPI_Allgather and MPI_Allreduce) passed to them (an array: a tuple of 8 integers cost
+    numba's dispatch 3-4 us a call to type).
+
+    MPICH's handles are C ints, Open MPI's pointers: an int64 carries either (a C int
+    argument is the low half of its register or stack slot in the x86-64 and AArch64
+    calling conventions), and each request has an 8-byte slot of its own, where an
+    MPI_Request of either kind fits, waited for alone (MPI_Wait), so no size of an MPI
+    type is needed."""
+
+    def __init__(self, calls: NDArray[np.int64]) -> None:
+        self.calls = calls
+
+    @staticmethod
+    def slots(n: int) -> NDArray[np.int64]:
+        """Slots for ``n`` requests and a status, for one kernel's messages."""
+        return np.zeros(n + STATUS_WORDS, dtype=np.int64)
+
+    @staticmethod
+    def check(code: int) -> None:
+        """Raise mpi4py's exception for a kernel's non-zero MPI error code."""
+        if code != 0:
+            from mpi4py import MPI  # (loaded already: a communicator exists)
+
+            raise MPI.Exception(int(code))
+
+
+#: The MPI functions the compiled kernels call, in the order of ``CompiledMPI.calls``.
+COMPILED_CALLS = ("MPI_Isend", "MPI_Irecv", "MPI_Wait", "MPI_Allgather", "MPI_Allreduce")
+
+
+def compiled_mpi(comm) -> CompiledMPI | None:
+    """The :class:`CompiledMPI` of an mpi4py intracommunicator ``comm`` (None for other
+    objects, or where the MPI library's functions cannot be found through mpi4py's)."""
+    from mpi4py import MPI  # heavy optional dependency: only decomposed runs load MPI
+
+    if not isinstance(comm, MPI.Intracomm):
+        return None
+    try:
+        library = ctypes.CDLL(MPI.__file__)  # (its symbols include the MPI library's)
+        addresses = [ctypes.cast(library[name], ctypes.c_void_p).value for name in COMPILED_CALLS]
+    except (OSError, AttributeError):
+        return None
+    handles = [ctypes.c_int64(value.handle).value for value in (comm, MPI.DOUBLE, MPI.MAX)]
+    return CompiledMPI(np.array([*handles, *addresses], dtype=np.int64))
 
 
 class Messages:
