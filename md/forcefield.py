@@ -21,6 +21,7 @@ from potentials.base import (
     Potential,
     SupportsHessian,
     SupportsHessianOperator,
+    SupportsMixedVerletStep,
     SupportsPrecision,
     SupportsVerletStep,
     check_precision_name,
@@ -265,8 +266,9 @@ class ForceField:
         potential = self.potentials[0]
         step = _MIXED_STEPS.get(type(potential), False)
         if step is False:
-            step = _MIXED_STEPS[type(potential)] = getattr(
-                type(potential), "mixed_verlet_step", None
+            fused = isinstance(potential, SupportsMixedVerletStep)
+            step = _MIXED_STEPS[type(potential)] = (
+                type(potential).mixed_verlet_step if fused else None
             )
         if step is None or key[3] is not None or potential.cutoff is None:
             return 0  # (a small system's key is bytes: nothing to write the positions into)

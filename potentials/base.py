@@ -160,6 +160,18 @@ class SupportsVerletStep(Protocol):
 
 
 @runtime_checkable
+class SupportsMixedVerletStep(Protocol):
+    """Optional capability of a potential: velocity Verlet's mixed-precision step over a
+    cluster-pair list in compiled calls around its kernel
+    (:meth:`potentials.PairPotential.mixed_verlet_step` says the contract); the ForceField
+    asks whether a class has it once."""
+
+    def mixed_verlet_step(
+        self, state, neighbors, kicks, kick_dt, drift_dt, held, allowed2, key
+    ): ...
+
+
+@runtime_checkable
 class FusesVerletStep(Protocol):
     """Optional capability of a force source: velocity Verlet's whole step in one call
     where it can be (:meth:`md.ForceField.verlet_step`: 2 done, 1 kicked and drifted,
