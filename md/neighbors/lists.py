@@ -204,11 +204,17 @@ class ClusterFrame:
         (float32, 12 per cluster: x0..x3, y0..y3, z0..z3), in the i and the j role (they
         differ in where the fillers sit: far apart, never within reach of anything), on the
         threads when there are enough slots."""
-        chunks = chunk_count(len(self.atom), _MIN_PASS_ATOMS)
-        if chunks == 1:
-            cluster_positions(positions, self.atom, self.origin, xi, xj)
-        else:
-            cluster_positions_threaded(positions, self.atom, self.origin, xi, xj, chunks)
+        _relative_positions(positions, self.atom, self.origin, xi, xj)
+
+
+def _relative_positions(positions, atom, origin, xi, xj) -> None:
+    """:meth:`ClusterFrame.relative_positions` of the slots ``atom``/``origin``, on the
+    threads when there are enough slots (the same values on any number)."""
+    chunks = chunk_count(len(atom), _MIN_PASS_ATOMS)
+    if chunks == 1:
+        cluster_positions(positions, atom, origin, xi, xj)
+    else:
+        cluster_positions_threaded(positions, atom, origin, xi, xj, chunks)
 
 
 def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
@@ -989,7 +995,7 @@ class NeighborList:
         # by 1e-5 so that rounding can only keep a pair more, never drop one
         xi = np.empty(3 * len(atom), np.float32)
         xj = np.empty(3 * len(atom), np.float32)
-        cluster_positions(state.positions, atom, origin, xi, xj)
+        _relative_positions(state.positions, atom, origin, xi, xj)  # as a prune's: threaded
         reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
         # an outer list: pruned to the list radius in the same pass (the search's own prune)
         inner2 = self._prune_reach2() if radius > self.list_radius else None
