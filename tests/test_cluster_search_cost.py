@@ -220,3 +220,34 @@ def test_cluster_pruning_sections_times_the_search(capsys):
     assert "where a step goes" in out
     row = out.strip().splitlines()[-1].split()
     assert row[0] == "1.5" and float(row[2]) + float(row[3]) > 0.0  # searches, prunes
+
+
+def test_a_pruned_list_is_checked_without_the_general_verdict(fcc_lattice, rng):
+    """An exact cluster list with an outer list, in its build's own cell: each step's
+    check (from the last prune, then from the search) runs in ``update``'s short path,
+    never the general ``_verdict`` (which the code before called at every step), and
+    gives the prunes, searches and lists of that verdict step for step."""
+    state = fcc_lattice(cells=6, perturbation=0.1)
+    fast = NeighborList(2.5, 0.3, clusters=True)
+    general = NeighborList(2.5, 0.3, clusters=True)
+    fast.update(state)
+    general.update(state)
+    assert fast.outer_clusters is not None
+    looks = []
+    verdict = fast._verdict
+
+    def counted(current):
+        looks.append(current.step)
+        return verdict(current)
+
+    fast._verdict = counted
+    for step in range(1, 31):
+        state.positions += rng.normal(scale=0.05, size=state.positions.shape)
+        state.step = step
+        general._cell_bytes = ()  # no short path: the byte test fails, the values agree
+        assert fast.update(state) == general.update(state)
+        assert (fast.n_builds, fast.n_prunes) == (general.n_builds, general.n_prunes)
+        for name in ("starts", "partners", "offsets"):
+            assert np.array_equal(getattr(fast.clusters, name), getattr(general.clusters, name))
+    assert fast.n_prunes >= 2 and fast.n_builds >= 2  # both kinds of update happened
+    assert looks == []

@@ -707,7 +707,6 @@ class NeighborList:
         if (
             self.every == 1
             and self.check
-            and self._outer is None
             and reference is not None
             and reference.shape == state.positions.shape
             and self.n_followed == self._followed_at_build
@@ -716,12 +715,21 @@ class NeighborList:
             # The exact list in the build's own cell, which it never left (every step of
             # an NVE or NVT run): the half-skin rule alone, as _verdict applies it, with
             # the chunks counted at the build (the largest displacement is the same on
-            # any number of them).
-            moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
+            # any number of them); with an outer cluster list, measured from its last
+            # prune, then (past half the skin) from the search to choose a prune or a
+            # search, as _verdict would.
+            outer = self._outer is not None
+            since = self._pruned_at if outer else reference
+            moved2 = _largest_displacement2(state.positions, since, self._pass_chunks)
             if moved2 <= self._rebuild_distance2:
                 return False
             if not math.isfinite(moved2):
                 raise NonFiniteError("particle positions are not finite")
+            if outer:
+                moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
+                if moved2 <= self._prune_distance2:
+                    self._prune(state.positions)
+                    return False
             self.build(state)
             return True
         verdict = self._verdict(state)
