@@ -171,10 +171,10 @@ def _timed_calls() -> dict:
     for key, name in (("search", "search_pairs"), ("prune", "prune_pairs")):
         kernel = getattr(md.neighbors.lists, name)
 
-        def timed(*args, _kernel=kernel, _key=key):
+        def timed(*args, _kernel=kernel, _key=key, **keywords):
             start = time.perf_counter()
             try:
-                return _kernel(*args)
+                return _kernel(*args, **keywords)
             finally:
                 totals[_key] += time.perf_counter() - start
 

@@ -204,11 +204,17 @@ class ClusterFrame:
         (float32, 12 per cluster: x0..x3, y0..y3, z0..z3), in the i and the j role (they
         differ in where the fillers sit: far apart, never within reach of anything), on the
         threads when there are enough slots."""
-        chunks = chunk_count(len(self.atom), _MIN_PASS_ATOMS)
-        if chunks == 1:
-            cluster_positions(positions, self.atom, self.origin, xi, xj)
-        else:
-            cluster_positions_threaded(positions, self.atom, self.origin, xi, xj, chunks)
+        _relative_positions(positions, self.atom, self.origin, xi, xj)
+
+
+def _relative_positions(positions, atom, origin, xi, xj) -> None:
+    """:meth:`ClusterFrame.relative_positions` of the slots ``atom``/``origin``, on the
+    threads when there are enough slots (the same values on any number)."""
+    chunks = chunk_count(len(atom), _MIN_PASS_ATOMS)
+    if chunks == 1:
+        cluster_positions(positions, atom, origin, xi, xj)
+    else:
+        cluster_positions_threaded(positions, atom, origin, xi, xj, chunks)
 
 
 def max_displacement2(positions: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
@@ -723,7 +729,6 @@ class NeighborList:
         if (
             self.every == 1
             and self.check
-            and self._outer is None
             and reference is not None
             and reference.shape == state.positions.shape
             and self.n_followed == self._followed_at_build
@@ -732,12 +737,21 @@ class NeighborList:
             # The exact list in the build's own cell, which it never left (every step of
             # an NVE or NVT run): the half-skin rule alone, as _verdict applies it, with
             # the chunks counted at the build (the largest displacement is the same on
-            # any number of them).
-            moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
+            # any number of them); with an outer cluster list, measured from its last
+            # prune, then (past half the skin) from the search to choose a prune or a
+            # search, as _verdict would.
+            outer = self._outer is not None
+            since = self._pruned_at if outer else reference
+            moved2 = _largest_displacement2(state.positions, since, self._pass_chunks)
             if moved2 <= self._rebuild_distance2:
                 return False
             if not math.isfinite(moved2):
                 raise NonFiniteError("particle positions are not finite")
+            if outer:
+                moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
+                if moved2 <= self._prune_distance2:
+                    self._prune(state.positions)
+                    return False
             self.build(state)
             return True
         verdict = self._verdict(state)
@@ -1011,7 +1025,7 @@ class NeighborList:
         # by 1e-5 so that rounding can only keep a pair more, never drop one
         xi = np.empty(3 * len(atom), np.float32)
         xj = np.empty(3 * len(atom), np.float32)
-        cluster_positions(state.positions, atom, origin, xi, xj)
+        _relative_positions(state.positions, atom, origin, xi, xj)  # as a prune's: threaded
         reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
         # an outer list: pruned to the list radius in the same pass (the search's own prune)
         inner2 = self._prune_reach2() if radius > self.list_radius else None
