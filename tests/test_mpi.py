@@ -796,6 +796,13 @@ def overlapping(self, state, *args, **kwargs):
     return evaluating(self, state, *args, **kwargs)
 ForceField._evaluate = overlapping
 
+fusing = ForceField.verlet_step
+def unfused(self, state, *args, **kwargs):  # (the fused step bypasses _evaluate)
+    if fault == "overlap" and armed.exists():
+        return 0  # nothing done: the step goes through compute, and so _evaluate
+    return fusing(self, state, *args, **kwargs)
+ForceField.verlet_step = unfused
+
 checking = H5MDWriter._check_space
 def full(self, frame):
     if fault == "disk" and rank == target and armed.exists():
