@@ -19,15 +19,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from _mpi_support import ROOT, needs_mpi
 
 import md
 from md.checkpoint import read_checkpoint
-
-ROOT = Path(__file__).resolve().parents[1]
-HAVE_MPI = shutil.which("mpiexec") is not None and (
-    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
-)
-needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
 
 #: The LAMMPS LJ melt (fcc at density 0.8442 started at T = 3), 384 atoms: the cell is
 #: 10.1 x 6.7 x 6.7, wide enough for 3 bricks along x and 2 x 2 of cutoff + skin = 2.8.

@@ -11,60 +11,18 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-HAVE_MPI = shutil.which("mpiexec") is not None and (
-    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
-)
-needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
+from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
 
 #: A 384-atom LJ melt on the ranks, with every rank's collective calls counted by a proxy
 #: of its communicator between step starts. Prints rank 0's JSON; saves the positions.
-COUNTED = """\
-import json, sys
-import numpy as np
-import md
-from integrators import VelocityVerlet
-from potentials import LennardJones
-
-COLLECTIVES = {"Allreduce", "Allgather", "allgather", "bcast", "gather", "Gatherv",
-               "Barrier", "allreduce", "Reduce", "reduce"}
-
-
-def system():
-    lattice = md.lattice("fcc", (6, 4, 4), density=0.8442)
-    velocities = np.random.default_rng(7).normal(0.0, 1.7, lattice.positions.shape)
-    return md.State(positions=lattice.positions, velocities=velocities, masses=1.0,
-                    box=lattice.box)
-
-
-def simulation(state, kind, **options):
-    return kind(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), skin=0.3,
-                **options)
-
-
-class Counted:
-    def __init__(self, comm):
-        self._comm, self.n = comm, 0
-
-    def __getattr__(self, name):
-        found = getattr(self._comm, name)
-        if not callable(found) or name not in COLLECTIVES:
-            return found
-
-        def counted(*args, **kwargs):
-            self.n += 1
-            return found(*args, **kwargs)
-
-        return counted
-
+COUNTED = (
+    COUNTED_MELT
+    + """
 
 if __name__ == "__main__":
     from md.distributed import DistributedSimulation
@@ -78,12 +36,12 @@ if __name__ == "__main__":
     marks = []
 
     def start_step(*args):
-        marks.append((counted.n, forcefield.n_builds))
+        marks.append((counted.total(COLLECTIVES), forcefield.n_builds))
         starts(*args)
 
     forcefield.start_step = start_step
     sim.run(80)
-    marks.append((counted.n, forcefield.n_builds))
+    marks.append((counted.total(COLLECTIVES), forcefield.n_builds))
     # collectives from one step start to the next, for the spans holding one build (the
     # step's own evaluation and the next step start's migration and build) and none
     # (the run's first steps left out: its first call agrees on its held result)
@@ -97,6 +55,7 @@ if __name__ == "__main__":
             "n_builds": sum(builds for _, builds in spans),
         }))
 """
+)
 
 #: The same melt, where rank 1's list build fails at the third build of the run (a step
 #: start's): every rank must end with that error. Each rank writes its JSON.

@@ -9,63 +9,15 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-HAVE_MPI = shutil.which("mpiexec") is not None and (
-    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
-)
-needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
+from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
 
 #: The 384-atom melt on the ranks, and a proxy of a communicator that counts its calls.
-COMMON = """\
-import json, sys
-import numpy as np
-import md
-from integrators import VelocityVerlet
-from potentials import LennardJones
-
-COLLECTIVES = {"Allreduce", "Allgather", "allgather", "bcast", "gather", "Gatherv",
-               "Barrier", "allreduce", "Reduce", "reduce"}
-MESSAGES = {"Isend", "Send", "Sendrecv", "Mprobe", "Recv", "Irecv", "Probe"}
-
-
-def system(seed=7):
-    lattice = md.lattice("fcc", (6, 4, 4), density=0.8442)
-    velocities = np.random.default_rng(seed).normal(0.0, 1.7, lattice.positions.shape)
-    return md.State(positions=lattice.positions, velocities=velocities, masses=1.0,
-                    box=lattice.box)
-
-
-def simulation(state, kind, **options):
-    return kind(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), skin=0.3,
-                **options)
-
-
-class Counted:
-    def __init__(self, comm):
-        self._comm, self.counts = comm, {}
-
-    def __getattr__(self, name):
-        found = getattr(self._comm, name)
-        if not callable(found):
-            return found
-
-        def counted(*args, **kwargs):
-            self.counts[name] = self.counts.get(name, 0) + 1
-            return found(*args, **kwargs)
-
-        return counted
-
-    def total(self, names):
-        return sum(n for name, n in self.counts.items() if name in names)
-"""
+COMMON = COUNTED_MELT
 
 #: Gathers for a plain observer (a trajectory frame) and for one that stores the layout
 #: (a checkpoint writer), recording each gather's width; prints rank 0's JSON.

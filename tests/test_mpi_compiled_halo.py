@@ -13,22 +13,16 @@ import ctypes
 import ctypes.util
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _mpi_support import ROOT, needs_mpi
 from numba import njit
 
 from md.distributed._mpi_kernels import c_call
-
-ROOT = Path(__file__).resolve().parents[1]
-HAVE_MPI = shutil.which("mpiexec") is not None and (
-    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
-)
-needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
 
 #: The melt on the given decomposition, run once with the compiled exchanges and once
 #: through mpi4py (``MPIRanks(compiled=False)``); rank 0 prints what each rank found.

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
 
 from md.distributed._domain_kernels import (
     add_rows,
@@ -26,60 +26,16 @@ from md.distributed._domain_kernels import (
     pack_sweep,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
-HAVE_MPI = shutil.which("mpiexec") is not None and (
-    subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
-)
-needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
-
 #: A 384-atom LJ melt (two bricks of cutoff + skin along x), with the collectives and the
 #: messages of every rank counted by a proxy of its communicator. Prints rank 0's JSON.
-COUNTED = """\
-import json, sys
-import numpy as np
-import md
-from integrators import VelocityVerlet
-from potentials import LennardJones
-
-COLLECTIVES = {"Allreduce", "Allgather", "allgather", "bcast", "gather", "Gatherv",
-               "Barrier", "allreduce", "Reduce", "reduce"}
-
-
-def system():
-    lattice = md.lattice("fcc", (6, 4, 4), density=0.8442)
-    velocities = np.random.default_rng(3).normal(0.0, 1.7, lattice.positions.shape)
-    return md.State(positions=lattice.positions, velocities=velocities, masses=1.0,
-                    box=lattice.box)
-
-
-def simulation(state, kind, **options):
-    return kind(state, [LennardJones(cutoff=2.5)], VelocityVerlet(dt=0.005), skin=0.3,
-                **options)
-
-
-class Counted:
-    def __init__(self, comm):
-        self._comm, self.counts = comm, {}
-
-    def __getattr__(self, name):
-        found = getattr(self._comm, name)
-        if not callable(found):
-            return found
-
-        def counted(*args, **kwargs):
-            self.counts[name] = self.counts.get(name, 0) + 1
-            return found(*args, **kwargs)
-
-        return counted
-
-    def collectives(self):
-        return sum(n for name, n in self.counts.items() if name in COLLECTIVES)
-
+COUNTED = (
+    COUNTED_MELT
+    + """
 
 if __name__ == "__main__":
     from md.distributed import DistributedSimulation
 
-    sim = simulation(system(), DistributedSimulation)
+    sim = simulation(system(3), DistributedSimulation)
     counted = Counted(sim.ranks.comm)
     sim.ranks.comm = counted
     forcefield = sim.forcefield
@@ -87,13 +43,13 @@ if __name__ == "__main__":
     marks = []
 
     def start_step(*args):
-        marks.append((counted.collectives(), counted.counts.get("Sendrecv", 0),
+        marks.append((counted.total(COLLECTIVES), counted.counts.get("Sendrecv", 0),
                       forcefield.n_builds))
         starts(*args)
 
     forcefield.start_step = start_step
     sim.run(60)
-    marks.append((counted.collectives(), counted.counts.get("Sendrecv", 0),
+    marks.append((counted.total(COLLECTIVES), counted.counts.get("Sendrecv", 0),
                   forcefield.n_builds))
     # (collectives, Sendrecv) of each step whose start, and the step before's, saw no build
     per_step = [
@@ -113,6 +69,7 @@ if __name__ == "__main__":
         np.save(sys.argv[1], view.state.positions)
         print(json.dumps({"per_step": per_step, "rebuilt": rebuilt, "moved": first[1]}))
 """
+)
 
 
 def _launch(tmp_path: Path, source: str, n_ranks: int = 2, timeout: float = 180):
@@ -157,7 +114,7 @@ def test_a_decomposed_step_makes_one_reduction_and_no_blocking_message(tmp_path)
         sys.modules.pop("counted", None)
     from md.simulation import Simulation
 
-    alone = counted.simulation(counted.system(), Simulation)
+    alone = counted.simulation(counted.system(3), Simulation)
     alone.run(60)
     alone.state.positions[found["moved"], 0] += 0.2
     alone.run(5)
@@ -233,7 +190,7 @@ class Nudged(VelocityVerlet):
             state.positions[:, 0] += 1e-9
 
 
-sim = simulation(system(), DistributedSimulation)
+sim = simulation(system(3), DistributedSimulation)
 sim.integrator = Nudged(0.005)
 sim.run(30)
 print("no stop")
