@@ -245,8 +245,10 @@ def _cluster_atom_forces_threaded(buffers, atom, windows, forces, first):
 @njit(cache=True, inline="always", error_model="numpy")
 def _slot_forces(buffers, atom, windows, forces, first, end):
     """:func:`_cluster_atom_forces` for slots ``first`` to ``end``: the slots of chunk k's
-    i clusters take those of chunks 0 to k whose windows reach them."""
+    i clusters take those of chunks 0 to k whose windows reach them. Returns whether every
+    force written is finite (the fused step's check; dead code to the callers that drop it)."""
     chunks = windows.shape[0]
+    finite = True
     for k in range(chunks):
         lo = max(first, windows[k, 0] * CLUSTER)
         hi = min(end, (windows[k + 1, 0] if k + 1 < chunks else windows[k, 1]) * CLUSTER)
@@ -262,6 +264,8 @@ def _slot_forces(buffers, atom, windows, forces, first, end):
                     fy += buffers[at + CLUSTER]
                     fz += buffers[at + 2 * CLUSTER]
             forces[i, 0], forces[i, 1], forces[i, 2] = fx, fy, fz
+            finite &= abs(fx) < np.inf and abs(fy) < np.inf and abs(fz) < np.inf
+    return finite
 
 
 #: float32 values per cluster in the cluster kernels' j lanes (``potentials._cluster_ir``).

@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from md._simd import bits_float, float_bits
 from md.parallel import chunk_count
-from potentials._kernels import CLUSTER, _slot_base, cluster_sum_runs
+from potentials._kernels import CLUSTER, _slot_forces, cluster_sum_runs
 
 #: Fewest slots per thread worth a chunk of their own in these memory-bound passes (as
 #: the relative positions' and the sum's: ``md.neighbors``' and ``potentials._kernels``').
@@ -281,7 +281,7 @@ def _finish_one_chunk(forces, energies, velocities, masses, kick_dt):
 
 @njit(cache=True, error_model="numpy")
 def _finish_summed(buffers, atom, windows, forces, first, energies, velocities, masses, kick_dt):
-    finite = _slot_forces_finite(buffers, atom, windows, forces, 0, CLUSTER * first[-1])
+    finite = _slot_forces(buffers, atom, windows, forces, 0, CLUSTER * first[-1])
     energy = _energy(energies)
     if not (finite and abs(energy) < np.inf):
         return np.nan
@@ -296,7 +296,7 @@ def _finish_summed_threaded(
     runs = first.shape[0] - 1
     finite = np.ones(runs, np.bool_)
     for r in prange(runs):
-        finite[r] = _slot_forces_finite(
+        finite[r] = _slot_forces(
             buffers, atom, windows, forces, CLUSTER * first[r], CLUSTER * first[r + 1]
         )
     energy = _energy(energies)
@@ -307,31 +307,6 @@ def _finish_summed_threaded(
         a, b = c * n // chunks, (c + 1) * n // chunks
         _kick_by_mass(velocities[a:b], forces[a:b], masses[a:b], kick_dt)
     return energy
-
-
-@njit(cache=True, error_model="numpy")
-def _slot_forces_finite(buffers, atom, windows, forces, first, end):
-    """``potentials._kernels._slot_forces`` for slots ``first`` to ``end`` (the same sums
-    in the same order), and whether every force written is finite."""
-    chunks = windows.shape[0]
-    finite = True
-    for k in range(chunks):
-        lo = max(first, windows[k, 0] * CLUSTER)
-        hi = min(end, (windows[k + 1, 0] if k + 1 < chunks else windows[k, 1]) * CLUSTER)
-        for s in range(lo, hi):
-            i, base, cluster = atom[s], _slot_base(s), s // CLUSTER
-            if i < 0:
-                continue
-            fx = fy = fz = 0.0
-            for c in range(k + 1):
-                if cluster < windows[c, 1]:
-                    at = 3 * CLUSTER * (windows[c, 2] - windows[c, 0]) + base
-                    fx += buffers[at]
-                    fy += buffers[at + CLUSTER]
-                    fz += buffers[at + 2 * CLUSTER]
-            forces[i, 0], forces[i, 1], forces[i, 2] = fx, fy, fz
-            finite &= abs(fx) < np.inf and abs(fy) < np.inf and abs(fz) < np.inf
-    return finite
 
 
 @njit(cache=True, error_model="numpy")
