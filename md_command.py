@@ -18,11 +18,28 @@ import sys
 EXIT_INTERRUPTED = 130
 
 
+#: Ctrl-Cs that landed in a callback while the command loaded (see :func:`_keep_interrupt`).
+_LOST: list[BaseException] = []
+
+
+def _keep_interrupt(unraisable, previous=sys.unraisablehook) -> None:
+    """A Ctrl-C that lands in a callback (importlib's module-lock weakref callback, while
+    the kernels load) is "ignored" by Python, which prints a traceback and drops the signal:
+    keep it instead, for :func:`main` to honour once the import returns."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _LOST.append(unraisable.exc_value)
+        return
+    previous(unraisable)
+
+
 def main() -> int:
     """Run the ``md`` command on ``sys.argv``; return its exit code."""
+    sys.unraisablehook = _keep_interrupt
     try:
         from md.cli import main as run_command  # loads numpy, numba and the kernels
 
+        if _LOST:  # (a Ctrl-C while loading that Python would have dropped)
+            raise KeyboardInterrupt
         return run_command()
     except KeyboardInterrupt:  # before md.cli.main catches it itself: while loading
         print("md: interrupted", file=sys.stderr)

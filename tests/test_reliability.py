@@ -488,3 +488,41 @@ def test_ctrl_c_during_a_sweep_prints_no_traceback(tmp_path):
             process.communicate()
     assert process.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err, err
+
+
+def test_a_ctrl_c_python_would_drop_in_a_callback_while_md_loads_is_honoured(monkeypatch, capsys):
+    """A KeyboardInterrupt raised in a callback (importlib's module-lock weakref callback,
+    where a Ctrl-C landed once while the kernels loaded) is one Python prints as "ignored",
+    with a traceback, and drops: md_command keeps it and ends with its line and 130."""
+    import types
+    import weakref
+
+    import md_command
+
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # (main sets it)
+    monkeypatch.setattr(md_command, "_LOST", [])
+    stub = types.ModuleType("md.cli")
+    stub.main = lambda: 0  # the command would run (exit 0) had the Ctrl-C been lost
+
+    class Loaded:
+        pass
+
+    def callback(ref):
+        raise KeyboardInterrupt
+
+    def importing(name, *args, **kwargs):
+        if name == "md.cli":  # the import the Ctrl-C lands in, via a callback
+            held = Loaded()
+            ref = weakref.ref(held, callback)  # noqa: F841 (alive until the callback runs)
+            del held
+            return stub
+        return real_import(name, *args, **kwargs)
+
+    import builtins
+
+    real_import = builtins.__import__
+    monkeypatch.setattr(builtins, "__import__", importing)
+    code = md_command.main()
+    err = capsys.readouterr().err
+    assert code == md_command.EXIT_INTERRUPTED and "md: interrupted" in err, (code, err)
+    assert "Traceback" not in err and "ignored" not in err, err
