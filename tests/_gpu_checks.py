@@ -184,7 +184,7 @@ def check_runs(results: dict) -> None:
 
 def check_polymer(results: dict) -> None:
     """A bead-spring melt (WCA, FENE, harmonic and cosine angles): forces against the CPU
-    path's, and a 50-step velocity Verlet run."""
+    path's, and a 100-step velocity Verlet run."""
     from integrators import VelocityVerlet
     from md.build import maxwell_boltzmann
     from md.cuda.engine import DeviceEngine
@@ -216,7 +216,7 @@ def check_polymer(results: dict) -> None:
     for device in ("cpu", "cuda"):
         state, potentials = melt()
         sim = Simulation(state, potentials, VelocityVerlet(dt=0.005), device=device)
-        sim.run(50)
+        sim.run(100)
         runs.append(state)
     results["polymer_run_positions"] = _relative(runs[1].positions, runs[0].positions)
     results["polymer_run_velocities"] = _relative(runs[1].velocities, runs[0].velocities)
