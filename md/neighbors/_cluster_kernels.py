@@ -41,6 +41,7 @@ from md._simd import (
     cluster_i_halves,
     cluster_j_less,
     python_twin,
+    shuffle,
     splat,
     squared_distances,
 )
@@ -958,6 +959,17 @@ def prune_pairs(
             kept_partners,
             kept_offsets,
         )
+    return _join_kept(starts, bounds, kept_starts, kept_partners, kept_offsets)
+
+
+@njit(cache=True, error_model="numpy")
+def _join_kept(starts, bounds, kept_starts, kept_partners, kept_offsets):
+    """A prune's rows counted in ``kept_starts[ci + 1]`` and written per chunk from where
+    the chunk's rows begin in the list (``starts``): the counts into row offsets, then
+    every chunk but the first moved down to its place, in order (a move never
+    overwrites rows not yet moved). Returns the pairs kept."""
+    n_clusters = starts.shape[0] - 1
+    chunks = bounds.shape[0] - 1
     kept_starts[0] = 0
     for ci in range(n_clusters):  # the counts, into row offsets
         kept_starts[ci + 1] += kept_starts[ci]
@@ -1309,5 +1321,268 @@ def _keep_near(
                 near = _any_near(builder, halves, shifted, reach)
                 builder.store(builder.add(to, builder.zext(near, _I64)), result)
         return builder.load(result)
+
+    return sig, codegen
+
+
+# The bounded prune: pairs already decided are not checked again. A prune (or the
+# search) that checks pair q at positions x_e records how far its closest atom pair
+# lies from the list radius, |d_min - r|, in a threshold T[q] = |d_min - r| + C_e[i] +
+# C_e[j], its sign the verdict (negative: kept). C[c] sums, over the prunes since the
+# search, the farthest any atom of cluster c moved between two of them, so C_now[c] -
+# C_e[c] bounds how far each of its atoms moved since x_e, and no atom pair of (i, j)
+# came closer or went farther by more than C_now[i] - C_e[i] + C_now[j] - C_e[j]: while
+# C_now[i] + C_now[j] + margin < |T[q]|, the pair keeps its verdict. (Triangle
+# inequalities in float32 geometry whose rounding the margin covers, a hundred times
+# over; a pair near the radius is always checked, so the lists are those of the full
+# check, pair for pair.)
+
+#: What the bounded prune adds to the drift bounds, in list radii: float32's rounding of
+#: the squared distances (a few 1e-7 of the radius) with room to spare.
+BOUND_MARGIN = 1e-4
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def cluster_drift(positions, since, atom, drift, chunks):
+    """Add to ``drift[c]`` the farthest any atom of cluster c lies from its place in
+    ``since`` (N, 3), in ``chunks`` runs of clusters on the threads; a non-finite
+    position makes its cluster's drift non-finite (a pair with it is then checked)."""
+    n = drift.shape[0]
+    for t in prange(chunks):
+        for c in range(t * n // chunks, (t + 1) * n // chunks):
+            farthest = 0.0
+            for s in range(CLUSTER * c, CLUSTER * c + CLUSTER):
+                a = atom[s]
+                if a >= 0:
+                    d2 = 0.0
+                    for d in range(3):
+                        step = positions[a, d] - since[a, d]
+                        d2 += step * step
+                    if d2 > farthest or d2 != d2:  # a NaN, once met, stays
+                        farthest = d2
+            drift[c] += np.sqrt(farthest)
+
+
+@njit(cache=True, error_model="numpy")
+def prune_pairs_bounded(
+    starts,
+    partners,
+    offsets,
+    bounds,
+    xi,
+    xj,
+    reach2,
+    drift,
+    thresholds,
+    marks,
+    checks,
+    kept_starts,
+    kept_partners,
+    kept_offsets,
+):
+    """:func:`prune_pairs` checking only the pairs whose verdict may have changed since
+    it was last found (see the note above :data:`BOUND_MARGIN`): ``drift`` (clusters,)
+    the clusters' summed drifts since the search (:func:`cluster_drift`), ``thresholds``
+    (pairs,) float32 each pair's signed threshold, 0 where never checked (a pair checked
+    here gets its new one), ``marks`` (pairs,) uint8 and ``checks`` (pairs,) int32
+    scratch. The same kept pairs as :func:`prune_pairs` at ``xi``/``xj``, in the same
+    arrays. Returns (pairs kept, pairs checked atom by atom)."""
+    n_clusters = starts.shape[0] - 1
+    chunks = bounds.shape[0] - 1
+    margin = BOUND_MARGIN * np.sqrt(np.float64(reach2))
+    counts = np.zeros(chunks, np.int64)
+    if chunks == 1:
+        counts[0] = _prune_rows_bounded(
+            starts,
+            partners,
+            offsets,
+            0,
+            n_clusters,
+            xi,
+            xj,
+            reach2,
+            margin,
+            drift,
+            thresholds,
+            marks,
+            checks,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
+    else:
+        _prune_chunks_bounded(
+            starts,
+            partners,
+            offsets,
+            bounds,
+            xi,
+            xj,
+            reach2,
+            margin,
+            drift,
+            thresholds,
+            marks,
+            checks,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+            counts,
+        )
+    kept = _join_kept(starts, bounds, kept_starts, kept_partners, kept_offsets)
+    return kept, counts.sum()
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _prune_chunks_bounded(
+    starts,
+    partners,
+    offsets,
+    bounds,
+    xi,
+    xj,
+    reach2,
+    margin,
+    drift,
+    thresholds,
+    marks,
+    checks,
+    kept_starts,
+    kept_partners,
+    kept_offsets,
+    counts,
+):
+    """:func:`_prune_rows_bounded` for each chunk of i clusters, on the threads."""
+    for t in prange(bounds.shape[0] - 1):
+        counts[t] = _prune_rows_bounded(
+            starts,
+            partners,
+            offsets,
+            bounds[t],
+            bounds[t + 1],
+            xi,
+            xj,
+            reach2,
+            margin,
+            drift,
+            thresholds,
+            marks,
+            checks,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
+
+
+@njit(cache=True, error_model="numpy")
+def _prune_rows_bounded(
+    starts,
+    partners,
+    offsets,
+    c0,
+    c1,
+    xi,
+    xj,
+    reach2,
+    margin,
+    drift,
+    thresholds,
+    marks,
+    checks,
+    kept_starts,
+    kept_partners,
+    kept_offsets,
+):
+    """The rows of i clusters ``c0`` to ``c1`` pruned as :func:`_prune_rows` does, in
+    three branch-free passes per row (a branch per pair would be mispredicted at about a
+    third of them on the melt): the pairs whose verdict may have changed listed in
+    ``checks`` (from the row's start) and the others' verdicts into ``marks``; those
+    listed checked atom by atom, their verdicts and thresholds written; the kept pairs
+    copied. Returns the pairs checked."""
+    k = starts[c0]
+    checked = 0
+    reach = np.sqrt(np.float64(reach2))
+    for ci in range(c0, c1):
+        start, end = starts[ci], starts[ci + 1]
+        if start == end:
+            kept_starts[ci + 1] = 0
+            continue
+        own = drift[ci] + margin
+        listed = start
+        for q in range(start + 1, end):
+            t = thresholds[q]
+            checks[listed] = q
+            listed += not (own + drift[partners[q]] < abs(np.float64(t)))
+            marks[q] = t < 0.0
+        for p in range(start, listed):
+            q = checks[p]
+            cj = partners[q]
+            near, closest2 = _near_min_pair(
+                xi, xj, ci, cj, offsets[q, 0], offsets[q, 1], offsets[q, 2], reach2
+            )
+            marks[q] = near
+            gap = abs(np.sqrt(np.float64(closest2)) - reach) + drift[ci] + drift[cj]
+            thresholds[q] = np.float32(-gap) if near else np.float32(gap)
+        checked += listed - start
+        row = k
+        kept_partners[k] = partners[start]  # the cluster with itself: kept
+        for d in range(3):
+            kept_offsets[k, d] = offsets[start, d]
+        k += 1
+        for q in range(start + 1, end):
+            kept_partners[k] = partners[q]
+            for d in range(3):
+                kept_offsets[k, d] = offsets[q, d]
+            k += marks[q]
+        kept_starts[ci + 1] = k - row
+    return checked
+
+
+def _near_min_pair_twin(xi, xj, ci, cj, ox, oy, oz, reach2):
+    """:func:`_near_min_pair` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    own = xi[ci * 3 * CLUSTER : (ci + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+    other = xj[cj * 3 * CLUSTER : (cj + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+    offset = np.array([ox, oy, oz], np.float32)
+    d = own[:, :, None] - (other - offset[:, None])[:, None, :]
+    r2 = (d * d).sum(axis=0)
+    return bool((r2 < reach2).any()), np.float32(r2.min())
+
+
+def _lane_min(builder, vector):
+    """The smallest lane of a float32 ``vector`` (a tree of halvings)."""
+    lanes = vector.type.count
+    width = lanes // 2
+    while width >= 1:
+        upper = shuffle(builder, vector, vector, [(n + width) % lanes for n in range(lanes)])
+        vector = builder.select(builder.fcmp_ordered("<", upper, vector), upper, vector)
+        width //= 2
+    return builder.extract_element(vector, ir.Constant(ir.IntType(32), 0))
+
+
+@python_twin(_near_min_pair_twin)
+@intrinsic
+def _near_min_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
+    """:func:`_near_pair`'s check with the closest atom pair's squared distance:
+    (whether an atom pair is closer than sqrt(``reach2``), the smallest of the 16
+    squared distances, in float32, from the same vectors)."""
+    sig = types.Tuple((types.boolean, types.float32))(xi, xj, ci, cj, ox, oy, oz, reach2)
+
+    def codegen(context, builder, signature, args):
+        xi_p, xj_p = (array_data(context, builder, signature.args[n], args[n]) for n in range(2))
+        ci, cj = (context.cast(builder, args[n], signature.args[n], types.int64) for n in (2, 3))
+        ox, oy, oz, reach2 = args[4:]
+        size = ir.Constant(_I64, 3 * CLUSTER)
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci, size), _LANES)
+        shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), (ox, oy, oz), lanes=_LANES)
+        smallest = None
+        for half in halves:
+            _, r2 = squared_distances(builder, half, shifted)
+            if smallest is None:
+                smallest = r2
+            else:
+                smallest = builder.select(builder.fcmp_ordered("<", r2, smallest), r2, smallest)
+        closest2 = _lane_min(builder, smallest)
+        near = builder.fcmp_ordered("<", closest2, reach2)
+        return context.make_tuple(builder, signature.return_type, [near, closest2])
 
     return sig, codegen
