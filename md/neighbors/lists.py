@@ -46,12 +46,11 @@ from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs
 from md.neighbors._cluster_kernels import (
     balanced_chunks,
     chunk_windows,
-    cluster_drift,
     cluster_grid,
     cluster_positions,
     cluster_positions_threaded,
     column_counts,
-    prune_pairs_bounded,
+    prune_pairs,
     row_reach,
     search_pairs,
 )
@@ -75,9 +74,6 @@ _MIN_CHUNK_ATOMS = 1000
 #: (the per-step displacement check: 32000 atoms took 26 us on one thread, 17.5 on two,
 #: on a 2-core Zen 5).
 _MIN_PASS_ATOMS = 16_000
-#: Fewest clusters per thread worth a chunk of their own in the prune's drift pass (a
-#: memory-bound pass over the atoms, as the displacement check's).
-_MIN_PASS_CLUSTERS = _MIN_PASS_ATOMS // 4
 #: Head room of the pair buffer over the count that did not fit.
 _GROWTH = 1.05
 #: The verdict of :meth:`NeighborList._verdict` that asks for the cluster list to be pruned.
@@ -405,11 +401,6 @@ class NeighborList:
         self.n_prunes = 0
         self._prune_buffers = None  # see _prune
         self._prune_relative = None  # the search's relative positions, for its prunes
-        # The bounded prune's state per search (drifts, thresholds; see _prune), and its
-        # scratch, kept across searches (marks, checks: grown as the outer list grows).
-        self._prune_bounds = None
-        self._prune_scratch = None
-        self.n_prune_checks = 0  # cluster pairs the prunes checked atom by atom
         self._slots_pending = False  # a cluster build: the slot list on first use
         # (n_builds, n_prunes, n_followed, frame) of the last ``frame`` handed out: the
         # same SlotFrame until one of the counters moves (a frozen dataclass costs about a
@@ -906,7 +897,7 @@ class NeighborList:
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
         self._repeats = False
-        self._prune_buffers = self._prune_relative = self._prune_bounds = None
+        self._prune_buffers = self._prune_relative = None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
@@ -1103,22 +1094,7 @@ class NeighborList:
         starts, partners, offsets, xi, xj = self._prune_buffers
         outer.relative_positions(positions, xi, xj)
         reach2 = self._prune_reach2()
-        # Only the pairs whose verdict may have changed are checked atom by atom: each
-        # cluster's drift since the search (summed over the prunes) against the margin
-        # each pair had at its last check (see prune_pairs_bounded).
-        if self._prune_bounds is None:
-            self._prune_bounds = (np.zeros(n, np.float64), np.zeros(size, np.float32))
-        drift, thresholds = self._prune_bounds
-        scratch = self._prune_scratch
-        if scratch is None or len(scratch[0]) < size:
-            scratch = self._prune_scratch = (
-                np.empty(_grown(size), np.uint8),
-                np.empty(_grown(size), np.int32),
-            )
-        cluster_drift(
-            positions, self._pruned_at, outer.atom, drift, chunk_count(n, _MIN_PASS_CLUSTERS)
-        )
-        kept, checked = prune_pairs_bounded(
+        kept = prune_pairs(
             outer.starts,
             outer.partners,
             outer.offsets,
@@ -1126,15 +1102,10 @@ class NeighborList:
             xi,
             xj,
             reach2,
-            drift,
-            thresholds,
-            scratch[0][:size],
-            scratch[1][:size],
             starts,
             partners,
             offsets,
         )
-        self.n_prune_checks += int(checked)
         chunks = len(outer.bounds) - 1
         self._clusters = ClusterFrame(
             outer.atom,
