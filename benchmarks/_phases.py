@@ -292,10 +292,10 @@ def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list
             )
         )
         try:  # the move of the later chunks' kept pairs, on the threads where apart
-            from md.neighbors._cluster_kernels import _move_pairs, _move_pairs_threaded
+            from md.neighbors._cluster_kernels import move_pairs, move_pairs_threaded
         except ImportError:  # (before: serial, in the prune's tail)
-            _move_pairs_threaded = None
-        if _move_pairs_threaded is not None and len(outer.bounds) == 3:
+            move_pairs_threaded = None
+        if move_pairs_threaded is not None and len(outer.bounds) == 3:
             prune_pairs(
                 outer.starts,
                 outer.partners,
@@ -318,7 +318,7 @@ def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list
                         (
                             "prune: move",
                             r,
-                            lambda a=a, b=b: _move_pairs(
+                            lambda a=a, b=b: move_pairs(
                                 kept_partners, kept_offsets, source, target, a, b
                             ),
                         )

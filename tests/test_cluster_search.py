@@ -16,13 +16,13 @@ from numba import njit
 from md.neighbors import NeighborList
 from md.neighbors._cluster_kernels import (
     _column_chunks,
-    _keep_window,
-    _keep_window_both,
     _near_pair,
     balanced_chunks,
     cluster_grid,
     cluster_positions,
     column_counts,
+    keep_window,
+    keep_window_both,
     prune_pairs,
     search_pairs,
 )
@@ -131,10 +131,10 @@ def _window_pairs(xi, xj, rows, spans, shifts, centres, reach2, inner2, both, ou
     q, oq = outer_only
     for w in range(rows.shape[0]):
         args = (shifts[w, 0], shifts[w, 1], shifts[w, 2], centres[0], centres[1], centres[2])
-        k, kept = _keep_window_both(
+        k, kept = keep_window_both(
             xi, xj, rows[w], spans[w, 0], spans[w, 1], *args, reach2, inner2, p, o, k, ip, io, kept
         )
-        k_outer = _keep_window(
+        k_outer = keep_window(
             xi, xj, rows[w], spans[w, 0], spans[w, 1], *args, reach2, q, oq, k_outer
         )
     return k, kept, k_outer
@@ -146,7 +146,7 @@ def _near(xi, xj, ci, cj, offset, reach2):
 
 
 def test_the_two_list_window_keeps_the_outer_windows_pairs_and_its_inner_subset(fcc_lattice, rng):
-    """``_keep_window_both`` (loop in IR): its outer list is ``_keep_window``'s; its inner
+    """``keep_window_both`` (loop in IR): its outer list is ``keep_window``'s; its inner
     list, the outer pairs ``_near_pair`` keeps at the inner reach, in order; its Python
     twin writes the same."""
     state = fcc_lattice(cells=5, perturbation=0.1)
@@ -187,7 +187,7 @@ def test_the_two_list_window_keeps_the_outer_windows_pairs_and_its_inner_subset(
     twin = tuple(np.zeros_like(a) for a in both)
     k_twin = kept_twin = 0
     for w in range(30):
-        k_twin, kept_twin = _keep_window_both.python_twin(
+        k_twin, kept_twin = keep_window_both.python_twin(
             xi,
             xj,
             rows[w],

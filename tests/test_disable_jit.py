@@ -42,11 +42,11 @@ from md.neighbors._candidates import _near_bits
 from md.neighbors._cell_kernels import GATHER_BLOCK, _copy_block
 from md.neighbors._cluster_kernels import (
     _keep_near,
-    _keep_window,
     _near_pair,
     cluster_grid,
     cluster_positions,
     column_counts,
+    keep_window,
     search_pairs,
 )
 
@@ -81,7 +81,7 @@ def test_every_intrinsic_has_a_python_twin():
         "_copy_block",
         "_near_pair",
         "_keep_near",
-        "_keep_window",
+        "keep_window",
     } <= set(found)
 
 
@@ -209,7 +209,7 @@ def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
 def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, ends):
     k = 0
     for w in range(rows.shape[0]):
-        k = _keep_window(
+        k = keep_window(
             xi,
             xj,
             rows[w],
@@ -230,7 +230,7 @@ def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, en
 
 
 def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
-    """The search's window of candidates (:func:`md.neighbors._cluster_kernels._keep_window`, the
+    """The search's window of candidates (:func:`md.neighbors._cluster_kernels.keep_window`, the
     loop in IR): each candidate's float32 offset (centre difference less the shift, in
     double, then rounded), and the candidates kept as ``_near_pair`` decides them, in
     order, as its Python twin writes them; an empty window writes nothing."""
@@ -255,7 +255,7 @@ def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
             o = (shifts[w] - centres[:, j]).astype(np.float32)
             if _near_pair.python_twin(xi, xj, rows[w], j, *o, reach2):
                 kept.append((j, o))
-        k = _keep_window.python_twin(
+        k = keep_window.python_twin(
             xi,
             xj,
             rows[w],

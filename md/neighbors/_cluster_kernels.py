@@ -248,11 +248,11 @@ def search_pairs(
     (:func:`_near_pair`'s check, its offset in registers) as it is written, and the next
     one written after it only if it is kept (0.78 of the time of writing a row and then
     checking and compacting it, at radius 4.0 on the 32000-atom melt, one thread), a
-    window of candidates at a time in IR (:func:`_keep_window`: the i cluster loaded once
+    window of candidates at a time in IR (:func:`keep_window`: the i cluster loaded once
     per window, 0.93 of the search's time with numba's loop over them); with None for
     both, every candidate. With ``inner2`` (float32, at most ``reach2``) the kept pairs
     pruned to those closer than sqrt(``inner2``) too, from the same squared distances
-    (:func:`_keep_window_both`): the list :func:`prune_pairs` would make of it, pair for
+    (:func:`keep_window_both`): the list :func:`prune_pairs` would make of it, pair for
     pair, with no pass of its own (0.93 of the CPU time of the search and that prune on
     the 32000-atom melt at radius 4.0 and 2.8, one thread); then returned after the kept
     pairs, as (starts, partners, offsets) too. With ``with_reach``, last also per i
@@ -463,9 +463,9 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
         if count == 0 or target == source:
             continue
         if target + count <= source:
-            _move_pairs_threaded(part_partners, part_offsets, source, target, count, chunks)
+            move_pairs_threaded(part_partners, part_offsets, source, target, count, chunks)
         else:
-            _move_pairs(part_partners, part_offsets, source, target, 0, count)
+            move_pairs(part_partners, part_offsets, source, target, 0, count)
     total = starts[n_clusters]
     return starts, part_partners[:total], part_offsets[:total]
 
@@ -695,7 +695,7 @@ def _search_columns(
                         # each candidate written, and kept (the next one written after
                         # it) only where an atom pair is within reach: no branch, no
                         # second pass; the inner list from the same distances
-                        k, k_inner = _keep_window_both(
+                        k, k_inner = keep_window_both(
                             xi,
                             xj,
                             ci,
@@ -717,7 +717,7 @@ def _search_columns(
                             k_inner,
                         )
                     else:
-                        k = _keep_window(
+                        k = keep_window(
                             xi,
                             xj,
                             ci,
@@ -893,7 +893,7 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
     the CPU has AVX-512, else two i atoms by four j atoms per 8-lane vector), the offset
     in registers: for a pair that is not the cluster with itself (the first of each row,
     always kept). The search and the prune run the same check (``_any_near``) inside their
-    own loops (:func:`_keep_window`, :func:`_keep_near`); this one pair at a time is its
+    own loops (:func:`keep_window`, :func:`_keep_near`); this one pair at a time is its
     unit, which the tests hold against the atoms' own distances."""
     sig = types.boolean(xi, xj, ci, cj, ox, oy, oz, reach2)
 
@@ -965,14 +965,14 @@ def prune_pairs(
         source, target = starts[bounds[t]], kept_starts[bounds[t]]
         count = kept_starts[bounds[t + 1]] - target
         if target + count <= source:  # apart (the prune keeps about half): on the threads
-            _move_pairs_threaded(kept_partners, kept_offsets, source, target, count, chunks)
+            move_pairs_threaded(kept_partners, kept_offsets, source, target, count, chunks)
         else:
-            _move_pairs(kept_partners, kept_offsets, source, target, 0, count)
+            move_pairs(kept_partners, kept_offsets, source, target, 0, count)
     return kept_starts[n_clusters]
 
 
 @njit(cache=True, error_model="numpy")
-def _move_pairs(partners, offsets, source, target, first, end):
+def move_pairs(partners, offsets, source, target, first, end):
     """Pairs ``source + first`` to ``source + end`` moved down to ``target + first`` on
     (``target`` < ``source``: in order, so a move never overwrites a pair not yet moved)."""
     for k in range(first, end):
@@ -982,12 +982,12 @@ def _move_pairs(partners, offsets, source, target, first, end):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _move_pairs_threaded(partners, offsets, source, target, count, runs):
-    """:func:`_move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
+def move_pairs_threaded(partners, offsets, source, target, count, runs):
+    """:func:`move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
     ``runs`` runs on the threads (serial, the move of the second of two chunks' kept pairs
     took 0.10 of the prune's CPU time on the 32000-atom melt: 147 of 1457 us)."""
     for r in prange(runs):
-        _move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
+        move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -1041,7 +1041,7 @@ def _prune_rows(
 def _keep_window_twin(
     xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
 ):
-    """:func:`_keep_window` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    """:func:`keep_window` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     for j in range(lo, hi):
         o = (np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), np.float32(sz - all_z[j]))
         partners[k] = j
@@ -1052,7 +1052,7 @@ def _keep_window_twin(
 
 @python_twin(_keep_window_twin)
 @intrinsic
-def _keep_window(
+def keep_window(
     typingctx, xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
 ):
     """The search's candidates ``lo`` to ``hi`` (j clusters of one window) of i cluster
@@ -1064,7 +1064,7 @@ def _keep_window(
     be the positions, as far as LLVM knows)."""
     if partners.dtype != types.int32 or offsets.dtype != types.float32:
         raise TypeError(
-            f"_keep_window: int32 partners and float32 offsets, got {partners} and {offsets}"
+            f"keep_window: int32 partners and float32 offsets, got {partners} and {offsets}"
         )
     sig = types.int64(
         xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, partners, offsets, k
@@ -1130,7 +1130,7 @@ def _keep_window_both_twin(
     inner_offsets,
     m,
 ):
-    """:func:`_keep_window_both` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    """:func:`keep_window_both` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     for j in range(lo, hi):
         o = (np.float32(sx - all_x[j]), np.float32(sy - all_y[j]), np.float32(sz - all_z[j]))
         partners[k] = inner_partners[m] = j
@@ -1143,7 +1143,7 @@ def _keep_window_both_twin(
 
 @python_twin(_keep_window_both_twin)
 @intrinsic
-def _keep_window_both(
+def keep_window_both(
     typingctx,
     xi,
     xj,
@@ -1165,7 +1165,7 @@ def _keep_window_both(
     inner_offsets,
     m,
 ):
-    """:func:`_keep_window` writing two lists at once: each candidate also written to
+    """:func:`keep_window` writing two lists at once: each candidate also written to
     ``inner_partners``/``inner_offsets`` from ``m`` on, and kept there where an atom pair
     is closer than sqrt(``inner2``) (no farther than ``reach2``: the inner list is the
     outer one pruned, as :func:`prune_pairs` would prune it, from the same squared
@@ -1173,10 +1173,10 @@ def _keep_window_both(
     second pass over the outer list."""
     for a, b in ((partners, inner_partners), (offsets, inner_offsets)):
         if a != b:
-            raise TypeError(f"_keep_window_both: the inner list's arrays as the outer's, {a}")
+            raise TypeError(f"keep_window_both: the inner list's arrays as the outer's, {a}")
     if partners.dtype != types.int32 or offsets.dtype != types.float32:
         raise TypeError(
-            f"_keep_window_both: int32 partners and float32 offsets, got {partners} and {offsets}"
+            f"keep_window_both: int32 partners and float32 offsets, got {partners} and {offsets}"
         )
     arguments = (xi, xj, ci, lo, hi, sx, sy, sz, all_x, all_y, all_z, reach2, inner2)
     arguments += (partners, offsets, k, inner_partners, inner_offsets, m)
