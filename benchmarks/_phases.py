@@ -242,7 +242,7 @@ def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list
             )
         )
     if outer is not None:
-        from md.neighbors._cluster_kernels import _prune_rows, prune_pairs
+        from md.neighbors._cluster_prune import _prune_rows, prune_pairs
 
         size = outer.n_pairs
         kept_starts = np.empty(outer.n_clusters + 1, np.int64)
@@ -292,7 +292,7 @@ def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list
             )
         )
         try:  # the move of the later chunks' kept pairs, on the threads where apart
-            from md.neighbors._cluster_kernels import move_pairs, move_pairs_threaded
+            from md.neighbors._cluster_prune import move_pairs, move_pairs_threaded
         except ImportError:  # (before: serial, in the prune's tail)
             move_pairs_threaded = None
         if move_pairs_threaded is not None and len(outer.bounds) == 3:

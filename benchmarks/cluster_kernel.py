@@ -34,7 +34,7 @@ uses 16 lanes where the CPU numba compiles for has AVX-512 (``md._simd.ZMM``), e
 
 ``--windows`` prints, instead of timing, the per-chunk scratch of the cluster kernel on
 2, 4, 8, 16 and 64 chunks (threads), in lists' worth: each chunk's window of the clusters
-its rows reach (``md.neighbors._cluster_kernels.chunk_windows``), from the outer list's row reach
+its rows reach (``md.neighbors._cluster_search.chunk_windows``), from the outer list's row reach
 as the engine takes it and from the pruned list's own::
 
     python benchmarks/cluster_kernel.py --windows --cells 80
@@ -226,7 +226,7 @@ def compare_widths(potential, neighbors, state, widths, calls, blocks) -> None:
 
 def print_windows(neighbors) -> None:
     """The chunks' windows, in lists' worth of scratch, per chunk count."""
-    from md.neighbors._cluster_kernels import balanced_chunks, chunk_windows, row_reach
+    from md.neighbors._cluster_search import balanced_chunks, chunk_windows, row_reach
 
     clusters, outer = neighbors.clusters, neighbors.outer_clusters
     own = row_reach(clusters.starts, clusters.partners)

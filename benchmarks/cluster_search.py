@@ -35,7 +35,8 @@ from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
 from integrators import VelocityVerlet  # noqa: E402
-from md.neighbors._cluster_kernels import cluster_grid, column_counts, prune_pairs  # noqa: E402
+from md.neighbors._cluster_grid import cluster_grid, column_counts  # noqa: E402
+from md.neighbors._cluster_prune import prune_pairs  # noqa: E402
 from md.parallel import get_threads, set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 

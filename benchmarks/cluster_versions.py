@@ -1,17 +1,25 @@
-"""Two versions of the cluster kernels' module, interleaved in one process: grid + search.
+"""Two versions of the cluster kernels, interleaved in one process: grid + search.
 
-Loads two copies of ``md/neighbors/_cluster_kernels.py`` (each a file, such as one
-taken from git) as two modules and times, taking turns in alternating order, each
-one's mixed build of LAMMPS's LJ melt (as ``cluster_search.py``: the 32000-atom melt
-after ``--warm`` steps): the cluster grid, the relative positions and the cluster-pair
-search at the outer radius (4.0) with its own prune (2.8), and the grid alone. Prints
-whether both give the same lists, the medians of the calling thread's CPU time and of
-the wall time, and the medians of the per-repeat ratios, b / a. A change to one
-kernel measured against the code before it, in one process, so that load from other
+Loads the cluster kernels of two checkouts (each a tree with ``md/neighbors/``, such as
+one exported from git) as two sets of modules and times, taking turns in alternating
+order, each one's mixed build of LAMMPS's LJ melt (as ``cluster_search.py``: the
+32000-atom melt after ``--warm`` steps): the cluster grid, the relative positions and the
+cluster-pair search at the outer radius (4.0) with its own prune (2.8), and the grid
+alone. Prints whether both give the same lists, the medians of the calling thread's CPU
+time and of the wall time, and the medians of the per-repeat ratios, b / a. A change to
+one kernel measured against the code before it, in one process, so that load from other
 processes hits both alike::
 
-    git show HEAD~3:md/neighbors/_cluster_kernels.py > /tmp/before.py
-    python benchmarks/cluster_versions.py /tmp/before.py md/neighbors/_cluster_kernels.py
+    mkdir /tmp/before && git archive HEAD~3 md | tar -x -C /tmp/before
+    python benchmarks/cluster_versions.py /tmp/before .
+
+A tree's modules are ``md/neighbors/_cluster_grid.py``, ``_cluster_prune.py`` and
+``_cluster_search.py`` (issue 70's split), or for a tree from before that split the one
+``md/neighbors/_cluster_kernels.py``. Each tree's are imported under names of their own
+(``_cluster_grid_a``, ...), in import order, each one's imports of its siblings
+(``from md.neighbors._cluster_grid import ...``) given the same tree's copy; everything
+else they import (``md._simd``) is this checkout's. Their kernels are cached in the
+package's kernel cache folder (``md._kernel_cache``), apart from the package's own.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ import importlib.util
 import statistics
 import sys
 import time
+import types
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
@@ -30,18 +39,44 @@ from _machine import machine_line  # noqa: E402
 from cluster_search import melt  # noqa: E402
 
 import md  # noqa: E402
+from md._kernel_cache import kernel_cache  # noqa: E402
 from md.parallel import get_threads, set_threads  # noqa: E402
 
 OUTER, INNER = 4.0, 2.8
 
 
-def load(path: str, name: str):
-    """The module in ``path``, imported as ``name`` (its kernels cached beside it)."""
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+#: The cluster kernels' modules of ``md/neighbors/`` in import order: since issue 70's
+#: split, then before it.
+LAYOUTS = (("_cluster_grid", "_cluster_prune", "_cluster_search"), ("_cluster_kernels",))
+
+
+def load(tree: str, tag: str) -> types.SimpleNamespace:
+    """The cluster kernels of the checkout ``tree`` (its modules imported as
+    ``<module>_<tag>``), their names together in one namespace."""
+    folder = Path(tree) / "md" / "neighbors"
+    names = next((n for n in LAYOUTS if all((folder / f"{m}.py").is_file() for m in n)), None)
+    if names is None:
+        raise SystemExit(f"{tree}: no cluster kernels in {folder} (neither of {LAYOUTS})")
+    kernels = types.SimpleNamespace()
+    package = {}  # the package's own modules of these names, put back afterwards
+    try:
+        for name in names:
+            spec = importlib.util.spec_from_file_location(f"{name}_{tag}", folder / f"{name}.py")
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[spec.name] = module
+            with kernel_cache():
+                spec.loader.exec_module(module)
+            # the next modules' "from md.neighbors.<name> import ..." take this tree's copy
+            package.setdefault(f"md.neighbors.{name}", sys.modules.get(f"md.neighbors.{name}"))
+            sys.modules[f"md.neighbors.{name}"] = module
+            vars(kernels).update(vars(module))
+    finally:
+        for full, module in package.items():
+            if module is None:
+                sys.modules.pop(full, None)
+            else:
+                sys.modules[full] = module
+    return kernels
 
 
 def builder(kernels, positions, box, chunks):
@@ -66,9 +101,11 @@ def builder(kernels, positions, box, chunks):
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("a", help="the first module file (the code before)")
-    parser.add_argument("b", help="the second module file")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("a", help="the first checkout, a tree with md/neighbors/ (the code before)")
+    parser.add_argument("b", help="the second checkout (such as this one: .)")
     parser.add_argument("--cells", type=int, default=20, help="fcc cells per edge (20)")
     parser.add_argument("--repeats", type=int, default=15, help="turns (15)")
     parser.add_argument("--threads", default="1", help="thread counts (1)")
@@ -77,7 +114,7 @@ def main() -> int:
     md.keep_freed_memory()
     print(machine_line())
     state = melt(args.cells, "double", args.warm).state
-    versions = {"a": load(args.a, "_cluster_kernels_a"), "b": load(args.b, "_cluster_kernels_b")}
+    versions = {"a": load(args.a, "a"), "b": load(args.b, "b")}
     before = get_threads()
     print(
         f"{state.n_atoms} atoms, {args.repeats} repeats; ms (medians) and b / a (median of ratios)"

@@ -3,7 +3,7 @@
 :func:`cluster_row` makes, for one term's ``_pair(r2, k, table, mode, data)``
 (the frame's pair function: the term with its cutoff mode, parameters from
 column k of the table), a numba intrinsic that computes one i cluster against
-its row of j clusters in the cluster-pair list (:mod:`md.neighbors._cluster_kernels`
+its row of j clusters in the cluster-pair list (:mod:`md.neighbors._cluster_grid`
 describes the layout). The idea is GROMACS's 2xMM kernels: two i atoms by four
 j atoms fill one 8-lane float32 vector, two vectors cover a cluster pair, the
 i forces and the energy stay in registers over the whole row, and a j

@@ -8,7 +8,7 @@ from numba import njit, prange
 from md._simd import gather_rows4, gather_shifted_rows4, scatter_sub_rows4
 from md.parallel import chunk_count
 
-#: Atoms per cluster of the cluster-pair list (md.neighbors._cluster_kernels.CLUSTER).
+#: Atoms per cluster of the cluster-pair list (md.neighbors._cluster_grid.CLUSTER).
 CLUSTER = 4
 
 
@@ -225,7 +225,7 @@ def cluster_sum_runs(windows, n_clusters, runs):
 @njit(cache=True, error_model="numpy")
 def _cluster_atom_forces(buffers, atom, windows, forces):
     """Sum the chunks' cluster-ordered forces, in chunk order, into ``forces`` (N, 3) in
-    atom order. ``windows`` (chunks, 3; ``md.neighbors._cluster_kernels.chunk_windows``): chunk c
+    atom order. ``windows`` (chunks, 3; ``md.neighbors._cluster_search.chunk_windows``): chunk c
     wrote clusters ``windows[c, 0]`` (its first i cluster: a row's partners are its i
     cluster and clusters after it) to ``windows[c, 1]``, 12 values each, into
     ``buffers`` from 12 * ``windows[c, 2]`` on; nothing of a chunk outside its window

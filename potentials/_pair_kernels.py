@@ -589,7 +589,7 @@ def cluster_forces(
     ``clusters`` is (starts, partners, offsets, bounds, windows): each i cluster's
     row of partners and their offsets (float32, 3 per pair, flat), the i-cluster range
     of each chunk, and each chunk's window (first, end, place;
-    ``md.neighbors._cluster_kernels.chunk_windows``): the clusters its rows reach, and where
+    ``md.neighbors._cluster_search.chunk_windows``): the clusters its rows reach, and where
     their part of the scratch starts. ``xi``/``xj`` the clusters' relative positions
     in the i and j roles (float32, 12 per cluster), ``slot_types`` each slot's type.
     Chunk c adds its window's forces into ``buffers`` (float64, 12 per cluster from

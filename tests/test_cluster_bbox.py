@@ -16,13 +16,9 @@ import numpy as np
 import pytest
 
 from md.neighbors import NeighborList
-from md.neighbors._cluster_kernels import (
-    CLUSTER,
-    cluster_grid,
-    cluster_positions,
-    column_counts,
-    search_pairs,
-)
+from md.neighbors._cluster_grid import CLUSTER, cluster_grid, column_counts
+from md.neighbors._cluster_prune import cluster_positions
+from md.neighbors._cluster_search import search_pairs
 from md.state import State
 
 OUTER, INNER = 4.0, 2.8

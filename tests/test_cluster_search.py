@@ -14,18 +14,15 @@ import pytest
 from numba import njit
 
 from md.neighbors import NeighborList
-from md.neighbors._cluster_kernels import (
-    _column_chunks,
+from md.neighbors._cluster_grid import cluster_grid, column_counts
+from md.neighbors._cluster_prune import (
     _near_pair,
-    balanced_chunks,
-    cluster_grid,
     cluster_positions,
-    column_counts,
     keep_window,
     keep_window_both,
     prune_pairs,
-    search_pairs,
 )
+from md.neighbors._cluster_search import _column_chunks, balanced_chunks, search_pairs
 from md.parallel import get_threads, set_threads
 
 OUTER, INNER = 4.0, 2.8

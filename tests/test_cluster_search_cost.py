@@ -20,15 +20,9 @@ import pytest
 
 import md.neighbors.lists as lists
 from md.neighbors import NeighborList
-from md.neighbors._cluster_kernels import (
-    _column_extents,
-    _joined,
-    _search_columns,
-    cluster_grid,
-    cluster_positions,
-    column_counts,
-    search_pairs,
-)
+from md.neighbors._cluster_grid import cluster_grid, column_counts
+from md.neighbors._cluster_prune import cluster_positions
+from md.neighbors._cluster_search import _column_extents, _joined, _search_columns, search_pairs
 from md.parallel import get_threads, set_threads
 
 OUTER, INNER = 4.0, 2.8

@@ -19,17 +19,9 @@ import md
 from integrators import VelocityVerlet
 from md.forcefield import ForceField
 from md.neighbors import ClusterFrame, NeighborList
-from md.neighbors._cluster_kernels import (
-    CLUSTER,
-    FILLER,
-    balanced_chunks,
-    chunk_windows,
-    cluster_grid,
-    cluster_positions,
-    column_counts,
-    row_reach,
-    search_pairs,
-)
+from md.neighbors._cluster_grid import CLUSTER, FILLER, cluster_grid, column_counts
+from md.neighbors._cluster_prune import cluster_positions
+from md.neighbors._cluster_search import balanced_chunks, chunk_windows, row_reach, search_pairs
 from md.parallel import get_threads, set_threads
 from potentials import LennardJones, Morse, PairPotential, pair_term
 
@@ -693,7 +685,7 @@ def test_the_threaded_slot_passes_give_the_serial_bits(fcc_lattice, rng):
     """The per-step passes around the kernel, split into runs on the threads (used from
     16000 slots a thread): the float32 relative positions and the chunks' sum into atom
     order equal the serial passes bit for bit, fillers included."""
-    from md.neighbors._cluster_kernels import cluster_positions_threaded
+    from md.neighbors._cluster_prune import cluster_positions_threaded
     from potentials._kernels import (
         _cluster_atom_forces,
         _cluster_atom_forces_threaded,

@@ -40,15 +40,9 @@ from md._simd import (
 from md.neighbors import _candidates as candidate_kernels
 from md.neighbors._candidates import _near_bits
 from md.neighbors._cell_kernels import GATHER_BLOCK, _copy_block
-from md.neighbors._cluster_kernels import (
-    _keep_near,
-    _near_pair,
-    cluster_grid,
-    cluster_positions,
-    column_counts,
-    keep_window,
-    search_pairs,
-)
+from md.neighbors._cluster_grid import cluster_grid, column_counts
+from md.neighbors._cluster_prune import _keep_near, _near_pair, cluster_positions, keep_window
+from md.neighbors._cluster_search import search_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -159,7 +153,7 @@ def _keep_rows(xi, xj, starts, partners, offsets, reach2, kept_partners, kept_of
 
 
 def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
-    """The prune's row copy (:func:`md.neighbors._cluster_kernels._keep_near`, loop in IR):
+    """The prune's row copy (:func:`md.neighbors._cluster_prune._keep_near`, loop in IR):
     the pairs kept and their order as its Python twin's and as ``_near_pair`` decides
     them pair by pair (the cluster itself always first), rows compacted one after
     another, into other arrays and in place; empty rows keep nothing."""
@@ -230,7 +224,7 @@ def _windows(xi, xj, rows, spans, shifts, centres, reach2, partners, offsets, en
 
 
 def test_the_search_window_equals_its_twin_and_the_pair_check(fcc_lattice, rng):
-    """The search's window of candidates (:func:`md.neighbors._cluster_kernels.keep_window`, the
+    """The search's window of candidates (:func:`md.neighbors._cluster_prune.keep_window`, the
     loop in IR): each candidate's float32 offset (centre difference less the shift, in
     double, then rounded), and the candidates kept as ``_near_pair`` decides them, in
     order, as its Python twin writes them; an empty window writes nothing."""

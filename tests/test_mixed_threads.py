@@ -127,7 +127,8 @@ def test_a_prune_in_two_chunks_moves_the_second_on_the_threads_to_the_same_list(
     """The prune of the melt's outer list in two chunks (the second chunk's kept pairs
     moved down to their place on the threads, where that place and theirs do not overlap:
     the prune keeps about half) gives the one-chunk prune's list bit for bit."""
-    from md.neighbors._cluster_kernels import balanced_chunks, prune_pairs
+    from md.neighbors._cluster_prune import prune_pairs
+    from md.neighbors._cluster_search import balanced_chunks
 
     state = _melt(fcc_lattice)
     threads(2)

@@ -7,7 +7,8 @@ positions); :class:`SlotFrame` and :class:`ClusterFrame` are what it hands the p
 kernels. The kernels are the package's private modules (``_cell_kernels`` and
 ``_candidates``: the search; ``_build_kernels``: the build around it;
 ``_small_box_kernels``: the build of a box too narrow for the cells;
-``_cluster_kernels``: the cluster-pair list; ``_exclusion_kernels``: the pairs of one
+``_cluster_grid``, ``_cluster_search``, ``_cluster_prune``: the cluster-pair list's grid,
+search and prune; ``_exclusion_kernels``: the pairs of one
 group left out, :meth:`NeighborList.exclude_groups`; ``_owned_kernels``: the list of a
 rank of a decomposed run, :meth:`NeighborList.keep_owned`).
 """
@@ -43,17 +44,9 @@ from md.neighbors._build_kernels import (
     _shift_table,
 )
 from md.neighbors._cell_kernels import MAX_SLOTS, _brute_force_pairs
-from md.neighbors._cluster_kernels import (
-    balanced_chunks,
-    chunk_windows,
-    cluster_grid,
-    cluster_positions,
-    cluster_positions_threaded,
-    column_counts,
-    prune_pairs,
-    row_reach,
-    search_pairs,
-)
+from md.neighbors._cluster_grid import cluster_grid, column_counts
+from md.neighbors._cluster_prune import cluster_positions, cluster_positions_threaded, prune_pairs
+from md.neighbors._cluster_search import balanced_chunks, chunk_windows, row_reach, search_pairs
 from md.neighbors._exclusion_kernels import _drop_grouped_pairs
 from md.neighbors._owned_kernels import _owned_brute_force_pairs, _owned_cell_list
 from md.neighbors._small_box_kernels import _drop_repeats, _small_box_list
@@ -134,7 +127,8 @@ class ClusterFrame:
     """The neighbour list in GROMACS's cluster-pair layout, as the cluster kernels read it.
 
     Built by :class:`NeighborList` with ``clusters=True`` (see
-    :mod:`md.neighbors._cluster_kernels` for the grid and the search). Slot s holds atom
+    :mod:`md.neighbors._cluster_grid` and ``_cluster_search`` for the grid and the
+    search). Slot s holds atom
     ``atom[s]`` (-1: a filler), in cluster s // 4; its position relative to its
     cluster is ``positions[atom[s]] - origin[s]`` (:meth:`relative_positions`). I
     cluster c's partners are ``partners[starts[c]:starts[c + 1]]``, the first of
@@ -143,12 +137,12 @@ class ClusterFrame:
     ``bounds[t]`` to ``bounds[t + 1]``, with about equal pair counts; its rows reach
     clusters ``windows[t, 0]`` (= ``bounds[t]``) to at most ``windows[t, 1]``, and its
     part of the kernels' per-chunk scratch starts at cluster ``windows[t, 2]`` of it
-    (:func:`md.neighbors._cluster_kernels.chunk_windows`; ``window_clusters`` in all). A pruned
+    (:func:`md.neighbors._cluster_search.chunk_windows`; ``window_clusters`` in all). A pruned
     list takes ``reach`` (per row, one past its last partner) from its outer list: a
     bound that costs no pass over the pairs at each prune.
 
     The list holds the cluster pairs that had an atom pair within the list radius
-    at the build: the search's candidates (see :func:`md.neighbors._cluster_kernels.search_pairs`)
+    at the build: the search's candidates (see :func:`md.neighbors._cluster_search.search_pairs`)
     checked atom by atom in 8-lane vectors (GROMACS's pruning), about half of them on the LJ melt.
     """
 
@@ -166,7 +160,7 @@ class ClusterFrame:
     def reach(self) -> NDArray[np.int64]:
         """Per i cluster, one past the last cluster its row reaches, or a bound on it
         (the search's, from its windows; else found on first use:
-        :func:`md.neighbors._cluster_kernels.row_reach`)."""
+        :func:`md.neighbors._cluster_search.row_reach`)."""
         if self._reach is None:
             self._reach = row_reach(self.starts, self.partners)
         return self._reach
@@ -1004,7 +998,7 @@ class NeighborList:
         """The radius of a cluster search in ``box``: the outer list's where the list is
         exact and the box wider than twice it (pruning on), else the list radius. Not the
         outer one either where it needs more than twice the columns the density asks for
-        (:func:`md.neighbors._cluster_kernels.column_counts`: a box just over twice the radius wide,
+        (:func:`md.neighbors._cluster_grid.column_counts`: a box just over twice the radius wide,
         such as 500 atoms of the LJ melt at 4.0 sigma, needed 23 x 23 columns for 125
         clusters, and its search took 4 ms against 0.2 at the list radius)."""
         outer = self.cutoff + self.outer_skin

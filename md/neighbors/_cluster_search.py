@@ -1,0 +1,604 @@
+"""The search of the cluster-pair list, and the chunks of the list it makes.
+
+A cluster pair is listed when one of its atom pairs lies within the list radius
+(:func:`search_pairs`: per i cluster of the grid of :mod:`md.neighbors._cluster_grid`,
+the neighbouring columns whose xy bounding box comes within reach of the column's and
+the cluster's own, a window of j clusters in z in each, then each candidate checked
+atom by atom with :mod:`md.neighbors._cluster_prune`'s check, whose loop over a window
+is LLVM IR); the pair kernels evaluate all 4 x 4 atom pairs of each listed cluster pair,
+in SIMD lanes. The list's chunks for the threads: :func:`balanced_chunks`,
+:func:`row_reach`, :func:`chunk_windows`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from md.neighbors._cluster_prune import (
+    keep_window,
+    keep_window_both,
+    move_pairs,
+    move_pairs_threaded,
+)
+
+
+def search_pairs(
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    radius,
+    chunks,
+    per_cluster,
+    xi,
+    xj,
+    reach2,
+    inner2=None,
+    with_reach=False,
+):
+    """The cluster pairs of a list of radius ``radius``.
+
+    The candidates, found with bounding boxes as GROMACS's pair search finds them: for
+    each i cluster, the clusters j >= i of the neighbouring columns (images included)
+    whose xy box (its clusters' boxes together) comes within ``radius`` of the i
+    column's, then of the i cluster's own box in xy, and whose clusters' boxes overlap
+    the i cluster's, widened by ``radius``, in z (a full box-to-box test per candidate on
+    top of that cost more time than it saved: 1.35 of the search's time). Each pair once
+    (a cluster with an image of itself at one of the two opposite shifts; the box must be
+    wider than twice the cutoff, so that an atom pair lies within it at one image at
+    most), each row starting with the cluster itself at zero shift, with its offset,
+    centre_i - centre_j - image shift, in float32. Returns (starts, partners int32,
+    offsets (pairs, 3) float32) grouped by i cluster, or None where ``per_cluster`` pairs
+    of room per cluster did not suffice (search again with more). With the relative
+    positions ``xi``/``xj`` (float32, see :func:`cluster_positions`) only the pairs with
+    an atom pair closer than sqrt(``reach2``) are kept: each candidate is checked
+    (:func:`_near_pair`'s check, its offset in registers) as it is written, and the next
+    one written after it only if it is kept (0.78 of the time of writing a row and then
+    checking and compacting it, at radius 4.0 on the 32000-atom melt, one thread), a
+    window of candidates at a time in IR (:func:`keep_window`: the i cluster loaded once
+    per window, 0.93 of the search's time with numba's loop over them); with None for
+    both, every candidate. With ``inner2`` (float32, at most ``reach2``) the kept pairs
+    pruned to those closer than sqrt(``inner2``) too, from the same squared distances
+    (:func:`keep_window_both`): the list :func:`prune_pairs` would make of it, pair for
+    pair, with no pass of its own (0.93 of the CPU time of the search and that prune on
+    the 32000-atom melt at radius 4.0 and 2.8, one thread); then returned after the kept
+    pairs, as (starts, partners, offsets) too. With ``with_reach``, last also per i
+    cluster a bound on one past its row's last partner (as :func:`row_reach`, from the
+    search's windows: no pass over the pairs), which holds for the pruned rows too.
+
+    The columns are searched in ``chunks`` runs of about equal work
+    (:func:`_column_chunks`) on the threads, each into its own part of one buffer, then
+    each part but the first moved down to follow the one before (:func:`_joined`); each i
+    cluster's row is written as its windows are found (:func:`_search_columns`).
+    """
+    found = _search_lists(
+        box,
+        ncx,
+        ncy,
+        first,
+        lower,
+        upper,
+        radius,
+        chunks,
+        per_cluster,
+        xi,
+        xj,
+        reach2,
+        np.float32(-1.0 if inner2 is None else inner2),
+    )
+    if found is None:
+        return None
+    lists = found[:-1] if inner2 is not None else found[:3]
+    return lists + found[-1:] if with_reach else lists
+
+
+@njit(cache=True, error_model="numpy")
+def _search_lists(
+    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2
+):
+    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0)."""
+    n_clusters = lower.shape[0]
+    column_bounds = _column_chunks(box, ncx, ncy, first, radius, chunks)
+    # chunk t writes its rows from place[t] of one buffer (room[t] pairs), then each chunk
+    # but the first is moved down to where its rows begin in the list (_joined)
+    place = np.zeros(chunks + 1, np.int64)
+    for t in range(chunks):
+        room = per_cluster * (first[column_bounds[t + 1]] - first[column_bounds[t]]) + 64
+        place[t + 1] = place[t] + room
+    part_partners = np.empty(place[chunks], np.int32)
+    part_offsets = np.empty((place[chunks], 3), np.float32)
+    counts = np.zeros(n_clusters, np.int64)
+    reach = np.empty(n_clusters, np.int64)
+    used = np.zeros(chunks, np.int64)
+    parts = (part_partners, part_offsets, counts, reach, used)
+    # the pruned rows: never longer than the kept ones (none written with inner2 < 0)
+    room_inner = place[chunks] if inner2 > 0.0 else 0
+    inner = (
+        np.empty(room_inner, np.int32),
+        np.empty((room_inner, 3), np.float32),
+        np.zeros(n_clusters, np.int64),
+        inner2,
+    )
+    _search_parts(
+        box,
+        ncx,
+        ncy,
+        first,
+        lower,
+        upper,
+        _column_extents(first, lower, upper),
+        radius,
+        column_bounds,
+        place,
+        parts,
+        xi,
+        xj,
+        reach2,
+        inner,
+    )
+    if used.min() < 0:
+        return None
+    listed = _joined(counts, first, column_bounds, used, place, part_partners, part_offsets)
+    inner_partners, inner_offsets, inner_counts, _ = inner
+    inner_used = np.zeros(chunks, np.int64)
+    for t in range(chunks):
+        for ci in range(first[column_bounds[t]], first[column_bounds[t + 1]]):
+            inner_used[t] += inner_counts[ci]
+    pruned = _joined(
+        inner_counts, first, column_bounds, inner_used, place, inner_partners, inner_offsets
+    )
+    return listed + pruned + (reach,)
+
+
+@njit(cache=True, error_model="numpy")
+def _column_chunks(box, ncx, ncy, first, radius, chunks):
+    """The columns' split into ``chunks`` runs (chunks + 1 bounds) of about equal work: a
+    column's, its clusters times those of the neighbouring columns it searches (each pair
+    of columns from the lower one's side, so a column at the low end in x also searches
+    the far side's, across the boundary, and one at the high end almost none: equal
+    cluster counts gave the first of two chunks 0.59 of the work on the 32000-atom melt)."""
+    n_columns = ncx * ncy
+    reach_x = int(np.ceil(radius / (box[0] / ncx)))
+    reach_y = int(np.ceil(radius / (box[1] / ncy)))
+    work = np.zeros(n_columns + 1)
+    for c in range(n_columns):
+        f0, f1 = first[c], first[c + 1]
+        searched = 0
+        for dx in range(-reach_x, reach_x + 1):
+            ux = (c // ncy + dx) % ncx
+            for dy in range(-reach_y, reach_y + 1):
+                col = ux * ncy + (c % ncy + dy) % ncy
+                if first[col + 1] > f0:  # as the search skips a column before c's
+                    searched += first[col + 1] - first[col]
+        work[c + 1] = work[c] + (f1 - f0) * searched
+    bounds = np.zeros(chunks + 1, np.int64)
+    c = 0
+    for t in range(1, chunks):
+        while c < n_columns and work[c] < t * work[n_columns] / chunks:
+            c += 1
+        bounds[t] = c
+    bounds[chunks] = n_columns
+    return bounds
+
+
+@njit(cache=True, error_model="numpy")
+def _search_parts(
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    extents,
+    radius,
+    column_bounds,
+    place,
+    parts,
+    xi,
+    xj,
+    reach2,
+    inner,
+):
+    """The search of :func:`search_pairs` into ``parts`` (the chunks' partners and
+    offsets, chunk t's from ``place[t]`` to ``place[t + 1]``, the rows' counts and reach,
+    the pairs each chunk used), on the threads for more than one chunk."""
+    part_partners, part_offsets, counts, reach, used = parts
+    if column_bounds.shape[0] == 2:
+        used[0] = _search_columns(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            extents,
+            radius,
+            0,
+            column_bounds[1],
+            counts,
+            reach,
+            part_partners,
+            part_offsets,
+            0,
+            place[1],
+            xi,
+            xj,
+            reach2,
+            inner,
+        )
+    else:
+        _search_chunks(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            extents,
+            radius,
+            column_bounds,
+            place,
+            counts,
+            reach,
+            part_partners,
+            part_offsets,
+            used,
+            xi,
+            xj,
+            reach2,
+            inner,
+        )
+
+
+@njit(cache=True, error_model="numpy")
+def _joined(counts, first, column_bounds, used, place, part_partners, part_offsets):
+    """(starts, partners, offsets) of the rows of ``counts`` pairs each, written per chunk
+    into ``part_partners``/``part_offsets`` (chunk t's ``used[t]`` pairs from
+    ``place[t]``): the first chunk's where they are, each later one moved down to follow
+    the one before (in order: a move never overwrites pairs not yet moved; on the threads
+    where the two places do not overlap). The lists are the buffers' first pairs, not a
+    fresh copy of every chunk's (with the whole buffers passed to each chunk, see
+    :func:`_search_columns`, two chunks' work on one thread went from 1.16 to 1.09 of
+    one chunk's search on the 32000-atom melt, CPU time, interleaved)."""
+    n_clusters = counts.shape[0]
+    chunks = used.shape[0]
+    starts = np.zeros(n_clusters + 1, np.int64)
+    for ci in range(n_clusters):
+        starts[ci + 1] = starts[ci] + counts[ci]
+    for t in range(1, chunks):
+        source, target, count = place[t], starts[first[column_bounds[t]]], used[t]
+        if count == 0 or target == source:
+            continue
+        if target + count <= source:
+            move_pairs_threaded(part_partners, part_offsets, source, target, count, chunks)
+        else:
+            move_pairs(part_partners, part_offsets, source, target, 0, count)
+    total = starts[n_clusters]
+    return starts, part_partners[:total], part_offsets[:total]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _search_chunks(
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    extents,
+    radius,
+    column_bounds,
+    place,
+    counts,
+    reach,
+    part_partners,
+    part_offsets,
+    used,
+    xi,
+    xj,
+    reach2,
+    inner,
+):
+    """:func:`_search_columns` for each chunk of columns, on the threads, chunk t into
+    places ``place[t]`` to ``place[t + 1]`` of the buffers."""
+    for t in prange(column_bounds.shape[0] - 1):
+        used[t] = _search_columns(
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            extents,
+            radius,
+            column_bounds[t],
+            column_bounds[t + 1],
+            counts,
+            reach,
+            part_partners,
+            part_offsets,
+            place[t],
+            place[t + 1],
+            xi,
+            xj,
+            reach2,
+            inner,
+        )
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _periodic_column(index, count, length):
+    """A column index one period out of range at most, brought into it, and the shift
+    (-length, 0 or length) that takes the column there."""
+    if index < 0:
+        return index + count, -length
+    if index >= count:
+        return index - count, length
+    return index, 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _column_extents(first, lower, upper):
+    """Each column's xy extent (columns, 4: x0, x1, y0, y1), its clusters' boxes together
+    (empty: +inf, -inf)."""
+    n_columns = first.shape[0] - 1
+    extents = np.empty((n_columns, 4))
+    for c in range(n_columns):
+        x0 = y0 = np.inf
+        x1 = y1 = -np.inf
+        for cl in range(first[c], first[c + 1]):
+            x0 = min(x0, lower[cl, 0])
+            x1 = max(x1, upper[cl, 0])
+            y0 = min(y0, lower[cl, 1])
+            y1 = max(y1, upper[cl, 1])
+        extents[c, 0], extents[c, 1], extents[c, 2], extents[c, 3] = x0, x1, y0, y1
+    return extents
+
+
+@njit(cache=True, error_model="numpy")
+def _search_columns(
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    extents,
+    radius,
+    c0,
+    c1,
+    counts,
+    reach,
+    partners,
+    offsets,
+    place0,
+    place1,
+    xi,
+    xj,
+    reach2,
+    inner,
+):
+    """The rows of the i clusters in columns ``c0`` to ``c1`` (see :func:`search_pairs`):
+    each row's length into ``counts[ci]`` and one past its last partner into
+    ``reach[ci]``, the rows one after another into ``partners`` and ``offsets`` from
+    place ``place0``, before ``place1``. Returns the pairs written, or minus the pairs needed
+    so far where the room ran out (the caller grows it and searches again). ``extents``:
+    the columns' xy boxes (:func:`_column_extents`). ``inner``: (partners, offsets,
+    counts, inner2), the pruned rows' buffers (written in the same places, where
+    ``inner2`` > 0) and their lengths. The whole buffers and a place, not a slice of them
+    for each chunk: numba types a slice as a non-contiguous array, so that one chunk's
+    search and several chunks' ran differently compiled loops.
+
+    Per column of i clusters, first the neighbouring columns (and their images in x and
+    y) whose xy box comes within ``radius`` of this column's; then per i cluster, each of
+    those whose xy box comes within ``radius`` of the cluster's own, at each image in z
+    the cluster reaches: the window of j clusters whose z bounds overlap the cluster's
+    widened by ``radius``. Along both columns the clusters' boxes rise in z, so a window
+    only moves up as i does: two cursors per neighbouring column and image, kept from one
+    i cluster to the next (no search; an i cluster out of a column's reach in xy leaves
+    them where they are, and the next one moves them on).
+    """
+    width_x, width_y = box[0] / ncx, box[1] / ncy
+    reach_x = int(np.ceil(radius / width_x))
+    reach_y = int(np.ceil(radius / width_y))
+    n_near = (2 * reach_x + 1) * (2 * reach_y + 1)
+    # the neighbouring columns of the i column in reach: index, shift, xy box (shifted)
+    # and per image in z (-1, 0, +1) the window's cursors
+    near_column = np.empty(n_near, np.int64)
+    near_box = np.empty((n_near, 6))  # x0, x1, y0, y1, sx, sy
+    begins = np.empty((n_near, 3), np.int64)
+    ends = np.empty((n_near, 3), np.int64)
+    all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # the clusters' centres (the partners')
+    all_y = 0.5 * (lower[:, 1] + upper[:, 1])
+    all_z = 0.5 * (lower[:, 2] + upper[:, 2])
+    bottom = lower[:, 2].copy()  # the clusters' z bounds, each contiguous for the cursors
+    top = upper[:, 2].copy()
+    r2max = radius * radius
+    capacity = place1
+    k = place0
+    k_inner = place0  # the pruned rows' end
+    pruned = inner[3] > 0.0
+    for c in range(c0, c1):
+        f0, f1 = first[c], first[c + 1]
+        if f1 == f0:
+            continue
+        cx, cy = c // ncy, c % ncy
+        n = 0
+        for dx in range(-reach_x, reach_x + 1):
+            ux, sx = _periodic_column(cx + dx, ncx, box[0])
+            for dy in range(-reach_y, reach_y + 1):
+                uy, sy = _periodic_column(cy + dy, ncy, box[1])
+                col = ux * ncy + uy
+                g0, g1 = first[col], first[col + 1]
+                if g1 <= f0 or g1 == g0:
+                    continue  # a column before c's (listed from its side) or an empty one
+                x0, x1 = extents[col, 0] + sx, extents[col, 1] + sx
+                y0, y1 = extents[col, 2] + sy, extents[col, 3] + sy
+                gx = max(x0 - extents[c, 1], extents[c, 0] - x1, 0.0)
+                gy = max(y0 - extents[c, 3], extents[c, 2] - y1, 0.0)
+                if gx * gx + gy * gy >= r2max:
+                    continue  # no cluster of c's comes within reach of this column
+                near_column[n] = col
+                near_box[n, 0], near_box[n, 1], near_box[n, 2] = x0, x1, y0
+                near_box[n, 3], near_box[n, 4], near_box[n, 5] = y1, sx, sy
+                for dz in range(3):
+                    begins[n, dz] = ends[n, dz] = g0
+                n += 1
+        for ci in range(f0, f1):
+            row_start = k
+            inner_start = k_inner
+            if k + 1 > capacity:
+                return -(k + 1 - place0)
+            ox, oy, oz = all_x[ci], all_y[ci], all_z[ci]
+            partners[k] = ci  # the cluster with itself first (the kernels rely on it)
+            offsets[k, 0] = offsets[k, 1] = offsets[k, 2] = 0.0
+            k += 1
+            if pruned:
+                inner[0][k_inner] = ci
+                inner[1][k_inner, 0] = inner[1][k_inner, 1] = inner[1][k_inner, 2] = 0.0
+                k_inner += 1
+            furthest = ci + 1
+            # the images below and above reach only the column's lowest (highest) clusters
+            dz_first = -1 if bottom[ci] < radius else 0
+            dz_last = 1 if top[ci] + radius >= box[2] else 0
+            for w in range(n):
+                gx = max(near_box[w, 0] - upper[ci, 0], lower[ci, 0] - near_box[w, 1], 0.0)
+                gy = max(near_box[w, 2] - upper[ci, 1], lower[ci, 1] - near_box[w, 3], 0.0)
+                if gx * gx + gy * gy >= r2max:
+                    continue  # out of reach in xy: the cursors catch up later
+                g1 = first[near_column[w] + 1]
+                sx, sy = near_box[w, 4], near_box[w, 5]
+                for dz in range(dz_first, dz_last + 1):
+                    sz = dz * box[2]
+                    # a cluster meets its own image at +shift and -shift: the pair once
+                    positive = sx > 0.0 or (sx == 0.0 and (sy > 0.0 or (sy == 0.0 and dz > 0)))
+                    zero = sx == 0.0 and sy == 0.0 and dz == 0
+                    low = bottom[ci] - radius - sz  # both rise with ci
+                    high = top[ci] + radius - sz
+                    begin = begins[w, dz + 1]
+                    while begin < g1 and top[begin] < low:
+                        begin += 1
+                    end = max(ends[w, dz + 1], begin)
+                    while end < g1 and bottom[end] <= high:
+                        end += 1
+                    begins[w, dz + 1], ends[w, dz + 1] = begin, end
+                    lo = max(begin, ci)
+                    # itself: first in its row; its image at -shift: listed at +shift
+                    lo += (lo == ci) & ((not positive) | zero)
+                    if end <= lo:
+                        continue
+                    if k + end - lo > capacity:
+                        return -(k + end - lo - place0)
+                    furthest = max(furthest, end)
+                    px, py, pz = ox - sx, oy - sy, oz - sz
+                    if xi is None:
+                        for j in range(end - lo):  # no dependence between j: vectorised
+                            partners[k + j] = lo + j
+                            offsets[k + j, 0] = px - all_x[lo + j]
+                            offsets[k + j, 1] = py - all_y[lo + j]
+                            offsets[k + j, 2] = pz - all_z[lo + j]
+                        k += end - lo
+                    elif pruned:
+                        # each candidate written, and kept (the next one written after
+                        # it) only where an atom pair is within reach: no branch, no
+                        # second pass; the inner list from the same distances
+                        k, k_inner = keep_window_both(
+                            xi,
+                            xj,
+                            ci,
+                            lo,
+                            end,
+                            px,
+                            py,
+                            pz,
+                            all_x,
+                            all_y,
+                            all_z,
+                            reach2,
+                            inner[3],
+                            partners,
+                            offsets,
+                            k,
+                            inner[0],
+                            inner[1],
+                            k_inner,
+                        )
+                    else:
+                        k = keep_window(
+                            xi,
+                            xj,
+                            ci,
+                            lo,
+                            end,
+                            px,
+                            py,
+                            pz,
+                            all_x,
+                            all_y,
+                            all_z,
+                            reach2,
+                            partners,
+                            offsets,
+                            k,
+                        )
+            counts[ci] = k - row_start
+            reach[ci] = furthest
+            if pruned:
+                inner[2][ci] = k_inner - inner_start
+    return k - place0
+
+
+@njit(cache=True, error_model="numpy")
+def balanced_chunks(starts, chunks):
+    """Cluster ranges of ``chunks`` chunks with about equal pair counts (chunks + 1)."""
+    n = starts.shape[0] - 1
+    bounds = np.zeros(chunks + 1, np.int64)
+    total = starts[n]
+    c = 1
+    for ci in range(n):
+        while c < chunks and starts[ci] >= c * total / chunks:
+            bounds[c] = ci
+            c += 1
+    while c < chunks:
+        bounds[c] = n
+        c += 1
+    bounds[chunks] = n
+    return bounds
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def row_reach(starts, partners):
+    """Per i cluster, one past the last cluster its row reaches (its largest partner + 1;
+    a row's partners are its cluster and later ones), on the threads."""
+    n = starts.shape[0] - 1
+    reach = np.empty(n, np.int64)
+    for ci in prange(n):
+        last = np.int32(ci)
+        for k in range(starts[ci], starts[ci + 1]):
+            last = max(last, partners[k])
+        reach[ci] = np.int64(last) + 1
+    return reach
+
+
+@njit(cache=True, error_model="numpy")
+def chunk_windows(reach, bounds):
+    """Each chunk's window of clusters (chunks, 3): its first i cluster, one past the
+    last cluster any of its rows reaches (``reach``: per row, as :func:`row_reach`, or
+    a bound on it), and where the window starts in scratch that holds all the chunks'
+    windows one after the other (in clusters). A chunk's forces and j lanes need room
+    for its window only: about the chunk's own clusters and the layer of columns its
+    rows reach past them (the first chunks' reach the far side of a periodic box), not
+    the whole list per thread."""
+    chunks = bounds.shape[0] - 1
+    windows = np.zeros((chunks, 3), np.int64)
+    place = 0
+    for c in range(chunks):
+        first, end = bounds[c], bounds[c + 1]
+        for ci in range(first, bounds[c + 1]):
+            end = max(end, reach[ci])
+        windows[c, 0], windows[c, 1], windows[c, 2] = first, end, place
+        place += end - first
+    return windows
