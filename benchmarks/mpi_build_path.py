@@ -63,7 +63,9 @@ def _reduced_variant(domain):
     def reduced_build(state, reach, margin=None):
         return build(state, reach)
 
-    def two_ways(first, second, other, tag):
+    def two_ways(joined, other, tag):
+        split = 1 + int(joined[0, 0])  # (the joined message's count row, then both swaps)
+        first, second = joined[1:split], joined[split:]
         return ranks.exchange_many([(first, other, other, tag), (second, other, other, tag + 1)])
 
     return {"build": reduced_build, "_both_ways": two_ways}

@@ -677,8 +677,7 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     calls = []
     for name in (
         "home_layout",
-        "near_faces",
-        "table_rows",
+        "sweep_send",
         "pack_sweep",
         "home_positions",
         "shift_rows",
@@ -699,8 +698,7 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     on_clock = {name: {inside for called, inside in calls if called == name} for name, _ in calls}
     assert on_clock == {
         "home_layout": {False},
-        "near_faces": {True},
-        "table_rows": {True},
+        "sweep_send": {True},
         "pack_sweep": {True},
         "home_positions": {False},
         "shift_rows": {False},
