@@ -82,10 +82,12 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
 
     Returns (imaged, images, strayed): the atoms with an image of their own
     (increasing), their images (int64 rows) and how far the farthest atom lies
-    outside the brick [length]."""
+    outside the brick [length]. Where ``rows`` has a fourth column the atoms' indices
+    go there (else into scratch of N int64 made here)."""
     strayed = 0.0
     count = 0
-    imaged = np.empty(positions.shape[0], dtype=np.int64)
+    kept = rows.shape[1] > 3
+    imaged = np.empty(0 if kept else positions.shape[0], dtype=np.int64)
     inverse = _inverse_lengths(box)
     for i in range(positions.shape[0]):
         sx, sy, sz = _cell_fractions(positions, i, inverse, tilt, pbc)
@@ -104,11 +106,24 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
             for a in range(3):
                 out[i, a] = positions[i, a] - (kx * cell[0, a] + ky * cell[1, a] + kz * cell[2, a])
             rows[count, 0], rows[count, 1], rows[count, 2] = int(kx), int(ky), int(kz)
-            imaged[count] = i
+            if kept:
+                rows[count, 3] = i
+            else:
+                imaged[count] = i
             count += 1
         else:
             out[i, 0], out[i, 1], out[i, 2] = positions[i, 0], positions[i, 1], positions[i, 2]
+    if kept:
+        return rows[:count, 3].copy(), rows[:count, :3].copy(), strayed
     return imaged[:count].copy(), rows[:count].copy(), strayed
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _doubled(values):
+    """A copy of ``values`` with twice the room."""
+    grown = np.empty(2 * values.shape[0], dtype=values.dtype)
+    grown[: values.shape[0]] = values
+    return grown
 
 
 @njit(cache=True, error_model="numpy")
@@ -120,8 +135,10 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
     takes both neighbours."""
     n = positions.shape[0]
     p = shape[axis]
-    up = np.empty(n, dtype=np.int64)
-    down = np.empty(n, dtype=np.int64)
+    # (room for an eighth of the atoms, doubled when full: a migration moves few, and
+    # scratch of n rows each was most of its memory traffic)
+    up = np.empty(n // 8 + 16, dtype=np.int64)
+    down = np.empty(n // 8 + 16, dtype=np.int64)
     n_up = 0
     n_down = 0
     lost = 0
@@ -146,9 +163,13 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
             continue
         delta = c - coordinate if c > coordinate else c - coordinate + p
         if delta == 1:
+            if n_up == up.shape[0]:
+                up = _doubled(up)
             up[n_up] = i
             n_up += 1
         elif delta == p - 1:
+            if n_down == down.shape[0]:
+                down = _doubled(down)
             down[n_down] = i
             n_down += 1
         else:
@@ -191,6 +212,13 @@ def refill_plan(leaving, n, m):
         sources[k] = tail
         tail += 1
     return sources, targets, arrivals
+
+
+@njit(cache=True)
+def same_start(a, b):
+    """Whether arrays ``a`` and ``b`` begin at the same address (numpy's ``ctypes.data``
+    makes an object a call: 1.6 us each, two per array a migration)."""
+    return a.ctypes.data == b.ctypes.data
 
 
 @njit(cache=True, error_model="numpy")
@@ -239,7 +267,12 @@ def unpack_arriving(
     messages ``lower`` then ``upper`` arrive, as :func:`refill_plan` places them, in every
     array (the state's, then each of ``carried``: 2-D, the same rows), which have room
     for them. Returns the rows held after it."""
-    leaving = np.sort(np.concatenate((ups, downs)))
+    if downs.shape[0] == 0:  # (two bricks along the axis: every leaver goes up)
+        leaving = ups
+    elif ups.shape[0] == 0:
+        leaving = downs
+    else:
+        leaving = np.sort(np.concatenate((ups, downs)))
     m = lower.shape[0] + upper.shape[0]
     sources, targets, arrivals = refill_plan(leaving, n, m)
     for k in range(sources.shape[0]):
@@ -271,37 +304,6 @@ def refill_rows(values, sources, targets, incoming, arrivals):
     for j in range(arrivals.shape[0]):
         for a in range(values.shape[1]):
             values[arrivals[j], a] = incoming[j, a]
-
-
-@njit(cache=True, error_model="numpy")
-def table_rows(positions, owned_fractions, ghost_fractions, ids, types, n_owned, send, out):
-    """The rows a ghost sweep sends, one per local atom ``send[k]``: its position (3), its
-    fractional coordinates (3: an owned atom's from ``owned_fractions``, a ghost's from
-    ``ghost_fractions``, both at the image the local system holds), id and type."""
-    for k in range(send.shape[0]):
-        i = send[k]
-        for a in range(3):
-            out[k, a] = positions[i, a]
-        if i < n_owned:
-            for a in range(3):
-                out[k, 3 + a] = owned_fractions[i, a]
-        else:
-            for a in range(3):
-                out[k, 3 + a] = ghost_fractions[i - n_owned, a]
-        out[k, 6] = ids[i]
-        out[k, 7] = types[i]
-
-
-@njit(cache=True, error_model="numpy")
-def append_rows(rows, start, n_owned, positions, ghost_fractions, ids, types):
-    """:func:`table_rows`' rows, received, as local atoms ``start`` onwards (ghosts)."""
-    for k in range(rows.shape[0]):
-        i = start + k
-        for a in range(3):
-            positions[i, a] = rows[k, a]
-            ghost_fractions[i - n_owned, a] = rows[k, 3 + a]
-        ids[i] = np.int64(rows[k, 6])
-        types[i] = np.int32(rows[k, 7])
 
 
 #: Columns of a swap's row in a build's swap table (the compiled halo's ``table``, see
@@ -375,7 +377,7 @@ def sweep_send(
     rows into ``rows``: row 0 holds the down list's length (column 0; the rest 0), then
     the down rows, then the up rows: position (3) shifted by ``moves[k]`` cell vectors
     along ``axis``, fractional position (3, the same shift along ``axis``), id and type
-    (the values of :func:`table_rows` with the shift added after). ``peers`` are (the
+    (the integers as floats, exact below 2^53). ``peers`` are (the
     rank below, the rank above, whether they are this rank); the down swap sends to the
     rank below and receives from the one above, the up swap the other way, tags ``2 s``
     and ``2 s + 1``. ``OFFSET``, ``COUNT`` and ``BACK`` are :func:`sweep_append`'s.
@@ -450,26 +452,6 @@ def sweep_append(down, up, count, n_owned, positions, ghost_fractions, ids, type
         up, count, n_owned, positions, ghost_fractions, ids, types, table, j + 1, back
     )
     return count
-
-
-@njit(cache=True, error_model="numpy")
-def near_faces(data, end, column, lower, upper):
-    """Rows before ``end`` of fractional coordinates ``data`` (owned atoms' or ghosts')
-    whose ``column`` lies below ``lower`` and at or above ``upper``: the atoms one sweep
-    sends down and up."""
-    below = np.empty(end, dtype=np.int64)
-    above = np.empty(end, dtype=np.int64)
-    n_below = 0
-    n_above = 0
-    for i in range(end):
-        f = data[i, column]
-        if f < lower:
-            below[n_below] = i
-            n_below += 1
-        if f >= upper:
-            above[n_above] = i
-            n_above += 1
-    return below[:n_below].copy(), above[:n_above].copy()
 
 
 @njit(cache=True, error_model="numpy")
@@ -704,7 +686,6 @@ def fold_gathered(gathered, n_summed, totals, worst):
 __all__ = [
     "add_rows",
     "add_sweep",
-    "append_rows",
     "anchored_items",
     "brick_of",
     "fold_gathered",
@@ -715,16 +696,15 @@ __all__ = [
     "leaving_along",
     "moved_since",
     "pack_leaving",
-    "near_faces",
     "nearest_copies",
     "pack_rows",
     "pack_sweep",
     "predicted_positions",
     "refill_plan",
     "refill_rows",
+    "same_start",
     "shift_rows",
     "sweep_append",
     "sweep_send",
-    "table_rows",
     "unpack_arriving",
 ]

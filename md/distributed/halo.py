@@ -229,6 +229,7 @@ class Domain:
         self.center = self.bounds.mean(axis=0)
         self.cuts = grid.cut_table()
         self.thinnest = grid.thinnest()
+        self._geometry_key: tuple | None = None  # (the build's cell geometry, see _geometry)
         #: (the rank below, the rank above) along each axis: each build's and migration's
         self.neighbors = tuple(
             (grid.neighbor(self.rank, axis, -1), grid.neighbor(self.rank, axis, 1))
@@ -292,9 +293,7 @@ class Domain:
             ghost shell would need atoms from beyond the face neighbours.
         """
         box, pbc = state.box, state.pbc
-        tilt = periodic_tilt(state.tilt, pbc)
-        cell = cell_matrix(box, tilt)
-        widths = perpendicular_widths(box, tilt)
+        tilt, cell, widths = self._geometry(state)[:3]
         # The local system is written where it will stay: the owned atoms first, at their
         # images nearest the brick (a copy; only the atoms with an image of their own are
         # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
@@ -315,14 +314,12 @@ class Domain:
             widths,
             home,
             positions[:n],
-            self._buffer(n, 3, "images", np.int64),
+            self._buffer(n, 4, "images", np.int64),  # (images, and the atoms' indices)
         )
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
-            return self._find_ghosts(
-                state, reach, strayed, positions, home, n, (tilt, cell, widths), margin
-            )
+            return self._find_ghosts(state, reach, strayed, positions, home, n, margin)
 
     def _find_ghosts(
         self,
@@ -332,17 +329,15 @@ class Domain:
         positions,
         home,
         n: int,
-        geometry,
         agreed: float | None,
     ) -> DecompositionError | None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
         atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
-        cell's ``geometry``: its periodic tilt, matrix and widths; the ``agreed`` margin
-        or None). Returns the lost atoms' error where it is the caller's to share."""
+        ``agreed`` margin or None). Returns the lost atoms' error where it is the caller's
+        to share."""
         box, pbc = state.box, state.pbc
-        tilt, cell, widths = geometry
-        brick = widths * self.thinnest
-        if agreed is not None and np.any(pbc & (brick < reach + 2.0 * agreed)):
+        tilt, cell, widths, local_pbc, local_tilt, thinnest = self._geometry(state)
+        if agreed is not None and thinnest < reach + 2.0 * agreed:
             agreed = None  # (bricks too thin for it, on every rank alike: the reduction)
         unshared = None
         if agreed is None:
@@ -356,9 +351,9 @@ class Domain:
             self.outgrown = strayed > agreed
             unshared, self.lost_atoms = lost_error(self.lost_atoms), 0
         shell = reach + margin
-        narrow = pbc & (brick < shell + margin)
-        if np.any(narrow):
-            axis = int(np.argmax(narrow))
+        if thinnest < shell + margin:
+            brick = widths * self.thinnest
+            axis = int(np.argmax(pbc & (brick < shell + margin)))
             raise DecompositionError(
                 f"owned atoms strayed up to {margin:.3g} from their bricks inside a step, so "
                 f"the ghost shell would have to reach {shell + margin:.4g} across "
@@ -378,7 +373,6 @@ class Domain:
         rows = self._held("sweep rows", 8)
         count, start, s, remote = n, 0, 0, False
         swaps: list[_Swap] = []
-        local_pbc = local_periodic_axes(self.shape, pbc, tilt)
         for axis in range(3):
             if not pbc[axis] or local_pbc[axis]:
                 continue
@@ -449,8 +443,31 @@ class Domain:
         )
         # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
         # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
-        self.local_state.tilt = periodic_tilt(tilt, local_pbc)
+        self.local_state.tilt = local_tilt.copy()  # (update changes it in place)
         return unshared
+
+    def _geometry(self, state: State) -> tuple:
+        """``state``'s cell as a build uses it: its periodic tilt, matrix (rows a, b, c) and
+        perpendicular widths, the local system's periodic axes and tilt, and the thinnest
+        brick across a periodic axis [length]; kept while the cell, its periodic axes and
+        the grid stay as they were (a build's small arrays and checks: ~15 us)."""
+        key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+        if key != self._geometry_key:
+            box, pbc = state.box, state.pbc
+            tilt = periodic_tilt(state.tilt, pbc)
+            widths = perpendicular_widths(box, tilt)
+            local_pbc = local_periodic_axes(self.shape, pbc, tilt)
+            bricks = (widths * self.thinnest)[pbc]
+            self._geometry_values = (
+                tilt,
+                cell_matrix(box, tilt),
+                widths,
+                local_pbc,
+                periodic_tilt(tilt, local_pbc),
+                float(bricks.min()) if len(bricks) else np.inf,
+            )
+            self._geometry_key = key
+        return self._geometry_values
 
     def _both_ways(self, joined: NDArray, other: int, tag: int) -> tuple:
         """Send a sweep's two swaps' rows to ``other``, the neighbour on both sides, as one

@@ -22,6 +22,7 @@ from md.distributed._domain_kernels import (
     pack_leaving,
     refill_plan,
     refill_rows,
+    same_start,
     unpack_arriving,
 )
 from md.errors import DecompositionError
@@ -83,7 +84,7 @@ class RowStore:
             and store.shape[1:] == values.shape[1:]
             and store.shape[0] >= max(n, size)
         )
-        if fits and n and values.ctypes.data == store.ctypes.data and values.base is store:
+        if fits and n and values.base is store and same_start(values, store):
             return store  # values are its first rows: changed in place
         if not fits:
             rows = max(n, size)
@@ -138,8 +139,7 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     # The pack and the sweep's refill are a compiled call each where the arrays are the
     # state's usual ones and the carried ones C-contiguous float64 (else numpy does the
     # same in Python: the same message layout and rows).
-    compiled = _compiled_layout(arrays)
-    width = sum(math.prod(a.shape[1:]) for a in arrays)
+    compiled, width = _compiled_layout(arrays)
     n = state.n_atoms
     lost = 0
     tilt = periodic_tilt(state.tilt, state.pbc)
@@ -237,7 +237,7 @@ def _room_of(values: NDArray, size: int) -> NDArray | None:
         or not values.flags.c_contiguous
         or root.dtype != values.dtype
         or root.shape[1:] != values.shape[1:]
-        or root.ctypes.data != values.ctypes.data
+        or not same_start(root, values)
         or root.shape[0] < size
     ):
         return None
@@ -248,22 +248,28 @@ _NO_COLUMNS = np.zeros((0, 0))  # (ends the carried arrays' tuple: never indexed
 _STATE_TYPES = ((np.float64, 2), (np.float64, 2), (np.float64, 1), (np.int32, 1), (np.int64, 1))
 
 
-def _compiled_layout(arrays) -> bool:
+def _compiled_layout(arrays) -> tuple[bool, int]:
     """Whether :func:`pack_leaving` and :func:`unpack_arriving` take ``arrays`` (the state's
-    positions, velocities, masses, types and ids, then the carried ones): the state's
-    of their usual types, the carried ones C-contiguous float64."""
-    state = all(
-        a.dtype == dtype and a.ndim == ndim and (ndim == 1 or a.shape[1] == 3)
-        for a, (dtype, ndim) in zip(arrays[:5], _STATE_TYPES, strict=True)
-    )
-    state = state and all(a.flags.c_contiguous for a in arrays[:5])
-    return state and all(a.dtype == np.float64 and a.flags.c_contiguous for a in arrays[5:])
+    positions, velocities, masses, types and ids, then the carried ones: the state's of
+    their usual types, the carried ones C-contiguous float64, all C-contiguous), and the
+    message's width (floats a row). Plain loops: this runs at every migration."""
+    compiled, width = True, 0
+    for k, a in enumerate(arrays):
+        row = math.prod(a.shape[1:])
+        width += row
+        if k < 5:
+            dtype, ndim = _STATE_TYPES[k]
+            usual = a.dtype == dtype and a.ndim == ndim and (ndim == 1 or row == 3)
+        else:
+            usual = a.dtype == np.float64
+        compiled = compiled and usual and a.flags.c_contiguous
+    return compiled, width
 
 
 def _flat(arrays) -> tuple:
     """The carried arrays (after the state's five) as 2-D views, one row an atom, and the
     empty one that ends the tuple (so that it is never empty)."""
-    return (*(a.reshape(len(a), math.prod(a.shape[1:])) for a in arrays[5:]), _NO_COLUMNS)
+    return tuple([a.reshape(len(a), math.prod(a.shape[1:])) for a in arrays[5:]] + [_NO_COLUMNS])
 
 
 def _packed(arrays, rows: NDArray[np.int64], flat=None, store=None, key=None, width=0):
