@@ -209,14 +209,15 @@ def test_the_compiled_halo_plan_is_the_ghost_search_tables_kept_between_builds()
     assert peak < 0.05 * ghost_rows, (peak, ghost_rows)
 
 
-def _migrating(seed: int):
-    """A rank's 300 atoms, 40 of which have left its brick, a carried force-like array and
-    two messages from the neighbour (60 atoms arriving, then none), packed as a
-    migration packs them."""
-    state = _gas(300, seed)
-    state.positions[:40, 0] += 5.0  # 40 atoms now in the other brick: they leave
+def _migrating(seed: int, bricks: int):
+    """Rank 0's 300 atoms of ``bricks`` along x, 40 of which have left its brick (with three
+    bricks, some up and some down), carried arrays and the neighbours' messages (60 atoms
+    arriving from below, none from above), packed as a migration packs them."""
+    width = 10.0 / bricks
+    state = _gas(300, seed, x_range=(0.0, width - 0.1))
+    state.positions[:40, 0] += np.linspace(width, 10.0 - width, 40)  # they leave
     carried = {"forces": np.outer(state.ids, [-1.0, 0.5, 2.0]), "extra": state.ids * 0.25}
-    newcomers = _gas(60, seed + 1, ids_from=1000, x_range=(0.5, 4.5))
+    newcomers = _gas(60, seed + 1, ids_from=1000, x_range=(0.5, width - 0.5))
     arrays = [
         newcomers.positions,
         newcomers.velocities,
@@ -234,27 +235,31 @@ class Loopback(Echo):
     """Echo, but a message's rows are only summed (not kept) and the answers are given."""
 
 
+@pytest.mark.parametrize("bricks", [2, 3])
 @pytest.mark.parametrize("compiled", [True, False])
-def test_a_migration_sends_and_refills_the_same_rows_compiled_or_not(monkeypatch, compiled):
+def test_a_migration_sends_and_refills_the_same_rows_compiled_or_not(monkeypatch, compiled, bricks):
     """Domain.migrate packs the leaving atoms' rows and refills the arrays with the arriving
     ones as one compiled call each where the arrays allow (the state's usual types, the
     carried ones C-contiguous float64), numpy's calls otherwise: the same messages, the
-    same rows in the same order, bit for bit, whichever runs."""
-    reference_state, reference_carried, answers = _migrating(3)
-    reference = Domain(Loopback([a.copy() for a in answers]), Grid((2, 1, 1)))
+    same rows in the same order, bit for bit, whichever runs (one message each way with two
+    bricks along the axis, two with three)."""
+    reference_state, reference_carried, answers = _migrating(3, bricks)
+    reference = Domain(Loopback([a.copy() for a in answers]), Grid((bricks, 1, 1)))
     reference.reserve(reference_state, {})
     monkeypatch.setattr(migration, "_compiled_layout", _numpy_layout)
     moved_reference = reference.migrate(reference_state, reference_carried)
     monkeypatch.undo()
 
-    state, carried, answers = _migrating(3)
+    state, carried, answers = _migrating(3, bricks)
     if not compiled:
         carried["extra"] = carried["extra"].astype(np.float32)  # (numpy's path)
         reference_extra = moved_reference["extra"].astype(np.float32)
-    domain = Domain(Loopback(answers), Grid((2, 1, 1)))
+    domain = Domain(Loopback(answers), Grid((bricks, 1, 1)))
     domain.reserve(state, {})
     moved = domain.migrate(state, carried)
     assert domain.ranks.sent == reference.ranks.sent  # (rows and their sums)
+    assert len(domain.ranks.sent) == (1 if bricks == 2 else 2)
+    assert all(rows > 0 for rows, _ in domain.ranks.sent)  # (atoms left both ways)
     assert sorted(state.ids.tolist()) == [*range(40, 300), *range(1000, 1060)]
     for name in ("positions", "velocities", "masses", "types", "ids"):
         np.testing.assert_array_equal(getattr(state, name), getattr(reference_state, name))
