@@ -336,7 +336,7 @@ class Domain:
         ``agreed`` margin or None). Returns the lost atoms' error where it is the caller's
         to share."""
         box, pbc = state.box, state.pbc
-        tilt, cell, widths, local_pbc, local_tilt, thinnest = self._geometry(state)
+        tilt, cell, widths, local_pbc, local_tilt, local_periodic, thinnest = self._geometry(state)
         if agreed is not None and thinnest < reach + 2.0 * agreed:
             agreed = None  # (bricks too thin for it, on every rank alike: the reduction)
         unshared = None
@@ -435,7 +435,7 @@ class Domain:
         self.reach, self.margin = reach, margin
         self.local_ids = ids[:count]
         self.local_pbc = local_pbc
-        self._local_periodic = bool(local_pbc.any())
+        self._local_periodic = local_periodic
         self._cell_key = None  # (the local state is new: its cell is written at the update)
         self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(
@@ -448,9 +448,10 @@ class Domain:
 
     def _geometry(self, state: State) -> tuple:
         """``state``'s cell as a build uses it: its periodic tilt, matrix (rows a, b, c) and
-        perpendicular widths, the local system's periodic axes and tilt, and the thinnest
-        brick across a periodic axis [length]; kept while the cell, its periodic axes and
-        the grid stay as they were (a build's small arrays and checks: ~15 us)."""
+        perpendicular widths, the local system's periodic axes, its tilt and whether it has
+        a periodic axis, and the thinnest brick across a periodic axis [length]; kept while
+        the cell, its periodic axes and the grid stay as they were (a build's small arrays
+        and checks: ~15 us)."""
         key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
         if key != self._geometry_key:
             box, pbc = state.box, state.pbc
@@ -464,6 +465,7 @@ class Domain:
                 widths,
                 local_pbc,
                 periodic_tilt(tilt, local_pbc),
+                bool(local_pbc.any()),
                 float(bricks.min()) if len(bricks) else np.inf,
             )
             self._geometry_key = key
