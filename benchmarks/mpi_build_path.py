@@ -28,7 +28,9 @@ time a build, medians over the blocks; then, over a few more builds under a prof
 piece's Python calls, mpi4py calls and numpy allocations a build): ``rebuild``'s own lines, the
 migration and its messages, the predicted positions, the last build's reduction, the owned
 atoms' layout, the ghost search and its messages, the bonded terms, the rank's list, and the
-compiled halo's plan (its arrays, laid out at the first update after a build).
+compiled halo's plan (its arrays, laid out at the first update after a build). Then each
+rank's list search beside the serial search of the same local atoms (every row) and, on
+rank 0, of the whole system, in alternating blocks: CPU time a build, pairs, ns a pair.
 
 Prints the CPU model and vector ISA, both engines' figures and their ratio. A shared
 machine's other jobs move the absolute times (the ranks wait for each other's cores);
@@ -63,7 +65,9 @@ def _reduced_variant(domain):
     def reduced_build(state, reach, margin=None):
         return build(state, reach)
 
-    def two_ways(first, second, other, tag):
+    def two_ways(joined, other, tag):
+        split = 1 + int(joined[0, 0])  # (the joined message's count row, then both swaps)
+        first, second = joined[1:split], joined[split:]
         return ranks.exchange_many([(first, other, other, tag), (second, other, other, tag + 1)])
 
     return {"build": reduced_build, "_both_ways": two_ways}
@@ -321,6 +325,7 @@ def time_pieces(blocks: int, builds: int, comm) -> dict:
         for name in PIECES:
             wall[name].append(pieces.wall[name] / builds)
             cpu[name].append(pieces.cpu[name] / builds)
+    lists = _compare_lists(sim, blocks)
     profiled = 5
     held = ranks.comm, ranks._status
     ranks._comm, ranks._status = (_CountedMPI(a, pieces) for a in held)  # (compiled: kept)
@@ -336,6 +341,7 @@ def time_pieces(blocks: int, builds: int, comm) -> dict:
         ranks._comm, ranks._status = held
     return {
         "wrapper": _wrapper_cost(),
+        "lists": lists,
         **{
             name: {
                 "wall": statistics.median(wall[name]),
@@ -344,6 +350,41 @@ def time_pieces(blocks: int, builds: int, comm) -> dict:
             }
             for name in wall
         },
+    }
+
+
+def _compare_lists(sim, blocks: int, builds: int = 40) -> dict:
+    """The rank's list search (its owned rows, ``keep_owned``) against the serial search
+    over the same local atoms (every row, ghost pairs too) and, on rank 0, over the whole
+    system: thread CPU time a build, medians of alternating blocks; pairs listed."""
+    from md.neighbors import NeighborList
+
+    rank_list = sim.forcefield.local.neighbor_list
+    local = sim.forcefield.domain.local_state
+    whole = sim.global_view(thermo=False)  # (collective: the system on rank 0)
+    searches = {
+        "rank's list (owned rows)": (rank_list, local),
+        "serial, same local atoms": (NeighborList(rank_list.cutoff, rank_list.skin), local),
+    }
+    if whole is not None:
+        serial = NeighborList(rank_list.cutoff, rank_list.skin)
+        searches["serial, whole system"] = (serial, whole.state)
+    for nl, state in searches.values():
+        nl.build(state)  # (compiled, its buffers made)
+    spent: dict[str, list] = {name: [] for name in searches}
+    for _ in range(blocks):
+        for name, (nl, state) in searches.items():
+            thread = time.thread_time()
+            for _ in range(builds):
+                nl.build(state)
+            spent[name].append((time.thread_time() - thread) / builds)
+    return {
+        name: {
+            "cpu": statistics.median(spent[name]),
+            "pairs": int(nl.n_pairs),
+            "atoms": int(state.n_atoms),
+        }
+        for name, (nl, state) in searches.items()
     }
 
 
@@ -396,6 +437,13 @@ def print_pieces(mine: list, comm) -> None:
         + " us against the totals: the rest is the wrappers' own time and the loop; "
         "calls counted on rank 0 over 5 builds under a profiler)"
     )
+    for r, rank in enumerate(mine):
+        for name, found in rank["lists"].items():
+            cpu = found["cpu"] * 1e6
+            print(
+                f"  r{r} {name:<26}: {cpu:7.1f} us CPU a build, {found['pairs']} pairs of "
+                f"{found['atoms']} atoms, {1e3 * cpu / max(found['pairs'], 1):.2f} ns a pair"
+            )
     print(
         f"  (a timed call costs {mine[0]['wrapper'] * 1e6:.2f} us more than a bare one, most "
         "of it in the own time of the piece it is nested in: 'rebuild (own lines)' holds that "

@@ -161,10 +161,13 @@ class State:
         state = cls.__new__(cls)
         n = positions.shape[0]
         state.positions = positions
-        state.velocities = np.broadcast_to(_ZERO_VELOCITY, (n, 3))
-        state.masses = np.broadcast_to(_UNIT_MASS, (n,))
+        # (read-only arrays of stride 0 over one value, made directly: np.broadcast_to's
+        # Python took 2 us each, at every build of a rank's local system)
+        state.velocities = np.ndarray((n, 3), np.float64, _ZERO_VELOCITY, 0, (0, 8))
+        state.masses = np.ndarray((n,), np.float64, _UNIT_MASS, 0, (0,))
         state.box = np.array(box, dtype=np.float64)
-        state.pbc = np.broadcast_to(np.asarray(pbc, dtype=bool), (3,)).copy()
+        pbc = np.array(pbc, dtype=bool)
+        state.pbc = pbc if pbc.shape == (3,) else np.broadcast_to(pbc, (3,)).copy()
         state.types = types
         state.type_names = tuple(str(name) for name in type_names)
         state.step = 0

@@ -8,18 +8,15 @@ import pytest
 
 from md.box import cell_matrix
 from md.distributed._domain_kernels import (
-    append_rows,
     brick_of,
     fractional_coordinates,
     home_layout,
     home_positions,
     leaving_along,
     moved_since,
-    near_faces,
     predicted_positions,
     refill_plan,
     refill_rows,
-    table_rows,
 )
 from md.distributed.grid import Grid, balanced_cuts, local_periodic_axes
 from md.state import State
@@ -126,42 +123,6 @@ def test_the_refill_plan_keeps_every_staying_and_arriving_atom_once_and_moves_fe
     again = refill_plan(leaving, n, m)
     for a, b in zip(again, (sources, targets, arrivals), strict=True):
         np.testing.assert_array_equal(a, b)
-
-
-def test_near_faces_and_the_sweep_rows_round_trip():
-    """near_faces picks the rows below and at or above the bounds, in order; table_rows packs
-    owned atoms' and ghosts' rows (fractions from the right array) and append_rows unpacks
-    them as new ghosts, to the bit."""
-    rng = np.random.default_rng(2)
-    n, m = 2000, 300
-    positions = np.concatenate([scattered(n, seed=3), scattered(m, seed=4)])
-    home = rng.random((n, 3))
-    ghost_fractions = rng.random((m, 3))
-    ids = rng.permutation(n + m).astype(np.int64)
-    types = rng.integers(0, 3, n + m).astype(np.int32)
-    for column in (0, 1, 2):
-        below, above = near_faces(home, n, column, 0.2, 0.7)
-        np.testing.assert_array_equal(below, np.flatnonzero(home[:, column] < 0.2))
-        np.testing.assert_array_equal(above, np.flatnonzero(home[:, column] >= 0.7))
-    send = np.concatenate(
-        [np.sort(rng.choice(n, 50, replace=False)), n + np.sort(rng.choice(m, 20, replace=False))]
-    )
-    rows = np.empty((len(send), 8))
-    table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
-    np.testing.assert_array_equal(rows[:, :3], positions[send])
-    np.testing.assert_array_equal(rows[:50, 3:6], home[send[:50]])
-    np.testing.assert_array_equal(rows[50:, 3:6], ghost_fractions[send[50:] - n])
-    np.testing.assert_array_equal(rows[:, 6], ids[send])
-    np.testing.assert_array_equal(rows[:, 7], types[send])
-    grown = len(send) + n + m
-    out, out_fractions = np.zeros((grown, 3)), np.zeros((grown - n, 3))
-    out_ids, out_types = np.zeros(grown, dtype=np.int64), np.zeros(grown, dtype=np.int32)
-    append_rows(rows, n + m, n, out, out_fractions, out_ids, out_types)
-    np.testing.assert_array_equal(out[n + m :], positions[send])
-    np.testing.assert_array_equal(out_fractions[m:], rows[:, 3:6])
-    np.testing.assert_array_equal(out_ids[n + m :], ids[send])
-    np.testing.assert_array_equal(out_types[n + m :], types[send])
-    assert not out[: n + m].any() and not out_fractions[:m].any()  # nothing else written
 
 
 def test_the_look_ahead_bounds_each_atoms_next_move():
@@ -677,8 +638,7 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     calls = []
     for name in (
         "home_layout",
-        "near_faces",
-        "table_rows",
+        "sweep_send",
         "pack_sweep",
         "home_positions",
         "shift_rows",
@@ -699,8 +659,7 @@ def test_the_comm_clock_holds_the_ghosts_search_and_messages_not_the_owned_layou
     on_clock = {name: {inside for called, inside in calls if called == name} for name, _ in calls}
     assert on_clock == {
         "home_layout": {False},
-        "near_faces": {True},
-        "table_rows": {True},
+        "sweep_send": {True},
         "pack_sweep": {True},
         "home_positions": {False},
         "shift_rows": {False},

@@ -49,9 +49,12 @@ a rebuild forced inside a step (by an integrator's stage, or a move the
 look-ahead missed) keeps the owners and widens the ghost shell by as far as
 owned atoms have left their bricks, and the next step migrates them. A
 migration changes only the rows that move (arrivals take the leavers' rows),
-so a rank's atom order follows its history (checkpoints record it); the ghost
-search runs on compiled passes over a table the Domain keeps between builds
-(``md/distributed/_domain_kernels.py``).
+so a rank's atom order follows its history (checkpoints record it); its
+messages are packed and refilled by one compiled call each. A ghost sweep is
+two compiled passes around its messages (the face atoms, their rows and the
+swap tables; the arrived rows laid out as ghosts) in memory the Domain keeps
+between builds, and the compiled halo's exchanges use those tables as they
+are (``md/distributed/_domain_kernels.py``).
 
 Reductions add in rank order on every rank (an all-gather, then a sum), so
 all ranks hold the same bits and a run on P ranks is deterministic; runs on
@@ -64,8 +67,8 @@ more than one process (:func:`mpi_ranks`).
 The package, one module a job, bottom first:
 
 - :mod:`md.distributed.grid`: the bricks (:class:`Grid`) and the choice of grid;
-  their kernels (fractional coordinates, the ghost search's faces and rows,
-  migration's refills, the look-ahead) in ``_domain_kernels``;
+  their kernels (fractional coordinates, the ghost sweeps and their swap tables,
+  migration's pack and refills, the look-ahead) in ``_domain_kernels``;
 - :mod:`md.distributed.ranks`: how many ranks a launcher started, the
   communicator (:class:`MPIRanks`), its clock, and :func:`agree`;
 - :mod:`md.distributed.migration`: atoms moving to the ranks whose bricks hold them;

@@ -82,10 +82,12 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
 
     Returns (imaged, images, strayed): the atoms with an image of their own
     (increasing), their images (int64 rows) and how far the farthest atom lies
-    outside the brick [length]."""
+    outside the brick [length]. Where ``rows`` has a fourth column the atoms' indices
+    go there (else into scratch of N int64 made here)."""
     strayed = 0.0
     count = 0
-    imaged = np.empty(positions.shape[0], dtype=np.int64)
+    kept = rows.shape[1] > 3
+    imaged = np.empty(0 if kept else positions.shape[0], dtype=np.int64)
     inverse = _inverse_lengths(box)
     for i in range(positions.shape[0]):
         sx, sy, sz = _cell_fractions(positions, i, inverse, tilt, pbc)
@@ -104,11 +106,24 @@ def home_layout(positions, box, tilt, pbc, cell, center, bounds, widths, home, o
             for a in range(3):
                 out[i, a] = positions[i, a] - (kx * cell[0, a] + ky * cell[1, a] + kz * cell[2, a])
             rows[count, 0], rows[count, 1], rows[count, 2] = int(kx), int(ky), int(kz)
-            imaged[count] = i
+            if kept:
+                rows[count, 3] = i
+            else:
+                imaged[count] = i
             count += 1
         else:
             out[i, 0], out[i, 1], out[i, 2] = positions[i, 0], positions[i, 1], positions[i, 2]
+    if kept:
+        return rows[:count, 3].copy(), rows[:count, :3].copy(), strayed
     return imaged[:count].copy(), rows[:count].copy(), strayed
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _doubled(values):
+    """A copy of ``values`` with twice the room."""
+    grown = np.empty(2 * values.shape[0], dtype=values.dtype)
+    grown[: values.shape[0]] = values
+    return grown
 
 
 @njit(cache=True, error_model="numpy")
@@ -120,8 +135,10 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
     takes both neighbours."""
     n = positions.shape[0]
     p = shape[axis]
-    up = np.empty(n, dtype=np.int64)
-    down = np.empty(n, dtype=np.int64)
+    # (room for an eighth of the atoms, doubled when full: a migration moves few, and
+    # scratch of n rows each was most of its memory traffic)
+    up = np.empty(n // 8 + 16, dtype=np.int64)
+    down = np.empty(n // 8 + 16, dtype=np.int64)
     n_up = 0
     n_down = 0
     lost = 0
@@ -146,9 +163,13 @@ def leaving_along(positions, box, tilt, pbc, shape, cuts, axis, coordinate):
             continue
         delta = c - coordinate if c > coordinate else c - coordinate + p
         if delta == 1:
+            if n_up == up.shape[0]:
+                up = _doubled(up)
             up[n_up] = i
             n_up += 1
         elif delta == p - 1:
+            if n_down == down.shape[0]:
+                down = _doubled(down)
             down[n_down] = i
             n_down += 1
         else:
@@ -193,6 +214,86 @@ def refill_plan(leaving, n, m):
     return sources, targets, arrivals
 
 
+@njit(cache=True)
+def same_start(a, b):
+    """Whether arrays ``a`` and ``b`` begin at the same address (numpy's ``ctypes.data``
+    makes an object a call: 1.6 us each, two per array a migration)."""
+    return a.ctypes.data == b.ctypes.data
+
+
+@njit(cache=True, error_model="numpy")
+def pack_leaving(rows, positions, velocities, masses, types, ids, carried, out):
+    """A migration's message: ``out[k]`` = atom ``rows[k]``'s position (3), velocity (3),
+    mass, type, id, then its row of each of ``carried`` (2-D float64 arrays, one row an
+    atom), the integers as floats (exact below 2^53): the layout
+    :func:`md.distributed.migration.migrate` sends."""
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        for a in range(3):
+            out[k, a] = positions[i, a]
+            out[k, 3 + a] = velocities[i, a]
+        out[k, 6] = masses[i]
+        out[k, 7] = types[i]
+        out[k, 8] = ids[i]
+        column = 9
+        for values in carried:
+            for a in range(values.shape[1]):
+                out[k, column] = values[i, a]
+                column += 1
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _arrive(rows, r, t, positions, velocities, masses, types, ids, carried):
+    """Message row r of :func:`pack_leaving`'s layout into row t of the arrays."""
+    for a in range(3):
+        positions[t, a] = rows[r, a]
+        velocities[t, a] = rows[r, 3 + a]
+    masses[t] = rows[r, 6]
+    types[t] = np.int32(rows[r, 7])
+    ids[t] = np.int64(rows[r, 8])
+    column = 9
+    for values in carried:
+        for a in range(values.shape[1]):
+            values[t, a] = rows[r, column]
+            column += 1
+
+
+@njit(cache=True, error_model="numpy")
+def unpack_arriving(
+    ups, downs, n, lower, upper, positions, velocities, masses, types, ids, carried
+):
+    """The receiving end of a migration sweep, in place: the atoms ``ups`` and ``downs``
+    (increasing each) of the first ``n`` rows leave and the rows of :func:`pack_leaving`'s
+    messages ``lower`` then ``upper`` arrive, as :func:`refill_plan` places them, in every
+    array (the state's, then each of ``carried``: 2-D, the same rows), which have room
+    for them. Returns the rows held after it."""
+    if downs.shape[0] == 0:  # (two bricks along the axis: every leaver goes up)
+        leaving = ups
+    elif ups.shape[0] == 0:
+        leaving = downs
+    else:
+        leaving = np.sort(np.concatenate((ups, downs)))
+    m = lower.shape[0] + upper.shape[0]
+    sources, targets, arrivals = refill_plan(leaving, n, m)
+    for k in range(sources.shape[0]):
+        t, f = targets[k], sources[k]
+        for a in range(3):
+            positions[t, a] = positions[f, a]
+            velocities[t, a] = velocities[f, a]
+        masses[t] = masses[f]
+        types[t] = types[f]
+        ids[t] = ids[f]
+        for values in carried:
+            for a in range(values.shape[1]):
+                values[t, a] = values[f, a]
+    for j in range(lower.shape[0]):
+        _arrive(lower, j, arrivals[j], positions, velocities, masses, types, ids, carried)
+    for j in range(upper.shape[0]):
+        t = arrivals[lower.shape[0] + j]
+        _arrive(upper, j, t, positions, velocities, masses, types, ids, carried)
+    return n - leaving.shape[0] + m
+
+
 @njit(cache=True, error_model="numpy")
 def refill_rows(values, sources, targets, incoming, arrivals):
     """Apply :func:`refill_plan` to a 2-D array in place: values[targets[k]] =
@@ -205,55 +306,152 @@ def refill_rows(values, sources, targets, incoming, arrivals):
             values[arrivals[j], a] = incoming[j, a]
 
 
-@njit(cache=True, error_model="numpy")
-def table_rows(positions, owned_fractions, ghost_fractions, ids, types, n_owned, send, out):
-    """The rows a ghost sweep sends, one per local atom ``send[k]``: its position (3), its
-    fractional coordinates (3: an owned atom's from ``owned_fractions``, a ghost's from
-    ``ghost_fractions``, both at the image the local system holds), id and type."""
-    for k in range(send.shape[0]):
-        i = send[k]
-        for a in range(3):
-            out[k, a] = positions[i, a]
-        if i < n_owned:
-            for a in range(3):
-                out[k, 3 + a] = owned_fractions[i, a]
-        else:
-            for a in range(3):
-                out[k, 3 + a] = ghost_fractions[i - n_owned, a]
-        out[k, 6] = ids[i]
-        out[k, 7] = types[i]
+#: Columns of a swap's row in a build's swap table (the compiled halo's ``table``, see
+#: :mod:`md.distributed._mpi_kernels`): its send list's rows in the index (``START`` to
+#: ``END``), its ghost rows (from ``OFFSET``, ``COUNT`` of them), the ranks it sends to and
+#: receives from, its tag, and its ghosts' first row in the forces sent back (``BACK``).
+START, END, OFFSET, COUNT, DEST, SOURCE, TAG, BACK = range(8)
+#: Columns of a sweep's row in the sweep table: its axis, whether it sends to this rank
+#: itself, and its swaps' rows in the swap table (``FIRST`` to ``LAST``).
+AXIS, TO_SELF, FIRST, LAST = range(4)
 
 
-@njit(cache=True, error_model="numpy")
-def append_rows(rows, start, n_owned, positions, ghost_fractions, ids, types):
-    """:func:`table_rows`' rows, received, as local atoms ``start`` onwards (ghosts)."""
+@njit(cache=True, inline="always", error_model="numpy")
+def _swap_entry(table, shifts, j, first, last, dest, source, move):
+    """Swap j's send list (index rows ``first`` to ``last``), peers, tag and shift."""
+    table[j, START] = first
+    table[j, END] = last
+    table[j, DEST] = dest
+    table[j, SOURCE] = source
+    table[j, TAG] = j
+    shifts[j] = move
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _append_swap(rows, count, n_owned, positions, ghost_fractions, ids, types, table, j, back):
+    """Swap j's arrived ``rows`` as local atoms ``count`` onwards, its ghost rows in the
+    table; returns the count after them."""
     for k in range(rows.shape[0]):
-        i = start + k
+        i = count + k
         for a in range(3):
             positions[i, a] = rows[k, a]
             ghost_fractions[i - n_owned, a] = rows[k, 3 + a]
         ids[i] = np.int64(rows[k, 6])
         types[i] = np.int32(rows[k, 7])
+    table[j, OFFSET] = count
+    table[j, COUNT] = rows.shape[0]
+    table[j, BACK] = back
+    return count + rows.shape[0]
 
 
 @njit(cache=True, error_model="numpy")
-def near_faces(data, end, column, lower, upper):
-    """Rows before ``end`` of fractional coordinates ``data`` (owned atoms' or ghosts')
-    whose ``column`` lies below ``lower`` and at or above ``upper``: the atoms one sweep
-    sends down and up."""
-    below = np.empty(end, dtype=np.int64)
-    above = np.empty(end, dtype=np.int64)
-    n_below = 0
-    n_above = 0
-    for i in range(end):
-        f = data[i, column]
+def sweep_send(
+    positions,
+    owned_fractions,
+    ghost_fractions,
+    ids,
+    types,
+    n_owned,
+    count,
+    axis,
+    faces,
+    moves,
+    peers,
+    cell,
+    index,
+    rows,
+    table,
+    shifts,
+    sweeps,
+    s,
+):
+    """Ghost sweep ``s`` (along ``axis``) of a build, in one pass: its two swaps' send lists
+    and the rows they send, and their entries in the swap and sweep tables.
+
+    The local atoms before ``count`` (owned first, then the earlier sweeps' ghosts) whose
+    fraction along ``axis`` lies below ``faces[0]`` go down (swap ``2 s``), those at or
+    above ``faces[1]`` up (swap ``2 s + 1``), each list in local order (the owned atoms'
+    fractions in ``owned_fractions``, the ghosts' in ``ghost_fractions``, row
+    ``i - n_owned``). Their indices go into ``index`` from the end of the last sweep's
+    (``table[2 s - 1, END]``; 0 for the first), the down list then the up list; their
+    rows into ``rows``: row 0 holds the down list's length (column 0; the rest 0), then
+    the down rows, then the up rows: position (3) shifted by ``moves[k]`` cell vectors
+    along ``axis``, fractional position (3, the same shift along ``axis``), id and type
+    (the integers as floats, exact below 2^53). ``peers`` are (the
+    rank below, the rank above, whether they are this rank); the down swap sends to the
+    rank below and receives from the one above, the up swap the other way, tags ``2 s``
+    and ``2 s + 1``. ``OFFSET``, ``COUNT`` and ``BACK`` are :func:`sweep_append`'s.
+
+    Returns (the down list's length, the up list's, whether they fitted): where ``index``
+    or ``rows`` is too short for them nothing is written (the caller grows them and calls
+    again)."""
+    lower, upper = faces
+    n_down = 0
+    n_up = 0
+    for i in range(count):
+        f = owned_fractions[i, axis] if i < n_owned else ghost_fractions[i - n_owned, axis]
         if f < lower:
-            below[n_below] = i
-            n_below += 1
+            n_down += 1
         if f >= upper:
-            above[n_above] = i
-            n_above += 1
-    return below[:n_below].copy(), above[:n_above].copy()
+            n_up += 1
+    j = 2 * s
+    start = table[j - 1, END] if s > 0 else 0
+    if start + n_down + n_up > index.shape[0] or 1 + n_down + n_up > rows.shape[0]:
+        return n_down, n_up, False
+    down = start
+    up = start + n_down
+    for i in range(count):
+        f = owned_fractions[i, axis] if i < n_owned else ghost_fractions[i - n_owned, axis]
+        if f < lower:
+            index[down] = i
+            down += 1
+        if f >= upper:
+            index[up] = i
+            up += 1
+    for a in range(8):
+        rows[0, a] = 0.0
+    rows[0, 0] = n_down
+    for k in range(n_down + n_up):
+        i = index[start + k]
+        move = moves[0] if k < n_down else moves[1]
+        row = 1 + k
+        for a in range(3):
+            rows[row, a] = positions[i, a] + move * cell[axis, a]
+        if i < n_owned:
+            for a in range(3):
+                rows[row, 3 + a] = owned_fractions[i, a]
+        else:
+            for a in range(3):
+                rows[row, 3 + a] = ghost_fractions[i - n_owned, a]
+        rows[row, 3 + axis] += move
+        rows[row, 6] = ids[i]
+        rows[row, 7] = types[i]
+    down_rank, up_rank, to_self = peers
+    _swap_entry(table, shifts, j, start, start + n_down, down_rank, up_rank, moves[0])
+    _swap_entry(table, shifts, j + 1, start + n_down, up, up_rank, down_rank, moves[1])
+    sweeps[s, AXIS] = axis
+    sweeps[s, TO_SELF] = to_self
+    sweeps[s, FIRST] = j
+    sweeps[s, LAST] = j + 2
+    return n_down, n_up, True
+
+
+@njit(cache=True, error_model="numpy")
+def sweep_append(down, up, count, n_owned, positions, ghost_fractions, ids, types, table, s):
+    """Sweep ``s``'s arrived rows (:func:`sweep_send`'s rows: ``down``, for its down swap,
+    then ``up``) as local atoms ``count`` onwards (ghosts; the arrays hold them), and the
+    swaps' ghost rows in the swap table (``OFFSET``, ``COUNT``; ``BACK``: their first row
+    among all the swaps' ghosts in order). Returns the local atoms' count after them."""
+    j = 2 * s
+    back = table[j - 1, BACK] + table[j - 1, COUNT] if s > 0 else 0
+    count = _append_swap(
+        down, count, n_owned, positions, ghost_fractions, ids, types, table, j, back
+    )
+    back += down.shape[0]
+    count = _append_swap(
+        up, count, n_owned, positions, ghost_fractions, ids, types, table, j + 1, back
+    )
+    return count
 
 
 @njit(cache=True, error_model="numpy")
@@ -488,7 +686,6 @@ def fold_gathered(gathered, n_summed, totals, worst):
 __all__ = [
     "add_rows",
     "add_sweep",
-    "append_rows",
     "anchored_items",
     "brick_of",
     "fold_gathered",
@@ -498,13 +695,16 @@ __all__ = [
     "home_positions",
     "leaving_along",
     "moved_since",
-    "near_faces",
+    "pack_leaving",
     "nearest_copies",
     "pack_rows",
     "pack_sweep",
     "predicted_positions",
     "refill_plan",
     "refill_rows",
+    "same_start",
     "shift_rows",
-    "table_rows",
+    "sweep_append",
+    "sweep_send",
+    "unpack_arriving",
 ]

@@ -30,7 +30,21 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from md._simd import python_twin
-from md.distributed._domain_kernels import fold_gathered
+from md.distributed._domain_kernels import (
+    AXIS,
+    BACK,
+    COUNT,
+    DEST,
+    END,
+    FIRST,
+    LAST,
+    OFFSET,
+    SOURCE,
+    START,
+    TAG,
+    TO_SELF,
+    fold_gathered,
+)
 
 
 def _c_call(address, args):
@@ -66,13 +80,9 @@ def _address(array):
     return np.int64(array.ctypes.data)
 
 
-#: Columns of a swap's row in the exchanges' ``table``: its send list's rows in ``index``
-#: (``START`` to ``END``), its ghost rows (from ``OFFSET``, ``COUNT`` of them), the ranks it
-#: sends to and receives from, its tag, and its ghosts' first row in ``back``.
-START, END, OFFSET, COUNT, DEST, SOURCE, TAG, BACK = range(8)
-#: Columns of a sweep's row in ``sweeps``: its axis, whether it sends to this rank itself,
-#: and its swaps' rows in ``table`` (``FIRST`` to ``LAST``).
-AXIS, TO_SELF, FIRST, LAST = range(4)
+# The exchanges' ``table`` (a row a swap: START, END, OFFSET, COUNT, DEST, SOURCE, TAG,
+# BACK) and ``sweeps`` (a row a sweep: AXIS, TO_SELF, FIRST, LAST) have the columns of the
+# swap tables a build's ghost search writes (md.distributed._domain_kernels.sweep_send).
 #: The entries of ``calls``: the handles of the communicator, MPI_DOUBLE and MPI_MAX, then
 #: the addresses of MPI_Isend, MPI_Irecv, MPI_Wait, MPI_Allgather and MPI_Allreduce.
 COMM, DOUBLE, MAX, ISEND, IRECV, WAIT, ALLGATHER, ALLREDUCE = range(8)

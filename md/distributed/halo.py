@@ -23,16 +23,15 @@ from md.box import cell_matrix, periodic_tilt, perpendicular_widths
 from md.distributed._domain_kernels import (
     add_rows,
     add_sweep,
-    append_rows,
     brick_of,
     fractional_coordinates,
     ghost_rows,
     home_layout,
     home_positions,
-    near_faces,
     pack_sweep,
     shift_rows,
-    table_rows,
+    sweep_append,
+    sweep_send,
 )
 from md.distributed._mpi_kernels import halo_forward, halo_reverse
 from md.distributed.grid import Grid, local_periodic_axes
@@ -119,39 +118,16 @@ class _Plan:
     MPI calls themselves): a row a sweep (its axis, whether it goes to this rank itself,
     its swaps' rows) and a row a swap (its send list's rows in ``index``, ghost rows,
     peers, tag and ghosts' rows in ``back``: the columns the kernels module names), the
-    shifts, and the buffers the messages go from and into. The peers and tags are the
-    :class:`_Sweep` messages'."""
+    shifts, and the buffers the messages go from and into (``out``, aligned with
+    ``index``; ``back``, the ghosts' forces). The tables are those the build's ghost
+    search wrote (:func:`md.distributed._domain_kernels.sweep_send`), the peers and tags
+    the :class:`_Sweep` messages'; nothing is copied."""
 
-    def __init__(self, groups: list[list[_Swap]], rank: int, compiled) -> None:
-        swaps = [swap for group in groups for swap in group]
+    def __init__(self, sweeps, table, shifts, index, out, back, slots, compiled) -> None:
         self.calls = compiled.calls
         self.check = compiled.check
-        lasts = np.cumsum([len(group) for group in groups])
-        self.sweeps = np.array(
-            [
-                (group[0].axis, group[0].dest == rank, last - len(group), last)
-                for group, last in zip(groups, lasts, strict=True)
-            ],
-            dtype=np.int64,
-        ).reshape(-1, 4)
-        ends = np.cumsum([len(swap.send) for swap in swaps])
-        backs = np.cumsum([swap.count for swap in swaps])
-        self.table = np.array(
-            [
-                (end - len(w.send), end, w.offset, w.count, w.dest, w.source, w.tag, b - w.count)
-                for w, end, b in zip(swaps, ends, backs, strict=True)
-            ],
-            dtype=np.int64,
-        ).reshape(-1, 8)
-        self.index = (
-            np.concatenate([w.send for w in swaps]).astype(np.int64)
-            if swaps
-            else np.zeros(0, dtype=np.int64)
-        )
-        self.shifts = np.array([float(w.shift) for w in swaps])
-        self.out = np.empty((len(self.index), 3))  # positions out, forces back in
-        self.back = np.empty((int(backs[-1]) if swaps else 0, 3))  # the ghosts' forces out
-        self.slots = compiled.slots(2 * max(len(group) for group in groups))
+        self.sweeps, self.table, self.shifts, self.index = sweeps, table, shifts, index
+        self.out, self.back, self.slots = out, back, slots
 
     def forward(self, positions: NDArray[np.float64], cell: NDArray[np.float64]) -> None:
         self.check(
@@ -221,6 +197,9 @@ class Domain:
         self._sweeps: list[_Sweep] | None = None  # the swaps' messages, made at first use
         self._plan: _Plan | None = None  # or the compiled exchanges' arrays, of these swaps:
         self._plan_swaps: list[_Swap] | None = None
+        self._swept: tuple | None = None  # (the last build's swap tables, if a swap is remote)
+        self._tables: list[list | None] = [None, None]  # (the two sets, as the local arrays)
+        self._slots: NDArray | None = None  # (the compiled exchanges' requests)
         self.imaged = np.zeros(0, dtype=np.int64)  # owned atoms away from their stored image
         self.images = np.zeros((0, 3), dtype=np.int64)  # and their images (rows of imaged)
         self.local_pbc = np.zeros(3, dtype=bool)
@@ -250,6 +229,7 @@ class Domain:
         self.center = self.bounds.mean(axis=0)
         self.cuts = grid.cut_table()
         self.thinnest = grid.thinnest()
+        self._geometry_key: tuple | None = None  # (the build's cell geometry, see _geometry)
         #: (the rank below, the rank above) along each axis: each build's and migration's
         self.neighbors = tuple(
             (grid.neighbor(self.rank, axis, -1), grid.neighbor(self.rank, axis, 1))
@@ -313,9 +293,7 @@ class Domain:
             ghost shell would need atoms from beyond the face neighbours.
         """
         box, pbc = state.box, state.pbc
-        tilt = periodic_tilt(state.tilt, pbc)
-        cell = cell_matrix(box, tilt)
-        widths = perpendicular_widths(box, tilt)
+        tilt, cell, widths = self._geometry(state)[:3]
         # The local system is written where it will stay: the owned atoms first, at their
         # images nearest the brick (a copy; only the atoms with an image of their own are
         # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
@@ -336,14 +314,12 @@ class Domain:
             widths,
             home,
             positions[:n],
-            self._buffer(n, 3, "images", np.int64),
+            self._buffer(n, 4, "images", np.int64),  # (images, and the atoms' indices)
         )
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
-            return self._find_ghosts(
-                state, reach, strayed, positions, home, n, (tilt, cell, widths), margin
-            )
+            return self._find_ghosts(state, reach, strayed, positions, home, n, margin)
 
     def _find_ghosts(
         self,
@@ -353,17 +329,15 @@ class Domain:
         positions,
         home,
         n: int,
-        geometry,
         agreed: float | None,
     ) -> DecompositionError | None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
         atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
-        cell's ``geometry``: its periodic tilt, matrix and widths; the ``agreed`` margin
-        or None). Returns the lost atoms' error where it is the caller's to share."""
+        ``agreed`` margin or None). Returns the lost atoms' error where it is the caller's
+        to share."""
         box, pbc = state.box, state.pbc
-        tilt, cell, widths = geometry
-        brick = widths * self.thinnest
-        if agreed is not None and np.any(pbc & (brick < reach + 2.0 * agreed)):
+        tilt, cell, widths, local_pbc, local_tilt, local_periodic, thinnest = self._geometry(state)
+        if agreed is not None and thinnest < reach + 2.0 * agreed:
             agreed = None  # (bricks too thin for it, on every rank alike: the reduction)
         unshared = None
         if agreed is None:
@@ -377,9 +351,9 @@ class Domain:
             self.outgrown = strayed > agreed
             unshared, self.lost_atoms = lost_error(self.lost_atoms), 0
         shell = reach + margin
-        narrow = pbc & (brick < shell + margin)
-        if np.any(narrow):
-            axis = int(np.argmax(narrow))
+        if thinnest < shell + margin:
+            brick = widths * self.thinnest
+            axis = int(np.argmax(pbc & (brick < shell + margin)))
             raise DecompositionError(
                 f"owned atoms strayed up to {margin:.3g} from their bricks inside a step, so "
                 f"the ghost shell would have to reach {shell + margin:.4g} across "
@@ -389,9 +363,16 @@ class Domain:
         ids = self._local["ids"][self._parity]  # (their owned rows written by build)
         types = self._local["types"][self._parity]
         ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
-        count = n
+        # Each sweep is two compiled calls around its messages: sweep_send finds the atoms
+        # near the faces, writes their rows (one message's, a row of counts first) and this
+        # build's swap tables, which the compiled halo then uses as they are (plan);
+        # sweep_append lays the arrived rows out as ghosts. The tables and send lists lie
+        # in memory kept between builds (two sets, alternating as the local arrays).
+        tables = self._swap_tables()
+        index, table, shifts, sweeps = tables
+        rows = self._held("sweep rows", 8)
+        count, start, s, remote = n, 0, 0, False
         swaps: list[_Swap] = []
-        local_pbc = local_periodic_axes(self.shape, pbc, tilt)
         for axis in range(3):
             if not pbc[axis] or local_pbc[axis]:
                 continue
@@ -399,46 +380,53 @@ class Domain:
             reach_fraction = shell / widths[axis]
             # this sweep sends the atoms before its own ghosts, in local order
             faces = (self.bounds[0, axis] + reach_fraction, self.bounds[1, axis] - reach_fraction)
-            lower, upper = near_faces(home, n, axis, *faces)
-            if count > n:
-                ghost_lower, ghost_upper = near_faces(ghost_fractions, count - n, axis, *faces)
-                lower = np.concatenate([lower, ghost_lower + n])
-                upper = np.concatenate([upper, ghost_upper + n])
             down, up = self.neighbors[axis]
-            sweep = []
-            for send, shift, dest, source in (
-                (lower, 1 if c == 0 else 0, down, up),
-                (upper, -1 if c == p - 1 else 0, up, down),
-            ):
-                rows = np.empty((len(send), 8))
-                table_rows(positions, home, ghost_fractions, ids, types, n, send, rows)
-                rows[:, :3] += shift * cell[axis]
-                rows[:, 3 + axis] += shift
-                sweep.append((send, shift, dest, source, rows, len(swaps) + len(sweep)))
-            # both swaps' rows in flight together (each sends atoms laid out before them)
-            remote = [(rows, dest, source, tag) for _, _, dest, source, rows, tag in sweep]
-            if sweep[0][2] != self.rank:
-                if down == up:  # two bricks along the axis: both swaps' rows in one message
-                    arrived = self._both_ways(sweep[0][4], sweep[1][4], down, sweep[0][5])
-                else:
-                    arrived = self.ranks.exchange_many(remote)
-                sweep = [
-                    (*swap[:4], rows, swap[5]) for swap, rows in zip(sweep, arrived, strict=True)
-                ]
-            for send, shift, dest, source, rows, tag in sweep:
-                if count + len(rows) > len(positions):
-                    size = count + len(rows) + len(positions) // 2
-                    positions, ids, types = (
-                        _grown(a, count, size) for a in (positions, ids, types)
-                    )
-                    for name, grown in (("positions", positions), ("ids", ids), ("types", types)):
-                        self._local[name][self._parity] = grown  # kept for the next builds
-                    old = ghost_fractions
-                    ghost_fractions = self._buffer(size - n, 3, "ghost fractions")
-                    ghost_fractions[: count - n] = old[: count - n]
-                append_rows(rows, count, n, positions, ghost_fractions, ids, types)
-                swaps.append(_Swap(send, axis, shift, dest, source, count, len(rows), tag))
-                count += len(rows)
+            moves = (1 if c == 0 else 0, -1 if c == p - 1 else 0)
+            peers = (down, up, down == self.rank)
+            while True:
+                n_down, n_up, fitted = sweep_send(
+                    positions, home, ghost_fractions, ids, types, n, count, axis, faces, moves,
+                    peers, cell, index, rows, table, shifts, sweeps, s,
+                )  # fmt: skip
+                if fitted:
+                    break
+                self._buffer(1 + n_down + n_up, 8, "sweep rows")  # (grown)
+                rows = self._held("sweep rows", 8)
+                if start + n_down + n_up > len(index):
+                    index = _grown(index, start, 2 * (start + n_down + n_up) + 64)
+                    tables[0] = index
+            sent = rows[: 1 + n_down + n_up]
+            if down == self.rank:  # (one brick along the axis: both swaps to itself)
+                lower, upper = sent[1 : 1 + n_down], sent[1 + n_down :]
+            elif down == up:  # two bricks along the axis: both swaps' rows in one message
+                lower, upper = self._both_ways(sent, down, 2 * s)
+            else:
+                lower, upper = self.ranks.exchange_many(
+                    [
+                        (sent[1 : 1 + n_down], down, up, 2 * s),
+                        (sent[1 + n_down :], up, down, 2 * s + 1),
+                    ]
+                )
+            remote = remote or down != self.rank
+            arrived = len(lower) + len(upper)
+            if count + arrived > len(positions):
+                size = count + arrived + len(positions) // 2
+                positions, ids, types = (_grown(a, count, size) for a in (positions, ids, types))
+                for name, grown in (("positions", positions), ("ids", ids), ("types", types)):
+                    self._local[name][self._parity] = grown  # kept for the next builds
+                old = ghost_fractions
+                ghost_fractions = self._buffer(size - n, 3, "ghost fractions")
+                ghost_fractions[: count - n] = old[: count - n]
+            after = sweep_append(
+                lower, upper, count, n, positions, ghost_fractions, ids, types, table, s
+            )
+            middle, end, above = start + n_down, start + n_down + n_up, count + len(lower)
+            swaps += [
+                _Swap(index[start:middle], axis, moves[0], down, up, count, len(lower), 2 * s),
+                _Swap(index[middle:end], axis, moves[1], up, down, above, len(upper), 2 * s + 1),
+            ]
+            count, start, s = after, end, s + 1
+        self._swept = (tables, s, start, count - n) if remote else None
         self.swaps = swaps
         for sweep in self._sweeps or ():
             sweep.free()
@@ -447,7 +435,7 @@ class Domain:
         self.reach, self.margin = reach, margin
         self.local_ids = ids[:count]
         self.local_pbc = local_pbc
-        self._local_periodic = bool(local_pbc.any())
+        self._local_periodic = local_periodic
         self._cell_key = None  # (the local state is new: its cell is written at the update)
         self._built_tilt = state.tilt.tobytes()
         self.local_state = State.adopting(
@@ -455,23 +443,43 @@ class Domain:
         )
         # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
         # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
-        self.local_state.tilt = periodic_tilt(tilt, local_pbc)
+        self.local_state.tilt = local_tilt.copy()  # (update changes it in place)
         return unshared
 
-    def _both_ways(self, first: NDArray, second: NDArray, other: int, tag: int) -> list:
+    def _geometry(self, state: State) -> tuple:
+        """``state``'s cell as a build uses it: its periodic tilt, matrix (rows a, b, c) and
+        perpendicular widths, the local system's periodic axes, its tilt and whether it has
+        a periodic axis, and the thinnest brick across a periodic axis [length]; kept while
+        the cell, its periodic axes and the grid stay as they were (a build's small arrays
+        and checks: ~15 us)."""
+        key = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+        if key != self._geometry_key:
+            box, pbc = state.box, state.pbc
+            tilt = periodic_tilt(state.tilt, pbc)
+            widths = perpendicular_widths(box, tilt)
+            local_pbc = local_periodic_axes(self.shape, pbc, tilt)
+            bricks = (widths * self.thinnest)[pbc]
+            self._geometry_values = (
+                tilt,
+                cell_matrix(box, tilt),
+                widths,
+                local_pbc,
+                periodic_tilt(tilt, local_pbc),
+                bool(local_pbc.any()),
+                float(bricks.min()) if len(bricks) else np.inf,
+            )
+            self._geometry_key = key
+        return self._geometry_values
+
+    def _both_ways(self, joined: NDArray, other: int, tag: int) -> tuple:
         """Send a sweep's two swaps' rows to ``other``, the neighbour on both sides, as one
-        message (a row giving the first's count, then both), and return the two parts of
-        the one that arrives from it: the rows of its first swap and of its second, which
-        come to this rank's first and second (its lower face's atoms arrive across this
-        rank's upper face)."""
-        joined = np.empty((1 + len(first) + len(second), first.shape[1]))
-        joined[0] = 0.0
-        joined[0, 0] = len(first)
-        joined[1 : 1 + len(first)] = first
-        joined[1 + len(first) :] = second
+        message (``joined``: a row giving the first's count, then both, as
+        :func:`sweep_send` writes them), and return the two parts of the one that arrives
+        from it: the rows of its first swap and of its second, which come to this rank's
+        first and second (its lower face's atoms arrive across this rank's upper face)."""
         arrived = self.ranks.exchange_rows(joined, other, other, tag)
         split = 1 + int(arrived[0, 0])
-        return [arrived[1:split], arrived[split:]]
+        return arrived[1:split], arrived[split:]
 
     def layout_holds(self, state: State) -> bool:
         """Whether the last build's periodic axes still suit ``state``'s cell (a barostat
@@ -538,14 +546,38 @@ class Domain:
         if compiled is None or not self.swaps:
             return None
         if self._plan_swaps is not self.swaps:  # (a build lays out a new list of swaps)
-            by_axis: dict[int, list[_Swap]] = {}
-            for swap in self.swaps:
-                by_axis.setdefault(swap.axis, []).append(swap)
-            groups = list(by_axis.values())
-            remote = any(group[0].dest != self.rank for group in groups)
-            self._plan = _Plan(groups, self.rank, compiled) if remote else None
+            self._plan = None
+            if self._swept is not None:  # (a swap to another rank: the build's tables)
+                (index, table, shifts, sweeps), n_sweeps, n_sent, n_ghosts = self._swept
+                if self._slots is None:
+                    self._slots = compiled.slots(4)  # (a sweep's 2 swaps, 2 messages each)
+                self._plan = _Plan(
+                    sweeps[:n_sweeps],
+                    table[: 2 * n_sweeps],
+                    shifts[: 2 * n_sweeps],
+                    index[:n_sent],
+                    self._buffer(n_sent, 3, "halo out"),
+                    self._buffer(n_ghosts, 3, "halo back"),
+                    self._slots,
+                    compiled,
+                )
             self._plan_swaps = self.swaps
         return self._plan
+
+    def _swap_tables(self) -> list[NDArray]:
+        """This build's swap tables (of the set its parity picks): the send lists end to
+        end, a row a swap, its shift, a row a sweep (:func:`sweep_send`'s columns); at
+        most three sweeps of two swaps."""
+        held = self._tables[self._parity]
+        if held is None:
+            held = [
+                np.zeros(64, dtype=np.int64),
+                np.zeros((6, 8), dtype=np.int64),
+                np.zeros(6),
+                np.zeros((3, 4), dtype=np.int64),
+            ]
+            self._tables[self._parity] = held
+        return held
 
     def sweeps(self) -> list[_Sweep]:
         """The swaps grouped by axis, each group's persistent messages made once a build."""
@@ -609,6 +641,11 @@ class Domain:
                 other.fill(0)
                 pair[1 - self._parity] = other
         return held
+
+    def _held(self, name: str, k: int) -> NDArray:
+        """The whole array :meth:`_buffer` keeps under (name, k) (64 rows if none yet)."""
+        held = self._buffers.get((name, k))
+        return held if held is not None else self._buffer(64, k, name)
 
     def _buffer(self, n: int, k: int, name: str = "message", dtype=np.float64) -> NDArray:
         """n rows of k values from memory this Domain keeps under (name, k): a fresh 10^8-byte

@@ -17,7 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from md.box import periodic_tilt
-from md.distributed._domain_kernels import leaving_along, refill_plan, refill_rows
+from md.distributed._domain_kernels import (
+    leaving_along,
+    pack_leaving,
+    refill_plan,
+    refill_rows,
+    same_start,
+    unpack_arriving,
+)
 from md.errors import DecompositionError
 from md.state import State
 
@@ -37,9 +44,7 @@ class RowStore:
         first rows (the usual case), else copied into it first; if ``values`` is
         ``spent``, the array it is the first rows of, changed in place, where that has
         the room."""
-        store = _room_of(values, size) if spent else None
-        if store is None:
-            store = self.store(key, values, n, size)
+        store = self.target(key, values, n, size, spent)
         width = math.prod(values.shape[1:])
         sources, targets, arrivals = plan
         refill_rows(
@@ -50,6 +55,22 @@ class RowStore:
             arrivals,
         )
         return store[:size]
+
+    def target(self, key, values: NDArray, n: int, size: int, spent: bool = False) -> NDArray:
+        """The array a sweep leaving ``size`` rows refills in place for ``values`` (n rows):
+        :meth:`store`'s, or where ``values`` is ``spent``, the array it is the first rows
+        of, where that has the room (see :meth:`refilled`)."""
+        store = _room_of(values, size) if spent else None
+        return self.store(key, values, n, size) if store is None else store
+
+    def message(self, key, n: int, width: int) -> NDArray[np.float64]:
+        """n rows of ``width`` floats kept under ``key`` (a migration's outgoing rows: sent
+        and waited for before the next use)."""
+        held = self._stores.get(("message", key))
+        if held is None or held.shape[0] < n or held.shape[1] != width:
+            held = np.empty((n + n // 4 + 16, width))
+            self._stores[("message", key)] = held
+        return held[:n]
 
     def store(self, key, values: NDArray, n: int, size: int) -> NDArray:
         """The array kept under ``key`` for ``values``' rows, holding them in its first ``n``
@@ -63,7 +84,7 @@ class RowStore:
             and store.shape[1:] == values.shape[1:]
             and store.shape[0] >= max(n, size)
         )
-        if fits and n and values.ctypes.data == store.ctypes.data and values.base is store:
+        if fits and n and values.base is store and same_start(values, store):
             return store  # values are its first rows: changed in place
         if not fits:
             rows = max(n, size)
@@ -115,6 +136,10 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
     arrays += [np.asarray(carried[name]) for name in names]
     keys = [("state", k) for k in range(5)] + [("carried", name) for name in names]
+    # The pack and the sweep's refill are a compiled call each where the arrays are the
+    # state's usual ones and the carried ones C-contiguous float64 (else numpy does the
+    # same in Python: the same message layout and rows).
+    compiled, width = _compiled_layout(arrays)
     n = state.n_atoms
     lost = 0
     tilt = periodic_tilt(state.tilt, state.pbc)
@@ -134,25 +159,35 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
         )
         lost += far
         lower, upper = domain.neighbors[axis]
+        flat = _flat(arrays) if compiled else None
         if grid.shape[axis] == 2:
             # Two bricks along the axis: both neighbours are the one other rank, and every
             # leaver is in ``ups`` (``downs`` stays empty), so one message each way.
-            (from_lower,) = ranks.exchange_many([(_packed(arrays, ups), upper, lower, 2 * axis)])
+            going = _packed(arrays, ups, flat, domain.rows, "up", width)
+            (from_lower,) = ranks.exchange_many([(going, upper, lower, 2 * axis)])
             from_upper = from_lower[:0]
         else:
+            going_up = _packed(arrays, ups, flat, domain.rows, "up", width)
+            going_down = _packed(arrays, downs, flat, domain.rows, "down", width)
             from_lower, from_upper = ranks.exchange_many(
-                [
-                    (_packed(arrays, ups), upper, lower, 2 * axis),
-                    (_packed(arrays, downs), lower, upper, 2 * axis + 1),
-                ]
+                [(going_up, upper, lower, 2 * axis), (going_down, lower, upper, 2 * axis + 1)]
             )
-        if len(ups) + len(downs) + len(from_lower) + len(from_upper) == 0:
+        m = len(from_lower) + len(from_upper)
+        if len(ups) + len(downs) + m == 0:
+            continue
+        size = n - len(ups) - len(downs) + m  # (ups and downs are different atoms)
+        if compiled:
+            stores = [
+                domain.rows.target(key, a, n, size, key[0] == "carried" and key[1] in spent)
+                for key, a in zip(keys, arrays, strict=True)
+            ]
+            unpack_arriving(ups, downs, n, from_lower, from_upper, *stores[:5], _flat(stores))
+            arrays = [store[:size] for store in stores]
+            n = size
             continue
         incoming = _unpacked(np.concatenate([from_lower, from_upper]), arrays)
         leaving = np.sort(np.concatenate([ups, downs]))
-        m = len(incoming[0])
         plan = refill_plan(leaving, n, m)
-        size = n - len(leaving) + m
         arrays = [
             domain.rows.refilled(key, a, n, size, b, plan, key[0] == "carried" and key[1] in spent)
             for key, a, b in zip(keys, arrays, incoming, strict=True)
@@ -202,16 +237,50 @@ def _room_of(values: NDArray, size: int) -> NDArray | None:
         or not values.flags.c_contiguous
         or root.dtype != values.dtype
         or root.shape[1:] != values.shape[1:]
-        or root.ctypes.data != values.ctypes.data
+        or not same_start(root, values)
         or root.shape[0] < size
     ):
         return None
     return root
 
 
-def _packed(arrays, rows: NDArray[np.int64]) -> NDArray[np.float64]:
+_NO_COLUMNS = np.zeros((0, 0))  # (ends the carried arrays' tuple: never indexed)
+_STATE_TYPES = ((np.float64, 2), (np.float64, 2), (np.float64, 1), (np.int32, 1), (np.int64, 1))
+
+
+def _compiled_layout(arrays) -> tuple[bool, int]:
+    """Whether :func:`pack_leaving` and :func:`unpack_arriving` take ``arrays`` (the state's
+    positions, velocities, masses, types and ids, then the carried ones: the state's of
+    their usual types, the carried ones C-contiguous float64, all C-contiguous), and the
+    message's width (floats a row). Plain loops: this runs at every migration."""
+    compiled, width = True, 0
+    for k, a in enumerate(arrays):
+        row = math.prod(a.shape[1:])
+        width += row
+        if k < 5:
+            dtype, ndim = _STATE_TYPES[k]
+            usual = a.dtype == dtype and a.ndim == ndim and (ndim == 1 or row == 3)
+        else:
+            usual = a.dtype == np.float64
+        compiled = compiled and usual and a.flags.c_contiguous
+    return compiled, width
+
+
+def _flat(arrays) -> tuple:
+    """The carried arrays (after the state's five) as 2-D views, one row an atom, and the
+    empty one that ends the tuple (so that it is never empty)."""
+    return tuple([a.reshape(len(a), math.prod(a.shape[1:])) for a in arrays[5:]] + [_NO_COLUMNS])
+
+
+def _packed(arrays, rows: NDArray[np.int64], flat=None, store=None, key=None, width=0):
     """Rows ``rows`` of the per-atom ``arrays`` side by side, as floats (integers are exact
-    below 2^53): one row per atom that leaves."""
+    below 2^53): one row per atom that leaves. With ``flat`` (:func:`_flat` of them, where
+    :func:`_compiled_layout` holds), one compiled call into memory ``store`` keeps under
+    ``key``."""
+    if flat is not None:
+        out = store.message(key, len(rows), width)
+        pack_leaving(rows, *arrays[:5], flat, out)
+        return out
     widths = [math.prod(a.shape[1:]) for a in arrays]
     out = np.empty((len(rows), sum(widths)))
     start = 0
