@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/mixed_step_phases.py                   # 32000 atoms, 1 and 2 threads
     python benchmarks/mixed_step_phases.py --rounds 15 --calls 10 --threads 1
+    python benchmarks/mixed_step_phases.py --fallback --rounds 15   # the fallback, now/before
 
 The LJ melt of ``lj_melt.py`` (fcc at rho* 0.8442, T* 3, LJ truncated at 2.5, skin 0.3,
 velocity Verlet, dt 0.005) in mixed precision, run 300 steps; then, on that state's
@@ -19,9 +20,13 @@ copies of the arrays it writes:
 - the cluster kernel;
 - the sum into atom order with the finite check and the last kick (``finish_step``);
 
-and the whole step (blocks of ``--block`` steps of the Simulation, the fallback steps
-among them: the list's prune or search, the forces over the new list, the kick), with the
-list's update per fallback step from the force field's timings. The phases take turns
+two passes that a fallback step made a second time before issue 70's round (the
+displacement from the last prune, the cache copy), and the whole step (blocks of
+``--block`` steps of the Simulation, the fallback steps among them: the list's prune or
+search, the forces over the new list, the kick), with the list's update per fallback
+step from the force field's timings. ``--fallback``: the whole step with the fallback as
+now against as before (the list's update measuring again, ``compute`` and its copy, the
+integrator's kick), two Simulations in one process. The phases take turns
 in an order that rotates from round to round (``--rounds``, each phase ``--calls`` calls
 a round), so that load from other processes falls on all of them alike; figures are
 medians over the rounds of the per-call wall time, and the share of each phase in the
@@ -43,7 +48,8 @@ from _machine import machine_line  # noqa: E402
 
 import md  # noqa: E402
 from integrators import VelocityVerlet  # noqa: E402
-from md.parallel import max_threads, same_values, set_threads  # noqa: E402
+from md.neighbors.lists import largest_displacement2  # noqa: E402
+from md.parallel import copy_into, max_threads, same_values, set_threads  # noqa: E402
 from potentials import LennardJones  # noqa: E402
 from potentials._step_kernels import (  # noqa: E402
     cluster_runs,
@@ -79,6 +85,12 @@ def _phases(sim: md.Simulation, block: int) -> dict:
 
     def compare():
         same_values(key, positions)
+
+    def displacement():  # a fallback's second measure before issue 70's round
+        largest_displacement2(positions, held, chunks)
+
+    def copy():  # a fallback's second cache copy before it
+        copy_into(key, positions)
 
     def fused_pass(allowed):
         kick_drift_slots(
@@ -125,6 +137,8 @@ def _phases(sim: md.Simulation, block: int) -> dict:
         "cluster kernel": kernel,
         "sum into atom order + finite + kick": finish,
         "steps": steps,
+        "displacement pass": displacement,
+        "cache copy": copy,
     }
 
 
@@ -176,6 +190,52 @@ def measure(count: int, cells: int, rounds: int, calls: int, block: int) -> None
         f" ({list_us / share if share else 0.0:.0f} us per fallback step)"
     )
     print(f"  {'rest (Python, fallback forces, ...)':40s} {us['steps'] - total - list_us:9.1f}")
+    print(
+        f"  passes a fallback step no longer repeats: displacement {us['displacement pass']:.1f},"
+        f" cache copy {us['cache copy']:.1f}"
+    )
+
+
+def _as_before(sim: md.Simulation) -> md.Simulation:
+    """``sim`` with the fallback as it was before issue 70's round: the list's update
+    measures the displacement again and the force field's ``compute``, its cache copy
+    and velocity Verlet's own kick make the rest of the step (the same bits)."""
+    nl, potential = sim.forcefield.neighbor_list, sim.forcefield.potentials[0]
+    update, step = nl.update, potential.mixed_verlet_step
+    nl.update = lambda state, moved2=None: update(state)
+    potential.mixed_verlet_step = lambda state, neighbors, kicks, *rest: (
+        None if kicks is None else step(state, neighbors, kicks, *rest)
+    )
+    return sim
+
+
+def fallback(count: int, cells: int, rounds: int, block: int) -> None:
+    """The fallback as now against as before, two Simulations of one start in one process
+    (the same trajectory, so the same steps prune or search), blocks of ``block`` steps
+    taking turns, the order alternating: medians of the per-pair ratios of wall time
+    and of the calling thread's CPU time."""
+    set_threads(count)
+    sims = {"now": _simulation(cells), "before": _as_before(_simulation(cells))}
+    for sim in sims.values():
+        sim.run(300)
+    wall = {name: [] for name in sims}
+    cpu = {name: [] for name in sims}
+    for r in range(rounds):
+        for name in ("now", "before") if r % 2 == 0 else ("before", "now"):
+            begin, used = time.perf_counter(), time.thread_time()
+            sims[name].run(block)
+            wall[name].append(time.perf_counter() - begin)
+            cpu[name].append(time.thread_time() - used)
+    a, b = sims["now"].state, sims["before"].state
+    same = bool((a.positions == b.positions).all() and (a.velocities == b.velocities).all())
+    ratio_wall = statistics.median(x / y for x, y in zip(wall["now"], wall["before"], strict=True))
+    ratio_cpu = statistics.median(x / y for x, y in zip(cpu["now"], cpu["before"], strict=True))
+    ms = {name: 1e3 * statistics.median(v) / block for name, v in wall.items()}
+    print(
+        f"{count} thread(s), fallback now / before, {rounds} blocks of {block} steps each: "
+        f"wall {ratio_wall:.3f}, calling thread's CPU {ratio_cpu:.3f} (ms a step "
+        f"{ms['now']:.3f} / {ms['before']:.3f}); same trajectory: {same}"
+    )
 
 
 def main() -> None:
@@ -185,13 +245,21 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=11, help="rounds of turns (11)")
     parser.add_argument("--calls", type=int, default=20, help="calls of a phase a round (20)")
     parser.add_argument("--block", type=int, default=20, help="steps of a whole-step block (20)")
+    parser.add_argument(
+        "--fallback",
+        action="store_true",
+        help="the fallback steps' path now against as before, in one process",
+    )
     args = parser.parse_args()
     print(machine_line())
     for count in (int(t) for t in args.threads.split(",")):
         if count > max_threads():
             print(f"{count} threads: numba offers {max_threads()}, skipped")
             continue
-        measure(count, args.cells, args.rounds, args.calls, args.block)
+        if args.fallback:
+            fallback(count, args.cells, 2 * args.rounds, args.block)
+        else:
+            measure(count, args.cells, args.rounds, args.calls, args.block)
 
 
 if __name__ == "__main__":
