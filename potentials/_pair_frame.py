@@ -640,12 +640,7 @@ class PairPotential:
                 return None
             result = self.energy_forces(state, neighbors, virial=False, precision="mixed")
             energy = finish_forces(
-                result.forces,
-                result.energy,
-                state.velocities,
-                state.masses,
-                kick_dt,
-                pass_chunks(state.n_atoms),
+                result.forces, result.energy, state.velocities, state.masses, kick_dt
             )
             if energy != energy:
                 return 2, None

@@ -257,45 +257,14 @@ def finish_step(
     )
 
 
-def finish_forces(forces, energy: float, velocities, masses, kick_dt, chunks: int) -> float:
+def finish_forces(forces, energy: float, velocities, masses, kick_dt) -> float:
     """After a force call made apart (the list refreshed since :func:`kick_drift_slots`):
     the finite check of ``forces`` (N, 3, atom order) and of ``energy``, then, all finite,
-    v += kick_dt f/m (as :func:`finish_step` kicks), in ``chunks`` chunks of atoms on the
-    threads. Returns ``energy``, or NaN where it or a force is not finite (nothing kicked)."""
-    if chunks == 1:
-        return _finish_forces(forces, energy, velocities, masses, kick_dt)
-    return _finish_forces_threaded(forces, energy, velocities, masses, kick_dt, chunks)
-
-
-@njit(cache=True, error_model="numpy")
-def _finish_forces(forces, energy, velocities, masses, kick_dt):
-    finite = True
-    for i in range(forces.shape[0]):
-        for a in range(3):
-            finite &= abs(forces[i, a]) < np.inf
-    if not (finite and abs(energy) < np.inf):
-        return np.nan
-    _kick_by_mass(velocities, forces, masses, kick_dt)
-    return energy
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _finish_forces_threaded(forces, energy, velocities, masses, kick_dt, chunks):
-    n = velocities.shape[0]
-    finite = np.ones(chunks, np.bool_)
-    for c in prange(chunks):
-        a, b = c * n // chunks, (c + 1) * n // chunks
-        ok = True
-        for i in range(a, b):
-            for d in range(3):
-                ok &= abs(forces[i, d]) < np.inf
-        finite[c] = ok
-    if not (finite.all() and abs(energy) < np.inf):
-        return np.nan
-    for c in prange(chunks):
-        a, b = c * n // chunks, (c + 1) * n // chunks
-        _kick_by_mass(velocities[a:b], forces[a:b], masses[a:b], kick_dt)
-    return energy
+    v += kick_dt f/m (as :func:`finish_step` kicks). One serial compiled call, the one
+    :func:`finish_step` makes after a kernel of one chunk (no other kernel to compile for
+    the fifth of the steps that take this path). Returns ``energy``, or NaN where it or
+    a force is not finite (nothing kicked)."""
+    return _finish_one_chunk(forces, np.full(1, energy), velocities, masses, kick_dt)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

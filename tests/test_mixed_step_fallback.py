@@ -152,7 +152,7 @@ def test_the_fallback_gives_the_general_paths_numbers():
 def test_the_fallback_in_two_chunks_gives_the_general_paths_numbers(threads, monkeypatch):
     """Two threads, the passes' and the list's fewest atoms per chunk lowered so that 2048
     atoms split, on velocity Verlet's threaded branch (its threshold lowered): the
-    fallback's threaded finite check and kick give the general path's bits."""
+    fallback (its finite check and kick serial) gives the general path's bits."""
     threads(2)
     monkeypatch.setattr(potentials._step_kernels, "_MIN_PASS_SLOTS", 500)
     monkeypatch.setattr(potentials._kernels, "_MIN_PASS_SLOTS", 500)
