@@ -8,9 +8,10 @@ copied into the force field's cache (not copied again, no ``compute``).
 
 What is tested: on such steps the displacement from the last prune is not measured
 again (one pass, from the search, to choose a prune or a search), the cache's copy and
-``compute`` are not made, the numbers are the general path's to the bit on one chunk and
-on two threads' chunks, and forces that are not finite after a search stop the run with
-the general path's error. No timings: ``benchmarks/mixed_step_phases.py``."""
+``compute`` are not made, the numbers are the general path's to the bit (on two threads'
+chunks: tests/test_mixed_step_passes.py, whose two-chunk run falls back too), and forces
+that are not finite after a search stop the run with the general path's error. No
+timings: ``benchmarks/mixed_step_phases.py``."""
 
 from __future__ import annotations
 
@@ -22,27 +23,15 @@ import numpy as np
 import pytest
 
 import integrators
-import integrators.velocity_verlet
 import md
 import md.forcefield
 import md.neighbors.lists
 import potentials
-import potentials._kernels
-import potentials._step_kernels
 from integrators import VelocityVerlet
 from md.errors import SimulationError
-from md.parallel import get_threads, max_threads, set_threads
 from potentials import LennardJones
 
 DT = 0.005
-
-
-@pytest.fixture
-def threads():
-    """Set the thread count inside a test; the one before is restored after it."""
-    before = get_threads()
-    yield set_threads
-    set_threads(before)
 
 
 def simulation(fused: bool = True, cells: int = 8) -> md.Simulation:
@@ -145,26 +134,6 @@ def test_the_fallback_gives_the_general_paths_numbers():
     fused.run(80)
     general.run(80)
     assert fused.forcefield.neighbor_list.n_builds > 1
-    _same_run(fused, general)
-
-
-@pytest.mark.skipif(max_threads() < 2, reason="numba offers one thread")
-def test_the_fallback_in_two_chunks_gives_the_general_paths_numbers(threads, monkeypatch):
-    """Two threads, the passes' and the list's fewest atoms per chunk lowered so that 2048
-    atoms split, on velocity Verlet's threaded branch (its threshold lowered): the
-    fallback (its finite check and kick serial) gives the general path's bits."""
-    threads(2)
-    monkeypatch.setattr(potentials._step_kernels, "_MIN_PASS_SLOTS", 500)
-    monkeypatch.setattr(potentials._kernels, "_MIN_PASS_SLOTS", 500)
-    monkeypatch.setattr(md.neighbors.lists, "_MIN_PASS_ATOMS", 500)
-    monkeypatch.setattr(integrators.velocity_verlet, "SERIAL_ATOMS", 1000)
-    fused, general = simulation(), simulation(fused=False)
-    fused.run(1)
-    general.run(1)
-    assert len(fused.forcefield.neighbor_list.clusters.bounds) == 3
-    counts = profiled(lambda: fused.run(50))
-    general.run(50)
-    assert counts["finish_forces"] > 0 and counts["compute"] == 0
     _same_run(fused, general)
 
 
