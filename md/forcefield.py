@@ -203,7 +203,10 @@ class ForceField:
         potential's ``mixed_verlet_step`` (:meth:`potentials.PairPotential.mixed_verlet_step`:
         two threaded passes over the atoms around the cluster kernel, the first also
         writing this cache's copy of the positions), for a system of any size whose
-        cache holds arrays (over 1000 atoms). ``threaded``: the caller's own passes would
+        cache holds arrays (over 1000 atoms); where the pass finds an atom past the list's
+        rule, the list's update takes the displacement it measured, and the forces and the
+        last kick are the potential's second call (the positions not copied again): 2.
+        ``threaded``: the caller's own passes would
         run on the threads (velocity Verlet's, from 32000 atoms): the double step, one
         serial call, is then not made (0).
         """
@@ -288,10 +291,23 @@ class ForceField:
             *check,
             key[0],
         )
-        self.timings["force"] += clock() - start
+        timings = self.timings
+        middle = clock()
+        timings["force"] += middle - start
         if served is None:
             return 0
         code, result = served
+        if code == 1 and math.isfinite(result):
+            # kicked and drifted, and an atom moved past the list's rule: its prune or
+            # search, measured from the pass's own displacement (not measured again),
+            # then the forces and the last kick in the potential's second call (the
+            # positions are already in key[0]: not copied again)
+            neighbor_list.update(state, result)
+            start = clock()
+            timings["neighbor"] += start - middle
+            served = step(potential, state, neighbor_list, None, kick_dt, drift_dt, None, 0.0, None)
+            timings["force"] += clock() - start
+            code, result = (1, None) if served is None else served
         if code != 0:  # kicked and drifted: the list's update, compute and the kick are the
             self._cached = None  # caller's (compute says what is not finite); key[0] moved on
             return 1

@@ -61,7 +61,13 @@ from potentials._pair_codegen import (
     kernels_for,
     variant,
 )
-from potentials._step_kernels import cluster_runs, finish_step, kick_drift_slots, pass_chunks
+from potentials._step_kernels import (
+    cluster_runs,
+    finish_forces,
+    finish_step,
+    kick_drift_slots,
+    pass_chunks,
+)
 from potentials.base import PRECISIONS, ForceResult, check_precision_name
 from potentials.pair_hessian import PairHessian
 from potentials.pair_terms import HEADROOM, PairTerm, all_numbers
@@ -618,9 +624,27 @@ class PairPotential:
         ForceResult (no virial); 1, only the first kick and drift done (an atom moved
         too far, or a coordinate is not finite: the caller refreshes the list, then
         evaluates and kicks; ``key`` holds the new positions either way); 2, a force or
-        the energy not finite, the last kick not done; ``result`` None. The same bits
-        as the separate kicks, list check and :meth:`energy_forces`.
+        the energy not finite, the last kick not done; ``result`` None. With code 1,
+        ``result`` is the largest squared distance from ``held`` that the pass measured
+        (what :meth:`md.neighbors.NeighborList.update` may take instead of measuring it
+        again). The same bits as the separate kicks, list check and :meth:`energy_forces`.
+
+        ``kicks`` None: the second call of a step whose list was refreshed after the
+        first one's drift (``held``, ``allowed2`` and ``key`` unused): the forces by
+        :meth:`energy_forces` (over the new list; the positions are those ``key``
+        holds), the finite check and v += kick_dt forces/m; ``(0, result)``, or ``(2,
+        None)`` where a value is not finite (nothing kicked).
         """
+        if kicks is None:
+            if type(self).energy_forces is not PairPotential.energy_forces:
+                return None
+            result = self.energy_forces(state, neighbors, virial=False, precision="mixed")
+            energy = finish_forces(
+                result.forces, result.energy, state.velocities, state.masses, kick_dt
+            )
+            if energy != energy:
+                return 2, None
+            return 0, result
         call = self._cluster_calls[0]
         if (  # the conditions of energy_forces' kept cluster call
             call is None
@@ -655,7 +679,7 @@ class PairPotential:
             chunks,
         )
         if not moved2 <= allowed2:  # (NaN too: the list's update says what)
-            return 1, None
+            return 1, moved2
         forces = np.empty((state.n_atoms, 3))
         self._cluster_kernel(prepared, state, False, forces)
         windows, runs = clusters.windows, self._sum_runs

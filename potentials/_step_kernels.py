@@ -257,6 +257,16 @@ def finish_step(
     )
 
 
+def finish_forces(forces, energy: float, velocities, masses, kick_dt) -> float:
+    """After a force call made apart (the list refreshed since :func:`kick_drift_slots`):
+    the finite check of ``forces`` (N, 3, atom order) and of ``energy``, then, all finite,
+    v += kick_dt f/m (as :func:`finish_step` kicks). One serial compiled call, the one
+    :func:`finish_step` makes after a kernel of one chunk (no other kernel to compile for
+    the fifth of the steps that take this path). Returns ``energy``, or NaN where it or
+    a force is not finite (nothing kicked)."""
+    return _finish_one_chunk(forces, np.full(1, energy), velocities, masses, kick_dt)
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _energy(energies):
     """The chunks' energies summed as numpy sums them (left to right from the first)."""

@@ -711,13 +711,19 @@ class NeighborList:
         held = reference if self._outer is None else self._pruned_at
         return held, self._rebuild_distance2
 
-    def update(self, state: State) -> bool:
+    def update(self, state: State, moved2: float | None = None) -> bool:
         """Rebuild the list if needed; return True if it was rebuilt.
 
         When the cell changed within what the list covers (a barostat's small
         deformation), the pairs, slots and image codes are kept and the cell
         is followed: ``lengths``, ``tilt`` and ``shifts`` become the new
         cell's, so slot positions and image shifts are those of the new cell.
+
+        ``moved2``: the largest squared distance of ``state``'s atoms from the ``held``
+        positions of :meth:`cluster_check` (of the same state, list and cell), measured
+        by the caller's own pass (the mixed-precision fused step's), so that this
+        update does not measure it again; ignored unless the half-skin rule alone
+        decides (as :meth:`cluster_check` says).
         """
         reference = self._reference
         if (
@@ -735,8 +741,9 @@ class NeighborList:
             # prune, then (past half the skin) from the search to choose a prune or a
             # search, as _verdict would.
             outer = self._outer is not None
-            since = self._pruned_at if outer else reference
-            moved2 = _largest_displacement2(state.positions, since, self._pass_chunks)
+            if moved2 is None or self._clusters is None:
+                since = self._pruned_at if outer else reference
+                moved2 = _largest_displacement2(state.positions, since, self._pass_chunks)
             if moved2 <= self._rebuild_distance2:
                 return False
             if not math.isfinite(moved2):
