@@ -14,10 +14,10 @@ allocations are not counted), and the Python functions called most a step.
 
 The pieces: the step start (``_stopping``: the stop and migration decision, the step
 start's copy, ``step_begins``), velocity Verlet's own lines, the force field's fused
-step (``verlet_step``: its own lines, its first compiled call ``step_out``, the all-gather
-``gather_fold`` and ``reverse_kick``; where it does not serve the step, or in the code
-before it, velocity Verlet's kick + drift and closing kick and the calls below), the force
-field's cache and in-step decision (``compute``,
+step (``verlet_step``: its own lines, its first compiled call ``step_out`` and its second,
+``gather_reverse_kick``: the all-gather, its fold, the reverse sweep and the kick; where it
+does not serve the step, or in the code before it, velocity Verlet's kick + drift and
+closing kick and the calls below), the force field's cache and in-step decision (``compute``,
 ``_result``, ``_in_step_decision``), ``_evaluate``'s own lines (the reduction's values,
 the error checks, the ``ForceResult``), ``refresh``'s own lines with ``allowance``, the
 displacement pass ``moved_since`` (compiled; it also writes the owned rows), the halo
@@ -78,7 +78,7 @@ PIECES = (
     "_settle_build",
     "Domain.reverse own lines",
     "reverse sweep (compiled halo_reverse)",
-    "reverse_kick: reverse sweep, closing kick (compiled)",
+    "gather_reverse_kick: all-gather, fold, reverse, kick (compiled)",
     "closing kick (compiled)",
     "end_step",
 )
@@ -173,7 +173,11 @@ def _wrap_step(pieces: _Switch, sim) -> None:
         (forcefield, "_settle_build", "_settle_build"),
         (domain, "reverse", "Domain.reverse own lines"),
         (halo, "halo_reverse", "reverse sweep (compiled halo_reverse)"),
-        (dff, "reverse_kick", "reverse_kick: reverse sweep, closing kick (compiled)"),
+        (
+            dff,
+            "gather_reverse_kick",
+            "gather_reverse_kick: all-gather, fold, reverse, kick (compiled)",
+        ),
         (integrator, "end_step", "end_step"),
     )
     for owner, attribute, name in wrapped:

@@ -33,8 +33,7 @@ from md.distributed._domain_kernels import (
     moved_since,
     predicted_positions,
 )
-from md.distributed._mpi_kernels import gather_fold
-from md.distributed._verlet_kernels import closing_kick, reverse_kick, step_out
+from md.distributed._verlet_kernels import closing_kick, gather_reverse_kick, step_out
 from md.distributed.bonded import BondedShare
 from md.distributed.grid import Grid
 from md.distributed.halo import AGREED_STRAY, Domain
@@ -237,9 +236,10 @@ class DistributedForceField:
         """As :meth:`md.ForceField.verlet_step` (2 done, 0 nothing done; collective): where
         the step's first call takes the held forces, in double precision without virial
         or bonded terms, on compiled sweeps and the build's cell, ``step_out`` (kick, drift,
-        ``moved_since``, owned rows, ghosts sent), the local ``compute``, ``gather_fold``,
-        ``reverse_kick`` (ghost forces back, closing kick); else as :meth:`_evaluate`. The
-        same messages, bookkeeping and bits as :meth:`compute` and the kicks."""
+        ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
+        ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
+        :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
+        the kicks; the two compiled calls on the ranks' clock."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
         domain, positions, cell = self.domain, state.positions, self._cell_bytes
         if (
@@ -268,14 +268,13 @@ class DistributedForceField:
             self._matrix_key = cell
         owned = domain.owned_rows(state)
         halo = (plan.sweeps, plan.table, plan.shifts, plan.index, plan.out, plan.slots)
-        start = time.perf_counter()
-        code, moved2, step2, coming2 = step_out(
-            *(positions, state.velocities, held[1].forces, state.masses, kick_dt, drift_dt),
-            *(reference, _IDENTITY, begin, self.step_before, owned, len(owned) > 0),
-            *(domain.n_owned, domain.imaged, domain.images, self._matrix),
-            *(domain.local_state.positions, *halo, plan.calls),
-        )
-        sent = time.perf_counter()
+        with self.ranks.clock:  # (the kick, drift and displacement pass with the messages)
+            code, moved2, step2, coming2 = step_out(
+                *(positions, state.velocities, held[1].forces, state.masses, kick_dt, drift_dt),
+                *(reference, _IDENTITY, begin, self.step_before, owned, len(owned) > 0),
+                *(domain.n_owned, domain.imaged, domain.images, self._matrix),
+                *(domain.local_state.positions, *halo, plan.calls),
+            )
         plan.check(code)
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
         allowed = 0.5 * self.skin
@@ -283,11 +282,12 @@ class DistributedForceField:
         covered = math.sqrt(moved2) <= allowed and domain.layout_holds(state)
         ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
         error, result = None, None
+        start = time.perf_counter()
         try:
             result = self.local.compute(domain.local_state, False, False)
         except Exception as caught:  # shared with every rank below
             error = self._global_error(caught)
-        computed = time.perf_counter()
+        self.timings["force"] += time.perf_counter() - start
         values = self._values
         values[:] = 0.0
         values[0] = error is not None
@@ -296,34 +296,28 @@ class DistributedForceField:
         values[15] = self._moved_report
         values[17] = 0.0 if outcome is None else outcome[0]  # (16: none failed, see above)
         totals, worst = self._totals, self._worst
-        code = gather_fold(values, self._gathered, 11, totals, worst, plan.calls)
-        self.ranks.clock.seconds += (sent - start) + (time.perf_counter() - computed)
+        forces = _NONE if result is None else result.forces
+        with self.ranks.clock:  # (the closing kick with the messages)
+            code, done = gather_reverse_kick(
+                *(values, self._gathered, totals, worst, forces, plan.sweeps, plan.table),
+                *(plan.index, plan.out, plan.back, plan.slots, plan.calls),
+                *(state.velocities, state.masses, kick_dt),
+            )
         plan.check(code)
-        self.timings["force"] += computed - sent
         if outcome is not None:
             self._settle_build(worst[6:4:-1])  # (another rank's failure raises here)
         self._shared(worst)
-        forces = None if result is None else result.forces
-        if worst[0]:  # some rank's list was outrun: all rebuild and evaluate again
-            self.rebuild(state, migrate=False)
-            error, result, totals, worst = self._attempt(state, None, False, False, False)
-            if worst[0]:
+        if done:
+            result = ForceResult(float(totals[1]), forces[: domain.n_owned], None)
+        else:  # not one rank's doing, or every rank's: all go on as _evaluate
+            if worst[0]:  # some rank's list was outrun: all rebuild and evaluate again
                 self.rebuild(state, migrate=False)
-            forces = None  # (the sweeps are the new build's)
-        if totals[0] or not math.isfinite(totals[1]) or forces is None:
+                error, result, totals, worst = self._attempt(state, None, False, False, False)
+                if worst[0]:
+                    self.rebuild(state, migrate=False)
             # (an error or a non-finite energy raises there, as in _evaluate)
             result = self._finish(error, result, totals, False, False)
             closing_kick(state.velocities, result.forces, state.masses, kick_dt)
-        else:
-            start = time.perf_counter()
-            code = reverse_kick(
-                forces,
-                *(plan.sweeps, plan.table, plan.index, plan.out, plan.back, plan.slots),
-                *(plan.calls, state.velocities, state.masses, kick_dt),
-            )
-            self.ranks.clock.seconds += time.perf_counter() - start
-            plan.check(code)
-            result = ForceResult(float(totals[1]), forces[: domain.n_owned], None)
         self._evaluated_in_step.add(None)
         self.n_evaluations += 1
         held[0][0][...] = positions  # (the key's copy: shaped as they are, _same held)
