@@ -2,6 +2,7 @@
 
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py               # 2000 steps, a minute
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --steps 4000 --profiled 300
+    mpiexec -n 2 python benchmarks/mpi_step_pieces.py --ab --blocks 21   # fused on / off
 
 On the 1152-atom LJ melt (``examples/lj_melt.toml`` on 8 x 6 x 6 cells, two bricks along
 x, as ``mpi_scaling.py`` runs it), velocity Verlet, no observers: the run loop's step (a
@@ -26,6 +27,11 @@ sweep (``halo_forward``, the messages inside), the local force field (its Python
 list's check, the pair kernel's call), the all-gather and fold (``gather_folded``),
 the last build's settling, the reverse's own lines and its compiled sweep
 (``halo_reverse``), and ``end_step``.
+
+With ``--ab``, instead: the fused step on and off (``verlet_step`` answering 0, "nothing
+done": the step made of ``compute`` and the kicks, as before it) in alternating blocks of
+200 steps of one launch, build steps included; each rank's thread CPU time and wall time a
+step, medians over the blocks, and on/off per block (median).
 
 Prints the CPU model and vector ISA. A wrapped call costs more than a bare one (printed:
 most of it lands in the own time of the piece it is nested in), so the pieces' sum is
@@ -304,6 +310,48 @@ def time_step_pieces(steps: int, profiled: int, comm) -> dict:
     }
 
 
+def time_ab(blocks: int, comm, steps: int = 200) -> dict:
+    """The fused step on and off in alternating blocks of ``steps`` (see the docstring)."""
+    sim = _simulation(CELLS)
+    sim.run(50)  # compiled, and the layout of a run
+    forcefield = sim.forcefield
+    if not hasattr(forcefield, "verlet_step"):
+        raise SystemExit("--ab needs the fused step (DistributedForceField.verlet_step)")
+    spent: dict[str, list] = {"on wall": [], "on cpu": [], "off wall": [], "off cpu": []}
+    for _ in range(blocks):
+        for name in ("on", "off"):
+            if name == "off":
+                forcefield.verlet_step = lambda *args: 0  # (nothing done)
+            comm.Barrier()
+            start, thread = time.perf_counter(), time.thread_time()
+            for _ in range(steps):
+                _one_step(sim)
+            spent[f"{name} wall"].append((time.perf_counter() - start) / steps)
+            spent[f"{name} cpu"].append((time.thread_time() - thread) / steps)
+            if name == "off":
+                del forcefield.verlet_step  # (the class's method again)
+    figures = {key: statistics.median(values) for key, values in spent.items()}
+    for kind in ("wall", "cpu"):
+        ratios = [a / b for a, b in zip(spent[f"on {kind}"], spent[f"off {kind}"], strict=True)]
+        figures[f"on/off {kind}"] = statistics.median(ratios)
+    return figures
+
+
+def print_ab(mine: list, comm, blocks: int) -> None:
+    print(machine_line())
+    print(
+        f"1152-atom melt on {comm.Get_size()} ranks: the fused step on and off, {blocks} "
+        "alternating blocks of 200 steps (build steps included), us a step, medians"
+    )
+    print("  rank   on wall  off wall  on/off    on CPU  off CPU  on/off")
+    for rank, f in enumerate(mine):
+        print(
+            f"  {rank:4d}  {f['on wall'] * 1e6:8.1f}  {f['off wall'] * 1e6:8.1f}  "
+            f"{f['on/off wall']:6.3f}  {f['on cpu'] * 1e6:8.1f} {f['off cpu'] * 1e6:8.1f}  "
+            f"{f['on/off cpu']:6.3f}"
+        )
+
+
 def print_step_pieces(mine: list, comm) -> None:
     print(machine_line())
     print(
@@ -359,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=2000, help="timed steps (2000)")
     parser.add_argument("--profiled", type=int, default=200, help="steps counted (200)")
     parser.add_argument("--json", help="write the figures to this file (rank 0)")
+    parser.add_argument("--ab", action="store_true", help="the fused step on / off")
+    parser.add_argument("--blocks", type=int, default=21, help="--ab's blocks (21)")
     args = parser.parse_args(argv)
     from mpi4py import MPI
 
@@ -366,6 +416,13 @@ def main(argv: list[str] | None = None) -> int:
     import md
 
     md.keep_freed_memory()  # as `md run` sets a process up
+    if args.ab:
+        mine = comm.gather(time_ab(args.blocks, comm), root=0)
+        if comm.Get_rank() == 0:
+            print_ab(mine, comm, args.blocks)
+            if args.json:
+                Path(args.json).write_text(json.dumps(mine, indent=2))
+        return 0
     mine = comm.gather(time_step_pieces(args.steps, args.profiled, comm), root=0)
     if comm.Get_rank() == 0:
         print_step_pieces(mine, comm)
