@@ -192,6 +192,7 @@ def test_the_fused_step_on_more_ranks_gives_the_same_bits(tmp_path, n_ranks):
 
 
 @needs_mpi
+@pytest.mark.slow  # the 1152-atom melt's kernels compile cold for it (~20 s on 2 cores)
 def test_a_decomposed_step_between_builds_makes_few_python_calls(tmp_path):
     (tmp_path / "both_ways.py").write_text(BOTH_WAYS.split("\nsteps, kick =")[0])
     counts = _launch(tmp_path, "calls", CALLS, 2, str(tmp_path))["counts"]
