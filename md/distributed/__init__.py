@@ -86,11 +86,11 @@ from md._kernel_cache import kernel_cache
 
 # Kernel modules are imported here so numba caches them per user (md._kernel_cache).
 with kernel_cache():
+    from md.distributed.bonded import longest_arm
     from md.distributed.forcefield import (
         BOND_SKINS,
         LOOKAHEAD,
         DistributedForceField,
-        longest_arm,
     )
     from md.distributed.grid import (
         Grid,

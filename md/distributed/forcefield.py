@@ -20,35 +20,31 @@ import copy
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from md.box import (
     cell_matrix,
-    minimum_image,
-    periodic_lengths,
     periodic_tilt,
     perpendicular_widths,
 )
 from md.distributed._domain_kernels import (
-    anchored_items,
     moved_since,
-    nearest_copies,
     predicted_positions,
 )
+from md.distributed._verlet_kernels import closing_kick, gather_reverse_kick, step_out
+from md.distributed.bonded import BondedShare
 from md.distributed.grid import Grid
 from md.distributed.halo import AGREED_STRAY, Domain
 from md.distributed.ranks import agree, gather_folded
-from md.errors import AngleCollapseError, DecompositionError, NonFiniteError
+from md.errors import DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
 from md.parallel import chunk_count, copy_into, global_max, same_values
 from md.state import State
 from md.topology import Topology
-from potentials.base import Bonded, BondedAngles, ForceResult
-from potentials.springs import BondStretchError
+from potentials.base import ForceResult
 
 logger = logging.getLogger(__name__)
 
@@ -65,53 +61,6 @@ _MIN_PASS_ATOMS = 16_000
 _IDENTITY = np.eye(3)
 #: No positions: no step start before the last one is known.
 _NONE = np.empty((0, 3))
-
-
-@dataclass
-class _Bonded:
-    """A bonded potential's items indexed by their anchor atom's id (a bond's first atom,
-    an angle's vertex), and the items this rank evaluated at the last build."""
-
-    index: int  # in the force field's list
-    items: NDArray[np.int64]  # (B, 2) bonds or (A, 3) angles, global ids
-    types: NDArray[np.int64]
-    anchor: int  # column of the anchor atom
-    order: NDArray[np.int64]  # items sorted by anchor id
-    starts: NDArray[np.int64]  # CSR offsets into order, by anchor id
-    local: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-
-
-def _index_bonded(index: int, potential) -> _Bonded | None:
-    """A bonded potential's items by anchor (None for a potential that lists no atoms)."""
-    if isinstance(potential, Bonded):
-        items, types, anchor = potential.bonds, potential.bond_types, 0
-    elif isinstance(potential, BondedAngles):
-        items, types, anchor = potential.angles, potential.angle_types, 1
-    else:
-        return None
-    items = np.asarray(items, dtype=np.int64)
-    order = np.argsort(items[:, anchor], kind="stable")
-    n_ids = int(items.max()) + 2 if len(items) else 1
-    starts = np.searchsorted(items[order, anchor], np.arange(n_ids)).astype(np.int64)
-    return _Bonded(index, items, np.asarray(types, dtype=np.int64), anchor, order, starts)
-
-
-def longest_arm(potentials, state: State) -> float:
-    """The longest bond, or angle arm from its vertex, of ``potentials`` in ``state``
-    (minimum image; 0 without bonds) [length]."""
-    longest = 0.0
-    for potential in potentials:
-        bonded = _index_bonded(0, potential)
-        if bonded is None or not len(bonded.items):
-            continue
-        anchors = bonded.items[:, bonded.anchor]
-        for column in range(bonded.items.shape[1]):
-            if column == bonded.anchor:
-                continue
-            d = state.positions[bonded.items[:, column]] - state.positions[anchors]
-            d = minimum_image(d, state.box, state.pbc, state.tilt)
-            longest = max(longest, float(np.sqrt((d * d).sum(axis=1)).max()))
-    return longest
 
 
 class DistributedForceField:
@@ -196,8 +145,8 @@ class DistributedForceField:
         self.stop_code = 0.0
         self.stop_seen = 0.0
         self.ahead = 0.0
-        indexed = [_index_bonded(i, p) for i, p in enumerate(self.potentials)]
-        self._bonded = [b for b in indexed if b is not None]
+        #: The bonded terms' items and this rank's share of them.
+        self.bonded = BondedShare(self.potentials)
         self.bond_reach = float(bond_reach)
         self.reference: NDArray[np.float64] | None = None
         self._reference_memory = np.empty((0, 3))  # (reference is a view of its first rows)
@@ -222,6 +171,9 @@ class DistributedForceField:
         #: and a step start's build's outcome (failed, longest bond: see rebuild).
         self._values = np.zeros(18)
         self._worst = np.zeros(7)
+        self._totals = np.zeros(11)
+        self._gathered = np.zeros((ranks.n_ranks, 18))  # (verlet_step's reduction)
+        self._matrix_key, self._matrix = None, np.eye(3)  # (verlet_step's cell matrix)
         self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
@@ -242,7 +194,7 @@ class DistributedForceField:
     def reach(self) -> float:
         """The ghost shell a build needs: the list radius, or the longest bond plus skins."""
         pairs = self.cutoff + self.skin if self.cutoff is not None else 0.0
-        bonds = self.bond_reach + BOND_SKINS * self.skin if self._bonded else 0.0
+        bonds = self.bond_reach + BOND_SKINS * self.skin if self.bonded.listed else 0.0
         return max(pairs, bonds)
 
     def check(self, state: State) -> None:
@@ -278,6 +230,100 @@ class DistributedForceField:
                     f"potential index {i} out of range (0..{len(self.potentials) - 1})"
                 )
         return self._result(state, which, False, virial)
+
+    def verlet_step(
+        self, state: State, kick_dt: float, drift_dt: float, threaded: bool = False
+    ) -> int:
+        """As :meth:`md.ForceField.verlet_step` (2 done, 0 nothing done; collective): where
+        the step's first call takes the held forces, in double precision without virial
+        or bonded terms, on compiled sweeps and the build's cell, ``step_out`` (kick, drift,
+        ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
+        ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
+        :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
+        the kicks; the two compiled calls on the ranks' clock."""
+        held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
+        domain, positions, cell = self.domain, state.positions, self._cell_bytes
+        if (
+            threaded
+            or held is None
+            or not (self._in_step and self.steady and None in self._steady_keys)
+            or None in self._called
+            or self.virial_wanted
+            or self.bonded.listed
+            or self.precision != "double"
+            or (outcome is not None and outcome[1] is not None)  # (this rank's build failed)
+            or (plan := domain.plan()) is None
+            or (reference := self.reference) is None
+            or reference.shape != positions.shape
+            or (begin := self.step_start).shape != positions.shape
+            or (state.box.tobytes(), state.tilt.tobytes()) != cell  # (the local cell's)
+            or not _same(held[0], state)
+        ):
+            return 0
+        self._called.add(None)  # the step's first call, as _in_step_decision takes it
+        if None in self._evaluated_in_step:
+            self._moved_report = max(self._moved_report, 0.0)
+            self._reported.add(None)
+        if self._matrix_key != cell:
+            self._matrix = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
+            self._matrix_key = cell
+        owned = domain.owned_rows(state)
+        halo = (plan.sweeps, plan.table, plan.shifts, plan.index, plan.out, plan.slots)
+        with self.ranks.clock:  # (the kick, drift and displacement pass with the messages)
+            code, moved2, step2, coming2 = step_out(
+                *(positions, state.velocities, held[1].forces, state.masses, kick_dt, drift_dt),
+                *(reference, _IDENTITY, begin, self.step_before, owned, len(owned) > 0),
+                *(domain.n_owned, domain.imaged, domain.images, self._matrix),
+                *(domain.local_state.positions, *halo, plan.calls),
+            )
+        plan.check(code)
+        self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
+        allowed = 0.5 * self.skin
+        coming = math.sqrt(coming2) + LOOKAHEAD * math.sqrt(step2)
+        covered = math.sqrt(moved2) <= allowed and domain.layout_holds(state)
+        ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
+        error, result = None, None
+        start = time.perf_counter()
+        try:
+            result = self.local.compute(domain.local_state, False, False)
+        except Exception as caught:  # shared with every rank below
+            error = self._global_error(caught)
+        self.timings["force"] += time.perf_counter() - start
+        values = self._values
+        values[:] = 0.0
+        values[0] = error is not None
+        values[1] = 0.0 if result is None else result.energy
+        values[11:15] = (not covered, ahead, self.stop_code, not math.isfinite(moved2))
+        values[15] = self._moved_report
+        values[17] = 0.0 if outcome is None else outcome[0]  # (16: none failed, see above)
+        totals, worst = self._totals, self._worst
+        forces = _NONE if result is None else result.forces
+        with self.ranks.clock:  # (the closing kick with the messages)
+            code, done = gather_reverse_kick(
+                *(values, self._gathered, totals, worst, forces, plan.sweeps, plan.table),
+                *(plan.index, plan.out, plan.back, plan.slots, plan.calls),
+                *(state.velocities, state.masses, kick_dt),
+            )
+        plan.check(code)
+        if outcome is not None:
+            self._settle_build(worst[6:4:-1])  # (another rank's failure raises here)
+        self._shared(worst)
+        if done:
+            result = ForceResult(float(totals[1]), forces[: domain.n_owned], None)
+        else:  # not one rank's doing, or every rank's: all go on as _evaluate
+            if worst[0]:  # some rank's list was outrun: all rebuild and evaluate again
+                self.rebuild(state, migrate=False)
+                error, result, totals, worst = self._attempt(state, None, False, False, False)
+                if worst[0]:
+                    self.rebuild(state, migrate=False)
+            # (an error or a non-finite energy raises there, as in _evaluate)
+            result = self._finish(error, result, totals, False, False)
+            closing_kick(state.velocities, result.forces, state.masses, kick_dt)
+        self._evaluated_in_step.add(None)
+        self.n_evaluations += 1
+        held[0][0][...] = positions  # (the key's copy: shaped as they are, _same held)
+        self._cache[None] = ((held[0][0], *cell), result)
+        return 2
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
@@ -391,50 +437,65 @@ class DistributedForceField:
         rank failed or found its list outrun (then every rank rebuilds and evaluates again),
         and what the next step start needs (the look-ahead, a stop request)."""
         for _ in range(2):
-            covered, ahead, finite = self.refresh(state, exchanged)
+            error, result, totals, worst = self._attempt(state, which, per_atom, virial, exchanged)
             exchanged = False  # a rebuild below lays the local system out anew
-            start = time.perf_counter()
-            error, result = None, None
-            outcome = self._build_outcome
-            try:
-                if outcome is not None and outcome[1] is not None:
-                    pass  # this rank's list is not whole: the build's error is shared below
-                elif which is None:
-                    result = self.local.compute(self.domain.local_state, per_atom, virial)
-                else:
-                    result = self.local.compute_subset(self.domain.local_state, which, virial)
-            except Exception as caught:  # shared with every rank below
-                error = self._global_error(caught)
-            middle = time.perf_counter()
-            values = self._values
-            values[:] = 0.0
-            values[0] = error is not None
-            if result is not None:
-                values[1] = result.energy
-                if virial and result.virial is not None:
-                    values[2:11] = np.asarray(result.virial).ravel()
-            values[11] = not covered
-            values[12] = ahead
-            values[13] = self.stop_code
-            values[14] = not finite
-            values[15] = self._moved_report
-            if outcome is not None:
-                values[16:18] = (outcome[1] is not None, outcome[0])
-            totals, worst = np.empty(11), self._worst
-            gather_folded(self.ranks, values, 11, totals, worst)  # on the ranks' clock
-            self.timings["force"] += middle - start
-            self._settle_build(worst[6:4:-1])  # (a build's outcome waits on every rank or none)
-            if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
-                self.steady = not worst[4]
-                self._steady_keys = frozenset(self._reported)
-                self._moved_report = -1.0
-                self._reported.clear()
-            if worst[3]:
-                raise NonFiniteError("particle positions are not finite")
-            self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
             if not worst[0]:
                 break
             self.rebuild(state, migrate=False)  # some rank's list was outrun: all rebuild
+        return self._finish(error, result, totals, per_atom, virial)
+
+    def _attempt(self, state: State, which, per_atom: bool, virial: bool, exchanged: bool):
+        """One try of :meth:`_evaluate`: (this rank's error, its local result, the sums, the
+        largest values over the ranks)."""
+        covered, ahead, finite = self.refresh(state, exchanged)
+        start = time.perf_counter()
+        error, result = None, None
+        outcome = self._build_outcome
+        try:
+            if outcome is not None and outcome[1] is not None:
+                pass  # this rank's list is not whole: the build's error is shared below
+            elif which is None:
+                result = self.local.compute(self.domain.local_state, per_atom, virial)
+            else:
+                result = self.local.compute_subset(self.domain.local_state, which, virial)
+        except Exception as caught:  # shared with every rank below
+            error = self._global_error(caught)
+        middle = time.perf_counter()
+        values = self._values
+        values[:] = 0.0
+        values[0] = error is not None
+        if result is not None:
+            values[1] = result.energy
+            if virial and result.virial is not None:
+                values[2:11] = np.asarray(result.virial).ravel()
+        values[11] = not covered
+        values[12] = ahead
+        values[13] = self.stop_code
+        values[14] = not finite
+        values[15] = self._moved_report
+        if outcome is not None:
+            values[16:18] = (outcome[1] is not None, outcome[0])
+        totals, worst = np.empty(11), self._worst
+        gather_folded(self.ranks, values, 11, totals, worst)  # on the ranks' clock
+        self.timings["force"] += middle - start
+        self._settle_build(worst[6:4:-1])  # (a build's outcome waits on every rank or none)
+        self._shared(worst)
+        return error, result, totals, worst
+
+    def _shared(self, worst: NDArray[np.float64]) -> None:
+        """Take what the reduction's largest values (``worst``) say, alike on every rank."""
+        if worst[4] >= 0.0:  # what the steps' first calls found, on every rank
+            self.steady = not worst[4]
+            if self._reported != self._steady_keys:
+                self._steady_keys = frozenset(self._reported)
+            self._moved_report = -1.0
+            self._reported.clear()
+        if worst[3]:
+            raise NonFiniteError("particle positions are not finite")
+        self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
+
+    def _finish(self, error, result, totals, per_atom: bool, virial: bool) -> ForceResult:
+        """An evaluation's result from its last try (collective: errors raised alike)."""
         if totals[0]:
             agree(self.ranks, error)
         with self.ranks.clock:
@@ -459,22 +520,7 @@ class DistributedForceField:
 
     def _global_error(self, error: Exception) -> Exception:
         """A bonded term's error, naming the whole system's bond (angle) and atoms."""
-        ids = self.domain.local_ids
-        if isinstance(error, BondStretchError):
-            bond = self._global_item(2, error.bond)
-            return BondStretchError(
-                bond, int(ids[error.i]), int(ids[error.j]), error.length, error.r_max
-            )
-        if isinstance(error, AngleCollapseError):
-            angle = self._global_item(3, error.angle)
-            return AngleCollapseError(angle, tuple(int(ids[a]) for a in error.atoms))
-        return error
-
-    def _global_item(self, width: int, local: int) -> int:
-        for bonded in self._bonded:
-            if bonded.items.shape[1] == width and local < len(bonded.local):
-                return int(bonded.local[local])
-        return local
+        return self.bonded.global_error(error, self.domain.local_ids)
 
     # ----------------------------------------------------------------- rebuilds
     def refresh(self, state: State, exchanged: bool = False) -> tuple[bool, float, bool]:
@@ -678,7 +724,7 @@ class DistributedForceField:
         longest, failed = float(shared[0]), bool(shared[1])
         if failed:
             agree(self.ranks, error)
-        if self._bonded:
+        if self.bonded.listed:
             reach = self.reach  # (the build's: bond_reach changes only here)
             if longest > reach:
                 raise DecompositionError(
@@ -723,57 +769,7 @@ class DistributedForceField:
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
         return the longest bond (angle arm) among them [length]."""
-        if not self._bonded:
-            return 0.0  # (the id sort below: 5-7 ms a build for a 10^6-atom rank)
-        domain = self.domain
-        ids = domain.local_ids
-        local = domain.local_state
-        positions = local.positions
-        lengths, inverse = periodic_lengths(local.box, local.pbc)
-        tilt = periodic_tilt(local.tilt, local.pbc)
-        by_id = np.argsort(ids, kind="stable")
-        sorted_ids = np.ascontiguousarray(ids[by_id])
-        longest = 0.0
-        for bonded in self._bonded:
-            chosen, anchors = anchored_items(ids[: domain.n_owned], bonded.starts, bonded.order)
-            items = bonded.items[chosen]
-            local = np.empty_like(items)
-            for column in range(items.shape[1]):
-                if column == bonded.anchor:
-                    local[:, column] = anchors
-                    continue
-                found = np.empty(len(items), dtype=np.int64)
-                distances = np.empty(len(items))
-                partners = np.ascontiguousarray(items[:, column])
-                nearest_copies(
-                    anchors,
-                    partners,
-                    sorted_ids,
-                    by_id,
-                    positions,
-                    lengths,
-                    inverse,
-                    tilt,
-                    found,
-                    distances,
-                )
-                if len(found) and found.min() < 0:
-                    raise DecompositionError(
-                        "a bonded atom has no copy on its partner's rank: a bond is longer "
-                        "than the ghost shell"
-                    )
-                local[:, column] = found
-                if len(distances):
-                    longest = max(longest, float(distances.max()))
-            bonded.local = chosen
-            potential = self.potentials[bonded.index]
-            types = bonded.types[chosen]
-            if isinstance(potential, Bonded):
-                part = potential.with_bonds(local, types)
-            else:
-                part = potential.with_angles(local, types)
-            self.local.potentials[bonded.index] = part
-        return longest
+        return self.bonded.localize(self.domain, self.potentials, self.local.potentials)
 
 
 def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[np.float64]:

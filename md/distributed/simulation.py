@@ -11,7 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from integrators.base import Distributable, Restartable, constraints_of
-from md.distributed.forcefield import BOND_SKINS, DistributedForceField, longest_arm
+from md.distributed.bonded import longest_arm
+from md.distributed.forcefield import BOND_SKINS, DistributedForceField
 from md.distributed.grid import Grid, check_grid, choose_grid
 from md.distributed.ranks import agree, mpi_ranks
 from md.distributed.views import ForceFieldView, Gathered, GlobalView, IntegratorView

@@ -1,0 +1,122 @@
+"""The compiled calls of a decomposed velocity Verlet step between list builds
+(:meth:`md.distributed.DistributedForceField.verlet_step`): the step's first half and the
+halo's forward sweep in one call; the reduction, the reverse sweep and the closing kick in
+another.
+
+Each is the passes the step made one call at a time before, in the same order and with the
+same arithmetic, so the same bits: the kicks and the drift are those of
+``integrators._kernels.kick_drift_by_mass`` and ``kick_by_mass`` (1/m taken per atom, then
+v += kick_dt f/m, x += drift_dt v), the displacement pass and the owned rows' copy
+:func:`md.distributed._domain_kernels.moved_since` with ``shift_rows`` or
+``home_positions``, the messages and the reduction
+:func:`md.distributed._mpi_kernels.halo_forward`, ``halo_reverse`` and ``gather_fold``
+(which call MPI themselves).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from md.distributed._domain_kernels import home_positions, moved_since, shift_rows
+from md.distributed._mpi_kernels import gather_fold, halo_forward, halo_reverse
+
+
+@njit(cache=True, error_model="numpy")
+def step_out(
+    positions,
+    velocities,
+    forces,
+    masses,
+    kick_dt,
+    drift_dt,
+    reference,
+    mapping,
+    begin,
+    before,
+    owned,
+    copied,
+    n_owned,
+    imaged,
+    images,
+    cell,
+    local_positions,
+    sweeps,
+    table,
+    shifts,
+    index,
+    out,
+    slots,
+    calls,
+):
+    """A step's first half on this rank and the ghosts' positions sent: v += kick_dt f/m and
+    x += drift_dt v over the owned atoms; :func:`moved_since` of the new positions (from
+    ``reference`` carried by ``mapping``, the last step start ``begin`` and the one
+    ``before``; copied into ``owned``, the local system's owned rows, where it has rows);
+    the first ``n_owned`` rows of ``local_positions`` at their images (``shift_rows``
+    where ``copied``, else ``home_positions``); :func:`halo_forward` of
+    ``local_positions``. Returns (the MPI
+    error code or 0, the three squared distances of :func:`moved_since`)."""
+    for i in range(positions.shape[0]):
+        scale = kick_dt * (1.0 / masses[i])
+        for a in range(3):
+            v = velocities[i, a] + scale * forces[i, a]
+            velocities[i, a] = v
+            positions[i, a] += drift_dt * v
+    moved2, step2, coming2 = moved_since(positions, reference, mapping, begin, before, owned)
+    home = local_positions[:n_owned]
+    if copied:
+        shift_rows(positions, imaged, images, cell, home)
+    else:
+        home_positions(positions, imaged, images, cell, home)
+    code = halo_forward(local_positions, cell, sweeps, table, shifts, index, out, slots, calls)
+    return np.int64(code), moved2, step2, coming2
+
+
+@njit(cache=True, error_model="numpy")
+def gather_reverse_kick(
+    values,
+    gathered,
+    totals,
+    worst,
+    forces,
+    sweeps,
+    table,
+    index,
+    out,
+    back,
+    slots,
+    calls,
+    velocities,
+    masses,
+    kick_dt,
+):
+    """The evaluation's reduction (:func:`gather_fold` of ``values``: the sums of its first
+    11 into ``totals``, the largest of the rest into ``worst``), then, where it says that no
+    rank's list was outrun (``worst[0]``), no rank's positions are not finite
+    (``worst[3]``), no rank's build failed (``worst[5]``), no rank failed (``totals[0]``)
+    and the energy is finite, the same on every rank: :func:`halo_reverse` of the local
+    ``forces`` (the ghosts' rows summed into their owners') and the closing kick v +=
+    kick_dt f/m with the owned rows (the first ``velocities.shape[0]``). Returns (the MPI
+    error code or 0, whether the reverse sweep and the kick were made)."""
+    code = gather_fold(values, gathered, 11, totals, worst, calls)
+    if code != 0:
+        return np.int64(code), False
+    if worst[0] != 0.0 or worst[3] != 0.0 or worst[5] != 0.0 or totals[0] != 0.0:
+        return np.int64(0), False
+    if not np.isfinite(totals[1]):
+        return np.int64(0), False
+    code = halo_reverse(forces, sweeps, table, index, out, back, slots, calls)
+    if code != 0:
+        return np.int64(code), False
+    closing_kick(velocities, forces, masses, kick_dt)
+    return np.int64(0), True
+
+
+@njit(cache=True, error_model="numpy")
+def closing_kick(velocities, forces, masses, kick_dt):
+    """v += kick_dt f/m over the rows of ``velocities`` (``forces`` may have more)."""
+    for i in range(velocities.shape[0]):
+        scale = kick_dt * (1.0 / masses[i])
+        for a in range(3):
+            velocities[i, a] += scale * forces[i, a]
