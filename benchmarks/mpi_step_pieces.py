@@ -3,15 +3,17 @@
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py               # 2000 steps, a minute
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --steps 4000 --profiled 300
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --ab --blocks 21   # fused on / off
+    mpiexec -n 2 python benchmarks/mpi_step_pieces.py --cells 6,6,4 --ab-kept   # 576 atoms
 
 On the 1152-atom LJ melt (``examples/lj_melt.toml`` on 8 x 6 x 6 cells, two bricks along
-x, as ``mpi_scaling.py`` runs it), velocity Verlet, no observers: the run loop's step (a
-step start, ``integrator.step``) taken apart. Each piece's own thread CPU time and wall
-time a step (the pieces nested in it left out, so the pieces add up to the step), medians
-over the steps that made no list build (a step start that migrates, or a rebuild forced
-inside a step, is left out); then, over ``--profiled`` more such steps under a profiler,
-each piece's Python calls, mpi4py calls and numpy allocations a step (numba's own
-allocations are not counted), and the Python functions called most a step.
+x, as ``mpi_scaling.py`` runs it; ``--cells`` for others), velocity Verlet, no observers:
+the run loop's step (a step start, ``integrator.step``) taken apart. Each piece's own
+thread CPU time and wall time a step (the pieces nested in it left out, so the pieces add
+up to the step), medians over the steps that made no list build (a step start that
+migrates, or a rebuild forced inside a step, is left out); then, over ``--profiled`` more
+such steps under a profiler, each piece's Python calls, mpi4py calls and numpy
+allocations a step (numba's own allocations are not counted), and the Python functions
+called most a step.
 
 The pieces: the step start (``_stopping``: the stop and migration decision, the step
 start's copy, ``step_begins``), velocity Verlet's own lines, the force field's fused
@@ -31,7 +33,12 @@ the last build's settling, the reverse's own lines and its compiled sweep
 With ``--ab``, instead: the fused step on and off (``verlet_step`` answering 0, "nothing
 done": the step made of ``compute`` and the kicks, as before it) in alternating blocks of
 200 steps of one launch, build steps included; each rank's thread CPU time and wall time a
-step, medians over the blocks, and on/off per block (median).
+step, medians over the blocks, and on/off per block (median). With ``--ab-kept``, the same
+for the pair frame's kept call over a list of atom indices (``PairPotential._atom_call``,
+which a rank's O(N^2) local list takes: the 576-atom melt, ``--cells 6,6,4``, whose 6.7
+sigma z edge is too thin for cells) on and off (off: forgotten before each pair call, so
+every call takes the slow path, as before it; one Python call more a step than that code).
+``--cells`` sets the melt's fcc cells (8,6,6: 1152 atoms).
 
 Prints the CPU model and vector ISA. A wrapped call costs more than a bare one (printed:
 most of it lands in the own time of the piece it is nested in), so the pieces' sum is
@@ -209,8 +216,8 @@ def _bare_blocks(sim, comm, steps: int) -> float:
     return (time.perf_counter() - start) / steps
 
 
-def time_step_pieces(steps: int, profiled: int, comm) -> dict:
-    sim = _simulation(CELLS)
+def time_step_pieces(steps: int, profiled: int, comm, cells=CELLS) -> dict:
+    sim = _simulation(cells)
     sim.run(50)  # compiled, and the layout of a run
     block = 100
     bare = [_bare_blocks(sim, comm, block) for _ in range(3)]
@@ -310,17 +317,35 @@ def time_step_pieces(steps: int, profiled: int, comm) -> dict:
     }
 
 
-def time_ab(blocks: int, comm, steps: int = 200) -> dict:
-    """The fused step on and off in alternating blocks of ``steps`` (see the docstring)."""
-    sim = _simulation(CELLS)
+def _forgetting(potential):
+    """``potential.energy_forces`` with its kept call over atom indices forgotten first."""
+    method = type(potential).energy_forces
+
+    def energy_forces(*args, **kwargs):
+        potential._atom_call = None
+        return method(potential, *args, **kwargs)
+
+    return energy_forces
+
+
+def time_ab(blocks: int, comm, steps: int = 200, cells=CELLS, kept: bool = False) -> dict:
+    """The fused step (``kept``: the pair frame's kept call over atom indices) on and off
+    in alternating blocks of ``steps`` (see the docstring)."""
+    sim = _simulation(cells)
     sim.run(50)  # compiled, and the layout of a run
     forcefield = sim.forcefield
     if not hasattr(forcefield, "verlet_step"):
         raise SystemExit("--ab needs the fused step (DistributedForceField.verlet_step)")
+    potentials = forcefield.local.potentials
+    if kept and not all(hasattr(p, "_atom_call") for p in potentials):
+        raise SystemExit("--ab-kept needs the kept call over atom indices (_atom_call)")
     spent: dict[str, list] = {"on wall": [], "on cpu": [], "off wall": [], "off cpu": []}
     for _ in range(blocks):
         for name in ("on", "off"):
-            if name == "off":
+            if name == "off" and kept:
+                for potential in potentials:
+                    potential.energy_forces = _forgetting(potential)
+            elif name == "off":
                 forcefield.verlet_step = lambda *args: 0  # (nothing done)
             comm.Barrier()
             start, thread = time.perf_counter(), time.thread_time()
@@ -328,7 +353,10 @@ def time_ab(blocks: int, comm, steps: int = 200) -> dict:
                 _one_step(sim)
             spent[f"{name} wall"].append((time.perf_counter() - start) / steps)
             spent[f"{name} cpu"].append((time.thread_time() - thread) / steps)
-            if name == "off":
+            if name == "off" and kept:
+                for potential in potentials:
+                    del potential.energy_forces  # (the class's method again)
+            elif name == "off":
                 del forcefield.verlet_step  # (the class's method again)
     figures = {key: statistics.median(values) for key, values in spent.items()}
     for kind in ("wall", "cpu"):
@@ -337,10 +365,11 @@ def time_ab(blocks: int, comm, steps: int = 200) -> dict:
     return figures
 
 
-def print_ab(mine: list, comm, blocks: int) -> None:
+def print_ab(mine: list, comm, blocks: int, cells=CELLS, kept: bool = False) -> None:
     print(machine_line())
+    what = "the kept pair call over atom indices" if kept else "the fused step"
     print(
-        f"1152-atom melt on {comm.Get_size()} ranks: the fused step on and off, {blocks} "
+        f"{_atoms(cells)}-atom melt on {comm.Get_size()} ranks: {what} on and off, {blocks} "
         "alternating blocks of 200 steps (build steps included), us a step, medians"
     )
     print("  rank   on wall  off wall  on/off    on CPU  off CPU  on/off")
@@ -352,11 +381,15 @@ def print_ab(mine: list, comm, blocks: int) -> None:
         )
 
 
-def print_step_pieces(mine: list, comm) -> None:
+def _atoms(cells) -> int:
+    return 4 * cells[0] * cells[1] * cells[2]
+
+
+def print_step_pieces(mine: list, comm, cells=CELLS) -> None:
     print(machine_line())
     print(
-        f"1152-atom melt on {comm.Get_size()} ranks: one step between list builds taken apart "
-        "(each piece's own time; medians over the steps, us a step)"
+        f"{_atoms(cells)}-atom melt on {comm.Get_size()} ranks: one step between list builds "
+        "taken apart (each piece's own time; medians over the steps, us a step)"
     )
     header = (
         "  piece"
@@ -408,24 +441,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profiled", type=int, default=200, help="steps counted (200)")
     parser.add_argument("--json", help="write the figures to this file (rank 0)")
     parser.add_argument("--ab", action="store_true", help="the fused step on / off")
+    parser.add_argument(
+        "--ab-kept", action="store_true", help="the kept pair call over atom indices on / off"
+    )
     parser.add_argument("--blocks", type=int, default=21, help="--ab's blocks (21)")
+    parser.add_argument(
+        "--cells", default=",".join(map(str, CELLS)), help="the melt's fcc cells (8,6,6)"
+    )
     args = parser.parse_args(argv)
+    cells = tuple(int(c) for c in args.cells.split(","))
+    if len(cells) != 3 or min(cells) < 1:
+        parser.error(f"--cells takes three positive integers, got {args.cells!r}")
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     import md
 
     md.keep_freed_memory()  # as `md run` sets a process up
-    if args.ab:
-        mine = comm.gather(time_ab(args.blocks, comm), root=0)
+    if args.ab or args.ab_kept:
+        mine = comm.gather(time_ab(args.blocks, comm, cells=cells, kept=args.ab_kept), root=0)
         if comm.Get_rank() == 0:
-            print_ab(mine, comm, args.blocks)
+            print_ab(mine, comm, args.blocks, cells, args.ab_kept)
             if args.json:
                 Path(args.json).write_text(json.dumps(mine, indent=2))
         return 0
-    mine = comm.gather(time_step_pieces(args.steps, args.profiled, comm), root=0)
+    mine = comm.gather(time_step_pieces(args.steps, args.profiled, comm, cells), root=0)
     if comm.Get_rank() == 0:
-        print_step_pieces(mine, comm)
+        print_step_pieces(mine, comm, cells)
         if args.json:
             Path(args.json).write_text(json.dumps(mine, indent=2))
     return 0

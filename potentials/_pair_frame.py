@@ -216,6 +216,15 @@ class PairPotential:
         # step then pays for the kernels and not for setting them up again (about 25 us
         # of Python a call at 32000 atoms, on the calling thread alone); see energy_forces
         self._cluster_calls: list = [None, None]
+        # The last double-precision call over a list of atom indices (an O(N^2) build:
+        # a decomposed rank's local system too thin along a periodic axis for cells; a
+        # serial list has a slot frame): (positions, types, type names, data, cutoff
+        # mode, the list's starts and neighbours, the cell's bytes, (kernel, its
+        # geometry, types, table, mode, the empty per-atom arrays)). It serves a call
+        # while those are the same objects (the cell the same values; positions read at
+        # the call): a rank of the 576-atom melt took the whole set-up (variant lookup,
+        # geometry, tables; about 20 Python calls) at every step; see energy_forces
+        self._atom_call: tuple | None = None
         # verlet_step's compiled step for the kept call without the virial: (that call,
         # the kernel, its arguments after the reference and its bound and before the
         # forces: a FrameCall, the mode and single-type flag; energies; the call's
@@ -514,6 +523,40 @@ class PairPotential:
                 if not math.isfinite(result.energy):
                     self._explain_non_finite(state, neighbors)
                 return result
+            call = self._atom_call
+            if (  # the last call over atom indices (see _atom_call), with the same list
+                call is not None
+                and call[0] is state.positions
+                and call[1] is state.types
+                and call[2] is state.type_names
+                and call[3] is self.data
+                and call[4] == self.cutoff_mode
+                and call[5] is neighbors.starts
+                and call[6] is neighbors.neighbors
+                and call[7] == (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+            ):
+                kernel, geometry, n_types, table, mode, energies, virials = call[-1]
+                forces = np.zeros((len(geometry[0]), 3))
+                total_virial = np.zeros(6)
+                energy = kernel(
+                    geometry,
+                    n_types,
+                    table,
+                    mode,
+                    self.data,
+                    forces,
+                    total_virial,
+                    energies,
+                    virials,
+                )
+                result = ForceResult(
+                    energy=energy,
+                    forces=forces,
+                    virial=symmetric(total_virial) if virial else None,
+                )
+                if not math.isfinite(result.energy):
+                    self._explain_non_finite(state, neighbors)
+                return result
         if precision == "mixed" and not per_atom and neighbors is not None:
             call = self._cluster_calls[bool(virial)]
             if (
@@ -733,6 +776,7 @@ class PairPotential:
             self._check_radius(neighbors)
             result = self._frame_energy_forces(kernels, state, frame, n_types, table, mode, virial)
             if precision == "double":
+                self._atom_call = None  # (one kind of call kept: the list's)
                 self._frame_calls[bool(virial)] = (
                     frame,
                     state.positions,
@@ -748,9 +792,20 @@ class PairPotential:
             total_virial = np.zeros(6)
             energies = np.zeros(n if per_atom else 0)
             virials = np.zeros((n if per_atom else 0, 6))
-            energy = variant(kernels, "atom_forces", mode=mode)(
+            kernel = variant(kernels, "atom_forces", mode=mode)
+            energy = kernel(
                 geometry, n_types, table, mode, self.data, forces, total_virial, energies, virials
             )
+            if precision == "double" and neighbors is not None and not per_atom:
+                # kept for the next calls over the same list (see _atom_call); the slot
+                # frame's calls are dropped (a list over atom indices has no frame)
+                self._frame_calls = [None, None]
+                cell = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+                self._atom_call = (
+                    *(state.positions, state.types, state.type_names, self.data),
+                    *(self.cutoff_mode, geometry[5], geometry[6], cell),
+                    (kernel, geometry, n_types, table, mode, energies, virials),
+                )
             result = ForceResult(
                 energy=energy,
                 forces=forces,
