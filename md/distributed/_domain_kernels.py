@@ -490,7 +490,6 @@ def predicted_positions(positions, velocities, forces, masses, dt, out):
             if with_forces:
                 move += kick * forces[i, a]
             out[i, a] = positions[i, a] + move
-    return out
 
 
 @njit(cache=True, error_model="numpy")

@@ -24,6 +24,7 @@ from md.distributed._mpi_kernels import gather_fold, halo_forward, halo_reverse
 
 @njit(cache=True, error_model="numpy")
 def step_out(
+    held,
     positions,
     velocities,
     forces,
@@ -49,14 +50,23 @@ def step_out(
     slots,
     calls,
 ):
-    """A step's first half on this rank and the ghosts' positions sent: v += kick_dt f/m and
+    """A step's first half on this rank and the ghosts' positions sent, where ``positions``
+    are the ``held`` ones (those of the forces, as :func:`md.parallel.same_values` compares
+    them: NaN equals nothing; else nothing is done and the code is -1): v += kick_dt f/m and
     x += drift_dt v over the owned atoms; :func:`moved_since` of the new positions (from
     ``reference`` carried by ``mapping``, the last step start ``begin`` and the one
     ``before``; copied into ``owned``, the local system's owned rows, where it has rows);
     the first ``n_owned`` rows of ``local_positions`` at their images (``shift_rows``
     where ``copied``, else ``home_positions``); :func:`halo_forward` of
     ``local_positions``. Returns (the MPI
-    error code or 0, the three squared distances of :func:`moved_since`)."""
+    error code, 0, or -1 where nothing was done; the three squared distances of
+    :func:`moved_since`)."""
+    if held.shape[0] != positions.shape[0]:
+        return np.int64(-1), 0.0, 0.0, 0.0
+    for i in range(positions.shape[0]):
+        for a in range(3):
+            if held[i, a] != positions[i, a]:
+                return np.int64(-1), 0.0, 0.0, 0.0
     for i in range(positions.shape[0]):
         scale = kick_dt * (1.0 / masses[i])
         for a in range(3):
@@ -75,6 +85,14 @@ def step_out(
 
 @njit(cache=True, error_model="numpy")
 def gather_reverse_kick(
+    failed,
+    energy,
+    outrun,
+    ahead,
+    stop,
+    not_finite,
+    moved,
+    longest,
     values,
     gathered,
     totals,
@@ -91,14 +109,28 @@ def gather_reverse_kick(
     masses,
     kick_dt,
 ):
-    """The evaluation's reduction (:func:`gather_fold` of ``values``: the sums of its first
-    11 into ``totals``, the largest of the rest into ``worst``), then, where it says that no
+    """The evaluation's reduction (:func:`gather_fold` of ``values``, written here as
+    :meth:`md.distributed.DistributedForceField._attempt` writes them for an evaluation
+    without virial whose build did not fail on this rank: whether it ``failed``, its
+    ``energy``, whether its list was ``outrun``, the look-ahead ratio ``ahead``, its ``stop``
+    request, whether its positions are ``not_finite``, what its step's first call found
+    (``moved``) and the last build's ``longest`` bond; the sums of the first 11 into
+    ``totals``, the largest of the rest into ``worst``), then, where it says that no
     rank's list was outrun (``worst[0]``), no rank's positions are not finite
     (``worst[3]``), no rank's build failed (``worst[5]``), no rank failed (``totals[0]``)
     and the energy is finite, the same on every rank: :func:`halo_reverse` of the local
     ``forces`` (the ghosts' rows summed into their owners') and the closing kick v +=
     kick_dt f/m with the owned rows (the first ``velocities.shape[0]``). Returns (the MPI
     error code or 0, whether the reverse sweep and the kick were made)."""
+    values[:] = 0.0
+    values[0] = 1.0 if failed else 0.0
+    values[1] = energy
+    values[11] = 1.0 if outrun else 0.0
+    values[12] = ahead
+    values[13] = stop
+    values[14] = 1.0 if not_finite else 0.0
+    values[15] = moved
+    values[17] = longest  # (16: this rank's build did not fail)
     code = gather_fold(values, gathered, 11, totals, worst, calls)
     if code != 0:
         return np.int64(code), False

@@ -59,6 +59,9 @@ BOND_SKINS = 2.5
 _MIN_PASS_ATOMS = 16_000
 #: The identity, for a cell that has not changed since the build.
 _IDENTITY = np.eye(3)
+#: Fewest values a copy of positions worth splitting on the kernels' threads
+#: (:func:`md.parallel.copy_into` splits at 48,000 values a thread).
+_THREADED_COPY = 96_000
 #: No positions: no step start before the last one is known.
 _NONE = np.empty((0, 3))
 
@@ -173,7 +176,7 @@ class DistributedForceField:
         self._worst = np.zeros(7)
         self._totals = np.zeros(11)
         self._gathered = np.zeros((ranks.n_ranks, 18))  # (verlet_step's reduction)
-        self._matrix_key, self._matrix = None, np.eye(3)  # (verlet_step's cell matrix)
+        self._fused: tuple | None = None  # (what verlet_step keeps a build: _fused_step)
         self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
         if balance_every < 0 or not balance_threshold >= 1.0:
             raise ValueError(
@@ -193,7 +196,8 @@ class DistributedForceField:
     @property
     def reach(self) -> float:
         """The ghost shell a build needs: the list radius, or the longest bond plus skins."""
-        pairs = self.cutoff + self.skin if self.cutoff is not None else 0.0
+        cutoff = self.cutoff  # (a property: asked once)
+        pairs = cutoff + self.skin if cutoff is not None else 0.0
         bonds = self.bond_reach + BOND_SKINS * self.skin if self.bonded.listed else 0.0
         return max(pairs, bonds)
 
@@ -240,76 +244,86 @@ class DistributedForceField:
         ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
         ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
         :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
-        the kicks; the two compiled calls on the ranks' clock."""
+        the kicks; the two compiled calls on the ranks' clock.
+
+        What a build fixes (the halo's plan, the owned rows, the cell matrix, the kernels'
+        arguments) is prepared at the first such step after it (:meth:`_fused_step`) and
+        kept until the next; a step checks only what may change between steps."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
-        domain, positions, cell = self.domain, state.positions, self._cell_bytes
+        positions, cell, fused = state.positions, self._cell_bytes, self._fused
         if (
             threaded
             or held is None
             or not (self._in_step and self.steady and None in self._steady_keys)
             or None in self._called
             or self.virial_wanted
-            or self.bonded.listed
-            or self.precision != "double"
             or (outcome is not None and outcome[1] is not None)  # (this rank's build failed)
-            or (plan := domain.plan()) is None
             or (reference := self.reference) is None
             or reference.shape != positions.shape
             or (begin := self.step_start).shape != positions.shape
+            or (key := held[0])[1:] != cell  # (the held forces' cell is the build's)
             or (state.box.tobytes(), state.tilt.tobytes()) != cell  # (the local cell's)
-            or not _same(held[0], state)
         ):
             return 0
+        if fused is None or fused[0] is not reference:
+            fused = self._fused = self._fused_step(state)
+        if fused[1] is None:
+            return 0  # (this build's layout has no fused step)
+        _, out_tail, back_tail, local_state, n_owned, check = fused
+        velocities, masses, clock = state.velocities, state.masses, self.ranks.clock
+        with clock:  # (the kick, drift and displacement pass with the messages)
+            code, moved2, step2, coming2 = step_out(
+                *(key[0], positions, velocities, held[1].forces, masses, kick_dt, drift_dt),
+                *(reference, _IDENTITY, begin, self.step_before, *out_tail),
+            )
+        if code:
+            if code < 0:  # (not the held forces' positions: nothing was done)
+                return 0
+            check(code)
         self._called.add(None)  # the step's first call, as _in_step_decision takes it
         if None in self._evaluated_in_step:
             self._moved_report = max(self._moved_report, 0.0)
             self._reported.add(None)
-        if self._matrix_key != cell:
-            self._matrix = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
-            self._matrix_key = cell
-        owned = domain.owned_rows(state)
-        halo = (plan.sweeps, plan.table, plan.shifts, plan.index, plan.out, plan.slots)
-        with self.ranks.clock:  # (the kick, drift and displacement pass with the messages)
-            code, moved2, step2, coming2 = step_out(
-                *(positions, state.velocities, held[1].forces, state.masses, kick_dt, drift_dt),
-                *(reference, _IDENTITY, begin, self.step_before, owned, len(owned) > 0),
-                *(domain.n_owned, domain.imaged, domain.images, self._matrix),
-                *(domain.local_state.positions, *halo, plan.calls),
-            )
-        plan.check(code)
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
         allowed = 0.5 * self.skin
         coming = math.sqrt(coming2) + LOOKAHEAD * math.sqrt(step2)
-        covered = math.sqrt(moved2) <= allowed and domain.layout_holds(state)
+        # (the layout holds unless the build's margin was outgrown: the cell is the build's)
+        outrun = not (math.sqrt(moved2) <= allowed) or self.domain.outgrown
         ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
         error, result = None, None
         start = time.perf_counter()
         try:
-            result = self.local.compute(domain.local_state, False, False)
+            result = self.local.compute(local_state, False, False)
         except Exception as caught:  # shared with every rank below
             error = self._global_error(caught)
         self.timings["force"] += time.perf_counter() - start
-        values = self._values
-        values[:] = 0.0
-        values[0] = error is not None
-        values[1] = 0.0 if result is None else result.energy
-        values[11:15] = (not covered, ahead, self.stop_code, not math.isfinite(moved2))
-        values[15] = self._moved_report
-        values[17] = 0.0 if outcome is None else outcome[0]  # (16: none failed, see above)
         totals, worst = self._totals, self._worst
         forces = _NONE if result is None else result.forces
-        with self.ranks.clock:  # (the closing kick with the messages)
+        with clock:  # (the closing kick with the messages)
             code, done = gather_reverse_kick(
-                *(values, self._gathered, totals, worst, forces, plan.sweeps, plan.table),
-                *(plan.index, plan.out, plan.back, plan.slots, plan.calls),
-                *(state.velocities, state.masses, kick_dt),
+                *(error is not None, 0.0 if result is None else result.energy, outrun, ahead),
+                *(self.stop_code, not math.isfinite(moved2), self._moved_report),
+                *(0.0 if outcome is None else outcome[0], self._values, self._gathered),
+                *(totals, worst, forces, *back_tail, velocities, masses, kick_dt),
             )
-        plan.check(code)
+        if code:
+            check(code)
         if outcome is not None:
             self._settle_build(worst[6:4:-1])  # (another rank's failure raises here)
-        self._shared(worst)
+        if worst[3]:
+            self._shared(worst)  # (raises on every rank)
+        if worst[4] >= 0.0:  # (_shared's lines, a call fewer a step)
+            self.steady = not worst[4]
+            if self._reported != self._steady_keys:
+                self._steady_keys = frozenset(self._reported)
+            self._moved_report = -1.0
+            self._reported.clear()
+        self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
         if done:
-            result = ForceResult(float(totals[1]), forces[: domain.n_owned], None)
+            # The local result is this step's own (the local force field keeps none; it
+            # has no virial or per-atom values): it becomes the step's, the owned rows of
+            # its forces with the ghosts' summed in, and the whole system's energy.
+            result.energy, result.forces = float(totals[1]), forces[:n_owned]
         else:  # not one rank's doing, or every rank's: all go on as _evaluate
             if worst[0]:  # some rank's list was outrun: all rebuild and evaluate again
                 self.rebuild(state, migrate=False)
@@ -318,12 +332,34 @@ class DistributedForceField:
                     self.rebuild(state, migrate=False)
             # (an error or a non-finite energy raises there, as in _evaluate)
             result = self._finish(error, result, totals, False, False)
-            closing_kick(state.velocities, result.forces, state.masses, kick_dt)
+            closing_kick(velocities, result.forces, masses, kick_dt)
         self._evaluated_in_step.add(None)
         self.n_evaluations += 1
-        held[0][0][...] = positions  # (the key's copy: shaped as they are, _same held)
-        self._cache[None] = ((held[0][0], *cell), result)
+        key[0][...] = positions  # (the key's copy: shaped as they are, step_out compared)
+        self._cache[None] = (key, result)
         return 2
+
+    def _fused_step(self, state: State) -> tuple:
+        """What :meth:`verlet_step` takes from the last build (its reference positions
+        shaped as ``state``'s), once a build: (those reference positions, which it is of;
+        the tails of ``step_out``'s and ``gather_reverse_kick``'s arguments, None where
+        this build's layout has no fused step: no compiled plan, bonded terms or mixed
+        precision; the local system; the owned atoms; the MPI error check)."""
+        domain, reference = self.domain, self.reference
+        plan = domain.plan()
+        if plan is None or self.bonded.listed or self.precision != "double":
+            return (reference, None, None, None, 0, None)
+        # (the fused step runs only in the build's cell: its matrix, as Domain.update's)
+        matrix = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
+        owned = domain.owned_rows(state)
+        out_tail = (
+            *(owned, len(owned) > 0, domain.n_owned, domain.imaged, domain.images, matrix),
+            *(domain.local_state.positions, plan.sweeps, plan.table, plan.shifts, plan.index),
+            *(plan.out, plan.slots, plan.calls),
+        )
+        back_tail = (plan.sweeps, plan.table, plan.index, plan.out, plan.back, plan.slots)
+        back_tail += (plan.calls,)
+        return (reference, out_tail, back_tail, domain.local_state, domain.n_owned, plan.check)
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
@@ -588,7 +624,7 @@ class DistributedForceField:
             float(dt),
             out,
         )
-        return out
+        return out  # (the kernel returns none: boxing an array costs a Python call)
 
     def cached_forces(self, state: State) -> NDArray[np.float64] | None:
         """The forces on ``state``'s owned atoms if they are at hand (computed at these
@@ -605,7 +641,11 @@ class DistributedForceField:
             self.step_before = _NONE
         else:
             self.step_before, self.step_start = self.step_start, self.step_before
-        self.step_start = _copied(positions, self.step_start)
+        into = self.step_start
+        if into.shape == positions.shape and positions.size < _THREADED_COPY:
+            into[...] = positions  # (_copied's lines, a call fewer a step)
+        else:
+            self.step_start = _copied(positions, into)
 
     def allowance(self, state: State) -> tuple[NDArray | None, float]:
         """(the cell's deformation since the build, None if unchanged; the largest move an
@@ -649,16 +689,19 @@ class DistributedForceField:
         if migrate:
             # Results of the current positions travel with their atoms; older ones (a
             # minimiser migrates after moving the atoms, before evaluating) are dropped.
-            self._cache = {
-                which: held for which, held in self._cache.items() if _same(held[0], state)
-            }
-            cached = {("cached", which): held[1].forces for which, held in self._cache.items()}
+            kept, cached = {}, {}
+            for which, held in self._cache.items():
+                if _same(held[0], state):
+                    kept[which] = held
+                    cached[("cached", which)] = held[1].forces
+            self._cache = kept
             if self.balance_every:
                 self._balance(state)
             with self.ranks.clock:
                 # (the cached forces are the evaluations' own arrays: they move in them)
                 moved = self.domain.migrate(state, {**carried, **cached}, spent=tuple(cached))
-            carried = {name: moved[name] for name in carried}
+            for name in carried:  # (a loop: a comprehension is a Python call of its own)
+                carried[name] = moved[name]
             for which, (held, result) in list(self._cache.items()):
                 result.forces = moved[("cached", which)]
                 result.energies = result.virials = None
@@ -669,17 +712,27 @@ class DistributedForceField:
         # positions 5 -> 19 ms a build on the Zen 4 VM). No reference until it is whole.
         self.reference = None
         memory = self._reference_memory
-        if memory.shape[0] < state.n_atoms:
-            memory = np.empty((state.n_atoms + state.n_atoms // 8 + 16, 3))
+        n = len(state.positions)  # (State.n_atoms is a property: a Python call each)
+        if memory.shape[0] < n:
+            memory = np.empty((n + n // 8 + 16, 3))
             self._reference_memory = memory
-        reference = memory[: state.n_atoms]
+        reference = memory[:n]
         at = state
         if dt is not None and state.velocities is not None:
             at = self._ahead  # (a shallow copy of the state, kept: copy.copy took ~8 us)
             if at is None:
                 at = self._ahead = copy.copy(state)
             at.__dict__.update(state.__dict__)
-            at.positions = self.coming_positions(state, dt, out=reference)
+            if migrate:  # (the cache holds results of these positions alone: see above)
+                held = self._cache.get(None)
+                forces = _NONE if held is None else held[1].forces
+                predicted_positions(
+                    *(state.positions, state.velocities, forces, state.masses, float(dt)),
+                    reference,
+                )
+                at.positions = reference  # (as coming_positions, without its checks)
+            else:
+                at.positions = self.coming_positions(state, dt, out=reference)
         self._settle_build()
         reach = self.reach
         # (a step start's build: atoms just migrated, laid out a step ahead; AGREED_STRAY)
@@ -699,8 +752,10 @@ class DistributedForceField:
         if at is state:
             copy_into(reference, state.positions)
         self.reference = reference
-        self.reference_cell = (state.box.copy(), state.tilt.copy())
-        self._cell_bytes = (state.box.tobytes(), state.tilt.tobytes())
+        cell = (state.box.tobytes(), state.tilt.tobytes())
+        if cell != self._cell_bytes or self.reference_cell is None:  # (else the same values)
+            self.reference_cell = (state.box.copy(), state.tilt.copy())
+            self._cell_bytes = cell
         # Built where the atoms are: the local system holds their positions. Built ahead of
         # them: the next evaluation sends positions on every rank (a rank whose atoms reach
         # their predicted positions to the last bit must not skip a collective exchange).
@@ -773,10 +828,14 @@ class DistributedForceField:
 
 
 def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A copy of ``values``, in ``into``'s memory when it fits."""
+    """A copy of ``values``, in ``into``'s memory when it fits (numpy's copy below
+    ``_THREADED_COPY`` values: copy_into's chunking is five Python calls, every step)."""
     if into.shape != values.shape:
         return values.copy()
-    copy_into(into, values)
+    if values.size < _THREADED_COPY:
+        into[...] = values
+    else:
+        copy_into(into, values)
     return into
 
 

@@ -210,6 +210,8 @@ class Domain:
         self.local_state: State | None = None
         self.local_ids = np.zeros(0, dtype=np.int64)
         self._buffers: dict[object, NDArray] = {}
+        self._received: dict[str, NDArray] = {}  # (exchange_kept's)
+        self._adopted: list[State | None] = [None, None]  # (the local states, by parity)
         self.rows = RowStore()  # the owned atoms' arrays, kept for migrations
         #: Atoms the migrations since the last build lost (moved more than a brick), shared
         #: in the next ghost search's reduction.
@@ -229,7 +231,7 @@ class Domain:
         self.center = self.bounds.mean(axis=0)
         self.cuts = grid.cut_table()
         self.thinnest = grid.thinnest()
-        self._geometry_key: tuple | None = None  # (the build's cell geometry, see _geometry)
+        self._geometry_key: tuple | None = None  # (the build's cell geometry, see geometry)
         #: (the rank below, the rank above) along each axis: each build's and migration's
         self.neighbors = tuple(
             (grid.neighbor(self.rank, axis, -1), grid.neighbor(self.rank, axis, 1))
@@ -293,13 +295,14 @@ class Domain:
             ghost shell would need atoms from beyond the face neighbours.
         """
         box, pbc = state.box, state.pbc
-        tilt, cell, widths = self._geometry(state)[:3]
+        geometry = self.geometry(state)
+        tilt, cell, widths = geometry[:3]
         # The local system is written where it will stay: the owned atoms first, at their
         # images nearest the brick (a copy; only the atoms with an image of their own are
         # shifted), then each sweep's ghosts appended (the arrays grow by half when full),
         # their fractional coordinates kept beside them for the later sweeps. Sweeps send
         # rows of position (3), fractional position (3), id and type.
-        n = state.n_atoms
+        n = len(state.positions)
         self._parity ^= 1  # the local arrays of the build before this one stay as they are
         positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
         home = self._buffer(n, 3, "home")
@@ -319,7 +322,7 @@ class Domain:
         self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
         self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
         with self.ranks.clock:
-            return self._find_ghosts(state, reach, strayed, positions, home, n, margin)
+            return self._find_ghosts(state, reach, strayed, positions, home, n, margin, geometry)
 
     def _find_ghosts(
         self,
@@ -330,13 +333,14 @@ class Domain:
         home,
         n: int,
         agreed: float | None,
+        geometry: tuple,
     ) -> DecompositionError | None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
         atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
-        ``agreed`` margin or None). Returns the lost atoms' error where it is the caller's
-        to share."""
+        ``agreed`` margin or None; the cell's :meth:`geometry`). Returns the lost atoms'
+        error where it is the caller's to share."""
         box, pbc = state.box, state.pbc
-        tilt, cell, widths, local_pbc, local_tilt, local_periodic, thinnest = self._geometry(state)
+        tilt, cell, widths, local_pbc, local_tilt, local_periodic, thinnest = geometry
         if agreed is not None and thinnest < reach + 2.0 * agreed:
             agreed = None  # (bricks too thin for it, on every rank alike: the reduction)
         unshared = None
@@ -438,15 +442,26 @@ class Domain:
         self._local_periodic = local_periodic
         self._cell_key = None  # (the local state is new: its cell is written at the update)
         self._built_tilt = state.tilt.tobytes()
-        self.local_state = State.adopting(
-            positions[:count], types[:count], box, local_pbc, state.type_names
-        )
         # (the local arrays live in memory kept between builds: a fresh 10^6-atom layout
         # paid its page faults at every build, 5-10 ms on the Emerald Rapids VM)
-        self.local_state.tilt = local_tilt.copy()  # (update changes it in place)
+        local = self._adopted[self._parity]  # (two, alternating as the local arrays do)
+        if local is None or local.type_names != state.type_names:
+            local = State.adopting(
+                positions[:count], types[:count], box, local_pbc, state.type_names
+            )
+            self._adopted[self._parity] = local
+        else:  # the build before last's State, its arrays the new ones (four arrays fewer)
+            local.positions, local.types = positions[:count], types[:count]
+            # (adopting's read-only stride-0 arrays, over the same one value)
+            local.velocities = np.ndarray((count, 3), np.float64, local.velocities.base, 0, (0, 8))
+            local.masses = np.ndarray((count,), np.float64, local.masses.base, 0, (0,))
+            local.box[:] = box
+            local.pbc[:] = local_pbc
+        local.tilt[:] = local_tilt  # (update changes it in place)
+        self.local_state = local
         return unshared
 
-    def _geometry(self, state: State) -> tuple:
+    def geometry(self, state: State) -> tuple:
         """``state``'s cell as a build uses it: its periodic tilt, matrix (rows a, b, c) and
         perpendicular widths, the local system's periodic axes, its tilt and whether it has
         a periodic axis, and the thinnest brick across a periodic axis [length]; kept while
@@ -471,13 +486,22 @@ class Domain:
             self._geometry_key = key
         return self._geometry_values
 
+    def exchange_kept(self, rows: NDArray, dest: int, source: int, tag: int, name: str) -> NDArray:
+        """``ranks.exchange_rows``, the rows received into memory this Domain keeps under
+        ``name`` where the ranks exchange rows as :class:`MPIRanks` does
+        (:meth:`MPIRanks.exchange_kept`; not a stand-in's own ``exchange_rows``): good
+        until the next exchange of that name (a migration's or a ghost sweep's)."""
+        if type(self.ranks).exchange_rows is MPIRanks.exchange_rows:
+            return self.ranks.exchange_kept(rows, dest, source, tag, self._received, name)
+        return self.ranks.exchange_rows(rows, dest, source, tag)
+
     def _both_ways(self, joined: NDArray, other: int, tag: int) -> tuple:
         """Send a sweep's two swaps' rows to ``other``, the neighbour on both sides, as one
         message (``joined``: a row giving the first's count, then both, as
         :func:`sweep_send` writes them), and return the two parts of the one that arrives
         from it: the rows of its first swap and of its second, which come to this rank's
         first and second (its lower face's atoms arrive across this rank's upper face)."""
-        arrived = self.ranks.exchange_rows(joined, other, other, tag)
+        arrived = self.exchange_kept(joined, other, other, tag, "ghost rows")
         split = 1 + int(arrived[0, 0])
         return arrived[1:split], arrived[split:]
 
@@ -495,7 +519,7 @@ class Domain:
     def owned_rows(self, state: State) -> NDArray[np.float64]:
         """The local system's rows of ``state``'s owned atoms, to copy their positions into
         (then :meth:`update` with ``copied``); no rows if the layout is not ``state``'s."""
-        if self.local_state is None or self.n_owned != state.n_atoms:
+        if self.local_state is None or self.n_owned != len(state.positions):
             return _NO_ROWS
         return self.local_state.positions[: self.n_owned]
 

@@ -16,7 +16,6 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from md.box import periodic_tilt
 from md.distributed._domain_kernels import (
     leaving_along,
     pack_leaving,
@@ -132,17 +131,20 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
     """
     names = list(carried)
     # The state's per-atom arrays, then the carried ones: only the atoms that leave
-    # are packed into rows of floats (integers are exact below 2^53).
+    # are packed into rows of floats (integers are exact below 2^53). (Plain loops: a
+    # comprehension is a Python call of its own, at every migration.)
     arrays = [state.positions, state.velocities, state.masses, state.types, state.ids]
-    arrays += [np.asarray(carried[name]) for name in names]
-    keys = [("state", k) for k in range(5)] + [("carried", name) for name in names]
+    keys = list(_STATE_KEYS)
+    for name in names:
+        arrays.append(np.asarray(carried[name]))
+        keys.append(("carried", name))
     # The pack and the sweep's refill are a compiled call each where the arrays are the
     # state's usual ones and the carried ones C-contiguous float64 (else numpy does the
     # same in Python: the same message layout and rows).
     compiled, width = _compiled_layout(arrays)
-    n = state.n_atoms
+    n = len(state.positions)
     lost = 0
-    tilt = periodic_tilt(state.tilt, state.pbc)
+    tilt = domain.geometry(state)[0]  # (the periodic tilt, kept while the cell is)
     grid, ranks = domain.grid, domain.ranks
     for axis in range(3):
         if grid.shape[axis] == 1:
@@ -164,7 +166,7 @@ def migrate(domain, state: State, carried: dict, spent: tuple = ()) -> dict:
             # Two bricks along the axis: both neighbours are the one other rank, and every
             # leaver is in ``ups`` (``downs`` stays empty), so one message each way.
             going = _packed(arrays, ups, flat, domain.rows, "up", width)
-            (from_lower,) = ranks.exchange_many([(going, upper, lower, 2 * axis)])
+            from_lower = domain.exchange_kept(going, upper, lower, 2 * axis, "migration")
             from_upper = from_lower[:0]
         else:
             going_up = _packed(arrays, ups, flat, domain.rows, "up", width)
@@ -245,6 +247,7 @@ def _room_of(values: NDArray, size: int) -> NDArray | None:
 
 
 _NO_COLUMNS = np.zeros((0, 0))  # (ends the carried arrays' tuple: never indexed)
+_STATE_KEYS = tuple(("state", k) for k in range(5))
 _STATE_TYPES = ((np.float64, 2), (np.float64, 2), (np.float64, 1), (np.int32, 1), (np.int64, 1))
 
 
@@ -269,7 +272,11 @@ def _compiled_layout(arrays) -> tuple[bool, int]:
 def _flat(arrays) -> tuple:
     """The carried arrays (after the state's five) as 2-D views, one row an atom, and the
     empty one that ends the tuple (so that it is never empty)."""
-    return tuple([a.reshape(len(a), math.prod(a.shape[1:])) for a in arrays[5:]] + [_NO_COLUMNS])
+    flat = []
+    for a in arrays[5:]:
+        flat.append(a.reshape(len(a), math.prod(a.shape[1:])))
+    flat.append(_NO_COLUMNS)
+    return tuple(flat)
 
 
 def _packed(arrays, rows: NDArray[np.int64], flat=None, store=None, key=None, width=0):

@@ -207,8 +207,8 @@ class MPIRanks:
 
     Sums are all-gathered and added in rank order, so every rank holds the
     same bits; maxima use MPI's reduction (exact in any order). Every call is
-    timed on ``clock`` (a :class:`CommClock`), which the run's summary reports
-    as its "comm" section.
+    timed on ``clock`` (a :class:`CommClock`; :meth:`exchange_kept` within its
+    caller's section), which the run's summary reports as its "comm" section.
     """
 
     def __init__(self, comm, compiled: bool = True) -> None:
@@ -286,6 +286,24 @@ class MPIRanks:
     def exchange_rows(self, rows, dest: int, source: int, tag: int) -> NDArray[np.float64]:
         """Send the rows of an (n, k) float64 array to ``dest``; return those from ``source``."""
         return self.exchange_many([(rows, dest, source, tag)])[0]
+
+    def exchange_kept(self, rows, dest: int, source: int, tag: int, kept: dict, name) -> NDArray:
+        """:meth:`exchange_rows` of C-contiguous float64 ``rows``, received into memory kept in
+        ``kept`` under ``name`` (grown when short; the rows it returns are good until the next
+        call with that name): no array made, no list (a build's migration and ghost sweep).
+        Called inside a section of the ranks' clock (a build's), it opens none of its own."""
+        comm, status = self._comm, self._status
+        request = comm.Isend(rows, dest, tag)
+        message = comm.Mprobe(source, tag, status)
+        width = rows.shape[1]
+        count = status.Get_count(self._double) // width if width else 0
+        held = kept.get(name)
+        if held is None or held.shape[0] < count or held.shape[1] != width:
+            held = kept[name] = np.empty((count + count // 4 + 16, width))
+        received = held[:count]
+        message.Recv(received)
+        request.Wait()
+        return received
 
     def exchange_many(self, exchanges) -> list[NDArray[np.float64]]:
         """:meth:`exchange_rows` for each of ``exchanges`` ((rows, dest, source, tag)), all

@@ -1,0 +1,184 @@
+"""A lean decomposed step and list build (issue 69): the Python a rank runs around its
+compiled calls, counted on rank 0 of 2 real ranks (``mpiexec``, skipped without the
+``[mpi]`` extra) on the 384-atom melt of ``_mpi_support.COUNTED_MELT``.
+
+A step between builds (``DistributedForceField.verlet_step``) takes what a build fixes
+(the halo's plan, the owned rows, the cell matrix, the compiled calls' arguments) from
+what it prepared once after the build, compares the held positions inside its first
+compiled call and writes the reduction's values inside its second. A step start's build
+(``DistributedForceField.rebuild`` with its migration, the ghost search and the layout)
+receives its messages into memory the Domain keeps, keeps the local system's State (two,
+alternating as its arrays do) and its cell's copies, and calls no comprehension or
+property where a loop or a length does. The trajectories are the bits of the path each
+replaced (the step made of ``compute``; messages received into fresh arrays, a fresh
+local State a build).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
+
+#: Python calls on rank 0: from one step start to the next (spans without a build), and
+#: inside each step start's ``rebuild`` (the list search's own calls, another module's,
+#: left out); the local State and the cell's copies across builds; the run's end.
+COUNTS = """\
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+from common import simulation, system
+from md.distributed import DistributedSimulation
+
+sim = simulation(system(), DistributedSimulation)
+sim.run(30)
+forcefield, domain = sim.forcefield, sim.forcefield.domain
+nl = forcefield.local.neighbor_list
+calls, marks, builds, pausing = [0], [], [], [False]
+states, cells = [], []
+
+
+def profile(frame, event, arg):
+    if event == "call" and not pausing[0]:
+        calls[0] += 1
+
+
+starts, rebuild, search = forcefield.start_step, forcefield.rebuild, nl.build
+
+
+def start_step(*args):
+    marks.append((calls[0], forcefield.n_builds))
+    starts(*args)
+
+
+def counted_rebuild(*args, **kwargs):
+    before = calls[0]
+    try:
+        return rebuild(*args, **kwargs)
+    finally:
+        if kwargs.get("dt") is not None:  # (a step start's build, migration included)
+            builds.append(calls[0] - before - 1)
+        states.append(id(domain.local_state))
+        cells.append(id(forcefield.reference_cell))
+
+
+def uncounted_search(*args, **kwargs):
+    pausing[0] = True
+    try:
+        return search(*args, **kwargs)
+    finally:
+        pausing[0] = False
+
+
+forcefield.start_step, forcefield.rebuild, nl.build = start_step, counted_rebuild, uncounted_search
+sys.setprofile(profile)
+sim.run(120)
+sys.setprofile(None)
+steps = [b[0] - a[0] - 1 for a, b in zip(marks, marks[1:]) if a[1] == b[1]]
+if sim.rank == 0:
+    print(json.dumps({
+        "steps": steps, "builds": builds, "states": len(set(states)), "n_states": len(states),
+        "cells": len(set(cells)),
+    }))
+"""
+
+#: The melt run with this code's paths and with the ones they replaced (the step made of
+#: compute and the kicks; each build's messages received into fresh arrays and a fresh
+#: local State), in one launch; rank 0 compares the two and the serial run.
+BOTH = """\
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import md
+from common import simulation, system
+from md.distributed import DistributedForceField, DistributedSimulation
+from md.distributed.halo import Domain
+from md.state import State
+
+lean = (DistributedForceField.verlet_step, Domain.exchange_kept, Domain.build)
+
+
+def fresh_exchange(self, rows, dest, source, tag, name):
+    return self.ranks.exchange_rows(rows, dest, source, tag)
+
+
+def fresh_build(self, *args, **kwargs):
+    unshared = lean[2](self, *args, **kwargs)
+    local = self.local_state  # (a fresh State of the same arrays, as before)
+    fresh = State.adopting(local.positions, local.types, local.box, local.pbc,
+                           local.type_names)
+    fresh.tilt = local.tilt.copy()
+    self.local_state = fresh
+    return unshared
+
+
+found = {}
+for name in ("lean", "before"):
+    if name == "before":
+        DistributedForceField.verlet_step = lambda self, *args: 0
+        Domain.exchange_kept, Domain.build = fresh_exchange, fresh_build
+    sim = simulation(system(), DistributedSimulation)
+    energies = []
+    sim.attach(lambda s: energies.append(s.thermo()["total_energy"]), 10)
+    sim.run(int(sys.argv[2]))
+    found[name] = (sim.global_view(), sim.forcefield.n_builds, energies)
+if sim.rank == 0:
+    serial = simulation(system(), md.Simulation)
+    serial.run(int(sys.argv[2]))
+    a, b = found["lean"][0].state, found["before"][0].state
+    print(json.dumps({
+        "positions": bool(np.array_equal(a.positions, b.positions)),
+        "velocities": bool(np.array_equal(a.velocities, b.velocities)),
+        "energies": found["lean"][2] == found["before"][2],
+        "builds": [found["lean"][1], found["before"][1]],
+        "serial": float(max(np.abs(a.positions - serial.state.positions).max(),
+                            np.abs(a.velocities - serial.state.velocities).max())),
+    }))
+"""
+
+
+def _launch(tmp_path: Path, source: str, *args: str) -> dict:
+    (tmp_path / "common.py").write_text(COUNTED_MELT)
+    script = tmp_path / "script.py"
+    script.write_text(source)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")  # (the 2 cores of CI are shared)
+    command = ["mpiexec", "-n", "2", sys.executable, str(script), str(tmp_path), *args]
+    done = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    return json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
+
+
+@needs_mpi
+def test_a_step_and_a_build_make_few_python_calls(tmp_path):
+    """Rank 0's Python calls (medians): a step between builds at most 30 (46 before, from
+    one step start to the next), a step start's build at most 80 besides the list search
+    (108 before); its local State is one of two kept (a fresh one a build before), and
+    the cell's copies are kept while the cell is (fresh ones a build before)."""
+    found = _launch(tmp_path, COUNTS)
+    steps, builds = sorted(found["steps"]), sorted(found["builds"])
+    assert len(steps) >= 60 and len(builds) >= 8, found
+    assert steps[len(steps) // 2] <= 30, found
+    assert builds[len(builds) // 2] <= 80, found
+    assert found["states"] <= 2 < found["n_states"], found
+    assert found["cells"] == 1, found
+
+
+@needs_mpi
+def test_the_lean_paths_give_the_bits_of_the_paths_they_replaced(tmp_path):
+    """The trajectory (positions, velocities, thermo energies, builds) is the same bits as
+    with the step made of ``compute`` and each build's messages received into fresh arrays
+    and its local State made afresh; within 1e-10 of the serial run."""
+    found = _launch(tmp_path, BOTH, "150")
+    assert found["positions"] and found["velocities"] and found["energies"], found
+    assert found["builds"][0] == found["builds"][1] and found["builds"][0] > 5, found
+    assert found["serial"] < 1e-10, found
