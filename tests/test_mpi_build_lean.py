@@ -22,7 +22,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
+
+import md
+from md.neighbors import NeighborList
 
 #: Python calls on rank 0: from one step start to the next (spans without a build), and
 #: inside each step start's ``rebuild`` (the list search's own calls, another module's,
@@ -160,14 +164,15 @@ def _launch(tmp_path: Path, source: str, *args: str) -> dict:
 
 @needs_mpi
 def test_a_step_and_a_build_make_few_python_calls(tmp_path):
-    """Rank 0's Python calls (medians): a step between builds at most 30 (46 before, from
-    one step start to the next), a step start's build at most 80 besides the list search
-    (108 before); its local State is one of two kept (a fresh one a build before), and
-    the cell's copies are kept while the cell is (fresh ones a build before)."""
+    """Rank 0's Python calls (medians): a step between builds at most 27 (46 before, from
+    one step start to the next; the pair frame's kept call over atom indices checks the
+    list's arrays in one call, six before), a step start's build at most 80 besides the
+    list search (108 before); its local State is one of two kept (a fresh one a build
+    before), and the cell's copies are kept while the cell is (fresh ones a build before)."""
     found = _launch(tmp_path, COUNTS)
     steps, builds = sorted(found["steps"]), sorted(found["builds"])
     assert len(steps) >= 60 and len(builds) >= 8, found
-    assert steps[len(steps) // 2] <= 30, found
+    assert steps[len(steps) // 2] <= 27, found
     assert builds[len(builds) // 2] <= 80, found
     assert found["states"] <= 2 < found["n_states"], found
     assert found["cells"] == 1, found
@@ -182,3 +187,30 @@ def test_the_lean_paths_give_the_bits_of_the_paths_they_replaced(tmp_path):
     assert found["positions"] and found["velocities"] and found["energies"], found
     assert found["builds"][0] == found["builds"][1] and found["builds"][0] > 5, found
     assert found["serial"] < 1e-10, found
+
+
+def test_the_list_gives_its_arrays_over_atom_indices_in_one_call():
+    """``NeighborList.atom_lists()`` is ``(starts, neighbors)``, the same arrays, for a list
+    over atom indices (O(N^2)) and one built by cells, after a build and after the next;
+    one Python call where the properties made three each."""
+    calls = []
+
+    def profile(frame, event, arg):
+        if event == "call":
+            calls.append(frame.f_code.co_name)
+
+    for cells, n_cells in (((3, 3, 3), "few"), ((6, 6, 6), "many")):
+        lattice = md.lattice("fcc", cells, density=0.8442)
+        state = md.State(positions=lattice.positions, masses=1.0, box=lattice.box)
+        nl = NeighborList(2.5, 0.3)
+        for _ in range(2):
+            nl.build(state)
+            first = nl.atom_lists()
+            assert first[0] is nl.starts and first[1] is nl.neighbors, n_cells
+            calls.clear()
+            sys.setprofile(profile)
+            again = nl.atom_lists()
+            sys.setprofile(None)
+            assert again[0] is first[0] and again[1] is first[1], n_cells
+            assert calls == ["atom_lists"], (n_cells, calls)
+            state.positions[:] += np.random.default_rng(1).normal(0.0, 0.2, state.positions.shape)

@@ -627,6 +627,13 @@ class NeighborList:
     def neighbors(self) -> NDArray[np.int32]:
         return self._atom_space()[1]
 
+    def atom_lists(self) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
+        """(``starts``, ``neighbors``) in one Python call where they are at hand (the pair
+        frame's kept call over atom indices checks both at every call: six calls a step)."""
+        if self._slots_pending or (self.order is not None and self._atom_list is None):
+            return self._atom_space()
+        return (self.slot_starts, self.slot_neighbors) if self.order is None else self._atom_list
+
     def check_box(self, box: NDArray[np.float64], pbc: NDArray[np.bool_], tilt=None) -> None:
         """Raise ValueError if the cutoff breaks the minimum-image convention.
 
