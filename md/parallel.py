@@ -173,6 +173,19 @@ def all_finite(values: np.ndarray) -> bool:
     return bool(_all_finite_threaded(values, chunks))
 
 
+def copied(values: np.ndarray, into: np.ndarray) -> np.ndarray:
+    """A copy of ``values``: ``into`` (C-contiguous, of the same dtype) with them written in
+    where its shape is theirs, else a new array; :func:`copy_into`'s threads only where they
+    would split it (below that no Python call at all: a decomposed step copies its start)."""
+    if into.shape != values.shape:
+        return values.copy()
+    if values.size < 2 * _MIN_CHUNK_VALUES:
+        into[...] = values
+    else:
+        copy_into(into, values)
+    return into
+
+
 def copy_into(destination: np.ndarray, source: np.ndarray) -> None:
     """``destination[...] = source`` for two C-contiguous arrays of one shape and dtype,
     in chunks on the kernels' threads."""

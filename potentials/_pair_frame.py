@@ -524,8 +524,6 @@ class PairPotential:
                     self._explain_non_finite(state, neighbors)
                 return result
             call = self._atom_call
-            # (the list's starts and neighbours in one call where it has atom_lists)
-            in_one = getattr(neighbors, "atom_lists", None)
             if (  # the last call over atom indices (see _atom_call), with the same list
                 call is not None
                 and call[0] is state.positions
@@ -533,9 +531,7 @@ class PairPotential:
                 and call[2] is state.type_names
                 and call[3] is self.data
                 and call[4] == self.cutoff_mode
-                and (
-                    lists := (neighbors.starts, neighbors.neighbors) if in_one is None else in_one()
-                )
+                and (lists := neighbors.atom_lists())  # (starts, neighbors: one call)
                 and lists[0] is call[5]
                 and lists[1] is call[6]
                 and call[7] == (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())

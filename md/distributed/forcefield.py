@@ -41,7 +41,7 @@ from md.distributed.ranks import agree, gather_folded
 from md.errors import DecompositionError, NonFiniteError
 from md.forcefield import ForceField
 from md.neighbors import largest_displacement2
-from md.parallel import chunk_count, copy_into, global_max, same_values
+from md.parallel import chunk_count, copied, copy_into, global_max, same_values
 from md.state import State
 from md.topology import Topology
 from potentials.base import ForceResult
@@ -59,9 +59,6 @@ BOND_SKINS = 2.5
 _MIN_PASS_ATOMS = 16_000
 #: The identity, for a cell that has not changed since the build.
 _IDENTITY = np.eye(3)
-#: Fewest values a copy of positions worth splitting on the kernels' threads
-#: (:func:`md.parallel.copy_into` splits at 48,000 values a thread).
-_THREADED_COPY = 96_000
 #: No positions: no step start before the last one is known.
 _NONE = np.empty((0, 3))
 
@@ -244,11 +241,8 @@ class DistributedForceField:
         ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
         ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
         :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
-        the kicks; the two compiled calls on the ranks' clock.
-
-        What a build fixes (the halo's plan, the owned rows, the cell matrix, the kernels'
-        arguments) is prepared at the first such step after it (:meth:`_fused_step`) and
-        kept until the next; a step checks only what may change between steps."""
+        the kicks; the two compiled calls on the ranks' clock. What a build fixes is
+        prepared once a build (:meth:`Domain.fused_arguments`)."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
         positions, cell, fused = state.positions, self._cell_bytes, self._fused
         if (
@@ -265,11 +259,12 @@ class DistributedForceField:
             or (state.box.tobytes(), state.tilt.tobytes()) != cell  # (the local cell's)
         ):
             return 0
-        if fused is None or fused[0] is not reference:
-            fused = self._fused = self._fused_step(state)
-        if fused[1] is None:
+        if fused is None or fused[0] is not reference:  # (the first step after a build)
+            plain = not self.bonded.listed and self.precision == "double"
+            fused = self._fused = (reference, plain and self.domain.fused_arguments(state))
+        if not fused[1]:
             return 0  # (this build's layout has no fused step)
-        _, out_tail, back_tail, local_state, n_owned, check = fused
+        out_tail, back_tail, local_state, n_owned, check = fused[1]
         velocities, masses, clock = state.velocities, state.masses, self.ranks.clock
         with clock:  # (the kick, drift and displacement pass with the messages)
             code, moved2, step2, coming2 = step_out(
@@ -287,8 +282,7 @@ class DistributedForceField:
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
         allowed = 0.5 * self.skin
         coming = math.sqrt(coming2) + LOOKAHEAD * math.sqrt(step2)
-        # (the layout holds unless the build's margin was outgrown: the cell is the build's)
-        outrun = not (math.sqrt(moved2) <= allowed) or self.domain.outgrown
+        outrun = not (math.sqrt(moved2) <= allowed) or self.domain.outgrown  # (layout_holds')
         ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
         error, result = None, None
         start = time.perf_counter()
@@ -319,10 +313,7 @@ class DistributedForceField:
             self._moved_report = -1.0
             self._reported.clear()
         self.ahead, self.stop_seen = float(worst[1]), float(worst[2])
-        if done:
-            # The local result is this step's own (the local force field keeps none; it
-            # has no virial or per-atom values): it becomes the step's, the owned rows of
-            # its forces with the ghosts' summed in, and the whole system's energy.
+        if done:  # (the local result is this step's own: the local force field keeps none)
             result.energy, result.forces = float(totals[1]), forces[:n_owned]
         else:  # not one rank's doing, or every rank's: all go on as _evaluate
             if worst[0]:  # some rank's list was outrun: all rebuild and evaluate again
@@ -338,28 +329,6 @@ class DistributedForceField:
         key[0][...] = positions  # (the key's copy: shaped as they are, step_out compared)
         self._cache[None] = (key, result)
         return 2
-
-    def _fused_step(self, state: State) -> tuple:
-        """What :meth:`verlet_step` takes from the last build (its reference positions
-        shaped as ``state``'s), once a build: (those reference positions, which it is of;
-        the tails of ``step_out``'s and ``gather_reverse_kick``'s arguments, None where
-        this build's layout has no fused step: no compiled plan, bonded terms or mixed
-        precision; the local system; the owned atoms; the MPI error check)."""
-        domain, reference = self.domain, self.reference
-        plan = domain.plan()
-        if plan is None or self.bonded.listed or self.precision != "double":
-            return (reference, None, None, None, 0, None)
-        # (the fused step runs only in the build's cell: its matrix, as Domain.update's)
-        matrix = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
-        owned = domain.owned_rows(state)
-        out_tail = (
-            *(owned, len(owned) > 0, domain.n_owned, domain.imaged, domain.images, matrix),
-            *(domain.local_state.positions, plan.sweeps, plan.table, plan.shifts, plan.index),
-            *(plan.out, plan.slots, plan.calls),
-        )
-        back_tail = (plan.sweeps, plan.table, plan.index, plan.out, plan.back, plan.slots)
-        back_tail += (plan.calls,)
-        return (reference, out_tail, back_tail, domain.local_state, domain.n_owned, plan.check)
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
@@ -608,12 +577,13 @@ class DistributedForceField:
         return covered, ratio, finite
 
     def coming_positions(
-        self, state: State, dt: float, out: NDArray | None = None
+        self, state: State, dt: float, out: NDArray | None = None, forces: NDArray | None = None
     ) -> NDArray[np.float64]:
         """Where the owned atoms are expected after a step of ``dt``: r + dt v + dt^2 a / 2
-        (velocity Verlet's move) with the forces at hand, r + dt v without (in ``out``,
-        else a new array)."""
-        forces = self.cached_forces(state)
+        (velocity Verlet's move) with the forces at hand (``forces``, known to be of these
+        positions, else the cached ones), r + dt v without (in ``out``, else a new array)."""
+        if forces is None:
+            forces = self.cached_forces(state)
         if out is None:
             out = np.empty_like(state.positions)
         predicted_positions(
@@ -641,11 +611,7 @@ class DistributedForceField:
             self.step_before = _NONE
         else:
             self.step_before, self.step_start = self.step_start, self.step_before
-        into = self.step_start
-        if into.shape == positions.shape and positions.size < _THREADED_COPY:
-            into[...] = positions  # (_copied's lines, a call fewer a step)
-        else:
-            self.step_start = _copied(positions, into)
+        self.step_start = copied(positions, self.step_start)
 
     def allowance(self, state: State) -> tuple[NDArray | None, float]:
         """(the cell's deformation since the build, None if unchanged; the largest move an
@@ -723,16 +689,9 @@ class DistributedForceField:
             if at is None:
                 at = self._ahead = copy.copy(state)
             at.__dict__.update(state.__dict__)
-            if migrate:  # (the cache holds results of these positions alone: see above)
-                held = self._cache.get(None)
-                forces = _NONE if held is None else held[1].forces
-                predicted_positions(
-                    *(state.positions, state.velocities, forces, state.masses, float(dt)),
-                    reference,
-                )
-                at.positions = reference  # (as coming_positions, without its checks)
-            else:
-                at.positions = self.coming_positions(state, dt, out=reference)
+            held = self._cache.get(None) if migrate else None  # (a migration's: of state)
+            forces = None if held is None else held[1].forces
+            at.positions = self.coming_positions(state, dt, reference, forces)
         self._settle_build()
         reach = self.reach
         # (a step start's build: atoms just migrated, laid out a step ahead; AGREED_STRAY)
@@ -813,13 +772,9 @@ class DistributedForceField:
         grid = self.domain.grid.balanced(busy, widths, self.reach + self.skin)
         self.domain.set_grid(grid)
         self.balances += 1
-        logger.info(
-            "step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s",
-            state.step,
-            np.round(busy, 4).tolist(),
-            self.imbalance,
-            [np.round(c, 4).tolist() for c in grid.cuts],
-        )
+        cuts, shares = [np.round(c, 4).tolist() for c in grid.cuts], np.round(busy, 4).tolist()
+        message = "step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s"
+        logger.info(message, state.step, shares, self.imbalance, cuts)
 
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
@@ -827,22 +782,10 @@ class DistributedForceField:
         return self.bonded.localize(self.domain, self.potentials, self.local.potentials)
 
 
-def _copied(values: NDArray[np.float64], into: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A copy of ``values``, in ``into``'s memory when it fits (numpy's copy below
-    ``_THREADED_COPY`` values: copy_into's chunking is five Python calls, every step)."""
-    if into.shape != values.shape:
-        return values.copy()
-    if values.size < _THREADED_COPY:
-        into[...] = values
-    else:
-        copy_into(into, values)
-    return into
-
-
 def _key(state: State, old: tuple | None = None) -> tuple:
     """What a result depends on: the owned positions (copied, into ``old``'s array when it
     fits) and the cell."""
-    positions = _copied(state.positions, _NONE if old is None else old[0])
+    positions = copied(state.positions, _NONE if old is None else old[0])
     return positions, state.box.tobytes(), state.tilt.tobytes()
 
 

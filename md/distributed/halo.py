@@ -562,6 +562,24 @@ class Domain:
                 if sweep.forward is not None:
                     sweep.forward.run()
 
+    def fused_arguments(self, state: State) -> tuple | None:
+        """What a fused velocity Verlet step (:meth:`md.distributed.DistributedForceField.
+        verlet_step`) takes from the last build, made once a build: the tails of the
+        arguments of :func:`md.distributed._verlet_kernels.step_out` (from the owned rows)
+        and of ``gather_reverse_kick`` (from the sweeps), the local system, the owned atoms
+        and the MPI error check; None without a compiled plan. The step runs in the build's
+        cell only: its matrix, as :meth:`update`'s."""
+        plan = self.plan()
+        if plan is None:
+            return None
+        matrix = cell_matrix(state.box, periodic_tilt(state.tilt, state.pbc))
+        owned = self.owned_rows(state)
+        out = (owned, len(owned) > 0, self.n_owned, self.imaged, self.images, matrix)
+        out += (self.local_state.positions, plan.sweeps, plan.table, plan.shifts, plan.index)
+        out += (plan.out, plan.slots, plan.calls)
+        back = (plan.sweeps, plan.table, plan.index, plan.out, plan.back, plan.slots, plan.calls)
+        return out, back, self.local_state, self.n_owned, plan.check
+
     def plan(self) -> _Plan | None:
         """The compiled exchanges of the last build's swaps (made once a build), or None
         where the ranks have no compiled MPI calls (:attr:`MPIRanks.compiled`) or no swap
