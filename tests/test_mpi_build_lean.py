@@ -23,23 +23,31 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from _mpi_support import COUNTED_MELT, ROOT, needs_mpi
 
 import md
 from md.neighbors import NeighborList
 
-#: Python calls on rank 0: from one step start to the next (spans without a build), and
-#: inside each step start's ``rebuild`` (the list search's own calls, another module's,
-#: left out); the local State and the cell's copies across builds; the run's end.
-COUNTS = """\
+#: One launch for both tests. First, Python calls on rank 0: from one step start to the
+#: next (spans without a build), and inside each step start's ``rebuild`` (the list
+#: search's own calls, another module's, left out); the local State and the cell's copies
+#: across builds. Then the melt run again with the paths this code replaced (the step made
+#: of compute and the kicks; each build's messages received into fresh arrays and a fresh
+#: local State); rank 0 compares the two runs and the serial one.
+SCRIPT = """\
 import json, sys
 sys.path.insert(0, sys.argv[1])
 import numpy as np
+import md
 from common import simulation, system
-from md.distributed import DistributedSimulation
+from md.distributed import DistributedForceField, DistributedSimulation
+from md.distributed.halo import Domain
+from md.state import State
 
+STEPS = 150
 sim = simulation(system(), DistributedSimulation)
-sim.run(30)
+sim.run(30)  # (no observer: an observer's virial has every step made of compute)
 forcefield, domain = sim.forcefield, sim.forcefield.domain
 nl = forcefield.local.neighbor_list
 calls, marks, builds, pausing = [0], [], [], [False]
@@ -80,30 +88,13 @@ def uncounted_search(*args, **kwargs):
 
 forcefield.start_step, forcefield.rebuild, nl.build = start_step, counted_rebuild, uncounted_search
 sys.setprofile(profile)
-sim.run(120)
+sim.run(STEPS - 30)
 sys.setprofile(None)
 steps = [b[0] - a[0] - 1 for a, b in zip(marks, marks[1:]) if a[1] == b[1]]
-if sim.rank == 0:
-    print(json.dumps({
-        "steps": steps, "builds": builds, "states": len(set(states)), "n_states": len(states),
-        "cells": len(set(cells)),
-    }))
-"""
+energies = {"lean": sim.thermo()["total_energy"]}
+found = {"lean": (sim.global_view(), forcefield.n_builds)}
 
-#: The melt run with this code's paths and with the ones they replaced (the step made of
-#: compute and the kicks; each build's messages received into fresh arrays and a fresh
-#: local State), in one launch; rank 0 compares the two and the serial run.
-BOTH = """\
-import json, sys
-sys.path.insert(0, sys.argv[1])
-import numpy as np
-import md
-from common import simulation, system
-from md.distributed import DistributedForceField, DistributedSimulation
-from md.distributed.halo import Domain
-from md.state import State
-
-lean = (DistributedForceField.verlet_step, Domain.exchange_kept, Domain.build)
+build = Domain.build
 
 
 def fresh_exchange(self, rows, dest, source, tag, name):
@@ -111,7 +102,7 @@ def fresh_exchange(self, rows, dest, source, tag, name):
 
 
 def fresh_build(self, *args, **kwargs):
-    unshared = lean[2](self, *args, **kwargs)
+    unshared = build(self, *args, **kwargs)
     local = self.local_state  # (a fresh State of the same arrays, as before)
     fresh = State.adopting(local.positions, local.types, local.box, local.pbc,
                            local.type_names)
@@ -120,25 +111,23 @@ def fresh_build(self, *args, **kwargs):
     return unshared
 
 
-found = {}
-for name in ("lean", "before"):
-    if name == "before":
-        DistributedForceField.verlet_step = lambda self, *args: 0
-        Domain.exchange_kept, Domain.build = fresh_exchange, fresh_build
-    sim = simulation(system(), DistributedSimulation)
-    energies = []
-    sim.attach(lambda s: energies.append(s.thermo()["total_energy"]), 10)
-    sim.run(int(sys.argv[2]))
-    found[name] = (sim.global_view(), sim.forcefield.n_builds, energies)
+DistributedForceField.verlet_step = lambda self, *args: 0
+Domain.exchange_kept, Domain.build = fresh_exchange, fresh_build
+again = simulation(system(), DistributedSimulation)
+again.run(STEPS)
+energies["before"] = again.thermo()["total_energy"]
+found["before"] = (again.global_view(), again.forcefield.n_builds)
 if sim.rank == 0:
     serial = simulation(system(), md.Simulation)
-    serial.run(int(sys.argv[2]))
+    serial.run(STEPS)
     a, b = found["lean"][0].state, found["before"][0].state
     print(json.dumps({
+        "steps": steps, "builds": builds, "states": len(set(states)), "n_states": len(states),
+        "cells": len(set(cells)),
         "positions": bool(np.array_equal(a.positions, b.positions)),
         "velocities": bool(np.array_equal(a.velocities, b.velocities)),
-        "energies": found["lean"][2] == found["before"][2],
-        "builds": [found["lean"][1], found["before"][1]],
+        "energies": energies["lean"] == energies["before"],
+        "n_builds": [found["lean"][1], found["before"][1]],
         "serial": float(max(np.abs(a.positions - serial.state.positions).max(),
                             np.abs(a.velocities - serial.state.velocities).max())),
     }))
@@ -162,14 +151,20 @@ def _launch(tmp_path: Path, source: str, *args: str) -> dict:
     return json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
 
 
+@pytest.fixture(scope="module")
+def launched(tmp_path_factory) -> dict:
+    """The one launch's findings (:data:`SCRIPT`)."""
+    return _launch(tmp_path_factory.mktemp("lean"), SCRIPT)
+
+
 @needs_mpi
-def test_a_step_and_a_build_make_few_python_calls(tmp_path):
+def test_a_step_and_a_build_make_few_python_calls(launched):
     """Rank 0's Python calls (medians): a step between builds at most 27 (46 before, from
     one step start to the next; the pair frame's kept call over atom indices checks the
     list's arrays in one call, six before), a step start's build at most 80 besides the
     list search (108 before); its local State is one of two kept (a fresh one a build
     before), and the cell's copies are kept while the cell is (fresh ones a build before)."""
-    found = _launch(tmp_path, COUNTS)
+    found = launched
     steps, builds = sorted(found["steps"]), sorted(found["builds"])
     assert len(steps) >= 60 and len(builds) >= 8, found
     assert steps[len(steps) // 2] <= 27, found
@@ -179,13 +174,13 @@ def test_a_step_and_a_build_make_few_python_calls(tmp_path):
 
 
 @needs_mpi
-def test_the_lean_paths_give_the_bits_of_the_paths_they_replaced(tmp_path):
-    """The trajectory (positions, velocities, thermo energies, builds) is the same bits as
+def test_the_lean_paths_give_the_bits_of_the_paths_they_replaced(launched):
+    """The trajectory (positions, velocities, the final total energy, builds) is the same bits as
     with the step made of ``compute`` and each build's messages received into fresh arrays
     and its local State made afresh; within 1e-10 of the serial run."""
-    found = _launch(tmp_path, BOTH, "150")
+    found = launched
     assert found["positions"] and found["velocities"] and found["energies"], found
-    assert found["builds"][0] == found["builds"][1] and found["builds"][0] > 5, found
+    assert found["n_builds"][0] == found["n_builds"][1] and found["n_builds"][0] > 5, found
     assert found["serial"] < 1e-10, found
 
 
