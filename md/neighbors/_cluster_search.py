@@ -15,12 +15,23 @@ from __future__ import annotations
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
-from md._simd import array_data, load_vector, python_twin, splat
+from md._simd import (
+    ZMM,
+    array_data,
+    cluster_i_halves,
+    cluster_j_less,
+    load_vector,
+    python_twin,
+    splat,
+    squared_distances,
+    store_vector,
+)
+from md.neighbors._cluster_grid import CLUSTER
 from md.neighbors._cluster_prune import (
     keep_window,
-    keep_window_both,
     move_pairs,
     move_pairs_threaded,
 )
@@ -426,6 +437,122 @@ def _count_not_above(typingctx, bounds, start, room, limit):
     return types.int64(bounds, start, room, limit), _count_codegen(False)
 
 
+#: The lanes of the atom check's vectors: the cluster kernel's (md._simd.ZMM).
+_LANES = 16 if ZMM else 8
+_F32 = ir.FloatType()
+
+
+def _keep_both_twin(
+    xi, xj, ci, lo, hi, px, py, pz, centres, reach2, inner2, partners, offsets, k, near, nearo, m
+):
+    """:func:`_keep_both` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    own = xi[ci * 3 * CLUSTER : (ci + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+    for j in range(lo, hi):
+        o = (np.array([px, py, pz]) - centres[j, :3]).astype(np.float32)
+        other = xj[j * 3 * CLUSTER : (j + 1) * 3 * CLUSTER].reshape(3, CLUSTER)
+        d = own[:, :, None] - (other - o[:, None])[:, None, :]
+        r2 = (d * d).sum(axis=0)
+        partners[k] = near[m] = j
+        offsets[k] = nearo[m] = o
+        k += bool((r2 < reach2).any())
+        m += bool((r2 < inner2).any())
+    return k, m
+
+
+@python_twin(_keep_both_twin)
+@intrinsic
+def _keep_both(
+    typingctx,
+    xi,
+    xj,
+    ci,
+    lo,
+    hi,
+    px,
+    py,
+    pz,
+    centres,
+    reach2,
+    inner2,
+    partners,
+    offsets,
+    k,
+    near_partners,
+    near_offsets,
+    m,
+):
+    """The search's window of candidates ``lo`` to ``hi`` (j clusters) of i cluster ``ci``,
+    each written to the outer list (``partners``/``offsets`` from ``k`` on) and the inner
+    one (``near_partners``/``near_offsets`` from ``m`` on) with its offset ``(px, py, pz)
+    - centres[j]`` (double, then float32), and kept in each (the next one written after
+    it) where an atom pair is closer than sqrt(``reach2``), sqrt(``inner2``): the check of
+    :func:`md.neighbors._cluster_prune.keep_window_both`, pair for pair, with the centres
+    as rows of four (``centres``, (clusters, 4) float64, the fourth 0) so that an offset is
+    one vector subtraction, one conversion and one 16-byte store per list (the fourth
+    float lands on the next slot's first, which the next pair or row overwrites: the
+    caller leaves a slot spare at the end of its room). Returns (outer end, inner end)."""
+    for array in (offsets, near_offsets):
+        if array.dtype != types.float32 or array.ndim != 2 or array.layout != "C":
+            raise TypeError(f"_keep_both: C-contiguous (pairs, 3) float32 offsets, got {array}")
+    if centres.dtype != types.float64 or centres.layout != "C":
+        raise TypeError(f"_keep_both: C-contiguous (clusters, 4) float64 centres, got {centres}")
+    arguments = (xi, xj, ci, lo, hi, px, py, pz, centres, reach2, inner2)
+    arguments += (partners, offsets, k, near_partners, near_offsets, m)
+    sig = types.UniTuple(types.int64, 2)(*arguments)
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        xi_p, xj_p, centres_p = (array_data(context, builder, arg[n], args[n]) for n in (0, 1, 8))
+        ci_v, lo_v, hi_v, k_v, m_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (2, 3, 4, 13, 16)
+        )
+        quad = ir.VectorType(ir.DoubleType(), 4)
+        shift = ir.Constant(quad, [0.0] * 4)
+        for d, n in enumerate((5, 6, 7)):
+            value = context.cast(builder, args[n], arg[n], types.float64)
+            shift = builder.insert_element(shift, value, ir.Constant(ir.IntType(32), d))
+        outputs = [
+            (
+                (arg[p], context.make_array(arg[p])(context, builder, args[p])),
+                array_data(context, builder, arg[p + 1], args[p + 1]),
+            )
+            for p in (11, 14)
+        ]
+        ends = [cgutils.alloca_once_value(builder, v) for v in (k_v, m_v)]
+        size = ir.Constant(_I64, 3 * CLUSTER)
+        halves = cluster_i_halves(builder, xi_p, builder.mul(ci_v, size), _LANES)
+        lanes = ir.VectorType(_F32, _LANES)
+        radii = [splat(builder, args[n], lanes) for n in (9, 10)]
+        with cgutils.for_range_slice(builder, lo_v, hi_v, ir.Constant(_I64, 1)) as (j, _):
+            places = [builder.load(end) for end in ends]
+            centre = load_vector(builder, centres_p, builder.mul(j, ir.Constant(_I64, 4)), quad)
+            offset4 = builder.fptrunc(builder.fsub(shift, centre), ir.VectorType(_F32, 4))
+            for ((part_type, part_a), off_p), to in zip(outputs, places, strict=True):
+                store_vector(builder, offset4, off_p, builder.mul(to, ir.Constant(_I64, 3)))
+                slot = cgutils.get_item_pointer(context, builder, part_type, part_a, [to])
+                builder.store(builder.trunc(j, ir.IntType(32)), slot)
+            offset = [
+                builder.extract_element(offset4, ir.Constant(ir.IntType(32), d)) for d in range(3)
+            ]
+            shifted = cluster_j_less(builder, xj_p, builder.mul(j, size), offset, lanes=_LANES)
+            within = [None, None]
+            for half in halves:
+                _, r2 = squared_distances(builder, half, shifted)
+                for q, radius in enumerate(radii):
+                    close = builder.fcmp_ordered("<", r2, radius)
+                    within[q] = close if within[q] is None else builder.or_(within[q], close)
+            bits = ir.IntType(_LANES)
+            for end, to, close in zip(ends, places, within, strict=True):
+                kept = builder.icmp_unsigned(
+                    "!=", builder.bitcast(close, bits), ir.Constant(bits, 0)
+                )
+                builder.store(builder.add(to, builder.zext(kept, _I64)), end)
+        values = [builder.load(end) for end in ends]
+        return context.make_tuple(builder, signature.return_type, values)
+
+    return sig, codegen
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _first_not_below(top, begin, stop, low):
     """The first cluster from ``begin`` (before ``stop``) whose top is not below
@@ -506,6 +633,8 @@ def _search_columns(
     all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # the clusters' centres (the partners')
     all_y = 0.5 * (lower[:, 1] + upper[:, 1])
     all_z = 0.5 * (lower[:, 2] + upper[:, 2])
+    centres = np.zeros((lower.shape[0], 4))  # the same, one row of four per cluster
+    centres[:, 0], centres[:, 1], centres[:, 2] = all_x, all_y, all_z
     # the clusters' z bounds, each contiguous for the cursors, and a block's worth past
     # the last cluster (+inf: counted by no cursor) so that a block never reads past them
     n_clusters = lower.shape[0]
@@ -514,7 +643,7 @@ def _search_columns(
     top = np.full(n_clusters + _BLOCK, np.inf)
     top[:n_clusters] = upper[:, 2]
     r2max = radius * radius
-    capacity = place1
+    capacity = place1 - 1  # a pair's offset is stored as four floats: one slot spare
     k = place0
     k_inner = place0  # the pruned rows' end
     pruned = inner[3] > 0.0
@@ -598,7 +727,7 @@ def _search_columns(
                         # each candidate written, and kept (the next one written after
                         # it) only where an atom pair is within reach: no branch, no
                         # second pass; the inner list from the same distances
-                        k, k_inner = keep_window_both(
+                        k, k_inner = _keep_both(
                             xi,
                             xj,
                             ci,
@@ -607,9 +736,7 @@ def _search_columns(
                             px,
                             py,
                             pz,
-                            all_x,
-                            all_y,
-                            all_z,
+                            centres,
                             reach2,
                             inner[3],
                             partners,
