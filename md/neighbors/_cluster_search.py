@@ -4,8 +4,10 @@ A cluster pair is listed when one of its atom pairs lies within the list radius
 (:func:`search_pairs`: per i cluster of the grid of :mod:`md.neighbors._cluster_grid`,
 the neighbouring columns whose xy bounding box comes within reach of the column's and
 the cluster's own, a window of j clusters in z in each, then each candidate checked
-atom by atom with :mod:`md.neighbors._cluster_prune`'s check, whose loop over a window
-is LLVM IR); the pair kernels evaluate all 4 x 4 atom pairs of each listed cluster pair,
+atom by atom with :mod:`md.neighbors._cluster_prune`'s check). LLVM IR here: the
+windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`)
+and the two-list window check's loop (:func:`_keep_both`), each with a Python twin. The
+pair kernels evaluate all 4 x 4 atom pairs of each listed cluster pair,
 in SIMD lanes. The list's chunks for the threads: :func:`balanced_chunks`,
 :func:`row_reach`, :func:`chunk_windows`.
 """
@@ -76,7 +78,8 @@ def search_pairs(
     per window, 0.93 of the search's time with numba's loop over them); with None for
     both, every candidate. With ``inner2`` (float32, at most ``reach2``) the kept pairs
     pruned to those closer than sqrt(``inner2``) too, from the same squared distances
-    (:func:`keep_window_both`): the list :func:`prune_pairs` would make of it, pair for
+    (:func:`_keep_both`, :func:`keep_window_both`'s check with each offset stored as one
+    vector): the list :func:`prune_pairs` would make of it, pair for
     pair, with no pass of its own (0.93 of the CPU time of the search and that prune on
     the 32000-atom melt at radius 4.0 and 2.8, one thread); then returned after the kept
     pairs, as (starts, partners, offsets) too. With ``with_reach``, last also per i
@@ -618,7 +621,9 @@ def _search_columns(
     widened by ``radius``. Along both columns the clusters' boxes rise in z, so a window
     only moves up as i does: two cursors per neighbouring column and image, kept from one
     i cluster to the next (no search; an i cluster out of a column's reach in xy leaves
-    them where they are, and the next one moves them on).
+    them where they are, and the next one moves them on), each moved by counting the
+    bounds below its limit in blocks of ``_BLOCK`` (:func:`_first_not_below`,
+    :func:`_first_above`): no branch per cluster passed.
     """
     width_x, width_y = box[0] / ncx, box[1] / ncy
     reach_x = int(np.ceil(radius / width_x))
