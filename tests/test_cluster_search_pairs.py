@@ -133,6 +133,19 @@ def test_the_window_check_keeps_the_prunes_pairs_and_writes_one_slot_past_at_mos
             xi, xj, ci, lo, hi, p, centres, _reach2(OUTER), _reach2(INNER), outer, inner, k, m
         )
         assert got == want
+        twin = tuple(
+            np.full_like(a, -7) if a.dtype == np.int32 else np.zeros_like(a) for a in outer
+        )
+        p32 = [float(v) for v in p]
+        radii = (_reach2(OUTER), _reach2(INNER))
+        ends = _keep_both.python_twin(
+            xi, xj, ci, lo, hi, *p32, centres, *radii, twin[0], twin[1], k, twin[2], twin[3], m
+        )
+        assert ends == got
+        assert np.array_equal(twin[0][k : got[0]], outer[0][k : got[0]])
+        assert np.array_equal(twin[1][k : got[0]], outer[1][k : got[0]])
+        assert np.array_equal(twin[2][m : got[1]], inner[0][m : got[1]])
+        assert np.array_equal(twin[3][m : got[1]], inner[1][m : got[1]])
         for lists, start, end in ((outer, k, got[0]), (inner, m, got[1])):
             assert np.array_equal(lists[0][start:end], lists[2][start:end])
             assert np.array_equal(lists[1][start:end], lists[3][start:end])
