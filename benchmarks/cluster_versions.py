@@ -18,18 +18,23 @@ A tree's modules are ``md/neighbors/_cluster_grid.py``, ``_cluster_prune.py`` an
 ``md/neighbors/_cluster_kernels.py``. Each tree's are imported under names of their own
 (``_cluster_grid_a``, ...), in import order, each one's imports of its siblings
 (``from md.neighbors._cluster_grid import ...``) given the same tree's copy; everything
-else they import (``md._simd``) is this checkout's. Their kernels are cached in the
-package's kernel cache folder (``md._kernel_cache``), apart from the package's own.
+else they import (``md._simd``) is this checkout's. Their kernels are cached beside the
+package's kernel cache folder (``md._kernel_cache``), in a folder per tag: not in the
+package's own, where a tree's copies, compiled under their own module names, would take
+the places of its kernels (the package then failed to load them: "No module named
+'_cluster_search_b'").
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import statistics
 import sys
 import time
 import types
+from collections.abc import Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, from anywhere
@@ -37,9 +42,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, fr
 import numpy as np  # noqa: E402
 from _machine import machine_line  # noqa: E402
 from cluster_search import melt  # noqa: E402
+from numba.core import config  # noqa: E402
 
 import md  # noqa: E402
-from md._kernel_cache import kernel_cache  # noqa: E402
+from md._kernel_cache import cache_directory  # noqa: E402
 from md.parallel import get_threads, set_threads  # noqa: E402
 
 OUTER, INNER = 4.0, 2.8
@@ -48,6 +54,20 @@ OUTER, INNER = 4.0, 2.8
 #: The cluster kernels' modules of ``md/neighbors/`` in import order: since issue 70's
 #: split, then before it.
 LAYOUTS = (("_cluster_grid", "_cluster_prune", "_cluster_search"), ("_cluster_kernels",))
+
+
+@contextlib.contextmanager
+def _versions_cache(tag: str) -> Iterator[None]:
+    """numba's cache folder, while a tree's modules are decorated, one of this script's
+    own per tag (a user's ``NUMBA_CACHE_DIR`` wins)."""
+    if config.CACHE_DIR:
+        yield
+        return
+    config.CACHE_DIR = str(cache_directory().parent / "numba-versions" / tag)
+    try:
+        yield
+    finally:
+        config.CACHE_DIR = ""
 
 
 def load(tree: str, tag: str) -> types.SimpleNamespace:
@@ -64,7 +84,7 @@ def load(tree: str, tag: str) -> types.SimpleNamespace:
             spec = importlib.util.spec_from_file_location(f"{name}_{tag}", folder / f"{name}.py")
             module = importlib.util.module_from_spec(spec)
             sys.modules[spec.name] = module
-            with kernel_cache():
+            with _versions_cache(tag):
                 spec.loader.exec_module(module)
             # the next modules' "from md.neighbors.<name> import ..." take this tree's copy
             package.setdefault(f"md.neighbors.{name}", sys.modules.get(f"md.neighbors.{name}"))

@@ -40,6 +40,9 @@ _CROWDED_SLAB = 32
 #: farther: float32's 1/r^12 underflows into slow denormals past r ~ 1400, and the
 #: kernels' masks keep fillers out of every sum anyway.
 FILLER = 100.0
+#: The fraction of a box edge below which a coordinate's quotient by the edge is surely
+#: below 1 (not rounded up to it): the wrap's fast path.
+_INSIDE = 1.0 - 1e-9
 
 
 @njit(cache=True, error_model="numpy")
@@ -104,9 +107,16 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
 def _wrap_atoms(positions, box, ncx, ncy, slabs, wrapped, key, begin, end):
     """Atoms ``begin`` to ``end`` wrapped into the box, and their keys: column times
     ``slabs`` plus the slab in z."""
+    # below inside[d] (and not negative) an atom's floor(x / box) is 0, and its wrap x + 0.0
+    # (-0.0 becomes 0.0, as x - floor(x / box) * box makes it), with no division: most atoms
+    inside = (box[0] * _INSIDE, box[1] * _INSIDE, box[2] * _INSIDE)
     for i in range(begin, end):
         for d in range(3):
-            wrapped[i, d] = positions[i, d] - np.floor(positions[i, d] / box[d]) * box[d]
+            x = positions[i, d]
+            if 0.0 <= x < inside[d]:
+                wrapped[i, d] = x + 0.0
+                continue
+            wrapped[i, d] = x - np.floor(x / box[d]) * box[d]
             if wrapped[i, d] >= box[d]:  # rounding of a tiny negative coordinate
                 wrapped[i, d] -= box[d]
         cx = min(int(wrapped[i, 0] * ncx / box[0]), ncx - 1)
@@ -181,18 +191,21 @@ def _grid_boxes(n_clusters):
 @njit(cache=True, inline="always", error_model="numpy")
 def _cluster_box(positions, wrapped, atom, origin, lower, upper, cl):
     """Cluster cl's bounding box (wrapped frame) and its slots' origins."""
-    for d in range(3):
-        lower[cl, d] = np.inf
-        upper[cl, d] = -np.inf
+    # the corners in locals, stored once (through the arrays LLVM reloaded and stored them
+    # at every atom: they might have been the positions)
+    x0 = y0 = z0 = np.inf
+    x1 = y1 = z1 = -np.inf
     for b in range(CLUSTER):
         i = atom[cl * CLUSTER + b]
         if i >= 0:
-            for d in range(3):
-                lower[cl, d] = min(lower[cl, d], wrapped[i, d])
-                upper[cl, d] = max(upper[cl, d], wrapped[i, d])
+            x0, x1 = min(x0, wrapped[i, 0]), max(x1, wrapped[i, 0])
+            y0, y1 = min(y0, wrapped[i, 1]), max(y1, wrapped[i, 1])
+            z0, z1 = min(z0, wrapped[i, 2]), max(z1, wrapped[i, 2])
+    lower[cl, 0], lower[cl, 1], lower[cl, 2] = x0, y0, z0
+    upper[cl, 0], upper[cl, 1], upper[cl, 2] = x1, y1, z1
+    centre = (0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1))
     for b in range(CLUSTER):
         s = cl * CLUSTER + b
         i = atom[s]
         for d in range(3):
-            centre = 0.5 * (lower[cl, d] + upper[cl, d])
-            origin[s, d] = centre + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
+            origin[s, d] = centre[d] + (positions[i, d] - wrapped[i, d] if i >= 0 else 0.0)
