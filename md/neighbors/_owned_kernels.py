@@ -22,8 +22,8 @@ Each owned slot's row is searched in two parts:
   of the 1152-atom melt that is about half the ghosts of the full shell.
 
 The candidate tests are the cell search's (``_candidates``), their loops over a range
-written out in the row loop (``_near_pack_range`` called there cost about 60 ns a call, as
-much as its tests). The rows of the ghost slots
+written out in the row loop, as in ``_frame_pairs_chunk`` (a compiled helper holding that
+loop cost about 60 ns a call, as much as its tests). The rows of the ghost slots
 are empty, and the pair kernels' chunk bounds end at the last owned slot, so a ghost costs
 the force call its position and its force only. ``_owned_brute_force_pairs`` is the O(N^2)
 search of the same list over atom indices (a local system too small for the cells).
@@ -477,8 +477,8 @@ def _owned_pairs_chunk(
             if count + n_candidates + 8 <= capacity:
                 # room for every candidate and a block's spill: written as they are tested
                 at = base + count
-                # (``_near_pack_range``'s loop written out: called, it cost about 60 ns a
-                # call here, more than its blocks' tests)
+                # (the range's words written out here: a helper holding this loop cost
+                # about 60 ns a call, whatever the range, more than its blocks' tests)
                 w = first
                 while w + 64 <= last:
                     at = _near_pack_whole(
