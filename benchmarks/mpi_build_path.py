@@ -3,6 +3,7 @@
     mpiexec -n 2 python benchmarks/mpi_build_path.py              # 7 blocks, about a minute
     mpiexec -n 2 python benchmarks/mpi_build_path.py --blocks 11 --builds 60
     mpiexec -n 2 python benchmarks/mpi_build_path.py --pieces --blocks 9   # one build's parts
+    python benchmarks/mpi_build_path.py --search --blocks 9    # one process: the list searches
 
 On the 1152-atom LJ melt (``examples/lj_melt.toml`` on 8 x 6 x 6 cells, two bricks
 along x), in one launch:
@@ -31,6 +32,17 @@ atoms' layout, the ghost search and its messages, the bonded terms, the rank's l
 compiled halo's plan (its arrays, laid out at the first update after a build). Then each
 rank's list search beside the serial search of the same local atoms (every row) and, on
 rank 0, of the whole system, in alternating blocks: CPU time a build, pairs, ns a pair.
+
+With ``--search``, in one process and with no MPI: rank 0's local system of the melt cut
+by hand in two slabs along x (the perturbed lattice, 586 owned atoms and 494 ghosts in
+one list radius, open along x, as ``tests/test_mpi_local_rows.py`` cuts it; ``--cells``
+for another melt), and alternating blocks of three builds of it: the rank's list (its
+owned rows, ``keep_owned``), the same with no owned row (``keep_owned(ids, 0)``: the
+binning and layouts alone) and the serial search of the same local atoms; thread CPU
+time a build, pairs, the search's cost a row above the binning, the ghosts the rank's
+search tested (``NeighborList.ghost_candidates``, where the code has it) and the rank's
+list against the serial one. It reads only the public API, so a copy of this script in an
+export of older code times that code (``_mpi_worker`` puts its checkout first on the path).
 
 Prints the CPU model and vector ISA, both engines' figures and their ratio. A shared
 machine's other jobs move the absolute times (the ranks wait for each other's cores);
@@ -389,6 +401,102 @@ def _compare_lists(sim, blocks: int, builds: int = 40) -> dict:
     }
 
 
+def _hand_cut_rank(cells, radius: float):
+    """Rank 0's local system of the melt on ``cells`` fcc cells cut in two slabs along x:
+    (State, global ids, owned count); its owned atoms first, then every image of another
+    atom within ``radius`` of the slab along x; open along x, periodic along y and z."""
+    import md
+
+    state = md.lattice("fcc", cells, density=0.8442)
+    rng = np.random.default_rng(0)
+    state.positions += rng.uniform(-0.15, 0.15, state.positions.shape)
+    box = state.box
+    wrapped = state.positions % box
+    high = box[0] / 2
+    inside = (wrapped[:, 0] >= 0.0) & (wrapped[:, 0] < high)
+    positions, ids = [wrapped[inside]], [np.flatnonzero(inside)]
+    for shift in (-1, 0, 1):
+        moved = wrapped.copy()
+        moved[:, 0] += shift * box[0]
+        near = (moved[:, 0] >= -radius) & (moved[:, 0] < high + radius)
+        if shift == 0:
+            near &= ~inside
+        positions.append(moved[near])
+        ids.append(np.flatnonzero(near))
+    local = md.State(
+        positions=np.concatenate(positions), box=box.copy(), pbc=np.array([False, True, True])
+    )
+    return local, np.concatenate(ids).astype(np.int64), int(inside.sum())
+
+
+def compare_searches(cells, blocks: int, builds: int, cutoff=2.5, skin=0.3) -> dict:
+    """``--search``: the rank's list search against the serial one in one process."""
+    from md.neighbors import NeighborList
+
+    local, ids, n_owned = _hand_cut_rank(cells, cutoff + skin)
+    rank, bare, serial = (NeighborList(cutoff, skin) for _ in range(3))
+    rank.keep_owned(ids, n_owned)
+    bare.keep_owned(ids, 0)
+    searches = {"rank's list (owned rows)": rank, "no owned row (binning)": bare}
+    searches["serial, same local atoms"] = serial
+    for nl in searches.values():
+        nl.build(local)  # (compiled, its buffers made)
+    spent: dict[str, list] = {name: [] for name in searches}
+    for _ in range(blocks):
+        for name, nl in searches.items():
+            thread = time.thread_time()
+            for _ in range(builds):
+                nl.build(local)
+            spent[name].append((time.thread_time() - thread) / builds)
+    cpu = {name: statistics.median(times) for name, times in spent.items()}
+    rows = {"rank's list (owned rows)": n_owned, "serial, same local atoms": local.n_atoms}
+    return {
+        "atoms": local.n_atoms,
+        "owned": n_owned,
+        "cpu": cpu,
+        "pairs": {name: int(nl.n_pairs) for name, nl in searches.items()},
+        "row": {name: (cpu[name] - cpu["no owned row (binning)"]) / n for name, n in rows.items()},
+        "ghost candidates": getattr(rank, "ghost_candidates", None),
+        "same pairs": bool(
+            np.array_equal(
+                _owned_of(serial.pairs(), ids, n_owned), np.asarray(rank.pairs(), dtype=np.int64)
+            )
+        ),
+    }
+
+
+def _owned_of(pairs, ids, n_owned):
+    """The serial list's pairs (i < j) that a rank's list keeps: an owned i with an owned j,
+    or with a ghost j whose pair designates i."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    a, b = ids[i], ids[j]
+    designated = (a < b) != ((a + b) % 2 == 1)
+    return pairs[(i < n_owned) & ((j < n_owned) | designated)]
+
+
+def print_searches(found: dict, blocks: int, builds: int) -> None:
+    print(machine_line())
+    print(
+        f"rank 0 of the melt cut in two slabs, by hand, one process: {found['atoms']} local "
+        f"atoms, {found['owned']} owned; {blocks} alternating blocks of {builds} builds, "
+        "thread CPU time a build (medians)"
+    )
+    for name, cpu in found["cpu"].items():
+        pairs = found["pairs"][name]
+        line = f"  {name:<26}: {cpu * 1e6:7.1f} us, {pairs} pairs"
+        if name in found["row"]:
+            line += f", {found['row'][name] * 1e9:6.1f} ns a row above the binning"
+        print(line)
+    cpu = found["cpu"]
+    rank, serial = cpu["rank's list (owned rows)"], cpu["serial, same local atoms"]
+    print(f"  rank's list / serial search: {rank / serial:.3f}")
+    rows = found["row"]
+    per_row = rows["rank's list (owned rows)"] / rows["serial, same local atoms"]
+    print(f"  a row's search, rank / serial: {per_row:.3f}")
+    print(f"  ghosts the rank's search tested: {found['ghost candidates']}")
+    print(f"  the rank's pairs are the serial list's it owns: {found['same pairs']}")
+
+
 def _wrapper_cost(calls: int = 20000) -> float:
     """Seconds a timed call adds to a call (medians of 5): most of it lands in the own time
     of the piece the call is nested in."""
@@ -485,7 +593,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lammps", action="store_true", help="ours only")
     parser.add_argument("--json", help="write the figures to this file (rank 0)")
     parser.add_argument("--pieces", action="store_true", help="one build taken apart")
+    parser.add_argument(
+        "--search", action="store_true", help="one process: the rank's list search, serial's"
+    )
+    parser.add_argument(
+        "--cells", default="8,6,6", help="--search: the melt's fcc cells (8,6,6: 1152 atoms)"
+    )
     args = parser.parse_args(argv)
+    if args.search:
+        cells = tuple(int(c) for c in args.cells.split(","))
+        found = compare_searches(cells, args.blocks, args.builds)
+        print_searches(found, args.blocks, args.builds)
+        if args.json:
+            Path(args.json).write_text(json.dumps(found, indent=2))
+        return 0
     from mpi4py import MPI  # before LAMMPS: it loads the libmpi LAMMPS's library links to
 
     comm = MPI.COMM_WORLD

@@ -229,19 +229,6 @@ _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _near_pack_range(xi, yi, zi, r2_max, tx, ty, tz, packed, first, last, table, out, at):
-    """``_near_pack`` over the candidates first..last-1, however many: whole words of 64,
-    then the last, partial one. Returns the new end."""
-    w = first
-    while w + 64 <= last:
-        at = _near_pack_whole(xi, yi, zi, r2_max, tx, ty, tz, packed, w, 64, table, out, at)
-        w += 64
-    if w < last:
-        at = _near_pack(xi, yi, zi, r2_max, tx, ty, tz, packed, w, last - w, table, out, at)
-    return at
-
-
-@njit(cache=True, inline="always", error_model="numpy")
 def _keep(xi, yi, zi, r2_max, cx, cy, cz, c_packed, first, last, masks, base, count, capacity, out):
     """List the candidates first..last-1 closer than sqrt(r2_max), packed, at
     ``out[base + count:]``; return how many: the exact path near the end of a

@@ -11,11 +11,19 @@ Each owned slot's row is searched in two parts:
 - the owned atoms of the forward half of the 5 x 5 x 5 half-radius cells around its own
   (the cell search's half rule, ``_cell_kernels._gather_column`` and the own column read
   in place): every owned pair once;
-- the ghosts of all 125 cells around it (``_gather_around``: the full shell, since a
-  ghost has no row of its own), of which the row keeps those whose pair designates the
-  owned atom (``_cell_kernels.designates``, on the slots' global ids) as it writes them.
+- the ghosts of the 125 cells around it (a ghost has no row of its own), copied once per
+  column of owned cells (``_gather_around``) in segments, the ghosts of one x cell of one
+  z cell with one image shift, each with a box of their x and z ranges (``_slab_ranges``:
+  per x cell and per z cell, the ghosts' least and greatest coordinate): the row tests
+  the segments whose box comes within the list radius of it in x and z (consecutive ones
+  as one range: those it skips hold no partner, so the row's partners and their order are
+  the full shell's), and keeps those whose pair designates the owned atom
+  (``_cell_kernels.designates``, on the slots' global ids) as it writes them. On a slab
+  of the 1152-atom melt that is about half the ghosts of the full shell.
 
-The candidate tests are the cell search's (``_candidates``). The rows of the ghost slots
+The candidate tests are the cell search's (``_candidates``), their loops over a range
+written out in the row loop, as in ``_frame_pairs_chunk`` (a compiled helper holding that
+loop cost about 60 ns a call, as much as its tests). The rows of the ghost slots
 are empty, and the pair kernels' chunk bounds end at the last owned slot, so a ghost costs
 the force call its position and its force only. ``_owned_brute_force_pairs`` is the O(N^2)
 search of the same list over atom indices (a local system too small for the cells).
@@ -35,7 +43,7 @@ from md.neighbors._build_kernels import (
     _join_chunks,
     _scatter_pass,
 )
-from md.neighbors._candidates import _keep, _near_pack, _near_pack_range
+from md.neighbors._candidates import _keep, _near_pack, _near_pack_whole
 from md.neighbors._cell_kernels import (
     _CODE_SHIFT,
     _SLOT_MASK,
@@ -65,6 +73,7 @@ def _owned_cell_list(
     chunks,
     neighbors,
     codes,
+    tested,
 ):
     """A rank's list in one compiled call: bin the owned atoms and the ghosts apart, search
     the owned rows (``_owned_pairs``), join the chunks.
@@ -77,7 +86,8 @@ def _owned_cell_list(
     pairs than its region of ``len(neighbors) // chunks`` entries holds makes count minus
     the largest chunk's count (grow both buffers to that many per chunk and call again).
     The binning is serial (one pass over the atoms); the search and the join run on
-    numba's threads when ``chunks`` > 1.
+    numba's threads when ``chunks`` > 1. ``tested[c]`` (int64, at least ``chunks``) gets the
+    number of ghost candidates chunk c tested (``_owned_pairs_chunk``).
     """
     n = positions.shape[0]
     total = n_cells[0] * n_cells[1] * n_cells[2]
@@ -122,6 +132,7 @@ def _owned_cell_list(
     else:
         owned_layout = _slot_layout(wrapped, owned_starts, n_cells, slot_cell)
     ghost_planes, _, ghost_most = _slot_layout(wrapped, ghost_starts, n_cells, slot_cell)
+    ghost_ranges = _slab_ranges(ghost_planes, n_cells)
     slot_ids = np.empty(n, dtype=np.int64)
     for p in range(n):
         slot_ids[p] = ids[order[p]]
@@ -149,12 +160,14 @@ def _owned_cell_list(
             most,
             ghost_planes,
             ghost_most,
+            ghost_ranges,
             search,
             capacity,
             starts,
             neighbors,
             codes,
             found,
+            tested,
         )
     else:
         _owned_pairs(
@@ -173,12 +186,14 @@ def _owned_cell_list(
             most,
             ghost_planes,
             ghost_most,
+            ghost_ranges,
             search,
             capacity,
             starts,
             neighbors,
             codes,
             found,
+            tested,
         )
     largest = found.max()
     if largest > capacity:
@@ -210,12 +225,14 @@ def _owned_pairs(
     most,
     ghost_planes,
     ghost_most,
+    ghost_ranges,
     bounds,
     capacity,
     starts,
     neighbors,
     codes,
     counts,
+    tested,
 ):
     """The owned rows' search, chunk after chunk (``_owned_pairs_chunk``)."""
     for chunk in range(bounds.shape[0] - 1):
@@ -236,12 +253,14 @@ def _owned_pairs(
             most,
             ghost_planes,
             ghost_most,
+            ghost_ranges,
             bounds,
             capacity,
             starts,
             neighbors,
             codes,
             counts,
+            tested,
         )
 
 
@@ -262,12 +281,14 @@ def _owned_pairs_threaded(
     most,
     ghost_planes,
     ghost_most,
+    ghost_ranges,
     bounds,
     capacity,
     starts,
     neighbors,
     codes,
     counts,
+    tested,
 ):
     """``_owned_pairs`` with one chunk per thread (the same list)."""
     for chunk in prange(bounds.shape[0] - 1):
@@ -288,12 +309,14 @@ def _owned_pairs_threaded(
             most,
             ghost_planes,
             ghost_most,
+            ghost_ranges,
             bounds,
             capacity,
             starts,
             neighbors,
             codes,
             counts,
+            tested,
         )
 
 
@@ -327,12 +350,14 @@ def _owned_pairs_chunk(
     most,
     ghost_planes,
     ghost_most,
+    ghost_ranges,
     bounds,
     capacity,
     starts,
     neighbors,
     codes,
     counts,
+    tested,
 ):
     """One chunk of the owned rows' search: owned slots ``search[chunk]`` to
     ``search[chunk + 1]``, into its region of ``neighbors`` (``_frame_pairs_chunk``'s
@@ -341,10 +366,12 @@ def _owned_pairs_chunk(
 
     Per (x, y) column of owned slots: the owned candidates of its forward columns and its
     own column as the whole-system search takes them (``_gather_column``), and the ghosts
-    of the 25 columns around it, its own included (``_gather_around``). Row i (z cell cz)
-    tests the owned ones as that search does (a half list), then the ghosts of z cells
-    cz - reach to cz + reach, and keeps those whose pair designates atom i
-    (``_keep_designated``) while they are in the cache. (As in ``_frame_pairs_chunk``,
+    of the 25 columns around it, its own included, in segments (``_gather_around``). Row
+    i (z cell cz) tests the owned ones as that search does (a half list), then the ghosts
+    of the segments of z cells cz - reach to cz + reach whose box lies within the list
+    radius of it in x and z (``_near_segments``), and keeps those whose pair designates
+    atom i (``_keep_designated``) while they are in the cache; ``tested[chunk]`` counts
+    the ghosts tested. (As in ``_frame_pairs_chunk``,
     ``ghost`` counts the image cells past each end of a periodic z axis and
     ``ghost_last`` the own column's images above its top; the ghost atoms' candidates
     are the ``g`` arrays.)
@@ -352,6 +379,9 @@ def _owned_pairs_chunk(
     nz = n_cells[2]
     most_cell, most_column = most
     base = chunk * capacity
+    # a segment is skipped when its bound reaches this (a hair above r2_max: the bound is
+    # computed as the test computes a distance, so r2_max itself would do)
+    r2_reach = r2_max * (1.0 + 1e-12)
     ghost = reach if periodic[2] else 0  # image cells past each z end
     n_z = nz + 2 * ghost
     n_forward = reach * (2 * reach + 1) + reach
@@ -379,10 +409,16 @@ def _owned_pairs_chunk(
     g_start = np.empty(n_z + 1, dtype=np.int64)
     g_runs = np.empty((4, 2 * (2 * reach + 1)), dtype=np.int64)
     g_shifts = np.empty((2, 2 * (2 * reach + 1)))
+    n_segments = n_z * 2 * (2 * reach + 1)  # at most one a run
+    segments = np.empty(n_segments + 1, dtype=np.int64)
+    segment_box = np.empty((4, n_segments))
+    segment_z = np.empty(n_z + 1, dtype=np.int64)
+    ranges = np.empty((2, n_segments), dtype=np.int64)  # a row's runs of segments
     masks = np.empty(max(size, g_size) // 64 + 2, dtype=np.uint64)
     xs, ys, zs = wrapped[0], wrapped[1], wrapped[2]
     packed_list = neighbors.view(np.uint32)
     count = 0
+    n_tested = 0
     p = bounds[chunk]
     end = bounds[chunk + 1]
     while p < end:
@@ -415,6 +451,7 @@ def _owned_pairs_chunk(
             box,
             tilt,
             ghost_planes,
+            ghost_ranges,
             g_runs,
             g_shifts,
             gx,
@@ -422,6 +459,9 @@ def _owned_pairs_chunk(
             gz,
             g_packed,
             g_start,
+            segments,
+            segment_box,
+            segment_z,
         )
         for i in range(p, stop):
             kz = slot_cell[i] - column * nz
@@ -437,21 +477,42 @@ def _owned_pairs_chunk(
             if count + n_candidates + 8 <= capacity:
                 # room for every candidate and a block's spill: written as they are tested
                 at = base + count
-                at = _near_pack_range(
-                    xs[i],
-                    ys[i],
-                    zs[i],
-                    r2_max,
-                    cx,
-                    cy,
-                    cz,
-                    c_packed,
-                    first,
-                    last,
-                    PERMUTATIONS,
-                    packed_list,
-                    at,
-                )
+                # (the range's words written out here: a helper holding this loop cost
+                # about 60 ns a call, whatever the range, more than its blocks' tests)
+                w = first
+                while w + 64 <= last:
+                    at = _near_pack_whole(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        cx,
+                        cy,
+                        cz,
+                        c_packed,
+                        w,
+                        64,
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
+                    w += 64
+                if w < last:
+                    at = _near_pack(
+                        xs[i],
+                        ys[i],
+                        zs[i],
+                        r2_max,
+                        cx,
+                        cy,
+                        cz,
+                        c_packed,
+                        w,
+                        last - w,
+                        PERMUTATIONS,
+                        packed_list,
+                        at,
+                    )
                 w = i + 1
                 while w < own_last:
                     at = _near_pack(
@@ -489,21 +550,54 @@ def _owned_pairs_chunk(
                     )
                     w += 64
                 split = at - base
-                at = _near_pack_range(
+                # the ghosts: the segments that may hold a partner, consecutive ones as one
+                # range (those between hold none, so the row's partners and order stay)
+                n_ranges = _near_segments(
                     xs[i],
-                    ys[i],
                     zs[i],
-                    r2_max,
-                    gx,
-                    gy,
-                    gz,
-                    g_packed,
-                    g_first,
-                    g_last,
-                    PERMUTATIONS,
-                    packed_list,
-                    at,
+                    r2_reach,
+                    segment_z[low],
+                    segment_z[high],
+                    segments,
+                    segment_box,
+                    ranges,
                 )
+                for k in range(n_ranges):
+                    w, g_end = ranges[0, k], ranges[1, k]
+                    n_tested += g_end - w
+                    while w + 64 <= g_end:
+                        at = _near_pack_whole(
+                            xs[i],
+                            ys[i],
+                            zs[i],
+                            r2_max,
+                            gx,
+                            gy,
+                            gz,
+                            g_packed,
+                            w,
+                            64,
+                            PERMUTATIONS,
+                            packed_list,
+                            at,
+                        )
+                        w += 64
+                    if w < g_end:
+                        at = _near_pack(
+                            xs[i],
+                            ys[i],
+                            zs[i],
+                            r2_max,
+                            gx,
+                            gy,
+                            gz,
+                            g_packed,
+                            w,
+                            g_end - w,
+                            PERMUTATIONS,
+                            packed_list,
+                            at,
+                        )
                 count = at - base
             else:
                 for r in range(4):  # forward cells, own column, its images, the ghosts
@@ -515,6 +609,7 @@ def _owned_pairs_chunk(
                         tx, ty, tz, tp, a, b = own[0], own[1], own[2], own[3], 0, ghost_last
                     else:
                         split = count
+                        n_tested += g_last - g_first
                         tx, ty, tz, tp, a, b = gx, gy, gz, g_packed, g_first, g_last
                     count += _keep(
                         xs[i],
@@ -542,6 +637,7 @@ def _owned_pairs_chunk(
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
+    tested[chunk] = n_tested
     if bounds.shape[0] == 2 and count <= capacity:  # the only chunk: unpack it here, hot
         listed = packed_list[:count]
         listed_codes = codes[:count]
@@ -561,6 +657,7 @@ def _gather_around(
     box,
     tilt,
     planes,
+    ranges,
     runs,
     run_shifts,
     cx,
@@ -568,6 +665,9 @@ def _gather_around(
     cz,
     c_packed,
     z_start,
+    segments,
+    segment_box,
+    segment_z,
 ):
     """Copy the ghost candidates of one (x, y) column of owned slots: per z cell (cell
     zc - ghost from ``z_start[zc]``, with ``ghost`` image cells past each end of a periodic
@@ -575,7 +675,14 @@ def _gather_around(
     from the ghosts' ``planes`` (``_slot_layout``), shifted by their image, as
     ``_gather_column`` copies the forward ones (rows of cells along y as runs, one or two
     where a row wraps). ``runs`` and ``run_shifts``: scratch, (4, 2 (2 reach + 1)) and
-    (2, 2 (2 reach + 1))."""
+    (2, 2 (2 reach + 1)).
+
+    The candidates come in segments, the runs of one z cell and one x cell with the same
+    shift (``segments[s]`` to ``segments[s + 1]``; those of z cell zc from
+    ``segment_z[zc]``), each with a box that holds its candidates: ``segment_box[:, s]`` =
+    (x low, x high, z low, z high), the x and z ranges of the ghosts in its x and z cells
+    (``ranges``, ``_slab_ranges``) moved by its shift, added as the copy adds it (a
+    candidate's coordinate is never outside its box, rounding included)."""
     px, py, pz, p_slot, plane_starts = planes
     xy, xz, yz = tilt[0], tilt[1], tilt[2]
     nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
@@ -605,22 +712,38 @@ def _gather_around(
             code_xy[n_runs] = (wx + 1) * 9 + (wy + 1) * 3 + 1
             last_wy = wy
             n_runs += 1
+    x_low, x_high, z_low, z_high = ranges
     m = 0
+    s = 0
     for zc in range(nz + 2 * ghost):
         z_start[zc] = m
+        segment_z[zc] = s
         kz, wz = _neighbor_cell(zc - ghost, 0, nz, periodic[2])
         layer = kz * nx
+        sz = wz * box[2]
+        open_x = -1  # the x cell and shift of the segment open
+        open_shift = 0.0
         for r in range(n_runs):
             row = (layer + run_x[r]) * ny
             begin, end = plane_starts[row + run_first[r]], plane_starts[row + run_last[r] + 1]
             if begin == end:  # (most runs beside a brick's interior: no ghost there)
                 continue
+            sx = shift_x[r] + wz * xz
+            if run_x[r] != open_x or sx != open_shift:
+                segments[s] = m
+                segment_box[0, s] = x_low[run_x[r]] + sx
+                segment_box[1, s] = x_high[run_x[r]] + sx
+                segment_box[2, s] = z_low[kz] + sz
+                segment_box[3, s] = z_high[kz] + sz
+                s += 1
+                open_x = run_x[r]
+                open_shift = sx
             m = _gather_run(
                 begin,
                 end,
-                shift_x[r] + wz * xz,
+                sx,
                 shift_y[r] + wz * yz,
-                wz * box[2],
+                sz,
                 code_xy[r] + wz,
                 px,
                 py,
@@ -633,6 +756,64 @@ def _gather_around(
                 m,
             )
     z_start[nz + 2 * ghost] = m
+    segment_z[nz + 2 * ghost] = s
+    segments[s] = m
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _near_segments(x, z, r2_reach, first, last, segments, segment_box, ranges):
+    """Of segments first..last-1 (``_gather_around``), those whose box lies closer than
+    sqrt(r2_reach) to (x, z) in x and z, consecutive ones joined: ``ranges[:, k]`` = (first
+    candidate, end) of run k; returns their number. The box's distance is computed as the
+    candidate test computes a distance (differences, squares, then their sum), so no
+    candidate of a segment left out is nearer than the box."""
+    x_low, x_high, z_low, z_high = segment_box[0], segment_box[1], segment_box[2], segment_box[3]
+    n = 0
+    was_near = False
+    for s in range(first, last):
+        ax = x_low[s] - x
+        bx = x - x_high[s]
+        ax = ax if ax > bx else bx
+        ax = ax if ax > 0.0 else 0.0
+        az = z_low[s] - z
+        bz = z - z_high[s]
+        az = az if az > bz else bz
+        az = az if az > 0.0 else 0.0
+        near = ax * ax + az * az < r2_reach
+        if near:
+            if not was_near:
+                ranges[0, n] = segments[s]
+                n += 1
+            ranges[1, n - 1] = segments[s + 1]
+        was_near = near
+    return n
+
+
+@njit(cache=True, error_model="numpy")
+def _slab_ranges(planes, n_cells):
+    """(x low, x high, z low, z high): per x cell, the least and greatest x of the atoms in
+    ``planes`` (``_slot_layout``) in cells of that x cell; per z cell, the same of z
+    (+inf, -inf where there is none)."""
+    px, _, pz, _, plane_starts = planes
+    nx, ny, nz = n_cells[0], n_cells[1], n_cells[2]
+    x_low = np.full(nx, np.inf)
+    x_high = np.full(nx, -np.inf)
+    z_low = np.full(nz, np.inf)
+    z_high = np.full(nz, -np.inf)
+    for kz in range(nz):
+        z_min, z_max = np.inf, -np.inf
+        for kx in range(nx):
+            row = (kz * nx + kx) * ny
+            x_min, x_max = x_low[kx], x_high[kx]
+            for k in range(plane_starts[row], plane_starts[row + ny]):
+                x, z = px[k], pz[k]
+                x_min = x if x < x_min else x_min
+                x_max = x if x > x_max else x_max
+                z_min = z if z < z_min else z_min
+                z_max = z if z > z_max else z_max
+            x_low[kx], x_high[kx] = x_min, x_max
+        z_low[kz], z_high[kz] = z_min, z_max
+    return x_low, x_high, z_low, z_high
 
 
 @njit(cache=True, error_model="numpy")

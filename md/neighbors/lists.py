@@ -436,6 +436,7 @@ class NeighborList:
         self._owned: tuple[NDArray[np.int64], int] | None = None
         self._listed_rows = 0  # rows of the last build that may hold pairs (see build)
         self._groups: NDArray[np.int64] | None = None  # see exclude_groups
+        self._ghost_tests = np.zeros(1, dtype=np.int64)  # per search chunk: ghost_candidates
 
     def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
         """From the next build on, list only the pairs this rank of a decomposed run evaluates.
@@ -462,6 +463,14 @@ class NeighborList:
         self._owned = (
             None if ids is None else (np.ascontiguousarray(ids, dtype=np.int64), int(n_owned))
         )
+
+    @property
+    def ghost_candidates(self) -> int:
+        """Ghosts the last cell search of a :meth:`keep_owned` list tested against an owned
+        row (one per row and ghost; 0 for other searches): a diagnostic of the search's
+        work, the ghosts whose segment of the shell (``_owned_kernels``) lies within the
+        list radius of the row."""
+        return int(self._ghost_tests.sum())
 
     def exclude_groups(self, groups: NDArray[np.int64] | None) -> None:
         """From the next build on (the next :meth:`update` builds), leave out every pair of
@@ -909,6 +918,7 @@ class NeighborList:
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
+        self._ghost_tests.fill(0)
         self.lengths = lengths
         self.tilt = tilt
         self.used_cells = grid is not None
@@ -1246,6 +1256,8 @@ class NeighborList:
                     self._code_buffer,
                 )
             else:  # a rank's: owned rows only, no pair of two ghosts searched
+                if self._ghost_tests.shape[0] < chunks:
+                    self._ghost_tests = np.zeros(chunks, dtype=np.int64)
                 found = _owned_cell_list(
                     state.positions,
                     self._listed_rows,
@@ -1261,6 +1273,7 @@ class NeighborList:
                     chunks,
                     self._neighbor_buffer,
                     self._code_buffer,
+                    self._ghost_tests,
                 )
             order, images, starts, bounds, count, shifted = found
             if count >= 0:
