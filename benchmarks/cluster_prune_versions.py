@@ -11,7 +11,9 @@ thread count T the outer list is split in T chunks by pairs as the list splits i
 bound on their speed-up without the wait for a core that a loaded machine adds).
 Prints whether both give the same list (starts, partners and offsets over the kept
 pairs, array for array), the medians of the calling thread's CPU time and of the wall
-time, and the medians of the per-repeat ratios, b / a::
+time, and the medians of the per-repeat ratios, b / a; then the peer's list cost in
+the same run (LAMMPS's ``lj/cut`` on the same melt in a child, one thread, its Neigh
+time per build; ``--no-lammps`` to skip it)::
 
     mkdir /tmp/before && git archive HEAD~3 md | tar -x -C /tmp/before
     python benchmarks/cluster_prune_versions.py /tmp/before . --threads 1,2 --work
@@ -32,6 +34,7 @@ import numpy as np  # noqa: E402
 from _machine import machine_line  # noqa: E402
 from cluster_search import melt  # noqa: E402
 from cluster_versions import load  # noqa: E402
+from lj_melt import lammps_environment, run_lammps  # noqa: E402
 
 import md  # noqa: E402
 from md.neighbors._cluster_search import balanced_chunks  # noqa: E402
@@ -66,6 +69,7 @@ def main() -> int:
     parser.add_argument("--warm", type=int, default=100, help="mixed steps before (100)")
     parser.add_argument("--moved", type=int, default=5, help="steps to the prune (5)")
     parser.add_argument("--work", action="store_true", help="also 2 chunks on 1 thread")
+    parser.add_argument("--no-lammps", action="store_true", help="no LAMMPS peer line")
     args = parser.parse_args()
     md.keep_freed_memory()
     print(machine_line())
@@ -92,6 +96,7 @@ def main() -> int:
     if args.work:
         runs.append((1, 2))
     before = get_threads()
+    one = None  # b's prune at 1 thread, 1 chunk: CPU ms
     try:
         for threads, chunks in runs:
             set_threads(threads)
@@ -119,9 +124,34 @@ def main() -> int:
                 row += [1e3 * statistics.median(a), 1e3 * statistics.median(b), ratio]
             figures = " ".join(f"{v:7.3f}" for v in row)
             print(f"{threads:>7} {chunks:>6} {k:>8} {figures}  same list: {same}")
+            if (threads, chunks) == (1, 1):
+                one = row[1]
     finally:
         set_threads(before)
+    if not args.no_lammps:
+        peer(args.cells, one)
     return 0
+
+
+def peer(cells: int, ours: float | None) -> None:
+    """LAMMPS's list cost on the same melt (100 steps, its own list rule: check every
+    step), per build, beside ``ours`` (b's prune at 1 thread, CPU ms)."""
+    try:
+        found = run_lammps(cells, 100, "check", lammps_environment())
+    except (OSError, RuntimeError) as error:
+        print(f"LAMMPS: not run ({error})")
+        return
+    neigh = (found.get("sections") or {}).get("Neigh")
+    builds = found.get("n_builds")
+    if not neigh or not builds:
+        print(f"LAMMPS {found.get('version', '?')}: no Neigh time or builds in its log")
+        return
+    per_build = 1e3 * neigh / builds
+    ratio = f"; LAMMPS per build / b's prune at 1 thread {per_build / ours:.1f}" if ours else ""
+    print(
+        f"LAMMPS {found.get('version', '?')} lj/cut, 1 thread, this melt: Neigh "
+        f"{per_build:.2f} ms per build ({builds} builds in 100 steps, wall time){ratio}"
+    )
 
 
 if __name__ == "__main__":
