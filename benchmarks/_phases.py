@@ -165,6 +165,43 @@ def _melt(cells: int, seed: int = 87287) -> md.State:
     return md.maxwell_boltzmann(md.lattice("fcc", cells, density=0.8442), 3.0, seed=seed)
 
 
+def _prune_runs(neighbors, outer, state, mark_rows, copy_rows) -> list:
+    """The prune's timed runs: each chunk's marks ("prune: rows"), each chunk's copy of
+    its kept pairs to their places ("prune: copy", its rows' counts put back first: a
+    copy makes them offsets) and the whole prune."""
+    from md.neighbors._cluster_prune import prune_pairs
+
+    size = outer.n_pairs
+    kept_starts = np.empty(outer.n_clusters + 1, np.int64)
+    kept_partners = np.empty(size, np.int32)
+    kept_offsets = np.empty((size, 3), np.float32)
+    marks = np.empty(size, np.uint8)
+    oxi = np.empty(12 * outer.n_clusters, np.float32)
+    oxj = np.empty(12 * outer.n_clusters, np.float32)
+    outer.relative_positions(state.positions, oxi, oxj)
+    reach2 = np.float32((neighbors.list_radius * (1.0 + 1e-5)) ** 2)
+    lists = (outer.starts, outer.partners, outer.offsets)
+    kept = (kept_partners, kept_offsets)
+    whole = (*lists, outer.bounds, oxi, oxj, reach2, kept_starts, *kept, marks)
+    prune_pairs(*whole)
+    places = kept_starts.copy()
+    counts = np.diff(kept_starts)
+    runs = []
+    for c in range(len(outer.bounds) - 1):
+        c0, c1 = int(outer.bounds[c]), int(outer.bounds[c + 1])
+
+        def mark(c0=c0, c1=c1):
+            mark_rows(*lists, c0, c1, oxi, oxj, reach2, marks, kept_starts)
+
+        def copy(c0=c0, c1=c1, k=int(places[c0])):
+            kept_starts[c0 + 1 : c1 + 1] = counts[c0:c1]
+            copy_rows(*lists, c0, c1, marks, k, kept_starts, *kept)
+
+        runs += [("prune: rows", c, mark), ("prune: copy", c, copy)]
+    runs.append(("prune kernel, whole", 0, lambda: prune_pairs(*whole)))
+    return runs
+
+
 def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list[float]]:
     """CPU seconds of each chunk of the cluster kernel and of the prune's rows, alone on
     this thread, over the list as it stands (median of ``repeats``, taking turns)."""
@@ -242,87 +279,12 @@ def _chunk_times(sim: md.Simulation, kept: dict, repeats: int) -> dict[str, list
             )
         )
     if outer is not None:
-        from md.neighbors._cluster_prune import _prune_rows, prune_pairs
-
-        size = outer.n_pairs
-        kept_starts = np.empty(outer.n_clusters + 1, np.int64)
-        kept_partners = np.empty(size, np.int32)
-        kept_offsets = np.empty((size, 3), np.float32)
-        oxi = np.empty(12 * outer.n_clusters, np.float32)
-        oxj = np.empty(12 * outer.n_clusters, np.float32)
-        outer.relative_positions(state.positions, oxi, oxj)
-        reach2 = np.float32((neighbors.list_radius * (1.0 + 1e-5)) ** 2)
-        for c in range(len(outer.bounds) - 1):
-            c0, c1 = int(outer.bounds[c]), int(outer.bounds[c + 1])
-            runs.append(
-                (
-                    "prune: rows",
-                    c,
-                    lambda c0=c0, c1=c1: _prune_rows(
-                        outer.starts,
-                        outer.partners,
-                        outer.offsets,
-                        c0,
-                        c1,
-                        oxi,
-                        oxj,
-                        reach2,
-                        kept_starts,
-                        kept_partners,
-                        kept_offsets,
-                    ),
-                )
-            )
-        runs.append(
-            (
-                "prune kernel, whole",
-                0,
-                lambda: prune_pairs(
-                    outer.starts,
-                    outer.partners,
-                    outer.offsets,
-                    outer.bounds,
-                    oxi,
-                    oxj,
-                    reach2,
-                    kept_starts,
-                    kept_partners,
-                    kept_offsets,
-                ),
-            )
-        )
-        try:  # the move of the later chunks' kept pairs, on the threads where apart
-            from md.neighbors._cluster_prune import move_pairs, move_pairs_threaded
-        except ImportError:  # (before: serial, in the prune's tail)
-            move_pairs_threaded = None
-        if move_pairs_threaded is not None and len(outer.bounds) == 3:
-            prune_pairs(
-                outer.starts,
-                outer.partners,
-                outer.offsets,
-                outer.bounds,
-                oxi,
-                oxj,
-                reach2,
-                kept_starts,
-                kept_partners,
-                kept_offsets,
-            )
-            source = int(outer.starts[outer.bounds[1]])
-            target = int(kept_starts[outer.bounds[1]])
-            count = int(kept_starts[-1]) - target
-            if target + count <= source:
-                for r in range(2):
-                    a, b = r * count // 2, (r + 1) * count // 2
-                    runs.append(
-                        (
-                            "prune: move",
-                            r,
-                            lambda a=a, b=b: move_pairs(
-                                kept_partners, kept_offsets, source, target, a, b
-                            ),
-                        )
-                    )
+        try:  # the prune's two passes, marks then copies (before: one pass, then a move)
+            from md.neighbors._cluster_prune import _copy_rows, _mark_rows
+        except ImportError:  # (a tree before: its prune's chunks not timed)
+            _copy_rows = _mark_rows = None
+        if _mark_rows is not None:
+            runs += _prune_runs(neighbors, outer, state, _mark_rows, _copy_rows)
     for _, _, run in runs:
         run()  # compile or load
     times: dict[tuple[str, int], list[float]] = {(name, c): [] for name, c, _ in runs}
@@ -412,7 +374,8 @@ def report(cells: int, threads: int, steps: int, warm: int, repeats: int) -> Non
         if name == "prune kernel" and "prune: rows" in chunks:
             # the rows' chunks and the serial tail (prefix sum, moves), from the prune alone
             rows, whole = chunks["prune: rows"], chunks["prune kernel, whole"][0]
-            move = chunks.get("prune: move", [0.0])
+            second = "prune: move" if "prune: move" in chunks else "prune: copy"
+            move = chunks.get(second, [0.0])
             tail = max(whole - sum(rows) - sum(move), 0.0)
             span = wt * (tail + max(rows) + max(move)) / whole
             serial += wt * tail / whole
@@ -421,8 +384,8 @@ def report(cells: int, threads: int, steps: int, warm: int, repeats: int) -> Non
                 + "/".join(f"{1e3 * t:.3f}" for t in rows)
                 + " ms"
                 + (
-                    (", move " + "/".join(f"{1e3 * t:.3f}" for t in move) + " ms")
-                    if "prune: move" in chunks
+                    (f", {second[7:]} " + "/".join(f"{1e3 * t:.3f}" for t in move) + " ms")
+                    if second in chunks
                     else ""
                 )
                 + f", serial tail {1e3 * tail:.3f} ms ({tail / whole:.0%})"

@@ -65,10 +65,11 @@ def pruner(nl, positions):
         return None
     n, size = outer.n_clusters, outer.n_pairs
     xi, xj = np.empty(12 * n, np.float32), np.empty(12 * n, np.float32)
-    starts, partners, offsets = (
+    starts, partners, offsets, marks = (
         np.empty(n + 1, np.int64),
         np.empty(size, np.int32),
         np.empty((size, 3), np.float32),
+        np.empty(size, np.uint8),
     )
     reach2 = np.float32((nl.list_radius * (1.0 + 1e-5)) ** 2)
 
@@ -85,6 +86,7 @@ def pruner(nl, positions):
             starts,
             partners,
             offsets,
+            marks,
         )
 
     return prune

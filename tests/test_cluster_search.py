@@ -78,6 +78,7 @@ def _pruned(outer, xi, xj, chunks):
         kept_starts,
         kept_partners,
         kept_offsets,
+        np.empty(len(partners), np.uint8),
     )
     return kept_starts, kept_partners[:kept], kept_offsets[:kept]
 

@@ -41,7 +41,7 @@ from md.neighbors import _candidates as candidate_kernels
 from md.neighbors._candidates import _near_bits
 from md.neighbors._cell_kernels import GATHER_BLOCK, _copy_block
 from md.neighbors._cluster_grid import cluster_grid, column_counts
-from md.neighbors._cluster_prune import _keep_near, _near_pair, cluster_positions, keep_window
+from md.neighbors._cluster_prune import _near_pair, cluster_positions, keep_window
 from md.neighbors._cluster_search import search_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +74,8 @@ def test_every_intrinsic_has_a_python_twin():
         "_near_bits",
         "_copy_block",
         "_near_pair",
-        "_keep_near",
+        "_mark_near",
+        "_compress_kept",
         "keep_window",
     } <= set(found)
 
@@ -130,73 +131,6 @@ def test_the_cluster_pair_check_equals_its_twin_and_the_atom_distances(fcc_latti
                 checked += 1
     assert checked > 0.9 * (len(partners) - len(rows))
     assert 0 < compiled.sum() < len(partners) - len(rows)
-
-
-@njit
-def _keep_rows(xi, xj, starts, partners, offsets, reach2, kept_partners, kept_offsets, ends):
-    k = 0
-    for ci in range(starts.shape[0] - 1):
-        k = _keep_near(
-            xi,
-            xj,
-            partners,
-            offsets,
-            starts[ci],
-            starts[ci + 1],
-            ci,
-            reach2,
-            kept_partners,
-            kept_offsets,
-            k,
-        )
-        ends[ci] = k
-
-
-def test_the_prune_row_equals_its_twin_in_place_and_not(fcc_lattice):
-    """The prune's row copy (:func:`md.neighbors._cluster_prune._keep_near`, loop in IR):
-    the pairs kept and their order as its Python twin's and as ``_near_pair`` decides
-    them pair by pair (the cluster itself always first), rows compacted one after
-    another, into other arrays and in place; empty rows keep nothing."""
-    state, atom, xi, xj, _, starts, partners, offsets = _cluster_list(fcc_lattice)
-    # an empty row in the middle: the first row's pairs moved to the second
-    starts = starts.copy()
-    starts[1] = starts[0]
-    reach2 = np.float32(2.0**2)
-    n = len(partners)
-    expected_partners, expected_offsets, expected_ends = [], [], []
-    for ci in range(len(starts) - 1):
-        for k in range(starts[ci], starts[ci + 1]):
-            if k == starts[ci] or _near_pair.python_twin(
-                xi, xj, ci, partners[k], *offsets[k], reach2
-            ):
-                expected_partners.append(partners[k])
-                expected_offsets.append(offsets[k])
-        expected_ends.append(len(expected_partners))
-    kept = len(expected_partners)
-    assert 0 < kept < n
-    for in_place in (False, True):
-        ends = np.zeros(len(starts) - 1, np.int64)
-        twin_ends = np.zeros_like(ends)
-        if in_place:
-            kp, ko = partners.copy(), offsets.copy()
-            _keep_rows(xi, xj, starts, kp, ko, reach2, kp, ko, ends)
-            tp, to = partners.copy(), offsets.copy()
-            source_p, source_o = tp, to
-        else:
-            kp, ko = np.zeros_like(partners), np.zeros_like(offsets)
-            _keep_rows(xi, xj, starts, partners, offsets, reach2, kp, ko, ends)
-            tp, to = np.zeros_like(partners), np.zeros_like(offsets)
-            source_p, source_o = partners, offsets
-        k = 0
-        for ci in range(len(starts) - 1):
-            k = _keep_near.python_twin(
-                xi, xj, source_p, source_o, starts[ci], starts[ci + 1], ci, reach2, tp, to, k
-            )
-            twin_ends[ci] = k
-        assert np.array_equal(ends, expected_ends) and np.array_equal(twin_ends, expected_ends)
-        assert np.array_equal(kp[:kept], expected_partners)
-        assert np.array_equal(ko[:kept], np.array(expected_offsets))
-        assert np.array_equal(tp[:kept], kp[:kept]) and np.array_equal(to[:kept], ko[:kept])
 
 
 @njit

@@ -6,10 +6,12 @@ cluster pair is kept where one of its atom pairs lies within reach: the check
 (:func:`_near_pair`, one pair) is LLVM vector IR in the kernels' lanes, built from
 :mod:`md._simd`'s blocks, and runs inside two loops written in IR as well: the
 search's window of candidates (:func:`keep_window`, :func:`keep_window_both`, called by
-:mod:`md.neighbors._cluster_search`) and the prune's row (:func:`_keep_near`, in
-:func:`prune_pairs`: GROMACS's dynamic pruning of an outer list to an inner one). Each
-intrinsic has a Python twin for ``NUMBA_DISABLE_JIT=1``. :func:`move_pairs` moves a
-chunk's rows down to follow the one before, for the prune and the search alike.
+:mod:`md.neighbors._cluster_search`) and the prune's row (:func:`_mark_near`, in
+:func:`prune_pairs`: GROMACS's dynamic pruning of an outer list to an inner one, which
+marks each pair, then copies the marked ones to their places: :func:`_compress_kept`,
+AVX-512's compress in IR where the CPU has it). Each intrinsic has a Python twin for
+``NUMBA_DISABLE_JIT=1``. :func:`move_pairs` moves a chunk's rows down to follow the one
+before, for the search.
 
 numba's cache checks only a kernel's own file: the search's cached kernels hold their
 own copies of :func:`keep_window`, :func:`keep_window_both` and :func:`move_pairs`,
@@ -30,9 +32,11 @@ from md._simd import (
     array_data,
     cluster_i_halves,
     cluster_j_less,
+    load_vector,
     python_twin,
     splat,
     squared_distances,
+    store_vector,
 )
 from md.neighbors._cluster_grid import CLUSTER, FILLER
 
@@ -84,6 +88,13 @@ _I64 = ir.IntType(64)
 #: The lanes of the atom check's vectors: the cluster kernel's (md._simd.ZMM).
 _LANES = 16 if ZMM else 8
 _VECTOR = ir.VectorType(_F32, _LANES)
+_BYTE = ir.IntType(8)
+# the compaction's (_compress_kept): 16 marks, 16 lanes of words and of bits
+_BYTE16 = ir.VectorType(_BYTE, 16)
+_WORDS = ir.IntType(32)
+_WORD16 = ir.VectorType(_WORDS, 16)
+_BIT16 = ir.VectorType(ir.IntType(1), 16)
+_MASK16 = ir.IntType(16)
 
 
 def _any_near(builder, halves, shifted, reach):
@@ -154,67 +165,6 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
 
 
 @njit(cache=True, error_model="numpy")
-def prune_pairs(
-    starts, partners, offsets, bounds, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
-):
-    """Keep the pairs of the cluster list (``starts``, ``partners``, ``offsets``) that
-    have an atom pair closer than sqrt(``reach2``) at the relative positions ``xi``/``xj``
-    (GROMACS's dynamic pruning of an outer list to an inner one), each row in its
-    order, the cluster itself still first: their row offsets into ``kept_starts`` and
-    the pairs into ``kept_partners``/``kept_offsets`` (as long as the list). Returns the
-    pairs kept.
-
-    The chunks ``bounds`` (i cluster ranges) run on the threads, each pair checked
-    (:func:`_near_pair`'s check) as it is copied, the next one copied after it only if it
-    is kept (the outer list is read once; 0.85 of the time of marking a row and then
-    compacting it, on one thread), a row at a time in IR (:func:`_keep_near`: the i
-    cluster's vectors loaded once per row, 0.76 of the time of the same loop in numba,
-    which reloaded them per pair), each chunk's kept rows written from where its
-    rows begin in the list; then every chunk but the first is moved down to its place,
-    in order (a move never overwrites rows not yet moved)."""
-    n_clusters = starts.shape[0] - 1
-    chunks = bounds.shape[0] - 1
-    if chunks == 1:
-        _prune_rows(
-            starts,
-            partners,
-            offsets,
-            0,
-            n_clusters,
-            xi,
-            xj,
-            reach2,
-            kept_starts,
-            kept_partners,
-            kept_offsets,
-        )
-    else:
-        _prune_chunks(
-            starts,
-            partners,
-            offsets,
-            bounds,
-            xi,
-            xj,
-            reach2,
-            kept_starts,
-            kept_partners,
-            kept_offsets,
-        )
-    kept_starts[0] = 0
-    for ci in range(n_clusters):  # the counts, into row offsets
-        kept_starts[ci + 1] += kept_starts[ci]
-    for t in range(1, chunks):
-        source, target = starts[bounds[t]], kept_starts[bounds[t]]
-        count = kept_starts[bounds[t + 1]] - target
-        if target + count <= source:  # apart (the prune keeps about half): on the threads
-            move_pairs_threaded(kept_partners, kept_offsets, source, target, count, chunks)
-        else:
-            move_pairs(kept_partners, kept_offsets, source, target, 0, count)
-    return kept_starts[n_clusters]
-
-
-@njit(cache=True, error_model="numpy")
 def move_pairs(partners, offsets, source, target, first, end):
     """Pairs ``source + first`` to ``source + end`` moved down to ``target + first`` on
     (``target`` < ``source``: in order, so a move never overwrites a pair not yet moved)."""
@@ -227,27 +177,121 @@ def move_pairs(partners, offsets, source, target, first, end):
 @njit(cache=True, parallel=True, error_model="numpy")
 def move_pairs_threaded(partners, offsets, source, target, count, runs):
     """:func:`move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
-    ``runs`` runs on the threads (serial, the move of the second of two chunks' kept pairs
-    took 0.10 of the prune's CPU time on the 32000-atom melt: 147 of 1457 us)."""
+    ``runs`` runs on the threads (the search's move of its later chunks' pairs)."""
     for r in prange(runs):
         move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _prune_chunks(
-    starts, partners, offsets, bounds, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
+@njit(cache=True, error_model="numpy")
+def prune_pairs(
+    starts,
+    partners,
+    offsets,
+    bounds,
+    xi,
+    xj,
+    reach2,
+    kept_starts,
+    kept_partners,
+    kept_offsets,
+    marks,
 ):
-    """:func:`_prune_rows` for each chunk of i clusters, on the threads."""
+    """Keep the pairs of the cluster list (``starts``, ``partners``, ``offsets``) that
+    have an atom pair closer than sqrt(``reach2``) at the relative positions ``xi``/``xj``
+    (GROMACS's dynamic pruning of an outer list to an inner one), each row in its
+    order, the cluster itself still first: their row offsets into ``kept_starts`` and
+    the pairs into ``kept_partners``/``kept_offsets`` (other arrays than the list's, as
+    long as it). ``marks``: uint8 scratch, as long as the list (each pair's verdict).
+    Returns the pairs kept.
+
+    Two passes over the chunks ``bounds`` (i cluster ranges), each on the threads: the
+    check marks each pair (:func:`_mark_near`: a row at a time in IR, the i cluster's
+    vectors loaded once per row, one byte stored per pair and no store that waits on
+    the verdict before it) and counts each row's kept pairs; then, from the chunks'
+    totals, each chunk turns its rows' counts into offsets and copies its kept pairs
+    straight to their places (:func:`_copy_kept`: with AVX-512, 16 pairs at a time by
+    ``vpcompressd``). Nothing is written past a chunk's kept pairs and nothing is moved
+    after (a chunk's kept pairs used to be written from where its rows begin in the
+    list, then moved down: 0.10-0.15 of the prune's work on two chunks). On the
+    32000-atom melt, 1 thread, 0.71 of the time of the one pass that copied each pair
+    as it was checked, the next written after it only where kept (benchmarks/README.md)."""
+    n_clusters = starts.shape[0] - 1
+    chunks = bounds.shape[0] - 1
+    totals = np.zeros(chunks + 1, np.int64)  # totals[t + 1]: chunk t's kept pairs
+    if chunks == 1:
+        totals[1] = _mark_rows(
+            starts, partners, offsets, 0, n_clusters, xi, xj, reach2, marks, kept_starts
+        )
+    else:
+        _mark_chunks(starts, partners, offsets, bounds, xi, xj, reach2, marks, kept_starts, totals)
+    for t in range(chunks):
+        totals[t + 1] += totals[t]
+    kept_starts[0] = 0
+    if chunks == 1:
+        _copy_rows(
+            starts,
+            partners,
+            offsets,
+            0,
+            n_clusters,
+            marks,
+            0,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
+    else:
+        _copy_chunks(
+            starts,
+            partners,
+            offsets,
+            bounds,
+            marks,
+            totals,
+            kept_starts,
+            kept_partners,
+            kept_offsets,
+        )
+    return totals[chunks]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _mark_chunks(starts, partners, offsets, bounds, xi, xj, reach2, marks, kept_starts, totals):
+    """:func:`_mark_rows` for each chunk of i clusters, on the threads; chunk t's total
+    into ``totals[t + 1]``."""
     for t in prange(bounds.shape[0] - 1):
-        _prune_rows(
+        totals[t + 1] = _mark_rows(
+            starts, partners, offsets, bounds[t], bounds[t + 1], xi, xj, reach2, marks, kept_starts
+        )
+
+
+@njit(cache=True, error_model="numpy")
+def _mark_rows(starts, partners, offsets, c0, c1, xi, xj, reach2, marks, kept_starts):
+    """Mark the pairs of i clusters ``c0`` to ``c1`` (``marks``: 1 kept, 0 dropped), each
+    row's count into ``kept_starts[ci + 1]``; returns their sum."""
+    total = 0
+    for ci in range(c0, c1):
+        count = _mark_near(xi, xj, partners, offsets, starts[ci], starts[ci + 1], ci, reach2, marks)
+        kept_starts[ci + 1] = count
+        total += count
+    return total
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _copy_chunks(
+    starts, partners, offsets, bounds, marks, totals, kept_starts, kept_partners, kept_offsets
+):
+    """:func:`_copy_rows` for each chunk of i clusters, on the threads, chunk t's kept
+    pairs from ``totals[t]`` on (the places of the chunks' pairs do not overlap)."""
+    for t in prange(bounds.shape[0] - 1):
+        _copy_rows(
             starts,
             partners,
             offsets,
             bounds[t],
             bounds[t + 1],
-            xi,
-            xj,
-            reach2,
+            marks,
+            totals[t],
             kept_starts,
             kept_partners,
             kept_offsets,
@@ -255,30 +299,35 @@ def _prune_chunks(
 
 
 @njit(cache=True, error_model="numpy")
-def _prune_rows(
-    starts, partners, offsets, c0, c1, xi, xj, reach2, kept_starts, kept_partners, kept_offsets
+def _copy_rows(
+    starts, partners, offsets, c0, c1, marks, k, kept_starts, kept_partners, kept_offsets
 ):
-    """Check and compact the rows of i clusters ``c0`` to ``c1``, the kept pairs written
-    one after another from ``starts[c0]`` (every pair is written, a dropped one where the
-    next kept one overwrites it: no branch; never past the chunk's own rows), each row's
-    count into ``kept_starts[ci + 1]``."""
-    k = starts[c0]
+    """The rows of i clusters ``c0`` to ``c1``, marked by :func:`_mark_rows`: their counts
+    in ``kept_starts[c0 + 1:c1 + 1]`` made offsets from ``k`` on, and their marked pairs
+    copied to ``kept_partners``/``kept_offsets`` from ``k`` on, in order."""
+    end = k
     for ci in range(c0, c1):
-        row = k
-        k = _keep_near(
-            xi,
-            xj,
-            partners,
-            offsets,
-            starts[ci],
-            starts[ci + 1],
-            ci,
-            reach2,
-            kept_partners,
-            kept_offsets,
-            k,
-        )
-        kept_starts[ci + 1] = k - row
+        end += kept_starts[ci + 1]
+        kept_starts[ci + 1] = end
+    _copy_kept(
+        partners, offsets, marks, starts[c0], starts[c1], kept_partners, kept_offsets, k, end
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def _copy_kept(partners, offsets, marks, lo, hi, kept_partners, kept_offsets, k, end):
+    """Pairs ``lo`` to ``hi`` marked kept copied to ``kept_partners``/``kept_offsets``
+    from ``k`` on, in order; ``end``: ``k`` plus their count (nothing is written from
+    there on). :func:`_compress_kept` takes whole groups of 16 while they fit (none
+    without AVX-512); then pair by pair, each written at ``k`` and ``k`` advanced by its
+    mark (no branch on the verdict), up to the last kept one."""
+    q, k = _compress_kept(partners, offsets, marks, lo, hi, kept_partners, kept_offsets, k, end)
+    while q < hi and k < end:
+        kept_partners[k] = partners[q]
+        for d in range(3):
+            kept_offsets[k, d] = offsets[q, d]
+        k += np.int64(marks[q])  # (an int64 under NUMBA_DISABLE_JIT too)
+        q += 1
 
 
 def _keep_window_twin(
@@ -471,86 +520,173 @@ def keep_window_both(
     return sig, codegen
 
 
-def _keep_near_twin(
-    xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
-):
-    """:func:`_keep_near` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+def _mark_near_twin(xi, xj, partners, offsets, start, end, ci, reach2, marks):
+    """:func:`_mark_near` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
     if start == end:
-        return k
-    kept_partners[k] = partners[start]  # the cluster with itself: kept
-    kept_offsets[k] = offsets[start]
-    k += 1
+        return 0
+    marks[start] = 1  # the cluster with itself: kept
     for q in range(start + 1, end):
-        cj = partners[q]
-        kept_partners[k] = cj
-        kept_offsets[k] = offsets[q]
-        k += _near_pair_twin(xi, xj, ci, cj, *offsets[q], reach2)
-    return k
+        marks[q] = _near_pair_twin(xi, xj, ci, partners[q], *offsets[q], reach2)
+    return int(marks[start:end].sum())
 
 
-@python_twin(_keep_near_twin)
+@python_twin(_mark_near_twin)
 @intrinsic
-def _keep_near(
-    typingctx, xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
-):
-    """Copy i cluster ``ci``'s pairs ``start`` to ``end`` that have an atom pair within
-    reach (:func:`_near_pair`'s check; the first, the cluster with itself, always) to
-    ``kept_partners``/``kept_offsets`` from ``k`` on (which may be the same arrays, ``k``
-    <= ``start``: in place); returns the end of the copied row. Every pair is written, a
-    dropped one where the next kept one overwrites it (no branch), never past ``k + end
-    - start``. ``offsets`` and ``kept_offsets``: (pairs, 3).
+def _mark_near(typingctx, xi, xj, partners, offsets, start, end, ci, reach2, marks):
+    """Mark i cluster ``ci``'s pairs ``start`` to ``end``: ``marks[q]`` 1 where pair q has
+    an atom pair within reach (:func:`_near_pair`'s check; the first, the cluster with
+    itself, always), else 0; returns how many are marked.
 
     The row's loop is written here, not in numba, so that the i cluster's vectors are
-    loaded once per row: numba's loop reloaded and re-shuffled them for every pair (the
-    float32 offsets it stores might be the float32 positions, as far as LLVM knows)."""
-    if partners.dtype != kept_partners.dtype or offsets.dtype != kept_offsets.dtype:
-        raise TypeError(
-            f"_keep_near: the kept arrays as the list's, got {kept_partners} for "
-            f"{partners} and {kept_offsets} for {offsets}"
-        )
-    sig = types.int64(
-        xi, xj, partners, offsets, start, end, ci, reach2, kept_partners, kept_offsets, k
-    )
+    loaded once per row (numba's loop reloaded and re-shuffled them for every pair: the
+    bytes it stores might be the float32 positions, as far as LLVM knows). A pair's
+    verdict feeds only its own byte and the count, so the checks of successive pairs
+    overlap; the copy that follows (:func:`_copy_kept`) reads the marks."""
+    if marks.dtype != types.uint8:
+        raise TypeError(f"_mark_near: uint8 marks, got {marks}")
+    sig = types.int64(xi, xj, partners, offsets, start, end, ci, reach2, marks)
 
     def codegen(context, builder, signature, args):
         arg = signature.args
         xi_p, xj_p = (array_data(context, builder, arg[n], args[n]) for n in range(2))
         arrays = {
-            n: (arg[n], context.make_array(arg[n])(context, builder, args[n])) for n in (2, 3, 8, 9)
+            n: (arg[n], context.make_array(arg[n])(context, builder, args[n])) for n in (2, 3, 8)
         }
-        start_v, end_v, ci_v, k_v = (
-            context.cast(builder, args[n], arg[n], types.int64) for n in (4, 5, 6, 10)
+        start_v, end_v, ci_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (4, 5, 6)
         )
-        reach2 = args[7]
-        result = cgutils.alloca_once_value(builder, k_v)
+        count = cgutils.alloca_once_value(builder, ir.Constant(_I64, 0))
 
         def at(n, *index):
             return cgutils.get_item_pointer(context, builder, *arrays[n], list(index))
 
-        def copy(q, to):
-            """Pair q's partner and offset to place ``to``; the offset, three scalars."""
-            builder.store(builder.load(at(2, q)), at(8, to))
-            offset = []
-            for d in range(3):
-                value = builder.load(at(3, q, ir.Constant(_I64, d)))
-                builder.store(value, at(9, to, ir.Constant(_I64, d)))
-                offset.append(value)
-            return offset
-
         with builder.if_then(builder.icmp_signed("<", start_v, end_v)):
-            copy(start_v, k_v)  # the cluster with itself: kept
+            builder.store(ir.Constant(_BYTE, 1), at(8, start_v))  # the cluster with itself
+            builder.store(ir.Constant(_I64, 1), count)
             size = ir.Constant(_I64, 3 * CLUSTER)
             halves = cluster_i_halves(builder, xi_p, builder.mul(ci_v, size), _LANES)
-            reach = splat(builder, reach2, _VECTOR)
-            builder.store(builder.add(k_v, ir.Constant(_I64, 1)), result)
+            reach = splat(builder, args[7], _VECTOR)
             first = builder.add(start_v, ir.Constant(_I64, 1))
             with cgutils.for_range_slice(builder, first, end_v, ir.Constant(_I64, 1)) as (q, _):
-                to = builder.load(result)
-                offset = copy(q, to)
+                offset = [builder.load(at(3, q, ir.Constant(_I64, d))) for d in range(3)]
                 cj = builder.sext(builder.load(at(2, q)), _I64)
                 shifted = cluster_j_less(builder, xj_p, builder.mul(cj, size), offset, lanes=_LANES)
                 near = _any_near(builder, halves, shifted, reach)
-                builder.store(builder.add(to, builder.zext(near, _I64)), result)
-        return builder.load(result)
+                builder.store(builder.zext(near, _BYTE), at(8, q))
+                builder.store(builder.add(builder.load(count), builder.zext(near, _I64)), count)
+        return builder.load(count)
+
+    return sig, codegen
+
+
+#: Pairs per group of :func:`_compress_kept` (16 int32 partners in one zmm).
+_GROUP = 16
+
+
+def _compress_kept_twin(partners, offsets, marks, lo, hi, kept_partners, kept_offsets, k, end):
+    """:func:`_compress_kept` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test):
+    the same groups where the intrinsic has AVX-512 (``ZMM``), none elsewhere."""
+    while ZMM and lo + _GROUP <= hi and k + _GROUP <= end:
+        kept = np.flatnonzero(marks[lo : lo + _GROUP]) + lo
+        kept_partners[k : k + len(kept)] = partners[kept]
+        kept_offsets[k : k + len(kept)] = offsets[kept]
+        lo, k = lo + _GROUP, k + len(kept)
+    return lo, k
+
+
+@python_twin(_compress_kept_twin)
+@intrinsic
+def _compress_kept(
+    typingctx, partners, offsets, marks, lo, hi, kept_partners, kept_offsets, k, end
+):
+    """Of pairs ``lo`` on, in groups of 16 while a whole group lies before ``hi`` and 16
+    places before ``end``: each group's pairs marked kept (``marks``) copied to
+    ``kept_partners``/``kept_offsets`` from ``k`` on, in order (other arrays than
+    ``partners``/``offsets``); returns (the first pair not taken, the next place).
+    Where the CPU has AVX-512 (``ZMM``), a group's 16 partners and 48 offset words are
+    four zmm loads, four ``vpcompressd`` (register form, the kept lanes moved to the
+    front) and four whole 64-byte stores, each at the end of the one before: the lanes
+    past the kept ones land on places that later stores write again, and none at or past
+    ``end``. Elsewhere it takes no group (the caller's loop copies every pair); no
+    compress is emitted for that loop by LLVM itself (numba 0.68, LLVM 22)."""
+    c_1d = (partners, marks, kept_partners)
+    if not all(
+        isinstance(a, types.Array) and a.layout == "C" for a in (*c_1d, offsets, kept_offsets)
+    ):
+        raise TypeError("_compress_kept: C-contiguous arrays")
+    if (
+        partners.dtype != types.int32
+        or kept_partners.dtype != types.int32
+        or offsets.dtype != types.float32
+        or kept_offsets.dtype != types.float32
+        or marks.dtype != types.uint8
+    ):
+        raise TypeError(
+            f"_compress_kept: int32 partners, float32 offsets and uint8 marks, got {partners}, "
+            f"{offsets}, {marks}, {kept_partners}, {kept_offsets}"
+        )
+    arguments = (partners, offsets, marks, lo, hi, kept_partners, kept_offsets, k, end)
+    sig = types.UniTuple(types.int64, 2)(*arguments)
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        lo_v, hi_v, k_v, end_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (3, 4, 7, 8)
+        )
+        if not ZMM:
+            return context.make_tuple(builder, signature.return_type, [lo_v, k_v])
+        words = _WORDS.as_pointer()
+        source_p, source_o, target_p, target_o = (
+            builder.bitcast(array_data(context, builder, arg[n], args[n]), words)
+            for n in (0, 1, 5, 6)
+        )
+        marks_p = array_data(context, builder, arg[2], args[2])
+        compress = cgutils.get_or_insert_function(
+            builder.module,
+            ir.FunctionType(_WORD16, [_WORD16, _WORD16, _BIT16]),
+            "llvm.x86.avx512.mask.compress.v16i32",
+        )
+        popcount = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(_MASK16, [_MASK16]), "llvm.ctpop.i16"
+        )
+        lo_at = cgutils.alloca_once_value(builder, lo_v)
+        k_at = cgutils.alloca_once_value(builder, k_v)
+        zero = ir.Constant(_WORD16, None)
+        group = ir.Constant(_I64, _GROUP)
+        check = builder.append_basic_block("compress.check")
+        body = builder.append_basic_block("compress.group")
+        done = builder.append_basic_block("compress.done")
+        builder.branch(check)
+        builder.position_at_end(check)
+        q, to = builder.load(lo_at), builder.load(k_at)
+        fits = builder.and_(
+            builder.icmp_signed("<=", builder.add(q, group), hi_v),
+            builder.icmp_signed("<=", builder.add(to, group), end_v),
+        )
+        builder.cbranch(fits, body, done)
+        builder.position_at_end(body)
+        kept = builder.icmp_unsigned(
+            "!=", load_vector(builder, marks_p, q, _BYTE16), ir.Constant(_BYTE16, None)
+        )
+
+        def move(source, target, at, to, mask):
+            value = load_vector(builder, source, at, _WORD16)
+            store_vector(builder, builder.call(compress, [value, zero, mask]), target, to)
+            return builder.zext(builder.call(popcount, [builder.bitcast(mask, _MASK16)]), _I64)
+
+        n_kept = move(source_p, target_p, q, to, kept)
+        # the offsets: 48 words, 3 a pair; word w of a group belongs to pair w // 3
+        at, to3 = builder.mul(q, ir.Constant(_I64, 3)), builder.mul(to, ir.Constant(_I64, 3))
+        for w in range(3):
+            lanes = ir.Constant(_WORD16, [(_GROUP * w + lane) // 3 for lane in range(_GROUP)])
+            mask = builder.shuffle_vector(kept, kept, lanes)
+            source_at = builder.add(at, ir.Constant(_I64, _GROUP * w))
+            to3 = builder.add(to3, move(source_o, target_o, source_at, to3, mask))
+        builder.store(builder.add(q, group), lo_at)
+        builder.store(builder.add(to, n_kept), k_at)
+        builder.branch(check)
+        builder.position_at_end(done)
+        values = [builder.load(lo_at), builder.load(k_at)]
+        return context.make_tuple(builder, signature.return_type, values)
 
     return sig, codegen

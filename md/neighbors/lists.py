@@ -1108,8 +1108,9 @@ class NeighborList:
                     self._prune_relative
                     or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
                 ),
+                np.empty(size, np.uint8),  # each outer pair's verdict
             )
-        starts, partners, offsets, xi, xj = self._prune_buffers
+        starts, partners, offsets, xi, xj, marks = self._prune_buffers
         outer.relative_positions(positions, xi, xj)
         reach2 = self._prune_reach2()
         kept = prune_pairs(
@@ -1123,6 +1124,7 @@ class NeighborList:
             starts,
             partners,
             offsets,
+            marks,
         )
         chunks = len(outer.bounds) - 1
         self._clusters = ClusterFrame(
