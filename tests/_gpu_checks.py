@@ -7,7 +7,9 @@
 (``NUMBA_ENABLE_CUDASIM=1``, which numba reads when ``numba.cuda`` is first imported, so
 not in the test process) and, for the tests marked ``cuda``, on a real GPU; it writes the
 measured differences as JSON to OUT for the tests to judge. Systems are tiny (the
-simulator runs each GPU thread as a Python thread).
+simulator runs each GPU thread as a Python thread), and on the simulator the blocks of a
+kernel that never syncs run their threads in order in one thread (:func:`_lighter_launches`:
+the same kernels' Python, half the checks' CPU time).
 """
 
 from __future__ import annotations
