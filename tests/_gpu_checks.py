@@ -7,7 +7,9 @@
 (``NUMBA_ENABLE_CUDASIM=1``, which numba reads when ``numba.cuda`` is first imported, so
 not in the test process) and, for the tests marked ``cuda``, on a real GPU; it writes the
 measured differences as JSON to OUT for the tests to judge. Systems are tiny (the
-simulator runs each GPU thread as a Python thread).
+simulator runs each GPU thread as a Python thread), and on the simulator the blocks of a
+kernel that never syncs run their threads in order in one thread (:func:`_lighter_launches`:
+the same kernels' Python, half the checks' CPU time).
 """
 
 from __future__ import annotations
@@ -18,12 +20,114 @@ import json
 import os
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from pathlib import Path
 
 #: sys.setswitchinterval on the simulator (seconds; Python's default is 0.005).
 SIMULATOR_SWITCH_INTERVAL = 0.0005
+
+
+#: Names whose use makes a kernel's threads cooperate within a block (barriers, warp
+#: votes and shuffles): such a kernel needs the simulator's one Python thread per GPU thread.
+_COOPERATIVE = ("sync", "shfl", "ballot", "activemask", "lanemask", "match_", "cg")
+
+
+def _cooperates(function, seen: set | None = None) -> bool:
+    """Whether ``function`` (a kernel's Python function under the simulator) or a device
+    function it reaches through its globals or closure calls a block barrier or a warp
+    primitive. Unsure (no code object): True."""
+    seen = set() if seen is None else seen
+    if id(function) in seen:
+        return False
+    seen.add(id(function))
+    code = getattr(function, "__code__", None)
+    if code is None:
+        return True
+    names, stack = set(), [code]
+    while stack:
+        item = stack.pop()
+        names.update(item.co_names)
+        stack.extend(c for c in item.co_consts if hasattr(c, "co_names"))
+    if any(name.startswith(_COOPERATIVE) for name in names):
+        return True
+    reached = [function.__globals__.get(name) for name in names]
+    reached += [cell.cell_contents for cell in function.__closure__ or ()]
+    for item in reached:
+        inner = getattr(item, "fn", None)  # a simulated device function
+        if callable(inner) and _cooperates(inner, seen):
+            return True
+    return False
+
+
+def _lighter_launches() -> bool:
+    """On numba's CUDA simulator, run the threads of a block whose kernel never cooperates
+    (no barrier, no warp primitive: see :func:`_cooperates`) one after another in this
+    thread, in thread order (one of the schedules a GPU may take), instead of starting a
+    Python thread per GPU thread and polling them; kernels that cooperate still get the
+    simulator's threads. The kernels' Python runs unchanged. A test-only speed-up of the
+    checks (numba-cuda 0.30's simulator internals); False, and nothing changed, where
+    those internals differ."""
+    import numpy as np
+
+    try:
+        from numba.cuda.simulator import kernel
+        from numba.cuda.simulator.kernelapi import Dim3
+    except ImportError:
+        return False
+    manager = getattr(kernel, "BlockManager", None)
+    threaded = getattr(manager, "run", None)
+    if threaded is None or not hasattr(manager, "__init__"):
+        return False
+    decided: dict = {}
+
+    def run(self, grid_point, *args):
+        function = self._f
+        if function not in decided:
+            decided[function] = _cooperates(function)
+        if decided[function] or self._debug:
+            return threaded(self, grid_point, *args)
+        here = threading.current_thread()
+        here.blockIdx = Dim3(*grid_point)
+        x, y, _ = self._block_dim
+        try:
+            for point in np.ndindex(*self._block_dim):
+                here.threadIdx = Dim3(*point)
+                here.thread_id = point[0] + x * (point[1] + y * point[2])
+                function(*args)
+        finally:
+            del here.blockIdx, here.threadIdx, here.thread_id
+        return None
+
+    manager.run = run
+    swap = getattr(kernel, "swapped_cuda_module", None)
+    if swap is not None:
+        kernel.swapped_cuda_module = _swap_where_needed(swap)
+    return True
+
+
+def _swap_where_needed(swap):
+    """The simulator's ``swapped_cuda_module``, which points a function's module globals
+    that name ``numba.cuda`` at the launch's fake module (scanning those globals at every
+    call of a device function), skipped for globals that name no CUDA module (a pair
+    term's arithmetic): the same calls, without the scan."""
+    import contextlib
+
+    from numba import cuda
+
+    plain: dict = {}
+
+    def swapped(function, fake):
+        names = function.__globals__
+        key = (id(names), len(names))
+        if key not in plain:
+            plain[key] = not any(v is cuda or v is fake for v in names.values())
+        if plain[key]:
+            return contextlib.nullcontext()
+        return swap(function, fake)
+
+    return swapped
 
 
 def _states():
@@ -631,6 +735,7 @@ def main(argv: list[str]) -> int:
         # that holds the interpreter lock: with the default 5 ms switch interval a launch
         # waits mostly on that poll. A shorter interval halves the checks' CPU time.
         sys.setswitchinterval(SIMULATOR_SWITCH_INTERVAL)
+        _lighter_launches()
     out = Path(argv[0])
     results: dict = {}
     if argv[1:] in (["--ptx"], ["--lower"]):
