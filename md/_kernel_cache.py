@@ -124,8 +124,9 @@ def dependency_stamp(
 def _stamp(path: str, roots: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
     stamp = []
     for dep in module_dependencies(path, roots):
-        base = next(os.path.dirname(r) for r in roots if _is_under(dep, r))
-        stamp.append((os.path.relpath(dep, base), *_file_stat(dep)))
+        root = next(r for r in roots if _is_under(dep, r))
+        name = dep[len(os.path.dirname(root)) + 1 :]  # relative to the roots' parent
+        stamp.append((name, *_file_stat(dep)))
     return tuple(stamp)
 
 
@@ -192,7 +193,7 @@ def _module_name(path: str, roots: dict[str, str]) -> str | None:
     """The dotted name of the module file ``path`` under one of the roots."""
     for name, root in roots.items():
         if _is_under(path, root):
-            parts = os.path.relpath(path, root)[: -len(".py")].split(os.sep)
+            parts = path[len(root) + 1 : -len(".py")].split(os.sep)
             if parts[-1] == "__init__":
                 parts.pop()
             return ".".join([name, *parts])
