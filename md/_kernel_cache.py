@@ -58,7 +58,6 @@ PACKAGE_ROOTS = tuple(
 _IMPORT_LINE = re.compile(
     rb"\n[ \t]*(?:from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n]*)|import[ \t]+([^\n]*))"
 )
-_IMPORT = re.compile(r"^[ \t]*import[ \t]+([^\n]*)", re.M)
 
 #: The roots of each enclosing kernel_cache() block (innermost last).
 _active_roots: list[tuple[str, ...]] = []
@@ -86,9 +85,10 @@ def module_dependencies(path: str | os.PathLike, roots: Iterable[str | os.PathLi
     list of str
         The files' real paths, sorted, ``path`` itself left out. Imports are found by
         a scan of the ``import`` and ``from ... import`` lines (those inside functions
-        or ``if TYPE_CHECKING`` blocks too), so the list may hold more than runs,
-        never less; a package's ``__init__`` counts when a name is imported from it.
-        Each file's scan is memoised per process.
+        or ``if TYPE_CHECKING`` blocks too), so the list may hold more than runs; a
+        module reached only through ``importlib`` or a function passed in as an
+        argument is not found. A package's ``__init__`` counts when a name other than
+        a submodule is imported from it. Each file's scan is memoised per process.
     """
     root_items = tuple(
         sorted((os.path.basename(r), r) for r in (_real(os.fspath(r)) for r in roots))
@@ -110,8 +110,7 @@ def dependency_stamp(
 ) -> tuple[tuple[str, int, int], ...]:
     """``(file, st_mtime_ns, st_size)`` of each of :func:`module_dependencies`.
 
-    The file names are relative to the folder above the roots' folder, so two
-    checkouts with the same files give the same stamp.
+    The file names are relative to the folder above the roots (``md/box.py``).
     """
     return _stamp(_real(os.fspath(path)), tuple(_real(os.fspath(r)) for r in roots))
 
