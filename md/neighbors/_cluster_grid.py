@@ -19,10 +19,10 @@ once.
 Only fully periodic, orthorhombic cells wide enough that no cluster meets
 another one's image twice (the caller checks): the slot frame serves the rest.
 
-numba's cache checks only a kernel's own file: the kernels of ``_cluster_prune`` (and the
-search's copies of them) compile ``CLUSTER`` and ``FILLER`` in as constants, and a warm
-cache keeps their old values after an edit here until those files change too or the
-kernel cache folder (``md._kernel_cache.cache_directory()``) is cleared.
+The kernels of ``_cluster_prune`` (and the search's copies of them) compile ``CLUSTER``
+and ``FILLER`` in as constants; an edit here makes their cache entries stale, as the
+kernel cache stamps each entry with the modules its file imports (``md._kernel_cache``),
+so they compile afresh with the new values.
 """
 
 from __future__ import annotations

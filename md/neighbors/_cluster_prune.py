@@ -13,10 +13,10 @@ AVX-512's compress in IR where the CPU has it). Each intrinsic has a Python twin
 ``NUMBA_DISABLE_JIT=1``. :func:`move_pairs` moves a chunk's rows down to follow the one
 before, for the search.
 
-numba's cache checks only a kernel's own file: the search's cached kernels hold their
-own copies of :func:`keep_window`, :func:`keep_window_both` and :func:`move_pairs`,
-which a warm cache keeps after an edit here until ``_cluster_search.py`` changes too or
-the kernel cache folder (``md._kernel_cache.cache_directory()``) is cleared.
+The search's cached kernels hold their own copies of :func:`keep_window`,
+:func:`keep_window_both` and :func:`move_pairs`; an edit here makes those entries stale
+(the kernel cache stamps each entry with the modules its file imports:
+``md._kernel_cache``), so the search compiles afresh with the new helpers.
 """
 
 from __future__ import annotations
