@@ -3,6 +3,8 @@ the distance test of 8-lane blocks of candidates as LLVM-IR intrinsics built fro
 ``md._simd`` (compare masks; the hits packed by AVX2 lane permutes where numba compiles
 for AVX2, else by scanning a bit mask), each with a Python twin for
 ``NUMBA_DISABLE_JIT=1``. Called by the search in ``_cell_kernels`` (see its docstring).
+``_near_pack_designated`` adds a rank's designated-atom rule to the same test, on the
+candidates' global ids (``_owned_kernels``' ghosts).
 """
 
 from __future__ import annotations
