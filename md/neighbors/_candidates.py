@@ -3,8 +3,6 @@ the distance test of 8-lane blocks of candidates as LLVM-IR intrinsics built fro
 ``md._simd`` (compare masks; the hits packed by AVX2 lane permutes where numba compiles
 for AVX2, else by scanning a bit mask), each with a Python twin for
 ``NUMBA_DISABLE_JIT=1``. Called by the search in ``_cell_kernels`` (see its docstring).
-``_near_pack_designated`` adds a rank's designated-atom rule to the same test, on the
-candidates' global ids (``_owned_kernels``' ghosts).
 """
 
 from __future__ import annotations
@@ -62,30 +60,6 @@ class _Candidates:
         return values, builder.fcmp_ordered("<", d2, self.r2)
 
 
-class _DesignatedCandidates(_Candidates):
-    """``_Candidates`` with the designated-atom rule in the test: arguments (xi, yi, zi,
-    r2_max, tx, ty, tz, packed, ids, own_id, start, ...), ``ids`` the candidates' global
-    ids (int64, beside their coordinates); a lane passes when it is near and its pair
-    with the row's atom ``own_id`` designates that atom (``_cell_kernels.designates``:
-    own_id < id differs from own_id + id being odd)."""
-
-    def __init__(self, context, builder, signature, args):
-        super().__init__(context, builder, signature, args)
-        self.longs = ir.VectorType(ir.IntType(64), 8)
-        self.ids = array_data(context, builder, signature.args[8], args[8])
-        self.own = splat(builder, args[9], self.longs)
-        self.start = args[10]
-
-    def block(self, block):
-        builder = self.builder
-        values, near = super().block(block)
-        index = builder.add(self.start, ir.Constant(ir.IntType(64), 8 * block))
-        ids = load_vector(builder, self.ids, index, self.longs)
-        below = builder.icmp_signed("<", self.own, ids)
-        odd = builder.trunc(builder.add(self.own, ids), ir.VectorType(ir.IntType(1), 8))
-        return values, builder.and_(near, builder.xor(below, odd))
-
-
 def _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, count):
     """Python twin of ``_Candidates``: bool per candidate start..start+count-1, closer than
     sqrt(r2_max), with the same arithmetic (no fused multiply-add)."""
@@ -135,54 +109,6 @@ def _near_bits(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, start):
     def codegen(context, builder, signature, args):
         i64 = ir.IntType(64)
         test = _Candidates(context, builder, signature, args)
-        word = ir.Constant(i64, 0)
-        for block in range(8):
-            _, near = test.block(block)
-            shifted = builder.shl(compare_mask(builder, near), ir.Constant(i64, 8 * block))
-            word = builder.or_(word, shifted)
-        return word
-
-    return sig, codegen
-
-
-def _designated_lanes(ids, own_id, start, count):
-    """Python twin of ``_DesignatedCandidates``' rule: bool per candidate."""
-    other = ids[start : start + count]
-    return (own_id < other) != ((own_id + other) % 2 == 1)
-
-
-def _near_bits_designated_twin(xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start):
-    """``_near_bits_designated`` in Python (``md._simd.python_twin``)."""
-    near = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, start, 64)
-    near &= _designated_lanes(ids, own_id, start, 64)
-    return np.uint64(sum(1 << int(k) for k in np.flatnonzero(near)))
-
-
-@python_twin(_near_bits_designated_twin)
-@intrinsic
-def _near_bits_designated(typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start):
-    """``_near_bits`` with the designated-atom rule (``_DesignatedCandidates``): bit k set
-    where candidate ``start + k`` is near and its pair designates atom ``own_id``. ``ids``
-    (int64) needs 64 readable entries from ``start`` too."""
-    if not (_candidate_types(tx, ty, tz, packed) and is_vector_array(ids, types.int64)):
-        return None
-    sig = types.uint64(
-        types.float64,
-        types.float64,
-        types.float64,
-        types.float64,
-        tx,
-        ty,
-        tz,
-        packed,
-        ids,
-        types.int64,
-        types.intp,
-    )
-
-    def codegen(context, builder, signature, args):
-        i64 = ir.IntType(64)
-        test = _DesignatedCandidates(context, builder, signature, args)
         word = ir.Constant(i64, 0)
         for block in range(8):
             _, near = test.block(block)
@@ -264,125 +190,6 @@ _near_pack_permute_whole = _permute_packer(8, whole=True)
 _near_pack_permute_block = _permute_packer(1, whole=False)
 
 
-def _designated_packer(blocks: int, whole: bool):
-    """``_permute_packer`` with the designated-atom rule (``_DesignatedCandidates``):
-    arguments (xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start, valid, table,
-    out, at)."""
-
-    def typer(
-        typingctx, xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start, valid, table, out, at
-    ):
-        if not (
-            _candidate_types(tx, ty, tz, packed)
-            and is_vector_array(ids, types.int64)
-            and is_vector_array(out, types.uint32)
-        ):
-            return None
-        sig = types.int64(
-            types.float64,
-            types.float64,
-            types.float64,
-            types.float64,
-            tx,
-            ty,
-            tz,
-            packed,
-            ids,
-            types.int64,
-            types.intp,
-            types.intp,
-            table,
-            out,
-            types.intp,
-        )
-        return sig, codegen
-
-    def codegen(context, builder, signature, args):
-        i32 = ir.IntType(32)
-        test = _DesignatedCandidates(context, builder, signature, args)
-        valid = splat(builder, builder.trunc(args[11], i32), test.words)
-        rows = array_data(context, builder, signature.args[12], args[12])
-        target = array_data(context, builder, signature.args[13], args[13])
-        at = args[14]
-        for block in range(blocks):
-            values, kept = test.block(block)
-            if not whole:
-                lanes = ir.Constant(test.words, [8 * block + k for k in range(8)])
-                kept = builder.and_(kept, builder.icmp_signed("<", lanes, valid))
-            mask = compare_mask(builder, kept)
-            store_vector(builder, permute_lanes(builder, values, mask, rows), target, at)
-            at = builder.add(at, builder.ctpop(mask))
-        return at
-
-    def twin(xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start, valid, table, out, at):
-        """The same in Python (``md._simd.python_twin``)."""
-        for block in range(blocks):
-            first = start + 8 * block
-            kept = _near_lanes(xi, yi, zi, r2_max, tx, ty, tz, first, 8)
-            kept &= _designated_lanes(ids, own_id, first, 8)
-            if not whole:
-                kept &= 8 * block + np.arange(8) < valid
-            mask = int(np.dot(kept, 1 << np.arange(8)))
-            out[at : at + 8] = packed[first : first + 8][table[mask]]
-            at += int(kept.sum())
-        return np.int64(at)
-
-    typer.__name__ = f"_near_pack_designated_{blocks}_{'whole' if whole else 'partial'}"
-    return python_twin(twin)(intrinsic(typer))
-
-
-_near_pack_designated_permute_whole = _designated_packer(8, whole=True)
-
-
-_near_pack_designated_permute_block = _designated_packer(1, whole=False)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _near_pack_designated_blocks(
-    xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start, valid, table, out, at
-):
-    """``_near_pack_designated`` by AVX2 permutes, block by block."""
-    done = 0
-    while done < valid:
-        at = _near_pack_designated_permute_block(
-            xi,
-            yi,
-            zi,
-            r2_max,
-            tx,
-            ty,
-            tz,
-            packed,
-            ids,
-            own_id,
-            start + done,
-            valid - done,
-            table,
-            out,
-            at,
-        )
-        done += 8
-    return at
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _near_pack_designated_scan(
-    xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start, valid, table, out, at
-):
-    """``_near_pack_designated`` on any CPU: ``_near_bits_designated``, then the set bits
-    one by one."""
-    m = _near_bits_designated(xi, yi, zi, r2_max, tx, ty, tz, packed, ids, own_id, start)
-    if valid < 64:
-        m &= (np.uint64(1) << np.uint64(valid)) - np.uint64(1)
-    end = np.uint64(at)
-    row = packed[start:]
-    while m:
-        out[end] = row[np.uint64(trailing_zeros(m))]
-        end += np.uint64(1)
-        m &= m - np.uint64(1)
-    return np.int64(end)
-
-
 @njit(cache=True, inline="always", error_model="numpy")
 def _near_pack_blocks(xi, yi, zi, r2_max, tx, ty, tz, packed, start, valid, table, out, at):
     """``_near_pack`` by AVX2 permutes, block by block: a range's last, partial word
@@ -419,18 +226,6 @@ _near_pack = _near_pack_blocks if PERMUTE else _near_pack_scan
 
 #: ``_near_pack`` for exactly 64 candidates (``valid`` ignored).
 _near_pack_whole = _near_pack_permute_whole if PERMUTE else _near_pack_scan
-
-
-#: ``_near_pack`` of the candidates whose pair with atom ``own_id`` designates it
-#: (``ids``: the candidates' global ids, int64, 64 readable from ``start`` on), the
-#: rule tested in the same vector block as the distance (``_DesignatedCandidates``).
-_near_pack_designated = _near_pack_designated_blocks if PERMUTE else _near_pack_designated_scan
-
-
-#: ``_near_pack_designated`` for exactly 64 candidates (``valid`` ignored).
-_near_pack_designated_whole = (
-    _near_pack_designated_permute_whole if PERMUTE else _near_pack_designated_scan
-)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

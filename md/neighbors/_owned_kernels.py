@@ -18,9 +18,7 @@ Each owned slot's row is searched in two parts:
   the segments whose box comes within the list radius of it in x and z (consecutive ones
   as one range: those it skips hold no partner, so the row's partners and their order are
   the full shell's), and keeps those whose pair designates the owned atom
-  (``_cell_kernels.designates``, on the slots' global ids, copied beside the ghosts'
-  coordinates) in the same vector test as their distance
-  (``_candidates._near_pack_designated``). On a slab
+  (``_cell_kernels.designates``, on the slots' global ids) as it writes them. On a slab
   of the 1152-atom melt that is about half the ghosts of the full shell.
 
 The candidate tests are the cell search's (``_candidates``), their loops over a range
@@ -45,13 +43,7 @@ from md.neighbors._build_kernels import (
     _join_chunks,
     _scatter_pass,
 )
-from md.neighbors._candidates import (
-    _keep,
-    _near_pack,
-    _near_pack_designated,
-    _near_pack_designated_whole,
-    _near_pack_whole,
-)
+from md.neighbors._candidates import _keep, _near_pack, _near_pack_whole
 from md.neighbors._cell_kernels import (
     _CODE_SHIFT,
     _SLOT_MASK,
@@ -94,9 +86,8 @@ def _owned_cell_list(
     pairs than its region of ``len(neighbors) // chunks`` entries holds makes count minus
     the largest chunk's count (grow both buffers to that many per chunk and call again).
     The binning is serial (one pass over the atoms); the search and the join run on
-    numba's threads when ``chunks`` > 1. ``tested[0, c]`` (int64, (2, at least ``chunks``)) gets the
-    number of ghost candidates chunk c tested, ``tested[1, c]`` the ghost partners whose
-    designated atom it checked after the test (``_owned_pairs_chunk``).
+    numba's threads when ``chunks`` > 1. ``tested[c]`` (int64, at least ``chunks``) gets the
+    number of ghost candidates chunk c tested (``_owned_pairs_chunk``).
     """
     n = positions.shape[0]
     total = n_cells[0] * n_cells[1] * n_cells[2]
@@ -379,11 +370,8 @@ def _owned_pairs_chunk(
     i (z cell cz) tests the owned ones as that search does (a half list), then the ghosts
     of the segments of z cells cz - reach to cz + reach whose box lies within the list
     radius of it in x and z (``_near_segments``), and keeps those whose pair designates
-    atom i: in the distance test's vector blocks (``_near_pack_designated``, on the
-    candidates' global ids ``g_ids``, copied beside their coordinates once a column), or,
-    in a row that meets the end of the chunk's region (``_keep``), after it
-    (``_keep_designated``). ``tested[0, chunk]`` counts the ghosts tested,
-    ``tested[1, chunk]`` the ghost partners checked after the test. (As in ``_frame_pairs_chunk``,
+    atom i (``_keep_designated``) while they are in the cache; ``tested[chunk]`` counts
+    the ghosts tested. (As in ``_frame_pairs_chunk``,
     ``ghost`` counts the image cells past each end of a periodic z axis and
     ``ghost_last`` the own column's images above its top; the ghost atoms' candidates
     are the ``g`` arrays.)
@@ -418,7 +406,6 @@ def _owned_pairs_chunk(
     gy = np.empty(g_size + 64)
     gz = np.empty(g_size + 64)
     g_packed = np.empty(g_size + 64, dtype=np.uint32)
-    g_ids = np.zeros(g_size + 64, dtype=np.int64)  # the candidates' global ids
     g_start = np.empty(n_z + 1, dtype=np.int64)
     g_runs = np.empty((4, 2 * (2 * reach + 1)), dtype=np.int64)
     g_shifts = np.empty((2, 2 * (2 * reach + 1)))
@@ -432,7 +419,6 @@ def _owned_pairs_chunk(
     packed_list = neighbors.view(np.uint32)
     count = 0
     n_tested = 0
-    n_checked = 0
     p = bounds[chunk]
     end = bounds[chunk + 1]
     while p < end:
@@ -477,8 +463,6 @@ def _owned_pairs_chunk(
             segment_box,
             segment_z,
         )
-        for k in range(g_start[n_z]):
-            g_ids[k] = slot_ids[g_packed[k] & _SLOT_MASK]
         for i in range(p, stop):
             kz = slot_cell[i] - column * nz
             low = max(kz - reach + ghost, 0)
@@ -489,8 +473,7 @@ def _owned_pairs_chunk(
             above = kz + reach - nz + 1 if ghost else 0
             ghost_last = own[4][above] if above > 0 else 0
             n_candidates = (last - first) + (own_last - i - 1) + ghost_last + (g_last - g_first)
-            split = count  # where the row's ghost partners still to be filtered begin
-            own_id = slot_ids[i]
+            split = count  # where the row's ghost partners begin
             if count + n_candidates + 8 <= capacity:
                 # room for every candidate and a block's spill: written as they are tested
                 at = base + count
@@ -566,6 +549,7 @@ def _owned_pairs_chunk(
                         at,
                     )
                     w += 64
+                split = at - base
                 # the ghosts: the segments that may hold a partner, consecutive ones as one
                 # range (those between hold none, so the row's partners and order stay)
                 n_ranges = _near_segments(
@@ -582,7 +566,7 @@ def _owned_pairs_chunk(
                     w, g_end = ranges[0, k], ranges[1, k]
                     n_tested += g_end - w
                     while w + 64 <= g_end:
-                        at = _near_pack_designated_whole(
+                        at = _near_pack_whole(
                             xs[i],
                             ys[i],
                             zs[i],
@@ -591,8 +575,6 @@ def _owned_pairs_chunk(
                             gy,
                             gz,
                             g_packed,
-                            g_ids,
-                            own_id,
                             w,
                             64,
                             PERMUTATIONS,
@@ -601,7 +583,7 @@ def _owned_pairs_chunk(
                         )
                         w += 64
                     if w < g_end:
-                        at = _near_pack_designated(
+                        at = _near_pack(
                             xs[i],
                             ys[i],
                             zs[i],
@@ -610,8 +592,6 @@ def _owned_pairs_chunk(
                             gy,
                             gz,
                             g_packed,
-                            g_ids,
-                            own_id,
                             w,
                             g_end - w,
                             PERMUTATIONS,
@@ -619,7 +599,6 @@ def _owned_pairs_chunk(
                             at,
                         )
                 count = at - base
-                split = count  # (the rule was applied in the test)
             else:
                 for r in range(4):  # forward cells, own column, its images, the ghosts
                     if r == 0:
@@ -651,16 +630,14 @@ def _owned_pairs_chunk(
                     )
             # (past the capacity nothing was written: the count stays an upper bound)
             if count <= capacity:
-                n_checked += count - split
                 count = (
-                    _keep_designated(packed_list, base + split, base + count, slot_ids, own_id)
+                    _keep_designated(packed_list, base + split, base + count, slot_ids, slot_ids[i])
                     - base
                 )
             starts[i + 1] = count
         p = stop
     counts[chunk] = count
-    tested[0, chunk] = n_tested
-    tested[1, chunk] = n_checked
+    tested[chunk] = n_tested
     if bounds.shape[0] == 2 and count <= capacity:  # the only chunk: unpack it here, hot
         listed = packed_list[:count]
         listed_codes = codes[:count]

@@ -436,8 +436,7 @@ class NeighborList:
         self._owned: tuple[NDArray[np.int64], int] | None = None
         self._listed_rows = 0  # rows of the last build that may hold pairs (see build)
         self._groups: NDArray[np.int64] | None = None  # see exclude_groups
-        # per search chunk: ghost_candidates, ghost_rule_checks
-        self._ghost_tests = np.zeros((2, 1), dtype=np.int64)
+        self._ghost_tests = np.zeros(1, dtype=np.int64)  # per search chunk: ghost_candidates
 
     def keep_owned(self, ids: NDArray[np.int64] | None, n_owned: int = 0) -> None:
         """From the next build on, list only the pairs this rank of a decomposed run evaluates.
@@ -471,15 +470,7 @@ class NeighborList:
         row (one per row and ghost; 0 for other searches): a diagnostic of the search's
         work, the ghosts whose segment of the shell (``_owned_kernels``) lies within the
         list radius of the row."""
-        return int(self._ghost_tests[0].sum())
-
-    @property
-    def ghost_rule_checks(self) -> int:
-        """Ghost partners of the last :meth:`keep_owned` cell search whose designated atom
-        was checked one by one after the distance test (0 for other searches): only in the
-        rows that met the end of their chunk's buffer, the others testing the rule in the
-        distance test's vector blocks."""
-        return int(self._ghost_tests[1].sum())
+        return int(self._ghost_tests.sum())
 
     def exclude_groups(self, groups: NDArray[np.int64] | None) -> None:
         """From the next build on (the next :meth:`update` builds), leave out every pair of
@@ -1267,8 +1258,8 @@ class NeighborList:
                     self._code_buffer,
                 )
             else:  # a rank's: owned rows only, no pair of two ghosts searched
-                if self._ghost_tests.shape[1] < chunks:
-                    self._ghost_tests = np.zeros((2, chunks), dtype=np.int64)
+                if self._ghost_tests.shape[0] < chunks:
+                    self._ghost_tests = np.zeros(chunks, dtype=np.int64)
                 found = _owned_cell_list(
                     state.positions,
                     self._listed_rows,
