@@ -768,6 +768,7 @@ print(json.dumps(found))
 """
 
 
+@pytest.mark.slow  # the benchmark's own harness at its 32000 atoms on two threads (~40 s cold)
 @pytest.mark.parametrize("warm_ups", ["both", "small"])
 def test_the_warm_up_leaves_no_kernel_to_load_in_a_two_thread_timed_loop(warm_ups):
     """On two threads the 32000-atom melt splits its passes over the atoms into chunks,
