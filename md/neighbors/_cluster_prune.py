@@ -5,16 +5,18 @@
 cluster pair is kept where one of its atom pairs lies within reach: the check
 (:func:`_near_pair`, one pair) is LLVM vector IR in the kernels' lanes, built from
 :mod:`md._simd`'s blocks, and runs inside two loops written in IR as well: the
-search's window of candidates (:func:`keep_window`, :func:`keep_window_both`, called by
-:mod:`md.neighbors._cluster_search`) and the prune's row (:func:`_mark_near`, in
+search's window of candidates (:func:`keep_window`, called by
+:mod:`md.neighbors._cluster_search`; :func:`keep_window_both`, the two-list form, which the
+search no longer calls: its own ``_keep_both`` stores each offset in one 16-byte store and
+is tested against this one) and the prune's row (:func:`_mark_near`, in
 :func:`prune_pairs`: GROMACS's dynamic pruning of an outer list to an inner one, which
 marks each pair, then copies the marked ones to their places: :func:`_compress_kept`,
 AVX-512's compress in IR where the CPU has it). Each intrinsic has a Python twin for
 ``NUMBA_DISABLE_JIT=1``. :func:`move_pairs` moves a chunk's rows down to follow the one
 before, for the search.
 
-The search's cached kernels hold their own copies of :func:`keep_window`,
-:func:`keep_window_both` and :func:`move_pairs`; an edit here makes those entries stale
+The search's cached kernels hold their own copies of :func:`keep_window` and
+:func:`move_pairs`; an edit here makes those entries stale
 (the kernel cache stamps each entry with the modules its file imports:
 ``md._kernel_cache``), so the search compiles afresh with the new helpers.
 """
