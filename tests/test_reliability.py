@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -357,6 +358,11 @@ def test_ctrl_c_while_md_starts_prints_no_traceback(tmp_path, delay):
     # Python's own start-up (site, the standard streams) runs before any leapmd code.
     if "init_import_site" in err or "init_sys_streams" in err:
         pytest.skip("the signal landed in the interpreter's own start-up, before leapmd's code")
+    # ... or while the console script's wrapper looked for md_command (on a loaded machine
+    # 0.1 s can end there): only that wrapper's line and importlib's frames, none of ours
+    frames = re.findall(r'File "([^"]+)"', err)
+    if frames and all(f.startswith("<frozen") or Path(f).name == "md" for f in frames):
+        pytest.skip("the signal landed in the console script's import of md_command")
     assert "Traceback" not in err, err
     assert process.returncode in (130, -signal.SIGINT), (process.returncode, err)
 
