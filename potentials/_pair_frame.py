@@ -681,7 +681,10 @@ class PairPotential:
         first one's drift (``held``, ``allowed2`` and ``key`` unused): the forces by
         :meth:`energy_forces` (over the new list; the positions are those ``key``
         holds), the finite check and v += kick_dt forces/m; ``(0, result)``, or ``(2,
-        None)`` where a value is not finite (nothing kicked).
+        None)`` where a value is not finite (nothing kicked). A cluster frame of
+        ``neighbors`` other than the first call's was made by that refresh at ``state``'s
+        positions: its relative positions (``ClusterFrame.relative``) are read as the list
+        wrote them.
         """
         if kicks is None:
             if type(self).energy_forces is not PairPotential.energy_forces:
