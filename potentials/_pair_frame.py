@@ -216,6 +216,10 @@ class PairPotential:
         # step then pays for the kernels and not for setting them up again (about 25 us
         # of Python a call at 32000 atoms, on the calling thread alone); see energy_forces
         self._cluster_calls: list = [None, None]
+        # The cluster frame whose relative positions the list wrote at the State's present
+        # positions (set by mixed_verlet_step's second call, after the list's prune or
+        # search): the kernel's call over it reads them, not written again; else None
+        self._made_frame = None
         # The last double-precision call over a list of atom indices (an O(N^2) build:
         # a decomposed rank's local system too thin along a periodic axis for cells; a
         # serial list has a slot frame): (positions, types, type names, data, cutoff
@@ -677,12 +681,24 @@ class PairPotential:
         first one's drift (``held``, ``allowed2`` and ``key`` unused): the forces by
         :meth:`energy_forces` (over the new list; the positions are those ``key``
         holds), the finite check and v += kick_dt forces/m; ``(0, result)``, or ``(2,
-        None)`` where a value is not finite (nothing kicked).
+        None)`` where a value is not finite (nothing kicked). A cluster frame of
+        ``neighbors`` other than the first call's was made by that refresh at ``state``'s
+        positions: its relative positions (``ClusterFrame.relative``) are read as the list
+        wrote them.
         """
         if kicks is None:
             if type(self).energy_forces is not PairPotential.energy_forces:
                 return None
-            result = self.energy_forces(state, neighbors, virial=False, precision="mixed")
+            # a frame other than the first call's: the list's prune or search made it at
+            # state's positions, so its relative positions (ClusterFrame.relative) are
+            # state's and the kernel reads them as they are (52 us a call at 32000 atoms)
+            made = getattr(neighbors, "clusters", None)
+            kept = self._cluster_calls[0]
+            self._made_frame = made if kept is not None and kept[0] is not made else None
+            try:
+                result = self.energy_forces(state, neighbors, virial=False, precision="mixed")
+            finally:
+                self._made_frame = None
             energy = finish_forces(
                 result.forces, result.energy, state.velocities, state.masses, kick_dt
             )
@@ -851,6 +867,13 @@ class PairPotential:
                 np.empty((chunks, 9)),
             )
             self._cluster_scratch = scratch
+        relative = getattr(clusters, "relative", None)
+        if relative is not None and all(
+            x.dtype == np.float32 and x.shape == scratch[0].shape for x in relative
+        ):
+            # the list's own buffers for the relative positions (see ClusterFrame): the
+            # kernel then reads those it wrote at its prune or search (see _made_frame)
+            scratch = (*relative, *scratch[2:])
         single = n_types == 1
         entry = "cluster_forces_threaded" if chunks > 1 else "cluster_forces"
         lists = (
@@ -881,7 +904,9 @@ class PairPotential:
         scratch, clusters = prepared[2], prepared[3]
         xi, xj, energies, virials = scratch[0], scratch[1], scratch[6], scratch[7]
         atom = clusters.atom
-        clusters.relative_positions(state.positions, xi, xj)
+        made = self._made_frame
+        if made is not clusters or made.relative is None or xi is not made.relative[0]:
+            clusters.relative_positions(state.positions, xi, xj)
         forces = np.empty((state.n_atoms, 3))
         self._cluster_kernel(prepared, state, virial, forces)
         chunks = len(energies)

@@ -141,17 +141,28 @@ class ClusterFrame:
     list takes ``reach`` (per row, one past its last partner) from its outer list: a
     bound that costs no pass over the pairs at each prune.
 
+    ``relative``: None, or the float32 buffers ``(xi, xj)`` into which the list wrote the
+    slots' relative positions (as :meth:`relative_positions` writes them) at the positions
+    it made this frame at (a search's or a prune's, :attr:`NeighborList.pruned_positions`),
+    its own scratch, which it writes again only at its next prune or search (a new frame).
+    A kernel over this frame may take them as its buffers for the relative positions: at
+    the making's positions they are written already; whoever writes its own positions
+    there (as the kernels' passes do) makes them that reader's.
+
     The list holds the cluster pairs that had an atom pair within the list radius
     at the build: the search's candidates (see :func:`md.neighbors._cluster_search.search_pairs`)
     checked atom by atom in 8-lane vectors (GROMACS's pruning), about half of them on the LJ melt.
     """
 
-    def __init__(self, atom, origin, starts, partners, offsets, chunks: int, reach=None):
+    def __init__(
+        self, atom, origin, starts, partners, offsets, chunks: int, reach=None, relative=None
+    ):
         self.atom = atom
         self.origin = origin
         self.starts = starts
         self.partners = partners
         self.offsets = offsets
+        self.relative = relative
         self.bounds = balanced_chunks(starts, int(chunks))
         self._reach = reach
         self._windows = None
@@ -337,6 +348,10 @@ class NeighborList:
         Number of builds so far (cluster searches, with ``clusters``).
     n_prunes : int
         Number of times the outer cluster list was pruned again between searches.
+    n_bounded_prunes : int
+        Of those, the prunes chosen over a search without measuring the atoms' distance
+        from the search: their distance from the last prune plus that prune's bound on
+        its own already lay within the prune distance.
     n_late_looks : int
         Looks of a list that is not :attr:`exact` at which an atom had moved more
         than ``skin / 2`` since the build: the list may have missed pairs within
@@ -389,10 +404,16 @@ class NeighborList:
         self._clusters: ClusterFrame | None = None
         self._outer: ClusterFrame | None = None  # the searched list, when pruned
         self._pruned_at: NDArray[np.float64] | None = None  # positions at its last prune
+        # A bound on every atom's distance between _pruned_at and the search's positions
+        # (0 at a search, inf where unknown): with the distance since the prune it bounds
+        # the distance from the search, which then need not be measured (see update)
+        self._pruned_from_search = math.inf
+        self._prune_distance = 0.5 * (float(outer_skin) - float(skin))
         # Squared half of what the outer list has over the inner one: the farthest an atom
         # may have moved since the search for a prune to find every pair.
         self._prune_distance2 = _square(0.5 * (self.outer_skin - self.skin))
         self.n_prunes = 0
+        self.n_bounded_prunes = 0
         self._prune_buffers = None  # see _prune
         self._prune_relative = None  # the search's relative positions, for its prunes
         self._slots_pending = False  # a cluster build: the slot list on first use
@@ -765,9 +786,18 @@ class NeighborList:
             if not math.isfinite(moved2):
                 raise NonFiniteError("particle positions are not finite")
             if outer:
+                # No atom is farther from the search's positions than its distance from
+                # the last prune's plus theirs from the search's (a bound, widened by far
+                # more than rounding): within the prune distance, the measure it spares
+                # would choose the prune as well (the same lists)
+                bound = math.sqrt(moved2) + self._pruned_from_search
+                if bound * (1.0 + 1e-9) <= self._prune_distance:
+                    self.n_bounded_prunes += 1
+                    self._prune(state.positions, bound)
+                    return False
                 moved2 = _largest_displacement2(state.positions, reference, self._pass_chunks)
                 if moved2 <= self._prune_distance2:
-                    self._prune(state.positions)
+                    self._prune(state.positions, math.sqrt(moved2))
                     return False
             self.build(state)
             return True
@@ -928,6 +958,8 @@ class NeighborList:
         columns = self._cluster_columns(state) if grid is not None else None
         if columns is not None:
             self._build_clusters(state, columns, chunks)
+            if self._prune_relative is not None:  # the search's, at these positions
+                self._clusters.relative = self._prune_relative
             self.shifts = shifts
             self._slots_pending = True
         elif grid is None and self._small_box_serves(state):
@@ -1077,22 +1109,26 @@ class NeighborList:
         self._prune_relative = (xi, xj)  # the prunes' to write over (see _prune)
         self._keep_pruned_at(state.positions)
 
-    def _keep_pruned_at(self, positions: NDArray[np.float64]) -> None:
+    def _keep_pruned_at(self, positions: NDArray[np.float64], from_search: float = 0.0) -> None:
+        """Keep ``positions`` as the last prune's, no atom farther than ``from_search``
+        from where the search found it (0: the search's own positions)."""
         if self._pruned_at is None or self._pruned_at.shape != positions.shape:
             self._pruned_at = np.empty_like(positions)
         self._pruned_at[:] = positions
+        self._pruned_from_search = from_search
 
     def _prune_reach2(self) -> np.float32:
         """The squared list radius of the prune's float32 check, widened by 1e-5 (as the
         search's) so that rounding can only keep a pair more, never drop one."""
         return np.float32((self.list_radius * (1.0 + 1e-5)) ** 2)
 
-    def _prune(self, positions: NDArray[np.float64]) -> None:
+    def _prune(self, positions: NDArray[np.float64], from_search: float = math.inf) -> None:
         """The outer cluster list pruned to the pairs with an atom pair within the list
         radius at ``positions`` (checked in float32, the radius widened by 1e-5 as the
         search's is) becomes the list the kernels read; the slot list is built again
         on demand, at these positions. (The search prunes its own list as it writes it:
-        ``search_pairs`` with ``inner2``.)"""
+        ``search_pairs`` with ``inner2``.) ``from_search``: a bound on any atom's distance
+        from its place at the search (inf: not known)."""
         self._frame_memo = None
         outer = self._outer
         n, size = outer.n_clusters, outer.n_pairs
@@ -1135,8 +1171,9 @@ class NeighborList:
             offsets[:kept],
             chunks,
             reach=outer.reach if chunks > 1 else None,
+            relative=(xi, xj),
         )
-        self._keep_pruned_at(positions)
+        self._keep_pruned_at(positions, from_search)
         if self._reference is not None:  # a prune between searches (not the search's own)
             self.n_prunes += 1
             self.order, self._atom_list = None, None
