@@ -5,11 +5,11 @@ A cluster pair is listed when one of its atom pairs lies within the list radius
 the neighbouring columns whose xy bounding box comes within reach of the column's and
 the cluster's own, a window of j clusters in z in each, then each candidate checked
 atom by atom with :mod:`md.neighbors._cluster_prune`'s check). LLVM IR here: the
-windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`)
-and the two-list window check's loop (:func:`_keep_both`), each with a Python twin. The
-pair kernels evaluate all 4 x 4 atom pairs of each listed cluster pair,
-in SIMD lanes. The list's chunks for the threads: :func:`balanced_chunks`,
-:func:`row_reach`, :func:`chunk_windows`.
+windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`),
+the two-list window check's loop (:func:`_keep_both`) and the join's block moves
+(:func:`_move_rows`), each with a Python twin. The pair kernels evaluate all 4 x 4 atom
+pairs of each listed cluster pair, in SIMD lanes. The list's chunks for the threads:
+:func:`balanced_chunks`, :func:`row_reach`, :func:`chunk_windows`.
 """
 
 from __future__ import annotations
@@ -32,11 +32,7 @@ from md._simd import (
     store_vector,
 )
 from md.neighbors._cluster_grid import CLUSTER
-from md.neighbors._cluster_prune import (
-    keep_window,
-    move_pairs,
-    move_pairs_threaded,
-)
+from md.neighbors._cluster_prune import keep_window
 
 
 def search_pairs(
@@ -88,7 +84,8 @@ def search_pairs(
 
     The columns are searched in ``chunks`` runs of about equal work
     (:func:`_column_chunks`) on the threads, each into its own part of one buffer, then
-    each part but the first moved down to follow the one before (:func:`_joined`); each i
+    each part but the first moved down to follow the one before, a block per array
+    (:func:`_joined`); each i
     cluster's row is written as its windows are found (:func:`_search_columns`).
     """
     found = _search_lists(
@@ -184,12 +181,14 @@ def _column_chunks(box, ncx, ncy, first, radius, chunks):
     for c in range(n_columns):
         f0, f1 = first[c], first[c + 1]
         searched = 0
-        for dx in range(-reach_x, reach_x + 1):
-            ux = (c // ncy + dx) % ncx
-            for dy in range(-reach_y, reach_y + 1):
-                col = ux * ncy + (c % ncy + dy) % ncy
-                if first[col + 1] > f0:  # as the search skips a column before c's
-                    searched += first[col + 1] - first[col]
+        if f1 > f0:  # (an empty column's work is none: no division or sweep for it)
+            cx, cy = c // ncy, c % ncy
+            for dx in range(-reach_x, reach_x + 1):
+                ux = _periodic_column(cx + dx, ncx, 0.0)[0]
+                for dy in range(-reach_y, reach_y + 1):
+                    col = ux * ncy + _periodic_column(cy + dy, ncy, 0.0)[0]
+                    if first[col + 1] > f0:  # as the search skips a column before c's
+                        searched += first[col + 1] - first[col]
         work[c + 1] = work[c] + (f1 - f0) * searched
     bounds = np.zeros(chunks + 1, np.int64)
     c = 0
@@ -275,11 +274,16 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
     """(starts, partners, offsets) of the rows of ``counts`` pairs each, written per chunk
     into ``part_partners``/``part_offsets`` (chunk t's ``used[t]`` pairs from
     ``place[t]``): the first chunk's where they are, each later one moved down to follow
-    the one before (in order: a move never overwrites pairs not yet moved; on the threads
-    where the two places do not overlap). The lists are the buffers' first pairs, not a
-    fresh copy of every chunk's (with the whole buffers passed to each chunk, see
-    :func:`_search_columns`, two chunks' work on one thread went from 1.16 to 1.09 of
-    one chunk's search on the 32000-atom melt, CPU time, interleaved)."""
+    the one before, in order (a move never overwrites pairs not yet moved), each array's
+    part as one block (:func:`_move_rows`: a ``memmove``), on the calling thread. The
+    lists are the buffers' first pairs, not a fresh copy of every chunk's (with the whole
+    buffers passed to each chunk, see :func:`_search_columns`, two chunks' work on one
+    thread went from 1.16 to 1.09 of one chunk's search on the 32000-atom melt, CPU time,
+    interleaved). The pair-by-pair moves this replaced (a loop per pair's partner and
+    offsets, threaded where the places did not overlap: two more threaded regions) took
+    0.53 ms for the second of two chunks' parts there (both lists, 1 thread, the fastest
+    of 25 calls); the blocks take 0.21, row starts included, and no threads: at 2
+    threads the threaded loops took 0.36 + 0.17 at best, no faster than one."""
     n_clusters = counts.shape[0]
     chunks = used.shape[0]
     starts = np.zeros(n_clusters + 1, np.int64)
@@ -287,12 +291,9 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
         starts[ci + 1] = starts[ci] + counts[ci]
     for t in range(1, chunks):
         source, target, count = place[t], starts[first[column_bounds[t]]], used[t]
-        if count == 0 or target == source:
-            continue
-        if target + count <= source:
-            move_pairs_threaded(part_partners, part_offsets, source, target, count, chunks)
-        else:
-            move_pairs(part_partners, part_offsets, source, target, 0, count)
+        if count > 0 and target != source:
+            _move_rows(part_partners, source, target, count)
+            _move_rows(part_offsets, source, target, count)
     total = starts[n_clusters]
     return starts, part_partners[:total], part_offsets[:total]
 
@@ -344,6 +345,36 @@ def _search_chunks(
             reach2,
             inner,
         )
+
+
+def _move_rows_twin(array, source, target, count):
+    """:func:`_move_rows` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    array[target : target + count] = array[source : source + count].copy()
+
+
+@python_twin(_move_rows_twin)
+@intrinsic
+def _move_rows(typingctx, array, source, target, count):
+    """Rows ``source`` to ``source + count`` of the C-contiguous ``array`` moved to
+    ``target`` on: one ``memmove`` of their bytes (the two ranges may overlap)."""
+    if not isinstance(array, types.Array) or array.layout != "C":
+        raise TypeError(f"_move_rows: a C-contiguous array, got {array}")
+    sig = types.void(array, source, target, count)
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        rows = context.make_array(arg[0])(context, builder, args[0])
+        source_v, target_v, count_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (1, 2, 3)
+        )
+        row_bytes = builder.extract_value(rows.strides, 0)
+        data = builder.bitcast(rows.data, cgutils.voidptr_t)
+        begin = builder.gep(data, [builder.mul(source_v, row_bytes)])
+        to = builder.gep(data, [builder.mul(target_v, row_bytes)])
+        cgutils.raw_memmove(builder, to, begin, count_v, row_bytes)
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(cache=True, inline="always", error_model="numpy")
