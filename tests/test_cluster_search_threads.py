@@ -1,22 +1,31 @@
-"""Issue 70: the chunked cluster search's join, its serial work around the threads.
+"""Issue 70: the chunked cluster search on the threads, and its join.
 
 A search on more than one chunk writes each chunk's rows into its own part of one
-buffer, then moves each part but the first down to follow the one before. Each part is
-moved as one block per array (``_move_rows``: a ``memmove`` in IR, with a numpy twin),
-on the calling thread: no pair-by-pair loop and no threaded region of its own. The
-lists are those of one chunk, array for array, however the parts overlap their places.
+buffer, the chunks claimed one at a time by the threads (``_claim``: an atomic
+increment in IR), so that a thread that starts late leaves its chunks to the others;
+then it moves each part but the first down to follow the one before, one block per
+array (``_move_rows``: a ``memmove`` in IR, with a numpy twin), on the calling thread:
+no pair-by-pair loop and no threaded region of its own. The lists are those of one
+chunk, array for array, on any number of chunks and threads, however the parts overlap
+their places.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from numba import njit
+from numba import njit, prange
 
 from md.neighbors._cluster_grid import cluster_grid, column_counts
 from md.neighbors._cluster_prune import cluster_positions
-from md.neighbors._cluster_search import _column_chunks, _joined, _move_rows, search_pairs
-from md.parallel import get_threads, set_threads
+from md.neighbors._cluster_search import (
+    _claim,
+    _column_chunks,
+    _joined,
+    _move_rows,
+    search_pairs,
+)
+from md.parallel import get_threads, max_threads, set_threads
 
 OUTER, INNER = 4.0, 2.8
 
@@ -55,6 +64,36 @@ def test_a_block_move_is_numpys_copy_for_any_overlap(source, target, count):
         _move_rows.python_twin(twin, source, target, count)
         assert np.array_equal(compiled, expected)
         assert np.array_equal(twin, expected)
+
+
+@njit(cache=True, parallel=True)
+def _claims(workers, counter, seen):
+    for _ in prange(workers):
+        while True:
+            k = _claim(counter)
+            if k >= seen.shape[0]:
+                break
+            seen[k] += 1  # each number by the one thread that claimed it
+
+
+def test_each_claim_gets_a_number_of_its_own_on_two_threads():
+    """Two threads claiming from one counter as fast as they can: every number from 0 up
+    is claimed once, none twice or never (a plain load, add and store would hand the
+    same number to both threads now and then), and the counter ends one past per
+    thread's last, refused claim; the Python twin counts the same on one thread."""
+    if max_threads() < 2:
+        pytest.skip("one core: no two threads to race")
+    before = get_threads()
+    try:
+        set_threads(2)
+        seen = np.zeros(200_000, np.int64)
+        counter = np.zeros(1, np.int64)
+        _claims(2, counter, seen)
+        assert np.all(seen == 1) and counter[0] == seen.shape[0] + 2
+    finally:
+        set_threads(before)
+    counter = np.zeros(1, np.int64)
+    assert [_claim.python_twin(counter) for _ in range(3)] == [0, 1, 2] and counter[0] == 3
 
 
 def test_the_join_gives_the_rows_in_order_whatever_the_gap_before_each_part():

@@ -6,8 +6,9 @@ the neighbouring columns whose xy bounding box comes within reach of the column'
 the cluster's own, a window of j clusters in z in each, then each candidate checked
 atom by atom with :mod:`md.neighbors._cluster_prune`'s check). LLVM IR here: the
 windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`),
-the two-list window check's loop (:func:`_keep_both`) and the join's block moves
-(:func:`_move_rows`), each with a Python twin. The pair kernels evaluate all 4 x 4 atom
+the two-list window check's loop (:func:`_keep_both`), the join's block moves
+(:func:`_move_rows`) and the threads' claims of chunks (:func:`_claim`), each with a
+Python twin. The pair kernels evaluate all 4 x 4 atom
 pairs of each listed cluster pair, in SIMD lanes. The list's chunks for the threads:
 :func:`balanced_chunks`, :func:`row_reach`, :func:`chunk_windows`.
 """
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, prange, types
+from numba import get_num_threads, njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
@@ -83,7 +84,8 @@ def search_pairs(
     search's windows: no pass over the pairs), which holds for the pruned rows too.
 
     The columns are searched in ``chunks`` runs of about equal work
-    (:func:`_column_chunks`) on the threads, each into its own part of one buffer, then
+    (:func:`_column_chunks`) on the threads (each thread claims the next chunk not yet
+    claimed: :func:`_search_chunks`), each into its own part of one buffer, then
     each part but the first moved down to follow the one before, a block per array
     (:func:`_joined`); each i
     cluster's row is written as its windows are found (:func:`_search_columns`).
@@ -97,6 +99,7 @@ def search_pairs(
         upper,
         radius,
         chunks,
+        min(chunks, get_num_threads()),
         per_cluster,
         xi,
         xj,
@@ -111,9 +114,10 @@ def search_pairs(
 
 @njit(cache=True, error_model="numpy")
 def _search_lists(
-    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2
+    box, ncx, ncy, first, lower, upper, radius, chunks, workers, per_cluster, xi, xj, reach2, inner2
 ):
-    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0)."""
+    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0),
+    the chunks claimed by ``workers`` threads."""
     n_clusters = lower.shape[0]
     column_bounds = _column_chunks(box, ncx, ncy, first, radius, chunks)
     # chunk t writes its rows from place[t] of one buffer (room[t] pairs), then each chunk
@@ -152,6 +156,7 @@ def _search_lists(
         xj,
         reach2,
         inner,
+        workers,
     )
     if used.min() < 0:
         return None
@@ -217,6 +222,7 @@ def _search_parts(
     xj,
     reach2,
     inner,
+    workers,
 ):
     """The search of :func:`search_pairs` into ``parts`` (the chunks' partners and
     offsets, chunk t's from ``place[t]`` to ``place[t + 1]``, the rows' counts and reach,
@@ -266,6 +272,8 @@ def _search_parts(
             xj,
             reach2,
             inner,
+            workers,
+            np.zeros(1, np.int64),
         )
 
 
@@ -319,32 +327,68 @@ def _search_chunks(
     xj,
     reach2,
     inner,
+    workers,
+    claimed,
 ):
-    """:func:`_search_columns` for each chunk of columns, on the threads, chunk t into
-    places ``place[t]`` to ``place[t + 1]`` of the buffers."""
-    for t in prange(column_bounds.shape[0] - 1):
-        used[t] = _search_columns(
-            box,
-            ncx,
-            ncy,
-            first,
-            lower,
-            upper,
-            extents,
-            radius,
-            column_bounds[t],
-            column_bounds[t + 1],
-            counts,
-            reach,
-            part_partners,
-            part_offsets,
-            place[t],
-            place[t + 1],
-            xi,
-            xj,
-            reach2,
-            inner,
-        )
+    """:func:`_search_columns` for each chunk of columns, chunk t into places ``place[t]``
+    to ``place[t + 1]`` of the buffers, on ``workers`` threads (at most numba's), each
+    claiming the next chunk not yet claimed (:func:`_claim`) until none is left. Where
+    a thread starts late (a core busy with other work), the others take its chunks:
+    the chunks are not dealt out in advance. Each chunk writes its own places, so the
+    lists do not depend on which thread searched which chunk. ``claimed``: one int64,
+    0, the counter (the caller's: numba does not know that a claim writes it, and a
+    counter made in a threaded function read 0 after its loop in a test)."""
+    n_parts = column_bounds.shape[0] - 1
+    for _ in prange(workers):
+        while True:
+            t = _claim(claimed)
+            if t >= n_parts:
+                break
+            used[t] = _search_columns(
+                box,
+                ncx,
+                ncy,
+                first,
+                lower,
+                upper,
+                extents,
+                radius,
+                column_bounds[t],
+                column_bounds[t + 1],
+                counts,
+                reach,
+                part_partners,
+                part_offsets,
+                place[t],
+                place[t + 1],
+                xi,
+                xj,
+                reach2,
+                inner,
+            )
+
+
+def _claim_twin(counter):
+    """:func:`_claim` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    value = int(counter[0])
+    counter[0] += 1
+    return value
+
+
+@python_twin(_claim_twin)
+@intrinsic
+def _claim(typingctx, counter):
+    """``counter[0]`` (int64) raised by one in one atomic step; returns the value before:
+    each thread that calls it on the same counter gets a number of its own."""
+    if not isinstance(counter, types.Array) or counter.dtype != types.int64:
+        raise TypeError(f"_claim: an int64 array, got {counter}")
+    sig = types.int64(counter)
+
+    def codegen(context, builder, signature, args):
+        pointer = array_data(context, builder, signature.args[0], args[0])
+        return builder.atomic_rmw("add", pointer, ir.Constant(_I64, 1), "monotonic")
+
+    return sig, codegen
 
 
 def _move_rows_twin(array, source, target, count):
