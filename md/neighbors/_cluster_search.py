@@ -5,18 +5,19 @@ A cluster pair is listed when one of its atom pairs lies within the list radius
 the neighbouring columns whose xy bounding box comes within reach of the column's and
 the cluster's own, a window of j clusters in z in each, then each candidate checked
 atom by atom with :mod:`md.neighbors._cluster_prune`'s check). LLVM IR here: the
-windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`)
-and the two-list window check's loop (:func:`_keep_both`), each with a Python twin. The
-pair kernels evaluate all 4 x 4 atom pairs of each listed cluster pair,
-in SIMD lanes. The list's chunks for the threads: :func:`balanced_chunks`,
-:func:`row_reach`, :func:`chunk_windows`.
+windows' cursors step by block counts (:func:`_count_below`, :func:`_count_not_above`),
+the two-list window check's loop (:func:`_keep_both`), the join's block moves
+(:func:`_move_rows`) and the threads' claims of chunks (:func:`_claim`), each with a
+Python twin. The pair kernels evaluate all 4 x 4 atom
+pairs of each listed cluster pair, in SIMD lanes. The list's chunks for the threads:
+:func:`balanced_chunks`, :func:`row_reach`, :func:`chunk_windows`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, prange, types
+from numba import get_num_threads, njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
@@ -32,11 +33,7 @@ from md._simd import (
     store_vector,
 )
 from md.neighbors._cluster_grid import CLUSTER
-from md.neighbors._cluster_prune import (
-    keep_window,
-    move_pairs,
-    move_pairs_threaded,
-)
+from md.neighbors._cluster_prune import keep_window
 
 
 def search_pairs(
@@ -87,8 +84,10 @@ def search_pairs(
     search's windows: no pass over the pairs), which holds for the pruned rows too.
 
     The columns are searched in ``chunks`` runs of about equal work
-    (:func:`_column_chunks`) on the threads, each into its own part of one buffer, then
-    each part but the first moved down to follow the one before (:func:`_joined`); each i
+    (:func:`_column_chunks`) on the threads (each thread claims the next chunk not yet
+    claimed: :func:`_search_chunks`), each into its own part of one buffer, then
+    each part but the first moved down to follow the one before, a block per array
+    (:func:`_joined`); each i
     cluster's row is written as its windows are found (:func:`_search_columns`).
     """
     found = _search_lists(
@@ -100,6 +99,7 @@ def search_pairs(
         upper,
         radius,
         chunks,
+        min(chunks, get_num_threads()),
         per_cluster,
         xi,
         xj,
@@ -114,9 +114,10 @@ def search_pairs(
 
 @njit(cache=True, error_model="numpy")
 def _search_lists(
-    box, ncx, ncy, first, lower, upper, radius, chunks, per_cluster, xi, xj, reach2, inner2
+    box, ncx, ncy, first, lower, upper, radius, chunks, workers, per_cluster, xi, xj, reach2, inner2
 ):
-    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0)."""
+    """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0),
+    the chunks claimed by ``workers`` threads."""
     n_clusters = lower.shape[0]
     column_bounds = _column_chunks(box, ncx, ncy, first, radius, chunks)
     # chunk t writes its rows from place[t] of one buffer (room[t] pairs), then each chunk
@@ -155,6 +156,7 @@ def _search_lists(
         xj,
         reach2,
         inner,
+        workers,
     )
     if used.min() < 0:
         return None
@@ -178,26 +180,30 @@ def _column_chunks(box, ncx, ncy, first, radius, chunks):
     the far side's, across the boundary, and one at the high end almost none: equal
     cluster counts gave the first of two chunks 0.59 of the work on the 32000-atom melt)."""
     n_columns = ncx * ncy
+    bounds = np.zeros(chunks + 1, np.int64)
+    bounds[chunks] = n_columns
+    if chunks == 1:
+        return bounds  # (no work to weigh: 25 us of the melt's 1-thread search)
     reach_x = int(np.ceil(radius / (box[0] / ncx)))
     reach_y = int(np.ceil(radius / (box[1] / ncy)))
     work = np.zeros(n_columns + 1)
     for c in range(n_columns):
         f0, f1 = first[c], first[c + 1]
         searched = 0
-        for dx in range(-reach_x, reach_x + 1):
-            ux = (c // ncy + dx) % ncx
-            for dy in range(-reach_y, reach_y + 1):
-                col = ux * ncy + (c % ncy + dy) % ncy
-                if first[col + 1] > f0:  # as the search skips a column before c's
-                    searched += first[col + 1] - first[col]
+        if f1 > f0:  # (an empty column's work is none: no division or sweep for it)
+            cx, cy = c // ncy, c % ncy
+            for dx in range(-reach_x, reach_x + 1):
+                ux = _periodic_column(cx + dx, ncx, 0.0)[0]
+                for dy in range(-reach_y, reach_y + 1):
+                    col = ux * ncy + _periodic_column(cy + dy, ncy, 0.0)[0]
+                    if first[col + 1] > f0:  # as the search skips a column before c's
+                        searched += first[col + 1] - first[col]
         work[c + 1] = work[c] + (f1 - f0) * searched
-    bounds = np.zeros(chunks + 1, np.int64)
     c = 0
     for t in range(1, chunks):
         while c < n_columns and work[c] < t * work[n_columns] / chunks:
             c += 1
         bounds[t] = c
-    bounds[chunks] = n_columns
     return bounds
 
 
@@ -218,6 +224,7 @@ def _search_parts(
     xj,
     reach2,
     inner,
+    workers,
 ):
     """The search of :func:`search_pairs` into ``parts`` (the chunks' partners and
     offsets, chunk t's from ``place[t]`` to ``place[t + 1]``, the rows' counts and reach,
@@ -267,6 +274,8 @@ def _search_parts(
             xj,
             reach2,
             inner,
+            workers,
+            np.zeros(1, np.int64),
         )
 
 
@@ -275,11 +284,16 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
     """(starts, partners, offsets) of the rows of ``counts`` pairs each, written per chunk
     into ``part_partners``/``part_offsets`` (chunk t's ``used[t]`` pairs from
     ``place[t]``): the first chunk's where they are, each later one moved down to follow
-    the one before (in order: a move never overwrites pairs not yet moved; on the threads
-    where the two places do not overlap). The lists are the buffers' first pairs, not a
-    fresh copy of every chunk's (with the whole buffers passed to each chunk, see
-    :func:`_search_columns`, two chunks' work on one thread went from 1.16 to 1.09 of
-    one chunk's search on the 32000-atom melt, CPU time, interleaved)."""
+    the one before, in order (a move never overwrites pairs not yet moved), each array's
+    part as one block (:func:`_move_rows`: a ``memmove``), on the calling thread. The
+    lists are the buffers' first pairs, not a fresh copy of every chunk's (with the whole
+    buffers passed to each chunk, see :func:`_search_columns`, two chunks' work on one
+    thread went from 1.16 to 1.09 of one chunk's search on the 32000-atom melt, CPU time,
+    interleaved). The pair-by-pair moves this replaced (a loop per pair's partner and
+    offsets, threaded where the places did not overlap: two more threaded regions) took
+    0.53 ms for the second of two chunks' parts there (both lists, 1 thread, the fastest
+    of 25 calls); the blocks take 0.21, row starts included, and no threads: at 2
+    threads the threaded loops took 0.36 + 0.17 at best, no faster than one."""
     n_clusters = counts.shape[0]
     chunks = used.shape[0]
     starts = np.zeros(n_clusters + 1, np.int64)
@@ -287,12 +301,9 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
         starts[ci + 1] = starts[ci] + counts[ci]
     for t in range(1, chunks):
         source, target, count = place[t], starts[first[column_bounds[t]]], used[t]
-        if count == 0 or target == source:
-            continue
-        if target + count <= source:
-            move_pairs_threaded(part_partners, part_offsets, source, target, count, chunks)
-        else:
-            move_pairs(part_partners, part_offsets, source, target, 0, count)
+        if count > 0 and target != source:
+            _move_rows(part_partners, source, target, count)
+            _move_rows(part_offsets, source, target, count)
     total = starts[n_clusters]
     return starts, part_partners[:total], part_offsets[:total]
 
@@ -318,32 +329,98 @@ def _search_chunks(
     xj,
     reach2,
     inner,
+    workers,
+    claimed,
 ):
-    """:func:`_search_columns` for each chunk of columns, on the threads, chunk t into
-    places ``place[t]`` to ``place[t + 1]`` of the buffers."""
-    for t in prange(column_bounds.shape[0] - 1):
-        used[t] = _search_columns(
-            box,
-            ncx,
-            ncy,
-            first,
-            lower,
-            upper,
-            extents,
-            radius,
-            column_bounds[t],
-            column_bounds[t + 1],
-            counts,
-            reach,
-            part_partners,
-            part_offsets,
-            place[t],
-            place[t + 1],
-            xi,
-            xj,
-            reach2,
-            inner,
+    """:func:`_search_columns` for each chunk of columns, chunk t into places ``place[t]``
+    to ``place[t + 1]`` of the buffers, on ``workers`` threads (at most numba's), each
+    claiming the next chunk not yet claimed (:func:`_claim`) until none is left. Where
+    a thread starts late (a core busy with other work), the others take its chunks:
+    the chunks are not dealt out in advance. Each chunk writes its own places, so the
+    lists do not depend on which thread searched which chunk. ``claimed``: one int64,
+    0, the counter (the caller's: numba does not know that a claim writes it, and a
+    counter made in a threaded function read 0 after its loop in a test)."""
+    n_parts = column_bounds.shape[0] - 1
+    for _ in prange(workers):
+        while True:
+            t = _claim(claimed)
+            if t >= n_parts:
+                break
+            used[t] = _search_columns(
+                box,
+                ncx,
+                ncy,
+                first,
+                lower,
+                upper,
+                extents,
+                radius,
+                column_bounds[t],
+                column_bounds[t + 1],
+                counts,
+                reach,
+                part_partners,
+                part_offsets,
+                place[t],
+                place[t + 1],
+                xi,
+                xj,
+                reach2,
+                inner,
+            )
+
+
+def _claim_twin(counter):
+    """:func:`_claim` in Python (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    value = int(counter[0])
+    counter[0] += 1
+    return value
+
+
+@python_twin(_claim_twin)
+@intrinsic
+def _claim(typingctx, counter):
+    """``counter[0]`` (int64) raised by one in one atomic step; returns the value before:
+    each thread that calls it on the same counter gets a number of its own."""
+    if not isinstance(counter, types.Array) or counter.dtype != types.int64:
+        raise TypeError(f"_claim: an int64 array, got {counter}")
+    sig = types.int64(counter)
+
+    def codegen(context, builder, signature, args):
+        pointer = array_data(context, builder, signature.args[0], args[0])
+        return builder.atomic_rmw("add", pointer, ir.Constant(_I64, 1), "monotonic")
+
+    return sig, codegen
+
+
+def _move_rows_twin(array, source, target, count):
+    """:func:`_move_rows` in numpy (under ``NUMBA_DISABLE_JIT=1``, and its test)."""
+    array[target : target + count] = array[source : source + count].copy()
+
+
+@python_twin(_move_rows_twin)
+@intrinsic
+def _move_rows(typingctx, array, source, target, count):
+    """Rows ``source`` to ``source + count`` of the C-contiguous ``array`` moved to
+    ``target`` on: one ``memmove`` of their bytes (the two ranges may overlap)."""
+    if not isinstance(array, types.Array) or array.layout != "C":
+        raise TypeError(f"_move_rows: a C-contiguous array, got {array}")
+    sig = types.void(array, source, target, count)
+
+    def codegen(context, builder, signature, args):
+        arg = signature.args
+        rows = context.make_array(arg[0])(context, builder, args[0])
+        source_v, target_v, count_v = (
+            context.cast(builder, args[n], arg[n], types.int64) for n in (1, 2, 3)
         )
+        row_bytes = builder.extract_value(rows.strides, 0)
+        data = builder.bitcast(rows.data, cgutils.voidptr_t)
+        begin = builder.gep(data, [builder.mul(source_v, row_bytes)])
+        to = builder.gep(data, [builder.mul(target_v, row_bytes)])
+        cgutils.raw_memmove(builder, to, begin, count_v, row_bytes)
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -635,18 +712,25 @@ def _search_columns(
     near_box = np.empty((n_near, 6))  # x0, x1, y0, y1, sx, sy
     begins = np.empty((n_near, 3), np.int64)
     ends = np.empty((n_near, 3), np.int64)
-    all_x = 0.5 * (lower[:, 0] + upper[:, 0])  # the clusters' centres (the partners')
-    all_y = 0.5 * (lower[:, 1] + upper[:, 1])
-    all_z = 0.5 * (lower[:, 2] + upper[:, 2])
-    centres = np.zeros((lower.shape[0], 4))  # the same, one row of four per cluster
-    centres[:, 0], centres[:, 1], centres[:, 2] = all_x, all_y, all_z
-    # the clusters' z bounds, each contiguous for the cursors, and a block's worth past
-    # the last cluster (+inf: counted by no cursor) so that a block never reads past them
+    # the clusters' centres (the partners'), also as one row of four per cluster, and
+    # their z bounds, each contiguous for the cursors, with a block's worth past the
+    # last cluster (+inf: counted by no cursor) so that a block never reads past them;
+    # in one loop (numba's array expressions, each a temporary: 30 us of each chunk's
+    # search on the 32000-atom melt)
     n_clusters = lower.shape[0]
+    all_x = np.empty(n_clusters)
+    all_y = np.empty(n_clusters)
+    all_z = np.empty(n_clusters)
+    centres = np.empty((n_clusters, 4))
     bottom = np.full(n_clusters + _BLOCK, np.inf)
-    bottom[:n_clusters] = lower[:, 2]
     top = np.full(n_clusters + _BLOCK, np.inf)
-    top[:n_clusters] = upper[:, 2]
+    for cl in range(n_clusters):
+        x = 0.5 * (lower[cl, 0] + upper[cl, 0])
+        y = 0.5 * (lower[cl, 1] + upper[cl, 1])
+        z = 0.5 * (lower[cl, 2] + upper[cl, 2])
+        all_x[cl], all_y[cl], all_z[cl] = x, y, z
+        centres[cl, 0], centres[cl, 1], centres[cl, 2], centres[cl, 3] = x, y, z, 0.0
+        bottom[cl], top[cl] = lower[cl, 2], upper[cl, 2]
     r2max = radius * radius
     capacity = place1 - 1  # a pair's offset is stored as four floats: one slot spare
     k = place0
