@@ -17,7 +17,6 @@ the atoms.
 from __future__ import annotations
 
 import copy
-import logging
 import math
 import time
 
@@ -27,13 +26,13 @@ from numpy.typing import NDArray
 from md.box import (
     cell_matrix,
     periodic_tilt,
-    perpendicular_widths,
 )
 from md.distributed._domain_kernels import (
     moved_since,
     predicted_positions,
 )
 from md.distributed._verlet_kernels import closing_kick, gather_reverse_kick, step_out
+from md.distributed.balance import LoadBalance
 from md.distributed.bonded import BondedShare
 from md.distributed.grid import Grid
 from md.distributed.halo import AGREED_STRAY, Domain
@@ -45,8 +44,6 @@ from md.parallel import chunk_count, copied, copy_into, global_max, same_values
 from md.state import State
 from md.topology import Topology
 from potentials.base import ForceResult
-
-logger = logging.getLogger(__name__)
 
 #: A step starts with a rebuild (and migration) when some atom's next move could take it
 #: past the list's limit (``moved_since`` of ``_domain_kernels`` bounds each atom's next
@@ -99,13 +96,11 @@ class DistributedForceField:
         The last build kept owners (it was forced inside a step): the next
         step start migrates.
     balance_every, balance_threshold
-        Dynamic load balancing (off where ``balance_every`` is 0): at the first
-        migration ``balance_every`` steps or more after the last check, the ranks
-        share their busy seconds since then (wall time less the time they spent
-        communicating, waits included); where the busiest rank's exceed the mean
-        by more than the factor ``balance_threshold``, the planes between bricks
-        move towards an even share (:func:`md.distributed.grid.balanced_cuts`, per cut
-        axis), and the migration takes the atoms to their new bricks.
+        Dynamic load balancing (off where ``balance_every`` is 0): ``balance``, a
+        :class:`md.distributed.balance.LoadBalance`, checks at the first migration
+        ``balance_every`` steps or more after the last check and moves the planes
+        between bricks where the busiest rank's busy time exceeds the mean by more
+        than the factor ``balance_threshold``.
     imbalance, balances
         The busiest rank's busy seconds over the mean at the last check; how many
         checks moved the planes.
@@ -175,20 +170,20 @@ class DistributedForceField:
         self._gathered = np.zeros((ranks.n_ranks, 18))  # (verlet_step's reduction)
         self._fused: tuple | None = None  # (what verlet_step keeps a build: _fused_step)
         self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
-        if balance_every < 0 or not balance_threshold >= 1.0:
-            raise ValueError(
-                f"balance_every must be >= 0 and balance_threshold >= 1, got "
-                f"{balance_every} and {balance_threshold}"
-            )
-        self.balance_every = int(balance_every)
-        self.balance_threshold = float(balance_threshold)
-        self.imbalance = 1.0
-        self.balances = 0
-        self._busy_mark: tuple[float, float, int] | None = None  # (wall, comm, step) then
+        self.balance = LoadBalance(balance_every, balance_threshold)
+        self.balance_every, self.balance_threshold = self.balance.every, self.balance.threshold
 
     @property
     def cutoff(self) -> float | None:
         return self.local.cutoff
+
+    @property
+    def imbalance(self) -> float:
+        return self.balance.imbalance
+
+    @property
+    def balances(self) -> int:
+        return self.balance.balances
 
     @property
     def reach(self) -> float:
@@ -661,8 +656,8 @@ class DistributedForceField:
                     kept[which] = held
                     cached[("cached", which)] = held[1].forces
             self._cache = kept
-            if self.balance_every:
-                self._balance(state)
+            if self.balance_every:  # (a brick keeps room for the shell and the strays)
+                self.balance.check(state, self.domain, self.ranks, self.reach + self.skin)
             with self.ranks.clock:
                 # (the cached forces are the evaluations' own arrays: they move in them)
                 moved = self.domain.migrate(state, {**carried, **cached}, spent=tuple(cached))
@@ -746,35 +741,6 @@ class DistributedForceField:
                     "the last build; bonds must not stretch that fast"
                 )
             self.bond_reach = longest
-
-    def _balance(self, state: State) -> None:
-        """Move the planes between bricks towards an even share of the ranks' busy time,
-        if ``balance_every`` steps have passed since the last check and the imbalance
-        exceeds ``balance_threshold`` (see the class's docstring). Collective; the
-        migration that follows takes the atoms to their new bricks."""
-        now, communicated = time.perf_counter(), self.ranks.clock.seconds
-        mark = self._busy_mark
-        if mark is not None and state.step - mark[2] < self.balance_every:
-            return
-        self._busy_mark = (now, communicated, state.step)
-        if mark is None:  # the first migration starts the clock
-            return
-        mine = np.zeros(self.ranks.n_ranks)
-        mine[self.ranks.rank] = max((now - mark[0]) - (communicated - mark[1]), 0.0)
-        with self.ranks.clock:
-            busy = self.ranks.sum(mine)  # one non-zero term per entry: the same on every rank
-        mean = float(busy.mean())
-        self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
-        if self.imbalance <= self.balance_threshold:
-            return
-        widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
-        # a brick keeps room for the ghost shell and how far atoms stray before a build
-        grid = self.domain.grid.balanced(busy, widths, self.reach + self.skin)
-        self.domain.set_grid(grid)
-        self.balances += 1
-        cuts, shares = [np.round(c, 4).tolist() for c in grid.cuts], np.round(busy, 4).tolist()
-        message = "step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s"
-        logger.info(message, state.step, shares, self.imbalance, cuts)
 
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
