@@ -651,6 +651,34 @@ class PairPotential:
             return code, None
         return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
+    def kept_call(self, state, neighbors) -> tuple | None:
+        """The compiled call :meth:`energy_forces` of ``state`` over ``neighbors`` makes in
+        double precision without the virial, where the last slot-frame call serves it on
+        one chunk (as :meth:`verlet_step` asks): ``(kernel, arguments, energies)``, where
+        ``kernel(*arguments, forces)`` writes the forces into ``forces`` (N, 3; its
+        contents are not read) and their energy into ``energies[0]``, the same bits as
+        :meth:`energy_forces`, which would also check that the energy is finite. None
+        where it does not serve. Valid while the list is not built again and the state's
+        arrays and this potential's parameters are the same."""
+        call = self._frame_calls[0]
+        if (  # the conditions of energy_forces' kept call
+            call is None
+            or call[1] is not state.positions
+            or call[2] is not state.types
+            or call[3] is not state.type_names
+            or call[4] is not self.data
+            or call[5] != self.cutoff_mode
+            or type(self).energy_forces is not PairPotential.energy_forces
+        ):
+            return None
+        frame = neighbors.frame
+        if call[0] is not frame:  # the list was built again since
+            call = self._reslotted(call, neighbors, frame, False)
+            if call is None:
+                return None
+        kernel, arguments, energies, _, chunks = call[-1]
+        return (kernel, arguments, energies) if chunks == 1 else None
+
     def mixed_verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, held, allowed2, key):
         """A mixed-precision velocity Verlet step over a cluster-pair list in two compiled
         calls around the cluster kernel, where the last cluster call without the virial

@@ -197,8 +197,10 @@ class DistributedForceField:
         """Nothing to check per rank: the whole system was checked before it was cut."""
 
     def invalidate(self) -> None:
-        """Forget cached results (and which positions the ghosts hold)."""
+        """Forget cached results (and which positions the ghosts hold, and the local pair
+        call: a potential's parameters may have changed)."""
         self._cache.clear()
+        self._fused = None
         self._exchanged = None
         self.steps_end(forget=True)
 
@@ -233,11 +235,13 @@ class DistributedForceField:
         """As :meth:`md.ForceField.verlet_step` (2 done, 0 nothing done; collective): where
         the step's first call takes the held forces, in double precision without virial
         or bonded terms, on compiled sweeps and the build's cell, ``step_out`` (kick, drift,
-        ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
-        ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
-        :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
-        the kicks; the two compiled calls on the ranks' clock. What a build fixes is
-        prepared once a build (:meth:`Domain.fused_arguments`)."""
+        ``moved_since``, owned rows, ghosts sent, the local list's check), the local pair
+        kernel's call (:meth:`md.ForceField.pair_call`, while the local list holds; else
+        the local ``compute``), then ``gather_reverse_kick`` (the finite checks, the
+        reduction, ghost forces back, closing kick); else as :meth:`_evaluate`. The same
+        messages, bookkeeping and bits as :meth:`compute` and the kicks; the two compiled
+        calls on the ranks' clock. What a build fixes is prepared once a build
+        (:meth:`Domain.fused_arguments`; the pair call after the build's first step)."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
         positions, cell, fused = state.positions, self._cell_bytes, self._fused
         if (
@@ -256,15 +260,21 @@ class DistributedForceField:
             return 0
         if fused is None or fused[0] is not reference:  # (the first step after a build)
             plain = not self.bonded.listed and self.precision == "double"
-            fused = self._fused = (reference, plain and self.domain.fused_arguments(state))
+            fused = (reference, plain and self.domain.fused_arguments(state), None)
+            self._fused = fused
         if not fused[1]:
             return 0  # (this build's layout has no fused step)
         out_tail, back_tail, local_state, n_owned, check = fused[1]
+        pair = fused[2]  # (the local pair call: None not asked yet this build, False none)
+        if pair and pair[6] != self.neighbor_list.n_builds:  # (the local list was rebuilt)
+            fused = self._fused = (reference, fused[1], None)
+            pair = None
         velocities, masses, clock = state.velocities, state.masses, self.ranks.clock
         with clock:  # (the kick, drift and displacement pass with the messages)
-            code, moved2, step2, coming2 = step_out(
+            code, moved2, step2, coming2, local2 = step_out(
                 *(key[0], positions, velocities, held[1].forces, masses, kick_dt, drift_dt),
                 *(reference, _IDENTITY, begin, self.step_before, *out_tail),
+                _NONE if not pair else pair[3],
             )
         if code:
             if code < 0:  # (not the held forces' positions: nothing was done)
@@ -275,26 +285,41 @@ class DistributedForceField:
             self._moved_report = max(self._moved_report, 0.0)
             self._reported.add(None)
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
-        allowed = 0.5 * self.skin
-        coming = math.sqrt(coming2) + LOOKAHEAD * math.sqrt(step2)
-        outrun = not (math.sqrt(moved2) <= allowed) or self.domain.outgrown  # (layout_holds')
-        ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
-        error, result = None, None
         start = time.perf_counter()
-        try:
-            result = self.local.compute(local_state, False, False)
-        except Exception as caught:  # shared with every rank below
-            error = self._global_error(caught)
+        # The local compute's call made here while its list holds (pair_call: no update, no
+        # ForceField or potential in between; the finite checks in gather_reverse_kick),
+        # else the local compute itself (which rebuilds the list where it must)
+        direct = pair and local2 <= pair[4]
+        if direct:
+            forces = np.empty(pair[5])
+            pair[0](*pair[1], forces)
+            error, result = None, ForceResult(float(pair[2][0]), forces, None)
+        else:
+            error, result = self._local_compute(local_state)
+            if pair is None and error is None:  # (asked once a build, after its first call)
+                made = self.local.pair_call(local_state) or False
+                if made:  # (+ the forces' shape and the list's build it serves)
+                    shape = (len(local_state.positions), 3)
+                    made = (*made, shape, self.neighbor_list.n_builds)
+                self._fused = (reference, fused[1], made)
         self.timings["force"] += time.perf_counter() - start
         totals, worst = self._totals, self._worst
         forces = _NONE if result is None else result.forces
-        with clock:  # (the closing kick with the messages)
-            code, done = gather_reverse_kick(
-                *(error is not None, 0.0 if result is None else result.energy, outrun, ahead),
-                *(self.stop_code, not math.isfinite(moved2), self._moved_report),
-                *(0.0 if outcome is None else outcome[0], self._values, self._gathered),
-                *(totals, worst, forces, *back_tail, velocities, masses, kick_dt),
-            )
+        while True:
+            with clock:  # (the closing kick with the messages)
+                code, done = gather_reverse_kick(
+                    *(error is not None, 0.0 if result is None else result.energy, moved2),
+                    *(step2, coming2, 0.5 * self.skin, LOOKAHEAD, self.domain.outgrown),
+                    *(self.stop_code, self._moved_report),
+                    *(0.0 if outcome is None else outcome[0], self._values, self._gathered),
+                    *(totals, worst, forces, *back_tail, velocities, masses, kick_dt, direct),
+                )
+            if code != -2:
+                break
+            # a value of the direct call is not finite (no message sent): the local compute
+            # says what, as it did before
+            direct, (error, result) = False, self._local_compute(local_state)
+            forces = _NONE if result is None else result.forces
         if code:
             check(code)
         if outcome is not None:
@@ -324,6 +349,13 @@ class DistributedForceField:
         key[0][...] = positions  # (the key's copy: shaped as they are, step_out compared)
         self._cache[None] = (key, result)
         return 2
+
+    def _local_compute(self, local_state: State) -> tuple:
+        """(the error shared with every rank, or None; the local result without virial)."""
+        try:
+            return None, self.local.compute(local_state, False, False)
+        except Exception as caught:  # shared with every rank by the caller's reduction
+            return self._global_error(caught), None
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
