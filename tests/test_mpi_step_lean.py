@@ -174,14 +174,16 @@ def launched(tmp_path_factory) -> dict:
 @needs_mpi
 def test_a_step_between_builds_calls_the_local_pair_kernel_itself(launched):
     """Rank 0, from one step start to the next without a build: at most 18 Python calls
-    (median: 17; 25 before, with the local ``compute`` between the two compiled calls), and
-    the local ``compute`` made in few of those steps (each build's first; every step
-    before)."""
+    (median: 17; 25 before, with the local ``compute`` between the two compiled calls); in
+    the first step after a build, where the pair call is laid out again (the 90th
+    percentile: a fifth of the steps), at most 45 (42; 53 with the local ``compute``
+    there); the local ``compute`` made in hardly any step (every step before)."""
     found = launched["direct"]
     calls = sorted(found["calls"])
     assert len(calls) >= 60 and found["builds"] > 5, found
     assert calls[len(calls) // 2] <= 18, found
-    assert found["computes"] <= 0.3 * len(calls), found
+    assert calls[int(0.9 * len(calls))] <= 45, found
+    assert found["computes"] <= 0.05 * len(calls), found
 
 
 @needs_mpi
@@ -207,14 +209,15 @@ def test_a_list_outrun_after_direct_calls_rebuilds_as_the_local_compute(launched
     kicked, replaced = launched["direct kicked"], launched["replaced kicked"]
     assert replaced["same"] and kicked["builds"] == replaced["builds"], launched
     assert kicked["inside"] >= 1 and kicked["inside"] == replaced["inside"], launched
-    assert kicked["computes"] <= 0.3 * len(kicked["calls"]), launched  # (direct calls)
+    assert kicked["computes"] <= 0.05 * len(kicked["calls"]), launched  # (direct calls)
 
 
 def test_the_force_field_hands_out_the_call_compute_makes():
     """``ForceField.pair_call``: the kernel, its arguments and energies compute's kept call
     uses, with the list's reference and allowance: the same bits as ``compute`` at the
-    first positions and after a move within the skin (the arrays changed in place); None
-    before a call was kept, in mixed precision and for two potentials."""
+    first positions, after a move within the skin (the arrays changed in place) and for a
+    state of new arrays (laid out again, not run); None before a call was kept, in mixed
+    precision and for two potentials."""
     lattice = md.lattice("fcc", (4, 4, 4), density=0.8442)
     rng = np.random.default_rng(2)
     positions = lattice.positions + rng.normal(0.0, 0.02, lattice.positions.shape)
@@ -230,6 +233,14 @@ def test_the_force_field_hands_out_the_call_compute_makes():
         assert np.array_equal(forces, result.forces) and float(energies[0]) == result.energy
         assert allowed2 == (0.5 * 0.3) ** 2
         assert np.abs(state.positions - reference).max() <= 0.05
+    # a state of new arrays (the same values, as a decomposed rank's next build): laid out
+    # afresh for them, without a force call, the same bits
+    fresh = md.State(positions=state.positions.copy(), masses=1.0, box=lattice.box)
+    kernel, arguments, energies, _, _ = forcefield.pair_call(fresh)
+    assert arguments[0] is fresh.positions
+    forces = np.full_like(state.positions, np.nan)
+    kernel(*arguments, forces)
+    assert np.array_equal(forces, result.forces) and float(energies[0]) == result.energy
     mixed = ForceField([LennardJones(cutoff=2.5)], 0.3, precision="mixed")
     mixed.compute(state, virial=False)
     two = ForceField([LennardJones(cutoff=2.5), Morse(cutoff=2.5)], 0.3)

@@ -96,11 +96,8 @@ class DistributedForceField:
         The last build kept owners (it was forced inside a step): the next
         step start migrates.
     balance_every, balance_threshold
-        Dynamic load balancing (off where ``balance_every`` is 0): ``balance``, a
-        :class:`md.distributed.balance.LoadBalance`, checks at the first migration
-        ``balance_every`` steps or more after the last check and moves the planes
-        between bricks where the busiest rank's busy time exceeds the mean by more
-        than the factor ``balance_threshold``.
+        Dynamic load balancing (off where ``balance_every`` is 0): ``balance``, its
+        :class:`md.distributed.balance.LoadBalance`, which the migrations ask.
     imbalance, balances
         The busiest rank's busy seconds over the mean at the last check; how many
         checks moved the planes.
@@ -260,15 +257,15 @@ class DistributedForceField:
             return 0
         if fused is None or fused[0] is not reference:  # (the first step after a build)
             plain = not self.bonded.listed and self.precision == "double"
-            fused = (reference, plain and self.domain.fused_arguments(state), None)
+            fused = (reference, plain and self.domain.fused_arguments(state), None, True)
             self._fused = fused
         if not fused[1]:
             return 0  # (this build's layout has no fused step)
         out_tail, back_tail, local_state, n_owned, check = fused[1]
         pair = fused[2]  # (the local pair call: None not asked yet this build, False none)
-        if pair and pair[6] != self.neighbor_list.n_builds:  # (the local list was rebuilt)
-            fused = self._fused = (reference, fused[1], None)
-            pair = None
+        if pair is None or (pair and pair[6] != self.neighbor_list.n_builds):  # (rebuilt)
+            pair = self._pair_call(local_state)  # (laid out before the step, not run)
+            fused = self._fused = (reference, fused[1], pair, fused[3] and not pair)
         velocities, masses, clock = state.velocities, state.masses, self.ranks.clock
         with clock:  # (the kick, drift and displacement pass with the messages)
             code, moved2, step2, coming2, local2 = step_out(
@@ -286,9 +283,8 @@ class DistributedForceField:
             self._reported.add(None)
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
         start = time.perf_counter()
-        # The local compute's call made here while its list holds (pair_call: no update, no
-        # ForceField or potential in between; the finite checks in gather_reverse_kick),
-        # else the local compute itself (which rebuilds the list where it must)
+        # The local compute's call made here while its list holds (the finite checks in
+        # gather_reverse_kick), else the local compute (which rebuilds the list if it must)
         direct = pair and local2 <= pair[4]
         if direct:
             forces = np.empty(pair[5])
@@ -296,12 +292,8 @@ class DistributedForceField:
             error, result = None, ForceResult(float(pair[2][0]), forces, None)
         else:
             error, result = self._local_compute(local_state)
-            if pair is None and error is None:  # (asked once a build, after its first call)
-                made = self.local.pair_call(local_state) or False
-                if made:  # (+ the forces' shape and the list's build it serves)
-                    shape = (len(local_state.positions), 3)
-                    made = (*made, shape, self.neighbor_list.n_builds)
-                self._fused = (reference, fused[1], made)
+            if fused[3] and error is None:  # (none before the step: asked once after it)
+                self._fused = (reference, fused[1], self._pair_call(local_state), False)
         self.timings["force"] += time.perf_counter() - start
         totals, worst = self._totals, self._worst
         forces = _NONE if result is None else result.forces
@@ -349,6 +341,16 @@ class DistributedForceField:
         key[0][...] = positions  # (the key's copy: shaped as they are, step_out compared)
         self._cache[None] = (key, result)
         return 2
+
+    def _pair_call(self, local_state: State) -> tuple | bool:
+        """The local pair call (:meth:`md.ForceField.pair_call`) with the forces' shape and
+        the local list's build it serves; False where there is none."""
+        try:
+            made = self.local.pair_call(local_state)
+        except Exception:  # (the local compute raises it, shared with every rank)
+            return False
+        shape, built = (len(local_state.positions), 3), self.neighbor_list.n_builds
+        return (*made, shape, built) if made else False
 
     def _local_compute(self, local_state: State) -> tuple:
         """(the error shared with every rank, or None; the local result without virial)."""
