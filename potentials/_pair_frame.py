@@ -657,9 +657,12 @@ class PairPotential:
         one chunk (as :meth:`verlet_step` asks): ``(kernel, arguments, energies)``, where
         ``kernel(*arguments, forces)`` writes the forces into ``forces`` (N, 3; its
         contents are not read) and their energy into ``energies[0]``, the same bits as
-        :meth:`energy_forces`, which would also check that the energy is finite. None
-        where it does not serve. Valid while the list is not built again and the state's
-        arrays and this potential's parameters are the same."""
+        :meth:`energy_forces`, which would also check that the energy is finite. For a
+        state of other arrays (a decomposed rank's next build) the call is laid out as
+        the full path would lay it out, and kept, without being run (where that kernel
+        has run in this object before). None where neither serves. Valid while the list
+        is not built again and the state's arrays and this potential's parameters are
+        the same."""
         if type(self).energy_forces is not PairPotential.energy_forces:
             return None
         call = self._frame_calls[0]

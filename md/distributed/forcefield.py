@@ -238,7 +238,7 @@ class DistributedForceField:
         reduction, ghost forces back, closing kick); else as :meth:`_evaluate`. The same
         messages, bookkeeping and bits as :meth:`compute` and the kicks; the two compiled
         calls on the ranks' clock. What a build fixes is prepared once a build
-        (:meth:`Domain.fused_arguments`; the pair call after the build's first step)."""
+        (:meth:`Domain.fused_arguments`; the pair call laid out at the build's first step)."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
         positions, cell, fused = state.positions, self._cell_bytes, self._fused
         if (
