@@ -4,6 +4,7 @@
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --steps 4000 --profiled 300
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --ab --blocks 21   # fused on / off
     mpiexec -n 2 python benchmarks/mpi_step_pieces.py --cells 6,6,4 --ab-kept   # 576 atoms
+    mpiexec -n 2 python benchmarks/mpi_step_pieces.py --ab-direct   # the direct pair call
 
 On the 1152-atom LJ melt (``examples/lj_melt.toml`` on 8 x 6 x 6 cells, two bricks along
 x, as ``mpi_scaling.py`` runs it; ``--cells`` for others), velocity Verlet, no observers:
@@ -26,7 +27,8 @@ the error checks, the ``ForceResult``), ``refresh``'s own lines with ``allowance
 displacement pass ``moved_since`` (compiled; it also writes the owned rows), the halo
 update's own lines (``Domain.update``: the cell key, the images' shift) and its compiled
 sweep (``halo_forward``, the messages inside), the local force field (its Python, the
-list's check, the pair kernel's call), the all-gather and fold (``gather_folded``),
+list's check, the pair kernel's call, which ``verlet_step`` makes itself where the local
+list holds: ``ForceField.pair_call``), the all-gather and fold (``gather_folded``),
 the last build's settling, the reverse's own lines and its compiled sweep
 (``halo_reverse``), and ``end_step``.
 
@@ -38,7 +40,11 @@ for the pair frame's kept call over a list of atom indices (``PairPotential._ato
 which a rank's O(N^2) local list takes: the 576-atom melt, ``--cells 6,6,4``, whose 6.7
 sigma z edge is too thin for cells) on and off (off: forgotten before each pair call, so
 every call takes the slow path, as before it; one Python call more a step than that code).
-``--cells`` sets the melt's fcc cells (8,6,6: 1152 atoms).
+With ``--ab-direct``, the same for the fused step's own call of the local pair kernel
+(``ForceField.pair_call``) on and off (off: ``pair_call`` answering None, so the local
+``compute`` makes every step's pair call, as before it), with each rank's thread CPU
+outside its ``CommClock`` sections too ("own", as ``mpi_scaling.py`` measures it) and the
+median difference per block pair. ``--cells`` sets the melt's fcc cells (8,6,6: 1152 atoms).
 
 Prints the CPU model and vector ISA. A wrapped call costs more than a bare one (printed:
 most of it lands in the own time of the piece it is nested in), so the pieces' sum is
@@ -55,13 +61,14 @@ import json
 import statistics
 import sys
 import time
+import types
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _machine import machine_line  # noqa: E402
-from _mpi_worker import _simulation  # noqa: E402  (the melt config, decomposed)
+from _mpi_worker import _count_own_cpu, _simulation  # noqa: E402  (the melt, decomposed)
 from mpi_build_path import (  # noqa: E402
     CELLS,
     _CountedAllocations,
@@ -70,6 +77,9 @@ from mpi_build_path import (  # noqa: E402
     _wrapper_cost,
 )
 
+#: The local pair kernel's piece: through ``energy_forces``, or the call ``verlet_step``
+#: makes itself where the local list holds (``ForceField.pair_call``).
+PAIR = "pair kernel (energy_forces or direct)"
 #: The pieces of a step, in the order they run (their own time each).
 PIECES = (
     "step start (_stopping)",
@@ -85,7 +95,7 @@ PIECES = (
     "halo sweep (compiled halo_forward)",
     "local ForceField.compute own lines",
     "local list check (NeighborList.update)",
-    "pair kernel (energy_forces)",
+    PAIR,
     "all-gather + fold (gather_folded)",
     "all-gather + fold (compiled gather_fold)",
     "_settle_build",
@@ -180,7 +190,7 @@ def _wrap_step(pieces: _Switch, sim) -> None:
         (halo, "halo_forward", "halo sweep (compiled halo_forward)"),
         (local, "compute", "local ForceField.compute own lines"),
         (local.neighbor_list, "update", "local list check (NeighborList.update)"),
-        *((p, "energy_forces", "pair kernel (energy_forces)") for p in local.potentials),
+        *((p, "energy_forces", PAIR) for p in local.potentials),
         (dff, "gather_folded", "all-gather + fold (gather_folded)"),
         (dff, "gather_fold", "all-gather + fold (compiled gather_fold)"),
         (forcefield, "_settle_build", "_settle_build"),
@@ -196,6 +206,18 @@ def _wrap_step(pieces: _Switch, sim) -> None:
     for owner, attribute, name in wrapped:
         if hasattr(owner, attribute):  # (the code before issue 69's fused step lacks some)
             pieces.wrap(owner, attribute, name)
+    if hasattr(local, "pair_call"):  # (the pair kernel verlet_step calls itself: timed too)
+        handed, timing = local.pair_call, pieces.pieces
+
+        def pair_call(state):
+            call = handed(state)
+            if call is None:
+                return None
+            holder = types.SimpleNamespace(kernel=call[0])
+            timing.wrap(holder, "kernel", PAIR)
+            return (holder.kernel, *call[1:])
+
+        local.pair_call = pair_call
 
 
 def _one_step(sim) -> bool:
@@ -328,56 +350,78 @@ def _forgetting(potential):
     return energy_forces
 
 
-def time_ab(blocks: int, comm, steps: int = 200, cells=CELLS, kept: bool = False) -> dict:
-    """The fused step (``kept``: the pair frame's kept call over atom indices) on and off
-    in alternating blocks of ``steps`` (see the docstring)."""
+def time_ab(blocks: int, comm, steps: int = 200, cells=CELLS, what: str = "fused") -> dict:
+    """The fused step (``what``: ``"kept"``, the pair frame's kept call over atom indices;
+    ``"direct"``, the fused step's own call of the local pair kernel) on and off in
+    alternating blocks of ``steps`` (see the docstring)."""
     sim = _simulation(cells)
     sim.run(50)  # compiled, and the layout of a run
     forcefield = sim.forcefield
     if not hasattr(forcefield, "verlet_step"):
         raise SystemExit("--ab needs the fused step (DistributedForceField.verlet_step)")
-    potentials = forcefield.local.potentials
-    if kept and not all(hasattr(p, "_atom_call") for p in potentials):
+    local = forcefield.local
+    potentials = local.potentials
+    if what == "kept" and not all(hasattr(p, "_atom_call") for p in potentials):
         raise SystemExit("--ab-kept needs the kept call over atom indices (_atom_call)")
-    spent: dict[str, list] = {"on wall": [], "on cpu": [], "off wall": [], "off cpu": []}
+    if what == "direct" and not hasattr(local, "pair_call"):
+        raise SystemExit("--ab-direct needs the direct pair call (ForceField.pair_call)")
+    inside = _count_own_cpu(forcefield.ranks.clock)
+    spent: dict[str, list] = {f"{n} {k}": [] for n in ("on", "off") for k in ("wall", "cpu", "own")}
     for _ in range(blocks):
         for name in ("on", "off"):
-            if name == "off" and kept:
+            if name == "off" and what == "kept":
                 for potential in potentials:
                     potential.energy_forces = _forgetting(potential)
+            elif name == "off" and what == "direct":
+                local.pair_call = lambda state: None  # (the local compute every step)
+                forcefield.invalidate()  # (the pair call prepared since the build forgotten)
             elif name == "off":
                 forcefield.verlet_step = lambda *args: 0  # (nothing done)
             comm.Barrier()
-            start, thread = time.perf_counter(), time.thread_time()
+            start, thread, polled = time.perf_counter(), time.thread_time(), inside["cpu"]
             for _ in range(steps):
                 _one_step(sim)
+            cpu = time.thread_time() - thread
             spent[f"{name} wall"].append((time.perf_counter() - start) / steps)
-            spent[f"{name} cpu"].append((time.thread_time() - thread) / steps)
-            if name == "off" and kept:
+            spent[f"{name} cpu"].append(cpu / steps)
+            spent[f"{name} own"].append((cpu - (inside["cpu"] - polled)) / steps)
+            if name == "off" and what == "kept":
                 for potential in potentials:
                     del potential.energy_forces  # (the class's method again)
+            elif name == "off" and what == "direct":
+                del local.pair_call  # (the class's method again)
+                forcefield.invalidate()  # (as the off blocks start: the same transition)
             elif name == "off":
                 del forcefield.verlet_step  # (the class's method again)
     figures = {key: statistics.median(values) for key, values in spent.items()}
-    for kind in ("wall", "cpu"):
-        ratios = [a / b for a, b in zip(spent[f"on {kind}"], spent[f"off {kind}"], strict=True)]
-        figures[f"on/off {kind}"] = statistics.median(ratios)
+    for kind in ("wall", "cpu", "own"):
+        pairs = list(zip(spent[f"on {kind}"], spent[f"off {kind}"], strict=True))
+        figures[f"on/off {kind}"] = statistics.median(a / b for a, b in pairs)
+        figures[f"on-off {kind}"] = statistics.median(a - b for a, b in pairs)
     return figures
 
 
-def print_ab(mine: list, comm, blocks: int, cells=CELLS, kept: bool = False) -> None:
+def print_ab(mine: list, comm, blocks: int, cells=CELLS, what: str = "fused") -> None:
     print(machine_line())
-    what = "the kept pair call over atom indices" if kept else "the fused step"
+    what = {
+        "kept": "the kept pair call over atom indices",
+        "direct": "the fused step's direct call of the local pair kernel",
+    }.get(what, "the fused step")
     print(
         f"{_atoms(cells)}-atom melt on {comm.Get_size()} ranks: {what} on and off, {blocks} "
-        "alternating blocks of 200 steps (build steps included), us a step, medians"
+        "alternating blocks of 200 steps (build steps included), us a step, medians "
+        "('own': thread CPU outside the ranks' CommClock sections, as mpi_scaling.py's)"
     )
-    print("  rank   on wall  off wall  on/off    on CPU  off CPU  on/off")
+    print(
+        "  rank   on wall  off wall  on/off    on CPU  off CPU  on/off    on own  off own"
+        "  on/off  on-off own"
+    )
     for rank, f in enumerate(mine):
         print(
             f"  {rank:4d}  {f['on wall'] * 1e6:8.1f}  {f['off wall'] * 1e6:8.1f}  "
             f"{f['on/off wall']:6.3f}  {f['on cpu'] * 1e6:8.1f} {f['off cpu'] * 1e6:8.1f}  "
-            f"{f['on/off cpu']:6.3f}"
+            f"{f['on/off cpu']:6.3f}  {f['on own'] * 1e6:8.1f} {f['off own'] * 1e6:8.1f}  "
+            f"{f['on/off own']:6.3f}  {f['on-off own'] * 1e6:9.1f}"
         )
 
 
@@ -444,6 +488,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--ab-kept", action="store_true", help="the kept pair call over atom indices on / off"
     )
+    parser.add_argument(
+        "--ab-direct", action="store_true", help="the fused step's direct pair call on / off"
+    )
     parser.add_argument("--blocks", type=int, default=21, help="--ab's blocks (21)")
     parser.add_argument(
         "--cells", default=",".join(map(str, CELLS)), help="the melt's fcc cells (8,6,6)"
@@ -458,10 +505,11 @@ def main(argv: list[str] | None = None) -> int:
     import md
 
     md.keep_freed_memory()  # as `md run` sets a process up
-    if args.ab or args.ab_kept:
-        mine = comm.gather(time_ab(args.blocks, comm, cells=cells, kept=args.ab_kept), root=0)
+    if args.ab or args.ab_kept or args.ab_direct:
+        what = "kept" if args.ab_kept else "direct" if args.ab_direct else "fused"
+        mine = comm.gather(time_ab(args.blocks, comm, cells=cells, what=what), root=0)
         if comm.Get_rank() == 0:
-            print_ab(mine, comm, args.blocks, cells, args.ab_kept)
+            print_ab(mine, comm, args.blocks, cells, what)
             if args.json:
                 Path(args.json).write_text(json.dumps(mine, indent=2))
         return 0

@@ -21,6 +21,7 @@ from potentials.base import (
     Potential,
     SupportsHessian,
     SupportsHessianOperator,
+    SupportsKeptCall,
     SupportsMixedVerletStep,
     SupportsPrecision,
     SupportsVerletStep,
@@ -262,6 +263,36 @@ class ForceField:
             self._key = self._key_of(state, key)
         self._cached = result
         return 2
+
+    def pair_call(self, state: State) -> tuple | None:
+        """The one compiled call :meth:`compute` of ``state`` without the virial makes while
+        its list holds, for a caller that makes it itself (a decomposed rank's step):
+        ``(kernel, arguments, energies, reference, allowed2)`` where this force field is
+        one double-precision potential that hands its call out
+        (:class:`potentials.base.SupportsKeptCall`) over the exact list in its build's
+        cell (:meth:`md.neighbors.NeighborList.exact_check`); None otherwise.
+        ``kernel(*arguments, forces)`` writes the forces (N, 3) and their energy into
+        ``energies[0]``, the same bits as :meth:`compute`, for positions none of which is
+        farther than ``sqrt(allowed2)`` from ``reference`` (else :meth:`compute` rebuilds
+        the list first); valid until the list is built again (``neighbor_list.n_builds``)
+        or a potential's parameters change. The finite checks are the caller's; nothing
+        is cached or timed."""
+        potentials, neighbor_list = self.potentials, self.neighbor_list
+        if (
+            len(potentials) != 1
+            or self.precision != "double"
+            or neighbor_list is None
+            or potentials[0].cutoff is None
+            or type(self).compute is not ForceField.compute  # a subclass's compute is asked
+        ):
+            return None
+        potential = potentials[0]
+        kept = _KEPT_CALLS.get(type(potential))
+        if kept is None:
+            kept = _KEPT_CALLS[type(potential)] = isinstance(potential, SupportsKeptCall)
+        check = neighbor_list.exact_check(state) if kept else None
+        call = None if check is None else potential.kept_call(state, neighbor_list)
+        return None if call is None else (*call, *check)
 
     def _mixed_verlet_step(self, state: State, kick_dt: float, drift_dt: float) -> int:
         """:meth:`verlet_step` in mixed precision (its conditions but the precision met)."""
@@ -550,6 +581,8 @@ class ForceField:
 _BYTES_KEY_VALUES = 3000
 #: Per potential class, whether it meets ``SupportsPrecision`` (``ForceField._options``).
 _OFFERS_PRECISIONS: dict[type, bool] = {}
+#: Per potential class, whether it meets ``SupportsKeptCall`` (``ForceField.pair_call``).
+_KEPT_CALLS: dict[type, bool] = {}
 #: Per potential class, whether it meets ``SupportsVerletStep`` (``ForceField.verlet_step``).
 _STEPS_VERLET: dict[type, bool] = {}
 #: Per potential class, its ``mixed_verlet_step`` or None (``ForceField._mixed_verlet_step``).

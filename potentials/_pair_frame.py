@@ -655,6 +655,62 @@ class PairPotential:
             return code, None
         return 0, ForceResult(energy=float(energies[0]), forces=forces, virial=None)
 
+    def kept_call(self, state, neighbors) -> tuple | None:
+        """The compiled call :meth:`energy_forces` of ``state`` over ``neighbors`` makes in
+        double precision without the virial, where the last slot-frame call serves it on
+        one chunk (as :meth:`verlet_step` asks): ``(kernel, arguments, energies)``, where
+        ``kernel(*arguments, forces)`` writes the forces into ``forces`` (N, 3; its
+        contents are not read) and their energy into ``energies[0]``, the same bits as
+        :meth:`energy_forces`, which would also check that the energy is finite. For a
+        state of other arrays (a decomposed rank's next build) the call is laid out as
+        the full path would lay it out, and kept, without being run (where that kernel
+        has run in this object before). None where neither serves. Valid while the list
+        is not built again and the state's arrays and this potential's parameters are
+        the same."""
+        if type(self).energy_forces is not PairPotential.energy_forces:
+            return None
+        call = self._frame_calls[0]
+        if (  # the conditions of energy_forces' kept call
+            call is None
+            or call[1] is not state.positions
+            or call[2] is not state.types
+            or call[3] is not state.type_names
+            or call[4] is not self.data
+            or call[5] != self.cutoff_mode
+        ):
+            call = self._laid_call(state, neighbors)  # (new arrays: a decomposed rank's build)
+        else:
+            frame = neighbors.frame
+            if call[0] is not frame:  # the list was built again since
+                call = self._reslotted(call, neighbors, frame, False)
+        if call is None:
+            return None
+        kernel, arguments, energies, _, chunks = call[-1]
+        return (kernel, arguments, energies) if chunks == 1 else None
+
+    def _laid_call(self, state, neighbors) -> tuple | None:
+        """The slot-frame call without the virial that :meth:`energy_forces` of ``state``
+        would lay out on its full path, laid out and kept (``_frame_calls``) without being
+        run, where its kernel has run before in this object; None where it has not, or
+        where ``neighbors`` has no slot frame."""
+        frame = neighbors.frame
+        if frame is None:
+            return None
+        self._check_radius(neighbors)
+        n_types = max(state.n_types, self.n_types_fixed or 1)
+        table = self._cached_tables(n_types, np.float64)
+        mode = CUTOFF_MODES[self.cutoff_mode]
+        self._last_frame_call = None
+        self._frame_energy_forces(
+            self._loaded("double"), state, frame, n_types, table, mode, False, run=False
+        )
+        if self._last_frame_call is None:
+            return None
+        self._atom_call = None  # (one kind of call kept, as energy_forces keeps them)
+        call = (frame, state.positions, state.types, state.type_names, self.data)
+        self._frame_calls[0] = (*call, self.cutoff_mode, self._last_frame_call)
+        return self._frame_calls[0]
+
     def mixed_verlet_step(self, state, neighbors, kicks, kick_dt, drift_dt, held, allowed2, key):
         """A mixed-precision velocity Verlet step over a cluster-pair list in two compiled
         calls around the cluster kernel, where the last cluster call without the virial
@@ -951,7 +1007,11 @@ class PairPotential:
             virials,
         )
 
-    def _frame_energy_forces(self, kernels, state, frame, n_types, table, mode, virial: bool):
+    def _frame_energy_forces(
+        self, kernels, state, frame, n_types, table, mode, virial: bool, run: bool = True
+    ):
+        """The slot-frame call laid out (``_last_frame_call``) and run; without ``run``,
+        laid out alone where its kernel has run before (else nothing: None either way)."""
         n = state.n_atoms
         chunks = frame.n_chunks
         scratch = getattr(self, "_scratch", None)
@@ -965,7 +1025,7 @@ class PairPotential:
             )
             self._scratch = scratch
         slot_positions, slot_types, buffers, energies, virials = scratch
-        forces = np.empty((n, 3))
+        forces = np.empty((n, 3) if run else (0, 3))
         # One chunk stays off numba's thread pool: no wake-ups on a busy machine.
         entry = "frame_forces_threaded" if chunks > 1 else "frame_forces"
         arguments = (
@@ -990,6 +1050,11 @@ class PairPotential:
         # once), so both compile (or load) before a run's loop starts rather than one in
         # the middle of its timing.
         ran = (entry, mode, n_types == 1, table.dtype.str)
+        if not run:
+            kernel = self._frame_kernels.get((kernels.__name__, *ran, bool(virial)))
+            if ran in self._run_variants and kernel is not None:
+                self._last_frame_call = (kernel, arguments[:-1], energies, virials, chunks)
+            return None
         variants = [bool(virial)] if ran in self._run_variants else [not virial, bool(virial)]
         self._run_variants.add(ran)
         found = self._frame_kernels

@@ -160,6 +160,16 @@ class SupportsVerletStep(Protocol):
 
 
 @runtime_checkable
+class SupportsKeptCall(Protocol):
+    """Optional capability of a potential: the compiled call its ``energy_forces`` makes
+    for a state over a list, handed to a caller that makes it itself between list
+    builds (:meth:`potentials.PairPotential.kept_call` says the contract); the
+    ForceField asks whether a class has it once."""
+
+    def kept_call(self, state, neighbors) -> tuple | None: ...
+
+
+@runtime_checkable
 class SupportsMixedVerletStep(Protocol):
     """Optional capability of a potential: velocity Verlet's mixed-precision step over a
     cluster-pair list in compiled calls around its kernel

@@ -160,6 +160,7 @@ def test_the_package_has_one_module_a_job_each_under_800_lines():
         "migration",
         "halo",
         "bonded",
+        "balance",
         "forcefield",
         "views",
         "simulation",

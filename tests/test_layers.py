@@ -75,6 +75,7 @@ LAYERS = {
         "md.distributed.migration",
         "md.distributed.halo",
         "md.distributed.bonded",
+        "md.distributed.balance",
         "md.distributed.forcefield",
         "md.distributed.views",
         "md.distributed.simulation",

@@ -73,6 +73,8 @@ The package, one module a job, bottom first:
   communicator (:class:`MPIRanks`), its clock, and :func:`agree`;
 - :mod:`md.distributed.migration`: atoms moving to the ranks whose bricks hold them;
 - :mod:`md.distributed.halo`: a rank's brick, owned atoms and ghosts (:class:`Domain`);
+- :mod:`md.distributed.balance`: when and where the planes between bricks move
+  (:class:`~md.distributed.balance.LoadBalance`);
 - :mod:`md.distributed.forcefield`: one rank's force field
   (:class:`DistributedForceField`);
 - :mod:`md.distributed.views`: the whole system gathered for rank 0's observers;

@@ -17,7 +17,6 @@ the atoms.
 from __future__ import annotations
 
 import copy
-import logging
 import math
 import time
 
@@ -27,13 +26,13 @@ from numpy.typing import NDArray
 from md.box import (
     cell_matrix,
     periodic_tilt,
-    perpendicular_widths,
 )
 from md.distributed._domain_kernels import (
     moved_since,
     predicted_positions,
 )
 from md.distributed._verlet_kernels import closing_kick, gather_reverse_kick, step_out
+from md.distributed.balance import LoadBalance
 from md.distributed.bonded import BondedShare
 from md.distributed.grid import Grid
 from md.distributed.halo import AGREED_STRAY, Domain
@@ -45,8 +44,6 @@ from md.parallel import chunk_count, copied, copy_into, global_max, same_values
 from md.state import State
 from md.topology import Topology
 from potentials.base import ForceResult
-
-logger = logging.getLogger(__name__)
 
 #: A step starts with a rebuild (and migration) when some atom's next move could take it
 #: past the list's limit (``moved_since`` of ``_domain_kernels`` bounds each atom's next
@@ -99,13 +96,8 @@ class DistributedForceField:
         The last build kept owners (it was forced inside a step): the next
         step start migrates.
     balance_every, balance_threshold
-        Dynamic load balancing (off where ``balance_every`` is 0): at the first
-        migration ``balance_every`` steps or more after the last check, the ranks
-        share their busy seconds since then (wall time less the time they spent
-        communicating, waits included); where the busiest rank's exceed the mean
-        by more than the factor ``balance_threshold``, the planes between bricks
-        move towards an even share (:func:`md.distributed.grid.balanced_cuts`, per cut
-        axis), and the migration takes the atoms to their new bricks.
+        Dynamic load balancing (off where ``balance_every`` is 0): ``balance``, its
+        :class:`md.distributed.balance.LoadBalance`, which the migrations ask.
     imbalance, balances
         The busiest rank's busy seconds over the mean at the last check; how many
         checks moved the planes.
@@ -175,20 +167,20 @@ class DistributedForceField:
         self._gathered = np.zeros((ranks.n_ranks, 18))  # (verlet_step's reduction)
         self._fused: tuple | None = None  # (what verlet_step keeps a build: _fused_step)
         self._build_outcome: tuple | None = None  # (longest bond, this rank's error)
-        if balance_every < 0 or not balance_threshold >= 1.0:
-            raise ValueError(
-                f"balance_every must be >= 0 and balance_threshold >= 1, got "
-                f"{balance_every} and {balance_threshold}"
-            )
-        self.balance_every = int(balance_every)
-        self.balance_threshold = float(balance_threshold)
-        self.imbalance = 1.0
-        self.balances = 0
-        self._busy_mark: tuple[float, float, int] | None = None  # (wall, comm, step) then
+        self.balance = LoadBalance(balance_every, balance_threshold)
+        self.balance_every, self.balance_threshold = self.balance.every, self.balance.threshold
 
     @property
     def cutoff(self) -> float | None:
         return self.local.cutoff
+
+    @property
+    def imbalance(self) -> float:
+        return self.balance.imbalance
+
+    @property
+    def balances(self) -> int:
+        return self.balance.balances
 
     @property
     def reach(self) -> float:
@@ -202,8 +194,10 @@ class DistributedForceField:
         """Nothing to check per rank: the whole system was checked before it was cut."""
 
     def invalidate(self) -> None:
-        """Forget cached results (and which positions the ghosts hold)."""
+        """Forget cached results (and which positions the ghosts hold, and the local pair
+        call: a potential's parameters may have changed)."""
         self._cache.clear()
+        self._fused = None
         self._exchanged = None
         self.steps_end(forget=True)
 
@@ -238,11 +232,13 @@ class DistributedForceField:
         """As :meth:`md.ForceField.verlet_step` (2 done, 0 nothing done; collective): where
         the step's first call takes the held forces, in double precision without virial
         or bonded terms, on compiled sweeps and the build's cell, ``step_out`` (kick, drift,
-        ``moved_since``, owned rows, ghosts sent), the local ``compute``, then
-        ``gather_reverse_kick`` (the reduction, ghost forces back, closing kick); else as
-        :meth:`_evaluate`. The same messages, bookkeeping and bits as :meth:`compute` and
-        the kicks; the two compiled calls on the ranks' clock. What a build fixes is
-        prepared once a build (:meth:`Domain.fused_arguments`)."""
+        ``moved_since``, owned rows, ghosts sent, the local list's check), the local pair
+        kernel's call (:meth:`md.ForceField.pair_call`, while the local list holds; else
+        the local ``compute``), then ``gather_reverse_kick`` (the finite checks, the
+        reduction, ghost forces back, closing kick); else as :meth:`_evaluate`. The same
+        messages, bookkeeping and bits as :meth:`compute` and the kicks; the two compiled
+        calls on the ranks' clock. What a build fixes is prepared once a build
+        (:meth:`Domain.fused_arguments`; the pair call laid out at the build's first step)."""
         held, outcome = self._cache.get(None), self._build_outcome  # (a step start's build)
         positions, cell, fused = state.positions, self._cell_bytes, self._fused
         if (
@@ -261,15 +257,21 @@ class DistributedForceField:
             return 0
         if fused is None or fused[0] is not reference:  # (the first step after a build)
             plain = not self.bonded.listed and self.precision == "double"
-            fused = self._fused = (reference, plain and self.domain.fused_arguments(state))
+            fused = (reference, plain and self.domain.fused_arguments(state), None, True)
+            self._fused = fused
         if not fused[1]:
             return 0  # (this build's layout has no fused step)
         out_tail, back_tail, local_state, n_owned, check = fused[1]
+        pair = fused[2]  # (the local pair call: None not asked yet this build, False none)
+        if pair is None or (pair and pair[6] != self.neighbor_list.n_builds):  # (rebuilt)
+            pair = self._pair_call(local_state)  # (laid out before the step, not run)
+            fused = self._fused = (reference, fused[1], pair, fused[3] and not pair)
         velocities, masses, clock = state.velocities, state.masses, self.ranks.clock
         with clock:  # (the kick, drift and displacement pass with the messages)
-            code, moved2, step2, coming2 = step_out(
+            code, moved2, step2, coming2, local2 = step_out(
                 *(key[0], positions, velocities, held[1].forces, masses, kick_dt, drift_dt),
                 *(reference, _IDENTITY, begin, self.step_before, *out_tail),
+                _NONE if not pair else pair[3],
             )
         if code:
             if code < 0:  # (not the held forces' positions: nothing was done)
@@ -280,26 +282,36 @@ class DistributedForceField:
             self._moved_report = max(self._moved_report, 0.0)
             self._reported.add(None)
         self._exchanged = None  # the step's second call evaluates, as refresh and _attempt
-        allowed = 0.5 * self.skin
-        coming = math.sqrt(coming2) + LOOKAHEAD * math.sqrt(step2)
-        outrun = not (math.sqrt(moved2) <= allowed) or self.domain.outgrown  # (layout_holds')
-        ahead = coming / allowed if allowed > 0 else (math.inf if coming > 0 else 0.0)
-        error, result = None, None
         start = time.perf_counter()
-        try:
-            result = self.local.compute(local_state, False, False)
-        except Exception as caught:  # shared with every rank below
-            error = self._global_error(caught)
+        # The local compute's call made here while its list holds (the finite checks in
+        # gather_reverse_kick), else the local compute (which rebuilds the list if it must)
+        direct = pair and local2 <= pair[4]
+        if direct:
+            forces = np.empty(pair[5])
+            pair[0](*pair[1], forces)
+            error, result = None, ForceResult(float(pair[2][0]), forces, None)
+        else:
+            error, result = self._local_compute(local_state)
+            if fused[3] and error is None:  # (none before the step: asked once after it)
+                self._fused = (reference, fused[1], self._pair_call(local_state), False)
         self.timings["force"] += time.perf_counter() - start
         totals, worst = self._totals, self._worst
         forces = _NONE if result is None else result.forces
-        with clock:  # (the closing kick with the messages)
-            code, done = gather_reverse_kick(
-                *(error is not None, 0.0 if result is None else result.energy, outrun, ahead),
-                *(self.stop_code, not math.isfinite(moved2), self._moved_report),
-                *(0.0 if outcome is None else outcome[0], self._values, self._gathered),
-                *(totals, worst, forces, *back_tail, velocities, masses, kick_dt),
-            )
+        while True:
+            with clock:  # (the closing kick with the messages)
+                code, done = gather_reverse_kick(
+                    *(error is not None, 0.0 if result is None else result.energy, moved2),
+                    *(step2, coming2, 0.5 * self.skin, LOOKAHEAD, self.domain.outgrown),
+                    *(self.stop_code, self._moved_report),
+                    *(0.0 if outcome is None else outcome[0], self._values, self._gathered),
+                    *(totals, worst, forces, *back_tail, velocities, masses, kick_dt, direct),
+                )
+            if code != -2:
+                break
+            # a value of the direct call is not finite (no message sent): the local compute
+            # says what, as it did before
+            direct, (error, result) = False, self._local_compute(local_state)
+            forces = _NONE if result is None else result.forces
         if code:
             check(code)
         if outcome is not None:
@@ -329,6 +341,23 @@ class DistributedForceField:
         key[0][...] = positions  # (the key's copy: shaped as they are, step_out compared)
         self._cache[None] = (key, result)
         return 2
+
+    def _pair_call(self, local_state: State) -> tuple | bool:
+        """The local pair call (:meth:`md.ForceField.pair_call`) with the forces' shape and
+        the local list's build it serves; False where there is none."""
+        try:
+            made = self.local.pair_call(local_state)
+        except Exception:  # (the local compute raises it, shared with every rank)
+            return False
+        shape, built = (len(local_state.positions), 3), self.neighbor_list.n_builds
+        return (*made, shape, built) if made else False
+
+    def _local_compute(self, local_state: State) -> tuple:
+        """(the error shared with every rank, or None; the local result without virial)."""
+        try:
+            return None, self.local.compute(local_state, False, False)
+        except Exception as caught:  # shared with every rank by the caller's reduction
+            return self._global_error(caught), None
 
     def _result(self, state: State, which, per_atom: bool, virial: bool) -> ForceResult:
         held = self._cache.get(which)
@@ -661,8 +690,8 @@ class DistributedForceField:
                     kept[which] = held
                     cached[("cached", which)] = held[1].forces
             self._cache = kept
-            if self.balance_every:
-                self._balance(state)
+            if self.balance_every:  # (a brick keeps room for the shell and the strays)
+                self.balance.check(state, self.domain, self.ranks, self.reach + self.skin)
             with self.ranks.clock:
                 # (the cached forces are the evaluations' own arrays: they move in them)
                 moved = self.domain.migrate(state, {**carried, **cached}, spent=tuple(cached))
@@ -746,35 +775,6 @@ class DistributedForceField:
                     "the last build; bonds must not stretch that fast"
                 )
             self.bond_reach = longest
-
-    def _balance(self, state: State) -> None:
-        """Move the planes between bricks towards an even share of the ranks' busy time,
-        if ``balance_every`` steps have passed since the last check and the imbalance
-        exceeds ``balance_threshold`` (see the class's docstring). Collective; the
-        migration that follows takes the atoms to their new bricks."""
-        now, communicated = time.perf_counter(), self.ranks.clock.seconds
-        mark = self._busy_mark
-        if mark is not None and state.step - mark[2] < self.balance_every:
-            return
-        self._busy_mark = (now, communicated, state.step)
-        if mark is None:  # the first migration starts the clock
-            return
-        mine = np.zeros(self.ranks.n_ranks)
-        mine[self.ranks.rank] = max((now - mark[0]) - (communicated - mark[1]), 0.0)
-        with self.ranks.clock:
-            busy = self.ranks.sum(mine)  # one non-zero term per entry: the same on every rank
-        mean = float(busy.mean())
-        self.imbalance = float(busy.max()) / mean if mean > 0.0 else 1.0
-        if self.imbalance <= self.balance_threshold:
-            return
-        widths = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
-        # a brick keeps room for the ghost shell and how far atoms stray before a build
-        grid = self.domain.grid.balanced(busy, widths, self.reach + self.skin)
-        self.domain.set_grid(grid)
-        self.balances += 1
-        cuts, shares = [np.round(c, 4).tolist() for c in grid.cuts], np.round(busy, 4).tolist()
-        message = "step %d: ranks' busy time %s s (max/mean %.3f); cuts now %s"
-        logger.info(message, state.step, shares, self.imbalance, cuts)
 
     def _localize_bonded(self) -> float:
         """Give the local force field this rank's bonds and angles over local indices;
