@@ -12,13 +12,11 @@ is tested against this one) and the prune's row (:func:`_mark_near`, in
 :func:`prune_pairs`: GROMACS's dynamic pruning of an outer list to an inner one, which
 marks each pair, then copies the marked ones to their places: :func:`_compress_kept`,
 AVX-512's compress in IR where the CPU has it). Each intrinsic has a Python twin for
-``NUMBA_DISABLE_JIT=1``. :func:`move_pairs` moves a chunk's rows down to follow the one
-before, for the search.
+``NUMBA_DISABLE_JIT=1``.
 
-The search's cached kernels hold their own copies of :func:`keep_window` and
-:func:`move_pairs`; an edit here makes those entries stale
-(the kernel cache stamps each entry with the modules its file imports:
-``md._kernel_cache``), so the search compiles afresh with the new helpers.
+The search's cached kernels hold their own copies of :func:`keep_window`; an edit here
+makes those entries stale (the kernel cache stamps each entry with the modules its file
+imports: ``md._kernel_cache``), so the search compiles afresh with the new helpers.
 """
 
 from __future__ import annotations
@@ -164,24 +162,6 @@ def _near_pair(typingctx, xi, xj, ci, cj, ox, oy, oz, reach2):
         return _any_near(builder, halves, shifted, reach)
 
     return sig, codegen
-
-
-@njit(cache=True, error_model="numpy")
-def move_pairs(partners, offsets, source, target, first, end):
-    """Pairs ``source + first`` to ``source + end`` moved down to ``target + first`` on
-    (``target`` < ``source``: in order, so a move never overwrites a pair not yet moved)."""
-    for k in range(first, end):
-        partners[target + k] = partners[source + k]
-        for d in range(3):
-            offsets[target + k, d] = offsets[source + k, d]
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def move_pairs_threaded(partners, offsets, source, target, count, runs):
-    """:func:`move_pairs` of ``count`` pairs whose places do not overlap their new ones, in
-    ``runs`` runs on the threads (the search's move of its later chunks' pairs)."""
-    for r in prange(runs):
-        move_pairs(partners, offsets, source, target, r * count // runs, (r + 1) * count // runs)
 
 
 @njit(cache=True, error_model="numpy")
