@@ -923,7 +923,7 @@ class PairPotential:
                 np.empty((chunks, 9)),
             )
             self._cluster_scratch = scratch
-        relative = getattr(clusters, "relative", None)
+        relative = clusters.relative  # None, or the list's own buffers
         if relative is not None and all(
             x.dtype == np.float32 and x.shape == scratch[0].shape for x in relative
         ):
