@@ -26,10 +26,10 @@ from md.trajectory._layout import _OBSERVABLE_UNITS, H5MD_VERSION, OBSERVABLES, 
 from md.trajectory.retries import open_h5md
 from md.units import UnitSystem, get_units
 
-#: HDF5 raw-chunk cache per dataset while writing [bytes]. A frame chunk is
-#: written whole and flushed at once, so it needs no cache; 64 KiB holds the
-#: open chunk of each per-frame scalar series. (h5py's default, 1 MiB per
-#: dataset, kept ~30 MiB of already-written chunks resident on long runs.)
+#: HDF5 raw-chunk cache per dataset while writing [bytes]. Every chunk holds one
+#: frame and is written whole and flushed at once, so it needs no cache. (h5py's
+#: default, 1 MiB per dataset, kept ~30 MiB of already-written chunks resident on
+#: long runs.)
 _CHUNK_CACHE = 1 << 16
 
 
@@ -266,10 +266,10 @@ class H5MDWriter:
         n = self.n_atoms
         position = self._element(group, "position", (n, 3), np.float64, "length")
         self._step = position.create_dataset(
-            "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), fletcher32=True
+            "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1,), fletcher32=True
         )
         self._time = position.create_dataset(
-            "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,), fletcher32=True
+            "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1,), fletcher32=True
         )
         self._set_unit(self._time, "time")
         self._values = {"position": position["value"]}
@@ -328,7 +328,11 @@ class H5MDWriter:
             shape=(0, *frame_shape),
             maxshape=(None, *frame_shape),
             dtype=dtype,
-            chunks=(1, *frame_shape) if frame_shape else (1024,),
+            # One frame a chunk, scalar series too: a chunk is written once, so a run
+            # killed inside a write (the kernel may stop a write of several pages
+            # part way for SIGKILL) can damage only the frame it was writing; a
+            # chunk of 1024 frames rewritten at every frame lost all of them at once.
+            chunks=(1, *frame_shape),
             fletcher32=True,  # a checksum per chunk: corrupted frames are detected on reading
         )
         if quantity is not None:
