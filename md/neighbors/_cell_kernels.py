@@ -273,7 +273,7 @@ def _frame_pairs_threaded(
     planes, tags, most = layout
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk,
+            np.int64(chunk),  # the serial driver's index type: one compile, not two
             wrapped,
             slot_cell,
             r2_max,
