@@ -456,11 +456,20 @@ def frame_forces_threaded(
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
         _gather_frame(
-            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+            np.int64(chunk),
+            n_chunks,
+            positions,
+            types,
+            order,
+            images,
+            lengths,
+            tilt,
+            frame,
+            frame_types,
         )
     for chunk in prange(n_chunks):
         _frame_chunk(
-            chunk,
+            np.int64(chunk),  # the serial loop's index type: one compile, not two
             frame,
             frame_types,
             slots,
@@ -475,7 +484,7 @@ def frame_forces_threaded(
             virials,
         )
     for chunk in prange(n_chunks):
-        _sum_chunk_forces(chunk, n_chunks, order, buffers, forces)
+        _sum_chunk_forces(np.int64(chunk), n_chunks, order, buffers, forces)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -974,11 +983,20 @@ def frame_curvatures_threaded(
     n_chunks = slots[7].shape[0] - 1
     for chunk in prange(n_chunks):
         _gather_frame(
-            chunk, n_chunks, positions, types, order, images, lengths, tilt, frame, frame_types
+            np.int64(chunk),
+            n_chunks,
+            positions,
+            types,
+            order,
+            images,
+            lengths,
+            tilt,
+            frame,
+            frame_types,
         )
     for chunk in prange(n_chunks):
         written[chunk] = _frame_curvature_chunk(
-            chunk, frame, frame_types, slots, n_types, table, mode, data, single, out
+            np.int64(chunk), frame, frame_types, slots, n_types, table, mode, data, single, out
         )
 
 

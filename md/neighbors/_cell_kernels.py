@@ -177,7 +177,7 @@ def _neighbor_cell(c, offset, n, periodic):
     return k, 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def _frame_pairs(
     wrapped,
     slot_cell,
@@ -199,7 +199,9 @@ def _frame_pairs(
     """Half list over slots (atoms in cell order), searched in chunks on parallel threads.
 
     The serial driver; ``_frame_pairs_threaded`` runs the chunks on
-    numba's threads. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
+    numba's threads. Inlined into its caller (``_cell_list``): a compiled driver of
+    its own would be one more module that links the chunk kernel in and optimises it
+    again. Slot p holds the atom whose wrapped position is ``wrapped[:, p]``
     (``wrapped`` is (3, N + ``ROW_PADDING``), as ``_bin_atoms`` writes it,
     with finite padding past the last slot), in cell
     ``slot_cell[p]``; ``cell_starts`` gives each cell's slots, and ``layout``
@@ -273,7 +275,7 @@ def _frame_pairs_threaded(
     planes, tags, most = layout
     for chunk in prange(bounds.shape[0] - 1):
         _frame_pairs_chunk(
-            chunk,
+            np.int64(chunk),  # the serial driver's index type: one compile, not two
             wrapped,
             slot_cell,
             r2_max,
