@@ -14,6 +14,7 @@ import numpy as np
 
 from md._memory import KeptArrays
 from md.neighbors import NeighborList
+from potentials import LennardJones
 
 CUTOFF, SKIN, OUTER_SKIN = 2.5, 0.3, 0.9
 
@@ -103,3 +104,28 @@ def test_kept_arrays_grow_when_short_and_are_never_shrunk():
     assert np.shares_memory(kept.take("a", 205, np.float32, (3,)), longer)  # room to spare
     assert not np.shares_memory(kept.take("a", 10, np.float64, (3,)), longer)
     assert kept.take("b", 10, np.int32).shape == (10,)
+
+
+def test_the_cluster_kernels_scratch_follows_a_search_of_other_clusters_in_place(fcc_lattice, rng):
+    """The pair frame's per-cluster scratch (its length the list's clusters, which change
+    from search to search) is written in place after a search with other clusters (the
+    old code made it afresh for every other count), and the forces are a fresh
+    potential's."""
+    state = fcc_lattice(cells=6, perturbation=0.05)
+    potential = LennardJones(cutoff=CUTOFF)
+    nl = NeighborList(CUTOFF, SKIN, clusters=True, outer_skin=OUTER_SKIN)
+    nl.build(state)
+    potential.energy_forces(state, nl, precision="mixed")
+    clusters, held = nl.clusters.n_clusters, potential._cluster_scratch[:3]
+    moved = state.copy()
+    while nl.clusters.n_clusters == clusters:  # (the columns' padding: other clusters)
+        moved.positions += rng.uniform(-0.1, 0.1, size=moved.positions.shape)
+        nl.build(moved)
+    result = potential.energy_forces(moved, nl, precision="mixed")
+    for array, before in zip(potential._cluster_scratch[:3], held, strict=True):
+        assert len(array) != len(before) and np.shares_memory(array, before)
+    fresh_list = NeighborList(CUTOFF, SKIN, clusters=True, outer_skin=OUTER_SKIN)
+    fresh_list.build(moved)
+    fresh = LennardJones(cutoff=CUTOFF).energy_forces(moved, fresh_list, precision="mixed")
+    assert result.energy == fresh.energy
+    assert np.array_equal(result.forces, fresh.forces)
