@@ -16,6 +16,7 @@ GROMACS's list rule (``neighbor_every=N``, no check, no outer list, skin ``--eve
 0.332: rlist 2.832 as GROMACS's Verlet buffer picks for nstlist 20 on this melt); not
 exact, so its ratio is not the pruning's but the rule's. ``faults/step``: the process's
 minor page faults (``getrusage``'s ``ru_minflt``) per step, median over the repeats;
+``CPU ms``: the process's CPU time (user and system, all its threads) per step, median;
 ``--keep-freed`` calls ``md.keep_freed_memory()`` first, as the ``md`` command does (the
 default leaves glibc's own thresholds, as a Python program or a benchmark's worker has
 them; the setting holds for the whole process, so compare the two in separate runs).
@@ -133,6 +134,7 @@ def main(argv=None) -> None:
     times = {row: [] for row in rows}
     counts = {row: [] for row in rows}
     faults = {row: [] for row in rows}
+    cpu = {row: [] for row in rows}
     calls = _timed_calls() if args.sections else None
     split = {row: [] for row in rows}
     for _ in range(args.repeats):
@@ -140,19 +142,21 @@ def main(argv=None) -> None:
             nl = sim.forcefield.neighbor_list
             builds, prunes = nl.n_builds, nl.n_prunes
             before = _seconds(sim, calls)
-            minflt = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            usage = resource.getrusage(resource.RUSAGE_SELF)
             start = time.perf_counter()
             sim.run(args.steps)
             times[outer].append((time.perf_counter() - start) / args.steps)
-            minflt = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - minflt
-            faults[outer].append(minflt / args.steps)
+            done = resource.getrusage(resource.RUSAGE_SELF)
+            faults[outer].append((done.ru_minflt - usage.ru_minflt) / args.steps)
+            seconds = done.ru_utime + done.ru_stime - usage.ru_utime - usage.ru_stime
+            cpu[outer].append(seconds / args.steps)
             counts[outer].append((nl.n_builds - builds, nl.n_prunes - prunes))
             after = _seconds(sim, calls)
             split[outer].append({k: (after[k] - before[k]) / args.steps for k in after})
     reference = times[rows[0]]
     print(
         f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
-        f"{'outer pairs':>11} {'ratio':>6} {'faults/step':>11}"
+        f"{'outer pairs':>11} {'ratio':>6} {'faults/step':>11} {'CPU ms':>7}"
     )
     for outer in rows:
         nl = sims[outer].forcefield.neighbor_list
@@ -164,7 +168,7 @@ def main(argv=None) -> None:
         print(
             f"{outer:>10} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
             f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f} "
-            f"{statistics.median(faults[outer]):>11.2f}"
+            f"{statistics.median(faults[outer]):>11.2f} {1e3 * statistics.median(cpu[outer]):>7.2f}"
         )
     if calls is None:
         return
