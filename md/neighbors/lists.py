@@ -553,7 +553,9 @@ class NeighborList:
     @property
     def clusters(self) -> ClusterFrame | None:
         """The cluster-pair list of the last build, or None (not asked for, or a cell it
-        does not serve: see ``clusters`` in the class docstring)."""
+        does not serve: see ``clusters`` in the class docstring). Its arrays are this
+        list's kept buffers: valid while it is the current list; the next search (or,
+        for a pruned list, prune) writes over them (copy them to keep them longer)."""
         return self._clusters
 
     @property
