@@ -14,17 +14,24 @@ per-repeat ratios to the first outer skin given. Compilation is excluded (the wa
 displacement check) and the integrator, in ms per step. ``--every N`` adds a row with
 GROMACS's list rule (``neighbor_every=N``, no check, no outer list, skin ``--every-skin``,
 0.332: rlist 2.832 as GROMACS's Verlet buffer picks for nstlist 20 on this melt); not
-exact, so its ratio is not the pruning's but the rule's.
+exact, so its ratio is not the pruning's but the rule's. ``faults/step``: the process's
+minor page faults (``getrusage``'s ``ru_minflt``) per step, median over the repeats;
+``CPU ms``: the process's CPU time (user and system, all its threads) per step, median;
+``--keep-freed`` calls ``md.keep_freed_memory()`` first, as the ``md`` command does (the
+default leaves glibc's own thresholds, as a Python program or a benchmark's worker has
+them; the setting holds for the whole process, so compare the two in separate runs).
 
     python benchmarks/cluster_pruning.py                        # outer 0.3, 0.9, 1.2, 1.5
     python benchmarks/cluster_pruning.py --threads 2 --outer 0.3,1.2 --repeats 5
     python benchmarks/cluster_pruning.py --outer 1.5 --sections --threads 2
     python benchmarks/cluster_pruning.py --outer 1.5 --every 20 --repeats 7 --threads 2
+    python benchmarks/cluster_pruning.py --outer 1.5 --sections --keep-freed
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import sys
 import time
@@ -77,6 +84,11 @@ def main(argv=None) -> None:
         help="also where a step goes: force, searches, prunes, integrator",
     )
     parser.add_argument(
+        "--keep-freed",
+        action="store_true",
+        help="call md.keep_freed_memory() first (as the md command does); default: glibc's own",
+    )
+    parser.add_argument(
         "--every",
         type=int,
         default=0,
@@ -104,10 +116,12 @@ def main(argv=None) -> None:
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     set_threads(args.threads)
+    kept = md.keep_freed_memory() if args.keep_freed else False
     print(machine_line())
     print(
         f"{4 * args.cells**3} atoms, {args.threads} thread(s), mixed precision, skin {SKIN}; "
-        f"{args.repeats} repeats of {args.steps} steps after {args.warm}"
+        f"{args.repeats} repeats of {args.steps} steps after {args.warm}; freed memory "
+        f"{'kept (md.keep_freed_memory)' if kept else 'as glibc keeps it (its defaults)'}"
     )
     sims = {f"{outer:g}": simulation(args.cells, outer) for outer in outers}
     if args.every:
@@ -119,6 +133,8 @@ def main(argv=None) -> None:
     rows = list(sims)
     times = {row: [] for row in rows}
     counts = {row: [] for row in rows}
+    faults = {row: [] for row in rows}
+    cpu = {row: [] for row in rows}
     calls = _timed_calls() if args.sections else None
     split = {row: [] for row in rows}
     for _ in range(args.repeats):
@@ -126,16 +142,21 @@ def main(argv=None) -> None:
             nl = sim.forcefield.neighbor_list
             builds, prunes = nl.n_builds, nl.n_prunes
             before = _seconds(sim, calls)
+            usage = resource.getrusage(resource.RUSAGE_SELF)
             start = time.perf_counter()
             sim.run(args.steps)
             times[outer].append((time.perf_counter() - start) / args.steps)
+            done = resource.getrusage(resource.RUSAGE_SELF)
+            faults[outer].append((done.ru_minflt - usage.ru_minflt) / args.steps)
+            seconds = done.ru_utime + done.ru_stime - usage.ru_utime - usage.ru_stime
+            cpu[outer].append(seconds / args.steps)
             counts[outer].append((nl.n_builds - builds, nl.n_prunes - prunes))
             after = _seconds(sim, calls)
             split[outer].append({k: (after[k] - before[k]) / args.steps for k in after})
     reference = times[rows[0]]
     print(
         f"{'outer skin':>10} {'ms/step':>8} {'searches':>9} {'prunes':>7} {'pairs':>8} "
-        f"{'outer pairs':>11} {'ratio':>6}"
+        f"{'outer pairs':>11} {'ratio':>6} {'faults/step':>11} {'CPU ms':>7}"
     )
     for outer in rows:
         nl = sims[outer].forcefield.neighbor_list
@@ -146,7 +167,8 @@ def main(argv=None) -> None:
         outer_pairs = nl.outer_clusters.n_pairs if nl.outer_clusters is not None else "-"
         print(
             f"{outer:>10} {1e3 * statistics.median(times[outer]):>8.2f} {searches:>9g} "
-            f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f}"
+            f"{prunes:>7g} {pairs:>8} {outer_pairs:>11} {ratio:>6.3f} "
+            f"{statistics.median(faults[outer]):>11.2f} {1e3 * statistics.median(cpu[outer]):>7.2f}"
         )
     if calls is None:
         return

@@ -8,7 +8,9 @@ cluster-pair search at the outer radius (4.0) with its own prune (2.8), and the 
 alone. Prints whether both give the same lists, the medians of the calling thread's CPU
 time and of the wall time, and the medians of the per-repeat ratios, b / a. A change to
 one kernel measured against the code before it, in one process, so that load from other
-processes hits both alike::
+processes hits both alike. A tree whose ``cluster_grid`` and ``search_pairs`` take
+``kept`` (since issue 70's kept buffers) gets one ``md._memory.KeptArrays`` for all its
+calls, as its NeighborList keeps one from build to build::
 
     mkdir /tmp/before && git archive HEAD~3 md | tar -x -C /tmp/before
     python benchmarks/cluster_versions.py /tmp/before .
@@ -30,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib.util
+import inspect
 import statistics
 import sys
 import time
@@ -46,6 +49,7 @@ from numba.core import config  # noqa: E402
 
 import md  # noqa: E402
 from md._kernel_cache import cache_directory  # noqa: E402
+from md._memory import KeptArrays  # noqa: E402
 from md.parallel import get_threads, set_threads  # noqa: E402
 
 OUTER, INNER = 4.0, 2.8
@@ -99,22 +103,49 @@ def load(tree: str, tag: str) -> types.SimpleNamespace:
     return kernels
 
 
+def _takes_kept(function) -> bool:
+    """Whether a tree's ``function`` takes ``kept`` (arrays kept from call to call, as the
+    NeighborList keeps them since issue 70's buffers; a tree from before makes its own)."""
+    return "kept" in inspect.signature(getattr(function, "py_func", function)).parameters
+
+
 def builder(kernels, positions, box, chunks):
-    """One mixed build's kernel calls with ``kernels``: (grid, whole build) callables."""
+    """One mixed build's kernel calls with ``kernels``: (grid, whole build) callables,
+    each call into the same kept arrays where the tree's kernels take them."""
     ncx, ncy = kernels.column_counts(box, len(positions), OUTER)
     reach2 = np.float32((OUTER * (1 + 1e-5)) ** 2)
     inner2 = np.float32((INNER * (1 + 1e-5)) ** 2)
+    kept = KeptArrays()
+    grid_kept = {"kept": kept} if _takes_kept(kernels.cluster_grid) else {}
+    search_kept = {"kept": kept} if _takes_kept(kernels.search_pairs) else {}
 
     def grid():
-        return kernels.cluster_grid(positions, box, ncx, ncy, chunks)
+        return kernels.cluster_grid(positions, box, ncx, ncy, chunks, **grid_kept)
 
     def build():
         first, atom, origin, lower, upper = grid()
-        xi = np.empty(3 * len(atom), np.float32)
-        xj = np.empty_like(xi)
+        if grid_kept:
+            xi = kept.take("relative i", 3 * len(atom), np.float32)
+            xj = kept.take("relative j", 3 * len(atom), np.float32)
+        else:
+            xi = np.empty(3 * len(atom), np.float32)
+            xj = np.empty_like(xi)
         kernels.cluster_positions(positions, atom, origin, xi, xj)
         return kernels.search_pairs(
-            box, ncx, ncy, first, lower, upper, OUTER, chunks, 128, xi, xj, reach2, inner2
+            box,
+            ncx,
+            ncy,
+            first,
+            lower,
+            upper,
+            OUTER,
+            chunks,
+            128,
+            xi,
+            xj,
+            reach2,
+            inner2,
+            **search_kept,
         )
 
     return grid, build

@@ -38,6 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from md._checks import positive_scalar
+from md._memory import KeptArrays
 from md.box import minimum_image, periodic_lengths, periodic_tilt
 from md.errors import PairCollapseError
 from md.schema import REQUIRED, Key, check_names, key_names
@@ -904,23 +905,30 @@ class PairPotential:
         # several chunks get a sixteenth more than they ask
         need = clusters.window_clusters
         scratch = getattr(self, "_cluster_scratch", None)
-        if (
-            scratch is None
-            or scratch[0].shape[0] != 12 * n_clusters
-            or len(scratch[6]) != chunks
-            or len(scratch[5]) < need
-        ):
+        remade = scratch is None or len(scratch[6]) != chunks or len(scratch[5]) < need
+        if remade:
             room = need + need // 16 if chunks > 1 else need
-            scratch = (
-                np.empty(12 * n_clusters, np.float32),
-                np.empty(12 * n_clusters, np.float32),
-                np.empty(4 * n_clusters, np.int32),
+            windows_scratch = (
                 np.empty(12 * room),
                 # the kernels' j lanes and their pair counts: zero, and left zero by each call
                 zeros_on_lines(J_STRIDE * room, np.float32),
                 np.zeros(room, np.int32),
                 np.empty(chunks),
                 np.empty((chunks, 9)),
+            )
+        else:
+            windows_scratch = scratch[3:]
+        if remade or scratch[0].shape[0] != 12 * n_clusters:
+            # the per-cluster arrays, whose length follows each search's clusters: kept
+            # from search to search (fresh ones cost page faults: md._memory.KeptArrays)
+            kept = getattr(self, "_cluster_kept", None)
+            if kept is None:
+                kept = self._cluster_kept = KeptArrays()
+            scratch = (
+                kept.take("relative i", 12 * n_clusters, np.float32),
+                kept.take("relative j", 12 * n_clusters, np.float32),
+                kept.take("slot types", 4 * n_clusters, np.int32),
+                *windows_scratch,
             )
             self._cluster_scratch = scratch
         relative = clusters.relative  # None, or the list's own buffers

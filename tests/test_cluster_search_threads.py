@@ -117,7 +117,14 @@ def test_the_join_gives_the_rows_in_order_whatever_the_gap_before_each_part():
             expected.append(values)
         expected = np.concatenate(expected)
         starts, joined, joined_offsets = _joined(
-            counts, first, column_bounds, used, place, partners, offsets
+            counts,
+            first,
+            column_bounds,
+            used,
+            place,
+            partners,
+            offsets,
+            np.empty(len(counts) + 1, np.int64),
         )
         assert np.array_equal(starts, np.concatenate([[0], np.cumsum(counts)]))
         assert np.array_equal(joined, expected), gap

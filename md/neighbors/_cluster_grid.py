@@ -30,6 +30,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from md._memory import KeptArrays
+
 #: Atoms per cluster (the kernels' i and j clusters alike).
 CLUSTER = 4
 #: The most atoms in one slab of a column that the grid's insertion sort takes (more: a
@@ -62,8 +64,7 @@ def column_counts(box, n_atoms, radius):
     return counts[0], counts[1]
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def cluster_grid(positions, box, ncx, ncy, chunks=1):
+def cluster_grid(positions, box, ncx, ncy, chunks=1, kept: KeptArrays | None = None):
     """Sort atoms into columns, each by z, cut into clusters of ``CLUSTER``.
 
     Returns (first, atom, origin, lower, upper): ``first[c]`` the first cluster of
@@ -71,7 +72,9 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
     CLUSTER), -1 for a filler; ``origin[s]`` the slot's origin (the cluster's centre
     plus the wrap of its atom, which subtracted from the atom's position gives its
     place relative to the centre); the clusters' bounding boxes ``lower``/``upper``
-    (clusters, 3) in the wrapped frame.
+    (clusters, 3) in the wrapped frame. With ``kept``, every array (these and the
+    scratch) is written into the arrays kept there (:class:`KeptArrays`), views of
+    them: valid until the next grid made with the same ``kept``.
 
     On the threads, the same arrays bit for bit on any number: the atoms' wrap in
     ``chunks`` runs, the columns' z sorts and the clusters' boxes in parallel; the
@@ -83,24 +86,74 @@ def cluster_grid(positions, box, ncx, ncy, chunks=1):
     so that each column's z sort, an insertion sort, has only the atoms within a slab to
     order: the same order as a stable sort of the column's atoms by z.
     """
+    if kept is None:
+        kept = KeptArrays()
     n = positions.shape[0]
     n_columns = ncx * ncy
     slabs = max(1, n // n_columns)
-    wrapped = np.empty((n, 3))
-    key = np.empty(n, np.int64)
+    # at most one padded cluster per column more than the atoms fill
+    room = (n + CLUSTER - 1) // CLUSTER + n_columns
+    arrays = (
+        kept.take("grid wrapped", n, np.float64, (3,)),
+        kept.take("grid key", n, np.int64),
+        kept.take("grid counts", n_columns * slabs + 1, np.int64),
+        kept.take("grid fill", n_columns * slabs, np.int64),
+        kept.take("grid order", n, np.int64),
+        kept.take("grid first", n_columns + 1, np.int64),
+        kept.take("grid heights", n, np.float64),
+        kept.take("grid atom", room * CLUSTER, np.int64),
+        kept.take("grid origin", room * CLUSTER, np.float64, (3,)),
+        kept.take("grid lower", room, np.float64, (3,)),
+        kept.take("grid upper", room, np.float64, (3,)),
+    )
+    first, atom, origin, lower, upper = arrays[5], *arrays[7:]
+    n_clusters = _cluster_grid(positions, box, ncx, ncy, chunks, slabs, *arrays)
+    return (
+        first,
+        atom[: n_clusters * CLUSTER],
+        origin[: n_clusters * CLUSTER],
+        lower[:n_clusters],
+        upper[:n_clusters],
+    )
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _cluster_grid(
+    positions,
+    box,
+    ncx,
+    ncy,
+    chunks,
+    slabs,
+    wrapped,
+    key,
+    counts,
+    fill,
+    order,
+    first,
+    heights,
+    atom,
+    origin,
+    lower,
+    upper,
+):
+    """:func:`cluster_grid` into the arrays given (the first ones scratch; ``atom``,
+    ``origin``, ``lower`` and ``upper`` with room for every cluster); returns the
+    clusters."""
+    n = positions.shape[0]
+    n_columns = ncx * ncy
     for t in prange(chunks):
         _wrap_atoms(
             positions, box, ncx, ncy, slabs, wrapped, key, t * n // chunks, (t + 1) * n // chunks
         )
-    counts, order, first = _column_order(key, n_columns, slabs)
-    atom = np.full(first[-1] * CLUSTER, -1, np.int64)
-    heights = np.empty(n)
+    _column_order(key, n_columns, slabs, counts, fill, order, first)
+    n_clusters = first[n_columns]
+    atom[: n_clusters * CLUSTER] = -1
     for c in prange(n_columns):
         _column_atoms(wrapped, counts, order, first, heights, atom, c, slabs)
-    origin, lower, upper = _grid_boxes(first[-1])
-    for cl in prange(first[-1]):
+    for cl in prange(n_clusters):
         _cluster_box(positions, wrapped, atom, origin, lower, upper, cl)
-    return first, atom, origin, lower, upper
+    return n_clusters
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -126,27 +179,25 @@ def _wrap_atoms(positions, box, ncx, ncy, slabs, wrapped, key, begin, end):
 
 
 @njit(cache=True, error_model="numpy")
-def _column_order(key, n_columns, slabs):
-    """(counts, order, first): the atoms' offsets per key (n_columns * slabs + 1), the
-    atoms grouped by key in atom order (a stable counting sort), and each column's first
-    cluster (n_columns + 1)."""
+def _column_order(key, n_columns, slabs, counts, fill, order, first):
+    """Into ``counts``, ``order`` and ``first``: the atoms' offsets per key (n_columns *
+    slabs + 1), the atoms grouped by key in atom order (a stable counting sort), and each
+    column's first cluster (n_columns + 1). ``fill``: scratch, n_columns * slabs."""
     n = key.shape[0]
     n_keys = n_columns * slabs
-    counts = np.zeros(n_keys + 1, np.int64)
+    counts[:] = 0
     for i in range(n):
         counts[key[i] + 1] += 1
     for c in range(n_keys):
         counts[c + 1] += counts[c]
-    fill = counts[:-1].copy()
-    order = np.empty(n, np.int64)
+    fill[:] = counts[:-1]
     for i in range(n):
         order[fill[key[i]]] = i
         fill[key[i]] += 1
-    first = np.zeros(n_columns + 1, np.int64)
+    first[0] = 0
     for c in range(n_columns):
         in_column = counts[(c + 1) * slabs] - counts[c * slabs]
         first[c + 1] = first[c] + (in_column + CLUSTER - 1) // CLUSTER
-    return counts, order, first
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -176,16 +227,6 @@ def _column_atoms(wrapped, counts, order, first, heights, atom, c, slabs):
             p -= 1
         heights[p] = z
         atom[base + p] = i
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _grid_boxes(n_clusters):
-    """The slots' origins (zeroed) and the clusters' lower and upper corners."""
-    return (
-        np.zeros((n_clusters * CLUSTER, 3)),
-        np.empty((n_clusters, 3)),
-        np.empty((n_clusters, 3)),
-    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")

@@ -21,6 +21,7 @@ from numba import get_num_threads, njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from md._memory import KeptArrays
 from md._simd import (
     ZMM,
     array_data,
@@ -51,6 +52,7 @@ def search_pairs(
     reach2,
     inner2=None,
     with_reach=False,
+    kept=None,
 ):
     """The cluster pairs of a list of radius ``radius``.
 
@@ -89,7 +91,28 @@ def search_pairs(
     each part but the first moved down to follow the one before, a block per array
     (:func:`_joined`); each i
     cluster's row is written as its windows are found (:func:`_search_columns`).
+
+    With ``kept`` (:class:`md._memory.KeptArrays`) the buffers, and so the
+    lists returned (views of them), are the arrays kept there: valid until the next search
+    with the same ``kept``, which writes them again (no fresh pages at each search).
     """
+    if kept is None:
+        kept = KeptArrays()
+    n_clusters = lower.shape[0]
+    # each chunk's rows get per_cluster pairs of room per cluster, and 64 (_search_lists)
+    room = per_cluster * n_clusters + 64 * chunks
+    room_inner = room if inner2 is not None else 0
+    buffers = (
+        kept.take("search partners", room, np.int32),
+        kept.take("search offsets", room, np.float32, (3,)),
+        kept.take("search counts", n_clusters, np.int64),
+        kept.take("search reach", n_clusters, np.int64),
+        kept.take("search starts", n_clusters + 1, np.int64),
+        kept.take("search inner partners", room_inner, np.int32),
+        kept.take("search inner offsets", room_inner, np.float32, (3,)),
+        kept.take("search inner counts", n_clusters, np.int64),
+        kept.take("search inner starts", n_clusters + 1, np.int64),
+    )
     found = _search_lists(
         box,
         ncx,
@@ -105,6 +128,7 @@ def search_pairs(
         xj,
         reach2,
         np.float32(-1.0 if inner2 is None else inner2),
+        buffers,
     )
     if found is None:
         return None
@@ -114,11 +138,29 @@ def search_pairs(
 
 @njit(cache=True, error_model="numpy")
 def _search_lists(
-    box, ncx, ncy, first, lower, upper, radius, chunks, workers, per_cluster, xi, xj, reach2, inner2
+    box,
+    ncx,
+    ncy,
+    first,
+    lower,
+    upper,
+    radius,
+    chunks,
+    workers,
+    per_cluster,
+    xi,
+    xj,
+    reach2,
+    inner2,
+    buffers,
 ):
     """:func:`search_pairs`, the pruned rows always returned (none where ``inner2`` < 0),
-    the chunks claimed by ``workers`` threads."""
-    n_clusters = lower.shape[0]
+    the chunks claimed by ``workers`` threads, into ``buffers`` (part partners and
+    offsets, per_cluster * clusters + 64 * chunks pairs of room; counts, reach and
+    starts per cluster; the same for the pruned rows, their parts' room none where
+    ``inner2`` < 0: they are never longer than the kept ones)."""
+    part_partners, part_offsets, counts, reach, starts = buffers[:5]
+    inner_partners, inner_offsets, inner_counts, inner_starts = buffers[5:]
     column_bounds = _column_chunks(box, ncx, ncy, first, radius, chunks)
     # chunk t writes its rows from place[t] of one buffer (room[t] pairs), then each chunk
     # but the first is moved down to where its rows begin in the list (_joined)
@@ -126,20 +168,11 @@ def _search_lists(
     for t in range(chunks):
         room = per_cluster * (first[column_bounds[t + 1]] - first[column_bounds[t]]) + 64
         place[t + 1] = place[t] + room
-    part_partners = np.empty(place[chunks], np.int32)
-    part_offsets = np.empty((place[chunks], 3), np.float32)
-    counts = np.zeros(n_clusters, np.int64)
-    reach = np.empty(n_clusters, np.int64)
+    counts[:] = 0
+    inner_counts[:] = 0
     used = np.zeros(chunks, np.int64)
     parts = (part_partners, part_offsets, counts, reach, used)
-    # the pruned rows: never longer than the kept ones (none written with inner2 < 0)
-    room_inner = place[chunks] if inner2 > 0.0 else 0
-    inner = (
-        np.empty(room_inner, np.int32),
-        np.empty((room_inner, 3), np.float32),
-        np.zeros(n_clusters, np.int64),
-        inner2,
-    )
+    inner = (inner_partners, inner_offsets, inner_counts, inner2)
     _search_parts(
         box,
         ncx,
@@ -160,14 +193,20 @@ def _search_lists(
     )
     if used.min() < 0:
         return None
-    listed = _joined(counts, first, column_bounds, used, place, part_partners, part_offsets)
-    inner_partners, inner_offsets, inner_counts, _ = inner
+    listed = _joined(counts, first, column_bounds, used, place, part_partners, part_offsets, starts)
     inner_used = np.zeros(chunks, np.int64)
     for t in range(chunks):
         for ci in range(first[column_bounds[t]], first[column_bounds[t + 1]]):
             inner_used[t] += inner_counts[ci]
     pruned = _joined(
-        inner_counts, first, column_bounds, inner_used, place, inner_partners, inner_offsets
+        inner_counts,
+        first,
+        column_bounds,
+        inner_used,
+        place,
+        inner_partners,
+        inner_offsets,
+        inner_starts,
     )
     return listed + pruned + (reach,)
 
@@ -280,8 +319,9 @@ def _search_parts(
 
 
 @njit(cache=True, error_model="numpy")
-def _joined(counts, first, column_bounds, used, place, part_partners, part_offsets):
-    """(starts, partners, offsets) of the rows of ``counts`` pairs each, written per chunk
+def _joined(counts, first, column_bounds, used, place, part_partners, part_offsets, starts):
+    """(starts, partners, offsets) of the rows of ``counts`` pairs each (``starts``
+    written: clusters + 1), written per chunk
     into ``part_partners``/``part_offsets`` (chunk t's ``used[t]`` pairs from
     ``place[t]``): the first chunk's where they are, each later one moved down to follow
     the one before, in order (a move never overwrites pairs not yet moved), each array's
@@ -296,7 +336,7 @@ def _joined(counts, first, column_bounds, used, place, part_partners, part_offse
     threads the threaded loops took 0.36 + 0.17 at best, no faster than one."""
     n_clusters = counts.shape[0]
     chunks = used.shape[0]
-    starts = np.zeros(n_clusters + 1, np.int64)
+    starts[0] = 0
     for ci in range(n_clusters):
         starts[ci + 1] = starts[ci] + counts[ci]
     for t in range(1, chunks):

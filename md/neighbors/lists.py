@@ -24,6 +24,7 @@ import numpy as np
 from numba.core import config as numba_config
 from numpy.typing import NDArray
 
+from md._memory import KeptArrays
 from md.box import (
     TILT_NAMES,
     cell_matrix,
@@ -414,7 +415,9 @@ class NeighborList:
         self._prune_distance2 = _square(0.5 * (self.outer_skin - self.skin))
         self.n_prunes = 0
         self.n_bounded_prunes = 0
-        self._prune_buffers = None  # see _prune
+        # The cluster grid's, search's and prunes' arrays, kept from build to build (see
+        # _build_clusters): the lists handed out are views of them, valid while current
+        self._kept = KeptArrays()
         self._prune_relative = None  # the search's relative positions, for its prunes
         self._slots_pending = False  # a cluster build: the slot list on first use
         # (n_builds, n_prunes, n_followed, frame) of the last ``frame`` handed out: the
@@ -550,7 +553,9 @@ class NeighborList:
     @property
     def clusters(self) -> ClusterFrame | None:
         """The cluster-pair list of the last build, or None (not asked for, or a cell it
-        does not serve: see ``clusters`` in the class docstring)."""
+        does not serve: see ``clusters`` in the class docstring). Its arrays are this
+        list's kept buffers: valid while it is the current list; the next search (or,
+        for a pruned list, prune) writes over them (copy them to keep them longer)."""
         return self._clusters
 
     @property
@@ -944,7 +949,7 @@ class NeighborList:
         # Drop the old list first, so it and the new one are never held together.
         self.order, self._atom_list, self._clusters, self._outer = None, None, None, None
         self._repeats = False
-        self._prune_buffers = self._prune_relative = None
+        self._prune_relative = None
         self.images = self.slot_neighbors = self.codes = self.slot_starts = None
         self.shifted_rows = None
         self._slots_pending = False
@@ -1066,15 +1071,21 @@ class NeighborList:
         return self.list_radius
 
     def _build_clusters(self, state: State, columns: tuple[int, int], chunks: int) -> None:
+        """The cluster grid, search and (with an outer list) the search's own prune, into
+        the arrays this list keeps from build to build (``self._kept``): a build writes
+        over the last one's lists (no longer current: dropped by ``build``) and so needs
+        no fresh memory; with glibc's own malloc thresholds fresh arrays cost page faults
+        at each search (:mod:`md._memory`; ``benchmarks/cluster_pruning.py`` counts them)."""
         ncx, ncy = columns
+        kept = self._kept
         first, atom, origin, lower, upper = cluster_grid(
-            state.positions, state.box, ncx, ncy, chunks
+            state.positions, state.box, ncx, ncy, chunks, kept
         )
         radius = self._search_radius(state.box, state.n_atoms)
         # the pairs with an atom pair within reach, checked in float32: the radius widened
         # by 1e-5 so that rounding can only keep a pair more, never drop one
-        xi = np.empty(3 * len(atom), np.float32)
-        xj = np.empty(3 * len(atom), np.float32)
+        xi = kept.take("relative i", 3 * len(atom), np.float32)
+        xj = kept.take("relative j", 3 * len(atom), np.float32)
         _relative_positions(state.positions, atom, origin, xi, xj)  # as a prune's: threaded
         reach2 = np.float32((radius * (1.0 + 1e-5)) ** 2)
         # an outer list: pruned to the list radius in the same pass (the search's own prune)
@@ -1095,6 +1106,7 @@ class NeighborList:
                 reach2,
                 inner2,
                 with_reach=True,
+                kept=kept,
             )
             if found is not None:
                 break
@@ -1132,21 +1144,18 @@ class NeighborList:
         self._frame_memo = None
         outer = self._outer
         n, size = outer.n_clusters, outer.n_pairs
-        # One set of buffers per search (the relative positions: the search's own),
-        # written over by each prune: a pruned list's arrays hold until the next prune
-        # (copy them to keep them longer).
-        if self._prune_buffers is None:
-            self._prune_buffers = (
-                np.empty(n + 1, np.int64),
-                np.empty(size, np.int32),
-                np.empty((size, 3), np.float32),
-                *(
-                    self._prune_relative
-                    or (np.empty(12 * n, np.float32), np.empty(12 * n, np.float32))
-                ),
-                np.empty(size, np.uint8),  # each outer pair's verdict
-            )
-        starts, partners, offsets, xi, xj, marks = self._prune_buffers
+        # One set of buffers kept from search to search (the relative positions: the
+        # search's own), written over by each prune: a pruned list's arrays hold until
+        # the next prune (copy them to keep them longer).
+        kept = self._kept
+        starts = kept.take("prune starts", n + 1, np.int64)
+        partners = kept.take("prune partners", size, np.int32)
+        offsets = kept.take("prune offsets", size, np.float32, (3,))
+        marks = kept.take("prune marks", size, np.uint8)  # each outer pair's verdict
+        xi, xj = self._prune_relative or (
+            kept.take("relative i", 12 * n, np.float32),
+            kept.take("relative j", 12 * n, np.float32),
+        )
         outer.relative_positions(positions, xi, xj)
         reach2 = self._prune_reach2()
         kept = prune_pairs(
