@@ -1404,10 +1404,13 @@ class NeighborList:
             return None
         if across is None:
             across = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+        box = state.box  # (a State's is float64; a writable array: the kernel's one signature)
+        if box.dtype != np.float64 or not box.flags.writeable:
+            box = box.astype(np.float64)
         origin, width, n_cells, fits = _cell_grid(
             state.positions,
             state.pbc,
-            np.asarray(state.box, dtype=np.float64),  # (a State's is: no copy)
+            box,
             across,
             self.cutoff + self.skin,  # (list_radius, without its property's call)
             _REACH,
