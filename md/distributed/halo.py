@@ -304,8 +304,8 @@ class Domain:
         # rows of position (3), fractional position (3), id and type.
         n = len(state.positions)
         self._parity ^= 1  # the local arrays of the build before this one stay as they are
-        positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
-        home = self._buffer(n, 3, "home")
+        memory = self._build_memory(n)
+        positions, ids, types, home, images = memory[:5]
         self.imaged, self.images, strayed = home_layout(
             state.positions,
             box,
@@ -317,28 +317,29 @@ class Domain:
             widths,
             home,
             positions[:n],
-            self._buffer(n, 4, "images", np.int64),  # (images, and the atoms' indices)
+            images,  # (images, and the atoms' indices)
         )
-        self._local_rows("ids", len(positions), (), np.int64)[:n] = state.ids
-        self._local_rows("types", len(positions), (), np.int32)[:n] = state.types
+        ids[:n] = state.ids
+        types[:n] = state.types
         with self.ranks.clock:
-            return self._find_ghosts(state, reach, strayed, positions, home, n, margin, geometry)
+            return self._find_ghosts(state, reach, strayed, memory, n, margin, geometry)
 
     def _find_ghosts(
         self,
         state: State,
         reach: float,
         strayed: float,
-        positions,
-        home,
+        memory: tuple,
         n: int,
         agreed: float | None,
         geometry: tuple,
     ) -> DecompositionError | None:
         """:meth:`build`'s ghost search and the local system's state, after the owned
-        atoms' layout (``positions``' first ``n`` rows, their fractions ``home``; the
-        ``agreed`` margin or None; the cell's :meth:`geometry`). Returns the lost atoms'
-        error where it is the caller's to share."""
+        atoms' layout (the first ``n`` rows of the positions of ``memory``, the build's
+        :meth:`_build_memory`, their fractions its ``home``; the ``agreed`` margin or None;
+        the cell's :meth:`geometry`). Returns the lost atoms' error where it is the
+        caller's to share."""
+        positions, ids, types, home, _, ghost_fractions, rows, tables = memory
         box, pbc = state.box, state.pbc
         tilt, cell, widths, local_pbc, local_tilt, local_periodic, thinnest = geometry
         if agreed is not None and thinnest < reach + 2.0 * agreed:
@@ -364,17 +365,12 @@ class Domain:
                 f"{'xyz'[axis]}, more than a brick ({brick[axis]:.4g}); use fewer ranks or a "
                 "smaller time step"
             )
-        ids = self._local["ids"][self._parity]  # (their owned rows written by build)
-        types = self._local["types"][self._parity]
-        ghost_fractions = self._buffer(len(positions) - n, 3, "ghost fractions")
         # Each sweep is two compiled calls around its messages: sweep_send finds the atoms
         # near the faces, writes their rows (one message's, a row of counts first) and this
         # build's swap tables, which the compiled halo then uses as they are (plan);
         # sweep_append lays the arrived rows out as ghosts. The tables and send lists lie
         # in memory kept between builds (two sets, alternating as the local arrays).
-        tables = self._swap_tables()
         index, table, shifts, sweeps = tables
-        rows = self._held("sweep rows", 8)
         count, start, s, remote = n, 0, 0, False
         swaps: list[_Swap] = []
         for axis in range(3):
@@ -664,6 +660,43 @@ class Domain:
         like it), their room for migrations now (:meth:`md.distributed.migration.RowStore.
         reserve`): the first migration of a run then pays no page faults."""
         self.rows.reserve(state, carried)
+
+    def _build_memory(self, n: int) -> tuple:
+        """A build's kept memory for ``n`` owned atoms, in one call (where it fits; else
+        grown by the calls it stands for): the local system's positions, ids and types
+        (this build's parity, :meth:`_local_rows`; ids and types as long as the
+        positions), the owned atoms' fractions (``home``, n x 3) and images (n x 4), the
+        ghosts' fractions (the rest of the positions' rows), the sweeps' whole rows
+        (:meth:`_held`) and this build's swap tables (:meth:`_swap_tables`)."""
+        parity, local, buffers = self._parity, self._local, self._buffers
+        pair = local.get("positions")
+        positions = None if pair is None else pair[parity]
+        if positions is None or positions.shape[0] < n + n // 2 + 64:
+            positions = self._local_rows("positions", n + n // 2 + 64, (3,), np.float64)
+        size = positions.shape[0]
+        found = [positions]
+        for name, dtype in (("ids", np.int64), ("types", np.int32)):
+            pair = local.get(name)
+            held = None if pair is None else pair[parity]
+            if held is None or held.shape[0] < size:
+                held = self._local_rows(name, size, (), dtype)
+            found.append(held)
+        for name, rows, k, dtype in (
+            ("home", n, 3, np.float64),
+            ("images", n, 4, np.int64),
+            ("ghost fractions", size - n, 3, np.float64),
+        ):
+            held = buffers.get((name, k))
+            found.append(
+                held[:rows]
+                if held is not None and held.shape[0] >= rows
+                else self._buffer(rows, k, name, dtype)
+            )
+        held = buffers.get(("sweep rows", 8))
+        found.append(held if held is not None else self._held("sweep rows", 8))
+        tables = self._tables[parity]
+        found.append(tables if tables is not None else self._swap_tables())
+        return tuple(found)
 
     def _local_rows(self, name: str, n: int, tail: tuple, dtype) -> NDArray:
         """An array of at least n rows (of shape ``tail``) for the local system's ``name``:

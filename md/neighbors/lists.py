@@ -24,6 +24,7 @@ import numpy as np
 from numba.core import config as numba_config
 from numpy.typing import NDArray
 
+from md import parallel
 from md._memory import KeptArrays
 from md.box import (
     TILT_NAMES,
@@ -959,8 +960,10 @@ class NeighborList:
         self.used_cells = grid is not None
         # the rows that may hold pairs: a rank's owned atoms (keep_owned), else every atom
         self._listed_rows = n if self._owned is None else self._owned_ids(n)[1]
-        chunks = chunk_count(n, _MIN_CHUNK_ATOMS)
-        columns = self._cluster_columns(state) if grid is not None else None
+        threads = parallel.get_threads()  # (chunk_count's, once: 2 Python calls fewer)
+        chunks = max(1, min(threads, n // _MIN_CHUNK_ATOMS))
+        # (a rank's list, keep_owned, is never a cluster one: not asked)
+        columns = None if grid is None or self._owned is not None else self._cluster_columns(state)
         if columns is not None:
             self._build_clusters(state, columns, chunks)
             if self._prune_relative is not None:  # the search's, at these positions
@@ -983,15 +986,17 @@ class NeighborList:
         if self._groups is not None:
             self._drop_grouped(chunks)
         self._reference = reference
-        self._box = state.box.copy()
-        self._tilt = state.tilt.copy()
-        self._pbc = state.pbc.copy()
-        self._cell_bytes = (self._box.tobytes(), self._tilt.tobytes(), self._pbc.tobytes())
+        cell_bytes = (state.box.tobytes(), state.tilt.tobytes(), state.pbc.tobytes())
+        if cell_bytes != self._cell_bytes:  # (else the copies held are of the same bits)
+            self._box = state.box.copy()
+            self._tilt = state.tilt.copy()
+            self._pbc = state.pbc.copy()
+            self._cell_bytes = cell_bytes
         self._build_cell = (self.lengths, self.tilt)
         self._followed_at_build = self.n_followed
         self._built_step = int(state.step)
         self._resumed_at = None
-        self._pass_chunks = chunk_count(n, _MIN_PASS_ATOMS)
+        self._pass_chunks = max(1, min(threads, n // _MIN_PASS_ATOMS))
         self.n_builds += 1
 
     def _cell_data(self, state: State):
@@ -1030,13 +1035,14 @@ class NeighborList:
             self._cell_memo = memo
         lengths, tilt, across, shifts, limits = memo[1]
         grids = memo[3]  # a periodic cell's grid per atom count (the most cells it may have)
-        grid = grids.get(state.n_atoms, False)
+        n = state.positions.shape[0]  # (State.n_atoms is a property: a Python call each)
+        grid = grids.get(n, False)
         if grid is False:
             grid = self._grid(state, across)
             if memo[2]:
                 if len(grids) > 8:  # (a rank's count changes at every build)
                     grids.clear()
-                grids[state.n_atoms] = grid
+                grids[n] = grid
         return lengths, tilt, grid, shifts, limits
 
     def _cluster_columns(self, state: State) -> tuple[int, int] | None:
@@ -1402,18 +1408,22 @@ class NeighborList:
         each slab of cells is radius / reach thick; along an open axis the grid
         spans the atoms (``_cell_grid``).
         """
-        if state.n_atoms < 2:
+        n = state.positions.shape[0]
+        if n < 2:
             return None
         if across is None:
             across = perpendicular_widths(state.box, periodic_tilt(state.tilt, state.pbc))
+        box = state.box  # (a State's is float64; a writable array: the kernel's one signature)
+        if box.dtype != np.float64 or not box.flags.writeable:
+            box = box.astype(np.float64)
         origin, width, n_cells, fits = _cell_grid(
             state.positions,
             state.pbc,
-            state.box.astype(np.float64),
+            box,
             across,
-            self.list_radius,
+            self.cutoff + self.skin,  # (list_radius, without its property's call)
             _REACH,
-            _MAX_CELLS_PER_ATOM * state.n_atoms + 27,
+            _MAX_CELLS_PER_ATOM * n + 27,
         )
         return (origin, width, n_cells, _REACH) if fits else None
 
