@@ -19,11 +19,12 @@ import pytest
 from numba.core.registry import CPUDispatcher
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The kernel modules whose threaded loops call chunk kernels.
-FILES = (
-    "potentials/_pair_kernels.py",
-    "md/neighbors/_build_kernels.py",
-    "md/neighbors/_cell_kernels.py",
+#: Every module of the packages with a threaded loop.
+FILES = tuple(
+    path.relative_to(ROOT).as_posix()
+    for package in ("md", "potentials", "integrators")
+    for path in sorted((ROOT / package).rglob("*.py"))
+    if "prange" in path.read_text()
 )
 
 

@@ -290,10 +290,12 @@ def _owned_pairs_threaded(
     counts,
     tested,
 ):
-    """``_owned_pairs`` with one chunk per thread (the same list)."""
+    """``_owned_pairs`` with one chunk per thread (the same list). The chunk's index goes
+    in as an int64, as ``_owned_pairs`` gives it (a prange body's own index is a uint64:
+    the chunk kernel compiled twice, tests/test_compile_chain.py)."""
     for chunk in prange(bounds.shape[0] - 1):
         _owned_pairs_chunk(
-            chunk,
+            np.int64(chunk),
             wrapped,
             slot_cell,
             slot_ids,
