@@ -96,6 +96,7 @@ ALLOWED = {
     "potentials/_pair_frame.py": {
         'getattr(neighbors, "clusters", None)': "left for the pair frame's own item",
         'getattr(self, "_cluster_scratch", None)': "a buffer made on first use",
+        'getattr(self, "_cluster_kept", None)': "kept arrays made on first use",
         'getattr(self, "_scratch", None)': "a buffer made on first use",
         'getattr(self, "_hessian_buffers", None)': "buffers made on first use",
         'getattr(self, "_table_cache", None)': "a cache made on first use",
