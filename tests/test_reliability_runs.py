@@ -148,6 +148,21 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(folder)], capture_output=True)
 
 
+def _half_the_room(config: Path, steps: int, folder: Path) -> int:
+    """Half the bytes the run of ``config`` for ``steps`` steps writes (its trajectory and
+    checkpoint, measured by running it serially into ``folder``): room a full run
+    cannot fit in, whatever the file layout's overheads."""
+    folder.mkdir()
+    probe = folder / "probe.h5"
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        assert main(["run", str(config), "-o", str(probe), "--steps", str(steps), *QUIET]) == 0
+    finally:
+        os.chdir(cwd)
+    return sum(f.stat().st_size for f in folder.iterdir()) // 2
+
+
 def test_the_hint_after_a_full_disk_repeats_the_output_and_resumes(
     tmp_path, small_disk, monkeypatch, capsys
 ):
@@ -160,8 +175,9 @@ def test_the_hint_after_a_full_disk_repeats_the_output_and_resumes(
         )
     )
     monkeypatch.chdir(tmp_path)
+    room = _half_the_room(config, 300, tmp_path / "probe")
     free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
-    (disk / "filler").write_bytes(b"\0" * (free - 400_000))
+    (disk / "filler").write_bytes(b"\0" * (free - room))
     output = disk / "out.h5"
     assert main(["run", str(config), "-o", str(output), "--steps", "300", *QUIET]) == 2
     err = capsys.readouterr().err
@@ -402,8 +418,9 @@ def test_the_hint_under_mpiexec_names_the_ranks_and_resumes(tmp_path, small_disk
     disk = small_disk(4096)
     config = tmp_path / "run.toml"
     config.write_text(SMALL.format(integrator='type = "verlet"\ndt = 0.005', steps=20))
+    room = _half_the_room(config, 400, tmp_path / "probe")
     free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
-    (disk / "filler").write_bytes(b"\0" * (free - 300_000))
+    (disk / "filler").write_bytes(b"\0" * (free - room))
     output = disk / "out.h5"
     full = subprocess.run(
         [*_mpi_words(2), "run", str(config), "-o", str(output), "--steps", "400", *QUIET],
