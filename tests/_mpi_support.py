@@ -1,12 +1,15 @@
 """What the tests that launch real MPI ranks share: whether ``mpiexec`` and mpi4py are
 here (``needs_mpi`` skips without the ``[mpi]`` extra), the repository root for the ranks'
-``PYTHONPATH``, and ``COUNTED_MELT``: the source of a module the ranks import, with the
+``PYTHONPATH``, :func:`rank_zero_json` (a script on 2 ranks, rank 0's JSON line back), and
+``COUNTED_MELT``: the source of a module the ranks import, with the
 384-atom LJ melt (two bricks along x on 2 ranks), its simulation and ``Counted``, a proxy
 of a communicator that counts its calls by name.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 import sys
@@ -19,6 +22,30 @@ HAVE_MPI = shutil.which("mpiexec") is not None and (
     subprocess.run([sys.executable, "-c", "import mpi4py"], capture_output=True).returncode == 0
 )
 needs_mpi = pytest.mark.skipif(not HAVE_MPI, reason="needs mpi4py and mpiexec (the [mpi] extra)")
+
+
+def rank_zero_json(folder: Path, source: str, n_ranks: int = 2, timeout: float = 600) -> dict:
+    """Run ``source`` as ``folder/script.py`` on ``n_ranks`` ranks (this checkout's packages
+    first on ``PYTHONPATH``; MPICH's waiting ranks yield the shared cores) and return the
+    last line of its output that is a JSON object (rank 0 prints it)."""
+    script = folder / "script.py"
+    script.write_text(source)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")  # (the 2 cores of CI are shared)
+    done = subprocess.run(
+        ["mpiexec", "-n", str(n_ranks), sys.executable, str(script)],
+        cwd=folder,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    return json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
+
 
 #: A module's source (written next to a rank's script): ``system(seed)``, ``simulation``,
 #: ``Counted(comm)`` with ``counts`` per call name and ``total(names)``, and the names of

@@ -18,15 +18,9 @@ outrun inside the step after direct calls), both ways. The last test checks
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-from _mpi_support import ROOT, needs_mpi
+from _mpi_support import needs_mpi, rank_zero_json
 
 import md
 from md.forcefield import ForceField
@@ -155,20 +149,7 @@ if sim.rank == 0:
 @pytest.fixture(scope="module")
 def launched(tmp_path_factory) -> dict:
     """The one launch's findings (:data:`SCRIPT`, rank 0)."""
-    tmp_path: Path = tmp_path_factory.mktemp("step_lean")
-    script = tmp_path / "script.py"
-    script.write_text(SCRIPT)
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-    }
-    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")  # (the 2 cores of CI are shared)
-    command = ["mpiexec", "-n", "2", sys.executable, str(script)]
-    done = subprocess.run(
-        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
-    )
-    assert done.returncode == 0, done.stderr + done.stdout
-    return json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
+    return rank_zero_json(tmp_path_factory.mktemp("step_lean"), SCRIPT)
 
 
 @needs_mpi

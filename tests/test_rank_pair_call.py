@@ -15,14 +15,11 @@ builds enters no slow path and the trajectory is the one with the short path tur
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
 import sys
 
 import numpy as np
 import pytest
-from _mpi_support import ROOT, needs_mpi
+from _mpi_support import needs_mpi, rank_zero_json
 
 import md
 from md.forcefield import ForceField
@@ -243,23 +240,7 @@ if MPI.COMM_WORLD.Get_rank() == 0:
 @needs_mpi
 @pytest.mark.slow  # three 2-rank runs of the melt, ~20 s on 2 cores
 def test_a_decomposed_step_between_builds_takes_the_short_pair_call(tmp_path):
-    script = tmp_path / "ranks.py"
-    script.write_text(RANKS)
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-    }
-    env.setdefault("MPIR_CVAR_ENABLE_HEAVY_YIELD", "1")  # (oversubscribed cores: yield)
-    done = subprocess.run(
-        ["mpiexec", "-n", "2", sys.executable, str(script)],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr + done.stdout
-    found = json.loads([line for line in done.stdout.splitlines() if line.startswith("{")][-1])
+    found = rank_zero_json(tmp_path, RANKS)
     assert found["atoms"], found  # (the rank's list is over atom indices: the case at hand)
     assert len(found["calls"]) >= 20, found
     # a slow-path entry only at the first call on a build's new local arrays, the span
